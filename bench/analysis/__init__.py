@@ -1,0 +1,1 @@
+"""Analysis of recorded runs: figures of merit computed from files (and, in tests, from model traces)."""

@@ -1,0 +1,42 @@
+"""Cycle-based figures of merit: hysteresis loss of a force–displacement loop, crest-to-trough."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def last_cycles(t: np.ndarray, frequency: float, n_cycles: int = 1) -> np.ndarray:
+    """Boolean mask of the samples in the last ``n_cycles`` whole periods of a record at ``frequency`` [Hz]."""
+    t = np.asarray(t, dtype=float)
+    n_total = int(np.floor((t[-1] - t[0]) * frequency + 1e-9))
+    if n_total < n_cycles:
+        raise ValueError(f"record holds {n_total} whole cycles, {n_cycles} requested")
+    start = t[0] + (n_total - n_cycles) / frequency
+    end = t[0] + n_total / frequency
+    return (t >= start - 1e-12) & (t <= end + 1e-12)
+
+
+def hysteresis_loss(x: np.ndarray, force: np.ndarray) -> float:
+    """Hysteresis loss of one closed force–displacement cycle: enclosed area / loading work [-].
+
+    The loading branch is where x increases (work done on the actuator, ∫F dx over dx > 0); the enclosed
+    area is |∮F dx| (Moretti et al., Table 3). Trapezoidal integration.
+    """
+    x = np.asarray(x, dtype=float)
+    force = np.asarray(force, dtype=float)
+    dx = np.diff(x)
+    fm = 0.5 * (force[1:] + force[:-1])
+    work = fm * dx
+    loading = float(np.sum(work[dx > 0]))
+    if loading <= 0:
+        raise ValueError("loading work is not positive: the cycle has no loading branch with F > 0")
+    return abs(float(np.sum(work))) / loading
+
+
+def crest_to_trough(t: np.ndarray, signal: np.ndarray, detrend: bool = True) -> float:
+    """Crest-to-trough amplitude max − min of ``signal``, after removing a linear drift if ``detrend``."""
+    t = np.asarray(t, dtype=float)
+    s = np.asarray(signal, dtype=float)
+    if detrend and s.size > 1:
+        s = s - np.polyval(np.polyfit(t - t[0], s, 1), t - t[0])
+    return float(np.max(s) - np.min(s))

@@ -1,0 +1,40 @@
+"""Gent spring of the equibiaxial membrane in log-stretch form (physics.md §1.2, §1.5).
+
+A Gent unit sees the elastic stretch ``e = λ/ξ`` (ξ = 1 for the equilibrium spring). With ``u = ln e``:
+
+    g(u)  = e^{2u} − e^{−4u}
+    G(u)  = 1 − (2e^{2u} + e^{−4u} − 3)/J          (Gent lock-up when G → 0)
+    h(u)  = g/G,   h'(u) = g'/G + 4g²/(J G²)         (G' = −4g/J)
+
+so that the unit's nominal stress is ``s = μ h(u)/λ`` (= μ(λξ⁻² − λ⁻⁵ξ⁴)/G, physics.md §1.2) and its
+Maxwell flow rule is ``d ln ξ/dt = (μ/6η) h(u)`` (corrected thesis eq 60/65). Every use of the Gent unit in
+the membrane model (stress, flow, Jacobian, streaming step) goes through this one function.
+"""
+
+from __future__ import annotations
+
+import math
+
+from numba import njit
+
+
+@njit(cache=True)
+def gent_h(u: float, J: float) -> tuple[float, float, float]:
+    """Return (h, dh/du, G) of a Gent unit with limit J at elastic log-stretch u [-]."""
+    e2 = math.exp(2.0 * u)
+    e4 = math.exp(-4.0 * u)
+    g = e2 - e4
+    G = 1.0 - (2.0 * e2 + e4 - 3.0) / J
+    h = g / G
+    dh = (2.0 * e2 + 4.0 * e4) / G + 4.0 * g * g / (J * G * G)
+    return h, dh, G
+
+
+@njit(cache=True)
+def gent_relaxation_rate(u: float, J: float, mu: float, eta: float) -> float:
+    """Rate r [1/s] with du/dt = −r·u at fixed λ (r → μ/η as u → 0); used by the exponential update."""
+    h, _, _ = gent_h(u, J)
+    if abs(u) < 1e-9:
+        # h/u → 6/G(0) = 6 as u → 0
+        return mu / eta
+    return mu / (6.0 * eta) * h / u

@@ -1,0 +1,156 @@
+"""Time integration shared by both models: offline (stiff, adaptive), streaming (fixed step), batched.
+
+One model definition (the numba kernels of :mod:`membrane` and :mod:`lozenge`) feeds three integrators:
+
+* :func:`solve_offline` — whole input known in advance: ``solve_ivp`` Radau with the analytic Jacobian and
+  per-component absolute tolerances (physics.md §1.5 item 1), dense output at any rate;
+* :class:`FixedStepper` / :func:`run_fixed` — the fixed-step semi-implicit scheme, one call per sample
+  (the simulated rig) or a compiled loop over a block of samples;
+* :func:`run_fixed_batch` — many parameter sets at once on all cores (identification).
+
+Input convention of the fixed-step path: ``U[k]`` holds the inputs at t_{k+1}; step k takes the state
+from t_k to t_{k+1} (the voltage is a zero-order hold updated at the start of the step).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit, prange
+from scipy.integrate import solve_ivp
+
+from bench.models.lozenge import lozenge_step
+from bench.models.membrane import membrane_step
+
+MODEL_MEMBRANE = 0
+MODEL_LOZENGE = 1
+N_INPUTS = {MODEL_MEMBRANE: 2, MODEL_LOZENGE: 3}  # (Φ, T) and (V, x_in, ẋ_in)
+
+
+@njit(cache=True)
+def step_model(model: int, y: np.ndarray, u: np.ndarray, h: float, p: np.ndarray) -> bool:
+    """One fixed step of the model with id ``model`` (MODEL_*) and inputs ``u``."""
+    if model == MODEL_MEMBRANE:
+        return membrane_step(y, u[0], u[1], h, p)
+    return lozenge_step(y, u[0], u[1], u[2], h, p)
+
+
+@njit(cache=True)
+def run_fixed(model: int, y0: np.ndarray, U: np.ndarray, h: float, p: np.ndarray) -> tuple[np.ndarray, int]:
+    """Integrate len(U) fixed steps from y0. Returns (Y with len(U)+1 rows, number of valid rows).
+
+    Rows after the first step that left the model's domain are NaN.
+    """
+    n = U.shape[0]
+    Y = np.full((n + 1, y0.size), np.nan)
+    y = y0.copy()
+    Y[0] = y
+    for k in range(n):
+        ok = step_model(model, y, U[k], h, p)
+        Y[k + 1] = y
+        if not ok:
+            return Y, k + 2
+    return Y, n + 1
+
+
+@njit(cache=True, parallel=True)
+def run_fixed_batch(model: int, Y0: np.ndarray, U: np.ndarray, h: float, P: np.ndarray, channel: int,
+                    stride: int) -> np.ndarray:
+    """Integrate one input history for many parameter sets (rows of P, initial states rows of Y0) in parallel.
+
+    Returns state component ``channel`` every ``stride`` steps, shape (len(P), len(U)//stride + 1);
+    NaN from the first sample after a set leaves the model's domain.
+    """
+    m = P.shape[0]
+    n = U.shape[0]
+    n_out = n // stride + 1
+    out = np.full((m, n_out), np.nan)
+    for j in prange(m):
+        y = Y0[j].copy()
+        out[j, 0] = y[channel]
+        for k in range(n):
+            if not step_model(model, y, U[k], h, P[j]):
+                break
+            if (k + 1) % stride == 0:
+                out[j, (k + 1) // stride] = y[channel]
+    return out
+
+
+class FixedStepper:
+    """Streaming integrator: advance one model instance sample by sample from the current inputs.
+
+    ``step(*inputs)`` costs one compiled call; ``advance(U)`` runs a block of samples in compiled code.
+    """
+
+    def __init__(self, model: int, p: np.ndarray, y0: np.ndarray, h: float) -> None:
+        if not h > 0:
+            raise ValueError(f"step h must be > 0 s, got {h}")
+        self.model = model
+        self.p = np.ascontiguousarray(p, dtype=np.float64)
+        self.y = np.array(y0, dtype=np.float64)
+        self.h = float(h)
+        self.t = 0.0
+        self.ok = True
+        self._u = np.zeros(N_INPUTS[model])
+
+    def step(self, u0: float, u1: float, u2: float = 0.0) -> bool:
+        """Advance by h with inputs (u0, u1[, u2]) held over the step; False once the model failed."""
+        u = self._u
+        u[0] = u0
+        u[1] = u1
+        if u.size > 2:
+            u[2] = u2
+        self.ok = step_model(self.model, self.y, u, self.h, self.p) and self.ok
+        self.t += self.h
+        return self.ok
+
+    def advance(self, U: np.ndarray) -> np.ndarray:
+        """Advance len(U) steps (U[k] = inputs at the end of step k); returns the states after each step."""
+        Y, valid = run_fixed(self.model, self.y, np.ascontiguousarray(U, dtype=np.float64), self.h, self.p)
+        self.y = Y[-1].copy() if valid == len(Y) else Y[valid - 1].copy()
+        self.ok = self.ok and valid == len(Y)
+        self.t += self.h * len(U)
+        return Y[1:]
+
+
+@dataclass
+class OfflineResult:
+    """Output of :func:`solve_offline`: sample times [s], states (n×ny), solver status and message."""
+
+    t: np.ndarray
+    Y: np.ndarray
+    success: bool
+    message: str
+    nfev: int
+    njev: int
+
+
+def solve_offline(fun: Callable[[float, np.ndarray], np.ndarray],
+                  jac: Callable[[float, np.ndarray], np.ndarray],
+                  y0: np.ndarray, t_eval: np.ndarray, *, atol: np.ndarray, rtol: float = 1e-7,
+                  method: str = "Radau", stop: Callable[[float, np.ndarray], float] | None = None,
+                  max_step: float = np.inf) -> OfflineResult:
+    """Integrate dy/dt = fun(t, y) over ``t_eval`` with a stiff implicit solver and analytic Jacobian.
+
+    ``stop(t, y)`` is a terminal event (the run ends where it crosses zero, e.g. runaway stretch);
+    samples after the stop are NaN so the output always has len(t_eval) rows.
+    """
+    events = None
+    if stop is not None:
+        def event(t: float, y: np.ndarray) -> float:
+            return stop(t, y)
+        event.terminal = True  # type: ignore[attr-defined]
+        events = [event]
+    sol = solve_ivp(fun, (float(t_eval[0]), float(t_eval[-1])), np.asarray(y0, dtype=float), method=method,
+                    t_eval=t_eval, jac=jac, rtol=rtol, atol=atol, events=events, max_step=max_step)
+    if sol.y.shape[1] == len(t_eval):
+        Y = sol.y.T  # (n, ny) view of the solver's array: no copy of a 10-kHz history
+    else:
+        Y = np.full((len(t_eval), len(y0)), np.nan)
+        Y[: sol.y.shape[1]] = sol.y.T
+    stopped = stop is not None and sol.status == 1
+    message = "stopped by event" if stopped else sol.message
+    return OfflineResult(t=np.asarray(t_eval, dtype=float), Y=Y, success=sol.status == 0, message=message,
+                         nfev=sol.nfev, njev=sol.njev)

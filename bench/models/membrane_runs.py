@@ -1,0 +1,149 @@
+"""Runs of Model A: offline simulation, streaming, batched stretch histories for identification."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from typing import Literal
+
+import numpy as np
+
+from bench.models.integrate import MODEL_MEMBRANE, FixedStepper, run_fixed, run_fixed_batch, solve_offline
+from bench.models.membrane import (
+    P_BRANCHES,
+    MembraneParams,
+    MembraneTrace,
+    membrane_jac,
+    membrane_outputs,
+    membrane_rhs,
+)
+
+VoltageInput = Callable[[float], float] | Callable[[np.ndarray], np.ndarray]
+
+# physics.md §1.5: λ̇ needs a loose absolute tolerance, λ and ξ a tight one
+ATOL_SCALE_HEAD = (1e-3, 1e2)
+ATOL_SCALE_UNIT = 1e-3
+
+
+def atol_for(params: MembraneParams, rtol: float) -> np.ndarray:
+    """Per-component absolute tolerance rtol·[1e-3, 1e2, 1e-3, …] for (λ, λ̇, ξ_i)."""
+    return rtol * np.array([*ATOL_SCALE_HEAD, *([ATOL_SCALE_UNIT] * params.n_units)])
+
+
+def _scalar(voltage: VoltageInput) -> Callable[[float], float]:
+    scalar = getattr(voltage, "scalar", None)
+    return scalar if callable(scalar) else (lambda t: float(voltage(t)))  # type: ignore[arg-type]
+
+
+def simulate_membrane(params: MembraneParams, voltage: VoltageInput, t_end: float, fs: float = 10_000.0,
+                      T: float = 296.0, method: Literal["radau", "bdf", "fixed"] = "radau",
+                      rtol: float = 1e-6, h: float = 1e-4) -> MembraneTrace:
+    """Simulate the membrane under voltage(t) [V] for t_end [s], output sampled at fs [Hz].
+
+    ``radau``/``bdf``: stiff adaptive solver with analytic Jacobian (reference accuracy, physics.md §1.5).
+    ``fixed``: the streaming fixed-step scheme with step h (output every round(1/(fs·h)) steps).
+    The run stops early (remaining samples NaN, ``failed`` set) at runaway stretch or Gent lock-up.
+    """
+    if not (t_end > 0 and fs > 0):
+        raise ValueError(f"t_end and fs must be > 0, got {t_end} s and {fs} Hz")
+    p = params.pack()
+    y0 = params.initial_state()
+    n_out = round(t_end * fs) + 1
+    t_out = np.arange(n_out) / fs
+    if method == "fixed":
+        stride = max(1, round(1.0 / (fs * h)))
+        n_steps = (n_out - 1) * stride
+        t_steps = np.arange(1, n_steps + 1) * h
+        U = np.empty((n_steps, 2))
+        U[:, 0] = voltage(t_steps)  # type: ignore[arg-type]
+        U[:, 1] = T
+        Y, _ = run_fixed(MODEL_MEMBRANE, y0, U, h, p)
+        Y = Y[::stride]
+        t_out = np.arange(len(Y)) * h * stride
+    else:
+        phi_of = _scalar(voltage)
+        ny = y0.size
+
+        def fun(t: float, y: np.ndarray) -> np.ndarray:
+            dy = np.empty(ny)
+            membrane_rhs(y, phi_of(t), T, p, dy)
+            return dy
+
+        def jac(t: float, y: np.ndarray) -> np.ndarray:
+            J = np.empty((ny, ny))
+            membrane_jac(y, phi_of(t), T, p, J)
+            return J
+
+        res = solve_offline(fun, jac, y0, t_out, atol=atol_for(params, rtol), rtol=rtol,
+                            method="Radau" if method == "radau" else "BDF",
+                            stop=lambda t, y: params.runaway_stretch - y[0])
+        Y = res.Y
+    phi = np.asarray(voltage(t_out), dtype=float)  # type: ignore[arg-type]
+    return membrane_outputs(params, t_out, Y, phi, T)
+
+
+class MembraneStream:
+    """Streaming membrane for the simulated rig: one call per sample at the current Φ [V] and T [K]."""
+
+    def __init__(self, params: MembraneParams, h: float = 1e-4, T: float = 296.0) -> None:
+        self.params = params
+        self.T = T
+        self._stepper = FixedStepper(MODEL_MEMBRANE, params.pack(), params.initial_state(), h)
+
+    @property
+    def t(self) -> float:
+        """Simulated time [s]."""
+        return self._stepper.t
+
+    @property
+    def state(self) -> np.ndarray:
+        """Current state [λ, λ̇, ξ_1…ξ_n] (a view; do not modify)."""
+        return self._stepper.y
+
+    @property
+    def stretch(self) -> float:
+        """Current λ [-]."""
+        return float(self._stepper.y[0])
+
+    @property
+    def displacement(self) -> float:
+        """Current displacement u = L_d(λ − λ_pre) [m]."""
+        return self.params.L_d * (float(self._stepper.y[0]) - self.params.lambda_pre)
+
+    def step(self, phi: float, T: float | None = None) -> bool:
+        """Advance one step with voltage φ [V] (and temperature T [K]); False once the model failed."""
+        return self._stepper.step(phi, self.T if T is None else T)
+
+    def advance(self, phi: np.ndarray, T: float | None = None) -> MembraneTrace:
+        """Advance len(phi) steps (phi[k] is the voltage during step k) and return their trace."""
+        phi = np.asarray(phi, dtype=float)
+        U = np.empty((phi.size, 2))
+        U[:, 0] = phi
+        U[:, 1] = self.T if T is None else T
+        t0 = self._stepper.t
+        Y = self._stepper.advance(U)
+        t = t0 + self._stepper.h * np.arange(1, phi.size + 1)
+        return membrane_outputs(self.params, t, Y, phi, U[:, 1])
+
+
+def batch_stretch(param_sets: Sequence[MembraneParams] | np.ndarray, voltage: np.ndarray, T: float,
+                  h: float = 1e-4, stride: int = 1, template: MembraneParams | None = None) -> np.ndarray:
+    """λ histories for many parameter sets under one voltage history (identification).
+
+    ``voltage[k]`` is Φ at t = (k+1)h; returns (n_sets, len(voltage)//stride + 1) sampled every ``stride``
+    steps from t = 0, computed in parallel on all cores. ``param_sets`` are MembraneParams or rows of packed
+    vectors (then ``template`` gives λ_pre for the initial state).
+    """
+    if isinstance(param_sets, np.ndarray):
+        P = np.ascontiguousarray(param_sets, dtype=np.float64)
+        base = template or MembraneParams()
+    else:
+        P = np.stack([ps.pack() for ps in param_sets])
+        base = param_sets[0]
+    n_units = (P.shape[1] - P_BRANCHES) // 3
+    y0 = np.full(2 + n_units, base.lambda_pre)
+    y0[1] = 0.0
+    Y0 = np.tile(y0, (P.shape[0], 1))
+    U = np.empty((len(voltage), 2))
+    U[:, 0] = voltage
+    U[:, 1] = T
+    return run_fixed_batch(MODEL_MEMBRANE, Y0, U, h, P, 0, stride)
