@@ -125,6 +125,7 @@ class OfflineResult:
     message: str
     nfev: int
     njev: int
+    t_stop: float | None = None
 
 
 def solve_offline(fun: Callable[[float, np.ndarray], np.ndarray],
@@ -152,5 +153,6 @@ def solve_offline(fun: Callable[[float, np.ndarray], np.ndarray],
         Y[: sol.y.shape[1]] = sol.y.T
     stopped = stop is not None and sol.status == 1
     message = "stopped by event" if stopped else sol.message
+    t_stop = float(sol.t_events[0][0]) if stopped else None
     return OfflineResult(t=np.asarray(t_eval, dtype=float), Y=Y, success=sol.status == 0, message=message,
-                         nfev=sol.nfev, njev=sol.njev)
+                         nfev=sol.nfev, njev=sol.njev, t_stop=t_stop)

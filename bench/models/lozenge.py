@@ -245,7 +245,7 @@ def branch_energy_derivs(p1: float, p2: float, mu: float) -> tuple[float, float,
     """
     e1 = math.exp(2.0 * p1)
     e2 = math.exp(2.0 * p2)
-    e3 = math.exp(-2.0 * (p1 + p2))
+    e3 = 1.0 / (e1 * e2)
     return (mu * (e1 - e3), mu * (e2 - e3), 2.0 * mu * (e1 + e3), 2.0 * mu * e3, 2.0 * mu * (e2 + e3))
 
 
@@ -254,7 +254,7 @@ def branch_flow(p1: float, p2: float, tau: float) -> tuple[float, float, float, 
     """Maxwell flow (thesis eq 60/61 with J → ∞): d ln ξ1/dt, d ln ξ2/dt [1/s] and their ∂/∂p1, ∂/∂p2."""
     e1 = math.exp(2.0 * p1)
     e2 = math.exp(2.0 * p2)
-    e3 = math.exp(-2.0 * (p1 + p2))
+    e3 = 1.0 / (e1 * e2)
     k = 1.0 / (6.0 * tau)
     return (k * (2.0 * e1 - e2 - e3), k * (2.0 * e2 - e1 - e3),
             k * (4.0 * e1 + 2.0 * e3), k * (2.0 * e3 - 2.0 * e2),

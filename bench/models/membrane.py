@@ -140,7 +140,8 @@ def capacitance(lam: float, T: float, p: np.ndarray) -> tuple[float, float]:
     """Capacitance of the active square C = ε_vac ε_r L²λ⁴/L3 [F] and dC/dλ [F]."""
     geo = p[P_EPS] * p[P_L] ** 2 / p[P_L3]
     er = eps_r(lam, T, p)
-    return geo * er * lam**4, geo * (2.0 * p[P_A] * lam**5 + 4.0 * er * lam**3)
+    lam3 = lam * lam * lam
+    return geo * er * lam3 * lam, geo * (2.0 * p[P_A] * lam3 * lam * lam + 4.0 * er * lam3)
 
 
 @njit(cache=True)
@@ -337,17 +338,18 @@ def membrane_outputs(params: MembraneParams, t: np.ndarray, Y: np.ndarray, phi: 
 
 def failure_reason(params: MembraneParams, lam: np.ndarray, E: np.ndarray) -> str:
     """Return why the run failed ('' when it did not): non-finite state, runaway stretch or breakdown."""
-    bad = ~np.isfinite(lam)
-    if bad.any():
-        i = int(np.argmax(bad))
-        return f"non-finite stretch at sample {i} (Gent lock-up or numerical blow-up)"
-    over = lam > params.runaway_stretch
+    with np.errstate(invalid="ignore"):
+        over = lam > params.runaway_stretch
+        brk = np.abs(E) > params.breakdown_field
     if over.any():
         i = int(np.argmax(over))
         return f"runaway stretch λ = {lam[i]:.3f} > {params.runaway_stretch} at sample {i} (pull-in)"
-    brk = np.abs(E) > params.breakdown_field
     if brk.any():
         i = int(np.argmax(brk))
         return (f"true field {abs(E[i]) / 1e6:.1f} MV/m above breakdown "
                 f"{params.breakdown_field / 1e6:.1f} MV/m at sample {i}")
+    bad = ~np.isfinite(lam)
+    if bad.any():
+        i = int(np.argmax(bad))
+        return f"non-finite stretch at sample {i} (Gent lock-up or numerical blow-up)"
     return ""

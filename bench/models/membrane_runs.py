@@ -49,6 +49,7 @@ def simulate_membrane(params: MembraneParams, voltage: VoltageInput, t_end: floa
     y0 = params.initial_state()
     n_out = round(t_end * fs) + 1
     t_out = np.arange(n_out) / fs
+    stop_reason = ""
     if method == "fixed":
         stride = max(1, round(1.0 / (fs * h)))
         n_steps = (n_out - 1) * stride
@@ -77,8 +78,16 @@ def simulate_membrane(params: MembraneParams, voltage: VoltageInput, t_end: floa
                             method="Radau" if method == "radau" else "BDF",
                             stop=lambda t, y: params.runaway_stretch - y[0])
         Y = res.Y
+        if res.t_stop is not None:
+            stop_reason = (f"runaway stretch: λ passed {params.runaway_stretch} at t = {res.t_stop:.3f} s "
+                           "(pull-in); the run was stopped there")
+        elif not res.success:
+            stop_reason = f"integration failed: {res.message}"
     phi = np.asarray(voltage(t_out), dtype=float)  # type: ignore[arg-type]
-    return membrane_outputs(params, t_out, Y, phi, T)
+    trace = membrane_outputs(params, t_out, Y, phi, T)
+    if stop_reason:
+        trace.failed, trace.failure = True, stop_reason
+    return trace
 
 
 class MembraneStream:

@@ -1,0 +1,5 @@
+"""Allow ``python -m bench``."""
+
+from bench.cli import app
+
+app(prog_name="bench")

@@ -1,0 +1,57 @@
+"""Figures of a thesis-style membrane run: per-cycle peaks (creep), residual at zero voltage, lag."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class CycleFigures:
+    """Per-cycle figures of a periodic unipolar-voltage run.
+
+    peaks [m] and peak_times [s] per cycle; residuals [m] = displacement at the ends of cycles (Φ = 0 for a
+    raised cosine); lags [s] = time of the displacement peak minus time of the voltage peak in that cycle.
+    """
+
+    peaks: tuple[float, ...]
+    peak_times: tuple[float, ...]
+    residuals: tuple[float, ...]
+    lags: tuple[float, ...]
+
+    @property
+    def creep(self) -> float:
+        """Peak growth from the first to the last whole cycle, relative to the first [-]."""
+        return self.peaks[-1] / self.peaks[0] - 1.0 if len(self.peaks) > 1 else 0.0
+
+
+def cycle_figures(t: np.ndarray, displacement: np.ndarray, voltage: np.ndarray, frequency: float) -> CycleFigures:
+    """Split a record into periods 1/frequency from t[0] and take each period's peak, lag and end value.
+
+    The last, partial period contributes its peak only if it contains the voltage peak of that period.
+    """
+    t = np.asarray(t, dtype=float)
+    u = np.asarray(displacement, dtype=float)
+    v = np.asarray(voltage, dtype=float)
+    finite = np.isfinite(u)  # a run stopped early (failure) is analysed up to its last valid sample
+    t, u, v = t[finite], u[finite], v[finite]
+    period = 1.0 / frequency
+    peaks, times, residuals, lags = [], [], [], []
+    k = 0
+    while t[0] + k * period < t[-1]:
+        start, end = t[0] + k * period, t[0] + (k + 1) * period
+        m = (t >= start) & (t < end)
+        if m.sum() < 3:
+            break
+        iv = int(np.argmax(v[m]))
+        whole = end <= t[-1] + 1e-9
+        if whole or iv < m.sum() - 1:
+            iu = int(np.argmax(u[m]))
+            peaks.append(float(u[m][iu]))
+            times.append(float(t[m][iu]))
+            lags.append(float(t[m][iu] - t[m][iv]))
+        if whole:
+            residuals.append(float(np.interp(end, t, u)))
+        k += 1
+    return CycleFigures(tuple(peaks), tuple(times), tuple(residuals), tuple(lags))

@@ -1,0 +1,129 @@
+"""Speed benchmarks of the physics integrators (``bench benchmark``).
+
+Each figure is simulated time divided by wall time ("× real time"), best of ``repeats`` runs, one core
+(numba threads are limited to 1 for the single-core figures).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+
+from bench.models.lozenge import LozengeParams
+from bench.models.lozenge_runs import LozengeStream, simulate_lozenge
+from bench.models.membrane import MembraneParams
+from bench.models.membrane_runs import MembraneStream, simulate_membrane
+from bench.waveforms import Waveform
+
+
+@dataclass(frozen=True)
+class BenchResult:
+    """One benchmark figure: name, simulated seconds, best wall seconds, target multiple (0 = none)."""
+
+    name: str
+    simulated: float
+    wall: float
+    target: float = 0.0
+
+    @property
+    def speed(self) -> float:
+        """Multiple of real time."""
+        return self.simulated / self.wall
+
+    @property
+    def passed(self) -> bool:
+        """Whether the target (if any) is met."""
+        return self.speed >= self.target
+
+
+def _best(fn: Callable[[], object], repeats: int) -> float:
+    fn()  # warm-up: JIT compilation / cache load is not part of the figure
+    best = float("inf")
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t0)
+    return best
+
+
+def thesis_offline(repeats: int = 5) -> BenchResult:
+    """Thesis base case (7 kV, 1/9 Hz, 296 K, 20 s) with Radau + analytic Jacobian, 10 kHz output."""
+    p, w = MembraneParams(), Waveform("raised_cosine", 7000.0, 1 / 9)
+    wall = _best(lambda: simulate_membrane(p, w, 20.0, fs=10_000.0), repeats)
+    return BenchResult("thesis base case, offline (Radau, 10 kHz output)", 20.0, wall, 500.0)
+
+
+def thesis_streaming(repeats: int = 3) -> BenchResult:
+    """Same run stepped one sample at a time from Python (the simulated rig's path), h = 1e-4 s."""
+    p = MembraneParams()
+    phi = Waveform("raised_cosine", 7000.0, 1 / 9)(np.arange(1, 200_001) * 1e-4).tolist()
+
+    def run() -> None:
+        s = MembraneStream(p, h=1e-4)
+        step = s.step
+        for v in phi:
+            step(v)
+
+    return BenchResult("thesis base case, streaming (one call per 100 µs sample)", 20.0, _best(run, repeats), 100.0)
+
+
+def thesis_streaming_block(repeats: int = 5) -> BenchResult:
+    """Same run advanced in blocks of 1000 samples (0.1 s) with full observables per block."""
+    p = MembraneParams()
+    phi = Waveform("raised_cosine", 7000.0, 1 / 9)(np.arange(1, 200_001) * 1e-4).reshape(-1, 1000)
+
+    def run() -> None:
+        s = MembraneStream(p, h=1e-4)
+        for block in phi:
+            s.advance(block)
+
+    return BenchResult("thesis base case, streaming in 0.1-s blocks", 20.0, _best(run, repeats))
+
+
+def lsdea_isotonic_streaming(repeats: int = 3) -> BenchResult:
+    """LS-DEA #1, 180 g, 5 kV raised cosine at 2.75 Hz, 15 s stepped one sample at a time (h = 1e-4 s)."""
+    p = LozengeParams(hung_mass=0.18)
+    V = Waveform("raised_cosine", 5000.0, 2.75)(np.arange(1, 150_001) * 1e-4).tolist()
+
+    def run() -> None:
+        s = LozengeStream(p, "hung")
+        step = s.step
+        for v in V:
+            step(v)
+
+    return BenchResult("LS-DEA isotonic, streaming (one call per 100 µs sample)", 15.0, _best(run, repeats), 100.0)
+
+
+def lsdea_isopotential_offline(repeats: int = 3) -> BenchResult:
+    """LS-DEA #1, 7 kV, 50↔140 mm at 0.5 Hz, 10 cycles (20 s), compiled fixed-step loop, 10 kHz output."""
+    p = LozengeParams.prototype(1)
+
+    def pos(t: np.ndarray) -> np.ndarray:
+        return 0.095 - 0.045 * np.cos(np.pi * t)
+
+    def vel(t: np.ndarray) -> np.ndarray:
+        return 0.045 * np.pi * np.sin(np.pi * t)
+
+    def volts(t: np.ndarray) -> np.ndarray:
+        return np.full_like(t, 7000.0)
+
+    wall = _best(lambda: simulate_lozenge(p, "imposed", volts, 20.0, position=pos, velocity=vel), repeats)
+    return BenchResult("LS-DEA isopotential 20 s, fixed-step block (10 kHz output)", 20.0, wall)
+
+
+ALL: tuple[Callable[..., BenchResult], ...] = (thesis_offline, thesis_streaming, thesis_streaming_block,
+                                                lsdea_isotonic_streaming, lsdea_isopotential_offline)
+
+
+def run_all(quick: bool = False) -> list[BenchResult]:
+    """Run every benchmark on one thread (``quick``: one repeat each)."""
+    threads = numba.get_num_threads()
+    numba.set_num_threads(1)
+    try:
+        return [fn(1) if quick else fn() for fn in ALL]
+    finally:
+        numba.set_num_threads(threads)

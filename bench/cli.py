@@ -1,0 +1,205 @@
+"""The ``bench`` command line (typer + rich)."""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable
+from enum import StrEnum
+from typing import Annotated, ParamSpec, TypeVar
+
+import numpy as np
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from bench import __version__
+
+console = Console()
+err_console = Console(stderr=True)
+app = typer.Typer(name="bench", help="dea-bench: DEA test-bench control, simulation and data acquisition.",
+                  no_args_is_help=True, pretty_exceptions_enable=False, add_completion=False)
+simulate_app = typer.Typer(help="Simulate the papers' specimens with the physical models (no instruments).",
+                           no_args_is_help=True)
+app.add_typer(simulate_app, name="simulate")
+
+P = ParamSpec("P")
+R = TypeVar("R")
+
+
+def fail(message: str, code: int = 2) -> typer.Exit:
+    """Print a one-line error on stderr and return the Exit to raise."""
+    err_console.print(f"[bold red]error:[/] {message}", highlight=False, soft_wrap=True)
+    return typer.Exit(code)
+
+
+def clean_errors(fn: Callable[P, R]) -> Callable[P, R]:
+    """Turn the expected failures of a command (bad values, missing files) into one-line errors, exit 2."""
+
+    @functools.wraps(fn)
+    def wrapper(*args: P.args, **kwargs: P.kwargs) -> R:
+        try:
+            return fn(*args, **kwargs)
+        except (ValueError, OSError) as exc:
+            raise fail(str(exc)) from None
+
+    return wrapper
+
+
+def _version(value: bool) -> None:
+    if value:
+        console.print(f"dea-bench {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def main(version: Annotated[bool, typer.Option("--version", callback=_version, is_eager=True,
+                                                help="Print the version and exit.")] = False) -> None:
+    """dea-bench: DEA test-bench control, simulation and data acquisition."""
+
+
+class WaveKindOption(StrEnum):
+    raised_cosine = "raised_cosine"
+    sine = "sine"
+    triangle = "triangle"
+    square = "square"
+
+
+class Electrostriction(StrEnum):
+    corrected = "corrected"
+    thesis = "thesis"
+
+
+@simulate_app.command("thesis")
+@clean_errors
+def simulate_thesis(
+    voltage: Annotated[float, typer.Option(help="Peak voltage Vmax [V].", min=0, max=12_000)] = 7000.0,
+    frequency: Annotated[float, typer.Option(help="Drive frequency [Hz].", min=1e-4, max=1000)] = 1 / 9,
+    temperature: Annotated[float, typer.Option(help="Temperature [K].", min=150, max=450)] = 296.0,
+    duration: Annotated[float, typer.Option(help="Simulated time [s].", min=1e-3, max=3600)] = 20.0,
+    waveform: Annotated[WaveKindOption, typer.Option(help="Voltage waveform.")] = WaveKindOption.raised_cosine,
+    electrostriction: Annotated[Electrostriction, typer.Option(
+        help="Electrostatic stress: corrected (κ = 1/2) or as printed in the thesis (κ = 2).")]
+    = Electrostriction.corrected,
+    method: Annotated[str, typer.Option(help="Integrator: radau (offline) or fixed (streaming scheme).")]
+    = "radau",
+) -> None:
+    """Thesis membrane (Model A) under a periodic voltage: per-cycle peaks, creep, residual, lag, field."""
+    from bench.analysis.thesis import cycle_figures
+    from bench.models.membrane import MembraneParams
+    from bench.models.membrane_runs import simulate_membrane
+    from bench.waveforms import Waveform
+
+    if method not in ("radau", "fixed"):
+        raise ValueError(f"--method must be 'radau' or 'fixed', got {method!r}")
+    params = MembraneParams(electrostriction=electrostriction.value)
+    wave = Waveform(waveform.value, voltage, frequency)
+    with console.status("simulating the thesis membrane…"):
+        tr = simulate_membrane(params, wave, duration, T=temperature, method=method)  # type: ignore[arg-type]
+    figs = cycle_figures(tr.t, tr.displacement, tr.voltage, frequency)
+    table = Table(title=f"Thesis membrane: {voltage / 1e3:g} kV {waveform.value}, {frequency:.4g} Hz, "
+                        f"{temperature:g} K, {duration:g} s")
+    table.add_column("cycle", justify="right")
+    table.add_column("peak u [mm]", justify="right")
+    table.add_column("at t [s]", justify="right")
+    table.add_column("lag [s]", justify="right")
+    table.add_column("u at cycle end [mm]", justify="right")
+    for k, (pk, tk, lag) in enumerate(zip(figs.peaks, figs.peak_times, figs.lags, strict=True)):
+        res = f"{figs.residuals[k] * 1e3:.3f}" if k < len(figs.residuals) else "–"
+        table.add_row(str(k + 1), f"{pk * 1e3:.3f}", f"{tk:.3f}", f"{lag:.3f}", res)
+    console.print(table)
+    valid = np.isfinite(tr.stretch)
+    console.print(f"max displacement {np.nanmax(tr.displacement) * 1e3:.3f} mm (L_d = {params.L_d * 1e3:g} mm), "
+                  f"max stretch {np.nanmax(tr.stretch):.4f}, creep {figs.creep * 100:+.1f} %, "
+                  f"peak true field {np.nanmax(np.abs(tr.field[valid])) / 1e6:.1f} MV/m, "
+                  f"peak current {np.nanmax(np.abs(tr.current[valid])) * 1e6:.2f} µA")
+    if tr.failed:
+        raise fail(f"specimen failed: {tr.failure}", code=1)
+
+
+class LsdeaTest(StrEnum):
+    isopotential = "isopotential"
+    isometric = "isometric"
+    isotonic = "isotonic"
+
+
+@simulate_app.command("lsdea")
+@clean_errors
+def simulate_lsdea(
+    test: Annotated[LsdeaTest, typer.Argument(help="Test configuration.")] = LsdeaTest.isotonic,
+    prototype: Annotated[int, typer.Option(help="Prototype #1–#3 (Table 2).", min=1, max=3)] = 1,
+    voltage: Annotated[float, typer.Option(help="Voltage [V]: constant (isopotential), sine amplitude "
+                                                 "(isometric) or raised-cosine peak (isotonic).",
+                                           min=0, max=10_000)] = 5000.0,
+    frequency: Annotated[float | None, typer.Option(
+        help="Drive frequency [Hz] (default 0.5 isopotential, 1 otherwise).", min=0.01, max=100)] = None,
+    mass: Annotated[float, typer.Option(help="Hung mass [kg] (isotonic).", min=0, max=2)] = 0.18,
+    position: Annotated[float, typer.Option(help="Blocked aperture [mm] (isometric).", min=45, max=200)] = 100.0,
+    stroke: Annotated[float, typer.Option(help="Crest-to-trough Δx from 50 mm [mm] (isopotential).",
+                                          min=1, max=120)] = 90.0,
+    cycles: Annotated[int, typer.Option(help="Number of cycles.", min=2, max=1000)] = 10,
+) -> None:
+    """LS-DEA (Model B) in one of the paper's three test configurations, with its figure of merit."""
+    from bench.analysis.cycles import crest_to_trough, hysteresis_loss, last_cycles
+    from bench.models.lozenge import LozengeParams
+    from bench.models.lozenge_runs import simulate_lozenge
+    from bench.waveforms import Waveform
+
+    params = LozengeParams.prototype(prototype, hung_mass=mass if test is LsdeaTest.isotonic else 0.0)
+    if frequency is None:
+        frequency = 0.5 if test is LsdeaTest.isopotential else 1.0
+    duration = cycles / frequency
+    with console.status(f"simulating LS-DEA #{prototype} ({test.value})…"):
+        if test is LsdeaTest.isopotential:
+            dx, w = stroke / 1e3, 2 * np.pi * frequency
+            tr = simulate_lozenge(params, "imposed", lambda t: np.full_like(t, voltage), duration,
+                                  position=lambda t: 0.05 + dx / 2 * (1 - np.cos(w * t)),
+                                  velocity=lambda t: dx / 2 * w * np.sin(w * t))
+            m = last_cycles(tr.t, frequency, 1)
+            figure = f"hysteresis loss of the last cycle {100 * hysteresis_loss(tr.position[m], tr.force[m]):.1f} %"
+        elif test is LsdeaTest.isometric:
+            tr = simulate_lozenge(params, "blocked", Waveform("sine", voltage, frequency), duration,
+                                  position=position / 1e3)
+            m = last_cycles(tr.t, frequency, 1)
+            figure = f"force crest-to-trough {crest_to_trough(tr.t[m], tr.force[m], detrend=False):.4f} N"
+        else:
+            tr = simulate_lozenge(params, "hung", Waveform("raised_cosine", voltage, frequency), duration)
+            m = last_cycles(tr.t, frequency, min(3, cycles))
+            figure = (f"detrended crest-to-trough displacement {crest_to_trough(tr.t[m], tr.position[m]) * 1e3:.3f}"
+                      f" mm, mean position {np.mean(tr.position[m]) * 1e3:.2f} mm")
+    console.print(f"LS-DEA #{prototype} {test.value}: {figure}")
+    with np.errstate(divide="ignore"):
+        margin = np.nanmin(tr.breakdown_field / np.abs(tr.field))
+    console.print(f"force {np.nanmin(tr.force):.3f} … {np.nanmax(tr.force):.3f} N, peak true field "
+                  f"{np.nanmax(np.abs(tr.field)) / 1e6:.1f} MV/m, smallest breakdown margin E_B/E = {margin:.2f}×, "
+                  f"tension lost in {100 * np.mean(tr.tension_lost):.1f} % of samples")
+    if tr.failed:
+        raise fail(f"specimen failed: {tr.failure}", code=1)
+
+
+@app.command()
+def demo() -> None:
+    """The main job for a newcomer: the papers' specimens on the simulated rig, with their figures.
+
+    Today: the thesis base case (7 kV, 1/9 Hz, 296 K, 20 s) and the LS-DEA #1 isotonic resonance (180 g,
+    2.75 Hz) and isopotential loss (7 kV). It grows into run → record → fit → report as the engine lands.
+    """
+    simulate_thesis()
+    simulate_lsdea(LsdeaTest.isotonic, frequency=2.75, cycles=15)
+    simulate_lsdea(LsdeaTest.isopotential, voltage=7000.0)
+
+
+@app.command()
+def benchmark(quick: Annotated[bool, typer.Option(help="One repeat per figure.")] = False) -> None:
+    """Measure the integrators' speed as multiples of real time (single core)."""
+    from bench.benchmark import run_all
+
+    with console.status("benchmarking (includes JIT warm-up)…"):
+        results = run_all(quick=quick)
+    table = Table(title="dea-bench benchmark (one core, best of repeats)")
+    for col in ("case", "simulated [s]", "wall [s]", "× real time", "target", ""):
+        table.add_column(col, justify="left" if col == "case" else "right")
+    for r in results:
+        mark = "" if not r.target else ("[green]ok[/]" if r.passed else "[red]below target[/]")
+        table.add_row(r.name, f"{r.simulated:g}", f"{r.wall:.4f}", f"{r.speed:.0f}",
+                      f"≥ {r.target:g}" if r.target else "–", mark)
+    console.print(table)

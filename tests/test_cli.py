@@ -1,0 +1,63 @@
+"""The ``bench`` command line: version, simulations with their figures, clean one-line errors."""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+
+from typer.testing import CliRunner
+
+from bench import __version__
+from bench.cli import app
+
+runner = CliRunner()
+
+
+def test_version_and_help() -> None:
+    res = runner.invoke(app, ["--version"])
+    assert res.exit_code == 0 and __version__ in res.output
+    res = runner.invoke(app, ["--help"])
+    assert res.exit_code == 0 and "simulate" in res.output and "benchmark" in res.output
+
+
+def test_simulate_thesis_prints_base_case_figures() -> None:
+    res = runner.invoke(app, ["simulate", "thesis"])
+    assert res.exit_code == 0, res.output
+    assert "7.675" in res.output and "8.556" in res.output  # per-cycle peaks [mm]
+    assert "creep +11.5 %" in res.output
+
+
+def test_simulate_lsdea_isometric() -> None:
+    res = runner.invoke(app, ["simulate", "lsdea", "isometric", "--prototype", "3", "--voltage", "6000",
+                              "--frequency", "5"])
+    assert res.exit_code == 0, res.output
+    assert re.search(r"force crest-to-trough 1\.14\d+ N", res.output)
+
+
+def test_failed_specimen_exits_1_with_reason() -> None:
+    res = runner.invoke(app, ["simulate", "thesis", "--voltage", "8000", "--waveform", "square",
+                              "--frequency", "0.01"])
+    assert res.exit_code == 1
+    assert "runaway stretch" in res.output
+
+
+def test_bad_input_is_one_line_error_without_traceback() -> None:
+    proc = subprocess.run([sys.executable, "-m", "bench", "simulate", "thesis", "--method", "euler"],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2
+    assert proc.stderr.strip().count("\n") == 0
+    assert "--method" in proc.stderr and "Traceback" not in proc.stderr
+    proc = subprocess.run([sys.executable, "-m", "bench", "simulate", "thesis", "--voltage", "-5"],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
+
+
+def test_benchmark_prints_its_table() -> None:
+    import numba
+
+    threads = numba.get_num_threads()
+    res = runner.invoke(app, ["benchmark", "--quick"], env={"COLUMNS": "200"})
+    assert res.exit_code == 0, res.output
+    assert "× real time" in res.output and "thesis base case, offline (Radau, 10 kHz output)" in res.output
+    assert numba.get_num_threads() == threads  # the single-core measurement does not leak into the process
