@@ -227,6 +227,23 @@ class LozengeStream:
         """Current aperture x [m]."""
         return float(self._stepper.y[0])
 
+    @property
+    def state(self) -> np.ndarray:
+        """Current state [x, ẋ, a_1..a_K, b_1..b_K] (a view; do not modify)."""
+        return self._stepper.y
+
+    def advance(self, U: np.ndarray) -> LozengeTrace:
+        """Advance len(U) steps; U[k] = (V [V], x_in [m], ẋ_in [m/s]) during step k. Returns their trace."""
+        t0 = self._stepper.t
+        Y = self._stepper.advance(U)
+        t = t0 + self._stepper.h * np.arange(1, len(U) + 1)
+        return lozenge_outputs(self.params, t, Y, U[:, 0], self.mode)
+
+    def observe(self, V: float = 0.0) -> LozengeTrace:
+        """Observables of the current state at voltage V (one sample)."""
+        return lozenge_outputs(self.params, np.array([self._stepper.t]), self._stepper.y.reshape(1, -1),
+                               np.array([V]), self.mode)
+
     def step(self, V: float, x_in: float = 0.0, v_in: float = 0.0) -> bool:
         """Advance one step with voltage V [V] (and imposed x_in [m], ẋ_in [m/s]); False once failed."""
         return self._stepper.step(V, x_in, v_in)

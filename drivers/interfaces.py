@@ -1,0 +1,168 @@
+"""Typed contracts shared by every driver of a role (bluesky-style small protocols).
+
+A driver knows its instrument's wire protocol and behaviour, nothing about physics or test protocols.
+Values are SI (V, A, m, N, s); every reading carries the time at which it was taken on the rig clock.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+ClockFn = Callable[[], float]  # rig clock: seconds, monotonic
+
+
+@dataclass(frozen=True)
+class Reading:
+    """One value with its unit, rig-clock timestamp [s] and status.
+
+    status is "ok", or names why the value is not a measurement ("over_range_positive",
+    "over_range_negative", "invalid", "overload", "unstable"); then value may be NaN.
+    """
+
+    value: float
+    unit: str
+    timestamp: float
+    status: str = "ok"
+
+    @property
+    def ok(self) -> bool:
+        """True when the value is a valid measurement."""
+        return self.status == "ok"
+
+
+@dataclass(frozen=True)
+class Identity:
+    """What an instrument says (or the rig file says) it is."""
+
+    vendor: str
+    model: str
+    details: dict[str, str] = field(default_factory=dict)
+
+    def __str__(self) -> str:
+        extra = ", ".join(f"{k} {v}" for k, v in self.details.items())
+        return f"{self.vendor} {self.model}" + (f" ({extra})" if extra else "")
+
+
+@dataclass(frozen=True)
+class SampleBlock:
+    """A block of equally spaced samples from a device-side buffer.
+
+    Sample k (0-based within the whole acquisition) was taken at ``t0 + k·dt`` on the rig clock;
+    ``first_index`` is the acquisition index of ``values[0]``; ``valid`` flags samples that are measurements.
+    """
+
+    t0: float
+    dt: float
+    first_index: int
+    values: np.ndarray
+    valid: np.ndarray
+    unit: str
+
+    def times(self) -> np.ndarray:
+        """Rig-clock times of the samples [s]."""
+        return self.t0 + self.dt * (self.first_index + np.arange(self.values.size))
+
+
+@dataclass(frozen=True)
+class MotorStatus:
+    """Decoded drive state: main state name, flags and position [m]."""
+
+    state: str
+    enabled: bool
+    homed: bool
+    moving: bool
+    in_target: bool
+    error: bool
+    error_code: int
+    position: float
+
+
+@runtime_checkable
+class Instrument(Protocol):
+    """Common part of every driver."""
+
+    name: str
+
+    def connect(self) -> None:
+        """Open the link and check that the instrument answers."""
+
+    def close(self) -> None:
+        """Bring the instrument to its safe state (where it has one) and release the link."""
+
+    def identify(self) -> Identity:
+        """Ask the instrument what it is."""
+
+    def safe_state(self) -> None:
+        """Put the instrument in its safe state (zero high voltage, motor stopped)."""
+
+
+@runtime_checkable
+class Amplifier(Instrument, Protocol):
+    """High-voltage amplifier: voltage set-point, voltage and current monitors."""
+
+    max_voltage: float
+
+    def set_voltage(self, volts: float) -> float:
+        """Command an output voltage [V]; returns the value actually commanded (after slew limiting)."""
+
+    def read_voltage(self) -> Reading:
+        """Output voltage from the voltage monitor [V]."""
+
+    def read_current(self) -> Reading:
+        """Output current from the current monitor [A]."""
+
+
+@runtime_checkable
+class DisplacementSensor(Instrument, Protocol):
+    """Displacement sensor with single reads and a device-side buffer for high rates."""
+
+    def read(self) -> Reading:
+        """One displacement value [m]."""
+
+    def start_buffer(self, interval: float) -> float:
+        """Start buffered acquisition every ``interval`` [s]; returns the interval the device uses."""
+
+    def fetch_buffer(self) -> SampleBlock:
+        """Samples stored since the last fetch (possibly none)."""
+
+    def stop_buffer(self) -> None:
+        """Stop buffered acquisition (samples already stored stay fetchable)."""
+
+
+@runtime_checkable
+class LinearMotor(Instrument, Protocol):
+    """Position-controlled linear motor."""
+
+    def enable(self) -> None:
+        """Switch the drive on (and home it if needed) so that it accepts motion commands."""
+
+    def move_to(self, position: float, velocity: float, acceleration: float,
+                deceleration: float | None = None) -> None:
+        """Start a move to ``position`` [m] with the given limits [m/s, m/s²]; returns when accepted."""
+
+    def read_position(self) -> Reading:
+        """Actual position [m]."""
+
+    def status(self) -> MotorStatus:
+        """Decoded drive state."""
+
+    def stop(self) -> None:
+        """Abort the current motion and hold position."""
+
+
+@runtime_checkable
+class ForceSensor(Instrument, Protocol):
+    """Load cell read through a transmitter."""
+
+    def read(self) -> Reading:
+        """Force [N], tension positive."""
+
+    def zero(self) -> None:
+        """Zero the gross weight."""
+
+    def tare(self) -> None:
+        """Tare (net weight = 0 at the present load)."""

@@ -1,0 +1,232 @@
+"""Keyence LK-G3000 / LK-G5000 laser displacement controller over RS-232C (ASCII, CR-terminated).
+
+Wire protocol (LK-G manual LK-G-M-NO5-E, ch. 5; see ../shared/instruments.md §1):
+
+* request ``MAIN[,ID1[,ID2[,ID3]]]<CR>``; one outstanding request at a time;
+* reply echoes the main command (and identifiers) then data: ``M1,+01.2345<CR>``;
+* error reply ``ER,<MAIN>,<code><CR>``;
+* measured values are 8 characters: sign + 7 characters with a decimal point, in mm (display unit);
+  ``+FFFFFFF``/``-FFFFFFF`` = over range, ``XXXXXXXX`` = no valid value;
+* general mode (measurement) vs communication mode (settings): ``Q0`` enters, ``R0`` leaves.
+
+Measured values: ``M0`` (both OUTs), ``M1``/``M2`` on the LK-G3000; ``MS,nn`` on the LK-G5000.
+Data storage (``AQ`` clear, ``AS`` start, ``AP`` stop, ``AN`` status, ``AO`` upload) is the way to high rates.
+The storage commands' parameters are not in any manual page we could read; this driver and the simulated
+controller agree on the following, to be checked against the unit before real use:
+
+* ``SW,CA,<0..5>``: sampling cycle 20/50/100/200/500/1000 µs (from public drivers);
+* ``SW,EB,<0..9>``: storage cycle ×1/2/5/10/20/50/100/200/500/1000 samplings (LKIF enum, code assumed);
+* ``SW,EC,<sign+6 digits>``: number of points to store (assumed);
+* ``AN`` → ``AN,<0|1 storing>,<stored count>``; ``AO,<out>,<first>,<n>`` → ``AO,<v>,<v>,…`` (assumed).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import Literal
+
+import numpy as np
+
+from drivers.errors import InstrumentStateError, ProtocolError
+from drivers.interfaces import ClockFn, Identity, Reading, SampleBlock
+from drivers.serial_link import SerialLink
+
+Model = Literal["LK-G3000", "LK-G5000"]
+SAMPLING_US = (20, 50, 100, 200, 500, 1000)  # SW,CA codes 0..5
+STORAGE_CYCLES = (1, 2, 5, 10, 20, 50, 100, 200, 500, 1000)  # SW,EB codes 0..9
+ERROR_CODES: dict[Model, dict[str, str]] = {
+    "LK-G3000": {"00": "command error", "01": "status error (wrong mode)", "20": "command length error",
+                 "21": "parameter count error", "22": "invalid parameter", "88": "timeout error",
+                 "99": "other error"},
+    "LK-G5000": {"50": "command error", "51": "status error (wrong mode)", "60": "command length error",
+                 "61": "parameter count error", "62": "parameter range error", "88": "timeout error",
+                 "99": "other error"},
+}
+MAX_UPLOAD = 1000  # points per AO request
+
+
+def format_value(mm: float | None, status: str = "ok") -> str:
+    """Measured-value field of 8 characters (manual p. 5-6): sign + 7 characters incl. decimal point."""
+    if status == "invalid" or mm is None:
+        return "XXXXXXXX"
+    if status == "over_range_positive":
+        return "+FFFFFFF"
+    if status == "over_range_negative":
+        return "-FFFFFFF"
+    sign = "-" if mm < 0 else "+"
+    body = f"{abs(mm):07.4f}"  # 4 decimals = 0.1 µm display resolution of the LK-G heads used here
+    if len(body) > 7:
+        return sign + "FFFFFFF"
+    return sign + body
+
+
+def parse_value(field: str, device: str) -> tuple[float, str]:
+    """Parse an 8-character measured value into (mm, status)."""
+    if len(field) != 8:
+        raise ProtocolError(device, f"measured value {field!r} is not 8 characters")
+    if field == "XXXXXXXX":
+        return math.nan, "invalid"
+    if field[0] not in "+-":
+        raise ProtocolError(device, f"measured value {field!r} has no sign")
+    if "F" in field[1:]:
+        return math.nan, "over_range_positive" if field[0] == "+" else "over_range_negative"
+    try:
+        return float(field), "ok"
+    except ValueError:
+        raise ProtocolError(device, f"measured value {field!r} is not a number") from None
+
+
+class KeyenceLKG:
+    """Driver for one OUT of a Keyence LK-G3000/LK-G5000 controller (implements DisplacementSensor)."""
+
+    def __init__(self, link: SerialLink, *, name: str = "laser", model: Model = "LK-G3000", out: int = 1,
+                 clock: ClockFn = time.monotonic, storage_points: int = 65_536) -> None:
+        if model not in ERROR_CODES:
+            raise ValueError(f"unknown Keyence controller model {model!r}")
+        self.link = link
+        self.name = name
+        self.model: Model = model
+        self.out = out
+        self.clock = clock
+        self.storage_points = storage_points
+        self._comm_mode = False
+        self._t0 = 0.0
+        self._dt = 0.0
+        self._fetched = 0
+
+    # ----------------------------------------------------------- protocol
+    def query(self, command: str) -> list[str]:
+        """Send one command, return the reply's fields; raise on an error reply or a garbled echo."""
+        main = command.split(",")[0].upper()
+        with self.link.lock:
+            self.link.write(command.encode("ascii") + b"\r")
+            raw = self.link.read_until(b"\r")
+        try:
+            text = raw[:-1].decode("ascii")
+        except UnicodeDecodeError:
+            raise ProtocolError(self.name, f"reply to {command!r} is not ASCII: {raw!r}") from None
+        fields = text.split(",")
+        if fields[0] == "ER":
+            code = fields[2] if len(fields) > 2 else "?"
+            meaning = ERROR_CODES[self.model].get(code, "unknown error code")
+            raise InstrumentStateError(self.name, f"{command!r} refused: ER {code} ({meaning})")
+        if fields[0].upper() != main:
+            raise ProtocolError(self.name, f"reply {text!r} does not echo command {main!r}")
+        return fields
+
+    def _settings_mode(self, on: bool) -> None:
+        if on != self._comm_mode:
+            self.query("Q0" if on else "R0")
+            self._comm_mode = on
+
+    # ----------------------------------------------------------- Instrument
+    def connect(self) -> None:
+        """Open the port, leave communication mode if a previous session left it there, probe once."""
+        self.link.open()
+        self.link.discard_input()
+        self._comm_mode = True
+        try:
+            self._settings_mode(False)
+        except InstrumentStateError:
+            self._comm_mode = False  # already in general mode: R0 answered with a status error
+        self.read()
+
+    def close(self) -> None:
+        """Release the port (the sensor has no unsafe state)."""
+        self.link.close()
+
+    def identify(self) -> Identity:
+        """The controller has no identification command: report the configured model and program number."""
+        program = self.query("PR")
+        return Identity("Keyence", self.model, {"program": program[1] if len(program) > 1 else "?",
+                                                "out": str(self.out)})
+
+    def safe_state(self) -> None:
+        """Stop data storage if it runs; nothing else is hazardous."""
+        if self.link.is_open:
+            self.query("AP")
+
+    # ----------------------------------------------------------- measurement
+    def _value_command(self) -> str:
+        return f"M{self.out}" if self.model == "LK-G3000" else f"MS,{self.out:02d}"
+
+    def read(self) -> Reading:
+        """One measured value of the OUT [m] (status tells over-range / invalid)."""
+        self._settings_mode(False)
+        fields = self.query(self._value_command())
+        t = self.clock()
+        if len(fields) != (2 if self.model == "LK-G3000" else 3):
+            raise ProtocolError(self.name, f"unexpected reply fields {fields!r}")
+        mm, status = parse_value(fields[-1], self.name)
+        return Reading(mm * 1e-3, "m", t, status)
+
+    def set_sampling(self, microseconds: int) -> None:
+        """Set the internal sampling cycle (20…1000 µs; enters and leaves communication mode)."""
+        if microseconds not in SAMPLING_US:
+            raise ValueError(f"{self.name}: sampling cycle must be one of {SAMPLING_US} µs, got {microseconds}")
+        self._settings_mode(True)
+        try:
+            self.query(f"SW,CA,{SAMPLING_US.index(microseconds)}")
+        finally:
+            self._settings_mode(False)
+
+    # ----------------------------------------------------------- buffered acquisition
+    @staticmethod
+    def storage_setting(interval: float) -> tuple[int, int]:
+        """(sampling µs, storage cycle) whose product is closest to ``interval`` [s], preferring fast sampling."""
+        best = min(((s, c) for s in SAMPLING_US for c in STORAGE_CYCLES),
+                   key=lambda sc: (abs(sc[0] * sc[1] * 1e-6 - interval), sc[0]))
+        return best
+
+    def start_buffer(self, interval: float) -> float:
+        """Configure and start data storage every ``interval`` [s]; returns the interval used."""
+        sampling, cycle = self.storage_setting(interval)
+        self._settings_mode(True)
+        try:
+            self.query(f"SW,CA,{SAMPLING_US.index(sampling)}")
+            self.query(f"SW,EB,{STORAGE_CYCLES.index(cycle)}")
+            self.query(f"SW,EC,+{self.storage_points:06d}")
+        finally:
+            self._settings_mode(False)
+        self.query("AQ")
+        self.query("AS")
+        self._t0 = self.clock()
+        self._dt = sampling * cycle * 1e-6
+        self._fetched = 0
+        return self._dt
+
+    def buffer_status(self) -> tuple[bool, int]:
+        """(storing, number of points stored)."""
+        fields = self.query("AN")
+        if len(fields) != 3:
+            raise ProtocolError(self.name, f"AN reply {fields!r} is not AN,<state>,<count>")
+        try:
+            return fields[1] == "1", int(fields[2])
+        except ValueError:
+            raise ProtocolError(self.name, f"AN reply {fields!r} has a non-numeric count") from None
+
+    def fetch_buffer(self) -> SampleBlock:
+        """Upload the points stored since the last fetch (in requests of up to 1000 points)."""
+        storing, count = self.buffer_status()
+        values: list[float] = []
+        valid: list[bool] = []
+        first = self._fetched
+        while self._fetched < count:
+            n = min(MAX_UPLOAD, count - self._fetched)
+            fields = self.query(f"AO,{self.out},{self._fetched},{n}")
+            if len(fields) != n + 1:
+                raise ProtocolError(self.name, f"AO returned {len(fields) - 1} values, {n} requested")
+            for f in fields[1:]:
+                mm, status = parse_value(f, self.name)
+                values.append(mm * 1e-3)
+                valid.append(status == "ok")
+            self._fetched += n
+        overflow = not storing and count >= self.storage_points
+        if overflow and first == count:
+            raise InstrumentStateError(self.name, f"data storage full ({count} points): later samples lost")
+        return SampleBlock(self._t0, self._dt, first, np.array(values), np.array(valid, dtype=bool), "m")
+
+    def stop_buffer(self) -> None:
+        """Stop data storage (stored points remain fetchable)."""
+        self.query("AP")

@@ -1,0 +1,293 @@
+"""LinMot drive (E1100/C1100 class, P01 motors) over LinRS binary telegrams (RS-232/485).
+
+Telegram (LinRS manual 0185-1082-E p. 11; ../shared/instruments.md §2):
+
+    01h | ID | Len | 02h | SubID | MainID | data… | 04h        Len = bytes from 02h to the last data byte
+
+Multi-byte data little-endian. Requests used here:
+
+* ``Main 00h Sub 01h``  poll the default response;
+* ``Main 01h Sub 00h``  write control word (2 bytes);
+* ``Main 02h Sub 00h``  write motion-command interface: header ``MasterID(8)|SubID(4)|Count(4)`` + parameters;
+  VAI go-to-position ``010xh``: target int32 [0.1 µm], max velocity uint32 [1e-6 m/s], acceleration and
+  deceleration uint32 [1e-5 m/s²].
+
+Every request is answered with the default response ``01 ID 0C 02 00 00 | CommState | StatusWord(2) |
+StateVar(2) | ActualPosition int32 [0.1 µm] | 04``. State var = main state (high byte) | sub state (low byte);
+in state 8 the sub state carries Homed (bit 7), InTargetPos (6), MotionActive (5) and the echoed motion
+command count (bits 0–3), which is the handshake for motion commands.
+"""
+
+from __future__ import annotations
+
+import struct
+import time
+from dataclasses import dataclass
+
+from drivers.errors import InstrumentStateError, InstrumentTimeoutError, LimitError, ProtocolError
+from drivers.interfaces import ClockFn, Identity, MotorStatus, Reading
+from drivers.serial_link import SerialLink
+
+START, DATA, END = 0x01, 0x02, 0x04
+MAIN_RESPONSE, MAIN_CONTROL_WORD, MAIN_MOTION_COMMAND = 0x00, 0x01, 0x02
+SUB_DEFAULT_RESPONSE_REQUEST = 0x01
+VAI_GOTO = 0x0100
+
+# control word bits (MC-SW manual §4.3)
+CW_SWITCH_ON, CW_VOLTAGE_ENABLE, CW_NOT_QUICK_STOP, CW_ENABLE_OPERATION = 0x0001, 0x0002, 0x0004, 0x0008
+CW_NOT_ABORT, CW_NOT_FREEZE, CW_ERROR_ACK, CW_HOME = 0x0010, 0x0020, 0x0080, 0x0800
+CW_READY = CW_VOLTAGE_ENABLE | CW_NOT_QUICK_STOP | CW_ENABLE_OPERATION | CW_NOT_ABORT | CW_NOT_FREEZE  # 0x003E
+CW_OPERATE = CW_READY | CW_SWITCH_ON  # 0x003F
+
+# status word bits
+SW_OPERATION_ENABLED, SW_ERROR, SW_IN_TARGET, SW_HOMED, SW_FATAL, SW_MOTION_ACTIVE = (
+    0x0001, 0x0008, 0x0400, 0x0800, 0x1000, 0x2000)
+
+STATE_NAMES = {0: "not ready to switch on", 1: "switch on disabled", 2: "ready to switch on", 3: "setup error",
+               4: "error", 5: "hardware tests", 6: "ready to operate", 8: "operation enabled", 9: "homing",
+               12: "aborting", 14: "error behaviour quick stop", 15: "going to position"}
+ERROR_TEXT = {0x01: "X4 logic supply too low", 0x03: "X1 power supply too low", 0x0B: "position lag too big",
+              0x20: "motion command in wrong state", 0x21: "target position outside the travel range",
+              0x22: "motor slider missing (fatal)", 0x30: "communication error"}
+
+POS_UNIT = 1e-7  # m per count (0.1 µm)
+VEL_UNIT = 1e-6  # m/s per count
+ACC_UNIT = 1e-5  # m/s² per count
+
+
+def encode(drive_id: int, main: int, sub: int, data: bytes = b"") -> bytes:
+    """LinRS telegram for one request."""
+    body = bytes([DATA, sub, main]) + data
+    if len(body) > 63:
+        raise ValueError(f"LinRS telegram body of {len(body)} bytes exceeds 63")
+    return bytes([START, drive_id, len(body)]) + body + bytes([END])
+
+
+@dataclass(frozen=True)
+class DefaultResponse:
+    """Decoded default response of the drive."""
+
+    comm_state: int
+    status_word: int
+    state_var: int
+    position_counts: int
+
+    @property
+    def main_state(self) -> int:
+        """Main state (high byte of the state var)."""
+        return self.state_var >> 8
+
+    @property
+    def sub_state(self) -> int:
+        """Sub state (low byte of the state var)."""
+        return self.state_var & 0xFF
+
+    @property
+    def command_count(self) -> int:
+        """Echoed motion-command count (valid in state 8)."""
+        return self.state_var & 0x0F
+
+    @property
+    def position(self) -> float:
+        """Actual position [m]."""
+        return self.position_counts * POS_UNIT
+
+
+def decode_default_response(frame: bytes, drive_id: int, device: str) -> DefaultResponse:
+    """Decode and check a default-response telegram."""
+    if len(frame) != 16 or frame[0] != START or frame[-1] != END:
+        raise ProtocolError(device, f"malformed default response {frame.hex(' ')}")
+    if frame[1] != drive_id:
+        raise ProtocolError(device, f"response from drive id {frame[1]:#04x}, expected {drive_id:#04x}")
+    if frame[2] != 0x0C or frame[3] != DATA or frame[4] != 0x00 or frame[5] != MAIN_RESPONSE:
+        raise ProtocolError(device, f"not a default response: {frame.hex(' ')}")
+    comm, status, state, pos = struct.unpack("<BHHi", frame[6:15])
+    return DefaultResponse(comm, status, state, pos)
+
+
+class LinMotDrive:
+    """Driver of one LinMot drive on a LinRS link (implements LinearMotor).
+
+    Software travel limits [m] are checked before any motion command is sent.
+    """
+
+    def __init__(self, link: SerialLink, *, name: str = "motor", drive_id: int = 0x11,
+                 travel: tuple[float, float] = (0.0, 0.12), max_velocity: float = 1.0,
+                 max_acceleration: float = 20.0, clock: ClockFn = time.monotonic,
+                 state_timeout: float = 5.0, poll_interval: float = 0.002) -> None:
+        if not travel[0] < travel[1]:
+            raise ValueError(f"{name}: travel limits must be increasing, got {travel}")
+        self.link = link
+        self.name = name
+        self.drive_id = drive_id
+        self.travel = travel
+        self.max_velocity = max_velocity
+        self.max_acceleration = max_acceleration
+        self.clock = clock
+        self.state_timeout = state_timeout
+        self.poll_interval = poll_interval
+        self._count = 0
+        self._control_word = 0
+
+    # ----------------------------------------------------------- protocol
+    def transact(self, main: int, sub: int, data: bytes = b"") -> DefaultResponse:
+        """Send one telegram and read the default response."""
+        with self.link.lock:
+            self.link.write(encode(self.drive_id, main, sub, data))
+            head = self.link.read_exact(3)
+            if head[0] != START:
+                self.link.discard_input()
+                raise ProtocolError(self.name, f"reply does not start with 01h: {head.hex(' ')}")
+            rest = self.link.read_exact(head[2] + 1)
+        resp = decode_default_response(head + rest, self.drive_id, self.name)
+        if resp.comm_state != 0:
+            raise ProtocolError(self.name, f"drive reports communication state {resp.comm_state:#04x}")
+        return resp
+
+    def poll(self) -> DefaultResponse:
+        """Request the default response."""
+        return self.transact(MAIN_RESPONSE, SUB_DEFAULT_RESPONSE_REQUEST)
+
+    def write_control_word(self, word: int) -> DefaultResponse:
+        """Write the control word."""
+        self._control_word = word
+        return self.transact(MAIN_CONTROL_WORD, 0x00, struct.pack("<H", word))
+
+    def _wait(self, predicate: object, what: str, timeout: float | None = None) -> DefaultResponse:
+        deadline = time.monotonic() + (self.state_timeout if timeout is None else timeout)
+        while True:
+            resp = self.poll()
+            if resp.status_word & SW_ERROR:
+                raise InstrumentStateError(self.name, f"drive error while waiting for {what}: "
+                                           f"{self._error_text(resp)}")
+            if predicate(resp):  # type: ignore[operator]
+                return resp
+            if time.monotonic() > deadline:
+                raise InstrumentTimeoutError(self.name, f"{what} not reached; drive in state "
+                                        f"{STATE_NAMES.get(resp.main_state, resp.main_state)}")
+            time.sleep(self.poll_interval)
+
+    @staticmethod
+    def _error_text(resp: DefaultResponse) -> str:
+        code = resp.sub_state if resp.main_state == 4 else 0
+        fatal = " (fatal)" if resp.status_word & SW_FATAL else ""
+        return f"code {code:#04x} {ERROR_TEXT.get(code, 'unknown error')}{fatal}"
+
+    # ----------------------------------------------------------- Instrument
+    def connect(self) -> None:
+        """Open the link and check that the drive answers."""
+        self.link.open()
+        self.link.discard_input()
+        self.poll()
+
+    def close(self) -> None:
+        """Stop any motion and release the link."""
+        try:
+            if self.link.is_open:
+                self.safe_state()
+        finally:
+            self.link.close()
+
+    def identify(self) -> Identity:
+        """LinRS has no identification telegram in the default profile: report state and position."""
+        resp = self.poll()
+        return Identity("LinMot", "LinRS drive", {"id": f"{self.drive_id:#04x}",
+                                                  "state": STATE_NAMES.get(resp.main_state, str(resp.main_state))})
+
+    def safe_state(self) -> None:
+        """Abort motion (controlled stop, position held) if the drive is operating."""
+        resp = self.poll()
+        if resp.main_state == 8 and resp.status_word & SW_MOTION_ACTIVE:
+            self.stop()
+
+    # ----------------------------------------------------------- LinearMotor
+    def enable(self, home: bool = True) -> None:
+        """Run the state machine to Operation Enabled (0 → 2 → 8), acknowledge a pending error, home."""
+        resp = self.poll()
+        if resp.status_word & SW_FATAL:
+            raise InstrumentStateError(self.name, f"fatal drive error: {self._error_text(resp)}")
+        if resp.status_word & SW_ERROR:
+            self.acknowledge_error()
+        if resp.main_state != 8:
+            self.write_control_word(0x0000)
+            self._wait(lambda r: r.main_state in (1, 2), "switch-on disabled state")
+            self.write_control_word(CW_READY)
+            self._wait(lambda r: r.main_state == 2, "ready to switch on")
+            self.write_control_word(CW_OPERATE)
+            resp = self._wait(lambda r: r.main_state == 8, "operation enabled")
+        if home and not resp.status_word & SW_HOMED:
+            self.home()
+        self._count = self.poll().command_count
+
+    def home(self) -> None:
+        """Home the motor (control word bit 11) and return to Operation Enabled."""
+        self.write_control_word(CW_OPERATE | CW_HOME)
+        self._wait(lambda r: r.state_var == 0x090F, "homing finished", timeout=max(self.state_timeout, 20.0))
+        self.write_control_word(CW_OPERATE)
+        self._wait(lambda r: r.main_state == 8 and r.status_word & SW_HOMED, "homed and operation enabled")
+
+    def acknowledge_error(self) -> None:
+        """Rising edge on control-word bit 7 (not possible for fatal errors)."""
+        self.write_control_word(self._control_word & ~CW_ERROR_ACK)
+        self.write_control_word(self._control_word | CW_ERROR_ACK)
+        resp = self.write_control_word(self._control_word & ~CW_ERROR_ACK)
+        if resp.status_word & SW_FATAL:
+            raise InstrumentStateError(self.name, f"fatal error cannot be acknowledged: {self._error_text(resp)}")
+
+    def check_move(self, position: float, velocity: float, acceleration: float, deceleration: float) -> None:
+        """Raise LimitError if a move would leave the software limits."""
+        lo, hi = self.travel
+        if not lo <= position <= hi:
+            raise LimitError(self.name, f"target {position * 1e3:.3f} mm outside travel "
+                             f"[{lo * 1e3:.3f}, {hi * 1e3:.3f}] mm")
+        if not 0 < velocity <= self.max_velocity:
+            raise LimitError(self.name, f"velocity {velocity:g} m/s outside (0, {self.max_velocity:g}] m/s")
+        for label, acc in (("acceleration", acceleration), ("deceleration", deceleration)):
+            if not 0 < acc <= self.max_acceleration:
+                raise LimitError(self.name, f"{label} {acc:g} m/s² outside (0, {self.max_acceleration:g}] m/s²")
+
+    def move_to(self, position: float, velocity: float, acceleration: float,
+                deceleration: float | None = None) -> None:
+        """VAI go-to-position; returns when the drive has echoed the new command count."""
+        dec = acceleration if deceleration is None else deceleration
+        self.check_move(position, velocity, acceleration, dec)
+        self._count = (self._count + 1) & 0x0F
+        header = VAI_GOTO | self._count
+        params = struct.pack("<HiIII", header, round(position / POS_UNIT), round(velocity / VEL_UNIT),
+                             round(acceleration / ACC_UNIT), round(dec / ACC_UNIT))
+        resp = self.transact(MAIN_MOTION_COMMAND, 0x00, params)
+        if resp.status_word & SW_ERROR:
+            raise InstrumentStateError(self.name, f"motion command refused: {self._error_text(resp)}")
+        if resp.main_state != 8 or resp.command_count != self._count:
+            self._wait(lambda r: r.main_state == 8 and r.command_count == self._count,
+                       "motion command acknowledged", timeout=1.0)
+
+    def wait_in_target(self, timeout: float = 10.0) -> Reading:
+        """Block until the drive reports In Target Position; returns the position reached."""
+        resp = self._wait(lambda r: bool(r.status_word & SW_IN_TARGET) and not r.status_word & SW_MOTION_ACTIVE,
+                          "in-target position", timeout=timeout)
+        return Reading(resp.position, "m", self.clock())
+
+    def read_position(self) -> Reading:
+        """Actual position [m]."""
+        resp = self.poll()
+        return Reading(resp.position, "m", self.clock(), "ok" if not resp.status_word & SW_ERROR else "invalid")
+
+    def status(self) -> MotorStatus:
+        """Decoded drive state."""
+        r = self.poll()
+        sw = r.status_word
+        return MotorStatus(state=STATE_NAMES.get(r.main_state, f"state {r.main_state}"),
+                           enabled=bool(sw & SW_OPERATION_ENABLED), homed=bool(sw & SW_HOMED),
+                           moving=bool(sw & SW_MOTION_ACTIVE), in_target=bool(sw & SW_IN_TARGET),
+                           error=bool(sw & SW_ERROR), error_code=r.sub_state if r.main_state == 4 else 0,
+                           position=r.position)
+
+    def stop(self) -> None:
+        """Abort the motion (clear /Abort), then re-arm; the drive decelerates and holds position."""
+        self.write_control_word(CW_OPERATE & ~CW_NOT_ABORT)
+        self.write_control_word(CW_OPERATE)
+
+    def quick_stop(self) -> None:
+        """Quick stop (clear /Quick Stop): maximum deceleration, then the drive leaves Operation Enabled."""
+        self.write_control_word(CW_OPERATE & ~CW_NOT_QUICK_STOP)

@@ -1,0 +1,127 @@
+"""TREK 10/10B-HS and 10/40A-HS high-voltage amplifiers, driven through an analog I/O module.
+
+The HS amplifiers have no digital port: a ±10 V analog input sets the output (gain 1000 V/V) and the
+voltage and current monitors are analog outputs (../shared/instruments.md §3). This driver writes the
+set-point through an ADAM-4024 analog output and reads the monitors through an ADAM-4017+; it never
+pretends the TREK speaks a protocol. It enforces a software voltage limit (refusing, not clipping, a
+set-point beyond it), a software slew limit (clamping each step to slew·elapsed time), and zero on close.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+from drivers.adam import Adam4017P, Adam4024
+from drivers.errors import LimitError
+from drivers.interfaces import ClockFn, Identity, Reading
+
+
+@dataclass(frozen=True)
+class TrekModel:
+    """Datasheet figures of one amplifier model and its monitor calibration."""
+
+    model: str
+    max_output: float  # V
+    max_current: float  # A (DC)
+    gain: float = 1000.0  # V out per V in
+    vmon_ratio: float = 1000.0  # V out per V of monitor  (monitor ratios: operator manual, calibrate)
+    imon_ratio: float = 1e-3  # A per V of monitor
+
+
+TREK_MODELS = {
+    "10/10B-HS": TrekModel("10/10B-HS", 10e3, 10e-3, imon_ratio=1e-3),
+    "10/40A-HS": TrekModel("10/40A-HS", 10e3, 40e-3, imon_ratio=4e-3),
+}
+
+
+class TrekAmplifier:
+    """Driver of a TREK HS amplifier on an ADAM-4024 / ADAM-4017+ pair (implements Amplifier)."""
+
+    def __init__(self, ao: Adam4024, ai: Adam4017P, *, name: str = "amplifier", model: str = "10/10B-HS",
+                 ao_channel: int = 0, vmon_channel: int = 0, imon_channel: int = 1, max_voltage: float = 10e3,
+                 slew_limit: float = 1e6, clock: ClockFn = time.monotonic, trek: TrekModel | None = None) -> None:
+        if model not in TREK_MODELS and trek is None:
+            raise ValueError(f"{name}: unknown TREK model {model!r}; known: {', '.join(TREK_MODELS)}")
+        self.trek = trek or TREK_MODELS[model]
+        if not 0 < max_voltage <= self.trek.max_output:
+            raise ValueError(f"{name}: max_voltage {max_voltage:g} V must lie in (0, {self.trek.max_output:g}] V")
+        if not slew_limit > 0:
+            raise ValueError(f"{name}: slew_limit must be > 0 V/s, got {slew_limit}")
+        self.ao, self.ai = ao, ai
+        self.name = name
+        self.ao_channel, self.vmon_channel, self.imon_channel = ao_channel, vmon_channel, imon_channel
+        self.max_voltage = max_voltage
+        self.slew_limit = slew_limit
+        self.clock = clock
+        self._last_v = 0.0
+        self._last_t: float | None = None
+
+    @property
+    def commanded(self) -> float:
+        """Last voltage set-point sent [V]."""
+        return self._last_v
+
+    def connect(self) -> None:
+        """Open the bus, check both modules are what the rig says, and command 0 V."""
+        self.ao.link.open()
+        if self.ai.link is not self.ao.link:
+            self.ai.link.open()
+        self.ao.module_name()
+        self.ai.module_name()
+        self.zero()
+
+    def close(self) -> None:
+        """Zero the output, then release the bus."""
+        try:
+            if self.ao.link.is_open:
+                self.zero()
+        finally:
+            self.ao.link.close()
+            self.ai.link.close()
+
+    def identify(self) -> Identity:
+        """Model from the rig file; the I/O modules from their name registers."""
+        return Identity("TREK", self.trek.model, {"ao": f"ADAM-{self.ao.module_name()} unit {self.ao.unit}",
+                                                  "ai": f"ADAM-{self.ai.module_name()} unit {self.ai.unit}"})
+
+    def safe_state(self) -> None:
+        """Command 0 V immediately (the amplifier sinks the DEA's charge)."""
+        self.zero()
+
+    def zero(self) -> None:
+        """Command 0 V, bypassing the slew limit."""
+        self.ao.write_volts(self.ao_channel, 0.0)
+        self._last_v = 0.0
+        self._last_t = self.clock()
+
+    def set_voltage(self, volts: float) -> float:
+        """Command ``volts`` [V]; refuses |V| > max_voltage, clamps the step to the slew limit; returns the command."""
+        if abs(volts) > self.max_voltage:
+            raise LimitError(self.name, f"{volts:.0f} V beyond the software limit ±{self.max_voltage:.0f} V")
+        now = self.clock()
+        if self._last_t is not None:
+            step = self.slew_limit * max(now - self._last_t, 0.0)
+            volts = min(max(volts, self._last_v - step), self._last_v + step)
+        self.ao.write_volts(self.ao_channel, volts / self.trek.gain)
+        self._last_v, self._last_t = volts, now
+        return volts
+
+    def read_monitors(self) -> tuple[Reading, Reading]:
+        """(output voltage [V], output current [A]) from one read of both monitor channels."""
+        first = min(self.vmon_channel, self.imon_channel)
+        n = abs(self.vmon_channel - self.imon_channel) + 1
+        volts = self.ai.read_volts(first, n)
+        t = self.clock()
+        v = volts[self.vmon_channel - first] * self.trek.vmon_ratio
+        i = volts[self.imon_channel - first] * self.trek.imon_ratio
+        return Reading(v, "V", t), Reading(i, "A", t)
+
+    def read_voltage(self) -> Reading:
+        """Output voltage from the voltage monitor [V]."""
+        return self.read_monitors()[0]
+
+    def read_current(self) -> Reading:
+        """Output current from the current monitor [A]."""
+        return self.read_monitors()[1]
+

@@ -1,0 +1,97 @@
+"""Trapezoidal point-to-point motion (velocity, acceleration, deceleration limits), evaluated vectorised.
+
+A :class:`MotionProfile` is a list of constant-acceleration phases starting from a known position and
+velocity; it handles a start while moving (towards, away from, or overshooting the target).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class MotionProfile:
+    """Phases of constant acceleration: start times [s], start positions [m], velocities [m/s], accelerations."""
+
+    t_start: np.ndarray
+    p_start: np.ndarray
+    v_start: np.ndarray
+    acc: np.ndarray
+    t_end: float  # time at which the target is reached and the axis is at rest
+    target: float
+
+    @classmethod
+    def hold(cls, t: float, position: float) -> MotionProfile:
+        """Stand still at ``position`` from t on."""
+        return cls(np.array([t]), np.array([position]), np.array([0.0]), np.array([0.0]), t, position)
+
+    @classmethod
+    def plan(cls, t0: float, p0: float, v0: float, target: float, vmax: float, acc: float,
+             dec: float) -> MotionProfile:
+        """Time-optimal trapezoid from (p0, v0) at t0 to rest at ``target``."""
+        phases: list[tuple[float, float]] = []  # (duration, acceleration)
+        p, v = p0, v0
+
+        def push(duration: float, a: float) -> None:
+            nonlocal p, v
+            if duration > 0:
+                phases.append((duration, a))
+                p += v * duration + 0.5 * a * duration * duration
+                v += a * duration
+
+        for _ in range(3):  # at most: stop moving away / stop after overshoot, then the trapezoid
+            d = target - p
+            s = math.copysign(1.0, d) if d != 0 else (-math.copysign(1.0, v) if v != 0 else 0.0)
+            if s == 0.0:
+                break
+            u = s * v  # speed towards the target
+            if u < 0:
+                push(-u / dec, s * dec)
+                continue
+            if u * u / (2 * dec) > abs(d) * (1 + 1e-9) + 1e-12:
+                push(u / dec, -s * dec)  # cannot stop in time: stop beyond the target, then come back
+                continue
+            D = abs(d)
+            if u > vmax:
+                push((u - vmax) / dec, -s * dec)
+                u = vmax
+                D = abs(target - p)
+            vp = math.sqrt(max((D + u * u / (2 * acc)) / (1 / (2 * acc) + 1 / (2 * dec)), 0.0))
+            vp = max(min(vp, vmax), u)
+            push((vp - u) / acc, s * acc)
+            cruise = abs(target - p) - vp * vp / (2 * dec)
+            push(cruise / vp if vp > 0 else 0.0, 0.0)
+            push(vp / dec, -s * dec)
+            break
+        starts = [t0]
+        ps, vs, accs = [p0], [v0], []
+        pp, vv = p0, v0
+        for dur, a in phases:
+            accs.append(a)
+            pp += vv * dur + 0.5 * a * dur * dur
+            vv += a * dur
+            starts.append(starts[-1] + dur)
+            ps.append(pp)
+            vs.append(vv)
+        accs.append(0.0)
+        ps[-1], vs[-1] = target, 0.0  # remove round-off at rest
+        return cls(np.array(starts), np.array(ps), np.array(vs), np.array(accs), starts[-1], target)
+
+    def evaluate(self, t: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
+        """(position [m], velocity [m/s]) at times t (before the profile start: its start state)."""
+        t = np.asarray(t, dtype=float)
+        i = np.clip(np.searchsorted(self.t_start, t, side="right") - 1, 0, self.t_start.size - 1)
+        tau = np.maximum(t - self.t_start[i], 0.0)
+        pos = self.p_start[i] + self.v_start[i] * tau + 0.5 * self.acc[i] * tau * tau
+        vel = self.v_start[i] + self.acc[i] * tau
+        return pos, vel
+
+    def stop(self, t: float, dec: float) -> MotionProfile:
+        """Profile that decelerates at ``dec`` from the state at t and holds where it comes to rest."""
+        p, v = (float(a) for a in self.evaluate(t))
+        if v == 0.0:
+            return MotionProfile.hold(t, p)
+        return MotionProfile.plan(t, p, v, p + v * abs(v) / (2 * dec), abs(v) + 1e-12, dec, dec)

@@ -1,0 +1,213 @@
+"""The plant: the specimen model plus the rig's high-voltage output stage and motor coupling.
+
+All simulated instruments of a rig share one :class:`Plant` and one clock. The plant is lazy: it advances
+its physical model (fixed step h, compiled streaming integrator of :mod:`bench.models`) up to the clock's
+present whenever an instrument reads it or changes an input, so the same code serves wall-clock
+(hardware-in-the-loop) and virtual-time runs. Every advanced block is passed to listeners (device-side
+buffers such as the LK-G data storage and the ADAM-4017+ conversions).
+
+Specimens: the thesis membrane (output: in-plane displacement u) or the LS-DEA in one of three
+configurations — ``motor`` (aperture x = x0 + motor position, load-cell force), ``blocked`` (x fixed) and
+``hung`` (free end under a hung mass; output x).
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+from bench.models.lozenge import LozengeParams
+from bench.models.lozenge_runs import LozengeStream
+from bench.models.membrane import MembraneParams
+from bench.models.membrane_runs import MembraneStream
+from sim_devices.clock import Clock
+from sim_devices.motion import MotionProfile
+
+Listener = Callable[["PlantBlock"], None]
+BLOCK_STEPS = 20_000  # longest block handed to the compiled integrator at once
+
+
+@dataclass(frozen=True)
+class HVStage:
+    """High-voltage amplifier output stage (TREK HS datasheet figures).
+
+    Output = gain × analog input, clipped to ±max_output; it moves at most at min(slew, max_current/C)
+    (a current-limited capacitive load); after dielectric breakdown the load is a short ``r_short``.
+    """
+
+    gain: float = 1000.0
+    max_output: float = 10e3  # V
+    max_current: float = 10e-3  # A
+    slew: float = 700e6  # V/s (> 700 V/µs)
+    r_short: float = 1e3  # Ω, electrodes after breakdown
+
+
+@dataclass(frozen=True)
+class PlantBlock:
+    """Samples of one advanced block (one per model step): times [s] and observables (SI)."""
+
+    t: np.ndarray
+    voltage: np.ndarray  # amplifier output [V]
+    current: np.ndarray  # amplifier output current [A]
+    displacement: np.ndarray  # membrane u, or LS-DEA aperture x [m]
+    force: np.ndarray  # force on the load cell [N] (0 when not coupled)
+
+
+class Plant:
+    """Specimen + HV stage + motor coupling, advanced lazily to the clock (thread-safe)."""
+
+    def __init__(self, clock: Clock, specimen: MembraneParams | LozengeParams, *,
+                 configuration: Literal["membrane", "motor", "blocked", "hung"] = "membrane",
+                 temperature: float = 296.0, x0: float = 0.05, h: float = 1e-4, hv: HVStage | None = None,
+                 motor_sign: float = 1.0) -> None:
+        self.clock = clock
+        self.specimen = specimen
+        self.configuration = configuration
+        self.temperature = temperature
+        self.x0 = x0
+        self.h = h
+        self.hv = hv or HVStage()
+        self.motor_sign = motor_sign
+        self.lock = threading.RLock()
+        self.listeners: list[Listener] = []
+        self.v_in = 0.0  # amplifier analog input [V]
+        self.v_out = 0.0  # amplifier output [V]
+        self.motion = MotionProfile.hold(0.0, 0.0)
+        self.broken = False
+        self.failure = ""
+        self.t = 0.0
+        self._n = 0  # steps done
+        self._q_prev = 0.0
+        if isinstance(specimen, MembraneParams):
+            if configuration != "membrane":
+                raise ValueError("the membrane specimen has only the 'membrane' configuration")
+            self._membrane: MembraneStream | None = MembraneStream(specimen, h=h, T=temperature)
+            self._lozenge: LozengeStream | None = None
+            self._C = 1e-9
+        else:
+            if configuration not in ("motor", "blocked", "hung"):
+                raise ValueError(f"LS-DEA configuration must be motor, blocked or hung, got {configuration!r}")
+            self._membrane = None
+            mode = "hung" if configuration == "hung" else "imposed"
+            self._lozenge = LozengeStream(specimen, mode, None if configuration == "hung" else x0, h=h)
+            self._C = 1e-10
+        self.last = PlantBlock(np.zeros(1), np.zeros(1), np.zeros(1), np.zeros(1), np.zeros(1))
+        self._refresh_last_at_rest()
+
+    # ------------------------------------------------------------------ inputs
+    def set_amplifier_input(self, volts: float) -> None:
+        """New analog input of the amplifier [V], effective from the clock's present."""
+        with self.lock:
+            self.advance_to(self.clock.now())
+            self.v_in = float(volts)
+
+    def set_motion(self, make: Callable[[float, float, float], MotionProfile]) -> MotionProfile:
+        """Replace the motor's motion from now: ``make(t, position, velocity)`` returns the new profile."""
+        with self.lock:
+            now = self.clock.now()
+            self.advance_to(now)
+            p, v = (float(a) for a in self.motion.evaluate(now))
+            self.motion = make(now, p, v)
+            return self.motion
+
+    def motor_state(self, t: float | None = None) -> tuple[float, float]:
+        """Motor (position [m], velocity [m/s]) at t (default: now)."""
+        with self.lock:
+            p, v = self.motion.evaluate(self.clock.now() if t is None else t)
+            return float(p), float(v)
+
+    def inject_breakdown(self) -> None:
+        """Fault injection: the dielectric breaks down now (electrodes shorted from here on)."""
+        with self.lock:
+            self.advance_to(self.clock.now())
+            self._break("dielectric breakdown (injected)")
+
+    def _break(self, why: str) -> None:
+        if not self.broken:
+            self.broken = True
+            self.failure = f"{why} at t = {self.t:.4f} s"
+
+    # ------------------------------------------------------------------ stepping
+    def observe(self) -> PlantBlock:
+        """Advance to now and return the last sample (arrays of length 1)."""
+        with self.lock:
+            self.advance_to(self.clock.now())
+            return self.last
+
+    def advance_to(self, t: float) -> None:
+        """Advance the model to time t in whole steps (no-op if already there)."""
+        with self.lock:
+            n_total = math.floor((t - self.t) / self.h + 1e-9)
+            while n_total > 0:
+                n = min(n_total, BLOCK_STEPS)
+                self._advance(n)
+                n_total -= n
+
+    def _hv_output(self, k: np.ndarray) -> np.ndarray:
+        hv = self.hv
+        target = min(max(hv.gain * self.v_in, -hv.max_output), hv.max_output)
+        if self.broken:
+            target = math.copysign(min(abs(target), hv.max_current * hv.r_short), target)
+        rate = min(hv.slew, hv.max_current / max(self._C, 1e-15))
+        return self.v_out + np.clip(target - self.v_out, -rate * self.h * k, rate * self.h * k)
+
+    def _advance(self, n: int) -> None:
+        k = np.arange(1, n + 1, dtype=float)
+        t = (self._n + k) * self.h
+        v_amp = self._hv_output(k)
+        v_dea = np.zeros_like(v_amp) if self.broken else v_amp
+        force = np.zeros(n)
+        if self._membrane is not None:
+            tr = self._membrane.advance(v_dea, self.temperature)
+            disp = tr.displacement
+            charge = tr.charge
+            cap = tr.capacitance
+            if tr.failed and not self.broken:
+                self._break(f"specimen failure: {tr.failure}")
+        else:
+            U = np.zeros((n, 3))
+            U[:, 0] = v_dea
+            if self.configuration == "motor":
+                pos, vel = self.motion.evaluate(t)
+                U[:, 1] = self.x0 + self.motor_sign * pos
+                U[:, 2] = self.motor_sign * vel
+            elif self.configuration == "blocked":
+                U[:, 1] = self.x0
+            tr = self._lozenge.advance(U)  # type: ignore[union-attr]
+            disp = tr.position
+            charge = tr.charge
+            cap = tr.capacitance
+            if self.configuration != "hung":
+                force = tr.force
+            if tr.failed and not self.broken:
+                self._break(f"specimen failure: {tr.failure}")
+        q = np.concatenate([[self._q_prev], charge])
+        current = np.diff(q) / self.h
+        if self.broken:
+            current = v_amp / self.hv.r_short
+        self._q_prev = float(charge[-1]) if np.isfinite(charge[-1]) else self._q_prev
+        if np.isfinite(cap[-1]) and cap[-1] > 0:
+            self._C = float(cap[-1])
+        self.v_out = float(v_amp[-1])
+        self._n += n
+        self.t = self._n * self.h
+        block = PlantBlock(t, v_amp, current, disp, force)
+        self.last = PlantBlock(t[-1:], v_amp[-1:], current[-1:], disp[-1:], force[-1:])
+        for listener in self.listeners:
+            listener(block)
+
+    def _refresh_last_at_rest(self) -> None:
+        """Initial observables (t = 0, no voltage)."""
+        disp = force = 0.0
+        if self._lozenge is not None:
+            tr = self._lozenge.observe(0.0)
+            disp = float(tr.position[0])
+            force = 0.0 if self.configuration == "hung" else float(tr.force[0])
+            self._C = float(tr.capacitance[0])
+        z = np.zeros(1)
+        self.last = PlantBlock(z, z.copy(), z.copy(), np.array([disp]), np.array([force]))
