@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
 import functools
 from collections.abc import Callable
 from enum import StrEnum
+from pathlib import Path
 from typing import Annotated, ParamSpec, TypeVar
 
 import numpy as np
@@ -20,7 +22,11 @@ app = typer.Typer(name="bench", help="dea-bench: DEA test-bench control, simulat
                   no_args_is_help=True, pretty_exceptions_enable=False, add_completion=False)
 simulate_app = typer.Typer(help="Simulate the papers' specimens with the physical models (no instruments).",
                            no_args_is_help=True)
+sim_app = typer.Typer(help="Simulated rigs: twins of every instrument on real ports.", no_args_is_help=True)
+devices_app = typer.Typer(help="The instruments of a rig (real or simulated).", no_args_is_help=True)
 app.add_typer(simulate_app, name="simulate")
+app.add_typer(sim_app, name="sim")
+app.add_typer(devices_app, name="devices")
 
 P = ParamSpec("P")
 R = TypeVar("R")
@@ -186,6 +192,89 @@ def demo() -> None:
     simulate_thesis()
     simulate_lsdea(LsdeaTest.isotonic, frequency=2.75, cycles=15)
     simulate_lsdea(LsdeaTest.isopotential, voltage=7000.0)
+
+
+RigArg = Annotated[Path, typer.Argument(help="Rig file (TOML), e.g. rigs/thesis-sim.toml.")]
+
+
+def _endpoint_table(title: str, endpoints: dict) -> Table:
+    table = Table(title=title)
+    for col in ("name", "protocol", "endpoint", "units / details"):
+        table.add_column(col)
+    for ep in endpoints.values():
+        table.add_row(ep.name, ep.protocol, ep.address, ep.details)
+    return table
+
+
+@sim_app.command("serve")
+@clean_errors
+def sim_serve(
+    rig_file: RigArg,
+    write_rig: Annotated[Path | None, typer.Option(
+        help="Also write a rig file pointing at the running twins (for other processes).")] = None,
+    duration: Annotated[float | None, typer.Option(help="Stop after this many seconds (default: Ctrl-C).",
+                                                   min=0.1)] = None,
+) -> None:
+    """Start every simulated instrument of a rig (wall clock) and print where to connect; Ctrl-C stops."""
+    import signal
+    import threading
+
+    from bench.devices import served_rig
+    from bench.devices import write_rig as write_rig_file
+    from bench.rig import load_rig
+    from sim_devices.rig import SimRig
+
+    rig = load_rig(rig_file)
+    if not rig.simulated:
+        raise ValueError(f"rig file {rig_file}: simulated = false; `bench sim serve` needs a simulated rig")
+    stop = threading.Event()
+    previous = signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    sim = SimRig(rig)
+    try:
+        endpoints = sim.start()
+        console.print(_endpoint_table(f"simulated rig {rig.name} ({rig.specimen.kind})", endpoints))
+        if write_rig is not None:
+            write_rig_file(served_rig(rig, sim.port_map()), write_rig)
+            console.print(f"rig file for clients: {write_rig}")
+        console.print("serving; Ctrl-C to stop" + (f" (or after {duration:g} s)" if duration else ""))
+        with contextlib.suppress(KeyboardInterrupt):
+            stop.wait(duration)
+    finally:
+        sim.stop()
+        signal.signal(signal.SIGTERM, previous)
+    console.print("simulated rig stopped")
+
+
+@devices_app.command("check")
+@clean_errors
+def devices_check(rig_file: RigArg) -> None:
+    """Connect to every instrument of a rig, identify it, print its state and a first reading."""
+    from bench.devices import check_instruments
+    from bench.rig import load_rig
+    from sim_devices.rig import SimRig
+
+    rig = load_rig(rig_file)
+    sim = SimRig(rig) if rig.simulated else None
+    try:
+        if sim is not None:
+            sim.start()
+        with console.status(f"checking the instruments of {rig.name}…"):
+            rows = check_instruments(rig, sim.port_map() if sim else None)
+    finally:
+        if sim is not None:
+            sim.stop()
+    table = Table(title=f"{rig.name}: {'simulated' if rig.simulated else 'real'} instruments")
+    for col in ("instrument", "", "identity", "state", "first reading"):
+        table.add_column(col)
+    for r in rows:
+        if r.ok:
+            table.add_row(r.role, "[green]ok[/]", r.identity, r.state, r.reading)
+        else:
+            table.add_row(r.role, "[red]FAIL[/]", "", r.error, "")
+    console.print(table)
+    failed = [r for r in rows if not r.ok]
+    if failed:
+        raise fail(f"{len(failed)} of {len(rows)} instruments failed: " + "; ".join(r.error for r in failed), code=1)
 
 
 @app.command()

@@ -7,6 +7,7 @@ or ``tcp://host:port`` for Modbus TCP. Uses the pymodbus 3.16 synchronous client
 from __future__ import annotations
 
 import logging
+import os
 import threading
 from collections.abc import Callable
 from typing import TypeVar
@@ -49,7 +50,9 @@ class ModbusLink:
     def open(self) -> None:
         """Connect (RTU: open the port; TCP: connect the socket)."""
         if not self._client.connect():
-            raise InstrumentConnectionError(self.device, f"cannot open Modbus link {self.url}")
+            local = "://" not in self.url
+            reason = "no such device" if local and not os.path.exists(self.url) else "connection refused or port busy"
+            raise InstrumentConnectionError(self.device, f"cannot open Modbus link {self.url}: {reason}")
 
     def close(self) -> None:
         """Close the connection (idempotent)."""

@@ -6,6 +6,7 @@ Ports are opened with ``serial.serial_for_url``, so a device path (``/dev/ttyUSB
 
 from __future__ import annotations
 
+import os
 import threading
 import time
 
@@ -42,7 +43,8 @@ class SerialLink:
                                                stopbits=1, timeout=self.timeout, write_timeout=self.timeout,
                                                exclusive=self.exclusive)
         except (serial.SerialException, OSError, ValueError) as exc:
-            raise InstrumentConnectionError(self.device, f"cannot open {self.url}: {exc}") from None
+            reason = os.strerror(exc.errno) if isinstance(getattr(exc, "errno", None), int) else str(exc)
+            raise InstrumentConnectionError(self.device, f"cannot open {self.url}: {reason}") from None
 
     def close(self) -> None:
         """Close the port (idempotent)."""

@@ -1,0 +1,207 @@
+"""Rig files (TOML): which instrument on which port/address, calibration, limits, specimen.
+
+A rig is *simulated* (``simulated = true``: ``bench`` starts the simulated twins and points the drivers at
+them; the ports in the file are ignored) or real (the drivers open the ports given). Validation is done
+with pydantic so that a malformed file is refused with one line naming the file and the field.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from bench.models.lozenge import LozengeParams
+from bench.models.membrane import MembraneParams
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class BusConfig(_Strict):
+    """A Modbus bus: serial device / pyserial URL (RTU) or ``tcp://host:port``."""
+
+    port: str = "sim"
+    baudrate: int = Field(19200, gt=0)
+    timeout_s: float = Field(0.5, gt=0, le=30)
+    retries: int = Field(1, ge=0, le=5)
+
+
+class AmplifierConfig(_Strict):
+    """TREK amplifier on an ADAM-4024 (set-point) and an ADAM-4017+ (monitors) on one bus."""
+
+    model: Literal["10/10B-HS", "10/40A-HS"] = "10/10B-HS"
+    bus: str = "io"
+    ao_unit: int = Field(1, ge=1, le=247)
+    ao_channel: int = Field(0, ge=0, le=3)
+    ai_unit: int = Field(2, ge=1, le=247)
+    vmon_channel: int = Field(0, ge=0, le=7)
+    imon_channel: int = Field(1, ge=0, le=7)
+    max_voltage_V: float = Field(8000.0, gt=0, le=10_000)
+    slew_limit_V_per_s: float = Field(1e6, gt=0)
+    vmon_ratio: float | None = Field(None, gt=0, description="V of output per V of monitor (default: model)")
+    imon_ratio: float | None = Field(None, gt=0, description="A of output per V of monitor (default: model)")
+    ao_bits: int = Field(12, ge=8, le=16)
+    ai_bits: int = Field(16, ge=8, le=16)
+    raw_format: Literal["offset", "twos"] = "offset"
+
+
+class LaserConfig(_Strict):
+    """Keyence LK-G controller on a serial port."""
+
+    model: Literal["LK-G3000", "LK-G5000"] = "LK-G3000"
+    port: str = "sim"
+    baudrate: int = Field(115200, gt=0)
+    timeout_s: float = Field(0.5, gt=0, le=30)
+    out: int = Field(1, ge=1, le=12)
+    storage_points: int = Field(65_536, ge=1, le=1_200_000)
+    offset_mm: float = 0.0
+    sign: Literal[-1, 1] = 1
+    range_mm: float = Field(40.0, gt=0)
+
+
+class MotorConfig(_Strict):
+    """LinMot drive on a LinRS serial link."""
+
+    port: str = "sim"
+    baudrate: int = Field(115200, gt=0)
+    timeout_s: float = Field(0.5, gt=0, le=30)
+    drive_id: int = Field(0x11, ge=0, le=255)
+    travel_m: tuple[float, float] = (0.0, 0.09)
+    max_velocity_m_per_s: float = Field(1.0, gt=0, le=10)
+    max_acceleration_m_per_s2: float = Field(20.0, gt=0, le=500)
+
+    @model_validator(mode="after")
+    def _travel(self) -> MotorConfig:
+        if not self.travel_m[0] < self.travel_m[1]:
+            raise ValueError(f"travel_m must be increasing, got {list(self.travel_m)}")
+        return self
+
+
+class LoadCellConfig(_Strict):
+    """Load cell through a DGT1S weight transmitter on a Modbus bus."""
+
+    bus: str = "scale"
+    unit: int = Field(1, ge=1, le=247)
+    division_kg: float = Field(0.001, gt=0)
+    capacity_kg: float = Field(5.0, gt=0)
+
+
+class LsdeaConfig(_Strict):
+    """LS-DEA prototype and how it is mounted on the rig."""
+
+    prototype: Literal[1, 2, 3] = 1
+    configuration: Literal["motor", "blocked", "hung"] = "motor"
+    hung_mass_kg: float = Field(0.0, ge=0, le=2)
+    x_at_motor_zero_m: float = Field(0.05, gt=0.0, lt=0.24, description="aperture x when the motor is at 0")
+    motor_sign: Literal[-1, 1] = 1
+    blocked_position_m: float = Field(0.1, gt=0.0, lt=0.24)
+
+
+class SpecimenConfig(_Strict):
+    """The specimen on the rig (the simulated plant; for a real rig, metadata and safety limits)."""
+
+    kind: Literal["membrane", "lsdea"] = "membrane"
+    temperature_K: float = Field(296.0, gt=150, lt=450)
+    displacement_length_m: float = Field(0.03, gt=0, description="membrane: u = L_d (λ − λ_pre)")
+    breakdown_field_V_per_m: float = Field(100e6, gt=0, description="membrane: true-field breakdown")
+    electrostriction: Literal["corrected", "thesis"] = "corrected"
+    lsdea: LsdeaConfig = LsdeaConfig()
+
+    def membrane(self) -> MembraneParams:
+        """Model A parameters for this specimen."""
+        return MembraneParams(L_d=self.displacement_length_m, breakdown_field=self.breakdown_field_V_per_m,
+                              electrostriction=self.electrostriction)
+
+    def lozenge(self) -> LozengeParams:
+        """Model B parameters for this specimen."""
+        return LozengeParams.prototype(self.lsdea.prototype, hung_mass=self.lsdea.hung_mass_kg)
+
+
+class LimitsConfig(_Strict):
+    """Safety limits enforced by the supervisor (the amplifier's own software limit is separate)."""
+
+    max_voltage_V: float = Field(8000.0, gt=0, le=10_000)
+    max_field_V_per_m: float | None = Field(None, gt=0, description="default: the specimen's breakdown field")
+    max_current_A: float = Field(5e-3, gt=0)
+    max_force_N: float = Field(20.0, gt=0)
+
+
+class SimulationConfig(_Strict):
+    """Options of the simulated twins."""
+
+    seed: int = 1
+    latency_s: float = Field(0.0, ge=0, le=1.0, description="extra reply latency of serial twins (wall time)")
+    modbus_transport: Literal["rtu", "tcp"] = "rtu"
+
+
+class RigConfig(_Strict):
+    """A whole rig file."""
+
+    name: str
+    description: str = ""
+    simulated: bool = True
+    specimen: SpecimenConfig = SpecimenConfig()
+    limits: LimitsConfig = LimitsConfig()
+    simulation: SimulationConfig = SimulationConfig()
+    buses: dict[str, BusConfig] = Field(default_factory=dict)
+    amplifier: AmplifierConfig | None = None
+    laser: LaserConfig | None = None
+    motor: MotorConfig | None = None
+    load_cell: LoadCellConfig | None = None
+
+    @model_validator(mode="after")
+    def _consistent(self) -> RigConfig:
+        for role, bus in (("amplifier", self.amplifier and self.amplifier.bus),
+                          ("load_cell", self.load_cell and self.load_cell.bus)):
+            if bus and bus not in self.buses:
+                raise ValueError(f"{role}.bus {bus!r} is not defined under [buses]")
+        if self.amplifier and self.amplifier.vmon_channel == self.amplifier.imon_channel:
+            raise ValueError("amplifier.vmon_channel and amplifier.imon_channel must differ")
+        if self.amplifier and self.limits.max_voltage_V > self.amplifier.max_voltage_V:
+            raise ValueError(f"limits.max_voltage_V {self.limits.max_voltage_V:g} exceeds "
+                             f"amplifier.max_voltage_V {self.amplifier.max_voltage_V:g}")
+        if self.specimen.kind == "lsdea" and self.specimen.lsdea.configuration == "motor" and self.motor is None:
+            raise ValueError("specimen.lsdea.configuration = 'motor' needs a [motor] section")
+        if self.amplifier and self.amplifier.bus == (self.load_cell.bus if self.load_cell else None):
+            au = {self.amplifier.ao_unit, self.amplifier.ai_unit}
+            if self.load_cell and self.load_cell.unit in au:
+                raise ValueError(f"load_cell.unit {self.load_cell.unit} collides with an amplifier module on the bus")
+        return self
+
+    @property
+    def instruments(self) -> list[str]:
+        """Roles present on this rig."""
+        return [r for r in ("amplifier", "laser", "motor", "load_cell") if getattr(self, r) is not None]
+
+
+class RigFileError(ValueError):
+    """A rig file that cannot be read or is invalid (message: one line, naming file and field)."""
+
+
+def _first_error(path: Path, exc: ValidationError) -> str:
+    err = exc.errors()[0]
+    loc = ".".join(str(x) for x in err["loc"]) or "(top level)"
+    msg = err["msg"].removeprefix("Value error, ")
+    more = f" (and {exc.error_count() - 1} more)" if exc.error_count() > 1 else ""
+    return f"rig file {path}: {loc}: {msg}{more}"
+
+
+def load_rig(path: str | Path) -> RigConfig:
+    """Read and validate a rig file; raise RigFileError with a one-line message."""
+    p = Path(path)
+    try:
+        data = tomllib.loads(p.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise RigFileError(f"rig file {p}: not found") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise RigFileError(f"rig file {p}: cannot be read ({exc})") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise RigFileError(f"rig file {p}: not valid TOML ({exc})") from None
+    try:
+        return RigConfig.model_validate(data)
+    except ValidationError as exc:
+        raise RigFileError(_first_error(p, exc)) from None

@@ -1,0 +1,144 @@
+"""A whole simulated rig: one plant, one clock, a twin per instrument of the rig file, on real ports."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from bench.rig import RigConfig
+from drivers.adam import RawScale
+from drivers.trek import TREK_MODELS, TrekModel
+from sim_devices.clock import Clock, VirtualClock, WallClock
+from sim_devices.keyence_lkg import KeyenceLKGSim, LaserHead
+from sim_devices.linmot_drive import LinMotDriveSim
+from sim_devices.modbus_devices import Adam4017PSim, Adam4024Sim, Dgt1sSim
+from sim_devices.modbus_host import ModbusHost, SimBus
+from sim_devices.plant import HVStage, Plant
+from sim_devices.transport import Faults, PtyDevice
+
+
+@dataclass(frozen=True)
+class Endpoint:
+    """Where a simulated instrument (or bus) listens, and what speaks there."""
+
+    name: str
+    protocol: str
+    address: str
+    details: str = ""
+
+
+@dataclass
+class SimRig:
+    """Simulated twins of every instrument in ``rig``, sharing one :class:`Plant` and one clock."""
+
+    rig: RigConfig
+    virtual: bool = False
+    clock: Clock = field(init=False)
+    plant: Plant = field(init=False)
+    twins: dict[str, object] = field(init=False, default_factory=dict)
+    faults: dict[str, Faults] = field(init=False, default_factory=dict)
+    _serial: dict[str, PtyDevice] = field(init=False, default_factory=dict)
+    _modbus: ModbusHost | None = field(init=False, default=None)
+
+    def __post_init__(self) -> None:
+        rig = self.rig
+        self.clock = VirtualClock() if self.virtual else WallClock()
+        spec = rig.specimen
+        trek = self._trek()
+        hv = HVStage(max_current=trek.max_current, max_output=trek.max_output, gain=trek.gain)
+        if spec.kind == "membrane":
+            self.plant = Plant(self.clock, spec.membrane(), temperature=spec.temperature_K, hv=hv)
+        else:
+            cfg = spec.lsdea
+            x0 = cfg.blocked_position_m if cfg.configuration == "blocked" else cfg.x_at_motor_zero_m
+            self.plant = Plant(self.clock, spec.lozenge(), configuration=cfg.configuration, x0=x0, hv=hv,
+                               motor_sign=cfg.motor_sign)
+
+    def _trek(self) -> TrekModel:
+        a = self.rig.amplifier
+        base = TREK_MODELS[a.model if a else "10/10B-HS"]
+        if a is None:
+            return base
+        return TrekModel(base.model, base.max_output, base.max_current, base.gain,
+                         a.vmon_ratio or base.vmon_ratio, a.imon_ratio or base.imon_ratio)
+
+    def start(self) -> dict[str, Endpoint]:
+        """Start every twin; returns the endpoints by role (serial instruments) or bus name (Modbus)."""
+        rig, sim = self.rig, self.rig.simulation
+        if rig.laser is not None:
+            head = LaserHead(offset_mm=rig.laser.offset_mm, sign=rig.laser.sign, range_mm=rig.laser.range_mm)
+            twin = KeyenceLKGSim(self.plant, self.clock, model=rig.laser.model, head=head,
+                                 capacity=rig.laser.storage_points, seed=sim.seed)
+            self._serve_serial("laser", twin)
+        if rig.motor is not None:
+            m = rig.motor
+            stroke = (min(m.travel_m[0], 0.0), max(m.travel_m[1], 0.12))
+            self._serve_serial("motor", LinMotDriveSim(self.plant, self.clock, drive_id=m.drive_id, stroke=stroke))
+        buses: dict[str, list] = {}
+        if (a := rig.amplifier) is not None:
+            scale_ao = RawScale(bits=a.ao_bits, raw_format=a.raw_format)
+            scale_ai = RawScale(bits=a.ai_bits, raw_format=a.raw_format)
+            ao = Adam4024Sim(a.ao_unit, self.plant, amplifier_channel=a.ao_channel, scale=scale_ao)
+            ai = Adam4017PSim(a.ai_unit, self.plant, self.clock, self._trek(), vmon_channel=a.vmon_channel,
+                              imon_channel=a.imon_channel, scale=scale_ai, seed=sim.seed + 1)
+            self.twins["amplifier AO"], self.twins["amplifier AI"] = ao, ai
+            buses.setdefault(a.bus, []).extend([ao.device, ai.device])
+        if (c := rig.load_cell) is not None:
+            cell = Dgt1sSim(c.unit, self.plant, self.clock, division=c.division_kg, capacity=c.capacity_kg,
+                            seed=sim.seed + 2)
+            self.twins["load_cell"] = cell
+            buses.setdefault(c.bus, []).append(cell.device)
+        if buses:
+            sim_buses = []
+            for name, devices in buses.items():
+                self.faults[name] = Faults(latency=sim.latency_s)
+                sim_buses.append(SimBus(name, devices, transport=sim.modbus_transport,
+                                        baudrate=rig.buses[name].baudrate, faults=self.faults[name]))
+            self._modbus = ModbusHost(sim_buses)
+            self._modbus.start()
+        return self.endpoints()
+
+    def _serve_serial(self, role: str, twin: object) -> None:
+        self.faults[role] = Faults(latency=self.rig.simulation.latency_s)
+        self.twins[role] = twin
+        self._serial[role] = PtyDevice(twin, role, self.faults[role]).start()  # type: ignore[arg-type]
+
+    def endpoints(self) -> dict[str, Endpoint]:
+        """Endpoints of the running twins."""
+        out: dict[str, Endpoint] = {}
+        rig = self.rig
+        if "laser" in self._serial and rig.laser is not None:
+            out["laser"] = Endpoint("laser", f"Keyence {rig.laser.model} RS-232C ASCII", self._serial["laser"].path,
+                                    f"OUT{rig.laser.out}")
+        if "motor" in self._serial and rig.motor is not None:
+            out["motor"] = Endpoint("motor", "LinMot LinRS", self._serial["motor"].path,
+                                    f"drive id {rig.motor.drive_id:#04x}")
+        if self._modbus is not None:
+            for bus in self._modbus.buses:
+                units = []
+                if rig.amplifier and rig.amplifier.bus == bus.name:
+                    units += [f"ADAM-4024 unit {rig.amplifier.ao_unit}", f"ADAM-4017+ unit {rig.amplifier.ai_unit}"]
+                if rig.load_cell and rig.load_cell.bus == bus.name:
+                    units.append(f"DGT1S unit {rig.load_cell.unit}")
+                proto = "Modbus RTU" if bus.transport == "rtu" else "Modbus TCP"
+                out[bus.name] = Endpoint(bus.name, proto, bus.endpoint, ", ".join(units))
+        return out
+
+    def port_map(self) -> dict[str, str]:
+        """Role / bus name → port, for :func:`bench.instruments.build_instruments`."""
+        return {name: ep.address for name, ep in self.endpoints().items()}
+
+    def stop(self) -> None:
+        """Stop every twin and close the ports."""
+        for dev in self._serial.values():
+            dev.stop()
+        self._serial.clear()
+        if self._modbus is not None:
+            self._modbus.stop()
+            self._modbus = None
+
+    def __enter__(self) -> SimRig:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
