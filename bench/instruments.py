@@ -10,7 +10,15 @@ from bench.rig import RigConfig
 from drivers.adam import Adam4017P, Adam4024, RawScale
 from drivers.dini import DiniDGT1S
 from drivers.errors import InstrumentError
-from drivers.interfaces import Amplifier, ClockFn, DisplacementSensor, ForceSensor, Instrument, LinearMotor
+from drivers.interfaces import (
+    Amplifier,
+    ClockFn,
+    DisplacementSensor,
+    ForceSensor,
+    Instrument,
+    LinearMotor,
+    SleepFn,
+)
 from drivers.keyence import KeyenceLKG
 from drivers.linmot import LinMotDrive
 from drivers.modbus_link import ModbusLink
@@ -59,8 +67,11 @@ class Instruments:
 
 
 def build_instruments(rig: RigConfig, endpoints: dict[str, str] | None = None,
-                      clock: ClockFn = time.monotonic) -> Instruments:
-    """Create (not connect) the drivers; ``endpoints`` (role or bus name → port) override the file's ports."""
+                      clock: ClockFn = time.monotonic, sleep: SleepFn = time.sleep) -> Instruments:
+    """Create (not connect) the drivers; ``endpoints`` (role or bus name → port) override the file's ports.
+
+    ``clock``/``sleep`` are the rig's time: wall time for hardware, the simulated rig's clock otherwise.
+    """
     ep = endpoints or {}
     inst = Instruments()
 
@@ -89,7 +100,8 @@ def build_instruments(rig: RigConfig, endpoints: dict[str, str] | None = None,
     if (m := rig.motor) is not None:
         inst.motor = LinMotDrive(SerialLink(ep.get("motor", m.port), "motor", baudrate=m.baudrate, timeout=m.timeout_s),
                                  drive_id=m.drive_id, travel=m.travel_m, max_velocity=m.max_velocity_m_per_s,
-                                 max_acceleration=m.max_acceleration_m_per_s2, clock=clock)
+                                 max_acceleration=m.max_acceleration_m_per_s2, clock=clock, sleep=sleep,
+                                 checksum=m.checksum)
     if (c := rig.load_cell) is not None:
-        inst.load_cell = DiniDGT1S(bus(c.bus), unit=c.unit, division=c.division_kg, clock=clock)
+        inst.load_cell = DiniDGT1S(bus(c.bus), unit=c.unit, division=c.division_kg, clock=clock, sleep=sleep)
     return inst

@@ -70,6 +70,7 @@ class MotorConfig(_Strict):
     baudrate: int = Field(115200, gt=0)
     timeout_s: float = Field(0.5, gt=0, le=30)
     drive_id: int = Field(0x11, ge=0, le=255)
+    checksum: bool = Field(False, description="LinRS checksum (drive UPID 2080h) — detects corrupted data bytes")
     travel_m: tuple[float, float] = (0.0, 0.09)
     max_velocity_m_per_s: float = Field(1.0, gt=0, le=10)
     max_acceleration_m_per_s2: float = Field(20.0, gt=0, le=500)

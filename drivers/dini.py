@@ -17,7 +17,7 @@ from __future__ import annotations
 import time
 
 from drivers.errors import InstrumentStateError, InstrumentTimeoutError
-from drivers.interfaces import ClockFn, Identity, Reading
+from drivers.interfaces import ClockFn, Identity, Reading, SleepFn
 from drivers.modbus_link import ModbusLink
 
 IR_GROSS, IR_NET, IR_STATUS, IR_COMMAND_STATUS, IR_OUTPUTS = 0, 2, 4, 5, 6
@@ -38,7 +38,7 @@ class DiniDGT1S:
 
     def __init__(self, link: ModbusLink, *, name: str = "load_cell", unit: int = 1, division: float = 0.001,
                  g: float = STANDARD_GRAVITY, use_net: bool = True, clock: ClockFn = time.monotonic,
-                 command_timeout: float = 2.0) -> None:
+                 sleep: SleepFn = time.sleep, command_timeout: float = 2.0) -> None:
         if not division > 0:
             raise ValueError(f"{name}: division must be > 0 kg, got {division}")
         self.link = link
@@ -48,6 +48,7 @@ class DiniDGT1S:
         self.g = g
         self.use_net = use_net
         self.clock = clock
+        self.sleep = sleep
         self.command_timeout = command_timeout
 
     def connect(self) -> None:
@@ -89,7 +90,7 @@ class DiniDGT1S:
     def _command(self, code: int, label: str) -> None:
         before = self.link.read_input(self.unit, IR_COMMAND_STATUS, 1)[0] & 0x0F
         self.link.write_register(self.unit, HR_COMMAND, code)
-        deadline = time.monotonic() + self.command_timeout
+        deadline = self.clock() + self.command_timeout
         while True:
             cs = self.link.read_input(self.unit, IR_COMMAND_STATUS, 1)[0]
             if cs & 0x0F != before:
@@ -97,9 +98,9 @@ class DiniDGT1S:
                 if result:
                     raise InstrumentStateError(self.name, f"{label} {RESULT_TEXT.get(result, f'result {result}')}")
                 return
-            if time.monotonic() > deadline:
+            if self.clock() > deadline:
                 raise InstrumentTimeoutError(self.name, f"{label} not processed within {self.command_timeout:g} s")
-            time.sleep(0.005)
+            self.sleep(0.005)
 
     def zero(self) -> None:
         """Zero the gross weight (command 1)."""

@@ -13,6 +13,7 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 ClockFn = Callable[[], float]  # rig clock: seconds, monotonic
+SleepFn = Callable[[float], None]  # waits on the rig clock (a virtual clock advances instead of sleeping)
 
 
 @dataclass(frozen=True)

@@ -48,12 +48,12 @@ MAX_UPLOAD = 1000  # points per AO request
 
 def format_value(mm: float | None, status: str = "ok") -> str:
     """Measured-value field of 8 characters (manual p. 5-6): sign + 7 characters incl. decimal point."""
-    if status == "invalid" or mm is None:
-        return "XXXXXXXX"
     if status == "over_range_positive":
         return "+FFFFFFF"
     if status == "over_range_negative":
         return "-FFFFFFF"
+    if status == "invalid" or mm is None:
+        return "XXXXXXXX"
     sign = "-" if mm < 0 else "+"
     body = f"{abs(mm):07.4f}"  # 4 decimals = 0.1 µm display resolution of the LK-G heads used here
     if len(body) > 7:
@@ -174,9 +174,13 @@ class KeyenceLKG:
     # ----------------------------------------------------------- buffered acquisition
     @staticmethod
     def storage_setting(interval: float) -> tuple[int, int]:
-        """(sampling µs, storage cycle) whose product is closest to ``interval`` [s], preferring fast sampling."""
+        """(sampling µs, storage cycle) whose product is closest to ``interval`` [s].
+
+        Among equal products the smallest storage cycle wins: every measurement is stored, at the longest
+        exposure (robust on translucent films such as VHB).
+        """
         best = min(((s, c) for s in SAMPLING_US for c in STORAGE_CYCLES),
-                   key=lambda sc: (abs(sc[0] * sc[1] * 1e-6 - interval), sc[0]))
+                   key=lambda sc: (abs(sc[0] * sc[1] * 1e-6 - interval), sc[1]))
         return best
 
     def start_buffer(self, interval: float) -> float:

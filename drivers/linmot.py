@@ -12,6 +12,11 @@ Multi-byte data little-endian. Requests used here:
   VAI go-to-position ``010xh``: target int32 [0.1 µm], max velocity uint32 [1e-6 m/s], acceleration and
   deceleration uint32 [1e-5 m/s²].
 
+Optional checksum (drive parameter UPID 2080h; off by default): two bytes, low first, between the last data
+byte and 04h, not counted in Len. The manual offers a byte sum and CRC-16-CCITT variants; this driver
+implements CRC-16-CCITT reflected (poly 8408h, init 0000h) over the bytes from 02h to the last data byte —
+check the variant configured on the drive. Without it a corrupted data byte cannot be detected.
+
 Every request is answered with the default response ``01 ID 0C 02 00 00 | CommState | StatusWord(2) |
 StateVar(2) | ActualPosition int32 [0.1 µm] | 04``. State var = main state (high byte) | sub state (low byte);
 in state 8 the sub state carries Homed (bit 7), InTargetPos (6), MotionActive (5) and the echoed motion
@@ -25,7 +30,7 @@ import time
 from dataclasses import dataclass
 
 from drivers.errors import InstrumentStateError, InstrumentTimeoutError, LimitError, ProtocolError
-from drivers.interfaces import ClockFn, Identity, MotorStatus, Reading
+from drivers.interfaces import ClockFn, Identity, MotorStatus, Reading, SleepFn
 from drivers.serial_link import SerialLink
 
 START, DATA, END = 0x01, 0x02, 0x04
@@ -55,12 +60,23 @@ VEL_UNIT = 1e-6  # m/s per count
 ACC_UNIT = 1e-5  # m/s² per count
 
 
-def encode(drive_id: int, main: int, sub: int, data: bytes = b"") -> bytes:
-    """LinRS telegram for one request."""
+def crc16_ccitt_reflected(data: bytes) -> int:
+    """CRC-16-CCITT, reflected (poly 0x8408), init 0x0000."""
+    crc = 0
+    for b in data:
+        crc ^= b
+        for _ in range(8):
+            crc = (crc >> 1) ^ 0x8408 if crc & 1 else crc >> 1
+    return crc
+
+
+def encode(drive_id: int, main: int, sub: int, data: bytes = b"", checksum: bool = False) -> bytes:
+    """LinRS telegram for one request (with the optional checksum if asked)."""
     body = bytes([DATA, sub, main]) + data
     if len(body) > 63:
         raise ValueError(f"LinRS telegram body of {len(body)} bytes exceeds 63")
-    return bytes([START, drive_id, len(body)]) + body + bytes([END])
+    crc = struct.pack("<H", crc16_ccitt_reflected(body)) if checksum else b""
+    return bytes([START, drive_id, len(body)]) + body + crc + bytes([END])
 
 
 @dataclass(frozen=True)
@@ -93,10 +109,15 @@ class DefaultResponse:
         return self.position_counts * POS_UNIT
 
 
-def decode_default_response(frame: bytes, drive_id: int, device: str) -> DefaultResponse:
+def decode_default_response(frame: bytes, drive_id: int, device: str, checksum: bool = False) -> DefaultResponse:
     """Decode and check a default-response telegram."""
-    if len(frame) != 16 or frame[0] != START or frame[-1] != END:
+    size = 18 if checksum else 16
+    if len(frame) != size or frame[0] != START or frame[-1] != END:
         raise ProtocolError(device, f"malformed default response {frame.hex(' ')}")
+    if checksum:
+        body, crc = frame[3:15], struct.unpack("<H", frame[15:17])[0]
+        if crc16_ccitt_reflected(body) != crc:
+            raise ProtocolError(device, f"checksum error in default response {frame.hex(' ')}")
     if frame[1] != drive_id:
         raise ProtocolError(device, f"response from drive id {frame[1]:#04x}, expected {drive_id:#04x}")
     if frame[2] != 0x0C or frame[3] != DATA or frame[4] != 0x00 or frame[5] != MAIN_RESPONSE:
@@ -113,8 +134,8 @@ class LinMotDrive:
 
     def __init__(self, link: SerialLink, *, name: str = "motor", drive_id: int = 0x11,
                  travel: tuple[float, float] = (0.0, 0.12), max_velocity: float = 1.0,
-                 max_acceleration: float = 20.0, clock: ClockFn = time.monotonic,
-                 state_timeout: float = 5.0, poll_interval: float = 0.002) -> None:
+                 max_acceleration: float = 20.0, clock: ClockFn = time.monotonic, sleep: SleepFn = time.sleep,
+                 state_timeout: float = 5.0, poll_interval: float = 0.002, checksum: bool = False) -> None:
         if not travel[0] < travel[1]:
             raise ValueError(f"{name}: travel limits must be increasing, got {travel}")
         self.link = link
@@ -124,8 +145,10 @@ class LinMotDrive:
         self.max_velocity = max_velocity
         self.max_acceleration = max_acceleration
         self.clock = clock
+        self.sleep = sleep
         self.state_timeout = state_timeout
         self.poll_interval = poll_interval
+        self.checksum = checksum
         self._count = 0
         self._control_word = 0
 
@@ -133,13 +156,13 @@ class LinMotDrive:
     def transact(self, main: int, sub: int, data: bytes = b"") -> DefaultResponse:
         """Send one telegram and read the default response."""
         with self.link.lock:
-            self.link.write(encode(self.drive_id, main, sub, data))
+            self.link.write(encode(self.drive_id, main, sub, data, self.checksum))
             head = self.link.read_exact(3)
             if head[0] != START:
                 self.link.discard_input()
                 raise ProtocolError(self.name, f"reply does not start with 01h: {head.hex(' ')}")
-            rest = self.link.read_exact(head[2] + 1)
-        resp = decode_default_response(head + rest, self.drive_id, self.name)
+            rest = self.link.read_exact(head[2] + (3 if self.checksum else 1))
+        resp = decode_default_response(head + rest, self.drive_id, self.name, self.checksum)
         if resp.comm_state != 0:
             raise ProtocolError(self.name, f"drive reports communication state {resp.comm_state:#04x}")
         return resp
@@ -154,7 +177,7 @@ class LinMotDrive:
         return self.transact(MAIN_CONTROL_WORD, 0x00, struct.pack("<H", word))
 
     def _wait(self, predicate: object, what: str, timeout: float | None = None) -> DefaultResponse:
-        deadline = time.monotonic() + (self.state_timeout if timeout is None else timeout)
+        deadline = self.clock() + (self.state_timeout if timeout is None else timeout)
         while True:
             resp = self.poll()
             if resp.status_word & SW_ERROR:
@@ -162,10 +185,10 @@ class LinMotDrive:
                                            f"{self._error_text(resp)}")
             if predicate(resp):  # type: ignore[operator]
                 return resp
-            if time.monotonic() > deadline:
+            if self.clock() > deadline:
                 raise InstrumentTimeoutError(self.name, f"{what} not reached; drive in state "
-                                        f"{STATE_NAMES.get(resp.main_state, resp.main_state)}")
-            time.sleep(self.poll_interval)
+                                             f"{STATE_NAMES.get(resp.main_state, resp.main_state)}")
+            self.sleep(self.poll_interval)
 
     @staticmethod
     def _error_text(resp: DefaultResponse) -> str:

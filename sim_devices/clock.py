@@ -19,6 +19,9 @@ class Clock(Protocol):
     def now(self) -> float:
         """Current time [s]."""
 
+    def sleep(self, dt: float) -> None:
+        """Wait dt [s] of this clock's time."""
+
 
 class WallClock:
     """Monotonic wall-clock time since construction."""
@@ -31,6 +34,10 @@ class WallClock:
     def now(self) -> float:
         """Seconds since the rig started."""
         return time.monotonic() - self._t0
+
+    def sleep(self, dt: float) -> None:
+        """Real sleep."""
+        time.sleep(max(dt, 0.0))
 
 
 class VirtualClock:
@@ -54,6 +61,10 @@ class VirtualClock:
         with self._lock:
             self._t += dt
             return self._t
+
+    def sleep(self, dt: float) -> None:
+        """A wait in virtual time: advances the clock instead of blocking."""
+        self.advance(max(dt, 0.0))
 
     def advance_to(self, t: float) -> float:
         """Move time forward to t (no-op if t is in the past); returns the new time."""

@@ -38,6 +38,7 @@ from drivers.linmot import (
     SW_MOTION_ACTIVE,
     SW_OPERATION_ENABLED,
     VAI_GOTO,
+    crc16_ccitt_reflected,
 )
 from sim_devices.clock import Clock
 from sim_devices.motion import MotionProfile
@@ -54,7 +55,7 @@ class LinMotDriveSim:
 
     def __init__(self, plant: Plant, clock: Clock, *, drive_id: int = 0x11, stroke: tuple[float, float] = (0.0, 0.12),
                  home_position: float = 0.0, hw_test_time: float = 0.3, homing_time: float = 1.0,
-                 quick_stop_decel: float = 50.0) -> None:
+                 quick_stop_decel: float = 50.0, checksum: bool = False) -> None:
         self.plant = plant
         self.clock = clock
         self.drive_id = drive_id
@@ -63,6 +64,7 @@ class LinMotDriveSim:
         self.hw_test_time = hw_test_time
         self.homing_time = homing_time
         self.quick_stop_decel = quick_stop_decel
+        self.checksum = checksum
         self.state = 0
         self.error_code = 0
         self.fatal = False
@@ -204,8 +206,9 @@ class LinMotDriveSim:
 
     def _default_response(self, comm_state: int = 0) -> bytes:
         sw, sv, pos = self.status()
-        return bytes([START, self.drive_id, 0x0C, DATA, 0x00, MAIN_RESPONSE]) + struct.pack(
-            "<BHHi", comm_state, sw, sv, pos) + bytes([END])
+        body = bytes([DATA, 0x00, MAIN_RESPONSE]) + struct.pack("<BHHi", comm_state, sw, sv, pos)
+        crc = struct.pack("<H", crc16_ccitt_reflected(body)) if self.checksum else b""
+        return bytes([START, self.drive_id, len(body)]) + body + crc + bytes([END])
 
     def __call__(self, data: bytes) -> bytes:
         """Feed received bytes; returns the responses to all complete telegrams."""
@@ -220,7 +223,7 @@ class LinMotDriveSim:
             if len(self._buf) < 3:
                 break
             length = self._buf[2]
-            total = 3 + length + 1
+            total = 3 + length + (3 if self.checksum else 1)
             if length < 3 or length > 63:
                 self._buf = self._buf[1:]  # not a telegram start: resynchronise
                 continue
@@ -229,9 +232,13 @@ class LinMotDriveSim:
             frame, self._buf = self._buf[:total], self._buf[total:]
             if frame[-1] != END or frame[3] != DATA:
                 continue  # framing error: a real drive discards it, the master times out
+            if self.checksum:
+                body_end = 3 + length
+                if crc16_ccitt_reflected(frame[3:body_end]) != struct.unpack("<H", frame[body_end:body_end + 2])[0]:
+                    continue  # checksum error: discarded
             if frame[1] != self.drive_id:
                 continue  # another drive's telegram
-            out += self._handle(frame[5], frame[4], frame[6:-1])
+            out += self._handle(frame[5], frame[4], frame[6:3 + length])
         return out
 
     def _handle(self, main: int, sub: int, data: bytes) -> bytes:

@@ -72,7 +72,8 @@ class SimRig:
         if rig.motor is not None:
             m = rig.motor
             stroke = (min(m.travel_m[0], 0.0), max(m.travel_m[1], 0.12))
-            self._serve_serial("motor", LinMotDriveSim(self.plant, self.clock, drive_id=m.drive_id, stroke=stroke))
+            self._serve_serial("motor", LinMotDriveSim(self.plant, self.clock, drive_id=m.drive_id, stroke=stroke,
+                                                       checksum=m.checksum))
         buses: dict[str, list] = {}
         if (a := rig.amplifier) is not None:
             scale_ao = RawScale(bits=a.ao_bits, raw_format=a.raw_format)

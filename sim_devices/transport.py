@@ -30,6 +30,7 @@ class Faults:
     latency: float = 0.0  # s added before every reply (wall time)
     mute: bool = False  # swallow replies: the driver times out
     garble_next: int = 0  # corrupt this many following replies (one byte flipped per reply)
+    garble_index: int | None = None  # which byte to flip (negative: from the end); None: a random one
     drop: bool = False  # close the link: the port reports a lost device
     rng: np.random.Generator = field(default_factory=lambda: np.random.default_rng(0))
 
@@ -40,7 +41,7 @@ class Faults:
         if self.garble_next > 0:
             self.garble_next -= 1
             buf = bytearray(reply)
-            i = int(self.rng.integers(0, len(buf)))
+            i = int(self.rng.integers(0, len(buf))) if self.garble_index is None else self.garble_index % len(buf)
             buf[i] ^= 0x5A
             return bytes(buf)
         return reply

@@ -1,0 +1,75 @@
+"""Shared fixtures: simulated rigs on real ports (virtual clock) with their connected drivers."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+from bench.instruments import Instruments, build_instruments
+from bench.rig import RigConfig, load_rig
+from sim_devices.rig import SimRig
+
+ROOT = Path(__file__).resolve().parent.parent
+RIGS = ROOT / "rigs"
+
+
+@dataclass
+class RunningRig:
+    """A started simulated rig and the drivers connected to it."""
+
+    rig: RigConfig
+    sim: SimRig
+    inst: Instruments
+
+    def advance(self, seconds: float) -> None:
+        """Let virtual time pass (the plant advances lazily when instruments are read)."""
+        self.sim.clock.advance(seconds)  # type: ignore[attr-defined]
+
+
+def start_rig(name: str, virtual: bool = True, **overrides: object) -> RunningRig:
+    """Start the simulated rig ``rigs/<name>.toml`` and connect every driver to it."""
+    rig = load_rig(RIGS / f"{name}.toml")
+    if overrides:
+        rig = RigConfig.model_validate({**rig.model_dump(), **overrides})
+    sim = SimRig(rig, virtual=virtual)
+    sim.start()
+    inst = build_instruments(rig, sim.port_map(), clock=sim.clock.now, sleep=sim.clock.sleep)
+    for link in inst.links.values():
+        link.timeout = 0.3
+    try:
+        for _, drv in inst.items():
+            drv.connect()
+    except Exception:
+        sim.stop()
+        raise
+    running = RunningRig(rig, sim, inst)
+    if virtual:
+        running.advance(1.0)  # settle; the amplifier's slew limit allows a full step after this
+    return running
+
+
+@pytest.fixture
+def thesis() -> Iterator[RunningRig]:
+    r = start_rig("thesis-sim")
+    yield r
+    r.inst.close()
+    r.sim.stop()
+
+
+@pytest.fixture
+def lsdea_motor() -> Iterator[RunningRig]:
+    r = start_rig("lsdea-motor-sim")
+    yield r
+    r.inst.close()
+    r.sim.stop()
+
+
+@pytest.fixture
+def lsdea_isotonic() -> Iterator[RunningRig]:
+    r = start_rig("lsdea-isotonic-sim")
+    yield r
+    r.inst.close()
+    r.sim.stop()

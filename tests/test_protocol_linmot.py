@@ -1,0 +1,145 @@
+"""Byte-exact protocol tests of the LinMot LinRS driver (telegrams from the LinRS manual examples)."""
+
+from __future__ import annotations
+
+import struct
+
+import pytest
+
+from drivers.errors import InstrumentStateError, InstrumentTimeoutError, LimitError, ProtocolError
+from drivers.linmot import LinMotDrive, decode_default_response, encode
+from drivers.serial_link import SerialLink
+from tests.protocol_expect import expected_protocol
+
+POLL = bytes.fromhex("01 11 03 02 01 00 04")
+
+
+def response(status: int, state: int, pos_counts: int, comm: int = 0, drive: int = 0x11) -> bytes:
+    head = bytes([0x01, drive, 0x0C, 0x02, 0x00, 0x00])
+    return head + struct.pack("<BHHi", comm, status, state, pos_counts) + b"\x04"
+
+
+def drive(url: str, **kw: object) -> LinMotDrive:
+    d = LinMotDrive(SerialLink(url, "motor", timeout=0.05), travel=(0.0, 0.1), poll_interval=0.0,
+                    state_timeout=0.2, **kw)  # type: ignore[arg-type]
+    d.link.open()
+    return d
+
+
+def test_manual_examples_encode() -> None:
+    # LinRS manual: write control word example, and predefined VAI go to 10 mm (header 0x0201)
+    assert encode(0x11, 0x01, 0x00, b"\x00\x00") == bytes.fromhex("01 11 05 02 00 01 00 00 04")
+    predef = encode(0x11, 0x02, 0x00, bytes.fromhex("01 02") + struct.pack("<i", 100_000))
+    assert predef == bytes.fromhex("01 11 09 02 00 02 01 02 A0 86 01 00 04")
+    assert encode(0x11, 0x00, 0x01) == POLL
+    with pytest.raises(ValueError, match="exceeds 63"):
+        encode(0x11, 0x02, 0x00, bytes(61))
+
+
+def test_checksum_option() -> None:
+    plain = encode(0x11, 0x00, 0x01)
+    checked = encode(0x11, 0x00, 0x01, checksum=True)
+    assert checked[:6] == plain[:6] and checked[-1] == 0x04 and len(checked) == len(plain) + 2
+    assert checked[2] == 3  # Len does not count the checksum
+    frame = response(0x0C37, 0x08C0, 42)
+    body = frame[3:15]
+    from drivers.linmot import crc16_ccitt_reflected
+
+    good = frame[:15] + struct.pack("<H", crc16_ccitt_reflected(body)) + b"\x04"
+    assert decode_default_response(good, 0x11, "motor", checksum=True).position_counts == 42
+    bad = good[:8] + bytes([good[8] ^ 0x10]) + good[9:]
+    with pytest.raises(ProtocolError, match="checksum error"):
+        decode_default_response(bad, 0x11, "motor", checksum=True)
+    assert crc16_ccitt_reflected(b"123456789") == 0x2189  # CRC-16/KERMIT check value
+
+
+def test_manual_example_default_response_decodes() -> None:
+    frame = bytes.fromhex("01 11 0C 02 00 00 00 37 68 A1 08 8B FC FF FF 04")
+    r = decode_default_response(frame, 0x11, "motor")
+    assert (r.status_word, r.state_var, r.position_counts) == (0x6837, 0x08A1, -885)
+    assert r.main_state == 8 and r.command_count == 1 and r.position == pytest.approx(-88.5e-6)
+
+
+def test_vai_go_to_position_bytes_and_count_handshake() -> None:
+    params = struct.pack("<HiIII", 0x0101, 500_000, 200_000, 500_000, 300_000)
+    req = bytes.fromhex("01 11 15 02 00 02") + params + b"\x04"
+    assert len(req) == 3 + 0x15 + 1
+    with expected_protocol("vai", [(req, response(0x2837, 0x08A1, 0))]) as url:
+        drive(url).move_to(0.05, 0.2, 5.0, 3.0)
+
+
+def test_enable_runs_the_state_machine_and_homes() -> None:
+    script = [
+        (POLL, response(0x0040, 0x0000, 0)),  # not ready to switch on, switch-on locked
+        (bytes.fromhex("01 11 05 02 00 01 00 00 04"), response(0x0000, 0x0100, 0)),
+        (POLL, response(0x0000, 0x0100, 0)),
+        (bytes.fromhex("01 11 05 02 00 01 3E 00 04"), response(0x0036, 0x0200, 0)),
+        (POLL, response(0x0036, 0x0200, 0)),
+        (bytes.fromhex("01 11 05 02 00 01 3F 00 04"), response(0x0037, 0x0500, 0)),
+        (POLL, response(0x0037, 0x0500, 0)),
+        (POLL, response(0x4037, 0x0840, 0)),  # operation enabled, not homed
+        (bytes.fromhex("01 11 05 02 00 01 3F 08 04"), response(0x2036, 0x0901, 0)),
+        (POLL, response(0x0836, 0x090F, 0)),  # homing finished
+        (bytes.fromhex("01 11 05 02 00 01 3F 00 04"), response(0x0C37, 0x08C0, 0)),
+        (POLL, response(0x0C37, 0x08C0, 0)),
+        (POLL, response(0x0C37, 0x08C0, 0)),  # read back the command count
+    ]
+    with expected_protocol("en", script) as url:
+        drive(url).enable()
+
+
+def test_error_acknowledge_is_a_rising_edge_on_bit7() -> None:
+    script = [(bytes.fromhex("01 11 05 02 00 01 00 00 04"), response(0x0008, 0x040B, 0)),
+              (bytes.fromhex("01 11 05 02 00 01 80 00 04"), response(0x0000, 0x0100, 0)),
+              (bytes.fromhex("01 11 05 02 00 01 00 00 04"), response(0x0000, 0x0100, 0))]
+    with expected_protocol("ack", script) as url:
+        drive(url).acknowledge_error()
+
+
+def test_refused_motion_reports_the_drive_error() -> None:
+    params = struct.pack("<HiIII", 0x0101, 100_000, 100_000, 100_000, 100_000)
+    req = bytes.fromhex("01 11 15 02 00 02") + params + b"\x04"
+    with expected_protocol("refuse", [(req, response(0x0008, 0x0420, 0))]) as url:
+        with pytest.raises(InstrumentStateError, match="code 0x20 motion command in wrong state"):
+            drive(url).move_to(0.01, 0.1, 1.0)
+
+
+def test_travel_limits_are_checked_before_sending() -> None:
+    with expected_protocol("limits", []) as url:
+        d = drive(url)
+        with pytest.raises(LimitError, match=r"target 150\.000 mm outside travel"):
+            d.move_to(0.15, 0.1, 1.0)
+        with pytest.raises(LimitError, match="velocity"):
+            d.move_to(0.05, 5.0, 1.0)
+        with pytest.raises(LimitError, match="deceleration"):
+            d.move_to(0.05, 0.1, 1.0, 100.0)
+
+
+def test_malformed_replies() -> None:
+    with expected_protocol("bad-start", [(POLL, b"\x05\x11\x0c" + bytes(13))]) as url:
+        with pytest.raises(ProtocolError, match="does not start with 01h"):
+            drive(url).poll()
+    with expected_protocol("bad-end", [(POLL, response(0, 0, 0)[:-1] + b"\x05")]) as url:
+        with pytest.raises(ProtocolError, match="malformed default response"):
+            drive(url).poll()
+    with expected_protocol("other-id", [(POLL, response(0, 0, 0, drive=0x12))]) as url:
+        with pytest.raises(ProtocolError, match="drive id 0x12"):
+            drive(url).poll()
+    with expected_protocol("comm", [(POLL, response(0, 0, 0, comm=1))]) as url:
+        with pytest.raises(ProtocolError, match="communication state 0x01"):
+            drive(url).poll()
+    with expected_protocol("short", [(POLL, response(0, 0, 0)[:9])]) as url:
+        with pytest.raises(InstrumentTimeoutError, match="motor: no reply"):
+            drive(url).poll()
+
+
+def test_status_decoding_and_stop() -> None:
+    script = [(POLL, response(0x6C37, 0x08E3, 123_456)),
+              (bytes.fromhex("01 11 05 02 00 01 2F 00 04"), response(0x4C37, 0x08C3, 123_456)),
+              (bytes.fromhex("01 11 05 02 00 01 3F 00 04"), response(0x4C37, 0x08C3, 123_456))]
+    with expected_protocol("status", script) as url:
+        d = drive(url)
+        s = d.status()
+        d.stop()
+    assert s.state == "operation enabled" and s.homed and s.moving and not s.error
+    assert s.position == pytest.approx(12.3456e-3)

@@ -1,0 +1,132 @@
+"""Byte-exact Modbus RTU tests of the TREK/ADAM amplifier driver and the DGT1S load-cell driver."""
+
+from __future__ import annotations
+
+import pytest
+
+from drivers.adam import Adam4017P, Adam4024, RawScale
+from drivers.dini import DiniDGT1S
+from drivers.errors import InstrumentStateError, InstrumentTimeoutError, LimitError
+from drivers.modbus_link import ModbusLink
+from drivers.trek import TrekAmplifier
+from tests.protocol_expect import expected_protocol, rtu
+
+
+def amplifier(url: str, now: list[float]) -> TrekAmplifier:
+    link = ModbusLink(url, "bus io", timeout=0.05, retries=0)
+    link.open()
+    return TrekAmplifier(Adam4024(link, 1), Adam4017P(link, 2), max_voltage=8000, slew_limit=1e6,
+                         clock=lambda: now[0])
+
+
+def test_raw_scales() -> None:
+    ao = RawScale(bits=12)
+    assert (ao.to_raw(-10), ao.to_raw(0), ao.to_raw(10)) == (0, 2048, 4095)
+    assert ao.to_volts(3071) == pytest.approx(5.0, abs=5e-3)
+    ai = RawScale(bits=16, raw_format="twos")
+    assert ai.to_raw(-10) == 0x8001 and ai.to_volts(0x7FFF) == pytest.approx(10.0)
+
+
+def test_set_voltage_writes_the_ao_register() -> None:
+    now = [0.0]
+    script = [(rtu(1, 6, b"\x00\x00\x08\x00"), rtu(1, 6, b"\x00\x00\x08\x00")),  # zero: raw 2048
+              (rtu(1, 6, b"\x00\x00\x0b\xff"), rtu(1, 6, b"\x00\x00\x0b\xff"))]  # 5 kV → 5 V → raw 3071
+    with expected_protocol("ao", script) as url:
+        amp = amplifier(url, now)
+        amp.zero()
+        now[0] = 1.0
+        assert amp.set_voltage(5000.0) == 5000.0
+
+
+def test_limits_refuse_and_slew_clamps() -> None:
+    now = [0.0]
+    # 1e6 V/s over 1 ms allows 1000 V: 5 kV request → 1 kV → 1 V → raw round(11/20·4095) = 2252
+    script = [(rtu(1, 6, b"\x00\x00\x08\x00"), rtu(1, 6, b"\x00\x00\x08\x00")),
+              (rtu(1, 6, b"\x00\x00\x08\xcc"), rtu(1, 6, b"\x00\x00\x08\xcc"))]
+    with expected_protocol("slew", script) as url:
+        amp = amplifier(url, now)
+        amp.zero()
+        with pytest.raises(LimitError, match="9000 V beyond the software limit ±8000 V"):
+            amp.set_voltage(9000.0)
+        now[0] = 1e-3
+        assert amp.set_voltage(5000.0) == pytest.approx(1000.0)
+
+
+def test_monitors_read_both_channels_in_one_request() -> None:
+    # vmon 5 V (raw offset 16-bit) → 5 kV; imon −0.25 V → −0.25 mA
+    v_raw = round((5.0 + 10) / 20 * 65535)
+    i_raw = round((-0.25 + 10) / 20 * 65535)
+    reply = rtu(2, 3, 4, v_raw.to_bytes(2, "big") + i_raw.to_bytes(2, "big"))
+    with expected_protocol("ai", [(rtu(2, 3, b"\x00\x00\x00\x02"), reply)]) as url:
+        v, i = amplifier(url, [0.0]).read_monitors()
+    assert v.value == pytest.approx(5000.0, abs=0.2) and v.unit == "V"
+    assert i.value == pytest.approx(-0.25e-3, abs=1e-7) and i.unit == "A"
+
+
+def test_module_identity_and_exception_replies() -> None:
+    script = [(rtu(1, 3, b"\x00\xd2\x00\x02"), rtu(1, 3, 4, b"\x40\x24\x00\x00")),
+              (rtu(2, 3, b"\x00\xd2\x00\x02"), rtu(2, 3, 4, b"\x40\x17\x50\x00")),
+              (rtu(1, 6, b"\x00\x00\x08\x00"), rtu(1, 0x86, 4))]
+    with expected_protocol("ident", script) as url:
+        amp = amplifier(url, [0.0])
+        ident = amp.identify()
+        with pytest.raises(InstrumentStateError, match=r"unit 1 refused .* exception 4 \(device failure\)"):
+            amp.zero()
+    assert "ADAM-4024 unit 1" in str(ident) and "ADAM-4017P unit 2" in str(ident)
+
+
+def test_wrong_module_and_bad_crc() -> None:
+    with expected_protocol("wrong", [(rtu(1, 3, b"\x00\xd2\x00\x02"), rtu(1, 3, 4, b"\x40\x17\x50\x00"))]) as url:
+        link = ModbusLink(url, "bus io", timeout=0.05, retries=0)
+        link.open()
+        with pytest.raises(Exception, match="unit 1 is ADAM-4017P, expected ADAM-4024"):
+            Adam4024(link, 1).module_name()
+    good = rtu(2, 3, 4, b"\x80\x00\x80\x00")
+    garbled = good[:-1] + bytes([good[-1] ^ 0xFF])
+    with expected_protocol("crc", [(rtu(2, 3, b"\x00\x00\x00\x02"), garbled)]) as url:
+        with pytest.raises(InstrumentTimeoutError, match="no valid reply from unit 2"):
+            amplifier(url, [0.0]).read_monitors()
+
+
+def cell(url: str) -> DiniDGT1S:
+    link = ModbusLink(url, "bus scale", timeout=0.05, retries=0)
+    link.open()
+    return DiniDGT1S(link, unit=1, division=0.001, clock=lambda: 3.0, command_timeout=0.2)
+
+
+def test_load_cell_read_signed_net_weight() -> None:
+    # gross 350 g, net 125 g negative (bit0), stable (bit2), tare active (bit5)
+    regs = b"\x00\x00\x01\x5e" + b"\x00\x00\x00\x7d" + b"\x00\x25"
+    with expected_protocol("lc", [(rtu(1, 4, b"\x00\x00\x00\x05"), rtu(1, 4, 10, regs))]) as url:
+        r = cell(url).read()
+    assert r.value == pytest.approx(-0.125 * 9.80665) and r.unit == "N" and r.ok and r.timestamp == 3.0
+
+
+def test_load_cell_overload_and_unstable() -> None:
+    over = b"\x00\x00\x13\x88" + b"\x00\x00\x13\x88" + b"\x00\x10"
+    moving = b"\x00\x00\x00\x10" + b"\x00\x00\x00\x10" + b"\x00\x00"
+    script = [(rtu(1, 4, b"\x00\x00\x00\x05"), rtu(1, 4, 10, over)),
+              (rtu(1, 4, b"\x00\x00\x00\x05"), rtu(1, 4, 10, moving))]
+    with expected_protocol("lco", script) as url:
+        c = cell(url)
+        assert c.read().status == "overload"
+        r = c.read()
+    assert r.status == "unstable" and r.value == pytest.approx(0.016 * 9.80665)
+
+
+def test_tare_waits_for_the_processed_command_counter() -> None:
+    script = [(rtu(1, 4, b"\x00\x05\x00\x01"), rtu(1, 4, 2, b"\x01\x03")),  # last cmd 1, counter 3
+              (rtu(1, 6, b"\x00\x00\x00\x02"), rtu(1, 6, b"\x00\x00\x00\x02")),
+              (rtu(1, 4, b"\x00\x05\x00\x01"), rtu(1, 4, 2, b"\x01\x03")),  # not yet processed
+              (rtu(1, 4, b"\x00\x05\x00\x01"), rtu(1, 4, 2, b"\x02\x04"))]  # tare done, result 0
+    with expected_protocol("tare", script) as url:
+        cell(url).tare()
+
+
+def test_zero_refused_reports_the_result() -> None:
+    script = [(rtu(1, 4, b"\x00\x05\x00\x01"), rtu(1, 4, 2, b"\x00\x00")),
+              (rtu(1, 6, b"\x00\x00\x00\x01"), rtu(1, 6, b"\x00\x00\x00\x01")),
+              (rtu(1, 4, b"\x00\x05\x00\x01"), rtu(1, 4, 2, b"\x01\x21"))]  # result 2, counter 1
+    with expected_protocol("zero", script) as url:
+        with pytest.raises(InstrumentStateError, match="zero not executed: outside the zero range"):
+            cell(url).zero()

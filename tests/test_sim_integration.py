@@ -1,0 +1,254 @@
+"""Every driver against its simulated twin over a real pty / loopback socket, including injected faults."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from drivers.errors import (
+    InstrumentConnectionError,
+    InstrumentStateError,
+    InstrumentTimeoutError,
+    LimitError,
+    ProtocolError,
+)
+from tests.conftest import RunningRig
+
+# ------------------------------------------------------------------ laser (Keyence LK-G over a pty)
+
+
+def test_laser_single_reads_follow_the_plant(thesis: RunningRig) -> None:
+    laser, amp = thesis.inst.laser, thesis.inst.amplifier
+    assert abs(laser.read().value) < 2e-6  # at rest: noise only (0.2 µm rms)
+    amp.set_voltage(6000.0)
+    thesis.advance(3.0)
+    r = laser.read()
+    plant_u = float(thesis.sim.plant.last.displacement[0])
+    assert r.timestamp == pytest.approx(4.0)
+    assert r.value == pytest.approx(plant_u, abs=1.5e-6)
+    assert plant_u > 3e-3  # 6 kV moves the membrane by millimetres
+
+
+def test_laser_buffer_is_complete_at_10_kHz(thesis: RunningRig) -> None:
+    laser, amp = thesis.inst.laser, thesis.inst.amplifier
+    history_t: list[np.ndarray] = []
+    history_u: list[np.ndarray] = []
+    thesis.sim.plant.listeners.append(lambda b: (history_t.append(b.t), history_u.append(b.displacement)))
+    amp.set_voltage(5000.0)
+    assert laser.start_buffer(1e-4) == pytest.approx(1e-4)
+    blocks = []
+    for _ in range(10):
+        thesis.advance(0.25)
+        blocks.append(laser.fetch_buffer())
+    laser.stop_buffer()
+    index = np.concatenate([b.first_index + np.arange(b.values.size) for b in blocks])
+    assert np.array_equal(index, np.arange(index.size))  # no sample lost or duplicated
+    assert index.size == 25_001  # 2.5 s at 10 kHz, both ends included
+    t = np.concatenate([b.times() for b in blocks])
+    values = np.concatenate([b.values for b in blocks])
+    truth = np.interp(t, np.concatenate(history_t), np.concatenate(history_u))
+    assert np.all(np.concatenate([b.valid for b in blocks]))
+    assert np.max(np.abs(values - truth)) < 1.5e-6  # noise 0.2 µm rms, 0.1 µm display resolution
+
+
+def test_laser_storage_capacity_stops_storage(thesis: RunningRig) -> None:
+    laser = thesis.inst.laser
+    laser.storage_points = 1000
+    laser.start_buffer(1e-4)
+    thesis.advance(0.5)
+    block = laser.fetch_buffer()
+    assert block.values.size == 1000
+    assert laser.buffer_status() == (False, 1000)
+    with pytest.raises(InstrumentStateError, match="data storage full"):
+        laser.fetch_buffer()
+
+
+def test_laser_mode_errors_and_injected_faults(thesis: RunningRig) -> None:
+    laser, twin, faults = thesis.inst.laser, thesis.sim.twins["laser"], thesis.sim.faults["laser"]
+    with pytest.raises(InstrumentStateError, match="status error"):
+        laser.query("SW,CA,2")  # settings need communication mode
+    with pytest.raises(InstrumentStateError, match="command error"):
+        laser.query("ZZ")
+    with pytest.raises(InstrumentStateError, match="parameter count error"):
+        laser.query("AO,1")
+    twin.fault_error_code = "99"
+    with pytest.raises(InstrumentStateError, match="ER 99"):
+        laser.read()
+    twin.fault_error_code = None
+    faults.mute = True
+    with pytest.raises(InstrumentTimeoutError, match="laser: no reply"):
+        laser.read()
+    faults.mute = False
+    laser.link.discard_input()
+    faults.garble_next = 1
+    with pytest.raises((ProtocolError, InstrumentTimeoutError)):
+        laser.read()
+    laser.link.discard_input()
+    assert laser.read().ok  # the link recovers after a garbled reply
+    faults.drop = True
+    with pytest.raises(InstrumentConnectionError, match="laser: link on /dev/pts/"):
+        for _ in range(50):
+            laser.read()
+
+
+def test_laser_over_range(lsdea_isotonic: RunningRig) -> None:
+    laser = lsdea_isotonic.inst.laser
+    assert laser.read().ok  # x ≈ 66 mm reads ≈ −34 mm within ±40 mm
+    lsdea_isotonic.sim.twins["laser"].head.offset_mm = -140.0
+    r = laser.read()
+    assert r.status == "over_range_negative" and np.isnan(r.value)
+
+
+# ------------------------------------------------------------------ motor (LinMot LinRS over a pty)
+
+
+def test_motor_state_machine_homing_and_motion(lsdea_motor: RunningRig) -> None:
+    motor = lsdea_motor.inst.motor
+    assert motor.status().state == "not ready to switch on"
+    motor.enable()
+    s = motor.status()
+    assert s.state == "operation enabled" and s.homed and s.enabled and not s.error
+    motor.move_to(0.055, 0.5, 5.0)
+    assert motor.status().moving
+    reached = motor.wait_in_target()
+    assert reached.value == pytest.approx(0.055, abs=1e-7)
+    x = lsdea_motor.sim.plant.observe().displacement[0]
+    assert x == pytest.approx(0.045 + 0.055)  # aperture = x at motor zero + motor position
+
+
+def test_motor_refuses_and_recovers_from_errors(lsdea_motor: RunningRig) -> None:
+    motor, twin = lsdea_motor.inst.motor, lsdea_motor.sim.twins["motor"]
+    with pytest.raises(InstrumentStateError, match="code 0x20 motion command in wrong state"):
+        motor.move_to(0.01, 0.1, 1.0)  # not switched on
+    motor.enable()  # acknowledges the error and runs the state machine again
+    with pytest.raises(LimitError, match="outside travel"):
+        motor.move_to(0.2, 0.1, 1.0)
+    motor.move_to(0.05, 0.5, 5.0)
+    lsdea_motor.advance(0.05)
+    twin.inject_error(0x0B)
+    s = motor.status()
+    assert (s.error and s.error_code == 0x0B and not s.moving) or s.state == "error"
+    with pytest.raises(InstrumentStateError, match="position lag"):
+        motor.wait_in_target()
+    motor.enable()
+    assert motor.status().state == "operation enabled"
+    twin.inject_error(0x22, fatal=True)
+    with pytest.raises(InstrumentStateError, match="fatal"):
+        motor.enable()
+
+
+def test_motor_stop_holds_position(lsdea_motor: RunningRig) -> None:
+    motor = lsdea_motor.inst.motor
+    motor.enable()
+    motor.move_to(0.09, 0.2, 2.0)
+    lsdea_motor.advance(0.2)
+    motor.stop()
+    lsdea_motor.advance(1.0)
+    s = motor.status()
+    assert not s.moving and 0.02 < s.position < 0.09
+    lsdea_motor.advance(1.0)
+    assert motor.status().position == s.position
+
+
+def test_motor_link_faults(lsdea_motor: RunningRig) -> None:
+    motor, faults = lsdea_motor.inst.motor, lsdea_motor.sim.faults["motor"]
+    faults.mute = True
+    with pytest.raises(InstrumentTimeoutError, match="motor: no reply"):
+        motor.poll()
+    faults.mute = False
+    faults.garble_next, faults.garble_index = 1, -1  # END byte corrupted: framing error
+    with pytest.raises(ProtocolError, match="malformed default response"):
+        motor.poll()
+    faults.garble_next, faults.garble_index = 1, 0  # start byte corrupted
+    with pytest.raises(ProtocolError, match="does not start with 01h"):
+        motor.poll()
+    motor.link.discard_input()
+    assert motor.poll().comm_state == 0  # back in step
+
+
+def test_motor_checksum_detects_corrupted_data_bytes() -> None:
+    from tests.conftest import start_rig
+
+    r = start_rig("lsdea-motor-sim", motor={**start_rig_motor(), "checksum": True})
+    try:
+        motor, faults = r.inst.motor, r.sim.faults["motor"]
+        motor.enable()
+        faults.garble_next, faults.garble_index = 1, 8  # a status-word byte: undetectable without checksum
+        with pytest.raises(ProtocolError, match="checksum error"):
+            motor.poll()
+        assert motor.status().state == "operation enabled"
+    finally:
+        r.inst.close()
+        r.sim.stop()
+
+
+def start_rig_motor() -> dict:
+    from bench.rig import load_rig
+    from tests.conftest import RIGS
+
+    return load_rig(RIGS / "lsdea-motor-sim.toml").motor.model_dump()
+
+
+# ------------------------------------------------------------------ amplifier and load cell (Modbus RTU on ptys)
+
+
+def test_amplifier_monitors_follow_the_set_point(thesis: RunningRig) -> None:
+    amp = thesis.inst.amplifier
+    amp.set_voltage(4000.0)
+    thesis.advance(0.5)  # the ADAM-4017+ converts 10 S/s over the enabled channels
+    v, i = amp.read_monitors()
+    assert v.value == pytest.approx(4000.0, abs=6.0)  # 12-bit AO step 4.9 V, monitor noise 0.5 V
+    assert abs(i.value) < 2e-6
+    assert v.timestamp == pytest.approx(1.5)
+
+
+def test_amplifier_device_failure_bus_faults_and_breakdown(thesis: RunningRig) -> None:
+    amp, sim = thesis.inst.amplifier, thesis.sim
+    sim.twins["amplifier AO"].failed = True
+    with pytest.raises(InstrumentStateError, match=r"unit 1 refused .* exception 4 \(device failure\)"):
+        amp.set_voltage(100.0)
+    sim.twins["amplifier AO"].failed = False
+    sim.faults["io"].mute = True
+    with pytest.raises(InstrumentTimeoutError, match="bus io: no valid reply from unit 2"):
+        amp.read_voltage()
+    sim.faults["io"].mute = False
+    amp.set_voltage(5000.0)
+    thesis.advance(2.0)
+    before = thesis.inst.laser.read().value
+    sim.plant.inject_breakdown()
+    thesis.advance(2.0)
+    v, i = amp.read_monitors()
+    assert i.value == pytest.approx(10e-3, rel=0.02)  # current limit of the 10/10B-HS into the short
+    assert v.value < 50.0  # output collapses: I_max × R_short = 10 V
+    assert thesis.inst.laser.read().value < 0.5 * before  # the membrane relaxes without field
+    assert "breakdown" in sim.plant.failure
+
+
+def test_load_cell_zero_tare_and_failure(lsdea_motor: RunningRig) -> None:
+    cell, twin = lsdea_motor.inst.load_cell, lsdea_motor.sim.twins["load_cell"]
+    lsdea_motor.advance(1.0)
+    f0 = cell.read()
+    assert f0.ok and f0.value == pytest.approx(float(lsdea_motor.sim.plant.last.force[0]), abs=0.02)
+    with pytest.raises(InstrumentStateError, match="outside the zero range"):
+        cell.zero()  # 1.1 N ≈ 113 g is beyond the ±2 % (100 g) zero band of a 5-kg cell
+    cell.tare()
+    assert cell.read().value == pytest.approx(0.0, abs=0.02)
+    twin.failed = True
+    with pytest.raises(InstrumentStateError, match="device failure"):
+        cell.read()
+
+
+def test_modbus_over_tcp_loopback() -> None:
+    from tests.conftest import start_rig
+
+    r = start_rig("lsdea-motor-sim", simulation={"seed": 1, "modbus_transport": "tcp"})
+    try:
+        assert all(ep.address.startswith("tcp://127.0.0.1:") for ep in r.sim.endpoints().values()
+                   if ep.protocol.startswith("Modbus"))
+        r.inst.amplifier.set_voltage(3000.0)
+        r.advance(0.5)
+        assert r.inst.amplifier.read_voltage().value == pytest.approx(3000.0, abs=6.0)
+        assert r.inst.load_cell.read().ok
+    finally:
+        r.inst.close()
+        r.sim.stop()
