@@ -15,6 +15,7 @@ from rich.console import Console
 from rich.table import Table
 
 from bench import __version__
+from drivers.errors import InstrumentError
 
 console = Console()
 err_console = Console(stderr=True)
@@ -45,7 +46,7 @@ def clean_errors(fn: Callable[P, R]) -> Callable[P, R]:
     def wrapper(*args: P.args, **kwargs: P.kwargs) -> R:
         try:
             return fn(*args, **kwargs)
-        except (ValueError, OSError) as exc:
+        except (ValueError, OSError, InstrumentError) as exc:
             raise fail(str(exc)) from None
 
     return wrapper
@@ -277,18 +278,40 @@ def devices_check(rig_file: RigArg) -> None:
         raise fail(f"{len(failed)} of {len(rows)} instruments failed: " + "; ".join(r.error for r in failed), code=1)
 
 
-@app.command()
-def benchmark(quick: Annotated[bool, typer.Option(help="One repeat per figure.")] = False) -> None:
-    """Measure the integrators' speed as multiples of real time (single core)."""
-    from bench.benchmark import run_all
+class BenchmarkSet(StrEnum):
+    physics = "physics"
+    acquisition = "acquisition"
+    all = "all"
 
-    with console.status("benchmarking (includes JIT warm-up)…"):
-        results = run_all(quick=quick)
-    table = Table(title="dea-bench benchmark (one core, best of repeats)")
-    for col in ("case", "simulated [s]", "wall [s]", "× real time", "target", ""):
-        table.add_column(col, justify="left" if col == "case" else "right")
-    for r in results:
-        mark = "" if not r.target else ("[green]ok[/]" if r.passed else "[red]below target[/]")
-        table.add_row(r.name, f"{r.simulated:g}", f"{r.wall:.4f}", f"{r.speed:.0f}",
-                      f"≥ {r.target:g}" if r.target else "–", mark)
-    console.print(table)
+
+@app.command()
+@clean_errors
+def benchmark(
+    which: Annotated[BenchmarkSet, typer.Argument(help="Which figures.")] = BenchmarkSet.all,
+    quick: Annotated[bool, typer.Option(help="One repeat / short runs.")] = False,
+) -> None:
+    """Measure the integrators (× real time, one core) and the acquisition rates through the drivers."""
+    if which in (BenchmarkSet.physics, BenchmarkSet.all):
+        from bench.benchmark import run_all
+
+        with console.status("benchmarking the integrators (includes JIT warm-up)…"):
+            results = run_all(quick=quick)
+        table = Table(title="physics integrators (one core, best of repeats)")
+        for col in ("case", "simulated [s]", "wall [s]", "× real time", "target", ""):
+            table.add_column(col, justify="left" if col == "case" else "right")
+        for r in results:
+            mark = "" if not r.target else ("[green]ok[/]" if r.passed else "[red]below target[/]")
+            table.add_row(r.name, f"{r.simulated:g}", f"{r.wall:.4f}", f"{r.speed:.0f}",
+                          f"≥ {r.target:g}" if r.target else "–", mark)
+        console.print(table)
+    if which in (BenchmarkSet.acquisition, BenchmarkSet.all):
+        from bench import benchmark_acquisition
+
+        with console.status("benchmarking acquisition through the drivers and the simulated twins…"):
+            figures = benchmark_acquisition.run_all(quick=quick)
+        table = Table(title="acquisition through the drivers (simulated rigs on ptys)")
+        for col in ("path", "rate", "unit", "notes"):
+            table.add_column(col, justify="right" if col == "rate" else "left")
+        for f in figures:
+            table.add_row(f.name, f"{f.value:,.0f}", f.unit, f.note)
+        console.print(table)

@@ -57,7 +57,7 @@ class LaserConfig(_Strict):
     baudrate: int = Field(115200, gt=0)
     timeout_s: float = Field(0.5, gt=0, le=30)
     out: int = Field(1, ge=1, le=12)
-    storage_points: int = Field(65_536, ge=1, le=1_200_000)
+    storage_points: int | None = Field(None, ge=1, le=999_999, description="default: the controller's capacity")
     offset_mm: float = 0.0
     sign: Literal[-1, 1] = 1
     range_mm: float = Field(40.0, gt=0)

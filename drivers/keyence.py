@@ -44,6 +44,9 @@ ERROR_CODES: dict[Model, dict[str, str]] = {
                  "99": "other error"},
 }
 MAX_UPLOAD = 1000  # points per AO request
+# Data-storage capacity per OUT (points). Not from a manual page we could read: treat as an assumption.
+# The LK-G5000 figure is the largest count the 6-digit setting format can carry.
+STORAGE_CAPACITY: dict[Model, int] = {"LK-G3000": 65_536, "LK-G5000": 999_999}
 
 
 def format_value(mm: float | None, status: str = "ok") -> str:
@@ -81,7 +84,7 @@ class KeyenceLKG:
     """Driver for one OUT of a Keyence LK-G3000/LK-G5000 controller (implements DisplacementSensor)."""
 
     def __init__(self, link: SerialLink, *, name: str = "laser", model: Model = "LK-G3000", out: int = 1,
-                 clock: ClockFn = time.monotonic, storage_points: int = 65_536) -> None:
+                 clock: ClockFn = time.monotonic, storage_points: int | None = None) -> None:
         if model not in ERROR_CODES:
             raise ValueError(f"unknown Keyence controller model {model!r}")
         self.link = link
@@ -89,19 +92,25 @@ class KeyenceLKG:
         self.model: Model = model
         self.out = out
         self.clock = clock
-        self.storage_points = storage_points
+        self.storage_points = storage_points or STORAGE_CAPACITY[model]
+        if not 0 < self.storage_points <= 999_999:
+            raise ValueError(f"{name}: storage_points must be 1…999999, got {self.storage_points}")
         self._comm_mode = False
         self._t0 = 0.0
         self._dt = 0.0
         self._fetched = 0
 
     # ----------------------------------------------------------- protocol
-    def query(self, command: str) -> list[str]:
-        """Send one command, return the reply's fields; raise on an error reply or a garbled echo."""
+    def query(self, command: str, reply_bytes: int = 0) -> list[str]:
+        """Send one command, return the reply's fields; raise on an error reply or a garbled echo.
+
+        ``reply_bytes``: expected reply size, to add its wire time (10 bits per byte) to the timeout.
+        """
         main = command.split(",")[0].upper()
+        timeout = self.link.timeout + 1.5 * 10 * (reply_bytes + len(command) + 1) / self.link.baudrate
         with self.link.lock:
             self.link.write(command.encode("ascii") + b"\r")
-            raw = self.link.read_until(b"\r")
+            raw = self.link.read_until(b"\r", timeout=timeout)
         try:
             text = raw[:-1].decode("ascii")
         except UnicodeDecodeError:
@@ -218,7 +227,7 @@ class KeyenceLKG:
         first = self._fetched
         while self._fetched < count:
             n = min(MAX_UPLOAD, count - self._fetched)
-            fields = self.query(f"AO,{self.out},{self._fetched},{n}")
+            fields = self.query(f"AO,{self.out},{self._fetched},{n}", reply_bytes=3 + 9 * n)
             if len(fields) != n + 1:
                 raise ProtocolError(self.name, f"AO returned {len(fields) - 1} values, {n} requested")
             for f in fields[1:]:

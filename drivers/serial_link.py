@@ -124,6 +124,7 @@ class SerialLink:
                     buf += chunk
                 elif time.monotonic() >= deadline:
                     got = f" (partial reply {bytes(buf[:80])!r})" if buf else ""
-                    raise InstrumentTimeoutError(self.device, f"no reply within {self.timeout:g} s{got}")
+                    waited = self.timeout if timeout is None else timeout
+                    raise InstrumentTimeoutError(self.device, f"no reply within {waited:.3g} s{got}")
         except (serial.SerialException, OSError) as exc:
             raise self._lost(exc) from None

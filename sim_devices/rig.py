@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 
 from bench.rig import RigConfig
 from drivers.adam import RawScale
+from drivers.keyence import STORAGE_CAPACITY
 from drivers.trek import TREK_MODELS, TrekModel
 from sim_devices.clock import Clock, VirtualClock, WallClock
 from sim_devices.keyence_lkg import KeyenceLKGSim, LaserHead
@@ -66,8 +67,9 @@ class SimRig:
         rig, sim = self.rig, self.rig.simulation
         if rig.laser is not None:
             head = LaserHead(offset_mm=rig.laser.offset_mm, sign=rig.laser.sign, range_mm=rig.laser.range_mm)
-            twin = KeyenceLKGSim(self.plant, self.clock, model=rig.laser.model, head=head,
-                                 capacity=rig.laser.storage_points, seed=sim.seed)
+            capacity = rig.laser.storage_points or STORAGE_CAPACITY[rig.laser.model]
+            twin = KeyenceLKGSim(self.plant, self.clock, model=rig.laser.model, head=head, capacity=capacity,
+                                 seed=sim.seed)
             self._serve_serial("laser", twin)
         if rig.motor is not None:
             m = rig.motor

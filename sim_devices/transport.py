@@ -32,6 +32,7 @@ class Faults:
     garble_next: int = 0  # corrupt this many following replies (one byte flipped per reply)
     garble_index: int | None = None  # which byte to flip (negative: from the end); None: a random one
     drop: bool = False  # close the link: the port reports a lost device
+    wire_baud: float | None = None  # emulate the wire time of request + reply at this baud rate (8N1)
     rng: np.random.Generator = field(default_factory=lambda: np.random.default_rng(0))
 
     def apply(self, reply: bytes) -> bytes | None:
@@ -88,8 +89,11 @@ class PtyDevice:
                     break
                 reply = self.faults.apply(self.handler(data))
                 if reply:
-                    if self.faults.latency:
-                        time.sleep(self.faults.latency)
+                    delay = self.faults.latency
+                    if self.faults.wire_baud:
+                        delay += 10.0 * (len(data) + len(reply)) / self.faults.wire_baud
+                    if delay:
+                        time.sleep(delay)
                     os.write(self._master, reply)
         except BaseException as exc:  # the simulator must not die silently
             self.error = exc

@@ -57,7 +57,15 @@ def test_benchmark_prints_its_table() -> None:
     import numba
 
     threads = numba.get_num_threads()
-    res = runner.invoke(app, ["benchmark", "--quick"], env={"COLUMNS": "200"})
+    res = runner.invoke(app, ["benchmark", "physics", "--quick"], env={"COLUMNS": "200"})
     assert res.exit_code == 0, res.output
     assert "× real time" in res.output and "thesis base case, offline (Radau, 10 kHz output)" in res.output
     assert numba.get_num_threads() == threads  # the single-core measurement does not leak into the process
+
+
+def test_acquisition_benchmark_reports_complete_10kHz_storage() -> None:
+    res = runner.invoke(app, ["benchmark", "acquisition", "--quick"], env={"COLUMNS": "250"})
+    assert res.exit_code == 0, res.output
+    assert "20001 samples in 2 s, lost 0, duplicated 0, contiguous True" in res.output
+    for path in ("laser single read", "amplifier set-point", "motor position", "load cell"):
+        assert path in res.output

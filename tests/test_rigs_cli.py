@@ -1,0 +1,113 @@
+"""Rig files (validation, one-line errors) and the commands `bench sim serve` / `bench devices check`."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from bench.cli import app
+from bench.devices import check_instruments, served_rig, write_rig
+from bench.rig import RigFileError, load_rig
+from tests.conftest import RIGS, ROOT
+
+runner = CliRunner()
+ALL_RIGS = sorted(RIGS.glob("*.toml"))
+
+
+@pytest.mark.parametrize("path", ALL_RIGS, ids=lambda p: p.stem)
+def test_every_example_rig_file_validates(path: Path) -> None:
+    rig = load_rig(path)
+    assert rig.simulated == path.stem.endswith("-sim")
+    assert rig.amplifier is not None and rig.amplifier.max_voltage_V <= 10_000
+
+
+@pytest.mark.parametrize("text, message", [
+    ("name = 'x'\n[laser]\nmodel = 'LK-X'\n", "laser.model: Input should be 'LK-G3000' or 'LK-G5000'"),
+    ("name = 'x'\n[amplifier]\nbus = 'io'\n", "amplifier.bus 'io' is not defined under [buses]"),
+    ("name = 'x'\ncolour = 'red'\n", "colour: Extra inputs are not permitted"),
+    ("name = 'x'\n[motor]\ntravel_m = [0.1, 0.0]\n", "travel_m must be increasing"),
+    ("name = 'x'\n[limits]\nmax_voltage_V = 20000\n", "limits.max_voltage_V: Input should be less than or equal"),
+    ("name = \n", "not valid TOML"),
+    ("description = 'no name'\n", "name: Field required"),
+])
+def test_malformed_rig_files_get_one_line_errors(tmp_path: Path, text: str, message: str) -> None:
+    f = tmp_path / "bad.toml"
+    f.write_text(text)
+    with pytest.raises(RigFileError) as err:
+        load_rig(f)
+    assert message in str(err.value) and str(f) in str(err.value) and "\n" not in str(err.value)
+
+
+def test_devices_check_cli_on_the_simulated_rigs() -> None:
+    for name in ("thesis-sim", "lsdea-motor-sim"):
+        res = runner.invoke(app, ["devices", "check", str(RIGS / f"{name}.toml")], env={"COLUMNS": "200"})
+        assert res.exit_code == 0, res.output
+        assert res.output.count(" ok ") == len(load_rig(RIGS / f"{name}.toml").instruments)
+
+
+def test_devices_check_cli_on_missing_hardware_fails_cleanly() -> None:
+    proc = subprocess.run([sys.executable, "-m", "bench", "devices", "check", str(RIGS / "thesis-lab.toml")],
+                          capture_output=True, text=True, timeout=120, env={**os.environ, "COLUMNS": "200"})
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr + proc.stdout
+    assert proc.stderr.strip().count("\n") == 0
+    assert "2 of 2 instruments failed" in proc.stderr and "/dev/ttyUSB0" in proc.stderr
+
+
+def test_bad_rig_file_on_the_command_line(tmp_path: Path) -> None:
+    f = tmp_path / "bad.toml"
+    f.write_text("name = 'x'\n[laser]\nbaudrate = -5\n")
+    proc = subprocess.run([sys.executable, "-m", "bench", "devices", "check", str(f)], capture_output=True,
+                          text=True, timeout=120)
+    assert proc.returncode == 2
+    assert proc.stderr.strip() == f"error: rig file {f}: laser.baudrate: Input should be greater than 0"
+
+
+def test_served_rig_file_round_trips(tmp_path: Path) -> None:
+    rig = load_rig(RIGS / "lsdea-motor-sim.toml")
+    served = served_rig(rig, {"motor": "/dev/pts/99", "io": "/dev/pts/98", "scale": "tcp://127.0.0.1:5020"})
+    write_rig(served, tmp_path / "served.toml")
+    again = load_rig(tmp_path / "served.toml")
+    assert again == served and not again.simulated
+    assert again.motor.port == "/dev/pts/99" and again.buses["scale"].port == "tcp://127.0.0.1:5020"
+
+
+def test_sim_serve_for_another_process_and_ctrl_c(tmp_path: Path) -> None:
+    served = tmp_path / "served.toml"
+    proc = subprocess.Popen([sys.executable, "-m", "bench", "sim", "serve", str(RIGS / "lsdea-motor-sim.toml"),
+                             "--write-rig", str(served)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            cwd=ROOT, env={**os.environ, "COLUMNS": "200"})
+    try:
+        deadline = time.monotonic() + 60
+        while not served.exists() and time.monotonic() < deadline and proc.poll() is None:
+            time.sleep(0.05)
+        assert served.exists(), proc.stderr.read() if proc.poll() is not None else "timeout"
+        time.sleep(0.2)
+        rows = check_instruments(load_rig(served))  # a client in this process, the twins in the other
+        assert [r.role for r in rows if r.ok] == ["amplifier", "motor", "load_cell"], rows
+    finally:
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=30)
+    assert proc.returncode == 0, err
+    assert "LinMot LinRS" in out and "Modbus RTU" in out and "/dev/pts/" in out
+    assert "simulated rig stopped" in out and "Traceback" not in err
+
+
+def test_sim_serve_stops_on_sigterm_and_refuses_real_rigs(tmp_path: Path) -> None:
+    proc = subprocess.Popen([sys.executable, "-m", "bench", "sim", "serve", str(RIGS / "thesis-sim.toml")],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 60
+    line = ""
+    while "serving" not in line and time.monotonic() < deadline:
+        line = proc.stdout.readline()
+    proc.send_signal(signal.SIGTERM)
+    out, err = proc.communicate(timeout=30)
+    assert proc.returncode == 0 and "simulated rig stopped" in out, err
+    res = runner.invoke(app, ["sim", "serve", str(RIGS / "thesis-lab.toml")])
+    assert res.exit_code == 2 and "needs a simulated rig" in res.output
