@@ -252,3 +252,35 @@ def test_modbus_over_tcp_loopback() -> None:
     finally:
         r.inst.close()
         r.sim.stop()
+
+
+def test_motor_quick_stop_and_malformed_telegrams(lsdea_motor: RunningRig) -> None:
+    motor = lsdea_motor.inst.motor
+    motor.enable()
+    motor.move_to(0.09, 0.5, 5.0)
+    lsdea_motor.advance(0.05)
+    motor.quick_stop()
+    lsdea_motor.advance(0.5)
+    s = motor.status()
+    assert s.state == "ready to operate" and not s.moving and not s.enabled
+    with motor.link.lock:  # framing error (no 04h): the drive discards it, the master times out
+        motor.link.write(bytes.fromhex("01 11 03 02 01 00 05"))
+        with pytest.raises(InstrumentTimeoutError):
+            motor.link.read_exact(16, timeout=0.2)
+    with pytest.raises(ProtocolError, match="communication state 0x01"):
+        motor.transact(0x07, 0x00)  # an unsupported message group is answered with a comm error
+
+
+def test_modbus_bus_dropped_and_reply_latency(thesis: RunningRig) -> None:
+    import time
+
+    amp, faults = thesis.inst.amplifier, thesis.sim.faults["io"]
+    faults.latency = 0.15
+    t0 = time.perf_counter()
+    amp.read_voltage()
+    assert time.perf_counter() - t0 >= 0.15
+    faults.latency = 0.0
+    faults.drop = True
+    time.sleep(0.2)
+    with pytest.raises(InstrumentConnectionError, match="bus io: Modbus link .* lost"):
+        amp.read_voltage()
