@@ -43,24 +43,22 @@ class Instruments:
             if drv is not None:
                 yield role, drv
 
-    def safe_state(self) -> list[str]:
-        """Every instrument to its safe state (HV zero first); returns the errors met, one line each."""
+    def _each(self, method: str) -> list[str]:
         errors = []
         for role, drv in self.items():
             try:
-                drv.safe_state()
+                getattr(drv, method)()
             except InstrumentError as exc:
                 errors.append(f"{role}: {exc}")
         return errors
 
+    def safe_state(self) -> list[str]:
+        """Every instrument to its safe state (HV zero first); returns the errors met, one line each."""
+        return self._each("safe_state")
+
     def close(self) -> list[str]:
         """Close every instrument (each zeroes / stops itself first); returns the errors met."""
-        errors = []
-        for role, drv in self.items():
-            try:
-                drv.close()
-            except InstrumentError as exc:
-                errors.append(f"{role}: {exc}")
+        errors = self._each("close")
         for link in self.links.values():
             link.close()
         return errors

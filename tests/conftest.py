@@ -51,25 +51,23 @@ def start_rig(name: str, virtual: bool = True, **overrides: object) -> RunningRi
     return running
 
 
-@pytest.fixture
-def thesis() -> Iterator[RunningRig]:
-    r = start_rig("thesis-sim")
+def _running(name: str) -> Iterator[RunningRig]:
+    r = start_rig(name)
     yield r
     r.inst.close()
     r.sim.stop()
+
+
+@pytest.fixture
+def thesis() -> Iterator[RunningRig]:
+    yield from _running("thesis-sim")
 
 
 @pytest.fixture
 def lsdea_motor() -> Iterator[RunningRig]:
-    r = start_rig("lsdea-motor-sim")
-    yield r
-    r.inst.close()
-    r.sim.stop()
+    yield from _running("lsdea-motor-sim")
 
 
 @pytest.fixture
 def lsdea_isotonic() -> Iterator[RunningRig]:
-    r = start_rig("lsdea-isotonic-sim")
-    yield r
-    r.inst.close()
-    r.sim.stop()
+    yield from _running("lsdea-isotonic-sim")

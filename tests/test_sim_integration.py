@@ -282,5 +282,5 @@ def test_modbus_bus_dropped_and_reply_latency(thesis: RunningRig) -> None:
     faults.latency = 0.0
     faults.drop = True
     time.sleep(0.2)
-    with pytest.raises(InstrumentConnectionError, match="bus io: Modbus link .* lost"):
+    with pytest.raises(InstrumentConnectionError, match=r"bus io: Modbus link .* lost"):
         amp.read_voltage()
