@@ -64,6 +64,40 @@ def format_value(mm: float | None, status: str = "ok") -> str:
     return sign + body
 
 
+def format_values(mm: np.ndarray, range_mm: float = math.inf) -> bytes:
+    """Comma-separated 8-character fields for many values at once (same format as :func:`format_value`).
+
+    NaN → ``XXXXXXXX``; beyond ±range_mm or not representable → ``±FFFFFFF``.
+    """
+    mm = np.asarray(mm, dtype=float)
+    n = mm.size
+    finite = np.isfinite(mm)
+    a = np.zeros(n, dtype=np.int64)
+    a[finite] = np.round(np.abs(mm[finite]) * 1e4).astype(np.int64)
+    out = np.empty((n, 9), dtype=np.uint8)
+    out[:, 8] = ord(",")
+    out[:, 0] = np.where(mm < 0, ord("-"), ord("+"))
+    for col, power in ((1, 100_000), (2, 10_000), (4, 1000), (5, 100), (6, 10), (7, 1)):
+        out[:, col] = ord("0") + (a // power) % 10
+    out[:, 3] = ord(".")
+    over = finite & ((a >= 1_000_000) | (np.abs(mm) > range_mm))
+    out[over, 1:8] = ord("F")
+    out[~finite, 0:8] = ord("X")
+    return out.tobytes()[:-1]
+
+
+def parse_values(text: str, device: str) -> tuple[np.ndarray, np.ndarray]:
+    """Parse comma-separated measured values → (mm, valid); one vectorised pass when all are numbers."""
+    if "F" not in text and "X" not in text:
+        try:
+            values = np.array(text.split(","), dtype=np.float64)
+            return values, np.ones(values.size, dtype=bool)
+        except ValueError:
+            pass  # fall through to the field-by-field parse, which names the bad field
+    parsed = [parse_value(f, device) for f in text.split(",")]
+    return np.array([v for v, _ in parsed]), np.array([s == "ok" for _, s in parsed], dtype=bool)
+
+
 def parse_value(field: str, device: str) -> tuple[float, str]:
     """Parse an 8-character measured value into (mm, status)."""
     if len(field) != 8:
@@ -106,6 +140,10 @@ class KeyenceLKG:
 
         ``reply_bytes``: expected reply size, to add its wire time (10 bits per byte) to the timeout.
         """
+        return self.query_text(command, reply_bytes).split(",")
+
+    def query_text(self, command: str, reply_bytes: int = 0) -> str:
+        """Like :meth:`query` but returns the checked reply as one string (for bulk uploads)."""
         main = command.split(",")[0].upper()
         timeout = self.link.timeout + 1.5 * 10 * (reply_bytes + len(command) + 1) / self.link.baudrate
         with self.link.lock:
@@ -115,14 +153,14 @@ class KeyenceLKG:
             text = raw[:-1].decode("ascii")
         except UnicodeDecodeError:
             raise ProtocolError(self.name, f"reply to {command!r} is not ASCII: {raw!r}") from None
-        fields = text.split(",")
-        if fields[0] == "ER":
-            code = fields[2] if len(fields) > 2 else "?"
+        head = text.split(",", 3)
+        if head[0] == "ER":
+            code = head[2] if len(head) > 2 else "?"
             meaning = ERROR_CODES[self.model].get(code, "unknown error code")
             raise InstrumentStateError(self.name, f"{command!r} refused: ER {code} ({meaning})")
-        if fields[0].upper() != main:
-            raise ProtocolError(self.name, f"reply {text!r} does not echo command {main!r}")
-        return fields
+        if head[0].upper() != main:
+            raise ProtocolError(self.name, f"reply {text[:60]!r} does not echo command {main!r}")
+        return text
 
     def _settings_mode(self, on: bool) -> None:
         if on != self._comm_mode:
@@ -222,23 +260,23 @@ class KeyenceLKG:
     def fetch_buffer(self) -> SampleBlock:
         """Upload the points stored since the last fetch (in requests of up to 1000 points)."""
         storing, count = self.buffer_status()
-        values: list[float] = []
-        valid: list[bool] = []
+        values: list[np.ndarray] = []
+        valid: list[np.ndarray] = []
         first = self._fetched
         while self._fetched < count:
             n = min(MAX_UPLOAD, count - self._fetched)
-            fields = self.query(f"AO,{self.out},{self._fetched},{n}", reply_bytes=3 + 9 * n)
-            if len(fields) != n + 1:
-                raise ProtocolError(self.name, f"AO returned {len(fields) - 1} values, {n} requested")
-            for f in fields[1:]:
-                mm, status = parse_value(f, self.name)
-                values.append(mm * 1e-3)
-                valid.append(status == "ok")
+            text = self.query_text(f"AO,{self.out},{self._fetched},{n}", reply_bytes=3 + 9 * n)
+            mm, ok = parse_values(text[3:], self.name) if len(text) > 3 else (np.zeros(0), np.zeros(0, bool))
+            if mm.size != n:
+                raise ProtocolError(self.name, f"AO returned {mm.size} values, {n} requested")
+            values.append(mm * 1e-3)
+            valid.append(ok)
             self._fetched += n
         overflow = not storing and count >= self.storage_points
         if overflow and first == count:
             raise InstrumentStateError(self.name, f"data storage full ({count} points): later samples lost")
-        return SampleBlock(self._t0, self._dt, first, np.array(values), np.array(valid, dtype=bool), "m")
+        return SampleBlock(self._t0, self._dt, first, np.concatenate(values) if values else np.zeros(0),
+                           np.concatenate(valid) if valid else np.zeros(0, dtype=bool), "m")
 
     def stop_buffer(self) -> None:
         """Stop data storage (stored points remain fetchable)."""

@@ -22,6 +22,9 @@ class Clock(Protocol):
     def sleep(self, dt: float) -> None:
         """Wait dt [s] of this clock's time."""
 
+    def wait_until(self, t: float) -> None:
+        """Wait until this clock reads t (no-op if it is past)."""
+
 
 class WallClock:
     """Monotonic wall-clock time since construction."""
@@ -38,6 +41,12 @@ class WallClock:
     def sleep(self, dt: float) -> None:
         """Real sleep."""
         time.sleep(max(dt, 0.0))
+
+    def wait_until(self, t: float) -> None:
+        """Sleep until the clock reads t."""
+        dt = t - self.now()
+        if dt > 0:
+            time.sleep(dt)
 
 
 class VirtualClock:
@@ -65,6 +74,10 @@ class VirtualClock:
     def sleep(self, dt: float) -> None:
         """A wait in virtual time: advances the clock instead of blocking."""
         self.advance(max(dt, 0.0))
+
+    def wait_until(self, t: float) -> None:
+        """Jump to t."""
+        self.advance_to(t)
 
     def advance_to(self, t: float) -> float:
         """Move time forward to t (no-op if t is in the past); returns the new time."""

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivers.keyence import SAMPLING_US, STORAGE_CYCLES, Model, format_value
+from drivers.keyence import SAMPLING_US, STORAGE_CYCLES, Model, format_value, format_values
 from sim_devices.clock import Clock
 from sim_devices.plant import Plant, PlantBlock
 
@@ -57,7 +57,8 @@ class KeyenceLKGSim:
         self.storage_cycle_code = 0
         self.storage_points = capacity
         self.storing = False
-        self.stored: list[float] = []  # mm (NaN = invalid/over range, stored as such)
+        self._store = np.empty(0)  # storage memory [mm] (NaN = invalid), allocated when storage starts
+        self.n_stored = 0
         self._next_sample_t = 0.0
         self._prev: tuple[float, float] | None = None  # last (t, displacement) seen, for interpolation
         self._buf = b""
@@ -82,15 +83,15 @@ class KeyenceLKGSim:
                 t = np.concatenate([[self._prev[0]], block.t])
                 u = np.concatenate([[self._prev[1]], block.displacement])
                 dt = self.storage_interval
-                n_room = self.storage_points - len(self.stored)
-                k = np.arange(0, max(n_room, 0))
-                ts = self._next_sample_t + dt * k
-                ts = ts[ts <= t[-1] + 1e-12]
+                n_room = self.storage_points - self.n_stored
+                n_due = int(np.floor((t[-1] - self._next_sample_t) / dt + 1e-9)) + 1
+                ts = self._next_sample_t + dt * np.arange(max(0, min(n_room, n_due)))
                 if ts.size:
                     mm = self._to_mm(np.interp(ts, t, u)) + self.rng.normal(0.0, self.head.noise_mm, ts.size)
-                    self.stored.extend(mm.tolist())
+                    self._store[self.n_stored:self.n_stored + mm.size] = mm
+                    self.n_stored += mm.size
                     self._next_sample_t = float(ts[-1]) + dt
-                if len(self.stored) >= self.storage_points:
+                if self.n_stored >= self.storage_points:
                     self.storing = False
             self._prev = (float(block.t[-1]), float(block.displacement[-1]))
 
@@ -197,12 +198,12 @@ class KeyenceLKGSim:
             self._int(args[0], 1, self.outs)
             self.plant.observe()
             with self._lock:
-                first = self._int(args[1], 0, max(len(self.stored) - 1, 0))
+                first = self._int(args[1], 0, max(self.n_stored - 1, 0))
                 n = self._int(args[2], 1, 1000)
-                if first + n > len(self.stored):
+                if first + n > self.n_stored:
                     raise _RejectError("param")
-                values = self.stored[first:first + n]
-            return "AO," + ",".join(self._value_field(v) for v in values)
+                values = self._store[first:first + n]
+            return "AO," + format_values(values, self.head.range_mm).decode()
         raise _RejectError("command")
 
     def _setting(self, args: list[str]) -> str:
@@ -233,14 +234,16 @@ class KeyenceLKGSim:
             if main == "AQ":
                 if self.storing:
                     raise _RejectError("status")
-                self.stored = []
+                self.n_stored = 0
             elif main == "AS":
                 if self.storing:
                     raise _RejectError("status")
                 self.storing = True
+                if self._store.size < self.storage_points:
+                    self._store = np.empty(self.storage_points)
                 self._next_sample_t = now  # first point at the moment storage starts
             elif main == "AP":
                 self.storing = False
             else:
-                return f"AN,{1 if self.storing else 0},{len(self.stored)}"
+                return f"AN,{1 if self.storing else 0},{self.n_stored}"
         return main

@@ -16,7 +16,7 @@ from __future__ import annotations
 import math
 import threading
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Literal
 
 import numpy as np
@@ -56,6 +56,8 @@ class PlantBlock:
     current: np.ndarray  # amplifier output current [A]
     displacement: np.ndarray  # membrane u, or LS-DEA aperture x [m]
     force: np.ndarray  # force on the load cell [N] (0 when not coupled)
+    field: np.ndarray  # true electric field in the film [V/m]
+    breakdown: np.ndarray  # breakdown field at the present stretch [V/m]
 
 
 class Plant:
@@ -75,9 +77,10 @@ class Plant:
         self.motor_sign = motor_sign
         self.lock = threading.RLock()
         self.listeners: list[Listener] = []
-        self.v_in = 0.0  # amplifier analog input [V]
         self.v_out = 0.0  # amplifier output [V]
-        self.motion = MotionProfile.hold(0.0, 0.0)
+        # input histories not yet integrated: (time, value) — the model integrates lazily, in large blocks
+        self._v_events: list[tuple[float, float]] = [(0.0, 0.0)]  # amplifier analog input [V]
+        self._motions: list[tuple[float, MotionProfile]] = [(0.0, MotionProfile.hold(0.0, 0.0))]
         self.broken = False
         self.failure = ""
         self.t = 0.0
@@ -96,30 +99,69 @@ class Plant:
             mode = "hung" if configuration == "hung" else "imposed"
             self._lozenge = LozengeStream(specimen, mode, None if configuration == "hung" else x0, h=h)
             self._C = 1e-10
-        self.last = PlantBlock(np.zeros(1), np.zeros(1), np.zeros(1), np.zeros(1), np.zeros(1))
         self._refresh_last_at_rest()
 
     # ------------------------------------------------------------------ inputs
+    @property
+    def v_in(self) -> float:
+        """Latest amplifier analog input [V]."""
+        return self._v_events[-1][1]
+
+    @property
+    def motion(self) -> MotionProfile:
+        """The motor's current motion profile."""
+        return self._motions[-1][1]
+
     def set_amplifier_input(self, volts: float) -> None:
-        """New analog input of the amplifier [V], effective from the clock's present."""
+        """New analog input of the amplifier [V], effective from the clock's present (integrated lazily)."""
         with self.lock:
-            self.advance_to(self.clock.now())
-            self.v_in = float(volts)
+            self._v_events.append((self.clock.now(), float(volts)))
 
     def set_motion(self, make: Callable[[float, float, float], MotionProfile]) -> MotionProfile:
         """Replace the motor's motion from now: ``make(t, position, velocity)`` returns the new profile."""
         with self.lock:
             now = self.clock.now()
-            self.advance_to(now)
             p, v = (float(a) for a in self.motion.evaluate(now))
-            self.motion = make(now, p, v)
-            return self.motion
+            profile = make(now, p, v)
+            self._motions.append((now, profile))
+            return profile
 
     def motor_state(self, t: float | None = None) -> tuple[float, float]:
         """Motor (position [m], velocity [m/s]) at t (default: now)."""
         with self.lock:
             p, v = self.motion.evaluate(self.clock.now() if t is None else t)
             return float(p), float(v)
+
+    def change_specimen(self, temperature_K: float | None = None, hung_mass_kg: float | None = None,
+                        prototype: int | None = None) -> None:
+        """Between tests: new temperature (membrane), hung mass or mounted prototype (LS-DEA), from now on.
+
+        A new hung mass keeps the present state (the mass is hung on the actuator where it is); a new prototype
+        starts relaxed at the present aperture.
+        """
+        with self.lock:
+            self.advance_to(self.clock.now())
+            if temperature_K is not None:
+                if self._membrane is None:
+                    raise ValueError("temperature acts on the membrane model only")
+                self.temperature = float(temperature_K)
+                self._membrane.T = self.temperature
+            if hung_mass_kg is None and prototype is None:
+                return
+            if self._lozenge is None:
+                raise ValueError("hung mass and prototype apply to the LS-DEA")
+            params = self.specimen
+            if prototype is not None:
+                params = LozengeParams.prototype(int(prototype), hung_mass=params.hung_mass)  # type: ignore[union-attr]
+            if hung_mass_kg is not None:
+                params = replace(params, hung_mass=float(hung_mass_kg))  # type: ignore[type-var]
+            y = self._lozenge.state.copy()
+            mode = "hung" if self.configuration == "hung" else "imposed"
+            stream = LozengeStream(params, mode, float(y[0]), h=self.h,  # type: ignore[arg-type]
+                                   y0=None if prototype is not None else y, t0=self._lozenge.t)
+            self.specimen, self._lozenge = params, stream
+            self.broken, self.failure = False, ""
+            self._refresh_last_at_rest()
 
     def inject_breakdown(self) -> None:
         """Fault injection: the dielectric breaks down now (electrodes shorted from here on)."""
@@ -148,18 +190,44 @@ class Plant:
                 self._advance(n)
                 n_total -= n
 
-    def _hv_output(self, k: np.ndarray) -> np.ndarray:
+    def _pieces(self, events: list, n: int) -> list[tuple[int, int, object]]:
+        """Split the next n steps at the input events: [(first step, end step, value)], dropping used history."""
+        first_step = self._n
+        starts = [max(0, math.floor(te / self.h + 1e-9) - first_step) for te, _ in events]
+        out = []
+        for i, (_, value) in enumerate(events):
+            a = min(starts[i], n)
+            b = min(starts[i + 1], n) if i + 1 < len(events) else n
+            if b > a or (i == len(events) - 1 and a < n):
+                out.append((a, b, value))
+        keep = max(i for i, st in enumerate(starts) if st <= n)  # the value in force at the block's end
+        del events[:keep]
+        return out
+
+    def _hv_output(self, n: int) -> np.ndarray:
         hv = self.hv
-        target = min(max(hv.gain * self.v_in, -hv.max_output), hv.max_output)
-        if self.broken:
-            target = math.copysign(min(abs(target), hv.max_current * hv.r_short), target)
-        rate = min(hv.slew, hv.max_current / max(self._C, 1e-15))
-        return self.v_out + np.clip(target - self.v_out, -rate * self.h * k, rate * self.h * k)
+        rate = min(hv.slew, hv.max_current / max(self._C, 1e-15)) * self.h
+        v = np.empty(n)
+        v0 = self.v_out
+        for a, b, v_in in self._pieces(self._v_events, n):
+            target = min(max(hv.gain * float(v_in), -hv.max_output), hv.max_output)  # type: ignore[arg-type]
+            if self.broken:
+                target = math.copysign(min(abs(target), hv.max_current * hv.r_short), target)
+            k = np.arange(1, b - a + 1, dtype=float)
+            v[a:b] = v0 + np.clip(target - v0, -rate * k, rate * k)
+            v0 = float(v[b - 1]) if b > a else v0
+        return v
+
+    def _motor(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        pos, vel = np.empty(t.size), np.empty(t.size)
+        for a, b, profile in self._pieces(self._motions, t.size):
+            pos[a:b], vel[a:b] = profile.evaluate(t[a:b])  # type: ignore[attr-defined]
+        return pos, vel
 
     def _advance(self, n: int) -> None:
         k = np.arange(1, n + 1, dtype=float)
         t = (self._n + k) * self.h
-        v_amp = self._hv_output(k)
+        v_amp = self._hv_output(n)
         v_dea = np.zeros_like(v_amp) if self.broken else v_amp
         force = np.zeros(n)
         if self._membrane is not None:
@@ -167,21 +235,27 @@ class Plant:
             disp = tr.displacement
             charge = tr.charge
             cap = tr.capacitance
+            field = tr.field
+            breakdown = np.full(n, self.specimen.breakdown_field)  # type: ignore[union-attr]
             if tr.failed and not self.broken:
                 self._break(f"specimen failure: {tr.failure}")
         else:
             U = np.zeros((n, 3))
             U[:, 0] = v_dea
             if self.configuration == "motor":
-                pos, vel = self.motion.evaluate(t)
+                pos, vel = self._motor(t)
                 U[:, 1] = self.x0 + self.motor_sign * pos
                 U[:, 2] = self.motor_sign * vel
             elif self.configuration == "blocked":
                 U[:, 1] = self.x0
+            if self.configuration != "motor":
+                self._pieces(self._motions, n)  # the motor is not coupled: only drop used history
             tr = self._lozenge.advance(U)  # type: ignore[union-attr]
             disp = tr.position
             charge = tr.charge
             cap = tr.capacitance
+            field = tr.field
+            breakdown = tr.breakdown_field
             if self.configuration != "hung":
                 force = tr.force
             if tr.failed and not self.broken:
@@ -196,18 +270,21 @@ class Plant:
         self.v_out = float(v_amp[-1])
         self._n += n
         self.t = self._n * self.h
-        block = PlantBlock(t, v_amp, current, disp, force)
-        self.last = PlantBlock(t[-1:], v_amp[-1:], current[-1:], disp[-1:], force[-1:])
+        block = PlantBlock(t, v_amp, current, disp, force, field, breakdown)
+        self.last = PlantBlock(t[-1:], v_amp[-1:], current[-1:], disp[-1:], force[-1:], field[-1:], breakdown[-1:])
         for listener in self.listeners:
             listener(block)
 
     def _refresh_last_at_rest(self) -> None:
         """Initial observables (t = 0, no voltage)."""
         disp = force = 0.0
+        breakdown = getattr(self.specimen, "breakdown_field", np.inf)
         if self._lozenge is not None:
             tr = self._lozenge.observe(0.0)
             disp = float(tr.position[0])
             force = 0.0 if self.configuration == "hung" else float(tr.force[0])
+            breakdown = float(tr.breakdown_field[0])
             self._C = float(tr.capacitance[0])
         z = np.zeros(1)
-        self.last = PlantBlock(z, z.copy(), z.copy(), np.array([disp]), np.array([force]))
+        self.last = PlantBlock(np.array([self.t]), np.array([self.v_out]), z.copy(), np.array([disp]),
+                               np.array([force]), z.copy(), np.array([breakdown]))

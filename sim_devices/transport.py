@@ -80,7 +80,7 @@ class PtyDevice:
             while not self._stop.is_set():
                 if self.faults.drop:
                     break
-                ready, _, _ = select.select([self._master], [], [], 0.05)
+                ready, _, _ = select.select([self._master], [], [], 0.01)
                 if not ready:
                     continue
                 try:
@@ -137,7 +137,7 @@ class PtyBridge:
     def _run(self) -> None:
         try:
             while not self._stop.is_set() and not self.faults.drop:
-                ready, _, _ = select.select([self._sm, self._cm], [], [], 0.05)
+                ready, _, _ = select.select([self._sm, self._cm], [], [], 0.01)
                 for fd in ready:
                     try:
                         data = os.read(fd, 65536)

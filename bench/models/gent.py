@@ -19,10 +19,9 @@ from numba import njit
 
 
 @njit(cache=True)
-def gent_h(u: float, J: float) -> tuple[float, float, float]:
-    """Return (h, dh/du, G) of a Gent unit with limit J at elastic log-stretch u [-]."""
-    e2 = math.exp(2.0 * u)
-    e4 = 1.0 / (e2 * e2)  # e^{−4u}: one transcendental call per unit (hot path of the streaming step)
+def gent_h_e2(e2: float, J: float) -> tuple[float, float, float]:
+    """(h, dh/du, G) of a Gent unit with limit J, given e2 = e^{2u} = (elastic stretch)²."""
+    e4 = 1.0 / (e2 * e2)  # e^{−4u}
     g = e2 - e4
     G = 1.0 - (2.0 * e2 + e4 - 3.0) / J
     h = g / G
@@ -31,10 +30,15 @@ def gent_h(u: float, J: float) -> tuple[float, float, float]:
 
 
 @njit(cache=True)
-def gent_relaxation_rate(u: float, J: float, mu: float, eta: float) -> float:
-    """Rate r [1/s] with du/dt = −r·u at fixed λ (r → μ/η as u → 0); used by the exponential update."""
-    h, _, _ = gent_h(u, J)
+def gent_h(u: float, J: float) -> tuple[float, float, float]:
+    """Return (h, dh/du, G) of a Gent unit with limit J at elastic log-stretch u [-]."""
+    return gent_h_e2(math.exp(2.0 * u), J)
+
+
+@njit(cache=True)
+def relaxation_rate(u: float, h: float, mu: float, eta: float) -> float:
+    """Rate r [1/s] with du/dt = −r·u at fixed λ (r → μ/η as u → 0), from the unit's h(u)."""
     if abs(u) < 1e-9:
-        # h/u → 6/G(0) = 6 as u → 0
-        return mu / eta
+        return mu / eta  # h/u → 6/G(0) = 6 as u → 0
     return mu / (6.0 * eta) * h / u
+

@@ -37,7 +37,7 @@ def step_model(model: int, y: np.ndarray, u: np.ndarray, h: float, p: np.ndarray
     return lozenge_step(y, u[0], u[1], u[2], h, p)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def run_fixed(model: int, y0: np.ndarray, U: np.ndarray, h: float, p: np.ndarray) -> tuple[np.ndarray, int]:
     """Integrate len(U) fixed steps from y0. Returns (Y with len(U)+1 rows, number of valid rows).
 

@@ -403,7 +403,7 @@ def lozenge_step(y: np.ndarray, V: float, x_in: float, v_in: float, h: float, p:
     return G > 0.0 and math.isfinite(x) and math.isfinite(v)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def lozenge_observe(Y: np.ndarray, V: np.ndarray, p: np.ndarray, out: np.ndarray) -> None:
     """Per-sample observables of a state history Y (n×ny) at voltages V (n) into ``out`` (n×12).
 

@@ -203,9 +203,12 @@ class LozengeStream:
     """Streaming LS-DEA for the simulated rig: one call per sample with the current V, x_in, ẋ_in."""
 
     def __init__(self, params: LozengeParams, config: Config, x0: float | None = None,
-                 h: float = 1e-4) -> None:
+                 h: float = 1e-4, y0: np.ndarray | None = None, t0: float = 0.0) -> None:
+        """Start relaxed at x0 (hung: at the 0-V equilibrium if x0 is None), or from state ``y0`` at time t0."""
         self.params = params
         self.mode = MODE_HUNG if config == "hung" else MODE_IMPOSED
+        if x0 is None and y0 is not None:
+            x0 = float(y0[0])
         if x0 is None:
             if config != "hung":
                 raise ValueError(f"{config} configuration needs a start position x0 [m]")
@@ -213,7 +216,9 @@ class LozengeStream:
             if x0 is None:
                 raise ValueError(f"no static equilibrium for load {params.load:.3f} N on this prototype")
         self._p = params.pack(self.mode)
-        self._stepper = FixedStepper(MODEL_LOZENGE, self._p, params.relaxed_state(x0), h)
+        start = params.relaxed_state(x0) if y0 is None else np.array(y0, dtype=float)
+        self._stepper = FixedStepper(MODEL_LOZENGE, self._p, start, h)
+        self._stepper.t = t0
         self._obs = np.empty((1, 12))
         self._V = np.zeros(1)
 

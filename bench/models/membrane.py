@@ -29,7 +29,7 @@ from typing import Literal
 import numpy as np
 from numba import njit
 
-from bench.models.gent import gent_h, gent_relaxation_rate
+from bench.models.gent import gent_h, gent_h_e2, relaxation_rate
 
 EPS_VAC = 8.85418e-12  # F/m, thesis Table 4.1
 
@@ -234,18 +234,20 @@ def membrane_step(y: np.ndarray, phi: float, T: float, h: float, p: np.ndarray) 
     lam = y[0]
     v = y[1]
     n = int(p[P_N])
-    ell = math.log(lam)
-    h0, _, G0 = gent_h(ell, p[P_J0])
+    h0, _, G0 = gent_h_e2(lam * lam, p[P_J0])
     force = 2.0 * p[P_RHO] * p[P_L3] ** 2 * lam**-7 * v * v - p[P_MU0] * h0 / lam
     ok = G0 > 0.0
     for i in range(n):
         mu = p[P_BRANCHES + i]
         J = p[P_BRANCHES + n + i]
         eta = p[P_BRANCHES + 2 * n + i]
-        u = ell - math.log(y[2 + i])
-        u *= math.exp(-h * gent_relaxation_rate(u, J, mu, eta))
-        y[2 + i] = math.exp(ell - u)
-        hu, _, G = gent_h(u, J)
+        e = lam / y[2 + i]  # elastic stretch e = e^u
+        u = math.log(e)
+        hu, _, _ = gent_h_e2(e * e, J)
+        u *= math.exp(-h * relaxation_rate(u, hu, mu, eta))
+        e2 = math.exp(2.0 * u)
+        y[2 + i] = lam / math.sqrt(e2)  # ξ = λ e^{−u}
+        hu, _, G = gent_h_e2(e2, J)
         ok = ok and G > 0.0
         force -= mu * hu / lam
     s_es, _ = es_stress(lam, phi, T, p)
@@ -289,7 +291,7 @@ class MembraneTrace:
         return float(np.max(self.displacement))
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def membrane_observe(t: np.ndarray, Y: np.ndarray, phi: np.ndarray, T: np.ndarray, p: np.ndarray,
                      out: np.ndarray) -> None:
     """Per-sample observables into ``out`` (n×4): true field E = Φλ²/L3 [V/m], C [F], Q = CΦ [C] and
