@@ -5,10 +5,9 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 from bench.instruments import build_instruments
-from bench.rig import RigConfig
+from bench.rig import RigConfig, rig_to_toml
 from drivers.errors import InstrumentError
 from drivers.interfaces import Instrument
 
@@ -65,29 +64,6 @@ def check_instruments(rig: RigConfig, endpoints: dict[str, str] | None = None) -
     return rows
 
 
-def _toml_value(v: Any) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, int | float):
-        return repr(v)
-    if isinstance(v, str):
-        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
-    if isinstance(v, list | tuple):
-        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
-    raise TypeError(f"cannot write {type(v).__name__} to TOML")
-
-
-def _toml_tables(prefix: str, data: dict[str, Any], out: list[str]) -> None:
-    scalars = {k: v for k, v in data.items() if not isinstance(v, dict) and v is not None}
-    tables = {k: v for k, v in data.items() if isinstance(v, dict)}
-    if prefix and scalars:
-        out.append(f"\n[{prefix}]")
-    for k, v in scalars.items():
-        out.append(f"{k} = {_toml_value(v)}")
-    for k, v in tables.items():
-        _toml_tables(f"{prefix}.{k}" if prefix else k, v, out)
-
-
 def served_rig(rig: RigConfig, ports: dict[str, str]) -> RigConfig:
     """The rig as seen from outside: real (not simulated), ports set to the running twins' endpoints."""
     data = rig.model_dump()
@@ -103,6 +79,5 @@ def served_rig(rig: RigConfig, ports: dict[str, str]) -> RigConfig:
 
 def write_rig(rig: RigConfig, path: Path) -> None:
     """Write a rig file that :func:`bench.rig.load_rig` reads back to the same configuration."""
-    lines = ["# written by `bench sim serve`: the running simulated twins, seen as a real rig"]
-    _toml_tables("", rig.model_dump(), lines)
-    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    text = "# written by `bench sim serve`: the running simulated twins, seen as a real rig\n" + rig_to_toml(rig)
+    path.write_text(text, encoding="utf-8")

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import tomllib
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
@@ -129,6 +129,9 @@ class LimitsConfig(_Strict):
     max_field_V_per_m: float | None = Field(None, gt=0, description="default: the specimen's breakdown field")
     max_current_A: float = Field(5e-3, gt=0)
     max_force_N: float = Field(20.0, gt=0)
+    breakdown_margin: float = Field(1.1, ge=1.0, le=10.0, description="trip when E × margin > E_B")
+    shutdown_ramp_s: float = Field(0.25, gt=0, le=10.0, description="voltage ramp to 0 V on every exit")
+    travel_tolerance_m: float = Field(0.001, ge=0, description="motor beyond its travel by more: trip")
 
 
 class SimulationConfig(_Strict):
@@ -206,3 +209,33 @@ def load_rig(path: str | Path) -> RigConfig:
         return RigConfig.model_validate(data)
     except ValidationError as exc:
         raise RigFileError(_first_error(p, exc)) from None
+
+
+def _toml_value(v: Any) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, int | float):
+        return repr(v)
+    if isinstance(v, str):
+        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(v, list | tuple):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    raise TypeError(f"cannot write {type(v).__name__} to TOML")
+
+
+def _toml_tables(prefix: str, data: dict[str, Any], out: list[str]) -> None:
+    scalars = {k: v for k, v in data.items() if not isinstance(v, dict) and v is not None}
+    tables = {k: v for k, v in data.items() if isinstance(v, dict)}
+    if prefix and scalars:
+        out.append(f"\n[{prefix}]")
+    for k, v in scalars.items():
+        out.append(f"{k} = {_toml_value(v)}")
+    for k, v in tables.items():
+        _toml_tables(f"{prefix}.{k}" if prefix else k, v, out)
+
+
+def rig_to_toml(rig: RigConfig) -> str:
+    """The rig as TOML text that :func:`load_rig` reads back to the same configuration."""
+    lines: list[str] = []
+    _toml_tables("", rig.model_dump(), lines)
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,1 @@
+"""Protocol files: schema and validation, compilation into a timed program, dry-run prediction."""

@@ -1,0 +1,152 @@
+"""Dry run: the compiled program on the physical model alone, before any instrument is touched.
+
+The plant of the simulated rig (same model, same amplifier stage, same motor profiles, same set-point
+ticks as the engine) is advanced through the whole program in virtual time, so the dry run states what the
+specimen will see: peak voltage, peak true electric field against the stretch-dependent breakdown field,
+aperture and motor travel, force, and whether the model predicts a failure (pull-in, breakdown).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from bench.protocol.program import Program, motor_command, voltage_at
+from sim_devices.clock import VirtualClock
+from sim_devices.motion import MotionProfile
+from sim_devices.plant import HVStage, Plant, PlantBlock
+
+STREAM_COLUMNS = {"setpoints": 2, "amplifier": 2, "laser": 2, "motor": 2, "load_cell": 1}
+PASSIVE_LASER_HZ = 10.0  # single laser reads while the storage is idle
+
+
+@dataclass
+class Prediction:
+    """What the dry run predicts for a program."""
+
+    duration: float
+    samples: dict[str, int]
+    file_bytes: int
+    peak_voltage: float = 0.0
+    peak_field: float = 0.0
+    field_at_min_margin: float = 0.0
+    breakdown_at_min_margin: float = np.inf
+    min_breakdown_margin: float = np.inf  # min over time of E_B / |E|
+    displacement_range: tuple[float, float] = (np.inf, -np.inf)
+    force_range: tuple[float, float] = (np.inf, -np.inf)
+    motor_range: tuple[float, float] | None = None
+    failure: str = ""
+    problems: list[str] = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        """No predicted failure and no limit exceeded."""
+        return not self.failure and not self.problems
+
+
+def sample_counts(program: Program) -> dict[str, int]:
+    """Samples per recorded stream for the whole run."""
+    rig, rec, T = program.rig, program.protocol.recording, program.duration
+    counts = {"setpoints": int(T * rec.setpoint_Hz) + len(program.segments)}
+    if rig.amplifier is not None and rec.monitors_Hz > 0:
+        counts["amplifier"] = int(T * rec.monitors_Hz)
+    if rig.laser is not None:
+        stored = sum(s.duration for s in program.segments if s.storing)
+        counts["laser"] = int(stored * rec.displacement_Hz) + int((T - stored) * PASSIVE_LASER_HZ)
+    if rig.motor is not None and rec.position_Hz > 0:
+        counts["motor"] = int(T * rec.position_Hz)
+    if rig.load_cell is not None and rec.force_Hz > 0:
+        counts["load_cell"] = int(T * rec.force_Hz)
+    return counts
+
+
+def build_plant(program: Program, clock: VirtualClock, h: float = 1e-4) -> Plant:
+    """The simulated rig's plant for this program's rig and specimen overrides."""
+    rig, over = program.rig, program.protocol.specimen
+    spec = rig.specimen
+    hv = HVStage()
+    if spec.kind == "membrane":
+        return Plant(clock, spec.membrane(), temperature=over.temperature_K or spec.temperature_K, hv=hv, h=h)
+    cfg = spec.lsdea
+    params = spec.lozenge()
+    if over.prototype is not None or over.hung_mass_kg is not None:
+        from bench.models.lozenge import LozengeParams
+
+        params = LozengeParams.prototype(over.prototype or cfg.prototype,
+                                         hung_mass=cfg.hung_mass_kg if over.hung_mass_kg is None else over.hung_mass_kg)
+    x0 = cfg.blocked_position_m if cfg.configuration == "blocked" else cfg.x_at_motor_zero_m
+    return Plant(clock, params, configuration=cfg.configuration, x0=x0, hv=hv, h=h, motor_sign=cfg.motor_sign)
+
+
+def predict(program: Program, progress: Callable[[float], None] | None = None) -> Prediction:
+    """Run the program on the model; collect peaks, margins and predicted failures."""
+    counts = sample_counts(program)
+    nbytes = sum(n * 8 * (1 + STREAM_COLUMNS[k]) for k, n in counts.items())
+    pred = Prediction(program.duration, counts, nbytes)
+    clock = VirtualClock()
+    plant = build_plant(program, clock)
+    gain = plant.hv.gain
+    rec = program.protocol.recording
+    dt = 1.0 / rec.setpoint_Hz
+    motor_lo, motor_hi = np.inf, -np.inf
+
+    def watch(block: PlantBlock) -> None:
+        nonlocal pred
+        e = np.abs(block.field)
+        pred.peak_field = max(pred.peak_field, float(np.nanmax(e)))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            margin = np.where(e > 0, block.breakdown / e, np.inf)
+        i = int(np.nanargmin(margin))
+        if margin[i] < pred.min_breakdown_margin:
+            pred.min_breakdown_margin = float(margin[i])
+            pred.field_at_min_margin, pred.breakdown_at_min_margin = float(e[i]), float(block.breakdown[i])
+        d, f = block.displacement, block.force
+        pred.displacement_range = (min(pred.displacement_range[0], float(np.nanmin(d))),
+                                   max(pred.displacement_range[1], float(np.nanmax(d))))
+        pred.force_range = (min(pred.force_range[0], float(np.nanmin(f))),
+                            max(pred.force_range[1], float(np.nanmax(f))))
+
+    plant.listeners.append(watch)
+    for seg in program.segments:
+        if seg.changes:
+            plant.change_specimen(**seg.changes)  # type: ignore[arg-type]
+        n_ticks = max(1, int(np.ceil(seg.duration / dt - 1e-9))) if seg.duration > 0 else 0
+        for k in range(n_ticks):
+            t = seg.t_start + k * dt
+            clock.advance_to(t)
+            v = voltage_at(seg, t)
+            if v is not None:
+                pred.peak_voltage = max(pred.peak_voltage, abs(v))
+                plant.set_amplifier_input(v / gain)
+            cmd = motor_command(program, seg, t, dt, first=k == 0)
+            if cmd is not None:
+                target, vel, acc = cmd
+                motor_lo, motor_hi = min(motor_lo, target), max(motor_hi, target)
+                plant.set_motion(lambda t0, p, vv, tg=target, ve=vel, ac=acc:
+                                 MotionProfile.plan(t0, p, vv, tg, ve, ac, ac))
+            if plant.broken:
+                break
+        clock.advance_to(seg.t_end)
+        plant.advance_to(seg.t_end)
+        if progress is not None:
+            progress(seg.t_end)
+        if plant.broken:
+            pred.failure = f"{seg.label}: model predicts {plant.failure}"
+            break
+    if program.has_motor_axis:
+        pred.motor_range = (float(motor_lo), float(motor_hi)) if motor_lo <= motor_hi else None
+    limits = program.rig.limits
+    if limits.max_field_V_per_m is not None and pred.peak_field > limits.max_field_V_per_m:
+        pred.problems.append(f"peak true field {pred.peak_field / 1e6:.1f} MV/m exceeds limits.max_field_V_per_m "
+                             f"{limits.max_field_V_per_m / 1e6:.1f} MV/m")
+    if pred.min_breakdown_margin < limits.breakdown_margin:
+        pred.problems.append(f"true field {pred.field_at_min_margin / 1e6:.1f} MV/m against a breakdown field of "
+                             f"{pred.breakdown_at_min_margin / 1e6:.1f} MV/m: margin {pred.min_breakdown_margin:.2f} "
+                             f"below limits.breakdown_margin {limits.breakdown_margin:g}")
+    peak_force = max(abs(pred.force_range[0]), abs(pred.force_range[1]))
+    if np.isfinite(peak_force) and peak_force > limits.max_force_N:
+        pred.problems.append(f"force {max(abs(x) for x in pred.force_range):.2f} N exceeds limits.max_force_N "
+                             f"{limits.max_force_N:g} N")
+    return pred
