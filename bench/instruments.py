@@ -65,10 +65,12 @@ class Instruments:
 
 
 def build_instruments(rig: RigConfig, endpoints: dict[str, str] | None = None,
-                      clock: ClockFn = time.monotonic, sleep: SleepFn = time.sleep) -> Instruments:
+                      clock: ClockFn = time.monotonic, sleep: SleepFn = time.sleep,
+                      modbus_poll: float | None = None) -> Instruments:
     """Create (not connect) the drivers; ``endpoints`` (role or bus name → port) override the file's ports.
 
-    ``clock``/``sleep`` are the rig's time: wall time for hardware, the simulated rig's clock otherwise.
+    ``clock``/``sleep`` are the rig's time: wall time for hardware, the simulated rig's clock otherwise;
+    ``modbus_poll`` is the RTU receive poll interval (None: pymodbus' default, right for real wires).
     """
     ep = endpoints or {}
     inst = Instruments()
@@ -77,7 +79,7 @@ def build_instruments(rig: RigConfig, endpoints: dict[str, str] | None = None,
         if name not in inst.links:
             cfg = rig.buses[name]
             inst.links[name] = ModbusLink(ep.get(name, cfg.port), f"bus {name}", baudrate=cfg.baudrate,
-                                          timeout=cfg.timeout_s, retries=cfg.retries)
+                                          timeout=cfg.timeout_s, retries=cfg.retries, poll_interval=modbus_poll)
         return inst.links[name]
 
     if (a := rig.amplifier) is not None:

@@ -1,0 +1,172 @@
+"""Prepare and execute a run: protocol + rig → validation, dry run, instruments, recorder, engine."""
+
+from __future__ import annotations
+
+import json
+import re
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+from bench import __version__
+from bench.engine import Engine, OperatorFn, RunResult
+from bench.instruments import build_instruments
+from bench.protocol.predict import Prediction, predict
+from bench.protocol.program import Program, ProtocolLimitError, compile_program
+from bench.protocol.schema import Protocol, load_protocol
+from bench.recorder import Column, Recorder, now_iso
+from bench.rig import RigConfig, load_rig, rig_to_toml
+from bench.safety import Supervisor
+from sim_devices.clock import WallClock
+
+SIM_MODBUS_POLL_S = 5e-5  # RTU receive poll interval against twins on ptys (they answer at once)
+
+
+@dataclass
+class Plan:
+    """A protocol checked against a rig: everything known before an instrument is touched."""
+
+    protocol: Protocol
+    rig: RigConfig
+    program: Program
+    prediction: Prediction
+
+
+def resolve_rig(protocol: Protocol, rig_path: str | Path | None = None, simulate: bool = False) -> RigConfig:
+    """The rig to run on: ``rig_path`` or the protocol's rig; ``simulate`` makes it the simulated twin."""
+    rig = load_rig(rig_path if rig_path is not None else protocol.rig_path())
+    if simulate and not rig.simulated:
+        rig = RigConfig.model_validate({**rig.model_dump(), "simulated": True, "name": f"{rig.name}-simulated"})
+    return rig
+
+
+def plan_run(protocol_path: str | Path, rig_path: str | Path | None = None, simulate: bool = False,
+             progress: Callable[[float], None] | None = None) -> Plan:
+    """Load, validate, compile and dry-run a protocol; raise ValueError (one line) if it must not run."""
+    protocol = load_protocol(protocol_path)
+    rig = resolve_rig(protocol, rig_path, simulate)
+    program = compile_program(protocol, rig)
+    prediction = predict(program, progress)
+    if prediction.failure:
+        raise ProtocolLimitError(f"protocol file {protocol.path}: {prediction.failure}")
+    if prediction.problems:
+        raise ProtocolLimitError(f"protocol file {protocol.path}: {prediction.problems[0]}")
+    return Plan(protocol, rig, program, prediction)
+
+
+def _streams(rig: RigConfig) -> tuple[dict[str, list[Column]], dict[str, str]]:
+    spec = "membrane in-plane displacement u" if rig.specimen.kind == "membrane" else "LS-DEA aperture x"
+    streams: dict[str, list[Column]] = {"setpoints": [Column("voltage", "V", "amplifier output commanded"),
+                                                      Column("aperture", "m", "LS-DEA aperture commanded (NaN: none)")]}
+    sources = {"setpoints": "engine"}
+    if rig.amplifier:
+        streams["amplifier"] = [Column("voltage", "V", "output voltage from the TREK voltage monitor"),
+                                Column("current", "A", "output current from the TREK current monitor")]
+        sources["amplifier"] = f"TREK {rig.amplifier.model} via ADAM-4017+"
+    if rig.laser:
+        streams["laser"] = [Column("displacement", "m", f"{spec}, from the laser (offset and sign removed)"),
+                            Column("valid", "1", "1 = measurement, 0 = over range / invalid", "u1")]
+        sources["laser"] = f"Keyence {rig.laser.model}"
+    if rig.motor:
+        streams["motor"] = [Column("position", "m", "motor encoder position"),
+                            Column("aperture", "m", "LS-DEA aperture from the motor position")]
+        sources["motor"] = "LinMot LinRS"
+    if rig.load_cell:
+        streams["load_cell"] = [Column("force", "N", "force on the load cell, tension positive"),
+                                Column("ok", "1", "1 = stable reading", "u1")]
+        sources["load_cell"] = "Dini Argeo DGT1S"
+    return streams, sources
+
+
+def default_output(plan: Plan, out_dir: str | Path) -> Path:
+    """runs/<protocol>-<YYYYmmdd-HHMMSS>.h5 (never overwriting)."""
+    stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
+    safe = re.sub(r"[^A-Za-z0-9_.-]+", "-", plan.protocol.protocol.name)
+    path = Path(out_dir) / f"{safe}-{stamp}.h5"
+    k = 1
+    while path.exists():
+        path = Path(out_dir) / f"{safe}-{stamp}-{k}.h5"
+        k += 1
+    return path
+
+
+def execute(plan: Plan, out: Path, *, virtual: bool = False, operator: OperatorFn | None = None,
+            on_engine: Callable[[Engine], None] | None = None) -> RunResult:
+    """Connect the rig (starting its twins if simulated), record, run; returns how the run ended.
+
+    Errors while connecting (before anything is recorded) propagate as InstrumentError.
+    """
+    rig, program = plan.rig, plan.program
+    if virtual and not rig.simulated:
+        raise ValueError(f"rig {rig.name} is real: virtual time needs a simulated rig (use --sim)")
+    sim = None
+    if rig.simulated:
+        from sim_devices.rig import SimRig
+
+        sim = SimRig(rig, virtual=virtual)
+        over = plan.protocol.specimen
+        changes = {k: v for k, v in over.model_dump().items() if v is not None}
+        if changes:
+            sim.plant.change_specimen(**changes)
+        sim.start()
+        clock = sim.clock
+        inst = build_instruments(rig, sim.port_map(), clock=clock.now, sleep=clock.sleep,
+                                 modbus_poll=SIM_MODBUS_POLL_S)
+    else:
+        clock = WallClock()
+        inst = build_instruments(rig, clock=clock.now, sleep=clock.sleep)
+    try:
+        for _, drv in inst.items():
+            drv.connect()
+        if inst.motor is not None and program.has_motor_axis:
+            inst.motor.enable()
+        spec = rig.specimen
+        params = spec.membrane() if spec.kind == "membrane" else spec.lozenge()
+        if sim is not None:
+            params = sim.plant.specimen
+        supervisor = Supervisor(rig, params)
+        streams, sources = _streams(rig)
+        rates = {"setpoints": plan.protocol.recording.setpoint_Hz, "amplifier": plan.protocol.recording.monitors_Hz,
+                 "laser": plan.protocol.recording.displacement_Hz, "motor": plan.protocol.recording.position_Hz,
+                 "load_cell": plan.protocol.recording.force_Hz}
+        attrs: dict[str, Any] = {
+            "software": f"dea-bench {__version__}", "start_time": now_iso(),
+            "protocol_name": plan.protocol.protocol.name, "protocol_path": str(plan.protocol.path),
+            "protocol_text": plan.protocol.text, "protocol_sha256": plan.protocol.sha256,
+            "rig_name": rig.name, "rig_toml": rig_to_toml(rig), "simulated": rig.simulated,
+            "clock": "virtual" if virtual else "wall", "specimen_kind": spec.kind,
+            "specimen": json.dumps({**spec.model_dump(), "overrides": plan.protocol.specimen.model_dump(),
+                                    "model": _model_params(params)}),
+            "recording": json.dumps(plan.protocol.recording.model_dump()),
+            "sources": json.dumps(sources), "duration_planned": program.duration,
+        }
+        prog_rows = [(s.index, s.label, s.name, s.kind, s.t_start, s.duration) for s in program.segments]
+        recorder = Recorder(out, attrs, streams, prog_rows, rates)
+        apply = (lambda ch: sim.plant.change_specimen(**ch)) if sim is not None else None  # type: ignore[union-attr]
+        engine = Engine(program, inst, clock, recorder, supervisor, apply_specimen=apply, operator=operator)
+        if on_engine is not None:
+            on_engine(engine)
+        return engine.run()
+    finally:
+        inst.close()
+        if sim is not None:
+            sim.stop()
+
+
+def _model_params(params: object) -> dict[str, Any]:
+    out = asdict(params)  # type: ignore[call-overload]
+    return json.loads(json.dumps(out, default=lambda o: asdict(o) if hasattr(o, "__dataclass_fields__") else str(o)))
+
+
+def run_protocol(protocol_path: str | Path, *, rig_path: str | Path | None = None, simulate: bool = False,
+                 virtual: bool = False, out_dir: str | Path = "runs", out: Path | None = None,
+                 operator: OperatorFn | None = None) -> RunResult:
+    """Plan and execute in one call (used by tests and ``bench demo``)."""
+    plan = plan_run(protocol_path, rig_path, simulate)
+    t0 = time.perf_counter()
+    result = execute(plan, out or default_output(plan, out_dir), virtual=virtual, operator=operator)
+    result.wall_time = time.perf_counter() - t0
+    return result

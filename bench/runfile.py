@@ -1,0 +1,99 @@
+"""Read a run file (also while it is being written) — the only way analysis sees a run."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+
+from bench.recorder import FORMAT
+
+
+@dataclass
+class Stream:
+    """One recorded stream: time base and columns (numpy arrays), their units."""
+
+    name: str
+    t: np.ndarray
+    columns: dict[str, np.ndarray]
+    units: dict[str, str]
+    rate: float
+
+    def __len__(self) -> int:
+        return int(self.t.size)
+
+
+@dataclass
+class RunFile:
+    """Contents of a run file."""
+
+    path: Path
+    attrs: dict[str, Any]
+    state: str
+    reason: str
+    end_time: str
+    updated: float
+    complete: bool
+    streams: dict[str, Stream] = field(default_factory=dict)
+    events: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    program: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+    @property
+    def incomplete_reason(self) -> str:
+        """Why the file is not a complete record ('' if it is)."""
+        if self.complete:
+            return ""
+        if self.state == "running":
+            return "no end recorded: the run is still going, or it crashed / was killed"
+        return "finished but not finalised (writer stopped before stamping the file)"
+
+    def json_attr(self, key: str) -> Any:
+        """A root attribute stored as JSON."""
+        return json.loads(self.attrs[key])
+
+    def event_list(self) -> list[tuple[float, int, str, str]]:
+        """Events as (t, step, kind, text)."""
+        return [(float(e["t"]), int(e["step"]), e["kind"].decode(), e["text"].decode()) for e in self.events]
+
+
+def _decode(v: Any) -> Any:
+    return v.decode() if isinstance(v, bytes) else v
+
+
+def open_run(path: str | Path, streams: bool = True) -> RunFile:
+    """Read a run file; works on a file another process is writing (SWMR reader)."""
+    p = Path(path)
+    if not p.exists():
+        raise FileNotFoundError(f"run file {p}: not found")
+    try:
+        f = h5py.File(p, "r", libver="latest", swmr=True)
+    except OSError as exc:
+        raise ValueError(f"run file {p}: not a readable HDF5 file ({exc})") from None
+    with f:
+        if f.attrs.get("format") != FORMAT:
+            raise ValueError(f"run file {p}: not a dea-bench run file (format {f.attrs.get('format')!r})")
+        attrs = {k: _decode(v) for k, v in f.attrs.items()}
+        st = f["status"]
+        for name in ("state", "reason", "end_time", "updated"):
+            st[name].refresh()
+        run = RunFile(p, attrs, st["state"][0].decode(), st["reason"][0].decode(), st["end_time"][0].decode(),
+                      float(st["updated"][0]), bool(attrs.get("complete", False)))
+        f["events"].refresh()
+        run.events = f["events"][:]
+        run.program = f["program"][:]
+        if streams:
+            for name in ("setpoints", "amplifier", "laser", "motor", "load_cell"):
+                if name not in f:
+                    continue
+                g = f[name]
+                for d in g.values():
+                    d.refresh()
+                n = min(d.shape[0] for d in g.values())  # a reader may see columns mid-append
+                cols = {k: d[:n] for k, d in g.items() if k != "t"}
+                run.streams[name] = Stream(name, g["t"][:n], cols, {k: _decode(d.attrs["units"]) for k, d in g.items()},
+                                           float(g.attrs.get("rate_Hz", 0.0)))
+    return run

@@ -1,0 +1,126 @@
+"""Safety supervisor: every set-point and every incoming sample checked against the limits.
+
+Limits come from the rig file (``[limits]``) and from the specimen: the true electric field is estimated
+from the latest measured stretch — membrane: λ = λ_pre + u/L_d from the laser, E = Vλ²/L3 against the
+breakdown field; LS-DEA: aperture x from the motor encoder or the laser, E = Vλ1λ2/t0 against the
+stretch-dependent E_B = E0 λ3^(−r/2). A set-point that would exceed a limit is not sent; a sample beyond
+a limit trips the run. A trip raises :class:`SafetyTrip`; the engine then brings the rig to its safe state.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+from bench.models.lozenge import LozengeParams, kinematics
+from bench.models.membrane import MembraneParams
+from bench.rig import RigConfig
+
+
+class SafetyTrip(Exception):  # noqa: N818 - a trip is not an error of the program
+    """A limit was reached; ``reason`` is one line naming the quantity and the limit."""
+
+    def __init__(self, reason: str) -> None:
+        self.reason = reason
+        super().__init__(reason)
+
+
+@dataclass
+class Supervisor:
+    """Limits of one run and the latest measured state they are checked against."""
+
+    rig: RigConfig
+    specimen: MembraneParams | LozengeParams
+    voltage_limit: float = field(init=False)
+    last_voltage: float = 0.0
+    last_current: float = 0.0
+    last_force: float = 0.0
+    displacement: float | None = None  # membrane u [m]
+    aperture: float | None = None  # LS-DEA x [m]
+    trips: int = 0
+
+    def __post_init__(self) -> None:
+        lim = self.rig.limits.max_voltage_V
+        if self.rig.amplifier is not None:
+            lim = min(lim, self.rig.amplifier.max_voltage_V)
+        self.voltage_limit = lim
+        if isinstance(self.specimen, LozengeParams):
+            cfg = self.rig.specimen.lsdea
+            self.aperture = cfg.blocked_position_m if cfg.configuration == "blocked" else cfg.x_at_motor_zero_m
+        else:
+            self.displacement = 0.0
+
+    # ------------------------------------------------------------ field model
+    def field_and_breakdown(self, volts: float) -> tuple[float, float]:
+        """(true field [V/m], field at which to trip [V/m]) for ``volts`` at the last measured stretch."""
+        margin = self.rig.limits.breakdown_margin
+        cap = self.rig.limits.max_field_V_per_m or math.inf
+        if isinstance(self.specimen, MembraneParams):
+            p = self.specimen
+            lam = p.lambda_pre + (self.displacement or 0.0) / p.L_d
+            return abs(volts) * lam * lam / p.L3, min(cap, p.breakdown_field / margin)
+        p = self.specimen
+        x = min(max(self.aperture or p.xp, 1.0001 * p.xp), 1.999 * p.l)
+        l1, l2, *_ = kinematics(x, p.pack())
+        e_b = p.material.E0 * (l1 * l2) ** (p.material.r / 2)
+        return abs(volts) * l1 * l2 / p.t0, min(cap, e_b / margin)
+
+    # ------------------------------------------------------------ checks
+    def check_setpoint(self, volts: float) -> None:
+        """Refuse a voltage set-point beyond the voltage limit or the field limit at the present stretch."""
+        if abs(volts) > self.voltage_limit + 1e-9:
+            self._trip(f"set-point {volts:.0f} V beyond the voltage limit ±{self.voltage_limit:.0f} V")
+        e, e_max = self.field_and_breakdown(volts)
+        if e > e_max:
+            self._trip(f"set-point {volts:.0f} V would give a true field of {e / 1e6:.1f} MV/m, limit "
+                       f"{e_max / 1e6:.1f} MV/m at the present stretch")
+
+    def check_monitors(self, volts: float, amps: float) -> None:
+        """Output voltage and current from the amplifier monitors."""
+        self.last_voltage, self.last_current = volts, amps
+        if abs(amps) > self.rig.limits.max_current_A:
+            limit = self.rig.limits.max_current_A
+            self._trip(f"current {amps * 1e3:.2f} mA beyond the trip level {limit * 1e3:.2f} mA")
+        if abs(volts) > self.voltage_limit * 1.02 + 50.0:
+            self._trip(f"output {volts:.0f} V beyond the voltage limit ±{self.voltage_limit:.0f} V")
+        e, e_max = self.field_and_breakdown(volts)
+        if e > e_max:
+            self._trip(f"true field {e / 1e6:.1f} MV/m beyond the limit {e_max / 1e6:.1f} MV/m")
+
+    def check_force(self, newtons: float) -> None:
+        """Load-cell force."""
+        self.last_force = newtons
+        if abs(newtons) > self.rig.limits.max_force_N:
+            self._trip(f"force {newtons:.2f} N beyond the limit ±{self.rig.limits.max_force_N:g} N")
+
+    def check_motor(self, motor_position: float, aperture: float) -> None:
+        """Motor encoder position against the travel limits; updates the aperture estimate."""
+        self.aperture = aperture
+        m = self.rig.motor
+        if m is None:
+            return
+        tol = self.rig.limits.travel_tolerance_m
+        if not m.travel_m[0] - tol <= motor_position <= m.travel_m[1] + tol:
+            self._trip(f"motor at {motor_position * 1e3:.2f} mm, outside travel "
+                       f"[{m.travel_m[0] * 1e3:.1f}, {m.travel_m[1] * 1e3:.1f}] mm")
+
+    def update_displacement(self, value: float) -> None:
+        """Latest laser value in specimen coordinates (membrane u, or LS-DEA aperture x) [m]."""
+        if isinstance(self.specimen, MembraneParams):
+            self.displacement = value
+            lam = self.specimen.lambda_pre + value / self.specimen.L_d
+            if lam > self.specimen.runaway_stretch:
+                self._trip(f"stretch {lam:.2f} beyond {self.specimen.runaway_stretch:g}: runaway (pull-in)")
+        else:
+            self.aperture = value
+
+    def headroom(self) -> dict[str, float]:
+        """Fraction of each limit in use (0…1+), for the live view."""
+        e, e_max = self.field_and_breakdown(self.last_voltage)
+        return {"voltage": abs(self.last_voltage) / self.voltage_limit, "field": e / e_max,
+                "current": abs(self.last_current) / self.rig.limits.max_current_A,
+                "force": abs(self.last_force) / self.rig.limits.max_force_N}
+
+    def _trip(self, reason: str) -> None:
+        self.trips += 1
+        raise SafetyTrip(reason)
