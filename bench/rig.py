@@ -139,7 +139,8 @@ class SimulationConfig(_Strict):
 
     seed: int = 1
     latency_s: float = Field(0.0, ge=0, le=1.0, description="extra reply latency of serial twins (wall time)")
-    modbus_transport: Literal["rtu", "tcp"] = "rtu"
+    modbus_transport: Literal["rtu", "rtu-socket", "tcp"] = Field(
+        "rtu", description="rtu: on a pty; rtu-socket: RTU frames over loopback TCP; tcp: Modbus TCP")
 
 
 class RigConfig(_Strict):

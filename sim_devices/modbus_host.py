@@ -10,6 +10,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import socket
 import threading
 from dataclasses import dataclass, field
 from typing import Literal
@@ -29,7 +30,7 @@ class SimBus:
 
     name: str
     devices: list[SimDevice]
-    transport: Literal["rtu", "tcp"] = "rtu"
+    transport: Literal["rtu", "rtu-socket", "tcp"] = "rtu"
     baudrate: int = 19200
     port: int = 0  # TCP port (0: ephemeral)
     faults: Faults = field(default_factory=Faults)
@@ -54,6 +55,11 @@ class ModbusHost:
             if bus.transport == "rtu":
                 bus.bridge = PtyBridge(bus.name, bus.faults).start()
                 bus.endpoint = bus.bridge.client_path
+            elif bus.transport == "rtu-socket":
+                with socket.socket() as s:  # a free loopback port for the RTU-over-TCP server
+                    s.bind(("127.0.0.1", 0))
+                    bus.port = s.getsockname()[1]
+                bus.endpoint = f"socket://127.0.0.1:{bus.port}"
         self._thread = threading.Thread(target=self._run, name="sim-modbus", daemon=True)
         self._thread.start()
         if not self._ready.wait(timeout):
@@ -74,10 +80,10 @@ class ModbusHost:
     async def _serve(self) -> None:
         try:
             for bus in self.buses:
-                if bus.transport == "rtu":
-                    assert bus.bridge is not None
+                if bus.transport in ("rtu", "rtu-socket"):
+                    port = bus.bridge.server_path if bus.bridge is not None else bus.endpoint
                     server: ModbusSerialServer | ModbusTcpServer = ModbusSerialServer(
-                        bus.devices, framer=FramerType.RTU, port=bus.bridge.server_path, baudrate=bus.baudrate)
+                        bus.devices, framer=FramerType.RTU, port=port, baudrate=bus.baudrate)
                 else:
                     server = ModbusTcpServer(bus.devices, address=("127.0.0.1", bus.port))
                 await server.serve_forever(background=True)

@@ -122,7 +122,7 @@ class SimRig:
                     units += [f"ADAM-4024 unit {rig.amplifier.ao_unit}", f"ADAM-4017+ unit {rig.amplifier.ai_unit}"]
                 if rig.load_cell and rig.load_cell.bus == bus.name:
                     units.append(f"DGT1S unit {rig.load_cell.unit}")
-                proto = "Modbus RTU" if bus.transport == "rtu" else "Modbus TCP"
+                proto = {"rtu": "Modbus RTU", "rtu-socket": "Modbus RTU over TCP", "tcp": "Modbus TCP"}[bus.transport]
                 out[bus.name] = Endpoint(bus.name, proto, bus.endpoint, ", ".join(units))
         return out
 

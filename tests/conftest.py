@@ -51,8 +51,8 @@ def start_rig(name: str, virtual: bool = True, **overrides: object) -> RunningRi
     return running
 
 
-def _running(name: str) -> Iterator[RunningRig]:
-    r = start_rig(name)
+def _running(name: str, **overrides: object) -> Iterator[RunningRig]:
+    r = start_rig(name, **overrides)
     yield r
     r.inst.close()
     r.sim.stop()
@@ -71,3 +71,18 @@ def lsdea_motor() -> Iterator[RunningRig]:
 @pytest.fixture
 def lsdea_isotonic() -> Iterator[RunningRig]:
     yield from _running("lsdea-isotonic-sim")
+
+
+RTU_ON_PTY = {"simulation": {"seed": 1, "modbus_transport": "rtu"}}
+
+
+@pytest.fixture
+def thesis_rtu() -> Iterator[RunningRig]:
+    """The thesis rig with its Modbus twins on a pty (RTU, through the fault-injecting bridge)."""
+    yield from _running("thesis-sim", **RTU_ON_PTY)
+
+
+@pytest.fixture
+def lsdea_motor_rtu() -> Iterator[RunningRig]:
+    """The LS-DEA motor bench with its Modbus twins on ptys (RTU)."""
+    yield from _running("lsdea-motor-sim", **RTU_ON_PTY)

@@ -95,7 +95,7 @@ def test_sim_serve_for_another_process_and_ctrl_c(tmp_path: Path) -> None:
         proc.send_signal(signal.SIGINT)
         out, err = proc.communicate(timeout=30)
     assert proc.returncode == 0, err
-    assert "LinMot LinRS" in out and "Modbus RTU" in out and "/dev/pts/" in out
+    assert "LinMot LinRS" in out and "Modbus TCP" in out and "/dev/pts/" in out and "tcp://127.0.0.1:" in out
     assert "simulated rig stopped" in out and "Traceback" not in err
 
 

@@ -65,8 +65,9 @@ def test_isotonic_rig_laser_follows_the_hung_mass(lsdea_isotonic: RunningRig) ->
     assert x_on == pytest.approx(83.52, abs=0.3)  # the branch relaxes over τ = 1 s
 
 
-def test_third_party_rtu_client_reads_the_simulated_modules(lsdea_motor: RunningRig) -> None:
+def test_third_party_rtu_client_reads_the_simulated_modules(lsdea_motor_rtu: RunningRig) -> None:
     """minimalmodbus (its own RTU implementation on pyserial) against the pymodbus twins on the pty bus."""
+    lsdea_motor = lsdea_motor_rtu
     io = minimalmodbus.Instrument(lsdea_motor.sim.port_map()["io"], 1)
     io.serial.baudrate, io.serial.timeout = 19200, 0.5
     assert io.read_registers(210, 2, functioncode=3) == [0x4024, 0x0000]

@@ -202,7 +202,8 @@ def test_amplifier_monitors_follow_the_set_point(thesis: RunningRig) -> None:
     assert v.timestamp == pytest.approx(1.5)
 
 
-def test_amplifier_device_failure_bus_faults_and_breakdown(thesis: RunningRig) -> None:
+def test_amplifier_device_failure_bus_faults_and_breakdown(thesis_rtu: RunningRig) -> None:
+    thesis = thesis_rtu
     amp, sim = thesis.inst.amplifier, thesis.sim
     sim.twins["amplifier AO"].failed = True
     with pytest.raises(InstrumentStateError, match=r"unit 1 refused .* exception 4 \(device failure\)"):
@@ -238,12 +239,14 @@ def test_load_cell_zero_tare_and_failure(lsdea_motor: RunningRig) -> None:
         cell.read()
 
 
-def test_modbus_over_tcp_loopback() -> None:
+@pytest.mark.parametrize("transport, prefix", [("tcp", "tcp://127.0.0.1:"), ("rtu", "/dev/pts/"),
+                                               ("rtu-socket", "socket://127.0.0.1:")])
+def test_modbus_transports(transport: str, prefix: str) -> None:
     from tests.conftest import start_rig
 
-    r = start_rig("lsdea-motor-sim", simulation={"seed": 1, "modbus_transport": "tcp"})
+    r = start_rig("lsdea-motor-sim", simulation={"seed": 1, "modbus_transport": transport})
     try:
-        assert all(ep.address.startswith("tcp://127.0.0.1:") for ep in r.sim.endpoints().values()
+        assert all(ep.address.startswith(prefix) for ep in r.sim.endpoints().values()
                    if ep.protocol.startswith("Modbus"))
         r.inst.amplifier.set_voltage(3000.0)
         r.advance(0.5)
@@ -271,7 +274,8 @@ def test_motor_quick_stop_and_malformed_telegrams(lsdea_motor: RunningRig) -> No
         motor.transact(0x07, 0x00)  # an unsupported message group is answered with a comm error
 
 
-def test_modbus_bus_dropped_and_reply_latency(thesis: RunningRig) -> None:
+def test_modbus_bus_dropped_and_reply_latency(thesis_rtu: RunningRig) -> None:
+    thesis = thesis_rtu
     import time
 
     amp, faults = thesis.inst.amplifier, thesis.sim.faults["io"]

@@ -164,8 +164,9 @@ def es_stress(lam: float, phi: float, T: float, p: np.ndarray) -> tuple[float, f
 def inertia(lam: float, p: np.ndarray) -> tuple[float, float]:
     """Generalised mass M(λ) = ρL²/3 + (2/3)ρL3²λ⁻⁶ [Pa·s²] and dM/dλ."""
     rho, L, L3 = p[P_RHO], p[P_L], p[P_L3]
-    M = rho * L * L / 3.0 + 2.0 / 3.0 * rho * L3 * L3 * lam**-6
-    return M, -4.0 * rho * L3 * L3 * lam**-7
+    inv = 1.0 / lam
+    inv6 = (inv * inv * inv) ** 2
+    return rho * L * L / 3.0 + 2.0 / 3.0 * rho * L3 * L3 * inv6, -4.0 * rho * L3 * L3 * inv6 * inv
 
 
 @njit(cache=True)
@@ -235,7 +236,8 @@ def membrane_step(y: np.ndarray, phi: float, T: float, h: float, p: np.ndarray) 
     v = y[1]
     n = int(p[P_N])
     h0, _, G0 = gent_h_e2(lam * lam, p[P_J0])
-    force = 2.0 * p[P_RHO] * p[P_L3] ** 2 * lam**-7 * v * v - p[P_MU0] * h0 / lam
+    M, dM = inertia(lam, p)
+    force = -0.5 * dM * v * v - p[P_MU0] * h0 / lam  # 2ρL3²λ⁻⁷λ̇² = −½ (dM/dλ) λ̇²
     ok = G0 > 0.0
     for i in range(n):
         mu = p[P_BRANCHES + i]
@@ -252,7 +254,6 @@ def membrane_step(y: np.ndarray, phi: float, T: float, h: float, p: np.ndarray) 
         force -= mu * hu / lam
     s_es, _ = es_stress(lam, phi, T, p)
     force += p[P_SPRE] - p[P_KF] * (lam - p[P_LPRE]) + s_es
-    M, _ = inertia(lam, p)
     v = v + h * force / M
     lam = lam + h * v
     y[0] = lam
