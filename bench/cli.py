@@ -315,3 +315,7 @@ def benchmark(
         for f in figures:
             table.add_row(f.name, f"{f.value:,.0f}", f.unit, f.note)
         console.print(table)
+
+
+# commands defined in other modules register themselves on ``app``
+from bench import cli_run  # noqa: E402, F401

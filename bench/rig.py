@@ -47,6 +47,8 @@ class AmplifierConfig(_Strict):
     ao_bits: int = Field(12, ge=8, le=16)
     ai_bits: int = Field(16, ge=8, le=16)
     raw_format: Literal["offset", "twos"] = "offset"
+    comm_watchdog_s: float | None = Field(1.0, gt=0, le=60, description="ADAM-4024 communication safety: output "
+                                          "to 0 V after this long without a request (configure the module to match)")
 
 
 class LaserConfig(_Strict):

@@ -69,6 +69,7 @@ class Adam4024Sim:
         """Apply output writes to the plant; refuse writes to read-only registers and out-of-range codes."""
         if self.failed:
             return ExcCodes.DEVICE_FAILURE
+        self.plant.feed_watchdog()
         if fc not in WRITE_FCS or values is None:
             return None
         if fc in (5, 15):

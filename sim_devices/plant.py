@@ -81,6 +81,9 @@ class Plant:
         # input histories not yet integrated: (time, value) — the model integrates lazily, in large blocks
         self._v_events: list[tuple[float, float]] = [(0.0, 0.0)]  # amplifier analog input [V]
         self._motions: list[tuple[float, MotionProfile]] = [(0.0, MotionProfile.hold(0.0, 0.0))]
+        self.input_watchdog: float | None = None  # analog module's communication safety period [s]
+        self._last_feed = 0.0
+        self.watchdog_tripped = False
         self.broken = False
         self.failure = ""
         self.t = 0.0
@@ -116,6 +119,21 @@ class Plant:
         """New analog input of the amplifier [V], effective from the clock's present (integrated lazily)."""
         with self.lock:
             self._v_events.append((self.clock.now(), float(volts)))
+
+    def feed_watchdog(self) -> None:
+        """The analog output module heard from the host (resets its communication-safety timer)."""
+        self._last_feed = self.clock.now()
+
+    def _check_watchdog(self, t_end: float) -> None:
+        """Communication safety: with no request for ``input_watchdog`` s, the module outputs 0 V."""
+        if self.input_watchdog is None:
+            return
+        deadline = self._last_feed + self.input_watchdog
+        with self.lock:
+            last_t, last_v = self._v_events[-1]
+            if deadline <= t_end and deadline > last_t and last_v != 0.0:
+                self._v_events.append((deadline, 0.0))
+                self.watchdog_tripped = True
 
     def set_motion(self, make: Callable[[float, float, float], MotionProfile]) -> MotionProfile:
         """Replace the motor's motion from now: ``make(t, position, velocity)`` returns the new profile."""
@@ -205,6 +223,7 @@ class Plant:
         return out
 
     def _hv_output(self, n: int) -> np.ndarray:
+        self._check_watchdog((self._n + n) * self.h)
         hv = self.hv
         rate = min(hv.slew, hv.max_current / max(self._C, 1e-15)) * self.h
         v = np.empty(n)

@@ -84,6 +84,7 @@ class SimRig:
             ai = Adam4017PSim(a.ai_unit, self.plant, self.clock, self._trek(), vmon_channel=a.vmon_channel,
                               imon_channel=a.imon_channel, scale=scale_ai, seed=sim.seed + 1)
             self.twins["amplifier AO"], self.twins["amplifier AI"] = ao, ai
+            self.plant.input_watchdog = a.comm_watchdog_s
             buses.setdefault(a.bus, []).extend([ao.device, ai.device])
         if (c := rig.load_cell) is not None:
             cell = Dgt1sSim(c.unit, self.plant, self.clock, division=c.division_kg, capacity=c.capacity_kg,

@@ -29,11 +29,17 @@ class RunningRig:
         self.sim.clock.advance(seconds)  # type: ignore[attr-defined]
 
 
-def start_rig(name: str, virtual: bool = True, **overrides: object) -> RunningRig:
-    """Start the simulated rig ``rigs/<name>.toml`` and connect every driver to it."""
+def start_rig(name: str, virtual: bool = True, watchdog: bool = False, **overrides: object) -> RunningRig:
+    """Start the simulated rig ``rigs/<name>.toml`` and connect every driver to it.
+
+    The analog module's communication watchdog is off unless ``watchdog``: these tests hold voltages over
+    virtual seconds without talking to the module (the engine feeds it; see test_engine).
+    """
     rig = load_rig(RIGS / f"{name}.toml")
-    if overrides:
-        rig = RigConfig.model_validate({**rig.model_dump(), **overrides})
+    data = {**rig.model_dump(), **overrides}
+    if not watchdog and data.get("amplifier"):
+        data["amplifier"] = {**data["amplifier"], "comm_watchdog_s": None}
+    rig = RigConfig.model_validate(data)
     sim = SimRig(rig, virtual=virtual)
     sim.start()
     inst = build_instruments(rig, sim.port_map(), clock=sim.clock.now, sleep=sim.clock.sleep)
@@ -80,6 +86,12 @@ RTU_ON_PTY = {"simulation": {"seed": 1, "modbus_transport": "rtu"}}
 def thesis_rtu() -> Iterator[RunningRig]:
     """The thesis rig with its Modbus twins on a pty (RTU, through the fault-injecting bridge)."""
     yield from _running("thesis-sim", **RTU_ON_PTY)
+
+
+@pytest.fixture
+def thesis_rtu_watchdog() -> Iterator[RunningRig]:
+    """As thesis_rtu, with the ADAM-4024 communication watchdog of the rig file (1 s) active."""
+    yield from _running("thesis-sim", watchdog=True, **RTU_ON_PTY)
 
 
 @pytest.fixture

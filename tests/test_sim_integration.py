@@ -288,3 +288,15 @@ def test_modbus_bus_dropped_and_reply_latency(thesis_rtu: RunningRig) -> None:
     time.sleep(0.2)
     with pytest.raises(InstrumentConnectionError, match=r"bus io: Modbus link .* lost"):
         amp.read_voltage()
+
+
+def test_analog_module_watchdog_zeroes_the_amplifier_when_the_host_goes_silent(
+        thesis_rtu_watchdog: RunningRig) -> None:
+    thesis_rtu = thesis_rtu_watchdog
+    amp, sim = thesis_rtu.inst.amplifier, thesis_rtu.sim
+    amp.set_voltage(5000.0)
+    thesis_rtu.advance(0.5)
+    assert amp.read_voltage().value == pytest.approx(5000.0, abs=6.0)
+    sim.faults["io"].drop = True  # the host can no longer reach the module
+    thesis_rtu.advance(2.0)  # longer than the 1-s communication safety of the rig file
+    assert sim.plant.observe().voltage[0] == 0.0 and sim.plant.watchdog_tripped

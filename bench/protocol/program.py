@@ -222,14 +222,18 @@ def motor_command(program: Program, seg: Segment, t: float, dt: float,
     m = program.rig.motor
     if m is None or not program.has_motor_axis:
         return None
+
+    def in_travel(x: float) -> float:  # the compiler checked travel; remove floating-point excess
+        return min(max(float(program.motor_position(x)), m.travel_m[0]), m.travel_m[1])
+
     if seg.move is not None:
         if not first:
             return None
         target, v, a = seg.move
-        return float(program.motor_position(target)), v, a
+        return in_travel(target), v, a
     if seg.position is None:
         return None
     x_now, x_next = seg.position(np.array([t, min(t + dt, seg.t_end)]))
     step = abs(float(x_next - x_now))
     v = min(m.max_velocity_m_per_s, max(1.5 * step / dt, 1e-4))
-    return float(program.motor_position(float(x_next))), v, m.max_acceleration_m_per_s2
+    return in_travel(float(x_next)), v, m.max_acceleration_m_per_s2

@@ -1,0 +1,197 @@
+"""CLI commands for protocols and runs: validate, run, inspect, protocol schema."""
+
+from __future__ import annotations
+
+import math
+import sys
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.live import Live
+from rich.prompt import Confirm
+from rich.table import Table
+
+from bench.cli import app, clean_errors, console
+
+protocol_app = typer.Typer(help="Protocol files.", no_args_is_help=True)
+app.add_typer(protocol_app, name="protocol")
+
+ProtocolArg = Annotated[Path, typer.Argument(help="Protocol file (TOML), e.g. protocols/thesis-identification.toml.")]
+RigOpt = Annotated[Path | None, typer.Option("--rig", help="Run on this rig file instead of the protocol's.")]
+SimOpt = Annotated[bool, typer.Option("--sim", help="Use the simulated twin of the rig (default if it is simulated).")]
+
+
+def _hms(seconds: float) -> str:
+    s = round(seconds)
+    return f"{s // 3600:d}:{s % 3600 // 60:02d}:{s % 60:02d}"
+
+
+def _plan(protocol_file: Path, rig: Path | None, sim: bool):
+    from bench.run import plan_run
+
+    if rig is not None and sim is False and not rig.exists():
+        raise ValueError(f"rig file {rig}: not found")
+    with console.status("validating and dry-running the protocol on the model…"):
+        return plan_run(protocol_file, rig, sim)
+
+
+def _summary(plan) -> Table:
+    pred, rig, prog = plan.prediction, plan.rig, plan.program
+    t = Table(title=f"{plan.protocol.protocol.name} on {rig.name} ({'simulated' if rig.simulated else 'real'} rig)",
+              show_header=False)
+    t.add_column("", style="bold")
+    t.add_column("")
+    t.add_row("steps", f"{len(prog.segments)} (after expanding sweeps and repeats)")
+    t.add_row("duration", f"{_hms(pred.duration)} ({pred.duration:.1f} s)")
+    t.add_row("samples", ", ".join(f"{k} {v:,}" for k, v in pred.samples.items()))
+    t.add_row("file size", f"≤ {pred.file_bytes / 1e6:.1f} MB uncompressed")
+    lim = rig.limits
+    t.add_row("peak voltage", f"{pred.peak_voltage:.0f} V (limit {lim.max_voltage_V:.0f} V)")
+    margin = pred.min_breakdown_margin
+    t.add_row("peak true field", f"{pred.peak_field / 1e6:.1f} MV/m; closest to breakdown: "
+              f"{pred.field_at_min_margin / 1e6:.1f} of {pred.breakdown_at_min_margin / 1e6:.1f} MV/m "
+              f"(margin {margin:.2f}, required ≥ {lim.breakdown_margin:g})" if math.isfinite(margin) else
+              f"{pred.peak_field / 1e6:.1f} MV/m")
+    if pred.motor_range is not None and rig.motor is not None:
+        lo, hi = pred.motor_range
+        t.add_row("motor travel", f"{lo * 1e3:.1f} … {hi * 1e3:.1f} mm (limits {rig.motor.travel_m[0] * 1e3:.1f} … "
+                  f"{rig.motor.travel_m[1] * 1e3:.1f} mm), aperture {prog.aperture(lo) * 1e3:.1f} … "
+                  f"{prog.aperture(hi) * 1e3:.1f} mm")
+    d_lo, d_hi = pred.displacement_range
+    what = "displacement u" if rig.specimen.kind == "membrane" else "aperture x"
+    if math.isfinite(d_lo):
+        t.add_row(f"predicted {what}", f"{d_lo * 1e3:.2f} … {d_hi * 1e3:.2f} mm")
+    f_lo, f_hi = pred.force_range
+    if rig.load_cell is not None and math.isfinite(f_lo):
+        t.add_row("predicted force", f"{f_lo:.2f} … {f_hi:.2f} N (limit ±{lim.max_force_N:g} N)")
+    ops = [s for s in prog.segments if s.changes]
+    if ops:
+        t.add_row("specimen changes", f"{len(ops)} ({'applied to the model' if rig.simulated else 'operator actions'})")
+    return t
+
+
+@app.command()
+@clean_errors
+def validate(protocol_file: ProtocolArg, rig: RigOpt = None, sim: SimOpt = False) -> None:
+    """Validate a protocol against its rig and the specimen model; print what the run will do."""
+    plan = _plan(protocol_file, rig, sim)
+    console.print(_summary(plan))
+    console.print("[green]valid[/]: within the rig's and the specimen's limits")
+
+
+@app.command()
+@clean_errors
+def run(
+    protocol_file: ProtocolArg,
+    rig: RigOpt = None,
+    sim: SimOpt = False,
+    virtual_time: Annotated[bool, typer.Option("--virtual-time", help="Simulated rig only: run as fast as the "
+                                               "machine allows (same bytes on the wire).")] = False,
+    out: Annotated[Path, typer.Option("--out", help="Folder for the run file.")] = Path("runs"),
+    dry_run: Annotated[bool, typer.Option("--dry-run", help="Validate and predict only; touch nothing.")] = False,
+    yes: Annotated[bool, typer.Option("--yes", help="Confirm operator actions (specimen changes) without asking.")]
+    = False,
+    live: Annotated[bool, typer.Option(help="Live view (off: one line per step).")] = True,
+) -> None:
+    """Run a protocol on a rig (simulated by default), streaming everything to one HDF5 file."""
+    from bench.engine import Engine
+    from bench.live import LiveView
+    from bench.run import default_output, execute
+
+    plan = _plan(protocol_file, rig, sim)
+    console.print(_summary(plan))
+    if dry_run:
+        console.print("[green]dry run[/]: nothing was touched")
+        return
+    if virtual_time and not plan.rig.simulated:
+        raise ValueError(f"rig {plan.rig.name} is real: --virtual-time needs a simulated rig (add --sim)")
+    needs_operator = any(s.changes for s in plan.program.segments) and not plan.rig.simulated
+    interactive = sys.stdin.isatty()
+    if needs_operator and not (yes or interactive):
+        raise ValueError("this protocol changes the specimen between tests: run it interactively or pass --yes")
+
+    def operator(message: str) -> bool:
+        return yes or Confirm.ask(f"[bold]operator:[/] {message} — done?", console=console)
+
+    path = default_output(plan, out)
+    engines: list[Engine] = []
+    title = f"{plan.protocol.protocol.name} → {path}"
+    if live and console.is_terminal:
+        holder: dict[str, LiveView] = {}
+
+        def attach(engine: Engine) -> None:
+            engines.append(engine)
+            holder["view"] = LiveView(title, engine.snapshot)
+            live_ctx.update(holder["view"])
+
+        with Live(console=console, refresh_per_second=4, transient=False) as live_ctx:
+            result = execute(plan, path, virtual=virtual_time, operator=operator, on_engine=attach)
+    else:
+        console.print(f"running {title}")
+        result = execute(plan, path, virtual=virtual_time, operator=operator)
+    speed = result.run_time / result.wall_time if result.wall_time > 0 else float("nan")
+    colour = "green" if result.state == "completed" else "red"
+    console.print(f"[{colour}]{result.state}[/]: {result.reason}")
+    console.print(f"run {result.run_time:.1f} s in {result.wall_time:.1f} s of wall time ({speed:.1f}× real time), "
+                  f"{result.samples:,} samples" + (f", {result.overruns} late actions" if result.overruns else ""))
+    console.print(f"run file: {result.path}")
+    if result.state != "completed":
+        raise typer.Exit(1)
+
+
+@app.command()
+@clean_errors
+def inspect(run_file: Annotated[Path, typer.Argument(help="Run file (.h5), finished or being written.")]) -> None:
+    """Summarise a run file: metadata, state, streams, events (works while the run is being written)."""
+    from bench.runfile import open_run
+
+    r = open_run(run_file)
+    a = r.attrs
+    meta = Table(title=f"{run_file}", show_header=False)
+    meta.add_column("", style="bold")
+    meta.add_column("")
+    sha = str(a.get("protocol_sha256", ""))[:12]
+    meta.add_row("protocol", f"{a.get('protocol_name')} ({a.get('protocol_path')}, sha256 {sha}…)")
+    kind = "simulated" if a.get("simulated") else "real"
+    meta.add_row("rig", f"{a.get('rig_name')} ({kind}, {a.get('clock')} clock)")
+    meta.add_row("software", str(a.get("software")))
+    meta.add_row("started", str(a.get("start_time")))
+    state = r.state if r.complete else f"[red]{r.state} — INCOMPLETE: {r.incomplete_reason}[/]"
+    meta.add_row("state", state)
+    if r.reason:
+        meta.add_row("reason", r.reason)
+    if r.end_time:
+        meta.add_row("ended", r.end_time)
+    meta.add_row("recorded up to", f"{r.updated:.3f} s of {float(a.get('duration_planned', 0)):.1f} s planned")
+    console.print(meta)
+    streams = Table(title="streams")
+    for col in ("stream", "samples", "from [s]", "to [s]", "columns (units): last value"):
+        streams.add_column(col)
+    for name, s in r.streams.items():
+        last = ", ".join(f"{k} ({s.units.get(k, '')}): {v[-1]:.6g}" if v.size else f"{k} ({s.units.get(k, '')})"
+                         for k, v in s.columns.items())
+        streams.add_row(name, f"{len(s):,}", f"{s.t[0]:.3f}" if len(s) else "–", f"{s.t[-1]:.3f}" if len(s) else "–",
+                        last)
+    console.print(streams)
+    events = r.event_list()
+    console.print(f"{len(events)} events; last: " + "; ".join(f"{t:.2f} s {kind} {text[:60]}"
+                                                             for t, _, kind, text in events[-3:]))
+    if not r.complete:
+        raise typer.Exit(1)
+
+
+@protocol_app.command("schema")
+def protocol_schema(
+    out: Annotated[Path | None, typer.Option(help="Write to this file instead of stdout.")] = None,
+) -> None:
+    """JSON schema of the protocol file format, for editors (TOML language servers read JSON schemas)."""
+    from bench.protocol.schema import json_schema
+
+    text = json_schema()
+    if out is None:
+        sys.stdout.write(text + "\n")
+    else:
+        out.write_text(text + "\n", encoding="utf-8")
+        console.print(f"wrote {out}")
+

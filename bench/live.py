@@ -1,0 +1,54 @@
+"""Rich live view of a running protocol: bounded, refreshed at a fixed rate from the engine's snapshot."""
+
+from __future__ import annotations
+
+import time
+
+from rich.console import Group
+from rich.panel import Panel
+from rich.progress_bar import ProgressBar
+from rich.table import Table
+from rich.text import Text
+
+from bench.engine import Snapshot
+
+UNITS = {"setpoint": ("V", 1.0), "voltage": ("V", 1.0), "current": ("µA", 1e6), "displacement": ("mm", 1e3),
+         "aperture": ("mm", 1e3), "force": ("N", 1.0)}
+
+
+def _hms(seconds: float) -> str:
+    seconds = max(0, round(seconds))
+    return f"{seconds // 3600:d}:{seconds % 3600 // 60:02d}:{seconds % 60:02d}"
+
+
+class LiveView:
+    """Renders a :class:`Snapshot`; the ETA comes from the observed speed (virtual time runs faster)."""
+
+    def __init__(self, title: str, snapshot: Snapshot) -> None:
+        self.title = title
+        self.snapshot = snapshot
+        self._wall0 = time.monotonic()
+
+    def __rich__(self) -> Panel:
+        s = self.snapshot
+        frac = s.t / s.duration if s.duration > 0 else 0.0
+        wall = time.monotonic() - self._wall0
+        speed = s.t / wall if wall > 0 and s.t > 0 else 0.0
+        eta = (s.duration - s.t) / speed if speed > 0 else float("nan")
+        head = Text.assemble((f"step {s.step + 1}/{s.steps} ", "bold"), s.step_name[:70])
+        progress = Table.grid(padding=(0, 1))
+        progress.add_row(ProgressBar(total=1.0, completed=min(frac, 1.0), width=40),
+                         f"{100 * frac:5.1f} %  run {_hms(s.t)} / {_hms(s.duration)}",
+                         f"ETA {_hms(eta) if eta == eta else '–'}  ({speed:.1f}× real time)  [{s.state}]")
+        values = Table.grid(padding=(0, 2))
+        cells = []
+        for key, (unit, scale) in UNITS.items():
+            if key in s.values:
+                cells.append(f"{key} [bold]{s.values[key] * scale:.4g}[/] {unit}")
+        if cells:
+            values.add_row(*cells)
+        headroom = Table.grid(padding=(0, 2))
+        hr = [f"{k} {100 * v:3.0f} %" if v < 0.9 else f"[red]{k} {100 * v:3.0f} %[/]" for k, v in s.headroom.items()]
+        if hr:
+            headroom.add_row("limits used:", *hr)
+        return Panel(Group(head, progress, values, headroom), title=self.title, border_style="cyan")
