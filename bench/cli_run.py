@@ -120,7 +120,7 @@ def run(
     if live and console.is_terminal:
         holder: dict[str, LiveView] = {}
 
-        def attach(engine: Engine) -> None:
+        def attach(engine: Engine, _sim: object) -> None:
             engines.append(engine)
             holder["view"] = LiveView(title, engine.snapshot)
             live_ctx.update(holder["view"])

@@ -31,6 +31,7 @@ from drivers.errors import InstrumentConnectionError, InstrumentError
 from sim_devices.clock import Clock
 
 FETCH_PERIOD_S = 0.25  # laser storage upload period while storing (run time)
+MONITOR_SETTLE_S = 0.5  # after zeroing, wait for fresh monitor conversions before the final read
 PASSIVE_LASER_HZ = 10.0
 HOLD_KEEPALIVE_S = 0.25  # set-point refresh during holds (keeps the analog module's watchdog fed)
 LATE_TOLERANCE_S = 0.05  # real time: an action later than this counts as an overrun
@@ -201,7 +202,8 @@ class Engine:
                    "force": 1 / rec.force_Hz if inst.load_cell and rec.force_Hz else None,
                    "fetch": FETCH_PERIOD_S if seg.storing else None,
                    "laser": 1 / PASSIVE_LASER_HZ if inst.laser and not seg.storing else None}
-        due = {k: seg.t_start + (p if k == "fetch" else 0.0) for k, p in periods.items() if p is not None}
+        count = {k: (1 if k == "fetch" else 0) for k, p in periods.items() if p is not None}
+        due = {k: seg.t_start + n * periods[k] for k, n in count.items()}  # from counts: no drift
         t_set, k_set = seg.t_start, 0
         while True:
             t_next = min([t_set, *due.values()])
@@ -224,7 +226,8 @@ class Engine:
                     t_set + max(dt, HOLD_KEEPALIVE_S)
             for kind in [k for k, tk in due.items() if tk <= t_next + 1e-12]:
                 self._poll(kind)
-                due[kind] += periods[kind]  # type: ignore[operator]
+                count[kind] += 1
+                due[kind] = seg.t_start + count[kind] * periods[kind]  # type: ignore[operator]
             self.snapshot.t = t_next
             self.snapshot.headroom = self.sup.headroom()
             self.rec.maybe_flush()
@@ -306,6 +309,7 @@ class Engine:
                 notes.append(f"stored laser data not fetched: {exc}")
         if amp is not None:
             try:
+                self._wait_until(self.now() + MONITOR_SETTLE_S)  # HV is already at 0 V: record it
                 self._poll("monitors")
             except (InstrumentError, SafetyTrip) as exc:
                 notes.append(f"final monitor read failed: {exc}")

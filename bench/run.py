@@ -94,10 +94,11 @@ def default_output(plan: Plan, out_dir: str | Path) -> Path:
 
 
 def execute(plan: Plan, out: Path, *, virtual: bool = False, operator: OperatorFn | None = None,
-            on_engine: Callable[[Engine], None] | None = None) -> RunResult:
+            on_engine: Callable[[Engine, Any], None] | None = None) -> RunResult:
     """Connect the rig (starting its twins if simulated), record, run; returns how the run ended.
 
     Errors while connecting (before anything is recorded) propagate as InstrumentError.
+    ``on_engine(engine, sim)`` is called before the run starts (sim: the SimRig, or None for a real rig).
     """
     rig, program = plan.rig, plan.program
     if virtual and not rig.simulated:
@@ -148,7 +149,7 @@ def execute(plan: Plan, out: Path, *, virtual: bool = False, operator: OperatorF
         apply = (lambda ch: sim.plant.change_specimen(**ch)) if sim is not None else None  # type: ignore[union-attr]
         engine = Engine(program, inst, clock, recorder, supervisor, apply_specimen=apply, operator=operator)
         if on_engine is not None:
-            on_engine(engine)
+            on_engine(engine, sim)
         return engine.run()
     finally:
         inst.close()

@@ -91,21 +91,25 @@ class TrekAmplifier:
 
     def zero(self) -> None:
         """Command 0 V, bypassing the slew limit."""
-        self.ao.write_volts(self.ao_channel, 0.0)
-        self._last_v = 0.0
+        raw = self.ao.write_volts(self.ao_channel, 0.0)
+        self._last_v = self.ao.scale.to_volts(raw) * self.trek.gain  # ±half a code: 0 V has no code
         self._last_t = self.clock()
 
     def set_voltage(self, volts: float) -> float:
-        """Command ``volts`` [V]; refuses |V| > max_voltage, clamps the step to the slew limit; returns the command."""
+        """Command ``volts`` [V]; refuses |V| > max_voltage, clamps the step to the slew limit.
+
+        Returns the output actually commanded: the analog module's nearest code times the gain.
+        """
         if abs(volts) > self.max_voltage:
             raise LimitError(self.name, f"{volts:.0f} V beyond the software limit ±{self.max_voltage:.0f} V")
         now = self.clock()
         if self._last_t is not None:
             step = self.slew_limit * max(now - self._last_t, 0.0)
             volts = min(max(volts, self._last_v - step), self._last_v + step)
-        self.ao.write_volts(self.ao_channel, volts / self.trek.gain)
-        self._last_v, self._last_t = volts, now
-        return volts
+        raw = self.ao.write_volts(self.ao_channel, volts / self.trek.gain)
+        commanded = self.ao.scale.to_volts(raw) * self.trek.gain
+        self._last_v, self._last_t = commanded, now
+        return commanded
 
     def read_monitors(self) -> tuple[Reading, Reading]:
         """(output voltage [V], output current [A]) from one read of both monitor channels."""

@@ -119,7 +119,7 @@ class Adam4017PSim:
     def _on_block(self, block: PlantBlock) -> None:
         with self._lock:
             t_end = float(block.t[-1])
-            k_last = math.floor(t_end * self.rate + 1e-9)
+            k_last = math.floor(t_end * self.rate + 0.5 * self.plant.h * self.rate)  # due within half a step: now
             if k_last < self._conversion:
                 return
             ks = np.arange(self._conversion, k_last + 1)
@@ -194,7 +194,7 @@ class Dgt1sSim:
 
     def _on_block(self, block: PlantBlock) -> None:
         with self._lock:
-            k_last = math.floor(float(block.t[-1]) * self.rate + 1e-9)
+            k_last = math.floor(float(block.t[-1]) * self.rate + 0.5 * self.plant.h * self.rate)
             if k_last < self._conversion:
                 return
             ts = np.arange(self._conversion, k_last + 1) / self.rate

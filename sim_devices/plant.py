@@ -202,7 +202,7 @@ class Plant:
     def advance_to(self, t: float) -> None:
         """Advance the model to time t in whole steps (no-op if already there)."""
         with self.lock:
-            n_total = math.floor((t - self.t) / self.h + 1e-9)
+            n_total = math.floor((t - self.t) / self.h + 1e-6)  # clock sums drift by ~1e-12 s
             while n_total > 0:
                 n = min(n_total, BLOCK_STEPS)
                 self._advance(n)
@@ -211,7 +211,7 @@ class Plant:
     def _pieces(self, events: list, n: int) -> list[tuple[int, int, object]]:
         """Split the next n steps at the input events: [(first step, end step, value)], dropping used history."""
         first_step = self._n
-        starts = [max(0, math.floor(te / self.h + 1e-9) - first_step) for te, _ in events]
+        starts = [max(0, math.floor(te / self.h + 1e-6) - first_step) for te, _ in events]
         out = []
         for i, (_, value) in enumerate(events):
             a = min(starts[i], n)

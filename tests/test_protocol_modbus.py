@@ -35,21 +35,21 @@ def test_set_voltage_writes_the_ao_register() -> None:
         amp = amplifier(url, now)
         amp.zero()
         now[0] = 1.0
-        assert amp.set_voltage(5000.0) == 5000.0
+        assert amp.set_voltage(5000.0) == pytest.approx(-10e3 + 3071 / 4095 * 20e3)  # the code's voltage
 
 
 def test_limits_refuse_and_slew_clamps() -> None:
     now = [0.0]
-    # 1e6 V/s over 1 ms allows 1000 V: 5 kV request → 1 kV → 1 V → raw round(11/20·4095) = 2252
+    # zero = code 2048 = +2.44 V out; 1e6 V/s over 1 ms allows 1000 V more: 1002.44 V → 1.00244 V → code 2253
     script = [(rtu(1, 6, b"\x00\x00\x08\x00"), rtu(1, 6, b"\x00\x00\x08\x00")),
-              (rtu(1, 6, b"\x00\x00\x08\xcc"), rtu(1, 6, b"\x00\x00\x08\xcc"))]
+              (rtu(1, 6, b"\x00\x00\x08\xcd"), rtu(1, 6, b"\x00\x00\x08\xcd"))]
     with expected_protocol("slew", script) as url:
         amp = amplifier(url, now)
         amp.zero()
         with pytest.raises(LimitError, match="9000 V beyond the software limit ±8000 V"):
             amp.set_voltage(9000.0)
         now[0] = 1e-3
-        assert amp.set_voltage(5000.0) == pytest.approx(1000.0)
+        assert amp.set_voltage(5000.0) == pytest.approx(1000.0, abs=5.0)  # 1 kV, to the nearest code
 
 
 def test_monitors_read_both_channels_in_one_request() -> None:

@@ -217,7 +217,9 @@ def motor_command(program: Program, seg: Segment, t: float, dt: float,
     """Motor go-to (motor position [m], velocity [m/s], acceleration [m/s²]) to send at run time t, or None.
 
     ``move`` steps command their target once; aperture waveforms and ramps stream a go-to per set-point
-    tick towards x(t + dt), at a speed that arrives in about one tick (LinRS has no streaming mode).
+    tick (LinRS has no streaming mode) towards x(t + 2dt) at the average speed over those two ticks: every
+    command is superseded mid-cruise by the next, so the motor moves continuously at the waveform's speed
+    instead of stopping at each target (which would alias the damping force c·ẋ at the sampling ticks).
     """
     m = program.rig.motor
     if m is None or not program.has_motor_axis:
@@ -233,7 +235,8 @@ def motor_command(program: Program, seg: Segment, t: float, dt: float,
         return in_travel(target), v, a
     if seg.position is None:
         return None
-    x_now, x_next = seg.position(np.array([t, min(t + dt, seg.t_end)]))
+    ahead = min(t + 2 * dt, seg.t_end)
+    x_now, x_next = seg.position(np.array([t, ahead]))
     step = abs(float(x_next - x_now))
-    v = min(m.max_velocity_m_per_s, max(1.5 * step / dt, 1e-4))
+    v = min(m.max_velocity_m_per_s, max(step / max(ahead - t, dt), 1e-4))
     return in_travel(float(x_next)), v, m.max_acceleration_m_per_s2

@@ -1,0 +1,260 @@
+"""Protocol-level end-to-end tests: runs on the simulated rig, records against the model, every exit path."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bench.analysis.cycles import crest_to_trough, hysteresis_loss
+from bench.engine import Engine
+from bench.models.lozenge_runs import simulate_lozenge
+from bench.models.membrane_runs import simulate_membrane
+from bench.rig import RigConfig
+from bench.run import execute, plan_run, run_protocol
+from bench.runfile import open_run
+from bench.waveforms import Waveform
+from tests.conftest import ROOT
+
+SHORT = ROOT / "protocols" / "short"
+ZERO_V = 5.0  # one step of the 12-bit ADAM-4024 at the amplifier output (0 V itself has no code: ±2.44 V)
+
+
+def zero_order_hold(t_set: np.ndarray, v_set: np.ndarray):
+    """The set-point history as the amplifier saw it: each value from just after its time until the next one
+    (the integration step that ends at a set-point's time still sees the previous value)."""
+    def volts(t: np.ndarray) -> np.ndarray:
+        i = np.searchsorted(t_set, np.asarray(t, dtype=float) - 1e-9, side="left") - 1
+        return np.where(i >= 0, v_set[np.clip(i, 0, None)], 0.0)
+    return volts
+
+
+def run_virtual(path: Path, tmp: Path, rig_overrides: dict | None = None, hook=None):
+    plan = plan_run(path)
+    if rig_overrides:
+        rig = RigConfig.model_validate({**plan.rig.model_dump(), **rig_overrides})
+        plan.rig = plan.program.rig = rig
+    sims = []
+
+    def grab(engine: Engine, sim: object) -> None:
+        sims.append(sim)
+        if hook is not None:
+            hook(engine, sim)
+
+    result = execute(plan, tmp / f"{path.stem}.h5", virtual=True, on_engine=grab)
+    return result, open_run(result.path), sims[0]
+
+
+@pytest.mark.parametrize("path", sorted(SHORT.glob("*.toml")), ids=lambda p: p.stem)
+def test_short_variants_run_end_to_end_in_virtual_time(path: Path, tmp_path: Path) -> None:
+    result, run, sim = run_virtual(path, tmp_path)
+    assert result.state == "completed" and run.complete and run.state == "completed"
+    stop = [e for e in run.event_list() if e[2] == "stop"]
+    assert stop and stop[0][0] == pytest.approx(plan_run(path).program.duration)  # then the shutdown
+    assert run.attrs["protocol_text"] == path.read_text() and run.attrs["clock"] == "virtual"
+    sp = run.streams["setpoints"]
+    assert sp.columns["voltage"][-1] == 0.0 and abs(sim.plant.observe().voltage[0]) < ZERO_V
+    starts = [e for e in run.event_list() if e[2] == "start"]
+    assert len(starts) == len(run.program)
+    for name, s in run.streams.items():
+        assert len(s) > 0 and np.all(np.diff(s.t) >= -1e-9), name
+
+
+def test_thesis_record_matches_the_model(tmp_path: Path) -> None:
+    """Laser record of the short identification run against the model driven by the recorded set-points,
+    and against the model's offline solution of the nominal protocol (smooth raised cosine)."""
+    _, run, _ = run_virtual(SHORT / "thesis-identification-short.toml", tmp_path)
+    sp, laser = run.streams["setpoints"], run.streams["laser"]
+    t, u = laser.t, laser.columns["displacement"]
+    stored = np.diff(t, prepend=-1.0) < 1.5e-4  # the 10-kHz storage part (single reads come at 10 Hz)
+    held = simulate_membrane(run.attrs and load_params(run), zero_order_hold(sp.t, sp.columns["voltage"]),
+                             11.0, fs=10_000.0, method="fixed")
+    model_u = np.interp(t[stored], held.t, held.displacement)
+    assert np.max(np.abs(u[stored] - model_u)) < 3e-6  # noise 0.2 µm rms, slew, 0.1-µm resolution
+    smooth = simulate_membrane(load_params(run), Waveform("raised_cosine", 7000.0, 1 / 9), 10.0, fs=1000.0)
+    window = t[stored] <= 10.0
+    nominal = np.interp(t[stored][window], smooth.t, smooth.displacement)
+    assert np.max(np.abs(u[stored][window] - nominal)) < 0.2e-3  # lag and ripple of the 20-Hz staircase
+    assert np.max(u) == pytest.approx(np.max(smooth.displacement), rel=0.02)
+
+
+def load_params(run):
+    import json
+
+    from bench.models.membrane import MembraneParams
+
+    model = json.loads(run.attrs["specimen"])["model"]
+    return MembraneParams(**{k: tuple(v) if isinstance(v, list) else v for k, v in model.items()})
+
+
+def test_isometric_force_swing_matches_the_model(tmp_path: Path) -> None:
+    _, run, _ = run_virtual(SHORT / "lsdea-isometric-short.toml", tmp_path)
+    lc = run.streams["load_cell"]
+    prog = {row["name"].decode(): (row["t_start"], row["duration"]) for row in run.program}
+    t0, dur = prog["sine [f=2.0]"]
+    sel = (lc.t >= t0 + 0.5 * dur) & (lc.t <= t0 + dur)  # last two cycles at 2 Hz (force at 4 Hz, 25 S/cycle)
+    swing = crest_to_trough(lc.t[sel], lc.columns["force"][sel], detrend=True)
+    assert swing == pytest.approx(1.147, abs=0.04)  # physics.md §2.2: #3 at 100 mm, ±6 kV
+
+
+def test_isopotential_loss_matches_the_model_on_the_recorded_motion(tmp_path: Path) -> None:
+    """The model replays the whole recorded run (encoder aperture, commanded voltages) from rest."""
+    _, run, _ = run_virtual(SHORT / "lsdea-isopotential-short.toml", tmp_path)
+    motor, lc, sp = run.streams["motor"], run.streams["load_cell"], run.streams["setpoints"]
+    prog = {row["name"].decode(): (row["t_start"], row["duration"]) for row in run.program}
+    t0, dur = prog["tensile cycles [voltage=7 kV]"]
+    sel = (motor.t >= t0 + dur - 2.0) & (motor.t <= t0 + dur)  # the last (stabilised) cycle
+    measured = hysteresis_loss(motor.columns["aperture"][sel], lc.columns["force"][sel])
+    from bench.models.lozenge import LozengeParams
+
+    x_of = lambda t: np.interp(t, motor.t, motor.columns["aperture"])  # noqa: E731
+    model = simulate_lozenge(LozengeParams.prototype(1), "imposed", zero_order_hold(sp.t, sp.columns["voltage"]),
+                             t0 + dur, fs=1000.0, position=x_of)
+    mm = (model.t >= t0 + dur - 2.0) & (model.t <= t0 + dur)
+    predicted = hysteresis_loss(model.position[mm], model.force[mm])
+    assert measured == pytest.approx(predicted, abs=0.015)
+    assert 0.2 < measured < 0.4  # Table 3 range for #1 at 7 kV (30.9 % after 10 cycles)
+
+
+def test_isotonic_record_matches_the_model(tmp_path: Path) -> None:
+    _, run, _ = run_virtual(SHORT / "lsdea-isotonic-short.toml", tmp_path)
+    sp, laser = run.streams["setpoints"], run.streams["laser"]
+    from bench.models.lozenge import LozengeParams
+
+    model = simulate_lozenge(LozengeParams(hung_mass=0.18), "hung", zero_order_hold(sp.t, sp.columns["voltage"]),
+                             float(laser.t[-1]), fs=2000.0)
+    x_model = np.interp(laser.t, model.t, model.position)
+    assert np.max(np.abs(laser.columns["displacement"] - x_model)) < 20e-6
+
+
+# ------------------------------------------------------------------ exit paths
+
+
+def check_safe_end(run, sim, state: str) -> None:
+    assert run.complete and run.state == state and run.attrs["exit_status"] == state
+    assert run.streams["setpoints"].columns["voltage"][-1] == 0.0
+    sim.clock.advance(0.5)
+    assert abs(sim.plant.observe().voltage[0]) < ZERO_V  # the amplifier output really is at 0 V
+
+
+def test_current_trip_ramps_down_and_is_recorded(tmp_path: Path) -> None:
+    plan_rig = plan_run(SHORT / "thesis-identification-short.toml").rig
+    limits = {**plan_rig.limits.model_dump(), "max_current_A": 1e-7}
+    result, run, sim = run_virtual(SHORT / "thesis-identification-short.toml", tmp_path, {"limits": limits})
+    assert result.state == "tripped" and "current" in result.reason and "trip level 0.00 mA" in result.reason
+    check_safe_end(run, sim, "tripped")
+    kinds = [e[2] for e in run.event_list()]
+    assert "tripped" in kinds
+
+
+def test_lost_laser_link_stops_the_run_safely(tmp_path: Path) -> None:
+    def hook(engine: Engine, sim: object) -> None:
+        original = engine._poll
+
+        def poll(kind: str) -> None:
+            if engine.now() > 3.0:
+                sim.faults["laser"].drop = True  # type: ignore[attr-defined]
+            original(kind)
+        engine._poll = poll  # type: ignore[method-assign]
+
+    result, run, sim = run_virtual(SHORT / "thesis-identification-short.toml", tmp_path, hook=hook)
+    assert result.state == "error" and result.reason.startswith("lost link: laser")
+    check_safe_end(run, sim, "error")
+    assert 3.0 < run.updated < 5.0  # data up to the fault (and the shutdown) are in the file
+
+
+def test_lost_amplifier_link_relies_on_the_module_watchdog(tmp_path: Path) -> None:
+    def hook(engine: Engine, sim: object) -> None:
+        original = engine._poll
+
+        def poll(kind: str) -> None:
+            if engine.now() > 3.0:
+                sim.faults["io"].drop = True  # type: ignore[attr-defined]
+            original(kind)
+        engine._poll = poll  # type: ignore[method-assign]
+
+    sim_cfg = {"seed": 1, "modbus_transport": "rtu"}
+    result, run, sim = run_virtual(SHORT / "thesis-identification-short.toml", tmp_path, {"simulation": sim_cfg},
+                                   hook=hook)
+    assert result.state == "error" and "lost link" in result.reason
+    assert "could not command 0 V" in run.reason and "watchdog" in run.reason
+    assert run.complete
+    sim.clock.advance(1.5)  # the ADAM-4024's communication safety (1 s in the rig file)
+    assert sim.plant.observe().voltage[0] == 0.0 and sim.plant.watchdog_tripped
+
+
+def _start_cli_run(tmp_path: Path, protocol: str = "thesis-identification-short.toml") -> tuple[subprocess.Popen, Path]:
+    proc = subprocess.Popen([sys.executable, "-m", "bench", "run", str(SHORT / protocol), "--out", str(tmp_path),
+                             "--no-live"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT,
+                            env={**os.environ, "COLUMNS": "300"})
+    deadline = time.monotonic() + 90
+    while time.monotonic() < deadline and proc.poll() is None:
+        files = list(tmp_path.glob("*.h5"))
+        if files:
+            try:
+                r = open_run(files[0], streams=False)
+                if r.updated > 1.5:
+                    return proc, files[0]
+            except (OSError, ValueError, KeyError):
+                pass
+        time.sleep(0.1)
+    proc.kill()
+    raise AssertionError(f"run did not start: {proc.communicate()[1]}")
+
+
+@pytest.mark.parametrize("signals, state, reason", [
+    ((signal.SIGINT,), "interrupted", "interrupted by Ctrl-C"),
+    ((signal.SIGINT, signal.SIGINT), "interrupted", "interrupted by Ctrl-C"),
+    ((signal.SIGTERM,), "interrupted", "terminated by SIGTERM"),
+], ids=["ctrl-c", "ctrl-c-twice", "sigterm"])
+def test_signals_stop_the_run_with_zero_voltage_and_a_marked_file(tmp_path: Path, signals: tuple, state: str,
+                                                                  reason: str) -> None:
+    proc, path = _start_cli_run(tmp_path)
+    running = open_run(path)  # read while being written (SWMR)
+    assert running.state == "running" and not running.complete and "still going" in running.incomplete_reason
+    assert len(running.streams["laser"]) > 0
+    for sig in signals:
+        proc.send_signal(sig)
+        time.sleep(0.05)
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 1 and "Traceback" not in err, err
+    run = open_run(path)
+    assert run.complete and run.state == state and run.reason.startswith(reason)
+    assert run.streams["setpoints"].columns["voltage"][-1] == 0.0
+    assert abs(run.streams["amplifier"].columns["voltage"][-1]) < 10.0  # monitor read after zeroing
+    assert "run file:" in out and str(path) in out
+
+
+def test_a_killed_run_leaves_a_readable_file_marked_incomplete(tmp_path: Path) -> None:
+    proc, path = _start_cli_run(tmp_path)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.communicate(timeout=30)
+    run = open_run(path)
+    assert not run.complete and run.state == "running" and "crashed" in run.incomplete_reason
+    assert run.updated > 1.0 and len(run.streams["laser"]) > 10_000
+    res = subprocess.run([sys.executable, "-m", "bench", "inspect", str(path)], capture_output=True, text=True,
+                         timeout=60, env={**os.environ, "COLUMNS": "200"})
+    assert res.returncode == 1 and "INCOMPLETE" in res.stdout
+
+
+def test_real_rig_needs_an_operator_for_specimen_changes(tmp_path: Path) -> None:
+    sweep = ROOT / "protocols" / "thesis-temperature-sweep.toml"
+    proc = subprocess.run([sys.executable, "-m", "bench", "run", str(sweep),
+                           "--rig", str(ROOT / "rigs" / "thesis-lab.toml"), "--out", str(tmp_path)],
+                          capture_output=True, text=True, timeout=120, stdin=subprocess.DEVNULL)
+    assert proc.returncode == 2
+    assert proc.stderr.strip() == ("error: this protocol changes the specimen between tests: run it interactively "
+                                   "or pass --yes")
+    assert not list(tmp_path.glob("*.h5"))
+
+
+def test_virtual_time_needs_a_simulated_rig() -> None:
+    with pytest.raises(ValueError, match="virtual time needs a simulated rig"):
+        run_protocol(SHORT / "thesis-identification-short.toml", rig_path=ROOT / "rigs" / "thesis-lab.toml",
+                     virtual=True)
