@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from bench.instruments import Instruments, build_instruments
-from bench.rig import load_rig
+from bench.rig import RigConfig, load_rig
 from sim_devices.rig import SimRig
 
 RIGS = Path(__file__).resolve().parent.parent / "rigs"
@@ -32,8 +32,11 @@ class Figure:
     note: str = ""
 
 
-def _rig(name: str, virtual: bool) -> tuple[SimRig, Instruments]:
+def _rig(name: str, virtual: bool, modbus: str | None = None) -> tuple[SimRig, Instruments]:
     rig = load_rig(RIGS / f"{name}.toml")
+    if modbus is not None:
+        rig = RigConfig.model_validate({**rig.model_dump(),
+                                        "simulation": {**rig.simulation.model_dump(), "modbus_transport": modbus}})
     sim = SimRig(rig, virtual=virtual)
     sim.start()
     inst = build_instruments(rig, sim.port_map(), clock=sim.clock.now, sleep=sim.clock.sleep)
@@ -54,22 +57,24 @@ def _rate(fn: Callable[[], object], seconds: float) -> float:
 def polled(seconds: float = 1.0) -> list[Figure]:
     """Sustained polled rates of every instrument on the wall-clock simulated rigs."""
     out: list[Figure] = []
-    sim, inst = _rig("thesis-sim", virtual=False)
-    try:
-        out.append(Figure("laser single read (M1 / MS)", _rate(inst.laser.read, seconds), "reads/s", "pty"))
-        out.append(Figure("amplifier set-point (FC6 on ADAM-4024)",
-                          _rate(lambda: inst.amplifier.set_voltage(100.0), seconds), "writes/s", "Modbus RTU, pty"))
-        out.append(Figure("amplifier monitors (FC3 on ADAM-4017+)", _rate(inst.amplifier.read_monitors, seconds),
-                          "reads/s", "module converts at 10 S/s"))
-    finally:
-        inst.close()
-        sim.stop()
-    sim, inst = _rig("lsdea-motor-sim", virtual=False)
+    for modbus, label in (("rtu", "Modbus RTU on a pty"), ("tcp", "Modbus TCP on loopback")):
+        sim, inst = _rig("thesis-sim", virtual=False, modbus=modbus)
+        try:
+            if modbus == "rtu":
+                out.append(Figure("laser single read (M1 / MS)", _rate(inst.laser.read, seconds), "reads/s", "pty"))
+            out.append(Figure("amplifier set-point (FC6 on ADAM-4024)",
+                              _rate(lambda i=inst: i.amplifier.set_voltage(100.0), seconds), "writes/s", label))
+            out.append(Figure("amplifier monitors (FC3 on ADAM-4017+)", _rate(inst.amplifier.read_monitors, seconds),
+                              "reads/s", f"{label}; module converts at 10 S/s"))
+        finally:
+            inst.close()
+            sim.stop()
+    sim, inst = _rig("lsdea-motor-sim", virtual=False, modbus="rtu")
     try:
         out.append(Figure("motor position (LinRS default response)", _rate(inst.motor.read_position, seconds),
                           "reads/s", "pty"))
         out.append(Figure("load cell (FC4 on DGT1S)", _rate(inst.load_cell.read, seconds), "reads/s",
-                          "transmitter converts at 100 S/s"))
+                          "Modbus RTU on a pty; transmitter converts at 100 S/s"))
     finally:
         inst.close()
         sim.stop()

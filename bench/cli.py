@@ -184,15 +184,42 @@ def simulate_lsdea(
 
 
 @app.command()
-def demo() -> None:
-    """The main job for a newcomer: the papers' specimens on the simulated rig, with their figures.
+@clean_errors
+def demo(out: Annotated[Path, typer.Option(help="Folder for the run files.")] = Path("runs/demo")) -> None:
+    """The main job for a newcomer, on the simulated rig: a paper protocol run, recorded, analysed from the file.
 
-    Today: the thesis base case (7 kV, 1/9 Hz, 296 K, 20 s) and the LS-DEA #1 isotonic resonance (180 g,
-    2.75 Hz) and isopotential loss (7 kV). It grows into run → record → fit → report as the engine lands.
+    Runs the thesis identification protocol (7 kV raised cosine at 1/9 Hz, 296 K, 20 s, laser at 10 kHz) in
+    virtual time through the real wire protocols, then reads the HDF5 file back and prints the per-cycle
+    figures (peaks, creep, residual, lag). Identification and plots join when the fitter lands.
     """
-    simulate_thesis()
-    simulate_lsdea(LsdeaTest.isotonic, frequency=2.75, cycles=15)
-    simulate_lsdea(LsdeaTest.isopotential, voltage=7000.0)
+    from bench.analysis.thesis import cycle_figures
+    from bench.run import default_output, execute, plan_run
+    from bench.runfile import open_run
+
+    protocol = Path(__file__).resolve().parent.parent / "protocols" / "thesis-identification.toml"
+    with console.status("validating and dry-running the thesis identification protocol…"):
+        plan = plan_run(protocol)
+    console.print(f"protocol {plan.protocol.protocol.name}: {plan.protocol.protocol.description}")
+    with console.status("running it on the simulated rig in virtual time (same bytes on the wire)…"):
+        result = execute(plan, default_output(plan, out), virtual=True)
+    console.print(f"[{'green' if result.state == 'completed' else 'red'}]{result.state}[/]: {result.reason}; "
+                  f"{result.run_time:.0f} s of run in {result.wall_time:.2f} s, {result.samples:,} samples")
+    run = open_run(result.path)
+    laser, sp = run.streams["laser"], run.streams["setpoints"]
+    volts = np.interp(laser.t, sp.t, sp.columns["voltage"])
+    drive = laser.t <= 20.0
+    figs = cycle_figures(laser.t[drive], laser.columns["displacement"][drive], volts[drive], 1 / 9)
+    table = Table(title="thesis identification record (from the run file)")
+    for col in ("cycle", "peak u [mm]", "at t [s]", "lag [s]", "u at cycle end [mm]"):
+        table.add_column(col, justify="right")
+    for k, (pk, tk, lag) in enumerate(zip(figs.peaks, figs.peak_times, figs.lags, strict=True)):
+        res = f"{figs.residuals[k] * 1e3:.3f}" if k < len(figs.residuals) else "–"
+        table.add_row(str(k + 1), f"{pk * 1e3:.3f}", f"{tk:.3f}", f"{lag:.3f}", res)
+    console.print(table)
+    console.print(f"creep {figs.creep * 100:+.1f} % between cycles; run file: {result.path}")
+    console.print(f"inspect it with: bench inspect {result.path}")
+    if result.state != "completed":
+        raise fail(f"run ended {result.state}: {result.reason}", code=1)
 
 
 RigArg = Annotated[Path, typer.Argument(help="Rig file (TOML), e.g. rigs/thesis-sim.toml.")]
@@ -281,6 +308,7 @@ def devices_check(rig_file: RigArg) -> None:
 class BenchmarkSet(StrEnum):
     physics = "physics"
     acquisition = "acquisition"
+    run = "run"
     all = "all"
 
 
@@ -304,16 +332,23 @@ def benchmark(
             table.add_row(r.name, f"{r.simulated:g}", f"{r.wall:.4f}", f"{r.speed:.0f}",
                           f"≥ {r.target:g}" if r.target else "–", mark)
         console.print(table)
+    sets = []
     if which in (BenchmarkSet.acquisition, BenchmarkSet.all):
         from bench import benchmark_acquisition
 
-        with console.status("benchmarking acquisition through the drivers and the simulated twins…"):
-            figures = benchmark_acquisition.run_all(quick=quick)
-        table = Table(title="acquisition through the drivers (simulated rigs on ptys)")
-        for col in ("path", "rate", "unit", "notes"):
-            table.add_column(col, justify="right" if col == "rate" else "left")
+        sets.append(("acquisition through the drivers (simulated rigs on ptys)", benchmark_acquisition.run_all))
+    if which in (BenchmarkSet.run, BenchmarkSet.all):
+        from bench import benchmark_run
+
+        sets.append(("whole runs: engine, recorder", benchmark_run.run_all))
+    for title, fn in sets:
+        with console.status(f"benchmarking {title}…"):
+            figures = fn(quick=quick)
+        table = Table(title=title)
+        for col in ("path", "value", "unit", "notes"):
+            table.add_column(col, justify="right" if col == "value" else "left")
         for f in figures:
-            table.add_row(f.name, f"{f.value:,.0f}", f.unit, f.note)
+            table.add_row(f.name, f"{f.value:,.1f}" if f.value < 100 else f"{f.value:,.0f}", f.unit, f.note)
         console.print(table)
 
 

@@ -69,3 +69,12 @@ def test_acquisition_benchmark_reports_complete_10kHz_storage() -> None:
     assert "20001 samples in 2 s, lost 0, duplicated 0, contiguous True" in res.output
     for path in ("laser single read", "amplifier set-point", "motor position", "load cell"):
         assert path in res.output
+
+
+def test_demo_runs_records_and_analyses_from_the_file(tmp_path) -> None:
+    res = runner.invoke(app, ["demo", "--out", str(tmp_path)], env={"COLUMNS": "200"})
+    assert res.exit_code == 0, res.output
+    files = list(tmp_path.glob("thesis-identification-*.h5"))
+    assert len(files) == 1 and str(files[0]) in res.output
+    assert re.search(r"│\s+1 │\s+7\.[67]\d\d │", res.output) and re.search(r"│\s+2 │\s+8\.[56]\d\d │", res.output)
+    assert re.search(r"creep \+1[12]\.\d %", res.output)

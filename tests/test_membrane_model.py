@@ -271,3 +271,12 @@ def test_invalid_parameters_are_refused() -> None:
         MembraneParams(electrostriction="other")  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="L3"):
         MembraneParams(L3=0.0)
+
+
+def test_cycle_figures_ignore_a_partial_cycle_before_its_peak() -> None:
+    t = np.linspace(0.0, 20.0, 20001)
+    wave = Waveform("raised_cosine", 1.0, 1 / 9)
+    u = wave(t) + 0.1 * t / 20  # slow drift: the second peak is higher
+    figs = cycle_figures(t, u, wave(t), 1 / 9)
+    assert figs.whole == 2 and len(figs.peaks) == 2  # 18–20 s is 22 % of a period: not a cycle
+    assert figs.creep == pytest.approx((1 + 0.1 * 13.5 / 20) / (1 + 0.1 * 4.5 / 20) - 1, rel=1e-3)

@@ -19,17 +19,18 @@ class CycleFigures:
     peak_times: tuple[float, ...]
     residuals: tuple[float, ...]
     lags: tuple[float, ...]
+    whole: int = 0  # number of whole cycles (the first ``whole`` entries of peaks)
 
     @property
     def creep(self) -> float:
         """Peak growth from the first to the last whole cycle, relative to the first [-]."""
-        return self.peaks[-1] / self.peaks[0] - 1.0 if len(self.peaks) > 1 else 0.0
+        return self.peaks[self.whole - 1] / self.peaks[0] - 1.0 if self.whole > 1 else 0.0
 
 
 def cycle_figures(t: np.ndarray, displacement: np.ndarray, voltage: np.ndarray, frequency: float) -> CycleFigures:
     """Split a record into periods 1/frequency from t[0] and take each period's peak, lag and end value.
 
-    The last, partial period contributes its peak only if it contains the voltage peak of that period.
+    A last, partial period contributes its peak only if it covers ≥ 60 % of a period (past the drive's peak).
     """
     t = np.asarray(t, dtype=float)
     u = np.asarray(displacement, dtype=float)
@@ -38,6 +39,7 @@ def cycle_figures(t: np.ndarray, displacement: np.ndarray, voltage: np.ndarray, 
     t, u, v = t[finite], u[finite], v[finite]
     period = 1.0 / frequency
     peaks, times, residuals, lags = [], [], [], []
+    whole_cycles = 0
     k = 0
     while t[0] + k * period < t[-1]:
         start, end = t[0] + k * period, t[0] + (k + 1) * period
@@ -46,7 +48,8 @@ def cycle_figures(t: np.ndarray, displacement: np.ndarray, voltage: np.ndarray, 
             break
         iv = int(np.argmax(v[m]))
         whole = end <= t[-1] + 1e-9
-        if whole or iv < m.sum() - 1:
+        whole_cycles += whole
+        if whole or t[m][-1] - start >= 0.6 * period:
             iu = int(np.argmax(u[m]))
             peaks.append(float(u[m][iu]))
             times.append(float(t[m][iu]))
@@ -54,4 +57,4 @@ def cycle_figures(t: np.ndarray, displacement: np.ndarray, voltage: np.ndarray, 
         if whole:
             residuals.append(float(np.interp(end, t, u)))
         k += 1
-    return CycleFigures(tuple(peaks), tuple(times), tuple(residuals), tuple(lags))
+    return CycleFigures(tuple(peaks), tuple(times), tuple(residuals), tuple(lags), whole_cycles)
