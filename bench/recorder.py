@@ -69,7 +69,7 @@ class Recorder:
         self.write_seconds = 0.0  # wall time spent writing
         self.cpu_seconds = 0.0  # CPU time of the calling thread spent in append and flush
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        f = h5py.File(self.path, "w", libver="latest")
+        f = h5py.File(self.path, "w", libver=("v110", "v110"))  # SWMR needs the 1.10 format; newer breaks 1.10 tools
         self._f = f
         f.attrs["format"] = FORMAT
         for key, value in attrs.items():

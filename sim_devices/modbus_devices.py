@@ -2,7 +2,9 @@
 
 * :class:`Adam4024Sim` — ADAM-4024 analog outputs; the amplifier's channel drives the TREK input;
 * :class:`Adam4017PSim` — ADAM-4017+ analog inputs wired to the TREK voltage and current monitors,
-  converting round-robin over the enabled channels at the module's total rate (10 S/s, datasheet);
+  converting round-robin over the enabled channels at the module's total rate (10 S/s, datasheet); each
+  conversion integrates its input over 20 ms (an integrating ADC with 50/60-Hz rejection), so current
+  spikes of a few tens of µs, such as a set-point step charging the DEA, read as their mean;
 * :class:`Dgt1sSim` — Dini Argeo DGT1S weight transmitter on the load cell: gross/net/status input
   registers, zero and tare through the command register with the processed-command counter.
 
@@ -91,7 +93,7 @@ class Adam4017PSim:
 
     def __init__(self, unit: int, plant: Plant, clock: Clock, trek: TrekModel, *, vmon_channel: int = 0,
                  imon_channel: int = 1, scale: RawScale | None = None, rate: float = 10.0,
-                 noise_volts: float = 0.5e-3, seed: int = 2) -> None:
+                 noise_volts: float = 0.5e-3, seed: int = 2, integration: float = 0.02) -> None:
         self.unit = unit
         self.plant = plant
         self.clock = clock
@@ -105,7 +107,9 @@ class Adam4017PSim:
         self.failed = False
         self.enabled = [vmon_channel, imon_channel]
         self.raw = [self.scale.to_raw(0.0)] * 8
+        self.integration = integration
         self._conversion = 0  # index of the next conversion (time = index / rate)
+        self._tail = (np.zeros(0), np.zeros(0), np.zeros(0))  # the last `integration` s of (t, V, I)
         self._lock = threading.Lock()
         holding = [SimData(REG_VALUE, count=8, values=self.scale.to_raw(0.0), datatype=DataType.REGISTERS),
                    SimData(REG_TYPE_CODE, count=8, values=0x08, datatype=DataType.REGISTERS),
@@ -122,10 +126,21 @@ class Adam4017PSim:
             k_last = math.floor(t_end * self.rate + 0.5 * self.plant.h * self.rate)  # due within half a step: now
             if k_last < self._conversion:
                 return
+            t_all = np.concatenate([self._tail[0], block.t])
+            v_all = np.concatenate([self._tail[1], block.voltage])
+            i_all = np.concatenate([self._tail[2], block.current])
+            keep = t_all > t_end - self.integration - 1e-12
+            self._tail = (t_all[keep], v_all[keep], i_all[keep])
             ks = np.arange(self._conversion, k_last + 1)
             ts = ks / self.rate
-            v = np.interp(ts, block.t, block.voltage) / self.trek.vmon_ratio
-            i = np.interp(ts, block.t, block.current) / self.trek.imon_ratio
+            # integrating conversion: the mean over (ts − integration, ts]
+            cv = np.concatenate([[0.0], np.cumsum(v_all)])
+            ci = np.concatenate([[0.0], np.cumsum(i_all)])
+            hi = np.searchsorted(t_all, ts + 1e-12, side="right")
+            lo = np.searchsorted(t_all, ts - self.integration + 1e-12, side="right")
+            n = np.maximum(hi - lo, 1)
+            v = (cv[hi] - cv[lo]) / n / self.trek.vmon_ratio
+            i = (ci[hi] - ci[lo]) / n / self.trek.imon_ratio
             noise = self.rng.normal(0.0, self.noise_volts, ks.size)
             for k, vk, ik, nk in zip(ks, v, i, noise, strict=True):
                 ch = self.enabled[int(k) % len(self.enabled)]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -258,3 +259,16 @@ def test_virtual_time_needs_a_simulated_rig() -> None:
     with pytest.raises(ValueError, match="virtual time needs a simulated rig"):
         run_protocol(SHORT / "thesis-identification-short.toml", rig_path=ROOT / "rigs" / "thesis-lab.toml",
                      virtual=True)
+
+
+@pytest.mark.skipif(shutil.which("h5dump") is None,
+                    reason="HDF5 command-line tools not installed (.ci/run installs them)")
+def test_standard_hdf5_tools_read_the_run_file(tmp_path: Path) -> None:
+    """h5ls/h5dump (the HDF5 library's own tools, not h5py) open the file and read data and attributes."""
+    result, _, _ = run_virtual(SHORT / "thesis-identification-short.toml", tmp_path)
+    listing = subprocess.run(["h5ls", "-r", result.path], capture_output=True, text=True, timeout=60)
+    assert listing.returncode == 0 and "/laser/displacement      Dataset {100011/Inf}" in listing.stdout
+    dump = subprocess.run(["h5dump", "-d", "/laser/t", "-s", "10", "-c", "2", "-a", "/exit_status", result.path],
+                          capture_output=True, text=True, timeout=60)
+    assert dump.returncode == 0, dump.stderr
+    assert "0.001" in dump.stdout and '"completed"' in dump.stdout
