@@ -272,3 +272,14 @@ def test_standard_hdf5_tools_read_the_run_file(tmp_path: Path) -> None:
                           capture_output=True, text=True, timeout=60)
     assert dump.returncode == 0, dump.stderr
     assert "0.001" in dump.stdout and '"completed"' in dump.stdout
+
+
+@pytest.mark.parametrize("name", ["thesis-identification", "thesis-voltage-sweep"])
+def test_paper_protocols_produce_complete_files(name: str, tmp_path: Path) -> None:
+    """Whole paper campaigns (not the short variants) on the simulated rig, in virtual time."""
+    result = run_protocol(ROOT / "protocols" / f"{name}.toml", virtual=True, out_dir=tmp_path)
+    run = open_run(result.path)
+    assert result.state == "completed" and run.complete
+    plan = plan_run(ROOT / "protocols" / f"{name}.toml")
+    assert len(run.streams["laser"]) >= plan.prediction.samples["laser"]
+    assert len([e for e in run.event_list() if e[2] == "end"]) == len(plan.program.segments)

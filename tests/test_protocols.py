@@ -141,3 +141,39 @@ def test_json_schema_is_exported_and_committed() -> None:
     committed = ROOT / "protocols" / "protocol.schema.json"
     hint = "regenerate: bench protocol schema --out protocols/protocol.schema.json"
     assert json.loads(committed.read_text()) == schema, hint
+
+
+def test_repeat_and_zip_sweeps_expand(tmp_path: Path) -> None:
+    body = """
+[[steps]]
+type = "repeat"
+count = 3
+
+  [[steps.steps]]
+  type = "ramp"
+  channel = "voltage"
+  to = "1 kV"
+  duration_s = 1
+
+  [[steps.steps]]
+  type = "relax"
+  duration_s = 1
+
+[[steps]]
+type = "sweep"
+mode = "zip"
+over = { v = ["2 kV", "3 kV"], f = [0.5, 1.0] }
+
+  [[steps.steps]]
+  type = "waveform"
+  channel = "voltage"
+  kind = "sine"
+  amplitude = "{v}"
+  frequency_Hz = "{f}"
+  cycles = 2
+"""
+    p = load_protocol(write(tmp_path, body))
+    assert [s.type for s in p.steps] == ["ramp", "relax"] * 3 + ["waveform"] * 2
+    assert [(s.amplitude_si, s.frequency_Hz) for s in p.steps[6:]] == [(2000.0, 0.5), (3000.0, 1.0)]
+    assert p.labels[2].startswith("steps[0](repeat)#2/")
+    assert plan_run(p.path).program.duration == pytest.approx(3 * 2 + 4 + 2)
