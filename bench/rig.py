@@ -8,12 +8,13 @@ with pydantic so that a malformed file is refused with one line naming the file 
 from __future__ import annotations
 
 import tomllib
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from bench.models.lozenge import LozengeParams
+from bench.models.lozenge import LozengeParams, MaxwellBranch
 from bench.models.membrane import MembraneParams
 
 
@@ -104,6 +105,39 @@ class LsdeaConfig(_Strict):
     blocked_position_m: float = Field(0.1, gt=0.0, lt=0.24)
 
 
+class MembraneModelConfig(_Strict):
+    """Fitted (or alternative) rheology of the thesis membrane: Gent spring and Maxwell units (Pa, -, Pa·s)."""
+
+    mu0: float = Field(gt=0)
+    J0: float = Field(gt=0)
+    mu: list[float]
+    J: list[float]
+    eta: list[float]
+
+    @model_validator(mode="after")
+    def _lengths(self) -> MembraneModelConfig:
+        if not len(self.mu) == len(self.J) == len(self.eta) or min([*self.mu, *self.J, *self.eta], default=1) <= 0:
+            raise ValueError("mu, J and eta need one positive value per Maxwell unit")
+        return self
+
+
+class LsdeaModelConfig(_Strict):
+    """Fitted (or alternative) material of the LS-DEA: Gent–Gent, Maxwell branches, lumped damper."""
+
+    mu: float = Field(gt=0, description="Pa")
+    Jm: float = Field(gt=0)
+    C2: float = Field(ge=0, description="Pa")
+    branch_mu: list[float] = Field(default_factory=list, description="Pa")
+    branch_tau: list[float] = Field(default_factory=list, description="s")
+    damping: float = Field(1.5, ge=0, description="N·s/m")
+
+    @model_validator(mode="after")
+    def _branches(self) -> LsdeaModelConfig:
+        if len(self.branch_mu) != len(self.branch_tau):
+            raise ValueError("branch_mu and branch_tau need the same length")
+        return self
+
+
 class SpecimenConfig(_Strict):
     """The specimen on the rig (the simulated plant; for a real rig, metadata and safety limits)."""
 
@@ -113,15 +147,26 @@ class SpecimenConfig(_Strict):
     breakdown_field_V_per_m: float = Field(100e6, gt=0, description="membrane: true-field breakdown")
     electrostriction: Literal["corrected", "thesis"] = "corrected"
     lsdea: LsdeaConfig = LsdeaConfig()
+    membrane_model: MembraneModelConfig | None = None
+    lsdea_model: LsdeaModelConfig | None = None
 
     def membrane(self) -> MembraneParams:
-        """Model A parameters for this specimen."""
-        return MembraneParams(L_d=self.displacement_length_m, breakdown_field=self.breakdown_field_V_per_m,
-                              electrostriction=self.electrostriction)
+        """Model A parameters for this specimen (thesis Table 4.4, or ``membrane_model`` if given)."""
+        p = MembraneParams(L_d=self.displacement_length_m, breakdown_field=self.breakdown_field_V_per_m,
+                           electrostriction=self.electrostriction)
+        m = self.membrane_model
+        return p if m is None else p.with_units(m.mu0, m.J0, tuple(m.mu), tuple(m.J), tuple(m.eta))
 
-    def lozenge(self) -> LozengeParams:
-        """Model B parameters for this specimen."""
-        return LozengeParams.prototype(self.lsdea.prototype, hung_mass=self.lsdea.hung_mass_kg)
+    def lozenge(self, prototype: int | None = None, hung_mass: float | None = None) -> LozengeParams:
+        """Model B parameters for this specimen (Table 1 + VE-A, or ``lsdea_model`` if given)."""
+        p = LozengeParams.prototype(prototype or self.lsdea.prototype,
+                                    hung_mass=self.lsdea.hung_mass_kg if hung_mass is None else hung_mass)
+        m = self.lsdea_model
+        if m is None:
+            return p
+        material = replace(p.material, mu=m.mu, Jm=m.Jm, C2=m.C2)
+        branches = tuple(MaxwellBranch(mu, tau) for mu, tau in zip(m.branch_mu, m.branch_tau, strict=True))
+        return replace(p, material=material, branches=branches, damping=m.damping)
 
 
 class LimitsConfig(_Strict):

@@ -21,7 +21,7 @@ from typing import Literal
 
 import numpy as np
 
-from bench.models.lozenge import LozengeParams
+from bench.models.lozenge import PROTOTYPE_LAMBDA2P, LozengeParams
 from bench.models.lozenge_runs import LozengeStream
 from bench.models.membrane import MembraneParams
 from bench.models.membrane_runs import MembraneStream
@@ -169,8 +169,8 @@ class Plant:
             if self._lozenge is None:
                 raise ValueError("hung mass and prototype apply to the LS-DEA")
             params = self.specimen
-            if prototype is not None:
-                params = LozengeParams.prototype(int(prototype), hung_mass=params.hung_mass)  # type: ignore[union-attr]
+            if prototype is not None:  # another prototype of the same material (fitted parameters kept)
+                params = replace(params, lambda2p=PROTOTYPE_LAMBDA2P[int(prototype)])  # type: ignore[type-var]
             if hung_mass_kg is not None:
                 params = replace(params, hung_mass=float(hung_mass_kg))  # type: ignore[type-var]
             y = self._lozenge.state.copy()

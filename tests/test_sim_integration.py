@@ -93,7 +93,7 @@ def test_laser_mode_errors_and_injected_faults(thesis: RunningRig) -> None:
 
 def test_laser_over_range(lsdea_isotonic: RunningRig) -> None:
     laser = lsdea_isotonic.inst.laser
-    assert laser.read().ok  # x ≈ 66 mm reads ≈ −34 mm within ±40 mm
+    assert laser.read().ok  # x ≈ 66 mm reads ≈ −1 mm within ±40 mm
     lsdea_isotonic.sim.twins["laser"].head.offset_mm = -140.0
     r = laser.read()
     assert r.status == "over_range_negative" and np.isnan(r.value)

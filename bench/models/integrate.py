@@ -21,7 +21,7 @@ import numpy as np
 from numba import njit, prange
 from scipy.integrate import solve_ivp
 
-from bench.models.lozenge import lozenge_step
+from bench.models.lozenge import lozenge_force, lozenge_step
 from bench.models.membrane import membrane_step
 
 MODEL_MEMBRANE = 0
@@ -35,6 +35,17 @@ def step_model(model: int, y: np.ndarray, u: np.ndarray, h: float, p: np.ndarray
     if model == MODEL_MEMBRANE:
         return membrane_step(y, u[0], u[1], h, p)
     return lozenge_step(y, u[0], u[1], u[2], h, p)
+
+
+OBSERVE_FORCE = -1  # run_fixed_batch channel: the LS-DEA force instead of a state component
+
+
+@njit(cache=True)
+def observe_model(model: int, y: np.ndarray, u: np.ndarray, p: np.ndarray, channel: int, grad: np.ndarray) -> float:
+    """State component ``channel`` of y, or (OBSERVE_FORCE, LS-DEA) the force F(y, x, ẋ, V)."""
+    if channel >= 0:
+        return y[channel]
+    return lozenge_force(y, y[0], y[1], u[0], p, grad)
 
 
 @njit(cache=True, nogil=True)
@@ -60,8 +71,8 @@ def run_fixed_batch(model: int, Y0: np.ndarray, U: np.ndarray, h: float, P: np.n
                     stride: int) -> np.ndarray:
     """Integrate one input history for many parameter sets (rows of P, initial states rows of Y0) in parallel.
 
-    Returns state component ``channel`` every ``stride`` steps, shape (len(P), len(U)//stride + 1);
-    NaN from the first sample after a set leaves the model's domain.
+    Returns state component ``channel`` (or OBSERVE_FORCE) every ``stride`` steps, shape
+    (len(P), len(U)//stride + 1); NaN from the first sample after a set leaves the model's domain.
     """
     m = P.shape[0]
     n = U.shape[0]
@@ -69,12 +80,13 @@ def run_fixed_batch(model: int, Y0: np.ndarray, U: np.ndarray, h: float, P: np.n
     out = np.full((m, n_out), np.nan)
     for j in prange(m):
         y = Y0[j].copy()
-        out[j, 0] = y[channel]
+        grad = np.empty(y.size)
+        out[j, 0] = observe_model(model, y, U[0], P[j], channel, grad)
         for k in range(n):
             if not step_model(model, y, U[k], h, P[j]):
                 break
             if (k + 1) % stride == 0:
-                out[j, (k + 1) // stride] = y[channel]
+                out[j, (k + 1) // stride] = observe_model(model, y, U[k], P[j], channel, grad)
     return out
 
 

@@ -70,12 +70,7 @@ def build_plant(program: Program, clock: VirtualClock, h: float = 1e-4) -> Plant
     if spec.kind == "membrane":
         return Plant(clock, spec.membrane(), temperature=over.temperature_K or spec.temperature_K, hv=hv, h=h)
     cfg = spec.lsdea
-    params = spec.lozenge()
-    if over.prototype is not None or over.hung_mass_kg is not None:
-        from bench.models.lozenge import LozengeParams
-
-        params = LozengeParams.prototype(over.prototype or cfg.prototype,
-                                         hung_mass=cfg.hung_mass_kg if over.hung_mass_kg is None else over.hung_mass_kg)
+    params = spec.lozenge(over.prototype, over.hung_mass_kg)
     x0 = cfg.blocked_position_m if cfg.configuration == "blocked" else cfg.x_at_motor_zero_m
     return Plant(clock, params, configuration=cfg.configuration, x0=x0, hv=hv, h=h, motor_sign=cfg.motor_sign)
 

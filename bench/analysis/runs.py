@@ -1,0 +1,194 @@
+"""Figures of merit of recorded runs — computed from run files only (bench.runfile).
+
+Each waveform step of a run is analysed according to what it drives and what the rig measured:
+
+* thesis membrane, voltage waveform: per-cycle displacement peaks, creep, residual at 0 V, phase lag;
+* LS-DEA, aperture waveform (isopotential): hysteresis loss of every cycle (enclosed area / loading work,
+  Moretti et al. Table 3) and of the last, stabilised one;
+* LS-DEA blocked, voltage waveform (isometric): crest-to-trough force variation of the last cycles;
+* LS-DEA hung mass, voltage waveform (isotonic): crest-to-trough displacement of the last cycles with the
+  drift removed, stroke as % of the link length, energy density per unit DE mass with and without the
+  mechanism's weight; across frequencies, the resonance.
+
+The step parameters (channel, frequency, voltage) come from the protocol text stored in the file.
+"""
+
+from __future__ import annotations
+
+import json
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from bench.analysis.cycles import crest_to_trough, hysteresis_loss
+from bench.analysis.thesis import cycle_figures
+from bench.models.lozenge import LozengeParams
+from bench.protocol.schema import Protocol, WaveformStep, load_protocol
+from bench.runfile import RunFile, open_run
+
+STANDARD_GRAVITY = 9.81  # m/s², as in the paper's loads (3.1 / 4.6 / 4.9 N)
+
+
+@dataclass
+class StepResult:
+    """Figures of one analysed step (SI units; ``kind`` says which figures are present)."""
+
+    index: int
+    name: str
+    kind: str  # "thesis" | "isopotential" | "isometric" | "isotonic"
+    t_start: float
+    duration: float
+    frequency: float
+    voltage: float  # peak |V| commanded during the step [V]
+    prototype: int | None = None
+    hung_mass: float | None = None
+    figures: dict[str, float] = field(default_factory=dict)
+    series: dict[str, list[float]] = field(default_factory=dict)
+
+
+@dataclass
+class RunAnalysis:
+    """All analysed steps of one run file."""
+
+    path: Path
+    protocol: str
+    specimen: str  # "membrane" | "lsdea"
+    configuration: str
+    steps: list[StepResult]
+
+    def by_kind(self, kind: str) -> list[StepResult]:
+        """Steps of one kind, in run order."""
+        return [s for s in self.steps if s.kind == kind]
+
+    def resonance(self) -> dict[float, tuple[float, float]]:
+        """Isotonic: per hung mass, (frequency of the largest amplitude [Hz], that amplitude [m])."""
+        out: dict[float, tuple[float, float]] = {}
+        for s in self.by_kind("isotonic"):
+            amp = s.figures["amplitude"]
+            if not np.isfinite(amp):
+                continue
+            m = s.hung_mass or 0.0
+            if m not in out or amp > out[m][1]:
+                out[m] = (s.frequency, amp)
+        return out
+
+
+def protocol_of(run: RunFile) -> Protocol:
+    """The protocol stored in the run file, parsed again (its rig path is not needed)."""
+    with tempfile.TemporaryDirectory() as tmp:
+        p = Path(tmp) / "protocol.toml"
+        p.write_text(run.attrs["protocol_text"], encoding="utf-8")
+        return load_protocol(p)
+
+
+def _window(stream, t0: float, t1: float) -> np.ndarray:
+    return (stream.t >= t0 - 1e-9) & (stream.t <= t1 + 1e-9)
+
+
+def _specimen_history(run: RunFile) -> tuple[list[tuple[float, dict[str, float]]], dict]:
+    spec = json.loads(run.attrs["specimen"])
+    changes = []
+    for t, _, kind, text in run.event_list():
+        if kind == "specimen":
+            values = {}
+            for part in text.split(","):
+                key, _, val = part.partition("=")
+                values[key.strip()] = float(val)
+            changes.append((t, values))
+    return changes, spec
+
+
+def _specimen_at(t: float, history: list[tuple[float, dict[str, float]]], spec: dict) -> tuple[int, float]:
+    over = spec.get("overrides", {})
+    lsdea = spec.get("lsdea", {})
+    proto = over.get("prototype") or lsdea.get("prototype", 1)
+    mass = over.get("hung_mass_kg")
+    mass = lsdea.get("hung_mass_kg", 0.0) if mass is None else mass
+    for te, values in history:
+        if te <= t + 1e-9:
+            proto = int(values.get("prototype", proto))
+            mass = values.get("hung_mass_kg", mass)
+    return int(proto), float(mass)
+
+
+def analyse(path: str | Path, last_cycles: int = 3) -> RunAnalysis:
+    """Analyse every waveform step of a run file."""
+    run = open_run(path)
+    protocol = protocol_of(run)
+    spec = json.loads(run.attrs["specimen"])
+    kind_of_specimen = spec["kind"]
+    config = spec.get("lsdea", {}).get("configuration", "membrane") if kind_of_specimen == "lsdea" else "membrane"
+    history, _ = _specimen_history(run)
+    sp = run.streams["setpoints"]
+    results: list[StepResult] = []
+    for row, step in zip(run.program, protocol.steps, strict=True):
+        if not isinstance(step, WaveformStep):
+            continue
+        t0, dur = float(row["t_start"]), float(row["duration"])
+        if t0 + dur > run.updated + 1e-6:
+            continue  # the run stopped before this step ended
+        sel = _window(sp, t0, t0 + dur)
+        vpk = float(np.max(np.abs(sp.columns["voltage"][sel]))) if sel.any() else 0.0
+        proto, mass = _specimen_at(t0, history, spec)
+        res = StepResult(int(row["index"]), row["name"].decode(), "", t0, dur, step.frequency_Hz, vpk,
+                         proto if kind_of_specimen == "lsdea" else None, mass if config == "hung" else None)
+        f = step.frequency_Hz
+        if kind_of_specimen == "membrane":
+            laser = run.streams["laser"]
+            w = _window(laser, t0, t0 + dur)
+            volts = np.interp(laser.t[w], sp.t, sp.columns["voltage"])
+            figs = cycle_figures(laser.t[w] - t0, laser.columns["displacement"][w], volts, f)
+            res.kind = "thesis"
+            res.figures = {"peak_first": figs.peaks[0], "peak_last": figs.peaks[max(figs.whole, 1) - 1],
+                           "creep": figs.creep, "lag_first": figs.lags[0],
+                           "residual_first": figs.residuals[0] if figs.residuals else np.nan,
+                           "residual_last": figs.residuals[-1] if figs.residuals else np.nan}
+            res.series = {"peaks": list(figs.peaks), "residuals": list(figs.residuals), "lags": list(figs.lags)}
+        elif step.channel == "position":
+            motor, lc = run.streams["motor"], run.streams["load_cell"]
+            w = _window(motor, t0, t0 + dur)
+            x, tt = motor.columns["aperture"][w], motor.t[w]
+            force = np.interp(tt, lc.t, lc.columns["force"])
+            n_cyc = round(dur * f)
+            losses = []
+            for k in range(n_cyc):
+                c = (tt >= t0 + k / f - 1e-9) & (tt <= t0 + (k + 1) / f + 1e-9)
+                losses.append(hysteresis_loss(x[c], force[c]))
+            res.kind = "isopotential"
+            last = (tt >= t0 + (n_cyc - 1) / f - 1e-9)
+            res.figures = {"loss_last": losses[-1], "loss_first": losses[0],
+                           "stroke": float(np.ptp(x[last])), "force_max": float(np.max(force[last])),
+                           "force_min": float(np.min(force[last]))}
+            res.series = {"loss_per_cycle": losses}
+        elif config == "hung":
+            laser = run.streams["laser"]
+            t_tail = t0 + dur - min(last_cycles, round(dur * f)) / f
+            w = _window(laser, t_tail, t0 + dur) & (laser.columns["valid"] > 0)
+            if w.sum() < 10:  # laser over range or invalid throughout: nothing to measure
+                res.kind, res.figures = "isotonic", {"amplitude": np.nan, "stroke_percent": np.nan,
+                                                     "energy_density": np.nan,
+                                                     "energy_density_with_mechanism": np.nan, "mean_position": np.nan}
+                results.append(res)
+                continue
+            amp = crest_to_trough(laser.t[w], laser.columns["displacement"][w], detrend=True)
+            params = LozengeParams.prototype(proto, hung_mass=mass)
+            de_mass = params.membrane_mass
+            work = mass * STANDARD_GRAVITY * amp
+            work_total = (mass + 0.5 * params.mechanism_mass) * STANDARD_GRAVITY * amp
+            res.kind = "isotonic"
+            res.figures = {"amplitude": amp, "stroke_percent": 100 * amp / params.l,
+                           "energy_density": work / de_mass,  # J/kg = mJ/g
+                           "energy_density_with_mechanism": work_total / de_mass,
+                           "mean_position": float(np.mean(laser.columns["displacement"][w]))}
+        else:
+            lc = run.streams["load_cell"]
+            t_tail = t0 + dur - min(last_cycles, round(dur * f)) / f
+            w = _window(lc, t_tail, t0 + dur)
+            res.kind = "isometric"
+            res.figures = {"force_swing": crest_to_trough(lc.t[w], lc.columns["force"][w], detrend=True),
+                           "force_mean": float(np.mean(lc.columns["force"][w])),
+                           "output_frequency": 2 * f if step.kind == "sine" else f}
+        results.append(res)
+    return RunAnalysis(Path(path), run.attrs["protocol_name"], kind_of_specimen, config, results)

@@ -1,0 +1,1 @@
+"""Parameter identification from recorded runs."""

@@ -1,0 +1,221 @@
+"""Identification problems built from run files (analysis reads files only).
+
+* :class:`MembraneProblem` — thesis model, 14 parameters: μ, J of unit 0 and μ, J, τ of units 1–4. Bounds:
+  thesis Tables 4.2–4.3 read as physics.md §1.3 explains (μ 0.01…500 kPa; J 100…400, 200…500, 300…600,
+  400…700, 500…800; τ = η/μ 1e-5…20 s, searched on a log scale). Data: the laser displacement u(t) of one or
+  more runs; inputs: the commanded voltages (zero-order hold, as the amplifier saw them) and temperatures.
+* :class:`LozengeProblem` — LS-DEA material: Gent–Gent μ, Jm, C2, K Maxwell branches (μ_k, τ_k) and the
+  lumped damper c. Data: the load-cell force of motor / blocked runs (aperture from the encoder imposed on
+  the model) or the laser aperture of hung-mass runs; one record per stretch of constant prototype and mass.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from bench.identify.core import to_physical
+from bench.models.integrate import MODEL_LOZENGE, MODEL_MEMBRANE, OBSERVE_FORCE, run_fixed_batch
+from bench.models.lozenge import MODE_HUNG, MODE_IMPOSED, PROTOTYPE_LAMBDA2P, LozengeParams, MaxwellBranch
+from bench.models.membrane import MembraneParams
+from bench.runfile import RunFile, open_run
+
+J_BOUNDS = ((100.0, 400.0), (200.0, 500.0), (300.0, 600.0), (400.0, 700.0), (500.0, 800.0))
+
+
+def _hold(t_set: np.ndarray, v_set: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Zero-order hold: the value set at or before each time (the step ending at a set time sees the old one)."""
+    i = np.searchsorted(t_set, t - 1e-9, side="left") - 1
+    return np.where(i >= 0, v_set[np.clip(i, 0, None)], 0.0)
+
+
+def _specimen_changes(run: RunFile) -> list[tuple[float, dict[str, float]]]:
+    out = []
+    for t, _, kind, text in run.event_list():
+        if kind == "specimen":
+            out.append((t, {k.strip(): float(v) for k, _, v in (p.partition("=") for p in text.split(","))}))
+    return out
+
+
+@dataclass
+class _Record:
+    U: np.ndarray  # inputs per step
+    y0: np.ndarray
+    template: np.ndarray  # packed parameters of the record (geometry, mode) before the fitted values
+    stride: int
+    data: np.ndarray
+    source: str
+
+
+class MembraneProblem:
+    """Thesis membrane identification from laser records."""
+
+    def __init__(self, paths: list[str | Path], h: float = 5e-4, data_rate: float = 100.0) -> None:
+        self.h, self.records = h, []
+        self.names = ["mu0", "J0"] + [f"mu{i}" for i in range(1, 5)] + [f"J{i}" for i in range(1, 5)] + \
+            [f"tau{i}" for i in range(1, 5)]
+        self.units = ["Pa", "-"] + ["Pa"] * 4 + ["-"] * 4 + ["s"] * 4
+        self.lower = np.array([10.0, 100.0] + [10.0] * 4 + [b[0] for b in J_BOUNDS[1:]] + [-5.0] * 4)
+        self.upper = np.array([500e3, 400.0] + [500e3] * 4 + [b[1] for b in J_BOUNDS[1:]] + [np.log10(20.0)] * 4)
+        self.log = np.array([False] * 10 + [True] * 4)
+        self.template: MembraneParams | None = None
+        for path in paths:
+            self._add(open_run(path), str(path))
+        if not self.records:
+            raise ValueError("no membrane records with laser data in the given run files")
+        self.data = np.concatenate([r.data for r in self.records])
+
+    def _add(self, run: RunFile, source: str) -> None:
+        spec = json.loads(run.attrs["specimen"])
+        if spec["kind"] != "membrane" or "laser" not in run.streams:
+            raise ValueError(f"run file {source}: not a membrane run with laser data")
+        model = spec["model"]
+        params = MembraneParams(**{k: tuple(v) if isinstance(v, list) else v for k, v in model.items()})
+        self.template = self.template or params
+        stride = max(1, round(1.0 / (self.data_rate_for(params) * self.h)))
+        t_end = run.updated
+        n = int(np.floor(t_end / self.h))
+        n -= n % stride
+        t_steps = np.arange(1, n + 1) * self.h
+        sp = run.streams["setpoints"]
+        U = np.empty((n, 2))
+        U[:, 0] = _hold(sp.t, sp.columns["voltage"], t_steps)
+        T = spec.get("overrides", {}).get("temperature_K") or spec.get("temperature_K", 296.0)
+        U[:, 1] = T
+        for te, values in _specimen_changes(run):
+            if "temperature_K" in values:
+                U[t_steps > te, 1] = values["temperature_K"]
+        laser = run.streams["laser"]
+        t_data = np.arange(0, n // stride + 1) * stride * self.h
+        ok = laser.columns["valid"] > 0
+        data = np.interp(t_data, laser.t[ok], laser.columns["displacement"][ok], left=np.nan, right=np.nan)
+        self.records.append(_Record(U, params.initial_state(), params.pack(), stride, data, source))
+
+    def data_rate_for(self, params: MembraneParams) -> float:
+        """Rate at which the record is compared with the model [Hz]."""
+        return 100.0
+
+    def params_of(self, z: np.ndarray) -> MembraneParams:
+        """Physical MembraneParams for one optimiser vector."""
+        v = to_physical(self.log, z)
+        mu, J, tau = tuple(v[2:6]), tuple(v[6:10]), tuple(v[10:14])
+        return self.template.with_units(float(v[0]), float(v[1]), mu, J,  # type: ignore[union-attr]
+                                        tuple(m * t for m, t in zip(mu, tau, strict=True)))
+
+    def predict(self, Z: np.ndarray) -> np.ndarray:
+        """Displacements u [m] for each row of Z, all records concatenated (one parallel batch per record)."""
+        Z = np.atleast_2d(Z)
+        out = []
+        for rec in self.records:
+            P = np.stack([self.params_of(z).pack() for z in Z])
+            Y0 = np.tile(rec.y0, (Z.shape[0], 1))
+            lam = run_fixed_batch(MODEL_MEMBRANE, Y0, rec.U, self.h, P, 0, rec.stride)
+            t = self.template
+            out.append(t.L_d * (lam - t.lambda_pre))  # type: ignore[union-attr]
+        return np.concatenate(out, axis=1)
+
+    def start(self) -> np.ndarray:
+        """Optimiser vector of the template's parameters (thesis Table 4.4 unless the run says otherwise)."""
+        t = self.template
+        z = np.array([t.mu0, t.J0, *t.mu, *t.J, *np.log10(t.tau)])  # type: ignore[union-attr]
+        return np.clip(z, self.lower, self.upper)
+
+
+class LozengeProblem:
+    """LS-DEA material identification from load-cell or laser records."""
+
+    def __init__(self, paths: list[str | Path], branches: int = 1, h: float = 1e-3, data_rate: float = 50.0) -> None:
+        self.h, self.data_rate, self.K = h, data_rate, branches
+        self.names = ["mu", "Jm", "C2"] + [f"mu_b{k + 1}" for k in range(branches)] + \
+            [f"tau_b{k + 1}" for k in range(branches)] + ["c"]
+        self.units = ["Pa", "-", "Pa"] + ["Pa"] * branches + ["s"] * branches + ["N·s/m"]
+        self.lower = np.array([50e3, 5.0, 0.0] + [3.0] * branches + [-2.0] * branches + [0.0])
+        self.upper = np.array([1e6, 100.0, 500e3] + [6.0] * branches + [2.0] * branches + [5.0])
+        self.log = np.array([False] * 3 + [True] * (2 * branches) + [False])
+        self.records: list[_Record] = []
+        self.base: LozengeParams | None = None
+        for path in paths:
+            self._add(open_run(path), str(path))
+        if not self.records:
+            raise ValueError("no LS-DEA records in the given run files")
+        self.data = np.concatenate([r.data for r in self.records])
+
+    def _add(self, run: RunFile, source: str) -> None:
+        spec = json.loads(run.attrs["specimen"])
+        if spec["kind"] != "lsdea":
+            raise ValueError(f"run file {source}: not an LS-DEA run")
+        lsdea, over = spec["lsdea"], spec.get("overrides", {})
+        config = lsdea["configuration"]
+        model = spec["model"]
+        base = LozengeParams.prototype(int(over.get("prototype") or lsdea["prototype"]),
+                                       hung_mass=over.get("hung_mass_kg") if over.get("hung_mass_kg") is not None
+                                       else lsdea.get("hung_mass_kg", 0.0))
+        base = replace(base, mechanism_mass=model.get("mechanism_mass", base.mechanism_mass))
+        self.base = self.base or base
+        changes = _specimen_changes(run)
+        cuts = sorted({0.0, *[t for t, _ in changes], run.updated})
+        sp = run.streams["setpoints"]
+        stride = max(1, round(1.0 / (self.data_rate * self.h)))
+        proto, mass = base.lambda2p, base.hung_mass
+        for a, b in itertools.pairwise(cuts):
+            for te, values in changes:
+                if te <= a + 1e-9:
+                    proto = PROTOTYPE_LAMBDA2P[int(values["prototype"])] if "prototype" in values else proto
+                    mass = values.get("hung_mass_kg", mass)
+            n = int(np.floor((b - a) / self.h))
+            n -= n % stride
+            if n < 10 * stride:
+                continue
+            t_steps = a + np.arange(0, n + 1) * self.h
+            U = np.zeros((n + 1, 3))
+            U[:, 0] = _hold(sp.t, sp.columns["voltage"], t_steps)
+            params = replace(base, lambda2p=proto, hung_mass=mass)
+            if config == "hung":
+                laser = run.streams["laser"]
+                ok = laser.columns["valid"] > 0
+                x_of = lambda t, L=laser, o=ok: np.interp(t, L.t[o], L.columns["displacement"][o])  # noqa: E731
+                mode, y0 = MODE_HUNG, params.relaxed_state(float(x_of(np.array([a]))[0]))
+                data = x_of(t_steps[::stride])
+            else:
+                motor, lc = run.streams["motor"], run.streams["load_cell"]
+                U[:, 1] = np.interp(t_steps, motor.t, motor.columns["aperture"])
+                U[:, 2] = np.gradient(U[:, 1], t_steps)
+                mode, y0 = MODE_IMPOSED, params.relaxed_state(float(U[0, 1]))
+                data = np.interp(t_steps[::stride], lc.t, lc.columns["force"])
+            self.records.append(_Record(U[1:], y0, params.pack(mode), stride, data, f"{source} [{a:.1f}, {b:.1f}] s"))
+        self._mode_channel = 0 if config == "hung" else OBSERVE_FORCE
+
+    def params_of(self, z: np.ndarray, template: LozengeParams | None = None) -> LozengeParams:
+        """Physical LozengeParams for one optimiser vector."""
+        v = to_physical(self.log, z)
+        K = self.K
+        base = template or self.base
+        material = replace(base.material, mu=float(v[0]), Jm=float(v[1]), C2=float(v[2]))  # type: ignore[union-attr]
+        branches = tuple(MaxwellBranch(float(v[3 + k]), float(v[3 + K + k])) for k in range(K))
+        return replace(base, material=material, branches=branches, damping=float(v[3 + 2 * K]))  # type: ignore[type-var]
+
+    def predict(self, Z: np.ndarray) -> np.ndarray:
+        """Forces [N] (motor / blocked) or apertures [m] (hung) for each row of Z, records concatenated."""
+        Z = np.atleast_2d(Z)
+        out = []
+        for rec in self.records:
+            mode = int(rec.template[16])  # Q_MODE
+            lam2p = float(rec.template[10])  # Q_L2P
+            mass = float(rec.template[13])  # Q_MHUNG
+            P = np.stack([replace(self.params_of(z), lambda2p=lam2p, hung_mass=mass).pack(mode) for z in Z])
+            Y0 = np.tile(rec.y0, (Z.shape[0], 1))
+            channel = 0 if mode == MODE_HUNG else OBSERVE_FORCE
+            out.append(run_fixed_batch(MODEL_LOZENGE, Y0, rec.U, self.h, P, channel, rec.stride))
+        return np.concatenate(out, axis=1)
+
+    def start(self) -> np.ndarray:
+        """Optimiser vector of Table 1 + VE-A (the defaults)."""
+        b = LozengeParams()
+        m = b.material
+        z = [m.mu, m.Jm, m.C2] + [np.log10(b.branches[0].mu)] * self.K + [np.log10(b.branches[0].tau)] * self.K + \
+            [b.damping]
+        return np.clip(np.array(z, float), self.lower, self.upper)
