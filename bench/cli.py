@@ -183,45 +183,6 @@ def simulate_lsdea(
         raise fail(f"specimen failed: {tr.failure}", code=1)
 
 
-@app.command()
-@clean_errors
-def demo(out: Annotated[Path, typer.Option(help="Folder for the run files.")] = Path("runs/demo")) -> None:
-    """The main job for a newcomer, on the simulated rig: a paper protocol run, recorded, analysed from the file.
-
-    Runs the thesis identification protocol (7 kV raised cosine at 1/9 Hz, 296 K, 20 s, laser at 10 kHz) in
-    virtual time through the real wire protocols, then reads the HDF5 file back and prints the per-cycle
-    figures (peaks, creep, residual, lag). Identification and plots join when the fitter lands.
-    """
-    from bench.analysis.thesis import cycle_figures
-    from bench.run import default_output, execute, plan_run
-    from bench.runfile import open_run
-
-    protocol = Path(__file__).resolve().parent.parent / "protocols" / "thesis-identification.toml"
-    with console.status("validating and dry-running the thesis identification protocol…"):
-        plan = plan_run(protocol)
-    console.print(f"protocol {plan.protocol.protocol.name}: {plan.protocol.protocol.description}")
-    with console.status("running it on the simulated rig in virtual time (same bytes on the wire)…"):
-        result = execute(plan, default_output(plan, out), virtual=True)
-    console.print(f"[{'green' if result.state == 'completed' else 'red'}]{result.state}[/]: {result.reason}; "
-                  f"{result.run_time:.0f} s of run in {result.wall_time:.2f} s, {result.samples:,} samples")
-    run = open_run(result.path)
-    laser, sp = run.streams["laser"], run.streams["setpoints"]
-    volts = np.interp(laser.t, sp.t, sp.columns["voltage"])
-    drive = laser.t <= 20.0
-    figs = cycle_figures(laser.t[drive], laser.columns["displacement"][drive], volts[drive], 1 / 9)
-    table = Table(title="thesis identification record (from the run file)")
-    for col in ("cycle", "peak u [mm]", "at t [s]", "lag [s]", "u at cycle end [mm]"):
-        table.add_column(col, justify="right")
-    for k, (pk, tk, lag) in enumerate(zip(figs.peaks, figs.peak_times, figs.lags, strict=True)):
-        res = f"{figs.residuals[k] * 1e3:.3f}" if k < len(figs.residuals) else "–"
-        table.add_row(str(k + 1), f"{pk * 1e3:.3f}", f"{tk:.3f}", f"{lag:.3f}", res)
-    console.print(table)
-    console.print(f"creep {figs.creep * 100:+.1f} % between cycles; run file: {result.path}")
-    console.print(f"inspect it with: bench inspect {result.path}")
-    if result.state != "completed":
-        raise fail(f"run ended {result.state}: {result.reason}", code=1)
-
-
 RigArg = Annotated[Path, typer.Argument(help="Rig file (TOML), e.g. rigs/thesis-sim.toml.")]
 
 
@@ -353,4 +314,4 @@ def benchmark(
 
 
 # commands defined in other modules register themselves on ``app``
-from bench import cli_run  # noqa: E402, F401
+from bench import cli_analysis, cli_run  # noqa: E402, F401

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import re
 import subprocess
 import sys
@@ -10,6 +11,7 @@ from typer.testing import CliRunner
 
 from bench import __version__
 from bench.cli import app
+from bench.identify.store import read_fits
 
 runner = CliRunner()
 
@@ -71,10 +73,17 @@ def test_acquisition_benchmark_reports_complete_10kHz_storage() -> None:
         assert path in res.output
 
 
-def test_demo_runs_records_and_analyses_from_the_file(tmp_path) -> None:
-    res = runner.invoke(app, ["demo", "--out", str(tmp_path)], env={"COLUMNS": "200"})
+def test_demo_runs_records_fits_and_reports_from_the_file(tmp_path) -> None:
+    res = runner.invoke(app, ["demo", "--out", str(tmp_path), "--generations", "3", "--population", "10"],
+                        env={"COLUMNS": "200"})
     assert res.exit_code == 0, res.output
     files = list(tmp_path.glob("thesis-identification-*.h5"))
     assert len(files) == 1 and str(files[0]) in res.output
-    assert re.search(r"│\s+1 │\s+7\.[67]\d\d │", res.output) and re.search(r"│\s+2 │\s+8\.[56]\d\d │", res.output)
-    assert re.search(r"creep \+1[12]\.\d %", res.output)
+    # figures of merit read back from the file: the two peaks of the 7-kV cycles and the creep between them
+    assert re.search(r"│\s+7 │\s+0\.111 │\s+7\.[67]\d\d │\s+8\.[56]\d\d │\s+1[12]\.\d+ │", res.output)
+    fits = read_fits(files[0])
+    assert len(fits) == 1 and fits[0]["names"][0] == "mu0" and fits[0]["settings"]["generations"] == 3
+    assert "identified vs the simulated specimen" in res.output
+    report = files[0].with_name(files[0].stem + "-report")
+    assert (report / "displacement_vs_time.png").stat().st_size > 10_000
+    assert json.loads((report / "figures.json").read_text())[0]["kind"] == "thesis"

@@ -12,6 +12,7 @@ no influence on the cost, or almost perfectly correlated with another are flagge
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Literal, Protocol
 
@@ -98,11 +99,11 @@ def _costs(problem: Problem, pred: np.ndarray, kind: Cost) -> np.ndarray:
 
 
 def fit(problem: Problem, settings: FitSettings = FitSettings(), start: np.ndarray | None = None,
-        fine: Problem | None = None) -> FitResult:
+        fine: Problem | None = None, progress: Callable[[], None] | None = None) -> FitResult:
     """Identify the problem's parameters; returns values, cost and identifiability.
 
     ``fine``: the same problem at a finer integration step, used for the polish and the identifiability
-    (the search runs on the coarse, fast one).
+    (the search runs on the coarse, fast one). ``progress`` is called once per generation.
     """
     t0 = time.perf_counter()
     rng = np.random.default_rng(settings.seed)
@@ -122,7 +123,8 @@ def fit(problem: Problem, settings: FitSettings = FitSettings(), start: np.ndarr
     de = differential_evolution(lambda Zt: batch_cost(Zt), list(zip(lo, hi, strict=True)), init=init,
                                 maxiter=settings.generations, mutation=settings.mutation,
                                 recombination=settings.crossover, tol=settings.tol, polish=False,
-                                vectorized=True, updating="deferred", seed=settings.seed)
+                                vectorized=True, updating="deferred", seed=settings.seed,
+                                callback=(lambda *a, **k: progress()) if progress else None)
     z = np.asarray(de.x, dtype=float)
     problem = fine or problem
     mask = np.isfinite(problem.data)

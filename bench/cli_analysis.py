@@ -1,0 +1,259 @@
+"""CLI commands on recorded runs: fit (identification) and report (figures of merit, plots)."""
+
+from __future__ import annotations
+
+import json
+from enum import StrEnum
+from pathlib import Path
+from typing import TYPE_CHECKING, Annotated
+
+import numpy as np
+import typer
+from rich.markup import escape
+from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.table import Table
+
+from bench.cli import app, clean_errors, console, fail
+
+if TYPE_CHECKING:
+    from bench.identify.core import FitResult, FitSettings
+
+RunsArg = Annotated[list[Path], typer.Argument(help="Run files (.h5) to fit together.")]
+
+
+class ModelChoice(StrEnum):
+    auto = "auto"
+    membrane = "membrane"
+    lsdea = "lsdea"
+
+
+class CostChoice(StrEnum):
+    sae = "sae"
+    lsq = "lsq"
+
+
+def fit_result_table(result: FitResult, title: str) -> Table:
+    """Parameters, bounds, sensitivity and flags of a fit."""
+    t = Table(title=title)
+    for col in ("parameter", "value", "unit", "bounds", "sensitivity", "flags"):
+        t.add_column(col, justify="right" if col in ("value", "sensitivity") else "left",
+                     no_wrap=col != "flags")
+    for j, name in enumerate(result.names):
+        flags = "; ".join(f.split(" (")[0].replace("does not change the cost", "insensitive")
+                          for f in result.flags_of(name))
+        t.add_row(name, f"{result.values[j]:.5g}", result.units[j], f"{result.lower[j]:.3g} … {result.upper[j]:.3g}",
+                  f"{result.sensitivity[j]:.2e}", f"[yellow]{flags}[/]" if flags else "")
+    return t
+
+
+def _model_of(path: Path) -> str:
+    from bench.runfile import open_run
+
+    return json.loads(open_run(path, streams=False).attrs["specimen"])["kind"]
+
+
+@app.command("fit")
+@clean_errors
+def fit_command(
+    runs: RunsArg,
+    model: Annotated[ModelChoice, typer.Option(help="Model to identify (auto: from the run files).")]
+    = ModelChoice.auto,
+    population: Annotated[int, typer.Option(help="DE population (thesis: 50).", min=5)] = 50,
+    generations: Annotated[int, typer.Option(help="DE generations (thesis: 100).", min=1)] = 100,
+    mutation: Annotated[float, typer.Option(help="DE mutation factor F (thesis: 0.6).", min=0.0, max=2.0)] = 0.6,
+    crossover: Annotated[float, typer.Option(help="DE crossover rate (thesis: 0.9).", min=0.0, max=1.0)] = 0.9,
+    cost: Annotated[CostChoice, typer.Option(help="sae: the thesis's sum of absolute errors; lsq: least squares.")]
+    = CostChoice.sae,
+    branches: Annotated[int, typer.Option(help="LS-DEA: number of Maxwell branches.", min=0, max=4)] = 1,
+    seed: Annotated[int, typer.Option(help="Random seed of the search.")] = 1,
+    polish: Annotated[bool, typer.Option(help="Least-squares polish after the search.")] = True,
+    export: Annotated[Path | None, typer.Option(help="Write a rig file with the fitted parameters.")] = None,
+) -> None:
+    """Identify model parameters from recorded runs (differential evolution, as in the thesis) and store them."""
+    from bench.identify.core import FitSettings
+
+    kinds = {_model_of(p) for p in runs}
+    chosen = model.value if model is not ModelChoice.auto else (kinds.pop() if len(kinds) == 1 else "")
+    if not chosen:
+        raise ValueError("the run files hold different specimens: fit them separately or pass --model")
+    settings = FitSettings(population, generations, mutation, crossover, cost.value, polish, seed=seed)
+    run_fit(runs, chosen, settings, branches, export)
+
+
+def run_fit(runs: list[Path], chosen: str, settings: FitSettings, branches: int = 1,
+            export: Path | None = None) -> FitResult:
+    """Fit, print the table, store the result in every file and optionally export a rig; returns the FitResult."""
+    from bench.identify.core import fit
+    from bench.identify.problems import LozengeProblem, MembraneProblem
+    from bench.identify.store import export_rig, fitted_rig, write_fit
+    from bench.rig import RigConfig
+    from bench.runfile import open_run
+
+    with console.status("reading the records…"):
+        if chosen == "membrane":
+            coarse, fine = MembraneProblem(runs, h=5e-4), MembraneProblem(runs, h=1e-4)
+        else:
+            coarse, fine = LozengeProblem(runs, branches=branches, h=2e-3), LozengeProblem(runs, branches=branches)
+    s = settings
+    console.print(f"fitting the {chosen} model ({len(coarse.names)} parameters) to {len(coarse.records)} records, "
+                  f"{int(np.isfinite(coarse.data).sum()):,} points; DE population {s.population}, up to "
+                  f"{s.generations} generations, F {s.mutation}, CR {s.crossover}, cost {s.cost}")
+    with Progress(TextColumn("differential evolution"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
+                  TimeElapsedColumn(), console=console, transient=True) as bar:
+        task = bar.add_task("de", total=s.generations)
+        result = fit(coarse, s, start=None, fine=fine, progress=lambda: bar.advance(task))
+    console.print(fit_result_table(result, f"{chosen} model fitted to {len(runs)} run(s)"))
+    unit = "m" if chosen == "membrane" or coarse.records[0].template[16] == 1 else "N"
+    console.print(f"cost ({result.cost_kind}) {result.cost:.4g}, residual rms {result.rms:.4g} {unit}, "
+                  f"{result.evaluations:,} model evaluations, {result.generations} generations, "
+                  f"{result.wall_time:.1f} s")
+    records = [r.source for r in coarse.records]
+    for p in runs:
+        group = write_fit(p, chosen, result, records)
+        console.print(f"stored in {p}:{group}")
+    if export is not None:
+        rig = RigConfig.model_validate(_rig_from_text(open_run(runs[0], streams=False).attrs["rig_toml"]))
+        export_rig(fitted_rig(rig, chosen, result.names, result.values), export, str(runs[0]))
+        console.print(f"fitted rig file: {export} (bench run PROTOCOL --rig {export})")
+    return result
+
+
+def _rig_from_text(text: str) -> dict:
+    import tomllib
+
+    return tomllib.loads(text)
+
+
+@app.command("report")
+@clean_errors
+def report_command(
+    runs: Annotated[list[Path], typer.Argument(help="Run files (.h5); several make a campaign report.")],
+    out: Annotated[Path | None, typer.Option(help="Folder for the figures (default: beside the run file).")] = None,
+) -> None:
+    """Figures of merit and PNG plots of recorded runs; several files add a campaign table."""
+    print_report(runs, out)
+
+
+def print_report(runs: list[Path], out: Path | None = None) -> list[Path]:
+    """Tables of figures of merit and PNG plots of run files; returns the figure paths."""
+    from bench.report import report
+
+    all_steps, all_paths = [], []
+    for p in runs:
+        a, paths = report(p, out / p.stem if out is not None and len(runs) > 1 else out)
+        all_steps += a.steps
+        t = Table(title=f"{a.protocol} ({p.name})")
+        keys = sorted({k for s in a.steps for k in s.figures})
+        keys = [k for k in FIGURE_COLUMNS if k in keys] + [k for k in keys if k not in FIGURE_COLUMNS]
+        t.add_column("step", overflow="fold", min_width=14)
+        has_where = any(s.prototype or s.hung_mass for s in a.steps)
+        for col in ("#", "V [kV]", "f [Hz]") if has_where else ("V [kV]", "f [Hz]"):
+            t.add_column(escape(col), justify="right")
+        for k in keys:
+            t.add_column(escape(FIGURE_COLUMNS.get(k, (k, 1.0))[0]), justify="right")
+        for s in a.steps:
+            where = f"{s.prototype or ''}" + (f" {s.hung_mass * 1e3:.0f} g" if s.hung_mass else "")
+            t.add_row(s.name, *([where] if has_where else []), f"{s.voltage / 1e3:.3g}", f"{s.frequency:.3g}",
+                      *(_fmt(k, s.figures.get(k)) for k in keys))
+        console.print(t)
+        if a.by_kind("isotonic"):
+            console.print("resonance: " + ", ".join(f"{m * 1e3:.0f} g at {f:g} Hz ({amp * 1e3:.1f} mm)"
+                                                   for m, (f, amp) in a.resonance().items()))
+        console.print("figures: " + ", ".join(str(x) for x in paths))
+        all_paths += paths
+    iso = [s for s in all_steps if s.kind == "isopotential"]
+    if iso:
+        grid = Table(title="hysteresis loss of the stabilised cycle [%] (Table 3 layout: prototype × voltage, "
+                           "largest Δx)")
+        volts = sorted({round(s.voltage / 1e3) for s in iso})
+        grid.add_column("prototype")
+        for v in volts:
+            grid.add_column(f"{v} kV", justify="right")
+        for proto in sorted({s.prototype for s in iso}):
+            ss = [s for s in iso if s.prototype == proto]
+            dx = max(round(s.figures["stroke"] * 1e3) for s in ss)  # mm: the imposed stroke
+            row = {round(s.voltage / 1e3): s.figures["loss_last"] for s in ss
+                   if round(s.figures["stroke"] * 1e3) == dx}
+            grid.add_row(f"#{proto}", *(f"{100 * row[v]:.1f}" if v in row else "–" for v in volts))
+        console.print(grid)
+    return all_paths
+
+
+# figure of merit → (column header, scale to the shown unit)
+FIGURE_COLUMNS: dict[str, tuple[str, float]] = {
+    "peak_first": ("u peak 1 [mm]", 1e3), "peak_last": ("u peak N [mm]", 1e3), "creep": ("creep [%]", 100.0),
+    "lag_first": ("lag 1 [s]", 1.0), "residual_first": ("u end 1 [mm]", 1e3), "residual_last": ("u end N [mm]", 1e3),
+    "loss_first": ("loss 1 [%]", 100.0), "loss_last": ("loss N [%]", 100.0), "stroke": ("Δx [mm]", 1e3),
+    "force_max": ("F max [N]", 1.0), "force_min": ("F min [N]", 1.0), "amplitude": ("ampl. [mm]", 1e3),
+    "stroke_percent": ("stroke [%]", 1.0), "energy_density": ("w [mJ/g]", 1.0),
+    "energy_density_with_mechanism": ("w+mech [mJ/g]", 1.0), "mean_position": ("x mean [mm]", 1e3),
+    "force_swing": ("ΔF [N]", 1.0), "force_mean": ("F mean [N]", 1.0), "output_frequency": ("f out [Hz]", 1.0),
+}
+
+
+def _fmt(key: str, value: float | None) -> str:
+    if value is None or not np.isfinite(value):
+        return "–"
+    return f"{value * FIGURE_COLUMNS.get(key, ('', 1.0))[1]:.4g}"
+
+
+@app.command()
+@clean_errors
+def demo(
+    out: Annotated[Path, typer.Option(help="Folder for the run file and the report.")] = Path("runs/demo"),
+    generations: Annotated[int, typer.Option(help="DE generations (thesis: 100).", min=1)] = 100,
+    population: Annotated[int, typer.Option(help="DE population (thesis: 50).", min=5)] = 50,
+) -> None:
+    """The main job on the simulated rig: a paper protocol run, recorded, fitted and reported from the file.
+
+    Runs the thesis identification protocol (7 kV raised cosine at 1/9 Hz, 296 K, laser at 10 kHz) in virtual
+    time through the real wire protocols, identifies the membrane model from the HDF5 file by differential
+    evolution (thesis settings), compares it with the specimen the twin simulated, and writes the report.
+    """
+    from bench.identify.core import FitSettings
+    from bench.identify.problems import MembraneProblem
+    from bench.run import default_output, execute, plan_run
+
+    protocol = Path(__file__).resolve().parent.parent / "protocols" / "thesis-identification.toml"
+    with console.status("validating and dry-running the thesis identification protocol…"):
+        plan = plan_run(protocol)
+    console.print(f"[bold]1. run[/] {plan.protocol.protocol.name}: {plan.protocol.protocol.description}")
+    with console.status("running it on the simulated rig in virtual time (same bytes on the wire)…"):
+        result = execute(plan, default_output(plan, out), virtual=True)
+    console.print(f"[{'green' if result.state == 'completed' else 'red'}]{result.state}[/]: {result.reason}; "
+                  f"{result.run_time:.0f} s of run in {result.wall_time:.2f} s, {result.samples:,} samples "
+                  f"→ {result.path}")
+    if result.state != "completed":
+        raise fail(f"run ended {result.state}: {result.reason}", code=1)
+    console.print("[bold]2. fit[/] the membrane model to the recorded file")
+    path = Path(result.path)
+    fitted = run_fit([path], "membrane", FitSettings(population=population, generations=generations))
+    console.print(twin_comparison(path, fitted))
+    peak = float(np.nanmax(np.abs(MembraneProblem([path], h=5e-4).data)))
+    console.print(f"the fitted model reproduces the record to rms {fitted.rms * 1e6:.1f} µm "
+                  f"({100 * fitted.rms / peak:.2f} % of the {peak * 1e3:.2f} mm peak)")
+    console.print("[bold]3. report[/]")
+    print_report([path], path.with_name(path.stem + "-report"))
+    console.print(f"next: bench inspect {path} · bench fit --help · bench run protocols/<campaign>.toml")
+
+
+def twin_comparison(path: Path, fitted: FitResult) -> Table:
+    """Fitted parameters next to the ones the simulated specimen used (read from the run file)."""
+    from bench.runfile import open_run
+
+    model = json.loads(open_run(path, streams=False).attrs["specimen"])["model"]
+    true = {"mu0": model["mu0"], "J0": model["J0"]}
+    for i, (mu, J, eta) in enumerate(zip(model["mu"], model["J"], model["eta"], strict=True), start=1):
+        true |= {f"mu{i}": mu, f"J{i}": J, f"tau{i}": eta / mu}
+    t = Table(title="identified vs the simulated specimen (the twin's model, recorded in the file)")
+    for col in ("parameter", "simulated", "identified", "error", "note"):
+        t.add_column(col, justify="left" if col in ("parameter", "note") else "right")
+    for j, name in enumerate(fitted.names):
+        err = fitted.values[j] / true[name] - 1.0
+        note = "; ".join(f.split(" (")[0].replace("does not change the cost", "insensitive: not identifiable")
+                         for f in fitted.flags_of(name))
+        style = "dim" if note else ""
+        t.add_row(name, f"{true[name]:.4g}", f"{fitted.values[j]:.4g}", f"{100 * err:+.1f} %", note, style=style)
+    t.caption = ("flagged parameters are not determined by this record (they trade off against others at equal "
+                 "cost); fit several runs together (e.g. a frequency sweep) to pin them down")
+    return t

@@ -1,0 +1,86 @@
+"""Fit results written back beside the data, and exported as a rig file the simulated rig accepts.
+
+In the run file: group ``/fit/<model>-<n>`` with datasets ``names``, ``units``, ``values``, ``lower``,
+``upper``, ``sensitivity``, ``correlation`` and attributes ``cost``, ``cost_kind``, ``rms``, ``n_data``,
+``records`` (the files and windows used), DE settings, ``software``, ``wall_time``, ``flags``, ``created``.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from bench import __version__
+from bench.identify.core import FitResult
+from bench.recorder import now_iso
+from bench.rig import RigConfig, rig_to_toml
+
+
+def write_fit(run_path: str | Path, model: str, result: FitResult, records: list[str]) -> str:
+    """Append the fit to a finished run file; returns the group name."""
+    with h5py.File(run_path, "r+") as f:
+        if not f.attrs.get("complete", False):
+            raise ValueError(f"run file {run_path}: incomplete run; fit results go into finished files only")
+        g0 = f.require_group("fit")
+        k = 1
+        while f"{model}-{k}" in g0:
+            k += 1
+        g = g0.create_group(f"{model}-{k}")
+        text = h5py.string_dtype("utf-8")
+        g.create_dataset("names", data=np.array(result.names, dtype=object), dtype=text)
+        g.create_dataset("units", data=np.array(result.units, dtype=object), dtype=text)
+        for key in ("values", "lower", "upper", "sensitivity", "correlation"):
+            g.create_dataset(key, data=np.asarray(getattr(result, key), dtype=float))
+        g.attrs.update({"model": model, "cost": result.cost, "cost_kind": result.cost_kind, "rms": result.rms,
+                        "n_data": result.n_data, "evaluations": result.evaluations,
+                        "generations": result.generations, "wall_time": result.wall_time,
+                        "settings": json.dumps(asdict(result.settings)), "records": json.dumps(records),
+                        "flags": json.dumps(result.flags), "software": f"dea-bench {__version__}",
+                        "created": now_iso()})
+        return g.name
+
+
+def read_fits(run_path: str | Path) -> list[dict]:
+    """Fits stored in a run file (newest last): dicts with names, values, bounds, cost, flags, …"""
+    out = []
+    with h5py.File(run_path, "r") as f:
+        if "fit" not in f:
+            return out
+        for name in sorted(f["fit"], key=lambda n: f["fit"][n].attrs["created"]):
+            g = f["fit"][name]
+            out.append({"group": g.name, "names": list(g["names"].asstr()[:]),
+                        "units": list(g["units"].asstr()[:]), "values": g["values"][:],
+                        "lower": g["lower"][:], "upper": g["upper"][:], "sensitivity": g["sensitivity"][:],
+                        **{k: (json.loads(v) if k in ("settings", "records", "flags") else v)
+                           for k, v in g.attrs.items()}})
+    return out
+
+
+def fitted_rig(rig: RigConfig, model: str, names: list[str], values: np.ndarray) -> RigConfig:
+    """The rig with the fitted specimen model (``membrane_model`` or ``lsdea_model``) set."""
+    v = dict(zip(names, (float(x) for x in values), strict=True))
+    data = rig.model_dump()
+    if model == "membrane":
+        mu = [v[f"mu{i}"] for i in range(1, 5)]
+        tau = [v[f"tau{i}"] for i in range(1, 5)]
+        data["specimen"]["membrane_model"] = {"mu0": v["mu0"], "J0": v["J0"], "mu": mu,
+                                              "J": [v[f"J{i}"] for i in range(1, 5)],
+                                              "eta": [m * t for m, t in zip(mu, tau, strict=True)]}
+    else:
+        K = sum(1 for n in names if n.startswith("mu_b"))
+        data["specimen"]["lsdea_model"] = {"mu": v["mu"], "Jm": v["Jm"], "C2": v["C2"],
+                                           "branch_mu": [v[f"mu_b{k + 1}"] for k in range(K)],
+                                           "branch_tau": [v[f"tau_b{k + 1}"] for k in range(K)],
+                                           "damping": v["c"]}
+    data["name"] = f"{rig.name}-fitted"
+    data["simulated"] = True
+    return RigConfig.model_validate(data)
+
+
+def export_rig(rig: RigConfig, path: str | Path, source: str) -> None:
+    """Write the fitted rig file."""
+    Path(path).write_text(f"# fitted by `bench fit` from {source}\n" + rig_to_toml(rig), encoding="utf-8")

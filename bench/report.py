@@ -1,0 +1,169 @@
+"""PNG figures of recorded runs, of the papers' types (matplotlib, no display needed)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import numpy as np
+
+from bench.analysis.runs import RunAnalysis, analyse
+from bench.identify.store import read_fits
+from bench.runfile import open_run
+
+
+def _save(fig: plt.Figure, path: Path) -> Path:
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def _fitted_membrane(run_path: Path) -> tuple[np.ndarray, np.ndarray, dict] | None:
+    """(t, u, fit) of the newest membrane fit, or None."""
+    fits = [f for f in read_fits(run_path) if f["model"] == "membrane"]
+    if not fits:
+        return None
+    from bench.identify.problems import MembraneProblem
+
+    prob = MembraneProblem([run_path], h=1e-4)
+    fit = fits[-1]
+    z = np.array([np.log10(v) if lg else v for v, lg in zip(fit["values"], prob.log, strict=True)])
+    u = prob.predict(z[None, :])[0]
+    t = np.arange(u.size) * prob.records[0].stride * prob.h
+    return t, u, fit
+
+
+def thesis_figures(a: RunAnalysis, out: Path) -> list[Path]:
+    """Displacement vs time and vs voltage (the thesis's Figs 4.15–4.22), with the fitted model if any."""
+    run = open_run(a.path)
+    laser, sp = run.streams["laser"], run.streams["setpoints"]
+    ok = laser.columns["valid"] > 0
+    t, u = laser.t[ok], laser.columns["displacement"][ok] * 1e3
+    v = np.interp(t, sp.t, sp.columns["voltage"]) / 1e3
+    fitted = _fitted_membrane(a.path)
+    paths = []
+    fig, ax = plt.subplots(figsize=(8, 4))
+    ax.plot(t, u, lw=0.8, label="recorded (laser)")
+    if fitted is not None:
+        ax.plot(fitted[0], fitted[1] * 1e3, "--", lw=1.0, label=f"fitted model (rms {fitted[2]['rms'] * 1e6:.1f} µm)")
+    ax2 = ax.twinx()
+    ax2.plot(t, v, color="tab:red", lw=0.6, alpha=0.6)
+    ax2.set_ylabel("voltage [kV]", color="tab:red")
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel("displacement u [mm]")
+    ax.set_title(f"{a.protocol}: displacement vs time")
+    ax.legend(loc="upper left")
+    paths.append(_save(fig, out / "displacement_vs_time.png"))
+    fig, ax = plt.subplots(figsize=(6, 5))
+    for s in a.by_kind("thesis"):
+        w = (t >= s.t_start) & (t <= s.t_start + s.duration)
+        ax.plot(v[w], u[w], lw=0.8, label=f"{s.voltage / 1e3:.0f} kV, {s.frequency:.3g} Hz")
+    ax.set_xlabel("voltage [kV]")
+    ax.set_ylabel("displacement u [mm]")
+    ax.set_title("displacement vs voltage")
+    ax.legend(fontsize=8)
+    paths.append(_save(fig, out / "displacement_vs_voltage.png"))
+    return paths
+
+
+def isopotential_figures(a: RunAnalysis, out: Path) -> list[Path]:
+    """Force–displacement loops of the last (stabilised) cycle at each voltage, per prototype and stroke."""
+    run = open_run(a.path)
+    motor, lc = run.streams["motor"], run.streams["load_cell"]
+    paths = []
+    groups: dict[tuple, list] = {}
+    for s in a.by_kind("isopotential"):
+        groups.setdefault((s.prototype, round(s.figures["stroke"] * 1e3)), []).append(s)
+    for (proto, stroke), steps in sorted(groups.items()):
+        fig, ax = plt.subplots(figsize=(6, 5))
+        for s in steps:
+            t0 = s.t_start + s.duration - 1 / s.frequency
+            w = (motor.t >= t0) & (motor.t <= s.t_start + s.duration)
+            f = np.interp(motor.t[w], lc.t, lc.columns["force"])
+            ax.plot(motor.columns["aperture"][w] * 1e3, f, lw=1.0,
+                    label=f"{s.voltage / 1e3:.0f} kV: loss {100 * s.figures['loss_last']:.1f} %")
+        ax.set_xlabel("aperture x [mm]")
+        ax.set_ylabel("force F [N]")
+        ax.set_title(f"LS-DEA #{proto}, Δx {stroke} mm, stabilised cycle")
+        ax.legend(fontsize=8)
+        paths.append(_save(fig, out / f"isopotential_p{proto}_dx{stroke}.png"))
+    return paths
+
+
+def isometric_figures(a: RunAnalysis, out: Path) -> list[Path]:
+    """Force vs time at the highest frequency, and force variation vs output frequency (Fig. 7)."""
+    run = open_run(a.path)
+    lc, sp = run.streams["load_cell"], run.streams["setpoints"]
+    steps = a.by_kind("isometric")
+    paths = []
+    top = max(steps, key=lambda s: s.frequency)
+    w = (lc.t >= top.t_start) & (lc.t <= top.t_start + top.duration)
+    fig, ax = plt.subplots(figsize=(8, 4))
+    ax.plot(lc.t[w] - top.t_start, lc.columns["force"][w], lw=0.8)
+    ax2 = ax.twinx()
+    ws = (sp.t >= top.t_start) & (sp.t <= top.t_start + top.duration)
+    ax2.plot(sp.t[ws] - top.t_start, sp.columns["voltage"][ws] / 1e3, color="tab:red", lw=0.6, alpha=0.6)
+    ax2.set_ylabel("voltage [kV]", color="tab:red")
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel("force [N]")
+    ax.set_title(f"isometric, LS-DEA #{top.prototype}: {top.name}")
+    paths.append(_save(fig, out / "isometric_time_series.png"))
+    fig, ax = plt.subplots(figsize=(6, 4))
+    series: dict[tuple, list] = {}
+    for s in steps:
+        series.setdefault((s.prototype, round(s.figures["force_mean"], 1)), []).append(s)
+    for (proto, _), ss in series.items():
+        ax.plot([s.figures["output_frequency"] for s in ss], [s.figures["force_swing"] for s in ss], "o-",
+                label=f"#{proto}, mean force {np.mean([s.figures['force_mean'] for s in ss]):.2f} N")
+    ax.set_xlabel("force frequency [Hz]")
+    ax.set_ylabel("crest-to-trough force [N]")
+    ax.set_ylim(bottom=0)
+    ax.legend(fontsize=7)
+    ax.set_title("electrically induced force variation")
+    paths.append(_save(fig, out / "isometric_force_vs_frequency.png"))
+    return paths
+
+
+def isotonic_figures(a: RunAnalysis, out: Path) -> list[Path]:
+    """Crest-to-trough displacement vs frequency for each hung mass (Fig. 10), resonances marked."""
+    fig, ax = plt.subplots(figsize=(6, 4))
+    masses = sorted({s.hung_mass for s in a.by_kind("isotonic")})
+    for m in masses:
+        ss = [s for s in a.by_kind("isotonic") if s.hung_mass == m]
+        ax.plot([s.frequency for s in ss], [s.figures["amplitude"] * 1e3 for s in ss], "o-",
+                label=f"{m * 1e3:.0f} g")
+    for f, amp in a.resonance().values():
+        ax.annotate(f"{f:g} Hz", (f, amp * 1e3), textcoords="offset points", xytext=(4, 4), fontsize=8)
+    ax.set_xlabel("voltage frequency [Hz]")
+    ax.set_ylabel("crest-to-trough displacement [mm]")
+    ax.set_title("isotonic response, LS-DEA #1")
+    ax.legend(title="hung mass")
+    return [_save(fig, out / "isotonic_amplitude_vs_frequency.png")]
+
+
+def report(run_path: str | Path, out: str | Path | None = None) -> tuple[RunAnalysis, list[Path]]:
+    """Analyse a run file and write its figures; returns the analysis and the PNG paths."""
+    run_path = Path(run_path)
+    out = Path(out) if out is not None else run_path.with_suffix("").with_name(run_path.stem + "-report")
+    out.mkdir(parents=True, exist_ok=True)
+    a = analyse(run_path)
+    paths: list[Path] = []
+    kinds = {s.kind for s in a.steps}
+    if "thesis" in kinds:
+        paths += thesis_figures(a, out)
+    if "isopotential" in kinds:
+        paths += isopotential_figures(a, out)
+    if "isometric" in kinds:
+        paths += isometric_figures(a, out)
+    if "isotonic" in kinds:
+        paths += isotonic_figures(a, out)
+    (out / "figures.json").write_text(json.dumps(
+        [{"step": s.name, "kind": s.kind, "prototype": s.prototype, "hung_mass": s.hung_mass,
+          "frequency": s.frequency, "voltage": s.voltage,
+          **{k: (v if np.isfinite(v) else None) for k, v in s.figures.items()}} for s in a.steps], indent=1))
+    return a, paths
