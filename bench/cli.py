@@ -167,11 +167,12 @@ def simulate_lsdea(
             tr = simulate_lozenge(params, "blocked", Waveform("sine", voltage, frequency), duration,
                                   position=position / 1e3)
             m = last_cycles(tr.t, frequency, 1)
-            figure = f"force crest-to-trough {crest_to_trough(tr.t[m], tr.force[m], detrend=False):.4f} N"
+            figure = f"force crest-to-trough {crest_to_trough(tr.t[m], tr.force[m]):.4f} N"
         else:
             tr = simulate_lozenge(params, "hung", Waveform("raised_cosine", voltage, frequency), duration)
             m = last_cycles(tr.t, frequency, min(3, cycles))
-            figure = (f"detrended crest-to-trough displacement {crest_to_trough(tr.t[m], tr.position[m]) * 1e3:.3f}"
+            stroke = crest_to_trough(tr.t[m], tr.position[m], frequency)
+            figure = (f"detrended crest-to-trough displacement {stroke * 1e3:.3f}"
                       f" mm, mean position {np.mean(tr.position[m]) * 1e3:.2f} mm")
     console.print(f"LS-DEA #{prototype} {test.value}: {figure}")
     with np.errstate(divide="ignore"):

@@ -35,13 +35,14 @@ class CostChoice(StrEnum):
 def fit_result_table(result: FitResult, title: str) -> Table:
     """Parameters, bounds, sensitivity and flags of a fit."""
     t = Table(title=title)
-    for col in ("parameter", "value", "unit", "bounds", "sensitivity", "flags"):
-        t.add_column(col, justify="right" if col in ("value", "sensitivity") else "left",
+    for col in ("parameter", "value", "unit", "bounds", "± (1σ)", "sensitivity", "flags"):
+        t.add_column(col, justify="right" if col in ("value", "± (1σ)", "sensitivity") else "left",
                      no_wrap=col != "flags")
     for j, name in enumerate(result.names):
         flags = "; ".join(f.split(" (")[0].replace("does not change the cost", "insensitive")
                           for f in result.flags_of(name))
         t.add_row(name, f"{result.values[j]:.5g}", result.units[j], f"{result.lower[j]:.3g} … {result.upper[j]:.3g}",
+                  f"{100 * result.uncertainty[j]:.2g} %" if np.isfinite(result.uncertainty[j]) else "–",
                   f"{result.sensitivity[j]:.2e}", f"[yellow]{flags}[/]" if flags else "")
     return t
 

@@ -100,7 +100,7 @@ def test_isometric_force_swing_matches_the_model(tmp_path: Path) -> None:
     prog = {row["name"].decode(): (row["t_start"], row["duration"]) for row in run.program}
     t0, dur = prog["sine [f=2.0]"]
     sel = (lc.t >= t0 + 0.5 * dur) & (lc.t <= t0 + dur)  # last two cycles at 2 Hz (force at 4 Hz, 25 S/cycle)
-    swing = crest_to_trough(lc.t[sel], lc.columns["force"][sel], detrend=True)
+    swing = crest_to_trough(lc.t[sel], lc.columns["force"][sel], 4.0)
     assert swing == pytest.approx(1.147, abs=0.04)  # physics.md §2.2: #3 at 100 mm, ±6 kV
 
 

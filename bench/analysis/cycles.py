@@ -33,10 +33,21 @@ def hysteresis_loss(x: np.ndarray, force: np.ndarray) -> float:
     return abs(float(np.sum(work))) / loading
 
 
-def crest_to_trough(t: np.ndarray, signal: np.ndarray, detrend: bool = True) -> float:
-    """Crest-to-trough amplitude max − min of ``signal``, after removing a linear drift if ``detrend``."""
+def crest_to_trough(t: np.ndarray, signal: np.ndarray, frequency: float | None = None, harmonics: int = 6) -> float:
+    """Crest-to-trough amplitude max − min of ``signal``; with ``frequency`` [Hz], after removing a linear drift.
+
+    The drift is fitted jointly with the periodic part (offset, slope and the first ``harmonics`` harmonics of
+    ``frequency``), so that a periodic signal whose phase does not start at a crest is not tilted by the fit, as a
+    plain least-squares line through it would be.
+    """
     t = np.asarray(t, dtype=float)
     s = np.asarray(signal, dtype=float)
-    if detrend and s.size > 1:
-        s = s - np.polyval(np.polyfit(t - t[0], s, 1), t - t[0])
+    if frequency is not None and s.size > 2 * harmonics + 2:
+        tau = t - t[0]
+        w = 2 * np.pi * frequency * tau
+        cols = [np.ones_like(tau), tau]
+        for k in range(1, harmonics + 1):
+            cols += [np.sin(k * w), np.cos(k * w)]
+        coef, *_ = np.linalg.lstsq(np.column_stack(cols), s, rcond=None)
+        s = s - coef[1] * tau
     return float(np.max(s) - np.min(s))

@@ -172,7 +172,7 @@ def analyse(path: str | Path, last_cycles: int = 3) -> RunAnalysis:
                                                      "energy_density_with_mechanism": np.nan, "mean_position": np.nan}
                 results.append(res)
                 continue
-            amp = crest_to_trough(laser.t[w], laser.columns["displacement"][w], detrend=True)
+            amp = crest_to_trough(laser.t[w], laser.columns["displacement"][w], f)
             params = LozengeParams.prototype(proto, hung_mass=mass)
             de_mass = params.membrane_mass
             work = mass * STANDARD_GRAVITY * amp
@@ -187,7 +187,8 @@ def analyse(path: str | Path, last_cycles: int = 3) -> RunAnalysis:
             t_tail = t0 + dur - min(last_cycles, round(dur * f)) / f
             w = _window(lc, t_tail, t0 + dur)
             res.kind = "isometric"
-            res.figures = {"force_swing": crest_to_trough(lc.t[w], lc.columns["force"][w], detrend=True),
+            res.figures = {"force_swing": crest_to_trough(lc.t[w], lc.columns["force"][w],
+                                                           2 * f if step.kind == "sine" else f),
                            "force_mean": float(np.mean(lc.columns["force"][w])),
                            "output_frequency": 2 * f if step.kind == "sine" else f}
         results.append(res)

@@ -69,6 +69,7 @@ class FitResult:
     wall_time: float
     sensitivity: np.ndarray  # change of the model output (rms) per 1 % change of the parameter, relative to data rms
     correlation: np.ndarray
+    uncertainty: np.ndarray  # relative standard error from the residual and the Jacobian (NaN: not estimable)
     flags: list[str] = field(default_factory=list)
     settings: FitSettings = field(default_factory=FitSettings)
 
@@ -191,6 +192,11 @@ def fit(problem: Problem, settings: FitSettings = FitSettings(), start: np.ndarr
     cov = np.linalg.pinv(Ja.T @ Ja)
     d = np.sqrt(np.clip(np.diag(cov), 1e-300, None))
     corr[np.ix_(active, active)] = cov / np.outer(d, d)
+    # relative standard errors: residual variance × (JᵀJ)⁻¹ in relative parameters (a lower bound when the
+    # residual is systematic rather than noise)
+    s2 = float(np.sum(r * r)) / max(r.size - int(active.sum()), 1)
+    uncertainty = np.full(len(values), np.nan)
+    uncertainty[active] = np.sqrt(s2) * d
     flags = []
     for j, name in enumerate(problem.names):
         span = hi[j] - lo[j]
@@ -200,10 +206,12 @@ def fit(problem: Problem, settings: FitSettings = FitSettings(), start: np.ndarr
             flags.append(f"{name}: at its upper bound")
         if sens[j] < 1e-3 * max(float(np.max(sens)), 1e-300):
             flags.append(f"{name}: does not change the cost (sensitivity {sens[j]:.1e})")
+        if np.isfinite(uncertainty[j]) and uncertainty[j] > 0.05:
+            flags.append(f"{name}: poorly determined (±{100 * uncertainty[j]:.0f} %)")
         others = [k for k in range(len(problem.names)) if k != j and np.isfinite(corr[j, k]) and abs(corr[j, k]) > 0.98]
         if others:
             flags.append(f"{name}: correlated with " + ", ".join(problem.names[k] for k in others))
     lower, upper = physical(problem, lo), physical(problem, hi)
     return FitResult(list(problem.names), list(problem.units), values, lower, upper, cost, settings.cost,
                      float(np.sqrt(np.mean(r * r))), int(data.size), evaluations, int(de.nit),
-                     time.perf_counter() - t0, sens, corr, flags, settings)
+                     time.perf_counter() - t0, sens, corr, uncertainty, flags, settings)

@@ -1,8 +1,8 @@
 """Fit results written back beside the data, and exported as a rig file the simulated rig accepts.
 
 In the run file: group ``/fit/<model>-<n>`` with datasets ``names``, ``units``, ``values``, ``lower``,
-``upper``, ``sensitivity``, ``correlation`` and attributes ``cost``, ``cost_kind``, ``rms``, ``n_data``,
-``records`` (the files and windows used), DE settings, ``software``, ``wall_time``, ``flags``, ``created``.
+``upper``, ``sensitivity``, ``correlation``, ``uncertainty`` and attributes ``cost``, ``cost_kind``, ``rms``,
+``n_data``, ``records`` (the files and windows used), DE settings, ``software``, ``wall_time``, ``flags``, ``created``.
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ def write_fit(run_path: str | Path, model: str, result: FitResult, records: list
         text = h5py.string_dtype("utf-8")
         g.create_dataset("names", data=np.array(result.names, dtype=object), dtype=text)
         g.create_dataset("units", data=np.array(result.units, dtype=object), dtype=text)
-        for key in ("values", "lower", "upper", "sensitivity", "correlation"):
+        for key in ("values", "lower", "upper", "sensitivity", "correlation", "uncertainty"):
             g.create_dataset(key, data=np.asarray(getattr(result, key), dtype=float))
         g.attrs.update({"model": model, "cost": result.cost, "cost_kind": result.cost_kind, "rms": result.rms,
                         "n_data": result.n_data, "evaluations": result.evaluations,
@@ -55,6 +55,7 @@ def read_fits(run_path: str | Path) -> list[dict]:
             out.append({"group": g.name, "names": list(g["names"].asstr()[:]),
                         "units": list(g["units"].asstr()[:]), "values": g["values"][:],
                         "lower": g["lower"][:], "upper": g["upper"][:], "sensitivity": g["sensitivity"][:],
+                        "uncertainty": g["uncertainty"][:] if "uncertainty" in g else None,
                         **{k: (json.loads(v) if k in ("settings", "records", "flags") else v)
                            for k, v in g.attrs.items()}})
     return out
