@@ -271,6 +271,7 @@ class BenchmarkSet(StrEnum):
     physics = "physics"
     acquisition = "acquisition"
     run = "run"
+    fit = "fit"
     all = "all"
 
 
@@ -280,7 +281,7 @@ def benchmark(
     which: Annotated[BenchmarkSet, typer.Argument(help="Which figures.")] = BenchmarkSet.all,
     quick: Annotated[bool, typer.Option(help="One repeat / short runs.")] = False,
 ) -> None:
-    """Measure the integrators (× real time, one core) and the acquisition rates through the drivers."""
+    """Measure the integrators, the acquisition rates through the drivers, whole runs and the fitter."""
     if which in (BenchmarkSet.physics, BenchmarkSet.all):
         from bench.benchmark import run_all
 
@@ -303,6 +304,10 @@ def benchmark(
         from bench import benchmark_run
 
         sets.append(("whole runs: engine, recorder", benchmark_run.run_all))
+    if which in (BenchmarkSet.fit, BenchmarkSet.all):
+        from bench import benchmark_fit
+
+        sets.append(("identification (thesis record, 2 cores)", benchmark_fit.run_all))
     for title, fn in sets:
         with console.status(f"benchmarking {title}…"):
             figures = fn(quick=quick)
