@@ -8,6 +8,7 @@ must reproduce the record when the protocol is run again on it.
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -150,3 +151,37 @@ def test_lsdea_fit_from_an_isometric_run(tmp_path: Path) -> None:
     data_rms = float(np.sqrt(np.nanmean(prob.data**2)))
     assert result.rms < 0.05 * data_rms  # force record reproduced to within 5 %
     assert result.names == ["mu", "Jm", "C2", "mu_b1", "tau_b1", "c"] and np.all(result.values >= result.lower)
+
+
+# --- command line --------------------------------------------------------------------------------------------
+
+
+def test_report_cli_prints_the_table3_grid_for_an_isopotential_campaign(tmp_path: Path) -> None:
+    from typer.testing import CliRunner
+
+    from bench.cli import app
+
+    res = execute(plan_run(ROOT / "protocols" / "short" / "lsdea-isopotential-short.toml"), tmp_path / "iso.h5",
+                  virtual=True, operator=lambda _msg: True)
+    assert res.state == "completed", res.reason
+    out = CliRunner().invoke(app, ["report", str(res.path), "--out", str(tmp_path / "rep")], env={"COLUMNS": "200"})
+    assert out.exit_code == 0, out.output
+    steps = [s for s in analyse(res.path).steps if s.kind == "isopotential"]
+    assert re.search(r"Table\s+3\s+layout", out.output)
+    # the grid shows the stabilised-cycle loss of each voltage, as computed from the file
+    for s in steps:
+        assert f"{100 * s.figures['loss_last']:.1f}" in out.output
+    assert (tmp_path / "rep" / "isopotential_p1_dx90.png").stat().st_size > 10_000
+
+
+def test_fit_and_report_refuse_bad_files_in_one_line(tmp_path: Path) -> None:
+    from typer.testing import CliRunner
+
+    from bench.cli import app
+
+    bad = tmp_path / "bad.h5"
+    bad.write_text("not hdf5")
+    for cmd in (["fit", str(bad)], ["report", str(bad)], ["fit", str(tmp_path / "missing.h5")]):
+        res = CliRunner().invoke(app, cmd)
+        assert res.exit_code == 2
+        assert res.output.count("\n") == 1 and res.output.startswith("error: run file"), res.output
