@@ -140,17 +140,29 @@ def test_report_writes_figures_and_a_json_of_the_figures_of_merit(thesis_run: Pa
     assert 7.0e-3 < figures[0]["peak_first"] < 8.5e-3
 
 
-def test_lsdea_fit_from_an_isometric_run(tmp_path: Path) -> None:
-    res = execute(plan_run(ROOT / "protocols" / "short" / "lsdea-isometric-short.toml"), tmp_path / "iso.h5",
+def _simulated_lsdea(path: Path) -> dict[str, float]:
+    model = json.loads(open_run(path, streams=False).attrs["specimen"])["model"]
+    m, br = model["material"], model["branches"][0]
+    return {"mu": m["mu"], "Jm": m["Jm"], "C2": m["C2"], "mu_b1": br["mu"], "tau_b1": br["tau"],
+            "c": model["damping"]}
+
+
+@pytest.mark.parametrize("campaign", ["isopotential", "isometric", "isotonic"])
+def test_lsdea_fit_recovers_the_material_it_does_not_flag(campaign: str, tmp_path: Path) -> None:
+    res = execute(plan_run(ROOT / "protocols" / "short" / f"lsdea-{campaign}-short.toml"), tmp_path / "r.h5",
                   virtual=True, operator=lambda _msg: True)
     assert res.state == "completed", res.reason
-    steps = analyse(res.path).steps
-    assert [s.kind for s in steps] == ["isometric", "isometric"] and steps[0].figures["force_swing"] > 0.5
+    assert {s.kind for s in analyse(res.path).steps} == {campaign}
     prob = LozengeProblem([res.path], h=2e-3)
-    result = fit(prob, FitSettings(population=20, generations=15, polish=False))
+    result = fit(prob, FitSettings(population=20, generations=15), fine=LozengeProblem([res.path]))
     data_rms = float(np.sqrt(np.nanmean(prob.data**2)))
-    assert result.rms < 0.05 * data_rms  # force record reproduced to within 5 %
-    assert result.names == ["mu", "Jm", "C2", "mu_b1", "tau_b1", "c"] and np.all(result.values >= result.lower)
+    assert result.rms < 0.01 * data_rms  # force (motor, blocked) or aperture (hung) reproduced within 1 %
+    true = _simulated_lsdea(res.path)
+    clean = [n for n in result.names if not result.flags_of(n)]
+    assert {"C2", "mu_b1", "tau_b1", "c"} <= set(clean)
+    for j, name in enumerate(result.names):
+        if name in clean:
+            assert result.values[j] == pytest.approx(true[name], rel=0.05), name
 
 
 # --- command line --------------------------------------------------------------------------------------------

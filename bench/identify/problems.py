@@ -33,6 +33,19 @@ def _hold(t_set: np.ndarray, v_set: np.ndarray, t: np.ndarray) -> np.ndarray:
     return np.where(i >= 0, v_set[np.clip(i, 0, None)], 0.0)
 
 
+def _sampled(t_grid: np.ndarray, t_data: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """The record on the comparison grid: interpolated where a sample lies within a tenth of the grid spacing,
+    NaN elsewhere (between sparse samples, e.g. 10-Hz polling during rests, interpolation would invent data)."""
+    out = np.interp(t_grid, t_data, values, left=np.nan, right=np.nan)
+    if t_data.size == 0:
+        return np.full(t_grid.size, np.nan)
+    spacing = float(t_grid[1] - t_grid[0]) if t_grid.size > 1 else np.inf
+    j = np.clip(np.searchsorted(t_data, t_grid), 1, t_data.size - 1)
+    gap = np.minimum(np.abs(t_grid - t_data[j - 1]), np.abs(t_data[j] - t_grid))
+    out[gap > 0.1 * spacing] = np.nan
+    return out
+
+
 def _specimen_changes(run: RunFile) -> list[tuple[float, dict[str, float]]]:
     out = []
     for t, _, kind, text in run.event_list():
@@ -92,7 +105,7 @@ class MembraneProblem:
         laser = run.streams["laser"]
         t_data = np.arange(0, n // stride + 1) * stride * self.h
         ok = laser.columns["valid"] > 0
-        data = np.interp(t_data, laser.t[ok], laser.columns["displacement"][ok], left=np.nan, right=np.nan)
+        data = _sampled(t_data, laser.t[ok], laser.columns["displacement"][ok])
         self.records.append(_Record(U, params.initial_state(), params.pack(), stride, data, source))
 
     def data_rate_for(self, params: MembraneParams) -> float:
@@ -177,15 +190,15 @@ class LozengeProblem:
             if config == "hung":
                 laser = run.streams["laser"]
                 ok = laser.columns["valid"] > 0
-                x_of = lambda t, L=laser, o=ok: np.interp(t, L.t[o], L.columns["displacement"][o])  # noqa: E731
-                mode, y0 = MODE_HUNG, params.relaxed_state(float(x_of(np.array([a]))[0]))
-                data = x_of(t_steps[::stride])
+                x_start = float(np.interp(a, laser.t[ok], laser.columns["displacement"][ok]))
+                mode, y0 = MODE_HUNG, params.relaxed_state(x_start)
+                data = _sampled(t_steps[::stride], laser.t[ok], laser.columns["displacement"][ok])
             else:
                 motor, lc = run.streams["motor"], run.streams["load_cell"]
                 U[:, 1] = np.interp(t_steps, motor.t, motor.columns["aperture"])
                 U[:, 2] = np.gradient(U[:, 1], t_steps)
                 mode, y0 = MODE_IMPOSED, params.relaxed_state(float(U[0, 1]))
-                data = np.interp(t_steps[::stride], lc.t, lc.columns["force"])
+                data = _sampled(t_steps[::stride], lc.t, lc.columns["force"])  # "ok" means stable, not valid
             self.records.append(_Record(U[1:], y0, params.pack(mode), stride, data, f"{source} [{a:.1f}, {b:.1f}] s"))
         self._mode_channel = 0 if config == "hung" else OBSERVE_FORCE
 
