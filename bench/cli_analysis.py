@@ -148,13 +148,16 @@ def print_report(runs: list[Path], out: Path | None = None) -> list[Path]:
         keys = [k for k in FIGURE_COLUMNS if k in keys] + [k for k in keys if k not in FIGURE_COLUMNS]
         t.add_column("step", overflow="fold", min_width=14)
         has_where = any(s.prototype or s.hung_mass for s in a.steps)
-        for col in ("#", "V [kV]", "f [Hz]") if has_where else ("V [kV]", "f [Hz]"):
-            t.add_column(escape(col), justify="right")
+        has_T = any(s.temperature for s in a.steps)
+        for col in ("#" if has_where else "", "T [K]" if has_T else "", "V [kV]", "f [Hz]"):
+            if col:
+                t.add_column(escape(col), justify="right")
         for k in keys:
             t.add_column(escape(FIGURE_COLUMNS.get(k, (k, 1.0))[0]), justify="right")
         for s in a.steps:
             where = f"{s.prototype or ''}" + (f" {s.hung_mass * 1e3:.0f} g" if s.hung_mass else "")
-            t.add_row(s.name, *([where] if has_where else []), f"{s.voltage / 1e3:.3g}", f"{s.frequency:.3g}",
+            t.add_row(s.name, *([where] if has_where else []), *([f"{s.temperature:g}"] if has_T else []),
+                      f"{s.voltage / 1e3:.3g}", f"{s.frequency:.3g}",
                       *(_fmt(k, s.figures.get(k)) for k in keys))
         console.print(t)
         if a.by_kind("isotonic"):

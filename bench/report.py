@@ -62,7 +62,7 @@ def thesis_figures(a: RunAnalysis, out: Path) -> list[Path]:
     fig, ax = plt.subplots(figsize=(6, 5))
     for s in a.by_kind("thesis"):
         w = (t >= s.t_start) & (t <= s.t_start + s.duration)
-        ax.plot(v[w], u[w], lw=0.8, label=f"{s.voltage / 1e3:.0f} kV, {s.frequency:.3g} Hz")
+        ax.plot(v[w], u[w], lw=0.8, label=f"{s.voltage / 1e3:.0f} kV, {s.frequency:.3g} Hz, {s.temperature:g} K")
     ax.set_xlabel("voltage [kV]")
     ax.set_ylabel("displacement u [mm]")
     ax.set_title("displacement vs voltage")
@@ -164,6 +164,7 @@ def report(run_path: str | Path, out: str | Path | None = None) -> tuple[RunAnal
         paths += isotonic_figures(a, out)
     (out / "figures.json").write_text(json.dumps(
         [{"step": s.name, "kind": s.kind, "prototype": s.prototype, "hung_mass": s.hung_mass,
+          "temperature": s.temperature,
           "frequency": s.frequency, "voltage": s.voltage,
           **{k: (v if np.isfinite(v) else None) for k, v in s.figures.items()}} for s in a.steps], indent=1))
     return a, paths

@@ -44,6 +44,7 @@ class StepResult:
     voltage: float  # peak |V| commanded during the step [V]
     prototype: int | None = None
     hung_mass: float | None = None
+    temperature: float | None = None  # membrane: specimen temperature during the step [K]
     figures: dict[str, float] = field(default_factory=dict)
     series: dict[str, list[float]] = field(default_factory=dict)
 
@@ -113,6 +114,14 @@ def _specimen_at(t: float, history: list[tuple[float, dict[str, float]]], spec: 
     return int(proto), float(mass)
 
 
+def _temperature_at(t: float, history: list[tuple[float, dict[str, float]]], spec: dict) -> float:
+    T = spec.get("overrides", {}).get("temperature_K") or spec.get("temperature_K", 296.0)
+    for te, values in history:
+        if te <= t + 1e-9:
+            T = values.get("temperature_K", T)
+    return float(T)
+
+
 def analyse(path: str | Path, last_cycles: int = 3) -> RunAnalysis:
     """Analyse every waveform step of a run file."""
     run = open_run(path)
@@ -141,8 +150,9 @@ def analyse(path: str | Path, last_cycles: int = 3) -> RunAnalysis:
             volts = np.interp(laser.t[w], sp.t, sp.columns["voltage"])
             figs = cycle_figures(laser.t[w] - t0, laser.columns["displacement"][w], volts, f)
             res.kind = "thesis"
+            res.temperature = _temperature_at(t0, history, spec)
             res.figures = {"peak_first": figs.peaks[0], "peak_last": figs.peaks[max(figs.whole, 1) - 1],
-                           "creep": figs.creep, "lag_first": figs.lags[0],
+                           "creep": figs.creep if figs.whole >= 2 else np.nan, "lag_first": figs.lags[0],
                            "residual_first": figs.residuals[0] if figs.residuals else np.nan,
                            "residual_last": figs.residuals[-1] if figs.residuals else np.nan}
             res.series = {"peaks": list(figs.peaks), "residuals": list(figs.residuals), "lags": list(figs.lags)}
