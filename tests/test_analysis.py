@@ -70,6 +70,51 @@ def test_cycle_figures_of_a_lagging_creeping_response() -> None:
     assert figs.residuals[0] == pytest.approx(1.1 * gain * (1 - np.cos(2 * np.pi * f * lag)) / 2, rel=1e-3)
 
 
+# --- the fitter on toy problems with known answers ----------------------------------------------------------
+
+
+class _Toy:
+    """y = a·x + 0.7·d·x² + c on x ∈ [0, 1] with noise (correlated: y = a·d·x + c, only the product is seen);
+    ``b`` has no effect; ``c`` sits on its upper bound (as the thesis's unit 3 does on both of its bounds)."""
+
+    def __init__(self, correlated: bool) -> None:
+        self.names, self.units = ["a", "b", "c", "d"], ["-"] * 4
+        self.x = np.linspace(0, 1, 200)
+        self.correlated = correlated
+        self.lower = np.array([0.0, 0.0, 0.0, 0.5])
+        self.upper = np.array([10.0, 1.0, 2.0, 2.0])
+        self.log = np.zeros(4, bool)
+        rng = np.random.default_rng(0)
+        self.data = self._model(np.array([[3.0, 0.5, 1.995, 1.0]]))[0] + rng.normal(0, 0.01, self.x.size)
+
+    def _model(self, Z: np.ndarray) -> np.ndarray:
+        a, c, d = Z[:, :1], Z[:, 2:3], Z[:, 3:4]
+        if self.correlated:
+            return a * d * self.x + c
+        return a * self.x + 0.7 * d * self.x**2 + c
+
+    def predict(self, Z: np.ndarray) -> np.ndarray:
+        return self._model(np.atleast_2d(Z))
+
+
+def test_fit_flags_bounds_and_parameters_without_effect() -> None:
+    res = fit(_Toy(correlated=False), FitSettings(population=30, generations=200, cost="lsq"))
+    v = dict(zip(res.names, res.values, strict=True))
+    assert res.flags_of("c") == ["at its upper bound"] and v["c"] == pytest.approx(2.0, abs=0.02)
+    assert any("does not change the cost" in f for f in res.flags_of("b"))
+    assert not res.flags_of("a") and not res.flags_of("d")
+    assert v["a"] == pytest.approx(3.0, rel=0.02) and v["d"] == pytest.approx(1.0, rel=0.05)
+    assert np.isfinite(res.uncertainty[0]) and np.isnan(res.uncertainty[1])
+
+
+def test_fit_flags_parameters_that_trade_off() -> None:
+    res = fit(_Toy(correlated=True), FitSettings(population=30, generations=200, cost="lsq"))
+    assert "correlated with d" in res.flags_of("a") and "correlated with a" in res.flags_of("d")
+    assert abs(res.correlation[0, 3]) > 0.999
+    v = dict(zip(res.names, res.values, strict=True))
+    assert v["a"] * v["d"] == pytest.approx(3.0, rel=0.02)  # the product is determined
+
+
 # --- identification from a simulated run file ----------------------------------------------------------------
 
 
@@ -197,3 +242,27 @@ def test_fit_and_report_refuse_bad_files_in_one_line(tmp_path: Path) -> None:
         res = CliRunner().invoke(app, cmd)
         assert res.exit_code == 2
         assert res.output.count("\n") == 1 and res.output.startswith("error: run file"), res.output
+
+
+def test_fit_cli_fits_several_files_together_stores_in_each_and_exports_a_rig(tmp_path: Path) -> None:
+    from typer.testing import CliRunner
+
+    from bench.cli import app
+
+    paths = []
+    for campaign in ("isopotential", "isotonic"):
+        res = execute(plan_run(ROOT / "protocols" / "short" / f"lsdea-{campaign}-short.toml"),
+                      tmp_path / f"{campaign}.h5", virtual=True, operator=lambda _msg: True)
+        paths.append(str(res.path))
+    rig = tmp_path / "fitted.toml"
+    out = CliRunner().invoke(app, ["fit", *paths, "--population", "12", "--generations", "5", "--cost", "lsq",
+                                   "--export", str(rig)], env={"COLUMNS": "200"})
+    assert out.exit_code == 0, out.output
+    assert "lsdea model fitted to 2 run(s)" in out.output
+    for p in paths:
+        (stored,) = read_fits(p)
+        assert stored["model"] == "lsdea" and stored["cost_kind"] == "lsq" and len(stored["records"]) == 2
+        assert stored["software"].startswith("dea-bench")
+    fitted = RigConfig.model_validate(__import__("tomllib").loads(rig.read_text()))
+    assert fitted.specimen.lsdea_model is not None
+    assert fitted.specimen.lsdea_model.damping == pytest.approx(stored["values"][stored["names"].index("c")])
