@@ -135,6 +135,37 @@ def report_command(
     print_report(runs, out)
 
 
+def figures_table(steps: list, title: str) -> Table:
+    """Figures of merit of analysed steps: one row per step, or one column per step when there are few."""
+    keys = sorted({k for s in steps for k in s.figures})
+    keys = [k for k in FIGURE_COLUMNS if k in keys] + [k for k in keys if k not in FIGURE_COLUMNS]
+    has_where = any(s.prototype or s.hung_mass for s in steps)
+    has_T = any(s.temperature for s in steps)
+    conditions = {"#": lambda s: f"{s.prototype or ''}" + (f" {s.hung_mass * 1e3:.0f} g" if s.hung_mass else ""),
+                  "T [K]": lambda s: f"{s.temperature:g}", "V [kV]": lambda s: f"{s.voltage / 1e3:.3g}",
+                  "f [Hz]": lambda s: f"{s.frequency:.3g}"}
+    if not has_where:
+        del conditions["#"]
+    if not has_T:
+        del conditions["T [K]"]
+    rows = [(label, fn) for label, fn in conditions.items()] + \
+        [(FIGURE_COLUMNS.get(k, (k, 1.0))[0], lambda s, k=k: _fmt(k, s.figures.get(k))) for k in keys]
+    t = Table(title=title)
+    if len(steps) <= 3:  # few steps: figures down, steps across (fits a narrow terminal)
+        t.add_column("")
+        for s in steps:
+            t.add_column(escape(s.name), justify="right")
+        for label, fn in rows:
+            t.add_row(escape(label), *(fn(s) for s in steps))
+        return t
+    t.add_column("step", overflow="fold", min_width=14)
+    for label, _ in rows:
+        t.add_column(escape(label), justify="right")
+    for s in steps:
+        t.add_row(s.name, *(fn(s) for _, fn in rows))
+    return t
+
+
 def print_report(runs: list[Path], out: Path | None = None) -> list[Path]:
     """Tables of figures of merit and PNG plots of run files; returns the figure paths."""
     from bench.report import report
@@ -143,23 +174,7 @@ def print_report(runs: list[Path], out: Path | None = None) -> list[Path]:
     for p in runs:
         a, paths = report(p, out / p.stem if out is not None and len(runs) > 1 else out)
         all_steps += a.steps
-        t = Table(title=f"{a.protocol} ({p.name})")
-        keys = sorted({k for s in a.steps for k in s.figures})
-        keys = [k for k in FIGURE_COLUMNS if k in keys] + [k for k in keys if k not in FIGURE_COLUMNS]
-        t.add_column("step", overflow="fold", min_width=14)
-        has_where = any(s.prototype or s.hung_mass for s in a.steps)
-        has_T = any(s.temperature for s in a.steps)
-        for col in ("#" if has_where else "", "T [K]" if has_T else "", "V [kV]", "f [Hz]"):
-            if col:
-                t.add_column(escape(col), justify="right")
-        for k in keys:
-            t.add_column(escape(FIGURE_COLUMNS.get(k, (k, 1.0))[0]), justify="right")
-        for s in a.steps:
-            where = f"{s.prototype or ''}" + (f" {s.hung_mass * 1e3:.0f} g" if s.hung_mass else "")
-            t.add_row(s.name, *([where] if has_where else []), *([f"{s.temperature:g}"] if has_T else []),
-                      f"{s.voltage / 1e3:.3g}", f"{s.frequency:.3g}",
-                      *(_fmt(k, s.figures.get(k)) for k in keys))
-        console.print(t)
+        console.print(figures_table(a.steps, f"{a.protocol} ({p.name})"))
         if a.by_kind("isotonic"):
             console.print("resonance: " + ", ".join(f"{m * 1e3:.0f} g at {f:g} Hz ({amp * 1e3:.1f} mm)"
                                                    for m, (f, amp) in a.resonance().items()))

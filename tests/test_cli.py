@@ -80,7 +80,9 @@ def test_demo_runs_records_fits_and_reports_from_the_file(tmp_path) -> None:
     files = list(tmp_path.glob("thesis-identification-*.h5"))
     assert len(files) == 1 and str(files[0]) in res.output
     # figures of merit read back from the file: the two peaks of the 7-kV cycles and the creep between them
-    assert re.search(r"│\s+7 │\s+0\.111 │\s+7\.[67]\d\d │\s+8\.[56]\d\d │\s+1[12]\.\d+ │", res.output)
+    assert re.search(r"u peak 1 \[mm\]\s+│\s+7\.[67]\d\d │", res.output)
+    assert re.search(r"u peak N \[mm\]\s+│\s+8\.[56]\d\d │", res.output)
+    assert re.search(r"creep \[%\]\s+│\s+1[12]\.\d+ │", res.output)
     fits = read_fits(files[0])
     assert len(fits) == 1 and fits[0]["names"][0] == "mu0" and fits[0]["settings"]["generations"] == 3
     assert "identified vs the simulated specimen" in res.output
