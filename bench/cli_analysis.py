@@ -90,6 +90,10 @@ def run_fit(runs: list[Path], chosen: str, settings: FitSettings, branches: int 
     from bench.rig import RigConfig
     from bench.runfile import open_run
 
+    for p in runs:  # the fit is stored in every file: refuse before the work, not after
+        if not open_run(p, streams=False).complete:
+            raise ValueError(f"run file {p}: not finalised (crashed or still running); fits are stored in finished "
+                             "files only — copy the data out with h5py to fit it")
     with console.status("reading the records…"):
         if chosen == "membrane":
             coarse, fine = MembraneProblem(runs, h=5e-4), MembraneProblem(runs, h=1e-4)

@@ -11,6 +11,7 @@ import json
 import re
 from pathlib import Path
 
+import h5py
 import numpy as np
 import pytest
 
@@ -238,7 +239,14 @@ def test_fit_and_report_refuse_bad_files_in_one_line(tmp_path: Path) -> None:
 
     bad = tmp_path / "bad.h5"
     bad.write_text("not hdf5")
-    for cmd in (["fit", str(bad)], ["report", str(bad)], ["fit", str(tmp_path / "missing.h5")]):
+    res = execute(plan_run(ROOT / "protocols" / "short" / "lsdea-isometric-short.toml"), tmp_path / "r.h5",
+                  virtual=True, operator=lambda _msg: True)
+    unfinished = tmp_path / "unfinished.h5"
+    unfinished.write_bytes(Path(res.path).read_bytes())
+    with h5py.File(unfinished, "r+") as f:
+        f.attrs["complete"] = False  # as a crashed run leaves it
+    for cmd in (["fit", str(bad)], ["report", str(bad)], ["fit", str(tmp_path / "missing.h5")],
+                ["fit", str(unfinished)]):
         res = CliRunner().invoke(app, cmd)
         assert res.exit_code == 2
         assert res.output.count("\n") == 1 and res.output.startswith("error: run file"), res.output
