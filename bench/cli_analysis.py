@@ -268,15 +268,24 @@ def twin_comparison(path: Path, fitted: FitResult) -> Table:
     true = {"mu0": model["mu0"], "J0": model["J0"]}
     for i, (mu, J, eta) in enumerate(zip(model["mu"], model["J"], model["eta"], strict=True), start=1):
         true |= {f"mu{i}": mu, f"J{i}": J, f"tau{i}": eta / mu}
+    from bench.identify.problems import match_membrane_units
+
+    values = dict(zip(fitted.names, fitted.values, strict=True))
+    pairing = match_membrane_units(values, true)
     t = Table(title="identified vs the simulated specimen (the twin's model, recorded in the file)")
     for col in ("parameter", "simulated", "identified", "error", "note"):
         t.add_column(col, justify="left" if col in ("parameter", "note") else "right")
     for j, name in enumerate(fitted.names):
-        err = fitted.values[j] / true[name] - 1.0
+        ref = name
+        if name[-1] in "1234" and name[:-1] in ("mu", "J", "tau"):
+            ref = f"{name[:-1]}{pairing[int(name[-1])]}"
+        err = fitted.values[j] / true[ref] - 1.0
         note = "; ".join(f.split(" (")[0].replace("does not change the cost", "insensitive: not identifiable")
                          for f in fitted.flags_of(name))
         style = "dim" if note else ""
-        t.add_row(name, f"{true[name]:.4g}", f"{fitted.values[j]:.4g}", f"{100 * err:+.1f} %", note, style=style)
-    t.caption = ("flagged parameters are not determined by this record (they trade off against others at equal "
-                 "cost); fit several runs together (e.g. a frequency sweep) to pin them down")
+        if ref != name:
+            name = f"{name} (≙ {ref})"
+        t.add_row(name, f"{true[ref]:.4g}", f"{fitted.values[j]:.4g}", f"{100 * err:+.1f} %", note, style=style)
+    t.caption = ("Maxwell units are interchangeable in the model and are paired by relaxation time (≙); flagged "
+                 "parameters are not determined by this record (they trade off against others at equal cost)")
     return t

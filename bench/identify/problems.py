@@ -46,6 +46,27 @@ def _sampled(t_grid: np.ndarray, t_data: np.ndarray, values: np.ndarray) -> np.n
     return out
 
 
+def _window_means(t_grid: np.ndarray, t_data: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """Means of the record over (t − Δ, t] for each grid time t (Δ: grid spacing), NaN where the window is not
+    densely covered (fewer than 5 samples or spanning less than 80 % of it); the first point is the sample at
+    t_grid[0]."""
+    out = np.full(t_grid.size, np.nan)
+    if t_data.size == 0 or t_grid.size < 2:
+        return out
+    width = float(t_grid[1] - t_grid[0])
+    c = np.concatenate([[0.0], np.cumsum(values)])
+    hi = np.searchsorted(t_data, t_grid + 1e-9, side="right")
+    lo = np.searchsorted(t_data, t_grid - width + 1e-9, side="right")
+    count = hi - lo
+    ok = count >= 5
+    span = np.zeros(t_grid.size)
+    span[ok] = t_data[hi[ok] - 1] - t_data[lo[ok]]
+    ok &= span >= 0.8 * width - 1e-9
+    out[ok] = (c[hi[ok]] - c[lo[ok]]) / count[ok]
+    out[0] = _sampled(t_grid[:2], t_data, values)[0]
+    return out
+
+
 def _specimen_changes(run: RunFile) -> list[tuple[float, dict[str, float]]]:
     out = []
     for t, _, kind, text in run.event_list():
@@ -67,8 +88,11 @@ class _Record:
 class MembraneProblem:
     """Thesis membrane identification from laser records."""
 
-    def __init__(self, paths: list[str | Path], h: float = 5e-4, data_rate: float = 100.0) -> None:
-        self.h, self.records = h, []
+    def __init__(self, paths: list[str | Path], h: float = 5e-4, data_rate: float = 100.0,
+                 average: bool = True) -> None:
+        """``average``: compare 1/data_rate window means of record and model (removes the aliasing of
+        fast ringing); otherwise point values at the record's sample times."""
+        self.h, self.records, self.average = h, [], average
         self.names = ["mu0", "J0"] + [f"mu{i}" for i in range(1, 5)] + [f"J{i}" for i in range(1, 5)] + \
             [f"tau{i}" for i in range(1, 5)]
         self.units = ["Pa", "-"] + ["Pa"] * 4 + ["-"] * 4 + ["s"] * 4
@@ -105,7 +129,8 @@ class MembraneProblem:
         laser = run.streams["laser"]
         t_data = np.arange(0, n // stride + 1) * stride * self.h
         ok = laser.columns["valid"] > 0
-        data = _sampled(t_data, laser.t[ok], laser.columns["displacement"][ok])
+        sample = _window_means if self.average else _sampled
+        data = sample(t_data, laser.t[ok], laser.columns["displacement"][ok])
         self.records.append(_Record(U, params.initial_state(), params.pack(), stride, data, source))
 
     def data_rate_for(self, params: MembraneParams) -> float:
@@ -126,7 +151,8 @@ class MembraneProblem:
         for rec in self.records:
             P = np.stack([self.params_of(z).pack() for z in Z])
             Y0 = np.tile(rec.y0, (Z.shape[0], 1))
-            lam = run_fixed_batch(MODEL_MEMBRANE, Y0, rec.U, self.h, P, 0, rec.stride)
+            lam = run_fixed_batch(MODEL_MEMBRANE, Y0, rec.U, self.h, P, 0, rec.stride,
+                                  rec.stride if self.average else 0)
             t = self.template
             out.append(t.L_d * (lam - t.lambda_pre))  # type: ignore[union-attr]
         return np.concatenate(out, axis=1)
@@ -232,3 +258,15 @@ class LozengeProblem:
         z = [m.mu, m.Jm, m.C2] + [np.log10(b.branches[0].mu)] * self.K + [np.log10(b.branches[0].tau)] * self.K + \
             [b.damping]
         return np.clip(np.array(z, float), self.lower, self.upper)
+
+
+def match_membrane_units(fitted: dict[str, float], reference: dict[str, float]) -> dict[int, int]:
+    """Fitted Maxwell unit → reference unit, paired in order of relaxation time τ.
+
+    The membrane model is symmetric under exchanging its Maxwell units (only their J bounds differ, and J
+    hardly acts), so a search may find a unit under another number; compare units by τ rank, not by number.
+    """
+    units = range(1, 5)
+    by_tau_fit = sorted(units, key=lambda i: fitted[f"tau{i}"])
+    by_tau_ref = sorted(units, key=lambda i: reference[f"tau{i}"])
+    return dict(zip(by_tau_fit, by_tau_ref, strict=True))

@@ -68,11 +68,13 @@ def run_fixed(model: int, y0: np.ndarray, U: np.ndarray, h: float, p: np.ndarray
 
 @njit(cache=True, parallel=True)
 def run_fixed_batch(model: int, Y0: np.ndarray, U: np.ndarray, h: float, P: np.ndarray, channel: int,
-                    stride: int) -> np.ndarray:
+                    stride: int, window: int = 0) -> np.ndarray:
     """Integrate one input history for many parameter sets (rows of P, initial states rows of Y0) in parallel.
 
     Returns state component ``channel`` (or OBSERVE_FORCE) every ``stride`` steps, shape
     (len(P), len(U)//stride + 1); NaN from the first sample after a set leaves the model's domain.
+    ``window`` > 0: each output (after the first) is the mean over the last ``window`` step ends (≤ stride),
+    as a window average of a densely sampled record is.
     """
     m = P.shape[0]
     n = U.shape[0]
@@ -82,11 +84,19 @@ def run_fixed_batch(model: int, Y0: np.ndarray, U: np.ndarray, h: float, P: np.n
         y = Y0[j].copy()
         grad = np.empty(y.size)
         out[j, 0] = observe_model(model, y, U[0], P[j], channel, grad)
+        acc = 0.0
         for k in range(n):
             if not step_model(model, y, U[k], h, P[j]):
                 break
-            if (k + 1) % stride == 0:
-                out[j, (k + 1) // stride] = observe_model(model, y, U[k], P[j], channel, grad)
+            pos = (k + 1) % stride
+            if window > 0 and (pos == 0 or pos > stride - window):
+                acc += y[channel] if channel >= 0 else observe_model(model, y, U[k], P[j], channel, grad)
+            if pos == 0:
+                if window > 0:
+                    out[j, (k + 1) // stride] = acc / window
+                    acc = 0.0
+                else:
+                    out[j, (k + 1) // stride] = observe_model(model, y, U[k], P[j], channel, grad)
     return out
 
 
