@@ -87,7 +87,7 @@ def run_fit(runs: list[Path], chosen: str, settings: FitSettings, branches: int 
     from bench.identify.core import fit
     from bench.identify.problems import LozengeProblem, MembraneProblem
     from bench.identify.store import export_rig, fitted_rig, write_fit
-    from bench.rig import RigConfig
+    from bench.rig import rig_from_toml
     from bench.runfile import open_run
 
     for p in runs:  # the fit is stored in every file: refuse before the work, not after
@@ -117,16 +117,10 @@ def run_fit(runs: list[Path], chosen: str, settings: FitSettings, branches: int 
         group = write_fit(p, chosen, result, records)
         console.print(f"stored in {p}:{group}")
     if export is not None:
-        rig = RigConfig.model_validate(_rig_from_text(open_run(runs[0], streams=False).attrs["rig_toml"]))
+        rig = rig_from_toml(open_run(runs[0], streams=False).attrs["rig_toml"])
         export_rig(fitted_rig(rig, chosen, result.names, result.values), export, str(runs[0]))
         console.print(f"fitted rig file: {export} (bench run PROTOCOL --rig {export})")
     return result
-
-
-def _rig_from_text(text: str) -> dict:
-    import tomllib
-
-    return tomllib.loads(text)
 
 
 @app.command("report")

@@ -16,6 +16,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 
 from bench.models.lozenge import LozengeParams, MaxwellBranch
 from bench.models.membrane import MembraneParams
+from bench.tomlfile import read_toml
 
 
 class _Strict(BaseModel):
@@ -245,14 +246,7 @@ def _first_error(path: Path, exc: ValidationError) -> str:
 def load_rig(path: str | Path) -> RigConfig:
     """Read and validate a rig file; raise RigFileError with a one-line message."""
     p = Path(path)
-    try:
-        data = tomllib.loads(p.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise RigFileError(f"rig file {p}: not found") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise RigFileError(f"rig file {p}: cannot be read ({exc})") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise RigFileError(f"rig file {p}: not valid TOML ({exc})") from None
+    _, data = read_toml(p, "rig", RigFileError)
     try:
         return RigConfig.model_validate(data)
     except ValidationError as exc:
@@ -280,6 +274,11 @@ def _toml_tables(prefix: str, data: dict[str, Any], out: list[str]) -> None:
         out.append(f"{k} = {_toml_value(v)}")
     for k, v in tables.items():
         _toml_tables(f"{prefix}.{k}" if prefix else k, v, out)
+
+
+def rig_from_toml(text: str) -> RigConfig:
+    """The rig a run file records (``rig_toml`` attribute, written by :func:`rig_to_toml`)."""
+    return RigConfig.model_validate(tomllib.loads(text))
 
 
 def rig_to_toml(rig: RigConfig) -> str:

@@ -22,7 +22,7 @@ from bench.identify.core import FitSettings, fit
 from bench.identify.problems import LozengeProblem, MembraneProblem, match_membrane_units
 from bench.identify.store import export_rig, fitted_rig, read_fits, write_fit
 from bench.report import report
-from bench.rig import RigConfig
+from bench.rig import load_rig, rig_from_toml
 from bench.run import execute, plan_run
 from bench.runfile import open_run
 
@@ -167,7 +167,7 @@ def test_fit_stored_in_the_file_exports_a_rig_that_reproduces_the_record(thesis_
     assert stored["group"] == group and stored["names"] == thesis_fit.names
     np.testing.assert_array_equal(stored["values"], thesis_fit.values)
     assert stored["settings"]["population"] == 50 and stored["rms"] == pytest.approx(thesis_fit.rms)
-    rig = RigConfig.model_validate(__import__("tomllib").loads(open_run(thesis_run, streams=False).attrs["rig_toml"]))
+    rig = rig_from_toml(open_run(thesis_run, streams=False).attrs["rig_toml"])
     rig_path = tmp_path / "fitted.toml"
     export_rig(fitted_rig(rig, "membrane", thesis_fit.names, thesis_fit.values), rig_path, str(thesis_run))
     # run the protocol again on the fitted specimen: its record matches the original within the fit's residual
@@ -275,6 +275,6 @@ def test_fit_cli_fits_several_files_together_stores_in_each_and_exports_a_rig(tm
         (stored,) = read_fits(p)
         assert stored["model"] == "lsdea" and stored["cost_kind"] == "lsq" and len(stored["records"]) == 2
         assert stored["software"].startswith("dea-bench")
-    fitted = RigConfig.model_validate(__import__("tomllib").loads(rig.read_text()))
+    fitted = load_rig(rig)
     assert fitted.specimen.lsdea_model is not None
     assert fitted.specimen.lsdea_model.damping == pytest.approx(stored["values"][stored["names"].index("c")])

@@ -23,7 +23,6 @@ import hashlib
 import itertools
 import json
 import re
-import tomllib
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -31,6 +30,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError, field_validator, model_validator
 
 from bench.protocol.quantity import format_quantity, parse_quantity
+from bench.tomlfile import read_toml
 
 Channel = Literal["voltage", "position"]
 CHANNEL_DIMENSION = {"voltage": "voltage", "position": "length"}
@@ -320,15 +320,7 @@ def _error_line(path: Path, label: str, exc: ValidationError) -> str:
 def load_protocol(path: str | Path) -> Protocol:
     """Read, expand and validate a protocol file; raise ProtocolFileError with a one-line message."""
     p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8")
-        data = tomllib.loads(text)
-    except FileNotFoundError:
-        raise ProtocolFileError(f"protocol file {p}: not found") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ProtocolFileError(f"protocol file {p}: cannot be read ({exc})") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise ProtocolFileError(f"protocol file {p}: not valid TOML ({exc})") from None
+    text, data = read_toml(p, "protocol", ProtocolFileError)
     raw_steps = data.pop("steps", None)
     if not isinstance(raw_steps, list) or not raw_steps:
         raise ProtocolFileError(f"protocol file {p}: steps: give at least one [[steps]] table")
