@@ -16,7 +16,8 @@ from rich.table import Table
 from bench.cli import app, clean_errors, console, fail
 
 if TYPE_CHECKING:
-    from bench.identify.core import FitResult, FitSettings
+    from bench.identify.core import FitResult, FitSettings, Problem
+    from bench.identify.problems import MembraneProblem
 
 RunsArg = Annotated[list[Path], typer.Argument(help="Run files (.h5) to fit together.")]
 
@@ -82,8 +83,10 @@ def fit_command(
 
 
 def run_fit(runs: list[Path], chosen: str, settings: FitSettings, branches: int = 1,
-            export: Path | None = None) -> FitResult:
-    """Fit, print the table, store the result in every file and optionally export a rig; returns the FitResult."""
+            export: Path | None = None) -> tuple[FitResult, Problem]:
+    """Fit, print the table, store the result in every file and optionally export a rig.
+
+    Returns the result and the (coarse) problem it was searched on, which holds the compared data."""
     from bench.identify.core import fit
     from bench.identify.problems import LozengeProblem, MembraneProblem
     from bench.identify.store import export_rig, fitted_rig, write_fit
@@ -108,8 +111,7 @@ def run_fit(runs: list[Path], chosen: str, settings: FitSettings, branches: int 
         task = bar.add_task("de", total=s.generations)
         result = fit(coarse, s, start=None, fine=fine, progress=lambda: bar.advance(task))
     console.print(fit_result_table(result, f"{chosen} model fitted to {len(runs)} run(s)"))
-    unit = "m" if chosen == "membrane" or coarse.records[0].template[16] == 1 else "N"
-    console.print(f"cost ({result.cost_kind}) {result.cost:.4g}, residual rms {result.rms:.4g} {unit}, "
+    console.print(f"cost ({result.cost_kind}) {result.cost:.4g}, residual rms {result.rms:.4g} {coarse.data_unit}, "
                   f"{result.evaluations:,} model evaluations, {result.generations} generations, "
                   f"{result.wall_time:.1f} s")
     records = [r.source for r in coarse.records]
@@ -120,7 +122,7 @@ def run_fit(runs: list[Path], chosen: str, settings: FitSettings, branches: int 
         rig = rig_from_toml(open_run(runs[0], streams=False).attrs["rig_toml"])
         export_rig(fitted_rig(rig, chosen, result.names, result.values), export, str(runs[0]))
         console.print(f"fitted rig file: {export} (bench run PROTOCOL --rig {export})")
-    return result
+    return result, coarse
 
 
 @app.command("report")
@@ -228,7 +230,6 @@ def demo(
     evolution (thesis settings), compares it with the specimen the twin simulated, and writes the report.
     """
     from bench.identify.core import FitSettings
-    from bench.identify.problems import MembraneProblem
     from bench.run import default_output, execute, plan_run
 
     protocol = Path(__file__).resolve().parent.parent / "protocols" / "thesis-identification.toml"
@@ -244,9 +245,9 @@ def demo(
         raise fail(f"run ended {result.state}: {result.reason}", code=1)
     console.print("[bold]2. fit[/] the membrane model to the recorded file")
     path = Path(result.path)
-    fitted = run_fit([path], "membrane", FitSettings(population=population, generations=generations))
-    console.print(twin_comparison(path, fitted))
-    peak = float(np.nanmax(np.abs(MembraneProblem([path], h=5e-4).data)))
+    fitted, problem = run_fit([path], "membrane", FitSettings(population=population, generations=generations))
+    console.print(twin_comparison(problem, fitted))  # type: ignore[arg-type]
+    peak = float(np.nanmax(np.abs(problem.data)))
     console.print(f"the fitted model reproduces the record to rms {fitted.rms * 1e6:.1f} µm "
                   f"({100 * fitted.rms / peak:.2f} % of the {peak * 1e3:.2f} mm peak)")
     console.print("[bold]3. report[/]")
@@ -254,16 +255,11 @@ def demo(
     console.print(f"next: bench inspect {path} · bench fit --help · bench run protocols/<campaign>.toml")
 
 
-def twin_comparison(path: Path, fitted: FitResult) -> Table:
-    """Fitted parameters next to the ones the simulated specimen used (read from the run file)."""
-    from bench.runfile import open_run
-
-    model = json.loads(open_run(path, streams=False).attrs["specimen"])["model"]
-    true = {"mu0": model["mu0"], "J0": model["J0"]}
-    for i, (mu, J, eta) in enumerate(zip(model["mu"], model["J"], model["eta"], strict=True), start=1):
-        true |= {f"mu{i}": mu, f"J{i}": J, f"tau{i}": eta / mu}
+def twin_comparison(problem: MembraneProblem, fitted: FitResult) -> Table:
+    """Fitted parameters next to the ones the simulated specimen used (recorded in the run file)."""
     from bench.identify.problems import match_membrane_units
 
+    true = problem.reference()
     values = dict(zip(fitted.names, fitted.values, strict=True))
     pairing = match_membrane_units(values, true)
     t = Table(title="identified vs the simulated specimen (the twin's model, recorded in the file)")

@@ -59,6 +59,14 @@ class RunFile:
         """Events as (t, step, kind, text)."""
         return [(float(e["t"]), int(e["step"]), e["kind"].decode(), e["text"].decode()) for e in self.events]
 
+    def specimen_changes(self) -> list[tuple[float, dict[str, float]]]:
+        """Specimen changes during the run (``specimen`` events "key=value, …") as (t, {key: value})."""
+        out = []
+        for t, _, kind, text in self.event_list():
+            if kind == "specimen":
+                out.append((t, {k.strip(): float(v) for k, _, v in (p.partition("=") for p in text.split(","))}))
+        return out
+
 
 def _decode(v: Any) -> Any:
     return v.decode() if isinstance(v, bytes) else v

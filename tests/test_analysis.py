@@ -134,17 +134,9 @@ def thesis_fit(thesis_run: Path):
     return fit(coarse, FitSettings(), fine=fine)  # the thesis's DE settings
 
 
-def _simulated_membrane(path: Path) -> dict[str, float]:
-    model = json.loads(open_run(path, streams=False).attrs["specimen"])["model"]
-    out = {"mu0": model["mu0"], "J0": model["J0"]}
-    for i, (mu, J, eta) in enumerate(zip(model["mu"], model["J"], model["eta"], strict=True), start=1):
-        out |= {f"mu{i}": mu, f"J{i}": J, f"tau{i}": eta / mu}
-    return out
-
-
 def test_thesis_fit_recovers_the_parameters_it_does_not_flag(thesis_run: Path, thesis_fit) -> None:
-    true = _simulated_membrane(thesis_run)
-    peak = float(np.nanmax(MembraneProblem([thesis_run]).data))
+    problem = MembraneProblem([thesis_run])
+    true, peak = problem.reference(), float(np.nanmax(problem.data))
     assert thesis_fit.rms < 5e-4 * peak  # reproduces the 8.6-mm record to better than 0.05 %
     fitted = dict(zip(thesis_fit.names, thesis_fit.values, strict=True))
     pairing = match_membrane_units(fitted, true)  # units are interchangeable: pair them by τ

@@ -88,19 +88,6 @@ def _window(stream, t0: float, t1: float) -> np.ndarray:
     return (stream.t >= t0 - 1e-9) & (stream.t <= t1 + 1e-9)
 
 
-def _specimen_history(run: RunFile) -> tuple[list[tuple[float, dict[str, float]]], dict]:
-    spec = json.loads(run.attrs["specimen"])
-    changes = []
-    for t, _, kind, text in run.event_list():
-        if kind == "specimen":
-            values = {}
-            for part in text.split(","):
-                key, _, val = part.partition("=")
-                values[key.strip()] = float(val)
-            changes.append((t, values))
-    return changes, spec
-
-
 def _specimen_at(t: float, history: list[tuple[float, dict[str, float]]], spec: dict) -> tuple[int, float]:
     over = spec.get("overrides", {})
     lsdea = spec.get("lsdea", {})
@@ -129,7 +116,7 @@ def analyse(path: str | Path, last_cycles: int = 3) -> RunAnalysis:
     spec = json.loads(run.attrs["specimen"])
     kind_of_specimen = spec["kind"]
     config = spec.get("lsdea", {}).get("configuration", "membrane") if kind_of_specimen == "lsdea" else "membrane"
-    history, _ = _specimen_history(run)
+    history = run.specimen_changes()
     sp = run.streams["setpoints"]
     results: list[StepResult] = []
     for row, step in zip(run.program, protocol.steps, strict=True):

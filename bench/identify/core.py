@@ -31,6 +31,7 @@ class Problem(Protocol):
     upper: np.ndarray
     log: np.ndarray  # bool per parameter: optimiser coordinate is log10 of the physical value
     data: np.ndarray  # measured values, concatenated over records (NaN: ignore)
+    data_unit: str  # unit of the data (and of the residual)
 
     def predict(self, Z: np.ndarray) -> np.ndarray:
         """Model predictions for each row of Z (S × D) → S × len(data); NaN where a model failed."""
@@ -121,7 +122,7 @@ def fit(problem: Problem, settings: FitSettings = FitSettings(), start: np.ndarr
         evaluations += Z.shape[0]
         return _costs(problem, problem.predict(Z), settings.cost)
 
-    de = differential_evolution(lambda Zt: batch_cost(Zt), list(zip(lo, hi, strict=True)), init=init,
+    de = differential_evolution(batch_cost, list(zip(lo, hi, strict=True)), init=init,
                                 maxiter=settings.generations, mutation=settings.mutation,
                                 recombination=settings.crossover, tol=settings.tol, polish=False,
                                 vectorized=True, updating="deferred", seed=settings.seed,

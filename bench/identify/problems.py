@@ -67,14 +67,6 @@ def _window_means(t_grid: np.ndarray, t_data: np.ndarray, values: np.ndarray) ->
     return out
 
 
-def _specimen_changes(run: RunFile) -> list[tuple[float, dict[str, float]]]:
-    out = []
-    for t, _, kind, text in run.event_list():
-        if kind == "specimen":
-            out.append((t, {k.strip(): float(v) for k, _, v in (p.partition("=") for p in text.split(","))}))
-    return out
-
-
 @dataclass
 class _Record:
     U: np.ndarray  # inputs per step
@@ -92,7 +84,8 @@ class MembraneProblem:
                  average: bool = True) -> None:
         """``average``: compare 1/data_rate window means of record and model (removes the aliasing of
         fast ringing); otherwise point values at the record's sample times."""
-        self.h, self.records, self.average = h, [], average
+        self.h, self.data_rate, self.records, self.average = h, data_rate, [], average
+        self.data_unit = "m"
         self.names = ["mu0", "J0"] + [f"mu{i}" for i in range(1, 5)] + [f"J{i}" for i in range(1, 5)] + \
             [f"tau{i}" for i in range(1, 5)]
         self.units = ["Pa", "-"] + ["Pa"] * 4 + ["-"] * 4 + ["s"] * 4
@@ -113,7 +106,7 @@ class MembraneProblem:
         model = spec["model"]
         params = MembraneParams(**{k: tuple(v) if isinstance(v, list) else v for k, v in model.items()})
         self.template = self.template or params
-        stride = max(1, round(1.0 / (self.data_rate_for(params) * self.h)))
+        stride = max(1, round(1.0 / (self.data_rate * self.h)))
         t_end = run.updated
         n = int(np.floor(t_end / self.h))
         n -= n % stride
@@ -123,7 +116,7 @@ class MembraneProblem:
         U[:, 0] = _hold(sp.t, sp.columns["voltage"], t_steps)
         T = spec.get("overrides", {}).get("temperature_K") or spec.get("temperature_K", 296.0)
         U[:, 1] = T
-        for te, values in _specimen_changes(run):
+        for te, values in run.specimen_changes():
             if "temperature_K" in values:
                 U[t_steps > te, 1] = values["temperature_K"]
         laser = run.streams["laser"]
@@ -132,10 +125,6 @@ class MembraneProblem:
         sample = _window_means if self.average else _sampled
         data = sample(t_data, laser.t[ok], laser.columns["displacement"][ok])
         self.records.append(_Record(U, params.initial_state(), params.pack(), stride, data, source))
-
-    def data_rate_for(self, params: MembraneParams) -> float:
-        """Rate at which the record is compared with the model [Hz]."""
-        return 100.0
 
     def params_of(self, z: np.ndarray) -> MembraneParams:
         """Physical MembraneParams for one optimiser vector."""
@@ -157,11 +146,16 @@ class MembraneProblem:
             out.append(t.L_d * (lam - t.lambda_pre))  # type: ignore[union-attr]
         return np.concatenate(out, axis=1)
 
-    def start(self) -> np.ndarray:
-        """Optimiser vector of the template's parameters (thesis Table 4.4 unless the run says otherwise)."""
+    def reference(self) -> dict[str, float]:
+        """Physical values of the specimen model recorded in the (first) run file, by parameter name."""
         t = self.template
-        z = np.array([t.mu0, t.J0, *t.mu, *t.J, *np.log10(t.tau)])  # type: ignore[union-attr]
-        return np.clip(z, self.lower, self.upper)
+        return dict(zip(self.names, (float(x) for x in (t.mu0, t.J0, *t.mu, *t.J, *t.tau)),  # type: ignore[union-attr]
+                        strict=True))
+
+    def start(self) -> np.ndarray:
+        """Optimiser vector of the recorded specimen's parameters (thesis Table 4.4 unless the run says otherwise)."""
+        v = np.array(list(self.reference().values()))
+        return np.clip(np.where(self.log, np.log10(v), v), self.lower, self.upper)
 
 
 class LozengeProblem:
@@ -182,6 +176,8 @@ class LozengeProblem:
         if not self.records:
             raise ValueError("no LS-DEA records in the given run files")
         self.data = np.concatenate([r.data for r in self.records])
+        hung = {int(r.template[16]) == MODE_HUNG for r in self.records}  # Q_MODE
+        self.data_unit = "m" if hung == {True} else "N" if hung == {False} else "N and m"
 
     def _add(self, run: RunFile, source: str) -> None:
         spec = json.loads(run.attrs["specimen"])
@@ -195,7 +191,7 @@ class LozengeProblem:
                                        else lsdea.get("hung_mass_kg", 0.0))
         base = replace(base, mechanism_mass=model.get("mechanism_mass", base.mechanism_mass))
         self.base = self.base or base
-        changes = _specimen_changes(run)
+        changes = run.specimen_changes()
         cuts = sorted({0.0, *[t for t, _ in changes], run.updated})
         sp = run.streams["setpoints"]
         stride = max(1, round(1.0 / (self.data_rate * self.h)))
