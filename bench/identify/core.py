@@ -144,10 +144,15 @@ def fit(problem: Problem, settings: FitSettings = FitSettings(), start: np.ndarr
         pred = problem.predict(Z)[:, mask]
         return pred[0], (pred[1:] - pred[0]).T / dz
 
+    def cost_of(r: np.ndarray) -> float:
+        if not np.all(np.isfinite(r)):
+            return np.inf
+        return float(np.sum(np.abs(r)) if settings.cost == "sae" else np.sum(r * r))
+
+    pred, J = jac_batch(z)
     if settings.polish:
         # polish the parameters that influence the output, at the fine step: the others only hurt conditioning
-        _, J0 = jac_batch(z)
-        infl = np.sqrt(np.mean(J0 * J0, axis=0)) * (hi - lo)
+        infl = np.sqrt(np.mean(J * J, axis=0)) * (hi - lo)
         free = np.nonzero(infl >= 1e-3 * max(float(np.max(infl)), 1e-300))[0]
         z_fixed = z.copy()
 
@@ -173,15 +178,14 @@ def fit(problem: Problem, settings: FitSettings = FitSettings(), start: np.ndarr
             J = both(zc)[1] / scale
             return np.where(np.isfinite(J), J, 0.0)
 
-        before = _costs(problem, problem.predict(z[None, :]), settings.cost)[0]
         ls = least_squares(res, z[free], jac=jac, bounds=(lo[free], hi[free]), x_scale=(hi - lo)[free],
                            max_nfev=settings.polish_iterations)
-        after = _costs(problem, problem.predict(full(ls.x)[None, :]), settings.cost)[0]
-        if np.isfinite(after) and after <= before:
+        after = cost_of(both(ls.x)[0] - data)
+        if np.isfinite(after) and after <= cost_of(pred - data):
             z = full(ls.x)
-    pred, J = jac_batch(z)
+            pred, J = jac_batch(z)
     r = pred - data
-    cost = float(np.sum(np.abs(r)) if settings.cost == "sae" else np.sum(r * r))
+    cost = cost_of(r)
     values = physical(problem, z)
     # sensitivity: output change (rms, relative to the data rms) for a 1 % change of the physical value
     dphys = np.where(problem.log, values * np.log(10.0), 1.0)  # dθ/dz

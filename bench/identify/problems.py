@@ -36,9 +36,9 @@ def _hold(t_set: np.ndarray, v_set: np.ndarray, t: np.ndarray) -> np.ndarray:
 def _sampled(t_grid: np.ndarray, t_data: np.ndarray, values: np.ndarray) -> np.ndarray:
     """The record on the comparison grid: interpolated where a sample lies within a tenth of the grid spacing,
     NaN elsewhere (between sparse samples, e.g. 10-Hz polling during rests, interpolation would invent data)."""
-    out = np.interp(t_grid, t_data, values, left=np.nan, right=np.nan)
-    if t_data.size == 0:
+    if t_data.size < 2:
         return np.full(t_grid.size, np.nan)
+    out = np.interp(t_grid, t_data, values, left=np.nan, right=np.nan)
     spacing = float(t_grid[1] - t_grid[0]) if t_grid.size > 1 else np.inf
     j = np.clip(np.searchsorted(t_data, t_grid), 1, t_data.size - 1)
     gap = np.minimum(np.abs(t_grid - t_data[j - 1]), np.abs(t_data[j] - t_grid))
