@@ -28,12 +28,12 @@ def _fitted_membrane(run_path: Path) -> tuple[np.ndarray, np.ndarray, dict] | No
     fits = [f for f in read_fits(run_path) if f["model"] == "membrane"]
     if not fits:
         return None
+    from bench.identify.core import to_optimiser
     from bench.identify.problems import MembraneProblem
 
     prob = MembraneProblem([run_path], h=1e-4)
     fit = fits[-1]
-    z = np.array([np.log10(v) if lg else v for v, lg in zip(fit["values"], prob.log, strict=True)])
-    u = prob.predict(z[None, :])[0]
+    u = prob.predict(to_optimiser(prob.log, fit["values"])[None, :])[0]
     t = np.arange(u.size) * prob.records[0].stride * prob.h
     return t, u, fit
 

@@ -86,6 +86,12 @@ def to_physical(log: np.ndarray, Z: np.ndarray) -> np.ndarray:
     return V
 
 
+def to_optimiser(log: np.ndarray, V: np.ndarray) -> np.ndarray:
+    """Physical values → optimiser coordinates (log10 where ``log``); the inverse of :func:`to_physical`."""
+    V = np.asarray(V, dtype=float)
+    return np.where(log, np.log10(np.where(log, V, 1.0)), V)
+
+
 def physical(problem: Problem, Z: np.ndarray) -> np.ndarray:
     """Optimiser coordinates → physical values."""
     return to_physical(np.asarray(problem.log, bool), Z)

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.identify.core import to_physical
+from bench.identify.core import to_optimiser, to_physical
 from bench.models.integrate import MODEL_LOZENGE, MODEL_MEMBRANE, OBSERVE_FORCE, run_fixed_batch
 from bench.models.lozenge import MODE_HUNG, MODE_IMPOSED, PROTOTYPE_LAMBDA2P, LozengeParams, MaxwellBranch
 from bench.models.membrane import MembraneParams
@@ -154,8 +154,7 @@ class MembraneProblem:
 
     def start(self) -> np.ndarray:
         """Optimiser vector of the recorded specimen's parameters (thesis Table 4.4 unless the run says otherwise)."""
-        v = np.array(list(self.reference().values()))
-        return np.clip(np.where(self.log, np.log10(v), v), self.lower, self.upper)
+        return np.clip(to_optimiser(self.log, list(self.reference().values())), self.lower, self.upper)
 
 
 class LozengeProblem:
