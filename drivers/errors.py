@@ -30,3 +30,7 @@ class InstrumentStateError(InstrumentError):
 
 class LimitError(InstrumentError):
     """A requested setting lies outside the configured software limits; nothing was sent."""
+
+
+class OperationCancelledError(InstrumentError):
+    """A wait on the instrument was abandoned because the application requested a stop."""
