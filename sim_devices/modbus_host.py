@@ -2,7 +2,9 @@
 
 A bus is a list of ``SimDevice`` (one per unit id: an RS-485 multidrop line) served either as Modbus RTU
 on a pty bridge (the driver opens ``client_path`` like a USB–RS-485 adapter) or as Modbus TCP on loopback.
-Faults of an RTU bus (latency, silence, garbled bytes, dropped link) are applied by its bridge.
+The bus's :class:`Faults` (latency, silence, garbled bytes, dropped link) act on every transport: a pty bridge
+in front of the RTU server, a loopback :class:`SocketRelay` in front of the RTU-over-TCP and Modbus TCP
+servers. ``endpoint`` is always the faulty side (bridge or relay), never the server itself.
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ from pymodbus.framer import FramerType
 from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.simulator import SimDevice
 
-from sim_devices.transport import Faults, PtyBridge
+from sim_devices.transport import Faults, PtyBridge, SocketRelay
 
 logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
 
@@ -32,10 +34,11 @@ class SimBus:
     devices: list[SimDevice]
     transport: Literal["rtu", "rtu-socket", "tcp"] = "rtu"
     baudrate: int = 19200
-    port: int = 0  # TCP port (0: ephemeral)
+    port: int = 0  # TCP port of the endpoint (the relay; 0: ephemeral)
     faults: Faults = field(default_factory=Faults)
     endpoint: str = ""
     bridge: PtyBridge | None = None
+    relay: SocketRelay | None = None
 
 
 class ModbusHost:
@@ -55,11 +58,6 @@ class ModbusHost:
             if bus.transport == "rtu":
                 bus.bridge = PtyBridge(bus.name, bus.faults).start()
                 bus.endpoint = bus.bridge.client_path
-            elif bus.transport == "rtu-socket":
-                with socket.socket() as s:  # a free loopback port for the RTU-over-TCP server
-                    s.bind(("127.0.0.1", 0))
-                    bus.port = s.getsockname()[1]
-                bus.endpoint = f"socket://127.0.0.1:{bus.port}"
         self._thread = threading.Thread(target=self._run, name="sim-modbus", daemon=True)
         self._thread.start()
         if not self._ready.wait(timeout):
@@ -80,17 +78,29 @@ class ModbusHost:
     async def _serve(self) -> None:
         try:
             for bus in self.buses:
-                if bus.transport in ("rtu", "rtu-socket"):
-                    port = bus.bridge.server_path if bus.bridge is not None else bus.endpoint
-                    server: ModbusSerialServer | ModbusTcpServer = ModbusSerialServer(
-                        bus.devices, framer=FramerType.RTU, port=port, baudrate=bus.baudrate)
+                server: ModbusSerialServer | ModbusTcpServer
+                if bus.transport == "rtu":
+                    assert bus.bridge is not None
+                    server = ModbusSerialServer(bus.devices, framer=FramerType.RTU, port=bus.bridge.server_path,
+                                                baudrate=bus.baudrate)
+                    await server.serve_forever(background=True)
+                elif bus.transport == "rtu-socket":
+                    inner = _free_port()  # pymodbus' RTU-over-TCP server does not report an ephemeral port
+                    server = ModbusSerialServer(bus.devices, framer=FramerType.RTU,
+                                                port=f"socket://127.0.0.1:{inner}", baudrate=bus.baudrate)
+                    await server.serve_forever(background=True)
                 else:
-                    server = ModbusTcpServer(bus.devices, address=("127.0.0.1", bus.port))
-                await server.serve_forever(background=True)
-                if bus.transport == "tcp":
-                    port = server.transport.sockets[0].getsockname()[1]  # type: ignore[union-attr]
-                    bus.endpoint = f"tcp://127.0.0.1:{port}"
+                    server = ModbusTcpServer(bus.devices, address=("127.0.0.1", 0))
+                    await server.serve_forever(background=True)
+                    inner = server.transport.sockets[0].getsockname()[1]  # type: ignore[union-attr]
                 self._servers.append(server)
+                if bus.transport != "rtu":
+                    framing: Literal["mbap", "stream"] = "mbap" if bus.transport == "tcp" else "stream"
+                    bus.relay = await SocketRelay(bus.name, ("127.0.0.1", inner), bus.faults,
+                                                  framing=framing).start(port=bus.port)
+                    bus.port = bus.relay.port
+                    scheme = "tcp" if bus.transport == "tcp" else "socket"
+                    bus.endpoint = f"{scheme}://127.0.0.1:{bus.port}"
         except BaseException as exc:
             self._error = exc
         finally:
@@ -101,6 +111,9 @@ class ModbusHost:
         loop = self._loop
         if loop is not None and loop.is_running():
             async def shutdown() -> None:
+                for bus in self.buses:
+                    if bus.relay is not None:
+                        await bus.relay.close()
                 for server in self._servers:
                     await server.shutdown()
 
@@ -112,3 +125,9 @@ class ModbusHost:
         for bus in self.buses:
             if bus.bridge is not None:
                 bus.bridge.stop()
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])

@@ -94,7 +94,7 @@ class SimRig:
         if buses:
             sim_buses = []
             for name, devices in buses.items():
-                self.faults[name] = Faults(latency=sim.latency_s)
+                self.faults[name] = Faults(latency=sim.latency_s, clock=self.clock.now)
                 sim_buses.append(SimBus(name, devices, transport=sim.modbus_transport,
                                         baudrate=rig.buses[name].baudrate, faults=self.faults[name]))
             self._modbus = ModbusHost(sim_buses)
@@ -102,9 +102,21 @@ class SimRig:
         return self.endpoints()
 
     def _serve_serial(self, role: str, twin: object) -> None:
-        self.faults[role] = Faults(latency=self.rig.simulation.latency_s)
+        self.faults[role] = Faults(latency=self.rig.simulation.latency_s, clock=self.clock.now)
         self.twins[role] = twin
         self._serial[role] = PtyDevice(twin, role, self.faults[role]).start()  # type: ignore[arg-type]
+
+    def faults_of(self, name: str) -> Faults:
+        """The :class:`Faults` of the link serving ``name``: a serial role (``laser``, ``motor``), a bus name
+        (``io``), or a Modbus role (``amplifier``, ``load_cell``: its bus). Available once started."""
+        rig = self.rig
+        bus = {"amplifier": rig.amplifier.bus if rig.amplifier else None,
+               "load_cell": rig.load_cell.bus if rig.load_cell else None}.get(name)
+        key = bus or name
+        if key not in self.faults:
+            known = ", ".join(sorted(self.faults)) or "none (not started)"
+            raise KeyError(f"no simulated link {name!r}; known: {known}")
+        return self.faults[key]
 
     def endpoints(self) -> dict[str, Endpoint]:
         """Endpoints of the running twins."""

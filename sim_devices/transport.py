@@ -1,31 +1,55 @@
-"""Pseudo-terminal transports for simulated serial instruments, with fault injection.
+"""Transports for simulated instruments, with fault injection.
 
 * :class:`PtyDevice` — one pty pair: the simulated instrument reads and writes the master side, the
   driver opens the slave's device path (``/dev/pts/N``) exactly as it would open ``/dev/ttyUSB0``.
 * :class:`PtyBridge` — two pty pairs relayed back to back (the in-Python ``socat pty pty``), for servers
   that open a device path themselves (pymodbus' RTU server).
+* :class:`SocketRelay` — a loopback TCP relay (asyncio) in front of a socket server (pymodbus' Modbus TCP
+  or RTU-over-TCP server): the driver connects to the relay.
 
-Both apply the same :class:`Faults` to what the instrument sends: extra latency, silence (timeouts),
-garbled bytes, and a dropped connection (the master side is closed, the driver sees the port die).
+All three apply the same :class:`Faults` to what the instrument sends: extra latency, silence (timeouts),
+garbled bytes, and a dropped link. A fault can be switched at once or armed for a time on the rig clock or
+after a number of replies (:meth:`Faults.schedule`); ``Faults.injected`` counts the replies it affected.
 """
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import os
 import select
+import socket
+import struct
 import threading
 import time
 import tty
+from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
+
+SWITCHES = ("latency", "mute", "garble_next", "garble_index", "drop", "wire_baud")
+
+
+@dataclass
+class _Armed:
+    """Switch settings waiting for their moment (one of the two conditions)."""
+
+    switches: dict[str, object]
+    at_time: float | None = None
+    at_reply: int | None = None
 
 
 @dataclass
 class Faults:
-    """Fault-injection switches of one simulated link (set from tests or ``bench sim serve``)."""
+    """Fault-injection switches of one simulated link (set from tests or ``bench sim serve``).
+
+    Switches may be flipped at any time from any thread; :meth:`schedule` arms them for later. Counters:
+    ``replies`` (replies the instrument produced), ``injected`` (replies or connections a fault acted on)
+    and ``counts`` (the same by fault: ``latency``, ``mute``, ``garble``, ``drop``).
+    """
 
     latency: float = 0.0  # s added before every reply (wall time)
     mute: bool = False  # swallow replies: the driver times out
@@ -34,18 +58,97 @@ class Faults:
     drop: bool = False  # close the link: the port reports a lost device
     wire_baud: float | None = None  # emulate the wire time of request + reply at this baud rate (8N1)
     rng: np.random.Generator = field(default_factory=lambda: np.random.default_rng(0))
+    clock: Callable[[], float] | None = None  # the rig clock, for schedule(at_time=...)
+    replies: int = field(default=0, init=False)
+    injected: int = field(default=0, init=False)
+    counts: Counter[str] = field(default_factory=Counter, init=False)
+    _armed: list[_Armed] = field(default_factory=list, init=False, repr=False)
+    _lock: threading.RLock = field(default_factory=threading.RLock, init=False, repr=False, compare=False)
+
+    def schedule(self, *, at_time: float | None = None, after_replies: int | None = None,
+                 **switches: object) -> None:
+        """Arm ``switches`` (e.g. ``mute=True``) for when the rig clock reads ``at_time`` [s], or for the
+        reply after the next ``after_replies`` ones (0: the very next reply). Exactly one condition."""
+        if (at_time is None) == (after_replies is None):
+            raise ValueError("schedule needs exactly one of at_time, after_replies")
+        if unknown := set(switches) - set(SWITCHES):
+            raise TypeError(f"unknown fault switch(es) {sorted(unknown)}; known: {', '.join(SWITCHES)}")
+        if not switches:
+            raise ValueError("schedule needs at least one switch")
+        if at_time is not None and self.clock is None:
+            raise ValueError("schedule(at_time=...) needs a clock (SimRig sets it to the rig clock)")
+        if after_replies is not None and after_replies < 0:
+            raise ValueError(f"after_replies must be >= 0, got {after_replies}")
+        with self._lock:
+            at_reply = None if after_replies is None else self.replies + after_replies
+            self._armed.append(_Armed(dict(switches), at_time, at_reply))
+        self.tick()
+
+    @property
+    def pending(self) -> int:
+        """Number of scheduled switch sets not yet applied."""
+        with self._lock:
+            return len(self._armed)
+
+    def reset(self) -> None:
+        """Clear every switch and schedule (counters are kept)."""
+        with self._lock:
+            self._armed.clear()
+            self.latency, self.mute, self.garble_next, self.garble_index = 0.0, False, 0, None
+            self.drop, self.wire_baud = False, None
+
+    def tick(self) -> None:
+        """Apply scheduled switches whose moment has come (transports call this while idle and per reply)."""
+        with self._lock:
+            if not self._armed:
+                return
+            now = self.clock() if self.clock is not None and any(a.at_time is not None for a in self._armed) \
+                else None
+            due = [a for a in self._armed
+                   if (a.at_time is not None and now is not None and now >= a.at_time)
+                   or (a.at_reply is not None and self.replies >= a.at_reply)]
+            for a in due:
+                self._armed.remove(a)
+                for k, v in a.switches.items():
+                    setattr(self, k, v)
+
+    def note(self, *kinds: str) -> None:
+        """Count one reply / connection affected by the fault(s) ``kinds``."""
+        with self._lock:
+            self.injected += 1
+            self.counts.update(kinds)
+
+    def process(self, reply: bytes, request_len: int = 0) -> tuple[bytes | None, float]:
+        """What goes on the wire for ``reply`` (None: nothing) and the wall-time delay [s] before it."""
+        if not reply:
+            return None, 0.0
+        with self._lock:
+            self.tick()
+            self.replies += 1
+            if self.mute:
+                self.note("mute")
+                return None, 0.0
+            kinds = []
+            if self.garble_next > 0:
+                self.garble_next -= 1
+                buf = bytearray(reply)
+                n = len(buf)
+                i = int(self.rng.integers(0, n)) if self.garble_index is None else self.garble_index % n
+                buf[i] ^= 0x5A
+                reply = bytes(buf)
+                kinds.append("garble")
+            delay = self.latency
+            if delay > 0:
+                kinds.append("latency")
+            if kinds:
+                self.note(*kinds)
+            if self.wire_baud:
+                delay += 10.0 * (request_len + len(reply)) / self.wire_baud
+            return reply, delay
 
     def apply(self, reply: bytes) -> bytes | None:
-        """Return what actually goes on the wire for ``reply`` (None: nothing)."""
-        if self.mute or not reply:
-            return None
-        if self.garble_next > 0:
-            self.garble_next -= 1
-            buf = bytearray(reply)
-            i = int(self.rng.integers(0, len(buf))) if self.garble_index is None else self.garble_index % len(buf)
-            buf[i] ^= 0x5A
-            return bytes(buf)
-        return reply
+        """What goes on the wire for ``reply`` (None: nothing); the delay is the caller's business."""
+        return self.process(reply)[0]
 
 
 def _open_raw_pty() -> tuple[int, int, str]:
@@ -58,7 +161,8 @@ def _open_raw_pty() -> tuple[int, int, str]:
 class PtyDevice:
     """Serve a byte-stream instrument on a pty: ``handler(data) -> reply bytes`` per chunk received.
 
-    The handler keeps its own framing state (it may get partial or several frames per call).
+    The handler keeps its own framing state (it may get partial or several frames per call). ``drop`` closes
+    the pty for good, like an unplugged USB adapter: the device path disappears.
     """
 
     def __init__(self, handler: Callable[[bytes], bytes], name: str, faults: Faults | None = None) -> None:
@@ -76,9 +180,12 @@ class PtyDevice:
         return self
 
     def _run(self) -> None:
+        faults = self.faults
         try:
             while not self._stop.is_set():
-                if self.faults.drop:
+                faults.tick()
+                if faults.drop:
+                    faults.note("drop")
                     break
                 ready, _, _ = select.select([self._master], [], [], 0.01)
                 if not ready:
@@ -87,11 +194,8 @@ class PtyDevice:
                     data = os.read(self._master, 65536)
                 except OSError:
                     break
-                reply = self.faults.apply(self.handler(data))
+                reply, delay = faults.process(self.handler(data), len(data))
                 if reply:
-                    delay = self.faults.latency
-                    if self.faults.wire_baud:
-                        delay += 10.0 * (len(data) + len(reply)) / self.faults.wire_baud
                     if delay:
                         time.sleep(delay)
                     os.write(self._master, reply)
@@ -118,7 +222,7 @@ class PtyDevice:
 class PtyBridge:
     """Two pty pairs relayed back to back: ``server_path`` for the simulator, ``client_path`` for the driver.
 
-    Faults apply to bytes travelling server → client.
+    Faults apply to bytes travelling server → client; ``drop`` closes the client side for good.
     """
 
     def __init__(self, name: str, faults: Faults | None = None) -> None:
@@ -135,8 +239,13 @@ class PtyBridge:
         return self
 
     def _run(self) -> None:
+        faults, request_len = self.faults, 0
         try:
-            while not self._stop.is_set() and not self.faults.drop:
+            while not self._stop.is_set():
+                faults.tick()
+                if faults.drop:
+                    faults.note("drop")
+                    break
                 ready, _, _ = select.select([self._sm, self._cm], [], [], 0.01)
                 for fd in ready:
                     try:
@@ -144,15 +253,16 @@ class PtyBridge:
                     except OSError:
                         return
                     if fd == self._cm:
+                        request_len = len(data)
                         os.write(self._sm, data)
-                    else:
-                        out = self.faults.apply(data)
-                        if out:
-                            if self.faults.latency:
-                                time.sleep(self.faults.latency)
-                            os.write(self._cm, out)
+                        continue
+                    out, delay = faults.process(data, request_len)
+                    if out:
+                        if delay:
+                            time.sleep(delay)
+                        os.write(self._cm, out)
         finally:
-            for fd in (self._cm, self._cs) if self.faults.drop else ():
+            for fd in (self._cm, self._cs) if faults.drop else ():
                 with contextlib.suppress(OSError):
                     os.close(fd)
 
@@ -164,3 +274,134 @@ class PtyBridge:
         for fd in (self._sm, self._ss, self._cm, self._cs):
             with contextlib.suppress(OSError):
                 os.close(fd)
+
+
+class SocketRelay:
+    """Loopback TCP relay in front of a socket server, run in an asyncio loop; faults act on server → client.
+
+    ``framing``: ``"mbap"`` cuts the server's stream into Modbus TCP ADUs (so faults act per reply whatever
+    the segmentation); ``"stream"`` treats each chunk read as one reply (RTU over TCP). ``drop`` resets every
+    open connection and closes the listening socket (new connections are refused) until it is cleared, then
+    the relay listens on the same port again.
+    """
+
+    def __init__(self, name: str, upstream: tuple[str, int], faults: Faults | None = None,
+                 framing: Literal["mbap", "stream"] = "stream", poll: float = 0.005) -> None:
+        self.name = name
+        self.upstream = upstream
+        self.faults = faults or Faults()
+        self.framing = framing
+        self.host, self.port = "127.0.0.1", 0
+        self._poll = poll
+        self._server: asyncio.Server | None = None
+        self._watch: asyncio.Task[None] | None = None
+        self._conns: set[tuple[asyncio.StreamWriter, asyncio.StreamWriter]] = set()
+
+    @property
+    def address(self) -> tuple[str, int]:
+        """(host, port) the driver connects to."""
+        return self.host, self.port
+
+    async def start(self, host: str = "127.0.0.1", port: int = 0) -> SocketRelay:
+        """Listen on ``host:port`` (0: ephemeral) and start watching the faults."""
+        self.host = host
+        self._server = await asyncio.start_server(self._handle, host, port)
+        self.port = self._server.sockets[0].getsockname()[1]
+        self._watch = asyncio.get_running_loop().create_task(self._watch_faults())
+        return self
+
+    async def close(self) -> None:
+        """Stop listening and reset every connection."""
+        if self._watch is not None:
+            self._watch.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._watch
+        await self._stop_listening()
+        self._reset_all()
+
+    async def _stop_listening(self) -> None:
+        if self._server is not None:
+            self._server.close()
+            await self._server.wait_closed()
+            self._server = None
+
+    def _reset_all(self) -> int:
+        conns, self._conns = self._conns, set()
+        for pair in conns:
+            for w in pair:
+                _reset(w)
+        return len(conns)
+
+    async def _watch_faults(self) -> None:
+        faults = self.faults
+        while True:
+            faults.tick()
+            if faults.drop and self._server is not None:
+                await self._stop_listening()
+                self._reset_all()
+                faults.note("drop")
+            elif not faults.drop and self._server is None:
+                with contextlib.suppress(OSError):  # port briefly taken: try again next poll
+                    self._server = await asyncio.start_server(self._handle, self.host, self.port)
+            await asyncio.sleep(self._poll)
+
+    async def _handle(self, creader: asyncio.StreamReader, cwriter: asyncio.StreamWriter) -> None:
+        if self.faults.drop:
+            _reset(cwriter)
+            return
+        try:
+            sreader, swriter = await asyncio.open_connection(*self.upstream)
+        except OSError:
+            _reset(cwriter)
+            return
+        pair = (cwriter, swriter)
+        self._conns.add(pair)
+        last_request = [0]
+        loop = asyncio.get_running_loop()
+        tasks = [loop.create_task(self._requests(creader, swriter, last_request)),
+                 loop.create_task(self._replies(sreader, cwriter, last_request))]
+        try:
+            await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            for t in tasks:
+                t.cancel()
+            self._conns.discard(pair)
+            for w in pair:
+                w.close()
+
+    @staticmethod
+    async def _requests(reader: asyncio.StreamReader, writer: asyncio.StreamWriter, last: list[int]) -> None:
+        with contextlib.suppress(OSError):
+            while data := await reader.read(65536):
+                last[0] = len(data)
+                writer.write(data)
+                await writer.drain()
+
+    async def _replies(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, last: list[int]) -> None:
+        with contextlib.suppress(OSError, asyncio.IncompleteReadError):
+            while True:
+                if self.framing == "mbap":
+                    head = await reader.readexactly(6)
+                    reply = head + await reader.readexactly(int.from_bytes(head[4:6], "big"))
+                else:
+                    reply = await reader.read(65536)
+                if not reply:
+                    return
+                out, delay = self.faults.process(reply, last[0])
+                if out is None:
+                    continue
+                if delay:
+                    await asyncio.sleep(delay)
+                if self.faults.drop:
+                    return
+                writer.write(out)
+                await writer.drain()
+
+
+def _reset(writer: asyncio.StreamWriter) -> None:
+    """Close a connection with a TCP reset (the peer sees the link die, not an orderly end)."""
+    sock = writer.get_extra_info("socket")
+    if sock is not None:
+        with contextlib.suppress(OSError):
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+    writer.transport.abort()
