@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import math
 import sys
 from pathlib import Path
@@ -9,6 +10,7 @@ from typing import Annotated
 
 import typer
 from rich.live import Live
+from rich.markup import escape
 from rich.prompt import Confirm
 from rich.table import Table
 
@@ -93,6 +95,9 @@ def run(
     yes: Annotated[bool, typer.Option("--yes", help="Confirm operator actions (specimen changes) without asking.")]
     = False,
     live: Annotated[bool, typer.Option(help="Live view (off: one line per step).")] = True,
+    allow_no_watchdog: Annotated[bool, typer.Option(
+        "--allow-no-watchdog", help="Run although the rig's set-point module has no communication watchdog "
+        "(recorded in the file).")] = False,
 ) -> None:
     """Run a protocol on a rig (simulated by default), streaming everything to one HDF5 file."""
     from bench.engine import Engine
@@ -126,18 +131,25 @@ def run(
             live_ctx.update(holder["view"])
 
         with Live(console=console, refresh_per_second=4, transient=False) as live_ctx:
-            result = execute(plan, path, virtual=virtual_time, operator=operator, on_engine=attach)
+            result = execute(plan, path, virtual=virtual_time, operator=operator, on_engine=attach,
+                             allow_no_watchdog=allow_no_watchdog)
     else:
         console.print(f"running {title}")
-        result = execute(plan, path, virtual=virtual_time, operator=operator)
-    speed = result.run_time / result.wall_time if result.wall_time > 0 else float("nan")
-    colour = "green" if result.state == "completed" else "red"
-    console.print(f"[{colour}]{result.state}[/]: {result.reason}")
-    console.print(f"run {result.run_time:.1f} s in {result.wall_time:.1f} s of wall time ({speed:.1f}× real time), "
-                  f"{result.samples:,} samples" + (f", {result.overruns} late actions" if result.overruns else ""))
-    console.print(f"run file: {result.path}")
+        result = execute(plan, path, virtual=virtual_time, operator=operator, allow_no_watchdog=allow_no_watchdog)
+    with contextlib.suppress(OSError):  # the terminal went away (SIGHUP): the file holds the whole account
+        _print_result(result)
     if result.state != "completed":
         raise typer.Exit(1)
+
+
+def _print_result(result) -> None:
+    speed = result.run_time / result.wall_time if result.wall_time > 0 else float("nan")
+    colour = "green" if result.state == "completed" else "red"
+    console.print(f"[{colour}]{result.state}[/]: {escape(result.reason)}")
+    console.print(f"run {result.run_time:.1f} s in {result.wall_time:.1f} s of wall time ({speed:.1f}× real time), "
+                  f"{result.samples:,} samples" + (f", {result.overruns} late actions" if result.overruns else ""))
+    console.print(f"high voltage: {escape(result.safe_path)}")
+    console.print(f"run file: {escape(str(result.path))}")
 
 
 @app.command()

@@ -6,9 +6,16 @@ laser reads), all stamped on one run clock, and streams everything to the record
 against real or simulated instruments, or in virtual time against a simulated rig (the clock jumps to the
 next scheduled action; the bytes on the wire are the same).
 
-Every exit — end of the protocol, safety trip, instrument error or lost link, Ctrl-C, SIGTERM — goes
-through :meth:`Engine._shut_down`: voltage ramped to zero (at once on a second Ctrl-C, or if the ramp
-fails), motor stopped, stored laser data fetched, the reason recorded, the file finalised.
+Every exit — end of the protocol, safety trip, instrument error or lost link, Ctrl-C, SIGTERM, SIGHUP,
+SIGQUIT, a storage fault — goes through :meth:`Engine._shut_down`: voltage ramped to zero (at once on a second
+signal, or if the ramp fails), motor stopped, every other instrument put in its safe state, stored laser data
+fetched, and the safe state *verified* (0 V on the voltage monitor, or the set-point module's communication
+watchdog waited out); the file records which path made the output safe, when, and why the run stopped.
+
+Stop bound: a stop request cancels the rig's :class:`~drivers.cancel.CancelToken`, so whatever wait on an
+instrument is under way ends within one driver poll slice; the engine checks the request before every action
+and between waits of at most ``STOP_POLL_S``. The ramp-down then starts at once and 0 V is commanded at most
+``shutdown_ramp_s`` later; a second request skips the rest of the ramp.
 """
 
 from __future__ import annotations
@@ -27,7 +34,7 @@ from bench.instruments import Instruments
 from bench.protocol.program import Program, Segment, motor_command, voltage_at
 from bench.recorder import Recorder
 from bench.safety import SafetyTrip, Supervisor
-from drivers.errors import InstrumentConnectionError, InstrumentError
+from drivers.errors import InstrumentConnectionError, InstrumentError, InstrumentStateError, OperationCancelledError
 from sim_devices.clock import Clock
 
 FETCH_PERIOD_S = 0.25  # laser storage upload period while storing (run time)
@@ -35,6 +42,18 @@ MONITOR_SETTLE_S = 0.5  # after zeroing, wait for fresh monitor conversions befo
 PASSIVE_LASER_HZ = 10.0
 HOLD_KEEPALIVE_S = 0.25  # set-point refresh during holds (keeps the analog module's watchdog fed)
 LATE_TOLERANCE_S = 0.05  # real time: an action later than this counts as an overrun
+STOP_POLL_S = 0.02  # real time: longest sleep between two looks at the stop request
+RAMP_STEPS = 10  # shutdown ramp: set-points from the last voltage to 0 V
+SAFE_MONITOR_V = 50.0  # |monitor| at or below this after zeroing counts as "output at 0 V" (0.5 % of 10 kV)
+DISCHARGE_WAIT_S = 2.0  # how long to keep reading a monitor that is not yet at 0 V before reporting it
+WATCHDOG_MARGIN_S = 0.2  # wait past the module's communication-safety period before checking the output
+LASER_DRAIN_BUDGET_S = 30.0  # at most this long fetching stored laser data after the run (stop: at once)
+STOP_SIGNALS = {
+    signal.SIGINT: "interrupted by Ctrl-C",
+    signal.SIGTERM: "terminated by SIGTERM",
+    signal.SIGHUP: "hang-up (SIGHUP: terminal closed or connection dropped)",
+    signal.SIGQUIT: "quit requested (SIGQUIT)",
+}
 
 OperatorFn = Callable[[str], bool]
 
@@ -54,7 +73,7 @@ class RunResult:
     wall_time: float
     samples: int
     overruns: int = 0
-    shutdown_notes: list[str] = field(default_factory=list)
+    safe_path: str = ""
 
 
 @dataclass
@@ -87,30 +106,50 @@ class Engine:
         self.snapshot = Snapshot(duration=program.duration, steps=len(program.segments))
         self._t0 = 0.0
         self._stop_reason: str | None = None
+        self._stop_at: float | None = None  # run time of the first stop request
         self._urgent = threading.Event()
         self._stopping = False
+        self._in_prompt = False
         self._v_cmd = 0.0
         self._storing = False
+        self._storage_failed = False
         self.overruns = 0
+        self.worst_lateness = 0.0
         rig = program.rig
         self._laser_offset = (rig.laser.offset_mm * 1e-3) if rig.laser else 0.0
         self._laser_sign = float(rig.laser.sign) if rig.laser else 1.0
 
     # ------------------------------------------------------------ stop requests (signals, other threads)
     def request_stop(self, reason: str) -> None:
-        """Ask the run to stop; a second request while stopping makes the voltage go to zero at once."""
+        """Ask the run to stop; a second request while stopping makes the voltage go to zero at once.
+
+        Safe from a signal handler or another thread: it sets flags and cancels instrument waits, nothing more.
+        """
         if self._stop_reason is None:
             self._stop_reason = reason
+            self._stop_at = self.now()
+            if not self._stopping:
+                self.inst.cancel.cancel(reason)
         else:
             self._urgent.set()
+
+    def _on_signal(self, reason: str) -> None:
+        self.request_stop(reason)
+        if self._in_prompt and not self._stopping:  # an operator prompt blocks in input(): leave it now
+            self._in_prompt = False
+            raise StopRequested(reason)
 
     def _install_signals(self) -> list[tuple[int, Any]]:
         if threading.current_thread() is not threading.main_thread():
             return []
         old = []
-        for sig, text in ((signal.SIGINT, "interrupted by Ctrl-C"), (signal.SIGTERM, "terminated by SIGTERM")):
-            old.append((sig, signal.signal(sig, lambda *_a, text=text: self.request_stop(text))))
+        for sig, text in STOP_SIGNALS.items():
+            old.append((sig, signal.signal(sig, lambda *_a, text=text: self._on_signal(text))))
         return old
+
+    def _check_stop(self) -> None:
+        if self._stop_reason is not None and not self._stopping:
+            raise StopRequested(self._stop_reason)
 
     # ------------------------------------------------------------ time
     def now(self) -> float:
@@ -118,31 +157,56 @@ class Engine:
         return self.clock.now() - self._t0
 
     def _wait_until(self, t: float) -> None:
-        if self._stop_reason is not None and not self._stopping:
-            raise StopRequested(self._stop_reason)
+        self._check_stop()
         if not self.clock.virtual:
             while (left := t - self.now()) > 0:
-                if self._stop_reason is not None and not self._stopping:
-                    raise StopRequested(self._stop_reason)
-                time.sleep(min(left, 0.05))
-            if self.now() - t > LATE_TOLERANCE_S:
+                self._check_stop()
+                time.sleep(min(left, STOP_POLL_S))
+            late = self.now() - t
+            self.worst_lateness = max(self.worst_lateness, late)
+            if late > LATE_TOLERANCE_S:
                 self.overruns += 1
         else:
             self.clock.wait_until(self._t0 + t)
+
+    def _pause_until(self, t: float, urgent_aborts: bool = True) -> bool:
+        """Shutdown wait: returns False at once if an urgent (second) stop request comes and ``urgent_aborts``."""
+        if self.clock.virtual:
+            self.clock.wait_until(self._t0 + t)
+            return not (urgent_aborts and self._urgent.is_set())
+        while (left := t - self.now()) > 0:
+            if urgent_aborts and self._urgent.is_set():
+                return False
+            time.sleep(min(left, STOP_POLL_S))
+        return not (urgent_aborts and self._urgent.is_set())
 
     # ------------------------------------------------------------ acquisition
     def _to_specimen(self, laser_value: np.ndarray) -> np.ndarray:
         return (laser_value - self._laser_offset) / self._laser_sign
 
-    def _record_laser_block(self) -> None:
+    def _record_laser_block(self) -> int:
+        """Fetch and record one block of stored laser data; returns how many samples it held."""
         block = self.inst.laser.fetch_buffer()  # type: ignore[union-attr]
         if block.values.size:
             disp = self._to_specimen(block.values)
-            self.rec.append("laser", block.times() - self._t0, displacement=disp, valid=block.valid.astype("u1"))
-            good = disp[block.valid]
+            valid = block.valid & np.isfinite(disp)
+            self.rec.append("laser", block.times() - self._t0, displacement=disp, valid=valid.astype("u1"))
+            good = disp[valid]
             if good.size:
                 self.sup.update_displacement(float(good[-1]))
                 self.snapshot.values["displacement"] = float(good[-1])
+        return int(block.values.size)
+
+    def _drain_laser(self, budget: float) -> None:
+        """Fetch stored laser data until the storage is empty, ``budget`` s pass, or a stop request comes."""
+        wall_end = time.monotonic() + budget
+        while self._record_laser_block() > 0:
+            if self._stopping and self._urgent.is_set():
+                return
+            self._check_stop()
+            if time.monotonic() > wall_end:
+                raise InstrumentStateError("laser", f"stored data not fetched within {budget:g} s: the link "
+                                           "cannot upload as fast as the storage fills")
 
     def _poll(self, kind: str) -> None:
         inst, snap = self.inst, self.snapshot
@@ -155,6 +219,8 @@ class Engine:
             r = inst.motor.read_position()  # type: ignore[union-attr]
             x = float(self.program.aperture(r.value)) if self.program.has_motor_axis else math.nan
             self.rec.append("motor", r.timestamp - self._t0, position=r.value, aperture=x)
+            if not r.ok or not math.isfinite(r.value):
+                raise InstrumentStateError("motor", f"drive reports {r.status}: {self._drive_error_text()}")
             snap.values["aperture"] = x
             self.sup.check_motor(r.value, x if self.program.has_motor_axis else self.sup.aperture or 0.0)
         elif kind == "force":
@@ -168,12 +234,22 @@ class Engine:
         elif kind == "laser":
             r = inst.laser.read()  # type: ignore[union-attr]
             d = float(self._to_specimen(np.array([r.value]))[0])
-            self.rec.append("laser", r.timestamp - self._t0, displacement=d, valid=np.uint8(r.ok))
-            if r.ok:
+            ok = r.ok and math.isfinite(d)
+            self.rec.append("laser", r.timestamp - self._t0, displacement=d, valid=np.uint8(ok))
+            if ok:
                 self.sup.update_displacement(d)
                 self.snapshot.values["displacement"] = d
         elif kind == "fetch":
             self._record_laser_block()
+
+    def _drive_error_text(self) -> str:
+        """The drive's own account of its state (error code and text), for the file."""
+        try:
+            st = self.inst.motor.status()  # type: ignore[union-attr]
+        except InstrumentError as exc:
+            return f"status unreadable ({exc.detail})"
+        text = getattr(st, "error_text", "")
+        return f"state {st.state}, error {st.error_code:#06x}" + (f" ({text})" if text else "")
 
     # ------------------------------------------------------------ set-points
     def _set_voltage(self, v: float, t: float, x_cmd: float = math.nan) -> None:
@@ -181,6 +257,23 @@ class Engine:
         sent = self.inst.amplifier.set_voltage(v)  # type: ignore[union-attr]
         self._v_cmd = sent
         self.rec.append("setpoints", t, voltage=sent, aperture=x_cmd)
+
+    def _move_motor(self, target: float, vel: float, acc: float) -> float:
+        """Send a supervised go-to; returns the commanded aperture [m]."""
+        x_cmd = float(self.program.aperture(target)) if self.program.has_motor_axis else math.nan
+        self.sup.check_motor_setpoint(target, x_cmd, self._v_cmd)
+        self.inst.motor.move_to(target, vel, acc)  # type: ignore[union-attr]
+        return x_cmd
+
+    def _operator_confirms(self, text: str) -> bool:
+        if self.operator is None:
+            return False
+        self._in_prompt = True
+        try:
+            self._check_stop()
+            return self.operator(f"set the specimen: {text}")
+        finally:
+            self._in_prompt = False
 
     def _segment(self, seg: Segment) -> None:
         prog, inst, rec = self.program, self.inst, self.program.protocol.recording
@@ -190,7 +283,7 @@ class Engine:
             text = ", ".join(f"{k} = {v}" for k, v in seg.changes.items())
             if self.apply_specimen is not None:
                 self.apply_specimen(seg.changes)
-            elif self.operator is None or not self.operator(f"set the specimen: {text}"):
+            elif not self._operator_confirms(text):
                 raise StopRequested(f"operator did not confirm '{seg.name}' ({text})")
             self.rec.event(self.now(), seg.index, "specimen", text)
         if seg.storing:
@@ -213,11 +306,7 @@ class Engine:
             if t_set <= t_next:
                 v = voltage_at(seg, t_set)
                 cmd = motor_command(prog, seg, t_set, dt, first=k_set == 0)
-                x_cmd = math.nan
-                if cmd is not None:
-                    target, vel, acc = cmd
-                    inst.motor.move_to(target, vel, acc)  # type: ignore[union-attr]
-                    x_cmd = float(prog.aperture(target))
+                x_cmd = self._move_motor(*cmd) if cmd is not None else math.nan
                 if inst.amplifier is not None:
                     self._set_voltage(self._v_cmd if v is None else v, t_set, x_cmd)
                 self.snapshot.values["setpoint"] = self._v_cmd
@@ -225,6 +314,7 @@ class Engine:
                 t_set = seg.t_start + k_set * dt if t_set + dt <= seg.stream_until + 1e-12 else \
                     t_set + max(dt, HOLD_KEEPALIVE_S)
             for kind in [k for k, tk in due.items() if tk <= t_next + 1e-12]:
+                self._check_stop()
                 self._poll(kind)
                 count[kind] += 1
                 due[kind] = seg.t_start + count[kind] * periods[kind]  # type: ignore[operator]
@@ -235,7 +325,7 @@ class Engine:
         if seg.storing:
             inst.laser.stop_buffer()  # type: ignore[union-attr]
             self._storing = False
-            self._record_laser_block()
+            self._drain_laser(LASER_DRAIN_BUDGET_S)
         self.rec.event(self.now(), seg.index, "end", seg.name)
 
     # ------------------------------------------------------------ run and shut down
@@ -254,66 +344,151 @@ class Engine:
             state, reason = "tripped", f"safety trip: {trip.reason}"
         except StopRequested as stop:
             state, reason = "interrupted", str(stop)
+        except OperationCancelledError:
+            state, reason = "interrupted", self._stop_reason or "stop requested"
         except InstrumentConnectionError as exc:
             state, reason = "error", f"lost link: {exc}"
         except InstrumentError as exc:
             state, reason = "error", f"instrument error: {exc}"
         except Exception as exc:
-            state, reason = "error", f"internal error: {type(exc).__name__}: {exc}"
-        notes = self._shut_down(state, reason)
-        for sig, handler in old:
-            signal.signal(sig, handler)
+            if _is_storage_fault(exc):
+                self._storage_failed = True
+                state, reason = "error", f"storage fault: {exc}"
+            else:
+                state, reason = "error", f"internal error: {type(exc).__name__}: {exc}"
+        try:
+            safe_path = self._shut_down(state, reason)
+        finally:
+            for sig, handler in old:
+                signal.signal(sig, handler)
         return RunResult(str(self.rec.path), state, reason, self.now(), time.perf_counter() - wall0,
-                         self.rec.samples_written, self.overruns, notes)
+                         self.rec.samples_written, self.overruns, safe_path)
 
-    def _shut_down(self, state: str, reason: str) -> list[str]:
-        """Voltage to zero, motor stopped, stored data fetched, file finalised; returns notes on what failed."""
+    def _record(self, fn: Callable[..., object], *args: Any, **kwargs: Any) -> None:
+        """A recorder call during shutdown: a storage fault must not stop the rig being made safe."""
+        if self._storage_failed:
+            return
+        try:
+            fn(*args, **kwargs)
+        except Exception as exc:
+            if not _is_storage_fault(exc):
+                raise
+            self._storage_failed = True
+
+    def _event(self, kind: str, text: str) -> None:
+        self._record(self.rec.event, self.now(), self.snapshot.step, kind, text)
+
+    def _shut_down(self, state: str, reason: str) -> str:
+        """Voltage to zero, motor stopped, instruments safe, safe state verified, file finalised.
+
+        Returns the account of how the output was made safe (also in the file's events and reason).
+        """
         self._stopping = True
+        self.inst.cancel.clear()  # the shutdown's own commands must go out
         self.snapshot.state = "stopping"
         notes: list[str] = []
         t = self.now()
-        self.rec.event(t, self.snapshot.step, "stop" if state == "completed" else state, reason)
-        amp = self.inst.amplifier
-        if amp is not None:
-            ramp = self.program.rig.limits.shutdown_ramp_s
-            v0 = self._v_cmd
-            try:
-                if v0 != 0.0 and not self._urgent.is_set():
-                    n = 10
-                    for k in range(1, n + 1):
-                        if self._urgent.is_set():
-                            break
-                        self._wait_until(t + ramp * k / n)
-                        v = v0 * (1 - k / n)
-                        self._v_cmd = amp.set_voltage(v)
-                        self.rec.append("setpoints", self.now(), voltage=self._v_cmd, aperture=math.nan)
-            except InstrumentError as exc:
-                notes.append(f"voltage ramp-down failed: {exc}")
-            try:
-                amp.zero()
-                self._v_cmd = 0.0
-                self.rec.append("setpoints", self.now(), voltage=0.0, aperture=math.nan)
-            except InstrumentError as exc:
-                notes.append(f"could not command 0 V: {exc}; the analog module's communication watchdog must "
-                             "bring the output to 0 V")
-        if self.inst.motor is not None:
-            try:
-                self.inst.motor.stop()
-            except InstrumentError as exc:
-                notes.append(f"could not stop the motor: {exc}")
+        if self._stop_at is not None:
+            self._event("request", f"stop requested at {self._stop_at:.3f} s: {self._stop_reason}")
+        self._event("stop" if state == "completed" else state, reason)
+        zero_at = self._zero_voltage(t, notes)
+        notes += self._others_safe()
         if self._storing and self.inst.laser is not None:
             try:
                 self.inst.laser.stop_buffer()
-                self._record_laser_block()
-            except InstrumentError as exc:
-                notes.append(f"stored laser data not fetched: {exc}")
-        if amp is not None:
-            try:
-                self._wait_until(self.now() + MONITOR_SETTLE_S)  # HV is already at 0 V: record it
-                self._poll("monitors")
-            except (InstrumentError, SafetyTrip) as exc:
-                notes.append(f"final monitor read failed: {exc}")
-        full_reason = reason + ("" if not notes else " | " + "; ".join(notes))
-        self.rec.finish(state, full_reason)
+                self._storing = False
+                self._drain_laser(LASER_DRAIN_BUDGET_S)
+            except (InstrumentError, SafetyTrip, StopRequested) as exc:
+                notes.append(f"stored laser data not (all) fetched: {exc}")
+            except Exception as exc:
+                if not _is_storage_fault(exc):
+                    raise
+                self._storage_failed = True
+        safe_path = self._verify_safe(zero_at, notes)
+        for note in notes:
+            self._event("fault", note)
+        self._event("safe", safe_path)
+        self._record(self.rec.finish, state, f"{reason} | {safe_path}")
         self.snapshot.state = state
+        return safe_path
+
+    def _zero_voltage(self, t: float, notes: list[str]) -> float | None:
+        """Ramp the set-point to 0 V (cut short by a second stop request) and command 0 V.
+
+        Returns the run time at which 0 V was confirmed commanded by the module, or None if it could not be.
+        """
+        amp = self.inst.amplifier
+        if amp is None:
+            return None
+        ramp = self.program.rig.limits.shutdown_ramp_s
+        v0 = self._v_cmd
+        try:
+            if v0 != 0.0 and not self._urgent.is_set():
+                self._event("ramp", f"ramp from {v0:.0f} V to 0 V over {ramp:g} s")
+                for k in range(1, RAMP_STEPS + 1):
+                    if not self._pause_until(t + ramp * k / RAMP_STEPS):
+                        self._event("ramp", "second stop request: 0 V at once")
+                        break
+                    self._v_cmd = amp.set_voltage(v0 * (1 - k / RAMP_STEPS))
+                    self._record(self.rec.append, "setpoints", self.now(), voltage=self._v_cmd, aperture=math.nan)
+        except InstrumentError as exc:
+            notes.append(f"voltage ramp-down failed: {exc}")
+        try:
+            amp.safe_state()
+        except InstrumentError as exc:
+            notes.append(f"could not command 0 V: {exc}")
+            return None
+        self._v_cmd = 0.0
+        t_zero = self.now()
+        self._record(self.rec.append, "setpoints", t_zero, voltage=0.0, aperture=math.nan)
+        return t_zero
+
+    def _others_safe(self) -> list[str]:
+        """Every instrument but the amplifier to its safe state (motor stopped first), each independently."""
+        notes = []
+        roles = [r for r, _ in self.inst.items() if r != "amplifier"]
+        for role in sorted(roles, key=lambda r: r != "motor"):
+            try:
+                getattr(self.inst, role).safe_state()
+            except InstrumentError as exc:
+                notes.append(f"{role} safe state failed: {exc}")
         return notes
+
+    def _verify_safe(self, zero_at: float | None, notes: list[str]) -> str:
+        """Check the output really is at 0 V and say which path made it so."""
+        amp = self.inst.amplifier
+        if amp is None:
+            return "safe: no amplifier on this rig"
+        cfg = self.program.rig.amplifier
+        watchdog = cfg.comm_watchdog_s if cfg is not None else None
+        if zero_at is not None:
+            path = f"0 V commanded by the host at {zero_at:.3f} s"
+            self._pause_until(self.now() + MONITOR_SETTLE_S, urgent_aborts=False)  # fresh monitor conversions at the zeroed output
+        elif watchdog is not None:
+            # No request to the set-point module from here on: its communication-safety timer must run out.
+            path = (f"0 V NOT commanded by the host: left to the set-point module's communication watchdog "
+                    f"({watchdog:g} s)")
+            self._pause_until(self.now() + watchdog + WATCHDOG_MARGIN_S, urgent_aborts=False)
+        else:
+            return "UNSAFE: 0 V could not be commanded and the set-point module has no communication watchdog"
+        deadline = self.now() + DISCHARGE_WAIT_S
+        while True:
+            try:
+                v, i = amp.read_monitors()  # type: ignore[attr-defined]
+            except InstrumentError as exc:
+                notes.append(f"final monitor read failed: {exc}")
+                return f"{path}; output NOT verified (voltage monitor unreadable)"
+            self._record(self.rec.append, "amplifier", v.timestamp - self._t0, voltage=v.value, current=i.value)
+            if math.isfinite(v.value) and abs(v.value) <= SAFE_MONITOR_V:
+                return f"{path}; verified: voltage monitor {v.value:.0f} V at {self.now():.3f} s"
+            if self.now() >= deadline:
+                return f"{path}; WARNING: voltage monitor still reads {v.value:.0f} V at {self.now():.3f} s"
+            self._pause_until(self.now() + 0.1, urgent_aborts=False)
+
+
+def _is_storage_fault(exc: BaseException) -> bool:
+    """Whether ``exc`` came from writing the run file (disk full, size limit, unwritable, HDF5 write error)."""
+    from bench import recorder
+
+    storage_error = getattr(recorder, "StorageError", None)
+    return (storage_error is not None and isinstance(exc, storage_error)) or isinstance(exc, OSError)

@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 
 from bench.rig import RigConfig
 from drivers.adam import Adam4017P, Adam4024, RawScale
+from drivers.cancel import CancelToken
 from drivers.dini import DiniDGT1S
 from drivers.errors import InstrumentError
 from drivers.interfaces import (
@@ -35,6 +36,7 @@ class Instruments:
     motor: LinearMotor | None = None
     load_cell: ForceSensor | None = None
     links: dict[str, ModbusLink] = field(default_factory=dict)
+    cancel: CancelToken = field(default_factory=CancelToken)  # shared by every link: one stop request reaches all
 
     def items(self) -> Iterator[tuple[str, Instrument]]:
         """(role, driver) of every instrument present, amplifier first."""
@@ -80,7 +82,13 @@ def build_instruments(rig: RigConfig, endpoints: dict[str, str] | None = None,
             cfg = rig.buses[name]
             inst.links[name] = ModbusLink(ep.get(name, cfg.port), f"bus {name}", baudrate=cfg.baudrate,
                                           timeout=cfg.timeout_s, retries=cfg.retries, poll_interval=modbus_poll)
+            inst.links[name].cancel = inst.cancel
         return inst.links[name]
+
+    def serial(url: str, device: str, baudrate: int, timeout: float) -> SerialLink:
+        link = SerialLink(url, device, baudrate=baudrate, timeout=timeout)
+        link.cancel = inst.cancel  # type: ignore[attr-defined]  # (the attribute is part of SerialLink)
+        return link
 
     if (a := rig.amplifier) is not None:
         link = bus(a.bus)
@@ -94,11 +102,10 @@ def build_instruments(rig: RigConfig, endpoints: dict[str, str] | None = None,
                                        max_voltage=min(a.max_voltage_V, rig.limits.max_voltage_V),
                                        slew_limit=a.slew_limit_V_per_s, clock=clock)
     if (lz := rig.laser) is not None:
-        inst.laser = KeyenceLKG(SerialLink(ep.get("laser", lz.port), "laser", baudrate=lz.baudrate,
-                                           timeout=lz.timeout_s),
+        inst.laser = KeyenceLKG(serial(ep.get("laser", lz.port), "laser", lz.baudrate, lz.timeout_s),
                                 model=lz.model, out=lz.out, clock=clock, storage_points=lz.storage_points)
     if (m := rig.motor) is not None:
-        inst.motor = LinMotDrive(SerialLink(ep.get("motor", m.port), "motor", baudrate=m.baudrate, timeout=m.timeout_s),
+        inst.motor = LinMotDrive(serial(ep.get("motor", m.port), "motor", m.baudrate, m.timeout_s),
                                  drive_id=m.drive_id, travel=m.travel_m, max_velocity=m.max_velocity_m_per_s,
                                  max_acceleration=m.max_acceleration_m_per_s2, clock=clock, sleep=sleep,
                                  checksum=m.checksum)

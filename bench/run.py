@@ -93,8 +93,26 @@ def default_output(plan: Plan, out_dir: str | Path) -> Path:
     return path
 
 
+def check_watchdog(rig: RigConfig, allow_no_watchdog: bool = False) -> str:
+    """Refuse a rig whose voltage set-point module has no communication watchdog, unless overridden.
+
+    The watchdog is the last line of defence when the host cannot command 0 V (lost bus, failed module,
+    crashed host). Returns the line the run file records about it.
+    """
+    amp = rig.amplifier
+    if amp is None:
+        return "no amplifier"
+    if amp.comm_watchdog_s is not None:
+        return f"ADAM-4024 communication watchdog {amp.comm_watchdog_s:g} s"
+    if not allow_no_watchdog:
+        raise ValueError(f"rig {rig.name}: amplifier.comm_watchdog_s is not set — without the set-point module's "
+                         "communication watchdog nothing zeroes the high voltage if the host loses the bus; "
+                         "configure it (and the module), or pass --allow-no-watchdog to run anyway (recorded)")
+    return "NO communication watchdog: run allowed by an explicit override (--allow-no-watchdog)"
+
+
 def execute(plan: Plan, out: Path, *, virtual: bool = False, operator: OperatorFn | None = None,
-            on_engine: Callable[[Engine, Any], None] | None = None) -> RunResult:
+            on_engine: Callable[[Engine, Any], None] | None = None, allow_no_watchdog: bool = False) -> RunResult:
     """Connect the rig (starting its twins if simulated), record, run; returns how the run ended.
 
     Errors while connecting (before anything is recorded) propagate as InstrumentError.
@@ -103,6 +121,7 @@ def execute(plan: Plan, out: Path, *, virtual: bool = False, operator: OperatorF
     rig, program = plan.rig, plan.program
     if virtual and not rig.simulated:
         raise ValueError(f"rig {rig.name} is real: virtual time needs a simulated rig (use --sim)")
+    watchdog = check_watchdog(rig, allow_no_watchdog)
     sim = None
     if rig.simulated:
         from sim_devices.rig import SimRig
@@ -142,7 +161,7 @@ def execute(plan: Plan, out: Path, *, virtual: bool = False, operator: OperatorF
             "specimen": json.dumps({**spec.model_dump(), "overrides": plan.protocol.specimen.model_dump(),
                                     "model": _model_params(params)}),
             "recording": json.dumps(plan.protocol.recording.model_dump()),
-            "sources": json.dumps(sources), "duration_planned": program.duration,
+            "sources": json.dumps(sources), "duration_planned": program.duration, "hv_watchdog": watchdog,
         }
         prog_rows = [(s.index, s.label, s.name, s.kind, s.t_start, s.duration) for s in program.segments]
         recorder = Recorder(out, attrs, streams, prog_rows, rates)

@@ -37,7 +37,7 @@ class Supervisor:
     last_force: float = 0.0
     displacement: float | None = None  # membrane u [m]
     aperture: float | None = None  # LS-DEA x [m]
-    trips: int = 0
+    motor_setpoints: int = 0  # go-to commands checked (and passed)
 
     def __post_init__(self) -> None:
         lim = self.rig.limits.max_voltage_V
@@ -68,15 +68,19 @@ class Supervisor:
     # ------------------------------------------------------------ checks
     def check_setpoint(self, volts: float) -> None:
         """Refuse a voltage set-point beyond the voltage limit or the field limit at the present stretch."""
+        if not math.isfinite(volts):
+            self._trip(f"set-point {volts} V is not a number")
         if abs(volts) > self.voltage_limit + 1e-9:
             self._trip(f"set-point {volts:.0f} V beyond the voltage limit ±{self.voltage_limit:.0f} V")
         e, e_max = self.field_and_breakdown(volts)
-        if e > e_max:
+        if not e <= e_max:  # also trips when the estimate is NaN: an unknown field is not a safe one
             self._trip(f"set-point {volts:.0f} V would give a true field of {e / 1e6:.1f} MV/m, limit "
                        f"{e_max / 1e6:.1f} MV/m at the present stretch")
 
     def check_monitors(self, volts: float, amps: float) -> None:
         """Output voltage and current from the amplifier monitors."""
+        if not (math.isfinite(volts) and math.isfinite(amps)):
+            self._trip(f"amplifier monitors read {volts} V, {amps} A: not a measurement")
         self.last_voltage, self.last_current = volts, amps
         if abs(amps) > self.rig.limits.max_current_A:
             limit = self.rig.limits.max_current_A
@@ -84,11 +88,13 @@ class Supervisor:
         if abs(volts) > self.voltage_limit * 1.02 + 50.0:
             self._trip(f"output {volts:.0f} V beyond the voltage limit ±{self.voltage_limit:.0f} V")
         e, e_max = self.field_and_breakdown(volts)
-        if e > e_max:
+        if not e <= e_max:
             self._trip(f"true field {e / 1e6:.1f} MV/m beyond the limit {e_max / 1e6:.1f} MV/m")
 
     def check_force(self, newtons: float) -> None:
         """Load-cell force."""
+        if not math.isfinite(newtons):
+            self._trip(f"load cell reads {newtons} N: not a measurement")
         self.last_force = newtons
         if abs(newtons) > self.rig.limits.max_force_N:
             self._trip(f"force {newtons:.2f} N beyond the limit ±{self.rig.limits.max_force_N:g} N")
@@ -104,8 +110,31 @@ class Supervisor:
             self._trip(f"motor at {motor_position * 1e3:.2f} mm, outside travel "
                        f"[{m.travel_m[0] * 1e3:.1f}, {m.travel_m[1] * 1e3:.1f}] mm")
 
+    def check_motor_setpoint(self, motor_position: float, aperture: float, volts: float) -> None:
+        """Refuse a motor go-to outside the travel limits, or one whose aperture would put the present voltage
+        beyond the field limit (the LS-DEA's field depends on its stretch, hence on the aperture)."""
+        m = self.rig.motor
+        if not math.isfinite(motor_position):
+            self._trip(f"motor set-point {motor_position} m is not a number")
+        if m is not None and not m.travel_m[0] <= motor_position <= m.travel_m[1]:
+            self._trip(f"motor set-point {motor_position * 1e3:.2f} mm outside travel "
+                       f"[{m.travel_m[0] * 1e3:.1f}, {m.travel_m[1] * 1e3:.1f}] mm")
+        if isinstance(self.specimen, LozengeParams) and math.isfinite(aperture) and volts != 0.0:
+            present = self.aperture
+            self.aperture = aperture
+            try:
+                e, e_max = self.field_and_breakdown(volts)
+            finally:
+                self.aperture = present
+            if not e <= e_max:
+                self._trip(f"motor set-point to aperture {aperture * 1e3:.1f} mm at {volts:.0f} V would give a true "
+                           f"field of {e / 1e6:.1f} MV/m, limit {e_max / 1e6:.1f} MV/m")
+        self.motor_setpoints += 1
+
     def update_displacement(self, value: float) -> None:
         """Latest laser value in specimen coordinates (membrane u, or LS-DEA aperture x) [m]."""
+        if not math.isfinite(value):
+            return  # not a measurement: the estimate keeps the last one
         if isinstance(self.specimen, MembraneParams):
             self.displacement = value
             lam = self.specimen.lambda_pre + value / self.specimen.L_d
@@ -122,5 +151,4 @@ class Supervisor:
                 "force": abs(self.last_force) / self.rig.limits.max_force_N}
 
     def _trip(self, reason: str) -> None:
-        self.trips += 1
         raise SafetyTrip(reason)

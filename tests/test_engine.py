@@ -184,7 +184,9 @@ def test_lost_amplifier_link_relies_on_the_module_watchdog(tmp_path: Path) -> No
     result, run, sim = run_virtual(SHORT / "thesis-identification-short.toml", tmp_path, {"simulation": sim_cfg},
                                    hook=hook)
     assert result.state == "error" and "lost link" in result.reason
-    assert "could not command 0 V" in run.reason and "watchdog" in run.reason
+    assert "0 V NOT commanded by the host" in run.reason and "communication watchdog (1 s)" in run.reason
+    faults = [text for _, _, kind, text in run.event_list() if kind == "fault"]
+    assert any(text.startswith("could not command 0 V") for text in faults)
     assert run.complete
     sim.clock.advance(1.5)  # the ADAM-4024's communication safety (1 s in the rig file)
     assert sim.plant.observe().voltage[0] == 0.0 and sim.plant.watchdog_tripped
