@@ -2,6 +2,11 @@
 
 Ports are opened with ``serial.serial_for_url``, so a device path (``/dev/ttyUSB0``, ``/dev/pts/7``), a
 ``socket://host:port`` URL or a test URL scheme all work the same way.
+
+Every read has a deadline on its *total* duration (a peer trickling bytes cannot stretch it) and blocks in
+slices of at most ``POLL_SLICE_S``, checking the optional :class:`~drivers.cancel.CancelToken` before each.
+A read abandoned by a timeout or a stop leaves the link "dirty": the next write first drops whatever has
+arrived since, so a late reply is never taken for the answer to the next request.
 """
 
 from __future__ import annotations
@@ -12,22 +17,27 @@ import time
 
 import serial
 
+from drivers.cancel import CancelToken
 from drivers.errors import InstrumentConnectionError, InstrumentTimeoutError
+
+POLL_SLICE_S = 0.05  # longest single blocking read: a stop request is seen within one slice
 
 
 class SerialLink:
     """One serial port shared by one instrument; all exchanges are serialised by a lock."""
 
     def __init__(self, url: str, device: str, *, baudrate: int = 115200, timeout: float = 0.5,
-                 exclusive: bool = True) -> None:
+                 exclusive: bool = True, cancel: CancelToken | None = None) -> None:
         self.url = url
         self.device = device
         self.baudrate = baudrate
         self.timeout = timeout
         self.exclusive = exclusive
+        self.cancel = cancel
         self.lock = threading.RLock()
         self._port: serial.SerialBase | None = None
         self._rest = b""  # bytes received after the last terminator
+        self._dirty = False  # a read was abandoned: a late reply may still arrive
 
     @property
     def is_open(self) -> bool:
@@ -40,8 +50,8 @@ class SerialLink:
             return
         try:
             self._port = serial.serial_for_url(self.url, baudrate=self.baudrate, bytesize=8, parity="N",
-                                               stopbits=1, timeout=self.timeout, write_timeout=self.timeout,
-                                               exclusive=self.exclusive)
+                                               stopbits=1, timeout=min(self.timeout, POLL_SLICE_S),
+                                               write_timeout=self.timeout, exclusive=self.exclusive)
         except (serial.SerialException, OSError, ValueError) as exc:
             reason = os.strerror(exc.errno) if isinstance(getattr(exc, "errno", None), int) else str(exc)
             raise InstrumentConnectionError(self.device, f"cannot open {self.url}: {reason}") from None
@@ -67,14 +77,21 @@ class SerialLink:
         """Drop stale bytes (e.g. a late reply to a timed-out request)."""
         port = self._require()
         self._rest = b""
+        self._dirty = False
         try:
             port.reset_input_buffer()
         except (serial.SerialException, OSError) as exc:
             raise self._lost(exc) from None
 
     def write(self, data: bytes) -> None:
-        """Send bytes."""
+        """Send bytes (first dropping stale input if the previous read was abandoned).
+
+        Not cancellable: a command always goes out (it may be the one that makes the rig safe); the wait
+        for its reply is.
+        """
         port = self._require()
+        if self._dirty:
+            self.discard_input()
         try:
             port.write(data)
         except serial.SerialTimeoutException:
@@ -82,49 +99,64 @@ class SerialLink:
         except (serial.SerialException, OSError) as exc:
             raise self._lost(exc) from None
 
+    def _slice_timeout(self, port: serial.SerialBase, deadline: float) -> None:
+        """Block at most one poll slice, and never past the deadline (checks the stop request first)."""
+        if self.cancel is not None and self.cancel.cancelled:
+            self._dirty = True
+            self.cancel.check(self.device)
+        left = deadline - time.monotonic()
+        want = max(min(POLL_SLICE_S, left), 0.001)
+        if port.timeout is None or abs(port.timeout - want) > 0.005:
+            port.timeout = want
+
+    def _timed_out(self, waited: float, partial: bytes, need: str = "") -> InstrumentTimeoutError:
+        self._dirty = True
+        got = f" (partial reply {partial[:80]!r}{need})" if partial else ""
+        return InstrumentTimeoutError(self.device, f"no reply within {waited:.3g} s{got}")
+
     def read_exact(self, n: int, timeout: float | None = None) -> bytes:
-        """Read exactly n bytes or raise InstrumentTimeoutError."""
+        """Read exactly n bytes within ``timeout`` [s] in total, or raise InstrumentTimeoutError."""
         port = self._require()
-        deadline = time.monotonic() + (self.timeout if timeout is None else timeout)
+        waited = self.timeout if timeout is None else timeout
+        deadline = time.monotonic() + waited
         buf = bytearray(self._rest[:n])
         self._rest = self._rest[n:]
         try:
             while len(buf) < n:
-                chunk = port.read(n - len(buf))
-                if chunk:
-                    buf += chunk
-                elif time.monotonic() >= deadline:
-                    raise InstrumentTimeoutError(self.device, f"no reply within {self.timeout:g} s "
-                                            f"({len(buf)} of {n} bytes received)")
+                self._slice_timeout(port, deadline)
+                buf += port.read(n - len(buf))
+                if len(buf) < n and time.monotonic() >= deadline:
+                    raise self._timed_out(waited, bytes(buf), f", {len(buf)} of {n} bytes")
         except (serial.SerialException, OSError) as exc:
             raise self._lost(exc) from None
         return bytes(buf)
 
     def read_until(self, terminator: bytes, max_size: int = 1 << 20, timeout: float | None = None) -> bytes:
-        """Read up to and including ``terminator``; raise InstrumentTimeoutError if it does not come.
+        """Read up to and including ``terminator`` within ``timeout`` [s] in total; else InstrumentTimeoutError.
 
         Reads whatever is waiting in one call (pyserial's own ``read_until`` makes one call per byte, which
         caps a bulk upload of LK-G storage at a few hundred kB/s).
         """
         port = self._require()
-        deadline = time.monotonic() + (self.timeout if timeout is None else timeout)
+        waited = self.timeout if timeout is None else timeout
+        deadline = time.monotonic() + waited
         buf = bytearray(self._rest)
         self._rest = b""
+        searched = 0
         try:
             while True:
-                end = buf.find(terminator)
+                end = buf.find(terminator, searched)
                 if end >= 0:
                     end += len(terminator)
                     self._rest = bytes(buf[end:])
                     return bytes(buf[:end])
+                searched = max(0, len(buf) - len(terminator) + 1)
                 if len(buf) >= max_size:
+                    self._dirty = True
                     raise InstrumentTimeoutError(self.device, f"no terminator within {max_size} bytes")
-                chunk = port.read(max(1, min(port.in_waiting, max_size - len(buf))))
-                if chunk:
-                    buf += chunk
-                elif time.monotonic() >= deadline:
-                    got = f" (partial reply {bytes(buf[:80])!r})" if buf else ""
-                    waited = self.timeout if timeout is None else timeout
-                    raise InstrumentTimeoutError(self.device, f"no reply within {waited:.3g} s{got}")
+                if time.monotonic() >= deadline:
+                    raise self._timed_out(waited, bytes(buf))
+                self._slice_timeout(port, deadline)
+                buf += port.read(max(1, min(port.in_waiting, max_size - len(buf))))
         except (serial.SerialException, OSError) as exc:
             raise self._lost(exc) from None

@@ -1,0 +1,131 @@
+"""SerialLink deadlines and stop requests against a peer on a real pty (a thread writing the master side)."""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+import tty
+from collections.abc import Iterator
+
+import pytest
+
+from drivers.cancel import CancelToken
+from drivers.errors import InstrumentTimeoutError, OperationCancelledError
+from drivers.serial_link import SerialLink
+
+
+class PtyPeer:
+    """The far end of a pty: a test thread writes bytes to the master; the link opens the slave's name."""
+
+    def __init__(self) -> None:
+        self.master, self.slave = os.openpty()
+        tty.setraw(self.master)
+        tty.setraw(self.slave)
+        self.name = os.ttyname(self.slave)
+        self.stop = threading.Event()
+        self.threads: list[threading.Thread] = []
+
+    def run(self, fn: object) -> None:
+        t = threading.Thread(target=fn, daemon=True)  # type: ignore[arg-type]
+        t.start()
+        self.threads.append(t)
+
+    def trickle(self, byte: bytes = b"x", every: float = 0.02) -> None:
+        """Send one byte every ``every`` seconds, never a terminator, until stopped."""
+        def loop() -> None:
+            while not self.stop.wait(every):
+                os.write(self.master, byte)
+        self.run(loop)
+
+    def close(self) -> None:
+        self.stop.set()
+        for t in self.threads:
+            t.join(2.0)
+        os.close(self.master)
+        os.close(self.slave)
+
+
+@pytest.fixture
+def peer() -> Iterator[PtyPeer]:
+    p = PtyPeer()
+    yield p
+    p.close()
+
+
+def link_on(peer: PtyPeer, timeout: float, cancel: CancelToken | None = None) -> SerialLink:
+    link = SerialLink(peer.name, "probe", timeout=timeout, exclusive=False, cancel=cancel)
+    link.open()
+    return link
+
+
+def test_read_until_deadline_counts_total_time_against_a_trickling_peer(peer: PtyPeer) -> None:
+    peer.trickle(every=0.02)  # a byte every 20 ms: a "since the last byte" deadline would never expire
+    link = link_on(peer, timeout=0.3)
+    t0 = time.monotonic()
+    with pytest.raises(InstrumentTimeoutError, match=r"probe: no reply within 0\.3 s \(partial reply b'x"):
+        link.read_until(b"\r")
+    assert 0.29 <= time.monotonic() - t0 < 0.45
+    link.close()
+
+
+def test_read_exact_deadline_counts_total_time_against_a_trickling_peer(peer: PtyPeer) -> None:
+    peer.trickle(every=0.02)
+    link = link_on(peer, timeout=0.3)
+    t0 = time.monotonic()
+    with pytest.raises(InstrumentTimeoutError, match=r"probe: no reply within 0\.3 s"):
+        link.read_exact(1000)
+    assert 0.29 <= time.monotonic() - t0 < 0.45
+    link.close()
+
+
+@pytest.mark.parametrize("trickling", [False, True])
+@pytest.mark.parametrize("method", ["read_until", "read_exact"])
+def test_a_stop_from_another_thread_ends_a_long_read_within_a_slice(peer: PtyPeer, trickling: bool,
+                                                                    method: str) -> None:
+    if trickling:
+        peer.trickle(every=0.01)
+    token = CancelToken()
+    link = link_on(peer, timeout=5.0, cancel=token)
+    cancelled_at: list[float] = []
+
+    def stop_later() -> None:
+        time.sleep(0.2)
+        cancelled_at.append(time.monotonic())
+        token.cancel("operator pressed Ctrl-C")
+
+    peer.run(stop_later)
+    with pytest.raises(OperationCancelledError, match="probe: wait abandoned: operator pressed Ctrl-C"):
+        if method == "read_until":
+            link.read_until(b"\r")
+        else:
+            link.read_exact(10_000)
+    assert time.monotonic() - cancelled_at[0] < 0.1
+    link.close()
+
+
+def test_cancel_token_is_a_settable_attribute(peer: PtyPeer) -> None:
+    link = link_on(peer, timeout=5.0)
+    link.cancel = token = CancelToken()
+    token.cancel("stop")
+    t0 = time.monotonic()
+    with pytest.raises(OperationCancelledError):
+        link.read_until(b"\r")
+    assert time.monotonic() - t0 < 0.1
+    token.clear()  # cleared: traffic flows again
+    os.write(peer.master, b"ok\r")
+    assert link.read_until(b"\r") == b"ok\r"
+    link.close()
+
+
+def test_a_late_reply_to_an_abandoned_read_is_dropped_before_the_next_request(peer: PtyPeer) -> None:
+    link = link_on(peer, timeout=0.1)
+    with pytest.raises(InstrumentTimeoutError):
+        link.read_until(b"\r")
+    os.write(peer.master, b"late reply\r")  # the answer to the timed-out request, arriving afterwards
+    time.sleep(0.05)
+    link.write(b"next request\r")
+    os.read(peer.master, 100)
+    os.write(peer.master, b"fresh reply\r")
+    assert link.read_until(b"\r") == b"fresh reply\r"
+    link.close()
