@@ -2,44 +2,101 @@
 
 ``url``: a serial device or pyserial URL (``/dev/ttyUSB0``, ``/dev/pts/7``, ``socket://host:port``) for RTU,
 or ``tcp://host:port`` for Modbus TCP. Uses the pymodbus 3.16 synchronous clients.
+
+Retries are ours, not pymodbus' (its ``retries`` is 0): the optional :class:`~drivers.cancel.CancelToken` is
+checked before every attempt (and, on RTU, at every receive poll), so a stop waits out at most one attempt.
+Every reply must match its request (function code; FC6 echo of address and value; FC16 echo of address and
+count; register count of a read) or it is a :class:`ProtocolError`. Stale replies: on TCP each attempt has a
+fresh transaction id and pymodbus skips a reply with another id (checked again here); on RTU, where replies
+carry no id, input is discarded before every request, and after a timeout the next reply is held for one
+timeout while the line goes quiet — if a second frame follows (the late answer to the earlier attempt came
+first), the later one is the answer to the latest request.
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import threading
 import time
-from collections.abc import Callable
-from typing import TypeVar
 
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOException
-from pymodbus.pdu import ExceptionResponse, ModbusPDU
+from pymodbus.framer import FramerRTU
+from pymodbus.pdu import DecodePDU, ExceptionResponse, ModbusPDU
+from pymodbus.pdu.register_message import (
+    ReadHoldingRegistersRequest,
+    ReadInputRegistersRequest,
+    WriteMultipleRegistersRequest,
+    WriteSingleRegisterRequest,
+)
 
-from drivers.errors import InstrumentConnectionError, InstrumentStateError, InstrumentTimeoutError, ProtocolError
+from drivers.cancel import CancelToken, check
+from drivers.errors import (
+    InstrumentConnectionError,
+    InstrumentStateError,
+    InstrumentTimeoutError,
+    OperationCancelledError,
+    ProtocolError,
+)
 
 EXCEPTION_TEXT = {1: "illegal function", 2: "illegal data address", 3: "illegal data value",
                   4: "device failure", 5: "acknowledge", 6: "device busy", 11: "gateway target failed to respond"}
-T = TypeVar("T")
 
 logging.getLogger("pymodbus").setLevel(logging.CRITICAL)  # errors are reported by the drivers, one line each
 
 
-class _PromptSerialClient(ModbusSerialClient):
-    """RTU client that hands over received bytes as soon as they arrive.
+class _TrailingRTUFramer(FramerRTU):
+    """RTU framer that keeps the bytes after the frame it decoded (pymodbus' own drops them)."""
 
-    pymodbus' own ``recv(None)`` waits until the byte count is stable over two polls; its transaction loop
-    already accumulates partial frames until the framer finds a whole one, so returning early is safe and
-    saves those polls (used for simulated rigs, whose ptys deliver at once).
+    def __init__(self) -> None:
+        super().__init__(DecodePDU(False))
+        self.trailing = b""
+
+    def decode(self, data: bytes) -> tuple[int, int, int, bytes]:
+        used, dev_id, tid, frame = super().decode(data)
+        if frame:
+            start = data.find(bytes([dev_id]) + frame)
+            self.trailing = data[start + len(frame) + 3:]  # id, PDU, 2 CRC bytes
+        return used, dev_id, tid, frame
+
+
+class _SerialClient(ModbusSerialClient):
+    """RTU client whose receive polls check the link's cancel token.
+
+    ``prompt``: hand over received bytes as soon as they arrive. pymodbus' own ``recv(None)`` waits until
+    the byte count is stable over two polls; its transaction loop already accumulates partial frames until
+    the framer finds a whole one, so returning early is safe and saves those polls (simulated rigs, whose
+    ptys deliver at once).
     """
 
+    def __init__(self, port: str, *, link: ModbusLink, prompt: bool, baudrate: int, timeout: float) -> None:
+        super().__init__(port, baudrate=baudrate, timeout=timeout, retries=0)
+        self.link = link
+        self.prompt = prompt
+        self.framer = self.transaction.framer = _TrailingRTUFramer()
+
+    def _wait_for_data(self) -> int:  # pymodbus 3.16 private hook (pinned): same rule, plus the cancel check
+        size, more = 0, False
+        deadline = time.monotonic() + self.comm_params.timeout_connect
+        while time.monotonic() <= deadline:
+            self.link._check_cancel()
+            available = self._in_waiting()
+            if more and available == size:
+                break
+            if available and available != size:
+                more, size = True, available
+            time.sleep(self._recv_interval)
+        return size
+
     def recv(self, size: int | None) -> bytes:
-        if size is not None or not self.socket:
+        if size is not None or not self.socket or not self.prompt:
             return super().recv(size)
         deadline = time.monotonic() + self.comm_params.timeout_connect
         try:
             while not (waiting := self._in_waiting()):
+                self.link._check_cancel()
                 if time.monotonic() > deadline:
                     return b""
                 time.sleep(self._recv_interval)
@@ -53,23 +110,37 @@ class ModbusLink:
     """One Modbus client; serialises requests from every module on the bus."""
 
     def __init__(self, url: str, device: str, *, baudrate: int = 19200, timeout: float = 0.5,
-                 retries: int = 1, poll_interval: float | None = None) -> None:
+                 retries: int = 1, poll_interval: float | None = None, cancel: CancelToken | None = None) -> None:
         """``poll_interval``: how often the RTU client polls for reply bytes (pymodbus default: 4 character
-        times, at least 1 ms). Twins on a pty answer at once, so simulated rigs use a shorter one."""
+        times, at least 1 ms). Twins on a pty answer at once, so simulated rigs use a shorter one.
+        ``retries``: further attempts after a timeout (each checks ``cancel`` first)."""
         self.url = url
         self.device = device
+        self.retries = retries
+        self.cancel = cancel
         self.lock = threading.RLock()
-        self._client: ModbusSerialClient | ModbusTcpClient
+        self._stale = False  # RTU: an earlier attempt went unanswered, its reply may still come
+        self._cancellable = True  # False during the first attempt of an always_send request
+        self._client: _SerialClient | ModbusTcpClient
         if url.startswith("tcp://"):
             host, _, port = url[len("tcp://"):].rpartition(":")
             if not host or not port.isdigit():
                 raise ValueError(f"{device}: Modbus TCP address must be tcp://host:port, got {url!r}")
-            self._client = ModbusTcpClient(host, port=int(port), timeout=timeout, retries=retries)
+            self._client = ModbusTcpClient(host, port=int(port), timeout=timeout, retries=0)
         else:
-            client_cls = ModbusSerialClient if poll_interval is None else _PromptSerialClient
-            self._client = client_cls(url, baudrate=baudrate, timeout=timeout, retries=retries)
+            self._client = _SerialClient(url, link=self, prompt=poll_interval is not None, baudrate=baudrate,
+                                         timeout=timeout)
             if poll_interval is not None:
                 self._client._recv_interval = poll_interval  # pymodbus 3.16 attribute (pinned)
+
+    @property
+    def timeout(self) -> float:
+        """Reply timeout of one attempt [s]."""
+        return float(self._client.comm_params.timeout_connect or 0.0)
+
+    @timeout.setter
+    def timeout(self, value: float) -> None:
+        self._client.comm_params.timeout_connect = value
 
     @property
     def is_open(self) -> bool:
@@ -87,47 +158,130 @@ class ModbusLink:
         """Close the connection (idempotent)."""
         self._client.close()
 
-    def _call(self, what: str, unit: int, fn: Callable[[], ModbusPDU]) -> ModbusPDU:
+    # ------------------------------------------------------------------ transactions
+    def _discard_input(self) -> None:
+        client = self._client
+        if isinstance(client, _SerialClient) and client.socket is not None:
+            with contextlib.suppress(OSError):  # the request that follows reports the lost link
+                client.socket.reset_input_buffer()
+            client.framer.trailing = b""  # type: ignore[attr-defined]
+        client.transaction.sent_buffer = b""  # pymodbus' local-echo and receive buffers (3.16)
+        client.transaction.recv_buffer = b""
+
+    def _check_cancel(self) -> None:
+        if self._cancellable:
+            check(self.cancel, self.device)
+
+    def _call(self, what: str, unit: int, request: ModbusPDU, always_send: bool = False) -> ModbusPDU:
+        """Run one request with our retries; returns the checked reply."""
+        attempts = self.retries + 1
         with self.lock:
-            try:
-                resp = fn()
-            except ModbusIOException:
-                raise InstrumentTimeoutError(self.device, f"no valid reply from unit {unit} to {what} on {self.url}") \
-                    from None
-            except ConnectionException:
-                raise InstrumentConnectionError(self.device, f"Modbus link {self.url} lost during {what}") from None
-            except ModbusException as exc:
-                raise ProtocolError(self.device, f"{what} on unit {unit}: {exc}") from None
-        if isinstance(resp, ExceptionResponse) or resp.isError():
+            for attempt in range(attempts):
+                self._cancellable = bool(attempt) or not always_send
+                self._check_cancel()
+                self._discard_input()
+                try:
+                    resp = self._client.execute(False, request)
+                    if isinstance(self._client, _SerialClient):
+                        resp = self._latest_reply(resp, unit, what)
+                except ModbusIOException:
+                    self._stale = True
+                    continue
+                except OperationCancelledError:
+                    self._stale = True
+                    raise
+                except ConnectionException:
+                    raise InstrumentConnectionError(self.device, f"Modbus link {self.url} lost during {what}") \
+                        from None
+                except ModbusException as exc:
+                    self._stale = True
+                    raise ProtocolError(self.device, f"{what} on unit {unit}: {exc}") from None
+                try:
+                    self._check_reply(what, unit, request, resp)
+                except ProtocolError:
+                    self._stale = True
+                    raise
+                return resp
+        tries = f" ({attempts} attempts)" if attempts > 1 else ""
+        raise InstrumentTimeoutError(self.device, f"no valid reply from unit {unit} to {what} on {self.url}{tries}")
+
+    def _latest_reply(self, resp: ModbusPDU, unit: int, what: str) -> ModbusPDU:
+        """RTU: after a timeout, wait one timeout for the line to go quiet; a later whole frame wins."""
+        client = self._client
+        assert isinstance(client, _SerialClient) and client.socket is not None
+        framer: _TrailingRTUFramer = client.framer  # type: ignore[assignment]
+        extra, framer.trailing = framer.trailing, b""
+        if not self._stale and not extra:
+            return resp
+        deadline = time.monotonic() + self.timeout
+        while True:
+            while extra:
+                used, later = framer.handleFrame(extra, unit, 0)
+                if later is None:
+                    if used >= len(extra):
+                        raise ProtocolError(self.device, f"garbled bytes after the reply to {what} "
+                                            f"from unit {unit}")
+                    break  # incomplete: wait for the rest
+                resp, extra, framer.trailing = later, framer.trailing, b""
+            if time.monotonic() >= deadline:
+                break
+            self._check_cancel()
+            waiting = client.socket.in_waiting
+            if waiting:
+                extra += client.socket.read(waiting)
+            else:
+                time.sleep(min(0.005, max(deadline - time.monotonic(), 0.0)))
+        if extra:
+            raise ProtocolError(self.device, f"incomplete frame after the reply to {what} from unit {unit}")
+        self._stale = False
+        return resp
+
+    def _check_reply(self, what: str, unit: int, request: ModbusPDU, resp: ModbusPDU) -> None:
+        """The reply answers this request (function code, device, transaction id, echo) or ProtocolError."""
+        fc, rfc = request.function_code, resp.function_code
+        if rfc & 0x7F != fc:
+            raise ProtocolError(self.device, f"unit {unit} answered {what} (function {fc}) with function {rfc}")
+        if resp.dev_id != unit:
+            raise ProtocolError(self.device, f"reply to {what} came from unit {resp.dev_id}, asked unit {unit}")
+        if resp.transaction_id != request.transaction_id:
+            raise ProtocolError(self.device, f"reply to {what} has transaction id {resp.transaction_id}, "
+                                f"sent {request.transaction_id}")
+        if isinstance(resp, ExceptionResponse) or rfc & 0x80:
             code = getattr(resp, "exception_code", 0)
             raise InstrumentStateError(self.device, f"unit {unit} refused {what}: Modbus exception {code} "
                                        f"({EXCEPTION_TEXT.get(code, 'unknown')})")
-        return resp
+        if fc in (3, 4):
+            n = len(resp.registers or [])
+            if n != request.count:
+                kind = "holding" if fc == 3 else "input"
+                raise ProtocolError(self.device, f"unit {unit} returned {n} {kind} registers, {request.count} asked")
+        elif fc == 6:
+            echo = (resp.address, list(resp.registers[:1]))
+            if echo != (request.address, list(request.registers)):
+                raise ProtocolError(self.device, f"unit {unit} echoed {echo[0]}={echo[1]} to {what}")
+        elif fc == 16 and (resp.address, resp.count) != (request.address, request.count):
+            raise ProtocolError(self.device, f"unit {unit} echoed {resp.address}+{resp.count} to {what}")
 
     def read_holding(self, unit: int, address: int, count: int = 1) -> list[int]:
         """FC3 read of ``count`` holding registers at 0-based ``address``."""
-        resp = self._call(f"read holding {address}+{count}", unit,
-                          lambda: self._client.read_holding_registers(address, count=count, device_id=unit))
-        return self._registers(resp, count, "holding", unit)
+        req = ReadHoldingRegistersRequest(address=address, count=count, dev_id=unit)
+        return list(self._call(f"read holding {address}+{count}", unit, req).registers)
 
     def read_input(self, unit: int, address: int, count: int = 1) -> list[int]:
         """FC4 read of ``count`` input registers at 0-based ``address``."""
-        resp = self._call(f"read input {address}+{count}", unit,
-                          lambda: self._client.read_input_registers(address, count=count, device_id=unit))
-        return self._registers(resp, count, "input", unit)
+        req = ReadInputRegistersRequest(address=address, count=count, dev_id=unit)
+        return list(self._call(f"read input {address}+{count}", unit, req).registers)
 
-    def write_register(self, unit: int, address: int, value: int) -> None:
-        """FC6 write of one holding register."""
-        self._call(f"write register {address}={value}", unit,
-                   lambda: self._client.write_register(address, value, device_id=unit))
+    def write_register(self, unit: int, address: int, value: int, *, always_send: bool = False) -> None:
+        """FC6 write of one holding register.
+
+        ``always_send``: the first attempt goes out and waits for its echo (one timeout at most) even when a
+        stop has been requested — a command that makes the rig safe; retries still check the stop request.
+        """
+        req = WriteSingleRegisterRequest(address=address, registers=[value], dev_id=unit)
+        self._call(f"write register {address}={value}", unit, req, always_send)
 
     def write_registers(self, unit: int, address: int, values: list[int]) -> None:
         """FC16 write of consecutive holding registers."""
-        self._call(f"write registers {address}+{len(values)}", unit,
-                   lambda: self._client.write_registers(address, values, device_id=unit))
-
-    def _registers(self, resp: ModbusPDU, count: int, kind: str, unit: int) -> list[int]:
-        regs = list(getattr(resp, "registers", []) or [])
-        if len(regs) != count:
-            raise ProtocolError(self.device, f"unit {unit} returned {len(regs)} {kind} registers, {count} asked")
-        return regs
+        req = WriteMultipleRegistersRequest(address=address, registers=values, dev_id=unit)
+        self._call(f"write registers {address}+{len(values)}", unit, req)

@@ -1,0 +1,231 @@
+"""ModbusLink against small fake peers written here: RTU on a pty, TCP on a loopback socket.
+
+Frames are built by hand from the Modbus application protocol (function 3: address, count → byte count,
+registers; MBAP header: transaction id, protocol 0, length, unit) — not by the code under test.
+"""
+
+from __future__ import annotations
+
+import os
+import select
+import socket
+import struct
+import threading
+import time
+import tty
+from collections.abc import Callable, Iterator
+
+import pytest
+
+from drivers.cancel import CancelToken
+from drivers.errors import InstrumentStateError, OperationCancelledError, ProtocolError
+from drivers.modbus_link import ModbusLink
+from tests.protocol_expect import expected_protocol, rtu
+
+# handler(request PDU without unit/CRC, request number from 1) → [(delay before sending [s], reply PDU)]
+Handler = Callable[[bytes, int], list[tuple[float, bytes]]]
+
+
+def fc3_reply(value: int) -> bytes:
+    return bytes([3, 2]) + struct.pack(">H", value)
+
+
+class RtuPeer:
+    """Unit 1 on the master side of a pty; the link opens the slave's name. Replies are sent in order."""
+
+    def __init__(self, handler: Handler) -> None:
+        self.master, self.slave = os.openpty()
+        tty.setraw(self.master)
+        tty.setraw(self.slave)
+        self.name = os.ttyname(self.slave)
+        self.handler = handler
+        self.requests = 0
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self._serve, daemon=True)
+        self.thread.start()
+
+    def _serve(self) -> None:
+        buf = b""
+        while not self.stop.is_set():
+            try:
+                if not select.select([self.master], [], [], 0.02)[0]:
+                    continue
+                buf += os.read(self.master, 256)
+            except (OSError, ValueError):
+                return
+            while len(buf) >= 8:  # FC3/4/6 requests are 8 bytes: unit, fc, 4 bytes, CRC
+                frame, buf = buf[:8], buf[8:]
+                self.requests += 1
+                for delay, pdu in self.handler(frame[1:6], self.requests):
+                    if self.stop.wait(delay):
+                        return
+                    os.write(self.master, rtu(1, pdu))
+
+    def close(self) -> None:
+        self.stop.set()
+        self.thread.join(2.0)
+        os.close(self.slave)
+        os.close(self.master)
+
+
+class TcpPeer:
+    """Unit 1 behind a loopback socket: one connection, MBAP-framed replies echoing the request's tid."""
+
+    def __init__(self, handler: Handler) -> None:
+        self.server = socket.create_server(("127.0.0.1", 0))
+        self.server.settimeout(0.02)
+        self.port = self.server.getsockname()[1]
+        self.handler = handler
+        self.requests = 0
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self._serve, daemon=True)
+        self.thread.start()
+
+    def _serve(self) -> None:
+        while not self.stop.is_set():
+            try:
+                conn, _ = self.server.accept()
+                break
+            except TimeoutError:
+                continue
+        else:
+            return
+        conn.settimeout(0.02)
+        buf = b""
+        with conn:
+            while not self.stop.is_set():
+                try:
+                    data = conn.recv(256)
+                except TimeoutError:
+                    continue
+                if not data:
+                    return
+                buf += data
+                while len(buf) >= 6 and len(buf) >= 6 + struct.unpack(">H", buf[4:6])[0]:
+                    size = 6 + struct.unpack(">H", buf[4:6])[0]
+                    frame, buf = buf[:size], buf[size:]
+                    self.requests += 1
+                    for delay, pdu in self.handler(frame[7:], self.requests):
+                        if self.stop.wait(delay):
+                            return
+                        conn.sendall(frame[:2] + struct.pack(">HHB", 0, len(pdu) + 1, 1) + pdu)
+
+    def close(self) -> None:
+        self.stop.set()
+        self.thread.join(2.0)
+        self.server.close()
+
+
+@pytest.fixture
+def peers() -> Iterator[list[RtuPeer | TcpPeer]]:
+    started: list[RtuPeer | TcpPeer] = []
+    yield started
+    for p in started:
+        p.close()
+
+
+def open_link(peers: list[RtuPeer | TcpPeer], kind: str, handler: Handler, **kw: object) -> ModbusLink:
+    peer: RtuPeer | TcpPeer = RtuPeer(handler) if kind.startswith("rtu") else TcpPeer(handler)
+    peers.append(peer)
+    url = peer.name if isinstance(peer, RtuPeer) else f"tcp://127.0.0.1:{peer.port}"
+    poll = 0.001 if kind == "rtu-prompt" else None
+    link = ModbusLink(url, "bus io", poll_interval=poll, **kw)  # type: ignore[arg-type]
+    link.open()
+    return link
+
+
+KINDS = ["rtu", "rtu-prompt", "tcp"]
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_the_late_reply_to_the_first_attempt_is_never_taken_for_the_retry(peers: list, kind: str) -> None:
+    # request n is answered with register value n; the first answer comes after the client's timeout
+    def handler(req: bytes, n: int) -> list[tuple[float, bytes]]:
+        return [(0.3 if n == 1 else 0.0, fc3_reply(n))]
+
+    link = open_link(peers, kind, handler, timeout=0.2, retries=2)
+    assert link.read_holding(1, 0, 1) == [2]  # the reply to the retry, not the stale reply to attempt 1
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_a_reply_arriving_after_the_request_was_given_up_is_not_the_next_answer(peers: list, kind: str) -> None:
+    def handler(req: bytes, n: int) -> list[tuple[float, bytes]]:
+        return [(0.3 if n == 1 else 0.0, fc3_reply(n))]
+
+    link = open_link(peers, kind, handler, timeout=0.2, retries=0)
+    with pytest.raises(Exception, match="no valid reply from unit 1"):
+        link.read_holding(1, 0, 1)
+    assert link.read_holding(1, 0, 1) == [2]
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_an_answer_with_another_function_code_is_a_protocol_error(peers: list, kind: str) -> None:
+    def handler(req: bytes, n: int) -> list[tuple[float, bytes]]:
+        return [(0.0, bytes([4, 2, 0, 7]))]  # an FC4 answer to whatever was asked
+
+    link = open_link(peers, kind, handler, timeout=0.2, retries=0)
+    with pytest.raises(ProtocolError, match=r"unit 1 answered read holding 0\+1 \(function 3\) with function 4"):
+        link.read_holding(1, 0, 1)
+    with pytest.raises(ProtocolError, match=r"answered write register 0=5 \(function 6\) with function 4"):
+        link.write_register(1, 0, 5)
+
+
+@pytest.mark.parametrize("kind", ["rtu", "rtu-prompt"])
+def test_a_stop_ends_a_modbus_wait_within_a_poll(peers: list, kind: str) -> None:
+    token = CancelToken()
+    link = open_link(peers, kind, lambda req, n: [], timeout=1.0, retries=5, cancel=token)  # silent unit
+    threading.Timer(0.2, token.cancel, ("SIGTERM",)).start()
+    t0 = time.monotonic()
+    with pytest.raises(OperationCancelledError, match="bus io: wait abandoned: SIGTERM"):
+        link.read_holding(1, 0, 1)
+    assert time.monotonic() - t0 < 0.35  # not six attempts of 1 s
+
+
+def test_a_stop_on_tcp_waits_out_at_most_one_attempt(peers: list) -> None:
+    token = CancelToken()
+    link = open_link(peers, "tcp", lambda req, n: [], timeout=0.3, retries=10, cancel=token)
+    threading.Timer(0.1, token.cancel, ("SIGINT",)).start()
+    t0 = time.monotonic()
+    with pytest.raises(OperationCancelledError):
+        link.read_holding(1, 0, 1)
+    assert time.monotonic() - t0 < 0.45
+
+
+def test_a_safety_write_goes_out_despite_a_stop_but_is_not_retried(peers: list) -> None:
+    token = CancelToken()
+    token.cancel("stop")
+    link = open_link(peers, "rtu-prompt", lambda req, n: [(0.0, req)], timeout=0.2, retries=3, cancel=token)
+    with pytest.raises(OperationCancelledError):
+        link.write_register(1, 0, 2048)
+    assert peers[0].requests == 0
+    link.write_register(1, 0, 2048, always_send=True)  # FC6 echo
+    assert peers[0].requests == 1
+
+
+def test_write_echo_and_register_count_must_match_the_request() -> None:
+    script = [(rtu(1, 6, b"\x00\x00\x08\x00"), rtu(1, 6, b"\x00\x00\x08\x01")),  # echoes another value
+              (rtu(1, 6, b"\x00\x00\x08\x00"), rtu(1, 6, b"\x00\x01\x08\x00")),  # echoes another address
+              (rtu(1, 16, b"\x00\x02\x00\x02\x04\x00\x01\x00\x02"), rtu(1, 16, b"\x00\x02\x00\x01")),  # count 1
+              (rtu(1, 3, b"\x00\x00\x00\x02"), rtu(1, 3, 2, b"\x00\x01")),  # one register for two
+              (rtu(1, 6, b"\x00\x00\x08\x00"), rtu(1, 0x83, 2))]  # exception for another function
+    with expected_protocol("echo", script) as url:
+        link = ModbusLink(url, "bus io", timeout=0.05, retries=0)
+        link.open()
+        with pytest.raises(ProtocolError, match=r"unit 1 echoed 0=\[2049\] to write register 0=2048"):
+            link.write_register(1, 0, 2048)
+        with pytest.raises(ProtocolError, match=r"unit 1 echoed 1=\[2048\]"):
+            link.write_register(1, 0, 2048)
+        with pytest.raises(ProtocolError, match=r"unit 1 echoed 2\+1 to write registers 2\+2"):
+            link.write_registers(1, 2, [1, 2])
+        with pytest.raises(ProtocolError, match="unit 1 returned 1 holding registers, 2 asked"):
+            link.read_holding(1, 0, 2)
+        with pytest.raises(ProtocolError, match=r"\(function 6\) with function 131"):
+            link.write_register(1, 0, 2048)
+
+
+def test_an_exception_reply_to_the_request_is_a_refusal() -> None:
+    with expected_protocol("exc", [(rtu(1, 6, b"\x00\x00\x08\x00"), rtu(1, 0x86, 2))]) as url:
+        link = ModbusLink(url, "bus io", timeout=0.05, retries=0)
+        link.open()
+        with pytest.raises(InstrumentStateError, match=r"exception 2 \(illegal data address\)"):
+            link.write_register(1, 0, 2048)
