@@ -1,0 +1,225 @@
+"""Every exit path of a real-time run ends with the amplifier output at 0 V within the stated bound.
+
+The output is read from the simulated plant (the amplifier's output stage as the twin integrates it), not from
+the run file; the file must say why the run stopped and which path made the output safe. Runs are in wall-clock
+time, in this process, so that signals arrive while the engine is busy with real instrument traffic.
+
+Bound (README, "Stopping"): after a stop request the ramp-down starts within 0.2 s and 0 V is commanded within
+``shutdown_ramp_s`` + 0.2 s. After a fault that the engine detects by a timeout, the bound counts from the
+timeout. When the host cannot reach the set-point module, the module's communication watchdog zeroes the output
+``comm_watchdog_s`` after the last request it answered.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bench.engine import Engine
+from bench.rig import RigConfig
+from bench.run import execute, plan_run
+from bench.runfile import RunFile, open_run
+from tests.conftest import ROOT
+
+SHORT = ROOT / "protocols" / "short"
+THESIS = SHORT / "thesis-identification-short.toml"
+ISOMETRIC = SHORT / "lsdea-isometric-short.toml"
+ZERO_V = 5.0  # one code of the 12-bit ADAM-4024 times the TREK gain (0 V itself has no code: ±2.44 V)
+BOUND_S = 0.2  # README: ramp-down starts within 0.2 s of a stop request; 0 V within ramp + 0.2 s
+
+
+@dataclass
+class Trial:
+    """A wall-clock run with an action at a given run time, and the plant's output history."""
+
+    protocol: Path
+    at: float  # run time [s] of the action
+    action: Callable[[Engine, object], None]
+    rig_overrides: dict = field(default_factory=dict)
+    t_action: float = float("nan")  # rig-clock time [s] at which the action was done
+    t0: float = 0.0  # rig-clock time of the run's start
+    blocks: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list)
+
+    def run(self, tmp: Path):
+        plan = plan_run(self.protocol)
+        if self.rig_overrides:
+            rig = RigConfig.model_validate({**plan.rig.model_dump(), **self.rig_overrides})
+            plan.rig = plan.program.rig = rig
+        sims: list = []
+
+        def hook(engine: Engine, sim) -> None:
+            sims.append(sim)
+            sim.plant.listeners.append(lambda b: self.blocks.append((b.t.copy(), b.voltage.copy())))
+
+            def fire() -> None:
+                while engine.snapshot.state == "starting" or engine.now() < self.at:
+                    time.sleep(0.005)
+                self.t_action = sim.clock.now()
+                self.action(engine, sim)
+            threading.Thread(target=fire, daemon=True).start()
+
+        result = execute(plan, tmp / f"{self.protocol.stem}.h5", virtual=False, on_engine=hook)
+        sim = sims[0]
+        return result, open_run(result.path), sim
+
+    def last_high(self, sim) -> float:
+        """Rig-clock time of the last plant sample with |output| above ZERO_V (after advancing to now)."""
+        sim.plant.observe()
+        t = np.concatenate([b[0] for b in self.blocks])
+        v = np.concatenate([b[1] for b in self.blocks])
+        high = np.abs(v) > ZERO_V
+        assert high.any(), "the run never applied high voltage: the trial tests nothing"
+        return float(t[high][-1])
+
+
+def events(run: RunFile, kind: str) -> list[tuple[float, str]]:
+    return [(t, text) for t, _, k, text in run.event_list() if k == kind]
+
+
+def send(sig: int) -> Callable[[Engine, object], None]:
+    return lambda _e, _s: os.kill(os.getpid(), sig)
+
+
+def assert_ramp_bound(run: RunFile, trial: Trial, sim, ramp: float) -> None:
+    """The file's request and ramp events, and the plant, within the stop bound."""
+    (t_req, _), = events(run, "request")
+    ramps = events(run, "ramp")
+    assert ramps and ramps[0][0] - t_req <= BOUND_S, (t_req, ramps)
+    assert trial.last_high(sim) <= trial.t_action + ramp + BOUND_S, (trial.t_action, trial.last_high(sim))
+
+
+@pytest.mark.parametrize("sig, reason", [
+    (signal.SIGINT, "interrupted by Ctrl-C"),
+    (signal.SIGTERM, "terminated by SIGTERM"),
+    (signal.SIGHUP, "hang-up (SIGHUP"),
+    (signal.SIGQUIT, "quit requested (SIGQUIT)"),
+], ids=["SIGINT", "SIGTERM", "SIGHUP", "SIGQUIT"])
+def test_a_signal_ramps_the_output_to_zero_within_the_bound(tmp_path: Path, sig: int, reason: str) -> None:
+    trial = Trial(THESIS, 3.0, send(sig))
+    result, run, sim = trial.run(tmp_path)
+    assert result.state == "interrupted" and result.reason.startswith(reason)
+    assert run.complete and run.state == "interrupted" and run.reason.startswith(reason)
+    assert_ramp_bound(run, trial, sim, plan_run(THESIS).rig.limits.shutdown_ramp_s)
+    (_, safe), = events(run, "safe")
+    assert safe.startswith("0 V commanded by the host") and "verified: voltage monitor" in safe
+
+
+def test_a_second_signal_zeroes_at_once(tmp_path: Path) -> None:
+    def twice(_e: Engine, _s: object) -> None:
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(0.01)
+        os.kill(os.getpid(), signal.SIGINT)
+
+    slow_ramp = {"limits": {**plan_run(THESIS).rig.limits.model_dump(), "shutdown_ramp_s": 5.0}}
+    trial = Trial(THESIS, 3.0, twice, slow_ramp)
+    _, run, sim = trial.run(tmp_path)
+    assert run.state == "interrupted"
+    assert trial.last_high(sim) <= trial.t_action + BOUND_S  # not the 5-s ramp
+    assert any("second stop request" in text for _, text in events(run, "ramp"))
+
+
+def test_ctrl_c_while_the_laser_babbles(tmp_path: Path) -> None:
+    """A laser line trickling one byte every 50 ms never completes a reply: the stop must not wait for it."""
+    stop = threading.Event()
+
+    def babble(engine: Engine, sim) -> None:
+        fd = sim._serial["laser"]._master
+
+        def trickle() -> None:
+            while not stop.is_set():
+                os.write(fd, b"0")
+                time.sleep(0.05)
+        threading.Thread(target=trickle, daemon=True).start()
+        time.sleep(0.3)
+        os.kill(os.getpid(), signal.SIGINT)
+
+    trial = Trial(THESIS, 3.0, babble)
+    try:
+        result, run, sim = trial.run(tmp_path)
+    finally:
+        stop.set()
+    assert run.state in ("interrupted", "error")  # a babbling line is also a garbled reply: either ends the run
+    assert trial.last_high(sim) <= trial.t_action + 0.3 + 0.5 + 0.25 + BOUND_S  # fault, read timeout, ramp, bound
+
+
+def test_ctrl_c_while_the_laser_is_silent(tmp_path: Path) -> None:
+    def mute_then_stop(_e: Engine, sim) -> None:
+        sim.faults["laser"].mute = True
+        time.sleep(0.05)
+        os.kill(os.getpid(), signal.SIGINT)
+
+    trial = Trial(THESIS, 3.0, mute_then_stop)
+    _, run, sim = trial.run(tmp_path)
+    assert run.state == "interrupted" and run.reason.startswith("interrupted by Ctrl-C")
+    assert trial.last_high(sim) <= trial.t_action + 0.05 + 0.25 + BOUND_S
+
+
+def test_ctrl_c_on_a_slow_laser_wire(tmp_path: Path) -> None:
+    """115200 Bd carries ~1,300 stored values/s: the 10-kHz storage upload falls behind; a stop still ends it."""
+    def slow_then_stop(_e: Engine, sim) -> None:
+        sim.faults["laser"].wire_baud = 115200
+        time.sleep(1.0)
+        os.kill(os.getpid(), signal.SIGINT)
+
+    trial = Trial(THESIS, 2.0, slow_then_stop)
+    _, run, sim = trial.run(tmp_path)
+    assert run.state == "interrupted"
+    assert trial.last_high(sim) <= trial.t_action + 1.0 + 0.25 + BOUND_S
+
+
+def test_a_silent_laser_ends_the_run_after_its_timeout(tmp_path: Path) -> None:
+    trial = Trial(THESIS, 3.0, lambda _e, sim: setattr(sim.faults["laser"], "mute", True))
+    result, run, sim = trial.run(tmp_path)
+    assert result.state == "error" and "laser" in result.reason
+    timeout = plan_run(THESIS).rig.laser.timeout_s
+    upload = 0.3  # a storage fetch in flight may wait for its reply's wire time too (≤ 0.2 s of data per fetch)
+    assert trial.last_high(sim) <= trial.t_action + timeout + upload + 0.25 + BOUND_S
+
+
+def test_a_lost_amplifier_bus_is_made_safe_by_the_module_watchdog(tmp_path: Path) -> None:
+    trial = Trial(THESIS, 3.0, lambda _e, sim: setattr(sim.faults["io"], "drop", True))
+    result, run, sim = trial.run(tmp_path)
+    assert result.state == "error" and "lost link" in result.reason
+    (_, safe), = events(run, "safe")
+    assert safe.startswith("0 V NOT commanded by the host: left to the set-point module's communication watchdog")
+    watchdog = plan_run(THESIS).rig.amplifier.comm_watchdog_s
+    assert trial.last_high(sim) <= trial.t_action + watchdog + 0.05 and sim.plant.watchdog_tripped
+
+
+def test_a_failed_set_point_module_is_made_safe_by_its_watchdog(tmp_path: Path) -> None:
+    trial = Trial(THESIS, 3.0, lambda _e, sim: setattr(sim.twins["amplifier AO"], "failed", True))
+    result, run, sim = trial.run(tmp_path)
+    assert result.state == "error" and "exception 4" in result.reason
+    (_, safe), = events(run, "safe")
+    assert "communication watchdog" in safe and "verified: voltage monitor" in safe  # the AI module still answers
+    watchdog = plan_run(THESIS).rig.amplifier.comm_watchdog_s
+    assert trial.last_high(sim) <= trial.t_action + watchdog + 0.05
+
+
+def test_a_drive_error_during_a_hold_stops_the_run_with_the_drive_text(tmp_path: Path) -> None:
+    """LinMot error 0x0021 (MC-SW drive error list) injected while the isometric bench holds ±6 kV."""
+    trial = Trial(ISOMETRIC, 7.0, lambda _e, sim: sim.twins["motor"].inject_error(0x0021))
+    result, run, sim = trial.run(tmp_path)
+    assert result.state == "error" and "motor" in result.reason and "0x0021" in result.reason
+    assert trial.last_high(sim) <= trial.t_action + 1.0 / 20 + 0.25 + BOUND_S  # one 20-Hz encoder poll, ramp
+
+
+def test_a_rig_without_a_set_point_watchdog_is_refused(tmp_path: Path) -> None:
+    plan = plan_run(THESIS)
+    rig = RigConfig.model_validate({**plan.rig.model_dump(),
+                                    "amplifier": {**plan.rig.amplifier.model_dump(), "comm_watchdog_s": None}})
+    plan.rig = plan.program.rig = rig
+    with pytest.raises(ValueError, match=r"amplifier.comm_watchdog_s is not set .* --allow-no-watchdog"):
+        execute(plan, tmp_path / "x.h5", virtual=True)
+    assert not (tmp_path / "x.h5").exists()
+    result = execute(plan, tmp_path / "y.h5", virtual=True, allow_no_watchdog=True)
+    assert result.state == "completed"
+    assert open_run(result.path).attrs["hv_watchdog"].startswith("NO communication watchdog: run allowed")
