@@ -155,35 +155,25 @@ def test_current_trip_ramps_down_and_is_recorded(tmp_path: Path) -> None:
 
 
 def test_lost_laser_link_stops_the_run_safely(tmp_path: Path) -> None:
-    def hook(engine: Engine, sim: object) -> None:
-        original = engine._poll
-
-        def poll(kind: str) -> None:
-            if engine.now() > 3.0:
-                sim.faults["laser"].drop = True  # type: ignore[attr-defined]
-            original(kind)
-        engine._poll = poll  # type: ignore[method-assign]
+    def hook(_engine: Engine, sim) -> None:  # the laser's port dies 3 s into the run (scheduled in the twin)
+        sim.faults["laser"].schedule(at_time=sim.clock.now() + 3.0, drop=True)
 
     result, run, sim = run_virtual(SHORT / "thesis-identification-short.toml", tmp_path, hook=hook)
     assert result.state == "error" and result.reason.startswith("lost link: laser")
+    assert sim.faults["laser"].counts["drop"] > 0
     check_safe_end(run, sim, "error")
     assert 3.0 < run.updated < 5.0  # data up to the fault (and the shutdown) are in the file
 
 
-def test_lost_amplifier_link_relies_on_the_module_watchdog(tmp_path: Path) -> None:
-    def hook(engine: Engine, sim: object) -> None:
-        original = engine._poll
+@pytest.mark.parametrize("transport", ["rtu", "tcp"])
+def test_lost_amplifier_link_relies_on_the_module_watchdog(tmp_path: Path, transport: str) -> None:
+    def hook(_engine: Engine, sim) -> None:
+        sim.faults["io"].schedule(at_time=sim.clock.now() + 3.0, drop=True)
 
-        def poll(kind: str) -> None:
-            if engine.now() > 3.0:
-                sim.faults["io"].drop = True  # type: ignore[attr-defined]
-            original(kind)
-        engine._poll = poll  # type: ignore[method-assign]
-
-    sim_cfg = {"seed": 1, "modbus_transport": "rtu"}
+    sim_cfg = {"seed": 1, "modbus_transport": transport}
     result, run, sim = run_virtual(SHORT / "thesis-identification-short.toml", tmp_path, {"simulation": sim_cfg},
                                    hook=hook)
-    assert result.state == "error" and "lost link" in result.reason
+    assert result.state == "error" and "lost link" in result.reason and sim.faults["io"].counts["drop"] > 0
     assert "0 V NOT commanded by the host" in run.reason and "communication watchdog (1 s)" in run.reason
     faults = [text for _, _, kind, text in run.event_list() if kind == "fault"]
     assert any(text.startswith("could not command 0 V") for text in faults)
