@@ -23,11 +23,13 @@ controller agree on the following, to be checked against the unit before real us
 from __future__ import annotations
 
 import math
+import re
 import time
 from typing import Literal
 
 import numpy as np
 
+from drivers.cancel import check
 from drivers.errors import InstrumentStateError, ProtocolError
 from drivers.interfaces import ClockFn, Identity, Reading, SampleBlock
 from drivers.serial_link import SerialLink
@@ -44,6 +46,10 @@ ERROR_CODES: dict[Model, dict[str, str]] = {
                  "99": "other error"},
 }
 MAX_UPLOAD = 1000  # points per AO request
+FETCH_BUDGET_S = 0.2  # one fetch_buffer call: at most about this long on the wire (the rest on the next call)
+VALUE_BYTES = 9  # one stored value on the wire: 8 characters and a comma
+_NUMBER = re.compile(r"[+-](?=[0-9.]{7}$)[0-9]*\.[0-9]*")  # sign + 7 characters: digits and one point
+_NUMBERS = re.compile(r"[+-][0-9.]{7}(?:,[+-][0-9.]{7})*")
 # Data-storage capacity per OUT (points). Not from a manual page we could read: treat as an assumption.
 # The LK-G5000 figure is the largest count the 6-digit setting format can carry.
 STORAGE_CAPACITY: dict[Model, int] = {"LK-G3000": 65_536, "LK-G5000": 999_999}
@@ -87,38 +93,58 @@ def format_values(mm: np.ndarray, range_mm: float = math.inf) -> bytes:
 
 
 def parse_values(text: str, device: str) -> tuple[np.ndarray, np.ndarray]:
-    """Parse comma-separated measured values → (mm, valid); one vectorised pass when all are numbers."""
-    if "F" not in text and "X" not in text:
+    """Parse comma-separated measured values → (mm, valid); one vectorised pass when all are numbers.
+
+    Every field must be a manual-format field (:func:`parse_value`); the first that is not is named.
+    """
+    n = text.count(",") + 1
+    if _NUMBERS.fullmatch(text) and text.count(".") == n:
         try:
             values = np.array(text.split(","), dtype=np.float64)
-            return values, np.ones(values.size, dtype=bool)
         except ValueError:
-            pass  # fall through to the field-by-field parse, which names the bad field
-    parsed = [parse_value(f, device) for f in text.split(",")]
+            pass  # a field with two points: the field-by-field parse names it
+        else:
+            return values, np.ones(values.size, dtype=bool)
+    parsed = []
+    for i, f in enumerate(text.split(",")):
+        try:
+            parsed.append(parse_value(f, device))
+        except ProtocolError as exc:
+            raise ProtocolError(device, f"{exc.detail} (field {i + 1} of {n})") from None
     return np.array([v for v, _ in parsed]), np.array([s == "ok" for _, s in parsed], dtype=bool)
 
 
 def parse_value(field: str, device: str) -> tuple[float, str]:
-    """Parse an 8-character measured value into (mm, status)."""
+    """Parse an 8-character measured value into (mm, status).
+
+    Manual p. 5-6: sign + 7 characters including one decimal point (``+01.2345``), ``±FFFFFFF`` over
+    range, ``XXXXXXXX`` no valid value. Anything else — ``+nan``, ``inf``, exponents, blanks — is a
+    :class:`ProtocolError`, so a reading with status "ok" is always a finite number.
+    """
     if len(field) != 8:
         raise ProtocolError(device, f"measured value {field!r} is not 8 characters")
     if field == "XXXXXXXX":
         return math.nan, "invalid"
     if field[0] not in "+-":
         raise ProtocolError(device, f"measured value {field!r} has no sign")
-    if "F" in field[1:]:
+    if field[1:] == "FFFFFFF":
         return math.nan, "over_range_positive" if field[0] == "+" else "over_range_negative"
-    try:
-        return float(field), "ok"
-    except ValueError:
-        raise ProtocolError(device, f"measured value {field!r} is not a number") from None
+    if not _NUMBER.fullmatch(field):
+        raise ProtocolError(device, f"measured value {field!r} is not a number (sign, digits, one point)")
+    value = float(field)
+    if not math.isfinite(value):  # cannot happen for a field that matched; kept as the rule's last guard
+        raise ProtocolError(device, f"measured value {field!r} is not finite")
+    return value, "ok"
 
 
 class KeyenceLKG:
     """Driver for one OUT of a Keyence LK-G3000/LK-G5000 controller (implements DisplacementSensor)."""
 
     def __init__(self, link: SerialLink, *, name: str = "laser", model: Model = "LK-G3000", out: int = 1,
-                 clock: ClockFn = time.monotonic, storage_points: int | None = None) -> None:
+                 clock: ClockFn = time.monotonic, storage_points: int | None = None,
+                 fetch_budget_s: float = FETCH_BUDGET_S, max_fetch_points: int | None = None) -> None:
+        """``fetch_budget_s``: wall time one :meth:`fetch_buffer` call may spend uploading (requests are sized
+        to fit it at the link's baud rate); ``max_fetch_points``: optional cap on points per call."""
         if model not in ERROR_CODES:
             raise ValueError(f"unknown Keyence controller model {model!r}")
         self.link = link
@@ -133,6 +159,9 @@ class KeyenceLKG:
         self._t0 = 0.0
         self._dt = 0.0
         self._fetched = 0
+        self.fetch_budget_s = fetch_budget_s
+        self.max_fetch_points = max_fetch_points
+        self.pending = 0  # stored points known to the last fetch and not uploaded yet
 
     # ----------------------------------------------------------- protocol
     def query(self, command: str, reply_bytes: int = 0) -> list[str]:
@@ -245,6 +274,7 @@ class KeyenceLKG:
         self._t0 = self.clock()
         self._dt = sampling * cycle * 1e-6
         self._fetched = 0
+        self.pending = 0
         return self._dt
 
     def buffer_status(self) -> tuple[bool, int]:
@@ -257,21 +287,43 @@ class KeyenceLKG:
         except ValueError:
             raise ProtocolError(self.name, f"AN reply {fields!r} has a non-numeric count") from None
 
+    def upload_chunk(self) -> int:
+        """Points per AO request: at most ``fetch_budget_s`` of wire time at the link's baud rate."""
+        wire_points = int(self.fetch_budget_s * self.link.baudrate / (10 * VALUE_BYTES))
+        return max(1, min(MAX_UPLOAD, wire_points))
+
     def fetch_buffer(self) -> SampleBlock:
-        """Upload the points stored since the last fetch (in requests of up to 1000 points)."""
+        """Upload points stored since the last fetch, within a bounded time; the rest on the next call.
+
+        One call sends AO requests of :meth:`upload_chunk` points until it has caught up, spent
+        ``fetch_budget_s`` of wall time, reached ``max_fetch_points``, or a stop is requested (checked
+        between requests); :attr:`pending` tells how many stored points are still to fetch. A call that
+        fails uploads nothing: the next one starts again from the same point.
+        """
+        started = time.monotonic()
         storing, count = self.buffer_status()
         values: list[np.ndarray] = []
         valid: list[np.ndarray] = []
         first = self._fetched
-        while self._fetched < count:
-            n = min(MAX_UPLOAD, count - self._fetched)
-            text = self.query_text(f"AO,{self.out},{self._fetched},{n}", reply_bytes=3 + 9 * n)
-            mm, ok = parse_values(text[3:], self.name) if len(text) > 3 else (np.zeros(0), np.zeros(0, bool))
-            if mm.size != n:
-                raise ProtocolError(self.name, f"AO returned {mm.size} values, {n} requested")
-            values.append(mm * 1e-3)
-            valid.append(ok)
-            self._fetched += n
+        limit = count if self.max_fetch_points is None else min(count, first + self.max_fetch_points)
+        try:
+            while self._fetched < limit:
+                if values and (time.monotonic() - started >= self.fetch_budget_s
+                               or (self.link.cancel is not None and self.link.cancel.cancelled)):
+                    break  # the rest on the next call (a stop: the caller sees it at its next check)
+                check(self.link.cancel, self.name)
+                n = min(self.upload_chunk(), limit - self._fetched)
+                text = self.query_text(f"AO,{self.out},{self._fetched},{n}", reply_bytes=3 + VALUE_BYTES * n)
+                mm, ok = parse_values(text[3:], self.name) if len(text) > 3 else (np.zeros(0), np.zeros(0, bool))
+                if mm.size != n:
+                    raise ProtocolError(self.name, f"AO returned {mm.size} values, {n} requested")
+                values.append(mm * 1e-3)
+                valid.append(ok)
+                self._fetched += n
+        except BaseException:
+            self._fetched = first
+            raise
+        self.pending = count - self._fetched
         overflow = not storing and count >= self.storage_points
         if overflow and first == count:
             raise InstrumentStateError(self.name, f"data storage full ({count} points): later samples lost")

@@ -21,6 +21,8 @@ from drivers.cancel import CancelToken
 from drivers.errors import InstrumentConnectionError, InstrumentTimeoutError
 
 POLL_SLICE_S = 0.05  # longest single blocking read: a stop request is seen within one slice
+QUIET_S = 0.02  # after an abandoned read: the line counts as quiet (late reply over) after this long
+MAX_DRAIN_S = 0.25  # ... but a write waits at most this long for that
 
 
 class SerialLink:
@@ -83,6 +85,22 @@ class SerialLink:
         except (serial.SerialException, OSError) as exc:
             raise self._lost(exc) from None
 
+    def _drain(self, port: serial.SerialBase) -> None:
+        """Drop input until the line has been quiet for QUIET_S (at most MAX_DRAIN_S): a reply still
+        streaming in for an abandoned read must not be taken for the next one."""
+        self.discard_input()
+        end = time.monotonic() + MAX_DRAIN_S
+        quiet_since = time.monotonic()
+        try:
+            while (now := time.monotonic()) < end and now - quiet_since < QUIET_S:
+                if port.in_waiting:
+                    port.reset_input_buffer()
+                    quiet_since = time.monotonic()
+                else:
+                    time.sleep(0.002)
+        except (serial.SerialException, OSError) as exc:
+            raise self._lost(exc) from None
+
     def write(self, data: bytes) -> None:
         """Send bytes (first dropping stale input if the previous read was abandoned).
 
@@ -91,7 +109,7 @@ class SerialLink:
         """
         port = self._require()
         if self._dirty:
-            self.discard_input()
+            self._drain(port)
         try:
             port.write(data)
         except serial.SerialTimeoutException:

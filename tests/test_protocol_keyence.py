@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -127,3 +128,55 @@ def test_storage_upload_count_mismatch_is_a_protocol_error() -> None:
     with expected_protocol("kcnt", [(b"AN\r", b"AN,0,2\r"), (b"AO,1,0,2\r", b"AO,+01.0000\r")]) as url:
         with pytest.raises(ProtocolError, match="AO returned 1 values, 2 requested"):
             laser(url).fetch_buffer()
+
+
+@pytest.mark.parametrize("field", ["+nan    ", "-INF    ", "+inf.000", "+1e999  ", "+1.2e+03", "+ 1.2345", "+12F4.56",
+                                   "+1.2.345", "+0012345"])
+def test_non_manual_value_fields_are_protocol_errors(field: str) -> None:
+    # manual p. 5-6: sign + 7 characters with one decimal point; only ±FFFFFFF and XXXXXXXX are special
+    with pytest.raises(ProtocolError, match="laser: measured value"):
+        parse_value(field, "laser")
+    with expected_protocol("knan", [(b"M1\r", b"M1," + field.encode() + b"\r")]) as url:
+        with pytest.raises(ProtocolError, match=re.escape(repr(field))):
+            laser(url).read()
+
+
+@pytest.mark.parametrize("reply, bad", [
+    (b"AO,+01.0000,+nan    ,+01.0002\r", r"'\+nan    ' is not a number .*field 2 of 3"),
+    (b"AO,+01.0000,+01.0001,+1.0\r", r"'\+1.0' is not 8 characters .*field 3 of 3"),
+    (b"AO,+01.0000,-INF    ,+01.0002\r", "field 2 of 3")])
+def test_bulk_values_that_are_not_manual_fields_are_named(reply: bytes, bad: str) -> None:
+    with expected_protocol("kbulk", [(b"AN\r", b"AN,1,3\r"), (b"AO,1,0,3\r", reply)]) as url:
+        k = laser(url)
+        with pytest.raises(ProtocolError, match=bad):
+            k.fetch_buffer()
+    assert k._fetched == 0  # nothing consumed: the next fetch asks for the same points again
+
+
+def test_fetch_is_bounded_per_call_and_indices_stay_contiguous() -> None:
+    script = [(b"AN\r", b"AN,1,5\r"), (b"AO,1,0,2\r", b"AO,+01.0000,+01.0001\r"),
+              (b"AN\r", b"AN,1,6\r"), (b"AO,1,2,2\r", b"AO,+01.0002,XXXXXXXX\r"),
+              (b"AN\r", b"AN,0,6\r"), (b"AO,1,4,2\r", b"AO,+01.0004,+01.0005\r"),
+              (b"AN\r", b"AN,0,6\r")]
+    with expected_protocol("kpart2", script) as url:
+        k = laser(url, max_fetch_points=2)
+        k._t0, k._dt = 12.5, 1e-4
+        blocks = []
+        for pending in (3, 2, 0, 0):
+            blocks.append(k.fetch_buffer())
+            assert k.pending == pending
+    assert [b.first_index for b in blocks] == [0, 2, 4, 6]
+    assert [b.values.size for b in blocks] == [2, 2, 2, 0]
+    times = np.concatenate([b.times() for b in blocks])
+    assert np.allclose(times, 12.5 + 1e-4 * np.arange(6))
+    values = np.concatenate([b.values for b in blocks])
+    valid = np.concatenate([b.valid for b in blocks])
+    assert list(valid) == [True, True, True, False, True, True]
+    assert np.allclose(values[valid], 1e-3 * np.array([1.0, 1.0001, 1.0002, 1.0004, 1.0005]))
+
+
+def test_upload_requests_fit_the_wire_budget_at_the_baud_rate() -> None:
+    k = KeyenceLKG(SerialLink("expect://none", "laser", baudrate=115200))
+    assert k.upload_chunk() == 256  # 0.2 s × 11520 bytes/s / 9 bytes per value
+    assert KeyenceLKG(SerialLink("expect://none", "laser", baudrate=9600)).upload_chunk() == 21
+    assert KeyenceLKG(SerialLink("expect://none", "laser", baudrate=10_000_000)).upload_chunk() == 1000

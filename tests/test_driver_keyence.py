@@ -1,0 +1,83 @@
+"""Keyence storage upload over a pty whose peer emulates the wire time of 115200 Bd (10 bits per byte)."""
+
+from __future__ import annotations
+
+import os
+import select
+import threading
+import time
+from collections.abc import Iterator
+
+import pytest
+
+from drivers.cancel import CancelToken
+from drivers.errors import OperationCancelledError
+from drivers.keyence import KeyenceLKG
+from drivers.serial_link import SerialLink
+from tests.test_driver_serial_link import PtyPeer
+
+BAUD = 115200
+STORED = 100_000  # 15 minutes of upload at 115200 Bd in one call, before the bound
+
+
+def serve_storage(peer: PtyPeer) -> None:
+    """Answer AN and AO like an LK-G holding STORED points, streaming replies at the wire rate."""
+    buf = b""
+    while not peer.stop.is_set():
+        if not select.select([peer.master], [], [], 0.02)[0]:
+            continue
+        buf += os.read(peer.master, 256)
+        while b"\r" in buf:
+            line, buf = buf.split(b"\r", 1)
+            fields = line.decode().split(",")
+            if fields[0] == "AN":
+                reply = f"AN,1,{STORED}\r".encode()
+            else:
+                first, n = int(fields[2]), int(fields[3])
+                reply = ("AO," + ",".join(f"+{(first + k) % 100:02d}.0000" for k in range(n)) + "\r").encode()
+            for i in range(0, len(reply), 64):  # bytes leave at the wire rate
+                if peer.stop.wait(10 * 64 / BAUD):
+                    return
+                os.write(peer.master, reply[i:i + 64])
+
+
+@pytest.fixture
+def slow_laser() -> Iterator[tuple[KeyenceLKG, PtyPeer]]:
+    peer = PtyPeer()
+    peer.run(lambda: serve_storage(peer))
+    link = SerialLink(peer.name, "laser", baudrate=BAUD, timeout=0.5, exclusive=False, cancel=CancelToken())
+    link.open()
+    k = KeyenceLKG(link, clock=lambda: 0.0)
+    k._dt = 1e-4
+    yield k, peer
+    link.close()
+    peer.close()
+
+
+def test_one_fetch_is_bounded_on_a_slow_line_and_the_next_continues(slow_laser: tuple[KeyenceLKG, PtyPeer]) -> None:
+    k, _ = slow_laser
+    t0 = time.monotonic()
+    b1 = k.fetch_buffer()
+    took = time.monotonic() - t0
+    assert took < 0.6  # one request of ≤ 0.2 s wire time (+ AN and margins), not 78 s for all points
+    assert b1.first_index == 0 and b1.values.size == k.upload_chunk() == 256
+    assert k.pending == STORED - 256
+    b2 = k.fetch_buffer()
+    assert b2.first_index == 256 and b2.values[0] == pytest.approx(56e-3)  # point 256 is "+56.0000" mm
+
+
+def test_a_stop_ends_a_long_upload_and_the_points_are_fetched_again(slow_laser: tuple[KeyenceLKG, PtyPeer]) -> None:
+    k, _ = slow_laser
+    k.fetch_budget_s = 60.0  # requests of 1000 points, 0.78 s each on the wire
+    token = k.link.cancel
+    assert token is not None
+    threading.Timer(0.3, token.cancel, ("Ctrl-C",)).start()
+    t0 = time.monotonic()
+    with pytest.raises(OperationCancelledError, match="laser: wait abandoned: Ctrl-C"):
+        k.fetch_buffer()
+    assert time.monotonic() - t0 < 0.4
+    time.sleep(1.0)  # the abandoned reply finishes streaming in
+    token.clear()
+    k.fetch_budget_s = 0.2
+    block = k.fetch_buffer()
+    assert block.first_index == 0 and block.values.size == 256  # nothing was lost by the abandoned call
