@@ -21,7 +21,9 @@ class Reading:
     """One value with its unit, rig-clock timestamp [s] and status.
 
     status is "ok", or names why the value is not a measurement ("over_range_positive",
-    "over_range_negative", "invalid", "overload", "unstable"); then value may be NaN.
+    "over_range_negative", "invalid", "overload", "underload", "unstable", "error" — the instrument is in
+    an error state); then value may be NaN. A value that is not finite is never "ok": drivers report it
+    as "invalid" (or raise ProtocolError when the wire format cannot carry it).
     """
 
     value: float
@@ -80,6 +82,7 @@ class MotorStatus:
     error: bool
     error_code: int
     position: float
+    error_text: str = ""  # the drive's meaning of error_code ("" when no error)
 
 
 @runtime_checkable

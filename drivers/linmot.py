@@ -29,6 +29,7 @@ import struct
 import time
 from dataclasses import dataclass
 
+from drivers.cancel import check
 from drivers.errors import InstrumentStateError, InstrumentTimeoutError, LimitError, ProtocolError
 from drivers.interfaces import ClockFn, Identity, MotorStatus, Reading, SleepFn
 from drivers.serial_link import SerialLink
@@ -51,9 +52,15 @@ SW_OPERATION_ENABLED, SW_ERROR, SW_IN_TARGET, SW_HOMED, SW_FATAL, SW_MOTION_ACTI
 STATE_NAMES = {0: "not ready to switch on", 1: "switch on disabled", 2: "ready to switch on", 3: "setup error",
                4: "error", 5: "hardware tests", 6: "ready to operate", 8: "operation enabled", 9: "homing",
                12: "aborting", 14: "error behaviour quick stop", 15: "going to position"}
-ERROR_TEXT = {0x01: "X4 logic supply too low", 0x03: "X1 power supply too low", 0x0B: "position lag too big",
-              0x20: "motion command in wrong state", 0x21: "target position outside the travel range",
-              0x22: "motor slider missing (fatal)", 0x30: "communication error"}
+# Drive error codes (LinMot MC-SW drive error codes, Motion Control SW manual error list). In the error state
+# (main state 4) the state var's low byte carries the code. Codes marked "assumed" were not checked against
+# the list; the others are from the manual's list as transcribed in ../shared/instruments.md §2.3 and the
+# project's issue notes.
+ERROR_TEXT = {0x01: "X4 logic supply too low (assumed)", 0x03: "X1 power voltage too low",
+              0x0B: "position lag always too big", 0x20: "motor hot sensor", 0x21: "X3 hall signals missing",
+              0x22: "motor slider missing (fatal)", 0x30: "communication error (assumed)", 0x80: "not homed",
+              0x85: "unknown motion command", 0x86: "motion command in wrong state"}
+STATE_ERROR = 4
 
 POS_UNIT = 1e-7  # m per count (0.1 µm)
 VEL_UNIT = 1e-6  # m/s per count
@@ -179,8 +186,9 @@ class LinMotDrive:
     def _wait(self, predicate: object, what: str, timeout: float | None = None) -> DefaultResponse:
         deadline = self.clock() + (self.state_timeout if timeout is None else timeout)
         while True:
+            check(self.link.cancel, self.name)
             resp = self.poll()
-            if resp.status_word & SW_ERROR:
+            if self.in_error(resp):
                 raise InstrumentStateError(self.name, f"drive error while waiting for {what}: "
                                            f"{self._error_text(resp)}")
             if predicate(resp):  # type: ignore[operator]
@@ -191,10 +199,26 @@ class LinMotDrive:
             self.sleep(self.poll_interval)
 
     @staticmethod
-    def _error_text(resp: DefaultResponse) -> str:
-        code = resp.sub_state if resp.main_state == 4 else 0
+    def in_error(resp: DefaultResponse) -> bool:
+        """Error state (main state 4) or the Error / Fatal Error flag of the status word."""
+        return resp.main_state == STATE_ERROR or bool(resp.status_word & (SW_ERROR | SW_FATAL))
+
+    @staticmethod
+    def error_code(resp: DefaultResponse) -> int:
+        """The drive error code (state var low byte in the error state; 0 otherwise)."""
+        return resp.sub_state if resp.main_state == STATE_ERROR else 0
+
+    @classmethod
+    def _error_text(cls, resp: DefaultResponse) -> str:
+        code = cls.error_code(resp)
         fatal = " (fatal)" if resp.status_word & SW_FATAL else ""
         return f"code {code:#04x} {ERROR_TEXT.get(code, 'unknown error')}{fatal}"
+
+    def _check_count(self, resp: DefaultResponse, *allowed: int) -> None:
+        """In state 8 the echoed motion-command count must be one we sent, else the reply is not ours."""
+        if resp.main_state == 8 and resp.command_count not in allowed:
+            raise ProtocolError(self.name, f"drive echoes motion command count {resp.command_count}, "
+                                f"last sent {self._count}")
 
     # ----------------------------------------------------------- Instrument
     def connect(self) -> None:
@@ -274,27 +298,34 @@ class LinMotDrive:
         """VAI go-to-position; returns when the drive has echoed the new command count."""
         dec = acceleration if deceleration is None else deceleration
         self.check_move(position, velocity, acceleration, dec)
+        previous = self._count
         self._count = (self._count + 1) & 0x0F
         header = VAI_GOTO | self._count
         params = struct.pack("<HiIII", header, round(position / POS_UNIT), round(velocity / VEL_UNIT),
                              round(acceleration / ACC_UNIT), round(dec / ACC_UNIT))
         resp = self.transact(MAIN_MOTION_COMMAND, 0x00, params)
-        if resp.status_word & SW_ERROR:
+        if self.in_error(resp):
             raise InstrumentStateError(self.name, f"motion command refused: {self._error_text(resp)}")
+        self._check_count(resp, previous, self._count)
         if resp.main_state != 8 or resp.command_count != self._count:
-            self._wait(lambda r: r.main_state == 8 and r.command_count == self._count,
-                       "motion command acknowledged", timeout=1.0)
+            def acknowledged(r: DefaultResponse) -> bool:
+                self._check_count(r, previous, self._count)
+                return r.main_state == 8 and r.command_count == self._count
+            self._wait(acknowledged, "motion command acknowledged", timeout=1.0)
 
     def wait_in_target(self, timeout: float = 10.0) -> Reading:
         """Block until the drive reports In Target Position; returns the position reached."""
-        resp = self._wait(lambda r: bool(r.status_word & SW_IN_TARGET) and not r.status_word & SW_MOTION_ACTIVE,
-                          "in-target position", timeout=timeout)
+        def reached(r: DefaultResponse) -> bool:
+            self._check_count(r, self._count)
+            return bool(r.status_word & SW_IN_TARGET) and not r.status_word & SW_MOTION_ACTIVE
+
+        resp = self._wait(reached, "in-target position", timeout=timeout)
         return Reading(resp.position, "m", self.clock())
 
     def read_position(self) -> Reading:
-        """Actual position [m]."""
+        """Actual position [m]; status "error" whenever the drive is in its error state or flags an error."""
         resp = self.poll()
-        return Reading(resp.position, "m", self.clock(), "ok" if not resp.status_word & SW_ERROR else "invalid")
+        return Reading(resp.position, "m", self.clock(), "error" if self.in_error(resp) else "ok")
 
     def status(self) -> MotorStatus:
         """Decoded drive state."""
@@ -303,8 +334,8 @@ class LinMotDrive:
         return MotorStatus(state=STATE_NAMES.get(r.main_state, f"state {r.main_state}"),
                            enabled=bool(sw & SW_OPERATION_ENABLED), homed=bool(sw & SW_HOMED),
                            moving=bool(sw & SW_MOTION_ACTIVE), in_target=bool(sw & SW_IN_TARGET),
-                           error=bool(sw & SW_ERROR), error_code=r.sub_state if r.main_state == 4 else 0,
-                           position=r.position)
+                           error=self.in_error(r), error_code=self.error_code(r), position=r.position,
+                           error_text=self._error_text(r) if self.in_error(r) else "")
 
     def stop(self) -> None:
         """Abort the motion (clear /Abort), then re-arm; the drive decelerates and holds position."""

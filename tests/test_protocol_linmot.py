@@ -6,7 +6,14 @@ import struct
 
 import pytest
 
-from drivers.errors import InstrumentStateError, InstrumentTimeoutError, LimitError, ProtocolError
+from drivers.cancel import CancelToken
+from drivers.errors import (
+    InstrumentStateError,
+    InstrumentTimeoutError,
+    LimitError,
+    OperationCancelledError,
+    ProtocolError,
+)
 from drivers.linmot import LinMotDrive, decode_default_response, encode
 from drivers.serial_link import SerialLink
 from tests.protocol_expect import expected_protocol
@@ -99,8 +106,9 @@ def test_error_acknowledge_is_a_rising_edge_on_bit7() -> None:
 def test_refused_motion_reports_the_drive_error() -> None:
     params = struct.pack("<HiIII", 0x0101, 100_000, 100_000, 100_000, 100_000)
     req = bytes.fromhex("01 11 15 02 00 02") + params + b"\x04"
-    with expected_protocol("refuse", [(req, response(0x0008, 0x0420, 0))]) as url:
-        with pytest.raises(InstrumentStateError, match="code 0x20 motion command in wrong state"):
+    # LinMot MC-SW drive error codes: 0086h "Motion Cmd In Wrong St" (0020h is "Motor Hot Sensor")
+    with expected_protocol("refuse", [(req, response(0x0008, 0x0486, 0))]) as url:
+        with pytest.raises(InstrumentStateError, match="code 0x86 motion command in wrong state"):
             drive(url).move_to(0.01, 0.1, 1.0)
 
 
@@ -143,3 +151,55 @@ def test_status_decoding_and_stop() -> None:
         d.stop()
     assert s.state == "operation enabled" and s.homed and s.moving and not s.error
     assert s.position == pytest.approx(12.3456e-3)
+
+
+@pytest.mark.parametrize("code, text", [(0x80, "not homed"), (0x85, "unknown motion command"),
+                                        (0x86, "motion command in wrong state"), (0x20, "motor hot sensor"),
+                                        (0x21, "X3 hall signals missing")])
+def test_error_codes_follow_the_mc_sw_error_list(code: int, text: str) -> None:
+    # LinMot MC-SW drive error codes; error state: main state 4, code in the state var's low byte
+    with expected_protocol("errcode", [(POLL, response(0x0008, 0x0400 | code, 5000))]) as url:
+        s = drive(url).status()
+    assert s.error and s.error_code == code and text in s.error_text and s.state == "error"
+
+
+@pytest.mark.parametrize("status, state", [(0x0008, 0x0480), (0x0000, 0x0480), (0x1008, 0x0422), (0x0C3F, 0x08C0 | 0)])
+def test_position_is_not_ok_when_the_drive_is_in_error(status: int, state: int) -> None:
+    flagged = status & 0x1008 or state >> 8 == 4
+    with expected_protocol("poserr", [(POLL, response(status, state, 123_456))]) as url:
+        r = drive(url).read_position()
+    assert r.status == ("error" if flagged else "ok") and r.ok is (not flagged)
+    assert r.value == pytest.approx(12.3456e-3)
+
+
+def test_a_count_echo_we_never_sent_is_a_protocol_error() -> None:
+    params = struct.pack("<HiIII", 0x0101, 100_000, 100_000, 100_000, 100_000)
+    req = bytes.fromhex("01 11 15 02 00 02") + params + b"\x04"
+    with expected_protocol("badcount", [(req, response(0x0837, 0x08C5, 0))]) as url:  # echoes count 5, sent 1
+        with pytest.raises(ProtocolError, match="motor: drive echoes motion command count 5, last sent 1"):
+            drive(url).move_to(0.01, 0.1, 1.0)
+    script = [(POLL, response(0x2837, 0x08A3, 0))]  # moving, echoing count 3 while we sent 0
+    with expected_protocol("badcount2", script) as url:
+        with pytest.raises(ProtocolError, match="echoes motion command count 3"):
+            drive(url).wait_in_target(timeout=0.2)
+
+
+def test_a_stop_request_ends_every_drive_wait() -> None:
+    token = CancelToken()
+    token.cancel("SIGTERM")
+    with expected_protocol("cancel", []) as url:  # nothing is polled once the stop is requested
+        d = drive(url)
+        d.link.cancel = token
+        with pytest.raises(OperationCancelledError, match="motor: wait abandoned: SIGTERM"):
+            d.wait_in_target(timeout=5.0)
+        with pytest.raises(OperationCancelledError):
+            d._wait(lambda r: True, "anything")
+    script = [(bytes.fromhex("01 11 05 02 00 01 3F 08 04"), response(0x2036, 0x0901, 0)),
+              (POLL, response(0x2036, 0x0901, 0))]  # homing under way
+    with expected_protocol("cancel-home", script) as url:
+        d = drive(url)
+        d.sleep = lambda s: token.cancel("Ctrl-C")  # the stop arrives while homing is polled
+        token.clear()
+        d.link.cancel = token
+        with pytest.raises(OperationCancelledError, match="Ctrl-C"):
+            d.home()
