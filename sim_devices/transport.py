@@ -30,7 +30,7 @@ from typing import Literal
 
 import numpy as np
 
-SWITCHES = ("latency", "mute", "garble_next", "garble_index", "drop", "wire_baud")
+SWITCHES = ("latency", "mute", "garble_next", "garble_index", "drop", "drop_reset", "wire_baud")
 
 
 @dataclass
@@ -56,6 +56,7 @@ class Faults:
     garble_next: int = 0  # corrupt this many following replies (one byte flipped per reply)
     garble_index: int | None = None  # which byte to flip (negative: from the end); None: a random one
     drop: bool = False  # close the link: the port reports a lost device
+    drop_reset: bool = False  # sockets: drop with a TCP reset (a rebooted gateway), not an orderly close
     wire_baud: float | None = None  # emulate the wire time of request + reply at this baud rate (8N1)
     rng: np.random.Generator = field(default_factory=lambda: np.random.default_rng(0))
     clock: Callable[[], float] | None = None  # the rig clock, for schedule(at_time=...)
@@ -67,8 +68,9 @@ class Faults:
 
     def schedule(self, *, at_time: float | None = None, after_replies: int | None = None,
                  **switches: object) -> None:
-        """Arm ``switches`` (e.g. ``mute=True``) for when the rig clock reads ``at_time`` [s], or for the
-        reply after the next ``after_replies`` ones (0: the very next reply). Exactly one condition."""
+        """Arm ``switches`` (e.g. ``mute=True``) for when the rig clock reads ``at_time`` [s] (checked every few
+        ms and at each reply), or to take effect on the reply after the next ``after_replies`` ones (0: the very
+        next reply). Exactly one condition; several schedules may be pending."""
         if (at_time is None) == (after_replies is None):
             raise ValueError("schedule needs exactly one of at_time, after_replies")
         if unknown := set(switches) - set(SWITCHES):
@@ -82,7 +84,6 @@ class Faults:
         with self._lock:
             at_reply = None if after_replies is None else self.replies + after_replies
             self._armed.append(_Armed(dict(switches), at_time, at_reply))
-        self.tick()
 
     @property
     def pending(self) -> int:
@@ -95,18 +96,19 @@ class Faults:
         with self._lock:
             self._armed.clear()
             self.latency, self.mute, self.garble_next, self.garble_index = 0.0, False, 0, None
-            self.drop, self.wire_baud = False, None
+            self.drop, self.drop_reset, self.wire_baud = False, False, None
 
-    def tick(self) -> None:
-        """Apply scheduled switches whose moment has come (transports call this while idle and per reply)."""
+    def tick(self, replying: bool = False) -> None:
+        """Apply scheduled switches whose moment has come. Transports call this while idle (time schedules)
+        and with ``replying`` as each reply passes (reply-count schedules too, so they hit that reply)."""
         with self._lock:
             if not self._armed:
                 return
-            now = self.clock() if self.clock is not None and any(a.at_time is not None for a in self._armed) \
-                else None
+            timed = [a for a in self._armed if a.at_time is not None]
+            now = self.clock() if timed and self.clock is not None else None
             due = [a for a in self._armed
                    if (a.at_time is not None and now is not None and now >= a.at_time)
-                   or (a.at_reply is not None and self.replies >= a.at_reply)]
+                   or (replying and a.at_reply is not None and self.replies >= a.at_reply)]
             for a in due:
                 self._armed.remove(a)
                 for k, v in a.switches.items():
@@ -123,7 +125,7 @@ class Faults:
         if not reply:
             return None, 0.0
         with self._lock:
-            self.tick()
+            self.tick(replying=True)
             self.replies += 1
             if self.mute:
                 self.note("mute")
@@ -280,9 +282,9 @@ class SocketRelay:
     """Loopback TCP relay in front of a socket server, run in an asyncio loop; faults act on server → client.
 
     ``framing``: ``"mbap"`` cuts the server's stream into Modbus TCP ADUs (so faults act per reply whatever
-    the segmentation); ``"stream"`` treats each chunk read as one reply (RTU over TCP). ``drop`` resets every
-    open connection and closes the listening socket (new connections are refused) until it is cleared, then
-    the relay listens on the same port again.
+    the segmentation); ``"stream"`` treats each chunk read as one reply (RTU over TCP). ``drop`` closes every
+    open connection (as a server that died: FIN; with ``drop_reset``: RST) and the listening socket (new
+    connections are refused) until it is cleared, then the relay listens on the same port again.
     """
 
     def __init__(self, name: str, upstream: tuple[str, int], faults: Faults | None = None,
@@ -316,38 +318,48 @@ class SocketRelay:
             self._watch.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await self._watch
-        await self._stop_listening()
-        self._reset_all()
+        self._stop_listening()
+        self._close_all()
 
-    async def _stop_listening(self) -> None:
-        if self._server is not None:
-            self._server.close()
-            await self._server.wait_closed()
+    def _stop_listening(self) -> None:
+        if self._server is not None:  # close() shuts the listening sockets at once; no wait_closed (3.12+
+            self._server.close()  # waits there for open connections, and a drop may come from one of them)
             self._server = None
 
-    def _reset_all(self) -> int:
+    def _close_all(self, reset: bool = True) -> None:
         conns, self._conns = self._conns, set()
-        for pair in conns:
-            for w in pair:
-                _reset(w)
-        return len(conns)
+        for cwriter, swriter in conns:
+            _reset(swriter)
+            if reset:
+                _reset(cwriter)
+            else:
+                cwriter.close()
 
     async def _watch_faults(self) -> None:
         faults = self.faults
         while True:
             faults.tick()
-            if faults.drop and self._server is not None:
-                await self._stop_listening()
-                self._reset_all()
-                faults.note("drop")
-            elif not faults.drop and self._server is None:
+            if faults.drop:
+                await self._drop()
+            elif self._server is None:
                 with contextlib.suppress(OSError):  # port briefly taken: try again next poll
                     self._server = await asyncio.start_server(self._handle, self.host, self.port)
             await asyncio.sleep(self._poll)
 
+    async def _drop(self) -> None:
+        """Stop listening first (no reconnection slips in), then close the open connections."""
+        if self._server is None:
+            return
+        self._stop_listening()
+        self._close_all(reset=self.faults.drop_reset)
+        self.faults.note("drop")
+
     async def _handle(self, creader: asyncio.StreamReader, cwriter: asyncio.StreamWriter) -> None:
-        if self.faults.drop:
-            _reset(cwriter)
+        if self.faults.drop:  # accepted just before the listener closed
+            if self.faults.drop_reset:
+                _reset(cwriter)
+            else:
+                cwriter.close()
             return
         try:
             sreader, swriter = await asyncio.open_connection(*self.upstream)
@@ -388,11 +400,15 @@ class SocketRelay:
                 if not reply:
                     return
                 out, delay = self.faults.process(reply, last[0])
+                if self.faults.drop:
+                    await self._drop()
+                    return
                 if out is None:
                     continue
                 if delay:
                     await asyncio.sleep(delay)
-                if self.faults.drop:
+                if self.faults.drop:  # set by this reply's schedule, or during the delay
+                    await self._drop()
                     return
                 writer.write(out)
                 await writer.drain()
