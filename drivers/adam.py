@@ -15,6 +15,7 @@ ADAM-4024 12-bit (0 = −10 V, 4095 = +10 V), ADAM-4017+ 16-bit (0 = −10 V, 65
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Literal
 
@@ -90,15 +91,17 @@ class Adam4024(AdamModule):
         super().__init__(link, unit, name)
         self.scale = scale or RawScale(bits=12)
 
-    def write_volts(self, channel: int, volts: float) -> int:
-        """Set output ``channel`` (0–3) to ``volts``; returns the raw code written."""
+    def write_volts(self, channel: int, volts: float, *, always_send: bool = False) -> int:
+        """Set output ``channel`` (0–3) to ``volts``; returns the raw code written.
+
+        ``always_send``: goes out even after a stop request (see :meth:`ModbusLink.write_register`)."""
         if not 0 <= channel <= 3:
             raise ValueError(f"{self.name}: ADAM-4024 has channels 0–3, got {channel}")
-        if not self.scale.lo <= volts <= self.scale.hi:
+        if not (math.isfinite(volts) and self.scale.lo <= volts <= self.scale.hi):
             raise LimitError(self.name, f"{volts:g} V outside the output range "
                              f"[{self.scale.lo:g}, {self.scale.hi:g}] V")
         raw = self.scale.to_raw(volts)
-        self.link.write_register(self.unit, REG_VALUE + channel, raw)
+        self.link.write_register(self.unit, REG_VALUE + channel, raw, always_send=always_send)
         return raw
 
     def read_volts(self, channel: int) -> float:

@@ -14,8 +14,10 @@ to change, check the result nibble (0 = done; other values: command refused, e.g
 
 from __future__ import annotations
 
+import math
 import time
 
+from drivers.cancel import check
 from drivers.errors import InstrumentStateError, InstrumentTimeoutError
 from drivers.interfaces import ClockFn, Identity, Reading, SleepFn
 from drivers.modbus_link import ModbusLink
@@ -39,8 +41,10 @@ class DiniDGT1S:
     def __init__(self, link: ModbusLink, *, name: str = "load_cell", unit: int = 1, division: float = 0.001,
                  g: float = STANDARD_GRAVITY, use_net: bool = True, clock: ClockFn = time.monotonic,
                  sleep: SleepFn = time.sleep, command_timeout: float = 2.0) -> None:
-        if not division > 0:
+        if not (math.isfinite(division) and division > 0):
             raise ValueError(f"{name}: division must be > 0 kg, got {division}")
+        if not (math.isfinite(g) and g > 0):
+            raise ValueError(f"{name}: g must be > 0 m/s², got {g}")
         self.link = link
         self.name = name
         self.unit = unit
@@ -78,20 +82,25 @@ class DiniDGT1S:
         return (-value if status & negative else value) * self.division, status
 
     def read(self) -> Reading:
-        """Force on the cell [N]; status 'overload'/'underload' (value NaN) or 'unstable' when flagged."""
+        """Force on the cell [N]; status 'overload'/'underload' (value NaN) or 'unstable' when flagged,
+        'invalid' if the value is not finite."""
         weight, status = self.read_weight()
         t = self.clock()
         if status & ST_OVERLOAD:
             return Reading(float("nan"), "N", t, "overload")
         if status & ST_UNDERLOAD:
             return Reading(float("nan"), "N", t, "underload")
-        return Reading(weight * self.g, "N", t, "ok" if status & ST_STABLE else "unstable")
+        force = weight * self.g
+        if not math.isfinite(force):
+            return Reading(math.nan, "N", t, "invalid")
+        return Reading(force, "N", t, "ok" if status & ST_STABLE else "unstable")
 
     def _command(self, code: int, label: str) -> None:
         before = self.link.read_input(self.unit, IR_COMMAND_STATUS, 1)[0] & 0x0F
         self.link.write_register(self.unit, HR_COMMAND, code)
         deadline = self.clock() + self.command_timeout
         while True:
+            check(self.link.cancel, self.name)
             cs = self.link.read_input(self.unit, IR_COMMAND_STATUS, 1)[0]
             if cs & 0x0F != before:
                 result = (cs >> 4) & 0x0F

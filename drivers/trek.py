@@ -9,6 +9,7 @@ set-point beyond it), a software slew limit (clamping each step to slew·elapsed
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass
 
@@ -44,6 +45,10 @@ class TrekAmplifier:
         if model not in TREK_MODELS and trek is None:
             raise ValueError(f"{name}: unknown TREK model {model!r}; known: {', '.join(TREK_MODELS)}")
         self.trek = trek or TREK_MODELS[model]
+        for label, x in (("gain", self.trek.gain), ("vmon_ratio", self.trek.vmon_ratio),
+                         ("imon_ratio", self.trek.imon_ratio)):
+            if not (math.isfinite(x) and x != 0):
+                raise ValueError(f"{name}: {label} must be finite and non-zero, got {x}")
         if not 0 < max_voltage <= self.trek.max_output:
             raise ValueError(f"{name}: max_voltage {max_voltage:g} V must lie in (0, {self.trek.max_output:g}] V")
         if not slew_limit > 0:
@@ -90,8 +95,8 @@ class TrekAmplifier:
         self.zero()
 
     def zero(self) -> None:
-        """Command 0 V, bypassing the slew limit."""
-        raw = self.ao.write_volts(self.ao_channel, 0.0)
+        """Command 0 V at once: bypasses the slew limit, and goes out even after a stop request."""
+        raw = self.ao.write_volts(self.ao_channel, 0.0, always_send=True)
         self._last_v = self.ao.scale.to_volts(raw) * self.trek.gain  # ±half a code: 0 V has no code
         self._last_t = self.clock()
 
@@ -100,7 +105,7 @@ class TrekAmplifier:
 
         Returns the output actually commanded: the analog module's nearest code times the gain.
         """
-        if abs(volts) > self.max_voltage:
+        if not abs(volts) <= self.max_voltage:  # also refuses NaN
             raise LimitError(self.name, f"{volts:.0f} V beyond the software limit ±{self.max_voltage:.0f} V")
         now = self.clock()
         if self._last_t is not None:
@@ -112,14 +117,17 @@ class TrekAmplifier:
         return commanded
 
     def read_monitors(self) -> tuple[Reading, Reading]:
-        """(output voltage [V], output current [A]) from one read of both monitor channels."""
+        """(output voltage [V], output current [A]) from one read of both monitor channels.
+
+        A value that is not finite has status "invalid"."""
         first = min(self.vmon_channel, self.imon_channel)
         n = abs(self.vmon_channel - self.imon_channel) + 1
         volts = self.ai.read_volts(first, n)
         t = self.clock()
         v = volts[self.vmon_channel - first] * self.trek.vmon_ratio
         i = volts[self.imon_channel - first] * self.trek.imon_ratio
-        return Reading(v, "V", t), Reading(i, "A", t)
+        return (Reading(v, "V", t, "ok" if math.isfinite(v) else "invalid"),
+                Reading(i, "A", t, "ok" if math.isfinite(i) else "invalid"))
 
     def read_voltage(self) -> Reading:
         """Output voltage from the voltage monitor [V]."""

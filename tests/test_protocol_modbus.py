@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 
 from drivers.adam import Adam4017P, Adam4024, RawScale
+from drivers.cancel import CancelToken
 from drivers.dini import DiniDGT1S
-from drivers.errors import InstrumentStateError, InstrumentTimeoutError, LimitError
+from drivers.errors import InstrumentStateError, InstrumentTimeoutError, LimitError, OperationCancelledError
 from drivers.modbus_link import ModbusLink
-from drivers.trek import TrekAmplifier
+from drivers.trek import TrekAmplifier, TrekModel
 from tests.protocol_expect import expected_protocol, rtu
 
 
@@ -130,3 +133,52 @@ def test_zero_refused_reports_the_result() -> None:
     with expected_protocol("zero", script) as url:
         with pytest.raises(InstrumentStateError, match="zero not executed: outside the zero range"):
             cell(url).zero()
+
+
+def test_zero_and_safe_state_go_out_after_a_stop_request_but_set_points_do_not() -> None:
+    token = CancelToken()
+    script = [(rtu(1, 6, b"\x00\x00\x08\x00"), rtu(1, 6, b"\x00\x00\x08\x00")),  # safe_state: raw 2048
+              (rtu(1, 6, b"\x00\x00\x08\x00"), rtu(1, 6, b"\x00\x00\x08\x00"))]  # zero
+    with expected_protocol("zero-stop", script) as url:
+        amp = amplifier(url, [0.0])
+        amp.ao.link.cancel = token
+        token.cancel("Ctrl-C")
+        with pytest.raises(OperationCancelledError):
+            amp.set_voltage(1000.0)  # nothing written
+        amp.safe_state()
+        amp.zero()
+    assert amp.commanded == pytest.approx(20e3 * 2048 / 4095 - 10e3)
+
+
+def test_non_finite_monitor_values_are_invalid(monkeypatch: pytest.MonkeyPatch) -> None:
+    with expected_protocol("nf", []) as url:
+        amp = amplifier(url, [0.0])
+        monkeypatch.setattr(amp.ai, "read_volts", lambda first, n: [math.nan, math.inf])
+        v, i = amp.read_monitors()
+    assert (v.status, i.status) == ("invalid", "invalid") and not v.ok and not i.ok
+    with pytest.raises(ValueError, match="vmon_ratio must be finite"):
+        TrekAmplifier(amp.ao, amp.ai, trek=TrekModel("x", 10e3, 1e-3, vmon_ratio=math.inf))
+
+
+def test_non_finite_force_is_invalid() -> None:
+    regs = b"\x00\x00\x01\x5e" + b"\x00\x00\x00\x7d" + b"\x00\x04"
+    with expected_protocol("lcnf", [(rtu(1, 4, b"\x00\x00\x00\x05"), rtu(1, 4, 10, regs))]) as url:
+        c = cell(url)
+        c.g = math.inf  # a calibration that went wrong after construction
+        r = c.read()
+    assert r.status == "invalid" and not r.ok
+    with pytest.raises(ValueError, match="g must be > 0"):
+        DiniDGT1S(c.link, g=math.nan)
+
+
+def test_a_stop_ends_the_tare_handshake_wait() -> None:
+    token = CancelToken()
+    script = [(rtu(1, 4, b"\x00\x05\x00\x01"), rtu(1, 4, 2, b"\x01\x03")),
+              (rtu(1, 6, b"\x00\x00\x00\x02"), rtu(1, 6, b"\x00\x00\x00\x02")),
+              (rtu(1, 4, b"\x00\x05\x00\x01"), rtu(1, 4, 2, b"\x01\x03"))]  # not yet processed
+    with expected_protocol("tare-stop", script) as url:
+        c = cell(url)
+        c.link.cancel = token
+        c.sleep = lambda s: token.cancel("SIGHUP")
+        with pytest.raises(OperationCancelledError, match="SIGHUP"):
+            c.tare()
