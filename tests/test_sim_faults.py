@@ -201,7 +201,6 @@ def test_modbus_tcp_reset_during_a_request(thesis: RunningRig) -> None:
 
 
 @pytest.fixture(params=["tcp", "rtu-socket", "rtu"])
-
 def thesis_on(request: pytest.FixtureRequest) -> Iterator[RunningRig]:
     yield from _rig("thesis-sim", simulation={"seed": 1, "modbus_transport": request.param})
 
