@@ -15,12 +15,12 @@ first), the later one is the answer to the latest request.
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import os
 import threading
 import time
 
+import serial
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOException
 from pymodbus.framer import FramerRTU
@@ -40,6 +40,11 @@ from drivers.errors import (
     OperationCancelledError,
     ProtocolError,
 )
+
+try:  # pyserial's POSIX port lets termios.error (not an OSError) out of reset_input_buffer on a dead pty
+    from termios import error as _termios_error
+except ImportError:  # pragma: no cover - Windows
+    _termios_error = OSError  # type: ignore[misc,assignment]
 
 EXCEPTION_TEXT = {1: "illegal function", 2: "illegal data address", 3: "illegal data value",
                   4: "device failure", 5: "acknowledge", 6: "device busy", 11: "gateway target failed to respond"}
@@ -159,11 +164,15 @@ class ModbusLink:
         self._client.close()
 
     # ------------------------------------------------------------------ transactions
-    def _discard_input(self) -> None:
+    def _discard_input(self, what: str) -> None:
         client = self._client
         if isinstance(client, _SerialClient) and client.socket is not None:
-            with contextlib.suppress(OSError):  # the request that follows reports the lost link
+            try:
                 client.socket.reset_input_buffer()
+            except (OSError, _termios_error, serial.SerialException):
+                client.close()
+                raise InstrumentConnectionError(self.device, f"Modbus link {self.url} lost during {what}") \
+                    from None
             client.framer.trailing = b""  # type: ignore[attr-defined]
         client.transaction.sent_buffer = b""  # pymodbus' local-echo and receive buffers (3.16)
         client.transaction.recv_buffer = b""
@@ -179,7 +188,7 @@ class ModbusLink:
             for attempt in range(attempts):
                 self._cancellable = bool(attempt) or not always_send
                 self._check_cancel()
-                self._discard_input()
+                self._discard_input(what)
                 try:
                     resp = self._client.execute(False, request)
                     if isinstance(self._client, _SerialClient):
