@@ -92,7 +92,7 @@ class ModbusHost:
                 else:
                     server = ModbusTcpServer(bus.devices, address=("127.0.0.1", 0))
                     await server.serve_forever(background=True)
-                    inner = server.transport.sockets[0].getsockname()[1]  # type: ignore[union-attr]
+                    inner = server.transport.sockets[0].getsockname()[1]  # type: ignore[union-attr,attr-defined]
                 self._servers.append(server)
                 if bus.transport != "rtu":
                     framing: Literal["mbap", "stream"] = "mbap" if bus.transport == "tcp" else "stream"

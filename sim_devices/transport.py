@@ -26,7 +26,7 @@ import tty
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 
@@ -64,7 +64,7 @@ class Faults:
     injected: int = field(default=0, init=False)
     counts: Counter[str] = field(default_factory=Counter, init=False)
     _armed: list[_Armed] = field(default_factory=list, init=False, repr=False)
-    _lock: threading.RLock = field(default_factory=threading.RLock, init=False, repr=False, compare=False)
+    _lock: Any = field(default_factory=threading.RLock, init=False, repr=False, compare=False)  # re-entrant
 
     def schedule(self, *, at_time: float | None = None, after_replies: int | None = None,
                  **switches: object) -> None:
