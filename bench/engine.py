@@ -110,7 +110,8 @@ class Engine:
         self._urgent = threading.Event()
         self._stopping = False
         self._in_prompt = False
-        self._v_cmd = 0.0
+        self._v_cmd = 0.0  # last voltage commanded (the module's code, as sent)
+        self._v_req = 0.0  # last voltage requested by the program
         self._storing = False
         self._storage_failed = False
         self.overruns = 0
@@ -255,7 +256,7 @@ class Engine:
     def _set_voltage(self, v: float, t: float, x_cmd: float = math.nan) -> None:
         self.sup.check_setpoint(v)
         sent = self.inst.amplifier.set_voltage(v)  # type: ignore[union-attr]
-        self._v_cmd = sent
+        self._v_cmd, self._v_req = sent, v
         self.rec.append("setpoints", t, voltage=sent, aperture=x_cmd)
 
     def _move_motor(self, target: float, vel: float, acc: float) -> float:
@@ -308,7 +309,7 @@ class Engine:
                 cmd = motor_command(prog, seg, t_set, dt, first=k_set == 0)
                 x_cmd = self._move_motor(*cmd) if cmd is not None else math.nan
                 if inst.amplifier is not None:
-                    self._set_voltage(self._v_cmd if v is None else v, t_set, x_cmd)
+                    self._set_voltage(self._v_req if v is None else v, t_set, x_cmd)
                 self.snapshot.values["setpoint"] = self._v_cmd
                 k_set += 1
                 t_set = seg.t_start + k_set * dt if t_set + dt <= seg.stream_until + 1e-12 else \
@@ -322,6 +323,9 @@ class Engine:
             self.snapshot.headroom = self.sup.headroom()
             self.rec.maybe_flush()
         self._wait_until(seg.t_end)
+        v_end = voltage_at(seg, seg.t_end)
+        if inst.amplifier is not None and v_end is not None and v_end != self._v_req:
+            self._set_voltage(v_end, seg.t_end)  # ticks stop before t_end: a ramp must still reach its target
         if seg.storing:
             inst.laser.stop_buffer()  # type: ignore[union-attr]
             self._storing = False
@@ -405,6 +409,9 @@ class Engine:
                     raise
                 self._storage_failed = True
         safe_path = self._verify_safe(zero_at, notes)
+        if not self.clock.virtual:
+            self._event("timing", f"{self.overruns} late actions (> {LATE_TOLERANCE_S * 1e3:.0f} ms), worst "
+                        f"lateness {self.worst_lateness * 1e3:.1f} ms")
         for note in notes:
             self._event("fault", note)
         self._event("safe", safe_path)

@@ -275,3 +275,15 @@ def test_paper_protocols_produce_complete_files(name: str, tmp_path: Path) -> No
     plan = plan_run(ROOT / "protocols" / f"{name}.toml")
     assert len(run.streams["laser"]) >= plan.prediction.samples["laser"]
     assert len([e for e in run.event_list() if e[2] == "end"]) == len(plan.program.segments)
+
+
+def test_a_ramp_reaches_its_target_before_the_next_step(tmp_path: Path) -> None:
+    """lsdea-isopotential-short: "ramp to 7 kV over 0.5 s", then cycles at 7 kV — held at 7 kV, not at the last
+    tick before the ramp's end (6,860 V at 100 Hz)."""
+    _, run, _ = run_virtual(SHORT / "lsdea-isopotential-short.toml", tmp_path)
+    sp = run.streams["setpoints"]
+    prog = {row["name"].decode(): (row["t_start"], row["duration"]) for row in run.program}
+    t0, dur = prog["tensile cycles [voltage=7 kV]"]
+    held = sp.columns["voltage"][(sp.t >= t0) & (sp.t <= t0 + dur)]
+    code = 20.0 / 4096 * 1000.0  # one ADAM-4024 code (±10 V, 12 bit) times the TREK gain of 1000 V/V
+    assert held.size > 0 and np.all(np.abs(held - 7000.0) <= code)
