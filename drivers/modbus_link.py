@@ -199,7 +199,8 @@ class ModbusLink:
                 except OperationCancelledError:
                     self._stale = True
                     raise
-                except ConnectionException:
+                except (ConnectionException, OSError):  # pymodbus 3.16 lets ECONNRESET through on receive
+                    self._client.close()
                     raise InstrumentConnectionError(self.device, f"Modbus link {self.url} lost during {what}") \
                         from None
                 except ModbusException as exc:

@@ -4,8 +4,9 @@ State machine (MC-SW manual §4.3; ../shared/instruments.md §2.3): 0 Not Ready 
 word with bit 0 clear → 1 Switch On Disabled → 0x003E → 2 Ready To Switch On → 0x003F → 5 HW tests
 (``hw_test_time``) → 8 Operation Enabled. Homing (bit 11) → 9, sub state 0x0F when done. Errors → 4 with
 the error code as sub state; acknowledged by a rising edge of bit 7 (not if fatal). Motion commands are
-executed when the command count changes, only in state 8 and homed (otherwise error 0x20), only inside
-the drive's stroke (otherwise error 0x21). The motor position drives the plant (LS-DEA motor coupling).
+executed when the command count changes, only in state 8 (otherwise error 0x86 "Motion Cmd In Wrong St") and
+homed (otherwise 0x80 "Not Homed"), only inside the drive's stroke (otherwise 0x87, see ERR_OUTSIDE_STROKE).
+The motor position drives the plant (LS-DEA motor coupling).
 Malformed telegrams are ignored (the master times out); unknown message groups are answered with a
 non-zero communication state.
 """
@@ -44,8 +45,10 @@ from sim_devices.clock import Clock
 from sim_devices.motion import MotionProfile
 from sim_devices.plant import Plant
 
-ERR_WRONG_STATE = 0x20
-ERR_OUTSIDE_STROKE = 0x21
+# Drive error codes (LinMot MC-SW drive error list; ../shared/instruments.md §2.3).
+ERR_NOT_HOMED = 0x80  # "Not Homed"
+ERR_WRONG_STATE = 0x86  # "Motion Cmd In Wrong St"
+ERR_OUTSIDE_STROKE = 0x87  # [assumed] a target beyond the configured position range; the code was not verified
 ERR_MOTOR_MISSING = 0x22
 COMM_UNKNOWN_MESSAGE = 0x01
 
@@ -151,8 +154,11 @@ class LinMotDriveSim:
         self.count = count
         if self.state == 4:
             return  # in the error state motion commands are ignored; the original error stays
-        if self.state != 8 or not self.homed:
+        if self.state != 8:
             self._error(ERR_WRONG_STATE)
+            return
+        if not self.homed:
+            self._error(ERR_NOT_HOMED)
             return
         if header & 0xFFF0 == VAI_GOTO and len(data) >= 18:
             target, vmax, acc, dec = struct.unpack("<iIII", data[2:18])

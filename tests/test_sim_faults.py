@@ -26,7 +26,6 @@ recovery check.
 from __future__ import annotations
 
 import contextlib
-import termios
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -183,9 +182,6 @@ def test_modbus_tcp_server_dies_during_a_request(thesis: RunningRig) -> None:
     assert faults.counts["drop"] == 1
 
 
-@pytest.mark.xfail(raises=ConnectionResetError, strict=False,
-                   reason="pymodbus 3.16's sync TCP recv lets ECONNRESET through and drivers/modbus_link.py does "
-                          "not map OSError to InstrumentConnectionError")
 def test_modbus_tcp_reset_during_a_request(thesis: RunningRig) -> None:
     """As above with a TCP reset (a rebooted gateway): still a lost link under the error contract."""
     faults = thesis.sim.faults_of("amplifier")
@@ -227,10 +223,7 @@ def test_every_modbus_transport_applies_every_fault(thesis_on: RunningRig) -> No
 
 @pytest.mark.parametrize("transport", [
     "tcp", "rtu-socket",
-    pytest.param("rtu", marks=pytest.mark.xfail(
-        raises=termios.error, strict=False,
-        reason="drivers/modbus_link.py _discard_input suppresses OSError, but pyserial's reset_input_buffer on a "
-               "dead pty raises termios.error (not an OSError)"))])
+    "rtu"])
 def test_every_modbus_transport_drops(transport: str) -> None:
     for r in _rig("thesis-sim", simulation={"seed": 1, "modbus_transport": transport}):
         faults = r.sim.faults_of("amplifier")

@@ -118,7 +118,7 @@ def test_motor_state_machine_homing_and_motion(lsdea_motor: RunningRig) -> None:
 
 def test_motor_refuses_and_recovers_from_errors(lsdea_motor: RunningRig) -> None:
     motor, twin = lsdea_motor.inst.motor, lsdea_motor.sim.twins["motor"]
-    with pytest.raises(InstrumentStateError, match="code 0x20 motion command in wrong state"):
+    with pytest.raises(InstrumentStateError, match="code 0x86 motion command in wrong state"):
         motor.move_to(0.01, 0.1, 1.0)  # not switched on
     motor.enable()  # acknowledges the error and runs the state machine again
     with pytest.raises(LimitError, match="outside travel"):
