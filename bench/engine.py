@@ -201,7 +201,7 @@ class Engine:
     def _drain_laser(self, budget: float) -> None:
         """Fetch stored laser data until the storage is empty, ``budget`` s pass, or a stop request comes."""
         wall_end = time.monotonic() + budget
-        while self._record_laser_block() > 0:
+        while self._record_laser_block() > 0 or getattr(self.inst.laser, "pending", 0) > 0:
             if self._stopping and self._urgent.is_set():
                 return
             self._check_stop()
@@ -470,7 +470,8 @@ class Engine:
         watchdog = cfg.comm_watchdog_s if cfg is not None else None
         if zero_at is not None:
             path = f"0 V commanded by the host at {zero_at:.3f} s"
-            self._pause_until(self.now() + MONITOR_SETTLE_S, urgent_aborts=False)  # fresh monitor conversions at the zeroed output
+            # fresh monitor conversions at the zeroed output
+            self._pause_until(self.now() + MONITOR_SETTLE_S, urgent_aborts=False)
         elif watchdog is not None:
             # No request to the set-point module from here on: its communication-safety timer must run out.
             path = (f"0 V NOT commanded by the host: left to the set-point module's communication watchdog "

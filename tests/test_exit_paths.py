@@ -143,7 +143,7 @@ def test_ctrl_c_while_the_laser_babbles(tmp_path: Path) -> None:
 
     trial = Trial(THESIS, 3.0, babble)
     try:
-        result, run, sim = trial.run(tmp_path)
+        _result, run, sim = trial.run(tmp_path)
     finally:
         stop.set()
     assert run.state in ("interrupted", "error")  # a babbling line is also a garbled reply: either ends the run
@@ -177,7 +177,7 @@ def test_ctrl_c_on_a_slow_laser_wire(tmp_path: Path) -> None:
 
 def test_a_silent_laser_ends_the_run_after_its_timeout(tmp_path: Path) -> None:
     trial = Trial(THESIS, 3.0, lambda _e, sim: setattr(sim.faults["laser"], "mute", True))
-    result, run, sim = trial.run(tmp_path)
+    result, _run, sim = trial.run(tmp_path)
     assert result.state == "error" and "laser" in result.reason
     timeout = plan_run(THESIS).rig.laser.timeout_s
     upload = 0.3  # a storage fetch in flight may wait for its reply's wire time too (≤ 0.2 s of data per fetch)
@@ -209,6 +209,7 @@ def test_a_drive_error_during_a_hold_stops_the_run_with_the_drive_text(tmp_path:
     trial = Trial(ISOMETRIC, 7.0, lambda _e, sim: sim.twins["motor"].inject_error(0x0021))
     result, run, sim = trial.run(tmp_path)
     assert result.state == "error" and "motor" in result.reason and "0x0021" in result.reason
+    assert "x3 hall signals missing" in run.reason.lower()  # the manual's text for 0x0021, kept in the file
     assert trial.last_high(sim) <= trial.t_action + 1.0 / 20 + 0.25 + BOUND_S  # one 20-Hz encoder poll, ramp
 
 
