@@ -1,0 +1,722 @@
+"""LabJack T7 multifunction DAQ: Modbus TCP command-response and hardware-timed stream (in and out).
+
+Sources: LabJack T-Series Datasheet §3.2 (stream mode, §3.2.1/3.2.3 stream-out, §3.2.2/3.2.4 low-level
+streaming), the register map (``ljm_constants.json`` in labjack/ljm_constants, which the datasheet's
+register tables are generated from) and LabJack's own low-level TCP stream example
+(``t7_modbus_tcp_stream_example.c`` with ``stream.c``/``calibration.c``). Every number below is marked:
+
+Datasheet [D] = T-Series Datasheet §3.2 and its register map (ljm_constants.json); example [E] = LabJack's
+low-level TCP stream example; [A] = assumed, to check on a real T7.
+
+* [E] ports: command-response TCP 502, spontaneous stream TCP 702; Modbus unit id 1.
+* [D] big-endian bytes, 32-bit values high word first.
+* [D] AIN#(0:249) 0+2n F32 R; DAC#(0:1) 1000+2n F32 RW; AIN#_RANGE 40000+2n F32 (10/1/0.1/0.01);
+  AIN#_NEGATIVE_CH 41000+n U16 (199 = single-ended); LAST_ERR_DETAIL 55000 U16; PRODUCT_ID 60000 F32 (7);
+  HARDWARE_VERSION 60002 F32; FIRMWARE_VERSION 60004 F32; SERIAL_NUMBER 60028 U32.
+* [D] STREAM_SCANRATE_HZ 4002 F32, _NUM_ADDRESSES 4004, _SAMPLES_PER_PACKET 4006, _SETTLING_US 4008 F32,
+  _RESOLUTION_INDEX 4010, _BUFFER_SIZE_BYTES 4012 (power of 2, T7 ≤ 32768), _CLOCK_SOURCE 4014,
+  _AUTO_TARGET 4016 (bit 0: packets to port 702), STREAM_DATATYPE 4018 = 0, _NUM_SCANS 4020 (0: continuous),
+  STREAM_SCANLIST_ADDRESS#(0:127) 4100+2i, STREAM_ENABLE 4990 written last.
+* [D] stream-out: STREAM_OUT#(0:3) 4800+n in the scan list (returns no data); _TARGET 4040+2n,
+  _BUFFER_ALLOCATE_NUM_BYTES 4050+2n (power of 2, 32…16384; usable = bytes/2 − 1 values), _LOOP_NUM_VALUES
+  4060+2n, _SET_LOOP 4070+2n (1 = use new data now), _BUFFER_STATUS 4080+2n, _ENABLE 4090+2n,
+  _BUFFER_U16 4420+n; order: target, allocate, enable, loop size, data, set-loop; after the data the last
+  LOOP_NUM_VALUES values repeat (1: the output holds the end value exactly).
+* [A] a buffer register takes k values in one FC16 of k registers at its address (≤ 120 per request here).
+* [E] packet: TransID(2) ProtoID(2)=0 Length(2) Unit(1)=1 Function(1)=76 Type(1)=16 Reserved(1)
+  Backlog(2, bytes) Status(2) AddInfo(2), then samples (2 bytes, MSB first, scan-list order, STREAM_OUT
+  entries excluded); TransID 0 at STREAM_ENABLE, +1 per packet. [A] Length = 10 + 2·samples (MBAP rule).
+* [D][E] status 2940 auto-recover active, 2941 end (AddInfo = scans skipped; one dummy scan of 0xFFFF first
+  [E, U3 manual]), 2942 scan overlap, 2943 skip-counter overflow, 2944 burst complete, 2945 buffer full.
+* [A] a burst's last packet may be shorter than STREAM_SAMPLES_PER_PACKET; a stop discards a partial packet.
+* [D] first scan one scan period after STREAM_ENABLE = 1 (STREAM_START_TIME_STAMP); scan rate > 152.588 Hz
+  is 10 MHz / round(10 MHz / rate), read back from 4002.
+* [E] calibration: flash pointer 61810 ← 0x3C4000 + 52·i, reads of 61812 of 26, 26, 26, 4 registers = 41
+  F32 (HS[4], HR[4] × PSlope/NSlope/Center/Offset, DAC[2] × Slope/Offset, temperature, current sources,
+  I_bias); raw → V = (raw − Center)·PSlope if raw ≥ Center else (Center − raw)·NSlope, gain 0..3 = ±10/1/0.1/
+  0.01 V. [A] DAC code = V·Slope + Offset; [D] the 12-bit DAC ignores the low 4 bits of DAC#_BINARY.
+* [D] error names (LAST_ERR_DETAIL); [A] which Modbus exception code carries them (the driver reads 55000
+  after any exception).
+
+Why spontaneous stream on its own socket rather than command-response stream (STREAM_DATA_CR 4500): the
+datasheet documents the spontaneous packet byte by byte (and LabJack's example parses it); the C-R read
+format is not given in the material we have. The Modbus client (pymodbus via :class:`ModbusLink`) carries
+configuration and stream-out buffer updates; a plain TCP socket carries the packets.
+
+Engine API (bluesky-style): :meth:`LabJackT7.arm` (stage: configure inputs, scan list, preload stream-out),
+:meth:`~LabJackT7.kickoff` (STREAM_ENABLE = 1; returns the rig time of scan 0), :meth:`~LabJackT7.collect`
+(complete scans received so far, numbered, refilling the stream-out buffer), :meth:`~LabJackT7.complete`
+(wait until the burst or the waveform is done), :meth:`~LabJackT7.stop`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import select
+import socket
+import struct
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from drivers.cancel import CancelToken, check
+from drivers.errors import (
+    InstrumentConnectionError,
+    InstrumentError,
+    InstrumentStateError,
+    InstrumentTimeoutError,
+    LimitError,
+    ProtocolError,
+)
+from drivers.interfaces import ClockFn, Identity, Reading, SampleBlock, SleepFn
+from drivers.modbus_link import ModbusLink
+
+UNIT = 1
+CR_PORT, STREAM_PORT = 502, 702
+AIN0, DAC0 = 0, 1000
+AIN_RANGE0, AIN_NEG0 = 40000, 41000
+SINGLE_ENDED = 199
+SCANRATE, NUM_ADDRESSES, SAMPLES_PER_PACKET, SETTLING_US = 4002, 4004, 4006, 4008
+RESOLUTION_INDEX, BUFFER_SIZE_BYTES, CLOCK_SOURCE, AUTO_TARGET, DATATYPE, NUM_SCANS = \
+    4010, 4012, 4014, 4016, 4018, 4020
+SCANLIST0, STREAM_ENABLE = 4100, 4990
+OUT_SCAN0, OUT_TARGET0, OUT_ALLOC0, OUT_LOOP0, OUT_SET_LOOP0, OUT_STATUS0, OUT_ENABLE0 = \
+    4800, 4040, 4050, 4060, 4070, 4080, 4090
+OUT_BUFFER_U16_0 = 4420
+LAST_ERR_DETAIL = 55000
+PRODUCT_ID, HARDWARE_VERSION, FIRMWARE_VERSION, SERIAL_NUMBER = 60000, 60002, 60004, 60028
+FLASH_POINTER, FLASH_READ, CAL_FLASH_ADDRESS = 61810, 61812, 0x3C4000
+CAL_READ_REGS = (26, 26, 26, 4)
+TARGET_SPONTANEOUS = 0x01
+STREAM_FUNCTION, STREAM_TYPE = 76, 16
+HEADER_BYTES = 16
+MAX_SCANLIST = 128
+MAX_SAMPLES_PER_PACKET = 512  # TCP [example: STREAM_MAX_SAMPLES_PER_PACKET_TCP]
+MAX_OUT_BUFFER_BYTES = 16384  # T7 [register map]
+MAX_STREAM_BUFFER_BYTES = 32768  # T7 [register map]
+WRITE_REGS = 120  # registers per FC16 (Modbus limit 123)
+DAC_RANGE = (0.0, 5.0)  # V [datasheet: T7 DACs 0–5 V]
+DUMMY = 0xFFFF
+ST_OK, ST_RECOVER_ACTIVE, ST_RECOVER_END, ST_SCAN_OVERLAP, ST_RECOVER_OVERFLOW, ST_BURST_COMPLETE, \
+    ST_BUFFER_FULL = 0, 2940, 2941, 2942, 2943, 2944, 2945
+RANGES = (10.0, 1.0, 0.1, 0.01)  # gain index 0..3
+ERRORS = {
+    2600: "STREAM_NEED_AT_LEAST_ONE_CHN", 2605: "STREAM_IS_ACTIVE", 2606: "STREAM_CONFIG_INVALID",
+    2607: "STREAM_CHN_LIST_INVALID", 2608: "STREAM_SCAN_RATE_INVALID", 2609: "STREAM_OUT_BUFF_TOO_BIG",
+    2610: "STREAM_OUT_NUM_INVALID", 2612: "STREAM_TARGET_CONFIG_INVALID", 2613: "STREAM_OUT_BUFF_FULL",
+    2614: "STREAM_OUT_TARGET_INVALID", 2615: "STREAM_BUFF_SIZE_INVALID", 2617: "STREAM_OUT_BUFF_DNE",
+    2618: "STREAM_SAMPLES_PER_PKT_INVALID", 2620: "STREAM_NOT_RUNNING", 2621: "STREAM_SETTLING_INVALID",
+    2622: "STREAM_OUT_LOOP_TOO_BIG", 2625: "STREAM_CHN_CAN_NOT_BE_STREAMED",
+    2627: "STREAM_OUT_NEEDS_TO_BE_ENABLED",
+    ST_RECOVER_ACTIVE: "STREAM_AUTO_RECOVER_ACTIVE", ST_RECOVER_END: "STREAM_AUTO_RECOVER_END",
+    ST_SCAN_OVERLAP: "STREAM_SCAN_OVERLAP", ST_RECOVER_OVERFLOW: "STREAM_AUTO_RECOVER_END_OVERFLOW",
+    ST_BURST_COMPLETE: "STREAM_BURST_COMPLETE", ST_BUFFER_FULL: "STREAM_BUFFER_FULL",
+}
+
+
+def f32_words(x: float) -> list[int]:
+    """FLOAT32 as two registers, high word first."""
+    hi, lo = struct.unpack(">HH", struct.pack(">f", x))
+    return [hi, lo]
+
+
+def u32_words(x: int) -> list[int]:
+    """UINT32 as two registers, high word first."""
+    return [(x >> 16) & 0xFFFF, x & 0xFFFF]
+
+
+def words_f32(w: list[int]) -> float:
+    """Two registers (high word first) as FLOAT32."""
+    return float(struct.unpack(">f", struct.pack(">HH", w[0], w[1]))[0])
+
+
+def words_u32(w: list[int]) -> int:
+    """Two registers (high word first) as UINT32."""
+    return (w[0] << 16) | w[1]
+
+
+def actual_scan_rate(rate: float) -> float:
+    """Scan rate the device runs for a requested one > 152.588 Hz (100-ns interval steps)."""
+    return 10e6 / max(round(10e6 / rate), 1)
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """T7 calibration constants in flash order: HS[4]×(PSlope, NSlope, Center, Offset), HR[4]×4, DAC[2]×
+    (Slope, Offset), temperature (slope, offset), current sources (10 µA, 200 µA), I_bias."""
+
+    values: tuple[float, ...]
+
+    @classmethod
+    def nominal(cls) -> Calibration:
+        """LabJack's nominal constants (getNominalCalibration in the example's calibration.c)."""
+        hs: list[float] = []
+        for g in range(4):
+            s = 0.000315805780 * 10.0 ** -g
+            hs += [s, -0.000315805800 * 10.0 ** -g, 33523.0, -10.58695652200 * 10.0 ** -g]
+        return cls(tuple(hs + hs + [13200.0, 0.0, 13200.0, 0.0, -92.379, 465.129, 10e-6, 200e-6, 0.0]))
+
+    def hs(self, gain: int) -> tuple[float, float, float, float]:
+        """(PSlope, NSlope, Center, Offset) of the high-speed converter at gain index 0..3."""
+        p, n, c, o = self.values[4 * gain:4 * gain + 4]
+        return p, n, c, o
+
+    def dac(self, channel: int) -> tuple[float, float]:
+        """(Slope [codes/V], Offset [codes]) of DAC0/DAC1."""
+        s, o = self.values[32 + 2 * channel:34 + 2 * channel]
+        return s, o
+
+    def ain_volts(self, raw: np.ndarray, gain: int) -> np.ndarray:
+        """Stream samples (16-bit binary) to volts."""
+        p, n, c, _ = self.hs(gain)
+        r = raw.astype(float)
+        return np.where(r < c, (c - r) * n, (r - c) * p)
+
+    def dac_codes(self, volts: np.ndarray, channel: int) -> np.ndarray:
+        """Volts to 16-bit DAC codes (rounded, clipped)."""
+        s, o = self.dac(channel)
+        return np.clip(np.rint(np.asarray(volts, float) * s + o), 0, 0xFFFF).astype(np.uint16)
+
+    def dac_volts(self, codes: np.ndarray, channel: int, bits: int = 12) -> np.ndarray:
+        """What a ``bits``-bit DAC outputs for 16-bit codes (low bits ignored)."""
+        s, o = self.dac(channel)
+        c = (np.asarray(codes, dtype=np.int64) >> (16 - bits)) << (16 - bits)
+        return (c - o) / s
+
+
+@dataclass(frozen=True)
+class StreamPacket:
+    """One decoded spontaneous stream packet."""
+
+    transaction_id: int
+    backlog_bytes: int
+    status: int
+    additional: int
+    samples: np.ndarray  # uint16
+
+
+def parse_stream_packet(frame: bytes, device: str = "T7") -> StreamPacket:
+    """Decode one whole packet (MBAP header included) or raise :class:`ProtocolError`."""
+    if len(frame) < HEADER_BYTES:
+        raise ProtocolError(device, f"stream packet of {len(frame)} bytes, header alone is {HEADER_BYTES}")
+    tid, proto, length, unit, func, typ, _res, backlog, status, add = struct.unpack(">HHHBBBBHHH", frame[:16])
+    if proto != 0 or unit != UNIT or func != STREAM_FUNCTION or typ != STREAM_TYPE:
+        raise ProtocolError(device, f"not a stream packet (protocol {proto}, unit {unit}, function {func}, "
+                            f"type {typ})")
+    if length != len(frame) - 6 or (length - 10) % 2 or length < 10:
+        raise ProtocolError(device, f"stream packet length field {length} for {len(frame)} bytes")
+    samples = np.frombuffer(frame, dtype=">u2", offset=HEADER_BYTES).astype(np.uint16)
+    return StreamPacket(tid, backlog, status, add, samples)
+
+
+@dataclass(frozen=True)
+class StreamIn:
+    """One analog input in the scan list: AIN number, range (±V: 10, 1, 0.1, 0.01), label."""
+
+    ain: int
+    range_volts: float = 10.0
+    name: str = ""
+
+
+@dataclass(frozen=True)
+class StreamOut:
+    """A waveform [V at the DAC, 0–5 V] played on ``dac`` one value per scan; after the last value the
+    last ``hold`` values repeat (1: the output stays exactly on the end value)."""
+
+    dac: int
+    volts: np.ndarray
+    hold: int = 1
+
+
+@dataclass(frozen=True)
+class StreamSpec:
+    """What :meth:`LabJackT7.arm` configures. ``num_scans`` > 0: a burst of that many scans."""
+
+    scan_rate: float
+    inputs: tuple[StreamIn, ...]
+    output: StreamOut | None = None
+    num_scans: int = 0
+    samples_per_packet: int = 0  # 0: as many whole scans as fit in 512 samples
+    resolution_index: int = 0
+    settling_us: float = 0.0
+    buffer_size_bytes: int = MAX_STREAM_BUFFER_BYTES
+    out_buffer_bytes: int = MAX_OUT_BUFFER_BYTES
+
+
+@dataclass
+class StreamPlan:
+    """What the device will do: actual scan rate, scan list, and the stream-out codes it will play."""
+
+    scan_rate: float
+    dt: float
+    names: tuple[str, ...]
+    scan_list: tuple[int, ...]
+    samples_per_packet: int
+    out_codes: np.ndarray | None
+    out_volts: np.ndarray | None  # what the 12-bit DAC outputs for out_codes
+    out_capacity: int  # values the stream-out buffer holds
+    max_collect_interval: float  # call collect at least this often [s] so the out buffer never runs dry
+
+
+@dataclass(frozen=True)
+class StreamBlock:
+    """Complete scans ``first_scan`` … ``first_scan + n − 1``; scan k was taken at ``t0 + k·dt``.
+
+    ``volts`` has one column per input; rows of scans the device skipped (auto-recovery) are NaN and
+    ``valid`` False. ``backlog_scans``: scans waiting in the device after the last packet; ``statuses``:
+    non-zero packet statuses seen; ``done``: the burst completed or the stream stopped.
+    """
+
+    first_scan: int
+    t0: float
+    dt: float
+    names: tuple[str, ...]
+    volts: np.ndarray
+    valid: np.ndarray
+    backlog_scans: int = 0
+    skipped_scans: int = 0
+    statuses: tuple[int, ...] = ()
+    done: bool = False
+
+    @property
+    def n(self) -> int:
+        """Number of scans."""
+        return int(self.volts.shape[0])
+
+    def times(self) -> np.ndarray:
+        """Rig-clock times of the scans [s]."""
+        return self.t0 + self.dt * (self.first_scan + np.arange(self.n))
+
+    def channel(self, i: int) -> SampleBlock:
+        """One input as a :class:`SampleBlock` in volts (acquisition index = scan index)."""
+        return SampleBlock(self.t0, self.dt, self.first_scan, self.volts[:, i].copy(), self.valid[:, i].copy(), "V")
+
+
+@dataclass
+class _Stream:
+    plan: StreamPlan
+    spec: StreamSpec
+    n_in: int
+    gains: tuple[int, ...]
+    sock: socket.socket | None = None
+    t_enable: float = 0.0
+    t0: float = 0.0
+    next_tid: int = 0
+    raw: bytearray = field(default_factory=bytearray)
+    pending: list[int] = field(default_factory=list)  # samples of a scan split across packets
+    scans: int = 0  # scan index of the next scan to hand out (skipped ones included)
+    packets: int = 0
+    out_written: int = 0
+    out_final: bool = False
+    underrun_scans: int = 0
+    done: bool = False
+
+
+class LabJackT7:
+    """Driver of one LabJack T7 over Ethernet (command-response on ``port``, stream on ``stream_port``)."""
+
+    def __init__(self, host: str, *, port: int = CR_PORT, stream_port: int = STREAM_PORT, name: str = "daq",
+                 timeout: float = 0.5, cancel: CancelToken | None = None, clock: ClockFn = time.monotonic,
+                 sleep: SleepFn = time.sleep, safe_dac: tuple[float, float] = (0.0, 0.0),
+                 dac_bits: int = 12) -> None:
+        """``safe_dac``: DAC0/DAC1 volts written by :meth:`safe_state` (the rig's zero through its conditioning)."""
+        self.host, self.port, self.stream_port = host, port, stream_port
+        self.name = name
+        self.timeout = timeout
+        self.cancel = cancel
+        self.clock, self.sleep = clock, sleep
+        self.safe_dac = safe_dac
+        self.dac_bits = dac_bits
+        self.link = ModbusLink(f"tcp://{host}:{port}", name, timeout=timeout, cancel=cancel)
+        self.cal = Calibration.nominal()
+        self.serial = 0
+        self._stream: _Stream | None = None
+        self.streaming = False
+
+    # ------------------------------------------------------------------ command-response
+    def _lj(self, what: str, fn, *args):  # type: ignore[no-untyped-def]
+        """Run one link call; a Modbus exception is re-raised with the device's LAST_ERR_DETAIL name."""
+        try:
+            return fn(UNIT, *args)
+        except InstrumentStateError as exc:
+            try:
+                code = self.link.read_holding(UNIT, LAST_ERR_DETAIL, 1)[0]
+            except Exception:  # the first error is the one to report
+                raise exc from None
+            raise InstrumentStateError(self.name, f"{what} refused: LabJack error {code} "
+                                       f"({ERRORS.get(code, 'see the register map')})") from None
+
+    def read_regs(self, address: int, count: int) -> list[int]:
+        """Read ``count`` registers from ``address`` (FC3)."""
+        return self._lj(f"read {address}+{count}", self.link.read_holding, address, count)  # type: ignore[no-any-return]
+
+    def write_regs(self, address: int, values: list[int]) -> None:
+        """Write registers from ``address`` (FC16)."""
+        self._lj(f"write {address}+{len(values)}", self.link.write_registers, address, values)
+
+    def read_f32(self, address: int) -> float:
+        """One FLOAT32 register pair."""
+        return words_f32(self.read_regs(address, 2))
+
+    def read_u32(self, address: int) -> int:
+        """One UINT32 register pair."""
+        return words_u32(self.read_regs(address, 2))
+
+    def write_f32(self, address: int, value: float) -> None:
+        """Write one FLOAT32."""
+        self.write_regs(address, f32_words(value))
+
+    def write_u32(self, address: int, value: int) -> None:
+        """Write one UINT32."""
+        self.write_regs(address, u32_words(value))
+
+    def read_calibration(self) -> Calibration:
+        """Read the 41 calibration constants from flash (as LabJack's example does)."""
+        values: list[float] = []
+        for i, n in enumerate(CAL_READ_REGS):
+            self.write_u32(FLASH_POINTER, CAL_FLASH_ADDRESS + i * 13 * 4)
+            w = self.read_regs(FLASH_READ, n)
+            values += [words_f32(w[j:j + 2]) for j in range(0, n, 2)]
+        cal = Calibration(tuple(values))
+        if not all(math.isfinite(v) for v in values) or cal.hs(0)[0] <= 0 or cal.dac(0)[0] <= 0:
+            raise ProtocolError(self.name, "calibration constants read from flash are not plausible")
+        return cal
+
+    # ------------------------------------------------------------------ Instrument
+    def connect(self) -> None:
+        """Open the Modbus link, check it is a T7, read its calibration, stop a stream left running."""
+        self.link.open()
+        product = self.read_f32(PRODUCT_ID)
+        if round(product) != 7:
+            raise InstrumentStateError(self.name, f"PRODUCT_ID is {product:g}, expected 7 (T7)")
+        self.serial = self.read_u32(SERIAL_NUMBER)
+        self.cal = self.read_calibration()
+        if self.read_u32(STREAM_ENABLE):
+            self.write_u32(STREAM_ENABLE, 0)
+
+    def identify(self) -> Identity:
+        """PRODUCT_ID, serial number, firmware and hardware versions."""
+        return Identity("LabJack", "T7", {"serial": str(self.read_u32(SERIAL_NUMBER)),
+                                          "firmware": f"{self.read_f32(FIRMWARE_VERSION):.4f}",
+                                          "hardware": f"{self.read_f32(HARDWARE_VERSION):.2f}"})
+
+    def safe_state(self) -> None:
+        """Stop the stream (the DACs stop updating) and write the safe DAC values."""
+        if not self.link.is_open:
+            return
+        try:
+            self.stop()
+        finally:
+            for ch, v in enumerate(self.safe_dac):
+                self.write_dac(ch, v)
+
+    def close(self) -> None:
+        """Safe state, then release both sockets."""
+        try:
+            self.safe_state()
+        finally:
+            self._close_stream_socket()
+            self.link.close()
+
+    # ------------------------------------------------------------------ single values
+    def configure_ain(self, ain: int, range_volts: float = 10.0, negative_channel: int = SINGLE_ENDED) -> None:
+        """Range (±10/1/0.1/0.01 V) and negative channel (199: single-ended) of one input."""
+        if range_volts not in RANGES:
+            raise ValueError(f"{self.name}: AIN range must be one of {RANGES} V, got {range_volts}")
+        self.write_f32(AIN_RANGE0 + 2 * ain, range_volts)
+        self.write_regs(AIN_NEG0 + ain, [negative_channel])
+
+    def read_ain(self, ain: int) -> Reading:
+        """One command-response reading of AIN ``ain`` [V]."""
+        v = self.read_f32(AIN0 + 2 * ain)
+        return Reading(v, "V", self.clock(), "ok" if math.isfinite(v) else "invalid")
+
+    def write_dac(self, dac: int, volts: float) -> None:
+        """Set DAC0/DAC1 [V]; refuses values outside the DAC's 0–5 V."""
+        if dac not in (0, 1):
+            raise ValueError(f"{self.name}: no DAC{dac}")
+        if not DAC_RANGE[0] <= volts <= DAC_RANGE[1]:
+            raise LimitError(self.name, f"DAC{dac} {volts:g} V outside {DAC_RANGE[0]:g}…{DAC_RANGE[1]:g} V")
+        self.write_f32(DAC0 + 2 * dac, volts)
+
+    def read_dac(self, dac: int) -> float:
+        """The DAC's present value [V]."""
+        return self.read_f32(DAC0 + 2 * dac)
+
+    # ------------------------------------------------------------------ stream
+    def arm(self, spec: StreamSpec) -> StreamPlan:
+        """Configure inputs, stream registers, scan list and stream-out; preload the out buffer.
+
+        Nothing runs until :meth:`kickoff`. Refuses (nothing sent) what the T7 cannot do.
+        """
+        if self.streaming:
+            raise InstrumentStateError(self.name, "arm while streaming: stop first")
+        n_in = len(spec.inputs)
+        out = spec.output
+        if n_in < 1:
+            raise ValueError(f"{self.name}: a stream needs at least one input")
+        n_addr = n_in + (out is not None)
+        if n_addr > MAX_SCANLIST:
+            raise ValueError(f"{self.name}: scan list of {n_addr} addresses, at most {MAX_SCANLIST}")
+        if not spec.scan_rate > 152.588:
+            raise ValueError(f"{self.name}: scan rates ≤ 152.588 Hz are not supported by this driver")
+        spp = spec.samples_per_packet or (MAX_SAMPLES_PER_PACKET // n_in) * n_in
+        if not 1 <= spp <= MAX_SAMPLES_PER_PACKET:
+            raise ValueError(f"{self.name}: samples_per_packet must be 1…{MAX_SAMPLES_PER_PACKET}")
+        codes = volts = None
+        capacity = 0
+        if out is not None:
+            v = np.asarray(out.volts, dtype=float)
+            if v.ndim != 1 or v.size < 1 or not np.all(np.isfinite(v)):
+                raise ValueError(f"{self.name}: stream-out waveform must be a non-empty finite 1-D array")
+            if v.min() < DAC_RANGE[0] or v.max() > DAC_RANGE[1]:
+                raise LimitError(self.name, f"DAC{out.dac} waveform spans {v.min():g}…{v.max():g} V, "
+                                 f"the DAC gives {DAC_RANGE[0]:g}…{DAC_RANGE[1]:g} V")
+            if not 1 <= out.hold <= v.size:
+                raise ValueError(f"{self.name}: hold must be 1…{v.size} values")
+            codes = self.cal.dac_codes(v, out.dac)
+            volts = self.cal.dac_volts(codes, out.dac, self.dac_bits)
+            capacity = spec.out_buffer_bytes // 2 - 1
+        gains = tuple(RANGES.index(i.range_volts) for i in spec.inputs)
+        scan_list = tuple([OUT_SCAN0] if out is not None else []) + tuple(AIN0 + 2 * i.ain for i in spec.inputs)
+        if self.read_u32(STREAM_ENABLE):
+            self.write_u32(STREAM_ENABLE, 0)
+        for i in spec.inputs:
+            self.configure_ain(i.ain, i.range_volts)
+        self.write_regs(SCANRATE, f32_words(spec.scan_rate) + u32_words(n_addr) + u32_words(spp)
+                        + f32_words(spec.settling_us) + u32_words(spec.resolution_index)
+                        + u32_words(spec.buffer_size_bytes))
+        self.write_regs(AUTO_TARGET, u32_words(TARGET_SPONTANEOUS) + u32_words(0) + u32_words(spec.num_scans))
+        self.write_u32(CLOCK_SOURCE, 0)
+        self.write_regs(SCANLIST0, [w for a in scan_list for w in u32_words(a)])
+        rate = self.read_f32(SCANRATE)
+        if not rate > 0:
+            raise ProtocolError(self.name, f"device reports scan rate {rate}")
+        names = tuple(i.name or f"AIN{i.ain}" for i in spec.inputs)
+        interval = (capacity - WRITE_REGS) / rate / 2 if out is not None else math.inf
+        plan = StreamPlan(rate, 1.0 / rate, names, scan_list, spp, codes, volts, capacity, interval)
+        self._stream = _Stream(plan, spec, n_in, gains)
+        if out is not None:
+            o = 2 * out.dac
+            self.write_u32(OUT_TARGET0, DAC0 + o)
+            self.write_u32(OUT_ALLOC0, spec.out_buffer_bytes)
+            self.write_u32(OUT_ENABLE0, 1)
+            self._feed_out()
+        return plan
+
+    def _feed_out(self) -> None:
+        """Top up the stream-out buffer with as many values as fit; close it with the hold loop."""
+        s = self._stream
+        assert s is not None
+        codes = s.plan.out_codes
+        if codes is None or s.out_final:
+            return
+        played = min(s.scans, s.out_written)
+        if self.streaming and s.scans > s.out_written:  # the device ran past the data it had
+            s.underrun_scans = s.scans - s.out_written
+        free = s.plan.out_capacity - (s.out_written - played)
+        before = s.out_written
+        while free > 0 and s.out_written < codes.size:
+            n = min(WRITE_REGS, free, codes.size - s.out_written)
+            if n < WRITE_REGS and s.out_written + n < codes.size:
+                break  # wait until a whole request fits
+            chunk = codes[s.out_written:s.out_written + n]
+            self.write_regs(OUT_BUFFER_U16_0, [int(c) for c in chunk])
+            s.out_written += n
+            free -= n
+        if s.out_written == codes.size:
+            assert s.spec.output is not None
+            self.write_u32(OUT_LOOP0, s.spec.output.hold)
+            s.out_final = True
+        if s.out_written > before:
+            self.write_u32(OUT_SET_LOOP0, 1)
+
+    def _open_stream_socket(self) -> socket.socket:
+        try:
+            sock = socket.create_connection((self.host, self.stream_port), timeout=self.timeout)
+        except OSError as exc:
+            raise InstrumentConnectionError(self.name, f"cannot open stream port {self.host}:{self.stream_port}: "
+                                            f"{exc.strerror or exc}") from None
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        return sock
+
+    def _close_stream_socket(self) -> None:
+        s = self._stream
+        if s is not None and s.sock is not None:
+            s.sock.close()
+            s.sock = None
+
+    def kickoff(self) -> float:
+        """Open the stream socket, write STREAM_ENABLE = 1; returns the rig time of scan 0.
+
+        The time is the clock read after the device acknowledged the enable, plus one scan period; its
+        uncertainty is one Modbus round trip.
+        """
+        s = self._stream
+        if s is None or s.done:
+            raise InstrumentStateError(self.name, "kickoff without arm")
+        if self.streaming:
+            raise InstrumentStateError(self.name, "stream already running")
+        s.sock = self._open_stream_socket()
+        self.write_u32(STREAM_ENABLE, 1)
+        s.t_enable = self.clock()
+        s.t0 = s.t_enable + s.plan.dt
+        self.streaming = True
+        return s.t0
+
+    def _receive(self, until_packets: int, timeout: float) -> list[StreamPacket]:
+        """Packets available now, and (waiting up to ``timeout`` wall seconds) until ``until_packets`` total."""
+        s = self._stream
+        assert s is not None and s.sock is not None
+        out: list[StreamPacket] = []
+        deadline = time.monotonic() + timeout
+        while True:
+            check(self.cancel, self.name)
+            wait = s.packets + len(out) < until_packets and not s.done
+            remaining = deadline - time.monotonic()
+            r, _, _ = select.select([s.sock], [], [], min(max(remaining, 0.0), 0.05) if wait else 0.0)
+            if r:
+                try:
+                    data = s.sock.recv(1 << 16)
+                except OSError as exc:
+                    raise InstrumentConnectionError(self.name, f"stream socket lost: {exc.strerror or exc}") \
+                        from None
+                if not data:
+                    raise InstrumentConnectionError(self.name, "stream socket closed by the device")
+                s.raw += data
+                while len(s.raw) >= 6:
+                    total = 6 + struct.unpack(">H", s.raw[4:6])[0]
+                    if len(s.raw) < total:
+                        break
+                    pkt = parse_stream_packet(bytes(s.raw[:total]), self.name)
+                    del s.raw[:total]
+                    if pkt.transaction_id != (s.next_tid & 0xFFFF):
+                        raise ProtocolError(self.name, f"stream packet {pkt.transaction_id} after "
+                                            f"{(s.next_tid - 1) & 0xFFFF}: packets lost")
+                    s.next_tid += 1
+                    out.append(pkt)
+                    if pkt.status in (ST_BURST_COMPLETE, ST_BUFFER_FULL, ST_SCAN_OVERLAP, ST_RECOVER_OVERFLOW):
+                        s.done = True
+                continue
+            if not wait:
+                return out
+            if time.monotonic() >= deadline:
+                raise InstrumentTimeoutError(self.name, f"stream packets up to #{until_packets} not received "
+                                             f"within {timeout:g} s (have {s.packets + len(out)})")
+
+    def _expected_packets(self, until: float) -> int:
+        s = self._stream
+        assert s is not None
+        scans = math.floor((until - s.t_enable) * s.plan.scan_rate + 1e-6)
+        if s.spec.num_scans:
+            scans = min(scans, s.spec.num_scans)
+        return max(scans, 0) * s.n_in // s.plan.samples_per_packet
+
+    def collect(self, until: float | None = None, timeout: float = 1.0) -> StreamBlock:
+        """Complete scans received since the last call (scan-numbered), after topping up the out buffer.
+
+        ``until`` (rig time): first wait, up to ``timeout`` wall seconds, for every whole packet the device
+        has filled by then — in virtual time, call it with the clock's present to get every scan so far.
+        A gap in the packet sequence is a :class:`ProtocolError`; a device status that ends the stream
+        (scan overlap, skip-counter overflow, buffer full) an :class:`InstrumentStateError` after the data.
+        """
+        s = self._stream
+        if s is None or s.sock is None:
+            raise InstrumentStateError(self.name, "collect without kickoff")
+        want = self._expected_packets(until) if until is not None else 0
+        packets = self._receive(want, timeout)
+        s.packets += len(packets)
+        first = s.scans
+        rows: list[np.ndarray] = []
+        valid: list[np.ndarray] = []
+        statuses: list[int] = []
+        skipped = 0
+        backlog = 0
+        for pkt in packets:
+            if pkt.status:
+                statuses.append(pkt.status)
+            backlog = pkt.backlog_bytes // (2 * s.n_in)
+            samples = pkt.samples
+            if pkt.status == ST_RECOVER_END:
+                if s.pending:
+                    raise ProtocolError(self.name, "auto-recovery ended inside a scan")
+                if samples.size < s.n_in or np.any(samples[:s.n_in] != DUMMY):
+                    raise ProtocolError(self.name, "auto-recovery end without the dummy scan")
+                samples = samples[s.n_in:]
+                skipped += pkt.additional
+                rows.append(np.full((pkt.additional, s.n_in), np.nan))
+                valid.append(np.zeros((pkt.additional, s.n_in), bool))
+                s.scans += pkt.additional
+            allsamp = np.concatenate([np.asarray(s.pending, np.uint16), samples])
+            whole = allsamp.size // s.n_in * s.n_in
+            s.pending = allsamp[whole:].tolist()
+            raw = allsamp[:whole].reshape(-1, s.n_in)
+            volts = np.empty(raw.shape)
+            for j, g in enumerate(s.gains):
+                volts[:, j] = self.cal.ain_volts(raw[:, j], g)
+            rows.append(volts)
+            valid.append(np.ones(raw.shape, bool))
+            s.scans += raw.shape[0]
+        v = np.concatenate(rows) if rows else np.empty((0, s.n_in))
+        ok = np.concatenate(valid) if valid else np.empty((0, s.n_in), bool)
+        if self.streaming and not s.done:
+            self._feed_out()
+        if s.done:
+            self.streaming = False
+        block = StreamBlock(first, s.t0, s.plan.dt, s.plan.names, v, ok, backlog, skipped, tuple(statuses), s.done)
+        fatal = [c for c in statuses if c in (ST_SCAN_OVERLAP, ST_RECOVER_OVERFLOW, ST_BUFFER_FULL)]
+        if fatal:
+            self._last_block = block
+            raise InstrumentStateError(self.name, f"stream ended by device status {fatal[0]} "
+                                       f"({ERRORS[fatal[0]]}) at scan {s.scans}")
+        return block
+
+    @property
+    def scans_received(self) -> int:
+        """Scan index of the next scan :meth:`collect` will return."""
+        return self._stream.scans if self._stream else 0
+
+    @property
+    def out_underrun_scans(self) -> int:
+        """Scans the stream-out played past the data written (0 unless :meth:`collect` came too late)."""
+        return self._stream.underrun_scans if self._stream else 0
+
+    def complete(self, timeout: float = 10.0, poll: float = 0.05) -> list[StreamBlock]:
+        """Wait (on the rig clock: a virtual clock advances) until the burst completed or, for a continuous
+        stream with an output, every waveform value has been played and its scan collected; returns the
+        blocks collected meanwhile. ``timeout``: wall seconds without progress before giving up."""
+        s = self._stream
+        if s is None or not self.streaming:
+            raise InstrumentStateError(self.name, "complete without a running stream")
+        codes = s.plan.out_codes
+        if not s.spec.num_scans and codes is None:
+            raise InstrumentStateError(self.name, "a continuous input-only stream never completes; use stop")
+        target = s.spec.num_scans or (codes.size if codes is not None else 0)
+        blocks: list[StreamBlock] = []
+        while True:
+            block = self.collect(until=self.clock(), timeout=timeout)
+            blocks.append(block)
+            if block.done or s.scans >= target:
+                return blocks
+            self.sleep(poll)
+
+    def stop(self) -> StreamBlock | None:
+        """STREAM_ENABLE = 0 (the DAC keeps its last value) and close the stream socket; returns the complete
+        scans that had arrived (a partly filled packet is not sent by the device)."""
+        s = self._stream
+        if s is None or s.sock is None:
+            return None
+        block = None
+        try:
+            if self.streaming:
+                self._lj("stop stream", self.link.write_registers, STREAM_ENABLE, u32_words(0))
+            self.streaming = False
+            with contextlib.suppress(InstrumentError):  # stopping must not fail on the data's account
+                block = self.collect(timeout=0.0)
+        finally:
+            self.streaming = False
+            s.done = True
+            self._close_stream_socket()
+        return block

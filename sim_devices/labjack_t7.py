@@ -1,0 +1,685 @@
+"""Simulated LabJack T7 on loopback: Modbus TCP registers (pymodbus 3.16 ``SimDevice``) and spontaneous stream
+packets on a second socket, backed by the shared plant and clock.
+
+Written from the T-Series Datasheet and LabJack's low-level stream example, independently of
+:mod:`drivers.labjack` (own tables; the conformance tests check these bytes against the manual's):
+
+[D] datasheet / register map, [E] LabJack's low-level stream example, [A] assumed, [L] twin limitation.
+
+* [D] registers: AIN#(0:13) 0+2n F32 R; DAC#(0:1) 1000+2n F32 RW; AIN#_RANGE 40000+2n F32; AIN#_NEGATIVE_CH
+  41000+n U16; STREAM_* 4002–4022, 4100+2i, 4990; STREAM_OUT#_* 4040/4050/4060/4070/4080/4090+2n,
+  BUFFER_F32 4400+2n, BUFFER_U16 4420+n, STREAM_OUT# 4800+n; LAST_ERR_DETAIL 55000; PRODUCT_ID 60000 = 7.0;
+  HARDWARE_VERSION 60002; FIRMWARE_VERSION 60004; SERIAL_NUMBER 60028; big-endian, high word first.
+* [E] packet: TransID (0 at each STREAM_ENABLE = 1, +1 per packet), ProtoID 0, Length, unit 1, function
+  76, type 16, reserved 0, backlog, status, AddInfo, samples MSB first. [A] Length = 10 + 2·n; backlog =
+  bytes still buffered after this packet.
+* [D] scan k at t_enable + (k+1)/rate; [A] all samples of a scan taken at that instant (the mux is µs apart).
+* [D] actual rate 10 MHz / round(10 MHz / rate), computed when written; [A] at most 100 kS/s (inputs +
+  stream-out entries), else STREAM_SCAN_RATE_INVALID.
+* [D] stream-out: one buffer value per scan, written to the target when the scan runs; after the data the
+  last LOOP_NUM_VALUES values repeat. [A] 0 or 1: the output holds; data written while it loops plays after
+  the repetitions already queued (1 s ahead); SET_LOOP 2/3 act as 1; BUFFER_STATUS = bytes not yet played.
+* [A] F32 buffer values → code = V·Slope + Offset (own calibration); [D] 12-bit DAC, low 4 bits ignored.
+* [D] error codes 2600, 2605, 2607, 2608, 2611–2615, 2617, 2618, 2620, 2622, 2627 in LAST_ERR_DETAIL;
+  [A] sent as Modbus exception 4; unknown address: exception 2.
+* [E] auto-recovery: when more than STREAM_BUFFER_SIZE_BYTES wait unsent (the host does not read), new scans
+  are dropped and packets carry 2940; when room returns the next packet carries 2941, AddInfo = scans
+  skipped, and starts with one dummy scan of 0xFFFF.
+* [A] burst (STREAM_NUM_SCANS > 0): the rest goes in a last, possibly short packet with status 2944, then the
+  stream stops; on STREAM_ENABLE = 0 a partial packet is discarded.
+* [E] calibration in flash at 0x3C4000 (41 F32); pointer 61810, read buffer 61812 ([A] the pointer advances).
+* [L] command-response stream (STREAM_AUTO_TARGET ≠ 1: 2612), output-only streams and a STREAM_OUT# twice
+  in one scan list (2607) are not simulated; a command-response write to a DAC that stream-out drives
+  changes its register but not the plant.
+
+Wiring: DAC ``dac`` drives the amplifier's input through the rig's conditioning stage
+(``gain``·V + ``offset``); each wired AIN reads ``gain``·observable + ``offset`` of the plant (TREK voltage and
+current monitors, load-cell bridge amplifier, laser analog output).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import math
+import struct
+import threading
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+from pymodbus.constants import ExcCodes
+from pymodbus.server import ModbusTcpServer
+from pymodbus.simulator import DataType, SimData, SimDevice
+
+from sim_devices.clock import Clock
+from sim_devices.plant import Plant, PlantBlock
+from sim_devices.transport import Faults, SocketRelay
+
+# ---- the manual's numbers, written out here (never imported from the driver) ----
+R_AIN, R_DAC, R_AIN_RANGE, R_AIN_NEG = 0, 1000, 40000, 41000
+N_AIN = 14
+R_RATE, R_NADDR, R_SPP, R_SETTLE, R_RES, R_BUFSIZE, R_CLKSRC, R_TARGET, R_DTYPE, R_NSCANS, R_EXTDIV = (
+    4002, 4004, 4006, 4008, 4010, 4012, 4014, 4016, 4018, 4020, 4022)
+R_SCANLIST, R_ENABLE = 4100, 4990
+R_O_TARGET, R_O_ALLOC, R_O_LOOP, R_O_SETLOOP, R_O_STATUS, R_O_ENABLE = 4040, 4050, 4060, 4070, 4080, 4090
+R_O_F32, R_O_U16, R_O_SCAN = 4400, 4420, 4800
+R_LAST_ERR, R_PRODUCT, R_HW, R_FW, R_SERIAL = 55000, 60000, 60002, 60004, 60028
+R_FLASH_PTR, R_FLASH_READ, FLASH_CAL = 61810, 61812, 0x3C4000
+E_ACTIVE, E_CHN_LIST, E_RATE, E_DTYPE, E_TARGET, E_OUT_FULL, E_BUFSIZE, E_OUT_DNE, E_SPP, E_NOT_RUNNING, \
+    E_LOOP_BIG, E_OUT_DISABLED, E_NO_CHN, E_OUT_TARGET = (
+        2605, 2607, 2608, 2611, 2612, 2613, 2615, 2617, 2618, 2620, 2622, 2627, 2600, 2614)
+S_RECOVER, S_RECOVER_END, S_BURST = 2940, 2941, 2944
+MAX_SAMPLE_RATE = 100_000.0
+RANGE_GAIN = {0.0: 0, 10.0: 0, 1.0: 1, 0.1: 2, 0.01: 3}
+F32, U32, U16 = "f32", "u32", "u16"
+
+
+def nominal_calibration() -> list[float]:
+    """T7 nominal constants (LabJack example getNominalCalibration), flash order."""
+    hs: list[float] = []
+    for g in range(4):
+        k = 10.0 ** -g
+        hs += [0.000315805780 * k, -0.000315805800 * k, 33523.0, -10.58695652200 * k]
+    return hs + hs + [13200.0, 0.0, 13200.0, 0.0, -92.379, 465.129, 10e-6, 200e-6, 0.0]
+
+
+@dataclass(frozen=True)
+class Conditioning:
+    """Rig's stage between a DAC (0–5 V) and the amplifier input: ``gain``·V + ``offset``, clipped ±``limit``."""
+
+    gain: float = 4.0
+    offset: float = -10.0
+    limit: float = 10.0
+
+    def __call__(self, volts: np.ndarray) -> np.ndarray:
+        return np.clip(self.gain * np.asarray(volts, float) + self.offset, -self.limit, self.limit)
+
+
+@dataclass(frozen=True)
+class Signal:
+    """What one AIN sees: ``gain``·(plant observable) + ``offset`` [V], with Gaussian noise [V rms]."""
+
+    observable: str  # "voltage", "current", "force", "displacement"
+    gain: float
+    offset: float = 0.0
+    noise: float = 0.0
+
+
+def default_signals(vmon_ratio: float = 1000.0, imon_ratio: float = 1e-3, force_gain: float = 1.0,
+                    laser_gain: float = 200.0, laser_offset: float = 0.0) -> dict[int, Signal]:
+    """AIN0 TREK V monitor, AIN1 I monitor, AIN2 bridge amplifier [V/N], AIN3 laser analog output [V/m]."""
+    return {0: Signal("voltage", 1.0 / vmon_ratio), 1: Signal("current", 1.0 / imon_ratio),
+            2: Signal("force", force_gain), 3: Signal("displacement", laser_gain, laser_offset)}
+
+
+@dataclass
+class _Out:
+    """One stream-out channel."""
+
+    target: int = 0
+    alloc: int = 0
+    enable: int = 0
+    loop_num: int = 0
+    queue: deque[int] = field(default_factory=deque)  # codes written, not yet scheduled (stream stopped)
+    sched: deque[tuple[int, int]] = field(default_factory=deque)  # (scan, code) scheduled, maybe unplayed
+    tail: deque[int] = field(default_factory=deque)  # last values written (for the loop)
+    loop: list[int] = field(default_factory=list)
+    loop_pos: int = 0
+    next_scan: int = 0
+    code: int = 0  # last code played
+    underrun_scans: int = 0
+    loop_active: bool = False
+
+
+class LabJackT7Sim:
+    """The T7 twin: registers, stream engine, stream-out to the plant."""
+
+    def __init__(self, plant: Plant, clock: Clock, *, serial: int = 470012345, dac: int = 0,
+                 conditioning: Conditioning | None = None, signals: dict[int, Signal] | None = None,
+                 calibration: list[float] | None = None, seed: int = 7, poll: float = 0.002,
+                 faults: Faults | None = None) -> None:
+        self.plant, self.clock = plant, clock
+        self.serial = serial
+        self.dac = dac
+        self.conditioning = conditioning or Conditioning()
+        self.signals = default_signals() if signals is None else signals
+        self.cal = list(calibration or nominal_calibration())
+        self.rng = np.random.default_rng(seed)
+        self.poll = poll
+        self.faults = faults or Faults()
+        self.lock = threading.RLock()
+        self._hist_lock = threading.Lock()  # the plant's listener takes only this one (no lock cycle)
+        self.regs: dict[int, float] = {R_RATE: 0.0, R_NADDR: 0, R_SPP: 0, R_SETTLE: 0.0, R_RES: 0,
+                                       R_BUFSIZE: 0, R_CLKSRC: 0, R_TARGET: 0, R_DTYPE: 0, R_NSCANS: 0,
+                                       R_EXTDIV: 1}
+        self.scanlist = [0] * 128
+        self.ain_range = [10.0] * N_AIN
+        self.ain_neg = [199] * N_AIN
+        self.dac_volts = [0.0, 0.0]
+        self.outs = [_Out() for _ in range(4)]
+        self.last_err = 0
+        self.flash_ptr = 0
+        self.rate = 0.0  # actual scan rate
+        self.streaming = False
+        self.t_enable = 0.0
+        self.tid = 0
+        self.produced = 0  # scans taken
+        self.fifo = np.zeros(0, np.uint16)  # samples waiting for a packet
+        self.skipped = 0
+        self.recovering = False
+        self.packets_sent = 0
+        self.scans_skipped_total = 0
+        self._hist_t: deque[np.ndarray] = deque()
+        self._hist: deque[dict[str, np.ndarray]] = deque()
+        last = plant.last
+        self._on_block(last)
+        plant.listeners.append(self._on_block)
+        words = [SimData(0, count=65535, values=0, datatype=DataType.REGISTERS)]
+        self.device = SimDevice(1, words, action=self.action)
+        self._writer: asyncio.StreamWriter | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._thread: threading.Thread | None = None
+        self._ready = threading.Event()
+        self._server: ModbusTcpServer | None = None
+        self._relay: SocketRelay | None = None
+        self._stream_server: asyncio.Server | None = None
+        self._pump_task: asyncio.Task[None] | None = None
+        self.port = 0
+        self.stream_port = 0
+        self.errors: list[BaseException] = []
+
+    # ------------------------------------------------------------------ serving
+    def start(self, timeout: float = 10.0) -> tuple[int, int]:
+        """Serve Modbus TCP and the stream socket on loopback; returns (Modbus port, stream port)."""
+        self._thread = threading.Thread(target=self._run, name="sim-labjack", daemon=True)
+        self._thread.start()
+        if not self._ready.wait(timeout) or not self.port:
+            raise RuntimeError(f"simulated T7 did not start: {self.errors}")
+        return self.port, self.stream_port
+
+    def _run(self) -> None:
+        loop = asyncio.new_event_loop()
+        self._loop = loop
+        asyncio.set_event_loop(loop)
+        try:
+            loop.run_until_complete(self._serve())
+            loop.run_forever()
+        finally:
+            loop.close()
+
+    async def _serve(self) -> None:
+        try:
+            self._server = ModbusTcpServer(self.device, address=("127.0.0.1", 0))
+            await self._server.serve_forever(background=True)
+            inner = self._server.transport.sockets[0].getsockname()[1]  # type: ignore[union-attr,attr-defined]
+            self._relay = await SocketRelay("T7", ("127.0.0.1", inner), self.faults, framing="mbap").start()
+            self._stream_server = await asyncio.start_server(self._on_stream_client, "127.0.0.1", 0)
+            self.stream_port = self._stream_server.sockets[0].getsockname()[1]
+            self._pump_task = asyncio.get_running_loop().create_task(self._pump_loop())
+            self.port = self._relay.port
+        except BaseException as exc:  # reported by start()
+            self.errors.append(exc)
+        finally:
+            self._ready.set()
+
+    async def _on_stream_client(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        with self.lock:
+            old, self._writer = self._writer, writer  # the latest connection gets the packets
+        if old is not None:
+            old.close()
+        with contextlib.suppress(Exception):
+            await reader.read()  # until the host closes
+        with self.lock:
+            if self._writer is writer:
+                self._writer = None
+        writer.close()
+
+    async def _pump_loop(self) -> None:
+        while True:
+            try:
+                self.pump()
+            except Exception as exc:  # keep serving; tests inspect errors
+                self.errors.append(exc)
+            await asyncio.sleep(self.poll)
+
+    def stop(self) -> None:
+        """Stop serving."""
+        loop = self._loop
+        if loop is not None and loop.is_running():
+            async def shutdown() -> None:
+                if self._pump_task is not None:
+                    self._pump_task.cancel()
+                if self._relay is not None:
+                    await self._relay.close()
+                if self._stream_server is not None:
+                    self._stream_server.close()
+                if self._writer is not None:
+                    self._writer.close()
+                if self._server is not None:
+                    await self._server.shutdown()
+
+            with contextlib.suppress(Exception):
+                asyncio.run_coroutine_threadsafe(shutdown(), loop).result(timeout=5)
+            loop.call_soon_threadsafe(loop.stop)
+        if self._thread is not None:
+            self._thread.join(timeout=5)
+        with contextlib.suppress(ValueError):
+            self.plant.listeners.remove(self._on_block)
+
+    # ------------------------------------------------------------------ plant coupling
+    def _on_block(self, block: PlantBlock) -> None:
+        with self._hist_lock:
+            self._hist_t.append(block.t.copy())
+            self._hist.append({"voltage": block.voltage.copy(), "current": block.current.copy(),
+                               "force": block.force.copy(), "displacement": block.displacement.copy()})
+            while len(self._hist_t) > 2 and self._hist_t[1][-1] < self.clock.now() - 2.0:
+                self._hist_t.popleft()
+                self._hist.popleft()
+
+    def _observe(self, times: np.ndarray) -> dict[str, np.ndarray]:
+        """Plant observables held at the last model step at or before each time."""
+        self.plant.advance_to(float(times[-1]))
+        with self._hist_lock:
+            t = np.concatenate(list(self._hist_t))
+            idx = np.clip(np.searchsorted(t, times + 1e-9, side="right") - 1, 0, t.size - 1)
+            return {k: np.concatenate([h[k] for h in self._hist])[idx] for k in self._hist[0]}
+
+    def _ain_volts(self, ain: int, obs: dict[str, np.ndarray], n: int) -> np.ndarray:
+        sig = self.signals.get(ain)
+        if sig is None:
+            return np.zeros(n)
+        v = sig.gain * np.nan_to_num(obs[sig.observable]) + sig.offset
+        if sig.noise:
+            v = v + self.rng.normal(0.0, sig.noise, n)
+        return v
+
+    def _raw(self, volts: np.ndarray, gain: int) -> np.ndarray:
+        p, nslope, c = self.cal[4 * gain:4 * gain + 3]
+        raw = np.where(volts >= 0, c + volts / p, c - volts / nslope)
+        return np.clip(np.rint(raw), 0, 65535).astype(np.uint16)
+
+    def _code(self, volts: float, ch: int) -> int:
+        slope, off = self.cal[32 + 2 * ch:34 + 2 * ch]
+        return int(min(max(round(volts * slope + off), 0), 65535))
+
+    def _code_volts(self, code: int, ch: int) -> float:
+        slope, off = self.cal[32 + 2 * ch:34 + 2 * ch]
+        return ((code >> 4 << 4) - off) / slope  # 12-bit DAC
+
+    def _drive(self, scans: list[int], codes: list[int]) -> None:
+        """Amplifier input events for DAC values played at these scans (hook wanted in Plant, see report)."""
+        times = [self.t_enable + (s + 1) / self.rate for s in scans]
+        volts = self.conditioning(np.array([self._code_volts(c, self.dac) for c in codes]))
+        with self.plant.lock:
+            ev = self.plant._v_events
+            ev.extend(zip(times, volts.tolist(), strict=True))
+            if len(ev) > 1 and ev[-len(times) - 1][0] > times[0]:
+                ev.sort(key=lambda e: e[0])
+
+    def _undrive_after(self, t: float) -> None:
+        with self.plant.lock:
+            ev = self.plant._v_events
+            keep = [e for e in ev if e[0] <= t]
+            ev[:] = keep or ev[:1]
+
+    # ------------------------------------------------------------------ stream engine
+    def _cur_scan(self, now: float) -> int:
+        """Index of the last scan that has run (−1: none)."""
+        return math.floor((now - self.t_enable) * self.rate + 1e-6) - 1
+
+    def _out_indices(self) -> list[int]:
+        n = int(self.regs[R_NADDR])
+        return [a - R_O_SCAN for a in self.scanlist[:n] if R_O_SCAN <= a < R_O_SCAN + 4]
+
+    def _schedule(self, k: int, codes: list[int], now: float) -> None:
+        """Give stream-out ``k`` these codes at its next scans (after an underrun: from the next scan on)."""
+        o = self.outs[k]
+        start = max(o.next_scan, self._cur_scan(now) + 1)
+        if start > o.next_scan and not o.loop_active:
+            o.underrun_scans += start - o.next_scan
+        scans = list(range(start, start + len(codes)))
+        o.sched.extend(zip(scans, codes, strict=True))
+        o.next_scan = start + len(codes)
+        if o.target == R_DAC + 2 * self.dac:
+            self._drive(scans, codes)
+
+    def _level(self, k: int, now: float) -> int:
+        o = self.outs[k]
+        if not self.streaming:
+            return len(o.queue)
+        cur = self._cur_scan(now)
+        return sum(1 for s, _ in o.sched if s > cur)
+
+    def pump(self) -> None:
+        """Take the scans due by now, play stream-out, send whole packets (called every ``poll`` s)."""
+        with self.lock:
+            if not self.streaming:
+                return
+            now = self.clock.now()
+            due = self._cur_scan(now) + 1
+            nscans = int(self.regs[R_NSCANS])
+            if nscans:
+                due = min(due, nscans)
+            for k in self._out_indices():
+                self._advance_out(k, now)
+            if due > self.produced:
+                self._take_scans(due)
+            self._send(final=bool(nscans) and self.produced >= nscans)
+
+    def _advance_out(self, k: int, now: float) -> None:
+        o = self.outs[k]
+        cur = self._cur_scan(now)
+        while o.sched and o.sched[0][0] <= cur:
+            o.code = o.sched.popleft()[1]
+        if o.target in (R_DAC, R_DAC + 2):
+            self.dac_volts[(o.target - R_DAC) // 2] = self._code_volts(o.code, (o.target - R_DAC) // 2)
+        if len(o.loop) > 1 and o.next_scan <= cur + int(self.rate):  # periodic loop: keep 1 s queued
+            o.loop_active = True
+            n = cur + 2 * int(self.rate) - o.next_scan
+            codes = [o.loop[(o.loop_pos + i) % len(o.loop)] for i in range(n)]
+            o.loop_pos = (o.loop_pos + n) % len(o.loop)
+            self._schedule(k, codes, now)
+
+    def _take_scans(self, due: int) -> None:
+        ks = np.arange(self.produced, due)
+        times = self.t_enable + (ks + 1) / self.rate
+        ins = [a for a in self.scanlist[:int(self.regs[R_NADDR])] if a < 2 * N_AIN]
+        obs = self._observe(times)
+        cols = [self._raw(self._ain_volts(a // 2, obs, ks.size), RANGE_GAIN[self.ain_range[a // 2]]) for a in ins]
+        data = np.stack(cols, axis=1).reshape(-1)
+        self.produced = due
+        unsent = self._unsent_bytes()  # the host does not read: the device buffer fills
+        cap = int(self.regs[R_BUFSIZE]) or 4096
+        if self.recovering or unsent > cap:
+            if self.recovering and unsent < cap // 2:
+                self.recovering = False
+                dummy = np.full(len(ins), 0xFFFF, np.uint16)
+                self._send(status=S_RECOVER_END, extra=self.skipped, prefix=dummy)
+                self.scans_skipped_total += self.skipped
+                self.skipped = 0
+                self.fifo = np.concatenate([self.fifo, data])
+                return
+            self.recovering = True
+            self.skipped += ks.size
+            return
+        self.fifo = np.concatenate([self.fifo, data])
+
+    def _unsent_bytes(self) -> int:
+        w = self._writer
+        return 0 if w is None or w.transport is None else int(w.transport.get_write_buffer_size())
+
+    def _packet(self, samples: np.ndarray, status: int, extra: int) -> bytes:
+        backlog = min(int(self.fifo.size * 2), 0xFFFF)
+        head = struct.pack(">HHHBBBBHHH", self.tid & 0xFFFF, 0, 10 + 2 * samples.size, 1, 76, 16, 0, backlog,
+                           status, extra)
+        self.tid += 1
+        return head + samples.astype(">u2").tobytes()
+
+    def _send(self, *, final: bool = False, status: int = 0, extra: int = 0,
+              prefix: np.ndarray | None = None) -> None:
+        spp = int(self.regs[R_SPP])
+        w = self._writer
+        if prefix is not None:  # the auto-recovery-end packet: dummy scan, then buffered data
+            take = max(spp - prefix.size, 0)
+            samples, self.fifo = np.concatenate([prefix, self.fifo[:take]]), self.fifo[take:]
+            self._write(w, self._packet(samples, status, extra))
+            return
+        while self.fifo.size >= spp or (final and self.fifo.size):
+            samples, self.fifo = self.fifo[:spp], self.fifo[spp:]
+            last = final and not self.fifo.size
+            st = S_BURST if last else (S_RECOVER if self.recovering else 0)
+            self._write(w, self._packet(samples, st, 0))
+        if final:
+            self._stop_stream(self.clock.now())
+
+    def _write(self, w: asyncio.StreamWriter | None, data: bytes) -> None:
+        self.packets_sent += 1
+        if w is not None and not w.is_closing():
+            w.write(data)
+
+    def _start_stream(self) -> int:
+        n = int(self.regs[R_NADDR])
+        if self.streaming:
+            return E_ACTIVE
+        if n < 1:
+            return E_NO_CHN
+        entries = self.scanlist[:n]
+        outs = [a - R_O_SCAN for a in entries if R_O_SCAN <= a < R_O_SCAN + 4]
+        for a in entries:
+            if not ((a < 2 * N_AIN and a % 2 == 0) or R_O_SCAN <= a < R_O_SCAN + 4):
+                return E_CHN_LIST
+        if len(outs) != len(set(outs)) or any(not self.outs[k].enable for k in outs) or len(outs) == n:
+            return E_CHN_LIST
+        if self.rate * n > MAX_SAMPLE_RATE or self.rate <= 0:
+            return E_RATE
+        if self.regs[R_TARGET] != 1:
+            return E_TARGET
+        if self.regs[R_DTYPE] != 0:
+            return E_DTYPE
+        spp = int(self.regs[R_SPP])
+        if not 1 <= spp <= 512:
+            return E_SPP
+        size = int(self.regs[R_BUFSIZE])
+        if size and (size & (size - 1) or size > 32768):
+            return E_BUFSIZE
+        now = self.clock.now()
+        self.t_enable, self.streaming, self.tid, self.produced = now, True, 0, 0
+        self.fifo = np.zeros(0, np.uint16)
+        self.recovering, self.skipped = False, 0
+        for k in outs:
+            o = self.outs[k]
+            o.next_scan, o.sched, o.loop_pos = 0, deque(), 0
+            o.loop_active = False
+            codes, o.queue = list(o.queue), deque()
+            if codes:
+                self._schedule(k, codes, now)
+        return 0
+
+    def _stop_stream(self, now: float) -> None:
+        cur = self._cur_scan(now)
+        for k in self._out_indices():
+            self._advance_out(k, now)
+            o = self.outs[k]
+            o.queue.extendleft(reversed([c for s, c in o.sched if s > cur]))
+            o.sched = deque()
+        self.streaming = False
+        self._undrive_after(now)
+
+    # ------------------------------------------------------------------ registers
+    def _read_value(self, a: int) -> tuple[str, float] | None:
+        """(type, value) of the register starting at ``a``; None if there is none."""
+        now = self.clock.now()
+        if 0 <= a < 2 * N_AIN and a % 2 == 0:
+            obs = self._observe(np.array([now]))
+            return F32, float(self._ain_volts(a // 2, obs, 1)[0])
+        if a in (R_DAC, R_DAC + 2):
+            return F32, self.dac_volts[(a - R_DAC) // 2]
+        if R_AIN_RANGE <= a < R_AIN_RANGE + 2 * N_AIN and a % 2 == 0:
+            return F32, self.ain_range[(a - R_AIN_RANGE) // 2]
+        if R_AIN_NEG <= a < R_AIN_NEG + N_AIN:
+            return U16, self.ain_neg[a - R_AIN_NEG]
+        if a == R_RATE:
+            return F32, self.rate
+        if a == R_SETTLE:
+            return F32, float(self.regs[a])
+        if a in self.regs:
+            return U32, int(self.regs[a])
+        if R_SCANLIST <= a < R_SCANLIST + 256 and a % 2 == 0:
+            return U32, self.scanlist[(a - R_SCANLIST) // 2]
+        if a == R_ENABLE:
+            return U32, int(self.streaming)
+        for base in (R_O_TARGET, R_O_ALLOC, R_O_LOOP, R_O_STATUS, R_O_ENABLE):
+            if base <= a < base + 8 and a % 2 == 0:
+                k = (a - base) // 2
+                o = self.outs[k]
+                value = {R_O_TARGET: o.target, R_O_ALLOC: o.alloc, R_O_LOOP: o.loop_num,
+                         R_O_STATUS: 2 * self._level(k, now), R_O_ENABLE: o.enable}[base]
+                return U32, value
+        if R_O_SCAN <= a < R_O_SCAN + 4:
+            return U16, 0
+        if a == R_LAST_ERR:
+            return U16, self.last_err
+        if a == R_PRODUCT:
+            return F32, 7.0
+        if a == R_HW:
+            return F32, 1.30
+        if a == R_FW:
+            return F32, 1.0299
+        if a == R_SERIAL:
+            return U32, self.serial
+        return None
+
+    @staticmethod
+    def _words(kind: str, value: float) -> list[int]:
+        if kind == F32:
+            return list(struct.unpack(">HH", struct.pack(">f", value)))
+        if kind == U32:
+            v = int(value) & 0xFFFFFFFF
+            return [v >> 16, v & 0xFFFF]
+        return [int(value) & 0xFFFF]
+
+    def _fail(self, code: int) -> ExcCodes:
+        self.last_err = code
+        return ExcCodes.DEVICE_FAILURE
+
+    async def action(self, fc: int, start: int, address: int, count: int, regs: list[int],
+                     values: list[int] | list[bool] | None) -> ExcCodes | None:
+        """Serve reads by computing the registers, writes by applying them (pymodbus stores nothing we use)."""
+        with self.lock:
+            if fc in (3, 4):
+                return self._read(address, count, start, regs)
+            if fc in (6, 16) and values is not None:
+                return self._write_regs(address, [int(v) for v in values])
+            return ExcCodes.ILLEGAL_FUNCTION
+
+    def _read(self, address: int, count: int, start: int, regs: list[int]) -> ExcCodes | None:
+        if address == R_FLASH_READ:
+            words: list[int] = []
+            for _ in range(0, count, 2):
+                i = (self.flash_ptr - FLASH_CAL) // 4
+                v = self.cal[i] if 0 <= i < len(self.cal) else float("nan")
+                words += self._words(F32, v)
+                self.flash_ptr += 4
+        else:
+            words = []
+            a = address
+            while len(words) < count:
+                got = self._read_value(a)
+                if got is None:
+                    return ExcCodes.ILLEGAL_ADDRESS
+                w = self._words(*got)
+                words += w
+                a += len(w)
+        for i in range(count):
+            regs[address - start + i] = words[i]
+        return None
+
+    def _write_regs(self, address: int, words: list[int]) -> ExcCodes | None:
+        now = self.clock.now()
+        if R_O_U16 <= address < R_O_U16 + 4:
+            return self._buffer(address - R_O_U16, words, now)
+        if R_O_F32 <= address < R_O_F32 + 8 and address % 2 == 0:
+            k = (address - R_O_F32) // 2
+            ch = max((self.outs[k].target - R_DAC) // 2, 0)
+            floats = [struct.unpack(">f", struct.pack(">HH", *words[i:i + 2]))[0] for i in range(0, len(words), 2)]
+            return self._buffer(k, [self._code(v, ch) for v in floats], now)
+        a, i = address, 0
+        while i < len(words):
+            got = self._read_value(a)
+            if got is None and a not in (R_FLASH_PTR,) and not (R_O_SETLOOP <= a < R_O_SETLOOP + 8):
+                return ExcCodes.ILLEGAL_ADDRESS
+            kind = got[0] if got else U32
+            n = 1 if kind == U16 else 2
+            w = words[i:i + n]
+            if len(w) < n:
+                return ExcCodes.ILLEGAL_ADDRESS
+            value = struct.unpack(">f", struct.pack(">HH", *w))[0] if kind == F32 else \
+                (w[0] << 16 | w[1] if n == 2 else w[0])
+            err = self._apply(a, value, now)
+            if err:
+                return err
+            a, i = a + n, i + n
+        return None
+
+    def _apply(self, a: int, value: float, now: float) -> ExcCodes | None:
+        stream_cfg = R_RATE <= a <= R_EXTDIV or R_SCANLIST <= a < R_SCANLIST + 256
+        if stream_cfg and self.streaming:
+            return self._fail(E_ACTIVE)
+        if a in (R_DAC, R_DAC + 2):
+            ch = (a - R_DAC) // 2
+            code = self._code(value, ch)
+            self.dac_volts[ch] = self._code_volts(code, ch)
+            driven = self.streaming and any(self.outs[k].target == a for k in self._out_indices())
+            if ch == self.dac and not driven:
+                self.plant.set_amplifier_input(float(self.conditioning(np.array([self.dac_volts[ch]]))[0]))
+        elif R_AIN_RANGE <= a < R_AIN_RANGE + 2 * N_AIN:
+            if value not in RANGE_GAIN:
+                return ExcCodes.ILLEGAL_VALUE
+            self.ain_range[(a - R_AIN_RANGE) // 2] = 10.0 if value == 0 else float(value)
+        elif R_AIN_NEG <= a < R_AIN_NEG + N_AIN:
+            self.ain_neg[a - R_AIN_NEG] = int(value)
+        elif a == R_RATE:
+            self.regs[a] = value
+            self.rate = 10e6 / max(round(10e6 / value), 1) if value > 152.588 else float(value)
+        elif a in self.regs:
+            self.regs[a] = value
+        elif R_SCANLIST <= a < R_SCANLIST + 256:
+            self.scanlist[(a - R_SCANLIST) // 2] = int(value)
+        elif a == R_ENABLE:
+            if value:
+                err = self._start_stream()
+                return self._fail(err) if err else None
+            if not self.streaming:
+                return self._fail(E_NOT_RUNNING)
+            self._stop_stream(now)
+        elif a == R_FLASH_PTR:
+            self.flash_ptr = int(value)
+        elif R_O_TARGET <= a < R_O_ENABLE + 8:
+            return self._apply_out(a, int(value), now)
+        else:
+            return ExcCodes.ILLEGAL_ADDRESS
+        return None
+
+    def _apply_out(self, a: int, value: int, now: float) -> ExcCodes | None:
+        base = a - (a - R_O_TARGET) % 10
+        k = (a - base) // 2
+        o = self.outs[k]
+        if base == R_O_TARGET:
+            if value not in (R_DAC, R_DAC + 2):
+                return self._fail(E_OUT_TARGET)
+            o.target = value
+        elif base == R_O_ALLOC:
+            if value < 32 or value & (value - 1) or value > 16384:
+                return self._fail(E_BUFSIZE)
+            o.alloc, o.queue, o.tail = value, deque(), deque(maxlen=value // 2 - 1)
+        elif base == R_O_ENABLE:
+            o.enable = int(bool(value))
+        elif not o.enable:
+            return self._fail(E_OUT_DISABLED)
+        elif base == R_O_LOOP:
+            if value > max(o.alloc // 2 - 1, 0):
+                return self._fail(E_LOOP_BIG)
+            o.loop_num = value
+        elif base == R_O_SETLOOP:
+            o.loop = list(o.tail)[len(o.tail) - o.loop_num:] if o.loop_num else []
+            o.loop_pos = 0
+        else:
+            return ExcCodes.ILLEGAL_ADDRESS
+        return None
+
+    def _buffer(self, k: int, codes: list[int], now: float) -> ExcCodes | None:
+        o = self.outs[k]
+        if not o.alloc:
+            return self._fail(E_OUT_DNE)
+        if not o.enable:
+            return self._fail(E_OUT_DISABLED)
+        room = o.alloc // 2 - 1 - self._level(k, now)
+        take = codes[:max(room, 0)]
+        o.tail.extend(take)
+        if self.streaming and k in self._out_indices():
+            self._advance_out(k, now)
+            self._schedule(k, take, now)
+        else:
+            o.queue.extend(take)
+        return self._fail(E_OUT_FULL) if len(take) < len(codes) else None
