@@ -254,3 +254,45 @@ def test_a_lost_packet_is_a_protocol_error(rig: Rig) -> None:
     rig.clock.advance(0.1)
     with pytest.raises(ProtocolError, match=r"daq: stream packet .* packets lost"):
         rig.daq.collect(until=rig.clock.now())
+
+
+def test_stop_mid_waveform_holds_the_last_played_value(rig: Rig) -> None:
+    ramp = np.linspace(2.5, 4.0, 20_000)  # 2 s ramp at 10 kHz on DAC0
+    plan = rig.daq.arm(StreamSpec(10_000.0, (StreamIn(0),), StreamOut(0, ramp)))
+    t0 = rig.daq.kickoff()
+    rig.clock.advance(0.3)
+    rig.daq.collect(until=rig.clock.now())
+    t_stop = rig.clock.now()
+    rig.daq.stop()
+    rig.clock.advance(1.0)
+    played = int((t_stop - (t0 - plan.dt)) * plan.scan_rate + 1e-6) - 1  # last scan that ran
+    assert plan.out_volts is not None
+    assert rig.plant.v_in == rig.cond(plan.out_volts[played:played + 1])[0]
+    assert rig.daq.read_dac(0) == pytest.approx(plan.out_volts[played], abs=1e-6)
+
+
+def test_wall_clock_stream_loses_and_repeats_nothing() -> None:
+    from sim_devices.clock import WallClock
+
+    clock = WallClock()
+    plant = Plant(clock, MembraneParams(), hv=HVStage())
+    sim = LabJackT7Sim(plant, clock)
+    port, stream_port = sim.start()
+    daq = LabJackT7("127.0.0.1", port=port, stream_port=stream_port, clock=clock.now, timeout=1.0,
+                    safe_dac=(2.5, 0.0))
+    try:
+        daq.connect()
+        daq.arm(StreamSpec(10_000.0, tuple(StreamIn(i) for i in range(4))))
+        daq.kickoff()
+        nxt = 0
+        t_end = clock.now() + 0.5
+        while clock.now() < t_end:
+            clock.sleep(0.02)
+            b = daq.collect()
+            assert b.first_scan == nxt and b.valid.all()
+            nxt += b.n
+        assert nxt > 0.4 * 10_000
+    finally:
+        daq.close()
+        sim.stop()
+    assert not sim.errors
