@@ -16,11 +16,15 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 
 from bench.models.lozenge import LozengeParams, MaxwellBranch
 from bench.models.membrane import MembraneParams
-from bench.tomlfile import read_toml
+from bench.tomlfile import one_line, read_toml
+from drivers.dini import STANDARD_GRAVITY
+from drivers.trek import TREK_MODELS
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    """Base of every rig table: unknown keys refused, immutable, every float finite (no nan / inf)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class BusConfig(_Strict):
@@ -76,6 +80,8 @@ class MotorConfig(_Strict):
     drive_id: int = Field(0x11, ge=0, le=255)
     checksum: bool = Field(False, description="LinRS checksum (drive UPID 2080h) — detects corrupted data bytes")
     travel_m: tuple[float, float] = (0.0, 0.09)
+    stroke_m: tuple[float, float] = Field((0.0, 0.12), description="positions the drive can reach (LinMot "
+                                          "P01-37x120F: 0–120 mm); travel_m must lie within it")
     max_velocity_m_per_s: float = Field(1.0, gt=0, le=10)
     max_acceleration_m_per_s2: float = Field(20.0, gt=0, le=500)
 
@@ -83,6 +89,11 @@ class MotorConfig(_Strict):
     def _travel(self) -> MotorConfig:
         if not self.travel_m[0] < self.travel_m[1]:
             raise ValueError(f"travel_m must be increasing, got {list(self.travel_m)}")
+        (lo, hi), (s_lo, s_hi) = self.travel_m, self.stroke_m
+        if not s_lo < s_hi:
+            raise ValueError(f"stroke_m must be increasing, got {list(self.stroke_m)}")
+        if lo < s_lo or hi > s_hi:
+            raise ValueError(f"travel_m [{lo:g}, {hi:g}] m lies outside the drive's stroke_m [{s_lo:g}, {s_hi:g}] m")
         return self
 
 
@@ -93,6 +104,12 @@ class LoadCellConfig(_Strict):
     unit: int = Field(1, ge=1, le=247)
     division_kg: float = Field(0.001, gt=0)
     capacity_kg: float = Field(5.0, gt=0)
+
+    @model_validator(mode="after")
+    def _division(self) -> LoadCellConfig:
+        if self.division_kg >= self.capacity_kg:
+            raise ValueError(f"division_kg {self.division_kg:g} must be below capacity_kg {self.capacity_kg:g}")
+        return self
 
 
 class LsdeaConfig(_Strict):
@@ -185,7 +202,7 @@ class LimitsConfig(_Strict):
 class SimulationConfig(_Strict):
     """Options of the simulated twins."""
 
-    seed: int = 1
+    seed: int = Field(1, ge=0)
     latency_s: float = Field(0.0, ge=0, le=1.0, description="extra reply latency of serial twins (wall time)")
     modbus_transport: Literal["rtu", "rtu-socket", "tcp"] = Field(
         "rtu", description="rtu: on a pty; rtu-socket: RTU frames over loopback TCP; tcp: Modbus TCP")
@@ -217,6 +234,7 @@ class RigConfig(_Strict):
         if self.amplifier and self.limits.max_voltage_V > self.amplifier.max_voltage_V:
             raise ValueError(f"limits.max_voltage_V {self.limits.max_voltage_V:g} exceeds "
                              f"amplifier.max_voltage_V {self.amplifier.max_voltage_V:g}")
+        self._within_capability()
         if self.specimen.kind == "lsdea" and self.specimen.lsdea.configuration == "motor" and self.motor is None:
             raise ValueError("specimen.lsdea.configuration = 'motor' needs a [motor] section")
         if self.amplifier and self.amplifier.bus == (self.load_cell.bus if self.load_cell else None):
@@ -224,6 +242,23 @@ class RigConfig(_Strict):
             if self.load_cell and self.load_cell.unit in au:
                 raise ValueError(f"load_cell.unit {self.load_cell.unit} collides with an amplifier module on the bus")
         return self
+
+    def _within_capability(self) -> None:
+        """Every limit within what the instrument can do: a trip level it cannot reach would never fire."""
+        lim = self.limits
+        if self.amplifier is not None:
+            trek = TREK_MODELS[self.amplifier.model]
+            if self.amplifier.max_voltage_V > trek.max_output:
+                raise ValueError(f"amplifier.max_voltage_V {self.amplifier.max_voltage_V:g} V exceeds the TREK "
+                                 f"{trek.model} output of {trek.max_output:g} V")
+            if lim.max_current_A > trek.max_current:
+                raise ValueError(f"limits.max_current_A {lim.max_current_A:g} A exceeds the {trek.max_current:g} A "
+                                 f"the TREK {trek.model} can deliver: the trip could never fire")
+        if self.load_cell is not None:
+            full_scale = self.load_cell.capacity_kg * STANDARD_GRAVITY
+            if lim.max_force_N > full_scale:
+                raise ValueError(f"limits.max_force_N {lim.max_force_N:g} N exceeds the load cell's capacity "
+                                 f"load_cell.capacity_kg {self.load_cell.capacity_kg:g} kg = {full_scale:.4g} N")
 
     @property
     def instruments(self) -> list[str]:
@@ -233,6 +268,9 @@ class RigConfig(_Strict):
 
 class RigFileError(ValueError):
     """A rig file that cannot be read or is invalid (message: one line, naming file and field)."""
+
+    def __init__(self, message: str) -> None:
+        super().__init__(one_line(message))
 
 
 def _first_error(path: Path, exc: ValidationError) -> str:

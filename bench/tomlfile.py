@@ -1,19 +1,58 @@
-"""Reading the bench's TOML files (rig and protocol files) with one-line errors that name the file."""
+"""Reading the bench's TOML files (rig and protocol files) with one-line errors that name the file.
+
+Input is bounded here, before anything else looks at it: at most :data:`MAX_FILE_BYTES` of text and
+tables/arrays nested at most :data:`MAX_DEPTH` deep (the parser itself recurses; a file nested deeper
+than Python's recursion limit is reported as too deep, not as a RecursionError).
+"""
 
 from __future__ import annotations
 
 import tomllib
 from pathlib import Path
+from typing import Any
+
+MAX_FILE_BYTES = 4_000_000  # the shipped files are a few kB
+MAX_DEPTH = 64  # tables and arrays; a protocol's repeats and sweeps nest ≤ 20 deep (2 levels each)
+
+
+def one_line(message: str, limit: int = 400) -> str:
+    """``message`` on one line (control characters escaped) and at most ``limit`` characters."""
+    text = "".join(c if c.isprintable() else repr(c)[1:-1] for c in message)
+    return text if len(text) <= limit else text[: limit - 1] + "…"
+
+
+def _too_deep(data: Any, limit: int) -> str | None:
+    """Dotted path of the first value nested deeper than ``limit`` (iterative: no recursion), or None."""
+    stack: list[tuple[Any, str, int]] = [(data, "", 0)]
+    while stack:
+        obj, where, depth = stack.pop()
+        if depth > limit:
+            return where or "(top level)"
+        if isinstance(obj, dict):
+            stack.extend((v, f"{where}.{k}" if where else str(k), depth + 1) for k, v in obj.items())
+        elif isinstance(obj, list):
+            stack.extend((v, f"{where}[{i}]", depth + 1) for i, v in enumerate(obj))
+    return None
 
 
 def read_toml(path: Path, kind: str, error: type[Exception]) -> tuple[str, dict]:
     """(text, parsed table) of a TOML file; raise ``error("<kind> file <path>: …")`` if it cannot be."""
     try:
+        if path.stat().st_size > MAX_FILE_BYTES:
+            raise error(f"{kind} file {path}: larger than {MAX_FILE_BYTES:,} bytes")
         text = path.read_text(encoding="utf-8")
-        return text, tomllib.loads(text)
+        data = tomllib.loads(text)
     except FileNotFoundError:
         raise error(f"{kind} file {path}: not found") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise error(f"{kind} file {path}: cannot be read ({exc})") from None
     except tomllib.TOMLDecodeError as exc:
         raise error(f"{kind} file {path}: not valid TOML ({exc})") from None
+    except RecursionError:
+        raise error(f"{kind} file {path}: arrays or tables nested too deeply to parse "
+                    f"(at most {MAX_DEPTH} levels)") from None
+    deep = _too_deep(data, MAX_DEPTH)
+    if deep is not None:
+        where = deep if len(deep) <= 80 else deep[:40] + "…" + deep[-37:]
+        raise error(f"{kind} file {path}: {where}: nested deeper than {MAX_DEPTH} levels")
+    return text, data
