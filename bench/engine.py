@@ -30,11 +30,13 @@ from typing import Any
 
 import numpy as np
 
+from bench.hardware_timed import HardwareTimed, watchdog_period
 from bench.instruments import Instruments
 from bench.protocol.program import Program, Segment, motor_command, voltage_at
 from bench.recorder import Recorder
 from bench.safety import SafetyTrip, Supervisor
 from drivers.errors import InstrumentConnectionError, InstrumentError, InstrumentStateError, OperationCancelledError
+from drivers.trek_daq import TrekOnDaq
 from sim_devices.clock import Clock
 
 FETCH_PERIOD_S = 0.25  # laser storage upload period while storing (run time)
@@ -47,6 +49,7 @@ RAMP_STEPS = 10  # shutdown ramp: set-points from the last voltage to 0 V
 SAFE_MONITOR_V = 50.0  # |monitor| at or below this after zeroing counts as "output at 0 V" (0.5 % of 10 kV)
 DISCHARGE_WAIT_S = 2.0  # how long to keep reading a monitor that is not yet at 0 V before reporting it
 WATCHDOG_MARGIN_S = 0.2  # wait past the module's communication-safety period before checking the output
+COLLECT_PERIOD_S = 0.05  # hardware-timed rigs: collect the DAQ stream (and top up its output buffer) this often
 LASER_DRAIN_BUDGET_S = 30.0  # at most this long fetching stored laser data after the run (stop: at once)
 STOP_SIGNALS = {
     signal.SIGINT: "interrupted by Ctrl-C",
@@ -119,6 +122,8 @@ class Engine:
         rig = program.rig
         self._laser_offset = (rig.laser.offset_mm * 1e-3) if rig.laser else 0.0
         self._laser_sign = float(rig.laser.sign) if rig.laser else 1.0
+        self._stream = HardwareTimed(rig, inst) if inst.daq is not None and isinstance(inst.amplifier, TrekOnDaq) \
+            else None
 
     # ------------------------------------------------------------ stop requests (signals, other threads)
     def request_stop(self, reason: str) -> None:
@@ -242,6 +247,8 @@ class Engine:
                 self.snapshot.values["displacement"] = d
         elif kind == "fetch":
             self._record_laser_block()
+        elif kind == "collect":
+            self._stream.collect(self)  # type: ignore[union-attr]
 
     def _drive_error_text(self) -> str:
         """The drive's own account of its state (error code and text), for the file."""
@@ -287,15 +294,23 @@ class Engine:
             elif not self._operator_confirms(text):
                 raise StopRequested(f"operator did not confirm '{seg.name}' ({text})")
             self.rec.event(self.now(), seg.index, "specimen", text)
-        if seg.storing:
+        streamed = self._stream is not None and seg.duration > 0
+        laser_serial = inst.laser is not None and not (self._stream is not None and self._stream.has_laser)
+        storing = seg.storing and laser_serial
+        if storing:
             inst.laser.start_buffer(1.0 / rec.displacement_Hz)  # type: ignore[union-attr]
             self._storing = True
+        if streamed:
+            self._wait_until(seg.t_start)
+            self._stream.start(seg, self)  # type: ignore[union-attr]
         dt = 1.0 / rec.setpoint_Hz
-        periods = {"monitors": 1 / rec.monitors_Hz if inst.amplifier and rec.monitors_Hz else None,
+        hw = self._stream is not None
+        periods = {"monitors": 1 / rec.monitors_Hz if inst.amplifier and rec.monitors_Hz and not hw else None,
                    "position": 1 / rec.position_Hz if inst.motor and rec.position_Hz else None,
                    "force": 1 / rec.force_Hz if inst.load_cell and rec.force_Hz else None,
-                   "fetch": FETCH_PERIOD_S if seg.storing else None,
-                   "laser": 1 / PASSIVE_LASER_HZ if inst.laser and not seg.storing else None}
+                   "fetch": FETCH_PERIOD_S if storing else None,
+                   "laser": 1 / PASSIVE_LASER_HZ if laser_serial and not storing else None,
+                   "collect": COLLECT_PERIOD_S if streamed else None}
         count = {k: (1 if k == "fetch" else 0) for k, p in periods.items() if p is not None}
         due = {k: seg.t_start + n * periods[k] for k, n in count.items()}  # from counts: no drift
         t_set, k_set = seg.t_start, 0
@@ -308,8 +323,10 @@ class Engine:
                 v = voltage_at(seg, t_set)
                 cmd = motor_command(prog, seg, t_set, dt, first=k_set == 0)
                 x_cmd = self._move_motor(*cmd) if cmd is not None else math.nan
-                if inst.amplifier is not None:
+                if inst.amplifier is not None and not streamed:
                     self._set_voltage(self._v_req if v is None else v, t_set, x_cmd)
+                elif cmd is not None:
+                    self.rec.append("setpoints", t_set, voltage=math.nan, aperture=x_cmd)
                 self.snapshot.values["setpoint"] = self._v_cmd
                 k_set += 1
                 t_set = seg.t_start + k_set * dt if t_set + dt <= seg.stream_until + 1e-12 else \
@@ -324,9 +341,11 @@ class Engine:
             self.rec.maybe_flush()
         self._wait_until(seg.t_end)
         v_end = voltage_at(seg, seg.t_end)
-        if inst.amplifier is not None and v_end is not None and v_end != self._v_req:
+        if streamed:
+            self._stream.finish(self)  # type: ignore[union-attr]  # the device played the end value itself
+        elif inst.amplifier is not None and v_end is not None and v_end != self._v_req:
             self._set_voltage(v_end, seg.t_end)  # ticks stop before t_end: a ramp must still reach its target
-        if seg.storing:
+        if storing:
             inst.laser.stop_buffer()  # type: ignore[union-attr]
             self._storing = False
             self._drain_laser(LASER_DRAIN_BUDGET_S)
@@ -427,6 +446,11 @@ class Engine:
         amp = self.inst.amplifier
         if amp is None:
             return None
+        if self._stream is not None:
+            try:
+                self._stream.stop(self)  # the DAC holds the last value played; the ramp continues from it
+            except InstrumentError as exc:
+                notes.append(f"stopping the DAQ stream failed: {exc}")
         ramp = self.program.rig.limits.shutdown_ramp_s
         v0 = self._v_cmd
         try:
@@ -466,8 +490,7 @@ class Engine:
         amp = self.inst.amplifier
         if amp is None:
             return "safe: no amplifier on this rig"
-        cfg = self.program.rig.amplifier
-        watchdog = cfg.comm_watchdog_s if cfg is not None else None
+        watchdog = watchdog_period(self.program.rig)
         if zero_at is not None:
             path = f"0 V commanded by the host at {zero_at:.3f} s"
             # fresh monitor conversions at the zeroed output
@@ -486,7 +509,9 @@ class Engine:
             except InstrumentError as exc:
                 notes.append(f"final monitor read failed: {exc}")
                 return f"{path}; output NOT verified (voltage monitor unreadable)"
-            self._record(self.rec.append, "amplifier", v.timestamp - self._t0, voltage=v.value, current=i.value)
+            extra = {"commanded": self._v_cmd} if self._stream is not None else {}
+            self._record(self.rec.append, "amplifier", v.timestamp - self._t0, voltage=v.value, current=i.value,
+                         **extra)
             if math.isfinite(v.value) and abs(v.value) <= SAFE_MONITOR_V:
                 return f"{path}; verified: voltage monitor {v.value:.0f} V at {self.now():.3f} s"
             if self.now() >= deadline:

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 
 from bench.rig import RigConfig
@@ -21,10 +21,12 @@ from drivers.interfaces import (
     SleepFn,
 )
 from drivers.keyence import KeyenceLKG
+from drivers.labjack import LabJackT7
 from drivers.linmot import LinMotDrive
 from drivers.modbus_link import ModbusLink
 from drivers.serial_link import SerialLink
 from drivers.trek import TREK_MODELS, TrekAmplifier, TrekModel
+from drivers.trek_daq import TrekOnDaq
 
 
 @dataclass
@@ -35,12 +37,13 @@ class Instruments:
     laser: DisplacementSensor | None = None
     motor: LinearMotor | None = None
     load_cell: ForceSensor | None = None
+    daq: LabJackT7 | None = None  # hardware-timed drive and acquisition (the engine streams through it)
     links: dict[str, ModbusLink] = field(default_factory=dict)
     cancel: CancelToken = field(default_factory=CancelToken)  # shared by every link: one stop request reaches all
 
     def items(self) -> Iterator[tuple[str, Instrument]]:
         """(role, driver) of every instrument present, amplifier first."""
-        for role in ("amplifier", "laser", "motor", "load_cell"):
+        for role in ("daq", "amplifier", "laser", "motor", "load_cell"):
             drv = getattr(self, role)
             if drv is not None:
                 yield role, drv
@@ -90,17 +93,40 @@ def build_instruments(rig: RigConfig, endpoints: dict[str, str] | None = None,
         link.cancel = inst.cancel  # type: ignore[attr-defined]  # (the attribute is part of SerialLink)
         return link
 
+    if (d := rig.daq) is not None:
+        host, port, stream_port = d.host, d.port, d.stream_port
+        if "daq" in ep:  # "host:port:stream_port" of a running twin
+            host, p1, p2 = ep["daq"].rsplit(":", 2)
+            port, stream_port = int(p1), int(p2)
+        a_cfg = rig.amplifier
+        zero_dac = -d.drive_offset_V / d.drive_gain if a_cfg is not None and a_cfg.drive == "daq" else 0.0
+        safe = (zero_dac, 0.0) if d.dac == 0 else (0.0, zero_dac)
+        inst.daq = LabJackT7(host, port=port, stream_port=stream_port, timeout=d.timeout_s, cancel=inst.cancel,
+                             clock=clock, sleep=sleep, safe_dac=safe)
     if (a := rig.amplifier) is not None:
-        link = bus(a.bus)
         base = TREK_MODELS[a.model]
         trek = TrekModel(base.model, base.max_output, base.max_current, base.gain,
                          a.vmon_ratio or base.vmon_ratio, a.imon_ratio or base.imon_ratio)
+        if a.drive == "daq":
+            assert inst.daq is not None and rig.daq is not None  # RigConfig checks it
+            inst.amplifier = TrekOnDaq(inst.daq, trek, dac=rig.daq.dac, gain=rig.daq.drive_gain,
+                                       offset=rig.daq.drive_offset_V, vmon_ain=rig.daq.vmon_ain,
+                                       imon_ain=rig.daq.imon_ain,
+                                       max_voltage=min(a.max_voltage_V, rig.limits.max_voltage_V), clock=clock)
+            return _rest(rig, inst, ep, clock, sleep, bus, serial)
+        link = bus(a.bus)
         ao = Adam4024(link, a.ao_unit, "amplifier AO", RawScale(bits=a.ao_bits, raw_format=a.raw_format))
         ai = Adam4017P(link, a.ai_unit, "amplifier AI", RawScale(bits=a.ai_bits, raw_format=a.raw_format))
         inst.amplifier = TrekAmplifier(ao, ai, model=a.model, trek=trek, ao_channel=a.ao_channel,
                                        vmon_channel=a.vmon_channel, imon_channel=a.imon_channel,
                                        max_voltage=min(a.max_voltage_V, rig.limits.max_voltage_V),
                                        slew_limit=a.slew_limit_V_per_s, clock=clock)
+    return _rest(rig, inst, ep, clock, sleep, bus, serial)
+
+
+def _rest(rig: RigConfig, inst: Instruments, ep: dict[str, str], clock: ClockFn, sleep: SleepFn,
+          bus: Callable[[str], ModbusLink], serial: Callable[[str, str, int, float], SerialLink]) -> Instruments:
+    """The laser, motor and load cell drivers."""
     if (lz := rig.laser) is not None:
         inst.laser = KeyenceLKG(serial(ep.get("laser", lz.port), "laser", lz.baudrate, lz.timeout_s),
                                 model=lz.model, out=lz.out, clock=clock, storage_points=lz.storage_points)

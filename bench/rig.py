@@ -37,9 +37,11 @@ class BusConfig(_Strict):
 
 
 class AmplifierConfig(_Strict):
-    """TREK amplifier on an ADAM-4024 (set-point) and an ADAM-4017+ (monitors) on one bus."""
+    """TREK amplifier on an ADAM-4024 (set-point) and an ADAM-4017+ (monitors) on one bus, or (``drive = "daq"``)
+    on the rig's hardware-timed DAQ: input from a DAC through the conditioning stage, monitors on AINs."""
 
     model: Literal["10/10B-HS", "10/40A-HS"] = "10/10B-HS"
+    drive: Literal["adam", "daq"] = "adam"
     bus: str = "io"
     ao_unit: int = Field(1, ge=1, le=247)
     ao_channel: int = Field(0, ge=0, le=3)
@@ -208,6 +210,51 @@ class SimulationConfig(_Strict):
         "rtu", description="rtu: on a pty; rtu-socket: RTU frames over loopback TCP; tcp: Modbus TCP")
 
 
+class DaqConfig(_Strict):
+    """Hardware-timed multifunction DAQ (LabJack T7 on Ethernet): one scan clock for the amplifier drive (stream-out
+    on a DAC through the rig's conditioning stage) and every analog input (TREK monitors, load-cell bridge
+    amplifier, laser analog output)."""
+
+    model: Literal["T7"] = "T7"
+    host: str = "sim"
+    port: int = Field(502, ge=1, le=65535)
+    stream_port: int = Field(702, ge=1, le=65535)
+    timeout_s: float = Field(0.5, gt=0, le=30)
+    scan_rate_Hz: float = Field(10_000.0, ge=100.0, le=20_000.0, description="one scan clock for every channel")
+    dac: int = Field(0, ge=0, le=1, description="DAC driving the amplifier's analog input (0–5 V)")
+    drive_gain: float = Field(4.0, gt=0, le=100, description="amplifier input [V] per DAC volt (conditioning stage)")
+    drive_offset_V: float = Field(-10.0, ge=-50, le=50, description="amplifier input at DAC 0 V [V]")
+    drive_filter_Hz: float | None = Field(None, gt=0, le=1e5, description="corner of the conditioning stage's "
+                                          "first-order reconstruction low-pass (None: none); the engine "
+                                          "pre-compensates its lag, so the amplifier follows the protocol's waveform")
+    vmon_ain: int = Field(0, ge=0, le=13)
+    imon_ain: int = Field(1, ge=0, le=13)
+    force_ain: int | None = Field(None, ge=0, le=13, description="load-cell bridge amplifier output")
+    force_N_per_V: float = Field(1.0, gt=0, le=1e4)
+    force_offset_N: float = Field(0.0, ge=-1e4, le=1e4)
+    laser_ain: int | None = Field(None, ge=0, le=13, description="laser controller's analog output")
+    laser_m_per_V: float = Field(0.004, gt=0, le=1.0, description="laser head reading [m] per volt")
+    laser_offset_m: float = Field(0.0, ge=-1.0, le=1.0, description="laser head reading at 0 V [m]")
+    watchdog_s: float | None = Field(1.0, gt=0, le=60, description="T7 watchdog: DAC to the 0-V code after this "
+                                     "long without a request (configure the device to match)")
+
+    @model_validator(mode="after")
+    def _distinct(self) -> DaqConfig:
+        used = [a for a in (self.vmon_ain, self.imon_ain, self.force_ain, self.laser_ain) if a is not None]
+        if len(set(used)) != len(used):
+            raise ValueError(f"daq: analog inputs must differ (vmon {self.vmon_ain}, imon {self.imon_ain}, "
+                             f"force {self.force_ain}, laser {self.laser_ain})")
+        zero = -self.drive_offset_V / self.drive_gain
+        if not 0.0 <= zero <= 5.0:
+            raise ValueError(f"daq: the conditioning stage cannot produce 0 V at the amplifier input "
+                             f"(DAC {zero:.3g} V needed, the DAC spans 0–5 V)")
+        return self
+
+    def input_range(self) -> tuple[float, float]:
+        """Amplifier input [V] the DAC (0–5 V) can produce through the conditioning stage."""
+        return self.drive_offset_V, self.drive_offset_V + 5.0 * self.drive_gain
+
+
 class RigConfig(_Strict):
     """A whole rig file."""
 
@@ -222,10 +269,14 @@ class RigConfig(_Strict):
     laser: LaserConfig | None = None
     motor: MotorConfig | None = None
     load_cell: LoadCellConfig | None = None
+    daq: DaqConfig | None = None
 
     @model_validator(mode="after")
     def _consistent(self) -> RigConfig:
-        for role, bus in (("amplifier", self.amplifier and self.amplifier.bus),
+        if self.amplifier and self.amplifier.drive == "daq":
+            self._check_daq_drive(self.amplifier)
+        adam = self.amplifier if self.amplifier and self.amplifier.drive == "adam" else None
+        for role, bus in (("amplifier", adam and adam.bus),
                           ("load_cell", self.load_cell and self.load_cell.bus)):
             if bus and bus not in self.buses:
                 raise ValueError(f"{role}.bus {bus!r} is not defined under [buses]")
@@ -237,11 +288,25 @@ class RigConfig(_Strict):
         self._within_capability()
         if self.specimen.kind == "lsdea" and self.specimen.lsdea.configuration == "motor" and self.motor is None:
             raise ValueError("specimen.lsdea.configuration = 'motor' needs a [motor] section")
-        if self.amplifier and self.amplifier.bus == (self.load_cell.bus if self.load_cell else None):
+        if adam and adam.bus == (self.load_cell.bus if self.load_cell else None):
             au = {self.amplifier.ao_unit, self.amplifier.ai_unit}
             if self.load_cell and self.load_cell.unit in au:
                 raise ValueError(f"load_cell.unit {self.load_cell.unit} collides with an amplifier module on the bus")
         return self
+
+    def _check_daq_drive(self, amp: AmplifierConfig) -> None:
+        """A DAQ-driven amplifier: the chain must produce every input the voltage limit allows."""
+        if self.daq is None:
+            raise ValueError("amplifier.drive = 'daq' needs a [daq] section")
+        gain = 1000.0  # V/V: both TREK HS models (datasheets; drivers/trek.py)
+        need = min(amp.max_voltage_V, self.limits.max_voltage_V) / gain
+        lo, hi = self.daq.input_range()
+        if lo > -need + 1e-9 or hi < need - 1e-9:
+            raise ValueError(f"daq: DAC 0–5 V × drive_gain {self.daq.drive_gain:g} + drive_offset_V "
+                             f"{self.daq.drive_offset_V:g} spans {lo:g}…{hi:g} V at the amplifier input, but "
+                             f"±{need * gain:.0f} V needs ±{need:g} V")
+        if max(abs(lo), abs(hi)) > 10.0 + 1e-9:
+            raise ValueError(f"daq: the conditioning stage reaches {lo:g}…{hi:g} V, beyond the TREK input's ±10 V")
 
     def _within_capability(self) -> None:
         """Every limit within what the instrument can do: a trip level it cannot reach would never fire."""
@@ -263,7 +328,7 @@ class RigConfig(_Strict):
     @property
     def instruments(self) -> list[str]:
         """Roles present on this rig."""
-        return [r for r in ("amplifier", "laser", "motor", "load_cell") if getattr(self, r) is not None]
+        return [r for r in ("amplifier", "laser", "motor", "load_cell", "daq") if getattr(self, r) is not None]
 
 
 class RigFileError(ValueError):

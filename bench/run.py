@@ -13,6 +13,7 @@ from typing import Any
 
 from bench import __version__
 from bench.engine import Engine, OperatorFn, RunResult
+from bench.hardware_timed import watchdog_period
 from bench.instruments import build_instruments
 from bench.protocol.predict import Prediction, predict
 from bench.protocol.program import Program, ProtocolLimitError, compile_program
@@ -62,11 +63,26 @@ def _streams(rig: RigConfig) -> tuple[dict[str, list[Column]], dict[str, str]]:
     streams: dict[str, list[Column]] = {"setpoints": [Column("voltage", "V", "amplifier output commanded"),
                                                       Column("aperture", "m", "LS-DEA aperture commanded (NaN: none)")]}
     sources = {"setpoints": "engine"}
+    daq = rig.daq if rig.amplifier and rig.amplifier.drive == "daq" else None
     if rig.amplifier:
         streams["amplifier"] = [Column("voltage", "V", "output voltage from the TREK voltage monitor"),
                                 Column("current", "A", "output current from the TREK current monitor")]
         sources["amplifier"] = f"TREK {rig.amplifier.model} via ADAM-4017+"
-    if rig.laser:
+    if daq is not None:
+        clock = f"LabJack T7 stream, {daq.scan_rate_Hz:g} scans/s (one scan clock for every analog channel)"
+        streams["amplifier"].append(Column("commanded", "V", "output commanded: the DAC code played in the same scan, "
+                                           "through the conditioning stage and the amplifier's gain"))
+        sources["amplifier"] = f"TREK {rig.amplifier.model} monitors on AIN{daq.vmon_ain}/AIN{daq.imon_ain}; {clock}"
+        if daq.force_ain is not None:
+            streams["load_cell"] = [Column("force", "N", "force from the load-cell bridge amplifier, tension positive"),
+                                    Column("ok", "1", "1 = every channel of the scan valid", "u1")]
+            sources["load_cell"] = f"bridge amplifier on AIN{daq.force_ain}; {clock}"
+        if daq.laser_ain is not None:
+            streams["laser"] = [Column("displacement", "m", f"{spec}, from the laser's analog output (offset and "
+                                       "sign removed)"),
+                                Column("valid", "1", "1 = measurement, 0 = invalid", "u1")]
+            sources["laser"] = f"laser analog output on AIN{daq.laser_ain}; {clock}"
+    if rig.laser and "laser" not in streams:
         streams["laser"] = [Column("displacement", "m", f"{spec}, from the laser (offset and sign removed)"),
                             Column("valid", "1", "1 = measurement, 0 = over range / invalid", "u1")]
         sources["laser"] = f"Keyence {rig.laser.model}"
@@ -74,7 +90,7 @@ def _streams(rig: RigConfig) -> tuple[dict[str, list[Column]], dict[str, str]]:
         streams["motor"] = [Column("position", "m", "motor encoder position"),
                             Column("aperture", "m", "LS-DEA aperture from the motor position")]
         sources["motor"] = "LinMot LinRS"
-    if rig.load_cell:
+    if rig.load_cell and "load_cell" not in streams:
         streams["load_cell"] = [Column("force", "N", "force on the load cell, tension positive"),
                                 Column("ok", "1", "1 = stable reading", "u1")]
         sources["load_cell"] = "Dini Argeo DGT1S"
@@ -102,10 +118,13 @@ def check_watchdog(rig: RigConfig, allow_no_watchdog: bool = False) -> str:
     amp = rig.amplifier
     if amp is None:
         return "no amplifier"
-    if amp.comm_watchdog_s is not None:
-        return f"ADAM-4024 communication watchdog {amp.comm_watchdog_s:g} s"
+    period = watchdog_period(rig)
+    module, field = (("LabJack T7", "daq.watchdog_s") if amp.drive == "daq"
+                     else ("ADAM-4024", "amplifier.comm_watchdog_s"))
+    if period is not None:
+        return f"{module} communication watchdog {period:g} s"
     if not allow_no_watchdog:
-        raise ValueError(f"rig {rig.name}: amplifier.comm_watchdog_s is not set — without the set-point module's "
+        raise ValueError(f"rig {rig.name}: {field} is not set — without the set-point module's "
                          "communication watchdog nothing zeroes the high voltage if the host loses the bus; "
                          "configure it (and the module), or pass --allow-no-watchdog to run anyway (recorded)")
     return "NO communication watchdog: run allowed by an explicit override (--allow-no-watchdog)"
@@ -149,9 +168,13 @@ def execute(plan: Plan, out: Path, *, virtual: bool = False, operator: OperatorF
             params = sim.plant.specimen
         supervisor = Supervisor(rig, params)
         streams, sources = _streams(rig)
-        rates = {"setpoints": plan.protocol.recording.setpoint_Hz, "amplifier": plan.protocol.recording.monitors_Hz,
-                 "laser": plan.protocol.recording.displacement_Hz, "motor": plan.protocol.recording.position_Hz,
-                 "load_cell": plan.protocol.recording.force_Hz}
+        r = plan.protocol.recording
+        rates = {"setpoints": r.setpoint_Hz, "amplifier": r.monitors_Hz, "laser": r.displacement_Hz,
+                 "motor": r.position_Hz, "load_cell": r.force_Hz}
+        if rig.daq is not None and rig.amplifier is not None and rig.amplifier.drive == "daq":
+            hw = {"amplifier", *(["load_cell"] if rig.daq.force_ain is not None else []),
+                  *(["laser"] if rig.daq.laser_ain is not None else [])}
+            rates.update({k: rig.daq.scan_rate_Hz for k in hw})
         attrs: dict[str, Any] = {
             "software": f"dea-bench {__version__}", "start_time": now_iso(),
             "protocol_name": plan.protocol.protocol.name, "protocol_path": str(plan.protocol.path),

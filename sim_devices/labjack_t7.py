@@ -86,11 +86,14 @@ def nominal_calibration() -> list[float]:
 
 @dataclass(frozen=True)
 class Conditioning:
-    """Rig's stage between a DAC (0–5 V) and the amplifier input: ``gain``·V + ``offset``, clipped ±``limit``."""
+    """Rig's stage between a DAC (0–5 V) and the amplifier input: ``gain``·V + ``offset``, clipped ±``limit``,
+    optionally through a first-order reconstruction low-pass of corner ``corner_Hz`` (applied to streamed
+    values scan by scan; [L] a command-response write reaches the amplifier unfiltered, as a step)."""
 
     gain: float = 4.0
     offset: float = -10.0
     limit: float = 10.0
+    corner_Hz: float | None = None
 
     def __call__(self, volts: np.ndarray) -> np.ndarray:
         return np.clip(self.gain * np.asarray(volts, float) + self.offset, -self.limit, self.limit)
@@ -188,6 +191,7 @@ class LabJackT7Sim:
         self.port = 0
         self.stream_port = 0
         self.errors: list[BaseException] = []
+        self._filter_y: float | None = None  # reconstruction filter state [V at the amplifier input]
 
     # ------------------------------------------------------------------ serving
     def start(self, timeout: float = 10.0) -> tuple[int, int]:
@@ -311,6 +315,15 @@ class LabJackT7Sim:
         """Amplifier input events for DAC values played at these scans (hook wanted in Plant, see report)."""
         times = [self.t_enable + (s + 1) / self.rate for s in scans]
         volts = self.conditioning(np.array([self._code_volts(c, self.dac) for c in codes]))
+        fc = self.conditioning.corner_Hz
+        if fc is not None and volts.size:  # exact first-order low-pass at the scan instants
+            alpha = 1.0 - math.exp(-2.0 * math.pi * fc / self.rate)
+            y = self.plant.v_in if self._filter_y is None else self._filter_y
+            out = np.empty_like(volts)
+            for k, x in enumerate(volts):
+                y += alpha * (x - y)
+                out[k] = y
+            self._filter_y, volts = float(y), out
         with self.plant.lock:
             ev = self.plant._v_events
             ev.extend(zip(times, volts.tolist(), strict=True))
@@ -442,6 +455,7 @@ class LabJackT7Sim:
         n = int(self.regs[R_NADDR])
         if self.streaming:
             return E_ACTIVE
+        self._filter_y = None  # the filter starts from the amplifier input in force
         if n < 1:
             return E_NO_CHN
         entries = self.scanlist[:n]
@@ -545,7 +559,13 @@ class LabJackT7Sim:
 
     async def action(self, fc: int, start: int, address: int, count: int, regs: list[int],
                      values: list[int] | list[bool] | None) -> ExcCodes | None:
-        """Serve reads by computing the registers, writes by applying them (pymodbus stores nothing we use)."""
+        """Serve reads by computing the registers, writes by applying them (pymodbus stores nothing we use).
+
+        Every request resets the T7 watchdog ([D] WATCHDOG_*_DEFAULT registers: on timeout the device writes
+        its configured DAC value — for a rig, the code of 0 V at the amplifier input); [L] the twin models it as
+        the plant's input watchdog (``plant.input_watchdog``, set from the rig's ``daq.watchdog_s``), not as
+        registers."""
+        self.plant.feed_watchdog()
         with self.lock:
             if fc in (3, 4):
                 return self._read(address, count, start, regs)

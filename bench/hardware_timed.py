@@ -1,0 +1,202 @@
+"""Hardware-timed segments: the DAQ plays a step's voltage waveform on its own scan clock and samples every analog
+channel on the same clock (bluesky's kickoff / collect / complete pattern).
+
+For each step the engine calls :meth:`HardwareTimed.start` (compile the step's voltage to a DAC buffer with the
+exact end value as its last sample, check it with the supervisor, arm, kick off), :meth:`~HardwareTimed.collect`
+while the step runs (record the scans, supervise them, top up the output buffer, feed the watchdog) and
+:meth:`~HardwareTimed.finish` at its end (collect until the end value has been played, stop the stream; the DAC
+holds the end value). Software-timed actions (motor go-tos, encoder polls) keep running in the engine beside it.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from bench.protocol.program import Segment, voltage_at
+from bench.rig import RigConfig
+from drivers.errors import InstrumentTimeoutError
+from drivers.labjack import LabJackT7, StreamBlock, StreamIn, StreamOut, StreamSpec
+from drivers.trek_daq import TrekOnDaq
+
+if TYPE_CHECKING:
+    from bench.engine import Engine
+
+KEEPALIVE_S = 0.25  # a command-response request at least this often keeps the device's watchdog fed
+FINISH_TIMEOUT_S = 5.0  # wall time allowed for the last scans of a step to arrive
+FINISH_POLL_S = 0.01  # rig time between collects while waiting for a step's last scans
+
+
+def watchdog_period(rig: RigConfig) -> float | None:
+    """The communication watchdog of the module that drives the amplifier's input [s] (None: none configured)."""
+    amp = rig.amplifier
+    if amp is None:
+        return None
+    if amp.drive == "daq":
+        return rig.daq.watchdog_s if rig.daq is not None else None
+    return amp.comm_watchdog_s
+
+
+class HardwareTimed:
+    """The DAQ side of a run on a rig whose amplifier is driven through a hardware-timed DAQ."""
+
+    def __init__(self, rig: RigConfig, inst: object) -> None:
+        cfg = rig.daq
+        assert cfg is not None
+        self.cfg = cfg
+        self.daq: LabJackT7 = inst.daq  # type: ignore[attr-defined]
+        self.amp: TrekOnDaq = inst.amplifier  # type: ignore[attr-defined]
+        inputs = [StreamIn(cfg.vmon_ain, 10.0, "vmon"), StreamIn(cfg.imon_ain, 10.0, "imon")]
+        if cfg.force_ain is not None:
+            inputs.append(StreamIn(cfg.force_ain, 10.0, "force"))
+        if cfg.laser_ain is not None:
+            inputs.append(StreamIn(cfg.laser_ain, 10.0, "laser"))
+        self.inputs = tuple(inputs)
+        self.has_laser = cfg.laser_ain is not None
+        self.has_force = cfg.force_ain is not None
+        self._commanded = np.zeros(0)  # amplifier output [V] the DAC plays, scan by scan
+        self._n = 0  # index of the scan that plays the step's end value
+        self._keepalive = 0.0
+        self.scans = 0  # scans recorded over the run
+
+    # ------------------------------------------------------------ one step
+    def start(self, seg: Segment, engine: Engine) -> None:
+        """Compile the step's voltage to a DAC buffer (end value last), supervise it, arm and kick off."""
+        rate = self.cfg.scan_rate_Hz
+        n = max(1, round(seg.duration * rate))
+        if seg.voltage is not None:
+            volts = np.asarray(seg.voltage(seg.t_start + np.arange(n + 1) / rate), dtype=float)
+            end = voltage_at(seg, seg.t_end)
+            volts[-1] = engine._v_req if end is None else end
+        else:
+            volts = np.full(n + 1, engine._v_req)
+        worst = float(volts[np.argmax(np.abs(volts))])
+        engine.sup.check_setpoint(worst)
+        dac = self.amp.dac_volts(self._precompensate(volts, engine._v_cmd))
+        if self.cfg.drive_filter_Hz is not None:
+            dac = self._error_diffused(dac)
+        spec = StreamSpec(rate, self.inputs, StreamOut(self.cfg.dac, dac, hold=1))
+        plan = self.daq.arm(spec)
+        assert plan.out_volts is not None
+        self._commanded = self._filtered(self.amp.output_volts(plan.out_volts), engine._v_cmd)
+        self._n = n
+        engine._v_req = float(volts[-1])
+        self.daq.kickoff()
+        self._keepalive = time.monotonic()
+
+    def collect(self, engine: Engine) -> None:
+        """Record the scans received so far and supervise them; keep the device's watchdog fed."""
+        block = self.daq.collect(until=engine.clock.now(), timeout=max(1.0, 4 * self.daq.timeout))
+        self._record(block, engine)
+        if time.monotonic() - self._keepalive >= KEEPALIVE_S:
+            self.daq.read_dac(self.cfg.dac)
+            self._keepalive = time.monotonic()
+
+    def finish(self, engine: Engine) -> None:
+        """Collect until the end value has been played, then stop the stream (the DAC holds it)."""
+        wall_end = time.monotonic() + FINISH_TIMEOUT_S
+        while self.daq.scans_received <= self._n:
+            engine._check_stop()
+            if time.monotonic() > wall_end:
+                raise InstrumentTimeoutError(self.daq.name, f"stream stopped short: {self.daq.scans_received} "
+                                             f"scans received, {self._n + 1} needed")
+            engine._wait_until(engine.now() + FINISH_POLL_S)
+            self.collect(engine)
+        self.stop(engine)
+
+    def stop(self, engine: Engine) -> None:
+        """Stop a running stream and record its last scans (the DAC holds the last value played)."""
+        if not self.daq.streaming:
+            return
+        block = self.daq.stop()
+        if block is not None:
+            self._record(block, engine, supervise=False)
+        engine._v_cmd = self._played()
+
+    # ------------------------------------------------------------ reconstruction filter of the conditioning stage
+    def _alpha(self) -> float | None:
+        fc = self.cfg.drive_filter_Hz
+        return None if fc is None else 1.0 - float(np.exp(-2.0 * np.pi * fc / self.cfg.scan_rate_Hz))
+
+    def _precompensate(self, wanted: np.ndarray, present: float) -> np.ndarray:
+        """DAC sequence whose first-order-filtered version, scan by scan, is ``wanted`` (output volts)."""
+        alpha = self._alpha()
+        if alpha is None:
+            return wanted
+        prev = np.concatenate([[present], wanted[:-1]])
+        out = prev + (wanted - prev) / alpha
+        lim = self.amp.max_voltage
+        return np.clip(out, -lim, lim)  # a jump the filter cannot follow at once is approached, never overshot
+
+    def _error_diffused(self, dac: np.ndarray) -> np.ndarray:
+        """DAC values on the DAC's own levels whose running sum follows ``dac`` (first-order error diffusion):
+        behind the reconstruction filter the code steps average out instead of leaving the output up to one
+        code (≈ 5 V of high voltage on a 12-bit DAC) off a slow waveform."""
+        cal, ch, bits = self.daq.cal, self.cfg.dac, self.daq.dac_bits
+        slope, offset = cal.dac(ch)
+        shift = 16 - bits
+        out = np.empty_like(dac)
+        err = 0.0
+        for k, want in enumerate(dac):
+            code = min(max(round((want + err) * slope + offset), 0), 0xFFFF)
+            played = (((code >> shift) << shift) - offset) / slope
+            err += want - played
+            out[k] = played
+        return out
+
+    def _filtered(self, played: np.ndarray, present: float) -> np.ndarray:
+        """What the amplifier follows: the DAC's played sequence through the reconstruction filter."""
+        alpha = self._alpha()
+        if alpha is None:
+            return played
+        from scipy.signal import lfilter
+
+        y, _ = lfilter([alpha], [1.0, alpha - 1.0], played, zi=[(1.0 - alpha) * present])
+        return np.asarray(y)
+
+    # ------------------------------------------------------------ data
+    def _played(self) -> float:
+        k = min(max(self.daq.scans_received - 1, 0), self._commanded.size - 1)
+        return float(self._commanded[k]) if self._commanded.size else 0.0
+
+    def _record(self, block: StreamBlock, engine: Engine, supervise: bool = True) -> None:
+        if block.n == 0:
+            return
+        self.scans += block.n
+        t = block.times() - engine._t0
+        idx = np.clip(block.first_scan + np.arange(block.n), 0, self._commanded.size - 1)
+        trek = self.amp.trek
+        col = {name: block.volts[:, i] for i, name in enumerate(block.names)}
+        ok = block.valid.all(axis=1)
+        v, i = col["vmon"] * trek.vmon_ratio, col["imon"] * trek.imon_ratio
+        rec, snap = engine.rec, engine.snapshot
+        rec.append("amplifier", t, voltage=v, current=i, commanded=self._commanded[idx])
+        disp = force = None
+        if self.has_force:
+            force = self.cfg.force_N_per_V * col["force"] + self.cfg.force_offset_N
+            rec.append("load_cell", t, force=force, ok=ok.astype("u1"))
+        if self.has_laser:
+            head = self.cfg.laser_m_per_V * col["laser"] + self.cfg.laser_offset_m
+            disp = engine._to_specimen(head)
+            rec.append("laser", t, displacement=disp, valid=(ok & np.isfinite(disp)).astype("u1"))
+        engine._v_cmd = self._played()
+        snap.values["setpoint"] = engine._v_cmd
+        if not ok.any():
+            return
+        last = int(np.flatnonzero(ok)[-1])
+        snap.values["voltage"], snap.values["current"] = float(v[last]), float(i[last])
+        if disp is not None:
+            engine.sup.update_displacement(float(disp[last]))
+            snap.values["displacement"] = float(disp[last])
+        if force is not None:
+            snap.values["force"] = float(force[last])
+        if not supervise:
+            return
+        good = np.flatnonzero(ok)
+        engine.sup.check_monitors(float(v[good[np.argmax(np.abs(v[good]))]]),
+                                  float(i[good[np.argmax(np.abs(i[good]))]]))
+        if force is not None:
+            engine.sup.check_force(float(force[good[np.argmax(np.abs(force[good]))]]))
+

@@ -1,0 +1,117 @@
+"""TREK HS amplifier driven by a hardware-timed DAQ (LabJack T7): the amplifier's analog input comes from a DAC
+through the rig's conditioning stage, its voltage and current monitors go to two analog inputs.
+
+Command-response here (set a voltage, read the monitors, zero); waveforms are played by the DAQ's stream-out
+(:meth:`drivers.labjack.LabJackT7.arm`), for which :meth:`TrekOnDaq.dac_volts` converts a voltage waveform.
+
+Conditioning: amplifier input [V] = ``gain`` · DAC [V] + ``offset`` (e.g. gain 4, offset −10 V maps the T7's
+0–5 V DAC onto the TREK's ±10 V input); output = TREK gain (1000 V/V) × input.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+
+from drivers.errors import LimitError
+from drivers.interfaces import ClockFn, Identity, Reading
+from drivers.labjack import DAC_RANGE, LabJackT7
+from drivers.trek import TrekModel
+
+
+class TrekOnDaq:
+    """Driver of a TREK HS amplifier on a LabJack T7 (implements Amplifier)."""
+
+    def __init__(self, daq: LabJackT7, trek: TrekModel, *, name: str = "amplifier", dac: int = 0,
+                 gain: float = 4.0, offset: float = -10.0, vmon_ain: int = 0, imon_ain: int = 1,
+                 max_voltage: float = 10e3, clock: ClockFn = time.monotonic) -> None:
+        if not (math.isfinite(gain) and gain > 0 and math.isfinite(offset)):
+            raise ValueError(f"{name}: conditioning gain must be finite and > 0 and offset finite")
+        if not 0 < max_voltage <= trek.max_output:
+            raise ValueError(f"{name}: max_voltage {max_voltage:g} V must lie in (0, {trek.max_output:g}] V")
+        self.daq, self.trek, self.name = daq, trek, name
+        self.dac, self.gain, self.offset = dac, gain, offset
+        self.vmon_ain, self.imon_ain = vmon_ain, imon_ain
+        self.max_voltage = max_voltage
+        self.clock = clock
+        self._last_v = 0.0
+
+    # ------------------------------------------------------------ conversions
+    def dac_volts(self, volts: np.ndarray | float) -> np.ndarray:
+        """DAC voltage [V] for amplifier output ``volts`` [V]."""
+        return (np.asarray(volts, dtype=float) / self.trek.gain - self.offset) / self.gain
+
+    def output_volts(self, dac_volts: np.ndarray | float) -> np.ndarray:
+        """Amplifier output [V] for DAC voltage ``dac_volts`` [V]."""
+        return (self.gain * np.asarray(dac_volts, dtype=float) + self.offset) * self.trek.gain
+
+    def _quantised(self, dac_v: float) -> float:
+        cal = self.daq.cal
+        code = cal.dac_codes(np.array([dac_v]), self.dac)
+        return float(cal.dac_volts(code, self.dac, self.daq.dac_bits)[0])
+
+    # ------------------------------------------------------------ Instrument
+    @property
+    def commanded(self) -> float:
+        """Last voltage commanded [V] (the DAC's code through the conditioning stage)."""
+        return self._last_v
+
+    def connect(self) -> None:
+        """Connect the DAQ (if not yet), set the monitor inputs to ±10 V single-ended, command 0 V."""
+        if not self.daq.link.is_open:
+            self.daq.connect()
+        for ain in (self.vmon_ain, self.imon_ain):
+            self.daq.configure_ain(ain, 10.0)
+        self.zero()
+
+    def close(self) -> None:
+        """Zero the output (the DAQ itself is closed by its own driver)."""
+        if self.daq.link.is_open:
+            self.zero()
+
+    def identify(self) -> Identity:
+        """Model from the rig file; the DAQ from its registers."""
+        return Identity("TREK", self.trek.model, {"drive": f"LabJack T7 DAC{self.dac}",
+                                                  "monitors": f"AIN{self.vmon_ain}/AIN{self.imon_ain}"})
+
+    def safe_state(self) -> None:
+        """Stop any stream and command 0 V at once."""
+        if self.daq.streaming:
+            self.daq.stop()
+        self.zero()
+
+    def zero(self) -> None:
+        """Command 0 V (the DAC code nearest to 0 V at the amplifier input)."""
+        dac_v = float(self.dac_volts(0.0))
+        self.daq.write_dac(self.dac, dac_v)
+        self._last_v = float(self.output_volts(self._quantised(dac_v)))
+
+    def set_voltage(self, volts: float) -> float:
+        """Command ``volts`` [V]; refuses |V| > max_voltage or what the DAC cannot produce."""
+        if not math.isfinite(volts) or abs(volts) > self.max_voltage:
+            raise LimitError(self.name, f"{volts:.0f} V beyond the software limit ±{self.max_voltage:.0f} V")
+        dac_v = float(self.dac_volts(volts))
+        if not DAC_RANGE[0] <= dac_v <= DAC_RANGE[1]:
+            raise LimitError(self.name, f"{volts:.0f} V needs DAC {dac_v:.3f} V, outside the DAC's 0–5 V")
+        self.daq.write_dac(self.dac, dac_v)
+        self._last_v = float(self.output_volts(self._quantised(dac_v)))
+        return self._last_v
+
+    def read_monitors(self) -> tuple[Reading, Reading]:
+        """(output voltage [V], output current [A]) from two command-response AIN reads."""
+        v = self.daq.read_ain(self.vmon_ain)
+        i = self.daq.read_ain(self.imon_ain)
+        t = self.clock()
+        vv, ii = v.value * self.trek.vmon_ratio, i.value * self.trek.imon_ratio
+        ok = math.isfinite(vv) and math.isfinite(ii)
+        return Reading(vv, "V", t, "ok" if ok else "invalid"), Reading(ii, "A", t, "ok" if ok else "invalid")
+
+    def read_voltage(self) -> Reading:
+        """Output voltage from the voltage monitor [V]."""
+        return self.read_monitors()[0]
+
+    def read_current(self) -> Reading:
+        """Output current from the current monitor [A]."""
+        return self.read_monitors()[1]
