@@ -38,14 +38,20 @@ def _too_deep(data: Any, limit: int) -> str | None:
 def read_toml(path: Path, kind: str, error: type[Exception]) -> tuple[str, dict]:
     """(text, parsed table) of a TOML file; raise ``error("<kind> file <path>: …")`` if it cannot be."""
     try:
-        if path.stat().st_size > MAX_FILE_BYTES:
+        size = path.stat().st_size
+        if size > MAX_FILE_BYTES:
             raise error(f"{kind} file {path}: larger than {MAX_FILE_BYTES:,} bytes")
         text = path.read_text(encoding="utf-8")
-        data = tomllib.loads(text)
     except FileNotFoundError:
         raise error(f"{kind} file {path}: not found") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise error(f"{kind} file {path}: cannot be read ({exc})") from None
+    except ValueError as exc:  # e.g. a NUL in the path
+        if isinstance(exc, error):
+            raise
+        raise error(f"{kind} file {path}: cannot be read ({exc})") from None
+    try:
+        data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise error(f"{kind} file {path}: not valid TOML ({exc})") from None
     except RecursionError:

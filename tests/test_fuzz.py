@@ -1,0 +1,71 @@
+"""Fuzzed rig and protocol files (bench/fuzz.py): every mutant is refused in one line or accepted, never a
+traceback or a hang; and the harness itself counts tracebacks and hangs (a hang is killed, not endured)."""
+
+from __future__ import annotations
+
+import time
+import tomllib
+
+import pytest
+
+import bench.run
+from bench.fuzz import _mutate_text, make_cases, run_fuzz, to_toml
+
+
+def test_short_fuzz_run_has_no_traceback_and_no_hang() -> None:
+    t0 = time.monotonic()
+    report = run_fuzz(150, 150, seed=8)
+    c = report.counts
+    details = "\n".join(f"{o.kind}: {o.case.label}\n{o.detail}" for o in report.outcomes
+                        if o.kind in ("traceback", "hang"))
+    assert c["files"] == 300
+    assert c["traceback"] == 0 and c["hang"] == 0, details
+    assert c["refused"] > 0 and c["accepted"] > 0
+    assert c["refused"] + c["accepted"] == 300
+    assert all(o.detail.startswith(("protocol file ", "rig file ")) for o in report.outcomes if o.kind == "refused")
+    assert time.monotonic() - t0 < 120
+
+
+def test_mutants_are_reproducible_and_varied(tmp_path) -> None:
+    a, b = tmp_path / "a", tmp_path / "b"
+    a.mkdir()
+    b.mkdir()
+    first, second = make_cases(40, 40, 3, a), make_cases(40, 40, 3, b)
+    assert [c.mutation for c in first] == [c.mutation for c in second]
+    assert [c.file.read_bytes() for c in first] == [c.file.read_bytes() for c in second]
+    assert len({c.mutation for c in first}) > 40
+
+
+def test_writer_round_trips_through_tomllib() -> None:
+    doc = {"protocol": {"name": "x", "rig": "r.toml"}, "steps": [{"type": "hold", "duration_s": 1.5}],
+           "n": -3, "f": float("inf"), "t": True, "s": 'a "quoted" \\ string', "deep": [[1, 2], {"k": []}]}
+    assert tomllib.loads(to_toml(doc)) == doc
+
+
+def test_text_mutations_cover_truncation_and_deep_nesting() -> None:
+    import random
+
+    rng = random.Random(0)
+    kinds = {_mutate_text("name = 'x'\n[a]\nb = 1\n", rng)[1].split()[0] for _ in range(60)}
+    assert {"truncated", "random", "duplicate", "array"} <= kinds
+
+
+def test_harness_counts_tracebacks(monkeypatch: pytest.MonkeyPatch) -> None:
+    def broken(*args: object, **kwargs: object) -> None:
+        raise ZeroDivisionError("float division by zero")
+
+    monkeypatch.setattr(bench.run, "plan_run", broken)  # the forked workers inherit the patch
+    c = run_fuzz(3, 2, seed=1).counts
+    assert (c["traceback"], c["refused"], c["accepted"], c["hang"]) == (5, 0, 0, 0)
+
+
+def test_harness_kills_and_counts_hangs(monkeypatch: pytest.MonkeyPatch) -> None:
+    def hang(*args: object, **kwargs: object) -> None:
+        while True:
+            time.sleep(1)
+
+    monkeypatch.setattr(bench.run, "plan_run", hang)
+    t0 = time.monotonic()
+    c = run_fuzz(2, 1, seed=1, limit=0.3).counts
+    assert c["hang"] == 3 and c["files"] == 3
+    assert time.monotonic() - t0 < 20
