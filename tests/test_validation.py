@@ -26,7 +26,7 @@ def _set(text: str, table: str, key: str, value: str) -> str:
     lines = text.splitlines()
     start = lines.index(f"[{table}]")
     end = next((i for i in range(start + 1, len(lines)) if lines[i].startswith("[")), len(lines))
-    body = [ln for ln in lines[start + 1:end] if not ln.split("=")[0].strip() == key]
+    body = [ln for ln in lines[start + 1:end] if ln.split("=")[0].strip() != key]
     return "\n".join([*lines[:start + 1], f"{key} = {value}", *body, *lines[end:]]) + "\n"
 
 
@@ -116,3 +116,21 @@ def test_cli_rig_refusal_is_one_line(tmp_path: Path) -> None:
     assert proc.returncode == 2 and "Traceback" not in proc.stderr
     assert proc.stderr.strip().count("\n") == 0 and "laser.offset_mm" in proc.stderr
     assert time.monotonic() - t0 < 60
+
+
+def test_cli_error_text_is_not_eaten_as_markup(tmp_path: Path) -> None:
+    """Messages quoting TOML headers ([buses], [[steps]]) reach the terminal verbatim (rich markup escaped)."""
+    from typer.testing import CliRunner
+
+    from bench.cli import app
+
+    proto = tmp_path / "p.toml"
+    proto.write_text(f'[protocol]\nname = "x"\nrig = "{RIGS / "thesis-sim.toml"}"\n')
+    rig = tmp_path / "rig.toml"
+    rig.write_text("name = 'x'\n[amplifier]\nbus = 'io'\n")
+    runner = CliRunner()
+    res = runner.invoke(app, ["validate", str(proto)], env={"COLUMNS": "300"})
+    assert res.exit_code == 2 and "give at least one [[steps]] table" in res.output
+    res = runner.invoke(app, ["validate", str(ROOT / "protocols" / "short" / "thesis-identification-short.toml"),
+                              "--rig", str(rig)], env={"COLUMNS": "300"})
+    assert res.exit_code == 2 and "is not defined under [buses]" in res.output
