@@ -5,14 +5,16 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
 
 from bench.protocol.program import ProtocolLimitError
 from bench.protocol.schema import ProtocolFileError, json_schema, load_protocol
+from bench.rig import RigFileError, load_rig
 from bench.run import plan_run
-from tests.conftest import ROOT
+from tests.conftest import RIGS, ROOT
 
 PROTOCOLS = sorted((ROOT / "protocols").rglob("*.toml"))
 HEAD = """[protocol]
@@ -177,3 +179,169 @@ over = { v = ["2 kV", "3 kV"], f = [0.5, 1.0] }
     assert [(s.amplitude_si, s.frequency_Hz) for s in p.steps[6:]] == [(2000.0, 0.5), (3000.0, 1.0)]
     assert p.labels[2].startswith("steps[0](repeat)#2/")
     assert plan_run(p.path).program.duration == pytest.approx(3 * 2 + 4 + 2)
+
+
+# ================================================================== safe under every failure (protocol side)
+# Bounds from the protocol definition (schema docstring): ≤ 100,000 expanded steps, repeats/sweeps nested ≤ 20,
+# ≤ 7 days = 604,800 s, ≤ 10¹⁰ recorded samples; the dry run covers ≤ 3600 s of run time.
+
+SAFE_THESIS_RIG = RIGS / "thesis-sim.toml"
+SAFE_MOTOR_RIG = RIGS / "lsdea-motor-sim.toml"
+SAFE_ISOTONIC_RIG = RIGS / "lsdea-isotonic-sim.toml"
+SAFE_HEAD = '[protocol]\nname = "t"\nrig = "{rig}"\n\n[recording]\ndisplacement_Hz = 2000\nsetpoint_Hz = 20\n'
+
+
+def safe_protocol(tmp: Path, body: str, rig: Path = SAFE_THESIS_RIG, head: str = SAFE_HEAD) -> Path:
+    f = tmp / "p.toml"
+    f.write_text(head.format(rig=rig) + body)
+    return f
+
+
+def refused(path: Path, *fragments: str, error: type[Exception] | tuple = (ProtocolFileError, ProtocolLimitError),
+            within_s: float = 10.0) -> str:
+    """Run the `bench validate` path on ``path``; assert a one-line refusal naming the file and ``fragments``."""
+    t0 = time.monotonic()
+    with pytest.raises(error) as err:
+        if error is RigFileError:
+            load_rig(path)
+        else:
+            plan_run(path)
+    text = str(err.value)
+    assert time.monotonic() - t0 < within_s
+    assert str(path) in text and "\n" not in text, text
+    for frag in fragments:
+        assert frag in text, text
+    return text
+
+
+@pytest.mark.parametrize("body, field", [
+    ("[[steps]]\ntype = 'hold'\nduration_s = nan\n", "steps[0](hold).duration_s"),
+    ("[[steps]]\ntype = 'hold'\nduration_s = inf\n", "steps[0](hold).duration_s"),
+    ("[[steps]]\ntype = 'waveform'\namplitude = '1 kV'\nfrequency_Hz = 0.5\ncycles = inf\n",
+     "steps[0](waveform).cycles"),
+    ("[[steps]]\ntype = 'waveform'\namplitude = '1 kV'\nfrequency_Hz = nan\ncycles = 2\n",
+     "steps[0](waveform).frequency_Hz"),
+    ("[[steps]]\ntype = 'waveform'\namplitude = '1e999 kV'\nfrequency_Hz = 0.5\ncycles = 2\n", "finite"),
+    ("[[steps]]\ntype = 'ramp'\nto = '1e308 MV'\nduration_s = 1\n", "finite"),
+    ("[[steps]]\ntype = 'sweep'\nover = {f = [0.5, nan]}\n  [[steps.steps]]\n  type = 'waveform'\n"
+     "  amplitude = '1 kV'\n  frequency_Hz = '{f}'\n  cycles = 1\n", "frequency_Hz"),
+    ("[[steps]]\ntype = 'sweep'\nover = {v = {start = 1.0, stop = inf, num = 3}}\n  [[steps.steps]]\n"
+     "  type = 'hold'\n  duration_s = 1\n", "steps[0].over.v.stop"),
+])
+def test_protocol_files_refuse_nan_and_inf(tmp_path: Path, body: str, field: str) -> None:
+    refused(safe_protocol(tmp_path, body), field)
+
+
+def test_recording_rates_refuse_nan(tmp_path: Path) -> None:
+    f = safe_protocol(tmp_path, "[[steps]]\ntype = 'hold'\nduration_s = 1\n",
+                      head=SAFE_HEAD.replace("= 20\n", "= nan\n"))
+    refused(f, "recording.setpoint_Hz", "finite")
+
+
+# ------------------------------------------------------------------ 3. bounded input and a bounded dry run
+
+REPEAT = "[[steps]]\ntype = 'repeat'\ncount = {n}\n  [[steps.steps]]\n  type = 'hold'\n  duration_s = {d}\n"
+
+
+@pytest.mark.parametrize("body, fragment", [
+    (REPEAT.format(n=10**6, d=1), "steps[0].count"),
+    (REPEAT.format(n=60_000, d=0.1) + REPEAT.format(n=60_000, d=0.1).replace("[[steps]]", "[[steps]]", 1),
+     "more than 100,000 steps"),
+    ("[[steps]]\ntype = 'hold'\nduration_s = 1e6\n", "steps[0](hold).duration_s"),
+    (REPEAT.format(n=8, d=86_400), "beyond the limit of 604800 s"),
+    ("[[steps]]\ntype = 'waveform'\namplitude = '1 kV'\nfrequency_Hz = 1e-6\ncycles = 1\n", "604800"),
+    ("[[steps]]\ntype = 'sweep'\nover = {v = {start = 0.0, stop = 1.0, num = 1000000000}}\n  [[steps.steps]]\n"
+     "  type = 'hold'\n  duration_s = 1\n", "steps[0].over.v.num"),
+    ("[[steps]]\ntype = 'sweep'\nover = {a = {start = 0.0, stop = 1.0, num = 1000}, b = {start = 0.0, stop = 1.0, "
+     "num = 1000}}\n  [[steps.steps]]\n  type = 'hold'\n  duration_s = 1\n", "steps[0].over"),
+    ("[[steps]]\ntype = 'sweep'\nover = {v = {start = '0 V', stop = '1 MV', step = '1 mV'}}\n  [[steps.steps]]\n"
+     "  type = 'hold'\n  duration_s = 1\n", "steps[0].over.v.step"),
+])
+def test_expansion_and_duration_are_bounded_before_anything_is_built(tmp_path: Path, body: str,
+                                                                     fragment: str) -> None:
+    refused(safe_protocol(tmp_path, body), fragment, within_s=5.0)
+
+
+def test_nesting_is_bounded(tmp_path: Path) -> None:
+    body = ""
+    for depth in range(21):
+        body += "[[" + ".".join(["steps"] * (depth + 1)) + "]]\ntype = 'repeat'\ncount = 1\n"
+    body += "[[" + ".".join(["steps"] * 22) + "]]\ntype = 'hold'\nduration_s = 1\n"
+    refused(safe_protocol(tmp_path, body), "nest deeper than 20 levels", within_s=5.0)
+    # 20 levels are legal
+    legal = body.replace("[[" + ".".join(["steps"] * 21) + "]]\ntype = 'repeat'\ncount = 1\n", "")
+    legal = legal.replace("[[" + ".".join(["steps"] * 22) + "]]", "[[" + ".".join(["steps"] * 21) + "]]")
+    assert plan_run(safe_protocol(tmp_path, legal)).program.duration == pytest.approx(1.0)
+
+
+def test_long_legal_looking_protocols_are_refused_quickly_by_the_dry_run_budget(tmp_path: Path) -> None:
+    # 5 days at a constant voltage: within the 7-day limit, beyond what the dry run can integrate (1 h)
+    body = "[[steps]]\ntype = 'ramp'\nto = '1 kV'\nduration_s = 1\n\n" + REPEAT.format(n=5, d=86_400)
+    refused(safe_protocol(tmp_path, body), "3600 s of run time", within_s=5.0)
+    # a fast set-point rate over a long run: too many updates to replay
+    f = safe_protocol(tmp_path, "[[steps]]\ntype = 'hold'\nduration_s = 3000\n",
+                      head=SAFE_HEAD.replace("= 20\n", "= 2000\n"))
+    refused(f, "recording.setpoint_Hz", "set-point updates", within_s=5.0)
+
+
+def test_recorded_samples_are_bounded(tmp_path: Path) -> None:
+    # 20,000 × 19 s at 50 kHz stored by the LK-G5000 (≤ 999,999 points each): 1.9·10¹⁰ samples in 4.4 days
+    head = SAFE_HEAD.replace("displacement_Hz = 2000", "displacement_Hz = 50000")
+    body = ("[[steps]]\ntype = 'repeat'\ncount = 20000\n  [[steps.steps]]\n  type = 'waveform'\n"
+            "  amplitude = '1 kV'\n  frequency_Hz = 0.5\n  duration_s = 19\n")
+    refused(safe_protocol(tmp_path, body, head=head), "recording", "samples", "1e+10", within_s=20.0)
+
+
+# ------------------------------------------------------------------ 4. known tracebacks are one-line errors
+
+@pytest.mark.parametrize("body, rig, fragment", [
+    ("[[steps]]\ntype = 'sweep'\nover = {voltage = '7 kV'}\n  [[steps.steps]]\n  type = 'hold'\n  duration_s = 1\n",
+     SAFE_THESIS_RIG, "steps[0].over.voltage"),
+    ("steps = 3\n", SAFE_THESIS_RIG, "steps"),
+    ("[[steps]]\ntype = 'repeat'\ncount = 2\nsteps = 3\n", SAFE_THESIS_RIG, "steps[0].steps"),
+    ("[[steps]]\ntype = 'sweep'\nover = {v = [1, 2]}\nsteps = 3\n", SAFE_THESIS_RIG, "steps[0].steps"),
+    ("[[steps]]\ntype = 'repeat'\ncount = inf\n  [[steps.steps]]\n  type = 'hold'\n  duration_s = 1\n",
+     SAFE_THESIS_RIG, "steps[0].count"),
+    ("[[steps]]\ntype = 'sweep'\nover = {v = {start = 0.0, stop = 1.0, num = inf}}\n  [[steps.steps]]\n"
+     "  type = 'hold'\n  duration_s = 1\n", SAFE_THESIS_RIG, "steps[0].over.v.num"),
+    ("[[steps]]\ntype = 'sweep'\nover = {v = [{a = 1}]}\n  [[steps.steps]]\n  type = 'hold'\n  duration_s = 1\n",
+     SAFE_THESIS_RIG, "steps[0].over.v[0]"),
+    ("[[steps]]\ntype = 'move'\nposition = '50 mm'\n", SAFE_ISOTONIC_RIG, "has no motor"),
+    ("[[steps]]\ntype = 'move'\nposition = '60 mm'\nvelocity = '1e-300 m/s'\n", SAFE_MOTOR_RIG, "604800"),
+])
+def test_former_tracebacks_are_one_line_errors(tmp_path: Path, body: str, rig: Path, fragment: str) -> None:
+    refused(safe_protocol(tmp_path, body, rig), fragment)
+
+
+def test_deeply_nested_files_are_refused_at_reading(tmp_path: Path) -> None:
+    f = tmp_path / "deep.toml"
+    f.write_text(SAFE_HEAD.format(rig=SAFE_THESIS_RIG) + "x = " + "[" * 1500 + "]" * 1500 + "\n")
+    refused(f, "nested too deeply", within_s=5.0)
+    f.write_text(SAFE_HEAD.format(rig=SAFE_THESIS_RIG) + "x = " + "[" * 100 + "]" * 100 + "\n")
+    refused(f, "nested deeper than 64 levels", within_s=5.0)
+    body = "".join("[[" + ".".join(["steps"] * (d + 1)) + "]]\ntype = 'repeat'\ncount = 1\n" for d in range(300))
+    refused(safe_protocol(tmp_path, body), "nested deeper than 64 levels", within_s=5.0)
+    inline = "steps = " + "[{type = 'repeat', count = 2, steps = " * 1500 + "[]" + "}]" * 1500 + "\n"
+    refused(safe_protocol(tmp_path, inline), "nested too deeply", within_s=5.0)
+    rig = tmp_path / "rig.toml"
+    rig.write_text("name = 'x'\nlimits = " + "{a = " * 1500 + "1" + "}" * 1500 + "\n")
+    refused(rig, "nested too deeply", error=RigFileError)
+
+
+def _bench(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "bench", *args], capture_output=True, text=True, timeout=120,
+                          cwd=ROOT, env={"COLUMNS": "200", "PATH": ""})
+
+
+def test_cli_move_on_a_rig_without_motor_and_simulate_edge_cases() -> None:
+    proc = _bench("validate", "protocols/short/lsdea-isopotential-short.toml", "--rig", "rigs/lsdea-isotonic-sim.toml")
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+    assert proc.stderr.strip().count("\n") == 0 and "has no motor" in proc.stderr
+    proc = _bench("simulate", "thesis", "--voltage", "0", "--duration", "20")
+    assert proc.returncode == 0 and "Traceback" not in proc.stderr, proc.stderr
+    assert "creep +0.0 %" in proc.stdout  # no drive: the specimen stays at rest
+    for args in (["thesis", "--voltage", "nan"], ["thesis", "--frequency", "-1"], ["thesis", "--duration", "1e9"],
+                 ["thesis", "--frequency", "1000", "--duration", "600"],
+                 ["lsdea", "isotonic", "--frequency", "0.01", "--cycles", "1000"], ["lsdea", "--mass", "nan"]):
+        proc = _bench("simulate", *args)
+        assert proc.returncode == 2 and "Traceback" not in proc.stderr, (args, proc.stderr)

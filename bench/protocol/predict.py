@@ -4,22 +4,30 @@ The plant of the simulated rig (same model, same amplifier stage, same motor pro
 ticks as the engine) is advanced through the whole program in virtual time, so the dry run states what the
 specimen will see: peak voltage, peak true electric field against the stretch-dependent breakdown field,
 aperture and motor travel, force, and whether the model predicts a failure (pull-in, breakdown).
+
+The dry run covers the whole program, so its cost is bounded before it starts: at most ``DRY_RUN_MAX_S`` of
+run time (the model advances at 10 kHz: 3.6·10⁷ steps, about 15–30 s on one core) and ``DRY_RUN_MAX_TICKS``
+set-point updates (about 20 µs each). A longer protocol is refused (split it into several files) rather than
+run with a prediction of only its beginning.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from bench.protocol.program import Program, motor_command, voltage_at
+from bench.protocol.program import Program, ProtocolLimitError, motor_command, voltage_at
 from sim_devices.clock import VirtualClock
 from sim_devices.motion import MotionProfile
 from sim_devices.plant import HVStage, Plant, PlantBlock
 
 STREAM_COLUMNS = {"setpoints": 2, "amplifier": 2, "laser": 2, "motor": 2, "load_cell": 1}
 PASSIVE_LASER_HZ = 10.0  # single laser reads while the storage is idle
+DRY_RUN_MAX_S = 3600.0  # run time the dry run integrates (the longest shipped campaign: 1985 s)
+DRY_RUN_MAX_TICKS = 400_000  # set-point updates the dry run replays
 
 
 @dataclass
@@ -75,8 +83,30 @@ def build_plant(program: Program, clock: VirtualClock, h: float = 1e-4) -> Plant
     return Plant(clock, params, configuration=cfg.configuration, x0=x0, hv=hv, h=h, motor_sign=cfg.motor_sign)
 
 
+def ticks(program: Program) -> int:
+    """Set-point updates the dry run (and the engine) replays over the whole program."""
+    dt = 1.0 / program.protocol.recording.setpoint_Hz
+    return sum(max(1, math.ceil(s.duration / dt - 1e-9)) for s in program.segments if s.duration > 0)
+
+
+def check_budget(program: Program) -> None:
+    """Refuse, in one line, a program the dry run cannot integrate within its documented budget."""
+    where = f"protocol file {program.protocol.path}"
+    if program.duration > DRY_RUN_MAX_S:
+        raise ProtocolLimitError(f"{where}: steps: the run lasts {program.duration:.0f} s; the dry run covers at most "
+                                 f"{DRY_RUN_MAX_S:.0f} s of run time on the model: split the protocol")
+    n = ticks(program)
+    if n > DRY_RUN_MAX_TICKS:
+        raise ProtocolLimitError(f"{where}: recording.setpoint_Hz: {n:,} set-point updates over the run exceed the "
+                                 f"dry run's {DRY_RUN_MAX_TICKS:,}: lower the rate or split the protocol")
+
+
 def predict(program: Program, progress: Callable[[float], None] | None = None) -> Prediction:
-    """Run the program on the model; collect peaks, margins and predicted failures."""
+    """Run the program on the model; collect peaks, margins and predicted failures.
+
+    Raises ProtocolLimitError (one line) if the program is beyond the dry run's budget (:func:`check_budget`).
+    """
+    check_budget(program)
     counts = sample_counts(program)
     nbytes = sum(n * 8 * (1 + STREAM_COLUMNS[k]) for k, n in counts.items())
     pred = Prediction(program.duration, counts, nbytes)

@@ -4,7 +4,8 @@ Each segment has a start time on the run clock, a duration, and what it does to 
 ``voltage(t)`` / ``position(t)`` functions of absolute run time (None: hold), a motor go-to, or specimen
 changes. Static checks refuse, with one line naming the step and field, anything outside the rig's or
 specimen's limits that can be known without the model: voltages, travel, channels the rig lacks,
-set-point density of waveforms, and laser storage capacity per storing step.
+set-point density of waveforms, and laser storage capacity per storing step. The run lasts at most
+``MAX_DURATION_S`` (7 days) and records at most ``MAX_SAMPLES`` samples.
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ from typing import Literal
 
 import numpy as np
 
-from bench.protocol.schema import HoldStep, MoveStep, Protocol, RampStep, SetStep, WaveformStep
+from bench.protocol.schema import MAX_DURATION_S, HoldStep, MoveStep, Protocol, RampStep, SetStep, WaveformStep
 from bench.rig import RigConfig
 from bench.waveforms import Waveform
 from drivers.keyence import STORAGE_CAPACITY
@@ -24,6 +25,7 @@ from sim_devices.motion import MotionProfile
 Signal = Callable[[np.ndarray], np.ndarray]
 RELAX_RAMP_S = 0.5  # a relax step brings the voltage to zero over this time (or a tenth of the step)
 MOVE_SETTLE_S = 0.05
+MAX_SAMPLES = 10**10  # recorded samples over a whole run (all streams): ~ 1 TB uncompressed
 
 
 class ProtocolLimitError(ValueError):
@@ -167,6 +169,8 @@ def compile_program(protocol: Protocol, rig: RigConfig) -> Program:
                 seg.voltage = _ramp(t, min(RELAX_RAMP_S, step.duration_s / 10), v_now, 0.0)
                 v_now = 0.0
         elif isinstance(step, MoveStep):
+            if x_now is None:
+                raise refuse(label, f"a move step needs the motor: rig {rig.name} has no motor driving the LS-DEA")
             check_aperture(label, min(step.position_si, float(x_now)), max(step.position_si, float(x_now)))
             m = rig.motor
             if step.velocity_si > m.max_velocity_m_per_s or step.acceleration_si > m.max_acceleration_m_per_s2:  # type: ignore[union-attr]
@@ -204,6 +208,14 @@ def compile_program(protocol: Protocol, rig: RigConfig) -> Program:
                              "lower the rate or split the step")
         program.segments.append(seg)
         t += seg.duration
+        if not t <= MAX_DURATION_S:
+            raise refuse(label, f"the run reaches {t:.4g} s here, beyond the limit of {MAX_DURATION_S:.0f} s (7 days)")
+    from bench.protocol.predict import sample_counts  # predict imports this module
+
+    samples = sum(sample_counts(program).values())
+    if samples > MAX_SAMPLES:
+        raise ProtocolLimitError(f"{where}: recording: {samples:.3g} samples over the run exceed the limit of "
+                                 f"{MAX_SAMPLES:.0e}; lower the recording rates")
     return program
 
 

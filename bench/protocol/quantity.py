@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import re
 
 PREFIX = {"": 1.0, "k": 1e3, "M": 1e6, "m": 1e-3, "u": 1e-6, "µ": 1e-6, "n": 1e-9}
@@ -20,7 +21,8 @@ _RE = re.compile(r"^\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*([a-zA-Zµ/
 def parse_quantity(text: str | float | int, dimension: str | None = None) -> tuple[float, str]:
     """Parse ``"7 kV"`` → (7000.0, "voltage"). Plain numbers are refused: the unit must be explicit.
 
-    Raises ValueError naming what is wrong; with ``dimension``, also when the unit is of another kind.
+    Raises ValueError naming what is wrong (also for values that overflow to infinity: nan and inf cannot be
+    written); with ``dimension``, also when the unit is of another kind.
     """
     if isinstance(text, bool) or not isinstance(text, str):
         raise ValueError(f"{text!r} has no unit; write it with one, e.g. '7 kV', '45 mm', '0.5 Hz'")
@@ -28,10 +30,14 @@ def parse_quantity(text: str | float | int, dimension: str | None = None) -> tup
     if not m or not m.group(2):
         raise ValueError(f"{text!r} is not a number with a unit, e.g. '7 kV', '45 mm', '0.5 Hz'")
     number, unit = float(m.group(1)), m.group(2)
+    if not math.isfinite(number):
+        raise ValueError(f"{text!r}: the number must be finite")
     for sym in sorted(UNITS, key=len, reverse=True):
         if unit.endswith(sym) and unit[: -len(sym)] in PREFIX:
             dim, factor = UNITS[sym]
             value = number * PREFIX[unit[: -len(sym)]] * factor
+            if not math.isfinite(value):
+                raise ValueError(f"{text!r} is not a finite number")
             if dimension is not None and dim != dimension:
                 raise ValueError(f"{text!r} is a {dim}, expected a {dimension}")
             return value, dim

@@ -22,6 +22,7 @@ from __future__ import annotations
 import hashlib
 import itertools
 import json
+import math
 import re
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -30,14 +31,22 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError, field_validator, model_validator
 
 from bench.protocol.quantity import format_quantity, parse_quantity
-from bench.tomlfile import read_toml
+from bench.tomlfile import one_line, read_toml
 
 Channel = Literal["voltage", "position"]
 CHANNEL_DIMENSION = {"voltage": "voltage", "position": "length"}
 
 
+MAX_STEPS = 100_000  # steps after expanding repeats and sweeps
+MAX_NESTING = 20  # repeats and sweeps inside each other
+MAX_DURATION_S = 7 * 86_400.0  # one protocol's run time: 7 days
+MAX_EXPANSION = 50_000_000  # characters sweeps may copy while substituting their values
+
+
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    """Base of every protocol table: unknown keys refused, immutable, every float finite (no nan / inf)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 def _q(dimension: str) -> Any:
@@ -60,8 +69,8 @@ class WaveformStep(_StepBase):
     offset: str = "0 V"
     amplitude: str
     frequency_Hz: float = Field(gt=0, le=1000)
-    cycles: float | None = Field(None, gt=0)
-    duration_s: float | None = Field(None, gt=0)
+    cycles: float | None = Field(None, gt=0, le=MAX_DURATION_S * 1000)
+    duration_s: float | None = Field(None, gt=0, le=MAX_DURATION_S)
 
     @model_validator(mode="after")
     def _check(self) -> WaveformStep:
@@ -72,6 +81,9 @@ class WaveformStep(_StepBase):
         parse_quantity(self.amplitude, dim)
         if (self.cycles is None) == (self.duration_s is None):
             raise ValueError("give exactly one of cycles or duration_s")
+        if not self.duration <= MAX_DURATION_S:
+            raise ValueError(f"cycles {self.cycles:g} at frequency_Hz {self.frequency_Hz:g} last "
+                             f"{self.duration:.4g} s, beyond the limit of {MAX_DURATION_S:.0f} s (7 days)")
         return self
 
     @property
@@ -96,7 +108,7 @@ class RampStep(_StepBase):
     type: Literal["ramp"]
     channel: Channel = "voltage"
     to: str
-    duration_s: float = Field(gt=0)
+    duration_s: float = Field(gt=0, le=MAX_DURATION_S)
 
     @field_validator("to")
     @classmethod
@@ -119,7 +131,7 @@ class HoldStep(_StepBase):
     """Keep the set-points (``hold``/``wait``), or zero the voltage first (``relax``)."""
 
     type: Literal["hold", "wait", "relax"]
-    duration_s: float = Field(gt=0)
+    duration_s: float = Field(gt=0, le=MAX_DURATION_S)
 
 
 class MoveStep(_StepBase):
@@ -226,6 +238,9 @@ class Protocol(_Strict):
 class ProtocolFileError(ValueError):
     """A protocol file that cannot be used (message: one line naming the file and the field)."""
 
+    def __init__(self, message: str) -> None:
+        super().__init__(one_line(message))
+
 
 # ------------------------------------------------------------------ sweep / repeat expansion
 
@@ -245,66 +260,157 @@ def _substitute(obj: Any, values: dict[str, Any]) -> Any:
     return obj
 
 
-def _range_values(spec: dict[str, Any], where: str) -> list[Any]:
+def _number_or_quantity(v: Any, where: str, dim: str | None) -> float:
+    """A range bound or step: a finite number (``dim`` None) or a quantity of dimension ``dim``."""
+    if dim is None:
+        if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+            raise ValueError(f"{where}: give a finite number like the range's start, got {_short(v)}")
+        return float(v)
+    if not isinstance(v, str):
+        raise ValueError(f"{where}: give a quantity with a unit like the range's start, got {_short(v)}")
+    try:
+        return parse_quantity(v, dim)[0]
+    except ValueError as exc:
+        raise ValueError(f"{where}: {exc}") from None
+
+
+def _range_values(spec: Any, where: str) -> list[Any]:
+    if not isinstance(spec, dict):
+        raise ValueError(f"{where}: give a list of values or a range {{start, stop, step or num}}, got {_short(spec)}")
     start, stop = spec.get("start"), spec.get("stop")
     if start is None or stop is None or ("step" in spec) == ("num" in spec):
         raise ValueError(f"{where}: a range needs start, stop and one of step or num")
+    extra = set(spec) - {"start", "stop", "step", "num"}
+    if extra:
+        raise ValueError(f"{where}.{sorted(extra)[0]}: a range has only start, stop, step or num")
     dim = None
     if isinstance(start, str):
-        a, dim = parse_quantity(start)
-        b = parse_quantity(stop, dim)[0]
+        try:
+            a, dim = parse_quantity(start)
+        except ValueError as exc:
+            raise ValueError(f"{where}.start: {exc}") from None
     else:
-        a, b = float(start), float(stop)
+        a = _number_or_quantity(start, f"{where}.start", None)
+    b = _number_or_quantity(stop, f"{where}.stop", dim)
     if "num" in spec:
-        vals = np.linspace(a, b, int(spec["num"]))
+        num = spec["num"]
+        if isinstance(num, bool) or not isinstance(num, int) or not 1 <= num <= MAX_STEPS:
+            raise ValueError(f"{where}.num: a whole number from 1 to {MAX_STEPS:,}, got {_short(num)}")
+        vals = np.linspace(a, b, num)
     else:
-        step = parse_quantity(spec["step"], dim)[0] if dim else float(spec["step"])
-        if step == 0 or (b - a) / step < 0:
-            raise ValueError(f"{where}: step {spec['step']!r} does not lead from start to stop")
-        vals = a + step * np.arange(int(np.floor((b - a) / step + 1e-9)) + 1)
+        step = _number_or_quantity(spec["step"], f"{where}.step", dim)
+        with np.errstate(all="ignore"):
+            span = (b - a) / step if step != 0 else math.nan
+        if not math.isfinite(span) or span < 0:
+            raise ValueError(f"{where}.step: {_short(spec['step'])} does not lead from start to stop")
+        if span + 1 > MAX_STEPS:
+            raise ValueError(f"{where}.step: {span + 1:.3g} values exceed the limit of {MAX_STEPS:,}")
+        vals = a + step * np.arange(int(np.floor(span + 1e-9)) + 1)
+    if not np.all(np.isfinite(vals)):
+        raise ValueError(f"{where}: the range's values are not all finite")
     return [format_quantity(float(v), dim) if dim else float(v) for v in vals]
 
 
+def _short(v: Any, n: int = 40) -> str:
+    """``repr(v)`` cut to ``n`` characters, for error messages and labels."""
+    text = repr(v) if not isinstance(v, str) else v
+    return text if len(text) <= n else text[: n - 1] + "…"
+
+
+def _size(obj: Any) -> int:
+    """Characters of text plus nodes in a TOML value (iterative): the cost of copying it once."""
+    n, stack = 0, [obj]
+    while stack:
+        o = stack.pop()
+        n += 1 + (len(o) if isinstance(o, str) else 0)
+        if isinstance(o, dict):
+            stack.extend(o.values())
+        elif isinstance(o, list):
+            stack.extend(o)
+    return n
+
+
+def _sweep_values(v: Any, where: str) -> list[Any]:
+    vals = v if isinstance(v, list) else _range_values(v, where)
+    if not vals:
+        raise ValueError(f"{where}: give at least one value")
+    for k, x in enumerate(vals):
+        if isinstance(x, bool) or not isinstance(x, str | int | float) or (isinstance(x, str) and len(x) > 64):
+            raise ValueError(f"{where}[{k}]: swept values are numbers or quantities such as '7 kV', got {_short(x)}")
+    return vals
+
+
+def _inner(step: dict[str, Any], here: str) -> Any:
+    inner = step.get("steps")
+    if not isinstance(inner, list) or not inner:
+        raise ValueError(f"{here}.steps: give at least one nested step")
+    return inner
+
+
 def expand_steps(raw: list[dict[str, Any]], where: str = "steps") -> list[tuple[str, dict[str, Any]]]:
-    """Flatten repeats and sweeps into (label, step table) pairs, substituting swept values."""
+    """Flatten repeats and sweeps into (label, step table) pairs, substituting swept values.
+
+    Bounded before anything is built: at most :data:`MAX_STEPS` steps, :data:`MAX_NESTING` levels of repeats
+    and sweeps, and :data:`MAX_EXPANSION` characters copied by sweeps; ValueError (one line) beyond.
+    """
+    return _expand(raw, where, 0, [0])
+
+
+def _expand(raw: Any, where: str, depth: int, total: list[int]) -> list[tuple[str, dict[str, Any]]]:
+    if depth > MAX_NESTING:
+        raise ValueError(f"{_short(where, 80)}: repeats and sweeps nest deeper than {MAX_NESTING} levels")
+    if not isinstance(raw, list):
+        raise ValueError(f"{_short(where, 80)}: give a list of step tables ([[...steps]]), got {_short(raw)}")
     out: list[tuple[str, dict[str, Any]]] = []
+
+    def count(n: int, field: str) -> None:
+        total[0] += n
+        if total[0] > MAX_STEPS:
+            raise ValueError(f"{_short(field, 80)}: the protocol expands to more than {MAX_STEPS:,} steps")
+
     for i, step in enumerate(raw):
         here = f"{where}[{i}]"
         if not isinstance(step, dict) or "type" not in step:
             raise ValueError(f"{here}: every step needs a type")
         kind = step["type"]
-        label = f"{here}({step.get('name', kind)})"
+        label = f"{here}({_short(step.get('name', kind))})"
         if kind == "repeat":
-            count = step.get("count")
-            if not isinstance(count, int) or count < 1:
-                raise ValueError(f"{here}.count: must be a whole number ≥ 1")
-            inner = expand_steps(step.get("steps", []), f"{here}.steps")
-            for k in range(count):
+            n = step.get("count")
+            if isinstance(n, bool) or not isinstance(n, int) or not 1 <= n <= MAX_STEPS:
+                raise ValueError(f"{here}.count: must be a whole number from 1 to {MAX_STEPS:,}")
+            inner = _expand(_inner(step, here), f"{here}.steps", depth + 1, total)
+            count((n - 1) * len(inner), f"{here}.count")
+            for k in range(n):
                 out += [(f"{label}#{k + 1}/{lab}", st) for lab, st in inner]
         elif kind == "sweep":
             over = step.get("over")
             if not isinstance(over, dict) or not over:
                 raise ValueError(f"{here}.over: give the swept parameters, e.g. over = {{voltage = ['5 kV', '6 kV']}}")
             names = list(over)
-            lists = [v if isinstance(v, list) else _range_values(v, f"{here}.over.{n}") for n, v in over.items()]
+            lists = [_sweep_values(v, f"{here}.over.{n}") for n, v in over.items()]
             mode = step.get("mode", "product")
             if mode == "zip":
                 if len({len(x) for x in lists}) != 1:
                     raise ValueError(f"{here}: mode = 'zip' needs lists of equal length")
-                combos = list(zip(*lists, strict=True))
+                n_combos = len(lists[0])
             elif mode == "product":
-                combos = list(itertools.product(*lists))
+                n_combos = math.prod(len(x) for x in lists)
             else:
-                raise ValueError(f"{here}.mode: 'product' or 'zip', got {mode!r}")
-            inner_raw = step.get("steps", [])
+                raise ValueError(f"{here}.mode: 'product' or 'zip', got {_short(mode)}")
+            inner_raw = _inner(step, here)
+            if n_combos > MAX_STEPS or n_combos * _size(inner_raw) > MAX_EXPANSION:
+                raise ValueError(f"{here}.over: {n_combos:,} combinations of the nested steps exceed the limit of "
+                                 f"{MAX_STEPS:,} steps")
+            combos = zip(*lists, strict=True) if mode == "zip" else itertools.product(*lists)
             for combo in combos:
                 values = dict(zip(names, combo, strict=True))
-                tag = ", ".join(f"{n}={v}" for n, v in values.items())
-                for lab, st in expand_steps(_substitute(inner_raw, values), f"{here}.steps"):
+                tag = _short(", ".join(f"{n}={v}" for n, v in values.items()), 80)
+                for lab, st in _expand(_substitute(inner_raw, values), f"{here}.steps", depth + 1, total):
                     named = dict(st)
-                    named["name"] = f"{st.get('name', st['type'])} [{tag}]"
+                    named["name"] = f"{_short(st.get('name', st['type']))} [{tag}]"
                     out.append((f"{label}[{tag}]/{lab}", named))
         else:
+            count(1, here)
             out.append((label, step))
     return out
 
@@ -328,12 +434,19 @@ def load_protocol(path: str | Path) -> Protocol:
         expanded = expand_steps(raw_steps)
     except ValueError as exc:
         raise ProtocolFileError(f"protocol file {p}: {exc}") from None
+    except (RecursionError, MemoryError):  # bounded above; never let one through as a traceback
+        raise ProtocolFileError(f"protocol file {p}: steps: too large or too deeply nested to expand") from None
     steps = []
+    total = 0.0
     for label, st in expanded:
         try:
             steps.append(STEP_ADAPTER.validate_python(st))
         except ValidationError as exc:
             raise ProtocolFileError(_error_line(p, label, exc)) from None
+        total += getattr(steps[-1], "duration", None) or getattr(steps[-1], "duration_s", 0.0)
+        if total > MAX_DURATION_S:
+            raise ProtocolFileError(f"protocol file {p}: {label}: the steps up to here last {total:.4g} s, beyond "
+                                    f"the limit of {MAX_DURATION_S:.0f} s (7 days)")
     try:
         return Protocol.model_validate({**data, "steps": steps, "labels": [lab for lab, _ in expanded],
                                         "text": text, "path": str(p)})
