@@ -50,6 +50,7 @@ SAFE_MONITOR_V = 50.0  # |monitor| at or below this after zeroing counts as "out
 DISCHARGE_WAIT_S = 2.0  # how long to keep reading a monitor that is not yet at 0 V before reporting it
 WATCHDOG_MARGIN_S = 0.2  # wait past the module's communication-safety period before checking the output
 COLLECT_PERIOD_S = 0.05  # hardware-timed rigs: collect the DAQ stream (and top up its output buffer) this often
+COLLECT_PERIOD_VIRTUAL_S = 0.25  # virtual time: fewer, larger blocks (the output buffer holds ~0.8 s at 10 kHz)
 LASER_DRAIN_BUDGET_S = 30.0  # at most this long fetching stored laser data after the run (stop: at once)
 STOP_SIGNALS = {
     signal.SIGINT: "interrupted by Ctrl-C",
@@ -310,7 +311,7 @@ class Engine:
                    "force": 1 / rec.force_Hz if inst.load_cell and rec.force_Hz else None,
                    "fetch": FETCH_PERIOD_S if storing else None,
                    "laser": 1 / PASSIVE_LASER_HZ if laser_serial and not storing else None,
-                   "collect": COLLECT_PERIOD_S if streamed else None}
+                   "collect": (COLLECT_PERIOD_VIRTUAL_S if self.clock.virtual else COLLECT_PERIOD_S) if streamed else None}
         count = {k: (1 if k == "fetch" else 0) for k, p in periods.items() if p is not None}
         due = {k: seg.t_start + n * periods[k] for k, n in count.items()}  # from counts: no drift
         t_set, k_set = seg.t_start, 0

@@ -151,10 +151,12 @@ class HardwareTimed:
         alpha = self._alpha()
         if alpha is None:
             return played
-        from scipy.signal import lfilter
-
-        y, _ = lfilter([alpha], [1.0, alpha - 1.0], played, zi=[(1.0 - alpha) * present])
-        return np.asarray(y)
+        out = np.empty_like(played)
+        y = present
+        for k, x in enumerate(played.tolist()):
+            y += alpha * (x - y)
+            out[k] = y
+        return out
 
     # ------------------------------------------------------------ data
     def _played(self) -> float:
