@@ -306,12 +306,13 @@ class Engine:
             self._stream.start(seg, self)  # type: ignore[union-attr]
         dt = 1.0 / rec.setpoint_Hz
         hw = self._stream is not None
+        collect = COLLECT_PERIOD_VIRTUAL_S if self.clock.virtual else COLLECT_PERIOD_S
         periods = {"monitors": 1 / rec.monitors_Hz if inst.amplifier and rec.monitors_Hz and not hw else None,
                    "position": 1 / rec.position_Hz if inst.motor and rec.position_Hz else None,
                    "force": 1 / rec.force_Hz if inst.load_cell and rec.force_Hz else None,
                    "fetch": FETCH_PERIOD_S if storing else None,
                    "laser": 1 / PASSIVE_LASER_HZ if laser_serial and not storing else None,
-                   "collect": (COLLECT_PERIOD_VIRTUAL_S if self.clock.virtual else COLLECT_PERIOD_S) if streamed else None}
+                   "collect": collect if streamed else None}
         count = {k: (1 if k == "fetch" else 0) for k, p in periods.items() if p is not None}
         due = {k: seg.t_start + n * periods[k] for k, n in count.items()}  # from counts: no drift
         t_set, k_set = seg.t_start, 0
