@@ -282,6 +282,10 @@ def test_long_legal_looking_protocols_are_refused_quickly_by_the_dry_run_budget(
     f = safe_protocol(tmp_path, "[[steps]]\ntype = 'hold'\nduration_s = 3000\n",
                       head=SAFE_HEAD.replace("= 20\n", "= 2000\n"))
     refused(f, "recording.setpoint_Hz", "set-point updates", within_s=5.0)
+    # 100,000 short steps (the expansion limit) in 1000 s: each step costs the dry run kernel calls
+    many = ("[[steps]]\ntype = 'repeat'\ncount = 50000\n  [[steps.steps]]\n  type = 'ramp'\n  to = '1 kV'\n"
+            "  duration_s = 0.01\n  [[steps.steps]]\n  type = 'relax'\n  duration_s = 0.01\n")
+    refused(safe_protocol(tmp_path, many), "steps: the dry run would take", "100,000 steps", "budget", within_s=10.0)
 
 
 def test_recorded_samples_are_bounded(tmp_path: Path) -> None:

@@ -6,9 +6,9 @@ specimen will see: peak voltage, peak true electric field against the stretch-de
 aperture and motor travel, force, and whether the model predicts a failure (pull-in, breakdown).
 
 The dry run covers the whole program, so its cost is bounded before it starts: at most ``DRY_RUN_MAX_S`` of
-run time (the model advances at 10 kHz: 3.6·10⁷ steps, about 15–30 s on one core) and ``DRY_RUN_MAX_TICKS``
-set-point updates (about 20 µs each). A longer protocol is refused (split it into several files) rather than
-run with a prediction of only its beginning.
+run time, and an estimated cost (model at 10 kHz, set-point updates, steps; see :func:`dry_run_cost`) of at
+most ``DRY_RUN_BUDGET_S`` seconds on one core. A longer protocol is refused (split it into several files)
+rather than run with a prediction of only its beginning.
 """
 
 from __future__ import annotations
@@ -27,7 +27,12 @@ from sim_devices.plant import HVStage, Plant, PlantBlock
 STREAM_COLUMNS = {"setpoints": 2, "amplifier": 2, "laser": 2, "motor": 2, "load_cell": 1}
 PASSIVE_LASER_HZ = 10.0  # single laser reads while the storage is idle
 DRY_RUN_MAX_S = 3600.0  # run time the dry run integrates (the longest shipped campaign: 1985 s)
-DRY_RUN_MAX_TICKS = 400_000  # set-point updates the dry run replays
+DRY_RUN_BUDGET_S = 30.0  # estimated seconds of one core (the longest shipped campaign: ~17 s estimated, 14 s measured)
+# costs measured on the reference machine (2 cores, numba kernels): the slowest specimen model (LS-DEA, hung mass)
+# advances ~150× faster than real time; one set-point update ~20 µs; one step (segment) 0.2–1 ms (kernel calls)
+COST_PER_RUN_S = 1 / 150
+COST_PER_TICK = 2e-5
+COST_PER_SEGMENT = 1e-3
 
 
 @dataclass
@@ -89,16 +94,25 @@ def ticks(program: Program) -> int:
     return sum(max(1, math.ceil(s.duration / dt - 1e-9)) for s in program.segments if s.duration > 0)
 
 
+def dry_run_cost(program: Program) -> tuple[float, float, float]:
+    """Estimated seconds of one core the dry run spends on (the model, set-point updates, steps)."""
+    return (program.duration * COST_PER_RUN_S, ticks(program) * COST_PER_TICK,
+            len(program.segments) * COST_PER_SEGMENT)
+
+
 def check_budget(program: Program) -> None:
     """Refuse, in one line, a program the dry run cannot integrate within its documented budget."""
     where = f"protocol file {program.protocol.path}"
     if program.duration > DRY_RUN_MAX_S:
         raise ProtocolLimitError(f"{where}: steps: the run lasts {program.duration:.0f} s; the dry run covers at most "
                                  f"{DRY_RUN_MAX_S:.0f} s of run time on the model: split the protocol")
-    n = ticks(program)
-    if n > DRY_RUN_MAX_TICKS:
-        raise ProtocolLimitError(f"{where}: recording.setpoint_Hz: {n:,} set-point updates over the run exceed the "
-                                 f"dry run's {DRY_RUN_MAX_TICKS:,}: lower the rate or split the protocol")
+    model, updates, steps = dry_run_cost(program)
+    if model + updates + steps > DRY_RUN_BUDGET_S:
+        field = "recording.setpoint_Hz" if updates >= max(model, steps) else "steps"
+        raise ProtocolLimitError(
+            f"{where}: {field}: the dry run would take ~{model + updates + steps:.0f} s ({program.duration:.0f} s of "
+            f"run time, {ticks(program):,} set-point updates, {len(program.segments):,} steps), beyond its budget "
+            f"of {DRY_RUN_BUDGET_S:.0f} s: lower recording.setpoint_Hz or split the protocol")
 
 
 def predict(program: Program, progress: Callable[[float], None] | None = None) -> Prediction:
