@@ -52,14 +52,18 @@ SW_OPERATION_ENABLED, SW_ERROR, SW_IN_TARGET, SW_HOMED, SW_FATAL, SW_MOTION_ACTI
 STATE_NAMES = {0: "not ready to switch on", 1: "switch on disabled", 2: "ready to switch on", 3: "setup error",
                4: "error", 5: "hardware tests", 6: "ready to operate", 8: "operation enabled", 9: "homing",
                12: "aborting", 14: "error behaviour quick stop", 15: "going to position"}
-# Drive error codes (LinMot MC-SW drive error codes, Motion Control SW manual error list). In the error state
-# (main state 4) the state var's low byte carries the code. Codes marked "assumed" were not checked against
-# the list; the others are from the manual's list as transcribed in ../shared/instruments.md §2.3 and the
-# project's issue notes.
-ERROR_TEXT = {0x01: "X4 logic supply too low (assumed)", 0x03: "X1 power voltage too low",
-              0x0B: "position lag always too big", 0x20: "motor hot sensor", 0x21: "X3 hall signals missing",
-              0x22: "motor slider missing (fatal)", 0x30: "communication error (assumed)", 0x80: "not homed",
-              0x85: "unknown motion command", 0x86: "motion command in wrong state"}
+# Drive error codes: LinMot "Motion Control SW" user manual 4.3.4, §10 error code list (transcribed in
+# Smart-Vision-Works/linmot_client docs/LinMot_MotionCtrl.md). In the error state (main state 4) the state
+# var's low byte carries the code.
+ERROR_TEXT = {0x01: "X4 logic supply too low", 0x02: "X4 logic supply too high", 0x03: "X1 power voltage too low",
+              0x04: "X1 power voltage too high", 0x07: "min position undershot", 0x08: "max position overshot",
+              0x0B: "position lag always too big", 0x0C: "position lag standing too big",
+              0x20: "motor hot sensor", 0x21: "X3 hall signals missing (fatal)",
+              0x22: "motor slider missing (fatal)", 0x23: "motor short time overload",
+              0x80: "not homed", 0x81: "unknown motion command", 0x82: "PVT buffer overflow",
+              0x83: "PVT buffer underflow", 0x84: "PVT master too fast", 0x85: "PVT master too slow",
+              0x86: "motion command in wrong state", 0x87: "limit switch in high", 0x88: "limit switch out high",
+              0x8A: "command table entry not defined"}
 STATE_ERROR = 4
 
 POS_UNIT = 1e-7  # m per count (0.1 µm)

@@ -4,8 +4,14 @@ Behaviour modelled: general vs communication mode (settings refused in general m
 the model's status-error code), the 8-character value format with over-range (``±FFFFFFF``) and invalid
 (``XXXXXXXX``) values, 0.1-µm display quantisation, seeded Gaussian noise, the measuring range of the head,
 data storage filled from the plant at the configured cycle up to a capacity, error replies to unknown,
-malformed or mis-parameterised commands. The command set and the storage parameters are those of
-:mod:`drivers.keyence` (which documents what is verified and what is assumed).
+malformed or mis-parameterised commands.
+
+Written from the manual, not from :mod:`drivers.keyence` (no constant is shared). Sources: LK-G user manual
+LK-G-M-NO5-E ch. 5 "RS-232C": p. 5-5 command/response/error format ("the main command or identifier that has
+been received is added as a header"; error codes 00/01/20/21/22/88/99), p. 5-6 measurement-value format,
+p. 5-24 output format. Marked [C]: taken from public drivers written against real units (DESY
+cmstkmodlab ``devices/Keyence``; theion-batteries ``firm_keyence_rs232`` for the LK-G5000 codes and MS/MM/MA);
+[assumed]: found in no source — chosen here and to be checked on a unit.
 """
 
 from __future__ import annotations
@@ -13,15 +19,53 @@ from __future__ import annotations
 import math
 import threading
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
-from drivers.keyence import SAMPLING_US, STORAGE_CYCLES, Model, format_value, format_values
 from sim_devices.clock import Clock
 from sim_devices.plant import Plant, PlantBlock
 
+Model = Literal["LK-G3000", "LK-G5000"]
+# Error codes: LK-G3000 from p. 5-5; LK-G5000 [C] theion Keyence_API.h (50 command … 62 parameter range).
 ERR = {"LK-G3000": {"command": "00", "status": "01", "length": "20", "count": "21", "param": "22"},
        "LK-G5000": {"command": "50", "status": "51", "length": "60", "count": "61", "param": "62"}}
+SAMPLING_US = (20, 50, 100, 200, 500, 1000)  # SW,CA codes 0..5 [C] DESY Keyence.cpp
+STORAGE_CYCLES = (1, 2, 5, 10, 20, 50, 100, 200, 500, 1000)  # SW,EB codes [assumed]; ratios: LKIF enum [V header]
+STORAGE_CAPACITY: dict[Model, int] = {"LK-G3000": 65_536, "LK-G5000": 999_999}  # points per OUT [assumed]
+OUTS: dict[Model, int] = {"LK-G3000": 2, "LK-G5000": 12}  # OUT numbers the controller accepts
+MAX_AO_POINTS = 1000  # points per AO request [assumed]
+TURNAROUND_S = 0.5e-3  # command received → first reply byte [assumed: no figure in the pages read]
+
+
+def value_field(mm: float, range_mm: float = math.inf) -> str:
+    """8-character measurement value (p. 5-6): sign + 7 characters with the point, right-aligned;
+    ``±FFFFFFF`` beyond the range, ``XXXXXXXX`` no valid value (NaN). Four decimals (0.1 µm, LK-G152/H152)."""
+    if not math.isfinite(mm):
+        return "XXXXXXXX"
+    sign = "-" if mm < 0 else "+"
+    body = f"{abs(mm):07.4f}"
+    if len(body) > 7 or abs(mm) > range_mm:
+        return sign + "FFFFFFF"
+    return sign + body
+
+
+def value_fields(mm: np.ndarray, range_mm: float = math.inf) -> str:
+    """Comma-separated value fields (:func:`value_field`) of many values, vectorised."""
+    mm = np.asarray(mm, dtype=float)
+    finite = np.isfinite(mm)
+    a = np.zeros(mm.size, dtype=np.int64)
+    a[finite] = np.round(np.abs(mm[finite]) * 1e4).astype(np.int64)
+    out = np.empty((mm.size, 9), dtype=np.uint8)
+    out[:, 8] = ord(",")
+    out[:, 0] = np.where(mm < 0, ord("-"), ord("+"))
+    for col, power in ((1, 100_000), (2, 10_000), (4, 1000), (5, 100), (6, 10), (7, 1)):
+        out[:, col] = ord("0") + (a // power) % 10
+    out[:, 3] = ord(".")
+    over = finite & ((a >= 1_000_000) | (np.abs(mm) > range_mm))
+    out[over, 1:8] = ord("F")
+    out[~finite, 0:8] = ord("X")
+    return out.tobytes()[:-1].decode("ascii")
 
 
 @dataclass
@@ -43,19 +87,22 @@ class KeyenceLKGSim:
     """Protocol handler of the simulated controller (feed it bytes; it returns the reply bytes)."""
 
     def __init__(self, plant: Plant, clock: Clock, *, model: Model = "LK-G3000", head: LaserHead | None = None,
-                 capacity: int = 65_536, seed: int = 1, outs: int = 2) -> None:
+                 capacity: int | None = None, seed: int = 1, outs: int = 1) -> None:
+        """``outs``: OUTs with a head configured (others read ``XXXXXXXX``); ``capacity``: storage points per OUT
+        (default: the model's, :data:`STORAGE_CAPACITY`)."""
         self.plant = plant
         self.clock = clock
         self.model: Model = model
         self.head = head or LaserHead()
-        self.capacity = capacity
+        self.capacity = capacity or STORAGE_CAPACITY[model]
         self.outs = outs
+        self.panel_locked = False
         self.rng = np.random.default_rng(seed)
         self.comm_mode = False
         self.program = 0
         self.sampling_code = 2  # 100 µs
         self.storage_cycle_code = 0
-        self.storage_points = capacity
+        self.storage_points = self.capacity
         self.storing = False
         self._store = np.empty(0)  # storage memory [mm] (NaN = invalid), allocated when storage starts
         self.n_stored = 0
@@ -96,16 +143,12 @@ class KeyenceLKGSim:
             self._prev = (float(block.t[-1]), float(block.displacement[-1]))
 
     def _value_field(self, mm: float) -> str:
-        if not math.isfinite(mm):
-            return format_value(None, "invalid")
-        if mm > self.head.range_mm:
-            return format_value(None, "over_range_positive")
-        if mm < -self.head.range_mm:
-            return format_value(None, "over_range_negative")
-        return format_value(round(mm, 4))
+        return value_field(round(mm, 4) if math.isfinite(mm) else mm, self.head.range_mm)
 
-    def measure(self) -> str:
-        """Current reading of OUT1 as an 8-character field."""
+    def measure(self, out: int = 1) -> str:
+        """Current reading of ``out`` as an 8-character field (no head on it: ``XXXXXXXX``)."""
+        if out > self.outs:
+            return self._value_field(math.nan)
         obs = self.plant.observe()
         mm = float(self._to_mm(obs.displacement)[0]) + float(self.rng.normal(0.0, self.head.noise_mm))
         return self._value_field(mm)
@@ -157,16 +200,13 @@ class KeyenceLKGSim:
             raise _RejectError("status")
 
     def _dispatch(self, main: str, args: list[str]) -> str:
-        if main == "Q0":
+        g3000 = self.model == "LK-G3000"
+        if main in ("Q0", "R0"):  # enter communication / general mode
             self._need(args, 0)
-            self.comm_mode = True
-            return "Q0"
-        if main == "R0":
-            self._need(args, 0)
-            if not self.comm_mode:
-                raise _RejectError("status")
-            self.comm_mode = False
-            return "R0"
+            # R0 in general mode (Q0 in communication mode) is echoed: [C] both public drivers send R0
+            # unconditionally at start-up and check for the echo; the pages read do not say otherwise.
+            self.comm_mode = main == "Q0"
+            return main
         if main == "SW":
             if not self.comm_mode:
                 raise _RejectError("status")
@@ -174,20 +214,36 @@ class KeyenceLKGSim:
         if main == "PR":
             self._need(args, 0)
             return f"PR,{self.program}"
-        if self.model == "LK-G3000" and main in ("M0", "M1", "M2"):
+        if g3000 and main in ("M0", "M1", "M2"):  # measured value, both OUTs / OUT1 / OUT2 [C] DESY
             self._need(args, 0)
             self._general()
             if main == "M0":
-                v = self.measure()
-                return f"M0,{v},{self._value_field(math.nan)}"
-            if main == "M2" and self.outs < 2:
-                raise _RejectError("param")
-            return f"{main},{self.measure() if main == 'M1' else self._value_field(math.nan)}"
-        if self.model == "LK-G5000" and main == "MS":
+                return f"M0,{self.measure(1)},{self.measure(2)}"
+            return f"{main},{self.measure(int(main[1]))}"
+        if g3000 and main in ("KL", "VR", "PW"):  # panel lock 0/1, reset OUT 1/2, program change 0–7 [C] DESY
+            self._need(args, 1)
+            value = self._int(args[0], *{"KL": (0, 1), "VR": (1, OUTS[self.model]), "PW": (0, 7)}[main])
+            if main == "PW":
+                self._general()
+                self.program = value
+            elif main == "KL":
+                self.panel_locked = bool(value)
+            return main
+        if not g3000 and main == "MS":  # one OUT: MS,nn → MS,nn,<value> [C] theion, ugurmengilli
             self._need(args, 1)
             self._general()
-            out = self._int(args[0], 1, 12)
-            return f"MS,{args[0]},{self.measure() if out == 1 else self._value_field(math.nan)}"
+            return f"MS,{args[0]},{self.measure(self._int(args[0], 1, OUTS[self.model]))}"
+        if not g3000 and main == "MA":  # every OUT with a head: MA,<v>,<v>… [C] theion
+            self._need(args, 0)
+            self._general()
+            return "MA," + ",".join(self.measure(o) for o in range(1, self.outs + 1))
+        if not g3000 and main == "MM":  # OUTs by a 12-character 0/1 mask, OUT1 first [C] theion
+            self._need(args, 1)
+            self._general()
+            mask = args[0]
+            if len(mask) != OUTS[self.model] or set(mask) - {"0", "1"} or "1" not in mask:
+                raise _RejectError("param")
+            return f"MM,{mask}," + ",".join(self.measure(i + 1) for i, b in enumerate(mask) if b == "1")
         if main in ("AS", "AP", "AQ", "AN"):
             self._need(args, 0)
             self._general()
@@ -199,11 +255,11 @@ class KeyenceLKGSim:
             self.plant.observe()
             with self._lock:
                 first = self._int(args[1], 0, max(self.n_stored - 1, 0))
-                n = self._int(args[2], 1, 1000)
+                n = self._int(args[2], 1, MAX_AO_POINTS)
                 if first + n > self.n_stored:
                     raise _RejectError("param")
                 values = self._store[first:first + n]
-            return "AO," + format_values(values, self.head.range_mm).decode()
+            return "AO," + value_fields(values, self.head.range_mm)
         raise _RejectError("command")
 
     def _setting(self, args: list[str]) -> str:

@@ -10,6 +10,10 @@
 All three apply the same :class:`Faults` to what the instrument sends: extra latency, silence (timeouts),
 garbled bytes, and a dropped link. A fault can be switched at once or armed for a time on the rig clock or
 after a number of replies (:meth:`Faults.schedule`); ``Faults.injected`` counts the replies it affected.
+
+:class:`Line` is the wire itself: a half-duplex serial line at a baud rate that every transaction on it
+occupies for its character times, inter-frame gaps and the device's turnaround. On the wall clock those
+durations are slept; on a virtual clock they advance it, so a virtual run takes the time a real one would.
 """
 
 from __future__ import annotations
@@ -153,6 +157,69 @@ class Faults:
         return self.process(reply)[0]
 
 
+class Line:
+    """A half-duplex serial wire (8N1: 10 bits per character) shared by everything on it.
+
+    ``gap_chars``: silence that ends a frame (Modbus RTU: 3.5 characters, at least 1.75 ms above 19200 Bd —
+    Modbus over Serial Line v1.02 §2.5.1.1); the device sees a request only after it, and the next frame
+    may start only after it. ``baud`` None: no wire time at all (the old pty behaviour).
+    """
+
+    def __init__(self, clock: Any, baud: float | None, *, gap_chars: float = 0.0, turnaround: float = 0.0,
+                 bits_per_char: int = 10) -> None:
+        self.clock = clock
+        self.baud = baud
+        self.bits_per_char = bits_per_char
+        self.turnaround = turnaround
+        self.gap = 0.0 if not baud else gap_chars * self.char_time
+        if baud and gap_chars and baud > 19200:
+            self.gap = max(self.gap, 1.75e-3) if gap_chars >= 3.5 else max(self.gap, 0.75e-3)
+        self._free = 0.0  # line time at which the wire is next free
+        self.lock = threading.RLock()  # one transaction on the wire at a time
+        self.busy = 0.0  # total time spent on the wire [s] (for benchmarks)
+
+    @property
+    def char_time(self) -> float:
+        """Seconds per character."""
+        return self.bits_per_char / self.baud if self.baud else 0.0
+
+    def frame_time(self, nbytes: int) -> float:
+        """Seconds a frame of ``nbytes`` occupies the wire (without gaps)."""
+        return nbytes * self.char_time
+
+    def _until(self, t: float) -> None:
+        self.clock.wait_until(t)
+
+    def request(self, nbytes: int) -> float:
+        """The master's ``nbytes`` travel (from now, or when the wire frees); returns when the device has
+        them and has seen the end-of-frame gap. Returns the line time of that moment."""
+        if not self.baud:
+            return self.clock.now()
+        with self.lock:
+            start = max(self.clock.now(), self._free)
+            end = start + self.frame_time(nbytes) + self.gap
+            self._free = end
+            self.busy += end - start
+        self._until(end)
+        return end
+
+    def reply(self, nbytes: int, turnaround: float | None = None) -> None:
+        """The device turns around and sends ``nbytes``; returns when the last byte has arrived."""
+        if not self.baud:
+            return
+        with self.lock:
+            start = max(self.clock.now(), self._free)
+            t_turn = self.turnaround if turnaround is None else turnaround
+            end = start + t_turn + self.frame_time(nbytes)
+            self._free = end + self.gap
+            self.busy += end - start + self.gap
+        self._until(end)
+
+    def silent(self, wait: float) -> None:
+        """Nobody answers: the wire stays idle for ``wait`` s (e.g. a gateway's response timeout)."""
+        self._until(self.clock.now() + wait)
+
+
 def _open_raw_pty() -> tuple[int, int, str]:
     master, slave = os.openpty()
     tty.setraw(master)
@@ -167,10 +234,13 @@ class PtyDevice:
     the pty for good, like an unplugged USB adapter: the device path disappears.
     """
 
-    def __init__(self, handler: Callable[[bytes], bytes], name: str, faults: Faults | None = None) -> None:
+    def __init__(self, handler: Callable[[bytes], bytes], name: str, faults: Faults | None = None,
+                 line: Line | None = None) -> None:
+        """``line``: the wire's timing for request and reply (None: the handler times itself, or no wire)."""
         self.handler = handler
         self.name = name
         self.faults = faults or Faults()
+        self.line = line
         self._master, self._slave, self.path = _open_raw_pty()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name=f"sim-{name}", daemon=True)
@@ -196,7 +266,13 @@ class PtyDevice:
                     data = os.read(self._master, 65536)
                 except OSError:
                     break
-                reply, delay = faults.process(self.handler(data), len(data))
+                line = self.line
+                if line is not None:
+                    line.request(len(data))
+                reply = self.handler(data)
+                if reply and line is not None:
+                    line.reply(len(reply))
+                reply, delay = faults.process(reply, len(data))
                 if reply:
                     if delay:
                         time.sleep(delay)

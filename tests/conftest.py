@@ -10,7 +10,7 @@ import pytest
 
 from bench.instruments import Instruments, build_instruments
 from bench.rig import RigConfig, load_rig
-from sim_devices.rig import SimRig
+from sim_devices.rig import SimRig, Timing
 
 ROOT = Path(__file__).resolve().parent.parent
 RIGS = ROOT / "rigs"
@@ -29,18 +29,20 @@ class RunningRig:
         self.sim.clock.advance(seconds)  # type: ignore[attr-defined]
 
 
-def start_rig(name: str, virtual: bool = True, watchdog: bool = False, **overrides: object) -> RunningRig:
+def start_rig(name: str, virtual: bool = True, watchdog: bool = False, timing: Timing = "none",
+              **overrides: object) -> RunningRig:
     """Start the simulated rig ``rigs/<name>.toml`` and connect every driver to it.
 
     The analog module's communication watchdog is off unless ``watchdog``: these tests hold voltages over
-    virtual seconds without talking to the module (the engine feeds it; see test_engine).
+    virtual seconds without talking to the module (the engine feeds it; see test_engine). ``timing``: these
+    fixtures test behaviour at pty speed (``"none"``); wire-time tests ask for ``"real"`` (SimRig's default).
     """
     rig = load_rig(RIGS / f"{name}.toml")
     data = {**rig.model_dump(), **overrides}
     if not watchdog and data.get("amplifier"):
         data["amplifier"] = {**data["amplifier"], "comm_watchdog_s": None}
     rig = RigConfig.model_validate(data)
-    sim = SimRig(rig, virtual=virtual)
+    sim = SimRig(rig, virtual=virtual, timing=timing)
     sim.start()
     inst = build_instruments(rig, sim.port_map(), clock=sim.clock.now, sleep=sim.clock.sleep)
     for link in inst.links.values():

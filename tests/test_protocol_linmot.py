@@ -153,11 +153,12 @@ def test_status_decoding_and_stop() -> None:
     assert s.position == pytest.approx(12.3456e-3)
 
 
-@pytest.mark.parametrize("code, text", [(0x80, "not homed"), (0x85, "unknown motion command"),
-                                        (0x86, "motion command in wrong state"), (0x20, "motor hot sensor"),
-                                        (0x21, "X3 hall signals missing")])
+@pytest.mark.parametrize("code, text", [(0x80, "not homed"), (0x81, "unknown motion command"),
+                                        (0x85, "PVT master too slow"), (0x86, "motion command in wrong state"),
+                                        (0x20, "motor hot sensor"), (0x21, "X3 hall signals missing"),
+                                        (0x08, "max position overshot")])
 def test_error_codes_follow_the_mc_sw_error_list(code: int, text: str) -> None:
-    # LinMot MC-SW drive error codes; error state: main state 4, code in the state var's low byte
+    # MC-SW 4.3.4 §10 error code list; error state: main state 4, code in the state var's low byte
     with expected_protocol("errcode", [(POLL, response(0x0008, 0x0400 | code, 5000))]) as url:
         s = drive(url).status()
     assert s.error and s.error_code == code and text in s.error_text and s.state == "error"

@@ -265,7 +265,8 @@ def test_motor_quick_stop_and_malformed_telegrams(lsdea_motor: RunningRig) -> No
     motor.quick_stop()
     lsdea_motor.advance(0.5)
     s = motor.status()
-    assert s.state == "ready to operate" and not s.moving and not s.enabled
+    # MC-SW §3.22 bit 2 = 0 is OFF3 (quick stop, bridges off) and §3.2: state 1 while bit 1 or 2 is cleared
+    assert s.state == "switch on disabled" and not s.moving and not s.enabled
     with motor.link.lock:  # framing error (no 04h): the drive discards it, the master times out
         motor.link.write(bytes.fromhex("01 11 03 02 01 00 05"))
         with pytest.raises(InstrumentTimeoutError):
