@@ -1,20 +1,51 @@
-"""A whole simulated rig: one plant, one clock, a twin per instrument of the rig file, on real ports."""
+"""A whole simulated rig: one plant, one clock, a twin per instrument of the rig file, on real ports.
+
+Real timing (``timing="real"``): every serial link and RS-485 bus is a :class:`Line` at the rig file's baud
+rate, so requests and replies take their wire time, the inter-frame gaps and the devices' turnarounds —
+slept on the wall clock, added to a virtual clock (a virtual run then takes the time a real one would).
+``timing="none"`` serves at pty speed. Default (None): real on the wall clock (``bench sim serve``,
+real-time runs); on a virtual clock "none" for now — several shipped protocols exceed their lines (see
+:mod:`bench.protocol.link_budget`), so virtual runs opt in with ``timing="real"`` once they fit.
+On the wall clock a background thread keeps the plant at the present, so a request after a long idle
+time is answered without first integrating the idle time.
+"""
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass, field
+from typing import Literal
 
 from bench.rig import RigConfig
-from drivers.adam import RawScale
-from drivers.keyence import STORAGE_CAPACITY
-from drivers.trek import TREK_MODELS, TrekModel
 from sim_devices.clock import Clock, VirtualClock, WallClock
+from sim_devices.keyence_lkg import TURNAROUND_S as LKG_TURNAROUND_S
 from sim_devices.keyence_lkg import KeyenceLKGSim, LaserHead
 from sim_devices.linmot_drive import LinMotDriveSim
-from sim_devices.modbus_devices import Adam4017PSim, Adam4024Sim, Dgt1sSim
+from sim_devices.modbus_devices import Adam4017PSim, Adam4024Sim, Dgt1sSim, Scale
 from sim_devices.modbus_host import ModbusHost, SimBus
 from sim_devices.plant import HVStage, Plant
-from sim_devices.transport import Faults, PtyDevice
+from sim_devices.transport import Faults, Line, PtyDevice
+
+
+@dataclass(frozen=True)
+class AmplifierSpec:
+    """A TREK HS amplifier as the plant and the monitor wiring see it."""
+
+    model: str
+    max_output: float  # V
+    max_current: float  # A (DC)
+    gain: float  # V out per V in
+    vmon_ratio: float  # V of output per V of monitor
+    imon_ratio: float  # A of output per V of monitor
+
+
+# TREK HS datasheets (Advanced Energy 2022): ±10 kV, 10 mA / 40 mA DC, gain 1000 V/V. Monitor ratios
+# [assumed: the operator manual was not read; calibrate and set them in the rig file].
+TREK_DATASHEET = {"10/10B-HS": AmplifierSpec("10/10B-HS", 10e3, 10e-3, 1000.0, 1000.0, 1e-3),
+                  "10/40A-HS": AmplifierSpec("10/40A-HS", 10e3, 40e-3, 1000.0, 1000.0, 4e-3)}
+LINRS_TURNAROUND_S = 1e-3  # LinMot drive: telegram received → response [assumed]
+PLANT_TICK_S = 0.02  # wall clock: the background thread advances the plant this often
+Timing = Literal["real", "none"]
 
 
 @dataclass(frozen=True)
@@ -33,17 +64,23 @@ class SimRig:
 
     rig: RigConfig
     virtual: bool = False
+    timing: Timing | None = None
     clock: Clock = field(init=False)
     plant: Plant = field(init=False)
     twins: dict[str, object] = field(init=False, default_factory=dict)
     faults: dict[str, Faults] = field(init=False, default_factory=dict)
     _serial: dict[str, PtyDevice] = field(init=False, default_factory=dict)
     _modbus: ModbusHost | None = field(init=False, default=None)
-    _daq_ports: tuple[int, int] = field(init=False, default=(0, 0))
+
+    lines: dict[str, Line] = field(init=False, default_factory=dict)
+    _ticker: threading.Thread | None = field(init=False, default=None)
+    _stop_ticker: threading.Event = field(init=False, default_factory=threading.Event)
 
     def __post_init__(self) -> None:
         rig = self.rig
         self.clock = VirtualClock() if self.virtual else WallClock()
+        if self.timing is None:
+            self.timing = "none" if self.virtual else "real"
         spec = rig.specimen
         trek = self._trek()
         hv = HVStage(max_current=trek.max_current, max_output=trek.max_output, gain=trek.gain)
@@ -55,82 +92,70 @@ class SimRig:
             self.plant = Plant(self.clock, spec.lozenge(), configuration=cfg.configuration, x0=x0, hv=hv,
                                motor_sign=cfg.motor_sign)
 
-    def _trek(self) -> TrekModel:
+    def _trek(self) -> AmplifierSpec:
         a = self.rig.amplifier
-        base = TREK_MODELS[a.model if a else "10/10B-HS"]
+        base = TREK_DATASHEET[a.model if a else "10/10B-HS"]
         if a is None:
             return base
-        return TrekModel(base.model, base.max_output, base.max_current, base.gain,
-                         a.vmon_ratio or base.vmon_ratio, a.imon_ratio or base.imon_ratio)
+        return AmplifierSpec(base.model, base.max_output, base.max_current, base.gain,
+                             a.vmon_ratio or base.vmon_ratio, a.imon_ratio or base.imon_ratio)
 
     def start(self) -> dict[str, Endpoint]:
         """Start every twin; returns the endpoints by role (serial instruments) or bus name (Modbus)."""
         rig, sim = self.rig, self.rig.simulation
         if rig.laser is not None:
             head = LaserHead(offset_mm=rig.laser.offset_mm, sign=rig.laser.sign, range_mm=rig.laser.range_mm)
-            capacity = rig.laser.storage_points or STORAGE_CAPACITY[rig.laser.model]
-            twin = KeyenceLKGSim(self.plant, self.clock, model=rig.laser.model, head=head, capacity=capacity,
-                                 seed=sim.seed)
-            self._serve_serial("laser", twin)
+            twin = KeyenceLKGSim(self.plant, self.clock, model=rig.laser.model, head=head,
+                                 capacity=rig.laser.storage_points, seed=sim.seed, outs=max(1, rig.laser.out))
+            self._serve_serial("laser", twin, rig.laser.baudrate, LKG_TURNAROUND_S)
         if rig.motor is not None:
             m = rig.motor
             stroke = (min(m.travel_m[0], 0.0), max(m.travel_m[1], 0.12))
             self._serve_serial("motor", LinMotDriveSim(self.plant, self.clock, drive_id=m.drive_id, stroke=stroke,
-                                                       checksum=m.checksum))
-        if rig.daq is not None:
-            self._start_daq()
+                                                       checksum=m.checksum), m.baudrate, LINRS_TURNAROUND_S)
         buses: dict[str, list] = {}
-        if (a := rig.amplifier) is not None and a.drive == "adam":
-            scale_ao = RawScale(bits=a.ao_bits, raw_format=a.raw_format)
-            scale_ai = RawScale(bits=a.ai_bits, raw_format=a.raw_format)
-            ao = Adam4024Sim(a.ao_unit, self.plant, amplifier_channel=a.ao_channel, scale=scale_ao)
-            ai = Adam4017PSim(a.ai_unit, self.plant, self.clock, self._trek(), vmon_channel=a.vmon_channel,
-                              imon_channel=a.imon_channel, scale=scale_ai, seed=sim.seed + 1)
+        if (a := rig.amplifier) is not None:
+            trek = self._trek()
+            ao = Adam4024Sim(a.ao_unit, self.plant, self.clock, amplifier_channel=a.ao_channel,
+                             scale=Scale(bits=a.ao_bits, raw_format=a.raw_format), watchdog_s=a.comm_watchdog_s)
+            ai = Adam4017PSim(a.ai_unit, self.plant, self.clock, vmon_ratio=trek.vmon_ratio,
+                              imon_ratio=trek.imon_ratio, vmon_channel=a.vmon_channel,
+                              imon_channel=a.imon_channel, scale=Scale(bits=a.ai_bits, raw_format=a.raw_format),
+                              seed=sim.seed + 1)
             self.twins["amplifier AO"], self.twins["amplifier AI"] = ao, ai
-            self.plant.input_watchdog = a.comm_watchdog_s
-            buses.setdefault(a.bus, []).extend([ao.device, ai.device])
+            buses.setdefault(a.bus, []).extend([ao, ai])
         if (c := rig.load_cell) is not None:
             cell = Dgt1sSim(c.unit, self.plant, self.clock, division=c.division_kg, capacity=c.capacity_kg,
                             seed=sim.seed + 2)
             self.twins["load_cell"] = cell
-            buses.setdefault(c.bus, []).append(cell.device)
+            buses.setdefault(c.bus, []).append(cell)
         if buses:
             sim_buses = []
             for name, devices in buses.items():
                 self.faults[name] = Faults(latency=sim.latency_s, clock=self.clock.now)
-                sim_buses.append(SimBus(name, devices, transport=sim.modbus_transport,
-                                        baudrate=rig.buses[name].baudrate, faults=self.faults[name]))
+                bus = SimBus(name, devices, transport=sim.modbus_transport, baudrate=rig.buses[name].baudrate,
+                             faults=self.faults[name], clock=self.clock, timing=self.timing == "real")
+                assert bus.line is not None
+                self.lines[name] = bus.line
+                sim_buses.append(bus)
             self._modbus = ModbusHost(sim_buses)
             self._modbus.start()
+        if not self.virtual:
+            self._stop_ticker.clear()
+            self._ticker = threading.Thread(target=self._keep_up, name="sim-plant", daemon=True)
+            self._ticker.start()
         return self.endpoints()
 
-    def _start_daq(self) -> None:
-        """The T7 twin: DAC → conditioning → amplifier input; AINs wired to the plant's observables."""
-        from sim_devices.labjack_t7 import Conditioning, LabJackT7Sim, Signal
+    def _keep_up(self) -> None:
+        """Wall clock: keep the plant at the present, so no request pays for integrating idle time."""
+        while not self._stop_ticker.wait(PLANT_TICK_S):
+            self.plant.advance_to(self.clock.now())
 
-        d, rig, trek = self.rig.daq, self.rig, self._trek()
-        assert d is not None
-        signals = {d.vmon_ain: Signal("voltage", 1.0 / trek.vmon_ratio),
-                   d.imon_ain: Signal("current", 1.0 / trek.imon_ratio)}
-        if d.force_ain is not None:
-            signals[d.force_ain] = Signal("force", 1.0 / d.force_N_per_V, -d.force_offset_N / d.force_N_per_V)
-        if d.laser_ain is not None:  # the head reads sign·(specimen coordinate) + offset (as the serial twin)
-            sign, offset = (rig.laser.sign, rig.laser.offset_mm * 1e-3) if rig.laser else (1, 0.0)
-            signals[d.laser_ain] = Signal("displacement", sign / d.laser_m_per_V,
-                                          (offset - d.laser_offset_m) / d.laser_m_per_V)
-        self.faults["daq"] = Faults(latency=rig.simulation.latency_s, clock=self.clock.now)
-        cond = Conditioning(d.drive_gain, d.drive_offset_V, corner_Hz=d.drive_filter_Hz)
-        twin = LabJackT7Sim(self.plant, self.clock, dac=d.dac, conditioning=cond, signals=signals,
-                            seed=rig.simulation.seed + 3, faults=self.faults["daq"])
-        self._daq_ports = twin.start()
-        self.twins["daq"] = twin
-        if rig.amplifier is not None and rig.amplifier.drive == "daq":
-            self.plant.input_watchdog = d.watchdog_s
-
-    def _serve_serial(self, role: str, twin: object) -> None:
+    def _serve_serial(self, role: str, twin: object, baud: float, turnaround: float) -> None:
         self.faults[role] = Faults(latency=self.rig.simulation.latency_s, clock=self.clock.now)
         self.twins[role] = twin
-        self._serial[role] = PtyDevice(twin, role, self.faults[role]).start()  # type: ignore[arg-type]
+        self.lines[role] = Line(self.clock, baud if self.timing == "real" else None, turnaround=turnaround)
+        self._serial[role] = PtyDevice(twin, role, self.faults[role], self.lines[role]).start()  # type: ignore[arg-type]
 
     def faults_of(self, name: str) -> Faults:
         """The :class:`Faults` of the link serving ``name``: a serial role (``laser``, ``motor``), a bus name
@@ -154,10 +179,6 @@ class SimRig:
         if "motor" in self._serial and rig.motor is not None:
             out["motor"] = Endpoint("motor", "LinMot LinRS", self._serial["motor"].path,
                                     f"drive id {rig.motor.drive_id:#04x}")
-        if "daq" in self.twins and rig.daq is not None:
-            port, stream_port = self._daq_ports
-            out["daq"] = Endpoint("daq", "LabJack T7 Modbus TCP + stream", f"127.0.0.1:{port}:{stream_port}",
-                                  f"{rig.daq.scan_rate_Hz:g} scans/s")
         if self._modbus is not None:
             for bus in self._modbus.buses:
                 units = []
@@ -175,8 +196,10 @@ class SimRig:
 
     def stop(self) -> None:
         """Stop every twin and close the ports."""
-        if (daq := self.twins.pop("daq", None)) is not None:
-            daq.stop()  # type: ignore[attr-defined]
+        self._stop_ticker.set()
+        if self._ticker is not None:
+            self._ticker.join(timeout=2)
+            self._ticker = None
         for dev in self._serial.values():
             dev.stop()
         self._serial.clear()
