@@ -71,6 +71,7 @@ class SimRig:
     faults: dict[str, Faults] = field(init=False, default_factory=dict)
     _serial: dict[str, PtyDevice] = field(init=False, default_factory=dict)
     _modbus: ModbusHost | None = field(init=False, default=None)
+    _daq_ports: tuple[int, int] = field(init=False, default=(0, 0))
 
     lines: dict[str, Line] = field(init=False, default_factory=dict)
     _ticker: threading.Thread | None = field(init=False, default=None)
@@ -113,8 +114,10 @@ class SimRig:
             stroke = (min(m.travel_m[0], 0.0), max(m.travel_m[1], 0.12))
             self._serve_serial("motor", LinMotDriveSim(self.plant, self.clock, drive_id=m.drive_id, stroke=stroke,
                                                        checksum=m.checksum), m.baudrate, LINRS_TURNAROUND_S)
+        if rig.daq is not None:
+            self._start_daq()
         buses: dict[str, list] = {}
-        if (a := rig.amplifier) is not None:
+        if (a := rig.amplifier) is not None and a.drive == "adam":
             trek = self._trek()
             ao = Adam4024Sim(a.ao_unit, self.plant, self.clock, amplifier_channel=a.ao_channel,
                              scale=Scale(bits=a.ao_bits, raw_format=a.raw_format), watchdog_s=a.comm_watchdog_s)
@@ -151,6 +154,29 @@ class SimRig:
         while not self._stop_ticker.wait(PLANT_TICK_S):
             self.plant.advance_to(self.clock.now())
 
+    def _start_daq(self) -> None:
+        """The T7 twin: DAC → conditioning → amplifier input; AINs wired to the plant's observables."""
+        from sim_devices.labjack_t7 import Conditioning, LabJackT7Sim, Signal
+
+        d, rig, trek = self.rig.daq, self.rig, self._trek()
+        assert d is not None
+        signals = {d.vmon_ain: Signal("voltage", 1.0 / trek.vmon_ratio),
+                   d.imon_ain: Signal("current", 1.0 / trek.imon_ratio)}
+        if d.force_ain is not None:
+            signals[d.force_ain] = Signal("force", 1.0 / d.force_N_per_V, -d.force_offset_N / d.force_N_per_V)
+        if d.laser_ain is not None:  # the head reads sign·(specimen coordinate) + offset (as the serial twin)
+            sign, offset = (rig.laser.sign, rig.laser.offset_mm * 1e-3) if rig.laser else (1, 0.0)
+            signals[d.laser_ain] = Signal("displacement", sign / d.laser_m_per_V,
+                                          (offset - d.laser_offset_m) / d.laser_m_per_V)
+        self.faults["daq"] = Faults(latency=rig.simulation.latency_s, clock=self.clock.now)
+        cond = Conditioning(d.drive_gain, d.drive_offset_V, corner_Hz=d.drive_filter_Hz)
+        twin = LabJackT7Sim(self.plant, self.clock, dac=d.dac, conditioning=cond, signals=signals,
+                            seed=rig.simulation.seed + 3, faults=self.faults["daq"])
+        self._daq_ports = twin.start()
+        self.twins["daq"] = twin
+        if rig.amplifier is not None and rig.amplifier.drive == "daq":
+            self.plant.input_watchdog = d.watchdog_s
+
     def _serve_serial(self, role: str, twin: object, baud: float, turnaround: float) -> None:
         self.faults[role] = Faults(latency=self.rig.simulation.latency_s, clock=self.clock.now)
         self.twins[role] = twin
@@ -179,6 +205,10 @@ class SimRig:
         if "motor" in self._serial and rig.motor is not None:
             out["motor"] = Endpoint("motor", "LinMot LinRS", self._serial["motor"].path,
                                     f"drive id {rig.motor.drive_id:#04x}")
+        if "daq" in self.twins and rig.daq is not None:
+            port, stream_port = self._daq_ports
+            out["daq"] = Endpoint("daq", "LabJack T7 Modbus TCP + stream", f"127.0.0.1:{port}:{stream_port}",
+                                  f"{rig.daq.scan_rate_Hz:g} scans/s")
         if self._modbus is not None:
             for bus in self._modbus.buses:
                 units = []
@@ -200,6 +230,8 @@ class SimRig:
         if self._ticker is not None:
             self._ticker.join(timeout=2)
             self._ticker = None
+        if (daq := self.twins.pop("daq", None)) is not None:
+            daq.stop()  # type: ignore[attr-defined]
         for dev in self._serial.values():
             dev.stop()
         self._serial.clear()
