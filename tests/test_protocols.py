@@ -346,6 +346,7 @@ def test_cli_move_on_a_rig_without_motor_and_simulate_edge_cases() -> None:
     assert "creep +0.0 %" in proc.stdout  # no drive: the specimen stays at rest
     for args in (["thesis", "--voltage", "nan"], ["thesis", "--frequency", "-1"], ["thesis", "--duration", "1e9"],
                  ["thesis", "--frequency", "1000", "--duration", "600"],
+                 ["thesis", "--frequency", "10", "--duration", "20", "--waveform", "square"],
                  ["lsdea", "isotonic", "--frequency", "0.01", "--cycles", "1000"], ["lsdea", "--mass", "nan"]):
         proc = _bench("simulate", *args)
         assert proc.returncode == 2 and "Traceback" not in proc.stderr, (args, proc.stderr)
