@@ -135,7 +135,7 @@ def predict(program: Program, progress: Callable[[float], None] | None = None) -
         nonlocal pred
         e = np.abs(block.field)
         pred.peak_field = max(pred.peak_field, float(np.nanmax(e)))
-        with np.errstate(divide="ignore", invalid="ignore"):
+        with np.errstate(all="ignore"):  # E → 0 or tiny: an infinite margin
             margin = np.where(e > 0, block.breakdown / e, np.inf)
         i = int(np.nanargmin(margin))
         if margin[i] < pred.min_breakdown_margin:
