@@ -294,6 +294,7 @@ class BenchmarkSet(StrEnum):
     acquisition = "acquisition"
     run = "run"
     fit = "fit"
+    daq = "daq"
     all = "all"
 
 
@@ -330,6 +331,10 @@ def benchmark(
         from bench import benchmark_fit
 
         sets.append(("identification (thesis record, 2 cores)", benchmark_fit.run_all))
+    if which in (BenchmarkSet.daq, BenchmarkSet.all):
+        from bench import benchmark_daq
+
+        sets.append(("hardware-timed rigs (LabJack T7 twin)", benchmark_daq.run_all))
     for title, fn in sets:
         with console.status(f"benchmarking {title}…"):
             figures = fn(quick=quick)

@@ -285,9 +285,14 @@ class LabJackT7Sim:
         """Plant observables held at the last model step at or before each time."""
         self.plant.advance_to(float(times[-1]))
         with self._hist_lock:
-            t = np.concatenate(list(self._hist_t))
+            first = len(self._hist_t) - 1  # only the blocks that cover the requested times (and the one before)
+            while first > 0 and self._hist_t[first][0] > times[0]:
+                first -= 1
+            hist_t = [self._hist_t[i] for i in range(first, len(self._hist_t))]
+            hist = [self._hist[i] for i in range(first, len(self._hist))]
+            t = np.concatenate(hist_t)
             idx = np.clip(np.searchsorted(t, times + 1e-9, side="right") - 1, 0, t.size - 1)
-            return {k: np.concatenate([h[k] for h in self._hist])[idx] for k in self._hist[0]}
+            return {k: np.concatenate([h[k] for h in hist])[idx] for k in hist[0]}
 
     def _ain_volts(self, ain: int, obs: dict[str, np.ndarray], n: int) -> np.ndarray:
         sig = self.signals.get(ain)
@@ -362,7 +367,9 @@ class LabJackT7Sim:
         if not self.streaming:
             return len(o.queue)
         cur = self._cur_scan(now)
-        return sum(1 for s, _ in o.sched if s > cur)
+        # scheduled scans after ``cur`` are contiguous up to next_scan − 1 (a gap only follows an underrun,
+        # and then every earlier scan has been played)
+        return max(0, min(len(o.sched), o.next_scan - 1 - cur))
 
     def pump(self) -> None:
         """Take the scans due by now, play stream-out, send whole packets (called every ``poll`` s)."""

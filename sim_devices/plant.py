@@ -235,7 +235,7 @@ class Plant:
         starts = np.minimum(np.maximum(0, np.floor(times / self.h + 1e-6).astype(np.int64) - first), n)
         ends = np.append(starts[1:], n)
         used = ends > starts
-        del events[:m - 1]  # keep the value in force at the block's end
+        del events[:max(m - 1, 0)]  # keep the value in force at the block's end
         return starts[used], ends[used], values[used]
 
     def _hv_output(self, n: int) -> np.ndarray:
