@@ -1,9 +1,10 @@
 """Acquisition-rate benchmarks: each instrument through its driver and its simulated twin on real ports.
 
-Polled figures are request/response rates over a pty (or pty bridge for Modbus RTU) on the wall-clock
-simulated rig: they measure the driver + protocol + twin + plant, not a real wire, since a pty has no baud
-rate. The buffered laser figure runs the LK-G data storage at 10 kHz in virtual time and checks that every
-stored sample arrives exactly once; a second figure emulates the wire time of a 115200 Bd RS-232 link.
+Polled figures are sustained request/response rates on the wall-clock simulated rig with real timing (the
+twins take each transaction's wire time at the rig's baud rate, the inter-frame silences and the device
+turnaround), each beside its analytic limit from :mod:`bench.protocol.link_budget` — the rate the line
+allows if the host wasted no time. The buffered laser figure runs the LK-G data storage at 10 kHz in
+virtual time at pty speed and checks that every stored sample arrives exactly once.
 """
 
 from __future__ import annotations
@@ -16,8 +17,15 @@ from pathlib import Path
 import numpy as np
 
 from bench.instruments import Instruments, build_instruments
+from bench.protocol.link_budget import (
+    TURNAROUND_LINRS_S,
+    TURNAROUND_LKG_S,
+    char_time,
+    laser_upload_rate,
+    rtu_transaction,
+)
 from bench.rig import RigConfig, load_rig
-from sim_devices.rig import SimRig
+from sim_devices.rig import SimRig, Timing
 
 RIGS = Path(__file__).resolve().parent.parent / "rigs"
 
@@ -32,12 +40,12 @@ class Figure:
     note: str = ""
 
 
-def _rig(name: str, virtual: bool, modbus: str | None = None) -> tuple[SimRig, Instruments]:
+def _rig(name: str, virtual: bool, modbus: str | None = None, timing: Timing = "real") -> tuple[SimRig, Instruments]:
     rig = load_rig(RIGS / f"{name}.toml")
     if modbus is not None:
         rig = RigConfig.model_validate({**rig.model_dump(),
                                         "simulation": {**rig.simulation.model_dump(), "modbus_transport": modbus}})
-    sim = SimRig(rig, virtual=virtual)
+    sim = SimRig(rig, virtual=virtual, timing=timing)
     sim.start()
     inst = build_instruments(rig, sim.port_map(), clock=sim.clock.now, sleep=sim.clock.sleep)
     for _, drv in inst.items():
@@ -54,27 +62,38 @@ def _rate(fn: Callable[[], object], seconds: float) -> float:
     return n / elapsed
 
 
+def _vs(rate: float, limit: float) -> str:
+    return f"analytic limit {limit:,.0f}/s: {rate / limit:.0%}"
+
+
 def polled(seconds: float = 1.0) -> list[Figure]:
-    """Sustained polled rates of every instrument on the wall-clock simulated rigs."""
+    """Sustained polled rates through the drivers with real timing, beside each link's analytic limit."""
     out: list[Figure] = []
-    for modbus, label in (("rtu", "Modbus RTU on a pty"), ("tcp", "Modbus TCP on loopback")):
+    fc6, fc3, fc4 = rtu_transaction(19200, 8, 8), rtu_transaction(19200, 8, 9), rtu_transaction(19200, 8, 15)
+    for modbus, label in (("rtu", "RTU, 19200 Bd, pty"), ("tcp", "Modbus TCP gateway, RS-485 at 19200 Bd")):
         sim, inst = _rig("thesis-sim", virtual=False, modbus=modbus)
         try:
             if modbus == "rtu":
-                out.append(Figure("laser single read (M1 / MS)", _rate(inst.laser.read, seconds), "reads/s", "pty"))
-            out.append(Figure("amplifier set-point (FC6 on ADAM-4024)",
-                              _rate(lambda i=inst: i.amplifier.set_voltage(100.0), seconds), "writes/s", label))
-            out.append(Figure("amplifier monitors (FC3 on ADAM-4017+)", _rate(inst.amplifier.read_monitors, seconds),
-                              "reads/s", f"{label}; module converts at 10 S/s"))
+                limit = 1 / ((6 + 15) * char_time(115200) + TURNAROUND_LKG_S)
+                rate = _rate(inst.laser.read, seconds)
+                out.append(Figure("laser single read (MS,01), 115200 Bd", rate, "reads/s", _vs(rate, limit)))
+            rate = _rate(lambda i=inst: i.amplifier.set_voltage(100.0), seconds)
+            out.append(Figure(f"amplifier set-point (FC6 on ADAM-4024), {label}", rate, "writes/s",
+                              _vs(rate, 1 / fc6)))
+            rate = _rate(inst.amplifier.read_monitors, seconds)
+            out.append(Figure(f"amplifier monitors (FC3 on ADAM-4017+), {label}", rate, "reads/s",
+                              _vs(rate, 1 / fc3)))
         finally:
             inst.close()
             sim.stop()
-    sim, inst = _rig("lsdea-motor-sim", virtual=False, modbus="rtu")
+    sim, inst = _rig("lsdea-motor-sim", virtual=False, modbus="tcp")
     try:
-        out.append(Figure("motor position (LinRS default response)", _rate(inst.motor.read_position, seconds),
-                          "reads/s", "pty"))
-        out.append(Figure("load cell (FC4 on DGT1S)", _rate(inst.load_cell.read, seconds), "reads/s",
-                          "Modbus RTU on a pty; transmitter converts at 100 S/s"))
+        rate = _rate(inst.motor.read_position, seconds)
+        limit = 1 / ((7 + 16) * char_time(115200) + TURNAROUND_LINRS_S)
+        out.append(Figure("motor position (LinRS default response), 115200 Bd", rate, "reads/s", _vs(rate, limit)))
+        rate = _rate(inst.load_cell.read, seconds)
+        out.append(Figure("load cell (FC4 on DGT1S), gateway, RS-485 at 19200 Bd", rate, "reads/s",
+                          _vs(rate, 1 / fc4)))
     finally:
         inst.close()
         sim.stop()
@@ -83,7 +102,7 @@ def polled(seconds: float = 1.0) -> list[Figure]:
 
 def buffered_laser(duration: float = 20.0, fetch_every: float = 0.5) -> list[Figure]:
     """LK-G storage at 10 kHz for ``duration`` virtual seconds, fetched in blocks while it runs."""
-    sim, inst = _rig("thesis-sim", virtual=True)
+    sim, inst = _rig("thesis-sim", virtual=True, timing="none")
     laser, clock = inst.laser, sim.clock
     try:
         clock.advance(1.0)  # type: ignore[attr-defined]
@@ -110,27 +129,28 @@ def buffered_laser(duration: float = 20.0, fetch_every: float = 0.5) -> list[Fig
             Figure("  same, as a multiple of real time", duration / wall, "× real time", "virtual clock")]
 
 
-def laser_upload_at_baud(baud: float = 115200.0, points: int = 2000) -> Figure:
-    """Upload throughput of stored points with the wire time of ``baud`` emulated on the pty."""
-    sim, inst = _rig("thesis-sim", virtual=True)
+def laser_upload(points: int = 2000) -> Figure:
+    """Upload throughput of stored points through the driver on the wall clock with real timing (115200 Bd)."""
+    sim, inst = _rig("thesis-sim", virtual=False)
     try:
         inst.laser.start_buffer(1e-4)
-        sim.clock.advance(points * 1e-4)  # type: ignore[attr-defined]
+        time.sleep(points * 1e-4 + 0.05)
         inst.laser.stop_buffer()
-        sim.faults["laser"].wire_baud = baud
-        t0 = time.perf_counter()
-        n = inst.laser.fetch_buffer().values.size
+        n, t0 = 0, time.perf_counter()
+        while inst.laser.pending or n == 0:
+            n += inst.laser.fetch_buffer().values.size
         wall = time.perf_counter() - t0
     finally:
         inst.close()
         sim.stop()
-    return Figure(f"laser storage upload at {baud:g} Bd (wire time emulated)", n / wall, "samples/s",
-                  "9 bytes per value on the wire")
+    rate = n / wall
+    return Figure("laser storage upload (AO), 115200 Bd", rate, "samples/s",
+                  f"{_vs(rate, laser_upload_rate(115200))}; 9 bytes a value")
 
 
 def run_all(quick: bool = False) -> list[Figure]:
     """All acquisition figures (``quick``: shorter runs)."""
     figs = polled(0.3 if quick else 1.0)
     figs += buffered_laser(2.0 if quick else 20.0)
-    figs.append(laser_upload_at_baud(points=500 if quick else 2000))
+    figs.append(laser_upload(points=1000 if quick else 4000))
     return figs

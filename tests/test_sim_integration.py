@@ -301,3 +301,36 @@ def test_analog_module_watchdog_zeroes_the_amplifier_when_the_host_goes_silent(
     sim.faults["io"].drop = True  # the host can no longer reach the module
     thesis_rtu.advance(2.0)  # longer than the 1-s communication safety of the rig file
     assert sim.plant.observe().voltage[0] == 0.0 and sim.plant.watchdog_tripped
+
+
+# ------------------------------------------------------------------ wall clock: the plant keeps up in the background
+
+
+def test_first_reply_after_idle_is_wire_time_not_integration_time() -> None:
+    """Issue 10: the first reply after 3 minutes idle within 5 ms + wire time. Three minutes of idle are
+    emulated by moving the wall clock's origin back 180 s (the background thread then has to catch up, as it
+    would have done during the idle time); the reply after it costs no more than after 1 s of idle."""
+    import time
+
+    from tests.conftest import start_rig
+
+    r = start_rig("thesis-sim", virtual=False, timing="real")
+    try:
+        laser, sim = r.inst.laser, r.sim
+        wire = (6 + 15) * 10 / 115200 + 0.5e-3  # "MS,01\r" + "MS,01,+dd.dddd\r" at 115200 Bd, turnaround
+        time.sleep(1.0)
+        t0 = time.perf_counter()
+        laser.read()
+        after_1s = time.perf_counter() - t0
+        sim.clock._t0 -= 180.0  # type: ignore[attr-defined]  # three minutes have passed
+        deadline = time.monotonic() + 20.0
+        while sim.plant.t < sim.clock.now() - 0.1 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        t0 = time.perf_counter()
+        reading = laser.read()
+        after_3min = time.perf_counter() - t0
+        assert reading.timestamp > 180.0 and sim.plant.t > 180.0
+        assert after_1s < 5e-3 + wire and after_3min < 5e-3 + wire, (after_1s, after_3min)
+    finally:
+        r.inst.close()
+        r.sim.stop()

@@ -1,0 +1,166 @@
+"""Link budget of a compiled program on its rig: can each wire carry what the engine will ask of it?
+
+For every link the engine uses — each Modbus RTU bus (also behind a TCP gateway: the RS-485 line is the
+bottleneck), the LK-G RS-232 link, the LinRS link — the load is Σ (transactions/s × time on the wire), the
+time of one transaction being its characters (8N1: 10 bits each) at the link's baud rate, the inter-frame
+silences (Modbus RTU: 3.5 characters, 1.75 ms above 19200 Bd — Modbus over Serial Line v1.02 §2.5.1.1)
+and the device's turnaround. Besides the load: the laser's storage fill rate against its upload rate (the
+engine uploads while it stores), and polling rates against the instruments' conversion rates.
+
+:func:`check_links` returns one line per problem, naming the channel, the numbers and what would fit;
+an empty list means every link can carry the program. The traffic model follows :mod:`bench.engine`:
+set-points at ``recording.setpoint_Hz`` while a step streams, then one keep-alive per
+``max(1/setpoint_Hz, HOLD_KEEPALIVE_S)``; monitors, encoder and load cell at their rates; laser storage
+fetched every ``FETCH_PERIOD_S`` while storing, single reads at ``PASSIVE_LASER_HZ`` otherwise.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from bench.protocol.program import Program
+
+TURNAROUND_MODBUS_S = 1e-3  # ADAM / DGT1S request → reply [assumed: no figure in the manuals read]
+TURNAROUND_LKG_S = 0.5e-3  # LK-G command → reply [assumed]
+TURNAROUND_LINRS_S = 1e-3  # LinMot telegram → response [assumed]
+ADAM_4017P_RATE = 10.0  # conversions/s over all enabled channels (datasheet)
+DGT1S_RATE = 100.0  # conversions/s [assumed: the DGT1S offers several rates]
+LKG_VALUE_BYTES = 9  # one stored value in an AO reply: 8 characters and a comma (manual p. 5-6)
+LKG_UPLOAD_CHUNK_S = 0.2  # the driver sizes AO requests to this much wire time
+HOLD_KEEPALIVE_S = 0.25  # bench.engine: set-point refresh during holds
+PASSIVE_LASER_HZ = 10.0  # bench.engine: single laser reads while not storing
+MAX_LOAD = 1.0  # a link busy more than this fraction of the time cannot keep up
+
+
+@dataclass(frozen=True)
+class LinkLoad:
+    """What one link carries: name, baud rate, busiest-step traffic and its share of the wire."""
+
+    link: str
+    baud: int
+    items: tuple[tuple[str, float, float], ...]  # (channel, transactions/s, seconds per transaction)
+
+    @property
+    def load(self) -> float:
+        """Fraction of the time the wire is busy."""
+        return sum(rate * t for _, rate, t in self.items)
+
+
+def char_time(baud: int) -> float:
+    """Seconds per character, 8N1."""
+    return 10.0 / baud
+
+
+def rtu_transaction(baud: int, request: int, reply: int) -> float:
+    """Wire time of one Modbus RTU transaction: both frames, two end-of-frame silences, turnaround."""
+    gap = 1.75e-3 if baud > 19200 else 3.5 * char_time(baud)
+    return (request + reply) * char_time(baud) + 2 * gap + TURNAROUND_MODBUS_S
+
+
+def _streaming_rate(program: Program) -> float:
+    """Set-points per second in the busiest step (streaming at setpoint_Hz, else keep-alives)."""
+    rec = program.protocol.recording
+    dt = 1.0 / rec.setpoint_Hz
+    best = 0.0
+    for seg in program.segments:
+        if seg.duration <= 0:
+            continue
+        rate = rec.setpoint_Hz if seg.stream_until > seg.t_start else 1.0 / max(dt, HOLD_KEEPALIVE_S)
+        best = max(best, rate)
+    return best
+
+
+def _hardware_timed(program: Program) -> tuple[bool, bool]:
+    """(set-points, laser) through a hardware-timed DAQ instead of the serial links."""
+    rig = program.rig
+    daq = getattr(rig, "daq", None)
+    amp_daq = rig.amplifier is not None and getattr(rig.amplifier, "drive", "adam") == "daq"
+    laser_daq = daq is not None and getattr(daq, "laser_ain", None) is not None
+    return amp_daq, laser_daq
+
+
+def link_loads(program: Program) -> list[LinkLoad]:
+    """The load of every serial link of the rig in the program's busiest step."""
+    rig, rec = program.rig, program.protocol.recording
+    amp_daq, laser_daq = _hardware_timed(program)
+    setpoints = _streaming_rate(program)
+    buses: dict[str, list[tuple[str, float, float]]] = {}
+    if (a := rig.amplifier) is not None and not amp_daq:
+        baud = rig.buses[a.bus].baudrate
+        n = abs(a.vmon_channel - a.imon_channel) + 1
+        buses.setdefault(a.bus, []).append(("amplifier set-points (FC6, ADAM-4024)", setpoints,
+                                            rtu_transaction(baud, 8, 8)))
+        if rec.monitors_Hz:
+            buses[a.bus].append(("amplifier monitors (FC3, ADAM-4017+)", rec.monitors_Hz,
+                                 rtu_transaction(baud, 8, 5 + 2 * n)))
+    if (c := rig.load_cell) is not None and rec.force_Hz:
+        baud = rig.buses[c.bus].baudrate
+        buses.setdefault(c.bus, []).append(("load cell (FC4, DGT1S)", rec.force_Hz, rtu_transaction(baud, 8, 15)))
+    out = [LinkLoad(f"bus {name}", rig.buses[name].baudrate, tuple(items)) for name, items in buses.items()]
+    if (m := rig.motor) is not None:
+        ct = char_time(m.baudrate)
+        items = []
+        if rec.position_Hz:
+            items.append(("motor position (LinRS default response)", rec.position_Hz,
+                          (7 + 16) * ct + TURNAROUND_LINRS_S))
+        if program.has_motor_axis and any(s.position is not None for s in program.segments):
+            items.append(("motor set-points (LinRS VAI go-to)", setpoints, (25 + 16) * ct + TURNAROUND_LINRS_S))
+        out.append(LinkLoad("motor", m.baudrate, tuple(items)))
+    if (lz := rig.laser) is not None and not laser_daq:
+        ct = char_time(lz.baudrate)
+        out.append(LinkLoad("laser", lz.baudrate, (("laser single reads (M1/MS)", PASSIVE_LASER_HZ,
+                                                     (6 + 15) * ct + TURNAROUND_LKG_S),)))
+    return out
+
+
+def laser_upload_rate(baud: int) -> float:
+    """Stored values per second an RS-232 upload carries (AO requests sized to LKG_UPLOAD_CHUNK_S, each with
+    its AN status query, request echo and turnarounds)."""
+    ct = char_time(baud)
+    n = max(1, min(1000, int(LKG_UPLOAD_CHUNK_S / (LKG_VALUE_BYTES * ct))))
+    per_request = (16 + 3 + LKG_VALUE_BYTES * n) * ct + TURNAROUND_LKG_S + (3 + 16) * ct + TURNAROUND_LKG_S
+    return n / per_request
+
+
+def check_links(program: Program) -> list[str]:
+    """One line per link the program would overload (empty: every link carries it)."""
+    rig, rec = program.rig, program.protocol.recording
+    problems: list[str] = []
+    for link in link_loads(program):
+        if link.load > MAX_LOAD:
+            parts = ", ".join(f"{ch} {rate:g}/s × {t * 1e3:.1f} ms" for ch, rate, t in link.items)
+            fit = _fit_setpoints(link)
+            problems.append(f"{link.link} at {link.baud} Bd: busy {link.load:.0%} of the time ({parts}); {fit}")
+    amp_daq, laser_daq = _hardware_timed(program)
+    if (lz := rig.laser) is not None and not laser_daq and any(s.storing for s in program.segments):
+        upload = laser_upload_rate(lz.baudrate)
+        if rec.displacement_Hz > upload:
+            longest = max(s.duration for s in program.segments if s.storing)
+            points = longest * rec.displacement_Hz
+            problems.append(
+                f"laser at {lz.baudrate} Bd: storage fills at {rec.displacement_Hz:,.0f} S/s but the link uploads "
+                f"at most {upload:,.0f} S/s while it records (9 bytes a value); lower recording.displacement_Hz "
+                f"to ≤ {int(upload * 0.9):,} or store each step and upload between steps (longest step "
+                f"{longest:g} s = {points:,.0f} points, {points / upload:,.0f} s of upload)")
+    if rig.amplifier is not None and not amp_daq and rec.monitors_Hz:
+        per_channel = ADAM_4017P_RATE / 2  # V and I monitors enabled: round robin over two channels
+        if rec.monitors_Hz > per_channel:
+            problems.append(f"amplifier monitors: polled at {rec.monitors_Hz:g}/s but the ADAM-4017+ converts "
+                            f"{ADAM_4017P_RATE:g} S/s over 2 channels ({per_channel:g} S/s each): most reads "
+                            f"repeat a value; lower recording.monitors_Hz to ≤ {per_channel:g}")
+    if rig.load_cell is not None and rec.force_Hz > DGT1S_RATE:
+        problems.append(f"load cell: polled at {rec.force_Hz:g}/s but the DGT1S converts {DGT1S_RATE:g} S/s; "
+                        f"lower recording.force_Hz to ≤ {DGT1S_RATE:g}")
+    return problems
+
+
+def _fit_setpoints(link: LinkLoad) -> str:
+    """What would fit on an overloaded link: the set-point rate left by the other traffic."""
+    for ch, rate, t in link.items:
+        if "set-points" in ch:
+            others = link.load - rate * t
+            room = (MAX_LOAD * 0.9 - others) / t
+            if room > 0:
+                return f"lower recording.setpoint_Hz to ≤ {int(room)} (or a faster line / a hardware-timed drive)"
+    rates = [f"{ch.split(' (')[0]} ≤ {rate / link.load * 0.9:.0f}/s" for ch, rate, _ in link.items]
+    return "lower the polling rates, e.g. " + ", ".join(rates)

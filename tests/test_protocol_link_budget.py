@@ -1,0 +1,71 @@
+"""Link budget: every shipped protocol on every lab template and simulated rig; refused where the line
+cannot carry it, accepted where the rates fit. Expected figures are derived here from the wire, not taken
+from the module: 8N1 = 10 bits a character; Modbus RTU FC6 = 8 + 8 characters, FC4 of 5 registers = 8 + 15,
+two 3.5-character silences (Modbus over Serial Line v1.02 §2.5.1.1), 1 ms module turnaround [assumed];
+an LK-G stored value = 9 characters (8 and a comma, manual p. 5-6)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from bench.protocol.link_budget import check_links, laser_upload_rate
+from bench.protocol.program import Program, compile_program
+from bench.protocol.schema import Protocol, load_protocol
+from bench.rig import load_rig
+from tests.conftest import RIGS, ROOT
+
+PROTOCOLS = sorted((ROOT / "protocols").glob("*.toml")) + sorted((ROOT / "protocols" / "short").glob("*.toml"))
+FC6_19200 = 16 * 10 / 19200 + 2 * 3.5 * 10 / 19200 + 1e-3  # 12.98 ms: at most 77 set-points/s
+FC4_19200 = 23 * 10 / 19200 + 2 * 3.5 * 10 / 19200 + 1e-3  # 16.6 ms: at most 60 load-cell reads/s
+
+
+def compiled(path: Path, kind: str, **recording: float) -> tuple[Protocol, Program]:
+    """The protocol compiled (no model dry run) for the lab template or the simulated rig of its bench."""
+    protocol = load_protocol(path)
+    name = load_rig(protocol.rig_path()).name.rsplit("-", 1)[0]
+    if recording:
+        protocol = protocol.model_copy(update={"recording": protocol.recording.model_copy(update=recording)})
+    return protocol, compile_program(protocol, load_rig(RIGS / f"{name}-{kind}.toml"))
+
+
+@pytest.mark.parametrize("kind", ["lab", "sim"])
+@pytest.mark.parametrize("protocol", PROTOCOLS, ids=lambda p: p.stem)
+def test_shipped_protocols_are_refused_where_a_real_line_cannot_carry_them(protocol: Path, kind: str) -> None:
+    proto, plan = compiled(protocol, kind)
+    rec, problems = proto.recording, check_links(plan)
+    text = "\n".join(problems)
+    if plan.rig.laser is not None and rec.displacement_Hz * 9 * 10 > 115200:  # storage outruns the upload
+        assert f"laser at 115200 Bd: storage fills at {rec.displacement_Hz:,.0f} S/s" in text
+    if plan.rig.amplifier is not None and rec.setpoint_Hz * FC6_19200 > 1:
+        assert f"bus io at 19200 Bd: busy {rec.setpoint_Hz * FC6_19200 + 5 * (FC6_19200 + 2 * 10 / 19200):.0%}" \
+            in text and "lower recording.setpoint_Hz to ≤" in text
+    if plan.rig.load_cell is not None and rec.force_Hz * FC4_19200 > 1:
+        assert f"bus scale at 19200 Bd: busy {rec.force_Hz * FC4_19200:.0%}" in text
+    assert problems  # every shipped protocol outruns one of its lines (the finding of issue 10)
+    assert all("\n" not in p and len(p) < 400 for p in problems)
+
+
+@pytest.mark.parametrize("kind", ["lab", "sim"])
+def test_what_fits_is_accepted(kind: str) -> None:
+    for name, changes in [("thesis-identification", {"displacement_Hz": 1000.0, "setpoint_Hz": 20.0}),
+                          ("lsdea-isotonic-short", {"displacement_Hz": 1000.0, "setpoint_Hz": 60.0,
+                                                    "points_per_cycle": 20}),
+                          ("lsdea-isopotential", {"setpoint_Hz": 50.0, "force_Hz": 50.0, "position_Hz": 50.0})]:
+        path = next(p for p in PROTOCOLS if p.stem == name)
+        _, program = compiled(path, kind, **changes)
+        assert check_links(program) == [], name
+
+
+def test_laser_upload_rate_is_the_wire_rate_less_the_request_overhead() -> None:
+    wire = 115200 / 10 / 9  # 1280 values/s if the link carried nothing else
+    assert 0.95 * wire < laser_upload_rate(115200) < wire
+
+
+def test_conversion_rates_bound_the_polling_rates() -> None:
+    _, program = compiled(ROOT / "protocols" / "thesis-identification.toml", "lab", monitors_Hz=20.0,
+                          displacement_Hz=1000.0)
+    problems = check_links(program)
+    assert problems == ["amplifier monitors: polled at 20/s but the ADAM-4017+ converts 10 S/s over 2 channels "
+                        "(5 S/s each): most reads repeat a value; lower recording.monitors_Hz to ≤ 5"]
