@@ -123,6 +123,7 @@ class Engine:
         rig = program.rig
         self._laser_offset = (rig.laser.offset_mm * 1e-3) if rig.laser else 0.0
         self._laser_sign = float(rig.laser.sign) if rig.laser else 1.0
+        self._late_streams = {name for name, cols in recorder.streams.items() if any(c.name == "late" for c in cols)}
         self._stream = HardwareTimed(rig, inst) if inst.daq is not None and isinstance(inst.amplifier, TrekOnDaq) \
             else None
 
@@ -197,7 +198,8 @@ class Engine:
         if block.values.size:
             disp = self._to_specimen(block.values)
             valid = block.valid & np.isfinite(disp)
-            self.rec.append("laser", block.times() - self._t0, displacement=disp, valid=valid.astype("u1"))
+            self.rec.append("laser", block.times() - self._t0, displacement=disp, valid=valid.astype("u1"),
+                            **self._late("laser", np.full(disp.size, np.nan)))  # the laser's own clock
             good = disp[valid]
             if good.size:
                 self.sup.update_displacement(float(good[-1]))
@@ -215,24 +217,31 @@ class Engine:
                 raise InstrumentStateError("laser", f"stored data not fetched within {budget:g} s: the link "
                                            "cannot upload as fast as the storage fills")
 
-    def _poll(self, kind: str) -> None:
+    def _late(self, stream: str, late: float | np.ndarray) -> dict[str, float | np.ndarray]:
+        """The ``late`` column of a software-timed stream: how long after its scheduled time a poll ran [s]."""
+        return {"late": late} if stream in self._late_streams else {}
+
+    def _poll(self, kind: str, due: float = math.nan) -> None:
         inst, snap = self.inst, self.snapshot
+        late = self.now() - due
         if kind == "monitors":
             v, i = inst.amplifier.read_monitors()  # type: ignore[union-attr]
-            self.rec.append("amplifier", v.timestamp - self._t0, voltage=v.value, current=i.value)
+            self.rec.append("amplifier", v.timestamp - self._t0, voltage=v.value, current=i.value,
+                            **self._late("amplifier", late))
             snap.values["voltage"], snap.values["current"] = v.value, i.value
             self.sup.check_monitors(v.value, i.value)
         elif kind == "position":
             r = inst.motor.read_position()  # type: ignore[union-attr]
             x = float(self.program.aperture(r.value)) if self.program.has_motor_axis else math.nan
-            self.rec.append("motor", r.timestamp - self._t0, position=r.value, aperture=x)
+            self.rec.append("motor", r.timestamp - self._t0, position=r.value, aperture=x, **self._late("motor", late))
             if not r.ok or not math.isfinite(r.value):
                 raise InstrumentStateError("motor", f"drive reports {r.status}: {self._drive_error_text()}")
             snap.values["aperture"] = x
             self.sup.check_motor(r.value, x if self.program.has_motor_axis else self.sup.aperture or 0.0)
         elif kind == "force":
             r = inst.load_cell.read()  # type: ignore[union-attr]
-            self.rec.append("load_cell", r.timestamp - self._t0, force=r.value, ok=np.uint8(r.ok))
+            self.rec.append("load_cell", r.timestamp - self._t0, force=r.value, ok=np.uint8(r.ok),
+                            **self._late("load_cell", late))
             snap.values["force"] = r.value
             if r.status in ("overload", "underload"):
                 raise SafetyTrip(f"load cell {r.status}")
@@ -242,7 +251,8 @@ class Engine:
             r = inst.laser.read()  # type: ignore[union-attr]
             d = float(self._to_specimen(np.array([r.value]))[0])
             ok = r.ok and math.isfinite(d)
-            self.rec.append("laser", r.timestamp - self._t0, displacement=d, valid=np.uint8(ok))
+            self.rec.append("laser", r.timestamp - self._t0, displacement=d, valid=np.uint8(ok),
+                            **self._late("laser", late))
             if ok:
                 self.sup.update_displacement(d)
                 self.snapshot.values["displacement"] = d
@@ -335,7 +345,7 @@ class Engine:
                     t_set + max(dt, HOLD_KEEPALIVE_S)
             for kind in [k for k, tk in due.items() if tk <= t_next + 1e-12]:
                 self._check_stop()
-                self._poll(kind)
+                self._poll(kind, due[kind])
                 count[kind] += 1
                 due[kind] = seg.t_start + count[kind] * periods[kind]  # type: ignore[operator]
             self.snapshot.t = t_next
@@ -511,7 +521,7 @@ class Engine:
             except InstrumentError as exc:
                 notes.append(f"final monitor read failed: {exc}")
                 return f"{path}; output NOT verified (voltage monitor unreadable)"
-            extra = {"commanded": self._v_cmd} if self._stream is not None else {}
+            extra = {"commanded": self._v_cmd} if self._stream is not None else self._late("amplifier", math.nan)
             self._record(self.rec.append, "amplifier", v.timestamp - self._t0, voltage=v.value, current=i.value,
                          **extra)
             if math.isfinite(v.value) and abs(v.value) <= SAFE_MONITOR_V:

@@ -94,6 +94,12 @@ def _streams(rig: RigConfig) -> tuple[dict[str, list[Column]], dict[str, str]]:
         streams["load_cell"] = [Column("force", "N", "force on the load cell, tension positive"),
                                 Column("ok", "1", "1 = stable reading", "u1")]
         sources["load_cell"] = "Dini Argeo DGT1S"
+    late = Column("late", "s", "software-timed: how long after its scheduled time the poll ran (NaN: not polled)")
+    hw = {"amplifier", *(["load_cell"] if daq is not None and daq.force_ain is not None else []),
+          *(["laser"] if daq is not None and daq.laser_ain is not None else [])} if daq is not None else set()
+    for name in ("amplifier", "laser", "motor", "load_cell"):
+        if name in streams and name not in hw:
+            streams[name].append(late)
     return streams, sources
 
 
