@@ -6,8 +6,11 @@ Layout (``format = "dea-bench run 1"``):
   effective rig), specimen (JSON), recording settings (JSON), clock kind, simulated flag, start time;
   after a clean finish also end time, exit status and reason, ``complete = True``;
 * ``/status`` — datasets ``state`` (running / completed / tripped / error / interrupted), ``reason``,
-  ``end_time``, ``updated`` (rig time of the last flush): written during the run, so a file from a crashed
-  run still says ``running`` and is recognised as incomplete;
+  ``end_time``, ``updated`` (rig time of the last flush), ``samples`` (valid records per stream and of
+  ``/events``, in the order of its ``names`` attribute, written only once the data of a flush is on disk):
+  written during the run, so a file from a crashed run still says ``running`` and is recognised as
+  incomplete, and a reader trims every dataset to ``samples`` (beyond it a failed write can leave
+  zero-filled records);
 * ``/program`` — the compiled steps (index, label, kind, start, duration);
 * ``/events`` — step starts and ends, trips, operator actions (t, step, kind, text);
 * one group per stream (``setpoints``, ``amplifier``, ``laser``, ``motor``, ``load_cell``) with a time base
@@ -15,11 +18,22 @@ Layout (``format = "dea-bench run 1"``):
 
 Datasets are created before SWMR mode starts, appended in blocks and flushed at least every
 ``flush_interval`` seconds of wall time, so another process can read the file during the run.
+
+A failed write (disk full, file-size limit, unwritable directory, any HDF5 error) raises one
+:class:`StorageError` naming the file and the cause; the recorder is then *failed*: further calls are no-ops,
+and the HDF5 handle is closed with its descriptor pointed at ``/dev/null`` — HDF5 cannot write the rest of
+its metadata to a file whose last write failed, and closing it there (or at exit) crashed the interpreter.
+The file keeps everything up to the last successful flush.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
+import os
+import re
+import signal
+import threading
 import time
 from dataclasses import dataclass
 from datetime import UTC, datetime
@@ -34,6 +48,51 @@ EVENT_DTYPE = np.dtype([("t", "f8"), ("step", "i4"), ("kind", "S16"), ("text", "
 PROGRAM_DTYPE = np.dtype([("index", "i4"), ("label", "S240"), ("name", "S120"), ("kind", "S16"),
                           ("t_start", "f8"), ("duration", "f8")])
 STATES = ("running", "completed", "tripped", "error", "interrupted")
+FLUSH_INTERVAL_S = 0.2  # wall time between flushes: a kill -9 loses at most this plus one flush (goal ≤ 0.5 s)
+
+
+class StorageError(OSError):
+    """Writing the run file failed (disk full, file-size limit, unwritable directory, HDF5 error); one line.
+
+    An :class:`OSError`, so command-line error handling and the engine's storage-fault path both see it.
+    """
+
+
+def _cause(exc: BaseException) -> str:
+    """One line on why an HDF5/OS call failed: the errno text if there is one, else the first line."""
+    if isinstance(exc, OSError) and exc.errno is not None and not isinstance(exc, StorageError):
+        return f"{exc.strerror or os.strerror(exc.errno)} (errno {exc.errno})"
+    m = re.search(r"errno = (\d+)", str(exc))
+    if m:
+        return f"{os.strerror(int(m.group(1)))} (errno {m.group(1)})"
+    first = " ".join(str(exc).split())[:200]
+    return f"{type(exc).__name__}: {first}" if first else type(exc).__name__
+
+
+def _abandon(f: h5py.File) -> None:
+    """Close ``f`` after a failed write without touching the file again and without crashing.
+
+    HDF5 keeps the metadata it could not write and retries at close; that fails again and (at close or at
+    interpreter exit) ends in a segfault. Pointing the descriptor at /dev/null lets the close succeed while
+    the file on disk stays as the last successful flush left it.
+    """
+    try:
+        fd = f.id.get_vfd_handle()
+        null = os.open(os.devnull, os.O_RDWR)
+        try:
+            os.dup2(null, int(fd))
+        finally:
+            os.close(null)
+    except Exception:  # best effort: no descriptor (already closed) or another driver
+        pass
+    with contextlib.suppress(Exception):  # the close of an abandoned file may report the failure again
+        f.close()
+
+
+def _ignore_sigxfsz() -> None:
+    """A write beyond RLIMIT_FSIZE must fail with EFBIG (reported) rather than kill the process (SIGXFSZ)."""
+    if hasattr(signal, "SIGXFSZ") and threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
 
 
 @dataclass(frozen=True)
@@ -56,7 +115,7 @@ class Recorder:
 
     def __init__(self, path: Path, attrs: dict[str, Any], streams: dict[str, list[Column]],
                  program: list[tuple[int, str, str, str, float, float]], rates: dict[str, float],
-                 flush_interval: float = 0.45) -> None:
+                 flush_interval: float = FLUSH_INTERVAL_S) -> None:
         self.path = Path(path)
         self.flush_interval = flush_interval
         self.streams = streams
@@ -68,7 +127,23 @@ class Recorder:
         self.samples_written = 0
         self.write_seconds = 0.0  # wall time spent writing
         self.cpu_seconds = 0.0  # CPU time of the calling thread spent in append and flush
-        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.failure = ""  # the StorageError message once a write has failed ('' while healthy)
+        self._f: h5py.File | None = None
+        self._names = [*streams, "events"]
+        self._counts = np.zeros(len(self._names), dtype=np.int64)  # valid records on disk, per stream and events
+        _ignore_sigxfsz()
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._create(attrs, streams, program, rates)
+        except Exception as exc:  # whatever stopped the file being made, said in one line
+            if self._f is not None:
+                _abandon(self._f)
+                self._f = None
+            self.failure = f"run file {self.path}: cannot create: {_cause(exc)}"
+            raise StorageError(self.failure) from None
+
+    def _create(self, attrs: dict[str, Any], streams: dict[str, list[Column]],
+                program: list[tuple[int, str, str, str, float, float]], rates: dict[str, float]) -> None:
         f = h5py.File(self.path, "w", libver=("v110", "v110"))  # SWMR needs the 1.10 format; newer breaks 1.10 tools
         self._f = f
         f.attrs["format"] = FORMAT
@@ -80,6 +155,9 @@ class Recorder:
         status.create_dataset("end_time", data=np.array([b""], dtype="S40"))
         status.create_dataset("updated", data=np.array([0.0]))
         status["updated"].attrs["units"] = "s"
+        samples = status.create_dataset("samples", data=self._counts)
+        samples.attrs["names"] = json.dumps(self._names)
+        samples.attrs["description"] = "valid records per stream (and of /events) at the last successful flush"
         prog = np.array([(i, lab.encode()[:240], name.encode()[:120], kind.encode(), t0, dur)
                          for i, lab, name, kind, t0, dur in program], dtype=PROGRAM_DTYPE)
         f.create_dataset("program", data=prog)
@@ -100,12 +178,33 @@ class Recorder:
                           for s, cols in streams.items()}  # cached: group look-ups cost more than the writes
         self._events_ds = f["events"]
         self._updated = f["status/updated"]
+        self._samples = f["status/samples"]
         f.swmr_mode = True
         f.flush()
+
+    @property
+    def failed(self) -> bool:
+        """Whether a write has failed (the recorder then ignores further calls)."""
+        return bool(self.failure)
+
+    def _fail(self, what: str, exc: BaseException) -> StorageError:
+        """Enter the failed state: drop queued data, release the file safely; the error to raise."""
+        self.failure = f"run file {self.path}: {what}: {_cause(exc)}"
+        for buf in self._buffers.values():
+            for parts in buf.values():
+                parts.clear()
+        self._events.clear()
+        self._datasets, self._events_ds, self._updated, self._samples = {}, None, None, None  # type: ignore[assignment]
+        if self._f is not None:
+            _abandon(self._f)
+            self._f = None
+        return StorageError(self.failure)
 
     # -------------------------------------------------------------- writing
     def append(self, stream: str, t: np.ndarray | float, **columns: np.ndarray | float) -> None:
         """Queue samples of ``stream`` (flushed by :meth:`maybe_flush` / :meth:`flush`)."""
+        if self.failure:
+            return
         c0 = time.thread_time()
         buf = self._buffers[stream]
         buf["t"].append(np.atleast_1d(np.asarray(t, dtype=float)))
@@ -116,61 +215,113 @@ class Recorder:
 
     def event(self, t: float, step: int, kind: str, text: str) -> None:
         """Queue an event."""
+        if self.failure:
+            return
         self._events.append((t, step, kind.encode()[:16], text.encode()[:200]))
 
     def maybe_flush(self) -> None:
         """Flush if the flush interval has passed (call it often)."""
-        if time.monotonic() - self._last_flush >= self.flush_interval:
+        if not self.failure and time.monotonic() - self._last_flush >= self.flush_interval:
             self.flush()
 
     def flush(self) -> None:
-        """Write every queued sample and event, and make them visible to readers."""
+        """Write every queued sample and event, and make them visible to readers.
+
+        Two steps: the data (then an HDF5 flush), and only once that succeeded the valid-record counts and the
+        time of the flush (then a second, small flush) — so a reader never counts records a failed or
+        interrupted write left zero-filled. Raises :class:`StorageError` on the first failure.
+        """
+        if self.failure:
+            return
         t0, c0 = time.perf_counter(), time.thread_time()
-        f = self._f
-        for stream, buf in self._buffers.items():
+        blocks: list[tuple[int, str, dict[str, np.ndarray], int]] = []
+        for k, (stream, buf) in enumerate(self._buffers.items()):
             if not buf["t"]:
                 continue
-            datasets = self._datasets[stream]
             n_new = sum(a.size for a in buf["t"])
+            data = {}
             for name, parts in buf.items():
-                data = np.concatenate(parts) if len(parts) > 1 else parts[0]
-                if data.size != n_new:
-                    raise ValueError(f"stream {stream}: column {name} has {data.size} samples, t has {n_new}")
-                d = datasets[name]
-                n = d.shape[0]
-                d.resize((n + n_new,))
-                d.write_direct(np.ascontiguousarray(data, dtype=d.dtype), dest_sel=np.s_[n:n + n_new])
+                data[name] = np.concatenate(parts) if len(parts) > 1 else parts[0]
+                if data[name].size != n_new:
+                    raise ValueError(f"stream {stream}: column {name} has {data[name].size} samples, t has {n_new}")
+            blocks.append((k, stream, data, n_new))
+        events = np.array(self._events, dtype=EVENT_DTYPE) if self._events else None
+        for buf in self._buffers.values():
+            for parts in buf.values():
                 parts.clear()
-            self.samples_written += n_new
-        if self._events:
-            ev = self._events_ds
-            n = ev.shape[0]
-            ev.resize((n + len(self._events),))
-            ev[n:] = np.array(self._events, dtype=EVENT_DTYPE)
-            self._events.clear()
-        self._updated[0] = self._last_t
-        f.flush()
+        self._events.clear()
+        counts = self._counts.copy()
+        try:
+            for k, stream, data, n_new in blocks:
+                datasets = self._datasets[stream]
+                n = int(counts[k])
+                for name, values in data.items():
+                    d = datasets[name]
+                    d.resize((n + n_new,))
+                    d.write_direct(np.ascontiguousarray(values, dtype=d.dtype), dest_sel=np.s_[n:n + n_new])
+                counts[k] = n + n_new
+            if events is not None:
+                n = int(counts[-1])
+                self._events_ds.resize((n + events.size,))
+                self._events_ds[n:] = events
+                counts[-1] = n + events.size
+            f = self._f
+            assert f is not None
+            f.flush()  # the data first …
+            self._samples[:] = counts
+            self._updated[0] = self._last_t
+            f.flush()  # … then what a reader may count as valid
+        except Exception as exc:  # any failure of the file (OS or HDF5) is a storage fault
+            raise self._fail("write failed", exc) from None
+        self.samples_written += int((counts[:-1] - self._counts[:-1]).sum())
+        self._counts = counts
         self._last_flush = time.monotonic()
         self.write_seconds += time.perf_counter() - t0
         self.cpu_seconds += time.thread_time() - c0
 
     def set_state(self, state: str, reason: str = "") -> None:
-        """Record the run's state (visible to readers at once)."""
+        """Record the run's state (visible to readers at once); a no-op once the recorder has failed."""
         if state not in STATES:
             raise ValueError(f"unknown run state {state!r}")
-        self._f["status/state"][0] = state.encode()
-        self._f["status/reason"][0] = reason.encode()[:400]
+        if self.failure or self._f is None:
+            return
+        try:
+            self._f["status/state"][0] = state.encode()
+            self._f["status/reason"][0] = reason.encode()[:400]
+        except Exception as exc:
+            raise self._fail("write failed", exc) from None
         self.flush()
 
     def finish(self, state: str, reason: str) -> None:
-        """Final flush, close, and stamp the root attributes (the file is complete after this)."""
+        """Final flush, close, and stamp the root attributes (the file is complete after this).
+
+        Once the recorder has failed this only makes sure the file is released, and does not raise again;
+        the file then keeps ``state = running`` and no ``complete`` attribute: a reader reports it incomplete.
+        """
+        if self.failure or self._f is None:
+            return
         end = now_iso()
         self.set_state(state, reason)
-        self._f["status/end_time"][0] = end.encode()
-        self._f.flush()
-        self._f.close()
-        with h5py.File(self.path, "r+") as f:
-            f.attrs["end_time"] = end
-            f.attrs["exit_status"] = state
-            f.attrs["exit_reason"] = reason
-            f.attrs["complete"] = True
+        f = self._f
+        if f is None:  # set_state failed (and raised); the guard is for type checkers
+            return
+        try:
+            f["status/end_time"][0] = end.encode()
+            f.flush()
+            f.close()
+        except Exception as exc:
+            raise self._fail("cannot close", exc) from None
+        self._f = None
+        g: h5py.File | None = None
+        try:
+            g = h5py.File(self.path, "r+")
+            g.attrs["end_time"] = end
+            g.attrs["exit_status"] = state
+            g.attrs["exit_reason"] = reason
+            g.attrs["complete"] = True
+            g.close()
+        except Exception as exc:
+            if g is not None:
+                _abandon(g)
+            self.failure = f"run file {self.path}: cannot stamp the end of the run: {_cause(exc)}"
+            raise StorageError(self.failure) from None

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -43,10 +44,17 @@ class RunFile:
     program: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     @property
+    def recovered_at(self) -> str:
+        """When ``bench recover`` released the file of a crashed run ('' if it never had to)."""
+        return str(self.attrs.get("recovered_at", ""))
+
+    @property
     def incomplete_reason(self) -> str:
         """Why the file is not a complete record ('' if it is)."""
         if self.complete:
             return ""
+        if self.recovered_at:
+            return f"no end recorded: the run crashed or was killed (file recovered at {self.recovered_at})"
         if self.state == "running":
             return "no end recorded: the run is still going, or it crashed / was killed"
         return "finished but not finalised (writer stopped before stamping the file)"
@@ -72,15 +80,41 @@ def _decode(v: Any) -> Any:
     return v.decode() if isinstance(v, bytes) else v
 
 
+def _open(p: Path) -> h5py.File:
+    """Open for reading: as an SWMR reader (also while a run writes, or after a crash), else — a writer that
+    died before SWMR mode left the file marked open — from an in-memory copy with those marks cleared."""
+    try:
+        return h5py.File(p, "r", libver="latest", swmr=True)
+    except OSError as exc:
+        first = exc
+    from bench.recover import clear_consistency_flags
+
+    try:
+        image = bytearray(p.read_bytes())
+        if not clear_consistency_flags(image):
+            raise first
+        return h5py.File(io.BytesIO(bytes(image)), "r")
+    except (OSError, ValueError):
+        raise ValueError(f"run file {p}: not a readable HDF5 file ({' '.join(str(first).split())})") from None
+
+
+def _valid_counts(f: h5py.File) -> dict[str, int]:
+    """Valid records per stream and of ``events`` at the writer's last successful flush ({} in older files)."""
+    if "samples" not in f["status"]:
+        return {}
+    d = f["status/samples"]
+    d.refresh()
+    return dict(zip(json.loads(d.attrs["names"]), (int(n) for n in d[:]), strict=True))
+
+
 def open_run(path: str | Path, streams: bool = True) -> RunFile:
-    """Read a run file; works on a file another process is writing (SWMR reader)."""
+    """Read a run file; works on a file another process is writing (SWMR reader) and on the file of a
+    crashed or killed run (``incomplete_reason`` says so). Every dataset is cut to the records the writer
+    confirmed (``/status/samples``): a failed or interrupted write can leave zero-filled records beyond."""
     p = Path(path)
     if not p.exists():
         raise FileNotFoundError(f"run file {p}: not found")
-    try:
-        f = h5py.File(p, "r", libver="latest", swmr=True)
-    except OSError as exc:
-        raise ValueError(f"run file {p}: not a readable HDF5 file ({exc})") from None
+    f = _open(p)
     with f:
         if f.attrs.get("format") != FORMAT:
             raise ValueError(f"run file {p}: not a dea-bench run file (format {f.attrs.get('format')!r})")
@@ -90,8 +124,9 @@ def open_run(path: str | Path, streams: bool = True) -> RunFile:
             st[name].refresh()
         run = RunFile(p, attrs, st["state"][0].decode(), st["reason"][0].decode(), st["end_time"][0].decode(),
                       float(st["updated"][0]), bool(attrs.get("complete", False)))
+        valid = _valid_counts(f)
         f["events"].refresh()
-        run.events = f["events"][:]
+        run.events = f["events"][:valid.get("events", None)]
         run.program = f["program"][:]
         if streams:
             for name in ("setpoints", "amplifier", "laser", "motor", "load_cell"):
@@ -101,6 +136,7 @@ def open_run(path: str | Path, streams: bool = True) -> RunFile:
                 for d in g.values():
                     d.refresh()
                 n = min(d.shape[0] for d in g.values())  # a reader may see columns mid-append
+                n = min(n, valid.get(name, n))
                 cols = {k: d[:n] for k, d in g.items() if k != "t"}
                 run.streams[name] = Stream(name, g["t"][:n], cols, {k: _decode(d.attrs["units"]) for k, d in g.items()},
                                            float(g.attrs.get("rate_Hz", 0.0)))
