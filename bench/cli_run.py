@@ -35,7 +35,11 @@ def _plan(protocol_file: Path, rig: Path | None, sim: bool):
     if rig is not None and sim is False and not rig.exists():
         raise ValueError(f"rig file {rig}: not found")
     with console.status("validating and dry-running the protocol on the model…"):
-        return plan_run(protocol_file, rig, sim)
+        plan = plan_run(protocol_file, rig, sim)
+    for problem in plan.link_problems:  # refused on a real rig; the simulated rig rehearses what it would do
+        console.print(f"[yellow]warning[/]: {escape(problem)} — a real line would refuse this protocol; the "
+                      "simulated rig will show the consequences in wall-clock runs")
+    return plan
 
 
 def _summary(plan) -> Table:
@@ -191,6 +195,16 @@ def inspect(run_file: Annotated[Path, typer.Argument(help="Run file (.h5), finis
                                                              for t, _, kind, text in events[-3:]))
     if not r.complete:
         raise typer.Exit(1)
+
+
+@app.command()
+@clean_errors
+def recover(run_file: Annotated[Path, typer.Argument(help="Run file (.h5) of a crashed or killed run.")]) -> None:
+    """Release the file of a crashed or killed run so that h5py, h5dump and HDFView open it; print what it holds."""
+    from bench.recover import recover as recover_file
+
+    for line in recover_file(run_file).lines():
+        console.print(escape(line))
 
 
 @protocol_app.command("schema")

@@ -6,7 +6,7 @@ import json
 import re
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from datetime import datetime
 from pathlib import Path
 from typing import Any
@@ -15,6 +15,7 @@ from bench import __version__
 from bench.engine import Engine, OperatorFn, RunResult
 from bench.hardware_timed import watchdog_period
 from bench.instruments import build_instruments
+from bench.protocol.link_budget import check_links
 from bench.protocol.predict import Prediction, predict
 from bench.protocol.program import Program, ProtocolLimitError, compile_program
 from bench.protocol.schema import Protocol, load_protocol
@@ -34,6 +35,7 @@ class Plan:
     rig: RigConfig
     program: Program
     prediction: Prediction
+    link_problems: list[str] = field(default_factory=list)  # what the rig's lines cannot carry (see plan_run)
 
 
 def resolve_rig(protocol: Protocol, rig_path: str | Path | None = None, simulate: bool = False) -> RigConfig:
@@ -50,12 +52,15 @@ def plan_run(protocol_path: str | Path, rig_path: str | Path | None = None, simu
     protocol = load_protocol(protocol_path)
     rig = resolve_rig(protocol, rig_path, simulate)
     program = compile_program(protocol, rig)
+    links = check_links(program)
+    if links and not rig.simulated:
+        raise ProtocolLimitError(f"protocol file {protocol.path}: {links[0]}")
     prediction = predict(program, progress)
     if prediction.failure:
         raise ProtocolLimitError(f"protocol file {protocol.path}: {prediction.failure}")
     if prediction.problems:
         raise ProtocolLimitError(f"protocol file {protocol.path}: {prediction.problems[0]}")
-    return Plan(protocol, rig, program, prediction)
+    return Plan(protocol, rig, program, prediction, links)
 
 
 def _streams(rig: RigConfig) -> tuple[dict[str, list[Column]], dict[str, str]]:

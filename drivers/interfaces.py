@@ -110,8 +110,18 @@ class Amplifier(Instrument, Protocol):
 
     max_voltage: float
 
+    @property
+    def commanded(self) -> float:
+        """Last output voltage commanded [V] (as the set-point module really outputs it)."""
+
     def set_voltage(self, volts: float) -> float:
         """Command an output voltage [V]; returns the value actually commanded (after slew limiting)."""
+
+    def zero(self) -> None:
+        """Command 0 V at once (no slew limit); goes out even after a stop request."""
+
+    def read_monitors(self) -> tuple[Reading, Reading]:
+        """(output voltage [V], output current [A]) read together."""
 
     def read_voltage(self) -> Reading:
         """Output voltage from the voltage monitor [V]."""
@@ -123,6 +133,8 @@ class Amplifier(Instrument, Protocol):
 @runtime_checkable
 class DisplacementSensor(Instrument, Protocol):
     """Displacement sensor with single reads and a device-side buffer for high rates."""
+
+    pending: int  # stored points known to the last fetch and not uploaded yet (a fetch may be partial)
 
     def read(self) -> Reading:
         """One displacement value [m]."""

@@ -168,3 +168,19 @@ def test_a_conditioning_stage_that_cannot_reach_the_voltage_limit_is_refused(tmp
         load_rig(path)
     ok = RigConfig.model_validate({**load_rig(THESIS_DAQ).model_dump()})
     assert ok.daq is not None and ok.daq.input_range() == (-10.0, 10.0)
+
+
+def test_validate_refuses_on_a_lab_rig_what_its_line_cannot_carry_and_accepts_the_daq_rig() -> None:
+    """115200 Bd carries ≈ 1,250 stored values/s of LK-G storage (9 bytes each, 10 bits a byte): the thesis
+    protocol's 10 kHz cannot be uploaded while it records; the hardware-timed lab rig samples the laser's
+    analog output instead."""
+    from typer.testing import CliRunner
+
+    from bench.cli import app
+
+    runner = CliRunner()
+    protocol = str(ROOT / "protocols" / "thesis-identification.toml")
+    res = runner.invoke(app, ["validate", protocol, "--rig", str(ROOT / "rigs" / "thesis-lab.toml")])
+    assert res.exit_code == 2 and "laser at 115200 Bd" in res.output and "10,000 S/s" in res.output
+    ok = runner.invoke(app, ["validate", protocol, "--rig", str(ROOT / "rigs" / "thesis-daq-lab.toml")])
+    assert ok.exit_code == 0, ok.output
