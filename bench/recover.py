@@ -115,7 +115,7 @@ def clear_consistency_flags(image: bytearray) -> bool:
     return True
 
 
-def _open_elsewhere(path: Path) -> list[int]:
+def open_elsewhere(path: Path) -> list[int]:
     """Processes (other than this one) holding ``path`` open — a writer still at work (Linux /proc)."""
     target = os.path.realpath(path)
     pids = []
@@ -159,7 +159,7 @@ def recover(path: str | Path) -> RecoveryReport:
 
     Raises ValueError (one line naming the file) if it is not an HDF5 run file or a process still writes it.
     """
-    from bench.runfile import open_run
+    from bench.runfile import open_h5, open_run
 
     p = Path(path)
     if not p.is_file():
@@ -169,7 +169,14 @@ def recover(path: str | Path) -> RecoveryReport:
     sb = _find_superblock(head)
     if sb is None:
         raise ValueError(f"run file {p}: not an HDF5 file (no superblock)")
-    writers = _open_elsewhere(p)
+    try:
+        with open_h5(p) as f:
+            fmt = f.attrs.get("format")
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"run file {p}: not a readable HDF5 file ({' '.join(str(exc).split())})") from None
+    if fmt != FORMAT:
+        raise ValueError(f"run file {p}: not a dea-bench run file (format {fmt!r})")
+    writers = open_elsewhere(p)
     if writers:
         raise ValueError(f"run file {p}: still open in process {', '.join(map(str, writers))}: "
                          "a run may be writing it (stop it first)")
@@ -193,8 +200,6 @@ def recover(path: str | Path) -> RecoveryReport:
     except OSError as exc:
         raise ValueError(f"run file {p}: HDF5 cannot open it even now ({' '.join(str(exc).split())})") from None
     with f:
-        if f.attrs.get("format") != FORMAT:
-            raise ValueError(f"run file {p}: not a dea-bench run file (format {f.attrs.get('format')!r})")
         if not f.attrs.get("complete", False):
             report.actions += _trim(f)
             if report.actions:

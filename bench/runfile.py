@@ -42,6 +42,7 @@ class RunFile:
     streams: dict[str, Stream] = field(default_factory=dict)
     events: np.ndarray = field(default_factory=lambda: np.zeros(0))
     program: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    orphaned: bool = False  # 'running', marked open by a writer, and no process on this machine has it open
 
     @property
     def recovered_at(self) -> str:
@@ -55,6 +56,9 @@ class RunFile:
             return ""
         if self.recovered_at:
             return f"no end recorded: the run crashed or was killed (file recovered at {self.recovered_at})"
+        if self.orphaned:
+            return ("no end recorded: the run crashed or was killed (no process on this machine has the file "
+                    "open; `bench recover` releases it for other HDF5 tools)")
         if self.state == "running":
             return "no end recorded: the run is still going, or it crashed / was killed"
         return "finished but not finalised (writer stopped before stamping the file)"
@@ -80,7 +84,7 @@ def _decode(v: Any) -> Any:
     return v.decode() if isinstance(v, bytes) else v
 
 
-def _open(p: Path) -> h5py.File:
+def open_h5(p: Path) -> h5py.File:
     """Open for reading: as an SWMR reader (also while a run writes, or after a crash), else — a writer that
     died before SWMR mode left the file marked open — from an in-memory copy with those marks cleared."""
     try:
@@ -114,7 +118,7 @@ def open_run(path: str | Path, streams: bool = True) -> RunFile:
     p = Path(path)
     if not p.exists():
         raise FileNotFoundError(f"run file {p}: not found")
-    f = _open(p)
+    f = open_h5(p)
     with f:
         if f.attrs.get("format") != FORMAT:
             raise ValueError(f"run file {p}: not a dea-bench run file (format {f.attrs.get('format')!r})")
@@ -140,4 +144,18 @@ def open_run(path: str | Path, streams: bool = True) -> RunFile:
                 cols = {k: d[:n] for k, d in g.items() if k != "t"}
                 run.streams[name] = Stream(name, g["t"][:n], cols, {k: _decode(d.attrs["units"]) for k, d in g.items()},
                                            float(g.attrs.get("rate_Hz", 0.0)))
+    if run.state == "running" and not run.complete:
+        run.orphaned = _orphaned(p)
     return run
+
+
+def _orphaned(p: Path) -> bool:
+    """Whether the file is still marked open by an SWMR writer that no longer exists (here)."""
+    from bench.recover import open_elsewhere, read_superblock
+
+    try:
+        with p.open("rb") as fh:
+            sb = read_superblock(fh.read(4096))
+    except OSError:
+        return False
+    return sb is not None and sb.flags != 0 and not open_elsewhere(p)
