@@ -35,7 +35,11 @@ def _plan(protocol_file: Path, rig: Path | None, sim: bool):
     if rig is not None and sim is False and not rig.exists():
         raise ValueError(f"rig file {rig}: not found")
     with console.status("validating and dry-running the protocol on the model…"):
-        return plan_run(protocol_file, rig, sim)
+        plan = plan_run(protocol_file, rig, sim)
+    for problem in plan.link_problems:  # refused on a real rig; the simulated rig rehearses what it would do
+        console.print(f"[yellow]warning[/]: {escape(problem)} — a real line would refuse this protocol; the "
+                      "simulated rig will show the consequences in wall-clock runs")
+    return plan
 
 
 def _summary(plan) -> Table:
