@@ -26,7 +26,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -36,6 +36,7 @@ from bench.protocol.program import Program, Segment, motor_command, voltage_at
 from bench.recorder import Recorder
 from bench.safety import SafetyTrip, Supervisor
 from drivers.errors import InstrumentConnectionError, InstrumentError, InstrumentStateError, OperationCancelledError
+from drivers.interfaces import Amplifier, DisplacementSensor, ForceSensor, LinearMotor
 from drivers.trek_daq import TrekOnDaq
 from sim_devices.clock import Clock
 
@@ -147,10 +148,10 @@ class Engine:
             self._in_prompt = False
             raise StopRequested(reason)
 
-    def _install_signals(self) -> list[tuple[int, Any]]:
+    def _install_signals(self) -> list[tuple[signal.Signals, Any]]:
         if threading.current_thread() is not threading.main_thread():
             return []
-        old = []
+        old: list[tuple[signal.Signals, Any]] = []
         for sig, text in STOP_SIGNALS.items():
             old.append((sig, signal.signal(sig, lambda *_a, text=text: self._on_signal(text))))
         return old
@@ -158,6 +159,27 @@ class Engine:
     def _check_stop(self) -> None:
         if self._stop_reason is not None and not self._stopping:
             raise StopRequested(self._stop_reason)
+
+    # ------------------------------------------------------------ instruments the program uses (typed)
+    @property
+    def _amp(self) -> Amplifier:
+        return _present(self.inst.amplifier, "amplifier")
+
+    @property
+    def _laser(self) -> DisplacementSensor:
+        return _present(self.inst.laser, "laser")
+
+    @property
+    def _motor(self) -> LinearMotor:
+        return _present(self.inst.motor, "motor")
+
+    @property
+    def _cell(self) -> ForceSensor:
+        return _present(self.inst.load_cell, "load_cell")
+
+    @property
+    def _hw(self) -> HardwareTimed:
+        return _present(self._stream, "daq")
 
     # ------------------------------------------------------------ time
     def now(self) -> float:
@@ -194,7 +216,7 @@ class Engine:
 
     def _record_laser_block(self) -> int:
         """Fetch and record one block of stored laser data; returns how many samples it held."""
-        block = self.inst.laser.fetch_buffer()  # type: ignore[union-attr]
+        block = self._laser.fetch_buffer()
         if block.values.size:
             disp = self._to_specimen(block.values)
             valid = block.valid & np.isfinite(disp)
@@ -222,16 +244,16 @@ class Engine:
         return {"late": late} if stream in self._late_streams else {}
 
     def _poll(self, kind: str, due: float = math.nan) -> None:
-        inst, snap = self.inst, self.snapshot
+        snap = self.snapshot
         late = self.now() - due
         if kind == "monitors":
-            v, i = inst.amplifier.read_monitors()  # type: ignore[union-attr]
+            v, i = self._amp.read_monitors()
             self.rec.append("amplifier", v.timestamp - self._t0, voltage=v.value, current=i.value,
                             **self._late("amplifier", late))
             snap.values["voltage"], snap.values["current"] = v.value, i.value
             self.sup.check_monitors(v.value, i.value)
         elif kind == "position":
-            r = inst.motor.read_position()  # type: ignore[union-attr]
+            r = self._motor.read_position()
             x = float(self.program.aperture(r.value)) if self.program.has_motor_axis else math.nan
             self.rec.append("motor", r.timestamp - self._t0, position=r.value, aperture=x, **self._late("motor", late))
             if not r.ok or not math.isfinite(r.value):
@@ -239,8 +261,8 @@ class Engine:
             snap.values["aperture"] = x
             self.sup.check_motor(r.value, x if self.program.has_motor_axis else self.sup.aperture or 0.0)
         elif kind == "force":
-            r = inst.load_cell.read()  # type: ignore[union-attr]
-            self.rec.append("load_cell", r.timestamp - self._t0, force=r.value, ok=np.uint8(r.ok),
+            r = self._cell.read()
+            self.rec.append("load_cell", r.timestamp - self._t0, force=r.value, ok=np.array(r.ok, dtype="u1"),
                             **self._late("load_cell", late))
             snap.values["force"] = r.value
             if r.status in ("overload", "underload"):
@@ -248,10 +270,10 @@ class Engine:
             if r.ok or r.status == "unstable":
                 self.sup.check_force(r.value)
         elif kind == "laser":
-            r = inst.laser.read()  # type: ignore[union-attr]
+            r = self._laser.read()
             d = float(self._to_specimen(np.array([r.value]))[0])
             ok = r.ok and math.isfinite(d)
-            self.rec.append("laser", r.timestamp - self._t0, displacement=d, valid=np.uint8(ok),
+            self.rec.append("laser", r.timestamp - self._t0, displacement=d, valid=np.array(ok, dtype="u1"),
                             **self._late("laser", late))
             if ok:
                 self.sup.update_displacement(d)
@@ -259,12 +281,12 @@ class Engine:
         elif kind == "fetch":
             self._record_laser_block()
         elif kind == "collect":
-            self._stream.collect(self)  # type: ignore[union-attr]
+            self._hw.collect(self)
 
     def _drive_error_text(self) -> str:
         """The drive's own account of its state (error code and text), for the file."""
         try:
-            st = self.inst.motor.status()  # type: ignore[union-attr]
+            st = self._motor.status()
         except InstrumentError as exc:
             return f"status unreadable ({exc.detail})"
         text = getattr(st, "error_text", "")
@@ -273,7 +295,7 @@ class Engine:
     # ------------------------------------------------------------ set-points
     def _set_voltage(self, v: float, t: float, x_cmd: float = math.nan) -> None:
         self.sup.check_setpoint(v)
-        sent = self.inst.amplifier.set_voltage(v)  # type: ignore[union-attr]
+        sent = self._amp.set_voltage(v)
         self._v_cmd, self._v_req = sent, v
         self.rec.append("setpoints", t, voltage=sent, aperture=x_cmd)
 
@@ -281,7 +303,7 @@ class Engine:
         """Send a supervised go-to; returns the commanded aperture [m]."""
         x_cmd = float(self.program.aperture(target)) if self.program.has_motor_axis else math.nan
         self.sup.check_motor_setpoint(target, x_cmd, self._v_cmd)
-        self.inst.motor.move_to(target, vel, acc)  # type: ignore[union-attr]
+        self._motor.move_to(target, vel, acc)
         return x_cmd
 
     def _operator_confirms(self, text: str) -> bool:
@@ -309,11 +331,11 @@ class Engine:
         laser_serial = inst.laser is not None and not (self._stream is not None and self._stream.has_laser)
         storing = seg.storing and laser_serial
         if storing:
-            inst.laser.start_buffer(1.0 / rec.displacement_Hz)  # type: ignore[union-attr]
+            self._laser.start_buffer(1.0 / rec.displacement_Hz)
             self._storing = True
         if streamed:
             self._wait_until(seg.t_start)
-            self._stream.start(seg, self)  # type: ignore[union-attr]
+            self._hw.start(seg, self)
         dt = 1.0 / rec.setpoint_Hz
         hw = self._stream is not None
         collect = COLLECT_PERIOD_VIRTUAL_S if self.clock.virtual else COLLECT_PERIOD_S
@@ -323,8 +345,9 @@ class Engine:
                    "fetch": FETCH_PERIOD_S if storing else None,
                    "laser": 1 / PASSIVE_LASER_HZ if laser_serial and not storing else None,
                    "collect": collect if streamed else None}
-        count = {k: (1 if k == "fetch" else 0) for k, p in periods.items() if p is not None}
-        due = {k: seg.t_start + n * periods[k] for k, n in count.items()}  # from counts: no drift
+        period = {k: p for k, p in periods.items() if p is not None}
+        count = {k: (1 if k == "fetch" else 0) for k in period}
+        due = {k: seg.t_start + n * period[k] for k, n in count.items()}  # from counts: no drift
         t_set, k_set = seg.t_start, 0
         while True:
             t_next = min([t_set, *due.values()])
@@ -347,18 +370,18 @@ class Engine:
                 self._check_stop()
                 self._poll(kind, due[kind])
                 count[kind] += 1
-                due[kind] = seg.t_start + count[kind] * periods[kind]  # type: ignore[operator]
+                due[kind] = seg.t_start + count[kind] * period[kind]
             self.snapshot.t = t_next
             self.snapshot.headroom = self.sup.headroom()
             self.rec.maybe_flush()
         self._wait_until(seg.t_end)
         v_end = voltage_at(seg, seg.t_end)
         if streamed:
-            self._stream.finish(self)  # type: ignore[union-attr]  # the device played the end value itself
+            self._hw.finish(self)  # the device played the end value itself
         elif inst.amplifier is not None and v_end is not None and v_end != self._v_req:
             self._set_voltage(v_end, seg.t_end)  # ticks stop before t_end: a ramp must still reach its target
         if storing:
-            inst.laser.stop_buffer()  # type: ignore[union-attr]
+            self._laser.stop_buffer()
             self._storing = False
             self._drain_laser(LASER_DRAIN_BUDGET_S)
         self.rec.event(self.now(), seg.index, "end", seg.name)
@@ -517,7 +540,7 @@ class Engine:
         deadline = self.now() + DISCHARGE_WAIT_S
         while True:
             try:
-                v, i = amp.read_monitors()  # type: ignore[attr-defined]
+                v, i = amp.read_monitors()
             except InstrumentError as exc:
                 notes.append(f"final monitor read failed: {exc}")
                 return f"{path}; output NOT verified (voltage monitor unreadable)"
@@ -529,6 +552,16 @@ class Engine:
             if self.now() >= deadline:
                 return f"{path}; WARNING: voltage monitor still reads {v.value:.0f} V at {self.now():.3f} s"
             self._pause_until(self.now() + 0.1, urgent_aborts=False)
+
+
+T = TypeVar("T")
+
+
+def _present(instrument: T | None, role: str) -> T:
+    """The rig's instrument of ``role``; the compiler only schedules actions on instruments the rig has."""
+    if instrument is None:
+        raise InstrumentStateError(role, "the program uses an instrument this rig does not have")
+    return instrument
 
 
 def _is_storage_fault(exc: BaseException) -> bool:

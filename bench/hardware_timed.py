@@ -128,7 +128,8 @@ class HardwareTimed:
         prev = np.concatenate([[present], wanted[:-1]])
         out = prev + (wanted - prev) / alpha
         lim = self.amp.max_voltage
-        return np.clip(out, -lim, lim)  # a jump the filter cannot follow at once is approached, never overshot
+        # a jump the filter cannot follow at once is approached, never overshot
+        return np.asarray(np.clip(out, -lim, lim))
 
     def _error_diffused(self, dac: np.ndarray) -> np.ndarray:
         """DAC values on the DAC's own levels whose running sum follows ``dac`` (first-order error diffusion):

@@ -90,7 +90,7 @@ def build_instruments(rig: RigConfig, endpoints: dict[str, str] | None = None,
 
     def serial(url: str, device: str, baudrate: int, timeout: float) -> SerialLink:
         link = SerialLink(url, device, baudrate=baudrate, timeout=timeout)
-        link.cancel = inst.cancel  # type: ignore[attr-defined]  # (the attribute is part of SerialLink)
+        link.cancel = inst.cancel
         return link
 
     if (d := rig.daq) is not None:

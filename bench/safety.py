@@ -59,11 +59,11 @@ class Supervisor:
             p = self.specimen
             lam = p.lambda_pre + (self.displacement or 0.0) / p.L_d
             return abs(volts) * lam * lam / p.L3, min(cap, p.breakdown_field / margin)
-        p = self.specimen
-        x = min(max(self.aperture or p.xp, 1.0001 * p.xp), 1.999 * p.l)
-        l1, l2, *_ = kinematics(x, p.pack())
-        e_b = p.material.E0 * (l1 * l2) ** (p.material.r / 2)
-        return abs(volts) * l1 * l2 / p.t0, min(cap, e_b / margin)
+        q = self.specimen
+        x = min(max(self.aperture or q.xp, 1.0001 * q.xp), 1.999 * q.l)
+        l1, l2, *_ = kinematics(x, q.pack())
+        e_b = q.material.E0 * (l1 * l2) ** (q.material.r / 2)
+        return abs(volts) * l1 * l2 / q.t0, min(cap, e_b / margin)
 
     # ------------------------------------------------------------ checks
     def check_setpoint(self, volts: float) -> None:

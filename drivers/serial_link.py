@@ -37,7 +37,7 @@ class SerialLink:
         self.exclusive = exclusive
         self.cancel = cancel
         self.lock = threading.RLock()
-        self._port: serial.SerialBase | None = None
+        self._port: serial.Serial | None = None
         self._rest = b""  # bytes received after the last terminator
         self._dirty = False  # a read was abandoned: a late reply may still arrive
 
@@ -51,11 +51,13 @@ class SerialLink:
         if self._port is not None:
             return
         try:
-            self._port = serial.serial_for_url(self.url, baudrate=self.baudrate, bytesize=8, parity="N",
-                                               stopbits=1, timeout=min(self.timeout, POLL_SLICE_S),
-                                               write_timeout=self.timeout, exclusive=self.exclusive)
+            port = serial.serial_for_url(self.url, baudrate=self.baudrate, bytesize=8, parity="N", stopbits=1,
+                                         timeout=min(self.timeout, POLL_SLICE_S), write_timeout=self.timeout,
+                                         exclusive=self.exclusive)
+            self._port = port
         except (serial.SerialException, OSError, ValueError) as exc:
-            reason = os.strerror(exc.errno) if isinstance(getattr(exc, "errno", None), int) else str(exc)
+            errno = getattr(exc, "errno", None)
+            reason = os.strerror(errno) if isinstance(errno, int) else str(exc)
             raise InstrumentConnectionError(self.device, f"cannot open {self.url}: {reason}") from None
 
     def close(self) -> None:
@@ -66,7 +68,7 @@ class SerialLink:
             finally:
                 self._port = None
 
-    def _require(self) -> serial.SerialBase:
+    def _require(self) -> serial.Serial:
         if self._port is None:
             raise InstrumentConnectionError(self.device, f"port {self.url} is not open")
         return self._port
@@ -85,7 +87,7 @@ class SerialLink:
         except (serial.SerialException, OSError) as exc:
             raise self._lost(exc) from None
 
-    def _drain(self, port: serial.SerialBase) -> None:
+    def _drain(self, port: serial.Serial) -> None:
         """Drop input until the line has been quiet for QUIET_S (at most MAX_DRAIN_S): a reply still
         streaming in for an abandoned read must not be taken for the next one."""
         self.discard_input()
@@ -117,7 +119,7 @@ class SerialLink:
         except (serial.SerialException, OSError) as exc:
             raise self._lost(exc) from None
 
-    def _slice_timeout(self, port: serial.SerialBase, deadline: float) -> None:
+    def _slice_timeout(self, port: serial.Serial, deadline: float) -> None:
         """Block at most one poll slice, and never past the deadline (checks the stop request first)."""
         if self.cancel is not None and self.cancel.cancelled:
             self._dirty = True
