@@ -190,14 +190,14 @@ class Recorder:
     def _fail(self, what: str, exc: BaseException) -> StorageError:
         """Enter the failed state: drop queued data, release the file safely; the error to raise."""
         self.failure = f"run file {self.path}: {what}: {_cause(exc)}"
+        if self._f is not None:  # first: releasing a dataset flushes its chunk cache, which must not reach the file
+            _abandon(self._f)
+            self._f = None
         for buf in self._buffers.values():
             for parts in buf.values():
                 parts.clear()
         self._events.clear()
         self._datasets, self._events_ds, self._updated, self._samples = {}, None, None, None  # type: ignore[assignment]
-        if self._f is not None:
-            _abandon(self._f)
-            self._f = None
         return StorageError(self.failure)
 
     # -------------------------------------------------------------- writing
@@ -283,14 +283,15 @@ class Recorder:
         """Record the run's state (visible to readers at once); a no-op once the recorder has failed."""
         if state not in STATES:
             raise ValueError(f"unknown run state {state!r}")
+        self.flush()  # the data first: a state must never be on disk without the records before it
         if self.failure or self._f is None:
             return
         try:
             self._f["status/state"][0] = state.encode()
             self._f["status/reason"][0] = reason.encode()[:400]
+            self._f.flush()
         except Exception as exc:
             raise self._fail("write failed", exc) from None
-        self.flush()
 
     def finish(self, state: str, reason: str) -> None:
         """Final flush, close, and stamp the root attributes (the file is complete after this).
