@@ -93,6 +93,9 @@ def _huge_sweep(rng: random.Random) -> dict[str, Any]:
         {"type": "sweep", "over": {"voltage": "7 kV"}, "steps": inner},
         {"type": "repeat", "count": rng.choice([10**6, 10**12, 2**63 - 1]), "steps": inner},
         {"type": "repeat", "count": 10**6, "steps": []},
+        {"type": "repeat", "count": rng.choice([20_000, 100_000]), "steps": [{"type": "hold", "duration_s": 0.001}]},
+        {"type": "sweep", "over": {"v": {"start": "0 V", "stop": "1 kV", "num": 100_000}},
+         "steps": [{"type": "ramp", "to": "{v}", "duration_s": 0.001}]},
         _nested_repeats(rng.choice([5, 10, 21, 40]), rng.choice([1, 2, 10, 100])),
         {"type": "hold", "duration_s": rng.choice([3600.0 * 3, 1e6, 6e5, 1e300])},
         {"type": "waveform", "amplitude": "1 kV", "frequency_Hz": 1000, "cycles": rng.choice([1e6, 1e9, 1e300])},
@@ -328,11 +331,24 @@ class _Worker:
         self.kill()
 
 
+def warm_up() -> None:
+    """Import and JIT-compile what validation uses, once, so that every forked worker starts warm (a numba
+    compile in a worker would otherwise count against its time limit)."""
+    from bench.protocol.predict import predict
+    from bench.protocol.program import compile_program
+    from bench.protocol.schema import load_protocol
+    from bench.run import resolve_rig
+
+    for path in seed_files("protocols"):
+        with contextlib.suppress(Exception):
+            protocol = load_protocol(path)
+            predict(compile_program(protocol, resolve_rig(protocol)))
+
+
 def run_fuzz(n_protocols: int, n_rigs: int, seed: int, limit: float = HANG_S, keep: Path | None = None,
              progress: bool = False) -> Report:
     """Generate the mutants, validate each in a worker with a hard time limit, and classify them."""
-    import bench.run  # noqa: F401 — imported once here, so that forked workers start warm
-
+    warm_up()
     ctx = mp.get_context("fork")
     folder = Path(tempfile.mkdtemp(prefix="bench-fuzz-"))
     report = Report()

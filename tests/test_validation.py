@@ -134,3 +134,13 @@ def test_cli_error_text_is_not_eaten_as_markup(tmp_path: Path) -> None:
     res = runner.invoke(app, ["validate", str(ROOT / "protocols" / "short" / "thesis-identification-short.toml"),
                               "--rig", str(rig)], env={"COLUMNS": "300"})
     assert res.exit_code == 2 and "is not defined under [buses]" in res.output
+
+
+def test_control_characters_in_the_rig_path_are_refused_naming_the_field(tmp_path: Path) -> None:
+    from bench.protocol.schema import ProtocolFileError, load_protocol
+
+    f = tmp_path / "p.toml"
+    f.write_text('[protocol]\nname = "x"\nrig = "\\u0000"\n[[steps]]\ntype = "hold"\nduration_s = 1\n')
+    with pytest.raises(ProtocolFileError) as err:
+        load_protocol(f)
+    assert str(f) in str(err.value) and "protocol.rig" in str(err.value)

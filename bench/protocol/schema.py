@@ -210,8 +210,15 @@ class ProtocolHeader(_Strict):
     name: str
     description: str = ""
     source: str = ""
-    rig: str = Field(description="rig file, relative to the protocol file")
+    rig: str = Field(description="rig file, relative to the protocol file", min_length=1, max_length=4096)
     short_variant_of: str = ""
+
+    @field_validator("rig")
+    @classmethod
+    def _path(cls, v: str) -> str:
+        if not v.isprintable():
+            raise ValueError("a file path without control characters (NUL, newline, …)")
+        return v
 
 
 class Protocol(_Strict):
