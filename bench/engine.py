@@ -419,6 +419,10 @@ class Engine:
         finally:
             for sig, handler in old:
                 signal.signal(sig, handler)
+        failure = getattr(self.rec, "failure", "") or ""
+        if (self._storage_failed or getattr(self.rec, "failed", False)) and state != "error":
+            # the run itself ended, but the file could not record its end: it is not a complete record
+            state, reason = "error", f"storage fault: {failure or 'run file not finalised'} (after: {reason})"
         return RunResult(str(self.rec.path), state, reason, self.now(), time.perf_counter() - wall0,
                          self.rec.samples_written, self.overruns, safe_path)
 
