@@ -63,10 +63,6 @@ class RunFile:
             return "no end recorded: the run is still going, or it crashed / was killed"
         return "finished but not finalised (writer stopped before stamping the file)"
 
-    def json_attr(self, key: str) -> Any:
-        """A root attribute stored as JSON."""
-        return json.loads(self.attrs[key])
-
     def event_list(self) -> list[tuple[float, int, str, str]]:
         """Events as (t, step, kind, text)."""
         return [(float(e["t"]), int(e["step"]), e["kind"].decode(), e["text"].decode()) for e in self.events]

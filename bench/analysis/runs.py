@@ -28,7 +28,7 @@ from bench.models.lozenge import LozengeParams
 from bench.protocol.schema import Protocol, WaveformStep, load_protocol
 from bench.runfile import RunFile, open_run
 
-STANDARD_GRAVITY = 9.81  # m/s², as in the paper's loads (3.1 / 4.6 / 4.9 N)
+PAPER_GRAVITY = 9.81  # m/s²: the value behind the paper's loads (3.1 / 4.6 / 4.9 N), not standard gravity
 
 
 @dataclass
@@ -172,8 +172,8 @@ def analyse(path: str | Path, last_cycles: int = 3) -> RunAnalysis:
             amp = crest_to_trough(laser.t[w], laser.columns["displacement"][w], f)
             params = LozengeParams.prototype(proto, hung_mass=mass)
             de_mass = params.membrane_mass
-            work = mass * STANDARD_GRAVITY * amp
-            work_total = (mass + 0.5 * params.mechanism_mass) * STANDARD_GRAVITY * amp
+            work = mass * PAPER_GRAVITY * amp
+            work_total = (mass + 0.5 * params.mechanism_mass) * PAPER_GRAVITY * amp
             res.kind = "isotonic"
             res.figures = {"amplitude": amp, "stroke_percent": 100 * amp / params.l,
                            "energy_density": work / de_mass,  # J/kg = mJ/g
