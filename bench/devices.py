@@ -41,6 +41,9 @@ def _probe(role: str, drv: Instrument) -> tuple[str, str]:
         s = drv.status()  # type: ignore[attr-defined]
         flags = ", ".join(f for f, on in (("homed", s.homed), ("moving", s.moving), ("error", s.error)) if on)
         return (s.state + (f" ({flags})" if flags else ""), _fmt(s.position, "mm", 1e3, 6))
+    if role == "daq":
+        ain0 = drv.read_ain(0)  # type: ignore[attr-defined]
+        return ("stream running" if drv.streaming else "idle", f"AIN0 {_fmt(ain0.value, 'V', digits=5)}")  # type: ignore[attr-defined]
     r = drv.read()  # type: ignore[attr-defined]
     return ("stable" if r.ok else r.status, _fmt(r.value, "N", digits=4))
 

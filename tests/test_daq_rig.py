@@ -184,3 +184,13 @@ def test_validate_refuses_on_a_lab_rig_what_its_line_cannot_carry_and_accepts_th
     assert res.exit_code == 2 and "laser at 115200 Bd" in res.output and "10,000 S/s" in res.output
     ok = runner.invoke(app, ["validate", protocol, "--rig", str(ROOT / "rigs" / "thesis-daq-lab.toml")])
     assert ok.exit_code == 0, ok.output
+
+
+def test_devices_check_on_the_daq_rig() -> None:
+    from typer.testing import CliRunner
+
+    from bench.cli import app
+
+    res = CliRunner().invoke(app, ["devices", "check", str(THESIS_DAQ)], env={"COLUMNS": "200"})
+    assert res.exit_code == 0, res.output
+    assert res.output.count(" ok ") == 3 and "LabJack T7" in res.output and "AIN0" in res.output
