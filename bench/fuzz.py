@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import copy
 import json
 import math
 import multiprocessing as mp
@@ -150,7 +151,7 @@ def _mutate_tree(doc: dict[str, Any], rng: random.Random) -> str:
         return f"delete {where}"
     if op < 0.75:
         if isinstance(parent, list):
-            parent.insert(int(key), json.loads(json.dumps(parent[key], allow_nan=True)))
+            parent.insert(int(key), copy.deepcopy(parent[key]))
             return f"duplicate {where}"
         parent[f"{key}_extra"] = parent[key]
         return f"unknown key {where}_extra"
