@@ -15,6 +15,7 @@ from rich.prompt import Confirm
 from rich.table import Table
 
 from bench.cli import app, clean_errors, console
+from bench.protocol.staircase import staircase_distortion
 
 protocol_app = typer.Typer(help="Protocol files.", no_args_is_help=True)
 app.add_typer(protocol_app, name="protocol")
@@ -54,6 +55,13 @@ def _summary(plan) -> Table:
     t.add_row("file size", f"≤ {pred.file_bytes / 1e6:.1f} MB uncompressed")
     lim = rig.limits
     t.add_row("peak voltage", f"{pred.peak_voltage:.0f} V (limit {lim.max_voltage_V:.0f} V)")
+    stair = staircase_distortion(prog)
+    if stair is not None:
+        t.add_row("drive", f"set-point staircase at {stair.setpoint_Hz:g} Hz: up to {stair.max_error_V:.0f} V off the "
+                  f"waveform (in {escape(stair.step)}); a hardware-timed rig plays the waveform itself")
+    elif rig.amplifier is not None and rig.amplifier.drive == "daq" and rig.daq is not None:
+        t.add_row("drive", f"hardware-timed: DAC waveform at {rig.daq.scan_rate_Hz:g} scans/s, every analog channel "
+                  "on the same scan clock")
     margin = pred.min_breakdown_margin
     t.add_row("peak true field", f"{pred.peak_field / 1e6:.1f} MV/m; closest to breakdown: "
               f"{pred.field_at_min_margin / 1e6:.1f} of {pred.breakdown_at_min_margin / 1e6:.1f} MV/m "

@@ -194,3 +194,15 @@ def test_devices_check_on_the_daq_rig() -> None:
     res = CliRunner().invoke(app, ["devices", "check", str(THESIS_DAQ)], env={"COLUMNS": "200"})
     assert res.exit_code == 0, res.output
     assert res.output.count(" ok ") == 3 and "LabJack T7" in res.output and "AIN0" in res.output
+
+
+def test_the_dry_run_reports_the_set_point_staircase_of_a_software_timed_rig() -> None:
+    """Raised cosine A = 7 kV at f = 1/9 Hz held at 20 Hz: the largest step of the hold is
+    A·sin(π f / 20 Hz) = 7000·sin(π/180) = 122.2 V (derivation: v = A/2·(1 − cos ωt) moves at most
+    A·sin(ω·Δt/2) within Δt)."""
+    from bench.protocol.staircase import staircase_distortion
+
+    stair = staircase_distortion(plan_run(SHORT / "thesis-identification-short.toml").program)
+    assert stair is not None and stair.setpoint_Hz == 20.0
+    assert stair.per_step["identification"] == pytest.approx(7000 * np.sin(np.pi / 180), rel=2e-3)
+    assert staircase_distortion(plan_run(SHORT / "thesis-identification-short.toml", THESIS_DAQ).program) is None
