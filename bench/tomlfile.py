@@ -1,12 +1,13 @@
 """Reading the bench's TOML files (rig and protocol files) with one-line errors that name the file.
 
-Input is bounded here, before anything else looks at it: at most :data:`MAX_FILE_BYTES` of text and
+Input is bounded here, before anything else looks at it: a regular file of at most :data:`MAX_FILE_BYTES` and
 tables/arrays nested at most :data:`MAX_DEPTH` deep (the parser itself recurses; a file nested deeper
 than Python's recursion limit is reported as too deep, not as a RecursionError).
 """
 
 from __future__ import annotations
 
+import stat
 import tomllib
 from pathlib import Path
 from typing import Any
@@ -38,10 +39,13 @@ def _too_deep(data: Any, limit: int) -> str | None:
 def read_toml(path: Path, kind: str, error: type[Exception]) -> tuple[str, dict]:
     """(text, parsed table) of a TOML file; raise ``error("<kind> file <path>: …")`` if it cannot be."""
     try:
-        size = path.stat().st_size
-        if size > MAX_FILE_BYTES:
+        if not stat.S_ISREG(path.stat().st_mode):  # /dev/zero or a FIFO would be read forever
+            raise error(f"{kind} file {path}: not a regular file")
+        with path.open("rb") as fh:
+            raw = fh.read(MAX_FILE_BYTES + 1)
+        if len(raw) > MAX_FILE_BYTES:
             raise error(f"{kind} file {path}: larger than {MAX_FILE_BYTES:,} bytes")
-        text = path.read_text(encoding="utf-8")
+        text = raw.decode("utf-8").replace("\r\n", "\n").replace("\r", "\n")  # as read_text() would
     except FileNotFoundError:
         raise error(f"{kind} file {path}: not found") from None
     except (OSError, UnicodeDecodeError) as exc:

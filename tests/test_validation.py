@@ -144,3 +144,36 @@ def test_control_characters_in_the_rig_path_are_refused_naming_the_field(tmp_pat
     with pytest.raises(ProtocolFileError) as err:
         load_protocol(f)
     assert str(f) in str(err.value) and "protocol.rig" in str(err.value)
+
+
+def test_special_and_oversized_files_are_refused_without_reading_them(tmp_path: Path) -> None:
+    import os
+
+    from bench.protocol.schema import ProtocolFileError, load_protocol
+    from bench.tomlfile import MAX_FILE_BYTES
+
+    t0 = time.monotonic()
+    for special in ("/dev/zero", "/dev/null"):  # /dev/zero would be read forever
+        with pytest.raises(RigFileError, match=f"rig file {special}: not a regular file"):
+            load_rig(special)
+    fifo = tmp_path / "fifo.toml"
+    os.mkfifo(fifo)  # opening it would block until a writer came
+    with pytest.raises(ProtocolFileError, match="not a regular file"):
+        load_protocol(fifo)
+    big = tmp_path / "big.toml"
+    big.write_text("name = 'x'\n" + "#" * MAX_FILE_BYTES + "\n")
+    with pytest.raises(RigFileError, match="larger than"):
+        load_rig(big)
+    assert time.monotonic() - t0 < 10
+
+
+def test_crlf_files_read_as_before(tmp_path: Path) -> None:
+    import hashlib
+
+    from bench.protocol.schema import load_protocol
+
+    lf = (ROOT / "protocols" / "short" / "thesis-identification-short.toml").read_text()
+    f = tmp_path / "crlf.toml"
+    f.write_bytes(lf.replace("\n", "\r\n").replace("../../rigs", str(RIGS)).encode())
+    p = load_protocol(f)
+    assert p.sha256 == hashlib.sha256(lf.replace("../../rigs", str(RIGS)).encode()).hexdigest()
