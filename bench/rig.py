@@ -276,9 +276,9 @@ class RigConfig(_Strict):
         if self.amplifier and self.amplifier.drive == "daq":
             self._check_daq_drive(self.amplifier)
         adam = self.amplifier if self.amplifier and self.amplifier.drive == "adam" else None
-        for role, bus in (("amplifier", adam and adam.bus),
-                          ("load_cell", self.load_cell and self.load_cell.bus)):
-            if bus and bus not in self.buses:
+        for role, bus in (("amplifier", adam.bus if adam else None),
+                          ("load_cell", self.load_cell.bus if self.load_cell else None)):
+            if bus is not None and bus not in self.buses:  # "" too: it names no bus
                 raise ValueError(f"{role}.bus {bus!r} is not defined under [buses]")
         if self.amplifier and self.amplifier.vmon_channel == self.amplifier.imon_channel:
             raise ValueError("amplifier.vmon_channel and amplifier.imon_channel must differ")
