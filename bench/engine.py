@@ -493,6 +493,8 @@ class Engine:
         ramp = self.program.rig.limits.shutdown_ramp_s
         v0 = self._v_cmd
         try:
+            if v0 != 0.0 and self._urgent.is_set():
+                self._event("ramp", "second stop request before the ramp began: 0 V at once")
             if v0 != 0.0 and not self._urgent.is_set():
                 self._event("ramp", f"ramp from {v0:.0f} V to 0 V over {ramp:g} s")
                 for k in range(1, RAMP_STEPS + 1):

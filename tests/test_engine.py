@@ -250,9 +250,9 @@ def test_a_killed_run_leaves_a_readable_file_marked_incomplete(tmp_path: Path) -
 
 
 def test_real_rig_needs_an_operator_for_specimen_changes(tmp_path: Path) -> None:
-    sweep = ROOT / "protocols" / "thesis-temperature-sweep.toml"
+    sweep = ROOT / "protocols" / "thesis-temperature-sweep.toml"  # (its lines carry it on the DAQ lab rig)
     proc = subprocess.run([sys.executable, "-m", "bench", "run", str(sweep),
-                           "--rig", str(ROOT / "rigs" / "thesis-lab.toml"), "--out", str(tmp_path)],
+                           "--rig", str(ROOT / "rigs" / "thesis-daq-lab.toml"), "--out", str(tmp_path)],
                           capture_output=True, text=True, timeout=120, stdin=subprocess.DEVNULL)
     assert proc.returncode == 2
     assert proc.stderr.strip() == ("error: this protocol changes the specimen between tests: run it interactively "
@@ -262,7 +262,7 @@ def test_real_rig_needs_an_operator_for_specimen_changes(tmp_path: Path) -> None
 
 def test_virtual_time_needs_a_simulated_rig() -> None:
     with pytest.raises(ValueError, match="virtual time needs a simulated rig"):
-        run_protocol(SHORT / "thesis-identification-short.toml", rig_path=ROOT / "rigs" / "thesis-lab.toml",
+        run_protocol(SHORT / "thesis-identification-short.toml", rig_path=ROOT / "rigs" / "thesis-daq-lab.toml",
                      virtual=True)
 
 
