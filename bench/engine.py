@@ -52,7 +52,8 @@ DISCHARGE_WAIT_S = 2.0  # how long to keep reading a monitor that is not yet at 
 WATCHDOG_MARGIN_S = 0.2  # wait past the module's communication-safety period before checking the output
 COLLECT_PERIOD_S = 0.05  # hardware-timed rigs: collect the DAQ stream (and top up its output buffer) this often
 COLLECT_PERIOD_VIRTUAL_S = 0.25  # virtual time: fewer, larger blocks (the output buffer holds ~0.8 s at 10 kHz)
-LASER_DRAIN_BUDGET_S = 30.0  # at most this long fetching stored laser data after the run (stop: at once)
+LASER_DRAIN_BUDGET_S = 30.0  # at most this long fetching a step's stored laser data after the step
+LASER_SHUTDOWN_DRAIN_S = 5.0  # after a stop or fault (high voltage already at 0 V): then what is left is reported
 STOP_SIGNALS = {
     signal.SIGINT: "interrupted by Ctrl-C",
     signal.SIGTERM: "terminated by SIGTERM",
@@ -459,7 +460,7 @@ class Engine:
             try:
                 self.inst.laser.stop_buffer()
                 self._storing = False
-                self._drain_laser(LASER_DRAIN_BUDGET_S)
+                self._drain_laser(LASER_SHUTDOWN_DRAIN_S)
             except (InstrumentError, SafetyTrip, StopRequested) as exc:
                 notes.append(f"stored laser data not (all) fetched: {exc}")
             except Exception as exc:
