@@ -42,7 +42,7 @@ class AmplifierConfig(_Strict):
 
     model: Literal["10/10B-HS", "10/40A-HS"] = "10/10B-HS"
     drive: Literal["adam", "daq"] = "adam"
-    bus: str = "io"
+    bus: str = Field("io", min_length=1, description="name of a table under [buses]")
     ao_unit: int = Field(1, ge=1, le=247)
     ao_channel: int = Field(0, ge=0, le=3)
     ai_unit: int = Field(2, ge=1, le=247)
@@ -102,7 +102,7 @@ class MotorConfig(_Strict):
 class LoadCellConfig(_Strict):
     """Load cell through a DGT1S weight transmitter on a Modbus bus."""
 
-    bus: str = "scale"
+    bus: str = Field("scale", min_length=1, description="name of a table under [buses]")
     unit: int = Field(1, ge=1, le=247)
     division_kg: float = Field(0.001, gt=0)
     capacity_kg: float = Field(5.0, gt=0)

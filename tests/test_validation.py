@@ -177,3 +177,10 @@ def test_crlf_files_read_as_before(tmp_path: Path) -> None:
     f.write_bytes(lf.replace("\n", "\r\n").replace("../../rigs", str(RIGS)).encode())
     p = load_protocol(f)
     assert p.sha256 == hashlib.sha256(lf.replace("../../rigs", str(RIGS)).encode()).hexdigest()
+
+
+@pytest.mark.parametrize("rig, table", [("thesis-lab", "amplifier"), ("lsdea-motor-sim", "load_cell")])
+def test_an_empty_bus_name_is_refused(tmp_path: Path, rig: str, table: str) -> None:
+    """Found by the long fuzz run: bus = "" passed the [buses] check and raised KeyError in the link budget."""
+    msg = _refused(tmp_path, _set((RIGS / f"{rig}.toml").read_text(), table, "bus", '""'))
+    assert f"{table}.bus" in msg
