@@ -260,7 +260,8 @@ def test_batch_equals_individual_runs() -> None:
     for k, ps in enumerate(sets):
         s = MembraneStream(ps)
         tr = s.advance(phi)
-        assert np.array_equal(out[k, 1:], tr.stretch[9::10])
+        # the batched kernel vectorises over the sets with its own exp/log: equal to rounding
+        np.testing.assert_allclose(out[k, 1:], tr.stretch[9::10], rtol=0, atol=1e-11)
     assert out.shape == (3, 5001)
 
 

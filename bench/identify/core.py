@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 from typing import Literal, Protocol
 
 import numpy as np
-from scipy.optimize import differential_evolution, least_squares
+from scipy.optimize import OptimizeResult, differential_evolution, least_squares
 
 Cost = Literal["sae", "lsq"]
 
@@ -50,6 +50,10 @@ class FitSettings:
     polish_iterations: int = 20
     seed: int = 1
     tol: float = 0.01  # scipy's relative convergence tolerance of the population's costs
+    # stop on convergence of the best cost: when it improved by less than stall_tol (relative) over the last
+    # stall_generations generations, the search ends and the polish takes over (0: run to scipy's criterion)
+    stall_generations: int = 10
+    stall_tol: float = 1e-3
 
 
 @dataclass
@@ -128,11 +132,20 @@ def fit(problem: Problem, settings: FitSettings = FitSettings(), start: np.ndarr
         evaluations += Z.shape[0]
         return _costs(problem, problem.predict(Z), settings.cost)
 
+    best: list[float] = []
+
+    def generation(intermediate_result: OptimizeResult) -> None:
+        if progress:
+            progress()
+        best.append(float(intermediate_result.fun))
+        n = settings.stall_generations
+        if n and len(best) > n and best[-1 - n] - best[-1] <= settings.stall_tol * abs(best[-1 - n]):
+            raise StopIteration  # converged: the best cost no longer moves
+
     de = differential_evolution(batch_cost, list(zip(lo, hi, strict=True)), init=init,
                                 maxiter=settings.generations, mutation=settings.mutation,
                                 recombination=settings.crossover, tol=settings.tol, polish=False,
-                                vectorized=True, updating="deferred", seed=settings.seed,
-                                callback=(lambda *a, **k: progress()) if progress else None)
+                                vectorized=True, updating="deferred", seed=settings.seed, callback=generation)
     z = np.asarray(de.x, dtype=float)
     problem = fine or problem
     mask = np.isfinite(problem.data)

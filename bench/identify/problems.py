@@ -22,6 +22,7 @@ from bench.identify.core import to_optimiser, to_physical
 from bench.models.integrate import MODEL_LOZENGE, MODEL_MEMBRANE, OBSERVE_FORCE, run_fixed_batch
 from bench.models.lozenge import MODE_HUNG, MODE_IMPOSED, PROTOTYPE_LAMBDA2P, LozengeParams, MaxwellBranch
 from bench.models.membrane import MembraneParams
+from bench.models.membrane_batch import membrane_batch_records
 from bench.runfile import RunFile, open_run
 
 J_BOUNDS = ((100.0, 400.0), (200.0, 500.0), (300.0, 600.0), (400.0, 700.0), (500.0, 800.0))
@@ -67,6 +68,31 @@ def _window_means(t_grid: np.ndarray, t_data: np.ndarray, values: np.ndarray) ->
     return out
 
 
+def _record_windows(t_set: np.ndarray, v_set: np.ndarray, t_end: float, split_rest: float,
+                    keep_rest: float) -> list[tuple[float, float]]:
+    """Time windows (a, b) of a file's records: cut at every rest at 0 V of ≥ split_rest s (the record before
+    keeps keep_rest s of it, the next starts where the drive resumes); the whole file when there is none."""
+    if split_rest <= 0:
+        return [(0.0, t_end)]
+    rests, start = [], None  # runs of zero set-points
+    for t, v in zip(t_set, v_set, strict=True):
+        if v == 0.0 and start is None:
+            start = float(t)
+        elif v != 0.0 and start is not None:
+            rests.append((start, float(t)))
+            start = None
+    if start is not None:
+        rests.append((start, t_end))
+    windows, a = [], 0.0
+    for r0, r1 in rests:
+        if r1 - r0 >= split_rest and r0 > a:
+            windows.append((a, min(r0 + keep_rest, r1)))
+            a = r1
+    if t_end > a:
+        windows.append((a, t_end))
+    return windows
+
+
 @dataclass
 class _Record:
     U: np.ndarray  # inputs per step
@@ -81,10 +107,19 @@ class MembraneProblem:
     """Thesis membrane identification from laser records."""
 
     def __init__(self, paths: list[str | Path], h: float = 5e-4, data_rate: float = 100.0,
-                 average: bool = True) -> None:
+                 average: bool = True, reference_kernel: bool = False, split_rest: float = 30.0,
+                 keep_rest: float = 20.0) -> None:
         """``average``: compare 1/data_rate window means of record and model (removes the aliasing of
-        fast ringing); otherwise point values at the record's sample times."""
+        fast ringing); otherwise point values at the record's sample times. ``reference_kernel``: predict
+        through the scalar per-candidate kernel (the benchmark's old path) instead of the vectorised one.
+
+        A file is cut into records at every rest (0 V) of at least ``split_rest`` s: each record starts from
+        the rest state where the drive resumes (the protocols' long rests are there for the specimen to
+        recover) and keeps the first ``keep_rest`` s of the rest that ends it (``split_rest`` 0: whole files).
+        """
         self.h, self.data_rate, self.records, self.average = h, data_rate, [], average
+        self.reference_kernel = reference_kernel
+        self.split_rest, self.keep_rest = split_rest, keep_rest
         self.data_unit = "m"
         self.names = ["mu0", "J0"] + [f"mu{i}" for i in range(1, 5)] + [f"J{i}" for i in range(1, 5)] + \
             [f"tau{i}" for i in range(1, 5)]
@@ -107,24 +142,28 @@ class MembraneProblem:
         params = MembraneParams(**{k: tuple(v) if isinstance(v, list) else v for k, v in model.items()})
         self.template = self.template or params
         stride = max(1, round(1.0 / (self.data_rate * self.h)))
-        t_end = run.updated
-        n = int(np.floor(t_end / self.h))
-        n -= n % stride
-        t_steps = np.arange(1, n + 1) * self.h
         sp = run.streams["setpoints"]
-        U = np.empty((n, 2))
-        U[:, 0] = _hold(sp.t, sp.columns["voltage"], t_steps)
-        T = spec.get("overrides", {}).get("temperature_K") or spec.get("temperature_K", 296.0)
-        U[:, 1] = T
-        for te, values in run.specimen_changes():
-            if "temperature_K" in values:
-                U[t_steps > te, 1] = values["temperature_K"]
+        T0 = spec.get("overrides", {}).get("temperature_K") or spec.get("temperature_K", 296.0)
+        changes = [(te, v["temperature_K"]) for te, v in run.specimen_changes() if "temperature_K" in v]
         laser = run.streams["laser"]
-        t_data = np.arange(0, n // stride + 1) * stride * self.h
         ok = laser.columns["valid"] > 0
         sample = _window_means if self.average else _sampled
-        data = sample(t_data, laser.t[ok], laser.columns["displacement"][ok])
-        self.records.append(_Record(U, params.initial_state(), params.pack(), stride, data, source))
+        windows = _record_windows(sp.t, sp.columns["voltage"], run.updated, self.split_rest, self.keep_rest)
+        for a, b in windows:
+            n = int(np.floor((b - a) / self.h + 1e-9))
+            n -= n % stride
+            if n < 10 * stride:
+                continue
+            t_steps = a + np.arange(1, n + 1) * self.h
+            U = np.empty((n, 2))
+            U[:, 0] = _hold(sp.t, sp.columns["voltage"], t_steps)
+            U[:, 1] = T0
+            for te, T in changes:
+                U[t_steps > te, 1] = T
+            t_data = a + np.arange(0, n // stride + 1) * stride * self.h
+            data = sample(t_data, laser.t[ok], laser.columns["displacement"][ok])
+            where = source if len(windows) == 1 else f"{source} [{a:.1f}, {b:.1f}] s"
+            self.records.append(_Record(U, params.initial_state(), params.pack(), stride, data, where))
 
     def params_of(self, z: np.ndarray) -> MembraneParams:
         """Physical MembraneParams for one optimiser vector."""
@@ -135,14 +174,26 @@ class MembraneProblem:
 
     def predict(self, Z: np.ndarray) -> np.ndarray:
         """Displacements u [m] for each row of Z, all records concatenated (one parallel batch per record)."""
+        if self.reference_kernel:
+            return self.predict_reference(Z)
+        Z = np.atleast_2d(Z)
+        P = np.stack([self.params_of(z).pack() for z in Z])
+        t = self.template
+        lam = membrane_batch_records(P, np.stack([r.y0 for r in self.records]), [r.U for r in self.records],
+                                     self.h, self.records[0].stride, self.records[0].stride if self.average else 0)
+        return t.L_d * (lam - t.lambda_pre)  # type: ignore[union-attr]
+
+    def predict_reference(self, Z: np.ndarray) -> np.ndarray:
+        """:meth:`predict` through the scalar per-candidate kernel (``run_fixed_batch``): the benchmark's
+        reference."""
         Z = np.atleast_2d(Z)
         out = []
+        P = np.stack([self.params_of(z).pack() for z in Z])
+        t = self.template
         for rec in self.records:
-            P = np.stack([self.params_of(z).pack() for z in Z])
             Y0 = np.tile(rec.y0, (Z.shape[0], 1))
             lam = run_fixed_batch(MODEL_MEMBRANE, Y0, rec.U, self.h, P, 0, rec.stride,
                                   rec.stride if self.average else 0)
-            t = self.template
             out.append(t.L_d * (lam - t.lambda_pre))  # type: ignore[union-attr]
         return np.concatenate(out, axis=1)
 

@@ -7,7 +7,7 @@ from typing import Literal
 
 import numpy as np
 
-from bench.models.integrate import MODEL_MEMBRANE, FixedStepper, run_fixed, run_fixed_batch, solve_offline
+from bench.models.integrate import MODEL_MEMBRANE, FixedStepper, run_fixed, solve_offline
 from bench.models.membrane import (
     P_BRANCHES,
     MembraneParams,
@@ -16,6 +16,7 @@ from bench.models.membrane import (
     membrane_outputs,
     membrane_rhs,
 )
+from bench.models.membrane_batch import membrane_batch
 
 VoltageInput = Callable[[float], float] | Callable[[np.ndarray], np.ndarray]
 
@@ -155,4 +156,4 @@ def batch_stretch(param_sets: Sequence[MembraneParams] | np.ndarray, voltage: np
     U = np.empty((len(voltage), 2))
     U[:, 0] = voltage
     U[:, 1] = T
-    return run_fixed_batch(MODEL_MEMBRANE, Y0, U, h, P, 0, stride)
+    return membrane_batch(P, Y0, U, h, stride)

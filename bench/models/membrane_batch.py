@@ -1,0 +1,217 @@
+"""Many membrane parameter sets through one input history at once: candidates as the vectorised dimension.
+
+The identification's inner loop. Same scheme as :func:`bench.models.membrane.membrane_step` (exponential
+update of each Maxwell unit's elastic log-stretch, symplectic Euler for the membrane; physics.md §1.5), but
+the state is stored structure-of-arrays (one array per state component, one entry per candidate) and each
+step runs its loops *over the candidates*, innermost, with no calls that are not inlined: LLVM turns them
+into SIMD loops (exp/log from :mod:`bench.models.vecmath`). Threads split the candidates into chunks.
+
+A candidate whose state leaves the model's domain (Gent lock-up, λ ≤ 0, non-finite) is marked dead, reset to
+a harmless state so that it costs nothing further, and outputs NaN from that step on — as the scalar kernel
+(:func:`bench.models.integrate.run_fixed_batch`, kept as the reference) does.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+from numba import njit, prange
+
+from bench.models.membrane import (
+    P_A,
+    P_B,
+    P_BRANCHES,
+    P_C,
+    P_EPS,
+    P_J0,
+    P_KAPPA,
+    P_KF,
+    P_L,
+    P_L3,
+    P_LPRE,
+    P_MU0,
+    P_RHO,
+    P_SPRE,
+)
+from bench.models.vecmath import vexp, vlog
+
+LANES = 8  # float64 lanes of an AVX-512 register
+
+
+@njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy")
+def _chunk(P: np.ndarray, Y0: np.ndarray, U: np.ndarray, h: float, stride: int, window: int,
+           out: np.ndarray) -> None:
+    """Integrate the candidates of one chunk (rows of P, Y0) and write λ samples into ``out``."""
+    c_in = P.shape[0]
+    # lanes padded (copies of the last set) to whole registers and at least two: LLVM's vector loops are
+    # only entered for ≥ 16 iterations, and a scalar remainder costs as much as a whole register
+    c = max(2 * LANES, -(-c_in // LANES) * LANES)
+    src = np.minimum(np.arange(c), c_in - 1)
+    P = P[src]
+    Y0 = Y0[src]
+    n_units = (P.shape[1] - P_BRANCHES) // 3
+    n = U.shape[0]
+    # parameters, structure of arrays
+    mu0 = P[:, P_MU0].copy()
+    iJ0 = 1.0 / P[:, P_J0]
+    spre = P[:, P_SPRE].copy()
+    kf = P[:, P_KF].copy()
+    lpre = P[:, P_LPRE].copy()
+    a = P[:, P_A].copy()
+    b = P[:, P_B].copy()
+    cc = P[:, P_C].copy()
+    ka = P[:, P_KAPPA] * P[:, P_A]
+    eps_l3 = P[:, P_EPS] / (P[:, P_L3] * P[:, P_L3])
+    m_const = P[:, P_RHO] * P[:, P_L] * P[:, P_L] / 3.0
+    rl3 = P[:, P_RHO] * P[:, P_L3] * P[:, P_L3]
+    mu = np.empty((n_units, c))
+    iJ = np.empty((n_units, c))
+    q = np.empty((n_units, c))  # μ/(6η)
+    r0 = np.empty((n_units, c))  # μ/η
+    for i in range(n_units):
+        for j in range(c):
+            mu[i, j] = P[j, P_BRANCHES + i]
+            iJ[i, j] = 1.0 / P[j, P_BRANCHES + n_units + i]
+            r0[i, j] = P[j, P_BRANCHES + i] / P[j, P_BRANCHES + 2 * n_units + i]
+            q[i, j] = r0[i, j] / 6.0
+    # state: λ, λ̇ and per unit its elastic stretch e = λ/ξ and u = ln e (kept current as λ moves, so a
+    # step needs one log per candidate instead of one per unit)
+    lam = Y0[:, 0].copy()
+    v = Y0[:, 1].copy()
+    el = np.empty((n_units, c))
+    ul = np.empty((n_units, c))
+    for i in range(n_units):
+        for j in range(c):
+            el[i, j] = lam[j] / Y0[j, 2 + i]
+            ul[i, j] = vlog(el[i, j])
+    alive = np.ones(c)  # 1.0 alive, 0.0 dead (a float mask keeps the loops branch-free)
+    ok = np.ones(c)
+    force = np.empty(c)
+    inv_lam = np.empty(c)
+    ratio = np.empty(c)  # λ_{k+1}/λ_k
+    dlog = np.empty(c)  # ln(λ_{k+1}/λ_k)
+    acc = np.zeros(c)
+    for j in range(c_in):
+        out[j, 0] = lam[j]
+    for k in range(n):
+        phi = U[k, 0]
+        phi2 = phi * phi
+        iT = 1.0 / U[k, 1]
+        for j in range(c):  # equilibrium spring, inertia terms
+            lj = lam[j]
+            il = 1.0 / lj
+            inv_lam[j] = il
+            e2 = lj * lj
+            il2 = il * il
+            e4 = il2 * il2
+            G0 = 1.0 - (2.0 * e2 + e4 - 3.0) * iJ0[j]
+            il6 = e4 * il2
+            dM = -4.0 * rl3[j] * il6 * il
+            force[j] = -0.5 * dM * v[j] * v[j] - mu0[j] * (e2 - e4) / G0 * il
+            ok[j] = 1.0 if G0 > 0.0 else 0.0
+        for i in range(n_units):  # Maxwell units: exponential update of u = ln(λ/ξ), then their stress
+            for j in range(c):  # (2-D indexing, no row views: a view costs two atomic reference counts)
+                # Gent terms times e⁴ (no reciprocal of e needed): (e² − e⁻⁴)/G = (e⁶ − 1)/(G e⁴)
+                u = ul[i, j]
+                e2 = el[i, j] * el[i, j]
+                e4 = e2 * e2
+                e6 = e4 * e2
+                Ge4 = e4 - (2.0 * e6 + 1.0 - 3.0 * e4) * iJ[i, j]
+                rate = q[i, j] * (e6 - 1.0) / (Ge4 * u) if abs(u) >= 1e-9 else r0[i, j]
+                u = u * vexp(-h * rate)
+                en = vexp(u)
+                ul[i, j] = u
+                el[i, j] = en
+                e2 = en * en
+                e4 = e2 * e2
+                e6 = e4 * e2
+                Ge4 = e4 - (2.0 * e6 + 1.0 - 3.0 * e4) * iJ[i, j]
+                force[j] -= mu[i, j] * (e6 - 1.0) / Ge4 * inv_lam[j]
+                ok[j] = ok[j] if Ge4 > 0.0 else 0.0
+        pos = (k + 1) % stride
+        write = pos == 0
+        add = window > 0 and (write or pos > stride - window)
+        for j in range(c):  # electrostatics, dead load, membrane update
+            lj = lam[j]
+            l2 = lj * lj
+            er = a[j] * l2 + b[j] * iT + cc[j]
+            s_es = eps_l3[j] * phi2 * (er * l2 * lj + ka[j] * l2 * l2 * lj)
+            il2 = inv_lam[j] * inv_lam[j]
+            M = m_const[j] + 2.0 / 3.0 * rl3[j] * il2 * il2 * il2
+            f = force[j] + spre[j] - kf[j] * (lj - lpre[j]) + s_es
+            vn = v[j] + h * f / M
+            ln = lj + h * vn
+            good = ok[j] > 0.0 and ln > 0.0 and ln < 1e300 and alive[j] > 0.0
+            alive[j] = 1.0 if good else 0.0
+            lam[j] = ln if good else lpre[j]
+            v[j] = vn if good else 0.0
+            rj = ln * inv_lam[j]
+            ratio[j] = rj if good else 1.0
+            dlog[j] = vlog(rj) if good else 0.0
+        for i in range(n_units):  # the units' elastic stretch follows λ: e ← e·λ_{k+1}/λ_k
+            for j in range(c):
+                g = alive[j] > 0.0
+                el[i, j] = el[i, j] * ratio[j] if g else 1.0
+                ul[i, j] = ul[i, j] + dlog[j] if g else 0.0
+        if add:
+            for j in range(c):
+                acc[j] += lam[j]
+        if write:
+            col = (k + 1) // stride
+            if window > 0:
+                for j in range(c_in):
+                    out[j, col] = acc[j] / window if alive[j] > 0.0 else np.nan
+                for j in range(c):
+                    acc[j] = 0.0
+            else:
+                for j in range(c_in):
+                    out[j, col] = lam[j] if alive[j] > 0.0 else np.nan
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def _batch(P: np.ndarray, Y0: np.ndarray, U: np.ndarray, h: float, stride: int, window: int,
+           tasks: np.ndarray, out: np.ndarray) -> None:
+    """Run the tasks (rows: record's first and end step in U, first and end output column, first and end
+    candidate) in parallel; Y0 is (records, candidates, state)."""
+    for s in prange(tasks.shape[0]):
+        r, u0, u1, c0, c1, a, b = tasks[s]
+        _chunk(P[a:b], Y0[r, a:b], U[u0:u1], h, stride, window, out[a:b, c0:c1])
+
+
+def membrane_batch_records(P: np.ndarray, Y0: np.ndarray, Us: list[np.ndarray], h: float, stride: int,
+                           window: int = 0) -> np.ndarray:
+    """λ of many parameter sets (rows of packed P) over several records at once, in parallel over records and
+    candidate chunks. ``Y0`` is (records, len(P), state) or (records, state) (the same start for every set);
+    ``Us[r]`` the inputs of record r. Returns the records' outputs side by side: (len(P), Σ(len(U_r)//stride + 1)).
+    """
+    P = np.ascontiguousarray(P, dtype=np.float64)
+    m = P.shape[0]
+    Y0 = np.asarray(Y0, dtype=np.float64)
+    if Y0.ndim == 2:
+        Y0 = np.broadcast_to(Y0[:, None, :], (Y0.shape[0], m, Y0.shape[1]))
+    Y0 = np.ascontiguousarray(Y0)
+    U = np.ascontiguousarray(np.concatenate(Us), dtype=np.float64)
+    n_steps = np.array([u.shape[0] for u in Us])
+    n_cols = n_steps // stride + 1
+    u_off = np.concatenate([[0], np.cumsum(n_steps)])
+    c_off = np.concatenate([[0], np.cumsum(n_cols)])
+    out = np.full((m, int(c_off[-1])), np.nan)
+    threads = numba.get_num_threads()
+    # chunks per record: enough tasks for the threads, each chunk filling ≥ 2 registers
+    chunks = max(1, min(-(-threads // len(Us)), m // (2 * LANES)))
+    bounds = np.linspace(0, m, chunks + 1).round().astype(np.int64)  # equal shares
+    tasks = np.array([(r, u_off[r], u_off[r + 1], c_off[r], c_off[r + 1], bounds[k], bounds[k + 1])
+                      for r in range(len(Us)) for k in range(chunks)], dtype=np.int64)
+    _batch(P, Y0, U, float(h), int(stride), int(window), tasks, out)
+    return out
+
+
+def membrane_batch(P: np.ndarray, Y0: np.ndarray, U: np.ndarray, h: float, stride: int,
+                   window: int = 0) -> np.ndarray:
+    """λ of many membrane parameter sets (rows of packed P, initial states rows of Y0) under inputs U.
+
+    Same contract as ``run_fixed_batch(MODEL_MEMBRANE, Y0, U, h, P, 0, stride, window)``: U[k] = (Φ, T) at the
+    end of step k; returns (len(P), len(U)//stride + 1), NaN from the first sample after a set failed;
+    ``window`` > 0 averages each output over the last ``window`` step ends.
+    """
+    return membrane_batch_records(P, np.asarray(Y0, dtype=np.float64)[None], [U], h, stride, window)
