@@ -227,3 +227,35 @@ def test_a_rig_without_a_set_point_watchdog_is_refused(tmp_path: Path) -> None:
     result = execute(plan, tmp_path / "y.h5", virtual=True, allow_no_watchdog=True)
     assert result.state == "completed"
     assert open_run(result.path).attrs["hv_watchdog"].startswith("NO communication watchdog: run allowed")
+
+
+def test_a_full_disk_mid_run_zeroes_the_output_and_says_why(tmp_path: Path) -> None:
+    """The run file on a 256-kB tmpfs fills a few seconds into the run (the thesis run writes ≈ 80 kB/s):
+    the engine stops, the output goes to 0 V within the bound, and the run reports the storage fault."""
+    from tests.test_storage import _tmpfs
+
+    trial = Trial(THESIS, 0.0, lambda _e, _s: None)
+    with _tmpfs(tmp_path / "small", "256k") as disk:
+        result, sim, engine = _run_into(trial, disk)
+        assert result.state == "error" and result.reason.startswith("storage fault: run file")
+        assert "No space left on device" in result.reason
+        assert result.safe_path.startswith("0 V commanded by the host")
+        sim.plant.observe()
+        t = np.concatenate([b[0] for b in trial.blocks])
+        v = np.concatenate([b[1] for b in trial.blocks])
+        assert np.any(np.abs(v) > ZERO_V)  # high voltage was on when the disk filled
+        zero_at = float(result.safe_path.split(" at ")[1].split(" s")[0])  # run clock
+        assert t[np.abs(v) > ZERO_V][-1] <= engine._t0 + zero_at + 1e-3  # off from the moment 0 V was commanded
+
+
+def _run_into(trial: Trial, folder: Path):
+    """Like Trial.run, with the run file in ``folder``: (result, simulated rig, engine)."""
+    plan = plan_run(trial.protocol)
+    seen: list = []
+
+    def hook(engine: Engine, sim) -> None:
+        seen.extend([sim, engine])
+        sim.plant.listeners.append(lambda b: trial.blocks.append((b.t.copy(), b.voltage.copy())))
+
+    result = execute(plan, folder / "run.h5", virtual=False, on_engine=hook)
+    return result, seen[0], seen[1]
