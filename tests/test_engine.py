@@ -300,3 +300,12 @@ def test_a_ramp_reaches_its_target_before_the_next_step(tmp_path: Path) -> None:
     held = sp.columns["voltage"][(sp.t >= t0) & (sp.t <= t0 + dur)]
     code = 20.0 / 4096 * 1000.0  # one ADAM-4024 code (±10 V, 12 bit) times the TREK gain of 1000 V/V
     assert held.size > 0 and np.all(np.abs(held - 7000.0) <= code)
+
+
+def test_every_motor_go_to_passes_the_supervisor(tmp_path: Path) -> None:
+    """Each go-to the engine sends is recorded with its aperture in /setpoints; the supervisor must have checked
+    as many (the issue found 0 of 1,202 checked)."""
+    engines: list[Engine] = []
+    _, run, _ = run_virtual(SHORT / "lsdea-isopotential-short.toml", tmp_path, hook=lambda e, _s: engines.append(e))
+    sent = int(np.sum(np.isfinite(run.streams["setpoints"].columns["aperture"])))
+    assert sent > 100 and engines[0].sup.motor_setpoints == sent
