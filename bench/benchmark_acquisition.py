@@ -12,7 +12,6 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
@@ -24,10 +23,11 @@ from bench.protocol.link_budget import (
     laser_upload_rate,
     rtu_transaction,
 )
+from bench.resources import rigs_dir
 from bench.rig import RigConfig, load_rig
 from sim_devices.rig import SimRig, Timing
 
-RIGS = Path(__file__).resolve().parent.parent / "rigs"
+RIGS = rigs_dir()
 
 
 @dataclass(frozen=True)

@@ -18,13 +18,13 @@ from bench.analysis.cycles import crest_to_trough
 from bench.benchmark_acquisition import Figure
 from bench.models.membrane import MembraneParams
 from bench.models.membrane_runs import simulate_membrane
+from bench.resources import protocols_dir, rigs_dir
 from bench.run import execute, plan_run
 from bench.runfile import open_run
 from bench.waveforms import Waveform
 
-ROOT = Path(__file__).resolve().parent.parent
-SHORT = ROOT / "protocols" / "short"
-RIGS = ROOT / "rigs"
+SHORT = protocols_dir() / "short"
+RIGS = rigs_dir()
 
 
 def _run(protocol: Path, rig: str, tmp: Path, virtual: bool, name: str):

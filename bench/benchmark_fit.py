@@ -22,9 +22,9 @@ from bench.benchmark_acquisition import Figure
 from bench.identify.core import FitSettings, fit
 from bench.identify.problems import MembraneProblem
 from bench.models.membrane import membrane_rhs
+from bench.resources import protocols_dir
 from bench.run import execute, plan_run
 
-ROOT = Path(__file__).resolve().parent.parent
 CANDIDATE_TARGET = 4.0  # issue 13: per-candidate cost ≥ 4× lower than the reference kernel
 FIT_TARGET = 4.0  # thesis fit ≥ 4× faster than the old path, same or better rms
 GENERIC_TARGET = 100_000.0  # batched ≥ 100,000× faster per candidate than generic scipy
@@ -35,7 +35,7 @@ def _ok(ratio: float, target: float) -> str:
 
 
 def _record(tmp: Path) -> Path:
-    result = execute(plan_run(ROOT / "protocols" / "thesis-identification.toml"), tmp / "run.h5", virtual=True)
+    result = execute(plan_run(protocols_dir() / "thesis-identification.toml"), tmp / "run.h5", virtual=True)
     if result.state != "completed":
         raise RuntimeError(f"benchmark run ended {result.state}: {result.reason}")
     return Path(result.path)

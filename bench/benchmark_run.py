@@ -11,14 +11,13 @@ import numpy as np
 from bench.benchmark_acquisition import Figure
 from bench.engine import Engine
 from bench.recorder import Column, Recorder
+from bench.resources import protocols_dir
 from bench.run import execute, plan_run
-
-ROOT = Path(__file__).resolve().parent.parent
 
 
 def thesis_virtual(repeats: int = 3) -> list[Figure]:
     """Thesis identification protocol (25 s) on the simulated rig in virtual time, end to end."""
-    path = ROOT / "protocols" / "thesis-identification.toml"
+    path = protocols_dir() / "thesis-identification.toml"
     t0 = time.perf_counter()
     plan = plan_run(path)
     t_plan = time.perf_counter() - t0
@@ -62,7 +61,7 @@ def recorder_throughput(seconds: float = 20.0) -> Figure:
 def recorder_cpu_share() -> list[Figure]:
     """Recorder CPU during a wall-clock run (short thesis run, 11 s, 10-kHz laser): as a share of one core
     over the run, and as a share of the process's own CPU (simulated twins included)."""
-    plan = plan_run(ROOT / "protocols" / "short" / "thesis-identification-short.toml")
+    plan = plan_run(protocols_dir() / "short" / "thesis-identification-short.toml")
     engines: list[Engine] = []
     with tempfile.TemporaryDirectory() as tmp:
         c0, w0 = time.process_time(), time.perf_counter()

@@ -230,9 +230,10 @@ def demo(
     evolution (thesis settings), compares it with the specimen the twin simulated, and writes the report.
     """
     from bench.identify.core import FitSettings
+    from bench.resources import protocol as shipped_protocol
     from bench.run import default_output, execute, plan_run
 
-    protocol = Path(__file__).resolve().parent.parent / "protocols" / "thesis-identification.toml"
+    protocol = shipped_protocol("thesis-identification")
     with console.status("validating and dry-running the thesis identification protocol…"):
         plan = plan_run(protocol)
     console.print(f"[bold]1. run[/] {plan.protocol.protocol.name}: {plan.protocol.protocol.description}")

@@ -36,7 +36,8 @@ from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
 
-ROOT = Path(__file__).resolve().parent.parent
+from bench.resources import protocols_dir, rigs_dir
+
 HANG_S = 10.0
 MEMORY_LIMIT_BYTES = 4 << 30  # per worker: a runaway allocation is a MemoryError (a traceback), not a dead machine
 CLASSES = ("refused", "accepted", "traceback", "hang")
@@ -230,8 +231,8 @@ class Report:
 def seed_files(kind: str) -> list[Path]:
     """Shipped files the mutants derive from."""
     if kind == "protocols":
-        return sorted((ROOT / "protocols" / "short").glob("*.toml"))
-    return sorted((ROOT / "rigs").glob("*.toml"))
+        return sorted((protocols_dir() / "short").glob("*.toml"))
+    return sorted(rigs_dir().glob("*.toml"))
 
 
 def _protocol_for_rig(rig: Path) -> Path:
@@ -241,7 +242,7 @@ def _protocol_for_rig(rig: Path) -> Path:
     config = data.get("specimen", {}).get("lsdea", {}).get("configuration", "motor")
     name = {"membrane": "thesis-identification-short", "hung": "lsdea-isotonic-short",
             "blocked": "lsdea-isometric-short"}.get(kind if kind == "membrane" else config, "lsdea-isopotential-short")
-    return ROOT / "protocols" / "short" / f"{name}.toml"
+    return protocols_dir() / "short" / f"{name}.toml"
 
 
 def make_cases(n_protocols: int, n_rigs: int, seed: int, folder: Path) -> list[Case]:
