@@ -4,31 +4,36 @@ from __future__ import annotations
 
 import contextlib
 import functools
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from enum import StrEnum
 from pathlib import Path
 from typing import Annotated, ParamSpec, TypeVar
 
 import numpy as np
 import typer
-from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
 from bench import __version__
+from bench.console import BenchConsole
 from drivers.errors import InstrumentError
 
-console = Console()
-err_console = Console(stderr=True)
+console = BenchConsole()  # units in brackets stay text; redirected output is not cut to a terminal width
+err_console = BenchConsole(stderr=True)
+# rich_markup_mode=None: help texts are plain text ("Simulated time [s]." keeps its unit)
 app = typer.Typer(name="bench", help="dea-bench: DEA test-bench control, simulation and data acquisition.",
-                  no_args_is_help=True, pretty_exceptions_enable=False, add_completion=False)
+                  no_args_is_help=True, pretty_exceptions_enable=False, add_completion=True, rich_markup_mode=None)
 simulate_app = typer.Typer(help="Simulate the papers' specimens with the physical models (no instruments).",
                            no_args_is_help=True)
 sim_app = typer.Typer(help="Simulated rigs: twins of every instrument on real ports.", no_args_is_help=True)
 devices_app = typer.Typer(help="The instruments of a rig (real or simulated).", no_args_is_help=True)
+for _sub in (simulate_app, sim_app, devices_app):
+    _sub.rich_markup_mode = None  # plain help text, as for the main app
 app.add_typer(simulate_app, name="simulate")
 app.add_typer(sim_app, name="sim")
 app.add_typer(devices_app, name="devices")
+
+JsonOpt = Annotated[bool, typer.Option("--json", help="Print the result as JSON on stdout (nothing else).")]
 
 P = ParamSpec("P")
 R = TypeVar("R")
@@ -55,6 +60,42 @@ def clean_errors(fn: Callable[P, R]) -> Callable[P, R]:
     return wrapper
 
 
+def print_json(data: object) -> None:
+    """Write ``data`` as JSON to stdout (NaN and infinities as null), whatever --quiet says."""
+    import json
+    import math
+    import sys
+
+    def clean(x: object) -> object:
+        if isinstance(x, float | np.floating):
+            return float(x) if math.isfinite(x) else None
+        if isinstance(x, np.integer):
+            return int(x)
+        if isinstance(x, np.ndarray):
+            return clean(x.tolist())
+        if isinstance(x, dict):
+            return {str(k): clean(v) for k, v in x.items()}
+        if isinstance(x, list | tuple):
+            return [clean(v) for v in x]
+        if isinstance(x, Path):
+            return str(x)
+        return x
+
+    sys.stdout.write(json.dumps(clean(data), indent=1, ensure_ascii=False) + "\n")
+    sys.stdout.flush()
+
+
+@contextlib.contextmanager
+def json_mode(enabled: bool) -> Iterator[None]:
+    """While enabled, the console prints nothing (stdout carries the JSON only); errors still go to stderr."""
+    quiet = console.quiet
+    console.quiet = quiet or enabled
+    try:
+        yield
+    finally:
+        console.quiet = quiet
+
+
 def _version(value: bool) -> None:
     if value:
         console.print(f"dea-bench {__version__}")
@@ -63,8 +104,16 @@ def _version(value: bool) -> None:
 
 @app.callback()
 def main(version: Annotated[bool, typer.Option("--version", callback=_version, is_eager=True,
-                                                help="Print the version and exit.")] = False) -> None:
+                                                help="Print the version and exit.")] = False,
+         verbose: Annotated[int, typer.Option("--verbose", "-v", count=True,
+                                              help="More detail on stderr (-v: info, -vv: debug).")] = 0,
+         quiet: Annotated[bool, typer.Option("--quiet", "-q", help="Print only errors and results that are "
+                                             "data (--json, file paths).")] = False) -> None:
     """dea-bench: DEA test-bench control, simulation and data acquisition."""
+    from bench.logs import configure_console
+
+    console.quiet = quiet
+    configure_console(verbose, quiet)
 
 
 SIMULATE_MAX_S = 600.0  # `bench simulate`: simulated time (the offline solver keeps 10 kHz output in memory)

@@ -14,11 +14,13 @@ from rich.markup import escape
 from rich.prompt import Confirm
 from rich.table import Table
 
-from bench.cli import app, clean_errors, console
+from bench.cli import JsonOpt, app, clean_errors, console, print_json
 from bench.protocol.staircase import staircase_distortion
 
-protocol_app = typer.Typer(help="Protocol files.", no_args_is_help=True)
-app.add_typer(protocol_app, name="protocol")
+protocol_app = typer.Typer(help="Protocol files: the shipped ones (list, show, copy) and their schema.",
+                            no_args_is_help=True, rich_markup_mode=None)
+app.add_typer(protocol_app, name="protocols")
+app.add_typer(protocol_app, name="protocol", hidden=True)  # the earlier name (`bench protocol schema`)
 
 ProtocolArg = Annotated[Path, typer.Argument(help="Protocol file (TOML), e.g. protocols/thesis-identification.toml.")]
 RigOpt = Annotated[Path | None, typer.Option("--rig", help="Run on this rig file instead of the protocol's.")]
@@ -229,3 +231,59 @@ def protocol_schema(
         out.write_text(text + "\n", encoding="utf-8")
         console.print(f"wrote {out}")
 
+
+
+@protocol_app.command("list")
+@clean_errors
+def protocols_list(json_out: JsonOpt = False) -> None:
+    """The protocol files shipped with dea-bench: name, rig, description."""
+    from bench.lab import protocol_infos
+
+    infos = protocol_infos()
+    if json_out:
+        print_json([{"name": i.name, "rig": i.rig, "description": i.description, "path": str(i.path)}
+                    for i in infos])
+        return
+    table = Table(title="shipped protocols (bench protocols show NAME · bench protocols copy NAME DEST)")
+    for col in ("name", "rig", "description"):
+        table.add_column(col, no_wrap=col != "description")
+    for i in infos:
+        table.add_row(escape(i.name), escape(i.rig), escape(i.description))
+    console.print(table)
+
+
+@protocol_app.command("show")
+@clean_errors
+def protocols_show(name: Annotated[str, typer.Argument(help="Protocol name (bench protocols list).")]) -> None:
+    """Print a shipped protocol file as it is (comments included)."""
+    from bench.resources import protocol
+
+    sys.stdout.write(protocol(name).read_text(encoding="utf-8"))
+
+
+@protocol_app.command("copy")
+@clean_errors
+def protocols_copy(
+    name: Annotated[str, typer.Argument(help="Protocol name (bench protocols list).")],
+    dest: Annotated[Path, typer.Argument(help="File or existing folder to copy to.")] = Path("."),
+    rig: Annotated[Path | None, typer.Option(help="Rig file the copy runs on (default: the lab folder's "
+                                             "rigs/<rig>.toml beside it if present, else the shipped rig).")]
+    = None,
+) -> None:
+    """Copy a shipped protocol to edit it (comments kept); its rig reference is rewritten to stay valid."""
+    from bench.lab import copy_protocol
+    from bench.resources import protocol
+
+    target = copy_protocol(protocol(name), dest, rig)
+    console.print(f"wrote {escape(str(target))}")
+
+
+@app.command("init")
+@clean_errors
+def init(folder: Annotated[Path, typer.Argument(help="Lab folder to create (new or empty).")]) -> None:
+    """Create a lab folder: editable copies of the rig templates and protocols, a runs/ folder, a README."""
+    from bench.lab import init_lab
+
+    written = init_lab(folder)
+    console.print(f"lab folder {escape(str(folder))}: {len(written)} files (rigs/, protocols/, README.md), runs/")
+    console.print(f"next: cd {escape(str(folder))} && bench run protocols/thesis-identification.toml --virtual-time")

@@ -1,0 +1,76 @@
+"""Logging of the CLI: ``-v``/``-q`` on stderr, and a plain-text log file beside every run file.
+
+Modules log to the ``bench`` logger tree (``logging.getLogger("bench.…")``); drivers and twins to theirs. The
+stderr handler shows warnings by default, info with ``-v``, debug with ``-vv``, errors only with ``-q``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+
+LOGGERS = ("bench", "drivers", "sim_devices")
+FORMAT = "%(asctime)s %(levelname)-7s %(name)s: %(message)s"
+log = logging.getLogger("bench.cli")
+
+
+class _Stderr(logging.StreamHandler):  # type: ignore[type-arg]
+    """Writes to the *current* sys.stderr (test runners swap it)."""
+
+    def __init__(self) -> None:
+        super().__init__(sys.stderr)
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.stream = sys.stderr
+        super().emit(record)
+
+
+_stderr = _Stderr()
+_stderr.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
+
+
+def configure_console(verbose: int = 0, quiet: bool = False) -> None:
+    """Level of the stderr log: warnings (default), info (-v), debug (-vv), errors only (-q)."""
+    level = logging.ERROR if quiet else (logging.WARNING, logging.INFO)[verbose] if verbose < 2 else logging.DEBUG
+    _stderr.setLevel(level)
+    for name in LOGGERS:
+        logger = logging.getLogger(name)
+        logger.setLevel(logging.DEBUG)
+        logger.propagate = False
+        if _stderr not in logger.handlers:
+            logger.addHandler(_stderr)
+
+
+def log_path(run_file: Path) -> Path:
+    """The log file of a run file: ``RUN.log`` beside ``RUN.h5``."""
+    return run_file.with_suffix(".log")
+
+
+@contextlib.contextmanager
+def run_log(run_file: Path, level: int = logging.INFO) -> Iterator[Path]:
+    """Append everything logged while the block runs (info and above) to the run's log file."""
+    path = log_path(run_file)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    handler = logging.FileHandler(path, encoding="utf-8")
+    handler.setLevel(level)
+    handler.setFormatter(logging.Formatter(FORMAT))
+    configure_console(*_console_state())
+    for name in LOGGERS:
+        logging.getLogger(name).addHandler(handler)
+    try:
+        yield path
+    finally:
+        for name in LOGGERS:
+            logging.getLogger(name).removeHandler(handler)
+        handler.close()
+
+
+def _console_state() -> tuple[int, bool]:
+    """(verbose, quiet) equivalent of the stderr handler's present level."""
+    level = _stderr.level or logging.WARNING
+    if level >= logging.ERROR:
+        return 0, True
+    return {logging.WARNING: 0, logging.INFO: 1}.get(level, 2), False
