@@ -16,6 +16,7 @@ from rich.table import Table
 from bench.cli import app, clean_errors, console, fail
 
 if TYPE_CHECKING:
+    from bench.identify.campaign import CampaignReport
     from bench.identify.core import FitResult, FitSettings, Problem
     from bench.identify.problems import MembraneProblem
 
@@ -45,6 +46,22 @@ def fit_result_table(result: FitResult, title: str) -> Table:
         t.add_row(name, f"{result.values[j]:.5g}", result.units[j], f"{result.lower[j]:.3g} … {result.upper[j]:.3g}",
                   f"{100 * result.uncertainty[j]:.2g} %" if np.isfinite(result.uncertainty[j]) else "–",
                   f"{result.sensitivity[j]:.2e}", f"[yellow]{flags}[/]" if flags else "")
+    return t
+
+
+def campaign_table(report: CampaignReport) -> Table:
+    """Parameters × records: which records determine which parameter alone (✓), and the campaign."""
+    t = Table(title="what each record determines alone, at the campaign's optimum (✓ determined, · not)")
+    t.add_column("record")
+    t.add_column("conditions")
+    for name in report.names:
+        t.add_column(name, justify="center")
+    for src, cond, und in zip(report.records, report.conditions, report.undetermined, strict=True):
+        t.add_row(escape(Path(src.split(" [")[0]).name + (" [" + src.split(" [")[1] if " [" in src else "")),
+                  cond, *("·" if n in und else "✓" for n in report.names))
+    t.add_row("[bold]campaign[/]", f"{len(report.records)} records",
+              *("·" if n in report.campaign_undetermined else
+                ("[green bold]✓[/]" if n in report.gained else "✓") for n in report.names))
     return t
 
 
@@ -87,6 +104,7 @@ def run_fit(runs: list[Path], chosen: str, settings: FitSettings, branches: int 
     """Fit, print the table, store the result in every file and optionally export a rig.
 
     Returns the result and the (coarse) problem it was searched on, which holds the compared data."""
+    from bench.identify.campaign import campaign_identifiability
     from bench.identify.core import fit
     from bench.identify.problems import LozengeProblem, MembraneProblem
     from bench.identify.store import export_rig, fitted_rig, write_fit
@@ -115,8 +133,16 @@ def run_fit(runs: list[Path], chosen: str, settings: FitSettings, branches: int 
                   f"{result.evaluations:,} model evaluations, {result.generations} generations, "
                   f"{result.wall_time:.1f} s")
     records = [r.source for r in coarse.records]
+    campaign = None
+    if len(coarse.records) > 1:
+        report = campaign_identifiability(fine, result)
+        console.print(campaign_table(report))
+        gained = report.gained
+        console.print("determined by the campaign but by no single record: "
+                      + (", ".join(gained) if gained else "none"))
+        campaign = report.as_dict()
     for p in runs:
-        group = write_fit(p, chosen, result, records)
+        group = write_fit(p, chosen, result, records, campaign)
         console.print(f"stored in {p}:{group}")
     if export is not None:
         rig = rig_from_toml(open_run(runs[0], streams=False).attrs["rig_toml"])

@@ -77,6 +77,9 @@ class FitResult:
     uncertainty: np.ndarray  # relative standard error from the residual and the Jacobian (NaN: not estimable)
     flags: list[str] = field(default_factory=list)
     settings: FitSettings = field(default_factory=FitSettings)
+    jacobian: np.ndarray | None = None  # ∂prediction/∂(optimiser coordinate) at the result, compared points only
+    residual: np.ndarray | None = None  # prediction − data at the compared points
+    z: np.ndarray | None = None  # the result in optimiser coordinates
 
     def flags_of(self, name: str) -> list[str]:
         """Flags of one parameter."""
@@ -206,8 +209,22 @@ def fit(problem: Problem, settings: FitSettings = FitSettings(), start: np.ndarr
     r = pred - data
     cost = cost_of(r)
     values = physical(problem, z)
+    sens, corr, uncertainty, flags = assess(list(problem.names), np.asarray(problem.log, bool), lo, hi, z, J, r,
+                                            scale)
+    lower, upper = physical(problem, lo), physical(problem, hi)
+    return FitResult(list(problem.names), list(problem.units), values, lower, upper, cost, settings.cost,
+                     float(np.sqrt(np.mean(r * r))), int(data.size), evaluations, int(de.nit),
+                     time.perf_counter() - t0, sens, corr, uncertainty, flags, settings, J, r, z)
+
+
+def assess(names: list[str], log: np.ndarray, lo: np.ndarray, hi: np.ndarray, z: np.ndarray, J: np.ndarray,
+           r: np.ndarray, scale: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[str]]:
+    """Identifiability at ``z`` from the Jacobian J (points × parameters, optimiser coordinates) and residual r:
+    sensitivity, correlation, relative standard errors and flags (bound, no effect, correlated, poorly
+    determined). ``scale`` is the data's rms (sensitivities are relative to it)."""
+    values = to_physical(log, z)
     # sensitivity: output change (rms, relative to the data rms) for a 1 % change of the physical value
-    dphys = np.where(problem.log, values * np.log(10.0), 1.0)  # dθ/dz
+    dphys = np.where(log, values * np.log(10.0), 1.0)  # dθ/dz
     Jphys = J / dphys  # ∂pred/∂θ
     sens = np.sqrt(np.mean((Jphys * (0.01 * values)) ** 2, axis=0)) / scale
     active = sens >= 1e-3 * max(float(np.max(sens)), 1e-300)  # correlations among parameters that matter
@@ -222,7 +239,7 @@ def fit(problem: Problem, settings: FitSettings = FitSettings(), start: np.ndarr
     uncertainty = np.full(len(values), np.nan)
     uncertainty[active] = np.sqrt(s2) * d
     flags = []
-    for j, name in enumerate(problem.names):
+    for j, name in enumerate(names):
         span = hi[j] - lo[j]
         if z[j] - lo[j] < 0.01 * span:
             flags.append(f"{name}: at its lower bound")
@@ -232,10 +249,7 @@ def fit(problem: Problem, settings: FitSettings = FitSettings(), start: np.ndarr
             flags.append(f"{name}: does not change the cost (sensitivity {sens[j]:.1e})")
         if np.isfinite(uncertainty[j]) and uncertainty[j] > 0.05:
             flags.append(f"{name}: poorly determined (±{100 * uncertainty[j]:.0f} %)")
-        others = [k for k in range(len(problem.names)) if k != j and np.isfinite(corr[j, k]) and abs(corr[j, k]) > 0.98]
+        others = [k for k in range(len(names)) if k != j and np.isfinite(corr[j, k]) and abs(corr[j, k]) > 0.98]
         if others:
-            flags.append(f"{name}: correlated with " + ", ".join(problem.names[k] for k in others))
-    lower, upper = physical(problem, lo), physical(problem, hi)
-    return FitResult(list(problem.names), list(problem.units), values, lower, upper, cost, settings.cost,
-                     float(np.sqrt(np.mean(r * r))), int(data.size), evaluations, int(de.nit),
-                     time.perf_counter() - t0, sens, corr, uncertainty, flags, settings)
+            flags.append(f"{name}: correlated with " + ", ".join(names[k] for k in others))
+    return sens, corr, uncertainty, flags

@@ -70,15 +70,17 @@ def _window_means(t_grid: np.ndarray, t_data: np.ndarray, values: np.ndarray) ->
 
 def _record_windows(t_set: np.ndarray, v_set: np.ndarray, t_end: float, split_rest: float,
                     keep_rest: float) -> list[tuple[float, float]]:
-    """Time windows (a, b) of a file's records: cut at every rest at 0 V of ≥ split_rest s (the record before
-    keeps keep_rest s of it, the next starts where the drive resumes); the whole file when there is none."""
-    if split_rest <= 0:
+    """Time windows (a, b) of a file's records: cut at every rest of ≥ split_rest s (the record before keeps
+    keep_rest s of it, the next starts where the drive resumes); the whole file when there is none. A rest is
+    a set-point below 1 % of the file's peak (the DAC's zero is a count or two: 2.4 V on the thesis rig)."""
+    if split_rest <= 0 or len(v_set) == 0:
         return [(0.0, t_end)]
-    rests, start = [], None  # runs of zero set-points
-    for t, v in zip(t_set, v_set, strict=True):
-        if v == 0.0 and start is None:
+    quiet = np.abs(np.asarray(v_set)) <= 0.01 * float(np.max(np.abs(v_set)))
+    rests, start = [], None  # runs of quiet set-points
+    for t, q in zip(t_set, quiet, strict=True):
+        if q and start is None:
             start = float(t)
-        elif v != 0.0 and start is not None:
+        elif not q and start is not None:
             rests.append((start, float(t)))
             start = None
     if start is not None:

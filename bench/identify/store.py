@@ -2,7 +2,9 @@
 
 In the run file: group ``/fit/<model>-<n>`` with datasets ``names``, ``units``, ``values``, ``lower``,
 ``upper``, ``sensitivity``, ``correlation``, ``uncertainty`` and attributes ``cost``, ``cost_kind``, ``rms``,
-``n_data``, ``records`` (the files and windows used), DE settings, ``software``, ``wall_time``, ``flags``, ``created``.
+``n_data``, ``records`` (the files and windows used), DE settings, ``software``, ``wall_time``, ``flags``, ``created``
+and, for a fit over several records, ``campaign`` (JSON: what each record determines alone and what only the
+campaign determines).
 """
 
 from __future__ import annotations
@@ -20,8 +22,10 @@ from bench.recorder import now_iso
 from bench.rig import RigConfig, rig_to_toml
 
 
-def write_fit(run_path: str | Path, model: str, result: FitResult, records: list[str]) -> str:
-    """Append the fit to a finished run file; returns the group name."""
+def write_fit(run_path: str | Path, model: str, result: FitResult, records: list[str],
+              campaign: dict | None = None) -> str:
+    """Append the fit to a finished run file; returns the group name. ``campaign``: the campaign report
+    (which parameters the records determine alone and together), stored as JSON in attribute ``campaign``."""
     with h5py.File(run_path, "r+") as f:
         if not f.attrs.get("complete", False):
             raise ValueError(f"run file {run_path}: incomplete run; fit results go into finished files only")
@@ -41,6 +45,8 @@ def write_fit(run_path: str | Path, model: str, result: FitResult, records: list
                         "settings": json.dumps(asdict(result.settings)), "records": json.dumps(records),
                         "flags": json.dumps(result.flags), "software": f"dea-bench {__version__}",
                         "created": now_iso()})
+        if campaign is not None:
+            g.attrs["campaign"] = json.dumps(campaign)
         return g.name
 
 
@@ -56,7 +62,7 @@ def read_fits(run_path: str | Path) -> list[dict]:
                         "units": list(g["units"].asstr()[:]), "values": g["values"][:],
                         "lower": g["lower"][:], "upper": g["upper"][:], "sensitivity": g["sensitivity"][:],
                         "uncertainty": g["uncertainty"][:] if "uncertainty" in g else None,
-                        **{k: (json.loads(v) if k in ("settings", "records", "flags") else v)
+                        **{k: (json.loads(v) if k in ("settings", "records", "flags", "campaign") else v)
                            for k, v in g.attrs.items()}})
     return out
 

@@ -1,0 +1,87 @@
+"""Campaign fits: one specimen model fitted jointly to all records of a campaign, and what the campaign adds.
+
+The joint fit itself is :func:`bench.identify.core.fit` on a problem holding every record (shared material
+parameters; each record keeps its own conditions — voltage history, temperature, prototype, hung mass — read
+from its file). This module asks, at the campaign's optimum, which parameters each record determines on its
+own: the identifiability analysis of :func:`bench.identify.core.assess` applied to that record's rows of the
+campaign's Jacobian. A parameter the campaign determines but no single record does is what fitting the
+campaign together gains (e.g. a fast Maxwell unit only the combination of frequencies pins down).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from bench.identify.core import FitResult, Problem, assess
+
+# flags that say a parameter is not determined (a bound is a property of the estimate, not of the data)
+UNDETERMINED = ("does not change the cost", "poorly determined", "correlated with")
+
+
+@dataclass
+class CampaignReport:
+    """Per-record identifiability at the campaign's optimum."""
+
+    names: list[str]
+    records: list[str]
+    conditions: list[str]  # per record: its conditions, e.g. "7 kV, 296 K"
+    undetermined: list[list[str]]  # per record: parameter names the record alone leaves undetermined
+    campaign_undetermined: list[str]  # parameter names the whole campaign leaves undetermined
+
+    @property
+    def gained(self) -> list[str]:
+        """Parameters the campaign determines that no single record does."""
+        return [n for n in self.names if n not in self.campaign_undetermined
+                and all(n in u for u in self.undetermined)]
+
+    def as_dict(self) -> dict:
+        """JSON-ready summary (stored beside the fit)."""
+        return {"records": self.records, "conditions": self.conditions,
+                "undetermined_per_record": self.undetermined, "undetermined": self.campaign_undetermined,
+                "determined_only_by_the_campaign": self.gained}
+
+
+def _undetermined(flags: list[str]) -> list[str]:
+    return sorted({f.split(": ", 1)[0] for f in flags if any(k in f for k in UNDETERMINED)})
+
+
+def record_conditions(problem: Problem) -> list[str]:
+    """A short description of each record's conditions, from its inputs and packed template."""
+    out = []
+    for rec in problem.records:  # type: ignore[attr-defined]
+        U = rec.U
+        if U.shape[1] == 2:  # membrane: (Φ, T)
+            out.append(f"{np.max(np.abs(U[:, 0])) / 1e3:.3g} kV, {np.median(U[:, 1]):.0f} K")
+        else:  # LS-DEA: (V, x, ẋ); template holds λ2p and the hung mass
+            out.append(f"λ2p {rec.template[10]:.3g}, {rec.template[13] * 1e3:.0f} g, "
+                       f"{np.max(np.abs(U[:, 0])) / 1e3:.3g} kV")
+    return out
+
+
+def campaign_identifiability(problem: Problem, result: FitResult) -> CampaignReport:
+    """Which parameters each record determines alone, at the campaign fit's optimum (``problem``: the one the
+    fit's Jacobian was computed on — the fine problem when the fit had one)."""
+    if result.jacobian is None or result.residual is None or result.z is None:
+        raise ValueError("the fit result carries no Jacobian: campaign identifiability needs a fresh fit")
+    records = problem.records  # type: ignore[attr-defined]
+    mask = np.isfinite(problem.data)
+    pos = np.cumsum(mask) - 1  # index of each compared point among the compared points
+    log = np.asarray(problem.log, bool)
+    lo, hi = np.asarray(problem.lower, float), np.asarray(problem.upper, float)
+    undetermined, start = [], 0
+    for rec in records:
+        seg = slice(start, start + rec.data.size)
+        start += rec.data.size
+        rows = pos[seg][mask[seg]]
+        data = problem.data[seg][mask[seg]]
+        if rows.size <= len(problem.names):
+            undetermined.append(list(problem.names))
+            continue
+        scale = max(float(np.sqrt(np.mean(data * data))), 1e-30)
+        _, _, _, flags = assess(list(problem.names), log, lo, hi, result.z, result.jacobian[rows],
+                                result.residual[rows], scale)
+        undetermined.append(_undetermined(flags))
+    return CampaignReport(list(problem.names), [r.source for r in records], record_conditions(problem),
+                          undetermined, _undetermined(result.flags))

@@ -1,0 +1,101 @@
+"""Campaign fits: records cut at long rests, per-record identifiability, `bench fit` over a campaign's files."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bench.identify.campaign import campaign_identifiability
+from bench.identify.core import FitSettings, fit
+from bench.identify.problems import _record_windows
+from bench.identify.store import read_fits
+from bench.run import run_protocol
+
+ROOT = Path(__file__).resolve().parent.parent
+SHORT = ROOT / "protocols" / "short"
+
+
+def test_records_are_cut_at_long_rests_only() -> None:
+    t = np.arange(0, 200, 0.05)
+    v = np.where((t % 80) < 20, 7000 * np.sin(np.pi * (t % 80) / 20) ** 2, 2.44)  # 20-s drives, 60-s rests
+    v[(t > 200 - 5)] = 2.44
+    w = _record_windows(t, v, 200.0, split_rest=30.0, keep_rest=20.0)
+    # the drive is "quiet" (< 1 % of the peak) for its first and last 0.64 s: sin²(πt/20) < 0.01
+    np.testing.assert_allclose(np.array(w), [(0, 39.36), (80.64, 119.36), (160.64, 200)], atol=0.06)
+    assert _record_windows(t, v, 200.0, split_rest=70.0, keep_rest=20.0) == [(0.0, 200.0)]  # no rest that long
+    assert _record_windows(t, v, 200.0, split_rest=0.0, keep_rest=20.0) == [(0.0, 200.0)]
+
+
+@dataclass
+class _Rec:
+    data: np.ndarray
+    source: str
+    U: np.ndarray
+    template: np.ndarray
+
+
+class _TwoRecords:
+    """y1 = (a + b)t and y2 = (a − b)t: each record alone sees one combination of a and b, the pair sees both."""
+
+    lower = np.array([0.0, 0.0])
+    upper = np.array([4.0, 4.0])
+    log = np.array([False, False])
+    data_unit = "-"
+
+    def __init__(self) -> None:
+        self.names, self.units = ["a", "b"], ["-", "-"]
+        self.t = np.linspace(0.1, 1.0, 40)
+        self.records = [_Rec(3.0 * self.t, "sum", np.zeros((40, 2)), np.zeros(20)),
+                        _Rec(1.0 * self.t, "difference", np.zeros((40, 2)), np.zeros(20))]
+        self.data = np.concatenate([r.data for r in self.records])
+
+    def predict(self, Z: np.ndarray) -> np.ndarray:
+        Z = np.atleast_2d(Z)
+        return np.hstack([(Z[:, :1] + Z[:, 1:]) * self.t, (Z[:, :1] - Z[:, 1:]) * self.t])
+
+
+def test_campaign_determines_what_no_single_record_does() -> None:
+    prob = _TwoRecords()
+    res = fit(prob, FitSettings(population=20, generations=60, cost="lsq"))
+    np.testing.assert_allclose(res.values, [2.0, 1.0], atol=1e-6)  # a + b = 3, a − b = 1
+    report = campaign_identifiability(prob, res)
+    assert report.undetermined == [["a", "b"], ["a", "b"]]  # each record: a and b perfectly correlated
+    assert report.campaign_undetermined == []
+    assert report.gained == ["a", "b"]
+
+
+def _runs(tmp_path: Path, names: list[str]) -> list[str]:
+    paths = []
+    for name in names:
+        res = run_protocol(SHORT / name, virtual=True, out=tmp_path / (Path(name).stem + ".h5"))
+        assert res.state == "completed", res.reason
+        paths.append(str(res.path))
+    return paths
+
+
+@pytest.mark.parametrize("names", [
+    ["thesis-sweeps-short.toml", "thesis-identification-short.toml"],
+    ["lsdea-isopotential-short.toml", "lsdea-isometric-short.toml", "lsdea-isotonic-short.toml"],
+], ids=["thesis", "lsdea"])
+def test_campaign_fit_cli_stores_the_joint_result_in_every_file(tmp_path: Path, names: list[str]) -> None:
+    from typer.testing import CliRunner
+
+    from bench.cli import app
+
+    paths = _runs(tmp_path, names)
+    out = CliRunner().invoke(app, ["fit", *paths, "--population", "12", "--generations", "4"],
+                             env={"COLUMNS": "250"})
+    assert out.exit_code == 0, out.output
+    assert "what each record determines alone" in out.output
+    assert "determined by the campaign but by no single record:" in out.output
+    stored = [read_fits(p)[-1] for p in paths]
+    for s in stored:
+        assert s["values"].tolist() == stored[0]["values"].tolist()  # one joint result, the same in every file
+        campaign = s["campaign"]
+        assert len(campaign["records"]) == len(s["records"]) >= len(paths)
+        assert {r.split(" [")[0] for r in campaign["records"]} == set(paths)  # every file's records took part
+        assert len(campaign["undetermined_per_record"]) == len(campaign["records"])
+        assert set(campaign["determined_only_by_the_campaign"]) <= set(s["names"])
