@@ -131,7 +131,7 @@ def run_fit(runs: list[Path], chosen: str, settings: FitSettings, branches: int 
     console.print(fit_result_table(result, f"{chosen} model fitted to {len(runs)} run(s)"))
     console.print(f"cost ({result.cost_kind}) {result.cost:.4g}, residual rms {result.rms:.4g} {coarse.data_unit}, "
                   f"{result.evaluations:,} model evaluations, {result.generations} generations, "
-                  f"{result.wall_time:.1f} s")
+                  f"{result.wall_time:.1f} s (search {result.search_time:.1f} s)")
     records = [r.source for r in coarse.records]
     campaign = None
     if len(coarse.records) > 1:

@@ -80,6 +80,7 @@ class FitResult:
     jacobian: np.ndarray | None = None  # ∂prediction/∂(optimiser coordinate) at the result, compared points only
     residual: np.ndarray | None = None  # prediction − data at the compared points
     z: np.ndarray | None = None  # the result in optimiser coordinates
+    search_time: float = 0.0  # s of the wall time spent in the differential evolution (the rest: polish, analysis)
 
     def flags_of(self, name: str) -> list[str]:
         """Flags of one parameter."""
@@ -150,6 +151,7 @@ def fit(problem: Problem, settings: FitSettings = FitSettings(), start: np.ndarr
                                 recombination=settings.crossover, tol=settings.tol, polish=False,
                                 vectorized=True, updating="deferred", seed=settings.seed, callback=generation)
     z = np.asarray(de.x, dtype=float)
+    search_time = time.perf_counter() - t0
     problem = fine or problem
     mask = np.isfinite(problem.data)
     data = problem.data[mask]
@@ -214,7 +216,7 @@ def fit(problem: Problem, settings: FitSettings = FitSettings(), start: np.ndarr
     lower, upper = physical(problem, lo), physical(problem, hi)
     return FitResult(list(problem.names), list(problem.units), values, lower, upper, cost, settings.cost,
                      float(np.sqrt(np.mean(r * r))), int(data.size), evaluations, int(de.nit),
-                     time.perf_counter() - t0, sens, corr, uncertainty, flags, settings, J, r, z)
+                     time.perf_counter() - t0, sens, corr, uncertainty, flags, settings, J, r, z, search_time)
 
 
 def assess(names: list[str], log: np.ndarray, lo: np.ndarray, hi: np.ndarray, z: np.ndarray, J: np.ndarray,
