@@ -396,4 +396,4 @@ def benchmark(
 
 
 # commands defined in other modules register themselves on ``app``
-from bench import cli_analysis, cli_run  # noqa: E402, F401
+from bench import cli_analysis, cli_lab, cli_run  # noqa: E402, F401

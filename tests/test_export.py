@@ -1,0 +1,77 @@
+"""bench export: CSV per stream with units in the header, MATLAB file via scipy.io; values as in the HDF5 file."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+from scipy.io import loadmat
+from typer.testing import CliRunner
+
+from bench.cli import app
+from bench.run import execute, plan_run
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+@pytest.fixture(scope="module")
+def run_file(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("export")
+    plan = plan_run(ROOT / "protocols" / "short" / "thesis-identification-short.toml")
+    result = execute(plan, out / "run.h5", virtual=True)
+    assert result.state == "completed", result.reason
+    return Path(result.path)
+
+
+def test_csv_export_has_units_in_headers_and_the_file_values(run_file: Path, tmp_path: Path) -> None:
+    res = CliRunner().invoke(app, ["export", str(run_file), "--csv", str(tmp_path / "csv")])
+    assert res.exit_code == 0, res.output
+    names = sorted(p.name for p in (tmp_path / "csv").iterdir())
+    assert names == ["amplifier.csv", "events.csv", "laser.csv", "metadata.json", "setpoints.csv"]
+    with (tmp_path / "csv" / "laser.csv").open(encoding="utf-8") as fh:
+        rows = list(csv.reader(fh))
+    assert rows[0][:2] == ["t [s]", "displacement [m]"] and "valid [1]" in rows[0]
+    with h5py.File(run_file, "r") as f:
+        n = int(dict(zip(json.loads(f["status/samples"].attrs["names"]), f["status/samples"][:],
+                         strict=True))["laser"])
+        t, u = f["laser/t"][:n], f["laser/displacement"][:n]
+        volts = f["setpoints/voltage"][: len(f["setpoints/t"])]
+    assert len(rows) - 1 == n > 50_000  # 10 kHz over the active step
+    got = np.array([[float(r[0]), float(r[1])] for r in rows[1:]])
+    np.testing.assert_array_equal(got[:, 0], t)  # exact: the CSV keeps every digit
+    np.testing.assert_array_equal(got[:, 1], u)
+    with (tmp_path / "csv" / "setpoints.csv").open(encoding="utf-8") as fh:
+        sp = list(csv.DictReader(fh))
+    assert max(float(r["voltage [V]"]) for r in sp) == pytest.approx(volts.max()) and volts.max() > 5000
+    with (tmp_path / "csv" / "events.csv").open(encoding="utf-8") as fh:
+        events = list(csv.DictReader(fh))
+    assert events[0]["kind"] == "run" and any(e["kind"] == "end" for e in events)
+    meta = json.loads((tmp_path / "csv" / "metadata.json").read_text(encoding="utf-8"))
+    assert meta["protocol_name"] == "thesis-identification-short" and meta["complete"] is True
+
+
+def test_mat_export_reads_back_in_scipy_with_units(run_file: Path, tmp_path: Path) -> None:
+    target = tmp_path / "out" / "run.mat"
+    res = CliRunner().invoke(app, ["export", str(run_file), "--mat", str(target)])
+    assert res.exit_code == 0, res.output
+    m = loadmat(target, simplify_cells=True)
+    assert {"setpoints", "amplifier", "laser", "events", "metadata"} <= set(m)
+    assert m["laser"]["units"] == {"t": "s", "displacement": "m", "late": "s", "valid": "1"}
+    assert m["amplifier"]["units"]["voltage"] == "V" and m["amplifier"]["units"]["current"] == "A"
+    with h5py.File(run_file, "r") as f:
+        n = len(m["laser"]["t"])
+        np.testing.assert_array_equal(m["laser"]["displacement"], f["laser/displacement"][:n])
+    assert n > 50_000
+    assert "end" in list(m["events"]["kind"])
+    assert m["metadata"]["rig_name"] == "thesis-sim"
+
+
+def test_export_needs_a_target_and_a_run_file(tmp_path: Path) -> None:
+    res = CliRunner().invoke(app, ["export", str(tmp_path / "missing.h5"), "--csv", str(tmp_path)])
+    assert res.exit_code == 2 and "not found" in res.output
+    res = CliRunner().invoke(app, ["export", str(tmp_path / "missing.h5")])
+    assert res.exit_code == 2 and "--csv" in res.output
