@@ -25,7 +25,6 @@ from bench.models.membrane import membrane_rhs
 from bench.resources import protocols_dir
 from bench.run import execute, plan_run
 
-ROOT = Path(__file__).resolve().parent.parent
 CANDIDATE_TARGET = 4.0  # issue 13: per-candidate cost ≥ 4× lower than the reference kernel
 FIT_TARGET = 4.0  # thesis fit ≥ 4× faster than the old path, same or better rms
 GENERIC_TARGET = 100_000.0  # batched ≥ 100,000× faster per candidate than generic scipy
@@ -141,7 +140,7 @@ def campaign_fit(tmp: Path, quick: bool) -> list[Figure]:
         ["thesis-voltage-sweep.toml", "thesis-frequency-sweep.toml", "thesis-temperature-sweep.toml"]
     paths = []
     for name in names:
-        res = execute(plan_run(ROOT / "protocols" / name), tmp / (Path(name).stem + ".h5"), virtual=True)
+        res = execute(plan_run(protocols_dir() / name), tmp / (Path(name).stem + ".h5"), virtual=True)
         if res.state != "completed":
             raise RuntimeError(f"benchmark run {name} ended {res.state}: {res.reason}")
         paths.append(Path(res.path))
