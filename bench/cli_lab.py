@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Annotated
 
 import typer
 from rich.markup import escape
 
-from bench.cli import app, clean_errors, console
+from bench.cli import app, clean_errors, console, devices_app
 
 
 @app.command("export")
@@ -29,3 +30,55 @@ def export(
         console.print(f"CSV: {len(files)} files in {escape(str(csv))} ({', '.join(f.name for f in files)})")
     if mat is not None:
         console.print(f"MAT: {escape(str(to_mat(run_file, mat)))}")
+
+
+@devices_app.command("control")
+@clean_errors
+def devices_control(
+    rig_file: Annotated[Path, typer.Argument(help="Rig file (TOML), e.g. rigs/lsdea-motor-sim.toml.")],
+    script: Annotated[Path | None, typer.Option(help="Read commands from this file (default: stdin; a prompt "
+                                                "on a terminal).")] = None,
+    log: Annotated[Path | None, typer.Option(help="Session log file (default: runs/manual-<rig>-<time>.log).")]
+    = None,
+    virtual_time: Annotated[bool, typer.Option("--virtual-time", help="Simulated rig only: waits and ramps take "
+                                               "no wall time.")] = False,
+) -> None:
+    """Manual control under the safety supervisor: set or ramp the voltage, jog or move the motor, tare the
+    load cell, watch every channel; every action is logged. Commands: see `help` in the session.
+
+    Exit status 0 if every command passed, 1 if one was refused, tripped a limit or failed.
+    """
+    import sys
+
+    from bench.manual import HELP, ManualSession, session_log_name
+    from bench.rig import load_rig
+
+    rig = load_rig(rig_file)
+    path = log if log is not None else Path("runs") / session_log_name(rig)
+    interactive = script is None and sys.stdin.isatty()
+
+    def lines() -> Iterator[str]:
+        if script is not None:
+            yield from script.read_text(encoding="utf-8").splitlines()
+            return
+        if interactive:
+            console.print(HELP, markup=False, highlight=False)
+        while True:
+            if interactive:
+                sys.stdout.write("bench> ")
+                sys.stdout.flush()
+            line = sys.stdin.readline()
+            if not line:
+                return
+            yield line
+
+    def echo(text: str) -> None:
+        console.print(escape(text), highlight=False)
+
+    with ManualSession(rig, path, virtual=virtual_time, echo=echo) as session:
+        session.run_lines(lines(), stop_on_trip=not interactive)
+    bad = [o for o in session.outcomes if o.status != "ok"]
+    console.print(f"session log: {escape(str(path))} ({len(session.outcomes)} commands"
+                  + (f", {len(bad)} not done" if bad else "") + ")")
+    if bad:
+        raise typer.Exit(1)

@@ -1,0 +1,407 @@
+"""Manual control of a rig's instruments under the run's safety supervisor, every action in a session log.
+
+Commands (one per line; ``#`` starts a comment; quantities as in files, plain numbers in the unit shown):
+
+    voltage V               set the amplifier output (e.g. ``voltage 3kV``)
+    ramp V DURATION         ramp from the present set-point to V over DURATION (20 set-points per second)
+    zero                    output to 0 V at once
+    move POSITION [SPEED]   motor to POSITION [mm] (motor coordinates) at SPEED [mm/s] (default 20 mm/s)
+    jog DELTA [SPEED]       motor by DELTA [mm] from where it is
+    stop                    stop the motor
+    tare | zero-cell        load cell: tare (net = 0) or zero (gross = 0)
+    read                    read every channel once
+    watch DURATION [EVERY]  read every channel every EVERY [s] (default 0.5 s) for DURATION [s]
+    wait DURATION           let time pass
+    help | quit
+
+Every set-point passes :meth:`bench.safety.Supervisor.check_setpoint` (voltage, field at the present stretch)
+or :meth:`~bench.safety.Supervisor.check_motor_setpoint` (travel, field at the new aperture) before it is
+sent; a refused command is not sent. Every reading passes the supervisor's sample checks; a reading beyond a
+limit (a trip) zeroes the output and stops the motor. Leaving the session (quit, end of script, error,
+Ctrl-C) puts every instrument in its safe state.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import shlex
+import threading
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from datetime import datetime
+from pathlib import Path
+from typing import Any, TextIO
+
+from bench.cli_units import to_si
+from bench.instruments import Instruments, build_instruments
+from bench.rig import RigConfig
+from bench.safety import SafetyTrip, Supervisor
+from drivers.errors import InstrumentError
+
+RAMP_HZ = 20.0
+DEFAULT_SPEED = 0.02  # m/s
+DEFAULT_ACCEL = 0.5  # m/s²
+KEEPALIVE_S = 0.25  # set-point refresh while holding (feeds the analog module's communication watchdog)
+SETTLE_S = 0.3  # after a voltage set-point: the monitors convert at 10 S/s (ADAM-4017+)
+HELP = "\n".join(line[4:] for line in (__doc__ or "").splitlines() if line.startswith("    "))
+
+
+class Refused(Exception):  # noqa: N818 - a refusal is an outcome, not a program error
+    """A command the supervisor (or its syntax) does not allow; nothing was sent."""
+
+
+@dataclass
+class Outcome:
+    """What one command did: status ok | refused | trip | error, and one line of text."""
+
+    command: str
+    status: str
+    text: str
+
+
+@dataclass
+class ManualSession:
+    """A connected rig (its simulated twins started if it is simulated) driven one command at a time."""
+
+    rig: RigConfig
+    log_file: Path
+    virtual: bool = False
+    echo: Callable[[str], None] = print
+    outcomes: list[Outcome] = field(default_factory=list)
+    _sim: Any = None
+    _inst: Instruments | None = None
+    _sup: Supervisor | None = None
+    _log: TextIO | None = None
+    _clock: Callable[[], float] = time.monotonic
+    _sleep: Callable[[float], None] = time.sleep
+    _t0: float | None = None
+    _v_req: float = 0.0  # voltage set-point the operator asked for (re-sent to keep the module's watchdog fed)
+    _lock: threading.RLock = field(default_factory=threading.RLock)
+    _stop: threading.Event = field(default_factory=threading.Event)
+    _keepalive: threading.Thread | None = None
+
+    # ------------------------------------------------------------ life cycle
+    def __enter__(self) -> ManualSession:
+        self.log_file.parent.mkdir(parents=True, exist_ok=True)
+        self._log = self.log_file.open("a", encoding="utf-8")
+        self._write("session", "start", f"rig {self.rig.name} ({'simulated' if self.rig.simulated else 'real'}, "
+                    f"{'virtual' if self.virtual else 'wall'} clock)")
+        try:
+            self._connect()
+        except BaseException:
+            self.__exit__(None, None, None)
+            raise
+        return self
+
+    def _connect(self) -> None:
+        rig = self.rig
+        if self.virtual and not rig.simulated:
+            raise ValueError(f"rig {rig.name} is real: virtual time needs a simulated rig")
+        if rig.simulated:
+            from sim_devices.rig import SimRig
+
+            self._sim = SimRig(rig, virtual=self.virtual)
+            self._sim.start()
+            clock = self._sim.clock
+            self._clock, self._sleep = clock.now, clock.sleep
+            self._inst = build_instruments(rig, self._sim.port_map(), clock=clock.now, sleep=clock.sleep,
+                                           modbus_poll=0.0005)
+        else:
+            self._inst = build_instruments(rig)
+        self._t0 = self._clock()
+        for role, drv in self._inst.items():
+            drv.connect()
+            self._write("connect", "ok", f"{role}: {drv.identify()}")
+        if self._inst.motor is not None:
+            self._inst.motor.enable()
+        spec = rig.specimen
+        params = self._sim.plant.specimen if self._sim is not None else (
+            spec.membrane() if spec.kind == "membrane" else spec.lozenge())
+        self._sup = Supervisor(rig, params)
+        if not self.virtual:  # wall clock: hold the set-point between commands (a human types slowly)
+            self._keepalive = threading.Thread(target=self._feed, name="manual-keepalive", daemon=True)
+            self._keepalive.start()
+        self.echo(f"connected to {rig.name}; limits: ±{self._sup.voltage_limit:.0f} V, "
+                  f"{rig.limits.max_current_A * 1e3:g} mA, ±{rig.limits.max_force_N:g} N"
+                  + (f", motor {rig.motor.travel_m[0] * 1e3:g} … {rig.motor.travel_m[1] * 1e3:g} mm"
+                     if rig.motor is not None else ""))
+
+    def _feed(self) -> None:
+        while not self._stop.wait(KEEPALIVE_S):
+            with self._lock, contextlib.suppress(InstrumentError, SafetyTrip, Refused):
+                if self._inst is not None and self._inst.amplifier is not None and self._v_req != 0.0:
+                    self._checked_voltage(self._v_req)
+
+    def _wait(self, seconds: float) -> None:
+        """Let ``seconds`` pass on the rig clock, re-sending the set-point every KEEPALIVE_S."""
+        end = self._clock() + seconds
+        while (left := end - self._clock()) > 0:
+            self._sleep(min(left, KEEPALIVE_S))
+            if self._v_req != 0.0 and self._inst is not None and self._inst.amplifier is not None:
+                self._checked_voltage(self._v_req)
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        if self._keepalive is not None:
+            self._keepalive.join(timeout=2.0)
+        errors: list[str] = []
+        if self._inst is not None:
+            errors += self._inst.safe_state()
+            errors += self._inst.close()
+            self._inst = None
+        if self._sim is not None:
+            self._sim.stop()
+            self._sim = None
+        if self._log is not None:
+            self._write("session", "end", "instruments safe and closed" + (f"; {'; '.join(errors)}" if errors
+                                                                            else ""))
+            self._log.close()
+            self._log = None
+
+    # ------------------------------------------------------------ log
+    def _now(self) -> float:
+        return self._clock() - self._t0 if self._t0 is not None else 0.0
+
+    def _write(self, command: str, status: str, text: str) -> None:
+        if self._log is None:
+            return
+        stamp = datetime.now().astimezone().isoformat(timespec="milliseconds")
+        self._log.write(f"{stamp}\tt={self._now():.3f} s\t{status}\t{command}\t{text}\n")
+        self._log.flush()
+
+    # ------------------------------------------------------------ commands
+    def run_lines(self, lines: Iterable[str], stop_on_trip: bool = True) -> list[Outcome]:
+        """Execute commands until ``quit`` or the end; after a trip, stop if ``stop_on_trip``."""
+        for raw in lines:
+            line = raw.split("#", 1)[0].strip()
+            if not line:
+                continue
+            if line in ("quit", "exit"):
+                break
+            out = self.execute(line)
+            if out.status == "trip" and stop_on_trip:
+                break
+        return self.outcomes
+
+    def execute(self, line: str) -> Outcome:
+        """Run one command; log and return its outcome (refusals and trips are outcomes, not exceptions)."""
+        try:
+            words = _join_units(shlex.split(line))
+            name, args = words[0].lower(), words[1:]
+            handler = getattr(self, f"_cmd_{name.replace('-', '_')}", None)
+            if handler is None:
+                raise Refused(f"unknown command {name!r} (help lists them)")
+            with self._lock:
+                out = Outcome(line, "ok", handler(*args) or "")
+        except TypeError:
+            out = Outcome(line, "refused", f"wrong arguments for {line.split()[0]!r} (help lists them)")
+        except (Refused, ValueError) as exc:
+            out = Outcome(line, "refused", str(exc))
+        except SafetyTrip as exc:
+            out = Outcome(line, "trip", f"{exc.reason}; {self._make_safe()}")
+        except InstrumentError as exc:
+            out = Outcome(line, "error", f"{exc}; {self._make_safe()}")
+        self.outcomes.append(out)
+        self._write(line, out.status, out.text)
+        self.echo(f"{out.status}: {out.text}" if out.text else out.status)
+        return out
+
+    def _make_safe(self) -> str:
+        assert self._inst is not None
+        self._v_req = 0.0
+        errors = self._inst.safe_state()
+        return "output zeroed, motor stopped" + (f" ({'; '.join(errors)})" if errors else "")
+
+    # each _cmd_* returns one line of text (what was done / read)
+    def _cmd_help(self) -> str:
+        return "commands: " + "; ".join(line.split("  ")[0].strip() for line in HELP.splitlines())
+
+    def _amp(self) -> Any:
+        if self._inst is None or self._inst.amplifier is None:
+            raise Refused("this rig has no amplifier")
+        return self._inst.amplifier
+
+    def _checked_voltage(self, volts: float) -> float:
+        assert self._sup is not None
+        try:
+            self._sup.check_setpoint(volts)
+        except SafetyTrip as exc:
+            self._v_req = float(self._amp().commanded)
+            raise Refused(f"{exc.reason}; not sent") from None
+        return float(self._amp().set_voltage(volts))
+
+    def _cmd_voltage(self, value: str) -> str:
+        self._v_req = to_si(value, "V")
+        sent = self._checked_voltage(self._v_req)
+        self._wait(SETTLE_S)
+        return f"set-point {sent:.0f} V; " + self._cmd_read()
+
+    def _cmd_ramp(self, value: str, duration: str) -> str:
+        target, seconds = to_si(value, "V"), to_si(duration, "s")
+        if not 0 < seconds <= 3600:
+            raise Refused(f"ramp duration {seconds:g} s: give 0 < DURATION ≤ 3600 s")
+        start = float(self._amp().commanded)
+        assert self._sup is not None
+        try:
+            self._sup.check_setpoint(target)
+        except SafetyTrip as exc:
+            raise Refused(f"{exc.reason}; ramp not started") from None
+        n = max(1, math.ceil(seconds * RAMP_HZ))
+        t_begin = self._clock()
+        for k in range(1, n + 1):
+            self._v_req = start + (target - start) * k / n
+            self._checked_voltage(self._v_req)
+            self._sleep(max(0.0, t_begin + k * seconds / n - self._clock()))
+            self._check_monitors()
+        return f"ramped {start:.0f} → {target:.0f} V in {seconds:g} s ({n} set-points); " + self._cmd_read()
+
+    def _cmd_zero(self) -> str:
+        self._v_req = 0.0
+        self._amp().zero()
+        return "output 0 V"
+
+    def _motor(self) -> Any:
+        if self._inst is None or self._inst.motor is None:
+            raise Refused("this rig has no motor")
+        return self._inst.motor
+
+    def _aperture(self, motor_position: float) -> float:
+        spec = self.rig.specimen
+        if spec.kind == "membrane" or spec.lsdea is None:
+            return math.nan
+        return spec.lsdea.x_at_motor_zero_m + spec.lsdea.motor_sign * motor_position
+
+    def _go(self, target: float, speed: float) -> str:
+        assert self._sup is not None and self.rig.motor is not None
+        speed = min(speed, self.rig.motor.max_velocity_m_per_s)
+        if not speed > 0:
+            raise Refused("speed must be positive")
+        try:
+            self._sup.check_motor_setpoint(target, self._aperture(target), float(self._amp().commanded)
+                                           if self._inst and self._inst.amplifier else 0.0)
+        except SafetyTrip as exc:
+            raise Refused(f"{exc.reason}; not sent") from None
+        motor = self._motor()
+        motor.move_to(target, speed, min(DEFAULT_ACCEL, self.rig.motor.max_acceleration_m_per_s2))
+        deadline = self._clock() + 2.0 + abs(target - motor.read_position().value) / speed * 1.5
+        while self._clock() < deadline:
+            self._wait(0.05)
+            st = motor.status()
+            self._sup.check_motor(st.position, self._aperture(st.position))
+            if st.error:
+                raise InstrumentError(f"motor drive error {st.error_code:#06x} {st.error_text}".strip())
+            if st.in_target and not st.moving:
+                break
+        else:
+            motor.stop()
+            raise Refused(f"motor did not reach {target * 1e3:.2f} mm in time; stopped")
+        return f"motor at {motor.read_position().value * 1e3:.3f} mm (target {target * 1e3:.3f} mm); " + \
+            self._cmd_read()
+
+    def _cmd_move(self, position: str, speed: str = "") -> str:
+        return self._go(to_si(position, "mm"), to_si(speed, "mm/s") if speed else DEFAULT_SPEED)
+
+    def _cmd_jog(self, delta: str, speed: str = "") -> str:
+        here = float(self._motor().read_position().value)
+        return self._go(here + to_si(delta, "mm"), to_si(speed, "mm/s") if speed else DEFAULT_SPEED)
+
+    def _cmd_stop(self) -> str:
+        self._motor().stop()
+        return "motor stopped"
+
+    def _cell(self) -> Any:
+        if self._inst is None or self._inst.load_cell is None:
+            raise Refused("this rig has no load cell")
+        return self._inst.load_cell
+
+    def _cmd_tare(self) -> str:
+        self._cell().tare()
+        self._wait(0.2)
+        return "load cell tared; " + self._cmd_read()
+
+    def _cmd_zero_cell(self) -> str:
+        self._cell().zero()
+        self._wait(0.2)
+        return "load cell zeroed; " + self._cmd_read()
+
+    def _check_monitors(self) -> tuple[float, float]:
+        assert self._sup is not None
+        v, i = self._amp().read_monitors()
+        self._sup.check_monitors(v.value, i.value)
+        return v.value, i.value
+
+    def _cmd_read(self) -> str:
+        """Every channel once, each checked by the supervisor; one line with units."""
+        assert self._inst is not None and self._sup is not None
+        parts = []
+        if self._inst.amplifier is not None:
+            v, i = self._check_monitors()
+            parts.append(f"voltage {v:.0f} V, current {i * 1e6:.2f} µA")
+        if self._inst.laser is not None:
+            r = self._inst.laser.read()
+            laser = self.rig.laser
+            d = (r.value - laser.offset_mm * 1e-3) / laser.sign if laser is not None else r.value
+            if r.ok and math.isfinite(d):
+                self._sup.update_displacement(d)
+                parts.append(f"displacement {d * 1e3:.4f} mm")
+            else:
+                parts.append(f"displacement n/a ({r.status})")
+        if self._inst.motor is not None:
+            r = self._inst.motor.read_position()
+            self._sup.check_motor(r.value, self._aperture(r.value))
+            parts.append(f"motor {r.value * 1e3:.3f} mm" + (f" (aperture {self._aperture(r.value) * 1e3:.2f} mm)"
+                                                          if math.isfinite(self._aperture(r.value)) else ""))
+        if self._inst.load_cell is not None:
+            r = self._inst.load_cell.read()
+            if r.status in ("overload", "underload"):
+                raise SafetyTrip(f"load cell {r.status}")
+            if r.ok or r.status == "unstable":
+                self._sup.check_force(r.value)
+            parts.append(f"force {r.value:.3f} N" + ("" if r.ok else f" ({r.status})"))
+        return f"t {self._now():.2f} s: " + ", ".join(parts)
+
+    def _cmd_watch(self, duration: str, every: str = "0.5") -> str:
+        seconds, interval = to_si(duration, "s"), to_si(every, "s")
+        if not (0 < seconds <= 86_400 and 0.05 <= interval <= seconds):
+            raise Refused("watch DURATION [EVERY]: 0 < DURATION ≤ 86400 s, 0.05 s ≤ EVERY ≤ DURATION")
+        n = max(1, int(seconds / interval))
+        t_begin = self._clock()
+        for k in range(1, n + 1):
+            self._wait(max(0.0, t_begin + k * interval - self._clock()))
+            line = self._cmd_read()
+            self._write("watch", "read", line)
+            self.echo(line)
+        return f"watched {n} readings over {seconds:g} s"
+
+    def _cmd_wait(self, duration: str) -> str:
+        seconds = to_si(duration, "s")
+        if not 0 <= seconds <= 86_400:
+            raise Refused("wait DURATION: 0 … 86400 s")
+        self._wait(seconds)
+        return f"waited {seconds:g} s"
+
+
+def _join_units(words: list[str]) -> list[str]:
+    """``["jog", "-5", "mm"]`` → ``["jog", "-5 mm"]``: a unit after a number belongs to it."""
+    out: list[str] = []
+    for w in words:
+        if len(out) > 1 and (w[:1].isalpha() or w[:1] == "µ") and _is_number(out[-1]):
+            out[-1] = f"{out[-1]} {w}"
+        else:
+            out.append(w)
+    return out
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
+def session_log_name(rig: RigConfig) -> str:
+    """Default file name of a session log: ``manual-<rig>-<local time>.log``."""
+    return f"manual-{rig.name}-{datetime.now().strftime('%Y%m%d-%H%M%S')}.log"
