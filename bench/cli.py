@@ -69,6 +69,8 @@ def print_json(data: object) -> None:
     def clean(x: object) -> object:
         if isinstance(x, float | np.floating):
             return float(x) if math.isfinite(x) else None
+        if isinstance(x, np.bool_):
+            return bool(x)
         if isinstance(x, np.integer):
             return int(x)
         if isinstance(x, np.ndarray):
@@ -352,8 +354,18 @@ class BenchmarkSet(StrEnum):
 def benchmark(
     which: Annotated[BenchmarkSet, typer.Argument(help="Which figures.")] = BenchmarkSet.all,
     quick: Annotated[bool, typer.Option(help="One repeat / short runs.")] = False,
+    json_out: JsonOpt = False,
 ) -> None:
     """Measure the integrators, the acquisition rates through the drivers, whole runs and the fitter."""
+    with json_mode(json_out):
+        collected = _benchmark(which, quick)
+    if json_out:
+        print_json(collected)
+
+
+def _benchmark(which: BenchmarkSet, quick: bool) -> dict[str, list[dict[str, object]]]:
+    """Run and print the chosen benchmark sets; returns their figures by set."""
+    collected: dict[str, list[dict[str, object]]] = {}
     if which in (BenchmarkSet.physics, BenchmarkSet.all):
         from bench.benchmark import run_all
 
@@ -367,6 +379,9 @@ def benchmark(
             table.add_row(r.name, f"{r.simulated:g}", f"{r.wall:.4f}", f"{r.speed:.0f}",
                           f"≥ {r.target:g}" if r.target else "–", mark)
         console.print(table)
+        collected["physics"] = [{"case": r.name, "simulated_s": r.simulated, "wall_s": r.wall, "speed_x": r.speed,
+                                 "target_x": r.target or None, "passed": r.passed if r.target else None}
+                                for r in results]
     sets = []
     if which in (BenchmarkSet.acquisition, BenchmarkSet.all):
         from bench import benchmark_acquisition
@@ -387,12 +402,14 @@ def benchmark(
     for title, fn in sets:
         with console.status(f"benchmarking {title}…"):
             figures = fn(quick=quick)
+        collected[title] = [{"name": f.name, "value": f.value, "unit": f.unit, "note": f.note} for f in figures]
         table = Table(title=title)
         for col in ("path", "value", "unit", "notes"):
             table.add_column(col, justify="right" if col == "value" else "left")
         for f in figures:
             table.add_row(f.name, f"{f.value:,.1f}" if f.value < 100 else f"{f.value:,.0f}", f.unit, f.note)
         console.print(table)
+    return collected
 
 
 # commands defined in other modules register themselves on ``app``

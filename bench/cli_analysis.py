@@ -13,7 +13,7 @@ from rich.markup import escape
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from bench.cli import app, clean_errors, console, fail
+from bench.cli import JsonOpt, app, clean_errors, console, fail, json_mode, print_json
 
 if TYPE_CHECKING:
     from bench.identify.campaign import CampaignReport
@@ -87,6 +87,7 @@ def fit_command(
     seed: Annotated[int, typer.Option(help="Random seed of the search.")] = 1,
     polish: Annotated[bool, typer.Option(help="Least-squares polish after the search.")] = True,
     export: Annotated[Path | None, typer.Option(help="Write a rig file with the fitted parameters.")] = None,
+    json_out: JsonOpt = False,
 ) -> None:
     """Identify model parameters from recorded runs (differential evolution, as in the thesis) and store them."""
     from bench.identify.core import FitSettings
@@ -96,7 +97,16 @@ def fit_command(
     if not chosen:
         raise ValueError("the run files hold different specimens: fit them separately or pass --model")
     settings = FitSettings(population, generations, mutation, crossover, cost.value, polish, seed=seed)
-    run_fit(runs, chosen, settings, branches, export)
+    with json_mode(json_out):
+        result, problem = run_fit(runs, chosen, settings, branches, export)
+    if json_out:
+        print_json({"model": chosen, "runs": [str(p) for p in runs], "cost": result.cost,
+                    "cost_kind": result.cost_kind, "rms": result.rms, "rms_unit": problem.data_unit,
+                    "parameters": [{"name": n, "value": result.values[j], "unit": result.units[j],
+                                    "lower": result.lower[j], "upper": result.upper[j],
+                                    "relative_uncertainty": result.uncertainty[j],
+                                    "sensitivity": result.sensitivity[j], "flags": result.flags_of(n)}
+                                   for j, n in enumerate(result.names)]})
 
 
 def run_fit(runs: list[Path], chosen: str, settings: FitSettings, branches: int = 1,
@@ -156,9 +166,19 @@ def run_fit(runs: list[Path], chosen: str, settings: FitSettings, branches: int 
 def report_command(
     runs: Annotated[list[Path], typer.Argument(help="Run files (.h5); several make a campaign report.")],
     out: Annotated[Path | None, typer.Option(help="Folder for the figures (default: beside the run file).")] = None,
+    json_out: JsonOpt = False,
 ) -> None:
-    """Figures of merit and PNG plots of recorded runs; several files add a campaign table."""
-    print_report(runs, out)
+    """Figures of merit and plots (PNG, PDF, SVG) of recorded runs; several files add a campaign table."""
+    with json_mode(json_out):
+        paths = print_report(runs, out)
+    if json_out:
+        from bench.analysis.runs import analyse
+
+        print_json({"units": FIGURE_UNITS, "figures": [str(p) for p in paths], "runs": [
+            {"file": str(p), "protocol": (a := analyse(p)).protocol,
+             "steps": [{"step": s.name, "kind": s.kind, "prototype": s.prototype, "hung_mass_kg": s.hung_mass,
+                        "temperature_K": s.temperature, "frequency_Hz": s.frequency, "voltage_V": s.voltage,
+                        "figures": s.figures} for s in a.steps]} for p in runs]})
 
 
 def figures_table(steps: list, title: str) -> Table:
@@ -233,6 +253,15 @@ FIGURE_COLUMNS: dict[str, tuple[str, float]] = {
     "stroke_percent": ("stroke [%]", 1.0), "energy_density": ("w [mJ/g]", 1.0),
     "energy_density_with_mechanism": ("w+mech [mJ/g]", 1.0), "mean_position": ("x mean [mm]", 1e3),
     "force_swing": ("ΔF [N]", 1.0), "force_mean": ("F mean [N]", 1.0), "output_frequency": ("f out [Hz]", 1.0),
+}
+
+
+# figure of merit → SI unit of the value stored in figures.json and printed by --json ("1": a fraction)
+FIGURE_UNITS: dict[str, str] = {
+    "peak_first": "m", "peak_last": "m", "creep": "1", "lag_first": "s", "residual_first": "m", "residual_last": "m",
+    "loss_first": "1", "loss_last": "1", "stroke": "m", "force_max": "N", "force_min": "N", "amplitude": "m",
+    "stroke_percent": "%", "energy_density": "mJ/g", "energy_density_with_mechanism": "mJ/g", "mean_position": "m",
+    "force_swing": "N", "force_mean": "N", "output_frequency": "Hz",
 }
 
 

@@ -14,7 +14,7 @@ from rich.markup import escape
 from rich.prompt import Confirm
 from rich.table import Table
 
-from bench.cli import JsonOpt, app, clean_errors, console, print_json
+from bench.cli import JsonOpt, app, clean_errors, console, json_mode, print_json
 from bench.protocol.staircase import staircase_distortion
 
 protocol_app = typer.Typer(help="Protocol files: the shipped ones (list, show, copy) and their schema.",
@@ -89,9 +89,21 @@ def _summary(plan) -> Table:
 
 @app.command()
 @clean_errors
-def validate(protocol_file: ProtocolArg, rig: RigOpt = None, sim: SimOpt = False) -> None:
+def validate(protocol_file: ProtocolArg, rig: RigOpt = None, sim: SimOpt = False, json_out: JsonOpt = False) -> None:
     """Validate a protocol against its rig and the specimen model; print what the run will do."""
-    plan = _plan(protocol_file, rig, sim)
+    with json_mode(json_out):
+        plan = _plan(protocol_file, rig, sim)
+    if json_out:
+        pred = plan.prediction
+        print_json({"protocol": plan.protocol.protocol.name, "rig": plan.rig.name, "simulated": plan.rig.simulated,
+                    "valid": True, "steps": len(plan.program.segments), "duration_s": pred.duration,
+                    "samples": pred.samples, "file_bytes_max": pred.file_bytes, "peak_voltage_V": pred.peak_voltage,
+                    "voltage_limit_V": plan.rig.limits.max_voltage_V, "peak_field_V_per_m": pred.peak_field,
+                    "min_breakdown_margin": pred.min_breakdown_margin,
+                    "motor_range_m": list(pred.motor_range) if pred.motor_range is not None else None,
+                    "displacement_range_m": list(pred.displacement_range), "force_range_N": list(pred.force_range),
+                    "link_problems": list(plan.link_problems)})
+        return
     console.print(_summary(plan))
     console.print("[green]valid[/]: within the rig's and the specimen's limits")
 
@@ -168,15 +180,32 @@ def _print_result(result) -> None:
 
 @app.command()
 @clean_errors
-def inspect(run_file: Annotated[Path, typer.Argument(help="Run file (.h5), finished or being written.")]) -> None:
+def inspect(run_file: Annotated[Path, typer.Argument(help="Run file (.h5), finished or being written.")],
+            json_out: JsonOpt = False) -> None:
     """Summarise a run file: metadata, state, streams, events (works while the run is being written)."""
     from bench.runfile import open_run
 
     r = open_run(run_file)
     a = r.attrs
-    meta = Table(title=f"{run_file}", show_header=False)
+    if json_out:
+        keys = ("protocol_name", "protocol_path", "protocol_sha256", "rig_name", "simulated", "clock", "software",
+                "start_time", "duration_planned")
+        print_json({"file": str(run_file), **{k: a.get(k) for k in keys}, "state": r.state, "complete": r.complete,
+                    "incomplete_reason": None if r.complete else r.incomplete_reason, "reason": r.reason,
+                    "end_time": r.end_time, "recorded_up_to_s": r.updated,
+                    "streams": {name: {"samples": len(s), "from_s": float(s.t[0]) if len(s) else None,
+                                       "to_s": float(s.t[-1]) if len(s) else None, "units": s.units,
+                                       "last": {k: (v[-1] if v.size else None) for k, v in s.columns.items()}}
+                                for name, s in r.streams.items()},
+                    "events": [{"t_s": t, "step": step, "kind": kind, "text": text}
+                               for t, step, kind, text in r.event_list()]})
+        if not r.complete:
+            raise typer.Exit(1)
+        return
+    meta = Table(title="run file", show_header=False)
     meta.add_column("", style="bold")
     meta.add_column("")
+    meta.add_row("file", escape(str(run_file)))  # a row, not the title: a title wraps at the table's width
     sha = str(a.get("protocol_sha256", ""))[:12]
     meta.add_row("protocol", f"{a.get('protocol_name')} ({a.get('protocol_path')}, sha256 {sha}…)")
     kind = "simulated" if a.get("simulated") else "real"
@@ -201,8 +230,8 @@ def inspect(run_file: Annotated[Path, typer.Argument(help="Run file (.h5), finis
                         last)
     console.print(streams)
     events = r.event_list()
-    console.print(f"{len(events)} events; last: " + "; ".join(f"{t:.2f} s {kind} {text[:60]}"
-                                                             for t, _, kind, text in events[-3:]))
+    console.print(f"{len(events)} events; last: " + "; ".join(f"{t:.2f} s {kind} {escape(text)}"
+                                                             for t, _, kind, text in events[-3:]), soft_wrap=True)
     if not r.complete:
         raise typer.Exit(1)
 

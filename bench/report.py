@@ -1,4 +1,8 @@
-"""PNG figures of recorded runs, of the papers' types (matplotlib, no display needed)."""
+"""Figures of recorded runs, of the papers' types (matplotlib, no display needed).
+
+Each figure is written as PNG at 300 dpi and as PDF and SVG (vector, for publication); the PNG paths are
+returned. Legends name what was measured and what was commanded.
+"""
 
 from __future__ import annotations
 
@@ -15,12 +19,26 @@ from bench.analysis.runs import RunAnalysis, analyse
 from bench.identify.store import read_fits
 from bench.runfile import open_run
 
+DPI = 300  # publication resolution of the PNGs
+VECTOR_FORMATS = ("pdf", "svg")
+
 
 def _save(fig: plt.Figure, path: Path) -> Path:
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=DPI)
+    for ext in VECTOR_FORMATS:
+        fig.savefig(path.with_suffix(f".{ext}"))
     plt.close(fig)
     return path
+
+
+def _legend(ax: plt.Axes, *others: plt.Axes, **kwargs: object) -> None:
+    """One legend on ``ax`` for the lines of ``ax`` and of its twin axes."""
+    handles, labels = ax.get_legend_handles_labels()
+    for other in others:
+        h, lab = other.get_legend_handles_labels()
+        handles, labels = handles + h, labels + lab
+    ax.legend(handles, labels, **kwargs)  # type: ignore[arg-type]
 
 
 def _fitted_membrane(run_path: Path) -> tuple[np.ndarray, np.ndarray, dict] | None:
@@ -48,16 +66,20 @@ def thesis_figures(a: RunAnalysis, out: Path) -> list[Path]:
     fitted = _fitted_membrane(a.path)
     paths = []
     fig, ax = plt.subplots(figsize=(8, 4))
-    ax.plot(t, u, lw=0.8, label="recorded (laser)")
+    ax.plot(t, u, lw=0.8, label="measured displacement (laser)")
     if fitted is not None:
         ax.plot(fitted[0], fitted[1] * 1e3, "--", lw=1.0, label=f"fitted model (rms {fitted[2]['rms'] * 1e6:.1f} µm)")
     ax2 = ax.twinx()
-    ax2.plot(t, v, color="tab:red", lw=0.6, alpha=0.6)
+    ax2.plot(t, v, color="tab:red", lw=0.6, alpha=0.6, label="commanded voltage (set-point)")
+    if "amplifier" in run.streams and len(run.streams["amplifier"]):
+        amp = run.streams["amplifier"]
+        ax2.plot(amp.t, amp.columns["voltage"] / 1e3, ".", color="tab:purple", ms=2,
+                 label="measured voltage (amplifier monitor)")
     ax2.set_ylabel("voltage [kV]", color="tab:red")
     ax.set_xlabel("time [s]")
     ax.set_ylabel("displacement u [mm]")
     ax.set_title(f"{a.protocol}: displacement vs time")
-    ax.legend(loc="upper left")
+    _legend(ax, ax2, loc="upper left", fontsize=8)
     paths.append(_save(fig, out / "displacement_vs_time.png"))
     fig, ax = plt.subplots(figsize=(6, 5))
     for s in a.by_kind("thesis"):
@@ -104,10 +126,12 @@ def isometric_figures(a: RunAnalysis, out: Path) -> list[Path]:
     top = max(steps, key=lambda s: s.frequency)
     w = (lc.t >= top.t_start) & (lc.t <= top.t_start + top.duration)
     fig, ax = plt.subplots(figsize=(8, 4))
-    ax.plot(lc.t[w] - top.t_start, lc.columns["force"][w], lw=0.8)
+    ax.plot(lc.t[w] - top.t_start, lc.columns["force"][w], lw=0.8, label="measured force (load cell)")
     ax2 = ax.twinx()
     ws = (sp.t >= top.t_start) & (sp.t <= top.t_start + top.duration)
-    ax2.plot(sp.t[ws] - top.t_start, sp.columns["voltage"][ws] / 1e3, color="tab:red", lw=0.6, alpha=0.6)
+    ax2.plot(sp.t[ws] - top.t_start, sp.columns["voltage"][ws] / 1e3, color="tab:red", lw=0.6, alpha=0.6,
+             label="commanded voltage (set-point)")
+    _legend(ax, ax2, loc="upper right", fontsize=8)
     ax2.set_ylabel("voltage [kV]", color="tab:red")
     ax.set_xlabel("time [s]")
     ax.set_ylabel("force [N]")

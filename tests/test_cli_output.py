@@ -1,0 +1,90 @@
+"""Output people and scripts rely on: units kept in help and tables, no truncation when redirected, --json."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from bench.cli import app
+from bench.run import execute, plan_run
+
+ROOT = Path(__file__).resolve().parent.parent
+SHORT = ROOT / "protocols" / "short" / "thesis-identification-short.toml"
+runner = CliRunner()
+
+
+@pytest.fixture(scope="module")
+def run_file(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    # a long folder name: a redirected table must print it whole, not cut or wrapped at 80 columns
+    out = tmp_path_factory.mktemp("output") / ("a-rather-long-folder-name-for-the-campaign-" * 3).strip("-")
+    result = execute(plan_run(SHORT), out / "run.h5", virtual=True)
+    assert result.state == "completed", result.reason
+    return Path(result.path)
+
+
+@pytest.mark.parametrize(("args", "units"), [
+    (["simulate", "thesis", "--help"], ["Simulated time [s]", "Peak voltage Vmax [V]", "Temperature [K]"]),
+    (["simulate", "lsdea", "--help"], ["Hung mass [kg]", "Blocked aperture [mm]", "from 50 mm [mm]"]),
+])
+def test_help_pages_keep_their_units(args: list[str], units: list[str]) -> None:
+    res = runner.invoke(app, args, env={"COLUMNS": "300"})
+    assert res.exit_code == 0
+    for text in units:
+        assert text in " ".join(res.output.split()), text
+
+
+def test_shell_completion_is_offered() -> None:
+    res = runner.invoke(app, ["--help"])
+    assert "--install-completion" in res.output and "--show-completion" in res.output
+
+
+def test_simulate_table_headers_keep_units() -> None:
+    res = runner.invoke(app, ["simulate", "thesis", "--duration", "9"])
+    assert res.exit_code == 0, res.output
+    assert "peak u [mm]" in res.output and "at t [s]" in res.output and "lag [s]" in res.output
+
+
+def test_redirected_inspect_prints_whole_paths_and_columns(run_file: Path) -> None:
+    res = runner.invoke(app, ["inspect", str(run_file)])  # CliRunner: stdout is not a terminal
+    assert res.exit_code == 0, res.output
+    assert str(run_file) in res.output  # on one line, not cut at 80 columns
+    assert "from [s]" in res.output and "displacement (m)" in res.output
+    assert all("…" not in line for line in res.output.splitlines() if "sha256" not in line)  # no cut values
+
+
+def test_inspect_and_validate_json(run_file: Path) -> None:
+    res = runner.invoke(app, ["inspect", str(run_file), "--json"])
+    assert res.exit_code == 0, res.output
+    data = json.loads(res.output)  # nothing but the JSON on stdout
+    assert data["state"] == "completed" and data["complete"] is True
+    laser = data["streams"]["laser"]
+    assert laser["units"]["displacement"] == "m" and laser["samples"] > 50_000
+    assert data["events"][0]["kind"] == "run"
+    res = runner.invoke(app, ["validate", str(SHORT), "--json"])
+    assert res.exit_code == 0, res.output
+    data = json.loads(res.output)
+    assert data["valid"] is True and data["rig"] == "thesis-sim"
+    assert data["duration_s"] == pytest.approx(11.0) and 6000 < data["peak_voltage_V"] <= data["voltage_limit_V"]
+
+
+def test_report_json_and_figures_in_png_pdf_svg(run_file: Path, tmp_path: Path) -> None:
+    res = runner.invoke(app, ["report", str(run_file), "--out", str(tmp_path), "--json"])
+    assert res.exit_code == 0, res.output
+    data = json.loads(res.output)
+    (run,) = data["runs"]
+    (step,) = [s for s in run["steps"] if s["kind"] == "thesis"]
+    assert data["units"]["peak_first"] == "m" and 0.004 < step["figures"]["peak_first"] < 0.01
+    pngs = [Path(p) for p in data["figures"]]
+    assert pngs and all(p.suffix == ".png" and p.exists() for p in pngs)
+    for png in pngs:
+        assert png.with_suffix(".pdf").read_bytes()[:4] == b"%PDF"
+        assert b"<svg" in png.with_suffix(".svg").read_bytes()[:2000]
+    from PIL import Image
+
+    with Image.open(pngs[0]) as im:
+        assert im.info["dpi"][0] == pytest.approx(300, abs=1)
+    svg = (tmp_path / "displacement_vs_time.svg").read_text(encoding="utf-8")
+    assert "measured displacement (laser)" in svg and "commanded voltage (set-point)" in svg
