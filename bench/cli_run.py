@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import logging
 import math
 import sys
 from pathlib import Path
@@ -15,6 +16,7 @@ from rich.prompt import Confirm
 from rich.table import Table
 
 from bench.cli import JsonOpt, app, clean_errors, console, json_mode, print_json
+from bench.logs import log, run_log
 from bench.protocol.staircase import staircase_distortion
 
 protocol_app = typer.Typer(help="Protocol files: the shipped ones (list, show, copy) and their schema.",
@@ -126,9 +128,7 @@ def run(
         "(recorded in the file).")] = False,
 ) -> None:
     """Run a protocol on a rig (simulated by default), streaming everything to one HDF5 file."""
-    from bench.engine import Engine
-    from bench.live import LiveView
-    from bench.run import default_output, execute
+    from bench.run import default_output
 
     plan = _plan(protocol_file, rig, sim)
     console.print(_summary(plan))
@@ -146,6 +146,39 @@ def run(
         return yes or Confirm.ask(f"[bold]operator:[/] {message} — done?", console=console)
 
     path = default_output(plan, out)
+    with run_log(path) as log_file:
+        log.info("bench run %s on rig %s (%s), %s clock → %s", protocol_file, plan.rig.name,
+                 "simulated" if plan.rig.simulated else "real", "virtual" if virtual_time else "wall", path)
+        log.info("planned: %d steps, %.1f s, peak %.0f V", len(plan.program.segments), plan.prediction.duration,
+                 plan.prediction.peak_voltage)
+        for problem in plan.link_problems:
+            log.info("link budget warning: %s", problem)
+        result = _execute(plan, path, virtual_time, operator, live, allow_no_watchdog)
+        _log_result(result)
+    with contextlib.suppress(OSError):  # the terminal went away (SIGHUP): the file holds the whole account
+        _print_result(result)
+        console.print(f"run log: {escape(str(log_file))}")
+    if result.state != "completed":
+        raise typer.Exit(1)
+
+
+def _log_result(result) -> None:
+    """The run's events and how it ended, into the run log."""
+    from bench.runfile import open_run
+
+    with contextlib.suppress(OSError, ValueError):
+        for t, step, kind, text in open_run(result.path, streams=False).event_list():
+            log.info("event t=%.3f s step %d %s: %s", t, step, kind, text)
+    log.log(logging.INFO if result.state == "completed" else logging.ERROR, "%s: %s; high voltage: %s; %d samples",
+            result.state, result.reason, result.safe_path, result.samples)
+
+
+def _execute(plan, path: Path, virtual_time: bool, operator, live: bool, allow_no_watchdog: bool):
+    """Run the plan, with the live view on a terminal."""
+    from bench.engine import Engine
+    from bench.live import LiveView
+    from bench.run import execute
+
     engines: list[Engine] = []
     title = f"{plan.protocol.protocol.name} → {path}"
     if live and console.is_terminal:
@@ -160,12 +193,9 @@ def run(
             result = execute(plan, path, virtual=virtual_time, operator=operator, on_engine=attach,
                              allow_no_watchdog=allow_no_watchdog)
     else:
-        console.print(f"running {title}")
+        console.print(f"running {escape(title)}")
         result = execute(plan, path, virtual=virtual_time, operator=operator, allow_no_watchdog=allow_no_watchdog)
-    with contextlib.suppress(OSError):  # the terminal went away (SIGHUP): the file holds the whole account
-        _print_result(result)
-    if result.state != "completed":
-        raise typer.Exit(1)
+    return result
 
 
 def _print_result(result) -> None:

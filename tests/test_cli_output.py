@@ -88,3 +88,15 @@ def test_report_json_and_figures_in_png_pdf_svg(run_file: Path, tmp_path: Path) 
         assert im.info["dpi"][0] == pytest.approx(300, abs=1)
     svg = (tmp_path / "displacement_vs_time.svg").read_text(encoding="utf-8")
     assert "measured displacement (laser)" in svg and "commanded voltage (set-point)" in svg
+
+
+def test_run_writes_a_log_beside_the_run_file_and_quiet_prints_nothing(tmp_path: Path) -> None:
+    res = runner.invoke(app, ["-q", "run", str(SHORT), "--virtual-time", "--out", str(tmp_path), "--no-live"])
+    assert res.exit_code == 0, res.output
+    assert res.stdout == ""
+    (run_file,) = tmp_path.glob("*.h5")
+    log = run_file.with_suffix(".log").read_text(encoding="utf-8")
+    assert "planned: 2 steps, 11.0 s" in log and "event t=11.000 s step 1 stop: protocol completed" in log
+    assert "completed: protocol completed; high voltage: 0 V commanded" in log
+    res = runner.invoke(app, ["run", str(SHORT), "--dry-run"])
+    assert res.exit_code == 0 and "dry run" in res.output  # -q does not stick to the next command
