@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -281,3 +282,23 @@ def test_cycle_figures_ignore_a_partial_cycle_before_its_peak() -> None:
     figs = cycle_figures(t, u, wave(t), 1 / 9)
     assert figs.whole == 2 and len(figs.peaks) == 2  # 18–20 s is 22 % of a period: not a cycle
     assert figs.creep == pytest.approx((1 + 0.1 * 13.5 / 20) / (1 + 0.1 * 4.5 / 20) - 1, rel=1e-3)
+
+
+def test_compiled_offline_integrator_matches_a_tight_reference() -> None:
+    """Rodas3 (default of simulate_membrane) within 1e-6 in λ of Radau at rtol 1e-10 on the base case (A8-style),
+    converging as rtol falls, and stopping a DC pull-in where Radau's event does."""
+    ref = simulate_membrane(PARAMS, BASE, 20.0, fs=10_000.0, method="radau", rtol=1e-10)
+    errors = [np.max(np.abs(simulate_membrane(PARAMS, BASE, 20.0, fs=10_000.0, rtol=r).stretch - ref.stretch))
+              for r in (3e-6, 3e-7, 3e-8)]
+    assert simulate_membrane(PARAMS, BASE, 20.0, fs=10_000.0).stretch[-1] == pytest.approx(ref.stretch[-1], abs=1e-6)
+    assert errors[1] <= 1e-6
+    assert errors[0] > errors[1] > errors[2]
+    dc = Waveform("square", 0.0, 1.0, offset=8000.0)
+    a = simulate_membrane(PARAMS, dc, 20.0, fs=1000.0)
+    b = simulate_membrane(PARAMS, dc, 20.0, fs=1000.0, method="radau", rtol=1e-8)
+    assert a.failed and b.failed and "runaway" in a.failure
+    t_a = float(re.search(r"t = ([\d.]+) s", a.failure).group(1))  # type: ignore[union-attr]
+    t_b = float(re.search(r"t = ([\d.]+) s", b.failure).group(1))  # type: ignore[union-attr]
+    assert t_a == pytest.approx(t_b, abs=0.01)
+    ok = np.isfinite(a.stretch) & np.isfinite(b.stretch) & (b.stretch < 3.0)  # before the runaway
+    assert np.max(np.abs(a.stretch[ok] - b.stretch[ok])) < 1e-5

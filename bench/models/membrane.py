@@ -175,14 +175,14 @@ def membrane_rhs(y: np.ndarray, phi: float, T: float, p: np.ndarray, dy: np.ndar
     lam = y[0]
     v = y[1]
     n = int(p[P_N])
-    h0, _, _ = gent_h(math.log(lam), p[P_J0])
+    h0, _, _ = gent_h_e2(lam * lam, p[P_J0])
     force = 2.0 * p[P_RHO] * p[P_L3] ** 2 * lam**-7 * v * v - p[P_MU0] * h0 / lam
     for i in range(n):
         mu = p[P_BRANCHES + i]
         J = p[P_BRANCHES + n + i]
         eta = p[P_BRANCHES + 2 * n + i]
         xi = y[2 + i]
-        h, _, _ = gent_h(math.log(lam / xi), J)
+        h, _, _ = gent_h_e2((lam / xi) ** 2, J)
         force -= mu * h / lam
         dy[2 + i] = xi * mu / (6.0 * eta) * h
     s_es, _ = es_stress(lam, phi, T, p)
@@ -200,7 +200,7 @@ def membrane_jac(y: np.ndarray, phi: float, T: float, p: np.ndarray, jac: np.nda
     n = int(p[P_N])
     jac[:, :] = 0.0
     c_in = p[P_RHO] * p[P_L3] ** 2
-    h0, dh0, _ = gent_h(math.log(lam), p[P_J0])
+    h0, dh0, _ = gent_h_e2(lam * lam, p[P_J0])
     force = 2.0 * c_in * lam**-7 * v * v - p[P_MU0] * h0 / lam
     dforce = -14.0 * c_in * lam**-8 * v * v - p[P_MU0] * (dh0 - h0) / (lam * lam)
     M, dM = inertia(lam, p)
@@ -209,7 +209,7 @@ def membrane_jac(y: np.ndarray, phi: float, T: float, p: np.ndarray, jac: np.nda
         J = p[P_BRANCHES + n + i]
         eta = p[P_BRANCHES + 2 * n + i]
         xi = y[2 + i]
-        h, dh, _ = gent_h(math.log(lam / xi), J)
+        h, dh, _ = gent_h_e2((lam / xi) ** 2, J)
         force -= mu * h / lam
         dforce -= mu * (dh - h) / (lam * lam)
         jac[1, 2 + i] = mu * dh / (lam * xi) / M  # −(∂s_i/∂ξ_i)/M

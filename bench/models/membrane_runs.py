@@ -17,12 +17,14 @@ from bench.models.membrane import (
     membrane_rhs,
 )
 from bench.models.membrane_batch import membrane_batch
+from bench.models.rosenbrock import STATUS_STOPPED, rodas3_membrane
 
 VoltageInput = Callable[[float], float] | Callable[[np.ndarray], np.ndarray]
 
 # physics.md §1.5: λ̇ needs a loose absolute tolerance, λ and ξ a tight one
 ATOL_SCALE_HEAD = (1e-3, 1e2)
 ATOL_SCALE_UNIT = 1e-3
+RODAS_RTOL = 3e-7  # compiled Rosenbrock: max|Δλ| 5e-7 on the base case (scipy Radau at its rtol 1e-6: 8e-7)
 
 
 def atol_for(params: MembraneParams, rtol: float) -> np.ndarray:
@@ -36,21 +38,22 @@ def _scalar(voltage: VoltageInput) -> Callable[[float], float]:
 
 
 def simulate_membrane(params: MembraneParams, voltage: VoltageInput, t_end: float, fs: float = 10_000.0,
-                      T: float = 296.0, method: Literal["radau", "bdf", "fixed"] = "radau",
-                      rtol: float = 1e-6, h: float = 1e-4) -> MembraneTrace:
+                      T: float = 296.0, method: Literal["rodas", "radau", "bdf", "fixed"] = "rodas",
+                      rtol: float | None = None, h: float = 1e-4) -> MembraneTrace:
     """Simulate the membrane under voltage(t) [V] for t_end [s], output sampled at fs [Hz].
 
-    ``radau``/``bdf``: stiff adaptive solver with analytic Jacobian (reference accuracy, physics.md §1.5).
-    ``fixed``: the streaming fixed-step scheme with step h (output every round(1/(fs·h)) steps).
-    The run stops early (remaining samples NaN, ``failed`` set) at runaway stretch or Gent lock-up.
+    ``rodas`` (default): the compiled Rosenbrock integrator with error control (:mod:`bench.models.rosenbrock`,
+    rtol 3e-7: max|Δλ| ≈ 5e-7 on the base case); the voltage is sampled every min(1/fs, 0.1 ms) and taken
+    linear in between. ``radau``/``bdf``: scipy's stiff solvers with the analytic Jacobian (rtol 1e-6; the
+    reference path, physics.md §1.5). ``fixed``: the streaming fixed-step scheme with step h (output every
+    round(1/(fs·h)) steps). The run stops early (remaining samples NaN, ``failed`` set) at runaway stretch or
+    Gent lock-up. ``rtol`` applies to the adaptive methods.
     """
     if not (t_end > 0 and fs > 0):
         raise ValueError(f"t_end and fs must be > 0, got {t_end} s and {fs} Hz")
-    p = params.pack()
-    y0 = params.initial_state()
     n_out = round(t_end * fs) + 1
     t_out = np.arange(n_out) / fs
-    stop_reason = ""
+    phi = None
     if method == "fixed":
         stride = max(1, round(1.0 / (fs * h)))
         n_steps = (n_out - 1) * stride
@@ -58,37 +61,61 @@ def simulate_membrane(params: MembraneParams, voltage: VoltageInput, t_end: floa
         U = np.empty((n_steps, 2))
         U[:, 0] = voltage(t_steps)  # type: ignore[arg-type]
         U[:, 1] = T
-        Y, _ = run_fixed(MODEL_MEMBRANE, y0, U, h, p)
+        Y, _ = run_fixed(MODEL_MEMBRANE, params.initial_state(), U, h, params.pack())
         Y = Y[::stride]
         t_out = np.arange(len(Y)) * h * stride
+        stop_reason = ""
     else:
-        phi_of = _scalar(voltage)
-        ny = y0.size
-
-        def fun(t: float, y: np.ndarray) -> np.ndarray:
-            dy = np.empty(ny)
-            membrane_rhs(y, phi_of(t), T, p, dy)
-            return dy
-
-        def jac(t: float, y: np.ndarray) -> np.ndarray:
-            J = np.empty((ny, ny))
-            membrane_jac(y, phi_of(t), T, p, J)
-            return J
-
-        res = solve_offline(fun, jac, y0, t_out, atol=atol_for(params, rtol), rtol=rtol,
-                            method="Radau" if method == "radau" else "BDF",
-                            stop=lambda t, y: params.runaway_stretch - y[0])
-        Y = res.Y
-        if res.t_stop is not None:
-            stop_reason = (f"runaway stretch: λ passed {params.runaway_stretch} at t = {res.t_stop:.3f} s "
-                           "(pull-in); the run was stopped there")
-        elif not res.success:
-            stop_reason = f"integration failed: {res.message}"
-    phi = np.asarray(voltage(t_out), dtype=float)  # type: ignore[arg-type]
+        Y, stop_reason, phi = integrate_membrane(params, voltage, t_out, T, method, rtol)
+    if phi is None:
+        phi = np.asarray(voltage(t_out), dtype=float)  # type: ignore[arg-type]
     trace = membrane_outputs(params, t_out, Y, phi, T)
     if stop_reason:
         trace.failed, trace.failure = True, stop_reason
     return trace
+
+
+def integrate_membrane(params: MembraneParams, voltage: VoltageInput, t_out: np.ndarray, T: float = 296.0,
+                       method: Literal["rodas", "radau", "bdf"] = "rodas",
+                       rtol: float | None = None) -> tuple[np.ndarray, str, np.ndarray | None]:
+    """States at the uniform times ``t_out`` (from 0) by an adaptive stiff integrator (see
+    :func:`simulate_membrane`). Returns (Y, why the run stopped early or '', Φ at t_out when it was sampled)."""
+    p = params.pack()
+    y0 = params.initial_state()
+    stop = f"runaway stretch: λ passed {params.runaway_stretch} at t = {{:.3f}} s (pull-in); the run was stopped there"
+    if method == "rodas":
+        rtol = RODAS_RTOL if rtol is None else rtol
+        dt_out = float(t_out[1] - t_out[0]) if t_out.size > 1 else 1e-4
+        k = max(1, int(np.ceil(dt_out / 1e-4 - 1e-9)))  # input samples per output interval (≤ 0.1 ms apart)
+        dt = dt_out / k
+        t_in = np.arange((t_out.size - 1) * k + 1) * dt
+        phi_in = np.asarray(voltage(t_in), dtype=float)  # type: ignore[arg-type]
+        Y = np.empty((t_out.size, y0.size))
+        status, _, _, t_stop = rodas3_membrane(y0, t_out, float(T), p, 0.0, dt, phi_in, rtol,
+                                               atol_for(params, rtol), params.runaway_stretch, Y)
+        reason = stop.format(t_stop) if status == STATUS_STOPPED else "" if status == 0 else \
+            f"integration failed at t = {t_stop:.3f} s (step size underflow or non-finite state)"
+        return Y, reason, phi_in[::k]
+    phi_of = _scalar(voltage)
+    ny = y0.size
+
+    def fun(t: float, y: np.ndarray) -> np.ndarray:
+        dy = np.empty(ny)
+        membrane_rhs(y, phi_of(t), T, p, dy)
+        return dy
+
+    def jac(t: float, y: np.ndarray) -> np.ndarray:
+        J = np.empty((ny, ny))
+        membrane_jac(y, phi_of(t), T, p, J)
+        return J
+
+    rtol = 1e-6 if rtol is None else rtol
+    res = solve_offline(fun, jac, y0, t_out, atol=atol_for(params, rtol), rtol=rtol,
+                        method="Radau" if method == "radau" else "BDF",
+                        stop=lambda t, y: params.runaway_stretch - y[0])
+    reason = stop.format(res.t_stop) if res.t_stop is not None else "" if res.success else \
+        f"integration failed: {res.message}"
+    return res.Y, reason, None
 
 
 class MembraneStream:
