@@ -53,8 +53,11 @@ def log_path(run_file: Path) -> Path:
 def run_log(run_file: Path, level: int = logging.INFO) -> Iterator[Path]:
     """Append everything logged while the block runs (info and above) to the run's log file."""
     path = log_path(run_file)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    handler = logging.FileHandler(path, encoding="utf-8")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        handler = logging.FileHandler(path, encoding="utf-8")
+    except OSError as exc:  # before anything runs: one line naming the run file's folder
+        raise OSError(f"run file {run_file}: cannot create its folder or log ({exc.strerror or exc})") from None
     handler.setLevel(level)
     handler.setFormatter(logging.Formatter(FORMAT))
     configure_console(*_console_state())

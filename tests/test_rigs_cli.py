@@ -31,8 +31,8 @@ def test_every_example_rig_file_validates(path: Path) -> None:
 @pytest.mark.parametrize("text, message", [
     ("name = 'x'\n[laser]\nmodel = 'LK-X'\n", "laser.model: Input should be 'LK-G3000' or 'LK-G5000'"),
     ("name = 'x'\n[amplifier]\nbus = 'io'\n", "amplifier.bus 'io' is not defined under [buses]"),
-    ("name = 'x'\n[buses.io]\n[amplifier]\nbus = ''\n", "amplifier.bus '' is not defined under [buses]"),
-    ("name = 'x'\n[buses.io]\n[load_cell]\nbus = ''\n", "load_cell.bus '' is not defined under [buses]"),
+    ("name = 'x'\n[buses.io]\n[amplifier]\nbus = ''\n", "amplifier.bus: String should have at least 1 character"),
+    ("name = 'x'\n[buses.io]\n[load_cell]\nbus = ''\n", "load_cell.bus: String should have at least 1 character"),
     ("name = 'x'\ncolour = 'red'\n", "colour: Extra inputs are not permitted"),
     ("name = 'x'\n[motor]\ntravel_m = [0.1, 0.0]\n", "travel_m must be increasing"),
     ("name = 'x'\n[limits]\nmax_voltage_V = 20000\n", "limits.max_voltage_V: Input should be less than or equal"),
