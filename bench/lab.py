@@ -89,7 +89,8 @@ def copy_protocol(src: Path, dest: Path, rig: Path | None = None) -> Path:
     """Copy a protocol file (comments kept), pointing its ``rig`` at a rig file that exists from ``dest``.
 
     ``dest`` is a file or an existing folder. The rig is ``rig`` if given; else the original's rig, looked
-    for first beside the copy (``../rigs/<name>.toml``, as in a lab folder), then the shipped one.
+    for first in the lab folder the copy lands in (``rigs/<name>.toml`` in the nearest folder above the copy
+    that has it: ``../rigs/`` from ``protocols/``, ``../../rigs/`` from ``protocols/short/``), then the shipped one.
     """
     target = dest / src.name if dest.is_dir() else dest
     if target.exists():
@@ -99,15 +100,19 @@ def copy_protocol(src: Path, dest: Path, rig: Path | None = None) -> Path:
     if table is None or "rig" not in table:
         raise ValueError(f"protocol file {src}: no [protocol] rig to point at")
     original = (src.parent / str(table["rig"])).resolve()
+    here = target.parent.resolve()
     if rig is None:
-        local = target.parent.resolve().parent / "rigs" / original.name
-        rig = local if local.is_file() else original
+        # the lab folder the copy lands in (protocols/, protocols/short/ …): the nearest folder above with the rig
+        local = next((d / "rigs" / original.name for d in (here, *here.parents)
+                      if (d / "rigs" / original.name).is_file()), None)
+        rig = local if local is not None else original
     if not rig.is_file():
         raise FileNotFoundError(f"rig file {rig}: not found")
     target.parent.mkdir(parents=True, exist_ok=True)
-    rig_abs, here = rig.resolve(), target.parent.resolve()
-    # relative within a lab folder (../rigs/x.toml), absolute otherwise (the shipped rig, or a rig far away)
-    in_lab = here in (rig_abs.parent, rig_abs.parent.parent / "protocols")
+    rig_abs = rig.resolve()
+    # relative within a lab folder (../rigs/x.toml, ../../rigs/x.toml), absolute otherwise (the shipped rig, or a
+    # rig far away)
+    in_lab = here == rig_abs.parent or here.is_relative_to(rig_abs.parent.parent)
     text = Path(os.path.relpath(rig_abs, here)).as_posix() if in_lab else rig_abs.as_posix()
     table["rig"] = text
     target.write_text(tomlkit.dumps(doc), encoding="utf-8")

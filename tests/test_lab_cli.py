@@ -1,0 +1,100 @@
+"""``bench protocols list|show|copy`` and ``bench init``: the shipped files, copied verbatim into a lab folder.
+
+In-process and quick; tests/test_package.py runs the same commands from an installed wheel.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tomllib
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from bench.cli import app
+from bench.resources import protocols_dir, rigs_dir, shipped_protocols
+
+ROOT = Path(__file__).resolve().parent.parent
+runner = CliRunner()
+
+
+def _rig_of(protocol: Path) -> Path:
+    return (protocol.parent / tomllib.loads(protocol.read_text(encoding="utf-8"))["protocol"]["rig"]).resolve()
+
+
+@pytest.fixture
+def in_tmp(tmp_path: Path) -> Path:
+    old = Path.cwd()
+    os.chdir(tmp_path)
+    yield tmp_path
+    os.chdir(old)
+
+
+def test_the_shipped_files_are_the_repository_files() -> None:
+    """One source of truth: bench.data links to the top-level folders (a wheel holds copies)."""
+    assert protocols_dir().resolve() == (ROOT / "protocols").resolve()
+    assert rigs_dir().resolve() == (ROOT / "rigs").resolve()
+    names = {p.relative_to(ROOT / "protocols").with_suffix("").as_posix() for p in (ROOT / "protocols").rglob("*.toml")}
+    assert set(shipped_protocols()) == names
+    for path in shipped_protocols().values():  # every shipped protocol names a shipped rig
+        assert _rig_of(path).is_file() and _rig_of(path).parent == rigs_dir().resolve()
+
+
+def test_protocols_list_and_show() -> None:
+    res = runner.invoke(app, ["protocols", "list", "--json"])
+    assert res.exit_code == 0, res.output
+    listed = {i["name"]: i for i in json.loads(res.output)}
+    assert set(listed) == set(shipped_protocols())
+    assert listed["thesis-identification"]["rig"] == "thesis-sim"
+    res = runner.invoke(app, ["protocols", "show", "short/thesis-identification-short"])
+    assert res.exit_code == 0
+    assert res.output == (ROOT / "protocols/short/thesis-identification-short.toml").read_text(encoding="utf-8")
+    res = runner.invoke(app, ["protocols", "show", "no-such-protocol"])
+    assert res.exit_code == 2 and "no shipped protocol 'no-such-protocol'" in res.output
+
+
+def test_init_copies_verbatim_and_every_protocol_names_the_labs_rig(in_tmp: Path) -> None:
+    res = runner.invoke(app, ["init", "lab"])
+    assert res.exit_code == 0, res.output
+    lab = in_tmp / "lab"
+    for src in (ROOT / "protocols").rglob("*"):
+        if src.is_file():
+            copy = lab / "protocols" / src.relative_to(ROOT / "protocols")
+            assert copy.read_bytes() == src.read_bytes(), copy  # comments and all
+    for src in (ROOT / "rigs").glob("*.toml"):
+        assert (lab / "rigs" / src.name).read_bytes() == src.read_bytes()
+    for copy in (lab / "protocols").rglob("*.toml"):
+        assert _rig_of(copy).parent == (lab / "rigs").resolve(), copy
+    assert (lab / "runs").is_dir() and (lab / "README.md").is_file()
+    (lab / "rigs" / "thesis-sim.toml").write_text("# edited\n", encoding="utf-8")
+    res = runner.invoke(app, ["init", "lab"])
+    assert res.exit_code == 2 and "does not overwrite" in res.output
+    assert (lab / "rigs" / "thesis-sim.toml").read_text(encoding="utf-8") == "# edited\n"
+
+
+@pytest.mark.parametrize("dest", ["protocols/mine.toml", "protocols/short/mine.toml", "protocols/a/b/mine.toml"])
+def test_copy_into_a_lab_folder_names_the_labs_rig(in_tmp: Path, dest: str) -> None:
+    assert runner.invoke(app, ["init", "lab"]).exit_code == 0
+    (in_tmp / "lab" / Path(dest).parent).mkdir(parents=True, exist_ok=True)
+    res = runner.invoke(app, ["protocols", "copy", "thesis-identification", f"lab/{dest}"])
+    assert res.exit_code == 0, res.output
+    copy = in_tmp / "lab" / dest
+    assert _rig_of(copy) == (in_tmp / "lab" / "rigs" / "thesis-sim.toml").resolve()
+    rig_line = next(line for line in copy.read_text(encoding="utf-8").splitlines() if line.startswith("rig ="))
+    assert not Path(tomllib.loads(rig_line)["rig"]).is_absolute()  # the lab folder can move
+    original = (ROOT / "protocols" / "thesis-identification.toml").read_text(encoding="utf-8").splitlines()
+    assert [line for line in copy.read_text(encoding="utf-8").splitlines() if not line.startswith("rig =")] == \
+        [line for line in original if not line.startswith("rig =")]  # comments and layout kept
+
+
+def test_copy_outside_a_lab_names_the_shipped_rig_and_validates(in_tmp: Path) -> None:
+    res = runner.invoke(app, ["protocols", "copy", "short/thesis-identification-short", "mine.toml"])
+    assert res.exit_code == 0, res.output
+    assert _rig_of(in_tmp / "mine.toml") == (rigs_dir() / "thesis-sim.toml").resolve()
+    res = runner.invoke(app, ["validate", "mine.toml", "--json"])
+    assert res.exit_code == 0, res.output
+    assert json.loads(res.output)["valid"] is True
+    res = runner.invoke(app, ["protocols", "copy", "thesis-identification", "mine.toml"])
+    assert res.exit_code == 2 and "exists" in res.output
