@@ -21,6 +21,10 @@ if TYPE_CHECKING:
     from bench.identify.problems import MembraneProblem
 
 RunsArg = Annotated[list[Path], typer.Argument(help="Run files (.h5) to fit together.")]
+SchedulerOpt = Annotated[str | None, typer.Option(
+    help="dask.distributed scheduler to compute on, e.g. tcp://host:8786.")]
+WorkersOpt = Annotated[int | None, typer.Option(
+    help="Compute on a local dask cluster of this many worker processes (default: in-process).", min=1)]
 
 
 class ModelChoice(StrEnum):
@@ -87,9 +91,15 @@ def fit_command(
     seed: Annotated[int, typer.Option(help="Random seed of the search.")] = 1,
     polish: Annotated[bool, typer.Option(help="Least-squares polish after the search.")] = True,
     export: Annotated[Path | None, typer.Option(help="Write a rig file with the fitted parameters.")] = None,
+    scheduler: SchedulerOpt = None,
+    workers: WorkersOpt = None,
     json_out: JsonOpt = False,
 ) -> None:
-    """Identify model parameters from recorded runs (differential evolution, as in the thesis) and store them."""
+    """Identify model parameters from recorded runs (differential evolution, as in the thesis) and store them.
+
+    Several files make a campaign: one specimen model is fitted to all of them (shared material, each record
+    with its own voltage, temperature, prototype and hung mass), and the table says which parameters only the
+    campaign determines."""
     from bench.identify.core import FitSettings
 
     kinds = {_model_of(p) for p in runs}
@@ -98,7 +108,7 @@ def fit_command(
         raise ValueError("the run files hold different specimens: fit them separately or pass --model")
     settings = FitSettings(population, generations, mutation, crossover, cost.value, polish, seed=seed)
     with json_mode(json_out):
-        result, problem = run_fit(runs, chosen, settings, branches, export)
+        result, problem = run_fit(runs, chosen, settings, branches, export, scheduler, workers)
     if json_out:
         print_json({"model": chosen, "runs": [str(p) for p in runs], "cost": result.cost,
                     "cost_kind": result.cost_kind, "rms": result.rms, "rms_unit": problem.data_unit,
@@ -110,12 +120,15 @@ def fit_command(
 
 
 def run_fit(runs: list[Path], chosen: str, settings: FitSettings, branches: int = 1,
-            export: Path | None = None) -> tuple[FitResult, Problem]:
-    """Fit, print the table, store the result in every file and optionally export a rig.
+            export: Path | None = None, scheduler: str | None = None,
+            workers: int | None = None) -> tuple[FitResult, Problem]:
+    """Fit, print the table, store the result in every file and optionally export a rig; on a dask cluster
+    when ``scheduler`` (address) or ``workers`` (LocalCluster) is given (membrane model).
 
     Returns the result and the (coarse) problem it was searched on, which holds the compared data."""
     from bench.identify.campaign import campaign_identifiability
     from bench.identify.core import fit
+    from bench.identify.distributed import cluster_client
     from bench.identify.problems import LozengeProblem, MembraneProblem
     from bench.identify.store import export_rig, fitted_rig, write_fit
     from bench.rig import rig_from_toml
@@ -137,7 +150,20 @@ def run_fit(runs: list[Path], chosen: str, settings: FitSettings, branches: int 
     with Progress(TextColumn("differential evolution"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
                   TimeElapsedColumn(), console=console, transient=True) as bar:
         task = bar.add_task("de", total=s.generations)
-        result = fit(coarse, s, start=None, fine=fine, progress=lambda: bar.advance(task))
+        with cluster_client(scheduler, workers) as client:
+            if client is not None:
+                if not isinstance(coarse, MembraneProblem):
+                    raise ValueError("--scheduler/--workers: distributed fits are implemented for the membrane "
+                                     "model only; fit LS-DEA records in-process")
+                coarse.distribute(client)
+                fine.distribute(client)  # type: ignore[union-attr]
+                console.print(f"evaluating candidates on the dask cluster {client.scheduler.address}")
+            try:
+                result = fit(coarse, s, start=None, fine=fine, progress=lambda: bar.advance(task))
+            finally:
+                for prob in (coarse, fine):
+                    if isinstance(prob, MembraneProblem):
+                        prob.distribute(None)
     console.print(fit_result_table(result, f"{chosen} model fitted to {len(runs)} run(s)"))
     console.print(f"cost ({result.cost_kind}) {result.cost:.4g}, residual rms {result.rms:.4g} {coarse.data_unit}, "
                   f"{result.evaluations:,} model evaluations, {result.generations} generations, "
@@ -159,6 +185,51 @@ def run_fit(runs: list[Path], chosen: str, settings: FitSettings, branches: int 
         export_rig(fitted_rig(rig, chosen, result.names, result.values), export, str(runs[0]))
         console.print(f"fitted rig file: {export} (bench run PROTOCOL --rig {export})")
     return result, coarse
+
+
+@app.command("design-map")
+@clean_errors
+def design_map_command(
+    out: Annotated[Path, typer.Option(help="Folder for the PNGs.")] = Path("runs/design-map"),
+    voltages: Annotated[str, typer.Option(help="Voltages [kV], comma-separated.")] = "0,3,5,7",
+    scheduler: SchedulerOpt = None,
+    workers: WorkersOpt = None,
+) -> None:
+    """LS-DEA design map (Moretti Fig. 2): F–x over pre-stretch λ2p × aperture xp, breakdown, loss of tension."""
+    run_design_map(out, tuple(float(v) * 1e3 for v in voltages.split(",")), scheduler, workers)
+
+
+def run_design_map(out: Path = Path("runs/design-map"), voltages: tuple[float, ...] = (0.0, 3e3, 5e3, 7e3),
+                   scheduler: str | None = None, workers: int | None = None) -> list[Path]:
+    """Compute, summarise and plot the design map (``bench design-map``, ``bench simulate lsdea map``)."""
+    from bench.design_map import MapSettings, compute_map, plot_map
+    from bench.identify.distributed import cluster_client
+
+    settings = MapSettings(voltages=voltages)
+    with console.status("computing the design map…"), cluster_client(scheduler, workers) as client:
+        dmap = compute_map(settings, client=client)
+    k = dmap.min_stiffness()
+    regions = dmap.regions()
+    t = Table(title=f"smallest elastic stiffness over the {settings.stroke[0] * 1e3:g}–{settings.stroke[1] * 1e3:g} "
+                    f"mm stroke [N/m] (stiff > {settings.flat:g}, near-zero, negative < −{settings.flat:g})")
+    t.add_column("λ2p \\ xp [mm]")
+    for xp in settings.xp:
+        t.add_column(f"{xp * 1e3:g}", justify="right")
+    colour = {"stiff": "red", "near-zero": "white", "negative": "blue"}
+    for i, lam in enumerate(settings.lambda2p):
+        t.add_row(f"{lam:g}", *(f"[{colour[regions[i, j]]}]{k[i, j]:.0f}[/]" for j in range(len(settings.xp))))
+    console.print(t)
+    for num, l2p in ((1, 2.5), (2, 2.75), (3, 3.0)):
+        d = dmap.design(l2p, 0.040)
+        lost = d.tension_lost[-1]
+        region = regions[settings.lambda2p.index(d.lambda2p), settings.xp.index(d.xp)]
+        console.print(f"prototype #{num} (λ2p {l2p:g}, xp 40 mm): {region}, k_min "
+                      f"{d.min_stiffness:.1f} N/m, V_B {d.breakdown_voltage.min() / 1e3:.2f}–"
+                      f"{d.breakdown_voltage.max() / 1e3:.2f} kV, tension lost at {voltages[-1] / 1e3:g} kV in "
+                      f"{100 * lost.mean():.0f} % of the stroke")
+    paths = plot_map(dmap, out)
+    console.print("figures: " + ", ".join(str(p) for p in paths))
+    return paths
 
 
 @app.command("report")

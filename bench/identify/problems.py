@@ -15,6 +15,7 @@ import itertools
 import json
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -24,6 +25,11 @@ from bench.models.lozenge import MODE_HUNG, MODE_IMPOSED, PROTOTYPE_LAMBDA2P, Lo
 from bench.models.membrane import MembraneParams
 from bench.models.membrane_batch import membrane_batch_records
 from bench.runfile import RunFile, open_run
+
+if TYPE_CHECKING:
+    from distributed import Client
+
+    from bench.identify.distributed import DistributedPredict
 
 J_BOUNDS = ((100.0, 400.0), (200.0, 500.0), (300.0, 600.0), (400.0, 700.0), (500.0, 800.0))
 
@@ -122,6 +128,7 @@ class MembraneProblem:
         self.h, self.data_rate, self.records, self.average = h, data_rate, [], average
         self.reference_kernel = reference_kernel
         self.split_rest, self.keep_rest = split_rest, keep_rest
+        self.remote: DistributedPredict | None = None
         self.data_unit = "m"
         self.names = ["mu0", "J0"] + [f"mu{i}" for i in range(1, 5)] + [f"J{i}" for i in range(1, 5)] + \
             [f"tau{i}" for i in range(1, 5)]
@@ -181,9 +188,22 @@ class MembraneProblem:
         Z = np.atleast_2d(Z)
         P = np.stack([self.params_of(z).pack() for z in Z])
         t = self.template
+        if self.remote is not None:
+            return t.L_d * (self.remote(P) - t.lambda_pre)  # type: ignore[union-attr]
         lam = membrane_batch_records(P, np.stack([r.y0 for r in self.records]), [r.U for r in self.records],
                                      self.h, self.records[0].stride, self.records[0].stride if self.average else 0)
         return t.L_d * (lam - t.lambda_pre)  # type: ignore[union-attr]
+
+    def distribute(self, client: Client | None) -> None:
+        """Evaluate candidates on a dask cluster from now on (None: in-process again)."""
+        if client is None:
+            self.remote = None
+            return
+        from bench.identify.distributed import DistributedPredict
+
+        stride = self.records[0].stride
+        self.remote = DistributedPredict(client, [r.U for r in self.records], np.stack([r.y0 for r in self.records]),
+                                         self.h, stride, stride if self.average else 0)
 
     def predict_reference(self, Z: np.ndarray) -> np.ndarray:
         """:meth:`predict` through the scalar per-candidate kernel (``run_fixed_batch``): the benchmark's
