@@ -199,6 +199,7 @@ class LsdeaTest(StrEnum):
     isopotential = "isopotential"
     isometric = "isometric"
     isotonic = "isotonic"
+    map = "map"  # the design map over λ2p × xp (bench/design_map.py; options: bench design-map)
 
 
 @simulate_app.command("lsdea")
@@ -217,7 +218,13 @@ def simulate_lsdea(
                                           min=1, max=120)] = 90.0,
     cycles: Annotated[int, typer.Option(help="Number of cycles.", min=2, max=1000)] = 10,
 ) -> None:
-    """LS-DEA (Model B) in one of the paper's three test configurations, with its figure of merit."""
+    """LS-DEA (Model B) in one of the paper's three test configurations, with its figure of merit; or `map`,
+    the design map (Moretti Fig. 2) with the prototypes on it."""
+    if test is LsdeaTest.map:
+        from bench.cli_analysis import run_design_map
+
+        run_design_map()
+        return
     from bench.analysis.cycles import crest_to_trough, hysteresis_loss, last_cycles
     from bench.models.lozenge import LozengeParams
     from bench.models.lozenge_runs import simulate_lozenge

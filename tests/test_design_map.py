@@ -116,3 +116,17 @@ def test_plot_writes_the_map_and_the_curves(dmap, tmp_path: Path) -> None:
     paths = plot_map(dmap, tmp_path)
     assert [p.name for p in paths] == ["design-map.png", "design-map-curves.png"]
     assert all(p.stat().st_size > 10_000 for p in paths)
+
+
+def test_simulate_lsdea_map_cli_prints_the_prototypes_and_writes_the_figures(tmp_path: Path, monkeypatch) -> None:
+    from typer.testing import CliRunner
+
+    from bench.cli import app
+
+    monkeypatch.chdir(tmp_path)
+    out = CliRunner().invoke(app, ["simulate", "lsdea", "map"], env={"COLUMNS": "200"})
+    assert out.exit_code == 0, out.output
+    for line in ("prototype #1 (λ2p 2.5, xp 40 mm): stiff", "prototype #2 (λ2p 2.75, xp 40 mm): near-zero",
+                 "prototype #3 (λ2p 3, xp 40 mm): negative"):
+        assert line in out.output
+    assert (tmp_path / "runs" / "design-map" / "design-map.png").exists()
