@@ -64,26 +64,33 @@ def _chunk(P: np.ndarray, Y0: np.ndarray, U: np.ndarray, h: float, stride: int, 
     eps_l3 = P[:, P_EPS] / (P[:, P_L3] * P[:, P_L3])
     m_const = P[:, P_RHO] * P[:, P_L] * P[:, P_L] / 3.0
     rl3 = P[:, P_RHO] * P[:, P_L3] * P[:, P_L3]
-    mu = np.empty((n_units, c))
-    iJ = np.empty((n_units, c))
-    q = np.empty((n_units, c))  # μ/(6η)
-    r0 = np.empty((n_units, c))  # μ/η
+    # per (unit, lane) pair, flattened unit-major (index i·c + j): the unit loop then runs over n_units·c
+    # independent elements, enough work in flight even for a few candidates (the polish's Jacobians)
+    nq = n_units * c
+    mu = np.empty(nq)
+    iJ = np.empty(nq)
+    q = np.empty(nq)  # μ/(6η)
+    r0 = np.empty(nq)  # μ/η
     for i in range(n_units):
         for j in range(c):
-            mu[i, j] = P[j, P_BRANCHES + i]
-            iJ[i, j] = 1.0 / P[j, P_BRANCHES + n_units + i]
-            r0[i, j] = P[j, P_BRANCHES + i] / P[j, P_BRANCHES + 2 * n_units + i]
-            q[i, j] = r0[i, j] / 6.0
+            mu[i * c + j] = P[j, P_BRANCHES + i]
+            iJ[i * c + j] = 1.0 / P[j, P_BRANCHES + n_units + i]
+            r0[i * c + j] = P[j, P_BRANCHES + i] / P[j, P_BRANCHES + 2 * n_units + i]
+            q[i * c + j] = r0[i * c + j] / 6.0
     # state: λ, λ̇ and per unit its elastic stretch e = λ/ξ and u = ln e (kept current as λ moves, so a
     # step needs one log per candidate instead of one per unit)
     lam = Y0[:, 0].copy()
     v = Y0[:, 1].copy()
-    el = np.empty((n_units, c))
-    ul = np.empty((n_units, c))
+    el = np.empty(nq)
+    ul = np.empty(nq)
+    term = np.empty(nq)  # μ_i h(u_i) per pair: the unit's stress times λ
     for i in range(n_units):
         for j in range(c):
-            el[i, j] = lam[j] / Y0[j, 2 + i]
-            ul[i, j] = vlog(el[i, j])
+            el[i * c + j] = lam[j] / Y0[j, 2 + i]
+            ul[i * c + j] = vlog(el[i * c + j])
+    lane_inv = np.empty(nq)  # 1/λ of each pair's lane, and its λ ratio and log ratio
+    lane_ratio = np.empty(nq)
+    lane_dlog = np.empty(nq)
     alive = np.ones(c)  # 1.0 alive, 0.0 dead (a float mask keeps the loops branch-free)
     ok = np.ones(c)
     force = np.empty(c)
@@ -109,25 +116,30 @@ def _chunk(P: np.ndarray, Y0: np.ndarray, U: np.ndarray, h: float, stride: int, 
             dM = -4.0 * rl3[j] * il6 * il
             force[j] = -0.5 * dM * v[j] * v[j] - mu0[j] * (e2 - e4) / G0 * il
             ok[j] = 1.0 if G0 > 0.0 else 0.0
-        for i in range(n_units):  # Maxwell units: exponential update of u = ln(λ/ξ), then their stress
-            for j in range(c):  # (2-D indexing, no row views: a view costs two atomic reference counts)
-                # Gent terms times e⁴ (no reciprocal of e needed): (e² − e⁻⁴)/G = (e⁶ − 1)/(G e⁴)
-                u = ul[i, j]
-                e2 = el[i, j] * el[i, j]
-                e4 = e2 * e2
-                e6 = e4 * e2
-                Ge4 = e4 - (2.0 * e6 + 1.0 - 3.0 * e4) * iJ[i, j]
-                rate = q[i, j] * (e6 - 1.0) / (Ge4 * u) if abs(u) >= 1e-9 else r0[i, j]
-                u = u * vexp(-h * rate)
-                en = vexp(u)
-                ul[i, j] = u
-                el[i, j] = en
-                e2 = en * en
-                e4 = e2 * e2
-                e6 = e4 * e2
-                Ge4 = e4 - (2.0 * e6 + 1.0 - 3.0 * e4) * iJ[i, j]
-                force[j] -= mu[i, j] * (e6 - 1.0) / Ge4 * inv_lam[j]
-                ok[j] = ok[j] if Ge4 > 0.0 else 0.0
+        for i in range(n_units):
+            for j in range(c):
+                lane_inv[i * c + j] = inv_lam[j]
+        for m in range(nq):  # Maxwell units: exponential update of u = ln(λ/ξ), then their stress
+            # Gent terms times e⁴ (no reciprocal of e needed): (e² − e⁻⁴)/G = (e⁶ − 1)/(G e⁴)
+            u = ul[m]
+            e2 = el[m] * el[m]
+            e4 = e2 * e2
+            e6 = e4 * e2
+            Ge4 = e4 - (2.0 * e6 + 1.0 - 3.0 * e4) * iJ[m]
+            rate = q[m] * (e6 - 1.0) / (Ge4 * u) if abs(u) >= 1e-9 else r0[m]
+            u = u * vexp(-h * rate)
+            en = vexp(u)
+            ul[m] = u
+            el[m] = en
+            e2 = en * en
+            e4 = e2 * e2
+            e6 = e4 * e2
+            Ge4 = e4 - (2.0 * e6 + 1.0 - 3.0 * e4) * iJ[m]
+            # stress μ(e⁶ − 1)/(G e⁴)/λ; a locked-up unit (G ≤ 0) makes it NaN, which marks the lane dead
+            term[m] = mu[m] * (e6 - 1.0) / Ge4 * lane_inv[m] if Ge4 > 0.0 else np.nan
+        for i in range(n_units):
+            for j in range(c):
+                force[j] -= term[i * c + j]
         pos = (k + 1) % stride
         write = pos == 0
         add = window > 0 and (write or pos > stride - window)
@@ -141,7 +153,7 @@ def _chunk(P: np.ndarray, Y0: np.ndarray, U: np.ndarray, h: float, stride: int, 
             f = force[j] + spre[j] - kf[j] * (lj - lpre[j]) + s_es
             vn = v[j] + h * f / M
             ln = lj + h * vn
-            good = ok[j] > 0.0 and ln > 0.0 and ln < 1e300 and alive[j] > 0.0
+            good = ok[j] > 0.0 and ln > 0.0 and ln < 1e300 and alive[j] > 0.0  # NaN force: ln is NaN
             alive[j] = 1.0 if good else 0.0
             lam[j] = ln if good else lpre[j]
             v[j] = vn if good else 0.0
@@ -150,9 +162,12 @@ def _chunk(P: np.ndarray, Y0: np.ndarray, U: np.ndarray, h: float, stride: int, 
             dlog[j] = vlog(rj) if good else 0.0
         for i in range(n_units):  # the units' elastic stretch follows λ: e ← e·λ_{k+1}/λ_k
             for j in range(c):
-                g = alive[j] > 0.0
-                el[i, j] = el[i, j] * ratio[j] if g else 1.0
-                ul[i, j] = ul[i, j] + dlog[j] if g else 0.0
+                lane_ratio[i * c + j] = ratio[j] if alive[j] > 0.0 else 0.0  # 0: reset a dead lane's units
+                lane_dlog[i * c + j] = dlog[j]
+        for m in range(nq):
+            g = lane_ratio[m] > 0.0
+            el[m] = el[m] * lane_ratio[m] if g else 1.0
+            ul[m] = ul[m] + lane_dlog[m] if g else 0.0
         if add:
             for j in range(c):
                 acc[j] += lam[j]
