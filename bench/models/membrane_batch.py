@@ -43,9 +43,8 @@ def _chunk(P: np.ndarray, Y0: np.ndarray, U: np.ndarray, h: float, stride: int, 
            out: np.ndarray) -> None:
     """Integrate the candidates of one chunk (rows of P, Y0) and write λ samples into ``out``."""
     c_in = P.shape[0]
-    # lanes padded (copies of the last set) to whole registers and at least two: LLVM's vector loops are
-    # only entered for ≥ 16 iterations, and a scalar remainder costs as much as a whole register
-    c = max(2 * LANES, -(-c_in // LANES) * LANES)
+    # lanes padded (copies of the last set) to whole registers: a scalar remainder loop costs as much as a register
+    c = max(LANES, -(-c_in // LANES) * LANES)
     src = np.minimum(np.arange(c), c_in - 1)
     P = P[src]
     Y0 = Y0[src]
@@ -212,8 +211,8 @@ def membrane_batch_records(P: np.ndarray, Y0: np.ndarray, Us: list[np.ndarray], 
     c_off = np.concatenate([[0], np.cumsum(n_cols)])
     out = np.full((m, int(c_off[-1])), np.nan)
     threads = numba.get_num_threads()
-    # chunks per record: enough tasks for the threads, each chunk filling ≥ 2 registers
-    chunks = max(1, min(-(-threads // len(Us)), m // (2 * LANES)))
+    # chunks per record: enough tasks for the threads, none smaller than a register
+    chunks = max(1, min(-(-threads // len(Us)), -(-m // LANES)))
     bounds = np.linspace(0, m, chunks + 1).round().astype(np.int64)  # equal shares
     tasks = np.array([(r, u_off[r], u_off[r + 1], c_off[r], c_off[r + 1], bounds[k], bounds[k + 1])
                       for r in range(len(Us)) for k in range(chunks)], dtype=np.int64)
