@@ -104,7 +104,7 @@ def assert_ramp_bound(run: RunFile, trial: Trial, sim, ramp: float) -> None:
     (signal.SIGQUIT, "quit requested (SIGQUIT)"),
 ], ids=["SIGINT", "SIGTERM", "SIGHUP", "SIGQUIT"])
 def test_a_signal_ramps_the_output_to_zero_within_the_bound(tmp_path: Path, sig: int, reason: str) -> None:
-    trial = Trial(THESIS, 3.0, send(sig))
+    trial = Trial(THESIS, 2.0, send(sig))
     result, run, sim = trial.run(tmp_path)
     assert result.state == "interrupted" and result.reason.startswith(reason)
     assert run.complete and run.state == "interrupted" and run.reason.startswith(reason)
@@ -136,7 +136,10 @@ def test_ctrl_c_while_the_laser_babbles(tmp_path: Path) -> None:
 
         def trickle() -> None:
             while not stop.is_set():
-                os.write(fd, b"0")
+                try:
+                    os.write(fd, b"0")
+                except OSError:  # the twin closed its side when the rig stopped
+                    return
                 time.sleep(0.05)
         threading.Thread(target=trickle, daemon=True).start()
         time.sleep(0.3)
