@@ -49,6 +49,8 @@ PROGRAM_DTYPE = np.dtype([("index", "i4"), ("label", "S240"), ("name", "S120"), 
                           ("t_start", "f8"), ("duration", "f8")])
 STATES = ("running", "completed", "tripped", "error", "interrupted")
 FLUSH_INTERVAL_S = 0.2  # wall time between flushes: a kill -9 loses at most this plus one flush (goal ≤ 0.5 s)
+CHUNK_S = 0.25  # chunk length [s of a stream]: about one flush, so a compressed chunk is rewritten once or twice
+# (a flush rewrites the partial last chunk elsewhere in the file: 2-s chunks made files 2-3x larger)
 
 
 class StorageError(OSError):
@@ -59,9 +61,12 @@ class StorageError(OSError):
 
 
 def _cause(exc: BaseException) -> str:
-    """One line on why an HDF5/OS call failed: the errno text if there is one, else the first line."""
-    if isinstance(exc, OSError) and exc.errno is not None and not isinstance(exc, StorageError):
-        return f"{exc.strerror or os.strerror(exc.errno)} (errno {exc.errno})"
+    """One line on why an HDF5/OS call failed: the errno text if there is one, else the first line.
+
+    h5py's OSError carries the errno but HDF5's multi-line driver message as ``strerror``: the errno decides.
+    """
+    if isinstance(exc, OSError) and exc.errno and not isinstance(exc, StorageError):
+        return f"{os.strerror(exc.errno)} (errno {exc.errno})"
     m = re.search(r"errno = (\d+)", str(exc))
     if m:
         return f"{os.strerror(int(m.group(1)))} (errno {m.group(1)})"
@@ -168,7 +173,7 @@ class Recorder:
             g = f.create_group(name)
             rate = rates.get(name, 100.0)
             g.attrs["rate_Hz"] = rate
-            chunk = int(min(65536, max(1024, rate * 2)))
+            chunk = int(min(65536, max(256, rate * CHUNK_S)))
             for col in [Column("t", "s", "time on the run clock"), *cols]:
                 d = g.create_dataset(col.name, shape=(0,), maxshape=(None,), dtype=col.dtype, chunks=(chunk,),
                                      compression="gzip", compression_opts=1, shuffle=True)
