@@ -17,7 +17,9 @@ Layout (``format = "dea-bench run 1"``):
   ``t`` [s on the run clock] and one dataset per column, chunked, gzip-compressed, with ``units`` attributes.
 
 Datasets are created before SWMR mode starts, appended in blocks and flushed at least every
-``flush_interval`` seconds of wall time, so another process can read the file during the run.
+``flush_interval`` seconds of wall time, so another process can read the file during the run: every
+``append``/``event`` checks the interval itself (a caller busy elsewhere, e.g. uploading stored laser data for
+30 s, still has its data on disk within the interval), and ``maybe_flush`` covers stretches without data.
 
 A failed write (disk full, file-size limit, unwritable directory, any HDF5 error) raises one
 :class:`StorageError` naming the file and the cause; the recorder is then *failed*: further calls are no-ops,
@@ -207,7 +209,7 @@ class Recorder:
 
     # -------------------------------------------------------------- writing
     def append(self, stream: str, t: np.ndarray | float, **columns: np.ndarray | float) -> None:
-        """Queue samples of ``stream`` (flushed by :meth:`maybe_flush` / :meth:`flush`)."""
+        """Queue samples of ``stream``; flushes if the flush interval has passed (may raise :class:`StorageError`)."""
         if self.failure:
             return
         c0 = time.thread_time()
@@ -217,12 +219,14 @@ class Recorder:
             buf[name].append(np.atleast_1d(np.asarray(values)))
         self._last_t = max(self._last_t, float(np.max(buf["t"][-1])) if buf["t"][-1].size else self._last_t)
         self.cpu_seconds += time.thread_time() - c0
+        self.maybe_flush()
 
     def event(self, t: float, step: int, kind: str, text: str) -> None:
-        """Queue an event."""
+        """Queue an event; flushes if the flush interval has passed (may raise :class:`StorageError`)."""
         if self.failure:
             return
         self._events.append((t, step, kind.encode()[:16], text.encode()[:200]))
+        self.maybe_flush()
 
     def maybe_flush(self) -> None:
         """Flush if the flush interval has passed (call it often)."""

@@ -5,8 +5,9 @@ An SWMR writer marks the file open in its superblock (the *file consistency flag
 file until they are cleared (what ``h5clear -s`` does). :func:`recover` clears them, recomputing the
 superblock's Jenkins lookup3 checksum, extends a file shorter than its recorded end of allocation (a write
 that failed on a full disk), cuts every dataset to the records the writer confirmed (``/status/samples``)
-and marks the file: attribute ``recovered_at``, ``/status/reason`` = "recovered after crash". The state stays
-``running`` and there is no ``complete`` attribute, so readers still report the run incomplete.
+and marks the file: attribute ``recovered_at``, "recovered after crash" in ``/status/reason`` (after the
+reason a run killed while stamping its end had already written). The state stays as it was (``running``) and
+there is no ``complete`` attribute, so readers still report the run incomplete.
 """
 
 from __future__ import annotations
@@ -204,7 +205,10 @@ def recover(path: str | Path) -> RecoveryReport:
             report.actions += _trim(f)
             if report.actions:
                 f.attrs["recovered_at"] = now_iso()
-                f["status/reason"][0] = RECOVERED_REASON.encode()
+                before = f["status/reason"][0].decode(errors="replace")  # a run killed while stamping its end
+                tail = f" | {RECOVERED_REASON}" if before else RECOVERED_REASON  # such a run keeps its reason
+                head = before.encode()[:400 - len(tail)].decode(errors="ignore")  # whole characters only
+                f["status/reason"][0] = (head + tail).encode()
                 report.actions.append("marked it recovered (attribute recovered_at)")
     run = open_run(p)
     report.samples = {name: len(s) for name, s in run.streams.items()}

@@ -76,8 +76,7 @@ KILL_WRITER = textwrap.dedent(f"""
             rec.append("laser", t, displacement=t * 1e-3)
             rec.append("amplifier", t[-1], voltage=1.0)
             k += n
-        rec.maybe_flush()
-        time.sleep(0.005)
+        time.sleep(0.005)  # appends only, never maybe_flush: the recorder keeps to its interval on its own
 """)
 
 
@@ -255,3 +254,95 @@ def test_kill_9_loses_at_most_half_a_second_and_recover_releases_the_file(tmp_pa
         assert {name: len(s) for name, s in after.streams.items()} == before
     print(f"kill -9 data lost [s]: {', '.join(f'{x:.3f}' for x in lost)}")
     assert max(lost) <= 0.5, lost
+
+
+STAMP_KILLER = textwrap.dedent(f"""
+    import os, signal, sys
+    from pathlib import Path
+    import h5py
+    import numpy as np
+    from bench.recorder import Column, Recorder
+    rec = Recorder(Path(sys.argv[1]), {{"protocol_name": "stamp test"}}, {{"laser": [Column("displacement", "m", "")]}},
+                   [], {{"laser": {RATE}}})
+    t = np.arange(2000) / {RATE}
+    rec.append("laser", t, displacement=t * 1e-3)
+    rec.set_state("completed", "protocol completed")
+    rec._f.close()  # what finish() does before it stamps the root attributes outside SWMR mode …
+    f = h5py.File(sys.argv[1], "r+")
+    f.attrs["end_time"] = "x"
+    f.flush()
+    os.kill(os.getpid(), signal.SIGKILL)  # … and the process dies there
+""")
+
+
+def test_a_run_killed_while_stamping_its_end_is_read_and_recovered(tmp_path: Path) -> None:
+    """Outside SWMR mode the writer's mark makes even an SWMR reader refuse the file; bench still reads it."""
+    path = tmp_path / "stamped.h5"
+    proc = subprocess.run([sys.executable, "-c", STAMP_KILLER, str(path)], capture_output=True, text=True, timeout=60,
+                          env=_env(), cwd=ROOT)
+    assert proc.returncode == -signal.SIGKILL, proc.stderr
+    with pytest.raises(OSError):
+        h5py.File(path, "r", swmr=True)
+    run = open_run(path)
+    assert run.state == "completed" and not run.complete and "not finalised" in run.incomplete_reason
+    np.testing.assert_array_equal(run.streams["laser"].t, np.arange(2000) / RATE)
+    res = subprocess.run([sys.executable, "-m", "bench", "recover", str(path)], capture_output=True, text=True,
+                         timeout=60, cwd=ROOT, env=_env())
+    assert res.returncode == 0 and "laser: 2,000 samples" in res.stdout, res.stdout + res.stderr
+    with h5py.File(path, "r") as f:
+        assert f["status/reason"][0] == b"protocol completed | recovered after crash"
+    assert not open_run(path).complete
+
+
+def _complete_file(path: Path) -> None:
+    from bench.recorder import Column, Recorder
+
+    rec = Recorder(path, {"protocol_name": "complete"}, {"laser": [Column("displacement", "m", "")]}, [],
+                   {"laser": RATE})
+    t = np.arange(300) / RATE
+    rec.append("laser", t, displacement=t)
+    rec.finish("completed", "protocol completed")
+
+
+def test_recover_leaves_a_complete_file_as_it_is(tmp_path: Path) -> None:
+    path = tmp_path / "done.h5"
+    _complete_file(path)
+    before = path.read_bytes()
+    res = subprocess.run([sys.executable, "-m", "bench", "recover", str(path)], capture_output=True, text=True,
+                         timeout=60, cwd=ROOT, env=_env())
+    assert res.returncode == 0 and "nothing to recover" in res.stdout and "laser: 300 samples" in res.stdout
+    assert path.read_bytes() == before
+
+
+def test_recover_refuses_a_file_a_writer_still_has_open(tmp_path: Path) -> None:
+    path = tmp_path / "live.h5"
+    proc = subprocess.Popen([sys.executable, "-c", KILL_WRITER, str(path), repr(time.monotonic())],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env(), cwd=ROOT)
+    try:
+        assert proc.stdout is not None and proc.stdout.readline().strip() == "ready", proc.stderr
+        res = subprocess.run([sys.executable, "-m", "bench", "recover", str(path)], capture_output=True, text=True,
+                             timeout=60, cwd=ROOT, env=_env())
+        assert res.returncode == 2 and f"still open in process {proc.pid}" in res.stderr, res.stdout + res.stderr
+        assert len(res.stderr.strip().splitlines()) == 1, res.stderr
+        run = open_run(path)  # an SWMR reader meanwhile, and it knows the writer is alive
+        assert run.state == "running" and not run.orphaned and "still going" in run.incomplete_reason
+    finally:
+        proc.kill()
+        proc.wait(timeout=10)
+
+
+@pytest.mark.parametrize(("content", "expected"), [
+    (b"not hdf5 at all", "not an HDF5 file"),
+    (None, "not a dea-bench run file"),
+], ids=["text", "other-hdf5"])
+def test_recover_names_a_file_that_is_not_a_run_file(tmp_path: Path, content: bytes | None, expected: str) -> None:
+    path = tmp_path / "other.h5"
+    if content is None:
+        with h5py.File(path, "w") as f:
+            f["x"] = np.arange(3)
+    else:
+        path.write_bytes(content)
+    res = subprocess.run([sys.executable, "-m", "bench", "recover", str(path)], capture_output=True, text=True,
+                         timeout=60, cwd=ROOT, env=_env())
+    lines = res.stderr.strip().splitlines()
+    assert res.returncode == 2 and len(lines) == 1 and str(path) in lines[0] and expected in lines[0], res.stderr
