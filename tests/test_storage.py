@@ -180,6 +180,7 @@ def test_cli_run_under_a_file_size_limit_ends_with_one_line_and_a_readable_file(
     assert lines, text[-2000:]  # one line naming the file and the cause, not HDF5's multi-line driver message
     assert all(str(path) in line and "File too large (errno 27)" in line for line in lines), text[-2000:]
     assert "Driver write request failed" not in text and "file descriptor =" not in text, text[-2000:]
+    assert len(proc.stderr.strip().splitlines()) == 1, proc.stderr  # the error; the summary is on stdout
 
 
 def test_unwritable_folder_is_one_line_before_the_run(tmp_path: Path) -> None:
