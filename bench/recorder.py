@@ -62,7 +62,7 @@ class StorageError(OSError):
     """
 
 
-def _cause(exc: BaseException) -> str:
+def cause(exc: BaseException) -> str:
     """One line on why an HDF5/OS call failed: the errno text if there is one, else the first line.
 
     h5py's OSError carries the errno but HDF5's multi-line driver message as ``strerror``: the errno decides.
@@ -76,7 +76,7 @@ def _cause(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {first}" if first else type(exc).__name__
 
 
-def _abandon(f: h5py.File) -> None:
+def abandon(f: h5py.File) -> None:
     """Close ``f`` after a failed write without touching the file again and without crashing.
 
     HDF5 keeps the metadata it could not write and retries at close; that fails again and (at close or at
@@ -96,7 +96,7 @@ def _abandon(f: h5py.File) -> None:
         f.close()
 
 
-def _ignore_sigxfsz() -> None:
+def ignore_sigxfsz() -> None:
     """A write beyond RLIMIT_FSIZE must fail with EFBIG (reported) rather than kill the process (SIGXFSZ)."""
     if hasattr(signal, "SIGXFSZ") and threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
@@ -138,15 +138,15 @@ class Recorder:
         self._f: h5py.File | None = None
         self._names = [*streams, "events"]
         self._counts = np.zeros(len(self._names), dtype=np.int64)  # valid records on disk, per stream and events
-        _ignore_sigxfsz()
+        ignore_sigxfsz()
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             self._create(attrs, streams, program, rates)
         except Exception as exc:  # whatever stopped the file being made, said in one line
             if self._f is not None:
-                _abandon(self._f)
+                abandon(self._f)
                 self._f = None
-            self.failure = f"run file {self.path}: cannot create: {_cause(exc)}"
+            self.failure = f"run file {self.path}: cannot create: {cause(exc)}"
             raise StorageError(self.failure) from None
 
     def _create(self, attrs: dict[str, Any], streams: dict[str, list[Column]],
@@ -196,9 +196,9 @@ class Recorder:
 
     def _fail(self, what: str, exc: BaseException) -> StorageError:
         """Enter the failed state: drop queued data, release the file safely; the error to raise."""
-        self.failure = f"run file {self.path}: {what}: {_cause(exc)}"
+        self.failure = f"run file {self.path}: {what}: {cause(exc)}"
         if self._f is not None:  # first: releasing a dataset flushes its chunk cache, which must not reach the file
-            _abandon(self._f)
+            abandon(self._f)
             self._f = None
         for buf in self._buffers.values():
             for parts in buf.values():
@@ -332,6 +332,6 @@ class Recorder:
             g.close()
         except Exception as exc:
             if g is not None:
-                _abandon(g)
-            self.failure = f"run file {self.path}: cannot stamp the end of the run: {_cause(exc)}"
+                abandon(g)
+            self.failure = f"run file {self.path}: cannot stamp the end of the run: {cause(exc)}"
             raise StorageError(self.failure) from None

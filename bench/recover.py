@@ -14,16 +14,18 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import struct
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import h5py
 
-from bench.recorder import FORMAT, now_iso
+from bench.recorder import FORMAT, abandon, cause, ignore_sigxfsz, now_iso
 
 SIGNATURE = b"\x89HDF\r\n\x1a\n"
 RECOVERED_REASON = "recovered after crash"
+SPACE_MARGIN = 1 << 20  # bytes free beyond the extension: HDF5 writes a little metadata when it trims and marks
 
 
 def hashlittle(data: bytes | bytearray | memoryview, initval: int = 0) -> int:
@@ -158,7 +160,8 @@ class RecoveryReport:
 def recover(path: str | Path) -> RecoveryReport:
     """Make the file of a crashed or killed run open in every HDF5 tool, and say what it holds.
 
-    Raises ValueError (one line naming the file) if it is not an HDF5 run file or a process still writes it.
+    Raises ValueError (one line naming the file) if it is not an HDF5 run file, a process still writes it, or
+    its disk has too little space (then nothing was changed: free some space and run it again).
     """
     from bench.runfile import open_h5, open_run
 
@@ -182,6 +185,21 @@ def recover(path: str | Path) -> RecoveryReport:
         raise ValueError(f"run file {p}: still open in process {', '.join(map(str, writers))}: "
                          "a run may be writing it (stop it first)")
     report = RecoveryReport(p)
+    end = sb.base_address + sb.eoa
+    size = p.stat().st_size
+    grow = end - size if sb.version >= 2 and size < end else 0  # a failed write left the file short
+    free = shutil.disk_usage(p.parent).free
+    if (sb.flags or grow) and free < grow + SPACE_MARGIN:
+        raise ValueError(f"run file {p}: {free:,} bytes free on its disk, recovery needs {grow + SPACE_MARGIN:,}: "
+                         "free some space and run it again (nothing was changed)")
+    ignore_sigxfsz()
+    if grow:
+        try:
+            os.truncate(p, end)  # zeros up to what HDF5 allocated; readers never count them (/status/samples)
+        except OSError as exc:
+            raise ValueError(f"run file {p}: cannot extend it to {end:,} bytes: {cause(exc)} (nothing was changed)"
+                             ) from None
+        report.actions.append(f"extended the file from {size:,} to {end:,} bytes (a write had failed)")
     if clear_consistency_flags(head):
         with p.open("r+b") as fh:
             fh.seek(sb.offset + 11)
@@ -191,25 +209,24 @@ def recover(path: str | Path) -> RecoveryReport:
             fh.flush()
             os.fsync(fh.fileno())
         report.actions.append(f"cleared the file consistency flags (0x{sb.flags:02x}) left by the writer")
-    end = sb.base_address + sb.eoa
-    size = p.stat().st_size
-    if sb.version >= 2 and size < end:
-        os.truncate(p, end)  # a failed write left the file short of what HDF5 allocated: zeros, never counted
-        report.actions.append(f"extended the file from {size:,} to {end:,} bytes (a write had failed)")
     try:
         f = h5py.File(p, "r+")
     except OSError as exc:
         raise ValueError(f"run file {p}: HDF5 cannot open it even now ({' '.join(str(exc).split())})") from None
-    with f:
+    try:
         if not f.attrs.get("complete", False):
             report.actions += _trim(f)
             if report.actions:
                 f.attrs["recovered_at"] = now_iso()
                 before = f["status/reason"][0].decode(errors="replace")  # a run killed while stamping its end
                 tail = f" | {RECOVERED_REASON}" if before else RECOVERED_REASON  # such a run keeps its reason
-                head = before.encode()[:400 - len(tail)].decode(errors="ignore")  # whole characters only
-                f["status/reason"][0] = (head + tail).encode()
+                kept = before.encode()[:400 - len(tail)].decode(errors="ignore")  # whole characters only
+                f["status/reason"][0] = (kept + tail).encode()
                 report.actions.append("marked it recovered (attribute recovered_at)")
+        f.close()
+    except Exception as exc:  # e.g. the disk filled meanwhile: release the file without crashing
+        abandon(f)
+        raise ValueError(f"run file {p}: cannot write the recovery marks: {cause(exc)}") from None
     run = open_run(p)
     report.samples = {name: len(s) for name, s in run.streams.items()}
     report.recorded_up_to, report.state, report.incomplete_reason = run.updated, run.state, run.incomplete_reason
@@ -232,5 +249,5 @@ def _trim(f: h5py.File) -> list[str]:
             for d in datasets:
                 if d.shape[0] > n:
                     d.resize((n,))
-            cut.append(f"{name}: {extra:,} unconfirmed records cut")
+            cut.append(f"{name}: {extra:,} unconfirmed record{'s' * (extra != 1)} cut")
     return cut

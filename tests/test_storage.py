@@ -129,6 +129,22 @@ def test_file_size_limit_fails_once_cleanly_and_keeps_every_flushed_sample(tmp_p
     _check_known_record(path, out["confirmed"])
     with h5py.File(path, "r", swmr=True) as f:  # beyond the confirmed count the file may hold zero-filled records
         assert f["laser/t"].shape[0] >= out["confirmed"]
+    _check_recovers(path, out["confirmed"])
+
+
+def _check_recovers(path: Path, confirmed: int) -> None:
+    """`bench recover` (no size limit now) releases the file for every tool with exactly the confirmed records."""
+    res = subprocess.run([sys.executable, "-m", "bench", "recover", str(path)], capture_output=True, text=True,
+                         timeout=60, cwd=ROOT, env=_env())
+    assert res.returncode == 0 and f"laser: {confirmed:,} samples" in res.stdout, res.stdout + res.stderr
+    with h5py.File(path, "r") as f:
+        assert f["laser/t"].shape[0] == f["laser/displacement"].shape[0] == confirmed
+        np.testing.assert_array_equal(f["laser/t"][:], np.arange(confirmed) / RATE)
+        assert f["events"].shape[0] == confirmed // BLOCK
+    if shutil.which("h5dump"):
+        dump = subprocess.run(["h5dump", "-H", str(path)], capture_output=True, text=True, timeout=30)
+        assert dump.returncode == 0, dump.stderr
+    _check_known_record(path, confirmed)
 
 
 @contextlib.contextmanager
@@ -152,6 +168,14 @@ def test_disk_full_fails_once_cleanly_and_keeps_every_flushed_sample(tmp_path: P
         assert str(path) in out["errors"][0]
         assert out["errors"][0].endswith(f"{os.strerror(errno.ENOSPC)} (errno {errno.ENOSPC})"), out["errors"]
         _check_known_record(path, out["confirmed"])
+        image = path.read_bytes()
+        res = subprocess.run([sys.executable, "-m", "bench", "recover", str(path)], capture_output=True, text=True,
+                             timeout=60, cwd=ROOT, env=_env())
+        lines = res.stderr.strip().splitlines()  # on the full disk: one line, and the file is left as it was
+        assert res.returncode == 2 and len(lines) == 1 and "free some space" in lines[0], res.stdout + res.stderr
+        assert path.read_bytes() == image
+        moved = shutil.copy(path, tmp_path / "run.h5")  # where there is space
+    _check_recovers(Path(moved), out["confirmed"])
 
 
 @pytest.mark.parametrize("limit", [
