@@ -204,7 +204,7 @@ class Recorder:
             for parts in buf.values():
                 parts.clear()
         self._events.clear()
-        self._datasets, self._events_ds, self._updated, self._samples = {}, None, None, None  # type: ignore[assignment]
+        self._datasets, self._events_ds, self._updated, self._samples = {}, None, None, None
         return StorageError(self.failure)
 
     # -------------------------------------------------------------- writing
