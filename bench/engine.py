@@ -420,10 +420,9 @@ class Engine:
         finally:
             for sig, handler in old:
                 signal.signal(sig, handler)
-        failure = getattr(self.rec, "failure", "") or ""
-        if (self._storage_failed or getattr(self.rec, "failed", False)) and state != "error":
+        if (self._storage_failed or self.rec.failed) and state != "error":
             # the run itself ended, but the file could not record its end: it is not a complete record
-            state, reason = "error", f"storage fault: {failure or 'run file not finalised'} (after: {reason})"
+            state, reason = "error", f"storage fault: {self.rec.failure or 'run file not finalised'} (after: {reason})"
         return RunResult(str(self.rec.path), state, reason, self.now(), time.perf_counter() - wall0,
                          self.rec.samples_written, self.overruns, safe_path)
 
@@ -572,8 +571,6 @@ def _present(instrument: T | None, role: str) -> T:
 
 
 def _is_storage_fault(exc: BaseException) -> bool:
-    """Whether ``exc`` came from writing the run file (disk full, size limit, unwritable, HDF5 write error)."""
-    from bench import recorder
-
-    storage_error = getattr(recorder, "StorageError", None)
-    return (storage_error is not None and isinstance(exc, storage_error)) or isinstance(exc, OSError)
+    """Whether ``exc`` came from writing the run file: the recorder raises :class:`~bench.recorder.StorageError`
+    (an OSError); drivers turn their own OSErrors into InstrumentErrors, so any OSError here is the file's."""
+    return isinstance(exc, OSError)

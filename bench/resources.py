@@ -47,19 +47,18 @@ def shipped_rigs() -> dict[str, Path]:
     return {p.stem: p for p in sorted(rigs_dir().glob("*.toml"))}
 
 
-def protocol(name: str) -> Path:
-    """A shipped protocol by name (with or without ``.toml``); ValueError naming the choices otherwise."""
-    known = shipped_protocols()
+def _pick(known: dict[str, Path], name: str, kind: str) -> Path:
     key = name.removesuffix(".toml")
     if key not in known:
-        raise ValueError(f"no shipped protocol {name!r}: one of {', '.join(known)}")
+        raise ValueError(f"no shipped {kind} {name!r}: one of {', '.join(known)}")
     return known[key]
+
+
+def protocol(name: str) -> Path:
+    """A shipped protocol by name (with or without ``.toml``); ValueError naming the choices otherwise."""
+    return _pick(shipped_protocols(), name, "protocol")
 
 
 def rig(name: str) -> Path:
     """A shipped rig file by name (with or without ``.toml``); ValueError naming the choices otherwise."""
-    known = shipped_rigs()
-    key = name.removesuffix(".toml")
-    if key not in known:
-        raise ValueError(f"no shipped rig {name!r}: one of {', '.join(known)}")
-    return known[key]
+    return _pick(shipped_rigs(), name, "rig")
