@@ -330,6 +330,9 @@ class LabJackT7Sim:
                 out[k] = y
             self._filter_y, volts = float(y), out
         with self.plant.lock:
+            if times and times[0] < self.plant.t - 1e-9:  # cannot happen under the lock order; kept as a check
+                self.errors.append(RuntimeError(f"DAC value scheduled {self.plant.t - times[0]:.6f} s in the "
+                                                "plant's past"))
             ev = self.plant._v_events
             ev.extend(zip(times, volts.tolist(), strict=True))
             if len(ev) > 1 and ev[-len(times) - 1][0] > times[0]:
@@ -373,7 +376,7 @@ class LabJackT7Sim:
 
     def pump(self) -> None:
         """Take the scans due by now, play stream-out, send whole packets (called every ``poll`` s)."""
-        with self.lock:
+        with self.plant.lock, self.lock:  # plant first (see ``action``)
             if not self.streaming:
                 return
             now = self.clock.now()
@@ -573,7 +576,10 @@ class LabJackT7Sim:
         the plant's input watchdog (``plant.input_watchdog``, set from the rig's ``daq.watchdog_s``), not as
         registers."""
         self.plant.feed_watchdog()
-        with self.lock:
+        # The plant's lock first, then ours, and the time read inside both: the plant cannot integrate past
+        # ``now`` while the request schedules DAC values from the next scan on (the device plays them on its own
+        # clock; a plant that had moved on would take late values as one step, which a T7 never plays).
+        with self.plant.lock, self.lock:
             if fc in (3, 4):
                 return self._read(address, count, start, regs)
             if fc in (6, 16) and values is not None:

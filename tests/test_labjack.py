@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import socket
 import struct
+import time
 from collections.abc import Iterator
 
 import numpy as np
@@ -296,3 +297,60 @@ def test_wall_clock_stream_loses_and_repeats_nothing() -> None:
         daq.close()
         sim.stop()
     assert not sim.errors
+
+
+def test_wall_clock_stream_out_never_steps_while_the_plant_runs_on_its_own() -> None:
+    """The twin schedules DAC values from the next scan on; a plant integrated by another thread (as SimRig's
+    ticker does) must not move past that time meanwhile, or it takes the values it missed as one step — a
+    ±6 kV sine started as a 1.2 kV step and tripped the 5-mA current limit on a loaded machine. The clock here
+    stalls 5 ms after every reading (a thread that loses the GIL), the ticker advances the plant every 1 ms."""
+    import threading
+
+    from sim_devices.clock import WallClock
+
+    class StallingClock(WallClock):
+        def now(self) -> float:
+            t = super().now()
+            if threading.current_thread().name != "ticker":
+                time.sleep(0.005)
+            return t
+
+    clock = StallingClock()
+    plant = Plant(clock, MembraneParams(), hv=HVStage())
+    cond = Conditioning(gain=4.0, offset=-10.0)
+    sim = LabJackT7Sim(plant, clock, conditioning=cond)
+    port, stream_port = sim.start()
+    daq = LabJackT7("127.0.0.1", port=port, stream_port=stream_port, clock=clock.now, timeout=1.0,
+                    safe_dac=(2.5, 0.0))
+    done = threading.Event()
+    out: list[np.ndarray] = []
+    plant.listeners.append(lambda b: out.append(b.voltage.copy()))
+
+    def tick() -> None:
+        while not done.is_set():
+            plant.observe()
+            time.sleep(0.001)
+
+    ticker = threading.Thread(target=tick, name="ticker", daemon=True)
+    rate, peak, f = 10_000.0, 6000.0, 2.0
+    hv = peak * np.sin(2 * np.pi * f * np.arange(int(0.4 * rate)) / rate)
+    try:
+        daq.connect()
+        ticker.start()
+        daq.arm(StreamSpec(rate, (StreamIn(0),), StreamOut(0, (hv / 1000.0 + 10.0) / 4.0)))
+        daq.kickoff()
+        t_end = clock.now() + 0.5
+        while clock.now() < t_end:
+            time.sleep(0.02)
+            daq.collect()
+        daq.stop()
+    finally:
+        done.set()
+        ticker.join(timeout=2)
+        daq.close()
+        sim.stop()
+    assert not sim.errors
+    v = np.concatenate(out)
+    assert np.ptp(v) > peak  # the sine was played
+    dac_step = 1000.0 * 4.0 * 16 / 13200
+    assert np.max(np.abs(np.diff(v))) <= peak * 2 * np.pi * f / rate + dac_step  # the sine's slope, no step
