@@ -1,6 +1,7 @@
 """Stream a run to one HDF5 file while it goes on (SWMR), and never leave it unmarked.
 
-Layout (``format = "dea-bench run 1"``):
+Layout (``format = "dea-bench run 2"``; readers also read format 1, which kept ``/program`` and ``/events`` as
+compound datasets that netCDF readers cannot read):
 
 * root attributes — software version, protocol (name, path, full text, SHA-256), rig (name, TOML of the
   effective rig), specimen (JSON), recording settings (JSON), clock kind, simulated flag, start time;
@@ -11,12 +12,19 @@ Layout (``format = "dea-bench run 1"``):
   written during the run, so a file from a crashed run still says ``running`` and is recognised as
   incomplete, and a reader trims every dataset to ``samples`` (beyond it a failed write can leave
   zero-filled records);
-* ``/program`` — the compiled steps (index, label, kind, start, duration);
-* ``/events`` — step starts and ends, trips, operator actions (t, step, kind, text);
+* ``/program`` — the compiled steps, one dataset per field (``index``, the dimension scale; ``label``, ``name``,
+  ``kind`` as variable-length UTF-8 strings; ``t_start``, ``duration``);
+* ``/events`` — step starts and ends, trips, operator actions, one dataset per field (``t``, the dimension scale;
+  ``step``; ``kind`` and ``text`` as fixed-length UTF-8 strings: SWMR cannot append variable-length data);
 * one group per stream (``setpoints``, ``amplifier``, ``laser``, ``motor``, ``load_cell``) with a time base
-  ``t`` [s on the run clock] and one dataset per column, chunked, gzip-compressed, with ``units`` attributes.
+  ``t`` [s on the run clock] and one dataset per column, chunked, gzip-compressed.
 
-Datasets are created before SWMR mode starts, appended in blocks and flushed at least every
+Every time base (and ``/program/index``) is an HDF5 dimension scale attached to the datasets of its group, so
+netCDF readers (xarray, netCDF4, h5netcdf) see it as the group's dimension and coordinate; every numeric
+dataset has a ``units`` attribute ("1": dimensionless); every string is declared UTF-8.
+
+Datasets, dimension scales and attributes are created before SWMR mode starts (HDF5 allows no attribute change
+under SWMR); the datasets are then appended in blocks and flushed at least every
 ``flush_interval`` seconds of wall time, so another process can read the file during the run: every
 ``append``/``event`` checks the interval itself (a caller busy elsewhere, e.g. uploading stored laser data for
 30 s, still has its data on disk within the interval), and ``maybe_flush`` covers stretches without data.
@@ -45,10 +53,15 @@ from typing import Any
 import h5py
 import numpy as np
 
-FORMAT = "dea-bench run 1"
-EVENT_DTYPE = np.dtype([("t", "f8"), ("step", "i4"), ("kind", "S16"), ("text", "S200")])
-PROGRAM_DTYPE = np.dtype([("index", "i4"), ("label", "S240"), ("name", "S120"), ("kind", "S16"),
-                          ("t_start", "f8"), ("duration", "f8")])
+FORMAT = "dea-bench run 2"
+FORMATS = ("dea-bench run 1", FORMAT)  # what the readers read (1: /program and /events as compound datasets)
+EVENT_FIELDS = ("t", "step", "kind", "text")
+EVENT_DTYPE = np.dtype(list(zip(EVENT_FIELDS, ("f8", "i4", "S16", "S200"), strict=True)))  # strings: UTF-8 bytes
+EVENT_UNITS = {"t": "s", "step": "1"}
+PROGRAM_FIELDS = ("index", "label", "name", "kind", "t_start", "duration")
+PROGRAM_UNITS = {"index": "1", "t_start": "s", "duration": "s"}
+TEXT = h5py.string_dtype("utf-8")  # variable-length UTF-8 (for data written before SWMR mode only)
+STATUS_TEXT = {"state": 16, "reason": 400, "end_time": 40}  # fixed-length UTF-8 fields of /status [bytes]
 STATES = ("running", "completed", "tripped", "error", "interrupted")
 FLUSH_INTERVAL_S = 0.2  # wall time between flushes: a kill -9 loses at most this plus one flush (goal ≤ 0.5 s)
 CHUNK_S = 0.25  # chunk length [s of a stream]: about one flush, so a compressed chunk is rewritten once or twice
@@ -112,6 +125,32 @@ class Column:
     dtype: str = "f8"
 
 
+def utf8(text: str, size: int) -> bytes:
+    """``text`` as UTF-8 in at most ``size`` bytes, cut at a character boundary (fixed-length UTF-8 fields)."""
+    return text.encode()[:size].decode(errors="ignore").encode()
+
+
+def fixed_text(size: int) -> np.dtype:
+    """Fixed-length UTF-8 string type of ``size`` bytes (appendable under SWMR, declared UTF-8 in the file)."""
+    dtype: np.dtype = h5py.string_dtype("utf-8", size)
+    return dtype
+
+
+def dimension_scale(g: h5py.Group, name: str, data: np.ndarray | None = None, **kwargs: Any) -> h5py.Dataset:
+    """Create ``g[name]`` as the group's dimension scale (a netCDF dimension and coordinate of that name)."""
+    d = g.create_dataset(name, data=data, **kwargs)
+    d.make_scale(name)
+    return d
+
+
+def attach(d: h5py.Dataset, scale: h5py.Dataset, units: str | None = None) -> h5py.Dataset:
+    """Attach ``scale`` as the dimension of the 1-D dataset ``d`` (and set its units, if given)."""
+    d.dims[0].attach_scale(scale)
+    if units is not None:
+        d.attrs["units"] = units
+    return d
+
+
 def now_iso() -> str:
     """UTC time stamp, ISO 8601."""
     return datetime.now(UTC).isoformat(timespec="milliseconds")
@@ -129,6 +168,7 @@ class Recorder:
         self._buffers: dict[str, dict[str, list[np.ndarray]]] = {s: {c.name: [] for c in [Column("t", "s", ""), *cols]}
                                                                  for s, cols in streams.items()}
         self._events: list[tuple[float, int, bytes, bytes]] = []
+        self._events_ds: dict[str, h5py.Dataset] = {}
         self._last_flush = time.monotonic()
         self._last_t = 0.0
         self.samples_written = 0
@@ -156,38 +196,71 @@ class Recorder:
         f.attrs["format"] = FORMAT
         for key, value in attrs.items():
             f.attrs[key] = value if not isinstance(value, dict | list) else json.dumps(value)
-        status = f.create_group("status")
-        status.create_dataset("state", data=np.array([b"running"], dtype="S16"))
-        status.create_dataset("reason", data=np.array([b""], dtype="S400"))
-        status.create_dataset("end_time", data=np.array([b""], dtype="S40"))
-        status.create_dataset("updated", data=np.array([0.0]))
-        status["updated"].attrs["units"] = "s"
-        samples = status.create_dataset("samples", data=self._counts)
-        samples.attrs["names"] = json.dumps(self._names)
-        samples.attrs["description"] = "valid records per stream (and of /events) at the last successful flush"
-        prog = np.array([(i, lab.encode()[:240], name.encode()[:120], kind.encode(), t0, dur)
-                         for i, lab, name, kind, t0, dur in program], dtype=PROGRAM_DTYPE)
-        f.create_dataset("program", data=prog)
-        f["program"].attrs["units"] = json.dumps({"t_start": "s", "duration": "s"})
-        ev = f.create_dataset("events", shape=(0,), maxshape=(None,), dtype=EVENT_DTYPE, chunks=(256,))
-        ev.attrs["units"] = json.dumps({"t": "s"})
+        self._create_status(f)
+        self._create_program(f, program)
+        self._create_events(f)
         for name, cols in streams.items():
-            g = f.create_group(name)
-            rate = rates.get(name, 100.0)
-            g.attrs["rate_Hz"] = rate
-            chunk = int(min(65536, max(256, rate * CHUNK_S)))
-            for col in [Column("t", "s", "time on the run clock"), *cols]:
-                d = g.create_dataset(col.name, shape=(0,), maxshape=(None,), dtype=col.dtype, chunks=(chunk,),
-                                     compression="gzip", compression_opts=1, shuffle=True)
-                d.attrs["units"] = col.units
-                d.attrs["description"] = col.description
+            self._create_stream(f, name, cols, rates.get(name, 100.0))
         self._datasets = {s: {c.name: f[s][c.name] for c in [Column("t", "s", ""), *cols]}
                           for s, cols in streams.items()}  # cached: group look-ups cost more than the writes
-        self._events_ds = f["events"]
+        self._events_ds = {k: f["events"][k] for k in EVENT_FIELDS}
         self._updated = f["status/updated"]
         self._samples = f["status/samples"]
         f.swmr_mode = True
         f.flush()
+
+    def _create_status(self, f: h5py.File) -> None:
+        """``/status``: the run's state and the valid-record counts, rewritten in place during the run."""
+        status = f.create_group("status")
+        for name, size in STATUS_TEXT.items():
+            initial = b"running" if name == "state" else b""
+            status.create_dataset(name, data=np.array([initial], dtype=fixed_text(size)))
+        status.create_dataset("updated", data=np.array([0.0]))
+        status["updated"].attrs["units"] = "s"
+        samples = status.create_dataset("samples", data=self._counts)
+        samples.attrs["names"] = json.dumps(self._names)
+        samples.attrs["units"] = "1"
+        samples.attrs["description"] = "valid records per stream (and of /events) at the last successful flush"
+
+    @staticmethod
+    def _create_program(f: h5py.File, program: list[tuple[int, str, str, str, float, float]]) -> None:
+        """``/program``: one dataset per field of the compiled steps, along the dimension scale ``index``."""
+        g = f.create_group("program")
+        rows = list(zip(*program, strict=True)) if program else [()] * len(PROGRAM_FIELDS)
+        columns = dict(zip(PROGRAM_FIELDS, rows, strict=True))
+        index = dimension_scale(g, "index", np.array(columns["index"], dtype="i4"))
+        index.attrs["units"] = PROGRAM_UNITS["index"]
+        for field in ("label", "name", "kind"):
+            attach(g.create_dataset(field, data=np.array(columns[field], dtype=object), dtype=TEXT), index)
+        for field in ("t_start", "duration"):
+            attach(g.create_dataset(field, data=np.array(columns[field], dtype="f8")), index, PROGRAM_UNITS[field])
+
+    @staticmethod
+    def _create_events(f: h5py.File) -> None:
+        """``/events``: one appendable dataset per event field, along the dimension scale ``t``."""
+        g = f.create_group("events")
+        t = dimension_scale(g, "t", shape=(0,), maxshape=(None,), dtype="f8", chunks=(256,))
+        t.attrs["units"] = EVENT_UNITS["t"]
+        for field in EVENT_FIELDS[1:]:
+            kind, size = EVENT_DTYPE[field].kind, EVENT_DTYPE[field].itemsize
+            dtype = fixed_text(size) if kind == "S" else EVENT_DTYPE[field]
+            d = g.create_dataset(field, shape=(0,), maxshape=(None,), dtype=dtype, chunks=(256,))
+            attach(d, t, EVENT_UNITS.get(field))
+
+    @staticmethod
+    def _create_stream(f: h5py.File, name: str, cols: list[Column], rate: float) -> None:
+        """One group per stream: the time base ``t`` (dimension scale) and one dataset per column."""
+        g = f.create_group(name)
+        g.attrs["rate_Hz"] = rate
+        chunk = int(min(65536, max(256, rate * CHUNK_S)))
+        layout: dict[str, Any] = {"shape": (0,), "maxshape": (None,), "chunks": (chunk,), "compression": "gzip",
+                                  "compression_opts": 1, "shuffle": True}
+        t = dimension_scale(g, "t", dtype="f8", **layout)
+        t.attrs["units"] = "s"
+        t.attrs["description"] = "time on the run clock"
+        for col in cols:
+            d = attach(g.create_dataset(col.name, dtype=col.dtype, **layout), t, col.units)
+            d.attrs["description"] = col.description
 
     @property
     def failed(self) -> bool:
@@ -204,7 +277,7 @@ class Recorder:
             for parts in buf.values():
                 parts.clear()
         self._events.clear()
-        self._datasets, self._events_ds, self._updated, self._samples = {}, None, None, None
+        self._datasets, self._events_ds, self._updated, self._samples = {}, {}, None, None
         return StorageError(self.failure)
 
     # -------------------------------------------------------------- writing
@@ -225,7 +298,7 @@ class Recorder:
         """Queue an event; flushes if the flush interval has passed (may raise :class:`StorageError`)."""
         if self.failure:
             return
-        self._events.append((t, step, kind.encode()[:16], text.encode()[:200]))
+        self._events.append((t, step, utf8(kind, 16), utf8(text, 200)))
         self.maybe_flush()
 
     def maybe_flush(self) -> None:
@@ -271,8 +344,9 @@ class Recorder:
                 counts[k] = n + n_new
             if events is not None:
                 n = int(counts[-1])
-                self._events_ds.resize((n + events.size,))
-                self._events_ds[n:] = events
+                for field, d in self._events_ds.items():
+                    d.resize((n + events.size,))
+                    d[n:] = events[field].astype(d.dtype)  # S16 → the dataset's UTF-8 type (no HDF5 conversion)
                 counts[-1] = n + events.size
             f = self._f
             assert f is not None
@@ -297,7 +371,7 @@ class Recorder:
             return
         try:
             self._f["status/state"][0] = state.encode()
-            self._f["status/reason"][0] = reason.encode()[:400]
+            self._f["status/reason"][0] = utf8(reason, STATUS_TEXT["reason"])
             self._f.flush()
         except Exception as exc:
             raise self._fail("write failed", exc) from None

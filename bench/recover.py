@@ -21,7 +21,7 @@ from pathlib import Path
 
 import h5py
 
-from bench.recorder import FORMAT, abandon, cause, ignore_sigxfsz, now_iso
+from bench.recorder import FORMATS, abandon, cause, ignore_sigxfsz, now_iso
 
 SIGNATURE = b"\x89HDF\r\n\x1a\n"
 RECOVERED_REASON = "recovered after crash"
@@ -178,7 +178,7 @@ def recover(path: str | Path) -> RecoveryReport:
             fmt = f.attrs.get("format")
     except (OSError, ValueError) as exc:
         raise ValueError(f"run file {p}: not a readable HDF5 file ({' '.join(str(exc).split())})") from None
-    if fmt != FORMAT:
+    if fmt not in FORMATS:
         raise ValueError(f"run file {p}: not a dea-bench run file (format {fmt!r})")
     writers = open_elsewhere(p)
     if writers:
@@ -243,7 +243,8 @@ def _trim(f: h5py.File) -> list[str]:
                  if isinstance(f[name], h5py.Group) and "t" in f[name]}
     cut = []
     for name, n in valid.items():
-        datasets = [f["events"]] if name == "events" else list(f[name].values()) if name in f else []
+        obj = f.get(name)  # a group of datasets (a stream; events in format 2) or a dataset (events in format 1)
+        datasets = [obj] if isinstance(obj, h5py.Dataset) else list(obj.values()) if obj is not None else []
         extra = max((d.shape[0] - n for d in datasets), default=0)
         if extra > 0:
             for d in datasets:

@@ -11,7 +11,7 @@ from typing import Any
 import h5py
 import numpy as np
 
-from bench.recorder import FORMAT
+from bench.recorder import EVENT_FIELDS, FORMATS, PROGRAM_FIELDS
 
 
 @dataclass
@@ -40,8 +40,8 @@ class RunFile:
     updated: float
     complete: bool
     streams: dict[str, Stream] = field(default_factory=dict)
-    events: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    program: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    events: np.ndarray = field(default_factory=lambda: np.zeros(0))  # records t, step, kind, text (UTF-8 bytes)
+    program: np.ndarray = field(default_factory=lambda: np.zeros(0))  # index, label, name, kind, t_start, duration
     orphaned: bool = False  # 'running', marked open by a writer, and no process on this machine has it open
 
     @property
@@ -98,6 +98,29 @@ def open_h5(p: Path) -> h5py.File:
         raise ValueError(f"run file {p}: not a readable HDF5 file ({' '.join(str(first).split())})") from None
 
 
+def read_table(obj: h5py.Dataset | h5py.Group, n: int | None = None) -> np.ndarray:
+    """A table (``/events``, ``/program``) as one structured array of its first ``n`` records (all if None).
+
+    Format 2 stores a group of 1-D datasets, one per field; format 1 a compound dataset. Strings come back as
+    UTF-8 bytes either way. While a writer appends, the fields may differ in length: the shortest counts.
+    """
+    if isinstance(obj, h5py.Dataset):
+        obj.refresh()
+        return np.asarray(obj[:n])
+    order = PROGRAM_FIELDS if "index" in obj else EVENT_FIELDS  # the fields in the order format 1 stored them
+    fields = sorted(obj, key=lambda k: order.index(k) if k in order else len(order))
+    for d in obj.values():
+        d.refresh()
+    size = min((obj[k].shape[0] for k in fields), default=0)
+    rows = size if n is None else min(n, size)
+    cols = {k: obj[k][:rows] for k in fields}
+    cols = {k: c.astype(bytes) if c.dtype.kind in "OS" else c for k, c in cols.items()}
+    table = np.zeros(rows, dtype=[(k, c.dtype) for k, c in cols.items()])
+    for k, c in cols.items():
+        table[k] = c
+    return table
+
+
 def _valid_counts(f: h5py.File) -> dict[str, int]:
     """Valid records per stream and of ``events`` at the writer's last successful flush ({} in older files)."""
     if "samples" not in f["status"]:
@@ -116,7 +139,7 @@ def open_run(path: str | Path, streams: bool = True) -> RunFile:
         raise FileNotFoundError(f"run file {p}: not found")
     f = open_h5(p)
     with f:
-        if f.attrs.get("format") != FORMAT:
+        if f.attrs.get("format") not in FORMATS:
             raise ValueError(f"run file {p}: not a dea-bench run file (format {f.attrs.get('format')!r})")
         attrs = {k: _decode(v) for k, v in f.attrs.items()}
         st = f["status"]
@@ -125,9 +148,8 @@ def open_run(path: str | Path, streams: bool = True) -> RunFile:
         run = RunFile(p, attrs, st["state"][0].decode(), st["reason"][0].decode(), st["end_time"][0].decode(),
                       float(st["updated"][0]), bool(attrs.get("complete", False)))
         valid = _valid_counts(f)
-        f["events"].refresh()
-        run.events = f["events"][:valid.get("events", None)]
-        run.program = f["program"][:]
+        run.events = read_table(f["events"], valid.get("events"))
+        run.program = read_table(f["program"])
         if streams:
             for name in ("setpoints", "amplifier", "laser", "motor", "load_cell"):
                 if name not in f:

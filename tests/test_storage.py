@@ -140,7 +140,7 @@ def _check_recovers(path: Path, confirmed: int) -> None:
     with h5py.File(path, "r") as f:
         assert f["laser/t"].shape[0] == f["laser/displacement"].shape[0] == confirmed
         np.testing.assert_array_equal(f["laser/t"][:], np.arange(confirmed) / RATE)
-        assert f["events"].shape[0] == confirmed // BLOCK
+        assert f["events/t"].shape[0] == f["events/text"].shape[0] == confirmed // BLOCK
     if shutil.which("h5dump"):
         dump = subprocess.run(["h5dump", "-H", str(path)], capture_output=True, text=True, timeout=30)
         assert dump.returncode == 0, dump.stderr

@@ -1,7 +1,8 @@
 """Fit results written back beside the data, and exported as a rig file the simulated rig accepts.
 
 In the run file: group ``/fit/<model>-<n>`` with datasets ``names``, ``units``, ``values``, ``lower``,
-``upper``, ``sensitivity``, ``correlation``, ``uncertainty`` and attributes ``cost``, ``cost_kind``, ``rms``,
+``upper``, ``sensitivity``, ``correlation``, ``uncertainty`` (each with a ``units`` attribute: per parameter
+for ``values``, ``lower``, ``upper``; "1" for the relative others) and attributes ``cost``, ``cost_kind``, ``rms``,
 ``n_data``, ``records`` (the files and windows used), DE settings, ``software``, ``wall_time``, ``flags``, ``created``
 and, for a fit over several records, ``campaign`` (JSON: what each record determines alone and what only the
 campaign determines).
@@ -39,6 +40,10 @@ def write_fit(run_path: str | Path, model: str, result: FitResult, records: list
         g.create_dataset("units", data=np.array(result.units, dtype=object), dtype=text)
         for key in ("values", "lower", "upper", "sensitivity", "correlation", "uncertainty"):
             g.create_dataset(key, data=np.asarray(getattr(result, key), dtype=float))
+        for key in ("values", "lower", "upper"):  # one unit per parameter: an array, element i for parameter i
+            g[key].attrs.create("units", np.array(result.units, dtype=object), dtype=text)
+        for key in ("sensitivity", "correlation", "uncertainty"):  # relative quantities
+            g[key].attrs["units"] = "1"
         g.attrs.update({"model": model, "cost": result.cost, "cost_kind": result.cost_kind, "rms": result.rms,
                         "n_data": result.n_data, "evaluations": result.evaluations,
                         "generations": result.generations, "wall_time": result.wall_time,
