@@ -25,6 +25,7 @@ import xarray as xr
 
 from bench.identify.core import FitResult
 from bench.identify.store import write_fit
+from bench.recover import recover
 from bench.rig import load_rig
 from bench.run import execute, plan_run
 from bench.runfile import open_run
@@ -230,30 +231,36 @@ def test_readers_during_a_run(tmp_path: Path) -> None:
 
 
 def _format_1_file(path: Path) -> None:
-    """A run file as format 1 wrote it: /program and /events as compound datasets, plain time bases."""
+    """The file of a crashed run as format 1 wrote it: /program and /events as compound datasets, plain time bases,
+    one event record beyond the confirmed count."""
     events = np.array([(0.0, 0, b"start", "Schritt µ".encode()), (1.0, 0, b"end", b"x"), (0.0, 0, b"", b"")],
                       dtype=[("t", "f8"), ("step", "i4"), ("kind", "S16"), ("text", "S200")])
     program = np.array([(0, b"steps[0](a)", b"a", b"hold", 0.0, 1.0)],
                        dtype=[("index", "i4"), ("label", "S240"), ("name", "S120"), ("kind", "S16"),
                               ("t_start", "f8"), ("duration", "f8")])
     with h5py.File(path, "w") as f:
-        f.attrs.update({"format": "dea-bench run 1", "complete": True})
-        for name, value in (("state", b"completed"), ("reason", b""), ("end_time", b"")):
+        f.attrs["format"] = "dea-bench run 1"
+        for name, value in (("state", b"running"), ("reason", b""), ("end_time", b"")):
             f.create_dataset(f"status/{name}", data=np.array([value], dtype="S40"))
         f["status/updated"] = np.array([1.0])
         f["status/samples"] = np.array([3, 2])  # the third event record was never confirmed
         f["status/samples"].attrs["names"] = json.dumps(["laser", "events"])
-        f["program"], f["events"] = program, events
+        f["program"] = program
+        f.create_dataset("events", data=events, maxshape=(None,), chunks=(256,))
         f["laser/t"] = np.arange(3) / 10.0
         f["laser/displacement"] = np.arange(3) * 1e-3
         for d in f["laser"].values():
             d.attrs["units"] = "s" if d.name.endswith("/t") else "m"
 
 
-def test_format_1_files_still_read(tmp_path: Path) -> None:
+def test_format_1_files_still_read_and_recover(tmp_path: Path) -> None:
     path = tmp_path / "old.h5"
     _format_1_file(path)
     run = open_run(path)
-    assert run.complete and run.event_list() == [(0.0, 0, "start", "Schritt µ"), (1.0, 0, "end", "x")]
+    assert not run.complete and run.event_list() == [(0.0, 0, "start", "Schritt µ"), (1.0, 0, "end", "x")]
     assert [row["name"].decode() for row in run.program] == ["a"] and float(run.program[0]["duration"]) == 1.0
     np.testing.assert_array_equal(run.streams["laser"].t, [0.0, 0.1, 0.2])
+    report = recover(path)
+    assert "events: 1 unconfirmed record cut" in report.actions and report.samples == {"laser": 3}
+    with h5py.File(path, "r") as f:
+        assert f["events"].shape == (2,) and f["events"][1]["kind"] == b"end"
