@@ -4,7 +4,10 @@ The identification's inner loop. Same scheme as :func:`bench.models.membrane.mem
 update of each Maxwell unit's elastic log-stretch, symplectic Euler for the membrane; physics.md §1.5), but
 the state is stored structure-of-arrays (one array per state component, one entry per candidate) and each
 step runs its loops *over the candidates*, innermost, with no calls that are not inlined: LLVM turns them
-into SIMD loops (exp/log from :mod:`bench.models.vecmath`). Threads split the candidates into chunks.
+into SIMD loops (exp/log from :mod:`bench.models.vecmath`). Threads split the candidates into chunks of whole
+registers. The units' stresses are summed as one fraction and the membrane's update puts springs, inertia
+and mass over one denominator: one division per candidate per step besides one per unit for its relaxation
+rate (a SIMD division costs as much as ten multiplications).
 
 A candidate whose state leaves the model's domain (Gent lock-up, λ ≤ 0, non-finite) is marked dead, reset to
 a harmless state so that it costs nothing further, and outputs NaN from that step on — as the scalar kernel
@@ -82,18 +85,18 @@ def _chunk(P: np.ndarray, Y0: np.ndarray, U: np.ndarray, h: float, stride: int, 
     v = Y0[:, 1].copy()
     el = np.empty(nq)
     ul = np.empty(nq)
-    term = np.empty(nq)  # μ_i h(u_i) per pair: the unit's stress times λ
     for i in range(n_units):
         for j in range(c):
             el[i * c + j] = lam[j] / Y0[j, 2 + i]
             ul[i * c + j] = vlog(el[i * c + j])
-    lane_inv = np.empty(nq)  # 1/λ of each pair's lane, and its λ ratio and log ratio
-    lane_ratio = np.empty(nq)
+    tnum = np.empty(nq)  # per pair: the unit's stress times λ as a fraction μ(e⁶ − 1) / (G e⁴)
+    tden = np.empty(nq)
+    lane_ratio = np.empty(nq)  # per pair: its lane's λ ratio and log ratio
     lane_dlog = np.empty(nq)
     alive = np.ones(c)  # 1.0 alive, 0.0 dead (a float mask keeps the loops branch-free)
-    ok = np.ones(c)
-    force = np.empty(c)
-    inv_lam = np.empty(c)
+    num = np.empty(c)  # Σ over units of the stress fractions, as one fraction num/den
+    den = np.empty(c)
+    okd = np.empty(c)  # 1.0 while every unit's G e⁴ > 0
     ratio = np.empty(c)  # λ_{k+1}/λ_k
     dlog = np.empty(c)  # ln(λ_{k+1}/λ_k)
     acc = np.zeros(c)
@@ -103,21 +106,6 @@ def _chunk(P: np.ndarray, Y0: np.ndarray, U: np.ndarray, h: float, stride: int, 
         phi = U[k, 0]
         phi2 = phi * phi
         iT = 1.0 / U[k, 1]
-        for j in range(c):  # equilibrium spring, inertia terms
-            lj = lam[j]
-            il = 1.0 / lj
-            inv_lam[j] = il
-            e2 = lj * lj
-            il2 = il * il
-            e4 = il2 * il2
-            G0 = 1.0 - (2.0 * e2 + e4 - 3.0) * iJ0[j]
-            il6 = e4 * il2
-            dM = -4.0 * rl3[j] * il6 * il
-            force[j] = -0.5 * dM * v[j] * v[j] - mu0[j] * (e2 - e4) / G0 * il
-            ok[j] = 1.0 if G0 > 0.0 else 0.0
-        for i in range(n_units):
-            for j in range(c):
-                lane_inv[i * c + j] = inv_lam[j]
         for m in range(nq):  # Maxwell units: exponential update of u = ln(λ/ξ), then their stress
             # Gent terms times e⁴ (no reciprocal of e needed): (e² − e⁻⁴)/G = (e⁶ − 1)/(G e⁴)
             u = ul[m]
@@ -133,30 +121,47 @@ def _chunk(P: np.ndarray, Y0: np.ndarray, U: np.ndarray, h: float, stride: int, 
             e2 = en * en
             e4 = e2 * e2
             e6 = e4 * e2
-            Ge4 = e4 - (2.0 * e6 + 1.0 - 3.0 * e4) * iJ[m]
-            # stress μ(e⁶ − 1)/(G e⁴)/λ; a locked-up unit (G ≤ 0) makes it NaN, which marks the lane dead
-            term[m] = mu[m] * (e6 - 1.0) / Ge4 * lane_inv[m] if Ge4 > 0.0 else np.nan
-        for i in range(n_units):
+            # stress times λ: μ(e⁶ − 1)/(G e⁴), kept as a fraction (one division per lane below)
+            tnum[m] = mu[m] * (e6 - 1.0)
+            tden[m] = e4 - (2.0 * e6 + 1.0 - 3.0 * e4) * iJ[m]
+        for j in range(c):
+            num[j] = 0.0
+            den[j] = 1.0
+            okd[j] = 1.0
+        for i in range(n_units):  # Σ n_i/d_i as one fraction; a locked-up unit (d ≤ 0) marks its lane dead
             for j in range(c):
-                force[j] -= term[i * c + j]
+                d = tden[i * c + j]
+                num[j] = num[j] * d + tnum[i * c + j] * den[j]
+                den[j] = den[j] * d
+                okd[j] = okd[j] if d > 0.0 else 0.0
         pos = (k + 1) % stride
         write = pos == 0
         add = window > 0 and (write or pos > stride - window)
-        for j in range(c):  # electrostatics, dead load, membrane update
+        for j in range(c):  # springs, inertia, electrostatics, dead load, membrane update: one division
             lj = lam[j]
+            vj = v[j]
             l2 = lj * lj
+            l4 = l2 * l2
+            l6 = l4 * l2
+            g0 = l4 - (2.0 * l6 + 1.0 - 3.0 * l4) * iJ0[j]  # G0 λ⁴
+            Ml6 = m_const[j] * l6 + 2.0 / 3.0 * rl3[j]  # M λ⁶
             er = a[j] * l2 + b[j] * iT + cc[j]
-            s_es = eps_l3[j] * phi2 * (er * l2 * lj + ka[j] * l2 * l2 * lj)
-            il2 = inv_lam[j] * inv_lam[j]
-            M = m_const[j] + 2.0 / 3.0 * rl3[j] * il2 * il2 * il2
-            f = force[j] + spre[j] - kf[j] * (lj - lpre[j]) + s_es
-            vn = v[j] + h * f / M
+            s_es = eps_l3[j] * phi2 * (er * l2 * lj + ka[j] * l4 * lj)
+            R = spre[j] - kf[j] * (lj - lpre[j]) + s_es
+            D = den[j]
+            # f/M with every fraction over one denominator (numerator and denominator times λ⁷·G0λ⁴·D):
+            # [(2ρL3²λ̇² + Rλ⁷) G0λ⁴ D − λ⁶ (μ0 (λ⁶ − 1) D + num G0λ⁴)] / (Mλ⁶ · G0λ⁴ D · λ)
+            gD = g0 * D
+            top = (2.0 * rl3[j] * vj * vj + R * l6 * lj) * gD - l6 * (mu0[j] * (l6 - 1.0) * D + num[j] * g0)
+            MgD = Ml6 * gD
+            inv = 1.0 / (MgD * lj)
+            vn = vj + h * (top * inv)
             ln = lj + h * vn
-            good = ok[j] > 0.0 and ln > 0.0 and ln < 1e300 and alive[j] > 0.0  # NaN force: ln is NaN
+            good = g0 > 0.0 and okd[j] > 0.0 and ln > 0.0 and ln < 1e300 and alive[j] > 0.0
             alive[j] = 1.0 if good else 0.0
             lam[j] = ln if good else lpre[j]
             v[j] = vn if good else 0.0
-            rj = ln * inv_lam[j]
+            rj = ln * (inv * MgD)  # ln/λ
             ratio[j] = rj if good else 1.0
             dlog[j] = vlog(rj) if good else 0.0
         for i in range(n_units):  # the units' elastic stretch follows λ: e ← e·λ_{k+1}/λ_k
@@ -212,8 +217,10 @@ def membrane_batch_records(P: np.ndarray, Y0: np.ndarray, Us: list[np.ndarray], 
     out = np.full((m, int(c_off[-1])), np.nan)
     threads = numba.get_num_threads()
     # chunks per record: enough tasks for the threads, none smaller than a register
-    chunks = max(1, min(-(-threads // len(Us)), -(-m // LANES)))
-    bounds = np.linspace(0, m, chunks + 1).round().astype(np.int64)  # equal shares
+    regs = -(-m // LANES)
+    chunks = max(1, min(-(-threads // len(Us)), regs))
+    # whole registers per chunk (only the last one padded): 50 sets are 4 + 3 registers, not 2 × 4
+    bounds = np.minimum(np.linspace(0, regs, chunks + 1).round().astype(np.int64) * LANES, m)
     tasks = np.array([(r, u_off[r], u_off[r + 1], c_off[r], c_off[r + 1], bounds[k], bounds[k + 1])
                       for r in range(len(Us)) for k in range(chunks)], dtype=np.int64)
     _batch(P, Y0, U, float(h), int(stride), int(window), tasks, out)
