@@ -153,8 +153,10 @@ def simulate_thesis(
     electrostriction: Annotated[Electrostriction, typer.Option(
         help="Electrostatic stress: corrected (κ = 1/2) or as printed in the thesis (κ = 2).")]
     = Electrostriction.corrected,
-    method: Annotated[str, typer.Option(help="Integrator: radau (offline) or fixed (streaming scheme).")]
-    = "radau",
+    method: Annotated[str, typer.Option(
+        help="Integrator: rodas (compiled Rosenbrock, offline), radau (scipy, the reference) or fixed (streaming "
+             "scheme).")]
+    = "rodas",
 ) -> None:
     """Thesis membrane (Model A) under a periodic voltage: per-cycle peaks, creep, residual, lag, field."""
     from bench.analysis.thesis import cycle_figures
@@ -162,9 +164,9 @@ def simulate_thesis(
     from bench.models.membrane_runs import simulate_membrane
     from bench.waveforms import Waveform
 
-    if method not in ("radau", "fixed"):
-        raise ValueError(f"--method must be 'radau' or 'fixed', got {method!r}")
-    max_cycles = SIMULATE_MAX_SQUARE_CYCLES if waveform is WaveKindOption.square and method == "radau" \
+    if method not in ("rodas", "radau", "fixed"):
+        raise ValueError(f"--method must be 'rodas', 'radau' or 'fixed', got {method!r}")
+    max_cycles = SIMULATE_MAX_SQUARE_CYCLES if waveform is WaveKindOption.square and method != "fixed" \
         else SIMULATE_MAX_CYCLES
     if frequency * duration > max_cycles:
         raise ValueError(f"--frequency {frequency:g} Hz × --duration {duration:g} s = {frequency * duration:g} "
