@@ -56,35 +56,94 @@ class HardwareTimed:
         self.inputs = tuple(inputs)
         self.has_laser = cfg.laser_ain is not None
         self.has_force = cfg.force_ain is not None
-        self._commanded = np.zeros(0)  # amplifier output [V] the DAC plays, scan by scan
+        self._commanded = np.zeros(0)  # amplifier output [V] the DAC plays, scan by scan, from scan _base on
+        self._base = 0  # scan index of _commanded[0] (older values are dropped as the stream goes on)
         self._n = 0  # index of the scan that plays the step's end value
+        self._tail = 0.0  # the last value given to the stream-out (the end value of the last step appended)
+        self._chained: dict[int, int] = {}  # id(step) appended to the running stream → scan of its end value
+        self._end_value: dict[int, float] = {}
+        self._positions: dict[int, int] = {}  # id(step) → its place in the program
         self._keepalive = 0.0
         self.scans = 0  # scans recorded over the run
 
     # ------------------------------------------------------------ one step
     def start(self, seg: Segment, engine: Engine) -> None:
-        """Compile the step's voltage to a DAC buffer (end value last), supervise it, arm and kick off."""
+        """Play the step: a step already in the running stream (appended while the one before played) just
+        moves the end mark; otherwise compile its voltage to a DAC buffer (end value last), supervise it, arm
+        and kick off. Then append the next step when it follows at once, so that the device plays the steps
+        back to back on one scan clock (no restart, no gap, no drift of the program's time grid)."""
+        if id(seg) in self._chained and self.daq.streaming:
+            self._n = self._chained.pop(id(seg))
+        else:
+            self._chained.clear()
+            self._end_value.clear()
+            volts = self._wanted(seg, engine._v_req, first=True)
+            engine.sup.check_setpoint(float(volts[np.argmax(np.abs(volts))]))
+            dac = self._dac_values(volts, engine._v_cmd)
+            spec = StreamSpec(self.cfg.scan_rate_Hz, self.inputs, StreamOut(
+                self.cfg.dac, dac, hold=1, final=self._next_chainable(seg, engine) is None))
+            plan = self.daq.arm(spec)
+            assert plan.out_volts is not None
+            self._base = 0
+            self._commanded = self._filtered(self.amp.output_volts(plan.out_volts), engine._v_cmd)
+            self._tail = self._end_value[id(seg)] = float(volts[-1])
+            self._n = volts.size - 1
+            self.daq.kickoff()
+            self._keepalive = time.monotonic()
+        nxt = self._next_chainable(seg, engine)
+        if nxt is not None and self.daq.out_open:
+            self._append(nxt, engine)
+        engine._v_req = self._end_value.pop(id(seg))
+
+    def _wanted(self, seg: Segment, hold: float, first: bool) -> np.ndarray:
+        """The step's amplifier output on the scan grid [V]: from its start (``first``: a new stream plays the
+        value at t_start on its first scan) or from one scan after it (appended: the value at t_start is the
+        step before's end value), to its end value exactly."""
         rate = self.cfg.scan_rate_Hz
         n = max(1, round(seg.duration * rate))
+        k = np.arange(0 if first else 1, n + 1)
         if seg.voltage is not None:
-            volts = np.asarray(seg.voltage(seg.t_start + np.arange(n + 1) / rate), dtype=float)
+            volts = np.asarray(seg.voltage(seg.t_start + k / rate), dtype=float)
             end = voltage_at(seg, seg.t_end)
-            volts[-1] = engine._v_req if end is None else end
+            volts[-1] = hold if end is None else end
         else:
-            volts = np.full(n + 1, engine._v_req)
-        worst = float(volts[np.argmax(np.abs(volts))])
-        engine.sup.check_setpoint(worst)
-        dac = self.amp.dac_volts(self._precompensate(volts, engine._v_cmd))
-        if self.cfg.drive_filter_Hz is not None:
-            dac = self._error_diffused(dac)
-        spec = StreamSpec(rate, self.inputs, StreamOut(self.cfg.dac, dac, hold=1))
-        plan = self.daq.arm(spec)
-        assert plan.out_volts is not None
-        self._commanded = self._filtered(self.amp.output_volts(plan.out_volts), engine._v_cmd)
-        self._n = n
-        engine._v_req = float(volts[-1])
-        self.daq.kickoff()
-        self._keepalive = time.monotonic()
+            volts = np.full(k.size, hold)
+        return volts
+
+    def _next_chainable(self, seg: Segment, engine: Engine) -> Segment | None:
+        """The step after ``seg`` when the stream can play it straight on: it starts where ``seg`` ends, lasts,
+        and needs no specimen change (an operator's action stops the stream)."""
+        segs = engine.program.segments
+        pos = self._positions.get(id(seg))
+        if pos is None:
+            self._positions = {id(s): i for i, s in enumerate(segs)}
+            pos = self._positions[id(seg)]
+        if pos + 1 >= len(segs):
+            return None
+        nxt = segs[pos + 1]
+        if nxt.duration <= 0 or nxt.changes or abs(nxt.t_start - seg.t_end) > 1e-9:
+            return None
+        return nxt
+
+    def _append(self, nxt: Segment, engine: Engine) -> None:
+        """Append the next step's values to the running stream-out (supervised like a new step's)."""
+        volts = self._wanted(nxt, self._tail, first=False)
+        engine.sup.check_setpoint(float(volts[np.argmax(np.abs(volts))]))
+        after = self._next_chainable(nxt, engine)
+        present = float(self._commanded[-1]) if self._commanded.size else engine._v_cmd
+        played = self.daq.extend(self._dac_values(volts, self._tail), final=after is None)
+        new = self._filtered(self.amp.output_volts(played), present)
+        keep = max(0, self.daq.scans_received - 1 - self._base)  # the scans still to be recorded, and the last
+        self._commanded = np.concatenate([self._commanded[keep:], new])
+        self._base += keep
+        self._chained[id(nxt)] = self._base + self._commanded.size - 1
+        self._end_value[id(nxt)] = float(volts[-1])
+        self._tail = float(volts[-1])
+
+    def _dac_values(self, volts: np.ndarray, present: float) -> np.ndarray:
+        """DAC volts that make the amplifier output ``volts`` behind the conditioning stage and its filter."""
+        dac = self.amp.dac_volts(self._precompensate(volts, present))
+        return self._error_diffused(dac) if self.cfg.drive_filter_Hz is not None else dac
 
     def collect(self, engine: Engine) -> None:
         """Record the scans received so far and supervise them; keep the device's watchdog fed."""
@@ -95,7 +154,11 @@ class HardwareTimed:
             self._keepalive = time.monotonic()
 
     def finish(self, engine: Engine) -> None:
-        """Collect until the end value has been played, then stop the stream (the DAC holds it)."""
+        """Collect until the end value has been played, then stop the stream (the DAC holds it) — unless the
+        next step is already in the stream: then it just goes on."""
+        if self._chained and self.daq.streaming:
+            self.collect(engine)
+            return
         wall_end = time.monotonic() + FINISH_TIMEOUT_S
         while self.daq.scans_received <= self._n:
             engine._check_stop()
@@ -161,7 +224,7 @@ class HardwareTimed:
 
     # ------------------------------------------------------------ data
     def _played(self) -> float:
-        k = min(max(self.daq.scans_received - 1, 0), self._commanded.size - 1)
+        k = min(max(self.daq.scans_received - 1 - self._base, 0), self._commanded.size - 1)
         return float(self._commanded[k]) if self._commanded.size else 0.0
 
     def _record(self, block: StreamBlock, engine: Engine, supervise: bool = True) -> None:
@@ -169,7 +232,7 @@ class HardwareTimed:
             return
         self.scans += block.n
         t = block.times() - engine._t0
-        idx = np.clip(block.first_scan + np.arange(block.n), 0, self._commanded.size - 1)
+        idx = np.clip(block.first_scan - self._base + np.arange(block.n), 0, self._commanded.size - 1)
         trek = self.amp.trek
         col = {name: block.volts[:, i] for i, name in enumerate(block.names)}
         ok = block.valid.all(axis=1)

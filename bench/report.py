@@ -15,9 +15,10 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
+from bench.analysis.applied import VoltageTrace, applied_voltage, measured_voltage
 from bench.analysis.runs import RunAnalysis, analyse
 from bench.identify.store import read_fits
-from bench.runfile import open_run
+from bench.runfile import RunFile, open_run
 
 DPI = 300  # publication resolution of the PNGs
 VECTOR_FORMATS = ("pdf", "svg")
@@ -56,13 +57,35 @@ def _fitted_membrane(run_path: Path) -> tuple[np.ndarray, np.ndarray, dict] | No
     return t, u, fit
 
 
+def _commanded_label(sp: VoltageTrace) -> str:
+    if sp.hardware_timed:
+        return "commanded voltage (DAQ output, every scan)"
+    return "commanded voltage (software set-points)"
+
+
+def _plot_measured_voltage(ax: plt.Axes, run: RunFile, t0: float | None = None, t1: float | None = None) -> None:
+    """The amplifier's voltage monitor on the voltage axis (time from t0 when a window is given)."""
+    got = measured_voltage(run)
+    if got is None:
+        return
+    t, v = got
+    if t0 is not None and t1 is not None:
+        w = (t >= t0) & (t <= t1)
+        t, v = t[w] - t0, v[w]
+    dense = t.size > 2 and float(np.median(np.diff(t))) < 1e-2
+    style = {"lw": 0.6} if dense else {"marker": ".", "ls": "none", "ms": 2}
+    ax.plot(t, v / 1e3, color="tab:purple", label="measured voltage (amplifier monitor)", **style)
+
+
 def thesis_figures(a: RunAnalysis, out: Path) -> list[Path]:
     """Displacement vs time and vs voltage (the thesis's Figs 4.15–4.22), with the fitted model if any."""
     run = open_run(a.path)
-    laser, sp = run.streams["laser"], run.streams["setpoints"]
+    laser, sp = run.streams["laser"], applied_voltage(run)
     ok = laser.columns["valid"] > 0
     t, u = laser.t[ok], laser.columns["displacement"][ok] * 1e3
-    v = np.interp(t, sp.t, sp.columns["voltage"]) / 1e3
+    v = np.interp(t, sp.t, sp.v) / 1e3
+    seen = applied_voltage(run, measured=True)  # the loop against what the specimen saw (as the analysis)
+    v_loop = np.interp(t, seen.t, seen.v) / 1e3
     fitted = _fitted_membrane(a.path)
     paths = []
     fig, ax = plt.subplots(figsize=(8, 4))
@@ -70,11 +93,8 @@ def thesis_figures(a: RunAnalysis, out: Path) -> list[Path]:
     if fitted is not None:
         ax.plot(fitted[0], fitted[1] * 1e3, "--", lw=1.0, label=f"fitted model (rms {fitted[2]['rms'] * 1e6:.1f} µm)")
     ax2 = ax.twinx()
-    ax2.plot(t, v, color="tab:red", lw=0.6, alpha=0.6, label="commanded voltage (set-point)")
-    if "amplifier" in run.streams and len(run.streams["amplifier"]):
-        amp = run.streams["amplifier"]
-        ax2.plot(amp.t, amp.columns["voltage"] / 1e3, ".", color="tab:purple", ms=2,
-                 label="measured voltage (amplifier monitor)")
+    ax2.plot(t, v, color="tab:red", lw=0.6, alpha=0.6, label=_commanded_label(sp))
+    _plot_measured_voltage(ax2, run)
     ax2.set_ylabel("voltage [kV]", color="tab:red")
     ax.set_xlabel("time [s]")
     ax.set_ylabel("displacement u [mm]")
@@ -84,8 +104,8 @@ def thesis_figures(a: RunAnalysis, out: Path) -> list[Path]:
     fig, ax = plt.subplots(figsize=(6, 5))
     for s in a.by_kind("thesis"):
         w = (t >= s.t_start) & (t <= s.t_start + s.duration)
-        ax.plot(v[w], u[w], lw=0.8, label=f"{s.voltage / 1e3:.0f} kV, {s.frequency:.3g} Hz, {s.temperature:g} K")
-    ax.set_xlabel("voltage [kV]")
+        ax.plot(v_loop[w], u[w], lw=0.8, label=f"{s.voltage / 1e3:.0f} kV, {s.frequency:.3g} Hz, {s.temperature:g} K")
+    ax.set_xlabel("measured voltage [kV]" if seen.source == "measured" else "commanded voltage [kV]")
     ax.set_ylabel("displacement u [mm]")
     ax.set_title("displacement vs voltage")
     ax.legend(fontsize=8)
@@ -120,7 +140,7 @@ def isopotential_figures(a: RunAnalysis, out: Path) -> list[Path]:
 def isometric_figures(a: RunAnalysis, out: Path) -> list[Path]:
     """Force vs time at the highest frequency, and force variation vs output frequency (Fig. 7)."""
     run = open_run(a.path)
-    lc, sp = run.streams["load_cell"], run.streams["setpoints"]
+    lc, sp = run.streams["load_cell"], applied_voltage(run)
     steps = a.by_kind("isometric")
     paths = []
     top = max(steps, key=lambda s: s.frequency)
@@ -129,8 +149,9 @@ def isometric_figures(a: RunAnalysis, out: Path) -> list[Path]:
     ax.plot(lc.t[w] - top.t_start, lc.columns["force"][w], lw=0.8, label="measured force (load cell)")
     ax2 = ax.twinx()
     ws = (sp.t >= top.t_start) & (sp.t <= top.t_start + top.duration)
-    ax2.plot(sp.t[ws] - top.t_start, sp.columns["voltage"][ws] / 1e3, color="tab:red", lw=0.6, alpha=0.6,
-             label="commanded voltage (set-point)")
+    ax2.plot(sp.t[ws] - top.t_start, sp.v[ws] / 1e3, color="tab:red", lw=0.6, alpha=0.6,
+             label=_commanded_label(sp))
+    _plot_measured_voltage(ax2, run, top.t_start, top.t_start + top.duration)
     _legend(ax, ax2, loc="upper right", fontsize=8)
     ax2.set_ylabel("voltage [kV]", color="tab:red")
     ax.set_xlabel("time [s]")

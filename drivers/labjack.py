@@ -228,6 +228,7 @@ class StreamOut:
     dac: int
     volts: np.ndarray
     hold: int = 1
+    final: bool = True  # False: more values follow through :meth:`LabJackT7.extend`; no hold loop until then
 
 
 @dataclass(frozen=True)
@@ -309,7 +310,9 @@ class _Stream:
     scans: int = 0  # scan index of the next scan to hand out (skipped ones included)
     packets: int = 0
     out_written: int = 0
-    out_final: bool = False
+    out_base: int = 0  # index of plan.out_codes[0] among every value given (extend drops written ones)
+    out_closed: bool = True  # no values will be appended: the hold loop follows the last one
+    out_final: bool = False  # the hold loop is written: the device plays nothing more from the host
     underrun_scans: int = 0
     done: bool = False
 
@@ -497,7 +500,7 @@ class LabJackT7:
         names = tuple(i.name or f"AIN{i.ain}" for i in spec.inputs)
         interval = (capacity - WRITE_REGS) / rate / 2 if out is not None else math.inf
         plan = StreamPlan(rate, 1.0 / rate, names, scan_list, spp, codes, volts, capacity, interval)
-        self._stream = _Stream(plan, spec, n_in, gains)
+        self._stream = _Stream(plan, spec, n_in, gains, out_closed=out is None or out.final)
         if out is not None:
             o = 2 * out.dac
             self.write_u32(OUT_TARGET0, DAC0 + o)
@@ -513,25 +516,59 @@ class LabJackT7:
         codes = s.plan.out_codes
         if codes is None or s.out_final:
             return
+        total = s.out_base + codes.size  # values given so far (the first out_base are no longer kept)
         played = min(s.scans, s.out_written)
         if self.streaming and s.scans > s.out_written:  # the device ran past the data it had
             s.underrun_scans = s.scans - s.out_written
         free = s.plan.out_capacity - (s.out_written - played)
         before = s.out_written
-        while free > 0 and s.out_written < codes.size:
-            n = min(WRITE_REGS, free, codes.size - s.out_written)
-            if n < WRITE_REGS and s.out_written + n < codes.size:
+        while free > 0 and s.out_written < total:
+            n = min(WRITE_REGS, free, total - s.out_written)
+            if n < WRITE_REGS and s.out_written + n < total:
                 break  # wait until a whole request fits
-            chunk = codes[s.out_written:s.out_written + n]
-            self.write_regs(OUT_BUFFER_U16_0, [int(c) for c in chunk])
+            k = s.out_written - s.out_base
+            self.write_regs(OUT_BUFFER_U16_0, [int(c) for c in codes[k:k + n]])
             s.out_written += n
             free -= n
-        if s.out_written == codes.size:
+        if s.out_written == total and s.out_closed:
             assert s.spec.output is not None
             self.write_u32(OUT_LOOP0, s.spec.output.hold)
             s.out_final = True
         if s.out_written > before:
             self.write_u32(OUT_SET_LOOP0, 1)
+
+    def extend(self, volts: np.ndarray, final: bool = True) -> np.ndarray:
+        """Append values [V at the DAC] to an open stream-out (armed with ``final=False``): they play on the
+        scans right after the values already given, on the same scan clock — no gap, no restart. ``final``:
+        nothing more follows (the hold loop is written after them). Returns what the 12-bit DAC will output.
+
+        Call it before the device has played the values it has (:attr:`StreamPlan.max_collect_interval`);
+        a stream-out that already ran dry plays the new values late (``out_underrun_scans``)."""
+        s = self._stream
+        if s is None or s.spec.output is None or s.out_closed or s.plan.out_codes is None:
+            raise InstrumentStateError(self.name, "extend needs an armed stream-out opened with final=False")
+        v = np.asarray(volts, dtype=float)
+        if v.ndim != 1 or v.size < 1 or not np.all(np.isfinite(v)):
+            raise ValueError(f"{self.name}: stream-out values must be a non-empty finite 1-D array")
+        if v.min() < DAC_RANGE[0] or v.max() > DAC_RANGE[1]:
+            raise LimitError(self.name, f"DAC{s.spec.output.dac} values span {v.min():g}…{v.max():g} V, "
+                             f"the DAC gives {DAC_RANGE[0]:g}…{DAC_RANGE[1]:g} V")
+        codes = self.cal.dac_codes(v, s.spec.output.dac)
+        played = self.cal.dac_volts(codes, s.spec.output.dac, self.dac_bits)
+        assert s.plan.out_volts is not None
+        cut = s.out_written - s.out_base  # values already in the device are dropped here (long campaigns)
+        s.plan.out_codes = np.concatenate([s.plan.out_codes[cut:], codes])
+        s.plan.out_volts = np.concatenate([s.plan.out_volts[cut:], played])
+        s.out_base += cut
+        s.out_closed = final
+        self._feed_out()
+        return played
+
+    @property
+    def out_open(self) -> bool:
+        """An armed stream-out still takes :meth:`extend`."""
+        s = self._stream
+        return s is not None and s.spec.output is not None and not s.out_closed and not s.done
 
     def _open_stream_socket(self) -> socket.socket:
         try:
@@ -693,7 +730,7 @@ class LabJackT7:
         codes = s.plan.out_codes
         if not s.spec.num_scans and codes is None:
             raise InstrumentStateError(self.name, "a continuous input-only stream never completes; use stop")
-        target = s.spec.num_scans or (codes.size if codes is not None else 0)
+        target = s.spec.num_scans or (s.out_base + codes.size if codes is not None else 0)
         blocks: list[StreamBlock] = []
         while True:
             block = self.collect(until=self.clock(), timeout=timeout)

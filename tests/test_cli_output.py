@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import pytest
@@ -66,7 +67,7 @@ def test_inspect_and_validate_json(run_file: Path) -> None:
     res = runner.invoke(app, ["validate", str(SHORT), "--json"])
     assert res.exit_code == 0, res.output
     data = json.loads(res.output)
-    assert data["valid"] is True and data["rig"] == "thesis-sim"
+    assert data["valid"] is True and data["rig"] == "thesis-daq-sim"
     assert data["duration_s"] == pytest.approx(11.0) and 6000 < data["peak_voltage_V"] <= data["voltage_limit_V"]
 
 
@@ -87,7 +88,8 @@ def test_report_json_and_figures_in_png_pdf_svg(run_file: Path, tmp_path: Path) 
     with Image.open(pngs[0]) as im:
         assert im.info["dpi"][0] == pytest.approx(300, abs=1)
     svg = (tmp_path / "displacement_vs_time.svg").read_text(encoding="utf-8")
-    assert "measured displacement (laser)" in svg and "commanded voltage (set-point)" in svg
+    assert "measured displacement (laser)" in svg and "measured voltage (amplifier monitor)" in svg
+    assert "commanded voltage (DAQ output, every scan)" in svg  # the default rig is hardware-timed
 
 
 def test_run_writes_a_log_beside_the_run_file_and_quiet_prints_nothing(tmp_path: Path) -> None:
@@ -96,7 +98,9 @@ def test_run_writes_a_log_beside_the_run_file_and_quiet_prints_nothing(tmp_path:
     assert res.stdout == ""
     (run_file,) = tmp_path.glob("*.h5")
     log = run_file.with_suffix(".log").read_text(encoding="utf-8")
-    assert "planned: 2 steps, 11.0 s" in log and "event t=11.000 s step 1 stop: protocol completed" in log
+    # the run stops when the stream's last packet (≤ 17 ms of scans) has come: 11.00–11.03 s
+    assert "planned: 2 steps, 11.0 s" in log
+    assert re.search(r"event t=11\.0[0-3]\d s step 1 stop: protocol completed", log)
     assert "completed: protocol completed; high voltage: 0 V commanded" in log
     res = runner.invoke(app, ["run", str(SHORT), "--dry-run"])
     assert res.exit_code == 0 and "dry run" in res.output  # -q does not stick to the next command

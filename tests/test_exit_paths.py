@@ -32,6 +32,9 @@ from tests.conftest import ROOT
 SHORT = ROOT / "protocols" / "short"
 THESIS = SHORT / "thesis-identification-short.toml"
 ISOMETRIC = SHORT / "lsdea-isometric-short.toml"
+# the software-timed thesis bench (ADAM-4024 set-points, Keyence over RS-232): the faults below are of its links;
+# the hardware-timed default rig's exit paths are in tests/test_daq_rig.py
+ADAM_RIG = ROOT / "rigs" / "thesis-sim.toml"
 ZERO_V = 5.0  # one code of the 12-bit ADAM-4024 times the TREK gain (0 V itself has no code: ±2.44 V)
 BOUND_S = 0.2  # README: ramp-down starts within 0.2 s of a stop request; 0 V within ramp + 0.2 s
 
@@ -50,7 +53,7 @@ class Trial:
     blocks: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list)
 
     def run(self, tmp: Path):
-        plan = plan_run(self.protocol, self.rig)
+        plan = plan_run(self.protocol, self.rig or ADAM_RIG)
         if self.rig_overrides:
             rig = RigConfig.model_validate({**plan.rig.model_dump(), **self.rig_overrides})
             plan.rig = plan.program.rig = rig
@@ -108,7 +111,7 @@ def test_a_signal_ramps_the_output_to_zero_within_the_bound(tmp_path: Path, sig:
     result, run, sim = trial.run(tmp_path)
     assert result.state == "interrupted" and result.reason.startswith(reason)
     assert run.complete and run.state == "interrupted" and run.reason.startswith(reason)
-    assert_ramp_bound(run, trial, sim, plan_run(THESIS).rig.limits.shutdown_ramp_s)
+    assert_ramp_bound(run, trial, sim, plan_run(THESIS, ADAM_RIG).rig.limits.shutdown_ramp_s)
     (_, safe), = events(run, "safe")
     assert safe.startswith("0 V commanded by the host") and "verified: voltage monitor" in safe
 
@@ -119,7 +122,7 @@ def test_a_second_signal_zeroes_at_once(tmp_path: Path) -> None:
         time.sleep(0.01)
         os.kill(os.getpid(), signal.SIGINT)
 
-    slow_ramp = {"limits": {**plan_run(THESIS).rig.limits.model_dump(), "shutdown_ramp_s": 5.0}}
+    slow_ramp = {"limits": {**plan_run(THESIS, ADAM_RIG).rig.limits.model_dump(), "shutdown_ramp_s": 5.0}}
     trial = Trial(THESIS, 3.0, twice, slow_ramp)
     _, run, sim = trial.run(tmp_path)
     assert run.state == "interrupted"
@@ -183,7 +186,7 @@ def test_a_silent_laser_ends_the_run_after_its_timeout(tmp_path: Path) -> None:
     trial = Trial(THESIS, 3.0, lambda _e, sim: setattr(sim.faults["laser"], "mute", True))
     result, _run, sim = trial.run(tmp_path)
     assert result.state == "error" and "laser" in result.reason
-    timeout = plan_run(THESIS).rig.laser.timeout_s
+    timeout = plan_run(THESIS, ADAM_RIG).rig.laser.timeout_s
     upload = 0.3  # a storage fetch in flight may wait for its reply's wire time too (≤ 0.2 s of data per fetch)
     assert trial.last_high(sim) <= trial.t_action + timeout + upload + 0.25 + BOUND_S
 
@@ -194,7 +197,7 @@ def test_a_lost_amplifier_bus_is_made_safe_by_the_module_watchdog(tmp_path: Path
     assert result.state == "error" and "lost link" in result.reason
     (_, safe), = events(run, "safe")
     assert safe.startswith("0 V NOT commanded by the host: left to the set-point module's communication watchdog")
-    watchdog = plan_run(THESIS).rig.amplifier.comm_watchdog_s
+    watchdog = plan_run(THESIS, ADAM_RIG).rig.amplifier.comm_watchdog_s
     assert trial.last_high(sim) <= trial.t_action + watchdog + 0.05 and sim.plant.watchdog_tripped
 
 
@@ -204,7 +207,7 @@ def test_a_failed_set_point_module_is_made_safe_by_its_watchdog(tmp_path: Path) 
     assert result.state == "error" and "exception 4" in result.reason
     (_, safe), = events(run, "safe")
     assert "communication watchdog" in safe and "verified: voltage monitor" in safe  # the AI module still answers
-    watchdog = plan_run(THESIS).rig.amplifier.comm_watchdog_s
+    watchdog = plan_run(THESIS, ADAM_RIG).rig.amplifier.comm_watchdog_s
     assert trial.last_high(sim) <= trial.t_action + watchdog + 0.05
 
 
@@ -220,7 +223,7 @@ def test_a_drive_error_during_a_hold_stops_the_run_with_the_drive_text(tmp_path:
 
 
 def test_a_rig_without_a_set_point_watchdog_is_refused(tmp_path: Path) -> None:
-    plan = plan_run(THESIS)
+    plan = plan_run(THESIS, ADAM_RIG)
     rig = RigConfig.model_validate({**plan.rig.model_dump(),
                                     "amplifier": {**plan.rig.amplifier.model_dump(), "comm_watchdog_s": None}})
     plan.rig = plan.program.rig = rig
@@ -253,7 +256,7 @@ def test_a_full_disk_mid_run_zeroes_the_output_and_says_why(tmp_path: Path) -> N
 
 def _run_into(trial: Trial, folder: Path):
     """Like Trial.run, with the run file in ``folder``: (result, simulated rig, engine)."""
-    plan = plan_run(trial.protocol)
+    plan = plan_run(trial.protocol, trial.rig or ADAM_RIG)
     seen: list = []
 
     def hook(engine: Engine, sim) -> None:

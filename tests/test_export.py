@@ -39,14 +39,14 @@ def test_csv_export_has_units_in_headers_and_the_file_values(run_file: Path, tmp
         n = int(dict(zip(json.loads(f["status/samples"].attrs["names"]), f["status/samples"][:],
                          strict=True))["laser"])
         t, u = f["laser/t"][:n], f["laser/displacement"][:n]
-        volts = f["setpoints/voltage"][: len(f["setpoints/t"])]
+        volts = f["amplifier/commanded"][: len(f["amplifier/t"])]  # hardware-timed default rig
     assert len(rows) - 1 == n > 50_000  # 10 kHz over the active step
     got = np.array([[float(r[0]), float(r[1])] for r in rows[1:]])
     np.testing.assert_array_equal(got[:, 0], t)  # exact: the CSV keeps every digit
     np.testing.assert_array_equal(got[:, 1], u)
-    with (tmp_path / "csv" / "setpoints.csv").open(encoding="utf-8") as fh:
-        sp = list(csv.DictReader(fh))
-    assert max(float(r["voltage [V]"]) for r in sp) == pytest.approx(volts.max()) and volts.max() > 5000
+    with (tmp_path / "csv" / "amplifier.csv").open(encoding="utf-8") as fh:
+        amp = list(csv.DictReader(fh))
+    assert max(float(r["commanded [V]"]) for r in amp) == pytest.approx(volts.max()) and volts.max() > 5000
     with (tmp_path / "csv" / "events.csv").open(encoding="utf-8") as fh:
         events = list(csv.DictReader(fh))
     assert events[0]["kind"] == "run" and any(e["kind"] == "end" for e in events)
@@ -60,14 +60,14 @@ def test_mat_export_reads_back_in_scipy_with_units(run_file: Path, tmp_path: Pat
     assert res.exit_code == 0, res.output
     m = loadmat(target, simplify_cells=True)
     assert {"setpoints", "amplifier", "laser", "events", "metadata"} <= set(m)
-    assert m["laser"]["units"] == {"t": "s", "displacement": "m", "late": "s", "valid": "1"}
+    assert m["laser"]["units"] == {"t": "s", "displacement": "m", "valid": "1"}  # on the DAQ's scan clock
     assert m["amplifier"]["units"]["voltage"] == "V" and m["amplifier"]["units"]["current"] == "A"
     with h5py.File(run_file, "r") as f:
         n = len(m["laser"]["t"])
         np.testing.assert_array_equal(m["laser"]["displacement"], f["laser/displacement"][:n])
     assert n > 50_000
     assert "end" in list(m["events"]["kind"])
-    assert m["metadata"]["rig_name"] == "thesis-sim"
+    assert m["metadata"]["rig_name"] == "thesis-daq-sim"
 
 
 def test_export_needs_a_target_and_a_run_file(tmp_path: Path) -> None:

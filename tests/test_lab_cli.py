@@ -47,7 +47,7 @@ def test_protocols_list_and_show() -> None:
     assert res.exit_code == 0, res.output
     listed = {i["name"]: i for i in json.loads(res.output)}
     assert set(listed) == set(shipped_protocols())
-    assert listed["thesis-identification"]["rig"] == "thesis-sim"
+    assert listed["thesis-identification"]["rig"] == "thesis-daq-sim"
     res = runner.invoke(app, ["protocols", "show", "short/thesis-identification-short"])
     assert res.exit_code == 0
     assert res.output == (ROOT / "protocols/short/thesis-identification-short.toml").read_text(encoding="utf-8")
@@ -68,10 +68,10 @@ def test_init_copies_verbatim_and_every_protocol_names_the_labs_rig(in_tmp: Path
     for copy in (lab / "protocols").rglob("*.toml"):
         assert _rig_of(copy).parent == (lab / "rigs").resolve(), copy
     assert (lab / "runs").is_dir() and (lab / "README.md").is_file()
-    (lab / "rigs" / "thesis-sim.toml").write_text("# edited\n", encoding="utf-8")
+    (lab / "rigs" / "thesis-daq-sim.toml").write_text("# edited\n", encoding="utf-8")
     res = runner.invoke(app, ["init", "lab"])
     assert res.exit_code == 2 and "does not overwrite" in res.output
-    assert (lab / "rigs" / "thesis-sim.toml").read_text(encoding="utf-8") == "# edited\n"
+    assert (lab / "rigs" / "thesis-daq-sim.toml").read_text(encoding="utf-8") == "# edited\n"
 
 
 @pytest.mark.parametrize("dest", ["protocols/mine.toml", "protocols/short/mine.toml", "protocols/a/b/mine.toml"])
@@ -81,7 +81,7 @@ def test_copy_into_a_lab_folder_names_the_labs_rig(in_tmp: Path, dest: str) -> N
     res = runner.invoke(app, ["protocols", "copy", "thesis-identification", f"lab/{dest}"])
     assert res.exit_code == 0, res.output
     copy = in_tmp / "lab" / dest
-    assert _rig_of(copy) == (in_tmp / "lab" / "rigs" / "thesis-sim.toml").resolve()
+    assert _rig_of(copy) == (in_tmp / "lab" / "rigs" / "thesis-daq-sim.toml").resolve()
     rig_line = next(line for line in copy.read_text(encoding="utf-8").splitlines() if line.startswith("rig ="))
     assert not Path(tomllib.loads(rig_line)["rig"]).is_absolute()  # the lab folder can move
     original = (ROOT / "protocols" / "thesis-identification.toml").read_text(encoding="utf-8").splitlines()
@@ -92,7 +92,7 @@ def test_copy_into_a_lab_folder_names_the_labs_rig(in_tmp: Path, dest: str) -> N
 def test_copy_outside_a_lab_names_the_shipped_rig_and_validates(in_tmp: Path) -> None:
     res = runner.invoke(app, ["protocols", "copy", "short/thesis-identification-short", "mine.toml"])
     assert res.exit_code == 0, res.output
-    assert _rig_of(in_tmp / "mine.toml") == (rigs_dir() / "thesis-sim.toml").resolve()
+    assert _rig_of(in_tmp / "mine.toml") == (rigs_dir() / "thesis-daq-sim.toml").resolve()
     res = runner.invoke(app, ["validate", "mine.toml", "--json"])
     assert res.exit_code == 0, res.output
     assert json.loads(res.output)["valid"] is True

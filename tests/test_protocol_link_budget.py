@@ -22,9 +22,10 @@ FC4_19200 = 23 * 10 / 19200 + 2 * 3.5 * 10 / 19200 + 1e-3  # 16.6 ms: at most 60
 
 
 def compiled(path: Path, kind: str, **recording: float) -> tuple[Protocol, Program]:
-    """The protocol compiled (no model dry run) for the lab template or the simulated rig of its bench."""
+    """The protocol compiled (no model dry run) for the software-timed lab template or simulated rig of its bench
+    (the low-cost ADAM/DGT1S variant: the protocols' default rigs are hardware-timed, with no serial budget)."""
     protocol = load_protocol(path)
-    name = load_rig(protocol.rig_path()).name.rsplit("-", 1)[0]
+    name = load_rig(protocol.rig_path()).name.rsplit("-", 1)[0].removesuffix("-daq")
     if recording:
         protocol = protocol.model_copy(update={"recording": protocol.recording.model_copy(update=recording)})
     return protocol, compile_program(protocol, load_rig(RIGS / f"{name}-{kind}.toml"))

@@ -128,7 +128,8 @@ def test_cli_validate_prints_the_prediction_and_refuses_cleanly(tmp_path: Path) 
     ok = subprocess.run([sys.executable, "-m", "bench", "validate", str(ident)], capture_output=True, text=True,
                         timeout=120, env={"COLUMNS": "200", "PATH": ""})
     assert ok.returncode == 0, ok.stderr
-    assert "peak true field" in ok.stdout and "36.0 MV/m" in ok.stdout and "laser 200,050" in ok.stdout
+    # 25 s at 10,000 scans/s on the hardware-timed default rig, scan 0 included
+    assert "peak true field" in ok.stdout and "36.0 MV/m" in ok.stdout and "laser 250,001" in ok.stdout
     bad = write(tmp_path, WAVE.format(channel="voltage", amp="9 kV", f=0.5, d=2))
     proc = subprocess.run([sys.executable, "-m", "bench", "run", str(bad), "--dry-run"], capture_output=True,
                           text=True, timeout=120)

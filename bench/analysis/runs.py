@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bench.analysis.applied import applied_voltage
 from bench.analysis.cycles import crest_to_trough, hysteresis_loss
 from bench.analysis.thesis import cycle_figures
 from bench.models.lozenge import LozengeParams
@@ -117,7 +118,7 @@ def analyse(path: str | Path, last_cycles: int = 3) -> RunAnalysis:
     kind_of_specimen = spec["kind"]
     config = spec.get("lsdea", {}).get("configuration", "membrane") if kind_of_specimen == "lsdea" else "membrane"
     history = run.specimen_changes()
-    sp = run.streams["setpoints"]
+    sp = applied_voltage(run, measured=True)
     results: list[StepResult] = []
     for row, step in zip(run.program, protocol.steps, strict=True):
         if not isinstance(step, WaveformStep):
@@ -126,7 +127,7 @@ def analyse(path: str | Path, last_cycles: int = 3) -> RunAnalysis:
         if t0 + dur > run.updated + 1e-6:
             continue  # the run stopped before this step ended
         sel = _window(sp, t0, t0 + dur)
-        vpk = float(np.max(np.abs(sp.columns["voltage"][sel]))) if sel.any() else 0.0
+        vpk = float(np.max(np.abs(sp.v[sel]))) if sel.any() else 0.0
         proto, mass = _specimen_at(t0, history, spec)
         res = StepResult(int(row["index"]), row["name"].decode(), "", t0, dur, step.frequency_Hz, vpk,
                          proto if kind_of_specimen == "lsdea" else None, mass if config == "hung" else None)
@@ -134,7 +135,7 @@ def analyse(path: str | Path, last_cycles: int = 3) -> RunAnalysis:
         if kind_of_specimen == "membrane":
             laser = run.streams["laser"]
             w = _window(laser, t0, t0 + dur)
-            volts = np.interp(laser.t[w], sp.t, sp.columns["voltage"])
+            volts = np.interp(laser.t[w], sp.t, sp.v)
             figs = cycle_figures(laser.t[w] - t0, laser.columns["displacement"][w], volts, f)
             res.kind = "thesis"
             res.temperature = _temperature_at(t0, history, spec)

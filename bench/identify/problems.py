@@ -19,9 +19,11 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from bench.analysis.applied import applied_voltage
 from bench.identify.core import to_optimiser, to_physical
-from bench.models.integrate import MODEL_LOZENGE, MODEL_MEMBRANE, OBSERVE_FORCE, run_fixed_batch
+from bench.models.integrate import MODEL_MEMBRANE, OBSERVE_FORCE, run_fixed_batch
 from bench.models.lozenge import MODE_HUNG, MODE_IMPOSED, PROTOTYPE_LAMBDA2P, LozengeParams, MaxwellBranch
+from bench.models.lozenge_batch import lozenge_batch
 from bench.models.membrane import MembraneParams
 from bench.models.membrane_batch import membrane_batch_records
 from bench.runfile import RunFile, open_run
@@ -82,15 +84,13 @@ def _record_windows(t_set: np.ndarray, v_set: np.ndarray, t_end: float, split_re
     if split_rest <= 0 or len(v_set) == 0:
         return [(0.0, t_end)]
     quiet = np.abs(np.asarray(v_set)) <= 0.01 * float(np.max(np.abs(v_set)))
-    rests, start = [], None  # runs of quiet set-points
-    for t, q in zip(t_set, quiet, strict=True):
-        if q and start is None:
-            start = float(t)
-        elif not q and start is not None:
-            rests.append((start, float(t)))
-            start = None
-    if start is not None:
-        rests.append((start, t_end))
+    # runs of quiet set-points: from the first quiet one to the next non-quiet one (vectorised: a 10-kHz
+    # commanded trace has millions of rows)
+    edges = np.diff(np.concatenate([[0], quiet.astype(np.int8), [0]]))
+    begins, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+    t_arr = np.asarray(t_set, dtype=float)
+    rests = [(float(t_arr[b]), float(t_arr[e]) if e < t_arr.size else t_end)
+             for b, e in zip(begins.tolist(), ends.tolist(), strict=True)]
     windows, a = [], 0.0
     for r0, r1 in rests:
         if r1 - r0 >= split_rest and r0 > a:
@@ -151,13 +151,13 @@ class MembraneProblem:
         params = MembraneParams(**{k: tuple(v) if isinstance(v, list) else v for k, v in model.items()})
         self.template = self.template or params
         stride = max(1, round(1.0 / (self.data_rate * self.h)))
-        sp = run.streams["setpoints"]
+        sp = applied_voltage(run, measured=True)
         T0 = spec.get("overrides", {}).get("temperature_K") or spec.get("temperature_K", 296.0)
         changes = [(te, v["temperature_K"]) for te, v in run.specimen_changes() if "temperature_K" in v]
         laser = run.streams["laser"]
         ok = laser.columns["valid"] > 0
         sample = _window_means if self.average else _sampled
-        windows = _record_windows(sp.t, sp.columns["voltage"], run.updated, self.split_rest, self.keep_rest)
+        windows = _record_windows(sp.t, sp.v, run.updated, self.split_rest, self.keep_rest)
         for a, b in windows:
             n = int(np.floor((b - a) / self.h + 1e-9))
             n -= n % stride
@@ -165,7 +165,7 @@ class MembraneProblem:
                 continue
             t_steps = a + np.arange(1, n + 1) * self.h
             U = np.empty((n, 2))
-            U[:, 0] = _hold(sp.t, sp.columns["voltage"], t_steps)
+            U[:, 0] = _hold(sp.t, sp.v, t_steps)
             U[:, 1] = T0
             for te, T in changes:
                 U[t_steps > te, 1] = T
@@ -265,7 +265,7 @@ class LozengeProblem:
         self.base = self.base or base
         changes = run.specimen_changes()
         cuts = sorted({0.0, *[t for t, _ in changes], run.updated})
-        sp = run.streams["setpoints"]
+        sp = applied_voltage(run, measured=True)
         stride = max(1, round(1.0 / (self.data_rate * self.h)))
         proto, mass = base.lambda2p, base.hung_mass
         for a, b in itertools.pairwise(cuts):
@@ -279,7 +279,7 @@ class LozengeProblem:
                 continue
             t_steps = a + np.arange(0, n + 1) * self.h
             U = np.zeros((n + 1, 3))
-            U[:, 0] = _hold(sp.t, sp.columns["voltage"], t_steps)
+            U[:, 0] = _hold(sp.t, sp.v, t_steps)
             params = replace(base, lambda2p=proto, hung_mass=mass)
             if config == "hung":
                 laser = run.streams["laser"]
@@ -316,7 +316,7 @@ class LozengeProblem:
             P = np.stack([replace(self.params_of(z), lambda2p=lam2p, hung_mass=mass).pack(mode) for z in Z])
             Y0 = np.tile(rec.y0, (Z.shape[0], 1))
             channel = 0 if mode == MODE_HUNG else OBSERVE_FORCE
-            out.append(run_fixed_batch(MODEL_LOZENGE, Y0, rec.U, self.h, P, channel, rec.stride))
+            out.append(lozenge_batch(P, Y0, rec.U, self.h, channel, rec.stride))
         return np.concatenate(out, axis=1)
 
     def start(self) -> np.ndarray:

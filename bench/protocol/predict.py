@@ -24,7 +24,7 @@ from sim_devices.clock import VirtualClock
 from sim_devices.motion import MotionProfile
 from sim_devices.plant import HVStage, Plant, PlantBlock
 
-STREAM_COLUMNS = {"setpoints": 2, "amplifier": 2, "laser": 2, "motor": 2, "load_cell": 1}
+STREAM_COLUMNS = {"setpoints": 2, "amplifier": 3, "laser": 2, "motor": 2, "load_cell": 1}
 PASSIVE_LASER_HZ = 10.0  # single laser reads while the storage is idle
 DRY_RUN_MAX_S = 3600.0  # run time the dry run integrates (the longest shipped campaign: 1985 s)
 DRY_RUN_BUDGET_S = 30.0  # estimated seconds of one core (the longest shipped campaign: ~17 s estimated, 14 s measured)
@@ -62,6 +62,24 @@ class Prediction:
 def sample_counts(program: Program) -> dict[str, int]:
     """Samples per recorded stream for the whole run."""
     rig, rec, T = program.rig, program.protocol.recording, program.duration
+    daq = rig.daq if rig.amplifier is not None and rig.amplifier.drive == "daq" else None
+    if daq is not None:  # hardware-timed: every streamed step sampled on the DAQ's scan clock
+        # one stream per run of back-to-back steps (bench.hardware_timed chains them): each plays scan 0 at its
+        # start, then one scan per period
+        segs = program.segments
+        chained = [i > 0 and s.duration > 0 and segs[i - 1].duration > 0 and not s.changes
+                   and abs(s.t_start - segs[i - 1].t_end) <= 1e-9 for i, s in enumerate(segs)]
+        scans = sum(max(1, round(s.duration * daq.scan_rate_Hz)) + (not c)
+                    for s, c in zip(segs, chained, strict=True) if s.duration > 0)
+        counts = {"setpoints": (int(T * rec.setpoint_Hz) if rig.motor is not None else 0) + len(program.segments),
+                  "amplifier": scans}
+        if daq.laser_ain is not None:
+            counts["laser"] = scans
+        if daq.force_ain is not None:
+            counts["load_cell"] = scans
+        if rig.motor is not None and rec.position_Hz > 0:
+            counts["motor"] = int(T * rec.position_Hz)
+        return counts
     counts = {"setpoints": int(T * rec.setpoint_Hz) + len(program.segments)}
     if rig.amplifier is not None and rec.monitors_Hz > 0:
         counts["amplifier"] = int(T * rec.monitors_Hz)

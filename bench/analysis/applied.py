@@ -1,0 +1,58 @@
+"""The voltage a run applied to the specimen, as the file holds it, whichever way the rig drove the amplifier.
+
+On a software-timed rig (ADAM-4024 set-point module) every voltage the host sent is a row of ``/setpoints``
+(a staircase the amplifier holds between writes). On a hardware-timed rig (``amplifier.drive = "daq"``) the DAQ
+plays each step's waveform on its scan clock: ``/amplifier/commanded`` holds the output commanded in every scan
+(10 kHz), while ``/setpoints`` keeps only what the host set between streamed steps (0 V, holds) and NaN for
+motor-only rows. The applied voltage is the two merged in time order.
+
+The amplifier's measured output (``/amplifier/voltage``) is kept apart: it is what the monitor saw, with its
+noise and the amplifier's slew, and the papers' analyses compare the response with the command.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from bench.runfile import RunFile
+
+
+@dataclass(frozen=True)
+class VoltageTrace:
+    """Commanded amplifier output: times [s], volts [V], and where it came from (for legends and reports)."""
+
+    t: np.ndarray
+    v: np.ndarray
+    source: str
+
+    @property
+    def hardware_timed(self) -> bool:
+        return self.source != "setpoints"
+
+
+def applied_voltage(run: RunFile, measured: bool = False) -> VoltageTrace:
+    """The amplifier output over the whole run (see the module's docstring): commanded, or with ``measured``
+    the voltage monitor wherever the rig sampled it on the DAQ's scan clock (what the specimen saw, slew and
+    all), the set-points filling the time between streamed steps. On a software-timed rig the monitor is
+    polled a few times a second, too sparse to stand for the drive: the set-points are used either way."""
+    sp = run.streams["setpoints"]
+    keep = np.isfinite(sp.columns["voltage"])
+    t_sp, v_sp = sp.t[keep], sp.columns["voltage"][keep]
+    amp = run.streams.get("amplifier")
+    if amp is None or "commanded" not in amp.columns or len(amp) == 0:
+        return VoltageTrace(t_sp, v_sp, "setpoints")
+    column = "voltage" if measured else "commanded"
+    t = np.concatenate([t_sp, amp.t])
+    v = np.concatenate([v_sp, amp.columns[column]])
+    order = np.argsort(t, kind="stable")
+    return VoltageTrace(t[order], v[order], "measured" if measured else "commanded")
+
+
+def measured_voltage(run: RunFile) -> tuple[np.ndarray, np.ndarray] | None:
+    """The amplifier's voltage monitor (times [s], volts [V]), or None when the rig has no monitor stream."""
+    amp = run.streams.get("amplifier")
+    if amp is None or len(amp) == 0:
+        return None
+    return amp.t, amp.columns["voltage"]
