@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import bisect
 import math
+import re
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass, replace
@@ -28,6 +29,30 @@ from bench.models.membrane import MembraneParams
 from bench.models.membrane_runs import MembraneStream
 from sim_devices.clock import Clock
 from sim_devices.motion import MotionProfile
+
+
+def _without_when(failure: str) -> str:
+    """A model's failure text without its own 'at sample k' / 'at t = … s' (times of its block)."""
+    return re.sub(r" at (sample [0-9]+|t = [-+0-9.e]+ s)", "", failure)
+
+
+def _membrane_failure(t: np.ndarray, lam: np.ndarray, field: np.ndarray, p: MembraneParams) -> tuple[str, float]:
+    """What failed first in a block and when: breakdown (|E| > E_B), runaway stretch (pull-in) or a non-finite
+    state — the tests of ``membrane.failure_reason``, taken in time order (the model's text names the first
+    kind in its own priority order, which can be a later sample)."""
+    with np.errstate(invalid="ignore"):
+        tests = [(np.abs(field) > p.breakdown_field, "true field above breakdown {:.1f} MV/m"),
+                 (lam > p.runaway_stretch, "runaway stretch: λ above {} (pull-in)"),
+                 (~np.isfinite(lam), "non-finite stretch (Gent lock-up or numerical blow-up){}")]
+    firsts = [(int(np.argmax(bad)), k) for k, (bad, _) in enumerate(tests) if bad.any()]
+    i, k = min(firsts) if firsts else (t.size - 1, 2)
+    arg = [p.breakdown_field / 1e6, p.runaway_stretch, ""][k]
+    return "specimen failure: " + tests[k][1].format(arg), float(t[i])
+
+
+def _first(t: np.ndarray, bad: np.ndarray) -> float | None:
+    """Time of the first failing sample of a block (None: the model failed on a test not repeated here)."""
+    return float(t[int(np.argmax(bad))]) if bad.any() else None
 
 Listener = Callable[["PlantBlock"], None]
 BLOCK_STEPS = 20_000  # longest block handed to the compiled integrator at once
@@ -190,10 +215,12 @@ class Plant:
             self.advance_to(self.clock.now())
             self._break("dielectric breakdown (injected)")
 
-    def _break(self, why: str) -> None:
+    def _break(self, why: str, at: float | None = None) -> None:
+        """The specimen fails at ``at`` (default: now) — the model's own sample of failure when it is known,
+        not the start of the integration block that found it."""
         if not self.broken:
             self.broken = True
-            self.failure = f"{why} at t = {self.t:.4f} s"
+            self.failure = f"{why} at t = {self.t if at is None else at:.4f} s"
 
     # ------------------------------------------------------------------ stepping
     def observe(self) -> PlantBlock:
@@ -277,7 +304,7 @@ class Plant:
             field = tr.field
             breakdown = np.full(n, self.specimen.breakdown_field)  # type: ignore[union-attr]
             if tr.failed and not self.broken:
-                self._break(f"specimen failure: {tr.failure}")
+                self._break(*_membrane_failure(t, tr.stretch, field, self.specimen))  # type: ignore[arg-type]
         else:
             U = np.zeros((n, 3))
             U[:, 0] = v_dea
@@ -298,7 +325,9 @@ class Plant:
             if self.configuration != "hung":
                 force = tr.force
             if tr.failed and not self.broken:
-                self._break(f"specimen failure: {tr.failure}")
+                with np.errstate(invalid="ignore"):
+                    bad = ~np.isfinite(tr.position) | (np.abs(field) > breakdown)  # lozenge_runs' tests
+                self._break(f"specimen failure: {_without_when(tr.failure)}", _first(t, bad))
         q = np.concatenate([[self._q_prev], charge])
         current = np.diff(q) / self.h
         if self.broken:

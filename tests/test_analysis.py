@@ -55,6 +55,10 @@ def test_crest_to_trough_removes_drift_and_last_cycles_picks_whole_periods() -> 
     assert t[m][0] == pytest.approx(2.5) and t[m][-1] == pytest.approx(4.0)
     with pytest.raises(ValueError, match="whole cycles"):
         last_cycles(t, 2.0, n_cycles=9)
+    # 15 periods at 2 Hz sampled at 10 kHz: the samples end at 7.4999 s (t·f = 14.9998), the 15th is whole
+    t = np.arange(75_000) / 1e4
+    m = last_cycles(t, 2.0)
+    assert t[m][0] == pytest.approx(7.0) and t[m][-1] == pytest.approx(7.4999) and m.sum() == 5000
 
 
 def test_cycle_figures_of_a_lagging_creeping_response() -> None:

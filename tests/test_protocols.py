@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from bench.protocol.program import ProtocolLimitError
@@ -85,7 +87,7 @@ duration_s = {d}
     ("[[steps]]\ntype = 'teleport'\n", THESIS_RIG, "steps[0](teleport): Input tag 'teleport' found"),
     ("[[steps]]\ntype = 'set'\nhung_mass_kg = 0.1\n", THESIS_RIG, "hung_mass_kg and prototype apply to the LS-DEA"),
     ("[[steps]]\ntype = 'waveform'\nkind = 'square'\noffset = '8 kV'\namplitude = '0 kV'\nfrequency_Hz = 0.05\n"
-     "duration_s = 20\n", THESIS_RIG, "model predicts specimen failure: runaway stretch"),
+     "duration_s = 20\n", THESIS_RIG, "model predicts specimen failure: true field above breakdown 100.0 MV/m"),
 ])
 def test_bad_protocols_are_refused_with_one_line(tmp_path: Path, body: str, rig: str, message: str) -> None:
     f = write(tmp_path, body, rig)
@@ -351,3 +353,25 @@ def test_cli_move_on_a_rig_without_motor_and_simulate_edge_cases() -> None:
                  ["lsdea", "isotonic", "--frequency", "0.01", "--cycles", "1000"], ["lsdea", "--mass", "nan"]):
         proc = _bench("simulate", *args)
         assert proc.returncode == 2 and "Traceback" not in proc.stderr, (args, proc.stderr)
+
+
+def test_the_dry_run_reports_when_the_model_fails_not_when_its_block_began(tmp_path: Path) -> None:
+    """8 kV held on the thesis membrane: as it thins, the true field passes the breakdown field (then it runs
+    away); the dry run integrates in blocks of up to 2 s and used to report the block's start. Reference: the
+    offline scipy Radau path (physics.md §1.5) on the rig's specimen, first sample with |E| above E_B."""
+    from bench.models.membrane_runs import simulate_membrane
+    from bench.rig import load_rig
+    from bench.waveforms import Waveform
+
+    body = ("[[steps]]\ntype = 'waveform'\nkind = 'square'\noffset = '8 kV'\namplitude = '0 kV'\n"
+            "frequency_Hz = 0.05\nduration_s = 20\n")
+    with pytest.raises(ProtocolLimitError) as err:
+        plan_run(write(tmp_path, body, THESIS_RIG))
+    reported = float(re.search(r"at t = ([0-9.]+) s", str(err.value)).group(1))  # type: ignore[union-attr]
+    spec = load_rig(THESIS_RIG).specimen
+    ref = simulate_membrane(spec.membrane(), Waveform("square", 0.0, 0.05, offset=8000.0), 20.0, fs=1000.0,
+                            T=spec.temperature_K, method="radau")
+    assert ref.failed and "breakdown" in str(err.value)
+    over = np.abs(ref.field) > spec.membrane().breakdown_field
+    assert over.any()
+    assert reported == pytest.approx(float(ref.t[int(np.argmax(over))]), abs=0.01)

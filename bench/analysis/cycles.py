@@ -6,9 +6,13 @@ import numpy as np
 
 
 def last_cycles(t: np.ndarray, frequency: float, n_cycles: int = 1) -> np.ndarray:
-    """Boolean mask of the samples in the last ``n_cycles`` whole periods of a record at ``frequency`` [Hz]."""
+    """Boolean mask of the samples in the last ``n_cycles`` whole periods of a record at ``frequency`` [Hz].
+
+    A record sampled every dt over whole periods ends one sample before its last period's end (15 periods at
+    2 Hz sampled at 10 kHz end at 7.4999 s, t·f = 14.9998): the span counts up to one sample interval more."""
     t = np.asarray(t, dtype=float)
-    n_total = int(np.floor((t[-1] - t[0]) * frequency + 1e-9))
+    dt = float(np.median(np.diff(t))) if t.size > 1 else 0.0
+    n_total = int(np.floor((t[-1] - t[0] + dt) * frequency + 1e-9))
     if n_total < n_cycles:
         raise ValueError(f"record holds {n_total} whole cycles, {n_cycles} requested")
     start = t[0] + (n_total - n_cycles) / frequency
