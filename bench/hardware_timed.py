@@ -14,6 +14,8 @@ import time
 from typing import TYPE_CHECKING
 
 import numpy as np
+from numba import njit
+from scipy.signal import lfilter
 
 from bench.protocol.program import Segment, voltage_at
 from bench.rig import RigConfig
@@ -27,6 +29,21 @@ if TYPE_CHECKING:
 KEEPALIVE_S = 0.25  # a command-response request at least this often keeps the device's watchdog fed
 FINISH_TIMEOUT_S = 5.0  # wall time allowed for the last scans of a step to arrive
 FINISH_POLL_S = 0.01  # rig time between collects while waiting for a step's last scans
+
+
+@njit(cache=True)
+def _diffuse(dac: np.ndarray, slope: float, offset: float, shift: int) -> np.ndarray:  # pragma: no cover - numba
+    """First-order error diffusion of DAC volts onto the codes the DAC plays (16-bit codes, low ``shift`` bits
+    ignored by the converter); returns the volts played."""
+    out = np.empty_like(dac)
+    err = 0.0
+    for k in range(dac.size):
+        want = dac[k]
+        code = min(max(int(np.round((want + err) * slope + offset)), 0), 0xFFFF)
+        played = (((code >> shift) << shift) - offset) / slope
+        err += want - played
+        out[k] = played
+    return out
 
 
 def watchdog_period(rig: RigConfig) -> float | None:
@@ -198,29 +215,17 @@ class HardwareTimed:
         """DAC values on the DAC's own levels whose running sum follows ``dac`` (first-order error diffusion):
         behind the reconstruction filter the code steps average out instead of leaving the output up to one
         code (≈ 5 V of high voltage on a 12-bit DAC) off a slow waveform."""
-        cal, ch, bits = self.daq.cal, self.cfg.dac, self.daq.dac_bits
-        slope, offset = cal.dac(ch)
-        shift = 16 - bits
-        out = np.empty_like(dac)
-        err = 0.0
-        for k, want in enumerate(dac):
-            code = min(max(round((want + err) * slope + offset), 0), 0xFFFF)
-            played = (((code >> shift) << shift) - offset) / slope
-            err += want - played
-            out[k] = played
-        return out
+        slope, offset = self.daq.cal.dac(self.cfg.dac)
+        return _diffuse(np.ascontiguousarray(dac, dtype=float), float(slope), float(offset), 16 - self.daq.dac_bits)
 
     def _filtered(self, played: np.ndarray, present: float) -> np.ndarray:
         """What the amplifier follows: the DAC's played sequence through the reconstruction filter."""
         alpha = self._alpha()
         if alpha is None:
             return played
-        out = np.empty_like(played)
-        y = present
-        for k, x in enumerate(played.tolist()):
-            y += alpha * (x - y)
-            out[k] = y
-        return out
+        # y[k] = y[k−1] + α(x[k] − y[k−1]), from y[−1] = present
+        out, _ = lfilter([alpha], [1.0, alpha - 1.0], played, zi=[(1.0 - alpha) * present])
+        return np.asarray(out)
 
     # ------------------------------------------------------------ data
     def _played(self) -> float:
