@@ -185,9 +185,11 @@ class SimRig:
 
     def faults_of(self, name: str) -> Faults:
         """The :class:`Faults` of the link serving ``name``: a serial role (``laser``, ``motor``), a bus name
-        (``io``), or a Modbus role (``amplifier``, ``load_cell``: its bus). Available once started."""
+        (``io``), ``daq``, or a Modbus role (``amplifier``, ``load_cell``: its bus; the amplifier of a
+        hardware-timed rig: the DAQ). Available once started."""
         rig = self.rig
-        bus = {"amplifier": rig.amplifier.bus if rig.amplifier else None,
+        amp = rig.amplifier
+        bus = {"amplifier": ("daq" if amp.drive == "daq" else amp.bus) if amp else None,
                "load_cell": rig.load_cell.bus if rig.load_cell else None}.get(name)
         key = bus or name
         if key not in self.faults:

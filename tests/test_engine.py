@@ -294,14 +294,17 @@ def test_standard_hdf5_tools_read_the_run_file(tmp_path: Path) -> None:
     assert "0.001" in dump.stdout and '"completed"' in dump.stdout
 
 
-@pytest.mark.parametrize("name", ["thesis-identification", "thesis-voltage-sweep"])
+@pytest.mark.parametrize("name", ["thesis-identification"])
 def test_paper_protocols_produce_complete_files(name: str, tmp_path: Path) -> None:
-    """Whole paper campaigns (not the short variants) on the simulated rig, in virtual time."""
+    """A whole paper protocol (not a short variant) on its default (hardware-timed) simulated rig, in virtual
+    time: every stream holds at least the samples the dry run predicts. (The sweep campaigns take ~40 s each
+    here, beyond the suite's budget; the short sweep variants run above.)"""
     result = run_protocol(ROOT / "protocols" / f"{name}.toml", virtual=True, out_dir=tmp_path)
     run = open_run(result.path)
     assert result.state == "completed" and run.complete
     plan = plan_run(ROOT / "protocols" / f"{name}.toml")
-    assert len(run.streams["laser"]) >= plan.prediction.samples["laser"]
+    for stream, n in plan.prediction.samples.items():
+        assert len(run.streams[stream]) >= n, stream
     assert len([e for e in run.event_list() if e[2] == "end"]) == len(plan.program.segments)
 
 

@@ -83,7 +83,7 @@ def test_wheel_in_a_fresh_venv_runs_demo_init_run_and_export(wheel: Path, tmp_pa
     assert (lab / "rigs" / "thesis-sim.toml").read_text(encoding="utf-8") == \
         (ROOT / "rigs" / "thesis-sim.toml").read_text(encoding="utf-8")  # comments and all
     _run([bench, "protocols", "copy", "short/thesis-identification-short", "protocols/mine.toml"], lab, env=env)
-    assert 'rig = "../rigs/thesis-sim.toml"' in (lab / "protocols" / "mine.toml").read_text(encoding="utf-8")
+    assert 'rig = "../rigs/thesis-daq-sim.toml"' in (lab / "protocols" / "mine.toml").read_text(encoding="utf-8")
     out = _run([bench, "run", "protocols/mine.toml", "--virtual-time", "--no-live"], lab, env=env)
     assert "completed" in out
     (run_file,) = (lab / "runs").glob("thesis-identification-short-*.h5")

@@ -330,7 +330,24 @@ def test_scheduled_fault_stops_a_protocol_run_without_touching_the_engine(tmp_pa
         sims.append(sim)
         sim.faults_of("laser").schedule(at_time=3.0, drop=True)  # type: ignore[attr-defined]
 
-    plan = plan_run(ROOT / "protocols" / "short" / "thesis-identification-short.toml")
+    plan = plan_run(ROOT / "protocols" / "short" / "thesis-identification-short.toml",
+                    ROOT / "rigs" / "thesis-sim.toml")  # the laser on its serial line (the DAQ rig reads it on an AIN)
     result = execute(plan, tmp_path / "run.h5", virtual=True, on_engine=arm)
     assert result.state == "error" and result.reason.startswith("lost link: laser")
     assert sims[0].faults_of("laser").counts["drop"] == 1
+
+
+def test_scheduled_loss_of_the_daq_stops_a_hardware_timed_run(tmp_path: Path) -> None:
+    """The DAQ's link (Modbus TCP and its stream socket) is lost 3 s into a virtual-time run on the default,
+    hardware-timed rig: the run stops as a lost link, and the output is made safe by the T7's watchdog."""
+    sims: list = []
+
+    def arm(_engine: object, sim: object) -> None:
+        sims.append(sim)
+        sim.faults_of("amplifier").schedule(at_time=3.0, drop=True)  # type: ignore[attr-defined]  # the DAQ
+
+    plan = plan_run(ROOT / "protocols" / "short" / "thesis-identification-short.toml")
+    result = execute(plan, tmp_path / "run.h5", virtual=True, on_engine=arm)
+    assert result.state == "error" and "daq" in result.reason, result.reason
+    assert sims[0].faults_of("daq").counts["drop"] == 1
+    assert "watchdog" in result.safe_path, result.safe_path
