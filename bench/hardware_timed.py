@@ -105,8 +105,12 @@ class HardwareTimed:
             self._commanded = self._filtered(self.amp.output_volts(plan.out_volts), engine._v_cmd)
             self._tail = self._end_value[id(seg)] = float(volts[-1])
             self._n = volts.size - 1
-            self.daq.kickoff()
+            t0 = self.daq.kickoff()
             self._keepalive = time.monotonic()
+            engine.rec.event(engine.now(), seg.index, "timing",
+                             f"DAQ scan clock: scan 0 at {t0 - engine._t0:.6f} s on the run clock, known to "
+                             f"{self.daq.scan_clock_uncertainty * 1e3:.3f} ms (the enable request's round trip); "
+                             "polled channels (motor encoder) are timestamped on the same run clock")
         nxt = self._next_chainable(seg, engine)
         if nxt is not None and self.daq.out_open:
             self._append(nxt, engine)

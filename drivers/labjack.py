@@ -304,6 +304,7 @@ class _Stream:
     sock: socket.socket | None = None
     t_enable: float = 0.0
     t0: float = 0.0
+    t0_uncertainty: float = math.nan
     next_tid: int = 0
     raw: bytearray = field(default_factory=bytearray)
     pending: list[int] = field(default_factory=list)  # samples of a scan split across packets
@@ -597,11 +598,20 @@ class LabJackT7:
         if self.streaming:
             raise InstrumentStateError(self.name, "stream already running")
         s.sock = self._open_stream_socket()
+        asked = self.clock()
         self.write_u32(STREAM_ENABLE, 1)
         s.t_enable = self.clock()
         s.t0 = s.t_enable + s.plan.dt
+        s.t0_uncertainty = s.t_enable - asked  # the device enabled somewhere within the request's round trip
         self.streaming = True
         return s.t0
+
+    @property
+    def scan_clock_uncertainty(self) -> float:
+        """How well scan 0's time on the host clock is known [s]: the enable request's round trip (the times of
+        the scans are t0 + k/rate with t0 taken at the acknowledgement; the true enable lies within this much
+        before it)."""
+        return self._stream.t0_uncertainty if self._stream is not None else math.nan
 
     def _receive(self, until_packets: int, timeout: float) -> list[StreamPacket]:
         """Packets available now, and (waiting up to ``timeout`` wall seconds) until ``until_packets`` total."""

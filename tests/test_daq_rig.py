@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import threading
 import time
@@ -74,6 +75,10 @@ def test_every_analog_channel_on_one_scan_clock_with_no_scan_lost(thesis_run) ->
     for row in f.program:
         t0, _ = steps(f)[row["name"].decode()]
         assert abs(t0 - float(row["t_start"])) < 1e-6
+    # the scan clock's place on the run clock, as measured at the kickoff, is in the file
+    (clock,) = [text for _, _, kind, text in f.event_list() if kind == "timing" and "scan clock" in text]
+    t_scan0, known = (float(x) for x in re.findall(r"([0-9.]+) (?:s on|ms)", clock))
+    assert t_scan0 == pytest.approx(laser.t[0], abs=1e-6) and 0 <= known < 100
 
 
 def test_the_recorded_displacement_follows_the_smooth_drive(thesis_run) -> None:
