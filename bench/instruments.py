@@ -101,8 +101,9 @@ def build_instruments(rig: RigConfig, endpoints: dict[str, str] | None = None,
         a_cfg = rig.amplifier
         zero_dac = -d.drive_offset_V / d.drive_gain if a_cfg is not None and a_cfg.drive == "daq" else 0.0
         safe = (zero_dac, 0.0) if d.dac == 0 else (0.0, zero_dac)
+        wd = None if d.watchdog_s is None else int(d.watchdog_s)  # RigConfig: whole seconds (the T7's unit)
         inst.daq = LabJackT7(host, port=port, stream_port=stream_port, timeout=d.timeout_s, cancel=inst.cancel,
-                             clock=clock, sleep=sleep, safe_dac=safe)
+                             clock=clock, sleep=sleep, safe_dac=safe, watchdog_s=wd)
     if (a := rig.amplifier) is not None:
         base = TREK_MODELS[a.model]
         trek = TrekModel(base.model, base.max_output, base.max_current, base.gain,

@@ -235,8 +235,9 @@ class DaqConfig(_Strict):
     laser_ain: int | None = Field(None, ge=0, le=13, description="laser controller's analog output")
     laser_m_per_V: float = Field(0.004, gt=0, le=1.0, description="laser head reading [m] per volt")
     laser_offset_m: float = Field(0.0, ge=-1.0, le=1.0, description="laser head reading at 0 V [m]")
-    watchdog_s: float | None = Field(1.0, gt=0, le=60, description="T7 watchdog: DAC to the 0-V code after this "
-                                     "long without a request (configure the device to match)")
+    watchdog_s: float | None = Field(1.0, ge=1, le=60, multiple_of=1, description="T7 watchdog (whole seconds, "
+                                     "WATCHDOG_TIMEOUT_S_DEFAULT): the DACs go to the 0-V code after this long "
+                                     "without a request; the driver configures the device on connect")
 
     @model_validator(mode="after")
     def _distinct(self) -> DaqConfig:

@@ -13,6 +13,10 @@ low-level TCP stream example; [A] = assumed, to check on a real T7.
 * [D] AIN#(0:249) 0+2n F32 R; DAC#(0:1) 1000+2n F32 RW; AIN#_RANGE 40000+2n F32 (10/1/0.1/0.01);
   AIN#_NEGATIVE_CH 41000+n U16 (199 = single-ended); LAST_ERR_DETAIL 55000 U16; PRODUCT_ID 60000 F32 (7);
   HARDWARE_VERSION 60002 F32; FIRMWARE_VERSION 60004 F32; SERIAL_NUMBER 60028 U32.
+* [D] watchdog: WATCHDOG_ENABLE_DEFAULT 61600 U32, _TIMEOUT_S_DEFAULT 61604 U32 (whole seconds),
+  _DAC0_ENABLE_DEFAULT 61640 U32, _DAC0_DEFAULT 61642 F32, _DAC1_ENABLE_DEFAULT 61650, _DAC1_DEFAULT 61652;
+  "must be disabled before writing any of the other watchdog registers"; any communication clears the timer.
+  [A] the _DEFAULT registers live in flash: the driver reads them and writes only what differs.
 * [D] STREAM_SCANRATE_HZ 4002 F32, _NUM_ADDRESSES 4004, _SAMPLES_PER_PACKET 4006, _SETTLING_US 4008 F32,
   _RESOLUTION_INDEX 4010, _BUFFER_SIZE_BYTES 4012 (power of 2, T7 ≤ 32768), _CLOCK_SOURCE 4014,
   _AUTO_TARGET 4016 (bit 0: packets to port 702), STREAM_DATATYPE 4018 = 0, _NUM_SCANS 4020 (0: continuous),
@@ -88,6 +92,8 @@ OUT_BUFFER_U16_0 = 4420
 LAST_ERR_DETAIL = 55000
 PRODUCT_ID, HARDWARE_VERSION, FIRMWARE_VERSION, SERIAL_NUMBER = 60000, 60002, 60004, 60028
 FLASH_POINTER, FLASH_READ, CAL_FLASH_ADDRESS = 61810, 61812, 0x3C4000
+WATCHDOG_ENABLE, WATCHDOG_TIMEOUT_S = 61600, 61604
+WATCHDOG_DAC_ENABLE, WATCHDOG_DAC = (61640, 61650), (61642, 61652)
 CAL_READ_REGS = (26, 26, 26, 4)
 TARGET_SPONTANEOUS = 0x01
 STREAM_FUNCTION, STREAM_TYPE = 76, 16
@@ -324,8 +330,10 @@ class LabJackT7:
     def __init__(self, host: str, *, port: int = CR_PORT, stream_port: int = STREAM_PORT, name: str = "daq",
                  timeout: float = 0.5, cancel: CancelToken | None = None, clock: ClockFn = time.monotonic,
                  sleep: SleepFn = time.sleep, safe_dac: tuple[float, float] = (0.0, 0.0),
-                 dac_bits: int = 12) -> None:
-        """``safe_dac``: DAC0/DAC1 volts written by :meth:`safe_state` (the rig's zero through its conditioning)."""
+                 dac_bits: int = 12, watchdog_s: int | None = None) -> None:
+        """``safe_dac``: DAC0/DAC1 volts written by :meth:`safe_state` (the rig's zero through its conditioning).
+        ``watchdog_s``: on connect, the device's watchdog is set to write ``safe_dac`` to both DACs after this
+        many seconds without a request (None: left as the device has it)."""
         self.host, self.port, self.stream_port = host, port, stream_port
         self.name = name
         self.timeout = timeout
@@ -333,6 +341,7 @@ class LabJackT7:
         self.clock, self.sleep = clock, sleep
         self.safe_dac = safe_dac
         self.dac_bits = dac_bits
+        self.watchdog_s = watchdog_s
         self.link = ModbusLink(f"tcp://{host}:{port}", name, timeout=timeout, cancel=cancel)
         self.cal = Calibration.nominal()
         self.serial = 0
@@ -399,6 +408,29 @@ class LabJackT7:
         self.cal = self.read_calibration()
         if self.read_u32(STREAM_ENABLE):
             self.write_u32(STREAM_ENABLE, 0)
+        if self.watchdog_s is not None:
+            self.configure_watchdog(self.watchdog_s, self.safe_dac)
+
+    def read_watchdog(self) -> tuple[int, int, tuple[tuple[int, float], ...]]:
+        """(enabled, timeout [s], ((DAC0 action enabled, volts), (DAC1 …))) as the device holds them."""
+        dacs = tuple((self.read_u32(WATCHDOG_DAC_ENABLE[k]), self.read_f32(WATCHDOG_DAC[k])) for k in (0, 1))
+        return self.read_u32(WATCHDOG_ENABLE), self.read_u32(WATCHDOG_TIMEOUT_S), dacs
+
+    def configure_watchdog(self, timeout_s: int, dac_volts: tuple[float, float]) -> bool:
+        """Enable the watchdog: after ``timeout_s`` s without communication both DACs go to ``dac_volts``.
+        Writes (disable, settings, enable) only when the device's settings differ; returns whether it wrote."""
+        if not 1 <= int(timeout_s) == timeout_s:
+            raise ValueError(f"{self.name}: watchdog timeout must be a whole number of seconds ≥ 1")
+        want = (1, int(timeout_s), tuple((1, float(np.float32(v))) for v in dac_volts))
+        if self.read_watchdog() == want:
+            return False
+        self.write_u32(WATCHDOG_ENABLE, 0)
+        self.write_u32(WATCHDOG_TIMEOUT_S, int(timeout_s))
+        for k, v in enumerate(dac_volts):
+            self.write_u32(WATCHDOG_DAC_ENABLE[k], 1)
+            self.write_f32(WATCHDOG_DAC[k], v)
+        self.write_u32(WATCHDOG_ENABLE, 1)
+        return True
 
     def identify(self) -> Identity:
         """PRODUCT_ID, serial number, firmware and hardware versions."""

@@ -66,6 +66,11 @@ R_O_TARGET, R_O_ALLOC, R_O_LOOP, R_O_SETLOOP, R_O_STATUS, R_O_ENABLE = 4040, 405
 R_O_F32, R_O_U16, R_O_SCAN = 4400, 4420, 4800
 R_LAST_ERR, R_PRODUCT, R_HW, R_FW, R_SERIAL = 55000, 60000, 60002, 60004, 60028
 R_FLASH_PTR, R_FLASH_READ, FLASH_CAL = 61810, 61812, 0x3C4000
+# [D] watchdog (LabJack Modbus map, WATCHDOG_*_DEFAULT): ENABLE 61600 U32, TIMEOUT_S 61604 U32, DAC0_ENABLE 61640
+# U32, DAC0 61642 F32, DAC1_ENABLE 61650 U32, DAC1 61652 F32; "the watchdog must be disabled before writing any of
+# the other watchdog registers"
+R_WD_ENABLE, R_WD_TIMEOUT, R_WD_DAC_EN, R_WD_DAC = 61600, 61604, (61640, 61650), (61642, 61652)
+E_WD_ENABLED = 2590  # [A] code for "write while the watchdog is enabled" (the datasheet names no number)
 E_ACTIVE, E_CHN_LIST, E_RATE, E_DTYPE, E_TARGET, E_OUT_FULL, E_BUFSIZE, E_OUT_DNE, E_SPP, E_NOT_RUNNING, \
     E_LOOP_BIG, E_OUT_DISABLED, E_NO_CHN, E_OUT_TARGET = (
         2605, 2607, 2608, 2611, 2612, 2613, 2615, 2617, 2618, 2620, 2622, 2627, 2600, 2614)
@@ -160,6 +165,9 @@ class LabJackT7Sim:
         self.ain_range = [10.0] * N_AIN
         self.ain_neg = [199] * N_AIN
         self.dac_volts = [0.0, 0.0]
+        # [A] factory state: watchdog disabled, no timeout actions (a rig's twin starts like a fresh device)
+        self.wd: dict[int, float] = {R_WD_ENABLE: 0, R_WD_TIMEOUT: 0, R_WD_DAC_EN[0]: 0, R_WD_DAC[0]: 0.0,
+                                     R_WD_DAC_EN[1]: 0, R_WD_DAC[1]: 0.0}
         self.outs = [_Out() for _ in range(4)]
         self.last_err = 0
         self.flash_ptr = 0
@@ -552,6 +560,8 @@ class LabJackT7Sim:
             return F32, 1.0299
         if a == R_SERIAL:
             return U32, self.serial
+        if a in self.wd:
+            return (F32 if a in R_WD_DAC else U32), self.wd[a]
         return None
 
     @staticmethod
@@ -563,6 +573,19 @@ class LabJackT7Sim:
             return [v >> 16, v & 0xFFFF]
         return [int(value) & 0xFFFF]
 
+    def _arm_watchdog(self) -> None:
+        """The plant's input watchdog as the registers configure it: enabled with a timeout and a DAC action on
+        the DAC that drives the amplifier ([L] modelled as the amplifier input going to 0 V: the rig's host writes
+        the DAC value of 0 V through the conditioning stage; another value is recorded as a twin error)."""
+        wd, k = self.wd, self.dac
+        on = bool(wd[R_WD_ENABLE]) and wd[R_WD_TIMEOUT] > 0 and bool(wd[R_WD_DAC_EN[k]])
+        self.plant.input_watchdog = float(wd[R_WD_TIMEOUT]) if on else None
+        if on:
+            v_in = float(self.conditioning(np.array([self._code_volts(self._code(wd[R_WD_DAC[k]], k), k)]))[0])
+            if abs(v_in) > 0.01 * abs(self.conditioning.gain) + 1e-9:
+                self.errors.append(RuntimeError(f"watchdog DAC{k} value gives {v_in:.3f} V at the amplifier "
+                                                "input; the twin models 0 V"))
+
     def _fail(self, code: int) -> ExcCodes:
         self.last_err = code
         return ExcCodes.DEVICE_FAILURE
@@ -572,9 +595,8 @@ class LabJackT7Sim:
         """Serve reads by computing the registers, writes by applying them (pymodbus stores nothing we use).
 
         Every request resets the T7 watchdog ([D] WATCHDOG_*_DEFAULT registers: on timeout the device writes
-        its configured DAC value — for a rig, the code of 0 V at the amplifier input); [L] the twin models it as
-        the plant's input watchdog (``plant.input_watchdog``, set from the rig's ``daq.watchdog_s``), not as
-        registers."""
+        its configured DAC value — for a rig, the code of 0 V at the amplifier input); the twin arms the
+        plant's input watchdog from those registers as the host writes them (:meth:`_arm_watchdog`)."""
         self.plant.feed_watchdog()
         # The plant's lock first, then ours, and the time read inside both: the plant cannot integrate past
         # ``now`` while the request schedules DAC values from the next scan on (the device plays them on its own
@@ -668,6 +690,11 @@ class LabJackT7Sim:
             self._stop_stream(now)
         elif a == R_FLASH_PTR:
             self.flash_ptr = int(value)
+        elif a in self.wd:
+            if a != R_WD_ENABLE and self.wd[R_WD_ENABLE]:
+                return self._fail(E_WD_ENABLED)
+            self.wd[a] = value
+            self._arm_watchdog()
         elif R_O_TARGET <= a < R_O_ENABLE + 8:
             return self._apply_out(a, int(value), now)
         else:

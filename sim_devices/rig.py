@@ -174,8 +174,6 @@ class SimRig:
                             seed=rig.simulation.seed + 3, faults=self.faults["daq"])
         self._daq_ports = twin.start()
         self.twins["daq"] = twin
-        if rig.amplifier is not None and rig.amplifier.drive == "daq":
-            self.plant.input_watchdog = d.watchdog_s
 
     def _serve_serial(self, role: str, twin: object, baud: float, turnaround: float) -> None:
         self.faults[role] = Faults(latency=self.rig.simulation.latency_s, clock=self.clock.now)

@@ -354,3 +354,33 @@ def test_wall_clock_stream_out_never_steps_while_the_plant_runs_on_its_own() -> 
     assert np.ptp(v) > peak  # the sine was played
     dac_step = 1000.0 * 4.0 * 16 / 13200
     assert np.max(np.abs(np.diff(v))) <= peak * 2 * np.pi * f / rate + dac_step  # the sine's slope, no step
+
+
+def test_watchdog_is_configured_once_from_the_register_map_and_zeroes_the_amplifier(raw_twin: Rig) -> None:
+    """WATCHDOG_*_DEFAULT (LabJack Modbus map: 61600 enable, 61604 timeout [s], 61640/61642 DAC0 action and
+    value, 61650/61652 DAC1): the driver writes them on connect, only when they differ (flash), and a device
+    that hears nothing for the timeout puts DAC0 to its watchdog value — 2.5 V here, 0 V at the amplifier
+    input through the rig's conditioning (4·V − 10)."""
+    r = raw_twin
+    assert r.plant.input_watchdog is None  # a fresh device: watchdog disabled
+    daq = LabJackT7("127.0.0.1", port=r.port, stream_port=r.stream_port, clock=r.clock.now, sleep=r.clock.sleep,
+                    safe_dac=(2.5, 0.0), timeout=1.0, watchdog_s=1)
+    try:
+        daq.connect()
+        assert daq.read_watchdog() == (1, 1, ((1, 2.5), (1, 0.0)))
+        with socket.create_connection(("127.0.0.1", r.port), timeout=2) as sock:  # bytes from the register map
+            # FC3 read of 61604 (0xF0A4), 2 registers: UINT32 1 s
+            assert _transact(sock, bytes.fromhex("000100000006010 3f0a40002".replace(" ", "")))[-4:] == \
+                bytes.fromhex("00000001")
+            # FC16 write of the timeout while the watchdog is enabled: refused (disable it first)
+            reply = _transact(sock, bytes.fromhex("0002000000 0b01 10 f0a4 0002 04 00000005".replace(" ", "")))
+            assert reply[7] == 0x90
+        assert daq.configure_watchdog(1, (2.5, 0.0)) is False  # already so: nothing written to flash
+        daq.write_dac(0, 4.0)  # amplifier input 6 V
+        assert r.plant.v_in == pytest.approx(6.0, abs=0.01)
+        r.clock.advance(1.5)  # no request for longer than the timeout
+        r.plant.observe()
+        assert r.plant.v_in == 0.0 and r.plant.watchdog_tripped
+    finally:
+        daq.close()
+    assert not r.sim.errors
