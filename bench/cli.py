@@ -7,7 +7,7 @@ import functools
 from collections.abc import Callable, Iterator
 from enum import StrEnum
 from pathlib import Path
-from typing import Annotated, ParamSpec, TypeVar
+from typing import Annotated, Any, ParamSpec, TypeVar
 
 import numpy as np
 import typer
@@ -15,6 +15,7 @@ from rich.markup import escape
 from rich.table import Table
 
 from bench import __version__
+from bench.cli_units import option_si
 from bench.console import BenchConsole
 from drivers.errors import InstrumentError
 
@@ -130,6 +131,11 @@ def _simulation_size(duration: float) -> None:
                          "higher --frequency")
 
 
+def _qopt(help_text: str) -> Any:
+    """A typer option taking a quantity (``7kV``) or a plain number in the unit its help names."""
+    return typer.Option(metavar="<quantity>", help=help_text)
+
+
 class WaveKindOption(StrEnum):
     raised_cosine = "raised_cosine"
     sine = "sine"
@@ -145,10 +151,12 @@ class Electrostriction(StrEnum):
 @simulate_app.command("thesis")
 @clean_errors
 def simulate_thesis(
-    voltage: Annotated[float, typer.Option(help="Peak voltage Vmax [V].", min=0, max=12_000)] = 7000.0,
-    frequency: Annotated[float, typer.Option(help="Drive frequency [Hz].", min=1e-4, max=1000)] = 1 / 9,
-    temperature: Annotated[float, typer.Option(help="Temperature [K].", min=150, max=450)] = 296.0,
-    duration: Annotated[float, typer.Option(help="Simulated time [s].", min=1e-3, max=SIMULATE_MAX_S)] = 20.0,
+    voltage: Annotated[str, _qopt("Peak voltage Vmax [V]. 0–12 kV; or with a unit: 7kV.")] = "7000",
+    frequency: Annotated[str | None, _qopt("Drive frequency [Hz]. 0.0001–1000 Hz (default 1/9 Hz, the thesis's); "
+                                           "or with a unit: '0.5 Hz'.")] = None,
+    temperature: Annotated[str, _qopt("Temperature [K]. 150–450 K; or with a unit: '296 K'.")] = "296",
+    duration: Annotated[str, _qopt(f"Simulated time [s]. Up to {SIMULATE_MAX_S:g} s; or with a unit: "
+                                   "'20 s'.")] = "20",
     waveform: Annotated[WaveKindOption, typer.Option(help="Voltage waveform.")] = WaveKindOption.raised_cosine,
     electrostriction: Annotated[Electrostriction, typer.Option(
         help="Electrostatic stress: corrected (κ = 1/2) or as printed in the thesis (κ = 2).")]
@@ -164,20 +172,25 @@ def simulate_thesis(
     from bench.models.membrane_runs import simulate_membrane
     from bench.waveforms import Waveform
 
+    voltage_V = option_si(voltage, "V", "--voltage", 0, 12_000)
+    frequency_Hz = 1 / 9 if frequency is None else option_si(frequency, "Hz", "--frequency", 1e-4, 1000)
+    temperature_K = option_si(temperature, "K", "--temperature", 150, 450)
+    duration_s = option_si(duration, "s", "--duration", 1e-3, SIMULATE_MAX_S)
     if method not in ("rodas", "radau", "fixed"):
         raise ValueError(f"--method must be 'rodas', 'radau' or 'fixed', got {method!r}")
     max_cycles = SIMULATE_MAX_SQUARE_CYCLES if waveform is WaveKindOption.square and method != "fixed" \
         else SIMULATE_MAX_CYCLES
-    if frequency * duration > max_cycles:
-        raise ValueError(f"--frequency {frequency:g} Hz × --duration {duration:g} s = {frequency * duration:g} "
-                         f"cycles exceed {max_cycles} for this waveform and method: shorten the run")
+    if frequency_Hz * duration_s > max_cycles:
+        raise ValueError(f"--frequency {frequency_Hz:g} Hz × --duration {duration_s:g} s = "
+                         f"{frequency_Hz * duration_s:g} cycles exceed {max_cycles} for this waveform and method: "
+                         "shorten the run")
     params = MembraneParams(electrostriction=electrostriction.value)
-    wave = Waveform(waveform.value, voltage, frequency)
+    wave = Waveform(waveform.value, voltage_V, frequency_Hz)
     with console.status("simulating the thesis membrane…"):
-        tr = simulate_membrane(params, wave, duration, T=temperature, method=method)  # type: ignore[arg-type]
-    figs = cycle_figures(tr.t, tr.displacement, tr.voltage, frequency)
-    table = Table(title=f"Thesis membrane: {voltage / 1e3:g} kV {waveform.value}, {frequency:.4g} Hz, "
-                        f"{temperature:g} K, {duration:g} s")
+        tr = simulate_membrane(params, wave, duration_s, T=temperature_K, method=method)  # type: ignore[arg-type]
+    figs = cycle_figures(tr.t, tr.displacement, tr.voltage, frequency_Hz)
+    table = Table(title=f"Thesis membrane: {voltage_V / 1e3:g} kV {waveform.value}, {frequency_Hz:.4g} Hz, "
+                        f"{temperature_K:g} K, {duration_s:g} s")
     table.add_column("cycle", justify="right")
     table.add_column("peak u [mm]", justify="right")
     table.add_column("at t [s]", justify="right")
@@ -209,15 +222,15 @@ class LsdeaTest(StrEnum):
 def simulate_lsdea(
     test: Annotated[LsdeaTest, typer.Argument(help="Test configuration.")] = LsdeaTest.isotonic,
     prototype: Annotated[int, typer.Option(help="Prototype #1–#3 (Table 2).", min=1, max=3)] = 1,
-    voltage: Annotated[float, typer.Option(help="Voltage [V]: constant (isopotential), sine amplitude "
-                                                 "(isometric) or raised-cosine peak (isotonic).",
-                                           min=0, max=10_000)] = 5000.0,
-    frequency: Annotated[float | None, typer.Option(
-        help="Drive frequency [Hz] (default 0.5 isopotential, 1 otherwise).", min=0.01, max=100)] = None,
-    mass: Annotated[float, typer.Option(help="Hung mass [kg] (isotonic).", min=0, max=2)] = 0.18,
-    position: Annotated[float, typer.Option(help="Blocked aperture [mm] (isometric).", min=45, max=200)] = 100.0,
-    stroke: Annotated[float, typer.Option(help="Crest-to-trough Δx from 50 mm [mm] (isopotential).",
-                                          min=1, max=120)] = 90.0,
+    voltage: Annotated[str, _qopt("Voltage [V]: constant (isopotential), sine amplitude (isometric) or "
+                                  "raised-cosine peak (isotonic). 0–10 kV; or with a unit: 5kV.")] = "5000",
+    frequency: Annotated[str | None, _qopt("Drive frequency [Hz] (default 0.5 isopotential, 1 otherwise). "
+                                           "0.01–100 Hz; or with a unit: '2 Hz'.")] = None,
+    mass: Annotated[str, _qopt("Hung mass [kg] (isotonic). 0–2 kg; or with a unit: '180 g'.")] = "0.18",
+    position: Annotated[str, _qopt("Blocked aperture [mm] (isometric). 45–200 mm; or with a unit: "
+                                   "'0.1 m'.")] = "100",
+    stroke: Annotated[str, _qopt("Crest-to-trough Δx from 50 mm [mm] (isopotential). 1–120 mm; or with a "
+                                 "unit: '9 cm'.")] = "90",
     cycles: Annotated[int, typer.Option(help="Number of cycles.", min=2, max=1000)] = 10,
 ) -> None:
     """LS-DEA (Model B) in one of the paper's three test configurations, with its figure of merit; or `map`,
@@ -232,29 +245,33 @@ def simulate_lsdea(
     from bench.models.lozenge_runs import simulate_lozenge
     from bench.waveforms import Waveform
 
-    params = LozengeParams.prototype(prototype, hung_mass=mass if test is LsdeaTest.isotonic else 0.0)
-    if frequency is None:
-        frequency = 0.5 if test is LsdeaTest.isopotential else 1.0
-    duration = cycles / frequency
+    voltage_V = option_si(voltage, "V", "--voltage", 0, 10_000)
+    mass_kg = option_si(mass, "kg", "--mass", 0, 2)
+    position_m = option_si(position, "mm", "--position", 45, 200)
+    stroke_m = option_si(stroke, "mm", "--stroke", 1, 120)
+    params = LozengeParams.prototype(prototype, hung_mass=mass_kg if test is LsdeaTest.isotonic else 0.0)
+    frequency_Hz = (0.5 if test is LsdeaTest.isopotential else 1.0) if frequency is None else \
+        option_si(frequency, "Hz", "--frequency", 0.01, 100)
+    duration = cycles / frequency_Hz
     _simulation_size(duration)
     with console.status(f"simulating LS-DEA #{prototype} ({test.value})…"):
         if test is LsdeaTest.isopotential:
-            dx, w = stroke / 1e3, 2 * np.pi * frequency
-            tr = simulate_lozenge(params, "imposed", lambda t: np.full_like(t, voltage), duration,
+            dx, w = stroke_m, 2 * np.pi * frequency_Hz
+            tr = simulate_lozenge(params, "imposed", lambda t: np.full_like(t, voltage_V), duration,
                                   position=lambda t: 0.05 + dx / 2 * (1 - np.cos(w * t)),
                                   velocity=lambda t: dx / 2 * w * np.sin(w * t))
-            m = last_cycles(tr.t, frequency, 1)
+            m = last_cycles(tr.t, frequency_Hz, 1)
             figure = f"hysteresis loss of the last cycle {100 * hysteresis_loss(tr.position[m], tr.force[m]):.1f} %"
         elif test is LsdeaTest.isometric:
-            tr = simulate_lozenge(params, "blocked", Waveform("sine", voltage, frequency), duration,
-                                  position=position / 1e3)
-            m = last_cycles(tr.t, frequency, 1)
+            tr = simulate_lozenge(params, "blocked", Waveform("sine", voltage_V, frequency_Hz), duration,
+                                  position=position_m)
+            m = last_cycles(tr.t, frequency_Hz, 1)
             figure = f"force crest-to-trough {crest_to_trough(tr.t[m], tr.force[m]):.4f} N"
         else:
-            tr = simulate_lozenge(params, "hung", Waveform("raised_cosine", voltage, frequency), duration)
-            m = last_cycles(tr.t, frequency, min(3, cycles))
-            stroke = crest_to_trough(tr.t[m], tr.position[m], frequency)
-            figure = (f"detrended crest-to-trough displacement {stroke * 1e3:.3f}"
+            tr = simulate_lozenge(params, "hung", Waveform("raised_cosine", voltage_V, frequency_Hz), duration)
+            m = last_cycles(tr.t, frequency_Hz, min(3, cycles))
+            swing = crest_to_trough(tr.t[m], tr.position[m], frequency_Hz)
+            figure = (f"detrended crest-to-trough displacement {swing * 1e3:.3f}"
                       f" mm, mean position {np.mean(tr.position[m]) * 1e3:.2f} mm")
     console.print(f"LS-DEA #{prototype} {test.value}: {figure}")
     with np.errstate(divide="ignore"):
@@ -284,8 +301,8 @@ def sim_serve(
     rig_file: RigArg,
     write_rig: Annotated[Path | None, typer.Option(
         help="Also write a rig file pointing at the running twins (for other processes).")] = None,
-    duration: Annotated[float | None, typer.Option(help="Stop after this many seconds (default: Ctrl-C).",
-                                                   min=0.1)] = None,
+    duration: Annotated[str | None, _qopt("Stop after this time [s], at least 0.1 s (default: Ctrl-C); "
+                                                 "or with a unit: '30 s'.")] = None,
 ) -> None:
     """Start every simulated instrument of a rig (wall clock) and print where to connect; Ctrl-C stops."""
     import signal
@@ -296,6 +313,7 @@ def sim_serve(
     from bench.rig import load_rig
     from sim_devices.rig import SimRig
 
+    duration_s = None if duration is None else option_si(duration, "s", "--duration", 0.1)
     rig = load_rig(rig_file)
     if not rig.simulated:
         raise ValueError(f"rig file {rig_file}: simulated = false; `bench sim serve` needs a simulated rig")
@@ -308,9 +326,9 @@ def sim_serve(
         if write_rig is not None:
             write_rig_file(served_rig(rig, sim.port_map()), write_rig)
             console.print(f"rig file for clients: {write_rig}")
-        console.print("serving; Ctrl-C to stop" + (f" (or after {duration:g} s)" if duration else ""))
+        console.print("serving; Ctrl-C to stop" + (f" (or after {duration_s:g} s)" if duration_s else ""))
         with contextlib.suppress(KeyboardInterrupt):
-            stop.wait(duration)
+            stop.wait(duration_s)
     finally:
         sim.stop()
         signal.signal(signal.SIGTERM, previous)

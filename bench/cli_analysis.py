@@ -91,24 +91,33 @@ def fit_command(
     seed: Annotated[int, typer.Option(help="Random seed of the search.")] = 1,
     polish: Annotated[bool, typer.Option(help="Least-squares polish after the search.")] = True,
     export: Annotated[Path | None, typer.Option(help="Write a rig file with the fitted parameters.")] = None,
+    into: Annotated[bool, typer.Option("--into", help="Store the fit inside the run file(s) instead of a fit file "
+                                       "beside each.")] = False,
     scheduler: SchedulerOpt = None,
     workers: WorkersOpt = None,
     json_out: JsonOpt = False,
 ) -> None:
     """Identify model parameters from recorded runs (differential evolution, as in the thesis) and store them.
 
+    The fit is stored in a fit file beside each run, RUN.fit.hdf5 for RUN.h5 (HDF5, the same /fit groups a run
+    file holds; the run file is not modified), or with --into inside the run file. `bench report` and `bench
+    inspect` find fits in either place; keep a fit file with its run (rename both).
+
     Several files make a campaign: one specimen model is fitted to all of them (shared material, each record
     with its own voltage, temperature, prototype and hung mass), and the table says which parameters only the
-    campaign determines."""
+    campaign determines. The campaign's fit is stored with every one of its files (in each fit file, or with
+    --into in each run file), so the report of any of them finds it. Fit files given among the runs (a glob such
+    as runs/*) are skipped."""
     from bench.identify.core import FitSettings
 
+    runs = runs_only(runs)
     kinds = {_model_of(p) for p in runs}
     chosen = model.value if model is not ModelChoice.auto else (kinds.pop() if len(kinds) == 1 else "")
     if not chosen:
         raise ValueError("the run files hold different specimens: fit them separately or pass --model")
     settings = FitSettings(population, generations, mutation, crossover, cost.value, polish, seed=seed)
     with json_mode(json_out):
-        result, problem = run_fit(runs, chosen, settings, branches, export, scheduler, workers)
+        result, problem = run_fit(runs, chosen, settings, branches, export, scheduler, workers, into=into)
     if json_out:
         print_json({"model": chosen, "runs": [str(p) for p in runs], "cost": result.cost,
                     "cost_kind": result.cost_kind, "rms": result.rms, "rms_unit": problem.data_unit,
@@ -119,18 +128,33 @@ def fit_command(
                                    for j, n in enumerate(result.names)]})
 
 
+def runs_only(paths: list[Path]) -> list[Path]:
+    """``paths`` without fit files (``*.fit.hdf5``, which a glob such as ``runs/*`` picks up), saying so."""
+    from bench.identify.store import is_sidecar
+
+    skipped = [p for p in paths if is_sidecar(p)]
+    if skipped:
+        console.print(f"skipping {len(skipped)} fit file(s) among the runs: "
+                      + ", ".join(escape(str(p)) for p in skipped))
+    runs = [p for p in paths if not is_sidecar(p)]
+    if not runs:
+        raise ValueError("no run files: only fit files (*.fit.hdf5) were given; name the runs (.h5)")
+    return runs
+
+
 def run_fit(runs: list[Path], chosen: str, settings: FitSettings, branches: int = 1,
             export: Path | None = None, scheduler: str | None = None,
-            workers: int | None = None) -> tuple[FitResult, Problem]:
-    """Fit, print the table, store the result in every file and optionally export a rig; on a dask cluster
-    when ``scheduler`` (address) or ``workers`` (LocalCluster) is given (membrane model).
+            workers: int | None = None, *, into: bool = False) -> tuple[FitResult, Problem]:
+    """Fit, print the table, store the result with every file (in its fit file, or with ``into`` in the run file)
+    and optionally export a rig; on a dask cluster when ``scheduler`` (address) or ``workers`` (LocalCluster) is
+    given (membrane model).
 
     Returns the result and the (coarse) problem it was searched on, which holds the compared data."""
     from bench.identify.campaign import campaign_identifiability
     from bench.identify.core import fit
     from bench.identify.distributed import cluster_client
     from bench.identify.problems import LozengeProblem, MembraneProblem
-    from bench.identify.store import export_rig, fitted_rig, write_fit
+    from bench.identify.store import export_rig, fit_sidecar, fitted_rig, write_fit
     from bench.rig import rig_from_toml
     from bench.runfile import open_run
 
@@ -178,8 +202,8 @@ def run_fit(runs: list[Path], chosen: str, settings: FitSettings, branches: int 
                       + (", ".join(gained) if gained else "none"))
         campaign = report.as_dict()
     for p in runs:
-        group = write_fit(p, chosen, result, records, campaign)
-        console.print(f"stored in {p}:{group}")
+        group = write_fit(p, chosen, result, records, campaign, sidecar=not into)
+        console.print(f"stored in {escape(str(p if into else fit_sidecar(p)))}:{group}")
     if export is not None:
         rig = rig_from_toml(open_run(runs[0], streams=False).attrs["rig_toml"])
         export_rig(fitted_rig(rig, chosen, result.names, result.values), export, str(runs[0]))
@@ -191,12 +215,16 @@ def run_fit(runs: list[Path], chosen: str, settings: FitSettings, branches: int 
 @clean_errors
 def design_map_command(
     out: Annotated[Path, typer.Option(help="Folder for the PNGs.")] = Path("runs/design-map"),
-    voltages: Annotated[str, typer.Option(help="Voltages [kV], comma-separated.")] = "0,3,5,7",
+    voltages: Annotated[str, typer.Option(help="Voltages [kV], comma-separated, 0–10 kV; each may carry a unit: "
+                                          "'0,3kV,5000V'.")] = "0,3,5,7",
     scheduler: SchedulerOpt = None,
     workers: WorkersOpt = None,
 ) -> None:
     """LS-DEA design map (Moretti Fig. 2): F–x over pre-stretch λ2p × aperture xp, breakdown, loss of tension."""
-    run_design_map(out, tuple(float(v) * 1e3 for v in voltages.split(",")), scheduler, workers)
+    from bench.cli_units import option_si
+
+    run_design_map(out, tuple(option_si(v.strip(), "kV", "--voltages", 0, 10) for v in voltages.split(",")),
+                   scheduler, workers)
 
 
 def run_design_map(out: Path = Path("runs/design-map"), voltages: tuple[float, ...] = (0.0, 3e3, 5e3, 7e3),
@@ -241,6 +269,7 @@ def report_command(
 ) -> None:
     """Figures of merit and plots (PNG, PDF, SVG) of recorded runs; several files add a campaign table."""
     with json_mode(json_out):
+        runs = runs_only(runs)
         paths = print_report(runs, out)
     if json_out:
         from bench.analysis.runs import analyse

@@ -126,11 +126,24 @@ def run(
     allow_no_watchdog: Annotated[bool, typer.Option(
         "--allow-no-watchdog", help="Run although the rig's set-point module has no communication watchdog "
         "(recorded in the file).")] = False,
+    operator_name: Annotated[str | None, typer.Option(
+        "--operator", help="Who runs it (replaces the protocol's [protocol] operator); recorded in the run file.")]
+    = None,
+    specimen_id: Annotated[str | None, typer.Option(
+        "--specimen-id", help="Specimen identifier (replaces the protocol's specimen_id); recorded in the run file.")]
+    = None,
+    note: Annotated[list[str] | None, typer.Option(
+        "--note", help="A free note recorded in the run file, after the protocol's notes; repeat for more.")]
+    = None,
 ) -> None:
-    """Run a protocol on a rig (simulated by default), streaming everything to one HDF5 file."""
-    from bench.run import default_output
+    """Run a protocol on a rig (simulated by default), streaming everything to one HDF5 file.
+
+    Operator, specimen ID and notes come from the protocol's [protocol] table and these options; they are kept in
+    the run file as root attributes (`bench inspect` shows them)."""
+    from bench.run import default_output, run_metadata
 
     plan = _plan(protocol_file, rig, sim)
+    metadata = run_metadata(plan.protocol, operator_name, specimen_id, note)
     console.print(_summary(plan))
     if dry_run:
         console.print("[green]dry run[/]: nothing was touched")
@@ -153,7 +166,9 @@ def run(
                  plan.prediction.peak_voltage)
         for problem in plan.link_problems:
             log.info("link budget warning: %s", problem)
-        result = _execute(plan, path, virtual_time, operator, live, allow_no_watchdog)
+        for key, value in metadata.items():
+            log.info("%s: %s", key.replace("_", " "), value.replace("\n", " | "))
+        result = _execute(plan, path, virtual_time, operator, live, allow_no_watchdog, metadata)
         _log_result(result)
     with contextlib.suppress(OSError):  # the terminal went away (SIGHUP): the file holds the whole account
         _print_result(result)
@@ -173,7 +188,8 @@ def _log_result(result) -> None:
             result.state, result.reason, result.safe_path, result.samples)
 
 
-def _execute(plan, path: Path, virtual_time: bool, operator, live: bool, allow_no_watchdog: bool):
+def _execute(plan, path: Path, virtual_time: bool, operator, live: bool, allow_no_watchdog: bool,
+             metadata: dict[str, str]):
     """Run the plan, with the live view on a terminal."""
     from bench.engine import Engine
     from bench.live import LiveView
@@ -191,10 +207,11 @@ def _execute(plan, path: Path, virtual_time: bool, operator, live: bool, allow_n
 
         with Live(console=console, refresh_per_second=4, transient=False) as live_ctx:
             result = execute(plan, path, virtual=virtual_time, operator=operator, on_engine=attach,
-                             allow_no_watchdog=allow_no_watchdog)
+                             allow_no_watchdog=allow_no_watchdog, metadata=metadata)
     else:
         console.print(f"running {escape(title)}")
-        result = execute(plan, path, virtual=virtual_time, operator=operator, allow_no_watchdog=allow_no_watchdog)
+        result = execute(plan, path, virtual=virtual_time, operator=operator, allow_no_watchdog=allow_no_watchdog,
+                         metadata=metadata)
     return result
 
 
@@ -213,14 +230,21 @@ def _print_result(result) -> None:
 def inspect(run_file: Annotated[Path, typer.Argument(help="Run file (.h5), finished or being written.")],
             json_out: JsonOpt = False) -> None:
     """Summarise a run file: metadata, state, streams, events (works while the run is being written)."""
+    from bench.identify.store import read_fits
     from bench.runfile import open_run
 
     r = open_run(run_file)
     a = r.attrs
+    notes = [n for n in str(a.get("notes", "")).split("\n") if n]
+    fits = read_fits(run_file)
     if json_out:
         keys = ("protocol_name", "protocol_path", "protocol_sha256", "rig_name", "simulated", "clock", "software",
-                "start_time", "duration_planned")
-        print_json({"file": str(run_file), **{k: a.get(k) for k in keys}, "state": r.state, "complete": r.complete,
+                "start_time", "duration_planned", "operator", "specimen_id")
+        print_json({"file": str(run_file), **{k: a.get(k) for k in keys}, "notes": notes,
+                    "fits": [{"file": f["file"], "group": f["group"], "model": f.get("model"), "rms": f.get("rms"),
+                              "created": f.get("created"), "records": f.get("records"),
+                              "parameters": dict(zip(f["names"], f["values"], strict=True))} for f in fits],
+                    "state": r.state, "complete": r.complete,
                     "incomplete_reason": None if r.complete else r.incomplete_reason, "reason": r.reason,
                     "end_time": r.end_time, "recorded_up_to_s": r.updated,
                     "streams": {name: {"samples": len(s), "from_s": float(s.t[0]) if len(s) else None,
@@ -241,6 +265,11 @@ def inspect(run_file: Annotated[Path, typer.Argument(help="Run file (.h5), finis
     kind = "simulated" if a.get("simulated") else "real"
     meta.add_row("rig", f"{a.get('rig_name')} ({kind}, {a.get('clock')} clock)")
     meta.add_row("software", str(a.get("software")))
+    for key, label in (("operator", "operator"), ("specimen_id", "specimen ID")):
+        if a.get(key):
+            meta.add_row(label, escape(str(a[key])))
+    for k, text in enumerate(notes):
+        meta.add_row("notes" if k == 0 else "", escape(text))
     meta.add_row("started", str(a.get("start_time")))
     state = r.state if r.complete else f"[red]{r.state} — INCOMPLETE: {r.incomplete_reason}[/]"
     meta.add_row("state", state)
@@ -262,6 +291,11 @@ def inspect(run_file: Annotated[Path, typer.Argument(help="Run file (.h5), finis
     events = r.event_list()
     console.print(f"{len(events)} events; last: " + "; ".join(f"{t:.2f} s {kind} {escape(text)}"
                                                              for t, _, kind, text in events[-3:]), soft_wrap=True)
+    for f in fits:
+        where = "in the run file" if Path(f["file"]) == Path(run_file) else f"in {f['file']}"
+        console.print(f"fit {escape(f['group'])} ({escape(where)}): {f.get('model')} model, rms "
+                      f"{f.get('rms', float('nan')):.4g}, {len(f.get('records', []))} record(s), {f.get('created')}",
+                      soft_wrap=True)
     if not r.complete:
         raise typer.Exit(1)
 

@@ -15,6 +15,9 @@ PLAIN_UNITS: dict[str, tuple[str, float]] = {"V": ("voltage", 1.0), "kV": ("volt
                                              "K": ("temperature", 1.0), "kg": ("mass", 1.0), "N": ("force", 1.0),
                                              "mm/s": ("velocity", 1e-3), "m/s": ("velocity", 1.0)}
 
+EXAMPLES = {"voltage": "7 kV", "time": "20 s", "length": "45 mm", "frequency": "0.5 Hz", "temperature": "296 K",
+            "mass": "150 g", "force": "2 N", "velocity": "0.1 m/s"}
+
 
 def to_si(text: str, plain_unit: str) -> float:
     """SI value of ``text`` (``"7kV"``, ``"7 kV"``, or a plain number in ``plain_unit``); ValueError otherwise."""
@@ -25,7 +28,8 @@ def to_si(text: str, plain_unit: str) -> float:
         try:
             return parse_quantity(text.strip(), dimension)[0]
         except ValueError as exc:
-            raise ValueError(f"{text!r}: expected a {dimension} such as '7 kV', or a number in {plain_unit} "
+            raise ValueError(f"{text!r}: expected a {dimension} such as '{EXAMPLES[dimension]}', or a number in "
+                             f"{plain_unit} "
                              f"({exc})") from None
     if value != value or value in (float("inf"), float("-inf")):
         raise ValueError(f"{text!r} is not a finite number")
@@ -40,3 +44,23 @@ def quantity_parser(plain_unit: str) -> Callable[[str], float]:
 
     parse.__name__ = f"quantity_{plain_unit}"
     return parse
+
+
+def option_si(text: str | float, plain_unit: str, option: str, lo: float | None = None,
+              hi: float | None = None) -> float:
+    """SI value of a command option given as a quantity or a plain number in ``plain_unit``, within ``lo`` … ``hi``
+    (in ``plain_unit``, inclusive); ValueError naming the option (the CLI prints it on one line, exit 2).
+
+    The commands parse these options themselves rather than through ``quantity_parser``: click would print its
+    usage block around the message, and its range checks would apply before the unit is known."""
+    try:
+        value = to_si(str(text), plain_unit)
+    except ValueError as exc:
+        raise ValueError(f"{option} {exc}") from None
+    factor = PLAIN_UNITS[plain_unit][1]
+    shown = value / factor
+    if (lo is not None and not shown >= lo) or (hi is not None and not shown <= hi):
+        limits = (f"{lo:g} … {hi:g} {plain_unit}" if lo is not None and hi is not None else
+                  f"≥ {lo:g} {plain_unit}" if lo is not None else f"≤ {hi:g} {plain_unit}")
+        raise ValueError(f"{option} {text}: {shown:g} {plain_unit} is outside {limits}")
+    return value

@@ -18,7 +18,7 @@ from bench.instruments import build_instruments
 from bench.protocol.link_budget import check_links
 from bench.protocol.predict import Prediction, predict
 from bench.protocol.program import Program, ProtocolLimitError, compile_program
-from bench.protocol.schema import Protocol, load_protocol
+from bench.protocol.schema import MAX_OPERATOR, MAX_SPECIMEN_ID, Protocol, check_label, check_notes, load_protocol
 from bench.recorder import Column, Recorder, now_iso
 from bench.rig import RigConfig, load_rig, rig_to_toml
 from bench.safety import Supervisor
@@ -141,14 +141,45 @@ def check_watchdog(rig: RigConfig, allow_no_watchdog: bool = False) -> str:
     return "NO communication watchdog: run allowed by an explicit override (--allow-no-watchdog)"
 
 
+def run_metadata(protocol: Protocol, operator: str | None = None, specimen_id: str | None = None,
+                 notes: list[str] | None = None) -> dict[str, str]:
+    """Who ran it, on which specimen, and the notes: the ``[protocol]`` fields, ``operator`` and ``specimen_id``
+    replacing the file's, ``notes`` added after the file's; ValueError (one line naming the option) if one is empty,
+    not one line of printable text, or too long.
+
+    Returned as the run file's root attributes ``operator``, ``specimen_id`` and ``notes`` (one note per line);
+    absent ones are left out."""
+    head = protocol.protocol
+    out: dict[str, str] = {}
+    for key, option, given, limit in (("operator", "--operator", operator, MAX_OPERATOR),
+                                      ("specimen_id", "--specimen-id", specimen_id, MAX_SPECIMEN_ID)):
+        if given is not None:
+            try:
+                out[key] = check_label(given, limit)
+            except ValueError as exc:
+                raise ValueError(f"{option}: {exc}") from None
+        elif getattr(head, key) is not None:
+            out[key] = getattr(head, key)
+    try:
+        all_notes = head.note_list() + (check_notes(notes) if notes else [])
+        if all_notes:
+            out["notes"] = "\n".join(check_notes(all_notes))
+    except ValueError as exc:
+        raise ValueError(f"--note: {exc}") from None
+    return out
+
+
 def execute(plan: Plan, out: Path, *, virtual: bool = False, operator: OperatorFn | None = None,
-            on_engine: Callable[[Engine, Any], None] | None = None, allow_no_watchdog: bool = False) -> RunResult:
+            on_engine: Callable[[Engine, Any], None] | None = None, allow_no_watchdog: bool = False,
+            metadata: dict[str, str] | None = None) -> RunResult:
     """Connect the rig (starting its twins if simulated), record, run; returns how the run ended.
 
     Errors while connecting (before anything is recorded) propagate as InstrumentError.
     ``on_engine(engine, sim)`` is called before the run starts (sim: the SimRig, or None for a real rig).
+    ``metadata``: operator, specimen ID and notes (:func:`run_metadata`; default: the protocol file's).
     """
     rig, program = plan.rig, plan.program
+    meta = metadata if metadata is not None else run_metadata(plan.protocol)
     if virtual and not rig.simulated:
         raise ValueError(f"rig {rig.name} is real: virtual time needs a simulated rig (use --sim)")
     watchdog = check_watchdog(rig, allow_no_watchdog)
@@ -196,6 +227,7 @@ def execute(plan: Plan, out: Path, *, virtual: bool = False, operator: OperatorF
                                     "model": _model_params(params)}),
             "recording": json.dumps(plan.protocol.recording.model_dump()),
             "sources": json.dumps(sources), "duration_planned": program.duration, "hv_watchdog": watchdog,
+            **meta,
         }
         prog_rows = [(s.index, s.label, s.name, s.kind, s.t_start, s.duration) for s in program.segments]
         recorder = Recorder(out, attrs, streams, prog_rows, rates)

@@ -1,6 +1,13 @@
 """Fit results written back beside the data, and exported as a rig file the simulated rig accepts.
 
-In the run file: group ``/fit/<model>-<n>`` with datasets ``names``, ``units``, ``values``, ``lower``,
+Where: by default in a *fit file* beside the run, ``<run>.fit.hdf5`` for ``<run>.h5`` (:func:`fit_sidecar`), so the
+run file itself is never modified after its run (and a ``runs/*.h5`` glob does not pick up fit files); or, on
+request, in the run file itself. A fit file is HDF5 with root attributes ``format = "dea-bench fits 1"``,
+``run_file`` (the run's file name), ``run_start_time`` and ``protocol_sha256`` (copied from the run, to tell a fit
+file from one left over by another run of the same name) and the same ``/fit`` groups as a run file.
+:func:`read_fits` reads both places. A fit over several files (a campaign) is stored with each of them.
+
+In either file: group ``/fit/<model>-<n>`` with datasets ``names``, ``units``, ``values``, ``lower``,
 ``upper``, ``sensitivity``, ``correlation``, ``uncertainty`` (each with a ``units`` attribute: per parameter
 for ``values``, ``lower``, ``upper``; "1" for the relative others) and attributes ``cost``, ``cost_kind``, ``rms``,
 ``n_data``, ``records`` (the files and windows used), DE settings, ``software``, ``wall_time``, ``flags``, ``created``
@@ -22,48 +29,110 @@ from bench.identify.core import FitResult
 from bench.recorder import now_iso
 from bench.rig import RigConfig, rig_to_toml
 
+SIDECAR_FORMAT = "dea-bench fits 1"
+SIDECAR_SUFFIX = ".fit.hdf5"
+
+
+def fit_sidecar(run_path: str | Path) -> Path:
+    """The fit file beside a run file: ``runs/x.h5`` → ``runs/x.fit.hdf5``."""
+    p = Path(run_path)
+    return p.with_name(p.stem + SIDECAR_SUFFIX)
+
+
+def is_sidecar(path: str | Path) -> bool:
+    """Whether ``path`` names a fit file (by its name: ``*.fit.hdf5``)."""
+    return Path(path).name.endswith(SIDECAR_SUFFIX)
+
+
+def _run_identity(run_path: str | Path) -> dict[str, str]:
+    """The run file's identity a fit file records (and is checked against); ValueError if the run is unfinished."""
+    with h5py.File(run_path, "r") as f:
+        if not f.attrs.get("complete", False):
+            raise ValueError(f"run file {run_path}: incomplete run; fit results go with finished files only")
+    return _run_identity_any(run_path)
+
+
+def _check_sidecar(f: h5py.File, side: Path, run_path: str | Path, identity: dict[str, str]) -> None:
+    if f.attrs.get("format") != SIDECAR_FORMAT:
+        raise ValueError(f"fit file {side}: not a dea-bench fit file (format {f.attrs.get('format')!r})")
+    for key in ("run_start_time", "protocol_sha256"):
+        if str(f.attrs.get(key, "")) != identity[key]:
+            raise ValueError(f"fit file {side}: belongs to another run of the name {f.attrs.get('run_file')!r} "
+                             f"({key} differs from {run_path}'s): move it away or delete it")
+
 
 def write_fit(run_path: str | Path, model: str, result: FitResult, records: list[str],
-              campaign: dict | None = None) -> str:
-    """Append the fit to a finished run file; returns the group name. ``campaign``: the campaign report
-    (which parameters the records determine alone and together), stored as JSON in attribute ``campaign``."""
+              campaign: dict | None = None, *, sidecar: bool = False) -> str:
+    """Append the fit to a finished run file, or with ``sidecar`` to its fit file (:func:`fit_sidecar`, created if
+    absent); returns the group name. ``campaign``: the campaign report (which parameters the records determine
+    alone and together), stored as JSON in attribute ``campaign``."""
+    if sidecar:
+        identity = _run_identity(run_path)
+        side = fit_sidecar(run_path)
+        with h5py.File(side, "a") as f:
+            if not f.attrs.get("format"):
+                f.attrs.update({"format": SIDECAR_FORMAT, **identity})
+            _check_sidecar(f, side, run_path, identity)
+            return _write_group(f, model, result, records, campaign)
     with h5py.File(run_path, "r+") as f:
         if not f.attrs.get("complete", False):
             raise ValueError(f"run file {run_path}: incomplete run; fit results go into finished files only")
-        g0 = f.require_group("fit")
-        k = 1
-        while f"{model}-{k}" in g0:
-            k += 1
-        g = g0.create_group(f"{model}-{k}")
-        text = h5py.string_dtype("utf-8")
-        g.create_dataset("names", data=np.array(result.names, dtype=object), dtype=text)
-        g.create_dataset("units", data=np.array(result.units, dtype=object), dtype=text)
-        for key in ("values", "lower", "upper", "sensitivity", "correlation", "uncertainty"):
-            g.create_dataset(key, data=np.asarray(getattr(result, key), dtype=float))
-        for key in ("values", "lower", "upper"):  # one unit per parameter: an array, element i for parameter i
-            g[key].attrs.create("units", np.array(result.units, dtype=object), dtype=text)
-        for key in ("sensitivity", "correlation", "uncertainty"):  # relative quantities
-            g[key].attrs["units"] = "1"
-        g.attrs.update({"model": model, "cost": result.cost, "cost_kind": result.cost_kind, "rms": result.rms,
-                        "n_data": result.n_data, "evaluations": result.evaluations,
-                        "generations": result.generations, "wall_time": result.wall_time,
-                        "settings": json.dumps(asdict(result.settings)), "records": json.dumps(records),
-                        "flags": json.dumps(result.flags), "software": f"dea-bench {__version__}",
-                        "created": now_iso()})
-        if campaign is not None:
-            g.attrs["campaign"] = json.dumps(campaign)
-        return g.name
+        return _write_group(f, model, result, records, campaign)
+
+
+def _write_group(f: h5py.File, model: str, result: FitResult, records: list[str], campaign: dict | None) -> str:
+    g0 = f.require_group("fit")
+    k = 1
+    while f"{model}-{k}" in g0:
+        k += 1
+    g = g0.create_group(f"{model}-{k}")
+    text = h5py.string_dtype("utf-8")
+    g.create_dataset("names", data=np.array(result.names, dtype=object), dtype=text)
+    g.create_dataset("units", data=np.array(result.units, dtype=object), dtype=text)
+    for key in ("values", "lower", "upper", "sensitivity", "correlation", "uncertainty"):
+        g.create_dataset(key, data=np.asarray(getattr(result, key), dtype=float))
+    for key in ("values", "lower", "upper"):  # one unit per parameter: an array, element i for parameter i
+        g[key].attrs.create("units", np.array(result.units, dtype=object), dtype=text)
+    for key in ("sensitivity", "correlation", "uncertainty"):  # relative quantities
+        g[key].attrs["units"] = "1"
+    g.attrs.update({"model": model, "cost": result.cost, "cost_kind": result.cost_kind, "rms": result.rms,
+                    "n_data": result.n_data, "evaluations": result.evaluations,
+                    "generations": result.generations, "wall_time": result.wall_time,
+                    "settings": json.dumps(asdict(result.settings)), "records": json.dumps(records),
+                    "flags": json.dumps(result.flags), "software": f"dea-bench {__version__}",
+                    "created": now_iso()})
+    if campaign is not None:
+        g.attrs["campaign"] = json.dumps(campaign)
+    return g.name
 
 
 def read_fits(run_path: str | Path) -> list[dict]:
-    """Fits stored in a run file (newest last): dicts with names, values, bounds, cost, flags, …"""
-    out = []
+    """Fits stored in a run file and in its fit file (newest last): dicts with ``file`` (where it is stored),
+    group, names, values, bounds, cost, flags, …; ValueError if the fit file belongs to another run."""
+    out = _read_groups(run_path)
+    side = fit_sidecar(run_path)
+    if side.exists():
+        identity = _run_identity_any(run_path)
+        with h5py.File(side, "r") as f:
+            _check_sidecar(f, side, run_path, identity)
+        out += _read_groups(side)
+    return sorted(out, key=lambda d: str(d.get("created", "")))
+
+
+def _run_identity_any(run_path: str | Path) -> dict[str, str]:
     with h5py.File(run_path, "r") as f:
+        return {"run_file": Path(run_path).name, "run_start_time": str(f.attrs.get("start_time", "")),
+                "protocol_sha256": str(f.attrs.get("protocol_sha256", ""))}
+
+
+def _read_groups(path: str | Path) -> list[dict]:
+    out: list[dict] = []
+    with h5py.File(path, "r") as f:
         if "fit" not in f:
             return out
         for name in sorted(f["fit"], key=lambda n: f["fit"][n].attrs["created"]):
             g = f["fit"][name]
-            out.append({"group": g.name, "names": list(g["names"].asstr()[:]),
+            out.append({"file": str(path), "group": g.name, "names": list(g["names"].asstr()[:]),
                         "units": list(g["units"].asstr()[:]), "values": g["values"][:],
                         "lower": g["lower"][:], "upper": g["upper"][:], "sensitivity": g["sensitivity"][:],
                         "uncertainty": g["uncertainty"][:] if "uncertainty" in g else None,

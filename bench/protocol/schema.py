@@ -41,6 +41,10 @@ MAX_STEPS = 100_000  # steps after expanding repeats and sweeps
 MAX_NESTING = 20  # repeats and sweeps inside each other
 MAX_DURATION_S = 7 * 86_400.0  # one protocol's run time: 7 days
 MAX_EXPANSION = 50_000_000  # characters sweeps may copy while substituting their values
+MAX_OPERATOR = 100  # characters of [protocol] operator / `bench run --operator`
+MAX_SPECIMEN_ID = 100  # characters of [protocol] specimen_id / `bench run --specimen-id`
+MAX_NOTE = 1000  # characters of one note ([protocol] notes / `bench run --note`)
+MAX_NOTES = 100  # notes on one run
 
 
 class _Strict(BaseModel):
@@ -212,6 +216,14 @@ class ProtocolHeader(_Strict):
     source: str = ""
     rig: str = Field(description="rig file, relative to the protocol file", min_length=1, max_length=4096)
     short_variant_of: str = ""
+    operator: str | None = Field(None, description=f"who runs it (recorded in the run file; `bench run --operator` "
+                                 f"overrides it); one line, at most {MAX_OPERATOR} characters")
+    specimen_id: str | None = Field(None, description=f"the specimen's identifier (recorded in the run file; "
+                                    f"`bench run --specimen-id` overrides it); one line, at most {MAX_SPECIMEN_ID} "
+                                    "characters")
+    notes: str | list[str] | None = Field(None, description=f"free notes recorded in the run file (`bench run "
+                                          f"--note` adds more); each one line of at most {MAX_NOTE} characters, "
+                                          f"at most {MAX_NOTES} notes")
 
     @field_validator("rig")
     @classmethod
@@ -219,6 +231,52 @@ class ProtocolHeader(_Strict):
         if not v.isprintable():
             raise ValueError("a file path without control characters (NUL, newline, …)")
         return v
+
+    @field_validator("operator")
+    @classmethod
+    def _operator(cls, v: str | None) -> str | None:
+        return None if v is None else check_label(v, MAX_OPERATOR)
+
+    @field_validator("specimen_id")
+    @classmethod
+    def _specimen_id(cls, v: str | None) -> str | None:
+        return None if v is None else check_label(v, MAX_SPECIMEN_ID)
+
+    @field_validator("notes")
+    @classmethod
+    def _notes(cls, v: str | list[str] | None) -> list[str] | None:
+        return None if v is None else check_notes([v] if isinstance(v, str) else v)
+
+    def note_list(self) -> list[str]:
+        """The notes as a list (a single string in the file is one note)."""
+        return [self.notes] if isinstance(self.notes, str) else list(self.notes or [])
+
+
+def check_label(text: str, limit: int) -> str:
+    """``text`` stripped, if it is non-empty, one line of printable characters and at most ``limit`` long."""
+    v = text.strip()
+    if not v:
+        raise ValueError("empty: give some text or leave the field out")
+    if not v.isprintable():
+        raise ValueError("one line of printable text (no newline, tab or other control character)")
+    if len(v) > limit:
+        raise ValueError(f"{len(v)} characters, at most {limit} allowed")
+    return v
+
+
+def check_notes(notes: list[str]) -> list[str]:
+    """Each note checked by :func:`check_label` (``MAX_NOTE`` characters), at most ``MAX_NOTES`` of them."""
+    if not notes:
+        raise ValueError("an empty list: give at least one note or leave the field out")
+    if len(notes) > MAX_NOTES:
+        raise ValueError(f"{len(notes)} notes, at most {MAX_NOTES} allowed")
+    out = []
+    for k, note in enumerate(notes):
+        try:
+            out.append(check_label(note, MAX_NOTE))
+        except ValueError as exc:
+            raise ValueError(f"note {k + 1}: {exc}") from None
+    return out
 
 
 class Protocol(_Strict):
