@@ -5,7 +5,9 @@
   one DE generation of 50 on the same record at the same step; and against a generic approach, each candidate
   integrated on its own by scipy's Radau with a finite-difference Jacobian;
 * the thesis fit at the thesis's DE settings: the current path (vectorised kernel, stop on convergence)
-  against the old one (reference kernel, run to scipy's criterion), wall time and rms.
+  against the old one (reference kernel, run to scipy's criterion), wall time and rms;
+* LS-DEA candidates: the vectorised LS-DEA kernel (:mod:`bench.models.lozenge_batch`) against the scalar
+  kernel the LS-DEA fits used before (``run_fixed_batch``), a DE generation of 50 on each short campaign's record.
 """
 
 from __future__ import annotations
@@ -20,7 +22,10 @@ from scipy.integrate import solve_ivp
 
 from bench.benchmark_acquisition import Figure
 from bench.identify.core import FitSettings, fit
-from bench.identify.problems import MembraneProblem
+from bench.identify.problems import LozengeProblem, MembraneProblem
+from bench.models.integrate import MODEL_LOZENGE, run_fixed_batch
+from bench.models.lozenge import MODE_HUNG
+from bench.models.lozenge_batch import lozenge_batch
 from bench.models.membrane import membrane_rhs
 from bench.resources import protocols_dir
 from bench.run import execute, plan_run
@@ -128,6 +133,39 @@ def thesis_fit(path: Path, settings: FitSettings) -> list[Figure]:
                    f"({new.rms * 1e6:.2f} vs {old.rms * 1e6:.2f} µm)")]
 
 
+def _lsdea_generation(prob: LozengeProblem) -> tuple[int, float, float]:
+    """(mode, seconds per candidate vectorised, same scalar) of one DE generation of 50 on the first record."""
+    rec = prob.records[0]
+    mode, lam2p, mass = int(rec.template[16]), float(rec.template[10]), float(rec.template[13])
+    Z = prob.lower + (prob.upper - prob.lower) * np.random.default_rng(3).random((50, len(prob.names)))
+    P = np.stack([replace(prob.params_of(z), lambda2p=lam2p, hung_mass=mass).pack(mode) for z in Z])
+    Y0 = np.tile(rec.y0, (Z.shape[0], 1))
+    channel = 0 if mode == MODE_HUNG else -1
+    new = _best_of(lambda: lozenge_batch(P, Y0, rec.U, prob.h, channel, rec.stride)) / Z.shape[0]
+    old = _best_of(lambda: run_fixed_batch(MODEL_LOZENGE, Y0, rec.U, prob.h, P, channel, rec.stride)) / Z.shape[0]
+    return mode, new, old
+
+
+def lsdea_candidates(tmp: Path) -> list[Figure]:
+    """Per-candidate time of an LS-DEA DE generation of 50 (random candidates within the bounds): vectorised
+    kernel against the scalar one, on the first record of each short LS-DEA campaign (imposed and hung mode)."""
+    out = []
+    for name in ("short/lsdea-isopotential-short.toml", "short/lsdea-isotonic-short.toml"):
+        res = execute(plan_run(protocols_dir() / name), tmp / (Path(name).stem + ".h5"), virtual=True)
+        if res.state != "completed":
+            raise RuntimeError(f"benchmark run {name} ended {res.state}: {res.reason}")
+        prob = LozengeProblem([Path(res.path)])
+        mode, new, old = _lsdea_generation(prob)
+        steps = prob.records[0].U.shape[0]
+        kind = "hung mass" if mode == MODE_HUNG else "imposed aperture"
+        out += [Figure(f"LS-DEA candidate, batch of 50, {kind}: vectorised kernel", new * 1e3, "ms",
+                       f"{new / steps * 1e9:.1f} ns per step per candidate; {steps * prob.h:.1f} s "
+                       f"record at h = {prob.h * 1e3:g} ms"),
+                Figure("  same, scalar kernel (run_fixed_batch, what LS-DEA fits used before)", old * 1e3, "ms",
+                       f"speed-up {old / new:.1f}×")]
+    return out
+
+
 CAMPAIGN_TARGET_S = 180.0  # issue 13: the full thesis sweep campaign (12 records) on 2 cores
 
 
@@ -165,4 +203,5 @@ def run_all(quick: bool = False) -> list[Figure]:
         figs = candidate_speed(MembraneProblem([path], h=5e-4), 1)
         figs += thesis_fit(path, FitSettings(generations=10) if quick else FitSettings())
         figs += campaign_fit(Path(tmp), quick)
+        figs += lsdea_candidates(Path(tmp))
     return figs
