@@ -303,6 +303,10 @@ def sim_serve(
         help="Also write a rig file pointing at the running twins (for other processes).")] = None,
     duration: Annotated[str | None, _qopt("Stop after this time [s], at least 0.1 s (default: Ctrl-C); "
                                                  "or with a unit: '30 s'.")] = None,
+    wire_time: Annotated[bool, typer.Option(
+        "--wire-time/--no-wire-time",
+        help="Serve at the rig file's baud rates with the devices' turnarounds (as the real lines), or at pty "
+             "speed (faster than any real bench: for a quick look only).")] = True,
 ) -> None:
     """Start every simulated instrument of a rig (wall clock) and print where to connect; Ctrl-C stops."""
     import signal
@@ -319,13 +323,15 @@ def sim_serve(
         raise ValueError(f"rig file {rig_file}: simulated = false; `bench sim serve` needs a simulated rig")
     stop = threading.Event()
     previous = signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    sim = SimRig(rig)
+    sim = SimRig(rig, timing="real" if wire_time else "none")
     try:
         endpoints = sim.start()
         console.print(_endpoint_table(f"simulated rig {rig.name} ({rig.specimen.kind})", endpoints))
         if write_rig is not None:
             write_rig_file(served_rig(rig, sim.port_map()), write_rig)
             console.print(f"rig file for clients: {write_rig}")
+        console.print("wire time: " + ("real (the rig file's baud rates, RTU gaps and device turnarounds)"
+                                       if wire_time else "off (pty speed: faster than any real line)"))
         console.print("serving; Ctrl-C to stop" + (f" (or after {duration_s:g} s)" if duration_s else ""))
         with contextlib.suppress(KeyboardInterrupt):
             stop.wait(duration_s)

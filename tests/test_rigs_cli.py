@@ -113,3 +113,23 @@ def test_sim_serve_stops_on_sigterm_and_refuses_real_rigs(tmp_path: Path) -> Non
     assert proc.returncode == 0 and "simulated rig stopped" in out, err
     res = runner.invoke(app, ["sim", "serve", str(RIGS / "thesis-lab.toml")])
     assert res.exit_code == 2 and "needs a simulated rig" in res.output
+
+
+@pytest.mark.parametrize("flag, timing, said", [([], "real", "wire time: real"),
+                                                (["--no-wire-time"], "none", "wire time: off")])
+def test_sim_serve_serves_with_wire_time_unless_told_otherwise(flag: list[str], timing: str, said: str,
+                                                                monkeypatch: pytest.MonkeyPatch) -> None:
+    """Issue 10: `sim serve` serves the rig with its real timing unless told otherwise."""
+    import sim_devices.rig as simrig
+
+    seen: list[str | None] = []
+    real_start = simrig.SimRig.start
+
+    def start(self: simrig.SimRig) -> object:
+        seen.append(self.timing)
+        return real_start(self)
+
+    monkeypatch.setattr(simrig.SimRig, "start", start)
+    res = runner.invoke(app, ["sim", "serve", str(RIGS / "thesis-sim.toml"), "--duration", "0.2", *flag])
+    assert res.exit_code == 0, res.output
+    assert seen == [timing] and said in res.output
