@@ -236,7 +236,10 @@ def inspect(run_file: Annotated[Path, typer.Argument(help="Run file (.h5), finis
     r = open_run(run_file)
     a = r.attrs
     notes = [n for n in str(a.get("notes", "")).split("\n") if n]
-    fits = read_fits(run_file)
+    try:
+        fits, fits_error = read_fits(run_file), ""
+    except (ValueError, OSError) as exc:  # a fit file of another run beside it: the run itself is still shown
+        fits, fits_error = [], " ".join(str(exc).splitlines())
     if json_out:
         keys = ("protocol_name", "protocol_path", "protocol_sha256", "rig_name", "simulated", "clock", "software",
                 "start_time", "duration_planned", "operator", "specimen_id")
@@ -244,6 +247,7 @@ def inspect(run_file: Annotated[Path, typer.Argument(help="Run file (.h5), finis
                     "fits": [{"file": f["file"], "group": f["group"], "model": f.get("model"), "rms": f.get("rms"),
                               "created": f.get("created"), "records": f.get("records"),
                               "parameters": dict(zip(f["names"], f["values"], strict=True))} for f in fits],
+                    "fits_error": fits_error or None,
                     "state": r.state, "complete": r.complete,
                     "incomplete_reason": None if r.complete else r.incomplete_reason, "reason": r.reason,
                     "end_time": r.end_time, "recorded_up_to_s": r.updated,
@@ -291,6 +295,8 @@ def inspect(run_file: Annotated[Path, typer.Argument(help="Run file (.h5), finis
     events = r.event_list()
     console.print(f"{len(events)} events; last: " + "; ".join(f"{t:.2f} s {kind} {escape(text)}"
                                                              for t, _, kind, text in events[-3:]), soft_wrap=True)
+    if fits_error:
+        console.print(f"[yellow]fits not read[/]: {escape(fits_error)}", soft_wrap=True)
     for f in fits:
         where = "in the run file" if Path(f["file"]) == Path(run_file) else f"in {f['file']}"
         console.print(f"fit {escape(f['group'])} ({escape(where)}): {f.get('model')} model, rms "

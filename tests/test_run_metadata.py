@@ -154,6 +154,10 @@ def test_a_fit_file_of_another_run_is_refused(run_file: Path, tmp_path: Path) ->
                         "run_start_time": "2000-01-01T00:00:00.000+00:00", "protocol_sha256": "0" * 64})
     with pytest.raises(ValueError, match="belongs to another run"):
         read_fits(copy)
+    res = runner.invoke(app, ["inspect", str(copy), "--json"])  # the run is still shown, the fit file named
+    assert res.exit_code == 0, res.output
+    data = json.loads(res.stdout)
+    assert data["fits"] == [] and "belongs to another run" in data["fits_error"] and data["state"] == "completed"
 
 
 def _simulate(*args: str) -> str:
