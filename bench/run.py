@@ -187,7 +187,12 @@ def execute(plan: Plan, out: Path, *, virtual: bool = False, operator: OperatorF
     if rig.simulated:
         from sim_devices.rig import SimRig
 
-        sim = SimRig(rig, virtual=virtual)
+        # wire time (baud rates, gaps, turnarounds) also in virtual time, so that a virtual run takes the time a
+        # real one would — unless the protocol outruns the rig's lines (the plan says which), where a virtual
+        # run at wire time would only be late everywhere: then pty speed, as the console and the file say
+        timing = "real" if not virtual or not plan.link_problems else "none"
+        sim = SimRig(rig, virtual=virtual, timing=timing)
+        meta = {**meta, "wire_time": "real" if timing == "real" else "off (the protocol outruns the rig's lines)"}
         over = plan.protocol.specimen
         changes = {k: v for k, v in over.model_dump().items() if v is not None}
         if changes:

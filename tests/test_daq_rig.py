@@ -101,7 +101,9 @@ def test_a_ramp_ends_exactly_on_its_target_on_a_daq_rig(tmp_path: Path) -> None:
     assert f.complete and f.state == "completed"
     t0, dur = steps(f)["tensile cycles [voltage=7 kV]"]
     amp = f.streams["amplifier"]
-    sel = (amp.t > t0) & (amp.t <= t0 + dur)
+    # the T7 plays buffer value k at scan k, one scan period after the enable: the value of program time t is
+    # in the scan at t + 1/RATE, so the step's own values start one scan after its start
+    sel = (amp.t > t0 + 1 / RATE + 1e-9) & (amp.t <= t0 + dur)
     code = 5.0 / 4096 * 4.0 * 1000.0  # one 12-bit step of the 0–5 V DAC through gain 4 and the TREK's 1000 V/V
     assert np.all(np.abs(amp.columns["commanded"][sel] - 7000.0) <= code)
     assert np.all(np.abs(amp.columns["voltage"][sel] - 7000.0) <= 2 * code)  # measured, monitor noise included
