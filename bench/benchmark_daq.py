@@ -69,10 +69,10 @@ def repeatability(tmp: Path, runs: int = 3) -> list[Figure]:
 
 def soak(seconds: float) -> list[Figure]:
     """A wall-clock stream of 4 inputs at 10 kHz through the driver and the twin: lost and duplicated scans."""
+    from bench.core.clock import WallClock
+    from bench.core.plant import HVStage, Plant
     from drivers.labjack import LabJackT7, StreamIn, StreamSpec
-    from sim_devices.clock import WallClock
     from sim_devices.labjack_t7 import LabJackT7Sim
-    from sim_devices.plant import HVStage, Plant
 
     clock = WallClock()
     plant = Plant(clock, MembraneParams(), hv=HVStage())

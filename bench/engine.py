@@ -30,6 +30,7 @@ from typing import Any, TypeVar
 
 import numpy as np
 
+from bench.core.clock import Clock
 from bench.hardware_timed import HardwareTimed, watchdog_period
 from bench.instruments import Instruments
 from bench.protocol.program import Program, Segment, motor_command, voltage_at
@@ -38,7 +39,6 @@ from bench.safety import SafetyTrip, Supervisor
 from drivers.errors import InstrumentConnectionError, InstrumentError, InstrumentStateError, OperationCancelledError
 from drivers.interfaces import Amplifier, DisplacementSensor, ForceSensor, LinearMotor
 from drivers.trek_daq import TrekOnDaq
-from sim_devices.clock import Clock
 
 FETCH_PERIOD_S = 0.25  # laser storage upload period while storing (run time)
 MONITOR_SETTLE_S = 0.5  # after zeroing, wait for fresh monitor conversions before the final read

@@ -18,6 +18,7 @@ from bench.models.lozenge import LozengeParams, MaxwellBranch
 from bench.models.membrane import MembraneParams
 from bench.tomlfile import one_line, read_toml
 from drivers.dini import STANDARD_GRAVITY
+from drivers.keyence import STORAGE_CAPACITY
 from drivers.trek import TREK_MODELS
 
 
@@ -71,6 +72,13 @@ class LaserConfig(_Strict):
     offset_mm: float = 0.0
     sign: Literal[-1, 1] = 1
     range_mm: float = Field(40.0, gt=0)
+
+    @property
+    def capacity(self) -> int:
+        """Points the controller stores per OUT for a run: storage_points, or the model's capacity (its driver's
+        table) — the rig file is where the application learns instrument facts, so protocol compilation needs no
+        driver."""
+        return self.storage_points or STORAGE_CAPACITY[self.model]
 
 
 class MotorConfig(_Strict):

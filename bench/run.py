@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from bench import __version__
+from bench.core.clock import WallClock
 from bench.engine import Engine, OperatorFn, RunResult
 from bench.hardware_timed import watchdog_period
 from bench.instruments import build_instruments
@@ -22,7 +23,6 @@ from bench.protocol.schema import MAX_OPERATOR, MAX_SPECIMEN_ID, Protocol, check
 from bench.recorder import Column, Recorder, now_iso
 from bench.rig import RigConfig, load_rig, rig_to_toml
 from bench.safety import Supervisor
-from sim_devices.clock import WallClock
 
 SIM_MODBUS_POLL_S = 5e-5  # RTU receive poll interval against twins on ptys (they answer at once)
 

@@ -23,8 +23,8 @@ from typing import Literal
 
 import numpy as np
 
-from sim_devices.clock import Clock
-from sim_devices.plant import Plant, PlantBlock
+from bench.core.clock import Clock
+from bench.core.plant import Plant, PlantBlock
 
 Model = Literal["LK-G3000", "LK-G5000"]
 # Error codes: LK-G3000 from p. 5-5; LK-G5000 [C] theion Keyence_API.h (50 command … 62 parameter range).

@@ -52,8 +52,8 @@ from pymodbus.constants import ExcCodes
 from pymodbus.server import ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
-from sim_devices.clock import Clock
-from sim_devices.plant import Plant, PlantBlock
+from bench.core.clock import Clock
+from bench.core.plant import Plant, PlantBlock
 from sim_devices.transport import Faults, SocketRelay
 
 # ---- the manual's numbers, written out here (never imported from the driver) ----

@@ -17,9 +17,9 @@ from __future__ import annotations
 import struct
 import threading
 
-from sim_devices.clock import Clock
-from sim_devices.motion import MotionProfile
-from sim_devices.plant import Plant
+from bench.core.clock import Clock
+from bench.core.motion import MotionProfile
+from bench.core.plant import Plant
 
 # ---------------------------------------------------------------- LinRS framing (LinRS manual p. 11)
 STX, DATA_START, ETX = 0x01, 0x02, 0x04  # 01h | ID | Len | 02h | SubID | MainID | data… | [CRC lo hi] | 04h

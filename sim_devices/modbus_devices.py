@@ -28,8 +28,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sim_devices.clock import Clock
-from sim_devices.plant import Plant, PlantBlock
+from bench.core.clock import Clock
+from bench.core.plant import Plant, PlantBlock
 
 # Modbus exception codes (Modbus Application Protocol v1.1b3 §7)
 ILLEGAL_FUNCTION, ILLEGAL_ADDRESS, ILLEGAL_VALUE, DEVICE_FAILURE = 0x01, 0x02, 0x03, 0x04

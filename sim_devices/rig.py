@@ -16,14 +16,14 @@ import threading
 from dataclasses import dataclass, field
 from typing import Literal
 
+from bench.core.clock import Clock, VirtualClock, WallClock
+from bench.core.plant import HVStage, Plant
 from bench.rig import RigConfig
-from sim_devices.clock import Clock, VirtualClock, WallClock
 from sim_devices.keyence_lkg import TURNAROUND_S as LKG_TURNAROUND_S
 from sim_devices.keyence_lkg import KeyenceLKGSim, LaserHead
 from sim_devices.linmot_drive import LinMotDriveSim
 from sim_devices.modbus_devices import Adam4017PSim, Adam4024Sim, Dgt1sSim, Scale
 from sim_devices.modbus_host import ModbusHost, SimBus
-from sim_devices.plant import HVStage, Plant
 from sim_devices.transport import Faults, Line, PtyDevice
 
 

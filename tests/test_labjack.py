@@ -15,6 +15,8 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 
+from bench.core.clock import VirtualClock
+from bench.core.plant import HVStage, Plant
 from bench.models.membrane import MembraneParams
 from drivers.errors import InstrumentStateError, LimitError, ProtocolError
 from drivers.labjack import (
@@ -25,9 +27,7 @@ from drivers.labjack import (
     StreamSpec,
     parse_stream_packet,
 )
-from sim_devices.clock import VirtualClock
 from sim_devices.labjack_t7 import Conditioning, LabJackT7Sim
-from sim_devices.plant import HVStage, Plant
 
 # one packet: TransID 5, Length 18 (= 10 + 4 samples·2), unit 1, function 76 (0x4C), type 16, backlog 8 bytes,
 # status 0, then AIN samples 0x82F3 (33523 = nominal centre: 0 V), 0x8300, 0x7F00 and 0xFFFF
@@ -273,7 +273,7 @@ def test_stop_mid_waveform_holds_the_last_played_value(rig: Rig) -> None:
 
 
 def test_wall_clock_stream_loses_and_repeats_nothing() -> None:
-    from sim_devices.clock import WallClock
+    from bench.core.clock import WallClock
 
     clock = WallClock()
     plant = Plant(clock, MembraneParams(), hv=HVStage())
@@ -306,7 +306,7 @@ def test_wall_clock_stream_out_never_steps_while_the_plant_runs_on_its_own() -> 
     stalls 5 ms after every reading (a thread that loses the GIL), the ticker advances the plant every 1 ms."""
     import threading
 
-    from sim_devices.clock import WallClock
+    from bench.core.clock import WallClock
 
     class StallingClock(WallClock):
         def now(self) -> float:

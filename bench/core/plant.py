@@ -23,12 +23,12 @@ from typing import Literal
 
 import numpy as np
 
+from bench.core.clock import Clock
+from bench.core.motion import MotionProfile
 from bench.models.lozenge import PROTOTYPE_LAMBDA2P, LozengeParams
 from bench.models.lozenge_runs import LozengeStream
 from bench.models.membrane import MembraneParams
 from bench.models.membrane_runs import MembraneStream
-from sim_devices.clock import Clock
-from sim_devices.motion import MotionProfile
 
 
 def _without_when(failure: str) -> str:

@@ -19,10 +19,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from bench.core.clock import VirtualClock
+from bench.core.motion import MotionProfile
+from bench.core.plant import HVStage, Plant, PlantBlock
 from bench.protocol.program import Program, ProtocolLimitError, motor_command, voltage_at
-from sim_devices.clock import VirtualClock
-from sim_devices.motion import MotionProfile
-from sim_devices.plant import HVStage, Plant, PlantBlock
 
 STREAM_COLUMNS = {"setpoints": 2, "amplifier": 3, "laser": 2, "motor": 2, "load_cell": 1}
 PASSIVE_LASER_HZ = 10.0  # single laser reads while the storage is idle

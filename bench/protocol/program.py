@@ -16,11 +16,10 @@ from typing import Literal
 
 import numpy as np
 
+from bench.core.motion import MotionProfile
 from bench.protocol.schema import MAX_DURATION_S, HoldStep, MoveStep, Protocol, RampStep, SetStep, WaveformStep
 from bench.rig import RigConfig
 from bench.waveforms import Waveform
-from drivers.keyence import STORAGE_CAPACITY
-from sim_devices.motion import MotionProfile
 
 Signal = Callable[[np.ndarray], np.ndarray]
 RELAX_RAMP_S = 0.5  # a relax step brings the voltage to zero over this time (or a tenth of the step)
@@ -106,7 +105,7 @@ def compile_program(protocol: Protocol, rig: RigConfig) -> Program:
     where = f"protocol file {protocol.path}"
     motor_axis = rig.motor is not None and rig.specimen.kind == "lsdea" and rig.specimen.lsdea.configuration == "motor"
     rec = protocol.recording
-    capacity = (rig.laser.storage_points or STORAGE_CAPACITY[rig.laser.model]) if rig.laser else 0
+    capacity = rig.laser.capacity if rig.laser else 0
     v_limit = rig.limits.max_voltage_V
     if rig.amplifier is not None:
         v_limit = min(v_limit, rig.amplifier.max_voltage_V)
