@@ -11,6 +11,7 @@ holds the end value). Software-timed actions (motor go-tos, encoder polls) keep 
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -18,8 +19,9 @@ from numba import njit
 from scipy.signal import lfilter
 
 from bench.protocol.program import Segment, voltage_at
-from bench.rig import RigConfig
+from bench.rig import DaqConfig, RigConfig
 from drivers.errors import InstrumentTimeoutError
+from drivers.interfaces import Amplifier, DataKey, StreamDescription
 from drivers.labjack import LabJackT7, StreamBlock, StreamIn, StreamOut, StreamSpec
 from drivers.trek_daq import TrekOnDaq
 
@@ -54,6 +56,25 @@ def watchdog_period(rig: RigConfig) -> float | None:
     if amp.drive == "daq":
         return rig.daq.watchdog_s if rig.daq is not None else None
     return amp.comm_watchdog_s
+
+
+def describe_streams(cfg: DaqConfig, amplifier: Amplifier) -> list[StreamDescription]:
+    """The streams the DAQ's scans time: the amplifier's (its driver's columns) and the analog inputs the rig file
+    wires to the DAQ (load cell, laser); each source names its channels and the one scan clock."""
+    clock = f"LabJack T7 stream, {cfg.scan_rate_Hz:g} scans/s (one scan clock for every analog channel)"
+    amp = amplifier.describe()
+    out = [replace(amp, source=f"{amp.source}; {clock}")]
+    if cfg.force_ain is not None:
+        out.append(StreamDescription("load_cell", (
+            DataKey("force", "N", "force from the load-cell bridge amplifier, tension positive"),
+            DataKey("ok", "1", "1 = every channel of the scan valid", "u1")),
+            f"bridge amplifier on AIN{cfg.force_ain}; {clock}"))
+    if cfg.laser_ain is not None:
+        out.append(StreamDescription("laser", (
+            DataKey("displacement", "m", "from the laser's analog output (offset and sign removed)"),
+            DataKey("valid", "1", "1 = measurement, 0 = invalid", "u1")),
+            f"laser analog output on AIN{cfg.laser_ain}; {clock}"))
+    return out
 
 
 class HardwareTimed:

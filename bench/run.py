@@ -14,8 +14,8 @@ from typing import Any
 from bench import __version__
 from bench.core.clock import WallClock
 from bench.engine import Engine, OperatorFn, RunResult
-from bench.hardware_timed import watchdog_period
-from bench.instruments import build_instruments
+from bench.hardware_timed import describe_streams, watchdog_period
+from bench.instruments import Instruments, build_instruments
 from bench.protocol.link_budget import check_links
 from bench.protocol.predict import Prediction, predict
 from bench.protocol.program import Program, ProtocolLimitError, compile_program
@@ -23,6 +23,7 @@ from bench.protocol.schema import MAX_OPERATOR, MAX_SPECIMEN_ID, Protocol, check
 from bench.recorder import Column, Recorder, now_iso
 from bench.rig import RigConfig, load_rig, rig_to_toml
 from bench.safety import Supervisor
+from drivers.interfaces import StreamDescription
 
 SIM_MODBUS_POLL_S = 5e-5  # RTU receive poll interval against twins on ptys (they answer at once)
 
@@ -63,48 +64,29 @@ def plan_run(protocol_path: str | Path, rig_path: str | Path | None = None, simu
     return Plan(protocol, rig, program, prediction, links)
 
 
-def _streams(rig: RigConfig) -> tuple[dict[str, list[Column]], dict[str, str]]:
-    spec = "membrane in-plane displacement u" if rig.specimen.kind == "membrane" else "LS-DEA aperture x"
+def _streams(rig: RigConfig, inst: Instruments) -> tuple[dict[str, list[Column]], dict[str, str]]:
+    """The recorder's layout from the instruments' own descriptions (drivers' ``describe()``; on a DAQ-driven rig
+    the scans time the amplifier and the analog inputs wired to the DAQ): the engine's set-points first; the rig
+    names what a displacement measures; the engine adds the aperture it derives from the motor position and, on
+    software-timed streams, how late each poll ran."""
+    measurand = "membrane in-plane displacement u" if rig.specimen.kind == "membrane" else "LS-DEA aperture x"
+    described: list[StreamDescription] = []
+    if rig.daq is not None and inst.amplifier is not None and rig.amplifier and rig.amplifier.drive == "daq":
+        described = describe_streams(rig.daq, inst.amplifier)
+    timed = {d.stream for d in described}
+    described += [drv.describe() for drv in (inst.amplifier, inst.laser, inst.motor, inst.load_cell)
+                  if drv is not None and drv.name not in timed]
     streams: dict[str, list[Column]] = {"setpoints": [Column("voltage", "V", "amplifier output commanded"),
                                                       Column("aperture", "m", "LS-DEA aperture commanded (NaN: none)")]}
     sources = {"setpoints": "engine"}
-    daq = rig.daq if rig.amplifier and rig.amplifier.drive == "daq" else None
-    if rig.amplifier:
-        streams["amplifier"] = [Column("voltage", "V", "output voltage from the TREK voltage monitor"),
-                                Column("current", "A", "output current from the TREK current monitor")]
-        sources["amplifier"] = f"TREK {rig.amplifier.model} via ADAM-4017+"
-    if daq is not None:
-        clock = f"LabJack T7 stream, {daq.scan_rate_Hz:g} scans/s (one scan clock for every analog channel)"
-        streams["amplifier"].append(Column("commanded", "V", "output commanded: the DAC code played in the same scan, "
-                                           "through the conditioning stage and the amplifier's gain"))
-        sources["amplifier"] = f"TREK {rig.amplifier.model} monitors on AIN{daq.vmon_ain}/AIN{daq.imon_ain}; {clock}"
-        if daq.force_ain is not None:
-            streams["load_cell"] = [Column("force", "N", "force from the load-cell bridge amplifier, tension positive"),
-                                    Column("ok", "1", "1 = every channel of the scan valid", "u1")]
-            sources["load_cell"] = f"bridge amplifier on AIN{daq.force_ain}; {clock}"
-        if daq.laser_ain is not None:
-            streams["laser"] = [Column("displacement", "m", f"{spec}, from the laser's analog output (offset and "
-                                       "sign removed)"),
-                                Column("valid", "1", "1 = measurement, 0 = invalid", "u1")]
-            sources["laser"] = f"laser analog output on AIN{daq.laser_ain}; {clock}"
-    if rig.laser and "laser" not in streams:
-        streams["laser"] = [Column("displacement", "m", f"{spec}, from the laser (offset and sign removed)"),
-                            Column("valid", "1", "1 = measurement, 0 = over range / invalid", "u1")]
-        sources["laser"] = f"Keyence {rig.laser.model}"
-    if rig.motor:
-        streams["motor"] = [Column("position", "m", "motor encoder position"),
-                            Column("aperture", "m", "LS-DEA aperture from the motor position")]
-        sources["motor"] = "LinMot LinRS"
-    if rig.load_cell and "load_cell" not in streams:
-        streams["load_cell"] = [Column("force", "N", "force on the load cell, tension positive"),
-                                Column("ok", "1", "1 = stable reading", "u1")]
-        sources["load_cell"] = "Dini Argeo DGT1S"
     late = Column("late", "s", "software-timed: how long after its scheduled time the poll ran (NaN: not polled)")
-    hw = {"amplifier", *(["load_cell"] if daq is not None and daq.force_ain is not None else []),
-          *(["laser"] if daq is not None and daq.laser_ain is not None else [])} if daq is not None else set()
-    for name in ("amplifier", "laser", "motor", "load_cell"):
-        if name in streams and name not in hw:
-            streams[name].append(late)
+    for d in described:
+        cols = [Column(k.name, k.unit, f"{measurand}, {k.description}" if k.name == "displacement" else k.description,
+                       k.dtype) for k in d.columns]
+        if d.stream == "motor":
+            cols.append(Column("aperture", "m", "LS-DEA aperture from the motor position"))
+        streams[d.stream] = cols + ([] if d.stream in timed else [late])
+        sources[d.stream] = d.source
     return streams, sources
 
 
@@ -214,7 +196,7 @@ def execute(plan: Plan, out: Path, *, virtual: bool = False, operator: OperatorF
         if sim is not None:
             params = sim.plant.specimen
         supervisor = Supervisor(rig, params)
-        streams, sources = _streams(rig)
+        streams, sources = _streams(rig, inst)
         r = plan.protocol.recording
         rates = {"setpoints": r.setpoint_Hz, "amplifier": r.monitors_Hz, "laser": r.displacement_Hz,
                  "motor": r.position_Hz, "load_cell": r.force_Hz}

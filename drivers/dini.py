@@ -19,7 +19,7 @@ import time
 
 from drivers.cancel import check
 from drivers.errors import InstrumentStateError, InstrumentTimeoutError
-from drivers.interfaces import ClockFn, Identity, Reading, SleepFn
+from drivers.interfaces import ClockFn, DataKey, Identity, Reading, SleepFn, StreamDescription
 from drivers.modbus_link import ModbusLink
 
 IR_GROSS, IR_NET, IR_STATUS, IR_COMMAND_STATUS, IR_OUTPUTS = 0, 2, 4, 5, 6
@@ -63,6 +63,12 @@ class DiniDGT1S:
     def close(self) -> None:
         """Release the bus (the transmitter has no unsafe state)."""
         self.link.close()
+
+    def describe(self) -> StreamDescription:
+        """The stream it records: columns, units, source."""
+        return StreamDescription(self.name, (
+            DataKey("force", "N", "force on the load cell, tension positive"),
+            DataKey("ok", "1", "1 = stable reading", "u1")), "Dini Argeo DGT1S")
 
     def identify(self) -> Identity:
         """No identification register in the map: report the configured model and the scale status."""

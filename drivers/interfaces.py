@@ -71,6 +71,25 @@ class SampleBlock:
 
 
 @dataclass(frozen=True)
+class DataKey:
+    """One recorded quantity: column name, unit (SI, "1" for flags), what it is, numpy dtype."""
+
+    name: str
+    unit: str
+    description: str
+    dtype: str = "f8"
+
+
+@dataclass(frozen=True)
+class StreamDescription:
+    """What an instrument records: the stream (its role's name), its columns besides time, and the source text."""
+
+    stream: str
+    columns: tuple[DataKey, ...]
+    source: str
+
+
+@dataclass(frozen=True)
 class MotorStatus:
     """Decoded drive state: main state name, flags and position [m]."""
 
@@ -129,6 +148,9 @@ class Amplifier(Instrument, Protocol):
     def read_current(self) -> Reading:
         """Output current from the current monitor [A]."""
 
+    def describe(self) -> StreamDescription:
+        """The stream it records: columns, units, source."""
+
 
 @runtime_checkable
 class DisplacementSensor(Instrument, Protocol):
@@ -147,6 +169,10 @@ class DisplacementSensor(Instrument, Protocol):
 
     def stop_buffer(self) -> None:
         """Stop buffered acquisition (samples already stored stay fetchable)."""
+
+    def describe(self) -> StreamDescription:
+        """The stream it records: columns, units, source (its displacement's description says how it is measured;
+        the application prefixes what is measured)."""
 
 
 @runtime_checkable
@@ -169,6 +195,9 @@ class LinearMotor(Instrument, Protocol):
     def stop(self) -> None:
         """Abort the current motion and hold position."""
 
+    def describe(self) -> StreamDescription:
+        """The stream it records: columns, units, source."""
+
 
 @runtime_checkable
 class ForceSensor(Instrument, Protocol):
@@ -182,3 +211,6 @@ class ForceSensor(Instrument, Protocol):
 
     def tare(self) -> None:
         """Tare (net weight = 0 at the present load)."""
+
+    def describe(self) -> StreamDescription:
+        """The stream it records: columns, units, source."""

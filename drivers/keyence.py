@@ -31,7 +31,7 @@ import numpy as np
 
 from drivers.cancel import check
 from drivers.errors import InstrumentStateError, ProtocolError
-from drivers.interfaces import ClockFn, Identity, Reading, SampleBlock
+from drivers.interfaces import ClockFn, DataKey, Identity, Reading, SampleBlock, StreamDescription
 from drivers.serial_link import SerialLink
 
 Model = Literal["LK-G3000", "LK-G5000"]
@@ -211,6 +211,12 @@ class KeyenceLKG:
     def close(self) -> None:
         """Release the port (the sensor has no unsafe state)."""
         self.link.close()
+
+    def describe(self) -> StreamDescription:
+        """The stream it records: columns, units, source."""
+        return StreamDescription(self.name, (
+            DataKey("displacement", "m", "from the laser (offset and sign removed)"),
+            DataKey("valid", "1", "1 = measurement, 0 = over range / invalid", "u1")), f"Keyence {self.model}")
 
     def identify(self) -> Identity:
         """The controller has no identification command: report the configured model and program number."""

@@ -31,7 +31,7 @@ from dataclasses import dataclass
 
 from drivers.cancel import check
 from drivers.errors import InstrumentStateError, InstrumentTimeoutError, LimitError, ProtocolError
-from drivers.interfaces import ClockFn, Identity, MotorStatus, Reading, SleepFn
+from drivers.interfaces import ClockFn, DataKey, Identity, MotorStatus, Reading, SleepFn, StreamDescription
 from drivers.serial_link import SerialLink
 
 START, DATA, END = 0x01, 0x02, 0x04
@@ -238,6 +238,10 @@ class LinMotDrive:
                 self.safe_state()
         finally:
             self.link.close()
+
+    def describe(self) -> StreamDescription:
+        """The stream it records: columns, units, source."""
+        return StreamDescription(self.name, (DataKey("position", "m", "motor encoder position"),), "LinMot LinRS")
 
     def identify(self) -> Identity:
         """LinRS has no identification telegram in the default profile: report state and position."""

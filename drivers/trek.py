@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 from drivers.adam import Adam4017P, Adam4024
 from drivers.errors import LimitError
-from drivers.interfaces import ClockFn, Identity, Reading
+from drivers.interfaces import ClockFn, DataKey, Identity, Reading, StreamDescription
 
 
 @dataclass(frozen=True)
@@ -84,6 +84,13 @@ class TrekAmplifier:
         finally:
             self.ao.link.close()
             self.ai.link.close()
+
+    def describe(self) -> StreamDescription:
+        """The stream it records: columns, units, source."""
+        return StreamDescription(self.name, (
+            DataKey("voltage", "V", "output voltage from the TREK voltage monitor"),
+            DataKey("current", "A", "output current from the TREK current monitor")),
+            f"TREK {self.trek.model} via ADAM-4017+")
 
     def identify(self) -> Identity:
         """Model from the rig file; the I/O modules from their name registers."""

@@ -16,7 +16,7 @@ import time
 import numpy as np
 
 from drivers.errors import LimitError
-from drivers.interfaces import ClockFn, Identity, Reading
+from drivers.interfaces import ClockFn, DataKey, Identity, Reading, StreamDescription
 from drivers.labjack import DAC_RANGE, LabJackT7
 from drivers.trek import TrekModel
 
@@ -70,6 +70,15 @@ class TrekOnDaq:
         """Zero the output (the DAQ itself is closed by its own driver)."""
         if self.daq.link.is_open:
             self.zero()
+
+    def describe(self) -> StreamDescription:
+        """The stream it records: columns, units, source (the scan clock's text is added by bench.hardware_timed)."""
+        return StreamDescription(self.name, (
+            DataKey("voltage", "V", "output voltage from the TREK voltage monitor"),
+            DataKey("current", "A", "output current from the TREK current monitor"),
+            DataKey("commanded", "V", "output commanded: the DAC code played in the same scan, through the "
+                    "conditioning stage and the amplifier's gain")),
+            f"TREK {self.trek.model} monitors on AIN{self.vmon_ain}/AIN{self.imon_ain}")
 
     def identify(self) -> Identity:
         """Model from the rig file; the DAQ from its registers."""
