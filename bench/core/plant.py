@@ -126,7 +126,7 @@ class Plant:
             if configuration not in ("motor", "blocked", "hung"):
                 raise ValueError(f"LS-DEA configuration must be motor, blocked or hung, got {configuration!r}")
             self._membrane = None
-            mode = "hung" if configuration == "hung" else "imposed"
+            mode: Literal["hung", "imposed"] = "hung" if configuration == "hung" else "imposed"
             self._lozenge = LozengeStream(specimen, mode, None if configuration == "hung" else x0, h=h)
             self._C = 1e-10
         self._refresh_last_at_rest()
@@ -194,16 +194,16 @@ class Plant:
                 self._membrane.T = self.temperature
             if hung_mass_kg is None and prototype is None:
                 return
-            if self._lozenge is None:
-                raise ValueError("hung mass and prototype apply to the LS-DEA")
             params = self.specimen
+            if self._lozenge is None or not isinstance(params, LozengeParams):
+                raise ValueError("hung mass and prototype apply to the LS-DEA")
             if prototype is not None:  # another prototype of the same material (fitted parameters kept)
-                params = replace(params, lambda2p=PROTOTYPE_LAMBDA2P[int(prototype)])  # type: ignore[type-var]
+                params = replace(params, lambda2p=PROTOTYPE_LAMBDA2P[int(prototype)])
             if hung_mass_kg is not None:
-                params = replace(params, hung_mass=float(hung_mass_kg))  # type: ignore[type-var]
+                params = replace(params, hung_mass=float(hung_mass_kg))
             y = self._lozenge.state.copy()
-            mode = "hung" if self.configuration == "hung" else "imposed"
-            stream = LozengeStream(params, mode, float(y[0]), h=self.h,  # type: ignore[arg-type]
+            lmode: Literal["hung", "imposed"] = "hung" if self.configuration == "hung" else "imposed"
+            stream = LozengeStream(params, lmode, float(y[0]), h=self.h,
                                    y0=None if prototype is not None else y, t0=self._lozenge.t)
             self.specimen, self._lozenge = params, stream
             self.broken, self.failure = False, ""
@@ -238,11 +238,11 @@ class Plant:
                 self._advance(n)
                 n_total -= n
 
-    def _pieces(self, events: list, n: int) -> list[tuple[int, int, object]]:
+    def _pieces(self, events: list[tuple[float, MotionProfile]], n: int) -> list[tuple[int, int, MotionProfile]]:
         """Split the next n steps at the input events: [(first step, end step, value)], dropping used history."""
         first_step = self._n
         starts = [max(0, math.floor(te / self.h + 1e-6) - first_step) for te, _ in events]
-        out = []
+        out: list[tuple[int, int, MotionProfile]] = []
         for i, (_, value) in enumerate(events):
             a = min(starts[i], n)
             b = min(starts[i + 1], n) if i + 1 < len(events) else n
@@ -287,7 +287,7 @@ class Plant:
     def _motor(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         pos, vel = np.empty(t.size), np.empty(t.size)
         for a, b, profile in self._pieces(self._motions, t.size):
-            pos[a:b], vel[a:b] = profile.evaluate(t[a:b])  # type: ignore[attr-defined]
+            pos[a:b], vel[a:b] = profile.evaluate(t[a:b])
         return pos, vel
 
     def _advance(self, n: int) -> None:
@@ -297,14 +297,16 @@ class Plant:
         v_dea = np.zeros_like(v_amp) if self.broken else v_amp
         force = np.zeros(n)
         if self._membrane is not None:
+            spec = self.specimen
+            assert isinstance(spec, MembraneParams)  # the membrane stream is built for membrane parameters only
             tr = self._membrane.advance(v_dea, self.temperature)
             disp = tr.displacement
             charge = tr.charge
             cap = tr.capacitance
             field = tr.field
-            breakdown = np.full(n, self.specimen.breakdown_field)  # type: ignore[union-attr]
+            breakdown = np.full(n, spec.breakdown_field)
             if tr.failed and not self.broken:
-                self._break(*_membrane_failure(t, tr.stretch, field, self.specimen))  # type: ignore[arg-type]
+                self._break(*_membrane_failure(t, tr.stretch, field, spec))
         else:
             U = np.zeros((n, 3))
             U[:, 0] = v_dea
@@ -316,18 +318,19 @@ class Plant:
                 U[:, 1] = self.x0
             if self.configuration != "motor":
                 self._pieces(self._motions, n)  # the motor is not coupled: only drop used history
-            tr = self._lozenge.advance(U)  # type: ignore[union-attr]
-            disp = tr.position
-            charge = tr.charge
-            cap = tr.capacitance
-            field = tr.field
-            breakdown = tr.breakdown_field
+            assert self._lozenge is not None  # one of the two streams is always built
+            lt = self._lozenge.advance(U)
+            disp = lt.position
+            charge = lt.charge
+            cap = lt.capacitance
+            field = lt.field
+            breakdown = lt.breakdown_field
             if self.configuration != "hung":
-                force = tr.force
-            if tr.failed and not self.broken:
+                force = lt.force
+            if lt.failed and not self.broken:
                 with np.errstate(invalid="ignore"):
-                    bad = ~np.isfinite(tr.position) | (np.abs(field) > breakdown)  # lozenge_runs' tests
-                self._break(f"specimen failure: {_without_when(tr.failure)}", _first(t, bad))
+                    bad = ~np.isfinite(lt.position) | (np.abs(field) > breakdown)  # lozenge_runs' tests
+                self._break(f"specimen failure: {_without_when(lt.failure)}", _first(t, bad))
         q = np.concatenate([[self._q_prev], charge])
         current = np.diff(q) / self.h
         if self.broken:
