@@ -104,3 +104,32 @@ def test_run_writes_a_log_beside_the_run_file_and_quiet_prints_nothing(tmp_path:
     assert "completed: protocol completed; high voltage: 0 V commanded" in log
     res = runner.invoke(app, ["run", str(SHORT), "--dry-run"])
     assert res.exit_code == 0 and "dry run" in res.output  # -q does not stick to the next command
+
+
+def test_fit_json_is_the_stored_fit(run_file: Path, tmp_path: Path) -> None:
+    """`bench fit --json`: one JSON document on stdout (nothing else) that matches the fit file written beside
+    the run — names, values and rms read back with the store's reader."""
+    import shutil
+
+    from bench.identify.store import read_fits
+
+    run = tmp_path / "run.h5"
+    shutil.copy(run_file, run)
+    res = runner.invoke(app, ["fit", str(run), "--population", "6", "--generations", "2", "--json"])
+    assert res.exit_code == 0, res.output
+    data = json.loads(res.stdout)
+    (stored,) = read_fits(run)
+    assert data["model"] == "membrane" and data["rms_unit"] == "m"
+    assert [p["name"] for p in data["parameters"]] == stored["names"]
+    assert [p["value"] for p in data["parameters"]] == pytest.approx(list(stored["values"]), rel=1e-12)
+    assert data["rms"] == pytest.approx(stored["rms"], rel=1e-12)
+    assert all(p["unit"] for p in data["parameters"])
+
+
+def test_benchmark_json_prints_figures_only() -> None:
+    res = runner.invoke(app, ["benchmark", "run", "--quick", "--json"])
+    assert res.exit_code == 0, res.output
+    tables = json.loads(res.stdout)  # {table title: [figure, …]}
+    figures = [f for rows in tables.values() for f in rows]
+    assert figures and all({"name", "value", "unit"} <= set(f) for f in figures)
+    assert any(f["unit"] == "× real time" and f["value"] > 0 for f in figures)
