@@ -98,8 +98,7 @@ class HardwareTimed:
         self._base = 0  # scan index of _commanded[0] (older values are dropped as the stream goes on)
         self._n = 0  # index of the scan that plays the step's end value
         self._tail = 0.0  # the last value given to the stream-out (the end value of the last step appended)
-        self._chained: dict[int, int] = {}  # id(step) appended to the running stream → scan of its end value
-        self._end_value: dict[int, float] = {}
+        self._appended: tuple[Segment, int] | None = None  # the next step, already in the stream: (step, end scan)
         self._positions: dict[int, int] = {}  # id(step) → its place in the program
         self._keepalive = 0.0
         self.scans = 0  # scans recorded over the run
@@ -110,21 +109,19 @@ class HardwareTimed:
         moves the end mark; otherwise compile its voltage to a DAC buffer (end value last), supervise it, arm
         and kick off. Then append the next step when it follows at once, so that the device plays the steps
         back to back on one scan clock (no restart, no gap, no drift of the program's time grid)."""
-        if id(seg) in self._chained and self.daq.streaming:
-            self._n = self._chained.pop(id(seg))
+        nxt = self._next_chainable(seg, engine)
+        if self._appended is not None and self._appended[0] is seg and self.daq.streaming:
+            self._n = self._appended[1]
         else:
-            self._chained.clear()
-            self._end_value.clear()
             volts = self._wanted(seg, engine._v_req, first=True)
             engine.sup.check_setpoint(float(volts[np.argmax(np.abs(volts))]))
             dac = self._dac_values(volts, engine._v_cmd)
-            spec = StreamSpec(self.cfg.scan_rate_Hz, self.inputs, StreamOut(
-                self.cfg.dac, dac, hold=1, final=self._next_chainable(seg, engine) is None))
-            plan = self.daq.arm(spec)
+            plan = self.daq.arm(StreamSpec(self.cfg.scan_rate_Hz, self.inputs,
+                                           StreamOut(self.cfg.dac, dac, hold=1, final=nxt is None)))
             assert plan.out_volts is not None
             self._base = 0
             self._commanded = self._filtered(self.amp.output_volts(plan.out_volts), engine._v_cmd)
-            self._tail = self._end_value[id(seg)] = float(volts[-1])
+            self._tail = float(volts[-1])
             self._n = volts.size - 1
             t0 = self.daq.kickoff()
             self._keepalive = time.monotonic()
@@ -132,10 +129,10 @@ class HardwareTimed:
                              f"DAQ scan clock: scan 0 at {t0 - engine._t0:.6f} s on the run clock, known to "
                              f"{self.daq.scan_clock_uncertainty * 1e3:.3f} ms (the enable request's round trip); "
                              "polled channels (motor encoder) are timestamped on the same run clock")
-        nxt = self._next_chainable(seg, engine)
+        engine._v_req = self._tail  # this step's end value: the last one in the stream until the next is appended
+        self._appended = None
         if nxt is not None and self.daq.out_open:
             self._append(nxt, engine)
-        engine._v_req = self._end_value.pop(id(seg))
 
     def _wanted(self, seg: Segment, hold: float, first: bool) -> np.ndarray:
         """The step's amplifier output on the scan grid [V]: from its start (``first``: a new stream plays the
@@ -178,8 +175,7 @@ class HardwareTimed:
         keep = max(0, self.daq.scans_received - 1 - self._base)  # the scans still to be recorded, and the last
         self._commanded = np.concatenate([self._commanded[keep:], new])
         self._base += keep
-        self._chained[id(nxt)] = self._base + self._commanded.size - 1
-        self._end_value[id(nxt)] = float(volts[-1])
+        self._appended = (nxt, self._base + self._commanded.size - 1)
         self._tail = float(volts[-1])
 
     def _dac_values(self, volts: np.ndarray, present: float) -> np.ndarray:
@@ -198,7 +194,7 @@ class HardwareTimed:
     def finish(self, engine: Engine) -> None:
         """Collect until the end value has been played, then stop the stream (the DAC holds it) — unless the
         next step is already in the stream: then it just goes on."""
-        if self._chained and self.daq.streaming:
+        if self._appended is not None and self.daq.streaming:
             self.collect(engine)
             return
         wall_end = time.monotonic() + FINISH_TIMEOUT_S
