@@ -504,12 +504,7 @@ class LabJackT7:
         codes = volts = None
         capacity = 0
         if out is not None:
-            v = np.asarray(out.volts, dtype=float)
-            if v.ndim != 1 or v.size < 1 or not np.all(np.isfinite(v)):
-                raise ValueError(f"{self.name}: stream-out waveform must be a non-empty finite 1-D array")
-            if v.min() < DAC_RANGE[0] or v.max() > DAC_RANGE[1]:
-                raise LimitError(self.name, f"DAC{out.dac} waveform spans {v.min():g}…{v.max():g} V, "
-                                 f"the DAC gives {DAC_RANGE[0]:g}…{DAC_RANGE[1]:g} V")
+            v = self._checked_out(out.volts, out.dac)
             if not 1 <= out.hold <= v.size:
                 raise ValueError(f"{self.name}: hold must be 1…{v.size} values")
             codes = self.cal.dac_codes(v, out.dac)
@@ -570,6 +565,16 @@ class LabJackT7:
         if s.out_written > before:
             self.write_u32(OUT_SET_LOOP0, 1)
 
+    def _checked_out(self, volts: np.ndarray, dac: int) -> np.ndarray:
+        """Stream-out values as floats, refused (nothing sent) unless a non-empty finite 1-D array the DAC spans."""
+        v = np.asarray(volts, dtype=float)
+        if v.ndim != 1 or v.size < 1 or not np.all(np.isfinite(v)):
+            raise ValueError(f"{self.name}: stream-out waveform must be a non-empty finite 1-D array")
+        if v.min() < DAC_RANGE[0] or v.max() > DAC_RANGE[1]:
+            raise LimitError(self.name, f"DAC{dac} waveform spans {v.min():g}…{v.max():g} V, "
+                             f"the DAC gives {DAC_RANGE[0]:g}…{DAC_RANGE[1]:g} V")
+        return v
+
     def extend(self, volts: np.ndarray, final: bool = True) -> np.ndarray:
         """Append values [V at the DAC] to an open stream-out (armed with ``final=False``): they play on the
         scans right after the values already given, on the same scan clock — no gap, no restart. ``final``:
@@ -580,12 +585,7 @@ class LabJackT7:
         s = self._stream
         if s is None or s.spec.output is None or s.out_closed or s.plan.out_codes is None:
             raise InstrumentStateError(self.name, "extend needs an armed stream-out opened with final=False")
-        v = np.asarray(volts, dtype=float)
-        if v.ndim != 1 or v.size < 1 or not np.all(np.isfinite(v)):
-            raise ValueError(f"{self.name}: stream-out values must be a non-empty finite 1-D array")
-        if v.min() < DAC_RANGE[0] or v.max() > DAC_RANGE[1]:
-            raise LimitError(self.name, f"DAC{s.spec.output.dac} values span {v.min():g}…{v.max():g} V, "
-                             f"the DAC gives {DAC_RANGE[0]:g}…{DAC_RANGE[1]:g} V")
+        v = self._checked_out(volts, s.spec.output.dac)
         codes = self.cal.dac_codes(v, s.spec.output.dac)
         played = self.cal.dac_volts(codes, s.spec.output.dac, self.dac_bits)
         assert s.plan.out_volts is not None

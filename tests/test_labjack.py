@@ -384,3 +384,30 @@ def test_watchdog_is_configured_once_from_the_register_map_and_zeroes_the_amplif
     finally:
         daq.close()
     assert not r.sim.errors
+
+
+def test_extend_plays_the_appended_values_on_the_next_scans(rig: Rig) -> None:
+    """A stream-out armed open (final=False) and extended while it plays: the values follow each other scan by
+    scan (no gap, no repeat), and the DAC holds the last appended value — read back at the V monitor through
+    the rig's conditioning (4·V − 10) and the TREK's 1000 V/V."""
+    rate = 10_000.0
+    first, second = np.linspace(2.5, 3.0, 3000), np.linspace(3.0, 2.75, 2000)
+    plan = rig.daq.arm(StreamSpec(rate, (StreamIn(0, name="vmon"),), StreamOut(0, first, final=False)))
+    assert plan.out_volts is not None and rig.daq.out_open
+    played_first = plan.out_volts.copy()
+    rig.daq.kickoff()
+    blocks = [rig.daq.collect(until=rig.clock.now())]
+    played_second = rig.daq.extend(second, final=True)
+    assert not rig.daq.out_open
+    while rig.daq.scans_received < first.size + second.size + 600:
+        rig.clock.advance(0.05)
+        blocks.append(rig.daq.collect(until=rig.clock.now()))
+    rig.daq.stop()
+    v = 1000.0 * np.concatenate([b.volts[:, 0] for b in blocks])
+    expected = 1000.0 * rig.cond(np.concatenate([played_first, played_second]))
+    lsb = 1000.0 * 0.000315805780
+    n = expected.size
+    assert np.max(np.abs(v[1:n] - expected[:n - 1])) <= lsb  # scan k shows the value played at scan k − 1
+    assert np.all(np.abs(v[n + 1:] - expected[-1]) <= lsb) and rig.daq.out_underrun_scans == 0
+    with pytest.raises(InstrumentStateError, match="extend needs an armed stream-out"):
+        rig.daq.extend(second)
