@@ -41,13 +41,12 @@ def _membrane_failure(t: np.ndarray, lam: np.ndarray, field: np.ndarray, p: Memb
     state — the tests of ``membrane.failure_reason``, taken in time order (the model's text names the first
     kind in its own priority order, which can be a later sample)."""
     with np.errstate(invalid="ignore"):
-        tests = [(np.abs(field) > p.breakdown_field, "true field above breakdown {:.1f} MV/m"),
-                 (lam > p.runaway_stretch, "runaway stretch: λ above {} (pull-in)"),
-                 (~np.isfinite(lam), "non-finite stretch (Gent lock-up or numerical blow-up){}")]
-    firsts = [(int(np.argmax(bad)), k) for k, (bad, _) in enumerate(tests) if bad.any()]
-    i, k = min(firsts) if firsts else (t.size - 1, 2)
-    arg = [p.breakdown_field / 1e6, p.runaway_stretch, ""][k]
-    return "specimen failure: " + tests[k][1].format(arg), float(t[i])
+        kinds = [(np.abs(field) > p.breakdown_field, f"true field above breakdown {p.breakdown_field / 1e6:.1f} MV/m"),
+                 (lam > p.runaway_stretch, f"runaway stretch: λ above {p.runaway_stretch} (pull-in)"),
+                 (~np.isfinite(lam), "non-finite stretch (Gent lock-up or numerical blow-up)")]
+    firsts = [(int(np.argmax(bad)), text) for bad, text in kinds if bad.any()]
+    i, text = min(firsts, key=lambda f: f[0]) if firsts else (t.size - 1, kinds[2][1])
+    return f"specimen failure: {text}", float(t[i])
 
 
 def _first(t: np.ndarray, bad: np.ndarray) -> float | None:
