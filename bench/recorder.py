@@ -45,13 +45,14 @@ import re
 import signal
 import threading
 import time
-from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
 import h5py
 import numpy as np
+
+from drivers.interfaces import DataKey
 
 FORMAT = "dea-bench run 2"
 FORMATS = ("dea-bench run 1", FORMAT)  # what the readers read (1: /program and /events as compound datasets)
@@ -115,14 +116,7 @@ def ignore_sigxfsz() -> None:
         signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
 
 
-@dataclass(frozen=True)
-class Column:
-    """One recorded quantity of a stream."""
-
-    name: str
-    units: str
-    description: str
-    dtype: str = "f8"
+Column = DataKey  # one recorded quantity of a stream: name, unit, description, dtype (the drivers' describe())
 
 
 def utf8(text: str, size: int) -> bytes:
@@ -259,7 +253,7 @@ class Recorder:
         t.attrs["units"] = "s"
         t.attrs["description"] = "time on the run clock"
         for col in cols:
-            d = attach(g.create_dataset(col.name, dtype=col.dtype, **layout), t, col.units)
+            d = attach(g.create_dataset(col.name, dtype=col.dtype, **layout), t, col.unit)
             d.attrs["description"] = col.description
 
     @property

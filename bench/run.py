@@ -6,7 +6,7 @@ import json
 import re
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from datetime import datetime
 from pathlib import Path
 from typing import Any
@@ -81,8 +81,8 @@ def _streams(rig: RigConfig, inst: Instruments) -> tuple[dict[str, list[Column]]
     sources = {"setpoints": "engine"}
     late = Column("late", "s", "software-timed: how long after its scheduled time the poll ran (NaN: not polled)")
     for d in described:
-        cols = [Column(k.name, k.unit, f"{measurand}, {k.description}" if k.name == "displacement" else k.description,
-                       k.dtype) for k in d.columns]
+        cols = [replace(k, description=f"{measurand}, {k.description}") if k.name == "displacement" else k
+                for k in d.columns]
         if d.stream == "motor":
             cols.append(Column("aperture", "m", "LS-DEA aperture from the motor position"))
         streams[d.stream] = cols + ([] if d.stream in timed else [late])

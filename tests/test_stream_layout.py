@@ -72,7 +72,7 @@ RIGS = sorted((ROOT / "rigs").glob("*.toml"))
 def layout(rig_path: Path) -> tuple[list[tuple[str, list[C]]], list[tuple[str, str]]]:
     rig = load_rig(rig_path)
     streams, sources = _streams(rig, build_instruments(rig))
-    return ([(s, [(c.name, c.units, c.description, c.dtype) for c in cols]) for s, cols in streams.items()],
+    return ([(s, [(c.name, c.unit, c.description, c.dtype) for c in cols]) for s, cols in streams.items()],
             list(sources.items()))
 
 
