@@ -18,7 +18,7 @@ import numpy as np
 from numba import njit
 from scipy.signal import lfilter
 
-from bench.protocol.program import Segment, voltage_at
+from bench.protocol.program import Segment, plays_on, voltage_at
 from bench.rig import DaqConfig, RigConfig
 from drivers.errors import InstrumentTimeoutError
 from drivers.interfaces import Amplifier, DataKey, StreamDescription
@@ -160,9 +160,7 @@ class HardwareTimed:
         if pos + 1 >= len(segs):
             return None
         nxt = segs[pos + 1]
-        if nxt.duration <= 0 or nxt.changes or abs(nxt.t_start - seg.t_end) > 1e-9:
-            return None
-        return nxt
+        return nxt if plays_on(seg, nxt) else None
 
     def _append(self, nxt: Segment, engine: Engine) -> None:
         """Append the next step's values to the running stream-out (supervised like a new step's)."""

@@ -22,7 +22,7 @@ import numpy as np
 from bench.core.clock import VirtualClock
 from bench.core.motion import MotionProfile
 from bench.core.plant import HVStage, Plant, PlantBlock
-from bench.protocol.program import Program, ProtocolLimitError, motor_command, voltage_at
+from bench.protocol.program import Program, ProtocolLimitError, motor_command, plays_on, voltage_at
 
 STREAM_COLUMNS = {"setpoints": 2, "amplifier": 3, "laser": 2, "motor": 2, "load_cell": 1}
 PASSIVE_LASER_HZ = 10.0  # single laser reads while the storage is idle
@@ -67,8 +67,7 @@ def sample_counts(program: Program) -> dict[str, int]:
         # one stream per run of back-to-back steps (bench.hardware_timed chains them): each plays scan 0 at its
         # start, then one scan per period
         segs = program.segments
-        chained = [i > 0 and s.duration > 0 and segs[i - 1].duration > 0 and not s.changes
-                   and abs(s.t_start - segs[i - 1].t_end) <= 1e-9 for i, s in enumerate(segs)]
+        chained = [i > 0 and plays_on(segs[i - 1], s) for i, s in enumerate(segs)]
         scans = sum(max(1, round(s.duration * daq.scan_rate_Hz)) + (not c)
                     for s, c in zip(segs, chained, strict=True) if s.duration > 0)
         counts = {"setpoints": (int(T * rec.setpoint_Hz) if rig.motor is not None else 0) + len(program.segments),

@@ -218,6 +218,12 @@ def compile_program(protocol: Protocol, rig: RigConfig) -> Program:
     return program
 
 
+def plays_on(prev: Segment, nxt: Segment) -> bool:
+    """Whether a hardware-timed stream plays ``nxt`` straight after ``prev`` (appended, no restart): both last,
+    ``nxt`` starts where ``prev`` ends and needs no specimen change (an operator's action stops the stream)."""
+    return prev.duration > 0 and nxt.duration > 0 and not nxt.changes and abs(nxt.t_start - prev.t_end) <= 1e-9
+
+
 def voltage_at(seg: Segment, t: float) -> float | None:
     """Voltage set-point [V] of ``seg`` at run time t (None: keep the present one)."""
     return None if seg.voltage is None else float(seg.voltage(np.array([t]))[0])
