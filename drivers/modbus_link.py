@@ -40,6 +40,7 @@ from drivers.errors import (
     OperationCancelledError,
     ProtocolError,
 )
+from drivers.serial_link import set_slice_timeout
 
 try:  # pyserial's POSIX port lets termios.error (not an OSError) out of reset_input_buffer on a dead pty
     from termios import error as _termios_error
@@ -68,18 +69,19 @@ class _TrailingRTUFramer(FramerRTU):
 
 
 class _SerialClient(ModbusSerialClient):
-    """RTU client whose receive polls check the link's cancel token.
+    """RTU client whose receive waits check the link's cancel token and wake on the first reply byte.
 
-    ``prompt``: hand over received bytes as soon as they arrive. pymodbus' own ``recv(None)`` waits until
-    the byte count is stable over two polls; its transaction loop already accumulates partial frames until
-    the framer finds a whole one, so returning early is safe and saves those polls (simulated rigs, whose
-    ptys deliver at once).
+    pymodbus' own ``recv(None)`` sleeps in polls of four character times and waits until the byte count is
+    stable over two of them (≈ 4 ms at 19200 Bd after the last byte). Its transaction loop already
+    accumulates partial frames until the framer finds a whole one, so this client hands over bytes as soon
+    as they arrive: it blocks on the port (pyserial's select) in slices of at most
+    ``drivers.serial_link.POLL_SLICE_S`` and returns what has come.
+    A reply is then taken the moment its last byte is in.
     """
 
-    def __init__(self, port: str, *, link: ModbusLink, prompt: bool, baudrate: int, timeout: float) -> None:
+    def __init__(self, port: str, *, link: ModbusLink, baudrate: int, timeout: float) -> None:
         super().__init__(port, baudrate=baudrate, timeout=timeout, retries=0)
         self.link = link
-        self.prompt = prompt
         self.framer = self.transaction.framer = _TrailingRTUFramer()
 
     def _wait_for_data(self) -> int:  # pymodbus 3.16 private hook (pinned): same rule, plus the cancel check
@@ -96,16 +98,19 @@ class _SerialClient(ModbusSerialClient):
         return size
 
     def recv(self, size: int | None) -> bytes:
-        if size is not None or not self.socket or not self.prompt:
+        if size is not None or not self.socket:
             return super().recv(size)
+        port = self.socket
         deadline = time.monotonic() + self.comm_params.timeout_connect
         try:
-            while not (waiting := self._in_waiting()):
+            while not (waiting := port.in_waiting):
                 self.link._check_cancel()
-                if time.monotonic() > deadline:
+                if time.monotonic() >= deadline:
                     return b""
-                time.sleep(self._recv_interval)
-            return self.socket.read(waiting)
+                set_slice_timeout(port, deadline)
+                if first := port.read(1):  # blocks until a byte arrives or the slice ends
+                    return first + port.read(port.in_waiting)
+            return port.read(waiting)
         except OSError:
             self.close()
             raise ConnectionException(str(self)) from None
@@ -133,8 +138,7 @@ class ModbusLink:
                 raise ValueError(f"{device}: Modbus TCP address must be tcp://host:port, got {url!r}")
             self._client = ModbusTcpClient(host, port=int(port), timeout=timeout, retries=0)
         else:
-            self._client = _SerialClient(url, link=self, prompt=poll_interval is not None, baudrate=baudrate,
-                                         timeout=timeout)
+            self._client = _SerialClient(url, link=self, baudrate=baudrate, timeout=timeout)
             if poll_interval is not None:
                 self._client._recv_interval = poll_interval  # pymodbus 3.16 attribute (pinned)
 

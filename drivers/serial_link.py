@@ -25,6 +25,15 @@ QUIET_S = 0.02  # after an abandoned read: the line counts as quiet (late reply 
 MAX_DRAIN_S = 0.25  # ... but a write waits at most this long for that
 
 
+def set_slice_timeout(port: serial.Serial, deadline: float) -> None:
+    """Let the port's next blocking read last at most one poll slice, and never past ``deadline`` (monotonic).
+
+    Changing pyserial's timeout reconfigures the port (a tcsetattr), so it changes only by more than 5 ms."""
+    want = max(min(POLL_SLICE_S, deadline - time.monotonic()), 0.001)
+    if port.timeout is None or abs(port.timeout - want) > 0.005:
+        port.timeout = want
+
+
 class SerialLink:
     """One serial port shared by one instrument; all exchanges are serialised by a lock."""
 
@@ -124,10 +133,7 @@ class SerialLink:
         if self.cancel is not None and self.cancel.cancelled:
             self._dirty = True
             self.cancel.check(self.device)
-        left = deadline - time.monotonic()
-        want = max(min(POLL_SLICE_S, left), 0.001)
-        if port.timeout is None or abs(port.timeout - want) > 0.005:
-            port.timeout = want
+        set_slice_timeout(port, deadline)
 
     def _timed_out(self, waited: float, partial: bytes, need: str = "") -> InstrumentTimeoutError:
         self._dirty = True

@@ -157,6 +157,9 @@ class Faults:
         return self.process(reply)[0]
 
 
+SPIN_S = 0.3e-3  # the last part of a wall-clock wire wait is spent yielding, not sleeping (see Line._until)
+
+
 class Line:
     """A half-duplex serial wire (8N1: 10 bits per character) shared by everything on it.
 
@@ -176,7 +179,6 @@ class Line:
             self.gap = max(self.gap, 1.75e-3) if gap_chars >= 3.5 else max(self.gap, 0.75e-3)
         self._free = 0.0  # line time at which the wire is next free
         self.lock = threading.RLock()  # one transaction on the wire at a time
-        self.busy = 0.0  # total time spent on the wire [s] (for benchmarks)
 
     @property
     def char_time(self) -> float:
@@ -188,7 +190,17 @@ class Line:
         return nbytes * self.char_time
 
     def _until(self, t: float) -> None:
-        self.clock.wait_until(t)
+        """Wait until line time ``t``. On the wall clock the last ``SPIN_S`` are spent yielding instead of
+        sleeping: a sleep overshoots by ~0.1 ms (timer slack and wake-up), which would add to every frame."""
+        clock = self.clock
+        if clock.virtual:
+            clock.wait_until(t)
+            return
+        dt = t - clock.now()
+        if dt > SPIN_S:
+            time.sleep(dt - SPIN_S)
+        while clock.now() < t:
+            time.sleep(0)  # releases the GIL: other threads run while this one waits out the last fraction
 
     def request(self, nbytes: int) -> float:
         """The master's ``nbytes`` travel (from now, or when the wire frees); returns when the device has
@@ -199,20 +211,22 @@ class Line:
             start = max(self.clock.now(), self._free)
             end = start + self.frame_time(nbytes) + self.gap
             self._free = end
-            self.busy += end - start
         self._until(end)
         return end
 
     def reply(self, nbytes: int, turnaround: float | None = None) -> None:
-        """The device turns around and sends ``nbytes``; returns when the last byte has arrived."""
+        """The device turns around and sends ``nbytes``; returns when the last byte has arrived.
+
+        The first byte leaves ``turnaround`` after the wire was last busy (the request's end), or when the
+        simulator is ready if that is later: the twin's own processing is the device's turnaround, not extra
+        time on top of it."""
         if not self.baud:
             return
         with self.lock:
-            start = max(self.clock.now(), self._free)
             t_turn = self.turnaround if turnaround is None else turnaround
-            end = start + t_turn + self.frame_time(nbytes)
+            start = max(self.clock.now(), self._free + t_turn)
+            end = start + self.frame_time(nbytes)
             self._free = end + self.gap
-            self.busy += end - start + self.gap
         self._until(end)
 
     def silent(self, wait: float) -> None:

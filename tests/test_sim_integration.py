@@ -334,3 +334,25 @@ def test_first_reply_after_idle_is_wire_time_not_integration_time() -> None:
     finally:
         r.inst.close()
         r.sim.stop()
+
+
+def test_the_twins_processing_time_is_part_of_the_device_turnaround_not_added_to_it() -> None:
+    """A reply's first byte leaves the device's turnaround after the request's end-of-frame silence; time the
+    simulator spends computing the reply (here 0.3 ms of a 1-ms turnaround) does not delay it, while
+    processing longer than the turnaround does (the simulator cannot answer before it has the reply)."""
+    from bench.core.clock import VirtualClock
+    from sim_devices.transport import Line
+
+    clock = VirtualClock()
+    char = 10 / 19200
+    line = Line(clock, 19200, gap_chars=3.5)
+    end_req = line.request(8)
+    assert end_req == pytest.approx(8 * char + 3.5 * char)
+    clock.advance(0.3e-3)  # the twin computes the reply
+    line.reply(7, turnaround=1e-3)
+    assert clock.now() == pytest.approx(end_req + 1e-3 + 7 * char, abs=1e-12)
+    clock.advance(3.5 * char)  # the reply's own end-of-frame silence
+    end_req = line.request(8)
+    clock.advance(1.5e-3)  # slower than the turnaround
+    line.reply(7, turnaround=1e-3)
+    assert clock.now() == pytest.approx(end_req + 1.5e-3 + 7 * char, abs=1e-12)
