@@ -325,7 +325,7 @@ class LabJackT7Sim:
         return ((code >> 4 << 4) - off) / slope  # 12-bit DAC
 
     def _drive(self, scans: list[int], codes: list[int]) -> None:
-        """Amplifier input events for DAC values played at these scans (hook wanted in Plant, see report)."""
+        """Amplifier input events for DAC values played at these scans."""
         times = [self.t_enable + (s + 1) / self.rate for s in scans]
         volts = self.conditioning(np.array([self._code_volts(c, self.dac) for c in codes]))
         fc = self.conditioning.corner_Hz
@@ -337,20 +337,13 @@ class LabJackT7Sim:
                 y += alpha * (x - y)
                 out[k] = y
             self._filter_y, volts = float(y), out
-        with self.plant.lock:
-            if times and times[0] < self.plant.t - 1e-9:  # cannot happen under the lock order; kept as a check
-                self.errors.append(RuntimeError(f"DAC value scheduled {self.plant.t - times[0]:.6f} s in the "
-                                                "plant's past"))
-            ev = self.plant._v_events
-            ev.extend(zip(times, volts.tolist(), strict=True))
-            if len(ev) > 1 and ev[-len(times) - 1][0] > times[0]:
-                ev.sort(key=lambda e: e[0])
+        try:
+            self.plant.schedule_amplifier_input(times, volts)
+        except ValueError as exc:  # cannot happen under the lock order; kept as a check
+            self.errors.append(RuntimeError(f"DAC value: {exc}"))
 
     def _undrive_after(self, t: float) -> None:
-        with self.plant.lock:
-            ev = self.plant._v_events
-            keep = [e for e in ev if e[0] <= t]
-            ev[:] = keep or ev[:1]
+        self.plant.unschedule_amplifier_input(t)
 
     # ------------------------------------------------------------------ stream engine
     def _cur_scan(self, now: float) -> int:

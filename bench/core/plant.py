@@ -13,7 +13,6 @@ configurations — ``motor`` (aperture x = x0 + motor position, load-cell force)
 
 from __future__ import annotations
 
-import bisect
 import math
 import re
 import threading
@@ -36,13 +35,16 @@ def _without_when(failure: str) -> str:
     return re.sub(r" at (sample [0-9]+|t = [-+0-9.e]+ s)", "", failure)
 
 
-def _membrane_failure(t: np.ndarray, lam: np.ndarray, field: np.ndarray, p: MembraneParams) -> tuple[str, float]:
-    """What failed first in a block and when: breakdown (|E| > E_B), runaway stretch (pull-in) or a non-finite
-    state — the tests of ``membrane.failure_reason``, taken in time order (the model's text names the first
-    kind in its own priority order, which can be a later sample)."""
+def _membrane_failure(t: np.ndarray, lam: np.ndarray, field: np.ndarray, p: MembraneParams,
+                      runaway_at: float = math.inf) -> tuple[str, float]:
+    """What failed first in a block and when: breakdown (|E| > E_B), runaway stretch (pull-in; from
+    ``runaway_at`` on when the integrator stopped there) or a non-finite state — the tests of
+    ``membrane.failure_reason``, taken in time order (the model's text names the first kind in its own
+    priority order, which can be a later sample)."""
     with np.errstate(invalid="ignore"):
         kinds = [(np.abs(field) > p.breakdown_field, f"true field above breakdown {p.breakdown_field / 1e6:.1f} MV/m"),
-                 (lam > p.runaway_stretch, f"runaway stretch: λ above {p.runaway_stretch} (pull-in)"),
+                 ((lam > p.runaway_stretch) | (t >= runaway_at),
+                  f"runaway stretch: λ above {p.runaway_stretch} (pull-in)"),
                  (~np.isfinite(lam), "non-finite stretch (Gent lock-up or numerical blow-up)")]
     firsts = [(int(np.argmax(bad)), text) for bad, text in kinds if bad.any()]
     i, text = min(firsts, key=lambda f: f[0]) if firsts else (t.size - 1, kinds[2][1])
@@ -91,7 +93,9 @@ class Plant:
     def __init__(self, clock: Clock, specimen: MembraneParams | LozengeParams, *,
                  configuration: Literal["membrane", "motor", "blocked", "hung"] = "membrane",
                  temperature: float = 296.0, x0: float = 0.05, h: float = 1e-4, hv: HVStage | None = None,
-                 motor_sign: float = 1.0) -> None:
+                 motor_sign: float = 1.0, membrane_method: Literal["fixed", "rodas"] = "fixed") -> None:
+        """``membrane_method``: how the membrane model advances (``MembraneStream``): ``fixed`` for the twins,
+        ``rodas`` (error-controlled, in blocks) for the dry run."""
         self.clock = clock
         self.specimen = specimen
         self.configuration = configuration
@@ -104,7 +108,8 @@ class Plant:
         self.listeners: list[Listener] = []
         self.v_out = 0.0  # amplifier output [V]
         # input histories not yet integrated: (time, value) — the model integrates lazily, in large blocks
-        self._v_events: list[tuple[float, float]] = [(0.0, 0.0)]  # amplifier analog input [V]
+        # amplifier analog input [V] not yet integrated: chunks of (times, values), merged in time order on use
+        self._v_chunks: list[tuple[np.ndarray, np.ndarray]] = [(np.zeros(1), np.zeros(1))]
         self._motions: list[tuple[float, MotionProfile]] = [(0.0, MotionProfile.hold(0.0, 0.0))]
         self.input_watchdog: float | None = None  # analog module's communication safety period [s]
         self._last_feed = 0.0
@@ -118,7 +123,8 @@ class Plant:
         if isinstance(specimen, MembraneParams):
             if configuration != "membrane":
                 raise ValueError("the membrane specimen has only the 'membrane' configuration")
-            self._membrane: MembraneStream | None = MembraneStream(specimen, h=h, T=temperature)
+            self._membrane: MembraneStream | None = MembraneStream(specimen, h=h, T=temperature,
+                                                                   method=membrane_method)
             self._lozenge: LozengeStream | None = None
             self._C = 1e-9
         else:
@@ -134,7 +140,8 @@ class Plant:
     @property
     def v_in(self) -> float:
         """Latest amplifier analog input [V]."""
-        return self._v_events[-1][1]
+        with self.lock:
+            return float(self._v_inputs()[1][-1])
 
     @property
     def motion(self) -> MotionProfile:
@@ -144,7 +151,28 @@ class Plant:
     def set_amplifier_input(self, volts: float) -> None:
         """New analog input of the amplifier [V], effective from the clock's present (integrated lazily)."""
         with self.lock:
-            self._v_events.append((self.clock.now(), float(volts)))
+            self._v_chunks.append((np.array([self.clock.now()]), np.array([float(volts)])))
+
+    def schedule_amplifier_input(self, times: np.ndarray | list[float], volts: np.ndarray | list[float]) -> None:
+        """Analog inputs of the amplifier at given times (a hardware-timed output's samples, played by its own
+        clock), none of them in the plant's past; integrated lazily like :meth:`set_amplifier_input`."""
+        t = np.array(times, dtype=float)
+        v = np.array(volts, dtype=float)
+        if t.shape != v.shape or t.ndim != 1:
+            raise ValueError("amplifier input: times and values must be 1-D arrays of one length")
+        if not t.size:
+            return
+        with self.lock:
+            if t[0] < self.t - 1e-9:
+                raise ValueError(f"amplifier input scheduled {self.t - t[0]:.6f} s in the plant's past")
+            self._v_chunks.append((t, v))
+
+    def unschedule_amplifier_input(self, after: float) -> None:
+        """Drop the scheduled amplifier inputs later than ``after`` (a hardware-timed output stopped)."""
+        with self.lock:
+            t, v = self._v_inputs()
+            keep = max(int(np.searchsorted(t, after, side="right")), 1)
+            self._v_chunks = [(t[:keep], v[:keep])]
 
     def feed_watchdog(self) -> None:
         """The analog output module heard from the host (resets its communication-safety timer)."""
@@ -156,9 +184,9 @@ class Plant:
             return
         deadline = self._last_feed + self.input_watchdog
         with self.lock:
-            last_t, last_v = self._v_events[-1]
-            if deadline <= t_end and deadline > last_t and last_v != 0.0:
-                self._v_events.append((deadline, 0.0))
+            t, v = self._v_inputs()
+            if deadline <= t_end and deadline > t[-1] and v[-1] != 0.0:
+                self._v_chunks.append((np.array([deadline]), np.zeros(1)))
                 self.watchdog_tripped = True
                 self.watchdog_trips += 1
 
@@ -251,18 +279,31 @@ class Plant:
         del events[:keep]
         return out
 
+    def _v_inputs(self) -> tuple[np.ndarray, np.ndarray]:
+        """The pending amplifier inputs as one (times, values) pair in time order (equal times: in the order
+        they were given)."""
+        chunks = self._v_chunks
+        if len(chunks) > 1:
+            t = np.concatenate([c[0] for c in chunks])
+            v = np.concatenate([c[1] for c in chunks])
+            if np.any(t[1:] < t[:-1]):
+                order = np.argsort(t, kind="stable")
+                t, v = t[order], v[order]
+            self._v_chunks = chunks = [(t, v)]
+        return chunks[0]
+
     def _input_pieces(self, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """As :meth:`_pieces` for the amplifier input, vectorised: (first steps, end steps, values). Only the
-        events that start within the block are looked at (a DAQ twin schedules ~1 s of 10-kHz events ahead)."""
-        events, first = self._v_events, self._n
-        m = bisect.bisect_left(events, (first + n + 1 - 1e-6) * self.h, key=lambda e: e[0])
-        times = np.fromiter((te for te, _ in events[:m]), float, m)
-        values = np.fromiter((float(v) for _, v in events[:m]), float, m)
-        starts = np.minimum(np.maximum(0, np.floor(times / self.h + 1e-6).astype(np.int64) - first), n)
+        inputs that start within the block are looked at (a DAQ twin schedules ~1 s of 10-kHz inputs ahead)."""
+        first = self._n
+        t, v = self._v_inputs()
+        m = int(np.searchsorted(t, (first + n + 1 - 1e-6) * self.h, side="left"))
+        starts = np.minimum(np.maximum(0, np.floor(t[:m] / self.h + 1e-6).astype(np.int64) - first), n)
         ends = np.append(starts[1:], n)
         used = ends > starts
-        del events[:max(m - 1, 0)]  # keep the value in force at the block's end
-        return starts[used], ends[used], values[used]
+        keep = max(m - 1, 0)  # keep the value in force at the block's end
+        self._v_chunks = [(t[keep:], v[keep:])]
+        return starts[used], ends[used], v[:m][used]
 
     def _hv_output(self, n: int) -> np.ndarray:
         self._check_watchdog((self._n + n) * self.h)
@@ -305,7 +346,7 @@ class Plant:
             field = tr.field
             breakdown = np.full(n, spec.breakdown_field)
             if tr.failed and not self.broken:
-                self._break(*_membrane_failure(t, tr.stretch, field, spec))
+                self._break(*_membrane_failure(t, tr.stretch, field, spec, tr.extra.get("runaway_at", math.inf)))
         else:
             U = np.zeros((n, 3))
             U[:, 0] = v_dea

@@ -119,12 +119,21 @@ def integrate_membrane(params: MembraneParams, voltage: VoltageInput, t_out: np.
 
 
 class MembraneStream:
-    """Streaming membrane for the simulated rig: one call per sample at the current Φ [V] and T [K]."""
+    """Streaming membrane for the simulated rig: blocks of samples at the current Φ [V] and T [K].
 
-    def __init__(self, params: MembraneParams, h: float = 1e-4, T: float = 296.0) -> None:
+    ``method``: ``fixed`` (the twins: the compiled fixed-step scheme, step h) or ``rodas`` (the dry run: each
+    block by the compiled Rosenbrock integrator with error control, :mod:`bench.models.rosenbrock`, output on
+    the same grid of step h; Φ linear between the grid points). A ``rodas`` block stopped at runaway stretch
+    says when in ``trace.extra["runaway_at"]`` (the samples after it are NaN).
+    """
+
+    def __init__(self, params: MembraneParams, h: float = 1e-4, T: float = 296.0,
+                 method: Literal["fixed", "rodas"] = "fixed") -> None:
         self.params = params
         self.T = T
+        self.method = method
         self._stepper = FixedStepper(MODEL_MEMBRANE, params.pack(), params.initial_state(), h)
+        self._phi_end = 0.0  # Φ at the end of the last block (where a rodas block's input starts)
 
     @property
     def t(self) -> float:
@@ -153,6 +162,8 @@ class MembraneStream:
     def advance(self, phi: np.ndarray, T: float | None = None) -> MembraneTrace:
         """Advance len(phi) steps (phi[k] is the voltage during step k) and return their trace."""
         phi = np.asarray(phi, dtype=float)
+        if self.method == "rodas":
+            return self._advance_rodas(phi, self.T if T is None else T)
         U = np.empty((phi.size, 2))
         U[:, 0] = phi
         U[:, 1] = self.T if T is None else T
@@ -160,6 +171,30 @@ class MembraneStream:
         Y = self._stepper.advance(U)
         t = t0 + self._stepper.h * np.arange(1, phi.size + 1)
         return membrane_outputs(self.params, t, Y, phi, U[:, 1])
+
+
+    def _advance_rodas(self, phi: np.ndarray, T: float) -> MembraneTrace:
+        st, params = self._stepper, self.params
+        n, h, t0 = phi.size, st.h, st.t
+        t_out = t0 + h * np.arange(n + 1)
+        phi_in = np.concatenate([[self._phi_end], phi])  # Φ at t0 + k·h: step k ramps to phi[k]
+        Y = np.empty((n + 1, st.y.size))
+        status, _, _, t_stop = rodas3_membrane(st.y.copy(), t_out, float(T), params.pack(), t0, h, phi_in, RODAS_RTOL,
+                                               atol_for(params, RODAS_RTOL), params.runaway_stretch, Y)
+        finite = np.isfinite(Y[:, 0])
+        last = int(np.flatnonzero(finite)[-1])
+        st.y = Y[last].copy()  # a stopped run keeps its last finite state
+        st.t = t0 + h * n
+        self._phi_end = float(phi[-1]) if n else self._phi_end
+        trace = membrane_outputs(params, t_out[1:], Y[1:], phi, T)
+        if status == STATUS_STOPPED:
+            trace.failed = True
+            trace.failure = f"runaway stretch: λ passed {params.runaway_stretch} at t = {t_stop:.4f} s (pull-in)"
+            trace.extra["runaway_at"] = float(t_stop)
+        elif status != 0:
+            trace.failed = True
+            trace.failure = f"integration failed at t = {t_stop:.4f} s (step size underflow or non-finite state)"
+        return trace
 
 
 def batch_stretch(param_sets: Sequence[MembraneParams] | np.ndarray, voltage: np.ndarray, T: float,

@@ -98,7 +98,8 @@ def build_plant(program: Program, clock: VirtualClock, h: float = 1e-4) -> Plant
     spec = rig.specimen
     hv = HVStage()
     if spec.kind == "membrane":
-        return Plant(clock, spec.membrane(), temperature=over.temperature_K or spec.temperature_K, hv=hv, h=h)
+        return Plant(clock, spec.membrane(), temperature=over.temperature_K or spec.temperature_K, hv=hv, h=h,
+                     membrane_method="rodas")
     cfg = spec.lsdea
     params = spec.lozenge(over.prototype, over.hung_mass_kg)
     x0 = cfg.blocked_position_m if cfg.configuration == "blocked" else cfg.x_at_motor_zero_m
@@ -150,6 +151,8 @@ def predict(program: Program, progress: Callable[[float], None] | None = None) -
 
     def watch(block: PlantBlock) -> None:
         nonlocal pred
+        if not np.isfinite(block.displacement).any():
+            return  # the model stopped (runaway) before this block's first sample: nothing to observe
         e = np.abs(block.field)
         pred.peak_field = max(pred.peak_field, float(np.nanmax(e)))
         with np.errstate(all="ignore"):  # E → 0 or tiny: an infinite margin
@@ -165,14 +168,26 @@ def predict(program: Program, progress: Callable[[float], None] | None = None) -
                             max(pred.force_range[1], float(np.nanmax(f))))
 
     plant.listeners.append(watch)
+    rig = program.rig
+    scan_rate = rig.daq.scan_rate_Hz if rig.daq is not None and rig.amplifier is not None \
+        and rig.amplifier.drive == "daq" else None
     for seg in program.segments:
         if seg.changes:
             plant.change_specimen(**seg.changes)  # type: ignore[arg-type]
+        played = scan_rate is not None and seg.voltage is not None and seg.duration > 0
+        if played:  # hardware-timed: the waveform at every scan of the DAQ's clock, ending on its target
+            assert seg.voltage is not None and scan_rate is not None
+            ts = seg.t_start + np.arange(max(1, round(seg.duration * scan_rate)) + 1) / scan_rate
+            vs = np.asarray(seg.voltage(ts), dtype=float)
+            pred.peak_voltage = max(pred.peak_voltage, float(np.max(np.abs(vs))))
+            plant.schedule_amplifier_input(ts, vs / gain)
         n_ticks = max(1, int(np.ceil(seg.duration / dt - 1e-9))) if seg.duration > 0 else 0
+        if played and not program.has_motor_axis:
+            n_ticks = 0  # nothing left to send per tick
         for k in range(n_ticks):
             t = seg.t_start + k * dt
             clock.advance_to(t)
-            v = voltage_at(seg, t)
+            v = None if played else voltage_at(seg, t)
             if v is not None:
                 pred.peak_voltage = max(pred.peak_voltage, abs(v))
                 plant.set_amplifier_input(v / gain)
