@@ -14,12 +14,14 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from bench.core.clock import Clock
+from bench.core.plant import TREK_DATASHEET, AmplifierSpec, HVStage, Plant
 from bench.models.lozenge import LozengeParams, MaxwellBranch
 from bench.models.membrane import MembraneParams
 from bench.tomlfile import one_line, read_toml
-from drivers.dini import STANDARD_GRAVITY
 from drivers.keyence import STORAGE_CAPACITY
-from drivers.trek import TREK_MODELS
+
+STANDARD_GRAVITY_M_PER_S2 = 9.80665  # CGPM 1901 (the load cell's kg → N)
 
 
 class _Strict(BaseModel):
@@ -321,7 +323,7 @@ class RigConfig(_Strict):
         """Every limit within what the instrument can do: a trip level it cannot reach would never fire."""
         lim = self.limits
         if self.amplifier is not None:
-            trek = TREK_MODELS[self.amplifier.model]
+            trek = TREK_DATASHEET[self.amplifier.model]
             if self.amplifier.max_voltage_V > trek.max_output:
                 raise ValueError(f"amplifier.max_voltage_V {self.amplifier.max_voltage_V:g} V exceeds the TREK "
                                  f"{trek.model} output of {trek.max_output:g} V")
@@ -329,7 +331,7 @@ class RigConfig(_Strict):
                 raise ValueError(f"limits.max_current_A {lim.max_current_A:g} A exceeds the {trek.max_current:g} A "
                                  f"the TREK {trek.model} can deliver: the trip could never fire")
         if self.load_cell is not None:
-            full_scale = self.load_cell.capacity_kg * STANDARD_GRAVITY
+            full_scale = self.load_cell.capacity_kg * STANDARD_GRAVITY_M_PER_S2
             if lim.max_force_N > full_scale:
                 raise ValueError(f"limits.max_force_N {lim.max_force_N:g} N exceeds the load cell's capacity "
                                  f"load_cell.capacity_kg {self.load_cell.capacity_kg:g} kg = {full_scale:.4g} N")
@@ -398,3 +400,28 @@ def rig_to_toml(rig: RigConfig) -> str:
     lines: list[str] = []
     _toml_tables("", rig.model_dump(), lines)
     return "\n".join(lines) + "\n"
+
+
+def amplifier_spec(rig: RigConfig) -> AmplifierSpec:
+    """The rig's amplifier: its model's datasheet, with the monitor ratios the rig file calibrates."""
+    a = rig.amplifier
+    base = TREK_DATASHEET[a.model if a else "10/10B-HS"]
+    if a is None:
+        return base
+    return replace(base, vmon_ratio=a.vmon_ratio or base.vmon_ratio, imon_ratio=a.imon_ratio or base.imon_ratio)
+
+
+def plant_for(rig: RigConfig, clock: Clock, *, temperature_K: float | None = None, prototype: int | None = None,
+              hung_mass_kg: float | None = None, membrane_method: Literal["fixed", "rodas"] = "fixed",
+              h: float = 1e-4) -> Plant:
+    """The one plant of a rig — its specimen (with a protocol's overrides) behind its amplifier's output stage —
+    for the simulated rig (twins, ``fixed`` step) and the dry run (``rodas`` for the membrane)."""
+    spec = rig.specimen
+    hv = HVStage.of(amplifier_spec(rig))
+    if spec.kind == "membrane":
+        return Plant(clock, spec.membrane(), temperature=temperature_K or spec.temperature_K, hv=hv, h=h,
+                     membrane_method=membrane_method)
+    cfg = spec.lsdea
+    x0 = cfg.blocked_position_m if cfg.configuration == "blocked" else cfg.x_at_motor_zero_m
+    return Plant(clock, spec.lozenge(prototype, hung_mass_kg), configuration=cfg.configuration, x0=x0, hv=hv, h=h,
+                 motor_sign=cfg.motor_sign)

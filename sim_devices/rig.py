@@ -17,8 +17,8 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 from bench.core.clock import Clock, VirtualClock, WallClock
-from bench.core.plant import HVStage, Plant
-from bench.rig import RigConfig
+from bench.core.plant import Plant
+from bench.rig import RigConfig, amplifier_spec, plant_for
 from sim_devices.keyence_lkg import TURNAROUND_S as LKG_TURNAROUND_S
 from sim_devices.keyence_lkg import KeyenceLKGSim, LaserHead
 from sim_devices.linmot_drive import LinMotDriveSim
@@ -26,23 +26,6 @@ from sim_devices.modbus_devices import Adam4017PSim, Adam4024Sim, Dgt1sSim, Scal
 from sim_devices.modbus_host import ModbusHost, SimBus
 from sim_devices.transport import Faults, Line, PtyDevice
 
-
-@dataclass(frozen=True)
-class AmplifierSpec:
-    """A TREK HS amplifier as the plant and the monitor wiring see it."""
-
-    model: str
-    max_output: float  # V
-    max_current: float  # A (DC)
-    gain: float  # V out per V in
-    vmon_ratio: float  # V of output per V of monitor
-    imon_ratio: float  # A of output per V of monitor
-
-
-# TREK HS datasheets (Advanced Energy 2022): ±10 kV, 10 mA / 40 mA DC, gain 1000 V/V. Monitor ratios
-# [assumed: the operator manual was not read; calibrate and set them in the rig file].
-TREK_DATASHEET = {"10/10B-HS": AmplifierSpec("10/10B-HS", 10e3, 10e-3, 1000.0, 1000.0, 1e-3),
-                  "10/40A-HS": AmplifierSpec("10/40A-HS", 10e3, 40e-3, 1000.0, 1000.0, 4e-3)}
 LINRS_TURNAROUND_S = 1e-3  # LinMot drive: telegram received → response [assumed]
 PLANT_TICK_S = 0.02  # wall clock: the background thread advances the plant this often
 Timing = Literal["real", "none"]
@@ -82,24 +65,7 @@ class SimRig:
         self.clock = VirtualClock() if self.virtual else WallClock()
         if self.timing is None:
             self.timing = "none" if self.virtual else "real"
-        spec = rig.specimen
-        trek = self._trek()
-        hv = HVStage(max_current=trek.max_current, max_output=trek.max_output, gain=trek.gain)
-        if spec.kind == "membrane":
-            self.plant = Plant(self.clock, spec.membrane(), temperature=spec.temperature_K, hv=hv)
-        else:
-            cfg = spec.lsdea
-            x0 = cfg.blocked_position_m if cfg.configuration == "blocked" else cfg.x_at_motor_zero_m
-            self.plant = Plant(self.clock, spec.lozenge(), configuration=cfg.configuration, x0=x0, hv=hv,
-                               motor_sign=cfg.motor_sign)
-
-    def _trek(self) -> AmplifierSpec:
-        a = self.rig.amplifier
-        base = TREK_DATASHEET[a.model if a else "10/10B-HS"]
-        if a is None:
-            return base
-        return AmplifierSpec(base.model, base.max_output, base.max_current, base.gain,
-                             a.vmon_ratio or base.vmon_ratio, a.imon_ratio or base.imon_ratio)
+        self.plant = plant_for(rig, self.clock)
 
     def start(self) -> dict[str, Endpoint]:
         """Start every twin; returns the endpoints by role (serial instruments) or bus name (Modbus)."""
@@ -118,7 +84,7 @@ class SimRig:
             self._start_daq()
         buses: dict[str, list] = {}
         if (a := rig.amplifier) is not None and a.drive == "adam":
-            trek = self._trek()
+            trek = amplifier_spec(self.rig)
             ao = Adam4024Sim(a.ao_unit, self.plant, self.clock, amplifier_channel=a.ao_channel,
                              scale=Scale(bits=a.ao_bits, raw_format=a.raw_format), watchdog_s=a.comm_watchdog_s)
             ai = Adam4017PSim(a.ai_unit, self.plant, self.clock, vmon_ratio=trek.vmon_ratio,
@@ -158,7 +124,7 @@ class SimRig:
         """The T7 twin: DAC → conditioning → amplifier input; AINs wired to the plant's observables."""
         from sim_devices.labjack_t7 import Conditioning, LabJackT7Sim, Signal
 
-        d, rig, trek = self.rig.daq, self.rig, self._trek()
+        d, rig, trek = self.rig.daq, self.rig, amplifier_spec(self.rig)
         assert d is not None
         signals = {d.vmon_ain: Signal("voltage", 1.0 / trek.vmon_ratio),
                    d.imon_ain: Signal("current", 1.0 / trek.imon_ratio)}

@@ -10,7 +10,7 @@ from pyModbusTCP.client import ModbusClient
 from bench.models.lozenge import electrostatic_force
 from bench.models.lozenge_runs import static_force
 from bench.models.membrane_runs import simulate_membrane
-from tests.conftest import RunningRig, start_rig
+from tests.conftest import RIGS, ROOT, RunningRig, start_rig
 
 
 def test_voltage_on_the_amplifier_moves_the_laser_as_the_model_predicts(thesis: RunningRig) -> None:
@@ -101,3 +101,25 @@ def test_third_party_tcp_client_reads_the_simulated_modules() -> None:
     finally:
         r.inst.close()
         r.sim.stop()
+
+
+def test_the_dry_run_and_the_simulated_rig_share_one_plant_factory_with_the_rigs_amplifier() -> None:
+    """Issue 9: one plant factory (bench.rig.plant_for). The dry run used a default output stage; both now take
+    the rig's amplifier. A 10/40A-HS delivers 40 mA DC at ±10 kV with gain 1000 V/V (TREK HS datasheet)."""
+    from bench.core.clock import VirtualClock
+    from bench.protocol.predict import build_plant
+    from bench.protocol.program import compile_program
+    from bench.protocol.schema import load_protocol
+    from bench.rig import RigConfig, load_rig
+    from sim_devices.rig import SimRig
+
+    base = load_rig(RIGS / "lsdea-motor-sim.toml")
+    assert base.amplifier is not None
+    rig = RigConfig.model_validate({**base.model_dump(),
+                                    "amplifier": {**base.amplifier.model_dump(), "model": "10/40A-HS"}})
+    protocol = load_protocol(ROOT / "protocols" / "short" / "lsdea-isometric-short.toml")
+    dry = build_plant(compile_program(protocol, rig), VirtualClock())
+    sim = SimRig(rig, virtual=True)
+    for plant in (dry, sim.plant):
+        assert (plant.hv.max_current, plant.hv.max_output, plant.hv.gain) == (40e-3, 10e3, 1000.0)
+        assert type(plant.specimen) is type(sim.plant.specimen)

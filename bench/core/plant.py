@@ -60,6 +60,24 @@ BLOCK_STEPS = 20_000  # longest block handed to the compiled integrator at once
 
 
 @dataclass(frozen=True)
+class AmplifierSpec:
+    """A TREK HS amplifier as the plant and the monitor wiring see it."""
+
+    model: str
+    max_output: float  # V
+    max_current: float  # A (DC)
+    gain: float  # V out per V in
+    vmon_ratio: float  # V of output per V of monitor
+    imon_ratio: float  # A of output per V of monitor
+
+
+# TREK HS datasheets (Advanced Energy 2022): ±10 kV, 10 mA / 40 mA DC, gain 1000 V/V. Monitor ratios
+# [assumed: the operator manual was not read; calibrate and set them in the rig file].
+TREK_DATASHEET = {"10/10B-HS": AmplifierSpec("10/10B-HS", 10e3, 10e-3, 1000.0, 1000.0, 1e-3),
+                  "10/40A-HS": AmplifierSpec("10/40A-HS", 10e3, 40e-3, 1000.0, 1000.0, 4e-3)}
+
+
+@dataclass(frozen=True)
 class HVStage:
     """High-voltage amplifier output stage (TREK HS datasheet figures).
 
@@ -72,6 +90,11 @@ class HVStage:
     max_current: float = 10e-3  # A
     slew: float = 700e6  # V/s (> 700 V/µs)
     r_short: float = 1e3  # Ω, electrodes after breakdown
+
+    @classmethod
+    def of(cls, amplifier: AmplifierSpec) -> HVStage:
+        """The output stage of this amplifier (gain, output and current limits from its datasheet)."""
+        return cls(gain=amplifier.gain, max_output=amplifier.max_output, max_current=amplifier.max_current)
 
 
 @dataclass(frozen=True)

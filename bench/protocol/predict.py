@@ -21,8 +21,9 @@ import numpy as np
 
 from bench.core.clock import VirtualClock
 from bench.core.motion import MotionProfile
-from bench.core.plant import HVStage, Plant, PlantBlock
+from bench.core.plant import Plant, PlantBlock
 from bench.protocol.program import Program, ProtocolLimitError, motor_command, plays_on, voltage_at
+from bench.rig import plant_for
 
 STREAM_COLUMNS = {"setpoints": 2, "amplifier": 3, "laser": 2, "motor": 2, "load_cell": 1}
 PASSIVE_LASER_HZ = 10.0  # single laser reads while the storage is idle
@@ -93,17 +94,11 @@ def sample_counts(program: Program) -> dict[str, int]:
 
 
 def build_plant(program: Program, clock: VirtualClock, h: float = 1e-4) -> Plant:
-    """The simulated rig's plant for this program's rig and specimen overrides."""
-    rig, over = program.rig, program.protocol.specimen
-    spec = rig.specimen
-    hv = HVStage()
-    if spec.kind == "membrane":
-        return Plant(clock, spec.membrane(), temperature=over.temperature_K or spec.temperature_K, hv=hv, h=h,
-                     membrane_method="rodas")
-    cfg = spec.lsdea
-    params = spec.lozenge(over.prototype, over.hung_mass_kg)
-    x0 = cfg.blocked_position_m if cfg.configuration == "blocked" else cfg.x_at_motor_zero_m
-    return Plant(clock, params, configuration=cfg.configuration, x0=x0, hv=hv, h=h, motor_sign=cfg.motor_sign)
+    """The rig's plant (the simulated rig's factory) with the protocol's specimen overrides; the membrane
+    advances by the error-controlled offline integrator."""
+    over = program.protocol.specimen
+    return plant_for(program.rig, clock, temperature_K=over.temperature_K, prototype=over.prototype,
+                     hung_mass_kg=over.hung_mass_kg, membrane_method="rodas", h=h)
 
 
 def ticks(program: Program) -> int:
