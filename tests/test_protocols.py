@@ -400,3 +400,25 @@ def test_the_dry_run_integrates_the_membrane_with_error_control_on_the_played_wa
 
     ref = simulate_membrane(spec, drive, 20.0, fs=10_000.0, T=296.0, method="radau", rtol=1e-10)
     assert abs(pred.displacement_range[1] - float(ref.displacement.max())) / spec.L_d <= 1e-6
+
+
+def test_the_dry_run_sends_a_ramps_end_value_so_a_creeping_hold_runs_away(tmp_path: Path) -> None:
+    """One schedule (``program.ticks``) for the engine and the dry run: the dry run used to stop a ramp's
+    staircase one tick short of its target (a 0.5-s ramp to 7.5 kV held 6.75 kV), below physics.md §1.4's
+    7.14 kV DC limit, so the hold never failed. Reference: the first failure of the membrane under the
+    linear ramp and hold written from the protocol text, by scipy Radau (physics.md §1.5)."""
+    from bench.models.membrane_runs import simulate_membrane
+
+    body = ("[[steps]]\ntype = 'ramp'\nchannel = 'voltage'\nto = '7.5 kV'\nduration_s = 0.5\n"
+            "[[steps]]\ntype = 'hold'\nduration_s = 25\n")
+    with pytest.raises(ProtocolLimitError) as err:
+        plan_run(write(tmp_path, body, THESIS_RIG))
+    reported = float(re.search(r"at t = ([0-9.]+) s", str(err.value)).group(1))  # type: ignore[union-attr]
+    spec = load_rig(THESIS_RIG).specimen
+    params = spec.membrane()
+    ref = simulate_membrane(params, lambda t: 7500.0 * np.clip(np.asarray(t, dtype=float) / 0.5, 0.0, 1.0), 25.5,
+                            fs=1000.0, T=spec.temperature_K, method="radau")
+    bad = (np.abs(ref.field) > params.breakdown_field) | (ref.stretch > params.runaway_stretch) | \
+        ~np.isfinite(ref.stretch)
+    assert bad.any()
+    assert reported == pytest.approx(float(ref.t[int(np.argmax(bad))]), abs=0.05)

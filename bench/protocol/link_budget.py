@@ -18,7 +18,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from bench.protocol.program import Program
+from bench.protocol.program import HOLD_KEEPALIVE_S, PASSIVE_LASER_HZ, Program
 
 TURNAROUND_MODBUS_S = 1e-3  # ADAM / DGT1S request → reply [assumed: no figure in the manuals read]
 TURNAROUND_LKG_S = 0.5e-3  # LK-G command → reply [assumed]
@@ -27,8 +27,6 @@ ADAM_4017P_RATE = 10.0  # conversions/s over all enabled channels (datasheet)
 DGT1S_RATE = 100.0  # conversions/s [assumed: the DGT1S offers several rates]
 LKG_VALUE_BYTES = 9  # one stored value in an AO reply: 8 characters and a comma (manual p. 5-6)
 LKG_UPLOAD_CHUNK_S = 0.2  # the driver sizes AO requests to this much wire time
-HOLD_KEEPALIVE_S = 0.25  # bench.engine: set-point refresh during holds
-PASSIVE_LASER_HZ = 10.0  # bench.engine: single laser reads while not storing
 MAX_LOAD = 1.0  # a link busy more than this fraction of the time cannot keep up
 
 

@@ -22,11 +22,10 @@ import numpy as np
 from bench.core.clock import VirtualClock
 from bench.core.motion import MotionProfile
 from bench.core.plant import Plant, PlantBlock
-from bench.protocol.program import Program, ProtocolLimitError, motor_command, plays_on, voltage_at
+from bench.protocol.program import Program, ProtocolLimitError, sample_counts, ticks
 from bench.rig import plant_for
 
 STREAM_COLUMNS = {"setpoints": 2, "amplifier": 3, "laser": 2, "motor": 2, "load_cell": 1}
-PASSIVE_LASER_HZ = 10.0  # single laser reads while the storage is idle
 DRY_RUN_MAX_S = 3600.0  # run time the dry run integrates (the longest shipped campaign: 1985 s)
 DRY_RUN_BUDGET_S = 30.0  # estimated seconds of one core (the longest shipped campaign: ~17 s estimated, 14 s measured)
 # costs measured on the reference machine (2 cores, numba kernels): the slowest specimen model (LS-DEA, hung mass)
@@ -60,39 +59,6 @@ class Prediction:
         return not self.failure and not self.problems
 
 
-def sample_counts(program: Program) -> dict[str, int]:
-    """Samples per recorded stream for the whole run."""
-    rig, rec, T = program.rig, program.protocol.recording, program.duration
-    daq = rig.daq if rig.amplifier is not None and rig.amplifier.drive == "daq" else None
-    if daq is not None:  # hardware-timed: every streamed step sampled on the DAQ's scan clock
-        # one stream per run of back-to-back steps (bench.hardware_timed chains them): each plays scan 0 at its
-        # start, then one scan per period
-        segs = program.segments
-        chained = [i > 0 and plays_on(segs[i - 1], s) for i, s in enumerate(segs)]
-        scans = sum(max(1, round(s.duration * daq.scan_rate_Hz)) + (not c)
-                    for s, c in zip(segs, chained, strict=True) if s.duration > 0)
-        counts = {"setpoints": (int(T * rec.setpoint_Hz) if rig.motor is not None else 0) + len(program.segments),
-                  "amplifier": scans}
-        if daq.laser_ain is not None:
-            counts["laser"] = scans
-        if daq.force_ain is not None:
-            counts["load_cell"] = scans
-        if rig.motor is not None and rec.position_Hz > 0:
-            counts["motor"] = int(T * rec.position_Hz)
-        return counts
-    counts = {"setpoints": int(T * rec.setpoint_Hz) + len(program.segments)}
-    if rig.amplifier is not None and rec.monitors_Hz > 0:
-        counts["amplifier"] = int(T * rec.monitors_Hz)
-    if rig.laser is not None:
-        stored = sum(s.duration for s in program.segments if s.storing)
-        counts["laser"] = int(stored * rec.displacement_Hz) + int((T - stored) * PASSIVE_LASER_HZ)
-    if rig.motor is not None and rec.position_Hz > 0:
-        counts["motor"] = int(T * rec.position_Hz)
-    if rig.load_cell is not None and rec.force_Hz > 0:
-        counts["load_cell"] = int(T * rec.force_Hz)
-    return counts
-
-
 def build_plant(program: Program, clock: VirtualClock, h: float = 1e-4) -> Plant:
     """The rig's plant (the simulated rig's factory) with the protocol's specimen overrides; the membrane
     advances by the error-controlled offline integrator."""
@@ -101,15 +67,15 @@ def build_plant(program: Program, clock: VirtualClock, h: float = 1e-4) -> Plant
                      hung_mass_kg=over.hung_mass_kg, membrane_method="rodas", h=h)
 
 
-def ticks(program: Program) -> int:
-    """Set-point updates the dry run (and the engine) replays over the whole program."""
+def update_bound(program: Program) -> int:
+    """At most this many set-point updates over the whole program (every segment streaming throughout)."""
     dt = 1.0 / program.protocol.recording.setpoint_Hz
     return sum(max(1, math.ceil(s.duration / dt - 1e-9)) for s in program.segments if s.duration > 0)
 
 
 def dry_run_cost(program: Program) -> tuple[float, float, float]:
     """Estimated seconds of one core the dry run spends on (the model, set-point updates, steps)."""
-    return (program.duration * COST_PER_RUN_S, ticks(program) * COST_PER_TICK,
+    return (program.duration * COST_PER_RUN_S, update_bound(program) * COST_PER_TICK,
             len(program.segments) * COST_PER_SEGMENT)
 
 
@@ -124,8 +90,8 @@ def check_budget(program: Program) -> None:
         field = "recording.setpoint_Hz" if updates >= max(model, steps) else "steps"
         raise ProtocolLimitError(
             f"{where}: {field}: the dry run would take ~{model + updates + steps:.0f} s ({program.duration:.0f} s of "
-            f"run time, {ticks(program):,} set-point updates, {len(program.segments):,} steps), beyond its budget "
-            f"of {DRY_RUN_BUDGET_S:.0f} s: lower recording.setpoint_Hz or split the protocol")
+            f"run time, {update_bound(program):,} set-point updates, {len(program.segments):,} steps), beyond its "
+            f"budget of {DRY_RUN_BUDGET_S:.0f} s: lower recording.setpoint_Hz or split the protocol")
 
 
 def predict(program: Program, progress: Callable[[float], None] | None = None) -> Prediction:
@@ -140,8 +106,6 @@ def predict(program: Program, progress: Callable[[float], None] | None = None) -
     clock = VirtualClock()
     plant = build_plant(program, clock)
     gain = plant.hv.gain
-    rec = program.protocol.recording
-    dt = 1.0 / rec.setpoint_Hz
     motor_lo, motor_hi = np.inf, -np.inf
 
     def watch(block: PlantBlock) -> None:
@@ -176,19 +140,16 @@ def predict(program: Program, progress: Callable[[float], None] | None = None) -
             vs = np.asarray(seg.voltage(ts), dtype=float)
             pred.peak_voltage = max(pred.peak_voltage, float(np.max(np.abs(vs))))
             plant.schedule_amplifier_input(ts, vs / gain)
-        n_ticks = max(1, int(np.ceil(seg.duration / dt - 1e-9))) if seg.duration > 0 else 0
-        if played and not program.has_motor_axis:
-            n_ticks = 0  # nothing left to send per tick
-        for k in range(n_ticks):
-            t = seg.t_start + k * dt
-            clock.advance_to(t)
-            v = None if played else voltage_at(seg, t)
+        for tick in () if played and not program.has_motor_axis else ticks(program, seg):
+            v = None if played else tick.voltage
+            if v is None and tick.motor is None:
+                continue  # a keep-alive: the model's input does not change
+            clock.advance_to(tick.t)
             if v is not None:
                 pred.peak_voltage = max(pred.peak_voltage, abs(v))
                 plant.set_amplifier_input(v / gain)
-            cmd = motor_command(program, seg, t, dt, first=k == 0)
-            if cmd is not None:
-                target, vel, acc = cmd
+            if tick.motor is not None:
+                target, vel, acc = tick.motor
                 motor_lo, motor_hi = min(motor_lo, target), max(motor_hi, target)
                 plant.set_motion(lambda t0, p, vv, tg=target, ve=vel, ac=acc:
                                  MotionProfile.plan(t0, p, vv, tg, ve, ac, ac))

@@ -10,7 +10,7 @@ set-point density of waveforms, and laser storage capacity per storing step. The
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -25,6 +25,8 @@ Signal = Callable[[np.ndarray], np.ndarray]
 RELAX_RAMP_S = 0.5  # a relax step brings the voltage to zero over this time (or a tenth of the step)
 MOVE_SETTLE_S = 0.05
 MAX_SAMPLES = 10**10  # recorded samples over a whole run (all streams): ~ 1 TB uncompressed
+PASSIVE_LASER_HZ = 10.0  # single laser reads while its data storage is idle (software-timed rigs)
+HOLD_KEEPALIVE_S = 0.25  # set-point refresh during holds (keeps the analog module's watchdog fed)
 
 
 class ProtocolLimitError(ValueError):
@@ -100,122 +102,178 @@ def _wave(t0: float, w: Waveform) -> Signal:
     return f
 
 
-def compile_program(protocol: Protocol, rig: RigConfig) -> Program:
-    """Lay the protocol's steps on the run clock and apply the static checks."""
-    where = f"protocol file {protocol.path}"
-    motor_axis = rig.motor is not None and rig.specimen.kind == "lsdea" and rig.specimen.lsdea.configuration == "motor"
-    rec = protocol.recording
-    capacity = rig.laser.capacity if rig.laser else 0
-    v_limit = rig.limits.max_voltage_V
-    if rig.amplifier is not None:
-        v_limit = min(v_limit, rig.amplifier.max_voltage_V)
-    program = Program(protocol, rig, [])
-    t = 0.0
-    v_now = 0.0
-    x_now = (rig.specimen.lsdea.x_at_motor_zero_m if motor_axis else None)
+class _Compiler:
+    """Lays steps on the run clock one at a time: one method per step type, each returning its segment and
+    refusing (one line naming file, step and field) what the rig or specimen must not run."""
 
-    def refuse(label: str, what: str) -> ProtocolLimitError:
-        return ProtocolLimitError(f"{where}: {label}: {what}")
+    def __init__(self, protocol: Protocol, rig: RigConfig) -> None:
+        self.protocol, self.rig, self.rec = protocol, rig, protocol.recording
+        self.program = Program(protocol, rig, [])
+        self.where = f"protocol file {protocol.path}"
+        self.v_limit = rig.limits.max_voltage_V
+        if rig.amplifier is not None:
+            self.v_limit = min(self.v_limit, rig.amplifier.max_voltage_V)
+        self.t = 0.0  # run time at which the next step starts
+        self.v_now = 0.0  # voltage set-point at that time
+        self.x_now = rig.specimen.lsdea.x_at_motor_zero_m if self.program.has_motor_axis else None  # aperture
 
-    def check_voltage(label: str, lo: float, hi: float) -> None:
-        if rig.amplifier is None:
-            raise refuse(label, f"channel voltage: rig {rig.name} has no amplifier")
+    def refuse(self, label: str, what: str) -> ProtocolLimitError:
+        return ProtocolLimitError(f"{self.where}: {label}: {what}")
+
+    def check_voltage(self, label: str, lo: float, hi: float) -> None:
+        if self.rig.amplifier is None:
+            raise self.refuse(label, f"channel voltage: rig {self.rig.name} has no amplifier")
         peak = max(abs(lo), abs(hi))
-        if peak > v_limit:
-            raise refuse(label, f"peak voltage {peak:.0f} V exceeds the rig limit {v_limit:.0f} V")
+        if peak > self.v_limit:
+            raise self.refuse(label, f"peak voltage {peak:.0f} V exceeds the rig limit {self.v_limit:.0f} V")
 
-    def check_aperture(label: str, lo: float, hi: float) -> None:
-        if not motor_axis:
-            raise refuse(label, f"channel position: rig {rig.name} has no motor driving the LS-DEA")
-        m_lo, m_hi = sorted((float(program.motor_position(lo)), float(program.motor_position(hi))))
-        tr = rig.motor.travel_m  # type: ignore[union-attr]
+    def check_aperture(self, label: str, lo: float, hi: float) -> None:
+        rig = self.rig
+        if not self.program.has_motor_axis or rig.motor is None:
+            raise self.refuse(label, f"channel position: rig {rig.name} has no motor driving the LS-DEA")
+        m_lo, m_hi = sorted((float(self.program.motor_position(lo)), float(self.program.motor_position(hi))))
+        tr = rig.motor.travel_m
         if m_lo < tr[0] - 1e-12 or m_hi > tr[1] + 1e-12:
-            raise refuse(label, f"aperture {lo * 1e3:.1f}…{hi * 1e3:.1f} mm needs motor {m_lo * 1e3:.1f}…"
-                         f"{m_hi * 1e3:.1f} mm, outside travel [{tr[0] * 1e3:.1f}, {tr[1] * 1e3:.1f}] mm")
+            raise self.refuse(label, f"aperture {lo * 1e3:.1f}…{hi * 1e3:.1f} mm needs motor {m_lo * 1e3:.1f}…"
+                              f"{m_hi * 1e3:.1f} mm, outside travel [{tr[0] * 1e3:.1f}, {tr[1] * 1e3:.1f}] mm")
 
-    for i, (step, label) in enumerate(zip(protocol.steps, protocol.labels, strict=True)):
-        name = step.name or step.type
-        seg: Segment
-        if isinstance(step, WaveformStep):
-            wave = Waveform(step.kind, step.amplitude_si, step.frequency_Hz, step.offset_si)
-            lo, hi = (step.offset_si - abs(step.amplitude_si), step.offset_si + abs(step.amplitude_si)) \
-                if step.kind == "sine" else sorted((step.offset_si, step.offset_si + step.amplitude_si))
-            if step.frequency_Hz * rec.points_per_cycle > rec.setpoint_Hz:
-                raise refuse(label, f"frequency_Hz {step.frequency_Hz:g} needs ≥ {rec.points_per_cycle} set-points per "
-                             f"cycle, i.e. recording.setpoint_Hz ≥ {step.frequency_Hz * rec.points_per_cycle:g}")
-            seg = Segment(i, label, name, "waveform", t, step.duration, frequency=step.frequency_Hz)
-            if step.channel == "voltage":
-                check_voltage(label, lo, hi)
-                seg.voltage = _wave(t, wave)
-                v_now = float(wave(np.array([step.duration]))[0])
-            else:
-                check_aperture(label, lo, hi)
-                seg.position = _wave(t, wave)
-                x_now = float(wave(np.array([step.duration]))[0])
-        elif isinstance(step, RampStep):
-            seg = Segment(i, label, name, "ramp", t, step.duration_s)
-            if step.channel == "voltage":
-                check_voltage(label, v_now, step.to_si)
-                seg.voltage = _ramp(t, step.duration_s, v_now, step.to_si)
-                v_now = step.to_si
-            else:
-                check_aperture(label, float(x_now if x_now is not None else 0.0), step.to_si)
-                seg.position = _ramp(t, step.duration_s, float(x_now), step.to_si)  # type: ignore[arg-type]
-                x_now = step.to_si
-        elif isinstance(step, HoldStep):
-            seg = Segment(i, label, name, step.type, t, step.duration_s)
-            if step.type == "relax" and v_now != 0.0:
-                seg.voltage = _ramp(t, min(RELAX_RAMP_S, step.duration_s / 10), v_now, 0.0)
-                v_now = 0.0
-        elif isinstance(step, MoveStep):
-            if x_now is None:
-                raise refuse(label, f"a move step needs the motor: rig {rig.name} has no motor driving the LS-DEA")
-            check_aperture(label, min(step.position_si, float(x_now)), max(step.position_si, float(x_now)))
-            m = rig.motor
-            if step.velocity_si > m.max_velocity_m_per_s or step.acceleration_si > m.max_acceleration_m_per_s2:  # type: ignore[union-attr]
-                raise refuse(label, f"velocity/acceleration beyond the rig's {m.max_velocity_m_per_s:g} m/s, "  # type: ignore[union-attr]
-                             f"{m.max_acceleration_m_per_s2:g} m/s²")  # type: ignore[union-attr]
-            prof = MotionProfile.plan(0.0, float(x_now), 0.0, step.position_si, step.velocity_si, step.acceleration_si,
-                                      step.acceleration_si)
-            seg = Segment(i, label, name, "move", t, prof.t_end + MOVE_SETTLE_S,
-                          move=(step.position_si, step.velocity_si, step.acceleration_si))
-            x_now = step.position_si
+    # ------------------------------------------------------------------ one compiler per step type
+    def waveform(self, i: int, label: str, name: str, step: WaveformStep) -> Segment:
+        rec = self.rec
+        wave = Waveform(step.kind, step.amplitude_si, step.frequency_Hz, step.offset_si)
+        lo, hi = (step.offset_si - abs(step.amplitude_si), step.offset_si + abs(step.amplitude_si)) \
+            if step.kind == "sine" else sorted((step.offset_si, step.offset_si + step.amplitude_si))
+        if step.frequency_Hz * rec.points_per_cycle > rec.setpoint_Hz:
+            raise self.refuse(label, f"frequency_Hz {step.frequency_Hz:g} needs ≥ {rec.points_per_cycle} set-points "
+                              f"per cycle, i.e. recording.setpoint_Hz ≥ {step.frequency_Hz * rec.points_per_cycle:g}")
+        seg = Segment(i, label, name, "waveform", self.t, step.duration, frequency=step.frequency_Hz)
+        end = float(wave(np.array([step.duration]))[0])
+        if step.channel == "voltage":
+            self.check_voltage(label, lo, hi)
+            seg.voltage, self.v_now = _wave(self.t, wave), end
         else:
-            assert isinstance(step, SetStep)
-            changes = {k: v for k, v in (("temperature_K", step.temperature_K), ("hung_mass_kg", step.hung_mass_kg),
-                                         ("prototype", step.prototype)) if v is not None}
-            kind = rig.specimen.kind
-            if kind == "membrane" and ({"hung_mass_kg", "prototype"} & set(changes)):
-                raise refuse(label, "hung_mass_kg and prototype apply to the LS-DEA, the rig holds a membrane")
-            if kind == "lsdea" and "temperature_K" in changes:
-                raise refuse(label, "temperature_K acts on the membrane model only")
-            if "hung_mass_kg" in changes and rig.specimen.lsdea.configuration != "hung":
-                raise refuse(label, "hung_mass_kg needs the hung-mass (isotonic) configuration")
-            seg = Segment(i, label, name, "set", t, 0.0, changes=changes)
+            self.check_aperture(label, lo, hi)
+            seg.position, self.x_now = _wave(self.t, wave), end
+        return seg
+
+    def ramp(self, i: int, label: str, name: str, step: RampStep) -> Segment:
+        seg = Segment(i, label, name, "ramp", self.t, step.duration_s)
+        if step.channel == "voltage":
+            self.check_voltage(label, self.v_now, step.to_si)
+            seg.voltage, self.v_now = _ramp(self.t, step.duration_s, self.v_now, step.to_si), step.to_si
+        else:
+            x0 = float(self.x_now if self.x_now is not None else 0.0)
+            self.check_aperture(label, x0, step.to_si)
+            seg.position, self.x_now = _ramp(self.t, step.duration_s, x0, step.to_si), step.to_si
+        return seg
+
+    def hold(self, i: int, label: str, name: str, step: HoldStep) -> Segment:
+        seg = Segment(i, label, name, step.type, self.t, step.duration_s)
+        if step.type == "relax" and self.v_now != 0.0:
+            seg.voltage = _ramp(self.t, min(RELAX_RAMP_S, step.duration_s / 10), self.v_now, 0.0)
+            self.v_now = 0.0
+        return seg
+
+    def move(self, i: int, label: str, name: str, step: MoveStep) -> Segment:
+        m = self.rig.motor
+        if self.x_now is None or m is None:
+            raise self.refuse(label, f"a move step needs the motor: rig {self.rig.name} has no motor driving the "
+                              "LS-DEA")
+        x0 = float(self.x_now)
+        self.check_aperture(label, min(step.position_si, x0), max(step.position_si, x0))
+        if step.velocity_si > m.max_velocity_m_per_s or step.acceleration_si > m.max_acceleration_m_per_s2:
+            raise self.refuse(label, f"velocity/acceleration beyond the rig's {m.max_velocity_m_per_s:g} m/s, "
+                              f"{m.max_acceleration_m_per_s2:g} m/s²")
+        prof = MotionProfile.plan(0.0, x0, 0.0, step.position_si, step.velocity_si, step.acceleration_si,
+                                  step.acceleration_si)
+        self.x_now = step.position_si
+        return Segment(i, label, name, "move", self.t, prof.t_end + MOVE_SETTLE_S,
+                       move=(step.position_si, step.velocity_si, step.acceleration_si))
+
+    def set(self, i: int, label: str, name: str, step: SetStep) -> Segment:
+        changes = {k: v for k, v in (("temperature_K", step.temperature_K), ("hung_mass_kg", step.hung_mass_kg),
+                                     ("prototype", step.prototype)) if v is not None}
+        spec = self.rig.specimen
+        if spec.kind == "membrane" and ({"hung_mass_kg", "prototype"} & set(changes)):
+            raise self.refuse(label, "hung_mass_kg and prototype apply to the LS-DEA, the rig holds a membrane")
+        if spec.kind == "lsdea" and "temperature_K" in changes:
+            raise self.refuse(label, "temperature_K acts on the membrane model only")
+        if "hung_mass_kg" in changes and spec.lsdea.configuration != "hung":
+            raise self.refuse(label, "hung_mass_kg needs the hung-mass (isotonic) configuration")
+        return Segment(i, label, name, "set", self.t, 0.0, changes=changes)
+
+    # ------------------------------------------------------------------ what every step gets
+    def recording(self, seg: Segment) -> None:
+        """Laser storage and set-point streaming of a segment, and the storage capacity check."""
+        rig, rec = self.rig, self.rec
         seg.storing = bool(rig.laser and rec.displacement_Hz > 0 and seg.kind in ("waveform", "ramp", "move"))
         if seg.kind in ("waveform", "ramp"):
             seg.stream_until = seg.t_end
         elif seg.kind == "relax" and seg.voltage is not None:
-            seg.stream_until = t + min(RELAX_RAMP_S, seg.duration / 10)
+            seg.stream_until = seg.t_start + min(RELAX_RAMP_S, seg.duration / 10)
         else:
-            seg.stream_until = t
-        if seg.storing:
+            seg.stream_until = seg.t_start
+        if seg.storing and rig.laser is not None:
             points = int(np.floor(seg.duration * rec.displacement_Hz)) + 1
-            if points > capacity:
-                raise refuse(label, f"{points} laser points at recording.displacement_Hz = {rec.displacement_Hz:g} "
-                             f"exceed the {rig.laser.model} storage of {capacity} points; "  # type: ignore[union-attr]
-                             "lower the rate or split the step")
-        program.segments.append(seg)
-        t += seg.duration
-        if not t <= MAX_DURATION_S:
-            raise refuse(label, f"the run reaches {t:.4g} s here, beyond the limit of {MAX_DURATION_S:.0f} s (7 days)")
-    from bench.protocol.predict import sample_counts  # predict imports this module
+            if points > rig.laser.capacity:
+                raise self.refuse(seg.label, f"{points} laser points at recording.displacement_Hz = "
+                                  f"{rec.displacement_Hz:g} exceed the {rig.laser.model} storage of "
+                                  f"{rig.laser.capacity} points; lower the rate or split the step")
 
-    samples = sum(sample_counts(program).values())
-    if samples > MAX_SAMPLES:
-        raise ProtocolLimitError(f"{where}: recording: {samples:.3g} samples over the run exceed the limit of "
-                                 f"{MAX_SAMPLES:.0e}; lower the recording rates")
-    return program
+    def compile(self) -> Program:
+        steps: dict[type, Callable[..., Segment]] = {WaveformStep: self.waveform, RampStep: self.ramp,
+                                                     HoldStep: self.hold, MoveStep: self.move, SetStep: self.set}
+        for i, (step, label) in enumerate(zip(self.protocol.steps, self.protocol.labels, strict=True)):
+            seg = steps[type(step)](i, label, step.name or step.type, step)
+            self.recording(seg)
+            self.program.segments.append(seg)
+            self.t += seg.duration
+            if not self.t <= MAX_DURATION_S:
+                raise self.refuse(label, f"the run reaches {self.t:.4g} s here, beyond the limit of "
+                                  f"{MAX_DURATION_S:.0f} s (7 days)")
+        samples = sum(sample_counts(self.program).values())
+        if samples > MAX_SAMPLES:
+            raise ProtocolLimitError(f"{self.where}: recording: {samples:.3g} samples over the run exceed the limit "
+                                     f"of {MAX_SAMPLES:.0e}; lower the recording rates")
+        return self.program
+
+
+def compile_program(protocol: Protocol, rig: RigConfig) -> Program:
+    """Lay the protocol's steps on the run clock and apply the static checks."""
+    return _Compiler(protocol, rig).compile()
+
+
+def sample_counts(program: Program) -> dict[str, int]:
+    """Samples per recorded stream for the whole run."""
+    rig, rec, T = program.rig, program.protocol.recording, program.duration
+    daq = rig.daq if rig.amplifier is not None and rig.amplifier.drive == "daq" else None
+    if daq is not None:  # hardware-timed: every streamed step sampled on the DAQ's scan clock
+        # one stream per run of back-to-back steps (bench.hardware_timed chains them): each plays scan 0 at its
+        # start, then one scan per period
+        segs = program.segments
+        chained = [i > 0 and plays_on(segs[i - 1], s) for i, s in enumerate(segs)]
+        scans = sum(max(1, round(s.duration * daq.scan_rate_Hz)) + (not c)
+                    for s, c in zip(segs, chained, strict=True) if s.duration > 0)
+        counts = {"setpoints": (int(T * rec.setpoint_Hz) if rig.motor is not None else 0) + len(program.segments),
+                  "amplifier": scans}
+        if daq.laser_ain is not None:
+            counts["laser"] = scans
+        if daq.force_ain is not None:
+            counts["load_cell"] = scans
+        if rig.motor is not None and rec.position_Hz > 0:
+            counts["motor"] = int(T * rec.position_Hz)
+        return counts
+    counts = {"setpoints": int(T * rec.setpoint_Hz) + len(program.segments)}
+    if rig.amplifier is not None and rec.monitors_Hz > 0:
+        counts["amplifier"] = int(T * rec.monitors_Hz)
+    if rig.laser is not None:
+        stored = sum(s.duration for s in program.segments if s.storing)
+        counts["laser"] = int(stored * rec.displacement_Hz) + int((T - stored) * PASSIVE_LASER_HZ)
+    if rig.motor is not None and rec.position_Hz > 0:
+        counts["motor"] = int(T * rec.position_Hz)
+    if rig.load_cell is not None and rec.force_Hz > 0:
+        counts["load_cell"] = int(T * rec.force_Hz)
+    return counts
 
 
 def plays_on(prev: Segment, nxt: Segment) -> bool:
@@ -227,6 +285,31 @@ def plays_on(prev: Segment, nxt: Segment) -> bool:
 def voltage_at(seg: Segment, t: float) -> float | None:
     """Voltage set-point [V] of ``seg`` at run time t (None: keep the present one)."""
     return None if seg.voltage is None else float(seg.voltage(np.array([t]))[0])
+
+
+@dataclass(frozen=True)
+class Tick:
+    """One set-point update of a segment's schedule (software-timed: what the host sends, and when)."""
+
+    t: float  # run time [s]
+    voltage: float | None  # voltage set-point [V] (None: the present one again, a keep-alive)
+    motor: tuple[float, float, float] | None  # motor go-to (position [m], velocity, acceleration), or None
+    end: bool = False  # the segment's end value, sent at its end (a ramp must reach its target)
+
+
+def ticks(program: Program, seg: Segment) -> Iterator[Tick]:
+    """The set-point schedule of one segment, executed by the engine on the instruments and by the dry run on
+    the model: every 1/setpoint_Hz while the segment streams (waveforms, ramps, a relax step's ramp-down), a
+    keep-alive every ``HOLD_KEEPALIVE_S`` after, and the end value at the segment's end."""
+    if seg.duration <= 0:
+        return
+    dt = 1.0 / program.protocol.recording.setpoint_Hz
+    t, k = seg.t_start, 0
+    while t < seg.t_end - 1e-12:
+        yield Tick(t, voltage_at(seg, t), motor_command(program, seg, t, dt, first=k == 0))
+        k += 1
+        t = seg.t_start + k * dt if t + dt <= seg.stream_until + 1e-12 else t + max(dt, HOLD_KEEPALIVE_S)
+    yield Tick(seg.t_end, voltage_at(seg, seg.t_end), None, end=True)
 
 
 def motor_command(program: Program, seg: Segment, t: float, dt: float,
