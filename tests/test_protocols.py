@@ -384,8 +384,8 @@ def test_the_dry_run_integrates_the_membrane_with_error_control_on_the_played_wa
     text — 7 kV raised cosine at 1/9 Hz for 20 s (physics.md §1.4), 296 K. Peak displacement within
     1e-6 in λ (u = L_d(λ − λ_pre)); the fixed-step scheme of the twins misses it by ~5e-5."""
     from bench.models.membrane_runs import simulate_membrane
-    from bench.protocol.program import compile_program
     from bench.protocol.predict import predict
+    from bench.protocol.program import compile_program
     from bench.run import resolve_rig
 
     protocol = load_protocol(ROOT / "protocols" / "thesis-identification.toml")

@@ -80,11 +80,17 @@ def test_laser_mode_errors_and_injected_faults(thesis: RunningRig) -> None:
         laser.read()
     faults.mute = False
     laser.link.discard_input()
-    faults.garble_next = 1
-    with pytest.raises((ProtocolError, InstrumentTimeoutError)):
+    faults.garble_next, faults.garble_index = 1, 0  # the echoed command garbled: a wrong reply
+    with pytest.raises(ProtocolError):
         laser.read()
     laser.link.discard_input()
     assert laser.read().ok  # the link recovers after a garbled reply
+    faults.garble_next, faults.garble_index = 1, -1  # the CR garbled: the reply never ends
+    with pytest.raises(InstrumentTimeoutError):
+        laser.read()
+    laser.link.discard_input()
+    faults.garble_index = None
+    assert laser.read().ok
     faults.drop = True
     with pytest.raises(InstrumentConnectionError, match="laser: link on /dev/pts/"):
         for _ in range(50):
