@@ -69,29 +69,37 @@ duration_s = {d}
 """
 
 
-@pytest.mark.parametrize("body, rig, message", [
-    ("", THESIS_RIG, "steps: give at least one [[steps]] table"),
+FILE, LIMIT = ProtocolFileError, ProtocolLimitError
+
+
+@pytest.mark.parametrize("body, rig, message, error", [
+    ("", THESIS_RIG, "steps: give at least one [[steps]] table", FILE),
     ("[[steps]]\ntype = 'waveform'\nfrequency_Hz = 1\nduration_s = 1\n", THESIS_RIG,
-     "steps[0](waveform).amplitude: Field required"),
-    (WAVE.format(channel="voltage", amp="7000", f=0.5, d=2), THESIS_RIG, "'7000' is not a number with a unit"),
-    (WAVE.format(channel="voltage", amp="45 mm", f=0.5, d=2), THESIS_RIG, "'45 mm' is a length, expected a voltage"),
+     "steps[0](waveform).amplitude: Field required", FILE),
+    (WAVE.format(channel="voltage", amp="7000", f=0.5, d=2), THESIS_RIG, "'7000' is not a number with a unit", FILE),
+    (WAVE.format(channel="voltage", amp="45 mm", f=0.5, d=2), THESIS_RIG,
+     "'45 mm' is a length, expected a voltage", FILE),
     (WAVE.format(channel="voltage", amp="9 kV", f=0.5, d=2), THESIS_RIG,
-     "peak voltage 9000 V exceeds the rig limit 8000 V"),
-    (WAVE.format(channel="voltage", amp="5 kV", f=5.0, d=2), THESIS_RIG, "recording.setpoint_Hz ≥ 100"),
-    (WAVE.format(channel="position", amp="20 mm", f=0.5, d=2), THESIS_RIG, "rig thesis-sim has no motor"),
-    ("[[steps]]\ntype = 'move'\nposition = '150 mm'\n", MOTOR_RIG, "outside travel [0.0, 95.0] mm"),
+     "peak voltage 9000 V exceeds the rig limit 8000 V", LIMIT),
+    (WAVE.format(channel="voltage", amp="5 kV", f=5.0, d=2), THESIS_RIG, "recording.setpoint_Hz ≥ 100", LIMIT),
+    (WAVE.format(channel="position", amp="20 mm", f=0.5, d=2), THESIS_RIG, "rig thesis-sim has no motor", LIMIT),
+    ("[[steps]]\ntype = 'move'\nposition = '150 mm'\n", MOTOR_RIG, "outside travel [0.0, 95.0] mm", LIMIT),
     (WAVE.format(channel="voltage", amp="5 kV", f=0.5, d=40), ISOTONIC_RIG,
-     "exceed the LK-G3000 storage of 65536 points"),
+     "exceed the LK-G3000 storage of 65536 points", LIMIT),
     ("[[steps]]\ntype = 'sweep'\nover = {v = {start = '1 kV'}}\n", THESIS_RIG,
-     "a range needs start, stop and one of step"),
-    ("[[steps]]\ntype = 'teleport'\n", THESIS_RIG, "steps[0](teleport): Input tag 'teleport' found"),
-    ("[[steps]]\ntype = 'set'\nhung_mass_kg = 0.1\n", THESIS_RIG, "hung_mass_kg and prototype apply to the LS-DEA"),
+     "a range needs start, stop and one of step", FILE),
+    ("[[steps]]\ntype = 'teleport'\n", THESIS_RIG, "steps[0](teleport): Input tag 'teleport' found", FILE),
+    ("[[steps]]\ntype = 'set'\nhung_mass_kg = 0.1\n", THESIS_RIG,
+     "hung_mass_kg and prototype apply to the LS-DEA", LIMIT),
     ("[[steps]]\ntype = 'waveform'\nkind = 'square'\noffset = '8 kV'\namplitude = '0 kV'\nfrequency_Hz = 0.05\n"
-     "duration_s = 20\n", THESIS_RIG, "model predicts specimen failure: true field above breakdown 100.0 MV/m"),
+     "duration_s = 20\n", THESIS_RIG, "model predicts specimen failure: true field above breakdown 100.0 MV/m", LIMIT),
 ])
-def test_bad_protocols_are_refused_with_one_line(tmp_path: Path, body: str, rig: str, message: str) -> None:
+def test_bad_protocols_are_refused_with_one_line(tmp_path: Path, body: str, rig: str, message: str,
+                                                error: type[Exception]) -> None:
+    """File errors (schema, units) are ProtocolFileError; what the rig or specimen must not run is
+    ProtocolLimitError (compile checks and the dry run)."""
     f = write(tmp_path, body, rig)
-    with pytest.raises((ProtocolFileError, ProtocolLimitError)) as err:
+    with pytest.raises(error) as err:
         plan_run(f)
     text = str(err.value)
     assert message in text and str(f) in text and "\n" not in text
