@@ -120,6 +120,24 @@ def test_fit_flags_parameters_that_trade_off() -> None:
     assert v["a"] * v["d"] == pytest.approx(3.0, rel=0.02)  # the product is determined
 
 
+class _Misfit(_Toy):
+    """Data of a shape the model has no parameter for (a sine over the toy's polynomial)."""
+
+    def __init__(self) -> None:
+        super().__init__(correlated=False)
+        rng = np.random.default_rng(1)
+        self.data = np.sin(2 * np.pi * 3 * self.x) + rng.normal(0, 0.01, self.x.size)
+
+
+def test_a_fit_says_when_the_model_cannot_follow_the_data() -> None:
+    """The best polynomial through three periods of a sine leaves ~70 % of the sine's spread, in long runs of
+    one sign; the good fits above (noise 0.01 on a shape the model has) must not be flagged."""
+    bad = fit(_Misfit(), FitSettings(population=30, generations=100, cost="lsq"))
+    assert "does not follow the data" in bad.lack_of_fit
+    good = fit(_Toy(correlated=False), FitSettings(population=30, generations=100, cost="lsq"))
+    assert good.lack_of_fit == ""
+
+
 # --- identification from a simulated run file ----------------------------------------------------------------
 
 

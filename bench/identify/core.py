@@ -81,6 +81,7 @@ class FitResult:
     residual: np.ndarray | None = None  # prediction − data at the compared points
     z: np.ndarray | None = None  # the result in optimiser coordinates
     search_time: float = 0.0  # s of the wall time spent in the differential evolution (the rest: polish, analysis)
+    lack_of_fit: str = ""  # why the model does not follow the data ('' when it does): see :func:`lack_of_fit`
 
     def flags_of(self, name: str) -> list[str]:
         """Flags of one parameter."""
@@ -216,7 +217,33 @@ def fit(problem: Problem, settings: FitSettings = FitSettings(), start: np.ndarr
     lower, upper = physical(problem, lo), physical(problem, hi)
     return FitResult(list(problem.names), list(problem.units), values, lower, upper, cost, settings.cost,
                      float(np.sqrt(np.mean(r * r))), int(data.size), evaluations, int(de.nit),
-                     time.perf_counter() - t0, sens, corr, uncertainty, flags, settings, J, r, z, search_time)
+                     time.perf_counter() - t0, sens, corr, uncertainty, flags, settings, J, r, z, search_time,
+                     lack_of_fit(r, data))
+
+
+LACK_OF_FIT_SHARE = 0.02  # residual rms above this share of the data's spread ...
+LACK_OF_FIT_CORRELATION = 0.5  # ... and residuals this correlated from point to point: a systematic misfit
+
+
+def lack_of_fit(r: np.ndarray, data: np.ndarray) -> str:
+    """Why the best fit does not describe the data, or '' when it does.
+
+    A model that cannot follow the data leaves a residual that is both large against the data's spread (its
+    standard deviation) and systematic: neighbouring residuals share their sign (lag-1 autocorrelation near
+    1), whereas measurement noise averages out (near 0). Either alone is no verdict: a small systematic
+    residual (quantisation, integrator) and a large noisy one (a noisy sensor) are both fits."""
+    r, data = np.asarray(r, float).ravel(), np.asarray(data, float).ravel()
+    spread = float(np.std(data))
+    if r.size < 3 or spread == 0.0:
+        return ""
+    share = float(np.sqrt(np.mean(r * r))) / spread
+    rc = r - r.mean()
+    denom = float(np.dot(rc, rc))
+    lag1 = float(np.dot(rc[:-1], rc[1:]) / denom) if denom > 0 else 0.0
+    if share > LACK_OF_FIT_SHARE and lag1 > LACK_OF_FIT_CORRELATION:
+        return (f"the model does not follow the data: residual rms {100 * share:.1f} % of the data's spread, "
+                f"systematic (lag-1 autocorrelation {lag1:.2f})")
+    return ""
 
 
 def assess(names: list[str], log: np.ndarray, lo: np.ndarray, hi: np.ndarray, z: np.ndarray, J: np.ndarray,
