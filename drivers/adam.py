@@ -23,10 +23,7 @@ from drivers.errors import LimitError, ProtocolError
 from drivers.modbus_link import ModbusLink
 
 REG_VALUE = 0
-REG_TYPE_CODE = 200
 REG_MODULE_NAME = 210
-REG_VERSION = 212
-REG_CHANNEL_ENABLE = 220
 
 
 @dataclass(frozen=True)

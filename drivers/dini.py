@@ -22,8 +22,8 @@ from drivers.errors import InstrumentStateError, InstrumentTimeoutError
 from drivers.interfaces import ClockFn, DataKey, Identity, Reading, SleepFn, StreamDescription
 from drivers.modbus_link import ModbusLink
 
-IR_GROSS, IR_NET, IR_STATUS, IR_COMMAND_STATUS, IR_OUTPUTS = 0, 2, 4, 5, 6
-HR_COMMAND, HR_PARAM1, HR_PARAM2 = 0, 1, 3
+IR_GROSS, IR_STATUS, IR_COMMAND_STATUS = 0, 4, 5
+HR_COMMAND = 0
 CMD_ZERO, CMD_TARE, CMD_PRESET_TARE = 0x01, 0x02, 0x03
 ST_NET_NEG, ST_GROSS_NEG, ST_STABLE, ST_UNDERLOAD, ST_OVERLOAD, ST_TARE = 0x01, 0x02, 0x04, 0x08, 0x10, 0x20
 RESULT_TEXT = {1: "not executed: weight unstable", 2: "not executed: outside the zero range",
