@@ -33,7 +33,7 @@ import numpy as np
 from bench.core.clock import Clock
 from bench.hardware_timed import HardwareTimed, watchdog_period
 from bench.instruments import Instruments
-from bench.protocol.program import Program, Segment, motor_command, voltage_at
+from bench.protocol.program import PASSIVE_LASER_HZ, Program, Segment, ticks
 from bench.recorder import Recorder
 from bench.safety import SafetyTrip, Supervisor
 from drivers.errors import InstrumentConnectionError, InstrumentError, InstrumentStateError, OperationCancelledError
@@ -42,8 +42,6 @@ from drivers.trek_daq import TrekOnDaq
 
 FETCH_PERIOD_S = 0.25  # laser storage upload period while storing (run time)
 MONITOR_SETTLE_S = 0.5  # after zeroing, wait for fresh monitor conversions before the final read
-PASSIVE_LASER_HZ = 10.0
-HOLD_KEEPALIVE_S = 0.25  # set-point refresh during holds (keeps the analog module's watchdog fed)
 LATE_TOLERANCE_S = 0.05  # real time: an action later than this counts as an overrun
 STOP_POLL_S = 0.02  # real time: longest sleep between two looks at the stop request
 RAMP_STEPS = 10  # shutdown ramp: set-points from the last voltage to 0 V
@@ -337,7 +335,6 @@ class Engine:
         if streamed:
             self._wait_until(seg.t_start)
             self._hw.start(seg, self)
-        dt = 1.0 / rec.setpoint_Hz
         hw = self._stream is not None
         collect = COLLECT_PERIOD_VIRTUAL_S if self.clock.virtual else COLLECT_PERIOD_S
         periods = {"monitors": 1 / rec.monitors_Hz if inst.amplifier and rec.monitors_Hz and not hw else None,
@@ -349,24 +346,22 @@ class Engine:
         period = {k: p for k, p in periods.items() if p is not None}
         count = {k: (1 if k == "fetch" else 0) for k in period}
         due = {k: seg.t_start + n * period[k] for k, n in count.items()}  # from counts: no drift
-        t_set, k_set = seg.t_start, 0
+        schedule = ticks(prog, seg)  # the set-point schedule the dry run also executes
+        tick = next(schedule, None)
         while True:
+            t_set = tick.t if tick is not None and not tick.end else math.inf
             t_next = min([t_set, *due.values()])
             if seg.duration == 0 or t_next >= seg.t_end - 1e-12:
                 break
             self._wait_until(t_next)
-            if t_set <= t_next:
-                v = voltage_at(seg, t_set)
-                cmd = motor_command(prog, seg, t_set, dt, first=k_set == 0)
-                x_cmd = self._move_motor(*cmd) if cmd is not None else math.nan
+            if tick is not None and t_set <= t_next:
+                x_cmd = self._move_motor(*tick.motor) if tick.motor is not None else math.nan
                 if inst.amplifier is not None and not streamed:
-                    self._set_voltage(self._v_req if v is None else v, t_set, x_cmd)
-                elif cmd is not None:
+                    self._set_voltage(self._v_req if tick.voltage is None else tick.voltage, t_set, x_cmd)
+                elif tick.motor is not None:
                     self.rec.append("setpoints", t_set, voltage=math.nan, aperture=x_cmd)
                 self.snapshot.values["setpoint"] = self._v_cmd
-                k_set += 1
-                t_set = seg.t_start + k_set * dt if t_set + dt <= seg.stream_until + 1e-12 else \
-                    t_set + max(dt, HOLD_KEEPALIVE_S)
+                tick = next(schedule, None)
             for kind in [k for k, tk in due.items() if tk <= t_next + 1e-12]:
                 self._check_stop()
                 self._poll(kind, due[kind])
@@ -376,7 +371,7 @@ class Engine:
             self.snapshot.headroom = self.sup.headroom()
             self.rec.maybe_flush()
         self._wait_until(seg.t_end)
-        v_end = voltage_at(seg, seg.t_end)
+        v_end = tick.voltage if tick is not None and tick.end else None  # the schedule's end value
         if streamed:
             self._hw.finish(self)  # the device played the end value itself
         elif inst.amplifier is not None and v_end is not None and v_end != self._v_req:
