@@ -363,6 +363,14 @@ def test_cli_move_on_a_rig_without_motor_and_simulate_edge_cases() -> None:
         assert proc.returncode == 2 and "Traceback" not in proc.stderr, (args, proc.stderr)
 
 
+def _dry_run_failure(tmp_path: Path, body: str) -> tuple[float, str]:
+    """The failure time the dry run reports for a protocol on the thesis rig, and its one-line refusal."""
+    with pytest.raises(ProtocolLimitError) as err:
+        plan_run(write(tmp_path, body, THESIS_RIG))
+    reported = float(re.search(r"at t = ([0-9.]+) s", str(err.value)).group(1))  # type: ignore[union-attr]
+    return reported, str(err.value)
+
+
 def test_the_dry_run_reports_when_the_model_fails_not_when_its_block_began(tmp_path: Path) -> None:
     """8 kV held on the thesis membrane: as it thins, the true field passes the breakdown field (then it runs
     away); the dry run integrates in blocks of up to 2 s and used to report the block's start. Reference: the
@@ -373,13 +381,11 @@ def test_the_dry_run_reports_when_the_model_fails_not_when_its_block_began(tmp_p
 
     body = ("[[steps]]\ntype = 'waveform'\nkind = 'square'\noffset = '8 kV'\namplitude = '0 kV'\n"
             "frequency_Hz = 0.05\nduration_s = 20\n")
-    with pytest.raises(ProtocolLimitError) as err:
-        plan_run(write(tmp_path, body, THESIS_RIG))
-    reported = float(re.search(r"at t = ([0-9.]+) s", str(err.value)).group(1))  # type: ignore[union-attr]
+    reported, err = _dry_run_failure(tmp_path, body)
     spec = load_rig(THESIS_RIG).specimen
     ref = simulate_membrane(spec.membrane(), Waveform("square", 0.0, 0.05, offset=8000.0), 20.0, fs=1000.0,
                             T=spec.temperature_K, method="radau")
-    assert ref.failed and "breakdown" in str(err.value)
+    assert ref.failed and "breakdown" in err
     over = np.abs(ref.field) > spec.membrane().breakdown_field
     assert over.any()
     assert reported == pytest.approx(float(ref.t[int(np.argmax(over))]), abs=0.01)
@@ -419,9 +425,7 @@ def test_the_dry_run_sends_a_ramps_end_value_so_a_creeping_hold_runs_away(tmp_pa
 
     body = ("[[steps]]\ntype = 'ramp'\nchannel = 'voltage'\nto = '7.5 kV'\nduration_s = 0.5\n"
             "[[steps]]\ntype = 'hold'\nduration_s = 25\n")
-    with pytest.raises(ProtocolLimitError) as err:
-        plan_run(write(tmp_path, body, THESIS_RIG))
-    reported = float(re.search(r"at t = ([0-9.]+) s", str(err.value)).group(1))  # type: ignore[union-attr]
+    reported, _ = _dry_run_failure(tmp_path, body)
     spec = load_rig(THESIS_RIG).specimen
     params = spec.membrane()
     ref = simulate_membrane(params, lambda t: 7500.0 * np.clip(np.asarray(t, dtype=float) / 0.5, 0.0, 1.0), 25.5,
