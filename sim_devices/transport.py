@@ -179,6 +179,9 @@ class Line:
             self.gap = max(self.gap, 1.75e-3) if gap_chars >= 3.5 else max(self.gap, 0.75e-3)
         self._free = 0.0  # line time at which the wire is next free
         self.lock = threading.RLock()  # one transaction on the wire at a time
+        # wall clock: time a byte spends crossing the transport that stands in for the wire (a pty: one thread
+        # wake-up), which the wire model must not add on top of its own time — see :func:`pty_hop_latency`
+        self.hop = 0.0
 
     @property
     def char_time(self) -> float:
@@ -208,7 +211,7 @@ class Line:
         if not self.baud:
             return self.clock.now()
         with self.lock:
-            start = max(self.clock.now(), self._free)
+            start = max(self.clock.now() - self.hop, self._free)  # the bytes left the host a hop ago
             end = start + self.frame_time(nbytes) + self.gap
             self._free = end
         self._until(end)
@@ -227,11 +230,57 @@ class Line:
             start = max(self.clock.now(), self._free + t_turn)
             end = start + self.frame_time(nbytes)
             self._free = end + self.gap
-        self._until(end)
+        self._until(end - self.hop)  # the last byte reaches the host a hop after it is written
 
     def silent(self, wait: float) -> None:
         """Nobody answers: the wire stays idle for ``wait`` s (e.g. a gateway's response timeout)."""
         self._until(self.clock.now() + wait)
+
+
+_HOP: list[float] = []
+
+
+def pty_hop_latency(samples: int = 30) -> float:
+    """A lower bound of the time from one thread writing a pty to another thread blocked on it waking with
+    the bytes [s] (the minimum of ``samples`` measurements, taken once per process).
+
+    A twin sees a request only after this hop and its reply reaches the host only after it again; a real wire
+    has no such hop (the UART starts shifting at the write). Taking the *minimum* out of the emulated wire
+    time keeps the twin from being faster than the wire model on a quiet machine and makes it no kinder on a
+    busy one (the actual hop is then longer)."""
+    if _HOP:
+        return _HOP[0]
+    master, slave, _ = _open_raw_pty()
+    woke: list[float] = []
+    ready = threading.Event()
+
+    def reader() -> None:
+        for _ in range(samples):
+            ready.set()
+            select.select([master], [], [], 1.0)
+            woke.append(time.perf_counter())
+            os.read(master, 64)
+
+    thread = threading.Thread(target=reader, daemon=True)
+    sent: list[float] = []
+    try:
+        thread.start()
+        for _ in range(samples):
+            ready.wait(1.0)
+            ready.clear()
+            time.sleep(2e-4)  # let the reader block in select
+            sent.append(time.perf_counter())
+            os.write(slave, b"x")
+            while len(woke) < len(sent) and thread.is_alive():
+                time.sleep(1e-4)
+        thread.join(1.0)
+    finally:
+        for fd in (master, slave):
+            with contextlib.suppress(OSError):
+                os.close(fd)
+    hops = [w - t for w, t in zip(woke, sent, strict=False) if w > t]
+    _HOP.append(min(hops) if hops else 0.0)
+    return _HOP[0]
 
 
 def _open_raw_pty() -> tuple[int, int, str]:
@@ -255,6 +304,8 @@ class PtyDevice:
         self.name = name
         self.faults = faults or Faults()
         self.line = line
+        if line is not None and line.baud and not line.clock.virtual:
+            line.hop = pty_hop_latency()
         self._master, self._slave, self.path = _open_raw_pty()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name=f"sim-{name}", daemon=True)

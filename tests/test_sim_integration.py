@@ -362,3 +362,23 @@ def test_the_twins_processing_time_is_part_of_the_device_turnaround_not_added_to
     clock.advance(1.5e-3)  # slower than the turnaround
     line.reply(7, turnaround=1e-3)
     assert clock.now() == pytest.approx(end_req + 1.5e-3 + 7 * char, abs=1e-12)
+
+
+def test_the_pty_hop_is_taken_out_of_the_emulated_wire_time_not_added_to_it() -> None:
+    """On the wall clock a request reaches the twin one pty hop after the host wrote it, and the reply reaches
+    the host one hop after the twin writes it; the wire model starts the request a hop back and writes the
+    reply a hop early, so the host sees the exchange take the wire's time. The hop used is the minimum of
+    measured hops (a lower bound: never faster than the wire)."""
+    from bench.core.clock import VirtualClock
+    from sim_devices.transport import Line, pty_hop_latency
+
+    hop = pty_hop_latency()
+    assert 0.0 < hop < 5e-3
+    clock = VirtualClock(1.0)
+    char = 10 / 115200
+    line = Line(clock, 115200, turnaround=0.5e-3)
+    line.hop = 1e-4
+    end_req = line.request(6)
+    assert end_req == pytest.approx(1.0 - 1e-4 + 6 * char)
+    line.reply(15)
+    assert clock.now() == pytest.approx(end_req + 0.5e-3 + 15 * char - 1e-4)
