@@ -4,7 +4,7 @@ A seeded mutator derives files from the shipped ones (``protocols/short/*.toml``
 default): values replaced by nan, inf, -1, 0, huge numbers, strings, arrays or tables; keys deleted or added;
 tables duplicated; repeats and arrays nested deep; huge sweeps and repeats; long holds; another rig; the
 text truncated or sprinkled with random bytes. Each file goes the way of ``bench validate`` (load → compile →
-dry run, :func:`bench.run.plan_run`) in a worker process with a hard time limit per file (the worker is
+dry run, :func:`bench.runtime.run.plan_run`) in a worker process with a hard time limit per file (the worker is
 killed when it runs over, so a hang is counted, not endured), and is classified:
 
 * ``refused`` — a ``ValueError``/``OSError`` whose message is one line naming the file (what the CLI prints);
@@ -277,7 +277,7 @@ def make_cases(n_protocols: int, n_rigs: int, seed: int, folder: Path) -> list[C
 
 def classify(case: Case) -> tuple[str, str]:
     """Validate one case as ``bench validate`` does; (class, detail). Runs in the worker."""
-    from bench.run import plan_run
+    from bench.runtime.run import plan_run
     from drivers.errors import InstrumentError
 
     try:
@@ -342,7 +342,7 @@ def warm_up() -> None:
     from bench.protocol.predict import predict
     from bench.protocol.program import compile_program
     from bench.protocol.schema import load_protocol
-    from bench.run import resolve_rig
+    from bench.runtime.run import resolve_rig
 
     for path in seed_files("protocols"):
         with contextlib.suppress(Exception):

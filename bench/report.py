@@ -18,7 +18,7 @@ import numpy as np
 from bench.analysis.applied import VoltageTrace, applied_voltage, measured_voltage
 from bench.analysis.runs import RunAnalysis, analyse
 from bench.identify.store import read_fits
-from bench.runfile import RunFile, open_run
+from bench.storage.runfile import RunFile, open_run
 
 DPI = 300  # publication resolution of the PNGs
 VECTOR_FORMATS = ("pdf", "svg")

@@ -8,8 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from bench.instruments import Instruments, build_instruments
 from bench.rig import RigConfig, load_rig
+from bench.runtime.instruments import Instruments, build_instruments
 from sim_devices.rig import SimRig, Timing
 
 ROOT = Path(__file__).resolve().parent.parent

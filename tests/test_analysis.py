@@ -23,8 +23,8 @@ from bench.identify.problems import LozengeProblem, MembraneProblem, match_membr
 from bench.identify.store import export_rig, fitted_rig, read_fits, write_fit
 from bench.report import report
 from bench.rig import load_rig, rig_from_toml
-from bench.run import execute, plan_run
-from bench.runfile import open_run
+from bench.runtime.run import execute, plan_run
+from bench.storage.runfile import open_run
 
 ROOT = Path(__file__).resolve().parent.parent
 

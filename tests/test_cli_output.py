@@ -10,7 +10,7 @@ import pytest
 from typer.testing import CliRunner
 
 from bench.cli import app
-from bench.run import execute, plan_run
+from bench.runtime.run import execute, plan_run
 
 ROOT = Path(__file__).resolve().parent.parent
 SHORT = ROOT / "protocols" / "short" / "thesis-identification-short.toml"

@@ -21,8 +21,8 @@ from bench.analysis.cycles import crest_to_trough
 from bench.models.membrane import MembraneParams
 from bench.models.membrane_runs import simulate_membrane
 from bench.rig import RigConfig, RigFileError, load_rig
-from bench.run import execute, plan_run
-from bench.runfile import open_run
+from bench.runtime.run import execute, plan_run
+from bench.storage.runfile import open_run
 from bench.waveforms import Waveform
 from tests.conftest import ROOT
 

@@ -15,13 +15,13 @@ import numpy as np
 import pytest
 
 from bench.analysis.cycles import crest_to_trough, hysteresis_loss
-from bench.engine import Engine
 from bench.models.lozenge_runs import simulate_lozenge
 from bench.models.membrane_runs import simulate_membrane
 from bench.protocol.schema import load_protocol
 from bench.rig import RigConfig
-from bench.run import execute, plan_run, run_protocol
-from bench.runfile import open_run
+from bench.runtime.engine import Engine
+from bench.runtime.run import execute, plan_run, run_protocol
+from bench.storage.runfile import open_run
 from bench.waveforms import Waveform
 from tests.conftest import ROOT
 

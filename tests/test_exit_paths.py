@@ -23,10 +23,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bench.engine import Engine
 from bench.rig import RigConfig
-from bench.run import execute, plan_run
-from bench.runfile import RunFile, open_run
+from bench.runtime.engine import Engine
+from bench.runtime.run import execute, plan_run
+from bench.storage.runfile import RunFile, open_run
 from tests.conftest import ROOT
 
 SHORT = ROOT / "protocols" / "short"

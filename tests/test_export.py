@@ -13,7 +13,7 @@ from scipy.io import loadmat
 from typer.testing import CliRunner
 
 from bench.cli import app
-from bench.run import execute, plan_run
+from bench.runtime.run import execute, plan_run
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -8,7 +8,7 @@ import tomllib
 
 import pytest
 
-import bench.run
+import bench.runtime.run
 from bench.fuzz import _mutate_text, make_cases, run_fuzz, to_toml
 
 
@@ -54,7 +54,7 @@ def test_harness_counts_tracebacks(monkeypatch: pytest.MonkeyPatch) -> None:
     def broken(*args: object, **kwargs: object) -> None:
         raise ZeroDivisionError("float division by zero")
 
-    monkeypatch.setattr(bench.run, "plan_run", broken)  # the forked workers inherit the patch
+    monkeypatch.setattr(bench.runtime.run, "plan_run", broken)  # the forked workers inherit the patch
     c = run_fuzz(3, 2, seed=1).counts
     assert (c["traceback"], c["refused"], c["accepted"], c["hang"]) == (5, 0, 0, 0)
 
@@ -64,7 +64,7 @@ def test_harness_kills_and_counts_hangs(monkeypatch: pytest.MonkeyPatch) -> None
         while True:
             time.sleep(1)
 
-    monkeypatch.setattr(bench.run, "plan_run", hang)
+    monkeypatch.setattr(bench.runtime.run, "plan_run", hang)
     t0 = time.monotonic()
     c = run_fuzz(2, 1, seed=1, limit=0.3).counts
     assert c["hang"] == 3 and c["files"] == 3

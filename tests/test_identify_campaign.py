@@ -12,7 +12,7 @@ from bench.identify.campaign import campaign_identifiability
 from bench.identify.core import FitSettings, fit
 from bench.identify.problems import _record_windows
 from bench.identify.store import read_fits
-from bench.run import run_protocol
+from bench.runtime.run import run_protocol
 
 ROOT = Path(__file__).resolve().parent.parent
 SHORT = ROOT / "protocols" / "short"

@@ -11,7 +11,7 @@ from bench.design_map import MapSettings, compute_map
 from bench.identify.core import FitSettings, fit
 from bench.identify.distributed import cluster_client
 from bench.identify.problems import MembraneProblem
-from bench.run import run_protocol
+from bench.runtime.run import run_protocol
 
 pytest.importorskip("distributed")
 SHORT = Path(__file__).resolve().parent.parent / "protocols" / "short"

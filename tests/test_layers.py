@@ -3,7 +3,9 @@
 drivers/ speak wire protocols and know nothing of the application or the twins; sim_devices/ are written from the
 manuals and never take a driver's protocol constants; the core (bench/core: clock, motion profile, plant) and
 protocol compilation (bench/protocol) know neither twins nor drivers, and the core needs nothing of the
-application beyond the physical models. Every import counts, including those inside functions.
+application beyond the physical models; storage (run files) knows neither the run time nor the command line, only
+bench/cli and bench/__main__.py import the command line, and bench's packages import one another without a cycle.
+Every import counts, including those inside functions.
 """
 
 from __future__ import annotations
@@ -48,6 +50,7 @@ def offenders(package: str, forbidden: tuple[str, ...], allowed: tuple[str, ...]
     ("sim_devices", ("drivers",), ()),
     ("bench/protocol", ("sim_devices", "drivers"), ()),
     ("bench/core", ("sim_devices", "drivers", "bench"), ("bench.core", "bench.models")),
+    ("bench/storage", ("bench.runtime", "bench.cli"), ()),
 ])
 def test_no_import_goes_up_or_across_the_layers(package: str, forbidden: tuple[str, ...],
                                                 allowed: tuple[str, ...]) -> None:
@@ -62,3 +65,62 @@ def test_the_check_sees_imports_inside_functions(tmp_path: Path) -> None:
     assert imported_modules(src) >= {"sim_devices.rig", "drivers.keyence"}
     inside = ROOT / "bench" / "protocol" / "program.py"
     assert "bench.rig" in imported_modules(inside)
+
+
+def test_only_the_entry_points_import_the_command_line() -> None:
+    """bench/cli is the top: nothing of the application imports it but bench/cli itself and bench/__main__.py."""
+    found = [f"{path.relative_to(ROOT)} imports {mod}" for path in sorted((ROOT / "bench").rglob("*.py"))
+             if not path.is_relative_to(ROOT / "bench" / "cli") and path != ROOT / "bench" / "__main__.py"
+             for mod in sorted(imported_modules(path)) if mod == "bench.cli" or mod.startswith("bench.cli.")]
+    assert not found, found
+
+
+def test_command_modules_do_not_import_the_app_back() -> None:
+    """bench/cli/__init__.py builds the app and calls each command module's register(); no module imports it back."""
+    found = [f"{path.relative_to(ROOT)} imports bench.cli" for path in sorted((ROOT / "bench" / "cli").glob("*.py"))
+             if path.name != "__init__.py" and "bench.cli" in imported_modules(path)]
+    assert not found, found
+
+
+def package_graph() -> dict[str, set[str]]:
+    """bench's import graph by package: a subpackage (bench/runtime, …) or a top-level module (bench/rig.py) is one
+    node; an edge for every import of another node by any file of it (imports inside functions included)."""
+    graph: dict[str, set[str]] = {}
+    for path in sorted((ROOT / "bench").rglob("*.py")):
+        parts = path.relative_to(ROOT / "bench").parts
+        node = parts[0] if len(parts) > 1 else path.stem
+        graph.setdefault(node, set())
+        for mod in imported_modules(path):
+            names = mod.split(".")
+            if names[0] == "bench" and len(names) > 1 and names[1] != node:
+                graph[node].add(names[1])
+    return graph
+
+
+def test_the_packages_of_bench_import_one_another_without_a_cycle() -> None:
+    """No import cycle between bench's packages (and top-level modules): the layout reads as layers, top to bottom
+    cli → benchmarks → runtime → storage, identify → analysis → protocol → core → models (see docs/architecture.md).
+    No exception is needed today: a cycle found here is a package boundary to fix, not to allow."""
+    graph = package_graph()
+    assert {"cli", "runtime", "storage", "benchmarks", "core", "protocol", "models"} <= set(graph)
+    done: set[str] = set()
+
+    def visit(node: str, path: tuple[str, ...]) -> None:
+        assert node not in path, f"import cycle: {' → '.join([*path[path.index(node):], node])}"
+        if node in done:
+            return
+        for nxt in sorted(graph.get(node, ())):
+            visit(nxt, (*path, node))
+        done.add(node)
+
+    for start in sorted(graph):
+        visit(start, ())
+
+
+def test_the_cycle_check_finds_a_cycle(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The checker itself: a planted cycle between two packages fails the test."""
+    monkeypatch.setattr(f"{__name__}.package_graph",
+                        lambda: {"cli": set(), "runtime": {"storage"}, "storage": {"runtime"}, "benchmarks": set(),
+                                 "core": set(), "protocol": set(), "models": set()})
+    with pytest.raises(AssertionError, match="import cycle: runtime → storage → runtime"):
+        test_the_packages_of_bench_import_one_another_without_a_cycle()

@@ -8,8 +8,8 @@ from pathlib import Path
 from typer.testing import CliRunner
 
 from bench.cli import app
-from bench.manual import ManualSession
 from bench.rig import load_rig
+from bench.runtime.manual import ManualSession
 
 ROOT = Path(__file__).resolve().parent.parent
 MOTOR_RIG = ROOT / "rigs" / "lsdea-motor-sim.toml"

@@ -15,7 +15,7 @@ import pytest
 from bench.protocol.program import ProtocolLimitError
 from bench.protocol.schema import ProtocolFileError, json_schema, load_protocol
 from bench.rig import RigFileError, load_rig
-from bench.run import plan_run
+from bench.runtime.run import plan_run
 from tests.conftest import RIGS, ROOT
 
 PROTOCOLS = sorted((ROOT / "protocols").rglob("*.toml"))
@@ -400,7 +400,7 @@ def test_the_dry_run_integrates_the_membrane_with_error_control_on_the_played_wa
     from bench.models.membrane_runs import simulate_membrane
     from bench.protocol.predict import predict
     from bench.protocol.program import compile_program
-    from bench.run import resolve_rig
+    from bench.runtime.run import resolve_rig
 
     protocol = load_protocol(ROOT / "protocols" / "thesis-identification.toml")
     rig = resolve_rig(protocol)

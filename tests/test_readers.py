@@ -25,10 +25,10 @@ import xarray as xr
 
 from bench.identify.core import FitResult
 from bench.identify.store import write_fit
-from bench.recover import recover
 from bench.rig import load_rig
-from bench.run import execute, plan_run
-from bench.runfile import open_run
+from bench.runtime.run import execute, plan_run
+from bench.storage.recover import recover
+from bench.storage.runfile import open_run
 from tests.conftest import RIGS, ROOT
 
 RIG = RIGS / "thesis-daq-sim.toml"  # hardware-timed: every analog channel on one scan clock
@@ -193,7 +193,7 @@ LIVE_WRITER = textwrap.dedent(f"""
     import sys, time
     from pathlib import Path
     import numpy as np
-    from bench.recorder import Column, Recorder
+    from bench.storage.recorder import Column, Recorder
     rec = Recorder(Path(sys.argv[1]), {{"protocol_name": "live"}}, {{"laser": [Column("displacement", "m", "")]}},
                    [(0, {STEP!r}, {STEP!r}, "hold", 0.0, 60.0)], {{"laser": {RATE}}})
     rec.event(0.0, 0, "start", {STEP!r})

@@ -13,8 +13,8 @@ import pytest
 from typer.testing import CliRunner
 
 from bench.cli import app
-from bench.devices import check_instruments, served_rig, write_rig
 from bench.rig import RigFileError, load_rig
+from bench.runtime.devices import check_instruments, served_rig, write_rig
 from tests.conftest import RIGS, ROOT
 
 runner = CliRunner()

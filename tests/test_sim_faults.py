@@ -34,7 +34,7 @@ from pathlib import Path
 import pytest
 
 from bench.core.clock import VirtualClock
-from bench.run import execute, plan_run
+from bench.runtime.run import execute, plan_run
 from drivers.errors import InstrumentConnectionError, InstrumentError, InstrumentTimeoutError, ProtocolError
 from sim_devices.transport import Faults
 from tests.conftest import ROOT, RunningRig, start_rig

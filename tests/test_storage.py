@@ -25,8 +25,8 @@ import h5py
 import numpy as np
 import pytest
 
-from bench.recover import hashlittle
-from bench.runfile import open_run
+from bench.storage.recover import hashlittle
+from bench.storage.runfile import open_run
 from tests.conftest import ROOT
 
 RATE = 1000.0  # Hz: the test writers stamp sample k at k / RATE s and record displacement = t * 1e-3 m
@@ -36,7 +36,7 @@ FAULT_WRITER = textwrap.dedent(f"""
     import json, sys
     from pathlib import Path
     import numpy as np
-    from bench.recorder import Column, Recorder, StorageError
+    from bench.storage.recorder import Column, Recorder, StorageError
     rec = Recorder(Path(sys.argv[1]), {{"protocol_name": "storage test"}},
                    {{"laser": [Column("displacement", "m", "")]}}, [], {{"laser": {RATE}}})
     confirmed, errors = 0, []
@@ -62,7 +62,7 @@ KILL_WRITER = textwrap.dedent(f"""
     import sys, time
     from pathlib import Path
     import numpy as np
-    from bench.recorder import Column, Recorder
+    from bench.storage.recorder import Column, Recorder
     t0 = float(sys.argv[2])  # time.monotonic() of the parent at the start: one clock for both processes
     rec = Recorder(Path(sys.argv[1]), {{"protocol_name": "kill test"}},
                    {{"laser": [Column("displacement", "m", "")], "amplifier": [Column("voltage", "V", "")]}},
@@ -260,7 +260,7 @@ def test_kill_9_loses_at_most_half_a_second_and_recover_releases_the_file(tmp_pa
             ref = tmp_path / "h5clear.h5"
             shutil.copy(path, ref)
             subprocess.run([h5clear, "-s", str(ref)], check=True, capture_output=True)
-            from bench.recover import clear_consistency_flags
+            from bench.storage.recover import clear_consistency_flags
             image = bytearray(path.read_bytes())
             assert clear_consistency_flags(image) and bytes(image) == ref.read_bytes()
         before = {name: len(s) for name, s in open_run(path).streams.items()}
@@ -286,7 +286,7 @@ STAMP_KILLER = textwrap.dedent(f"""
     from pathlib import Path
     import h5py
     import numpy as np
-    from bench.recorder import Column, Recorder
+    from bench.storage.recorder import Column, Recorder
     rec = Recorder(Path(sys.argv[1]), {{"protocol_name": "stamp test"}}, {{"laser": [Column("displacement", "m", "")]}},
                    [], {{"laser": {RATE}}})
     t = np.arange(2000) / {RATE}
@@ -320,7 +320,7 @@ def test_a_run_killed_while_stamping_its_end_is_read_and_recovered(tmp_path: Pat
 
 
 def _complete_file(path: Path) -> None:
-    from bench.recorder import Column, Recorder
+    from bench.storage.recorder import Column, Recorder
 
     rec = Recorder(path, {"protocol_name": "complete"}, {"laser": [Column("displacement", "m", "")]}, [],
                    {"laser": RATE})

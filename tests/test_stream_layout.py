@@ -12,9 +12,9 @@ from pathlib import Path
 
 import pytest
 
-from bench.instruments import build_instruments
 from bench.rig import load_rig
-from bench.run import _streams
+from bench.runtime.instruments import build_instruments
+from bench.runtime.run import _streams
 from tests.conftest import ROOT
 
 C = tuple[str, str, str, str]  # name, units, description, dtype

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bench.runfile import RunFile
+from bench.storage.runfile import RunFile
 
 
 @dataclass(frozen=True)

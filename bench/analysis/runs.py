@@ -1,4 +1,4 @@
-"""Figures of merit of recorded runs — computed from run files only (bench.runfile).
+"""Figures of merit of recorded runs — computed from run files only (bench.storage.runfile).
 
 Each waveform step of a run is analysed according to what it drives and what the rig measured:
 
@@ -27,7 +27,7 @@ from bench.analysis.cycles import crest_to_trough, hysteresis_loss
 from bench.analysis.thesis import cycle_figures
 from bench.models.lozenge import LozengeParams
 from bench.protocol.schema import Protocol, WaveformStep, load_protocol
-from bench.runfile import RunFile, open_run
+from bench.storage.runfile import RunFile, open_run
 
 PAPER_GRAVITY = 9.81  # m/s²: the value behind the paper's loads (3.1 / 4.6 / 4.9 N), not standard gravity
 

@@ -26,7 +26,7 @@ from bench.models.lozenge import MODE_HUNG, MODE_IMPOSED, PROTOTYPE_LAMBDA2P, Lo
 from bench.models.lozenge_batch import lozenge_batch
 from bench.models.membrane import MembraneParams
 from bench.models.membrane_batch import membrane_batch_records
-from bench.runfile import RunFile, open_run
+from bench.storage.runfile import RunFile, open_run
 
 if TYPE_CHECKING:
     from distributed import Client

@@ -26,8 +26,8 @@ import numpy as np
 
 from bench import __version__
 from bench.identify.core import FitResult
-from bench.recorder import now_iso
 from bench.rig import RigConfig, rig_to_toml
+from bench.storage.recorder import now_iso
 
 SIDECAR_FORMAT = "dea-bench fits 1"
 SIDECAR_SUFFIX = ".fit.hdf5"

@@ -8,7 +8,7 @@ and the device's turnaround. Besides the load: the laser's storage fill rate aga
 engine uploads while it stores), and polling rates against the instruments' conversion rates.
 
 :func:`check_links` returns one line per problem, naming the channel, the numbers and what would fit;
-an empty list means every link can carry the program. The traffic model follows :mod:`bench.engine`:
+an empty list means every link can carry the program. The traffic model follows :mod:`bench.runtime.engine`:
 set-points at ``recording.setpoint_Hz`` while a step streams, then one keep-alive per
 ``max(1/setpoint_Hz, HOLD_KEEPALIVE_S)``; monitors, encoder and load cell at their rates; laser storage
 fetched every ``FETCH_PERIOD_S`` while storing, single reads at ``PASSIVE_LASER_HZ`` otherwise.

@@ -248,7 +248,7 @@ def sample_counts(program: Program) -> dict[str, int]:
     rig, rec, T = program.rig, program.protocol.recording, program.duration
     daq = rig.daq if rig.amplifier is not None and rig.amplifier.drive == "daq" else None
     if daq is not None:  # hardware-timed: every streamed step sampled on the DAQ's scan clock
-        # one stream per run of back-to-back steps (bench.hardware_timed chains them): each plays scan 0 at its
+        # one stream per run of back-to-back steps (bench.runtime.hardware_timed chains them): each plays scan 0 at its
         # start, then one scan per period
         segs = program.segments
         chained = [i > 0 and plays_on(segs[i - 1], s) for i, s in enumerate(segs)]

@@ -6,8 +6,8 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
-from bench.instruments import build_instruments
 from bench.rig import RigConfig, rig_to_toml
+from bench.runtime.instruments import build_instruments
 from drivers.errors import InstrumentError
 from drivers.interfaces import Instrument
 

@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from bench.runfile import RunFile, open_run
+from bench.storage.runfile import RunFile, open_run
 
 
 def _header(name: str, unit: str) -> str:

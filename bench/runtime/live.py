@@ -10,7 +10,7 @@ from rich.progress_bar import ProgressBar
 from rich.table import Table
 from rich.text import Text
 
-from bench.engine import Snapshot
+from bench.runtime.engine import Snapshot
 
 UNITS = {"setpoint": ("V", 1.0), "voltage": ("V", 1.0), "current": ("µA", 1e6), "displacement": ("mm", 1e3),
          "aperture": ("mm", 1e3), "force": ("N", 1.0)}

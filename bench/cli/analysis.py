@@ -13,7 +13,7 @@ from rich.markup import escape
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from bench.cli import JsonOpt, app, clean_errors, console, fail, json_mode, print_json
+from bench.cli.common import JsonOpt, clean_errors, console, fail, json_mode, print_json
 
 if TYPE_CHECKING:
     from bench.identify.campaign import CampaignReport
@@ -70,12 +70,11 @@ def campaign_table(report: CampaignReport) -> Table:
 
 
 def _model_of(path: Path) -> str:
-    from bench.runfile import open_run
+    from bench.storage.runfile import open_run
 
     return json.loads(open_run(path, streams=False).attrs["specimen"])["kind"]
 
 
-@app.command("fit")
 @clean_errors
 def fit_command(
     runs: RunsArg,
@@ -156,7 +155,7 @@ def run_fit(runs: list[Path], chosen: str, settings: FitSettings, branches: int 
     from bench.identify.problems import LozengeProblem, MembraneProblem
     from bench.identify.store import export_rig, fit_sidecar, fitted_rig, write_fit
     from bench.rig import rig_from_toml
-    from bench.runfile import open_run
+    from bench.storage.runfile import open_run
 
     for p in runs:  # the fit is stored in every file: refuse before the work, not after
         if not open_run(p, streams=False).complete:
@@ -211,7 +210,6 @@ def run_fit(runs: list[Path], chosen: str, settings: FitSettings, branches: int 
     return result, coarse
 
 
-@app.command("design-map")
 @clean_errors
 def design_map_command(
     out: Annotated[Path, typer.Option(help="Folder for the PNGs.")] = Path("runs/design-map"),
@@ -221,7 +219,7 @@ def design_map_command(
     workers: WorkersOpt = None,
 ) -> None:
     """LS-DEA design map (Moretti Fig. 2): F–x over pre-stretch λ2p × aperture xp, breakdown, loss of tension."""
-    from bench.cli_units import option_si
+    from bench.units import option_si
 
     run_design_map(out, tuple(option_si(v.strip(), "kV", "--voltages", 0, 10) for v in voltages.split(",")),
                    scheduler, workers)
@@ -260,7 +258,6 @@ def run_design_map(out: Path = Path("runs/design-map"), voltages: tuple[float, .
     return paths
 
 
-@app.command("report")
 @clean_errors
 def report_command(
     runs: Annotated[list[Path], typer.Argument(help="Run files (.h5); several make a campaign report.")],
@@ -371,7 +368,6 @@ def _fmt(key: str, value: float | None) -> str:
     return f"{value * FIGURE_COLUMNS.get(key, ('', 1.0))[1]:.4g}"
 
 
-@app.command()
 @clean_errors
 def demo(
     out: Annotated[Path, typer.Option(help="Folder for the run file and the report.")] = Path("runs/demo"),
@@ -386,7 +382,7 @@ def demo(
     """
     from bench.identify.core import FitSettings
     from bench.resources import protocol as shipped_protocol
-    from bench.run import default_output, execute, plan_run
+    from bench.runtime.run import default_output, execute, plan_run
 
     protocol = shipped_protocol("thesis-identification")
     with console.status("validating and dry-running the thesis identification protocol…"):
@@ -435,3 +431,10 @@ def twin_comparison(problem: MembraneProblem, fitted: FitResult) -> Table:
     t.caption = ("Maxwell units are interchangeable in the model and are paired by relaxation time (≙); flagged "
                  "parameters are not determined by this record (they trade off against others at equal cost)")
     return t
+
+def register(app: typer.Typer) -> None:
+    """Put fit, design-map, report and demo on ``app``."""
+    app.command("fit")(fit_command)
+    app.command("design-map")(design_map_command)
+    app.command("report")(report_command)
+    app.command()(demo)

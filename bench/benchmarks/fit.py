@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 from scipy.integrate import solve_ivp
 
-from bench.benchmark_acquisition import Figure
+from bench.benchmarks.acquisition import Figure
 from bench.identify.core import FitSettings, fit
 from bench.identify.problems import LozengeProblem, MembraneProblem
 from bench.models.integrate import MODEL_LOZENGE, run_fixed_batch
@@ -28,7 +28,7 @@ from bench.models.lozenge import MODE_HUNG
 from bench.models.lozenge_batch import lozenge_batch
 from bench.models.membrane import membrane_rhs
 from bench.resources import protocols_dir
-from bench.run import execute, plan_run
+from bench.runtime.run import execute, plan_run
 
 CANDIDATE_TARGET = 4.0  # issue 13: per-candidate cost ≥ 4× lower than the reference kernel
 FIT_TARGET = 4.0  # thesis fit ≥ 4× faster than the old path, same or better rms

@@ -8,11 +8,11 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.benchmark_acquisition import Figure
-from bench.engine import Engine
-from bench.recorder import Column, Recorder
+from bench.benchmarks.acquisition import Figure
 from bench.resources import protocols_dir
-from bench.run import execute, plan_run
+from bench.runtime.engine import Engine
+from bench.runtime.run import execute, plan_run
+from bench.storage.recorder import Column, Recorder
 
 
 def thesis_virtual(repeats: int = 3) -> list[Figure]:

@@ -15,14 +15,12 @@ from rich.markup import escape
 from rich.prompt import Confirm
 from rich.table import Table
 
-from bench.cli import JsonOpt, app, clean_errors, console, json_mode, print_json
+from bench.cli.common import JsonOpt, clean_errors, console, json_mode, print_json
 from bench.logs import log, run_log
 from bench.protocol.staircase import staircase_distortion
 
 protocol_app = typer.Typer(help="Protocol files: the shipped ones (list, show, copy) and their schema.",
                             no_args_is_help=True, rich_markup_mode=None)
-app.add_typer(protocol_app, name="protocols")
-app.add_typer(protocol_app, name="protocol", hidden=True)  # the earlier name (`bench protocol schema`)
 
 ProtocolArg = Annotated[Path, typer.Argument(help="Protocol file (TOML), e.g. protocols/thesis-identification.toml.")]
 RigOpt = Annotated[Path | None, typer.Option("--rig", help="Run on this rig file instead of the protocol's.")]
@@ -35,7 +33,7 @@ def _hms(seconds: float) -> str:
 
 
 def _plan(protocol_file: Path, rig: Path | None, sim: bool):
-    from bench.run import plan_run
+    from bench.runtime.run import plan_run
 
     if rig is not None and sim is False and not rig.exists():
         raise ValueError(f"rig file {rig}: not found")
@@ -89,7 +87,6 @@ def _summary(plan) -> Table:
     return t
 
 
-@app.command()
 @clean_errors
 def validate(protocol_file: ProtocolArg, rig: RigOpt = None, sim: SimOpt = False, json_out: JsonOpt = False) -> None:
     """Validate a protocol against its rig and the specimen model; print what the run will do."""
@@ -110,7 +107,6 @@ def validate(protocol_file: ProtocolArg, rig: RigOpt = None, sim: SimOpt = False
     console.print("[green]valid[/]: within the rig's and the specimen's limits")
 
 
-@app.command()
 @clean_errors
 def run(
     protocol_file: ProtocolArg,
@@ -140,7 +136,7 @@ def run(
 
     Operator, specimen ID and notes come from the protocol's [protocol] table and these options; they are kept in
     the run file as root attributes (`bench inspect` shows them)."""
-    from bench.run import default_output, run_metadata
+    from bench.runtime.run import default_output, run_metadata
 
     plan = _plan(protocol_file, rig, sim)
     metadata = run_metadata(plan.protocol, operator_name, specimen_id, note)
@@ -179,7 +175,7 @@ def run(
 
 def _log_result(result) -> None:
     """The run's events and how it ended, into the run log."""
-    from bench.runfile import open_run
+    from bench.storage.runfile import open_run
 
     with contextlib.suppress(OSError, ValueError):
         for t, step, kind, text in open_run(result.path, streams=False).event_list():
@@ -191,9 +187,9 @@ def _log_result(result) -> None:
 def _execute(plan, path: Path, virtual_time: bool, operator, live: bool, allow_no_watchdog: bool,
              metadata: dict[str, str]):
     """Run the plan, with the live view on a terminal."""
-    from bench.engine import Engine
-    from bench.live import LiveView
-    from bench.run import execute
+    from bench.runtime.engine import Engine
+    from bench.runtime.live import LiveView
+    from bench.runtime.run import execute
 
     engines: list[Engine] = []
     title = f"{plan.protocol.protocol.name} → {path}"
@@ -225,13 +221,12 @@ def _print_result(result) -> None:
     console.print(f"run file: {escape(str(result.path))}")
 
 
-@app.command()
 @clean_errors
 def inspect(run_file: Annotated[Path, typer.Argument(help="Run file (.h5), finished or being written.")],
             json_out: JsonOpt = False) -> None:
     """Summarise a run file: metadata, state, streams, events (works while the run is being written)."""
     from bench.identify.store import read_fits
-    from bench.runfile import open_run
+    from bench.storage.runfile import open_run
 
     r = open_run(run_file)
     a = r.attrs
@@ -306,17 +301,15 @@ def inspect(run_file: Annotated[Path, typer.Argument(help="Run file (.h5), finis
         raise typer.Exit(1)
 
 
-@app.command()
 @clean_errors
 def recover(run_file: Annotated[Path, typer.Argument(help="Run file (.h5) of a crashed or killed run.")]) -> None:
     """Release the file of a crashed or killed run so that h5py, h5dump and HDFView open it; print what it holds."""
-    from bench.recover import recover as recover_file
+    from bench.storage.recover import recover as recover_file
 
     for line in recover_file(run_file).lines():
         console.print(escape(line))
 
 
-@protocol_app.command("schema")
 def protocol_schema(
     out: Annotated[Path | None, typer.Option(help="Write to this file instead of stdout.")] = None,
 ) -> None:
@@ -332,7 +325,6 @@ def protocol_schema(
 
 
 
-@protocol_app.command("list")
 @clean_errors
 def protocols_list(json_out: JsonOpt = False) -> None:
     """The protocol files shipped with dea-bench: name, rig, description."""
@@ -351,7 +343,6 @@ def protocols_list(json_out: JsonOpt = False) -> None:
     console.print(table)
 
 
-@protocol_app.command("show")
 @clean_errors
 def protocols_show(name: Annotated[str, typer.Argument(help="Protocol name (bench protocols list).")]) -> None:
     """Print a shipped protocol file as it is (comments included)."""
@@ -360,7 +351,6 @@ def protocols_show(name: Annotated[str, typer.Argument(help="Protocol name (benc
     sys.stdout.write(protocol(name).read_text(encoding="utf-8"))
 
 
-@protocol_app.command("copy")
 @clean_errors
 def protocols_copy(
     name: Annotated[str, typer.Argument(help="Protocol name (bench protocols list).")],
@@ -377,7 +367,6 @@ def protocols_copy(
     console.print(f"wrote {escape(str(target))}")
 
 
-@app.command("init")
 @clean_errors
 def init(folder: Annotated[Path, typer.Argument(help="Lab folder to create (new or empty).")]) -> None:
     """Create a lab folder: editable copies of the rig templates and protocols, a runs/ folder, a README."""
@@ -386,3 +375,17 @@ def init(folder: Annotated[Path, typer.Argument(help="Lab folder to create (new 
     written = init_lab(folder)
     console.print(f"lab folder {escape(str(folder))}: {len(written)} files (rigs/, protocols/, README.md), runs/")
     console.print(f"next: cd {escape(str(folder))} && bench run protocols/thesis-identification.toml --virtual-time")
+
+def register(app: typer.Typer) -> None:
+    """Put validate, run, inspect, recover, init and the protocols group on ``app``."""
+    app.add_typer(protocol_app, name="protocols")
+    app.add_typer(protocol_app, name="protocol", hidden=True)  # the earlier name (`bench protocol schema`)
+    app.command()(validate)
+    app.command()(run)
+    app.command()(inspect)
+    app.command()(recover)
+    protocol_app.command("schema")(protocol_schema)
+    protocol_app.command("list")(protocols_list)
+    protocol_app.command("show")(protocols_show)
+    protocol_app.command("copy")(protocols_copy)
+    app.command("init")(init)

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import h5py
 
-from bench.recorder import FORMATS, abandon, cause, ignore_sigxfsz, now_iso
+from bench.storage.recorder import FORMATS, abandon, cause, ignore_sigxfsz, now_iso
 
 SIGNATURE = b"\x89HDF\r\n\x1a\n"
 RECOVERED_REASON = "recovered after crash"
@@ -163,7 +163,7 @@ def recover(path: str | Path) -> RecoveryReport:
     Raises ValueError (one line naming the file) if it is not an HDF5 run file, a process still writes it, or
     its disk has too little space (then nothing was changed: free some space and run it again).
     """
-    from bench.runfile import open_h5, open_run
+    from bench.storage.runfile import open_h5, open_run
 
     p = Path(path)
     if not p.is_file():

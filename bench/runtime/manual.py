@@ -14,8 +14,8 @@ Commands (one per line; ``#`` starts a comment; quantities as in files, plain nu
     wait DURATION           let time pass
     help | quit
 
-Every set-point passes :meth:`bench.safety.Supervisor.check_setpoint` (voltage, field at the present stretch)
-or :meth:`~bench.safety.Supervisor.check_motor_setpoint` (travel, field at the new aperture) before it is
+Every set-point passes :meth:`bench.runtime.safety.Supervisor.check_setpoint` (voltage, field at the present stretch)
+or :meth:`~bench.runtime.safety.Supervisor.check_motor_setpoint` (travel, field at the new aperture) before it is
 sent; a refused command is not sent. Every reading passes the supervisor's sample checks; a reading beyond a
 limit (a trip) zeroes the output and stops the motor. Leaving the session (quit, end of script, error,
 Ctrl-C) puts every instrument in its safe state.
@@ -34,10 +34,10 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any, TextIO
 
-from bench.cli_units import to_si
-from bench.instruments import Instruments, build_instruments
 from bench.rig import RigConfig
-from bench.safety import SafetyTrip, Supervisor
+from bench.runtime.instruments import Instruments, build_instruments
+from bench.runtime.safety import SafetyTrip, Supervisor
+from bench.units import to_si
 from drivers.errors import InstrumentError
 
 RAMP_HZ = 20.0

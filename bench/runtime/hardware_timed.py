@@ -26,7 +26,7 @@ from drivers.labjack import LabJackT7, StreamBlock, StreamIn, StreamOut, StreamS
 from drivers.trek_daq import TrekOnDaq
 
 if TYPE_CHECKING:
-    from bench.engine import Engine
+    from bench.runtime.engine import Engine
 
 KEEPALIVE_S = 0.25  # a command-response request at least this often keeps the device's watchdog fed
 FINISH_TIMEOUT_S = 5.0  # wall time allowed for the last scans of a step to arrive

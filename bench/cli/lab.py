@@ -9,10 +9,9 @@ from typing import Annotated
 import typer
 from rich.markup import escape
 
-from bench.cli import app, clean_errors, console, devices_app
+from bench.cli.common import clean_errors, console
 
 
-@app.command("export")
 @clean_errors
 def export(
     run_file: Annotated[Path, typer.Argument(help="Run file (.h5).")],
@@ -21,7 +20,7 @@ def export(
     mat: Annotated[Path | None, typer.Option("--mat", help="MATLAB file (.mat): one struct per stream.")] = None,
 ) -> None:
     """Export a run file's streams to CSV files and/or a MATLAB file."""
-    from bench.export import to_csv, to_mat
+    from bench.storage.export import to_csv, to_mat
 
     if csv is None and mat is None:
         raise ValueError("give --csv FOLDER and/or --mat FILE")
@@ -32,7 +31,6 @@ def export(
         console.print(f"MAT: {escape(str(to_mat(run_file, mat)))}")
 
 
-@devices_app.command("control")
 @clean_errors
 def devices_control(
     rig_file: Annotated[Path, typer.Argument(help="Rig file (TOML), e.g. rigs/lsdea-motor-sim.toml.")],
@@ -50,8 +48,8 @@ def devices_control(
     """
     import sys
 
-    from bench.manual import HELP, ManualSession, session_log_name
     from bench.rig import load_rig
+    from bench.runtime.manual import HELP, ManualSession, session_log_name
 
     rig = load_rig(rig_file)
     path = log if log is not None else Path("runs") / session_log_name(rig)
@@ -82,3 +80,8 @@ def devices_control(
                   + (f", {len(bad)} not done" if bad else "") + ")")
     if bad:
         raise typer.Exit(1)
+
+def register(app: typer.Typer, devices: typer.Typer) -> None:
+    """Put export on ``app`` and control on the ``devices`` group."""
+    app.command("export")(export)
+    devices.command("control")(devices_control)

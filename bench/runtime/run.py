@@ -13,16 +13,16 @@ from typing import Any
 
 from bench import __version__
 from bench.core.clock import WallClock
-from bench.engine import Engine, OperatorFn, RunResult
-from bench.hardware_timed import describe_streams, watchdog_period
-from bench.instruments import Instruments, build_instruments
 from bench.protocol.link_budget import check_links
 from bench.protocol.predict import Prediction, predict
 from bench.protocol.program import Program, ProtocolLimitError, compile_program
 from bench.protocol.schema import MAX_OPERATOR, MAX_SPECIMEN_ID, Protocol, check_label, check_notes, load_protocol
-from bench.recorder import Column, Recorder, now_iso
 from bench.rig import RigConfig, load_rig, rig_to_toml
-from bench.safety import Supervisor
+from bench.runtime.engine import Engine, OperatorFn, RunResult
+from bench.runtime.hardware_timed import describe_streams, watchdog_period
+from bench.runtime.instruments import Instruments, build_instruments
+from bench.runtime.safety import Supervisor
+from bench.storage.recorder import Column, Recorder, now_iso
 from drivers.interfaces import StreamDescription
 
 SIM_MODBUS_POLL_S = 5e-5  # RTU receive poll interval against twins on ptys (they answer at once)

@@ -31,11 +31,11 @@ from typing import Any, TypeVar
 import numpy as np
 
 from bench.core.clock import Clock
-from bench.hardware_timed import HardwareTimed, watchdog_period
-from bench.instruments import Instruments
 from bench.protocol.program import PASSIVE_LASER_HZ, Program, Segment, ticks
-from bench.recorder import Recorder
-from bench.safety import SafetyTrip, Supervisor
+from bench.runtime.hardware_timed import HardwareTimed, watchdog_period
+from bench.runtime.instruments import Instruments
+from bench.runtime.safety import SafetyTrip, Supervisor
+from bench.storage.recorder import Recorder
 from drivers.errors import InstrumentConnectionError, InstrumentError, InstrumentStateError, OperationCancelledError
 from drivers.interfaces import Amplifier, DisplacementSensor, ForceSensor, LinearMotor
 from drivers.trek_daq import TrekOnDaq
@@ -566,6 +566,6 @@ def _present(instrument: T | None, role: str) -> T:
 
 
 def _is_storage_fault(exc: BaseException) -> bool:
-    """Whether ``exc`` came from writing the run file: the recorder raises :class:`~bench.recorder.StorageError`
+    """Whether ``exc`` came from writing the run file: the recorder raises :class:`~bench.storage.recorder.StorageError`
     (an OSError); drivers turn their own OSErrors into InstrumentErrors, so any OSError here is the file's."""
     return isinstance(exc, OSError)

@@ -15,7 +15,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bench.instruments import Instruments, build_instruments
 from bench.protocol.link_budget import (
     TURNAROUND_LINRS_S,
     TURNAROUND_LKG_S,
@@ -25,6 +24,7 @@ from bench.protocol.link_budget import (
 )
 from bench.resources import rigs_dir
 from bench.rig import RigConfig, load_rig
+from bench.runtime.instruments import Instruments, build_instruments
 from sim_devices.rig import SimRig, Timing
 
 RIGS = rigs_dir()

@@ -15,12 +15,12 @@ from pathlib import Path
 import numpy as np
 
 from bench.analysis.cycles import crest_to_trough
-from bench.benchmark_acquisition import Figure
+from bench.benchmarks.acquisition import Figure
 from bench.models.membrane import MembraneParams
 from bench.models.membrane_runs import simulate_membrane
 from bench.resources import protocols_dir, rigs_dir
-from bench.run import execute, plan_run
-from bench.runfile import open_run
+from bench.runtime.run import execute, plan_run
+from bench.storage.runfile import open_run
 from bench.waveforms import Waveform
 
 SHORT = protocols_dir() / "short"

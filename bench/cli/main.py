@@ -1,111 +1,20 @@
-"""The ``bench`` command line (typer + rich)."""
+"""The main options and the commands of no other group: simulate, sim, devices check, benchmark."""
 
 from __future__ import annotations
 
 import contextlib
-import functools
-from collections.abc import Callable, Iterator
 from enum import StrEnum
 from pathlib import Path
-from typing import Annotated, Any, ParamSpec, TypeVar
+from typing import Annotated, Any
 
 import numpy as np
 import typer
-from rich.markup import escape
 from rich.table import Table
 
-from bench import __version__
-from bench.cli_units import option_si
-from bench.console import BenchConsole
-from drivers.errors import InstrumentError
-
-console = BenchConsole()  # units in brackets stay text; redirected output is not cut to a terminal width
-err_console = BenchConsole(stderr=True)
-# rich_markup_mode=None: help texts are plain text ("Simulated time [s]." keeps its unit)
-app = typer.Typer(name="bench", help="dea-bench: DEA test-bench control, simulation and data acquisition.",
-                  no_args_is_help=True, pretty_exceptions_enable=False, add_completion=True, rich_markup_mode=None)
-simulate_app = typer.Typer(help="Simulate the papers' specimens with the physical models (no instruments).",
-                           no_args_is_help=True)
-sim_app = typer.Typer(help="Simulated rigs: twins of every instrument on real ports.", no_args_is_help=True)
-devices_app = typer.Typer(help="The instruments of a rig (real or simulated).", no_args_is_help=True)
-for _sub in (simulate_app, sim_app, devices_app):
-    _sub.rich_markup_mode = None  # plain help text, as for the main app
-app.add_typer(simulate_app, name="simulate")
-app.add_typer(sim_app, name="sim")
-app.add_typer(devices_app, name="devices")
-
-JsonOpt = Annotated[bool, typer.Option("--json", help="Print the result as JSON on stdout (nothing else).")]
-
-P = ParamSpec("P")
-R = TypeVar("R")
+from bench.cli.common import JsonOpt, _version, clean_errors, console, fail, json_mode, print_json
+from bench.units import option_si
 
 
-def fail(message: str, code: int = 2) -> typer.Exit:
-    """Print a one-line error on stderr and return the Exit to raise (``message`` is plain text, not markup)."""
-    err_console.print(f"[bold red]error:[/] {escape(message)}", highlight=False, soft_wrap=True)
-    return typer.Exit(code)
-
-
-def clean_errors(fn: Callable[P, R]) -> Callable[P, R]:
-    """Turn the expected failures of a command (bad values, missing files) into one-line errors, exit 2."""
-
-    @functools.wraps(fn)
-    def wrapper(*args: P.args, **kwargs: P.kwargs) -> R:
-        try:
-            return fn(*args, **kwargs)
-        except (ValueError, OSError, InstrumentError) as exc:
-            raise fail(" ".join(str(exc).splitlines())) from None
-        except (RecursionError, MemoryError) as exc:  # inputs are bounded where they are read; a last resort
-            raise fail(f"input too large or too deeply nested ({type(exc).__name__})") from None
-
-    return wrapper
-
-
-def print_json(data: object) -> None:
-    """Write ``data`` as JSON to stdout (NaN and infinities as null), whatever --quiet says."""
-    import json
-    import math
-    import sys
-
-    def clean(x: object) -> object:
-        if isinstance(x, float | np.floating):
-            return float(x) if math.isfinite(x) else None
-        if isinstance(x, np.bool_):
-            return bool(x)
-        if isinstance(x, np.integer):
-            return int(x)
-        if isinstance(x, np.ndarray):
-            return clean(x.tolist())
-        if isinstance(x, dict):
-            return {str(k): clean(v) for k, v in x.items()}
-        if isinstance(x, list | tuple):
-            return [clean(v) for v in x]
-        if isinstance(x, Path):
-            return str(x)
-        return x
-
-    sys.stdout.write(json.dumps(clean(data), indent=1, ensure_ascii=False) + "\n")
-    sys.stdout.flush()
-
-
-@contextlib.contextmanager
-def json_mode(enabled: bool) -> Iterator[None]:
-    """While enabled, the console prints nothing (stdout carries the JSON only); errors still go to stderr."""
-    quiet = console.quiet
-    console.quiet = quiet or enabled
-    try:
-        yield
-    finally:
-        console.quiet = quiet
-
-
-def _version(value: bool) -> None:
-    if value:
-        console.print(f"dea-bench {__version__}")
-        raise typer.Exit()
-
-
-@app.callback()
 def main(version: Annotated[bool, typer.Option("--version", callback=_version, is_eager=True,
                                                 help="Print the version and exit.")] = False,
          verbose: Annotated[int, typer.Option("--verbose", "-v", count=True,
@@ -148,7 +57,6 @@ class Electrostriction(StrEnum):
     thesis = "thesis"
 
 
-@simulate_app.command("thesis")
 @clean_errors
 def simulate_thesis(
     voltage: Annotated[str, _qopt("Peak voltage Vmax [V]. 0–12 kV; or with a unit: 7kV.")] = "7000",
@@ -217,7 +125,6 @@ class LsdeaTest(StrEnum):
     map = "map"  # the design map over λ2p × xp (bench/design_map.py; options: bench design-map)
 
 
-@simulate_app.command("lsdea")
 @clean_errors
 def simulate_lsdea(
     test: Annotated[LsdeaTest, typer.Argument(help="Test configuration.")] = LsdeaTest.isotonic,
@@ -236,7 +143,7 @@ def simulate_lsdea(
     """LS-DEA (Model B) in one of the paper's three test configurations, with its figure of merit; or `map`,
     the design map (Moretti Fig. 2) with the prototypes on it."""
     if test is LsdeaTest.map:
-        from bench.cli_analysis import run_design_map
+        from bench.cli.analysis import run_design_map
 
         run_design_map()
         return
@@ -295,7 +202,6 @@ def _endpoint_table(title: str, endpoints: dict) -> Table:
     return table
 
 
-@sim_app.command("serve")
 @clean_errors
 def sim_serve(
     rig_file: RigArg,
@@ -312,9 +218,9 @@ def sim_serve(
     import signal
     import threading
 
-    from bench.devices import served_rig
-    from bench.devices import write_rig as write_rig_file
     from bench.rig import load_rig
+    from bench.runtime.devices import served_rig
+    from bench.runtime.devices import write_rig as write_rig_file
     from sim_devices.rig import SimRig
 
     duration_s = None if duration is None else option_si(duration, "s", "--duration", 0.1)
@@ -341,12 +247,11 @@ def sim_serve(
     console.print("simulated rig stopped")
 
 
-@devices_app.command("check")
 @clean_errors
 def devices_check(rig_file: RigArg) -> None:
     """Connect to every instrument of a rig, identify it, print its state and a first reading."""
-    from bench.devices import check_instruments
     from bench.rig import load_rig
+    from bench.runtime.devices import check_instruments
     from sim_devices.rig import SimRig
 
     rig = load_rig(rig_file)
@@ -382,7 +287,6 @@ class BenchmarkSet(StrEnum):
     all = "all"
 
 
-@app.command()
 @clean_errors
 def benchmark(
     which: Annotated[BenchmarkSet, typer.Argument(help="Which figures.")] = BenchmarkSet.all,
@@ -400,7 +304,7 @@ def _benchmark(which: BenchmarkSet, quick: bool) -> dict[str, list[dict[str, obj
     """Run and print the chosen benchmark sets; returns their figures by set."""
     collected: dict[str, list[dict[str, object]]] = {}
     if which in (BenchmarkSet.physics, BenchmarkSet.all):
-        from bench.benchmark import run_all
+        from bench.benchmarks.main import run_all
 
         with console.status("benchmarking the integrators (includes JIT warm-up)…"):
             results = run_all(quick=quick)
@@ -417,19 +321,19 @@ def _benchmark(which: BenchmarkSet, quick: bool) -> dict[str, list[dict[str, obj
                                 for r in results]
     sets = []
     if which in (BenchmarkSet.acquisition, BenchmarkSet.all):
-        from bench import benchmark_acquisition
+        from bench.benchmarks import acquisition as benchmark_acquisition
 
         sets.append(("acquisition through the drivers (simulated rigs on ptys)", benchmark_acquisition.run_all))
     if which in (BenchmarkSet.run, BenchmarkSet.all):
-        from bench import benchmark_run
+        from bench.benchmarks import run as benchmark_run
 
         sets.append(("whole runs: engine, recorder", benchmark_run.run_all))
     if which in (BenchmarkSet.fit, BenchmarkSet.all):
-        from bench import benchmark_fit
+        from bench.benchmarks import fit as benchmark_fit
 
         sets.append(("identification (thesis record, 2 cores)", benchmark_fit.run_all))
     if which in (BenchmarkSet.daq, BenchmarkSet.all):
-        from bench import benchmark_daq
+        from bench.benchmarks import daq as benchmark_daq
 
         sets.append(("hardware-timed rigs (LabJack T7 twin)", benchmark_daq.run_all))
     for title, fn in sets:
@@ -445,5 +349,25 @@ def _benchmark(which: BenchmarkSet, quick: bool) -> dict[str, list[dict[str, obj
     return collected
 
 
-# commands defined in other modules register themselves on ``app``
-from bench import cli_analysis, cli_lab, cli_run  # noqa: E402, F401
+def register(app: typer.Typer) -> dict[str, typer.Typer]:
+    """Put the callback (--version …), the simulate, sim and devices groups and ``benchmark`` on ``app``.
+
+    Returns the groups by name: other modules add their commands to ``devices``.
+    """
+    # rich_markup_mode=None: help texts are plain text ("Simulated time [s]." keeps its unit)
+    simulate_app = typer.Typer(help="Simulate the papers' specimens with the physical models (no instruments).",
+                               no_args_is_help=True)
+    sim_app = typer.Typer(help="Simulated rigs: twins of every instrument on real ports.", no_args_is_help=True)
+    devices_app = typer.Typer(help="The instruments of a rig (real or simulated).", no_args_is_help=True)
+    for sub in (simulate_app, sim_app, devices_app):
+        sub.rich_markup_mode = None  # plain help text, as for the main app
+    app.add_typer(simulate_app, name="simulate")
+    app.add_typer(sim_app, name="sim")
+    app.add_typer(devices_app, name="devices")
+    app.callback()(main)
+    simulate_app.command("thesis")(simulate_thesis)
+    simulate_app.command("lsdea")(simulate_lsdea)
+    sim_app.command("serve")(sim_serve)
+    devices_app.command("check")(devices_check)
+    app.command()(benchmark)
+    return {"simulate": simulate_app, "sim": sim_app, "devices": devices_app}

@@ -11,7 +11,7 @@ from typing import Any
 import h5py
 import numpy as np
 
-from bench.recorder import EVENT_FIELDS, FORMATS, PROGRAM_FIELDS
+from bench.storage.recorder import EVENT_FIELDS, FORMATS, PROGRAM_FIELDS
 
 
 @dataclass
@@ -87,7 +87,7 @@ def open_h5(p: Path) -> h5py.File:
         return h5py.File(p, "r", libver="latest", swmr=True)
     except OSError as exc:
         first = exc
-    from bench.recover import clear_consistency_flags
+    from bench.storage.recover import clear_consistency_flags
 
     try:
         image = bytearray(p.read_bytes())
@@ -169,7 +169,7 @@ def open_run(path: str | Path, streams: bool = True) -> RunFile:
 
 def _orphaned(p: Path) -> bool:
     """Whether the file is still marked open by an SWMR writer that no longer exists (here)."""
-    from bench.recover import open_elsewhere, read_superblock
+    from bench.storage.recover import open_elsewhere, read_superblock
 
     try:
         with p.open("rb") as fh:

@@ -1,0 +1,21 @@
+"""The ``bench`` command line (typer + rich).
+
+The app is built here: each command module defines its commands and a ``register`` function that puts them on the
+app; none imports the app back (tests/test_layers.py). Entry point: ``bench = "bench.cli:app"``.
+"""
+
+from __future__ import annotations
+
+import typer
+
+from bench.cli import analysis, lab, main, run
+
+__all__ = ["app"]
+
+# rich_markup_mode=None: help texts are plain text ("Simulated time [s]." keeps its unit)
+app = typer.Typer(name="bench", help="dea-bench: DEA test-bench control, simulation and data acquisition.",
+                  no_args_is_help=True, pretty_exceptions_enable=False, add_completion=True, rich_markup_mode=None)
+groups = main.register(app)  # the main options; simulate, sim, devices; benchmark
+analysis.register(app)  # fit, design-map, report, demo
+lab.register(app, devices=groups["devices"])  # export; devices control
+run.register(app)  # validate, run, inspect, recover, init; protocols

@@ -1,0 +1,89 @@
+"""What the command modules share: the consoles, one-line errors, --json output."""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Annotated, ParamSpec, TypeVar
+
+import numpy as np
+import typer
+from rich.markup import escape
+
+from bench import __version__
+from bench.console import BenchConsole
+from drivers.errors import InstrumentError
+
+console = BenchConsole()  # units in brackets stay text; redirected output is not cut to a terminal width
+err_console = BenchConsole(stderr=True)
+JsonOpt = Annotated[bool, typer.Option("--json", help="Print the result as JSON on stdout (nothing else).")]
+
+P = ParamSpec("P")
+R = TypeVar("R")
+
+
+def fail(message: str, code: int = 2) -> typer.Exit:
+    """Print a one-line error on stderr and return the Exit to raise (``message`` is plain text, not markup)."""
+    err_console.print(f"[bold red]error:[/] {escape(message)}", highlight=False, soft_wrap=True)
+    return typer.Exit(code)
+
+
+def clean_errors(fn: Callable[P, R]) -> Callable[P, R]:
+    """Turn the expected failures of a command (bad values, missing files) into one-line errors, exit 2."""
+
+    @functools.wraps(fn)
+    def wrapper(*args: P.args, **kwargs: P.kwargs) -> R:
+        try:
+            return fn(*args, **kwargs)
+        except (ValueError, OSError, InstrumentError) as exc:
+            raise fail(" ".join(str(exc).splitlines())) from None
+        except (RecursionError, MemoryError) as exc:  # inputs are bounded where they are read; a last resort
+            raise fail(f"input too large or too deeply nested ({type(exc).__name__})") from None
+
+    return wrapper
+
+
+def print_json(data: object) -> None:
+    """Write ``data`` as JSON to stdout (NaN and infinities as null), whatever --quiet says."""
+    import json
+    import math
+    import sys
+
+    def clean(x: object) -> object:
+        if isinstance(x, float | np.floating):
+            return float(x) if math.isfinite(x) else None
+        if isinstance(x, np.bool_):
+            return bool(x)
+        if isinstance(x, np.integer):
+            return int(x)
+        if isinstance(x, np.ndarray):
+            return clean(x.tolist())
+        if isinstance(x, dict):
+            return {str(k): clean(v) for k, v in x.items()}
+        if isinstance(x, list | tuple):
+            return [clean(v) for v in x]
+        if isinstance(x, Path):
+            return str(x)
+        return x
+
+    sys.stdout.write(json.dumps(clean(data), indent=1, ensure_ascii=False) + "\n")
+    sys.stdout.flush()
+
+
+@contextlib.contextmanager
+def json_mode(enabled: bool) -> Iterator[None]:
+    """While enabled, the console prints nothing (stdout carries the JSON only); errors still go to stderr."""
+    quiet = console.quiet
+    console.quiet = quiet or enabled
+    try:
+        yield
+    finally:
+        console.quiet = quiet
+
+
+def _version(value: bool) -> None:
+    if value:
+        console.print(f"dea-bench {__version__}")
+        raise typer.Exit()
