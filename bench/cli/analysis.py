@@ -120,6 +120,7 @@ def fit_command(
     if json_out:
         print_json({"model": chosen, "runs": [str(p) for p in runs], "cost": result.cost,
                     "cost_kind": result.cost_kind, "rms": result.rms, "rms_unit": problem.data_unit,
+                    "lack_of_fit": result.lack_of_fit,
                     "parameters": [{"name": n, "value": result.values[j], "unit": result.units[j],
                                     "lower": result.lower[j], "upper": result.upper[j],
                                     "relative_uncertainty": result.uncertainty[j],
@@ -191,6 +192,8 @@ def run_fit(runs: list[Path], chosen: str, settings: FitSettings, branches: int 
     console.print(f"cost ({result.cost_kind}) {result.cost:.4g}, residual rms {result.rms:.4g} {coarse.data_unit}, "
                   f"{result.evaluations:,} model evaluations, {result.generations} generations, "
                   f"{result.wall_time:.1f} s (search {result.search_time:.1f} s)")
+    if result.lack_of_fit:
+        console.print(f"[yellow]warning: {result.lack_of_fit}: check the model choice and the record[/]")
     records = [r.source for r in coarse.records]
     campaign = None
     if len(coarse.records) > 1:

@@ -10,9 +10,9 @@ file from one left over by another run of the same name) and the same ``/fit`` g
 In either file: group ``/fit/<model>-<n>`` with datasets ``names``, ``units``, ``values``, ``lower``,
 ``upper``, ``sensitivity``, ``correlation``, ``uncertainty`` (each with a ``units`` attribute: per parameter
 for ``values``, ``lower``, ``upper``; "1" for the relative others) and attributes ``cost``, ``cost_kind``, ``rms``,
-``n_data``, ``records`` (the files and windows used), DE settings, ``software``, ``wall_time``, ``flags``, ``created``
-and, for a fit over several records, ``campaign`` (JSON: what each record determines alone and what only the
-campaign determines).
+``n_data``, ``records`` (the files and windows used), DE settings, ``software``, ``wall_time``, ``flags``,
+``lack_of_fit`` ('' when the model follows the data), ``created`` and, for a fit over several records,
+``campaign`` (JSON: what each record determines alone and what only the campaign determines).
 """
 
 from __future__ import annotations
@@ -99,7 +99,8 @@ def _write_group(f: h5py.File, model: str, result: FitResult, records: list[str]
                     "n_data": result.n_data, "evaluations": result.evaluations,
                     "generations": result.generations, "wall_time": result.wall_time,
                     "settings": json.dumps(asdict(result.settings)), "records": json.dumps(records),
-                    "flags": json.dumps(result.flags), "software": f"dea-bench {__version__}",
+                    "flags": json.dumps(result.flags), "lack_of_fit": result.lack_of_fit,
+                    "software": f"dea-bench {__version__}",
                     "created": now_iso()})
     if campaign is not None:
         g.attrs["campaign"] = json.dumps(campaign)
