@@ -124,3 +124,16 @@ def test_the_cycle_check_finds_a_cycle(monkeypatch: pytest.MonkeyPatch) -> None:
                                  "core": set(), "protocol": set(), "models": set()})
     with pytest.raises(AssertionError, match="import cycle: runtime → storage → runtime"):
         test_the_packages_of_bench_import_one_another_without_a_cycle()
+
+
+def test_the_engine_polls_through_the_poll_table_not_by_instrument() -> None:
+    """Issue 9: a new acquisition (a fifth instrument) adds its Poll to bench/runtime/polls.py; the engine
+    iterates the table and names no polled quantity or recording rate itself."""
+    from bench.runtime.polls import POLLS
+
+    engine = (ROOT / "bench" / "runtime" / "engine.py").read_text(encoding="utf-8")
+    for rate in ("monitors_Hz", "position_Hz", "force_Hz", "PASSIVE_LASER_HZ", "FETCH_PERIOD_S"):
+        assert rate not in engine, rate
+    assert "POLLS" in engine
+    names = [p.name for p in POLLS]
+    assert len(set(names)) == len(names) and {"monitors", "position", "force", "laser"} <= set(names)

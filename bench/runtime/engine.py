@@ -31,16 +31,16 @@ from typing import Any, TypeVar
 import numpy as np
 
 from bench.core.clock import Clock
-from bench.protocol.program import PASSIVE_LASER_HZ, Program, Segment, ticks
+from bench.protocol.program import Program, Segment, ticks
 from bench.runtime.hardware_timed import HardwareTimed, watchdog_period
 from bench.runtime.instruments import Instruments
+from bench.runtime.polls import POLLS, StepState
 from bench.runtime.safety import SafetyTrip, Supervisor
 from bench.storage.recorder import Recorder
 from drivers.errors import InstrumentConnectionError, InstrumentError, InstrumentStateError, OperationCancelledError
 from drivers.interfaces import Amplifier, DisplacementSensor, ForceSensor, LinearMotor
 from drivers.trek_daq import TrekOnDaq
 
-FETCH_PERIOD_S = 0.25  # laser storage upload period while storing (run time)
 MONITOR_SETTLE_S = 0.5  # after zeroing, wait for fresh monitor conversions before the final read
 LATE_TOLERANCE_S = 0.05  # real time: an action later than this counts as an overrun
 STOP_POLL_S = 0.02  # real time: longest sleep between two looks at the stop request
@@ -48,8 +48,6 @@ RAMP_STEPS = 10  # shutdown ramp: set-points from the last voltage to 0 V
 SAFE_MONITOR_V = 50.0  # |monitor| at or below this after zeroing counts as "output at 0 V" (0.5 % of 10 kV)
 DISCHARGE_WAIT_S = 2.0  # how long to keep reading a monitor that is not yet at 0 V before reporting it
 WATCHDOG_MARGIN_S = 0.2  # wait past the module's communication-safety period before checking the output
-COLLECT_PERIOD_S = 0.05  # hardware-timed rigs: collect the DAQ stream (and top up its output buffer) this often
-COLLECT_PERIOD_VIRTUAL_S = 0.25  # virtual time: fewer, larger blocks (the output buffer holds ~0.8 s at 10 kHz)
 LASER_DRAIN_BUDGET_S = 30.0  # at most this long fetching a step's stored laser data after the step
 LASER_SHUTDOWN_DRAIN_S = 5.0  # after a stop or fault (high voltage already at 0 V): then what is left is reported
 STOP_SIGNALS = {
@@ -242,46 +240,6 @@ class Engine:
         """The ``late`` column of a software-timed stream: how long after its scheduled time a poll ran [s]."""
         return {"late": late} if stream in self._late_streams else {}
 
-    def _poll(self, kind: str, due: float = math.nan) -> None:
-        snap = self.snapshot
-        late = self.now() - due
-        if kind == "monitors":
-            v, i = self._amp.read_monitors()
-            self.rec.append("amplifier", v.timestamp - self._t0, voltage=v.value, current=i.value,
-                            **self._late("amplifier", late))
-            snap.values["voltage"], snap.values["current"] = v.value, i.value
-            self.sup.check_monitors(v.value, i.value)
-        elif kind == "position":
-            r = self._motor.read_position()
-            x = float(self.program.aperture(r.value)) if self.program.has_motor_axis else math.nan
-            self.rec.append("motor", r.timestamp - self._t0, position=r.value, aperture=x, **self._late("motor", late))
-            if not r.ok or not math.isfinite(r.value):
-                raise InstrumentStateError("motor", f"drive reports {r.status}: {self._drive_error_text()}")
-            snap.values["aperture"] = x
-            self.sup.check_motor(r.value, x if self.program.has_motor_axis else self.sup.aperture or 0.0)
-        elif kind == "force":
-            r = self._cell.read()
-            self.rec.append("load_cell", r.timestamp - self._t0, force=r.value, ok=np.array(r.ok, dtype="u1"),
-                            **self._late("load_cell", late))
-            snap.values["force"] = r.value
-            if r.status in ("overload", "underload"):
-                raise SafetyTrip(f"load cell {r.status}")
-            if r.ok or r.status == "unstable":
-                self.sup.check_force(r.value)
-        elif kind == "laser":
-            r = self._laser.read()
-            d = float(self._to_specimen(np.array([r.value]))[0])
-            ok = r.ok and math.isfinite(d)
-            self.rec.append("laser", r.timestamp - self._t0, displacement=d, valid=np.array(ok, dtype="u1"),
-                            **self._late("laser", late))
-            if ok:
-                self.sup.update_displacement(d)
-                self.snapshot.values["displacement"] = d
-        elif kind == "fetch":
-            self._record_laser_block()
-        elif kind == "collect":
-            self._hw.collect(self)
-
     def _drive_error_text(self) -> str:
         """The drive's own account of its state (error code and text), for the file."""
         try:
@@ -335,17 +293,10 @@ class Engine:
         if streamed:
             self._wait_until(seg.t_start)
             self._hw.start(seg, self)
-        hw = self._stream is not None
-        collect = COLLECT_PERIOD_VIRTUAL_S if self.clock.virtual else COLLECT_PERIOD_S
-        periods = {"monitors": 1 / rec.monitors_Hz if inst.amplifier and rec.monitors_Hz and not hw else None,
-                   "position": 1 / rec.position_Hz if inst.motor and rec.position_Hz else None,
-                   "force": 1 / rec.force_Hz if inst.load_cell and rec.force_Hz else None,
-                   "fetch": FETCH_PERIOD_S if storing else None,
-                   "laser": 1 / PASSIVE_LASER_HZ if laser_serial and not storing else None,
-                   "collect": collect if streamed else None}
-        period = {k: p for k, p in periods.items() if p is not None}
-        count = {k: (1 if k == "fetch" else 0) for k in period}
-        due = {k: seg.t_start + n * period[k] for k, n in count.items()}  # from counts: no drift
+        state = StepState(seg, streamed, laser_serial, storing)
+        polls = {p.name: (p, per) for p in POLLS if (per := p.period(self, state)) is not None}
+        count = {k: p.first for k, (p, _) in polls.items()}
+        due = {k: seg.t_start + n * polls[k][1] for k, n in count.items()}  # from counts: no drift
         schedule = ticks(prog, seg)  # the set-point schedule the dry run also executes
         tick = next(schedule, None)
         while True:
@@ -364,9 +315,10 @@ class Engine:
                 tick = next(schedule, None)
             for kind in [k for k, tk in due.items() if tk <= t_next + 1e-12]:
                 self._check_stop()
-                self._poll(kind, due[kind])
+                poll, period = polls[kind]
+                poll.run(self, due[kind])
                 count[kind] += 1
-                due[kind] = seg.t_start + count[kind] * period[kind]
+                due[kind] = seg.t_start + count[kind] * period
             self.snapshot.t = t_next
             self.snapshot.headroom = self.sup.headroom()
             self.rec.maybe_flush()
