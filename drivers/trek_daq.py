@@ -72,7 +72,7 @@ class TrekOnDaq:
             self.zero()
 
     def describe(self) -> StreamDescription:
-        """The stream it records: columns, units, source (the scan clock's text is added by bench.hardware_timed)."""
+        """The stream it records: columns, units, source (the scan clock's text is added by the run time)."""
         return StreamDescription(self.name, (
             DataKey("voltage", "V", "output voltage from the TREK voltage monitor"),
             DataKey("current", "A", "output current from the TREK current monitor"),

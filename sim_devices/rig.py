@@ -70,6 +70,7 @@ class SimRig:
     def start(self) -> dict[str, Endpoint]:
         """Start every twin; returns the endpoints by role (serial instruments) or bus name (Modbus)."""
         rig, sim = self.rig, self.rig.simulation
+        self.plant.warm_up()  # before any twin answers: no compile inside a reply
         if rig.laser is not None:
             head = LaserHead(offset_mm=rig.laser.offset_mm, sign=rig.laser.sign, range_mm=rig.laser.range_mm)
             twin = KeyenceLKGSim(self.plant, self.clock, model=rig.laser.model, head=head,
@@ -187,7 +188,7 @@ class SimRig:
         return out
 
     def port_map(self) -> dict[str, str]:
-        """Role / bus name → port, for :func:`bench.instruments.build_instruments`."""
+        """Role / bus name → port, for :func:`bench.runtime.instruments.build_instruments`."""
         return {name: ep.address for name, ep in self.endpoints().items()}
 
     def stop(self) -> None:

@@ -13,6 +13,7 @@ configurations — ``motor`` (aperture x = x0 + motor position, load-cell force)
 
 from __future__ import annotations
 
+import copy
 import math
 import re
 import threading
@@ -273,6 +274,15 @@ class Plant:
             self.failure = f"{why} at t = {self.t if at is None else at:.4f} s"
 
     # ------------------------------------------------------------------ stepping
+    def warm_up(self) -> None:
+        """Compile the model's kernels now, on a copy (a fresh install has no numba cache: compiling on the
+        first request would take seconds inside a twin's reply and the host would time out)."""
+        with self.lock:
+            if self._membrane is not None:
+                copy.deepcopy(self._membrane).advance(np.zeros(2), self.temperature)
+            if self._lozenge is not None:
+                copy.deepcopy(self._lozenge).advance(np.tile(np.array([0.0, self.x0, 0.0]), (2, 1)))
+
     def observe(self) -> PlantBlock:
         """Advance to now and return the last sample (arrays of length 1)."""
         with self.lock:
