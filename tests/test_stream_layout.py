@@ -95,3 +95,25 @@ def test_names_and_units_are_the_readmes() -> None:
         for stream, cols in layout(rig_path)[0]:
             got = [(name, "" if unit == "1" else unit) for name, unit, _, _ in cols if name != "late"]
             assert got == [(n, u) for n, u in readme[stream]], (rig_path.stem, stream)
+
+
+def test_the_live_view_shows_what_the_instruments_describe_in_their_units() -> None:
+    """Issue 9: the live view takes its quantities and units from the run's layout (describe()), so a reading
+    appears with its driver's SI unit, shown with a prefix; a quantity the layout does not hold is not shown."""
+    from rich.console import Console
+
+    from bench.runtime.engine import Snapshot
+    from bench.runtime.live import LiveView, units_of
+
+    rig = load_rig(ROOT / "rigs" / "lsdea-motor-sim.toml")
+    streams, _ = _streams(rig, build_instruments(rig))
+    units = units_of(streams)
+    assert (units["current"], units["aperture"], units["force"], units["setpoint"]) == ("A", "m", "N", "V")
+    snap = Snapshot(duration=10.0, steps=1, values={"voltage": 6000.0, "current": 3.2e-5, "aperture": 0.1,
+                                                     "force": -1.05, "setpoint": 6000.0, "colour": 3.0})
+    console = Console(width=200, record=True)
+    console.print(LiveView("run", snap, units))
+    text = console.export_text()
+    for shown in ("voltage 6 kV", "current 32 µA", "aperture 100 mm", "force -1.05 N", "setpoint 6 kV"):
+        assert shown in text, shown
+    assert "colour" not in text

@@ -188,7 +188,7 @@ def _execute(plan, path: Path, virtual_time: bool, operator, live: bool, allow_n
              metadata: dict[str, str]):
     """Run the plan, with the live view on a terminal."""
     from bench.runtime.engine import Engine
-    from bench.runtime.live import LiveView
+    from bench.runtime.live import LiveView, units_of
     from bench.runtime.run import execute
 
     engines: list[Engine] = []
@@ -198,7 +198,7 @@ def _execute(plan, path: Path, virtual_time: bool, operator, live: bool, allow_n
 
         def attach(engine: Engine, _sim: object) -> None:
             engines.append(engine)
-            holder["view"] = LiveView(title, engine.snapshot)
+            holder["view"] = LiveView(title, engine.snapshot, units_of(engine.rec.streams))
             live_ctx.update(holder["view"])
 
         with Live(console=console, refresh_per_second=4, transient=False) as live_ctx:

@@ -1,8 +1,14 @@
-"""Rich live view of a running protocol: bounded, refreshed at a fixed rate from the engine's snapshot."""
+"""Rich live view of a running protocol: bounded, refreshed at a fixed rate from the engine's snapshot.
+
+The quantities shown and their units come from the run's stream layout — the instruments' ``describe()``
+(:func:`units_of`) — not from a list here: a new instrument's readings appear with the unit its driver declares.
+"""
 
 from __future__ import annotations
 
+import math
 import time
+from collections.abc import Mapping, Sequence
 
 from rich.console import Group
 from rich.panel import Panel
@@ -11,9 +17,26 @@ from rich.table import Table
 from rich.text import Text
 
 from bench.runtime.engine import Snapshot
+from drivers.interfaces import DataKey
 
-UNITS = {"setpoint": ("V", 1.0), "voltage": ("V", 1.0), "current": ("µA", 1e6), "displacement": ("mm", 1e3),
-         "aperture": ("mm", 1e3), "force": ("N", 1.0)}
+PREFIXES = ((1e9, "G"), (1e6, "M"), (1e3, "k"), (1.0, ""), (1e-3, "m"), (1e-6, "µ"), (1e-9, "n"))
+
+
+def units_of(streams: Mapping[str, Sequence[DataKey]]) -> dict[str, str]:
+    """Snapshot key → SI unit from the recorder's layout (a column's name; ``setpoint``: the set-points' voltage)."""
+    units = {k.name: k.unit for keys in streams.values() for k in keys if k.unit not in ("1", "s")}
+    for k in streams.get("setpoints", ()):
+        if k.name == "voltage":
+            units["setpoint"] = k.unit
+    return units
+
+
+def si(value: float, unit: str) -> str:
+    """A value with an SI prefix that keeps 1–3 digits before the point (6000 V → 6 kV, 3.2e-5 A → 32 µA)."""
+    if not math.isfinite(value) or value == 0.0 or not unit:
+        return f"{value:.4g} {unit}".rstrip()
+    scale, prefix = next(((f, p) for f, p in PREFIXES if abs(value) >= f), PREFIXES[-1])
+    return f"{value / scale:.4g} {prefix}{unit}"
 
 
 def _hms(seconds: float) -> str:
@@ -24,9 +47,10 @@ def _hms(seconds: float) -> str:
 class LiveView:
     """Renders a :class:`Snapshot`; the ETA comes from the observed speed (virtual time runs faster)."""
 
-    def __init__(self, title: str, snapshot: Snapshot) -> None:
+    def __init__(self, title: str, snapshot: Snapshot, units: Mapping[str, str]) -> None:
         self.title = title
         self.snapshot = snapshot
+        self.units = dict(units)
         self._wall0 = time.monotonic()
 
     def __rich__(self) -> Panel:
@@ -42,9 +66,10 @@ class LiveView:
                          f"ETA {_hms(eta) if eta == eta else '–'}  ({speed:.1f}× real time)  [{s.state}]")
         values = Table.grid(padding=(0, 2))
         cells = []
-        for key, (unit, scale) in UNITS.items():
-            if key in s.values:
-                cells.append(f"{key} [bold]{s.values[key] * scale:.4g}[/] {unit}")
+        for key, value in list(s.values.items()):
+            if key in self.units:
+                number, _, unit = si(value, self.units[key]).partition(" ")
+                cells.append(f"{key} [bold]{number}[/] {unit}")
         if cells:
             values.add_row(*cells)
         headroom = Table.grid(padding=(0, 2))
