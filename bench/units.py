@@ -6,6 +6,7 @@ A plain number is read in the option's documented unit (``--voltage 7000`` is 70
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 
 from bench.protocol.quantity import parse_quantity
@@ -64,3 +65,16 @@ def option_si(text: str | float, plain_unit: str, option: str, lo: float | None 
                   f"≥ {lo:g} {plain_unit}" if lo is not None else f"≤ {hi:g} {plain_unit}")
         raise ValueError(f"{option} {text}: {shown:g} {plain_unit} is outside {limits}")
     return value
+
+
+PREFIXES = ((1e9, "G"), (1e6, "M"), (1e3, "k"), (1.0, ""), (1e-3, "m"), (1e-6, "µ"), (1e-9, "n"))
+
+
+def si(value: float, unit: str) -> str:
+    """A value with an SI prefix that keeps 1–3 digits before the point (6000 V → 6 kV, 3.2e-5 A → 32 µA)."""
+    if not math.isfinite(value) or value == 0.0 or not unit:
+        return f"{value:.4g} {unit}".rstrip()
+    scale, prefix = next(((f, p) for f, p in PREFIXES if abs(value) >= f), PREFIXES[-1])
+    if abs(value) < scale:  # below the smallest prefix: a few thousandths of it, not an exponent
+        return f"{value / scale:.3f} {prefix}{unit}"
+    return f"{value / scale:.4g} {prefix}{unit}"

@@ -19,7 +19,7 @@ import time
 
 from drivers.cancel import check
 from drivers.errors import InstrumentStateError, InstrumentTimeoutError
-from drivers.interfaces import ClockFn, DataKey, Identity, Reading, SleepFn, StreamDescription
+from drivers.interfaces import CheckResult, ClockFn, DataKey, Identity, Reading, SleepFn, StreamDescription
 from drivers.modbus_link import ModbusLink
 
 IR_GROSS, IR_STATUS, IR_COMMAND_STATUS = 0, 4, 5
@@ -69,6 +69,11 @@ class DiniDGT1S:
         return StreamDescription(self.name, (
             DataKey("force", "N", "force on the load cell, tension positive"),
             DataKey("ok", "1", "1 = stable reading", "u1")), "Dini Argeo DGT1S")
+
+    def check(self) -> CheckResult:
+        """Whether the weight is stable; the force."""
+        r = self.read()
+        return CheckResult("stable" if r.ok else r.status, (("force", r),))
 
     def identify(self) -> Identity:
         """No identification register in the map: report the configured model and the scale status."""

@@ -90,6 +90,15 @@ class StreamDescription:
 
 
 @dataclass(frozen=True)
+class CheckResult:
+    """What ``devices check`` shows of a connected instrument: its state in words and a first reading of each
+    quantity it measures (SI values, each with its unit)."""
+
+    state: str
+    readings: tuple[tuple[str, Reading], ...]  # (quantity, reading)
+
+
+@dataclass(frozen=True)
 class MotorStatus:
     """Decoded drive state: main state name, flags and position [m]."""
 
@@ -121,6 +130,9 @@ class Instrument(Protocol):
 
     def safe_state(self) -> None:
         """Put the instrument in its safe state (zero high voltage, motor stopped)."""
+
+    def check(self) -> CheckResult:
+        """State and a first reading of everything it measures (``bench devices check``)."""
 
 
 @runtime_checkable

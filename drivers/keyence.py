@@ -31,7 +31,7 @@ import numpy as np
 
 from drivers.cancel import check
 from drivers.errors import InstrumentStateError, ProtocolError
-from drivers.interfaces import ClockFn, DataKey, Identity, Reading, SampleBlock, StreamDescription
+from drivers.interfaces import CheckResult, ClockFn, DataKey, Identity, Reading, SampleBlock, StreamDescription
 from drivers.serial_link import SerialLink
 
 Model = Literal["LK-G3000", "LK-G5000"]
@@ -217,6 +217,10 @@ class KeyenceLKG:
         return StreamDescription(self.name, (
             DataKey("displacement", "m", "from the laser (offset and sign removed)"),
             DataKey("valid", "1", "1 = measurement, 0 = over range / invalid", "u1")), f"Keyence {self.model}")
+
+    def check(self) -> CheckResult:
+        """One displacement reading in general mode."""
+        return CheckResult("general mode", (("displacement", self.read()),))
 
     def identify(self) -> Identity:
         """The controller has no identification command: report the configured model and program number."""

@@ -74,7 +74,7 @@ from drivers.errors import (
     LimitError,
     ProtocolError,
 )
-from drivers.interfaces import ClockFn, Identity, Reading, SampleBlock, SleepFn
+from drivers.interfaces import CheckResult, ClockFn, Identity, Reading, SampleBlock, SleepFn
 from drivers.modbus_link import ModbusLink
 
 UNIT = 1
@@ -431,6 +431,10 @@ class LabJackT7:
             self.write_f32(WATCHDOG_DAC[k], v)
         self.write_u32(WATCHDOG_ENABLE, 1)
         return True
+
+    def check(self) -> CheckResult:
+        """Whether a stream runs; AIN0 by command-response."""
+        return CheckResult("stream running" if self.streaming else "idle", (("AIN0", self.read_ain(0)),))
 
     def identify(self) -> Identity:
         """PRODUCT_ID, serial number, firmware and hardware versions."""

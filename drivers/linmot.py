@@ -31,7 +31,7 @@ from dataclasses import dataclass
 
 from drivers.cancel import check
 from drivers.errors import InstrumentStateError, InstrumentTimeoutError, LimitError, ProtocolError
-from drivers.interfaces import ClockFn, DataKey, Identity, MotorStatus, Reading, SleepFn, StreamDescription
+from drivers.interfaces import CheckResult, ClockFn, DataKey, Identity, MotorStatus, Reading, SleepFn, StreamDescription
 from drivers.serial_link import SerialLink
 
 START, DATA, END = 0x01, 0x02, 0x04
@@ -242,6 +242,13 @@ class LinMotDrive:
     def describe(self) -> StreamDescription:
         """The stream it records: columns, units, source."""
         return StreamDescription(self.name, (DataKey("position", "m", "motor encoder position"),), "LinMot LinRS")
+
+    def check(self) -> CheckResult:
+        """The drive's main state and flags; its position."""
+        s = self.status()
+        flags = ", ".join(f for f, on in (("homed", s.homed), ("moving", s.moving), ("error", s.error)) if on)
+        position = Reading(s.position, "m", self.clock(), "error" if s.error else "ok")
+        return CheckResult(s.state + (f" ({flags})" if flags else ""), (("position", position),))
 
     def identify(self) -> Identity:
         """LinRS has no identification telegram in the default profile: report state and position."""

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 from drivers.adam import Adam4017P, Adam4024
 from drivers.errors import LimitError
-from drivers.interfaces import ClockFn, DataKey, Identity, Reading, StreamDescription
+from drivers.interfaces import CheckResult, ClockFn, DataKey, Identity, Reading, StreamDescription
 
 
 @dataclass(frozen=True)
@@ -91,6 +91,12 @@ class TrekAmplifier:
             DataKey("voltage", "V", "output voltage from the TREK voltage monitor"),
             DataKey("current", "A", "output current from the TREK current monitor")),
             f"TREK {self.trek.model} via ADAM-4017+")
+
+    def check(self) -> CheckResult:
+        """Set-point and limit; the two monitors."""
+        v, i = self.read_monitors()
+        return CheckResult(f"set-point {self.commanded:.0f} V, limit ±{self.max_voltage:.0f} V",
+                           (("voltage", v), ("current", i)))
 
     def identify(self) -> Identity:
         """Model from the rig file; the I/O modules from their name registers."""

@@ -16,7 +16,7 @@ import time
 import numpy as np
 
 from drivers.errors import LimitError
-from drivers.interfaces import ClockFn, DataKey, Identity, Reading, StreamDescription
+from drivers.interfaces import CheckResult, ClockFn, DataKey, Identity, Reading, StreamDescription
 from drivers.labjack import DAC_RANGE, LabJackT7
 from drivers.trek import TrekModel
 
@@ -79,6 +79,12 @@ class TrekOnDaq:
             DataKey("commanded", "V", "output commanded: the DAC code played in the same scan, through the "
                     "conditioning stage and the amplifier's gain")),
             f"TREK {self.trek.model} monitors on AIN{self.vmon_ain}/AIN{self.imon_ain}")
+
+    def check(self) -> CheckResult:
+        """Set-point and limit; the two monitors (command-response reads of their AINs)."""
+        v, i = self.read_monitors()
+        return CheckResult(f"set-point {self.commanded:.0f} V, limit ±{self.max_voltage:.0f} V",
+                           (("voltage", v), ("current", i)))
 
     def identify(self) -> Identity:
         """Model from the rig file; the DAQ from its registers."""

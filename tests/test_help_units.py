@@ -51,3 +51,14 @@ def test_every_help_page_keeps_its_bracketed_text(path: tuple[str, ...]) -> None
     out = _flat(res.output)
     missing = sorted(w for w in wanted if w not in out)
     assert not missing, f"bench {' '.join(path)} --help lost {missing}"
+
+
+@pytest.mark.parametrize("value, unit, shown", [
+    (6000.0, "V", "6 kV"), (3.2e-5, "A", "32 µA"), (0.1, "m", "100 mm"), (-1.05, "N", "-1.05 N"),
+    (0.0, "m", "0 m"), (-1.4e-14, "A", "-0.000 nA"),
+])
+def test_values_are_shown_with_an_si_prefix(value: float, unit: str, shown: str) -> None:
+    """Live view and devices check show the drivers' SI values with a prefix (1–3 digits before the point)."""
+    from bench.units import si
+
+    assert si(value, unit) == shown

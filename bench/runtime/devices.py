@@ -2,14 +2,14 @@
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from pathlib import Path
 
 from bench.rig import RigConfig, rig_to_toml
 from bench.runtime.instruments import build_instruments
+from bench.units import si
 from drivers.errors import InstrumentError
-from drivers.interfaces import Instrument
+from drivers.interfaces import Reading
 
 
 @dataclass(frozen=True)
@@ -24,28 +24,9 @@ class CheckRow:
     error: str = ""
 
 
-def _fmt(value: float, unit: str, scale: float = 1.0, digits: int = 4) -> str:
-    return "n/a" if not math.isfinite(value) else f"{value * scale:.{digits}g} {unit}"
-
-
-def _probe(role: str, drv: Instrument) -> tuple[str, str]:
-    """(state, first reading) of one connected instrument."""
-    if role == "amplifier":
-        v, i = drv.read_monitors()  # type: ignore[attr-defined]
-        return (f"set-point {drv.commanded:.0f} V, limit ±{drv.max_voltage:.0f} V",  # type: ignore[attr-defined]
-                f"{_fmt(v.value, 'V', digits=5)}, {_fmt(i.value, 'µA', 1e6)}")
-    if role == "laser":
-        r = drv.read()  # type: ignore[attr-defined]
-        return ("general mode", _fmt(r.value, "mm", 1e3, 6) if r.ok else r.status)
-    if role == "motor":
-        s = drv.status()  # type: ignore[attr-defined]
-        flags = ", ".join(f for f, on in (("homed", s.homed), ("moving", s.moving), ("error", s.error)) if on)
-        return (s.state + (f" ({flags})" if flags else ""), _fmt(s.position, "mm", 1e3, 6))
-    if role == "daq":
-        ain0 = drv.read_ain(0)  # type: ignore[attr-defined]
-        return ("stream running" if drv.streaming else "idle", f"AIN0 {_fmt(ain0.value, 'V', digits=5)}")  # type: ignore[attr-defined]
-    r = drv.read()  # type: ignore[attr-defined]
-    return ("stable" if r.ok else r.status, _fmt(r.value, "N", digits=4))
+def _reading(quantity: str, r: Reading) -> str:
+    """``quantity value unit`` with an SI prefix (the driver's unit), or why it is not a measurement."""
+    return f"{quantity} {si(r.value, r.unit)}" if r.ok else f"{quantity} {r.status}"
 
 
 def check_instruments(rig: RigConfig, endpoints: dict[str, str] | None = None) -> list[CheckRow]:
@@ -57,8 +38,9 @@ def check_instruments(rig: RigConfig, endpoints: dict[str, str] | None = None) -
             try:
                 drv.connect()
                 ident = str(drv.identify())
-                state, reading = _probe(role, drv)
-                rows.append(CheckRow(role, True, ident, state, reading))
+                found = drv.check()
+                rows.append(CheckRow(role, True, ident, found.state,
+                                     ", ".join(_reading(q, r) for q, r in found.readings)))
             except InstrumentError as exc:
                 rows.append(CheckRow(role, False, error=str(exc)))
     finally:

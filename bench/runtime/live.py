@@ -6,7 +6,6 @@ The quantities shown and their units come from the run's stream layout — the i
 
 from __future__ import annotations
 
-import math
 import time
 from collections.abc import Mapping, Sequence
 
@@ -17,9 +16,8 @@ from rich.table import Table
 from rich.text import Text
 
 from bench.runtime.engine import Snapshot
+from bench.units import si
 from drivers.interfaces import DataKey
-
-PREFIXES = ((1e9, "G"), (1e6, "M"), (1e3, "k"), (1.0, ""), (1e-3, "m"), (1e-6, "µ"), (1e-9, "n"))
 
 
 def units_of(streams: Mapping[str, Sequence[DataKey]]) -> dict[str, str]:
@@ -29,14 +27,6 @@ def units_of(streams: Mapping[str, Sequence[DataKey]]) -> dict[str, str]:
         if k.name == "voltage":
             units["setpoint"] = k.unit
     return units
-
-
-def si(value: float, unit: str) -> str:
-    """A value with an SI prefix that keeps 1–3 digits before the point (6000 V → 6 kV, 3.2e-5 A → 32 µA)."""
-    if not math.isfinite(value) or value == 0.0 or not unit:
-        return f"{value:.4g} {unit}".rstrip()
-    scale, prefix = next(((f, p) for f, p in PREFIXES if abs(value) >= f), PREFIXES[-1])
-    return f"{value / scale:.4g} {prefix}{unit}"
 
 
 def _hms(seconds: float) -> str:
