@@ -61,7 +61,9 @@ import select
 import socket
 import struct
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import TypeVar
 
 import numpy as np
 
@@ -76,6 +78,8 @@ from drivers.errors import (
 )
 from drivers.interfaces import CheckResult, ClockFn, Identity, Reading, SampleBlock, SleepFn
 from drivers.modbus_link import ModbusLink
+
+_T = TypeVar("_T")
 
 UNIT = 1
 CR_PORT, STREAM_PORT = 502, 702
@@ -349,7 +353,7 @@ class LabJackT7:
         self.streaming = False
 
     # ------------------------------------------------------------------ command-response
-    def _lj(self, what: str, fn, *args):  # type: ignore[no-untyped-def]
+    def _lj(self, what: str, fn: Callable[..., _T], *args: object) -> _T:
         """Run one link call; a Modbus exception is re-raised with the device's LAST_ERR_DETAIL name."""
         try:
             return fn(UNIT, *args)
@@ -363,7 +367,7 @@ class LabJackT7:
 
     def read_regs(self, address: int, count: int) -> list[int]:
         """Read ``count`` registers from ``address`` (FC3)."""
-        return self._lj(f"read {address}+{count}", self.link.read_holding, address, count)  # type: ignore[no-any-return]
+        return self._lj(f"read {address}+{count}", self.link.read_holding, address, count)
 
     def write_regs(self, address: int, values: list[int]) -> None:
         """Write registers from ``address`` (FC16)."""

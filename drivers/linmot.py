@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import struct
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from drivers.cancel import check
@@ -187,7 +188,8 @@ class LinMotDrive:
         self._control_word = word
         return self.transact(MAIN_CONTROL_WORD, 0x00, struct.pack("<H", word))
 
-    def _wait(self, predicate: object, what: str, timeout: float | None = None) -> DefaultResponse:
+    def _wait(self, predicate: Callable[[DefaultResponse], bool], what: str,
+              timeout: float | None = None) -> DefaultResponse:
         deadline = self.clock() + (self.state_timeout if timeout is None else timeout)
         while True:
             check(self.link.cancel, self.name)
@@ -195,7 +197,7 @@ class LinMotDrive:
             if self.in_error(resp):
                 raise InstrumentStateError(self.name, f"drive error while waiting for {what}: "
                                            f"{self._error_text(resp)}")
-            if predicate(resp):  # type: ignore[operator]
+            if predicate(resp):
                 return resp
             if self.clock() > deadline:
                 raise InstrumentTimeoutError(self.name, f"{what} not reached; drive in state "
@@ -286,7 +288,7 @@ class LinMotDrive:
         self.write_control_word(CW_OPERATE | CW_HOME)
         self._wait(lambda r: r.state_var == 0x090F, "homing finished", timeout=max(self.state_timeout, 20.0))
         self.write_control_word(CW_OPERATE)
-        self._wait(lambda r: r.main_state == 8 and r.status_word & SW_HOMED, "homed and operation enabled")
+        self._wait(lambda r: r.main_state == 8 and bool(r.status_word & SW_HOMED), "homed and operation enabled")
 
     def acknowledge_error(self) -> None:
         """Rising edge on control-word bit 7 (not possible for fatal errors)."""

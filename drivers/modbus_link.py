@@ -19,6 +19,7 @@ import logging
 import os
 import threading
 import time
+from typing import cast
 
 import serial
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
@@ -45,7 +46,7 @@ from drivers.serial_link import set_slice_timeout
 try:  # pyserial's POSIX port lets termios.error (not an OSError) out of reset_input_buffer on a dead pty
     from termios import error as _termios_error
 except ImportError:  # pragma: no cover - Windows
-    _termios_error = OSError  # type: ignore[misc,assignment]
+    _termios_error = OSError  # type: ignore[misc,assignment]  # the same name bound to another class there
 
 EXCEPTION_TEXT = {1: "illegal function", 2: "illegal data address", 3: "illegal data value",
                   4: "device failure", 5: "acknowledge", 6: "device busy", 11: "gateway target failed to respond"}
@@ -177,7 +178,7 @@ class ModbusLink:
                 client.close()
                 raise InstrumentConnectionError(self.device, f"Modbus link {self.url} lost during {what}") \
                     from None
-            client.framer.trailing = b""  # type: ignore[attr-defined]
+            cast(_TrailingRTUFramer, client.framer).trailing = b""  # the RTU client's framer (set in __init__)
         client.transaction.sent_buffer = b""  # pymodbus' local-echo and receive buffers (3.16)
         client.transaction.recv_buffer = b""
 
@@ -223,7 +224,7 @@ class ModbusLink:
         """RTU: after a timeout, wait one timeout for the line to go quiet; a later whole frame wins."""
         client = self._client
         assert isinstance(client, _SerialClient) and client.socket is not None
-        framer: _TrailingRTUFramer = client.framer  # type: ignore[assignment]
+        framer = cast(_TrailingRTUFramer, client.framer)  # the RTU client's framer (set in _SerialClient)
         extra, framer.trailing = framer.trailing, b""
         if not self._stale and not extra:
             return resp

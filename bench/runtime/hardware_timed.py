@@ -27,6 +27,7 @@ from drivers.trek_daq import TrekOnDaq
 
 if TYPE_CHECKING:
     from bench.runtime.engine import Engine
+    from bench.runtime.instruments import Instruments
 
 KEEPALIVE_S = 0.25  # a command-response request at least this often keeps the device's watchdog fed
 FINISH_TIMEOUT_S = 5.0  # wall time allowed for the last scans of a step to arrive
@@ -80,12 +81,14 @@ def describe_streams(cfg: DaqConfig, amplifier: Amplifier) -> list[StreamDescrip
 class HardwareTimed:
     """The DAQ side of a run on a rig whose amplifier is driven through a hardware-timed DAQ."""
 
-    def __init__(self, rig: RigConfig, inst: object) -> None:
+    def __init__(self, rig: RigConfig, inst: Instruments) -> None:
         cfg = rig.daq
         assert cfg is not None
         self.cfg = cfg
-        self.daq: LabJackT7 = inst.daq  # type: ignore[attr-defined]
-        self.amp: TrekOnDaq = inst.amplifier  # type: ignore[attr-defined]
+        if not isinstance(inst.daq, LabJackT7) or not isinstance(inst.amplifier, TrekOnDaq):
+            raise TypeError("hardware-timed steps need a LabJack T7 and a TREK on its DAC")
+        self.daq: LabJackT7 = inst.daq
+        self.amp: TrekOnDaq = inst.amplifier
         inputs = [StreamIn(cfg.vmon_ain, 10.0, "vmon"), StreamIn(cfg.imon_ain, 10.0, "imon")]
         if cfg.force_ain is not None:
             inputs.append(StreamIn(cfg.force_ain, 10.0, "force"))
