@@ -10,7 +10,7 @@ import pytest
 
 from bench.rig import RigConfig, load_rig
 from bench.runtime.instruments import Instruments, build_instruments
-from sim_devices.rig import SimRig, Timing
+from bench.runtime.sim_rig import SimRig, Timing
 
 ROOT = Path(__file__).resolve().parent.parent
 RIGS = ROOT / "rigs"

@@ -15,7 +15,7 @@ import pytest
 import serial
 
 from bench.rig import RigConfig, load_rig
-from sim_devices.rig import SimRig
+from bench.runtime.sim_rig import SimRig
 from tests.conftest import RIGS
 
 

@@ -17,7 +17,7 @@ import pytest
 import serial
 
 from bench.rig import RigConfig, load_rig
-from sim_devices.rig import SimRig
+from bench.runtime.sim_rig import SimRig
 from tests.conftest import RIGS
 
 VALUE = r"[+-](?=[0-9.]{7})[0-9]*\.[0-9]*"  # p. 5-6: sign + 7 characters, one of them the point

@@ -17,7 +17,7 @@ import pytest
 import serial
 
 from bench.rig import load_rig
-from sim_devices.rig import SimRig
+from bench.runtime.sim_rig import SimRig
 from tests.conftest import RIGS
 
 POLL = bytes.fromhex("01 11 03 02 01 00 04")  # Main 00h Sub 01h: default response

@@ -120,7 +120,7 @@ def test_sim_serve_stops_on_sigterm_and_refuses_real_rigs(tmp_path: Path) -> Non
 def test_sim_serve_serves_with_wire_time_unless_told_otherwise(flag: list[str], timing: str, said: str,
                                                                 monkeypatch: pytest.MonkeyPatch) -> None:
     """Issue 10: `sim serve` serves the rig with its real timing unless told otherwise."""
-    import sim_devices.rig as simrig
+    import bench.runtime.sim_rig as simrig
 
     seen: list[str | None] = []
     real_start = simrig.SimRig.start

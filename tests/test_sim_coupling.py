@@ -114,7 +114,7 @@ def test_the_dry_run_and_the_simulated_rig_share_one_plant_factory_with_the_rigs
     from bench.protocol.program import compile_program
     from bench.protocol.schema import load_protocol
     from bench.rig import RigConfig, load_rig
-    from sim_devices.rig import SimRig
+    from bench.runtime.sim_rig import SimRig
 
     base = load_rig(RIGS / "lsdea-motor-sim.toml")
     assert base.amplifier is not None

@@ -25,7 +25,7 @@ from bench.protocol.link_budget import (
 from bench.resources import rigs_dir
 from bench.rig import RigConfig, load_rig
 from bench.runtime.instruments import Instruments, build_instruments
-from sim_devices.rig import SimRig, Timing
+from bench.runtime.sim_rig import SimRig, Timing
 
 RIGS = rigs_dir()
 

@@ -221,7 +221,7 @@ def sim_serve(
     from bench.rig import load_rig
     from bench.runtime.devices import served_rig
     from bench.runtime.devices import write_rig as write_rig_file
-    from sim_devices.rig import SimRig
+    from bench.runtime.sim_rig import SimRig
 
     duration_s = None if duration is None else option_si(duration, "s", "--duration", 0.1)
     rig = load_rig(rig_file)
@@ -252,7 +252,7 @@ def devices_check(rig_file: RigArg) -> None:
     """Connect to every instrument of a rig, identify it, print its state and a first reading."""
     from bench.rig import load_rig
     from bench.runtime.devices import check_instruments
-    from sim_devices.rig import SimRig
+    from bench.runtime.sim_rig import SimRig
 
     rig = load_rig(rig_file)
     sim = SimRig(rig) if rig.simulated else None

@@ -100,7 +100,7 @@ class ManualSession:
         if self.virtual and not rig.simulated:
             raise ValueError(f"rig {rig.name} is real: virtual time needs a simulated rig")
         if rig.simulated:
-            from sim_devices.rig import SimRig
+            from bench.runtime.sim_rig import SimRig
 
             self._sim = SimRig(rig, virtual=self.virtual)
             self._sim.start()

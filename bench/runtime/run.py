@@ -167,7 +167,7 @@ def execute(plan: Plan, out: Path, *, virtual: bool = False, operator: OperatorF
     watchdog = check_watchdog(rig, allow_no_watchdog)
     sim = None
     if rig.simulated:
-        from sim_devices.rig import SimRig
+        from bench.runtime.sim_rig import SimRig
 
         # wire time (baud rates, gaps, turnarounds) also in virtual time, so that a virtual run takes the time a
         # real one would — unless the protocol outruns the rig's lines (the plan says which), where a virtual
