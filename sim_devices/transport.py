@@ -34,7 +34,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-SWITCHES = ("latency", "mute", "garble_next", "garble_index", "drop", "drop_reset", "wire_baud")
+SWITCHES = ("latency", "mute", "garble_next", "garble_index", "drop", "drop_reset", "wire_baud", "mutate")
 
 
 @dataclass
@@ -62,6 +62,7 @@ class Faults:
     drop: bool = False  # close the link: the port reports a lost device
     drop_reset: bool = False  # sockets: drop with a TCP reset (a rebooted gateway), not an orderly close
     wire_baud: float | None = None  # emulate the wire time of request + reply at this baud rate (8N1)
+    mutate: Callable[[bytes], bytes] | None = None  # rewrite every reply (fuzzing the drivers): b"" sends nothing
     rng: np.random.Generator = field(default_factory=lambda: np.random.default_rng(0))
     clock: Callable[[], float] | None = None  # the rig clock, for schedule(at_time=...)
     replies: int = field(default=0, init=False)
@@ -100,7 +101,7 @@ class Faults:
         with self._lock:
             self._armed.clear()
             self.latency, self.mute, self.garble_next, self.garble_index = 0.0, False, 0, None
-            self.drop, self.drop_reset, self.wire_baud = False, False, None
+            self.drop, self.drop_reset, self.wire_baud, self.mutate = False, False, None, None
 
     def tick(self, replying: bool = False) -> None:
         """Apply scheduled switches whose moment has come. Transports call this while idle (time schedules)
@@ -143,6 +144,12 @@ class Faults:
                 buf[i] ^= 0x5A
                 reply = bytes(buf)
                 kinds.append("garble")
+            if self.mutate is not None:
+                reply = self.mutate(reply)
+                kinds.append("mutate")
+                if not reply:
+                    self.note(*kinds)
+                    return None, 0.0
             delay = self.latency
             if delay > 0:
                 kinds.append("latency")

@@ -69,3 +69,32 @@ def test_harness_kills_and_counts_hangs(monkeypatch: pytest.MonkeyPatch) -> None
     c = run_fuzz(2, 1, seed=1, limit=0.3).counts
     assert c["hang"] == 3 and c["files"] == 3
     assert time.monotonic() - t0 < 20
+
+
+def test_short_wire_fuzz_twins_survive_frames_and_drivers_survive_replies() -> None:
+    """Issue 8: random and mutated frames to every twin (Modbus on RTU and TCP), mutated replies to every
+    driver — no twin dies, every driver returns a finite reading or a named driver error, and all recover.
+    The long run is ``python -m bench.fuzz_wire --frames N --replies N``."""
+    from bench.fuzz_wire import Tally, fuzz_frames, fuzz_replies
+
+    tally = Tally()
+    fuzz_frames(10, 5, tally)
+    fuzz_replies(10, 5, tally)
+    assert tally.failures() == 0, tally.examples
+    for role in ("amplifier", "laser", "motor", "load_cell", "daq"):
+        assert tally.counts[role]["refused"] > 0, role  # the mutated replies did reach the driver
+    assert sum(c["sent"] for who, c in tally.counts.items() if who.endswith("frames")) >= 60
+
+
+def test_wire_fuzz_counts_an_exception_that_is_not_a_driver_error(monkeypatch: pytest.MonkeyPatch) -> None:
+    import bench.fuzz_wire as fw
+
+    def broken() -> float:
+        raise KeyError("not a driver error")
+
+    monkeypatch.setattr(fw, "RIGS", ("thesis-sim",))
+    monkeypatch.setattr(fw, "_reads", lambda inst: {"laser": broken})
+    tally = fw.Tally()
+    fw.fuzz_replies(3, 1, tally)
+    assert tally.counts["laser"]["traceback"] == 3 and tally.counts["laser"]["no recovery"] == 1
+    assert tally.failures() == 4

@@ -187,6 +187,17 @@ class SimRig:
                 out[bus.name] = Endpoint(bus.name, proto, bus.endpoint, ", ".join(units))
         return out
 
+    def twin_errors(self) -> list[str]:
+        """Exceptions a twin raised while serving (a twin must answer or ignore any bytes, never die)."""
+        out = [f"{role}: {dev.error!r}" for role, dev in self._serial.items() if dev.error is not None]
+        out += [f"{role}: twin thread stopped" for role, dev in self._serial.items()
+                if dev.error is None and not dev._thread.is_alive()]
+        if self._modbus is not None:
+            out += [f"bus {b.name}: {b.pty.error!r}" for b in self._modbus.buses if b.pty is not None and b.pty.error]
+        daq = self.twins.get("daq")
+        out += [f"daq: {e!r}" for e in getattr(daq, "errors", [])]
+        return out
+
     def port_map(self) -> dict[str, str]:
         """Role / bus name → port, for :func:`bench.runtime.instruments.build_instruments`."""
         return {name: ep.address for name, ep in self.endpoints().items()}
