@@ -19,9 +19,12 @@ from bench.core.plant import TREK_DATASHEET, AmplifierSpec, HVStage, Plant
 from bench.models.lozenge import LozengeParams, MaxwellBranch
 from bench.models.membrane import MembraneParams
 from bench.tomlfile import one_line, read_toml
-from drivers.keyence import STORAGE_CAPACITY
 
 STANDARD_GRAVITY_M_PER_S2 = 9.80665  # CGPM 1901 (the load cell's kg → N)
+# LK-G data storage per OUT [points] when the rig file does not say: not from a manual page we could read
+# (assumed; the LK-G5000 figure is the largest count the 6-digit setting carries). Set storage_points to the
+# controller's figure on a real rig.
+LKG_STORAGE_POINTS = {"LK-G3000": 65_536, "LK-G5000": 999_999}
 
 
 class _Strict(BaseModel):
@@ -77,10 +80,9 @@ class LaserConfig(_Strict):
 
     @property
     def capacity(self) -> int:
-        """Points the controller stores per OUT for a run: storage_points, or the model's capacity (its driver's
-        table) — the rig file is where the application learns instrument facts, so protocol compilation needs no
-        driver."""
-        return self.storage_points or STORAGE_CAPACITY[self.model]
+        """Points the controller stores per OUT for a run: storage_points, or the model's assumed capacity — the
+        rig file is where the application learns instrument facts, so protocol compilation needs no driver."""
+        return self.storage_points or LKG_STORAGE_POINTS[self.model]
 
 
 class MotorConfig(_Strict):

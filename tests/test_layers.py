@@ -138,3 +138,9 @@ def test_the_engine_polls_through_the_poll_table_not_by_instrument() -> None:
     assert "POLLS" in engine
     names = [p.name for p in POLLS]
     assert len(set(names)) == len(names) and {"monitors", "position", "force", "laser"} <= set(names)
+
+
+def test_protocol_compilation_reaches_no_driver_even_through_the_rig_file() -> None:
+    """bench/protocol imports bench.rig (the rig file); that module takes no driver table either."""
+    found = [m for m in imported_modules(ROOT / "bench" / "rig.py") if m == "drivers" or m.startswith("drivers.")]
+    assert not found, found

@@ -130,7 +130,7 @@ def _rest(rig: RigConfig, inst: Instruments, ep: dict[str, str], clock: ClockFn,
     """The laser, motor and load cell drivers."""
     if (lz := rig.laser) is not None:
         inst.laser = KeyenceLKG(serial(ep.get("laser", lz.port), "laser", lz.baudrate, lz.timeout_s),
-                                model=lz.model, out=lz.out, clock=clock, storage_points=lz.storage_points)
+                                model=lz.model, out=lz.out, clock=clock, storage_points=lz.capacity)
     if (m := rig.motor) is not None:
         inst.motor = LinMotDrive(serial(ep.get("motor", m.port), "motor", m.baudrate, m.timeout_s),
                                  drive_id=m.drive_id, travel=m.travel_m, max_velocity=m.max_velocity_m_per_s,
