@@ -1,2 +1,18 @@
 """`bench benchmark`: the integrators (main), acquisition through the drivers, hardware-timed rigs (daq), whole runs
 (run) and the fitter (fit)."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+
+def best_of(fn: Callable[[], object], repeats: int = 3) -> float:
+    """Best wall time of ``repeats`` calls [s], after one call that is not timed (JIT compilation / cache load)."""
+    fn()
+    best = float("inf")
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t0)
+    return best

@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 from scipy.integrate import solve_ivp
 
+from bench.benchmarks import best_of
 from bench.benchmarks.acquisition import Figure
 from bench.identify.core import FitSettings, fit
 from bench.identify.problems import LozengeProblem, MembraneProblem
@@ -66,22 +67,12 @@ def _generic_candidate(prob: MembraneProblem, z: np.ndarray) -> np.ndarray:
     return t.L_d * (sol.y[0] - t.lambda_pre)  # type: ignore[union-attr]
 
 
-def _best_of(fn, repeats: int = 3) -> float:  # type: ignore[no-untyped-def]
-    fn()  # JIT warm-up / cache load
-    best = float("inf")
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        best = min(best, time.perf_counter() - t0)
-    return best
-
-
 def candidate_speed(prob: MembraneProblem, generic_candidates: int) -> list[Figure]:
     """Per-candidate time in one DE generation of 50: vectorised kernel vs reference kernel vs generic scipy."""
     rng = np.random.default_rng(3)
     Z = prob.lower + (prob.upper - prob.lower) * rng.random((50, len(prob.names)))
-    new = _best_of(lambda: prob.predict(Z)) / Z.shape[0]
-    old = _best_of(lambda: prob.predict_reference(Z)) / Z.shape[0]
+    new = best_of(lambda: prob.predict(Z)) / Z.shape[0]
+    old = best_of(lambda: prob.predict_reference(Z)) / Z.shape[0]
     # the generic path on the specimen's own parameters (thesis Table 4.4): a candidate near the optimum;
     # random candidates with very short relaxation times are stiffer and take it far longer
     t0 = time.perf_counter()
@@ -141,8 +132,8 @@ def _lsdea_generation(prob: LozengeProblem) -> tuple[int, float, float]:
     P = np.stack([replace(prob.params_of(z), lambda2p=lam2p, hung_mass=mass).pack(mode) for z in Z])
     Y0 = np.tile(rec.y0, (Z.shape[0], 1))
     channel = 0 if mode == MODE_HUNG else -1
-    new = _best_of(lambda: lozenge_batch(P, Y0, rec.U, prob.h, channel, rec.stride)) / Z.shape[0]
-    old = _best_of(lambda: run_fixed_batch(MODEL_LOZENGE, Y0, rec.U, prob.h, P, channel, rec.stride)) / Z.shape[0]
+    new = best_of(lambda: lozenge_batch(P, Y0, rec.U, prob.h, channel, rec.stride)) / Z.shape[0]
+    old = best_of(lambda: run_fixed_batch(MODEL_LOZENGE, Y0, rec.U, prob.h, P, channel, rec.stride)) / Z.shape[0]
     return mode, new, old
 
 

@@ -6,13 +6,13 @@ Each figure is simulated time divided by wall time ("× real time"), best of ``r
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
 import numba
 import numpy as np
 
+from bench.benchmarks import best_of
 from bench.models.lozenge import LozengeParams
 from bench.models.lozenge_runs import LozengeStream, simulate_lozenge
 from bench.models.membrane import MembraneParams
@@ -42,16 +42,6 @@ class BenchResult:
         return self.speed >= self.target
 
 
-def _best(fn: Callable[[], object], repeats: int) -> float:
-    fn()  # warm-up: JIT compilation / cache load is not part of the figure
-    best = float("inf")
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        best = min(best, time.perf_counter() - t0)
-    return best
-
-
 def thesis_offline(repeats: int = 5) -> list[BenchResult]:
     """Thesis base case (7 kV, 1/9 Hz, 296 K, 20 s), states at 10 kHz: the compiled Rosenbrock integrator
     (default of ``simulate_membrane``) against the reference-style scipy Radau with analytic Jacobian, in the
@@ -62,12 +52,12 @@ def thesis_offline(repeats: int = 5) -> list[BenchResult]:
     ref = integrate_membrane(p, w, t, method="radau", rtol=1e-10)[0][:, 0]
     err_new = float(np.max(np.abs(integrate_membrane(p, w, t)[0][:, 0] - ref)))
     err_old = float(np.max(np.abs(integrate_membrane(p, w, t, method="radau")[0][:, 0] - ref)))
-    wall_new = _best(lambda: integrate_membrane(p, w, t), repeats)
-    wall_old = _best(lambda: integrate_membrane(p, w, t, method="radau"), repeats)
+    wall_new = best_of(lambda: integrate_membrane(p, w, t), repeats)
+    wall_old = best_of(lambda: integrate_membrane(p, w, t, method="radau"), repeats)
     ratio = wall_old / wall_new
     verdict = "ok" if ratio >= OFFLINE_RATIO_TARGET and err_new <= 1e-6 else "BELOW TARGET"
-    sim_new = _best(lambda: simulate_membrane(p, w, 20.0, fs=10_000.0), repeats)
-    sim_old = _best(lambda: simulate_membrane(p, w, 20.0, fs=10_000.0, method="radau"), repeats)
+    sim_new = best_of(lambda: simulate_membrane(p, w, 20.0, fs=10_000.0), repeats)
+    sim_old = best_of(lambda: simulate_membrane(p, w, 20.0, fs=10_000.0, method="radau"), repeats)
     return [BenchResult(f"thesis base case, offline integrator: compiled Rodas3, states at 10 kHz, max|Δλ| "
                         f"{err_new:.1e}; {ratio:.1f}× the Radau path (target ≥ {OFFLINE_RATIO_TARGET:g}× at "
                         f"≤ 1e-6: {verdict})", 20.0, wall_new),
@@ -88,7 +78,7 @@ def thesis_streaming(repeats: int = 3) -> BenchResult:
         for v in phi:
             step(v)
 
-    return BenchResult("thesis base case, streaming (one call per 100 µs sample)", 20.0, _best(run, repeats), 100.0)
+    return BenchResult("thesis base case, streaming (one call per 100 µs sample)", 20.0, best_of(run, repeats), 100.0)
 
 
 def thesis_streaming_block(repeats: int = 5) -> BenchResult:
@@ -101,7 +91,7 @@ def thesis_streaming_block(repeats: int = 5) -> BenchResult:
         for block in phi:
             s.advance(block)
 
-    return BenchResult("thesis base case, streaming in 0.1-s blocks", 20.0, _best(run, repeats))
+    return BenchResult("thesis base case, streaming in 0.1-s blocks", 20.0, best_of(run, repeats))
 
 
 def lsdea_isotonic_streaming(repeats: int = 3) -> BenchResult:
@@ -115,7 +105,7 @@ def lsdea_isotonic_streaming(repeats: int = 3) -> BenchResult:
         for v in V:
             step(v)
 
-    return BenchResult("LS-DEA isotonic, streaming (one call per 100 µs sample)", 15.0, _best(run, repeats), 100.0)
+    return BenchResult("LS-DEA isotonic, streaming (one call per 100 µs sample)", 15.0, best_of(run, repeats), 100.0)
 
 
 def lsdea_isopotential_offline(repeats: int = 3) -> BenchResult:
@@ -131,7 +121,7 @@ def lsdea_isopotential_offline(repeats: int = 3) -> BenchResult:
     def volts(t: np.ndarray) -> np.ndarray:
         return np.full_like(t, 7000.0)
 
-    wall = _best(lambda: simulate_lozenge(p, "imposed", volts, 20.0, position=pos, velocity=vel), repeats)
+    wall = best_of(lambda: simulate_lozenge(p, "imposed", volts, 20.0, position=pos, velocity=vel), repeats)
     return BenchResult("LS-DEA isopotential 20 s, fixed-step block (10 kHz output)", 20.0, wall)
 
 
