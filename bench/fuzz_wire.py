@@ -202,7 +202,7 @@ def _frames_to(address: str, frames: list[bytes], line_noise_end: bytes) -> None
                 port.write(frame)
             port.read(4096)
         port.write(line_noise_end)
-        time.sleep(0.01)  # silence: the end of any RTU frame
+        time.sleep(0.03)  # silence: the end of any RTU frame, a LinRS receive timeout
         port.read(4096)
 
 

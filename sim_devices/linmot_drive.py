@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import struct
 import threading
+import time
 
 from bench.core.clock import Clock
 from bench.core.motion import MotionProfile
@@ -27,6 +28,11 @@ MAIN_RESPONSE = 0x00  # request Sub 01h: "return default response" (manual examp
 MAIN_CONTROL_WORD = 0x01  # Sub 00h, 2-byte control word (manual "Write Control Word" example)
 MAIN_MOTION_COMMAND = 0x02  # Sub 00h, header + parameters (manual "Write Motion Command Interface" example)
 COMM_OK = 0x00
+# A telegram left incomplete for this long (wall time) is discarded before new bytes are taken. [chosen: the
+# LinRS pages read do not say how the drive resynchronises after line noise; a receive timeout is what a UART
+# protocol without a length-independent delimiter needs, and a host writes a telegram in one go, so a pause
+# inside one only follows noise]
+RX_IDLE_RESET_S = 0.02
 COMM_UNKNOWN_MESSAGE = 0x01  # [assumed] the manual pages read do not list communication-state codes
 POS_UNIT = 1e-7  # m per count: positions SInt32 in 0.1 µm (MC-SW §4.3.9)
 VEL_UNIT = 1e-6  # m/s per count (MC-SW §4.3.9)
@@ -108,6 +114,7 @@ class LinMotDriveSim:
         self._decel = 1.0
         self._t_state = 0.0  # when the current timed state (5 HW tests, 9 homing) began
         self._buf = b""
+        self._rx_at = 0.0  # wall time of the last bytes received
         self._lock = threading.Lock()
 
     # ------------------------------------------------------------ faults
@@ -287,6 +294,10 @@ class LinMotDriveSim:
 
     def __call__(self, data: bytes) -> bytes:
         """Feed received bytes; returns the responses to all complete telegrams."""
+        now = time.monotonic()
+        if self._buf and now - self._rx_at > RX_IDLE_RESET_S:
+            self._buf = b""  # an incomplete telegram after a pause: noise, discarded
+        self._rx_at = now
         self._buf += data
         out = b""
         while True:
@@ -306,7 +317,8 @@ class LinMotDriveSim:
                 break
             frame, self._buf = self._buf[:total], self._buf[total:]
             if frame[-1] != ETX or frame[3] != DATA_START:
-                continue  # framing error: discarded, the master times out
+                self._buf = frame[1:] + self._buf  # framing error: not a telegram start, look for the next one
+                continue
             if self.checksum:
                 body_end = 3 + length
                 if crc16_ccitt_reflected(frame[3:body_end]) != struct.unpack("<H", frame[body_end:body_end + 2])[0]:

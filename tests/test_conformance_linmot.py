@@ -200,3 +200,16 @@ def test_wire_time_at_the_drive_baud_rate_advances_a_virtual_clock() -> None:
         port.close()
     finally:
         sim.stop()
+
+
+def test_the_drive_resynchronises_after_line_noise(drive: Drive) -> None:
+    """The pages read do not say how the drive recovers from noise (chosen, sim_devices/linmot_drive.py): an
+    incomplete telegram is dropped after a 20-ms pause, and bytes that fail the framing are skipped one at a
+    time until a telegram start is found — so a poll after noise is answered (found by bench.fuzz_wire)."""
+    import time
+
+    drive.port.write(bytes.fromhex("01 11 3C 02"))  # a header announcing 60 data bytes, then silence
+    time.sleep(0.05)
+    assert drive.send(POLL) == reply(0x0040, 0x0000)
+    noise = bytes.fromhex("01 22 05 99 00")  # a plausible start whose frame fails (no 02h data start, no 04h end)
+    assert drive.send(noise + POLL) == reply(0x0040, 0x0000)
