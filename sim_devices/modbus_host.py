@@ -40,7 +40,7 @@ from sim_devices.modbus_devices import (
     ModbusException,
     ModbusModule,
 )
-from sim_devices.transport import Faults, Line, PtyDevice, SocketRelay, pty_hop_latency
+from sim_devices.transport import Faults, Line, PtyDevice, SocketRelay
 
 GATEWAY_NO_RESPONSE = 0x0B  # "Gateway Target Device Failed to Respond"
 RTU_GAP_CHARS = 3.5
@@ -246,9 +246,8 @@ class ModbusHost:
         for bus in self.buses:
             if bus.transport == "rtu":
                 bus.pty = PtyDevice(bus.rtu, bus.name, bus.faults).start()
-                line = bus.line
-                if line is not None and line.baud and not line.clock.virtual:
-                    line.hop = pty_hop_latency()  # the bus's frames cross the pty, not a wire
+                if bus.line is not None:
+                    bus.line.crosses_pty()  # the bus's frames cross the pty, not a wire
                 bus.endpoint = bus.pty.path
         socket_buses = [b for b in self.buses if b.transport != "rtu"]
         if not socket_buses:

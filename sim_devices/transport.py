@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import os
 import select
 import socket
@@ -239,30 +240,34 @@ class Line:
             self._free = end + self.gap
         self._until(end - self.hop)  # the last byte reaches the host a hop after it is written
 
+    def crosses_pty(self) -> None:
+        """This line's bytes cross a pty (wall clock, wire time on): take the pty's hop out of the wire time."""
+        if self.baud and not self.clock.virtual:
+            self.hop = pty_hop_latency()
+
     def silent(self, wait: float) -> None:
         """Nobody answers: the wire stays idle for ``wait`` s (e.g. a gateway's response timeout)."""
         self._until(self.clock.now() + wait)
 
 
-_HOP: list[float] = []
+HOP_SAMPLES = 30
 
 
-def pty_hop_latency(samples: int = 30) -> float:
+@functools.cache
+def pty_hop_latency() -> float:
     """A lower bound of the time from one thread writing a pty to another thread blocked on it waking with
-    the bytes [s] (the minimum of ``samples`` measurements, taken once per process).
+    the bytes [s] (the minimum of ``HOP_SAMPLES`` measurements, taken once per process).
 
     A twin sees a request only after this hop and its reply reaches the host only after it again; a real wire
     has no such hop (the UART starts shifting at the write). Taking the *minimum* out of the emulated wire
     time keeps the twin from being faster than the wire model on a quiet machine and makes it no kinder on a
     busy one (the actual hop is then longer)."""
-    if _HOP:
-        return _HOP[0]
     master, slave, _ = _open_raw_pty()
     woke: list[float] = []
     ready = threading.Event()
 
     def reader() -> None:
-        for _ in range(samples):
+        for _ in range(HOP_SAMPLES):
             ready.set()
             select.select([master], [], [], 1.0)
             woke.append(time.perf_counter())
@@ -272,7 +277,7 @@ def pty_hop_latency(samples: int = 30) -> float:
     sent: list[float] = []
     try:
         thread.start()
-        for _ in range(samples):
+        for _ in range(HOP_SAMPLES):
             ready.wait(1.0)
             ready.clear()
             time.sleep(2e-4)  # let the reader block in select
@@ -286,8 +291,7 @@ def pty_hop_latency(samples: int = 30) -> float:
             with contextlib.suppress(OSError):
                 os.close(fd)
     hops = [w - t for w, t in zip(woke, sent, strict=False) if w > t]
-    _HOP.append(min(hops) if hops else 0.0)
-    return _HOP[0]
+    return min(hops) if hops else 0.0
 
 
 def _open_raw_pty() -> tuple[int, int, str]:
@@ -311,8 +315,8 @@ class PtyDevice:
         self.name = name
         self.faults = faults or Faults()
         self.line = line
-        if line is not None and line.baud and not line.clock.virtual:
-            line.hop = pty_hop_latency()
+        if line is not None:
+            line.crosses_pty()
         self._master, self._slave, self.path = _open_raw_pty()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name=f"sim-{name}", daemon=True)
