@@ -364,6 +364,11 @@ class PtyDevice:
                 os.close(fd)
         self._master = self._slave = -1
 
+    @property
+    def alive(self) -> bool:
+        """Whether the serving thread still runs."""
+        return self._thread.is_alive()
+
     def stop(self) -> None:
         """Stop serving and close the pty."""
         self._stop.set()

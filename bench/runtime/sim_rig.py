@@ -191,7 +191,7 @@ class SimRig:
         """Exceptions a twin raised while serving (a twin must answer or ignore any bytes, never die)."""
         out = [f"{role}: {dev.error!r}" for role, dev in self._serial.items() if dev.error is not None]
         out += [f"{role}: twin thread stopped" for role, dev in self._serial.items()
-                if dev.error is None and not dev._thread.is_alive()]
+                if dev.error is None and not dev.alive]
         if self._modbus is not None:
             out += [f"bus {b.name}: {b.pty.error!r}" for b in self._modbus.buses if b.pty is not None and b.pty.error]
         daq = self.twins.get("daq")
