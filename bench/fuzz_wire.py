@@ -43,7 +43,9 @@ SEEDS: dict[str, tuple[bytes, ...]] = {
     "rtu": (bytes.fromhex("01 03 00 00 00 01 84 0A"), bytes.fromhex("02 03 00 00 00 02 C4 38"),
             bytes.fromhex("01 06 00 00 08 00 8F DB")),
     "tcp": (bytes.fromhex("00 01 00 00 00 06 01 03 00 00 00 01"),
-            bytes.fromhex("00 02 00 00 00 06 01 10 00 00 00 00")),
+            bytes.fromhex("00 02 00 00 00 06 01 10 00 00 00 00"),
+            # LabJack MBFB (function 76): write DAC0 ← 2.0 V, read it back, read PRODUCT_ID
+            bytes.fromhex("00 03 00 00 00 12 01 4c 01 03 e8 02 40 00 00 00 00 03 e8 02 00 ea 60 02")),
 }
 
 

@@ -26,7 +26,14 @@ low-level TCP stream example; [A] = assumed, to check on a real T7.
   4060+2n, _SET_LOOP 4070+2n (1 = use new data now), _BUFFER_STATUS 4080+2n, _ENABLE 4090+2n,
   _BUFFER_U16 4420+n; order: target, allocate, enable, loop size, data, set-loop; after the data the last
   LOOP_NUM_VALUES values repeat (1: the output holds the end value exactly).
-* [A] a buffer register takes k values in one FC16 of k registers at its address (≤ 120 per request here).
+* [A] a buffer register takes k values in one FC16 of k registers at its address (≤ 120 per request here),
+  or in one Modbus Feedback write frame of k registers at its address.
+* [D] Modbus Feedback (MBFB), function 76: after the function code, frames of type (1 byte: 0 read, 1 write),
+  address (2), number of registers (1), then for a write 2·n data bytes; the reply carries the function code
+  and the read frames' data in order. [D] T7 Ethernet packets ≤ 1040 bytes (LabJackM.h,
+  LJM_MAX_ETHERNET_PACKET_NUM_BYTES_T7). [A] an error is answered as a Modbus exception (function 0xCC and a
+  code, anything after it ignored); the stream-out buffer is topped up through MBFB (510 values a packet, not
+  120 — four times fewer exchanges per second of waveform).
 * [E] packet: TransID(2) ProtoID(2)=0 Length(2) Unit(1)=1 Function(1)=76 Type(1)=16 Reserved(1)
   Backlog(2, bytes) Status(2) AddInfo(2), then samples (2 bytes, MSB first, scan-list order, STREAM_OUT
   entries excluded); TransID 0 at STREAM_ENABLE, +1 per packet. [A] Length = 10 + 2·samples (MBAP rule).
@@ -66,6 +73,7 @@ from dataclasses import dataclass, field
 from typing import TypeVar
 
 import numpy as np
+from pymodbus.pdu import ModbusPDU
 
 from drivers.cancel import CancelToken, check
 from drivers.errors import (
@@ -107,6 +115,12 @@ MAX_SAMPLES_PER_PACKET = 512  # TCP [example: STREAM_MAX_SAMPLES_PER_PACKET_TCP]
 MAX_OUT_BUFFER_BYTES = 16384  # T7 [register map]
 MAX_STREAM_BUFFER_BYTES = 32768  # T7 [register map]
 WRITE_REGS = 120  # registers per FC16 (Modbus limit 123)
+MBFB_FUNCTION = 76  # [D] Modbus Feedback
+MBFB_MAX_BYTES = 1040  # [D] T7 Ethernet packet, MBAP header included
+MBFB_HEADER_BYTES = 8  # MBAP (7) + function code
+MBFB_FRAME_BYTES = 4  # type, address, number of registers
+MBFB_FRAME_REGS = 255  # the number of registers is one byte
+OUT_PACKET_VALUES = 2 * MBFB_FRAME_REGS  # stream-out values one MBFB packet carries (two full frames)
 DAC_RANGE = (0.0, 5.0)  # V [datasheet: T7 DACs 0–5 V]
 DUMMY = 0xFFFF
 ST_OK, ST_RECOVER_ACTIVE, ST_RECOVER_END, ST_SCAN_OVERLAP, ST_RECOVER_OVERFLOW, ST_BURST_COMPLETE, \
@@ -124,6 +138,46 @@ ERRORS = {
     ST_SCAN_OVERLAP: "STREAM_SCAN_OVERLAP", ST_RECOVER_OVERFLOW: "STREAM_AUTO_RECOVER_END_OVERFLOW",
     ST_BURST_COMPLETE: "STREAM_BURST_COMPLETE", ST_BUFFER_FULL: "STREAM_BUFFER_FULL",
 }
+
+
+class Feedback(ModbusPDU):
+    """LabJack Modbus Feedback (MBFB, function 76) packet: write frames (address, registers) in order; its reply
+    (decoded by the same class) carries the read frames' data, none for a write-only packet."""
+
+    function_code = MBFB_FUNCTION
+
+    def __init__(self, writes: tuple[tuple[int, list[int]], ...] = (), dev_id: int = 0,
+                 transaction_id: int = 0) -> None:
+        super().__init__(dev_id=dev_id, transaction_id=transaction_id)
+        self.writes = writes
+        self.data = b""
+
+    def encode(self) -> bytes:
+        """Write frames: 1, address, n, n registers (big-endian)."""
+        return b"".join(struct.pack(f">BHB{len(w)}H", 1, a, len(w), *w) for a, w in self.writes)
+
+    def decode(self, data: bytes) -> None:
+        """The reply: the data of the read frames (none here)."""
+        self.data = bytes(data)
+
+
+def feedback_packets(writes: list[tuple[int, list[int]]]) -> list[tuple[tuple[int, list[int]], ...]]:
+    """Pack register writes, in order, into MBFB packets of at most :data:`MBFB_MAX_BYTES`; a write longer than a
+    frame holds goes in several frames at the same address (for a buffer register: the values in order)."""
+    frames = [(a, w[i:i + MBFB_FRAME_REGS]) for a, w in writes for i in range(0, len(w), MBFB_FRAME_REGS)]
+    packets: list[tuple[tuple[int, list[int]], ...]] = []
+    cur: list[tuple[int, list[int]]] = []
+    size = MBFB_HEADER_BYTES
+    for a, w in frames:
+        need = MBFB_FRAME_BYTES + 2 * len(w)
+        if cur and size + need > MBFB_MAX_BYTES:
+            packets.append(tuple(cur))
+            cur, size = [], MBFB_HEADER_BYTES
+        cur.append((a, w))
+        size += need
+    if cur:
+        packets.append(tuple(cur))
+    return packets
 
 
 def f32_words(x: float) -> list[int]:
@@ -347,6 +401,7 @@ class LabJackT7:
         self.dac_bits = dac_bits
         self.watchdog_s = watchdog_s
         self.link = ModbusLink(f"tcp://{host}:{port}", name, timeout=timeout, cancel=cancel)
+        self.link.register(Feedback)
         self.cal = Calibration.nominal()
         self.serial = 0
         self._stream: _Stream | None = None
@@ -372,6 +427,13 @@ class LabJackT7:
     def write_regs(self, address: int, values: list[int]) -> None:
         """Write registers from ``address`` (FC16)."""
         self._lj(f"write {address}+{len(values)}", self.link.write_registers, address, values)
+
+    def write_feedback(self, writes: list[tuple[int, list[int]]]) -> None:
+        """Write registers in order through as few Modbus Feedback packets as hold them (:func:`feedback_packets`)."""
+        for packet in feedback_packets(writes):
+            n = sum(len(w) for _, w in packet)
+            self._lj(f"feedback write of {n} registers at {packet[0][0]}", self.link.execute,
+                     Feedback(packet))
 
     def read_f32(self, address: int) -> float:
         """One FLOAT32 register pair."""
@@ -534,7 +596,7 @@ class LabJackT7:
         if not rate > 0:
             raise ProtocolError(self.name, f"device reports scan rate {rate}")
         names = tuple(i.name or f"AIN{i.ain}" for i in spec.inputs)
-        interval = (capacity - WRITE_REGS) / rate / 2 if out is not None else math.inf
+        interval = (capacity - OUT_PACKET_VALUES) / rate / 2 if out is not None else math.inf
         plan = StreamPlan(rate, 1.0 / rate, names, scan_list, spp, codes, volts, capacity, interval)
         self._stream = _Stream(plan, spec, n_in, gains, out_closed=out is None or out.final)
         if out is not None:
@@ -557,21 +619,20 @@ class LabJackT7:
         if self.streaming and s.scans > s.out_written:  # the device ran past the data it had
             s.underrun_scans = s.scans - s.out_written
         free = s.plan.out_capacity - (s.out_written - played)
-        before = s.out_written
-        while free > 0 and s.out_written < total:
-            n = min(WRITE_REGS, free, total - s.out_written)
-            if n < WRITE_REGS and s.out_written + n < total:
-                break  # wait until a whole request fits
-            k = s.out_written - s.out_base
-            self.write_regs(OUT_BUFFER_U16_0, [int(c) for c in codes[k:k + n]])
-            s.out_written += n
-            free -= n
+        n = min(free, total - s.out_written)
+        if n < OUT_PACKET_VALUES and s.out_written + n < total:
+            return  # wait until a whole packet fits
+        k = s.out_written - s.out_base
+        writes = [(OUT_BUFFER_U16_0, codes[k:k + n].tolist())] if n > 0 else []
+        s.out_written += max(n, 0)
         if s.out_written == total and s.out_closed:
             assert s.spec.output is not None
-            self.write_u32(OUT_LOOP0, s.spec.output.hold)
+            writes.append((OUT_LOOP0, u32_words(s.spec.output.hold)))
             s.out_final = True
-        if s.out_written > before:
-            self.write_u32(OUT_SET_LOOP0, 1)
+        if n > 0:
+            writes.append((OUT_SET_LOOP0, u32_words(1)))
+        if writes:
+            self.write_feedback(writes)
 
     def _checked_out(self, volts: np.ndarray, dac: int) -> np.ndarray:
         """Stream-out values as floats, refused (nothing sent) unless a non-empty finite 1-D array the DAC spans."""

@@ -277,6 +277,16 @@ class ModbusLink:
         elif fc == 16 and (resp.address, resp.count) != (request.address, request.count):
             raise ProtocolError(self.device, f"unit {unit} echoed {resp.address}+{resp.count} to {what}")
 
+    def register(self, pdu: type[ModbusPDU]) -> None:
+        """Teach the client a device's own function code (its reply is decoded by ``pdu``)."""
+        self._client.register(pdu)
+
+    def execute(self, unit: int, request: ModbusPDU) -> ModbusPDU:
+        """Run a request of a function taught by :meth:`register`, with the link's retries and reply checks
+        (function code, device, transaction id; an exception reply is an :class:`InstrumentStateError`)."""
+        request.dev_id = unit
+        return self._call(f"function {request.function_code}", unit, request)
+
     def read_holding(self, unit: int, address: int, count: int = 1) -> list[int]:
         """FC3 read of ``count`` holding registers at 0-based ``address``."""
         req = ReadHoldingRegistersRequest(address=address, count=count, dev_id=unit)

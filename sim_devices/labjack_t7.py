@@ -27,6 +27,11 @@ Written from the T-Series Datasheet and LabJack's low-level stream example, inde
   skipped, and starts with one dummy scan of 0xFFFF.
 * [A] burst (STREAM_NUM_SCANS > 0): the rest goes in a last, possibly short packet with status 2944, then the
   stream stops; on STREAM_ENABLE = 0 a partial packet is discarded.
+* [D] Modbus Feedback (MBFB), function 76: frames of type (0 read, 1 write), address (2 bytes), number of
+  registers (1), write data; processed in order as FC3 reads / FC16 writes; the reply is the function code and
+  the read frames' data in order. [D] a packet is at most 1040 bytes (T7 Ethernet). [A] a longer packet, an
+  unknown frame type or a cut frame is refused with exception 3 (illegal data value); a frame the registers
+  refuse ends the packet with that frame's exception (the frames before it took effect).
 * [E] calibration in flash at 0x3C4000 (41 F32); pointer 61810, read buffer 61812 ([A] the pointer advances).
 * [L] command-response stream (STREAM_AUTO_TARGET ≠ 1: 2612), output-only streams and a STREAM_OUT# twice
   in one scan list (2607) are not simulated; a command-response write to a DAC that stream-out drives
@@ -49,8 +54,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from pymodbus.constants import ExcCodes
+from pymodbus.datastore import ModbusServerContext
+from pymodbus.pdu import ExceptionResponse, ModbusPDU
 from pymodbus.server import ModbusTcpServer
+from pymodbus.server.requesthandler import ServerRequestHandler
 from pymodbus.simulator import DataType, SimData, SimDevice
+from scipy.signal import lfilter
 
 from bench.core.clock import Clock
 from bench.core.plant import Plant, PlantBlock
@@ -75,6 +84,7 @@ E_ACTIVE, E_CHN_LIST, E_RATE, E_DTYPE, E_TARGET, E_OUT_FULL, E_BUFSIZE, E_OUT_DN
     E_LOOP_BIG, E_OUT_DISABLED, E_NO_CHN, E_OUT_TARGET = (
         2605, 2607, 2608, 2611, 2612, 2613, 2615, 2617, 2618, 2620, 2622, 2627, 2600, 2614)
 S_RECOVER, S_RECOVER_END, S_BURST = 2940, 2941, 2944
+FC_FEEDBACK, FEEDBACK_MAX_PACKET = 76, 1040  # [D] MBFB; T7 Ethernet packet bytes (MBAP header included)
 MAX_SAMPLE_RATE = 100_000.0
 RANGE_GAIN = {0.0: 0, 10.0: 0, 1.0: 1, 0.1: 2, 0.01: 3}
 F32, U32, U16 = "f32", "u32", "u16"
@@ -87,6 +97,70 @@ def nominal_calibration() -> list[float]:
         k = 10.0 ** -g
         hs += [0.000315805780 * k, -0.000315805800 * k, 33523.0, -10.58695652200 * k]
     return hs + hs + [13200.0, 0.0, 13200.0, 0.0, -92.379, 465.129, 10e-6, 200e-6, 0.0]
+
+
+class FeedbackPDU(ModbusPDU):
+    """MBFB as the T7 serves it: the request's frames, run in order through the device's registers."""
+
+    function_code = FC_FEEDBACK
+
+    def __init__(self, dev_id: int = 0, transaction_id: int = 0) -> None:
+        super().__init__(dev_id=dev_id, transaction_id=transaction_id)
+        self.frames: list[tuple[int, int, int, list[int]]] = []  # (type, address, registers, write words)
+        self.malformed = False
+        self.reply = b""
+
+    def decode(self, data: bytes) -> None:
+        """Frames from the bytes after the function code; malformed unless they split exactly."""
+        i, n = 0, len(data)
+        self.malformed = n + 8 > FEEDBACK_MAX_PACKET or n == 0
+        while i < n and not self.malformed:
+            if i + 4 > n or data[i] not in (0, 1):
+                self.malformed = True
+                break
+            kind, address, count = data[i], int.from_bytes(data[i + 1:i + 3], "big"), data[i + 3]
+            i += 4
+            words: list[int] = []
+            if kind == 1:
+                if i + 2 * count > n:
+                    self.malformed = True
+                    break
+                words = list(struct.unpack(f">{count}H", data[i:i + 2 * count]))
+                i += 2 * count
+            self.frames.append((kind, address, count, words))
+
+    def encode(self) -> bytes:
+        """The reply: the read frames' data."""
+        return self.reply
+
+    async def datastore_update(self, context: ModbusServerContext, device_id: int) -> ModbusPDU:
+        """Each frame as an FC3 read or FC16 write of the device's registers, in order."""
+        if self.malformed:
+            return ExceptionResponse(FC_FEEDBACK, ExcCodes.ILLEGAL_VALUE)
+        data = bytearray()
+        for kind, address, count, words in self.frames:
+            if kind == 1:
+                rc = await context.async_setValues(device_id, 16, address, words)
+                if rc:
+                    return ExceptionResponse(FC_FEEDBACK, rc)
+            else:
+                got = await context.async_getValues(device_id, 3, address, count)
+                if isinstance(got, ExcCodes):
+                    return ExceptionResponse(FC_FEEDBACK, got)
+                data += struct.pack(f">{count}H", *got)
+        reply = FeedbackPDU()
+        reply.reply = bytes(data)
+        return reply
+
+
+class _T7Server(ModbusTcpServer):
+    """pymodbus' TCP server reading whole packets of any MBAP length: its socket framer silently drops a request
+    over 264 bytes (the Modbus limit), a T7 takes MBFB packets up to 1040 and the twin answers a longer one."""
+
+    def callback_new_connection(self) -> ServerRequestHandler:
+        handler = ServerRequestHandler(self, self.trace_packet, self.trace_pdu, self.trace_connect)
+        handler.max_buffer_size = 6 + 0xFFFF  # MBAP: 6 header bytes + a 16-bit length
+        return handler
 
 
 @dataclass(frozen=True)
@@ -130,9 +204,9 @@ class _Out:
     enable: int = 0
     loop_num: int = 0
     queue: deque[int] = field(default_factory=deque)  # codes written, not yet scheduled (stream stopped)
-    sched: deque[tuple[int, int]] = field(default_factory=deque)  # (scan, code) scheduled, maybe unplayed
+    sched: deque[tuple[int, np.ndarray]] = field(default_factory=deque)  # (first scan, codes) not yet played
     tail: deque[int] = field(default_factory=deque)  # last values written (for the loop)
-    loop: list[int] = field(default_factory=list)
+    loop: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     loop_pos: int = 0
     next_scan: int = 0
     code: int = 0  # last code played
@@ -222,7 +296,7 @@ class LabJackT7Sim:
 
     async def _serve(self) -> None:
         try:
-            self._server = ModbusTcpServer(self.device, address=("127.0.0.1", 0))
+            self._server = _T7Server(self.device, address=("127.0.0.1", 0), custom_pdu=[FeedbackPDU])
             await self._server.serve_forever(background=True)
             inner = self._server.transport.sockets[0].getsockname()[1]  # type: ignore[union-attr,attr-defined]
             self._relay = await SocketRelay("T7", ("127.0.0.1", inner), self.faults, framing="mbap").start()
@@ -321,22 +395,22 @@ class LabJackT7Sim:
         return int(min(max(round(volts * slope + off), 0), 65535))
 
     def _code_volts(self, code: int, ch: int) -> float:
-        slope, off = self.cal[32 + 2 * ch:34 + 2 * ch]
-        return ((code >> 4 << 4) - off) / slope  # 12-bit DAC
+        return float(self._codes_volts(np.array([code]), ch)[0])
 
-    def _drive(self, scans: list[int], codes: list[int]) -> None:
-        """Amplifier input events for DAC values played at these scans."""
-        times = [self.t_enable + (s + 1) / self.rate for s in scans]
-        volts = self.conditioning(np.array([self._code_volts(c, self.dac) for c in codes]))
+    def _codes_volts(self, codes: np.ndarray, ch: int) -> np.ndarray:
+        slope, off = self.cal[32 + 2 * ch:34 + 2 * ch]
+        return ((codes >> 4 << 4) - off) / slope  # 12-bit DAC
+
+    def _drive(self, first: int, codes: np.ndarray) -> None:
+        """Amplifier input events for DAC values played at scans ``first``, ``first`` + 1, …"""
+        times = self.t_enable + (first + 1 + np.arange(codes.size)) / self.rate
+        volts = self.conditioning(self._codes_volts(codes, self.dac))
         fc = self.conditioning.corner_Hz
         if fc is not None and volts.size:  # exact first-order low-pass at the scan instants
             alpha = 1.0 - math.exp(-2.0 * math.pi * fc / self.rate)
             y = self.plant.v_in if self._filter_y is None else self._filter_y
-            out = np.empty_like(volts)
-            for k, x in enumerate(volts):
-                y += alpha * (x - y)
-                out[k] = y
-            self._filter_y, volts = float(y), out
+            volts, _ = lfilter([alpha], [1.0, alpha - 1.0], volts, zi=[(1.0 - alpha) * y])
+            self._filter_y = float(volts[-1])
         try:
             self.plant.schedule_amplifier_input(times, volts)
         except ValueError as exc:  # cannot happen under the lock order; kept as a check
@@ -354,17 +428,18 @@ class LabJackT7Sim:
         n = int(self.regs[R_NADDR])
         return [a - R_O_SCAN for a in self.scanlist[:n] if R_O_SCAN <= a < R_O_SCAN + 4]
 
-    def _schedule(self, k: int, codes: list[int], now: float) -> None:
+    def _schedule(self, k: int, codes: np.ndarray, now: float) -> None:
         """Give stream-out ``k`` these codes at its next scans (after an underrun: from the next scan on)."""
+        if not codes.size:
+            return
         o = self.outs[k]
         start = max(o.next_scan, self._cur_scan(now) + 1)
         if start > o.next_scan and not o.loop_active:
             o.underrun_scans += start - o.next_scan
-        scans = list(range(start, start + len(codes)))
-        o.sched.extend(zip(scans, codes, strict=True))
-        o.next_scan = start + len(codes)
+        o.sched.append((start, codes))
+        o.next_scan = start + codes.size
         if o.target == R_DAC + 2 * self.dac:
-            self._drive(scans, codes)
+            self._drive(start, codes)
 
     def _level(self, k: int, now: float) -> int:
         o = self.outs[k]
@@ -373,7 +448,7 @@ class LabJackT7Sim:
         cur = self._cur_scan(now)
         # scheduled scans after ``cur`` are contiguous up to next_scan − 1 (a gap only follows an underrun,
         # and then every earlier scan has been played)
-        return max(0, min(len(o.sched), o.next_scan - 1 - cur))
+        return max(0, min(sum(c.size for _, c in o.sched), o.next_scan - 1 - cur))
 
     def pump(self) -> None:
         """Take the scans due by now, play stream-out, send whole packets (called every ``poll`` s)."""
@@ -394,15 +469,21 @@ class LabJackT7Sim:
     def _advance_out(self, k: int, now: float) -> None:
         o = self.outs[k]
         cur = self._cur_scan(now)
-        while o.sched and o.sched[0][0] <= cur:
-            o.code = o.sched.popleft()[1]
+        while o.sched and o.sched[0][0] <= cur:  # the codes played by now; the last one is the output
+            first, codes = o.sched[0]
+            played = min(cur - first + 1, codes.size)
+            o.code = int(codes[played - 1])
+            if played < codes.size:
+                o.sched[0] = (first + played, codes[played:])
+                break
+            o.sched.popleft()
         if o.target in (R_DAC, R_DAC + 2):
             self.dac_volts[(o.target - R_DAC) // 2] = self._code_volts(o.code, (o.target - R_DAC) // 2)
-        if len(o.loop) > 1 and o.next_scan <= cur + int(self.rate):  # periodic loop: keep 1 s queued
+        if o.loop.size > 1 and o.next_scan <= cur + int(self.rate):  # periodic loop: keep 1 s queued
             o.loop_active = True
             n = cur + 2 * int(self.rate) - o.next_scan
-            codes = [o.loop[(o.loop_pos + i) % len(o.loop)] for i in range(n)]
-            o.loop_pos = (o.loop_pos + n) % len(o.loop)
+            codes = o.loop[(o.loop_pos + np.arange(n)) % o.loop.size]
+            o.loop_pos = (o.loop_pos + n) % o.loop.size
             self._schedule(k, codes, now)
 
     def _take_scans(self, due: int) -> None:
@@ -496,9 +577,8 @@ class LabJackT7Sim:
             o = self.outs[k]
             o.next_scan, o.sched, o.loop_pos = 0, deque(), 0
             o.loop_active = False
-            codes, o.queue = list(o.queue), deque()
-            if codes:
-                self._schedule(k, codes, now)
+            codes, o.queue = np.array(o.queue, np.int64), deque()
+            self._schedule(k, codes, now)
         return 0
 
     def _stop_stream(self, now: float) -> None:
@@ -506,7 +586,8 @@ class LabJackT7Sim:
         for k in self._out_indices():
             self._advance_out(k, now)
             o = self.outs[k]
-            o.queue.extendleft(reversed([c for s, c in o.sched if s > cur]))
+            unplayed = [int(c) for first, codes in o.sched for c in codes[max(cur + 1 - first, 0):]]
+            o.queue.extendleft(reversed(unplayed))
             o.sched = deque()
         self.streaming = False
         self._undrive_after(now)
@@ -715,7 +796,7 @@ class LabJackT7Sim:
                 return self._fail(E_LOOP_BIG)
             o.loop_num = value
         elif base == R_O_SETLOOP:
-            o.loop = list(o.tail)[len(o.tail) - o.loop_num:] if o.loop_num else []
+            o.loop = np.array(list(o.tail)[len(o.tail) - o.loop_num:] if o.loop_num else [], np.int64)
             o.loop_pos = 0
         else:
             return ExcCodes.ILLEGAL_ADDRESS
@@ -732,7 +813,7 @@ class LabJackT7Sim:
         o.tail.extend(take)
         if self.streaming and k in self._out_indices():
             self._advance_out(k, now)
-            self._schedule(k, take, now)
+            self._schedule(k, np.array(take, np.int64), now)
         else:
             o.queue.extend(take)
         return self._fail(E_OUT_FULL) if len(take) < len(codes) else None

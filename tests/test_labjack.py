@@ -14,6 +14,8 @@ from collections.abc import Iterator
 
 import numpy as np
 import pytest
+from pymodbus.framer import FramerSocket
+from pymodbus.pdu import DecodePDU
 
 from bench.core.clock import VirtualClock
 from bench.core.plant import HVStage, Plant
@@ -21,10 +23,12 @@ from bench.models.membrane import MembraneParams
 from drivers.errors import InstrumentStateError, LimitError, ProtocolError
 from drivers.labjack import (
     Calibration,
+    Feedback,
     LabJackT7,
     StreamIn,
     StreamOut,
     StreamSpec,
+    feedback_packets,
     parse_stream_packet,
 )
 from sim_devices.labjack_t7 import Conditioning, LabJackT7Sim
@@ -112,6 +116,26 @@ def _transact(sock: socket.socket, request: bytes) -> bytes:
     return head + sock.recv(n, socket.MSG_WAITALL)
 
 
+def test_feedback_request_bytes_follow_the_mbfb_layout() -> None:
+    """MBFB (function 76): per write frame 1, address (2 bytes), number of registers (1), the registers."""
+    req = Feedback(((4420, [1, 2, 3]), (4070, [0, 1])), dev_id=1, transaction_id=7)
+    # Length 0x14 = unit + function + (4 + 6) + (4 + 4); 4420 = 0x1144 (STREAM_OUT0_BUFFER_U16), 4070 = 0x0FE6
+    assert FramerSocket(DecodePDU(False)).buildFrame(req) == \
+        bytes.fromhex("0007 0000 0014 01 4c 01 1144 03 0001 0002 0003 01 0fe6 02 0000 0001")
+
+
+def test_feedback_packets_stay_within_the_t7_packet_size_and_keep_the_order() -> None:
+    values = list(range(1200))
+    packets = feedback_packets([(4420, values), (4070, [0, 1])])
+    sizes = [7 + 1 + sum(4 + 2 * len(w) for _, w in pkt) for pkt in packets]
+    assert max(sizes) <= 1040  # T7 Ethernet packet, MBAP header included
+    assert all(len(w) <= 255 for pkt in packets for _, w in pkt)  # a frame's register count is one byte
+    frames = [f for pkt in packets for f in pkt]
+    assert [v for a, w in frames if a == 4420 for v in w] == values and frames[-1] == (4070, [0, 1])
+    # two 255-register frames fill a packet (8 + 2·514 = 1036 bytes): 1200 values need 3 packets
+    assert len(packets) == 3
+
+
 # ---------------------------------------------------------------------------- twin conformance
 def test_twin_answers_product_id_and_serial_as_the_register_map(raw_twin: Rig) -> None:
     with socket.create_connection(("127.0.0.1", raw_twin.port), timeout=2) as s:
@@ -155,6 +179,35 @@ def test_twin_stream_packet_bytes(raw_twin: Rig) -> None:
         assert pkt == bytes.fromhex("0000 0000 0012 01 4c 10 00 0000 0000 0000 82f3 82f3 82f3 82f3")
         raw_twin.clock.advance(0.002)
         assert data.recv(64)[:2] == b"\x00\x01"  # transaction id increments per packet
+
+
+def test_twin_runs_feedback_frames_in_order_and_returns_the_reads(raw_twin: Rig) -> None:
+    with socket.create_connection(("127.0.0.1", raw_twin.port), timeout=2) as s:
+        # write DAC0 (1000 = 0x03E8) ← FLOAT32 2.0, read it back, read PRODUCT_ID (60000 = 0xEA60)
+        reply = _transact(s, bytes.fromhex("0005 0000 0012 01 4c 01 03e8 02 4000 0000 00 03e8 02 00 ea60 02"))
+        assert reply == bytes.fromhex("0005 0000 000a 01 4c 4000 0000 40e0 0000")
+
+
+def test_twin_stops_a_feedback_packet_at_the_refused_frame(raw_twin: Rig) -> None:
+    with socket.create_connection(("127.0.0.1", raw_twin.port), timeout=2) as s:
+        # DAC0 ← 1.0 V, then a write to 2000 (no register there), then DAC0 ← 3.0 V
+        reply = _transact(s, bytes.fromhex("0006 0000 001a 01 4c 01 03e8 02 3f80 0000 01 07d0 02 0000 0000"
+                                           " 01 03e8 02 4040 0000"))
+        assert reply[7] == 0xCC and reply[8] == 2  # exception to function 76: illegal data address
+        assert _transact(s, bytes.fromhex("0007 0000 0006 01 03 03e8 0002")) == \
+            bytes.fromhex("0007 0000 0007 01 03 04 3f80 0000")  # the frame before took effect, the one after not
+
+
+@pytest.mark.parametrize("request_hex", [
+    "0008 0000 0008 01 4c 01 03e8 02 4000",  # a write frame cut short
+    "0008 0000 0006 01 4c 07 03e8 02",  # no such frame type
+    "0008 0000 040c 01 4c" + " 01 1144 ff" + " 0000" * 255 + " 01 1144 ff" + " 0000" * 255 + " 01 1144 01 0000",
+])
+def test_twin_refuses_a_malformed_or_oversized_feedback_packet(raw_twin: Rig, request_hex: str) -> None:
+    """The last one is 1042 bytes: over the T7's 1040."""
+    with socket.create_connection(("127.0.0.1", raw_twin.port), timeout=2) as s:
+        reply = _transact(s, bytes.fromhex(request_hex))
+        assert reply[7] == 0xCC and reply[8] == 3  # illegal data value
 
 
 # ---------------------------------------------------------------------------- driver ↔ twin
