@@ -438,11 +438,16 @@ class LabJackT7:
         self._lj(f"write {address}+{len(values)}", self.link.write_registers, address, values)
 
     def write_feedback(self, writes: list[tuple[int, list[int]]]) -> None:
-        """Write registers in order through as few Modbus Feedback packets as hold them (:func:`feedback_packets`)."""
+        """Write registers in order through as few Modbus Feedback packets as hold them (:func:`feedback_packets`).
+
+        Not retried: a packet appends to the stream-out buffer, and after a timeout the device may already have
+        taken it — a second attempt would play its values twice and shift the rest of the waveform. A timeout is
+        an :class:`InstrumentTimeoutError` (the run stops and makes the rig safe) rather than a drive played late.
+        """
         for packet in feedback_packets(writes):
             n = sum(len(w) for _, w in packet)
-            self._lj(f"feedback write of {n} registers at {packet[0][0]}", self.link.execute,
-                     Feedback(packet))
+            self._lj(f"feedback write of {n} registers at {packet[0][0]}",
+                     lambda unit, pdu: self.link.execute(unit, pdu, retry=False), Feedback(packet))
 
     def read_f32(self, address: int) -> float:
         """One FLOAT32 register pair."""

@@ -186,9 +186,10 @@ class ModbusLink:
         if self._cancellable:
             check(self.cancel, self.device)
 
-    def _call(self, what: str, unit: int, request: ModbusPDU, always_send: bool = False) -> ModbusPDU:
-        """Run one request with our retries; returns the checked reply."""
-        attempts = self.retries + 1
+    def _call(self, what: str, unit: int, request: ModbusPDU, always_send: bool = False,
+              retry: bool = True) -> ModbusPDU:
+        """Run one request with our retries (none unless ``retry``); returns the checked reply."""
+        attempts = self.retries + 1 if retry else 1
         with self.lock:
             for attempt in range(attempts):
                 self._cancellable = bool(attempt) or not always_send
@@ -281,11 +282,13 @@ class ModbusLink:
         """Teach the client a device's own function code (its reply is decoded by ``pdu``)."""
         self._client.register(pdu)
 
-    def execute(self, unit: int, request: ModbusPDU) -> ModbusPDU:
-        """Run a request of a function taught by :meth:`register`, with the link's retries and reply checks
-        (function code, device, transaction id; an exception reply is an :class:`InstrumentStateError`)."""
+    def execute(self, unit: int, request: ModbusPDU, *, retry: bool = True) -> ModbusPDU:
+        """Run a request of a function taught by :meth:`register`, with the link's reply checks (function code,
+        device, transaction id; an exception reply is an :class:`InstrumentStateError`) and its retries — none
+        with ``retry=False``, for a request that must not take effect twice (values appended to a device's
+        buffer: after a timeout the device may have taken them, and a second attempt would append them again)."""
         request.dev_id = unit
-        return self._call(f"function {request.function_code}", unit, request)
+        return self._call(f"function {request.function_code}", unit, request, retry=retry)
 
     def read_holding(self, unit: int, address: int, count: int = 1) -> list[int]:
         """FC3 read of ``count`` holding registers at 0-based ``address``."""

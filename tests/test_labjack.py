@@ -20,7 +20,7 @@ from pymodbus.pdu import DecodePDU
 from bench.core.clock import VirtualClock
 from bench.core.plant import HVStage, Plant
 from bench.models.membrane import MembraneParams
-from drivers.errors import InstrumentStateError, LimitError, ProtocolError
+from drivers.errors import InstrumentStateError, InstrumentTimeoutError, LimitError, ProtocolError
 from drivers.labjack import (
     Calibration,
     Feedback,
@@ -323,6 +323,19 @@ def test_stop_mid_waveform_holds_the_last_played_value(rig: Rig) -> None:
     assert plan.out_volts is not None
     assert rig.plant.v_in == rig.cond(plan.out_volts[played:played + 1])[0]
     assert rig.daq.read_dac(0) == pytest.approx(plan.out_volts[played], abs=1e-6)
+
+
+def test_a_stream_out_packet_whose_reply_is_lost_is_not_sent_again(rig: Rig) -> None:
+    """After a timeout the T7 may already hold the values: a second attempt would append them twice and shift the
+    rest of the waveform. The driver gives up instead (the run stops and makes the rig safe)."""
+    rig.daq.write_u32(4040, 1000)  # STREAM_OUT0_TARGET ← DAC0
+    rig.daq.write_u32(4050, 16384)  # STREAM_OUT0_BUFFER_ALLOCATE_NUM_BYTES
+    rig.daq.write_u32(4090, 1)  # STREAM_OUT0_ENABLE
+    rig.sim.faults.mute = True  # the device takes the packet, its reply is lost
+    with pytest.raises(InstrumentTimeoutError):
+        rig.daq.write_feedback([(4420, list(range(300)))])
+    rig.sim.faults.mute = False
+    assert rig.daq.read_u32(4080) == 2 * 300  # STREAM_OUT0_BUFFER_STATUS: bytes held, once
 
 
 def test_wall_clock_stream_loses_and_repeats_nothing() -> None:
