@@ -124,6 +124,18 @@ def test_feedback_request_bytes_follow_the_mbfb_layout() -> None:
         bytes.fromhex("0007 0000 0014 01 4c 01 1144 03 0001 0002 0003 01 0fe6 02 0000 0001")
 
 
+@pytest.mark.parametrize("reply_hex", ["0007 0000 0003 01 cc 02", "0007 0000 0004 01 cc 02 05"])
+def test_an_mbfb_error_reply_is_read_as_an_exception_with_or_without_a_frame_byte_after_the_code(
+        reply_hex: str) -> None:
+    """[A] the T7's MBFB error layout: function 0xCC and a code; a byte after it (a failing frame's number, if the
+    device sends one) must not make the driver misread the reply."""
+    decoder = DecodePDU(False)
+    decoder.register(Feedback)
+    used, pdu = FramerSocket(decoder).handleFrame(bytes.fromhex(reply_hex), 0, 0)
+    assert used == len(bytes.fromhex(reply_hex)) and pdu is not None
+    assert pdu.function_code == 0xCC and pdu.exception_code == 2
+
+
 def test_feedback_packets_stay_within_the_t7_packet_size_and_keep_the_order() -> None:
     values = list(range(1200))
     packets = feedback_packets([(4420, values), (4070, [0, 1])])
