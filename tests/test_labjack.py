@@ -222,6 +222,20 @@ def test_twin_refuses_a_malformed_or_oversized_feedback_packet(raw_twin: Rig, re
         assert reply[7] == 0xCC and reply[8] == 3  # illegal data value
 
 
+def test_an_independent_modbus_client_talks_to_the_twin_by_fc3_and_mbfb(raw_twin: Rig) -> None:
+    """pyModbusTCP (not our driver, not pymodbus): PRODUCT_ID by FC3, and an MBFB packet by its raw PDU."""
+    from pyModbusTCP.client import ModbusClient
+
+    client = ModbusClient(host="127.0.0.1", port=raw_twin.port, unit_id=1, auto_open=True, timeout=1.0)
+    try:
+        assert client.read_holding_registers(60000, 2) == [0x40E0, 0x0000]  # PRODUCT_ID = 7.0 (FLOAT32)
+        # write DAC0 ← 3.0 V (0x40400000), then read it and SERIAL_NUMBER (60028) in the same packet
+        reply = client.custom_request(bytes.fromhex("4c 01 03e8 02 4040 0000 00 03e8 02 00 ea7c 02"))
+        assert reply == bytes.fromhex("4c 4040 0000 1c03 d1b9")  # serial 470012345 = 0x1C03D1B9
+    finally:
+        client.close()
+
+
 # ---------------------------------------------------------------------------- driver ↔ twin
 def test_identify_and_calibration(rig: Rig) -> None:
     ident = rig.daq.identify()
