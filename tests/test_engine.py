@@ -220,8 +220,7 @@ def _start_cli_run(tmp_path: Path, protocol: str = "thesis-identification-short.
 @pytest.mark.parametrize("signals, state, reason", [
     ((signal.SIGINT,), "interrupted", "interrupted by Ctrl-C"),
     ((signal.SIGINT, signal.SIGINT), "interrupted", "interrupted by Ctrl-C"),
-    ((signal.SIGTERM,), "interrupted", "terminated by SIGTERM"),
-], ids=["ctrl-c", "ctrl-c-twice", "sigterm"])
+], ids=["ctrl-c", "ctrl-c-twice"])  # every other signal: tests/test_exit_paths.py (same handlers, in-process)
 def test_signals_stop_the_run_with_zero_voltage_and_a_marked_file(tmp_path: Path, signals: tuple, state: str,
                                                                   reason: str) -> None:
     proc, path = _start_cli_run(tmp_path)
