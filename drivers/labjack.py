@@ -26,8 +26,8 @@ low-level TCP stream example; [A] = assumed, to check on a real T7.
   4060+2n, _SET_LOOP 4070+2n (1 = use new data now), _BUFFER_STATUS 4080+2n, _ENABLE 4090+2n,
   _BUFFER_U16 4420+n; order: target, allocate, enable, loop size, data, set-loop; after the data the last
   LOOP_NUM_VALUES values repeat (1: the output holds the end value exactly).
-* [A] a buffer register takes k values in one FC16 of k registers at its address (≤ 120 per request here),
-  or in one Modbus Feedback write frame of k registers at its address.
+* [A] a buffer register takes k values in one Modbus Feedback write frame of k registers at its address
+  ([D] register map: STREAM_OUT#_BUFFER_U16 is a buffer register, "a sequence of values to a single address").
 * [D] Modbus Feedback (MBFB), function 76: after the function code, frames of type (1 byte: 0 read, 1 write),
   address (2), number of registers (1), then for a write 2·n data bytes; the reply carries the function code
   and the read frames' data in order. [D] T7 Ethernet packets ≤ 1040 bytes (LabJackM.h,
@@ -115,7 +115,6 @@ MAX_SCANLIST = 128
 MAX_SAMPLES_PER_PACKET = 512  # TCP [example: STREAM_MAX_SAMPLES_PER_PACKET_TCP]
 MAX_OUT_BUFFER_BYTES = 16384  # T7 [register map]
 MAX_STREAM_BUFFER_BYTES = 32768  # T7 [register map]
-WRITE_REGS = 120  # registers per FC16 (Modbus limit 123)
 MBFB_FUNCTION = 76  # [D] Modbus Feedback
 MBFB_MAX_BYTES = 1040  # [D] T7 Ethernet packet, MBAP header included
 MBFB_HEADER_BYTES = 8  # MBAP (7) + function code
@@ -633,17 +632,17 @@ class LabJackT7:
         if self.streaming and s.scans > s.out_written:  # the device ran past the data it had
             s.underrun_scans = s.scans - s.out_written
         free = s.plan.out_capacity - (s.out_written - played)
-        n = min(free, total - s.out_written)
+        n = max(0, min(free, total - s.out_written))
         if n < OUT_PACKET_VALUES and s.out_written + n < total:
             return  # wait until a whole packet fits
         k = s.out_written - s.out_base
-        writes = [(OUT_BUFFER_U16_0, codes[k:k + n].tolist())] if n > 0 else []
-        s.out_written += max(n, 0)
+        writes = [(OUT_BUFFER_U16_0, codes[k:k + n].tolist())] if n else []
+        s.out_written += n
         if s.out_written == total and s.out_closed:
             assert s.spec.output is not None
             writes.append((OUT_LOOP0, u32_words(s.spec.output.hold)))
             s.out_final = True
-        if n > 0:
+        if n:
             writes.append((OUT_SET_LOOP0, u32_words(1)))
         if writes:
             self.write_feedback(writes)

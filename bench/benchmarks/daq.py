@@ -7,21 +7,25 @@ reference (Δλ), the repeatability of real-time isotonic runs, a wall-clock str
 
 from __future__ import annotations
 
+import contextlib
 import json
 import tempfile
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 
 from bench.analysis.cycles import crest_to_trough
 from bench.benchmarks.acquisition import Figure
+from bench.core.clock import Clock
 from bench.models.membrane import MembraneParams
 from bench.models.membrane_runs import simulate_membrane
 from bench.resources import protocols_dir, rigs_dir
 from bench.runtime.run import execute, plan_run
 from bench.storage.runfile import open_run
 from bench.waveforms import Waveform
+from drivers.labjack import LabJackT7, StreamIn, StreamOut, StreamSpec
 
 SHORT = protocols_dir() / "short"
 RIGS = rigs_dir()
@@ -67,21 +71,32 @@ def repeatability(tmp: Path, runs: int = 3) -> list[Figure]:
                    "%", ", ".join(f"{s * 1e3:.3f} mm" for s in swings) + "; target ≤ 1 %")]
 
 
-def soak(seconds: float) -> list[Figure]:
-    """A wall-clock stream of 4 inputs at 10 kHz through the driver and the twin: lost and duplicated scans."""
-    from bench.core.clock import WallClock
+@contextlib.contextmanager
+def _daq_and_twin(clock: Clock) -> Iterator[LabJackT7]:
+    """A connected T7 driver on a T7 twin backed by a default plant, both on ``clock``; stopped and closed after."""
     from bench.core.plant import HVStage, Plant
-    from drivers.labjack import LabJackT7, StreamIn, StreamSpec
     from sim_devices.labjack_t7 import LabJackT7Sim
 
-    clock = WallClock()
     plant = Plant(clock, MembraneParams(), hv=HVStage())
+    plant.warm_up()
     sim = LabJackT7Sim(plant, clock)
     port, stream_port = sim.start()
     daq = LabJackT7("127.0.0.1", port=port, stream_port=stream_port, clock=clock.now, sleep=clock.sleep,
                     safe_dac=(2.5, 0.0), timeout=2.0)
     try:
         daq.connect()
+        yield daq
+    finally:
+        daq.close()
+        sim.stop()
+
+
+def soak(seconds: float) -> list[Figure]:
+    """A wall-clock stream of 4 inputs at 10 kHz through the driver and the twin: lost and duplicated scans."""
+    from bench.core.clock import WallClock
+
+    clock = WallClock()
+    with _daq_and_twin(clock) as daq:
         daq.arm(StreamSpec(10_000.0, tuple(StreamIn(a, 10.0, f"ain{a}") for a in range(4))))
         daq.kickoff()
         t_end = time.monotonic() + seconds
@@ -99,9 +114,6 @@ def soak(seconds: float) -> list[Figure]:
                 expect = block.first_scan + block.n
                 total += block.n
         daq.stop()
-    finally:
-        daq.close()
-        sim.stop()
     return [Figure(f"wall-clock stream, 4 channels × 10 kHz for {seconds:g} s", total, "scans",
                    f"lost {lost}, duplicated {dup}, {total / seconds:,.0f} scans/s")]
 
@@ -123,22 +135,12 @@ def exchange_ceiling(seconds: float = 10.0) -> list[Figure]:
     stream-out at 10 kHz, collected every 0.25 s of rig time as the engine does. What this reaches bounds any run
     on a DAQ rig: every scan still crosses the wire as bytes (stream packets in, MBFB packets out)."""
     from bench.core.clock import VirtualClock
-    from bench.core.plant import HVStage, Plant
-    from drivers.labjack import LabJackT7, StreamIn, StreamOut, StreamSpec
-    from sim_devices.labjack_t7 import LabJackT7Sim
 
     clock = VirtualClock()
-    plant = Plant(clock, MembraneParams(), hv=HVStage())
-    plant.warm_up()
-    sim = LabJackT7Sim(plant, clock)
-    port, stream_port = sim.start()
-    daq = LabJackT7("127.0.0.1", port=port, stream_port=stream_port, clock=clock.now, sleep=clock.sleep,
-                    safe_dac=(2.5, 0.0), timeout=2.0)
     rate = 10_000.0
     t = np.arange(int(seconds * rate)) / rate
     volts = 2.5 + 1.5 * np.sin(2 * np.pi * t / 9.0)
-    try:
-        daq.connect()
+    with _daq_and_twin(clock) as daq:
         t0 = time.perf_counter()
         daq.arm(StreamSpec(rate, tuple(StreamIn(a, 10.0, f"ain{a}") for a in range(4)),
                            StreamOut(0, volts, hold=1)))
@@ -149,9 +151,6 @@ def exchange_ceiling(seconds: float = 10.0) -> list[Figure]:
             scans += daq.collect(until=clock.now()).n
         daq.stop()
         wall = time.perf_counter() - t0
-    finally:
-        daq.close()
-        sim.stop()
     return [Figure(f"driver ↔ T7 twin alone, 4 inputs + stream-out at 10 kHz, {seconds:g} s, virtual time",
                    seconds / wall, "× real time", "the wire's share of a DAQ-rig run: no run goes faster")]
 
