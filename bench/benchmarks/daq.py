@@ -155,12 +155,66 @@ def exchange_ceiling(seconds: float = 10.0) -> list[Figure]:
                    seconds / wall, "× real time", "the wire's share of a DAQ-rig run: no run goes faster")]
 
 
+def _echo_round_trip(request_bytes: int, reply_bytes: int, n: int = 2000) -> float:
+    """Mean wall time [s] of one request/reply over loopback between two threads with bare blocking sockets: what
+    one Modbus exchange costs on this machine before any protocol code runs (two thread wake-ups, four syscalls)."""
+    import socket
+    import threading
+
+    listener = socket.create_server(("127.0.0.1", 0))
+
+    def serve() -> None:
+        conn, _ = listener.accept()
+        conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        with conn:
+            while True:
+                got = 0
+                while got < request_bytes:
+                    chunk = conn.recv(request_bytes - got)
+                    if not chunk:
+                        return
+                    got += len(chunk)
+                conn.sendall(bytes(reply_bytes))
+
+    server = threading.Thread(target=serve, daemon=True)
+    server.start()
+    request = bytes(request_bytes)
+    with socket.create_connection(listener.getsockname()) as sock:
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        t0 = time.perf_counter()
+        for _ in range(n):
+            sock.sendall(request)
+            got = 0
+            while got < reply_bytes:
+                got += len(sock.recv(reply_bytes - got))
+        wall = time.perf_counter() - t0
+    server.join(timeout=5)
+    listener.close()
+    return wall / n
+
+
+def exchange_floor(rate: float = 10_000.0) -> list[Figure]:
+    """What the wire format alone costs on this machine: the stream-out needs one MBFB round trip per
+    ``OUT_PACKET_VALUES`` scans (packets of at most 1040 bytes, T7 Ethernet), and one bare loopback round trip of
+    that size, measured here, bounds how fast any byte-exact run can play a 10-kHz drive."""
+    from drivers.labjack import MBFB_MAX_BYTES, OUT_PACKET_VALUES
+
+    rtt = _echo_round_trip(MBFB_MAX_BYTES, 12)
+    per_s = rate / OUT_PACKET_VALUES
+    return [Figure("bare loopback round trip, two threads, 1040-byte request", rtt * 1e6, "µs",
+                   f"{per_s:.1f} MBFB packets per rig-second at {rate:g} scans/s"),
+            Figure("  MBFB round trips alone, nothing else, would allow", 1.0 / (per_s * rtt), "× real time",
+                   "an upper bound for any DAQ-rig run on this machine (the stream's input, the plant and the "
+                   "file come on top)")]
+
+
 def run_all(quick: bool = False, soak_s: float = 600.0) -> list[Figure]:
     """Every figure; ``quick``: one isotonic run pair and a 10-s soak instead of three runs and 10 minutes."""
     with tempfile.TemporaryDirectory() as tmp:
         out = fidelity(Path(tmp))
         out += virtual_speed(Path(tmp))
         out += exchange_ceiling()
+        out += exchange_floor()
         out += repeatability(Path(tmp), runs=2 if quick else 3)
         out += soak(10.0 if quick else soak_s)
     return out
