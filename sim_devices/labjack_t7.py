@@ -556,16 +556,19 @@ class LabJackT7Sim:
             samples, self.fifo = np.concatenate([prefix, self.fifo[:take]]), self.fifo[take:]
             self._write(w, self._packet(samples, status, extra))
             return
+        packets = []
         while self.fifo.size >= spp or (final and self.fifo.size):
             samples, self.fifo = self.fifo[:spp], self.fifo[spp:]
             last = final and not self.fifo.size
             st = S_BURST if last else (S_RECOVER if self.recovering else 0)
-            self._write(w, self._packet(samples, st, 0))
+            packets.append(self._packet(samples, st, 0))
+        if packets:  # one socket write for the packets a pump has filled (the bytes a T7 sends, fewer syscalls)
+            self._write(w, b"".join(packets), len(packets))
         if final:
             self._stop_stream(self.clock.now())
 
-    def _write(self, w: asyncio.StreamWriter | None, data: bytes) -> None:
-        self.packets_sent += 1
+    def _write(self, w: asyncio.StreamWriter | None, data: bytes, packets: int = 1) -> None:
+        self.packets_sent += packets
         if w is not None and not w.is_closing():
             w.write(data)
 
