@@ -299,6 +299,8 @@ class LabJackT7Sim:
         self.stream_port = 0
         self.errors: list[BaseException] = []
         self._filter_y: float | None = None  # reconstruction filter state [V at the amplifier input]
+        self._next_packet_t = math.inf  # rig time at which the next whole stream packet is due
+        self._wake_pending = False
 
     # ------------------------------------------------------------------ serving
     def start(self, timeout: float = 10.0) -> tuple[int, int]:
@@ -329,6 +331,9 @@ class LabJackT7Sim:
             self._stream_server = await asyncio.start_server(self._on_stream_client, "127.0.0.1", 0)
             self.stream_port = self._stream_server.sockets[0].getsockname()[1]
             self._pump_task = asyncio.get_running_loop().create_task(self._pump_loop())
+            subscribe = getattr(self.clock, "subscribe", None)
+            if subscribe is not None:  # a virtual clock says when it moves: packets leave when they are due
+                subscribe(self._on_clock)
             self.port = self._relay.port
         except BaseException as exc:  # reported by start()
             self.errors.append(exc)
@@ -346,6 +351,23 @@ class LabJackT7Sim:
             if self._writer is writer:
                 self._writer = None
         writer.close()
+
+    def _on_clock(self, now: float) -> None:
+        """The virtual clock moved (in the thread that moved it): pump at once if a whole packet is now due, as a
+        T7 sends a packet when it fills — rather than up to ``poll`` of wall time later."""
+        loop = self._loop
+        if self._wake_pending or now < self._next_packet_t or loop is None:
+            return
+        self._wake_pending = True
+        with contextlib.suppress(RuntimeError):  # the loop has closed: the twin is stopping
+            loop.call_soon_threadsafe(self._wake)
+
+    def _wake(self) -> None:
+        self._wake_pending = False
+        try:
+            self.pump()
+        except Exception as exc:  # as in the pump loop: keep serving; tests inspect errors
+            self.errors.append(exc)
 
     async def _pump_loop(self) -> None:
         while True:
@@ -374,6 +396,9 @@ class LabJackT7Sim:
             with contextlib.suppress(Exception):
                 asyncio.run_coroutine_threadsafe(shutdown(), loop).result(timeout=5)
             loop.call_soon_threadsafe(loop.stop)
+        unsubscribe = getattr(self.clock, "unsubscribe", None)
+        if unsubscribe is not None:
+            unsubscribe(self._on_clock)
         if self._thread is not None:
             self._thread.join(timeout=5)
         with contextlib.suppress(ValueError):
@@ -491,6 +516,16 @@ class LabJackT7Sim:
             if due > self.produced:
                 self._take_scans(due)
             self._send(final=bool(nscans) and self.produced >= nscans)
+            self._next_packet_t = self._packet_due()
+
+    def _packet_due(self) -> float:
+        """Rig time of the scan that completes the next whole packet (inf when not streaming)."""
+        n_in = len([a for a in self.scanlist[:int(self.regs[R_NADDR])] if a < 2 * N_AIN])
+        if not self.streaming or not n_in:
+            return math.inf
+        missing = max(int(self.regs[R_SPP]) - self.fifo.size, 1)
+        scans = -(-missing // n_in)  # scan k is taken at t_enable + (k + 1) / rate
+        return self.t_enable + (self.produced + scans) / self.rate
 
     def _advance_out(self, k: int, now: float) -> None:
         o = self.outs[k]
@@ -608,6 +643,7 @@ class LabJackT7Sim:
             o.loop_active = False
             codes, o.queue = np.array(o.queue, np.int64), deque()
             self._schedule(k, codes, now)
+        self._next_packet_t = self._packet_due()
         return 0
 
     def _stop_stream(self, now: float) -> None:
@@ -619,6 +655,7 @@ class LabJackT7Sim:
             o.queue.extendleft(reversed(unplayed))
             o.sched = deque()
         self.streaming = False
+        self._next_packet_t = math.inf
         self._undrive_after(now)
 
     # ------------------------------------------------------------------ registers

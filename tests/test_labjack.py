@@ -324,6 +324,22 @@ def test_burst_completes_with_short_last_packet(rig: Rig) -> None:
     assert not rig.daq.streaming
 
 
+def test_in_virtual_time_a_stream_packet_leaves_when_its_last_scan_is_due_not_at_the_next_poll(rig: Rig) -> None:
+    # a T7 sends a packet the moment it fills (datasheet 3.2: spontaneous stream); the twin's wall-clock poll is
+    # its own mechanism. With the poll set to an hour, only the clock moving can send the packets.
+    rig.sim.poll = 3600.0
+    spp = 128 * 4
+    rig.daq.arm(StreamSpec(10_000.0, tuple(StreamIn(i) for i in range(4)), samples_per_packet=spp))
+    rig.daq.kickoff()
+    rig.clock.advance(127 / 10_000)  # scan k is taken at (k + 1) / rate: the 128th scan is not due yet
+    assert rig.daq.collect(until=rig.clock.now(), timeout=0.3).n == 0
+    rig.clock.advance(2.5 / 10_000)  # now it is: the first packet is whole (and only the first)
+    block = rig.daq.collect(until=rig.clock.now(), timeout=2.0)
+    assert (block.first_scan, block.n) == (0, 128)
+    rig.clock.advance(0.25)  # t = 0.26295 s: 2629 scans due, 20 whole packets, the first one collected
+    assert rig.daq.collect(until=rig.clock.now(), timeout=2.0).n == 20 * 128 - 128
+
+
 def test_a_lost_packet_is_a_protocol_error(rig: Rig) -> None:
     rig.daq.arm(StreamSpec(10_000.0, tuple(StreamIn(i) for i in range(4))))
     rig.daq.kickoff()

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
 from typing import Protocol
 
 
@@ -50,13 +51,33 @@ class WallClock:
 
 
 class VirtualClock:
-    """Time that advances only through :meth:`advance` / :meth:`advance_to` (thread-safe, monotonic)."""
+    """Time that advances only through :meth:`advance` / :meth:`advance_to` (thread-safe, monotonic).
+
+    A simulated device that acts on its own clock (a DAQ filling stream packets) can :meth:`subscribe` to be told
+    the new time after each advance, in the advancing thread: it then acts when its time comes instead of
+    finding out at its next poll of the wall clock."""
 
     virtual = True
 
     def __init__(self, start: float = 0.0) -> None:
         self._t = float(start)
         self._lock = threading.Lock()
+        self._listeners: tuple[Callable[[float], None], ...] = ()
+
+    def subscribe(self, listener: Callable[[float], None]) -> None:
+        """Call ``listener(t)`` after every advance (keep it short: it runs in the thread that advanced)."""
+        with self._lock:
+            self._listeners = (*self._listeners, listener)
+
+    def unsubscribe(self, listener: Callable[[float], None]) -> None:
+        """Stop calling ``listener`` (no-op if it is not subscribed)."""
+        with self._lock:
+            self._listeners = tuple(f for f in self._listeners if f != listener)
+
+    def _told(self, t: float) -> float:
+        for listener in self._listeners:
+            listener(t)
+        return t
 
     def now(self) -> float:
         """Current virtual time [s]."""
@@ -69,7 +90,8 @@ class VirtualClock:
             raise ValueError(f"virtual time cannot go back (dt = {dt})")
         with self._lock:
             self._t += dt
-            return self._t
+            t = self._t
+        return self._told(t)
 
     def sleep(self, dt: float) -> None:
         """A wait in virtual time: advances the clock instead of blocking."""
@@ -82,5 +104,5 @@ class VirtualClock:
     def advance_to(self, t: float) -> float:
         """Move time forward to t (no-op if t is in the past); returns the new time."""
         with self._lock:
-            self._t = max(self._t, float(t))
-            return self._t
+            self._t = now = max(self._t, float(t))
+        return self._told(now)
