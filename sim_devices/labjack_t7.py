@@ -149,33 +149,58 @@ class FeedbackPDU(ModbusPDU):
         """The reply: the read frames' data."""
         return self.reply
 
-    async def datastore_update(self, context: ModbusServerContext, device_id: int) -> ModbusPDU:
-        """Each frame as an FC3 read or FC16 write of the device's registers, in order."""
+    async def run(self, action: Callable[..., Awaitable[ExcCodes | None]]) -> bytes | ExcCodes:
+        """Run the frames in order through a device's ``action`` (as FC3 reads / FC16 writes): the read frames'
+        data, or the exception that ended the packet (the frames before it took effect)."""
         if self.malformed:
-            return ExceptionResponse(FC_FEEDBACK, ExcCodes.ILLEGAL_VALUE)
-        direct = self.action if device_id == self.unit else None
+            return ExcCodes.ILLEGAL_VALUE
         data = bytearray()
         for kind, address, count, words in self.frames:
             if kind == 1:
-                if direct is not None:
-                    rc = await direct(16, address, address, count, [], words)
-                else:
-                    rc = await context.async_setValues(device_id, 16, address, words)
+                rc = await action(16, address, address, count, [], words)
                 if rc:
-                    return ExceptionResponse(FC_FEEDBACK, rc)
+                    return rc
             else:
-                if direct is not None:
-                    got: list[int] | ExcCodes = [0] * count
-                    rc = await direct(3, address, address, count, got, None)
-                    got = rc or got
-                else:
-                    got = await context.async_getValues(device_id, 3, address, count)
+                regs = [0] * count
+                rc = await action(3, address, address, count, regs, None)
+                if rc:
+                    return rc
+                data += struct.pack(f">{count}H", *regs)
+        return bytes(data)
+
+    async def datastore_update(self, context: ModbusServerContext, device_id: int) -> ModbusPDU:
+        """Each frame as an FC3 read or FC16 write of the device's registers, in order."""
+        if self.action is not None and device_id == self.unit:
+            out = await self.run(self.action)
+        else:
+            async def through_context(fc: int, start: int, address: int, count: int, regs: list[int],
+                                      values: list[int] | None) -> ExcCodes | None:
+                if values is not None:
+                    return await context.async_setValues(device_id, fc, address, values)
+                got = await context.async_getValues(device_id, fc, address, count)
                 if isinstance(got, ExcCodes):
-                    return ExceptionResponse(FC_FEEDBACK, got)
-                data += struct.pack(f">{count}H", *got)
+                    return got
+                regs[:] = got
+                return None
+
+            out = await self.run(through_context)
+        if isinstance(out, ExcCodes):
+            return ExceptionResponse(FC_FEEDBACK, out)
         reply = FeedbackPDU()
-        reply.reply = bytes(data)
+        reply.reply = out
         return reply
+
+    @classmethod
+    async def answer(cls, adu: bytes) -> bytes | None:
+        """The whole reply ADU to a request ADU that is an MBFB packet for the bound unit (None: not one) — the
+        bytes the server would send, made without it (:class:`~sim_devices.transport.SocketRelay` ``local``)."""
+        if cls.action is None or adu[2:4] != b"\0\0" or adu[6] != cls.unit or adu[7] != FC_FEEDBACK:
+            return None
+        pdu = cls()
+        pdu.decode(adu[8:])
+        out = await pdu.run(cls.action)
+        body = bytes([FC_FEEDBACK]) + out if isinstance(out, bytes) else bytes([FC_FEEDBACK | 0x80, int(out)])
+        return adu[:4] + (1 + len(body)).to_bytes(2, "big") + adu[6:7] + body
 
 
 class _T7Server(ModbusTcpServer):
@@ -323,11 +348,12 @@ class LabJackT7Sim:
 
     async def _serve(self) -> None:
         try:
-            self._server = _T7Server(self.device, address=("127.0.0.1", 0),
-                                      custom_pdu=[FeedbackPDU.bound_to(UNIT, self.action)])
+            feedback = FeedbackPDU.bound_to(UNIT, self.action)
+            self._server = _T7Server(self.device, address=("127.0.0.1", 0), custom_pdu=[feedback])
             await self._server.serve_forever(background=True)
             inner = self._server.transport.sockets[0].getsockname()[1]  # type: ignore[union-attr,attr-defined]
-            self._relay = await SocketRelay("T7", ("127.0.0.1", inner), self.faults, framing="mbap").start()
+            self._relay = await SocketRelay("T7", ("127.0.0.1", inner), self.faults, framing="mbap",
+                                            local=feedback.answer).start()
             self._stream_server = await asyncio.start_server(self._on_stream_client, "127.0.0.1", 0)
             self.stream_port = self._stream_server.sockets[0].getsockname()[1]
             self._pump_task = asyncio.get_running_loop().create_task(self._pump_loop())

@@ -29,7 +29,7 @@ import threading
 import time
 import tty
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
@@ -442,14 +442,21 @@ class SocketRelay:
     the segmentation); ``"stream"`` treats each chunk read as one reply (RTU over TCP). ``drop`` closes every
     open connection (as a server that died: FIN; with ``drop_reset``: RST) and the listening socket (new
     connections are refused) until it is cleared, then the relay listens on the same port again.
+
+    ``local`` (``"mbap"`` only): a device's own answer to a request, given the whole ADU, or None to pass it on.
+    It is asked only for a read that holds exactly one whole ADU while no request passed on is unanswered (so
+    replies keep the requests' order); its reply goes through the same faults as the server's. A twin answers its
+    busiest request here (the T7's MBFB packets) and saves the hop to its server and back.
     """
 
     def __init__(self, name: str, upstream: tuple[str, int], faults: Faults | None = None,
-                 framing: Literal["mbap", "stream"] = "stream", poll: float = 0.005) -> None:
+                 framing: Literal["mbap", "stream"] = "stream", poll: float = 0.005,
+                 local: Callable[[bytes], Awaitable[bytes | None]] | None = None) -> None:
         self.name = name
         self.upstream = upstream
         self.faults = faults or Faults()
         self.framing = framing
+        self.local = local if framing == "mbap" else None
         self.host, self.port = "127.0.0.1", 0
         self._poll = poll
         self._server: asyncio.Server | None = None
@@ -525,10 +532,10 @@ class SocketRelay:
             return
         pair = (cwriter, swriter)
         self._conns.add(pair)
-        last_request = [0]
+        conn = _Conn()
         loop = asyncio.get_running_loop()
-        tasks = [loop.create_task(self._requests(creader, swriter, last_request)),
-                 loop.create_task(self._replies(sreader, cwriter, last_request))]
+        tasks = [loop.create_task(self._requests(creader, swriter, cwriter, conn)),
+                 loop.create_task(self._replies(sreader, cwriter, conn))]
         try:
             await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
         finally:
@@ -538,37 +545,71 @@ class SocketRelay:
             for w in pair:
                 w.close()
 
-    @staticmethod
-    async def _requests(reader: asyncio.StreamReader, writer: asyncio.StreamWriter, last: list[int]) -> None:
+    async def _requests(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter,
+                        client: asyncio.StreamWriter, conn: _Conn) -> None:
         with contextlib.suppress(OSError):
             while data := await reader.read(65536):
-                last[0] = len(data)
+                conn.last_request = len(data)
+                if self.local is not None and not conn.pending and len(data) >= 8 \
+                        and len(data) == 6 + int.from_bytes(data[4:6], "big"):
+                    reply = await self.local(data)
+                    if reply is not None:
+                        if not await self._deliver(client, reply, len(data)):
+                            return
+                        continue
+                if self.framing == "mbap":
+                    conn.pending += _adus(data)
                 writer.write(data)
                 await writer.drain()
 
-    async def _replies(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, last: list[int]) -> None:
+    async def _replies(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, conn: _Conn) -> None:
         with contextlib.suppress(OSError, asyncio.IncompleteReadError):
             while True:
                 if self.framing == "mbap":
                     head = await reader.readexactly(6)
                     reply = head + await reader.readexactly(int.from_bytes(head[4:6], "big"))
+                    conn.pending = max(conn.pending - 1, 0)
                 else:
                     reply = await reader.read(65536)
                 if not reply:
                     return
-                out, delay = self.faults.process(reply, last[0])
-                if self.faults.drop:
-                    await self._drop()
+                if not await self._deliver(writer, reply, conn.last_request):
                     return
-                if out is None:
-                    continue
-                if delay:
-                    await asyncio.sleep(delay)
-                if self.faults.drop:  # set by this reply's schedule, or during the delay
-                    await self._drop()
-                    return
-                writer.write(out)
-                await writer.drain()
+
+    async def _deliver(self, writer: asyncio.StreamWriter, reply: bytes, request_len: int) -> bool:
+        """Put one reply on the client's wire through the faults; False once the link has been dropped."""
+        out, delay = self.faults.process(reply, request_len)
+        if self.faults.drop:
+            await self._drop()
+            return False
+        if out is None:
+            return True
+        if delay:
+            await asyncio.sleep(delay)
+        if self.faults.drop:  # set by this reply's schedule, or during the delay
+            await self._drop()
+            return False
+        writer.write(out)
+        await writer.drain()
+        return True
+
+
+@dataclass
+class _Conn:
+    """One relayed connection: the size of the last request read, and the requests passed on not yet answered
+    (counted per MBAP ADU, a cut one included: it may be answered once the rest comes)."""
+
+    last_request: int = 0
+    pending: int = 0
+
+
+def _adus(data: bytes) -> int:
+    """Modbus TCP ADUs begun in ``data`` (a read may hold several, or a part of one)."""
+    i = n = 0
+    while i + 6 <= len(data):
+        n += 1
+        i += 6 + int.from_bytes(data[i + 4:i + 6], "big")
+    return n + (0 < len(data) - i < 6 and i < len(data))
 
 
 def _reset(writer: asyncio.StreamWriter) -> None:

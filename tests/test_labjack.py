@@ -222,6 +222,25 @@ def test_twin_refuses_a_malformed_or_oversized_feedback_packet(raw_twin: Rig, re
         assert reply[7] == 0xCC and reply[8] == 3  # illegal data value
 
 
+@pytest.mark.parametrize("request_hex", [
+    "0005 0000 0012 01 4c 01 03e8 02 4000 0000 00 03e8 02 00 ea60 02",  # write, read back, read PRODUCT_ID
+    "0006 0000 001a 01 4c 01 03e8 02 3f80 0000 01 07d0 02 0000 0000 01 03e8 02 4040 0000",  # refused 2nd frame
+    "0008 0000 0008 01 4c 01 03e8 02 4000",  # cut frame
+    "0008 0000 0006 02 4c 00 ea60 02",  # another unit
+])
+def test_the_relay_answers_an_mbfb_packet_with_the_bytes_the_twins_modbus_server_sends(raw_twin: Rig,
+                                                                                       request_hex: str) -> None:
+    """The relay in front of the twin answers whole MBFB packets itself (one hop less); the twin's pymodbus
+    server behind it answers the same request with the same bytes."""
+    sim = raw_twin.sim
+    assert sim._server is not None and sim._server.transport is not None
+    inner = sim._server.transport.sockets[0].getsockname()[1]  # type: ignore[attr-defined]
+    request = bytes.fromhex(request_hex)
+    with socket.create_connection(("127.0.0.1", raw_twin.port), timeout=2) as relayed, \
+            socket.create_connection(("127.0.0.1", inner), timeout=2) as direct:
+        assert _transact(relayed, request) == _transact(direct, request)
+
+
 def test_an_independent_modbus_client_talks_to_the_twin_by_fc3_and_mbfb(raw_twin: Rig) -> None:
     """pyModbusTCP (not our driver, not pymodbus): PRODUCT_ID by FC3, and an MBFB packet by its raw PDU."""
     from pyModbusTCP.client import ModbusClient
