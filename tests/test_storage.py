@@ -80,6 +80,32 @@ KILL_WRITER = textwrap.dedent(f"""
 """)
 
 
+BACKGROUND_FAULT_WRITER = textwrap.dedent(f"""
+    import json, sys
+    from pathlib import Path
+    import numpy as np
+    from bench.storage.recorder import Column, Recorder, StorageError
+    rec = Recorder(Path(sys.argv[1]), {{"protocol_name": "storage test"}},
+                   {{"laser": [Column("displacement", "m", "")]}}, [], {{"laser": {RATE}}}, flush_interval=0.0)
+    errors, blocks = [], 0
+    try:  # appends only: every write happens on the recorder's background thread
+        for b in range(100_000):
+            t = (b * {BLOCK} + np.arange({BLOCK})) / {RATE}
+            rec.append("laser", t, displacement=t * 1e-3)
+            rec.event(float(t[-1]), b, "block", "x" * 150)
+            blocks += 1
+    except StorageError as exc:
+        errors.append(str(exc))
+    for call in (lambda: rec.append("laser", 0.0, displacement=0.0), rec.maybe_flush, rec.flush,
+                 lambda: rec.finish("error", "x")):
+        try:
+            call()
+        except Exception as exc:
+            errors.append(f"{{type(exc).__name__}}: {{exc}}")
+    print(json.dumps({{"blocks": blocks, "errors": errors}}))
+""")
+
+
 def _limit_file_size(limit: int):
     def apply() -> None:
         resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
@@ -130,6 +156,44 @@ def test_file_size_limit_fails_once_cleanly_and_keeps_every_flushed_sample(tmp_p
     with h5py.File(path, "r", swmr=True) as f:  # beyond the confirmed count the file may hold zero-filled records
         assert f["laser/t"].shape[0] >= out["confirmed"]
     _check_recovers(path, out["confirmed"])
+
+
+def test_a_failed_background_write_is_raised_once_by_the_next_call_and_the_file_keeps_whole_flushes(
+        tmp_path: Path) -> None:
+    path = tmp_path / "run.h5"
+    proc = subprocess.run([sys.executable, "-c", BACKGROUND_FAULT_WRITER, str(path)], capture_output=True,
+                          text=True, timeout=120, preexec_fn=_limit_file_size(300_000), env=_env(), cwd=ROOT)
+    assert proc.returncode == 0 and "Traceback" not in proc.stderr, proc.stderr[-2000:]
+    out = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert len(out["errors"]) == 1, out["errors"]  # raised on the caller's thread once; later calls are no-ops
+    assert out["errors"][0].endswith(f"{os.strerror(errno.EFBIG)} (errno {errno.EFBIG})"), out["errors"]
+    run = open_run(path)
+    laser = run.streams["laser"]
+    assert 0 < len(laser) < out["blocks"] * BLOCK and len(laser) % BLOCK == 0  # whole appends only
+    np.testing.assert_array_equal(laser.t, np.arange(len(laser)) / RATE)  # each sample as written, none zero-filled
+    np.testing.assert_array_equal(laser.columns["displacement"], laser.t * 1e-3)
+    # a write takes what was queued: the event of the last block on file may have come after it
+    assert len(laser) // BLOCK - 1 <= len(run.events) <= len(laser) // BLOCK
+    assert all(e["kind"] == b"block" for e in run.events) and not run.complete and run.state == "running"
+
+
+def test_an_interval_flush_writes_on_a_background_thread_and_flush_waits_for_it(tmp_path: Path) -> None:
+    from bench.storage.recorder import Column, Recorder
+
+    rec = Recorder(tmp_path / "run.h5", {"protocol_name": "background"}, {"laser": [Column("displacement", "m", "")]},
+                   [], {"laser": RATE}, flush_interval=0.0)
+    gate, write = __import__("threading").Event(), rec._write
+    rec._write = lambda work: (gate.wait(10.0), write(work))  # type: ignore[method-assign]
+    t = np.arange(BLOCK) / RATE
+    rec.append("laser", t, displacement=t * 1e-3)  # the interval has passed: the data goes to the writer …
+    writing = rec._writing
+    assert writing is not None and writing.is_alive()  # … and append returned while the write waits
+    rec._write = write  # type: ignore[method-assign]
+    gate.set()
+    rec.flush()  # waits for it, then writes what came since (nothing)
+    assert not writing.is_alive() and rec.samples_written == BLOCK
+    rec.finish("completed", "test")
+    np.testing.assert_array_equal(open_run(tmp_path / "run.h5").streams["laser"].t, t)
 
 
 def _check_recovers(path: Path, confirmed: int) -> None:

@@ -27,7 +27,11 @@ Datasets, dimension scales and attributes are created before SWMR mode starts (H
 under SWMR); the datasets are then appended in blocks and flushed at least every
 ``flush_interval`` seconds of wall time, so another process can read the file during the run: every
 ``append``/``event`` checks the interval itself (a caller busy elsewhere, e.g. uploading stored laser data for
-30 s, still has its data on disk within the interval), and ``maybe_flush`` covers stretches without data.
+30 s, still has its data on disk within the interval), and ``maybe_flush`` covers stretches without data. Those
+interval flushes take the queued data on the caller's thread and write it on a background thread (h5py releases
+the GIL while HDF5 compresses and writes, so the run goes on meanwhile); one write at a time, in order. A failure
+there is raised on the caller's thread by its next recorder call. :meth:`Recorder.flush`, ``set_state`` and
+``finish`` first wait for a write under way, then write on the caller's thread.
 
 A failed write (disk full, file-size limit, unwritable directory, any HDF5 error) raises one
 :class:`StorageError` naming the file and the cause; the recorder is then *failed*: further calls are no-ops,
@@ -167,8 +171,11 @@ class Recorder:
         self._last_t = 0.0
         self.samples_written = 0
         self.write_seconds = 0.0  # wall time spent writing
-        self.cpu_seconds = 0.0  # CPU time of the calling thread spent in append and flush
+        self._cpu_queue = 0.0  # CPU time of the caller's thread spent queueing (append)
+        self._cpu_write = 0.0  # CPU time of the writing thread (one write at a time)
         self.failure = ""  # the StorageError message once a write has failed ('' while healthy)
+        self._writing: threading.Thread | None = None  # the background write under way (maybe_flush)
+        self._write_error: Exception | None = None  # its failure, raised by the caller's next call
         self._f: h5py.File | None = None
         self._names = [*streams, "events"]
         self._counts = np.zeros(len(self._names), dtype=np.int64)  # valid records on disk, per stream and events
@@ -257,6 +264,11 @@ class Recorder:
             d.attrs["description"] = col.description
 
     @property
+    def cpu_seconds(self) -> float:
+        """CPU time the recorder used [s]: queueing on the caller's thread and writing (on whichever thread)."""
+        return self._cpu_queue + self._cpu_write
+
+    @property
     def failed(self) -> bool:
         """Whether a write has failed (the recorder then ignores further calls)."""
         return bool(self.failure)
@@ -285,7 +297,7 @@ class Recorder:
         for name, values in columns.items():
             buf[name].append(np.atleast_1d(np.asarray(values)))
         self._last_t = max(self._last_t, float(np.max(buf["t"][-1])) if buf["t"][-1].size else self._last_t)
-        self.cpu_seconds += time.thread_time() - c0
+        self._cpu_queue += time.thread_time() - c0
         self.maybe_flush()
 
     def event(self, t: float, step: int, kind: str, text: str) -> None:
@@ -296,20 +308,53 @@ class Recorder:
         self.maybe_flush()
 
     def maybe_flush(self) -> None:
-        """Flush if the flush interval has passed (call it often)."""
-        if not self.failure and time.monotonic() - self._last_flush >= self.flush_interval:
-            self.flush()
+        """Flush if the flush interval has passed (call it often): the data is taken here and written on a
+        background thread, unless the last such write is still under way (then at a later call). Raises the
+        :class:`StorageError` of a background write that failed."""
+        if self.failure:
+            return
+        writing = self._writing
+        if writing is not None:
+            if writing.is_alive():
+                return
+            self._await_write()
+        if time.monotonic() - self._last_flush >= self.flush_interval:
+            self._last_flush = time.monotonic()
+            work = self._take()
+            # not a daemon: the interpreter finishes a write under way before h5py's exit handler closes the file
+            self._writing = threading.Thread(target=self._write_in_background, args=(work,), name="recorder-flush")
+            self._writing.start()
 
     def flush(self) -> None:
-        """Write every queued sample and event, and make them visible to readers.
+        """Write every queued sample and event, and make them visible to readers (after a background write under
+        way has finished).
 
         Two steps: the data (then an HDF5 flush), and only once that succeeded the valid-record counts and the
         time of the flush (then a second, small flush) — so a reader never counts records a failed or
         interrupted write left zero-filled. Raises :class:`StorageError` on the first failure.
         """
+        self._await_write()
         if self.failure:
             return
-        t0, c0 = time.perf_counter(), time.thread_time()
+        self._last_flush = time.monotonic()
+        try:
+            self._write(self._take())
+        except Exception as exc:  # any failure of the file (OS or HDF5) is a storage fault
+            raise self._fail("write failed", exc) from None
+
+    def _await_write(self) -> None:
+        """Wait for the background write under way; raise its failure (once) as a :class:`StorageError`."""
+        writing, self._writing = self._writing, None
+        if writing is None:
+            return
+        writing.join()
+        exc, self._write_error = self._write_error, None
+        if exc is not None and not self.failure:
+            raise self._fail("write failed", exc) from None
+
+    def _take(self) -> tuple[list[tuple[int, str, dict[str, np.ndarray], int]], np.ndarray | None, float]:
+        """The queued samples per stream, the queued events and the rig time of the last sample; the queues are
+        left empty (caller's thread: appends go on into new lists)."""
         blocks: list[tuple[int, str, dict[str, np.ndarray], int]] = []
         for k, (stream, buf) in enumerate(self._buffers.items()):
             if not buf["t"]:
@@ -326,35 +371,45 @@ class Recorder:
             for parts in buf.values():
                 parts.clear()
         self._events.clear()
-        counts = self._counts.copy()
+        return blocks, events, self._last_t
+
+    def _write_in_background(self, work: tuple[list[tuple[int, str, dict[str, np.ndarray], int]],
+                                               np.ndarray | None, float]) -> None:
         try:
-            for k, stream, data, n_new in blocks:
-                datasets = self._datasets[stream]
-                n = int(counts[k])
-                for name, values in data.items():
-                    d = datasets[name]
-                    d.resize((n + n_new,))
-                    d.write_direct(np.ascontiguousarray(values, dtype=d.dtype), dest_sel=np.s_[n:n + n_new])
-                counts[k] = n + n_new
-            if events is not None:
-                n = int(counts[-1])
-                for field, d in self._events_ds.items():
-                    d.resize((n + events.size,))
-                    d[n:] = events[field].astype(d.dtype)  # S16 → the dataset's UTF-8 type (no HDF5 conversion)
-                counts[-1] = n + events.size
-            f = self._f
-            assert f is not None
-            f.flush()  # the data first …
-            self._samples[:] = counts
-            self._updated[0] = self._last_t
-            f.flush()  # … then what a reader may count as valid
-        except Exception as exc:  # any failure of the file (OS or HDF5) is a storage fault
-            raise self._fail("write failed", exc) from None
+            self._write(work)
+        except Exception as exc:  # raised on the caller's thread by its next call (_await_write)
+            self._write_error = exc
+
+    def _write(self, work: tuple[list[tuple[int, str, dict[str, np.ndarray], int]], np.ndarray | None,
+                                 float]) -> None:
+        """The file side of a flush (one at a time: the caller's thread or the background thread)."""
+        blocks, events, last_t = work
+        t0, c0 = time.perf_counter(), time.thread_time()
+        counts = self._counts.copy()
+        for k, stream, data, n_new in blocks:
+            datasets = self._datasets[stream]
+            n = int(counts[k])
+            for name, values in data.items():
+                d = datasets[name]
+                d.resize((n + n_new,))
+                d.write_direct(np.ascontiguousarray(values, dtype=d.dtype), dest_sel=np.s_[n:n + n_new])
+            counts[k] = n + n_new
+        if events is not None:
+            n = int(counts[-1])
+            for field, d in self._events_ds.items():
+                d.resize((n + events.size,))
+                d[n:] = events[field].astype(d.dtype)  # S16 → the dataset's UTF-8 type (no HDF5 conversion)
+            counts[-1] = n + events.size
+        f = self._f
+        assert f is not None
+        f.flush()  # the data first …
+        self._samples[:] = counts
+        self._updated[0] = last_t
+        f.flush()  # … then what a reader may count as valid
         self.samples_written += int((counts[:-1] - self._counts[:-1]).sum())
         self._counts = counts
-        self._last_flush = time.monotonic()
         self.write_seconds += time.perf_counter() - t0
-        self.cpu_seconds += time.thread_time() - c0
+        self._cpu_write += time.thread_time() - c0
 
     def set_state(self, state: str, reason: str = "") -> None:
         """Record the run's state (visible to readers at once); a no-op once the recorder has failed."""
