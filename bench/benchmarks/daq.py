@@ -152,7 +152,8 @@ def exchange_ceiling(seconds: float = 10.0) -> list[Figure]:
         daq.stop()
         wall = time.perf_counter() - t0
     return [Figure(f"driver ↔ T7 twin alone, 4 inputs + stream-out at 10 kHz, {seconds:g} s, virtual time",
-                   seconds / wall, "× real time", "the wire's share of a DAQ-rig run: no run goes faster")]
+                   seconds / wall, "× real time", "every scan crosses the loopback as bytes, nothing else runs: "
+                   "no DAQ-rig run goes faster")]
 
 
 def _echo_round_trip(request_bytes: int, reply_bytes: int, n: int = 2000) -> float:
