@@ -80,6 +80,31 @@ def test_served_rig_file_round_trips(tmp_path: Path) -> None:
     assert again.motor.port == "/dev/pts/99" and again.buses["scale"].port == "tcp://127.0.0.1:5020"
 
 
+SERVE_AND_CTRL_C_IN_ANOTHER_THREAD = """
+import signal, sys, threading, time
+from pathlib import Path
+served = Path(sys.argv[2])
+
+def ctrl_c_lands_in_this_thread():  # the kernel may hand a process's SIGINT to any thread
+    while not served.exists():
+        time.sleep(0.02)
+    time.sleep(0.5)  # serving now
+    signal.pthread_kill(threading.get_ident(), signal.SIGINT)
+
+threading.Thread(target=ctrl_c_lands_in_this_thread, daemon=True).start()
+from bench.cli import app
+app(prog_name="bench", args=["sim", "serve", sys.argv[1], "--write-rig", str(served)])
+"""
+
+
+def test_sim_serve_stops_on_a_ctrl_c_that_lands_in_another_thread(tmp_path: Path) -> None:
+    """With a twin's thread (not the main one) taking the signal, the main thread must still notice it."""
+    res = subprocess.run([sys.executable, "-c", SERVE_AND_CTRL_C_IN_ANOTHER_THREAD, str(RIGS / "thesis-sim.toml"),
+                          str(tmp_path / "served.toml")], capture_output=True, text=True, timeout=30, cwd=ROOT,
+                         env={**os.environ, "COLUMNS": "200"})
+    assert "simulated rig stopped" in res.stdout, res.stdout + res.stderr
+
+
 def test_sim_serve_for_another_process_and_ctrl_c(tmp_path: Path) -> None:
     served = tmp_path / "served.toml"
     proc = subprocess.Popen([sys.executable, "-m", "bench", "sim", "serve", str(RIGS / "lsdea-motor-sim.toml"),

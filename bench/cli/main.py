@@ -215,8 +215,10 @@ def sim_serve(
              "speed (faster than any real bench: for a quick look only).")] = True,
 ) -> None:
     """Start every simulated instrument of a rig (wall clock) and print where to connect; Ctrl-C stops."""
+    import math
     import signal
     import threading
+    import time
 
     from bench.rig import load_rig
     from bench.runtime.devices import served_rig
@@ -240,7 +242,11 @@ def sim_serve(
                                        if wire_time else "off (pty speed: faster than any real line)"))
         console.print("serving; Ctrl-C to stop" + (f" (or after {duration_s:g} s)" if duration_s else ""))
         with contextlib.suppress(KeyboardInterrupt):
-            stop.wait(duration_s)
+            # short waits: a Ctrl-C the kernel hands to one of the twins' threads only sets Python's flag, and a
+            # main thread blocked in one long wait would not see it until the wait ends (never, without --duration)
+            end = math.inf if duration_s is None else time.monotonic() + duration_s
+            while not stop.wait(min(0.1, max(end - time.monotonic(), 0.0))) and time.monotonic() < end:
+                pass
     finally:
         sim.stop()
         signal.signal(signal.SIGTERM, previous)
