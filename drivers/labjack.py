@@ -795,12 +795,14 @@ class LabJackT7:
         statuses: list[int] = []
         skipped = 0
         backlog = 0
+        chunk: list[np.ndarray] = []  # samples of consecutive packets, converted together
         for pkt in packets:
             if pkt.status:
                 statuses.append(pkt.status)
             backlog = pkt.backlog_bytes // (2 * s.n_in)
             samples = pkt.samples
             if pkt.status == ST_RECOVER_END:
+                self._convert(chunk, rows, valid)
                 if s.pending:
                     raise ProtocolError(self.name, "auto-recovery ended inside a scan")
                 if samples.size < s.n_in or np.any(samples[:s.n_in] != DUMMY):
@@ -810,16 +812,8 @@ class LabJackT7:
                 rows.append(np.full((pkt.additional, s.n_in), np.nan))
                 valid.append(np.zeros((pkt.additional, s.n_in), bool))
                 s.scans += pkt.additional
-            allsamp = np.concatenate([np.asarray(s.pending, np.uint16), samples])
-            whole = allsamp.size // s.n_in * s.n_in
-            s.pending = allsamp[whole:].tolist()
-            raw = allsamp[:whole].reshape(-1, s.n_in)
-            volts = np.empty(raw.shape)
-            for j, g in enumerate(s.gains):
-                volts[:, j] = self.cal.ain_volts(raw[:, j], g)
-            rows.append(volts)
-            valid.append(np.ones(raw.shape, bool))
-            s.scans += raw.shape[0]
+            chunk.append(samples)
+        self._convert(chunk, rows, valid)
         v = np.concatenate(rows) if rows else np.empty((0, s.n_in))
         ok = np.concatenate(valid) if valid else np.empty((0, s.n_in), bool)
         if self.streaming and not s.done:
@@ -833,6 +827,25 @@ class LabJackT7:
             raise InstrumentStateError(self.name, f"stream ended by device status {fatal[0]} "
                                        f"({ERRORS[fatal[0]]}) at scan {s.scans}")
         return block
+
+    def _convert(self, chunk: list[np.ndarray], rows: list[np.ndarray], valid: list[np.ndarray]) -> None:
+        """Whole scans of the samples in ``chunk`` (after the samples left over from the last packet) to volts in
+        ``rows``; the rest of a scan waits for the next packet. Empties ``chunk``."""
+        s = self._stream
+        assert s is not None
+        if not chunk:
+            return
+        allsamp = np.concatenate([np.asarray(s.pending, np.uint16), *chunk])
+        chunk.clear()
+        whole = allsamp.size // s.n_in * s.n_in
+        s.pending = allsamp[whole:].tolist()
+        raw = allsamp[:whole].reshape(-1, s.n_in)
+        volts = np.empty(raw.shape)
+        for j, g in enumerate(s.gains):
+            volts[:, j] = self.cal.ain_volts(raw[:, j], g)
+        rows.append(volts)
+        valid.append(np.ones(raw.shape, bool))
+        s.scans += raw.shape[0]
 
     @property
     def scans_received(self) -> int:
