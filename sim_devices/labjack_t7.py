@@ -114,6 +114,7 @@ class FeedbackPDU(ModbusPDU):
     function_code = FC_FEEDBACK
     unit: int | None = None  # the device the bound action serves (others take pymodbus' path)
     action: Callable[..., Awaitable[ExcCodes | None]] | None = None
+    buffers: frozenset[int] = frozenset()  # buffer registers: write frames in a row to one append as one write
 
     def __init__(self, dev_id: int = 0, transaction_id: int = 0) -> None:
         super().__init__(dev_id=dev_id, transaction_id=transaction_id)
@@ -122,9 +123,12 @@ class FeedbackPDU(ModbusPDU):
         self.reply = b""
 
     @classmethod
-    def bound_to(cls, unit: int, action: Callable[..., Awaitable[ExcCodes | None]]) -> type[FeedbackPDU]:
-        """The PDU class a twin registers: MBFB frames for ``unit`` run through ``action``."""
-        return type("FeedbackPDU", (cls,), {"unit": unit, "action": staticmethod(action)})
+    def bound_to(cls, unit: int, action: Callable[..., Awaitable[ExcCodes | None]],
+                 buffers: frozenset[int] = frozenset()) -> type[FeedbackPDU]:
+        """The PDU class a twin registers: MBFB frames for ``unit`` run through ``action``. ``buffers``: the
+        addresses where write frames in a row go to the action as one write (each value appends, so that is
+        the same: a buffer takes as many values as fit and refuses the rest, in one frame or in two)."""
+        return type("FeedbackPDU", (cls,), {"unit": unit, "action": staticmethod(action), "buffers": buffers})
 
     def decode(self, data: bytes) -> None:
         """Frames from the bytes after the function code; malformed unless they split exactly."""
@@ -155,7 +159,7 @@ class FeedbackPDU(ModbusPDU):
         if self.malformed:
             return ExcCodes.ILLEGAL_VALUE
         data = bytearray()
-        for kind, address, count, words in self.frames:
+        for kind, address, count, words in self._merged():
             if kind == 1:
                 rc = await action(16, address, address, count, [], words)
                 if rc:
@@ -167,6 +171,17 @@ class FeedbackPDU(ModbusPDU):
                     return rc
                 data += struct.pack(f">{count}H", *regs)
         return bytes(data)
+
+    def _merged(self) -> list[tuple[int, int, int, list[int]]]:
+        """The frames, with write frames in a row to one buffer register joined."""
+        out: list[tuple[int, int, int, list[int]]] = []
+        for kind, address, count, words in self.frames:
+            if out and kind == 1 and out[-1][0] == 1 and out[-1][1] == address and address in self.buffers:
+                prev = out[-1]
+                out[-1] = (1, address, prev[2] + count, prev[3] + words)
+            else:
+                out.append((kind, address, count, words))
+        return out
 
     async def datastore_update(self, context: ModbusServerContext, device_id: int) -> ModbusPDU:
         """Each frame as an FC3 read or FC16 write of the device's registers, in order."""
@@ -348,7 +363,7 @@ class LabJackT7Sim:
 
     async def _serve(self) -> None:
         try:
-            feedback = FeedbackPDU.bound_to(UNIT, self.action)
+            feedback = FeedbackPDU.bound_to(UNIT, self.action, frozenset(range(R_O_U16, R_O_U16 + 4)))
             self._server = _T7Server(self.device, address=("127.0.0.1", 0), custom_pdu=[feedback])
             await self._server.serve_forever(background=True)
             inner = self._server.transport.sockets[0].getsockname()[1]  # type: ignore[union-attr,attr-defined]

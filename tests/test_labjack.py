@@ -210,6 +210,26 @@ def test_twin_stops_a_feedback_packet_at_the_refused_frame(raw_twin: Rig) -> Non
             bytes.fromhex("0007 0000 0007 01 03 04 3f80 0000")  # the frame before took effect, the one after not
 
 
+@pytest.mark.parametrize("frames", [1, 2])
+def test_a_stream_out_buffer_takes_what_fits_of_an_mbfb_packet_and_refuses_the_rest(raw_twin: Rig,
+                                                                                     frames: int) -> None:
+    """40 values to STREAM_OUT0_BUFFER_U16 (4420) in one frame or in two: the buffer takes the first ones that fit
+    (a 64-byte buffer: 31 values, bytes/2 − 1 as the twin and the driver count it) and the packet ends with
+    STREAM_OUT_BUFFER_FULL (2613) — the same whether the values came in one frame or two."""
+    with socket.create_connection(("127.0.0.1", raw_twin.port), timeout=2) as s:
+        for address, value in ((4040, 1000), (4050, 64), (4090, 1)):  # target DAC0, 64 bytes, enable
+            assert _transact(s, struct.pack(">HHHBBHHBI", 1, 0, 11, 1, 16, address, 2, 4, value))[7] == 16
+        values = list(range(1000, 1040))
+        body = b"".join(struct.pack(f">BHB{len(part)}H", 1, 4420, len(part), *part)
+                        for part in ([values] if frames == 1 else [values[:20], values[20:]]))
+        reply = _transact(s, struct.pack(">HHHBB", 2, 0, 2 + len(body), 1, 76) + body)
+        assert reply[7:9] == bytes([0xCC, 4])  # a T7 error: device failure, the code in LAST_ERR_DETAIL
+        assert _transact(s, bytes.fromhex("0003 0000 0006 01 03 d6d8 0001"))[9:11] == (2613).to_bytes(2, "big")
+        status = _transact(s, bytes.fromhex("0004 0000 0006 01 03 0ff0 0002"))  # STREAM_OUT0_BUFFER_STATUS (4080)
+        assert int.from_bytes(status[9:13], "big") == 2 * 31  # bytes held, not yet played
+    assert list(raw_twin.sim.outs[0].queue) == values[:31]
+
+
 @pytest.mark.parametrize("request_hex", [
     "0008 0000 0008 01 4c 01 03e8 02 4000",  # a write frame cut short
     "0008 0000 0006 01 4c 07 03e8 02",  # no such frame type
