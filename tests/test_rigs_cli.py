@@ -105,6 +105,28 @@ def test_sim_serve_stops_on_a_ctrl_c_that_lands_in_another_thread(tmp_path: Path
     assert "simulated rig stopped" in res.stdout, res.stdout + res.stderr
 
 
+def test_sim_serve_stops_on_sigint_even_when_started_with_sigint_ignored(tmp_path: Path) -> None:
+    """A background job of a non-interactive shell starts with SIGINT ignored; a SIGINT sent to it must still stop
+    the twins (Python installs no KeyboardInterrupt handler then, so `sim serve` sets its own)."""
+    served = tmp_path / "served.toml"
+    proc = subprocess.Popen([sys.executable, "-m", "bench", "sim", "serve", str(RIGS / "thesis-sim.toml"),
+                             "--write-rig", str(served)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            cwd=ROOT, env={**os.environ, "COLUMNS": "200"},
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+    try:
+        deadline = time.monotonic() + 60
+        while not served.exists() and time.monotonic() < deadline and proc.poll() is None:
+            time.sleep(0.05)
+        assert served.exists(), proc.stderr.read() if proc.poll() is not None else "timeout"
+        time.sleep(0.3)
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0 and "simulated rig stopped" in out, out + err
+
+
 def test_sim_serve_for_another_process_and_ctrl_c(tmp_path: Path) -> None:
     served = tmp_path / "served.toml"
     proc = subprocess.Popen([sys.executable, "-m", "bench", "sim", "serve", str(RIGS / "lsdea-motor-sim.toml"),

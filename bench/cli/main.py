@@ -230,7 +230,9 @@ def sim_serve(
     if not rig.simulated:
         raise ValueError(f"rig file {rig_file}: simulated = false; `bench sim serve` needs a simulated rig")
     stop = threading.Event()
-    previous = signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    # both set explicitly: a process started with SIGINT ignored (a background job of a non-interactive shell)
+    # inherits the ignore, and Python then installs no KeyboardInterrupt handler of its own
+    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGTERM, signal.SIGINT)}
     sim = SimRig(rig, timing="real" if wire_time else "none")
     try:
         endpoints = sim.start()
@@ -243,13 +245,15 @@ def sim_serve(
         console.print("serving; Ctrl-C to stop" + (f" (or after {duration_s:g} s)" if duration_s else ""))
         with contextlib.suppress(KeyboardInterrupt):
             # short waits: a Ctrl-C the kernel hands to one of the twins' threads only sets Python's flag, and a
-            # main thread blocked in one long wait would not see it until the wait ends (never, without --duration)
+            # main thread blocked in one long wait would not run the handler until the wait ends (never, without
+            # --duration)
             end = math.inf if duration_s is None else time.monotonic() + duration_s
             while not stop.wait(min(0.1, max(end - time.monotonic(), 0.0))) and time.monotonic() < end:
                 pass
     finally:
         sim.stop()
-        signal.signal(signal.SIGTERM, previous)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
     console.print("simulated rig stopped")
 
 
