@@ -7,6 +7,7 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -105,20 +106,27 @@ def test_sim_serve_stops_on_a_ctrl_c_that_lands_in_another_thread(tmp_path: Path
     assert "simulated rig stopped" in res.stdout, res.stdout + res.stderr
 
 
+def _serving(rig: str, served: Path, preexec: Callable[[], object] | None = None) -> subprocess.Popen[str]:
+    """`bench sim serve RIG --write-rig SERVED` in another process, returned once its twins are up."""
+    proc = subprocess.Popen([sys.executable, "-m", "bench", "sim", "serve", str(RIGS / rig), "--write-rig",
+                             str(served)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT,
+                            env={**os.environ, "COLUMNS": "200"}, preexec_fn=preexec)
+    deadline = time.monotonic() + 60
+    while not served.exists() and time.monotonic() < deadline and proc.poll() is None:
+        time.sleep(0.05)
+    if not served.exists():
+        proc.kill()
+        raise AssertionError(proc.stderr.read() if proc.poll() is not None else "timeout")
+    time.sleep(0.2)
+    return proc
+
+
 def test_sim_serve_stops_on_sigint_even_when_started_with_sigint_ignored(tmp_path: Path) -> None:
     """A background job of a non-interactive shell starts with SIGINT ignored; a SIGINT sent to it must still stop
     the twins (Python installs no KeyboardInterrupt handler then, so `sim serve` sets its own)."""
-    served = tmp_path / "served.toml"
-    proc = subprocess.Popen([sys.executable, "-m", "bench", "sim", "serve", str(RIGS / "thesis-sim.toml"),
-                             "--write-rig", str(served)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            cwd=ROOT, env={**os.environ, "COLUMNS": "200"},
-                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+    proc = _serving("thesis-sim.toml", tmp_path / "served.toml",
+                    lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
     try:
-        deadline = time.monotonic() + 60
-        while not served.exists() and time.monotonic() < deadline and proc.poll() is None:
-            time.sleep(0.05)
-        assert served.exists(), proc.stderr.read() if proc.poll() is not None else "timeout"
-        time.sleep(0.3)
         proc.send_signal(signal.SIGINT)
         out, err = proc.communicate(timeout=30)
     finally:
@@ -129,15 +137,8 @@ def test_sim_serve_stops_on_sigint_even_when_started_with_sigint_ignored(tmp_pat
 
 def test_sim_serve_for_another_process_and_ctrl_c(tmp_path: Path) -> None:
     served = tmp_path / "served.toml"
-    proc = subprocess.Popen([sys.executable, "-m", "bench", "sim", "serve", str(RIGS / "lsdea-motor-sim.toml"),
-                             "--write-rig", str(served)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            cwd=ROOT, env={**os.environ, "COLUMNS": "200"})
+    proc = _serving("lsdea-motor-sim.toml", served)
     try:
-        deadline = time.monotonic() + 60
-        while not served.exists() and time.monotonic() < deadline and proc.poll() is None:
-            time.sleep(0.05)
-        assert served.exists(), proc.stderr.read() if proc.poll() is not None else "timeout"
-        time.sleep(0.2)
         rows = check_instruments(load_rig(served))  # a client in this process, the twins in the other
         assert [r.role for r in rows if r.ok] == ["amplifier", "motor", "load_cell"], rows
     finally:
