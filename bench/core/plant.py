@@ -224,10 +224,12 @@ class Plant:
             return profile
 
     def motor_state(self, t: float | None = None) -> tuple[float, float]:
-        """Motor (position [m], velocity [m/s]) at t (default: now)."""
-        with self.lock:
-            p, v = self.motion.evaluate(self.clock.now() if t is None else t)
-            return float(p), float(v)
+        """Motor (position [m], velocity [m/s]) at t (default: now).
+
+        Kinematic, so without the plant's lock: a drive polled for its position does not wait for an integration
+        under way (the profile in force is one atomic read; profiles are only appended or dropped from the front)."""
+        p, v = self.motion.evaluate(self.clock.now() if t is None else t)
+        return float(p), float(v)
 
     def change_specimen(self, temperature_K: float | None = None, hung_mass_kg: float | None = None,
                         prototype: int | None = None) -> None:
