@@ -516,6 +516,10 @@ class LabJackT7Sim:
         """Index of the last scan that has run (−1: none)."""
         return math.floor((now - self.t_enable) * self.rate + 1e-6) - 1
 
+    def _in_addresses(self) -> list[int]:
+        """The scan list's analog inputs (AIN addresses), in scan order."""
+        return [a for a in self.scanlist[:int(self.regs[R_NADDR])] if a < 2 * N_AIN]
+
     def _out_indices(self) -> list[int]:
         n = int(self.regs[R_NADDR])
         return [a - R_O_SCAN for a in self.scanlist[:n] if R_O_SCAN <= a < R_O_SCAN + 4]
@@ -543,7 +547,8 @@ class LabJackT7Sim:
         return max(0, min(sum(c.size for _, c in o.sched), o.next_scan - 1 - cur))
 
     def pump(self) -> None:
-        """Take the scans due by now, play stream-out, send whole packets (called every ``poll`` s)."""
+        """Take the scans due by now, play stream-out, send whole packets (called every ``poll`` s, and on a virtual
+        clock also as soon as a whole packet is due: :meth:`_on_clock`)."""
         with self.plant.lock, self.lock:  # plant first (see ``action``)
             if not self.streaming:
                 return
@@ -561,7 +566,7 @@ class LabJackT7Sim:
 
     def _packet_due(self) -> float:
         """Rig time of the scan that completes the next whole packet (inf when not streaming)."""
-        n_in = len([a for a in self.scanlist[:int(self.regs[R_NADDR])] if a < 2 * N_AIN])
+        n_in = len(self._in_addresses())
         if not self.streaming or not n_in:
             return math.inf
         missing = max(int(self.regs[R_SPP]) - self.fifo.size, 1)
@@ -591,7 +596,7 @@ class LabJackT7Sim:
     def _take_scans(self, due: int) -> None:
         ks = np.arange(self.produced, due)
         times = self.t_enable + (ks + 1) / self.rate
-        ins = [a for a in self.scanlist[:int(self.regs[R_NADDR])] if a < 2 * N_AIN]
+        ins = self._in_addresses()
         obs = self._observe(times)
         cols = [self._raw(self._ain_volts(a // 2, obs, ks.size), RANGE_GAIN[self.ain_range[a // 2]]) for a in ins]
         data = np.stack(cols, axis=1).reshape(-1)

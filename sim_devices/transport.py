@@ -557,7 +557,7 @@ class SocketRelay:
                         if not await self._deliver(client, reply, len(data)):
                             return
                         continue
-                if self.framing == "mbap":
+                if self.local is not None:  # only a relay that answers locally needs the count
                     conn.pending += _adus(data)
                 writer.write(data)
                 await writer.drain()
@@ -568,7 +568,7 @@ class SocketRelay:
                 if self.framing == "mbap":
                     head = await reader.readexactly(6)
                     reply = head + await reader.readexactly(int.from_bytes(head[4:6], "big"))
-                    conn.pending = max(conn.pending - 1, 0)
+                    conn.pending = max(conn.pending - 1, 0)  # (stays 0 on a relay without a local answer)
                 else:
                     reply = await reader.read(65536)
                 if not reply:
@@ -609,7 +609,7 @@ def _adus(data: bytes) -> int:
     while i + 6 <= len(data):
         n += 1
         i += 6 + int.from_bytes(data[i + 4:i + 6], "big")
-    return n + (0 < len(data) - i < 6 and i < len(data))
+    return n + (0 < len(data) - i < 6)  # a header cut short
 
 
 def _reset(writer: asyncio.StreamWriter) -> None:
