@@ -73,6 +73,11 @@ CHUNK_S = 0.25  # chunk length [s of a stream]: about one flush, so a compressed
 # (a flush rewrites the partial last chunk elsewhere in the file: 2-s chunks made files 2-3x larger)
 
 
+# what one flush writes: per stream with data (its index, name, columns, sample count), the events, the rig time
+# of the last sample
+_Work = tuple[list[tuple[int, str, dict[str, np.ndarray], int]], np.ndarray | None, float]
+
+
 class StorageError(OSError):
     """Writing the run file failed (disk full, file-size limit, unwritable directory, HDF5 error); one line.
 
@@ -352,7 +357,7 @@ class Recorder:
         if exc is not None and not self.failure:
             raise self._fail("write failed", exc) from None
 
-    def _take(self) -> tuple[list[tuple[int, str, dict[str, np.ndarray], int]], np.ndarray | None, float]:
+    def _take(self) -> _Work:
         """The queued samples per stream, the queued events and the rig time of the last sample; the queues are
         left empty (caller's thread: appends go on into new lists)."""
         blocks: list[tuple[int, str, dict[str, np.ndarray], int]] = []
@@ -373,15 +378,13 @@ class Recorder:
         self._events.clear()
         return blocks, events, self._last_t
 
-    def _write_in_background(self, work: tuple[list[tuple[int, str, dict[str, np.ndarray], int]],
-                                               np.ndarray | None, float]) -> None:
+    def _write_in_background(self, work: _Work) -> None:
         try:
             self._write(work)
         except Exception as exc:  # raised on the caller's thread by its next call (_await_write)
             self._write_error = exc
 
-    def _write(self, work: tuple[list[tuple[int, str, dict[str, np.ndarray], int]], np.ndarray | None,
-                                 float]) -> None:
+    def _write(self, work: _Work) -> None:
         """The file side of a flush (one at a time: the caller's thread or the background thread)."""
         blocks, events, last_t = work
         t0, c0 = time.perf_counter(), time.thread_time()
