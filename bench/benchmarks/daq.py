@@ -187,7 +187,10 @@ def _echo_round_trip(request_bytes: int, reply_bytes: int, n: int = 2000) -> flo
             sock.sendall(request)
             got = 0
             while got < reply_bytes:
-                got += len(sock.recv(reply_bytes - got))
+                chunk = sock.recv(reply_bytes - got)
+                if not chunk:
+                    raise ConnectionError("loopback echo server closed the connection")
+                got += len(chunk)
         wall = time.perf_counter() - t0
     server.join(timeout=5)
     listener.close()
