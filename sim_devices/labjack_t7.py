@@ -108,7 +108,7 @@ class FeedbackPDU(ModbusPDU):
     A twin serves the subclass :meth:`bound_to` its ``SimDevice`` action: the frames go straight to that action,
     as FC3 reads / FC16 writes. pymodbus' own path (``context.async_setValues``) first re-checks every register
     of a frame against the ``SimData`` flags — the twin's one block spans every address and marks none read-only,
-    so the check never refuses, but it cost ~0.1 ms per 255-register frame, more than the twin's own work; the
+    so the check never refuses, but it cost more per 255-register frame than the twin's own work; the
     T7's rules (which addresses exist, what they take) are the action's, on either path."""
 
     function_code = FC_FEEDBACK
