@@ -140,13 +140,24 @@ ERRORS = {
 }
 
 
+Words = list[int] | np.ndarray  # register values of one write: a list, or an integer array (a stream-out's codes)
+
+
+def _u16_bytes(words: Words) -> bytes:
+    """Register values as big-endian 16-bit words; a value outside 0…65535 is refused, not wrapped."""
+    w = np.asarray(words)
+    if w.size and (w.dtype.kind not in "iu" or int(w.min()) < 0 or int(w.max()) > 0xFFFF):
+        raise ValueError(f"register values must be integers 0…65535, got {w.min()}…{w.max()}")
+    return w.astype(">u2").tobytes()
+
+
 class Feedback(ModbusPDU):
     """LabJack Modbus Feedback (MBFB, function 76) packet: write frames (address, registers) in order; its reply
     (decoded by the same class) carries the read frames' data, none for a write-only packet."""
 
     function_code = MBFB_FUNCTION
 
-    def __init__(self, writes: tuple[tuple[int, list[int]], ...] = (), dev_id: int = 0,
+    def __init__(self, writes: tuple[tuple[int, Words], ...] = (), dev_id: int = 0,
                  transaction_id: int = 0) -> None:
         super().__init__(dev_id=dev_id, transaction_id=transaction_id)
         self.writes = writes
@@ -154,19 +165,19 @@ class Feedback(ModbusPDU):
 
     def encode(self) -> bytes:
         """Write frames: 1, address, n, n registers (big-endian)."""
-        return b"".join(struct.pack(f">BHB{len(w)}H", 1, a, len(w), *w) for a, w in self.writes)
+        return b"".join(struct.pack(">BHB", 1, a, len(w)) + _u16_bytes(w) for a, w in self.writes)
 
     def decode(self, data: bytes) -> None:
         """The reply: the data of the read frames (none here)."""
         self.data = bytes(data)
 
 
-def feedback_packets(writes: list[tuple[int, list[int]]]) -> list[tuple[tuple[int, list[int]], ...]]:
+def feedback_packets(writes: list[tuple[int, Words]]) -> list[tuple[tuple[int, Words], ...]]:
     """Pack register writes, in order, into MBFB packets of at most :data:`MBFB_MAX_BYTES`; a write longer than a
     frame holds goes in several frames at the same address (for a buffer register: the values in order)."""
     frames = [(a, w[i:i + MBFB_FRAME_REGS]) for a, w in writes for i in range(0, len(w), MBFB_FRAME_REGS)]
-    packets: list[tuple[tuple[int, list[int]], ...]] = []
-    cur: list[tuple[int, list[int]]] = []
+    packets: list[tuple[tuple[int, Words], ...]] = []
+    cur: list[tuple[int, Words]] = []
     size = MBFB_HEADER_BYTES
     for a, w in frames:
         need = MBFB_FRAME_BYTES + 2 * len(w)
@@ -436,7 +447,7 @@ class LabJackT7:
         """Write registers from ``address`` (FC16)."""
         self._lj(f"write {address}+{len(values)}", self.link.write_registers, address, values)
 
-    def write_feedback(self, writes: list[tuple[int, list[int]]]) -> None:
+    def write_feedback(self, writes: list[tuple[int, Words]]) -> None:
         """Write registers in order through as few Modbus Feedback packets as hold them (:func:`feedback_packets`).
 
         Not retried: a packet appends to the stream-out buffer, and after a timeout the device may already have
@@ -636,7 +647,7 @@ class LabJackT7:
         if n < OUT_PACKET_VALUES and s.out_written + n < total:
             return  # wait until a whole packet fits
         k = s.out_written - s.out_base
-        writes = [(OUT_BUFFER_U16_0, codes[k:k + n].tolist())] if n else []
+        writes: list[tuple[int, Words]] = [(OUT_BUFFER_U16_0, codes[k:k + n])] if n else []
         s.out_written += n
         if s.out_written == total and s.out_closed:
             assert s.spec.output is not None

@@ -124,6 +124,19 @@ def test_feedback_request_bytes_follow_the_mbfb_layout() -> None:
         bytes.fromhex("0007 0000 0014 01 4c 01 1144 03 0001 0002 0003 01 0fe6 02 0000 0001")
 
 
+def test_feedback_request_from_an_array_of_codes_has_the_same_bytes_and_refuses_values_a_register_cannot_hold(
+        ) -> None:
+    """A stream-out's codes go out as an integer array: the same frame bytes as the list; a value outside a
+    16-bit register (or not an integer) is an error before anything is sent, never wrapped to another code."""
+    codes = np.array([1, 2, 3], dtype=np.int64)
+    as_list = FramerSocket(DecodePDU(False)).buildFrame(Feedback(((4420, [1, 2, 3]),), dev_id=1, transaction_id=7))
+    assert FramerSocket(DecodePDU(False)).buildFrame(Feedback(((4420, codes),), dev_id=1, transaction_id=7)) \
+        == as_list == bytes.fromhex("0007 0000 000c 01 4c 01 1144 03 0001 0002 0003")
+    for bad in (np.array([1, 65536]), np.array([-1]), np.array([1.5])):
+        with pytest.raises(ValueError, match="0…65535"):
+            Feedback(((4420, bad),)).encode()
+
+
 @pytest.mark.parametrize("reply_hex", ["0007 0000 0003 01 cc 02", "0007 0000 0004 01 cc 02 05"])
 def test_an_mbfb_error_reply_is_read_as_an_exception_with_or_without_a_frame_byte_after_the_code(
         reply_hex: str) -> None:
@@ -417,6 +430,19 @@ def test_a_stream_out_packet_whose_reply_is_lost_is_not_sent_again(rig: Rig) -> 
         rig.daq.write_feedback([(4420, list(range(300)))])
     rig.sim.faults.mute = False
     assert rig.daq.read_u32(4080) == 2 * 300  # STREAM_OUT0_BUFFER_STATUS: bytes held, once
+
+
+def test_twin_dac_volts_of_one_code_equal_those_of_the_code_in_a_block() -> None:
+    """The twin turns one code into volts without an array (command-response writes, the output in force): the
+    same value as the stream-out's block conversion, for every 16-bit code on both DACs (12-bit: low 4 bits
+    ignored)."""
+    clock = VirtualClock()
+    sim = LabJackT7Sim(Plant(clock, MembraneParams(), hv=HVStage()), clock)
+    codes = np.arange(65536)
+    for ch in (0, 1):
+        block = sim._codes_volts(codes, ch)
+        assert all(sim._code_volts(int(c), ch) == block[c] for c in range(0, 65536, 7))
+        assert sim._code_volts(0x1237, ch) == sim._code_volts(0x1230, ch)
 
 
 def test_wall_clock_stream_loses_and_repeats_nothing() -> None:
