@@ -212,12 +212,50 @@ def exchange_floor(rate: float = 10_000.0) -> list[Figure]:
                    "file come on top)")]
 
 
+def plant_alone(seconds: float = 10.0, block: float = 0.25) -> list[Figure]:
+    """The DAQ rigs' plants alone — no twin, no wire, no engine — advanced in ``block``-s steps of rig time as the
+    T7 twin advances them, with 10-kHz amplifier inputs scheduled ahead as its stream-out does: what the model
+    (compiled fixed-step kernel, HV stage, observables) costs by itself. The wall time a target leaves per block
+    has to hold this plus every byte of the exchange and the engine's work."""
+    from bench.core.clock import VirtualClock
+    from bench.rig import load_rig, plant_for
+
+    out = []
+    for rig, amplitude, freq, target in (("thesis-daq-sim", 3.5, 1 / 9, 100), ("lsdea-motor-daq-sim", 6.0, 10.0, 50)):
+        clock = VirtualClock()
+        plant = plant_for(load_rig(RIGS / f"{rig}.toml"), clock)
+        plant.warm_up()
+        t = np.arange(1, int(seconds * 10_000) + 1) / 10_000
+        if rig.startswith("thesis"):  # raised cosine 0…7 V at the amplifier input (7 kV through 1 kV/V)
+            volts = amplitude * (1 - np.cos(2 * np.pi * freq * t))
+        else:  # ±6 V at 10 Hz (±6 kV), the isometric test's drive
+            volts = amplitude * np.sin(2 * np.pi * freq * t)
+        ahead = int(0.8 * 10_000)  # the T7 twin schedules about one out-buffer (0.8 s) ahead
+        plant.schedule_amplifier_input(t[:ahead], volts[:ahead])
+        done, k = 0.0, ahead
+        t0 = time.perf_counter()
+        while done < seconds - 1e-9:
+            done += block
+            clock.advance(block)
+            plant.advance_to(clock.now())
+            end = min(int((done + 0.8) * 10_000), t.size)
+            if end > k:
+                plant.schedule_amplifier_input(t[k:end], volts[k:end])
+                k = end
+        wall = time.perf_counter() - t0
+        share = 100 * (wall / seconds) * target
+        out.append(Figure(f"plant of {rig} alone, {block:g}-s blocks at 10 kHz, {seconds:g} s", seconds / wall,
+                          "× real time", f"takes {share:.0f} % of the wall time a {target}× run may spend"))
+    return out
+
+
 def run_all(quick: bool = False, soak_s: float = 600.0) -> list[Figure]:
     """Every figure; ``quick``: one isotonic run pair and a 10-s soak instead of three runs and 10 minutes."""
     with tempfile.TemporaryDirectory() as tmp:
         out = fidelity(Path(tmp))
         out += virtual_speed(Path(tmp))
         out += exchange_ceiling()
+        out += plant_alone()
         out += exchange_floor()
         out += repeatability(Path(tmp), runs=2 if quick else 3)
         out += soak(10.0 if quick else soak_s)
