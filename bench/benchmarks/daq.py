@@ -253,8 +253,12 @@ def run_all(quick: bool = False, soak_s: float = 600.0) -> list[Figure]:
     """Every figure; ``quick``: one isotonic run pair and a 10-s soak instead of three runs and 10 minutes."""
     with tempfile.TemporaryDirectory() as tmp:
         out = fidelity(Path(tmp))
-        out += virtual_speed(Path(tmp))
-        out += exchange_ceiling()
+        runs = virtual_speed(Path(tmp))
+        ceiling = exchange_ceiling()
+        out += runs + ceiling
+        out += [Figure(f"  {run.name.split(' on ')[0]}: share of the driver ↔ twin ceiling", 100 * run.value
+                       / ceiling[0].value, "%", "both measured in this run, minutes apart")
+                for run in runs]
         out += plant_alone()
         out += exchange_floor()
         out += repeatability(Path(tmp), runs=2 if quick else 3)
