@@ -483,17 +483,22 @@ class LabJackT7Sim:
         raw = np.where(volts >= 0, c + volts / p, c - volts / nslope)
         return np.clip(np.rint(raw), 0, 65535).astype(np.uint16)
 
-    def _code(self, volts: float, ch: int) -> int:
+    def _dac_cal(self, ch: int) -> tuple[float, float]:
+        """DAC ``ch``'s calibration (slope [codes/V], offset [codes]) from the flash constants."""
         slope, off = self.cal[32 + 2 * ch:34 + 2 * ch]
+        return slope, off
+
+    def _code(self, volts: float, ch: int) -> int:
+        slope, off = self._dac_cal(ch)
         return int(min(max(round(volts * slope + off), 0), 65535))
 
     def _code_volts(self, code: int, ch: int) -> float:
         """One code, as :meth:`_codes_volts` (the same double operations, without an array per value)."""
-        slope, off = self.cal[32 + 2 * ch:34 + 2 * ch]
+        slope, off = self._dac_cal(ch)
         return ((int(code) >> 4 << 4) - off) / slope
 
     def _codes_volts(self, codes: np.ndarray, ch: int) -> np.ndarray:
-        slope, off = self.cal[32 + 2 * ch:34 + 2 * ch]
+        slope, off = self._dac_cal(ch)
         return ((codes >> 4 << 4) - off) / slope  # 12-bit DAC
 
     def _drive(self, first: int, codes: np.ndarray) -> None:

@@ -433,15 +433,16 @@ def test_a_stream_out_packet_whose_reply_is_lost_is_not_sent_again(rig: Rig) -> 
 
 
 def test_twin_dac_volts_of_one_code_equal_those_of_the_code_in_a_block() -> None:
-    """The twin turns one code into volts without an array (command-response writes, the output in force): the
-    same value as the stream-out's block conversion, for every 16-bit code on both DACs (12-bit: low 4 bits
-    ignored)."""
+    """The twin turns one code into volts without an array (command-response writes, the output in force) and a
+    block of codes with one (stream-out): both give the nominal calibration's volts ([E] getNominalCalibration:
+    DAC slope 13200 codes/V, offset 0; [D] 12-bit DAC: the low 4 bits of a 16-bit code are ignored)."""
     clock = VirtualClock()
     sim = LabJackT7Sim(Plant(clock, MembraneParams(), hv=HVStage()), clock)
-    codes = np.arange(65536)
+    codes = np.arange(0, 65536, 7)
+    expected = (codes & 0xFFF0) / 13200.0
     for ch in (0, 1):
-        block = sim._codes_volts(codes, ch)
-        assert all(sim._code_volts(int(c), ch) == block[c] for c in range(0, 65536, 7))
+        assert sim._codes_volts(codes, ch) == pytest.approx(expected, rel=1e-15, abs=0)
+        assert [sim._code_volts(int(c), ch) for c in codes] == pytest.approx(expected, rel=1e-15, abs=0)
         assert sim._code_volts(0x1237, ch) == sim._code_volts(0x1230, ch)
 
 

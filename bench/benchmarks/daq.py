@@ -220,25 +220,26 @@ def plant_alone(seconds: float = 10.0, block: float = 0.25) -> list[Figure]:
     from bench.core.clock import VirtualClock
     from bench.rig import load_rig, plant_for
 
+    rate, ahead_s = 10_000.0, 0.8  # scans/s; the T7 twin schedules about one out-buffer (0.8 s) ahead
     out = []
     for rig, amplitude, freq, target in (("thesis-daq-sim", 3.5, 1 / 9, 100), ("lsdea-motor-daq-sim", 6.0, 10.0, 50)):
         clock = VirtualClock()
         plant = plant_for(load_rig(RIGS / f"{rig}.toml"), clock)
         plant.warm_up()
-        t = np.arange(1, int(seconds * 10_000) + 1) / 10_000
+        t = np.arange(1, int(seconds * rate) + 1) / rate
         if rig.startswith("thesis"):  # raised cosine 0…7 V at the amplifier input (7 kV through 1 kV/V)
             volts = amplitude * (1 - np.cos(2 * np.pi * freq * t))
         else:  # ±6 V at 10 Hz (±6 kV), the isometric test's drive
             volts = amplitude * np.sin(2 * np.pi * freq * t)
-        ahead = int(0.8 * 10_000)  # the T7 twin schedules about one out-buffer (0.8 s) ahead
-        plant.schedule_amplifier_input(t[:ahead], volts[:ahead])
-        done, k = 0.0, ahead
+        k = int(ahead_s * rate)
+        plant.schedule_amplifier_input(t[:k], volts[:k])
+        done = 0.0
         t0 = time.perf_counter()
         while done < seconds - 1e-9:
             done += block
             clock.advance(block)
             plant.advance_to(clock.now())
-            end = min(int((done + 0.8) * 10_000), t.size)
+            end = min(int((done + ahead_s) * rate), t.size)
             if end > k:
                 plant.schedule_amplifier_input(t[k:end], volts[k:end])
                 k = end
