@@ -204,3 +204,19 @@ def test_a_stop_request_ends_every_drive_wait() -> None:
         d.link.cancel = token
         with pytest.raises(OperationCancelledError, match="Ctrl-C"):
             d.home()
+
+
+def test_a_state_wait_polls_every_10_ms_by_default() -> None:
+    # The default keeps the RS-232 line mostly free while a drive switches on (~0.3 s) or homes (seconds): a poll
+    # and its default response are 7 + 16 bytes, 2.0 ms at 115,200 Bd 8N1, so polls 10 ms apart load the line
+    # ~17 %; a pause of 2 ms (the former default) kept it busy half the time for no gain in reaction time a
+    # human-scale homing could use.
+    script = [(POLL, response(0x0037, 0x0500, 0)),  # state 5: switch-on test still running
+              (POLL, response(0x0037, 0x0500, 0)),
+              (POLL, response(0x4037, 0x0840, 0))]  # operation enabled
+    pauses: list[float] = []
+    with expected_protocol("pace", script) as url:
+        d = LinMotDrive(SerialLink(url, "motor", timeout=0.05), travel=(0.0, 0.1), sleep=pauses.append)
+        d.link.open()
+        d._wait(lambda r: r.main_state == 8, "operation enabled")
+    assert pauses == [0.01, 0.01]
