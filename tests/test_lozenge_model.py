@@ -275,6 +275,26 @@ def test_stream_matches_fixed_run_and_reports_force() -> None:
         LozengeStream(P, "blocked")
 
 
+@pytest.mark.parametrize("config", ["imposed", "hung"])
+def test_the_rig_observation_is_the_full_observation(config: str) -> None:
+    # The simulated bench reads force, capacitance, charge, field and breakdown field through a lighter observer;
+    # it must give the same doubles as the full one (whose forces the tests above pin to physics.md), and the
+    # same failure: here the ±6-kV 10-Hz isometric drive, then twice the breakdown voltage at 100 mm.
+    P = PROTOS[3] if config == "imposed" else LozengeParams(hung_mass=0.18)
+    x0 = 0.1 if config == "imposed" else None
+    full, rig = LozengeStream(P, config, x0), LozengeStream(P, config, x0)  # type: ignore[arg-type]
+    k = np.arange(1, 2501)
+    U = np.zeros((k.size, 3))
+    U[:, 1] = full.position
+    for V in (6000.0 * np.sin(2 * np.pi * 10.0 * k * 1e-4), np.full(k.size, 2 * breakdown_voltage(P, 0.1))):
+        U[:, 0] = V
+        a, b = full.advance(U), rig.advance_rig(U)
+        for name in ("position", "force", "capacitance", "charge", "field", "breakdown_field"):
+            assert np.array_equal(getattr(a, name), getattr(b, name), equal_nan=True), name
+        assert (b.failed, b.failure) == (a.failed, a.failure)
+    assert b.failed and "above breakdown" in b.failure
+
+
 def test_invalid_parameters_are_refused() -> None:
     with pytest.raises(ValueError, match="prototype"):
         LozengeParams.prototype(4)

@@ -394,7 +394,7 @@ class Plant:
             if self.configuration != "motor":
                 self._pieces(self._motions, n)  # the motor is not coupled: only drop used history
             assert self._lozenge is not None  # one of the two streams is always built
-            lt = self._lozenge.advance(U)
+            lt = self._lozenge.advance_rig(U)
             disp = lt.position
             charge = lt.charge
             cap = lt.capacitance

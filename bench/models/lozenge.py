@@ -443,5 +443,32 @@ def lozenge_observe(Y: np.ndarray, V: np.ndarray, p: np.ndarray, out: np.ndarray
         out[n, 11] = G
 
 
+@njit(cache=True, nogil=True)
+def lozenge_observe_rig(Y: np.ndarray, V: np.ndarray, p: np.ndarray, out: np.ndarray) -> None:
+    """What a rig measures of a state history, into ``out`` (n×5): F, C, E, E_B, G — the columns of
+    :func:`lozenge_observe` the simulated bench needs, each computed once per sample (no force split, stresses or
+    stiffness). F follows :func:`lozenge_force` operation for operation, so the values are the same doubles."""
+    K = int(p[Q_K])
+    om = volume(p)
+    for n in range(Y.shape[0]):
+        x, v = Y[n, 0], Y[n, 1]
+        l1, l2, d1, d2, _, yy = kinematics(x, p)
+        _, P1, P2, _, _, _, G = gentgent(l1, l2, p)
+        C, dC, _ = capacitance(x, p)
+        F = om * (P1 * d1 + P2 * d2)
+        F += -0.5 * V[n] * V[n] * dC + p[Q_C] * v
+        q = x / (yy * yy)
+        ll1 = math.log(l1)
+        ll2 = math.log(l2)
+        for i in range(K):
+            W1, W2, _, _, _ = branch_energy_derivs(ll1 - Y[n, 2 + i], ll2 - Y[n, 2 + K + i], p[Q_BRANCHES + i])
+            F += om * (W1 / x - W2 * q)
+        out[n, 0] = F
+        out[n, 1] = C
+        out[n, 2] = V[n] * l1 * l2 / p[Q_T0]
+        out[n, 3] = p[Q_E0] * (l1 * l2) ** (0.5 * p[Q_R])
+        out[n, 4] = G
+
+
 OBSERVABLES = ("force", "force_elastic", "force_electrostatic", "force_viscoelastic", "capacitance", "field",
                "breakdown_field", "stress1", "stress2", "stretch1", "stretch2", "gent_margin")
