@@ -27,26 +27,34 @@ Config = Literal["imposed", "blocked", "hung"]
 
 
 @dataclass
-class LozengeTrace:
-    """Time series of one LS-DEA run; units: s, m, m/s, V, N, F, C, V/m, Pa."""
+class LozengeRigTrace:
+    """What the simulated bench reads of a block of samples (units: m, N, F, C, V/m), and whether the model
+    failed in it (left its domain, or the field broke down) and why."""
 
-    t: np.ndarray
     position: np.ndarray
-    velocity: np.ndarray
-    voltage: np.ndarray
     force: np.ndarray
-    force_elastic: np.ndarray
-    force_electrostatic: np.ndarray
-    force_viscoelastic: np.ndarray
     capacitance: np.ndarray
     charge: np.ndarray
     field: np.ndarray
     breakdown_field: np.ndarray
+    failed: bool = False
+    failure: str = ""
+
+
+@dataclass(kw_only=True)
+class LozengeTrace(LozengeRigTrace):
+    """Time series of one LS-DEA run: the rig's observables and the model's inside; units: s, m, m/s, V, N, F,
+    C, V/m, Pa."""
+
+    t: np.ndarray
+    velocity: np.ndarray
+    voltage: np.ndarray
+    force_elastic: np.ndarray
+    force_electrostatic: np.ndarray
+    force_viscoelastic: np.ndarray
     stress1: np.ndarray
     stress2: np.ndarray
     states: np.ndarray
-    failed: bool = False
-    failure: str = ""
 
     @property
     def tension_lost(self) -> np.ndarray:
@@ -190,21 +198,6 @@ def lozenge_outputs(params: LozengeParams, t: np.ndarray, Y: np.ndarray, V: np.n
     trace.failure = _failure(trace.t, trace.position, obs[:, 11], trace.field, trace.breakdown_field)
     trace.failed = bool(trace.failure)
     return trace
-
-
-@dataclass
-class LozengeRigTrace:
-    """What the simulated bench reads of a block of samples (units: m, N, F, C, V/m); ``failed``/``failure`` as
-    in :class:`LozengeTrace`."""
-
-    position: np.ndarray
-    force: np.ndarray
-    capacitance: np.ndarray
-    charge: np.ndarray
-    field: np.ndarray
-    breakdown_field: np.ndarray
-    failed: bool = False
-    failure: str = ""
 
 
 def _failure(t: np.ndarray, position: np.ndarray, gent_margin: np.ndarray, field: np.ndarray,
