@@ -260,8 +260,8 @@ class LozengeStream:
         return lozenge_outputs(self.params, t, Y, U[:, 0], self.mode)
 
     def advance_rig(self, U: np.ndarray) -> LozengeRigTrace:
-        """As :meth:`advance`, returning only what the simulated bench reads (the same values, at a third of
-        the observation cost: no force split, stresses or stiffness)."""
+        """As :meth:`advance`, returning only what the simulated bench reads: the same values, observed without
+        the force split, stresses and stiffness (which cost more than the integration)."""
         t0 = self._stepper.t
         Y = self._stepper.advance(U)
         V = np.ascontiguousarray(U[:, 0], dtype=float)
