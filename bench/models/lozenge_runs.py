@@ -195,22 +195,24 @@ def lozenge_outputs(params: LozengeParams, t: np.ndarray, Y: np.ndarray, V: np.n
         capacitance=obs[:, 4], charge=obs[:, 4] * V, field=obs[:, 5], breakdown_field=obs[:, 6],
         stress1=obs[:, 7], stress2=obs[:, 8], states=Y,
     )
-    trace.failure = _failure(trace.t, trace.position, obs[:, 11], trace.field, trace.breakdown_field)
+    trace.failure = _failure(lambda i: float(trace.t[i]), trace.position, obs[:, 11], trace.field,
+                             trace.breakdown_field)
     trace.failed = bool(trace.failure)
     return trace
 
 
-def _failure(t: np.ndarray, position: np.ndarray, gent_margin: np.ndarray, field: np.ndarray,
+def _failure(time_of: Callable[[int], float], position: np.ndarray, gent_margin: np.ndarray, field: np.ndarray,
              breakdown: np.ndarray) -> str:
-    """Why a block failed ("" if it did not): the state left the model's domain, or the field broke down."""
+    """Why a block failed ("" if it did not): the state left the model's domain, or the field broke down.
+    ``time_of(i)``: the time of sample i, asked only for the sample a message names."""
     bad = ~np.isfinite(position) | ~(gent_margin > 0)
     if bad.any():
-        return f"state left the model's domain at t = {t[int(np.argmax(bad))]:.4f} s"
+        return f"state left the model's domain at t = {time_of(int(np.argmax(bad))):.4f} s"
     brk = np.abs(field) > breakdown
     if brk.any():
         i = int(np.argmax(brk))
         return (f"true field {abs(field[i]) / 1e6:.1f} MV/m above breakdown "
-                f"{breakdown[i] / 1e6:.1f} MV/m at t = {t[i]:.4f} s")
+                f"{breakdown[i] / 1e6:.1f} MV/m at t = {time_of(i):.4f} s")
     return ""
 
 
@@ -268,8 +270,8 @@ class LozengeStream:
         obs = np.empty((V.size, 5))
         lozenge_observe_rig(Y, V, self._p, obs)
         position = Y[:, 0]
-        failure = _failure(t0 + self._stepper.h * np.arange(1, len(U) + 1), position, obs[:, 4], obs[:, 2],
-                           obs[:, 3])
+        h = self._stepper.h
+        failure = _failure(lambda i: t0 + h * (i + 1), position, obs[:, 4], obs[:, 2], obs[:, 3])
         return LozengeRigTrace(position, obs[:, 0], obs[:, 1], obs[:, 1] * V, obs[:, 2], obs[:, 3],
                                bool(failure), failure)
 
