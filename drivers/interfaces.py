@@ -154,6 +154,16 @@ class Amplifier(Instrument, Protocol):
     def read_monitors(self) -> tuple[Reading, Reading]:
         """(output voltage [V], output current [A]) read together."""
 
+    def heard_at(self) -> float | None:
+        """``time.monotonic()`` at which the module that sets the output last received a request from this host
+        (the send time of the last one it answered; None: none yet). Its communication watchdog counts from
+        there: the run time's keep-alive uses it."""
+
+    def longest_silence(self) -> float:
+        """The longest time [s] that module went without a request from this host since the last call (the present
+        silence included), counting again from here: the run time's interlock uses it to tell whether the
+        module's communication watchdog may have zeroed the output behind the host's back."""
+
     def read_voltage(self) -> Reading:
         """Output voltage from the voltage monitor [V]."""
 

@@ -439,6 +439,10 @@ class LabJackT7:
             raise InstrumentStateError(self.name, f"{what} refused: LabJack error {code} "
                                        f"({ERRORS.get(code, 'see the register map')})") from None
 
+    def heard_at(self) -> float | None:
+        """``time.monotonic()`` at which the last command-response request the T7 answered was sent."""
+        return self.link.heard_at(UNIT)
+
     def read_regs(self, address: int, count: int) -> list[int]:
         """Read ``count`` registers from ``address`` (FC3)."""
         return self._lj(f"read {address}+{count}", self.link.read_holding, address, count)

@@ -132,6 +132,9 @@ class ModbusLink:
         self.lock = threading.RLock()
         self._stale = False  # RTU: an earlier attempt went unanswered, its reply may still come
         self._cancellable = True  # False during the first attempt of an always_send request
+        self._heard: dict[int, float] = {}  # unit → time.monotonic() when its last answered request was sent
+        self._gap: dict[int, float] = {}  # unit → longest time between two answered requests since last asked
+        self._asked: dict[int, float] = {}  # unit → when longest_silence was last asked (silences count from there)
         self._client: _SerialClient | ModbusTcpClient
         if url.startswith("tcp://"):
             host, _, port = url[len("tcp://"):].rpartition(":")
@@ -195,6 +198,7 @@ class ModbusLink:
                 self._cancellable = bool(attempt) or not always_send
                 self._check_cancel()
                 self._discard_input(what)
+                sent = time.monotonic()
                 try:
                     resp = self._client.execute(False, request)
                     if isinstance(self._client, _SerialClient):
@@ -212,6 +216,11 @@ class ModbusLink:
                 except ModbusException as exc:
                     self._stale = True
                     raise ProtocolError(self.device, f"{what} on unit {unit}: {exc}") from None
+                if (prev := self._heard.get(unit)) is not None:
+                    gap = sent - max(prev, self._asked.get(unit, prev))
+                    if gap > self._gap.get(unit, 0.0):
+                        self._gap[unit] = gap
+                self._heard[unit] = sent  # any reply, an exception reply too: the unit received the request
                 try:
                     self._check_reply(what, unit, request, resp)
                 except ProtocolError:
@@ -277,6 +286,24 @@ class ModbusLink:
                 raise ProtocolError(self.device, f"unit {unit} echoed {echo[0]}={echo[1]} to {what}")
         elif fc == 16 and (resp.address, resp.count) != (request.address, request.count):
             raise ProtocolError(self.device, f"unit {unit} echoed {resp.address}+{resp.count} to {what}")
+
+    def heard_at(self, unit: int) -> float | None:
+        """``time.monotonic()`` at which the last request that ``unit`` answered was sent (None: none yet).
+
+        A module's communication watchdog counts from the last request it received, which is no earlier than
+        this: ``time.monotonic() − heard_at`` bounds from above how long the module has gone unheard."""
+        return self._heard.get(unit)
+
+    def longest_silence(self, unit: int) -> float:
+        """The longest time [s] ``unit`` went without a request from this link since the last call (the present
+        silence included; an upper bound, from send times), and start counting again: a module's watchdog may
+        have fired in a silence longer than its period, even if requests have reached it since."""
+        with self.lock:
+            now = time.monotonic()
+            last = self._heard.get(unit)
+            ongoing = now - max(last, self._asked.get(unit, last)) if last is not None else 0.0
+            self._asked[unit] = now
+            return max(self._gap.pop(unit, 0.0), ongoing)
 
     def register(self, pdu: type[ModbusPDU]) -> None:
         """Teach the client a device's own function code (its reply is decoded by ``pdu``)."""

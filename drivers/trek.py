@@ -142,6 +142,14 @@ class TrekAmplifier:
         return (Reading(v, "V", t, "ok" if math.isfinite(v) else "invalid"),
                 Reading(i, "A", t, "ok" if math.isfinite(i) else "invalid"))
 
+    def heard_at(self) -> float | None:
+        """When the ADAM-4024 (its unit on the bus) last answered a request (its watchdog's reference)."""
+        return self.ao.link.heard_at(self.ao.unit)
+
+    def longest_silence(self) -> float:
+        """The ADAM-4024's longest silence since the last call [s] (requests to its unit alone feed its watchdog)."""
+        return self.ao.link.longest_silence(self.ao.unit)
+
     def read_voltage(self) -> Reading:
         """Output voltage from the voltage monitor [V]."""
         return self.read_monitors()[0]

@@ -17,7 +17,7 @@ import numpy as np
 
 from drivers.errors import LimitError
 from drivers.interfaces import CheckResult, ClockFn, DataKey, Identity, Reading, StreamDescription
-from drivers.labjack import DAC_RANGE, LabJackT7
+from drivers.labjack import DAC_RANGE, UNIT, LabJackT7
 from drivers.trek import TrekModel
 
 
@@ -122,6 +122,14 @@ class TrekOnDaq:
         vv, ii = v.value * self.trek.vmon_ratio, i.value * self.trek.imon_ratio
         ok = math.isfinite(vv) and math.isfinite(ii)
         return Reading(vv, "V", t, "ok" if ok else "invalid"), Reading(ii, "A", t, "ok" if ok else "invalid")
+
+    def heard_at(self) -> float | None:
+        """When the T7 last answered a request: any request feeds its watchdog (stream packets do not)."""
+        return self.daq.heard_at()
+
+    def longest_silence(self) -> float:
+        """The T7's longest silence since the last call [s] (any command-response request feeds its watchdog)."""
+        return self.daq.link.longest_silence(UNIT)
 
     def read_voltage(self) -> Reading:
         """Output voltage from the voltage monitor [V]."""
