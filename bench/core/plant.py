@@ -199,8 +199,13 @@ class Plant:
             self._v_chunks = [(t[:keep], v[:keep])]
 
     def feed_watchdog(self) -> None:
-        """The analog output module heard from the host (resets its communication-safety timer)."""
-        self._last_feed = self.clock.now()
+        """The analog output module heard from the host (resets its communication-safety timer) — after noting a
+        timeout that came first: the model integrates lazily, and a request after a long silence must not
+        undo a watchdog that fired in it (a virtual clock has no ticker that would have seen it)."""
+        now = self.clock.now()
+        if self.input_watchdog is not None and now - self._last_feed >= self.input_watchdog:
+            self._check_watchdog(now)
+        self._last_feed = now
 
     def _check_watchdog(self, t_end: float) -> None:
         """Communication safety: with no request for ``input_watchdog`` s, the module outputs 0 V."""
