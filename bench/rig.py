@@ -213,6 +213,27 @@ class LimitsConfig(_Strict):
     travel_tolerance_m: float = Field(0.001, ge=0, description="motor beyond its travel by more: trip")
 
 
+class InterlockConfig(_Strict):
+    """``[interlock]``: faults that latch the output at 0 V (bench/runtime/interlock.py; README "Interlock").
+
+    The output is verified against what was commanded: a measured voltage outside the commanded value's band
+    (``output_tolerance_V`` + ``output_tolerance_rel`` × |commanded|, over the commanded values of the last
+    ``output_lag_s``) for ``output_mismatch_s`` on the scan clock — or in two monitor readings in a row on a
+    software-timed rig — is a fault. The defaults come from the TREK HS datasheets (gain 1000 V/V; slew > 700
+    V/µs and bandwidth > 19.5 kHz, so the output follows a 10-kHz drive within one scan) and the monitors'
+    conversion: the ADAM-4017+ converts at 10 S/s, so a polled reading may be up to ~0.3 s old."""
+
+    host_stall_s: float | None = Field(None, gt=0, le=60, description="the set-point module unheard from the host "
+                                       "for longer while the output is on: latch (default: 0.8 × its watchdog, "
+                                       "or 1 s without one)")
+    output_tolerance_V: float = Field(100.0, gt=0, le=2000, description="absolute band around the commanded "
+                                      "voltage (1 % of the 10-kV full scale: monitor and conditioning tolerances)")
+    output_tolerance_rel: float = Field(0.05, ge=0, le=0.5, description="relative band, × |commanded|")
+    output_lag_s: float | None = Field(None, ge=0, le=5, description="how far back a commanded value may still "
+                                       "be what the monitor shows (default: 1 ms on a DAQ rig, 0.3 s polled)")
+    output_mismatch_s: float = Field(0.02, gt=0, le=5, description="a hardware-timed mismatch must last this long")
+
+
 class SimulationConfig(_Strict):
     """Options of the simulated twins."""
 
@@ -276,6 +297,7 @@ class RigConfig(_Strict):
     simulated: bool = True
     specimen: SpecimenConfig = SpecimenConfig()
     limits: LimitsConfig = LimitsConfig()
+    interlock: InterlockConfig = InterlockConfig()
     simulation: SimulationConfig = SimulationConfig()
     buses: dict[str, BusConfig] = Field(default_factory=dict)
     amplifier: AmplifierConfig | None = None

@@ -31,9 +31,10 @@ from typing import Any, TypeVar
 import numpy as np
 
 from bench.core.clock import Clock
-from bench.protocol.program import Program, Segment, ticks
-from bench.runtime.hardware_timed import HardwareTimed, watchdog_period
+from bench.protocol.program import HOLD_KEEPALIVE_S, Program, Segment, ticks
+from bench.runtime.hardware_timed import HardwareTimed
 from bench.runtime.instruments import Instruments
+from bench.runtime.interlock import OUTPUT_ON_V, InterlockTrip, OutputVerifier, check_contact, watchdog_period
 from bench.runtime.polls import POLLS, StepState
 from bench.runtime.safety import SafetyTrip, Supervisor
 from bench.storage.recorder import Recorder
@@ -124,6 +125,9 @@ class Engine:
         self._late_streams = {name for name, cols in recorder.streams.items() if any(c.name == "late" for c in cols)}
         self._stream = HardwareTimed(rig, inst) if inst.daq is not None and isinstance(inst.amplifier, TrekOnDaq) \
             else None
+        self.verifier = OutputVerifier(rig, rig.daq.scan_rate_Hz if self._stream is not None and rig.daq else None)
+        self.latched: InterlockTrip | None = None  # the interlock fault that ended the run (0 V at once, no ramp)
+        self._output_dead = False  # 0 V could not be commanded: no request may feed the module's watchdog
 
     # ------------------------------------------------------------ stop requests (signals, other threads)
     def request_stop(self, reason: str) -> None:
@@ -177,6 +181,26 @@ class Engine:
     @property
     def _hw(self) -> HardwareTimed:
         return _present(self._stream, "daq")
+
+    # ------------------------------------------------------------ interlock
+    def guard(self, streaming: bool = False) -> None:
+        """Before anything that can drive the output: latch a host stall — the set-point module unheard for
+        longer than the stall bound while the output is on (``streaming``: a DAQ stream plays), so that its
+        watchdog may have zeroed the output and this write would turn high voltage back on by itself."""
+        amp = self.inst.amplifier
+        if amp is None or self.clock.virtual:
+            return
+        check_contact(self.program.rig, amp.longest_silence(), streaming or abs(self._v_cmd) > OUTPUT_ON_V)
+
+    def _keep_fed(self) -> None:
+        """During long host-side work (fetching stored laser data) on a software-timed rig: re-send the set-point
+        whenever the module has gone ``HOLD_KEEPALIVE_S`` unheard, as a hold's keep-alive ticks do."""
+        amp = self.inst.amplifier
+        if amp is None or self._stream is not None or self._stopping:
+            return
+        heard = amp.heard_at()
+        if heard is not None and time.monotonic() - heard >= HOLD_KEEPALIVE_S:
+            self._set_voltage(self._v_req, self.now())
 
     # ------------------------------------------------------------ time
     def now(self) -> float:
@@ -232,6 +256,7 @@ class Engine:
             if self._stopping and self._urgent.is_set():
                 return
             self._check_stop()
+            self._keep_fed()
             if time.monotonic() > wall_end:
                 raise InstrumentStateError("laser", f"stored data not fetched within {budget:g} s: the link "
                                            "cannot upload as fast as the storage fills")
@@ -252,8 +277,10 @@ class Engine:
     # ------------------------------------------------------------ set-points
     def _set_voltage(self, v: float, t: float, x_cmd: float = math.nan) -> None:
         self.sup.check_setpoint(v)
+        self.guard()
         sent = self._amp.set_voltage(v)
         self._v_cmd, self._v_req = sent, v
+        self.verifier.commanded(self.now(), sent)
         self.rec.append("setpoints", t, voltage=sent, aperture=x_cmd)
 
     def _move_motor(self, target: float, vel: float, acc: float) -> float:
@@ -346,6 +373,9 @@ class Engine:
             self.rec.event(0.0, -1, "run", "start")
             for seg in self.program.segments:
                 self._segment(seg)
+        except InterlockTrip as trip:
+            self.latched = trip
+            state, reason = "tripped", f"safety trip: {trip.reason}"
         except SafetyTrip as trip:
             state, reason = "tripped", f"safety trip: {trip.reason}"
         except StopRequested as stop:
@@ -400,6 +430,9 @@ class Engine:
         if self._stop_at is not None:
             self._event("request", f"stop requested at {self._stop_at:.3f} s: {self._stop_reason}")
         self._event("stop" if state == "completed" else state, reason)
+        if self.latched is not None:
+            self._event("interlock", f"latched at {t:.3f} s ({self.latched.kind}); the output stays at 0 V until an "
+                        "operator resets the latch")
         zero_at = self._zero_voltage(t, notes)
         notes += self._others_safe()
         if self._storing and self.inst.laser is not None:
@@ -439,6 +472,16 @@ class Engine:
                 notes.append(f"stopping the DAQ stream failed: {exc}")
         ramp = self.program.rig.limits.shutdown_ramp_s
         v0 = self._v_cmd
+        if self.latched is None:
+            try:
+                self.guard(streaming=self._stream is not None)  # a stall before a stop: the ramp would re-energise
+            except InterlockTrip as trip:
+                self.latched = trip
+                self._event("interlock", trip.reason)
+        if self.latched is not None and v0 != 0.0:
+            self._event("ramp", f"interlock latched ({self.latched.kind}): 0 V at once, no ramp from a set-point the "
+                        "output may no longer hold")
+            v0 = 0.0
         try:
             if v0 != 0.0 and self._urgent.is_set():
                 self._event("ramp", "second stop request before the ramp began: 0 V at once")
@@ -456,6 +499,9 @@ class Engine:
             amp.safe_state()
         except InstrumentError as exc:
             notes.append(f"could not command 0 V: {exc}")
+            self._output_dead = True
+            self._event("watchdog", "output path dead: no further request to the set-point module, so that its "
+                        "communication watchdog zeroes the output as early as it can")
             return None
         self._v_cmd = 0.0
         t_zero = self.now()
@@ -465,7 +511,8 @@ class Engine:
     def _others_safe(self) -> list[str]:
         """Every instrument but the amplifier to its safe state (motor stopped first), each independently."""
         notes = []
-        roles = [r for r, _ in self.inst.items() if r != "amplifier"]
+        roles = [r for r, _ in self.inst.items() if r != "amplifier"
+                 and not (r == "daq" and self._output_dead)]  # a dead output path: the DAQ's watchdog must run out
         for role in sorted(roles, key=lambda r: r != "motor"):
             try:
                 getattr(self.inst, role).safe_state()

@@ -20,6 +20,7 @@ from scipy.signal import lfilter
 
 from bench.protocol.program import Segment, plays_on, voltage_at
 from bench.rig import DaqConfig, RigConfig
+from bench.runtime.interlock import InterlockTrip, mismatch_trip
 from drivers.errors import InstrumentTimeoutError
 from drivers.interfaces import Amplifier, DataKey, StreamDescription
 from drivers.labjack import LabJackT7, StreamBlock, StreamIn, StreamOut, StreamSpec
@@ -47,16 +48,6 @@ def _diffuse(dac: np.ndarray, slope: float, offset: float, shift: int) -> np.nda
         err += want - played
         out[k] = played
     return out
-
-
-def watchdog_period(rig: RigConfig) -> float | None:
-    """The communication watchdog of the module that drives the amplifier's input [s] (None: none configured)."""
-    amp = rig.amplifier
-    if amp is None:
-        return None
-    if amp.drive == "daq":
-        return rig.daq.watchdog_s if rig.daq is not None else None
-    return amp.comm_watchdog_s
 
 
 def describe_streams(cfg: DaqConfig, amplifier: Amplifier) -> list[StreamDescription]:
@@ -118,6 +109,7 @@ class HardwareTimed:
         else:
             volts = self._wanted(seg, engine._v_req, first=True)
             engine.sup.check_setpoint(float(volts[np.argmax(np.abs(volts))]))
+            engine.guard()
             dac = self._dac_values(volts, engine._v_cmd)
             plan = self.daq.arm(StreamSpec(self.cfg.scan_rate_Hz, self.inputs,
                                            StreamOut(self.cfg.dac, dac, hold=1, final=nxt is None)))
@@ -126,6 +118,7 @@ class HardwareTimed:
             self._commanded = self._filtered(self.amp.output_volts(plan.out_volts), engine._v_cmd)
             self._tail = float(volts[-1])
             self._n = volts.size - 1
+            engine.verifier.restart()
             t0 = self.daq.kickoff()
             self._keepalive = time.monotonic()
             engine.rec.event(engine.now(), seg.index, "timing",
@@ -169,6 +162,7 @@ class HardwareTimed:
         """Append the next step's values to the running stream-out (supervised like a new step's)."""
         volts = self._wanted(nxt, self._tail, first=False)
         engine.sup.check_setpoint(float(volts[np.argmax(np.abs(volts))]))
+        engine.guard(streaming=True)
         after = self._next_chainable(nxt, engine)
         present = float(self._commanded[-1]) if self._commanded.size else engine._v_cmd
         played = self.daq.extend(self._dac_values(volts, self._tail), final=after is None)
@@ -186,8 +180,12 @@ class HardwareTimed:
 
     def collect(self, engine: Engine) -> None:
         """Record the scans received so far and supervise them; keep the device's watchdog fed."""
+        engine.guard(streaming=True)  # the collect tops up the stream-out: no write after a stall
         block = self.daq.collect(until=engine.clock.now(), timeout=max(1.0, 4 * self.daq.timeout))
         self._record(block, engine)
+        if (late := self.daq.out_underrun_scans) > 0:
+            raise InterlockTrip("stream-out underrun", f"the DAQ played {late} scans past the values the host had "
+                                "written: the output did not follow the program")
         if time.monotonic() - self._keepalive >= KEEPALIVE_S:
             self.daq.read_dac(self.cfg.dac)
             self._keepalive = time.monotonic()
@@ -292,4 +290,6 @@ class HardwareTimed:
                                   float(i[good[np.argmax(np.abs(i[good]))]]))
         if force is not None:
             engine.sup.check_force(float(force[good[np.argmax(np.abs(force[good]))]]))
+        if (m := engine.verifier.scans(t, v, self._commanded[idx], np.asarray(ok))) is not None:
+            raise mismatch_trip(m, "the voltage monitor (scan clock)")
 

@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from bench.protocol.program import PASSIVE_LASER_HZ, Segment
+from bench.runtime.interlock import mismatch_trip
 from bench.runtime.safety import SafetyTrip
 from drivers.errors import InstrumentStateError
 
@@ -54,6 +55,8 @@ def _monitors(e: Engine, due: float) -> None:
                  **e._late("amplifier", e.now() - due))
     e.snapshot.values["voltage"], e.snapshot.values["current"] = v.value, i.value
     e.sup.check_monitors(v.value, i.value)
+    if (m := e.verifier.reading(v.timestamp - e._t0, v.value, v.ok)) is not None:
+        raise mismatch_trip(m, "the voltage monitor")
 
 
 def _position(e: Engine, due: float) -> None:

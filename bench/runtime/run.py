@@ -19,8 +19,9 @@ from bench.protocol.program import Program, ProtocolLimitError, compile_program
 from bench.protocol.schema import MAX_OPERATOR, MAX_SPECIMEN_ID, Protocol, check_label, check_notes, load_protocol
 from bench.rig import RigConfig, load_rig, rig_to_toml
 from bench.runtime.engine import Engine, OperatorFn, RunResult
-from bench.runtime.hardware_timed import describe_streams, watchdog_period
+from bench.runtime.hardware_timed import describe_streams
 from bench.runtime.instruments import Instruments, build_instruments
+from bench.runtime.interlock import watchdog_period
 from bench.runtime.safety import Supervisor
 from bench.storage.recorder import Column, Recorder, now_iso
 from drivers.interfaces import StreamDescription

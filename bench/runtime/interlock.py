@@ -1,0 +1,191 @@
+"""The latched interlock: faults after which the output is no longer what the host last commanded.
+
+Three kinds, each raised as :class:`InterlockTrip` (a :class:`~bench.runtime.safety.SafetyTrip`):
+
+* **host stall** — the module that sets the amplifier's input went unheard from the host for longer than the
+  stall bound while the output was on (a frozen process, a stalled USB driver, a suspended laptop). Its
+  communication watchdog may have zeroed the output behind the host's back; the next write would turn high
+  voltage back on by itself. Seen on :func:`time.monotonic` before any next write (real time only: a virtual
+  clock cannot stall).
+* **output mismatch** — the measured output voltage left the band around what was commanded (see
+  :class:`OutputVerifier`): a stream-out the device did not play, a refused or lost set-point, a dead monitor, a
+  calibration outside the datasheet's tolerance, a watchdog that fired.
+* **stream-out underrun** — the DAQ played past the values the host had written.
+
+A trip latches: the engine commands 0 V *at once* (never a ramp from a set-point the output may no longer hold),
+records when and what was seen, and nothing re-energises the output until an operator resets the latch.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from bench.rig import RigConfig
+from bench.runtime.safety import SafetyTrip
+
+STALL_FRACTION = 0.8  # default stall bound: this share of the module's communication watchdog
+STALL_NO_WATCHDOG_S = 1.0  # default stall bound of a set-point module without a watchdog
+DAQ_LAG_S = 1e-3  # default lag allowance on the scan clock (the TREK follows within one 10-kHz scan)
+POLLED_LAG_S = 0.3  # default lag allowance of polled monitors (ADAM-4017+: 10 S/s for all channels)
+POLLED_READINGS = 2  # a polled mismatch must be seen in this many readings in a row
+OUTPUT_ON_V = 50.0  # |commanded| above this: the output is on (a watchdog firing would change it)
+
+
+class InterlockTrip(SafetyTrip):
+    """A latched fault: ``kind`` (host stall, output mismatch, stream-out underrun) and one line of detail."""
+
+    def __init__(self, kind: str, detail: str) -> None:
+        self.kind = kind
+        super().__init__(f"interlock: {kind}: {detail}")
+
+
+def watchdog_period(rig: RigConfig) -> float | None:
+    """The communication watchdog of the module that drives the amplifier's input [s] (None: none configured)."""
+    amp = rig.amplifier
+    if amp is None:
+        return None
+    if amp.drive == "daq":
+        return rig.daq.watchdog_s if rig.daq is not None else None
+    return amp.comm_watchdog_s
+
+
+def stall_bound(rig: RigConfig) -> float:
+    """How long the set-point module may go unheard while the output is on before the interlock latches [s]."""
+    if rig.interlock.host_stall_s is not None:
+        return rig.interlock.host_stall_s
+    watchdog = watchdog_period(rig)
+    return STALL_FRACTION * watchdog if watchdog is not None else STALL_NO_WATCHDOG_S
+
+
+def check_contact(rig: RigConfig, away: float, output_on: bool) -> None:
+    """Latch a host stall: the set-point module unheard for ``away`` s, longer than the bound, while the output was
+    on."""
+    if not output_on:
+        return
+    bound = stall_bound(rig)
+    if away > bound:
+        watchdog = watchdog_period(rig)
+        fired = (f"its {watchdog:g}-s communication watchdog {'has' if away >= watchdog else 'may have'} zeroed "
+                 "the output" if watchdog is not None else "the output ran unsupervised")
+        raise InterlockTrip("host stall", f"the set-point module went {away:.2f} s without a request from the "
+                            f"host (bound {bound:.2f} s); {fired}; high voltage stays off until an operator resets")
+
+
+@dataclass
+class Mismatch:
+    """Where a verified output left its band: run time [s], measured and commanded voltage [V], how long [s]."""
+
+    t: float
+    measured: float
+    commanded: float
+    lasted: float
+
+
+class OutputVerifier:
+    """Compares the measured output voltage with what was commanded, through the path's stated dynamics.
+
+    A sample is out of band when the measured voltage lies outside [lo − tol, hi + tol], where lo/hi are the
+    smallest/largest value commanded over the last ``lag`` (the amplifier and the monitor follow with a delay;
+    any value of that window may be what the monitor shows) and tol = tolerance_V + tolerance_rel × max(|lo|,
+    |hi|). Hardware-timed scans: a fault when out-of-band scans follow each other for ``mismatch_s`` on the scan
+    clock. Polled readings: a fault in :data:`POLLED_READINGS` readings in a row. Invalid samples neither count
+    nor break a run of bad ones.
+    """
+
+    def __init__(self, rig: RigConfig, scan_rate: float | None) -> None:
+        cfg = rig.interlock
+        self.tol_v, self.tol_rel = cfg.output_tolerance_V, cfg.output_tolerance_rel
+        self.scan_rate = scan_rate
+        self.lag = cfg.output_lag_s if cfg.output_lag_s is not None else (
+            DAQ_LAG_S if scan_rate is not None else POLLED_LAG_S)
+        self.mismatch_s = cfg.output_mismatch_s
+        self._tail = np.zeros(0)  # commanded values of the last scans of the previous block (the lag window)
+        self._bad_since: float | None = None  # run time of the first out-of-band sample of the present run
+        self._bad_count = 0
+        self._history: list[tuple[float, float]] = []  # polled: (run time, commanded) of recent set-points
+
+    def _band(self, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        tol = self.tol_v + self.tol_rel * np.maximum(np.abs(lo), np.abs(hi))
+        return lo - tol, hi + tol
+
+    # ------------------------------------------------------------ hardware-timed: one block of scans
+    def scans(self, t: np.ndarray, measured: np.ndarray, commanded: np.ndarray, ok: np.ndarray) -> Mismatch | None:
+        """Check one block of scans (run times, measured and commanded output [V], validity); returns the first
+        mismatch that lasted ``mismatch_s``, or None."""
+        assert self.scan_rate is not None
+        n = t.size
+        if n == 0:
+            return None
+        width = max(2, math.ceil(self.lag * self.scan_rate) + 1)
+        cmd = np.concatenate([self._tail, commanded])
+        pad = width - 1 - self._tail.size
+        if pad > 0:  # the first block of a stream: nothing earlier than its first scan was commanded
+            cmd = np.concatenate([np.full(pad, cmd[0]), cmd])
+        windows = np.lib.stride_tricks.sliding_window_view(cmd, width)[-n:]
+        lo, hi = self._band(windows.min(axis=1), windows.max(axis=1))
+        self._tail = cmd[-(width - 1):].copy()
+        bad = ok & ((measured < lo) | (measured > hi))
+        if not bad.any():
+            if ok.any():
+                self._bad_since = None
+            return None
+        # runs of out-of-band scans across the block; valid in-band scans end a run, invalid ones do not
+        good = ok & ~bad
+        for k in np.flatnonzero(bad | good):
+            if good[k]:
+                self._bad_since = None
+                continue
+            if self._bad_since is None:
+                self._bad_since = float(t[k])
+            if t[k] - self._bad_since + 1.0 / self.scan_rate >= self.mismatch_s - 1e-12:
+                return Mismatch(float(t[k]), float(measured[k]), float(commanded[k]),
+                                float(t[k] - self._bad_since + 1.0 / self.scan_rate))
+        return None
+
+    def restart(self) -> None:
+        """A new stream (its first scan follows no earlier commanded value of the same stream)."""
+        self._tail = np.zeros(0)
+        self._bad_since = None
+
+    # ------------------------------------------------------------ software-timed: set-points and polled readings
+    def commanded(self, t: float, volts: float) -> None:
+        """A set-point sent at run time ``t``."""
+        self._history.append((t, volts))
+        # keep what the lag window can still reach, and the last value before it
+        cut = 0
+        while cut + 1 < len(self._history) and self._history[cut + 1][0] <= t - self.lag:
+            cut += 1
+        del self._history[:cut]
+
+    def reading(self, t: float, measured: float, valid: bool = True) -> Mismatch | None:
+        """Check one polled monitor reading taken at run time ``t``; returns a mismatch after
+        :data:`POLLED_READINGS` out-of-band readings in a row, else None."""
+        if not valid or not math.isfinite(measured) or not self._history:
+            return None
+        window = [v for tv, v in self._history if tv >= t - self.lag]
+        before = [v for tv, v in self._history if tv < t - self.lag]
+        if before:
+            window.append(before[-1])
+        if not window:  # every set-point came after the reading: the one before the first is unknown
+            return None
+        lo, hi = self._band(np.array([min(window)]), np.array([max(window)]))
+        if lo[0] <= measured <= hi[0]:
+            self._bad_count, self._bad_since = 0, None
+            return None
+        self._bad_count += 1
+        if self._bad_since is None:
+            self._bad_since = t
+        if self._bad_count >= POLLED_READINGS:
+            return Mismatch(t, measured, self._history[-1][1], t - self._bad_since)
+        return None
+
+
+def mismatch_trip(m: Mismatch, what: str) -> InterlockTrip:
+    """The interlock trip of a verified-output mismatch, naming what was compared."""
+    return InterlockTrip("output mismatch", f"{what} read {m.measured:.0f} V at {m.t:.4f} s where {m.commanded:.0f} "
+                         f"V was commanded (out of the commanded band for {m.lasted * 1e3:.1f} ms): the output is not "
+                         "what the host set (a refused or unplayed set-point, a dead monitor, a calibration off, a "
+                         "watchdog that fired)")
