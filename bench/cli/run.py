@@ -174,12 +174,7 @@ def run(
 
 
 def _log_result(result) -> None:
-    """The run's events and how it ended, into the run log."""
-    from bench.storage.runfile import open_run
-
-    with contextlib.suppress(OSError, ValueError):
-        for t, step, kind, text in open_run(result.path, streams=False).event_list():
-            log.info("event t=%.3f s step %d %s: %s", t, step, kind, text)
+    """How the run ended, into the run log (its events are already there: the recorder logs each as it happens)."""
     log.log(logging.INFO if result.state == "completed" else logging.ERROR, "%s: %s; high voltage: %s; %d samples",
             result.state, result.reason, result.safe_path, result.samples)
 
