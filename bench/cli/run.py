@@ -169,6 +169,9 @@ def run(
     with contextlib.suppress(OSError):  # the terminal went away (SIGHUP): the file holds the whole account
         _print_result(result)
         console.print(f"run log: {escape(str(log_file))}")
+        if console.quiet:  # -q: the run file's path alone, for scripts (f=$(bench -q run …)), whatever the outcome
+            sys.stdout.write(f"{result.path}\n")
+            sys.stdout.flush()
     if result.state != "completed":
         raise typer.Exit(1)
 
