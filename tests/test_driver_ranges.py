@@ -5,6 +5,8 @@ from the wire formats and datasheets, not from the drivers:
 
 * LinMot default response: ActualPosition int32 in 0.1 µm (LinRS manual) → the register's ends are
   ±(2^31 − 1) × 0.1 µm = ±214.7483647 m;
+* T7: T-Series Datasheet App. A-3 Table A.3-1, typical input range −10.5 … +10.1 V at gain 1 (±10 V range);
+  FLOAT32's largest value 3.4028235e38; PRODUCT_ID of a T7 is 7;
 * DGT1S: weight as an absolute count of divisions, 32-bit, MSW first (DGT4X/DGT1S manual); a 6-digit display
   shows at most 999 999;
 * Keyence AN reply: AN,<storing>,<count>; the storage setting SW,EC carries sign + 6 digits (≤ 999 999).
@@ -12,19 +14,23 @@ from the wire formats and datasheets, not from the drivers:
 
 from __future__ import annotations
 
+import math
 import struct
+from collections.abc import Callable, Iterator
 
 import pytest
 
 from drivers.dini import DiniDGT1S
-from drivers.errors import ImplausibleValueError, InstrumentError
+from drivers.errors import ImplausibleValueError, InstrumentError, InstrumentStateError
 from drivers.keyence import KeyenceLKG
 from drivers.linmot import LinMotDrive
 from drivers.modbus_link import ModbusLink
 from drivers.serial_link import SerialLink
 from tests.protocol_expect import expected_protocol, rtu
+from tests.test_labjack import Rig
 
 POLL = bytes.fromhex("01 11 03 02 01 00 04")  # LinRS default-response request to drive 0x11
+F32_MAX = 3.4028234663852886e38  # largest FLOAT32: bytes 7F 7F FF FF
 
 
 def linmot_response(counts: int, status: int = 0x0C37, state: int = 0x08C0) -> bytes:
@@ -74,6 +80,83 @@ def test_linmot_identity_and_status_from_a_garbled_state_are_no_traceback() -> N
         d.link.open()
         assert d.identify().details["state"] == "255"
         assert d.status().state == "state 255"
+
+
+# ---------------------------------------------------------------------------- T7 (twin, replies rewritten)
+def f32_reply(value: float, skip: int = 0) -> Callable[[bytes], bytes]:
+    """Rewrite the data of the (skip+1)-th FC3 reply of two registers to FLOAT32 ``value``; others pass."""
+    seen = [0]
+
+    def mutate(reply: bytes) -> bytes:
+        if len(reply) == 13 and reply[7] == 3 and reply[8] == 4:  # MBAP(7) | 03 | 04 | 4 data bytes
+            seen[0] += 1
+            if seen[0] == skip + 1:
+                return reply[:9] + struct.pack(">f", value)
+        return reply
+    return mutate
+
+
+@pytest.fixture
+def t7() -> Iterator[Rig]:
+    r = Rig()
+    yield r
+    r.close()
+
+
+@pytest.mark.parametrize("value", [F32_MAX, -F32_MAX, -9999.0, math.inf, -math.inf, math.nan, 11.5, -12.0])
+def test_a_t7_ain_value_its_converter_cannot_make_is_invalid(t7: Rig, value: float) -> None:
+    t7.daq.connect()
+    t7.sim.faults.mutate = f32_reply(value)
+    r = t7.daq.read_ain(0)
+    t7.sim.faults.mutate = None
+    assert not r.ok and r.status == "invalid" and math.isnan(r.value)
+
+
+@pytest.mark.parametrize("value", [-10.5, 10.1, 0.0])  # the datasheet's typical span at gain 1, and 0 V
+def test_a_t7_ain_value_within_the_converter_span_is_a_reading(t7: Rig, value: float) -> None:
+    t7.daq.connect()
+    t7.sim.faults.mutate = f32_reply(value)
+    r = t7.daq.read_ain(0)
+    t7.sim.faults.mutate = None
+    assert r.ok and r.value == pytest.approx(value, rel=1e-6)
+
+
+def test_a_t7_ain_on_the_1_v_range_is_judged_by_that_range(t7: Rig) -> None:
+    t7.daq.connect()
+    t7.daq.configure_ain(0, 1.0)
+    t7.sim.faults.mutate = f32_reply(5.0)  # fine on ±10 V, five times the ±1 V range
+    r = t7.daq.read_ain(0)
+    t7.sim.faults.mutate = None
+    assert r.status == "invalid"
+
+
+def test_trek_monitors_through_an_invalid_t7_input_are_invalid_not_huge(t7: Rig) -> None:
+    from drivers.trek import TREK_MODELS
+    from drivers.trek_daq import TrekOnDaq
+
+    t7.daq.connect()
+    amp = TrekOnDaq(t7.daq, TREK_MODELS["10/10B-HS"], max_voltage=8000.0, clock=t7.clock.now)
+    t7.sim.faults.mutate = f32_reply(F32_MAX)  # the voltage monitor's read
+    v, i = amp.read_monitors()
+    t7.sim.faults.mutate = None
+    assert (v.status, i.status) == ("invalid", "invalid") and math.isnan(v.value) and math.isnan(i.value)
+
+
+@pytest.mark.parametrize("value", [math.inf, -math.inf, math.nan, -7.0, 0.0, F32_MAX, 4.0])
+def test_an_absurd_t7_product_id_at_connect_is_one_named_line(t7: Rig, value: float) -> None:
+    t7.sim.faults.mutate = f32_reply(value)  # the first read of connect: PRODUCT_ID
+    with pytest.raises(InstrumentStateError) as exc:
+        t7.daq.connect()
+    t7.sim.faults.mutate = None
+    text = str(exc.value)
+    assert text.startswith("daq: PRODUCT_ID (register 60000) reads ") and "expected 7" in text
+    assert f"{value:g}" in text and "\n" not in text
+
+
+def test_a_t7_calibration_that_puts_codes_beyond_the_converter_is_refused_at_connect(t7: Rig) -> None:
+    t7.sim.cal[2] = 1.0e6  # HS gain-0 Center: code 0 would read (1e6 − 0)·NSlope ≈ −316 V
+    with pytest.raises(ImplausibleValueError, match=r"^daq: calibration: ±10 V range .* \(valid -11 … 11 V"):
+        t7.daq.connect()
 
 
 # ---------------------------------------------------------------------------- DGT1S and Keyence
