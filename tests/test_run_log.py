@@ -16,9 +16,7 @@ from datetime import datetime
 from pathlib import Path
 
 import pytest
-from typer.testing import CliRunner
 
-from bench.cli import app
 from bench.storage.runfile import open_run
 from tests.conftest import ROOT
 
@@ -74,10 +72,14 @@ def test_a_killed_run_s_log_already_holds_its_step_starts_each_at_its_own_time(t
     assert walls[0] < walls[1] < walls[2]  # each written when it happened (a real-time run: seconds apart)
 
 
-def test_a_completed_run_s_log_has_each_event_of_the_file_once(tmp_path: Path) -> None:
-    res = CliRunner().invoke(app, ["run", str(THESIS), "--virtual-time", "--out", str(tmp_path), "--no-live"])
-    assert res.exit_code == 0, res.output
+def test_a_completed_run_s_log_has_each_event_of_the_file_once_and_q_prints_only_its_path(tmp_path: Path) -> None:
+    # as a script runs it: f=$(bench -q run …) — stdout is the run file's path, one line, nothing else
+    proc = subprocess.run([sys.executable, "-m", "bench", "-q", "run", str(THESIS), "--virtual-time", "--out",
+                           str(tmp_path)], capture_output=True, text=True, cwd=ROOT, stdin=subprocess.DEVNULL,
+                          timeout=300)
+    assert proc.returncode == 0, proc.stderr
     (run_file,) = tmp_path.glob("*.h5")
+    assert proc.stdout == f"{run_file}\n"
     logged = events(run_file.with_suffix(".log").read_text(encoding="utf-8"))
     stored = open_run(run_file, streams=False).event_list()
     assert len(stored) >= 6  # run start, 2 × (step start, end), stop, safe
