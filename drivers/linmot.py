@@ -153,7 +153,7 @@ class LinMotDrive:
     ``position_margin`` [m] beyond the travel is an :class:`ImplausibleValueError`, never a reading: the int32
     register's ends (±214.7 m) and anything near them are no slider's position. An overshoot, a slider pushed past
     a limit or an unhomed drive counting from where it was switched on stays within the motor's stroke; the
-    default (1 m, ten times the rigs' 95-mm travel) leaves room for that, and a rig with a longer stator may set
+    default (1 m, about ten times the rigs’ 95-mm travel) leaves room for that, and a rig with a longer stator may set
     it wider (it must keep the register's ends outside). ``poll_interval``: pause between
     status polls while waiting for a drive state (enabling, homing, in-target). 10 ms keeps the RS-232 line mostly
     free (a poll and its default response are 23 bytes, 2.0 ms at 115,200 baud) and adds at most 10 ms to a wait
