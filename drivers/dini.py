@@ -18,7 +18,7 @@ import math
 import time
 
 from drivers.cancel import check
-from drivers.errors import InstrumentStateError, InstrumentTimeoutError
+from drivers.errors import ImplausibleValueError, InstrumentStateError, InstrumentTimeoutError
 from drivers.interfaces import CheckResult, ClockFn, DataKey, Identity, Reading, SleepFn, StreamDescription
 from drivers.modbus_link import ModbusLink
 
@@ -29,6 +29,9 @@ ST_NET_NEG, ST_GROSS_NEG, ST_STABLE, ST_UNDERLOAD, ST_OVERLOAD, ST_TARE = 0x01, 
 RESULT_TEXT = {1: "not executed: weight unstable", 2: "not executed: outside the zero range",
                3: "not executed: overload or underload"}
 STANDARD_GRAVITY = 9.80665
+# [A] the transmitter shows a weight in at most 6 digits: a count beyond 999 999 divisions is no weight it reports
+# (its 32-bit register could carry 4 294 967 295) — to check against the unit's display and manual
+MAX_DIVISIONS = 999_999
 
 
 class DiniDGT1S:
@@ -84,12 +87,19 @@ class DiniDGT1S:
         """Nothing to make safe."""
 
     def read_weight(self) -> tuple[float, int]:
-        """(signed weight [kg], status register) from one read of gross, net and status."""
+        """(signed weight [kg], status register) from one read of gross, net and status.
+
+        A count beyond :data:`MAX_DIVISIONS` is an :class:`ImplausibleValueError`, not a reading: the value
+        passed the frame's CRC, so the transmitter itself sent what it cannot display — a fault of the device
+        or its configuration, which stops a run (the load cell guards the specimen) rather than one sample."""
         regs = self.link.read_input(self.unit, IR_GROSS, 5)
         gross = (regs[0] << 16) | regs[1]
         net = (regs[2] << 16) | regs[3]
         status = regs[4]
         value, negative = (net, ST_NET_NEG) if self.use_net else (gross, ST_GROSS_NEG)
+        if value > MAX_DIVISIONS and not status & (ST_OVERLOAD | ST_UNDERLOAD):
+            raise ImplausibleValueError(self.name, "net weight" if self.use_net else "gross weight", value,
+                                        (0, MAX_DIVISIONS), "divisions", "the display's 6 digits")
         return (-value if status & negative else value) * self.division, status
 
     def read(self) -> Reading:

@@ -34,3 +34,21 @@ class LimitError(InstrumentError):
 
 class OperationCancelledError(InstrumentError):
     """A wait on the instrument was abandoned because the application requested a stop."""
+
+
+class ImplausibleValueError(ProtocolError):
+    """A reply that parses but carries a value the instrument cannot report: beyond what its register or units
+    can hold, far outside its configured range, or not a number. The reply is wrong, not the world: the value is
+    never passed on as a measurement. The message names the quantity, the value and the valid range."""
+
+    def __init__(self, device: str, quantity: str, value: float, valid: tuple[float, float], unit: str,
+                 why: str = "") -> None:
+        self.quantity, self.value, self.valid, self.unit = quantity, value, valid, unit
+        lo, hi = (_number(v) for v in valid)
+        super().__init__(device, f"{quantity} {_number(value)} {unit} is not a value it reports (valid {lo} … {hi} "
+                         f"{unit}{': ' + why if why else ''})")
+
+
+def _number(x: float) -> str:
+    """An integer (a register's count) in full, a float to 9 significant digits."""
+    return str(x) if isinstance(x, int) else f"{x:.9g}"

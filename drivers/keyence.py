@@ -30,7 +30,7 @@ from typing import Literal
 import numpy as np
 
 from drivers.cancel import check
-from drivers.errors import InstrumentStateError, ProtocolError
+from drivers.errors import ImplausibleValueError, InstrumentStateError, ProtocolError
 from drivers.interfaces import CheckResult, ClockFn, DataKey, Identity, Reading, SampleBlock, StreamDescription
 from drivers.serial_link import SerialLink
 
@@ -53,6 +53,7 @@ _NUMBERS = re.compile(r"[+-][0-9.]{7}(?:,[+-][0-9.]{7})*")
 # Data-storage capacity per OUT (points). Not from a manual page we could read: treat as an assumption.
 # The LK-G5000 figure is the largest count the 6-digit setting format can carry.
 STORAGE_CAPACITY: dict[Model, int] = {"LK-G3000": 65_536, "LK-G5000": 999_999}
+MAX_STORAGE_SETTING = 999_999  # SW,EC takes sign + 6 digits: the most points any storage run asks for
 
 
 def format_value(mm: float | None, status: str = "ok") -> str:
@@ -153,7 +154,7 @@ class KeyenceLKG:
         self.out = out
         self.clock = clock
         self.storage_points = storage_points or STORAGE_CAPACITY[model]
-        if not 0 < self.storage_points <= 999_999:
+        if not 0 < self.storage_points <= MAX_STORAGE_SETTING:
             raise ValueError(f"{name}: storage_points must be 1…999999, got {self.storage_points}")
         self._comm_mode = False
         self._t0 = 0.0
@@ -288,14 +289,20 @@ class KeyenceLKG:
         return self._dt
 
     def buffer_status(self) -> tuple[bool, int]:
-        """(storing, number of points stored)."""
+        """(storing, number of points stored); a count outside 0 … 999 999 is an :class:`ImplausibleValueError`:
+        the storage setting (``SW,EC``, 6 digits) asks for no more, so no controller stores more (the models'
+        capacities themselves are assumptions, :data:`STORAGE_CAPACITY`, and do not bound it)."""
         fields = self.query("AN")
         if len(fields) != 3:
             raise ProtocolError(self.name, f"AN reply {fields!r} is not AN,<state>,<count>")
         try:
-            return fields[1] == "1", int(fields[2])
+            count = int(fields[2])
         except ValueError:
             raise ProtocolError(self.name, f"AN reply {fields!r} has a non-numeric count") from None
+        if not 0 <= count <= MAX_STORAGE_SETTING:
+            raise ImplausibleValueError(self.name, "stored point count", count, (0, MAX_STORAGE_SETTING), "points",
+                                        "the 6-digit storage setting")
+        return fields[1] == "1", count
 
     def upload_chunk(self) -> int:
         """Points per AO request: at most ``fetch_budget_s`` of wire time at the link's baud rate."""

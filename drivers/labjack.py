@@ -78,6 +78,7 @@ from pymodbus.pdu import ModbusPDU
 
 from drivers.cancel import CancelToken, check
 from drivers.errors import (
+    ImplausibleValueError,
     InstrumentConnectionError,
     InstrumentError,
     InstrumentStateError,
@@ -126,6 +127,12 @@ DUMMY = 0xFFFF
 ST_OK, ST_RECOVER_ACTIVE, ST_RECOVER_END, ST_SCAN_OVERLAP, ST_RECOVER_OVERFLOW, ST_BURST_COMPLETE, \
     ST_BUFFER_FULL = 0, 2940, 2941, 2942, 2943, 2944, 2945
 RANGES = (10.0, 1.0, 0.1, 0.01)  # gain index 0..3
+# [D] T-Series Datasheet App. A-3, Table A.3-1: typical input range at gain 1 is −10.5 … +10.1 V (the nominal
+# calibration puts code 0 at −10.59 V, code 65535 at +10.11 V). A reading beyond 1.1 × its range (±11 V on ±10 V)
+# is none the converter makes, whatever the unit's calibration: a sentinel (−9999), float32's end (±3.4e38),
+# or a garbled reply.
+AIN_SPAN = 1.1
+PRODUCT_T7 = 7  # [D] PRODUCT_ID of a T7 (and T7-Pro)
 ERRORS = {
     2600: "STREAM_NEED_AT_LEAST_ONE_CHN", 2605: "STREAM_IS_ACTIVE", 2606: "STREAM_CONFIG_INVALID",
     2607: "STREAM_CHN_LIST_INVALID", 2608: "STREAM_SCAN_RATE_INVALID", 2609: "STREAM_OUT_BUFF_TOO_BIG",
@@ -423,6 +430,7 @@ class LabJackT7:
         self.link.register(Feedback)
         self.cal = Calibration.nominal()
         self.serial = 0
+        self._ain_range: dict[int, float] = {}  # ±V of the inputs configured here (the rest: the ±10 V default)
         self._stream: _Stream | None = None
         self.streaming = False
 
@@ -489,6 +497,13 @@ class LabJackT7:
         cal = Calibration(tuple(values))
         if not all(math.isfinite(v) for v in values) or cal.hs(0)[0] <= 0 or cal.dac(0)[0] <= 0:
             raise ProtocolError(self.name, "calibration constants read from flash are not plausible")
+        for gain, rng in enumerate(RANGES):  # every stream code is converted through these: bound them all
+            ends = cal.ain_volts(np.array([0, 0xFFFF]), gain)
+            if not np.all(np.abs(ends) <= AIN_SPAN * rng):
+                bad = float(ends[np.argmax(np.abs(ends))])
+                raise ImplausibleValueError(self.name, f"calibration: ±{rng:g} V range full-scale code at", bad,
+                                            (-AIN_SPAN * rng, AIN_SPAN * rng), "V",
+                                            "the constants read from flash are not plausible")
         return cal
 
     # ------------------------------------------------------------------ Instrument
@@ -496,8 +511,9 @@ class LabJackT7:
         """Open the Modbus link, check it is a T7, read its calibration, stop a stream left running."""
         self.link.open()
         product = self.read_f32(PRODUCT_ID)
-        if round(product) != 7:
-            raise InstrumentStateError(self.name, f"PRODUCT_ID is {product:g}, expected 7 (T7)")
+        if not (math.isfinite(product) and round(product) == PRODUCT_T7):  # inf, NaN, negative: one line too
+            raise InstrumentStateError(self.name, f"PRODUCT_ID (register {PRODUCT_ID}) reads {product:g}, "
+                                       f"expected {PRODUCT_T7} (T7)")
         self.serial = self.read_u32(SERIAL_NUMBER)
         self.cal = self.read_calibration()
         if self.read_u32(STREAM_ENABLE):
@@ -561,11 +577,19 @@ class LabJackT7:
             raise ValueError(f"{self.name}: AIN range must be one of {RANGES} V, got {range_volts}")
         self.write_f32(AIN_RANGE0 + 2 * ain, range_volts)
         self.write_regs(AIN_NEG0 + ain, [negative_channel])
+        self._ain_range[ain] = range_volts
 
     def read_ain(self, ain: int) -> Reading:
-        """One command-response reading of AIN ``ain`` [V]."""
+        """One command-response reading of AIN ``ain`` [V].
+
+        A value that is not finite or lies beyond 1.1 × the input's range (±11 V on the ±10 V range, the
+        default of an input this driver has not configured) is no reading the converter makes (:data:`AIN_SPAN`):
+        status "invalid", value NaN — one bad sample, not a broken link."""
         v = self.read_f32(AIN0 + 2 * ain)
-        return Reading(v, "V", self.clock(), "ok" if math.isfinite(v) else "invalid")
+        limit = AIN_SPAN * self._ain_range.get(ain, RANGES[0])
+        if not abs(v) <= limit:
+            return Reading(math.nan, "V", self.clock(), "invalid")
+        return Reading(v, "V", self.clock())
 
     def write_dac(self, dac: int, volts: float) -> None:
         """Set DAC0/DAC1 [V]; refuses values outside the DAC's 0–5 V."""
@@ -797,6 +821,9 @@ class LabJackT7:
         has filled by then — in virtual time, call it with the clock's present to get every scan so far.
         A gap in the packet sequence is a :class:`ProtocolError`; a device status that ends the stream
         (scan overlap, skip-counter overflow, buffer full) an :class:`InstrumentStateError` after the data.
+        Samples are 16-bit codes converted through the calibration read at connect, which is refused unless
+        every code of every range lies within 1.1 × the range (:data:`AIN_SPAN`): no streamed sample is beyond
+        what the converter makes.
         """
         s = self._stream
         if s is None or s.sock is None:

@@ -31,7 +31,13 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from drivers.cancel import check
-from drivers.errors import InstrumentStateError, InstrumentTimeoutError, LimitError, ProtocolError
+from drivers.errors import (
+    ImplausibleValueError,
+    InstrumentStateError,
+    InstrumentTimeoutError,
+    LimitError,
+    ProtocolError,
+)
 from drivers.interfaces import CheckResult, ClockFn, DataKey, Identity, MotorStatus, Reading, SleepFn, StreamDescription
 from drivers.serial_link import SerialLink
 
@@ -70,6 +76,8 @@ STATE_ERROR = 4
 POS_UNIT = 1e-7  # m per count (0.1 µm)
 VEL_UNIT = 1e-6  # m/s per count
 ACC_UNIT = 1e-5  # m/s² per count
+POS_REGISTER = (-(2**31) * POS_UNIT, (2**31 - 1) * POS_UNIT)  # what the int32 position register holds [m]: ±214.7 m
+POSITION_MARGIN_M = 1.0  # default: how far beyond the travel a reported position may lie and still be the slider's
 
 
 def crc16_ccitt_reflected(data: bytes) -> int:
@@ -141,7 +149,12 @@ def decode_default_response(frame: bytes, drive_id: int, device: str, checksum: 
 class LinMotDrive:
     """Driver of one LinMot drive on a LinRS link (implements LinearMotor).
 
-    Software travel limits [m] are checked before any motion command is sent. ``poll_interval``: pause between
+    Software travel limits [m] are checked before any motion command is sent. A reported position more than
+    ``position_margin`` [m] beyond the travel is an :class:`ImplausibleValueError`, never a reading: the int32
+    register's ends (±214.7 m) and anything near them are no slider's position. An overshoot, a slider pushed past
+    a limit or an unhomed drive counting from where it was switched on stays within the motor's stroke; the
+    default (1 m, about ten times the rigs’ 95-mm travel) leaves room for that, and a rig with a longer stator may set
+    it wider (it must keep the register's ends outside). ``poll_interval``: pause between
     status polls while waiting for a drive state (enabling, homing, in-target). 10 ms keeps the RS-232 line mostly
     free (a poll and its default response are 23 bytes, 2.0 ms at 115,200 baud) and adds at most 10 ms to a wait
     that lasts 0.3 s (switch-on test) to seconds (homing).
@@ -150,9 +163,15 @@ class LinMotDrive:
     def __init__(self, link: SerialLink, *, name: str = "motor", drive_id: int = 0x11,
                  travel: tuple[float, float] = (0.0, 0.12), max_velocity: float = 1.0,
                  max_acceleration: float = 20.0, clock: ClockFn = time.monotonic, sleep: SleepFn = time.sleep,
-                 state_timeout: float = 5.0, poll_interval: float = 0.01, checksum: bool = False) -> None:
+                 state_timeout: float = 5.0, poll_interval: float = 0.01, checksum: bool = False,
+                 position_margin: float = POSITION_MARGIN_M) -> None:
         if not travel[0] < travel[1]:
             raise ValueError(f"{name}: travel limits must be increasing, got {travel}")
+        plausible = (travel[0] - position_margin, travel[1] + position_margin)
+        if not (position_margin >= 0 and POS_REGISTER[0] < plausible[0] and plausible[1] < POS_REGISTER[1]):
+            raise ValueError(f"{name}: travel {travel} m ± position margin {position_margin} m must lie inside "
+                             f"the position register's {POS_REGISTER[0]:.4f} … {POS_REGISTER[1]:.4f} m")
+        self.plausible = plausible
         self.link = link
         self.name = name
         self.drive_id = drive_id
@@ -223,6 +242,17 @@ class LinMotDrive:
         fatal = " (fatal)" if resp.status_word & SW_FATAL else ""
         return f"code {code:#04x} {ERROR_TEXT.get(code, 'unknown error')}{fatal}"
 
+    def checked_position(self, resp: DefaultResponse) -> float:
+        """The position a default response reports [m]; an :class:`ImplausibleValueError` if it lies more than
+        the position margin beyond the travel (see the class docstring)."""
+        x = resp.position
+        if not self.plausible[0] <= x <= self.plausible[1]:
+            raise ImplausibleValueError(self.name, "position", x, self.plausible, "m",
+                                        f"travel {self.travel[0]:g} … {self.travel[1]:g} m ± "
+                                        f"{self.plausible[1] - self.travel[1]:g} m; register {resp.position_counts} "
+                                        "counts of 0.1 µm")
+        return x
+
     def _check_count(self, resp: DefaultResponse, *allowed: int) -> None:
         """In state 8 the echoed motion-command count must be one we sent, else the reply is not ours."""
         if resp.main_state == 8 and resp.command_count not in allowed:
@@ -231,10 +261,10 @@ class LinMotDrive:
 
     # ----------------------------------------------------------- Instrument
     def connect(self) -> None:
-        """Open the link and check that the drive answers."""
+        """Open the link and check that the drive answers with a position it can have."""
         self.link.open()
         self.link.discard_input()
-        self.poll()
+        self.checked_position(self.poll())
 
     def close(self) -> None:
         """Stop any motion and release the link."""
@@ -340,12 +370,13 @@ class LinMotDrive:
             return bool(r.status_word & SW_IN_TARGET) and not r.status_word & SW_MOTION_ACTIVE
 
         resp = self._wait(reached, "in-target position", timeout=timeout)
-        return Reading(resp.position, "m", self.clock())
+        return Reading(self.checked_position(resp), "m", self.clock())
 
     def read_position(self) -> Reading:
-        """Actual position [m]; status "error" whenever the drive is in its error state or flags an error."""
+        """Actual position [m]; status "error" whenever the drive is in its error state or flags an error; an
+        :class:`ImplausibleValueError` for a position far outside the travel (see the class docstring)."""
         resp = self.poll()
-        return Reading(resp.position, "m", self.clock(), "error" if self.in_error(resp) else "ok")
+        return Reading(self.checked_position(resp), "m", self.clock(), "error" if self.in_error(resp) else "ok")
 
     def status(self) -> MotorStatus:
         """Decoded drive state."""
@@ -354,7 +385,7 @@ class LinMotDrive:
         return MotorStatus(state=STATE_NAMES.get(r.main_state, f"state {r.main_state}"),
                            enabled=bool(sw & SW_OPERATION_ENABLED), homed=bool(sw & SW_HOMED),
                            moving=bool(sw & SW_MOTION_ACTIVE), in_target=bool(sw & SW_IN_TARGET),
-                           error=self.in_error(r), error_code=self.error_code(r), position=r.position,
+                           error=self.in_error(r), error_code=self.error_code(r), position=self.checked_position(r),
                            error_text=self._error_text(r) if self.in_error(r) else "")
 
     def stop(self) -> None:

@@ -115,13 +115,15 @@ class TrekOnDaq:
         return self._last_v
 
     def read_monitors(self) -> tuple[Reading, Reading]:
-        """(output voltage [V], output current [A]) from two command-response AIN reads."""
+        """(output voltage [V], output current [A]) from two command-response AIN reads; both "invalid" (NaN) unless
+        both AIN readings are ok (the T7 driver flags values its converter cannot make) and finite once scaled."""
         v = self.daq.read_ain(self.vmon_ain)
         i = self.daq.read_ain(self.imon_ain)
         t = self.clock()
         vv, ii = v.value * self.trek.vmon_ratio, i.value * self.trek.imon_ratio
-        ok = math.isfinite(vv) and math.isfinite(ii)
-        return Reading(vv, "V", t, "ok" if ok else "invalid"), Reading(ii, "A", t, "ok" if ok else "invalid")
+        if not (v.ok and i.ok and math.isfinite(vv) and math.isfinite(ii)):
+            return Reading(math.nan, "V", t, "invalid"), Reading(math.nan, "A", t, "invalid")
+        return Reading(vv, "V", t), Reading(ii, "A", t)
 
     def heard_at(self) -> float | None:
         """When the T7 last answered a request: any request feeds its watchdog (stream packets do not)."""

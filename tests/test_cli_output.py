@@ -92,11 +92,11 @@ def test_report_json_and_figures_in_png_pdf_svg(run_file: Path, tmp_path: Path) 
     assert "commanded voltage (DAQ output, every scan)" in svg  # the default rig is hardware-timed
 
 
-def test_run_writes_a_log_beside_the_run_file_and_quiet_prints_nothing(tmp_path: Path) -> None:
+def test_run_writes_a_log_beside_the_run_file_and_quiet_prints_only_its_path(tmp_path: Path) -> None:
     res = runner.invoke(app, ["-q", "run", str(SHORT), "--virtual-time", "--out", str(tmp_path), "--no-live"])
     assert res.exit_code == 0, res.output
-    assert res.stdout == ""
     (run_file,) = tmp_path.glob("*.h5")
+    assert res.stdout == f"{run_file}\n"  # f=$(bench -q run …): the run file's path, one line, nothing else
     log = run_file.with_suffix(".log").read_text(encoding="utf-8")
     # the run stops when the stream's last packet (≤ 17 ms of scans) has come: 11.00–11.03 s
     assert "planned: 2 steps, 11.0 s" in log

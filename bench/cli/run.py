@@ -169,17 +169,15 @@ def run(
     with contextlib.suppress(OSError):  # the terminal went away (SIGHUP): the file holds the whole account
         _print_result(result)
         console.print(f"run log: {escape(str(log_file))}")
+        if console.quiet:  # -q: the run file's path alone, for scripts (f=$(bench -q run …)), whatever the outcome
+            sys.stdout.write(f"{result.path}\n")
+            sys.stdout.flush()
     if result.state != "completed":
         raise typer.Exit(1)
 
 
 def _log_result(result) -> None:
-    """The run's events and how it ended, into the run log."""
-    from bench.storage.runfile import open_run
-
-    with contextlib.suppress(OSError, ValueError):
-        for t, step, kind, text in open_run(result.path, streams=False).event_list():
-            log.info("event t=%.3f s step %d %s: %s", t, step, kind, text)
+    """How the run ended, into the run log (its events are already there: the recorder logs each as it happens)."""
     log.log(logging.INFO if result.state == "completed" else logging.ERROR, "%s: %s; high voltage: %s; %d samples",
             result.state, result.reason, result.safe_path, result.samples)
 

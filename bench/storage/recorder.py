@@ -44,6 +44,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import logging
 import os
 import re
 import signal
@@ -57,6 +58,8 @@ import h5py
 import numpy as np
 
 from drivers.interfaces import DataKey
+
+event_log = logging.getLogger("bench.run")  # every event, as it is recorded (the run log beside the file follows it)
 
 FORMAT = "dea-bench run 2"
 FORMATS = ("dea-bench run 1", FORMAT)  # what the readers read (1: /program and /events as compound datasets)
@@ -306,7 +309,11 @@ class Recorder:
         self.maybe_flush()
 
     def event(self, t: float, step: int, kind: str, text: str) -> None:
-        """Queue an event; flushes if the flush interval has passed (may raise :class:`StorageError`)."""
+        """Log the event at once (logger ``bench.run``, info: the run log gets one line with the wall-clock time
+        of this call and the run time ``t``), then queue it for the file; flushes if the flush interval has
+        passed (may raise :class:`StorageError`). Logged even once the file has failed: the log is the account
+        that survives it."""
+        event_log.info("event t=%.3f s step %d %s: %s", t, step, kind, " | ".join(text.splitlines()))
         if self.failure:
             return
         self._events.append((t, step, utf8(kind, 16), utf8(text, 200)))

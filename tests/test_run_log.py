@@ -1,0 +1,91 @@
+"""RUN.log beside RUN.h5 follows the run: one line per event as it happens, flushed at once (``tail -f``).
+
+Expected run times come from the protocol file (thesis-sweeps-short: a 0-s chamber step, a 5-s drive, a 2-s
+recovery, twice), not from the engine; the completed run's events are checked against the run file's /events.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from datetime import datetime
+from pathlib import Path
+
+import pytest
+
+from bench.storage.runfile import open_run
+from tests.conftest import ROOT
+
+SWEEPS = ROOT / "protocols" / "short" / "thesis-sweeps-short.toml"
+THESIS = ROOT / "protocols" / "short" / "thesis-identification-short.toml"
+EVENT = re.compile(r"^(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d{3}) INFO +\S+: event t=(-?[\d.]+) s step (-?\d+) "
+                   r"(\w+): (.*)$")
+
+
+def events(log: str) -> list[tuple[datetime, float, int, str, str]]:
+    """The event lines of a run log: (wall-clock stamp, run time, step, kind, text)."""
+    out = []
+    for line in log.splitlines():
+        m = EVENT.match(line)
+        if m:
+            out.append((datetime.strptime(m[1], "%Y-%m-%d %H:%M:%S,%f"), float(m[2]), int(m[3]), m[4], m[5]))
+    return out
+
+
+def test_a_killed_run_s_log_already_holds_its_step_starts_each_at_its_own_time(tmp_path: Path) -> None:
+    proc = subprocess.Popen([sys.executable, "-m", "bench", "run", str(SWEEPS), "--out", str(tmp_path), "--no-live"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, cwd=ROOT,
+                            stdin=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 120  # a guard against a hung run, not a timing claim
+        seen: list[tuple[datetime, float, int, str, str]] = []
+        while time.monotonic() < deadline and proc.poll() is None:
+            logs = list(tmp_path.glob("*.log"))
+            seen = events(logs[0].read_text(encoding="utf-8")) if logs else []
+            if any(step == 3 and kind == "start" for _, _, step, kind, _ in seen):  # the second chamber step
+                break
+            time.sleep(0.05)
+        assert proc.poll() is None, f"the run ended before it was killed: {proc.communicate()[1]}"
+        os.kill(proc.pid, signal.SIGKILL)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        proc.communicate(timeout=30)
+    (log_file,) = tmp_path.glob("*.log")
+    log = log_file.read_text(encoding="utf-8")
+    assert "completed" not in log and "high voltage:" not in log  # killed: no end-of-run lines
+    starts = {step: (wall, t) for wall, t, step, kind, _ in events(log) if kind == "start"}
+    kinds = [kind for _, _, _, kind, _ in events(log)]
+    assert "stop" not in kinds and "safe" not in kinds
+    # each step start once, in order, up to the one the kill came in (step 4, the drive, starts with step 3)
+    assert sorted(starts) == list(range(len(starts))) and 4 <= len(starts) <= 5 and kinds.count("start") == len(starts)
+    # run times from the protocol: drive (step 1) at 0 s, recovery (2) after the 5-s drive, the next chamber (3)
+    # after the 2-s recovery (the engine may end a streamed step a few ms late: stream packets)
+    assert starts[1][1] == pytest.approx(0.0, abs=1e-3)
+    assert starts[2][1] == pytest.approx(5.0, abs=0.05)
+    assert starts[3][1] == pytest.approx(7.0, abs=0.05)
+    walls = [starts[k][0] for k in (1, 2, 3)]
+    assert walls[0] < walls[1] < walls[2]  # each written when it happened (a real-time run: seconds apart)
+
+
+def test_a_completed_run_s_log_has_each_event_of_the_file_once_and_q_prints_only_its_path(tmp_path: Path) -> None:
+    # as a script runs it: f=$(bench -q run …) — stdout is the run file's path, one line, nothing else
+    proc = subprocess.run([sys.executable, "-m", "bench", "-q", "run", str(THESIS), "--virtual-time", "--out",
+                           str(tmp_path)], capture_output=True, text=True, cwd=ROOT, stdin=subprocess.DEVNULL,
+                          timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    (run_file,) = tmp_path.glob("*.h5")
+    assert proc.stdout == f"{run_file}\n"
+    logged = events(run_file.with_suffix(".log").read_text(encoding="utf-8"))
+    stored = open_run(run_file, streams=False).event_list()
+    assert len(stored) >= 6  # run start, 2 × (step start, end), stop, safe
+    assert [(f"{t:.3f}", step, kind) for _, t, step, kind, _ in logged] == \
+        [(f"{t:.3f}", step, kind) for t, step, kind, _ in stored]
+    for (_, _, _, _, text), (_, _, _, stored_text) in zip(logged, stored, strict=True):
+        assert text.startswith(stored_text)  # the file keeps at most 200 bytes of a text
+    walls = [w for w, *_ in logged]
+    assert walls == sorted(walls)
