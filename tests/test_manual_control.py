@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import re
+import signal
 from pathlib import Path
 
+import pytest
 from typer.testing import CliRunner
 
 from bench.cli import app
@@ -86,3 +88,107 @@ def test_control_refuses_virtual_time_on_a_real_rig(tmp_path: Path) -> None:
     res = CliRunner().invoke(app, ["devices", "control", str(ROOT / "rigs" / "thesis-lab.toml"), "--virtual-time",
                                    "--log", str(tmp_path / "x.log")], input="read\n")
     assert res.exit_code == 2 and "virtual time needs a simulated rig" in res.output
+
+
+# ---------------------------------------------------------------- hardening (tester issue: signals, missing
+# instruments, driver errors, stale answers, prompt, operator). The output is read from the simulated plant
+# (the amplifier's output stage as the twin integrates it), not from the session's own readings.
+THESIS_RIG = ROOT / "rigs" / "thesis-sim.toml"
+ZERO_V = 5.0  # one code of the 12-bit ADAM-4024 times the TREK gain: 0 V itself has no code (±2.44 V)
+SIGNALS = {signal.SIGINT: "interrupted by Ctrl-C", signal.SIGTERM: "terminated by SIGTERM",
+           signal.SIGHUP: "hang-up (SIGHUP", signal.SIGQUIT: "quit requested (SIGQUIT)"}
+
+
+def _rows(log: Path) -> list[list[str]]:
+    return [line.split("\t") for line in log.read_text(encoding="utf-8").splitlines()]
+
+
+def _plant_volts(sim, settle: float = 0.2) -> float:
+    """The amplifier output in the plant after ``settle`` more virtual seconds."""
+    sim.clock.advance(settle)
+    return float(sim.plant.observe().voltage[-1])
+
+
+def test_commands_of_an_absent_instrument_are_refused_and_nothing_changes(tmp_path: Path) -> None:
+    rig = load_rig(THESIS_RIG)  # amplifier and laser: no motor, no load cell
+    assert rig.motor is None and rig.load_cell is None
+    with ManualSession(rig, tmp_path / "s.log", virtual=True, echo=lambda _t: None) as s:
+        assert s.execute("voltage 3kV").status == "ok"
+        for line, what in [("move 5", "motor"), ("move 5 mm 10 mm/s", "motor"), ("jog -1 mm", "motor"),
+                           ("stop", "motor"), ("tare", "load cell"), ("zero-cell", "load cell")]:
+            out = s.execute(line)
+            assert (out.status, out.text) == ("refused", f"this rig has no {what}"), out
+        assert abs(_plant_volts(s._sim) - 3000) < 30  # the refusals neither zeroed nor changed the output
+        assert s.execute("read").status == "ok"  # the session goes on
+
+
+def test_commands_of_an_absent_amplifier_are_refused(tmp_path: Path) -> None:
+    base = load_rig(MOTOR_RIG)
+    rig = type(base).model_validate({**base.model_dump(), "amplifier": None})
+    with ManualSession(rig, tmp_path / "s.log", virtual=True, echo=lambda _t: None) as s:
+        for line in ("voltage 1kV", "ramp 1kV 1s", "zero"):
+            assert (s.execute(line).status, s.outcomes[-1].text) == ("refused", "this rig has no amplifier")
+        assert s.execute("move 10").status == "ok"
+
+
+def test_a_motor_drive_error_during_a_move_is_an_error_line_and_the_output_is_zeroed(tmp_path: Path) -> None:
+    from sim_devices.linmot_drive import ERR_MAX_POS_OVERSHOT
+
+    with ManualSession(load_rig(MOTOR_RIG), tmp_path / "s.log", virtual=True, echo=lambda _t: None) as s:
+        assert s.execute("voltage 2kV").status == "ok"
+        motor, twin = s._inst.motor, s._sim.twins["motor"]
+        move_to = motor.move_to
+
+        def failing_move(*args, **kwargs) -> None:  # the drive accepts the move, then faults
+            move_to(*args, **kwargs)
+            twin.inject_error(ERR_MAX_POS_OVERSHOT)
+        motor.move_to = failing_move
+        out = s.execute("move 30")
+        assert out.status == "error" and "motor: drive error" in out.text and "output zeroed" in out.text, out
+        assert abs(_plant_volts(s._sim)) < ZERO_V
+        assert s.execute("read").status == "ok"
+
+
+def _error_classes() -> list[type[Exception]]:
+    import drivers.errors
+
+    found = [c for c in vars(drivers.errors).values() if isinstance(c, type) and issubclass(c, Exception)]
+    assert len(found) == 7  # InstrumentError and its six subclasses (drivers/errors.py)
+    return found
+
+
+@pytest.mark.parametrize("exc_class", [*_error_classes(), AssertionError, TypeError, RuntimeError],
+                         ids=lambda c: c.__name__)
+def test_any_exception_in_a_command_is_one_line_and_the_session_goes_on(tmp_path: Path, exc_class) -> None:
+    from drivers.errors import InstrumentError, LimitError
+
+    with ManualSession(load_rig(THESIS_RIG), tmp_path / "s.log", virtual=True, echo=lambda _t: None) as s:
+        assert s.execute("voltage 2kV").status == "ok"
+        laser = s._inst.laser
+        read = laser.read
+
+        def fail():
+            raise exc_class("laser", "first line\nsecond line") if issubclass(exc_class, InstrumentError) \
+                else exc_class("first line\nsecond line")
+        laser.read = fail
+        out = s.execute("read")
+        laser.read = read
+        assert "\n" not in out.text and "second line" in out.text
+        if exc_class is LimitError:  # "nothing was sent": a refusal, the output stays
+            assert out.status == "refused"
+            assert abs(_plant_volts(s._sim) - 2000) < 30
+        else:
+            assert out.status == "error" and "output zeroed" in out.text, out
+            assert abs(_plant_volts(s._sim)) < ZERO_V
+        assert s.execute("voltage 1kV").status == "ok"
+        assert abs(_plant_volts(s._sim) - 1000) < 30
+    assert _rows(tmp_path / "s.log")[-1][2:4] == ["end", "session"]
+
+
+def test_escape_sequences_and_odd_lines_are_one_line_refusals(tmp_path: Path) -> None:
+    with ManualSession(load_rig(THESIS_RIG), tmp_path / "s.log", virtual=True, echo=lambda _t: None) as s:
+        for line in ("\x1b[A", "\x1b[B\x1b[A", "voltage\t3kV\x1b[D", "'unbalanced", "read extra words here"):
+            out = s.execute(line)
+            assert out.status == "refused" and "\x1b" not in out.text + out.command, out
+    for row in _rows(tmp_path / "s.log"):
+        assert len(row) == 5, row  # no tab or newline from a command broke the log's columns

@@ -17,13 +17,16 @@ Commands (one per line; ``#`` starts a comment; quantities as in files, plain nu
 Every set-point passes :meth:`bench.runtime.safety.Supervisor.check_setpoint` (voltage, field at the present stretch)
 or :meth:`~bench.runtime.safety.Supervisor.check_motor_setpoint` (travel, field at the new aperture) before it is
 sent; a refused command is not sent. Every reading passes the supervisor's sample checks; a reading beyond a
-limit (a trip) zeroes the output and stops the motor. Leaving the session (quit, end of script, error,
-Ctrl-C) puts every instrument in its safe state.
+limit (a trip) zeroes the output and stops the motor. A driver error of any kind, or an unexpected error in a
+command, is one ``error`` line (output zeroed, motor stopped) and the session goes on; a command whose
+instrument the rig lacks is refused (nothing sent). Leaving the session (quit, end of script, error, Ctrl-C)
+puts every instrument in its safe state.
 """
 
 from __future__ import annotations
 
 import contextlib
+import inspect
 import math
 import shlex
 import threading
@@ -38,7 +41,7 @@ from bench.rig import RigConfig
 from bench.runtime.instruments import Instruments, build_instruments
 from bench.runtime.safety import SafetyTrip, Supervisor
 from bench.units import to_si
-from drivers.errors import InstrumentError
+from drivers.errors import InstrumentError, InstrumentStateError, LimitError
 
 RAMP_HZ = 20.0
 DEFAULT_SPEED = 0.02  # m/s
@@ -186,32 +189,47 @@ class ManualSession:
         return self.outcomes
 
     def execute(self, line: str) -> Outcome:
-        """Run one command; log and return its outcome (refusals and trips are outcomes, not exceptions)."""
+        """Run one command; log and return its outcome (refusals, trips and errors are outcomes).
+
+        Whatever a command raises (a driver's error of any class included) becomes one line; only
+        KeyboardInterrupt and SystemExit pass."""
+        shown = _printable(line)
         try:
             words = _join_units(shlex.split(line))
+            if not words:
+                raise Refused("empty command")
             name, args = words[0].lower(), words[1:]
             handler = getattr(self, f"_cmd_{name.replace('-', '_')}", None)
             if handler is None:
-                raise Refused(f"unknown command {name!r} (help lists them)")
+                raise Refused(f"unknown command '{_printable(words[0])}' (help lists them)")
+            try:
+                inspect.signature(handler).bind(*args)
+            except TypeError:
+                raise Refused(f"wrong arguments for '{_printable(words[0])}' (help lists them)") from None
             with self._lock:
-                out = Outcome(line, "ok", handler(*args) or "")
-        except TypeError:
-            out = Outcome(line, "refused", f"wrong arguments for {line.split()[0]!r} (help lists them)")
-        except (Refused, ValueError) as exc:
-            out = Outcome(line, "refused", str(exc))
+                out = Outcome(shown, "ok", handler(*args) or "")
+        except (Refused, ValueError, LimitError) as exc:
+            out = Outcome(shown, "refused", str(exc))
         except SafetyTrip as exc:
-            out = Outcome(line, "trip", f"{exc.reason}; {self._make_safe()}")
+            out = Outcome(shown, "trip", f"{exc.reason}; {self._make_safe()}")
         except InstrumentError as exc:
-            out = Outcome(line, "error", f"{exc}; {self._make_safe()}")
+            out = Outcome(shown, "error", f"{exc}; {self._make_safe()}")
+        except Exception as exc:  # a program error must not end the session with the output on
+            out = Outcome(shown, "error", f"internal error: {type(exc).__name__}: {exc}; {self._make_safe()}")
+        out.text = _printable(" ".join(out.text.splitlines()))
         self.outcomes.append(out)
-        self._write(line, out.status, out.text)
+        self._write(out.command, out.status, out.text)
         self.echo(f"{out.status}: {out.text}" if out.text else out.status)
         return out
 
     def _make_safe(self) -> str:
-        assert self._inst is not None
         self._v_req = 0.0
-        errors = self._inst.safe_state()
+        if self._inst is None:
+            return "no instruments connected"
+        try:
+            errors = self._inst.safe_state()
+        except Exception as exc:  # safe_state reports driver errors; anything else is said, not raised
+            errors = [f"{type(exc).__name__}: {exc}"]
         return "output zeroed, motor stopped" + (f" ({'; '.join(errors)})" if errors else "")
 
     # each _cmd_* returns one line of text (what was done / read)
@@ -233,7 +251,9 @@ class ManualSession:
         return float(self._amp().set_voltage(volts))
 
     def _cmd_voltage(self, value: str) -> str:
-        self._v_req = to_si(value, "V")
+        target = to_si(value, "V")
+        self._amp()  # refused on a rig without one, before anything is sent or kept alive
+        self._v_req = target
         sent = self._checked_voltage(self._v_req)
         self._wait(SETTLE_S)
         return f"set-point {sent:.0f} V; " + self._cmd_read()
@@ -274,7 +294,8 @@ class ManualSession:
         return spec.lsdea.x_at_motor_zero_m + spec.lsdea.motor_sign * motor_position
 
     def _go(self, target: float, speed: float) -> str:
-        assert self._sup is not None and self.rig.motor is not None
+        motor = self._motor()  # refused on a rig without one
+        assert self._sup is not None and self.rig.motor is not None  # a motor driver comes from rig.motor
         speed = min(speed, self.rig.motor.max_velocity_m_per_s)
         if not speed > 0:
             raise Refused("speed must be positive")
@@ -283,7 +304,6 @@ class ManualSession:
                                            if self._inst and self._inst.amplifier else 0.0)
         except SafetyTrip as exc:
             raise Refused(f"{exc.reason}; not sent") from None
-        motor = self._motor()
         motor.move_to(target, speed, min(DEFAULT_ACCEL, self.rig.motor.max_acceleration_m_per_s2))
         deadline = self._clock() + 2.0 + abs(target - motor.read_position().value) / speed * 1.5
         while self._clock() < deadline:
@@ -291,7 +311,8 @@ class ManualSession:
             st = motor.status()
             self._sup.check_motor(st.position, self._aperture(st.position))
             if st.error:
-                raise InstrumentError(f"motor drive error {st.error_code:#06x} {st.error_text}".strip())
+                raise InstrumentStateError("motor", "drive error during the move: "
+                                           + (st.error_text or f"code {st.error_code:#06x}"))
             if st.in_target and not st.moving:
                 break
         else:
@@ -381,6 +402,12 @@ class ManualSession:
             raise Refused("wait DURATION: 0 … 86400 s")
         self._wait(seconds)
         return f"waited {seconds:g} s"
+
+
+def _printable(text: str) -> str:
+    """``text`` with every control character written as an escape (``\\x1b``): one line, safe in a tab-separated
+    log and on a terminal."""
+    return "".join(c if c.isprintable() else c.encode("unicode_escape").decode("ascii") for c in text)
 
 
 def _join_units(words: list[str]) -> list[str]:
