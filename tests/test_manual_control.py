@@ -192,3 +192,16 @@ def test_escape_sequences_and_odd_lines_are_one_line_refusals(tmp_path: Path) ->
             assert out.status == "refused" and "\x1b" not in out.text + out.command, out
     for row in _rows(tmp_path / "s.log"):
         assert len(row) == 5, row  # no tab or newline from a command broke the log's columns
+
+
+@pytest.mark.parametrize("asked", [3000, 5000, 1000, 0, 7000, -2000])
+def test_a_voltage_answer_names_the_set_point_just_sent(tmp_path: Path, asked: float) -> None:
+    """Virtual time: no time passes between commands, so the slew limit cut the first send to a few volts and
+    the answer named the previous set-point (tester report: ``voltage 3kV`` answered 2 V)."""
+    with ManualSession(load_rig(THESIS_RIG), tmp_path / "s.log", virtual=True, echo=lambda _t: None) as s:
+        assert s.execute("voltage 4kV").status == "ok"  # a previous set-point
+        out = s.execute(f"voltage {asked} V")
+        sent = float(re.search(r"set-point (-?\d+) V", out.text).group(1))  # type: ignore[union-attr]
+        assert abs(sent - asked) <= ZERO_V, out  # within one code of what was asked
+        assert abs(_volts(out.text) - asked) < 30, out  # and the monitor reading in the answer shows it
+        assert abs(float(s._sim.plant.observe().voltage[-1]) - asked) < 30

@@ -250,11 +250,27 @@ class ManualSession:
             raise Refused(f"{exc.reason}; not sent") from None
         return float(self._amp().set_voltage(volts))
 
+    def _reach(self, volts: float) -> float:
+        """Send ``volts``; if the amplifier's slew limit cut the step, re-send once the limit allows the whole step
+        (after |gap| / slew limit on the rig clock). Returns the set-point finally sent.
+
+        In virtual time no time passes between two commands, so a first send right after another set-point is cut
+        to almost nothing: without this the answer named the previous set-point."""
+        sent = self._checked_voltage(volts)
+        slew = self.rig.amplifier.slew_limit_V_per_s if self.rig.amplifier is not None else math.inf
+        need = abs(volts - sent) / slew
+        while need > 0:
+            nap = min(need, KEEPALIVE_S)
+            self._sleep(nap)
+            sent = self._checked_voltage(volts)
+            need = 0.0 if nap >= need else abs(volts - sent) / slew
+        return sent
+
     def _cmd_voltage(self, value: str) -> str:
         target = to_si(value, "V")
         self._amp()  # refused on a rig without one, before anything is sent or kept alive
         self._v_req = target
-        sent = self._checked_voltage(self._v_req)
+        sent = self._reach(target)
         self._wait(SETTLE_S)
         return f"set-point {sent:.0f} V; " + self._cmd_read()
 
