@@ -2,8 +2,12 @@
 
 from __future__ import annotations
 
+import json
+import os
 import re
 import signal
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -205,3 +209,135 @@ def test_a_voltage_answer_names_the_set_point_just_sent(tmp_path: Path, asked: f
         assert abs(sent - asked) <= ZERO_V, out  # within one code of what was asked
         assert abs(_volts(out.text) - asked) < 30, out  # and the monitor reading in the answer shows it
         assert abs(float(s._sim.plant.observe().voltage[-1]) - asked) < 30
+
+
+# ---------------------------------------------------------------- signals (in this process: interactive mode)
+def _session_with_signals(tmp_path: Path, lines: list[str], on_watch_line, interactive: bool = True):
+    """Run ``lines`` in a session with the stop-signal handlers; ``on_watch_line(n)`` after the n-th watch
+    reading. Returns the session, its log rows and the plant's output (after the session) and its history."""
+    rig = load_rig(THESIS_RIG)
+    seen: list[int] = []
+    history: list[tuple[float, float]] = []
+
+    def echo(text: str) -> None:
+        if text.startswith("t "):
+            seen.append(1)
+            on_watch_line(len(seen))
+
+    s = ManualSession(rig, tmp_path / "s.log", virtual=True, echo=echo)
+    with s.signal_handlers(interactive=interactive), s:
+        sim = s._sim
+        sim.plant.listeners.append(lambda b: history.extend(zip(b.t.tolist(), b.voltage.tolist(), strict=True)))
+        s.run_lines(lines, stop_on_trip=not interactive)
+    return s, _rows(tmp_path / "s.log"), _plant_volts(sim), history
+
+
+def _kill(*sigs: int):
+    def send(n: int) -> None:
+        if n == 1:
+            for sig in sigs:
+                os.kill(os.getpid(), sig)
+    return send
+
+
+def test_ctrl_c_ends_the_command_not_the_session(tmp_path: Path) -> None:
+    old = signal.getsignal(signal.SIGINT)
+    s, rows, after, _ = _session_with_signals(tmp_path, ["voltage 2kV", "watch 3600 0.5", "read", "wait 2", "read",
+                                                         "zero"], _kill(signal.SIGINT))
+    assert signal.getsignal(signal.SIGINT) is old  # handlers restored
+    assert [o.status for o in s.outcomes] == ["ok", "interrupted", "ok", "ok", "ok", "ok"]
+    assert "interrupted by Ctrl-C: command ended" in s.outcomes[1].text
+    assert len([r for r in rows if r[3] == "watch"]) == 1  # one reading, not 7200
+    assert abs(_volts(s.outcomes[4].text) - 2000) < 30  # output held through the interrupt and the wait
+    assert s.end_reason is None and rows[-1][2:5] == ["end", "session", "instruments safe and closed"]
+    assert abs(after) < ZERO_V
+
+
+def test_a_second_ctrl_c_ends_the_session_safely(tmp_path: Path) -> None:
+    s, rows, after, history = _session_with_signals(
+        tmp_path, ["voltage 3kV", "watch 3600 0.5", "read", "voltage 1kV"], _kill(signal.SIGINT, signal.SIGINT))
+    assert [o.command for o in s.outcomes] == ["voltage 3kV", "watch 3600 0.5"]  # nothing after the second
+    assert s.outcomes[1].status == "interrupted" and "the session ends" in s.outcomes[1].text
+    assert rows[-1][2:5] == ["end", "session", "interrupted by Ctrl-C; instruments safe and closed"]
+    assert abs(after) < ZERO_V
+    assert max(abs(v) for _, v in history) > 2900  # there was high voltage to remove
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT], ids=lambda s: s.name)
+def test_a_stop_signal_ends_an_interactive_session_through_the_exit_ramp(tmp_path: Path, sig: int) -> None:
+    s, rows, after, history = _session_with_signals(tmp_path, ["voltage 3kV", "watch 3600 0.5", "read"],
+                                                    _kill(sig))
+    assert [o.status for o in s.outcomes] == ["ok", "interrupted"]
+    assert rows[-2][2:4] == ["ramp", "session"] and "to 0 V over 0.25 s" in rows[-2][4]
+    assert rows[-1][2] == "end" and rows[-1][4].startswith(SIGNALS[sig])
+    assert abs(after) < ZERO_V
+    # ramped, not dropped: the plant passed through the middle of the range on the way down
+    assert any(1000 < v < 2000 for _, v in history)
+
+
+# ---------------------------------------------------------------- signals to a real `bench devices control`
+_OBSERVED_CLI = """
+import json, sys
+from bench.runtime import sim_rig
+from bench.cli import app
+
+trace = []
+start, stop = sim_rig.SimRig.start, sim_rig.SimRig.stop
+
+def observed_start(self):
+    self.plant.listeners.append(lambda b: trace.extend(zip(b.t.tolist(), b.voltage.tolist())))
+    return start(self)
+
+def observed_stop(self):  # the output once the session has made the rig safe, 0.2 s later on the rig clock
+    self.clock.advance(0.2)
+    self.plant.observe()
+    with open(sys.argv[1], "w") as f:
+        json.dump(trace[::10] + trace[-1:], f)
+    stop(self)
+
+sim_rig.SimRig.start, sim_rig.SimRig.stop = observed_start, observed_stop
+app(prog_name="bench", args=sys.argv[2:])
+"""
+
+
+def _signal_a_cli_session(tmp_path: Path, sig: int, busy: bool) -> tuple[int, list[list[str]], list[list[float]]]:
+    """`bench devices control` in a child process, commands piped in (script mode): 3 kV, then ``sig`` while a
+    long watch runs (``busy``) or while it waits for the next command."""
+    log, trace = tmp_path / "s.log", tmp_path / "trace.json"
+    proc = subprocess.Popen([sys.executable, "-c", _OBSERVED_CLI, str(trace), "devices", "control",
+                             str(THESIS_RIG), "--virtual-time", "--log", str(log)], cwd=ROOT,
+                            stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    assert proc.stdin is not None and proc.stdout is not None
+    try:
+        proc.stdin.write("voltage 3kV\n" + ("watch 3600 0.5\n" if busy else ""))
+        proc.stdin.flush()
+        wanted = "ok: set-point" if not busy else "t 0.80 s:"  # 3 kV answered; or the watch under way
+        for line in proc.stdout:
+            if wanted in line:
+                break
+        proc.send_signal(sig)
+        proc.communicate(timeout=60)  # stdin stays open: only the signal ends the session
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    return proc.returncode, _rows(log), json.loads(trace.read_text())
+
+
+@pytest.mark.parametrize("sig", list(SIGNALS), ids=lambda s: s.name)
+def test_a_signal_to_a_scripted_session_during_a_command_zeroes_the_output(tmp_path: Path, sig: int) -> None:
+    code, rows, trace = _signal_a_cli_session(tmp_path, sig, busy=True)
+    assert code == 1
+    assert max(abs(v) for _, v in trace) > 2900 and abs(trace[-1][1]) < ZERO_V
+    assert [(r[2], r[3]) for r in rows if r[3] not in ("connect", "watch")] == [
+        ("start", "session"), ("ok", "voltage 3kV"), ("interrupted", "watch 3600 0.5"),  # the watch ended,
+        ("ramp", "session"), ("end", "session")]  # then the exit ramp, then the end line
+    assert rows[-1][4].startswith(SIGNALS[sig])
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP], ids=lambda s: s.name)
+def test_a_signal_to_a_session_waiting_for_a_command_zeroes_the_output(tmp_path: Path, sig: int) -> None:
+    code, rows, trace = _signal_a_cli_session(tmp_path, sig, busy=False)
+    assert code == 1
+    assert max(abs(v) for _, v in trace) > 2900 and abs(trace[-1][1]) < ZERO_V
+    assert rows[-1][2] == "end" and rows[-1][4].startswith(SIGNALS[sig])
+

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Annotated
@@ -44,7 +45,11 @@ def devices_control(
     """Manual control under the safety supervisor: set or ramp the voltage, jog or move the motor, tare the
     load cell, watch every channel; every action is logged. Commands: see `help` in the session.
 
-    Exit status 0 if every command passed, 1 if one was refused, tripped a limit or failed.
+    Ctrl-C ends the command under way; a second Ctrl-C, Ctrl-C at the prompt, SIGTERM, SIGHUP or SIGQUIT end
+    the session: output ramped to 0 V, motor stopped, instruments safe.
+
+    Exit status 0 if every command passed, 1 if one was refused, tripped a limit or failed, or a signal ended
+    the session.
     """
     import sys
 
@@ -71,14 +76,18 @@ def devices_control(
             yield line
 
     def echo(text: str) -> None:
-        console.print(escape(text), highlight=False)
+        with contextlib.suppress(OSError):  # the terminal went away (SIGHUP): the log holds the whole account
+            console.print(escape(text), highlight=False)
 
-    with ManualSession(rig, path, virtual=virtual_time, echo=echo) as session:
+    session = ManualSession(rig, path, virtual=virtual_time, echo=echo)
+    with session.signal_handlers(interactive=interactive), session:
         session.run_lines(lines(), stop_on_trip=not interactive)
     bad = [o for o in session.outcomes if o.status != "ok"]
-    console.print(f"session log: {escape(str(path))} ({len(session.outcomes)} commands"
-                  + (f", {len(bad)} not done" if bad else "") + ")")
-    if bad:
+    with contextlib.suppress(OSError):
+        console.print((f"session ended: {session.end_reason}; " if session.end_reason else "")
+                      + f"session log: {escape(str(path))} ({len(session.outcomes)} commands"
+                      + (f", {len(bad)} not done" if bad else "") + ")")
+    if bad or session.end_reason:
         raise typer.Exit(1)
 
 def register(app: typer.Typer, devices: typer.Typer) -> None:
