@@ -211,6 +211,19 @@ def test_a_voltage_answer_names_the_set_point_just_sent(tmp_path: Path, asked: f
         assert abs(float(s._sim.plant.observe().voltage[-1]) - asked) < 30
 
 
+def test_the_operator_is_in_the_log_header(tmp_path: Path) -> None:
+    log = tmp_path / "s.log"
+    res = CliRunner().invoke(app, ["devices", "control", str(THESIS_RIG), "--virtual-time", "--log", str(log),
+                                   "--operator", "Ada Lovelace"], input="read\n")
+    assert res.exit_code == 0, res.output
+    rows = _rows(log)
+    assert rows[0][2:4] == ["start", "session"] and rows[0][4].endswith("operator Ada Lovelace")
+    assert rows[1][2:5] == ["operator", "session", "Ada Lovelace"]
+    bad = CliRunner().invoke(app, ["devices", "control", str(THESIS_RIG), "--virtual-time", "--log",
+                                   str(tmp_path / "b.log"), "--operator", "two\nlines"], input="read\n")
+    assert bad.exit_code == 2 and "--operator" in bad.output and not (tmp_path / "b.log").exists()
+
+
 # ---------------------------------------------------------------- signals (in this process: interactive mode)
 def _session_with_signals(tmp_path: Path, lines: list[str], on_watch_line, interactive: bool = True):
     """Run ``lines`` in a session with the stop-signal handlers; ``on_watch_line(n)`` after the n-th watch

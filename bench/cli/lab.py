@@ -41,6 +41,8 @@ def devices_control(
     = None,
     virtual_time: Annotated[bool, typer.Option("--virtual-time", help="Simulated rig only: waits and ramps take "
                                                "no wall time.")] = False,
+    operator_name: Annotated[str | None, typer.Option(
+        "--operator", help="Who runs the session; recorded in the session log's header.")] = None,
 ) -> None:
     """Manual control under the safety supervisor: set or ramp the voltage, jog or move the motor, tare the
     load cell, watch every channel; every action is logged. Commands: see `help` in the session.
@@ -53,9 +55,15 @@ def devices_control(
     """
     import sys
 
+    from bench.protocol.schema import MAX_OPERATOR, check_label
     from bench.rig import load_rig
     from bench.runtime.manual import HELP, ManualSession, session_log_name
 
+    if operator_name is not None:
+        try:
+            operator_name = check_label(operator_name, MAX_OPERATOR)
+        except ValueError as exc:
+            raise ValueError(f"--operator: {exc}") from None
     rig = load_rig(rig_file)
     path = log if log is not None else Path("runs") / session_log_name(rig)
     interactive = script is None and sys.stdin.isatty()
@@ -79,7 +87,7 @@ def devices_control(
         with contextlib.suppress(OSError):  # the terminal went away (SIGHUP): the log holds the whole account
             console.print(escape(text), highlight=False)
 
-    session = ManualSession(rig, path, virtual=virtual_time, echo=echo)
+    session = ManualSession(rig, path, virtual=virtual_time, echo=echo, operator=operator_name)
     with session.signal_handlers(interactive=interactive), session:
         session.run_lines(lines(), stop_on_trip=not interactive)
     bad = [o for o in session.outcomes if o.status != "ok"]

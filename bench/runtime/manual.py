@@ -95,6 +95,7 @@ class ManualSession:
     log_file: Path
     virtual: bool = False
     echo: Callable[[str], None] = print
+    operator: str | None = None  # who runs the session (in the log's header)
     outcomes: list[Outcome] = field(default_factory=list)
     end_reason: str | None = None  # the stop signal (or exception) that ended the session, if any
     _sim: Any = None
@@ -121,7 +122,10 @@ class ManualSession:
         self.log_file.parent.mkdir(parents=True, exist_ok=True)
         self._log = self.log_file.open("a", encoding="utf-8")
         self._write("session", "start", f"rig {self.rig.name} ({'simulated' if self.rig.simulated else 'real'}, "
-                    f"{'virtual' if self.virtual else 'wall'} clock)")
+                    f"{'virtual' if self.virtual else 'wall'} clock)"
+                    + (f", operator {self.operator}" if self.operator else ""))
+        if self.operator:
+            self._write("session", "operator", self.operator)
         try:
             self._connect()
         except BaseException:
