@@ -354,3 +354,48 @@ def test_a_signal_to_a_session_waiting_for_a_command_zeroes_the_output(tmp_path:
     assert max(abs(v) for _, v in trace) > 2900 and abs(trace[-1][1]) < ZERO_V
     assert rows[-1][2] == "end" and rows[-1][4].startswith(SIGNALS[sig])
 
+
+# ---------------------------------------------------------------- the interactive prompt, on a pseudo-terminal
+def _read_until(fd: int, wanted: str, seen: list[str], timeout: float = 60.0) -> None:
+    """Read the terminal until ``wanted`` has appeared once more than it had (``seen`` accumulates the text)."""
+    import select
+
+    count = "".join(seen).count(wanted)
+    while "".join(seen).count(wanted) <= count:
+        ready, _, _ = select.select([fd], [], [], timeout)
+        assert ready, f"no {wanted!r} on the terminal; so far: {''.join(seen)[-500:]!r}"
+        seen.append(os.read(fd, 4096).decode("utf-8", "replace"))
+
+
+def test_the_prompt_has_line_editing_and_a_history_file_in_home(tmp_path: Path) -> None:
+    pytest.importorskip("readline")
+    import pty
+
+    home, log = tmp_path / "home", tmp_path / "s.log"
+    home.mkdir()
+    (home / ".bench_history").write_text("wait 0.5\n", encoding="utf-8")  # an earlier session's last command
+    master, slave = pty.openpty()
+    env = {**os.environ, "HOME": str(home), "TERM": "xterm", "COLUMNS": "200"}
+    proc = subprocess.Popen([sys.executable, "-m", "bench", "devices", "control", str(THESIS_RIG),
+                             "--virtual-time", "--log", str(log)], cwd=ROOT, env=env,
+                            stdin=slave, stdout=slave, stderr=slave)
+    os.close(slave)
+    seen: list[str] = []
+    try:
+        _read_until(master, "bench> ", seen)
+        os.write(master, b"\x1b[A\r")  # ↑: the earlier session's command
+        _read_until(master, "waited 0.5 s", seen)
+        os.write(master, b"\x1b[A\x1b[D\x1b[D\x1b[D1\r")  # ↑ again, ← three times, "1": "wait 10.5"
+        _read_until(master, "waited 10.5 s", seen)
+        os.write(master, b"read\r")
+        _read_until(master, "ok: t ", seen)
+        os.write(master, b"\x04")  # Ctrl-D: end of input
+        assert proc.wait(timeout=60) == 0, "".join(seen)[-2000:]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        os.close(master)
+    commands = [(r[3], r[2]) for r in _rows(log) if r[3] not in ("session", "connect")]
+    assert commands == [("wait 0.5", "ok"), ("wait 10.5", "ok"), ("read", "ok")], commands
+    assert (home / ".bench_history").read_text(encoding="utf-8").splitlines()[-3:] == \
+        ["wait 0.5", "wait 10.5", "read"]

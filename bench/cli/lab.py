@@ -47,8 +47,9 @@ def devices_control(
     """Manual control under the safety supervisor: set or ramp the voltage, jog or move the motor, tare the
     load cell, watch every channel; every action is logged. Commands: see `help` in the session.
 
-    Ctrl-C ends the command under way; a second Ctrl-C, Ctrl-C at the prompt, SIGTERM, SIGHUP or SIGQUIT end
-    the session: output ramped to 0 V, motor stopped, instruments safe.
+    On a terminal the prompt has line editing and a history (~/.bench_history). Ctrl-C ends the command under
+    way; a second Ctrl-C, Ctrl-C at the prompt, SIGTERM, SIGHUP or SIGQUIT end the session: output ramped to
+    0 V, motor stopped, instruments safe.
 
     Exit status 0 if every command passed, 1 if one was refused, tripped a limit or failed, or a signal ended
     the session.
@@ -57,7 +58,7 @@ def devices_control(
 
     from bench.protocol.schema import MAX_OPERATOR, check_label
     from bench.rig import load_rig
-    from bench.runtime.manual import HELP, ManualSession, session_log_name
+    from bench.runtime.manual import HELP, ManualSession, prompt_lines, session_log_name
 
     if operator_name is not None:
         try:
@@ -71,17 +72,11 @@ def devices_control(
     def lines() -> Iterator[str]:
         if script is not None:
             yield from script.read_text(encoding="utf-8").splitlines()
-            return
-        if interactive:
+        elif interactive:
             console.print(HELP, markup=False, highlight=False)
-        while True:
-            if interactive:
-                sys.stdout.write("bench> ")
-                sys.stdout.flush()
-            line = sys.stdin.readline()
-            if not line:
-                return
-            yield line
+            yield from prompt_lines("bench> ")
+        else:
+            yield from iter(sys.stdin.readline, "")
 
     def echo(text: str) -> None:
         with contextlib.suppress(OSError):  # the terminal went away (SIGHUP): the log holds the whole account
@@ -97,6 +92,7 @@ def devices_control(
                       + (f", {len(bad)} not done" if bad else "") + ")")
     if bad or session.end_reason:
         raise typer.Exit(1)
+
 
 def register(app: typer.Typer, devices: typer.Typer) -> None:
     """Put export on ``app`` and control on the ``devices`` group."""

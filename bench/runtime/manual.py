@@ -31,6 +31,11 @@ ends the command under way (``watch``, ``wait``, ``ramp``, ``move``…): the mot
 the last set-point sent, and the prompt comes back; a second Ctrl-C during the same command, or a Ctrl-C at the
 prompt, ends the session. In script mode (``--script``, or commands piped in) Ctrl-C ends the session through
 the safe exit, as it did before (then by KeyboardInterrupt, which could cut the safe exit short).
+
+At a terminal prompt (:func:`prompt_lines`) lines can be edited and ↑/↓ recall earlier commands, through the
+stdlib :mod:`readline` where Python has it; the history is kept in ``~/.bench_history`` (the user's home folder,
+shared by all the user's sessions and lab folders). Anything that is not a command, an escape sequence
+included, is a one-line refusal.
 """
 
 from __future__ import annotations
@@ -63,6 +68,8 @@ SETTLE_S = 0.3  # after a voltage set-point: the monitors convert at 10 S/s (ADA
 EXIT_RAMP_STEPS = 10  # leaving the session: set-points from the last voltage to 0 V over shutdown_ramp_s
 EXIT_RAMP_FROM_V = 50.0  # below this |set-point| the exit zeroes at once (no ramp)
 STOP_POLL_S = 0.02  # exit ramp: longest sleep between two looks for a second stop request
+HISTORY_FILE = ".bench_history"  # in the user's home folder: what was typed at the interactive prompt
+HISTORY_LENGTH = 1000
 HELP = "\n".join(line[4:] for line in (__doc__ or "").splitlines() if line.startswith("    "))
 
 
@@ -322,6 +329,10 @@ class ManualSession:
                     break
         except SessionEnd:
             pass
+        finally:
+            close = getattr(it, "close", None)
+            if close is not None:  # a prompt saves its history now, not when collected
+                close()
         return self.outcomes
 
     def execute(self, line: str) -> Outcome:
@@ -597,6 +608,36 @@ def _is_number(text: str) -> bool:
     except ValueError:
         return False
     return True
+
+
+def prompt_lines(prompt: str, history: Path | None = None) -> Iterator[str]:
+    """Lines typed at a terminal prompt until end of input (Ctrl-D).
+
+    With the stdlib :mod:`readline` (imported here, so only for a terminal) the line can be edited and ↑/↓ walk
+    the history, kept in ``history`` (default ``~/.bench_history``, the last HISTORY_LENGTH lines)."""
+    try:
+        import readline
+    except ImportError:  # a Python without GNU readline / libedit: a plain prompt
+        rl = None
+    else:
+        rl = readline
+    path = history if history is not None else Path.home() / HISTORY_FILE
+    if rl is not None:
+        with contextlib.suppress(OSError):
+            rl.read_history_file(path)
+        rl.set_history_length(HISTORY_LENGTH)
+    try:
+        while True:
+            try:
+                line = input(prompt)
+            except EOFError:
+                print()
+                return
+            yield line
+    finally:
+        if rl is not None:
+            with contextlib.suppress(OSError):
+                rl.write_history_file(path)
 
 
 def session_log_name(rig: RigConfig) -> str:
