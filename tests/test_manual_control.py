@@ -2,9 +2,15 @@
 
 from __future__ import annotations
 
+import json
+import os
 import re
+import signal
+import subprocess
+import sys
 from pathlib import Path
 
+import pytest
 from typer.testing import CliRunner
 
 from bench.cli import app
@@ -86,3 +92,310 @@ def test_control_refuses_virtual_time_on_a_real_rig(tmp_path: Path) -> None:
     res = CliRunner().invoke(app, ["devices", "control", str(ROOT / "rigs" / "thesis-lab.toml"), "--virtual-time",
                                    "--log", str(tmp_path / "x.log")], input="read\n")
     assert res.exit_code == 2 and "virtual time needs a simulated rig" in res.output
+
+
+# ---------------------------------------------------------------- hardening (tester issue: signals, missing
+# instruments, driver errors, stale answers, prompt, operator). The output is read from the simulated plant
+# (the amplifier's output stage as the twin integrates it), not from the session's own readings.
+THESIS_RIG = ROOT / "rigs" / "thesis-sim.toml"
+ZERO_V = 5.0  # one code of the 12-bit ADAM-4024 times the TREK gain: 0 V itself has no code (±2.44 V)
+SIGNALS = {signal.SIGINT: "interrupted by Ctrl-C", signal.SIGTERM: "terminated by SIGTERM",
+           signal.SIGHUP: "hang-up (SIGHUP", signal.SIGQUIT: "quit requested (SIGQUIT)"}
+
+
+def _rows(log: Path) -> list[list[str]]:
+    return [line.split("\t") for line in log.read_text(encoding="utf-8").splitlines()]
+
+
+def _plant_volts(sim, settle: float = 0.2) -> float:
+    """The amplifier output in the plant after ``settle`` more virtual seconds."""
+    sim.clock.advance(settle)
+    return float(sim.plant.observe().voltage[-1])
+
+
+def test_commands_of_an_absent_instrument_are_refused_and_nothing_changes(tmp_path: Path) -> None:
+    rig = load_rig(THESIS_RIG)  # amplifier and laser: no motor, no load cell
+    assert rig.motor is None and rig.load_cell is None
+    with ManualSession(rig, tmp_path / "s.log", virtual=True, echo=lambda _t: None) as s:
+        assert s.execute("voltage 3kV").status == "ok"
+        for line, what in [("move 5", "motor"), ("move 5 mm 10 mm/s", "motor"), ("jog -1 mm", "motor"),
+                           ("stop", "motor"), ("tare", "load cell"), ("zero-cell", "load cell")]:
+            out = s.execute(line)
+            assert (out.status, out.text) == ("refused", f"this rig has no {what}"), out
+        assert abs(_plant_volts(s._sim) - 3000) < 30  # the refusals neither zeroed nor changed the output
+        assert s.execute("read").status == "ok"  # the session goes on
+
+
+def test_commands_of_an_absent_amplifier_are_refused(tmp_path: Path) -> None:
+    base = load_rig(MOTOR_RIG)
+    rig = type(base).model_validate({**base.model_dump(), "amplifier": None})
+    with ManualSession(rig, tmp_path / "s.log", virtual=True, echo=lambda _t: None) as s:
+        for line in ("voltage 1kV", "ramp 1kV 1s", "zero"):
+            assert (s.execute(line).status, s.outcomes[-1].text) == ("refused", "this rig has no amplifier")
+        assert s.execute("move 10").status == "ok"
+
+
+def test_a_motor_drive_error_during_a_move_is_an_error_line_and_the_output_is_zeroed(tmp_path: Path) -> None:
+    from sim_devices.linmot_drive import ERR_MAX_POS_OVERSHOT
+
+    with ManualSession(load_rig(MOTOR_RIG), tmp_path / "s.log", virtual=True, echo=lambda _t: None) as s:
+        assert s.execute("voltage 2kV").status == "ok"
+        motor, twin = s._inst.motor, s._sim.twins["motor"]
+        move_to = motor.move_to
+
+        def failing_move(*args, **kwargs) -> None:  # the drive accepts the move, then faults
+            move_to(*args, **kwargs)
+            twin.inject_error(ERR_MAX_POS_OVERSHOT)
+        motor.move_to = failing_move
+        out = s.execute("move 30")
+        assert out.status == "error" and "motor: drive error" in out.text and "output zeroed" in out.text, out
+        assert abs(_plant_volts(s._sim)) < ZERO_V
+        assert s.execute("read").status == "ok"
+
+
+def _error_classes() -> list[type[Exception]]:
+    import drivers.errors
+
+    found = [c for c in vars(drivers.errors).values() if isinstance(c, type) and issubclass(c, Exception)]
+    assert len(found) == 7  # InstrumentError and its six subclasses (drivers/errors.py)
+    return found
+
+
+@pytest.mark.parametrize("exc_class", [*_error_classes(), AssertionError, TypeError, RuntimeError],
+                         ids=lambda c: c.__name__)
+def test_any_exception_in_a_command_is_one_line_and_the_session_goes_on(tmp_path: Path, exc_class) -> None:
+    from drivers.errors import InstrumentError, LimitError
+
+    with ManualSession(load_rig(THESIS_RIG), tmp_path / "s.log", virtual=True, echo=lambda _t: None) as s:
+        assert s.execute("voltage 2kV").status == "ok"
+        laser = s._inst.laser
+        read = laser.read
+
+        def fail():
+            raise exc_class("laser", "first line\nsecond line") if issubclass(exc_class, InstrumentError) \
+                else exc_class("first line\nsecond line")
+        laser.read = fail
+        out = s.execute("read")
+        laser.read = read
+        assert "\n" not in out.text and "second line" in out.text
+        if exc_class is LimitError:  # "nothing was sent": a refusal, the output stays
+            assert out.status == "refused"
+            assert abs(_plant_volts(s._sim) - 2000) < 30
+        else:
+            assert out.status == "error" and "output zeroed" in out.text, out
+            assert abs(_plant_volts(s._sim)) < ZERO_V
+        assert s.execute("voltage 1kV").status == "ok"
+        assert abs(_plant_volts(s._sim) - 1000) < 30
+    assert _rows(tmp_path / "s.log")[-1][2:4] == ["end", "session"]
+
+
+def test_escape_sequences_and_odd_lines_are_one_line_refusals(tmp_path: Path) -> None:
+    with ManualSession(load_rig(THESIS_RIG), tmp_path / "s.log", virtual=True, echo=lambda _t: None) as s:
+        for line in ("\x1b[A", "\x1b[B\x1b[A", "voltage\t3kV\x1b[D", "'unbalanced", "read extra words here"):
+            out = s.execute(line)
+            assert out.status == "refused" and "\x1b" not in out.text + out.command, out
+    for row in _rows(tmp_path / "s.log"):
+        assert len(row) == 5, row  # no tab or newline from a command broke the log's columns
+
+
+@pytest.mark.parametrize("asked", [3000, 5000, 1000, 0, 7000, -2000])
+def test_a_voltage_answer_names_the_set_point_just_sent(tmp_path: Path, asked: float) -> None:
+    """Virtual time: no time passes between commands, so the slew limit cut the first send to a few volts and
+    the answer named the previous set-point (tester report: ``voltage 3kV`` answered 2 V)."""
+    with ManualSession(load_rig(THESIS_RIG), tmp_path / "s.log", virtual=True, echo=lambda _t: None) as s:
+        assert s.execute("voltage 4kV").status == "ok"  # a previous set-point
+        out = s.execute(f"voltage {asked} V")
+        sent = float(re.search(r"set-point (-?\d+) V", out.text).group(1))  # type: ignore[union-attr]
+        assert abs(sent - asked) <= ZERO_V, out  # within one code of what was asked
+        assert abs(_volts(out.text) - asked) < 30, out  # and the monitor reading in the answer shows it
+        assert abs(float(s._sim.plant.observe().voltage[-1]) - asked) < 30
+
+
+def test_the_operator_is_in_the_log_header(tmp_path: Path) -> None:
+    log = tmp_path / "s.log"
+    res = CliRunner().invoke(app, ["devices", "control", str(THESIS_RIG), "--virtual-time", "--log", str(log),
+                                   "--operator", "Ada Lovelace"], input="read\n")
+    assert res.exit_code == 0, res.output
+    rows = _rows(log)
+    assert rows[0][2:4] == ["start", "session"] and rows[0][4].endswith("operator Ada Lovelace")
+    assert rows[1][2:5] == ["operator", "session", "Ada Lovelace"]
+    bad = CliRunner().invoke(app, ["devices", "control", str(THESIS_RIG), "--virtual-time", "--log",
+                                   str(tmp_path / "b.log"), "--operator", "two\nlines"], input="read\n")
+    assert bad.exit_code == 2 and "--operator" in bad.output and not (tmp_path / "b.log").exists()
+
+
+# ---------------------------------------------------------------- signals (in this process: interactive mode)
+def _session_with_signals(tmp_path: Path, lines: list[str], on_watch_line, interactive: bool = True):
+    """Run ``lines`` in a session with the stop-signal handlers; ``on_watch_line(n)`` after the n-th watch
+    reading. Returns the session, its log rows and the plant's output (after the session) and its history."""
+    rig = load_rig(THESIS_RIG)
+    seen: list[int] = []
+    history: list[tuple[float, float]] = []
+
+    def echo(text: str) -> None:
+        if text.startswith("t "):
+            seen.append(1)
+            on_watch_line(len(seen))
+
+    s = ManualSession(rig, tmp_path / "s.log", virtual=True, echo=echo)
+    with s.signal_handlers(interactive=interactive), s:
+        sim = s._sim
+        sim.plant.listeners.append(lambda b: history.extend(zip(b.t.tolist(), b.voltage.tolist(), strict=True)))
+        s.run_lines(lines, stop_on_trip=not interactive)
+    return s, _rows(tmp_path / "s.log"), _plant_volts(sim), history
+
+
+def _kill(*sigs: int):
+    def send(n: int) -> None:
+        if n == 1:
+            for sig in sigs:
+                os.kill(os.getpid(), sig)
+    return send
+
+
+def test_ctrl_c_ends_the_command_not_the_session(tmp_path: Path) -> None:
+    old = signal.getsignal(signal.SIGINT)
+    s, rows, after, _ = _session_with_signals(tmp_path, ["voltage 2kV", "watch 3600 0.5", "read", "wait 2", "read",
+                                                         "zero"], _kill(signal.SIGINT))
+    assert signal.getsignal(signal.SIGINT) is old  # handlers restored
+    assert [o.status for o in s.outcomes] == ["ok", "interrupted", "ok", "ok", "ok", "ok"]
+    assert "interrupted by Ctrl-C: command ended" in s.outcomes[1].text
+    assert len([r for r in rows if r[3] == "watch"]) == 1  # one reading, not 7200
+    assert abs(_volts(s.outcomes[4].text) - 2000) < 30  # output held through the interrupt and the wait
+    assert s.end_reason is None and rows[-1][2:5] == ["end", "session", "instruments safe and closed"]
+    assert abs(after) < ZERO_V
+
+
+def test_a_second_ctrl_c_ends_the_session_safely(tmp_path: Path) -> None:
+    s, rows, after, history = _session_with_signals(
+        tmp_path, ["voltage 3kV", "watch 3600 0.5", "read", "voltage 1kV"], _kill(signal.SIGINT, signal.SIGINT))
+    assert [o.command for o in s.outcomes] == ["voltage 3kV", "watch 3600 0.5"]  # nothing after the second
+    assert s.outcomes[1].status == "interrupted" and "the session ends" in s.outcomes[1].text
+    assert rows[-1][2:5] == ["end", "session", "interrupted by Ctrl-C; instruments safe and closed"]
+    assert abs(after) < ZERO_V
+    assert max(abs(v) for _, v in history) > 2900  # there was high voltage to remove
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT], ids=lambda s: s.name)
+def test_a_stop_signal_ends_an_interactive_session_through_the_exit_ramp(tmp_path: Path, sig: int) -> None:
+    s, rows, after, history = _session_with_signals(tmp_path, ["voltage 3kV", "watch 3600 0.5", "read"],
+                                                    _kill(sig))
+    assert [o.status for o in s.outcomes] == ["ok", "interrupted"]
+    assert rows[-2][2:4] == ["ramp", "session"] and "to 0 V over 0.25 s" in rows[-2][4]
+    assert rows[-1][2] == "end" and rows[-1][4].startswith(SIGNALS[sig])
+    assert abs(after) < ZERO_V
+    # ramped, not dropped: the plant passed through the middle of the range on the way down
+    assert any(1000 < v < 2000 for _, v in history)
+
+
+# ---------------------------------------------------------------- signals to a real `bench devices control`
+_OBSERVED_CLI = """
+import json, sys
+from bench.runtime import sim_rig
+from bench.cli import app
+
+trace = []
+start, stop = sim_rig.SimRig.start, sim_rig.SimRig.stop
+
+def observed_start(self):
+    self.plant.listeners.append(lambda b: trace.extend(zip(b.t.tolist(), b.voltage.tolist())))
+    return start(self)
+
+def observed_stop(self):  # the output once the session has made the rig safe, 0.2 s later on the rig clock
+    self.clock.advance(0.2)
+    self.plant.observe()
+    with open(sys.argv[1], "w") as f:
+        json.dump(trace[::10] + trace[-1:], f)
+    stop(self)
+
+sim_rig.SimRig.start, sim_rig.SimRig.stop = observed_start, observed_stop
+app(prog_name="bench", args=sys.argv[2:])
+"""
+
+
+def _signal_a_cli_session(tmp_path: Path, sig: int, busy: bool) -> tuple[int, list[list[str]], list[list[float]]]:
+    """`bench devices control` in a child process, commands piped in (script mode): 3 kV, then ``sig`` while a
+    long watch runs (``busy``) or while it waits for the next command."""
+    log, trace = tmp_path / "s.log", tmp_path / "trace.json"
+    proc = subprocess.Popen([sys.executable, "-c", _OBSERVED_CLI, str(trace), "devices", "control",
+                             str(THESIS_RIG), "--virtual-time", "--log", str(log)], cwd=ROOT,
+                            stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    assert proc.stdin is not None and proc.stdout is not None
+    try:
+        proc.stdin.write("voltage 3kV\n" + ("watch 3600 0.5\n" if busy else ""))
+        proc.stdin.flush()
+        wanted = "ok: set-point" if not busy else "t 0.80 s:"  # 3 kV answered; or the watch under way
+        for line in proc.stdout:
+            if wanted in line:
+                break
+        proc.send_signal(sig)
+        proc.communicate(timeout=60)  # stdin stays open: only the signal ends the session
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    return proc.returncode, _rows(log), json.loads(trace.read_text())
+
+
+@pytest.mark.parametrize("sig", list(SIGNALS), ids=lambda s: s.name)
+def test_a_signal_to_a_scripted_session_during_a_command_zeroes_the_output(tmp_path: Path, sig: int) -> None:
+    code, rows, trace = _signal_a_cli_session(tmp_path, sig, busy=True)
+    assert code == 1
+    assert max(abs(v) for _, v in trace) > 2900 and abs(trace[-1][1]) < ZERO_V
+    assert [(r[2], r[3]) for r in rows if r[3] not in ("connect", "watch")] == [
+        ("start", "session"), ("ok", "voltage 3kV"), ("interrupted", "watch 3600 0.5"),  # the watch ended,
+        ("ramp", "session"), ("end", "session")]  # then the exit ramp, then the end line
+    assert rows[-1][4].startswith(SIGNALS[sig])
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP], ids=lambda s: s.name)
+def test_a_signal_to_a_session_waiting_for_a_command_zeroes_the_output(tmp_path: Path, sig: int) -> None:
+    code, rows, trace = _signal_a_cli_session(tmp_path, sig, busy=False)
+    assert code == 1
+    assert max(abs(v) for _, v in trace) > 2900 and abs(trace[-1][1]) < ZERO_V
+    assert rows[-1][2] == "end" and rows[-1][4].startswith(SIGNALS[sig])
+
+
+# ---------------------------------------------------------------- the interactive prompt, on a pseudo-terminal
+def _read_until(fd: int, wanted: str, seen: list[str], timeout: float = 60.0) -> None:
+    """Read the terminal until ``wanted`` has appeared once more than it had (``seen`` accumulates the text)."""
+    import select
+
+    count = "".join(seen).count(wanted)
+    while "".join(seen).count(wanted) <= count:
+        ready, _, _ = select.select([fd], [], [], timeout)
+        assert ready, f"no {wanted!r} on the terminal; so far: {''.join(seen)[-500:]!r}"
+        seen.append(os.read(fd, 4096).decode("utf-8", "replace"))
+
+
+def test_the_prompt_has_line_editing_and_a_history_file_in_home(tmp_path: Path) -> None:
+    pytest.importorskip("readline")
+    import pty
+
+    home, log = tmp_path / "home", tmp_path / "s.log"
+    home.mkdir()
+    (home / ".bench_history").write_text("wait 0.5\n", encoding="utf-8")  # an earlier session's last command
+    master, slave = pty.openpty()
+    env = {**os.environ, "HOME": str(home), "TERM": "xterm", "COLUMNS": "200"}
+    proc = subprocess.Popen([sys.executable, "-m", "bench", "devices", "control", str(THESIS_RIG),
+                             "--virtual-time", "--log", str(log)], cwd=ROOT, env=env,
+                            stdin=slave, stdout=slave, stderr=slave)
+    os.close(slave)
+    seen: list[str] = []
+    try:
+        _read_until(master, "bench> ", seen)
+        os.write(master, b"\x1b[A\r")  # ↑: the earlier session's command
+        _read_until(master, "waited 0.5 s", seen)
+        os.write(master, b"\x1b[A\x1b[D\x1b[D\x1b[D1\r")  # ↑ again, ← three times, "1": "wait 10.5"
+        _read_until(master, "waited 10.5 s", seen)
+        os.write(master, b"read\r")
+        _read_until(master, "ok: t ", seen)
+        os.write(master, b"\x04")  # Ctrl-D: end of input
+        assert proc.wait(timeout=60) == 0, "".join(seen)[-2000:]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        os.close(master)
+    commands = [(r[3], r[2]) for r in _rows(log) if r[3] not in ("session", "connect")]
+    assert commands == [("wait 0.5", "ok"), ("wait 10.5", "ok"), ("read", "ok")], commands
+    assert (home / ".bench_history").read_text(encoding="utf-8").splitlines()[-3:] == \
+        ["wait 0.5", "wait 10.5", "read"]

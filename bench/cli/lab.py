@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Annotated
@@ -40,17 +41,30 @@ def devices_control(
     = None,
     virtual_time: Annotated[bool, typer.Option("--virtual-time", help="Simulated rig only: waits and ramps take "
                                                "no wall time.")] = False,
+    operator_name: Annotated[str | None, typer.Option(
+        "--operator", help="Who runs the session; recorded in the session log's header.")] = None,
 ) -> None:
     """Manual control under the safety supervisor: set or ramp the voltage, jog or move the motor, tare the
     load cell, watch every channel; every action is logged. Commands: see `help` in the session.
 
-    Exit status 0 if every command passed, 1 if one was refused, tripped a limit or failed.
+    On a terminal the prompt has line editing and a history (~/.bench_history). Ctrl-C ends the command under
+    way; a second Ctrl-C, Ctrl-C at the prompt, SIGTERM, SIGHUP or SIGQUIT end the session: output ramped to
+    0 V, motor stopped, instruments safe.
+
+    Exit status 0 if every command passed, 1 if one was refused, tripped a limit or failed, or a signal ended
+    the session.
     """
     import sys
 
+    from bench.protocol.schema import MAX_OPERATOR, check_label
     from bench.rig import load_rig
-    from bench.runtime.manual import HELP, ManualSession, session_log_name
+    from bench.runtime.manual import HELP, ManualSession, prompt_lines, session_log_name
 
+    if operator_name is not None:
+        try:
+            operator_name = check_label(operator_name, MAX_OPERATOR)
+        except ValueError as exc:
+            raise ValueError(f"--operator: {exc}") from None
     rig = load_rig(rig_file)
     path = log if log is not None else Path("runs") / session_log_name(rig)
     interactive = script is None and sys.stdin.isatty()
@@ -58,28 +72,27 @@ def devices_control(
     def lines() -> Iterator[str]:
         if script is not None:
             yield from script.read_text(encoding="utf-8").splitlines()
-            return
-        if interactive:
+        elif interactive:
             console.print(HELP, markup=False, highlight=False)
-        while True:
-            if interactive:
-                sys.stdout.write("bench> ")
-                sys.stdout.flush()
-            line = sys.stdin.readline()
-            if not line:
-                return
-            yield line
+            yield from prompt_lines("bench> ")
+        else:
+            yield from iter(sys.stdin.readline, "")
 
     def echo(text: str) -> None:
-        console.print(escape(text), highlight=False)
+        with contextlib.suppress(OSError):  # the terminal went away (SIGHUP): the log holds the whole account
+            console.print(escape(text), highlight=False)
 
-    with ManualSession(rig, path, virtual=virtual_time, echo=echo) as session:
+    session = ManualSession(rig, path, virtual=virtual_time, echo=echo, operator=operator_name)
+    with session.signal_handlers(interactive=interactive), session:
         session.run_lines(lines(), stop_on_trip=not interactive)
     bad = [o for o in session.outcomes if o.status != "ok"]
-    console.print(f"session log: {escape(str(path))} ({len(session.outcomes)} commands"
-                  + (f", {len(bad)} not done" if bad else "") + ")")
-    if bad:
+    with contextlib.suppress(OSError):
+        console.print((f"session ended: {session.end_reason}; " if session.end_reason else "")
+                      + f"session log: {escape(str(path))} ({len(session.outcomes)} commands"
+                      + (f", {len(bad)} not done" if bad else "") + ")")
+    if bad or session.end_reason:
         raise typer.Exit(1)
+
 
 def register(app: typer.Typer, devices: typer.Typer) -> None:
     """Put export on ``app`` and control on the ``devices`` group."""

@@ -17,39 +17,72 @@ Commands (one per line; ``#`` starts a comment; quantities as in files, plain nu
 Every set-point passes :meth:`bench.runtime.safety.Supervisor.check_setpoint` (voltage, field at the present stretch)
 or :meth:`~bench.runtime.safety.Supervisor.check_motor_setpoint` (travel, field at the new aperture) before it is
 sent; a refused command is not sent. Every reading passes the supervisor's sample checks; a reading beyond a
-limit (a trip) zeroes the output and stops the motor. Leaving the session (quit, end of script, error,
-Ctrl-C) puts every instrument in its safe state.
+limit (a trip) zeroes the output and stops the motor. A driver error of any kind, or an unexpected error in a
+command, is one ``error`` line (output zeroed, motor stopped) and the session goes on; a command whose
+instrument the rig lacks is refused (nothing sent).
+
+Leaving the session (quit, end of input, error, a stop signal) ramps the output to 0 V over the rig's
+``shutdown_ramp_s`` (at once on a second stop signal), stops the motor, puts every instrument in its safe state
+and closes it; the log's last line is the ``end`` line, naming the signal if one ended the session.
+
+Signals (:meth:`ManualSession.signal_handlers`, installed by ``bench devices control``): SIGTERM, SIGHUP and
+SIGQUIT end the session through that safe exit, whatever it is doing. Ctrl-C (SIGINT) at an interactive prompt
+ends the command under way (``watch``, ``wait``, ``ramp``, ``move``…): the motor is stopped, the output held at
+the last set-point sent, and the prompt comes back; a second Ctrl-C during the same command, or a Ctrl-C at the
+prompt, ends the session. In script mode (``--script``, or commands piped in) Ctrl-C ends the session through
+the safe exit, as it did before (then by KeyboardInterrupt, which could cut the safe exit short).
+
+At a terminal prompt (:func:`prompt_lines`) lines can be edited and ↑/↓ recall earlier commands, through the
+stdlib :mod:`readline` where Python has it; the history is kept in ``~/.bench_history`` (the user's home folder,
+shared by all the user's sessions and lab folders). Anything that is not a command, an escape sequence
+included, is a one-line refusal.
 """
 
 from __future__ import annotations
 
 import contextlib
+import inspect
 import math
 import shlex
+import signal
 import threading
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
 from typing import Any, TextIO
 
 from bench.rig import RigConfig
+from bench.runtime.engine import STOP_SIGNALS
 from bench.runtime.instruments import Instruments, build_instruments
 from bench.runtime.safety import SafetyTrip, Supervisor
 from bench.units import to_si
-from drivers.errors import InstrumentError
+from drivers.errors import InstrumentError, InstrumentStateError, LimitError, OperationCancelledError
 
 RAMP_HZ = 20.0
 DEFAULT_SPEED = 0.02  # m/s
 DEFAULT_ACCEL = 0.5  # m/s²
 KEEPALIVE_S = 0.25  # set-point refresh while holding (feeds the analog module's communication watchdog)
 SETTLE_S = 0.3  # after a voltage set-point: the monitors convert at 10 S/s (ADAM-4017+)
+EXIT_RAMP_STEPS = 10  # leaving the session: set-points from the last voltage to 0 V over shutdown_ramp_s
+EXIT_RAMP_FROM_V = 50.0  # below this |set-point| the exit zeroes at once (no ramp)
+STOP_POLL_S = 0.02  # exit ramp: longest sleep between two looks for a second stop request
+HISTORY_FILE = ".bench_history"  # in the user's home folder: what was typed at the interactive prompt
+HISTORY_LENGTH = 1000
 HELP = "\n".join(line[4:] for line in (__doc__ or "").splitlines() if line.startswith("    "))
 
 
 class Refused(Exception):  # noqa: N818 - a refusal is an outcome, not a program error
     """A command the supervisor (or its syntax) does not allow; nothing was sent."""
+
+
+class Interrupted(Exception):  # noqa: N818 - control flow, not a failure
+    """A stop request (Ctrl-C, a stop signal) ended the command under way."""
+
+
+class SessionEnd(Exception):  # noqa: N818 - control flow, not a failure
+    """Raised by a signal handler while the session waits for the next command: leave the prompt now."""
 
 
 @dataclass
@@ -69,7 +102,9 @@ class ManualSession:
     log_file: Path
     virtual: bool = False
     echo: Callable[[str], None] = print
+    operator: str | None = None  # who runs the session (in the log's header)
     outcomes: list[Outcome] = field(default_factory=list)
+    end_reason: str | None = None  # the stop signal (or exception) that ended the session, if any
     _sim: Any = None
     _inst: Instruments | None = None
     _sup: Supervisor | None = None
@@ -81,13 +116,23 @@ class ManualSession:
     _lock: threading.RLock = field(default_factory=threading.RLock)
     _stop: threading.Event = field(default_factory=threading.Event)
     _keepalive: threading.Thread | None = None
+    # stop requests (signal handlers set these and cancel the rig's CancelToken; nothing more)
+    _interactive: bool = False  # Ctrl-C ends the command under way, not the session
+    _busy: bool = False  # a command is under way
+    _idle: bool = False  # waiting for the next command (a stop signal then leaves the wait at once)
+    _ending: bool = False  # leaving the session: making the rig safe
+    _interrupt: str | None = None  # Ctrl-C: end the command under way
+    _urgent: threading.Event = field(default_factory=threading.Event)  # second stop request: 0 V at once
 
     # ------------------------------------------------------------ life cycle
     def __enter__(self) -> ManualSession:
         self.log_file.parent.mkdir(parents=True, exist_ok=True)
         self._log = self.log_file.open("a", encoding="utf-8")
         self._write("session", "start", f"rig {self.rig.name} ({'simulated' if self.rig.simulated else 'real'}, "
-                    f"{'virtual' if self.virtual else 'wall'} clock)")
+                    f"{'virtual' if self.virtual else 'wall'} clock)"
+                    + (f", operator {self.operator}" if self.operator else ""))
+        if self.operator:
+            self._write("session", "operator", self.operator)
         try:
             self._connect()
         except BaseException:
@@ -138,16 +183,23 @@ class ManualSession:
         """Let ``seconds`` pass on the rig clock, re-sending the set-point every KEEPALIVE_S."""
         end = self._clock() + seconds
         while (left := end - self._clock()) > 0:
+            self._check_stop()
             self._sleep(min(left, KEEPALIVE_S))
             if self._v_req != 0.0 and self._inst is not None and self._inst.amplifier is not None:
                 self._checked_voltage(self._v_req)
+        self._check_stop()
 
-    def __exit__(self, *exc: object) -> None:
+    def __exit__(self, exc_type: type[BaseException] | None, *_exc: object) -> None:
+        self._ending = True
+        if self.end_reason is None and exc_type is not None and exc_type is not SessionEnd:
+            self.end_reason = f"ended by {exc_type.__name__}"
         self._stop.set()
         if self._keepalive is not None:
             self._keepalive.join(timeout=2.0)
         errors: list[str] = []
         if self._inst is not None:
+            self._inst.cancel.clear()  # the safe exit's own commands must go out
+            errors += self._ramp_down()
             errors += self._inst.safe_state()
             errors += self._inst.close()
             self._inst = None
@@ -155,10 +207,93 @@ class ManualSession:
             self._sim.stop()
             self._sim = None
         if self._log is not None:
-            self._write("session", "end", "instruments safe and closed" + (f"; {'; '.join(errors)}" if errors
-                                                                            else ""))
+            self._write("session", "end", (f"{self.end_reason}; " if self.end_reason else "")
+                        + "instruments safe and closed" + (f"; {'; '.join(errors)}" if errors else ""))
             self._log.close()
             self._log = None
+
+    def _ramp_down(self) -> list[str]:
+        """Output from its set-point to 0 V over the rig's ``shutdown_ramp_s`` (cut short by a second stop
+        request); the caller then commands 0 V at once. Returns the errors met."""
+        amp = self._inst.amplifier if self._inst is not None else None
+        v0 = float(amp.commanded) if amp is not None else 0.0
+        if amp is None or abs(v0) < EXIT_RAMP_FROM_V:
+            return []
+        if self._urgent.is_set():
+            self._write("session", "ramp", f"second stop request: {v0:.0f} V to 0 V at once")
+            return []
+        ramp = self.rig.limits.shutdown_ramp_s
+        self._write("session", "ramp", f"from {v0:.0f} V to 0 V over {ramp:g} s")
+        t0 = self._clock()
+        try:
+            for k in range(1, EXIT_RAMP_STEPS + 1):
+                until = t0 + ramp * k / EXIT_RAMP_STEPS
+                while (left := until - self._clock()) > 0 and not self._urgent.is_set():
+                    self._sleep(min(left, STOP_POLL_S))
+                if self._urgent.is_set():
+                    self._write("session", "ramp", f"second stop request: {amp.commanded:.0f} V to 0 V at once")
+                    break
+                amp.set_voltage(v0 * (1 - k / EXIT_RAMP_STEPS))
+        except InstrumentError as exc:
+            return [f"voltage ramp-down failed: {exc}"]
+        return []
+
+    # ------------------------------------------------------------ stop requests
+    @contextlib.contextmanager
+    def signal_handlers(self, interactive: bool = False) -> Iterator[None]:
+        """Within: SIGINT/SIGTERM/SIGHUP/SIGQUIT request a stop (module docstring); the old handlers after.
+
+        Enter it before the session and leave it after, so that a signal during the safe exit only cuts the
+        exit ramp short. Main thread only (elsewhere it installs nothing)."""
+        self._interactive = interactive
+        old: list[tuple[signal.Signals, Any]] = []
+        if threading.current_thread() is threading.main_thread():
+            for sig, text in STOP_SIGNALS.items():
+                old.append((sig, signal.signal(sig, lambda _s, _f, sig=sig, text=text: self._on_signal(sig, text))))
+        try:
+            yield
+        finally:
+            for sig, handler in old:
+                signal.signal(sig, handler)
+
+    def _on_signal(self, sig: int, reason: str) -> None:
+        """A stop signal: flags, the rig's cancel token, and (at the prompt) leave the prompt; nothing more."""
+        if self._ending:  # already making the rig safe: a further request cuts the exit ramp short
+            self._urgent.set()
+            return
+        if (sig == signal.SIGINT and self._interactive and self._busy and self._interrupt is None
+                and self.end_reason is None):
+            self._interrupt = reason  # end the command, not the session
+        elif self.end_reason is None:
+            self.end_reason = reason
+        else:
+            self._urgent.set()
+        if self._inst is not None:
+            self._inst.cancel.cancel(reason)
+        if self._idle:
+            self._idle = False
+            raise SessionEnd(reason)
+
+    def _check_stop(self) -> None:
+        if self.end_reason is not None or self._interrupt is not None:
+            raise Interrupted(self.end_reason or self._interrupt)
+
+    def _after_interrupt(self) -> str:
+        """The command a Ctrl-C ended: traffic let through again, motor stopped, output held; what was done."""
+        assert self._inst is not None
+        reason, self._interrupt = self._interrupt, None
+        self._inst.cancel.clear()
+        notes = []
+        if self._inst.motor is not None:
+            try:
+                self._inst.motor.stop()
+                notes.append("motor stopped")
+            except InstrumentError as exc:
+                notes.append(f"motor stop failed: {exc}")
+        if self._inst.amplifier is not None:
+            self._v_req = float(self._inst.amplifier.commanded)  # held (and kept alive) at the last set-point sent
+            notes.append(f"output held at {self._v_req:.0f} V")
+        return f"{reason}: command ended" + "".join(f"; {n}" for n in notes)
 
     # ------------------------------------------------------------ log
     def _now(self) -> float:
@@ -173,45 +308,91 @@ class ManualSession:
 
     # ------------------------------------------------------------ commands
     def run_lines(self, lines: Iterable[str], stop_on_trip: bool = True) -> list[Outcome]:
-        """Execute commands until ``quit`` or the end; after a trip, stop if ``stop_on_trip``."""
-        for raw in lines:
-            line = raw.split("#", 1)[0].strip()
-            if not line:
-                continue
-            if line in ("quit", "exit"):
-                break
-            out = self.execute(line)
-            if out.status == "trip" and stop_on_trip:
-                break
+        """Execute commands until ``quit``, the end or a stop signal; after a trip, stop if ``stop_on_trip``."""
+        it = iter(lines)
+        try:
+            while self.end_reason is None:
+                try:
+                    self._idle = True
+                    raw = next(it, None)
+                finally:
+                    self._idle = False
+                if raw is None:
+                    break
+                line = raw.split("#", 1)[0].strip()
+                if not line or self.end_reason is not None:
+                    continue
+                if line in ("quit", "exit"):
+                    break
+                out = self.execute(line)
+                if out.status == "trip" and stop_on_trip:
+                    break
+        except SessionEnd:
+            pass
+        finally:
+            close = getattr(it, "close", None)
+            if close is not None:  # a prompt saves its history now, not when collected
+                close()
         return self.outcomes
 
     def execute(self, line: str) -> Outcome:
-        """Run one command; log and return its outcome (refusals and trips are outcomes, not exceptions)."""
+        """Run one command; log and return its outcome (refusals, trips, errors and stops are outcomes).
+
+        Whatever a command raises (a driver's error of any class included) becomes one line; only
+        KeyboardInterrupt and SystemExit pass."""
+        shown = _printable(line)
         try:
             words = _join_units(shlex.split(line))
+            if not words:
+                raise Refused("empty command")
             name, args = words[0].lower(), words[1:]
             handler = getattr(self, f"_cmd_{name.replace('-', '_')}", None)
             if handler is None:
-                raise Refused(f"unknown command {name!r} (help lists them)")
+                raise Refused(f"unknown command '{_printable(words[0])}' (help lists them)")
+            try:
+                inspect.signature(handler).bind(*args)
+            except TypeError:
+                raise Refused(f"wrong arguments for '{_printable(words[0])}' (help lists them)") from None
             with self._lock:
-                out = Outcome(line, "ok", handler(*args) or "")
-        except TypeError:
-            out = Outcome(line, "refused", f"wrong arguments for {line.split()[0]!r} (help lists them)")
-        except (Refused, ValueError) as exc:
-            out = Outcome(line, "refused", str(exc))
+                self._busy = True
+                try:
+                    text = handler(*args) or ""
+                finally:
+                    self._busy = False
+            out = Outcome(shown, "ok", text)
+        except (Interrupted, OperationCancelledError) as exc:
+            if self.end_reason is not None:
+                out = Outcome(shown, "interrupted", f"{self.end_reason}: the session ends")
+            elif self._interrupt is not None:
+                out = Outcome(shown, "interrupted", self._after_interrupt())
+            else:  # a cancelled wait nobody asked for
+                out = Outcome(shown, "error", f"{exc}; {self._make_safe()}")
+        except (Refused, ValueError, LimitError) as exc:
+            out = Outcome(shown, "refused", str(exc))
         except SafetyTrip as exc:
-            out = Outcome(line, "trip", f"{exc.reason}; {self._make_safe()}")
+            out = Outcome(shown, "trip", f"{exc.reason}; {self._make_safe()}")
         except InstrumentError as exc:
-            out = Outcome(line, "error", f"{exc}; {self._make_safe()}")
+            out = Outcome(shown, "error", f"{exc}; {self._make_safe()}")
+        except Exception as exc:  # a program error must not end the session with the output on
+            out = Outcome(shown, "error", f"internal error: {type(exc).__name__}: {exc}; {self._make_safe()}")
+        if self._interrupt is not None and self.end_reason is None and self._inst is not None:
+            self._interrupt = None  # a Ctrl-C as the command ended: nothing left to interrupt
+            self._inst.cancel.clear()
+        out.text = _printable(" ".join(out.text.splitlines()))
         self.outcomes.append(out)
-        self._write(line, out.status, out.text)
+        self._write(out.command, out.status, out.text)
         self.echo(f"{out.status}: {out.text}" if out.text else out.status)
         return out
 
     def _make_safe(self) -> str:
-        assert self._inst is not None
         self._v_req = 0.0
-        errors = self._inst.safe_state()
+        if self._inst is None:
+            return "no instruments connected"
+        self._inst.cancel.clear()  # after a cancelled wait the safe-state commands must still go out
+        try:
+            errors = self._inst.safe_state()
+        except Exception as exc:  # safe_state reports driver errors; anything else is said, not raised
+            errors = [f"{type(exc).__name__}: {exc}"]
         return "output zeroed, motor stopped" + (f" ({'; '.join(errors)})" if errors else "")
 
     # each _cmd_* returns one line of text (what was done / read)
@@ -232,9 +413,28 @@ class ManualSession:
             raise Refused(f"{exc.reason}; not sent") from None
         return float(self._amp().set_voltage(volts))
 
+    def _reach(self, volts: float) -> float:
+        """Send ``volts``; if the amplifier's slew limit cut the step, re-send once the limit allows the whole step
+        (after |gap| / slew limit on the rig clock). Returns the set-point finally sent.
+
+        In virtual time no time passes between two commands, so a first send right after another set-point is cut
+        to almost nothing: without this the answer named the previous set-point."""
+        sent = self._checked_voltage(volts)
+        slew = self.rig.amplifier.slew_limit_V_per_s if self.rig.amplifier is not None else math.inf
+        need = abs(volts - sent) / slew
+        while need > 0:
+            nap = min(need, KEEPALIVE_S)
+            self._sleep(nap)
+            self._check_stop()
+            sent = self._checked_voltage(volts)
+            need = 0.0 if nap >= need else abs(volts - sent) / slew
+        return sent
+
     def _cmd_voltage(self, value: str) -> str:
-        self._v_req = to_si(value, "V")
-        sent = self._checked_voltage(self._v_req)
+        target = to_si(value, "V")
+        self._amp()  # refused on a rig without one, before anything is sent or kept alive
+        self._v_req = target
+        sent = self._reach(target)
         self._wait(SETTLE_S)
         return f"set-point {sent:.0f} V; " + self._cmd_read()
 
@@ -251,6 +451,7 @@ class ManualSession:
         n = max(1, math.ceil(seconds * RAMP_HZ))
         t_begin = self._clock()
         for k in range(1, n + 1):
+            self._check_stop()
             self._v_req = start + (target - start) * k / n
             self._checked_voltage(self._v_req)
             self._sleep(max(0.0, t_begin + k * seconds / n - self._clock()))
@@ -274,7 +475,8 @@ class ManualSession:
         return spec.lsdea.x_at_motor_zero_m + spec.lsdea.motor_sign * motor_position
 
     def _go(self, target: float, speed: float) -> str:
-        assert self._sup is not None and self.rig.motor is not None
+        motor = self._motor()  # refused on a rig without one
+        assert self._sup is not None and self.rig.motor is not None  # a motor driver comes from rig.motor
         speed = min(speed, self.rig.motor.max_velocity_m_per_s)
         if not speed > 0:
             raise Refused("speed must be positive")
@@ -283,7 +485,6 @@ class ManualSession:
                                            if self._inst and self._inst.amplifier else 0.0)
         except SafetyTrip as exc:
             raise Refused(f"{exc.reason}; not sent") from None
-        motor = self._motor()
         motor.move_to(target, speed, min(DEFAULT_ACCEL, self.rig.motor.max_acceleration_m_per_s2))
         deadline = self._clock() + 2.0 + abs(target - motor.read_position().value) / speed * 1.5
         while self._clock() < deadline:
@@ -291,7 +492,8 @@ class ManualSession:
             st = motor.status()
             self._sup.check_motor(st.position, self._aperture(st.position))
             if st.error:
-                raise InstrumentError(f"motor drive error {st.error_code:#06x} {st.error_text}".strip())
+                raise InstrumentStateError("motor", "drive error during the move: "
+                                           + (st.error_text or f"code {st.error_code:#06x}"))
             if st.in_target and not st.moving:
                 break
         else:
@@ -383,6 +585,12 @@ class ManualSession:
         return f"waited {seconds:g} s"
 
 
+def _printable(text: str) -> str:
+    """``text`` with every control character written as an escape (``\\x1b``): one line, safe in a tab-separated
+    log and on a terminal."""
+    return "".join(c if c.isprintable() else c.encode("unicode_escape").decode("ascii") for c in text)
+
+
 def _join_units(words: list[str]) -> list[str]:
     """``["jog", "-5", "mm"]`` → ``["jog", "-5 mm"]``: a unit after a number belongs to it."""
     out: list[str] = []
@@ -400,6 +608,36 @@ def _is_number(text: str) -> bool:
     except ValueError:
         return False
     return True
+
+
+def prompt_lines(prompt: str, history: Path | None = None) -> Iterator[str]:
+    """Lines typed at a terminal prompt until end of input (Ctrl-D).
+
+    With the stdlib :mod:`readline` (imported here, so only for a terminal) the line can be edited and ↑/↓ walk
+    the history, kept in ``history`` (default ``~/.bench_history``, the last HISTORY_LENGTH lines)."""
+    try:
+        import readline
+    except ImportError:  # a Python without GNU readline / libedit: a plain prompt
+        rl = None
+    else:
+        rl = readline
+    path = history if history is not None else Path.home() / HISTORY_FILE
+    if rl is not None:
+        with contextlib.suppress(OSError):
+            rl.read_history_file(path)
+        rl.set_history_length(HISTORY_LENGTH)
+    try:
+        while True:
+            try:
+                line = input(prompt)
+            except EOFError:
+                print()
+                return
+            yield line
+    finally:
+        if rl is not None:
+            with contextlib.suppress(OSError):
+                rl.write_history_file(path)
 
 
 def session_log_name(rig: RigConfig) -> str:
