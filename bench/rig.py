@@ -347,7 +347,7 @@ class RigConfig(_Strict):
 
     def _within_capability(self) -> None:
         """Every limit within what the instrument can do and what its measuring channel can report: a trip level
-        it cannot reach would never fire (the README's limits table says what "never" means for each)."""
+        it cannot reach would never fire (tests/test_rig_limits.py: what "never" means for each limit)."""
         if self.amplifier is not None:
             self._amplifier_limits(self.amplifier)
         self._force_limits()
@@ -458,10 +458,10 @@ class RigFileError(ValueError):
 
 def _first_error(path: Path, exc: ValidationError) -> str:
     err = exc.errors()[0]
-    loc = ".".join(str(x) for x in err["loc"]) or "(top level)"
+    loc = ".".join(str(x) for x in err["loc"])
     msg = err["msg"].removeprefix("Value error, ")
     more = f" (and {exc.error_count() - 1} more)" if exc.error_count() > 1 else ""
-    return f"rig file {path}: {loc}: {msg}{more}"
+    return f"rig file {path}: {loc + ': ' if loc else ''}{msg}{more}"  # a whole-rig check names its fields itself
 
 
 def load_rig(path: str | Path) -> RigConfig:
