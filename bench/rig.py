@@ -12,6 +12,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any, Literal
 
+import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from bench.core.clock import Clock
@@ -25,6 +26,17 @@ STANDARD_GRAVITY_M_PER_S2 = 9.80665  # CGPM 1901 (the load cell's kg → N)
 # (assumed; the LK-G5000 figure is the largest count the 6-digit setting carries). Set storage_points to the
 # controller's figure on a real rig.
 LKG_STORAGE_POINTS = {"LK-G3000": 65_536, "LK-G5000": 999_999}
+# Analog inputs: the TREK monitors (ADAM-4017+ or T7 AIN) and the DAQ's load-cell input are read on the ±10 V range
+# (drivers.adam.RawScale clips to ±10 V; bench.runtime.hardware_timed streams every AIN at range 10). A channel
+# reads at most this, so a trip level at or above what it represents can never fire.
+AIN_FULL_SCALE_V = 10.0
+# The supervisor's output over-voltage trip (bench.runtime.safety.Supervisor.check_monitors): monitored |V| above
+# factor × voltage limit + margin. Mirrored here so the rig can check the monitor channel reaches it
+# (tests/test_rig_limits.py checks the supervisor against these figures).
+MONITOR_TRIP_FACTOR = 1.02
+MONITOR_TRIP_MARGIN_V = 50.0
+# LinRS position registers: int32 counts of 0.1 µm (drivers/linmot.py), so a drive reports at most ±214.7 m.
+LINRS_POSITION_SPAN_M = (2**31 - 1) * 1e-7
 
 
 class _Strict(BaseModel):
@@ -106,6 +118,9 @@ class MotorConfig(_Strict):
         (lo, hi), (s_lo, s_hi) = self.travel_m, self.stroke_m
         if not s_lo < s_hi:
             raise ValueError(f"stroke_m must be increasing, got {list(self.stroke_m)}")
+        if max(abs(s_lo), abs(s_hi)) > LINRS_POSITION_SPAN_M:
+            raise ValueError(f"stroke_m {list(self.stroke_m)} m lies beyond the ±{LINRS_POSITION_SPAN_M:.1f} m a LinRS "
+                             "drive reports (int32 of 0.1 µm): travel limits there could never fire")
         if lo < s_lo or hi > s_hi:
             raise ValueError(f"travel_m [{lo:g}, {hi:g}] m lies outside the drive's stroke_m [{s_lo:g}, {s_hi:g}] m")
         return self
@@ -265,6 +280,8 @@ class DaqConfig(_Strict):
     force_ain: int | None = Field(None, ge=0, le=13, description="load-cell bridge amplifier output")
     force_N_per_V: float = Field(1.0, gt=0, le=1e4)
     force_offset_N: float = Field(0.0, ge=-1e4, le=1e4)
+    force_capacity_N: float | None = Field(None, gt=0, le=1e5, description="the load cell's rated capacity [N] "
+                                           "(limits.max_force_N must not exceed it)")
     laser_ain: int | None = Field(None, ge=0, le=13, description="laser controller's analog output")
     laser_m_per_V: float = Field(0.004, gt=0, le=1.0, description="laser head reading [m] per volt")
     laser_offset_m: float = Field(0.0, ge=-1.0, le=1.0, description="laser head reading at 0 V [m]")
@@ -283,6 +300,13 @@ class DaqConfig(_Strict):
             raise ValueError(f"daq: the conditioning stage cannot produce 0 V at the amplifier input "
                              f"(DAC {zero:.3g} V needed, the DAC spans 0–5 V)")
         return self
+
+    def force_span(self) -> float | None:
+        """Largest |force| [N] the load-cell input reports in both directions (tension and compression) on its
+        ±10 V range, or None without a load-cell input."""
+        if self.force_ain is None:
+            return None
+        return AIN_FULL_SCALE_V * self.force_N_per_V - abs(self.force_offset_N)
 
     def input_range(self) -> tuple[float, float]:
         """Amplifier input [V] the DAC (0–5 V) can produce through the conditioning stage."""
@@ -344,26 +368,107 @@ class RigConfig(_Strict):
             raise ValueError(f"daq: the conditioning stage reaches {lo:g}…{hi:g} V, beyond the TREK input's ±10 V")
 
     def _within_capability(self) -> None:
-        """Every limit within what the instrument can do: a trip level it cannot reach would never fire."""
-        lim = self.limits
+        """Every limit within what the instrument can do and what its measuring channel can report: a trip level
+        it cannot reach would never fire (tests/test_rig_limits.py: what "never" means for each limit)."""
         if self.amplifier is not None:
-            trek = TREK_DATASHEET[self.amplifier.model]
-            if self.amplifier.max_voltage_V > trek.max_output:
-                raise ValueError(f"amplifier.max_voltage_V {self.amplifier.max_voltage_V:g} V exceeds the TREK "
-                                 f"{trek.model} output of {trek.max_output:g} V")
-            if lim.max_current_A > trek.max_current:
-                raise ValueError(f"limits.max_current_A {lim.max_current_A:g} A exceeds the {trek.max_current:g} A "
-                                 f"the TREK {trek.model} can deliver: the trip could never fire")
+            self._amplifier_limits(self.amplifier)
+        self._force_limits()
+        self._field_limit()
+        if self.motor is not None:
+            self._travel_tolerance(self.motor)
+
+    def _amplifier_limits(self, amp: AmplifierConfig) -> None:
+        lim = self.limits
+        trek = TREK_DATASHEET[amp.model]
+        if amp.max_voltage_V > trek.max_output:
+            raise ValueError(f"amplifier.max_voltage_V {amp.max_voltage_V:g} V exceeds the TREK "
+                             f"{trek.model} output of {trek.max_output:g} V")
+        if lim.max_current_A > trek.max_current:
+            raise ValueError(f"limits.max_current_A {lim.max_current_A:g} A exceeds the {trek.max_current:g} A "
+                             f"the TREK {trek.model} can deliver: the trip could never fire")
+        imon = amp.imon_ratio or trek.imon_ratio
+        i_span = AIN_FULL_SCALE_V * imon
+        if lim.max_current_A >= i_span:
+            raise ValueError(f"limits.max_current_A {lim.max_current_A:g} A is not below the {i_span:g} A the current "
+                             f"monitor reads at full scale (±{AIN_FULL_SCALE_V:g} V × amplifier.imon_ratio {imon:g} "
+                             "A/V): the trip could never fire")
+        vmon = amp.vmon_ratio or trek.vmon_ratio
+        v_span = min(AIN_FULL_SCALE_V * vmon, trek.max_output)
+        v_lim = min(lim.max_voltage_V, amp.max_voltage_V)
+        trip = MONITOR_TRIP_FACTOR * v_lim + MONITOR_TRIP_MARGIN_V
+        if trip >= v_span:
+            field = "limits.max_voltage_V" if lim.max_voltage_V <= amp.max_voltage_V else "amplifier.max_voltage_V"
+            raise ValueError(f"{field} {v_lim:g} V: the output over-voltage trip at {MONITOR_TRIP_FACTOR:g} × "
+                             f"{v_lim:g} + {MONITOR_TRIP_MARGIN_V:g} = {trip:.0f} V is not below the {v_span:.0f} V "
+                             f"the voltage monitor reads (±{AIN_FULL_SCALE_V:g} V × amplifier.vmon_ratio {vmon:g} V/V, "
+                             f"TREK output {trek.max_output:g} V): it could never fire")
+        slew = HVStage().slew
+        if amp.slew_limit_V_per_s > slew:
+            raise ValueError(f"amplifier.slew_limit_V_per_s {amp.slew_limit_V_per_s:g} V/s exceeds the TREK "
+                             f"{trek.model}'s own slew rate ({slew:g} V/s, datasheet > 700 V/µs): it could never bind")
+        default = AmplifierConfig.model_fields["slew_limit_V_per_s"].default
+        if amp.drive == "daq" and amp.slew_limit_V_per_s != default:
+            raise ValueError(f"amplifier.slew_limit_V_per_s {amp.slew_limit_V_per_s:g} V/s is not applied with drive "
+                             "= 'daq' (the DAQ plays the protocol's waveform on its scan clock): remove it")
+
+    def _force_limits(self) -> None:
+        f = self.limits.max_force_N
         if self.load_cell is not None:
             full_scale = self.load_cell.capacity_kg * STANDARD_GRAVITY_M_PER_S2
-            if lim.max_force_N > full_scale:
-                raise ValueError(f"limits.max_force_N {lim.max_force_N:g} N exceeds the load cell's capacity "
+            if f > full_scale:
+                raise ValueError(f"limits.max_force_N {f:g} N exceeds the load cell's capacity "
                                  f"load_cell.capacity_kg {self.load_cell.capacity_kg:g} kg = {full_scale:.4g} N")
+        daq = self.daq
+        span = daq.force_span() if daq is not None else None
+        if daq is None or span is None:
+            return
+        if span <= 0:
+            raise ValueError(f"daq.force_offset_N {daq.force_offset_N:g} N: the load-cell input (±{AIN_FULL_SCALE_V:g} "
+                             f"V × daq.force_N_per_V {daq.force_N_per_V:g} N/V) cannot report both tension and "
+                             "compression, so the force trip could not fire both ways")
+        if f >= span:
+            raise ValueError(f"limits.max_force_N {f:g} N is not below the ±{span:.4g} N the load-cell input reads at "
+                             f"full scale (±{AIN_FULL_SCALE_V:g} V × daq.force_N_per_V {daq.force_N_per_V:g} N/V, "
+                             f"daq.force_offset_N {daq.force_offset_N:g} N): the trip could never fire")
+        if daq.force_capacity_N is not None and f > daq.force_capacity_N:
+            raise ValueError(f"limits.max_force_N {f:g} N exceeds the load cell's rated capacity "
+                             f"daq.force_capacity_N {daq.force_capacity_N:g} N")
+
+    def _field_limit(self) -> None:
+        cap, margin = self.limits.max_field_V_per_m, self.limits.breakdown_margin
+        if cap is None:
+            return
+        spec = self.specimen
+        if spec.kind == "membrane":
+            e_b, source = spec.breakdown_field_V_per_m, "specimen.breakdown_field_V_per_m"
+        else:
+            e_b, source = max(_highest_breakdown(spec.lozenge(n)) for n in (1, 2, 3)), "the LS-DEA's E_B at any stretch"
+        if cap >= e_b / margin:
+            raise ValueError(f"limits.max_field_V_per_m {cap:g} V/m is not below the breakdown trip level "
+                             f"{e_b / margin:.4g} V/m ({source} {e_b:.4g} V/m / limits.breakdown_margin {margin:g}): "
+                             "that trip always fires first, this one never")
+
+    def _travel_tolerance(self, m: MotorConfig) -> None:
+        tol = self.limits.travel_tolerance_m
+        (lo, hi), (s_lo, s_hi) = m.travel_m, m.stroke_m
+        for end, gap in (("lower", lo - s_lo), ("upper", s_hi - hi)):
+            if gap > 0 and tol >= gap:
+                raise ValueError(f"limits.travel_tolerance_m {tol:g} m reaches the {end} end of motor.stroke_m "
+                                 f"[{s_lo:g}, {s_hi:g}] m from travel_m [{lo:g}, {hi:g}] m: the travel trip could "
+                                 f"never fire there")
 
     @property
     def instruments(self) -> list[str]:
         """Roles present on this rig."""
         return [r for r in ("amplifier", "laser", "motor", "load_cell", "daq") if getattr(self, r) is not None]
+
+
+def _highest_breakdown(q: LozengeParams) -> float:
+    """Highest E_B = E0 (λ1λ2)^(r/2) [V/m] of an LS-DEA over the apertures the supervisor's field estimate uses."""
+    x = np.linspace(1.0001 * q.xp, 1.999 * q.l, 2001)
+    y = np.sqrt(4.0 * q.l**2 - x**2)
+    l1, l2 = q.lambda1p * x / q.xp, q.lambda2p * y / q.yp
+    return float(np.max(q.material.E0 * (l1 * l2) ** (q.material.r / 2)))
 
 
 class RigFileError(ValueError):
@@ -375,10 +480,10 @@ class RigFileError(ValueError):
 
 def _first_error(path: Path, exc: ValidationError) -> str:
     err = exc.errors()[0]
-    loc = ".".join(str(x) for x in err["loc"]) or "(top level)"
+    loc = ".".join(str(x) for x in err["loc"])
     msg = err["msg"].removeprefix("Value error, ")
     more = f" (and {exc.error_count() - 1} more)" if exc.error_count() > 1 else ""
-    return f"rig file {path}: {loc}: {msg}{more}"
+    return f"rig file {path}: {loc + ': ' if loc else ''}{msg}{more}"  # a whole-rig check names its fields itself
 
 
 def load_rig(path: str | Path) -> RigConfig:

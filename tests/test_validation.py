@@ -65,7 +65,8 @@ def test_load_cell_floats_must_be_finite(tmp_path: Path, key: str, value: str) -
 
 def test_current_limit_within_the_amplifier(tmp_path: Path) -> None:
     ok = tmp_path / "ok.toml"
-    ok.write_text(_set(THESIS_SIM, "limits", "max_current_A", "0.010"))  # exactly the 10/10B-HS rating
+    # exactly the 10/10B-HS rating, on a current monitor that reads beyond it (2 mA/V × 10 V = 20 mA)
+    ok.write_text(_set(_set(THESIS_SIM, "amplifier", "imon_ratio", "2e-3"), "limits", "max_current_A", "0.010"))
     assert load_rig(ok).limits.max_current_A == 0.010
     msg = _refused(tmp_path, _set(THESIS_SIM, "limits", "max_current_A", "0.02"))
     assert "limits.max_current_A" in msg and "0.02" in msg and "0.01 A" in msg

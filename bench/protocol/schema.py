@@ -40,6 +40,9 @@ CHANNEL_DIMENSION = {"voltage": "voltage", "position": "length"}
 MAX_STEPS = 100_000  # steps after expanding repeats and sweeps
 MAX_NESTING = 20  # repeats and sweeps inside each other
 MAX_DURATION_S = 7 * 86_400.0  # one protocol's run time: 7 days
+# The shortest step [s]: two set-point periods at the fastest recording.setpoint_Hz (2 kHz). A shorter one has no
+# set-point of its own, and a subnormal one (5e-324 s) made ramps divide by it (NaN set-points).
+MIN_DURATION_S = 1e-3
 MAX_EXPANSION = 50_000_000  # characters sweeps may copy while substituting their values
 MAX_OPERATOR = 100  # characters of [protocol] operator / `bench run --operator`
 MAX_SPECIMEN_ID = 100  # characters of [protocol] specimen_id / `bench run --specimen-id`
@@ -74,7 +77,7 @@ class WaveformStep(_StepBase):
     amplitude: str
     frequency_Hz: float = Field(gt=0, le=1000)
     cycles: float | None = Field(None, gt=0, le=MAX_DURATION_S * 1000)
-    duration_s: float | None = Field(None, gt=0, le=MAX_DURATION_S)
+    duration_s: float | None = Field(None, ge=MIN_DURATION_S, le=MAX_DURATION_S)
 
     @model_validator(mode="after")
     def _check(self) -> WaveformStep:
@@ -85,6 +88,9 @@ class WaveformStep(_StepBase):
         parse_quantity(self.amplitude, dim)
         if (self.cycles is None) == (self.duration_s is None):
             raise ValueError("give exactly one of cycles or duration_s")
+        if not self.duration >= MIN_DURATION_S:
+            raise ValueError(f"cycles {self.cycles:g} at frequency_Hz {self.frequency_Hz:g} last "
+                             f"{self.duration:.4g} s, below the shortest step of {MIN_DURATION_S:g} s")
         if not self.duration <= MAX_DURATION_S:
             raise ValueError(f"cycles {self.cycles:g} at frequency_Hz {self.frequency_Hz:g} last "
                              f"{self.duration:.4g} s, beyond the limit of {MAX_DURATION_S:.0f} s (7 days)")
@@ -112,7 +118,7 @@ class RampStep(_StepBase):
     type: Literal["ramp"]
     channel: Channel = "voltage"
     to: str
-    duration_s: float = Field(gt=0, le=MAX_DURATION_S)
+    duration_s: float = Field(ge=MIN_DURATION_S, le=MAX_DURATION_S)
 
     @field_validator("to")
     @classmethod
@@ -135,7 +141,7 @@ class HoldStep(_StepBase):
     """Keep the set-points (``hold``/``wait``), or zero the voltage first (``relax``)."""
 
     type: Literal["hold", "wait", "relax"]
-    duration_s: float = Field(gt=0, le=MAX_DURATION_S)
+    duration_s: float = Field(ge=MIN_DURATION_S, le=MAX_DURATION_S)
 
 
 class MoveStep(_StepBase):
