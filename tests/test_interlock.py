@@ -215,7 +215,7 @@ def test_a_polled_monitor_that_disagrees_with_the_set_point_latches(tmp_path: Pa
     def amplifier_gain_off(_engine: Engine, sim) -> None:
         sim.plant.hv = dataclasses.replace(sim.plant.hv, gain=sim.plant.hv.gain * 1.25)
 
-    result, run, plant = run_with_fault(ADAM_RIG, tmp_path, 3.0, amplifier_gain_off, virtual=True)
+    result, _run, plant = run_with_fault(ADAM_RIG, tmp_path, 3.0, amplifier_gain_off, virtual=True)
     assert result.state == "tripped" and "interlock: output mismatch" in result.reason, result.reason
     # two monitor readings in a row (the monitors are polled at the protocol's monitors_Hz), then 0 V at once
     hz = plan_run(THESIS, ADAM_RIG).program.protocol.recording.monitors_Hz

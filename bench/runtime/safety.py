@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 
 from bench.models.lozenge import LozengeParams, kinematics
 from bench.models.membrane import MembraneParams
-from bench.rig import RigConfig
+from bench.rig import MONITOR_TRIP_FACTOR, MONITOR_TRIP_MARGIN_V, RigConfig
 
 
 class SafetyTrip(Exception):  # noqa: N818 - a trip is not an error of the program
@@ -85,7 +85,7 @@ class Supervisor:
         if abs(amps) > self.rig.limits.max_current_A:
             limit = self.rig.limits.max_current_A
             self._trip(f"current {amps * 1e3:.2f} mA beyond the trip level {limit * 1e3:.2f} mA")
-        if abs(volts) > self.voltage_limit * 1.02 + 50.0:
+        if abs(volts) > self.voltage_limit * MONITOR_TRIP_FACTOR + MONITOR_TRIP_MARGIN_V:
             self._trip(f"output {volts:.0f} V beyond the voltage limit ±{self.voltage_limit:.0f} V")
         e, e_max = self.field_and_breakdown(volts)
         if not e <= e_max:
