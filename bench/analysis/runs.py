@@ -120,12 +120,14 @@ def analyse(path: str | Path, last_cycles: int = 3) -> RunAnalysis:
     history = run.specimen_changes()
     sp = applied_voltage(run, measured=True)
     results: list[StepResult] = []
+    done, offsets = run.completed_steps(), run.step_offsets()
     for row, step in zip(run.program, protocol.steps, strict=True):
         if not isinstance(step, WaveformStep):
             continue
-        t0, dur = float(row["t_start"]), float(row["duration"])
-        if t0 + dur > run.updated + 1e-6:
-            continue  # the run stopped before this step ended
+        index = int(row["index"])
+        t0, dur = float(row["t_start"]) + offsets.get(index, 0.0), float(row["duration"])
+        if index not in done or t0 + dur > run.updated + 1e-6:
+            continue  # the run stopped (or paused, or resumed later in another file) before this step ended
         sel = _window(sp, t0, t0 + dur)
         vpk = float(np.max(np.abs(sp.v[sel]))) if sel.any() else 0.0
         proto, mass = _specimen_at(t0, history, spec)

@@ -109,7 +109,8 @@ def fit_command(
     as runs/*) are skipped."""
     from bench.identify.core import FitSettings
 
-    runs = runs_only(runs)
+    with json_mode(json_out):
+        runs = runs_only(runs)
     kinds = {_model_of(p) for p in runs}
     chosen = model.value if model is not ModelChoice.auto else (kinds.pop() if len(kinds) == 1 else "")
     if not chosen:
@@ -139,7 +140,20 @@ def runs_only(paths: list[Path]) -> list[Path]:
     runs = [p for p in paths if not is_sidecar(p)]
     if not runs:
         raise ValueError("no run files: only fit files (*.fit.hdf5) were given; name the runs (.h5)")
-    return runs
+    return campaign_files(runs)
+
+
+def campaign_files(runs: list[Path]) -> list[Path]:
+    """``runs`` with the earlier files of each resumed campaign (``bench run --resume``), saying so: a chain of
+    linked files is one campaign (each step counted from the file in which it completed)."""
+    from bench.storage.chain import chain, describe, with_chains
+
+    out = with_chains(runs)
+    for p in runs:
+        links = chain(p)
+        if len(links) > 1:
+            console.print(f"campaign of {len(links)} linked files: {escape(describe(links))}")
+    return out
 
 
 def run_fit(runs: list[Path], chosen: str, settings: FitSettings, branches: int = 1,
@@ -158,10 +172,13 @@ def run_fit(runs: list[Path], chosen: str, settings: FitSettings, branches: int 
     from bench.rig import rig_from_toml
     from bench.storage.runfile import open_run
 
-    for p in runs:  # the fit is stored in every file: refuse before the work, not after
-        if not open_run(p, streams=False).complete:
-            raise ValueError(f"run file {p}: not finalised (crashed or still running); fits are stored in finished "
-                             "files only — copy the data out with h5py to fit it")
+    for p in runs:  # the fit is stored with every file: refuse before the work, not after
+        f = open_run(p, streams=False)
+        if f.state == "running" and not (f.orphaned or f.recovered_at):
+            raise ValueError(f"run file {p}: a run is still writing it; fit it when it has ended")
+        if into and not f.complete:
+            raise ValueError(f"run file {p}: not finalised (crashed); --into stores fits in finished files only — "
+                             "leave out --into to store the fit in its fit file beside it")
     with console.status("reading the records…"):
         if chosen == "membrane":
             coarse, fine = MembraneProblem(runs, h=5e-4), MembraneProblem(runs, h=1e-4)

@@ -109,7 +109,8 @@ def validate(protocol_file: ProtocolArg, rig: RigOpt = None, sim: SimOpt = False
 
 @clean_errors
 def run(
-    protocol_file: ProtocolArg,
+    protocol_file: Annotated[Path | None, typer.Argument(
+        help="Protocol file (TOML), e.g. protocols/thesis-identification.toml (not with --resume).")] = None,
     rig: RigOpt = None,
     sim: SimOpt = False,
     virtual_time: Annotated[bool, typer.Option("--virtual-time", help="Simulated rig only: run as fast as the "
@@ -131,16 +132,36 @@ def run(
     note: Annotated[list[str] | None, typer.Option(
         "--note", help="A free note recorded in the run file, after the protocol's notes; repeat for more.")]
     = None,
+    resume: Annotated[Path | None, typer.Option(
+        "--resume", help="Continue the campaign of this run file (crashed, killed, stopped or tripped) at its first "
+        "step that did not complete, into a new file linked to it.")] = None,
 ) -> None:
     """Run a protocol on a rig (simulated by default), streaming everything to one HDF5 file.
 
     Operator, specimen ID and notes come from the protocol's [protocol] table and these options; they are kept in
-    the run file as root attributes (`bench inspect` shows them)."""
+    the run file as root attributes (`bench inspect` shows them). While it runs, `bench pause RUN.h5` (or SIGUSR1)
+    brings the output to 0 V and holds, `bench resume RUN.h5` (or SIGUSR2) restarts the step it left."""
     from bench.runtime.run import default_output, run_metadata
 
-    plan = _plan(protocol_file, rig, sim)
-    metadata = run_metadata(plan.protocol, operator_name, specimen_id, note)
+    link = None
+    if resume is not None:
+        plan, link, notes = _plan_resume(protocol_file, resume, rig, sim)
+        for line in notes:
+            console.print(f"recovered: {escape(line)}")
+        old = open_run_attrs(resume)
+        metadata = run_metadata(plan.protocol, operator_name or old.get("operator"),
+                                specimen_id or old.get("specimen_id"), note)
+        out = resume.parent if out == Path("runs") else out
+    elif protocol_file is None:
+        raise ValueError("give a protocol file, or --resume RUN.h5 to continue a campaign")
+    else:
+        plan = _plan(protocol_file, rig, sim)
+        metadata = run_metadata(plan.protocol, operator_name, specimen_id, note)
     console.print(_summary(plan))
+    if link is not None:
+        seg = plan.program.segments[link.step]
+        console.print(f"resuming the campaign of {escape(str(link.previous))} at step {link.step + 1} of {link.steps} "
+                      f"({escape(seg.name)}); {link.step} step(s) completed there")
     if dry_run:
         console.print("[green]dry run[/]: nothing was touched")
         return
@@ -164,7 +185,7 @@ def run(
             log.info("link budget warning: %s", problem)
         for key, value in metadata.items():
             log.info("%s: %s", key.replace("_", " "), value.replace("\n", " | "))
-        result = _execute(plan, path, virtual_time, operator, live, allow_no_watchdog, metadata)
+        result = _execute(plan, path, virtual_time, operator, live, allow_no_watchdog, metadata, link)
         _log_result(result)
     with contextlib.suppress(OSError):  # the terminal went away (SIGHUP): the file holds the whole account
         _print_result(result)
@@ -182,8 +203,27 @@ def _log_result(result) -> None:
             result.state, result.reason, result.safe_path, result.samples)
 
 
+def _plan_resume(protocol_file: Path | None, run_file: Path, rig: Path | None, sim: bool):
+    from bench.protocol.schema import load_protocol
+    from bench.runtime.run import plan_resume
+
+    with console.status("recovering if needed, validating and dry-running the stored protocol…"):
+        plan, link, notes = plan_resume(run_file, rig, sim)
+    if protocol_file is not None and load_protocol(protocol_file).sha256 != plan.protocol.sha256:
+        raise ValueError(f"protocol file {protocol_file}: not the protocol of {run_file} (its text differs); "
+                         "--resume needs no protocol file")
+    return plan, link, notes
+
+
+def open_run_attrs(path: Path) -> dict[str, str]:
+    """The string attributes of a run file (operator, specimen ID) that a resumed run carries on."""
+    from bench.storage.runfile import open_run
+
+    return {k: v for k, v in open_run(path, streams=False).attrs.items() if isinstance(v, str)}
+
+
 def _execute(plan, path: Path, virtual_time: bool, operator, live: bool, allow_no_watchdog: bool,
-             metadata: dict[str, str]):
+             metadata: dict[str, str], link=None):
     """Run the plan, with the live view on a terminal."""
     from bench.runtime.engine import Engine
     from bench.runtime.live import LiveView, units_of
@@ -201,11 +241,11 @@ def _execute(plan, path: Path, virtual_time: bool, operator, live: bool, allow_n
 
         with Live(console=console, refresh_per_second=4, transient=False) as live_ctx:
             result = execute(plan, path, virtual=virtual_time, operator=operator, on_engine=attach,
-                             allow_no_watchdog=allow_no_watchdog, metadata=metadata)
+                             allow_no_watchdog=allow_no_watchdog, metadata=metadata, resume=link)
     else:
         console.print(f"running {escape(title)}")
         result = execute(plan, path, virtual=virtual_time, operator=operator, allow_no_watchdog=allow_no_watchdog,
-                         metadata=metadata)
+                         metadata=metadata, resume=link)
     return result
 
 
@@ -249,7 +289,8 @@ def inspect(run_file: Annotated[Path, typer.Argument(help="Run file (.h5), finis
                                        "last": {k: (v[-1] if v.size else None) for k, v in s.columns.items()}}
                                 for name, s in r.streams.items()},
                     "events": [{"t_s": t, "step": step, "kind": kind, "text": text}
-                               for t, step, kind, text in r.event_list()]})
+                               for t, step, kind, text in r.event_list()],
+                    "campaign": _campaign_json(run_file, a)})
         if not r.complete:
             raise typer.Exit(1)
         return
@@ -257,6 +298,13 @@ def inspect(run_file: Annotated[Path, typer.Argument(help="Run file (.h5), finis
     meta.add_column("", style="bold")
     meta.add_column("")
     meta.add_row("file", escape(str(run_file)))  # a row, not the title: a title wraps at the table's width
+    if a.get("previous_file"):
+        from bench.storage.chain import chain, describe
+
+        try:
+            meta.add_row("campaign", escape(describe(chain(run_file))))
+        except ValueError as exc:
+            meta.add_row("campaign", f"[red]{escape(str(exc))}[/]")
     sha = str(a.get("protocol_sha256", ""))[:12]
     meta.add_row("protocol", f"{a.get('protocol_name')} ({a.get('protocol_path')}, sha256 {sha}…)")
     kind = "simulated" if a.get("simulated") else "real"
@@ -306,6 +354,66 @@ def recover(run_file: Annotated[Path, typer.Argument(help="Run file (.h5) of a c
 
     for line in recover_file(run_file).lines():
         console.print(escape(line))
+
+
+def _campaign_json(run_file: Path, attrs: dict) -> list[dict[str, object]] | str:
+    """The campaign chain of a run file for ``inspect --json`` (an error text when a link is broken)."""
+    from bench.storage.chain import chain
+
+    try:
+        links = chain(run_file)
+    except ValueError as exc:
+        return str(exc)
+    return [{"file": str(ln.path), "state": ln.state, "complete": ln.complete, "resumed_at_step": ln.resumed_at_step}
+            for ln in links] if len(links) > 1 or attrs.get("previous_file") else []
+
+
+RunArg = Annotated[Path, typer.Argument(help="Run file (.h5) of a run under way.")]
+WhyOpt = Annotated[str, typer.Option("--why", help="Why (recorded in the run file's events).")]
+ByOpt = Annotated[str | None, typer.Option("--operator", help="Who (default: the login name).")]
+
+
+def _running(run_file: Path) -> None:
+    from bench.storage.runfile import open_run
+
+    if not run_file.is_file():
+        raise ValueError(f"run file {run_file}: not found")
+    f = open_run(run_file, streams=False)
+    if f.state != "running" or f.orphaned:
+        raise ValueError(f"run file {run_file}: no run is writing it ({f.state}{', crashed' if f.orphaned else ''}); "
+                         "to continue its campaign: bench run --resume " + str(run_file))
+
+
+def _who(operator: str | None) -> str:
+    import getpass
+
+    from bench.protocol.schema import MAX_OPERATOR, check_label
+
+    return check_label(operator or getpass.getuser(), MAX_OPERATOR)
+
+
+@clean_errors
+def pause(run_file: RunArg, why: WhyOpt = "", operator: ByOpt = None) -> None:
+    """Pause a run from another terminal: output ramped to 0 V, motor held, recording goes on (`bench resume`
+    restarts the step it left). The same as SIGUSR1 to the run's process."""
+    from bench.runtime.control import write_control
+
+    _running(run_file)
+    path = write_control(run_file, True, _who(operator), why)
+    console.print(f"pause asked ({escape(str(path))}); the run takes it within 0.1 s and records it")
+
+
+@clean_errors
+def resume_run(run_file: RunArg, why: WhyOpt = "", operator: ByOpt = None) -> None:
+    """Resume a paused run: the step it left restarts from its start (motor back, voltage ramped up). For a run that
+    ended (crashed, stopped, tripped), use `bench run --resume RUN.h5`. The same as SIGUSR2 to the run's process."""
+    from bench.runtime.control import write_control
+
+    if not why.strip():
+        raise ValueError("--why: say why it is safe to go on (recorded in the run file)")
+    _running(run_file)
+    path = write_control(run_file, False, _who(operator), why)
+    console.print(f"resume asked ({escape(str(path))})")
 
 
 def protocol_schema(
@@ -382,6 +490,8 @@ def register(app: typer.Typer) -> None:
     app.command()(run)
     app.command()(inspect)
     app.command()(recover)
+    app.command()(pause)
+    app.command("resume")(resume_run)
     protocol_app.command("schema")(protocol_schema)
     protocol_app.command("list")(protocols_list)
     protocol_app.command("show")(protocols_show)

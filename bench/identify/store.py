@@ -28,6 +28,7 @@ from bench import __version__
 from bench.identify.core import FitResult
 from bench.rig import RigConfig, rig_to_toml
 from bench.storage.recorder import now_iso
+from bench.storage.runfile import open_run
 
 SIDECAR_FORMAT = "dea-bench fits 1"
 SIDECAR_SUFFIX = ".fit.hdf5"
@@ -45,10 +46,12 @@ def is_sidecar(path: str | Path) -> bool:
 
 
 def _run_identity(run_path: str | Path) -> dict[str, str]:
-    """The run file's identity a fit file records (and is checked against); ValueError if the run is unfinished."""
-    with h5py.File(run_path, "r") as f:
-        if not f.attrs.get("complete", False):
-            raise ValueError(f"run file {run_path}: incomplete run; fit results go with finished files only")
+    """The run file's identity a fit file records (and is checked against); ValueError while a run still writes
+    it. A crashed file (a resumed campaign's earlier part) takes a fit file like a finished one: its data are
+    what was measured up to the crash."""
+    run = open_run(run_path, streams=False)
+    if run.state == "running" and not (run.orphaned or run.recovered_at):
+        raise ValueError(f"run file {run_path}: a run is still writing it; fit results go with ended runs only")
     return _run_identity_any(run_path)
 
 

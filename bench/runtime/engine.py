@@ -26,16 +26,18 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, TypeVar
 
 import numpy as np
 
 from bench.core.clock import Clock
-from bench.protocol.program import HOLD_KEEPALIVE_S, Program, Segment, ticks
+from bench.protocol.program import HOLD_KEEPALIVE_S, Program, Segment, ticks, voltage_at
+from bench.runtime.control import CONTROL_POLL_S, read_control
 from bench.runtime.hardware_timed import HardwareTimed
 from bench.runtime.instruments import Instruments
 from bench.runtime.interlock import OUTPUT_ON_V, InterlockTrip, OutputVerifier, check_contact, watchdog_period
-from bench.runtime.polls import POLLS, StepState
+from bench.runtime.polls import PAUSED, POLLS, StepState
 from bench.runtime.safety import SafetyTrip, Supervisor
 from bench.storage.recorder import Recorder
 from drivers.errors import InstrumentConnectionError, InstrumentError, InstrumentStateError, OperationCancelledError
@@ -51,6 +53,9 @@ DISCHARGE_WAIT_S = 2.0  # how long to keep reading a monitor that is not yet at 
 WATCHDOG_MARGIN_S = 0.2  # wait past the module's communication-safety period before checking the output
 LASER_DRAIN_BUDGET_S = 30.0  # at most this long fetching a step's stored laser data after the step
 LASER_SHUTDOWN_DRAIN_S = 5.0  # after a stop or fault (high voltage already at 0 V): then what is left is reported
+PAUSE_POLL_S = 0.1  # while paused: the monitors and sensors are read this often (run time)
+RESTART_STEP_V = 10.0  # a restart ramps the output to the step's start value unless it is this close already
+RESTART_MOVE_S = 30.0  # a restart's motor move to the step's start position must end within this (run time)
 STOP_SIGNALS = {
     signal.SIGINT: "interrupted by Ctrl-C",
     signal.SIGTERM: "terminated by SIGTERM",
@@ -63,6 +68,10 @@ OperatorFn = Callable[[str], bool]
 
 class StopRequested(Exception):  # noqa: N818 - control flow, not a failure
     """Ctrl-C / SIGTERM / a stop request from another thread."""
+
+
+class PauseRequested(Exception):  # noqa: N818 - control flow, not a failure
+    """A pause request (signal, control file, another thread): the step under way is left at once."""
 
 
 @dataclass
@@ -98,8 +107,14 @@ class Engine:
 
     def __init__(self, program: Program, inst: Instruments, clock: Clock, recorder: Recorder,
                  supervisor: Supervisor, *, apply_specimen: Callable[[dict[str, Any]], None] | None = None,
-                 operator: OperatorFn | None = None) -> None:
+                 operator: OperatorFn | None = None, start_step: int = 0, control: Path | None = None) -> None:
+        """``start_step``: run the program from this step on (a resumed campaign; the steps before it ran in the
+        file it continues). ``control``: the run's control file (``bench pause`` / ``bench resume`` write it)."""
+        if not 0 <= start_step < max(len(program.segments), 1):
+            raise ValueError(f"start step {start_step} outside the program's {len(program.segments)} steps")
         self.program = program
+        self.start_step = start_step
+        self.control = control
         self.inst = inst
         self.clock = clock
         self.rec = recorder
@@ -128,6 +143,12 @@ class Engine:
         self.verifier = OutputVerifier(rig, rig.daq.scan_rate_Hz if self._stream is not None and rig.daq else None)
         self.latched: InterlockTrip | None = None  # the interlock fault that ended the run (0 V at once, no ramp)
         self._output_dead = False  # 0 V could not be commanded: no request may feed the module's watchdog
+        self._offset = 0.0  # run time − program time: a resumed start and each pause shift the program's schedule
+        self._pause_by: str | None = None  # who asked for a pause (signal, another thread); None: nobody
+        self._resume_by: str | None = None
+        self._control_seen: tuple[float, bool, str] = (0.0, False, "")  # control file: (mtime, pause?, by/why)
+        self._control_checked = 0.0
+        self.pauses = 0
 
     # ------------------------------------------------------------ stop requests (signals, other threads)
     def request_stop(self, reason: str) -> None:
@@ -143,6 +164,34 @@ class Engine:
         else:
             self._urgent.set()
 
+    def request_pause(self, by: str) -> None:
+        """Ask the run to pause (output to 0 V, motor held, recording on); safe from a signal handler or thread."""
+        self._resume_by = None
+        self._pause_by = by
+
+    def request_resume(self, by: str) -> None:
+        """Ask a paused run to go on (its step restarts from its beginning)."""
+        self._pause_by = None
+        self._resume_by = by
+
+    def _paused_wanted(self) -> tuple[bool, str]:
+        """(pause wanted?, by whom and why): a request, or the control file (looked at every 0.1 s wall time)."""
+        if self._pause_by is not None:
+            return True, self._pause_by
+        if self._resume_by is not None:
+            return False, self._resume_by
+        if self.control is None:
+            return False, ""
+        now = time.monotonic()
+        if now - self._control_checked >= CONTROL_POLL_S:
+            self._control_checked = now
+            self._control_seen = read_control(self.control, self._control_seen)
+        return self._control_seen[1], self._control_seen[2]
+
+    def _check_pause(self) -> None:
+        if not self._stopping and self._stop_reason is None and self._paused_wanted()[0]:
+            raise PauseRequested
+
     def _on_signal(self, reason: str) -> None:
         self.request_stop(reason)
         if self._in_prompt and not self._stopping:  # an operator prompt blocks in input(): leave it now
@@ -155,6 +204,8 @@ class Engine:
         old: list[tuple[signal.Signals, Any]] = []
         for sig, text in STOP_SIGNALS.items():
             old.append((sig, signal.signal(sig, lambda *_a, text=text: self._on_signal(text))))
+        old.append((signal.SIGUSR1, signal.signal(signal.SIGUSR1, lambda *_a: self.request_pause("signal SIGUSR1"))))
+        old.append((signal.SIGUSR2, signal.signal(signal.SIGUSR2, lambda *_a: self.request_resume("signal SIGUSR2"))))
         return old
 
     def _check_stop(self) -> None:
@@ -207,11 +258,23 @@ class Engine:
         """Run time [s]."""
         return self.clock.now() - self._t0
 
+    def program_now(self) -> float:
+        """Program time [s]: run time less the shifts of a resumed start and of the pauses."""
+        return self.now() - self._offset
+
+    def lateness(self, due: float) -> float:
+        """How long after its scheduled program time ``due`` an action runs [s]."""
+        return self.program_now() - due
+
     def _wait_until(self, t: float) -> None:
+        """Wait until program time ``t`` (checking for stop and pause requests meanwhile)."""
         self._check_stop()
+        self._check_pause()
+        t += self._offset
         if not self.clock.virtual:
             while (left := t - self.now()) > 0:
                 self._check_stop()
+                self._check_pause()
                 time.sleep(min(left, STOP_POLL_S))
             late = self.now() - t
             self.worst_lateness = max(self.worst_lateness, late)
@@ -335,9 +398,10 @@ class Engine:
             if tick is not None and t_set <= t_next:
                 x_cmd = self._move_motor(*tick.motor) if tick.motor is not None else math.nan
                 if inst.amplifier is not None and not streamed:
-                    self._set_voltage(self._v_req if tick.voltage is None else tick.voltage, t_set, x_cmd)
+                    self._set_voltage(self._v_req if tick.voltage is None else tick.voltage, t_set + self._offset,
+                                      x_cmd)
                 elif tick.motor is not None:
-                    self.rec.append("setpoints", t_set, voltage=math.nan, aperture=x_cmd)
+                    self.rec.append("setpoints", t_set + self._offset, voltage=math.nan, aperture=x_cmd)
                 self.snapshot.values["setpoint"] = self._v_cmd
                 tick = next(schedule, None)
             for kind in [k for k, tk in due.items() if tk <= t_next + 1e-12]:
@@ -354,12 +418,127 @@ class Engine:
         if streamed:
             self._hw.finish(self)  # the device played the end value itself
         elif inst.amplifier is not None and v_end is not None and v_end != self._v_req:
-            self._set_voltage(v_end, seg.t_end)  # ticks stop before t_end: a ramp must still reach its target
+            self._set_voltage(v_end, seg.t_end + self._offset)  # ticks stop before t_end: a ramp must reach its end
         if storing:
             self._laser.stop_buffer()
             self._storing = False
             self._drain_laser(LASER_DRAIN_BUDGET_S)
         self.rec.event(self.now(), seg.index, "end", seg.name)
+
+    # ------------------------------------------------------------ pause, resume, a resumed start
+    def _state_before(self, seg: Segment) -> tuple[float, float | None]:
+        """(voltage, motor position) the program holds when ``seg`` starts: the last end value of a step before
+        it that sets one (0 V, no motor move when none does)."""
+        prog, volts, motor = self.program, 0.0, None
+        m = prog.rig.motor
+        for s in prog.segments[:prog.segments.index(seg)]:
+            end = voltage_at(s, s.t_end)
+            if end is not None:
+                volts = end
+            if m is not None and prog.has_motor_axis:
+                x = s.move[0] if s.move is not None else float(s.position(np.array([s.t_end]))[0]) \
+                    if s.position is not None else None
+                if x is not None:
+                    motor = min(max(float(prog.motor_position(x)), m.travel_m[0]), m.travel_m[1])
+        return volts, motor
+
+    def _resume_specimen(self, seg: Segment) -> None:
+        """A resumed campaign: the specimen as the steps before ``seg`` left it (temperature, prototype, load),
+        applied to a simulated rig or confirmed by the operator, and recorded as a ``specimen`` event."""
+        changes: dict[str, float | int] = {}
+        for s in self.program.segments[:self.program.segments.index(seg)]:
+            changes.update(s.changes)
+        if not changes:
+            return
+        text = ", ".join(f"{k} = {v}" for k, v in changes.items())
+        if self.apply_specimen is not None:
+            self.apply_specimen(changes)
+        elif not self._operator_confirms(text):
+            raise StopRequested(f"operator did not confirm the specimen for the resumed campaign ({text})")
+        self.rec.event(self.now(), seg.index, "specimen", text)
+
+    def _ramp_to(self, target: float, seconds: float) -> None:
+        """Supervised set-points from the present one to ``target`` over ``seconds`` (command-response)."""
+        v0 = self._v_cmd
+        for k in range(1, RAMP_STEPS + 1):
+            self._pause_until(self.now() + seconds / RAMP_STEPS, urgent_aborts=False)
+            self._check_stop()
+            self._set_voltage(v0 + (target - v0) * k / RAMP_STEPS, self.now())
+
+    def _restart(self, seg: Segment, why: str) -> None:
+        """Bring the rig to the state the program holds at the start of ``seg`` (motor to its position with the
+        output at 0 V, then the voltage ramped up over ``shutdown_ramp_s``) and shift the program so that ``seg``
+        starts now; recorded as events."""
+        volts, motor = self._state_before(seg)
+        self.rec.event(self.now(), seg.index, "restart", f"{why}; step {seg.index} ({seg.name}) restarts from its "
+                       f"start: motor to {'-' if motor is None else f'{motor * 1e3:.2f} mm'}, output to {volts:.0f} V")
+        if motor is not None and self.inst.motor is not None:
+            m = self.program.rig.motor
+            assert m is not None
+            self._move_motor(motor, 0.25 * m.max_velocity_m_per_s, m.max_acceleration_m_per_s2)
+            deadline = self.now() + RESTART_MOVE_S
+            while abs(self._motor.read_position().value - motor) > self.program.rig.limits.travel_tolerance_m:
+                self._check_stop()
+                if self.now() > deadline:
+                    raise InstrumentStateError("motor", f"did not reach {motor * 1e3:.2f} mm within "
+                                               f"{RESTART_MOVE_S:g} s to restart step {seg.index}")
+                self._pause_until(self.now() + 0.02, urgent_aborts=False)
+        if self.inst.amplifier is not None and abs(volts - self._v_cmd) > RESTART_STEP_V:
+            self._ramp_to(volts, self.program.rig.limits.shutdown_ramp_s)
+        self._v_req = volts
+        self._offset = self.now() - seg.t_start
+        self.rec.event(self.now(), seg.index, "offset", f"run time = program time + {self._offset:.9f} s")
+
+    def _pause(self, seg: Segment) -> None:
+        """Paused: the step under way is left, the output ramped to 0 V, the motor held where it is, the monitors
+        and sensors read on; on resume the step restarts from its start. A stop request ends the run."""
+        _, by = self._paused_wanted()
+        t_pause = self.now()
+        self.pauses += 1
+        self.snapshot.state = "paused"
+        self.rec.event(t_pause, seg.index, "pause", f"paused in step {seg.index} ({seg.name}) by {by}: output to "
+                       "0 V, motor held, recording goes on")
+        if self._stream is not None:
+            self._stream.stop(self)
+            self._stream.forget()
+        if self._storing and self.inst.laser is not None:
+            self.inst.laser.stop_buffer()
+            self._storing = False
+            self._drain_laser(LASER_SHUTDOWN_DRAIN_S)
+        if self.inst.amplifier is not None:
+            self._ramp_to(0.0, self.program.rig.limits.shutdown_ramp_s)
+        if self.inst.motor is not None and self.program.has_motor_axis:
+            self._motor.stop()
+        due = self.now()
+        while self._paused_wanted()[0]:
+            self._check_stop()
+            if self.now() >= due:
+                self._paused_readings()
+                due += PAUSE_POLL_S
+            self._pause_until(min(due, self.now() + STOP_POLL_S), urgent_aborts=False)
+        _, by = self._paused_wanted()
+        self._pause_by = self._resume_by = None
+        self.rec.event(self.now(), seg.index, "resume", f"resumed by {by} after {self.now() - t_pause:.3f} s paused")
+        self.snapshot.state = "running"
+        self._restart(seg, "resumed after a pause")
+
+    def _paused_readings(self) -> None:
+        """One reading of every polled channel while paused (the monitors by command-response on a DAQ rig);
+        supervised, and the set-point module kept fed."""
+        amp = self.inst.amplifier
+        if amp is not None:
+            if self._stream is None:
+                heard = amp.heard_at()
+                if heard is not None and time.monotonic() - heard >= HOLD_KEEPALIVE_S:
+                    self._set_voltage(0.0, self.now())
+            v, i = amp.read_monitors()
+            extra = {"commanded": self._v_cmd} if self._stream is not None else self._late("amplifier", math.nan)
+            self.rec.append("amplifier", v.timestamp - self._t0, voltage=v.value, current=i.value, **extra)
+            self.sup.check_monitors(v.value, i.value)
+            self.snapshot.values["voltage"], self.snapshot.values["current"] = v.value, i.value
+        for poll in POLLS:
+            if poll.name in ("position", "force") and poll.period(self, PAUSED) is not None:
+                poll.run(self, self.program_now())
 
     # ------------------------------------------------------------ run and shut down
     def run(self) -> RunResult:
@@ -371,8 +550,17 @@ class Engine:
         try:
             self.snapshot.state = "running"
             self.rec.event(0.0, -1, "run", "start")
-            for seg in self.program.segments:
-                self._segment(seg)
+            segs = self.program.segments
+            k = self.start_step
+            if k > 0:
+                self._resume_specimen(segs[k])
+                self._restart(segs[k], f"resumed campaign: steps before {k} ran in the previous file")
+            while k < len(segs):
+                try:
+                    self._segment(segs[k])
+                    k += 1
+                except PauseRequested:
+                    self._pause(segs[k])
         except InterlockTrip as trip:
             self.latched = trip
             state, reason = "tripped", f"safety trip: {trip.reason}"

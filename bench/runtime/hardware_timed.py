@@ -202,9 +202,13 @@ class HardwareTimed:
             if time.monotonic() > wall_end:
                 raise InstrumentTimeoutError(self.daq.name, f"stream stopped short: {self.daq.scans_received} "
                                              f"scans received, {self._n + 1} needed")
-            engine._wait_until(engine.now() + FINISH_POLL_S)
+            engine._wait_until(engine.program_now() + FINISH_POLL_S)
             self.collect(engine)
         self.stop(engine)
+
+    def forget(self) -> None:
+        """After a stop that was not the program's (a pause): no step is in the stream any more."""
+        self._appended = None
 
     def stop(self, engine: Engine) -> None:
         """Stop a running stream and record its last scans (the DAC holds the last value played)."""

@@ -32,10 +32,13 @@ COLLECT_PERIOD_VIRTUAL_S = 0.25  # virtual time: fewer, larger blocks (the outpu
 class StepState:
     """What a step does with the rig, as the polls need it."""
 
-    seg: Segment
+    seg: Segment | None  # None: paused
     streamed: bool  # a hardware-timed stream plays this step
     laser_serial: bool  # the laser is read over its own line (not on the DAQ)
     storing: bool  # the laser's data storage runs
+
+
+PAUSED = StepState(None, streamed=False, laser_serial=False, storing=False)  # a paused run: no step under way
 
 
 @dataclass(frozen=True)
@@ -52,7 +55,7 @@ class Poll:
 def _monitors(e: Engine, due: float) -> None:
     v, i = e._amp.read_monitors()
     e.rec.append("amplifier", v.timestamp - e._t0, voltage=v.value, current=i.value,
-                 **e._late("amplifier", e.now() - due))
+                 **e._late("amplifier", e.lateness(due)))
     e.snapshot.values["voltage"], e.snapshot.values["current"] = v.value, i.value
     e.sup.check_monitors(v.value, i.value)
     if (m := e.verifier.reading(v.timestamp - e._t0, v.value, v.ok)) is not None:
@@ -63,7 +66,7 @@ def _position(e: Engine, due: float) -> None:
     r = e._motor.read_position()
     prog = e.program
     x = float(prog.aperture(r.value)) if prog.has_motor_axis else math.nan
-    e.rec.append("motor", r.timestamp - e._t0, position=r.value, aperture=x, **e._late("motor", e.now() - due))
+    e.rec.append("motor", r.timestamp - e._t0, position=r.value, aperture=x, **e._late("motor", e.lateness(due)))
     if not r.ok or not math.isfinite(r.value):
         raise InstrumentStateError("motor", f"drive reports {r.status}: {e._drive_error_text()}")
     e.snapshot.values["aperture"] = x
@@ -73,7 +76,7 @@ def _position(e: Engine, due: float) -> None:
 def _force(e: Engine, due: float) -> None:
     r = e._cell.read()
     e.rec.append("load_cell", r.timestamp - e._t0, force=r.value, ok=np.array(r.ok, dtype="u1"),
-                 **e._late("load_cell", e.now() - due))
+                 **e._late("load_cell", e.lateness(due)))
     e.snapshot.values["force"] = r.value
     if r.status in ("overload", "underload"):
         raise SafetyTrip(f"load cell {r.status}")
@@ -86,7 +89,7 @@ def _laser(e: Engine, due: float) -> None:
     d = float(e._to_specimen(np.array([r.value]))[0])
     ok = r.ok and math.isfinite(d)
     e.rec.append("laser", r.timestamp - e._t0, displacement=d, valid=np.array(ok, dtype="u1"),
-                 **e._late("laser", e.now() - due))
+                 **e._late("laser", e.lateness(due)))
     if ok:
         e.sup.update_displacement(d)
         e.snapshot.values["displacement"] = d

@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import json
+import os
 import re
+import tempfile
 import time
+import uuid
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from datetime import datetime
@@ -18,12 +21,15 @@ from bench.protocol.predict import Prediction, predict
 from bench.protocol.program import Program, ProtocolLimitError, compile_program
 from bench.protocol.schema import MAX_OPERATOR, MAX_SPECIMEN_ID, Protocol, check_label, check_notes, load_protocol
 from bench.rig import RigConfig, load_rig, rig_to_toml
+from bench.runtime.control import control_path
 from bench.runtime.engine import Engine, OperatorFn, RunResult
 from bench.runtime.hardware_timed import describe_streams
 from bench.runtime.instruments import Instruments, build_instruments
 from bench.runtime.interlock import watchdog_period
 from bench.runtime.safety import Supervisor
 from bench.storage.recorder import Column, Recorder, now_iso
+from bench.storage.recover import recover
+from bench.storage.runfile import open_run
 from drivers.interfaces import StreamDescription
 
 SIM_MODBUS_POLL_S = 5e-5  # RTU receive poll interval against twins on ptys (they answer at once)
@@ -154,12 +160,15 @@ def run_metadata(protocol: Protocol, operator: str | None = None, specimen_id: s
 
 def execute(plan: Plan, out: Path, *, virtual: bool = False, operator: OperatorFn | None = None,
             on_engine: Callable[[Engine, Any], None] | None = None, allow_no_watchdog: bool = False,
-            metadata: dict[str, str] | None = None) -> RunResult:
+            metadata: dict[str, str] | None = None, resume: Resume | None = None) -> RunResult:
     """Connect the rig (starting its twins if simulated), record, run; returns how the run ended.
 
     Errors while connecting (before anything is recorded) propagate as InstrumentError.
     ``on_engine(engine, sim)`` is called before the run starts (sim: the SimRig, or None for a real rig).
     ``metadata``: operator, specimen ID and notes (:func:`run_metadata`; default: the protocol file's).
+    ``resume``: continue the campaign of an earlier file from its first step that did not complete
+    (:func:`plan_resume`); the new file is linked to it. The run's control file (``bench pause``) is
+    :func:`~bench.runtime.control.control_path` of ``out``.
     """
     rig, program = plan.rig, plan.program
     meta = metadata if metadata is not None else run_metadata(plan.protocol)
@@ -215,12 +224,16 @@ def execute(plan: Plan, out: Path, *, virtual: bool = False, operator: OperatorF
                                     "model": _model_params(params)}),
             "recording": json.dumps(plan.protocol.recording.model_dump()),
             "sources": json.dumps(sources), "duration_planned": program.duration, "hv_watchdog": watchdog,
-            **meta,
+            "run_id": uuid.uuid4().hex, **meta,
         }
+        attrs["campaign_id"] = attrs["run_id"]
+        if resume is not None:
+            attrs.update(resume.attrs(out))
         prog_rows = [(s.index, s.label, s.name, s.kind, s.t_start, s.duration) for s in program.segments]
         recorder = Recorder(out, attrs, streams, prog_rows, rates)
         apply = (lambda ch: sim.plant.change_specimen(**ch)) if sim is not None else None  # type: ignore[union-attr]
-        engine = Engine(program, inst, clock, recorder, supervisor, apply_specimen=apply, operator=operator)
+        engine = Engine(program, inst, clock, recorder, supervisor, apply_specimen=apply, operator=operator,
+                        start_step=resume.step if resume is not None else 0, control=control_path(out))
         if on_engine is not None:
             on_engine(engine, sim)
         return engine.run()
@@ -228,6 +241,63 @@ def execute(plan: Plan, out: Path, *, virtual: bool = False, operator: OperatorF
         inst.close()
         if sim is not None:
             sim.stop()
+
+
+@dataclass
+class Resume:
+    """Where a crashed or interrupted campaign goes on: the earlier file, its run and campaign IDs, and the
+    first step that did not complete there."""
+
+    previous: Path
+    run_id: str
+    campaign_id: str
+    step: int
+    steps: int
+
+    def attrs(self, out: Path) -> dict[str, Any]:
+        """The new file's link to the earlier one (``previous_file`` relative to the new file's folder)."""
+        try:
+            rel = os.path.relpath(self.previous.resolve(), out.resolve().parent)
+        except ValueError:  # another drive (Windows)
+            rel = str(self.previous.resolve())
+        return {"previous_file": rel, "previous_run_id": self.run_id, "campaign_id": self.campaign_id,
+                "resumed_at_step": self.step}
+
+
+def plan_resume(run_file: str | Path, rig_path: str | Path | None = None, simulate: bool = False,
+                progress: Callable[[float], None] | None = None) -> tuple[Plan, Resume, list[str]]:
+    """Plan the rest of the campaign of ``run_file``: recover it if a crash left it open, re-plan its stored
+    protocol on its stored rig (or ``rig_path``), and find the first step that did not complete. Returns the
+    plan, the link, and what was done to the file (recovery lines). ValueError (one line) if there is nothing
+    to resume or the file cannot be read."""
+    p = Path(run_file)
+    notes: list[str] = []
+    run = open_run(p, streams=False)
+    if run.state == "running" and run.orphaned:
+        notes = recover(p).lines()
+        run = open_run(p, streams=False)
+    elif run.state == "running":
+        raise ValueError(f"run file {p}: a run is still writing it (stop it first, or pause it with bench pause)")
+    for key in ("protocol_text", "rig_toml", "protocol_sha256"):
+        if key not in run.attrs:
+            raise ValueError(f"run file {p}: no {key} attribute: not a run file this version can resume")
+    with tempfile.TemporaryDirectory() as tmp:
+        proto = Path(tmp) / Path(str(run.attrs.get("protocol_path", "protocol.toml"))).name
+        proto.write_text(str(run.attrs["protocol_text"]), encoding="utf-8")
+        rig_file = Path(rig_path) if rig_path is not None else Path(tmp) / "rig.toml"
+        if rig_path is None:
+            rig_file.write_text(str(run.attrs["rig_toml"]), encoding="utf-8")
+        plan = plan_run(proto, rig_file, simulate, progress)
+    if plan.protocol.sha256 != run.attrs["protocol_sha256"]:
+        raise ValueError(f"run file {p}: its stored protocol no longer reads the same (hash differs)")
+    done = run.completed_steps()
+    indices = [s.index for s in plan.program.segments]
+    todo = next((k for k, i in enumerate(indices) if i not in done), None)
+    if todo is None:
+        raise ValueError(f"run file {p}: every step completed ({run.state}): nothing to resume")
+    rid = str(run.attrs.get("run_id", "")) or p.stem
+    resume = Resume(p, rid, str(run.attrs.get("campaign_id", "")) or rid, todo, len(indices))
+    return plan, resume, notes
 
 
 def _model_params(params: object) -> dict[str, Any]:

@@ -67,6 +67,28 @@ class RunFile:
         """Events as (t, step, kind, text)."""
         return [(float(e["t"]), int(e["step"]), e["kind"].decode(), e["text"].decode()) for e in self.events]
 
+    def completed_steps(self) -> set[int]:
+        """Indices of the steps whose end the file recorded (a step's last start followed by its end): a step cut
+        by a crash, a stop or a pause (and not restarted to its end) is not among them."""
+        done: set[int] = set()
+        for _, step, kind, _ in self.event_list():
+            if kind == "start":
+                done.discard(step)
+            elif kind == "end":
+                done.add(step)
+        return done
+
+    def step_offsets(self) -> dict[int, float]:
+        """Run time − program time of each step's last start [s]: a resumed file and a pause shift the program
+        (``offset`` events, "run time = program time + X s"); steps absent here ran with none (0)."""
+        offset, out = 0.0, {}
+        for _, step, kind, text in self.event_list():
+            if kind == "offset":
+                offset = float(text.rsplit("+", 1)[1].split()[0])
+            elif kind == "start":
+                out[step] = offset
+        return out
+
     def specimen_changes(self) -> list[tuple[float, dict[str, float]]]:
         """Specimen changes during the run (``specimen`` events "key=value, …") as (t, {key: value})."""
         out = []

@@ -1,0 +1,50 @@
+"""A run's control file: how ``bench pause`` and ``bench resume`` reach a run from another terminal.
+
+``RUN.control`` beside ``RUN.h5`` holds one JSON object: ``{"pause": true|false, "by": "...", "why": "...",
+"at": "ISO time"}``. The engine looks at the file's modification time every :data:`CONTROL_POLL_S` of wall time
+and reads it when it changed. A file that cannot be read or parsed changes nothing (the run goes on as it was):
+a half-written file is read again at the next look.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from datetime import datetime
+from pathlib import Path
+
+CONTROL_POLL_S = 0.1  # wall time between two looks at the control file
+
+
+def control_path(run_file: str | Path) -> Path:
+    """The control file of a run file: ``RUN.control`` beside ``RUN.h5``."""
+    return Path(run_file).with_suffix(".control")
+
+
+def write_control(run_file: str | Path, pause: bool, by: str, why: str) -> Path:
+    """Ask the run writing ``run_file`` to pause (or to resume); atomic (written beside, then renamed)."""
+    path = control_path(run_file)
+    tmp = path.with_suffix(".control.tmp")
+    text = json.dumps({"pause": pause, "by": by, "why": why, "at": datetime.now().astimezone().isoformat()})
+    tmp.write_text(text, encoding="utf-8")
+    os.replace(tmp, path)
+    return path
+
+
+def read_control(path: Path, seen: tuple[float, bool, str]) -> tuple[float, bool, str]:
+    """(mtime, pause?, "by: why") of the control file; ``seen`` when it is absent, unchanged or unreadable."""
+    try:
+        mtime = path.stat().st_mtime
+    except OSError:
+        return seen
+    if mtime == seen[0]:
+        return seen
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+        pause = data["pause"]
+        if not isinstance(pause, bool):
+            return seen
+        who = f"{data.get('by') or 'someone'} (control file{': ' + str(data['why']) if data.get('why') else ''})"
+    except (OSError, ValueError, KeyError, TypeError):
+        return seen
+    return mtime, pause, who

@@ -1,0 +1,67 @@
+"""Campaigns of linked run files: a run resumed with ``bench run --resume`` writes a new file whose
+``previous_file`` attribute names the one it continues (relative to its own folder) and whose ``campaign_id`` is
+the first file's ``run_id``. Analysis, reports and fits take the whole chain as one campaign: each step from the
+file in which it completed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from bench.storage.runfile import open_run
+
+MAX_CHAIN = 1000  # a longer chain is a loop or a damaged attribute
+
+
+@dataclass(frozen=True)
+class Link:
+    """One file of a campaign chain: its path, state, the step it resumed at (None: the first file)."""
+
+    path: Path
+    state: str
+    complete: bool
+    resumed_at_step: int | None
+
+
+def chain(path: str | Path) -> list[Link]:
+    """The files of the campaign ``path`` belongs to, up to ``path``, first one first (following
+    ``previous_file``). ValueError (one line naming the file) when a linked file is missing or the links loop."""
+    out: list[Link] = []
+    p: Path | None = Path(path)
+    seen: set[Path] = set()
+    while p is not None:
+        key = p.resolve()
+        if key in seen or len(out) >= MAX_CHAIN:
+            raise ValueError(f"run file {path}: its previous_file links loop back to {p}")
+        seen.add(key)
+        if not p.is_file():
+            raise ValueError(f"run file {out[-1].path if out else path}: the file it continues, {p}, is missing "
+                             "(keep a campaign's files together)")
+        run = open_run(p, streams=False)
+        step = run.attrs.get("resumed_at_step")
+        out.append(Link(p, run.state, run.complete, None if step is None else int(step)))
+        prev = run.attrs.get("previous_file")
+        p = (p.parent / str(prev)) if prev else None
+    return out[::-1]
+
+
+def with_chains(paths: list[Path]) -> list[Path]:
+    """``paths`` with the earlier files of each one's campaign before it, each file once, in campaign order."""
+    out: list[Path] = []
+    seen: set[Path] = set()
+    for p in paths:
+        for link in chain(p):
+            key = link.path.resolve()
+            if key not in seen:
+                seen.add(key)
+                out.append(link.path)
+    return out
+
+
+def describe(links: list[Link]) -> str:
+    """One line: the campaign's files, how each ended and where each resumed."""
+    parts = [f"{ln.path.name} ({ln.state}{'' if ln.complete else ', incomplete'}"
+             + (f", resumed at step {ln.resumed_at_step + 1}" if ln.resumed_at_step is not None else "") + ")"
+             for ln in links]
+    return " → ".join(parts)

@@ -1,0 +1,216 @@
+"""Pause and resume a run; continue a crashed or stopped campaign in a linked file (``bench run --resume``).
+
+Expected values come from the protocol files (the voltage and aperture a step starts from) and from the plant's
+own output history, never from the engine's account of itself.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bench.analysis.runs import analyse
+from bench.runtime.control import control_path, read_control, write_control
+from bench.runtime.engine import Engine
+from bench.runtime.run import execute, plan_resume, plan_run
+from bench.storage.chain import chain
+from bench.storage.runfile import RunFile, open_run
+from tests.conftest import ROOT
+
+SHORT = ROOT / "protocols" / "short"
+SWEEPS = SHORT / "thesis-sweeps-short.toml"  # 5 kV at 266 K, then 7 kV at 316 K: drive 5 s + recovery 2 s each
+ISOPOTENTIAL = SHORT / "lsdea-isopotential-short.toml"
+ADAM_RIG = ROOT / "rigs" / "thesis-sim.toml"
+DAQ_RIG = ROOT / "rigs" / "thesis-daq-sim.toml"
+ZERO_V = 5.0
+ENV = {**os.environ, "PYTHONPATH": str(ROOT), "COLUMNS": "200"}
+
+
+def events(run: RunFile, kind: str | None = None) -> list[tuple[float, int, str, str]]:
+    return [e for e in run.event_list() if kind is None or e[2] == kind]
+
+
+# ---------------------------------------------------------------- pause in a run (virtual time)
+@pytest.mark.parametrize("rig", [ADAM_RIG, DAQ_RIG], ids=["adam", "daq"])
+def test_a_pause_zeroes_the_output_records_on_and_restarts_the_step(tmp_path: Path, rig: Path) -> None:
+    blocks: list[tuple[np.ndarray, np.ndarray]] = []
+    t0: list[float] = []  # rig-clock time of run time 0
+
+    def hook(engine: Engine, sim) -> None:
+        sim.plant.listeners.append(lambda b: blocks.append((b.t.copy(), b.voltage.copy())))
+
+        def at(_now: float) -> None:
+            if engine.snapshot.state == "running" and not t0:
+                t0.append(sim.clock.now() - engine.now())
+            if engine.snapshot.state == "running" and engine.pauses == 0 and engine.now() >= 3.0:
+                engine.request_pause("the test")
+            if engine.snapshot.state == "paused" and engine.now() >= 6.0:
+                engine.request_resume("the test")
+        sim.clock.subscribe(at)
+
+    plan = plan_run(SWEEPS, rig)
+    result = execute(plan, tmp_path / "run.h5", virtual=True, on_engine=hook)
+    assert result.state == "completed", result.reason
+    run = open_run(result.path)
+    kinds = [k for _, _, k, _ in events(run) if k in ("pause", "resume", "restart", "offset")]
+    assert kinds == ["pause", "resume", "restart", "offset"]
+    (t_pause, step, _, text), = events(run, "pause")
+    assert step == 1 and "by the test" in text  # step 1: the 5-kV drive (the protocol's second step)
+    (t_resume, *_), = events(run, "resume")
+    # the plant's output: at 0 V from the end of the pause's ramp (shutdown_ramp_s 0.25 s) until the resume
+    t = np.concatenate([b[0] for b in blocks]) - t0[0]
+    v = np.concatenate([b[1] for b in blocks])
+    assert np.abs(v[(t > t_pause + 0.25 + 0.05) & (t < t_resume)]).max() <= ZERO_V
+    assert np.abs(v[t < t_pause]).max() > 1000.0  # it was under high voltage when paused
+    # recording went on while paused
+    amp = run.streams["amplifier"]
+    assert ((amp.t > t_pause + 0.5) & (amp.t < t_resume)).sum() >= 10
+    # the step restarted from its start: analysed once, on the window after the restart, both drives present
+    (_, _, _, offset_text), = events(run, "offset")
+    offset = float(offset_text.rsplit("+", 1)[1].split()[0])
+    steps = {s.index: s for s in analyse(result.path).steps}
+    assert sorted(steps) == [1, 4]
+    assert steps[1].t_start == pytest.approx(plan.program.segments[1].t_start + offset)
+    assert steps[1].t_start >= t_resume
+    assert steps[1].voltage == pytest.approx(5000.0, rel=0.02) and steps[4].voltage == pytest.approx(7000.0, rel=0.02)
+    assert result.run_time >= plan.program.duration + (t_resume - t_pause)
+
+
+def test_the_control_file_is_read_only_when_whole(tmp_path: Path) -> None:
+    run_file = tmp_path / "r.h5"
+    seen = (0.0, False, "")
+    path = control_path(run_file)
+    assert read_control(path, seen) == seen  # absent: nothing changes
+    path.write_text('{"pause": tr', encoding="utf-8")  # half written
+    assert read_control(path, seen) == seen
+    path.write_text('{"pause": "yes"}', encoding="utf-8")  # not a boolean
+    assert read_control(path, seen) == seen
+    write_control(run_file, True, "ada", "check the clamp")
+    mtime, pause, who = read_control(path, seen)
+    assert pause and "ada" in who and "check the clamp" in who
+
+
+def _wait_for(predicate, timeout: float, what: str) -> None:
+    end = time.monotonic() + timeout
+    while not predicate():
+        if time.monotonic() > end:
+            raise AssertionError(f"timed out waiting for {what}")
+        time.sleep(0.05)
+
+
+def test_pause_and_resume_from_another_terminal(tmp_path: Path) -> None:
+    """A wall-clock run in its own process, paused and resumed with `bench pause` / `bench resume`."""
+    bench = [sys.executable, "-m", "bench"]
+    proc = subprocess.Popen([*bench, "run", str(SHORT / "thesis-identification-short.toml"), "--out",
+                             str(tmp_path), "--no-live"], cwd=ROOT, env=ENV, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)
+    try:
+        _wait_for(lambda: any(tmp_path.glob("*.log")) and "step 0 start" in next(tmp_path.glob("*.log")).read_text(),
+                  60, "the run to start")
+        run_file = next(tmp_path.glob("*.h5"))
+        time.sleep(1.0)
+        refused = subprocess.run([*bench, "resume", str(run_file)], cwd=ROOT, env=ENV, capture_output=True, text=True)
+        assert refused.returncode != 0 and "--why" in refused.stdout + refused.stderr
+        paused = subprocess.run([*bench, "pause", str(run_file), "--why", "adjust the laser", "--operator", "ada"],
+                                cwd=ROOT, env=ENV, capture_output=True, text=True)
+        assert paused.returncode == 0, paused.stdout + paused.stderr
+        log = run_file.with_suffix(".log")
+        _wait_for(lambda: " pause: " in log.read_text(), 30, "the pause event")
+        time.sleep(1.0)
+        resumed = subprocess.run([*bench, "resume", str(run_file), "--why", "laser fixed", "--operator", "ada"],
+                                 cwd=ROOT, env=ENV, capture_output=True, text=True)
+        assert resumed.returncode == 0, resumed.stdout + resumed.stderr
+        out, _ = proc.communicate(timeout=120)
+    finally:
+        proc.kill()
+    assert proc.returncode == 0, out
+    run = open_run(run_file)
+    assert run.state == "completed"
+    (_, _, _, p_text), = events(run, "pause")
+    (_, _, _, r_text), = events(run, "resume")
+    assert "ada" in p_text and "adjust the laser" in p_text and "laser fixed" in r_text
+    after = subprocess.run([*bench, "pause", str(run_file)], cwd=ROOT, env=ENV, capture_output=True, text=True)
+    assert after.returncode != 0 and "bench run --resume" in after.stdout + after.stderr  # no run writes it now
+
+
+# ---------------------------------------------------------------- a crashed or stopped campaign goes on
+def test_a_killed_campaign_resumes_in_a_linked_file_and_reports_as_one(tmp_path: Path) -> None:
+    bench = [sys.executable, "-m", "bench"]
+    proc = subprocess.Popen([*bench, "run", str(SWEEPS), "--virtual-time", "--out", str(tmp_path), "--no-live"],
+                            cwd=ROOT, env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        # kill -9 once the second sweep point (step 4: the 7-kV drive) has started
+        _wait_for(lambda: any(tmp_path.glob("*.log")) and "step 4 start" in next(tmp_path.glob("*.log")).read_text(),
+                  120, "step 4")
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(30)
+    finally:
+        proc.kill()
+    first = next(tmp_path.glob("*.h5"))
+    assert open_run(first, streams=False).state == "running"  # killed: no end recorded
+    resumed = subprocess.run([*bench, "run", "--resume", str(first), "--virtual-time", "--no-live"], cwd=ROOT,
+                             env=ENV, capture_output=True, text=True, timeout=300)
+    assert resumed.returncode == 0, resumed.stdout + resumed.stderr
+    second = next(p for p in tmp_path.glob("*.h5") if p != first)
+    links = chain(second)
+    assert [ln.path.name for ln in links] == [first.name, second.name]
+    a, b = open_run(first, streams=False), open_run(second, streams=False)
+    assert b.state == "completed" and b.attrs["campaign_id"] == a.attrs["run_id"]
+    assert b.attrs["protocol_sha256"] == a.attrs["protocol_sha256"]
+    # every step of the protocol completed once over the campaign (6 steps: chamber, drive, recovery × 2)
+    assert sorted(a.completed_steps() | b.completed_steps()) == list(range(6))
+    assert not a.completed_steps() & b.completed_steps()
+    # the report of the last file is the campaign's: both drives, each once, at the protocol's voltages
+    rep = subprocess.run([*bench, "report", str(second), "--json", "--out", str(tmp_path / "report")], cwd=ROOT,
+                         env=ENV, capture_output=True, text=True, timeout=300)
+    assert rep.returncode == 0, rep.stderr
+    data = json.loads(rep.stdout)
+    assert [r["file"] for r in data["runs"]] == [str(first), str(second)]
+    volts = sorted(s["voltage_V"] for r in data["runs"] for s in r["steps"])
+    assert volts == [pytest.approx(5000.0, rel=0.02), pytest.approx(7000.0, rel=0.02)]
+    # and the fit takes both files as records of one campaign
+    fit = subprocess.run([*bench, "fit", str(second), "--population", "6", "--generations", "1", "--no-polish",
+                          "--json"], cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=600)
+    assert fit.returncode == 0, fit.stderr
+    assert json.loads(fit.stdout)["runs"] == [str(first), str(second)]
+
+
+def test_a_stopped_motor_campaign_resumes_from_the_state_its_step_starts_in(tmp_path: Path) -> None:
+    """Stopped during the 7-kV tensile cycles: the resumed file first moves the motor back to the aperture the
+    cycles start from (50 mm, the waveform's offset) at 0 V, then ramps to 7 kV (the sweep's voltage), then
+    restarts the step (lsdea-isopotential-short.toml)."""
+    def stop_in_cycles(engine: Engine, sim) -> None:
+        def at(_now: float) -> None:
+            name = engine.snapshot.step_name
+            if "tensile" in name and "7 kV" in name and engine.program_now() > engine.program.segments[
+                    engine.snapshot.step].t_start + 1.0:
+                engine.request_stop("stopped by the test")
+        sim.clock.subscribe(at)
+
+    first = execute(plan_run(ISOPOTENTIAL), tmp_path / "first.h5", virtual=True, on_engine=stop_in_cycles)
+    assert first.state == "interrupted"
+    plan, link, notes = plan_resume(first.path)
+    seg = plan.program.segments[link.step]
+    assert "tensile" in seg.name and "7 kV" in seg.name and notes == []
+    second = execute(plan, tmp_path / "second.h5", virtual=True, resume=link)
+    assert second.state == "completed", second.reason
+    run = open_run(second.path)
+    (_, _, _, text), = events(run, "restart")
+    assert "output to 7000 V" in text
+    (t_off, _, _, _), = events(run, "offset")
+    motor = run.streams["motor"]
+    x = np.interp(t_off, motor.t, motor.columns["aperture"])
+    assert x == pytest.approx(0.050, abs=1e-3)  # the waveform's offset, 50 mm
+    amp = run.streams["amplifier"]
+    assert np.interp(t_off, amp.t, amp.columns["voltage"]) == pytest.approx(7000.0, rel=0.03)
+    assert run.attrs["previous_file"] == "first.h5"
+    with pytest.raises(ValueError, match="nothing to resume"):
+        plan_resume(second.path)
