@@ -16,6 +16,13 @@ ROOT = Path(__file__).resolve().parent.parent
 RIGS = ROOT / "rigs"
 
 
+@pytest.fixture(autouse=True)
+def _own_interlock_state(tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Each test has its own interlock latch folder (bench.runtime.latch), also for the processes it starts: a
+    latch one test leaves (on purpose) never refuses another test's run."""
+    monkeypatch.setenv("BENCH_STATE_DIR", str(tmp_path_factory.mktemp("state")))
+
+
 @dataclass
 class RunningRig:
     """A started simulated rig and the drivers connected to it."""

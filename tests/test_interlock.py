@@ -270,3 +270,46 @@ def test_polled_readings_follow_the_set_points_within_the_lag() -> None:
     assert v.reading(1.5, 5000.0) is None  # first reading out of band: not yet a fault
     m = v.reading(1.6, 5000.0)
     assert m is not None and m.commanded == 0.0 and m.t == 1.6
+
+
+# ---------------------------------------------------------------- the latch outlives the run
+def test_a_latched_rig_refuses_the_next_run_until_an_operator_resets_it(tmp_path: Path) -> None:
+    import os
+    import subprocess
+    import sys
+
+    from bench.runtime.latch import LatchedError, latched, state_dir
+
+    result, _run, _plant = run_with_fault(DAQ_RIG, tmp_path, 3.0, gain_off(1.25), virtual=True)
+    assert result.state == "tripped"
+    rig_name = load_rig(DAQ_RIG).name
+    was = latched(rig_name)
+    assert was is not None and "output mismatch" in was["fault"] and was["where"] == str(result.path)
+    with pytest.raises(LatchedError, match="interlock latched"):  # nothing is touched: no file is created
+        execute(plan_run(THESIS, DAQ_RIG), tmp_path / "next.h5", virtual=True)
+    assert not (tmp_path / "next.h5").exists()
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    bench = [sys.executable, "-m", "bench"]
+    # resuming the campaign needs the operator's reason; with it, the latch is reset and the reset recorded
+    refused = subprocess.run([*bench, "run", "--resume", str(result.path), "--virtual-time", "--no-live"], cwd=ROOT,
+                             env=env, capture_output=True, text=True, timeout=300)
+    assert refused.returncode != 0 and "--why" in refused.stdout + refused.stderr
+    resumed = subprocess.run([*bench, "run", "--resume", str(result.path), "--virtual-time", "--no-live", "--why",
+                              "conditioning stage recalibrated", "--operator", "ada"], cwd=ROOT, env=env,
+                             capture_output=True, text=True, timeout=300)
+    assert resumed.returncode == 0, resumed.stdout + resumed.stderr
+    assert latched(rig_name) is None
+    second = next(p for p in tmp_path.glob("*.h5") if p.name != "run.h5")
+    assert "ada: conditioning stage recalibrated" in open_run(second, streams=False).attrs["interlock_reset"]
+    # a reset with the CLI is logged in the history with who and why
+    from bench.runtime.latch import latch
+
+    latch(rig_name, "test fault", "a test")
+    no_why = subprocess.run([*bench, "interlock", "reset", rig_name], cwd=ROOT, env=env, capture_output=True,
+                            text=True)
+    assert no_why.returncode != 0 and latched(rig_name) is not None
+    ok = subprocess.run([*bench, "interlock", "reset", rig_name, "--why", "checked", "--operator", "bo"], cwd=ROOT,
+                        env=env, capture_output=True, text=True)
+    assert ok.returncode == 0 and latched(rig_name) is None
+    history = (state_dir() / "interlock.log").read_text()
+    assert "reset\t" + rig_name + "\tby bo: checked" in history and "ada: conditioning stage recalibrated" in history

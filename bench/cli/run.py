@@ -135,6 +135,9 @@ def run(
     resume: Annotated[Path | None, typer.Option(
         "--resume", help="Continue the campaign of this run file (crashed, killed, stopped or tripped) at its first "
         "step that did not complete, into a new file linked to it.")] = None,
+    why: Annotated[str | None, typer.Option(
+        "--why", help="With --resume on a rig whose interlock latched: why it is safe to go on (resets the latch; "
+        "recorded with --operator or the login name).")] = None,
 ) -> None:
     """Run a protocol on a rig (simulated by default), streaming everything to one HDF5 file.
 
@@ -151,6 +154,7 @@ def run(
         old = open_run_attrs(resume)
         metadata = run_metadata(plan.protocol, operator_name or old.get("operator"),
                                 specimen_id or old.get("specimen_id"), note)
+        metadata.update(_reset_for_resume(plan.rig.name, operator_name or old.get("operator"), why, dry_run))
         out = resume.parent if out == Path("runs") else out
     elif protocol_file is None:
         raise ValueError("give a protocol file, or --resume RUN.h5 to continue a campaign")
@@ -213,6 +217,23 @@ def _plan_resume(protocol_file: Path | None, run_file: Path, rig: Path | None, s
         raise ValueError(f"protocol file {protocol_file}: not the protocol of {run_file} (its text differs); "
                          "--resume needs no protocol file")
     return plan, link, notes
+
+
+def _reset_for_resume(rig_name: str, operator: str | None, why: str | None, dry_run: bool) -> dict[str, str]:
+    """A resumed campaign on a latched rig: the operator's reset (who and why), recorded in the new file."""
+    from bench.runtime.latch import latched, reset
+
+    was = latched(rig_name)
+    if was is None:
+        return {}
+    if not why or not why.strip():
+        raise ValueError(f"rig {rig_name}: interlock latched ({was.get('fault')}): --why '…' resets it to resume")
+    if dry_run:
+        return {}
+    who = _who(operator)
+    reset(rig_name, who, why)
+    console.print(f"interlock of {escape(rig_name)} reset by {escape(who)}: {escape(why)}")
+    return {"interlock_reset": f"by {who}: {why} (latched at {was.get('at')}: {was.get('fault')})"}
 
 
 def open_run_attrs(path: Path) -> dict[str, str]:
@@ -416,6 +437,39 @@ def resume_run(run_file: RunArg, why: WhyOpt = "", operator: ByOpt = None) -> No
     console.print(f"resume asked ({escape(str(path))})")
 
 
+interlock_app = typer.Typer(help="The interlock latch: after a latched fault nothing energises the rig until an "
+                             "operator resets it.", no_args_is_help=True, rich_markup_mode=None)
+
+
+@clean_errors
+def interlock_status(json_out: JsonOpt = False) -> None:
+    """Every latched rig: the fault, when, and in which run file or session."""
+    from bench.runtime.latch import latched, state_dir
+
+    rigs = sorted(p.stem.removeprefix("interlock-") for p in state_dir().glob("interlock-*.json"))
+    found = {r: latched(r) for r in rigs}
+    if json_out:
+        print_json({"state_dir": str(state_dir()), "latched": found})
+        return
+    if not found:
+        console.print(f"no rig latched ({escape(str(state_dir()))})")
+    for rig_name, was in found.items():
+        console.print(f"[red]latched[/] {escape(rig_name)}: {escape(str(was))}")
+
+
+@clean_errors
+def interlock_reset(rig_name: Annotated[str, typer.Argument(help="Rig name (the rig file's name field).")],
+                    why: WhyOpt = "", operator: ByOpt = None) -> None:
+    """Reset a rig's latched interlock (who and why go to the interlock history)."""
+    from bench.runtime.latch import reset
+
+    if not why.strip():
+        raise ValueError("--why: say why it is safe to energise the rig again")
+    was = reset(rig_name, _who(operator), why)
+    console.print(f"rig {escape(rig_name)}: " + ("not latched" if was is None else
+                                                 f"reset (was: {escape(str(was.get('fault')))})"))
+
+
 def protocol_schema(
     out: Annotated[Path | None, typer.Option(help="Write to this file instead of stdout.")] = None,
 ) -> None:
@@ -492,6 +546,9 @@ def register(app: typer.Typer) -> None:
     app.command()(recover)
     app.command()(pause)
     app.command("resume")(resume_run)
+    app.add_typer(interlock_app, name="interlock")
+    interlock_app.command("status")(interlock_status)
+    interlock_app.command("reset")(interlock_reset)
     protocol_app.command("schema")(protocol_schema)
     protocol_app.command("list")(protocols_list)
     protocol_app.command("show")(protocols_show)

@@ -26,6 +26,7 @@ from bench.runtime.engine import Engine, OperatorFn, RunResult
 from bench.runtime.hardware_timed import describe_streams
 from bench.runtime.instruments import Instruments, build_instruments
 from bench.runtime.interlock import watchdog_period
+from bench.runtime.latch import latch, refuse_if_latched
 from bench.runtime.safety import Supervisor
 from bench.storage.recorder import Column, Recorder, now_iso
 from bench.storage.recover import recover
@@ -175,6 +176,7 @@ def execute(plan: Plan, out: Path, *, virtual: bool = False, operator: OperatorF
     if virtual and not rig.simulated:
         raise ValueError(f"rig {rig.name} is real: virtual time needs a simulated rig (use --sim)")
     watchdog = check_watchdog(rig, allow_no_watchdog)
+    refuse_if_latched(rig.name)
     sim = None
     if rig.simulated:
         from bench.runtime.sim_rig import SimRig
@@ -236,7 +238,10 @@ def execute(plan: Plan, out: Path, *, virtual: bool = False, operator: OperatorF
                         start_step=resume.step if resume is not None else 0, control=control_path(out))
         if on_engine is not None:
             on_engine(engine, sim)
-        return engine.run()
+        result = engine.run()
+        if engine.latched is not None:
+            latch(rig.name, engine.latched.reason, str(out))
+        return result
     finally:
         inst.close()
         if sim is not None:

@@ -1,0 +1,90 @@
+"""The interlock latch that outlives a run: after a latched fault nothing re-energises a rig until an operator
+resets it, whether the next attempt is a run, a resumed campaign or manual control.
+
+One JSON file per rig name in the bench's state folder (``$BENCH_STATE_DIR``, default
+``~/.local/state/dea-bench``): ``interlock-<rig>.json`` with the fault, when it latched and in which run file.
+Every latch and reset is also appended to ``interlock.log`` there (who, why, when), so the history survives
+the reset.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+STATE_ENV = "BENCH_STATE_DIR"
+
+
+class LatchedError(ValueError):
+    """A rig whose interlock is latched: refused until an operator resets it (one line, names the command)."""
+
+
+def state_dir() -> Path:
+    """The bench's state folder (``$BENCH_STATE_DIR`` or ``~/.local/state/dea-bench``)."""
+    env = os.environ.get(STATE_ENV)
+    return Path(env) if env else Path.home() / ".local" / "state" / "dea-bench"
+
+
+def latch_path(rig_name: str) -> Path:
+    """The latch file of rig ``rig_name``."""
+    return state_dir() / f"interlock-{re.sub(r'[^A-Za-z0-9_.-]+', '-', rig_name)}.json"
+
+
+def _now() -> str:
+    return datetime.now().astimezone().isoformat(timespec="seconds")
+
+
+def _history(line: str) -> None:
+    with (state_dir() / "interlock.log").open("a", encoding="utf-8") as fh:
+        fh.write(f"{_now()}\t{line}\n")
+
+
+def latch(rig_name: str, fault: str, where: str) -> Path:
+    """Latch rig ``rig_name`` after ``fault`` (one line) seen in ``where`` (a run file or a manual session)."""
+    path = latch_path(rig_name)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps({"rig": rig_name, "fault": fault, "where": where, "at": _now()}), encoding="utf-8")
+    os.replace(tmp, path)
+    _history(f"latched\t{rig_name}\t{fault}\t{where}")
+    return path
+
+
+def latched(rig_name: str) -> dict[str, Any] | None:
+    """The latch of rig ``rig_name`` (fault, where, at), or None. An unreadable latch file counts as latched."""
+    path = latch_path(rig_name)
+    if not path.exists():
+        return None
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+        if isinstance(data, dict):
+            return data
+    except (OSError, ValueError):
+        pass
+    return {"rig": rig_name, "fault": f"latch file {path} unreadable", "where": "?", "at": "?"}
+
+
+def reset(rig_name: str, by: str, why: str) -> dict[str, Any] | None:
+    """Reset the latch of ``rig_name`` (an operator's explicit act: ``by`` and ``why`` required, recorded in the
+    history); returns what was latched, or None if nothing was."""
+    if not by.strip() or not why.strip():
+        raise ValueError("resetting the interlock needs who (--operator) and why (--why)")
+    was = latched(rig_name)
+    if was is None:
+        return None
+    latch_path(rig_name).unlink(missing_ok=True)
+    _history(f"reset\t{rig_name}\tby {by}: {why}\t(was: {was.get('fault')} in {was.get('where')})")
+    return was
+
+
+def refuse_if_latched(rig_name: str) -> None:
+    """LatchedError (one line) while rig ``rig_name`` is latched."""
+    was = latched(rig_name)
+    if was is not None:
+        raise LatchedError(f"rig {rig_name}: interlock latched at {was.get('at')} ({was.get('fault')}; in "
+                           f"{was.get('where')}): nothing energises it until an operator resets it — "
+                           f"bench interlock reset {rig_name} --why '…', or bench run --resume RUN.h5 --why '…'")
