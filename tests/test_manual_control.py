@@ -172,6 +172,10 @@ def test_any_exception_in_a_command_is_one_line_and_the_session_goes_on(tmp_path
         read = laser.read
 
         def fail():
+            from drivers.errors import ImplausibleValueError
+
+            if exc_class is ImplausibleValueError:
+                raise ImplausibleValueError("laser", "displacement", 1e9, (-1.0, 1.0), "m", "first line\nsecond line")
             raise exc_class("laser", "first line\nsecond line") if issubclass(exc_class, InstrumentError) \
                 else exc_class("first line\nsecond line")
         laser.read = fail

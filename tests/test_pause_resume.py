@@ -107,25 +107,26 @@ def _wait_for(predicate, timeout: float, what: str) -> None:
 
 
 def test_pause_and_resume_from_another_terminal(tmp_path: Path) -> None:
-    """A wall-clock run in its own process, paused and resumed with `bench pause` / `bench resume`."""
+    """A virtual-time run in its own process, paused from the start by its control file (what `bench pause` writes),
+    then `bench pause` and `bench resume` from another process while it holds."""
     bench = [sys.executable, "-m", "bench"]
-    proc = subprocess.Popen([*bench, "run", str(SHORT / "thesis-identification-short.toml"), "--out",
-                             str(tmp_path), "--no-live"], cwd=ROOT, env=ENV, stdout=subprocess.PIPE,
+    proc = subprocess.Popen([*bench, "run", str(SHORT / "thesis-identification-short.toml"), "--virtual-time",
+                             "--out", str(tmp_path), "--no-live"], cwd=ROOT, env=ENV, stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True)
     try:
-        _wait_for(lambda: any(tmp_path.glob("*.log")) and "step 0 start" in next(tmp_path.glob("*.log")).read_text(),
-                  60, "the run to start")
+        _wait_for(lambda: any(tmp_path.glob("*.h5")), 60, "the run file")
         run_file = next(tmp_path.glob("*.h5"))
-        time.sleep(1.0)
+        write_control(run_file, True, "ada", "before the first step")
+        log = run_file.with_suffix(".log")
+        _wait_for(lambda: " pause: " in log.read_text(), 60, "the pause event")
         refused = subprocess.run([*bench, "resume", str(run_file)], cwd=ROOT, env=ENV, capture_output=True, text=True)
         assert refused.returncode != 0 and "--why" in refused.stdout + refused.stderr
         paused = subprocess.run([*bench, "pause", str(run_file), "--why", "adjust the laser", "--operator", "ada"],
                                 cwd=ROOT, env=ENV, capture_output=True, text=True)
         assert paused.returncode == 0, paused.stdout + paused.stderr
-        log = run_file.with_suffix(".log")
-        _wait_for(lambda: " pause: " in log.read_text(), 30, "the pause event")
-        time.sleep(1.0)
-        resumed = subprocess.run([*bench, "resume", str(run_file), "--why", "laser fixed", "--operator", "ada"],
+        assert json.loads(control_path(run_file).read_text())["why"] == "adjust the laser"
+        assert proc.poll() is None  # still paused
+        resumed = subprocess.run([*bench, "resume", str(run_file), "--why", "laser fixed", "--operator", "bo"],
                                  cwd=ROOT, env=ENV, capture_output=True, text=True)
         assert resumed.returncode == 0, resumed.stdout + resumed.stderr
         out, _ = proc.communicate(timeout=120)
@@ -136,7 +137,7 @@ def test_pause_and_resume_from_another_terminal(tmp_path: Path) -> None:
     assert run.state == "completed"
     (_, _, _, p_text), = events(run, "pause")
     (_, _, _, r_text), = events(run, "resume")
-    assert "ada" in p_text and "adjust the laser" in p_text and "laser fixed" in r_text
+    assert "ada" in p_text and "before the first step" in p_text and "bo" in r_text and "laser fixed" in r_text
     after = subprocess.run([*bench, "pause", str(run_file)], cwd=ROOT, env=ENV, capture_output=True, text=True)
     assert after.returncode != 0 and "bench run --resume" in after.stdout + after.stderr  # no run writes it now
 
@@ -214,3 +215,48 @@ def test_a_stopped_motor_campaign_resumes_from_the_state_its_step_starts_in(tmp_
     assert run.attrs["previous_file"] == "first.h5"
     with pytest.raises(ValueError, match="nothing to resume"):
         plan_resume(second.path)
+
+
+def test_pause_and_resume_with_keys_at_the_live_view(tmp_path: Path) -> None:
+    """`bench run` on a terminal (a pseudo-terminal here): `p` pauses, `r` resumes, without Enter."""
+    import pty
+
+    master, slave = pty.openpty()
+    proc = subprocess.Popen([sys.executable, "-m", "bench", "run", str(SHORT / "thesis-identification-short.toml"),
+                             "--out", str(tmp_path)], cwd=ROOT, env={**ENV, "TERM": "xterm"}, stdin=slave,
+                            stdout=slave, stderr=slave, close_fds=True)
+    os.close(slave)
+    screen = bytearray()
+
+    def read_some() -> None:
+        import select
+
+        while select.select([master], [], [], 0)[0]:
+            try:
+                screen.extend(os.read(master, 65536))
+            except OSError:
+                return
+
+    def logged(text: str) -> bool:
+        read_some()
+        logs = list(tmp_path.glob("*.log"))
+        return bool(logs) and text in logs[0].read_text()
+
+    try:
+        _wait_for(lambda: logged("step 0 start"), 60, "the run to start")
+        time.sleep(1.0)
+        os.write(master, b"p")
+        _wait_for(lambda: logged(" pause: "), 30, "the pause")
+        time.sleep(0.5)
+        os.write(master, b"r")
+        _wait_for(lambda: logged(" resume: "), 30, "the resume")
+        _wait_for(lambda: (read_some(), proc.poll() is not None)[1], 120, "the run to end")
+    finally:
+        proc.kill()
+        os.close(master)
+    assert proc.returncode == 0, screen.decode(errors="replace")[-2000:]
+    assert b"p: pause" in screen  # the key help under the live panel
+    run = open_run(next(tmp_path.glob("*.h5")))
+    (_, _, _, p_text), = events(run, "pause")
+    (_, _, _, r_text), = events(run, "resume")
+    assert "live view (key p)" in p_text and "live view (key r)" in r_text

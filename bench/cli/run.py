@@ -247,20 +247,29 @@ def _execute(plan, path: Path, virtual_time: bool, operator, live: bool, allow_n
              metadata: dict[str, str], link=None):
     """Run the plan, with the live view on a terminal."""
     from bench.runtime.engine import Engine
-    from bench.runtime.live import LiveView, units_of
+    from bench.runtime.live import Keys, LiveView, units_of
     from bench.runtime.run import execute
 
     engines: list[Engine] = []
     title = f"{plan.protocol.protocol.name} → {path}"
     if live and console.is_terminal:
         holder: dict[str, LiveView] = {}
+        # keys only where no operator prompt reads the terminal (a real rig's specimen changes ask for Enter)
+        keyed = plan.rig.simulated or not any(s.changes for s in plan.program.segments)
+        hint = "p: pause (output to 0 V)   r: resume (restarts the step)   Ctrl-C: stop" if keyed else ""
 
         def attach(engine: Engine, _sim: object) -> None:
             engines.append(engine)
-            holder["view"] = LiveView(title, engine.snapshot, units_of(engine.rec.streams))
+            holder["view"] = LiveView(title, engine.snapshot, units_of(engine.rec.streams), hint)
             live_ctx.update(holder["view"])
 
-        with Live(console=console, refresh_per_second=4, transient=False) as live_ctx:
+        def on_engine(name: str) -> None:
+            if engines:
+                (engines[0].request_pause if name == "p" else engines[0].request_resume)(
+                    f"the operator at the live view (key {name})")
+
+        keys = Keys({"p": lambda: on_engine("p"), "r": lambda: on_engine("r")}) if keyed else contextlib.nullcontext()
+        with keys, Live(console=console, refresh_per_second=4, transient=False) as live_ctx:
             result = execute(plan, path, virtual=virtual_time, operator=operator, on_engine=attach,
                              allow_no_watchdog=allow_no_watchdog, metadata=metadata, resume=link)
     else:

@@ -6,8 +6,11 @@ The quantities shown and their units come from the run's stream layout — the i
 
 from __future__ import annotations
 
+import sys
+import threading
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any
 
 from rich.console import Group
 from rich.panel import Panel
@@ -37,10 +40,12 @@ def _hms(seconds: float) -> str:
 class LiveView:
     """Renders a :class:`Snapshot`; the ETA comes from the observed speed (virtual time runs faster)."""
 
-    def __init__(self, title: str, snapshot: Snapshot, units: Mapping[str, str]) -> None:
+    def __init__(self, title: str, snapshot: Snapshot, units: Mapping[str, str], keys: str = "") -> None:
+        """``keys``: the key help shown under the panel ('' when the view takes no keys)."""
         self.title = title
         self.snapshot = snapshot
         self.units = dict(units)
+        self.keys = keys
         self._wall0 = time.monotonic()
 
     def __rich__(self) -> Panel:
@@ -66,4 +71,59 @@ class LiveView:
         hr = [f"{k} {100 * v:3.0f} %" if v < 0.9 else f"[red]{k} {100 * v:3.0f} %[/]" for k, v in s.headroom.items()]
         if hr:
             headroom.add_row("limits used:", *hr)
-        return Panel(Group(head, progress, values, headroom), title=self.title, border_style="cyan")
+        parts = [head, progress, values, headroom]
+        if s.state == "paused":
+            parts.append(Text("PAUSED: output at 0 V, motor held, recording goes on", style="bold yellow"))
+        if self.keys:
+            parts.append(Text(self.keys, style="dim"))
+        return Panel(Group(*parts), title=self.title, border_style="yellow" if s.state == "paused" else "cyan")
+
+
+class Keys:
+    """Single keys typed at the live view, without Enter (the terminal in cbreak mode while it runs): ``actions``
+    maps a key to what it does. A context manager; restores the terminal on exit. Does nothing unless stdin is a
+    terminal (a pipe or a file is never read)."""
+
+    def __init__(self, actions: Mapping[str, Callable[[], None]]) -> None:
+        self.actions = dict(actions)
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._saved: list[Any] | None = None
+
+    def __enter__(self) -> Keys:
+        if not sys.stdin.isatty():
+            return self
+        import termios
+        import tty
+
+        fd = sys.stdin.fileno()
+        self._saved = termios.tcgetattr(fd)
+        tty.setcbreak(fd)
+        self._thread = threading.Thread(target=self._read, args=(fd,), name="live-keys", daemon=True)
+        self._thread.start()
+        return self
+
+    def _read(self, fd: int) -> None:
+        import os
+        import select
+
+        while not self._stop.is_set():
+            ready, _, _ = select.select([fd], [], [], 0.1)
+            if not ready:
+                continue
+            try:
+                ch = os.read(fd, 1).decode("utf-8", "replace").lower()
+            except OSError:
+                return
+            action = self.actions.get(ch)
+            if action is not None:
+                action()
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(1.0)
+        if self._saved is not None:
+            import termios
+
+            termios.tcsetattr(sys.stdin.fileno(), termios.TCSADRAIN, self._saved)
