@@ -157,14 +157,14 @@ def _error_classes() -> list[type[Exception]]:
     import drivers.errors
 
     found = [c for c in vars(drivers.errors).values() if isinstance(c, type) and issubclass(c, Exception)]
-    assert len(found) == 7  # InstrumentError and its six subclasses (drivers/errors.py)
+    assert len(found) == 8  # InstrumentError and its seven subclasses (drivers/errors.py)
     return found
 
 
 @pytest.mark.parametrize("exc_class", [*_error_classes(), AssertionError, TypeError, RuntimeError],
                          ids=lambda c: c.__name__)
 def test_any_exception_in_a_command_is_one_line_and_the_session_goes_on(tmp_path: Path, exc_class) -> None:
-    from drivers.errors import InstrumentError, LimitError
+    from drivers.errors import ImplausibleValueError, InstrumentError, LimitError
 
     with ManualSession(load_rig(THESIS_RIG), tmp_path / "s.log", virtual=True, echo=lambda _t: None) as s:
         assert s.execute("voltage 2kV").status == "ok"
@@ -172,6 +172,8 @@ def test_any_exception_in_a_command_is_one_line_and_the_session_goes_on(tmp_path
         read = laser.read
 
         def fail():
+            if exc_class is ImplausibleValueError:  # its own arguments; the multi-line text in the last one
+                raise ImplausibleValueError("laser", "distance", 1e9, (-1.0, 1.0), "m", "first line\nsecond line")
             raise exc_class("laser", "first line\nsecond line") if issubclass(exc_class, InstrumentError) \
                 else exc_class("first line\nsecond line")
         laser.read = fail
