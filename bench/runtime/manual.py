@@ -54,8 +54,9 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from bench.rig import RigConfig
-from bench.runtime.engine import STOP_SIGNALS
+from bench.runtime.engine import RAMP_STEPS, STOP_POLL_S, STOP_SIGNALS
 from bench.runtime.instruments import Instruments, build_instruments
+from bench.runtime.ramp import ramp_to_zero
 from bench.runtime.safety import SafetyTrip, Supervisor
 from bench.units import to_si
 from drivers.errors import InstrumentError, InstrumentStateError, LimitError, OperationCancelledError
@@ -65,9 +66,7 @@ DEFAULT_SPEED = 0.02  # m/s
 DEFAULT_ACCEL = 0.5  # m/s²
 KEEPALIVE_S = 0.25  # set-point refresh while holding (feeds the analog module's communication watchdog)
 SETTLE_S = 0.3  # after a voltage set-point: the monitors convert at 10 S/s (ADAM-4017+)
-EXIT_RAMP_STEPS = 10  # leaving the session: set-points from the last voltage to 0 V over shutdown_ramp_s
 EXIT_RAMP_FROM_V = 50.0  # below this |set-point| the exit zeroes at once (no ramp)
-STOP_POLL_S = 0.02  # exit ramp: longest sleep between two looks for a second stop request
 HISTORY_FILE = ".bench_history"  # in the user's home folder: what was typed at the interactive prompt
 HISTORY_LENGTH = 1000
 HELP = "\n".join(line[4:] for line in (__doc__ or "").splitlines() if line.startswith("    "))
@@ -225,15 +224,15 @@ class ManualSession:
         ramp = self.rig.limits.shutdown_ramp_s
         self._write("session", "ramp", f"from {v0:.0f} V to 0 V over {ramp:g} s")
         t0 = self._clock()
+
+        def pause(offset: float) -> bool:
+            while (left := t0 + offset - self._clock()) > 0 and not self._urgent.is_set():
+                self._sleep(min(left, STOP_POLL_S))
+            return not self._urgent.is_set()
+
         try:
-            for k in range(1, EXIT_RAMP_STEPS + 1):
-                until = t0 + ramp * k / EXIT_RAMP_STEPS
-                while (left := until - self._clock()) > 0 and not self._urgent.is_set():
-                    self._sleep(min(left, STOP_POLL_S))
-                if self._urgent.is_set():
-                    self._write("session", "ramp", f"second stop request: {amp.commanded:.0f} V to 0 V at once")
-                    break
-                amp.set_voltage(v0 * (1 - k / EXIT_RAMP_STEPS))
+            if not ramp_to_zero(amp, v0, ramp, pause, lambda _sent: None, RAMP_STEPS):
+                self._write("session", "ramp", f"second stop request: {amp.commanded:.0f} V to 0 V at once")
         except InstrumentError as exc:
             return [f"voltage ramp-down failed: {exc}"]
         return []
