@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import os
 import re
 import signal
@@ -401,3 +402,106 @@ def test_the_prompt_has_line_editing_and_a_history_file_in_home(tmp_path: Path) 
     assert commands == [("wait 0.5", "ok"), ("wait 10.5", "ok"), ("read", "ok")], commands
     assert (home / ".bench_history").read_text(encoding="utf-8").splitlines()[-3:] == \
         ["wait 0.5", "wait 10.5", "read"]
+
+
+# ---------------------------------------------------------------- latched interlock (bench/runtime/interlock.py)
+def _trace(sim) -> list[tuple[float, float]]:
+    """Everything the plant's output stage did (rig clock, volts): observed from the plant, not the session."""
+    out: list[tuple[float, float]] = []
+    sim.plant.listeners.append(lambda b: out.extend(zip(b.t.tolist(), b.voltage.tolist(), strict=True)))
+    return out
+
+
+@pytest.mark.parametrize("where", ["in a command", "at the prompt", "at the exit"])
+def test_a_host_stall_longer_than_the_watchdog_latches_and_high_voltage_never_comes_back(
+        tmp_path: Path, where: str) -> None:
+    """Tester: the host frozen longer than the module's watchdog (SIGSTOP 3 s / SIGCONT) — on resume the session
+    wrote 5 kV again. Here the session's threads are frozen while the twins, the plant and the ADAM-4024's 1-s
+    watchdog (rig file default) run on: inside a command's keep-alive wait (the keep-alive thread waits for the
+    command's lock), at the prompt (the test holds that lock: not even the keep-alive thread runs), or just
+    before the session is left (its exit would ramp down from 3 kV)."""
+    import time
+
+    rig = load_rig(THESIS_RIG)
+    freeze = 2.5  # s, longer than the 1-s watchdog
+    seen: list[str] = []
+    s = ManualSession(rig, tmp_path / "s.log", echo=seen.append, operator="Ada Lovelace")  # real time
+    with s:
+        sim = s._sim
+        trace = _trace(sim)
+        assert s.execute("voltage 3kV").status == "ok"
+        t_freeze = sim.clock.now()
+        if where == "in a command":
+            sleep = s._sleep
+
+            def stalled(dt: float) -> None:
+                s._sleep = sleep
+                time.sleep(freeze)
+                sleep(dt)
+            s._sleep = stalled
+            out = s.execute("wait 1")
+            assert out.status == "trip" and "interlock: host stall" in out.text and "latched" in out.text, out
+        elif where == "at the prompt":
+            with s._lock:
+                time.sleep(freeze)
+            deadline = time.monotonic() + 30  # hang guard
+            while not any(line.startswith("trip: interlock: host stall") for line in seen):
+                assert time.monotonic() < deadline, seen
+                time.sleep(0.05)
+        else:
+            s._lock.acquire()  # held through the exit: the keep-alive thread never gets to write
+            time.sleep(freeze)
+        if where != "at the exit":
+            for line in ("voltage 2kV", "ramp 2kV 1s", "voltage 3kV"):
+                out = s.execute(line)
+                assert out.status == "refused" and "latched" in out.text and "host stall" in out.text, out
+            assert s.execute("wait 0.5").status == "ok"  # nothing that energises is refused
+            assert s.execute("reset").status == "refused"  # a reset needs a reason
+            sim.plant.observe()
+            t_reset = sim.clock.now()
+            out = s.execute("reset because the laptop slept; rig checked")
+            assert out.status == "ok" and "Ada Lovelace" in out.text and "because the laptop slept" in out.text, out
+            assert s.execute("voltage 2kV").status == "ok"
+            assert abs(float(sim.plant.observe().voltage[-1]) - 2000) < 30  # accepted, and the plant has it
+    if where == "at the exit":
+        s._lock.release()
+        t_reset = math.inf
+    rows = _rows(tmp_path / "s.log")
+    (latched,) = [r for r in rows if r[2:4] == ["latched", "interlock"]]
+    assert "host stall" in latched[4] and "stays off" in latched[4]
+    if where == "at the exit":
+        assert rows[-2][2:4] == ["ramp", "session"] and "0 V at once, no ramp" in rows[-2][4]
+    else:
+        (reset,) = [r for r in rows if r[3].startswith("reset because")]
+        assert reset[2] == "ok" and "Ada Lovelace" in reset[4]
+    # the plant: high voltage before the freeze; zeroed by the module's watchdog during it; never again until the
+    # operator's reset
+    held = [(t, v) for t, v in trace if t < t_freeze]
+    assert max(abs(v) for _, v in held) > 2900
+    after = [(t, v) for t, v in trace if t_freeze <= t < t_reset]
+    zeroed = next(t for t, v in after if abs(v) <= ZERO_V)
+    assert zeroed < t_freeze + freeze
+    assert max(abs(v) for t, v in after if t >= zeroed) <= ZERO_V, "high voltage came back after the stall"
+
+
+def test_a_monitor_that_disagrees_with_the_set_point_latches_the_output_off(tmp_path: Path) -> None:
+    """Verified outputs: the amplifier's gain 25 % off (a calibration outside its tolerance) — the monitor reads
+    5 kV where 4 kV is commanded (beyond 100 V + 5 %, README "Interlock"): two readings in a row latch."""
+    import dataclasses
+
+    with ManualSession(load_rig(THESIS_RIG), tmp_path / "s.log", virtual=True, echo=lambda _t: None) as s:
+        assert s.execute("voltage 4kV").status == "ok"
+        hv = s._sim.plant.hv
+        s._sim.plant.hv = dataclasses.replace(hv, gain=hv.gain * 1.25)
+        out_trip = s.execute("watch 5 0.25")
+        assert out_trip.status == "trip" and "interlock: output mismatch" in out_trip.text, out_trip
+        assert "latched" in out_trip.text
+        assert abs(_plant_volts(s._sim)) < ZERO_V
+        out = s.execute("voltage 1kV")
+        assert out.status == "refused" and "latched" in out.text and "output mismatch" in out.text
+        assert abs(_plant_volts(s._sim)) < ZERO_V
+    # one reading out of the band (logged), the second latched: the trip names it
+    assert len([r for r in _rows(tmp_path / "s.log") if r[3] == "watch"]) == 1
+    measured, commanded = map(float, re.search(r"read (-?\d+) V .* where (-?\d+) V was commanded",  # type: ignore[union-attr]
+                                               out_trip.text).groups())
+    assert abs(commanded - 4000) <= ZERO_V and abs(measured - 1.25 * 4000) < 50, out_trip

@@ -12,6 +12,7 @@ Commands (one per line; ``#`` starts a comment; quantities as in files, plain nu
     read                    read every channel once
     watch DURATION [EVERY]  read every channel every EVERY [s] (default 0.5 s) for DURATION [s]
     wait DURATION           let time pass
+    reset WHY...            clear a latched interlock (the reason and the --operator name are logged)
     help | quit
 
 Every set-point passes :meth:`bench.runtime.safety.Supervisor.check_setpoint` (voltage, field at the present stretch)
@@ -20,6 +21,14 @@ sent; a refused command is not sent. Every reading passes the supervisor's sampl
 limit (a trip) zeroes the output and stops the motor. A driver error of any kind, or an unexpected error in a
 command, is one ``error`` line (output zeroed, motor stopped) and the session goes on; a command whose
 instrument the rig lacks is refused (nothing sent).
+
+Latched interlock (:mod:`bench.runtime.interlock`, as in a run): before every write that can drive the output
+(set-points, keep-alives, ramps) a host stall is checked — the set-point module unheard for longer than 0.8 × its
+communication watchdog while the output was on (a frozen process, a suspended laptop): its watchdog may have
+zeroed the output, and the next keep-alive would turn high voltage back on by itself. Every monitor reading is
+compared with the voltage commanded (:class:`~bench.runtime.interlock.OutputVerifier`). Either fault zeroes the
+output at once (no ramp) and latches: every command that would energise is refused, in one line naming the
+fault, until the operator types ``reset WHY…`` (logged with the reason and the ``--operator`` name).
 
 Leaving the session (quit, end of input, error, a stop signal) ramps the output to 0 V over the rig's
 ``shutdown_ramp_s`` (at once on a second stop signal), stops the motor, puts every instrument in its safe state
@@ -56,6 +65,7 @@ from typing import Any, TextIO
 from bench.rig import RigConfig
 from bench.runtime.engine import RAMP_STEPS, STOP_POLL_S, STOP_SIGNALS
 from bench.runtime.instruments import Instruments, build_instruments
+from bench.runtime.interlock import OUTPUT_ON_V, InterlockTrip, OutputVerifier, check_contact, mismatch_trip
 from bench.runtime.ramp import ramp_to_zero
 from bench.runtime.safety import SafetyTrip, Supervisor
 from bench.units import to_si
@@ -122,6 +132,9 @@ class ManualSession:
     _ending: bool = False  # leaving the session: making the rig safe
     _interrupt: str | None = None  # Ctrl-C: end the command under way
     _urgent: threading.Event = field(default_factory=threading.Event)  # second stop request: 0 V at once
+    _verifier: OutputVerifier | None = None  # measured output against what was commanded
+    _latched: InterlockTrip | None = None  # the interlock fault that holds high voltage off until `reset`
+    _latched_at: float = 0.0  # session time of the latch [s]
 
     # ------------------------------------------------------------ life cycle
     def __enter__(self) -> ManualSession:
@@ -164,6 +177,7 @@ class ManualSession:
         params = self._sim.plant.specimen if self._sim is not None else (
             spec.membrane() if spec.kind == "membrane" else spec.lozenge())
         self._sup = Supervisor(rig, params)
+        self._verifier = OutputVerifier(rig, None)  # polled monitors: manual control plays no stream
         if not self.virtual:  # wall clock: hold the set-point between commands (a human types slowly)
             self._keepalive = threading.Thread(target=self._feed, name="manual-keepalive", daemon=True)
             self._keepalive.start()
@@ -176,7 +190,10 @@ class ManualSession:
         while not self._stop.wait(KEEPALIVE_S):
             with self._lock, contextlib.suppress(InstrumentError, SafetyTrip, Refused):
                 if self._inst is not None and self._inst.amplifier is not None and self._v_req != 0.0:
-                    self._checked_voltage(self._v_req)
+                    try:
+                        self._checked_voltage(self._v_req)
+                    except InterlockTrip as trip:  # between commands: the operator is told at the prompt
+                        self.echo(f"trip: {self._latch(trip)}")
 
     def _wait(self, seconds: float) -> None:
         """Let ``seconds`` pass on the rig clock, re-sending the set-point every KEEPALIVE_S."""
@@ -218,6 +235,15 @@ class ManualSession:
         v0 = float(amp.commanded) if amp is not None else 0.0
         if amp is None or abs(v0) < EXIT_RAMP_FROM_V:
             return []
+        if self._latched is None:
+            try:
+                self._guard()  # a stall before the exit: the ramp's first set-point would re-energise
+            except InterlockTrip as trip:
+                self._latch(trip)
+        if self._latched is not None:
+            self._write("session", "ramp", f"interlock latched ({self._latched.kind}): 0 V at once, no ramp from a "
+                        "set-point the output may no longer hold")
+            return []
         if self._urgent.is_set():
             self._write("session", "ramp", f"second stop request: {v0:.0f} V to 0 V at once")
             return []
@@ -228,11 +254,17 @@ class ManualSession:
         def pause(offset: float) -> bool:
             while (left := t0 + offset - self._clock()) > 0 and not self._urgent.is_set():
                 self._sleep(min(left, STOP_POLL_S))
+            try:
+                self._guard()
+            except InterlockTrip as trip:
+                self._latch(trip)
+                return False
             return not self._urgent.is_set()
 
         try:
-            if not ramp_to_zero(amp, v0, ramp, pause, lambda _sent: None, RAMP_STEPS):
-                self._write("session", "ramp", f"second stop request: {amp.commanded:.0f} V to 0 V at once")
+            if not ramp_to_zero(amp, v0, ramp, pause, self._commanded, RAMP_STEPS):
+                why = "interlock latched" if self._latched is not None else "second stop request"
+                self._write("session", "ramp", f"{why}: {amp.commanded:.0f} V to 0 V at once")
         except InstrumentError as exc:
             return [f"voltage ramp-down failed: {exc}"]
         return []
@@ -368,6 +400,8 @@ class ManualSession:
                 out = Outcome(shown, "error", f"{exc}; {self._make_safe()}")
         except (Refused, ValueError, LimitError) as exc:
             out = Outcome(shown, "refused", str(exc))
+        except InterlockTrip as trip:
+            out = Outcome(shown, "trip", self._latch(trip))
         except SafetyTrip as exc:
             out = Outcome(shown, "trip", f"{exc.reason}; {self._make_safe()}")
         except InstrumentError as exc:
@@ -392,6 +426,8 @@ class ManualSession:
             errors = self._inst.safe_state()
         except Exception as exc:  # safe_state reports driver errors; anything else is said, not raised
             errors = [f"{type(exc).__name__}: {exc}"]
+        if self._inst.amplifier is not None:
+            self._commanded(float(self._inst.amplifier.commanded))
         return "output zeroed, motor stopped" + (f" ({'; '.join(errors)})" if errors else "")
 
     # each _cmd_* returns one line of text (what was done / read)
@@ -404,13 +440,58 @@ class ManualSession:
         return self._inst.amplifier
 
     def _checked_voltage(self, volts: float) -> float:
+        """Send a set-point the latch and the supervisor allow, after the host-stall check; returns what was sent."""
         assert self._sup is not None
+        amp = self._amp()
+        if self._latched is not None and volts != 0.0:
+            self._v_req = 0.0  # held at 0 V: nothing to keep alive
+            raise Refused(f"{self._latch_text()}; not sent")
         try:
             self._sup.check_setpoint(volts)
         except SafetyTrip as exc:
-            self._v_req = float(self._amp().commanded)
+            self._v_req = float(amp.commanded)
             raise Refused(f"{exc.reason}; not sent") from None
-        return float(self._amp().set_voltage(volts))
+        self._guard()
+        sent = float(amp.set_voltage(volts))
+        self._commanded(sent)
+        return sent
+
+    # ------------------------------------------------------------ latched interlock
+    def _guard(self) -> None:
+        """Before a write that can drive the output: latch a host stall (:func:`~bench.runtime.interlock.check_contact`
+        on the amplifier's ``longest_silence``). Real time only: a virtual clock cannot stall."""
+        amp = self._amp()
+        if not self.virtual:
+            check_contact(self.rig, amp.longest_silence(), abs(float(amp.commanded)) > OUTPUT_ON_V)
+
+    def _commanded(self, sent: float) -> None:
+        """A set-point the amplifier now outputs: what the monitors are checked against."""
+        if self._verifier is not None:
+            self._verifier.commanded(self._now(), sent)
+
+    def _latch(self, trip: InterlockTrip) -> str:
+        """Latch ``trip``: output to 0 V at once, motor stopped, a ``latched`` line in the log; returns the outcome."""
+        self._latched, self._latched_at = trip, self._now()
+        done = self._make_safe()
+        self._verifier = OutputVerifier(self.rig, None)  # readings counted afresh from the zeroed output
+        self._commanded(0.0)
+        self._write("interlock", "latched", f"{trip.kind}: {self._latch_text()}")
+        return f"{trip.reason}; {done}; latched"
+
+    def _latch_text(self) -> str:
+        assert self._latched is not None
+        return (f"interlock latched at t={self._latched_at:.3f} s ({self._latched.kind}): high voltage stays off "
+                "until `reset WHY...`")
+
+    def _cmd_reset(self, *why: str) -> str:
+        if self._latched is None:
+            raise Refused("no interlock latched: nothing to reset")
+        reason = " ".join(why).strip()
+        if not reason:
+            raise Refused("reset needs a reason: reset WHY... (logged with the operator's name)")
+        who = self.operator or "an operator not named (no --operator)"
+        kind, self._latched = self._latched.kind, None
+        return f"interlock ({kind}) reset by {who}: {reason}"
 
     def _reach(self, volts: float) -> float:
         """Send ``volts``; if the amplifier's slew limit cut the step, re-send once the limit allows the whole step
@@ -443,6 +524,8 @@ class ManualSession:
             raise Refused(f"ramp duration {seconds:g} s: give 0 < DURATION ≤ 3600 s")
         start = float(self._amp().commanded)
         assert self._sup is not None
+        if self._latched is not None and target != 0.0:
+            raise Refused(f"{self._latch_text()}; ramp not started")
         try:
             self._sup.check_setpoint(target)
         except SafetyTrip as exc:
@@ -459,7 +542,9 @@ class ManualSession:
 
     def _cmd_zero(self) -> str:
         self._v_req = 0.0
-        self._amp().zero()
+        amp = self._amp()
+        amp.zero()
+        self._commanded(float(amp.commanded))
         return "output 0 V"
 
     def _motor(self) -> Any:
@@ -528,9 +613,12 @@ class ManualSession:
         return "load cell zeroed; " + self._cmd_read()
 
     def _check_monitors(self) -> tuple[float, float]:
-        assert self._sup is not None
+        """Both monitors, checked by the supervisor and against the voltage commanded (the interlock)."""
+        assert self._sup is not None and self._verifier is not None
         v, i = self._amp().read_monitors()
         self._sup.check_monitors(v.value, i.value)
+        if (m := self._verifier.reading(v.timestamp - (self._t0 or 0.0), v.value, v.ok)) is not None:
+            raise mismatch_trip(m, "the voltage monitor")
         return v.value, i.value
 
     def _cmd_read(self) -> str:
