@@ -11,6 +11,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 from typer.testing import CliRunner
 
@@ -502,6 +503,67 @@ def test_a_monitor_that_disagrees_with_the_set_point_latches_the_output_off(tmp_
         assert abs(_plant_volts(s._sim)) < ZERO_V
     # one reading out of the band (logged), the second latched: the trip names it
     assert len([r for r in _rows(tmp_path / "s.log") if r[3] == "watch"]) == 1
+    from bench.storage.runfile import open_run
+
+    run = open_run(tmp_path / "s.h5")  # the readings' file: still latched at the end
+    assert run.state == "tripped" and "interlock latched" in run.reason
+    (latched,) = [text for _, _, kind, text in run.event_list() if kind == "latched"]
+    assert latched.startswith("interlock: output mismatch")
+    assert run.streams["amplifier"].columns["voltage"].max() > 4900  # the reading that latched is on file
     measured, commanded = map(float, re.search(r"read (-?\d+) V .* where (-?\d+) V was commanded",  # type: ignore[union-attr]
                                                out_trip.text).groups())
     assert abs(commanded - 4000) <= ZERO_V and abs(measured - 1.25 * 4000) < 50, out_trip
+
+
+# ---------------------------------------------------------------- readings to HDF5 (bench/storage/recorder.py)
+_READING = re.compile(r"t (?P<t>[\d.]+) s: voltage (?P<v>-?\d+) V, current (?P<i>-?[\d.]+) µA, motor "
+                      r"(?P<m>-?[\d.]+) mm.*, force (?P<f>-?[\d.]+) N")  # the motor rig: no laser
+
+
+def _nearest(stream, t: float, column: str) -> float:
+    k = int(np.argmin(np.abs(stream.t - t)))
+    assert abs(stream.t[k] - t) <= 0.01, (stream.name, t, stream.t[k])  # the log prints t to 10 ms
+    return float(stream.columns[column][k])
+
+
+def test_a_scripted_session_records_readings_commands_and_its_end_in_an_hdf5_file(tmp_path: Path) -> None:
+    from bench.storage.runfile import open_run
+
+    script, log = tmp_path / "cmds.txt", tmp_path / "session.log"
+    script.write_text("voltage 2kV\nmove 20\nread\nwatch 1 0.25\nvoltage 20kV\nramp 1kV 0.5s\n", encoding="utf-8")
+    res = CliRunner().invoke(app, ["devices", "control", str(MOTOR_RIG), "--virtual-time", "--log", str(log),
+                                   "--script", str(script), "--operator", "Ada Lovelace"])
+    assert res.exit_code == 1, res.output  # one refusal
+    assert f"readings: {tmp_path / 'session.h5'}" in " ".join(res.output.split())
+    run = open_run(tmp_path / "session.h5")
+    assert run.complete and run.state == "completed" and "instruments safe and closed" in run.reason
+    assert run.attrs["operator"] == "Ada Lovelace" and run.attrs["rig_name"] == "lsdea-motor-sim"
+    rows = _rows(log)
+    # every reading the log shows is in the streams with the value it shows (to the digits it shows)
+    readings = [m for r in rows if (m := _READING.search(r[4]))]
+    assert len(readings) == 1 + 1 + 1 + 4 + 1  # voltage, move, read, watch (4), ramp
+    amp, motor, cell = (run.streams[k] for k in ("amplifier", "motor", "load_cell"))
+    for m in readings:
+        t = float(m["t"])
+        assert abs(_nearest(amp, t, "voltage") - float(m["v"])) <= 0.5
+        assert abs(_nearest(amp, t, "current") * 1e6 - float(m["i"])) <= 0.005
+        assert abs(_nearest(motor, t, "position") * 1e3 - float(m["m"])) <= 0.0005
+        assert abs(_nearest(cell, t, "force") - float(m["f"])) <= 0.0005
+    watch_late = [_nearest(amp, float(m["t"]), "late") for m, r in zip(readings, [r for r in rows if
+                                                                                   _READING.search(r[4])],
+                                                                        strict=True) if r[3] == "watch"]
+    assert all(0.0 <= late < 0.1 for late in watch_late), watch_late  # a watch's readings are scheduled
+    # one event per log line but a watch's readings (they are in the streams): commands, refusals, operator, end
+    events = [(kind, text.split(": ", 1)[0]) for _, _, kind, text in run.event_list()]
+    assert events == [(r[2], r[3]) for r in rows if r[3] != "watch"]
+    assert ("refused", "voltage 20kV") in events and ("operator", "session") in events and events[-1] == ("end",
+                                                                                                         "session")
+    # the set-points: the move's aperture target, and the exit ramp from 1 kV to 0 V in ten steps, then 0 V
+    sp = run.streams["setpoints"]
+    apertures = sp.columns["aperture"][np.isfinite(sp.columns["aperture"])]
+    lsdea = load_rig(MOTOR_RIG).specimen.lsdea
+    assert apertures.tolist() == pytest.approx([lsdea.x_at_motor_zero_m + lsdea.motor_sign * 0.020])  # type: ignore[union-attr]
+    last = sp.columns["voltage"][-11:]
+    assert np.abs(last - [900, 800, 700, 600, 500, 400, 300, 200, 100, 0, 0]).max() <= 2 * ZERO_V, last
+    shown = CliRunner().invoke(app, ["inspect", str(tmp_path / "session.h5")], env={"COLUMNS": "200"})
+    assert shown.exit_code == 0 and "manual control" in shown.output and "completed" in shown.output, shown.output

@@ -30,6 +30,13 @@ compared with the voltage commanded (:class:`~bench.runtime.interlock.OutputVeri
 output at once (no ramp) and latches: every command that would energise is refused, in one line naming the
 fault, until the operator types ``reset WHY…`` (logged with the reason and the ``--operator`` name).
 
+Readings: every reading of the session (``read``, ``watch``, the monitors after set-points and in ramps, the
+motor during moves) and every set-point sent (keep-alives and the exit ramp included) go to an HDF5 file beside
+the log (``<log>.h5``; never overwritten: ``<log>-1.h5``…), in a run file's stream layout
+(:mod:`bench.storage.recorder`), with one event per log line (commands, refusals, trips, the operator, the
+exit) and the end state; ``bench inspect`` and :func:`bench.storage.runfile.open_run` read it. A storage fault
+is one ``error`` line; the session goes on with the log alone.
+
 Leaving the session (quit, end of input, error, a stop signal) ramps the output to 0 V over the rig's
 ``shutdown_ramp_s`` (at once on a second stop signal), stops the motor, puts every instrument in its safe state
 and closes it; the log's last line is the ``end`` line, naming the signal if one ended the session.
@@ -51,6 +58,7 @@ from __future__ import annotations
 
 import contextlib
 import inspect
+import json
 import math
 import shlex
 import signal
@@ -62,12 +70,16 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any, TextIO
 
-from bench.rig import RigConfig
+import numpy as np
+
+from bench import __version__
+from bench.rig import RigConfig, rig_to_toml
 from bench.runtime.engine import RAMP_STEPS, STOP_POLL_S, STOP_SIGNALS
 from bench.runtime.instruments import Instruments, build_instruments
 from bench.runtime.interlock import OUTPUT_ON_V, InterlockTrip, OutputVerifier, check_contact, mismatch_trip
 from bench.runtime.ramp import ramp_to_zero
 from bench.runtime.safety import SafetyTrip, Supervisor
+from bench.storage.recorder import Recorder, now_iso
 from bench.units import to_si
 from drivers.errors import InstrumentError, InstrumentStateError, LimitError, OperationCancelledError
 
@@ -112,6 +124,7 @@ class ManualSession:
     virtual: bool = False
     echo: Callable[[str], None] = print
     operator: str | None = None  # who runs the session (in the log's header)
+    data_file: Path | None = None  # the readings' HDF5 file (default: beside the log, see data_path)
     outcomes: list[Outcome] = field(default_factory=list)
     end_reason: str | None = None  # the stop signal (or exception) that ended the session, if any
     _sim: Any = None
@@ -135,6 +148,9 @@ class ManualSession:
     _verifier: OutputVerifier | None = None  # measured output against what was commanded
     _latched: InterlockTrip | None = None  # the interlock fault that holds high voltage off until `reset`
     _latched_at: float = 0.0  # session time of the latch [s]
+    _rec: Recorder | None = None  # the readings' file (None: not open, or its storage failed)
+    _early: list[tuple[float, str, str, str]] | None = field(default_factory=list)  # log lines before the file
+    _late: float = math.nan  # a watch's reading: how long after its scheduled time it was taken [s]
 
     # ------------------------------------------------------------ life cycle
     def __enter__(self) -> ManualSession:
@@ -150,7 +166,40 @@ class ManualSession:
         except BaseException:
             self.__exit__(None, None, None)
             raise
+        self._open_recorder()
         return self
+
+    def _open_recorder(self) -> None:
+        """The readings' file, in a run file's layout (every stream polled: nothing is hardware-timed here)."""
+        from bench.runtime.interlock import watchdog_period
+        from bench.runtime.run import _model_params, _streams
+
+        assert self._inst is not None and self._sup is not None
+        if self.data_file is None:
+            self.data_file = data_path(self.log_file)
+        rig, spec = self.rig, self.rig.specimen
+        streams, sources = _streams(rig, self._inst, polled=True)
+        watchdog = watchdog_period(rig)
+        attrs: dict[str, Any] = {
+            "software": f"dea-bench {__version__}", "start_time": now_iso(), "mode": "manual control",
+            "protocol_name": "manual control", "protocol_path": "", "protocol_text": "", "protocol_sha256": "",
+            "session_log": str(self.log_file), "rig_name": rig.name, "rig_toml": rig_to_toml(rig),
+            "simulated": rig.simulated, "clock": "virtual" if self.virtual else "wall", "specimen_kind": spec.kind,
+            "specimen": json.dumps({**spec.model_dump(), "model": _model_params(self._sup.specimen)}),
+            "recording": json.dumps({"readings": "on request (read, watch, after set-points)"}),
+            "sources": json.dumps(sources), "duration_planned": 0.0,
+            "hv_watchdog": f"communication watchdog {watchdog:g} s" if watchdog is not None else "NO watchdog",
+            **({"operator": self.operator} if self.operator else {}),
+        }
+        early, self._early = self._early or [], None
+        try:
+            self._rec = Recorder(self.data_file, attrs, streams, [], dict.fromkeys(streams, 0.0))  # 0: irregular
+        except OSError as exc:
+            self._write("readings", "error", f"{exc}; the session goes on, readings in this log only")
+            self.echo(f"error: {exc}; readings in the session log only")
+            return
+        for t, status, command, text in early:
+            self._rec_call(self._rec.event, t, -1, status, f"{command}: {text}")
 
     def _connect(self) -> None:
         rig = self.rig
@@ -217,14 +266,23 @@ class ManualSession:
             self._inst.cancel.clear()  # the safe exit's own commands must go out
             errors += self._ramp_down()
             errors += self._inst.safe_state()
+            if self._inst.amplifier is not None:
+                self._commanded(float(self._inst.amplifier.commanded))
             errors += self._inst.close()
             self._inst = None
         if self._sim is not None:
             self._sim.stop()
             self._sim = None
+        end = ((f"{self.end_reason}; " if self.end_reason else "") + "instruments safe and closed"
+               + (f"; {'; '.join(errors)}" if errors else ""))
         if self._log is not None:
-            self._write("session", "end", (f"{self.end_reason}; " if self.end_reason else "")
-                        + "instruments safe and closed" + (f"; {'; '.join(errors)}" if errors else ""))
+            self._write("session", "end", end)
+        if self._rec is not None:
+            state = ("error" if exc_type not in (None, SessionEnd, KeyboardInterrupt) else
+                     "interrupted" if self.end_reason else "tripped" if self._latched is not None else "completed")
+            self._rec_call(self._rec.finish, state, end if self._latched is None else f"{self._latch_text()}; {end}")
+            self._rec = None
+        if self._log is not None:
             self._log.close()
             self._log = None
 
@@ -331,11 +389,40 @@ class ManualSession:
         return self._clock() - self._t0 if self._t0 is not None else 0.0
 
     def _write(self, command: str, status: str, text: str) -> None:
+        """One log line; also an event in the readings' file (but a watch's readings: they are in its streams)."""
+        t = self._now()
+        if command != "watch":
+            if self._rec is not None:
+                self._rec_call(self._rec.event, t, -1, status, f"{command}: {text}")
+            elif self._early is not None:  # before the file opens: replayed into it then
+                self._early.append((t, status, command, text))
         if self._log is None:
             return
         stamp = datetime.now().astimezone().isoformat(timespec="milliseconds")
-        self._log.write(f"{stamp}\tt={self._now():.3f} s\t{status}\t{command}\t{text}\n")
+        self._log.write(f"{stamp}\tt={t:.3f} s\t{status}\t{command}\t{text}\n")
         self._log.flush()
+
+    # ------------------------------------------------------------ readings' file
+    def _rec_call(self, fn: Callable[..., object], *args: Any) -> None:
+        """A recorder call (one thread at a time); a storage fault is one error line, then the log goes on alone."""
+        with self._lock:
+            if self._rec is None:
+                return
+            try:
+                fn(*args)
+            except OSError as exc:
+                self._rec = None
+                self._write("readings", "error", f"{exc}; the session goes on, readings in this log only")
+                self.echo(f"error: {exc}; readings in the session log only")
+
+    def _record(self, stream: str, t: float, **values: float) -> None:
+        """One sample of ``stream`` at session time ``t``; columns not given are NaN (flags 0)."""
+        rec = self._rec
+        if rec is None or stream not in rec.streams:
+            return
+        row = {c.name: values.get(c.name, math.nan if np.dtype(c.dtype).kind == "f" else 0)
+               for c in rec.streams[stream]}
+        self._rec_call(lambda: rec.append(stream, t, **row))
 
     # ------------------------------------------------------------ commands
     def run_lines(self, lines: Iterable[str], stop_on_trip: bool = True) -> list[Outcome]:
@@ -414,6 +501,8 @@ class ManualSession:
         out.text = _printable(" ".join(out.text.splitlines()))
         self.outcomes.append(out)
         self._write(out.command, out.status, out.text)
+        if self._rec is not None:
+            self._rec_call(self._rec.flush)  # on disk before the next prompt
         self.echo(f"{out.status}: {out.text}" if out.text else out.status)
         return out
 
@@ -465,16 +554,18 @@ class ManualSession:
             check_contact(self.rig, amp.longest_silence(), abs(float(amp.commanded)) > OUTPUT_ON_V)
 
     def _commanded(self, sent: float) -> None:
-        """A set-point the amplifier now outputs: what the monitors are checked against."""
+        """A set-point the amplifier now outputs: what the monitors are checked against; recorded."""
+        t = self._now()
         if self._verifier is not None:
-            self._verifier.commanded(self._now(), sent)
+            self._verifier.commanded(t, sent)
+        self._record("setpoints", t, voltage=sent)
 
     def _latch(self, trip: InterlockTrip) -> str:
         """Latch ``trip``: output to 0 V at once, motor stopped, a ``latched`` line in the log; returns the outcome."""
         self._latched, self._latched_at = trip, self._now()
         done = self._make_safe()
         self._verifier = OutputVerifier(self.rig, None)  # readings counted afresh from the zeroed output
-        self._commanded(0.0)
+        self._verifier.commanded(self._now(), float(self._amp().commanded))
         self._write("interlock", "latched", f"{trip.kind}: {self._latch_text()}")
         return f"{trip.reason}; {done}; latched"
 
@@ -570,10 +661,12 @@ class ManualSession:
         except SafetyTrip as exc:
             raise Refused(f"{exc.reason}; not sent") from None
         motor.move_to(target, speed, min(DEFAULT_ACCEL, self.rig.motor.max_acceleration_m_per_s2))
+        self._record("setpoints", self._now(), aperture=self._aperture(target))
         deadline = self._clock() + 2.0 + abs(target - motor.read_position().value) / speed * 1.5
         while self._clock() < deadline:
             self._wait(0.05)
             st = motor.status()
+            self._record("motor", self._now(), position=st.position, aperture=self._aperture(st.position))
             self._sup.check_motor(st.position, self._aperture(st.position))
             if st.error:
                 raise InstrumentStateError("motor", "drive error during the move: "
@@ -615,7 +708,10 @@ class ManualSession:
     def _check_monitors(self) -> tuple[float, float]:
         """Both monitors, checked by the supervisor and against the voltage commanded (the interlock)."""
         assert self._sup is not None and self._verifier is not None
-        v, i = self._amp().read_monitors()
+        amp = self._amp()
+        v, i = amp.read_monitors()
+        self._record("amplifier", v.timestamp - (self._t0 or 0.0), voltage=v.value, current=i.value,
+                     commanded=float(amp.commanded), late=self._late)
         self._sup.check_monitors(v.value, i.value)
         if (m := self._verifier.reading(v.timestamp - (self._t0 or 0.0), v.value, v.ok)) is not None:
             raise mismatch_trip(m, "the voltage monitor")
@@ -624,7 +720,7 @@ class ManualSession:
     def _cmd_read(self) -> str:
         """Every channel once, each checked by the supervisor; one line with units."""
         assert self._inst is not None and self._sup is not None
-        parts = []
+        parts, t0 = [], self._t0 or 0.0
         if self._inst.amplifier is not None:
             v, i = self._check_monitors()
             parts.append(f"voltage {v:.0f} V, current {i * 1e6:.2f} µA")
@@ -632,6 +728,8 @@ class ManualSession:
             r = self._inst.laser.read()
             laser = self.rig.laser
             d = (r.value - laser.offset_mm * 1e-3) / laser.sign if laser is not None else r.value
+            self._record("laser", r.timestamp - t0, displacement=d, valid=float(r.ok and math.isfinite(d)),
+                         late=self._late)
             if r.ok and math.isfinite(d):
                 self._sup.update_displacement(d)
                 parts.append(f"displacement {d * 1e3:.4f} mm")
@@ -639,11 +737,13 @@ class ManualSession:
                 parts.append(f"displacement n/a ({r.status})")
         if self._inst.motor is not None:
             r = self._inst.motor.read_position()
+            self._record("motor", r.timestamp - t0, position=r.value, aperture=self._aperture(r.value), late=self._late)
             self._sup.check_motor(r.value, self._aperture(r.value))
             parts.append(f"motor {r.value * 1e3:.3f} mm" + (f" (aperture {self._aperture(r.value) * 1e3:.2f} mm)"
                                                           if math.isfinite(self._aperture(r.value)) else ""))
         if self._inst.load_cell is not None:
             r = self._inst.load_cell.read()
+            self._record("load_cell", r.timestamp - t0, force=r.value, ok=float(r.ok), late=self._late)
             if r.status in ("overload", "underload"):
                 raise SafetyTrip(f"load cell {r.status}")
             if r.ok or r.status == "unstable":
@@ -658,8 +758,13 @@ class ManualSession:
         n = max(1, int(seconds / interval))
         t_begin = self._clock()
         for k in range(1, n + 1):
-            self._wait(max(0.0, t_begin + k * interval - self._clock()))
-            line = self._cmd_read()
+            due = t_begin + k * interval
+            self._wait(max(0.0, due - self._clock()))
+            self._late = self._clock() - due
+            try:
+                line = self._cmd_read()
+            finally:
+                self._late = math.nan
             self._write("watch", "read", line)
             self.echo(line)
         return f"watched {n} readings over {seconds:g} s"
@@ -730,3 +835,13 @@ def prompt_lines(prompt: str, history: Path | None = None) -> Iterator[str]:
 def session_log_name(rig: RigConfig) -> str:
     """Default file name of a session log: ``manual-<rig>-<local time>.log``."""
     return f"manual-{rig.name}-{datetime.now().strftime('%Y%m%d-%H%M%S')}.log"
+
+
+def data_path(log_file: Path) -> Path:
+    """The readings' HDF5 file of a session log: ``<log>.h5`` beside it, or ``<log>-1.h5``… (a log is appended to
+    when reused; a file of readings is never overwritten)."""
+    path, k = log_file.with_suffix(".h5"), 1
+    while path.exists():
+        path = log_file.with_name(f"{log_file.stem}-{k}.h5")
+        k += 1
+    return path
