@@ -566,7 +566,7 @@ class ManualSession:
         done = self._make_safe()
         self._verifier = OutputVerifier(self.rig, None)  # readings counted afresh from the zeroed output
         self._verifier.commanded(self._now(), float(self._amp().commanded))
-        self._write("interlock", "latched", f"{trip.kind}: {self._latch_text()}")
+        self._write("interlock", "latched", f"{self._latch_text()}; {trip.reason}")
         return f"{trip.reason}; {done}; latched"
 
     def _latch_text(self) -> str:
