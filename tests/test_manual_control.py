@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import os
 import re
 import signal
@@ -10,6 +11,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 from typer.testing import CliRunner
 
@@ -164,7 +166,7 @@ def _error_classes() -> list[type[Exception]]:
 @pytest.mark.parametrize("exc_class", [*_error_classes(), AssertionError, TypeError, RuntimeError],
                          ids=lambda c: c.__name__)
 def test_any_exception_in_a_command_is_one_line_and_the_session_goes_on(tmp_path: Path, exc_class) -> None:
-    from drivers.errors import InstrumentError, LimitError
+    from drivers.errors import ImplausibleValueError, InstrumentError, LimitError
 
     with ManualSession(load_rig(THESIS_RIG), tmp_path / "s.log", virtual=True, echo=lambda _t: None) as s:
         assert s.execute("voltage 2kV").status == "ok"
@@ -403,3 +405,167 @@ def test_the_prompt_has_line_editing_and_a_history_file_in_home(tmp_path: Path) 
     assert commands == [("wait 0.5", "ok"), ("wait 10.5", "ok"), ("read", "ok")], commands
     assert (home / ".bench_history").read_text(encoding="utf-8").splitlines()[-3:] == \
         ["wait 0.5", "wait 10.5", "read"]
+
+
+# ---------------------------------------------------------------- latched interlock (bench/runtime/interlock.py)
+def _trace(sim) -> list[tuple[float, float]]:
+    """Everything the plant's output stage did (rig clock, volts): observed from the plant, not the session."""
+    out: list[tuple[float, float]] = []
+    sim.plant.listeners.append(lambda b: out.extend(zip(b.t.tolist(), b.voltage.tolist(), strict=True)))
+    return out
+
+
+@pytest.mark.parametrize("where", ["in a command", "at the prompt", "at the exit"])
+def test_a_host_stall_longer_than_the_watchdog_latches_and_high_voltage_never_comes_back(
+        tmp_path: Path, where: str) -> None:
+    """Tester: the host frozen longer than the module's watchdog (SIGSTOP 3 s / SIGCONT) — on resume the session
+    wrote 5 kV again. Here the session's threads are frozen while the twins, the plant and the ADAM-4024's 1-s
+    watchdog (rig file default) run on: inside a command's keep-alive wait (the keep-alive thread waits for the
+    command's lock), at the prompt (the test holds that lock: not even the keep-alive thread runs), or just
+    before the session is left (its exit would ramp down from 3 kV)."""
+    import time
+
+    rig = load_rig(THESIS_RIG)
+    freeze = 2.5  # s, longer than the 1-s watchdog
+    seen: list[str] = []
+    s = ManualSession(rig, tmp_path / "s.log", echo=seen.append, operator="Ada Lovelace")  # real time
+    with s:
+        sim = s._sim
+        trace = _trace(sim)
+        assert s.execute("voltage 3kV").status == "ok"
+        t_freeze = sim.clock.now()
+        if where == "in a command":
+            sleep = s._sleep
+
+            def stalled(dt: float) -> None:
+                s._sleep = sleep
+                time.sleep(freeze)
+                sleep(dt)
+            s._sleep = stalled
+            out = s.execute("wait 1")
+            assert out.status == "trip" and "interlock: host stall" in out.text and "latched" in out.text, out
+        elif where == "at the prompt":
+            with s._lock:
+                time.sleep(freeze)
+            deadline = time.monotonic() + 30  # hang guard
+            while not any(line.startswith("trip: interlock: host stall") for line in seen):
+                assert time.monotonic() < deadline, seen
+                time.sleep(0.05)
+        else:
+            s._lock.acquire()  # held through the exit: the keep-alive thread never gets to write
+            time.sleep(freeze)
+        if where != "at the exit":
+            for line in ("voltage 2kV", "ramp 2kV 1s", "voltage 3kV"):
+                out = s.execute(line)
+                assert out.status == "refused" and "latched" in out.text and "host stall" in out.text, out
+            assert s.execute("wait 0.5").status == "ok"  # nothing that energises is refused
+            assert s.execute("reset").status == "refused"  # a reset needs a reason
+            sim.plant.observe()
+            t_reset = sim.clock.now()
+            out = s.execute("reset because the laptop slept; rig checked")
+            assert out.status == "ok" and "Ada Lovelace" in out.text and "because the laptop slept" in out.text, out
+            assert s.execute("voltage 2kV").status == "ok"
+            assert abs(float(sim.plant.observe().voltage[-1]) - 2000) < 30  # accepted, and the plant has it
+    if where == "at the exit":
+        s._lock.release()
+        t_reset = math.inf
+    rows = _rows(tmp_path / "s.log")
+    (latched,) = [r for r in rows if r[2:4] == ["latched", "interlock"]]
+    assert "host stall" in latched[4] and "stays off" in latched[4]
+    if where == "at the exit":
+        assert rows[-2][2:4] == ["ramp", "session"] and "0 V at once, no ramp" in rows[-2][4]
+    else:
+        (reset,) = [r for r in rows if r[3].startswith("reset because")]
+        assert reset[2] == "ok" and "Ada Lovelace" in reset[4]
+    # the plant: high voltage before the freeze; zeroed by the module's watchdog during it; never again until the
+    # operator's reset
+    held = [(t, v) for t, v in trace if t < t_freeze]
+    assert max(abs(v) for _, v in held) > 2900
+    after = [(t, v) for t, v in trace if t_freeze <= t < t_reset]
+    zeroed = next(t for t, v in after if abs(v) <= ZERO_V)
+    assert zeroed < t_freeze + freeze
+    assert max(abs(v) for t, v in after if t >= zeroed) <= ZERO_V, "high voltage came back after the stall"
+
+
+def test_a_monitor_that_disagrees_with_the_set_point_latches_the_output_off(tmp_path: Path) -> None:
+    """Verified outputs: the amplifier's gain 25 % off (a calibration outside its tolerance) — the monitor reads
+    5 kV where 4 kV is commanded (beyond 100 V + 5 %, README "Interlock"): two readings in a row latch."""
+    import dataclasses
+
+    with ManualSession(load_rig(THESIS_RIG), tmp_path / "s.log", virtual=True, echo=lambda _t: None) as s:
+        assert s.execute("voltage 4kV").status == "ok"
+        hv = s._sim.plant.hv
+        s._sim.plant.hv = dataclasses.replace(hv, gain=hv.gain * 1.25)
+        out_trip = s.execute("watch 5 0.25")
+        assert out_trip.status == "trip" and "interlock: output mismatch" in out_trip.text, out_trip
+        assert "latched" in out_trip.text
+        assert abs(_plant_volts(s._sim)) < ZERO_V
+        out = s.execute("voltage 1kV")
+        assert out.status == "refused" and "latched" in out.text and "output mismatch" in out.text
+        assert abs(_plant_volts(s._sim)) < ZERO_V
+    # one reading out of the band (logged), the second latched: the trip names it
+    assert len([r for r in _rows(tmp_path / "s.log") if r[3] == "watch"]) == 1
+    from bench.storage.runfile import open_run
+
+    run = open_run(tmp_path / "s.h5")  # the readings' file: still latched at the end
+    assert run.state == "tripped" and "interlock latched" in run.reason
+    (latched,) = [text for _, _, kind, text in run.event_list() if kind == "latched"]
+    assert "(output mismatch)" in latched and "stays off" in latched
+    assert run.streams["amplifier"].columns["voltage"].max() > 4900  # the reading that latched is on file
+    measured, commanded = map(float, re.search(r"read (-?\d+) V .* where (-?\d+) V was commanded",  # type: ignore[union-attr]
+                                               out_trip.text).groups())
+    assert abs(commanded - 4000) <= ZERO_V and abs(measured - 1.25 * 4000) < 50, out_trip
+
+
+# ---------------------------------------------------------------- readings to HDF5 (bench/storage/recorder.py)
+_READING = re.compile(r"t (?P<t>[\d.]+) s: voltage (?P<v>-?\d+) V, current (?P<i>-?[\d.]+) µA, motor "
+                      r"(?P<m>-?[\d.]+) mm.*, force (?P<f>-?[\d.]+) N")  # the motor rig: no laser
+
+
+def _nearest(stream, t: float, column: str) -> float:
+    k = int(np.argmin(np.abs(stream.t - t)))
+    assert abs(stream.t[k] - t) <= 0.01, (stream.name, t, stream.t[k])  # the log prints t to 10 ms
+    return float(stream.columns[column][k])
+
+
+def test_a_scripted_session_records_readings_commands_and_its_end_in_an_hdf5_file(tmp_path: Path) -> None:
+    from bench.storage.runfile import open_run
+
+    script, log = tmp_path / "cmds.txt", tmp_path / "session.log"
+    script.write_text("voltage 2kV\nmove 20\nread\nwatch 1 0.25\nvoltage 20kV\nramp 1kV 0.5s\n", encoding="utf-8")
+    res = CliRunner().invoke(app, ["devices", "control", str(MOTOR_RIG), "--virtual-time", "--log", str(log),
+                                   "--script", str(script), "--operator", "Ada Lovelace"])
+    assert res.exit_code == 1, res.output  # one refusal
+    assert f"readings: {tmp_path / 'session.h5'}" in " ".join(res.output.split())
+    run = open_run(tmp_path / "session.h5")
+    assert run.complete and run.state == "completed" and "instruments safe and closed" in run.reason
+    assert run.attrs["operator"] == "Ada Lovelace" and run.attrs["rig_name"] == "lsdea-motor-sim"
+    rows = _rows(log)
+    # every reading the log shows is in the streams with the value it shows (to the digits it shows)
+    readings = [m for r in rows if (m := _READING.search(r[4]))]
+    assert len(readings) == 1 + 1 + 1 + 4 + 1  # voltage, move, read, watch (4), ramp
+    amp, motor, cell = (run.streams[k] for k in ("amplifier", "motor", "load_cell"))
+    for m in readings:
+        t = float(m["t"])
+        assert abs(_nearest(amp, t, "voltage") - float(m["v"])) <= 0.5
+        assert abs(_nearest(amp, t, "current") * 1e6 - float(m["i"])) <= 0.005
+        assert abs(_nearest(motor, t, "position") * 1e3 - float(m["m"])) <= 0.0005
+        assert abs(_nearest(cell, t, "force") - float(m["f"])) <= 0.0005
+    watch_late = [_nearest(amp, float(m["t"]), "late") for m, r in zip(readings, [r for r in rows if
+                                                                                   _READING.search(r[4])],
+                                                                        strict=True) if r[3] == "watch"]
+    assert all(0.0 <= late < 0.1 for late in watch_late), watch_late  # a watch's readings are scheduled
+    # one event per log line but a watch's readings (they are in the streams): commands, refusals, operator, end
+    events = [(kind, text.split(": ", 1)[0]) for _, _, kind, text in run.event_list()]
+    assert events == [(r[2], r[3]) for r in rows if r[3] != "watch"]
+    assert ("refused", "voltage 20kV") in events and ("operator", "session") in events and events[-1] == ("end",
+                                                                                                         "session")
+    # the set-points: the move's aperture target, and the exit ramp from 1 kV to 0 V in ten steps, then 0 V
+    sp = run.streams["setpoints"]
+    apertures = sp.columns["aperture"][np.isfinite(sp.columns["aperture"])]
+    lsdea = load_rig(MOTOR_RIG).specimen.lsdea
+    assert apertures.tolist() == pytest.approx([lsdea.x_at_motor_zero_m + lsdea.motor_sign * 0.020])  # type: ignore[union-attr]
+    last = sp.columns["voltage"][-11:]
+    assert np.abs(last - [900, 800, 700, 600, 500, 400, 300, 200, 100, 0, 0]).max() <= 2 * ZERO_V, last
+    shown = CliRunner().invoke(app, ["inspect", str(tmp_path / "session.h5")], env={"COLUMNS": "200"})
+    assert shown.exit_code == 0 and "manual control" in shown.output and "completed" in shown.output, shown.output

@@ -37,15 +37,19 @@ def devices_control(
     rig_file: Annotated[Path, typer.Argument(help="Rig file (TOML), e.g. rigs/lsdea-motor-sim.toml.")],
     script: Annotated[Path | None, typer.Option(help="Read commands from this file (default: stdin; a prompt "
                                                 "on a terminal).")] = None,
-    log: Annotated[Path | None, typer.Option(help="Session log file (default: runs/manual-<rig>-<time>.log).")]
-    = None,
+    log: Annotated[Path | None, typer.Option(help="Session log file (default: runs/manual-<rig>-<time>.log); the "
+                                             "readings go to an HDF5 file beside it (<log>.h5).")] = None,
     virtual_time: Annotated[bool, typer.Option("--virtual-time", help="Simulated rig only: waits and ramps take "
                                                "no wall time.")] = False,
     operator_name: Annotated[str | None, typer.Option(
         "--operator", help="Who runs the session; recorded in the session log's header.")] = None,
 ) -> None:
-    """Manual control under the safety supervisor: set or ramp the voltage, jog or move the motor, tare the
-    load cell, watch every channel; every action is logged. Commands: see `help` in the session.
+    """Manual control under the safety supervisor and the latched interlock: set or ramp the voltage, jog or
+    move the motor, tare the load cell, watch every channel; every action is logged, every reading recorded to
+    an HDF5 file beside the log (`bench inspect` reads it). Commands: see `help` in the session.
+
+    A host stall longer than the set-point module's watchdog allows, or an output that is not what was
+    commanded, zeroes the output at once and latches: high voltage is refused until `reset WHY...`.
 
     On a terminal the prompt has line editing and a history (~/.bench_history). Ctrl-C ends the command under
     way; a second Ctrl-C, Ctrl-C at the prompt, SIGTERM, SIGHUP or SIGQUIT end the session: output ramped to
@@ -89,7 +93,9 @@ def devices_control(
     with contextlib.suppress(OSError):
         console.print((f"session ended: {session.end_reason}; " if session.end_reason else "")
                       + f"session log: {escape(str(path))} ({len(session.outcomes)} commands"
-                      + (f", {len(bad)} not done" if bad else "") + ")")
+                      + (f", {len(bad)} not done" if bad else "") + ")"
+                      + (f"; readings: {escape(str(session.data_file))}"
+                         if session.data_file is not None and session.data_file.exists() else ""))
     if bad or session.end_reason:
         raise typer.Exit(1)
 

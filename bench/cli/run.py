@@ -305,7 +305,7 @@ def inspect(run_file: Annotated[Path, typer.Argument(help="Run file (.h5), finis
         fits, fits_error = [], " ".join(str(exc).splitlines())
     if json_out:
         keys = ("protocol_name", "protocol_path", "protocol_sha256", "rig_name", "simulated", "clock", "software",
-                "start_time", "duration_planned", "operator", "specimen_id")
+                "start_time", "duration_planned", "operator", "specimen_id", "session_log")
         print_json({"file": str(run_file), **{k: a.get(k) for k in keys}, "notes": notes,
                     "fits": [{"file": f["file"], "group": f["group"], "model": f.get("model"), "rms": f.get("rms"),
                               "created": f.get("created"), "records": f.get("records"),
@@ -336,7 +336,11 @@ def inspect(run_file: Annotated[Path, typer.Argument(help="Run file (.h5), finis
         except ValueError as exc:
             meta.add_row("campaign", f"[red]{escape(str(exc))}[/]")
     sha = str(a.get("protocol_sha256", ""))[:12]
-    meta.add_row("protocol", f"{a.get('protocol_name')} ({a.get('protocol_path')}, sha256 {sha}…)")
+    manual = bool(a.get("session_log"))  # the readings of a manual-control session (bench devices control)
+    if manual:
+        meta.add_row("session", f"manual control (log {escape(str(a['session_log']))})")
+    else:
+        meta.add_row("protocol", f"{a.get('protocol_name')} ({a.get('protocol_path')}, sha256 {sha}…)")
     kind = "simulated" if a.get("simulated") else "real"
     meta.add_row("rig", f"{a.get('rig_name')} ({kind}, {a.get('clock')} clock)")
     meta.add_row("software", str(a.get("software")))
@@ -352,7 +356,8 @@ def inspect(run_file: Annotated[Path, typer.Argument(help="Run file (.h5), finis
         meta.add_row("reason", r.reason)
     if r.end_time:
         meta.add_row("ended", r.end_time)
-    meta.add_row("recorded up to", f"{r.updated:.3f} s of {float(a.get('duration_planned', 0)):.1f} s planned")
+    meta.add_row("recorded up to", f"{r.updated:.3f} s" if manual else
+                 f"{r.updated:.3f} s of {float(a.get('duration_planned', 0)):.1f} s planned")
     console.print(meta)
     streams = Table(title="streams")
     for col in ("stream", "samples", "from [s]", "to [s]", "columns (units): last value"):

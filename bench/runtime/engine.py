@@ -38,6 +38,7 @@ from bench.runtime.hardware_timed import HardwareTimed
 from bench.runtime.instruments import Instruments
 from bench.runtime.interlock import OUTPUT_ON_V, InterlockTrip, OutputVerifier, check_contact, watchdog_period
 from bench.runtime.polls import PAUSED, POLLS, StepState
+from bench.runtime.ramp import ramp_to_zero
 from bench.runtime.safety import SafetyTrip, Supervisor
 from bench.storage.recorder import Recorder
 from drivers.errors import InstrumentConnectionError, InstrumentError, InstrumentStateError, OperationCancelledError
@@ -675,12 +676,13 @@ class Engine:
                 self._event("ramp", "second stop request before the ramp began: 0 V at once")
             if v0 != 0.0 and not self._urgent.is_set():
                 self._event("ramp", f"ramp from {v0:.0f} V to 0 V over {ramp:g} s")
-                for k in range(1, RAMP_STEPS + 1):
-                    if not self._pause_until(t + ramp * k / RAMP_STEPS):
-                        self._event("ramp", "second stop request: 0 V at once")
-                        break
-                    self._v_cmd = amp.set_voltage(v0 * (1 - k / RAMP_STEPS))
-                    self._record(self.rec.append, "setpoints", self.now(), voltage=self._v_cmd, aperture=math.nan)
+
+                def record(sent: float) -> None:
+                    self._v_cmd = sent
+                    self._record(self.rec.append, "setpoints", self.now(), voltage=sent, aperture=math.nan)
+
+                if not ramp_to_zero(amp, v0, ramp, lambda offset: self._pause_until(t + offset), record, RAMP_STEPS):
+                    self._event("ramp", "second stop request: 0 V at once")
         except InstrumentError as exc:
             notes.append(f"voltage ramp-down failed: {exc}")
         try:

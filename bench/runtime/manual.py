@@ -12,6 +12,7 @@ Commands (one per line; ``#`` starts a comment; quantities as in files, plain nu
     read                    read every channel once
     watch DURATION [EVERY]  read every channel every EVERY [s] (default 0.5 s) for DURATION [s]
     wait DURATION           let time pass
+    reset WHY...            clear a latched interlock (the reason and the --operator name are logged)
     help | quit
 
 Every set-point passes :meth:`bench.runtime.safety.Supervisor.check_setpoint` (voltage, field at the present stretch)
@@ -20,6 +21,21 @@ sent; a refused command is not sent. Every reading passes the supervisor's sampl
 limit (a trip) zeroes the output and stops the motor. A driver error of any kind, or an unexpected error in a
 command, is one ``error`` line (output zeroed, motor stopped) and the session goes on; a command whose
 instrument the rig lacks is refused (nothing sent).
+
+Latched interlock (:mod:`bench.runtime.interlock`, as in a run): before every write that can drive the output
+(set-points, keep-alives, ramps) a host stall is checked — the set-point module unheard for longer than 0.8 × its
+communication watchdog while the output was on (a frozen process, a suspended laptop): its watchdog may have
+zeroed the output, and the next keep-alive would turn high voltage back on by itself. Every monitor reading is
+compared with the voltage commanded (:class:`~bench.runtime.interlock.OutputVerifier`). Either fault zeroes the
+output at once (no ramp) and latches: every command that would energise is refused, in one line naming the
+fault, until the operator types ``reset WHY…`` (logged with the reason and the ``--operator`` name).
+
+Readings: every reading of the session (``read``, ``watch``, the monitors after set-points and in ramps, the
+motor during moves) and every set-point sent (keep-alives and the exit ramp included) go to an HDF5 file beside
+the log (``<log>.h5``; never overwritten: ``<log>-1.h5``…), in a run file's stream layout
+(:mod:`bench.storage.recorder`), with one event per log line (commands, refusals, trips, the operator, the
+exit) and the end state; ``bench inspect`` and :func:`bench.storage.runfile.open_run` read it. A storage fault
+is one ``error`` line; the session goes on with the log alone.
 
 Leaving the session (quit, end of input, error, a stop signal) ramps the output to 0 V over the rig's
 ``shutdown_ramp_s`` (at once on a second stop signal), stops the motor, puts every instrument in its safe state
@@ -42,6 +58,7 @@ from __future__ import annotations
 
 import contextlib
 import inspect
+import json
 import math
 import shlex
 import signal
@@ -53,10 +70,16 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any, TextIO
 
-from bench.rig import RigConfig
-from bench.runtime.engine import STOP_SIGNALS
+import numpy as np
+
+from bench import __version__
+from bench.rig import RigConfig, rig_to_toml
+from bench.runtime.engine import RAMP_STEPS, STOP_POLL_S, STOP_SIGNALS
 from bench.runtime.instruments import Instruments, build_instruments
+from bench.runtime.interlock import OUTPUT_ON_V, InterlockTrip, OutputVerifier, check_contact, mismatch_trip
+from bench.runtime.ramp import ramp_to_zero
 from bench.runtime.safety import SafetyTrip, Supervisor
+from bench.storage.recorder import Recorder, now_iso
 from bench.units import to_si
 from drivers.errors import InstrumentError, InstrumentStateError, LimitError, OperationCancelledError
 
@@ -65,9 +88,7 @@ DEFAULT_SPEED = 0.02  # m/s
 DEFAULT_ACCEL = 0.5  # m/s²
 KEEPALIVE_S = 0.25  # set-point refresh while holding (feeds the analog module's communication watchdog)
 SETTLE_S = 0.3  # after a voltage set-point: the monitors convert at 10 S/s (ADAM-4017+)
-EXIT_RAMP_STEPS = 10  # leaving the session: set-points from the last voltage to 0 V over shutdown_ramp_s
 EXIT_RAMP_FROM_V = 50.0  # below this |set-point| the exit zeroes at once (no ramp)
-STOP_POLL_S = 0.02  # exit ramp: longest sleep between two looks for a second stop request
 HISTORY_FILE = ".bench_history"  # in the user's home folder: what was typed at the interactive prompt
 HISTORY_LENGTH = 1000
 HELP = "\n".join(line[4:] for line in (__doc__ or "").splitlines() if line.startswith("    "))
@@ -103,6 +124,7 @@ class ManualSession:
     virtual: bool = False
     echo: Callable[[str], None] = print
     operator: str | None = None  # who runs the session (in the log's header)
+    data_file: Path | None = None  # the readings' HDF5 file (default: beside the log, see data_path)
     outcomes: list[Outcome] = field(default_factory=list)
     end_reason: str | None = None  # the stop signal (or exception) that ended the session, if any
     _sim: Any = None
@@ -123,6 +145,12 @@ class ManualSession:
     _ending: bool = False  # leaving the session: making the rig safe
     _interrupt: str | None = None  # Ctrl-C: end the command under way
     _urgent: threading.Event = field(default_factory=threading.Event)  # second stop request: 0 V at once
+    _verifier: OutputVerifier | None = None  # measured output against what was commanded
+    _latched: InterlockTrip | None = None  # the interlock fault that holds high voltage off until `reset`
+    _latched_at: float = 0.0  # session time of the latch [s]
+    _rec: Recorder | None = None  # the readings' file (None: not open, or its storage failed)
+    _early: list[tuple[float, str, str, str]] | None = field(default_factory=list)  # log lines before the file
+    _late: float = math.nan  # a watch's reading: how long after its scheduled time it was taken [s]
 
     # ------------------------------------------------------------ life cycle
     def __enter__(self) -> ManualSession:
@@ -138,7 +166,40 @@ class ManualSession:
         except BaseException:
             self.__exit__(None, None, None)
             raise
+        self._open_recorder()
         return self
+
+    def _open_recorder(self) -> None:
+        """The readings' file, in a run file's layout (every stream polled: nothing is hardware-timed here)."""
+        from bench.runtime.interlock import watchdog_period
+        from bench.runtime.run import _model_params, _streams
+
+        assert self._inst is not None and self._sup is not None
+        if self.data_file is None:
+            self.data_file = data_path(self.log_file)
+        rig, spec = self.rig, self.rig.specimen
+        streams, sources = _streams(rig, self._inst, polled=True)
+        watchdog = watchdog_period(rig)
+        attrs: dict[str, Any] = {
+            "software": f"dea-bench {__version__}", "start_time": now_iso(), "mode": "manual control",
+            "protocol_name": "manual control", "protocol_path": "", "protocol_text": "", "protocol_sha256": "",
+            "session_log": str(self.log_file), "rig_name": rig.name, "rig_toml": rig_to_toml(rig),
+            "simulated": rig.simulated, "clock": "virtual" if self.virtual else "wall", "specimen_kind": spec.kind,
+            "specimen": json.dumps({**spec.model_dump(), "model": _model_params(self._sup.specimen)}),
+            "recording": json.dumps({"readings": "on request (read, watch, after set-points)"}),
+            "sources": json.dumps(sources), "duration_planned": 0.0,
+            "hv_watchdog": f"communication watchdog {watchdog:g} s" if watchdog is not None else "NO watchdog",
+            **({"operator": self.operator} if self.operator else {}),
+        }
+        early, self._early = self._early or [], None
+        try:
+            self._rec = Recorder(self.data_file, attrs, streams, [], dict.fromkeys(streams, 0.0))  # 0: irregular
+        except OSError as exc:
+            self._write("readings", "error", f"{exc}; the session goes on, readings in this log only")
+            self.echo(f"error: {exc}; readings in the session log only")
+            return
+        for t, status, command, text in early:
+            self._rec_call(self._rec.event, t, -1, status, f"{command}: {text}")
 
     def _connect(self) -> None:
         rig = self.rig
@@ -165,6 +226,7 @@ class ManualSession:
         params = self._sim.plant.specimen if self._sim is not None else (
             spec.membrane() if spec.kind == "membrane" else spec.lozenge())
         self._sup = Supervisor(rig, params)
+        self._verifier = OutputVerifier(rig, None)  # polled monitors: manual control plays no stream
         if not self.virtual:  # wall clock: hold the set-point between commands (a human types slowly)
             self._keepalive = threading.Thread(target=self._feed, name="manual-keepalive", daemon=True)
             self._keepalive.start()
@@ -177,7 +239,10 @@ class ManualSession:
         while not self._stop.wait(KEEPALIVE_S):
             with self._lock, contextlib.suppress(InstrumentError, SafetyTrip, Refused):
                 if self._inst is not None and self._inst.amplifier is not None and self._v_req != 0.0:
-                    self._checked_voltage(self._v_req)
+                    try:
+                        self._checked_voltage(self._v_req)
+                    except InterlockTrip as trip:  # between commands: the operator is told at the prompt
+                        self.echo(f"trip: {self._latch(trip)}")
 
     def _wait(self, seconds: float) -> None:
         """Let ``seconds`` pass on the rig clock, re-sending the set-point every KEEPALIVE_S."""
@@ -201,14 +266,23 @@ class ManualSession:
             self._inst.cancel.clear()  # the safe exit's own commands must go out
             errors += self._ramp_down()
             errors += self._inst.safe_state()
+            if self._inst.amplifier is not None:
+                self._commanded(float(self._inst.amplifier.commanded))
             errors += self._inst.close()
             self._inst = None
         if self._sim is not None:
             self._sim.stop()
             self._sim = None
+        end = ((f"{self.end_reason}; " if self.end_reason else "") + "instruments safe and closed"
+               + (f"; {'; '.join(errors)}" if errors else ""))
         if self._log is not None:
-            self._write("session", "end", (f"{self.end_reason}; " if self.end_reason else "")
-                        + "instruments safe and closed" + (f"; {'; '.join(errors)}" if errors else ""))
+            self._write("session", "end", end)
+        if self._rec is not None:
+            state = ("error" if exc_type not in (None, SessionEnd, KeyboardInterrupt) else
+                     "interrupted" if self.end_reason else "tripped" if self._latched is not None else "completed")
+            self._rec_call(self._rec.finish, state, end if self._latched is None else f"{self._latch_text()}; {end}")
+            self._rec = None
+        if self._log is not None:
             self._log.close()
             self._log = None
 
@@ -219,21 +293,36 @@ class ManualSession:
         v0 = float(amp.commanded) if amp is not None else 0.0
         if amp is None or abs(v0) < EXIT_RAMP_FROM_V:
             return []
+        if self._latched is None:
+            try:
+                self._guard()  # a stall before the exit: the ramp's first set-point would re-energise
+            except InterlockTrip as trip:
+                self._latch(trip)
+        if self._latched is not None:
+            self._write("session", "ramp", f"interlock latched ({self._latched.kind}): 0 V at once, no ramp from a "
+                        "set-point the output may no longer hold")
+            return []
         if self._urgent.is_set():
             self._write("session", "ramp", f"second stop request: {v0:.0f} V to 0 V at once")
             return []
         ramp = self.rig.limits.shutdown_ramp_s
         self._write("session", "ramp", f"from {v0:.0f} V to 0 V over {ramp:g} s")
         t0 = self._clock()
+
+        def pause(offset: float) -> bool:
+            while (left := t0 + offset - self._clock()) > 0 and not self._urgent.is_set():
+                self._sleep(min(left, STOP_POLL_S))
+            try:
+                self._guard()
+            except InterlockTrip as trip:
+                self._latch(trip)
+                return False
+            return not self._urgent.is_set()
+
         try:
-            for k in range(1, EXIT_RAMP_STEPS + 1):
-                until = t0 + ramp * k / EXIT_RAMP_STEPS
-                while (left := until - self._clock()) > 0 and not self._urgent.is_set():
-                    self._sleep(min(left, STOP_POLL_S))
-                if self._urgent.is_set():
-                    self._write("session", "ramp", f"second stop request: {amp.commanded:.0f} V to 0 V at once")
-                    break
-                amp.set_voltage(v0 * (1 - k / EXIT_RAMP_STEPS))
+            if not ramp_to_zero(amp, v0, ramp, pause, self._commanded, RAMP_STEPS):
+                why = "interlock latched" if self._latched is not None else "second stop request"
+                self._write("session", "ramp", f"{why}: {amp.commanded:.0f} V to 0 V at once")
         except InstrumentError as exc:
             return [f"voltage ramp-down failed: {exc}"]
         return []
@@ -300,11 +389,40 @@ class ManualSession:
         return self._clock() - self._t0 if self._t0 is not None else 0.0
 
     def _write(self, command: str, status: str, text: str) -> None:
+        """One log line; also an event in the readings' file (but a watch's readings: they are in its streams)."""
+        t = self._now()
+        if command != "watch":
+            if self._rec is not None:
+                self._rec_call(self._rec.event, t, -1, status, f"{command}: {text}")
+            elif self._early is not None:  # before the file opens: replayed into it then
+                self._early.append((t, status, command, text))
         if self._log is None:
             return
         stamp = datetime.now().astimezone().isoformat(timespec="milliseconds")
-        self._log.write(f"{stamp}\tt={self._now():.3f} s\t{status}\t{command}\t{text}\n")
+        self._log.write(f"{stamp}\tt={t:.3f} s\t{status}\t{command}\t{text}\n")
         self._log.flush()
+
+    # ------------------------------------------------------------ readings' file
+    def _rec_call(self, fn: Callable[..., object], *args: Any) -> None:
+        """A recorder call (one thread at a time); a storage fault is one error line, then the log goes on alone."""
+        with self._lock:
+            if self._rec is None:
+                return
+            try:
+                fn(*args)
+            except OSError as exc:
+                self._rec = None
+                self._write("readings", "error", f"{exc}; the session goes on, readings in this log only")
+                self.echo(f"error: {exc}; readings in the session log only")
+
+    def _record(self, stream: str, t: float, **values: float) -> None:
+        """One sample of ``stream`` at session time ``t``; columns not given are NaN (flags 0)."""
+        rec = self._rec
+        if rec is None or stream not in rec.streams:
+            return
+        row = {c.name: values.get(c.name, math.nan if np.dtype(c.dtype).kind == "f" else 0)
+               for c in rec.streams[stream]}
+        self._rec_call(lambda: rec.append(stream, t, **row))
 
     # ------------------------------------------------------------ commands
     def run_lines(self, lines: Iterable[str], stop_on_trip: bool = True) -> list[Outcome]:
@@ -369,6 +487,8 @@ class ManualSession:
                 out = Outcome(shown, "error", f"{exc}; {self._make_safe()}")
         except (Refused, ValueError, LimitError) as exc:
             out = Outcome(shown, "refused", str(exc))
+        except InterlockTrip as trip:
+            out = Outcome(shown, "trip", self._latch(trip))
         except SafetyTrip as exc:
             out = Outcome(shown, "trip", f"{exc.reason}; {self._make_safe()}")
         except InstrumentError as exc:
@@ -381,6 +501,8 @@ class ManualSession:
         out.text = _printable(" ".join(out.text.splitlines()))
         self.outcomes.append(out)
         self._write(out.command, out.status, out.text)
+        if self._rec is not None:
+            self._rec_call(self._rec.flush)  # on disk before the next prompt
         self.echo(f"{out.status}: {out.text}" if out.text else out.status)
         return out
 
@@ -393,6 +515,8 @@ class ManualSession:
             errors = self._inst.safe_state()
         except Exception as exc:  # safe_state reports driver errors; anything else is said, not raised
             errors = [f"{type(exc).__name__}: {exc}"]
+        if self._inst.amplifier is not None:
+            self._commanded(float(self._inst.amplifier.commanded))
         return "output zeroed, motor stopped" + (f" ({'; '.join(errors)})" if errors else "")
 
     # each _cmd_* returns one line of text (what was done / read)
@@ -405,13 +529,60 @@ class ManualSession:
         return self._inst.amplifier
 
     def _checked_voltage(self, volts: float) -> float:
+        """Send a set-point the latch and the supervisor allow, after the host-stall check; returns what was sent."""
         assert self._sup is not None
+        amp = self._amp()
+        if self._latched is not None and volts != 0.0:
+            self._v_req = 0.0  # held at 0 V: nothing to keep alive
+            raise Refused(f"{self._latch_text()}; not sent")
         try:
             self._sup.check_setpoint(volts)
         except SafetyTrip as exc:
-            self._v_req = float(self._amp().commanded)
+            self._v_req = float(amp.commanded)
             raise Refused(f"{exc.reason}; not sent") from None
-        return float(self._amp().set_voltage(volts))
+        self._guard()
+        sent = float(amp.set_voltage(volts))
+        self._commanded(sent)
+        return sent
+
+    # ------------------------------------------------------------ latched interlock
+    def _guard(self) -> None:
+        """Before a write that can drive the output: latch a host stall (:func:`~bench.runtime.interlock.check_contact`
+        on the amplifier's ``longest_silence``). Real time only: a virtual clock cannot stall."""
+        amp = self._amp()
+        if not self.virtual:
+            check_contact(self.rig, amp.longest_silence(), abs(float(amp.commanded)) > OUTPUT_ON_V)
+
+    def _commanded(self, sent: float) -> None:
+        """A set-point the amplifier now outputs: what the monitors are checked against; recorded."""
+        t = self._now()
+        if self._verifier is not None:
+            self._verifier.commanded(t, sent)
+        self._record("setpoints", t, voltage=sent)
+
+    def _latch(self, trip: InterlockTrip) -> str:
+        """Latch ``trip``: output to 0 V at once, motor stopped, a ``latched`` line in the log; returns the outcome."""
+        self._latched, self._latched_at = trip, self._now()
+        done = self._make_safe()
+        self._verifier = OutputVerifier(self.rig, None)  # readings counted afresh from the zeroed output
+        self._verifier.commanded(self._now(), float(self._amp().commanded))
+        self._write("interlock", "latched", f"{self._latch_text()}; {trip.reason}")
+        return f"{trip.reason}; {done}; latched"
+
+    def _latch_text(self) -> str:
+        assert self._latched is not None
+        return (f"interlock latched at t={self._latched_at:.3f} s ({self._latched.kind}): high voltage stays off "
+                "until `reset WHY...`")
+
+    def _cmd_reset(self, *why: str) -> str:
+        if self._latched is None:
+            raise Refused("no interlock latched: nothing to reset")
+        reason = " ".join(why).strip()
+        if not reason:
+            raise Refused("reset needs a reason: reset WHY... (logged with the operator's name)")
+        who = self.operator or "an operator not named (no --operator)"
+        kind, self._latched = self._latched.kind, None
+        return f"interlock ({kind}) reset by {who}: {reason}"
 
     def _reach(self, volts: float) -> float:
         """Send ``volts``; if the amplifier's slew limit cut the step, re-send once the limit allows the whole step
@@ -444,6 +615,8 @@ class ManualSession:
             raise Refused(f"ramp duration {seconds:g} s: give 0 < DURATION ≤ 3600 s")
         start = float(self._amp().commanded)
         assert self._sup is not None
+        if self._latched is not None and target != 0.0:
+            raise Refused(f"{self._latch_text()}; ramp not started")
         try:
             self._sup.check_setpoint(target)
         except SafetyTrip as exc:
@@ -460,7 +633,9 @@ class ManualSession:
 
     def _cmd_zero(self) -> str:
         self._v_req = 0.0
-        self._amp().zero()
+        amp = self._amp()
+        amp.zero()
+        self._commanded(float(amp.commanded))
         return "output 0 V"
 
     def _motor(self) -> Any:
@@ -486,10 +661,12 @@ class ManualSession:
         except SafetyTrip as exc:
             raise Refused(f"{exc.reason}; not sent") from None
         motor.move_to(target, speed, min(DEFAULT_ACCEL, self.rig.motor.max_acceleration_m_per_s2))
+        self._record("setpoints", self._now(), aperture=self._aperture(target))
         deadline = self._clock() + 2.0 + abs(target - motor.read_position().value) / speed * 1.5
         while self._clock() < deadline:
             self._wait(0.05)
             st = motor.status()
+            self._record("motor", self._now(), position=st.position, aperture=self._aperture(st.position))
             self._sup.check_motor(st.position, self._aperture(st.position))
             if st.error:
                 raise InstrumentStateError("motor", "drive error during the move: "
@@ -529,15 +706,21 @@ class ManualSession:
         return "load cell zeroed; " + self._cmd_read()
 
     def _check_monitors(self) -> tuple[float, float]:
-        assert self._sup is not None
-        v, i = self._amp().read_monitors()
+        """Both monitors, checked by the supervisor and against the voltage commanded (the interlock)."""
+        assert self._sup is not None and self._verifier is not None
+        amp = self._amp()
+        v, i = amp.read_monitors()
+        self._record("amplifier", v.timestamp - (self._t0 or 0.0), voltage=v.value, current=i.value,
+                     commanded=float(amp.commanded), late=self._late)
         self._sup.check_monitors(v.value, i.value)
+        if (m := self._verifier.reading(v.timestamp - (self._t0 or 0.0), v.value, v.ok)) is not None:
+            raise mismatch_trip(m, "the voltage monitor")
         return v.value, i.value
 
     def _cmd_read(self) -> str:
         """Every channel once, each checked by the supervisor; one line with units."""
         assert self._inst is not None and self._sup is not None
-        parts = []
+        parts, t0 = [], self._t0 or 0.0
         if self._inst.amplifier is not None:
             v, i = self._check_monitors()
             parts.append(f"voltage {v:.0f} V, current {i * 1e6:.2f} µA")
@@ -545,6 +728,8 @@ class ManualSession:
             r = self._inst.laser.read()
             laser = self.rig.laser
             d = (r.value - laser.offset_mm * 1e-3) / laser.sign if laser is not None else r.value
+            self._record("laser", r.timestamp - t0, displacement=d, valid=float(r.ok and math.isfinite(d)),
+                         late=self._late)
             if r.ok and math.isfinite(d):
                 self._sup.update_displacement(d)
                 parts.append(f"displacement {d * 1e3:.4f} mm")
@@ -552,11 +737,13 @@ class ManualSession:
                 parts.append(f"displacement n/a ({r.status})")
         if self._inst.motor is not None:
             r = self._inst.motor.read_position()
+            self._record("motor", r.timestamp - t0, position=r.value, aperture=self._aperture(r.value), late=self._late)
             self._sup.check_motor(r.value, self._aperture(r.value))
             parts.append(f"motor {r.value * 1e3:.3f} mm" + (f" (aperture {self._aperture(r.value) * 1e3:.2f} mm)"
                                                           if math.isfinite(self._aperture(r.value)) else ""))
         if self._inst.load_cell is not None:
             r = self._inst.load_cell.read()
+            self._record("load_cell", r.timestamp - t0, force=r.value, ok=float(r.ok), late=self._late)
             if r.status in ("overload", "underload"):
                 raise SafetyTrip(f"load cell {r.status}")
             if r.ok or r.status == "unstable":
@@ -571,8 +758,13 @@ class ManualSession:
         n = max(1, int(seconds / interval))
         t_begin = self._clock()
         for k in range(1, n + 1):
-            self._wait(max(0.0, t_begin + k * interval - self._clock()))
-            line = self._cmd_read()
+            due = t_begin + k * interval
+            self._wait(max(0.0, due - self._clock()))
+            self._late = self._clock() - due
+            try:
+                line = self._cmd_read()
+            finally:
+                self._late = math.nan
             self._write("watch", "read", line)
             self.echo(line)
         return f"watched {n} readings over {seconds:g} s"
@@ -643,3 +835,13 @@ def prompt_lines(prompt: str, history: Path | None = None) -> Iterator[str]:
 def session_log_name(rig: RigConfig) -> str:
     """Default file name of a session log: ``manual-<rig>-<local time>.log``."""
     return f"manual-{rig.name}-{datetime.now().strftime('%Y%m%d-%H%M%S')}.log"
+
+
+def data_path(log_file: Path) -> Path:
+    """The readings' HDF5 file of a session log: ``<log>.h5`` beside it, or ``<log>-1.h5``… (a log is appended to
+    when reused; a file of readings is never overwritten)."""
+    path, k = log_file.with_suffix(".h5"), 1
+    while path.exists():
+        path = log_file.with_name(f"{log_file.stem}-{k}.h5")
+        k += 1
+    return path

@@ -72,14 +72,16 @@ def plan_run(protocol_path: str | Path, rig_path: str | Path | None = None, simu
     return Plan(protocol, rig, program, prediction, links)
 
 
-def _streams(rig: RigConfig, inst: Instruments) -> tuple[dict[str, list[Column]], dict[str, str]]:
+def _streams(rig: RigConfig, inst: Instruments, polled: bool = False) -> tuple[dict[str, list[Column]], dict[str, str]]:
     """The recorder's layout from the instruments' own descriptions (drivers' ``describe()``; on a DAQ-driven rig
-    the scans time the amplifier and the analog inputs wired to the DAQ): the engine's set-points first; the rig
-    names what a displacement measures; the engine adds the aperture it derives from the motor position and, on
-    software-timed streams, how late each poll ran."""
+    the scans time the amplifier and the analog inputs wired to the DAQ, unless ``polled``: manual control reads
+    every instrument on request): the engine's set-points first; the rig names what a displacement measures; the
+    engine adds the aperture it derives from the motor position and, on software-timed streams, how late each poll
+    ran."""
     measurand = "membrane in-plane displacement u" if rig.specimen.kind == "membrane" else "LS-DEA aperture x"
     described: list[StreamDescription] = []
-    if rig.daq is not None and inst.amplifier is not None and rig.amplifier and rig.amplifier.drive == "daq":
+    if (not polled and rig.daq is not None and inst.amplifier is not None and rig.amplifier
+            and rig.amplifier.drive == "daq"):
         described = describe_streams(rig.daq, inst.amplifier)
     timed = {d.stream for d in described}
     described += [drv.describe() for drv in (inst.amplifier, inst.laser, inst.motor, inst.load_cell)
