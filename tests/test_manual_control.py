@@ -166,7 +166,7 @@ def _error_classes() -> list[type[Exception]]:
 @pytest.mark.parametrize("exc_class", [*_error_classes(), AssertionError, TypeError, RuntimeError],
                          ids=lambda c: c.__name__)
 def test_any_exception_in_a_command_is_one_line_and_the_session_goes_on(tmp_path: Path, exc_class) -> None:
-    from drivers.errors import ImplausibleValueError, InstrumentError, LimitError
+    from drivers.errors import InstrumentError, LimitError
 
     with ManualSession(load_rig(THESIS_RIG), tmp_path / "s.log", virtual=True, echo=lambda _t: None) as s:
         assert s.execute("voltage 2kV").status == "ok"
@@ -515,6 +515,19 @@ def test_a_monitor_that_disagrees_with_the_set_point_latches_the_output_off(tmp_
     measured, commanded = map(float, re.search(r"read (-?\d+) V .* where (-?\d+) V was commanded",  # type: ignore[union-attr]
                                                out_trip.text).groups())
     assert abs(commanded - 4000) <= ZERO_V and abs(measured - 1.25 * 4000) < 50, out_trip
+    # the latch outlives the session: the next session (and any run) on this rig starts latched
+    from bench.runtime.latch import latched
+
+    assert latched(load_rig(THESIS_RIG).name) is not None
+    with ManualSession(load_rig(THESIS_RIG), tmp_path / "s2.log", virtual=True, echo=lambda _t: None,
+                       operator="ada") as s:
+        out = s.execute("voltage 1kV")
+        assert out.status == "refused" and "latched before this session" in out.text
+        assert s.execute("read").status == "ok"  # reading is allowed while latched
+        assert s.execute("reset gain recalibrated").status == "ok"
+        assert s.execute("voltage 1kV").status == "ok"
+        assert abs(_plant_volts(s._sim) - 1000) < 50
+    assert latched(load_rig(THESIS_RIG).name) is None
 
 
 # ---------------------------------------------------------------- readings to HDF5 (bench/storage/recorder.py)

@@ -74,6 +74,7 @@ import numpy as np
 
 from bench import __version__
 from bench.rig import RigConfig, rig_to_toml
+from bench.runtime import latch as rig_latch
 from bench.runtime.engine import RAMP_STEPS, STOP_POLL_S, STOP_SIGNALS
 from bench.runtime.instruments import Instruments, build_instruments
 from bench.runtime.interlock import OUTPUT_ON_V, InterlockTrip, OutputVerifier, check_contact, mismatch_trip
@@ -227,6 +228,13 @@ class ManualSession:
             spec.membrane() if spec.kind == "membrane" else spec.lozenge())
         self._sup = Supervisor(rig, params)
         self._verifier = OutputVerifier(rig, None)  # polled monitors: manual control plays no stream
+        was = rig_latch.latched(rig.name)
+        if was is not None:  # a run or an earlier session latched this rig: it stays off until `reset WHY`
+            self._latched = InterlockTrip("latched before this session", f"{was.get('fault')} (in "
+                                          f"{was.get('where')}, at {was.get('at')})")
+            self._latched_at = self._now()
+            self._write("interlock", "latched", f"{self._latch_text()}; {self._latched.reason}")
+            self.echo(f"{self._latch_text()}: {self._latched.reason}")
         if not self.virtual:  # wall clock: hold the set-point between commands (a human types slowly)
             self._keepalive = threading.Thread(target=self._feed, name="manual-keepalive", daemon=True)
             self._keepalive.start()
@@ -567,6 +575,7 @@ class ManualSession:
         self._verifier = OutputVerifier(self.rig, None)  # readings counted afresh from the zeroed output
         self._verifier.commanded(self._now(), float(self._amp().commanded))
         self._write("interlock", "latched", f"{self._latch_text()}; {trip.reason}")
+        rig_latch.latch(self.rig.name, trip.reason, str(self.log_file))  # also refuses runs until a reset
         return f"{trip.reason}; {done}; latched"
 
     def _latch_text(self) -> str:
@@ -581,6 +590,7 @@ class ManualSession:
         if not reason:
             raise Refused("reset needs a reason: reset WHY... (logged with the operator's name)")
         who = self.operator or "an operator not named (no --operator)"
+        rig_latch.reset(self.rig.name, who, reason)
         kind, self._latched = self._latched.kind, None
         return f"interlock ({kind}) reset by {who}: {reason}"
 
