@@ -211,9 +211,14 @@ class LinearMotor(Instrument, Protocol):
     def enable(self) -> None:
         """Switch the drive on (and home it if needed) so that it accepts motion commands."""
 
+    def quantise(self, position: float) -> float:
+        """The target [m] :meth:`move_to` really sends for ``position`` (the drive's nearest increment, one toward
+        the inside where that lies just beyond the travel), sending nothing."""
+
     def move_to(self, position: float, velocity: float, acceleration: float,
                 deceleration: float | None = None) -> None:
-        """Start a move to ``position`` [m] with the given limits [m/s, m/s²]; returns when accepted."""
+        """Start a move to ``position`` [m] (sent as :meth:`quantise` gives it) with the given limits [m/s, m/s²];
+        returns when accepted."""
 
     def read_position(self) -> Reading:
         """Actual position [m]."""
