@@ -747,10 +747,11 @@ class LabJackT7:
                              f"the DAC gives {DAC_RANGE[0]:g}…{DAC_RANGE[1]:g} V")
         return v
 
-    def extend(self, volts: np.ndarray, final: bool = True) -> np.ndarray:
+    def extend(self, volts: np.ndarray, final: bool = True, within: tuple[float, float] | None = None) -> np.ndarray:
         """Append values [V at the DAC] to an open stream-out (armed with ``final=False``): they play on the
         scans right after the values already given, on the same scan clock — no gap, no restart. ``final``:
-        nothing more follows (the hold loop is written after them). Returns what the 12-bit DAC will output.
+        nothing more follows (the hold loop is written after them). ``within``: as :attr:`StreamOut.within`
+        (default: the armed stream-out's). Returns what the 12-bit DAC will output.
 
         Call it before the device has played the values it has (:attr:`StreamPlan.max_collect_interval`);
         a stream-out that already ran dry plays the new values late (``out_underrun_scans``)."""
@@ -758,7 +759,8 @@ class LabJackT7:
         if s is None or s.spec.output is None or s.out_closed or s.plan.out_codes is None:
             raise InstrumentStateError(self.name, "extend needs an armed stream-out opened with final=False")
         v = self._checked_out(volts, s.spec.output.dac)
-        codes = self.cal.dac_codes(v, s.spec.output.dac, s.spec.output.within, self.dac_bits)
+        window = s.spec.output.within if within is None else within
+        codes = self.cal.dac_codes(v, s.spec.output.dac, window, self.dac_bits)
         played = self.cal.dac_volts(codes, s.spec.output.dac, self.dac_bits)
         assert s.plan.out_volts is not None
         cut = s.out_written - s.out_base  # values already in the device are dropped here (long campaigns)

@@ -8,6 +8,7 @@ LabJack T7 DAC: 16-bit code = V·slope + offset (nominal calibration: 13,200 cod
 
 from __future__ import annotations
 
+import math
 import struct
 from pathlib import Path
 
@@ -21,11 +22,29 @@ from bench.storage.runfile import open_run
 from tests.conftest import RIGS
 
 TREK_GAIN = 1000.0
+T7_SLOPE, T7_OFFSET = 13200.0, 0.0  # LabJack's nominal DAC calibration (the twins' flash)
 
 
 def adam_out(code: int) -> float:
     """ADAM-4024 datasheet: output of a 12-bit offset-binary code over ±10 V, times the TREK's gain [V]."""
     return (-10.0 + code * 20.0 / 4095.0) * TREK_GAIN
+
+
+def t7_out(codes: np.ndarray) -> np.ndarray:
+    """T7 datasheet: amplifier output [V] for 16-bit DAC codes (12-bit converter), conditioning 4·DAC − 10 V."""
+    dac = ((np.asarray(codes, dtype=np.int64) >> 4 << 4) - T7_OFFSET) / T7_SLOPE
+    return (4.0 * dac - 10.0) * TREK_GAIN
+
+
+def low_pass(x: np.ndarray, fc: float, rate: float, y0: float) -> np.ndarray:
+    """First-order RC reconstruction filter at the scan instants (exact step response), from y0."""
+    a = 1.0 - math.exp(-2.0 * math.pi * fc / rate)
+    y = np.empty_like(x)
+    prev = y0
+    for k, v in enumerate(x):
+        prev = prev + a * (v - prev)
+        y[k] = prev
+    return y
 
 
 def at_the_limit(tmp: Path, rig: str | Path, kv: float, first: str = "") -> Path:
@@ -167,3 +186,68 @@ def test_the_setpoint_bound_is_the_field_limit_where_that_binds_first() -> None:
     sup.check_setpoint(-bound)
     with pytest.raises(SafetyTrip, match="true field"):
         sup.check_setpoint(6000.001)
+
+
+def _t7_spies(codes: list[np.ndarray], inputs: list[np.ndarray]):
+    """A hook recording the 16-bit codes the T7 twin plays and the amplifier input it gives the plant."""
+    def hook(_engine, sim) -> None:
+        twin = sim.twins["daq"]
+        drive = twin._drive
+        plant = sim.plant
+        schedule, set_input = plant.schedule_amplifier_input, plant.set_amplifier_input
+
+        def spy_drive(first: int, c: np.ndarray) -> None:
+            codes.append(np.array(c, dtype=np.int64))
+            drive(first, c)
+
+        def spy_schedule(times, volts) -> None:
+            inputs.append(np.array(volts, dtype=float))
+            schedule(times, volts)
+
+        def spy_set(volts: float) -> None:
+            inputs.append(np.array([volts]))
+            set_input(volts)
+        twin._drive = spy_drive
+        plant.schedule_amplifier_input, plant.set_amplifier_input = spy_schedule, spy_set
+    return hook
+
+
+def test_t7_rig_at_a_7000_V_limit_never_plays_a_code_beyond_it(tmp_path: Path) -> None:
+    """LS-DEA motor bench, hardware-timed, 7-kV limit. By hand, −7 kV: DAC (−7 + 10)/4 = 0.75 V → code
+    0.75 · 13200 = 9900 → 12-bit level 618 (9888) → 0.74909 V → −7003.6 V, beyond the limit: level 619
+    (9904 → 0.75030 V → −6998.8 V). +7 kV: 4.25 V → 56100 → level 3506 → 6998.8 V, within."""
+    codes: list[np.ndarray] = []
+    inputs: list[np.ndarray] = []
+    plan, result, run = run_recording(at_the_limit(tmp_path, "lsdea-motor-daq-sim.toml", 7), tmp_path,
+                                      _t7_spies(codes, inputs))
+    assert plan.rig.limits.max_voltage_V == 7000.0 and plan.rig.daq is not None
+    assert plan.rig.daq.drive_filter_Hz is None
+    assert result.state == "completed", result.reason
+    played = t7_out(np.concatenate(codes))
+    assert np.all(np.abs(played) <= 7000.0)
+    assert played.max() == pytest.approx((4 * 3506 * 16 / T7_SLOPE - 10) * TREK_GAIN)
+    assert played.min() == pytest.approx((4 * 619 * 16 / T7_SLOPE - 10) * TREK_GAIN)
+    assert np.all(np.abs(np.concatenate(inputs)) * TREK_GAIN <= 7000.0)  # the twin's own conditioning
+    commanded = run.streams["amplifier"].columns["commanded"]
+    assert np.all(np.abs(commanded) <= 7000.0)
+
+
+def test_t7_stream_through_the_drive_filter_stays_within_8000_V(tmp_path: Path) -> None:
+    """Thesis bench, hardware-timed with the 30-Hz reconstruction filter: the engine pre-compensates the filter's
+    lag (DAC values beyond the request) and diffuses the code error (single codes past the request); what the
+    amplifier follows — the codes through the conditioning stage and the filter — stays within ±8000 V."""
+    codes: list[np.ndarray] = []
+    inputs: list[np.ndarray] = []
+    plan, result, run = run_recording(at_the_limit(tmp_path, "thesis-daq-sim.toml", 8), tmp_path,
+                                      _t7_spies(codes, inputs))
+    daq = plan.rig.daq
+    assert daq is not None and daq.drive_filter_Hz == 30.0 and plan.rig.limits.max_voltage_V == 8000.0
+    assert result.state == "completed", result.reason
+    raw = t7_out(np.concatenate(codes))
+    zero = float(t7_out(np.array([2.5 * T7_SLOPE]))[0])  # the DAC held 0 V's code before the stream
+    filtered = low_pass(raw, daq.drive_filter_Hz, daq.scan_rate_Hz, zero)
+    assert np.all(np.abs(raw) <= 8000.0)
+    assert np.all(np.abs(filtered) <= 8000.0)
+    assert filtered.max() > 7990.0 and filtered.min() < -7990.0  # the limit is reached, not avoided
+    assert np.all(np.abs(np.concatenate(inputs)) * TREK_GAIN <= 8000.0)
+    assert np.all(np.abs(run.streams["amplifier"].columns["commanded"]) <= 8000.0)
