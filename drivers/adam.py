@@ -59,6 +59,14 @@ class RawScale:
         signed = raw - 0x10000 if raw & 0x8000 else raw
         return signed / half * self.hi
 
+    def neighbours(self, raw: int) -> list[int]:
+        """``raw`` first, then the codes of the range one step below and above it."""
+        if self.raw_format == "offset":
+            return [raw] + [c for c in (raw - 1, raw + 1) if 0 <= c <= self.full]
+        half = (1 << (self.bits - 1)) - 1
+        signed = raw - 0x10000 if raw & 0x8000 else raw
+        return [raw] + [c & 0xFFFF for c in (signed - 1, signed + 1) if -half <= c <= half]
+
 
 class AdamModule:
     """Common part: module name and version registers."""
@@ -92,12 +100,17 @@ class Adam4024(AdamModule):
         """Set output ``channel`` (0–3) to ``volts``; returns the raw code written.
 
         ``always_send``: goes out even after a stop request (see :meth:`ModbusLink.write_register`)."""
-        if not 0 <= channel <= 3:
-            raise ValueError(f"{self.name}: ADAM-4024 has channels 0–3, got {channel}")
         if not (math.isfinite(volts) and self.scale.lo <= volts <= self.scale.hi):
             raise LimitError(self.name, f"{volts:g} V outside the output range "
                              f"[{self.scale.lo:g}, {self.scale.hi:g}] V")
-        raw = self.scale.to_raw(volts)
+        return self.write_raw(channel, self.scale.to_raw(volts), always_send=always_send)
+
+    def write_raw(self, channel: int, raw: int, *, always_send: bool = False) -> int:
+        """Write the register value ``raw`` (a code the caller chose, :class:`RawScale`) to output ``channel``."""
+        if not 0 <= channel <= 3:
+            raise ValueError(f"{self.name}: ADAM-4024 has channels 0–3, got {channel}")
+        if not 0 <= raw <= 0xFFFF:
+            raise ValueError(f"{self.name}: register value {raw} outside 0…65535")
         self.link.write_register(self.unit, REG_VALUE + channel, raw, always_send=always_send)
         return raw
 

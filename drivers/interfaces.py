@@ -145,8 +145,15 @@ class Amplifier(Instrument, Protocol):
     def commanded(self) -> float:
         """Last output voltage commanded [V] (as the set-point module really outputs it)."""
 
-    def set_voltage(self, volts: float) -> float:
-        """Command an output voltage [V]; returns the value actually commanded (after slew limiting)."""
+    def quantise(self, volts: float, within: float | None = None) -> float:
+        """The output [V] a set-point of ``volts`` really commands, sending nothing: the set-point module's code
+        nearest to ``volts`` among those whose output lies within ±``within`` (default, and at most,
+        ``max_voltage``) — one code toward zero where the nearest lies just beyond the bound. Refuses
+        (LimitError) what :meth:`set_voltage` refuses; no slew limit applied."""
+
+    def set_voltage(self, volts: float, within: float | None = None) -> float:
+        """Command an output voltage [V] on the code :meth:`quantise` chooses (after slew limiting); returns the
+        value actually commanded, never beyond ±``within``."""
 
     def zero(self) -> None:
         """Command 0 V at once (no slew limit); goes out even after a stop request."""
@@ -204,9 +211,14 @@ class LinearMotor(Instrument, Protocol):
     def enable(self) -> None:
         """Switch the drive on (and home it if needed) so that it accepts motion commands."""
 
+    def quantise(self, position: float) -> float:
+        """The target [m] :meth:`move_to` really sends for ``position`` (the drive's nearest increment, one toward
+        the inside where that lies just beyond the travel), sending nothing."""
+
     def move_to(self, position: float, velocity: float, acceleration: float,
                 deceleration: float | None = None) -> None:
-        """Start a move to ``position`` [m] with the given limits [m/s, m/s²]; returns when accepted."""
+        """Start a move to ``position`` [m] (sent as :meth:`quantise` gives it) with the given limits [m/s, m/s²];
+        returns when accepted."""
 
     def read_position(self) -> Reading:
         """Actual position [m]."""

@@ -264,10 +264,29 @@ class Calibration:
         p, n, c, _ = self.hs(gain)
         return _ain_table(p, n, c)[np.asarray(raw, dtype=np.uint16)]
 
-    def dac_codes(self, volts: np.ndarray, channel: int) -> np.ndarray:
-        """Volts to 16-bit DAC codes (rounded, clipped)."""
+    def dac_codes(self, volts: np.ndarray, channel: int, within: tuple[float, float] | None = None,
+                  bits: int = 12) -> np.ndarray:
+        """Volts to 16-bit DAC codes (code = V·Slope + Offset, rounded, clipped).
+
+        ``within`` (lo, hi) [V]: codes are also clipped to those whose ``bits``-bit output (:meth:`dac_volts`) lies
+        within [lo, hi] — the nearest such code, so one level toward the inside where a value's own code plays
+        just beyond (:meth:`dac_code_range`)."""
         s, o = self.dac(channel)
-        return np.clip(np.rint(np.asarray(volts, float) * s + o), 0, 0xFFFF).astype(np.uint16)
+        codes = np.clip(np.rint(np.asarray(volts, float) * s + o), 0, 0xFFFF)
+        if within is not None:
+            codes = np.clip(codes, *self.dac_code_range(channel, within, bits))
+        return codes.astype(np.uint16)
+
+    def dac_code_range(self, channel: int, within: tuple[float, float], bits: int = 12) -> tuple[int, int]:
+        """The 16-bit codes (first, last) whose ``bits``-bit output lies within ``within`` = (lo, hi) [V]: the
+        levels inside, each with all its codes (the low ``16 − bits`` bits the converter ignores)."""
+        shift = 16 - bits
+        levels = np.arange(1 << bits, dtype=np.int64) << shift
+        out = self.dac_volts(levels, channel, bits)
+        inside = np.flatnonzero((out >= within[0]) & (out <= within[1]))
+        if not inside.size:
+            raise ValueError(f"no {bits}-bit DAC{channel} level lies within {within[0]:g}…{within[1]:g} V")
+        return int(levels[inside[0]]), int(levels[inside[-1]]) | ((1 << shift) - 1)
 
     def dac_volts(self, codes: np.ndarray, channel: int, bits: int = 12) -> np.ndarray:
         """What a ``bits``-bit DAC outputs for 16-bit codes (low bits ignored)."""
@@ -319,6 +338,7 @@ class StreamOut:
     volts: np.ndarray
     hold: int = 1
     final: bool = True  # False: more values follow through :meth:`LabJackT7.extend`; no hold loop until then
+    within: tuple[float, float] | None = None  # [V] no value plays outside: codes clipped (Calibration.dac_codes)
 
 
 @dataclass(frozen=True)
@@ -591,13 +611,44 @@ class LabJackT7:
             return Reading(math.nan, "V", self.clock(), "invalid")
         return Reading(v, "V", self.clock())
 
-    def write_dac(self, dac: int, volts: float) -> None:
-        """Set DAC0/DAC1 [V]; refuses values outside the DAC's 0–5 V."""
+    def dac_output(self, dac: int, volts: float, within: tuple[float, float] | None = None) -> tuple[float, float]:
+        """(value :meth:`write_dac` sends, what the DAC then outputs) [V] for ``volts``, sending nothing.
+
+        The T7 codes the FLOAT32 it receives as V·Slope + Offset (rounded) and its 12-bit converter ignores the low
+        4 bits. ``within`` (lo, hi): the code is the nearest whose output lies within (one level toward the inside
+        at the edge), sent as the middle of its level's codes, so that the T7's own rounding of the float cannot
+        move it to another level; LimitError if that value is not one the DAC spans."""
         if dac not in (0, 1):
             raise ValueError(f"{self.name}: no DAC{dac}")
         if not DAC_RANGE[0] <= volts <= DAC_RANGE[1]:
             raise LimitError(self.name, f"DAC{dac} {volts:g} V outside {DAC_RANGE[0]:g}…{DAC_RANGE[1]:g} V")
-        self.write_f32(DAC0 + 2 * dac, volts)
+        send = volts
+        if within is not None:
+            shift = 16 - self.dac_bits
+            try:
+                code = int(self.cal.dac_codes(np.array([volts]), dac, within, self.dac_bits)[0])
+            except ValueError as exc:
+                raise LimitError(self.name, str(exc)) from None
+            s, o = self.cal.dac(dac)
+            send = ((code >> shift << shift) + (1 << shift) / 2 - o) / s
+        played = float(self.out_played(np.array([np.float32(send)]), dac)[0])
+        if within is not None and not (DAC_RANGE[0] <= send <= DAC_RANGE[1] and within[0] <= played <= within[1]):
+            raise LimitError(self.name, f"DAC{dac}: no value the DAC spans plays within {within[0]:g}…{within[1]:g} V")
+        return send, played
+
+    def out_played(self, volts: np.ndarray, dac: int, within: tuple[float, float] | None = None) -> np.ndarray:
+        """What DAC ``dac`` outputs [V] for the values ``volts`` as the T7 codes them (rounded; ``within``: codes
+        clipped as :meth:`Calibration.dac_codes` does): a stream-out's values as :meth:`arm` and :meth:`extend`
+        play them."""
+        return self.cal.dac_volts(self.cal.dac_codes(volts, dac, within, self.dac_bits), dac, self.dac_bits)
+
+    def write_dac(self, dac: int, volts: float, within: tuple[float, float] | None = None) -> float:
+        """Set DAC0/DAC1 [V]; refuses values outside the DAC's 0–5 V. Returns what the DAC outputs: the 12-bit
+        level of the code the T7 makes of the value. ``within`` (lo, hi) [V]: that output lies within [lo, hi]
+        (:meth:`dac_output` chooses the value sent)."""
+        send, played = self.dac_output(dac, volts, within)
+        self.write_f32(DAC0 + 2 * dac, send)
+        return played
 
     def read_dac(self, dac: int) -> float:
         """The DAC's present value [V]."""
@@ -629,7 +680,7 @@ class LabJackT7:
             v = self._checked_out(out.volts, out.dac)
             if not 1 <= out.hold <= v.size:
                 raise ValueError(f"{self.name}: hold must be 1…{v.size} values")
-            codes = self.cal.dac_codes(v, out.dac)
+            codes = self.cal.dac_codes(v, out.dac, out.within, self.dac_bits)
             volts = self.cal.dac_volts(codes, out.dac, self.dac_bits)
             capacity = spec.out_buffer_bytes // 2 - 1
         gains = tuple(RANGES.index(i.range_volts) for i in spec.inputs)
@@ -696,10 +747,11 @@ class LabJackT7:
                              f"the DAC gives {DAC_RANGE[0]:g}…{DAC_RANGE[1]:g} V")
         return v
 
-    def extend(self, volts: np.ndarray, final: bool = True) -> np.ndarray:
+    def extend(self, volts: np.ndarray, final: bool = True, within: tuple[float, float] | None = None) -> np.ndarray:
         """Append values [V at the DAC] to an open stream-out (armed with ``final=False``): they play on the
         scans right after the values already given, on the same scan clock — no gap, no restart. ``final``:
-        nothing more follows (the hold loop is written after them). Returns what the 12-bit DAC will output.
+        nothing more follows (the hold loop is written after them). ``within``: as :attr:`StreamOut.within`
+        (default: the armed stream-out's). Returns what the 12-bit DAC will output.
 
         Call it before the device has played the values it has (:attr:`StreamPlan.max_collect_interval`);
         a stream-out that already ran dry plays the new values late (``out_underrun_scans``)."""
@@ -707,7 +759,8 @@ class LabJackT7:
         if s is None or s.spec.output is None or s.out_closed or s.plan.out_codes is None:
             raise InstrumentStateError(self.name, "extend needs an armed stream-out opened with final=False")
         v = self._checked_out(volts, s.spec.output.dac)
-        codes = self.cal.dac_codes(v, s.spec.output.dac)
+        window = s.spec.output.within if within is None else within
+        codes = self.cal.dac_codes(v, s.spec.output.dac, window, self.dac_bits)
         played = self.cal.dac_volts(codes, s.spec.output.dac, self.dac_bits)
         assert s.plan.out_volts is not None
         cut = s.out_written - s.out_base  # values already in the device are dropped here (long campaigns)

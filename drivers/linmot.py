@@ -25,6 +25,7 @@ command count (bits 0–3), which is the handshake for motion commands.
 
 from __future__ import annotations
 
+import math
 import struct
 import time
 from collections.abc import Callable
@@ -343,15 +344,34 @@ class LinMotDrive:
             if not 0 < acc <= self.max_acceleration:
                 raise LimitError(self.name, f"{label} {acc:g} m/s² outside (0, {self.max_acceleration:g}] m/s²")
 
+    def _counts(self, position: float) -> int:
+        """The go-to target in drive increments: the nearest; where that lies beyond the travel and ``position``
+        does not, the next one toward the inside."""
+        lo, hi = self.travel
+        n = round(position / POS_UNIT)
+        if lo <= position <= hi:
+            if n * POS_UNIT > hi:
+                n -= 1
+            elif n * POS_UNIT < lo:
+                n += 1
+        return n
+
+    def quantise(self, position: float) -> float:
+        """The target [m] :meth:`move_to` really sends for ``position``, sending nothing: the nearest drive
+        increment (0.1 µm), one increment toward the inside where that lies just beyond the travel (a target at a
+        travel limit stays within it). A value that is not finite is returned as it is (move_to refuses it)."""
+        return self._counts(position) * POS_UNIT if math.isfinite(position) else position
+
     def move_to(self, position: float, velocity: float, acceleration: float,
                 deceleration: float | None = None) -> None:
-        """VAI go-to-position; returns when the drive has echoed the new command count."""
+        """VAI go-to-position on the increment :meth:`quantise` chooses; returns when the drive has echoed the new
+        command count."""
         dec = acceleration if deceleration is None else deceleration
         self.check_move(position, velocity, acceleration, dec)
         previous = self._count
         self._count = (self._count + 1) & 0x0F
         header = VAI_GOTO | self._count
-        params = struct.pack("<HiIII", header, round(position / POS_UNIT), round(velocity / VEL_UNIT),
+        params = struct.pack("<HiIII", header, self._counts(position), round(velocity / VEL_UNIT),
                              round(acceleration / ACC_UNIT), round(dec / ACC_UNIT))
         resp = self.transact(MAIN_MOTION_COMMAND, 0x00, params)
         if self.in_error(resp):

@@ -4,7 +4,8 @@ The HS amplifiers have no digital port: a ±10 V analog input sets the output (g
 voltage and current monitors are analog outputs (../shared/instruments.md §3). This driver writes the
 set-point through an ADAM-4024 analog output and reads the monitors through an ADAM-4017+; it never
 pretends the TREK speaks a protocol. It enforces a software voltage limit (refusing, not clipping, a
-set-point beyond it), a software slew limit (clamping each step to slew·elapsed time), and zero on close.
+set-point beyond it, and holding it on the code sent: never a code whose output lies beyond), a software slew
+limit (clamping each step to slew·elapsed time), and zero on close.
 """
 
 from __future__ import annotations
@@ -113,10 +114,38 @@ class TrekAmplifier:
         self._last_v = self.ao.scale.to_volts(raw) * self.trek.gain  # ±half a code: 0 V has no code
         self._last_t = self.clock()
 
-    def set_voltage(self, volts: float) -> float:
-        """Command ``volts`` [V]; refuses |V| > max_voltage, clamps the step to the slew limit.
+    def _output(self, raw: int) -> float:
+        """Amplifier output [V] of the analog module's code ``raw``."""
+        return self.ao.scale.to_volts(raw) * self.trek.gain
 
-        Returns the output actually commanded: the analog module's nearest code times the gain.
+    def _code(self, volts: float, within: float | None) -> int:
+        """The code for ``volts``: the nearest whose output lies within ±bound (``within``, at most and by default
+        ``max_voltage``), so one code toward zero where the nearest lies just beyond. LimitError beyond
+        ``max_voltage``, or when no code of the module lies within the bound."""
+        if not abs(volts) <= self.max_voltage:  # also refuses NaN
+            raise LimitError(self.name, f"{volts:.0f} V beyond the software limit ±{self.max_voltage:.0f} V")
+        if within is not None and not within >= 0:
+            raise ValueError(f"{self.name}: within must be a bound ≥ 0 V, got {within}")
+        bound = self.max_voltage if within is None else min(within, self.max_voltage)
+        target = min(max(volts, -bound), bound)
+        inside = [c for c in self.ao.scale.neighbours(self.ao.scale.to_raw(target / self.trek.gain))
+                  if abs(self._output(c)) <= bound]
+        if not inside:
+            raise LimitError(self.name, f"no code of the analog output lies within ±{bound:g} V")
+        return min(inside, key=lambda c: abs(self._output(c) - target))
+
+    def quantise(self, volts: float, within: float | None = None) -> float:
+        """The output [V] a set-point of ``volts`` really commands (before the slew limit): the ADAM-4024's
+        nearest code whose output lies within ±``within`` (default, and at most, ``max_voltage``) — one code
+        toward zero where the nearest lies just beyond, so a set-point at the limit runs and never exceeds it.
+        Refuses what :meth:`set_voltage` refuses."""
+        return self._output(self._code(volts, within))
+
+    def set_voltage(self, volts: float, within: float | None = None) -> float:
+        """Command ``volts`` [V]; refuses |V| > max_voltage, clamps the step to the slew limit, then sends the
+        code :meth:`quantise` chooses within ±``within``.
+
+        Returns the output actually commanded: that code times the gain.
         """
         if not abs(volts) <= self.max_voltage:  # also refuses NaN
             raise LimitError(self.name, f"{volts:.0f} V beyond the software limit ±{self.max_voltage:.0f} V")
@@ -124,8 +153,8 @@ class TrekAmplifier:
         if self._last_t is not None:
             step = self.slew_limit * max(now - self._last_t, 0.0)
             volts = min(max(volts, self._last_v - step), self._last_v + step)
-        raw = self.ao.write_volts(self.ao_channel, volts / self.trek.gain)
-        commanded = self.ao.scale.to_volts(raw) * self.trek.gain
+        raw = self.ao.write_raw(self.ao_channel, self._code(volts, within))
+        commanded = self._output(raw)
         self._last_v, self._last_t = commanded, now
         return commanded
 

@@ -47,10 +47,28 @@ class TrekOnDaq:
         """Amplifier output [V] for DAC voltage ``dac_volts`` [V]."""
         return (self.gain * np.asarray(dac_volts, dtype=float) + self.offset) * self.trek.gain
 
-    def _quantised(self, dac_v: float) -> float:
-        cal = self.daq.cal
-        code = cal.dac_codes(np.array([dac_v]), self.dac)
-        return float(cal.dac_volts(code, self.dac, self.daq.dac_bits)[0])
+    def dac_window(self, within: float) -> tuple[float, float]:
+        """DAC volts (lo, hi) whose amplifier output lies within ±``within`` [V] (and within the DAC's 0–5 V): the
+        ends moved inward by the last bits of a float where the conversion back would land just beyond."""
+        lo, hi = sorted((float(self.dac_volts(-within)), float(self.dac_volts(within))))
+        lo, hi = max(lo, DAC_RANGE[0]), min(hi, DAC_RANGE[1])
+        while abs(float(self.output_volts(hi))) > within:
+            hi = math.nextafter(hi, -math.inf)
+        while abs(float(self.output_volts(lo))) > within:
+            lo = math.nextafter(lo, math.inf)
+        return lo, hi
+
+    def _dac_request(self, volts: float, within: float | None) -> tuple[float, tuple[float, float]]:
+        """(DAC volts for ``volts``, DAC window of the bound); refuses what :meth:`set_voltage` refuses."""
+        if not math.isfinite(volts) or abs(volts) > self.max_voltage:
+            raise LimitError(self.name, f"{volts:.0f} V beyond the software limit ±{self.max_voltage:.0f} V")
+        if within is not None and not within >= 0:
+            raise ValueError(f"{self.name}: within must be a bound ≥ 0 V, got {within}")
+        dac_v = float(self.dac_volts(volts))
+        if not DAC_RANGE[0] <= dac_v <= DAC_RANGE[1]:
+            raise LimitError(self.name, f"{volts:.0f} V needs DAC {dac_v:.3f} V, outside the DAC's 0–5 V")
+        window = self.dac_window(self.max_voltage if within is None else min(within, self.max_voltage))
+        return dac_v, window
 
     # ------------------------------------------------------------ Instrument
     @property
@@ -99,19 +117,21 @@ class TrekOnDaq:
 
     def zero(self) -> None:
         """Command 0 V (the DAC code nearest to 0 V at the amplifier input)."""
-        dac_v = float(self.dac_volts(0.0))
-        self.daq.write_dac(self.dac, dac_v)
-        self._last_v = float(self.output_volts(self._quantised(dac_v)))
+        self._last_v = float(self.output_volts(self.daq.write_dac(self.dac, float(self.dac_volts(0.0)))))
 
-    def set_voltage(self, volts: float) -> float:
-        """Command ``volts`` [V]; refuses |V| > max_voltage or what the DAC cannot produce."""
-        if not math.isfinite(volts) or abs(volts) > self.max_voltage:
-            raise LimitError(self.name, f"{volts:.0f} V beyond the software limit ±{self.max_voltage:.0f} V")
-        dac_v = float(self.dac_volts(volts))
-        if not DAC_RANGE[0] <= dac_v <= DAC_RANGE[1]:
-            raise LimitError(self.name, f"{volts:.0f} V needs DAC {dac_v:.3f} V, outside the DAC's 0–5 V")
-        self.daq.write_dac(self.dac, dac_v)
-        self._last_v = float(self.output_volts(self._quantised(dac_v)))
+    def quantise(self, volts: float, within: float | None = None) -> float:
+        """The output [V] a set-point of ``volts`` really commands, sending nothing: the DAC's nearest code (code =
+        V·Slope + Offset, 12-bit level) whose output lies within ±``within`` (default, and at most,
+        ``max_voltage``) — one level toward zero where the nearest lies just beyond. Refuses what
+        :meth:`set_voltage` refuses."""
+        dac_v, window = self._dac_request(volts, within)
+        return float(self.output_volts(self.daq.dac_output(self.dac, dac_v, window)[1]))
+
+    def set_voltage(self, volts: float, within: float | None = None) -> float:
+        """Command ``volts`` [V] on the code :meth:`quantise` chooses; refuses |V| > max_voltage or what the DAC
+        cannot produce. Returns the output commanded (the DAC's level through the conditioning stage)."""
+        dac_v, window = self._dac_request(volts, within)
+        self._last_v = float(self.output_volts(self.daq.write_dac(self.dac, dac_v, window)))
         return self._last_v
 
     def read_monitors(self) -> tuple[Reading, Reading]:

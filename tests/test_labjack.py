@@ -31,6 +31,8 @@ from drivers.labjack import (
     feedback_packets,
     parse_stream_packet,
 )
+from drivers.trek import TREK_MODELS
+from drivers.trek_daq import TrekOnDaq
 from sim_devices.labjack_t7 import Conditioning, LabJackT7Sim
 
 # one packet: TransID 5, Length 18 (= 10 + 4 samples·2), unit 1, function 76 (0x4C), type 16, backlog 8 bytes,
@@ -71,6 +73,20 @@ def test_nominal_calibration_conversions() -> None:
     assert v[2] == pytest.approx(-10000 * 0.000315805800)
     assert cal.dac_codes(np.array([0.0, 2.5, 5.0]), 0).tolist() == [0, 33000, 65535]
     assert cal.dac_volts(np.array([33000]), 0)[0] == pytest.approx((33000 >> 4 << 4) / 13200)
+
+
+def test_dac_codes_within_a_window_take_the_nearest_code_inside() -> None:
+    """±7 kV through the conditioning stage (4·DAC − 10 V, 1000 V/V) is DAC 0.75…4.25 V. By hand (nominal: 13,200
+    codes/V, offset 0; 12-bit, low 4 bits ignored): 0.75 V → 9900 → level 618 (9888 → 0.74909 V, outside) → the
+    first level inside, 619 (code 9904 → 0.75030 V); 4.25 V → 56100 → level 3506 (56096 → 4.24970 V, inside, the
+    code kept); beyond the window: clipped to its first and last codes, 9904 and 3506·16 + 15 = 56111."""
+    cal = Calibration.nominal()
+    window = (0.75, 4.25)
+    assert cal.dac_code_range(0, window) == (9904, 56111)
+    assert cal.dac_codes(np.array([0.75, 4.25, 0.5, 4.9]), 0, window).tolist() == [9904, 56100, 9904, 56111]
+    assert cal.dac_codes(np.array([0.75]), 0).tolist() == [9900]  # no window: the rounded code, as before
+    with pytest.raises(ValueError, match="no 12-bit DAC0 level lies within"):
+        cal.dac_code_range(0, (2.4996, 2.4999))  # between levels 2062 (2.49939 V) and 2063 (2.50061 V)
 
 
 # ---------------------------------------------------------------------------- twin fixture
@@ -304,6 +320,27 @@ def test_dac_and_ain_command_response(rig: Rig) -> None:
     assert rig.plant.v_out == pytest.approx(1000 * rig.cond(np.array([rig.daq.read_dac(0)]))[0], rel=1e-9)
     with pytest.raises(LimitError, match=r"daq: DAC0 5\.5 V outside"):
         rig.daq.write_dac(0, 5.5)
+
+
+def test_trek_on_the_dac_at_its_limit_commands_a_level_within_it(rig: Rig) -> None:
+    """−7 kV on a ±7-kV limit: its own code plays level 618 (−7003.6 V); the driver sends level 619 instead, by
+    hand 4·(619·16/13200) − 10 = −6.99879 V at the amplifier input — read back from the twin's own DAC register
+    and conditioning; the value sent lies mid-level (the T7's rounding of the float cannot move it)."""
+    amp = TrekOnDaq(rig.daq, TREK_MODELS["10/10B-HS"], max_voltage=7000.0)
+    amp.connect()
+    by_hand = (4 * (619 * 16 / 13200) - 10) * 1000
+    assert amp.quantise(-7000.0) == pytest.approx(by_hand, abs=1e-9)
+    assert amp.quantise(7000.0) == pytest.approx((4 * (3506 * 16 / 13200) - 10) * 1000, abs=1e-9)
+    assert amp.quantise(6000.0, within=5000.0) <= 5000.0  # a tighter bound: the nearest code inside it
+    assert amp.set_voltage(-7000.0) == pytest.approx(by_hand, abs=1e-9)
+    assert rig.sim.dac_volts[0] == pytest.approx(619 * 16 / 13200, abs=1e-12)  # the twin's own code → volts
+    assert rig.daq.read_dac(0) == pytest.approx(619 * 16 / 13200, rel=1e-7)
+    send, played = rig.daq.dac_output(0, 0.75, (0.75, 4.25))
+    assert (send, played) == (pytest.approx((619 * 16 + 8) / 13200), pytest.approx(619 * 16 / 13200))  # mid-level
+    assert rig.plant.v_in * 1000 >= -7000.0 and rig.plant.v_in == pytest.approx(by_hand / 1000, abs=1e-9)
+    assert amp.set_voltage(7000.0, within=7000.0) <= 7000.0 and rig.plant.v_in * 1000 <= 7000.0
+    with pytest.raises(LimitError, match="no 12-bit DAC0 level lies within"):
+        amp.quantise(0.0, within=1.0)  # 0 V's neighbours are ±2.42 V
 
 
 def test_waveform_outside_dac_range_is_refused_before_sending(rig: Rig) -> None:

@@ -75,6 +75,24 @@ def test_vai_go_to_position_bytes_and_count_handshake() -> None:
         drive(url).move_to(0.05, 0.2, 5.0, 3.0)
 
 
+def test_a_go_to_at_the_travel_limit_sends_the_nearest_increment_within_it() -> None:
+    """LinRS position unit 0.1 µm. Travel [0.03 µm, 95.00007 mm] (ends off the increment grid), by hand:
+    95.00007 mm = 950000.7 increments → nearest 950001 = 95.0001 mm, beyond → 950000; 0.04 µm = 0.4 → 0, below
+    0.03 µm → 1; a target beyond the travel keeps its nearest increment (refused, not pulled inside)."""
+    params = struct.pack("<HiIII", 0x0101, 950_000, 200_000, 500_000, 300_000)
+    req = bytes.fromhex("01 11 15 02 00 02") + params + b"\x04"
+    with expected_protocol("edge", [(req, response(0x2837, 0x08A1, 0))]) as url:
+        d = LinMotDrive(SerialLink(url, "motor", timeout=0.05), travel=(0.03e-6, 0.09500007), poll_interval=0.0,
+                        state_timeout=0.2)
+        d.link.open()
+        edge = d.quantise(0.09500007)
+        assert edge == pytest.approx(950_000 * 1e-7, abs=1e-15) and edge <= 0.09500007
+        assert d.quantise(0.04e-6) == pytest.approx(1e-7, abs=1e-15)
+        assert d.quantise(0.05) == pytest.approx(0.05, abs=1e-15)
+        assert d.quantise(0.2) == pytest.approx(0.2, abs=1e-15)
+        d.move_to(0.09500007, 0.2, 5.0, 3.0)
+
+
 def test_enable_runs_the_state_machine_and_homes() -> None:
     script = [
         (POLL, response(0x0040, 0x0000, 0)),  # not ready to switch on, switch-on locked

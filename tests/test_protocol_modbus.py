@@ -55,6 +55,43 @@ def test_limits_refuse_and_slew_clamps() -> None:
         assert amp.set_voltage(5000.0) == pytest.approx(1000.0, abs=5.0)  # 1 kV, to the nearest code
 
 
+def adam_out(code: int) -> float:
+    """ADAM-4024 datasheet: 12-bit offset binary over ±10 V, times the TREK's 1000 V/V."""
+    return (-10.0 + code * 20.0 / 4095.0) * 1000.0
+
+
+def test_a_set_point_at_the_limit_sends_the_nearest_code_within_it() -> None:
+    """By hand, code = round((V/1000 + 10)/20 · 4095): 8 kV → 3685.5 → 3686 (8002.4 V, beyond 8 kV) → one code toward
+    zero: 3685 (0x0E65); −8 kV → 409.5 → 410 (0x019A, −7997.6 V, within); 7 kV within ±7 kV → 3480.75 → 3481
+    (7001.2 V, beyond) → 3480 (0x0D98)."""
+    now = [0.0]
+    script = [(rtu(1, 6, b"\x00\x00\x0e\x65"), rtu(1, 6, b"\x00\x00\x0e\x65")),
+              (rtu(1, 6, b"\x00\x00\x01\x9a"), rtu(1, 6, b"\x00\x00\x01\x9a")),
+              (rtu(1, 6, b"\x00\x00\x0d\x98"), rtu(1, 6, b"\x00\x00\x0d\x98"))]
+    with expected_protocol("edge", script) as url:
+        amp = amplifier(url, now)  # max_voltage 8000 V
+        assert amp.quantise(8000.0) == pytest.approx(adam_out(3685), abs=1e-9)
+        assert amp.quantise(7000.0) == pytest.approx(adam_out(3481), abs=1e-9)  # within ±8 kV: the nearest
+        assert amp.quantise(7000.0, within=7000.0) == pytest.approx(adam_out(3480), abs=1e-9)
+        assert amp.quantise(7000.0, within=9000.0) == pytest.approx(adam_out(3481), abs=1e-9)  # max_voltage caps
+        assert amp.set_voltage(8000.0) == pytest.approx(adam_out(3685), abs=1e-9) and amp.commanded <= 8000.0
+        now[0] = 1.0
+        assert amp.set_voltage(-8000.0) == pytest.approx(adam_out(410), abs=1e-9)
+        now[0] = 2.0
+        assert amp.set_voltage(7000.0, within=7000.0) == pytest.approx(adam_out(3480), abs=1e-9)
+        with pytest.raises(LimitError, match="no code of the analog output lies within ±1 V"):
+            amp.quantise(0.0, within=1.0)  # 0 V has no code: ±2.44 V
+        with pytest.raises(LimitError, match="8001 V beyond the software limit"):
+            amp.quantise(8001.0)
+
+
+def test_neighbouring_codes_of_both_raw_formats() -> None:
+    off, twos = RawScale(bits=12), RawScale(bits=12, raw_format="twos")
+    assert off.neighbours(0) == [0, 1] and off.neighbours(4095) == [4095, 4094] and off.neighbours(7) == [7, 6, 8]
+    assert twos.neighbours(0) == [0, 0xFFFF, 1] and twos.neighbours(2047) == [2047, 2046]
+    assert twos.neighbours(0xF801) == [0xF801, 0xF802]  # −2047, the range's end
+
+
 def test_monitors_read_both_channels_in_one_request() -> None:
     # vmon 5 V (raw offset 16-bit) → 5 kV; imon −0.25 V → −0.25 mA
     v_raw = round((5.0 + 10) / 20 * 65535)

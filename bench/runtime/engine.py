@@ -340,15 +340,27 @@ class Engine:
 
     # ------------------------------------------------------------ set-points
     def _set_voltage(self, v: float, t: float, x_cmd: float = math.nan) -> None:
+        """Send a supervised voltage set-point and record the value sent.
+
+        The supervisor checks the request, then the value the module will really output: the driver's nearest code
+        within the supervisor's bound (one code toward zero at a limit, so a set-point at the limit runs and never
+        exceeds it). A step the slew limit held back is checked as sent."""
         self.sup.check_setpoint(v)
+        bound = self.sup.setpoint_bound()
+        want = self._amp.quantise(v, within=bound)
+        self.sup.check_setpoint(want)
         self.guard()
-        sent = self._amp.set_voltage(v)
+        sent = self._amp.set_voltage(v, within=bound)
         self._v_cmd, self._v_req = sent, v
         self.verifier.commanded(self.now(), sent)
         self.rec.append("setpoints", t, voltage=sent, aperture=x_cmd)
+        if sent != want:
+            self.sup.check_setpoint(sent)
 
     def _move_motor(self, target: float, vel: float, acc: float) -> float:
-        """Send a supervised go-to; returns the commanded aperture [m]."""
+        """Send a supervised go-to; returns the commanded aperture [m]. The position checked and sent is the one the
+        drive receives (its nearest increment, one toward the inside at a travel limit)."""
+        target = self._motor.quantise(target)
         x_cmd = float(self.program.aperture(target)) if self.program.has_motor_axis else math.nan
         self.sup.check_motor_setpoint(target, x_cmd, self._v_cmd)
         self._motor.move_to(target, vel, acc)

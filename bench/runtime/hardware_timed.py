@@ -36,18 +36,26 @@ FINISH_POLL_S = 0.01  # rig time between collects while waiting for a step's las
 
 
 @njit(cache=True)
-def _diffuse(dac: np.ndarray, slope: float, offset: float, shift: int) -> np.ndarray:  # pragma: no cover - numba
+def _diffuse(dac: np.ndarray, slope: float, offset: float, shift: int, lo: int,
+             hi: int) -> np.ndarray:  # pragma: no cover - numba
     """First-order error diffusion of DAC volts onto the codes the DAC plays (16-bit codes, low ``shift`` bits
-    ignored by the converter); returns the volts played."""
+    ignored by the converter), each code kept within [lo, hi] (the codes whose output lies within the limit); a
+    code clipped there carries no error on (no wind-up at a limit); returns the volts played."""
     out = np.empty_like(dac)
     err = 0.0
     for k in range(dac.size):
         want = dac[k]
-        code = min(max(int(np.round((want + err) * slope + offset)), 0), 0xFFFF)
-        played = (((code >> shift) << shift) - offset) / slope
-        err += want - played
+        code = int(np.round((want + err) * slope + offset))
+        clipped = min(max(code, lo), hi)
+        played = (((clipped >> shift) << shift) - offset) / slope
+        err = 0.0 if clipped != code else err + want - played
         out[k] = played
     return out
+
+
+def _peak(volts: np.ndarray) -> float:
+    """The value of largest magnitude [V]."""
+    return float(volts[np.argmax(np.abs(volts))])
 
 
 def describe_streams(cfg: DaqConfig, amplifier: Amplifier) -> list[StreamDescription]:
@@ -108,14 +116,16 @@ class HardwareTimed:
             self._n = self._appended[1]
         else:
             volts = self._wanted(seg, engine._v_req, first=True)
-            engine.sup.check_setpoint(float(volts[np.argmax(np.abs(volts))]))
+            engine.sup.check_setpoint(_peak(volts))
+            bound, window = self._window(engine)
+            dac = self._dac_values(volts, engine._v_cmd, bound, window)
+            commanded = self._follows(dac, window, engine._v_cmd)
+            engine.sup.check_setpoint(_peak(commanded))
             engine.guard()
-            dac = self._dac_values(volts, engine._v_cmd)
-            plan = self.daq.arm(StreamSpec(self.cfg.scan_rate_Hz, self.inputs,
-                                           StreamOut(self.cfg.dac, dac, hold=1, final=nxt is None)))
-            assert plan.out_volts is not None
+            self.daq.arm(StreamSpec(self.cfg.scan_rate_Hz, self.inputs,
+                                    StreamOut(self.cfg.dac, dac, hold=1, final=nxt is None, within=window)))
             self._base = 0
-            self._commanded = self._filtered(self.amp.output_volts(plan.out_volts), engine._v_cmd)
+            self._commanded = commanded
             self._tail = float(volts[-1])
             self._n = volts.size - 1
             engine.verifier.restart()
@@ -161,22 +171,39 @@ class HardwareTimed:
     def _append(self, nxt: Segment, engine: Engine) -> None:
         """Append the next step's values to the running stream-out (supervised like a new step's)."""
         volts = self._wanted(nxt, self._tail, first=False)
-        engine.sup.check_setpoint(float(volts[np.argmax(np.abs(volts))]))
-        engine.guard(streaming=True)
+        engine.sup.check_setpoint(_peak(volts))
         after = self._next_chainable(nxt, engine)
         present = float(self._commanded[-1]) if self._commanded.size else engine._v_cmd
-        played = self.daq.extend(self._dac_values(volts, self._tail), final=after is None)
-        new = self._filtered(self.amp.output_volts(played), present)
+        bound, window = self._window(engine)
+        dac = self._dac_values(volts, self._tail, bound, window)
+        new = self._follows(dac, window, present)
+        engine.sup.check_setpoint(_peak(new))
+        engine.guard(streaming=True)
+        self.daq.extend(dac, final=after is None, within=window)
         keep = max(0, self.daq.scans_received - 1 - self._base)  # the scans still to be recorded, and the last
         self._commanded = np.concatenate([self._commanded[keep:], new])
         self._base += keep
         self._appended = (nxt, self._base + self._commanded.size - 1)
         self._tail = float(volts[-1])
 
-    def _dac_values(self, volts: np.ndarray, present: float) -> np.ndarray:
-        """DAC volts that make the amplifier output ``volts`` behind the conditioning stage and its filter."""
-        dac = self.amp.dac_volts(self._precompensate(volts, present))
-        return self._error_diffused(dac) if self.cfg.drive_filter_Hz is not None else dac
+    def _window(self, engine: Engine) -> tuple[float, tuple[float, float]]:
+        """(the supervisor's bound on |V| now, the DAC volts whose output lies within it)."""
+        bound = engine.sup.setpoint_bound()
+        return bound, self.amp.dac_window(bound)
+
+    def _dac_values(self, volts: np.ndarray, present: float, bound: float,
+                    window: tuple[float, float]) -> np.ndarray:
+        """DAC volts that make the amplifier output ``volts`` behind the conditioning stage and its filter, within
+        ``window`` (the DAC volts of ±``bound``): the pre-compensation is clipped at ±bound, the diffused codes to
+        the window's."""
+        dac = np.clip(self.amp.dac_volts(self._precompensate(volts, present, bound)), *window)
+        return self._error_diffused(dac, window) if self.cfg.drive_filter_Hz is not None else dac
+
+    def _follows(self, dac: np.ndarray, window: tuple[float, float], present: float) -> np.ndarray:
+        """What the amplifier follows for DAC values ``dac`` [V out]: the levels the T7 plays for them (codes
+        clipped to ``window``, as :meth:`LabJackT7.arm`/:meth:`~LabJackT7.extend` code them) through the
+        conditioning stage and the reconstruction filter, from ``present``. Supervised before anything is sent."""
+        return self._filtered(self.amp.output_volts(self.daq.out_played(dac, self.cfg.dac, window)), present)
 
     def collect(self, engine: Engine) -> None:
         """Record the scans received so far and supervise them; keep the device's watchdog fed."""
@@ -224,23 +251,25 @@ class HardwareTimed:
         fc = self.cfg.drive_filter_Hz
         return None if fc is None else 1.0 - float(np.exp(-2.0 * np.pi * fc / self.cfg.scan_rate_Hz))
 
-    def _precompensate(self, wanted: np.ndarray, present: float) -> np.ndarray:
-        """DAC sequence whose first-order-filtered version, scan by scan, is ``wanted`` (output volts)."""
+    def _precompensate(self, wanted: np.ndarray, present: float, bound: float) -> np.ndarray:
+        """DAC sequence whose first-order-filtered version, scan by scan, is ``wanted`` (output volts), within
+        ±``bound``."""
         alpha = self._alpha()
         if alpha is None:
             return wanted
         prev = np.concatenate([[present], wanted[:-1]])
         out = prev + (wanted - prev) / alpha
-        lim = self.amp.max_voltage
         # a jump the filter cannot follow at once is approached, never overshot
-        return np.asarray(np.clip(out, -lim, lim))
+        return np.asarray(np.clip(out, -bound, bound))
 
-    def _error_diffused(self, dac: np.ndarray) -> np.ndarray:
+    def _error_diffused(self, dac: np.ndarray, window: tuple[float, float]) -> np.ndarray:
         """DAC values on the DAC's own levels whose running sum follows ``dac`` (first-order error diffusion):
         behind the reconstruction filter the code steps average out instead of leaving the output up to one
-        code (≈ 5 V of high voltage on a 12-bit DAC) off a slow waveform."""
+        code (≈ 5 V of high voltage on a 12-bit DAC) off a slow waveform. No level outside ``window`` is used."""
         slope, offset = self.daq.cal.dac(self.cfg.dac)
-        return _diffuse(np.ascontiguousarray(dac, dtype=float), float(slope), float(offset), 16 - self.daq.dac_bits)
+        lo, hi = self.daq.cal.dac_code_range(self.cfg.dac, window, self.daq.dac_bits)
+        return _diffuse(np.ascontiguousarray(dac, dtype=float), float(slope), float(offset), 16 - self.daq.dac_bits,
+                        lo, hi)
 
     def _filtered(self, played: np.ndarray, present: float) -> np.ndarray:
         """What the amplifier follows: the DAC's played sequence through the reconstruction filter."""

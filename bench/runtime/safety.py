@@ -3,8 +3,9 @@
 Limits come from the rig file (``[limits]``) and from the specimen: the true electric field is estimated
 from the latest measured stretch — membrane: λ = λ_pre + u/L_d from the laser, E = Vλ²/L3 against the
 breakdown field; LS-DEA: aperture x from the motor encoder or the laser, E = Vλ1λ2/t0 against the
-stretch-dependent E_B = E0 λ3^(−r/2). A set-point that would exceed a limit is not sent; a sample beyond
-a limit trips the run. A trip raises :class:`SafetyTrip`; the engine then brings the rig to its safe state.
+stretch-dependent E_B = E0 λ3^(−r/2). A set-point that would exceed a limit is not sent — checked as sent,
+on the module's code, chosen within :meth:`Supervisor.setpoint_bound`; a sample beyond a limit trips the run.
+A trip raises :class:`SafetyTrip`; the engine then brings the rig to its safe state.
 """
 
 from __future__ import annotations
@@ -76,6 +77,19 @@ class Supervisor:
         if not e <= e_max:  # also trips when the estimate is NaN: an unknown field is not a safe one
             self._trip(f"set-point {volts:.0f} V would give a true field of {e / 1e6:.1f} MV/m, limit "
                        f"{e_max / 1e6:.1f} MV/m at the present stretch")
+
+    def setpoint_bound(self) -> float:
+        """The largest |V| [V] :meth:`check_setpoint` passes at the present stretch: the voltage limit, or less where
+        the field limit binds (the true field is proportional to |V|). Drivers choose the code sent within ±this
+        bound, so that a set-point at a limit runs and the value sent never lies beyond it."""
+        bound = self.voltage_limit
+        e, e_max = self.field_and_breakdown(bound)
+        if e <= e_max or not (0 < e < math.inf and 0 <= e_max < math.inf):
+            return bound  # an unknown field: check_setpoint refuses the value itself
+        bound *= e_max / e
+        while bound > 0 and not self.field_and_breakdown(bound)[0] <= e_max:  # the last bits of the division
+            bound = math.nextafter(bound, 0.0)
+        return bound
 
     def check_monitors(self, volts: float, amps: float) -> None:
         """Output voltage and current from the amplifier monitors."""
