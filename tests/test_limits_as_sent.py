@@ -251,3 +251,17 @@ def test_t7_stream_through_the_drive_filter_stays_within_8000_V(tmp_path: Path) 
     assert filtered.max() > 7990.0 and filtered.min() < -7990.0  # the limit is reached, not avoided
     assert np.all(np.abs(np.concatenate(inputs)) * TREK_GAIN <= 8000.0)
     assert np.all(np.abs(run.streams["amplifier"].columns["commanded"]) <= 8000.0)
+
+
+def test_manual_control_sends_within_the_limit_too(tmp_path: Path) -> None:
+    """`voltage 8kV` in manual control on a rig whose limit is 8000 V: the ADAM-4024's nearest code within the limit
+    (12-bit offset binary over ±10 V, × 1000 V/V: code 3685 → 7997.56 V; 3686 would give 8002.4 V)."""
+    from bench.rig import RigConfig, load_rig
+    from bench.runtime.manual import ManualSession
+
+    rig = load_rig(RIGS / "thesis-sim.toml")
+    rig = RigConfig.model_validate({**rig.model_dump(), "limits": {**rig.limits.model_dump(), "max_voltage_V": 8000.0}})
+    with ManualSession(rig, tmp_path / "s.log", virtual=True, echo=lambda _t: None) as s:
+        out = s.execute("voltage 8kV")
+        assert out.status == "ok", out
+        assert s._amp().commanded == pytest.approx((3685 / 4095 * 20 - 10) * 1000)

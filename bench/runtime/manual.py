@@ -543,13 +543,15 @@ class ManualSession:
         if self._latched is not None and volts != 0.0:
             self._v_req = 0.0  # held at 0 V: nothing to keep alive
             raise Refused(f"{self._latch_text()}; not sent")
+        bound = self._sup.setpoint_bound()
         try:
             self._sup.check_setpoint(volts)
+            self._sup.check_setpoint(amp.quantise(volts, within=bound))  # the value the module will output
         except SafetyTrip as exc:
             self._v_req = float(amp.commanded)
             raise Refused(f"{exc.reason}; not sent") from None
         self._guard()
-        sent = float(amp.set_voltage(volts))
+        sent = float(amp.set_voltage(volts, within=bound))
         self._commanded(sent)
         return sent
 
