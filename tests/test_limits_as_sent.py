@@ -260,7 +260,8 @@ def test_manual_control_sends_within_the_limit_too(tmp_path: Path) -> None:
     from bench.runtime.manual import ManualSession
 
     rig = load_rig(RIGS / "thesis-sim.toml")
-    rig = RigConfig.model_validate({**rig.model_dump(), "limits": {**rig.limits.model_dump(), "max_voltage_V": 8000.0}})
+    rig = RigConfig.model_validate({**rig.model_dump(), "limits": {**rig.limits.model_dump(), "max_voltage_V": 8000.0},
+                                    "amplifier": {**rig.amplifier.model_dump(), "max_voltage_V": 9000.0}})
     with ManualSession(rig, tmp_path / "s.log", virtual=True, echo=lambda _t: None) as s:
         out = s.execute("voltage 8kV")
         assert out.status == "ok", out
