@@ -166,6 +166,11 @@ class Amplifier(Instrument, Protocol):
         (the send time of the last one it answered; None: none yet). Its communication watchdog counts from
         there: the run time's keep-alive uses it."""
 
+    def hurry(self, reply_timeout: float) -> None:
+        """From now on, requests to the set-point module wait at most ``reply_timeout`` [s] for their reply and are
+        sent once (shutdown: a request takes effect when it arrives; a reply that never comes must not hold the
+        zeroing back)."""
+
     def longest_silence(self) -> float:
         """The longest time [s] that module went without a request from this host since the last call (the present
         silence included), counting again from here: the run time's interlock uses it to tell whether the

@@ -175,6 +175,12 @@ class TrekAmplifier:
         """When the ADAM-4024 (its unit on the bus) last answered a request (its watchdog's reference)."""
         return self.ao.link.heard_at(self.ao.unit)
 
+    def hurry(self, reply_timeout: float) -> None:
+        """Shorter reply waits, no retries, on the analog modules' bus (see the Amplifier contract)."""
+        for link in {id(self.ao.link): self.ao.link, id(self.ai.link): self.ai.link}.values():
+            link.timeout = min(link.timeout, reply_timeout)
+            link.retries = 0
+
     def longest_silence(self) -> float:
         """The ADAM-4024's longest silence since the last call [s] (requests to its unit alone feed its watchdog)."""
         return self.ao.link.longest_silence(self.ao.unit)

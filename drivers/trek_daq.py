@@ -149,6 +149,11 @@ class TrekOnDaq:
         """When the T7 last answered a request: any request feeds its watchdog (stream packets do not)."""
         return self.daq.heard_at()
 
+    def hurry(self, reply_timeout: float) -> None:
+        """Shorter reply waits, no retries, on the T7's command-response link (see the Amplifier contract)."""
+        self.daq.link.timeout = min(self.daq.link.timeout, reply_timeout)
+        self.daq.link.retries = 0
+
     def longest_silence(self) -> float:
         """The T7's longest silence since the last call [s] (any command-response request feeds its watchdog)."""
         return self.daq.link.longest_silence(UNIT)

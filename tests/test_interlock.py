@@ -210,6 +210,29 @@ def test_a_refused_output_path_stops_feeding_the_watchdog_and_the_run_ends_at_ze
     assert abs(plant.sim.plant.observe().voltage[-1]) <= ZERO_V  # type: ignore[attr-defined]
 
 
+def test_t7_replies_lost_then_ctrl_c_zeroes_without_waiting_for_replies(tmp_path: Path) -> None:
+    """The T7 stops answering (its replies are lost; its requests still arrive) and the operator presses Ctrl-C:
+    once the engine sees the first reply missing (its 0.5-s reply timeout), the shutdown waits at most 0.1 s for
+    each further reply (SHUTDOWN_REPLY_S) and skips the ramp, so the zero write reaches the DAC ~0.1 s later."""
+    import os
+    import signal
+
+    from bench.runtime.engine import SHUTDOWN_REPLY_S
+
+    def lose_replies_then_stop(_engine: Engine, sim) -> None:
+        sim.faults["daq"].mute = True
+        time.sleep(0.2)
+        os.kill(os.getpid(), signal.SIGINT)
+
+    result, run, plant = run_with_fault(DAQ_RIG, tmp_path, 3.0, lose_replies_then_stop, virtual=False)
+    assert result.state in ("error", "interrupted"), result.reason
+    t0 = plant.t_fault - 3.0  # rig clock of run time 0 (the watcher acted at run time 3.0, within a few ms)
+    (t_seen,) = [t for t, _, k, _ in run.event_list() if k in ("error", "interrupted")]
+    assert any("did not answer: 0 V at once" in text for text in events(run, "ramp"))
+    # 0 V at the plant: the stream stop's reply wait, then the zero write (+0.2 s: the README's stop bound margin)
+    assert plant.last_high() <= t0 + t_seen + SHUTDOWN_REPLY_S + 0.2
+
+
 # ---------------------------------------------------------------- verified outputs on the ADAM rig (polled)
 def test_a_polled_monitor_that_disagrees_with_the_set_point_latches(tmp_path: Path) -> None:
     def amplifier_gain_off(_engine: Engine, sim) -> None:

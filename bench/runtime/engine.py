@@ -45,6 +45,7 @@ from drivers.errors import InstrumentConnectionError, InstrumentError, Instrumen
 from drivers.interfaces import Amplifier, DisplacementSensor, ForceSensor, LinearMotor
 from drivers.trek_daq import TrekOnDaq
 
+SHUTDOWN_REPLY_S = 0.1  # shutdown: a request to the set-point module waits this long for its reply, once
 MONITOR_SETTLE_S = 0.5  # after zeroing, wait for fresh monitor conversions before the final read
 LATE_TOLERANCE_S = 0.05  # real time: an action later than this counts as an overrun
 STOP_POLL_S = 0.02  # real time: longest sleep between two looks at the stop request
@@ -56,6 +57,7 @@ LASER_DRAIN_BUDGET_S = 30.0  # at most this long fetching a step's stored laser 
 LASER_SHUTDOWN_DRAIN_S = 5.0  # after a stop or fault (high voltage already at 0 V): then what is left is reported
 PAUSE_POLL_S = 0.1  # while paused: the monitors and sensors are read this often (run time)
 RESTART_STEP_V = 10.0  # a restart ramps the output to the step's start value unless it is this close already
+RESTART_SETTLE_S = 0.1  # after a restart's ramp, before the step starts
 RESTART_MOVE_S = 30.0  # a restart's motor move to the step's start position must end within this (run time)
 STOP_SIGNALS = {
     signal.SIGINT: "interrupted by Ctrl-C",
@@ -498,6 +500,9 @@ class Engine:
                 self._pause_until(self.now() + 0.02, urgent_aborts=False)
         if self.inst.amplifier is not None and abs(volts - self._v_cmd) > RESTART_STEP_V:
             self._ramp_to(volts, self.program.rig.limits.shutdown_ramp_s)
+            # the last step's charging current (at the amplifier's current limit for tens of µs) is over before
+            # the step's own acquisition starts
+            self._pause_until(self.now() + RESTART_SETTLE_S, urgent_aborts=False)
         self._v_req = volts
         self._offset = self.now() - seg.t_start
         self.rec.event(self.now(), seg.index, "offset", f"run time = program time + {self._offset:.9f} s")
@@ -522,7 +527,7 @@ class Engine:
             self._ramp_to(0.0, self.program.rig.limits.shutdown_ramp_s)
         if self.inst.motor is not None and self.program.has_motor_axis:
             self._motor.stop()
-        due = self.now()
+        due = self.now() + RESTART_SETTLE_S  # the ramp's last charging current is over before the first reading
         while self._paused_wanted()[0]:
             self._check_stop()
             if self.now() >= due:
@@ -666,11 +671,14 @@ class Engine:
         amp = self.inst.amplifier
         if amp is None:
             return None
+        amp.hurry(SHUTDOWN_REPLY_S)
+        unanswered = False
         if self._stream is not None:
             try:
                 self._stream.stop(self)  # the DAC holds the last value played; the ramp continues from it
             except InstrumentError as exc:
                 notes.append(f"stopping the DAQ stream failed: {exc}")
+                unanswered = True  # the request may have arrived; a ramp of unanswered requests only delays 0 V
         ramp = self.program.rig.limits.shutdown_ramp_s
         v0 = self._v_cmd
         if self.latched is None:
@@ -682,6 +690,9 @@ class Engine:
         if self.latched is not None and v0 != 0.0:
             self._event("ramp", f"interlock latched ({self.latched.kind}): 0 V at once, no ramp from a set-point the "
                         "output may no longer hold")
+            v0 = 0.0
+        elif unanswered and v0 != 0.0:
+            self._event("ramp", "the set-point module did not answer: 0 V at once, no ramp")
             v0 = 0.0
         try:
             if v0 != 0.0 and self._urgent.is_set():

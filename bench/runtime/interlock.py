@@ -71,7 +71,8 @@ def check_contact(rig: RigConfig, away: float, output_on: bool) -> None:
         fired = (f"its {watchdog:g}-s communication watchdog {'has' if away >= watchdog else 'may have'} zeroed "
                  "the output" if watchdog is not None else "the output ran unsupervised")
         raise InterlockTrip("host stall", f"the set-point module went {away:.2f} s without a request from the "
-                            f"host (bound {bound:.2f} s); {fired}; high voltage stays off until an operator resets")
+                            f"host that it answered (bound {bound:.2f} s: a stalled host, or replies lost); {fired}; "
+                            "high voltage stays off until an operator resets")
 
 
 @dataclass

@@ -28,6 +28,7 @@ from bench.runtime.instruments import Instruments, build_instruments
 from bench.runtime.interlock import watchdog_period
 from bench.runtime.latch import latch, refuse_if_latched
 from bench.runtime.safety import Supervisor
+from bench.storage.chain import chain
 from bench.storage.recorder import Column, Recorder, now_iso
 from bench.storage.recover import recover
 from bench.storage.runfile import open_run
@@ -297,7 +298,9 @@ def plan_resume(run_file: str | Path, rig_path: str | Path | None = None, simula
         plan = plan_run(proto, rig_file, simulate, progress)
     if plan.protocol.sha256 != run.attrs["protocol_sha256"]:
         raise ValueError(f"run file {p}: its stored protocol no longer reads the same (hash differs)")
-    done = run.completed_steps()
+    done: set[int] = set()  # over the whole campaign: a resumed file holds only the steps from its start on
+    for link in chain(p):
+        done |= open_run(link.path, streams=False).completed_steps()
     indices = [s.index for s in plan.program.segments]
     todo = next((k for k, i in enumerate(indices) if i not in done), None)
     if todo is None:
