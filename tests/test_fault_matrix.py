@@ -85,24 +85,29 @@ class _Plant:
 
 
 def test_an_output_still_high_or_back_on_is_a_finding() -> None:
-    """The verdict itself, on made-up output histories: 3 kV left on at return; 0 V for 0.5 s, then 2 kV again."""
+    """The verdict itself, on made-up output histories (fault at 1 s): 3 kV left on at return; 0 V from 1.2 s,
+    then 2 kV again from 1.7 s to 1.8 s — after the run began to stop, after a watchdog zeroed it, or neither
+    (the protocol's own 0-V stretch, as a run the fault did not stop plays it)."""
     t = np.arange(0.0, 2.0, 1e-3)
     still_on = np.where(t < 1.0, 5000.0, 3000.0)
-    back_on = np.where((t >= 1.2) & (t < 1.7), 0.0, 2000.0)
-    back_on[t >= 1.8] = 0.0
+    dip = np.where((t >= 1.2) & (t < 1.7), 0.0, 2000.0)
+    dip[t >= 1.8] = 0.0
     cases = []
-    for name, v in (("still on", still_on), ("back on", back_on)):
+    for name, v, t_stop, trips in (("still on", still_on, None, []), ("stop", dip, 1.1, []),
+                                   ("watchdog", dip, None, [1.2]), ("protocol", dip, None, [])):
         trace = faults.Trace()
         trace.blocks.append((t, v))
+        trace.t_stop, trace.trips = t_stop, trips
         case = faults.Case("run", "ADAM", name, "test", "hold", "virtual", injected=True, state="error")
         trace.judge(case, _Plant(), t_fault=1.0, t_return=float(t[-1]))
         cases.append(case)
-    on, back = cases
+    on, stop, watchdog, protocol = cases
     assert not on.zero_at_return and on.to_zero_s == pytest.approx(t[-1] - 1.0)
-    assert back.zero_at_return and back.reenergised_V == 2000.0 and back.to_zero_s == pytest.approx(0.799)
+    assert stop.zero_at_return and stop.reenergised_V == watchdog.reenergised_V == 2000.0
+    assert protocol.reenergised_V == 0.0 and protocol.to_zero_s == pytest.approx(0.799)
     summary = faults.summarise(cases)
-    assert not summary.all_safe and summary.safe == 1 and len(summary.findings) == 2
+    assert not summary.all_safe and summary.safe == 3 and len(summary.findings) == 3
     lines = faults.summary_lines(summary)
     assert "all safe: NO" in lines[0]
     assert any("still on hold: output NOT at 0 V" in line for line in lines)
-    assert any("back on hold: output back at 2000 V" in line for line in lines)
+    assert sum("output back at 2000 V" in line for line in lines) == 2

@@ -10,10 +10,11 @@ later than the driver's timeout, a wire at a tenth of its speed), SIGINT and SIG
 amplifier gain 25 % off, refused and unplayed T7 output writes, a full disk.
 
 The verdict comes from the plant's own output history (the amplifier's output stage as the twins integrate it),
-not from the run file: whether |output| was at most :data:`ZERO_V` when the run returned, and how long after the
-fault the last sample above it was. Faults whose detection rests on a wall-clock timeout, signals and stalls run
-in real time; the others in virtual time (the same bytes; the clock jumps, and a driver's wall-clock timeout
-would not count).
+not from the run file: whether |output| was at most :data:`ZERO_V` when the run returned, how long after the
+fault the last sample above it was, and whether it came back on after it had reached 0 V once the run was
+stopping or once the set-point module's watchdog had zeroed it (re-energised). Faults whose detection rests on
+a wall-clock timeout, signals and stalls run in real time; the others in virtual time (the same bytes; the
+clock jumps, and a driver's wall-clock timeout would not count).
 """
 
 from __future__ import annotations
@@ -38,8 +39,6 @@ from bench.rig import RigConfig, load_rig
 from bench.runtime.run import Plan, execute, plan_run
 
 ZERO_V = 5.0  # |output| at or below this is 0 V (one ADAM-4024 code × the TREK gain)
-REST_S = 0.2  # an output back above ZERO_V after at least this long at 0 V (after the fault) was re-energised
-# (longer than any 0-V stretch PROTOCOL commands between two high ones: 50 ms at the raised cosine's trough)
 STALL_S = 1.5  # a host stall: the run's thread frozen this long (longer than the 1-s module watchdogs)
 GAIN_FACTOR = 1.25  # a gain fault: the output is this × what the host sets
 SLOW = 4  # a slow wire: a quarter of the link's baud rate (the T7: a quarter of the 1 Mbit/s its stream-out needs)
@@ -150,15 +149,16 @@ class Case:
     ramp_s: float | None = None  # fault → the first ramp-down (or 0 V at once) event after it
     returned_s: float | None = None  # fault → the run returned
     peak_after_V: float = 0.0  # largest |output| from the fault on
-    reenergised_V: float = 0.0  # largest |output| after the output had been at 0 V for REST_S since the fault
+    reenergised_V: float = 0.0  # largest |output| back on after 0 V, once stopping or a watchdog zeroed it
     state: str = ""
     reason: str = ""
     wall_s: float = 0.0
 
     @property
     def stopped(self) -> bool:
-        """Whether the run ended early (a run that completed, or a session whose commands all passed, went on)."""
-        return self.state not in ("completed", "ok")
+        """Whether the run ended early: a stop (the shutdown phase), or an end state other than a completed run or a
+        session whose commands all passed (the fault did not stop those)."""
+        return self.phase == "shutdown" or self.state not in ("completed", "ok")
 
 
 # ---------------------------------------------------------------- the faults
@@ -363,13 +363,29 @@ def _folder(spec: Spec, tmp: Path) -> Iterator[Path]:
 
 
 class Trace:
-    """The plant's output history, from a listener on the plant."""
+    """The plant's output history (a listener on the plant), when the run began to stop, and when the set-point
+    module's communication watchdog zeroed the amplifier's input (the plant models both modules' watchdogs)."""
 
     def __init__(self) -> None:
         self.blocks: list[tuple[np.ndarray, np.ndarray]] = []
+        self.t_stop: float | None = None  # rig clock: first block integrated once the run was stopping
+        self.trips: list[float] = []  # rig clock: the watchdog's deadlines that zeroed the input
 
-    def listen(self, plant: Any) -> None:
-        plant.listeners.append(lambda b: self.blocks.append((b.t.copy(), b.voltage.copy())))
+    def listen(self, plant: Any, stopping: Callable[[], bool]) -> None:
+        """Record ``plant``'s output from now on; ``stopping()`` says whether the run is shutting down."""
+        def block(b: Any) -> None:
+            self.blocks.append((b.t.copy(), b.voltage.copy()))
+            if self.t_stop is None and stopping():
+                self.t_stop = float(b.t[0])
+        plant.listeners.append(block)
+        check = plant._check_watchdog
+
+        def checked(t_end: float) -> None:
+            trips, deadline = plant.watchdog_trips, plant._last_feed + (plant.input_watchdog or 0.0)
+            check(t_end)
+            if plant.watchdog_trips > trips:
+                self.trips.append(deadline)
+        plant._check_watchdog = checked
 
     def judge(self, case: Case, plant: Any, t_fault: float, t_return: float) -> None:
         """Fill ``case`` from the history up to ``t_return`` (rig clock)."""
@@ -385,17 +401,20 @@ class Trace:
         high = after & (v > ZERO_V)
         case.to_zero_s = float(t[high][-1] - t_fault) if high.any() else 0.0
         case.peak_after_V = float(v[after].max()) if after.any() else 0.0
-        case.reenergised_V = _reenergised(t[after], v[after])
+        # watchdog trips that zeroed a high output (one at 0 V, a set-up stall, changes nothing)
+        zeroed = [d for d in self.trips if v[max(int(np.searchsorted(t, d)) - 1, 0)] > ZERO_V]
+        starts = ([self.t_stop] if self.t_stop is not None else []) + zeroed
+        case.reenergised_V = max((_back_on(t, v, s) for s in starts), default=0.0)
         case.returned_s = t_return - t_fault
 
 
-def _reenergised(t: np.ndarray, v: np.ndarray) -> float:
-    """Largest |output| ``v`` after the first stretch of at least REST_S at 0 V between two samples above it."""
-    high = np.flatnonzero(v > ZERO_V)
-    if high.size < 2:
+def _back_on(t: np.ndarray, v: np.ndarray, since: float) -> float:
+    """Largest |output| ``v`` after it first reached 0 V from ``since`` on (0 if it stayed there)."""
+    rest = np.flatnonzero((t >= since) & (v <= ZERO_V))
+    if not rest.size:
         return 0.0
-    rest = np.flatnonzero(t[high[1:]] - t[high[:-1]] >= REST_S)
-    return float(v[high[rest[0] + 1]:].max()) if rest.size else 0.0
+    later = v[rest[0]:]
+    return float(later.max()) if later.max() > ZERO_V else 0.0
 
 
 def _short(text: str, n: int = 90) -> str:
@@ -421,7 +440,7 @@ def run_case(spec: Spec, plan: Plan, tmp: Path) -> Case:
 
     def hook(engine: Any, sim: Any) -> None:
         seen.update(engine=engine, sim=sim)
-        trace.listen(sim.plant)
+        trace.listen(sim.plant, lambda: engine.snapshot.state not in ("starting", "running"))
         inj.bind(Target(sim, engine, threading.get_ident(), out.parent), engine.now, lambda: engine.snapshot.state,
                  lambda: engine.request_stop("fault matrix: stop, to reach the shutdown ramp"))
         if virtual:
@@ -483,7 +502,7 @@ def run_control_case(spec: Spec, tmp: Path) -> Case:
         try:
             with session:
                 sim = session._sim
-                trace.listen(sim.plant)
+                trace.listen(sim.plant, lambda: session._ending or session.end_reason is not None)
                 inj.bind(Target(sim, None, threading.get_ident(), folder), session._now,
                          lambda: "stopping" if session._ending else "running", lambda: None)
                 inj.watch()
@@ -546,8 +565,8 @@ def summarise(cases: list[Case]) -> Summary:
         elif not c.zero_at_return:
             s.findings.append(f"{where}: output NOT at 0 V when the run returned ({c.state}: {c.reason})")
         if c.reenergised_V > ZERO_V:
-            s.findings.append(f"{where}: output back at {c.reenergised_V:.0f} V after {REST_S * 1e3:.0f} ms or "
-                              "more at 0 V (re-energised)")
+            s.findings.append(f"{where}: output back at {c.reenergised_V:.0f} V after it had reached 0 V (the run "
+                              "stopping, or the module's watchdog) — re-energised")
     for c in injected:
         if c.stopped and c.to_zero_s is not None:
             s.worst[c.kind] = max(s.worst.get(c.kind, 0.0), c.to_zero_s)
