@@ -453,12 +453,17 @@ def run_case(spec: Spec, plan: Plan, tmp: Path) -> Case:
         w0 = time.perf_counter()
         try:
             result = execute(plan, out, virtual=virtual, on_engine=hook)
+            case.state, case.reason = result.state, _short(result.reason)
+        except Exception as exc:  # execute must return whatever failed: that it raised is itself a finding
+            result = None
+            case.state, case.reason = "raised", _short(f"{type(exc).__name__}: {exc}")
         finally:
             inj.quit()
-        t_return = seen["sim"].clock.now()
         case.wall_s = time.perf_counter() - w0
-        case.state, case.reason = result.state, _short(result.reason)
-        events = _events(result.path)
+        if "sim" not in seen:  # it raised before the run began
+            return case
+        t_return = seen["sim"].clock.now()
+        events = _events(result.path) if result is not None else []
     _finish(case, inj, trace, seen["sim"], t_return)
     if case.injected:
         t_fault_run = inj.t_fault - seen["engine"]._t0
@@ -564,6 +569,8 @@ def summarise(cases: list[Case]) -> Summary:
             s.findings.append(f"{where}: fault not injected")
         elif not c.zero_at_return:
             s.findings.append(f"{where}: output NOT at 0 V when the run returned ({c.state}: {c.reason})")
+        if c.state == "raised":
+            s.findings.append(f"{where}: the run raised instead of returning ({c.reason})")
         if c.reenergised_V > ZERO_V:
             s.findings.append(f"{where}: output back at {c.reenergised_V:.0f} V after it had reached 0 V (the run "
                               "stopping, or the module's watchdog) — re-energised")

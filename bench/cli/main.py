@@ -312,9 +312,9 @@ def benchmark(
         print_json(collected)
 
 
-def _benchmark(which: BenchmarkSet, quick: bool) -> dict[str, list[dict[str, object]]]:
+def _benchmark(which: BenchmarkSet, quick: bool) -> dict[str, object]:
     """Run and print the chosen benchmark sets; returns their figures by set."""
-    collected: dict[str, list[dict[str, object]]] = {}
+    collected: dict[str, object] = {}
     if which in (BenchmarkSet.physics, BenchmarkSet.all):
         from bench.benchmarks.main import run_all
 
