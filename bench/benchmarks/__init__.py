@@ -1,5 +1,5 @@
 """`bench benchmark`: the integrators (main), acquisition through the drivers, hardware-timed rigs (daq), whole runs
-(run) and the fitter (fit)."""
+(run), the fitter (fit) and the fault matrix (faults: is the output at 0 V when a run returns, whatever failed)."""
 
 from __future__ import annotations
 

@@ -294,6 +294,7 @@ class BenchmarkSet(StrEnum):
     run = "run"
     fit = "fit"
     daq = "daq"
+    faults = "faults"
     all = "all"
 
 
@@ -303,16 +304,17 @@ def benchmark(
     quick: Annotated[bool, typer.Option(help="One repeat / short runs.")] = False,
     json_out: JsonOpt = False,
 ) -> None:
-    """Measure the integrators, the acquisition rates through the drivers, whole runs and the fitter."""
+    """Measure the integrators, the acquisition rates through the drivers, whole runs and the fitter; run the fault
+    matrix (every fault × every phase × both rig kinds: is the plant's output at 0 V when the run returns?)."""
     with json_mode(json_out):
         collected = _benchmark(which, quick)
     if json_out:
         print_json(collected)
 
 
-def _benchmark(which: BenchmarkSet, quick: bool) -> dict[str, list[dict[str, object]]]:
+def _benchmark(which: BenchmarkSet, quick: bool) -> dict[str, object]:
     """Run and print the chosen benchmark sets; returns their figures by set."""
-    collected: dict[str, list[dict[str, object]]] = {}
+    collected: dict[str, object] = {}
     if which in (BenchmarkSet.physics, BenchmarkSet.all):
         from bench.benchmarks.main import run_all
 
@@ -356,7 +358,40 @@ def _benchmark(which: BenchmarkSet, quick: bool) -> dict[str, list[dict[str, obj
         for f in figures:
             table.add_row(f.name, f"{f.value:,.1f}" if f.value < 100 else f"{f.value:,.0f}", f.unit, f.note)
         console.print(table)
+    if which in (BenchmarkSet.faults, BenchmarkSet.all):
+        collected["faults"] = _fault_matrix(quick)
     return collected
+
+
+def _seconds(x: float | None) -> str:
+    return "–" if x is None else f"{x:.3f}"
+
+
+def _fault_matrix(quick: bool) -> dict[str, object]:
+    """Run and print the fault matrix: one row per case, then the summary; returns cases and summary."""
+    from dataclasses import asdict
+
+    from bench.benchmarks import faults
+
+    n = len(faults.matrix(quick))
+    with console.status(f"fault matrix: {n} cases (faults that a wall-clock timeout, a signal or a stall detects "
+                        "run in real time)…"):
+        cases = faults.run_all(quick=quick)
+    table = Table(title=f"fault matrix: |output| at the plant (0 V: ≤ {faults.ZERO_V:g} V); times from the fault, "
+                  "rig clock")
+    for col in ("mode", "rig", "fault", "phase", "clock", "0 V at return", "→ 0 V [s]", "→ ramp [s]",
+                "returned [s]", "peak after [V]", "back on [V]", "end"):
+        table.add_column(col, justify="right" if "[" in col else "left")
+    for c in cases:
+        zero = "[green]yes[/]" if c.zero_at_return else ("–" if not c.injected else "[red]NO[/]")
+        back = f"[red]{c.reenergised_V:.0f}[/]" if c.reenergised_V > faults.ZERO_V else "–"
+        table.add_row(c.mode, c.rig, c.fault, c.phase, c.clock, zero, _seconds(c.to_zero_s), _seconds(c.ramp_s),
+                      _seconds(c.returned_s), f"{c.peak_after_V:.0f}", back, f"{c.state}: {c.reason}")
+    console.print(table)
+    s = faults.summarise(cases)
+    for line in faults.summary_lines(s):
+        console.print(line, markup=False, highlight=False)
+    return {"cases": [asdict(c) for c in cases], "summary": {**asdict(s), "all_safe": s.all_safe}}
 
 
 def register(app: typer.Typer) -> dict[str, typer.Typer]:
