@@ -36,6 +36,7 @@ import numpy as np
 
 from bench.resources import rigs_dir
 from bench.rig import RigConfig, load_rig
+from bench.runtime.latch import STATE_ENV
 from bench.runtime.run import Plan, execute, plan_run
 
 ZERO_V = 5.0  # |output| at or below this is 0 V (one ADAM-4024 code × the TREK gain)
@@ -597,22 +598,40 @@ def _run_keys(keys: list[tuple[str, str, str, str]]) -> list[Case]:
     (where signal handlers can be installed); one plan per rig."""
     specs = {spec.key: spec for spec in matrix(quick=False)}
     specs.update({spec.key: spec for spec in matrix(quick=True)})
-    cases = []
     with tempfile.TemporaryDirectory() as tmp:
-        plans: dict[str, Plan] = {}
-        for key in keys:
-            spec = specs[key]
-            if spec.mode == "control":
-                cases.append(run_control_case(spec, Path(tmp)))
-                continue
-            if spec.rig not in plans:
-                plans[spec.rig] = _plan(spec.rig, Path(tmp))
-            try:
-                cases.append(run_case(spec, plans[spec.rig], Path(tmp)))
-            except PermissionError as exc:  # the full disk needs a tmpfs
-                f = spec.fault
-                cases.append(Case("run", spec.rig, f.name, f.kind, spec.phase, f.clock, state="skipped",
-                                  reason=_short(str(exc))))
+        # the interlock latch outlives a run (bench/runtime/latch.py): the matrix keeps its own, and each case starts
+        # unlatched, as after an operator's reset
+        state = Path(tmp) / "state"
+        saved = os.environ.get(STATE_ENV)
+        os.environ[STATE_ENV] = str(state)
+        try:
+            cases = _run_specs([specs[k] for k in keys], state, Path(tmp))
+        finally:
+            if saved is None:
+                os.environ.pop(STATE_ENV, None)
+            else:
+                os.environ[STATE_ENV] = saved
+    return cases
+
+
+def _run_specs(specs: list[Spec], state: Path, tmp: Path) -> list[Case]:
+    """The cases of ``specs`` in order, each from an unlatched rig (``state``: the matrix's latch folder)."""
+    cases: list[Case] = []
+    plans: dict[str, Plan] = {}
+    for spec in specs:
+        for latch_file in state.glob("interlock-*.json"):
+            latch_file.unlink()
+        if spec.mode == "control":
+            cases.append(run_control_case(spec, tmp))
+            continue
+        if spec.rig not in plans:
+            plans[spec.rig] = _plan(spec.rig, tmp)
+        try:
+            cases.append(run_case(spec, plans[spec.rig], tmp))
+        except PermissionError as exc:  # the full disk needs a tmpfs
+            f = spec.fault
+            cases.append(Case("run", spec.rig, f.name, f.kind, spec.phase, f.clock, state="skipped",
+                              reason=_short(str(exc))))
     return cases
 
 

@@ -704,8 +704,9 @@ class Engine:
                     self._v_cmd = sent
                     self._record(self.rec.append, "setpoints", self.now(), voltage=sent, aperture=math.nan)
 
-                if not ramp_to_zero(amp, v0, ramp, lambda offset: self._pause_until(t + offset), record, RAMP_STEPS):
-                    self._event("ramp", "second stop request: 0 V at once")
+                if not ramp_to_zero(amp, v0, ramp, lambda offset: self._ramp_pause(t + offset), record, RAMP_STEPS):
+                    self._event("ramp", "second stop request: 0 V at once" if self.latched is None else
+                                f"interlock latched during the ramp ({self.latched.kind}): 0 V at once")
         except InstrumentError as exc:
             notes.append(f"voltage ramp-down failed: {exc}")
         try:
@@ -720,6 +721,20 @@ class Engine:
         t_zero = self.now()
         self._record(self.rec.append, "setpoints", t_zero, voltage=0.0, aperture=math.nan)
         return t_zero
+
+    def _ramp_pause(self, until: float) -> bool:
+        """The shutdown ramp's wait before its next set-point: False (0 V at once) on a second stop request, or when
+        the set-point module went unheard past the stall bound meanwhile (the next step would re-energise an
+        output its watchdog zeroed)."""
+        if not self._pause_until(until):
+            return False
+        try:
+            self.guard()
+        except InterlockTrip as trip:
+            self.latched = trip
+            self._event("interlock", trip.reason)
+            return False
+        return True
 
     def _others_safe(self) -> list[str]:
         """Every instrument but the amplifier to its safe state (motor stopped first), each independently."""
