@@ -58,8 +58,8 @@ class Faults:
     and ``counts`` (the same by fault: ``latency``, ``mute``, ``garble``, ``drop``); for :class:`TwinTimer`,
     ``withheld`` (replies that never go on the wire: mute, a mutation to nothing, a request the instrument itself
     leaves unanswered: :meth:`unanswered`), ``altered`` (replies sent garbled
-    or mutated: the driver may reject one and wait on), ``delayed`` (replies held back by ``latency``) and
-    ``last_latency`` (how long the last of them was held).
+    or mutated: the driver may reject one and wait on; ``altered_at``: ``time.monotonic()`` of the last),
+    ``delayed`` (replies held back by ``latency``) and ``last_latency`` (how long the last of them was held).
     """
 
     latency: float = 0.0  # s added before every reply (wall time)
@@ -76,6 +76,7 @@ class Faults:
     injected: int = field(default=0, init=False)
     withheld: int = field(default=0, init=False)
     altered: int = field(default=0, init=False)
+    altered_at: float = field(default=0.0, init=False)
     delayed: int = field(default=0, init=False)
     last_latency: float = field(default=0.0, init=False)
     counts: Counter[str] = field(default_factory=Counter, init=False)
@@ -168,7 +169,9 @@ class Faults:
                     self.note(*kinds)
                     self.withheld += 1
                     return None, 0.0
-            self.altered += bool(kinds)
+            if kinds:
+                self.altered += 1
+                self.altered_at = time.monotonic()
             delay = self.latency
             if delay > 0:
                 kinds.append("latency")
@@ -195,14 +198,15 @@ class TwinTimer:
     that must never read as a silent instrument. So a wait is decided by what the twin did with the request, as
     its :class:`Faults` count it from the moment the request went out (:meth:`sending`):
 
-    * it withheld the reply (``mute``, a mutation to nothing), or held it back by a ``latency`` at least as long
-      as the timeout: the wait expires at once, and the rig clock moves on to where the timeout would have ended
-      it — the instrument stayed silent for the timeout, in rig time;
+    * it withheld the reply (``mute``, a mutation to nothing, a pty twin that answered with nothing), or held it
+      back by a ``latency`` at least as long as the timeout: the wait expires at once, and the rig clock moves on
+      to where the timeout would have ended it — the instrument stayed silent for the timeout, in rig time;
     * it sent the reply garbled or mutated: the driver may reject it and wait on for a reply that never comes,
-      so this deliberate fault is judged as on hardware, by the timeout on the wall clock;
+      so this deliberate fault is judged as on hardware, by the timeout on the wall clock — counted from the
+      wait's start, or from when the twin sent the reply if that is later (a late twin does not eat into it);
     * otherwise (a ``latency`` shorter than the timeout included) the reply is on its way, however slowly: the
-      wait lasts until it comes, with ``stall`` s of wall time only as a guard against a twin that hangs or
-      ignores a request (as a device ignores one it cannot parse).
+      wait lasts until it comes, with ``stall`` s of wall time only as a guard against a twin that hangs, or a
+      Modbus server that ignores a request behind a transport that cannot see it (the message says which).
 
     A silent twin is told apart from a slow host by the twin itself, not by a stopwatch: scaling the wall-clock
     timeouts up in virtual runs would still let a loaded enough host decide, and make each deliberate silence cost
@@ -259,7 +263,7 @@ class TwinDeadline:
             return True
         now = time.monotonic()
         if self.faults.altered > self.altered:
-            return now >= self.wall_end
+            return now >= self._altered_end()
         if now >= self.guard_end:
             self.detail = (f" (the simulated instrument neither answered nor withheld its reply for {self.stall:g} s "
                            "of wall time)")
@@ -270,8 +274,12 @@ class TwinDeadline:
         """Wall seconds a blocking read may last before :meth:`expired` is asked again."""
         if self.timeout <= 0 or self._silent():
             return 0.0
-        end = self.wall_end if self.faults.altered > self.altered else self.guard_end
+        end = self._altered_end() if self.faults.altered > self.altered else self.guard_end
         return max(end - time.monotonic(), 0.0)
+
+    def _altered_end(self) -> float:
+        """Wall-clock end of the wait for an altered reply: its timeout, from the start or from its sending."""
+        return max(self.wall_end, self.faults.altered_at + self.timeout)
 
 
 SPIN_S = 0.3e-3  # the last part of a wall-clock wire wait is spent yielding, not sleeping (see Line._until)
