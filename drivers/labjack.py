@@ -77,6 +77,7 @@ import numpy as np
 from pymodbus.pdu import ModbusPDU
 
 from drivers.cancel import CancelToken, check
+from drivers.deadline import WALL, ReplyTimer
 from drivers.errors import (
     ImplausibleValueError,
     InstrumentConnectionError,
@@ -434,10 +435,11 @@ class LabJackT7:
     def __init__(self, host: str, *, port: int = CR_PORT, stream_port: int = STREAM_PORT, name: str = "daq",
                  timeout: float = 0.5, cancel: CancelToken | None = None, clock: ClockFn = time.monotonic,
                  sleep: SleepFn = time.sleep, safe_dac: tuple[float, float] = (0.0, 0.0),
-                 dac_bits: int = 12, watchdog_s: int | None = None) -> None:
+                 dac_bits: int = 12, watchdog_s: int | None = None, timer: ReplyTimer = WALL) -> None:
         """``safe_dac``: DAC0/DAC1 volts written by :meth:`safe_state` (the rig's zero through its conditioning).
         ``watchdog_s``: on connect, the device's watchdog is set to write ``safe_dac`` to both DACs after this
-        many seconds without a request (None: left as the device has it)."""
+        many seconds without a request (None: left as the device has it). ``timer``: how a wait for a reply or
+        for stream packets ends (:mod:`drivers.deadline`; the command-response link's too)."""
         self.host, self.port, self.stream_port = host, port, stream_port
         self.name = name
         self.timeout = timeout
@@ -446,7 +448,8 @@ class LabJackT7:
         self.safe_dac = safe_dac
         self.dac_bits = dac_bits
         self.watchdog_s = watchdog_s
-        self.link = ModbusLink(f"tcp://{host}:{port}", name, timeout=timeout, cancel=cancel)
+        self.timer = timer
+        self.link = ModbusLink(f"tcp://{host}:{port}", name, timeout=timeout, cancel=cancel, timer=timer)
         self.link.register(Feedback)
         self.cal = Calibration.nominal()
         self.serial = 0
@@ -779,7 +782,7 @@ class LabJackT7:
 
     def _open_stream_socket(self) -> socket.socket:
         try:
-            sock = socket.create_connection((self.host, self.stream_port), timeout=self.timeout)
+            sock = socket.create_connection((self.host, self.stream_port), timeout=self.timer.bound(self.timeout))
         except OSError as exc:
             raise InstrumentConnectionError(self.name, f"cannot open stream port {self.host}:{self.stream_port}: "
                                             f"{exc.strerror or exc}") from None
@@ -820,16 +823,16 @@ class LabJackT7:
         return self._stream.t0_uncertainty if self._stream is not None else math.nan
 
     def _receive(self, until_packets: int, timeout: float) -> list[StreamPacket]:
-        """Packets available now, and (waiting up to ``timeout`` wall seconds) until ``until_packets`` total."""
+        """Packets available now, and (waiting until a deadline of ``timeout`` s expires: :mod:`drivers.deadline`)
+        until ``until_packets`` total."""
         s = self._stream
         assert s is not None and s.sock is not None
         out: list[StreamPacket] = []
-        deadline = time.monotonic() + timeout
+        deadline = self.timer.start(timeout)
         while True:
             check(self.cancel, self.name)
             wait = s.packets + len(out) < until_packets and not s.done
-            remaining = deadline - time.monotonic()
-            r, _, _ = select.select([s.sock], [], [], min(max(remaining, 0.0), 0.05) if wait else 0.0)
+            r, _, _ = select.select([s.sock], [], [], min(deadline.left(), 0.05) if wait else 0.0)
             if r:
                 try:
                     data = s.sock.recv(1 << 16)
@@ -855,9 +858,9 @@ class LabJackT7:
                 continue
             if not wait:
                 return out
-            if time.monotonic() >= deadline:
+            if deadline.expired():
                 raise InstrumentTimeoutError(self.name, f"stream packets up to #{until_packets} not received "
-                                             f"within {timeout:g} s (have {s.packets + len(out)})")
+                                             f"within {timeout:g} s (have {s.packets + len(out)}){deadline.detail}")
 
     def _expected_packets(self, until: float) -> int:
         s = self._stream
@@ -870,8 +873,8 @@ class LabJackT7:
     def collect(self, until: float | None = None, timeout: float = 1.0) -> StreamBlock:
         """Complete scans received since the last call (scan-numbered), after topping up the out buffer.
 
-        ``until`` (rig time): first wait, up to ``timeout`` wall seconds, for every whole packet the device
-        has filled by then — in virtual time, call it with the clock's present to get every scan so far.
+        ``until`` (rig time): first wait, up to ``timeout`` s (:mod:`drivers.deadline`), for every whole packet the
+        device has filled by then — in virtual time, call it with the clock's present to get every scan so far.
         A gap in the packet sequence is a :class:`ProtocolError`; a device status that ends the stream
         (scan overlap, skip-counter overflow, buffer full) an :class:`InstrumentStateError` after the data.
         Samples are 16-bit codes converted through the calibration read at connect, which is refused unless
@@ -955,7 +958,7 @@ class LabJackT7:
     def complete(self, timeout: float = 10.0, poll: float = 0.05) -> list[StreamBlock]:
         """Wait (on the rig clock: a virtual clock advances) until the burst completed or, for a continuous
         stream with an output, every waveform value has been played and its scan collected; returns the
-        blocks collected meanwhile. ``timeout``: wall seconds without progress before giving up."""
+        blocks collected meanwhile. ``timeout``: seconds without progress before giving up (:mod:`drivers.deadline`)."""
         s = self._stream
         if s is None or not self.streaming:
             raise InstrumentStateError(self.name, "complete without a running stream")

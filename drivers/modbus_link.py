@@ -11,12 +11,17 @@ fresh transaction id and pymodbus skips a reply with another id (checked again h
 carry no id, input is discarded before every request, and after a timeout the next reply is held for one
 timeout while the line goes quiet — if a second frame follows (the late answer to the earlier attempt came
 first), the later one is the answer to the latest request.
+
+Each attempt waits for its reply until a :class:`~drivers.deadline.Deadline` of the link's timer expires: the
+attempt's timeout on the wall clock on hardware; in a virtual-time simulation, what the twin did with the request
+(:mod:`drivers.deadline`). pymodbus' own receive loop and connect are bounded by the timer's wall-clock ``bound``.
 """
 
 from __future__ import annotations
 
 import logging
 import os
+import select
 import threading
 import time
 from typing import cast
@@ -34,6 +39,7 @@ from pymodbus.pdu.register_message import (
 )
 
 from drivers.cancel import CancelToken, check
+from drivers.deadline import WALL, Deadline, ReplyTimer
 from drivers.errors import (
     InstrumentConnectionError,
     InstrumentStateError,
@@ -41,7 +47,7 @@ from drivers.errors import (
     OperationCancelledError,
     ProtocolError,
 )
-from drivers.serial_link import set_slice_timeout
+from drivers.serial_link import POLL_SLICE_S, set_slice_timeout
 
 try:  # pyserial's POSIX port lets termios.error (not an OSError) out of reset_input_buffer on a dead pty
     from termios import error as _termios_error
@@ -102,13 +108,13 @@ class _SerialClient(ModbusSerialClient):
         if size is not None or not self.socket:
             return super().recv(size)
         port = self.socket
-        deadline = time.monotonic() + self.comm_params.timeout_connect
+        deadline = self.link._deadline
         try:
             while not (waiting := port.in_waiting):
                 self.link._check_cancel()
-                if time.monotonic() >= deadline:
+                if deadline.expired():
                     return b""
-                set_slice_timeout(port, deadline)
+                set_slice_timeout(port, deadline.left())
                 if first := port.read(1):  # blocks until a byte arrives or the slice ends
                     return first + port.read(port.in_waiting)
             return port.read(waiting)
@@ -117,43 +123,73 @@ class _SerialClient(ModbusSerialClient):
             raise ConnectionException(str(self)) from None
 
 
+class _TcpClient(ModbusTcpClient):
+    """TCP client whose receive wait ends when the link's deadline says so (pymodbus' own waits out its timeout
+    on the wall clock in one select)."""
+
+    def __init__(self, host: str, *, port: int, link: ModbusLink, timeout: float) -> None:
+        super().__init__(host, port=port, timeout=timeout, retries=0)
+        self.link = link
+
+    def recv(self, size: int | None) -> bytes:
+        sock = self.socket
+        if size is not None or sock is None:
+            return super().recv(size)
+        deadline = self.link._deadline
+        sock.setblocking(False)
+        while True:
+            ready, _, _ = select.select([sock], [], [], min(POLL_SLICE_S, deadline.left()))
+            if ready:
+                if not (data := sock.recv(4096)):
+                    return self._handle_abrupt_socket_close(size, [], 0.0)
+                return data
+            if deadline.expired():
+                return b""
+
+
 class ModbusLink:
     """One Modbus client; serialises requests from every module on the bus."""
 
     def __init__(self, url: str, device: str, *, baudrate: int = 19200, timeout: float = 0.5,
-                 retries: int = 1, poll_interval: float | None = None, cancel: CancelToken | None = None) -> None:
+                 retries: int = 1, poll_interval: float | None = None, cancel: CancelToken | None = None,
+                 timer: ReplyTimer = WALL) -> None:
         """``poll_interval``: how often the RTU client polls for reply bytes (pymodbus default: 4 character
         times, at least 1 ms). Twins on a pty answer at once, so simulated rigs use a shorter one.
-        ``retries``: further attempts after a timeout (each checks ``cancel`` first)."""
+        ``retries``: further attempts after a timeout (each checks ``cancel`` first).
+        ``timer``: how a wait for a reply ends (:mod:`drivers.deadline`)."""
         self.url = url
         self.device = device
         self.retries = retries
         self.cancel = cancel
+        self.timer = timer
+        self._timeout = timeout
+        self._deadline: Deadline = timer.start(timeout)  # the present attempt's (set before each request)
         self.lock = threading.RLock()
         self._stale = False  # RTU: an earlier attempt went unanswered, its reply may still come
         self._cancellable = True  # False during the first attempt of an always_send request
         self._heard: dict[int, float] = {}  # unit → time.monotonic() when its last answered request was sent
         self._gap: dict[int, float] = {}  # unit → longest time between two answered requests since last asked
         self._asked: dict[int, float] = {}  # unit → when longest_silence was last asked (silences count from there)
-        self._client: _SerialClient | ModbusTcpClient
+        self._client: _SerialClient | _TcpClient
         if url.startswith("tcp://"):
             host, _, port = url[len("tcp://"):].rpartition(":")
             if not host or not port.isdigit():
                 raise ValueError(f"{device}: Modbus TCP address must be tcp://host:port, got {url!r}")
-            self._client = ModbusTcpClient(host, port=int(port), timeout=timeout, retries=0)
+            self._client = _TcpClient(host, port=int(port), link=self, timeout=timer.bound(timeout))
         else:
-            self._client = _SerialClient(url, link=self, baudrate=baudrate, timeout=timeout)
+            self._client = _SerialClient(url, link=self, baudrate=baudrate, timeout=timer.bound(timeout))
             if poll_interval is not None:
                 self._client._recv_interval = poll_interval  # pymodbus 3.16 attribute (pinned)
 
     @property
     def timeout(self) -> float:
         """Reply timeout of one attempt [s]."""
-        return float(self._client.comm_params.timeout_connect or 0.0)
+        return self._timeout
 
     @timeout.setter
     def timeout(self, value: float) -> None:
-        self._client.comm_params.timeout_connect = value
+        self._timeout = value
+        self._client.comm_params.timeout_connect = self.timer.bound(value)  # pymodbus' connect and receive loop
 
     @property
     def is_open(self) -> bool:
@@ -198,6 +234,8 @@ class ModbusLink:
                 self._cancellable = bool(attempt) or not always_send
                 self._check_cancel()
                 self._discard_input(what)
+                self.timer.sending()
+                self._deadline = self.timer.start(self._timeout)
                 sent = time.monotonic()
                 try:
                     resp = self._client.execute(False, request)
@@ -228,7 +266,8 @@ class ModbusLink:
                     raise
                 return resp
         tries = f" ({attempts} attempts)" if attempts > 1 else ""
-        raise InstrumentTimeoutError(self.device, f"no valid reply from unit {unit} to {what} on {self.url}{tries}")
+        raise InstrumentTimeoutError(self.device, f"no valid reply from unit {unit} to {what} on {self.url}{tries}"
+                                    f"{self._deadline.detail}")
 
     def _latest_reply(self, resp: ModbusPDU, unit: int, what: str) -> ModbusPDU:
         """RTU: after a timeout, wait one timeout for the line to go quiet; a later whole frame wins."""

@@ -7,6 +7,10 @@ Every read has a deadline on its *total* duration (a peer trickling bytes cannot
 slices of at most ``POLL_SLICE_S``, checking the optional :class:`~drivers.cancel.CancelToken` before each.
 A read abandoned by a timeout or a stop leaves the link "dirty": the next write first drops whatever has
 arrived since, so a late reply is never taken for the answer to the next request.
+
+When a read gives up is the :class:`~drivers.deadline.ReplyTimer`'s business: the wall clock on hardware; in a
+virtual-time simulation the twin's own account of the request (:mod:`drivers.deadline`), so that a host starved
+of CPU never turns into a timeout. The port's write timeout is the timer's wall-clock bound.
 """
 
 from __future__ import annotations
@@ -18,6 +22,7 @@ import time
 import serial
 
 from drivers.cancel import CancelToken
+from drivers.deadline import WALL, Deadline, ReplyTimer
 from drivers.errors import InstrumentConnectionError, InstrumentTimeoutError
 
 POLL_SLICE_S = 0.05  # longest single blocking read: a stop request is seen within one slice
@@ -25,11 +30,11 @@ QUIET_S = 0.02  # after an abandoned read: the line counts as quiet (late reply 
 MAX_DRAIN_S = 0.25  # ... but a write waits at most this long for that
 
 
-def set_slice_timeout(port: serial.Serial, deadline: float) -> None:
-    """Let the port's next blocking read last at most one poll slice, and never past ``deadline`` (monotonic).
+def set_slice_timeout(port: serial.Serial, left: float) -> None:
+    """Let the port's next blocking read last at most one poll slice, and never more than ``left`` [s].
 
     Changing pyserial's timeout reconfigures the port (a tcsetattr), so it changes only by more than 5 ms."""
-    want = max(min(POLL_SLICE_S, deadline - time.monotonic()), 0.001)
+    want = max(min(POLL_SLICE_S, left), 0.001)
     if port.timeout is None or abs(port.timeout - want) > 0.005:
         port.timeout = want
 
@@ -38,13 +43,15 @@ class SerialLink:
     """One serial port shared by one instrument; all exchanges are serialised by a lock."""
 
     def __init__(self, url: str, device: str, *, baudrate: int = 115200, timeout: float = 0.5,
-                 exclusive: bool = True, cancel: CancelToken | None = None) -> None:
+                 exclusive: bool = True, cancel: CancelToken | None = None, timer: ReplyTimer = WALL) -> None:
+        """``timeout``: default reply timeout [s]; ``timer``: how a wait for a reply ends (:mod:`drivers.deadline`)."""
         self.url = url
         self.device = device
         self.baudrate = baudrate
         self.timeout = timeout
         self.exclusive = exclusive
         self.cancel = cancel
+        self.timer = timer
         self.lock = threading.RLock()
         self._port: serial.Serial | None = None
         self._rest = b""  # bytes received after the last terminator
@@ -61,7 +68,8 @@ class SerialLink:
             return
         try:
             port = serial.serial_for_url(self.url, baudrate=self.baudrate, bytesize=8, parity="N", stopbits=1,
-                                         timeout=min(self.timeout, POLL_SLICE_S), write_timeout=self.timeout,
+                                         timeout=min(self.timeout, POLL_SLICE_S),
+                                         write_timeout=self.timer.bound(self.timeout),
                                          exclusive=self.exclusive)
             self._port = port
         except (serial.SerialException, OSError, ValueError) as exc:
@@ -121,6 +129,7 @@ class SerialLink:
         port = self._require()
         if self._dirty:
             self._drain(port)
+        self.timer.sending()
         try:
             port.write(data)
         except serial.SerialTimeoutException:
@@ -128,31 +137,31 @@ class SerialLink:
         except (serial.SerialException, OSError) as exc:
             raise self._lost(exc) from None
 
-    def _slice_timeout(self, port: serial.Serial, deadline: float) -> None:
+    def _slice_timeout(self, port: serial.Serial, deadline: Deadline) -> None:
         """Block at most one poll slice, and never past the deadline (checks the stop request first)."""
         if self.cancel is not None and self.cancel.cancelled:
             self._dirty = True
             self.cancel.check(self.device)
-        set_slice_timeout(port, deadline)
+        set_slice_timeout(port, deadline.left())
 
-    def _timed_out(self, waited: float, partial: bytes, need: str = "") -> InstrumentTimeoutError:
+    def _timed_out(self, waited: float, deadline: Deadline, partial: bytes, need: str = "") -> InstrumentTimeoutError:
         self._dirty = True
         got = f" (partial reply {partial[:80]!r}{need})" if partial else ""
-        return InstrumentTimeoutError(self.device, f"no reply within {waited:.3g} s{got}")
+        return InstrumentTimeoutError(self.device, f"no reply within {waited:.3g} s{got}{deadline.detail}")
 
     def read_exact(self, n: int, timeout: float | None = None) -> bytes:
         """Read exactly n bytes within ``timeout`` [s] in total, or raise InstrumentTimeoutError."""
         port = self._require()
         waited = self.timeout if timeout is None else timeout
-        deadline = time.monotonic() + waited
+        deadline = self.timer.start(waited)
         buf = bytearray(self._rest[:n])
         self._rest = self._rest[n:]
         try:
             while len(buf) < n:
                 self._slice_timeout(port, deadline)
                 buf += port.read(n - len(buf))
-                if len(buf) < n and time.monotonic() >= deadline:
-                    raise self._timed_out(waited, bytes(buf), f", {len(buf)} of {n} bytes")
+                if len(buf) < n and deadline.expired():
+                    raise self._timed_out(waited, deadline, bytes(buf), f", {len(buf)} of {n} bytes")
         except (serial.SerialException, OSError) as exc:
             raise self._lost(exc) from None
         return bytes(buf)
@@ -165,7 +174,7 @@ class SerialLink:
         """
         port = self._require()
         waited = self.timeout if timeout is None else timeout
-        deadline = time.monotonic() + waited
+        deadline = self.timer.start(waited)
         buf = bytearray(self._rest)
         self._rest = b""
         searched = 0
@@ -180,8 +189,8 @@ class SerialLink:
                 if len(buf) >= max_size:
                     self._dirty = True
                     raise InstrumentTimeoutError(self.device, f"no terminator within {max_size} bytes")
-                if time.monotonic() >= deadline:
-                    raise self._timed_out(waited, bytes(buf))
+                if deadline.expired():
+                    raise self._timed_out(waited, deadline, bytes(buf))
                 self._slice_timeout(port, deadline)
                 buf += port.read(max(1, min(port.in_waiting, max_size - len(buf))))
         except (serial.SerialException, OSError) as exc:

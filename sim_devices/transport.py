@@ -35,6 +35,8 @@ from typing import Any, Literal
 
 import numpy as np
 
+from bench.core.clock import VirtualClock
+
 SWITCHES = ("latency", "mute", "garble_next", "garble_index", "drop", "drop_reset", "wire_baud", "mutate")
 
 
@@ -53,7 +55,11 @@ class Faults:
 
     Switches may be flipped at any time from any thread; :meth:`schedule` arms them for later. Counters:
     ``replies`` (replies the instrument produced), ``injected`` (replies or connections a fault acted on)
-    and ``counts`` (the same by fault: ``latency``, ``mute``, ``garble``, ``drop``).
+    and ``counts`` (the same by fault: ``latency``, ``mute``, ``garble``, ``drop``); for :class:`TwinTimer`,
+    ``withheld`` (replies that never go on the wire: mute, a mutation to nothing, a request the instrument itself
+    leaves unanswered: :meth:`unanswered`), ``altered`` (replies sent garbled
+    or mutated: the driver may reject one and wait on; ``altered_at``: ``time.monotonic()`` of the last),
+    ``delayed`` (replies held back by ``latency``) and ``last_latency`` (how long the last of them was held).
     """
 
     latency: float = 0.0  # s added before every reply (wall time)
@@ -68,6 +74,11 @@ class Faults:
     clock: Callable[[], float] | None = None  # the rig clock, for schedule(at_time=...)
     replies: int = field(default=0, init=False)
     injected: int = field(default=0, init=False)
+    withheld: int = field(default=0, init=False)
+    altered: int = field(default=0, init=False)
+    altered_at: float = field(default=0.0, init=False)
+    delayed: int = field(default=0, init=False)
+    last_latency: float = field(default=0.0, init=False)
     counts: Counter[str] = field(default_factory=Counter, init=False)
     _armed: list[_Armed] = field(default_factory=list, init=False, repr=False)
     _lock: Any = field(default_factory=threading.RLock, init=False, repr=False, compare=False)  # re-entrant
@@ -120,6 +131,11 @@ class Faults:
                 for k, v in a.switches.items():
                     setattr(self, k, v)
 
+    def unanswered(self) -> None:
+        """The instrument answered a request with nothing (as the device does: not a fault, not in ``counts``)."""
+        with self._lock:
+            self.withheld += 1
+
     def note(self, *kinds: str) -> None:
         """Count one reply / connection affected by the fault(s) ``kinds``."""
         with self._lock:
@@ -135,6 +151,7 @@ class Faults:
             self.replies += 1
             if self.mute:
                 self.note("mute")
+                self.withheld += 1
                 return None, 0.0
             kinds = []
             if self.garble_next > 0:
@@ -150,10 +167,16 @@ class Faults:
                 kinds.append("mutate")
                 if not reply:
                     self.note(*kinds)
+                    self.withheld += 1
                     return None, 0.0
+            if kinds:
+                self.altered += 1
+                self.altered_at = time.monotonic()
             delay = self.latency
             if delay > 0:
                 kinds.append("latency")
+                self.delayed += 1
+                self.last_latency = delay
             if kinds:
                 self.note(*kinds)
             if self.wire_baud:
@@ -163,6 +186,100 @@ class Faults:
     def apply(self, reply: bytes) -> bytes | None:
         """What goes on the wire for ``reply`` (None: nothing); the delay is the caller's business."""
         return self.process(reply)[0]
+
+
+TWIN_STALL_S = 30.0  # virtual time: wall seconds before giving up on a twin that neither answers nor withholds
+
+
+class TwinTimer:
+    """How long a driver waits for a twin's reply in a virtual-time run (a :class:`drivers.deadline.ReplyTimer`).
+
+    In virtual time the host's speed is no part of the simulation: a twin thread starved of CPU answers late, and
+    that must never read as a silent instrument. So a wait is decided by what the twin did with the request, as
+    its :class:`Faults` count it from the moment the request went out (:meth:`sending`):
+
+    * it withheld the reply (``mute``, a mutation to nothing, a pty twin that answered with nothing), or held it
+      back by a ``latency`` at least as long as the timeout: the wait expires at once, and the rig clock moves on
+      to where the timeout would have ended it — the instrument stayed silent for the timeout, in rig time;
+    * it sent the reply garbled or mutated: the driver may reject it and wait on for a reply that never comes,
+      so this deliberate fault is judged as on hardware, by the timeout on the wall clock — counted from the
+      wait's start, or from when the twin sent the reply if that is later (a late twin does not eat into it);
+    * otherwise (a ``latency`` shorter than the timeout included) the reply is on its way, however slowly: the
+      wait lasts until it comes, with ``stall`` s of wall time only as a guard against a twin that hangs, or a
+      Modbus server that ignores a request behind a transport that cannot see it (the message says which).
+
+    A silent twin is told apart from a slow host by the twin itself, not by a stopwatch: scaling the wall-clock
+    timeouts up in virtual runs would still let a loaded enough host decide, and make each deliberate silence cost
+    that long. ``bound`` (for the blocking calls a link cannot slice: a port write, a connect) is the guard too.
+    """
+
+    def __init__(self, faults: Faults, clock: VirtualClock, stall: float = TWIN_STALL_S) -> None:
+        self.faults = faults
+        self.clock = clock
+        self.stall = stall
+        self.mark = self._counts()
+
+    def _counts(self) -> tuple[int, int, int]:
+        f = self.faults
+        return f.withheld, f.altered, f.delayed
+
+    def sending(self) -> None:
+        """A request is about to go out: what the twin does from here is done to its reply."""
+        self.mark = self._counts()
+
+    def start(self, timeout: float) -> TwinDeadline:
+        """A wait of ``timeout`` s (rig time) for the reply to the request last sent."""
+        return TwinDeadline(self, timeout)
+
+    def bound(self, timeout: float) -> float:
+        """The guard (never less than ``timeout``)."""
+        return max(timeout, self.stall)
+
+
+class TwinDeadline:
+    """One wait of a :class:`TwinTimer` (``timeout`` ≤ 0: a look, expired at once)."""
+
+    def __init__(self, timer: TwinTimer, timeout: float) -> None:
+        self.faults, self.clock, self.stall = timer.faults, timer.clock, timer.stall
+        self.timeout = timeout
+        self.withheld, self.altered, self.delayed = timer.mark
+        self.rig_end = self.clock.now() + timeout
+        now = time.monotonic()
+        self.wall_end = now + timeout
+        self.guard_end = now + max(timeout, timer.stall)
+        self.detail = ""
+
+    def _silent(self) -> bool:
+        """The reply will not come within the timeout: the twin withheld it or holds it back that long."""
+        f = self.faults
+        return f.withheld > self.withheld or (f.delayed > self.delayed and f.last_latency >= self.timeout)
+
+    def expired(self) -> bool:
+        """Whether to give up: at once on a silent twin, on the wall clock for an altered reply, else at the guard."""
+        if self.timeout <= 0:
+            return True
+        if self._silent():
+            self.clock.advance_to(self.rig_end)
+            return True
+        now = time.monotonic()
+        if self.faults.altered > self.altered:
+            return now >= self._altered_end()
+        if now >= self.guard_end:
+            self.detail = (f" (the simulated instrument neither answered nor withheld its reply for {self.stall:g} s "
+                           "of wall time)")
+            return True
+        return False
+
+    def left(self) -> float:
+        """Wall seconds a blocking read may last before :meth:`expired` is asked again."""
+        if self.timeout <= 0 or self._silent():
+            return 0.0
+        end = self._altered_end() if self.faults.altered > self.altered else self.guard_end
+        return max(end - time.monotonic(), 0.0)
+
+    def _altered_end(self) -> float:
+        """Wall-clock end of the wait for an altered reply: its timeout, from the start or from its sending."""
+        return max(self.wall_end, self.faults.altered_at + self.timeout)
 
 
 SPIN_S = 0.3e-3  # the last part of a wall-clock wire wait is spent yielding, not sleeping (see Line._until)
@@ -304,8 +421,11 @@ def _open_raw_pty() -> tuple[int, int, str]:
 class PtyDevice:
     """Serve a byte-stream instrument on a pty: ``handler(data) -> reply bytes`` per chunk received.
 
-    The handler keeps its own framing state (it may get partial or several frames per call). ``drop`` closes
-    the pty for good, like an unplugged USB adapter: the device path disappears.
+    The handler keeps its own framing state (it may get partial or several frames per call). Bytes it answers
+    with nothing (noise, a framing or checksum error, another drive's telegram, a command cut short) leave it
+    waiting for more: :meth:`Faults.unanswered` says so — a driver writes each request whole, and a pty hands a
+    write that small to the reader in one piece, so the request it is waiting on will get no reply. ``drop``
+    closes the pty for good, like an unplugged USB adapter: the device path disappears.
     """
 
     def __init__(self, handler: Callable[[bytes], bytes], name: str, faults: Faults | None = None,
@@ -346,6 +466,8 @@ class PtyDevice:
                 if line is not None:
                     line.request(len(data))
                 reply = self.handler(data)
+                if not reply:
+                    faults.unanswered()
                 if reply and line is not None:
                     line.reply(len(reply))
                 reply, delay = faults.process(reply, len(data))

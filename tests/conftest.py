@@ -43,6 +43,8 @@ def start_rig(name: str, virtual: bool = True, watchdog: bool = False, timing: T
     The analog module's communication watchdog is off unless ``watchdog``: these tests hold voltages over
     virtual seconds without talking to the module (the engine feeds it; see test_engine). ``timing``: these
     fixtures test behaviour at pty speed (``"none"``); wire-time tests ask for ``"real"`` (SimRig's default).
+    On a virtual clock the links wait for replies as in a virtual-time run (``SimRig.reply_timers``): a muted twin
+    times out at once, a slow one is waited for.
     """
     rig = load_rig(RIGS / f"{name}.toml")
     data = {**rig.model_dump(), **overrides}
@@ -51,7 +53,8 @@ def start_rig(name: str, virtual: bool = True, watchdog: bool = False, timing: T
     rig = RigConfig.model_validate(data)
     sim = SimRig(rig, virtual=virtual, timing=timing)
     sim.start()
-    inst = build_instruments(rig, sim.port_map(), clock=sim.clock.now, sleep=sim.clock.sleep)
+    inst = build_instruments(rig, sim.port_map(), clock=sim.clock.now, sleep=sim.clock.sleep,
+                             timers=sim.reply_timers())
     for link in inst.links.values():
         link.timeout = 0.3
     try:

@@ -53,7 +53,7 @@ RAMP_STEPS = 10  # shutdown ramp: set-points from the last voltage to 0 V
 SAFE_MONITOR_V = 50.0  # |monitor| at or below this after zeroing counts as "output at 0 V" (0.5 % of 10 kV)
 DISCHARGE_WAIT_S = 2.0  # how long to keep reading a monitor that is not yet at 0 V before reporting it
 WATCHDOG_MARGIN_S = 0.2  # wait past the module's communication-safety period before checking the output
-LASER_DRAIN_BUDGET_S = 30.0  # at most this long fetching a step's stored laser data after the step
+LASER_DRAIN_BUDGET_S = 30.0  # at most this long (rig time) fetching a step's stored laser data after the step
 LASER_SHUTDOWN_DRAIN_S = 5.0  # after a stop or fault (high voltage already at 0 V): then what is left is reported
 PAUSE_POLL_S = 0.1  # while paused: the monitors and sensors are read this often (run time)
 RESTART_STEP_V = 10.0  # a restart ramps the output to the step's start value unless it is this close already
@@ -316,14 +316,17 @@ class Engine:
         return int(block.values.size)
 
     def _drain_laser(self, budget: float) -> None:
-        """Fetch stored laser data until the storage is empty, ``budget`` s pass, or a stop request comes."""
-        wall_end = time.monotonic() + budget
+        """Fetch stored laser data until the storage is empty, ``budget`` s pass, or a stop request comes.
+
+        The budget is rig time: real time on hardware; in virtual time the wire time the uploads take (the time in
+        which the storage fills on), so that a host starved of CPU cannot exhaust it."""
+        end = self.now() + budget
         while self._record_laser_block() > 0 or getattr(self.inst.laser, "pending", 0) > 0:
             if self._stopping and self._urgent.is_set():
                 return
             self._check_stop()
             self._keep_fed()
-            if time.monotonic() > wall_end:
+            if self.now() > end:
                 raise InstrumentStateError("laser", f"stored data not fetched within {budget:g} s: the link "
                                            "cannot upload as fast as the storage fills")
 

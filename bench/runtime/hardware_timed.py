@@ -31,7 +31,7 @@ if TYPE_CHECKING:
     from bench.runtime.instruments import Instruments
 
 KEEPALIVE_S = 0.25  # a command-response request at least this often keeps the device's watchdog fed
-FINISH_TIMEOUT_S = 5.0  # wall time allowed for the last scans of a step to arrive
+FINISH_TIMEOUT_S = 5.0  # rig time allowed for the last scans of a step to arrive (wall time on hardware)
 FINISH_POLL_S = 0.01  # rig time between collects while waiting for a step's last scans
 
 
@@ -223,10 +223,10 @@ class HardwareTimed:
         if self._appended is not None and self.daq.streaming:
             self.collect(engine)
             return
-        wall_end = time.monotonic() + FINISH_TIMEOUT_S
+        end = engine.now() + FINISH_TIMEOUT_S  # rig time: each pass below moves a virtual clock on by FINISH_POLL_S
         while self.daq.scans_received <= self._n:
             engine._check_stop()
-            if time.monotonic() > wall_end:
+            if engine.now() > end:
                 raise InstrumentTimeoutError(self.daq.name, f"stream stopped short: {self.daq.scans_received} "
                                              f"scans received, {self._n + 1} needed")
             engine._wait_until(engine.program_now() + FINISH_POLL_S)

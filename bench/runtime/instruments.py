@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 
 from bench.rig import RigConfig
 from drivers.adam import Adam4017P, Adam4024, RawScale
 from drivers.cancel import CancelToken
+from drivers.deadline import WALL, ReplyTimer
 from drivers.dini import DiniDGT1S
 from drivers.errors import InstrumentError
 from drivers.interfaces import (
@@ -71,25 +72,30 @@ class Instruments:
 
 def build_instruments(rig: RigConfig, endpoints: dict[str, str] | None = None,
                       clock: ClockFn = time.monotonic, sleep: SleepFn = time.sleep,
-                      modbus_poll: float | None = None) -> Instruments:
+                      modbus_poll: float | None = None, timers: Mapping[str, ReplyTimer] | None = None) -> Instruments:
     """Create (not connect) the drivers; ``endpoints`` (role or bus name → port) override the file's ports.
 
     ``clock``/``sleep`` are the rig's time: wall time for hardware, the simulated rig's clock otherwise;
-    ``modbus_poll`` is the RTU receive poll interval (None: pymodbus' default, right for real wires).
+    ``modbus_poll`` is the RTU receive poll interval (None: pymodbus' default, right for real wires);
+    ``timers`` (role, bus name or "daq" → :class:`~drivers.deadline.ReplyTimer`) decide when a link gives up on
+    a reply — a virtual-time run's twins (:meth:`bench.runtime.sim_rig.SimRig.reply_timers`); the rest, and all of
+    them on hardware, wait on the wall clock.
     """
     ep = endpoints or {}
+    tm = timers or {}
     inst = Instruments()
 
     def bus(name: str) -> ModbusLink:
         if name not in inst.links:
             cfg = rig.buses[name]
             inst.links[name] = ModbusLink(ep.get(name, cfg.port), f"bus {name}", baudrate=cfg.baudrate,
-                                          timeout=cfg.timeout_s, retries=cfg.retries, poll_interval=modbus_poll)
+                                          timeout=cfg.timeout_s, retries=cfg.retries, poll_interval=modbus_poll,
+                                          timer=tm.get(name, WALL))
             inst.links[name].cancel = inst.cancel
         return inst.links[name]
 
     def serial(url: str, device: str, baudrate: int, timeout: float) -> SerialLink:
-        link = SerialLink(url, device, baudrate=baudrate, timeout=timeout)
+        link = SerialLink(url, device, baudrate=baudrate, timeout=timeout, timer=tm.get(device, WALL))
         link.cancel = inst.cancel
         return link
 
@@ -103,7 +109,7 @@ def build_instruments(rig: RigConfig, endpoints: dict[str, str] | None = None,
         safe = (zero_dac, 0.0) if d.dac == 0 else (0.0, zero_dac)
         wd = None if d.watchdog_s is None else int(d.watchdog_s)  # RigConfig: whole seconds (the T7's unit)
         inst.daq = LabJackT7(host, port=port, stream_port=stream_port, timeout=d.timeout_s, cancel=inst.cancel,
-                             clock=clock, sleep=sleep, safe_dac=safe, watchdog_s=wd)
+                             clock=clock, sleep=sleep, safe_dac=safe, watchdog_s=wd, timer=tm.get("daq", WALL))
     if (a := rig.amplifier) is not None:
         base = TREK_MODELS[a.model]
         trek = TrekModel(base.model, base.max_output, base.max_current, base.gain,

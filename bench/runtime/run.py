@@ -197,7 +197,7 @@ def execute(plan: Plan, out: Path, *, virtual: bool = False, operator: OperatorF
         sim.start()
         clock = sim.clock
         inst = build_instruments(rig, sim.port_map(), clock=clock.now, sleep=clock.sleep,
-                                 modbus_poll=SIM_MODBUS_POLL_S)
+                                 modbus_poll=SIM_MODBUS_POLL_S, timers=sim.reply_timers())
     else:
         clock = WallClock()
         inst = build_instruments(rig, clock=clock.now, sleep=clock.sleep)

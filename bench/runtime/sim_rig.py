@@ -24,7 +24,7 @@ from sim_devices.keyence_lkg import KeyenceLKGSim, LaserHead
 from sim_devices.linmot_drive import LinMotDriveSim
 from sim_devices.modbus_devices import Adam4017PSim, Adam4024Sim, Dgt1sSim, Scale
 from sim_devices.modbus_host import ModbusHost, SimBus
-from sim_devices.transport import Faults, Line, PtyDevice
+from sim_devices.transport import Faults, Line, PtyDevice, TwinTimer
 
 LINRS_TURNAROUND_S = 1e-3  # LinMot drive: telegram received → response [assumed]
 PLANT_TICK_S = 0.02  # wall clock: the background thread advances the plant this often
@@ -197,6 +197,14 @@ class SimRig:
         daq = self.twins.get("daq")
         out += [f"daq: {e!r}" for e in getattr(daq, "errors", [])]
         return out
+
+    def reply_timers(self) -> dict[str, TwinTimer]:
+        """Virtual time: a :class:`TwinTimer` per link (role, bus name, "daq"), for
+        :func:`bench.runtime.instruments.build_instruments` — waits for a reply end on what the twin did with the
+        request, never on the host's speed. Wall clock: none (the drivers' timeouts are real time, as on hardware)."""
+        if not isinstance(self.clock, VirtualClock):
+            return {}
+        return {name: TwinTimer(faults, self.clock) for name, faults in self.faults.items()}
 
     def port_map(self) -> dict[str, str]:
         """Role / bus name → port, for :func:`bench.runtime.instruments.build_instruments`."""
