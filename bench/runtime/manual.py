@@ -214,7 +214,7 @@ class ManualSession:
             clock = self._sim.clock
             self._clock, self._sleep = clock.now, clock.sleep
             self._inst = build_instruments(rig, self._sim.port_map(), clock=clock.now, sleep=clock.sleep,
-                                           modbus_poll=0.0005)
+                                           modbus_poll=0.0005, timers=self._sim.reply_timers())
         else:
             self._inst = build_instruments(rig)
         self._t0 = self._clock()
