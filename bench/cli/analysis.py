@@ -174,8 +174,9 @@ def run_fit(runs: list[Path], chosen: str, settings: FitSettings, branches: int 
 
     for p in runs:  # the fit is stored with every file: refuse before the work, not after
         f = open_run(p, streams=False)
-        if f.state == "running" and not (f.orphaned or f.recovered_at):
-            raise ValueError(f"run file {p}: a run is still writing it; fit it when it has ended")
+        crashed = f.state == "running" and bool(f.orphaned or f.recovered_at)  # a resumed campaign's earlier part
+        if not (f.complete or crashed):
+            raise ValueError(f"run file {p}: not finalised ({f.incomplete_reason}); fit it when it has ended")
         if into and not f.complete:
             raise ValueError(f"run file {p}: not finalised (crashed); --into stores fits in finished files only — "
                              "leave out --into to store the fit in its fit file beside it")

@@ -50,8 +50,10 @@ def _run_identity(run_path: str | Path) -> dict[str, str]:
     it. A crashed file (a resumed campaign's earlier part) takes a fit file like a finished one: its data are
     what was measured up to the crash."""
     run = open_run(run_path, streams=False)
-    if run.state == "running" and not (run.orphaned or run.recovered_at):
-        raise ValueError(f"run file {run_path}: a run is still writing it; fit results go with ended runs only")
+    crashed = run.state == "running" and bool(run.orphaned or run.recovered_at)
+    if not (run.complete or crashed):
+        raise ValueError(f"run file {run_path}: not finalised ({run.incomplete_reason}); fit results go with ended "
+                         "runs only")
     return _run_identity_any(run_path)
 
 
