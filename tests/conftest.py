@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -14,6 +15,10 @@ from bench.runtime.sim_rig import SimRig, Timing
 
 ROOT = Path(__file__).resolve().parent.parent
 RIGS = ROOT / "rigs"
+
+if os.environ.get("PYTEST_XDIST_WORKER"):  # pytest-xdist's workers (execnet) set an 80 x 24 terminal that is not
+    os.environ.pop("COLUMNS", None)        # there: the CLI tests check output as a redirected run prints it
+    os.environ.pop("LINES", None)
 
 
 @pytest.fixture(autouse=True)
