@@ -247,6 +247,10 @@ class InterlockConfig(_Strict):
     output_lag_s: float | None = Field(None, ge=0, le=5, description="how far back a commanded value may still "
                                        "be what the monitor shows (default: 1 ms on a DAQ rig, 0.3 s polled)")
     output_mismatch_s: float = Field(0.02, gt=0, le=5, description="a hardware-timed mismatch must last this long")
+    motor_tolerance_m: float = Field(0.002, gt=0, le=0.05, description="motor position off the go-tos' trapezoid "
+                                     "by more (after the lag window) in two readings in a row: a fault")
+    motor_lag_s: float = Field(0.05, ge=0, le=2, description="how far back a position of the planned motion may "
+                               "still be where the encoder is (the drive's following delay and the telegram's)")
 
 
 class SimulationConfig(_Strict):

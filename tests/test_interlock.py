@@ -336,3 +336,55 @@ def test_a_latched_rig_refuses_the_next_run_until_an_operator_resets_it(tmp_path
     assert ok.returncode == 0 and latched(rig_name) is None
     history = (state_dir() / "interlock.log").read_text()
     assert "reset\t" + rig_name + "\tby bo: checked" in history and "ada: conditioning stage recalibrated" in history
+
+
+# ---------------------------------------------------------------- the motor verified against its go-tos
+def test_a_carriage_that_stops_following_its_go_tos_latches(tmp_path: Path) -> None:
+    """The isopotential cycles at 7 kV: at run time 10 s the carriage jams (the drive takes its go-tos, the slider
+    no longer moves). The encoder leaves the go-tos' trapezoid by more than 2 mm (README "Interlock"): latched,
+    0 V at once."""
+    from bench.core.motion import MotionProfile
+
+    def jam(_engine: Engine, sim) -> None:
+        plant = sim.plant
+        plant.set_motion(lambda t, p, _v: MotionProfile.hold(t, p))
+        plant.set_motion = lambda make: plant.motion  # later profiles never reach the slider
+
+    plant = Plant()
+
+    def hook(engine: Engine, sim) -> None:
+        plant.sim = sim
+        sim.plant.listeners.append(lambda b: plant.blocks.append((b.t.copy(), b.voltage.copy())))
+
+        def at(_now: float) -> None:
+            if np.isnan(plant.t_fault) and engine.snapshot.state == "running" and engine.now() >= 10.0:
+                plant.t_fault = sim.clock.now()
+                jam(engine, sim)
+        sim.clock.subscribe(at)
+
+    proto = ROOT / "protocols" / "short" / "lsdea-isopotential-short.toml"
+    result = execute(plan_run(proto, ROOT / "rigs" / "lsdea-motor-sim.toml"), tmp_path / "run.h5", virtual=True,
+                     on_engine=hook)
+    assert result.state == "tripped" and "interlock: motor mismatch" in result.reason, result.reason
+    run = open_run(result.path)
+    t, v = plant.arrays()
+    assert np.abs(v[t < plant.t_fault]).max() > 6500.0  # jammed under the 7-kV sweep point
+    assert any("0 V at once" in text for text in events(run, "ramp"))
+    assert plant.last_high() <= plant.t_fault + FAULT_BOUND_S
+
+
+def test_the_motion_verifier_follows_the_drive_s_trapezoid() -> None:
+    """Derived case: a go-to of 50 mm at 0.1 m/s and 1 m/s² from rest takes 0.1 s to reach speed (5 mm), 0.4 s of
+    cruise and 0.1 s to stop; at 0.3 s the carriage is at 5 + 20 = 25 mm."""
+    from bench.runtime.interlock import MotionVerifier
+
+    v = MotionVerifier(load_rig(ROOT / "rigs" / "lsdea-motor-sim.toml"))
+    v.anchor(0.0, 0.0)
+    v.commanded(0.0, 0.050, 0.1, 1.0)
+    assert v.reading(0.3, 0.025) is None
+    assert v.reading(0.3, 0.0265) is None  # within 2 mm, and the last 50 ms had it 20–25 mm
+    assert v.reading(0.31, 0.030) is None  # first reading off by more: not yet a fault
+    m = v.reading(0.32, 0.031)
+    assert m is not None and m.commanded == pytest.approx(0.027, abs=1e-6)
+    v.stopped(0.4)
+    assert v.reading(0.5, 0.04) is None and not v.anchored  # the drive's own stop ramp: no expectation yet

@@ -36,7 +36,14 @@ from bench.protocol.program import HOLD_KEEPALIVE_S, Program, Segment, ticks, vo
 from bench.runtime.control import CONTROL_POLL_S, read_control
 from bench.runtime.hardware_timed import HardwareTimed
 from bench.runtime.instruments import Instruments
-from bench.runtime.interlock import OUTPUT_ON_V, InterlockTrip, OutputVerifier, check_contact, watchdog_period
+from bench.runtime.interlock import (
+    OUTPUT_ON_V,
+    InterlockTrip,
+    MotionVerifier,
+    OutputVerifier,
+    check_contact,
+    watchdog_period,
+)
 from bench.runtime.polls import PAUSED, POLLS, StepState
 from bench.runtime.ramp import ramp_to_zero
 from bench.runtime.safety import SafetyTrip, Supervisor
@@ -144,6 +151,7 @@ class Engine:
         self._stream = HardwareTimed(rig, inst) if inst.daq is not None and isinstance(inst.amplifier, TrekOnDaq) \
             else None
         self.verifier = OutputVerifier(rig, rig.daq.scan_rate_Hz if self._stream is not None and rig.daq else None)
+        self.motion = MotionVerifier(rig)  # the encoder against the go-tos (a rig without a motor never feeds it)
         self.latched: InterlockTrip | None = None  # the interlock fault that ended the run (0 V at once, no ramp)
         self._output_dead = False  # 0 V could not be commanded: no request may feed the module's watchdog
         self._offset = 0.0  # run time − program time: a resumed start and each pause shift the program's schedule
@@ -368,7 +376,11 @@ class Engine:
         target = self._motor.quantise(target)
         x_cmd = float(self.program.aperture(target)) if self.program.has_motor_axis else math.nan
         self.sup.check_motor_setpoint(target, x_cmd, self._v_cmd)
+        if not self.motion.anchored:  # where the motor stands before its first go-to (after a start or a stop)
+            r = self._motor.read_position()
+            self.motion.anchor(r.timestamp - self._t0, r.value)
         self._motor.move_to(target, vel, acc)
+        self.motion.commanded(self.now(), target, vel, acc)
         return x_cmd
 
     def _operator_confirms(self, text: str) -> bool:
@@ -530,6 +542,7 @@ class Engine:
             self._ramp_to(0.0, self.program.rig.limits.shutdown_ramp_s)
         if self.inst.motor is not None and self.program.has_motor_axis:
             self._motor.stop()
+            self.motion.stopped(self.now())
         due = self.now() + RESTART_SETTLE_S  # the ramp's last charging current is over before the first reading
         while self._paused_wanted()[0]:
             self._check_stop()

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from bench.core.motion import MotionProfile
 from bench.rig import RigConfig
 from bench.runtime.safety import SafetyTrip
 
@@ -182,6 +183,72 @@ class OutputVerifier:
         if self._bad_count >= POLLED_READINGS:
             return Mismatch(t, measured, self._history[-1][1], t - self._bad_since)
         return None
+
+
+class MotionVerifier:
+    """The motor's measured position against where its go-tos put it.
+
+    The expected motion is the drive's time-optimal trapezoid (:class:`~bench.core.motion.MotionProfile`, the VAI
+    go-to of the LinMot manual) from where the last one had it, recomputed at every go-to with its velocity and
+    acceleration limits. A reading out of [min, max] of the expected positions over the last ``motor_lag_s``,
+    widened by ``motor_tolerance_m``, in :data:`POLLED_READINGS` readings in a row is a fault: a carriage that does
+    not follow (a jammed slider, a broken coupling, a drive that took the command and did not move). After a stop
+    (the drive decelerates by its own ramp) the expectation starts again from the first reading ``motor_lag_s``
+    later."""
+
+    def __init__(self, rig: RigConfig) -> None:
+        self.tol, self.lag = rig.interlock.motor_tolerance_m, rig.interlock.motor_lag_s
+        self._profile: MotionProfile | None = None
+        self._idle_until = -math.inf  # after a stop: no expectation before this run time
+        self._bad = 0
+        self._bad_since = 0.0
+
+    @property
+    def anchored(self) -> bool:
+        """Whether the expectation has a starting point (a reading, or :meth:`anchor`)."""
+        return self._profile is not None
+
+    def anchor(self, t: float, position: float) -> None:
+        """Where the motor stands at run time ``t`` (read before the first go-to after a start or a stop)."""
+        self._profile = MotionProfile.hold(t, position)
+        self._idle_until = -math.inf
+
+    def commanded(self, t: float, target: float, vmax: float, acc: float) -> None:
+        """A go-to sent at run time ``t`` (after :meth:`anchor` or a reading gave a starting point)."""
+        if self._profile is None:
+            return
+        p, v = (float(a) for a in self._profile.evaluate(t))
+        self._profile = MotionProfile.plan(t, p, v, target, vmax, acc, acc)
+
+    def stopped(self, t: float) -> None:
+        """The motion was aborted at run time ``t`` (the drive's own deceleration): start again after it."""
+        self._profile = None
+        self._idle_until = t + max(self.lag, 0.5)
+
+    def reading(self, t: float, position: float) -> Mismatch | None:
+        """Check one encoder reading at run time ``t``; a mismatch after two in a row, else None."""
+        if not math.isfinite(position) or t < self._idle_until:
+            return None
+        if self._profile is None:
+            self._profile = MotionProfile.hold(t, position)
+            return None
+        expected = self._profile.evaluate(np.linspace(t - self.lag, t, 11))[0]
+        if float(expected.min()) - self.tol <= position <= float(expected.max()) + self.tol:
+            self._bad = 0
+            return None
+        self._bad += 1
+        if self._bad == 1:
+            self._bad_since = t
+        if self._bad >= POLLED_READINGS:
+            return Mismatch(t, position, float(expected[-1]), t - self._bad_since)
+        return None
+
+
+def motion_trip(m: Mismatch) -> InterlockTrip:
+    """The interlock trip of a motor that does not follow its go-tos."""
+    return InterlockTrip("motor mismatch", f"the motor encoder read {m.measured * 1e3:.2f} mm at {m.t:.3f} s where "
+                         f"its go-tos put it at {m.commanded * 1e3:.2f} mm (off for {m.lasted * 1e3:.0f} ms): the "
+                         "carriage does not follow the drive's commands")
 
 
 def mismatch_trip(m: Mismatch, what: str) -> InterlockTrip:

@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from bench.protocol.program import PASSIVE_LASER_HZ, Segment
-from bench.runtime.interlock import mismatch_trip
+from bench.runtime.interlock import mismatch_trip, motion_trip
 from bench.runtime.safety import SafetyTrip
 from drivers.errors import InstrumentStateError
 
@@ -71,6 +71,8 @@ def _position(e: Engine, due: float) -> None:
         raise InstrumentStateError("motor", f"drive reports {r.status}: {e._drive_error_text()}")
     e.snapshot.values["aperture"] = x
     e.sup.check_motor(r.value, x if prog.has_motor_axis else e.sup.aperture or 0.0)
+    if (m := e.motion.reading(r.timestamp - e._t0, r.value)) is not None:
+        raise motion_trip(m)
 
 
 def _force(e: Engine, due: float) -> None:
