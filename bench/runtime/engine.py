@@ -584,6 +584,8 @@ class Engine:
         try:
             self.snapshot.state = "running"
             self.rec.event(0.0, -1, "run", "start")
+            if self.inst.amplifier is not None:  # what connecting left the output at (0 V)
+                self.verifier.commanded(0.0, self._v_cmd)
             segs = self.program.segments
             k = self.start_step
             if k > 0:

@@ -169,10 +169,9 @@ class OutputVerifier:
             return None
         window = [v for tv, v in self._history if tv >= t - self.lag]
         before = [v for tv, v in self._history if tv < t - self.lag]
-        if before:
-            window.append(before[-1])
-        if not window:  # every set-point came after the reading: the one before the first is unknown
+        if not before:  # what the output held before the first set-point known here may still show: unknown
             return None
+        window.append(before[-1])
         lo, hi = self._band(np.array([min(window)]), np.array([max(window)]))
         if lo[0] <= measured <= hi[0]:
             self._bad_count, self._bad_since = 0, None

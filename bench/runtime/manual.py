@@ -228,6 +228,8 @@ class ManualSession:
             spec.membrane() if spec.kind == "membrane" else spec.lozenge())
         self._sup = Supervisor(rig, params)
         self._verifier = OutputVerifier(rig, None)  # polled monitors: manual control plays no stream
+        if self._inst.amplifier is not None:  # what connecting left the output at (0 V): the first ramp starts there
+            self._verifier.commanded(self._now(), float(self._inst.amplifier.commanded))
         was = rig_latch.latched(rig.name)
         if was is not None:  # a run or an earlier session latched this rig: it stays off until `reset WHY`
             self._latched = InterlockTrip("latched before this session", f"{was.get('fault')} (in "
