@@ -167,8 +167,9 @@ class OutputVerifier:
         :data:`POLLED_READINGS` out-of-band readings in a row, else None."""
         if not valid or not math.isfinite(measured) or not self._history:
             return None
-        window = [v for tv, v in self._history if tv >= t - self.lag]
-        before = [v for tv, v in self._history if tv < t - self.lag]
+        edge = t - self.lag + 1e-9  # a set-point exactly lag before the reading is the one "before" it
+        window = [v for tv, v in self._history if tv > edge]
+        before = [v for tv, v in self._history if tv <= edge]
         if not before:  # what the output held before the first set-point known here may still show: unknown
             return None
         window.append(before[-1])
