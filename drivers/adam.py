@@ -24,6 +24,7 @@ from drivers.modbus_link import ModbusLink
 
 REG_VALUE = 0
 REG_MODULE_NAME = 210
+REG_SAFETY_FLAG = 215  # 40216 communication-safety flag: 1 once the module's watchdog has fired
 
 
 @dataclass(frozen=True)
@@ -113,6 +114,14 @@ class Adam4024(AdamModule):
             raise ValueError(f"{self.name}: register value {raw} outside 0…65535")
         self.link.write_register(self.unit, REG_VALUE + channel, raw, always_send=always_send)
         return raw
+
+    def safety_flag(self) -> bool:
+        """Whether the module's communication watchdog has fired since the flag was last cleared (40216)."""
+        return self.link.read_holding(self.unit, REG_SAFETY_FLAG, 1)[0] != 0
+
+    def clear_safety_flag(self) -> None:
+        """Clear 40216 (writing 0: the manual pages read do not say more; the twin follows that)."""
+        self.link.write_register(self.unit, REG_SAFETY_FLAG, 0)
 
     def read_volts(self, channel: int) -> float:
         """Read back the output value of ``channel`` [V]."""

@@ -166,6 +166,10 @@ class Amplifier(Instrument, Protocol):
         (the send time of the last one it answered; None: none yet). Its communication watchdog counts from
         there: the run time's keep-alive uses it."""
 
+    def watchdog_fired(self) -> bool | None:
+        """The set-point module's own word on its communication watchdog: True once it fired (since it was
+        connected), False if not, None when the module keeps no such flag."""
+
     def hurry(self, reply_timeout: float) -> None:
         """From now on, requests to the set-point module wait at most ``reply_timeout`` [s] for their reply and are
         sent once (shutdown: a request takes effect when it arrives; a reply that never comes must not hold the

@@ -75,6 +75,8 @@ class TrekAmplifier:
             self.ai.link.open()
         self.ao.module_name()
         self.ai.module_name()
+        if self.ao.safety_flag():  # fired while no host talked to it (the end of an earlier session): a fresh start
+            self.ao.clear_safety_flag()
         self.zero()
 
     def close(self) -> None:
@@ -174,6 +176,10 @@ class TrekAmplifier:
     def heard_at(self) -> float | None:
         """When the ADAM-4024 (its unit on the bus) last answered a request (its watchdog's reference)."""
         return self.ao.link.heard_at(self.ao.unit)
+
+    def watchdog_fired(self) -> bool | None:
+        """The ADAM-4024's own word: its communication-safety flag (40216), set when its watchdog fired."""
+        return self.ao.safety_flag()
 
     def hurry(self, reply_timeout: float) -> None:
         """Shorter reply waits, no retries, on the analog modules' bus (see the Amplifier contract)."""

@@ -149,6 +149,10 @@ class TrekOnDaq:
         """When the T7 last answered a request: any request feeds its watchdog (stream packets do not)."""
         return self.daq.heard_at()
 
+    def watchdog_fired(self) -> bool | None:
+        """None: the T7's register map has no flag for a watchdog that fired (only its configuration)."""
+        return None
+
     def hurry(self, reply_timeout: float) -> None:
         """Shorter reply waits, no retries, on the T7's command-response link (see the Amplifier contract)."""
         self.daq.link.timeout = min(self.daq.link.timeout, reply_timeout)

@@ -219,3 +219,16 @@ def test_a_stop_ends_the_tare_handshake_wait() -> None:
         c.sleep = lambda s: token.cancel("SIGHUP")
         with pytest.raises(OperationCancelledError, match="SIGHUP"):
             c.tare()
+
+
+def test_the_watchdog_flag_is_40216_read_and_cleared() -> None:
+    """ADAM-4000 manual, appendix G: 40216 is the communication-safety flag (protocol address 215 = 0x00D7). The
+    driver reads it with FC3 and clears it by writing 0 with FC6."""
+    script = [(rtu(1, 3, b"\x00\xd7\x00\x01"), rtu(1, 3, 2, b"\x00\x01")),
+              (rtu(1, 6, b"\x00\xd7\x00\x00"), rtu(1, 6, b"\x00\xd7\x00\x00")),
+              (rtu(1, 3, b"\x00\xd7\x00\x01"), rtu(1, 3, 2, b"\x00\x00"))]
+    with expected_protocol("flag", script) as url:
+        amp = amplifier(url, [0.0])
+        assert amp.watchdog_fired() is True
+        amp.ao.clear_safety_flag()
+        assert amp.watchdog_fired() is False

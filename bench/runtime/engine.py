@@ -252,7 +252,17 @@ class Engine:
         amp = self.inst.amplifier
         if amp is None or self.clock.virtual:
             return
-        check_contact(self.program.rig, amp.longest_silence(), streaming or abs(self._v_cmd) > OUTPUT_ON_V)
+        try:
+            check_contact(self.program.rig, amp.longest_silence(), streaming or abs(self._v_cmd) > OUTPUT_ON_V)
+        except InterlockTrip as trip:
+            try:
+                fired = amp.watchdog_fired()
+            except InstrumentError as exc:
+                raise InterlockTrip(trip.kind, f"{trip.detail} (its watchdog flag unreadable: {exc.detail})") from None
+            if fired is None:
+                raise
+            raise InterlockTrip(trip.kind, f"{trip.detail} (the module's own flag: its watchdog "
+                                f"{'fired' if fired else 'did not fire'})") from None
 
     def _keep_fed(self) -> None:
         """During long host-side work (fetching stored laser data) on a software-timed rig: re-send the set-point

@@ -39,7 +39,7 @@ class InterlockTrip(SafetyTrip):
     """A latched fault: ``kind`` (host stall, output mismatch, stream-out underrun) and one line of detail."""
 
     def __init__(self, kind: str, detail: str) -> None:
-        self.kind = kind
+        self.kind, self.detail = kind, detail
         super().__init__(f"interlock: {kind}: {detail}")
 
 
