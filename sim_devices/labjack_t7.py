@@ -329,6 +329,10 @@ class LabJackT7Sim:
         words = [SimData(0, count=65535, values=0, datatype=DataType.REGISTERS)]
         self.device = SimDevice(UNIT, words, action=self.action)
         self._writer: asyncio.StreamWriter | None = None
+        # [A] packets due while no client is connected to the stream port: kept in the device's stream buffer
+        # (it streams spontaneously to the connected client) and sent when one connects; counted as unsent, so
+        # auto-recovery starts when they exceed STREAM_BUFFER_SIZE_BYTES as for a client that does not read
+        self._held: list[bytes] = []
         self._loop: asyncio.AbstractEventLoop | None = None
         self._thread: threading.Thread | None = None
         self._ready = threading.Event()
@@ -385,6 +389,9 @@ class LabJackT7Sim:
     async def _on_stream_client(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         with self.lock:
             old, self._writer = self._writer, writer  # the latest connection gets the packets
+            held, self._held = self._held, []
+            for data in held:
+                writer.write(data)
         if old is not None:
             old.close()
         with contextlib.suppress(Exception):
@@ -627,7 +634,9 @@ class LabJackT7Sim:
 
     def _unsent_bytes(self) -> int:
         w = self._writer
-        return 0 if w is None or w.transport is None else int(w.transport.get_write_buffer_size())
+        if w is None:
+            return sum(len(b) for b in self._held)
+        return 0 if w.transport is None else int(w.transport.get_write_buffer_size())
 
     def _packet(self, samples: np.ndarray, status: int, extra: int) -> bytes:
         backlog = min(int(self.fifo.size * 2), 0xFFFF)
@@ -660,6 +669,8 @@ class LabJackT7Sim:
         self.packets_sent += packets
         if w is not None and not w.is_closing():
             w.write(data)
+        elif w is None and self.streaming:
+            self._held.append(data)
 
     def _start_stream(self) -> int:
         n = int(self.regs[R_NADDR])
@@ -701,6 +712,7 @@ class LabJackT7Sim:
         return 0
 
     def _stop_stream(self, now: float) -> None:
+        self._held = []
         cur = self._cur_scan(now)
         for k in self._out_indices():
             self._advance_out(k, now)

@@ -222,6 +222,23 @@ def test_twin_stream_packet_bytes(raw_twin: Rig) -> None:
         assert data.recv(64)[:2] == b"\x00\x01"  # transaction id increments per packet
 
 
+def test_twin_keeps_packets_due_before_a_client_connects_to_the_stream_port(raw_twin: Rig) -> None:
+    """A stream enabled (spontaneous, Ethernet) before the host's stream socket is accepted: the device keeps its
+    packets in its stream buffer and sends them when a client connects (they used to be dropped — a race the host's
+    own connect-then-enable order can lose on a loaded machine)."""
+    with socket.create_connection(("127.0.0.1", raw_twin.port), timeout=2) as s:
+        for f in ["0010 0000 000b 01 10 0fa2 0002 04 447a 0000", "0011 0000 000b 01 10 0fa4 0002 04 0000 0002",
+                  "0012 0000 000b 01 10 0fa6 0002 04 0000 0004", "0013 0000 000b 01 10 0fb0 0002 04 0000 0001",
+                  "0014 0000 000f 01 10 1004 0004 08 0000 0000 0000 0002",
+                  "0015 0000 000b 01 10 137e 0002 04 0000 0001"]:  # as in the test above: 1 kHz, AIN0/1, enable
+            assert _transact(s, bytes.fromhex(f))[7] == 0x10
+        raw_twin.clock.advance(0.0025)  # the first packet is due: no client yet
+        with socket.create_connection(("127.0.0.1", raw_twin.stream_port), timeout=2) as data:
+            pkt = data.recv(64)
+    # the first packet (transaction 0), the same bytes as when the client was there first (test above)
+    assert pkt == bytes.fromhex("0000 0000 0012 01 4c 10 00 0000 0000 0000 82f3 82f3 82f3 82f3")
+
+
 def test_twin_runs_feedback_frames_in_order_and_returns_the_reads(raw_twin: Rig) -> None:
     with socket.create_connection(("127.0.0.1", raw_twin.port), timeout=2) as s:
         # write DAC0 (1000 = 0x03E8) ← FLOAT32 2.0, read it back, read PRODUCT_ID (60000 = 0xEA60)
