@@ -37,6 +37,9 @@ from sim_devices.labjack_t7 import Conditioning, LabJackT7Sim
 
 # one packet: TransID 5, Length 18 (= 10 + 4 samples·2), unit 1, function 76 (0x4C), type 16, backlog 8 bytes,
 # status 0, then AIN samples 0x82F3 (33523 = nominal centre: 0 V), 0x8300, 0x7F00 and 0xFFFF
+# waiting for a twin's first stream packet: the first pump integrates the plant, whose compiled kernel a fresh
+# checkout (no numba cache) compiles first — seconds on a loaded machine; the bytes are what these tests check
+STREAM_WAIT_S = 60.0
 PACKET = bytes.fromhex("0005 0000 0012 01 4c 10 00 0008 0000 0000 82f3 8300 7f00 ffff")
 
 
@@ -201,7 +204,7 @@ def test_twin_refuses_empty_stream_with_labjack_error(raw_twin: Rig) -> None:
 def test_twin_stream_packet_bytes(raw_twin: Rig) -> None:
     """Configure a stream with hand-written Modbus frames; the first packet is the datasheet's layout."""
     with socket.create_connection(("127.0.0.1", raw_twin.port), timeout=2) as s, \
-            socket.create_connection(("127.0.0.1", raw_twin.stream_port), timeout=2) as data:
+            socket.create_connection(("127.0.0.1", raw_twin.stream_port), timeout=STREAM_WAIT_S) as data:
         frames = [
             "0010 0000 000b 01 10 0fa2 0002 04 447a 0000",  # STREAM_SCANRATE_HZ (4002) ← 1000.0
             "0011 0000 000b 01 10 0fa4 0002 04 0000 0002",  # STREAM_NUM_ADDRESSES (4004) ← 2
@@ -233,7 +236,7 @@ def test_twin_keeps_packets_due_before_a_client_connects_to_the_stream_port(raw_
                   "0015 0000 000b 01 10 137e 0002 04 0000 0001"]:  # as in the test above: 1 kHz, AIN0/1, enable
             assert _transact(s, bytes.fromhex(f))[7] == 0x10
         raw_twin.clock.advance(0.0025)  # the first packet is due: no client yet
-        with socket.create_connection(("127.0.0.1", raw_twin.stream_port), timeout=2) as data:
+        with socket.create_connection(("127.0.0.1", raw_twin.stream_port), timeout=STREAM_WAIT_S) as data:
             pkt = data.recv(64)
     # the first packet (transaction 0), the same bytes as when the client was there first (test above)
     assert pkt == bytes.fromhex("0000 0000 0012 01 4c 10 00 0000 0000 0000 82f3 82f3 82f3 82f3")
