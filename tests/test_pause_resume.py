@@ -260,3 +260,22 @@ def test_pause_and_resume_with_keys_at_the_live_view(tmp_path: Path) -> None:
     (_, _, _, p_text), = events(run, "pause")
     (_, _, _, r_text), = events(run, "resume")
     assert "live view (key p)" in p_text and "live view (key r)" in r_text
+
+
+def test_a_resume_by_signal_answers_a_pause_the_control_file_asked_for(tmp_path: Path) -> None:
+    """Paused by the control file (`bench pause`), resumed by SIGUSR2 / a key: the file's old word must not pause
+    the run again — one pause, one resume, completed."""
+    out = tmp_path / "run.h5"
+
+    def hook(engine: Engine, sim) -> None:
+        write_control(out, True, "ada", "from the control file")
+
+        def at(_now: float) -> None:
+            if engine.snapshot.state == "paused" and engine.now() >= 2.0:
+                engine.request_resume("signal SIGUSR2")
+        sim.clock.subscribe(at)
+
+    result = execute(plan_run(SHORT / "thesis-identification-short.toml", DAQ_RIG), out, virtual=True, on_engine=hook)
+    assert result.state == "completed", result.reason
+    run = open_run(result.path)
+    assert len(events(run, "pause")) == 1 and len(events(run, "resume")) == 1

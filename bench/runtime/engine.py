@@ -562,6 +562,9 @@ class Engine:
             self._pause_until(min(due, self.now() + STOP_POLL_S), urgent_aborts=False)
         _, by = self._paused_wanted()
         self._pause_by = self._resume_by = None
+        # a control file that asked for this pause is answered: it counts again only when it is written again (a
+        # resume by key or signal would otherwise be undone by the file's old word)
+        self._control_seen = (self._control_seen[0], False, self._control_seen[2])
         self.rec.event(self.now(), seg.index, "resume", f"resumed by {by} after {self.now() - t_pause:.3f} s paused")
         self.snapshot.state = "running"
         self._restart(seg, "resumed after a pause")
