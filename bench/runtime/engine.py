@@ -348,6 +348,11 @@ class Engine:
                 raise InstrumentStateError("laser", f"stored data not fetched within {budget:g} s: the link "
                                            "cannot upload as fast as the storage fills")
 
+    def _unpolled_monitor_columns(self) -> dict[str, float | np.ndarray]:
+        """The amplifier stream's other columns for a monitor read outside the schedule (paused, shutting down):
+        on a DAQ rig the output commanded, else no lateness (NaN: not a scheduled poll)."""
+        return {"commanded": self._v_cmd} if self._stream is not None else self._late("amplifier", math.nan)
+
     def _late(self, stream: str, late: float | np.ndarray) -> dict[str, float | np.ndarray]:
         """The ``late`` column of a software-timed stream: how long after its scheduled time a poll ran [s]."""
         return {"late": late} if stream in self._late_streams else {}
@@ -579,8 +584,8 @@ class Engine:
                 if heard is not None and time.monotonic() - heard >= HOLD_KEEPALIVE_S:
                     self._set_voltage(0.0, self.now())
             v, i = amp.read_monitors()
-            extra = {"commanded": self._v_cmd} if self._stream is not None else self._late("amplifier", math.nan)
-            self.rec.append("amplifier", v.timestamp - self._t0, voltage=v.value, current=i.value, **extra)
+            self.rec.append("amplifier", v.timestamp - self._t0, voltage=v.value, current=i.value,
+                            **self._unpolled_monitor_columns())
             self.sup.check_monitors(v.value, i.value)
             self.snapshot.values["voltage"], self.snapshot.values["current"] = v.value, i.value
         for poll in POLLS:
@@ -803,9 +808,8 @@ class Engine:
             except InstrumentError as exc:
                 notes.append(f"final monitor read failed: {exc}")
                 return f"{path}; output NOT verified (voltage monitor unreadable)"
-            extra = {"commanded": self._v_cmd} if self._stream is not None else self._late("amplifier", math.nan)
             self._record(self.rec.append, "amplifier", v.timestamp - self._t0, voltage=v.value, current=i.value,
-                         **extra)
+                         **self._unpolled_monitor_columns())
             if math.isfinite(v.value) and abs(v.value) <= SAFE_MONITOR_V:
                 return f"{path}; verified: voltage monitor {v.value:.0f} V at {self.now():.3f} s"
             if self.now() >= deadline:
