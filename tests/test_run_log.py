@@ -15,8 +15,6 @@ import time
 from datetime import datetime
 from pathlib import Path
 
-import pytest
-
 from bench.storage.runfile import open_run
 from tests.conftest import ROOT
 
@@ -66,7 +64,8 @@ def test_a_killed_run_s_log_already_holds_its_step_starts_each_at_its_own_time(t
     # run times from the protocol: drive (step 1) at 0 s, recovery (2) after the 5-s drive, the next chamber (3)
     # after the 2-s recovery (a streamed step ends when its last scans are collected: late by a collect period or
     # more on a loaded machine, never early)
-    assert starts[1][1] == pytest.approx(0.0, abs=1e-3)
+    # the drive's program time is 0 s: never early; late by the 0-s chamber step's work on a loaded machine
+    assert -1e-3 <= starts[1][1] < 1.0
     assert 5.0 - 1e-3 <= starts[2][1] < starts[3][1] and 7.0 - 1e-3 <= starts[3][1] < 8.0
     walls = [starts[k][0] for k in (1, 2, 3)]
     assert walls[0] < walls[1] < walls[2]  # each written when it happened (a real-time run: seconds apart)
