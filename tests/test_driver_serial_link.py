@@ -65,7 +65,7 @@ def test_read_until_deadline_counts_total_time_against_a_trickling_peer(peer: Pt
     t0 = time.monotonic()
     with pytest.raises(InstrumentTimeoutError, match=r"probe: no reply within 0\.3 s \(partial reply b'x"):
         link.read_until(b"\r")
-    assert 0.29 <= time.monotonic() - t0 < 0.45
+    assert 0.29 <= time.monotonic() - t0 < 5.0  # an order: the trickle (forever) does not extend the deadline
     link.close()
 
 
@@ -75,7 +75,7 @@ def test_read_exact_deadline_counts_total_time_against_a_trickling_peer(peer: Pt
     t0 = time.monotonic()
     with pytest.raises(InstrumentTimeoutError, match=r"probe: no reply within 0\.3 s"):
         link.read_exact(1000)
-    assert 0.29 <= time.monotonic() - t0 < 0.45
+    assert 0.29 <= time.monotonic() - t0 < 5.0  # an order: the trickle (forever) does not extend the deadline
     link.close()
 
 
@@ -100,18 +100,18 @@ def test_a_stop_from_another_thread_ends_a_long_read_within_a_slice(peer: PtyPee
             link.read_until(b"\r")
         else:
             link.read_exact(10_000)
-    assert time.monotonic() - cancelled_at[0] < 0.1
+    assert time.monotonic() - cancelled_at[0] < 2.5  # an order: ended by the stop, not the 5-s timeout
     link.close()
 
 
 def test_cancel_token_is_a_settable_attribute(peer: PtyPeer) -> None:
-    link = link_on(peer, timeout=5.0)
+    link = link_on(peer, timeout=30.0)
     link.cancel = token = CancelToken()
     token.cancel("stop")
     t0 = time.monotonic()
     with pytest.raises(OperationCancelledError):
         link.read_until(b"\r")
-    assert time.monotonic() - t0 < 0.1
+    assert time.monotonic() - t0 < 15.0  # an order: the set token ends the read, not the 30-s timeout
     token.clear()  # cleared: traffic flows again
     os.write(peer.master, b"ok\r")
     assert link.read_until(b"\r") == b"ok\r"
