@@ -81,6 +81,10 @@ def _summary(plan) -> Table:
     f_lo, f_hi = pred.force_range
     if rig.load_cell is not None and math.isfinite(f_lo):
         t.add_row("predicted force", f"{f_lo:.2f} … {f_hi:.2f} N (limit ±{lim.max_force_N:g} N)")
+    relax = sorted({s.ramp_down for s in prog.segments if s.kind == "relax" and s.voltage is not None})
+    if relax:
+        t.add_row("relax steps", "voltage to 0 V over " + ", ".join(f"{r:g} s" for r in relax) +
+                  " (ramp_down_s; default 0.5 s or a tenth of the step)")
     ops = [s for s in prog.segments if s.changes]
     if ops:
         t.add_row("specimen changes", f"{len(ops)} ({'applied to the model' if rig.simulated else 'operator actions'})")

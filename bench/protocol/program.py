@@ -22,7 +22,6 @@ from bench.rig import RigConfig
 from bench.waveforms import Waveform
 
 Signal = Callable[[np.ndarray], np.ndarray]
-RELAX_RAMP_S = 0.5  # a relax step brings the voltage to zero over this time (or a tenth of the step)
 MOVE_SETTLE_S = 0.05
 MAX_SAMPLES = 10**10  # recorded samples over a whole run (all streams): ~ 1 TB uncompressed
 PASSIVE_LASER_HZ = 10.0  # single laser reads while its data storage is idle (software-timed rigs)
@@ -50,6 +49,7 @@ class Segment:
     frequency: float | None = None
     storing: bool = False  # laser data storage runs during this step
     stream_until: float = 0.0  # set-points at the full rate until this run time, then keep-alive only
+    ramp_down: float = 0.0  # a relax step's ramp of the voltage to 0 V [s]
 
     @property
     def t_end(self) -> float:
@@ -170,7 +170,8 @@ class _Compiler:
     def hold(self, i: int, label: str, name: str, step: HoldStep) -> Segment:
         seg = Segment(i, label, name, step.type, self.t, step.duration_s)
         if step.type == "relax" and self.v_now != 0.0:
-            seg.voltage = _ramp(self.t, min(RELAX_RAMP_S, step.duration_s / 10), self.v_now, 0.0)
+            seg.ramp_down = step.ramp_down
+            seg.voltage = _ramp(self.t, seg.ramp_down, self.v_now, 0.0)
             self.v_now = 0.0
         return seg
 
@@ -210,7 +211,7 @@ class _Compiler:
         if seg.kind in ("waveform", "ramp"):
             seg.stream_until = seg.t_end
         elif seg.kind == "relax" and seg.voltage is not None:
-            seg.stream_until = seg.t_start + min(RELAX_RAMP_S, seg.duration / 10)
+            seg.stream_until = seg.t_start + seg.ramp_down
         else:
             seg.stream_until = seg.t_start
         if seg.storing and rig.laser is not None:
