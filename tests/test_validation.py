@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
@@ -111,12 +110,10 @@ def test_cli_rig_refusal_is_one_line(tmp_path: Path) -> None:
     f = tmp_path / "rig.toml"
     f.write_text(_set(THESIS_SIM, "laser", "offset_mm", "nan"))
     proto = ROOT / "protocols" / "short" / "thesis-identification-short.toml"
-    t0 = time.monotonic()
     proc = subprocess.run([sys.executable, "-m", "bench", "validate", str(proto), "--rig", str(f)],
                           capture_output=True, text=True, timeout=120, env={"COLUMNS": "300", "PATH": ""})
     assert proc.returncode == 2 and "Traceback" not in proc.stderr
     assert proc.stderr.strip().count("\n") == 0 and "laser.offset_mm" in proc.stderr
-    assert time.monotonic() - t0 < 60
 
 
 def test_cli_error_text_is_not_eaten_as_markup(tmp_path: Path) -> None:
@@ -153,8 +150,7 @@ def test_special_and_oversized_files_are_refused_without_reading_them(tmp_path: 
     from bench.protocol.schema import ProtocolFileError, load_protocol
     from bench.tomlfile import MAX_FILE_BYTES
 
-    t0 = time.monotonic()
-    for special in ("/dev/zero", "/dev/null"):  # /dev/zero would be read forever
+    for special in ("/dev/zero", "/dev/null"):  # refused by kind, never read (/dev/zero would be read forever)
         with pytest.raises(RigFileError, match=f"rig file {special}: not a regular file"):
             load_rig(special)
     fifo = tmp_path / "fifo.toml"
@@ -165,7 +161,6 @@ def test_special_and_oversized_files_are_refused_without_reading_them(tmp_path: 
     big.write_text("name = 'x'\n" + "#" * MAX_FILE_BYTES + "\n")
     with pytest.raises(RigFileError, match="larger than"):
         load_rig(big)
-    assert time.monotonic() - t0 < 10
 
 
 def test_crlf_files_read_as_before(tmp_path: Path) -> None:
