@@ -42,6 +42,8 @@ def _plan(protocol_file: Path, rig: Path | None, sim: bool):
     for problem in plan.link_problems:  # refused on a real rig; the simulated rig rehearses what it would do
         console.print(f"[yellow]warning[/]: {escape(problem)} — a real line would refuse this protocol; the "
                       "simulated rig will show the consequences in wall-clock runs")
+    for short in plan.shortfalls:  # what a software-timed rig records below the asked rate: said, never silent
+        console.print(f"[yellow]warning[/]: {escape(short)}")
     return plan
 
 
@@ -64,6 +66,9 @@ def _summary(plan) -> Table:
     elif rig.amplifier is not None and rig.amplifier.drive == "daq" and rig.daq is not None:
         t.add_row("drive", f"hardware-timed: DAC waveform at {rig.daq.scan_rate_Hz:g} scans/s, every analog channel "
                   "on the same scan clock")
+    from bench.protocol.program import recording_rates
+
+    t.add_row("recording", recording_rates(prog))
     margin = pred.min_breakdown_margin
     t.add_row("peak true field", f"{pred.peak_field / 1e6:.1f} MV/m; closest to breakdown: "
               f"{pred.field_at_min_margin / 1e6:.1f} of {pred.breakdown_at_min_margin / 1e6:.1f} MV/m "
@@ -105,7 +110,7 @@ def validate(protocol_file: ProtocolArg, rig: RigOpt = None, sim: SimOpt = False
                     "min_breakdown_margin": pred.min_breakdown_margin,
                     "motor_range_m": list(pred.motor_range) if pred.motor_range is not None else None,
                     "displacement_range_m": list(pred.displacement_range), "force_range_N": list(pred.force_range),
-                    "link_problems": list(plan.link_problems)})
+                    "link_problems": list(plan.link_problems), "recording_shortfalls": list(plan.shortfalls)})
         return
     console.print(_summary(plan))
     console.print("[green]valid[/]: within the rig's and the specimen's limits")
@@ -191,6 +196,8 @@ def run(
                  plan.prediction.peak_voltage)
         for problem in plan.link_problems:
             log.info("link budget warning: %s", problem)
+        for short in plan.shortfalls:
+            log.info("recording warning: %s", short)
         for key, value in metadata.items():
             log.info("%s: %s", key.replace("_", " "), value.replace("\n", " | "))
         result = _execute(plan, path, virtual_time, operator, live, allow_no_watchdog, metadata, link)

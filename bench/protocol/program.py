@@ -277,6 +277,52 @@ def sample_counts(program: Program) -> dict[str, int]:
     return counts
 
 
+def recording_rates(program: Program) -> str:
+    """The rate each stream is recorded at on this rig for this protocol, in words (validate's fidelity row)."""
+    rig, rec = program.rig, program.protocol.recording
+    daq = rig.daq if rig.amplifier is not None and rig.amplifier.drive == "daq" else None
+    parts = []
+    if daq is not None:
+        on_daq = ["voltage", "current"] + (["displacement"] if daq.laser_ain is not None else []) + \
+            (["force"] if daq.force_ain is not None else [])
+        parts.append(f"{', '.join(on_daq)} at {daq.scan_rate_Hz:g} scans/s on one clock")
+    elif rig.amplifier is not None:
+        parts.append(f"voltage, current polled at {rec.monitors_Hz:g} Hz")
+    if rig.laser is not None and (daq is None or daq.laser_ain is None):
+        stored = any(s.storing for s in program.segments)
+        parts.append(f"displacement {rec.displacement_Hz:g} Hz in waveform/ramp/move steps, {PASSIVE_LASER_HZ:g} Hz "
+                     "otherwise" if stored else f"displacement polled at {PASSIVE_LASER_HZ:g} Hz")
+    if rig.load_cell is not None and (daq is None or daq.force_ain is None):
+        parts.append(f"force polled at {rec.force_Hz:g} Hz")
+    if rig.motor is not None:
+        parts.append(f"motor position polled at {rec.position_Hz:g} Hz")
+    return "; ".join(parts)
+
+
+def recording_shortfalls(program: Program) -> list[str]:
+    """What a software-timed rig records below the rates the protocol asks, one sentence per stream (empty: none).
+
+    The LK-G's data storage runs only in steps that move something (waveform, ramp, move); in the other steps the
+    laser is read one value at a time at ``PASSIVE_LASER_HZ``. A hardware-timed rig samples every analog channel on
+    the scan clock and falls short nowhere.
+    """
+    rig, rec, T = program.rig, program.protocol.recording, program.duration
+    if rig.amplifier is not None and rig.amplifier.drive == "daq" and rig.daq is not None and \
+            rig.daq.laser_ain is not None:
+        return []
+    out = []
+    if rig.laser is not None and rec.displacement_Hz > PASSIVE_LASER_HZ:
+        idle = [s for s in program.segments if not s.storing and s.duration > 0]
+        idle_s = sum(s.duration for s in idle)
+        if idle_s > 0:
+            kinds = ", ".join(sorted({s.kind for s in idle}))
+            out.append(f"displacement: recording.displacement_Hz = {rec.displacement_Hz:g} is recorded in waveform, "
+                       f"ramp and move steps only; the {kinds} steps ({idle_s:.1f} of {T:.1f} s) get single laser "
+                       f"reads at {PASSIVE_LASER_HZ:g} Hz (the {rig.laser.model}'s storage runs only while something "
+                       "moves)")
+    return out
+
+
 def plays_on(prev: Segment, nxt: Segment) -> bool:
     """Whether a hardware-timed stream plays ``nxt`` straight after ``prev`` (appended, no restart): both last,
     ``nxt`` starts where ``prev`` ends and needs no specimen change (an operator's action stops the stream)."""

@@ -18,7 +18,7 @@ from bench import __version__
 from bench.core.clock import WallClock
 from bench.protocol.link_budget import check_links
 from bench.protocol.predict import Prediction, predict
-from bench.protocol.program import Program, ProtocolLimitError, compile_program
+from bench.protocol.program import Program, ProtocolLimitError, compile_program, recording_shortfalls
 from bench.protocol.schema import MAX_OPERATOR, MAX_SPECIMEN_ID, Protocol, check_label, check_notes, load_protocol
 from bench.rig import RigConfig, load_rig, rig_to_toml
 from bench.runtime.control import control_path
@@ -46,6 +46,7 @@ class Plan:
     program: Program
     prediction: Prediction
     link_problems: list[str] = field(default_factory=list)  # what the rig's lines cannot carry (see plan_run)
+    shortfalls: list[str] = field(default_factory=list)  # streams recorded below the asked rate (software-timed rigs)
 
 
 def resolve_rig(protocol: Protocol, rig_path: str | Path | None = None, simulate: bool = False) -> RigConfig:
@@ -70,7 +71,7 @@ def plan_run(protocol_path: str | Path, rig_path: str | Path | None = None, simu
         raise ProtocolLimitError(f"protocol file {protocol.path}: {prediction.failure}")
     if prediction.problems:
         raise ProtocolLimitError(f"protocol file {protocol.path}: {prediction.problems[0]}")
-    return Plan(protocol, rig, program, prediction, links)
+    return Plan(protocol, rig, program, prediction, links, recording_shortfalls(program))
 
 
 def _streams(rig: RigConfig, inst: Instruments, polled: bool = False) -> tuple[dict[str, list[Column]], dict[str, str]]:
