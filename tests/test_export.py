@@ -42,8 +42,11 @@ def test_csv_export_has_units_in_headers_and_the_file_values(run_file: Path, tmp
         volts = f["amplifier/commanded"][: len(f["amplifier/t"])]  # hardware-timed default rig
     assert len(rows) - 1 == n > 50_000  # 10 kHz over the active step
     got = np.array([[float(r[0]), float(r[1])] for r in rows[1:]])
-    np.testing.assert_array_equal(got[:, 0], t)  # exact: the CSV keeps every digit
-    np.testing.assert_array_equal(got[:, 1], u)
+    # the instruments' precision, not every bit: time to 12 significant digits, values to 9 (half a unit in the
+    # last written digit, relative)
+    np.testing.assert_allclose(got[:, 0], t, rtol=5e-12, atol=0)
+    np.testing.assert_allclose(got[:, 1], u, rtol=5e-9, atol=0)
+    assert max(len(r[1].lstrip("-").replace(".", "").lstrip("0").split("e")[0]) for r in rows[1:]) <= 9
     with (tmp_path / "csv" / "amplifier.csv").open(encoding="utf-8") as fh:
         amp = list(csv.DictReader(fh))
     assert max(float(r["commanded [V]"]) for r in amp) == pytest.approx(volts.max()) and volts.max() > 5000
@@ -75,3 +78,53 @@ def test_export_needs_a_target_and_a_run_file(tmp_path: Path) -> None:
     assert res.exit_code == 2 and "not found" in res.output
     res = CliRunner().invoke(app, ["export", str(tmp_path / "missing.h5")])
     assert res.exit_code == 2 and "--csv" in res.output
+
+
+def test_mat73_reads_back_in_an_independent_reader_with_the_file_values(run_file: Path, tmp_path: Path) -> None:
+    import mat73
+
+    target = tmp_path / "run73.mat"
+    res = CliRunner().invoke(app, ["export", str(run_file), "--mat", str(target), "--mat-version", "7.3"])
+    assert res.exit_code == 0, res.output
+    assert target.read_bytes()[:19] == b"MATLAB 7.3 MAT-file" and target.read_bytes()[126:128] == b"IM"
+    m = mat73.loadmat(str(target))
+    with h5py.File(run_file, "r") as f:
+        n = len(m["laser"]["t"])
+        np.testing.assert_array_equal(m["laser"]["displacement"], f["laser/displacement"][:n])
+        np.testing.assert_array_equal(m["amplifier"]["t"], f["amplifier/t"][: len(m["amplifier"]["t"])])
+    assert n > 50_000
+    assert m["laser"]["units"]["displacement"] == "m" and m["amplifier"]["units"]["current"] == "A"
+    assert m["metadata"]["rig_name"] == "thesis-daq-sim"
+    kinds = [k[0] if isinstance(k, list) else k for k in m["events"]["kind"]]  # an n×1 cell: rows of one
+    assert kinds[0] == "run" and "end" in kinds and len(kinds) == len(m["events"]["t"])
+
+
+def test_auto_picks_v73_for_a_stream_beyond_the_v5_budget(run_file: Path, tmp_path: Path,
+                                                         monkeypatch: pytest.MonkeyPatch) -> None:
+    import bench.storage.export as export
+
+    assert export.mat_version(run_file) == "5"  # a short run: every stream far below the budget
+    monkeypatch.setattr(export, "MAT5_MAX_STREAM_BYTES", 1000)
+    assert export.mat_version(run_file) == "7.3"
+
+
+def test_streams_are_read_in_chunks_of_the_stated_size(run_file: Path, tmp_path: Path,
+                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    import bench.storage.export as export
+
+    reads: list[int] = []
+    chunks = export._Streams.chunks
+
+    def counted(self: export._Streams, stream: str):  # type: ignore[no-untyped-def]
+        for c in chunks(self, stream):
+            reads.append(c["t"].size)
+            yield c
+
+    monkeypatch.setattr(export, "CHUNK_ROWS", 10_000)
+    monkeypatch.setattr(export._Streams, "chunks", counted)
+    files = export.to_csv(run_file, tmp_path / "csv")
+    with h5py.File(run_file, "r") as f:
+        n = int(dict(zip(json.loads(f["status/samples"].attrs["names"]), f["status/samples"][:],
+                         strict=True))["laser"])
+    laser = (tmp_path / "csv" / "laser.csv").read_text(encoding="utf-8").count("\n") - 1
+    assert laser == n and max(reads) == 10_000 and len(files) == 5  # no read larger than a chunk

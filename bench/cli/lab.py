@@ -19,17 +19,23 @@ def export(
     csv: Annotated[Path | None, typer.Option("--csv", help="Folder for one CSV per stream (units in the "
                                              "header), events.csv and metadata.json.")] = None,
     mat: Annotated[Path | None, typer.Option("--mat", help="MATLAB file (.mat): one struct per stream.")] = None,
+    mat_version: Annotated[str, typer.Option(help="MAT version: 5 (scipy; whole streams in memory), 7.3 (HDF5, "
+                                             "written in chunks: any length), or auto: 7.3 when a stream exceeds "
+                                             "256 MB.")] = "auto",
 ) -> None:
-    """Export a run file's streams to CSV files and/or a MATLAB file."""
+    """Export a run file's streams to CSV files and/or a MATLAB file, reading the run in chunks (memory does not
+    grow with its length). CSV numbers carry the instruments' precision: time 12 digits, values 9."""
     from bench.storage.export import to_csv, to_mat
 
+    if mat_version not in ("auto", "5", "7.3"):
+        raise ValueError(f"--mat-version {mat_version!r}: give 5, 7.3 or auto")
     if csv is None and mat is None:
         raise ValueError("give --csv FOLDER and/or --mat FILE")
     if csv is not None:
         files = to_csv(run_file, csv)
         console.print(f"CSV: {len(files)} files in {escape(str(csv))} ({', '.join(f.name for f in files)})")
     if mat is not None:
-        console.print(f"MAT: {escape(str(to_mat(run_file, mat)))}")
+        console.print(f"MAT: {escape(str(to_mat(run_file, mat, mat_version)))}")  # type: ignore[arg-type]  # checked
 
 
 @clean_errors

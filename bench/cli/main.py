@@ -295,6 +295,7 @@ class BenchmarkSet(StrEnum):
     fit = "fit"
     daq = "daq"
     faults = "faults"
+    export = "export"
     all = "all"
 
 
@@ -348,6 +349,10 @@ def _benchmark(which: BenchmarkSet, quick: bool) -> dict[str, object]:
         from bench.benchmarks import daq as benchmark_daq
 
         sets.append(("hardware-timed rigs (LabJack T7 twin)", benchmark_daq.run_all))
+    if which in (BenchmarkSet.export, BenchmarkSet.all):
+        from bench.benchmarks import export as benchmark_export
+
+        sets.append(("export: peak memory against the run's length", benchmark_export.run_all))
     for title, fn in sets:
         with console.status(f"benchmarking {title}…"):
             figures = fn(quick=quick)

@@ -1,9 +1,20 @@
-"""Run files out to the formats other tools read: CSV (one file per stream) and MATLAB ``.mat`` (scipy.io).
+"""Run files out to the formats other tools read: CSV (one file per stream) and MATLAB ``.mat``, in bounded memory.
 
 CSV: ``<stream>.csv`` with a header naming each column and its unit (``t [s],voltage [V],…``), plus
-``events.csv`` (t [s], step, kind, text) and ``metadata.json`` (the run file's attributes). MAT: one struct
-per stream (``t`` and the columns as column vectors, ``units`` a struct of unit strings), ``events`` and
-``metadata`` (MATLAB: ``s = load('run.mat'); plot(s.laser.t, s.laser.displacement)``).
+``events.csv`` (t [s], step, kind, text) and ``metadata.json`` (the run file's attributes). Numbers are written
+with the precision the instruments have, not every bit of a float: time with 12 significant digits (0.1 µs
+over a week of run time), measured and commanded values with 9 (a 24-bit converter has about 7), flags and
+counts as integers.
+
+MAT: one struct per stream (``t`` and the columns as column vectors, ``units`` a struct of unit strings),
+``events`` and ``metadata`` (MATLAB: ``s = load('run.mat'); plot(s.laser.t, s.laser.displacement)``). Two
+versions: v5 (scipy.io; events' kind and text as cell arrays of strings), and v7.3 — the HDF5-based format
+MATLAB uses for variables beyond v5's 2 GB — written here with h5py chunk by chunk (events' kind and text as
+cell arrays of strings too). ``auto`` picks v7.3 when a stream holds more than
+``MAT5_MAX_STREAM_BYTES``: v5 has to hold a whole variable in memory to write it.
+
+Every stream is read from the run file in chunks of ``CHUNK_ROWS`` records, so the memory an export needs does
+not grow with the length of the run (``bench benchmark export`` prints it).
 """
 
 from __future__ import annotations
@@ -11,22 +22,24 @@ from __future__ import annotations
 import csv
 import json
 import re
+from collections.abc import Iterator
+from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
+import h5py
 import numpy as np
 
-from bench.storage.runfile import RunFile, open_run
+from bench.storage.runfile import RunFile, open_h5, open_run, valid_counts
+
+CHUNK_ROWS = 262_144  # records per stream read at a time (a few MB per column)
+MAT5_MAX_STREAM_BYTES = 256 * 2**20  # auto: above this a stream goes to MAT v7.3, written in chunks
+STREAMS = ("setpoints", "amplifier", "laser", "motor", "load_cell")
+MatVersion = Literal["auto", "5", "7.3"]
 
 
 def _header(name: str, unit: str) -> str:
     return f"{name} [{unit}]" if unit else name
-
-
-def _columns(run: RunFile, stream: str) -> list[tuple[str, str, np.ndarray]]:
-    """(name, unit, values) of a stream, time first."""
-    s = run.streams[stream]
-    return [("t", s.units.get("t", "s"), s.t)] + [(k, s.units.get(k, ""), v) for k, v in s.columns.items()]
 
 
 def _metadata(run: RunFile) -> dict[str, Any]:
@@ -41,28 +54,78 @@ def _metadata(run: RunFile) -> dict[str, Any]:
                                                           "complete": run.complete}
 
 
+class _Streams:
+    """The run file's streams, read a chunk at a time: names, units, lengths trimmed to the confirmed records."""
+
+    def __init__(self, f: h5py.File) -> None:
+        self.f = f
+        valid = valid_counts(f)
+        self.length: dict[str, int] = {}
+        self.columns: dict[str, list[str]] = {}
+        for name in STREAMS:
+            if name not in f:
+                continue
+            g = f[name]
+            for d in g.values():
+                d.refresh()
+            n = min(d.shape[0] for d in g.values())
+            self.length[name] = min(n, valid.get(name, n))
+            self.columns[name] = ["t", *(k for k in g if k != "t")]
+
+    def units(self, stream: str) -> dict[str, str]:
+        g = self.f[stream]
+        return {k: _text(g[k].attrs.get("units", "s" if k == "t" else "")) for k in self.columns[stream]}
+
+    def dtype(self, stream: str, column: str) -> np.dtype:
+        dtype: np.dtype = self.f[stream][column].dtype
+        return dtype
+
+    def nbytes(self, stream: str) -> int:
+        return sum(self.dtype(stream, c).itemsize for c in self.columns[stream]) * self.length[stream]
+
+    def chunks(self, stream: str) -> Iterator[dict[str, np.ndarray]]:
+        g, n = self.f[stream], self.length[stream]
+        for a in range(0, n, CHUNK_ROWS):
+            b = min(a + CHUNK_ROWS, n)
+            yield {c: g[c][a:b] for c in self.columns[stream]}
+
+
+def _text(v: Any) -> str:
+    return v.decode() if isinstance(v, bytes) else str(v)
+
+
+def _formats(streams: _Streams, stream: str) -> list[str]:
+    """printf formats per column: integers and flags as integers, time with 12 digits, values with 9."""
+    out = []
+    for c in streams.columns[stream]:
+        kind = streams.dtype(stream, c).kind
+        out.append("%d" if kind in "iub" else "%.12g" if c == "t" else "%.9g")
+    return out
+
+
 def to_csv(run_path: str | Path, folder: str | Path) -> list[Path]:
     """Write one CSV per stream, ``events.csv`` and ``metadata.json`` into ``folder``; returns the files."""
-    run = open_run(run_path)
+    run = open_run(run_path, streams=False)
     out = Path(folder)
     out.mkdir(parents=True, exist_ok=True)
     written = []
-    for stream in run.streams:
-        cols = _columns(run, stream)
-        path = out / f"{stream}.csv"
-        with path.open("w", newline="", encoding="utf-8") as fh:
-            w = csv.writer(fh)
-            w.writerow([_header(n, u) for n, u, _ in cols])
-            # shortest text that reads back to the same float; integer and flag columns as integers
-            text = [np.asarray(v).astype(int).astype(str) if np.asarray(v).dtype.kind in "iub"
-                    else [repr(float(x)) for x in v] for _, _, v in cols]
-            w.writerows(zip(*text, strict=True))
-        written.append(path)
+    with open_h5(Path(run_path)) as f:
+        streams = _Streams(f)
+        for stream in streams.length:
+            units = streams.units(stream)
+            row = ",".join(_formats(streams, stream)) + "\n"
+            path = out / f"{stream}.csv"
+            with path.open("w", newline="", encoding="utf-8") as fh:
+                fh.write(",".join(_header(c, units[c]) for c in streams.columns[stream]) + "\n")
+                for chunk in streams.chunks(stream):
+                    table = np.column_stack([chunk[c] for c in streams.columns[stream]]).astype(np.float64)
+                    fh.write((row * table.shape[0]) % tuple(table.ravel().tolist()))  # one format call a chunk
+            written.append(path)
     path = out / "events.csv"
     with path.open("w", newline="", encoding="utf-8") as fh:
         w = csv.writer(fh)
         w.writerow(["t [s]", "step", "kind", "text"])
-        w.writerows([repr(t), step, kind, text] for t, step, kind, text in run.event_list())
+        w.writerows([f"{t:.12g}", step, kind, text] for t, step, kind, text in run.event_list())
     written.append(path)
     path = out / "metadata.json"
     path.write_text(json.dumps(_metadata(run), indent=1, ensure_ascii=False, default=str), encoding="utf-8")
@@ -76,14 +139,34 @@ def _mat_name(name: str) -> str:
     return clean if clean[:1].isalpha() else f"x_{clean}"
 
 
-def to_mat(run_path: str | Path, path: str | Path) -> Path:
-    """Write the run as a MATLAB file (see module docstring); returns its path."""
+def mat_version(run_path: str | Path, asked: MatVersion = "auto") -> Literal["5", "7.3"]:
+    """The MAT version an export writes: ``asked``, or for ``auto`` v7.3 when a stream exceeds v5's budget."""
+    if asked != "auto":
+        return asked
+    with open_h5(Path(run_path)) as f:
+        streams = _Streams(f)
+        big = any(streams.nbytes(s) > MAT5_MAX_STREAM_BYTES for s in streams.length)
+    return "7.3" if big else "5"
+
+
+def to_mat(run_path: str | Path, path: str | Path, version: MatVersion = "auto") -> Path:
+    """Write the run as a MATLAB file (see the module docstring); returns its path."""
+    target = Path(path)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    if mat_version(run_path, version) == "7.3":
+        _to_mat73(run_path, target)
+    else:
+        _to_mat5(run_path, target)
+    return target
+
+
+def _to_mat5(run_path: str | Path, target: Path) -> None:
     from scipy.io import savemat
 
     run = open_run(run_path)
     data: dict[str, Any] = {}
-    for stream in run.streams:
-        cols = _columns(run, stream)
+    for stream, s in run.streams.items():
+        cols = [("t", s.units.get("t", "s"), s.t)] + [(k, s.units.get(k, ""), v) for k, v in s.columns.items()]
         struct: dict[str, Any] = {_mat_name(n): np.asarray(v, dtype=float).reshape(-1, 1) for n, _, v in cols}
         struct["units"] = {_mat_name(n): u for n, u, _ in cols}
         data[_mat_name(stream)] = struct
@@ -92,9 +175,110 @@ def to_mat(run_path: str | Path, path: str | Path) -> Path:
                       "step": np.array([e[1] for e in events], dtype=float).reshape(-1, 1),
                       "kind": np.array([e[2] for e in events], dtype=object).reshape(-1, 1),
                       "text": np.array([e[3] for e in events], dtype=object).reshape(-1, 1)}
-    data["metadata"] = {_mat_name(k): (json.dumps(v) if isinstance(v, dict | list) else
-                                       ("" if v is None else v)) for k, v in _metadata(run).items()}
-    target = Path(path)
-    target.parent.mkdir(parents=True, exist_ok=True)
+    data["metadata"] = _mat_metadata(run)
     savemat(target, data, do_compression=True, oned_as="column")
-    return target
+
+
+def _mat_metadata(run: RunFile) -> dict[str, Any]:
+    return {_mat_name(k): (json.dumps(v) if isinstance(v, dict | list) else ("" if v is None else v))
+            for k, v in _metadata(run).items()}
+
+
+# ---------------------------------------------------------------- MAT v7.3: HDF5 with MATLAB's conventions
+# MATLAB stores an m×n array as an HDF5 dataset of shape (n, m) (column-major), names its class in the
+# MATLAB_class attribute, char arrays as uint16 code units with MATLAB_int_decode = 2, structs as groups with
+# MATLAB_class "struct" and MATLAB_fields listing the field names, and reads the file only after a 512-byte
+# user block that holds the MAT header text, the version 0x0200 and the endian indicator "IM".
+
+
+def _mat_class(obj: h5py.Dataset | h5py.Group, name: str) -> None:
+    obj.attrs.create("MATLAB_class", np.bytes_(name))
+
+
+def _struct(parent: h5py.Group, name: str, fields: list[str]) -> h5py.Group:
+    g = parent.create_group(name)
+    _mat_class(g, "struct")
+    names = np.empty(len(fields), dtype=h5py.vlen_dtype(np.dtype("S1")))
+    for i, f in enumerate(fields):
+        names[i] = np.frombuffer(f.encode(), dtype="S1")
+    g.attrs.create("MATLAB_fields", names, dtype=h5py.vlen_dtype(np.dtype("S1")))
+    return g
+
+
+def _char(parent: h5py.Group, name: str, rows: list[str]) -> None:
+    """A char array: one row per string, padded with blanks (a 1×N row vector for one string)."""
+    units = [np.frombuffer(r.encode("utf-16-le"), dtype=np.uint16) for r in rows]
+    width = max((u.size for u in units), default=0)
+    if width == 0:  # MATLAB's empty array: its dimensions as data, flagged empty
+        d = parent.create_dataset(name, data=np.array([len(rows), 0], dtype=np.uint64))
+        d.attrs.create("MATLAB_empty", np.uint8(1))
+    else:
+        codes = np.full((width, len(rows)), ord(" "), dtype=np.uint16)
+        for j, u in enumerate(units):
+            codes[: u.size, j] = u
+        d = parent.create_dataset(name, data=codes)
+        d.attrs.create("MATLAB_int_decode", np.int32(2))
+    _mat_class(d, "char")
+
+
+def _cellstr(parent: h5py.Group, name: str, rows: list[str]) -> None:
+    """A column cell array of strings: references to char arrays kept in the file's ``#refs#`` group."""
+    refs = parent.file.require_group("#refs#")
+    targets = []
+    for i, r in enumerate(rows):
+        key = f"{parent.name.strip('/').replace('/', '_')}_{name}_{i}"
+        _char(refs, key, [r])
+        targets.append(refs[key].ref)
+    d = parent.create_dataset(name, data=np.array(targets, dtype=h5py.ref_dtype).reshape(1, -1))
+    _mat_class(d, "cell")
+
+
+def _double(parent: h5py.Group, name: str, values: np.ndarray) -> None:
+    d = parent.create_dataset(name, data=np.asarray(values, dtype=np.float64).reshape(1, -1))
+    _mat_class(d, "double")
+
+
+def _mat73_header() -> bytes:
+    stamp = datetime.now(UTC).strftime("%a %b %d %H:%M:%S %Y")
+    text = f"MATLAB 7.3 MAT-file, Platform: GLNXA64, Created on: {stamp} HDF5 schema 1.00 .".encode()
+    return text.ljust(116, b" ") + b"\x00" * 8 + b"\x00\x02" + b"IM"
+
+
+def _to_mat73(run_path: str | Path, target: Path) -> None:
+    run = open_run(run_path, streams=False)
+    with open_h5(Path(run_path)) as src, h5py.File(target, "w", userblock_size=512) as out:
+        streams = _Streams(src)
+        for stream, n in streams.length.items():
+            cols = streams.columns[stream]
+            units = streams.units(stream)
+            g = _struct(out, _mat_name(stream), [*map(_mat_name, cols), "units"])
+            sets = {}
+            for c in cols:
+                d = g.create_dataset(_mat_name(c), shape=(1, n), dtype=np.float64, chunks=(1, min(max(n, 1), 65_536)),
+                                     compression="gzip", compression_opts=1)
+                _mat_class(d, "double")
+                sets[c] = d
+            a = 0
+            for chunk in streams.chunks(stream):
+                b = a + chunk["t"].size
+                for c in cols:
+                    sets[c][0, a:b] = chunk[c].astype(np.float64)
+                a = b
+            u = _struct(g, "units", [_mat_name(c) for c in cols])
+            for c in cols:
+                _char(u, _mat_name(c), [units[c]])
+        events = run.event_list()
+        ev = _struct(out, "events", ["t", "step", "kind", "text"])
+        _double(ev, "t", np.array([e[0] for e in events], dtype=float))
+        _double(ev, "step", np.array([e[1] for e in events], dtype=float))
+        _cellstr(ev, "kind", [e[2] for e in events])
+        _cellstr(ev, "text", [e[3] for e in events])
+        meta = _mat_metadata(run)
+        m = _struct(out, "metadata", list(meta))
+        for k, v in meta.items():
+            if isinstance(v, bool | int | float | np.integer | np.floating):
+                _double(m, k, np.array([float(v)]))
+            else:
+                _char(m, k, [str(v)])
+    with target.open("r+b") as fh:
+        fh.write(_mat73_header())

@@ -143,7 +143,7 @@ def read_table(obj: h5py.Dataset | h5py.Group, n: int | None = None) -> np.ndarr
     return table
 
 
-def _valid_counts(f: h5py.File) -> dict[str, int]:
+def valid_counts(f: h5py.File) -> dict[str, int]:
     """Valid records per stream and of ``events`` at the writer's last successful flush ({} in older files)."""
     if "samples" not in f["status"]:
         return {}
@@ -169,7 +169,7 @@ def open_run(path: str | Path, streams: bool = True) -> RunFile:
             st[name].refresh()
         run = RunFile(p, attrs, st["state"][0].decode(), st["reason"][0].decode(), st["end_time"][0].decode(),
                       float(st["updated"][0]), bool(attrs.get("complete", False)))
-        valid = _valid_counts(f)
+        valid = valid_counts(f)
         run.events = read_table(f["events"], valid.get("events"))
         run.program = read_table(f["program"])
         if streams:
