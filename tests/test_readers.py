@@ -15,6 +15,7 @@ import subprocess
 import sys
 import textwrap
 import time
+from datetime import datetime
 from pathlib import Path
 
 import h5py
@@ -78,7 +79,7 @@ def run_path(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def _streams(path: Path) -> dict[str, np.ndarray]:
     """Stream name → its time base, as plain h5py reads the file."""
     with h5py.File(path, "r") as f:
-        return {name: f[name]["t"][:] for name in f if name not in ("status", "events", "program", "fit")}
+        return {name: f[name]["t"][:] for name in f if name not in ("status", "events", "program", "fit", "entry")}
 
 
 def _text(values: np.ndarray) -> list[str]:
@@ -91,14 +92,14 @@ def test_xarray_sees_each_time_base_as_the_coordinate_of_its_stream(run_path: Pa
     streams = _streams(run_path)
     assert {"setpoints", "amplifier", "laser"} <= set(streams)
     for name, t in streams.items():
-        with xr.open_dataset(run_path, engine=engine, group=name) as ds:
+        with xr.open_dataset(run_path, engine=engine, group=name, decode_times=False) as ds:
             assert list(ds.dims) == ["t"], (name, ds.dims)  # one dimension: no phony_dim_*
-            assert "t" in ds.indexes and ds["t"].attrs["units"] == "s"
+            assert "t" in ds.indexes and ds["t"].attrs["units"].startswith("seconds since ")  # CF: time from the start
             np.testing.assert_array_equal(ds["t"].values, t)
             for var in ds.data_vars.values():
                 assert var.dims == ("t",) and var.attrs["units"], (name, var.name)
     rate = load_rig(RIG).daq.scan_rate_Hz
-    with xr.open_dataset(run_path, engine=engine, group="laser") as ds:
+    with xr.open_dataset(run_path, engine=engine, group="laser", decode_times=False) as ds:
         assert ds["displacement"].attrs["units"] == "m"
         ticks = ds["t"].values * rate
     np.testing.assert_allclose(ticks, np.round(ticks), rtol=0, atol=1e-6)  # every sample on the rig's scan clock
@@ -116,8 +117,8 @@ def test_xarray_reads_program_and_events_with_utf8_text(run_path: Path, engine: 
         assert _text(prog["name"].values) == [STEP, "Ruhe"]
         np.testing.assert_allclose(prog["duration"].values, [1.0, 0.5])  # 2 cycles at 2 Hz; the relax step
         assert prog["t_start"].attrs["units"] == "s" and prog["duration"].attrs["units"] == "s"
-    with xr.open_dataset(run_path, engine=engine, group="events") as ev:
-        assert list(ev.dims) == ["t"] and ev["t"].attrs["units"] == "s"
+    with xr.open_dataset(run_path, engine=engine, group="events", decode_times=False) as ev:
+        assert list(ev.dims) == ["t"] and ev["t"].attrs["units"].startswith("seconds since ")
         kinds, texts = _text(ev["kind"].values), _text(ev["text"].values)
         starts = [text for kind, text in zip(kinds, texts, strict=True) if kind == "start"]
         assert [s.split(" | ")[0] for s in starts] == [STEP, "Ruhe"]
@@ -162,6 +163,7 @@ def test_every_numeric_dataset_has_units_also_status_and_fits(run_path: Path, tm
     assert not [name for name, units in numeric.items() if units is None]
     assert numeric["status/updated"] == "s" and numeric["status/samples"] == "1"
     assert numeric["events/step"] == "1" and numeric["program/t_start"] == "s"
+    assert str(numeric["laser/t"]).startswith("seconds since ")  # CF time: the run clock from the run's start
     assert list(numeric["fit/membrane-1/values"]) == ["Pa", "1"]  # one unit per parameter
     assert numeric["fit/membrane-1/correlation"] == "1"
     assert numeric["amplifier/voltage"] == "V" and numeric["amplifier/current"] == "A"
@@ -186,6 +188,37 @@ def test_silx_opens_the_file(run_path: Path) -> None:
         np.testing.assert_array_equal(f["laser/t"][()], expected)
         assert f["laser/displacement"].attrs["units"] == "m"
         assert f["program/name"][0].decode() == STEP
+
+
+@pytest.mark.parametrize("engine", ENGINES)
+def test_xarray_decodes_each_time_base_to_absolute_times_from_the_run_s_start(run_path: Path, engine: str) -> None:
+    with h5py.File(run_path, "r") as f:  # the reference: the start as the file's attribute and plain h5py read it
+        start = np.datetime64(datetime.fromisoformat(f.attrs["start_time"]).replace(tzinfo=None), "ns")
+        t = f["laser/t"][:]
+    with xr.open_dataset(run_path, engine=engine, group="laser") as ds:
+        assert ds["t"].dtype.kind == "M"  # decoded: datetime64
+        expected = start + (t * 1e9).round().astype("timedelta64[ns]")
+        assert np.abs(ds["t"].values - expected).max() <= np.timedelta64(1, "us")
+        valid = ds["valid"].attrs
+        assert valid["flag_meanings"] == "invalid valid" and list(valid["flag_values"]) == [0, 1]
+        assert ds["displacement"].attrs["long_name"]
+
+
+def test_nexus_readers_find_the_default_plot(run_path: Path) -> None:
+    from nexusformat.nexus import nxload
+    from silx.io.nxdata import get_default
+
+    root = nxload(str(run_path))
+    data = root.plottable_data  # followed from the root's default, as NeXus viewers do
+    assert data is not None and data.nxclass == "NXdata" and data.nxsignal.nxname == "displacement"
+    assert data.nxaxes[0].nxname == "t"
+    with silx.io.open(str(run_path)) as f:
+        nxdata = get_default(f)
+        assert nxdata is not None and nxdata.is_valid and nxdata.signal.name.endswith("/laser/displacement")
+        np.testing.assert_array_equal(nxdata.axes[0][()], _streams(run_path)["laser"])
+    with h5py.File(run_path, "r") as f:
+        assert f.attrs["Conventions"] == "CF-1.10" and f.attrs["NX_class"] == "NXroot"
+        assert {"setpoints", "amplifier", "laser"} <= set(f["entry"])
 
 
 RATE = 1000.0  # Hz: the live writer stamps sample k at k / RATE s

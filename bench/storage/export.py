@@ -30,7 +30,7 @@ from typing import Any, Literal
 import h5py
 import numpy as np
 
-from bench.storage.runfile import RunFile, open_h5, open_run, valid_counts
+from bench.storage.runfile import RunFile, open_h5, open_run, unit_of, valid_counts
 
 CHUNK_ROWS = 262_144  # records per stream read at a time (a few MB per column)
 MAT5_MAX_STREAM_BYTES = 256 * 2**20  # auto: above this a stream goes to MAT v7.3, written in chunks
@@ -74,7 +74,7 @@ class _Streams:
 
     def units(self, stream: str) -> dict[str, str]:
         g = self.f[stream]
-        return {k: _text(g[k].attrs.get("units", "s" if k == "t" else "")) for k in self.columns[stream]}
+        return {k: unit_of(g[k].attrs.get("units", "s" if k == "t" else "")) for k in self.columns[stream]}
 
     def dtype(self, stream: str, column: str) -> np.dtype:
         dtype: np.dtype = self.f[stream][column].dtype
@@ -88,10 +88,6 @@ class _Streams:
         for a in range(0, n, CHUNK_ROWS):
             b = min(a + CHUNK_ROWS, n)
             yield {c: g[c][a:b] for c in self.columns[stream]}
-
-
-def _text(v: Any) -> str:
-    return v.decode() if isinstance(v, bytes) else str(v)
 
 
 def _formats(streams: _Streams, stream: str) -> list[str]:

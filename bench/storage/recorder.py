@@ -157,6 +157,24 @@ def attach(d: h5py.Dataset, scale: h5py.Dataset, units: str | None = None) -> h5
     return d
 
 
+def seconds_since(start: object) -> str:
+    """CF units of a time base that starts at ``start`` (ISO 8601): ``seconds since <start>``; "s" without one."""
+    if isinstance(start, str):
+        try:
+            datetime.fromisoformat(start)
+        except ValueError:
+            return "s"
+        return f"seconds since {start}"
+    return "s"
+
+
+def _time_axis(t: h5py.Dataset, units: str) -> None:
+    t.attrs["units"] = units
+    t.attrs["standard_name"] = "time"
+    t.attrs["long_name"] = "time on the run clock"
+    t.attrs["axis"] = "T"
+
+
 def now_iso() -> str:
     """UTC time stamp, ISO 8601."""
     return datetime.now(UTC).isoformat(timespec="milliseconds")
@@ -205,11 +223,13 @@ class Recorder:
         f.attrs["format"] = FORMAT
         for key, value in attrs.items():
             f.attrs[key] = value if not isinstance(value, dict | list) else json.dumps(value)
+        time_units = seconds_since(attrs.get("start_time"))
         self._create_status(f)
         self._create_program(f, program)
-        self._create_events(f)
+        self._create_events(f, time_units)
         for name, cols in streams.items():
-            self._create_stream(f, name, cols, rates.get(name, 100.0))
+            self._create_stream(f, name, cols, rates.get(name, 100.0), time_units)
+        self._create_entry(f, list(streams))
         self._datasets = {s: {c.name: f[s][c.name] for c in [Column("t", "s", ""), *cols]}
                           for s, cols in streams.items()}  # cached: group look-ups cost more than the writes
         self._events_ds = {k: f["events"][k] for k in EVENT_FIELDS}
@@ -245,11 +265,11 @@ class Recorder:
             attach(g.create_dataset(field, data=np.array(columns[field], dtype="f8")), index, PROGRAM_UNITS[field])
 
     @staticmethod
-    def _create_events(f: h5py.File) -> None:
+    def _create_events(f: h5py.File, time_units: str) -> None:
         """``/events``: one appendable dataset per event field, along the dimension scale ``t``."""
         g = f.create_group("events")
         t = dimension_scale(g, "t", shape=(0,), maxshape=(None,), dtype="f8", chunks=(256,))
-        t.attrs["units"] = EVENT_UNITS["t"]
+        _time_axis(t, time_units)
         for field in EVENT_FIELDS[1:]:
             kind, size = EVENT_DTYPE[field].kind, EVENT_DTYPE[field].itemsize
             dtype = fixed_text(size) if kind == "S" else EVENT_DTYPE[field]
@@ -257,19 +277,43 @@ class Recorder:
             attach(d, t, EVENT_UNITS.get(field))
 
     @staticmethod
-    def _create_stream(f: h5py.File, name: str, cols: list[Column], rate: float) -> None:
-        """One group per stream: the time base ``t`` (dimension scale) and one dataset per column."""
+    def _create_stream(f: h5py.File, name: str, cols: list[Column], rate: float, time_units: str) -> None:
+        """One group per stream (a NeXus NXdata): the time base ``t`` (dimension scale, the NXdata's axis) and one
+        dataset per column (the first is the group's signal)."""
         g = f.create_group(name)
         g.attrs["rate_Hz"] = rate
+        g.attrs["NX_class"] = "NXdata"
+        if cols:
+            g.attrs["signal"] = cols[0].name
+        g.attrs["axes"] = "t"
         chunk = int(min(65536, max(256, rate * CHUNK_S)))
         layout: dict[str, Any] = {"shape": (0,), "maxshape": (None,), "chunks": (chunk,), "compression": "gzip",
                                   "compression_opts": 1, "shuffle": True}
         t = dimension_scale(g, "t", dtype="f8", **layout)
-        t.attrs["units"] = "s"
+        _time_axis(t, time_units)
         t.attrs["description"] = "time on the run clock"
         for col in cols:
             d = attach(g.create_dataset(col.name, dtype=col.dtype, **layout), t, col.unit)
             d.attrs["description"] = col.description
+            d.attrs["long_name"] = col.description or col.name
+            if col.name == "valid" and np.dtype(col.dtype).kind in "ub":
+                d.attrs["flag_values"] = np.array([0, 1], dtype=col.dtype)
+                d.attrs["flag_meanings"] = "invalid valid"
+
+    @staticmethod
+    def _create_entry(f: h5py.File, streams: list[str]) -> None:
+        """NeXus and CF conventions at the root: ``/entry`` (NXentry) links every stream group and names the one
+        a viewer plots by default (the displacement where there is one)."""
+        f.attrs["Conventions"] = "CF-1.10"
+        f.attrs["NX_class"] = "NXroot"
+        entry = f.create_group("entry")
+        entry.attrs["NX_class"] = "NXentry"
+        for name in streams:
+            entry[name] = h5py.SoftLink(f"/{name}")
+        preferred = [s for s in ("laser", "amplifier", "load_cell", "motor", "setpoints") if s in streams]
+        if preferred:
+            entry.attrs["default"] = preferred[0]
+            f.attrs["default"] = "entry"
 
     @property
     def cpu_seconds(self) -> float:

@@ -102,6 +102,12 @@ def _decode(v: Any) -> Any:
     return v.decode() if isinstance(v, bytes) else v
 
 
+def unit_of(v: Any) -> str:
+    """A dataset's unit as bench shows it: a CF time base ("seconds since <start>") is in seconds, "s"."""
+    text = str(_decode(v))
+    return "s" if text.startswith("seconds since ") else text
+
+
 def open_h5(p: Path) -> h5py.File:
     """Open for reading: as an SWMR reader (also while a run writes, or after a crash), else — a writer that
     died before SWMR mode left the file marked open — from an in-memory copy with those marks cleared."""
@@ -182,7 +188,7 @@ def open_run(path: str | Path, streams: bool = True) -> RunFile:
                 n = min(d.shape[0] for d in g.values())  # a reader may see columns mid-append
                 n = min(n, valid.get(name, n))
                 cols = {k: d[:n] for k, d in g.items() if k != "t"}
-                run.streams[name] = Stream(name, g["t"][:n], cols, {k: _decode(d.attrs["units"]) for k, d in g.items()},
+                run.streams[name] = Stream(name, g["t"][:n], cols, {k: unit_of(d.attrs["units"]) for k, d in g.items()},
                                            float(g.attrs.get("rate_Hz", 0.0)))
     if run.state == "running" and not run.complete:
         run.orphaned = _orphaned(p)
