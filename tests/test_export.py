@@ -110,18 +110,19 @@ def test_auto_picks_v73_for_a_stream_beyond_the_v5_budget(run_file: Path, tmp_pa
 
 def test_streams_are_read_in_chunks_of_the_stated_size(run_file: Path, tmp_path: Path,
                                                        monkeypatch: pytest.MonkeyPatch) -> None:
+    import bench.storage.chunks as chunked
     import bench.storage.export as export
 
     reads: list[int] = []
-    chunks = export._Streams.chunks
+    chunks = chunked.StreamChunks.chunks
 
-    def counted(self: export._Streams, stream: str):  # type: ignore[no-untyped-def]
-        for c in chunks(self, stream):
+    def counted(self: chunked.StreamChunks, stream: str, rows: int | None = None):  # type: ignore[no-untyped-def]
+        for c in chunks(self, stream, rows):
             reads.append(c["t"].size)
             yield c
 
-    monkeypatch.setattr(export, "CHUNK_ROWS", 10_000)
-    monkeypatch.setattr(export._Streams, "chunks", counted)
+    monkeypatch.setattr(chunked, "CHUNK_ROWS", 10_000)
+    monkeypatch.setattr(chunked.StreamChunks, "chunks", counted)
     files = export.to_csv(run_file, tmp_path / "csv")
     with h5py.File(run_file, "r") as f:
         n = int(dict(zip(json.loads(f["status/samples"].attrs["names"]), f["status/samples"][:],

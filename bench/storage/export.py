@@ -13,7 +13,7 @@ MATLAB uses for variables beyond v5's 2 GB — written here with h5py chunk by c
 cell arrays of strings too). ``auto`` picks v7.3 when a stream holds more than
 ``MAT5_MAX_STREAM_BYTES``: v5 has to hold a whole variable in memory to write it.
 
-Every stream is read from the run file in chunks of ``CHUNK_ROWS`` records, so the memory an export needs does
+Every stream is read from the run file in chunks (:mod:`bench.storage.chunks`), so the memory an export needs does
 not grow with the length of the run (``bench benchmark export`` prints it).
 """
 
@@ -22,7 +22,6 @@ from __future__ import annotations
 import csv
 import json
 import re
-from collections.abc import Iterator
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any, Literal
@@ -30,11 +29,10 @@ from typing import Any, Literal
 import h5py
 import numpy as np
 
-from bench.storage.runfile import RunFile, open_h5, open_run, unit_of, valid_counts
+from bench.storage.chunks import StreamChunks
+from bench.storage.runfile import RunFile, open_h5, open_run
 
-CHUNK_ROWS = 262_144  # records per stream read at a time (a few MB per column)
 MAT5_MAX_STREAM_BYTES = 256 * 2**20  # auto: above this a stream goes to MAT v7.3, written in chunks
-STREAMS = ("setpoints", "amplifier", "laser", "motor", "load_cell")
 MatVersion = Literal["auto", "5", "7.3"]
 
 
@@ -54,43 +52,7 @@ def _metadata(run: RunFile) -> dict[str, Any]:
                                                           "complete": run.complete}
 
 
-class _Streams:
-    """The run file's streams, read a chunk at a time: names, units, lengths trimmed to the confirmed records."""
-
-    def __init__(self, f: h5py.File) -> None:
-        self.f = f
-        valid = valid_counts(f)
-        self.length: dict[str, int] = {}
-        self.columns: dict[str, list[str]] = {}
-        for name in STREAMS:
-            if name not in f:
-                continue
-            g = f[name]
-            for d in g.values():
-                d.refresh()
-            n = min(d.shape[0] for d in g.values())
-            self.length[name] = min(n, valid.get(name, n))
-            self.columns[name] = ["t", *(k for k in g if k != "t")]
-
-    def units(self, stream: str) -> dict[str, str]:
-        g = self.f[stream]
-        return {k: unit_of(g[k].attrs.get("units", "s" if k == "t" else "")) for k in self.columns[stream]}
-
-    def dtype(self, stream: str, column: str) -> np.dtype:
-        dtype: np.dtype = self.f[stream][column].dtype
-        return dtype
-
-    def nbytes(self, stream: str) -> int:
-        return sum(self.dtype(stream, c).itemsize for c in self.columns[stream]) * self.length[stream]
-
-    def chunks(self, stream: str) -> Iterator[dict[str, np.ndarray]]:
-        g, n = self.f[stream], self.length[stream]
-        for a in range(0, n, CHUNK_ROWS):
-            b = min(a + CHUNK_ROWS, n)
-            yield {c: g[c][a:b] for c in self.columns[stream]}
-
-
-def _formats(streams: _Streams, stream: str) -> list[str]:
+def _formats(streams: StreamChunks, stream: str) -> list[str]:
     """printf formats per column: integers and flags as integers, time with 12 digits, values with 9."""
     out = []
     for c in streams.columns[stream]:
@@ -106,7 +68,7 @@ def to_csv(run_path: str | Path, folder: str | Path) -> list[Path]:
     out.mkdir(parents=True, exist_ok=True)
     written = []
     with open_h5(Path(run_path)) as f:
-        streams = _Streams(f)
+        streams = StreamChunks(f)
         for stream in streams.length:
             units = streams.units(stream)
             row = ",".join(_formats(streams, stream)) + "\n"
@@ -140,7 +102,7 @@ def mat_version(run_path: str | Path, asked: MatVersion = "auto") -> Literal["5"
     if asked != "auto":
         return asked
     with open_h5(Path(run_path)) as f:
-        streams = _Streams(f)
+        streams = StreamChunks(f)
         big = any(streams.nbytes(s) > MAT5_MAX_STREAM_BYTES for s in streams.length)
     return "7.3" if big else "5"
 
@@ -243,7 +205,7 @@ def _mat73_header() -> bytes:
 def _to_mat73(run_path: str | Path, target: Path) -> None:
     run = open_run(run_path, streams=False)
     with open_h5(Path(run_path)) as src, h5py.File(target, "w", userblock_size=512) as out:
-        streams = _Streams(src)
+        streams = StreamChunks(src)
         for stream, n in streams.length.items():
             cols = streams.columns[stream]
             units = streams.units(stream)
