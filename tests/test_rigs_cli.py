@@ -81,6 +81,28 @@ def test_served_rig_file_round_trips(tmp_path: Path) -> None:
     assert again.motor.port == "/dev/pts/99" and again.buses["scale"].port == "tcp://127.0.0.1:5020"
 
 
+@pytest.mark.parametrize("path", [p for p in ALL_RIGS if p.stem.endswith("-sim")], ids=lambda p: p.stem)
+def test_every_shipped_sim_rig_can_be_served_to_another_process(path: Path, tmp_path: Path) -> None:
+    """Issue 23 item 5: the rig `sim serve --write-rig` writes validates and a client connects to every instrument
+    through it alone (a DAQ rig's endpoint is two sockets: daq.host, daq.port, daq.stream_port)."""
+    from bench.runtime.sim_rig import SimRig
+
+    rig = load_rig(path)
+    sim = SimRig(rig, timing="none")
+    try:
+        sim.start()
+        write_rig(served_rig(rig, sim.port_map()), tmp_path / "served.toml")
+        served = load_rig(tmp_path / "served.toml")  # validates
+        assert not served.simulated
+        if served.daq is not None:
+            host, port, stream = sim.port_map()["daq"].rsplit(":", 2)
+            assert (served.daq.host, served.daq.port, served.daq.stream_port) == (host, int(port), int(stream))
+        rows = check_instruments(served)  # no endpoints passed: the written file alone says where to connect
+    finally:
+        sim.stop()
+    assert sorted(r.role for r in rows if r.ok) == sorted(rig.instruments), rows
+
+
 SERVE_AND_CTRL_C_IN_ANOTHER_THREAD = """
 import signal, sys, threading, time
 from pathlib import Path
