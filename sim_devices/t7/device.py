@@ -165,7 +165,8 @@ class LabJackT7Sim(StreamEngine):
         self._thread.start()
         if not self._ready.wait(timeout) or not self.port:
             raise RuntimeError(f"simulated T7 did not start on {host} (Modbus port {port or 'any'}, stream port "
-                               f"{stream_port or 'any'}): {'; '.join(str(e) for e in self.errors) or 'timeout'}")
+                               f"{stream_port or 'any'}): {'; '.join(str(e) for e in self.errors) or 'timeout'}"
+                               ) from (self.errors[0] if self.errors else None)
         return self.port, self.stream_port
 
     def _run(self, port: int, stream_port: int) -> None:
