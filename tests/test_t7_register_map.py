@@ -220,3 +220,65 @@ def test_a_port_the_twin_cannot_bind_is_a_one_line_error() -> None:
                 sim.start(port=taken)
         finally:
             sim.stop()
+
+
+def _u32w(v: int) -> list[int]:
+    return [v >> 16 & 0xFFFF, v & 0xFFFF]
+
+
+def _f32w(v: float) -> list[int]:
+    return list(struct.unpack(">HH", struct.pack(">f", v)))
+
+
+def _start(sim: LabJackT7Sim, *, rate: float, scanlist: list[int], res: int = 0, settle: float = 0.0) -> int:
+    """Configure a spontaneous stream and enable it: 0, or the LAST_ERR_DETAIL of the refusal."""
+    for name, words in (("STREAM_SCANRATE_HZ", _f32w(rate)), ("STREAM_NUM_ADDRESSES", _u32w(len(scanlist))),
+                        ("STREAM_SAMPLES_PER_PACKET", _u32w(8)), ("STREAM_AUTO_TARGET", _u32w(1)),
+                        ("STREAM_RESOLUTION_INDEX", _u32w(res)), ("STREAM_SETTLING_US", _f32w(settle))):
+        assert _write(sim, BY_NAME[name], words) is None, name
+    for i, a in enumerate(scanlist):
+        assert _write(sim, BY_NAME[f"STREAM_SCANLIST_ADDRESS{i}"], _u32w(a)) is None
+    rc = _write(sim, BY_NAME["STREAM_ENABLE"], _u32w(1))
+    if rc is None:
+        assert _write(sim, BY_NAME["STREAM_ENABLE"], _u32w(0)) is None
+        return 0
+    assert rc == ExcCodes.DEVICE_FAILURE
+    got = _read(sim, BY_NAME["LAST_ERR_DETAIL"], 1)
+    assert isinstance(got, list)
+    return got[0]
+
+
+def test_stream_resolution_index_above_8_is_refused_as_the_map_says() -> None:
+    """STREAM_RESOLUTION_INDEX: "Valid values: 0-8"; error 2606 "Stream resolution can not be greater than 8"."""
+    sim = _sim()
+    ain0, ain1 = BY_NAME["AIN0"], BY_NAME["AIN1"]
+    assert _start(sim, rate=1000, scanlist=[ain0, ain1], res=8) == 0
+    assert _start(sim, rate=1000, scanlist=[ain0, ain1], res=9) == ERRORS["STREAM_CONFIG_INVALID"]
+
+
+def test_stream_settling_beyond_4400_us_or_beyond_the_scan_period_is_refused() -> None:
+    """STREAM_SETTLING_US: "Max is 4400" (2621 STREAM_SETTLING_INVALID); it applies between a scan's channels, not
+    before the first: 3 channels at 1000 scans/s leave 1000 µs for 2 settlings (the twin's stated rule)."""
+    sim = _sim()
+    three = [BY_NAME["AIN0"], BY_NAME["AIN1"], BY_NAME["AIN2"]]
+    assert _start(sim, rate=10, scanlist=three, settle=4401) == ERRORS["STREAM_SETTLING_INVALID"]
+    assert _start(sim, rate=10, scanlist=three, settle=4400) == 0
+    assert _start(sim, rate=1000, scanlist=three, settle=499) == 0
+    assert _start(sim, rate=1000, scanlist=three, settle=500) == ERRORS["STREAM_SCAN_RATE_INVALID"]
+    assert _start(sim, rate=1000, scanlist=three, settle=0) == 0  # automatic settling
+
+
+def test_the_temperature_sensor_streams_at_most_250_hz() -> None:
+    """Error 2631: "Temperature sensor do not work properly when sampled above 250Hz"."""
+    sim = _sim()
+    assert _start(sim, rate=250, scanlist=[BY_NAME["AIN14"]]) == 0
+    assert _start(sim, rate=500, scanlist=[BY_NAME["AIN14"]]) == ERRORS["STREAM_RATE_INVALID_FOR_TEMPERATURE_SENSOR"]
+
+
+def test_a_watchdog_write_while_enabled_is_refused_with_swdt_enabled() -> None:
+    """WATCHDOG_ENABLE_DEFAULT: "The watchdog must be disabled before writing any of the other watchdog registers";
+    error 2671 SWDT_ENABLED."""
+    sim = _sim()
+    assert _write(sim, BY_NAME["WATCHDOG_ENABLE_DEFAULT"], _u32w(1)) is None
+    assert _write(sim, BY_NAME["WATCHDOG_TIMEOUT_S_DEFAULT"], _u32w(5)) == ExcCodes.DEVICE_FAILURE
+    assert _read(sim, BY_NAME["LAST_ERR_DETAIL"], 1) == [ERRORS["SWDT_ENABLED"]]

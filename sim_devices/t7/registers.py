@@ -44,7 +44,11 @@ CORE_CLOCK_HZ = 80e6  # [D] "a core clock of 80 MHz" (STREAM_SCANRATE_HZ); CORE_
 # ---- error codes (LAST_ERR_DETAIL) ----
 E_ILLEGAL_ADDRESS = 1202  # [D] ljm_constants.json errors: LJME_MBE2_ILLEGAL_DATA_ADDRESS, "an invalid address …
 # or illegal access to a device register such as trying to write to a read only register"
-E_WD_ENABLED = 2590  # [A] code for "write while the watchdog is enabled" (the datasheet names no number)
+E_WD_ENABLED = 2671  # [D] SWDT_ENABLED: "The watchdog must be disabled before the requested operation …"
+E_RES_INDEX, E_SETTLING, E_TEMP_RATE = 2606, 2621, 2631  # [D] STREAM_CONFIG_INVALID ("Stream resolution can not be
+# greater than 8"), STREAM_SETTLING_INVALID, STREAM_RATE_INVALID_FOR_TEMPERATURE_SENSOR ("… above 250Hz")
+MAX_STREAM_RES_INDEX, MAX_SETTLING_US, MAX_TEMP_SCAN_HZ = 8, 4400.0, 250.0  # [D] STREAM_RESOLUTION_INDEX "Valid
+# values: 0-8"; STREAM_SETTLING_US "Max is 4400"; the temperature sensor's 250 Hz (error 2631)
 E_ACTIVE, E_CHN_LIST, E_RATE, E_DTYPE, E_TARGET, E_OUT_FULL, E_BUFSIZE, E_OUT_DNE, E_SPP, E_NOT_RUNNING, \
     E_LOOP_BIG, E_OUT_DISABLED, E_NO_CHN, E_OUT_TARGET = (
         2605, 2607, 2608, 2611, 2612, 2613, 2615, 2617, 2618, 2620, 2622, 2627, 2600, 2614)

@@ -5,6 +5,12 @@ Length, unit 1, function 76, type 16, reserved 0, backlog, status, AddInfo, samp
 backlog = bytes still buffered after this packet.
 [D] actual rate 10 MHz / round(10 MHz / rate), computed when written; [A] at most 100 kS/s (inputs + stream-out
 entries), else STREAM_SCAN_RATE_INVALID.
+[D] at STREAM_ENABLE: STREAM_RESOLUTION_INDEX > 8 → 2606 (STREAM_CONFIG_INVALID); STREAM_SETTLING_US > 4400 → 2621
+(STREAM_SETTLING_INVALID); AIN14 (temperature sensor) in the scan list above 250 scans/s → 2631. [D] settling "does
+not apply to the 1st channel in the scan list": [A] the n − 1 settlings of an explicit STREAM_SETTLING_US (≥ 1 µs)
+must fit in one scan period, else 2608 (STREAM_SCAN_RATE_INVALID). [L] the conversion time and noise of each
+resolution index (the datasheet's stream and noise tables) are not modelled: the index changes neither the
+samples nor the maximum rate; no ADC noise is added.
 [E] auto-recovery: when more than STREAM_BUFFER_SIZE_BYTES wait unsent (the host does not read), new scans are dropped
 and packets carry 2940; when room returns the next packet carries 2941, AddInfo = scans skipped, and starts with one
 dummy scan of 0xFFFF.
@@ -23,7 +29,7 @@ from collections import deque
 
 import numpy as np
 
-from sim_devices.t7.analog import RANGE_GAIN
+from sim_devices.t7.analog import AIN_TEMPERATURE, RANGE_GAIN
 from sim_devices.t7.registers import (
     E_ACTIVE,
     E_BUFSIZE,
@@ -31,14 +37,22 @@ from sim_devices.t7.registers import (
     E_DTYPE,
     E_NO_CHN,
     E_RATE,
+    E_RES_INDEX,
+    E_SETTLING,
     E_SPP,
     E_TARGET,
+    E_TEMP_RATE,
+    MAX_SETTLING_US,
+    MAX_STREAM_RES_INDEX,
+    MAX_TEMP_SCAN_HZ,
     N_AIN_ALL,
     R_BUFSIZE,
     R_DTYPE,
     R_NADDR,
     R_NSCANS,
     R_O_SCAN,
+    R_RES,
+    R_SETTLE,
     R_SPP,
     R_TARGET,
     S_BURST,
@@ -183,6 +197,15 @@ class StreamEngine(StreamOut):
             return E_CHN_LIST
         if self.rate * n > MAX_SAMPLE_RATE or self.rate <= 0:
             return E_RATE
+        if self.regs[R_RES] > MAX_STREAM_RES_INDEX:
+            return E_RES_INDEX
+        settle = self.regs[R_SETTLE]  # [D] below 1: automatic
+        if settle > MAX_SETTLING_US:
+            return E_SETTLING
+        if settle >= 1 and (n - 1) * settle * 1e-6 * self.rate >= 1:  # the settlings between a scan's channels
+            return E_RATE
+        if 2 * AIN_TEMPERATURE in entries and self.rate > MAX_TEMP_SCAN_HZ:
+            return E_TEMP_RATE
         if self.regs[R_TARGET] != 1:
             return E_TARGET
         if self.regs[R_DTYPE] != 0:
