@@ -282,3 +282,20 @@ def test_a_watchdog_write_while_enabled_is_refused_with_swdt_enabled() -> None:
     assert _write(sim, BY_NAME["WATCHDOG_ENABLE_DEFAULT"], _u32w(1)) is None
     assert _write(sim, BY_NAME["WATCHDOG_TIMEOUT_S_DEFAULT"], _u32w(5)) == ExcCodes.DEVICE_FAILURE
     assert _read(sim, BY_NAME["LAST_ERR_DETAIL"], 1) == [ERRORS["SWDT_ENABLED"]]
+
+
+def test_input_noise_is_seeded_and_a_twin_built_without_noise_reads_exact_values() -> None:
+    """A wired input with noise: the same seed gives the same samples; ``noise=False`` (the rig's [sim] noise
+    option) gives the noiseless gain·observable + offset."""
+    from sim_devices.labjack_t7 import Signal
+
+    def reads(noise: bool, seed: int) -> list[float]:
+        clock = VirtualClock()
+        sim = LabJackT7Sim(Plant(clock, MembraneParams(), hv=HVStage()), clock, seed=seed, noise=noise,
+                           signals={0: Signal("voltage", 1.0, 0.5, noise=0.01)})
+        return [_f32(_read(sim, BY_NAME["AIN0"], 2)) for _ in range(20)]  # type: ignore[arg-type]
+
+    assert reads(False, 1) == [0.5] * 20  # the plant at rest: 0 V at the amplifier output
+    noisy = reads(True, 1)
+    assert noisy == reads(True, 1) and noisy != reads(True, 2)
+    assert len(set(noisy)) > 1

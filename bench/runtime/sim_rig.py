@@ -144,7 +144,8 @@ class SimRig:
         cond = Conditioning(d.drive_gain, d.drive_offset_V, corner_Hz=d.drive_filter_Hz)
         def make() -> LabJackT7Sim:
             return LabJackT7Sim(self.plant, self.clock, dac=d.dac, conditioning=cond, signals=signals,
-                                seed=rig.simulation.seed + 3, faults=self.faults["daq"])
+                                seed=rig.simulation.seed + 3, faults=self.faults["daq"],
+                                noise=bool(getattr(rig.simulation, "noise", True)))  # [sim] noise, default on
 
         twin = self._start_t7(make)
         self._daq_ports = twin.port, twin.stream_port

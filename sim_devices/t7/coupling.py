@@ -26,13 +26,15 @@ class PlantCoupling:
     """Plant history, AIN sampling, DAC conversion and the amplifier-input drive of one T7 twin."""
 
     def __init__(self, plant: Plant, clock: Clock, *, dac: int, conditioning: Conditioning | None,
-                 signals: dict[int, Signal] | None, calibration: list[float] | None, seed: int) -> None:
+                 signals: dict[int, Signal] | None, calibration: list[float] | None, seed: int,
+                 noise: bool = True) -> None:
         self.plant, self.clock = plant, clock
         self.dac = dac
         self.conditioning = conditioning or Conditioning()
         self.signals = default_signals() if signals is None else signals
         self.cal = list(calibration or analog.nominal_calibration())
         self.rng = np.random.default_rng(seed)
+        self.noise = noise  # False: every input reads its noiseless value (golden tests; rig option [sim] noise)
         self.lock = threading.RLock()
         self._hist_lock = threading.Lock()  # the plant's listener takes only this one (no lock cycle)
         self._hist_t: deque[np.ndarray] = deque()
@@ -79,7 +81,7 @@ class PlantCoupling:
         if sig is None or ain == AIN_GROUND:
             return np.zeros(n)
         v = sig.gain * np.nan_to_num(obs[sig.observable]) + sig.offset
-        if sig.noise:
+        if sig.noise and self.noise:
             v = v + self.rng.normal(0.0, sig.noise, n)
         return np.asarray(v, float)
 

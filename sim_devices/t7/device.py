@@ -112,9 +112,9 @@ class LabJackT7Sim(StreamEngine):
     def __init__(self, plant: Plant, clock: Clock, *, serial: int = 470012345, dac: int = 0,
                  conditioning: Conditioning | None = None, signals: dict[int, Signal] | None = None,
                  calibration: list[float] | None = None, seed: int = 7, poll: float = 0.002,
-                 faults: Faults | None = None) -> None:
+                 faults: Faults | None = None, noise: bool = True) -> None:
         super().__init__(plant, clock, dac=dac, conditioning=conditioning, signals=signals, calibration=calibration,
-                         seed=seed)
+                         seed=seed, noise=noise)
         self.serial = serial
         self.poll = poll
         self.faults = faults or Faults()
