@@ -251,8 +251,8 @@ def test_twin_runs_feedback_frames_in_order_and_returns_the_reads(raw_twin: Rig)
 
 def test_twin_stops_a_feedback_packet_at_the_refused_frame(raw_twin: Rig) -> None:
     with socket.create_connection(("127.0.0.1", raw_twin.port), timeout=2) as s:
-        # DAC0 ← 1.0 V, then a write to 2000 (no register there), then DAC0 ← 3.0 V
-        reply = _transact(s, bytes.fromhex("0006 0000 001a 01 4c 01 03e8 02 3f80 0000 01 07d0 02 0000 0000"
+        # DAC0 ← 1.0 V, then a write to 1500 (no register there in the map), then DAC0 ← 3.0 V
+        reply = _transact(s, bytes.fromhex("0006 0000 001a 01 4c 01 03e8 02 3f80 0000 01 05dc 02 0000 0000"
                                            " 01 03e8 02 4040 0000"))
         assert reply[7] == 0xCC and reply[8] == 2  # exception to function 76: illegal data address
         assert _transact(s, bytes.fromhex("0007 0000 0006 01 03 03e8 0002")) == \

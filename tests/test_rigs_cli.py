@@ -81,6 +81,28 @@ def test_served_rig_file_round_trips(tmp_path: Path) -> None:
     assert again.motor.port == "/dev/pts/99" and again.buses["scale"].port == "tcp://127.0.0.1:5020"
 
 
+@pytest.mark.parametrize("path", [p for p in ALL_RIGS if p.stem.endswith("-sim")], ids=lambda p: p.stem)
+def test_every_shipped_sim_rig_can_be_served_to_another_process(path: Path, tmp_path: Path) -> None:
+    """Issue 23 item 5: the rig `sim serve --write-rig` writes validates and a client connects to every instrument
+    through it alone (a DAQ rig's endpoint is two sockets: daq.host, daq.port, daq.stream_port)."""
+    from bench.runtime.sim_rig import SimRig
+
+    rig = load_rig(path)
+    sim = SimRig(rig, timing="none")
+    try:
+        sim.start()
+        write_rig(served_rig(rig, sim.port_map()), tmp_path / "served.toml")
+        served = load_rig(tmp_path / "served.toml")  # validates
+        assert not served.simulated
+        if served.daq is not None:
+            host, port, stream = sim.port_map()["daq"].rsplit(":", 2)
+            assert (served.daq.host, served.daq.port, served.daq.stream_port) == (host, int(port), int(stream))
+        rows = check_instruments(served)  # no endpoints passed: the written file alone says where to connect
+    finally:
+        sim.stop()
+    assert sorted(r.role for r in rows if r.ok) == sorted(rig.instruments), rows
+
+
 SERVE_AND_CTRL_C_IN_ANOTHER_THREAD = """
 import signal, sys, threading, time
 from pathlib import Path
@@ -181,3 +203,66 @@ def test_sim_serve_serves_with_wire_time_unless_told_otherwise(flag: list[str], 
     res = runner.invoke(app, ["sim", "serve", str(RIGS / "thesis-sim.toml"), "--duration", "0.2", *flag])
     assert res.exit_code == 0, res.output
     assert seen == [timing] and said in res.output
+
+
+@pytest.mark.parametrize("flag, ports", [([], (0, 0)), (["--t7-ports"], (502, 702))])
+def test_sim_serve_t7_ports_asks_for_the_t7s_own_ports(flag: list[str], ports: tuple[int, int],
+                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    """Issue 23: `sim serve --t7-ports` serves the T7 twin on 502 (Modbus TCP) and 702 (stream), the ports the T7
+    datasheet gives; without it, ephemeral ports. (The wiring only: binding 502 needs root, which tests do not.)"""
+    import bench.runtime.sim_rig as simrig
+
+    seen: list[tuple[int, int]] = []
+    monkeypatch.setattr(simrig.SimRig, "start", lambda self: seen.append(self.daq_ports) or {})
+    res = runner.invoke(app, ["sim", "serve", str(RIGS / "thesis-daq-sim.toml"), "--duration", "0.1", *flag])
+    assert res.exit_code == 0, res.output
+    assert seen == [ports]
+
+
+def _free_ports() -> tuple[int, int]:
+    import socket
+
+    with socket.socket() as a, socket.socket() as b:
+        a.bind(("127.0.0.1", 0))
+        b.bind(("127.0.0.1", 0))
+        return a.getsockname()[1], b.getsockname()[1]
+
+
+def test_a_daq_rig_serves_its_t7_on_the_ports_asked_and_a_client_connects_there() -> None:
+    from bench.runtime.sim_rig import SimRig
+
+    ports = _free_ports()
+    sim = SimRig(load_rig(RIGS / "thesis-daq-sim.toml"), timing="none", daq_ports=ports)
+    try:
+        sim.start()
+        assert sim.port_map()["daq"] == f"127.0.0.1:{ports[0]}:{ports[1]}"
+        rows = check_instruments(sim.rig, sim.port_map())
+    finally:
+        sim.stop()
+    assert [r.role for r in rows if r.role == "daq" and r.ok] == ["daq"], rows
+
+
+def test_t7_ports_below_1024_move_up_where_binding_them_is_refused(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Unprivileged fallback: where the kernel refuses 502/702 (no root, no CAP_NET_BIND_SERVICE) the twin serves
+    on 10502/10702. The refusal is simulated (a test must not need root, and this one may run as root)."""
+    import bench.runtime.sim_rig as simrig
+    from sim_devices.labjack_t7 import LabJackT7Sim
+
+    real_start = LabJackT7Sim.start
+    asked: list[tuple[int, int]] = []
+    free = _free_ports()
+
+    def start(self: LabJackT7Sim, timeout: float = 10.0, *, host: str = "127.0.0.1", port: int = 0,
+              stream_port: int = 0) -> tuple[int, int]:
+        asked.append((port, stream_port))
+        if port < 1024:
+            raise RuntimeError("simulated T7 did not start") from PermissionError(13, "Permission denied")
+        return real_start(self, timeout, host=host, port=free[0], stream_port=free[1])  # the test's free ports
+
+    monkeypatch.setattr(LabJackT7Sim, "start", start)
+    sim = simrig.SimRig(load_rig(RIGS / "thesis-daq-sim.toml"), timing="none", daq_ports=simrig.T7_PORTS)
+    try:
+        sim.start()
+    finally:
+        sim.stop()
+    assert asked == [(502, 702), (10502, 10702)]

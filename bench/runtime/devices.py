@@ -50,12 +50,16 @@ def check_instruments(rig: RigConfig, endpoints: dict[str, str] | None = None) -
 
 
 def served_rig(rig: RigConfig, ports: dict[str, str]) -> RigConfig:
-    """The rig as seen from outside: real (not simulated), ports set to the running twins' endpoints."""
+    """The rig as seen from outside: real (not simulated), ports set to the running twins' endpoints (the DAQ's
+    ``host:port:stream_port`` endpoint sets ``daq.host``, ``daq.port`` and ``daq.stream_port``)."""
     data = rig.model_dump()
     data["simulated"] = False
     data["name"] = f"{rig.name}-served"
     for name, port in ports.items():
-        if name in data.get("buses", {}):
+        if name == "daq" and data.get("daq") is not None:  # the T7 twin: "host:port:stream_port" (two sockets)
+            host, modbus, stream = port.rsplit(":", 2)
+            data["daq"].update(host=host, port=int(modbus), stream_port=int(stream))
+        elif name in data.get("buses", {}):
             data["buses"][name]["port"] = port
         elif data.get(name) is not None:
             data[name]["port"] = port

@@ -13,6 +13,7 @@ time is answered without first integrating the idle time.
 from __future__ import annotations
 
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -21,11 +22,14 @@ from bench.core.plant import Plant
 from bench.rig import RigConfig, amplifier_spec, plant_for
 from sim_devices.keyence_lkg import TURNAROUND_S as LKG_TURNAROUND_S
 from sim_devices.keyence_lkg import KeyenceLKGSim, LaserHead
+from sim_devices.labjack_t7 import LabJackT7Sim
 from sim_devices.linmot_drive import LinMotDriveSim
 from sim_devices.modbus_devices import Adam4017PSim, Adam4024Sim, Dgt1sSim, Scale
 from sim_devices.modbus_host import ModbusHost, SimBus
 from sim_devices.transport import Faults, Line, PtyDevice, TwinTimer
 
+T7_PORTS = (502, 702)  # the T7's own Modbus TCP and stream ports (T-Series Datasheet; ljm_constants STREAM_AUTO_TARGET)
+UNPRIVILEGED_OFFSET = 10000  # where binding below 1024 is refused: 502/702 → 10502/10702
 LINRS_TURNAROUND_S = 1e-3  # LinMot drive: telegram received → response [assumed]
 PLANT_TICK_S = 0.02  # wall clock: the background thread advances the plant this often
 Timing = Literal["real", "none"]
@@ -48,6 +52,7 @@ class SimRig:
     rig: RigConfig
     virtual: bool = False
     timing: Timing | None = None
+    daq_ports: tuple[int, int] = (0, 0)  # the T7 twin's (Modbus, stream) ports; 0: ephemeral; T7_PORTS: the T7's own
     clock: Clock = field(init=False)
     plant: Plant = field(init=False)
     twins: dict[str, object] = field(init=False, default_factory=dict)
@@ -123,7 +128,7 @@ class SimRig:
 
     def _start_daq(self) -> None:
         """The T7 twin: DAC → conditioning → amplifier input; AINs wired to the plant's observables."""
-        from sim_devices.labjack_t7 import Conditioning, LabJackT7Sim, Signal
+        from sim_devices.labjack_t7 import Conditioning, Signal
 
         d, rig, trek = self.rig.daq, self.rig, amplifier_spec(self.rig)
         assert d is not None
@@ -137,10 +142,31 @@ class SimRig:
                                           (offset - d.laser_offset_m) / d.laser_m_per_V)
         self.faults["daq"] = Faults(latency=rig.simulation.latency_s, clock=self.clock.now)
         cond = Conditioning(d.drive_gain, d.drive_offset_V, corner_Hz=d.drive_filter_Hz)
-        twin = LabJackT7Sim(self.plant, self.clock, dac=d.dac, conditioning=cond, signals=signals,
-                            seed=rig.simulation.seed + 3, faults=self.faults["daq"])
-        self._daq_ports = twin.start()
+        def make() -> LabJackT7Sim:
+            return LabJackT7Sim(self.plant, self.clock, dac=d.dac, conditioning=cond, signals=signals,
+                                seed=rig.simulation.seed + 3, faults=self.faults["daq"],
+                                noise=bool(getattr(rig.simulation, "noise", True)))  # [sim] noise, default on
+
+        twin = self._start_t7(make)
+        self._daq_ports = twin.port, twin.stream_port
         self.twins["daq"] = twin
+
+    def _start_t7(self, make: Callable[[], LabJackT7Sim]) -> LabJackT7Sim:
+        """A T7 twin serving on ``daq_ports``; ports below 1024 that this process may not bind (no root, no
+        CAP_NET_BIND_SERVICE) move up by :data:`UNPRIVILEGED_OFFSET`, as the endpoint table then shows."""
+        port, stream = self.daq_ports
+        twin = make()
+        try:
+            twin.start(port=port, stream_port=stream)
+            return twin
+        except RuntimeError as exc:
+            twin.stop()
+            if not isinstance(exc.__cause__, PermissionError) or not 0 < min(port or 1024, stream or 1024) < 1024:
+                raise
+        twin = make()
+        twin.start(port=port + UNPRIVILEGED_OFFSET if 0 < port < 1024 else port,
+                   stream_port=stream + UNPRIVILEGED_OFFSET if 0 < stream < 1024 else stream)
+        return twin
 
     def _serve_serial(self, role: str, twin: object, baud: float, turnaround: float) -> None:
         self.faults[role] = Faults(latency=self.rig.simulation.latency_s, clock=self.clock.now)

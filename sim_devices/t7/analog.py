@@ -1,0 +1,94 @@
+"""What the T7's analog channels see and how they convert: the rig's conditioning stage before the DAC's load, the
+wiring of each AIN to the plant, the factory calibration constants, the ADC's and DAC's codes.
+
+[E] calibration in flash at 0x3C4000 (41 F32, LabJack example getNominalCalibration's nominal constants);
+[A] F32 stream-out values → code = V·Slope + Offset (own calibration); [D] 12-bit DAC, low 4 bits ignored;
+[D] AIN14 reads the internal temperature sensor, AIN15 internal ground (T7 datasheet §14.0 AIN); [E] K = slope·V +
+offset with the temperature constants of the calibration (flash words 36, 37); [A] the device at 25 °C.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+RANGE_GAIN = {0.0: 0, 10.0: 0, 1.0: 1, 0.1: 2, 0.01: 3}  # [D] AIN#_RANGE values → gain index of the calibration
+DEVICE_TEMPERATURE_K = 298.15  # [A] the device's own temperature (the datasheet's 25 °C specification point)
+AIN_TEMPERATURE, AIN_GROUND = 14, 15
+
+
+def nominal_calibration() -> list[float]:
+    """T7 nominal constants (LabJack example getNominalCalibration), flash order."""
+    hs: list[float] = []
+    for g in range(4):
+        k = 10.0 ** -g
+        hs += [0.000315805780 * k, -0.000315805800 * k, 33523.0, -10.58695652200 * k]
+    return hs + hs + [13200.0, 0.0, 13200.0, 0.0, -92.379, 465.129, 10e-6, 200e-6, 0.0]
+
+
+
+def temperature_volts(cal: list[float], kelvin: float = DEVICE_TEMPERATURE_K) -> float:
+    """AIN14's voltage at ``kelvin``: the inverse of the calibration's K = slope·V + offset (flash words 36, 37)."""
+    slope, offset = cal[36], cal[37]
+    return (kelvin - offset) / slope
+
+
+def ain_codes(cal: list[float], volts: np.ndarray, gain: int) -> np.ndarray:
+    """The 16-bit stream codes of ``volts`` on gain index ``gain`` (calibration: positive slope, negative slope,
+    centre)."""
+    p, nslope, c = cal[4 * gain:4 * gain + 3]
+    raw = np.where(volts >= 0, c + volts / p, c - volts / nslope)
+    return np.clip(np.rint(raw), 0, 65535).astype(np.uint16)
+
+
+def dac_code(cal: list[float], volts: float, ch: int) -> int:
+    """DAC ``ch``'s 16-bit code for ``volts`` (flash DAC slope [codes/V], offset [codes])."""
+    slope, off = cal[32 + 2 * ch:34 + 2 * ch]
+    return int(min(max(round(volts * slope + off), 0), 65535))
+
+
+def dac_volts(cal: list[float], code: int, ch: int) -> float:
+    """One code's output, as :func:`dac_codes_volts` (the same double operations, without an array per value)."""
+    slope, off = cal[32 + 2 * ch:34 + 2 * ch]
+    return ((int(code) >> 4 << 4) - off) / slope
+
+
+def dac_codes_volts(cal: list[float], codes: np.ndarray, ch: int) -> np.ndarray:
+    """The outputs of DAC ``ch`` for ``codes`` (12-bit DAC: the low 4 bits ignored)."""
+    slope, off = cal[32 + 2 * ch:34 + 2 * ch]
+    return ((codes >> 4 << 4) - off) / slope
+
+
+@dataclass(frozen=True)
+class Conditioning:
+    """Rig's stage between a DAC (0–5 V) and the amplifier input: ``gain``·V + ``offset``, clipped ±``limit``,
+    optionally through a first-order reconstruction low-pass of corner ``corner_Hz`` (applied to streamed
+    values scan by scan; [L] a command-response write reaches the amplifier unfiltered, as a step)."""
+
+    gain: float = 4.0
+    offset: float = -10.0
+    limit: float = 10.0
+    corner_Hz: float | None = None
+
+    def __call__(self, volts: np.ndarray) -> np.ndarray:
+        # np.minimum/np.maximum: np.clip's values (NaN passes through) at a fraction of its call overhead
+        return np.minimum(np.maximum(self.gain * np.asarray(volts, float) + self.offset, -self.limit), self.limit)
+
+
+@dataclass(frozen=True)
+class Signal:
+    """What one AIN sees: ``gain``·(plant observable) + ``offset`` [V], with Gaussian noise [V rms]."""
+
+    observable: str  # "voltage", "current", "force", "displacement"
+    gain: float
+    offset: float = 0.0
+    noise: float = 0.0
+
+
+def default_signals(vmon_ratio: float = 1000.0, imon_ratio: float = 1e-3, force_gain: float = 1.0,
+                    laser_gain: float = 200.0, laser_offset: float = 0.0) -> dict[int, Signal]:
+    """AIN0 TREK V monitor, AIN1 I monitor, AIN2 bridge amplifier [V/N], AIN3 laser analog output [V/m]."""
+    return {0: Signal("voltage", 1.0 / vmon_ratio), 1: Signal("current", 1.0 / imon_ratio),
+            2: Signal("force", force_gain), 3: Signal("displacement", laser_gain, laser_offset)}
+

@@ -1,0 +1,116 @@
+"""The T7 twin's coupling to the plant: the observables' history its inputs sample, the amplifier input its DAC
+drives, and the scan clock both run on.
+
+[D] scan k at t_enable + (k+1)/rate; [A] all samples of a scan taken at that instant (the mux is µs apart).
+Wiring: DAC ``dac`` drives the amplifier's input through the rig's conditioning stage (``gain``·V + ``offset``); each
+wired AIN reads ``gain``·observable + ``offset`` of the plant (TREK voltage and current monitors, load-cell bridge
+amplifier, laser analog output).
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from collections import deque
+
+import numpy as np
+from scipy.signal import lfilter
+
+from bench.core.clock import Clock
+from bench.core.plant import Plant, PlantBlock
+from sim_devices.t7 import analog
+from sim_devices.t7.analog import AIN_GROUND, AIN_TEMPERATURE, Conditioning, Signal, default_signals
+
+
+class PlantCoupling:
+    """Plant history, AIN sampling, DAC conversion and the amplifier-input drive of one T7 twin."""
+
+    def __init__(self, plant: Plant, clock: Clock, *, dac: int, conditioning: Conditioning | None,
+                 signals: dict[int, Signal] | None, calibration: list[float] | None, seed: int,
+                 noise: bool = True) -> None:
+        self.plant, self.clock = plant, clock
+        self.dac = dac
+        self.conditioning = conditioning or Conditioning()
+        self.signals = default_signals() if signals is None else signals
+        self.cal = list(calibration or analog.nominal_calibration())
+        self.rng = np.random.default_rng(seed)
+        self.noise = noise  # False: every input reads its noiseless value (golden tests; rig option [sim] noise)
+        self.lock = threading.RLock()
+        self._hist_lock = threading.Lock()  # the plant's listener takes only this one (no lock cycle)
+        self._hist_t: deque[np.ndarray] = deque()
+        self._hist: deque[dict[str, np.ndarray]] = deque()
+        self.errors: list[BaseException] = []
+        self.rate = 0.0  # actual scan rate
+        self.streaming = False
+        self.t_enable = 0.0
+        self._filter_y: float | None = None  # reconstruction filter state [V at the amplifier input]
+        self._on_block(plant.last)
+        plant.listeners.append(self._on_block)
+
+    def _cur_scan(self, now: float) -> int:
+        """Index of the last scan that has run (−1: none)."""
+        return math.floor((now - self.t_enable) * self.rate + 1e-6) - 1
+
+    def _on_block(self, block: PlantBlock) -> None:
+        with self._hist_lock:
+            self._hist_t.append(block.t.copy())
+            self._hist.append({"voltage": block.voltage.copy(), "current": block.current.copy(),
+                               "force": block.force.copy(), "displacement": block.displacement.copy()})
+            while len(self._hist_t) > 2 and self._hist_t[1][-1] < self.clock.now() - 2.0:
+                self._hist_t.popleft()
+                self._hist.popleft()
+
+    def _observe(self, times: np.ndarray) -> dict[str, np.ndarray]:
+        """Plant observables held at the last model step at or before each time."""
+        self.plant.advance_to(float(times[-1]))
+        with self._hist_lock:
+            first = len(self._hist_t) - 1  # only the blocks that cover the requested times (and the one before)
+            while first > 0 and self._hist_t[first][0] > times[0]:
+                first -= 1
+            hist_t = [self._hist_t[i] for i in range(first, len(self._hist_t))]
+            hist = [self._hist[i] for i in range(first, len(self._hist))]
+            t = np.concatenate(hist_t)
+            idx = np.clip(np.searchsorted(t, times + 1e-9, side="right") - 1, 0, t.size - 1)
+            return {k: np.concatenate([h[k] for h in hist])[idx] for k in hist[0]}
+
+
+    def _ain_volts(self, ain: int, obs: dict[str, np.ndarray], n: int) -> np.ndarray:
+        if ain == AIN_TEMPERATURE:
+            return np.full(n, analog.temperature_volts(self.cal))
+        sig = self.signals.get(ain)
+        if sig is None or ain == AIN_GROUND:
+            return np.zeros(n)
+        v = sig.gain * np.nan_to_num(obs[sig.observable]) + sig.offset
+        if sig.noise and self.noise:
+            v = v + self.rng.normal(0.0, sig.noise, n)
+        return np.asarray(v, float)
+
+    def _raw(self, volts: np.ndarray, gain: int) -> np.ndarray:
+        return analog.ain_codes(self.cal, volts, gain)
+
+    def _code(self, volts: float, ch: int) -> int:
+        return analog.dac_code(self.cal, volts, ch)
+
+    def _code_volts(self, code: int, ch: int) -> float:
+        return analog.dac_volts(self.cal, code, ch)
+
+    def _codes_volts(self, codes: np.ndarray, ch: int) -> np.ndarray:
+        return analog.dac_codes_volts(self.cal, codes, ch)
+
+    def _drive(self, first: int, codes: np.ndarray) -> None:
+        """Amplifier input events for DAC values played at scans ``first``, ``first`` + 1, …"""
+        times = self.t_enable + (first + 1 + np.arange(codes.size)) / self.rate
+        volts = self.conditioning(self._codes_volts(codes, self.dac))
+        fc = self.conditioning.corner_Hz
+        if fc is not None and volts.size:  # exact first-order low-pass at the scan instants
+            alpha = 1.0 - math.exp(-2.0 * math.pi * fc / self.rate)
+            y = self.plant.v_in if self._filter_y is None else self._filter_y
+            volts, _ = lfilter([alpha], [1.0, alpha - 1.0], volts, zi=[(1.0 - alpha) * y])
+            self._filter_y = float(volts[-1])
+        try:
+            self.plant.schedule_amplifier_input(times, volts)
+        except ValueError as exc:  # cannot happen under the lock order; kept as a check
+            self.errors.append(RuntimeError(f"DAC value: {exc}"))
+
+    def _undrive_after(self, t: float) -> None:
+        self.plant.unschedule_amplifier_input(t)

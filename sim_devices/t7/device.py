@@ -1,0 +1,171 @@
+"""The T7 twin: Modbus TCP registers (pymodbus 3.16 ``SimDevice``) and spontaneous stream packets on a second
+socket, backed by the shared plant and clock; composed of :mod:`~sim_devices.t7.registers` (the map),
+:mod:`~sim_devices.t7.coupling` (plant and analog channels), :mod:`~sim_devices.t7.stream_out`,
+:mod:`~sim_devices.t7.stream_in` (the stream engine), :mod:`~sim_devices.t7.watchdog` and
+:mod:`~sim_devices.t7.feedback` (MBFB), with :mod:`~sim_devices.t7.register_io` (the register dispatch) on top;
+this module serves it.
+
+[D] ports: Modbus TCP 502, stream 702; the twin listens on ephemeral loopback ports unless given others
+(:meth:`LabJackT7Sim.start`).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import threading
+
+from pymodbus.server import ModbusTcpServer
+from pymodbus.simulator import DataType, SimData, SimDevice
+
+from bench.core.clock import Clock
+from bench.core.plant import Plant
+from sim_devices.t7.analog import Conditioning, Signal
+from sim_devices.t7.feedback import FeedbackPDU, T7Server
+from sim_devices.t7.register_io import RegisterIO
+from sim_devices.t7.registers import R_O_U16, UNIT
+from sim_devices.transport import Faults, SocketRelay
+
+
+class LabJackT7Sim(RegisterIO):
+    """The T7 twin: registers, stream engine, stream-out to the plant, watchdog; served on TCP."""
+
+    def __init__(self, plant: Plant, clock: Clock, *, serial: int = 470012345, dac: int = 0,
+                 conditioning: Conditioning | None = None, signals: dict[int, Signal] | None = None,
+                 calibration: list[float] | None = None, seed: int = 7, poll: float = 0.002,
+                 faults: Faults | None = None, noise: bool = True) -> None:
+        super().__init__(plant, clock, dac=dac, conditioning=conditioning, signals=signals, calibration=calibration,
+                         seed=seed, noise=noise)
+        self.poll = poll
+        self.faults = faults or Faults()
+        self._init_registers(serial)
+        self._init_stream_out()
+        self._init_stream_in()
+        words_ = [SimData(0, count=65535, values=0, datatype=DataType.REGISTERS)]
+        self.device = SimDevice(UNIT, words_, action=self.action)
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._thread: threading.Thread | None = None
+        self._ready = threading.Event()
+        self._server: ModbusTcpServer | None = None
+        self._relay: SocketRelay | None = None
+        self._stream_server: asyncio.Server | None = None
+        self._pump_task: asyncio.Task[None] | None = None
+        self.host = "127.0.0.1"
+        self.port = 0
+        self.stream_port = 0
+        self._wake_pending = False
+
+    # ------------------------------------------------------------------ serving
+    def start(self, timeout: float = 10.0, *, host: str = "127.0.0.1", port: int = 0,
+              stream_port: int = 0) -> tuple[int, int]:
+        """Serve Modbus TCP and the stream socket on ``host`` (ports 0: ephemeral; the T7's own are
+        :data:`~sim_devices.t7.registers.MODBUS_PORT` 502 and :data:`~sim_devices.t7.registers.STREAM_PORT` 702);
+        returns (Modbus port, stream port). A port that cannot be bound (in use, or below 1024 without the
+        privilege) raises RuntimeError naming it."""
+        self.host = host
+        self._thread = threading.Thread(target=self._run, args=(port, stream_port), name="sim-labjack", daemon=True)
+        self._thread.start()
+        if not self._ready.wait(timeout) or not self.port:
+            raise RuntimeError(f"simulated T7 did not start on {host} (Modbus port {port or 'any'}, stream port "
+                               f"{stream_port or 'any'}): {'; '.join(str(e) for e in self.errors) or 'timeout'}"
+                               ) from (self.errors[0] if self.errors else None)
+        return self.port, self.stream_port
+
+    def _run(self, port: int, stream_port: int) -> None:
+        loop = asyncio.new_event_loop()
+        self._loop = loop
+        asyncio.set_event_loop(loop)
+        try:
+            loop.run_until_complete(self._serve(port, stream_port))
+            loop.run_forever()
+        finally:
+            loop.close()
+
+    async def _serve(self, port: int, stream_port: int) -> None:
+        try:
+            feedback = FeedbackPDU.bound_to(UNIT, self.action, frozenset(range(R_O_U16, R_O_U16 + 4)))
+            self._server = T7Server(self.device, address=("127.0.0.1", 0), custom_pdu=[feedback])
+            await self._server.serve_forever(background=True)
+            inner = self._server.transport.sockets[0].getsockname()[1]  # type: ignore[attr-defined]  # asyncio transport
+            self._relay = await SocketRelay("T7", ("127.0.0.1", inner), self.faults, framing="mbap",
+                                            local=feedback.answer).start(self.host, port)
+            self._stream_server = await asyncio.start_server(self._on_stream_client, self.host, stream_port)
+            self.stream_port = self._stream_server.sockets[0].getsockname()[1]
+            self._pump_task = asyncio.get_running_loop().create_task(self._pump_loop())
+            subscribe = getattr(self.clock, "subscribe", None)
+            if subscribe is not None:  # a virtual clock says when it moves: packets leave when they are due
+                subscribe(self._on_clock)
+            self.port = self._relay.port
+        except BaseException as exc:  # reported by start()
+            self.errors.append(exc)
+            if self._relay is not None:  # the Modbus port bound, the stream port did not: free it
+                await self._relay.close()
+        finally:
+            self._ready.set()
+
+    async def _on_stream_client(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        with self.lock:
+            old, self._writer = self._writer, writer  # the latest connection gets the packets
+            held, self._held = self._held, []
+            for data in held:
+                writer.write(data)
+        if old is not None:
+            old.close()
+        with contextlib.suppress(Exception):
+            await reader.read()  # until the host closes
+        with self.lock:
+            if self._writer is writer:
+                self._writer = None
+        writer.close()
+
+    def _on_clock(self, now: float) -> None:
+        """The virtual clock moved (in the thread that moved it): pump at once if a whole packet is now due, as a
+        T7 sends a packet when it fills — rather than up to ``poll`` of wall time later."""
+        loop = self._loop
+        if self._wake_pending or now < self._next_packet_t or loop is None:
+            return
+        self._wake_pending = True
+        with contextlib.suppress(RuntimeError):  # the loop has closed: the twin is stopping
+            loop.call_soon_threadsafe(self._wake)
+
+    def _wake(self) -> None:
+        self._wake_pending = False
+        try:
+            self.pump()
+        except Exception as exc:  # as in the pump loop: keep serving; tests inspect errors
+            self.errors.append(exc)
+
+    async def _pump_loop(self) -> None:
+        while True:
+            try:
+                self.pump()
+            except Exception as exc:  # keep serving; tests inspect errors
+                self.errors.append(exc)
+            await asyncio.sleep(self.poll)
+
+    def stop(self) -> None:
+        """Stop serving."""
+        loop = self._loop
+        if loop is not None and loop.is_running():
+            async def shutdown() -> None:
+                if self._pump_task is not None:
+                    self._pump_task.cancel()
+                if self._relay is not None:
+                    await self._relay.close()
+                if self._stream_server is not None:
+                    self._stream_server.close()
+                if self._writer is not None:
+                    self._writer.close()
+                if self._server is not None:
+                    await self._server.shutdown()  # type: ignore[no-untyped-call]  # pymodbus 3.16: unannotated
+
+            with contextlib.suppress(Exception):
+                asyncio.run_coroutine_threadsafe(shutdown(), loop).result(timeout=5)
+            loop.call_soon_threadsafe(loop.stop)
+        unsubscribe = getattr(self.clock, "unsubscribe", None)
+        if unsubscribe is not None:
+            unsubscribe(self._on_clock)
+        if self._thread is not None:
+            self._thread.join(timeout=5)
+        with contextlib.suppress(ValueError):
+            self.plant.listeners.remove(self._on_block)

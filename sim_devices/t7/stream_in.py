@@ -1,0 +1,244 @@
+"""The T7's stream-in engine: scans taken on the scan clock, packed into spontaneous packets on the stream socket.
+
+[E] packet (LabJack's low-level stream example): TransID (0 at each STREAM_ENABLE = 1, +1 per packet), ProtoID 0,
+Length, unit 1, function 76, type 16, reserved 0, backlog, status, AddInfo, samples MSB first. [A] Length = 10 + 2·n;
+backlog = bytes still buffered after this packet.
+[D] actual rate 10 MHz / round(10 MHz / rate), computed when written; [A] at most 100 kS/s (inputs + stream-out
+entries), else STREAM_SCAN_RATE_INVALID.
+[D] at STREAM_ENABLE: STREAM_RESOLUTION_INDEX > 8 → 2606 (STREAM_CONFIG_INVALID); STREAM_SETTLING_US > 4400 → 2621
+(STREAM_SETTLING_INVALID); AIN14 (temperature sensor) in the scan list above 250 scans/s → 2631. [D] settling "does
+not apply to the 1st channel in the scan list": [A] the n − 1 settlings of an explicit STREAM_SETTLING_US (≥ 1 µs)
+must fit in one scan period, else 2608 (STREAM_SCAN_RATE_INVALID). [L] the conversion time and noise of each
+resolution index (the datasheet's stream and noise tables) are not modelled: the index changes neither the
+samples nor the maximum rate; no ADC noise is added.
+[E] auto-recovery: when more than STREAM_BUFFER_SIZE_BYTES wait unsent (the host does not read), new scans are dropped
+and packets carry 2940; when room returns the next packet carries 2941, AddInfo = scans skipped, and starts with one
+dummy scan of 0xFFFF.
+[A] burst (STREAM_NUM_SCANS > 0): the rest goes in a last, possibly short packet with status 2944, then the stream
+stops; on STREAM_ENABLE = 0 a partial packet is discarded.
+[L] command-response stream (STREAM_AUTO_TARGET ≠ 1: 2612), output-only streams and a STREAM_OUT# twice in one scan
+list (2607) are not simulated.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import struct
+from collections import deque
+
+import numpy as np
+
+from sim_devices.t7.analog import AIN_TEMPERATURE, RANGE_GAIN
+from sim_devices.t7.registers import (
+    E_ACTIVE,
+    E_BUFSIZE,
+    E_CHN_LIST,
+    E_DTYPE,
+    E_NO_CHN,
+    E_RATE,
+    E_RES_INDEX,
+    E_SETTLING,
+    E_SPP,
+    E_TARGET,
+    E_TEMP_RATE,
+    MAX_SETTLING_US,
+    MAX_STREAM_RES_INDEX,
+    MAX_TEMP_SCAN_HZ,
+    N_AIN_ALL,
+    R_BUFSIZE,
+    R_DTYPE,
+    R_NADDR,
+    R_NSCANS,
+    R_O_SCAN,
+    R_RES,
+    R_SETTLE,
+    R_SPP,
+    R_TARGET,
+    S_BURST,
+    S_RECOVER,
+    S_RECOVER_END,
+    UNIT,
+)
+from sim_devices.t7.stream_out import StreamOut
+
+MAX_SAMPLE_RATE = 100_000.0
+
+
+class StreamEngine(StreamOut):
+    """Stream-in: scan list, packets, backlog and auto-recovery, on top of the stream-out channels."""
+
+    ain_range: list[float]
+
+    def _init_stream_in(self) -> None:
+        self.tid = 0
+        self.produced = 0  # scans taken
+        self.fifo = np.zeros(0, np.uint16)  # samples waiting for a packet
+        self.skipped = 0
+        self.recovering = False
+        self.packets_sent = 0
+        self.scans_skipped_total = 0
+        self._writer: asyncio.StreamWriter | None = None
+        # [A] packets due while no client is connected to the stream port: kept in the device's stream buffer
+        # (it streams spontaneously to the connected client) and sent when one connects; counted as unsent, so
+        # auto-recovery starts when they exceed STREAM_BUFFER_SIZE_BYTES as for a client that does not read
+        self._held: list[bytes] = []
+        self._next_packet_t = math.inf  # rig time at which the next whole stream packet is due
+
+    def _in_addresses(self) -> list[int]:
+        """The scan list's analog inputs (AIN addresses), in scan order."""
+        return [a for a in self.scanlist[:int(self.regs[R_NADDR])] if a < 2 * N_AIN_ALL]
+
+    def pump(self) -> None:
+        """Take the scans due by now, play stream-out, send whole packets (called every ``poll`` s, and on a virtual
+        clock also as soon as a whole packet is due: :meth:`_on_clock`)."""
+        with self.plant.lock, self.lock:  # plant first (see ``action``)
+            if not self.streaming:
+                return
+            now = self.clock.now()
+            due = self._cur_scan(now) + 1
+            nscans = int(self.regs[R_NSCANS])
+            if nscans:
+                due = min(due, nscans)
+            for k in self._out_indices():
+                self._advance_out(k, now)
+            if due > self.produced:
+                self._take_scans(due)
+            self._send(final=bool(nscans) and self.produced >= nscans)
+            self._next_packet_t = self._packet_due()
+
+    def _packet_due(self) -> float:
+        """Rig time of the scan that completes the next whole packet (inf when not streaming)."""
+        n_in = len(self._in_addresses())
+        if not self.streaming or not n_in:
+            return math.inf
+        missing = max(int(self.regs[R_SPP]) - self.fifo.size, 1)
+        scans = -(-missing // n_in)  # scan k is taken at t_enable + (k + 1) / rate
+        return self.t_enable + (self.produced + scans) / self.rate
+
+
+    def _take_scans(self, due: int) -> None:
+        ks = np.arange(self.produced, due)
+        times = self.t_enable + (ks + 1) / self.rate
+        ins = self._in_addresses()
+        obs = self._observe(times)
+        cols = [self._raw(self._ain_volts(a // 2, obs, ks.size), RANGE_GAIN[self.ain_range[a // 2]]) for a in ins]
+        data = np.stack(cols, axis=1).reshape(-1)
+        self.produced = due
+        unsent = self._unsent_bytes()  # the host does not read: the device buffer fills
+        cap = int(self.regs[R_BUFSIZE]) or 4096
+        if self.recovering or unsent > cap:
+            if self.recovering and unsent < cap // 2:
+                self.recovering = False
+                dummy = np.full(len(ins), 0xFFFF, np.uint16)
+                self._send(status=S_RECOVER_END, extra=self.skipped, prefix=dummy)
+                self.scans_skipped_total += self.skipped
+                self.skipped = 0
+                self.fifo = np.concatenate([self.fifo, data])
+                return
+            self.recovering = True
+            self.skipped += ks.size
+            return
+        self.fifo = np.concatenate([self.fifo, data])
+
+    def _unsent_bytes(self) -> int:
+        w = self._writer
+        if w is None:
+            return sum(len(b) for b in self._held)
+        return 0 if w.transport is None else int(w.transport.get_write_buffer_size())
+
+    def _packet(self, samples: np.ndarray, status: int, extra: int) -> bytes:
+        backlog = min(int(self.fifo.size * 2), 0xFFFF)
+        head = struct.pack(">HHHBBBBHHH", self.tid & 0xFFFF, 0, 10 + 2 * samples.size, UNIT, 76, 16, 0, backlog,
+                           status, extra)
+        self.tid += 1
+        return head + samples.astype(">u2").tobytes()
+
+    def _send(self, *, final: bool = False, status: int = 0, extra: int = 0,
+              prefix: np.ndarray | None = None) -> None:
+        spp = int(self.regs[R_SPP])
+        w = self._writer
+        if prefix is not None:  # the auto-recovery-end packet: dummy scan, then buffered data
+            take = max(spp - prefix.size, 0)
+            samples, self.fifo = np.concatenate([prefix, self.fifo[:take]]), self.fifo[take:]
+            self._write(w, self._packet(samples, status, extra))
+            return
+        packets = []
+        while self.fifo.size >= spp or (final and self.fifo.size):
+            samples, self.fifo = self.fifo[:spp], self.fifo[spp:]
+            last = final and not self.fifo.size
+            st = S_BURST if last else (S_RECOVER if self.recovering else 0)
+            packets.append(self._packet(samples, st, 0))
+        if packets:  # one socket write for the packets a pump has filled (the bytes a T7 sends, fewer syscalls)
+            self._write(w, b"".join(packets), len(packets))
+        if final:
+            self._stop_stream(self.clock.now())
+
+    def _write(self, w: asyncio.StreamWriter | None, data: bytes, packets: int = 1) -> None:
+        self.packets_sent += packets
+        if w is not None and not w.is_closing():
+            w.write(data)
+        elif w is None and self.streaming:
+            self._held.append(data)
+
+    def _start_stream(self) -> int:
+        n = int(self.regs[R_NADDR])
+        if self.streaming:
+            return E_ACTIVE
+        self._filter_y = None  # the filter starts from the amplifier input in force
+        if n < 1:
+            return E_NO_CHN
+        entries = self.scanlist[:n]
+        outs = [a - R_O_SCAN for a in entries if R_O_SCAN <= a < R_O_SCAN + 4]
+        for a in entries:
+            if not ((a < 2 * N_AIN_ALL and a % 2 == 0) or R_O_SCAN <= a < R_O_SCAN + 4):
+                return E_CHN_LIST
+        if len(outs) != len(set(outs)) or any(not self.outs[k].enable for k in outs) or len(outs) == n:
+            return E_CHN_LIST
+        if self.rate * n > MAX_SAMPLE_RATE or self.rate <= 0:
+            return E_RATE
+        if self.regs[R_RES] > MAX_STREAM_RES_INDEX:
+            return E_RES_INDEX
+        settle = self.regs[R_SETTLE]  # [D] below 1: automatic
+        if settle > MAX_SETTLING_US:
+            return E_SETTLING
+        if settle >= 1 and (n - 1) * settle * 1e-6 * self.rate >= 1:  # the settlings between a scan's channels
+            return E_RATE
+        if 2 * AIN_TEMPERATURE in entries and self.rate > MAX_TEMP_SCAN_HZ:
+            return E_TEMP_RATE
+        if self.regs[R_TARGET] != 1:
+            return E_TARGET
+        if self.regs[R_DTYPE] != 0:
+            return E_DTYPE
+        spp = int(self.regs[R_SPP])
+        if not 1 <= spp <= 512:
+            return E_SPP
+        size = int(self.regs[R_BUFSIZE])
+        if size and (size & (size - 1) or size > 32768):
+            return E_BUFSIZE
+        now = self.clock.now()
+        self.t_enable, self.streaming, self.tid, self.produced = now, True, 0, 0
+        self.fifo = np.zeros(0, np.uint16)
+        self.recovering, self.skipped = False, 0
+        for k in outs:
+            o = self.outs[k]
+            o.next_scan, o.sched, o.loop_pos = 0, deque(), 0
+            o.loop_active = False
+            codes, o.queue = np.array(o.queue, np.int64), deque()
+            self._schedule(k, codes, now)
+        self._next_packet_t = self._packet_due()
+        return 0
+
+    def _stop_stream(self, now: float) -> None:
+        self._held = []
+        cur = self._cur_scan(now)
+        for k in self._out_indices():
+            self._advance_out(k, now)
+            o = self.outs[k]
+            unplayed = [int(c) for first, codes in o.sched for c in codes[max(cur + 1 - first, 0):]]
+            o.queue.extendleft(reversed(unplayed))
+            o.sched = deque()
+        self.streaming = False
+        self._next_packet_t = math.inf
+        self._undrive_after(now)
+
