@@ -453,9 +453,29 @@ def twin_comparison(problem: MembraneProblem, fitted: FitResult) -> Table:
                  "parameters are not determined by this record (they trade off against others at equal cost)")
     return t
 
+@clean_errors
+def plot_command(
+    run: Annotated[Path, typer.Argument(help="Run file (.h5).")],
+    streams: Annotated[list[str] | None, typer.Argument(help="Streams to draw (default: all), e.g. laser amplifier.")]
+    = None,
+    out: Annotated[Path | None, typer.Option(help="PNG file (default: RUN-plot.png beside the run file).")] = None,
+    show: Annotated[bool, typer.Option("--show", help="Open a window instead of writing a file.")] = False,
+) -> None:
+    """Quick look at a run file: every column of the chosen streams on the run clock, units on each axis, step
+    starts marked; long records drawn as their min/max envelope (read in chunks: any length)."""
+    from bench.analysis.quicklook import quicklook
+
+    if not run.exists():
+        raise ValueError(f"run file {run}: not found")
+    target = quicklook(run, streams or None, out, show)
+    if target is not None:
+        console.print(f"figure: {escape(str(target))}")
+
+
 def register(app: typer.Typer) -> None:
-    """Put fit, design-map, report and demo on ``app``."""
+    """Put fit, design-map, report, plot and demo on ``app``."""
     app.command("fit")(fit_command)
     app.command("design-map")(design_map_command)
     app.command("report")(report_command)
+    app.command("plot")(plot_command)
     app.command()(demo)

@@ -1,0 +1,111 @@
+"""Quick-look figure of any streams of a run file (``bench plot``): one panel per column, units on every axis.
+
+A record of hours at 10 kHz does not fit on a screen: each column is reduced, chunk by chunk as the file is read
+(:mod:`bench.storage.chunks`), to its minimum and maximum in each of ``columns`` equal spans of the record — the
+envelope a screen of that width shows, every extreme kept — so memory and drawing time do not grow with the run.
+Step starts are marked; an incomplete file says so in the title.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from bench.storage.chunks import StreamChunks
+from bench.storage.runfile import open_h5, open_run
+
+FLAGS = ("valid", "ok")  # flag columns: not drawn as signals
+PIXELS = 2000  # min/max spans per column (about a screen's width)
+
+
+@dataclass
+class Envelope:
+    """A column reduced to spans: the time at each span's middle, its minimum and its maximum."""
+
+    stream: str
+    column: str
+    unit: str
+    t: np.ndarray
+    lo: np.ndarray
+    hi: np.ndarray
+    samples: int
+
+
+def envelopes(run_path: str | Path, streams: list[str] | None = None, columns: int = PIXELS) -> list[Envelope]:
+    """Min/max envelopes of every signal column of ``streams`` (all streams if None), read in chunks."""
+    out: list[Envelope] = []
+    with open_h5(Path(run_path)) as f:
+        reader = StreamChunks(f)
+        names = streams if streams else list(reader.length)
+        unknown = [s for s in names if s not in reader.length]
+        if unknown:
+            raise ValueError(f"run file {run_path}: no stream {', '.join(unknown)} (it has "
+                             f"{', '.join(reader.length) or 'none'})")
+        for stream in names:
+            n = reader.length[stream]
+            if n == 0:
+                continue
+            units = reader.units(stream)
+            cols = [c for c in reader.columns[stream] if c != "t" and c not in FLAGS]
+            spans = min(columns, n)
+            edges = np.linspace(0, n, spans + 1).astype(np.int64)  # span k holds records edges[k] … edges[k+1]-1
+            lo = {c: np.full(spans, np.inf) for c in cols}
+            hi = {c: np.full(spans, -np.inf) for c in cols}
+            t_lo, t_hi = np.full(spans, np.inf), np.full(spans, -np.inf)
+            a = 0
+            for chunk in reader.chunks(stream):
+                b = a + chunk["t"].size
+                k = np.searchsorted(edges, np.arange(a, b), side="right") - 1  # span of each record
+                starts = np.flatnonzero(np.r_[True, k[1:] != k[:-1]])
+                which = k[starts]
+                np.minimum.at(t_lo, which, np.minimum.reduceat(chunk["t"], starts))
+                np.maximum.at(t_hi, which, np.maximum.reduceat(chunk["t"], starts))
+                for c in cols:
+                    v = chunk[c].astype(np.float64)
+                    np.minimum.at(lo[c], which, np.fmin.reduceat(v, starts))
+                    np.maximum.at(hi[c], which, np.fmax.reduceat(v, starts))
+                a = b
+            mid = (t_lo + t_hi) / 2
+            for c in cols:
+                out.append(Envelope(stream, c, units.get(c, ""), mid, lo[c], hi[c], n))
+    return out
+
+
+def quicklook(run_path: str | Path, streams: list[str] | None = None, out: str | Path | None = None,
+              show: bool = False) -> Path | None:
+    """Draw the envelopes of ``streams``; save a PNG (``out``, default ``RUN-plot.png``) or show a window."""
+    import matplotlib
+
+    if not show:
+        matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    run = open_run(run_path, streams=False)
+    env = envelopes(run_path, streams)
+    if not env:
+        raise ValueError(f"run file {run_path}: no recorded samples to plot")
+    fig, axes = plt.subplots(len(env), 1, sharex=True, figsize=(10, 1.9 * len(env) + 0.8), squeeze=False)
+    starts = [(t, text.split(" | ")[0]) for t, _, kind, text in run.event_list() if kind == "start"]
+    for ax, e in zip(axes[:, 0], env, strict=True):
+        finite = np.isfinite(e.lo) & np.isfinite(e.hi)
+        ax.fill_between(e.t[finite], e.lo[finite], e.hi[finite], color="tab:blue", linewidth=0.6, step="mid")
+        ax.plot(e.t[finite], e.hi[finite], color="tab:blue", linewidth=0.5)
+        ax.set_ylabel(f"{e.stream}/{e.column}\n[{e.unit or '1'}]", fontsize=8)
+        for t, _name in starts:
+            ax.axvline(t, color="0.6", linewidth=0.6, linestyle=":")
+        ax.grid(True, linewidth=0.3)
+    axes[-1, 0].set_xlabel("t [s] (run clock)")
+    state = run.state if run.complete else f"{run.state}, INCOMPLETE: {run.incomplete_reason}"
+    fig.suptitle(f"{Path(run_path).name} — {run.attrs.get('protocol_name', '?')} ({state})", fontsize=9)
+    fig.tight_layout()
+    if show:
+        plt.show()
+        plt.close(fig)
+        return None
+    target = Path(out) if out is not None else Path(run_path).with_name(Path(run_path).stem + "-plot.png")
+    target.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(target, dpi=110)
+    plt.close(fig)
+    return target

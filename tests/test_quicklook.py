@@ -1,0 +1,80 @@
+"""bench plot: a quick-look figure of any streams; the envelope keeps every extreme of the record (checked against
+the file as plain h5py reads it), units on every axis, one line of error for a stream the file lacks."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import h5py
+import matplotlib
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from bench.analysis.quicklook import envelopes
+from bench.cli import app
+from bench.runtime.run import execute, plan_run
+from tests.conftest import ROOT
+
+matplotlib.use("Agg")
+
+
+@pytest.fixture(scope="module")
+def run_file(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("plot")
+    plan = plan_run(ROOT / "protocols" / "short" / "thesis-identification-short.toml")
+    result = execute(plan, out / "run.h5", virtual=True)
+    assert result.state == "completed", result.reason
+    return Path(result.path)
+
+
+def _plain(path: Path, stream: str, column: str) -> np.ndarray:
+    with h5py.File(path, "r") as f:
+        n = int(dict(zip(json.loads(f["status/samples"].attrs["names"]), f["status/samples"][:], strict=True))[stream])
+        return f[f"{stream}/{column}"][:n]
+
+
+def test_the_envelope_keeps_every_extreme_and_reads_in_chunks(run_file: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import bench.storage.chunks as chunks
+
+    monkeypatch.setattr(chunks, "CHUNK_ROWS", 7_777)  # spans cross chunk edges
+    (env,) = [e for e in envelopes(run_file, ["laser"], columns=300) if e.column == "displacement"]
+    u = _plain(run_file, "laser", "displacement")
+    assert env.samples == u.size > 50_000 and env.t.size == 300 and env.unit == "m"
+    assert env.hi.max() == u.max() and env.lo.min() == u.min()
+    # span k covers records ⌊k·n/300⌋ … ⌊(k+1)·n/300⌋−1: its extremes, computed here from the plain read
+    edges = np.linspace(0, u.size, 301).astype(int)
+    for k in (0, 17, 150, 299):
+        seg = u[edges[k]:edges[k + 1]]
+        assert env.lo[k] == seg.min() and env.hi[k] == seg.max()
+
+
+def test_bench_plot_writes_a_png_with_units_on_every_axis(run_file: Path, tmp_path: Path) -> None:
+    import matplotlib.pyplot as plt
+
+    from bench.analysis import quicklook
+
+    figures: list[object] = []
+    real = plt.Figure.savefig
+
+    def keep(self: object, *args: object, **kwargs: object) -> None:
+        figures.append(self)
+        real(self, *args, **kwargs)  # type: ignore[arg-type]
+
+    target = tmp_path / "q.png"
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(plt.Figure, "savefig", keep)
+        res = CliRunner().invoke(app, ["plot", str(run_file), "laser", "amplifier", "--out", str(target)])
+    assert res.exit_code == 0, res.output
+    assert target.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    (fig,) = figures
+    labels = [ax.get_ylabel() for ax in fig.axes]  # type: ignore[attr-defined]
+    assert any("laser/displacement" in s and "[m]" in s for s in labels)
+    assert any("amplifier/voltage" in s and "[V]" in s for s in labels)
+    assert all("[" in s for s in labels) and quicklook.FLAGS[0] not in " ".join(labels)
+
+
+def test_a_stream_the_file_lacks_is_one_line_naming_it(run_file: Path) -> None:
+    res = CliRunner().invoke(app, ["plot", str(run_file), "motor"], env={"COLUMNS": "300"})
+    assert res.exit_code == 2 and "no stream motor" in res.output and str(run_file) in res.output
