@@ -48,14 +48,25 @@ def shipped_rigs() -> dict[str, Path]:
 
 
 def _pick(known: dict[str, Path], name: str, kind: str) -> Path:
-    key = name.removesuffix(".toml")
-    if key not in known:
-        raise ValueError(f"no shipped {kind} {name!r}: one of {', '.join(known)}")
-    return known[key]
+    """A shipped file by its listed name, or by an unambiguous base name (``thesis-identification-short``, also
+    written as a path such as ``protocols/short/thesis-identification-short.toml``)."""
+    key = name.replace("\\", "/").removesuffix(".toml")
+    for prefix in ("protocols/", "rigs/"):
+        key = key.removeprefix(prefix)
+    if key in known:
+        return known[key]
+    base = key.rsplit("/", 1)[-1]
+    matches = [k for k in known if k.rsplit("/", 1)[-1] == base]
+    if len(matches) == 1:
+        return known[matches[0]]
+    if matches:
+        raise ValueError(f"shipped {kind} {name!r} is ambiguous: {', '.join(matches)}")
+    raise ValueError(f"no shipped {kind} {name!r}: one of {', '.join(known)}")
 
 
 def protocol(name: str) -> Path:
-    """A shipped protocol by name (with or without ``.toml``); ValueError naming the choices otherwise."""
+    """A shipped protocol by name or unambiguous base name (with or without ``.toml``); ValueError naming the
+    choices otherwise."""
     return _pick(shipped_protocols(), name, "protocol")
 
 
