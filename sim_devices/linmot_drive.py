@@ -31,12 +31,16 @@ bits other than 7; following error (the actual position is the demand position, 
 behave as their demand-position counterparts); every other command of the §4.2 list (trigger events, analog
 position, 16-bit VAI, encoder CAM, indexing, command table, Sin/Bestehorn, force control, …) is answered 0081h
 "Unknown Motion Cmd", as by a firmware without it [chosen: accepting a command whose motion the twin cannot
-produce would let a host believe it ran]. LinRS messages: Main 00h with any sub ID (the drivers found poll with
-Sub 01h; Sub 02h–04h are not described on the pages read) returns the default response; Main 01h writes the
-control word, 02h the motion command interface; any other Main ID (03h, 04h curves, 05h parameters, 06h program
-handling, 08h command table) is answered with the default response and communication state 01h [chosen: the
-LinRS pages read (p. 11 and the examples) do not give the drive's answer to those messages, and a default response
-keeps a host's framing in step; the non-zero comm state tells it the message was not served].
+produce would let a host believe it ran]. LinRS messages (the LinRS pages read, p. 11 and the
+examples, describe Main 00h Sub 01h, 01h and 02h only; the rest follows the public drivers, marked [C]): Main 00h
+Sub 01h, 02h, 04h return the default response ([C] jbaboval/Test-tool-for-LinMot-drives reads the default
+response's fields from Sub 02h and 04h replies; what else they carry is not known here); Sub 03h the default
+response followed by the warn word and a zero word ([C] LinmotPY reads a 20-byte reply, warn word at bytes 15–16);
+Main 01h writes the control word, 02h the motion command interface; Main 03h with UPID 1DB0h returns the default
+response followed by the motion command count as SInt32 ([C] LinmotPY); any other UPID or Main ID (04h curves,
+05h parameters, 06h program handling, 08h command table) is answered with the default response and communication
+state 01h [chosen: a reply keeps a host's framing in step; the non-zero comm state tells it the message was not
+served].
 
 Where the manuals are silent the choice is marked ``[assumed]`` or ``[chosen]`` beside it.
 """
@@ -60,6 +64,12 @@ STX, DATA_START, ETX = 0x01, 0x02, 0x04  # 01h | ID | Len | 02h | SubID | MainID
 MAIN_RESPONSE = 0x00  # request Sub 01h: "return default response" (manual examples; drivers found)
 MAIN_CONTROL_WORD = 0x01  # Sub 00h, 2-byte control word (manual "Write Control Word" example)
 MAIN_MOTION_COMMAND = 0x02  # Sub 00h, header + parameters (manual "Write Motion Command Interface" example)
+# [C] Aurele-Le-Borgne/LinmotPY C1100.py (read, not copied): Main 00h Sub 03h is answered with 20 bytes, the warn
+# word at bytes 15–16 after the default response's fields; Main 03h with a 2-byte UPID with 20 bytes, the UPID's
+# value (SInt32) at bytes 15–18 — UPID 1DB0h read as the motion command count (low nibble)
+SUB_WARN_WORD = 0x03
+MAIN_READ_UPID = 0x03
+UPID_MOTION_COMMAND_COUNT = 0x1DB0
 COMM_OK = 0x00
 # A telegram left incomplete for this long (wall time) is discarded before new bytes are taken. [chosen: the
 # LinRS pages read do not say how the drive resynchronises after line noise; a receive timeout is what a UART
@@ -561,9 +571,11 @@ class LinMotDriveSim:
                 sub = 0  # states 0–2, 5, 6: 0; 12, 13: "not yet defined"
             return sw, (s << 8) | sub, round(pos / POS_UNIT)
 
-    def _default_response(self, comm_state: int = COMM_OK) -> bytes:
+    def _default_response(self, comm_state: int = COMM_OK, extra: bytes = b"") -> bytes:
+        """The default response, ``extra`` appended after the position [assumed: the response IDs stay 00h 00h
+        for the extended replies too; the drivers found do not read them]."""
         sw, sv, pos = self.status()
-        body = bytes([DATA_START, 0x00, MAIN_RESPONSE]) + struct.pack("<BHHi", comm_state, sw, sv, pos)
+        body = bytes([DATA_START, 0x00, MAIN_RESPONSE]) + struct.pack("<BHHi", comm_state, sw, sv, pos) + extra
         crc = struct.pack("<H", crc16_ccitt_reflected(body)) if self.checksum else b""
         return bytes([STX, self.drive_id, len(body)]) + body + crc + bytes([ETX])
 
@@ -610,6 +622,10 @@ class LinMotDriveSim:
                 self._apply_control_word(struct.unpack("<H", data)[0])
             elif main == MAIN_MOTION_COMMAND:
                 self._motion_command(data)
+            elif main == MAIN_RESPONSE and sub == SUB_WARN_WORD:
+                return self._default_response(extra=struct.pack("<HH", self.warn_word(), 0))  # [assumed] 2nd word 0
+            elif main == MAIN_READ_UPID and data == struct.pack("<H", UPID_MOTION_COMMAND_COUNT):
+                return self._default_response(extra=struct.pack("<i", self.count))
             elif main != MAIN_RESPONSE:
                 return self._default_response(COMM_UNKNOWN_MESSAGE)
             self._reschedule()

@@ -311,3 +311,27 @@ def test_special_motions_need_a_homed_motor_0080h(twin: Twin) -> None:
     twin.switch_on()
     twin.advance(0.3)
     assert twin.state(cw(0x007F)) == 0x0480  # §10 0080h: "an action that requires the motor … homed"
+
+
+# ---------------------------------------------------------------- LinRS requests beyond the default response
+def test_warn_word_request_main_00h_sub_03h(twin: Twin) -> None:
+    """Layout as public drivers read it ([C] Aurele-Le-Borgne/LinmotPY C1100.py ``getWarning``: request
+    ``01 ID 03 02 03 00 04``, a 20-byte reply, warn word at bytes 15–16); value per §3.24 bit 7."""
+    twin.switch_on()
+    twin.advance(0.3)
+    r = twin.drive(bytes.fromhex("01 11 03 02 03 00 04"))
+    assert len(r) == 20 and r[2] == 0x10 and r[-1] == 0x04
+    assert struct.unpack("<HH", r[9:11] + r[15:17]) == (0x0840, 0x0080)  # state 8, "Motor Not Homed"
+    twin.send(cw(0x083F))
+    twin.advance(1.0)
+    r = twin.drive(bytes.fromhex("01 11 03 02 03 00 04"))
+    assert struct.unpack("<HH", r[9:11] + r[15:17]) == (0x090F, 0x0000)  # homed: no warning
+
+
+def test_read_upid_main_03h_motion_command_count(twin: Twin) -> None:
+    """[C] LinmotPY ``getNibble``: ``01 ID 05 02 00 03 B0 1D 04`` → 20 bytes, the count in byte 15's low nibble
+    (the same count the state var echoes in state 8, §3.8)."""
+    twin.homed()
+    twin.send(mci(0x0235, struct.pack("<i", 10_000)))  # count 5
+    r = twin.drive(bytes.fromhex("01 11 05 02 00 03 B0 1D 04"))
+    assert len(r) == 20 and r[15] & 0x0F == 5 and r[9] & 0x0F == 5
