@@ -247,6 +247,8 @@ class SimRig:
         for dev in self._serial.values():
             dev.stop()
         self._serial.clear()
+        if isinstance(drive := self.twins.get("motor"), LinMotDriveSim):
+            drive.close()  # the drive's own cycle (a thread on the wall clock)
         if self._modbus is not None:
             self._modbus.stop()
             self._modbus = None
