@@ -212,3 +212,24 @@ def test_the_module_cycle_check_sees_hidden_imports(tmp_path: Path, monkeypatch:
     monkeypatch.setattr(f"{__name__}.ROOT", tmp_path)
     assert module_graph(("pkg",)) == {"pkg": set(), "pkg.a": {"pkg.b"}, "pkg.b": {"pkg.a"}}
     assert cycle(module_graph(("pkg",))) == ["pkg.a", "pkg.b", "pkg.a"]
+
+
+def foreign_privates(source: str) -> list[str]:
+    """``x._name`` in a source where ``x`` is not ``self`` or ``cls`` ("line: expression"): a read or write of
+    another object's private member (dunders excepted)."""
+    return [f"{node.lineno}: {ast.unparse(node)}" for node in ast.walk(ast.parse(source))
+            if isinstance(node, ast.Attribute) and node.attr.startswith("_") and not node.attr.startswith("__")
+            and not (isinstance(node.value, ast.Name) and node.value.id in ("self", "cls"))]
+
+
+@pytest.mark.parametrize("name", ["engine", "context", "polls", "hardware_timed"])
+def test_the_run_time_core_reads_no_other_objects_private_members(name: str) -> None:
+    """Issue 22: the engine, its run context, the polls and the hardware-timed path share state through the run
+    context's public members, not through one another's private ones."""
+    found = foreign_privates((ROOT / "bench" / "runtime" / f"{name}.py").read_text(encoding="utf-8"))
+    assert not found, (name, found)
+
+
+def test_the_private_member_check_finds_one() -> None:
+    """The checker itself: a write through another object is found; the object's own members and dunders are not."""
+    assert foreign_privates("def f(e):\n    e._t0 = 1\n    return self._ok, e.__class__\n") == ["2: e._t0"]
