@@ -122,7 +122,7 @@ def _reads(inst: Instruments) -> dict[str, Callable[[], object]]:
         out["load_cell"] = inst.load_cell.read
     if inst.daq is not None:
         daq = inst.daq
-        out["daq"] = lambda: daq.read_ain(0)  # type: ignore[attr-defined]
+        out["daq"] = lambda: daq.read_ain(0)
     return out
 
 

@@ -257,3 +257,164 @@ class ForceSensor(Instrument, Protocol):
 
     def describe(self) -> StreamDescription:
         """The stream it records: columns, units, source."""
+
+
+@dataclass(frozen=True)
+class StreamIn:
+    """One analog input in the scan list: AIN number, range (±V: 10, 1, 0.1, 0.01), label."""
+
+    ain: int
+    range_volts: float = 10.0
+    name: str = ""
+
+
+@dataclass(frozen=True)
+class StreamOut:
+    """A waveform [V at the DAC] played on analog output ``dac`` one value per scan; after the last value the
+    last ``hold`` values repeat (1: the output stays exactly on the end value)."""
+
+    dac: int
+    volts: np.ndarray
+    hold: int = 1
+    final: bool = True  # False: more values follow through :meth:`StreamingDaq.extend`; no hold loop until then
+    within: tuple[float, float] | None = None  # [V] no value plays outside (codes clipped: StreamingDaq.dac_coding)
+
+
+@dataclass(frozen=True)
+class StreamSpec:
+    """What :meth:`StreamingDaq.arm` configures. ``num_scans`` > 0: a burst of that many scans. The fields after
+    ``num_scans`` tune one device's stream (0: that device's default); another device ignores them."""
+
+    scan_rate: float
+    inputs: tuple[StreamIn, ...]
+    output: StreamOut | None = None
+    num_scans: int = 0
+    samples_per_packet: int = 0  # 0: as many whole scans as fit in 512 samples
+    resolution_index: int = 0
+    settling_us: float = 0.0
+    buffer_size_bytes: int = 0  # 0: the device's largest
+    out_buffer_bytes: int = 0  # 0: the device's largest
+
+
+@dataclass(frozen=True)
+class StreamBlock:
+    """Complete scans ``first_scan`` … ``first_scan + n − 1``; scan k was taken at ``t0 + k·dt``.
+
+    ``volts`` has one column per input; rows of scans the device skipped (auto-recovery) are NaN and
+    ``valid`` False. ``backlog_scans``: scans waiting in the device after the last packet; ``statuses``:
+    non-zero packet statuses seen; ``done``: the burst completed or the stream stopped.
+    """
+
+    first_scan: int
+    t0: float
+    dt: float
+    names: tuple[str, ...]
+    volts: np.ndarray
+    valid: np.ndarray
+    backlog_scans: int = 0
+    skipped_scans: int = 0
+    statuses: tuple[int, ...] = ()
+    done: bool = False
+
+    @property
+    def n(self) -> int:
+        """Number of scans."""
+        return int(self.volts.shape[0])
+
+    def times(self) -> np.ndarray:
+        """Rig-clock times of the scans [s]."""
+        return self.t0 + self.dt * (self.first_scan + np.arange(self.n))
+
+    def channel(self, i: int) -> SampleBlock:
+        """One input as a :class:`SampleBlock` in volts (acquisition index = scan index)."""
+        return SampleBlock(self.t0, self.dt, self.first_scan, self.volts[:, i].copy(), self.valid[:, i].copy(), "V")
+
+@dataclass(frozen=True)
+class DacCoding:
+    """How an analog output turns volts into what it plays: code = round(V·``slope`` + ``offset``), the converter
+    ignoring the low ``shift`` bits of the code; the codes ``lo`` … ``hi`` are those whose output lies within the
+    window asked for (:meth:`StreamingDaq.dac_coding`)."""
+
+    slope: float  # codes per volt
+    offset: float  # code of 0 V
+    shift: int  # low bits of a code the converter ignores (16-bit codes on a 12-bit DAC: 4)
+    lo: int
+    hi: int
+
+
+@runtime_checkable
+class StreamingDaq(Instrument, Protocol):
+    """A DAQ that plays a waveform on an analog output and samples analog inputs on one scan clock (hardware-timed
+    steps). The life of a stream, as ophyd-async's ``FlyerController`` composed by ``StandardFlyer``: :meth:`arm`
+    (prepare and arm: configure inputs, scan clock and output, preload the output buffer; nothing runs),
+    :meth:`kickoff` (scan 0), :meth:`collect` while it runs (and :meth:`extend` while the output is open),
+    :meth:`stop`. The run time (bench/runtime/hardware_timed.py) knows a DAQ only through this contract."""
+
+    timeout: float  # [s] a command-response request's reply timeout (a collect waits at least 4 times this)
+    streaming: bool  # a stream runs (kicked off, not stopped)
+
+    @property
+    def out_open(self) -> bool:
+        """An armed stream-out still takes :meth:`extend`."""
+
+    @property
+    def scans_received(self) -> int:
+        """Scan index of the next scan :meth:`collect` will return."""
+
+    @property
+    def out_underrun_scans(self) -> int:
+        """Scans the stream-out played past the values written (0 unless a collect came too late)."""
+
+    @property
+    def scan_clock_uncertainty(self) -> float:
+        """How well scan 0's time on the rig clock is known [s]."""
+
+    def dac_coding(self, dac: int, within: tuple[float, float]) -> DacCoding:
+        """How analog output ``dac`` codes volts, and its codes whose output lies within ``within`` (lo, hi) [V]."""
+
+    def out_played(self, volts: np.ndarray, dac: int, within: tuple[float, float] | None = None) -> np.ndarray:
+        """What analog output ``dac`` plays [V] for the stream-out values ``volts`` (codes clipped to ``within``),
+        sending nothing."""
+
+    def read_dac(self, dac: int) -> float:
+        """The analog output's present value [V] (command-response: a request that also feeds the device's
+        watchdog)."""
+
+    def read_ain(self, ain: int) -> Reading:
+        """One analog input now [V] (command-response)."""
+
+    def arm(self, spec: StreamSpec) -> object:
+        """Prepare and arm the stream ``spec`` describes; nothing runs until :meth:`kickoff`. Refuses (nothing
+        sent) what the device cannot do."""
+
+    def kickoff(self) -> float:
+        """Start the armed stream; returns the rig time of scan 0."""
+
+    def extend(self, volts: np.ndarray, final: bool = True, within: tuple[float, float] | None = None) -> np.ndarray:
+        """Append values to the running stream-out (``final``: the last ones, the output then holds the last);
+        returns what the output will play for them [V]."""
+
+    def collect(self, until: float | None = None, timeout: float = 1.0) -> StreamBlock:
+        """Complete scans received since the last call (waiting up to ``timeout`` s for those due by rig time
+        ``until``); tops up the output buffer."""
+
+    def stop(self) -> StreamBlock | None:
+        """Stop the stream (the output holds its last value); returns the scans that had arrived."""
+
+
+@runtime_checkable
+class DaqAmplifier(Amplifier, Protocol):
+    """An amplifier whose set-point is a DAQ's analog output and whose monitors are two of its analog inputs: the
+    run time plays its hardware-timed steps through the DAQ's stream (:attr:`Instruments.stream_drive`)."""
+
+    def dac_volts(self, volts: np.ndarray | float) -> np.ndarray:
+        """DAQ output [V] for amplifier output ``volts`` [V]."""
+
+    def output_volts(self, dac_volts: np.ndarray | float) -> np.ndarray:
+        """Amplifier output [V] for DAQ output ``dac_volts`` [V]."""
+
+    def dac_window(self, within: float) -> tuple[float, float]:
+        """DAQ output volts (lo, hi) whose amplifier output lies within ±``within`` [V]."""
+
+    def monitor_values(self, vmon: np.ndarray, imon: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(output voltage [V], output current [A]) from the monitor inputs' volts."""

@@ -87,7 +87,11 @@ from drivers.errors import (
     LimitError,
     ProtocolError,
 )
-from drivers.interfaces import CheckResult, ClockFn, Identity, Reading, SampleBlock, SleepFn
+from drivers.interfaces import CheckResult, ClockFn, DacCoding, Identity, Reading, SleepFn
+from drivers.interfaces import StreamBlock as StreamBlock  # the stream's types are the DAQ contract's
+from drivers.interfaces import StreamIn as StreamIn
+from drivers.interfaces import StreamOut as StreamOut
+from drivers.interfaces import StreamSpec as StreamSpec
 from drivers.modbus_link import ModbusLink
 
 _T = TypeVar("_T")
@@ -321,42 +325,6 @@ def parse_stream_packet(frame: bytes, device: str = "T7") -> StreamPacket:
     return StreamPacket(tid, backlog, status, add, samples)
 
 
-@dataclass(frozen=True)
-class StreamIn:
-    """One analog input in the scan list: AIN number, range (±V: 10, 1, 0.1, 0.01), label."""
-
-    ain: int
-    range_volts: float = 10.0
-    name: str = ""
-
-
-@dataclass(frozen=True)
-class StreamOut:
-    """A waveform [V at the DAC, 0–5 V] played on ``dac`` one value per scan; after the last value the
-    last ``hold`` values repeat (1: the output stays exactly on the end value)."""
-
-    dac: int
-    volts: np.ndarray
-    hold: int = 1
-    final: bool = True  # False: more values follow through :meth:`LabJackT7.extend`; no hold loop until then
-    within: tuple[float, float] | None = None  # [V] no value plays outside: codes clipped (Calibration.dac_codes)
-
-
-@dataclass(frozen=True)
-class StreamSpec:
-    """What :meth:`LabJackT7.arm` configures. ``num_scans`` > 0: a burst of that many scans."""
-
-    scan_rate: float
-    inputs: tuple[StreamIn, ...]
-    output: StreamOut | None = None
-    num_scans: int = 0
-    samples_per_packet: int = 0  # 0: as many whole scans as fit in 512 samples
-    resolution_index: int = 0
-    settling_us: float = 0.0
-    buffer_size_bytes: int = MAX_STREAM_BUFFER_BYTES
-    out_buffer_bytes: int = MAX_OUT_BUFFER_BYTES
-
-
 @dataclass
 class StreamPlan:
     """What the device will do: actual scan rate, scan list, and the stream-out codes it will play."""
@@ -370,40 +338,6 @@ class StreamPlan:
     out_volts: np.ndarray | None  # what the 12-bit DAC outputs for out_codes
     out_capacity: int  # values the stream-out buffer holds
     max_collect_interval: float  # call collect at least this often [s] so the out buffer never runs dry
-
-
-@dataclass(frozen=True)
-class StreamBlock:
-    """Complete scans ``first_scan`` … ``first_scan + n − 1``; scan k was taken at ``t0 + k·dt``.
-
-    ``volts`` has one column per input; rows of scans the device skipped (auto-recovery) are NaN and
-    ``valid`` False. ``backlog_scans``: scans waiting in the device after the last packet; ``statuses``:
-    non-zero packet statuses seen; ``done``: the burst completed or the stream stopped.
-    """
-
-    first_scan: int
-    t0: float
-    dt: float
-    names: tuple[str, ...]
-    volts: np.ndarray
-    valid: np.ndarray
-    backlog_scans: int = 0
-    skipped_scans: int = 0
-    statuses: tuple[int, ...] = ()
-    done: bool = False
-
-    @property
-    def n(self) -> int:
-        """Number of scans."""
-        return int(self.volts.shape[0])
-
-    def times(self) -> np.ndarray:
-        """Rig-clock times of the scans [s]."""
-        return self.t0 + self.dt * (self.first_scan + np.arange(self.n))
-
-    def channel(self, i: int) -> SampleBlock:
-        """One input as a :class:`SampleBlock` in volts (acquisition index = scan index)."""
-        return SampleBlock(self.t0, self.dt, self.first_scan, self.volts[:, i].copy(), self.valid[:, i].copy(), "V")
 
 
 @dataclass
@@ -653,6 +587,13 @@ class LabJackT7:
         self.write_f32(DAC0 + 2 * dac, send)
         return played
 
+    def dac_coding(self, dac: int, within: tuple[float, float]) -> DacCoding:
+        """How DAC ``dac`` codes volts (its calibration; 16-bit codes, the low ``16 − dac_bits`` ignored) and its codes
+        whose output lies within ``within`` (:meth:`Calibration.dac_code_range`)."""
+        slope, offset = self.cal.dac(dac)
+        lo, hi = self.cal.dac_code_range(dac, within, self.dac_bits)
+        return DacCoding(float(slope), float(offset), 16 - self.dac_bits, lo, hi)
+
     def read_dac(self, dac: int) -> float:
         """The DAC's present value [V]."""
         return self.read_f32(DAC0 + 2 * dac)
@@ -685,7 +626,7 @@ class LabJackT7:
                 raise ValueError(f"{self.name}: hold must be 1…{v.size} values")
             codes = self.cal.dac_codes(v, out.dac, out.within, self.dac_bits)
             volts = self.cal.dac_volts(codes, out.dac, self.dac_bits)
-            capacity = spec.out_buffer_bytes // 2 - 1
+            capacity = (spec.out_buffer_bytes or MAX_OUT_BUFFER_BYTES) // 2 - 1
         gains = tuple(RANGES.index(i.range_volts) for i in spec.inputs)
         scan_list = tuple([OUT_SCAN0] if out is not None else []) + tuple(AIN0 + 2 * i.ain for i in spec.inputs)
         if self.read_u32(STREAM_ENABLE):
@@ -694,7 +635,7 @@ class LabJackT7:
             self.configure_ain(i.ain, i.range_volts)
         self.write_regs(SCANRATE, f32_words(spec.scan_rate) + u32_words(n_addr) + u32_words(spp)
                         + f32_words(spec.settling_us) + u32_words(spec.resolution_index)
-                        + u32_words(spec.buffer_size_bytes))
+                        + u32_words(spec.buffer_size_bytes or MAX_STREAM_BUFFER_BYTES))
         self.write_regs(AUTO_TARGET, u32_words(TARGET_SPONTANEOUS) + u32_words(0) + u32_words(spec.num_scans))
         self.write_u32(CLOCK_SOURCE, 0)
         self.write_regs(SCANLIST0, [w for a in scan_list for w in u32_words(a)])
@@ -708,7 +649,7 @@ class LabJackT7:
         if out is not None:
             o = 2 * out.dac
             self.write_u32(OUT_TARGET0, DAC0 + o)
-            self.write_u32(OUT_ALLOC0, spec.out_buffer_bytes)
+            self.write_u32(OUT_ALLOC0, spec.out_buffer_bytes or MAX_OUT_BUFFER_BYTES)
             self.write_u32(OUT_ENABLE0, 1)
             self._feed_out()
         return plan

@@ -22,7 +22,7 @@ from drivers.trek import TrekModel
 
 
 class TrekOnDaq:
-    """Driver of a TREK HS amplifier on a LabJack T7 (implements Amplifier)."""
+    """Driver of a TREK HS amplifier on a LabJack T7 (implements DaqAmplifier)."""
 
     def __init__(self, daq: LabJackT7, trek: TrekModel, *, name: str = "amplifier", dac: int = 0,
                  gain: float = 4.0, offset: float = -10.0, vmon_ain: int = 0, imon_ain: int = 1,
@@ -46,6 +46,10 @@ class TrekOnDaq:
     def output_volts(self, dac_volts: np.ndarray | float) -> np.ndarray:
         """Amplifier output [V] for DAC voltage ``dac_volts`` [V]."""
         return (self.gain * np.asarray(dac_volts, dtype=float) + self.offset) * self.trek.gain
+
+    def monitor_values(self, vmon: np.ndarray, imon: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(output voltage [V], output current [A]) from the monitor inputs' volts (the TREK's monitor ratios)."""
+        return vmon * self.trek.vmon_ratio, imon * self.trek.imon_ratio
 
     def dac_window(self, within: float) -> tuple[float, float]:
         """DAC volts (lo, hi) whose amplifier output lies within ±``within`` [V] (and within the DAC's 0–5 V): the

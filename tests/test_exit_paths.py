@@ -262,7 +262,7 @@ def test_a_full_disk_mid_run_zeroes_the_output_and_says_why(tmp_path: Path) -> N
         v = np.concatenate([b[1] for b in trial.blocks])
         assert np.any(np.abs(v) > ZERO_V)  # high voltage was on when the disk filled
         zero_at = float(result.safe_path.split(" at ")[1].split(" s")[0])  # run clock
-        assert t[np.abs(v) > ZERO_V][-1] <= engine._t0 + zero_at + 1e-3  # off from the moment 0 V was commanded
+        assert t[np.abs(v) > ZERO_V][-1] <= engine.ctx.t0 + zero_at + 1e-3  # off from the moment 0 V was commanded
 
 
 def _run_into(trial: Trial, folder: Path):

@@ -144,3 +144,92 @@ def test_protocol_compilation_reaches_no_driver_even_through_the_rig_file() -> N
     """bench/protocol imports bench.rig (the rig file); that module takes no driver table either."""
     found = [m for m in imported_modules(ROOT / "bench" / "rig.py") if m == "drivers" or m.startswith("drivers.")]
     assert not found, found
+
+
+def module_graph(packages: tuple[str, ...]) -> dict[str, set[str]]:
+    """The import graph by module of the given packages (``bench.runtime``, …): a node per source file, an edge for
+    every import of another module of them in any form — at the top, under ``if TYPE_CHECKING:``, inside a
+    function, relative. ``from bench.x import name`` counts as an import of ``bench.x`` (or of ``bench.x.name``
+    when that is a module)."""
+    files = {".".join(p.relative_to(ROOT).with_suffix("").parts).removesuffix(".__init__"): p
+             for pkg in packages for p in sorted((ROOT / pkg.replace(".", "/")).rglob("*.py"))}
+    graph: dict[str, set[str]] = {}
+    for mod, path in files.items():
+        graph[mod] = set()
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            targets: list[str] = []
+            if isinstance(node, ast.Import):
+                targets = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                base = (node.module or "") if node.level == 0 else ".".join(
+                    [*mod.split(".")[: len(mod.split(".")) - node.level + (path.name == "__init__.py")],
+                     *([node.module] if node.module else [])])
+                targets = [f"{base}.{a.name}" if f"{base}.{a.name}" in files else base for a in node.names]
+            graph[mod].update(t for t in targets if t in files and t != mod)
+    return graph
+
+
+def cycle(graph: dict[str, set[str]]) -> list[str] | None:
+    """One import cycle of the graph (its modules, first one repeated at the end), or None."""
+    done: set[str] = set()
+
+    def visit(node: str, path: list[str]) -> list[str] | None:
+        if node in path:
+            return [*path[path.index(node):], node]
+        if node in done:
+            return None
+        for nxt in sorted(graph.get(node, ())):
+            if (found := visit(nxt, [*path, node])) is not None:
+                return found
+        done.add(node)
+        return None
+
+    for start in sorted(graph):
+        if (found := visit(start, [])) is not None:
+            return found
+    return None
+
+
+@pytest.mark.parametrize("packages", [("bench.runtime", "bench.storage", "bench.protocol", "bench.core"), ("drivers",)])
+def test_no_module_imports_itself_back_in_any_form(packages: tuple[str, ...]) -> None:
+    """Issue 22: no cycle between the modules of the run time, storage, protocol compilation, the core and the
+    drivers — including imports under ``TYPE_CHECKING`` and inside functions, which hide a cycle from Python
+    but not from a reader."""
+    graph = module_graph(packages)
+    assert "bench.runtime.engine" in graph or "drivers.labjack" in graph
+    assert cycle(graph) is None, " → ".join(cycle(graph) or [])
+
+
+def test_the_module_cycle_check_sees_hidden_imports(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The checker itself: a cycle made only of a ``TYPE_CHECKING`` import one way and an in-function import the
+    other way is found."""
+    pkg = tmp_path / "pkg"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text("", encoding="utf-8")
+    (pkg / "a.py").write_text("from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from pkg.b import B\n",
+                              encoding="utf-8")
+    (pkg / "b.py").write_text("class B:\n    def f(self):\n        from . import a\n", encoding="utf-8")
+    monkeypatch.setattr(f"{__name__}.ROOT", tmp_path)
+    assert module_graph(("pkg",)) == {"pkg": set(), "pkg.a": {"pkg.b"}, "pkg.b": {"pkg.a"}}
+    assert cycle(module_graph(("pkg",))) == ["pkg.a", "pkg.b", "pkg.a"]
+
+
+def foreign_privates(source: str) -> list[str]:
+    """``x._name`` in a source where ``x`` is not ``self`` or ``cls`` ("line: expression"): a read or write of
+    another object's private member (dunders excepted)."""
+    return [f"{node.lineno}: {ast.unparse(node)}" for node in ast.walk(ast.parse(source))
+            if isinstance(node, ast.Attribute) and node.attr.startswith("_") and not node.attr.startswith("__")
+            and not (isinstance(node.value, ast.Name) and node.value.id in ("self", "cls"))]
+
+
+@pytest.mark.parametrize("name", ["engine", "context", "polls", "hardware_timed"])
+def test_the_run_time_core_reads_no_other_objects_private_members(name: str) -> None:
+    """Issue 22: the engine, its run context, the polls and the hardware-timed path share state through the run
+    context's public members, not through one another's private ones."""
+    found = foreign_privates((ROOT / "bench" / "runtime" / f"{name}.py").read_text(encoding="utf-8"))
+    assert not found, (name, found)
+
+
+def test_the_private_member_check_finds_one() -> None:
+    """The checker itself: a write through another object is found; the object's own members and dunders are not."""
+    assert foreign_privates("def f(e):\n    e._t0 = 1\n    return self._ok, e.__class__\n") == ["2: e._t0"]

@@ -25,8 +25,8 @@ import h5py
 import numpy as np
 import pytest
 
-from bench.storage.recover import hashlittle
 from bench.storage.runfile import open_run
+from bench.storage.superblock import hashlittle
 from tests.conftest import ROOT
 
 RATE = 1000.0  # Hz: the test writers stamp sample k at k / RATE s and record displacement = t * 1e-3 m
@@ -324,7 +324,7 @@ def test_kill_9_loses_at_most_half_a_second_and_recover_releases_the_file(tmp_pa
             ref = tmp_path / "h5clear.h5"
             shutil.copy(path, ref)
             subprocess.run([h5clear, "-s", str(ref)], check=True, capture_output=True)
-            from bench.storage.recover import clear_consistency_flags
+            from bench.storage.superblock import clear_consistency_flags
             image = bytearray(path.read_bytes())
             assert clear_consistency_flags(image) and bytes(image) == ref.read_bytes()
         before = {name: len(s) for name, s in open_run(path).streams.items()}

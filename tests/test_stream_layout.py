@@ -102,7 +102,7 @@ def test_the_live_view_shows_what_the_instruments_describe_in_their_units() -> N
     appears with its driver's SI unit, shown with a prefix; a quantity the layout does not hold is not shown."""
     from rich.console import Console
 
-    from bench.runtime.engine import Snapshot
+    from bench.runtime.context import Snapshot
     from bench.runtime.live import LiveView, units_of
 
     rig = load_rig(ROOT / "rigs" / "lsdea-motor-sim.toml")

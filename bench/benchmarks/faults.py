@@ -467,7 +467,7 @@ def run_case(spec: Spec, plan: Plan, tmp: Path) -> Case:
         events = _events(result.path) if result is not None else []
     _finish(case, inj, trace, seen["sim"], t_return)
     if case.injected:
-        t_fault_run = inj.t_fault - seen["engine"]._t0
+        t_fault_run = inj.t_fault - seen["engine"].ctx.t0
         ramps = [t for t, kind, _ in events if kind == "ramp" and t >= t_fault_run - 1e-6]
         case.ramp_s = ramps[0] - t_fault_run if ramps else None
     return case

@@ -25,37 +25,27 @@ import signal
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any
 
 import numpy as np
 
 from bench.core.clock import Clock
 from bench.protocol.program import HOLD_KEEPALIVE_S, Program, Segment, ticks, voltage_at
+from bench.runtime.context import LATE_TOLERANCE_S, STOP_POLL_S, RunContext, Snapshot, present
 from bench.runtime.control import CONTROL_POLL_S, read_control
 from bench.runtime.hardware_timed import HardwareTimed
 from bench.runtime.instruments import Instruments
-from bench.runtime.interlock import (
-    OUTPUT_ON_V,
-    InterlockTrip,
-    MotionVerifier,
-    OutputVerifier,
-    check_contact,
-    watchdog_period,
-)
-from bench.runtime.polls import PAUSED, POLLS, StepState
+from bench.runtime.interlock import InterlockTrip, watchdog_period
+from bench.runtime.polls import PAUSED, POLLS, StepState, record_laser_block
 from bench.runtime.ramp import ramp_to_zero
 from bench.runtime.safety import SafetyTrip, Supervisor
 from bench.storage.recorder import Recorder
 from drivers.errors import InstrumentConnectionError, InstrumentError, InstrumentStateError, OperationCancelledError
-from drivers.interfaces import Amplifier, DisplacementSensor, ForceSensor, LinearMotor
-from drivers.trek_daq import TrekOnDaq
 
 SHUTDOWN_REPLY_S = 0.1  # shutdown: a request to the set-point module waits this long for its reply, once
 MONITOR_SETTLE_S = 0.5  # after zeroing, wait for fresh monitor conversions before the final read
-LATE_TOLERANCE_S = 0.05  # real time: an action later than this counts as an overrun
-STOP_POLL_S = 0.02  # real time: longest sleep between two looks at the stop request
 RAMP_STEPS = 10  # shutdown ramp: set-points from the last voltage to 0 V
 SAFE_MONITOR_V = 50.0  # |monitor| at or below this after zeroing counts as "output at 0 V" (0.5 % of 10 kV)
 DISCHARGE_WAIT_S = 2.0  # how long to keep reading a monitor that is not yet at 0 V before reporting it
@@ -98,20 +88,6 @@ class RunResult:
     safe_path: str = ""
 
 
-@dataclass
-class Snapshot:
-    """Latest values for a live view (plain data, refreshed by the engine)."""
-
-    t: float = 0.0
-    duration: float = 0.0
-    step: int = 0
-    steps: int = 0
-    step_name: str = ""
-    values: dict[str, float] = field(default_factory=dict)
-    headroom: dict[str, float] = field(default_factory=dict)
-    state: str = "starting"
-
-
 class Engine:
     """Runs one program on one rig's connected instruments."""
 
@@ -132,29 +108,21 @@ class Engine:
         self.apply_specimen = apply_specimen
         self.operator = operator
         self.snapshot = Snapshot(duration=program.duration, steps=len(program.segments))
-        self._t0 = 0.0
+        self.ctx = RunContext(program, inst, clock, recorder, supervisor, self.snapshot,
+                              check_stop=self._check_stop, check_pause=self._check_pause)
         self._stop_reason: str | None = None
         self._stop_at: float | None = None  # run time of the first stop request
         self._urgent = threading.Event()
         self._stopping = False
         self._in_prompt = False
-        self._v_cmd = 0.0  # last voltage commanded (the module's code, as sent)
-        self._v_req = 0.0  # last voltage requested by the program
         self._storing = False
         self._storage_failed = False
-        self.overruns = 0
-        self.worst_lateness = 0.0
-        rig = program.rig
-        self._laser_offset = (rig.laser.offset_mm * 1e-3) if rig.laser else 0.0
-        self._laser_sign = float(rig.laser.sign) if rig.laser else 1.0
-        self._late_streams = {name for name, cols in recorder.streams.items() if any(c.name == "late" for c in cols)}
-        self._stream = HardwareTimed(rig, inst) if inst.daq is not None and isinstance(inst.amplifier, TrekOnDaq) \
-            else None
-        self.verifier = OutputVerifier(rig, rig.daq.scan_rate_Hz if self._stream is not None and rig.daq else None)
-        self.motion = MotionVerifier(rig)  # the encoder against the go-tos (a rig without a motor never feeds it)
+        drive = inst.stream_drive  # the instruments' capability: steps played hardware-timed on a DAQ's stream
+        self._stream = HardwareTimed(program.rig, *drive, self.ctx) if drive is not None else None
+        self.ctx.stream = self._stream
+        self.verifier, self.motion = self.ctx.verifier, self.ctx.motion
         self.latched: InterlockTrip | None = None  # the interlock fault that ended the run (0 V at once, no ramp)
         self._output_dead = False  # 0 V could not be commanded: no request may feed the module's watchdog
-        self._offset = 0.0  # run time − program time: a resumed start and each pause shift the program's schedule
         self._pause_by: str | None = None  # who asked for a pause (signal, another thread); None: nobody
         self._resume_by: str | None = None
         self._control_seen: tuple[float, bool, str] = (0.0, False, "")  # control file: (mtime, pause?, by/why)
@@ -223,46 +191,14 @@ class Engine:
         if self._stop_reason is not None and not self._stopping:
             raise StopRequested(self._stop_reason)
 
-    # ------------------------------------------------------------ instruments the program uses (typed)
     @property
-    def _amp(self) -> Amplifier:
-        return _present(self.inst.amplifier, "amplifier")
-
-    @property
-    def _laser(self) -> DisplacementSensor:
-        return _present(self.inst.laser, "laser")
-
-    @property
-    def _motor(self) -> LinearMotor:
-        return _present(self.inst.motor, "motor")
-
-    @property
-    def _cell(self) -> ForceSensor:
-        return _present(self.inst.load_cell, "load_cell")
+    def overruns(self) -> int:
+        """Real time: actions later than ``LATE_TOLERANCE_S``."""
+        return self.ctx.overruns
 
     @property
     def _hw(self) -> HardwareTimed:
-        return _present(self._stream, "daq")
-
-    # ------------------------------------------------------------ interlock
-    def guard(self, streaming: bool = False) -> None:
-        """Before anything that can drive the output: latch a host stall — the set-point module unheard for
-        longer than the stall bound while the output is on (``streaming``: a DAQ stream plays), so that its
-        watchdog may have zeroed the output and this write would turn high voltage back on by itself."""
-        amp = self.inst.amplifier
-        if amp is None or self.clock.virtual:
-            return
-        try:
-            check_contact(self.program.rig, amp.longest_silence(), streaming or abs(self._v_cmd) > OUTPUT_ON_V)
-        except InterlockTrip as trip:
-            try:
-                fired = amp.watchdog_fired()
-            except InstrumentError as exc:
-                raise InterlockTrip(trip.kind, f"{trip.detail} (its watchdog flag unreadable: {exc.detail})") from None
-            if fired is None:
-                raise
-            raise InterlockTrip(trip.kind, f"{trip.detail} (the module's own flag: its watchdog "
-                                f"{'fired' if fired else 'did not fire'})") from None
+        return present(self._stream, "daq")
 
     def _keep_fed(self) -> None:
         """During long host-side work (fetching stored laser data) on a software-timed rig: re-send the set-point
@@ -272,42 +208,21 @@ class Engine:
             return
         heard = amp.heard_at()
         if heard is not None and time.monotonic() - heard >= HOLD_KEEPALIVE_S:
-            self._set_voltage(self._v_req, self.now())
+            self._set_voltage(self.ctx.v_req, self.now())
 
     # ------------------------------------------------------------ time
     def now(self) -> float:
         """Run time [s]."""
-        return self.clock.now() - self._t0
+        return self.ctx.now()
 
     def program_now(self) -> float:
         """Program time [s]: run time less the shifts of a resumed start and of the pauses."""
-        return self.now() - self._offset
-
-    def lateness(self, due: float) -> float:
-        """How long after its scheduled program time ``due`` an action runs [s]."""
-        return self.program_now() - due
-
-    def _wait_until(self, t: float) -> None:
-        """Wait until program time ``t`` (checking for stop and pause requests meanwhile)."""
-        self._check_stop()
-        self._check_pause()
-        t += self._offset
-        if not self.clock.virtual:
-            while (left := t - self.now()) > 0:
-                self._check_stop()
-                self._check_pause()
-                time.sleep(min(left, STOP_POLL_S))
-            late = self.now() - t
-            self.worst_lateness = max(self.worst_lateness, late)
-            if late > LATE_TOLERANCE_S:
-                self.overruns += 1
-        else:
-            self.clock.wait_until(self._t0 + t)
+        return self.ctx.program_now()
 
     def _pause_until(self, t: float, urgent_aborts: bool = True) -> bool:
         """Shutdown wait: returns False at once if an urgent (second) stop request comes and ``urgent_aborts``."""
         if self.clock.virtual:
-            self.clock.wait_until(self._t0 + t)
+            self.clock.wait_until(self.ctx.t0 + t)
             return not (urgent_aborts and self._urgent.is_set())
         while (left := t - self.now()) > 0:
             if urgent_aborts and self._urgent.is_set():
@@ -316,30 +231,13 @@ class Engine:
         return not (urgent_aborts and self._urgent.is_set())
 
     # ------------------------------------------------------------ acquisition
-    def _to_specimen(self, laser_value: np.ndarray) -> np.ndarray:
-        return (laser_value - self._laser_offset) / self._laser_sign
-
-    def _record_laser_block(self) -> int:
-        """Fetch and record one block of stored laser data; returns how many samples it held."""
-        block = self._laser.fetch_buffer()
-        if block.values.size:
-            disp = self._to_specimen(block.values)
-            valid = block.valid & np.isfinite(disp)
-            self.rec.append("laser", block.times() - self._t0, displacement=disp, valid=valid.astype("u1"),
-                            **self._late("laser", np.full(disp.size, np.nan)))  # the laser's own clock
-            good = disp[valid]
-            if good.size:
-                self.sup.update_displacement(float(good[-1]))
-                self.snapshot.values["displacement"] = float(good[-1])
-        return int(block.values.size)
-
     def _drain_laser(self, budget: float) -> None:
         """Fetch stored laser data until the storage is empty, ``budget`` s pass, or a stop request comes.
 
         The budget is rig time: real time on hardware; in virtual time the wire time the uploads take (the time in
         which the storage fills on), so that a host starved of CPU cannot exhaust it."""
         end = self.now() + budget
-        while self._record_laser_block() > 0 or getattr(self.inst.laser, "pending", 0) > 0:
+        while record_laser_block(self.ctx) > 0 or self.ctx.laser.pending > 0:
             if self._stopping and self._urgent.is_set():
                 return
             self._check_stop()
@@ -347,24 +245,6 @@ class Engine:
             if self.now() > end:
                 raise InstrumentStateError("laser", f"stored data not fetched within {budget:g} s: the link "
                                            "cannot upload as fast as the storage fills")
-
-    def _unpolled_monitor_columns(self) -> dict[str, float | np.ndarray]:
-        """The amplifier stream's other columns for a monitor read outside the schedule (paused, shutting down):
-        on a DAQ rig the output commanded, else no lateness (NaN: not a scheduled poll)."""
-        return {"commanded": self._v_cmd} if self._stream is not None else self._late("amplifier", math.nan)
-
-    def _late(self, stream: str, late: float | np.ndarray) -> dict[str, float | np.ndarray]:
-        """The ``late`` column of a software-timed stream: how long after its scheduled time a poll ran [s]."""
-        return {"late": late} if stream in self._late_streams else {}
-
-    def _drive_error_text(self) -> str:
-        """The drive's own account of its state (error code and text), for the file."""
-        try:
-            st = self._motor.status()
-        except InstrumentError as exc:
-            return f"status unreadable ({exc.detail})"
-        text = getattr(st, "error_text", "")
-        return f"state {st.state}, error {st.error_code:#06x}" + (f" ({text})" if text else "")
 
     # ------------------------------------------------------------ set-points
     def _set_voltage(self, v: float, t: float, x_cmd: float = math.nan) -> None:
@@ -375,11 +255,11 @@ class Engine:
         exceeds it). A step the slew limit held back is checked as sent."""
         self.sup.check_setpoint(v)
         bound = self.sup.setpoint_bound()
-        want = self._amp.quantise(v, within=bound)
+        want = self.ctx.amp.quantise(v, within=bound)
         self.sup.check_setpoint(want)
-        self.guard()
-        sent = self._amp.set_voltage(v, within=bound)
-        self._v_cmd, self._v_req = sent, v
+        self.ctx.guard()
+        sent = self.ctx.amp.set_voltage(v, within=bound)
+        self.ctx.v_cmd, self.ctx.v_req = sent, v
         self.verifier.commanded(self.now(), sent)
         self.rec.append("setpoints", t, voltage=sent, aperture=x_cmd)
         if sent != want:
@@ -388,13 +268,13 @@ class Engine:
     def _move_motor(self, target: float, vel: float, acc: float) -> float:
         """Send a supervised go-to; returns the commanded aperture [m]. The position checked and sent is the one the
         drive receives (its nearest increment, one toward the inside at a travel limit)."""
-        target = self._motor.quantise(target)
+        target = self.ctx.motor.quantise(target)
         x_cmd = float(self.program.aperture(target)) if self.program.has_motor_axis else math.nan
-        self.sup.check_motor_setpoint(target, x_cmd, self._v_cmd)
+        self.sup.check_motor_setpoint(target, x_cmd, self.ctx.v_cmd)
         if not self.motion.anchored:  # where the motor stands before its first go-to (after a start or a stop)
-            r = self._motor.read_position()
-            self.motion.anchor(r.timestamp - self._t0, r.value)
-        self._motor.move_to(target, vel, acc)
+            r = self.ctx.motor.read_position()
+            self.motion.anchor(r.timestamp - self.ctx.t0, r.value)
+        self.ctx.motor.move_to(target, vel, acc)
         self.motion.commanded(self.now(), target, vel, acc)
         return x_cmd
 
@@ -423,13 +303,13 @@ class Engine:
         laser_serial = inst.laser is not None and not (self._stream is not None and self._stream.has_laser)
         storing = seg.storing and laser_serial
         if storing:
-            self._laser.start_buffer(1.0 / rec.displacement_Hz)
+            self.ctx.laser.start_buffer(1.0 / rec.displacement_Hz)
             self._storing = True
         if streamed:
-            self._wait_until(seg.t_start)
-            self._hw.start(seg, self)
+            self.ctx.wait_until(seg.t_start)
+            self._hw.start(seg)
         state = StepState(seg, streamed, laser_serial, storing)
-        polls = {p.name: (p, per) for p in POLLS if (per := p.period(self, state)) is not None}
+        polls = {p.name: (p, per) for p in POLLS if (per := p.period(self.ctx, state)) is not None}
         count = {k: p.first for k, (p, _) in polls.items()}
         due = {k: seg.t_start + n * polls[k][1] for k, n in count.items()}  # from counts: no drift
         schedule = ticks(prog, seg)  # the set-point schedule the dry run also executes
@@ -439,33 +319,33 @@ class Engine:
             t_next = min([t_set, *due.values()])
             if seg.duration == 0 or t_next >= seg.t_end - 1e-12:
                 break
-            self._wait_until(t_next)
+            self.ctx.wait_until(t_next)
             if tick is not None and t_set <= t_next:
                 x_cmd = self._move_motor(*tick.motor) if tick.motor is not None else math.nan
                 if inst.amplifier is not None and not streamed:
-                    self._set_voltage(self._v_req if tick.voltage is None else tick.voltage, t_set + self._offset,
+                    self._set_voltage(self.ctx.v_req if tick.voltage is None else tick.voltage, t_set + self.ctx.offset,
                                       x_cmd)
                 elif tick.motor is not None:
-                    self.rec.append("setpoints", t_set + self._offset, voltage=math.nan, aperture=x_cmd)
-                self.snapshot.values["setpoint"] = self._v_cmd
+                    self.rec.append("setpoints", t_set + self.ctx.offset, voltage=math.nan, aperture=x_cmd)
+                self.snapshot.values["setpoint"] = self.ctx.v_cmd
                 tick = next(schedule, None)
             for kind in [k for k, tk in due.items() if tk <= t_next + 1e-12]:
                 self._check_stop()
                 poll, period = polls[kind]
-                poll.run(self, due[kind])
+                poll.run(self.ctx, due[kind])
                 count[kind] += 1
                 due[kind] = seg.t_start + count[kind] * period
             self.snapshot.t = t_next
             self.snapshot.headroom = self.sup.headroom()
             self.rec.maybe_flush()
-        self._wait_until(seg.t_end)
+        self.ctx.wait_until(seg.t_end)
         v_end = tick.voltage if tick is not None and tick.end else None  # the schedule's end value
         if streamed:
-            self._hw.finish(self)  # the device played the end value itself
-        elif inst.amplifier is not None and v_end is not None and v_end != self._v_req:
-            self._set_voltage(v_end, seg.t_end + self._offset)  # ticks stop before t_end: a ramp must reach its end
+            self._hw.finish()  # the device played the end value itself
+        elif inst.amplifier is not None and v_end is not None and v_end != self.ctx.v_req:
+            self._set_voltage(v_end, seg.t_end + self.ctx.offset)  # ticks stop before t_end: a ramp must reach its end
         if storing:
-            self._laser.stop_buffer()
+            self.ctx.laser.stop_buffer()
             self._storing = False
             self._drain_laser(LASER_DRAIN_BUDGET_S)
         self.rec.event(self.now(), seg.index, "end", seg.name)
@@ -504,7 +384,7 @@ class Engine:
 
     def _ramp_to(self, target: float, seconds: float) -> None:
         """Supervised set-points from the present one to ``target`` over ``seconds`` (command-response)."""
-        v0 = self._v_cmd
+        v0 = self.ctx.v_cmd
         for k in range(1, RAMP_STEPS + 1):
             self._pause_until(self.now() + seconds / RAMP_STEPS, urgent_aborts=False)
             self._check_stop()
@@ -522,20 +402,20 @@ class Engine:
             assert m is not None
             self._move_motor(motor, 0.25 * m.max_velocity_m_per_s, m.max_acceleration_m_per_s2)
             deadline = self.now() + RESTART_MOVE_S
-            while abs(self._motor.read_position().value - motor) > self.program.rig.limits.travel_tolerance_m:
+            while abs(self.ctx.motor.read_position().value - motor) > self.program.rig.limits.travel_tolerance_m:
                 self._check_stop()
                 if self.now() > deadline:
                     raise InstrumentStateError("motor", f"did not reach {motor * 1e3:.2f} mm within "
                                                f"{RESTART_MOVE_S:g} s to restart step {seg.index}")
                 self._pause_until(self.now() + 0.02, urgent_aborts=False)
-        if self.inst.amplifier is not None and abs(volts - self._v_cmd) > RESTART_STEP_V:
+        if self.inst.amplifier is not None and abs(volts - self.ctx.v_cmd) > RESTART_STEP_V:
             self._ramp_to(volts, self.program.rig.limits.shutdown_ramp_s)
             # the last step's charging current (at the amplifier's current limit for tens of µs) is over before
             # the step's own acquisition starts
             self._pause_until(self.now() + RESTART_SETTLE_S, urgent_aborts=False)
-        self._v_req = volts
-        self._offset = self.now() - seg.t_start
-        self.rec.event(self.now(), seg.index, "offset", f"run time = program time + {self._offset:.9f} s")
+        self.ctx.v_req = volts
+        self.ctx.offset = self.now() - seg.t_start
+        self.rec.event(self.now(), seg.index, "offset", f"run time = program time + {self.ctx.offset:.9f} s")
 
     def _pause(self, seg: Segment) -> None:
         """Paused: the step under way is left, the output ramped to 0 V, the motor held where it is, the monitors
@@ -547,7 +427,7 @@ class Engine:
         self.rec.event(t_pause, seg.index, "pause", f"paused in step {seg.index} ({seg.name}) by {by}: output to "
                        "0 V, motor held, recording goes on")
         if self._stream is not None:
-            self._stream.stop(self)
+            self._stream.stop()
             self._stream.forget()
         if self._storing and self.inst.laser is not None:
             self.inst.laser.stop_buffer()
@@ -556,7 +436,7 @@ class Engine:
         if self.inst.amplifier is not None:
             self._ramp_to(0.0, self.program.rig.limits.shutdown_ramp_s)
         if self.inst.motor is not None and self.program.has_motor_axis:
-            self._motor.stop()
+            self.ctx.motor.stop()
             self.motion.stopped(self.now())
         due = self.now() + RESTART_SETTLE_S  # the ramp's last charging current is over before the first reading
         while self._paused_wanted()[0]:
@@ -584,26 +464,26 @@ class Engine:
                 if heard is not None and time.monotonic() - heard >= HOLD_KEEPALIVE_S:
                     self._set_voltage(0.0, self.now())
             v, i = amp.read_monitors()
-            self.rec.append("amplifier", v.timestamp - self._t0, voltage=v.value, current=i.value,
-                            **self._unpolled_monitor_columns())
+            self.rec.append("amplifier", v.timestamp - self.ctx.t0, voltage=v.value, current=i.value,
+                            **self.ctx.unpolled_monitor_columns())
             self.sup.check_monitors(v.value, i.value)
             self.snapshot.values["voltage"], self.snapshot.values["current"] = v.value, i.value
         for poll in POLLS:
-            if poll.name in ("position", "force") and poll.period(self, PAUSED) is not None:
-                poll.run(self, self.program_now())
+            if poll.name in ("position", "force") and poll.period(self.ctx, PAUSED) is not None:
+                poll.run(self.ctx, self.program_now())
 
     # ------------------------------------------------------------ run and shut down
     def run(self) -> RunResult:
         """Run the whole program; always returns with the rig safe and the file finalised."""
         wall0 = time.perf_counter()
         old = self._install_signals()
-        self._t0 = self.clock.now()
+        self.ctx.t0 = self.clock.now()
         state, reason = "completed", "protocol completed"
         try:
             self.snapshot.state = "running"
             self.rec.event(0.0, -1, "run", "start")
             if self.inst.amplifier is not None:  # what connecting left the output at (0 V)
-                self.verifier.commanded(0.0, self._v_cmd)
+                self.verifier.commanded(0.0, self.ctx.v_cmd)
             segs = self.program.segments
             k = self.start_step
             if k > 0:
@@ -691,7 +571,7 @@ class Engine:
         safe_path = self._verify_safe(zero_at, notes)
         if not self.clock.virtual:
             self._event("timing", f"{self.overruns} late actions (> {LATE_TOLERANCE_S * 1e3:.0f} ms), worst "
-                        f"lateness {self.worst_lateness * 1e3:.1f} ms")
+                        f"lateness {self.ctx.worst_lateness * 1e3:.1f} ms")
         for note in notes:
             self._event("fault", note)
         self._event("safe", safe_path)
@@ -711,15 +591,15 @@ class Engine:
         unanswered = False
         if self._stream is not None:
             try:
-                self._stream.stop(self)  # the DAC holds the last value played; the ramp continues from it
+                self._stream.stop()  # the DAC holds the last value played; the ramp continues from it
             except InstrumentError as exc:
                 notes.append(f"stopping the DAQ stream failed: {exc}")
                 unanswered = True  # the request may have arrived; a ramp of unanswered requests only delays 0 V
         ramp = self.program.rig.limits.shutdown_ramp_s
-        v0 = self._v_cmd
+        v0 = self.ctx.v_cmd
         if self.latched is None:
             try:
-                self.guard(streaming=self._stream is not None)  # a stall before a stop: the ramp would re-energise
+                self.ctx.guard(streaming=self._stream is not None)  # a stall before a stop: the ramp would re-energise
             except InterlockTrip as trip:
                 self.latched = trip
                 self._event("interlock", trip.reason)
@@ -737,7 +617,7 @@ class Engine:
                 self._event("ramp", f"ramp from {v0:.0f} V to 0 V over {ramp:g} s")
 
                 def record(sent: float) -> None:
-                    self._v_cmd = sent
+                    self.ctx.v_cmd = sent
                     self._record(self.rec.append, "setpoints", self.now(), voltage=sent, aperture=math.nan)
 
                 if not ramp_to_zero(amp, v0, ramp, lambda offset: self._ramp_pause(t + offset), record, RAMP_STEPS):
@@ -753,7 +633,7 @@ class Engine:
             self._event("watchdog", "output path dead: no further request to the set-point module, so that its "
                         "communication watchdog zeroes the output as early as it can")
             return None
-        self._v_cmd = 0.0
+        self.ctx.v_cmd = 0.0
         t_zero = self.now()
         self._record(self.rec.append, "setpoints", t_zero, voltage=0.0, aperture=math.nan)
         return t_zero
@@ -765,7 +645,7 @@ class Engine:
         if not self._pause_until(until):
             return False
         try:
-            self.guard()
+            self.ctx.guard()
         except InterlockTrip as trip:
             self.latched = trip
             self._event("interlock", trip.reason)
@@ -808,23 +688,13 @@ class Engine:
             except InstrumentError as exc:
                 notes.append(f"final monitor read failed: {exc}")
                 return f"{path}; output NOT verified (voltage monitor unreadable)"
-            self._record(self.rec.append, "amplifier", v.timestamp - self._t0, voltage=v.value, current=i.value,
-                         **self._unpolled_monitor_columns())
+            self._record(self.rec.append, "amplifier", v.timestamp - self.ctx.t0, voltage=v.value, current=i.value,
+                         **self.ctx.unpolled_monitor_columns())
             if math.isfinite(v.value) and abs(v.value) <= SAFE_MONITOR_V:
                 return f"{path}; verified: voltage monitor {v.value:.0f} V at {self.now():.3f} s"
             if self.now() >= deadline:
                 return f"{path}; WARNING: voltage monitor still reads {v.value:.0f} V at {self.now():.3f} s"
             self._pause_until(self.now() + 0.1, urgent_aborts=False)
-
-
-T = TypeVar("T")
-
-
-def _present(instrument: T | None, role: str) -> T:
-    """The rig's instrument of ``role``; the compiler only schedules actions on instruments the rig has."""
-    if instrument is None:
-        raise InstrumentStateError(role, "the program uses an instrument this rig does not have")
-    return instrument
 
 
 def _is_storage_fault(exc: BaseException) -> bool:

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import time
 from dataclasses import replace
-from typing import TYPE_CHECKING
 
 import numpy as np
 from numba import njit
@@ -20,15 +19,20 @@ from scipy.signal import lfilter
 
 from bench.protocol.program import Segment, plays_on, voltage_at
 from bench.rig import DaqConfig, RigConfig
+from bench.runtime.context import RunContext
 from bench.runtime.interlock import InterlockTrip, mismatch_trip
 from drivers.errors import InstrumentTimeoutError
-from drivers.interfaces import Amplifier, DataKey, StreamDescription
-from drivers.labjack import LabJackT7, StreamBlock, StreamIn, StreamOut, StreamSpec
-from drivers.trek_daq import TrekOnDaq
-
-if TYPE_CHECKING:
-    from bench.runtime.engine import Engine
-    from bench.runtime.instruments import Instruments
+from drivers.interfaces import (
+    Amplifier,
+    DaqAmplifier,
+    DataKey,
+    StreamBlock,
+    StreamDescription,
+    StreamIn,
+    StreamingDaq,
+    StreamOut,
+    StreamSpec,
+)
 
 KEEPALIVE_S = 0.25  # a command-response request at least this often keeps the device's watchdog fed
 FINISH_TIMEOUT_S = 5.0  # rig time allowed for the last scans of a step to arrive (wall time on hardware)
@@ -78,16 +82,16 @@ def describe_streams(cfg: DaqConfig, amplifier: Amplifier) -> list[StreamDescrip
 
 
 class HardwareTimed:
-    """The DAQ side of a run on a rig whose amplifier is driven through a hardware-timed DAQ."""
+    """The DAQ side of a run on a rig whose amplifier is driven through a hardware-timed DAQ: any
+    :class:`~drivers.interfaces.StreamingDaq` with a :class:`~drivers.interfaces.DaqAmplifier` on its output
+    (``Instruments.stream_drive``), wired as the rig file's ``[daq]`` section says."""
 
-    def __init__(self, rig: RigConfig, inst: Instruments) -> None:
+    def __init__(self, rig: RigConfig, daq: StreamingDaq, amp: DaqAmplifier, ctx: RunContext) -> None:
         cfg = rig.daq
-        assert cfg is not None
+        if cfg is None:
+            raise ValueError(f"rig {rig.name}: hardware-timed steps need a [daq] section")
         self.cfg = cfg
-        if not isinstance(inst.daq, LabJackT7) or not isinstance(inst.amplifier, TrekOnDaq):
-            raise TypeError("hardware-timed steps need a LabJack T7 and a TREK on its DAC")
-        self.daq: LabJackT7 = inst.daq
-        self.amp: TrekOnDaq = inst.amplifier
+        self.daq, self.amp, self.ctx = daq, amp, ctx
         inputs = [StreamIn(cfg.vmon_ain, 10.0, "vmon"), StreamIn(cfg.imon_ain, 10.0, "imon")]
         if cfg.force_ain is not None:
             inputs.append(StreamIn(cfg.force_ain, 10.0, "force"))
@@ -106,39 +110,39 @@ class HardwareTimed:
         self.scans = 0  # scans recorded over the run
 
     # ------------------------------------------------------------ one step
-    def start(self, seg: Segment, engine: Engine) -> None:
+    def start(self, seg: Segment) -> None:
         """Play the step: a step already in the running stream (appended while the one before played) just
         moves the end mark; otherwise compile its voltage to a DAC buffer (end value last), supervise it, arm
         and kick off. Then append the next step when it follows at once, so that the device plays the steps
         back to back on one scan clock (no restart, no gap, no drift of the program's time grid)."""
-        nxt = self._next_chainable(seg, engine)
+        nxt = self._next_chainable(seg)
         if self._appended is not None and self._appended[0] is seg and self.daq.streaming:
             self._n = self._appended[1]
         else:
-            volts = self._wanted(seg, engine._v_req, first=True)
-            engine.sup.check_setpoint(_peak(volts))
-            bound, window = self._window(engine)
-            dac = self._dac_values(volts, engine._v_cmd, bound, window)
-            commanded = self._follows(dac, window, engine._v_cmd)
-            engine.sup.check_setpoint(_peak(commanded))
-            engine.guard()
+            volts = self._wanted(seg, self.ctx.v_req, first=True)
+            self.ctx.sup.check_setpoint(_peak(volts))
+            bound, window = self._window()
+            dac = self._dac_values(volts, self.ctx.v_cmd, bound, window)
+            commanded = self._follows(dac, window, self.ctx.v_cmd)
+            self.ctx.sup.check_setpoint(_peak(commanded))
+            self.ctx.guard()
             self.daq.arm(StreamSpec(self.cfg.scan_rate_Hz, self.inputs,
                                     StreamOut(self.cfg.dac, dac, hold=1, final=nxt is None, within=window)))
             self._base = 0
             self._commanded = commanded
             self._tail = float(volts[-1])
             self._n = volts.size - 1
-            engine.verifier.restart()
+            self.ctx.verifier.restart()
             t0 = self.daq.kickoff()
             self._keepalive = time.monotonic()
-            engine.rec.event(engine.now(), seg.index, "timing",
-                             f"DAQ scan clock: scan 0 at {t0 - engine._t0:.6f} s on the run clock, known to "
-                             f"{self.daq.scan_clock_uncertainty * 1e3:.3f} ms (the enable request's round trip); "
-                             "polled channels (motor encoder) are timestamped on the same run clock")
-        engine._v_req = self._tail  # this step's end value: the last one in the stream until the next is appended
+            self.ctx.rec.event(self.ctx.now(), seg.index, "timing",
+                               f"DAQ scan clock: scan 0 at {t0 - self.ctx.t0:.6f} s on the run clock, known to "
+                               f"{self.daq.scan_clock_uncertainty * 1e3:.3f} ms (the enable request's round trip); "
+                               "polled channels (motor encoder) are timestamped on the same run clock")
+        self.ctx.v_req = self._tail  # this step's end value: the last one in the stream until the next is appended
         self._appended = None
         if nxt is not None and self.daq.out_open:
-            self._append(nxt, engine)
+            self._append(nxt)
 
     def _wanted(self, seg: Segment, hold: float, first: bool) -> np.ndarray:
         """The step's amplifier output on the scan grid [V]: from its start (``first``: a new stream plays the
@@ -155,10 +159,10 @@ class HardwareTimed:
             volts = np.full(k.size, hold)
         return volts
 
-    def _next_chainable(self, seg: Segment, engine: Engine) -> Segment | None:
+    def _next_chainable(self, seg: Segment) -> Segment | None:
         """The step after ``seg`` when the stream can play it straight on: it starts where ``seg`` ends, lasts,
         and needs no specimen change (an operator's action stops the stream)."""
-        segs = engine.program.segments
+        segs = self.ctx.program.segments
         pos = self._positions.get(id(seg))
         if pos is None:
             self._positions = {id(s): i for i, s in enumerate(segs)}
@@ -168,17 +172,17 @@ class HardwareTimed:
         nxt = segs[pos + 1]
         return nxt if plays_on(seg, nxt) else None
 
-    def _append(self, nxt: Segment, engine: Engine) -> None:
+    def _append(self, nxt: Segment) -> None:
         """Append the next step's values to the running stream-out (supervised like a new step's)."""
         volts = self._wanted(nxt, self._tail, first=False)
-        engine.sup.check_setpoint(_peak(volts))
-        after = self._next_chainable(nxt, engine)
-        present = float(self._commanded[-1]) if self._commanded.size else engine._v_cmd
-        bound, window = self._window(engine)
+        self.ctx.sup.check_setpoint(_peak(volts))
+        after = self._next_chainable(nxt)
+        present = float(self._commanded[-1]) if self._commanded.size else self.ctx.v_cmd
+        bound, window = self._window()
         dac = self._dac_values(volts, self._tail, bound, window)
         new = self._follows(dac, window, present)
-        engine.sup.check_setpoint(_peak(new))
-        engine.guard(streaming=True)
+        self.ctx.sup.check_setpoint(_peak(new))
+        self.ctx.guard(streaming=True)
         self.daq.extend(dac, final=after is None, within=window)
         keep = max(0, self.daq.scans_received - 1 - self._base)  # the scans still to be recorded, and the last
         self._commanded = np.concatenate([self._commanded[keep:], new])
@@ -186,9 +190,9 @@ class HardwareTimed:
         self._appended = (nxt, self._base + self._commanded.size - 1)
         self._tail = float(volts[-1])
 
-    def _window(self, engine: Engine) -> tuple[float, tuple[float, float]]:
+    def _window(self) -> tuple[float, tuple[float, float]]:
         """(the supervisor's bound on |V| now, the DAC volts whose output lies within it)."""
-        bound = engine.sup.setpoint_bound()
+        bound = self.ctx.sup.setpoint_bound()
         return bound, self.amp.dac_window(bound)
 
     def _dac_values(self, volts: np.ndarray, present: float, bound: float,
@@ -201,15 +205,15 @@ class HardwareTimed:
 
     def _follows(self, dac: np.ndarray, window: tuple[float, float], present: float) -> np.ndarray:
         """What the amplifier follows for DAC values ``dac`` [V out]: the levels the T7 plays for them (codes
-        clipped to ``window``, as :meth:`LabJackT7.arm`/:meth:`~LabJackT7.extend` code them) through the
+        clipped to ``window``, as the DAQ's ``arm``/``extend`` code them) through the
         conditioning stage and the reconstruction filter, from ``present``. Supervised before anything is sent."""
         return self._filtered(self.amp.output_volts(self.daq.out_played(dac, self.cfg.dac, window)), present)
 
-    def collect(self, engine: Engine) -> None:
+    def collect(self) -> None:
         """Record the scans received so far and supervise them; keep the device's watchdog fed."""
-        engine.guard(streaming=True)  # the collect tops up the stream-out: no write after a stall
-        block = self.daq.collect(until=engine.clock.now(), timeout=max(1.0, 4 * self.daq.timeout))
-        self._record(block, engine)
+        self.ctx.guard(streaming=True)  # the collect tops up the stream-out: no write after a stall
+        block = self.daq.collect(until=self.ctx.clock.now(), timeout=max(1.0, 4 * self.daq.timeout))
+        self._record(block)
         if (late := self.daq.out_underrun_scans) > 0:
             raise InterlockTrip("stream-out underrun", f"the DAQ played {late} scans past the values the host had "
                                 "written: the output did not follow the program")
@@ -217,34 +221,34 @@ class HardwareTimed:
             self.daq.read_dac(self.cfg.dac)
             self._keepalive = time.monotonic()
 
-    def finish(self, engine: Engine) -> None:
+    def finish(self) -> None:
         """Collect until the end value has been played, then stop the stream (the DAC holds it) — unless the
         next step is already in the stream: then it just goes on."""
         if self._appended is not None and self.daq.streaming:
-            self.collect(engine)
+            self.collect()
             return
-        end = engine.now() + FINISH_TIMEOUT_S  # rig time: each pass below moves a virtual clock on by FINISH_POLL_S
+        end = self.ctx.now() + FINISH_TIMEOUT_S  # rig time: each pass below moves a virtual clock on by FINISH_POLL_S
         while self.daq.scans_received <= self._n:
-            engine._check_stop()
-            if engine.now() > end:
+            self.ctx.check_stop()
+            if self.ctx.now() > end:
                 raise InstrumentTimeoutError(self.daq.name, f"stream stopped short: {self.daq.scans_received} "
                                              f"scans received, {self._n + 1} needed")
-            engine._wait_until(engine.program_now() + FINISH_POLL_S)
-            self.collect(engine)
-        self.stop(engine)
+            self.ctx.wait_until(self.ctx.program_now() + FINISH_POLL_S)
+            self.collect()
+        self.stop()
 
     def forget(self) -> None:
         """After a stop that was not the program's (a pause): no step is in the stream any more."""
         self._appended = None
 
-    def stop(self, engine: Engine) -> None:
+    def stop(self) -> None:
         """Stop a running stream and record its last scans (the DAC holds the last value played)."""
         if not self.daq.streaming:
             return
         block = self.daq.stop()
         if block is not None:
-            self._record(block, engine, supervise=False)
-        engine._v_cmd = self._played()
+            self._record(block, supervise=False)
+        self.ctx.v_cmd = self._played()
 
     # ------------------------------------------------------------ reconstruction filter of the conditioning stage
     def _alpha(self) -> float | None:
@@ -266,10 +270,8 @@ class HardwareTimed:
         """DAC values on the DAC's own levels whose running sum follows ``dac`` (first-order error diffusion):
         behind the reconstruction filter the code steps average out instead of leaving the output up to one
         code (≈ 5 V of high voltage on a 12-bit DAC) off a slow waveform. No level outside ``window`` is used."""
-        slope, offset = self.daq.cal.dac(self.cfg.dac)
-        lo, hi = self.daq.cal.dac_code_range(self.cfg.dac, window, self.daq.dac_bits)
-        return _diffuse(np.ascontiguousarray(dac, dtype=float), float(slope), float(offset), 16 - self.daq.dac_bits,
-                        lo, hi)
+        c = self.daq.dac_coding(self.cfg.dac, window)
+        return _diffuse(np.ascontiguousarray(dac, dtype=float), c.slope, c.offset, c.shift, c.lo, c.hi)
 
     def _filtered(self, played: np.ndarray, present: float) -> np.ndarray:
         """What the amplifier follows: the DAC's played sequence through the reconstruction filter."""
@@ -285,17 +287,16 @@ class HardwareTimed:
         k = min(max(self.daq.scans_received - 1 - self._base, 0), self._commanded.size - 1)
         return float(self._commanded[k]) if self._commanded.size else 0.0
 
-    def _record(self, block: StreamBlock, engine: Engine, supervise: bool = True) -> None:
+    def _record(self, block: StreamBlock, supervise: bool = True) -> None:
         if block.n == 0:
             return
         self.scans += block.n
-        t = block.times() - engine._t0
+        t = block.times() - self.ctx.t0
         idx = np.clip(block.first_scan - self._base + np.arange(block.n), 0, self._commanded.size - 1)
-        trek = self.amp.trek
         col = {name: block.volts[:, i] for i, name in enumerate(block.names)}
         ok = block.valid.all(axis=1)
-        v, i = col["vmon"] * trek.vmon_ratio, col["imon"] * trek.imon_ratio
-        rec, snap = engine.rec, engine.snapshot
+        v, i = self.amp.monitor_values(col["vmon"], col["imon"])
+        rec, snap = self.ctx.rec, self.ctx.snapshot
         rec.append("amplifier", t, voltage=v, current=i, commanded=self._commanded[idx])
         disp = force = None
         if self.has_force:
@@ -303,26 +304,26 @@ class HardwareTimed:
             rec.append("load_cell", t, force=force, ok=ok.astype("u1"))
         if self.has_laser:
             head = self.cfg.laser_m_per_V * col["laser"] + self.cfg.laser_offset_m
-            disp = engine._to_specimen(head)
+            disp = self.ctx.to_specimen(head)
             rec.append("laser", t, displacement=disp, valid=(ok & np.isfinite(disp)).astype("u1"))
-        engine._v_cmd = self._played()
-        snap.values["setpoint"] = engine._v_cmd
+        self.ctx.v_cmd = self._played()
+        snap.values["setpoint"] = self.ctx.v_cmd
         if not ok.any():
             return
         last = int(np.flatnonzero(ok)[-1])
         snap.values["voltage"], snap.values["current"] = float(v[last]), float(i[last])
         if disp is not None:
-            engine.sup.update_displacement(float(disp[last]))
+            self.ctx.sup.update_displacement(float(disp[last]))
             snap.values["displacement"] = float(disp[last])
         if force is not None:
             snap.values["force"] = float(force[last])
         if not supervise:
             return
         good = np.flatnonzero(ok)
-        engine.sup.check_monitors(float(v[good[np.argmax(np.abs(v[good]))]]),
+        self.ctx.sup.check_monitors(float(v[good[np.argmax(np.abs(v[good]))]]),
                                   float(i[good[np.argmax(np.abs(i[good]))]]))
         if force is not None:
-            engine.sup.check_force(float(force[good[np.argmax(np.abs(force[good]))]]))
-        if (m := engine.verifier.scans(t, v, self._commanded[idx], np.asarray(ok))) is not None:
+            self.ctx.sup.check_force(float(force[good[np.argmax(np.abs(force[good]))]]))
+        if (m := self.ctx.verifier.scans(t, v, self._commanded[idx], np.asarray(ok))) is not None:
             raise mismatch_trip(m, "the voltage monitor (scan clock)")
 

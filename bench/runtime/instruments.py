@@ -15,11 +15,13 @@ from drivers.errors import InstrumentError
 from drivers.interfaces import (
     Amplifier,
     ClockFn,
+    DaqAmplifier,
     DisplacementSensor,
     ForceSensor,
     Instrument,
     LinearMotor,
     SleepFn,
+    StreamingDaq,
 )
 from drivers.keyence import KeyenceLKG
 from drivers.labjack import LabJackT7
@@ -38,9 +40,18 @@ class Instruments:
     laser: DisplacementSensor | None = None
     motor: LinearMotor | None = None
     load_cell: ForceSensor | None = None
-    daq: LabJackT7 | None = None  # hardware-timed drive and acquisition (the engine streams through it)
+    daq: StreamingDaq | None = None  # hardware-timed drive and acquisition (the engine streams through it)
     links: dict[str, ModbusLink] = field(default_factory=dict)
     cancel: CancelToken = field(default_factory=CancelToken)  # shared by every link: one stop request reaches all
+
+    @property
+    def stream_drive(self) -> tuple[StreamingDaq, DaqAmplifier] | None:
+        """(the DAQ, the amplifier on its analog output) when the rig plays its steps hardware-timed — the
+        amplifier's set-point is the DAQ's output (any :class:`~drivers.interfaces.StreamingDaq` and
+        :class:`~drivers.interfaces.DaqAmplifier`); None: set-points are command-response."""
+        if self.daq is not None and isinstance(self.amplifier, DaqAmplifier):
+            return self.daq, self.amplifier
+        return None
 
     def items(self) -> Iterator[tuple[str, Instrument]]:
         """(role, driver) of every instrument present, amplifier first."""
@@ -108,14 +119,15 @@ def build_instruments(rig: RigConfig, endpoints: dict[str, str] | None = None,
         zero_dac = -d.drive_offset_V / d.drive_gain if a_cfg is not None and a_cfg.drive == "daq" else 0.0
         safe = (zero_dac, 0.0) if d.dac == 0 else (0.0, zero_dac)
         wd = None if d.watchdog_s is None else int(d.watchdog_s)  # RigConfig: whole seconds (the T7's unit)
-        inst.daq = LabJackT7(host, port=port, stream_port=stream_port, timeout=d.timeout_s, cancel=inst.cancel,
-                             clock=clock, sleep=sleep, safe_dac=safe, watchdog_s=wd, timer=tm.get("daq", WALL))
+        t7 = LabJackT7(host, port=port, stream_port=stream_port, timeout=d.timeout_s, cancel=inst.cancel,
+                       clock=clock, sleep=sleep, safe_dac=safe, watchdog_s=wd, timer=tm.get("daq", WALL))
+        inst.daq = t7
     if (a := rig.amplifier) is not None:
         base = TREK_MODELS[a.model]
         trek = TrekModel(base.model, base.max_output, base.max_current, base.gain,
                          a.vmon_ratio or base.vmon_ratio, a.imon_ratio or base.imon_ratio)
         if a.drive == "daq":
-            assert inst.daq is not None and rig.daq is not None  # RigConfig checks it
+            assert isinstance(inst.daq, LabJackT7) and rig.daq is not None  # RigConfig checks it
             inst.amplifier = TrekOnDaq(inst.daq, trek, dac=rig.daq.dac, gain=rig.daq.drive_gain,
                                        offset=rig.daq.drive_offset_V, vmon_ain=rig.daq.vmon_ain,
                                        imon_ain=rig.daq.imon_ain,

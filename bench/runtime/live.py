@@ -18,7 +18,7 @@ from rich.progress_bar import ProgressBar
 from rich.table import Table
 from rich.text import Text
 
-from bench.runtime.engine import Snapshot
+from bench.runtime.context import Snapshot
 from bench.units import si
 from drivers.interfaces import DataKey
 

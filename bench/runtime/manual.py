@@ -75,7 +75,8 @@ import numpy as np
 from bench import __version__
 from bench.rig import RigConfig, rig_to_toml
 from bench.runtime import latch as rig_latch
-from bench.runtime.engine import RAMP_STEPS, STOP_POLL_S, STOP_SIGNALS
+from bench.runtime.context import STOP_POLL_S
+from bench.runtime.engine import RAMP_STEPS, STOP_SIGNALS
 from bench.runtime.instruments import Instruments, build_instruments
 from bench.runtime.interlock import OUTPUT_ON_V, InterlockTrip, OutputVerifier, check_contact, mismatch_trip
 from bench.runtime.ramp import ramp_to_zero

@@ -2,8 +2,9 @@
 
 One :class:`Poll` per kind of acquisition. The engine knows none of them by name: at every step it asks each
 poll for its period (None: not in this step) and calls the poll when it is due, on the run clock, with the
-time it was due (its lateness goes to the stream's ``late`` column). A new instrument type brings its poll
-here — with its driver, its twin and its rig-file section — and the engine does not change.
+time it was due (its lateness goes to the stream's ``late`` column). A poll sees the run through the
+:class:`~bench.runtime.context.RunContext` the engine hands it, nothing else of the engine. A new instrument type
+brings its poll here — with its driver, its twin and its rig-file section — and the engine does not change.
 """
 
 from __future__ import annotations
@@ -11,17 +12,14 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from bench.protocol.program import PASSIVE_LASER_HZ, Segment
+from bench.runtime.context import RunContext, present
 from bench.runtime.interlock import mismatch_trip, motion_trip
 from bench.runtime.safety import SafetyTrip
-from drivers.errors import InstrumentStateError
-
-if TYPE_CHECKING:
-    from bench.runtime.engine import Engine
+from drivers.errors import InstrumentError, InstrumentStateError
 
 FETCH_PERIOD_S = 0.25  # laser storage upload period while storing (run time)
 COLLECT_PERIOD_S = 0.05  # hardware-timed rigs: collect the DAQ stream (and top up its output buffer) this often
@@ -47,38 +45,38 @@ class Poll:
     ``first``: the first poll comes this many periods after the step's start (0: at the start)."""
 
     name: str
-    period: Callable[[Engine, StepState], float | None]
-    run: Callable[[Engine, float], None]
+    period: Callable[[RunContext, StepState], float | None]
+    run: Callable[[RunContext, float], None]
     first: int = 0
 
 
-def _monitors(e: Engine, due: float) -> None:
-    v, i = e._amp.read_monitors()
-    e.rec.append("amplifier", v.timestamp - e._t0, voltage=v.value, current=i.value,
-                 **e._late("amplifier", e.lateness(due)))
+def _monitors(e: RunContext, due: float) -> None:
+    v, i = e.amp.read_monitors()
+    e.rec.append("amplifier", v.timestamp - e.t0, voltage=v.value, current=i.value,
+                 **e.late_columns("amplifier", e.lateness(due)))
     e.snapshot.values["voltage"], e.snapshot.values["current"] = v.value, i.value
     e.sup.check_monitors(v.value, i.value)
-    if (m := e.verifier.reading(v.timestamp - e._t0, v.value, v.ok)) is not None:
+    if (m := e.verifier.reading(v.timestamp - e.t0, v.value, v.ok)) is not None:
         raise mismatch_trip(m, "the voltage monitor")
 
 
-def _position(e: Engine, due: float) -> None:
-    r = e._motor.read_position()
+def _position(e: RunContext, due: float) -> None:
+    r = e.motor.read_position()
     prog = e.program
     x = float(prog.aperture(r.value)) if prog.has_motor_axis else math.nan
-    e.rec.append("motor", r.timestamp - e._t0, position=r.value, aperture=x, **e._late("motor", e.lateness(due)))
+    e.rec.append("motor", r.timestamp - e.t0, position=r.value, aperture=x, **e.late_columns("motor", e.lateness(due)))
     if not r.ok or not math.isfinite(r.value):
-        raise InstrumentStateError("motor", f"drive reports {r.status}: {e._drive_error_text()}")
+        raise InstrumentStateError("motor", f"drive reports {r.status}: {_drive_error_text(e)}")
     e.snapshot.values["aperture"] = x
     e.sup.check_motor(r.value, x if prog.has_motor_axis else e.sup.aperture or 0.0)
-    if (m := e.motion.reading(r.timestamp - e._t0, r.value)) is not None:
+    if (m := e.motion.reading(r.timestamp - e.t0, r.value)) is not None:
         raise motion_trip(m)
 
 
-def _force(e: Engine, due: float) -> None:
-    r = e._cell.read()
-    e.rec.append("load_cell", r.timestamp - e._t0, force=r.value, ok=np.array(r.ok, dtype="u1"),
-                 **e._late("load_cell", e.lateness(due)))
+def _force(e: RunContext, due: float) -> None:
+    r = e.cell.read()
+    e.rec.append("load_cell", r.timestamp - e.t0, force=r.value, ok=np.array(r.ok, dtype="u1"),
+                 **e.late_columns("load_cell", e.lateness(due)))
     e.snapshot.values["force"] = r.value
     if r.status in ("overload", "underload"):
         raise SafetyTrip(f"load cell {r.status}")
@@ -86,54 +84,78 @@ def _force(e: Engine, due: float) -> None:
         e.sup.check_force(r.value)
 
 
-def _laser(e: Engine, due: float) -> None:
-    r = e._laser.read()
-    d = float(e._to_specimen(np.array([r.value]))[0])
+def _laser(e: RunContext, due: float) -> None:
+    r = e.laser.read()
+    d = float(e.to_specimen(np.array([r.value]))[0])
     ok = r.ok and math.isfinite(d)
-    e.rec.append("laser", r.timestamp - e._t0, displacement=d, valid=np.array(ok, dtype="u1"),
-                 **e._late("laser", e.lateness(due)))
+    e.rec.append("laser", r.timestamp - e.t0, displacement=d, valid=np.array(ok, dtype="u1"),
+                 **e.late_columns("laser", e.lateness(due)))
     if ok:
         e.sup.update_displacement(d)
         e.snapshot.values["displacement"] = d
+
+
+def _drive_error_text(e: RunContext) -> str:
+    """The drive's own account of its state (error code and text), for the file."""
+    try:
+        st = e.motor.status()
+    except InstrumentError as exc:
+        return f"status unreadable ({exc.detail})"
+    return f"state {st.state}, error {st.error_code:#06x}" + (f" ({st.error_text})" if st.error_text else "")
+
+
+def record_laser_block(e: RunContext) -> int:
+    """Fetch and record one block of stored laser data; returns how many samples it held."""
+    block = e.laser.fetch_buffer()
+    if block.values.size:
+        disp = e.to_specimen(block.values)
+        valid = block.valid & np.isfinite(disp)
+        e.rec.append("laser", block.times() - e.t0, displacement=disp, valid=valid.astype("u1"),
+                     **e.late_columns("laser", np.full(disp.size, np.nan)))  # the laser's own clock
+        good = disp[valid]
+        if good.size:
+            e.sup.update_displacement(float(good[-1]))
+            e.snapshot.values["displacement"] = float(good[-1])
+    return int(block.values.size)
 
 
 def _rate(hz: float) -> float | None:
     return 1.0 / hz if hz else None
 
 
-def _monitors_period(e: Engine, s: StepState) -> float | None:
+def _monitors_period(e: RunContext, s: StepState) -> float | None:
     """The amplifier's monitors on a software-timed rig (a DAQ samples them on its scan clock)."""
-    return _rate(e.program.protocol.recording.monitors_Hz) if e.inst.amplifier is not None and e._stream is None \
+    return _rate(e.program.protocol.recording.monitors_Hz) if e.inst.amplifier is not None and e.stream is None \
         else None
 
 
-def _position_period(e: Engine, s: StepState) -> float | None:
+def _position_period(e: RunContext, s: StepState) -> float | None:
     return _rate(e.program.protocol.recording.position_Hz) if e.inst.motor is not None else None
 
 
-def _force_period(e: Engine, s: StepState) -> float | None:
+def _force_period(e: RunContext, s: StepState) -> float | None:
     return _rate(e.program.protocol.recording.force_Hz) if e.inst.load_cell is not None else None
 
 
-def _fetch_period(e: Engine, s: StepState) -> float | None:
+def _fetch_period(e: RunContext, s: StepState) -> float | None:
     return FETCH_PERIOD_S if s.storing else None
 
 
-def _fetch(e: Engine, due: float) -> None:
-    e._record_laser_block()
+def _fetch(e: RunContext, due: float) -> None:
+    record_laser_block(e)
 
 
-def _laser_period(e: Engine, s: StepState) -> float | None:
+def _laser_period(e: RunContext, s: StepState) -> float | None:
     """Single laser reads while its storage is idle (a DAQ samples the laser's analog output itself)."""
     return 1 / PASSIVE_LASER_HZ if s.laser_serial and not s.storing else None
 
 
-def _collect_period(e: Engine, s: StepState) -> float | None:
+def _collect_period(e: RunContext, s: StepState) -> float | None:
     return (COLLECT_PERIOD_VIRTUAL_S if e.clock.virtual else COLLECT_PERIOD_S) if s.streamed else None
 
 
-def _collect(e: Engine, due: float) -> None:
-    e._hw.collect(e)
+def _collect(e: RunContext, due: float) -> None:
+    present(e.stream, "daq").collect()
 
 
 POLLS = (

@@ -243,7 +243,10 @@ class SimRig:
             self._ticker.join(timeout=2)
             self._ticker = None
         if (daq := self.twins.pop("daq", None)) is not None:
-            daq.stop()  # type: ignore[attr-defined]
+            from sim_devices.labjack_t7 import LabJackT7Sim  # loaded already: the twin was built from it
+
+            assert isinstance(daq, LabJackT7Sim)
+            daq.stop()
         for dev in self._serial.values():
             dev.stop()
         self._serial.clear()

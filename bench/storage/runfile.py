@@ -12,6 +12,7 @@ import h5py
 import numpy as np
 
 from bench.storage.recorder import EVENT_FIELDS, FORMATS, PROGRAM_FIELDS
+from bench.storage.superblock import clear_consistency_flags, open_elsewhere, read_superblock
 
 
 @dataclass
@@ -115,8 +116,6 @@ def open_h5(p: Path) -> h5py.File:
         return h5py.File(p, "r", libver="latest", swmr=True)
     except OSError as exc:
         first = exc
-    from bench.storage.recover import clear_consistency_flags
-
     try:
         image = bytearray(p.read_bytes())
         if not clear_consistency_flags(image):
@@ -197,8 +196,6 @@ def open_run(path: str | Path, streams: bool = True) -> RunFile:
 
 def _orphaned(p: Path) -> bool:
     """Whether the file is still marked open by an SWMR writer that no longer exists (here)."""
-    from bench.storage.recover import open_elsewhere, read_superblock
-
     try:
         with p.open("rb") as fh:
             sb = read_superblock(fh.read(4096))

@@ -1,0 +1,175 @@
+"""What the parts of one run share: the run clock, the waits and stop checks, the recorder, supervisor and live
+snapshot, the set-point state and the instruments (typed by role).
+
+The engine (bench/runtime/engine.py) owns one :class:`RunContext` and hands it to the polls
+(bench/runtime/polls.py) and to the hardware-timed path (bench/runtime/hardware_timed.py); they read and write the
+run's state through it and through nothing else of the engine. Stop and pause requests stay the engine's: it gives
+the context the two checks that raise them.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Protocol, TypeVar
+
+import numpy as np
+
+from bench.core.clock import Clock
+from bench.protocol.program import Program
+from bench.runtime.instruments import Instruments
+from bench.runtime.interlock import OUTPUT_ON_V, InterlockTrip, MotionVerifier, OutputVerifier, check_contact
+from bench.runtime.safety import Supervisor
+from bench.storage.recorder import Recorder
+from drivers.errors import InstrumentError, InstrumentStateError
+from drivers.interfaces import Amplifier, DisplacementSensor, ForceSensor, LinearMotor
+
+LATE_TOLERANCE_S = 0.05  # real time: an action later than this counts as an overrun
+STOP_POLL_S = 0.02  # real time: longest sleep between two looks at the stop request
+
+T = TypeVar("T")
+
+
+@dataclass
+class Snapshot:
+    """Latest values for a live view (plain data, refreshed by the engine)."""
+
+    t: float = 0.0
+    duration: float = 0.0
+    step: int = 0
+    steps: int = 0
+    step_name: str = ""
+    values: dict[str, float] = field(default_factory=dict)
+    headroom: dict[str, float] = field(default_factory=dict)
+    state: str = "starting"
+
+
+class Streaming(Protocol):
+    """The hardware-timed side of a run as the polls see it (bench.runtime.hardware_timed.HardwareTimed)."""
+
+    has_laser: bool  # the laser is sampled on the DAQ's scan clock
+
+    def collect(self) -> None:
+        """Record the scans received so far and supervise them."""
+
+
+def present(instrument: T | None, role: str) -> T:
+    """The rig's instrument of ``role``; the compiler only schedules actions on instruments the rig has."""
+    if instrument is None:
+        raise InstrumentStateError(role, "the program uses an instrument this rig does not have")
+    return instrument
+
+
+class RunContext:
+    """One run's shared state. ``check_stop`` raises when a stop was requested, ``check_pause`` when a pause was
+    (the engine's requests); :meth:`wait_until` calls both while it waits."""
+
+    def __init__(self, program: Program, inst: Instruments, clock: Clock, recorder: Recorder,
+                 supervisor: Supervisor, snapshot: Snapshot, *, check_stop: Callable[[], None],
+                 check_pause: Callable[[], None]) -> None:
+        self.program = program
+        self.inst = inst
+        self.clock = clock
+        self.rec = recorder
+        self.sup = supervisor
+        self.snapshot = snapshot
+        self.check_stop = check_stop
+        self.check_pause = check_pause
+        rig = program.rig
+        self.t0 = 0.0  # rig-clock time of run time 0 [s]
+        self.offset = 0.0  # run time − program time: a resumed start and each pause shift the program's schedule
+        self.v_cmd = 0.0  # last voltage commanded (the module's code, as sent; on a DAQ rig the value it plays)
+        self.v_req = 0.0  # last voltage requested by the program
+        self.overruns = 0  # real time: actions later than LATE_TOLERANCE_S
+        self.worst_lateness = 0.0
+        self.stream: Streaming | None = None  # set by the engine on a rig that plays its steps hardware-timed
+        hw = inst.stream_drive is not None
+        self.verifier = OutputVerifier(rig, rig.daq.scan_rate_Hz if hw and rig.daq else None)
+        self.motion = MotionVerifier(rig)  # the encoder against the go-tos (a rig without a motor never feeds it)
+        self._laser_offset = (rig.laser.offset_mm * 1e-3) if rig.laser else 0.0
+        self._laser_sign = float(rig.laser.sign) if rig.laser else 1.0
+        self._late_streams = {name for name, cols in recorder.streams.items() if any(c.name == "late" for c in cols)}
+
+    # ------------------------------------------------------------ instruments the program uses (typed)
+    @property
+    def amp(self) -> Amplifier:
+        return present(self.inst.amplifier, "amplifier")
+
+    @property
+    def laser(self) -> DisplacementSensor:
+        return present(self.inst.laser, "laser")
+
+    @property
+    def motor(self) -> LinearMotor:
+        return present(self.inst.motor, "motor")
+
+    @property
+    def cell(self) -> ForceSensor:
+        return present(self.inst.load_cell, "load_cell")
+
+    # ------------------------------------------------------------ time
+    def now(self) -> float:
+        """Run time [s]."""
+        return self.clock.now() - self.t0
+
+    def program_now(self) -> float:
+        """Program time [s]: run time less the shifts of a resumed start and of the pauses."""
+        return self.now() - self.offset
+
+    def lateness(self, due: float) -> float:
+        """How long after its scheduled program time ``due`` an action runs [s]."""
+        return self.program_now() - due
+
+    def wait_until(self, t: float) -> None:
+        """Wait until program time ``t`` (checking for stop and pause requests meanwhile); in real time, an action
+        later than ``LATE_TOLERANCE_S`` counts as an overrun."""
+        self.check_stop()
+        self.check_pause()
+        t += self.offset
+        if not self.clock.virtual:
+            while (left := t - self.now()) > 0:
+                self.check_stop()
+                self.check_pause()
+                time.sleep(min(left, STOP_POLL_S))
+            late = self.now() - t
+            self.worst_lateness = max(self.worst_lateness, late)
+            if late > LATE_TOLERANCE_S:
+                self.overruns += 1
+        else:
+            self.clock.wait_until(self.t0 + t)
+
+    # ------------------------------------------------------------ interlock
+    def guard(self, streaming: bool = False) -> None:
+        """Before anything that can drive the output: latch a host stall — the set-point module unheard for
+        longer than the stall bound while the output is on (``streaming``: a DAQ stream plays), so that its
+        watchdog may have zeroed the output and this write would turn high voltage back on by itself."""
+        amp = self.inst.amplifier
+        if amp is None or self.clock.virtual:
+            return
+        try:
+            check_contact(self.program.rig, amp.longest_silence(), streaming or abs(self.v_cmd) > OUTPUT_ON_V)
+        except InterlockTrip as trip:
+            try:
+                fired = amp.watchdog_fired()
+            except InstrumentError as exc:
+                raise InterlockTrip(trip.kind, f"{trip.detail} (its watchdog flag unreadable: {exc.detail})") from None
+            if fired is None:
+                raise
+            raise InterlockTrip(trip.kind, f"{trip.detail} (the module's own flag: its watchdog "
+                                f"{'fired' if fired else 'did not fire'})") from None
+
+    # ------------------------------------------------------------ recording
+    def to_specimen(self, laser_value: np.ndarray) -> np.ndarray:
+        """Laser readings [m] to the specimen's displacement (the rig file's offset and sign removed)."""
+        return (laser_value - self._laser_offset) / self._laser_sign
+
+    def late_columns(self, stream: str, late: float | np.ndarray) -> dict[str, float | np.ndarray]:
+        """The ``late`` column of a software-timed stream: how long after its scheduled time a poll ran [s]."""
+        return {"late": late} if stream in self._late_streams else {}
+
+    def unpolled_monitor_columns(self) -> dict[str, float | np.ndarray]:
+        """The amplifier stream's other columns for a monitor read outside the schedule (paused, shutting down):
+        on a DAQ rig the output commanded, else no lateness (NaN: not a scheduled poll)."""
+        return {"commanded": self.v_cmd} if self.stream is not None else self.late_columns("amplifier", math.nan)
