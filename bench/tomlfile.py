@@ -36,7 +36,7 @@ def _too_deep(data: Any, limit: int) -> str | None:
     return None
 
 
-def read_toml(path: Path, kind: str, error: type[Exception]) -> tuple[str, dict]:
+def read_toml(path: Path, kind: str, error: type[Exception]) -> tuple[str, dict[str, Any]]:
     """(text, parsed table) of a TOML file; raise ``error("<kind> file <path>: …")`` if it cannot be."""
     try:
         if not stat.S_ISREG(path.stat().st_mode):  # /dev/zero or a FIFO would be read forever

@@ -12,9 +12,12 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import partial
+from typing import TypeVar
 
 import numpy as np
 
+from bench.core.clock import VirtualClock
 from bench.protocol.link_budget import (
     TURNAROUND_LINRS_S,
     TURNAROUND_LKG_S,
@@ -28,6 +31,7 @@ from bench.runtime.instruments import Instruments, build_instruments
 from bench.runtime.sim_rig import SimRig, Timing
 
 RIGS = rigs_dir()
+T = TypeVar("T")
 
 
 @dataclass(frozen=True)
@@ -53,6 +57,13 @@ def _rig(name: str, virtual: bool, modbus: str | None = None, timing: Timing = "
     return sim, inst
 
 
+def _need(driver: T | None, what: str, sim: SimRig) -> T:
+    """The rig's ``what`` driver; a one-line error if the rig file has none (the shipped rigs all do)."""
+    if driver is None:
+        raise ValueError(f"rig {sim.rig.name} has no {what}: this benchmark needs one")
+    return driver
+
+
 def _rate(fn: Callable[[], object], seconds: float) -> float:
     fn()
     n, t0 = 0, time.perf_counter()
@@ -73,14 +84,15 @@ def polled(seconds: float = 1.0) -> list[Figure]:
     for modbus, label in (("rtu", "RTU, 19200 Bd, pty"), ("tcp", "Modbus TCP gateway, RS-485 at 19200 Bd")):
         sim, inst = _rig("thesis-sim", virtual=False, modbus=modbus)
         try:
+            amp = _need(inst.amplifier, "amplifier", sim)
             if modbus == "rtu":
                 limit = 1 / ((6 + 15) * char_time(115200) + TURNAROUND_LKG_S)
-                rate = _rate(inst.laser.read, seconds)
+                rate = _rate(_need(inst.laser, "laser", sim).read, seconds)
                 out.append(Figure("laser single read (MS,01), 115200 Bd", rate, "reads/s", _vs(rate, limit)))
-            rate = _rate(lambda i=inst: i.amplifier.set_voltage(100.0), seconds)
+            rate = _rate(partial(amp.set_voltage, 100.0), seconds)
             out.append(Figure(f"amplifier set-point (FC6 on ADAM-4024), {label}", rate, "writes/s",
                               _vs(rate, 1 / fc6)))
-            rate = _rate(inst.amplifier.read_monitors, seconds)
+            rate = _rate(amp.read_monitors, seconds)
             out.append(Figure(f"amplifier monitors (FC3 on ADAM-4017+), {label}", rate, "reads/s",
                               _vs(rate, 1 / fc3)))
         finally:
@@ -88,10 +100,10 @@ def polled(seconds: float = 1.0) -> list[Figure]:
             sim.stop()
     sim, inst = _rig("lsdea-motor-sim", virtual=False, modbus="tcp")
     try:
-        rate = _rate(inst.motor.read_position, seconds)
+        rate = _rate(_need(inst.motor, "motor", sim).read_position, seconds)
         limit = 1 / ((7 + 16) * char_time(115200) + TURNAROUND_LINRS_S)
         out.append(Figure("motor position (LinRS default response), 115200 Bd", rate, "reads/s", _vs(rate, limit)))
-        rate = _rate(inst.load_cell.read, seconds)
+        rate = _rate(_need(inst.load_cell, "load cell", sim).read, seconds)
         out.append(Figure("load cell (FC4 on DGT1S), gateway, RS-485 at 19200 Bd", rate, "reads/s",
                           _vs(rate, 1 / fc4)))
     finally:
@@ -103,15 +115,18 @@ def polled(seconds: float = 1.0) -> list[Figure]:
 def buffered_laser(duration: float = 20.0, fetch_every: float = 0.5) -> list[Figure]:
     """LK-G storage at 10 kHz for ``duration`` virtual seconds, fetched in blocks while it runs."""
     sim, inst = _rig("thesis-sim", virtual=True, timing="none")
-    laser, clock = inst.laser, sim.clock
+    clock = sim.clock
     try:
-        clock.advance(1.0)  # type: ignore[attr-defined]
-        inst.amplifier.set_voltage(7000.0)
+        laser, amp = _need(inst.laser, "laser", sim), _need(inst.amplifier, "amplifier", sim)
+        if not isinstance(clock, VirtualClock):  # SimRig(virtual=True) makes one
+            raise TypeError(f"a virtual simulated rig has a VirtualClock, not a {type(clock).__name__}")
+        clock.advance(1.0)
+        amp.set_voltage(7000.0)
         t0 = time.perf_counter()
         laser.start_buffer(1e-4)
         indices, steps = [], round(duration / fetch_every)
         for _ in range(steps):
-            clock.advance(fetch_every)  # type: ignore[attr-defined]
+            clock.advance(fetch_every)
             block = laser.fetch_buffer()
             indices.append(block.first_index + np.arange(block.values.size))
         laser.stop_buffer()
@@ -133,12 +148,13 @@ def laser_upload(points: int = 2000) -> Figure:
     """Upload throughput of stored points through the driver on the wall clock with real timing (115200 Bd)."""
     sim, inst = _rig("thesis-sim", virtual=False)
     try:
-        inst.laser.start_buffer(1e-4)
+        laser = _need(inst.laser, "laser", sim)
+        laser.start_buffer(1e-4)
         time.sleep(points * 1e-4 + 0.05)
-        inst.laser.stop_buffer()
+        laser.stop_buffer()
         n, t0 = 0, time.perf_counter()
-        while inst.laser.pending or n == 0:
-            n += inst.laser.fetch_buffer().values.size
+        while laser.pending or n == 0:
+            n += laser.fetch_buffer().values.size
         wall = time.perf_counter() - t0
     finally:
         inst.close()

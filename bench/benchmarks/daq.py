@@ -13,6 +13,7 @@ import tempfile
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -22,8 +23,9 @@ from bench.core.clock import Clock
 from bench.models.membrane import MembraneParams
 from bench.models.membrane_runs import simulate_membrane
 from bench.resources import protocols_dir, rigs_dir
+from bench.runtime.engine import RunResult
 from bench.runtime.run import execute, plan_run
-from bench.storage.runfile import open_run
+from bench.storage.runfile import RunFile, open_run
 from bench.waveforms import Waveform
 from drivers.labjack import LabJackT7, StreamIn, StreamOut, StreamSpec
 
@@ -31,7 +33,7 @@ SHORT = protocols_dir() / "short"
 RIGS = rigs_dir()
 
 
-def _run(protocol: Path, rig: str, tmp: Path, virtual: bool, name: str):
+def _run(protocol: Path, rig: str, tmp: Path, virtual: bool, name: str) -> tuple[RunResult, RunFile, float]:
     plan = plan_run(protocol, RIGS / f"{rig}.toml")
     t0 = time.perf_counter()
     result = execute(plan, tmp / f"{name}.h5", virtual=virtual)
@@ -42,7 +44,8 @@ def fidelity(tmp: Path) -> list[Figure]:
     """Thesis identification (short) on the DAQ rig against the offline Radau solution of the nominal drive."""
     result, f, wall = _run(SHORT / "thesis-identification-short.toml", "thesis-daq-sim", tmp, True, "fidelity")
     model = json.loads(f.attrs["specimen"])["model"]
-    p = MembraneParams(**{k: tuple(v) if isinstance(v, list) else v for k, v in model.items()})
+    kwargs: dict[str, Any] = {k: tuple(v) if isinstance(v, list) else v for k, v in model.items()}
+    p = MembraneParams(**kwargs)
     smooth = simulate_membrane(p, Waveform("raised_cosine", 7000.0, 1 / 9), 10.0, fs=10_000.0)
     laser = f.streams["laser"]
     sel = laser.t <= 10.0
@@ -66,7 +69,7 @@ def repeatability(tmp: Path, runs: int = 3) -> list[Figure]:
         t0, t1 = start[name], end[name]
         sel = (laser.t >= t0 + 0.5 * (t1 - t0)) & (laser.t <= t1)
         swings.append(crest_to_trough(laser.t[sel], laser.columns["displacement"][sel], 1.0))
-    spread = (max(swings) - min(swings)) / np.mean(swings) * 100
+    spread = float((max(swings) - min(swings)) / np.mean(swings) * 100)
     return [Figure(f"{runs} real-time lsdea-isotonic-short runs on the DAQ rig: spread of the 1-Hz stroke", spread,
                    "%", ", ".join(f"{s * 1e3:.3f} mm" for s in swings) + "; target ≤ 1 %")]
 

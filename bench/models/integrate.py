@@ -44,7 +44,7 @@ OBSERVE_FORCE = -1  # run_fixed_batch channel: the LS-DEA force instead of a sta
 def observe_model(model: int, y: np.ndarray, u: np.ndarray, p: np.ndarray, channel: int, grad: np.ndarray) -> float:
     """State component ``channel`` of y, or (OBSERVE_FORCE, LS-DEA) the force F(y, x, ẋ, V)."""
     if channel >= 0:
-        return y[channel]
+        return float(y[channel])
     return lozenge_force(y, y[0], y[1], u[0], p, grad)
 
 
@@ -164,7 +164,7 @@ def solve_offline(fun: Callable[[float, np.ndarray], np.ndarray],
     if stop is not None:
         def event(t: float, y: np.ndarray) -> float:
             return stop(t, y)
-        event.terminal = True  # type: ignore[attr-defined]
+        event.terminal = True  # type: ignore[attr-defined]  # scipy's solve_ivp reads this function attribute
         events = [event]
     sol = solve_ivp(fun, (float(t_eval[0]), float(t_eval[-1])), np.asarray(y0, dtype=float), method=method,
                     t_eval=t_eval, jac=jac, rtol=rtol, atol=atol, events=events, max_step=max_step)

@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from numba import njit
@@ -104,16 +104,16 @@ class LozengeParams:
             raise ValueError(f"inertia must be 'links' or 'half', got {self.inertia!r}")
 
     @classmethod
-    def prototype(cls, number: int, **overrides: object) -> LozengeParams:
+    def prototype(cls, number: int, **overrides: Any) -> LozengeParams:
         """Prototype #1–#3 of the paper's Table 2 (λ2p = 2.5 / 2.75 / 3.0)."""
         if number not in PROTOTYPE_LAMBDA2P:
             raise ValueError(f"unknown LS-DEA prototype #{number}; known: 1, 2, 3")
-        return cls(lambda2p=PROTOTYPE_LAMBDA2P[number], **overrides)  # type: ignore[arg-type]
+        return cls(lambda2p=PROTOTYPE_LAMBDA2P[number], **overrides)
 
     @property
     def lambda1p(self) -> float:
         """λ1p = λ2p^(−1/2) (uniaxial mounting state)."""
-        return self.lambda2p**-0.5
+        return float(self.lambda2p**-0.5)
 
     @property
     def yp(self) -> float:
@@ -176,7 +176,7 @@ def kinematics(x: float, p: np.ndarray) -> tuple[float, float, float, float, flo
 def volume(p: np.ndarray) -> float:
     """Membrane volume Ω [m³]."""
     l, xp = p[Q_L], p[Q_XP]
-    return xp * math.sqrt(4.0 * l * l - xp * xp) * p[Q_T0] / (2.0 * p[Q_L1P] * p[Q_L2P])
+    return float(xp * math.sqrt(4.0 * l * l - xp * xp) * p[Q_T0] / (2.0 * p[Q_L1P] * p[Q_L2P]))
 
 
 @njit(cache=True)
@@ -308,7 +308,7 @@ def lozenge_force(y: np.ndarray, x: float, v: float, V: float, p: np.ndarray, gr
         grad[2 + K + i] = om * (-W12 / x + W22 * q)
     grad[0] = k
     grad[1] = p[Q_C]
-    return F
+    return float(F)
 
 
 @njit(cache=True)

@@ -65,13 +65,13 @@ class LozengeTrace(LozengeRigTrace):
 def static_force(params: LozengeParams, x: float, V: float = 0.0) -> float:
     """Static force F_el(x) + F_es(x, V) [N] (eqs 4, 6) with relaxed branches and no damping."""
     p = params.pack()
-    return elastic_force(x, p)[0] + electrostatic_force(x, V, p)[0]
+    return float(elastic_force(x, p)[0] + electrostatic_force(x, V, p)[0])
 
 
 def static_stiffness(params: LozengeParams, x: float, V: float = 0.0) -> float:
     """dF/dx of :func:`static_force` [N/m]."""
     p = params.pack()
-    return elastic_force(x, p)[1] + electrostatic_force(x, V, p)[1]
+    return float(elastic_force(x, p)[1] + electrostatic_force(x, V, p)[1])
 
 
 def breakdown_voltage(params: LozengeParams, x: float) -> float:
@@ -79,7 +79,7 @@ def breakdown_voltage(params: LozengeParams, x: float) -> float:
     m = params.material
     y = math.sqrt(4 * params.l**2 - x * x)
     lam3 = 1.0 / ((params.lambda1p * x / params.xp) * (params.lambda2p * y / params.yp))
-    return m.E0 * params.t0 * lam3 ** (1.0 - m.r / 2.0)
+    return float(m.E0 * params.t0 * lam3 ** (1.0 - m.r / 2.0))
 
 
 def isotonic_equilibrium(params: LozengeParams, V: float = 0.0, x_max: float | None = None) -> float | None:
@@ -121,7 +121,7 @@ def simulate_lozenge(params: LozengeParams, config: Config, voltage: Signal, t_e
     mode = MODE_HUNG if config == "hung" else MODE_IMPOSED
     p = params.pack(mode)
     n_out = round(t_end * fs) + 1
-    t_out = np.arange(n_out) / fs
+    t_out: np.ndarray = np.arange(n_out) / fs
     if config == "hung":
         x0 = position if isinstance(position, float | int) else isotonic_equilibrium(params, 0.0)
         if x0 is None:
@@ -151,9 +151,12 @@ def simulate_lozenge(params: LozengeParams, config: Config, voltage: Signal, t_e
     else:
         U = _inputs(t_out, voltage, pos, velocity)
         ny = y0.size
-        def v_of(t):
-            return (float(voltage(np.array([t]))[0]))
-        x_of = ((lambda t: float(pos(np.array([t]))[0])) if callable(pos) else (lambda t: float(pos)))
+        def v_of(t: float) -> float:
+            return float(voltage(np.array([t]))[0])
+
+        def x_of(t: float) -> float:
+            return float(pos(np.array([t]))[0]) if callable(pos) else float(pos)
+
         dt = 1e-6
 
         def xdot_of(t: float) -> float:

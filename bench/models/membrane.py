@@ -22,8 +22,9 @@ Numba kernels (rhs, Jacobian, fixed-step streaming step) take the parameters pac
 
 from __future__ import annotations
 
+import dataclasses
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from typing import Literal
 
 import numpy as np
@@ -132,7 +133,7 @@ class MembraneParams:
 @njit(cache=True)
 def eps_r(lam: float, T: float, p: np.ndarray) -> float:
     """Relative permittivity ε_r(λ, T) = aλ² + b/T + c [-] (physics.md §1.3 item 5)."""
-    return p[P_A] * lam * lam + p[P_B] / T + p[P_C]
+    return float(p[P_A] * lam * lam + p[P_B] / T + p[P_C])
 
 
 @njit(cache=True)
@@ -285,7 +286,7 @@ class MembraneTrace:
     xi: np.ndarray  # (n_samples, n_units) inelastic stretches
     failed: bool = False
     failure: str = ""
-    extra: dict[str, float] = field(default_factory=dict)
+    extra: dict[str, float] = dataclasses.field(default_factory=dict)
 
     def peak_displacement(self) -> float:
         """Maximum displacement [m]."""

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from typing import Literal
+from typing import Literal, cast
 
 import numpy as np
 
@@ -19,7 +19,9 @@ from bench.models.membrane import (
 from bench.models.membrane_batch import membrane_batch
 from bench.models.rosenbrock import STATUS_STOPPED, rodas3_membrane
 
-VoltageInput = Callable[[float], float] | Callable[[np.ndarray], np.ndarray]
+# voltage [V] of time [s], vectorised: an array of times in, the array of voltages out (a Waveform is one);
+# one with a ``scalar(t)`` method has it used where the integrator asks for one time at a time
+VoltageInput = Callable[[np.ndarray], np.ndarray]
 
 # physics.md §1.5: λ̇ needs a loose absolute tolerance, λ and ξ a tight one
 ATOL_SCALE_HEAD = (1e-3, 1e2)
@@ -34,7 +36,9 @@ def atol_for(params: MembraneParams, rtol: float) -> np.ndarray:
 
 def _scalar(voltage: VoltageInput) -> Callable[[float], float]:
     scalar = getattr(voltage, "scalar", None)
-    return scalar if callable(scalar) else (lambda t: float(voltage(t)))  # type: ignore[arg-type]
+    if callable(scalar):
+        return cast(Callable[[float], float], scalar)
+    return lambda t: float(voltage(np.asarray(t)))
 
 
 def simulate_membrane(params: MembraneParams, voltage: VoltageInput, t_end: float, fs: float = 10_000.0,
@@ -52,14 +56,14 @@ def simulate_membrane(params: MembraneParams, voltage: VoltageInput, t_end: floa
     if not (t_end > 0 and fs > 0):
         raise ValueError(f"t_end and fs must be > 0, got {t_end} s and {fs} Hz")
     n_out = round(t_end * fs) + 1
-    t_out = np.arange(n_out) / fs
+    t_out: np.ndarray = np.arange(n_out) / fs
     phi = None
     if method == "fixed":
         stride = max(1, round(1.0 / (fs * h)))
         n_steps = (n_out - 1) * stride
         t_steps = np.arange(1, n_steps + 1) * h
         U = np.empty((n_steps, 2))
-        U[:, 0] = voltage(t_steps)  # type: ignore[arg-type]
+        U[:, 0] = voltage(t_steps)
         U[:, 1] = T
         Y, _ = run_fixed(MODEL_MEMBRANE, params.initial_state(), U, h, params.pack())
         Y = Y[::stride]
@@ -68,7 +72,7 @@ def simulate_membrane(params: MembraneParams, voltage: VoltageInput, t_end: floa
     else:
         Y, stop_reason, phi = integrate_membrane(params, voltage, t_out, T, method, rtol)
     if phi is None:
-        phi = np.asarray(voltage(t_out), dtype=float)  # type: ignore[arg-type]
+        phi = np.asarray(voltage(t_out), dtype=float)
     trace = membrane_outputs(params, t_out, Y, phi, T)
     if stop_reason:
         trace.failed, trace.failure = True, stop_reason
@@ -89,7 +93,7 @@ def integrate_membrane(params: MembraneParams, voltage: VoltageInput, t_out: np.
         k = max(1, int(np.ceil(dt_out / 1e-4 - 1e-9)))  # input samples per output interval (≤ 0.1 ms apart)
         dt = dt_out / k
         t_in = np.arange((t_out.size - 1) * k + 1) * dt
-        phi_in = np.asarray(voltage(t_in), dtype=float)  # type: ignore[arg-type]
+        phi_in = np.asarray(voltage(t_in), dtype=float)
         Y = np.empty((t_out.size, y0.size))
         status, _, _, t_stop = rodas3_membrane(y0, t_out, float(T), p, 0.0, dt, phi_in, rtol,
                                                atol_for(params, rtol), params.runaway_stretch, Y)

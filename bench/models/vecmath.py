@@ -7,6 +7,9 @@ polynomials, about 1 ulp of the libm results (tested against numpy), and inline 
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
+from typing import Any, cast
+
 from llvmlite import ir
 from numba import njit, types
 from numba.extending import intrinsic
@@ -21,28 +24,37 @@ SHIFT = 6755399441055744.0  # 1.5·2^52: adding it rounds to an integer, kept in
 SHIFT_BITS = 0x4338000000000000  # its bit pattern
 
 
+# An intrinsic is written as numba's typing hook (typing context, argument types) -> (signature, codegen) and
+# called in jitted code with the values alone; the casts below give the checker that second, callable form.
+Codegen = Callable[[object, Any, object, Sequence[Any]], Any]
+
+
 @intrinsic
-def _as_int(typingctx, x):  # type: ignore[no-untyped-def]  # numba intrinsic signature
+def _as_int_ir(typingctx: object, x: object) -> tuple[object, Codegen] | None:
     """Bit pattern of a float64 as int64."""
     if not isinstance(x, types.Float):
         return None
 
-    def codegen(context, builder, signature, args):  # type: ignore[no-untyped-def]
+    def codegen(context: object, builder: Any, signature: object, args: Sequence[Any]) -> Any:
         return builder.bitcast(args[0], ir.IntType(64))
 
     return types.int64(types.float64), codegen
 
 
 @intrinsic
-def _as_float(typingctx, i):  # type: ignore[no-untyped-def]
+def _as_float_ir(typingctx: object, i: object) -> tuple[object, Codegen] | None:
     """float64 with the bit pattern of an int64."""
     if not isinstance(i, types.Integer):
         return None
 
-    def codegen(context, builder, signature, args):  # type: ignore[no-untyped-def]
+    def codegen(context: object, builder: Any, signature: object, args: Sequence[Any]) -> Any:
         return builder.bitcast(args[0], ir.DoubleType())
 
     return types.float64(types.int64), codegen
+
+
+_as_int = cast(Callable[[float], int], _as_int_ir)
+_as_float = cast(Callable[[int], float], _as_float_ir)
 
 
 @njit(cache=True, inline="always", error_model="numpy")

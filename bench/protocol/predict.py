@@ -22,7 +22,7 @@ import numpy as np
 from bench.core.clock import VirtualClock
 from bench.core.motion import MotionProfile
 from bench.core.plant import Plant, PlantBlock
-from bench.protocol.program import Program, ProtocolLimitError, sample_counts, ticks
+from bench.protocol.program import Program, ProtocolLimitError, change_specimen, sample_counts, ticks
 from bench.rig import plant_for
 
 STREAM_COLUMNS = {"setpoints": 2, "amplifier": 3, "laser": 2, "motor": 2, "load_cell": 1}
@@ -132,7 +132,7 @@ def predict(program: Program, progress: Callable[[float], None] | None = None) -
         and rig.amplifier.drive == "daq" else None
     for seg in program.segments:
         if seg.changes:
-            plant.change_specimen(**seg.changes)  # type: ignore[arg-type]
+            change_specimen(plant, seg.changes)
         played = scan_rate is not None and seg.voltage is not None and seg.duration > 0
         if played:  # hardware-timed: the waveform at every scan of the DAQ's clock, ending on its target
             assert seg.voltage is not None and scan_rate is not None
@@ -151,8 +151,12 @@ def predict(program: Program, progress: Callable[[float], None] | None = None) -
             if tick.motor is not None:
                 target, vel, acc = tick.motor
                 motor_lo, motor_hi = min(motor_lo, target), max(motor_hi, target)
-                plant.set_motion(lambda t0, p, vv, tg=target, ve=vel, ac=acc:
-                                 MotionProfile.plan(t0, p, vv, tg, ve, ac, ac))
+
+                def plan(t0: float, p: float, vv: float, tg: float = target, ve: float = vel,
+                         ac: float = acc) -> MotionProfile:
+                    return MotionProfile.plan(t0, p, vv, tg, ve, ac, ac)
+
+                plant.set_motion(plan)
             if plant.broken:
                 break
         clock.advance_to(seg.t_end)

@@ -10,9 +10,9 @@ set-point density of waveforms, and laser storage capacity per storing step. The
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
@@ -20,6 +20,9 @@ from bench.core.motion import MotionProfile
 from bench.protocol.schema import MAX_DURATION_S, HoldStep, MoveStep, Protocol, RampStep, SetStep, WaveformStep
 from bench.rig import RigConfig
 from bench.waveforms import Waveform
+
+if TYPE_CHECKING:
+    from bench.core.plant import Plant
 
 Signal = Callable[[np.ndarray], np.ndarray]
 MOVE_SETTLE_S = 0.05
@@ -55,6 +58,14 @@ class Segment:
     def t_end(self) -> float:
         """End time on the run clock [s]."""
         return self.t_start + self.duration
+
+
+
+def change_specimen(plant: Plant, changes: Mapping[str, float | int]) -> None:
+    """A set step's ``changes`` (the keys :meth:`Compiler.set` writes) on the simulated plant."""
+    prototype = changes.get("prototype")
+    plant.change_specimen(temperature_K=changes.get("temperature_K"), hung_mass_kg=changes.get("hung_mass_kg"),
+                          prototype=None if prototype is None else int(prototype))
 
 
 @dataclass

@@ -29,6 +29,7 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import numpy as np
+from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError, field_validator, model_validator
 
 from bench.protocol.quantity import format_quantity, parse_quantity
@@ -111,7 +112,11 @@ class WaveformStep(_StepBase):
     @property
     def duration(self) -> float:
         """Duration [s]."""
-        return self.duration_s if self.duration_s is not None else self.cycles / self.frequency_Hz  # type: ignore[operator]
+        if self.duration_s is not None:
+            return self.duration_s
+        if self.cycles is None:  # reached only from inside the validator, before its own check has run
+            raise ValueError("give exactly one of cycles or duration_s")
+        return self.cycles / self.frequency_Hz
 
 
 class RampStep(_StepBase):
@@ -208,8 +213,18 @@ class SetStep(_StepBase):
         return self
 
 
-Step = Annotated[WaveformStep | RampStep | HoldStep | MoveStep | SetStep, Field(discriminator="type")]
-STEP_ADAPTER: TypeAdapter[Any] = TypeAdapter(Step)
+AnyStep = WaveformStep | RampStep | HoldStep | MoveStep | SetStep
+Step = Annotated[AnyStep, Field(discriminator="type")]
+STEP_ADAPTER: TypeAdapter[AnyStep] = TypeAdapter(Step)
+
+
+def nominal_duration(step: AnyStep) -> float:
+    """A step's length as written [s]: a move's depends on the rig and a set step takes none, so both count 0."""
+    if isinstance(step, WaveformStep):
+        return step.duration
+    if isinstance(step, RampStep | HoldStep):
+        return step.duration_s
+    return 0.0
 
 
 class RecordingConfig(_Strict):
@@ -385,7 +400,7 @@ def _range_values(spec: Any, where: str) -> list[Any]:
         num = spec["num"]
         if isinstance(num, bool) or not isinstance(num, int) or not 1 <= num <= MAX_STEPS:
             raise ValueError(f"{where}.num: a whole number from 1 to {MAX_STEPS:,}, got {_short(num)}")
-        vals = np.linspace(a, b, num)
+        vals: NDArray[np.floating[Any]] = np.linspace(a, b, num)
     else:
         step = _number_or_quantity(spec["step"], f"{where}.step", dim)
         with np.errstate(all="ignore"):
@@ -525,14 +540,14 @@ def load_protocol(path: str | Path) -> Protocol:
         raise ProtocolFileError(f"protocol file {p}: {exc}") from None
     except (RecursionError, MemoryError):  # bounded above; never let one through as a traceback
         raise ProtocolFileError(f"protocol file {p}: steps: too large or too deeply nested to expand") from None
-    steps = []
+    steps: list[AnyStep] = []
     total = 0.0
     for label, st in expanded:
         try:
             steps.append(STEP_ADAPTER.validate_python(st))
         except ValidationError as exc:
             raise ProtocolFileError(_error_line(p, label, exc)) from None
-        total += getattr(steps[-1], "duration", None) or getattr(steps[-1], "duration_s", 0.0)
+        total += nominal_duration(steps[-1])
         if total > MAX_DURATION_S:
             raise ProtocolFileError(f"protocol file {p}: {label}: the steps up to here last {total:.4g} s, beyond "
                                     f"the limit of {MAX_DURATION_S:.0f} s (7 days)")

@@ -12,7 +12,7 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
-from rich.console import Group
+from rich.console import Group, RenderableType
 from rich.panel import Panel
 from rich.progress_bar import ProgressBar
 from rich.table import Table
@@ -71,7 +71,7 @@ class LiveView:
         hr = [f"{k} {100 * v:3.0f} %" if v < 0.9 else f"[red]{k} {100 * v:3.0f} %[/]" for k, v in s.headroom.items()]
         if hr:
             headroom.add_row("limits used:", *hr)
-        parts = [head, progress, values, headroom]
+        parts: list[RenderableType] = [head, progress, values, headroom]
         if s.state == "paused":
             parts.append(Text("PAUSED: output at 0 V, motor held, recording goes on", style="bold yellow"))
         if self.keys:

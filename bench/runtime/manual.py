@@ -68,6 +68,7 @@ from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
+from types import FrameType
 from typing import Any, TextIO
 
 import numpy as np
@@ -349,7 +350,10 @@ class ManualSession:
         old: list[tuple[signal.Signals, Any]] = []
         if threading.current_thread() is threading.main_thread():
             for sig, text in STOP_SIGNALS.items():
-                old.append((sig, signal.signal(sig, lambda _s, _f, sig=sig, text=text: self._on_signal(sig, text))))
+                def handler(_s: int, _f: FrameType | None, sig: signal.Signals = sig, text: str = text) -> None:
+                    self._on_signal(sig, text)
+
+                old.append((sig, signal.signal(sig, handler)))
         try:
             yield
         finally:

@@ -11,14 +11,21 @@ import uuid
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from datetime import datetime
+from functools import partial
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, Literal
 
 from bench import __version__
 from bench.core.clock import WallClock
 from bench.protocol.link_budget import check_links
 from bench.protocol.predict import Prediction, predict
-from bench.protocol.program import Program, ProtocolLimitError, compile_program, recording_shortfalls
+from bench.protocol.program import (
+    Program,
+    ProtocolLimitError,
+    change_specimen,
+    compile_program,
+    recording_shortfalls,
+)
 from bench.protocol.schema import MAX_OPERATOR, MAX_SPECIMEN_ID, Protocol, check_label, check_notes, load_protocol
 from bench.rig import RigConfig, load_rig, rig_to_toml
 from bench.runtime.control import control_path
@@ -33,6 +40,10 @@ from bench.storage.recorder import Column, Recorder, now_iso
 from bench.storage.recover import recover
 from bench.storage.runfile import open_run
 from drivers.interfaces import StreamDescription
+
+if TYPE_CHECKING:
+    from bench.models.lozenge import LozengeParams
+    from bench.models.membrane import MembraneParams
 
 SIM_MODBUS_POLL_S = 5e-5  # RTU receive poll interval against twins on ptys (they answer at once)
 
@@ -188,7 +199,7 @@ def execute(plan: Plan, out: Path, *, virtual: bool = False, operator: OperatorF
         # wire time (baud rates, gaps, turnarounds) also in virtual time, so that a virtual run takes the time a
         # real one would — unless the protocol outruns the rig's lines (the plan says which), where a virtual
         # run at wire time would only be late everywhere: then pty speed, as the console and the file say
-        timing = "real" if not virtual or not plan.link_problems else "none"
+        timing: Literal["real", "none"] = "real" if not virtual or not plan.link_problems else "none"
         sim = SimRig(rig, virtual=virtual, timing=timing)
         meta = {**meta, "wire_time": "real" if timing == "real" else "off (the protocol outruns the rig's lines)"}
         over = plan.protocol.specimen
@@ -237,7 +248,7 @@ def execute(plan: Plan, out: Path, *, virtual: bool = False, operator: OperatorF
             attrs.update(resume.attrs(out))
         prog_rows = [(s.index, s.label, s.name, s.kind, s.t_start, s.duration) for s in program.segments]
         recorder = Recorder(out, attrs, streams, prog_rows, rates)
-        apply = (lambda ch: sim.plant.change_specimen(**ch)) if sim is not None else None  # type: ignore[union-attr]
+        apply = partial(change_specimen, sim.plant) if sim is not None else None
         engine = Engine(program, inst, clock, recorder, supervisor, apply_specimen=apply, operator=operator,
                         start_step=resume.step if resume is not None else 0, control=control_path(out))
         if on_engine is not None:
@@ -311,9 +322,10 @@ def plan_resume(run_file: str | Path, rig_path: str | Path | None = None, simula
     return plan, resume, notes
 
 
-def _model_params(params: object) -> dict[str, Any]:
-    out = asdict(params)  # type: ignore[call-overload]
-    return json.loads(json.dumps(out, default=lambda o: asdict(o) if hasattr(o, "__dataclass_fields__") else str(o)))
+def _model_params(params: MembraneParams | LozengeParams) -> dict[str, Any]:
+    out: dict[str, Any] = json.loads(json.dumps(asdict(params), default=lambda o: asdict(o)
+                                                if hasattr(o, "__dataclass_fields__") else str(o)))
+    return out
 
 
 def run_protocol(protocol_path: str | Path, *, rig_path: str | Path | None = None, simulate: bool = False,

@@ -50,6 +50,7 @@ import re
 import signal
 import threading
 import time
+from collections.abc import Sequence
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -184,7 +185,7 @@ class Recorder:
     """Appends blocks of samples to an HDF5 file in SWMR mode; see the module docstring for the layout."""
 
     def __init__(self, path: Path, attrs: dict[str, Any], streams: dict[str, list[Column]],
-                 program: list[tuple[int, str, str, str, float, float]], rates: dict[str, float],
+                 program: Sequence[tuple[int, str, str, str, float, float]], rates: dict[str, float],
                  flush_interval: float = FLUSH_INTERVAL_S) -> None:
         self.path = Path(path)
         self.flush_interval = flush_interval
@@ -217,7 +218,7 @@ class Recorder:
             raise StorageError(self.failure) from None
 
     def _create(self, attrs: dict[str, Any], streams: dict[str, list[Column]],
-                program: list[tuple[int, str, str, str, float, float]], rates: dict[str, float]) -> None:
+                program: Sequence[tuple[int, str, str, str, float, float]], rates: dict[str, float]) -> None:
         f = h5py.File(self.path, "w", libver=("v110", "v110"))  # SWMR needs the 1.10 format; newer breaks 1.10 tools
         self._f = f
         f.attrs["format"] = FORMAT
@@ -252,7 +253,7 @@ class Recorder:
         samples.attrs["description"] = "valid records per stream (and of /events) at the last successful flush"
 
     @staticmethod
-    def _create_program(f: h5py.File, program: list[tuple[int, str, str, str, float, float]]) -> None:
+    def _create_program(f: h5py.File, program: Sequence[tuple[int, str, str, str, float, float]]) -> None:
         """``/program``: one dataset per field of the compiled steps, along the dimension scale ``index``."""
         g = f.create_group("program")
         rows = list(zip(*program, strict=True)) if program else [()] * len(PROGRAM_FIELDS)
