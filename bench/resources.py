@@ -31,11 +31,6 @@ def rigs_dir() -> Path:
     return data_dir() / "rigs"
 
 
-def schema_path() -> Path:
-    """JSON schema of the protocol file format."""
-    return protocols_dir() / SCHEMA_NAME
-
-
 def shipped_protocols() -> dict[str, Path]:
     """Shipped protocol files by name: ``thesis-identification``, ``short/thesis-identification-short`` …"""
     root = protocols_dir()

@@ -7,7 +7,6 @@ A plain number is read in the option's documented unit (``--voltage 7000`` is 70
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 
 from bench.protocol.quantity import parse_quantity
 
@@ -37,23 +36,13 @@ def to_si(text: str, plain_unit: str) -> float:
     return value * factor
 
 
-def quantity_parser(plain_unit: str) -> Callable[[str], float]:
-    """A typer ``parser=`` for an option in ``plain_unit`` that also takes quantities (``--voltage 7kV``)."""
-
-    def parse(text: str) -> float:
-        return to_si(str(text), plain_unit)
-
-    parse.__name__ = f"quantity_{plain_unit}"
-    return parse
-
-
 def option_si(text: str | float, plain_unit: str, option: str, lo: float | None = None,
               hi: float | None = None) -> float:
     """SI value of a command option given as a quantity or a plain number in ``plain_unit``, within ``lo`` … ``hi``
     (in ``plain_unit``, inclusive); ValueError naming the option (the CLI prints it on one line, exit 2).
 
-    The commands parse these options themselves rather than through ``quantity_parser``: click would print its
-    usage block around the message, and its range checks would apply before the unit is known."""
+    The commands parse these options themselves rather than through a click parser: click would print its usage
+    block around the message, and its range checks would apply before the unit is known."""
     try:
         value = to_si(str(text), plain_unit)
     except ValueError as exc:

@@ -71,26 +71,7 @@ def format_value(mm: float | None, status: str = "ok") -> str:
     return sign + body
 
 
-def format_values(mm: np.ndarray, range_mm: float = math.inf) -> bytes:
-    """Comma-separated 8-character fields for many values at once (same format as :func:`format_value`).
 
-    NaN → ``XXXXXXXX``; beyond ±range_mm or not representable → ``±FFFFFFF``.
-    """
-    mm = np.asarray(mm, dtype=float)
-    n = mm.size
-    finite = np.isfinite(mm)
-    a = np.zeros(n, dtype=np.int64)
-    a[finite] = np.round(np.abs(mm[finite]) * 1e4).astype(np.int64)
-    out = np.empty((n, 9), dtype=np.uint8)
-    out[:, 8] = ord(",")
-    out[:, 0] = np.where(mm < 0, ord("-"), ord("+"))
-    for col, power in ((1, 100_000), (2, 10_000), (4, 1000), (5, 100), (6, 10), (7, 1)):
-        out[:, col] = ord("0") + (a // power) % 10
-    out[:, 3] = ord(".")
-    over = finite & ((a >= 1_000_000) | (np.abs(mm) > range_mm))
-    out[over, 1:8] = ord("F")
-    out[~finite, 0:8] = ord("X")
-    return out.tobytes()[:-1]
 
 
 def parse_values(text: str, device: str) -> tuple[np.ndarray, np.ndarray]:

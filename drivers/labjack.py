@@ -224,11 +224,6 @@ def words_u32(w: list[int]) -> int:
     return (w[0] << 16) | w[1]
 
 
-def actual_scan_rate(rate: float) -> float:
-    """Scan rate the device runs for a requested one > 152.588 Hz (100-ns interval steps)."""
-    return 10e6 / max(round(10e6 / rate), 1)
-
-
 @functools.lru_cache(maxsize=16)
 def _ain_table(p: float, n: float, c: float) -> np.ndarray:
     """Volts of every 16-bit stream code: (r − Center)·PSlope at or above the centre, (Center − r)·NSlope below."""
