@@ -21,6 +21,20 @@ if os.environ.get("PYTEST_XDIST_WORKER"):  # pytest-xdist's workers (execnet) se
     os.environ.pop("LINES", None)
 
 
+@pytest.fixture(scope="session")
+def short_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A completed virtual-time run of protocols/short/thesis-identification-short.toml on its rig (read only)."""
+    from bench.runtime.run import execute, plan_run
+
+    out = tmp_path_factory.mktemp("short-run")
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("BENCH_STATE_DIR", str(out / "state"))
+        result = execute(plan_run(ROOT / "protocols" / "short" / "thesis-identification-short.toml"), out / "run.h5",
+                         virtual=True)
+    assert result.state == "completed", result.reason
+    return Path(result.path)
+
+
 @pytest.fixture(autouse=True)
 def _own_interlock_state(tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.MonkeyPatch) -> None:
     """Each test has its own interlock latch folder (bench.runtime.latch), also for the processes it starts: a

@@ -13,18 +13,13 @@ from scipy.io import loadmat
 from typer.testing import CliRunner
 
 from bench.cli import app
-from bench.runtime.run import execute, plan_run
 
 ROOT = Path(__file__).resolve().parent.parent
 
 
-@pytest.fixture(scope="module")
-def run_file(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    out = tmp_path_factory.mktemp("export")
-    plan = plan_run(ROOT / "protocols" / "short" / "thesis-identification-short.toml")
-    result = execute(plan, out / "run.h5", virtual=True)
-    assert result.state == "completed", result.reason
-    return Path(result.path)
+@pytest.fixture
+def run_file(short_run: Path) -> Path:
+    return short_run
 
 
 def test_csv_export_has_units_in_headers_and_the_file_values(run_file: Path, tmp_path: Path) -> None:

@@ -14,19 +14,13 @@ from typer.testing import CliRunner
 
 from bench.analysis.quicklook import envelopes
 from bench.cli import app
-from bench.runtime.run import execute, plan_run
-from tests.conftest import ROOT
 
 matplotlib.use("Agg")
 
 
-@pytest.fixture(scope="module")
-def run_file(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    out = tmp_path_factory.mktemp("plot")
-    plan = plan_run(ROOT / "protocols" / "short" / "thesis-identification-short.toml")
-    result = execute(plan, out / "run.h5", virtual=True)
-    assert result.state == "completed", result.reason
-    return Path(result.path)
+@pytest.fixture
+def run_file(short_run: Path) -> Path:
+    return short_run
 
 
 def _plain(path: Path, stream: str, column: str) -> np.ndarray:
