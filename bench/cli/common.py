@@ -13,7 +13,7 @@ import typer
 from rich.markup import escape
 
 from bench import __version__
-from bench.console import BenchConsole
+from bench.cli.console import BenchConsole
 from drivers.errors import InstrumentError
 
 console = BenchConsole()  # units in brackets stay text; redirected output is not cut to a terminal width

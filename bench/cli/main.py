@@ -22,7 +22,7 @@ def main(version: Annotated[bool, typer.Option("--version", callback=_version, i
          quiet: Annotated[bool, typer.Option("--quiet", "-q", help="Print only errors and results that are "
                                              "data (--json, file paths).")] = False) -> None:
     """dea-bench: DEA test-bench control, simulation and data acquisition."""
-    from bench.logs import configure_console
+    from bench.cli.logs import configure_console
 
     console.quiet = quiet
     configure_console(verbose, quiet)

@@ -16,7 +16,7 @@ from rich.prompt import Confirm
 from rich.table import Table
 
 from bench.cli.common import JsonOpt, clean_errors, console, json_mode, print_json
-from bench.logs import log, run_log
+from bench.cli.logs import log, run_log
 from bench.protocol.staircase import staircase_distortion
 
 protocol_app = typer.Typer(help="Protocol files: the shipped ones (list, show, copy) and their schema.",
@@ -502,7 +502,7 @@ def protocol_schema(
 @clean_errors
 def protocols_list(json_out: JsonOpt = False) -> None:
     """The protocol files shipped with dea-bench: name, rig, description."""
-    from bench.lab import protocol_infos
+    from bench.cli.lab_folder import protocol_infos
 
     infos = protocol_infos()
     if json_out:
@@ -534,7 +534,7 @@ def protocols_copy(
     = None,
 ) -> None:
     """Copy a shipped protocol to edit it (comments kept); its rig reference is rewritten to stay valid."""
-    from bench.lab import copy_protocol
+    from bench.cli.lab_folder import copy_protocol
     from bench.resources import protocol
 
     target = copy_protocol(protocol(name), dest, rig)
@@ -544,7 +544,7 @@ def protocols_copy(
 @clean_errors
 def init(folder: Annotated[Path, typer.Argument(help="Lab folder to create (new or empty).")]) -> None:
     """Create a lab folder: editable copies of the rig templates and protocols, a runs/ folder, a README."""
-    from bench.lab import init_lab
+    from bench.cli.lab_folder import init_lab
 
     written = init_lab(folder)
     console.print(f"lab folder {escape(str(folder))}: {len(written)} files (rigs/, protocols/, README.md), runs/")
