@@ -1,4 +1,8 @@
-"""What the command modules share: the consoles, one-line errors, --json output."""
+"""What the command modules share: the consoles, one-line errors, --json output, the dask cluster seam.
+
+Imported by ``bench --help`` and by every TAB completion: nothing heavy at module level (numpy, scipy, numba, the
+models, dask load inside the functions that need them; tests/test_cli_startup.py).
+"""
 
 from __future__ import annotations
 
@@ -6,15 +10,16 @@ import contextlib
 import functools
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Annotated, ParamSpec, TypeVar
+from typing import TYPE_CHECKING, Annotated, ParamSpec, TypeVar
 
-import numpy as np
 import typer
 from rich.markup import escape
 
-from bench import __version__
 from bench.cli.console import BenchConsole
 from drivers.errors import InstrumentError
+
+if TYPE_CHECKING:
+    from distributed import Client
 
 console = BenchConsole()  # units in brackets stay text; redirected output is not cut to a terminal width
 err_console = BenchConsole(stderr=True)
@@ -51,6 +56,8 @@ def print_json(data: object) -> None:
     import math
     import sys
 
+    import numpy as np
+
     def clean(x: object) -> object:
         if isinstance(x, float | np.floating):
             return float(x) if math.isfinite(x) else None
@@ -85,5 +92,26 @@ def json_mode(enabled: bool) -> Iterator[None]:
 
 def _version(value: bool) -> None:
     if value:
+        from bench import __version__
+
         console.print(f"dea-bench {__version__}")
         raise typer.Exit()
+
+
+CLUSTER_EXTRA = "dea-bench[cluster]"
+
+
+@contextlib.contextmanager
+def cluster_client(scheduler: str | None, workers: int | None) -> Iterator[Client | None]:
+    """:func:`bench.identify.distributed.cluster_client`, refused in one line naming the extra when ``--scheduler``
+    or ``--workers`` asks for a cluster and dask.distributed is not installed (it is an optional dependency)."""
+    if scheduler is not None or workers:
+        try:
+            import distributed  # noqa: F401
+        except ImportError:
+            raise ValueError(f"--scheduler/--workers compute on dask.distributed, which is not installed: "
+                             f"pip install '{CLUSTER_EXTRA}'") from None
+    from bench.identify.distributed import cluster_client as client_of
+
+    with client_of(scheduler, workers) as client:
+        yield client

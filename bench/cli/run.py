@@ -16,14 +16,16 @@ from rich.prompt import Confirm
 from rich.table import Table
 
 from bench.cli.common import JsonOpt, clean_errors, console, json_mode, print_json
+from bench.cli.completion import protocol_files, protocol_names, rig_files
 from bench.cli.logs import log, run_log
-from bench.protocol.staircase import staircase_distortion
 
 protocol_app = typer.Typer(help="Protocol files: the shipped ones (list, show, copy) and their schema.",
                             no_args_is_help=True, rich_markup_mode=None)
 
-ProtocolArg = Annotated[Path, typer.Argument(help="Protocol file (TOML), e.g. protocols/thesis-identification.toml.")]
-RigOpt = Annotated[Path | None, typer.Option("--rig", help="Run on this rig file instead of the protocol's.")]
+ProtocolArg = Annotated[Path, typer.Argument(help="Protocol file (TOML), e.g. protocols/thesis-identification.toml.",
+                                             autocompletion=protocol_files)]
+RigOpt = Annotated[Path | None, typer.Option("--rig", help="Run on this rig file instead of the protocol's.",
+                                             autocompletion=rig_files)]
 SimOpt = Annotated[bool, typer.Option("--sim", help="Use the simulated twin of the rig (default if it is simulated).")]
 
 
@@ -57,6 +59,8 @@ def _summary(plan) -> Table:
     t.add_row("file size", f"≤ {pred.file_bytes / 1e6:.1f} MB uncompressed")
     lim = rig.limits
     t.add_row("peak voltage", f"{pred.peak_voltage:.0f} V (limit {lim.max_voltage_V:.0f} V)")
+    from bench.protocol.staircase import staircase_distortion
+
     stair = staircase_distortion(prog)
     if stair is not None:
         t.add_row("drive", f"set-point staircase at {stair.setpoint_Hz:g} Hz: up to {stair.max_error_V:.0f} V off the "
@@ -110,7 +114,8 @@ def validate(protocol_file: ProtocolArg, rig: RigOpt = None, sim: SimOpt = False
 @clean_errors
 def run(
     protocol_file: Annotated[Path | None, typer.Argument(
-        help="Protocol file (TOML), e.g. protocols/thesis-identification.toml (not with --resume).")] = None,
+        help="Protocol file (TOML), e.g. protocols/thesis-identification.toml (not with --resume).",
+        autocompletion=protocol_files)] = None,
     rig: RigOpt = None,
     sim: SimOpt = False,
     virtual_time: Annotated[bool, typer.Option("--virtual-time", help="Simulated rig only: run as fast as the "
@@ -518,7 +523,8 @@ def protocols_list(json_out: JsonOpt = False) -> None:
 
 
 @clean_errors
-def protocols_show(name: Annotated[str, typer.Argument(help="Protocol name (bench protocols list).")]) -> None:
+def protocols_show(name: Annotated[str, typer.Argument(help="Protocol name (bench protocols list).",
+                                                       autocompletion=protocol_names)]) -> None:
     """Print a shipped protocol file as it is (comments included)."""
     from bench.resources import protocol
 
@@ -527,10 +533,11 @@ def protocols_show(name: Annotated[str, typer.Argument(help="Protocol name (benc
 
 @clean_errors
 def protocols_copy(
-    name: Annotated[str, typer.Argument(help="Protocol name (bench protocols list).")],
+    name: Annotated[str, typer.Argument(help="Protocol name (bench protocols list).", autocompletion=protocol_names)],
     dest: Annotated[Path, typer.Argument(help="File or existing folder to copy to.")] = Path("."),
     rig: Annotated[Path | None, typer.Option(help="Rig file the copy runs on (default: the lab folder's "
-                                             "rigs/<rig>.toml beside it if present, else the shipped rig).")]
+                                             "rigs/<rig>.toml beside it if present, else the shipped rig).",
+                                             autocompletion=rig_files)]
     = None,
 ) -> None:
     """Copy a shipped protocol to edit it (comments kept); its rig reference is rewritten to stay valid."""
