@@ -337,10 +337,13 @@ BENCHMARK_SETS = (
 def _benchmark(which: BenchmarkSet, quick: bool) -> dict[str, object]:
     """Run and print the chosen benchmark sets, with a progress line (set k of n, elapsed); returns their figures
     by set."""
+    import time
+
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
     chosen = [entry for entry in BENCHMARK_SETS if which in (entry[0], BenchmarkSet.all)]
     collected: dict[str, object] = {}
+    t0 = time.perf_counter()
     with Progress(TextColumn("[{task.completed}/{task.total}] benchmarking {task.description}…"), BarColumn(),
                   TimeElapsedColumn(), console=console, transient=True) as bar:
         task = bar.add_task("", total=len(chosen))
@@ -353,6 +356,8 @@ def _benchmark(which: BenchmarkSet, quick: bool) -> dict[str, object]:
             else:
                 collected[title] = _figures(kind, title, quick)
             bar.advance(task)
+    console.print(f"benchmark {which.value}{' --quick' if quick else ''}: {len(chosen)} set(s) in "
+                  f"{time.perf_counter() - t0:.1f} s")
     return collected
 
 

@@ -10,9 +10,7 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
-from rich.live import Live
 from rich.markup import escape
-from rich.prompt import Confirm
 from rich.table import Table
 
 from bench.cli.common import JsonOpt, clean_errors, console, json_mode, print_json
@@ -182,6 +180,8 @@ def run(
         raise ValueError("this protocol changes the specimen between tests: run it interactively or pass --yes")
 
     def operator(message: str) -> bool:
+        from rich.prompt import Confirm
+
         return yes or Confirm.ask(f"[bold]operator:[/] {message} — done?", console=console)
 
     path = default_output(plan, out)
@@ -251,6 +251,8 @@ def open_run_attrs(path: Path) -> dict[str, str]:
 def _execute(plan, path: Path, virtual_time: bool, operator, live: bool, allow_no_watchdog: bool,
              metadata: dict[str, str], link=None):
     """Run the plan, with the live view on a terminal."""
+    from rich.live import Live
+
     from bench.runtime.engine import Engine
     from bench.runtime.live import Keys, LiveView, units_of
     from bench.runtime.run import execute
