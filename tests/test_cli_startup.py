@@ -138,3 +138,13 @@ def test_in_process_fits_need_no_dask(monkeypatch: pytest.MonkeyPatch) -> None:
 def test_benchmark_help_lists_the_startup_set() -> None:
     res = CliRunner().invoke(app, ["benchmark", "--help"])
     assert res.exit_code == 0 and "startup" in res.output
+
+
+def test_cluster_options_with_dask_installed_reach_the_cluster() -> None:
+    """With the extra installed, the seam hands over a working client (a LocalCluster of one worker process)."""
+    pytest.importorskip("distributed")
+    from bench.cli.common import cluster_client
+
+    with cluster_client(None, 1) as client:
+        assert client is not None
+        assert client.submit(pow, 2, 10).result(timeout=60) == 1024

@@ -11,7 +11,7 @@ import typer
 from rich.markup import escape
 from rich.table import Table
 
-from bench.cli.common import JsonOpt, clean_errors, console, fail, json_mode, print_json
+from bench.cli.common import JsonOpt, clean_errors, cluster_client, console, fail, json_mode, print_json
 
 if TYPE_CHECKING:
     from bench.identify.campaign import CampaignReport
@@ -167,7 +167,6 @@ def run_fit(runs: list[Path], chosen: str, settings: FitSettings, branches: int 
     import numpy as np
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from bench.cli.common import cluster_client
     from bench.identify.campaign import campaign_identifiability
     from bench.identify.core import fit
     from bench.identify.problems import LozengeProblem, MembraneProblem
@@ -252,7 +251,6 @@ def design_map_command(
 def run_design_map(out: Path = Path("runs/design-map"), voltages: tuple[float, ...] = (0.0, 3e3, 5e3, 7e3),
                    scheduler: str | None = None, workers: int | None = None) -> list[Path]:
     """Compute, summarise and plot the design map (``bench design-map``, ``bench simulate lsdea map``)."""
-    from bench.cli.common import cluster_client
     from bench.design_map import MapSettings, compute_map, plot_map
 
     settings = MapSettings(voltages=voltages)
