@@ -8,10 +8,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
 
 import typer
-from rich.markup import escape
-from rich.table import Table
 
-from bench.cli.common import JsonOpt, clean_errors, cluster_client, console, fail, json_mode, print_json
+from bench.cli.common import JsonOpt, Table, clean_errors, cluster_client, console, escape, fail, json_mode, print_json
 
 if TYPE_CHECKING:
     from bench.identify.campaign import CampaignReport

@@ -8,9 +8,8 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
-from rich.markup import escape
 
-from bench.cli.common import clean_errors, console
+from bench.cli.common import clean_errors, console, escape
 from bench.cli.completion import rig_files
 
 

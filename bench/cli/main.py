@@ -8,9 +8,8 @@ from pathlib import Path
 from typing import Annotated, Any
 
 import typer
-from rich.table import Table
 
-from bench.cli.common import JsonOpt, _version, clean_errors, console, fail, json_mode, print_json
+from bench.cli.common import JsonOpt, Table, _version, clean_errors, console, fail, json_mode, print_json
 from bench.cli.completion import rig_files
 from bench.units import option_si
 
@@ -344,20 +343,23 @@ def _benchmark(which: BenchmarkSet, quick: bool) -> dict[str, object]:
     chosen = [entry for entry in BENCHMARK_SETS if which in (entry[0], BenchmarkSet.all)]
     collected: dict[str, object] = {}
     t0 = time.perf_counter()
+    took: list[str] = []
     with Progress(TextColumn("[{task.completed}/{task.total}] benchmarking {task.description}…"), BarColumn(),
                   TimeElapsedColumn(), console=console, transient=True) as bar:
         task = bar.add_task("", total=len(chosen))
         for kind, doing, title in chosen:
             bar.update(task, description=doing)
+            t_set = time.perf_counter()
             if kind is BenchmarkSet.physics:
                 collected["physics"] = _physics(quick)
             elif kind is BenchmarkSet.faults:
                 collected["faults"] = _fault_matrix(quick)
             else:
                 collected[title] = _figures(kind, title, quick)
+            took.append(f"{kind.value} {time.perf_counter() - t_set:.1f}")
             bar.advance(task)
     console.print(f"benchmark {which.value}{' --quick' if quick else ''}: {len(chosen)} set(s) in "
-                  f"{time.perf_counter() - t0:.1f} s")
+                  f"{time.perf_counter() - t0:.1f} s ({', '.join(took)} s)")
     return collected
 
 

@@ -10,10 +10,8 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
-from rich.markup import escape
-from rich.table import Table
 
-from bench.cli.common import JsonOpt, clean_errors, console, json_mode, print_json
+from bench.cli.common import JsonOpt, Table, clean_errors, console, escape, json_mode, print_json
 from bench.cli.completion import protocol_files, protocol_names, rig_files
 from bench.cli.logs import log, run_log
 
