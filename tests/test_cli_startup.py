@@ -1,7 +1,8 @@
 """Fast start of the command line (issue 24): ``bench --help``, a command's ``--help`` and TAB completion load no
 numerics (numpy, scipy, numba, h5py, matplotlib, dask) and none of bench's model, run-time, storage or
-identification code; completion of protocol and rig files and of shipped protocol names; the one-line refusal
-of ``--workers``/``--scheduler`` when dask.distributed (the ``cluster`` extra) is not installed.
+identification code (``bench --help`` not even rich's console); completion of protocol and rig files and of
+shipped protocol names; the one-line refusal of ``--workers``/``--scheduler`` when dask.distributed (the
+``cluster`` extra) is not installed.
 
 What is loaded is read from ``sys.modules`` in a fresh interpreter: an order/count check, not a duration (the
 start-up time against ``import typer, rich`` is a row of ``bench benchmark startup``).
@@ -64,6 +65,17 @@ def test_help_loads_no_numerics_and_no_model(args: list[str]) -> None:
     heavy, out = loaded(*args)
     assert "Usage" in out  # the help was printed
     assert heavy == []
+
+
+def test_top_level_help_loads_no_rich_console() -> None:
+    """typer prints ``bench --help`` without rich's console (rich_markup_mode=None): the command modules make their
+    consoles on first print. (A command's help is parsed by typer, which loads rich itself.)"""
+    code = ("import json, sys\nfrom bench.cli import app\ntry:\n    app(['--help'], prog_name='bench')\n"
+            "except SystemExit:\n    pass\n"
+            "print(json.dumps([m for m in ('rich.console', 'rich.table') if m in sys.modules]))")
+    res = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert res.returncode == 0 and "Usage" in res.stdout, res.stderr
+    assert json.loads(res.stdout.strip().splitlines()[-1]) == []
 
 
 def test_tab_completion_loads_no_numerics_and_completes_shipped_protocol_names() -> None:
