@@ -160,3 +160,21 @@ def test_cluster_options_with_dask_installed_reach_the_cluster() -> None:
     with cluster_client(None, 1) as client:
         assert client is not None
         assert client.submit(pow, 2, 10).result(timeout=60) == 1024
+
+
+def test_the_console_made_on_first_use_stands_for_the_bench_console() -> None:
+    """The stand-in forwards attributes, assignments and ``with`` (rich's Live uses all three) to a BenchConsole:
+    units in brackets stay text (bench/cli/console.py), quiet silences it, a ``with`` block prints at its end."""
+    import io
+
+    from bench.cli.common import _OnFirstUse
+
+    out = io.StringIO()
+    c = _OnFirstUse(file=out, width=80)
+    with c:
+        c.print("[bold]peak[/] 7.68 [mm]")
+        assert out.getvalue() == ""  # buffered until the block ends
+    assert out.getvalue() == "peak 7.68 [mm]\n"
+    c.quiet = True
+    c.print("not shown")
+    assert out.getvalue() == "peak 7.68 [mm]\n" and c.quiet is True

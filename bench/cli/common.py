@@ -61,7 +61,9 @@ class _OnFirstUse:
         setattr(self._made(), name, value)
 
     def __enter__(self) -> BenchConsole:  # rich's Live does `with console:`
-        return self._made().__enter__()
+        made = self._made()
+        made.__enter__()
+        return made
 
     def __exit__(self, *exc: Any) -> None:
         self._made().__exit__(*exc)
