@@ -209,7 +209,7 @@ def test_wire_time_at_the_drive_baud_rate_advances_a_virtual_clock() -> None:
 def test_the_drive_resynchronises_after_line_noise(drive: Drive) -> None:
     """The pages read do not say how the drive recovers from noise (chosen, sim_devices/linmot_drive.py): an
     incomplete telegram is dropped after a 20-ms pause, and bytes that fail the framing are skipped one at a
-    time until a telegram start is found — so a poll after noise is answered (found by bench.fuzz_wire)."""
+    time until a telegram start is found — so a poll after noise is answered (found by tests/fuzzing/wire.py)."""
     import time
 
     drive.port.write(bytes.fromhex("01 11 3C 02"))  # a header announcing 60 data bytes, then silence

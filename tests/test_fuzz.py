@@ -1,4 +1,4 @@
-"""Fuzzed rig and protocol files (bench/fuzz.py): every mutant is refused in one line or accepted, never a
+"""Fuzzed rig and protocol files (tests/fuzzing/files.py): every mutant is refused in one line or accepted, never a
 traceback or a hang; and the harness itself counts tracebacks and hangs (a hang is killed, not endured)."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ import tomllib
 import pytest
 
 import bench.runtime.run
-from bench.fuzz import _mutate_text, make_cases, run_fuzz, to_toml
+from tests.fuzzing.files import _mutate_text, make_cases, run_fuzz, to_toml
 
 
 def test_short_fuzz_run_has_no_traceback_and_no_hang() -> None:
@@ -74,8 +74,8 @@ def test_harness_kills_and_counts_hangs(monkeypatch: pytest.MonkeyPatch) -> None
 def test_short_wire_fuzz_twins_survive_frames_and_drivers_survive_replies() -> None:
     """Issue 8: random and mutated frames to every twin (Modbus on RTU and TCP), mutated replies to every
     driver — no twin dies, every driver returns a finite reading or a named driver error, and all recover.
-    The long run is ``python -m bench.fuzz_wire --frames N --replies N``."""
-    from bench.fuzz_wire import Tally, fuzz_frames, fuzz_replies
+    The long run is ``python -m tests.fuzzing.wire --frames N --replies N``."""
+    from tests.fuzzing.wire import Tally, fuzz_frames, fuzz_replies
 
     tally = Tally()
     fuzz_frames(10, 5, tally)
@@ -87,7 +87,7 @@ def test_short_wire_fuzz_twins_survive_frames_and_drivers_survive_replies() -> N
 
 
 def test_wire_fuzz_counts_an_exception_that_is_not_a_driver_error(monkeypatch: pytest.MonkeyPatch) -> None:
-    import bench.fuzz_wire as fw
+    import tests.fuzzing.wire as fw
 
     def broken() -> float:
         raise KeyError("not a driver error")

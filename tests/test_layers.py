@@ -51,6 +51,7 @@ def offenders(package: str, forbidden: tuple[str, ...], allowed: tuple[str, ...]
     ("bench/protocol", ("sim_devices", "drivers"), ()),
     ("bench/core", ("sim_devices", "drivers", "bench"), ("bench.core", "bench.models")),
     ("bench/storage", ("bench.runtime", "bench.cli"), ()),
+    ("bench", ("tests",), ()),  # the fuzz harnesses (tests/fuzzing) are a testing tool, never product code
 ])
 def test_no_import_goes_up_or_across_the_layers(package: str, forbidden: tuple[str, ...],
                                                 allowed: tuple[str, ...]) -> None:

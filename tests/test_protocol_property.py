@@ -18,11 +18,11 @@ from typing import Any
 import numpy as np
 import pytest
 
-from bench.fuzz import to_toml
 from bench.protocol.program import Program, ProtocolLimitError, Segment, compile_program, ticks
 from bench.protocol.schema import ProtocolFileError, load_protocol
 from bench.rig import RigConfig, load_rig
 from tests.conftest import RIGS
+from tests.fuzzing.files import to_toml
 
 RIG_FILES = ("thesis-sim.toml", "thesis-daq-sim.toml", "lsdea-motor-sim.toml", "lsdea-motor-daq-sim.toml",
              "lsdea-isotonic-sim.toml", "lsdea-isotonic-daq-sim.toml")

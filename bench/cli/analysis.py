@@ -7,13 +7,9 @@ from enum import StrEnum
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
 
-import numpy as np
 import typer
-from rich.markup import escape
-from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
-from rich.table import Table
 
-from bench.cli.common import JsonOpt, clean_errors, console, fail, json_mode, print_json
+from bench.cli.common import JsonOpt, Table, clean_errors, cluster_client, console, escape, fail, json_mode, print_json
 
 if TYPE_CHECKING:
     from bench.identify.campaign import CampaignReport
@@ -40,6 +36,8 @@ class CostChoice(StrEnum):
 
 def fit_result_table(result: FitResult, title: str) -> Table:
     """Parameters, bounds, sensitivity and flags of a fit."""
+    import numpy as np
+
     t = Table(title=title)
     for col in ("parameter", "value", "unit", "bounds", "± (1σ)", "sensitivity", "flags"):
         t.add_column(col, justify="right" if col in ("value", "± (1σ)", "sensitivity") else "left",
@@ -164,9 +162,11 @@ def run_fit(runs: list[Path], chosen: str, settings: FitSettings, branches: int 
     given (membrane model).
 
     Returns the result and the (coarse) problem it was searched on, which holds the compared data."""
+    import numpy as np
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
     from bench.identify.campaign import campaign_identifiability
     from bench.identify.core import fit
-    from bench.identify.distributed import cluster_client
     from bench.identify.problems import LozengeProblem, MembraneProblem
     from bench.identify.store import export_rig, fit_sidecar, fitted_rig, write_fit
     from bench.rig import rig_from_toml
@@ -250,7 +250,6 @@ def run_design_map(out: Path = Path("runs/design-map"), voltages: tuple[float, .
                    scheduler: str | None = None, workers: int | None = None) -> list[Path]:
     """Compute, summarise and plot the design map (``bench design-map``, ``bench simulate lsdea map``)."""
     from bench.design_map import MapSettings, compute_map, plot_map
-    from bench.identify.distributed import cluster_client
 
     settings = MapSettings(voltages=voltages)
     with console.status("computing the design map…"), cluster_client(scheduler, workers) as client:
@@ -384,6 +383,8 @@ FIGURE_UNITS: dict[str, str] = {
 
 
 def _fmt(key: str, value: float | None) -> str:
+    import numpy as np
+
     if value is None or not np.isfinite(value):
         return "–"
     return f"{value * FIGURE_COLUMNS.get(key, ('', 1.0))[1]:.4g}"
@@ -401,6 +402,8 @@ def demo(
     time through the real wire protocols, identifies the membrane model from the HDF5 file by differential
     evolution (thesis settings), compares it with the specimen the twin simulated, and writes the report.
     """
+    import numpy as np
+
     from bench.identify.core import FitSettings
     from bench.resources import protocol as shipped_protocol
     from bench.runtime.run import default_output, execute, plan_run

@@ -1,4 +1,10 @@
-"""What the command modules share: the consoles, one-line errors, --json output."""
+"""What the command modules share: the consoles, one-line errors, --json output, the dask cluster seam.
+
+Imported by ``bench --help`` and by every TAB completion: nothing heavy at module level (numpy, scipy, numba, the
+models, dask load inside the functions that need them; tests/test_cli_startup.py). Even rich's console, text and
+table modules (a fifth of ``bench --help``, which typer prints without them) load on first use: the consoles are
+made when something is printed, and ``Table`` and ``escape`` here import rich's when called.
+"""
 
 from __future__ import annotations
 
@@ -6,18 +12,66 @@ import contextlib
 import functools
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Annotated, ParamSpec, TypeVar
+from typing import TYPE_CHECKING, Annotated, Any, ParamSpec, TypeVar, cast
 
-import numpy as np
 import typer
-from rich.markup import escape
 
-from bench import __version__
-from bench.console import BenchConsole
 from drivers.errors import InstrumentError
 
-console = BenchConsole()  # units in brackets stay text; redirected output is not cut to a terminal width
-err_console = BenchConsole(stderr=True)
+if TYPE_CHECKING:
+    from distributed import Client
+    from rich.table import Table
+
+    from bench.cli.console import BenchConsole
+else:
+    def Table(*args: Any, **kwargs: Any) -> Any:
+        """:class:`rich.table.Table`, imported on first use."""
+        from rich.table import Table as RichTable
+
+        return RichTable(*args, **kwargs)
+
+
+def escape(markup: str) -> str:
+    """:func:`rich.markup.escape`, imported on first use: ``markup`` printed as written."""
+    from rich.markup import escape as rich_escape
+
+    return rich_escape(markup)
+
+
+class _OnFirstUse:
+    """A :class:`BenchConsole` made on first use (attribute, ``with``): stands for it everywhere."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        object.__setattr__(self, "_kwargs", kwargs)
+        object.__setattr__(self, "_console", None)
+
+    def _made(self) -> BenchConsole:
+        made = object.__getattribute__(self, "_console")
+        if made is None:
+            from bench.cli.console import BenchConsole
+
+            made = BenchConsole(**object.__getattribute__(self, "_kwargs"))
+            object.__setattr__(self, "_console", made)
+        return cast("BenchConsole", made)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._made(), name)
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        setattr(self._made(), name, value)
+
+    def __enter__(self) -> BenchConsole:  # rich's Live does `with console:`
+        made = self._made()
+        made.__enter__()
+        return made
+
+    def __exit__(self, *exc: Any) -> None:
+        self._made().__exit__(*exc)
+
+
+# units in brackets stay text; redirected output is not cut to a terminal width (bench/cli/console.py)
+console = cast("BenchConsole", _OnFirstUse())
+err_console = cast("BenchConsole", _OnFirstUse(stderr=True))
 JsonOpt = Annotated[bool, typer.Option("--json", help="Print the result as JSON on stdout (nothing else).")]
 
 P = ParamSpec("P")
@@ -50,6 +104,8 @@ def print_json(data: object) -> None:
     import json
     import math
     import sys
+
+    import numpy as np
 
     def clean(x: object) -> object:
         if isinstance(x, float | np.floating):
@@ -85,5 +141,26 @@ def json_mode(enabled: bool) -> Iterator[None]:
 
 def _version(value: bool) -> None:
     if value:
+        from bench import __version__
+
         console.print(f"dea-bench {__version__}")
         raise typer.Exit()
+
+
+CLUSTER_EXTRA = "dea-bench[cluster]"
+
+
+@contextlib.contextmanager
+def cluster_client(scheduler: str | None, workers: int | None) -> Iterator[Client | None]:
+    """:func:`bench.identify.distributed.cluster_client`, refused in one line naming the extra when ``--scheduler``
+    or ``--workers`` asks for a cluster and dask.distributed is not installed (it is an optional dependency)."""
+    if scheduler is not None or workers:
+        try:
+            import distributed  # noqa: F401
+        except ImportError:
+            raise ValueError(f"--scheduler/--workers compute on dask.distributed, which is not installed: "
+                             f"pip install '{CLUSTER_EXTRA}'") from None
+    from bench.identify.distributed import cluster_client as client_of
+
+    with client_of(scheduler, workers) as client:
+        yield client

@@ -8,9 +8,9 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
-from rich.markup import escape
 
-from bench.cli.common import clean_errors, console
+from bench.cli.common import clean_errors, console, escape
+from bench.cli.completion import rig_files
 
 
 @clean_errors
@@ -40,7 +40,8 @@ def export(
 
 @clean_errors
 def devices_control(
-    rig_file: Annotated[Path, typer.Argument(help="Rig file (TOML), e.g. rigs/lsdea-motor-sim.toml.")],
+    rig_file: Annotated[Path, typer.Argument(help="Rig file (TOML), e.g. rigs/lsdea-motor-sim.toml.",
+                                             autocompletion=rig_files)],
     script: Annotated[Path | None, typer.Option(help="Read commands from this file (default: stdin; a prompt "
                                                 "on a terminal).")] = None,
     log: Annotated[Path | None, typer.Option(help="Session log file (default: runs/manual-<rig>-<time>.log); the "

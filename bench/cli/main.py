@@ -7,11 +7,10 @@ from enum import StrEnum
 from pathlib import Path
 from typing import Annotated, Any
 
-import numpy as np
 import typer
-from rich.table import Table
 
-from bench.cli.common import JsonOpt, _version, clean_errors, console, fail, json_mode, print_json
+from bench.cli.common import JsonOpt, Table, _version, clean_errors, console, fail, json_mode, print_json
+from bench.cli.completion import rig_files
 from bench.units import option_si
 
 
@@ -22,7 +21,7 @@ def main(version: Annotated[bool, typer.Option("--version", callback=_version, i
          quiet: Annotated[bool, typer.Option("--quiet", "-q", help="Print only errors and results that are "
                                              "data (--json, file paths).")] = False) -> None:
     """dea-bench: DEA test-bench control, simulation and data acquisition."""
-    from bench.logs import configure_console
+    from bench.cli.logs import configure_console
 
     console.quiet = quiet
     configure_console(verbose, quiet)
@@ -75,6 +74,8 @@ def simulate_thesis(
     = "rodas",
 ) -> None:
     """Thesis membrane (Model A) under a periodic voltage: per-cycle peaks, creep, residual, lag, field."""
+    import numpy as np
+
     from bench.analysis.thesis import cycle_figures
     from bench.models.membrane import MembraneParams
     from bench.models.membrane_runs import simulate_membrane
@@ -147,6 +148,8 @@ def simulate_lsdea(
 
         run_design_map()
         return
+    import numpy as np
+
     from bench.analysis.cycles import crest_to_trough, hysteresis_loss, last_cycles
     from bench.models.lozenge import LozengeParams
     from bench.models.lozenge_runs import simulate_lozenge
@@ -190,7 +193,7 @@ def simulate_lsdea(
         raise fail(f"specimen failed: {tr.failure}", code=1)
 
 
-RigArg = Annotated[Path, typer.Argument(help="Rig file (TOML), e.g. rigs/thesis-sim.toml.")]
+RigArg = Annotated[Path, typer.Argument(help="Rig file (TOML), e.g. rigs/thesis-sim.toml.", autocompletion=rig_files)]
 
 
 def _endpoint_table(title: str, endpoints: dict) -> Table:
@@ -213,10 +216,6 @@ def sim_serve(
         "--wire-time/--no-wire-time",
         help="Serve at the rig file's baud rates with the devices' turnarounds (as the real lines), or at pty "
              "speed (faster than any real bench: for a quick look only).")] = True,
-    t7_ports: Annotated[bool, typer.Option(
-        "--t7-ports", help="Serve the T7 twin on the T7's own ports, 502 (Modbus TCP) and 702 (stream), for "
-                           "clients that assume them; where ports below 1024 need privileges this process lacks, "
-                           "on 10502/10702.")] = False,
 ) -> None:
     """Start every simulated instrument of a rig (wall clock) and print where to connect; Ctrl-C stops."""
     import math
@@ -227,7 +226,7 @@ def sim_serve(
     from bench.rig import load_rig
     from bench.runtime.devices import served_rig
     from bench.runtime.devices import write_rig as write_rig_file
-    from bench.runtime.sim_rig import T7_PORTS, SimRig
+    from bench.runtime.sim_rig import SimRig
 
     duration_s = None if duration is None else option_si(duration, "s", "--duration", 0.1)
     rig = load_rig(rig_file)
@@ -237,7 +236,7 @@ def sim_serve(
     # both set explicitly: a process started with SIGINT ignored (a background job of a non-interactive shell)
     # inherits the ignore, and Python then installs no KeyboardInterrupt handler of its own
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGTERM, signal.SIGINT)}
-    sim = SimRig(rig, timing="real" if wire_time else "none", daq_ports=T7_PORTS if t7_ports else (0, 0))
+    sim = SimRig(rig, timing="real" if wire_time else "none")
     try:
         endpoints = sim.start()
         console.print(_endpoint_table(f"simulated rig {rig.name} ({rig.specimen.kind})", endpoints))
@@ -299,6 +298,7 @@ class BenchmarkSet(StrEnum):
     fit = "fit"
     daq = "daq"
     faults = "faults"
+    startup = "startup"
     export = "export"
     all = "all"
 
@@ -306,70 +306,104 @@ class BenchmarkSet(StrEnum):
 @clean_errors
 def benchmark(
     which: Annotated[BenchmarkSet, typer.Argument(help="Which figures.")] = BenchmarkSet.all,
-    quick: Annotated[bool, typer.Option(help="One repeat / short runs.")] = False,
+    quick: Annotated[bool, typer.Option(help="One repeat / short runs; the slow reference timings (the generic "
+                                        "scipy candidate) only in the full run.")] = False,
     json_out: JsonOpt = False,
 ) -> None:
-    """Measure the integrators, the acquisition rates through the drivers, whole runs and the fitter; run the fault
-    matrix (every fault × every phase × both rig kinds: is the plant's output at 0 V when the run returns?)."""
+    """Measure the integrators, the acquisition rates through the drivers, whole runs, the fitter and the command
+    line's start-up; run the fault matrix (every fault × every phase × both rig kinds: is the plant's output at 0 V
+    when the run returns?)."""
     with json_mode(json_out):
         collected = _benchmark(which, quick)
     if json_out:
         print_json(collected)
 
 
+# the sets of figures in the order they run: (set, what the progress line says, title of the table)
+BENCHMARK_SETS = (
+    (BenchmarkSet.physics, "the integrators (includes JIT warm-up)", "physics integrators (one core, best of repeats)"),
+    (BenchmarkSet.acquisition, "acquisition through the drivers",
+     "acquisition through the drivers (simulated rigs on ptys)"),
+    (BenchmarkSet.run, "whole runs", "whole runs: engine, recorder"),
+    (BenchmarkSet.fit, "identification", "identification (thesis record, 2 cores)"),
+    (BenchmarkSet.daq, "the hardware-timed rigs", "hardware-timed rigs (LabJack T7 twin)"),
+    (BenchmarkSet.startup, "the command line's start-up",
+     'start-up of the command line against python -c "import typer, rich"'),
+    (BenchmarkSet.export, "the export's memory", "export: peak memory against the run's length"),
+    (BenchmarkSet.faults, "the fault matrix (faults that a wall-clock timeout, a signal or a stall detects run in "
+     "real time)", "fault matrix"),
+)
+
+
 def _benchmark(which: BenchmarkSet, quick: bool) -> dict[str, object]:
-    """Run and print the chosen benchmark sets; returns their figures by set."""
+    """Run and print the chosen benchmark sets, with a progress line (set k of n, elapsed); returns their figures
+    by set."""
+    import time
+
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    chosen = [entry for entry in BENCHMARK_SETS if which in (entry[0], BenchmarkSet.all)]
     collected: dict[str, object] = {}
-    if which in (BenchmarkSet.physics, BenchmarkSet.all):
-        from bench.benchmarks.main import run_all
-
-        with console.status("benchmarking the integrators (includes JIT warm-up)…"):
-            results = run_all(quick=quick)
-        table = Table(title="physics integrators (one core, best of repeats)")
-        for col in ("case", "simulated [s]", "wall [s]", "× real time", "target", ""):
-            table.add_column(col, justify="left" if col == "case" else "right")
-        for r in results:
-            mark = "" if not r.target else ("[green]ok[/]" if r.passed else "[red]below target[/]")
-            table.add_row(r.name, f"{r.simulated:g}", f"{r.wall:.4f}", f"{r.speed:.0f}",
-                          f"≥ {r.target:g}" if r.target else "–", mark)
-        console.print(table)
-        collected["physics"] = [{"case": r.name, "simulated_s": r.simulated, "wall_s": r.wall, "speed_x": r.speed,
-                                 "target_x": r.target or None, "passed": r.passed if r.target else None}
-                                for r in results]
-    sets = []
-    if which in (BenchmarkSet.acquisition, BenchmarkSet.all):
-        from bench.benchmarks import acquisition as benchmark_acquisition
-
-        sets.append(("acquisition through the drivers (simulated rigs on ptys)", benchmark_acquisition.run_all))
-    if which in (BenchmarkSet.run, BenchmarkSet.all):
-        from bench.benchmarks import run as benchmark_run
-
-        sets.append(("whole runs: engine, recorder", benchmark_run.run_all))
-    if which in (BenchmarkSet.fit, BenchmarkSet.all):
-        from bench.benchmarks import fit as benchmark_fit
-
-        sets.append(("identification (thesis record, 2 cores)", benchmark_fit.run_all))
-    if which in (BenchmarkSet.daq, BenchmarkSet.all):
-        from bench.benchmarks import daq as benchmark_daq
-
-        sets.append(("hardware-timed rigs (LabJack T7 twin)", benchmark_daq.run_all))
-    if which in (BenchmarkSet.export, BenchmarkSet.all):
-        from bench.benchmarks import export as benchmark_export
-
-        sets.append(("export: peak memory against the run's length", benchmark_export.run_all))
-    for title, fn in sets:
-        with console.status(f"benchmarking {title}…"):
-            figures = fn(quick=quick)
-        collected[title] = [{"name": f.name, "value": f.value, "unit": f.unit, "note": f.note} for f in figures]
-        table = Table(title=title)
-        for col in ("path", "value", "unit", "notes"):
-            table.add_column(col, justify="right" if col == "value" else "left")
-        for f in figures:
-            table.add_row(f.name, f"{f.value:,.1f}" if f.value < 100 else f"{f.value:,.0f}", f.unit, f.note)
-        console.print(table)
-    if which in (BenchmarkSet.faults, BenchmarkSet.all):
-        collected["faults"] = _fault_matrix(quick)
+    t0 = time.perf_counter()
+    took: list[str] = []
+    with Progress(TextColumn("[{task.completed}/{task.total}] benchmarking {task.description}…"), BarColumn(),
+                  TimeElapsedColumn(), console=console, transient=True) as bar:
+        task = bar.add_task("", total=len(chosen))
+        for kind, doing, title in chosen:
+            bar.update(task, description=doing)
+            t_set = time.perf_counter()
+            if kind is BenchmarkSet.physics:
+                collected["physics"] = _physics(quick)
+            elif kind is BenchmarkSet.faults:
+                collected["faults"] = _fault_matrix(quick)
+            else:
+                collected[title] = _figures(kind, title, quick)
+            took.append(f"{kind.value} {time.perf_counter() - t_set:.1f}")
+            bar.advance(task)
+    console.print(f"benchmark {which.value}{' --quick' if quick else ''}: {len(chosen)} set(s) in "
+                  f"{time.perf_counter() - t0:.1f} s ({', '.join(took)} s)")
     return collected
+
+
+def _physics(quick: bool) -> list[dict[str, object]]:
+    """Run and print the integrators' figures; returns them."""
+    from bench.benchmarks.main import run_all
+
+    results = run_all(quick=quick)
+    table = Table(title="physics integrators (one core, best of repeats)")
+    for col in ("case", "simulated [s]", "wall [s]", "× real time", "target", ""):
+        table.add_column(col, justify="left" if col == "case" else "right")
+    for r in results:
+        mark = "" if not r.target else ("[green]ok[/]" if r.passed else "[red]below target[/]")
+        table.add_row(r.name, f"{r.simulated:g}", f"{r.wall:.4f}", f"{r.speed:.0f}",
+                      f"≥ {r.target:g}" if r.target else "–", mark)
+    console.print(table)
+    return [{"case": r.name, "simulated_s": r.simulated, "wall_s": r.wall, "speed_x": r.speed,
+             "target_x": r.target or None, "passed": r.passed if r.target else None} for r in results]
+
+
+def _figures(kind: BenchmarkSet, title: str, quick: bool) -> list[dict[str, object]]:
+    """Run and print one set of figures (acquisition, run, fit, daq, export, startup); returns them."""
+    if kind is BenchmarkSet.acquisition:
+        from bench.benchmarks.acquisition import run_all
+    elif kind is BenchmarkSet.run:
+        from bench.benchmarks.run import run_all
+    elif kind is BenchmarkSet.fit:
+        from bench.benchmarks.fit import run_all
+    elif kind is BenchmarkSet.daq:
+        from bench.benchmarks.daq import run_all
+    elif kind is BenchmarkSet.export:
+        from bench.benchmarks.export import run_all
+    else:
+        from bench.benchmarks.startup import run_all
+    figures = run_all(quick=quick)
+    table = Table(title=title)
+    for col in ("path", "value", "unit", "notes"):
+        table.add_column(col, justify="right" if col == "value" else "left")
+    for f in figures:
+        table.add_row(f.name, f"{f.value:,.1f}" if f.value < 100 else f"{f.value:,.0f}", f.unit, f.note)
+    console.print(table)
+    return [{"name": f.name, "value": f.value, "unit": f.unit, "note": f.note} for f in figures]
 
 
 def _seconds(x: float | None) -> str:
@@ -382,10 +416,7 @@ def _fault_matrix(quick: bool) -> dict[str, object]:
 
     from bench.benchmarks import faults
 
-    n = len(faults.matrix(quick))
-    with console.status(f"fault matrix: {n} cases (faults that a wall-clock timeout, a signal or a stall detects "
-                        "run in real time)…"):
-        cases = faults.run_all(quick=quick)
+    cases = faults.run_all(quick=quick)
     table = Table(title=f"fault matrix: |output| at the plant (0 V: ≤ {faults.ZERO_V:g} V); times from the fault, "
                   "rig clock")
     for col in ("mode", "rig", "fault", "phase", "clock", "0 V at return", "→ 0 V [s]", "→ ramp [s]",

@@ -10,20 +10,18 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
-from rich.live import Live
-from rich.markup import escape
-from rich.prompt import Confirm
-from rich.table import Table
 
-from bench.cli.common import JsonOpt, clean_errors, console, json_mode, print_json
-from bench.logs import log, run_log
-from bench.protocol.staircase import staircase_distortion
+from bench.cli.common import JsonOpt, Table, clean_errors, console, escape, json_mode, print_json
+from bench.cli.completion import protocol_files, protocol_names, rig_files
+from bench.cli.logs import log, run_log
 
 protocol_app = typer.Typer(help="Protocol files: the shipped ones (list, show, copy) and their schema.",
                             no_args_is_help=True, rich_markup_mode=None)
 
-ProtocolArg = Annotated[Path, typer.Argument(help="Protocol file (TOML), e.g. protocols/thesis-identification.toml.")]
-RigOpt = Annotated[Path | None, typer.Option("--rig", help="Run on this rig file instead of the protocol's.")]
+ProtocolArg = Annotated[Path, typer.Argument(help="Protocol file (TOML), e.g. protocols/thesis-identification.toml.",
+                                             autocompletion=protocol_files)]
+RigOpt = Annotated[Path | None, typer.Option("--rig", help="Run on this rig file instead of the protocol's.",
+                                             autocompletion=rig_files)]
 SimOpt = Annotated[bool, typer.Option("--sim", help="Use the simulated twin of the rig (default if it is simulated).")]
 
 
@@ -59,6 +57,8 @@ def _summary(plan) -> Table:
     t.add_row("file size", f"≤ {pred.file_bytes / 1e6:.1f} MB uncompressed")
     lim = rig.limits
     t.add_row("peak voltage", f"{pred.peak_voltage:.0f} V (limit {lim.max_voltage_V:.0f} V)")
+    from bench.protocol.staircase import staircase_distortion
+
     stair = staircase_distortion(prog)
     if stair is not None:
         t.add_row("drive", f"set-point staircase at {stair.setpoint_Hz:g} Hz: up to {stair.max_error_V:.0f} V off the "
@@ -119,7 +119,8 @@ def validate(protocol_file: ProtocolArg, rig: RigOpt = None, sim: SimOpt = False
 @clean_errors
 def run(
     protocol_file: Annotated[Path | None, typer.Argument(
-        help="Protocol file (TOML), e.g. protocols/thesis-identification.toml (not with --resume).")] = None,
+        help="Protocol file (TOML), e.g. protocols/thesis-identification.toml (not with --resume).",
+        autocompletion=protocol_files)] = None,
     rig: RigOpt = None,
     sim: SimOpt = False,
     virtual_time: Annotated[bool, typer.Option("--virtual-time", help="Simulated rig only: run as fast as the "
@@ -186,6 +187,8 @@ def run(
         raise ValueError("this protocol changes the specimen between tests: run it interactively or pass --yes")
 
     def operator(message: str) -> bool:
+        from rich.prompt import Confirm
+
         return yes or Confirm.ask(f"[bold]operator:[/] {message} — done?", console=console)
 
     path = default_output(plan, out)
@@ -257,6 +260,8 @@ def open_run_attrs(path: Path) -> dict[str, str]:
 def _execute(plan, path: Path, virtual_time: bool, operator, live: bool, allow_no_watchdog: bool,
              metadata: dict[str, str], link=None):
     """Run the plan, with the live view on a terminal."""
+    from rich.live import Live
+
     from bench.runtime.engine import Engine
     from bench.runtime.live import Keys, LiveView, units_of
     from bench.runtime.run import execute
@@ -513,7 +518,7 @@ def protocol_schema(
 @clean_errors
 def protocols_list(json_out: JsonOpt = False) -> None:
     """The protocol files shipped with dea-bench: name, rig, description."""
-    from bench.lab import protocol_infos
+    from bench.cli.lab_folder import protocol_infos
 
     infos = protocol_infos()
     if json_out:
@@ -529,7 +534,8 @@ def protocols_list(json_out: JsonOpt = False) -> None:
 
 
 @clean_errors
-def protocols_show(name: Annotated[str, typer.Argument(help="Protocol name (bench protocols list).")]) -> None:
+def protocols_show(name: Annotated[str, typer.Argument(help="Protocol name (bench protocols list).",
+                                                       autocompletion=protocol_names)]) -> None:
     """Print a shipped protocol file as it is (comments included)."""
     from bench.resources import protocol
 
@@ -538,14 +544,15 @@ def protocols_show(name: Annotated[str, typer.Argument(help="Protocol name (benc
 
 @clean_errors
 def protocols_copy(
-    name: Annotated[str, typer.Argument(help="Protocol name (bench protocols list).")],
+    name: Annotated[str, typer.Argument(help="Protocol name (bench protocols list).", autocompletion=protocol_names)],
     dest: Annotated[Path, typer.Argument(help="File or existing folder to copy to.")] = Path("."),
     rig: Annotated[Path | None, typer.Option(help="Rig file the copy runs on (default: the lab folder's "
-                                             "rigs/<rig>.toml beside it if present, else the shipped rig).")]
+                                             "rigs/<rig>.toml beside it if present, else the shipped rig).",
+                                             autocompletion=rig_files)]
     = None,
 ) -> None:
     """Copy a shipped protocol to edit it (comments kept); its rig reference is rewritten to stay valid."""
-    from bench.lab import copy_protocol
+    from bench.cli.lab_folder import copy_protocol
     from bench.resources import protocol
 
     target = copy_protocol(protocol(name), dest, rig)
@@ -555,7 +562,7 @@ def protocols_copy(
 @clean_errors
 def init(folder: Annotated[Path, typer.Argument(help="Lab folder to create (new or empty).")]) -> None:
     """Create a lab folder: editable copies of the rig templates and protocols, a runs/ folder, a README."""
-    from bench.lab import init_lab
+    from bench.cli.lab_folder import init_lab
 
     written = init_lab(folder)
     console.print(f"lab folder {escape(str(folder))}: {len(written)} files (rigs/, protocols/, README.md), runs/")

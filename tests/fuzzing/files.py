@@ -12,7 +12,8 @@ killed when it runs over, so a hang is counted, not endured), and is classified:
 * ``traceback`` — any other exception, or a refusal whose message is not one line naming the file;
 * ``hang`` — still running after the time limit (default 10 s).
 
-``python -m bench.fuzz --protocols N --rigs N --seed S`` prints the counts and the first traceback examples.
+``python -m tests.fuzzing.files --protocols N --rigs N --seed S`` (from the repository root) prints the counts and
+the first traceback examples.
 """
 
 from __future__ import annotations
@@ -382,8 +383,8 @@ def run_fuzz(n_protocols: int, n_rigs: int, seed: int, limit: float = HANG_S, ke
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m bench.fuzz``: print the counts and the first traceback and hang examples."""
-    ap = argparse.ArgumentParser(prog="python -m bench.fuzz", description=__doc__.splitlines()[0])
+    """``python -m tests.fuzzing.files``: print the counts and the first traceback and hang examples."""
+    ap = argparse.ArgumentParser(prog="python -m tests.fuzzing.files", description=__doc__.splitlines()[0])
     ap.add_argument("--protocols", type=int, default=200, help="mutated protocol files")
     ap.add_argument("--rigs", type=int, default=200, help="mutated rig files")
     ap.add_argument("--seed", type=int, default=1)

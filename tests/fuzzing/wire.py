@@ -9,7 +9,7 @@
   inserted, replaced, or dropped) while the drivers read. A driver must return a reading that is finite when it
   says "ok", or raise one of the named driver errors (:mod:`drivers.errors`); anything else is a traceback.
 
-``python -m bench.fuzz_wire --frames N --replies N --seed S`` prints the counts per instrument.
+``python -m tests.fuzzing.wire --frames N --replies N --seed S`` prints the counts per instrument.
 """
 
 from __future__ import annotations
@@ -240,8 +240,8 @@ def fuzz_frames(n: int, seed: int, tally: Tally) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m bench.fuzz_wire``: print the counts per instrument and the first failures."""
-    ap = argparse.ArgumentParser(prog="python -m bench.fuzz_wire", description=__doc__.splitlines()[0])
+    """``python -m tests.fuzzing.wire``: print the counts per instrument and the first failures."""
+    ap = argparse.ArgumentParser(prog="python -m tests.fuzzing.wire", description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=500, help="frames to each twin")
     ap.add_argument("--replies", type=int, default=500, help="mutated replies to each driver")
     ap.add_argument("--seed", type=int, default=1)
