@@ -74,15 +74,22 @@ class PlantCoupling:
             return {k: np.concatenate([h[k] for h in hist])[idx] for k in hist[0]}
 
 
-    def _ain_volts(self, ain: int, obs: dict[str, np.ndarray], n: int) -> np.ndarray:
+    def _ain_volts(self, ain: int, obs: dict[str, np.ndarray], n: int, adc_rms: float = 0.0) -> np.ndarray:
+        """``n`` samples of input ``ain`` [V]: what is wired to it (with the signal's own noise) plus the ADC's
+        Gaussian noise of ``adc_rms`` [V rms] (the resolution index's, :mod:`~sim_devices.t7.resolution`); both
+        only when the twin's ``noise`` is on."""
         if ain == AIN_TEMPERATURE:
-            return np.full(n, analog.temperature_volts(self.cal))
-        sig = self.signals.get(ain)
-        if sig is None or ain == AIN_GROUND:
-            return np.zeros(n)
-        v = sig.gain * np.nan_to_num(obs[sig.observable]) + sig.offset
-        if sig.noise and self.noise:
-            v = v + self.rng.normal(0.0, sig.noise, n)
+            v = np.full(n, analog.temperature_volts(self.cal))
+        else:
+            sig = self.signals.get(ain)
+            if sig is None or ain == AIN_GROUND:
+                v = np.zeros(n)
+            else:
+                v = sig.gain * np.nan_to_num(obs[sig.observable]) + sig.offset
+                if sig.noise and self.noise:
+                    v = v + self.rng.normal(0.0, sig.noise, n)
+        if adc_rms and self.noise:
+            v = v + self.rng.normal(0.0, adc_rms, n)
         return np.asarray(v, float)
 
     def _raw(self, volts: np.ndarray, gain: int) -> np.ndarray:
