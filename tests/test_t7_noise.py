@@ -27,6 +27,7 @@ import json
 import math
 import socket
 import struct
+import time
 from pathlib import Path
 
 import numpy as np
@@ -144,25 +145,36 @@ def test_noise_off_reads_exact_values_and_the_same_seed_the_same_samples() -> No
 
 
 # ---------------------------------------------------------------------------- noise, stream
-def _stream_volts(sim: LabJackT7Sim, clock: VirtualClock, *, n_packets: int, spp: int = 500) -> np.ndarray:
-    """AIN15 streamed at 10 kS/s, ``n_packets`` packets read from the stream socket, codes → volts (nominal
-    calibration, ±10 V; all samples here are near 0 V, so the centre and positive slope apply on both sides within
-    the tolerance of the negative slope's 2e-8 relative difference)."""
+def _stream_codes(sim: LabJackT7Sim, clock: VirtualClock, scanlist: list[int], *, n_packets: int,
+                  spp: int = 500, steps: int = 1) -> np.ndarray:
+    """The codes of ``n_packets`` packets of ``scanlist`` streamed at 10 kS/s/address, read from the stream socket;
+    the virtual clock moves each packet's time in ``steps`` steps (with the twin's own pump running between)."""
     sim.plant.warm_up()  # compile the plant's kernels before the twin serves (no numba cache on a fresh checkout)
     _, stream_port = sim.start()
+    rate = 10_000 / len(scanlist)
+    codes: list[int] = []
     try:
         with socket.create_connection(("127.0.0.1", stream_port), timeout=30) as data:
-            assert _start(sim, rate=10_000, scanlist=[AIN15], spp=spp) == 0
-            codes: list[int] = []
+            assert _start(sim, rate=rate, scanlist=scanlist, spp=spp) == 0
             for _ in range(n_packets):
-                clock.advance(spp / 10_000)
+                for _ in range(steps):
+                    clock.advance(spp / 10_000 / steps)
+                    if steps > 1:
+                        time.sleep(0.002)  # let the twin's 2-ms pump take part of the packet's scans
                 head = data.recv(16, socket.MSG_WAITALL)
                 n = (struct.unpack(">H", head[4:6])[0] - 10) // 2
                 codes += struct.unpack(f">{n}H", data.recv(2 * n, socket.MSG_WAITALL))
             _stop(sim)
     finally:
         sim.stop()
-    return (np.array(codes, float) - NOMINAL_CENTRE) * NOMINAL_SLOPE
+    return np.array(codes)
+
+
+def _stream_volts(sim: LabJackT7Sim, clock: VirtualClock, *, n_packets: int) -> np.ndarray:
+    """AIN15 streamed at 10 kS/s, codes → volts (nominal calibration, ±10 V; all samples here are near 0 V, so the
+    centre and positive slope apply on both sides within the negative slope's 2e-8 relative difference)."""
+    codes = _stream_codes(sim, clock, [AIN15], n_packets=n_packets)
+    return (codes.astype(float) - NOMINAL_CENTRE) * NOMINAL_SLOPE
 
 
 def test_stream_noise_at_the_default_index_is_the_datasheets_through_the_16_bit_codes() -> None:
@@ -181,6 +193,19 @@ def test_stream_without_noise_gives_the_exact_quantised_value() -> None:
     clock = VirtualClock()
     sim = LabJackT7Sim(Plant(clock, MembraneParams(), hv=HVStage()), clock, noise=False)
     assert np.all(_stream_volts(sim, clock, n_packets=2) == 0.0)
+
+
+def test_a_seeded_stream_repeats_whatever_the_twins_pumps_take_at_once() -> None:
+    """Two twins of one seed stream AIN0 and AIN15 (noise on): the same codes whether the clock moves a packet's
+    time at once or in 10 steps with the twin pumping between (the run-to-run reproducibility of a DAQ rig)."""
+    def codes(steps: int) -> np.ndarray:
+        clock = VirtualClock()
+        sim = LabJackT7Sim(Plant(clock, MembraneParams(), hv=HVStage()), clock, seed=5)
+        return _stream_codes(sim, clock, [AIN0, AIN15], n_packets=4, steps=steps)
+
+    once, stepped = codes(1), codes(10)
+    assert once.size == 2000 and np.unique(once).size > 3  # noisy
+    assert np.array_equal(once, stepped)
 
 
 # ---------------------------------------------------------------------------- stream rates

@@ -125,8 +125,8 @@ class StreamEngine(StreamOut):
         ins = self._in_addresses()
         obs = self._observe(times)
         index = resolution.stream_index(self.regs[R_RES])
-        cols = [self._raw(self._ain_volts(a // 2, obs, ks.size, resolution.noise_rms(self.ain_range[a // 2], index)),
-                          RANGE_GAIN[self.ain_range[a // 2]]) for a in ins]
+        cols = [self._raw(self._ain_volts(a // 2, obs, ks.size, resolution.noise_rms(self.ain_range[a // 2], index),
+                                          slot=j), RANGE_GAIN[self.ain_range[a // 2]]) for j, a in enumerate(ins)]
         data = np.stack(cols, axis=1).reshape(-1)
         self.produced = due
         unsent = self._unsent_bytes()  # the host does not read: the device buffer fills
