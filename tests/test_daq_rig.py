@@ -82,7 +82,10 @@ def test_every_analog_channel_on_one_scan_clock_with_no_scan_lost(thesis_run) ->
 
 
 def test_the_recorded_displacement_follows_the_smooth_drive(thesis_run) -> None:
-    """The issue's figure: ≤ 2e-4 in λ against the nominal raised cosine (4.5e-3 through the 20-Hz staircase)."""
+    """The issue's figure: ≤ 2e-4 in λ against the nominal raised cosine (4.5e-3 through the 20-Hz staircase), on
+    the error averaged over 10 ms: the T7's ADC noise (316 µV rms at stream resolution index 1, ±10 V; 1.3 µm through
+    the rig's 4 mm/V laser output) is on by default and reaches 4 σ somewhere in 10⁵ samples; the average keeps any
+    systematic error of the drive (the drive's period is 9 s)."""
     _, f, _ = thesis_run
     model = json.loads(f.attrs["specimen"])["model"]
     p = MembraneParams(**{k: tuple(v) if isinstance(v, list) else v for k, v in model.items()})
@@ -90,6 +93,7 @@ def test_the_recorded_displacement_follows_the_smooth_drive(thesis_run) -> None:
     laser = f.streams["laser"]
     sel = laser.t <= 10.0
     du = laser.columns["displacement"][sel] - np.interp(laser.t[sel], smooth.t, smooth.displacement)
+    du = np.convolve(du, np.ones(101) / 101, mode="valid")  # 10 ms at 10 kHz
     assert np.max(np.abs(du)) / p.L_d <= 2e-4  # Δλ = Δu / L_d
     amp = f.streams["amplifier"]
     on = amp.t <= 10.0

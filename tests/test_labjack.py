@@ -100,7 +100,8 @@ class Rig:
         self.clock = VirtualClock()
         self.plant = Plant(self.clock, MembraneParams(), hv=HVStage())
         self.cond = Conditioning(gain=4.0, offset=-10.0)
-        self.sim = LabJackT7Sim(self.plant, self.clock, conditioning=self.cond)
+        # noise off: these tests compare packet bytes and values within one ADC step (noise: test_t7_noise.py)
+        self.sim = LabJackT7Sim(self.plant, self.clock, conditioning=self.cond, noise=False)
         self.port, self.stream_port = self.sim.start()
         self.daq = LabJackT7("127.0.0.1", port=self.port, stream_port=self.stream_port, clock=self.clock.now,
                              sleep=self.clock.sleep, safe_dac=(2.5, 0.0), timeout=1.0)

@@ -33,7 +33,8 @@ class PlantCoupling:
         self.conditioning = conditioning or Conditioning()
         self.signals = default_signals() if signals is None else signals
         self.cal = list(calibration or analog.nominal_calibration())
-        self.rng = np.random.default_rng(seed)
+        self.seed = seed
+        self._rngs: dict[tuple[int, int], np.random.Generator] = {}  # one per input and scan-list slot: _noise
         self.noise = noise  # False: every input reads its noiseless value (golden tests; rig option [sim] noise)
         self.lock = threading.RLock()
         self._hist_lock = threading.Lock()  # the plant's listener takes only this one (no lock cycle)
@@ -74,16 +75,32 @@ class PlantCoupling:
             return {k: np.concatenate([h[k] for h in hist])[idx] for k in hist[0]}
 
 
-    def _ain_volts(self, ain: int, obs: dict[str, np.ndarray], n: int) -> np.ndarray:
-        if ain == AIN_TEMPERATURE:
-            return np.full(n, analog.temperature_volts(self.cal))
+    def _ain_volts(self, ain: int, obs: dict[str, np.ndarray], n: int, adc_rms: float = 0.0, *,
+                   slot: int = -1) -> np.ndarray:
+        """``n`` samples of input ``ain`` [V]: what is wired to it plus, when the twin's ``noise`` is on, Gaussian
+        noise of the signal's own rms and the ADC's ``adc_rms`` (the resolution index's,
+        :mod:`~sim_devices.t7.resolution`), independent, so drawn as one of √(σ_signal² + σ_adc²); ``slot``: the
+        sample's place in the stream's scan list (−1: a command-response read)."""
         sig = self.signals.get(ain)
-        if sig is None or ain == AIN_GROUND:
-            return np.zeros(n)
-        v = sig.gain * np.nan_to_num(obs[sig.observable]) + sig.offset
-        if sig.noise and self.noise:
-            v = v + self.rng.normal(0.0, sig.noise, n)
+        if ain == AIN_TEMPERATURE:
+            v = np.full(n, analog.temperature_volts(self.cal))
+        elif sig is None or ain == AIN_GROUND:
+            v = np.zeros(n)
+        else:
+            v = sig.gain * np.nan_to_num(obs[sig.observable]) + sig.offset
+        own = sig.noise if sig is not None and ain not in (AIN_TEMPERATURE, AIN_GROUND) else 0.0
+        rms = math.hypot(own, adc_rms)
+        if rms and self.noise:
+            v = v + self._noise(ain, slot).normal(0.0, rms, n)
         return np.asarray(v, float)
+
+    def _noise(self, ain: int, slot: int) -> np.random.Generator:
+        """The generator of input ``ain``'s samples at scan-list ``slot`` (−1: its command-response reads), seeded
+        from the twin's seed: one draw per sample in sample order, so a run repeats whatever the pumps' sizes."""
+        key = (ain, slot)
+        if key not in self._rngs:
+            self._rngs[key] = np.random.default_rng([self.seed, ain, slot + 1])
+        return self._rngs[key]
 
     def _raw(self, volts: np.ndarray, gain: int) -> np.ndarray:
         return analog.ain_codes(self.cal, volts, gain)

@@ -11,6 +11,10 @@ Modbus exception 4.
 [D] TEST 55100 reads 0x00112233, and "allows you to read a single word from 55100 or 55101"; TEST_UINT16/UINT32/
 INT32/FLOAT32 keep what is written (defaults as the map).
 [D] AIN_ALL_RANGE writes every input's range; reads the common range or −9999 when they differ.
+[D] AIN#_RESOLUTION_INDEX (0–8; 0 = 8) sets the ADC noise of a command-response read of that input
+(:mod:`~sim_devices.t7.resolution`); AIN_ALL_RESOLUTION_INDEX writes every input's, reads the common one or 0xFFFF;
+[A] a value above 8 (T7-Pro indices 9–12 included: the twin is a T7) answers exception 3, as a range not in the
+list does. [L] a read returns at once (the index's sample time is not spent).
 [D] CORE_TIMER: 32-bit timer at half the 80-MHz core clock, [A] 0 at the twin's creation, on the rig's clock.
 [D] DIO: FIO#/EIO#/CIO#/MIO# (2000+n) read makes the line an input, write an output at that level; _STATE (2500+p)
 and DIO_STATE (2800) do not configure direction; the upper 8 bits of a port _STATE/_DIRECTION write are inhibits.
@@ -26,6 +30,7 @@ from typing import cast
 import numpy as np
 from pymodbus.constants import ExcCodes
 
+from sim_devices.t7 import resolution
 from sim_devices.t7.analog import RANGE_GAIN
 from sim_devices.t7.registers import (
     AIN_ALL_MIXED,
@@ -39,8 +44,10 @@ from sim_devices.t7.registers import (
     N_AIN_ALL,
     N_DIO,
     R_AIN_ALL_RANGE,
+    R_AIN_ALL_RES,
     R_AIN_NEG,
     R_AIN_RANGE,
+    R_AIN_RES,
     R_BOOT,
     R_BUFSIZE,
     R_CLKSRC,
@@ -103,6 +110,7 @@ class RegisterIO(StreamEngine):
         self.scanlist = [0] * 128
         self.ain_range = [10.0] * N_AIN_ALL
         self.ain_neg = [199] * N_AIN_ALL
+        self.ain_res = [0] * N_AIN_ALL  # AIN#_RESOLUTION_INDEX as written (0: the default, 8)
         self.dac_volts = [0.0, 0.0]
         self.watchdog = Watchdog()
         self.tests: dict[int, float] = dict(TEST_DEFAULTS)
@@ -129,8 +137,10 @@ class RegisterIO(StreamEngine):
         kind = reg.kind
         now = self.clock.now()
         if a < 2 * N_AIN_ALL:
+            ain = a // 2
             obs = self._observe(np.array([now]))
-            return kind, float(self._ain_volts(a // 2, obs, 1)[0])
+            rms = resolution.noise_rms(self.ain_range[ain], resolution.command_index(self.ain_res[ain]))
+            return kind, float(self._ain_volts(ain, obs, 1, rms)[0])
         if a in (R_DAC, R_DAC + 2):
             return kind, self.dac_volts[(a - R_DAC) // 2]
         if R_DIO <= a < R_DIO + N_DIO:
@@ -152,6 +162,10 @@ class RegisterIO(StreamEngine):
             return kind, self.ain_neg[a - R_AIN_NEG]
         if a == R_AIN_ALL_RANGE:
             return kind, self.ain_range[0] if len(set(self.ain_range)) == 1 else AIN_ALL_MIXED
+        if R_AIN_RES <= a < R_AIN_RES + N_AIN_ALL:
+            return kind, self.ain_res[a - R_AIN_RES]
+        if a == R_AIN_ALL_RES:
+            return kind, self.ain_res[0] if len(set(self.ain_res)) == 1 else resolution.ALL_MIXED
         if a == R_RATE:
             return kind, self.rate
         if a == R_RATE_ACTUAL:
@@ -314,6 +328,13 @@ class RegisterIO(StreamEngine):
                 self.ain_range[(a - R_AIN_RANGE) // 2] = rng
         elif R_AIN_NEG <= a < R_AIN_NEG + N_AIN_ALL:
             self.ain_neg[a - R_AIN_NEG] = int(value)
+        elif R_AIN_RES <= a < R_AIN_RES + N_AIN_ALL or a == R_AIN_ALL_RES:
+            if not 0 <= value <= resolution.MAX_INDEX:
+                return ExcCodes.ILLEGAL_VALUE
+            if a == R_AIN_ALL_RES:
+                self.ain_res = [int(value)] * N_AIN_ALL
+            else:
+                self.ain_res[a - R_AIN_RES] = int(value)
         elif a == R_RATE:
             self.regs[a] = value
             self.rate = 10e6 / max(round(10e6 / value), 1) if value > 152.588 else float(value)

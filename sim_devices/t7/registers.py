@@ -14,6 +14,7 @@ from typing import Literal
 
 # ---- the map's numbers, written out here (never imported from the driver) ----
 R_AIN, R_DAC, R_AIN_RANGE, R_AIN_NEG, R_AIN_ALL_RANGE = 0, 1000, 40000, 41000, 43900
+R_AIN_RES, R_AIN_ALL_RES = 41500, 43903  # AIN#_RESOLUTION_INDEX, AIN_ALL_RESOLUTION_INDEX (UINT16)
 N_AIN = 14  # wired, externally connected inputs AIN0–AIN13
 N_AIN_ALL = 16  # [D] AIN14: internal temperature sensor, AIN15: internal ground (T7 datasheet §14.0 AIN)
 R_DIO, R_FIO_STATE, R_FIO_DIR, R_DIO_STATE, R_DIO_DIR = 2000, 2500, 2600, 2800, 2850
@@ -118,6 +119,8 @@ def _table() -> dict[int, Register]:
         *_family("AIN#_RANGE", R_AIN_RANGE, N_AIN_ALL, F32, "RW"),
         *_family("AIN#_NEGATIVE_CH", R_AIN_NEG, N_AIN_ALL, U16, "RW"),
         Register("AIN_ALL_RANGE", R_AIN_ALL_RANGE, F32, "RW"),
+        *_family("AIN#_RESOLUTION_INDEX", R_AIN_RES, N_AIN_ALL, U16, "RW"),
+        Register("AIN_ALL_RESOLUTION_INDEX", R_AIN_ALL_RES, U16, "RW"),
         Register("LAST_ERR_DETAIL", R_LAST_ERR, U16, "R"),
         Register("TEST", R_TEST, U32, "R"), Register("TEST_UINT16", R_TEST_U16, U16, "RW"),
         Register("TEST_UINT32", R_TEST_U32, U32, "RW"), Register("TEST_INT32", R_TEST_I32, I32, "RW"),

@@ -8,9 +8,10 @@ entries), else STREAM_SCAN_RATE_INVALID.
 [D] at STREAM_ENABLE: STREAM_RESOLUTION_INDEX > 8 → 2606 (STREAM_CONFIG_INVALID); STREAM_SETTLING_US > 4400 → 2621
 (STREAM_SETTLING_INVALID); AIN14 (temperature sensor) in the scan list above 250 scans/s → 2631. [D] settling "does
 not apply to the 1st channel in the scan list": [A] the n − 1 settlings of an explicit STREAM_SETTLING_US (≥ 1 µs)
-must fit in one scan period, else 2608 (STREAM_SCAN_RATE_INVALID). [L] the conversion time and noise of each
-resolution index (the datasheet's stream and noise tables) are not modelled: the index changes neither the
-samples nor the maximum rate; no ADC noise is added.
+must fit in one scan period, else 2608 (STREAM_SCAN_RATE_INVALID). [D] the resolution index (0: 1) bounds the
+sample rate (scan rate × inputs) by the datasheet's stream table, else 2608 ("The scan rate times the number of
+channels per scan is too great for this device"), and sets the ADC noise each sample carries (twin's ``noise`` on):
+both from :mod:`~sim_devices.t7.resolution`, which says what was found and what was not.
 [E] auto-recovery: when more than STREAM_BUFFER_SIZE_BYTES wait unsent (the host does not read), new scans are dropped
 and packets carry 2940; when room returns the next packet carries 2941, AddInfo = scans skipped, and starts with one
 dummy scan of 0xFFFF.
@@ -29,6 +30,7 @@ from collections import deque
 
 import numpy as np
 
+from sim_devices.t7 import resolution
 from sim_devices.t7.analog import AIN_TEMPERATURE, RANGE_GAIN
 from sim_devices.t7.registers import (
     E_ACTIVE,
@@ -122,7 +124,9 @@ class StreamEngine(StreamOut):
         times = self.t_enable + (ks + 1) / self.rate
         ins = self._in_addresses()
         obs = self._observe(times)
-        cols = [self._raw(self._ain_volts(a // 2, obs, ks.size), RANGE_GAIN[self.ain_range[a // 2]]) for a in ins]
+        index = resolution.stream_index(self.regs[R_RES])
+        cols = [self._raw(self._ain_volts(a // 2, obs, ks.size, resolution.noise_rms(self.ain_range[a // 2], index),
+                                          slot=j), RANGE_GAIN[self.ain_range[a // 2]]) for j, a in enumerate(ins)]
         data = np.stack(cols, axis=1).reshape(-1)
         self.produced = due
         unsent = self._unsent_bytes()  # the host does not read: the device buffer fills
@@ -199,6 +203,10 @@ class StreamEngine(StreamOut):
             return E_RATE
         if self.regs[R_RES] > MAX_STREAM_RES_INDEX:
             return E_RES_INDEX
+        ins = [a // 2 for a in entries if a < 2 * N_AIN_ALL]
+        table = resolution.max_sample_rate([self.ain_range[i] for i in ins], resolution.stream_index(self.regs[R_RES]))
+        if ins and table is not None and self.rate * len(ins) > table * (1 + 1e-9):
+            return E_RATE
         settle = self.regs[R_SETTLE]  # [D] below 1: automatic
         if settle > MAX_SETTLING_US:
             return E_SETTLING
