@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import tempfile
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -15,6 +16,10 @@ from bench.runtime.sim_rig import SimRig, Timing
 
 ROOT = Path(__file__).resolve().parent.parent
 RIGS = ROOT / "rigs"
+
+# fixtures of a wider scope (module, session) run before the per-test folder below exists: they, too, get a folder
+# of this test process, never the user's ~/.local/state/dea-bench (a latch there would refuse other sessions' runs)
+os.environ["BENCH_STATE_DIR"] = tempfile.mkdtemp(prefix="dea-bench-test-state-")
 
 if os.environ.get("PYTEST_XDIST_WORKER"):  # pytest-xdist's workers (execnet) set an 80 x 24 terminal that is not
     os.environ.pop("COLUMNS", None)        # there: the CLI tests check output as a redirected run prints it
