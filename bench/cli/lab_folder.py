@@ -15,7 +15,7 @@ from pathlib import Path
 
 import tomlkit
 
-from bench.resources import SCHEMA_NAME, protocols_dir, rigs_dir, shipped_protocols
+from bench.resources import protocols_dir, rigs_dir, shipped_protocols
 
 LAB_README = """\
 # dea-bench lab folder
@@ -117,8 +117,3 @@ def copy_protocol(src: Path, dest: Path, rig: Path | None = None) -> Path:
     table["rig"] = text
     target.write_text(tomlkit.dumps(doc), encoding="utf-8")
     return target
-
-
-def schema_file() -> Path:
-    """The shipped JSON schema of protocol files."""
-    return protocols_dir() / SCHEMA_NAME
