@@ -290,9 +290,19 @@ def _print_result(result) -> None:
 
 
 @clean_errors
-def inspect(run_file: Annotated[Path, typer.Argument(help="Run file (.h5), finished or being written.")],
+def inspect(run_files: Annotated[list[Path], typer.Argument(help="Run files (.h5), finished or being written.")],
             json_out: JsonOpt = False) -> None:
-    """Summarise a run file: metadata, state, streams, events (works while the run is being written)."""
+    """Summarise run files: metadata, state, streams, events (works while a run is being written). Exit 1 when a
+    file is incomplete (killed, crashed, recovered or still running); --json of several files is a list."""
+    results = [_inspect(p, json_out) for p in run_files]
+    if json_out:
+        print_json(results[0][0] if len(results) == 1 else [r for r, _ in results])
+    if not all(complete for _, complete in results):
+        raise typer.Exit(1)
+
+
+def _inspect(run_file: Path, json_out: bool) -> tuple[dict[str, object] | None, bool]:
+    """One file of ``inspect``: its JSON object (``json_out``) or its tables printed; and whether it is complete."""
     from bench.identify.store import read_fits
     from bench.storage.runfile import open_run
 
@@ -306,7 +316,7 @@ def inspect(run_file: Annotated[Path, typer.Argument(help="Run file (.h5), finis
     if json_out:
         keys = ("protocol_name", "protocol_path", "protocol_sha256", "rig_name", "simulated", "clock", "software",
                 "start_time", "duration_planned", "operator", "specimen_id", "session_log")
-        print_json({"file": str(run_file), **{k: a.get(k) for k in keys}, "notes": notes,
+        return ({"file": str(run_file), **{k: a.get(k) for k in keys}, "notes": notes,
                     "fits": [{"file": f["file"], "group": f["group"], "model": f.get("model"), "rms": f.get("rms"),
                               "created": f.get("created"), "records": f.get("records"),
                               "parameters": dict(zip(f["names"], f["values"], strict=True))} for f in fits],
@@ -320,10 +330,8 @@ def inspect(run_file: Annotated[Path, typer.Argument(help="Run file (.h5), finis
                                 for name, s in r.streams.items()},
                     "events": [{"t_s": t, "step": step, "kind": kind, "text": text}
                                for t, step, kind, text in r.event_list()],
-                    "campaign": _campaign_json(run_file, a)})
-        if not r.complete:
-            raise typer.Exit(1)
-        return
+                    "campaign": _campaign_json(run_file, a), "recovered_at": r.recovered_at or None},
+                r.complete)
     meta = Table(title="run file", show_header=False)
     meta.add_column("", style="bold")
     meta.add_column("")
@@ -378,8 +386,7 @@ def inspect(run_file: Annotated[Path, typer.Argument(help="Run file (.h5), finis
         console.print(f"fit {escape(f['group'])} ({escape(where)}): {f.get('model')} model, rms "
                       f"{f.get('rms', float('nan')):.4g}, {len(f.get('records', []))} record(s), {f.get('created')}",
                       soft_wrap=True)
-    if not r.complete:
-        raise typer.Exit(1)
+    return None, r.complete
 
 
 @clean_errors
