@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
+import os
 import sys
 from pathlib import Path
 from typing import Annotated
@@ -138,6 +139,9 @@ def run(
     why: Annotated[str | None, typer.Option(
         "--why", help="With --resume on a rig whose interlock latched: why it is safe to go on (resets the latch; "
         "recorded with --operator or the login name).")] = None,
+    catalog: Annotated[str | None, typer.Option(
+        "--catalog", metavar="URL", help="Run catalogue to record the run in (default: $BENCH_CATALOG, else "
+        "catalog.sqlite in the --out folder).")] = None,
 ) -> None:
     """Run a protocol on a rig (simulated by default), streaming everything to one HDF5 file.
 
@@ -146,6 +150,8 @@ def run(
     brings the output to 0 V and holds, `bench resume RUN.h5` (or SIGUSR2) restarts the step it left."""
     from bench.runtime.run import default_output, run_metadata
 
+    if catalog:  # what the run's catalogue hooks read (bench/storage/catalog.py)
+        os.environ["BENCH_CATALOG"] = catalog
     link = None
     if resume is not None:
         plan, link, notes = _plan_resume(protocol_file, resume, rig, sim)
