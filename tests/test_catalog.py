@@ -34,7 +34,7 @@ sa = pytest.importorskip("sqlalchemy")
 from bench.storage.catalog import COLUMNS, Catalog, row_from_attrs  # noqa: E402
 
 SHORT = ROOT / "protocols" / "short"
-SWEEPS = SHORT / "thesis-sweeps-short.toml"  # 5 kV then 7 kV, raised cosine, on the DAQ rig
+SWEEPS = SHORT / "thesis-sweeps-short.toml"  # 5 kV then 7 kV, raised cosine at 1/3 Hz, on the DAQ rig
 IDENT = SHORT / "thesis-identification-short.toml"  # 7 kV raised cosine at 1/9 Hz for 10 s, then 1 s at rest
 THRESHOLD_V = 500.0  # the threshold README and `bench specimen show` state
 SPECIMEN = "S7"
@@ -140,8 +140,12 @@ def catalog_url(request: pytest.FixtureRequest, tmp_path: Path) -> str:
 def lab(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     runs = tmp_path_factory.mktemp("lab") / "runs"
     env = _env(tmp_path_factory.mktemp("state"))
-    # on the wall clock (a virtual-time run would be past its first drive before its first flush): 14 s planned
-    proc = subprocess.Popen([sys.executable, "-m", "bench", "run", str(SWEEPS), "--out", str(runs),
+    # the short sweeps with 30-s drives (10 cycles each): long enough in virtual time for the recorder to flush
+    # the first drive (every 0.2 s of wall time) before the kill; a wall-clock run would trip on a loaded host
+    sweeps = runs.parent / "sweeps-30s.toml"
+    sweeps.write_text(SWEEPS.read_text().replace("duration_s = 5.0", "duration_s = 30.0")
+                      .replace('rig = "../../rigs/', f'rig = "{ROOT}/rigs/'))
+    proc = subprocess.Popen([sys.executable, "-m", "bench", "run", str(sweeps), "--virtual-time", "--out", str(runs),
                              "--no-live", "--specimen-id", SPECIMEN, "--operator", "ada"], cwd=ROOT, env=env,
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:  # kill -9 once the 7-kV drive (step 4) has started: no end recorded, no end row in the catalogue
@@ -204,6 +208,7 @@ def test_the_runs_wrote_their_rows_and_a_lost_end_is_reconciled(lab: dict[str, P
     assert len(_list(lab, url, "--specimen", SPECIMEN)) == 3
     assert _list(lab, url, "--specimen", "S8") == []
     assert _list(lab, url, "--since", "2999-01-01") == []
+    assert len(_list(lab, url, "--since", "2000-01-01")) == 3
     bad = _bench("runs", "list", "--dir", str(lab["runs"]), "--since", "monday", env=_env(lab["state"]))
     assert bad.returncode == 2 and "--since" in bad.stderr and "Traceback" not in bad.stderr
 
@@ -377,3 +382,16 @@ def test_specimen_history_of_three_runs(lab: dict[str, Path], catalog_url: str) 
         plot.unlink()
     missing = _bench("specimen", "show", "S99", "--dir", str(lab["runs"]), "--catalog", catalog_url, env=env)
     assert missing.returncode == 2 and "S99" in missing.stderr and "Traceback" not in missing.stderr
+
+
+def test_statistics_read_in_chunks_equal_the_plain_count(lab: dict[str, Path], monkeypatch: pytest.MonkeyPatch) -> None:
+    """A long run is read in chunks: a chunk boundary (here every 997 samples, inside rises and plateaus) changes
+    nothing against the plain loop over the whole record."""
+    from bench.storage import catalog
+
+    monkeypatch.setattr(catalog, "CHUNK", 997)
+    for path in (lab["killed"], lab["resumed"], lab["fitted"]):
+        hv, rises, peak = _expected(path)
+        got = catalog.hv_statistics(path)
+        assert (got.cycles, got.max_voltage_V) == (rises, pytest.approx(peak, rel=1e-12))
+        assert got.hv_time_s == pytest.approx(hv, rel=1e-9, abs=1e-9)

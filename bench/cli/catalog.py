@@ -63,7 +63,9 @@ def _since(text: str) -> str:
 
 
 def _hours(s: float | None) -> str:
-    return "–" if s is None else f"{s:.1f} s" if s < 60 else f"{s / 3600:.3f} h"
+    if s is None:
+        return "–"
+    return f"{s:.1f} s" if s < 60 else f"{s / 60:.1f} min" if s < 3600 else f"{s / 3600:.2f} h"
 
 
 @clean_errors
