@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 from enum import StrEnum
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
@@ -284,15 +284,22 @@ def report_command(
     out: Annotated[Path | None, typer.Option(help="Folder for the figures (default: beside the run file).")] = None,
     json_out: JsonOpt = False,
 ) -> None:
-    """Figures of merit and plots (PNG, PDF, SVG) of recorded runs; several files add a campaign table."""
+    """Figures of merit and plots (PNG, PDF, SVG) of recorded runs; several files add a campaign table (Table 3
+    layout, also written as CSV). An incomplete, killed or recovered file is flagged."""
     with json_mode(json_out):
         runs = runs_only(runs)
-        paths = print_report(runs, out)
+        paths, grid = print_report(runs, out)
     if json_out:
         from bench.analysis.runs import analyse
+        from bench.storage.runfile import open_run
 
-        print_json({"units": FIGURE_UNITS, "figures": [str(p) for p in paths], "runs": [
-            {"file": str(p), "protocol": (a := analyse(p)).protocol,
+        def flags(p: Path) -> dict[str, object]:
+            r = open_run(p, streams=False)
+            return {"state": r.state, "complete": r.complete, "incomplete_reason": r.incomplete_reason or None,
+                    "recovered_at": r.recovered_at or None}
+
+        print_json({"units": FIGURE_UNITS, "figures": [str(p) for p in paths], "table3": grid, "runs": [
+            {"file": str(p), **flags(p), "protocol": (a := analyse(p)).protocol,
              "steps": [{"step": s.name, "kind": s.kind, "prototype": s.prototype, "hung_mass_kg": s.hung_mass,
                         "temperature_K": s.temperature, "frequency_Hz": s.frequency, "voltage_V": s.voltage,
                         "figures": s.figures} for s in a.steps]} for p in runs]})
@@ -329,36 +336,97 @@ def figures_table(steps: list, title: str) -> Table:
     return t
 
 
-def print_report(runs: list[Path], out: Path | None = None) -> list[Path]:
-    """Tables of figures of merit and PNG plots of run files; returns the figure paths."""
+def print_report(runs: list[Path], out: Path | None = None) -> tuple[list[Path], dict[str, Any] | None]:
+    """Tables of figures of merit and PNG plots of run files, each incomplete file flagged; the Table-3 grid of the
+    isopotential steps (also as CSV). Returns the figure paths and the grid (None without isopotential steps)."""
     from bench.report import report
+    from bench.storage.runfile import open_run
 
     all_steps, all_paths = [], []
     for p in runs:
+        run = open_run(p, streams=False)
+        if not run.complete:
+            console.print(f"[red]INCOMPLETE[/] {escape(p.name)} ({run.state}): {escape(run.incomplete_reason)}; "
+                          f"{len(run.completed_steps())} of {run.program.shape[0]} steps completed", soft_wrap=True)
         a, paths = report(p, out / p.stem if out is not None and len(runs) > 1 else out)
         all_steps += a.steps
-        console.print(figures_table(a.steps, f"{a.protocol} ({p.name})"))
+        console.print(figures_table(a.steps, f"{a.protocol} ({p.name})"
+                                    + ("" if run.complete else " — INCOMPLETE FILE")))
+        if not a.steps:
+            console.print(f"no step of {escape(p.name)} could be analysed")
         if a.by_kind("isotonic"):
             console.print("resonance: " + ", ".join(f"{m * 1e3:.0f} g at {f:g} Hz ({amp * 1e3:.1f} mm)"
                                                    for m, (f, amp) in a.resonance().items()))
         console.print("figures: " + ", ".join(str(x) for x in paths))
         all_paths += paths
-    iso = [s for s in all_steps if s.kind == "isopotential"]
-    if iso:
-        grid = Table(title="hysteresis loss of the stabilised cycle [%] (Table 3 layout: prototype × voltage, "
-                           "largest Δx)")
-        volts = sorted({round(s.voltage / 1e3) for s in iso})
-        grid.add_column("prototype")
-        for v in volts:
-            grid.add_column(f"{v} kV", justify="right")
-        for proto in sorted({s.prototype for s in iso}):
-            ss = [s for s in iso if s.prototype == proto]
-            dx = max(round(s.figures["stroke"] * 1e3) for s in ss)  # mm: the imposed stroke
-            row = {round(s.voltage / 1e3): s.figures["loss_last"] for s in ss
-                   if round(s.figures["stroke"] * 1e3) == dx}
-            grid.add_row(f"#{proto}", *(f"{100 * row[v]:.1f}" if v in row else "–" for v in volts))
-        console.print(grid)
-    return all_paths
+    grid = table3(all_steps)
+    if grid is None:
+        return all_paths, None
+    csv_path = (out if out is not None else runs[-1].with_name(runs[-1].stem + "-report")) / "table3.csv"
+    write_table3_csv(grid, csv_path)
+    grid["csv"] = str(csv_path)
+    volts = grid["voltages_kV"]
+    t = Table(title="hysteresis loss of the stabilised cycle [%] (Table 3 layout: prototype × voltage, largest Δx)")
+    for col in ("prototype", "Δx [mm]", "f [Hz]", *(f"{v:g} kV" for v in volts)):
+        t.add_column(col, justify="left" if col == "prototype" else "right")
+    for row in grid["rows"]:
+        t.add_row(f"#{row['prototype']}", f"{row['stroke_m'] * 1e3:.0f}",
+                  ", ".join(f"{f:.3g}" for f in row["frequencies_Hz"]),
+                  *(f"{100 * row['loss'][str(v)]:.1f}" if str(v) in row["loss"] else "–" for v in volts))
+    console.print(t)
+    for w in grid["warnings"]:
+        console.print(f"[yellow]grid warning[/]: {escape(w)}", soft_wrap=True)
+    console.print(f"grid as CSV: {escape(str(csv_path))}")
+    return all_paths, grid
+
+
+def table3(steps: list) -> dict[str, Any] | None:
+    """The Table-3 grid of isopotential steps: per prototype, the hysteresis loss of the stabilised cycle at each
+    voltage for its largest stroke Δx. Conditions that differ between cells (Δx between rows, the frequency within
+    a row or a cell, several steps in one cell) are listed in ``warnings``, never mixed silently."""
+    iso = [s for s in steps if s.kind == "isopotential"]
+    if not iso:
+        return None
+    volts = sorted({round(s.voltage / 1e3) for s in iso})
+    rows, warnings = [], []
+    for proto in sorted({s.prototype for s in iso}):
+        ss = [s for s in iso if s.prototype == proto]
+        dx = max(round(s.figures["stroke"] * 1e3) for s in ss)  # mm: the imposed stroke
+        cells: dict[str, list] = {}
+        for s in ss:
+            if round(s.figures["stroke"] * 1e3) == dx:
+                cells.setdefault(str(round(s.voltage / 1e3)), []).append(s)
+        freqs = sorted({round(s.frequency, 6) for c in cells.values() for s in c})
+        for v, c in cells.items():
+            if len(c) > 1:
+                warnings.append(f"#{proto} at {v} kV, Δx {dx} mm: {len(c)} steps ({', '.join(s.name for s in c)}); "
+                                "the last one is shown")
+        if len(freqs) > 1:
+            warnings.append(f"#{proto}: cells at different frequencies ({', '.join(f'{f:g}' for f in freqs)} Hz)")
+        rows.append({"prototype": proto, "stroke_m": dx / 1e3, "frequencies_Hz": freqs,
+                     "loss": {v: c[-1].figures["loss_last"] for v, c in cells.items()},
+                     "steps": {v: [s.name for s in c] for v, c in cells.items()}})
+    strokes = sorted({r["stroke_m"] for r in rows})
+    if len(strokes) > 1:
+        warnings.append("rows at different strokes Δx: " + ", ".join(
+            f"#{r['prototype']} {r['stroke_m'] * 1e3:.0f} mm" for r in rows) + " (an incomplete campaign?)")
+    return {"quantity": "hysteresis loss of the stabilised cycle", "unit": "1", "voltages_kV": volts, "rows": rows,
+            "warnings": warnings}
+
+
+def write_table3_csv(grid: dict[str, Any], path: Path) -> None:
+    """The Table-3 grid as CSV: prototype, Δx [mm], frequencies [Hz], then the loss [%] at each voltage."""
+    import csv
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open("w", newline="", encoding="utf-8") as fh:
+        w = csv.writer(fh)
+        w.writerow(["prototype", "stroke_mm", "frequency_Hz", *(f"loss_{v}kV_percent" for v in grid["voltages_kV"])])
+        for row in grid["rows"]:
+            w.writerow([row["prototype"], f"{row['stroke_m'] * 1e3:.0f}",
+                        " ".join(f"{f:g}" for f in row["frequencies_Hz"]),
+                        *(f"{100 * row['loss'][str(v)]:.4g}" if str(v) in row["loss"] else ""
+                          for v in grid["voltages_kV"])])
 
 
 # figure of merit → (column header, scale to the shown unit)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
+import os
 import sys
 from pathlib import Path
 from typing import Annotated
@@ -148,6 +149,9 @@ def run(
     why: Annotated[str | None, typer.Option(
         "--why", help="With --resume on a rig whose interlock latched: why it is safe to go on (resets the latch; "
         "recorded with --operator or the login name).")] = None,
+    catalog: Annotated[str | None, typer.Option(
+        "--catalog", metavar="URL", help="Run catalogue to record the run in (default: $BENCH_CATALOG, else "
+        "catalog.sqlite in the --out folder).")] = None,
 ) -> None:
     """Run a protocol on a rig (simulated by default), streaming everything to one HDF5 file.
 
@@ -156,6 +160,8 @@ def run(
     brings the output to 0 V and holds, `bench resume RUN.h5` (or SIGUSR2) restarts the step it left."""
     from bench.runtime.run import default_output, run_metadata
 
+    if catalog:  # what the run's catalogue hooks read (bench/storage/catalog.py)
+        os.environ["BENCH_CATALOG"] = catalog
     link = None
     if resume is not None:
         plan, link, notes = _plan_resume(protocol_file, resume, rig, sim)
@@ -306,9 +312,19 @@ def _print_result(result) -> None:
 
 
 @clean_errors
-def inspect(run_file: Annotated[Path, typer.Argument(help="Run file (.h5), finished or being written.")],
+def inspect(run_files: Annotated[list[Path], typer.Argument(help="Run files (.h5), finished or being written.")],
             json_out: JsonOpt = False) -> None:
-    """Summarise a run file: metadata, state, streams, events (works while the run is being written)."""
+    """Summarise run files: metadata, state, streams, events (works while a run is being written). Exit 1 when a
+    file is incomplete (killed, crashed, recovered or still running); --json of several files is a list."""
+    results = [_inspect(p, json_out) for p in run_files]
+    if json_out:
+        print_json(results[0][0] if len(results) == 1 else [r for r, _ in results])
+    if not all(complete for _, complete in results):
+        raise typer.Exit(1)
+
+
+def _inspect(run_file: Path, json_out: bool) -> tuple[dict[str, object] | None, bool]:
+    """One file of ``inspect``: its JSON object (``json_out``) or its tables printed; and whether it is complete."""
     from bench.identify.store import read_fits
     from bench.storage.runfile import open_run
 
@@ -322,7 +338,7 @@ def inspect(run_file: Annotated[Path, typer.Argument(help="Run file (.h5), finis
     if json_out:
         keys = ("protocol_name", "protocol_path", "protocol_sha256", "rig_name", "simulated", "clock", "software",
                 "start_time", "duration_planned", "operator", "specimen_id", "session_log")
-        print_json({"file": str(run_file), **{k: a.get(k) for k in keys}, "notes": notes,
+        return ({"file": str(run_file), **{k: a.get(k) for k in keys}, "notes": notes,
                     "fits": [{"file": f["file"], "group": f["group"], "model": f.get("model"), "rms": f.get("rms"),
                               "created": f.get("created"), "records": f.get("records"),
                               "parameters": dict(zip(f["names"], f["values"], strict=True))} for f in fits],
@@ -336,10 +352,8 @@ def inspect(run_file: Annotated[Path, typer.Argument(help="Run file (.h5), finis
                                 for name, s in r.streams.items()},
                     "events": [{"t_s": t, "step": step, "kind": kind, "text": text}
                                for t, step, kind, text in r.event_list()],
-                    "campaign": _campaign_json(run_file, a)})
-        if not r.complete:
-            raise typer.Exit(1)
-        return
+                    "campaign": _campaign_json(run_file, a), "recovered_at": r.recovered_at or None},
+                r.complete)
     meta = Table(title="run file", show_header=False)
     meta.add_column("", style="bold")
     meta.add_column("")
@@ -394,8 +408,7 @@ def inspect(run_file: Annotated[Path, typer.Argument(help="Run file (.h5), finis
         console.print(f"fit {escape(f['group'])} ({escape(where)}): {f.get('model')} model, rms "
                       f"{f.get('rms', float('nan')):.4g}, {len(f.get('records', []))} record(s), {f.get('created')}",
                       soft_wrap=True)
-    if not r.complete:
-        raise typer.Exit(1)
+    return None, r.complete
 
 
 @clean_errors

@@ -35,6 +35,7 @@ from bench.runtime.instruments import Instruments, build_instruments
 from bench.runtime.interlock import watchdog_period
 from bench.runtime.latch import latch, refuse_if_latched
 from bench.runtime.safety import Supervisor
+from bench.storage import catalog
 from bench.storage.chain import chain
 from bench.storage.recorder import Column, Recorder, now_iso
 from bench.storage.recover import recover
@@ -248,12 +249,14 @@ def execute(plan: Plan, out: Path, *, virtual: bool = False, operator: OperatorF
             attrs.update(resume.attrs(out))
         prog_rows = [(s.index, s.label, s.name, s.kind, s.t_start, s.duration) for s in program.segments]
         recorder = Recorder(out, attrs, streams, prog_rows, rates)
+        catalog.record_start(out, attrs)  # never raises: the catalogue is an index of the files
         apply = partial(change_specimen, sim.plant) if sim is not None else None
         engine = Engine(program, inst, clock, recorder, supervisor, apply_specimen=apply, operator=operator,
                         start_step=resume.step if resume is not None else 0, control=control_path(out))
         if on_engine is not None:
             on_engine(engine, sim)
         result = engine.run()
+        catalog.record_end(out)
         if engine.latched is not None:
             latch(rig.name, engine.latched.reason, str(out))
         return result

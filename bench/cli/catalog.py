@@ -1,0 +1,191 @@
+"""CLI commands on the run catalogue: runs list, specimen show, catalog rebuild (heavy imports inside each)."""
+
+from __future__ import annotations
+
+import functools
+import re
+from collections.abc import Callable
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Annotated, Any, ParamSpec, TypeVar
+
+import typer
+from rich.markup import escape
+from rich.table import Table
+
+from bench.cli.common import JsonOpt, clean_errors, console, print_json
+
+CatalogOpt = Annotated[str | None, typer.Option(
+    "--catalog", metavar="URL", help="Catalogue database URL (default: $BENCH_CATALOG, else DIR/catalog.sqlite), "
+    "e.g. postgresql+psycopg://lab@server/bench for a lab's shared server.")]
+DirOpt = Annotated[Path, typer.Option("--dir", help="The lab's runs folder (reconciled with the catalogue first).")]
+
+
+P = ParamSpec("P")
+R = TypeVar("R")
+
+
+def _db_errors(fn: Callable[P, R]) -> Callable[P, R]:
+    """A database that refuses or does not answer: one line (``clean_errors`` prints it), never a traceback."""
+
+    @functools.wraps(fn)
+    def wrapper(*args: P.args, **kwargs: P.kwargs) -> R:
+        try:
+            return fn(*args, **kwargs)
+        except Exception as exc:
+            if not type(exc).__module__.startswith("sqlalchemy"):
+                raise
+            cause = getattr(exc, "orig", None) or exc
+            raise ValueError("run catalogue: " + " ".join(str(cause).split())[:300]) from None
+
+    return wrapper
+
+
+def _open(folder: Path, url: str | None) -> Any:
+    """The catalogue, reconciled with the run files of ``folder`` (a missing folder: nothing to reconcile)."""
+    from bench.storage.catalog import Catalog, catalog_url, reconcile
+
+    cat = Catalog(catalog_url(folder, url))
+    if folder.is_dir():
+        done = reconcile(cat, folder)
+        for line in done.unreadable or []:
+            console.print(f"[yellow]not a readable run file[/]: {escape(line)}", soft_wrap=True)
+    return cat
+
+
+def _since(text: str) -> str:
+    """``--since`` (a date or date-time, local time unless it names a zone) as the catalogue's UTC stamp."""
+    try:
+        when = datetime.fromisoformat(text)
+    except ValueError:
+        raise ValueError(f"--since: {text!r} is not a date (YYYY-MM-DD) or date-time (YYYY-MM-DDTHH:MM)") from None
+    return when.astimezone(UTC).isoformat(timespec="milliseconds")
+
+
+def _hours(s: float | None) -> str:
+    if s is None:
+        return "–"
+    return f"{s:.1f} s" if s < 60 else f"{s / 60:.1f} min" if s < 3600 else f"{s / 3600:.2f} h"
+
+
+@clean_errors
+@_db_errors
+def runs_list(
+    folder: DirOpt = Path("runs"),
+    specimen: Annotated[str | None, typer.Option("--specimen", help="Only this specimen ID.")] = None,
+    protocol: Annotated[str | None, typer.Option("--protocol", help="Only this protocol name.")] = None,
+    since: Annotated[str | None, typer.Option("--since", help="Only runs started at or after this date "
+                                              "(YYYY-MM-DD[THH:MM], local time).")] = None,
+    state: Annotated[str | None, typer.Option("--state", help="Only runs in this state (completed, running, "
+                                              "interrupted, tripped, error).")] = None,
+    catalog: CatalogOpt = None,
+    json_out: JsonOpt = False,
+) -> None:
+    """List the catalogued runs (one row per run file), after reconciling the catalogue with the files."""
+    import json
+
+    cutoff = _since(since) if since is not None else None
+    with _open(folder, catalog) as cat:
+        rows = cat.rows(specimen=specimen, protocol=protocol, since=cutoff, state=state)
+    if json_out:
+        print_json([{**r, "figures": json.loads(r["figures"] or "[]"), "fits": json.loads(r["fits"] or "[]"),
+                     "signature": None} for r in rows])
+        return
+    t = Table(title=f"runs ({len(rows)})")
+    for col in ("started (UTC)", "file", "protocol", "specimen", "operator", "state", "steps", "HV time", "fits"):
+        t.add_column(col)
+    for r in rows:
+        state_txt = r["state"] if r["complete"] else f"[red]{r['state']}, incomplete[/]"
+        t.add_row(str(r["start_time"] or "")[:19], escape(Path(r["path"]).name), escape(r["protocol_name"] or ""),
+                  escape(r["specimen_id"] or ""), escape(r["operator"] or ""), state_txt,
+                  f"{r['steps_completed'] or 0}/{r['steps_total'] or 0}", _hours(r["hv_time_s"]),
+                  str(len(json.loads(r["fits"] or "[]"))))
+    console.print(t)
+
+
+@clean_errors
+@_db_errors
+def specimen_show(
+    specimen: Annotated[str, typer.Argument(help="Specimen ID (as given by --specimen-id or the protocol).")],
+    folder: DirOpt = Path("runs"),
+    plot: Annotated[Path | None, typer.Option(
+        "--plot", help="PNG of each fitted parameter vs cumulative cycles (default: DIR/specimen-<ID>.png).")] = None,
+    catalog: CatalogOpt = None,
+    json_out: JsonOpt = False,
+) -> None:
+    """A specimen's life: its runs in order, time under high voltage, cycles, highest nominal field against the
+    model's breakdown field, failures, and each fitted parameter over its cycles (with a plot)."""
+    from bench.storage.catalog import plot_history, specimen_history
+
+    with _open(folder, catalog) as cat:
+        rows = cat.rows(specimen=specimen)
+    if not rows:
+        raise ValueError(f"specimen {specimen!r}: no catalogued run (runs folder {folder}; `bench runs list`)")
+    h = specimen_history(rows)
+    safe = re.sub(r"[^A-Za-z0-9_.-]+", "-", specimen)
+    png = plot_history(h, specimen, plot if plot is not None else folder / f"specimen-{safe}.png")
+    h["plot"] = str(png) if png is not None else None
+    if json_out:
+        print_json({"specimen": specimen, **h})
+        return
+    t = Table(title=f"specimen {specimen}: {len(h['runs'])} run(s)")
+    for col in ("started (UTC)", "file", "protocol", "state", "steps", "HV time", "cycles", "Σ HV time", "Σ cycles",
+                "max E nominal [MV/m]"):
+        t.add_column(col)
+    for r in h["runs"]:
+        field = r["max_nominal_field_V_per_m"]
+        t.add_row(str(r["start_time"] or "")[:19], escape(Path(r["file"]).name), escape(r["protocol"] or ""),
+                  r["state"] if r["complete"] else f"[red]{r['state']}, incomplete[/]", r["steps"],
+                  _hours(r["hv_time_s"]), str(r["hv_cycles"] or 0), _hours(r["cumulative_hv_time_s"]),
+                  str(r["cumulative_cycles"]), "–" if field is None else f"{field / 1e6:.2f}")
+    console.print(t)
+    console.print(f"time under high voltage (measured |V| > {h['hv_threshold_V']:g} V): {_hours(h['hv_time_s'])} "
+                  f"({h['hv_time_s']:.3f} s); high-voltage cycles: {h['hv_cycles']}")
+    if h["max_nominal_field_V_per_m"] is not None:
+        ratio = h["field_ratio"]
+        console.print(f"highest nominal field: {h['max_nominal_field_V_per_m'] / 1e6:.2f} MV/m"
+                      + (f" = {ratio:.3f} × the model's breakdown field {h['breakdown_field_V_per_m'] / 1e6:.1f} MV/m"
+                         if ratio is not None else ""))
+    for f in h["failures"]:
+        console.print(f"[red]failed / incomplete[/]: {escape(Path(f['file']).name)} ({f['state']}): "
+                      f"{escape(str(f['reason']))}", soft_wrap=True)
+    for name, pts in sorted(h["parameters"].items()):
+        console.print(f"{escape(name)}: " + ", ".join(f"{p['value']:.5g} at {p['cumulative_cycles']} cycles"
+                                                      for p in pts), soft_wrap=True)
+    console.print(f"plot: {escape(str(png))}" if png is not None else "no fitted parameters: no plot")
+
+
+@clean_errors
+@_db_errors
+def catalog_rebuild(
+    folder: Annotated[Path, typer.Argument(help="The runs folder to rebuild the catalogue from.")],
+    catalog: CatalogOpt = None,
+    json_out: JsonOpt = False,
+) -> None:
+    """Rebuild the catalogue's rows of a runs folder from the run files (the files are the source of truth)."""
+    from bench.storage.catalog import Catalog, catalog_url, reconcile
+
+    with Catalog(catalog_url(folder, catalog)) as cat:
+        done = reconcile(cat, folder, rebuild=True)
+        n = len(cat.rows(under=folder.resolve()))
+    if json_out:
+        print_json({"catalog": cat.display, "rows": n,
+                    "removed": done.removed, "unreadable": done.unreadable})
+        return
+    for line in done.unreadable or []:
+        console.print(f"[yellow]not a readable run file[/]: {escape(line)}", soft_wrap=True)
+    console.print(f"catalogue {escape(cat.display)} rebuilt from {escape(str(folder))}: {n} run file(s)"
+                  + (f", {done.removed} row(s) of missing files removed" if done.removed else ""))
+
+
+def register(app: typer.Typer) -> None:
+    """Put ``runs list``, ``specimen show`` and ``catalog rebuild`` on ``app``."""
+    groups = {name: typer.Typer(help=text, no_args_is_help=True, rich_markup_mode=None) for name, text in (
+        ("runs", "The run catalogue: every run file of the lab, searchable."),
+        ("specimen", "A specimen's life over its runs (from the run catalogue)."),
+        ("catalog", "The run catalogue itself (SQLite beside the runs, or a shared PostgreSQL server)."))}
+    for name, sub in groups.items():
+        app.add_typer(sub, name=name)
+    groups["runs"].command("list")(runs_list)
+    groups["specimen"].command("show")(specimen_show)
+    groups["catalog"].command("rebuild")(catalog_rebuild)

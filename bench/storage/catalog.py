@@ -1,0 +1,533 @@
+"""The run catalogue: one row per run file, in SQLite beside the runs or on a shared PostgreSQL server.
+
+The run files stay the source of truth; the catalogue is an index of them that can always be rebuilt
+(:func:`rebuild`) and that is reconciled with the files before it is read (:func:`reconcile`): a row whose file
+changed since the row was written (size, modification time, its fit file or report), a file without a row, and a
+row without a file are fixed from the files. So a write the catalogue lost (a crash between a run's start and its
+end, two benches writing at once, a server that was down) is never a wrong answer, only a late one.
+
+Where: :func:`catalog_url` — ``--catalog URL``, else the ``BENCH_CATALOG`` environment variable, else
+``sqlite:///<runs folder>/catalog.sqlite``. Any SQLAlchemy URL works; the tests run the same code on SQLite and on
+a PostgreSQL server (``postgresql+psycopg://user@host/db``). Rows are keyed by host name and absolute path, so the
+benches of a lab can share one server and each reconciles only its own folder.
+
+What a row holds besides the file's metadata (per run, from the recorded data, for specimen histories):
+
+* ``hv_time_s``: time with the measured amplifier voltage |V| above :data:`HV_THRESHOLD_V`, each sample weighted
+  by the interval to the next one (a run's last sample counts 0);
+* ``hv_cycles``: rises of the measured |V| above the threshold, re-armed when |V| falls below half of it (a
+  unipolar pulse counts one, a bipolar sine period two: the Maxwell stress goes as V²);
+* ``max_voltage_V`` and ``max_nominal_field_V_per_m`` = max |V| / the model's reference thickness (membrane
+  ``L3``, LS-DEA ``t0``), with the model's breakdown field (membrane ``breakdown_field``, a true-field threshold;
+  LS-DEA ``E0``, the unstretched film's) recorded beside it — both from the specimen stored in the run file.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import socket
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+if TYPE_CHECKING:
+    import sqlalchemy as sa
+
+log = logging.getLogger("bench.storage.catalog")
+
+ENV = "BENCH_CATALOG"
+FILE_NAME = "catalog.sqlite"
+HV_THRESHOLD_V = 500.0  # above the monitors' zero offset and noise (a few V), below any drive the protocols use
+CHUNK = 1 << 20  # samples read at a time: a long run's statistics in bounded memory
+SQLITE_BUSY_S = 60.0  # how long a SQLite writer waits for another bench's transaction
+PG_CONNECT_S = 5  # a shared server that does not answer: give up quickly (the run goes on)
+
+# columns compared when a test or a user asks whether two catalogues hold the same rows
+COLUMNS = ("host", "path", "run_id", "campaign_id", "protocol_name", "protocol_sha256", "rig", "specimen_id",
+           "operator", "notes", "state", "complete", "reason", "incomplete_reason", "start_time", "end_time",
+           "steps_completed", "steps_total", "previous_file", "hv_time_s", "hv_cycles", "max_voltage_V",
+           "max_nominal_field_V_per_m", "breakdown_field_V_per_m", "figures", "fits", "signature")
+
+
+def catalog_url(folder: str | Path, given: str | None = None) -> str:
+    """The catalogue to use for the runs in ``folder``: ``given``, else ``$BENCH_CATALOG``, else the SQLite file
+    ``folder/catalog.sqlite``."""
+    url = given or os.environ.get(ENV, "").strip()
+    if url:
+        return url
+    return f"sqlite:///{Path(folder).resolve() / FILE_NAME}"
+
+
+def _table(md: sa.MetaData) -> sa.Table:
+    import sqlalchemy as sa
+
+    text = sa.Text
+    return sa.Table(
+        "bench_runs", md,
+        sa.Column("host", sa.String(255), primary_key=True),
+        sa.Column("path", sa.String(2048), primary_key=True),
+        sa.Column("run_id", sa.String(64)), sa.Column("campaign_id", sa.String(64)),
+        sa.Column("protocol_name", sa.String(255)), sa.Column("protocol_sha256", sa.String(64)),
+        sa.Column("rig", sa.String(255)), sa.Column("specimen_id", sa.String(255), index=True),
+        sa.Column("operator", sa.String(255)), sa.Column("notes", text),
+        sa.Column("state", sa.String(32)), sa.Column("complete", sa.Boolean), sa.Column("reason", text),
+        sa.Column("incomplete_reason", text),
+        sa.Column("start_time", sa.String(40), index=True), sa.Column("end_time", sa.String(40)),
+        sa.Column("steps_completed", sa.Integer), sa.Column("steps_total", sa.Integer),
+        sa.Column("previous_file", text),
+        sa.Column("hv_time_s", sa.Float), sa.Column("hv_cycles", sa.Integer), sa.Column("max_voltage_V", sa.Float),
+        sa.Column("max_nominal_field_V_per_m", sa.Float), sa.Column("breakdown_field_V_per_m", sa.Float),
+        sa.Column("figures", text), sa.Column("fits", text),
+        sa.Column("signature", text),  # the files the row was read from ('' : written at a run's start)
+    )
+
+
+class Catalog:
+    """A connection to one catalogue (created on first use); every write is its own transaction."""
+
+    def __init__(self, url: str) -> None:
+        import sqlalchemy as sa
+
+        self.url = url
+        try:
+            parsed = sa.engine.make_url(url)
+        except sa.exc.ArgumentError:
+            raise ValueError(f"catalogue {url!r}: not a database URL (e.g. sqlite:///runs/catalog.sqlite or "
+                             "postgresql+psycopg://user@host/db)") from None
+        kwargs: dict[str, Any] = {}
+        if parsed.get_backend_name() == "sqlite":
+            if parsed.database:
+                Path(parsed.database).parent.mkdir(parents=True, exist_ok=True)
+            kwargs["connect_args"] = {"timeout": SQLITE_BUSY_S}
+        elif parsed.get_backend_name() == "postgresql":
+            kwargs["connect_args"] = {"connect_timeout": PG_CONNECT_S}
+        self.backend = parsed.get_backend_name()
+        self.display = parsed.render_as_string(hide_password=True)
+        try:
+            self.engine = sa.create_engine(parsed, **kwargs)
+        except (ImportError, sa.exc.ArgumentError) as exc:
+            raise ValueError(f"catalogue {parsed.render_as_string()}: {exc}") from None
+        self.md = sa.MetaData()
+        self.runs = _table(self.md)
+        self._create()
+
+    def _create(self) -> None:
+        import sqlalchemy as sa
+
+        for attempt in range(3):  # two benches creating the schema at once: one of them loses the race
+            try:
+                self.md.create_all(self.engine, checkfirst=True)
+                return
+            except (sa.exc.IntegrityError, sa.exc.ProgrammingError, sa.exc.OperationalError) as exc:
+                if attempt == 2 or ("already exists" not in str(exc) and "duplicate" not in str(exc).lower()):
+                    raise
+
+    def close(self) -> None:
+        self.engine.dispose()
+
+    def __enter__(self) -> Catalog:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def upsert(self, rows: Iterable[dict[str, Any]]) -> None:
+        """Insert or replace rows (by host and path), in one transaction."""
+        rows = list(rows)
+        if not rows:
+            return
+        if self.backend == "postgresql":
+            from sqlalchemy.dialects.postgresql import insert
+        else:
+            from sqlalchemy.dialects.sqlite import insert  # type: ignore[assignment]
+        stmt = insert(self.runs)
+        keys = {"host", "path"}
+        stmt = stmt.on_conflict_do_update(index_elements=["host", "path"],
+                                          set_={c: stmt.excluded[c] for c in COLUMNS if c not in keys})
+        with self.engine.begin() as conn:
+            conn.execute(stmt, rows)
+
+    def delete(self, host: str, paths: Iterable[str]) -> None:
+        paths = list(paths)
+        if not paths:
+            return
+        with self.engine.begin() as conn:
+            for k in range(0, len(paths), 500):
+                conn.execute(self.runs.delete().where(self.runs.c.host == host,
+                                                      self.runs.c.path.in_(paths[k:k + 500])))
+
+    def rows(self, *, host: str | None = None, under: Path | None = None, specimen: str | None = None,
+             protocol: str | None = None, since: str | None = None, state: str | None = None) -> list[dict[str, Any]]:
+        """Rows in start order, filtered; ``under``: only files in that folder (and below)."""
+        import sqlalchemy as sa
+
+        t = self.runs
+        q = sa.select(t)
+        if host is not None:
+            q = q.where(t.c.host == host)
+        if under is not None:
+            prefix = str(under.resolve()).rstrip("/") + "/"
+            q = q.where(t.c.path.startswith(prefix, autoescape=True))
+        if specimen is not None:
+            q = q.where(t.c.specimen_id == specimen)
+        if protocol is not None:
+            q = q.where(t.c.protocol_name == protocol)
+        if since is not None:
+            q = q.where(t.c.start_time >= since)
+        if state is not None:
+            q = q.where(t.c.state == state)
+        with self.engine.connect() as conn:
+            out = [dict(r._mapping) for r in conn.execute(q.order_by(t.c.start_time, t.c.path))]
+        return out
+
+
+# ---- rows from files ----------------------------------------------------------------------------------------------
+
+
+def host_name() -> str:
+    return socket.gethostname()
+
+
+def _abs(p: Path) -> str:
+    return str(p.resolve())
+
+
+def _stat(p: Path) -> list[int] | None:
+    try:
+        st = p.stat()
+    except OSError:
+        return None
+    return [st.st_size, st.st_mtime_ns]
+
+
+def report_dir(path: Path) -> Path:
+    """Where ``bench report`` writes a run's figures by default (``<stem>-report``, with figures.json)."""
+    return path.with_name(path.stem + "-report")
+
+
+def fit_file(path: Path) -> Path:
+    """The fit file ``bench fit`` writes beside a run (``x.h5`` → ``x.fit.hdf5``: bench/identify/store.py)."""
+    return path.with_name(path.stem + ".fit.hdf5")
+
+
+def signature(path: Path) -> str:
+    """What a row read from ``path`` depends on: the run file, its fit file and its report's figures."""
+    return json.dumps({"run": _stat(path), "fit": _stat(fit_file(path)),
+                       "figures": _stat(report_dir(path) / "figures.json")})
+
+
+def row_from_attrs(path: Path, attrs: dict[str, Any]) -> dict[str, Any]:
+    """The row of a run that has just started (from the attributes it writes into its file)."""
+    prev = attrs.get("previous_file")
+    return {**{c: None for c in COLUMNS}, "host": host_name(), "path": _abs(path),
+            "run_id": _s(attrs.get("run_id")), "campaign_id": _s(attrs.get("campaign_id")),
+            "protocol_name": _s(attrs.get("protocol_name")), "protocol_sha256": _s(attrs.get("protocol_sha256")),
+            "rig": _s(attrs.get("rig_name")), "specimen_id": _s(attrs.get("specimen_id")),
+            "operator": _s(attrs.get("operator")), "notes": _s(attrs.get("notes")), "state": "running",
+            "complete": False, "reason": "", "incomplete_reason": "no end recorded yet",
+            "start_time": _s(attrs.get("start_time")), "end_time": "", "steps_completed": 0,
+            "previous_file": _abs(path.parent / str(prev)) if prev else None, "figures": "[]", "fits": "[]",
+            "signature": ""}
+
+
+def _s(v: Any) -> str | None:
+    return None if v is None else str(v)
+
+
+def row_from_file(path: Path) -> dict[str, Any]:
+    """The row of a run file, read from the file (and its fit file and report). ValueError if it is not one."""
+    from bench.storage.runfile import open_run
+
+    sig = signature(path)  # before reading: a change while reading makes the next reconcile read it again
+    run = open_run(path, streams=False)
+    a = run.attrs
+    row = row_from_attrs(path, a)
+    stats = hv_statistics(path)
+    spec = _specimen(a)
+    row.update({
+        "state": run.state, "complete": bool(run.complete), "reason": run.reason,
+        "incomplete_reason": run.incomplete_reason or None, "end_time": run.end_time,
+        "steps_completed": len(run.completed_steps()), "steps_total": int(run.program.shape[0]),
+        "hv_time_s": stats.hv_time_s, "hv_cycles": stats.cycles, "max_voltage_V": stats.max_voltage_V,
+        "max_nominal_field_V_per_m": stats.max_voltage_V / spec[0] if spec[0] else None,
+        "breakdown_field_V_per_m": spec[1], "figures": json.dumps(_figures(path)),
+        "fits": json.dumps(_fits(path, a)),
+        "signature": sig,
+    })
+    return row
+
+
+def _specimen(attrs: dict[str, Any]) -> tuple[float | None, float | None]:
+    """(reference thickness [m], breakdown field [V/m]) of the model stored in the run file (None if absent)."""
+    try:
+        model = json.loads(str(attrs.get("specimen", "{}"))).get("model", {})
+    except (ValueError, AttributeError):
+        return None, None
+    if "L3" in model:  # membrane (thesis): E = Φλ²/L3; failure where the true field exceeds breakdown_field
+        return float(model["L3"]), _f(model.get("breakdown_field"))
+    if "t0" in model:  # LS-DEA: E_B = E0 λ3^(−r/2), E0 at λ3 = 1
+        return float(model["t0"]), _f(model.get("material", {}).get("E0"))
+    return None, None
+
+
+def _f(v: Any) -> float | None:
+    return None if v is None else float(v)
+
+
+def _figures(path: Path) -> list[dict[str, Any]]:
+    p = report_dir(path) / "figures.json"
+    try:
+        data = json.loads(p.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return []
+    return data if isinstance(data, list) else []
+
+
+def _fits(path: Path, attrs: dict[str, Any]) -> list[dict[str, Any]]:
+    """The fits stored with a run — ``/fit/<model>-<n>`` groups in the run file and in its fit file (layout:
+    bench/identify/store.py), oldest first — as model, when, rms, records (file names) and the parameters. A fit file
+    of another run of the same name (start time or protocol hash differ) is not this run's: left out. Read with
+    h5py alone (no identification code: this runs at every run's end)."""
+    from bench.storage.runfile import open_h5
+
+    groups: list[dict[str, Any]] = []
+
+    def read(f: Any) -> None:
+        if "fit" not in f:
+            return
+        for g in f["fit"].values():
+            names = [n.decode() if isinstance(n, bytes) else str(n) for n in g["names"][:]]
+            units = [u.decode() if isinstance(u, bytes) else str(u) for u in g["units"][:]] if "units" in g else []
+            try:
+                records = [Path(str(r)).name for r in json.loads(str(g.attrs.get("records", "[]")))]
+            except ValueError:
+                records = []
+            groups.append({"model": _text(g.attrs.get("model", "")), "created": _text(g.attrs.get("created", "")),
+                           "rms": _f(g.attrs.get("rms")), "records": records,
+                           "parameters": {n: float(v) for n, v in zip(names, g["values"][:], strict=True)},
+                           "units": dict(zip(names, units, strict=False))})
+
+    try:
+        with open_h5(path) as f:
+            read(f)
+        side = fit_file(path)
+        if side.is_file():
+            import h5py
+
+            with h5py.File(side, "r") as f:
+                if (_text(f.attrs.get("run_start_time", "")) == str(attrs.get("start_time", ""))
+                        and _text(f.attrs.get("protocol_sha256", "")) == str(attrs.get("protocol_sha256", ""))):
+                    read(f)
+    except (ValueError, OSError, KeyError):
+        pass  # an unreadable fit is no fit; the run's own row stands
+    return sorted(groups, key=lambda d: d["created"])
+
+
+def _text(v: Any) -> str:
+    return v.decode() if isinstance(v, bytes) else str(v)
+
+
+@dataclass
+class HvStats:
+    hv_time_s: float
+    cycles: int
+    max_voltage_V: float
+
+
+def hv_statistics(path: Path, threshold: float = HV_THRESHOLD_V) -> HvStats:
+    """Time under high voltage, high-voltage cycles and peak |V| from the measured amplifier voltage, read in
+    chunks (see the module's docstring for the definitions). Zero for a file with no amplifier stream."""
+    from bench.storage.runfile import open_h5
+
+    hv, cycles, vmax = 0.0, 0, 0.0
+    armed = True
+    prev: tuple[float, float] | None = None  # the last (t, |v|) of the previous chunk
+    with open_h5(path) as f:
+        if "amplifier" not in f or "voltage" not in f["amplifier"]:
+            return HvStats(0.0, 0, 0.0)
+        g = f["amplifier"]
+        for d in (g["t"], g["voltage"]):
+            d.refresh()
+        n = min(g["t"].shape[0], g["voltage"].shape[0])
+        if "samples" in f["status"]:
+            f["status/samples"].refresh()
+            counts = dict(zip(json.loads(f["status/samples"].attrs["names"]), f["status/samples"][:], strict=True))
+            n = min(n, int(counts.get("amplifier", n)))
+        for k in range(0, n, CHUNK):
+            t = np.asarray(g["t"][k:min(k + CHUNK, n)], dtype=float)
+            v = np.abs(np.asarray(g["voltage"][k:min(k + CHUNK, n)], dtype=float))
+            if prev is not None:
+                t, v = np.concatenate(([prev[0]], t)), np.concatenate(([prev[1]], v))
+            ok = np.isfinite(v)
+            if ok.any():
+                vmax = max(vmax, float(v[ok].max()))
+            above = v > threshold
+            hv += float(np.sum(np.diff(t)[above[:-1]]))
+            first = 1 if prev is not None else 0  # the carried sample was counted in the previous chunk
+            cycles_k, armed = _rises(v[first:], threshold, armed)
+            cycles += cycles_k
+            prev = (float(t[-1]), float(v[-1]))
+    return HvStats(hv, cycles, vmax)
+
+
+def _rises(v: np.ndarray, threshold: float, armed: bool) -> tuple[int, bool]:
+    """Rises of ``v`` above ``threshold`` while armed; re-armed below threshold/2. Returns (rises, armed at end)."""
+    code = np.where(v > threshold, 1, np.where(v < threshold / 2, 0, -1))
+    known = code >= 0
+    if not known.any():
+        return 0, armed
+    idx = np.where(known, np.arange(code.size), -1)
+    np.maximum.accumulate(idx, out=idx)
+    level = np.where(idx >= 0, code[np.maximum(idx, 0)], 0 if armed else 1)  # 1: above (disarmed)
+    before = np.concatenate(([0 if armed else 1], level[:-1]))
+    rises = int(np.sum((level == 1) & (before == 0)))
+    return rises, bool(level[-1] == 0)
+
+
+# ---- keeping the catalogue true to the files ----------------------------------------------------------------------
+
+
+def run_files(folder: Path) -> Iterator[Path]:
+    """The run files (``*.h5``) in ``folder`` and below, by name."""
+    yield from sorted(p for p in folder.rglob("*.h5") if p.is_file())
+
+
+@dataclass
+class Reconciled:
+    added: int = 0
+    updated: int = 0
+    removed: int = 0
+    unreadable: list[str] | None = None
+
+
+def reconcile(cat: Catalog, folder: Path, rebuild: bool = False) -> Reconciled:
+    """Make the rows of this host's files under ``folder`` those the files give: rows of changed or new files
+    re-read, rows of missing files removed (``rebuild``: every row re-read). Files that are not run files are
+    listed in ``unreadable``."""
+    folder = folder.resolve()
+    if not folder.is_dir():
+        raise ValueError(f"runs folder {folder}: not found")
+    host = host_name()
+    have = {r["path"]: r for r in cat.rows(host=host, under=folder)}
+    out = Reconciled(unreadable=[])
+    rows, seen = [], set()
+    for p in run_files(folder):
+        key = _abs(p)
+        seen.add(key)
+        old = have.get(key)
+        if not rebuild and old is not None and old["signature"] and old["signature"] == signature(p):
+            continue
+        try:
+            rows.append(row_from_file(p))
+        except (ValueError, OSError, KeyError) as exc:
+            out.unreadable.append(f"{p}: {' '.join(str(exc).split())}")  # type: ignore[union-attr]
+            continue
+        if old is None:
+            out.added += 1
+        else:
+            out.updated += 1
+    gone = [k for k in have if k not in seen]
+    if rebuild:
+        cat.delete(host, list(have))
+    else:
+        cat.delete(host, gone)
+    out.removed = len(gone)
+    cat.upsert(rows)
+    return out
+
+
+# ---- the run's hooks: never let the catalogue stop or fail a run ---------------------------------------------------
+
+
+def record_start(path: Path, attrs: dict[str, Any], url: str | None = None) -> None:
+    """Catalogue a run that has just started; on any failure one warning line (the run goes on)."""
+    try:
+        with Catalog(catalog_url(path.parent, url)) as cat:
+            cat.upsert([row_from_attrs(path, attrs)])
+    except Exception as exc:  # the catalogue is an index: a run never depends on it
+        log.warning("run catalogue not written at the start (the run goes on; `bench runs list` reconciles it "
+                    "from the files): %s", " ".join(str(exc).split())[:300])
+
+
+def record_end(path: Path, url: str | None = None) -> None:
+    """Catalogue a run that has ended, from its file; on any failure one warning line."""
+    try:
+        with Catalog(catalog_url(path.parent, url)) as cat:
+            cat.upsert([row_from_file(path)])
+    except Exception as exc:
+        log.warning("run catalogue not written at the end (`bench runs list` reconciles it from the files): %s",
+                    " ".join(str(exc).split())[:300])
+
+
+# ---- a specimen's life -------------------------------------------------------------------------------------------
+
+
+def specimen_history(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """A specimen's runs in start order with cumulative high-voltage time and cycles, its peak nominal field against
+    the model's breakdown field, the runs that failed or did not finish, and each fitted parameter over its life
+    (a fit stored with every file of a campaign counts once, at the last of them)."""
+    runs, cum_t, cum_c = [], 0.0, 0
+    best: tuple[float, float | None, str] | None = None  # (nominal field, breakdown field, file)
+    fits: dict[tuple[str, str, str], tuple[int, dict[str, Any], str]] = {}
+    failures = []
+    for r in sorted(rows, key=lambda r: (r["start_time"] or "", r["path"])):
+        cum_t += r["hv_time_s"] or 0.0
+        cum_c += r["hv_cycles"] or 0
+        field = r["max_nominal_field_V_per_m"]
+        if field is not None and (best is None or field > best[0]):
+            best = (field, r["breakdown_field_V_per_m"], r["path"])
+        if r["state"] in ("tripped", "error") or not r["complete"]:
+            failures.append({"file": r["path"], "state": r["state"],
+                             "reason": r["incomplete_reason"] if not r["complete"] else r["reason"]})
+        for fit in json.loads(r["fits"] or "[]"):
+            # a campaign fit is stored with each of its files (each copy stamped when written): one fit, one key
+            key = (fit["model"], json.dumps(fit.get("records", [])), json.dumps(fit["parameters"], sort_keys=True))
+            fits[key] = (cum_c, fit, r["path"])  # the last file holding it wins
+        runs.append({"file": r["path"], "start_time": r["start_time"], "protocol": r["protocol_name"],
+                     "state": r["state"], "complete": bool(r["complete"]),
+                     "steps": f"{r['steps_completed'] or 0}/{r['steps_total'] or 0}",
+                     "previous_file": r["previous_file"], "hv_time_s": r["hv_time_s"], "hv_cycles": r["hv_cycles"],
+                     "cumulative_hv_time_s": cum_t, "cumulative_cycles": cum_c,
+                     "max_nominal_field_V_per_m": field})
+    params: dict[str, list[dict[str, Any]]] = {}
+    for cycles, fit, path in sorted(fits.values(), key=lambda x: (x[0], x[1]["created"])):
+        for name, value in fit["parameters"].items():
+            params.setdefault(name, []).append({"cumulative_cycles": cycles, "value": value,
+                                                "unit": fit.get("units", {}).get(name, ""), "model": fit["model"],
+                                                "created": fit["created"], "file": path})
+    ratio = best[0] / best[1] if best is not None and best[1] else None
+    return {"runs": runs, "hv_threshold_V": HV_THRESHOLD_V, "hv_time_s": cum_t, "hv_cycles": cum_c,
+            "max_nominal_field_V_per_m": best[0] if best else None,
+            "breakdown_field_V_per_m": best[1] if best else None, "field_ratio": ratio,
+            "max_field_file": best[2] if best else None, "failures": failures, "parameters": params}
+
+
+def plot_history(history: dict[str, Any], specimen: str, out: Path) -> Path | None:
+    """Each fitted parameter against the cumulative cycles (PNG); None when nothing was fitted."""
+    params = history["parameters"]
+    if not params:
+        return None
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    n = len(params)
+    cols = min(3, n)
+    rows = (n + cols - 1) // cols
+    fig = Figure(figsize=(4.2 * cols, 3.0 * rows), layout="constrained")
+    FigureCanvasAgg(fig)
+    for k, (name, pts) in enumerate(sorted(params.items())):
+        ax = fig.add_subplot(rows, cols, k + 1)
+        ax.plot([p["cumulative_cycles"] for p in pts], [p["value"] for p in pts], "o-")
+        unit = pts[-1]["unit"]
+        ax.set_title(f"{name}" + (f" [{unit}]" if unit and unit != "1" else ""), fontsize=9)
+        ax.set_xlabel("cumulative high-voltage cycles")
+        ax.grid(True, alpha=0.3)
+    fig.suptitle(f"specimen {specimen}: fitted parameters over its life")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=110)
+    return out
