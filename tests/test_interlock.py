@@ -209,7 +209,7 @@ def test_a_refused_output_path_stops_feeding_the_watchdog_and_the_run_ends_at_ze
     # went silent — which followed the refusal within a few exchanges
     assert plant.sim.plant.watchdog_tripped  # type: ignore[attr-defined]
     assert plant.last_high() <= plant.t_fault + 1.0 + 0.1
-    assert abs(plant.sim.plant.observe().voltage[-1]) <= ZERO_V  # type: ignore[attr-defined]
+    assert abs(plant.sim.plant.observe().v_out[-1]) <= ZERO_V  # type: ignore[attr-defined]
 
 
 def test_t7_replies_lost_then_ctrl_c_zeroes_without_waiting_for_replies(tmp_path: Path) -> None:
