@@ -154,6 +154,11 @@ def test_isometric_force_and_voltage_at_10_kHz(tmp_path: Path) -> None:
     # (F ∝ V²) against V²'s, by a least-squares fit over the step — force troughs at the voltage maxima
     w = (t >= t0 + 0.1) & (t <= t0 + dur)
     assert abs(phase_lag(t[w], v[w] ** 2, -force[w], 20.0)) <= 1e-3
+    # and as the analysis reports it for every isometric step (bench report: "V–F lag")
+    from bench.analysis.runs import analyse
+
+    iso = [s for s in analyse(f.path).steps if s.kind == "isometric"]
+    assert iso and all(abs(s.figures["vf_lag"]) <= 1e-3 for s in iso)
 
 
 def test_ctrl_c_during_a_streamed_step_zeroes_the_output(tmp_path: Path) -> None:

@@ -65,7 +65,7 @@ def run_with_fault(rig: Path, tmp: Path, at: float, action: Callable[[Engine, ob
 
     def hook(engine: Engine, sim) -> None:
         plant.sim = sim
-        sim.plant.listeners.append(lambda b: plant.blocks.append((b.t.copy(), b.voltage.copy())))
+        sim.plant.listeners.append(lambda b: plant.blocks.append((b.t.copy(), b.v_out.copy())))
 
         def act() -> None:
             plant.t_fault = sim.clock.now()
@@ -356,7 +356,7 @@ def test_a_carriage_that_stops_following_its_go_tos_latches(tmp_path: Path) -> N
 
     def hook(engine: Engine, sim) -> None:
         plant.sim = sim
-        sim.plant.listeners.append(lambda b: plant.blocks.append((b.t.copy(), b.voltage.copy())))
+        sim.plant.listeners.append(lambda b: plant.blocks.append((b.t.copy(), b.v_out.copy())))
 
         def at(_now: float) -> None:
             if np.isnan(plant.t_fault) and engine.snapshot.state == "running" and engine.now() >= 10.0:

@@ -315,6 +315,7 @@ class Plant:
         """Compile the model's kernels now, on a copy (a fresh install has no numba cache: compiling on the
         first request would take seconds inside a twin's reply and the host would time out)."""
         with self.lock:
+            output_response(np.zeros(2), 0.0, self.h, 1e-5, 1e8, 1e-9, 1e-2, 4e-2, 1e-3, 0.0)  # the output stage
             if self._membrane is not None:
                 copy.deepcopy(self._membrane).advance(np.zeros(2), self.temperature)
             if self._lozenge is not None:
