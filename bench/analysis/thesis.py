@@ -9,6 +9,7 @@ import numpy as np
 from bench.analysis.cycles import smooth
 
 SMOOTH_PERIODS = 50  # the smoothing window is this fraction of a period
+NO_DISPLACEMENT_M = 1e-12  # peaks below 1 pm are rounding, not a displacement (no sensor resolves them)
 
 
 @dataclass(frozen=True)
@@ -28,7 +29,9 @@ class CycleFigures:
     @property
     def creep(self) -> float:
         """Peak growth from the first to the last whole cycle, relative to the first [-]."""
-        return self.peaks[self.whole - 1] / self.peaks[0] - 1.0 if self.whole > 1 else 0.0
+        if self.whole <= 1 or abs(self.peaks[0]) <= NO_DISPLACEMENT_M:
+            return 0.0  # one cycle, or no displacement at all (rounding of a model at rest): no creep
+        return self.peaks[self.whole - 1] / self.peaks[0] - 1.0
 
 
 def cycle_figures(t: np.ndarray, displacement: np.ndarray, voltage: np.ndarray, frequency: float) -> CycleFigures:

@@ -101,7 +101,3 @@ class Realism:
         if stream not in self._streams:
             self._streams[stream] = np.random.default_rng([self.seed, stream])
         return self._streams[stream]
-
-    def scale(self, rms: float) -> float:
-        """``rms`` with noise on, 0 with noise off."""
-        return rms if self.noise else 0.0
