@@ -17,7 +17,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
-from scipy.signal import lfilter
 
 from bench.core.noise import Realism, TrekDynamics
 
@@ -56,6 +55,19 @@ def output_response(target: np.ndarray, v0: float, h: float, tau: float, slew: f
     return out, t_limited
 
 
+@njit(cache=True)
+def lowpass(x: np.ndarray, a: float, y0: float) -> np.ndarray:
+    """First-order low-pass y_k = a·y_{k−1} + (1 − a)·x_k from y0 (x held over each step; a NaN input — a failed
+    specimen's current — counts as 0)."""
+    y = np.empty(x.size)
+    yk = y0
+    for k in range(x.size):
+        xk = x[k] if math.isfinite(x[k]) else 0.0
+        yk = a * yk + (1.0 - a) * xk
+        y[k] = yk
+    return y
+
+
 @dataclass
 class Monitor:
     """One monitor output (in the output's units): low-pass, gain and offset errors, noise."""
@@ -70,7 +82,7 @@ class Monitor:
     def __call__(self, x: np.ndarray, h: float) -> np.ndarray:
         """Monitor samples at the step ends of the true signal ``x`` (held over each step: exact discretisation)."""
         a = math.exp(-2.0 * math.pi * self.corner_Hz * h)
-        y, _ = lfilter([1.0 - a], [1.0, -a], np.nan_to_num(x), zi=[a * self._y])
+        y = lowpass(np.asarray(x, dtype=float), a, self._y)
         self._y = float(y[-1]) if y.size else self._y
         out: np.ndarray = (1.0 + self.gain_error) * np.asarray(y) + self.offset
         if self.noise and self.rng is not None:

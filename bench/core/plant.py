@@ -23,7 +23,7 @@ from typing import Literal
 
 import numpy as np
 
-from bench.core.amplifier_dynamics import monitors, output_response
+from bench.core.amplifier_dynamics import lowpass, monitors, output_response
 from bench.core.clock import Clock
 from bench.core.motion import MotionProfile
 from bench.core.noise import TREK_DYNAMICS, Realism
@@ -316,6 +316,7 @@ class Plant:
         first request would take seconds inside a twin's reply and the host would time out)."""
         with self.lock:
             output_response(np.zeros(2), 0.0, self.h, 1e-5, 1e8, 1e-9, 1e-2, 4e-2, 1e-3, 0.0)  # the output stage
+            lowpass(np.zeros(2), 0.5, 0.0)  # and its monitors
             if self._membrane is not None:
                 copy.deepcopy(self._membrane).advance(np.zeros(2), self.temperature)
             if self._lozenge is not None:
