@@ -23,7 +23,7 @@ from bench.rig import RigConfig, amplifier_spec, plant_for
 from sim_devices.keyence_lkg import TURNAROUND_S as LKG_TURNAROUND_S
 from sim_devices.keyence_lkg import KeyenceLKGSim, LaserHead
 from sim_devices.linmot_drive import LinMotDriveSim
-from sim_devices.modbus_devices import Adam4017PSim, Adam4024Sim, Dgt1sSim, Scale
+from sim_devices.modbus_devices import STANDARD_GRAVITY, Adam4017PSim, Adam4024Sim, Dgt1sSim, Scale
 from sim_devices.modbus_host import ModbusHost, SimBus
 from sim_devices.transport import Faults, Line, PtyDevice, TwinTimer
 
@@ -136,7 +136,7 @@ class SimRig:
         signals = {d.vmon_ain: Signal("voltage", 1.0 / trek.vmon_ratio),
                    d.imon_ain: Signal("current", 1.0 / trek.imon_ratio)}
         if d.force_ain is not None:
-            cell_n = load_cell_noise_kg(d.scan_rate_Hz) * 9.80665 if noise else 0.0  # N rms at the scan rate
+            cell_n = load_cell_noise_kg(d.scan_rate_Hz) * STANDARD_GRAVITY if noise else 0.0  # N rms at the scan rate
             signals[d.force_ain] = Signal("force", 1.0 / d.force_N_per_V, -d.force_offset_N / d.force_N_per_V,
                                           noise=cell_n / d.force_N_per_V)
         if d.laser_ain is not None:  # the head reads sign·(specimen coordinate) + offset (as the serial twin)
