@@ -16,6 +16,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from bench.core.clock import Clock
+from bench.core.noise import Realism
 from bench.core.plant import TREK_DATASHEET, AmplifierSpec, HVStage, Plant
 from bench.models.lozenge import LozengeParams, MaxwellBranch
 from bench.models.membrane import MembraneParams
@@ -89,6 +90,10 @@ class LaserConfig(_Strict):
     offset_mm: float = 0.0
     sign: Literal[-1, 1] = 1
     range_mm: float = Field(40.0, gt=0)
+    head: Literal["LK-G32", "LK-G82", "LK-G152", "LK-G402"] = Field("LK-G152", description="sensor head (its "
+                                                                     "repeatability sets the simulated noise)")
+    averaging: Literal[1, 4, 16, 64, 256, 1024, 4096, 16384, 65536, 262144] = Field(
+        64, description="controller averaging (SW,OC) the rig runs with: the head's noise scales as 1/√N")
 
     @property
     def capacity(self) -> int:
@@ -260,6 +265,8 @@ class SimulationConfig(_Strict):
     latency_s: float = Field(0.0, ge=0, le=1.0, description="extra reply latency of serial twins (wall time)")
     modbus_transport: Literal["rtu", "rtu-socket", "tcp"] = Field(
         "rtu", description="rtu: on a pty; rtu-socket: RTU frames over loopback TCP; tcp: Modbus TCP")
+    noise: bool = Field(True, description="datasheet noise and monitor gain/offset errors of the twins (seeded by "
+                        "seed); false: ideal readings for golden tests (the amplifier's and monitors' dynamics stay)")
 
 
 class DaqConfig(_Strict):
@@ -547,14 +554,16 @@ def amplifier_spec(rig: RigConfig) -> AmplifierSpec:
 def plant_for(rig: RigConfig, clock: Clock, *, temperature_K: float | None = None, prototype: int | None = None,
               hung_mass_kg: float | None = None, membrane_method: Literal["fixed", "rodas"] = "fixed",
               h: float = 1e-4) -> Plant:
-    """The one plant of a rig — its specimen (with a protocol's overrides) behind its amplifier's output stage —
-    for the simulated rig (twins, ``fixed`` step) and the dry run (``rodas`` for the membrane)."""
+    """The one plant of a rig — its specimen (with a protocol's overrides) behind its amplifier's output stage,
+    seen through its monitors with the rig's ``[simulation]`` noise and seed — for the simulated rig (twins,
+    ``fixed`` step) and the dry run (``rodas`` for the membrane)."""
     spec = rig.specimen
     hv = HVStage.of(amplifier_spec(rig))
+    realism = Realism(noise=rig.simulation.noise, seed=rig.simulation.seed)
     if spec.kind == "membrane":
         return Plant(clock, spec.membrane(), temperature=temperature_K or spec.temperature_K, hv=hv, h=h,
-                     membrane_method=membrane_method)
+                     membrane_method=membrane_method, realism=realism)
     cfg = spec.lsdea
     x0 = cfg.blocked_position_m if cfg.configuration == "blocked" else cfg.x_at_motor_zero_m
     return Plant(clock, spec.lozenge(prototype, hung_mass_kg), configuration=cfg.configuration, x0=x0, hv=hv, h=h,
-                 motor_sign=cfg.motor_sign)
+                 motor_sign=cfg.motor_sign, realism=realism)

@@ -24,6 +24,7 @@ from typing import Literal
 import numpy as np
 
 from bench.core.clock import Clock
+from bench.core.noise import LKG_AVERAGING, lkg_noise_mm
 from bench.core.plant import Plant, PlantBlock
 
 Model = Literal["LK-G3000", "LK-G5000"]
@@ -75,7 +76,7 @@ class LaserHead:
     offset_mm: float = 0.0
     sign: float = 1.0
     range_mm: float = 40.0  # ± measuring range around the reference distance (LK-G152/LK-H152: ±40 mm)
-    noise_mm: float = 0.0002  # rms (0.2 µm)
+    noise_mm: float = 0.0002  # rms (0.2 µm); a rig's twin sets it from the head and averaging (bench.core.noise)
 
 
 class _RejectError(Exception):
@@ -87,9 +88,12 @@ class KeyenceLKGSim:
     """Protocol handler of the simulated controller (feed it bytes; it returns the reply bytes)."""
 
     def __init__(self, plant: Plant, clock: Clock, *, model: Model = "LK-G3000", head: LaserHead | None = None,
-                 capacity: int | None = None, seed: int = 1, outs: int = 1) -> None:
+                 capacity: int | None = None, seed: int = 1, outs: int = 1, head_model: str | None = None,
+                 averaging: int = 64, noise: bool = True) -> None:
         """``outs``: OUTs with a head configured (others read ``XXXXXXXX``); ``capacity``: storage points per OUT
-        (default: the model's, :data:`STORAGE_CAPACITY`)."""
+        (default: the model's, :data:`STORAGE_CAPACITY`); ``head_model`` (e.g. ``LK-G152``): the head's noise at
+        ``averaging`` replaces ``head.noise_mm`` and follows the averaging setting (``SW,OC``); ``noise``: False
+        for ideal readings."""
         self.plant = plant
         self.clock = clock
         self.model: Model = model
@@ -97,6 +101,9 @@ class KeyenceLKGSim:
         self.capacity = capacity or STORAGE_CAPACITY[model]
         self.outs = outs
         self.panel_locked = False
+        self.head_model, self.noise = head_model, noise
+        self.averaging = averaging
+        self._set_noise()
         self.rng = np.random.default_rng(seed)
         self.comm_mode = False
         self.program = 0
@@ -112,6 +119,12 @@ class KeyenceLKGSim:
         self._lock = threading.Lock()
         self.fault_error_code: str | None = None  # answer every command with ER,<cmd>,<code> while set
         plant.listeners.append(self._on_block)
+
+    def _set_noise(self) -> None:
+        if self.head_model is not None:
+            self.head.noise_mm = lkg_noise_mm(self.head_model, self.averaging) if self.noise else 0.0
+        elif not self.noise:
+            self.head.noise_mm = 0.0
 
     # ------------------------------------------------------------ plant side
     def _to_mm(self, disp_m: np.ndarray) -> np.ndarray:
@@ -277,8 +290,11 @@ class KeyenceLKGSim:
             if len(args[1]) != 7 or args[1][0] not in "+-":
                 raise _RejectError("param")
             self.storage_points = self._int(args[1], 1, self.capacity)
+        elif key == "OC" and len(args) >= 4:  # SW,OC,<out>,0,<code>: averaging 4**code times (the noise follows)
+            self.averaging = LKG_AVERAGING[self._int(args[-1], 0, len(LKG_AVERAGING) - 1)]
+            self._set_noise()
         elif key in ("HA", "HB", "HE", "OC"):
-            pass  # ABLE, material mode, mounting, averaging: accepted, no effect on the model
+            pass  # ABLE, material mode, mounting (and an OC without its value): accepted, no effect on the model
         else:
             raise _RejectError("param")
         return f"SW,{key}"

@@ -40,6 +40,15 @@ def short_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return Path(result.path)
 
 
+@pytest.fixture(autouse=True, scope="module")
+def _module_interlock_state(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
+    """The same for a module's own fixtures (a module-scoped run starts before any test's folder is set): without
+    it they used the user's default folder, where a latch any other run left refused them."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("BENCH_STATE_DIR", str(tmp_path_factory.mktemp("module-state")))
+        yield
+
+
 @pytest.fixture(autouse=True)
 def _own_interlock_state(tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.MonkeyPatch) -> None:
     """Each test has its own interlock latch folder (bench.runtime.latch), also for the processes it starts: a

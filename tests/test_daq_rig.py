@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bench.analysis.cycles import crest_to_trough
+from bench.analysis.cycles import crest_to_trough, phase_lag, smooth
 from bench.models.membrane import MembraneParams
 from bench.models.membrane_runs import simulate_membrane
 from bench.rig import RigConfig, RigFileError, load_rig
@@ -44,6 +44,13 @@ def run(protocol: Path, rig: Path, tmp: Path, virtual: bool = True, hook=None):
 
     result = execute(plan, tmp / f"{protocol.stem}.h5", virtual=virtual, on_engine=grab)
     return result, open_run(result.path), sims[0]
+
+
+def quiet(rig: Path, tmp: Path) -> Path:
+    """A copy of ``rig`` with ``[simulation] noise = false`` (ideal readings, for golden comparisons)."""
+    out = tmp / f"{rig.stem}-quiet.toml"
+    out.write_text(rig.read_text().replace("[simulation]", "[simulation]\nnoise = false", 1))
+    return out
 
 
 def steps(run_file) -> dict[str, tuple[float, float]]:
@@ -82,22 +89,36 @@ def test_every_analog_channel_on_one_scan_clock_with_no_scan_lost(thesis_run) ->
 
 
 def test_the_recorded_displacement_follows_the_smooth_drive(thesis_run) -> None:
-    """The issue's figure: ≤ 2e-4 in λ against the nominal raised cosine (4.5e-3 through the 20-Hz staircase), on
-    the error averaged over 10 ms: the T7's ADC noise (316 µV rms at stream resolution index 1, ±10 V; 1.3 µm through
-    the rig's 4 mm/V laser output) is on by default and reaches 4 σ somewhere in 10⁵ samples; the average keeps any
-    systematic error of the drive (the drive's period is 9 s)."""
+    """The issue's figure: ≤ 2e-4 in λ against the nominal raised cosine (4.5e-3 through the 20-Hz staircase) —
+    on the records smoothed over 20 ms (the rig's noise is on: the LK-G's 4 µm rms would reach 2e-4 alone)."""
     _, f, _ = thesis_run
     model = json.loads(f.attrs["specimen"])["model"]
     p = MembraneParams(**{k: tuple(v) if isinstance(v, list) else v for k, v in model.items()})
-    smooth = simulate_membrane(p, Waveform("raised_cosine", 7000.0, 1 / 9), 10.0, fs=RATE)  # offline Radau
+    ref = simulate_membrane(p, Waveform("raised_cosine", 7000.0, 1 / 9), 10.0, fs=RATE)  # offline Radau
     laser = f.streams["laser"]
     sel = laser.t <= 10.0
-    du = laser.columns["displacement"][sel] - np.interp(laser.t[sel], smooth.t, smooth.displacement)
-    du = np.convolve(du, np.ones(101) / 101, mode="valid")  # 10 ms at 10 kHz
+    u = smooth(laser.t[sel], laser.columns["displacement"][sel], 0.02)
+    du = u - np.interp(laser.t[sel], ref.t, ref.displacement)
     assert np.max(np.abs(du)) / p.L_d <= 2e-4  # Δλ = Δu / L_d
     amp = f.streams["amplifier"]
     on = amp.t <= 10.0
-    assert np.max(np.abs(amp.columns["voltage"][on] - Waveform("raised_cosine", 7000.0, 1 / 9)(amp.t[on]))) < 10.0
+    v = smooth(amp.t[on], amp.columns["voltage"][on], 0.02)
+    # TREK voltage monitor DC accuracy ±0.1 % of 10 kV [assumed, bench/core/noise.py]: 10 V
+    assert np.max(np.abs(v - Waveform("raised_cosine", 7000.0, 1 / 9)(amp.t[on]))) < 10.0
+
+
+def test_recorded_laser_noise_density_is_the_heads(thesis_run) -> None:
+    """Noise density of the recorded displacement between 1 and 4 kHz (where the membrane does not move):
+    Keyence LK-G catalogue, LK-G152 repeatability 0.5 µm at averaging 4096, the rig's averaging 64 —
+    0.5 µm·√(4096/64) = 4 µm rms, white over the 5-kHz Nyquist band: 4 µm / √5000 Hz = 56.6 nm/√Hz."""
+    from scipy.signal import welch
+
+    _, f, _ = thesis_run
+    laser = f.streams["laser"]
+    freq, psd = welch(laser.columns["displacement"], fs=RATE, nperseg=4096)
+    band = (freq >= 1000) & (freq <= 4000)
+    density = float(np.sqrt(np.median(psd[band])))
+    assert density == pytest.approx(4e-6 / np.sqrt(5000.0), rel=0.25)
 
 
 def test_a_ramp_ends_exactly_on_its_target_on_a_daq_rig(tmp_path: Path) -> None:
@@ -110,7 +131,11 @@ def test_a_ramp_ends_exactly_on_its_target_on_a_daq_rig(tmp_path: Path) -> None:
     sel = (amp.t > t0 + 1 / RATE + 1e-9) & (amp.t <= t0 + dur)
     code = 5.0 / 4096 * 4.0 * 1000.0  # one 12-bit step of the 0–5 V DAC through gain 4 and the TREK's 1000 V/V
     assert np.all(np.abs(amp.columns["commanded"][sel] - 7000.0) <= code)
-    assert np.all(np.abs(amp.columns["voltage"][sel] - 7000.0) <= 2 * code)  # measured, monitor noise included
+    # measured through the monitor: its mean within one code and the monitor's DC accuracy (±0.1 % of 10 kV,
+    # [assumed] bench/core/noise.py); its samples scatter by the monitor's noise, not by codes
+    measured = amp.columns["voltage"][sel]
+    assert abs(float(np.mean(measured)) - 7000.0) <= code + 10.0
+    assert 0.5 < float(np.std(measured)) < 2 * code
 
 
 def test_isometric_force_and_voltage_at_10_kHz(tmp_path: Path) -> None:
@@ -125,15 +150,15 @@ def test_isometric_force_and_voltage_at_10_kHz(tmp_path: Path) -> None:
     t0, dur = steps(f)["sine [f=10.0]"]
     n = len(lc)
     v, force, t = amp.columns["voltage"][:n], lc.columns["force"], lc.t
-    half = 1 / 20  # |V| peaks twice per 10-Hz cycle
-    k0 = int(np.ceil((t0 + 0.1) / half))
-    for k in range(k0, int((t0 + dur) / half) - 1):
-        w = (t >= k * half) & (t < (k + 1) * half)
-        if w.sum() < 0.9 * half * RATE:
-            continue
-        t_v = t[w][np.argmax(np.abs(v[w]))]
-        t_f = t[w][np.argmin(force[w])]
-        assert abs(t_v - t_f) <= 1e-3, (k, t_v, t_f)
+    # the V–F phase measured on the noisy records (monitor and load-cell noise on): the force's 20-Hz component
+    # (F ∝ V²) against V²'s, by a least-squares fit over the step — force troughs at the voltage maxima
+    w = (t >= t0 + 0.1) & (t <= t0 + dur)
+    assert abs(phase_lag(t[w], v[w] ** 2, -force[w], 20.0)) <= 1e-3
+    # and as the analysis reports it for every isometric step (bench report: "V–F lag")
+    from bench.analysis.runs import analyse
+
+    iso = [s for s in analyse(f.path).steps if s.kind == "isometric"]
+    assert iso and all(abs(s.figures["vf_lag"]) <= 1e-3 for s in iso)
 
 
 def test_ctrl_c_during_a_streamed_step_zeroes_the_output(tmp_path: Path) -> None:
@@ -141,7 +166,7 @@ def test_ctrl_c_during_a_streamed_step_zeroes_the_output(tmp_path: Path) -> None
     fired: list[float] = []
 
     def hook(engine, sim) -> None:
-        sim.plant.listeners.append(lambda b: blocks.append((b.t.copy(), b.voltage.copy())))
+        sim.plant.listeners.append(lambda b: blocks.append((b.t.copy(), b.v_out.copy())))  # the true output
 
         def fire() -> None:
             while engine.snapshot.state == "starting" or engine.now() < 3.0:
@@ -170,7 +195,7 @@ def test_a_lost_daq_is_made_safe_by_its_watchdog(tmp_path: Path) -> None:
     (_, safe), = [(t_, text) for t_, _, k, text in f.event_list() if k == "safe"]
     assert "communication watchdog (1 s)" in safe
     sim.clock.advance(1.5)
-    assert abs(sim.plant.observe().voltage[0]) < 5.0 and sim.plant.watchdog_tripped
+    assert abs(sim.plant.observe().v_out[0]) < 5.0 and sim.plant.watchdog_tripped
 
 
 def test_a_conditioning_stage_that_cannot_reach_the_voltage_limit_is_refused(tmp_path: Path) -> None:
@@ -222,20 +247,22 @@ def test_the_dry_run_reports_the_set_point_staircase_of_a_software_timed_rig() -
     assert staircase_distortion(plan_run(SHORT / "thesis-identification-short.toml").program) is None  # DAQ default
 
 
-def test_identification_reads_the_measured_drive_of_a_daq_record(thesis_run, tmp_path: Path) -> None:
+def test_identification_reads_the_measured_drive_of_a_daq_record(tmp_path: Path) -> None:
     """The identification problems built from hardware-timed files (measured voltage at 10 kHz as the model's
     input, bench/analysis/applied.py) reproduce the records with the simulated specimen's own parameters:
     thesis membrane within half a count of the laser's analog channel (0.316 mV · 4 mm/V = 1.26 µm), LS-DEA
-    isometric force within 1 % of the record (the fit tests' criterion, tests/test_analysis.py)."""
+    isometric force within 1 % of the record (the fit tests' criterion, tests/test_analysis.py). Golden by nature
+    (the model replays the records exactly): noise off (``[simulation] noise = false``) — the LK-G's 4 µm rms and
+    the load cell's 2 g at 10 kHz would exceed both bounds alone; the fits with noise on: tests/test_analysis.py."""
     from bench.analysis.applied import applied_voltage
     from bench.identify.problems import LozengeProblem, MembraneProblem
 
-    _, f, _ = thesis_run
+    _, f, _ = run(SHORT / "thesis-identification-short.toml", quiet(THESIS_DAQ, tmp_path), tmp_path)
     assert applied_voltage(f, measured=True).source == "measured"
     prob = MembraneProblem([f.path], h=1e-4)
     u, ok = prob.predict(prob.start()[None, :])[0], np.isfinite(prob.data)
     assert ok.sum() > 1000 and np.sqrt(np.mean((u[ok] - prob.data[ok]) ** 2)) < 0.63e-6
-    _, iso, _ = run(SHORT / "lsdea-isometric-short.toml", MOTOR_DAQ, tmp_path)
+    _, iso, _ = run(SHORT / "lsdea-isometric-short.toml", quiet(MOTOR_DAQ, tmp_path), tmp_path)
     lp = LozengeProblem([iso.path], h=1e-4)
     force, ok = lp.predict(lp.start()[None, :])[0], np.isfinite(lp.data)
     assert ok.sum() > 100

@@ -75,7 +75,7 @@ def test_short_variants_run_end_to_end_in_virtual_time(path: Path, timing: str, 
     assert stop and duration - 1e-6 <= stop[0][0] <= duration + late
     assert run.attrs["protocol_text"] == path.read_text() and run.attrs["clock"] == "virtual"
     sp = run.streams["setpoints"]
-    assert sp.columns["voltage"][-1] == 0.0 and abs(sim.plant.observe().voltage[0]) < ZERO_V
+    assert sp.columns["voltage"][-1] == 0.0 and abs(sim.plant.observe().v_out[0]) < ZERO_V
     starts = [e for e in run.event_list() if e[2] == "start"]
     assert len(starts) == len(run.program)
     for name, s in run.streams.items():
@@ -84,15 +84,17 @@ def test_short_variants_run_end_to_end_in_virtual_time(path: Path, timing: str, 
 
 def test_thesis_record_matches_the_model(tmp_path: Path) -> None:
     """Laser record of the short identification run against the model driven by the recorded set-points,
-    and against the model's offline solution of the nominal protocol (smooth raised cosine)."""
-    _, run, _ = run_virtual(SHORT / "thesis-identification-short.toml", tmp_path)
+    and against the model's offline solution of the nominal protocol (smooth raised cosine). Golden by nature
+    (the model replays the record within 3 µm; the LK-G152's noise at averaging 64 is 4 µm rms): noise off."""
+    _, run, _ = run_virtual(SHORT / "thesis-identification-short.toml", tmp_path,
+                            {"simulation": {"seed": 1, "noise": False}})
     sp, laser = run.streams["setpoints"], run.streams["laser"]
     t, u = laser.t, laser.columns["displacement"]
     stored = np.diff(t, prepend=-1.0) < 1.5e-4  # the 10-kHz storage part (single reads come at 10 Hz)
     held = simulate_membrane(run.attrs and load_params(run), zero_order_hold(sp.t, sp.columns["voltage"]),
                              11.0, fs=10_000.0, method="fixed")
     model_u = np.interp(t[stored], held.t, held.displacement)
-    assert np.max(np.abs(u[stored] - model_u)) < 3e-6  # noise 0.2 µm rms, slew, 0.1-µm resolution
+    assert np.max(np.abs(u[stored] - model_u)) < 3e-6  # slew, 0.1-µm resolution
     smooth = simulate_membrane(load_params(run), Waveform("raised_cosine", 7000.0, 1 / 9), 10.0, fs=1000.0)
     window = t[stored] <= 10.0
     nominal = np.interp(t[stored][window], smooth.t, smooth.displacement)
@@ -156,7 +158,7 @@ def check_safe_end(run, sim, state: str) -> None:
     assert run.complete and run.state == state and run.attrs["exit_status"] == state
     assert run.streams["setpoints"].columns["voltage"][-1] == 0.0
     sim.clock.advance(0.5)
-    assert abs(sim.plant.observe().voltage[0]) < ZERO_V  # the amplifier output really is at 0 V
+    assert abs(sim.plant.observe().v_out[0]) < ZERO_V  # the amplifier output really is at 0 V
 
 
 def test_current_trip_ramps_down_and_is_recorded(tmp_path: Path) -> None:
@@ -194,7 +196,7 @@ def test_lost_amplifier_link_relies_on_the_module_watchdog(tmp_path: Path, trans
     assert any(text.startswith("could not command 0 V") for text in faults)
     assert run.complete
     sim.clock.advance(1.5)  # the ADAM-4024's communication safety (1 s in the rig file)
-    assert sim.plant.observe().voltage[0] == 0.0 and sim.plant.watchdog_tripped
+    assert sim.plant.observe().v_out[0] == 0.0 and sim.plant.watchdog_tripped
 
 
 def _start_cli_run(tmp_path: Path, protocol: str = "thesis-identification-short.toml") -> tuple[subprocess.Popen, Path]:

@@ -70,7 +70,7 @@ class Trial:
 
         def hook(engine: Engine, sim) -> None:
             sims.append(sim)
-            sim.plant.listeners.append(lambda b: self.blocks.append((b.t.copy(), b.voltage.copy())))
+            sim.plant.listeners.append(lambda b: self.blocks.append((b.t.copy(), b.v_out.copy())))
 
             def fire() -> None:
                 while engine.snapshot.state == "starting" or engine.now() < self.at:
@@ -272,7 +272,7 @@ def _run_into(trial: Trial, folder: Path):
 
     def hook(engine: Engine, sim) -> None:
         seen.extend([sim, engine])
-        sim.plant.listeners.append(lambda b: trial.blocks.append((b.t.copy(), b.voltage.copy())))
+        sim.plant.listeners.append(lambda b: trial.blocks.append((b.t.copy(), b.v_out.copy())))
 
     result = execute(plan, folder / "run.h5", virtual=False, on_engine=hook)
     return result, seen[0], seen[1]

@@ -42,7 +42,7 @@ def three_cases(monkeypatch: pytest.MonkeyPatch) -> list[tuple[float, float]]:
 
         def both(engine: Any, sim: Any) -> None:
             sims.append(sim)
-            sim.plant.listeners.append(lambda b: volts.append(np.abs(b.voltage)))
+            sim.plant.listeners.append(lambda b: volts.append(np.abs(b.v_out)))
             hook(engine, sim)
 
         result = real(plan, out, on_engine=both, **kwargs)

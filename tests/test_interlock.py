@@ -65,7 +65,7 @@ def run_with_fault(rig: Path, tmp: Path, at: float, action: Callable[[Engine, ob
 
     def hook(engine: Engine, sim) -> None:
         plant.sim = sim
-        sim.plant.listeners.append(lambda b: plant.blocks.append((b.t.copy(), b.voltage.copy())))
+        sim.plant.listeners.append(lambda b: plant.blocks.append((b.t.copy(), b.v_out.copy())))
 
         def act() -> None:
             plant.t_fault = sim.clock.now()
@@ -209,7 +209,7 @@ def test_a_refused_output_path_stops_feeding_the_watchdog_and_the_run_ends_at_ze
     # went silent — which followed the refusal within a few exchanges
     assert plant.sim.plant.watchdog_tripped  # type: ignore[attr-defined]
     assert plant.last_high() <= plant.t_fault + 1.0 + 0.1
-    assert abs(plant.sim.plant.observe().voltage[-1]) <= ZERO_V  # type: ignore[attr-defined]
+    assert abs(plant.sim.plant.observe().v_out[-1]) <= ZERO_V  # type: ignore[attr-defined]
 
 
 def test_t7_replies_lost_then_ctrl_c_zeroes_without_waiting_for_replies(tmp_path: Path) -> None:
@@ -356,7 +356,7 @@ def test_a_carriage_that_stops_following_its_go_tos_latches(tmp_path: Path) -> N
 
     def hook(engine: Engine, sim) -> None:
         plant.sim = sim
-        sim.plant.listeners.append(lambda b: plant.blocks.append((b.t.copy(), b.voltage.copy())))
+        sim.plant.listeners.append(lambda b: plant.blocks.append((b.t.copy(), b.v_out.copy())))
 
         def at(_now: float) -> None:
             if np.isnan(plant.t_fault) and engine.snapshot.state == "running" and engine.now() >= 10.0:

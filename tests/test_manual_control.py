@@ -112,7 +112,7 @@ def _rows(log: Path) -> list[list[str]]:
 def _plant_volts(sim, settle: float = 0.2) -> float:
     """The amplifier output in the plant after ``settle`` more virtual seconds."""
     sim.clock.advance(settle)
-    return float(sim.plant.observe().voltage[-1])
+    return float(sim.plant.observe().v_out[-1])
 
 
 def test_commands_of_an_absent_instrument_are_refused_and_nothing_changes(tmp_path: Path) -> None:
@@ -214,7 +214,7 @@ def test_a_voltage_answer_names_the_set_point_just_sent(tmp_path: Path, asked: f
         sent = float(re.search(r"set-point (-?\d+) V", out.text).group(1))  # type: ignore[union-attr]
         assert abs(sent - asked) <= ZERO_V, out  # within one code of what was asked
         assert abs(_volts(out.text) - asked) < 30, out  # and the monitor reading in the answer shows it
-        assert abs(float(s._sim.plant.observe().voltage[-1]) - asked) < 30
+        assert abs(float(s._sim.plant.observe().v_out[-1]) - asked) < 30
 
 
 def test_the_operator_is_in_the_log_header(tmp_path: Path) -> None:
@@ -246,7 +246,7 @@ def _session_with_signals(tmp_path: Path, lines: list[str], on_watch_line, inter
     s = ManualSession(rig, tmp_path / "s.log", virtual=True, echo=echo)
     with s.signal_handlers(interactive=interactive), s:
         sim = s._sim
-        sim.plant.listeners.append(lambda b: history.extend(zip(b.t.tolist(), b.voltage.tolist(), strict=True)))
+        sim.plant.listeners.append(lambda b: history.extend(zip(b.t.tolist(), b.v_out.tolist(), strict=True)))
         s.run_lines(lines, stop_on_trip=not interactive)
     return s, _rows(tmp_path / "s.log"), _plant_volts(sim), history
 
@@ -304,7 +304,7 @@ trace = []
 start, stop = sim_rig.SimRig.start, sim_rig.SimRig.stop
 
 def observed_start(self):
-    self.plant.listeners.append(lambda b: trace.extend(zip(b.t.tolist(), b.voltage.tolist())))
+    self.plant.listeners.append(lambda b: trace.extend(zip(b.t.tolist(), b.v_out.tolist())))
     return start(self)
 
 def observed_stop(self):  # the output once the session has made the rig safe, 0.2 s later on the rig clock
@@ -411,7 +411,7 @@ def test_the_prompt_has_line_editing_and_a_history_file_in_home(tmp_path: Path) 
 def _trace(sim) -> list[tuple[float, float]]:
     """Everything the plant's output stage did (rig clock, volts): observed from the plant, not the session."""
     out: list[tuple[float, float]] = []
-    sim.plant.listeners.append(lambda b: out.extend(zip(b.t.tolist(), b.voltage.tolist(), strict=True)))
+    sim.plant.listeners.append(lambda b: out.extend(zip(b.t.tolist(), b.v_out.tolist(), strict=True)))
     return out
 
 
@@ -465,7 +465,7 @@ def test_a_host_stall_longer_than_the_watchdog_latches_and_high_voltage_never_co
             out = s.execute("reset because the laptop slept; rig checked")
             assert out.status == "ok" and "Ada Lovelace" in out.text and "because the laptop slept" in out.text, out
             assert s.execute("voltage 2kV").status == "ok"
-            assert abs(float(sim.plant.observe().voltage[-1]) - 2000) < 30  # accepted, and the plant has it
+            assert abs(float(sim.plant.observe().v_out[-1]) - 2000) < 30  # accepted, and the plant has it
     if where == "at the exit":
         s._lock.release()
         t_reset = math.inf

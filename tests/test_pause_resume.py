@@ -45,7 +45,7 @@ def test_a_pause_zeroes_the_output_records_on_and_restarts_the_step(tmp_path: Pa
     t0: list[float] = []  # rig-clock time of run time 0
 
     def hook(engine: Engine, sim) -> None:
-        sim.plant.listeners.append(lambda b: blocks.append((b.t.copy(), b.voltage.copy())))
+        sim.plant.listeners.append(lambda b: blocks.append((b.t.copy(), b.v_out.copy())))
 
         def at(_now: float) -> None:
             if engine.snapshot.state == "running" and not t0:

@@ -19,13 +19,13 @@ from tests.conftest import RunningRig
 
 def test_laser_single_reads_follow_the_plant(thesis: RunningRig) -> None:
     laser, amp = thesis.inst.laser, thesis.inst.amplifier
-    assert abs(laser.read().value) < 2e-6  # at rest: noise only (0.2 µm rms)
+    assert abs(laser.read().value) < 20e-6  # at rest: noise only (LK-G152 at averaging 64: 4 µm rms, 5σ)
     amp.set_voltage(6000.0)
     thesis.advance(3.0)
     r = laser.read()
     plant_u = float(thesis.sim.plant.last.displacement[0])
     assert r.timestamp == pytest.approx(4.0)
-    assert r.value == pytest.approx(plant_u, abs=1.5e-6)
+    assert r.value == pytest.approx(plant_u, abs=20e-6)  # LK-G152 at averaging 64: 4 µm rms (5σ)
     assert plant_u > 3e-3  # 6 kV moves the membrane by millimetres
 
 
@@ -48,7 +48,8 @@ def test_laser_buffer_is_complete_at_10_kHz(thesis: RunningRig) -> None:
     values = np.concatenate([b.values for b in blocks])
     truth = np.interp(t, np.concatenate(history_t), np.concatenate(history_u))
     assert np.all(np.concatenate([b.valid for b in blocks]))
-    assert np.max(np.abs(values - truth)) < 1.5e-6  # noise 0.2 µm rms, 0.1 µm display resolution
+    # noise: Keyence LK-G152 repeatability 0.5 µm at averaging 4096 (catalogue), √(4096/64) = 8× at the rig's 64
+    assert np.sqrt(np.mean((values - truth) ** 2)) == pytest.approx(4e-6, rel=0.1)
 
 
 def test_laser_storage_capacity_stops_storage(thesis: RunningRig) -> None:
@@ -203,8 +204,10 @@ def test_amplifier_monitors_follow_the_set_point(thesis: RunningRig) -> None:
     amp.set_voltage(4000.0)
     thesis.advance(0.5)  # the ADAM-4017+ converts 10 S/s over the enabled channels
     v, i = amp.read_monitors()
-    assert v.value == pytest.approx(4000.0, abs=6.0)  # 12-bit AO step 4.9 V, monitor noise 0.5 V
-    assert abs(i.value) < 2e-6
+    # 12-bit AO step 4.9 V; TREK monitors [assumed, bench/core/noise.py]: ±0.1 % of 10 kV (10 V) and 1 V rms
+    # noise; current monitor ±1 % of 10 mA (100 µA)
+    assert v.value == pytest.approx(4000.0, abs=4.9 + 10.0 + 5.0)
+    assert abs(i.value) < 100e-6 + 5e-6
     assert v.timestamp == pytest.approx(1.5)
 
 
@@ -256,7 +259,7 @@ def test_modbus_transports(transport: str, prefix: str) -> None:
                    if ep.protocol.startswith("Modbus"))
         r.inst.amplifier.set_voltage(3000.0)
         r.advance(0.5)
-        assert r.inst.amplifier.read_voltage().value == pytest.approx(3000.0, abs=6.0)
+        assert r.inst.amplifier.read_voltage().value == pytest.approx(3000.0, abs=4.9 + 10.0 + 5.0)
         assert r.inst.load_cell.read().ok
     finally:
         r.inst.close()
@@ -303,10 +306,10 @@ def test_analog_module_watchdog_zeroes_the_amplifier_when_the_host_goes_silent(
     amp, sim = thesis_rtu.inst.amplifier, thesis_rtu.sim
     amp.set_voltage(5000.0)
     thesis_rtu.advance(0.5)
-    assert amp.read_voltage().value == pytest.approx(5000.0, abs=6.0)
+    assert amp.read_voltage().value == pytest.approx(5000.0, abs=4.9 + 10.0 + 5.0)
     sim.faults["io"].drop = True  # the host can no longer reach the module
     thesis_rtu.advance(2.0)  # longer than the 1-s communication safety of the rig file
-    assert sim.plant.observe().voltage[0] == 0.0 and sim.plant.watchdog_tripped
+    assert sim.plant.observe().v_out[0] == 0.0 and sim.plant.watchdog_tripped
 
 
 # ------------------------------------------------------------------ wall clock: the plant keeps up in the background

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from bench.analysis.applied import applied_voltage
-from bench.analysis.cycles import crest_to_trough, hysteresis_loss
+from bench.analysis.cycles import crest_to_trough, hysteresis_loss, phase_lag, smooth
 from bench.analysis.thesis import cycle_figures
 from bench.models.lozenge import LozengeParams
 from bench.protocol.schema import Protocol, WaveformStep, load_protocol
@@ -75,6 +75,20 @@ class RunAnalysis:
             if m not in out or amp > out[m][1]:
                 out[m] = (s.frequency, amp)
         return out
+
+
+def _vf_lag(run: RunFile, t: np.ndarray, force: np.ndarray, f_out: float) -> float:
+    """Time [s] by which the force's troughs lag the voltage's maxima (Fig. 7A: the force falls as V²), measured
+    at the output frequency on the recorded voltage; NaN where the monitors were sampled too slowly for it (fewer
+    than 20 samples per output period)."""
+    amp = run.streams.get("amplifier")
+    if amp is None or len(amp) < 2 or t.size < 20:
+        return float("nan")
+    w = _window(amp, float(t[0]), float(t[-1]))
+    if w.sum() < 20 * f_out * (t[-1] - t[0]):
+        return float("nan")
+    v = np.interp(t, amp.t[w], amp.columns["voltage"][w])
+    return phase_lag(t, v**2, -np.asarray(force, dtype=float), f_out)
 
 
 def protocol_of(run: RunFile) -> Protocol:
@@ -158,9 +172,10 @@ def analyse(path: str | Path, last_cycles: int = 3) -> RunAnalysis:
                 losses.append(hysteresis_loss(x[c], force[c]))
             res.kind = "isopotential"
             last = (tt >= t0 + (n_cyc - 1) / f - 1e-9)
+            fs = smooth(tt[last], force[last], 0.02 / f)  # extremes of the force, not of its noise
             res.figures = {"loss_last": losses[-1], "loss_first": losses[0],
-                           "stroke": float(np.ptp(x[last])), "force_max": float(np.max(force[last])),
-                           "force_min": float(np.min(force[last]))}
+                           "stroke": float(np.ptp(x[last])), "force_max": float(np.max(fs)),
+                           "force_min": float(np.min(fs))}
             res.series = {"loss_per_cycle": losses}
         elif config == "hung":
             laser = run.streams["laser"]
@@ -187,9 +202,9 @@ def analyse(path: str | Path, last_cycles: int = 3) -> RunAnalysis:
             t_tail = t0 + dur - min(last_cycles, round(dur * f)) / f
             w = _window(lc, t_tail, t0 + dur)
             res.kind = "isometric"
-            res.figures = {"force_swing": crest_to_trough(lc.t[w], lc.columns["force"][w],
-                                                           2 * f if step.kind == "sine" else f),
+            f_out = 2 * f if step.kind == "sine" else f
+            res.figures = {"force_swing": crest_to_trough(lc.t[w], lc.columns["force"][w], f_out),
                            "force_mean": float(np.mean(lc.columns["force"][w])),
-                           "output_frequency": 2 * f if step.kind == "sine" else f}
+                           "output_frequency": f_out, "vf_lag": _vf_lag(run, lc.t[w], lc.columns["force"][w], f_out)}
         results.append(res)
     return RunAnalysis(Path(path), run.attrs["protocol_name"], kind_of_specimen, config, results)

@@ -375,7 +375,7 @@ class Trace:
     def listen(self, plant: Any, stopping: Callable[[], bool]) -> None:
         """Record ``plant``'s output from now on; ``stopping()`` says whether the run is shutting down."""
         def block(b: Any) -> None:
-            self.blocks.append((b.t.copy(), b.voltage.copy()))
+            self.blocks.append((b.t.copy(), b.v_out.copy()))
             if self.t_stop is None and stopping():
                 self.t_stop = float(b.t[0])
         plant.listeners.append(block)

@@ -438,6 +438,7 @@ FIGURE_COLUMNS: dict[str, tuple[str, float]] = {
     "stroke_percent": ("stroke [%]", 1.0), "energy_density": ("w [mJ/g]", 1.0),
     "energy_density_with_mechanism": ("w+mech [mJ/g]", 1.0), "mean_position": ("x mean [mm]", 1e3),
     "force_swing": ("ΔF [N]", 1.0), "force_mean": ("F mean [N]", 1.0), "output_frequency": ("f out [Hz]", 1.0),
+    "vf_lag": ("V–F lag [ms]", 1e3),
 }
 
 
@@ -446,7 +447,7 @@ FIGURE_UNITS: dict[str, str] = {
     "peak_first": "m", "peak_last": "m", "creep": "1", "lag_first": "s", "residual_first": "m", "residual_last": "m",
     "loss_first": "1", "loss_last": "1", "stroke": "m", "force_max": "N", "force_min": "N", "amplitude": "m",
     "stroke_percent": "%", "energy_density": "mJ/g", "energy_density_with_mechanism": "mJ/g", "mean_position": "m",
-    "force_swing": "N", "force_mean": "N", "output_frequency": "Hz",
+    "force_swing": "N", "force_mean": "N", "output_frequency": "Hz", "vf_lag": "s",
 }
 
 

@@ -23,8 +23,10 @@ from typing import Literal
 
 import numpy as np
 
+from bench.core.amplifier_dynamics import lowpass, monitors, output_response
 from bench.core.clock import Clock
 from bench.core.motion import MotionProfile
+from bench.core.noise import TREK_DYNAMICS, Realism
 from bench.models.lozenge import PROTOTYPE_LAMBDA2P, LozengeParams
 from bench.models.lozenge_runs import LozengeStream
 from bench.models.membrane import MembraneParams
@@ -80,35 +82,53 @@ TREK_DATASHEET = {"10/10B-HS": AmplifierSpec("10/10B-HS", 10e3, 10e-3, 1000.0, 1
 
 @dataclass(frozen=True)
 class HVStage:
-    """High-voltage amplifier output stage (TREK HS datasheet figures).
+    """High-voltage amplifier output stage (TREK HS datasheet figures, :data:`bench.core.noise.TREK_DYNAMICS`).
 
-    Output = gain × analog input, clipped to ±max_output; it moves at most at min(slew, max_current/C)
-    (a current-limited capacitive load); after dielectric breakdown the load is a short ``r_short``.
+    Output = gain × analog input, clipped to ±max_output, through a first-order stage (corner ``bandwidth_Hz``)
+    that moves at most at min(slew, current limit / C) — the current limit ``peak_current`` for ``peak_s``, then
+    ``max_current`` (DC) — into the specimen's capacitance (:mod:`bench.core.amplifier_dynamics`); after
+    dielectric breakdown the load is a short ``r_short``. Defaults: the 10/10B-HS.
     """
 
     gain: float = 1000.0
     max_output: float = 10e3  # V
-    max_current: float = 10e-3  # A
+    max_current: float = 10e-3  # A (DC)
     slew: float = 700e6  # V/s (> 700 V/µs)
     r_short: float = 1e3  # Ω, electrodes after breakdown
+    bandwidth_Hz: float = 19.5e3
+    peak_current: float = 40e-3  # A
+    peak_s: float = 1e-3
+    model: str = "10/10B-HS"  # whose monitors (bandwidths, accuracy, noise) the plant reports through
 
     @classmethod
     def of(cls, amplifier: AmplifierSpec) -> HVStage:
-        """The output stage of this amplifier (gain, output and current limits from its datasheet)."""
-        return cls(gain=amplifier.gain, max_output=amplifier.max_output, max_current=amplifier.max_current)
+        """The output stage of this amplifier (gain, limits and dynamics from its datasheet)."""
+        dyn = TREK_DYNAMICS[amplifier.model]
+        return cls(gain=amplifier.gain, max_output=amplifier.max_output, max_current=amplifier.max_current,
+                   slew=dyn.slew, bandwidth_Hz=dyn.bandwidth_Hz, peak_current=dyn.peak_current, peak_s=dyn.peak_s,
+                   model=amplifier.model)
 
 
 @dataclass(frozen=True)
 class PlantBlock:
-    """Samples of one advanced block (one per model step): times [s] and observables (SI)."""
+    """Samples of one advanced block (one per model step): times [s] and observables (SI).
+
+    ``voltage`` and ``current`` are what the amplifier's monitors report (bandwidth, gain/offset error and noise
+    of :mod:`bench.core.amplifier_dynamics`, at the output's scale): every instrument wired to the monitors reads
+    them. ``v_out`` and ``i_out`` are the true output (what the specimen gets)."""
 
     t: np.ndarray
-    voltage: np.ndarray  # amplifier output [V]
-    current: np.ndarray  # amplifier output current [A]
+    voltage: np.ndarray  # amplifier output as its voltage monitor reports it [V]
+    current: np.ndarray  # amplifier output current as its current monitor reports it [A]
     displacement: np.ndarray  # membrane u, or LS-DEA aperture x [m]
     force: np.ndarray  # force on the load cell [N] (0 when not coupled)
     field: np.ndarray  # true electric field in the film [V/m]
     breakdown: np.ndarray  # breakdown field at the present stretch [V/m]
+    v_out: np.ndarray  # true amplifier output [V]
+    i_out: np.ndarray  # true amplifier output current [A]
+
+
+PLANT_FIELDS = ("t", "voltage", "current", "displacement", "force", "field", "breakdown", "v_out", "i_out")
 
 
 class Plant:
@@ -117,9 +137,12 @@ class Plant:
     def __init__(self, clock: Clock, specimen: MembraneParams | LozengeParams, *,
                  configuration: Literal["membrane", "motor", "blocked", "hung"] = "membrane",
                  temperature: float = 296.0, x0: float = 0.05, h: float = 1e-4, hv: HVStage | None = None,
-                 motor_sign: float = 1.0, membrane_method: Literal["fixed", "rodas"] = "fixed") -> None:
+                 motor_sign: float = 1.0, membrane_method: Literal["fixed", "rodas"] = "fixed",
+                 realism: Realism | None = None) -> None:
         """``membrane_method``: how the membrane model advances (``MembraneStream``): ``fixed`` for the twins,
-        ``rodas`` (error-controlled, in blocks) for the dry run."""
+        ``rodas`` (error-controlled, in blocks) for the dry run; ``realism``: noise on or off and its seed (default:
+        off — ideal monitors, for the twins' own conformance tests; a rig's plant, :func:`bench.rig.plant_for`,
+        has the rig file's ``[simulation] noise``, on by default)."""
         self.clock = clock
         self.specimen = specimen
         self.configuration = configuration
@@ -128,6 +151,11 @@ class Plant:
         self.h = h
         self.hv = hv or HVStage()
         self.motor_sign = motor_sign
+        self.realism = realism or Realism(noise=False)
+        dyn = TREK_DYNAMICS.get(self.hv.model, TREK_DYNAMICS["10/10B-HS"])
+        self.vmon, self.imon = monitors(dyn, self.hv.max_output, self.hv.max_current, self.realism)
+        self._t_limited = 0.0  # time the output has spent current-limited above its DC rating
+        self._target = 0.0  # the output stage's last target [V]
         self.lock = threading.RLock()
         self.listeners: list[Listener] = []
         self.v_out = 0.0  # amplifier output [V]
@@ -150,7 +178,9 @@ class Plant:
             self._membrane: MembraneStream | None = MembraneStream(specimen, h=h, T=temperature,
                                                                    method=membrane_method)
             self._lozenge: LozengeStream | None = None
-            self._C = 1e-9
+            # capacitance at rest (bounds the first step's current): one step of a copy at 0 V
+            c0 = copy.deepcopy(self._membrane).advance(np.zeros(1), temperature).capacitance
+            self._C = float(c0[-1]) if c0.size and np.isfinite(c0[-1]) and c0[-1] > 0 else 1e-9
         else:
             if configuration not in ("motor", "blocked", "hung"):
                 raise ValueError(f"LS-DEA configuration must be motor, blocked or hung, got {configuration!r}")
@@ -285,6 +315,8 @@ class Plant:
         """Compile the model's kernels now, on a copy (a fresh install has no numba cache: compiling on the
         first request would take seconds inside a twin's reply and the host would time out)."""
         with self.lock:
+            output_response(np.zeros(2), 0.0, self.h, 1e-5, 1e8, 1e-9, 1e-2, 4e-2, 1e-3, 0.0)  # the output stage
+            lowpass(np.zeros(2), 0.5, 0.0)  # and its monitors
             if self._membrane is not None:
                 copy.deepcopy(self._membrane).advance(np.zeros(2), self.temperature)
             if self._lozenge is not None:
@@ -348,20 +380,17 @@ class Plant:
     def _hv_output(self, n: int) -> np.ndarray:
         self._check_watchdog((self._n + n) * self.h)
         hv = self.hv
-        rate = min(hv.slew, hv.max_current / max(self._C, 1e-15)) * self.h
         a, b, v_in = self._input_pieces(n)
         target = np.clip(hv.gain * v_in, -hv.max_output, hv.max_output)
         if self.broken:
             target = np.copysign(np.minimum(np.abs(target), hv.max_current * hv.r_short), target)
-        per_step = np.repeat(target, b - a)
-        if per_step.size == n and np.all(np.abs(np.diff(per_step, prepend=self.v_out)) <= rate):
-            return per_step  # every change within one step's slew: the output follows the input exactly
-        v = np.empty(n)
-        v0 = self.v_out
+        per_step = np.full(n, self._target)
         for ai, bi, tg in zip(a.tolist(), b.tolist(), target.tolist(), strict=True):
-            k = np.arange(1, bi - ai + 1, dtype=float)
-            v[ai:bi] = v0 + np.clip(tg - v0, -rate * k, rate * k)
-            v0 = float(v[bi - 1]) if bi > ai else v0
+            per_step[ai:bi] = tg
+        self._target = float(per_step[-1])
+        v, self._t_limited = output_response(per_step, self.v_out, self.h, 1.0 / (2.0 * math.pi * hv.bandwidth_Hz),
+                                             hv.slew, max(self._C, 1e-15), hv.max_current,
+                                             max(hv.peak_current, hv.max_current), hv.peak_s, self._t_limited)
         return v
 
     def _motor(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -421,8 +450,9 @@ class Plant:
         self.v_out = float(v_amp[-1])
         self._n += n
         self.t = self._n * self.h
-        block = PlantBlock(t, v_amp, current, disp, force, field, breakdown)
-        self.last = PlantBlock(t[-1:], v_amp[-1:], current[-1:], disp[-1:], force[-1:], field[-1:], breakdown[-1:])
+        block = PlantBlock(t, self.vmon(v_amp, self.h), self.imon(current, self.h), disp, force, field, breakdown,
+                           v_amp, current)
+        self.last = PlantBlock(*(getattr(block, f)[-1:] for f in PLANT_FIELDS))
         for listener in self.listeners:
             listener(block)
 
@@ -438,4 +468,4 @@ class Plant:
             self._C = float(tr.capacitance[0])
         z = np.zeros(1)
         self.last = PlantBlock(np.array([self.t]), np.array([self.v_out]), z.copy(), np.array([disp]),
-                               np.array([force]), z.copy(), np.array([breakdown]))
+                               np.array([force]), z.copy(), np.array([breakdown]), np.array([self.v_out]), z.copy())

@@ -18,13 +18,14 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 from bench.core.clock import Clock, VirtualClock, WallClock
+from bench.core.noise import lkg_noise_mm, load_cell_noise_kg
 from bench.core.plant import Plant
 from bench.rig import RigConfig, amplifier_spec, plant_for
 from sim_devices.keyence_lkg import TURNAROUND_S as LKG_TURNAROUND_S
 from sim_devices.keyence_lkg import KeyenceLKGSim, LaserHead
 from sim_devices.labjack_t7 import LabJackT7Sim
 from sim_devices.linmot_drive import LinMotDriveSim
-from sim_devices.modbus_devices import Adam4017PSim, Adam4024Sim, Dgt1sSim, Scale
+from sim_devices.modbus_devices import STANDARD_GRAVITY, Adam4017PSim, Adam4024Sim, Dgt1sSim, Scale
 from sim_devices.modbus_host import ModbusHost, SimBus
 from sim_devices.transport import Faults, Line, PtyDevice, TwinTimer
 
@@ -79,7 +80,8 @@ class SimRig:
         if rig.laser is not None:
             head = LaserHead(offset_mm=rig.laser.offset_mm, sign=rig.laser.sign, range_mm=rig.laser.range_mm)
             twin = KeyenceLKGSim(self.plant, self.clock, model=rig.laser.model, head=head,
-                                 capacity=rig.laser.storage_points, seed=sim.seed, outs=max(1, rig.laser.out))
+                                 capacity=rig.laser.storage_points, seed=sim.seed, outs=max(1, rig.laser.out),
+                                 head_model=rig.laser.head, averaging=rig.laser.averaging, noise=sim.noise)
             self._serve_serial("laser", twin, rig.laser.baudrate, LKG_TURNAROUND_S)
         if rig.motor is not None:
             m = rig.motor
@@ -96,12 +98,13 @@ class SimRig:
             ai = Adam4017PSim(a.ai_unit, self.plant, self.clock, vmon_ratio=trek.vmon_ratio,
                               imon_ratio=trek.imon_ratio, vmon_channel=a.vmon_channel,
                               imon_channel=a.imon_channel, scale=Scale(bits=a.ai_bits, raw_format=a.raw_format),
-                              seed=sim.seed + 1)
+                              seed=sim.seed + 1, noise_volts=0.5e-3 if sim.noise else 0.0)
             self.twins["amplifier AO"], self.twins["amplifier AI"] = ao, ai
             buses.setdefault(a.bus, []).extend([ao, ai])
         if (c := rig.load_cell) is not None:
             cell = Dgt1sSim(c.unit, self.plant, self.clock, division=c.division_kg, capacity=c.capacity_kg,
                             seed=sim.seed + 2)
+            cell.noise = load_cell_noise_kg(cell.rate) if sim.noise else 0.0
             self.twins["load_cell"] = cell
             buses.setdefault(c.bus, []).append(cell)
         if buses:
@@ -132,20 +135,26 @@ class SimRig:
 
         d, rig, trek = self.rig.daq, self.rig, amplifier_spec(self.rig)
         assert d is not None
+        noise = rig.simulation.noise
+        # the monitors' noise and errors are the plant's (PlantBlock.voltage/current); the sensors' own noise is
+        # what the bridge amplifier and the LK-G's analog output add before the AIN (bench.core.noise)
         signals = {d.vmon_ain: Signal("voltage", 1.0 / trek.vmon_ratio),
                    d.imon_ain: Signal("current", 1.0 / trek.imon_ratio)}
         if d.force_ain is not None:
-            signals[d.force_ain] = Signal("force", 1.0 / d.force_N_per_V, -d.force_offset_N / d.force_N_per_V)
+            cell_n = load_cell_noise_kg(d.scan_rate_Hz) * STANDARD_GRAVITY if noise else 0.0  # N rms at the scan rate
+            signals[d.force_ain] = Signal("force", 1.0 / d.force_N_per_V, -d.force_offset_N / d.force_N_per_V,
+                                          noise=cell_n / d.force_N_per_V)
         if d.laser_ain is not None:  # the head reads sign·(specimen coordinate) + offset (as the serial twin)
             sign, offset = (rig.laser.sign, rig.laser.offset_mm * 1e-3) if rig.laser else (1, 0.0)
+            head_n = lkg_noise_mm(rig.laser.head, rig.laser.averaging) * 1e-3 if rig.laser and noise else 0.0
             signals[d.laser_ain] = Signal("displacement", sign / d.laser_m_per_V,
-                                          (offset - d.laser_offset_m) / d.laser_m_per_V)
+                                          (offset - d.laser_offset_m) / d.laser_m_per_V, noise=head_n / d.laser_m_per_V)
         self.faults["daq"] = Faults(latency=rig.simulation.latency_s, clock=self.clock.now)
         cond = Conditioning(d.drive_gain, d.drive_offset_V, corner_Hz=d.drive_filter_Hz)
         def make() -> LabJackT7Sim:
             return LabJackT7Sim(self.plant, self.clock, dac=d.dac, conditioning=cond, signals=signals,
                                 seed=rig.simulation.seed + 3, faults=self.faults["daq"],
-                                noise=bool(getattr(rig.simulation, "noise", True)))  # [sim] noise, default on
+                                noise=noise)  # [simulation] noise: the T7's own AIN noise per range, resolution index
 
         twin = self._start_t7(make)
         self._daq_ports = twin.port, twin.stream_port
