@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import typer
 
-from bench.cli import analysis, lab, main, run
+from bench.cli import analysis, lab, main, run, watch
 
 __all__ = ["app"]
 
@@ -19,3 +19,4 @@ groups = main.register(app)  # the main options; simulate, sim, devices; benchma
 analysis.register(app)  # fit, design-map, report, demo
 lab.register(app, devices=groups["devices"])  # export; devices control
 run.register(app)  # validate, run, inspect, recover, init; protocols
+watch.register(app)  # watch (live plots in a browser)

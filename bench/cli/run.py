@@ -147,6 +147,9 @@ def run(
     why: Annotated[str | None, typer.Option(
         "--why", help="With --resume on a rig whose interlock latched: why it is safe to go on (resets the latch; "
         "recorded with --operator or the login name).")] = None,
+    web: Annotated[bool, typer.Option("--web", help="Serve live plots of the run to a browser (bench watch, on "
+                                      "127.0.0.1; the page can pause or stop the run).")] = False,
+    web_port: Annotated[int, typer.Option("--web-port", help="Port of --web (0: a free one).")] = 8765,
 ) -> None:
     """Run a protocol on a rig (simulated by default), streaming everything to one HDF5 file.
 
@@ -200,7 +203,10 @@ def run(
             log.info("recording warning: %s", short)
         for key, value in metadata.items():
             log.info("%s: %s", key.replace("_", " "), value.replace("\n", " | "))
-        result = _execute(plan, path, virtual_time, operator, live, allow_no_watchdog, metadata, link)
+        from bench.cli.watch import serving
+
+        with serving(path, web_port) if web else contextlib.nullcontext():
+            result = _execute(plan, path, virtual_time, operator, live, allow_no_watchdog, metadata, link)
         _log_result(result)
     with contextlib.suppress(OSError):  # the terminal went away (SIGHUP): the file holds the whole account
         _print_result(result)
