@@ -300,6 +300,7 @@ class BenchmarkSet(StrEnum):
     daq = "daq"
     faults = "faults"
     export = "export"
+    watch = "watch"
     all = "all"
 
 
@@ -357,6 +358,9 @@ def _benchmark(which: BenchmarkSet, quick: bool) -> dict[str, object]:
         from bench.benchmarks import export as benchmark_export
 
         sets.append(("export: peak memory against the run's length", benchmark_export.run_all))
+    if which in (BenchmarkSet.watch, BenchmarkSet.all):
+        from bench.benchmarks import watch as benchmark_watch
+        sets.append(("bench watch: server CPU and lag during a run, page data", benchmark_watch.run_all))
     for title, fn in sets:
         with console.status(f"benchmarking {title}…"):
             figures = fn(quick=quick)
