@@ -29,6 +29,7 @@ from bench.benchmarks.acquisition import Figure
 from bench.resources import protocols_dir
 from bench.storage.recorder import Column, Recorder
 from bench.storage.runfile import open_h5, valid_counts
+from bench.watch import free_port
 from bench.watch.follow import PIXELS
 
 POLL_S = 0.5  # as the page (bench/watch/static/watch.js)
@@ -83,8 +84,6 @@ def _file_end(path: Path) -> float:
 
 def live(tmp: Path) -> tuple[float, float, float, int]:
     """(CPU share %, worst lag s, median lag s, polls) of ``bench watch`` following a wall-clock 4 × 10 kHz run."""
-    from bench.cli.watch import free_port
-
     env = {**os.environ, "BENCH_STATE_DIR": str(tmp / "state")}
     protocol = protocols_dir() / "short" / "thesis-identification-short.toml"
     run = subprocess.Popen([sys.executable, "-m", "bench", "run", str(protocol), "--no-live", "--out", str(tmp)],

@@ -83,20 +83,12 @@ def watch(
     serve(app, sock)
 
 
-def free_port() -> int:
-    """A port free on the loopback now (``bench run --web --web-port 0``)."""
-    from socket import socket
-
-    with socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port: int = s.getsockname()[1]
-        return port
-
-
 @contextlib.contextmanager
 def serving(run_file: Path, port: int) -> Iterator[str]:
     """``bench run --web``: ``bench watch`` on the run file in its own process (its reads never hold up the run's
     writes), from before the file exists until shortly after the run ends; yields the page's address."""
+    from bench.watch import free_port
+
     _web_libraries()
     port = port or free_port()
     cmd = [sys.executable, "-m", "bench", "watch", str(run_file), "--port", str(port), "--pending"]
