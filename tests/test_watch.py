@@ -168,6 +168,16 @@ def test_actions_are_pause_and_stop_only_and_need_a_live_run(served: tuple[Path,
     assert not control_path(run).exists()
 
 
+def test_an_h5_that_is_no_run_file_is_one_line_on_the_page(served: tuple[Path, Path]) -> None:
+    import h5py
+
+    with h5py.File(served[0] / "other.h5", "w") as f:
+        f["x"] = np.arange(3)
+    with client(served[0]) as c:
+        r = c.get("/api/runs/other.h5")
+        assert r.status_code == 500 and r.json()["error"].startswith("other.h5: ") and "\n" not in r.json()["error"]
+
+
 def test_the_web_extra_missing_is_one_line(served: tuple[Path, Path], monkeypatch: pytest.MonkeyPatch) -> None:
     from typer.testing import CliRunner
 

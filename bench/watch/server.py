@@ -133,7 +133,10 @@ def create_app(served: Served, token: str | None = None, loopback: bool = True) 
             gen, _, bins = rest.partition(":")
             if stream and gen.lstrip("-").isdigit() and bins.isdigit():
                 have[stream] = (int(gen), int(bins))
-        f.look()
+        try:
+            f.look()
+        except (OSError, KeyError, ValueError) as exc:  # not a run file, or a read that failed: said on the page
+            return JSONResponse({"error": f"{f.path.name}: {' '.join(str(exc).split())[:300]}"}, 500)
         return JSONResponse(f.payload(have), headers={"Cache-Control": "no-store"})
 
     def action(request: Request) -> Response:
@@ -145,7 +148,10 @@ def create_app(served: Served, token: str | None = None, loopback: bool = True) 
         f = follower(request.path_params["name"])
         if f is None:
             return JSONResponse({"error": "not a served run"}, 404)
-        f.look()
+        try:
+            f.look()
+        except (OSError, KeyError, ValueError) as exc:
+            return JSONResponse({"error": f"{f.path.name}: {' '.join(str(exc).split())[:300]}"}, 409)
         if f.info.get("state") not in ("running", "paused"):
             return JSONResponse({"error": f"no run is writing {f.path.name} ({f.info.get('state')})"}, 409)
         client = request.client.host if request.client else "unknown"
