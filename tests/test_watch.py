@@ -225,11 +225,19 @@ def _has(module: str) -> bool:
 
 
 def test_the_page_follows_a_run_and_its_stop_button_makes_it_safe(tmp_path: Path) -> None:
-    """A wall-clock run on the simulated DAQ rig with --web; the page's plots grow; its stop button ends the run."""
+    """A wall-clock run on the simulated DAQ rig with --web; the page's plots grow; its pause button pauses the run,
+    its stop button ends it; both recorded in the file as coming from the page's address."""
     chromium = _chromium()
     from playwright.sync_api import sync_playwright
 
-    proc = subprocess.Popen([sys.executable, "-m", "bench", "run", str(SHORT / "thesis-identification-short.toml"),
+    # the short identification protocol with a 60-s drive, so a loaded machine (the server starting, the browser)
+    # cannot see it end before the page stops it
+    text = (SHORT / "thesis-identification-short.toml").read_text(encoding="utf-8")
+    protocol = tmp_path / "identification-60s.toml"
+    protocol.write_text(text.replace('rig = "../../rigs/', f'rig = "{ROOT}/rigs/').replace(
+        'name = "thesis-identification-short"', 'name = "identification-60s"').replace(
+        "duration_s = 10.0", "duration_s = 60.0"), encoding="utf-8")
+    proc = subprocess.Popen([sys.executable, "-m", "bench", "run", str(protocol),
                              "--web", "--web-port", "0", "--no-live", "--out", str(tmp_path)], cwd=ROOT,
                             env={**ENV, "BENCH_STATE_DIR": str(tmp_path / "state")}, stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True)
@@ -263,6 +271,9 @@ def test_the_page_follows_a_run_and_its_stop_button_makes_it_safe(tmp_path: Path
             assert grown["state"] == "running" and grown["panels"] >= 3 and grown["points"] > 0
             if os.environ.get("BENCH_SCREENSHOT"):
                 page.screenshot(path=str(ROOT / "docs" / "watch.png"))
+            page.click("#pause")
+            page.wait_for_function("window.benchWatch.state === 'paused'", timeout=30_000)
+            assert "pause asked" in page.inner_text("#message")
             page.click("#stop")
             page.wait_for_function("window.benchWatch.state === 'interrupted'", timeout=30_000)
             assert "stop asked" in page.inner_text("#message")
@@ -274,8 +285,12 @@ def test_the_page_follows_a_run_and_its_stop_button_makes_it_safe(tmp_path: Path
     assert proc.returncode == 1, output  # interrupted
     run = open_run(next(tmp_path.glob("*.h5")))
     assert run.state == "interrupted" and "web 127.0.0.1" in run.reason, output
+    (pause,) = [e for e in run.event_list() if e[2] == "pause"]
     (request,) = [e for e in run.event_list() if e[2] == "request"]
+    assert "web 127.0.0.1" in pause[3] and "pause button" in pause[3]
     assert "web 127.0.0.1" in request[3] and "stop button" in request[3]
     assert [e[2] for e in run.event_list()][-1] == "safe"
-    assert request[0] < 10.0  # stopped inside the 10-s drive, not at its end
+    assert pause[0] < request[0] < 60.0  # paused, then stopped inside the 60-s drive
+    assert "resume" not in [e[2] for e in run.event_list()]  # the stop ended the pause: no step restarted
+    assert abs(run.streams["amplifier"].columns["commanded"][-1]) < 1.0  # the output left at 0 V
     assert json.loads(control_path(run.path).read_text())["stop"] is True
