@@ -180,7 +180,7 @@ class Follower:
             limits = {unit: float(rig["limits"][key]) for unit, key in LIMITS.items() if key in rig.get("limits", {})}
         except (tomllib.TOMLDecodeError, TypeError, ValueError):
             limits = {}
-        program = read_table(self.f["program"]) if "program" in self.f else np.zeros(0)
+        program: Any = read_table(self.f["program"]) if "program" in self.f else []
         self.static = {"name": self.path.name, "protocol": text("protocol_name"), "rig": text("rig_name"),
                        "simulated": text("simulated"), "start_time": text("start_time"), "limits": limits,
                        "steps": [{"index": int(p["index"]), "name": p["name"].decode(), "t_start": float(p["t_start"]),
