@@ -279,6 +279,10 @@ def test_the_page_follows_a_run_and_its_stop_button_makes_it_safe(tmp_path: Path
             assert "stop asked" in page.inner_text("#message")
             browser.close()
         rest, _ = proc.communicate(timeout=60)
+    except Exception as exc:  # say how the run went: a wait that timed out alone says nothing
+        proc.kill()
+        rest = proc.communicate()[0]
+        raise AssertionError(f"{exc}\nbench run printed:\n{''.join(lines)}{rest}") from exc
     finally:
         proc.kill()
     output = "".join(lines) + rest
