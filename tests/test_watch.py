@@ -188,6 +188,20 @@ def test_the_web_extra_missing_is_one_line(served: tuple[Path, Path], monkeypatc
     assert result.exit_code == 2 and "dea-bench[web]" in result.output and "Traceback" not in result.output
 
 
+def test_a_busy_web_port_is_one_line_before_the_run(tmp_path: Path) -> None:
+    import socket
+
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen(1)
+        port = busy.getsockname()[1]
+        r = subprocess.run([sys.executable, "-m", "bench", "run", str(SHORT / "thesis-identification-short.toml"),
+                            "--web", "--web-port", str(port), "--no-live", "--virtual-time", "--out", str(tmp_path)],
+                           cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and f"cannot serve on 127.0.0.1:{port}" in r.stderr and "Traceback" not in r.stderr
+    assert not list(tmp_path.glob("*.h5"))  # refused before the run started
+
+
 # ---------------------------------------------------------------- the stop word of the control file
 def test_the_stop_word_ends_the_run_safely_and_says_who_asked(tmp_path: Path) -> None:
     out = tmp_path / "run.h5"

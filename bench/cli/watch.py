@@ -74,6 +74,8 @@ def watch(
     token = None if loopback else (os.environ.get(TOKEN_ENV) or secrets.token_urlsafe(18))
     sock = bind(host, port)
     app = create_app(Served(files, folders), token=token, loopback=loopback)
+    if pending:  # bench run --web: the server ends with the run's process, also when that one is killed
+        _end_with(os.getppid())
     if not pending:
         console.print(f"watching {len(files) + len(folders)} run(s): {url(host, sock.getsockname()[1], token)}")
         if token:
@@ -83,6 +85,19 @@ def watch(
     serve(app, sock)
 
 
+def _end_with(parent: int) -> None:
+    """SIGTERM to this process (uvicorn's graceful end) once ``parent`` is gone (this process is re-parented)."""
+    import signal
+    import threading
+
+    def watch_parent() -> None:
+        while os.getppid() == parent:
+            time.sleep(1.0)
+        os.kill(os.getpid(), signal.SIGTERM)
+
+    threading.Thread(target=watch_parent, name="bench-watch-parent", daemon=True).start()
+
+
 @contextlib.contextmanager
 def serving(run_file: Path, port: int) -> Iterator[str]:
     """``bench run --web``: ``bench watch`` on the run file in its own process (its reads never hold up the run's
@@ -90,7 +105,7 @@ def serving(run_file: Path, port: int) -> Iterator[str]:
     from bench.watch import free_port
 
     _web_libraries()
-    port = port or free_port()
+    port = free_port(port)
     cmd = [sys.executable, "-m", "bench", "watch", str(run_file), "--port", str(port), "--pending"]
     proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL)
     try:

@@ -5,9 +5,13 @@ from __future__ import annotations
 import socket
 
 
-def free_port() -> int:
-    """A port free on the loopback now (``bench run --web --web-port 0``, the benchmark)."""
+def free_port(port: int = 0) -> int:
+    """``port`` if it is free on the loopback now, else a one-line error; 0: any free port (``bench run --web``,
+    the benchmark)."""
     with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port: int = s.getsockname()[1]
-        return port
+        try:
+            s.bind(("127.0.0.1", port))
+        except OSError as exc:
+            raise ValueError(f"cannot serve on 127.0.0.1:{port}: {exc.strerror or exc} (--web-port N, or 0)") from None
+        found: int = s.getsockname()[1]
+        return found
