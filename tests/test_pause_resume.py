@@ -94,8 +94,8 @@ def test_the_control_file_is_read_only_when_whole(tmp_path: Path) -> None:
     path.write_text('{"pause": "yes"}', encoding="utf-8")  # not a boolean
     assert read_control(path, seen) == seen
     write_control(run_file, True, "ada", "check the clamp")
-    _, pause, who = read_control(path, seen)
-    assert pause and "ada" in who and "check the clamp" in who
+    _, pause, who, stop = read_control(path, seen)
+    assert pause and not stop and "ada" in who and "check the clamp" in who
 
 
 def _wait_for(predicate, timeout: float, what: str) -> None:

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import typer
 
-from bench.cli import analysis, catalog, lab, main, run
+from bench.cli import analysis, catalog, lab, main, run, watch
 
 __all__ = ["app"]
 
@@ -20,3 +20,4 @@ analysis.register(app)  # fit, design-map, report, demo
 lab.register(app, devices=groups["devices"])  # export; devices control
 run.register(app)  # validate, run, inspect, recover, init; protocols
 catalog.register(app)  # runs list, specimen show, catalog rebuild
+watch.register(app)  # watch (live plots in a browser)

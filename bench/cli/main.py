@@ -300,6 +300,7 @@ class BenchmarkSet(StrEnum):
     faults = "faults"
     startup = "startup"
     export = "export"
+    watch = "watch"
     all = "all"
 
 
@@ -330,6 +331,7 @@ BENCHMARK_SETS = (
     (BenchmarkSet.startup, "the command line's start-up",
      'start-up of the command line against python -c "import typer, rich"'),
     (BenchmarkSet.export, "the export's memory", "export: peak memory against the run's length"),
+    (BenchmarkSet.watch, "bench watch", "bench watch: server CPU and lag during a run, page data"),
     (BenchmarkSet.faults, "the fault matrix (faults that a wall-clock timeout, a signal or a stall detects run in "
      "real time)", "fault matrix"),
 )
@@ -383,7 +385,7 @@ def _physics(quick: bool) -> list[dict[str, object]]:
 
 
 def _figures(kind: BenchmarkSet, title: str, quick: bool) -> list[dict[str, object]]:
-    """Run and print one set of figures (acquisition, run, fit, daq, export, startup); returns them."""
+    """Run and print one set of figures (acquisition, run, fit, daq, export, watch, startup); returns them."""
     if kind is BenchmarkSet.acquisition:
         from bench.benchmarks.acquisition import run_all
     elif kind is BenchmarkSet.run:
@@ -394,6 +396,8 @@ def _figures(kind: BenchmarkSet, title: str, quick: bool) -> list[dict[str, obje
         from bench.benchmarks.daq import run_all
     elif kind is BenchmarkSet.export:
         from bench.benchmarks.export import run_all
+    elif kind is BenchmarkSet.watch:
+        from bench.benchmarks.watch import run_all
     else:
         from bench.benchmarks.startup import run_all
     figures = run_all(quick=quick)

@@ -152,6 +152,9 @@ def run(
     catalog: Annotated[str | None, typer.Option(
         "--catalog", metavar="URL", help="Run catalogue to record the run in (default: $BENCH_CATALOG, else "
         "catalog.sqlite in the --out folder).")] = None,
+    web: Annotated[bool, typer.Option("--web", help="Serve live plots of the run to a browser (bench watch, on "
+                                      "127.0.0.1; the page can pause or stop the run).")] = False,
+    web_port: Annotated[int, typer.Option("--web-port", help="Port of --web (0: a free one).")] = 8765,
 ) -> None:
     """Run a protocol on a rig (simulated by default), streaming everything to one HDF5 file.
 
@@ -209,7 +212,10 @@ def run(
             log.info("recording warning: %s", short)
         for key, value in metadata.items():
             log.info("%s: %s", key.replace("_", " "), value.replace("\n", " | "))
-        result = _execute(plan, path, virtual_time, operator, live, allow_no_watchdog, metadata, link)
+        from bench.cli.watch import serving
+
+        with serving(path, web_port) if web else contextlib.nullcontext():
+            result = _execute(plan, path, virtual_time, operator, live, allow_no_watchdog, metadata, link)
         _log_result(result)
     with contextlib.suppress(OSError):  # the terminal went away (SIGHUP): the file holds the whole account
         _print_result(result)

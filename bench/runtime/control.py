@@ -1,9 +1,10 @@
 """A run's control file: how ``bench pause`` and ``bench resume`` reach a run from another terminal.
 
 ``RUN.control`` beside ``RUN.h5`` holds one JSON object: ``{"pause": true|false, "by": "...", "why": "...",
-"at": "ISO time"}``. The engine looks at the file's modification time every :data:`CONTROL_POLL_S` of wall time
-and reads it when it changed. A file that cannot be read or parsed changes nothing (the run goes on as it was):
-a half-written file is read again at the next look.
+"at": "ISO time"}``, and ``"stop": true`` to end the run (``bench watch``'s stop button: the run goes safe as on
+Ctrl-C, the stop recorded with who asked). The engine looks at the file's modification time every
+:data:`CONTROL_POLL_S` of wall time and reads it when it changed. A file that cannot be read or parsed changes
+nothing (the run goes on as it was): a half-written file is read again at the next look.
 """
 
 from __future__ import annotations
@@ -21,18 +22,26 @@ def control_path(run_file: str | Path) -> Path:
     return Path(run_file).with_suffix(".control")
 
 
-def write_control(run_file: str | Path, pause: bool, by: str, why: str) -> Path:
-    """Ask the run writing ``run_file`` to pause (or to resume); atomic (written beside, then renamed)."""
+def write_control(run_file: str | Path, pause: bool, by: str, why: str, stop: bool = False) -> Path:
+    """Ask the run writing ``run_file`` to pause (or to resume, or with ``stop`` to end); atomic (written beside,
+    then renamed). A stop also says pause, so a run that reads it in a pause stays at 0 V until it ends."""
     path = control_path(run_file)
     tmp = path.with_suffix(".control.tmp")
-    text = json.dumps({"pause": pause, "by": by, "why": why, "at": datetime.now().astimezone().isoformat()})
+    at = datetime.now().astimezone().isoformat()
+    word: dict[str, object] = {"pause": pause or stop, "by": by, "why": why, "at": at}
+    if stop:
+        word["stop"] = True
+    text = json.dumps(word)
     tmp.write_text(text, encoding="utf-8")
     os.replace(tmp, path)
     return path
 
 
-def read_control(path: Path, seen: tuple[float, bool, str]) -> tuple[float, bool, str]:
-    """(mtime, pause?, "by: why") of the control file; ``seen`` when it is absent, unchanged or unreadable."""
+ControlWord = tuple[float, bool, str, bool]  # the control file's (mtime, pause?, "by (why)", stop?)
+
+
+def read_control(path: Path, seen: ControlWord) -> ControlWord:
+    """(mtime, pause?, "by (why)", stop?) of the control file; ``seen`` when it is absent, unchanged or unreadable."""
     try:
         mtime = path.stat().st_mtime
     except OSError:
@@ -42,9 +51,10 @@ def read_control(path: Path, seen: tuple[float, bool, str]) -> tuple[float, bool
     try:
         data = json.loads(path.read_text(encoding="utf-8"))
         pause = data["pause"]
-        if not isinstance(pause, bool):
+        stop = data.get("stop", False)
+        if not isinstance(pause, bool) or not isinstance(stop, bool):
             return seen
         who = f"{data.get('by') or 'someone'} (control file{': ' + str(data['why']) if data.get('why') else ''})"
     except (OSError, ValueError, KeyError, TypeError):
         return seen
-    return mtime, pause, who
+    return mtime, pause, who, stop

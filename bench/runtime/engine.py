@@ -34,7 +34,7 @@ import numpy as np
 from bench.core.clock import Clock
 from bench.protocol.program import HOLD_KEEPALIVE_S, Program, Segment, ticks, voltage_at
 from bench.runtime.context import LATE_TOLERANCE_S, STOP_POLL_S, RunContext, Snapshot, present
-from bench.runtime.control import CONTROL_POLL_S, read_control
+from bench.runtime.control import CONTROL_POLL_S, ControlWord, read_control
 from bench.runtime.hardware_timed import HardwareTimed
 from bench.runtime.instruments import Instruments
 from bench.runtime.interlock import InterlockTrip, watchdog_period
@@ -125,7 +125,7 @@ class Engine:
         self._output_dead = False  # 0 V could not be commanded: no request may feed the module's watchdog
         self._pause_by: str | None = None  # who asked for a pause (signal, another thread); None: nobody
         self._resume_by: str | None = None
-        self._control_seen: tuple[float, bool, str] = (0.0, False, "")  # control file: (mtime, pause?, by/why)
+        self._control_seen: ControlWord = (0.0, False, "", False)  # control file: (mtime, pause?, by/why, stop?)
         self._control_checked = 0.0
         self.pauses = 0
 
@@ -165,6 +165,9 @@ class Engine:
         if now - self._control_checked >= CONTROL_POLL_S:
             self._control_checked = now
             self._control_seen = read_control(self.control, self._control_seen)
+            if self._control_seen[3] and self._stop_reason is None:  # a stop word (bench watch): as Ctrl-C
+                self.request_stop(f"stop asked by {self._control_seen[2]}")
+                self._check_stop()
         return self._control_seen[1], self._control_seen[2]
 
     def _check_pause(self) -> None:
@@ -449,7 +452,7 @@ class Engine:
         self._pause_by = self._resume_by = None
         # a control file that asked for this pause is answered: it counts again only when it is written again (a
         # resume by key or signal would otherwise be undone by the file's old word)
-        self._control_seen = (self._control_seen[0], False, self._control_seen[2])
+        self._control_seen = (self._control_seen[0], False, self._control_seen[2], False)
         self.rec.event(self.now(), seg.index, "resume", f"resumed by {by} after {self.now() - t_pause:.3f} s paused")
         self.snapshot.state = "running"
         self._restart(seg, "resumed after a pause")

@@ -49,9 +49,12 @@ class StreamChunks:
         """Bytes of the stream's confirmed records, all columns."""
         return sum(self.dtype(stream, c).itemsize for c in self.columns[stream]) * self.length[stream]
 
-    def chunks(self, stream: str, rows: int | None = None) -> Iterator[dict[str, np.ndarray]]:
-        """The stream's columns, ``rows`` (default ``CHUNK_ROWS``) records at a time."""
-        g, n, step = self.f[stream], self.length[stream], rows or CHUNK_ROWS
-        for a in range(0, n, step):
+    def chunks(self, stream: str, rows: int | None = None, start: int = 0,
+               stop: int | None = None) -> Iterator[dict[str, np.ndarray]]:
+        """The stream's columns from record ``start`` to ``stop`` (default: the confirmed end), ``rows`` (default
+        ``CHUNK_ROWS``) records at a time (``bench watch`` reads only the records added since its last look)."""
+        g, step = self.f[stream], rows or CHUNK_ROWS
+        n = self.length[stream] if stop is None else min(stop, self.length[stream])
+        for a in range(start, n, step):
             b = min(a + step, n)
             yield {c: g[c][a:b] for c in self.columns[stream]}
