@@ -102,10 +102,11 @@ def _chi2(R: np.ndarray) -> np.ndarray:
 
 
 def _lm(w: Weighted, Z: np.ndarray, free: np.ndarray, fixed: np.ndarray, lo: np.ndarray, hi: np.ndarray,
-        step: np.ndarray, iterations: int, tol: float) -> np.ndarray:
+        step: np.ndarray, iterations: int, tol: float, rtol: float = 0.0) -> np.ndarray:
     """Batched Levenberg–Marquardt: minimise χ² of every row of Z over the ``free`` columns except the row's
     ``fixed`` column (−1: none), within the bounds; all rows' Jacobians in one model batch per iteration.
-    Returns the optimised rows and their χ² (last column)."""
+    Converged: a step that gained less than ``tol`` + ``rtol`` × χ². Returns the optimised rows and their χ²
+    (last column)."""
     Z = Z.copy()
     S, F = Z.shape[0], free.size
     chi = _chi2(w.residuals(Z))
@@ -124,19 +125,20 @@ def _lm(w: Weighted, Z: np.ndarray, free: np.ndarray, fixed: np.ndarray, lo: np.
         J = (R[:, 1:] - r0[:, None, :]) / dz[:, :, None]  # (s, F, N)
         J = np.where(np.isfinite(J), J, 0.0)
         r0 = np.where(np.isfinite(r0), r0, 0.0)
-        A = np.einsum("sfn,sgn->sfg", J, J)
-        g = np.einsum("sfn,sn->sf", J, r0)
         keep = free[None, :] != fixed[idx, None]  # (s, F): the fixed column stays
-        A = A * keep[:, :, None] * keep[:, None, :]
-        g = g * keep
-        diag = np.einsum("sff->sf", A)
-        M = A + lam[idx, None, None] * np.eye(F)[None] * np.maximum(diag, 1e-12 * (diag.max(axis=1, keepdims=True)
-                                                                                    + 1e-300))[:, :, None]
-        M = M + np.eye(F)[None] * (~keep)[:, :, None]  # fixed column: identity, g = 0 → no move
-        try:
-            delta = -np.linalg.solve(M, g[:, :, None])[:, :, 0]
-        except np.linalg.LinAlgError:
-            delta = -np.einsum("sfg,sg->sf", np.linalg.pinv(M), g)
+        Jt = np.swapaxes(J, 1, 2) * keep[:, None, :]  # (s, N, F)
+        # damped Gauss-Newton step from the SVD of the column-scaled, augmented Jacobian: normal equations
+        # would square a condition number that reaches 1e12 here
+        d = np.sqrt(np.sum(Jt * Jt, axis=1))
+        d = np.where(d > 0, d, 1.0)
+        Js = Jt / d[:, None, :]
+        damp = np.sqrt(lam[idx])[:, None, None] * np.eye(F)[None] * keep[:, None, :]
+        M = np.concatenate([Js, damp], axis=1)
+        rhs = np.concatenate([r0, np.zeros((idx.size, F))], axis=1)
+        U, sv, Vt = np.linalg.svd(M, full_matrices=False)
+        cut = sv > 1e-13 * sv[:, :1]
+        coef = np.einsum("snf,sn->sf", U, rhs) / np.where(cut, sv, 1.0) * cut
+        delta = -np.einsum("sgf,sg->sf", Vt, coef) / d
         trial = base.copy()
         trial[:, free] = np.clip(base[:, free] + delta, lo[free], hi[free])
         c_new = _chi2(w.residuals(trial))
@@ -146,7 +148,7 @@ def _lm(w: Weighted, Z: np.ndarray, free: np.ndarray, fixed: np.ndarray, lo: np.
         chi[idx[better]] = c_new[better]
         lam[idx] = np.where(better, lam[idx] / 3.0, lam[idx] * 4.0)
         # converged: the last step gained less than tol, or the damping gave up
-        done = (better & (gain < tol)) | (lam[idx] > 1e8)
+        done = (better & (gain < tol + rtol * chi[idx])) | (lam[idx] > 1e8)
         active[idx[done]] = False
     return np.column_stack([Z, chi])
 
@@ -167,12 +169,13 @@ def _crossing(offsets: list[float], chis: list[float], cmin: float, threshold: f
 
 def profile(w: Weighted, z: np.ndarray, lo: np.ndarray, hi: np.ndarray, free: np.ndarray, sd: np.ndarray,
             threshold: float, cmin: float, *, growth: float = 2.5, steps: int = 9, iterations: int = 8,
-            tol: float = 0.02) -> tuple[np.ndarray, np.ndarray, float]:
+            tol: float = 0.02, cov: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
     """Profile-likelihood interval ends (optimiser coordinates) of every parameter: (ends 2 × D with the bound
-    where the profile stays within the threshold, reached 2 × D bool, lowest χ² seen).
+    where the profile stays within the threshold, reached 2 × D bool, lowest χ² seen, where it was seen).
 
     ``sd``: the local standard deviation per parameter (the first step; the span/100 where it is not finite);
-    each further step ``growth`` times the last, the others re-optimised warm from the previous step."""
+    each further step ``growth`` times the last, the others re-optimised warm from the previous steps. ``cov``:
+    the local covariance (optimiser coordinates), whose slopes start the walk along the valley."""
     D = z.size
     ends = np.vstack([lo, hi]).astype(float)
     reached = np.zeros((2, D), bool)
@@ -186,40 +189,86 @@ def profile(w: Weighted, z: np.ndarray, lo: np.ndarray, hi: np.ndarray, free: np
     first = np.minimum(first, 0.25 * span)
     dirs = [(s, j) for s in (0, 1) for j in range(D)
             if at_bound[s, j] - cmin >= threshold and abs((lo if s == 0 else hi)[j] - z[j]) > 0]
-    walk = {d: ([], []) for d in dirs}
-    cur = {d: z.copy() for d in dirs}
+    walk: dict[tuple[int, int], tuple[list[float], list[float]]] = {d: ([], []) for d in dirs}
+    z_min = z.copy()
+    path: dict[tuple[int, int], list[tuple[float, np.ndarray]]] = {d: [] for d in dirs}
+    slope = None
+    if cov is not None:  # the others' conditional change per unit change of the profiled one, on the free columns
+        slope = np.zeros((D, D))
+        for j in free:
+            if np.isfinite(cov[j, j]) and cov[j, j] > 0:
+                slope[free, j] = np.nan_to_num(cov[free, j] / cov[j, j])
     off = {d: float(first[d[1]]) for d in dirs}
     live = list(dirs)
-    for _ in range(steps):
+    shrinks = dict.fromkeys(dirs, 0)
+    for _ in range(steps + 3):
         if not live:
             break
         Z = []
         for s, j in live:
-            zz = cur[(s, j)].copy()
             lim = z[j] - lo[j] if s == 0 else hi[j] - z[j]
             o = min(off[(s, j)], lim)
             off[(s, j)] = o
+            # warm start on the valley: extrapolated from the last two points of the walk (the centre counts as
+            # one), or along the local covariance's slope from the centre
+            pts = [(0.0, z)] + [p for p in path[(s, j)] if p[0] < o]
+            if len(pts) >= 2:
+                (o1, z1), (o2, z2) = pts[-2], pts[-1]
+                zz = z2 + (z2 - z1) * (o - o2) / (o2 - o1) if o2 > o1 else z2.copy()
+            elif slope is not None and np.all(np.isfinite(slope[:, j])):
+                zz = z + slope[:, j] * (o if s == 1 else -o)
+            else:
+                zz = z.copy()
+            zz = np.clip(zz, lo, hi)
             zz[j] = z[j] - o if s == 0 else z[j] + o
             Z.append(zz)
         out = _lm(w, np.array(Z), free, np.array([j for _, j in live]), lo, hi,
                   np.maximum(1e-4 * np.abs(z), 1e-6 * span), iterations, tol)
         nxt = []
         for k, d in enumerate(live):
-            cur[d] = out[k, :D]
+            path[d].append((off[d], out[k, :D].copy()))
+            path[d].sort(key=lambda p: p[0])
             walk[d][0].append(off[d])
             walk[d][1].append(float(out[k, D]))
-            cmin = min(cmin, float(out[k, D]))
+            if out[k, D] < cmin:
+                cmin, z_min = float(out[k, D]), out[k, :D].copy()
             lim = z[d[1]] - lo[d[1]] if d[0] == 0 else hi[d[1]] - z[d[1]]
-            if out[k, D] - cmin < threshold and off[d] < lim:
+            rise = out[k, D] - cmin
+            if rise < threshold and off[d] < lim:
                 off[d] *= growth
+                nxt.append(d)
+            elif rise > 16 * threshold and shrinks[d] < 3:
+                # far beyond the threshold in one step: go back half-way (in √Δχ²: a quarter of the offset)
+                shrinks[d] += 1
+                done = [o for o, c in zip(*walk[d], strict=True) if c - cmin < threshold]
+                prev = max(done) if done else 0.0
+                off[d] = prev + (off[d] - prev) / 4.0
                 nxt.append(d)
         live = nxt
     for (s, j), (offs, chis) in walk.items():
-        o = _crossing(offs, chis, cmin, threshold)
+        order = np.argsort(offs)
+        o = _crossing([offs[i] for i in order], [chis[i] for i in order], cmin, threshold)
         if o is not None:
             ends[s, j] = z[j] - o if s == 0 else z[j] + o
             reached[s, j] = True
-    return ends, reached, cmin
+    return ends, reached, cmin, z_min
+
+
+def covariance(Jw: np.ndarray, scale: float) -> tuple[np.ndarray, np.ndarray]:
+    """(C, sd) of parameters from a weighted Jacobian (points × parameters): C the covariance restricted to the
+    directions the data see (for correlations), sd the standard deviation per parameter — infinite where the
+    parameter loads on a direction the data do not see (eigenvalue of the column-normalised JᵀJ under 1e-10 of
+    the largest). A pseudo-inverse alone would give such a parameter a small ± (it drops the direction)."""
+    d = np.sqrt(np.sum(Jw * Jw, axis=0))
+    dz = np.where(d > 0, d, 1.0)
+    _, sv, Vt = np.linalg.svd(Jw / dz, full_matrices=False)
+    V, e = Vt.T, sv * sv
+    seen = e > 1e-10 * max(float(e.max()), 1e-300)
+    inv = np.where(seen, 1.0 / np.where(seen, e, 1.0), 0.0)
+    C = scale * (V * inv) @ V.T / np.outer(dz, dz)
+    blind = np.sum(V[:, ~seen] ** 2, axis=1) > 1e-3
+    var = np.where(blind | (d == 0), np.inf, np.diag(C))
+    return C, np.sqrt(np.clip(var, 0.0, None))
 
 
 def lag1(r: np.ndarray) -> float:
@@ -318,29 +367,35 @@ def assess_trust(problem: Problem, result: FitResult, starts: list[tuple[int, np
 
     centres = []
     for seed, z_k, lo_k, hi_k in starts:
-        out = _lm(w, z_k[None, :], free, np.array([-1]), lo_k, hi_k, step_of(z_k), 30, 1e-3)
-        centres.append((seed, out[0, :D], float(out[0, D])))
+        out = _lm(w, z_k[None, :], free, np.array([-1]), lo_k, hi_k, step_of(z_k), 40, 0.0, 1e-4)
+        centres.append([seed, out[0, :D], float(out[0, D])])
     best = min(range(len(centres)), key=lambda k: centres[k][2])
-    z = centres[best][1]
     lo, hi = starts[best][2], starts[best][3]
-    cmin = centres[best][2]
-    R = w.residuals(z[None, :])[0]
-    n = R.size
-    chi2_red = cmin / max(n - free.size, 1)
-    rho = lag1(R)
-    scale = variance_scale(chi2_red, rho, n)
-    threshold = threshold_of(confidence) * scale
-    # local covariance at the centre (free columns, optimiser coordinates), on the same variance scale
-    dz = np.where(z[free] + step_of(z)[free] > hi[free], -step_of(z)[free], step_of(z)[free])
-    Zj = np.tile(z, (free.size + 1, 1))
-    Zj[1 + np.arange(free.size), free] += dz
-    Rj = w.residuals(Zj)
-    Jw = ((Rj[1:] - Rj[0]) / dz[:, None]).T
-    Jw = np.where(np.isfinite(Jw), Jw, 0.0)
-    C = np.full((D, D), np.nan)
-    C[np.ix_(free, free)] = scale * np.linalg.pinv(Jw.T @ Jw)
-    sd = np.sqrt(np.clip(np.diag(C), 0.0, None))
-    ends, reached, cmin2 = profile(w, z, lo, hi, free, sd, threshold, cmin)
+    z, cmin = centres[best][1], centres[best][2]
+    for _ in range(3):  # re-centre where a profile finds a lower χ² than the centre
+        R = w.residuals(z[None, :])[0]
+        n = R.size
+        chi2_red = cmin / max(n - free.size, 1)
+        rho = lag1(R)
+        scale = variance_scale(chi2_red, rho, n)
+        threshold = threshold_of(confidence) * scale
+        # local covariance at the centre (free columns, optimiser coordinates), on the same variance scale
+        st = step_of(z)[free]
+        dz = np.where(z[free] + st > hi[free], -st, st)
+        Zj = np.tile(z, (free.size + 1, 1))
+        Zj[1 + np.arange(free.size), free] += dz
+        Rj = w.residuals(Zj)
+        Jw = ((Rj[1:] - Rj[0]) / dz[:, None]).T
+        Jw = np.where(np.isfinite(Jw), Jw, 0.0)
+        C = np.full((D, D), np.nan)
+        sd = np.full(D, np.nan)
+        C[np.ix_(free, free)], sd[free] = covariance(Jw, scale)
+        ends, reached, cmin2, z2 = profile(w, z, lo, hi, free, sd, threshold, cmin, tol=0.02 * threshold, cov=C)
+        if cmin2 >= cmin - 0.1 * threshold:
+            break
+        out = _lm(w, z2[None, :], free, np.array([-1]), lo, hi, step_of(z2), 40, 0.01 * threshold)
+        z, cmin = out[0, :D], float(out[0, D])
+        centres[best][1:] = [z, cmin]
     # the starts: another optimum within the threshold widens the interval to hold it
     others = [(seed, zk, ck) for k, (seed, zk, ck) in enumerate(centres) if k != best]
     cmin_all = min(cmin, cmin2)
