@@ -129,6 +129,10 @@ def fit_command(
     scheduler: SchedulerOpt = None,
     workers: WorkersOpt = None,
     json_out: JsonOpt = False,
+    starts: Annotated[int, typer.Option(help="Searches from independent seeds (seed, seed + 1, …); the table says "
+                                        "whether they agree.", min=1)] = 3,
+    intervals: Annotated[bool, typer.Option(help="95 % profile-likelihood intervals against each record's noise "
+                                            "(--no-intervals: the plain fit, local ± only).")] = True,
 ) -> None:
     """Identify model parameters from recorded runs (differential evolution, as in the thesis) and store them.
 
@@ -150,7 +154,7 @@ def fit_command(
     if not chosen:
         raise ValueError("the run files hold different specimens: fit them separately or pass --model")
     settings = FitSettings(population, generations, mutation, crossover, cost.value, polish, seed=seed,
-                           starts=3, intervals=True)
+                           starts=starts, intervals=intervals)
     with json_mode(json_out):
         result, problem = run_fit(runs, chosen, settings, branches, export, scheduler, workers, into=into)
     if json_out:
@@ -434,6 +438,10 @@ def demo(
     out: Annotated[Path, typer.Option(help="Folder for the run file and the report.")] = Path("runs/demo"),
     generations: Annotated[int, typer.Option(help="DE generations (thesis: 100).", min=1)] = 100,
     population: Annotated[int, typer.Option(help="DE population (thesis: 50).", min=5)] = 50,
+    starts: Annotated[int, typer.Option(help="Searches from independent seeds; the table says whether they agree.",
+                                        min=1)] = 3,
+    intervals: Annotated[bool, typer.Option(help="95 % profile-likelihood intervals against the record's noise "
+                                            "(--no-intervals: the plain fit).")] = True,
 ) -> None:
     """The main job on the simulated rig: a paper protocol run, recorded, fitted and reported from the file.
 
@@ -459,7 +467,7 @@ def demo(
     console.print("[bold]2. fit[/] the membrane model to the recorded file")
     path = Path(result.path)
     fitted, problem = run_fit([path], "membrane", FitSettings(population=population, generations=generations,
-                                                                       starts=3, intervals=True))
+                                                                       starts=starts, intervals=intervals))
     console.print(twin_comparison(problem, fitted))  # type: ignore[arg-type]
     peak = float(np.nanmax(np.abs(problem.data)))
     console.print(f"the fitted model reproduces the record to rms {fitted.rms * 1e6:.1f} µm "

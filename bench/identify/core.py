@@ -174,7 +174,8 @@ def fit(problem: Problem, settings: FitSettings = FitSettings(), start: np.ndarr
     if settings.intervals:
         from bench.identify.trust import assess_trust
 
-        assess_trust(target, result, [(x.seed, x.z, x.lo, x.hi) for x in runs], best.lo, best.hi)
+        assess_trust(target, result, [(x.seed, x.z, x.lo, x.hi) for x in runs], best.lo, best.hi,
+                     coarse=problem if fine is not None else None)
         result.wall_time = time.perf_counter() - t0
     return result
 

@@ -63,6 +63,7 @@ class Trust:
     spread: np.ndarray | None = None  # per parameter: (max − min)/|best| over the starts
     order: str = ""
     lack_of_fit: str = ""
+    step_shift: list[str] = field(default_factory=list)  # parameters whose interval the model-step check widened
     evaluations: int = 0
     wall_time: float = 0.0
 
@@ -73,7 +74,8 @@ class Trust:
                 "threshold": self.threshold, "tradeoffs": self.tradeoffs, "starts": self.starts,
                 "starts_agree": self.starts_agree, "disagree": self.disagree,
                 "spread": None if self.spread is None else dict(zip(names, map(float, self.spread), strict=True)),
-                "order": self.order, "lack_of_fit": self.lack_of_fit, "evaluations": self.evaluations,
+                "order": self.order, "lack_of_fit": self.lack_of_fit, "widened_by_model_step": self.step_shift,
+                "evaluations": self.evaluations,
                 "wall_time": self.wall_time}
 
 
@@ -168,7 +170,7 @@ def _crossing(offsets: list[float], chis: list[float], cmin: float, threshold: f
 
 
 def profile(w: Weighted, z: np.ndarray, lo: np.ndarray, hi: np.ndarray, free: np.ndarray, sd: np.ndarray,
-            threshold: float, cmin: float, *, growth: float = 2.5, steps: int = 9, iterations: int = 8,
+            threshold: float, cmin: float, *, growth: float = 3.0, steps: int = 7, iterations: int = 5,
             tol: float = 0.02, cov: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
     """Profile-likelihood interval ends (optimiser coordinates) of every parameter: (ends 2 × D with the bound
     where the profile stays within the threshold, reached 2 × D bool, lowest χ² seen, where it was seen).
@@ -346,11 +348,15 @@ def _record_noise(problem: Problem, sigma: np.ndarray) -> list[float]:
 
 
 def assess_trust(problem: Problem, result: FitResult, starts: list[tuple[int, np.ndarray, np.ndarray, np.ndarray]],
-                 lo: np.ndarray, hi: np.ndarray) -> Trust:
+                 lo: np.ndarray, hi: np.ndarray, coarse: Problem | None = None) -> Trust:
     """Re-centre the fit on the noise-weighted least-squares optimum, profile every parameter and compare the
     starts; updates ``result`` (values, residual, uncertainty: the agreeing local figure, flags, lack of fit,
     ``trust``) and returns the :class:`Trust`. ``starts``: (seed, z, lower, upper) of each start, optimiser
-    coordinates, ``lo``/``hi`` the bounds of the best (``result.z``)."""
+    coordinates, ``lo``/``hi`` the bounds of the best (``result.z``). ``coarse``: the same problem at a coarser
+    integration step (the search's): the optimum is re-found on it and each interval is widened to hold the
+    centre ± the shift — the model's own discretisation error, which the noise does not measure (for a
+    first-order scheme the fine step's error is a fraction h_fine/(h_coarse − h_fine) of that shift: a
+    conservative bound)."""
     t0 = time.perf_counter()
     confidence = result.settings.confidence
     log = np.asarray(problem.log, bool)
@@ -367,7 +373,7 @@ def assess_trust(problem: Problem, result: FitResult, starts: list[tuple[int, np
 
     centres = []
     for seed, z_k, lo_k, hi_k in starts:
-        out = _lm(w, z_k[None, :], free, np.array([-1]), lo_k, hi_k, step_of(z_k), 40, 0.0, 1e-4)
+        out = _lm(w, z_k[None, :], free, np.array([-1]), lo_k, hi_k, step_of(z_k), 25, 0.0, 1e-4)
         centres.append([seed, out[0, :D], float(out[0, D])])
     best = min(range(len(centres)), key=lambda k: centres[k][2])
     lo, hi = starts[best][2], starts[best][3]
@@ -396,6 +402,21 @@ def assess_trust(problem: Problem, result: FitResult, starts: list[tuple[int, np
         out = _lm(w, z2[None, :], free, np.array([-1]), lo, hi, step_of(z2), 40, 0.01 * threshold)
         z, cmin = out[0, :D], float(out[0, D])
         centres[best][1:] = [z, cmin]
+    step_shift = np.zeros(D)
+    widened = np.zeros(D, bool)
+    if coarse is not None:
+        wc = Weighted(coarse.predict, coarse.data, sigma_of(coarse))
+        oc = _lm(wc, z[None, :], free, np.array([-1]), lo, hi, step_of(z), 25, 0.0, 1e-4)
+        step_shift = np.abs(oc[0, :D] - z)
+        w.evaluations += wc.evaluations
+        for j in range(D):
+            widened[j] = z[j] - step_shift[j] < ends[0, j] or z[j] + step_shift[j] > ends[1, j]
+            if z[j] - step_shift[j] < ends[0, j]:
+                ends[0, j] = max(z[j] - step_shift[j], lo[j])
+                reached[0, j] = ends[0, j] > lo[j]
+            if z[j] + step_shift[j] > ends[1, j]:
+                ends[1, j] = min(z[j] + step_shift[j], hi[j])
+                reached[1, j] = ends[1, j] < hi[j]
     # the starts: another optimum within the threshold widens the interval to hold it
     others = [(seed, zk, ck) for k, (seed, zk, ck) in enumerate(centres) if k != best]
     cmin_all = min(cmin, cmin2)
@@ -439,8 +460,8 @@ def assess_trust(problem: Problem, result: FitResult, starts: list[tuple[int, np
                   [{"seed": int(seed), "chi2": float(ck), "values": [float(v) for v in to_physical(log, zk)]}
                    for seed, zk, ck in centres],
                   not worse and not disagree, sorted(disagree, key=result.names.index), spread,
-                  ORDER_RULE if getattr(problem, "unit_groups", None) else "", lof, w.evaluations,
-                  time.perf_counter() - t0)
+                  ORDER_RULE if getattr(problem, "unit_groups", None) else "", lof,
+                  [n for j, n in enumerate(result.names) if widened[j]], w.evaluations, time.perf_counter() - t0)
     # the result: re-centred, with the profile's verdicts as flags
     r = R * w.sigma
     result.z, result.values, result.residual = z, values, r
@@ -462,6 +483,8 @@ def assess_trust(problem: Problem, result: FitResult, starts: list[tuple[int, np
             flags.append(f"{name}: bounded on one side only ({side} {u}, {pct})")
         if name in disagree:
             flags.append(f"{name}: the starts disagree (spread {100 * spread[j]:.0f} %)")
+        if widened[j]:
+            flags.append(f"{name}: depends on the model's integration step (interval widened to hold the shift)")
     result.flags = flags
     result.lack_of_fit = "; ".join(x for x in (result.lack_of_fit, lof) if x)
     result.trust = trust
