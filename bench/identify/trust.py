@@ -16,8 +16,12 @@ surface far from quadratic. This module states, per parameter, the interval the 
   exceeds its minimum by the χ²(1 dof) quantile of the confidence level (3.84 at 95 %) times the scale;
 * **identifiability** — a side that reaches the parameter's search bound within the threshold is open: a
   parameter open on both sides is *not determined* (the data allow the whole range), on one side *bounded
-  on one side only*; pairs correlated beyond :data:`TRADE_OFF` are named with the combination (sum,
-  product or ratio) that the data fix best, and whether it is determined;
+  on one side only*; a parameter on which a start ending in a worse optimum lands outside the interval is *not
+  determined* either (the search does not settle it; its range covers the starts); pairs correlated beyond
+  :data:`TRADE_OFF` are named with the combination (sum, product or ratio) that the data fix best, and
+  whether it is determined;
+* **model step** — with a coarser problem (the search's), the optimum is re-found on it and each interval
+  widened to hold the shift: the model's own discretisation error, which the noise does not measure;
 * **local figure** — the Jacobian's ± (1σ, same variance scale) is kept only where it agrees with the
   profile (within :data:`AGREE` of the interval's half-width over 1.96); else NaN.
 """
@@ -422,17 +426,18 @@ def assess_trust(problem: Problem, result: FitResult, starts: list[tuple[int, np
     cmin_all = min(cmin, cmin2)
     disagree: set[str] = set()
     worse = []
-    for seed, zk, ck in others:
+    unsettled = np.zeros(D, bool)  # a start in a worse optimum lands outside the interval: the search does not
+    for seed, zk, ck in others:    # settle the parameter, whatever the profile around the best says
         if ck - cmin_all > threshold:
             worse.append(seed)
-            continue
         for j in range(D):
             if zk[j] < ends[0, j] or zk[j] > ends[1, j]:
                 disagree.add(result.names[j])
+                unsettled[j] |= ck - cmin_all > threshold
                 ends[0, j], ends[1, j] = min(ends[0, j], zk[j]), max(ends[1, j], zk[j])
     values = to_physical(log, z)
     lower, upper = to_physical(log, ends[0]), to_physical(log, ends[1])
-    status = ["determined" if reached[0, j] and reached[1, j] else
+    status = ["not determined" if unsettled[j] else "determined" if reached[0, j] and reached[1, j] else
               "bounded on one side only" if reached[0, j] or reached[1, j] else "not determined" for j in range(D)]
     # local figures in physical units (relative 1σ), kept where they agree with the profile
     dphys = np.where(log, values * np.log(10.0), 1.0)
@@ -476,12 +481,15 @@ def assess_trust(problem: Problem, result: FitResult, starts: list[tuple[int, np
     pct = f"{100 * confidence:g} %"
     for j, name in enumerate(result.names):
         u = result.units[j]
-        if status[j] == "not determined":
+        if unsettled[j]:
+            flags.append(f"{name}: not determined: the starts end apart (range over the starts and the interval "
+                         f"{lower[j]:.3g} … {upper[j]:.3g} {u})")
+        elif status[j] == "not determined":
             flags.append(f"{name}: not determined (the data allow {lower[j]:.3g} … {upper[j]:.3g} {u}, {pct})")
         elif status[j] == "bounded on one side only":
             side = f"≥ {lower[j]:.3g}" if reached[0, j] else f"≤ {upper[j]:.3g}"
             flags.append(f"{name}: bounded on one side only ({side} {u}, {pct})")
-        if name in disagree:
+        if name in disagree and not unsettled[j]:
             flags.append(f"{name}: the starts disagree (spread {100 * spread[j]:.0f} %)")
         if widened[j]:
             flags.append(f"{name}: depends on the model's integration step (interval widened to hold the shift)")
