@@ -16,10 +16,10 @@ surface far from quadratic. This module states, per parameter, the interval the 
   exceeds its minimum by the χ²(1 dof) quantile of the confidence level (3.84 at 95 %) times the scale;
 * **identifiability** — a side that reaches the parameter's search bound within the threshold is open: a
   parameter open on both sides is *not determined* (the data allow the whole range), on one side *bounded
-  on one side only*; a parameter on which a start ending in a worse optimum lands outside the interval is *not
-  determined* either (the search does not settle it; its range covers the starts); pairs correlated beyond
-  :data:`TRADE_OFF` are named with the combination (sum, product or ratio) that the data fix best, and
-  whether it is determined;
+  on one side only*; a parameter on which a start ending in a worse optimum lands outside the interval, farther than
+  the interval is wide, is *not determined* either (the search does not settle it; its range covers the
+  starts); pairs correlated beyond :data:`TRADE_OFF` are named with the combination (sum, product or
+  ratio) that the data fix best, and whether it is determined;
 * **model step** — with a coarser problem (the search's), the optimum is re-found on it and each interval
   widened to hold the shift: the model's own discretisation error, which the noise does not measure;
 * **local figure** — the Jacobian's ± (1σ, same variance scale) is kept only where it agrees with the
@@ -426,14 +426,18 @@ def assess_trust(problem: Problem, result: FitResult, starts: list[tuple[int, np
     cmin_all = min(cmin, cmin2)
     disagree: set[str] = set()
     worse = []
-    unsettled = np.zeros(D, bool)  # a start in a worse optimum lands outside the interval: the search does not
-    for seed, zk, ck in others:    # settle the parameter, whatever the profile around the best says
+    # a start in a worse optimum that lands outside the interval by more than the interval's width: the search
+    # does not settle the parameter, whatever the profile around the best says
+    unsettled = np.zeros(D, bool)
+    width = ends[1] - ends[0]
+    for seed, zk, ck in others:
         if ck - cmin_all > threshold:
             worse.append(seed)
         for j in range(D):
             if zk[j] < ends[0, j] or zk[j] > ends[1, j]:
                 disagree.add(result.names[j])
-                unsettled[j] |= ck - cmin_all > threshold
+                outside = max(ends[0, j] - zk[j], zk[j] - ends[1, j])
+                unsettled[j] |= ck - cmin_all > threshold and outside > width[j]
                 ends[0, j], ends[1, j] = min(ends[0, j], zk[j]), max(ends[1, j], zk[j])
     values = to_physical(log, z)
     lower, upper = to_physical(log, ends[0]), to_physical(log, ends[1])
