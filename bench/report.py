@@ -20,6 +20,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 
 from bench.analysis.applied import VoltageTrace, applied_voltage, measured_voltage
@@ -49,7 +50,7 @@ def _figure(**kwargs: Any) -> tuple[Figure, Any]:
     return fig, axes
 
 
-def _legend_outside(fig: Figure, axes: list[plt.Axes], where: str = "upper", fontsize: float = 8) -> None:
+def _legend_outside(fig: Figure, axes: list[Axes], where: str = "upper", fontsize: float = 8) -> None:
     """One legend for the lines of ``axes`` (twins included), outside the axes: above them or to the right."""
     handles: list[Any] = []
     labels: list[str] = []
@@ -113,7 +114,7 @@ def _commanded_label(sp: VoltageTrace) -> str:
     return "commanded voltage (software set-points)"
 
 
-def _plot_voltages(ax: plt.Axes, run: RunFile, t0: float, t1: float) -> None:
+def _plot_voltages(ax: Axes, run: RunFile, t0: float, t1: float) -> None:
     """Measured (solid, under) and commanded (dashed, on top) voltage over [t0, t1], time from t0; the axis
     label and ticks in the curves' colour."""
     sp = applied_voltage(run)
@@ -134,7 +135,7 @@ def _plot_voltages(ax: plt.Axes, run: RunFile, t0: float, t1: float) -> None:
     ax.spines["right"].set_color(MEASURED_V)
 
 
-def _arrows(ax: plt.Axes, x: np.ndarray, y: np.ndarray, color: Any, n: int = ARROWS_PER_LOOP) -> None:
+def _arrows(ax: Axes, x: np.ndarray, y: np.ndarray, color: Any, n: int = ARROWS_PER_LOOP) -> None:
     """Arrows along a loop (x, y) in the direction its samples run, at n evenly spaced points of its length."""
     ok = np.isfinite(x) & np.isfinite(y)
     x, y = x[ok], y[ok]
@@ -162,7 +163,7 @@ def thesis_time_figure(a: RunAnalysis) -> Figure:
     fitted = fitted_membrane(a.path)
     if fitted is None:
         fig, ax = _figure(figsize=(8, 4.4))
-        ax_r = None
+        ax.set_xlabel("time [s]")
     else:
         fig, (ax, ax_r) = _figure(nrows=2, figsize=(8, 5.6), sharex=True,
                                   gridspec_kw={"height_ratios": [3, 1]})
@@ -179,8 +180,6 @@ def thesis_time_figure(a: RunAnalysis) -> Figure:
         ax_r.set_title(f"residual: model − record, rms {rms:.1f} µm", fontsize=9, loc="left")
         ax_r.set_ylabel("residual [µm]")
         ax_r.set_xlabel("time [s]")
-    else:
-        ax.set_xlabel("time [s]")
     ax2 = ax.twinx()
     _plot_voltages(ax2, run, 0.0, float(run.updated) if run.updated else float(t[-1]))
     ax.set_ylabel("displacement u [mm]")
@@ -221,7 +220,7 @@ def isopotential_loop_figures(a: RunAnalysis) -> dict[str, Figure]:
     arrows in the direction of the cycle; keyed by file name."""
     run = open_run(a.path)
     motor, lc = run.streams["motor"], run.streams["load_cell"]
-    groups: dict[tuple, list] = {}
+    groups: dict[tuple[int | None, int], list[Any]] = {}
     for s in a.by_kind("isopotential"):
         groups.setdefault((s.prototype, round(s.figures["stroke"] * 1e3)), []).append(s)
     figs = {}
@@ -270,7 +269,7 @@ def isometric_figures(a: RunAnalysis, out: Path) -> list[Path]:
     steps = a.by_kind("isometric")
     paths = [save_figure(isometric_time_figure(a), out / "isometric_time_series.png")]
     fig, ax = _figure(figsize=(7.5, 4))
-    series: dict[tuple, list] = {}
+    series: dict[tuple[int | None, float], list[Any]] = {}
     for s in steps:
         series.setdefault((s.prototype, round(s.figures["force_mean"], 1)), []).append(s)
     for (proto, _), ss in series.items():
@@ -288,9 +287,9 @@ def isometric_figures(a: RunAnalysis, out: Path) -> list[Path]:
 def isotonic_figures(a: RunAnalysis, out: Path) -> list[Path]:
     """Crest-to-trough displacement vs frequency for each hung mass (Fig. 10), resonances marked."""
     fig, ax = _figure(figsize=(7, 4))
-    masses = sorted({s.hung_mass for s in a.by_kind("isotonic")})
+    masses = sorted({s.hung_mass or 0.0 for s in a.by_kind("isotonic")})
     for m in masses:
-        ss = [s for s in a.by_kind("isotonic") if s.hung_mass == m]
+        ss = [s for s in a.by_kind("isotonic") if (s.hung_mass or 0.0) == m]
         ax.plot([s.frequency for s in ss], [s.figures["amplitude"] * 1e3 for s in ss], "o-",
                 label=f"hung mass {m * 1e3:.0f} g")
     for f, amp in a.resonance().values():

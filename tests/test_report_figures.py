@@ -61,7 +61,7 @@ def _data_axes(fig: Figure) -> list[Axes]:
 def _assert_legend_outside(fig: Figure) -> None:
     """The figure's legends lie inside the figure and overlap no axes' area (where the data are drawn)."""
     renderer = fig.canvas.get_renderer()  # type: ignore[attr-defined]
-    legends = [*fig.legends, *(ax.get_legend() for ax in fig.axes if ax.get_legend() is not None)]
+    legends = [*fig.legends, *(leg for ax in fig.axes if (leg := ax.get_legend()) is not None)]
     assert legends, "no legend"
     fig_box = fig.bbox
     for leg in legends:
@@ -122,7 +122,7 @@ def test_commanded_and_measured_voltage_are_both_visible_and_the_axis_wears_thei
     right = next(ax for ax in fig.axes if ax.get_ylabel().startswith("voltage"))
     commanded, measured = _line(right, "commanded voltage"), _line(right, "measured voltage")
     for ln in (commanded, measured):
-        assert ln.get_visible() and len(ln.get_xdata()) > 100
+        assert ln.get_visible() and np.asarray(ln.get_xdata()).size > 100
     assert commanded.get_linestyle() != measured.get_linestyle()
     assert commanded.get_color() != measured.get_color()
     assert commanded.get_zorder() > measured.get_zorder()  # the command is drawn on top, not hidden
