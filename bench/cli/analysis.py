@@ -383,7 +383,7 @@ def figures_table(steps: list, title: str) -> Table:
 def print_report(runs: list[Path], out: Path | None = None) -> tuple[list[Path], dict[str, Any] | None]:
     """Tables of figures of merit and PNG plots of run files, each incomplete file flagged; the Table-3 grid of the
     isopotential steps (also as CSV). Returns the figure paths and the grid (None without isopotential steps)."""
-    from bench.report import report
+    from bench.report import report, save_figure, table3_figure
     from bench.storage.runfile import open_run
 
     all_steps, all_paths = [], []
@@ -409,6 +409,7 @@ def print_report(runs: list[Path], out: Path | None = None) -> tuple[list[Path],
     csv_path = (out if out is not None else runs[-1].with_name(runs[-1].stem + "-report")) / "table3.csv"
     write_table3_csv(grid, csv_path)
     grid["csv"] = str(csv_path)
+    all_paths.append(save_figure(table3_figure(grid), csv_path.with_suffix(".png")))
     volts = grid["voltages_kV"]
     t = Table(title="hysteresis loss of the stabilised cycle [%] (Table 3 layout: prototype × voltage, largest Δx)")
     for col in ("prototype", "Δx [mm]", "f [Hz]", *(f"{v:g} kV" for v in volts)):
@@ -420,7 +421,7 @@ def print_report(runs: list[Path], out: Path | None = None) -> tuple[list[Path],
     console.print(t)
     for w in grid["warnings"]:
         console.print(f"[yellow]grid warning[/]: {escape(w)}", soft_wrap=True)
-    console.print(f"grid as CSV: {escape(str(csv_path))}")
+    console.print(f"grid as CSV: {escape(str(csv_path))}, as a figure: {escape(str(csv_path.with_suffix('.png')))}")
     return all_paths, grid
 
 
