@@ -202,12 +202,12 @@ class Engine:
 
     def _keep_fed(self) -> None:
         """During long host-side work (fetching stored laser data) on a software-timed rig: re-send the set-point
-        whenever the module has gone ``HOLD_KEEPALIVE_S`` unheard, as a hold's keep-alive ticks do."""
+        whenever the module has gone ``HOLD_KEEPALIVE_S`` of the run's clock unheard, as a hold's keep-alive ticks
+        do (in virtual time a laser upload takes the wire's time on that clock, however fast the host is)."""
         amp = self.inst.amplifier
         if amp is None or self._stream is not None or self._stopping:
             return
-        heard = amp.heard_at()
-        if heard is not None and time.monotonic() - heard >= HOLD_KEEPALIVE_S:
+        if self.ctx.unheard_for() >= HOLD_KEEPALIVE_S:  # run clock: the module's watchdog counts rig time
             self._set_voltage(self.ctx.v_req, self.now())
 
     # ------------------------------------------------------------ time
@@ -459,10 +459,8 @@ class Engine:
         supervised, and the set-point module kept fed."""
         amp = self.inst.amplifier
         if amp is not None:
-            if self._stream is None:
-                heard = amp.heard_at()
-                if heard is not None and time.monotonic() - heard >= HOLD_KEEPALIVE_S:
-                    self._set_voltage(0.0, self.now())
+            if self._stream is None and self.ctx.unheard_for() >= HOLD_KEEPALIVE_S:
+                self._set_voltage(0.0, self.now())
             v, i = amp.read_monitors()
             self.rec.append("amplifier", v.timestamp - self.ctx.t0, voltage=v.value, current=i.value,
                             **self.ctx.unpolled_monitor_columns())

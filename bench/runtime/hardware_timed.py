@@ -10,7 +10,6 @@ holds the end value). Software-timed actions (motor go-tos, encoder polls) keep 
 
 from __future__ import annotations
 
-import time
 from dataclasses import replace
 
 import numpy as np
@@ -34,7 +33,7 @@ from drivers.interfaces import (
     StreamSpec,
 )
 
-KEEPALIVE_S = 0.25  # a command-response request at least this often keeps the device's watchdog fed
+KEEPALIVE_S = 0.25  # a command-response request at least this often (run clock) keeps the device's watchdog fed
 FINISH_TIMEOUT_S = 5.0  # rig time allowed for the last scans of a step to arrive (wall time on hardware)
 FINISH_POLL_S = 0.01  # rig time between collects while waiting for a step's last scans
 
@@ -134,7 +133,7 @@ class HardwareTimed:
             self._n = volts.size - 1
             self.ctx.verifier.restart()
             t0 = self.daq.kickoff()
-            self._keepalive = time.monotonic()
+            self._keepalive = self.ctx.clock.now()
             self.ctx.rec.event(self.ctx.now(), seg.index, "timing",
                                f"DAQ scan clock: scan 0 at {t0 - self.ctx.t0:.6f} s on the run clock, known to "
                                f"{self.daq.scan_clock_uncertainty * 1e3:.3f} ms (the enable request's round trip); "
@@ -217,9 +216,9 @@ class HardwareTimed:
         if (late := self.daq.out_underrun_scans) > 0:
             raise InterlockTrip("stream-out underrun", f"the DAQ played {late} scans past the values the host had "
                                 "written: the output did not follow the program")
-        if time.monotonic() - self._keepalive >= KEEPALIVE_S:
+        if self.ctx.clock.now() - self._keepalive >= KEEPALIVE_S:  # the run's clock: the T7's watchdog counts rig time
             self.daq.read_dac(self.cfg.dac)
-            self._keepalive = time.monotonic()
+            self._keepalive = self.ctx.clock.now()
 
     def finish(self) -> None:
         """Collect until the end value has been played, then stop the stream (the DAC holds it) — unless the
