@@ -686,8 +686,9 @@ class Engine:
             except InstrumentError as exc:
                 notes.append(f"final monitor read failed: {exc}")
                 return f"{path}; output NOT verified (voltage monitor unreadable)"
-            self._record(self.rec.append, "amplifier", v.timestamp - self.ctx.t0, voltage=v.value, current=i.value,
-                         **self.ctx.unpolled_monitor_columns())
+            if self._stream is None:  # a DAQ rig's streams end on the last scan: the reading is in the safe event
+                self._record(self.rec.append, "amplifier", v.timestamp - self.ctx.t0, voltage=v.value,
+                             current=i.value, **self.ctx.unpolled_monitor_columns())
             if math.isfinite(v.value) and abs(v.value) <= SAFE_MONITOR_V:
                 return f"{path}; verified: voltage monitor {v.value:.0f} V at {self.now():.3f} s"
             if self.now() >= deadline:
