@@ -91,6 +91,7 @@ class RunContext:
         self._laser_offset = (rig.laser.offset_mm * 1e-3) if rig.laser else 0.0
         self._laser_sign = float(rig.laser.sign) if rig.laser else 1.0
         self._late_streams = {name for name, cols in recorder.streams.items() if any(c.name == "late" for c in cols)}
+        self.laser_t_last = -math.inf  # run time of the last laser sample recorded (software-timed laser)
         self._heard_mark: float | None = None  # the set-point module's driver's last ``heard_at`` seen
         self._heard_rig = -math.inf  # rig clock: no later than this the module last heard from the host
         self._looked_rig = -math.inf  # rig clock: the last look at ``heard_at``
