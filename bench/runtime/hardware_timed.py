@@ -38,8 +38,8 @@ KEEPALIVE_S = 0.25  # a command-response request at least this often (run clock)
 # that a lost host (link dropped, process dead) stops the drive within it — the T7 then holds its last value until
 # its watchdog zeroes the output; ten collect periods (polls.COLLECT_PERIOD_S), so a collect may come ~0.4 s late
 # before an underrun (0.2–0.4 s latched underruns in real-time tests: collects 0.3–0.45 s late on the 2-core
-# development host at load 8–14, where the old 0.8 s did not). Virtual time keeps the device's whole buffer (fewer,
-# larger blocks; no host can be lost there).
+# development host at load 8–14, where the old 0.8 s did not). Virtual time too: a rehearsal of a lost link must
+# stop the drive as the bench would (its collects, every 0.25 s of rig time, keep two periods queued).
 OUT_AHEAD_S = 0.5
 FINISH_TIMEOUT_S = 5.0  # rig time allowed for the last scans of a step to arrive (wall time on hardware)
 FINISH_POLL_S = 0.01  # rig time between collects while waiting for a step's last scans
@@ -134,7 +134,7 @@ class HardwareTimed:
             self.ctx.guard()
             self.daq.arm(StreamSpec(self.cfg.scan_rate_Hz, self.inputs,
                                     StreamOut(self.cfg.dac, dac, hold=1, final=nxt is None, within=window),
-                                    out_ahead_s=0.0 if self.ctx.clock.virtual else OUT_AHEAD_S))
+                                    out_ahead_s=OUT_AHEAD_S))
             self._base = 0
             self._commanded = commanded
             self._tail = float(volts[-1])
