@@ -13,12 +13,10 @@ import json
 import math
 import os
 import shutil
-import signal
 import socket
 import subprocess
 import sys
 import tempfile
-import time
 import tomllib
 from collections.abc import Iterator
 from pathlib import Path
@@ -27,6 +25,7 @@ import h5py
 import numpy as np
 import pytest
 
+from tests.campaign_kill import kill_at_step
 from tests.conftest import ROOT
 
 sa = pytest.importorskip("sqlalchemy")
@@ -48,14 +47,6 @@ def _env(state: Path) -> dict[str, str]:
 def _bench(*args: str, env: dict[str, str], timeout: float = 600) -> subprocess.CompletedProcess[str]:
     return subprocess.run([sys.executable, "-m", "bench", *args], cwd=ROOT, env=env, capture_output=True, text=True,
                           timeout=timeout)
-
-
-def _wait_for(predicate, timeout: float, what: str) -> None:
-    end = time.monotonic() + timeout
-    while not predicate():
-        if time.monotonic() > end:
-            raise AssertionError(f"timed out waiting for {what}")
-        time.sleep(0.05)
 
 
 # ---- a real PostgreSQL server ---------------------------------------------------------------------------------------
@@ -148,13 +139,7 @@ def lab(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     proc = subprocess.Popen([sys.executable, "-m", "bench", "run", str(sweeps), "--virtual-time", "--out", str(runs),
                              "--no-live", "--specimen-id", SPECIMEN, "--operator", "ada"], cwd=ROOT, env=env,
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    try:  # kill -9 once the 7-kV drive (step 4) has started: no end recorded, no end row in the catalogue
-        _wait_for(lambda: any(runs.glob("*.log")) and "step 4 start" in next(runs.glob("*.log")).read_text(),
-                  180, "step 4")
-        proc.send_signal(signal.SIGKILL)
-        proc.wait(30)
-    finally:
-        proc.kill()
+    kill_at_step(proc, runs, 4, 180)  # once the 7-kV drive has started: no end recorded, no end row in the catalogue
     killed = next(runs.glob("*.h5"))
     resumed = _bench("run", "--resume", str(killed), "--virtual-time", "--no-live", env=env)
     assert resumed.returncode == 0, resumed.stdout + resumed.stderr
@@ -164,7 +149,8 @@ def lab(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     assert ident.returncode == 0, ident.stdout + ident.stderr
     fitted = next(p for p in runs.glob("*.h5") if p not in (killed, second))
     for target in (second, fitted):  # the campaign (stored with both of its files), then the third run alone
-        fit = _bench("fit", str(target), "--population", "6", "--generations", "1", "--no-polish", "--json", env=env)
+        fit = _bench("fit", str(target), "--population", "6", "--generations", "1", "--no-polish", "--starts", "1",
+                     "--no-intervals", "--json", env=env)
         assert fit.returncode == 0, fit.stderr
     return {"runs": runs, "killed": killed, "resumed": second, "fitted": fitted, "state": runs.parent}
 

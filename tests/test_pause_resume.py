@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import json
 import os
-import signal
 import subprocess
 import sys
 import time
@@ -23,6 +22,7 @@ from bench.runtime.engine import Engine
 from bench.runtime.run import execute, plan_resume, plan_run
 from bench.storage.chain import chain
 from bench.storage.runfile import RunFile, open_run
+from tests.campaign_kill import kill_at_step, wait_for
 from tests.conftest import ROOT
 
 SHORT = ROOT / "protocols" / "short"
@@ -98,14 +98,6 @@ def test_the_control_file_is_read_only_when_whole(tmp_path: Path) -> None:
     assert pause and not stop and "ada" in who and "check the clamp" in who
 
 
-def _wait_for(predicate, timeout: float, what: str) -> None:
-    end = time.monotonic() + timeout
-    while not predicate():
-        if time.monotonic() > end:
-            raise AssertionError(f"timed out waiting for {what}")
-        time.sleep(0.05)
-
-
 def test_pause_and_resume_from_another_terminal(tmp_path: Path) -> None:
     """A virtual-time run in its own process, paused from the start by its control file (what `bench pause` writes),
     then `bench pause` and `bench resume` from another process while it holds."""
@@ -114,11 +106,11 @@ def test_pause_and_resume_from_another_terminal(tmp_path: Path) -> None:
                              "--out", str(tmp_path), "--no-live"], cwd=ROOT, env=ENV, stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True)
     try:
-        _wait_for(lambda: any(tmp_path.glob("*.h5")), 60, "the run file")
+        wait_for(lambda: any(tmp_path.glob("*.h5")), 60, "the run file")
         run_file = next(tmp_path.glob("*.h5"))
         write_control(run_file, True, "ada", "before the first step")
         log = run_file.with_suffix(".log")
-        _wait_for(lambda: " pause: " in log.read_text(), 60, "the pause event")
+        wait_for(lambda: " pause: " in log.read_text(), 60, "the pause event")
         refused = subprocess.run([*bench, "resume", str(run_file)], cwd=ROOT, env=ENV, capture_output=True, text=True)
         assert refused.returncode != 0 and "--why" in refused.stdout + refused.stderr
         paused = subprocess.run([*bench, "pause", str(run_file), "--why", "adjust the laser", "--operator", "ada"],
@@ -147,14 +139,7 @@ def test_a_killed_campaign_resumes_in_a_linked_file_and_reports_as_one(tmp_path:
     bench = [sys.executable, "-m", "bench"]
     proc = subprocess.Popen([*bench, "run", str(SWEEPS), "--virtual-time", "--out", str(tmp_path), "--no-live"],
                             cwd=ROOT, env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    try:
-        # kill -9 once the second sweep point (step 4: the 7-kV drive) has started
-        _wait_for(lambda: any(tmp_path.glob("*.log")) and "step 4 start" in next(tmp_path.glob("*.log")).read_text(),
-                  120, "step 4")
-        proc.send_signal(signal.SIGKILL)
-        proc.wait(30)
-    finally:
-        proc.kill()
+    kill_at_step(proc, tmp_path, 4, 120)  # kill -9 once the second sweep point (the 7-kV drive) has started
     first = next(tmp_path.glob("*.h5"))
     assert open_run(first, streams=False).state == "running"  # killed: no end recorded
     resumed = subprocess.run([*bench, "run", "--resume", str(first), "--virtual-time", "--no-live"], cwd=ROOT,
@@ -244,14 +229,14 @@ def test_pause_and_resume_with_keys_at_the_live_view(tmp_path: Path) -> None:
         return bool(logs) and text in logs[0].read_text()
 
     try:
-        _wait_for(lambda: logged("step 0 start"), 60, "the run to start")
+        wait_for(lambda: logged("step 0 start"), 60, "the run to start")
         time.sleep(1.0)
         os.write(master, b"p")
-        _wait_for(lambda: logged(" pause: "), 30, "the pause")
+        wait_for(lambda: logged(" pause: "), 30, "the pause")
         time.sleep(0.5)
         os.write(master, b"r")
-        _wait_for(lambda: logged(" resume: "), 30, "the resume")
-        _wait_for(lambda: (read_some(), proc.poll() is not None)[1], 120, "the run to end")
+        wait_for(lambda: logged(" resume: "), 30, "the resume")
+        wait_for(lambda: (read_some(), proc.poll() is not None)[1], 120, "the run to end")
     finally:
         proc.kill()
         os.close(master)
