@@ -35,6 +35,7 @@ import numpy as np
 
 from bench.core.clock import Clock
 from bench.core.plant import PLANT_FIELDS, Plant, PlantBlock
+from bench.rig import RigConfig, rig_from_toml
 from bench.storage.chunks import StreamChunks
 from bench.storage.runfile import open_h5
 
@@ -96,7 +97,10 @@ class Recording:
         if not p.is_file():
             raise ReplayError(f"replay file {p}: not found")
         self.path = p
-        self.file = open_h5(p)
+        try:
+            self.file = open_h5(p)
+        except ValueError:
+            raise ReplayError(f"replay file {p}: not an HDF5 run file") from None
         try:
             if "status" not in self.file or "format" not in self.file.attrs:
                 raise ReplayError(f"replay file {p}: not a dea-bench run file")
@@ -125,11 +129,26 @@ class Recording:
         self.file.close()
 
 
+def replay_rig(path: str | Path) -> RigConfig:
+    """The rig a run file was recorded on (its ``rig_toml``), as a simulated rig that replays the file."""
+    recording = Recording(path)
+    try:
+        text = recording.attrs.get("rig_toml")
+        if not text:
+            raise ReplayError(f"replay file {path}: records no rig (rig_toml); give a rig file")
+        rig = rig_from_toml(text.decode() if isinstance(text, bytes) else str(text))
+    finally:
+        recording.close()
+    sim = rig.simulation.model_copy(update={"replay": str(path)})
+    return rig.model_copy(update={"simulated": True, "simulation": sim})
+
+
 def check_fits(recording: Recording, needs: dict[str, str]) -> None:
     """Refuse a record that lacks a stream a twin of the rig serves: ``needs`` maps stream → the twin's name."""
     missing = [f"{stream} (for the {twin})" for stream, twin in needs.items() if not recording.has(stream)]
     if missing:
-        raise ReplayError(f"replay file {recording.path}: no recorded {', '.join(missing)} stream for this rig")
+        raise ReplayError(f"replay file {recording.path}: records no {', no '.join(missing)} stream; the rig's "
+                          "twins need it")
 
 
 class ReplayPlant(Plant):

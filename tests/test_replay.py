@@ -1,0 +1,164 @@
+"""Replay (bench.runtime.replay): a recorded run served through the twins, re-recorded, reproduces the record.
+
+Tolerances are the instruments' quantisation, from the manuals, not from the code: the LK-G outputs millimetres
+with 4 decimals (LK-G5000 manual p. 5-6: ``+01.2345``) → 1e-7 m; the ADAM-4017+ and the T7's stream give 16-bit
+codes over ±10 V (ADAM-4017+ datasheet, 16-bit; LabJack T-Series datasheet: stream data are 16-bit) → 20/65536 V
+at the input, times the rig's monitor ratio (1000 V/V, 1 mA/V) or the laser's analog scale (4 mm/V). The replay
+rigs have another seed than the recording: had the twins served the model (noise off in a replay), the record's
+own noise (LK-G, monitors) could not be reproduced.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from bench.cli import app
+from bench.rig import load_rig
+from bench.runtime.instruments import build_instruments
+from bench.runtime.replay import ReplayError
+from bench.runtime.run import execute, plan_run
+from bench.runtime.sim_rig import SimRig
+from tests.conftest import RIGS, ROOT
+
+PROTOCOL = ROOT / "protocols" / "short" / "thesis-identification-short.toml"
+CODE_V = 20.0 / 65536  # one 16-bit code over ±10 V [V]
+LKG_M = 1e-7  # 0.0001 mm
+QUANTUM = {  # per (rig kind, stream, column): one step of what the instrument reports
+    ("serial", "laser", "displacement"): LKG_M,
+    ("serial", "amplifier", "voltage"): CODE_V * 1000.0, ("serial", "amplifier", "current"): CODE_V * 1e-3,
+    ("daq", "laser", "displacement"): CODE_V * 0.004,
+    ("daq", "amplifier", "voltage"): CODE_V * 1000.0, ("daq", "amplifier", "current"): CODE_V * 1e-3,
+}
+
+
+def replay_rig(rig: Path, record: Path, dest: Path) -> Path:
+    """``rig`` with ``[simulation] replay = record`` and another seed."""
+    text = rig.read_text(encoding="utf-8").replace("seed = 1", f'seed = 7\nreplay = "{record}"')
+    assert "replay =" in text
+    dest.write_text(text, encoding="utf-8")
+    return dest
+
+
+def record(rig: Path, out: Path) -> Path:
+    result = execute(plan_run(PROTOCOL, rig), out, virtual=True)
+    assert result.state == "completed", result.reason
+    return Path(result.path)
+
+
+def assert_reproduces(original: Path, replayed: Path, kind: str) -> None:
+    """Every stream of ``original`` is in ``replayed``, equal within one quantum on matching time stamps."""
+    with h5py.File(original, "r") as a, h5py.File(replayed, "r") as b:
+        assert b.attrs["replay_of"] == str(original)
+        streams = [s for s in ("setpoints", "amplifier", "laser", "motor", "load_cell") if s in a]
+        assert {"laser", "amplifier"} <= set(streams)
+        for s in streams:
+            ta, tb = np.round(a[s]["t"][:], 9), np.round(b[s]["t"][:], 9)
+            _, ia, ib = np.intersect1d(ta, tb, return_indices=True)
+            assert ia.size >= 0.99 * np.unique(ta).size, f"{s}: {ia.size} of {ta.size} time stamps match"
+            for c in a[s]:
+                if c in ("t", "late"):  # late: the host's own timing, not a measurement
+                    continue
+                x, y = a[s][c][:][ia].astype(float), b[s][c][:][ib].astype(float)
+                same_nan = np.isnan(x) & np.isnan(y)
+                q = QUANTUM.get((kind, s, c), 0.0)
+                worst = float(np.max(np.where(same_nan, 0.0, np.abs(x - y)), initial=0.0))
+                assert worst <= q * (1 + 1e-9), f"{s}/{c}: off by {worst:g} (quantum {q:g})"
+
+
+@pytest.mark.parametrize("kind", ["serial", "daq"])
+def test_a_replayed_record_re_recorded_equals_the_original(kind: str, tmp_path: Path, short_run: Path) -> None:
+    """Software-timed rig (LK-G storage, ADAM modules) and hardware-timed rig (T7 stream)."""
+    rig = RIGS / ("thesis-sim.toml" if kind == "serial" else "thesis-daq-sim.toml")
+    original = record(rig, tmp_path / "original.h5") if kind == "serial" else short_run
+    again = record(replay_rig(rig, original, tmp_path / "replay.toml"), tmp_path / "again.h5")
+    assert_reproduces(original, again, kind)
+
+
+def test_replay_serves_the_record_not_the_model(tmp_path: Path, short_run: Path) -> None:
+    """A record edited to a constant the model never gives is what the laser twin reports (read over the wire)."""
+    edited = tmp_path / "edited.h5"
+    shutil.copy(short_run, edited)
+    with h5py.File(edited, "r+") as f:
+        f["laser/displacement"][:] = 1.2345e-3
+    sim = SimRig(load_rig(replay_rig(RIGS / "thesis-sim.toml", edited, tmp_path / "r.toml")), virtual=True)
+    sim.start()
+    try:
+        inst = build_instruments(sim.rig, sim.port_map(), clock=sim.clock.now, sleep=sim.clock.sleep,
+                                 timers=sim.reply_timers())
+        assert inst.laser is not None
+        inst.laser.connect()
+        assert sim.replay is not None
+        sim.replay.anchor(sim.clock.now())
+        sim.clock.advance(2.0)  # type: ignore[attr-defined]
+        assert inst.laser.read().value == pytest.approx(1.2345e-3, abs=LKG_M / 2)
+        inst.close()
+    finally:
+        sim.stop()
+
+
+def test_sim_serve_replay_serves_another_process(tmp_path: Path, short_run: Path) -> None:
+    """`bench sim serve --replay RUN.h5 --write-rig x.toml` (the record's own rig): a client process reads the
+    replayed laser value."""
+    edited = tmp_path / "edited.h5"
+    shutil.copy(short_run, edited)
+    with h5py.File(edited, "r+") as f:
+        f["laser/displacement"][:] = -0.4321e-3
+    served = tmp_path / "served.toml"
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    server = subprocess.Popen([sys.executable, "-m", "bench", "sim", "serve", "--replay", str(edited), "--write-rig",
+                               str(served), "--no-wire-time", "--duration", "60"], cwd=ROOT, env=env,
+                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        for _ in range(600):
+            if served.exists() or server.poll() is not None:
+                break
+            time.sleep(0.1)
+        assert served.exists(), server.communicate(timeout=5)[0] if server.poll() is not None else "no rig file"
+        client = ("from bench.rig import load_rig\nfrom bench.runtime.instruments import build_instruments\n"
+                  f"inst = build_instruments(load_rig({str(served)!r}))\ninst.laser.connect()\n"
+                  "print(inst.laser.read().value)\ninst.close()\n")
+        out = subprocess.run([sys.executable, "-c", client], cwd=ROOT, env=env, capture_output=True, text=True,
+                             timeout=60)
+        assert out.returncode == 0, out.stderr
+        assert float(out.stdout.split()[-1]) == pytest.approx(-0.4321e-3, abs=LKG_M / 2)
+    finally:
+        server.terminate()
+        server.wait(timeout=10)
+
+
+def test_replay_errors_are_one_line(tmp_path: Path, short_run: Path) -> None:
+    runner = CliRunner()
+    not_run = tmp_path / "other.h5"
+    with h5py.File(not_run, "w") as f:
+        f["x"] = np.zeros(3)
+    text = tmp_path / "notes.h5"
+    text.write_text("not HDF5\n", encoding="utf-8")
+    cases = [([str(tmp_path / "missing.h5")], "not found"), ([str(not_run)], "not a dea-bench run file"),
+             ([str(text)], "not an HDF5 run file"),
+             ([str(short_run), str(RIGS / "lsdea-motor-sim.toml")], "records no load_cell")]
+    for args, words in cases:
+        rig = args[1:] if len(args) > 1 else []
+        res = runner.invoke(app, ["sim", "serve", *rig, "--replay", args[0], "--duration", "0.1"])
+        assert res.exit_code != 0, res.output
+        lines = [x for x in res.output.splitlines() if x.strip()]
+        assert len(lines) == 1 and words in lines[0] and "Traceback" not in res.output, res.output
+
+
+def test_a_rig_replay_without_a_stream_its_twins_serve_is_refused(tmp_path: Path, short_run: Path) -> None:
+    """No laser stream in the record, a laser twin in the rig: refused before anything serves."""
+    stripped = tmp_path / "no-laser.h5"
+    shutil.copy(short_run, stripped)
+    with h5py.File(stripped, "r+") as f:
+        del f["laser"]
+    with pytest.raises(ReplayError, match="records no laser"):
+        SimRig(load_rig(replay_rig(RIGS / "thesis-sim.toml", stripped, tmp_path / "r.toml")), virtual=True)
