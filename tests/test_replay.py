@@ -3,9 +3,15 @@
 Tolerances are the instruments' quantisation, from the manuals, not from the code: the LK-G outputs millimetres
 with 4 decimals (LK-G5000 manual p. 5-6: ``+01.2345``) → 1e-7 m; the ADAM-4017+ and the T7's stream give 16-bit
 codes over ±10 V (ADAM-4017+ datasheet, 16-bit; LabJack T-Series datasheet: stream data are 16-bit) → 20/65536 V
-at the input, times the rig's monitor ratio (1000 V/V, 1 mA/V) or the laser's analog scale (4 mm/V). The replay
-rigs have another seed than the recording: had the twins served the model (noise off in a replay), the record's
-own noise (LK-G, monitors) could not be reproduced.
+at the input, times the rig's monitor ratio (1000 V/V, 1 mA/V) or the laser's analog scale (4 mm/V); the LinMot
+reports positions in 0.1 µm (LinRS ActualPosition, int32 × 0.1 µm); the DGT1S in divisions of the rig file's
+``division_kg`` (× standard gravity, the driver's N). The replay rigs have another seed than the recording: had
+the twins served the model (noise off in a replay), the record's own noise (LK-G, monitors, load cell) could not
+be reproduced.
+
+Not compared: ``late`` (the host's own poll timing) and the DGT1S's ``ok`` — its stability judgement over its
+own window of conversions, which a record at the polling rate does not hold (the held samples move the window's
+changes by up to one record period).
 """
 
 from __future__ import annotations
@@ -38,7 +44,13 @@ QUANTUM = {  # per (rig kind, stream, column): one step of what the instrument r
     ("serial", "amplifier", "voltage"): CODE_V * 1000.0, ("serial", "amplifier", "current"): CODE_V * 1e-3,
     ("daq", "laser", "displacement"): CODE_V * 0.004,
     ("daq", "amplifier", "voltage"): CODE_V * 1000.0, ("daq", "amplifier", "current"): CODE_V * 1e-3,
+    ("motor", "amplifier", "voltage"): CODE_V * 1000.0, ("motor", "amplifier", "current"): CODE_V * 1e-3,
+    ("motor", "motor", "position"): 1e-7, ("motor", "motor", "aperture"): 1e-7,
+    ("motor", "load_cell", "force"): 0.001 * 9.80665,  # rigs/lsdea-motor-sim.toml: division_kg = 0.001
 }
+NOT_COMPARED = {"t", "late", "ok"}
+RUNS = {"serial": ("thesis-sim.toml", PROTOCOL), "daq": ("thesis-daq-sim.toml", PROTOCOL),
+        "motor": ("lsdea-motor-sim.toml", ROOT / "protocols" / "short" / "lsdea-isometric-short.toml")}
 
 
 def replay_rig(rig: Path, record: Path, dest: Path) -> Path:
@@ -49,8 +61,8 @@ def replay_rig(rig: Path, record: Path, dest: Path) -> Path:
     return dest
 
 
-def record(rig: Path, out: Path) -> Path:
-    result = execute(plan_run(PROTOCOL, rig), out, virtual=True)
+def record(rig: Path, out: Path, protocol: Path = PROTOCOL) -> Path:
+    result = execute(plan_run(protocol, rig), out, virtual=True)
     assert result.state == "completed", result.reason
     return Path(result.path)
 
@@ -60,13 +72,13 @@ def assert_reproduces(original: Path, replayed: Path, kind: str) -> None:
     with h5py.File(original, "r") as a, h5py.File(replayed, "r") as b:
         assert b.attrs["replay_of"] == str(original)
         streams = [s for s in ("setpoints", "amplifier", "laser", "motor", "load_cell") if s in a]
-        assert {"laser", "amplifier"} <= set(streams)
+        assert ({"motor", "load_cell"} if kind == "motor" else {"laser"}) | {"amplifier"} <= set(streams)
         for s in streams:
             ta, tb = np.round(a[s]["t"][:], 9), np.round(b[s]["t"][:], 9)
             _, ia, ib = np.intersect1d(ta, tb, return_indices=True)
             assert ia.size >= 0.99 * np.unique(ta).size, f"{s}: {ia.size} of {ta.size} time stamps match"
             for c in a[s]:
-                if c in ("t", "late"):  # late: the host's own timing, not a measurement
+                if c in NOT_COMPARED:
                     continue
                 x, y = a[s][c][:][ia].astype(float), b[s][c][:][ib].astype(float)
                 same_nan = np.isnan(x) & np.isnan(y)
@@ -75,12 +87,14 @@ def assert_reproduces(original: Path, replayed: Path, kind: str) -> None:
                 assert worst <= q * (1 + 1e-9), f"{s}/{c}: off by {worst:g} (quantum {q:g})"
 
 
-@pytest.mark.parametrize("kind", ["serial", "daq"])
+@pytest.mark.parametrize("kind", list(RUNS))
 def test_a_replayed_record_re_recorded_equals_the_original(kind: str, tmp_path: Path, short_run: Path) -> None:
-    """Software-timed rig (LK-G storage, ADAM modules) and hardware-timed rig (T7 stream)."""
-    rig = RIGS / ("thesis-sim.toml" if kind == "serial" else "thesis-daq-sim.toml")
-    original = record(rig, tmp_path / "original.h5") if kind == "serial" else short_run
-    again = record(replay_rig(rig, original, tmp_path / "replay.toml"), tmp_path / "again.h5")
+    """Software-timed rig (LK-G storage, ADAM modules), hardware-timed rig (T7 stream), LS-DEA on the motor with
+    the load cell (LinMot position, DGT1S force)."""
+    name, protocol = RUNS[kind]
+    rig = RIGS / name
+    original = short_run if kind == "daq" else record(rig, tmp_path / "original.h5", protocol)
+    again = record(replay_rig(rig, original, tmp_path / "replay.toml"), tmp_path / "again.h5", protocol)
     assert_reproduces(original, again, kind)
 
 
