@@ -176,3 +176,14 @@ def test_a_rig_replay_without_a_stream_its_twins_serve_is_refused(tmp_path: Path
         del f["laser"]
     with pytest.raises(ReplayError, match="records no laser"):
         SimRig(load_rig(replay_rig(RIGS / "thesis-sim.toml", stripped, tmp_path / "r.toml")), virtual=True)
+
+
+def test_commands_unlike_the_record_trip_the_output_verifier(tmp_path: Path, short_run: Path) -> None:
+    """The verifier stays on in a replay and compares the host's commands with the recorded monitors: a protocol
+    other than the one recorded (a sweep against a 7-kV raised cosine) is an output mismatch, never silent."""
+    rig = replay_rig(RIGS / "thesis-daq-sim.toml", short_run, tmp_path / "replay.toml")
+    result = execute(plan_run(ROOT / "protocols" / "short" / "thesis-sweeps-short.toml", rig), tmp_path / "x.h5",
+                     virtual=True)
+    assert result.state == "tripped" and "output mismatch" in result.reason, result.reason
+    with h5py.File(result.path, "r") as f:
+        assert f.attrs["replay_of"] == str(short_run)
