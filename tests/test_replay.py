@@ -187,3 +187,24 @@ def test_commands_unlike_the_record_trip_the_output_verifier(tmp_path: Path, sho
     assert result.state == "tripped" and "output mismatch" in result.reason, result.reason
     with h5py.File(result.path, "r") as f:
         assert f.attrs["replay_of"] == str(short_run)
+
+
+def test_a_record_read_in_small_chunks_gives_the_next_sample_hold(short_run: Path) -> None:
+    """The track read forward 7 records at a time (chunk edges everywhere) gives, at any time, the first sample at
+    or after it (the last after the end): computed here on the whole column at once."""
+    from bench.runtime.replay import Recording
+
+    with h5py.File(short_run, "r") as f:
+        t_all, v_all = f["laser/t"][:], f["laser/displacement"][:]
+    rec = Recording(short_run, rows=7)
+    try:
+        track = rec.tracks["laser", "displacement"]
+        rng = np.random.default_rng(3)
+        for start in (-0.5, 0.0, 0.3, 2.00005, 10.9, 12.0):  # forward, then back to the start (re-read)
+            times = start + np.sort(rng.uniform(0.0, 0.01, 40))
+            expected = v_all[np.minimum(np.searchsorted(t_all, times - 1e-9), t_all.size - 1)]
+            np.testing.assert_array_equal(track.at(times), expected)
+        times = t_all[[1, 2]]  # back to the record's second and third samples after reading to the end
+        np.testing.assert_array_equal(track.at(times), v_all[[1, 2]])
+    finally:
+        rec.close()
