@@ -133,11 +133,17 @@ def test_sim_serve_replay_serves_another_process(tmp_path: Path, short_run: Path
                                str(served), "--no-wire-time", "--duration", "60"], cwd=ROOT, env=env,
                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
-        for _ in range(600):
-            if served.exists() or server.poll() is not None:
+        rig = None
+        for _ in range(600):  # until the rig file is there and whole (written while we look)
+            if server.poll() is not None:
                 break
-            time.sleep(0.1)
-        assert served.exists(), server.communicate(timeout=5)[0] if server.poll() is not None else "no rig file"
+            try:
+                rig = load_rig(served)
+                break
+            except ValueError:
+                time.sleep(0.1)
+        assert rig is not None, server.communicate(timeout=5)[0] if server.poll() is not None else "no rig file"
+        assert rig.simulation.replay is None  # the client's rig is real instruments
         client = ("from bench.rig import load_rig\nfrom bench.runtime.instruments import build_instruments\n"
                   f"inst = build_instruments(load_rig({str(served)!r}))\ninst.laser.connect()\n"
                   "print(inst.laser.read().value)\ninst.close()\n")

@@ -257,7 +257,9 @@ def sim_serve(
             console.print(f"replaying {replay} (noise off; what the host commands moves nothing)")
         console.print(_endpoint_table(f"simulated rig {rig.name} ({rig.specimen.kind})", endpoints))
         if write_rig is not None:
-            write_rig_file(served_rig(rig, sim.port_map()), write_rig)
+            # the clients' rig is real instruments: the replay is this process's business, not theirs
+            plain = rig.model_copy(update={"simulation": rig.simulation.model_copy(update={"replay": None})})
+            write_rig_file(served_rig(plain, sim.port_map()), write_rig)
             console.print(f"rig file for clients: {write_rig}")
         console.print("wire time: " + ("real (the rig file's baud rates, RTU gaps and device turnarounds)"
                                        if wire_time else "off (pty speed: faster than any real line)"))
