@@ -10,10 +10,8 @@ from pathlib import Path
 from typing import Annotated, Any, ParamSpec, TypeVar
 
 import typer
-from rich.markup import escape
-from rich.table import Table
 
-from bench.cli.common import JsonOpt, clean_errors, console, print_json
+from bench.cli.common import JsonOpt, Table, clean_errors, console, escape, print_json
 
 CatalogOpt = Annotated[str | None, typer.Option(
     "--catalog", metavar="URL", help="Catalogue database URL (default: $BENCH_CATALOG, else DIR/catalog.sqlite), "

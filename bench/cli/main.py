@@ -221,6 +221,10 @@ def sim_serve(
         "--wire-time/--no-wire-time",
         help="Serve at the rig file's baud rates with the devices' turnarounds (as the real lines), or at pty "
              "speed (faster than any real bench: for a quick look only).")] = True,
+    t7_ports: Annotated[bool, typer.Option(
+        "--t7-ports", help="Serve the T7 twin on the T7's own ports, 502 (Modbus TCP) and 702 (stream), for "
+                           "clients that assume them; where ports below 1024 need privileges this process lacks, "
+                           "on 10502/10702.")] = False,
 ) -> None:
     """Start every simulated instrument of a rig (wall clock) and print where to connect; Ctrl-C stops."""
     import math
@@ -232,7 +236,7 @@ def sim_serve(
     from bench.runtime.devices import served_rig
     from bench.runtime.devices import write_rig as write_rig_file
     from bench.runtime.replay import replay_rig
-    from bench.runtime.sim_rig import SimRig
+    from bench.runtime.sim_rig import T7_PORTS, SimRig
 
     duration_s = None if duration is None else option_si(duration, "s", "--duration", 0.1)
     if rig_file is not None:
@@ -249,7 +253,7 @@ def sim_serve(
     # both set explicitly: a process started with SIGINT ignored (a background job of a non-interactive shell)
     # inherits the ignore, and Python then installs no KeyboardInterrupt handler of its own
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGTERM, signal.SIGINT)}
-    sim = SimRig(rig, timing="real" if wire_time else "none")
+    sim = SimRig(rig, timing="real" if wire_time else "none", daq_ports=T7_PORTS if t7_ports else (0, 0))
     try:
         endpoints = sim.start()
         if sim.replay is not None:  # record time 0: now
