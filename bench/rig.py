@@ -267,6 +267,9 @@ class SimulationConfig(_Strict):
         "rtu", description="rtu: on a pty; rtu-socket: RTU frames over loopback TCP; tcp: Modbus TCP")
     noise: bool = Field(True, description="datasheet noise and monitor gain/offset errors of the twins (seeded by "
                         "seed); false: ideal readings for golden tests (the amplifier's and monitors' dynamics stay)")
+    replay: str | None = Field(None, description="a run file (HDF5) whose measured signals the twins serve instead "
+                               "of the model's, on the record's time base, noise off (bench.runtime.replay); "
+                               "relative to the rig file")
 
 
 class DaqConfig(_Strict):
@@ -502,9 +505,14 @@ def load_rig(path: str | Path) -> RigConfig:
     p = Path(path)
     _, data = read_toml(p, "rig", RigFileError)
     try:
-        return RigConfig.model_validate(data)
+        rig = RigConfig.model_validate(data)
     except ValidationError as exc:
         raise RigFileError(_first_error(p, exc)) from None
+    replay = rig.simulation.replay
+    if replay is not None and not Path(replay).is_absolute():  # relative to the rig file, as its readers expect
+        sim = rig.simulation.model_copy(update={"replay": str((p.parent / replay).resolve())})
+        rig = rig.model_copy(update={"simulation": sim})
+    return rig
 
 
 def _toml_value(v: Any) -> str:

@@ -114,7 +114,9 @@ class KeyenceLKGSim:
         self._store = np.empty(0)  # storage memory [mm] (NaN = invalid), allocated when storage starts
         self.n_stored = 0
         self._next_sample_t = 0.0
-        self._prev: tuple[float, float] | None = None  # last (t, displacement) seen, for interpolation
+        # last (t, displacement) seen, for interpolation: from the start, the plant's present state (a storage
+        # started before any block stores it as its first point, not the first block's value)
+        self._prev: tuple[float, float] | None = (float(plant.last.t[-1]), float(plant.last.displacement[-1]))
         self._buf = b""
         self._lock = threading.Lock()
         self.fault_error_code: str | None = None  # answer every command with ER,<cmd>,<code> while set

@@ -207,7 +207,12 @@ def _endpoint_table(title: str, endpoints: dict) -> Table:
 
 @clean_errors
 def sim_serve(
-    rig_file: RigArg,
+    rig_file: Annotated[Path | None, typer.Argument(
+        help="Rig file (TOML), e.g. rigs/thesis-sim.toml (with --replay: default the record's own rig).",
+        autocompletion=rig_files)] = None,
+    replay: Annotated[Path | None, typer.Option(
+        help="Serve this run file's measured signals (laser, monitors, load cell, motor position) through the "
+             "twins, on the record's time base from the moment they start, noise off.")] = None,
     write_rig: Annotated[Path | None, typer.Option(
         help="Also write a rig file pointing at the running twins (for other processes).")] = None,
     duration: Annotated[str | None, _qopt("Stop after this time [s], at least 0.1 s (default: Ctrl-C); "
@@ -230,12 +235,20 @@ def sim_serve(
     from bench.rig import load_rig
     from bench.runtime.devices import served_rig
     from bench.runtime.devices import write_rig as write_rig_file
+    from bench.runtime.replay import replay_rig
     from bench.runtime.sim_rig import T7_PORTS, SimRig
 
     duration_s = None if duration is None else option_si(duration, "s", "--duration", 0.1)
-    rig = load_rig(rig_file)
-    if not rig.simulated:
-        raise ValueError(f"rig file {rig_file}: simulated = false; `bench sim serve` needs a simulated rig")
+    if rig_file is not None:
+        rig = load_rig(rig_file)
+        if not rig.simulated:
+            raise ValueError(f"rig file {rig_file}: simulated = false; `bench sim serve` needs a simulated rig")
+    elif replay is not None:
+        rig = replay_rig(replay)
+    else:
+        raise ValueError("bench sim serve: give a rig file, or --replay RUN.h5 (its own rig)")
+    if replay is not None:
+        rig = rig.model_copy(update={"simulation": rig.simulation.model_copy(update={"replay": str(replay)})})
     stop = threading.Event()
     # both set explicitly: a process started with SIGINT ignored (a background job of a non-interactive shell)
     # inherits the ignore, and Python then installs no KeyboardInterrupt handler of its own
@@ -243,9 +256,14 @@ def sim_serve(
     sim = SimRig(rig, timing="real" if wire_time else "none", daq_ports=T7_PORTS if t7_ports else (0, 0))
     try:
         endpoints = sim.start()
+        if sim.replay is not None:  # record time 0: now
+            sim.replay.anchor(sim.clock.now())
+            console.print(f"replaying {replay} (noise off; what the host commands moves nothing)")
         console.print(_endpoint_table(f"simulated rig {rig.name} ({rig.specimen.kind})", endpoints))
         if write_rig is not None:
-            write_rig_file(served_rig(rig, sim.port_map()), write_rig)
+            # the clients' rig is real instruments: the replay is this process's business, not theirs
+            plain = rig.model_copy(update={"simulation": rig.simulation.model_copy(update={"replay": None})})
+            write_rig_file(served_rig(plain, sim.port_map()), write_rig)
             console.print(f"rig file for clients: {write_rig}")
         console.print("wire time: " + ("real (the rig file's baud rates, RTU gaps and device turnarounds)"
                                        if wire_time else "off (pty speed: faster than any real line)"))

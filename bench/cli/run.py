@@ -280,6 +280,9 @@ def _execute(plan, path: Path, virtual_time: bool, operator, live: bool, allow_n
 
     engines: list[Engine] = []
     title = f"{plan.protocol.protocol.name} → {path}"
+    if plan.rig.simulated and plan.rig.simulation.replay:  # said before the run, and kept in the file (replay_of)
+        console.print(f"replay: the twins serve the measured signals of {escape(plan.rig.simulation.replay)} "
+                      "(noise off; the commands move nothing; the output verifier checks the recorded monitors)")
     if live and console.is_terminal:
         holder: dict[str, LiveView] = {}
         # keys only where no operator prompt reads the terminal (a real rig's specimen changes ask for Enter)

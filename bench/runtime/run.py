@@ -247,6 +247,8 @@ def execute(plan: Plan, out: Path, *, virtual: bool = False, operator: OperatorF
         attrs["campaign_id"] = attrs["run_id"]
         if resume is not None:
             attrs.update(resume.attrs(out))
+        if sim is not None and sim.replay is not None:  # measured signals are a record's, not the model's
+            attrs.update(replay_of=str(sim.replay.recording.path), replay_of_run_id=sim.replay.recording.run_id)
         prog_rows = [(s.index, s.label, s.name, s.kind, s.t_start, s.duration) for s in program.segments]
         recorder = Recorder(out, attrs, streams, prog_rows, rates)
         catalog.record_start(out, attrs)  # never raises: the catalogue is an index of the files
@@ -255,6 +257,8 @@ def execute(plan: Plan, out: Path, *, virtual: bool = False, operator: OperatorF
                         start_step=resume.step if resume is not None else 0, control=control_path(out))
         if on_engine is not None:
             on_engine(engine, sim)
+        if sim is not None and sim.replay is not None:
+            sim.replay.anchor(clock.now())  # record time 0 = this run's time 0 (the engine starts its clock now)
         result = engine.run()
         catalog.record_end(out)
         if engine.latched is not None:

@@ -21,6 +21,7 @@ from bench.core.clock import Clock, VirtualClock, WallClock
 from bench.core.noise import lkg_noise_mm, load_cell_noise_kg
 from bench.core.plant import Plant
 from bench.rig import RigConfig, amplifier_spec, plant_for
+from bench.runtime.replay import Recording, ReplayError, ReplayPlant, check_fits
 from sim_devices.keyence_lkg import TURNAROUND_S as LKG_TURNAROUND_S
 from sim_devices.keyence_lkg import KeyenceLKGSim, LaserHead
 from sim_devices.labjack_t7 import LabJackT7Sim
@@ -72,6 +73,30 @@ class SimRig:
         if self.timing is None:
             self.timing = "none" if self.virtual else "real"
         self.plant = plant_for(rig, self.clock)
+        self.replay: ReplayPlant | None = None
+        if rig.simulation.replay is not None:
+            self._start_replay(rig.simulation.replay)
+
+    def _start_replay(self, path: str) -> None:
+        """The plant replaced by a record's values (:mod:`bench.runtime.replay`); the twins' own noise off (the
+        record has its own). Refused when the record lacks a stream one of the rig's twins serves."""
+        rig = self.rig
+        needs = {"laser": "laser twin"} if rig.laser is not None else {}
+        if rig.amplifier is not None:
+            needs["amplifier"] = "amplifier's monitors"
+        if rig.load_cell is not None or (rig.daq is not None and rig.daq.force_ain is not None):
+            needs["load_cell"] = "load cell"
+        if rig.motor is not None:
+            needs["motor"] = "motor drive"
+        recording = Recording(path)
+        try:
+            check_fits(recording, needs)
+        except ReplayError:
+            recording.close()
+            raise
+        self.rig = rig.model_copy(update={"simulation": rig.simulation.model_copy(update={"noise": False})})
+        self.replay = ReplayPlant(self.clock, recording, self.plant)
+        self.plant = self.replay
 
     def start(self) -> dict[str, Endpoint]:
         """Start every twin; returns the endpoints by role (serial instruments) or bus name (Modbus)."""
@@ -246,7 +271,7 @@ class SimRig:
         return {name: ep.address for name, ep in self.endpoints().items()}
 
     def stop(self) -> None:
-        """Stop every twin and close the ports."""
+        """Stop every twin and close the ports (and a replayed record)."""
         self._stop_ticker.set()
         if self._ticker is not None:
             self._ticker.join(timeout=2)
@@ -264,6 +289,8 @@ class SimRig:
         if self._modbus is not None:
             self._modbus.stop()
             self._modbus = None
+        if self.replay is not None:
+            self.replay.recording.close()
 
     def __enter__(self) -> SimRig:
         self.start()
