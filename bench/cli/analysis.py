@@ -5,13 +5,14 @@ from __future__ import annotations
 import json
 from enum import StrEnum
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Any
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
 from bench.cli.common import JsonOpt, Table, clean_errors, cluster_client, console, escape, fail, json_mode, print_json
 
 if TYPE_CHECKING:
+    from bench.app.analysis import Report
     from bench.identify.campaign import CampaignReport
     from bench.identify.core import FitResult, FitSettings, Problem
     from bench.identify.problems import MembraneProblem
@@ -242,20 +243,19 @@ def design_map_command(
     """LS-DEA design map (Moretti Fig. 2): F–x over pre-stretch λ2p × aperture xp, breakdown, loss of tension."""
     from bench.units import option_si
 
-    run_design_map(out, tuple(option_si(v.strip(), "kV", "--voltages", 0, 10) for v in voltages.split(",")),
-                   scheduler, workers)
+    show_design_map(out, tuple(option_si(v.strip(), "kV", "--voltages", 0, 10) for v in voltages.split(",")),
+                    scheduler, workers)
 
 
-def run_design_map(out: Path = Path("runs/design-map"), voltages: tuple[float, ...] = (0.0, 3e3, 5e3, 7e3),
-                   scheduler: str | None = None, workers: int | None = None) -> list[Path]:
-    """Compute, summarise and plot the design map (``bench design-map``, ``bench simulate lsdea map``)."""
-    from bench.design_map import MapSettings, compute_map, plot_map
+def show_design_map(out: Path = Path("runs/design-map"), voltages: tuple[float, ...] = (0.0, 3e3, 5e3, 7e3),
+                    scheduler: str | None = None, workers: int | None = None) -> list[Path]:
+    """Compute the design map and print it: the stiffness table, the prototypes, the figures (``bench
+    design-map``, ``bench simulate lsdea map``)."""
+    from bench.app.analysis import design_map
 
-    settings = MapSettings(voltages=voltages)
-    with console.status("computing the design map…"), cluster_client(scheduler, workers) as client:
-        dmap = compute_map(settings, client=client)
-    k = dmap.min_stiffness()
-    regions = dmap.regions()
+    with console.status("computing the design map…"):
+        done = design_map(out, voltages, scheduler, workers)
+    settings, k, regions = done.settings, done.min_stiffness, done.regions
     t = Table(title=f"smallest elastic stiffness over the {settings.stroke[0] * 1e3:g}–{settings.stroke[1] * 1e3:g} "
                     f"mm stroke [N/m] (stiff > {settings.flat:g}, near-zero, negative < −{settings.flat:g})")
     t.add_column("λ2p \\ xp [mm]")
@@ -265,17 +265,14 @@ def run_design_map(out: Path = Path("runs/design-map"), voltages: tuple[float, .
     for i, lam in enumerate(settings.lambda2p):
         t.add_row(f"{lam:g}", *(f"[{colour[regions[i, j]]}]{k[i, j]:.0f}[/]" for j in range(len(settings.xp))))
     console.print(t)
-    for num, l2p in ((1, 2.5), (2, 2.75), (3, 3.0)):
-        d = dmap.design(l2p, 0.040)
+    for num, l2p, d, region in done.prototypes:
         lost = d.tension_lost[-1]
-        region = regions[settings.lambda2p.index(d.lambda2p), settings.xp.index(d.xp)]
         console.print(f"prototype #{num} (λ2p {l2p:g}, xp 40 mm): {region}, k_min "
                       f"{d.min_stiffness:.1f} N/m, V_B {d.breakdown_voltage.min() / 1e3:.2f}–"
                       f"{d.breakdown_voltage.max() / 1e3:.2f} kV, tension lost at {voltages[-1] / 1e3:g} kV in "
                       f"{100 * lost.mean():.0f} % of the stroke")
-    paths = plot_map(dmap, out)
-    console.print("figures: " + ", ".join(str(p) for p in paths))
-    return paths
+    console.print("figures: " + ", ".join(str(p) for p in done.figures))
+    return done.figures
 
 
 @clean_errors
@@ -287,22 +284,13 @@ def report_command(
     """Figures of merit and plots (PNG, PDF, SVG) of recorded runs; several files add a campaign table (Table 3
     layout, also written as CSV). An incomplete, killed or recovered file is flagged."""
     with json_mode(json_out):
-        runs = runs_only(runs)
-        paths, grid = print_report(runs, out)
+        done = print_report(runs_only(runs), out)
     if json_out:
-        from bench.analysis.runs import analyse
-        from bench.storage.runfile import open_run
-
-        def flags(p: Path) -> dict[str, object]:
-            r = open_run(p, streams=False)
-            return {"state": r.state, "complete": r.complete, "incomplete_reason": r.incomplete_reason or None,
-                    "recovered_at": r.recovered_at or None}
-
-        print_json({"units": FIGURE_UNITS, "figures": [str(p) for p in paths], "table3": grid, "runs": [
-            {"file": str(p), **flags(p), "protocol": (a := analyse(p)).protocol,
+        print_json({"units": FIGURE_UNITS, "figures": [str(p) for p in done.figures], "table3": done.grid, "runs": [
+            {"file": str(r.path), **r.flags(), "protocol": r.analysis.protocol,
              "steps": [{"step": s.name, "kind": s.kind, "prototype": s.prototype, "hung_mass_kg": s.hung_mass,
                         "temperature_K": s.temperature, "frequency_Hz": s.frequency, "voltage_V": s.voltage,
-                        "figures": s.figures} for s in a.steps]} for p in runs]})
+                        "figures": s.figures} for s in r.analysis.steps]} for r in done.runs]})
 
 
 def figures_table(steps: list, title: str) -> Table:
@@ -336,35 +324,27 @@ def figures_table(steps: list, title: str) -> Table:
     return t
 
 
-def print_report(runs: list[Path], out: Path | None = None) -> tuple[list[Path], dict[str, Any] | None]:
-    """Tables of figures of merit and PNG plots of run files, each incomplete file flagged; the Table-3 grid of the
-    isopotential steps (also as CSV). Returns the figure paths and the grid (None without isopotential steps)."""
-    from bench.report import report
-    from bench.storage.runfile import open_run
+def print_report(runs: list[Path], out: Path | None = None) -> Report:
+    """Report run files (:func:`bench.app.analysis.report_runs`) and print it: each file's figures of merit (an
+    incomplete file flagged), resonances, figures; the Table-3 grid of the isopotential steps and its CSV."""
+    from bench.app.analysis import report_runs
 
-    all_steps, all_paths = [], []
-    for p in runs:
-        run = open_run(p, streams=False)
-        if not run.complete:
-            console.print(f"[red]INCOMPLETE[/] {escape(p.name)} ({run.state}): {escape(run.incomplete_reason)}; "
-                          f"{len(run.completed_steps())} of {run.program.shape[0]} steps completed", soft_wrap=True)
-        a, paths = report(p, out / p.stem if out is not None and len(runs) > 1 else out)
-        all_steps += a.steps
-        console.print(figures_table(a.steps, f"{a.protocol} ({p.name})"
-                                    + ("" if run.complete else " — INCOMPLETE FILE")))
+    done = report_runs(runs, out)
+    for r in done.runs:
+        a, p = r.analysis, r.path
+        if not r.complete:
+            console.print(f"[red]INCOMPLETE[/] {escape(p.name)} ({r.state}): {escape(r.incomplete_reason)}; "
+                          f"{r.steps_completed} of {r.steps_total} steps completed", soft_wrap=True)
+        console.print(figures_table(a.steps, f"{a.protocol} ({p.name})" + ("" if r.complete else " — INCOMPLETE FILE")))
         if not a.steps:
             console.print(f"no step of {escape(p.name)} could be analysed")
         if a.by_kind("isotonic"):
             console.print("resonance: " + ", ".join(f"{m * 1e3:.0f} g at {f:g} Hz ({amp * 1e3:.1f} mm)"
                                                    for m, (f, amp) in a.resonance().items()))
-        console.print("figures: " + ", ".join(str(x) for x in paths))
-        all_paths += paths
-    grid = table3(all_steps)
+        console.print("figures: " + ", ".join(str(x) for x in r.figures))
+    grid = done.grid
     if grid is None:
-        return all_paths, None
-    csv_path = (out if out is not None else runs[-1].with_name(runs[-1].stem + "-report")) / "table3.csv"
-    write_table3_csv(grid, csv_path)
-    grid["csv"] = str(csv_path)
+        return done
     volts = grid["voltages_kV"]
     t = Table(title="hysteresis loss of the stabilised cycle [%] (Table 3 layout: prototype × voltage, largest Δx)")
     for col in ("prototype", "Δx [mm]", "f [Hz]", *(f"{v:g} kV" for v in volts)):
@@ -376,57 +356,8 @@ def print_report(runs: list[Path], out: Path | None = None) -> tuple[list[Path],
     console.print(t)
     for w in grid["warnings"]:
         console.print(f"[yellow]grid warning[/]: {escape(w)}", soft_wrap=True)
-    console.print(f"grid as CSV: {escape(str(csv_path))}")
-    return all_paths, grid
-
-
-def table3(steps: list) -> dict[str, Any] | None:
-    """The Table-3 grid of isopotential steps: per prototype, the hysteresis loss of the stabilised cycle at each
-    voltage for its largest stroke Δx. Conditions that differ between cells (Δx between rows, the frequency within
-    a row or a cell, several steps in one cell) are listed in ``warnings``, never mixed silently."""
-    iso = [s for s in steps if s.kind == "isopotential"]
-    if not iso:
-        return None
-    volts = sorted({round(s.voltage / 1e3) for s in iso})
-    rows, warnings = [], []
-    for proto in sorted({s.prototype for s in iso}):
-        ss = [s for s in iso if s.prototype == proto]
-        dx = max(round(s.figures["stroke"] * 1e3) for s in ss)  # mm: the imposed stroke
-        cells: dict[str, list] = {}
-        for s in ss:
-            if round(s.figures["stroke"] * 1e3) == dx:
-                cells.setdefault(str(round(s.voltage / 1e3)), []).append(s)
-        freqs = sorted({round(s.frequency, 6) for c in cells.values() for s in c})
-        for v, c in cells.items():
-            if len(c) > 1:
-                warnings.append(f"#{proto} at {v} kV, Δx {dx} mm: {len(c)} steps ({', '.join(s.name for s in c)}); "
-                                "the last one is shown")
-        if len(freqs) > 1:
-            warnings.append(f"#{proto}: cells at different frequencies ({', '.join(f'{f:g}' for f in freqs)} Hz)")
-        rows.append({"prototype": proto, "stroke_m": dx / 1e3, "frequencies_Hz": freqs,
-                     "loss": {v: c[-1].figures["loss_last"] for v, c in cells.items()},
-                     "steps": {v: [s.name for s in c] for v, c in cells.items()}})
-    strokes = sorted({r["stroke_m"] for r in rows})
-    if len(strokes) > 1:
-        warnings.append("rows at different strokes Δx: " + ", ".join(
-            f"#{r['prototype']} {r['stroke_m'] * 1e3:.0f} mm" for r in rows) + " (an incomplete campaign?)")
-    return {"quantity": "hysteresis loss of the stabilised cycle", "unit": "1", "voltages_kV": volts, "rows": rows,
-            "warnings": warnings}
-
-
-def write_table3_csv(grid: dict[str, Any], path: Path) -> None:
-    """The Table-3 grid as CSV: prototype, Δx [mm], frequencies [Hz], then the loss [%] at each voltage."""
-    import csv
-
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with path.open("w", newline="", encoding="utf-8") as fh:
-        w = csv.writer(fh)
-        w.writerow(["prototype", "stroke_mm", "frequency_Hz", *(f"loss_{v}kV_percent" for v in grid["voltages_kV"])])
-        for row in grid["rows"]:
-            w.writerow([row["prototype"], f"{row['stroke_m'] * 1e3:.0f}",
-                        " ".join(f"{f:g}" for f in row["frequencies_Hz"]),
-                        *(f"{100 * row['loss'][str(v)]:.4g}" if str(v) in row["loss"] else ""
-                          for v in grid["voltages_kV"])])
+    console.print(f"grid as CSV: {escape(grid['csv'])}")
+    return done
 
 
 # figure of merit → (column header, scale to the shown unit)

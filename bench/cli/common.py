@@ -1,4 +1,5 @@
-"""What the command modules share: the consoles, one-line errors, --json output, the dask cluster seam.
+"""What the command modules share: the consoles, one-line errors, --json output (and the dask cluster seam of
+bench/app/cluster.py).
 
 Imported by ``bench --help`` and by every TAB completion: nothing heavy at module level (numpy, scipy, numba, the
 models, dask load inside the functions that need them; tests/test_cli_startup.py). Even rich's console, text and
@@ -16,10 +17,10 @@ from typing import TYPE_CHECKING, Annotated, Any, ParamSpec, TypeVar, cast
 
 import typer
 
+from bench.app.cluster import CLUSTER_EXTRA, cluster_client  # noqa: F401  # re-exported: the commands take it here
 from drivers.errors import InstrumentError
 
 if TYPE_CHECKING:
-    from distributed import Client
     from rich.table import Table
 
     from bench.cli.console import BenchConsole
@@ -145,22 +146,3 @@ def _version(value: bool) -> None:
 
         console.print(f"dea-bench {__version__}")
         raise typer.Exit()
-
-
-CLUSTER_EXTRA = "dea-bench[cluster]"
-
-
-@contextlib.contextmanager
-def cluster_client(scheduler: str | None, workers: int | None) -> Iterator[Client | None]:
-    """:func:`bench.identify.distributed.cluster_client`, refused in one line naming the extra when ``--scheduler``
-    or ``--workers`` asks for a cluster and dask.distributed is not installed (it is an optional dependency)."""
-    if scheduler is not None or workers:
-        try:
-            import distributed  # noqa: F401
-        except ImportError:
-            raise ValueError(f"--scheduler/--workers compute on dask.distributed, which is not installed: "
-                             f"pip install '{CLUSTER_EXTRA}'") from None
-    from bench.identify.distributed import cluster_client as client_of
-
-    with client_of(scheduler, workers) as client:
-        yield client

@@ -1,0 +1,66 @@
+"""Use case: serve the simulated instruments of a rig (``bench sim serve``) until stopped."""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from bench.rig import RigConfig
+
+
+@dataclass
+class Serving:
+    """What is served: the rig, each twin's endpoint (by name), the client rig file written (if asked)."""
+
+    rig: RigConfig
+    endpoints: dict[str, Any]  # name → endpoint (name, protocol, address, details)
+    client_rig: Path | None
+    wire_time: bool
+    duration: float | None
+
+
+def serve_rig(rig_file: Path, *, write_rig: Path | None = None, duration: float | None = None,
+              wire_time: bool = True, on_started: Callable[[Serving], None] | None = None) -> Serving:
+    """Start every twin of a simulated rig on the wall clock (at the rig file's baud rates with the devices'
+    turnarounds, or with ``wire_time`` off at pty speed); ``on_started`` gets where to connect. Serves until
+    SIGINT/SIGTERM or ``duration`` [s]; the twins are stopped and the signal handlers restored on the way out."""
+    import math
+    import signal
+    import threading
+    import time
+
+    from bench.rig import load_rig
+    from bench.runtime.devices import served_rig
+    from bench.runtime.devices import write_rig as write_rig_file
+    from bench.runtime.sim_rig import SimRig
+
+    rig = load_rig(rig_file)
+    if not rig.simulated:
+        raise ValueError(f"rig file {rig_file}: simulated = false; `bench sim serve` needs a simulated rig")
+    stop = threading.Event()
+    # both set explicitly: a process started with SIGINT ignored (a background job of a non-interactive shell)
+    # inherits the ignore, and Python then installs no KeyboardInterrupt handler of its own
+    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGTERM, signal.SIGINT)}
+    sim = SimRig(rig, timing="real" if wire_time else "none")
+    try:
+        served = Serving(rig, sim.start(), write_rig, wire_time, duration)
+        if write_rig is not None:
+            write_rig_file(served_rig(rig, sim.port_map()), write_rig)
+        if on_started is not None:
+            on_started(served)
+        with contextlib.suppress(KeyboardInterrupt):
+            # short waits: a Ctrl-C the kernel hands to one of the twins' threads only sets Python's flag, and a
+            # main thread blocked in one long wait would not run the handler until the wait ends (never, without
+            # a duration)
+            end = math.inf if duration is None else time.monotonic() + duration
+            while not stop.wait(min(0.1, max(end - time.monotonic(), 0.0))) and time.monotonic() < end:
+                pass
+    finally:
+        sim.stop()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    return served
