@@ -10,10 +10,8 @@ from pathlib import Path
 from typing import Annotated, Any, ParamSpec, TypeVar
 
 import typer
-from rich.markup import escape
-from rich.table import Table
 
-from bench.cli.common import JsonOpt, clean_errors, console, print_json
+from bench.cli.common import JsonOpt, Table, clean_errors, console, escape, print_json
 
 CatalogOpt = Annotated[str | None, typer.Option(
     "--catalog", metavar="URL", help="Catalogue database URL (default: $BENCH_CATALOG, else DIR/catalog.sqlite), "
@@ -103,7 +101,7 @@ def runs_list(
     console.print(t)
 
 
-def _history_table(specimen: str, h: dict[str, Any]) -> Table:
+def _history_table(specimen: str, h: dict[str, Any]) -> Any:
     """A specimen's runs in order (``bench specimen show``)."""
     t = Table(title=f"specimen {specimen}: {len(h['runs'])} run(s)")
     for col in ("started (UTC)", "file", "protocol", "state", "steps", "HV time", "cycles", "Σ HV time", "Σ cycles",
