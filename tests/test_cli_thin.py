@@ -79,3 +79,26 @@ def test_every_command_body_is_at_most_30_lines() -> None:
 def test_the_command_modules_take_their_use_cases_from_the_app_layer(module: str, use_cases: tuple[str, ...]) -> None:
     imported = imported_modules(ROOT / "bench" / "cli" / f"{module}.py")
     assert set(use_cases) <= imported, (module, sorted(m for m in imported if m.startswith("bench.")))
+
+
+def test_progress_shows_a_bar_on_a_terminal_and_nothing_on_a_pipe_or_with_json(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Issue 26 item 7: a use case that lasts reports its fraction done; the command line draws it as a rich
+    progress bar on a terminal only (a pipe and --json get nothing extra)."""
+    import io
+
+    from rich.console import Console
+
+    from bench.cli import common
+
+    def shown(terminal: bool, json_out: bool = False) -> str:
+        out = io.StringIO()
+        monkeypatch.setattr(common, "console", Console(file=out, force_terminal=terminal, width=100))
+        with common.json_mode(json_out), common.progress("analysing 2 run file(s)") as advance:
+            advance(0.5)
+            advance(1.0)
+        return out.getvalue()
+
+    assert "analysing 2 run file(s)" in shown(terminal=True)
+    assert shown(terminal=False) == ""
+    assert shown(terminal=True, json_out=True) == ""

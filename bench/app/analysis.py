@@ -11,6 +11,7 @@ if TYPE_CHECKING:
     import numpy as np
 
     from bench.analysis.runs import RunAnalysis
+    from bench.app import Progress
     from bench.design_map import DesignCurves, DesignMap, MapSettings
 
 PROTOTYPES = ((1, 2.5), (2, 2.75), (3, 3.0))  # Moretti's prototypes: number, pre-stretch λ2p (all at xp 40 mm)
@@ -77,9 +78,10 @@ class Report:
         return [p for r in self.runs for p in r.figures]
 
 
-def report_runs(runs: list[Path], out: Path | None = None) -> Report:
+def report_runs(runs: list[Path], out: Path | None = None, progress: Progress | None = None) -> Report:
     """Analyse run files and write their figures (into ``out``, a folder per file when there are several; default
-    beside each file); the Table-3 grid of the isopotential steps, also written as CSV (its path in ``grid``)."""
+    beside each file); the Table-3 grid of the isopotential steps, also written as CSV (its path in ``grid``).
+    ``progress`` gets the fraction of the files done."""
     from bench.report import report
     from bench.storage.runfile import open_run
 
@@ -89,6 +91,8 @@ def report_runs(runs: list[Path], out: Path | None = None) -> Report:
         a, paths = report(p, out / p.stem if out is not None and len(runs) > 1 else out)
         done.runs.append(RunReport(p, run.state, run.complete, run.incomplete_reason, run.recovered_at,
                                    len(run.completed_steps()), run.program.shape[0], a, paths))
+        if progress is not None:
+            progress(len(done.runs) / len(runs))
     grid = table3([s for r in done.runs for s in r.analysis.steps])
     if grid is not None:
         csv_path = (out if out is not None else runs[-1].with_name(runs[-1].stem + "-report")) / "table3.csv"

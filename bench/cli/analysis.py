@@ -328,8 +328,10 @@ def print_report(runs: list[Path], out: Path | None = None) -> Report:
     """Report run files (:func:`bench.app.analysis.report_runs`) and print it: each file's figures of merit (an
     incomplete file flagged), resonances, figures; the Table-3 grid of the isopotential steps and its CSV."""
     from bench.app.analysis import report_runs
+    from bench.cli.common import progress
 
-    done = report_runs(runs, out)
+    with progress(f"analysing and plotting {len(runs)} run file(s)") as advance:
+        done = report_runs(runs, out, advance)
     for r in done.runs:
         a, p = r.analysis, r.path
         if not r.complete:

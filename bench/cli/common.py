@@ -140,6 +140,21 @@ def json_mode(enabled: bool) -> Iterator[None]:
         console.quiet = quiet
 
 
+@contextlib.contextmanager
+def progress(description: str) -> Iterator[Callable[[float], None]]:
+    """A progress callback (fraction done, 0 … 1) for a use case that lasts: a rich progress bar on a terminal
+    (gone when done), nothing on a pipe, with -q or with --json (:func:`json_mode`)."""
+    if console.quiet or not console.is_terminal:
+        yield lambda _fraction: None
+        return
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    with Progress(TextColumn(description), BarColumn(), TextColumn("{task.percentage:>3.0f} %"), TimeElapsedColumn(),
+                  console=console, transient=True) as bar:
+        task = bar.add_task(description, total=1.0)
+        yield lambda fraction: bar.update(task, completed=min(max(fraction, 0.0), 1.0))
+
+
 def _version(value: bool) -> None:
     if value:
         from bench import __version__
