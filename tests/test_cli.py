@@ -76,7 +76,8 @@ def test_acquisition_benchmark_reports_complete_10kHz_storage() -> None:
 
 
 def test_demo_runs_records_fits_and_reports_from_the_file(tmp_path) -> None:
-    res = runner.invoke(app, ["demo", "--out", str(tmp_path), "--generations", "3", "--population", "10"],
+    res = runner.invoke(app, ["demo", "--out", str(tmp_path), "--generations", "3", "--population", "10",
+                              "--starts", "1", "--no-intervals"],
                         env={"COLUMNS": "200"})
     assert res.exit_code == 0, res.output
     files = list(tmp_path.glob("thesis-identification-*.h5"))

@@ -115,7 +115,7 @@ def test_fit_json_is_the_stored_fit(run_file: Path, tmp_path: Path) -> None:
 
     run = tmp_path / "run.h5"
     shutil.copy(run_file, run)
-    res = runner.invoke(app, ["fit", str(run), "--population", "6", "--generations", "2", "--json"])
+    res = runner.invoke(app, ["fit", str(run), "--population", "6", "--generations", "2", "--starts", "2", "--json"])
     assert res.exit_code == 0, res.output
     data = json.loads(res.stdout)
     (stored,) = read_fits(run)
@@ -123,6 +123,15 @@ def test_fit_json_is_the_stored_fit(run_file: Path, tmp_path: Path) -> None:
     assert [p["name"] for p in data["parameters"]] == stored["names"]
     assert [p["value"] for p in data["parameters"]] == pytest.approx(list(stored["values"]), rel=1e-12)
     assert data["rms"] == pytest.approx(stored["rms"], rel=1e-12)
+    # the intervals: method and level stated in both, the same ends, a status per parameter, both starts listed
+    assert stored["interval_method"] == "profile likelihood" and stored["confidence"] == 0.95
+    for j, p in enumerate(data["parameters"]):
+        assert p["interval_method"] == "profile likelihood" and p["confidence"] == 0.95
+        assert p["interval"] == pytest.approx([stored["interval_lower"][j], stored["interval_upper"][j]], rel=1e-12)
+        assert p["status"] == stored["status"][j]
+        assert p["status"] in ("determined", "bounded on one side only", "not determined")
+        assert p["interval"][0] <= p["value"] <= p["interval"][1] or p["name"] in data["intervals"]["disagree"]
+    assert [s["seed"] for s in data["intervals"]["starts"]] == [1, 2] == [s["seed"] for s in stored["trust"]["starts"]]
     assert all(p["unit"] for p in data["parameters"])
 
 

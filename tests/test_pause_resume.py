@@ -179,6 +179,7 @@ def test_a_killed_campaign_resumes_in_a_linked_file_and_reports_as_one(tmp_path:
     assert volts == [pytest.approx(5000.0, rel=0.02), pytest.approx(7000.0, rel=0.02)]
     # and the fit takes both files as records of one campaign
     fit = subprocess.run([*bench, "fit", str(second), "--population", "6", "--generations", "1", "--no-polish",
+                          "--starts", "1", "--no-intervals",
                           "--json"], cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=600)
     assert fit.returncode == 0, fit.stderr
     assert json.loads(fit.stdout)["runs"] == [str(first), str(second)]

@@ -108,7 +108,7 @@ def test_a_bad_operator_option_is_one_line_and_nothing_runs(tmp_path: Path) -> N
 
 def test_the_fit_goes_beside_the_run_and_report_and_inspect_find_it(run_file: Path, tmp_path: Path) -> None:
     sidecar = run_file.parent / (run_file.stem + ".fit.hdf5")  # the documented name
-    fit_args = ["--population", "6", "--generations", "2", "--no-polish"]
+    fit_args = ["--population", "6", "--generations", "2", "--no-polish", "--starts", "1", "--no-intervals"]
     res = runner.invoke(app, ["fit", str(run_file), *fit_args], env={"COLUMNS": "200"})
     assert res.exit_code == 0, res.output
     assert sidecar.exists()

@@ -24,9 +24,11 @@ class Serving:
 
 
 def serve_rig(rig_file: Path, *, write_rig: Path | None = None, duration: float | None = None,
-              wire_time: bool = True, on_started: Callable[[Serving], None] | None = None) -> Serving:
+              wire_time: bool = True, t7_ports: bool = False,
+              on_started: Callable[[Serving], None] | None = None) -> Serving:
     """Start every twin of a simulated rig on the wall clock (at the rig file's baud rates with the devices'
-    turnarounds, or with ``wire_time`` off at pty speed); ``on_started`` gets where to connect. Serves until
+    turnarounds, or with ``wire_time`` off at pty speed; a T7 twin with ``t7_ports`` on the T7's own ports, else on
+    ephemeral ones); ``on_started`` gets where to connect. Serves until
     SIGINT/SIGTERM or ``duration`` [s]; the twins are stopped and the signal handlers restored on the way out."""
     import math
     import signal
@@ -36,7 +38,7 @@ def serve_rig(rig_file: Path, *, write_rig: Path | None = None, duration: float 
     from bench.rig import load_rig
     from bench.runtime.devices import served_rig
     from bench.runtime.devices import write_rig as write_rig_file
-    from bench.runtime.sim_rig import SimRig
+    from bench.runtime.sim_rig import T7_PORTS, SimRig
 
     rig = load_rig(rig_file)
     if not rig.simulated:
@@ -45,7 +47,7 @@ def serve_rig(rig_file: Path, *, write_rig: Path | None = None, duration: float 
     # both set explicitly: a process started with SIGINT ignored (a background job of a non-interactive shell)
     # inherits the ignore, and Python then installs no KeyboardInterrupt handler of its own
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGTERM, signal.SIGINT)}
-    sim = SimRig(rig, timing="real" if wire_time else "none")
+    sim = SimRig(rig, timing="real" if wire_time else "none", daq_ports=T7_PORTS if t7_ports else (0, 0))
     try:
         served = Serving(rig, sim.start(), write_rig, wire_time, duration)
         if write_rig is not None:

@@ -6,6 +6,10 @@
   integrated on its own by scipy's Radau with a finite-difference Jacobian;
 * the thesis fit at the thesis's DE settings: the current path (vectorised kernel, stop on convergence)
   against the old one (reference kernel, run to scipy's criterion), wall time and rms;
+* time to a trusted answer: the thesis fit searched from 3 seeds with profile-likelihood intervals
+  (:mod:`bench.identify.trust`) against the plain fit (one search, no intervals), in the same run;
+* coverage of the stated 95 % intervals: repeated fits of records simulated with known parameters and white noise
+  (:mod:`bench.identify.coverage`), the share of intervals that hold the truth per determined parameter;
 * LS-DEA candidates: the vectorised LS-DEA kernel (:mod:`bench.models.lozenge_batch`) against the scalar
   kernel the LS-DEA fits used before (``run_fixed_batch``), a DE generation of 50 on each short campaign's record.
 """
@@ -22,7 +26,7 @@ from scipy.integrate import solve_ivp
 
 from bench.benchmarks import best_of
 from bench.benchmarks.acquisition import Figure
-from bench.identify.core import FitSettings, fit
+from bench.identify.core import FitResult, FitSettings, fit
 from bench.identify.problems import LozengeProblem, MembraneProblem
 from bench.models.integrate import MODEL_LOZENGE, run_fixed_batch
 from bench.models.lozenge import MODE_HUNG
@@ -131,6 +135,50 @@ def thesis_fit(path: Path, settings: FitSettings) -> list[Figure]:
                    f"({new.rms * 1e6:.2f} vs {old.rms * 1e6:.2f} µm)")]
 
 
+def trusted_fit(path: Path, settings: FitSettings) -> list[Figure]:
+    """Time to a trusted answer (3 starts + profile-likelihood intervals) against the plain fit, same record."""
+    def one(trusted: bool) -> tuple[float, FitResult]:
+        coarse, fine = MembraneProblem([path], h=5e-4), MembraneProblem([path], h=1e-4)
+        s = replace(settings, starts=3, intervals=True) if trusted else settings
+        t0 = time.perf_counter()
+        result = fit(coarse, s, fine=fine)
+        return time.perf_counter() - t0, result
+
+    wall_plain, plain = one(False)
+    wall_trust, trusted = one(True)
+    tr = trusted.trust
+    assert tr is not None
+    det = sum(s == "determined" for s in tr.status)
+    return [Figure("thesis fit, plain (one search + polish, local ± only)", wall_plain, "s",
+                   f"search {plain.search_time:.0f} s"),
+            Figure("  time to a trusted answer (3 starts + profile-likelihood intervals)", wall_trust, "s",
+                   f"search {trusted.search_time:.0f} s, intervals {tr.wall_time:.0f} s ({tr.evaluations:,} "
+                   f"evaluations); {det} of {len(tr.status)} parameters determined; starts "
+                   f"{'agree' if tr.starts_agree else 'disagree'}; reduced χ² {tr.chi2_reduced:.3g}"),
+            Figure("  trusted over plain", wall_trust / wall_plain, "×", "the price of the intervals")]
+
+
+def interval_coverage(quick: bool) -> list[Figure]:
+    """Coverage of the stated 95 % intervals (quick: the test's reduced case, 40 repeats of 3 parameters; full:
+    200 repeats of 5 parameters, μ0 and two Maxwell units)."""
+    from bench.identify.coverage import coverage
+
+    free = ["mu0", "mu2", "tau2"] if quick else ["mu0", "mu2", "tau2", "mu4", "tau4"]
+    repeats = 40 if quick else 200
+    t0 = time.perf_counter()
+    cov = coverage(free, repeats, sigma=0.5e-6, seed=0)
+    wall = time.perf_counter() - t0
+    out = [Figure(f"coverage of the 95 % intervals, {repeats} simulated records, white noise 0.5 µm", wall, "s",
+                  f"mean reduced χ² {cov.chi2_reduced:.3f}; misses of undetermined parameters: "
+                  f"{cov.unflagged_misses}")]
+    for j, name in enumerate(cov.names):
+        rate = float(cov.rate()[j])
+        out.append(Figure(f"  {name}: truth inside the interval", 100 * rate, "%",
+                          f"determined in {cov.determined[j]} of {repeats}; target 90–99 %: "
+                          f"{'ok' if 0.90 <= rate <= 0.99 else 'OUTSIDE'}"))
+    return out
+
+
 def _lsdea_generation(prob: LozengeProblem, repeats: int = 3) -> tuple[int, float, float]:
     """(mode, seconds per candidate vectorised, same scalar; best of ``repeats``) of one DE generation of 50 on the
     first record."""
@@ -209,4 +257,7 @@ def run_all(quick: bool = False) -> list[Figure]:
         if not quick:  # the quick campaign fit had no target: the full run only
             figs += campaign_fit(Path(tmp), quick=False)
         figs += lsdea_candidates(Path(tmp), 1 if quick else 3)
+        if not quick:  # minutes each on the membrane problem: the full run only
+            figs += trusted_fit(path, FitSettings())
+            figs += interval_coverage(quick=False)
     return figs

@@ -36,19 +36,53 @@ class CostChoice(StrEnum):
 
 
 def fit_result_table(result: FitResult, title: str) -> Table:
-    """Parameters, bounds, sensitivity and flags of a fit."""
+    """Parameters, bounds, sensitivity and flags of a fit; with intervals (``result.trust``): the interval, what
+    the data determine, the local ± only where it agrees, and a caption with the method, noise and starts."""
     import numpy as np
 
+    tr = result.trust
     t = Table(title=title)
-    for col in ("parameter", "value", "unit", "bounds", "± (1σ)", "sensitivity", "flags"):
-        t.add_column(col, justify="right" if col in ("value", "± (1σ)", "sensitivity") else "left",
+    if tr is None:
+        cols = ("parameter", "value", "unit", "bounds", "± (1σ)", "sensitivity", "flags")
+    else:
+        cols = ("parameter", "value", "unit", f"{100 * tr.confidence:g} % interval", "data", "± local (1σ)",
+                "flags")
+    for col in cols:
+        t.add_column(col, justify="right" if col in ("value", "± (1σ)", "± local (1σ)", "sensitivity") else "left",
                      no_wrap=col != "flags")
     for j, name in enumerate(result.names):
         flags = "; ".join(f.split(" (")[0].replace("does not change the cost", "insensitive")
-                          for f in result.flags_of(name))
-        t.add_row(name, f"{result.values[j]:.5g}", result.units[j], f"{result.lower[j]:.3g} … {result.upper[j]:.3g}",
-                  f"{100 * result.uncertainty[j]:.2g} %" if np.isfinite(result.uncertainty[j]) else "–",
-                  f"{result.sensitivity[j]:.2e}", f"[yellow]{flags}[/]" if flags else "")
+                          for f in result.flags_of(name) if tr is None or not f.startswith(
+                              ("not determined", "bounded on one side only")))
+        local = f"{100 * result.uncertainty[j]:.2g} %" if np.isfinite(result.uncertainty[j]) else "–"
+        if tr is None:
+            t.add_row(name, f"{result.values[j]:.5g}", result.units[j],
+                      f"{result.lower[j]:.3g} … {result.upper[j]:.3g}", local, f"{result.sensitivity[j]:.2e}",
+                      f"[yellow]{flags}[/]" if flags else "")
+            continue
+        status = tr.status[j]
+        style = {"determined": "green", "not determined": "red"}.get(status, "yellow")
+        t.add_row(name, f"{result.values[j]:.5g}", result.units[j], f"{tr.lower[j]:.4g} … {tr.upper[j]:.4g}",
+                  f"[{style}]{status}[/]", local, f"[yellow]{flags}[/]" if flags else "")
+    if tr is not None:
+        noise = ", ".join(f"{s:.3g}" for s in tr.noise[:4]) + (" …" if len(tr.noise) > 4 else "")
+        lines = [f"interval: {tr.method} at {100 * tr.confidence:g} % (the values with Δχ² ≤ {tr.threshold:.3g}, "
+                 f"the others re-optimised); χ² against the noise σ estimated from each record ({noise}); "
+                 f"reduced χ² {tr.chi2_reduced:.3g}, threshold widened ×{tr.scale:.3g} for the residual above the "
+                 "noise / its correlation",
+                 "data: determined = both ends inside the search bounds; an open side is shown at its bound",
+                 "± local: the Jacobian's estimate, shown only where it agrees with the interval"]
+        if tr.starts:
+            verdict = "agree" if tr.starts_agree else "DISAGREE (" + (", ".join(tr.disagree) or "cost") + ")"
+            lines.append(f"{len(tr.starts)} independent starts (seeds {tr.starts[0]['seed']}…"
+                         f"{tr.starts[-1]['seed']}): {verdict}")
+        for td in tr.tradeoffs:
+            if td["determined"]:
+                lines.append(f"trade-off {' ↔ '.join(td['names'])}: {td['quantity']} = {td['value']:.4g} "
+                             f"{td['unit']} ± {100 * td['relative']:.2g} % (local)")
+        if tr.order:
+            lines.append(tr.order)
+        t.caption = "\n".join(lines)
     return t
 
 
@@ -94,6 +128,10 @@ def fit_command(
     scheduler: SchedulerOpt = None,
     workers: WorkersOpt = None,
     json_out: JsonOpt = False,
+    starts: Annotated[int, typer.Option(help="Searches from independent seeds (seed, seed + 1, …); the table says "
+                                        "whether they agree.", min=1)] = 3,
+    intervals: Annotated[bool, typer.Option(help="95 % profile-likelihood intervals against each record's noise "
+                                            "(--no-intervals: the plain fit, local ± only).")] = True,
 ) -> None:
     """Identify model parameters from recorded runs (differential evolution, as in the thesis) and store them.
 
@@ -114,16 +152,22 @@ def fit_command(
     chosen = model.value if model is not ModelChoice.auto else (kinds.pop() if len(kinds) == 1 else "")
     if not chosen:
         raise ValueError("the run files hold different specimens: fit them separately or pass --model")
-    settings = FitSettings(population, generations, mutation, crossover, cost.value, polish, seed=seed)
+    settings = FitSettings(population, generations, mutation, crossover, cost.value, polish, seed=seed,
+                           starts=starts, intervals=intervals)
     with json_mode(json_out):
         result, problem = run_fit(runs, chosen, settings, branches, export, scheduler, workers, into=into)
     if json_out:
         print_json({"model": chosen, "runs": [str(p) for p in runs], "cost": result.cost,
                     "cost_kind": result.cost_kind, "rms": result.rms, "rms_unit": problem.data_unit,
                     "lack_of_fit": result.lack_of_fit,
+                    **({"intervals": result.trust.as_dict(result.names)} if result.trust is not None else {}),
                     "parameters": [{"name": n, "value": result.values[j], "unit": result.units[j],
                                     "lower": result.lower[j], "upper": result.upper[j],
                                     "relative_uncertainty": result.uncertainty[j],
+                                    **({"interval": [result.trust.lower[j], result.trust.upper[j]],
+                                        "interval_method": result.trust.method,
+                                        "confidence": result.trust.confidence,
+                                        "status": result.trust.status[j]} if result.trust is not None else {}),
                                     "sensitivity": result.sensitivity[j], "flags": result.flags_of(n)}
                                    for j, n in enumerate(result.names)]})
 
@@ -397,6 +441,10 @@ def demo(
     out: Annotated[Path, typer.Option(help="Folder for the run file and the report.")] = Path("runs/demo"),
     generations: Annotated[int, typer.Option(help="DE generations (thesis: 100).", min=1)] = 100,
     population: Annotated[int, typer.Option(help="DE population (thesis: 50).", min=5)] = 50,
+    starts: Annotated[int, typer.Option(help="Searches from independent seeds; the table says whether they agree.",
+                                        min=1)] = 3,
+    intervals: Annotated[bool, typer.Option(help="95 % profile-likelihood intervals against the record's noise "
+                                            "(--no-intervals: the plain fit).")] = True,
 ) -> None:
     """The main job on the simulated rig: a paper protocol run, recorded, fitted and reported from the file.
 
@@ -423,7 +471,8 @@ def demo(
         raise fail(f"run ended {result.state}: {result.reason}", code=1)
     console.print("[bold]2. fit[/] the membrane model to the recorded file")
     path = Path(result.path)
-    fitted, problem = run_fit([path], "membrane", FitSettings(population=population, generations=generations))
+    fitted, problem = run_fit([path], "membrane", FitSettings(population=population, generations=generations,
+                                                                       starts=starts, intervals=intervals))
     console.print(twin_comparison(problem, fitted))  # type: ignore[arg-type]
     peak = float(np.nanmax(np.abs(problem.data)))
     console.print(f"the fitted model reproduces the record to rms {fitted.rms * 1e6:.1f} µm "
@@ -441,8 +490,11 @@ def twin_comparison(problem: MembraneProblem, fitted: FitResult) -> Table:
     values = dict(zip(fitted.names, fitted.values, strict=True))
     pairing = match_membrane_units(values, true)
     t = Table(title="identified vs the simulated specimen (the twin's model, recorded in the file)")
-    for col in ("parameter", "simulated", "identified", "error", "note"):
-        t.add_column(col, justify="left" if col in ("parameter", "note") else "right")
+    tr = fitted.trust
+    cols = ("parameter", "simulated", "identified", "error") + \
+        ((f"{100 * tr.confidence:g} % interval", "holds it") if tr is not None else ()) + ("note",)
+    for col in cols:
+        t.add_column(col, justify="left" if col in ("parameter", "note", "holds it") else "right")
     for j, name in enumerate(fitted.names):
         ref = name
         if name[-1] in "1234" and name[:-1] in ("mu", "J", "tau"):
@@ -453,7 +505,11 @@ def twin_comparison(problem: MembraneProblem, fitted: FitResult) -> Table:
         style = "dim" if note else ""
         if ref != name:
             name = f"{name} (≙ {ref})"
-        t.add_row(name, f"{true[ref]:.4g}", f"{fitted.values[j]:.4g}", f"{100 * err:+.1f} %", note, style=style)
+        cells = [name, f"{true[ref]:.4g}", f"{fitted.values[j]:.4g}", f"{100 * err:+.1f} %"]
+        if tr is not None:
+            inside = tr.lower[j] <= true[ref] <= tr.upper[j]
+            cells += [f"{tr.lower[j]:.4g} … {tr.upper[j]:.4g}", "yes" if inside else "[red]no[/]"]
+        t.add_row(*cells, note, style=style)
     t.caption = ("Maxwell units are interchangeable in the model and are paired by relaxation time (≙); flagged "
                  "parameters are not determined by this record (they trade off against others at equal cost)")
     return t

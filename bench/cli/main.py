@@ -162,6 +162,10 @@ def sim_serve(
         "--wire-time/--no-wire-time",
         help="Serve at the rig file's baud rates with the devices' turnarounds (as the real lines), or at pty "
              "speed (faster than any real bench: for a quick look only).")] = True,
+    t7_ports: Annotated[bool, typer.Option(
+        "--t7-ports", help="Serve the T7 twin on the T7's own ports, 502 (Modbus TCP) and 702 (stream), for "
+                           "clients that assume them; where ports below 1024 need privileges this process lacks, "
+                           "on 10502/10702.")] = False,
 ) -> None:
     """Start every simulated instrument of a rig (wall clock) and print where to connect; Ctrl-C stops."""
     from bench.app.sim import Serving, serve_rig
@@ -176,7 +180,8 @@ def sim_serve(
         console.print("serving; Ctrl-C to stop" + (f" (or after {served.duration:g} s)" if served.duration else ""))
 
     duration_s = None if duration is None else option_si(duration, "s", "--duration", 0.1)
-    serve_rig(rig_file, write_rig=write_rig, duration=duration_s, wire_time=wire_time, on_started=started)
+    serve_rig(rig_file, write_rig=write_rig, duration=duration_s, wire_time=wire_time, t7_ports=t7_ports,
+              on_started=started)
     console.print("simulated rig stopped")
 
 

@@ -17,9 +17,8 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
-from rich.markup import escape
 
-from bench.cli.common import clean_errors, console
+from bench.cli.common import clean_errors, console, escape
 
 WEB_EXTRA = "bench watch needs the web extra: pip install 'dea-bench[web]'"
 DEFAULT_PORT = 8765

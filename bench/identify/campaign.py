@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bench.identify.core import FitResult, Problem, assess
+from bench.identify.core import FitResult, Problem, assess, to_optimiser
 
 # flags that say a parameter is not determined (a bound is a property of the estimate, not of the data)
 UNDETERMINED = ("does not change the cost", "poorly determined", "correlated with")
@@ -69,7 +69,8 @@ def campaign_identifiability(problem: Problem, result: FitResult) -> CampaignRep
     mask = np.isfinite(problem.data)
     pos = np.cumsum(mask) - 1  # index of each compared point among the compared points
     log = np.asarray(problem.log, bool)
-    lo, hi = np.asarray(problem.lower, float), np.asarray(problem.upper, float)
+    # the result's bounds: its units are numbered by relaxation time, each with the bounds it was searched in
+    lo, hi = to_optimiser(log, result.lower), to_optimiser(log, result.upper)
     undetermined, start = [], 0
     for rec in records:
         seg = slice(start, start + rec.data.size)

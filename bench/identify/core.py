@@ -13,11 +13,14 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
-from typing import Literal, Protocol
+from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING, Literal, Protocol
 
 import numpy as np
 from scipy.optimize import OptimizeResult, differential_evolution, least_squares
+
+if TYPE_CHECKING:
+    from bench.identify.trust import Trust
 
 Cost = Literal["sae", "lsq"]
 
@@ -54,6 +57,11 @@ class FitSettings:
     # stall_generations generations, the search ends and the polish takes over (0: run to scipy's criterion)
     stall_generations: int = 10
     stall_tol: float = 1e-3
+    # trust (:mod:`bench.identify.trust`): the search repeated from ``starts`` seeds (seed, seed + 1, …) and, with
+    # ``intervals``, profile-likelihood intervals at ``confidence`` against each record's noise
+    starts: int = 1
+    intervals: bool = False
+    confidence: float = 0.95
 
 
 @dataclass
@@ -82,6 +90,7 @@ class FitResult:
     z: np.ndarray | None = None  # the result in optimiser coordinates
     search_time: float = 0.0  # s of the wall time spent in the differential evolution (the rest: polish, analysis)
     lack_of_fit: str = ""  # why the model does not follow the data ('' when it does): see :func:`lack_of_fit`
+    trust: Trust | None = None  # intervals, identifiability, noise, multi-start agreement (settings.intervals)
 
     def flags_of(self, name: str) -> list[str]:
         """Flags of one parameter."""
@@ -106,10 +115,32 @@ def physical(problem: Problem, Z: np.ndarray) -> np.ndarray:
     return to_physical(np.asarray(problem.log, bool), Z)
 
 
+def noise_of(data: np.ndarray) -> float:
+    """Noise σ of a record estimated from itself: 1.4826 × the median absolute deviation of its fourth
+    differences over √70 (white noise of σ gives k-th differences of variance C(2k, k) σ²: 70 σ² for k = 4; a
+    signal smooth at the sampling rate adds (ωΔt)⁴ of its amplitude, and the median ignores its few steep
+    points). NaN points are skipped; the floor is 1e-9 of the record's rms (a quantised, noiseless record)."""
+    d = np.asarray(data, float)
+    d4 = d[4:] - 4 * d[3:-1] + 6 * d[2:-2] - 4 * d[1:-3] + d[:-4]
+    d4 = d4[np.isfinite(d4)]
+    rms = float(np.sqrt(np.nanmean(d * d))) if np.isfinite(d).any() else 0.0
+    floor = max(1e-9 * rms, 1e-300)
+    if d4.size < 3:
+        return floor
+    return max(1.4826 * float(np.median(np.abs(d4 - np.median(d4)))) / np.sqrt(70.0), floor)
+
+
+def sigma_of(problem: Problem) -> np.ndarray:
+    """Noise σ per data point: the problem's ``sigma`` (per record) when it has one, else one σ of all data."""
+    s = getattr(problem, "sigma", None)
+    if s is not None:
+        return np.asarray(s, float)
+    return np.full(problem.data.shape, noise_of(problem.data))
+
+
 def _costs(problem: Problem, pred: np.ndarray, kind: Cost) -> np.ndarray:
-    r = pred - problem.data
     mask = np.isfinite(problem.data)
-    r = r[:, mask]
+    r = ((pred - problem.data) / sigma_of(problem))[:, mask]
     c = np.sum(np.abs(r), axis=1) if kind == "sae" else np.sum(r * r, axis=1)
     c[~np.all(np.isfinite(r), axis=1)] = np.inf
     return c
@@ -120,8 +151,66 @@ def fit(problem: Problem, settings: FitSettings = FitSettings(), start: np.ndarr
     """Identify the problem's parameters; returns values, cost and identifiability.
 
     ``fine``: the same problem at a finer integration step, used for the polish and the identifiability
-    (the search runs on the coarse, fast one). ``progress`` is called once per generation.
+    (the search runs on the coarse, fast one). ``progress`` is called once per generation. With
+    ``settings.starts`` > 1 the search and polish run from that many seeds and the best is kept; with
+    ``settings.intervals`` the result carries profile-likelihood intervals (:mod:`bench.identify.trust`).
     """
+    t0 = time.perf_counter()
+    runs = [_search(problem, replace(settings, seed=settings.seed + k), start if k == 0 else None, fine, progress)
+            for k in range(max(1, settings.starts))]
+    best = min(runs, key=lambda r: r.cost)
+    target = fine or problem
+    mask = np.isfinite(target.data)
+    data = target.data[mask]
+    scale = max(float(np.sqrt(np.mean(data * data))), 1e-30)
+    z, J, r = best.z, best.J, best.pred - data
+    log = np.asarray(target.log, bool)
+    sens, corr, uncertainty, flags = assess(list(target.names), log, best.lo, best.hi, z, J, r, scale)
+    result = FitResult(list(target.names), list(target.units), physical(target, z), physical(target, best.lo),
+                       physical(target, best.hi), best.cost, settings.cost, float(np.sqrt(np.mean(r * r))),
+                       int(data.size), sum(x.evaluations for x in runs), best.generations,
+                       time.perf_counter() - t0, sens, corr, uncertainty, flags, settings, J, r, z,
+                       sum(x.search_time for x in runs), lack_of_fit(r, data))
+    if settings.intervals:
+        from bench.identify.trust import assess_trust
+
+        assess_trust(target, result, [(x.seed, x.z, x.lo, x.hi) for x in runs], best.lo, best.hi,
+                     coarse=problem if fine is not None else None)
+        result.wall_time = time.perf_counter() - t0
+    return result
+
+
+@dataclass
+class _Run:
+    seed: int
+    z: np.ndarray
+    pred: np.ndarray
+    J: np.ndarray
+    cost: float
+    lo: np.ndarray  # bounds in optimiser coordinates, in the order of z (units ordered by relaxation time)
+    hi: np.ndarray
+    evaluations: int
+    generations: int
+    search_time: float
+
+
+def unit_order(problem: Problem, z: np.ndarray) -> np.ndarray:
+    """Permutation of the parameters that numbers interchangeable units by increasing relaxation time: the
+    problem's ``unit_groups`` (index lists of each unit's parameters, its relaxation time last); identity when
+    it has none."""
+    perm = np.arange(z.size)
+    groups = getattr(problem, "unit_groups", None)
+    if not groups:
+        return perm
+    order = sorted(range(len(groups)), key=lambda k: z[groups[k][-1]])
+    for slot, k in enumerate(order):
+        perm[groups[slot]] = groups[k]
+    return perm
+
+
+def _search(problem: Problem, settings: FitSettings, start: np.ndarray | None, fine: Problem | None,
+            progress: Callable[[], None] | None) -> _Run:
+    """One differential evolution from ``settings.seed`` and its polish."""
     t0 = time.perf_counter()
     rng = np.random.default_rng(settings.seed)
     D = len(problem.names)
@@ -156,7 +245,7 @@ def fit(problem: Problem, settings: FitSettings = FitSettings(), start: np.ndarr
     problem = fine or problem
     mask = np.isfinite(problem.data)
     data = problem.data[mask]
-    scale = max(float(np.sqrt(np.mean(data * data))), 1e-30)
+    sigma = sigma_of(problem)[mask]
     step = 1e-3 * (hi - lo)
 
     def jac_batch(zc: np.ndarray, cols: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -196,29 +285,22 @@ def fit(problem: Problem, settings: FitSettings = FitSettings(), start: np.ndarr
             return cache[key]
 
         def res(zc: np.ndarray) -> np.ndarray:
-            r = (both(zc)[0] - data) / scale
+            r = (both(zc)[0] - data) / sigma  # each stream against its noise
             return np.where(np.isfinite(r), r, 1e6)
 
         def jac(zc: np.ndarray) -> np.ndarray:
-            J = both(zc)[1] / scale
+            J = both(zc)[1] / sigma[:, None]
             return np.where(np.isfinite(J), J, 0.0)
 
         ls = least_squares(res, z[free], jac=jac, bounds=(lo[free], hi[free]), x_scale=(hi - lo)[free],
                            max_nfev=settings.polish_iterations)
-        after = cost_of(both(ls.x)[0] - data)
-        if np.isfinite(after) and after <= cost_of(pred - data):
+        after = cost_of((both(ls.x)[0] - data) / sigma)
+        if np.isfinite(after) and after <= cost_of((pred - data) / sigma):
             z = full(ls.x)
             pred, J = jac_batch(z)
-    r = pred - data
-    cost = cost_of(r)
-    values = physical(problem, z)
-    sens, corr, uncertainty, flags = assess(list(problem.names), np.asarray(problem.log, bool), lo, hi, z, J, r,
-                                            scale)
-    lower, upper = physical(problem, lo), physical(problem, hi)
-    return FitResult(list(problem.names), list(problem.units), values, lower, upper, cost, settings.cost,
-                     float(np.sqrt(np.mean(r * r))), int(data.size), evaluations, int(de.nit),
-                     time.perf_counter() - t0, sens, corr, uncertainty, flags, settings, J, r, z, search_time,
-                     lack_of_fit(r, data))
+    perm = unit_order(problem, z)  # the model is symmetric under exchanging units: number them by τ
+    return _Run(settings.seed, z[perm], pred, J[:, perm], cost_of(pred - data), lo[perm], hi[perm], evaluations,
+                int(de.nit), search_time)
 
 
 LACK_OF_FIT_SHARE = 0.02  # residual rms above this share of the data's spread ...

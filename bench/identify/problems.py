@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from bench.analysis.applied import applied_voltage
-from bench.identify.core import to_optimiser, to_physical
+from bench.identify.core import noise_of, to_optimiser, to_physical
 from bench.models.integrate import MODEL_MEMBRANE, OBSERVE_FORCE, run_fixed_batch
 from bench.models.lozenge import MODE_HUNG, MODE_IMPOSED, PROTOTYPE_LAMBDA2P, LozengeParams, MaxwellBranch
 from bench.models.lozenge_batch import lozenge_batch
@@ -142,6 +142,10 @@ class MembraneProblem:
         if not self.records:
             raise ValueError("no membrane records with laser data in the given run files")
         self.data = np.concatenate([r.data for r in self.records])
+        # noise model: each record's σ from its own high-frequency content (core.noise_of)
+        self.sigma = np.concatenate([np.full(r.data.size, noise_of(r.data)) for r in self.records])
+        # Maxwell units 1–4 are interchangeable (μ_i, J_i, τ_i; τ last): the fit numbers them by τ
+        self.unit_groups = [[1 + i, 5 + i, 9 + i] for i in range(1, 5)]
 
     def _add(self, run: RunFile, source: str) -> None:
         spec = json.loads(run.attrs["specimen"])
@@ -248,6 +252,9 @@ class LozengeProblem:
         if not self.records:
             raise ValueError("no LS-DEA records in the given run files")
         self.data = np.concatenate([r.data for r in self.records])
+        self.sigma = np.concatenate([np.full(r.data.size, noise_of(r.data)) for r in self.records])
+        # the Maxwell branches are interchangeable (μ_b, τ_b; τ last): the fit numbers them by τ
+        self.unit_groups = [[3 + k, 3 + branches + k] for k in range(branches)]
         hung = {int(r.template[16]) == MODE_HUNG for r in self.records}  # Q_MODE
         self.data_unit = "m" if hung == {True} else "N" if hung == {False} else "N and m"
 

@@ -13,6 +13,13 @@ for ``values``, ``lower``, ``upper``; "1" for the relative others) and attribute
 ``n_data``, ``records`` (the files and windows used), DE settings, ``software``, ``wall_time``, ``flags``,
 ``lack_of_fit`` ('' when the model follows the data), ``created`` and, for a fit over several records,
 ``campaign`` (JSON: what each record determines alone and what only the campaign determines).
+
+A fit with intervals (:mod:`bench.identify.trust`) adds datasets ``interval_lower`` and ``interval_upper`` (physical
+units, per parameter; the search bound where the data leave that side open) and ``status`` ("determined", "bounded
+on one side only", "not determined"), and attributes ``interval_method`` ("profile likelihood"), ``confidence``
+(0.95), ``chi2_reduced`` and ``trust`` (JSON: noise σ per record, variance scale and Δχ² threshold, trade-offs,
+the starts and whether they agree, the spread per parameter, the unit-order rule). ``uncertainty`` then holds the
+local (Jacobian) relative 1σ only where it agrees with the profile, NaN elsewhere.
 """
 
 from __future__ import annotations
@@ -109,6 +116,14 @@ def _write_group(f: h5py.File, model: str, result: FitResult, records: list[str]
                     "created": now_iso()})
     if campaign is not None:
         g.attrs["campaign"] = json.dumps(campaign)
+    tr = result.trust
+    if tr is not None:
+        for key, arr in (("interval_lower", tr.lower), ("interval_upper", tr.upper)):
+            g.create_dataset(key, data=np.asarray(arr, dtype=float))
+            g[key].attrs.create("units", np.array(result.units, dtype=object), dtype=text)
+        g.create_dataset("status", data=np.array(tr.status, dtype=object), dtype=text)
+        g.attrs.update({"interval_method": tr.method, "confidence": tr.confidence, "chi2_reduced": tr.chi2_reduced,
+                        "trust": json.dumps(tr.as_dict(result.names))})
     return g.name
 
 
@@ -142,7 +157,9 @@ def _read_groups(path: str | Path) -> list[dict]:
                         "units": list(g["units"].asstr()[:]), "values": g["values"][:],
                         "lower": g["lower"][:], "upper": g["upper"][:], "sensitivity": g["sensitivity"][:],
                         "uncertainty": g["uncertainty"][:] if "uncertainty" in g else None,
-                        **{k: (json.loads(v) if k in ("settings", "records", "flags", "campaign") else v)
+                        **{k: g[k][:] for k in ("interval_lower", "interval_upper") if k in g},
+                        **({"status": list(g["status"].asstr()[:])} if "status" in g else {}),
+                        **{k: (json.loads(v) if k in ("settings", "records", "flags", "campaign", "trust") else v)
                            for k, v in g.attrs.items()}})
     return out
 
