@@ -27,6 +27,20 @@ class Fitted:
     exported: Path | None = None
 
 
+def model_of_runs(runs: list[Path], asked: str = "auto") -> str:
+    """The model to fit: ``asked`` ("membrane", "lsdea"), or with "auto" the specimen kind the run files share
+    (ValueError when they hold different ones)."""
+    import json
+
+    from bench.storage.runfile import open_run
+
+    kinds = {json.loads(open_run(p, streams=False).attrs["specimen"])["kind"] for p in runs}
+    chosen = asked if asked != "auto" else (kinds.pop() if len(kinds) == 1 else "")
+    if not chosen:
+        raise ValueError("the run files hold different specimens: fit them separately or pass --model")
+    return str(chosen)
+
+
 def check_fittable(runs: list[Path], into: bool = False) -> None:
     """Refuse, before any work, a file the fit cannot be stored with: not finalised (a crashed file that a resumed
     campaign continued is fine), or crashed with ``into`` (fits go inside finished files only)."""
@@ -69,7 +83,7 @@ def fit_runs(runs: list[Path], model: str, settings: FitSettings, *, branches: i
         coarse, fine = LozengeProblem(files, branches=branches, h=2e-3), LozengeProblem(files, branches=branches)
     if on_read is not None:
         on_read(coarse)
-    total = settings.generations * max(int(getattr(settings, "starts", 1)), 1)  # a generation of each start
+    total = settings.generations * max(settings.starts, 1)  # progress is called at each generation of each start
     done = [0]
 
     def generation() -> None:

@@ -2,14 +2,14 @@
 
 from __future__ import annotations
 
-import json
+from collections.abc import Callable
 from enum import StrEnum
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from bench.cli.common import JsonOpt, Table, clean_errors, cluster_client, console, escape, fail, json_mode, print_json
+from bench.cli.common import JsonOpt, Table, clean_errors, console, escape, fail, json_mode, print_json
 
 if TYPE_CHECKING:
     from bench.app.analysis import Report
@@ -102,12 +102,6 @@ def campaign_table(report: CampaignReport) -> Table:
     return t
 
 
-def _model_of(path: Path) -> str:
-    from bench.storage.runfile import open_run
-
-    return json.loads(open_run(path, streams=False).attrs["specimen"])["kind"]
-
-
 @clean_errors
 def fit_command(
     runs: RunsArg,
@@ -144,14 +138,12 @@ def fit_command(
     campaign determines. The campaign's fit is stored with every one of its files (in each fit file, or with
     --into in each run file), so the report of any of them finds it. Fit files given among the runs (a glob such
     as runs/*) are skipped."""
+    from bench.app.fit import model_of_runs
     from bench.identify.core import FitSettings
 
     with json_mode(json_out):
         runs = runs_only(runs)
-    kinds = {_model_of(p) for p in runs}
-    chosen = model.value if model is not ModelChoice.auto else (kinds.pop() if len(kinds) == 1 else "")
-    if not chosen:
-        raise ValueError("the run files hold different specimens: fit them separately or pass --model")
+    chosen = model_of_runs(runs, model.value)
     settings = FitSettings(population, generations, mutation, crossover, cost.value, polish, seed=seed,
                            starts=starts, intervals=intervals)
     with json_mode(json_out):
@@ -202,76 +194,48 @@ def campaign_files(runs: list[Path]) -> list[Path]:
 def run_fit(runs: list[Path], chosen: str, settings: FitSettings, branches: int = 1,
             export: Path | None = None, scheduler: str | None = None,
             workers: int | None = None, *, into: bool = False) -> tuple[FitResult, Problem]:
-    """Fit, print the table, store the result with every file (in its fit file, or with ``into`` in the run file)
-    and optionally export a rig; on a dask cluster when ``scheduler`` (address) or ``workers`` (LocalCluster) is
-    given (membrane model).
+    """Fit (:func:`bench.app.fit.fit_runs`: stored with every file, optionally exported as a rig) and print it: a
+    spinner while the records are read, a progress bar over the generations, then the table, the campaign's
+    identifiability, where it was stored. Returns the result and the (coarse) problem it was searched on."""
+    import contextlib
 
-    Returns the result and the (coarse) problem it was searched on, which holds the compared data."""
     import numpy as np
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from bench.identify.campaign import campaign_identifiability
-    from bench.identify.core import fit
-    from bench.identify.problems import LozengeProblem, MembraneProblem
-    from bench.identify.store import export_rig, fit_sidecar, fitted_rig, write_fit
-    from bench.rig import rig_from_toml
-    from bench.storage.runfile import open_run
+    from bench.app.fit import fit_runs
+    from bench.cli.common import progress
 
-    for p in runs:  # the fit is stored with every file: refuse before the work, not after
-        f = open_run(p, streams=False)
-        crashed = f.state == "running" and bool(f.orphaned or f.recovered_at)  # a resumed campaign's earlier part
-        if not (f.complete or crashed):
-            raise ValueError(f"run file {p}: not finalised ({f.incomplete_reason}); fit it when it has ended")
-        if into and not f.complete:
-            raise ValueError(f"run file {p}: not finalised (crashed); --into stores fits in finished files only — "
-                             "leave out --into to store the fit in its fit file beside it")
-    with console.status("reading the records…"):
-        if chosen == "membrane":
-            coarse, fine = MembraneProblem(runs, h=5e-4), MembraneProblem(runs, h=1e-4)
-        else:
-            coarse, fine = LozengeProblem(runs, branches=branches, h=2e-3), LozengeProblem(runs, branches=branches)
     s = settings
-    console.print(f"fitting the {chosen} model ({len(coarse.names)} parameters) to {len(coarse.records)} records, "
-                  f"{int(np.isfinite(coarse.data).sum()):,} points; DE population {s.population}, up to "
-                  f"{s.generations} generations, F {s.mutation}, CR {s.crossover}, cost {s.cost}")
-    with Progress(TextColumn("differential evolution"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
-                  TimeElapsedColumn(), console=console, transient=True) as bar:
-        task = bar.add_task("de", total=s.generations)
-        with cluster_client(scheduler, workers) as client:
-            if client is not None:
-                if not isinstance(coarse, MembraneProblem):
-                    raise ValueError("--scheduler/--workers: distributed fits are implemented for the membrane "
-                                     "model only; fit LS-DEA records in-process")
-                coarse.distribute(client)
-                fine.distribute(client)  # type: ignore[union-attr]
-                console.print(f"evaluating candidates on the dask cluster {client.scheduler.address}")
-            try:
-                result = fit(coarse, s, start=None, fine=fine, progress=lambda: bar.advance(task))
-            finally:
-                for prob in (coarse, fine):
-                    if isinstance(prob, MembraneProblem):
-                        prob.distribute(None)
+    with contextlib.ExitStack() as stack:
+        reading = stack.enter_context(console.status("reading the records…"))
+        advance: list[Callable[[float], None]] = []
+
+        def read(coarse: Problem) -> None:
+            reading.stop()
+            console.print(f"fitting the {chosen} model ({len(coarse.names)} parameters) to "
+                          f"{len(coarse.records)} records, {int(np.isfinite(coarse.data).sum()):,} points; "
+                          f"DE population {s.population}, up to {s.generations} generations, F {s.mutation}, "
+                          f"CR {s.crossover}, cost {s.cost}")
+            advance.append(stack.enter_context(progress("differential evolution")))
+
+        done = fit_runs(runs, chosen, s, branches=branches, export=export, scheduler=scheduler, workers=workers,
+                        into=into, on_read=read, progress=lambda fraction: advance[-1](fraction),
+                        on_cluster=lambda address: console.print(f"evaluating candidates on the dask cluster "
+                                                                 f"{address}"))
+    result, coarse = done.result, done.problem
     console.print(fit_result_table(result, f"{chosen} model fitted to {len(runs)} run(s)"))
     console.print(f"cost ({result.cost_kind}) {result.cost:.4g}, residual rms {result.rms:.4g} {coarse.data_unit}, "
                   f"{result.evaluations:,} model evaluations, {result.generations} generations, "
                   f"{result.wall_time:.1f} s (search {result.search_time:.1f} s)")
     if result.lack_of_fit:
         console.print(f"[yellow]warning: {result.lack_of_fit}: check the model choice and the record[/]")
-    records = [r.source for r in coarse.records]
-    campaign = None
-    if len(coarse.records) > 1:
-        report = campaign_identifiability(fine, result)
-        console.print(campaign_table(report))
-        gained = report.gained
+    if done.campaign is not None:
+        console.print(campaign_table(done.campaign))
+        gained = done.campaign.gained
         console.print("determined by the campaign but by no single record: "
                       + (", ".join(gained) if gained else "none"))
-        campaign = report.as_dict()
-    for p in runs:
-        group = write_fit(p, chosen, result, records, campaign, sidecar=not into)
-        console.print(f"stored in {escape(str(p if into else fit_sidecar(p)))}:{group}")
-    if export is not None:
-        rig = rig_from_toml(open_run(runs[0], streams=False).attrs["rig_toml"])
-        export_rig(fitted_rig(rig, chosen, result.names, result.values), export, str(runs[0]))
+    for file, group in done.stored:
+        console.print(f"stored in {escape(str(file))}:{group}")
+    if done.exported is not None:
         console.print(f"fitted rig file: {export} (bench run PROTOCOL --rig {export})")
     return result, coarse
 
@@ -454,16 +418,14 @@ def demo(
     """
     import numpy as np
 
+    from bench.app.demo import plan_demo, run_demo
     from bench.identify.core import FitSettings
-    from bench.resources import protocol as shipped_protocol
-    from bench.runtime.run import default_output, execute, plan_run
 
-    protocol = shipped_protocol("thesis-identification")
     with console.status("validating and dry-running the thesis identification protocol…"):
-        plan = plan_run(protocol)
+        plan = plan_demo()
     console.print(f"[bold]1. run[/] {plan.protocol.protocol.name}: {plan.protocol.protocol.description}")
     with console.status("running it on the simulated rig in virtual time (same bytes on the wire)…"):
-        result = execute(plan, default_output(plan, out), virtual=True)
+        result = run_demo(plan, out)
     console.print(f"[{'green' if result.state == 'completed' else 'red'}]{result.state}[/]: {result.reason}; "
                   f"{result.run_time:.0f} s of run in {result.wall_time:.2f} s, {result.samples:,} samples "
                   f"→ {result.path}")
