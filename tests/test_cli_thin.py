@@ -72,7 +72,7 @@ def test_every_command_body_is_at_most_30_lines() -> None:
 
 @pytest.mark.parametrize("module, use_cases", [
     ("run", ("bench.app.runs",)),
-    ("analysis", ("bench.app.analysis",)),
+    ("analysis", ("bench.app.analysis", "bench.app.fit", "bench.app.demo")),
     ("main", ("bench.app.simulate", "bench.app.sim")),
     ("lab", ("bench.app.manual",)),
 ])
