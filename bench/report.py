@@ -1,19 +1,27 @@
 """Figures of recorded runs, of the papers' types (matplotlib, no display needed).
 
 Each figure is written as PNG at 300 dpi and as PDF and SVG (vector, for publication); the PNG paths are
-returned. Legends name what was measured and what was commanded.
+returned. Legends name what was measured and what was commanded and sit outside the axes (above or to the
+right), never on the data; a fitted model is drawn over the record's time span only, with a residual panel
+(model − record, its rms in the panel's title) under it; the commanded voltage is drawn dashed on top of the
+measured one (solid, another colour), and the right axis is coloured as its curves; hysteresis loops carry
+arrows in the direction they are traversed. :func:`table3_figure` draws the Table-3 grid of a campaign.
 """
 
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
+from typing import Any
 
 import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.axes import Axes
+from matplotlib.figure import Figure
 
 from bench.analysis.applied import VoltageTrace, applied_voltage, measured_voltage
 from bench.analysis.runs import RunAnalysis, analyse
@@ -22,39 +30,82 @@ from bench.storage.runfile import RunFile, open_run
 
 DPI = 300  # publication resolution of the PNGs
 VECTOR_FORMATS = ("pdf", "svg")
+MEASURED_V = "tab:red"  # the amplifier monitor: solid, under the command; the right axis takes its colour
+COMMANDED_V = "#4d0000"  # the command: a dark red, dashed, drawn on top (visible where the two coincide)
+ARROWS_PER_LOOP = 3
 
 
-def _save(fig: plt.Figure, path: Path) -> Path:
-    fig.tight_layout()
+def save_figure(fig: Figure, path: Path, close: bool = True) -> Path:
+    """Write ``fig`` as PNG (``path``) and as PDF and SVG beside it; the layout is the figure's (constrained)."""
     fig.savefig(path, dpi=DPI)
     for ext in VECTOR_FORMATS:
         fig.savefig(path.with_suffix(f".{ext}"))
-    plt.close(fig)
+    if close:
+        plt.close(fig)
     return path
 
 
-def _legend(ax: plt.Axes, *others: plt.Axes, **kwargs: object) -> None:
-    """One legend on ``ax`` for the lines of ``ax`` and of its twin axes."""
-    handles, labels = ax.get_legend_handles_labels()
-    for other in others:
-        h, lab = other.get_legend_handles_labels()
+def _figure(**kwargs: Any) -> tuple[Figure, Any]:
+    fig, axes = plt.subplots(layout="constrained", **kwargs)
+    return fig, axes
+
+
+def _legend_outside(fig: Figure, axes: list[Axes], where: str = "upper", fontsize: float = 8) -> None:
+    """One legend for the lines of ``axes`` (twins included), outside the axes: above them or to the right."""
+    handles: list[Any] = []
+    labels: list[str] = []
+    for ax in axes:
+        h, lab = ax.get_legend_handles_labels()
         handles, labels = handles + h, labels + lab
-    ax.legend(handles, labels, **kwargs)  # type: ignore[arg-type]
+    if not handles:
+        return
+    if where == "upper":
+        fig.legend(handles, labels, loc="outside upper center", ncol=2, fontsize=fontsize)
+    else:
+        fig.legend(handles, labels, loc="outside right upper", fontsize=fontsize)
 
 
-def _fitted_membrane(run_path: Path) -> tuple[np.ndarray, np.ndarray, dict] | None:
-    """(t, u, fit) of the newest membrane fit, or None."""
+def _record_starts(prob: Any, sp: VoltageTrace) -> list[float]:
+    """Start time [s] of each record of a membrane problem: 0 for a whole file; for a file cut at its rests, the
+    window named in the record's source (to 0.1 s), snapped to the set-point where the drive resumes there (the
+    problem's rule: a rest is a set-point below 1 % of the peak)."""
+    if len(prob.records) == 1:
+        return [0.0]
+    quiet = np.abs(sp.v) <= 0.01 * float(np.max(np.abs(sp.v)))
+    resumes = sp.t[1:][quiet[:-1] & ~quiet[1:]]
+    starts = []
+    for r in prob.records:
+        m = re.search(r"\[([-+0-9.e]+), [-+0-9.e]+\] s$", r.source)
+        a = float(m.group(1)) if m else 0.0
+        if a > 0 and resumes.size:
+            near = resumes[np.argmin(np.abs(resumes - a))]
+            a = float(near) if abs(near - a) <= 0.051 else a
+        starts.append(a)
+    return starts
+
+
+def fitted_membrane(run_path: Path) -> dict[str, Any] | None:
+    """The newest membrane fit of a run on the record's sample grid: ``t`` [s], ``model`` and ``record`` [m]
+    (window means, NaN where the laser has no valid samples), the stored ``fit``; None without a fit. Points
+    outside the laser record are left out (the model is not drawn past the record)."""
     fits = [f for f in read_fits(run_path) if f["model"] == "membrane"]
     if not fits:
         return None
     from bench.identify.core import to_optimiser
     from bench.identify.problems import MembraneProblem
 
-    prob = MembraneProblem([run_path], h=1e-4)
+    prob = MembraneProblem([run_path], h=1e-4)  # the fine problem of `bench fit`: its rms is the fit's
     fit = fits[-1]
     u = prob.predict(to_optimiser(prob.log, fit["values"])[None, :])[0]
-    t = np.arange(u.size) * prob.records[0].stride * prob.h
-    return t, u, fit
+    run = open_run(run_path)
+    sp = applied_voltage(run, measured=True)
+    ts = [a + np.arange(r.data.size) * r.stride * prob.h for a, r in zip(_record_starts(prob, sp), prob.records,
+                                                                        strict=True)]
+    t, data = np.concatenate(ts), prob.data
+    laser = run.streams["laser"]
+    ok = laser.columns["valid"] > 0
+    inside = (t >= laser.t[ok][0]) & (t <= laser.t[ok][-1]) if ok.any() else np.zeros(t.size, bool)
+    return {"t": t[inside], "model": u[inside], "record": data[inside], "fit": fit}
 
 
 def _commanded_label(sp: VoltageTrace) -> str:
@@ -63,103 +114,162 @@ def _commanded_label(sp: VoltageTrace) -> str:
     return "commanded voltage (software set-points)"
 
 
-def _plot_measured_voltage(ax: plt.Axes, run: RunFile, t0: float | None = None, t1: float | None = None) -> None:
-    """The amplifier's voltage monitor on the voltage axis (time from t0 when a window is given)."""
+def _plot_voltages(ax: Axes, run: RunFile, t0: float, t1: float) -> None:
+    """Measured (solid, under) and commanded (dashed, on top) voltage over [t0, t1], time from t0; the axis
+    label and ticks in the curves' colour."""
+    sp = applied_voltage(run)
     got = measured_voltage(run)
-    if got is None:
-        return
-    t, v = got
-    if t0 is not None and t1 is not None:
+    if got is not None:
+        t, v = got
         w = (t >= t0) & (t <= t1)
         t, v = t[w] - t0, v[w]
-    dense = t.size > 2 and float(np.median(np.diff(t))) < 1e-2
-    style = {"lw": 0.6} if dense else {"marker": ".", "ls": "none", "ms": 2}
-    ax.plot(t, v / 1e3, color="tab:purple", label="measured voltage (amplifier monitor)", **style)
+        dense = t.size > 2 and float(np.median(np.diff(t))) < 1e-2
+        style: dict[str, Any] = {"lw": 1.4} if dense else {"marker": ".", "ls": "none", "ms": 3}
+        ax.plot(t, v / 1e3, color=MEASURED_V, alpha=0.7, zorder=2, label="measured voltage (amplifier monitor)",
+                **style)
+    w = (sp.t >= t0) & (sp.t <= t1)
+    ax.plot(sp.t[w] - t0, sp.v[w] / 1e3, color=COMMANDED_V, ls="--", lw=0.9, zorder=3,
+            drawstyle="default" if sp.hardware_timed else "steps-post", label=_commanded_label(sp))
+    ax.set_ylabel("voltage [kV]", color=MEASURED_V)
+    ax.tick_params(axis="y", colors=MEASURED_V)
+    ax.spines["right"].set_color(MEASURED_V)
+
+
+def _arrows(ax: Axes, x: np.ndarray, y: np.ndarray, color: Any, n: int = ARROWS_PER_LOOP) -> None:
+    """Arrows along a loop (x, y) in the direction its samples run, at n evenly spaced points of its length."""
+    ok = np.isfinite(x) & np.isfinite(y)
+    x, y = x[ok], y[ok]
+    if x.size < 8:
+        return
+    sx = np.ptp(x) or 1.0
+    sy = np.ptp(y) or 1.0
+    s = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(x) / sx, np.diff(y) / sy))])
+    if s[-1] <= 0:
+        return
+    step = max(1, x.size // 100)
+    for k in range(n):
+        i = int(np.searchsorted(s, (k + 0.5) / n * s[-1]))
+        i, j = min(i, x.size - 1 - step), min(i, x.size - 1 - step) + step
+        ax.annotate("", xy=(x[j], y[j]), xytext=(x[i], y[i]),
+                    arrowprops={"arrowstyle": "-|>", "color": color, "lw": 1.0, "mutation_scale": 12})
+
+
+def thesis_time_figure(a: RunAnalysis) -> Figure:
+    """Displacement and voltage vs time; with a fitted model, the model over the record and a residual panel."""
+    run = open_run(a.path)
+    laser = run.streams["laser"]
+    ok = laser.columns["valid"] > 0
+    t, u = laser.t[ok], laser.columns["displacement"][ok] * 1e3
+    fitted = fitted_membrane(a.path)
+    if fitted is None:
+        fig, ax = _figure(figsize=(8, 4.4))
+        ax.set_xlabel("time [s]")
+    else:
+        fig, (ax, ax_r) = _figure(nrows=2, figsize=(8, 5.6), sharex=True,
+                                  gridspec_kw={"height_ratios": [3, 1]})
+    ax.plot(t, u, lw=0.8, color="tab:blue", label="measured displacement (laser)")
+    if fitted is not None:
+        rms_fit = float(fitted["fit"]["rms"])
+        ax.plot(fitted["t"], fitted["model"] * 1e3, "--", lw=1.0, color="black", zorder=4,
+                label=f"fitted model (rms {rms_fit * 1e6:.1f} µm)")
+        res = (fitted["model"] - fitted["record"]) * 1e6
+        fin = np.isfinite(res)
+        rms = float(np.sqrt(np.mean(res[fin] ** 2))) if fin.any() else float("nan")
+        ax_r.plot(fitted["t"], res, lw=0.8, color="black")
+        ax_r.axhline(0.0, color="0.6", lw=0.6, zorder=0)
+        ax_r.set_title(f"residual: model − record, rms {rms:.1f} µm", fontsize=9, loc="left")
+        ax_r.set_ylabel("residual [µm]")
+        ax_r.set_xlabel("time [s]")
+    ax2 = ax.twinx()
+    _plot_voltages(ax2, run, 0.0, float(run.updated) if run.updated else float(t[-1]))
+    ax.set_ylabel("displacement u [mm]")
+    ax.set_title(f"{a.protocol}: displacement vs time", fontsize=10)
+    _legend_outside(fig, [ax, ax2])
+    return fig
+
+
+def thesis_loop_figure(a: RunAnalysis) -> Figure:
+    """Displacement vs (measured) voltage per step, with arrows in the direction of the loop."""
+    run = open_run(a.path)
+    laser = run.streams["laser"]
+    ok = laser.columns["valid"] > 0
+    t, u = laser.t[ok], laser.columns["displacement"][ok] * 1e3
+    seen = applied_voltage(run, measured=True)  # the loop against what the specimen saw (as the analysis)
+    v_loop = np.interp(t, seen.t, seen.v) / 1e3
+    fig, ax = _figure(figsize=(7.5, 5))
+    for s in a.by_kind("thesis"):
+        w = (t >= s.t_start) & (t <= s.t_start + s.duration)
+        (line,) = ax.plot(v_loop[w], u[w], lw=0.8,
+                          label=f"{s.voltage / 1e3:.0f} kV, {s.frequency:.3g} Hz, {s.temperature:g} K")
+        _arrows(ax, v_loop[w], u[w], line.get_color())
+    ax.set_xlabel("measured voltage [kV]" if seen.source == "measured" else "commanded voltage [kV]")
+    ax.set_ylabel("displacement u [mm]")
+    ax.set_title("displacement vs voltage (arrows: direction of the loop)", fontsize=10)
+    _legend_outside(fig, [ax], "right")
+    return fig
 
 
 def thesis_figures(a: RunAnalysis, out: Path) -> list[Path]:
     """Displacement vs time and vs voltage (the thesis's Figs 4.15–4.22), with the fitted model if any."""
-    run = open_run(a.path)
-    laser, sp = run.streams["laser"], applied_voltage(run)
-    ok = laser.columns["valid"] > 0
-    t, u = laser.t[ok], laser.columns["displacement"][ok] * 1e3
-    v = np.interp(t, sp.t, sp.v) / 1e3
-    seen = applied_voltage(run, measured=True)  # the loop against what the specimen saw (as the analysis)
-    v_loop = np.interp(t, seen.t, seen.v) / 1e3
-    fitted = _fitted_membrane(a.path)
-    paths = []
-    fig, ax = plt.subplots(figsize=(8, 4))
-    ax.plot(t, u, lw=0.8, label="measured displacement (laser)")
-    if fitted is not None:
-        ax.plot(fitted[0], fitted[1] * 1e3, "--", lw=1.0, label=f"fitted model (rms {fitted[2]['rms'] * 1e6:.1f} µm)")
-    ax2 = ax.twinx()
-    ax2.plot(t, v, color="tab:red", lw=0.6, alpha=0.6, label=_commanded_label(sp))
-    _plot_measured_voltage(ax2, run)
-    ax2.set_ylabel("voltage [kV]", color="tab:red")
-    ax.set_xlabel("time [s]")
-    ax.set_ylabel("displacement u [mm]")
-    ax.set_title(f"{a.protocol}: displacement vs time")
-    _legend(ax, ax2, loc="upper left", fontsize=8)
-    paths.append(_save(fig, out / "displacement_vs_time.png"))
-    fig, ax = plt.subplots(figsize=(6, 5))
-    for s in a.by_kind("thesis"):
-        w = (t >= s.t_start) & (t <= s.t_start + s.duration)
-        ax.plot(v_loop[w], u[w], lw=0.8, label=f"{s.voltage / 1e3:.0f} kV, {s.frequency:.3g} Hz, {s.temperature:g} K")
-    ax.set_xlabel("measured voltage [kV]" if seen.source == "measured" else "commanded voltage [kV]")
-    ax.set_ylabel("displacement u [mm]")
-    ax.set_title("displacement vs voltage")
-    ax.legend(fontsize=8)
-    paths.append(_save(fig, out / "displacement_vs_voltage.png"))
-    return paths
+    return [save_figure(thesis_time_figure(a), out / "displacement_vs_time.png"),
+            save_figure(thesis_loop_figure(a), out / "displacement_vs_voltage.png")]
 
 
-def isopotential_figures(a: RunAnalysis, out: Path) -> list[Path]:
-    """Force–displacement loops of the last (stabilised) cycle at each voltage, per prototype and stroke."""
+def isopotential_loop_figures(a: RunAnalysis) -> dict[str, Figure]:
+    """Force–displacement loops of the last (stabilised) cycle at each voltage, per prototype and stroke, with
+    arrows in the direction of the cycle; keyed by file name."""
     run = open_run(a.path)
     motor, lc = run.streams["motor"], run.streams["load_cell"]
-    paths = []
-    groups: dict[tuple, list] = {}
+    groups: dict[tuple[int | None, int], list[Any]] = {}
     for s in a.by_kind("isopotential"):
         groups.setdefault((s.prototype, round(s.figures["stroke"] * 1e3)), []).append(s)
+    figs = {}
     for (proto, stroke), steps in sorted(groups.items()):
-        fig, ax = plt.subplots(figsize=(6, 5))
+        fig, ax = _figure(figsize=(7.5, 5))
         for s in steps:
             t0 = s.t_start + s.duration - 1 / s.frequency
             w = (motor.t >= t0) & (motor.t <= s.t_start + s.duration)
             f = np.interp(motor.t[w], lc.t, lc.columns["force"])
-            ax.plot(motor.columns["aperture"][w] * 1e3, f, lw=1.0,
-                    label=f"{s.voltage / 1e3:.0f} kV: loss {100 * s.figures['loss_last']:.1f} %")
+            x = motor.columns["aperture"][w] * 1e3
+            label = f"{s.voltage / 1e3:.0f} kV: loss {100 * s.figures['loss_last']:.1f} %"
+            (line,) = ax.plot(x, f, lw=1.0, label=label)
+            _arrows(ax, x, f, line.get_color())
         ax.set_xlabel("aperture x [mm]")
         ax.set_ylabel("force F [N]")
-        ax.set_title(f"LS-DEA #{proto}, Δx {stroke} mm, stabilised cycle")
-        ax.legend(fontsize=8)
-        paths.append(_save(fig, out / f"isopotential_p{proto}_dx{stroke}.png"))
-    return paths
+        ax.set_title(f"LS-DEA #{proto}, Δx {stroke} mm, stabilised cycle", fontsize=10)
+        _legend_outside(fig, [ax], "right")
+        figs[f"isopotential_p{proto}_dx{stroke}.png"] = fig
+    return figs
+
+
+def isopotential_figures(a: RunAnalysis, out: Path) -> list[Path]:
+    """The stabilised loops of :func:`isopotential_loop_figures`, saved."""
+    return [save_figure(fig, out / name) for name, fig in isopotential_loop_figures(a).items()]
+
+
+def isometric_time_figure(a: RunAnalysis) -> Figure:
+    """Force and voltage vs time in the step of the highest frequency."""
+    run = open_run(a.path)
+    lc = run.streams["load_cell"]
+    top = max(a.by_kind("isometric"), key=lambda s: s.frequency)
+    w = (lc.t >= top.t_start) & (lc.t <= top.t_start + top.duration)
+    fig, ax = _figure(figsize=(8, 4.4))
+    ax.plot(lc.t[w] - top.t_start, lc.columns["force"][w], lw=0.8, label="measured force (load cell)")
+    ax2 = ax.twinx()
+    _plot_voltages(ax2, run, top.t_start, top.t_start + top.duration)
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel("force [N]")
+    ax.set_title(f"isometric, LS-DEA #{top.prototype}: {top.name}", fontsize=10)
+    _legend_outside(fig, [ax, ax2])
+    return fig
 
 
 def isometric_figures(a: RunAnalysis, out: Path) -> list[Path]:
     """Force vs time at the highest frequency, and force variation vs output frequency (Fig. 7)."""
-    run = open_run(a.path)
-    lc, sp = run.streams["load_cell"], applied_voltage(run)
     steps = a.by_kind("isometric")
-    paths = []
-    top = max(steps, key=lambda s: s.frequency)
-    w = (lc.t >= top.t_start) & (lc.t <= top.t_start + top.duration)
-    fig, ax = plt.subplots(figsize=(8, 4))
-    ax.plot(lc.t[w] - top.t_start, lc.columns["force"][w], lw=0.8, label="measured force (load cell)")
-    ax2 = ax.twinx()
-    ws = (sp.t >= top.t_start) & (sp.t <= top.t_start + top.duration)
-    ax2.plot(sp.t[ws] - top.t_start, sp.v[ws] / 1e3, color="tab:red", lw=0.6, alpha=0.6,
-             label=_commanded_label(sp))
-    _plot_measured_voltage(ax2, run, top.t_start, top.t_start + top.duration)
-    _legend(ax, ax2, loc="upper right", fontsize=8)
-    ax2.set_ylabel("voltage [kV]", color="tab:red")
-    ax.set_xlabel("time [s]")
-    ax.set_ylabel("force [N]")
-    ax.set_title(f"isometric, LS-DEA #{top.prototype}: {top.name}")
-    paths.append(_save(fig, out / "isometric_time_series.png"))
-    fig, ax = plt.subplots(figsize=(6, 4))
-    series: dict[tuple, list] = {}
+    paths = [save_figure(isometric_time_figure(a), out / "isometric_time_series.png")]
+    fig, ax = _figure(figsize=(7.5, 4))
+    series: dict[tuple[int | None, float], list[Any]] = {}
     for s in steps:
         series.setdefault((s.prototype, round(s.figures["force_mean"], 1)), []).append(s)
     for (proto, _), ss in series.items():
@@ -168,27 +278,54 @@ def isometric_figures(a: RunAnalysis, out: Path) -> list[Path]:
     ax.set_xlabel("force frequency [Hz]")
     ax.set_ylabel("crest-to-trough force [N]")
     ax.set_ylim(bottom=0)
-    ax.legend(fontsize=7)
-    ax.set_title("electrically induced force variation")
-    paths.append(_save(fig, out / "isometric_force_vs_frequency.png"))
+    ax.set_title("electrically induced force variation", fontsize=10)
+    _legend_outside(fig, [ax], "right", fontsize=7)
+    paths.append(save_figure(fig, out / "isometric_force_vs_frequency.png"))
     return paths
 
 
 def isotonic_figures(a: RunAnalysis, out: Path) -> list[Path]:
     """Crest-to-trough displacement vs frequency for each hung mass (Fig. 10), resonances marked."""
-    fig, ax = plt.subplots(figsize=(6, 4))
-    masses = sorted({s.hung_mass for s in a.by_kind("isotonic")})
+    fig, ax = _figure(figsize=(7, 4))
+    masses = sorted({s.hung_mass or 0.0 for s in a.by_kind("isotonic")})
     for m in masses:
-        ss = [s for s in a.by_kind("isotonic") if s.hung_mass == m]
+        ss = [s for s in a.by_kind("isotonic") if (s.hung_mass or 0.0) == m]
         ax.plot([s.frequency for s in ss], [s.figures["amplitude"] * 1e3 for s in ss], "o-",
-                label=f"{m * 1e3:.0f} g")
+                label=f"hung mass {m * 1e3:.0f} g")
     for f, amp in a.resonance().values():
         ax.annotate(f"{f:g} Hz", (f, amp * 1e3), textcoords="offset points", xytext=(4, 4), fontsize=8)
     ax.set_xlabel("voltage frequency [Hz]")
     ax.set_ylabel("crest-to-trough displacement [mm]")
-    ax.set_title("isotonic response, LS-DEA #1")
-    ax.legend(title="hung mass")
-    return [_save(fig, out / "isotonic_amplitude_vs_frequency.png")]
+    ax.set_title("isotonic response, LS-DEA #1", fontsize=10)
+    _legend_outside(fig, [ax], "right")
+    return [save_figure(fig, out / "isotonic_amplitude_vs_frequency.png")]
+
+
+def table3_figure(grid: dict[str, Any]) -> Figure:
+    """The Table-3 grid of a campaign (``bench report`` of several files: prototype × voltage, the hysteresis
+    loss of the stabilised cycle at each row's largest stroke) as a coloured table with the loss [%] in each
+    cell; an empty cell (no step) is left blank and marked "–"."""
+    volts, rows = grid["voltages_kV"], grid["rows"]
+    loss = np.full((len(rows), len(volts)), np.nan)
+    for i, row in enumerate(rows):
+        for j, v in enumerate(volts):
+            if str(v) in row["loss"]:
+                loss[i, j] = 100 * row["loss"][str(v)]
+    fig, ax = _figure(figsize=(1.6 + 1.1 * len(volts), 1.4 + 0.6 * len(rows)))
+    image = ax.imshow(np.ma.masked_invalid(loss), cmap="viridis", aspect="auto")
+    for i in range(len(rows)):
+        for j in range(len(volts)):
+            value = loss[i, j]
+            dark = np.isfinite(value) and value < np.nanmean(loss)
+            ax.text(j, i, f"{value:.1f}" if np.isfinite(value) else "–", ha="center", va="center", fontsize=9,
+                    color="white" if dark else "black")
+    ax.set_xticks(range(len(volts)), [f"{v:g} kV" for v in volts])
+    ax.set_yticks(range(len(rows)), [f"#{r['prototype']}, Δx {r['stroke_m'] * 1e3:.0f} mm" for r in rows])
+    ax.set_xlabel("voltage")
+    ax.set_ylabel("prototype, stroke")
+    ax.set_title("hysteresis loss of the stabilised cycle [%]", fontsize=10)
+    fig.colorbar(image, ax=ax, label="loss [%]")
+    return fig
 
 
 def report(run_path: str | Path, out: str | Path | None = None) -> tuple[RunAnalysis, list[Path]]:

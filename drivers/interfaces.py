@@ -294,6 +294,7 @@ class StreamSpec:
     settling_us: float = 0.0
     buffer_size_bytes: int = 0  # 0: the device's largest
     out_buffer_bytes: int = 0  # 0: the device's largest
+    out_ahead_s: float = 0.0  # > 0: stream-out values written at most this far [s] ahead of the scan played now
 
 
 @dataclass(frozen=True)

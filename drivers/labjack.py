@@ -25,7 +25,11 @@ low-level TCP stream example; [A] = assumed, to check on a real T7.
   _BUFFER_ALLOCATE_NUM_BYTES 4050+2n (power of 2, 32…16384; usable = bytes/2 − 1 values), _LOOP_NUM_VALUES
   4060+2n, _SET_LOOP 4070+2n (1 = use new data now), _BUFFER_STATUS 4080+2n, _ENABLE 4090+2n,
   _BUFFER_U16 4420+n; order: target, allocate, enable, loop size, data, set-loop; after the data the last
-  LOOP_NUM_VALUES values repeat (1: the output holds the end value exactly).
+  LOOP_NUM_VALUES values repeat (1: the output holds the end value exactly). The driver keeps at most
+  ``StreamSpec.out_ahead_s`` of values in the device ahead of the scan its scan clock may have reached (t0 + k/rate
+  on the host clock, t0 known to the enable request's round trip; a lost host then stops the drive within it),
+  topping up in chunks of at most a packet and at least a quarter of that; the device past the values written
+  (the scan clock's lower bound) is an underrun (``out_underrun_scans``).
 * [A] a buffer register takes k values in one Modbus Feedback write frame of k registers at its address
   ([D] register map: STREAM_OUT#_BUFFER_U16 is a buffer register, "a sequence of values to a single address").
 * [D] Modbus Feedback (MBFB), function 76: after the function code, frames of type (1 byte: 0 read, 1 write),
@@ -333,6 +337,8 @@ class StreamPlan:
     out_volts: np.ndarray | None  # what the 12-bit DAC outputs for out_codes
     out_capacity: int  # values the stream-out buffer holds
     max_collect_interval: float  # call collect at least this often [s] so the out buffer never runs dry
+    out_ahead: int = 0  # values kept in the device at most, ahead of the last scan received (≤ out_capacity)
+    out_chunk: int = OUT_PACKET_VALUES  # a top-up waits until this many values fit (or the rest of the data)
 
 
 @dataclass
@@ -638,8 +644,12 @@ class LabJackT7:
         if not rate > 0:
             raise ProtocolError(self.name, f"device reports scan rate {rate}")
         names = tuple(i.name or f"AIN{i.ain}" for i in spec.inputs)
-        interval = (capacity - OUT_PACKET_VALUES) / rate / 2 if out is not None else math.inf
-        plan = StreamPlan(rate, 1.0 / rate, names, scan_list, spp, codes, volts, capacity, interval)
+        if spec.out_ahead_s < 0 or not math.isfinite(spec.out_ahead_s):
+            raise ValueError(f"{self.name}: out_ahead_s must be a finite time ≥ 0")
+        ahead = min(capacity, max(1, math.ceil(spec.out_ahead_s * rate))) if spec.out_ahead_s else capacity
+        chunk = min(OUT_PACKET_VALUES, max(1, ahead // 4))  # a collect tops up every ~quarter of it
+        interval = (ahead - chunk) / rate / 2 if out is not None else math.inf
+        plan = StreamPlan(rate, 1.0 / rate, names, scan_list, spp, codes, volts, capacity, interval, ahead, chunk)
         self._stream = _Stream(plan, spec, n_in, gains, out_closed=out is None or out.final)
         if out is not None:
             o = 2 * out.dac
@@ -657,13 +667,18 @@ class LabJackT7:
         if codes is None or s.out_final:
             return
         total = s.out_base + codes.size  # values given so far (the first out_base are no longer kept)
-        played = min(s.scans, s.out_written)
-        if self.streaming and s.scans > s.out_written:  # the device ran past the data it had
-            s.underrun_scans = s.scans - s.out_written
-        free = s.plan.out_capacity - (s.out_written - played)
+        pos = hi = s.scans  # values the device has played: at least the scans received, and …
+        if self.streaming:  # … those its scan clock has reached by now: t0 is known late, by at most its uncertainty
+            late = self.clock() - s.t0
+            pos = max(pos, math.floor(late * s.plan.scan_rate) + 1)
+            hi = max(pos, math.floor((late + s.t0_uncertainty) * s.plan.scan_rate) + 1)
+        if self.streaming and pos > s.out_written:  # the device ran past the data it had (surely: lower bound)
+            s.underrun_scans = max(s.underrun_scans, pos - s.out_written)
+        played = min(hi, s.out_written)  # ahead of where the device may be: a slow enable reply costs no margin
+        free = (s.plan.out_ahead or s.plan.out_capacity) - (s.out_written - played)
         n = max(0, min(free, total - s.out_written))
-        if n < OUT_PACKET_VALUES and s.out_written + n < total:
-            return  # wait until a whole packet fits
+        if n < s.plan.out_chunk and s.out_written + n < total:
+            return  # wait until a whole chunk fits
         k = s.out_written - s.out_base
         writes: list[tuple[int, Words]] = [(OUT_BUFFER_U16_0, codes[k:k + n])] if n else []
         s.out_written += n

@@ -131,10 +131,12 @@ def test_a_host_stall_longer_than_the_watchdog_latches_and_never_reenergises(tmp
 
 def test_a_short_pause_of_the_host_is_not_a_stall(tmp_path: Path) -> None:
     """Below the stated bound (0.8 × the 1-s watchdog) the run goes on: a late action, not a fault. (On the DAQ
-    rig: the ADAM rig's serial laser storage, at 10 kHz, never catches up with a pause at 115200 Bd.)"""
+    rig: the ADAM rig's serial laser storage, at 10 kHz, never catches up with a pause at 115200 Bd.) On the DAQ
+    rig the stream-out holds only OUT_AHEAD_S (0.5 s) ahead of the scan clock in real time, topped up every 0.05 s:
+    a pause of more than ~0.4 s starves it (an underrun, latched — README "Interlock"), so the pause here is 0.15 s."""
     bound = stall_bound(load_rig(DAQ_RIG))
     assert bound == pytest.approx(0.8)  # README "Interlock": 80 % of the module's communication watchdog
-    result, _run, _plant = run_with_fault(DAQ_RIG, tmp_path, 2.0, freeze_host(0.3), virtual=False)
+    result, _run, _plant = run_with_fault(DAQ_RIG, tmp_path, 2.0, freeze_host(0.15), virtual=False)
     assert result.state == "completed", result.reason
 
 
@@ -210,6 +212,34 @@ def test_a_refused_output_path_stops_feeding_the_watchdog_and_the_run_ends_at_ze
     assert plant.sim.plant.watchdog_tripped  # type: ignore[attr-defined]
     assert plant.last_high() <= plant.t_fault + 1.0 + 0.1
     assert abs(plant.sim.plant.observe().v_out[-1]) <= ZERO_V  # type: ignore[attr-defined]
+
+
+def test_a_dropped_t7_link_stops_the_drive_within_the_buffer_ahead_and_the_watchdog_zeroes_it(
+        tmp_path: Path) -> None:
+    """Real time (a host can be lost only there): the T7's link drops at run time 3 s, on the rising flank of the
+    7-kV waveform. The T7 plays what it holds of the stream-out — at most OUT_AHEAD_S (README "Interlock": 0.5 s)
+    ahead of the scan its clock had reached when the host last topped it up — then holds its last value until its
+    own watchdog (1 s without a request, the rig file) zeroes the output. Measured at the plant: the output stops
+    rising once that buffer is played (on today's main it rose for 0.8 s, the whole out buffer), and is 0 V within
+    the watchdog period."""
+    from bench.runtime.hardware_timed import OUT_AHEAD_S
+
+    def drop(_engine: Engine, sim) -> None:
+        sim.faults["daq"].drop = True
+
+    result, _run, plant = run_with_fault(DAQ_RIG, tmp_path, 3.0, drop, virtual=False)
+    # the lost link, or the underrun it caused when the write that found it out took its reply timeout
+    assert result.state in ("error", "tripped") and ("lost" in result.reason or "underrun" in result.reason), \
+        result.reason
+    t, v = plant.arrays()
+    tf = plant.t_fault
+    rising = np.abs(v[(t >= tf) & (t <= tf + 0.1)])
+    assert rising[-1] > rising[0] + 100.0  # the drive was still rising when the link dropped: the trial tests something
+    # the buffer played out (+ the 30-Hz filter and the amplifier settling), the output holds until the watchdog
+    # (≥ 0.95 s: the last request came ≤ 50 ms before the drop)
+    held = np.abs(v[(t >= tf + OUT_AHEAD_S + 0.1) & (t <= tf + 0.9)])
+    assert held.max() - held.min() <= 10.0
+    assert plant.last_high() <= tf + 1.0 + 0.1
 
 
 def test_t7_replies_lost_then_ctrl_c_zeroes_without_waiting_for_replies(tmp_path: Path) -> None:

@@ -72,17 +72,19 @@ class Report:
 
     runs: list[RunReport] = field(default_factory=list)
     grid: dict[str, Any] | None = None
+    grid_figure: Path | None = None  # the grid drawn (table3.png beside table3.csv)
 
     @property
     def figures(self) -> list[Path]:
-        return [p for r in self.runs for p in r.figures]
+        return [p for r in self.runs for p in r.figures] + ([self.grid_figure] if self.grid_figure else [])
 
 
 def report_runs(runs: list[Path], out: Path | None = None, progress: Progress | None = None) -> Report:
     """Analyse run files and write their figures (into ``out``, a folder per file when there are several; default
-    beside each file); the Table-3 grid of the isopotential steps, also written as CSV (its path in ``grid``).
+    beside each file); the Table-3 grid of the isopotential steps, also written as CSV (its path in ``grid``) and
+    drawn beside it.
     ``progress`` gets the fraction of the files done."""
-    from bench.report import report
+    from bench.report import report, save_figure, table3_figure
     from bench.storage.runfile import open_run
 
     done = Report()
@@ -98,6 +100,7 @@ def report_runs(runs: list[Path], out: Path | None = None, progress: Progress | 
         csv_path = (out if out is not None else runs[-1].with_name(runs[-1].stem + "-report")) / "table3.csv"
         write_table3_csv(grid, csv_path)
         grid["csv"] = str(csv_path)
+        done.grid_figure = save_figure(table3_figure(grid), csv_path.with_suffix(".png"))
     done.grid = grid
     return done
 

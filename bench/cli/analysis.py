@@ -334,7 +334,7 @@ def figures_table(steps: list, title: str) -> Table:
 
 def print_report(runs: list[Path], out: Path | None = None) -> Report:
     """Report run files (:func:`bench.app.analysis.report_runs`) and print it: each file's figures of merit (an
-    incomplete file flagged), resonances, figures; the Table-3 grid of the isopotential steps and its CSV."""
+    incomplete file flagged), resonances, figures; the Table-3 grid of the isopotential steps, its CSV and figure."""
     from bench.app.analysis import report_runs
     from bench.cli.common import progress
 
@@ -366,7 +366,7 @@ def print_report(runs: list[Path], out: Path | None = None) -> Report:
     console.print(t)
     for w in grid["warnings"]:
         console.print(f"[yellow]grid warning[/]: {escape(w)}", soft_wrap=True)
-    console.print(f"grid as CSV: {escape(grid['csv'])}")
+    console.print(f"grid as CSV: {escape(grid['csv'])}, as a figure: {escape(str(done.grid_figure))}")
     return done
 
 

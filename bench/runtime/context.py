@@ -91,6 +91,10 @@ class RunContext:
         self._laser_offset = (rig.laser.offset_mm * 1e-3) if rig.laser else 0.0
         self._laser_sign = float(rig.laser.sign) if rig.laser else 1.0
         self._late_streams = {name for name, cols in recorder.streams.items() if any(c.name == "late" for c in cols)}
+        self.laser_t_last = -math.inf  # run time of the last laser sample recorded (software-timed laser)
+        self._heard_mark: float | None = None  # the set-point module's driver's last ``heard_at`` seen
+        self._heard_rig = -math.inf  # rig clock: no later than this the module last heard from the host
+        self._looked_rig = -math.inf  # rig clock: the last look at ``heard_at``
 
     # ------------------------------------------------------------ instruments the program uses (typed)
     @property
@@ -139,6 +143,20 @@ class RunContext:
                 self.overruns += 1
         else:
             self.clock.wait_until(self.t0 + t)
+
+    def unheard_for(self) -> float:
+        """How long [s of the run's clock] the set-point module may have gone without a request from this host: an
+        upper bound (inf before its first answer and at the first look), what a keep-alive compares with its
+        period. The driver stamps its requests on the wall clock (``heard_at``), which a virtual clock does not
+        follow, so the time is counted on the run's clock here: a request the driver reports since the last look
+        was sent no earlier than that look."""
+        now = self.clock.now()
+        heard = self.amp.heard_at()
+        if heard is not None and heard != self._heard_mark:
+            self._heard_mark = heard
+            self._heard_rig = self._looked_rig  # the first look: not known, so as if long ago
+        self._looked_rig = now
+        return now - self._heard_rig if heard is not None else math.inf
 
     # ------------------------------------------------------------ interlock
     def guard(self, streaming: bool = False) -> None:

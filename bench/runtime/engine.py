@@ -205,12 +205,12 @@ class Engine:
 
     def _keep_fed(self) -> None:
         """During long host-side work (fetching stored laser data) on a software-timed rig: re-send the set-point
-        whenever the module has gone ``HOLD_KEEPALIVE_S`` unheard, as a hold's keep-alive ticks do."""
+        whenever the module has gone ``HOLD_KEEPALIVE_S`` of the run's clock unheard, as a hold's keep-alive ticks
+        do (in virtual time a laser upload takes the wire's time on that clock, however fast the host is)."""
         amp = self.inst.amplifier
         if amp is None or self._stream is not None or self._stopping:
             return
-        heard = amp.heard_at()
-        if heard is not None and time.monotonic() - heard >= HOLD_KEEPALIVE_S:
+        if self.ctx.unheard_for() >= HOLD_KEEPALIVE_S:  # run clock: the module's watchdog counts rig time
             self._set_voltage(self.ctx.v_req, self.now())
 
     # ------------------------------------------------------------ time
@@ -462,10 +462,8 @@ class Engine:
         supervised, and the set-point module kept fed."""
         amp = self.inst.amplifier
         if amp is not None:
-            if self._stream is None:
-                heard = amp.heard_at()
-                if heard is not None and time.monotonic() - heard >= HOLD_KEEPALIVE_S:
-                    self._set_voltage(0.0, self.now())
+            if self._stream is None and self.ctx.unheard_for() >= HOLD_KEEPALIVE_S:
+                self._set_voltage(0.0, self.now())
             v, i = amp.read_monitors()
             self.rec.append("amplifier", v.timestamp - self.ctx.t0, voltage=v.value, current=i.value,
                             **self.ctx.unpolled_monitor_columns())
@@ -691,8 +689,9 @@ class Engine:
             except InstrumentError as exc:
                 notes.append(f"final monitor read failed: {exc}")
                 return f"{path}; output NOT verified (voltage monitor unreadable)"
-            self._record(self.rec.append, "amplifier", v.timestamp - self.ctx.t0, voltage=v.value, current=i.value,
-                         **self.ctx.unpolled_monitor_columns())
+            if self._stream is None:  # a DAQ rig's streams end on the last scan: the reading is in the safe event
+                self._record(self.rec.append, "amplifier", v.timestamp - self.ctx.t0, voltage=v.value,
+                             current=i.value, **self.ctx.unpolled_monitor_columns())
             if math.isfinite(v.value) and abs(v.value) <= SAFE_MONITOR_V:
                 return f"{path}; verified: voltage monitor {v.value:.0f} V at {self.now():.3f} s"
             if self.now() >= deadline:

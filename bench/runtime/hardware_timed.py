@@ -10,7 +10,6 @@ holds the end value). Software-timed actions (motor go-tos, encoder polls) keep 
 
 from __future__ import annotations
 
-import time
 from dataclasses import replace
 
 import numpy as np
@@ -34,7 +33,14 @@ from drivers.interfaces import (
     StreamSpec,
 )
 
-KEEPALIVE_S = 0.25  # a command-response request at least this often keeps the device's watchdog fed
+KEEPALIVE_S = 0.25  # a command-response request at least this often (run clock) keeps the device's watchdog fed
+# wall-clock runs: stream-out values in the device at most this far ahead of the scan its clock may have reached, so
+# that a lost host (link dropped, process dead) stops the drive within it — the T7 then holds its last value until
+# its watchdog zeroes the output; ten collect periods (polls.COLLECT_PERIOD_S), so a collect may come ~0.4 s late
+# before an underrun (0.2–0.4 s latched underruns in real-time tests: collects 0.3–0.45 s late on the 2-core
+# development host at load 8–14, where the old 0.8 s did not). Virtual time too: a rehearsal of a lost link must
+# stop the drive as the bench would (its collects, every 0.25 s of rig time, keep two periods queued).
+OUT_AHEAD_S = 0.5
 FINISH_TIMEOUT_S = 5.0  # rig time allowed for the last scans of a step to arrive (wall time on hardware)
 FINISH_POLL_S = 0.01  # rig time between collects while waiting for a step's last scans
 
@@ -127,14 +133,15 @@ class HardwareTimed:
             self.ctx.sup.check_setpoint(_peak(commanded))
             self.ctx.guard()
             self.daq.arm(StreamSpec(self.cfg.scan_rate_Hz, self.inputs,
-                                    StreamOut(self.cfg.dac, dac, hold=1, final=nxt is None, within=window)))
+                                    StreamOut(self.cfg.dac, dac, hold=1, final=nxt is None, within=window),
+                                    out_ahead_s=OUT_AHEAD_S))
             self._base = 0
             self._commanded = commanded
             self._tail = float(volts[-1])
             self._n = volts.size - 1
             self.ctx.verifier.restart()
             t0 = self.daq.kickoff()
-            self._keepalive = time.monotonic()
+            self._keepalive = self.ctx.clock.now()
             self.ctx.rec.event(self.ctx.now(), seg.index, "timing",
                                f"DAQ scan clock: scan 0 at {t0 - self.ctx.t0:.6f} s on the run clock, known to "
                                f"{self.daq.scan_clock_uncertainty * 1e3:.3f} ms (the enable request's round trip); "
@@ -217,9 +224,9 @@ class HardwareTimed:
         if (late := self.daq.out_underrun_scans) > 0:
             raise InterlockTrip("stream-out underrun", f"the DAQ played {late} scans past the values the host had "
                                 "written: the output did not follow the program")
-        if time.monotonic() - self._keepalive >= KEEPALIVE_S:
+        if self.ctx.clock.now() - self._keepalive >= KEEPALIVE_S:  # the run's clock: the T7's watchdog counts rig time
             self.daq.read_dac(self.cfg.dac)
-            self._keepalive = time.monotonic()
+            self._keepalive = self.ctx.clock.now()
 
     def finish(self) -> None:
         """Collect until the end value has been played, then stop the stream (the DAC holds it) — unless the

@@ -86,6 +86,9 @@ def _force(e: RunContext, due: float) -> None:
 
 def _laser(e: RunContext, due: float) -> None:
     r = e.laser.read()
+    if r.timestamp - e.t0 <= e.laser_t_last:  # a time the stream already has (one time base, no duplicates)
+        return
+    e.laser_t_last = r.timestamp - e.t0
     d = float(e.to_specimen(np.array([r.value]))[0])
     ok = r.ok and math.isfinite(d)
     e.rec.append("laser", r.timestamp - e.t0, displacement=d, valid=np.array(ok, dtype="u1"),
@@ -107,11 +110,15 @@ def _drive_error_text(e: RunContext) -> str:
 def record_laser_block(e: RunContext) -> int:
     """Fetch and record one block of stored laser data; returns how many samples it held."""
     block = e.laser.fetch_buffer()
-    if block.values.size:
-        disp = e.to_specimen(block.values)
-        valid = block.valid & np.isfinite(disp)
-        e.rec.append("laser", block.times() - e.t0, displacement=disp, valid=valid.astype("u1"),
+    t = block.times() - e.t0
+    new = t > e.laser_t_last  # a step's storage starts at the time the step before ended on: that time is recorded
+    if new.any():
+        t, values = t[new], block.values[new]
+        disp = e.to_specimen(values)
+        valid = block.valid[new] & np.isfinite(disp)
+        e.rec.append("laser", t, displacement=disp, valid=valid.astype("u1"),
                      **e.late_columns("laser", np.full(disp.size, np.nan)))  # the laser's own clock
+        e.laser_t_last = float(t[-1])
         good = disp[valid]
         if good.size:
             e.sup.update_displacement(float(good[-1]))
