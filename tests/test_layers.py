@@ -51,6 +51,7 @@ def offenders(package: str, forbidden: tuple[str, ...], allowed: tuple[str, ...]
     ("bench/protocol", ("sim_devices", "drivers"), ()),
     ("bench/core", ("sim_devices", "drivers", "bench"), ("bench.core", "bench.models")),
     ("bench/storage", ("bench.runtime", "bench.cli"), ()),
+    ("bench/app", ("bench.cli", "typer", "rich"), ()),  # the use cases know no command line, print nothing
     ("bench", ("tests",), ()),  # the fuzz harnesses (tests/fuzzing) are a testing tool, never product code
 ])
 def test_no_import_goes_up_or_across_the_layers(package: str, forbidden: tuple[str, ...],
@@ -75,6 +76,16 @@ def test_only_the_entry_points_import_the_command_line() -> None:
              if not path.is_relative_to(ROOT / "bench" / "cli") and path != ROOT / "bench" / "__main__.py"
              for mod in sorted(imported_modules(path)) if mod == "bench.cli" or mod.startswith("bench.cli.")]
     assert not found, found
+
+
+def test_only_the_command_line_imports_the_application_layer() -> None:
+    """Issue 22: bench/app (one call per use case) sits just below the command line: bench/cli is its only
+    importer; the run time, storage, identification … never call a use case back."""
+    found = [f"{path.relative_to(ROOT)} imports {mod}" for path in sorted((ROOT / "bench").rglob("*.py"))
+             if not path.is_relative_to(ROOT / "bench" / "cli") and not path.is_relative_to(ROOT / "bench" / "app")
+             for mod in sorted(imported_modules(path)) if mod == "bench.app" or mod.startswith("bench.app.")]
+    assert not found, found
+    assert (ROOT / "bench" / "app" / "runs.py").is_file()
 
 
 def test_command_modules_do_not_import_the_app_back() -> None:

@@ -1,7 +1,8 @@
 """The ``bench`` command line (typer + rich).
 
 The app is built here: each command module defines its commands and a ``register`` function that puts them on the
-app; none imports the app back (tests/test_layers.py). Entry point: ``bench = "bench.cli:app"``.
+app; none imports the app back (tests/test_layers.py). A command parses its options, calls one use case of
+bench/app and renders the result (tests/test_cli_thin.py). Entry point: ``bench = "bench.cli:app"``.
 """
 
 from __future__ import annotations

@@ -2,16 +2,17 @@
 
 from __future__ import annotations
 
-import json
+from collections.abc import Callable
 from enum import StrEnum
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Any
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from bench.cli.common import JsonOpt, Table, clean_errors, cluster_client, console, escape, fail, json_mode, print_json
+from bench.cli.common import JsonOpt, Table, clean_errors, console, escape, fail, json_mode, print_json
 
 if TYPE_CHECKING:
+    from bench.app.analysis import Report
     from bench.identify.campaign import CampaignReport
     from bench.identify.core import FitResult, FitSettings, Problem
     from bench.identify.problems import MembraneProblem
@@ -101,12 +102,6 @@ def campaign_table(report: CampaignReport) -> Table:
     return t
 
 
-def _model_of(path: Path) -> str:
-    from bench.storage.runfile import open_run
-
-    return json.loads(open_run(path, streams=False).attrs["specimen"])["kind"]
-
-
 @clean_errors
 def fit_command(
     runs: RunsArg,
@@ -143,14 +138,12 @@ def fit_command(
     campaign determines. The campaign's fit is stored with every one of its files (in each fit file, or with
     --into in each run file), so the report of any of them finds it. Fit files given among the runs (a glob such
     as runs/*) are skipped."""
+    from bench.app.fit import model_of_runs
     from bench.identify.core import FitSettings
 
     with json_mode(json_out):
         runs = runs_only(runs)
-    kinds = {_model_of(p) for p in runs}
-    chosen = model.value if model is not ModelChoice.auto else (kinds.pop() if len(kinds) == 1 else "")
-    if not chosen:
-        raise ValueError("the run files hold different specimens: fit them separately or pass --model")
+    chosen = model_of_runs(runs, model.value)
     settings = FitSettings(population, generations, mutation, crossover, cost.value, polish, seed=seed,
                            starts=starts, intervals=intervals)
     with json_mode(json_out):
@@ -201,76 +194,48 @@ def campaign_files(runs: list[Path]) -> list[Path]:
 def run_fit(runs: list[Path], chosen: str, settings: FitSettings, branches: int = 1,
             export: Path | None = None, scheduler: str | None = None,
             workers: int | None = None, *, into: bool = False) -> tuple[FitResult, Problem]:
-    """Fit, print the table, store the result with every file (in its fit file, or with ``into`` in the run file)
-    and optionally export a rig; on a dask cluster when ``scheduler`` (address) or ``workers`` (LocalCluster) is
-    given (membrane model).
+    """Fit (:func:`bench.app.fit.fit_runs`: stored with every file, optionally exported as a rig) and print it: a
+    spinner while the records are read, a progress bar over the generations, then the table, the campaign's
+    identifiability, where it was stored. Returns the result and the (coarse) problem it was searched on."""
+    import contextlib
 
-    Returns the result and the (coarse) problem it was searched on, which holds the compared data."""
     import numpy as np
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from bench.identify.campaign import campaign_identifiability
-    from bench.identify.core import fit
-    from bench.identify.problems import LozengeProblem, MembraneProblem
-    from bench.identify.store import export_rig, fit_sidecar, fitted_rig, write_fit
-    from bench.rig import rig_from_toml
-    from bench.storage.runfile import open_run
+    from bench.app.fit import fit_runs
+    from bench.cli.common import progress
 
-    for p in runs:  # the fit is stored with every file: refuse before the work, not after
-        f = open_run(p, streams=False)
-        crashed = f.state == "running" and bool(f.orphaned or f.recovered_at)  # a resumed campaign's earlier part
-        if not (f.complete or crashed):
-            raise ValueError(f"run file {p}: not finalised ({f.incomplete_reason}); fit it when it has ended")
-        if into and not f.complete:
-            raise ValueError(f"run file {p}: not finalised (crashed); --into stores fits in finished files only — "
-                             "leave out --into to store the fit in its fit file beside it")
-    with console.status("reading the records…"):
-        if chosen == "membrane":
-            coarse, fine = MembraneProblem(runs, h=5e-4), MembraneProblem(runs, h=1e-4)
-        else:
-            coarse, fine = LozengeProblem(runs, branches=branches, h=2e-3), LozengeProblem(runs, branches=branches)
     s = settings
-    console.print(f"fitting the {chosen} model ({len(coarse.names)} parameters) to {len(coarse.records)} records, "
-                  f"{int(np.isfinite(coarse.data).sum()):,} points; DE population {s.population}, up to "
-                  f"{s.generations} generations, F {s.mutation}, CR {s.crossover}, cost {s.cost}")
-    with Progress(TextColumn("differential evolution"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
-                  TimeElapsedColumn(), console=console, transient=True) as bar:
-        task = bar.add_task("de", total=s.generations)
-        with cluster_client(scheduler, workers) as client:
-            if client is not None:
-                if not isinstance(coarse, MembraneProblem):
-                    raise ValueError("--scheduler/--workers: distributed fits are implemented for the membrane "
-                                     "model only; fit LS-DEA records in-process")
-                coarse.distribute(client)
-                fine.distribute(client)  # type: ignore[union-attr]
-                console.print(f"evaluating candidates on the dask cluster {client.scheduler.address}")
-            try:
-                result = fit(coarse, s, start=None, fine=fine, progress=lambda: bar.advance(task))
-            finally:
-                for prob in (coarse, fine):
-                    if isinstance(prob, MembraneProblem):
-                        prob.distribute(None)
+    with contextlib.ExitStack() as stack:
+        reading = stack.enter_context(console.status("reading the records…"))
+        advance: list[Callable[[float], None]] = []
+
+        def read(coarse: Problem) -> None:
+            reading.stop()
+            console.print(f"fitting the {chosen} model ({len(coarse.names)} parameters) to "
+                          f"{len(coarse.records)} records, {int(np.isfinite(coarse.data).sum()):,} points; "
+                          f"DE population {s.population}, up to {s.generations} generations, F {s.mutation}, "
+                          f"CR {s.crossover}, cost {s.cost}")
+            advance.append(stack.enter_context(progress("differential evolution")))
+
+        done = fit_runs(runs, chosen, s, branches=branches, export=export, scheduler=scheduler, workers=workers,
+                        into=into, on_read=read, progress=lambda fraction: advance[-1](fraction),
+                        on_cluster=lambda address: console.print(f"evaluating candidates on the dask cluster "
+                                                                 f"{address}"))
+    result, coarse = done.result, done.problem
     console.print(fit_result_table(result, f"{chosen} model fitted to {len(runs)} run(s)"))
     console.print(f"cost ({result.cost_kind}) {result.cost:.4g}, residual rms {result.rms:.4g} {coarse.data_unit}, "
                   f"{result.evaluations:,} model evaluations, {result.generations} generations, "
                   f"{result.wall_time:.1f} s (search {result.search_time:.1f} s)")
     if result.lack_of_fit:
         console.print(f"[yellow]warning: {result.lack_of_fit}: check the model choice and the record[/]")
-    records = [r.source for r in coarse.records]
-    campaign = None
-    if len(coarse.records) > 1:
-        report = campaign_identifiability(fine, result)
-        console.print(campaign_table(report))
-        gained = report.gained
+    if done.campaign is not None:
+        console.print(campaign_table(done.campaign))
+        gained = done.campaign.gained
         console.print("determined by the campaign but by no single record: "
                       + (", ".join(gained) if gained else "none"))
-        campaign = report.as_dict()
-    for p in runs:
-        group = write_fit(p, chosen, result, records, campaign, sidecar=not into)
-        console.print(f"stored in {escape(str(p if into else fit_sidecar(p)))}:{group}")
-    if export is not None:
-        rig = rig_from_toml(open_run(runs[0], streams=False).attrs["rig_toml"])
-        export_rig(fitted_rig(rig, chosen, result.names, result.values), export, str(runs[0]))
+    for file, group in done.stored:
+        console.print(f"stored in {escape(str(file))}:{group}")
+    if done.exported is not None:
         console.print(f"fitted rig file: {export} (bench run PROTOCOL --rig {export})")
     return result, coarse
 
@@ -286,20 +251,19 @@ def design_map_command(
     """LS-DEA design map (Moretti Fig. 2): F–x over pre-stretch λ2p × aperture xp, breakdown, loss of tension."""
     from bench.units import option_si
 
-    run_design_map(out, tuple(option_si(v.strip(), "kV", "--voltages", 0, 10) for v in voltages.split(",")),
-                   scheduler, workers)
+    show_design_map(out, tuple(option_si(v.strip(), "kV", "--voltages", 0, 10) for v in voltages.split(",")),
+                    scheduler, workers)
 
 
-def run_design_map(out: Path = Path("runs/design-map"), voltages: tuple[float, ...] = (0.0, 3e3, 5e3, 7e3),
-                   scheduler: str | None = None, workers: int | None = None) -> list[Path]:
-    """Compute, summarise and plot the design map (``bench design-map``, ``bench simulate lsdea map``)."""
-    from bench.design_map import MapSettings, compute_map, plot_map
+def show_design_map(out: Path = Path("runs/design-map"), voltages: tuple[float, ...] = (0.0, 3e3, 5e3, 7e3),
+                    scheduler: str | None = None, workers: int | None = None) -> list[Path]:
+    """Compute the design map and print it: the stiffness table, the prototypes, the figures (``bench
+    design-map``, ``bench simulate lsdea map``)."""
+    from bench.app.analysis import design_map
 
-    settings = MapSettings(voltages=voltages)
-    with console.status("computing the design map…"), cluster_client(scheduler, workers) as client:
-        dmap = compute_map(settings, client=client)
-    k = dmap.min_stiffness()
-    regions = dmap.regions()
+    with console.status("computing the design map…"):
+        done = design_map(out, voltages, scheduler, workers)
+    settings, k, regions = done.settings, done.min_stiffness, done.regions
     t = Table(title=f"smallest elastic stiffness over the {settings.stroke[0] * 1e3:g}–{settings.stroke[1] * 1e3:g} "
                     f"mm stroke [N/m] (stiff > {settings.flat:g}, near-zero, negative < −{settings.flat:g})")
     t.add_column("λ2p \\ xp [mm]")
@@ -309,17 +273,14 @@ def run_design_map(out: Path = Path("runs/design-map"), voltages: tuple[float, .
     for i, lam in enumerate(settings.lambda2p):
         t.add_row(f"{lam:g}", *(f"[{colour[regions[i, j]]}]{k[i, j]:.0f}[/]" for j in range(len(settings.xp))))
     console.print(t)
-    for num, l2p in ((1, 2.5), (2, 2.75), (3, 3.0)):
-        d = dmap.design(l2p, 0.040)
+    for num, l2p, d, region in done.prototypes:
         lost = d.tension_lost[-1]
-        region = regions[settings.lambda2p.index(d.lambda2p), settings.xp.index(d.xp)]
         console.print(f"prototype #{num} (λ2p {l2p:g}, xp 40 mm): {region}, k_min "
                       f"{d.min_stiffness:.1f} N/m, V_B {d.breakdown_voltage.min() / 1e3:.2f}–"
                       f"{d.breakdown_voltage.max() / 1e3:.2f} kV, tension lost at {voltages[-1] / 1e3:g} kV in "
                       f"{100 * lost.mean():.0f} % of the stroke")
-    paths = plot_map(dmap, out)
-    console.print("figures: " + ", ".join(str(p) for p in paths))
-    return paths
+    console.print("figures: " + ", ".join(str(p) for p in done.figures))
+    return done.figures
 
 
 @clean_errors
@@ -331,22 +292,13 @@ def report_command(
     """Figures of merit and plots (PNG, PDF, SVG) of recorded runs; several files add a campaign table (Table 3
     layout, also written as CSV). An incomplete, killed or recovered file is flagged."""
     with json_mode(json_out):
-        runs = runs_only(runs)
-        paths, grid = print_report(runs, out)
+        done = print_report(runs_only(runs), out)
     if json_out:
-        from bench.analysis.runs import analyse
-        from bench.storage.runfile import open_run
-
-        def flags(p: Path) -> dict[str, object]:
-            r = open_run(p, streams=False)
-            return {"state": r.state, "complete": r.complete, "incomplete_reason": r.incomplete_reason or None,
-                    "recovered_at": r.recovered_at or None}
-
-        print_json({"units": FIGURE_UNITS, "figures": [str(p) for p in paths], "table3": grid, "runs": [
-            {"file": str(p), **flags(p), "protocol": (a := analyse(p)).protocol,
+        print_json({"units": FIGURE_UNITS, "figures": [str(p) for p in done.figures], "table3": done.grid, "runs": [
+            {"file": str(r.path), **r.flags(), "protocol": r.analysis.protocol,
              "steps": [{"step": s.name, "kind": s.kind, "prototype": s.prototype, "hung_mass_kg": s.hung_mass,
                         "temperature_K": s.temperature, "frequency_Hz": s.frequency, "voltage_V": s.voltage,
-                        "figures": s.figures} for s in a.steps]} for p in runs]})
+                        "figures": s.figures} for s in r.analysis.steps]} for r in done.runs]})
 
 
 def figures_table(steps: list, title: str) -> Table:
@@ -380,36 +332,29 @@ def figures_table(steps: list, title: str) -> Table:
     return t
 
 
-def print_report(runs: list[Path], out: Path | None = None) -> tuple[list[Path], dict[str, Any] | None]:
-    """Tables of figures of merit and PNG plots of run files, each incomplete file flagged; the Table-3 grid of the
-    isopotential steps (also as CSV). Returns the figure paths and the grid (None without isopotential steps)."""
-    from bench.report import report, save_figure, table3_figure
-    from bench.storage.runfile import open_run
+def print_report(runs: list[Path], out: Path | None = None) -> Report:
+    """Report run files (:func:`bench.app.analysis.report_runs`) and print it: each file's figures of merit (an
+    incomplete file flagged), resonances, figures; the Table-3 grid of the isopotential steps, its CSV and figure."""
+    from bench.app.analysis import report_runs
+    from bench.cli.common import progress
 
-    all_steps, all_paths = [], []
-    for p in runs:
-        run = open_run(p, streams=False)
-        if not run.complete:
-            console.print(f"[red]INCOMPLETE[/] {escape(p.name)} ({run.state}): {escape(run.incomplete_reason)}; "
-                          f"{len(run.completed_steps())} of {run.program.shape[0]} steps completed", soft_wrap=True)
-        a, paths = report(p, out / p.stem if out is not None and len(runs) > 1 else out)
-        all_steps += a.steps
-        console.print(figures_table(a.steps, f"{a.protocol} ({p.name})"
-                                    + ("" if run.complete else " — INCOMPLETE FILE")))
+    with progress(f"analysing and plotting {len(runs)} run file(s)") as advance:
+        done = report_runs(runs, out, advance)
+    for r in done.runs:
+        a, p = r.analysis, r.path
+        if not r.complete:
+            console.print(f"[red]INCOMPLETE[/] {escape(p.name)} ({r.state}): {escape(r.incomplete_reason)}; "
+                          f"{r.steps_completed} of {r.steps_total} steps completed", soft_wrap=True)
+        console.print(figures_table(a.steps, f"{a.protocol} ({p.name})" + ("" if r.complete else " — INCOMPLETE FILE")))
         if not a.steps:
             console.print(f"no step of {escape(p.name)} could be analysed")
         if a.by_kind("isotonic"):
             console.print("resonance: " + ", ".join(f"{m * 1e3:.0f} g at {f:g} Hz ({amp * 1e3:.1f} mm)"
                                                    for m, (f, amp) in a.resonance().items()))
-        console.print("figures: " + ", ".join(str(x) for x in paths))
-        all_paths += paths
-    grid = table3(all_steps)
+        console.print("figures: " + ", ".join(str(x) for x in r.figures))
+    grid = done.grid
     if grid is None:
-        return all_paths, None
-    csv_path = (out if out is not None else runs[-1].with_name(runs[-1].stem + "-report")) / "table3.csv"
-    write_table3_csv(grid, csv_path)
-    grid["csv"] = str(csv_path)
-    all_paths.append(save_figure(table3_figure(grid), csv_path.with_suffix(".png")))
+        return done
     volts = grid["voltages_kV"]
     t = Table(title="hysteresis loss of the stabilised cycle [%] (Table 3 layout: prototype × voltage, largest Δx)")
     for col in ("prototype", "Δx [mm]", "f [Hz]", *(f"{v:g} kV" for v in volts)):
@@ -421,57 +366,8 @@ def print_report(runs: list[Path], out: Path | None = None) -> tuple[list[Path],
     console.print(t)
     for w in grid["warnings"]:
         console.print(f"[yellow]grid warning[/]: {escape(w)}", soft_wrap=True)
-    console.print(f"grid as CSV: {escape(str(csv_path))}, as a figure: {escape(str(csv_path.with_suffix('.png')))}")
-    return all_paths, grid
-
-
-def table3(steps: list) -> dict[str, Any] | None:
-    """The Table-3 grid of isopotential steps: per prototype, the hysteresis loss of the stabilised cycle at each
-    voltage for its largest stroke Δx. Conditions that differ between cells (Δx between rows, the frequency within
-    a row or a cell, several steps in one cell) are listed in ``warnings``, never mixed silently."""
-    iso = [s for s in steps if s.kind == "isopotential"]
-    if not iso:
-        return None
-    volts = sorted({round(s.voltage / 1e3) for s in iso})
-    rows, warnings = [], []
-    for proto in sorted({s.prototype for s in iso}):
-        ss = [s for s in iso if s.prototype == proto]
-        dx = max(round(s.figures["stroke"] * 1e3) for s in ss)  # mm: the imposed stroke
-        cells: dict[str, list] = {}
-        for s in ss:
-            if round(s.figures["stroke"] * 1e3) == dx:
-                cells.setdefault(str(round(s.voltage / 1e3)), []).append(s)
-        freqs = sorted({round(s.frequency, 6) for c in cells.values() for s in c})
-        for v, c in cells.items():
-            if len(c) > 1:
-                warnings.append(f"#{proto} at {v} kV, Δx {dx} mm: {len(c)} steps ({', '.join(s.name for s in c)}); "
-                                "the last one is shown")
-        if len(freqs) > 1:
-            warnings.append(f"#{proto}: cells at different frequencies ({', '.join(f'{f:g}' for f in freqs)} Hz)")
-        rows.append({"prototype": proto, "stroke_m": dx / 1e3, "frequencies_Hz": freqs,
-                     "loss": {v: c[-1].figures["loss_last"] for v, c in cells.items()},
-                     "steps": {v: [s.name for s in c] for v, c in cells.items()}})
-    strokes = sorted({r["stroke_m"] for r in rows})
-    if len(strokes) > 1:
-        warnings.append("rows at different strokes Δx: " + ", ".join(
-            f"#{r['prototype']} {r['stroke_m'] * 1e3:.0f} mm" for r in rows) + " (an incomplete campaign?)")
-    return {"quantity": "hysteresis loss of the stabilised cycle", "unit": "1", "voltages_kV": volts, "rows": rows,
-            "warnings": warnings}
-
-
-def write_table3_csv(grid: dict[str, Any], path: Path) -> None:
-    """The Table-3 grid as CSV: prototype, Δx [mm], frequencies [Hz], then the loss [%] at each voltage."""
-    import csv
-
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with path.open("w", newline="", encoding="utf-8") as fh:
-        w = csv.writer(fh)
-        w.writerow(["prototype", "stroke_mm", "frequency_Hz", *(f"loss_{v}kV_percent" for v in grid["voltages_kV"])])
-        for row in grid["rows"]:
-            w.writerow([row["prototype"], f"{row['stroke_m'] * 1e3:.0f}",
-                        " ".join(f"{f:g}" for f in row["frequencies_Hz"]),
-                        *(f"{100 * row['loss'][str(v)]:.4g}" if str(v) in row["loss"] else ""
-                          for v in grid["voltages_kV"])])
+    console.print(f"grid as CSV: {escape(grid['csv'])}, as a figure: {escape(str(done.grid_figure))}")
+    return done
 
 
 # figure of merit → (column header, scale to the shown unit)
@@ -522,16 +418,14 @@ def demo(
     """
     import numpy as np
 
+    from bench.app.demo import plan_demo, run_demo
     from bench.identify.core import FitSettings
-    from bench.resources import protocol as shipped_protocol
-    from bench.runtime.run import default_output, execute, plan_run
 
-    protocol = shipped_protocol("thesis-identification")
     with console.status("validating and dry-running the thesis identification protocol…"):
-        plan = plan_run(protocol)
+        plan = plan_demo()
     console.print(f"[bold]1. run[/] {plan.protocol.protocol.name}: {plan.protocol.protocol.description}")
     with console.status("running it on the simulated rig in virtual time (same bytes on the wire)…"):
-        result = execute(plan, default_output(plan, out), virtual=True)
+        result = run_demo(plan, out)
     console.print(f"[{'green' if result.state == 'completed' else 'red'}]{result.state}[/]: {result.reason}; "
                   f"{result.run_time:.0f} s of run in {result.wall_time:.2f} s, {result.samples:,} samples "
                   f"→ {result.path}")

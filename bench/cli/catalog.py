@@ -101,6 +101,21 @@ def runs_list(
     console.print(t)
 
 
+def _history_table(specimen: str, h: dict[str, Any]) -> Any:
+    """A specimen's runs in order (``bench specimen show``)."""
+    t = Table(title=f"specimen {specimen}: {len(h['runs'])} run(s)")
+    for col in ("started (UTC)", "file", "protocol", "state", "steps", "HV time", "cycles", "Σ HV time", "Σ cycles",
+                "max E nominal [MV/m]"):
+        t.add_column(col)
+    for r in h["runs"]:
+        field = r["max_nominal_field_V_per_m"]
+        t.add_row(str(r["start_time"] or "")[:19], escape(Path(r["file"]).name), escape(r["protocol"] or ""),
+                  r["state"] if r["complete"] else f"[red]{r['state']}, incomplete[/]", r["steps"],
+                  _hours(r["hv_time_s"]), str(r["hv_cycles"] or 0), _hours(r["cumulative_hv_time_s"]),
+                  str(r["cumulative_cycles"]), "–" if field is None else f"{field / 1e6:.2f}")
+    return t
+
+
 @clean_errors
 @_db_errors
 def specimen_show(
@@ -126,17 +141,7 @@ def specimen_show(
     if json_out:
         print_json({"specimen": specimen, **h})
         return
-    t = Table(title=f"specimen {specimen}: {len(h['runs'])} run(s)")
-    for col in ("started (UTC)", "file", "protocol", "state", "steps", "HV time", "cycles", "Σ HV time", "Σ cycles",
-                "max E nominal [MV/m]"):
-        t.add_column(col)
-    for r in h["runs"]:
-        field = r["max_nominal_field_V_per_m"]
-        t.add_row(str(r["start_time"] or "")[:19], escape(Path(r["file"]).name), escape(r["protocol"] or ""),
-                  r["state"] if r["complete"] else f"[red]{r['state']}, incomplete[/]", r["steps"],
-                  _hours(r["hv_time_s"]), str(r["hv_cycles"] or 0), _hours(r["cumulative_hv_time_s"]),
-                  str(r["cumulative_cycles"]), "–" if field is None else f"{field / 1e6:.2f}")
-    console.print(t)
+    console.print(_history_table(specimen, h))
     console.print(f"time under high voltage (measured |V| > {h['hv_threshold_V']:g} V): {_hours(h['hv_time_s'])} "
                   f"({h['hv_time_s']:.3f} s); high-voltage cycles: {h['hv_cycles']}")
     if h["max_nominal_field_V_per_m"] is not None:

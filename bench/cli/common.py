@@ -1,4 +1,5 @@
-"""What the command modules share: the consoles, one-line errors, --json output, the dask cluster seam.
+"""What the command modules share: the consoles, one-line errors, --json output (and the dask cluster seam of
+bench/app/cluster.py).
 
 Imported by ``bench --help`` and by every TAB completion: nothing heavy at module level (numpy, scipy, numba, the
 models, dask load inside the functions that need them; tests/test_cli_startup.py). Even rich's console, text and
@@ -16,10 +17,10 @@ from typing import TYPE_CHECKING, Annotated, Any, ParamSpec, TypeVar, cast
 
 import typer
 
+from bench.app.cluster import CLUSTER_EXTRA, cluster_client  # noqa: F401  # re-exported: the commands take it here
 from drivers.errors import InstrumentError
 
 if TYPE_CHECKING:
-    from distributed import Client
     from rich.table import Table
 
     from bench.cli.console import BenchConsole
@@ -139,28 +140,24 @@ def json_mode(enabled: bool) -> Iterator[None]:
         console.quiet = quiet
 
 
+@contextlib.contextmanager
+def progress(description: str) -> Iterator[Callable[[float], None]]:
+    """A progress callback (fraction done, 0 … 1) for a use case that lasts: a rich progress bar on a terminal
+    (gone when done), nothing on a pipe, with -q or with --json (:func:`json_mode`)."""
+    if console.quiet or not console.is_terminal:
+        yield lambda _fraction: None
+        return
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    with Progress(TextColumn(description), BarColumn(), TextColumn("{task.percentage:>3.0f} %"), TimeElapsedColumn(),
+                  console=console, transient=True) as bar:
+        task = bar.add_task(description, total=1.0)
+        yield lambda fraction: bar.update(task, completed=min(max(fraction, 0.0), 1.0))
+
+
 def _version(value: bool) -> None:
     if value:
         from bench import __version__
 
         console.print(f"dea-bench {__version__}")
         raise typer.Exit()
-
-
-CLUSTER_EXTRA = "dea-bench[cluster]"
-
-
-@contextlib.contextmanager
-def cluster_client(scheduler: str | None, workers: int | None) -> Iterator[Client | None]:
-    """:func:`bench.identify.distributed.cluster_client`, refused in one line naming the extra when ``--scheduler``
-    or ``--workers`` asks for a cluster and dask.distributed is not installed (it is an optional dependency)."""
-    if scheduler is not None or workers:
-        try:
-            import distributed  # noqa: F401
-        except ImportError:
-            raise ValueError(f"--scheduler/--workers compute on dask.distributed, which is not installed: "
-                             f"pip install '{CLUSTER_EXTRA}'") from None
-    from bench.identify.distributed import cluster_client as client_of
-
-    with client_of(scheduler, workers) as client:
-        yield client

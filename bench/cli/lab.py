@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Annotated
 
@@ -65,45 +64,22 @@ def devices_control(
     Exit status 0 if every command passed, 1 if one was refused, tripped a limit or failed, or a signal ended
     the session.
     """
-    import sys
-
-    from bench.protocol.schema import MAX_OPERATOR, check_label
-    from bench.rig import load_rig
-    from bench.runtime.manual import HELP, ManualSession, prompt_lines, session_log_name
-
-    if operator_name is not None:
-        try:
-            operator_name = check_label(operator_name, MAX_OPERATOR)
-        except ValueError as exc:
-            raise ValueError(f"--operator: {exc}") from None
-    rig = load_rig(rig_file)
-    path = log if log is not None else Path("runs") / session_log_name(rig)
-    interactive = script is None and sys.stdin.isatty()
-
-    def lines() -> Iterator[str]:
-        if script is not None:
-            yield from script.read_text(encoding="utf-8").splitlines()
-        elif interactive:
-            console.print(HELP, markup=False, highlight=False)
-            yield from prompt_lines("bench> ")
-        else:
-            yield from iter(sys.stdin.readline, "")
+    from bench.app.manual import manual_session
 
     def echo(text: str) -> None:
         with contextlib.suppress(OSError):  # the terminal went away (SIGHUP): the log holds the whole account
             console.print(escape(text), highlight=False)
 
-    session = ManualSession(rig, path, virtual=virtual_time, echo=echo, operator=operator_name)
-    with session.signal_handlers(interactive=interactive), session:
-        session.run_lines(lines(), stop_on_trip=not interactive)
-    bad = [o for o in session.outcomes if o.status != "ok"]
+    done = manual_session(rig_file, script=script, log=log, virtual_time=virtual_time, operator=operator_name,
+                          echo=echo, show_help=lambda text: console.print(text, markup=False, highlight=False))
+    bad = done.not_done
     with contextlib.suppress(OSError):
-        console.print((f"session ended: {session.end_reason}; " if session.end_reason else "")
-                      + f"session log: {escape(str(path))} ({len(session.outcomes)} commands"
+        console.print((f"session ended: {done.end_reason}; " if done.end_reason else "")
+                      + f"session log: {escape(str(done.log))} ({len(done.outcomes)} commands"
                       + (f", {len(bad)} not done" if bad else "") + ")"
-                      + (f"; readings: {escape(str(session.data_file))}"
-                         if session.data_file is not None and session.data_file.exists() else ""))
-    if bad or session.end_reason:
+                      + (f"; readings: {escape(str(done.data_file))}"
+                         if done.data_file is not None and done.data_file.exists() else ""))
+    if not done.ok:
         raise typer.Exit(1)
 
 

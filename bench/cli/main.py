@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-import contextlib
 from enum import StrEnum
 from pathlib import Path
 from typing import Annotated, Any
 
 import typer
 
+from bench.app.simulate import SIMULATE_MAX_S
 from bench.cli.common import JsonOpt, Table, _version, clean_errors, console, fail, json_mode, print_json
 from bench.cli.completion import rig_files
 from bench.units import option_si
@@ -25,18 +25,6 @@ def main(version: Annotated[bool, typer.Option("--version", callback=_version, i
 
     console.quiet = quiet
     configure_console(verbose, quiet)
-
-
-SIMULATE_MAX_S = 600.0  # `bench simulate`: simulated time (the offline solver keeps 10 kHz output in memory)
-SIMULATE_MAX_CYCLES = 200  # `bench simulate thesis`: drive cycles (the solver's cost grows with them: ~20 ms each)
-SIMULATE_MAX_SQUARE_CYCLES = 5  # the offline solver resolves every square-wave edge: 0.2–1.4 s per cycle
-
-
-def _simulation_size(duration: float) -> None:
-    """Refuse, in one line, a simulation beyond the documented size (it would take minutes and gigabytes)."""
-    if not duration <= SIMULATE_MAX_S:
-        raise ValueError(f"simulated time {duration:g} s exceeds {SIMULATE_MAX_S:g} s: fewer --cycles or a "
-                         "higher --frequency")
 
 
 def _qopt(help_text: str) -> Any:
@@ -74,49 +62,29 @@ def simulate_thesis(
     = "rodas",
 ) -> None:
     """Thesis membrane (Model A) under a periodic voltage: per-cycle peaks, creep, residual, lag, field."""
-    import numpy as np
-
-    from bench.analysis.thesis import cycle_figures
-    from bench.models.membrane import MembraneParams
-    from bench.models.membrane_runs import simulate_membrane
-    from bench.waveforms import Waveform
+    from bench.app.simulate import simulate_thesis as simulate
 
     voltage_V = option_si(voltage, "V", "--voltage", 0, 12_000)
     frequency_Hz = 1 / 9 if frequency is None else option_si(frequency, "Hz", "--frequency", 1e-4, 1000)
     temperature_K = option_si(temperature, "K", "--temperature", 150, 450)
     duration_s = option_si(duration, "s", "--duration", 1e-3, SIMULATE_MAX_S)
-    if method not in ("rodas", "radau", "fixed"):
-        raise ValueError(f"--method must be 'rodas', 'radau' or 'fixed', got {method!r}")
-    max_cycles = SIMULATE_MAX_SQUARE_CYCLES if waveform is WaveKindOption.square and method != "fixed" \
-        else SIMULATE_MAX_CYCLES
-    if frequency_Hz * duration_s > max_cycles:
-        raise ValueError(f"--frequency {frequency_Hz:g} Hz × --duration {duration_s:g} s = "
-                         f"{frequency_Hz * duration_s:g} cycles exceed {max_cycles} for this waveform and method: "
-                         "shorten the run")
-    params = MembraneParams(electrostriction=electrostriction.value)
-    wave = Waveform(waveform.value, voltage_V, frequency_Hz)
     with console.status("simulating the thesis membrane…"):
-        tr = simulate_membrane(params, wave, duration_s, T=temperature_K, method=method)  # type: ignore[arg-type]
-    figs = cycle_figures(tr.t, tr.displacement, tr.voltage, frequency_Hz)
+        sim = simulate(voltage_V, frequency_Hz, temperature_K, duration_s, waveform.value, electrostriction.value,
+                       method)
+    figs = sim.figures
     table = Table(title=f"Thesis membrane: {voltage_V / 1e3:g} kV {waveform.value}, {frequency_Hz:.4g} Hz, "
                         f"{temperature_K:g} K, {duration_s:g} s")
-    table.add_column("cycle", justify="right")
-    table.add_column("peak u [mm]", justify="right")
-    table.add_column("at t [s]", justify="right")
-    table.add_column("lag [s]", justify="right")
-    table.add_column("u at cycle end [mm]", justify="right")
+    for col in ("cycle", "peak u [mm]", "at t [s]", "lag [s]", "u at cycle end [mm]"):
+        table.add_column(col, justify="right")
     for k, (pk, tk, lag) in enumerate(zip(figs.peaks, figs.peak_times, figs.lags, strict=True)):
         res = f"{figs.residuals[k] * 1e3:.3f}" if k < len(figs.residuals) else "–"
         table.add_row(str(k + 1), f"{pk * 1e3:.3f}", f"{tk:.3f}", f"{lag:.3f}", res)
     console.print(table)
-    valid = np.isfinite(tr.stretch)
-    creep = figs.creep * 100 if figs.whole > 1 and figs.peaks[0] != 0 else 0.0  # no drive, no creep
-    console.print(f"max displacement {np.nanmax(tr.displacement) * 1e3:.3f} mm (L_d = {params.L_d * 1e3:g} mm), "
-                  f"max stretch {np.nanmax(tr.stretch):.4f}, creep {creep:+.1f} %, "
-                  f"peak true field {np.nanmax(np.abs(tr.field[valid])) / 1e6:.1f} MV/m, "
-                  f"peak current {np.nanmax(np.abs(tr.current[valid])) * 1e6:.2f} µA")
-    if tr.failed:
-        raise fail(f"specimen failed: {tr.failure}", code=1)
+    console.print(f"max displacement {sim.max_displacement * 1e3:.3f} mm (L_d = {sim.params.L_d * 1e3:g} mm), "
+                  f"max stretch {sim.max_stretch:.4f}, creep {sim.creep:+.1f} %, "
+                  f"peak true field {sim.peak_field / 1e6:.1f} MV/m, peak current {sim.peak_current * 1e6:.2f} µA")
+    if sim.trace.failed:
+        raise fail(f"specimen failed: {sim.trace.failure}", code=1)
 
 
 class LsdeaTest(StrEnum):
@@ -144,53 +112,31 @@ def simulate_lsdea(
     """LS-DEA (Model B) in one of the paper's three test configurations, with its figure of merit; or `map`,
     the design map (Moretti Fig. 2) with the prototypes on it."""
     if test is LsdeaTest.map:
-        from bench.cli.analysis import run_design_map
+        from bench.cli.analysis import show_design_map
 
-        run_design_map()
+        show_design_map()
         return
-    import numpy as np
-
-    from bench.analysis.cycles import crest_to_trough, hysteresis_loss, last_cycles
-    from bench.models.lozenge import LozengeParams
-    from bench.models.lozenge_runs import simulate_lozenge
-    from bench.waveforms import Waveform
+    from bench.app.simulate import simulate_lsdea as simulate
 
     voltage_V = option_si(voltage, "V", "--voltage", 0, 10_000)
     mass_kg = option_si(mass, "kg", "--mass", 0, 2)
     position_m = option_si(position, "mm", "--position", 45, 200)
     stroke_m = option_si(stroke, "mm", "--stroke", 1, 120)
-    params = LozengeParams.prototype(prototype, hung_mass=mass_kg if test is LsdeaTest.isotonic else 0.0)
-    frequency_Hz = (0.5 if test is LsdeaTest.isopotential else 1.0) if frequency is None else \
-        option_si(frequency, "Hz", "--frequency", 0.01, 100)
-    duration = cycles / frequency_Hz
-    _simulation_size(duration)
+    frequency_Hz = None if frequency is None else option_si(frequency, "Hz", "--frequency", 0.01, 100)
     with console.status(f"simulating LS-DEA #{prototype} ({test.value})…"):
-        if test is LsdeaTest.isopotential:
-            dx, w = stroke_m, 2 * np.pi * frequency_Hz
-            tr = simulate_lozenge(params, "imposed", lambda t: np.full_like(t, voltage_V), duration,
-                                  position=lambda t: 0.05 + dx / 2 * (1 - np.cos(w * t)),
-                                  velocity=lambda t: dx / 2 * w * np.sin(w * t))
-            m = last_cycles(tr.t, frequency_Hz, 1)
-            figure = f"hysteresis loss of the last cycle {100 * hysteresis_loss(tr.position[m], tr.force[m]):.1f} %"
-        elif test is LsdeaTest.isometric:
-            tr = simulate_lozenge(params, "blocked", Waveform("sine", voltage_V, frequency_Hz), duration,
-                                  position=position_m)
-            m = last_cycles(tr.t, frequency_Hz, 1)
-            figure = f"force crest-to-trough {crest_to_trough(tr.t[m], tr.force[m]):.4f} N"
-        else:
-            tr = simulate_lozenge(params, "hung", Waveform("raised_cosine", voltage_V, frequency_Hz), duration)
-            m = last_cycles(tr.t, frequency_Hz, min(3, cycles))
-            swing = crest_to_trough(tr.t[m], tr.position[m], frequency_Hz)
-            figure = (f"detrended crest-to-trough displacement {swing * 1e3:.3f}"
-                      f" mm, mean position {np.mean(tr.position[m]) * 1e3:.2f} mm")
+        sim = simulate(test.value, prototype, voltage_V, frequency=frequency_Hz, mass=mass_kg,  # type: ignore[arg-type]
+                       position=position_m, stroke=stroke_m, cycles=cycles)
+    fig = sim.figure
+    figure = (f"hysteresis loss of the last cycle {100 * fig['loss']:.1f} %" if "loss" in fig else
+              f"force crest-to-trough {fig['force_swing']:.4f} N" if "force_swing" in fig else
+              f"detrended crest-to-trough displacement {fig['swing'] * 1e3:.3f} mm, mean position "
+              f"{fig['mean_position'] * 1e3:.2f} mm")
     console.print(f"LS-DEA #{prototype} {test.value}: {figure}")
-    with np.errstate(divide="ignore"):
-        margin = np.nanmin(tr.breakdown_field / np.abs(tr.field))
-    console.print(f"force {np.nanmin(tr.force):.3f} … {np.nanmax(tr.force):.3f} N, peak true field "
-                  f"{np.nanmax(np.abs(tr.field)) / 1e6:.1f} MV/m, smallest breakdown margin E_B/E = {margin:.2f}×, "
-                  f"tension lost in {100 * np.mean(tr.tension_lost):.1f} % of samples")
-    if tr.failed:
-        raise fail(f"specimen failed: {tr.failure}", code=1)
+    console.print(f"force {sim.force_range[0]:.3f} … {sim.force_range[1]:.3f} N, peak true field "
+                  f"{sim.peak_field / 1e6:.1f} MV/m, smallest breakdown margin E_B/E = {sim.margin:.2f}×, "
+                  f"tension lost in {100 * sim.tension_lost:.1f} % of samples")
+    if sim.trace.failed:
+        raise fail(f"specimen failed: {sim.trace.failure}", code=1)
 
 
 RigArg = Annotated[Path, typer.Argument(help="Rig file (TOML), e.g. rigs/thesis-sim.toml.", autocompletion=rig_files)]
@@ -227,58 +173,22 @@ def sim_serve(
                            "on 10502/10702.")] = False,
 ) -> None:
     """Start every simulated instrument of a rig (wall clock) and print where to connect; Ctrl-C stops."""
-    import math
-    import signal
-    import threading
-    import time
+    from bench.app.sim import Serving, serve_rig
 
-    from bench.rig import load_rig
-    from bench.runtime.devices import served_rig
-    from bench.runtime.devices import write_rig as write_rig_file
-    from bench.runtime.replay import replay_rig
-    from bench.runtime.sim_rig import T7_PORTS, SimRig
+    def started(served: Serving) -> None:
+        if served.replay is not None:
+            console.print(f"replaying {served.replay} (noise off; what the host commands moves nothing)")
+        console.print(_endpoint_table(f"simulated rig {served.rig.name} ({served.rig.specimen.kind})",
+                                      served.endpoints))
+        if served.client_rig is not None:
+            console.print(f"rig file for clients: {served.client_rig}")
+        console.print("wire time: " + ("real (the rig file's baud rates, RTU gaps and device turnarounds)"
+                                       if served.wire_time else "off (pty speed: faster than any real line)"))
+        console.print("serving; Ctrl-C to stop" + (f" (or after {served.duration:g} s)" if served.duration else ""))
 
     duration_s = None if duration is None else option_si(duration, "s", "--duration", 0.1)
-    if rig_file is not None:
-        rig = load_rig(rig_file)
-        if not rig.simulated:
-            raise ValueError(f"rig file {rig_file}: simulated = false; `bench sim serve` needs a simulated rig")
-    elif replay is not None:
-        rig = replay_rig(replay)
-    else:
-        raise ValueError("bench sim serve: give a rig file, or --replay RUN.h5 (its own rig)")
-    if replay is not None:
-        rig = rig.model_copy(update={"simulation": rig.simulation.model_copy(update={"replay": str(replay)})})
-    stop = threading.Event()
-    # both set explicitly: a process started with SIGINT ignored (a background job of a non-interactive shell)
-    # inherits the ignore, and Python then installs no KeyboardInterrupt handler of its own
-    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGTERM, signal.SIGINT)}
-    sim = SimRig(rig, timing="real" if wire_time else "none", daq_ports=T7_PORTS if t7_ports else (0, 0))
-    try:
-        endpoints = sim.start()
-        if sim.replay is not None:  # record time 0: now
-            sim.replay.anchor(sim.clock.now())
-            console.print(f"replaying {replay} (noise off; what the host commands moves nothing)")
-        console.print(_endpoint_table(f"simulated rig {rig.name} ({rig.specimen.kind})", endpoints))
-        if write_rig is not None:
-            # the clients' rig is real instruments: the replay is this process's business, not theirs
-            plain = rig.model_copy(update={"simulation": rig.simulation.model_copy(update={"replay": None})})
-            write_rig_file(served_rig(plain, sim.port_map()), write_rig)
-            console.print(f"rig file for clients: {write_rig}")
-        console.print("wire time: " + ("real (the rig file's baud rates, RTU gaps and device turnarounds)"
-                                       if wire_time else "off (pty speed: faster than any real line)"))
-        console.print("serving; Ctrl-C to stop" + (f" (or after {duration_s:g} s)" if duration_s else ""))
-        with contextlib.suppress(KeyboardInterrupt):
-            # short waits: a Ctrl-C the kernel hands to one of the twins' threads only sets Python's flag, and a
-            # main thread blocked in one long wait would not run the handler until the wait ends (never, without
-            # --duration)
-            end = math.inf if duration_s is None else time.monotonic() + duration_s
-            while not stop.wait(min(0.1, max(end - time.monotonic(), 0.0))) and time.monotonic() < end:
-                pass
-    finally:
-        sim.stop()
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+    serve_rig(rig_file, write_rig=write_rig, duration=duration_s, wire_time=wire_time, t7_ports=t7_ports,
+              replay=replay, on_started=started)
     console.print("simulated rig stopped")
 
 

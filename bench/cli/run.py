@@ -5,16 +5,19 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
-import os
 import sys
+from collections.abc import Callable
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
 from bench.cli.common import JsonOpt, Table, clean_errors, console, escape, json_mode, print_json
 from bench.cli.completion import protocol_files, protocol_names, rig_files
 from bench.cli.logs import log, run_log
+
+if TYPE_CHECKING:
+    from bench.runtime.engine import Engine, RunResult
 
 protocol_app = typer.Typer(help="Protocol files: the shipped ones (list, show, copy) and their schema.",
                             no_args_is_help=True, rich_markup_mode=None)
@@ -32,18 +35,21 @@ def _hms(seconds: float) -> str:
 
 
 def _plan(protocol_file: Path, rig: Path | None, sim: bool):
-    from bench.runtime.run import plan_run
+    from bench.app.runs import plan_protocol
 
-    if rig is not None and sim is False and not rig.exists():
-        raise ValueError(f"rig file {rig}: not found")
     with console.status("validating and dry-running the protocol on the model…"):
-        plan = plan_run(protocol_file, rig, sim)
+        plan = plan_protocol(protocol_file, rig, sim)
+    _warn(plan)
+    return plan
+
+
+def _warn(plan) -> None:
+    """The plan's warnings: what a real line would refuse, what a software-timed rig records below the asked rate."""
     for problem in plan.link_problems:  # refused on a real rig; the simulated rig rehearses what it would do
         console.print(f"[yellow]warning[/]: {escape(problem)} — a real line would refuse this protocol; the "
                       "simulated rig will show the consequences in wall-clock runs")
     for short in plan.shortfalls:  # what a software-timed rig records below the asked rate: said, never silent
         console.print(f"[yellow]warning[/]: {escape(short)}")
-    return plan
 
 
 def _summary(plan) -> Table:
@@ -161,70 +167,75 @@ def run(
     Operator, specimen ID and notes come from the protocol's [protocol] table and these options; they are kept in
     the run file as root attributes (`bench inspect` shows them). While it runs, `bench pause RUN.h5` (or SIGUSR1)
     brings the output to 0 V and holds, `bench resume RUN.h5` (or SIGUSR2) restarts the step it left."""
-    from bench.runtime.run import default_output, run_metadata
+    from bench.app.runs import check_executable, execute_run, prepare_run
 
-    if catalog:  # what the run's catalogue hooks read (bench/storage/catalog.py)
-        os.environ["BENCH_CATALOG"] = catalog
-    link = None
-    if resume is not None:
-        plan, link, notes = _plan_resume(protocol_file, resume, rig, sim)
-        for line in notes:
-            console.print(f"recovered: {escape(line)}")
-        old = open_run_attrs(resume)
-        metadata = run_metadata(plan.protocol, operator_name or old.get("operator"),
-                                specimen_id or old.get("specimen_id"), note)
-        metadata.update(_reset_for_resume(plan.rig.name, operator_name or old.get("operator"), why, dry_run))
-        out = resume.parent if out == Path("runs") else out
-    elif protocol_file is None:
-        raise ValueError("give a protocol file, or --resume RUN.h5 to continue a campaign")
-    else:
-        plan = _plan(protocol_file, rig, sim)
-        metadata = run_metadata(plan.protocol, operator_name, specimen_id, note)
-    console.print(_summary(plan))
-    if link is not None:
-        seg = plan.program.segments[link.step]
-        console.print(f"resuming the campaign of {escape(str(link.previous))} at step {link.step + 1} of {link.steps} "
-                      f"({escape(seg.name)}); {link.step} step(s) completed there")
+    with console.status("recovering if needed, validating and dry-running the stored protocol…" if resume else
+                        "validating and dry-running the protocol on the model…"):
+        prepared = prepare_run(protocol_file, rig=rig, sim=sim, out=out, resume=resume, operator=operator_name,
+                               specimen_id=specimen_id, notes=note, why=why, dry_run=dry_run,
+                               on_recovered=lambda line: console.print(f"recovered: {escape(line)}"))
+    _show_prepared(prepared)
     if dry_run:
         console.print("[green]dry run[/]: nothing was touched")
         return
-    if virtual_time and not plan.rig.simulated:
-        raise ValueError(f"rig {plan.rig.name} is real: --virtual-time needs a simulated rig (add --sim)")
-    needs_operator = any(s.changes for s in plan.program.segments) and not plan.rig.simulated
-    interactive = sys.stdin.isatty()
-    if needs_operator and not (yes or interactive):
-        raise ValueError("this protocol changes the specimen between tests: run it interactively or pass --yes")
+    check_executable(prepared, virtual_time=virtual_time, can_confirm=yes or sys.stdin.isatty())
 
     def operator(message: str) -> bool:
         from rich.prompt import Confirm
 
         return yes or Confirm.ask(f"[bold]operator:[/] {message} — done?", console=console)
 
-    path = default_output(plan, out)
-    with run_log(path) as log_file:
-        log.info("bench run %s on rig %s (%s), %s clock → %s", protocol_file, plan.rig.name,
-                 "simulated" if plan.rig.simulated else "real", "virtual" if virtual_time else "wall", path)
-        log.info("planned: %d steps, %.1f s, peak %.0f V", len(plan.program.segments), plan.prediction.duration,
-                 plan.prediction.peak_voltage)
-        for problem in plan.link_problems:
-            log.info("link budget warning: %s", problem)
-        for short in plan.shortfalls:
-            log.info("recording warning: %s", short)
-        for key, value in metadata.items():
-            log.info("%s: %s", key.replace("_", " "), value.replace("\n", " | "))
+    with run_log(prepared.path) as log_file:
+        _log_plan(prepared, protocol_file, virtual_time)
         from bench.cli.watch import serving
 
-        with serving(path, web_port) if web else contextlib.nullcontext():
-            result = _execute(plan, path, virtual_time, operator, live, allow_no_watchdog, metadata, link)
+        with serving(prepared.path, web_port) if web else contextlib.nullcontext():
+            result = _execute(prepared, live, lambda on_engine: execute_run(
+                prepared, virtual_time=virtual_time, operator=operator, allow_no_watchdog=allow_no_watchdog,
+                catalog=catalog, on_engine=on_engine))
         _log_result(result)
+    _show_result(result, log_file)
+    if result.state != "completed":
+        raise typer.Exit(1)
+
+
+def _show_prepared(prepared) -> None:
+    """What was done to get the run ready (a reset latch, warnings), the plan's summary, where a campaign resumes."""
+    plan, link = prepared.plan, prepared.link
+    if prepared.reset is not None:
+        who, why = prepared.reset
+        console.print(f"interlock of {escape(plan.rig.name)} reset by {escape(who)}: {escape(why)}")
+    if link is None:
+        _warn(plan)
+    console.print(_summary(plan))
+    if link is not None:
+        seg = plan.program.segments[link.step]
+        console.print(f"resuming the campaign of {escape(str(link.previous))} at step {link.step + 1} of {link.steps} "
+                      f"({escape(seg.name)}); {link.step} step(s) completed there")
+
+
+def _log_plan(prepared, protocol_file: Path | None, virtual_time: bool) -> None:
+    """The run's plan, its warnings and metadata, into the run log."""
+    plan = prepared.plan
+    log.info("bench run %s on rig %s (%s), %s clock → %s", protocol_file, plan.rig.name,
+             "simulated" if plan.rig.simulated else "real", "virtual" if virtual_time else "wall", prepared.path)
+    log.info("planned: %d steps, %.1f s, peak %.0f V", len(plan.program.segments), plan.prediction.duration,
+             plan.prediction.peak_voltage)
+    for problem in plan.link_problems:
+        log.info("link budget warning: %s", problem)
+    for short in plan.shortfalls:
+        log.info("recording warning: %s", short)
+    for key, value in prepared.metadata.items():
+        log.info("%s: %s", key.replace("_", " "), value.replace("\n", " | "))
+
+
+def _show_result(result, log_file: Path) -> None:
     with contextlib.suppress(OSError):  # the terminal went away (SIGHUP): the file holds the whole account
         _print_result(result)
         console.print(f"run log: {escape(str(log_file))}")
         if console.quiet:  # -q: the run file's path alone, for scripts (f=$(bench -q run …)), whatever the outcome
             sys.stdout.write(f"{result.path}\n")
             sys.stdout.flush()
-    if result.state != "completed":
-        raise typer.Exit(1)
 
 
 def _log_result(result) -> None:
@@ -233,53 +244,15 @@ def _log_result(result) -> None:
             result.state, result.reason, result.safe_path, result.samples)
 
 
-def _plan_resume(protocol_file: Path | None, run_file: Path, rig: Path | None, sim: bool):
-    from bench.protocol.schema import load_protocol
-    from bench.runtime.run import plan_resume
-
-    with console.status("recovering if needed, validating and dry-running the stored protocol…"):
-        plan, link, notes = plan_resume(run_file, rig, sim)
-    if protocol_file is not None and load_protocol(protocol_file).sha256 != plan.protocol.sha256:
-        raise ValueError(f"protocol file {protocol_file}: not the protocol of {run_file} (its text differs); "
-                         "--resume needs no protocol file")
-    return plan, link, notes
-
-
-def _reset_for_resume(rig_name: str, operator: str | None, why: str | None, dry_run: bool) -> dict[str, str]:
-    """A resumed campaign on a latched rig: the operator's reset (who and why), recorded in the new file."""
-    from bench.runtime.latch import latched, reset
-
-    was = latched(rig_name)
-    if was is None:
-        return {}
-    if not why or not why.strip():
-        raise ValueError(f"rig {rig_name}: interlock latched ({was.get('fault')}): --why '…' resets it to resume")
-    if dry_run:
-        return {}
-    who = _who(operator)
-    reset(rig_name, who, why)
-    console.print(f"interlock of {escape(rig_name)} reset by {escape(who)}: {escape(why)}")
-    return {"interlock_reset": f"by {who}: {why} (latched at {was.get('at')}: {was.get('fault')})"}
-
-
-def open_run_attrs(path: Path) -> dict[str, str]:
-    """The string attributes of a run file (operator, specimen ID) that a resumed run carries on."""
-    from bench.storage.runfile import open_run
-
-    return {k: v for k, v in open_run(path, streams=False).attrs.items() if isinstance(v, str)}
-
-
-def _execute(plan, path: Path, virtual_time: bool, operator, live: bool, allow_no_watchdog: bool,
-             metadata: dict[str, str], link=None):
-    """Run the plan, with the live view on a terminal."""
+def _execute(prepared, live: bool, execute: Callable[[Callable[[Engine, object], None] | None], RunResult]):
+    """Execute the run (``execute``, given what to call with the engine), with the live view on a terminal."""
     from rich.live import Live
 
-    from bench.runtime.engine import Engine
     from bench.runtime.live import Keys, LiveView, units_of
-    from bench.runtime.run import execute
 
+    plan = prepared.plan
     engines: list[Engine] = []
-    title = f"{plan.protocol.protocol.name} → {path}"
+    title = f"{plan.protocol.protocol.name} → {prepared.path}"
     if plan.rig.simulated and plan.rig.simulation.replay:  # said before the run, and kept in the file (replay_of)
         console.print(f"replay: the twins serve the measured signals of {escape(plan.rig.simulation.replay)} "
                       "(noise off; the commands move nothing; the output verifier checks the recorded monitors)")
@@ -301,13 +274,9 @@ def _execute(plan, path: Path, virtual_time: bool, operator, live: bool, allow_n
 
         keys = Keys({"p": lambda: on_engine("p"), "r": lambda: on_engine("r")}) if keyed else contextlib.nullcontext()
         with keys, Live(console=console, refresh_per_second=4, transient=False) as live_ctx:
-            result = execute(plan, path, virtual=virtual_time, operator=operator, on_engine=attach,
-                             allow_no_watchdog=allow_no_watchdog, metadata=metadata, resume=link)
-    else:
-        console.print(f"running {escape(title)}")
-        result = execute(plan, path, virtual=virtual_time, operator=operator, allow_no_watchdog=allow_no_watchdog,
-                         metadata=metadata, resume=link)
-    return result
+            return execute(attach)
+    console.print(f"running {escape(title)}")
+    return execute(None)
 
 
 def _print_result(result) -> None:
@@ -334,49 +303,27 @@ def inspect(run_files: Annotated[list[Path], typer.Argument(help="Run files (.h5
 
 def _inspect(run_file: Path, json_out: bool) -> tuple[dict[str, object] | None, bool]:
     """One file of ``inspect``: its JSON object (``json_out``) or its tables printed; and whether it is complete."""
-    from bench.identify.store import read_fits
-    from bench.storage.runfile import open_run
+    from bench.app.runs import inspect_run
 
-    r = open_run(run_file)
-    a = r.attrs
-    notes = [n for n in str(a.get("notes", "")).split("\n") if n]
-    try:
-        fits, fits_error = read_fits(run_file), ""
-    except (ValueError, OSError) as exc:  # a fit file of another run beside it: the run itself is still shown
-        fits, fits_error = [], " ".join(str(exc).splitlines())
+    found = inspect_run(run_file)
     if json_out:
-        keys = ("protocol_name", "protocol_path", "protocol_sha256", "rig_name", "simulated", "clock", "software",
-                "start_time", "duration_planned", "operator", "specimen_id", "session_log")
-        return ({"file": str(run_file), **{k: a.get(k) for k in keys}, "notes": notes,
-                    "fits": [{"file": f["file"], "group": f["group"], "model": f.get("model"), "rms": f.get("rms"),
-                              "created": f.get("created"), "records": f.get("records"),
-                              "parameters": dict(zip(f["names"], f["values"], strict=True))} for f in fits],
-                    "fits_error": fits_error or None,
-                    "state": r.state, "complete": r.complete,
-                    "incomplete_reason": None if r.complete else r.incomplete_reason, "reason": r.reason,
-                    "end_time": r.end_time, "recorded_up_to_s": r.updated,
-                    "streams": {name: {"samples": len(s), "from_s": float(s.t[0]) if len(s) else None,
-                                       "to_s": float(s.t[-1]) if len(s) else None, "units": s.units,
-                                       "last": {k: (v[-1] if v.size else None) for k, v in s.columns.items()}}
-                                for name, s in r.streams.items()},
-                    "events": [{"t_s": t, "step": step, "kind": kind, "text": text}
-                               for t, step, kind, text in r.event_list()],
-                    "campaign": _campaign_json(run_file, a), "recovered_at": r.recovered_at or None},
-                r.complete)
+        return found.record(), found.complete
+    _inspect_tables(found)
+    return None, found.complete
+
+
+def _inspect_tables(found) -> None:
+    """``bench inspect`` on a terminal: the run file's metadata, its streams, its last events and its fits."""
+    r, a, run_file, manual = found.run, found.run.attrs, found.file, found.manual
     meta = Table(title="run file", show_header=False)
     meta.add_column("", style="bold")
     meta.add_column("")
     meta.add_row("file", escape(str(run_file)))  # a row, not the title: a title wraps at the table's width
-    if a.get("previous_file"):
-        from bench.storage.chain import chain, describe
-
-        try:
-            meta.add_row("campaign", escape(describe(chain(run_file))))
-        except ValueError as exc:
-            meta.add_row("campaign", f"[red]{escape(str(exc))}[/]")
+    if found.campaign_text is not None:
+        text, broken = found.campaign_text
+        meta.add_row("campaign", f"[red]{escape(text)}[/]" if broken else escape(text))
     sha = str(a.get("protocol_sha256", ""))[:12]
-    manual = bool(a.get("session_log"))  # the readings of a manual-control session (bench devices control)
-    if manual:
+    if manual:  # the readings of a manual-control session (bench devices control)
         meta.add_row("session", f"manual control (log {escape(str(a['session_log']))})")
     else:
         meta.add_row("protocol", f"{a.get('protocol_name')} ({a.get('protocol_path')}, sha256 {sha}…)")
@@ -386,7 +333,7 @@ def _inspect(run_file: Path, json_out: bool) -> tuple[dict[str, object] | None, 
     for key, label in (("operator", "operator"), ("specimen_id", "specimen ID")):
         if a.get(key):
             meta.add_row(label, escape(str(a[key])))
-    for k, text in enumerate(notes):
+    for k, text in enumerate(found.notes):
         meta.add_row("notes" if k == 0 else "", escape(text))
     meta.add_row("started", str(a.get("start_time")))
     state = r.state if r.complete else f"[red]{r.state} — INCOMPLETE: {r.incomplete_reason}[/]"
@@ -410,14 +357,13 @@ def _inspect(run_file: Path, json_out: bool) -> tuple[dict[str, object] | None, 
     events = r.event_list()
     console.print(f"{len(events)} events; last: " + "; ".join(f"{t:.2f} s {kind} {escape(text)}"
                                                              for t, _, kind, text in events[-3:]), soft_wrap=True)
-    if fits_error:
-        console.print(f"[yellow]fits not read[/]: {escape(fits_error)}", soft_wrap=True)
-    for f in fits:
+    if found.fits_error:
+        console.print(f"[yellow]fits not read[/]: {escape(found.fits_error)}", soft_wrap=True)
+    for f in found.fits:
         where = "in the run file" if Path(f["file"]) == Path(run_file) else f"in {f['file']}"
         console.print(f"fit {escape(f['group'])} ({escape(where)}): {f.get('model')} model, rms "
                       f"{f.get('rms', float('nan')):.4g}, {len(f.get('records', []))} record(s), {f.get('created')}",
                       soft_wrap=True)
-    return None, r.complete
 
 
 @clean_errors
@@ -427,18 +373,6 @@ def recover(run_file: Annotated[Path, typer.Argument(help="Run file (.h5) of a c
 
     for line in recover_file(run_file).lines():
         console.print(escape(line))
-
-
-def _campaign_json(run_file: Path, attrs: dict) -> list[dict[str, object]] | str:
-    """The campaign chain of a run file for ``inspect --json`` (an error text when a link is broken)."""
-    from bench.storage.chain import chain
-
-    try:
-        links = chain(run_file)
-    except ValueError as exc:
-        return str(exc)
-    return [{"file": str(ln.path), "state": ln.state, "complete": ln.complete, "resumed_at_step": ln.resumed_at_step}
-            for ln in links] if len(links) > 1 or attrs.get("previous_file") else []
 
 
 RunArg = Annotated[Path, typer.Argument(help="Run file (.h5) of a run under way.")]
@@ -458,11 +392,9 @@ def _running(run_file: Path) -> None:
 
 
 def _who(operator: str | None) -> str:
-    import getpass
+    from bench.app.runs import login_name
 
-    from bench.protocol.schema import MAX_OPERATOR, check_label
-
-    return check_label(operator or getpass.getuser(), MAX_OPERATOR)
+    return login_name(operator)
 
 
 @clean_errors

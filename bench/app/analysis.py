@@ -1,0 +1,154 @@
+"""Use cases on models and recorded runs: the LS-DEA design map, the report of run files (figures of merit,
+plots, the Table-3 grid of a campaign)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    import numpy as np
+
+    from bench.analysis.runs import RunAnalysis
+    from bench.app import Progress
+    from bench.design_map import DesignCurves, DesignMap, MapSettings
+
+PROTOTYPES = ((1, 2.5), (2, 2.75), (3, 3.0))  # Moretti's prototypes: number, pre-stretch λ2p (all at xp 40 mm)
+PROTOTYPE_XP = 0.040
+
+
+@dataclass
+class DesignMapResult:
+    """The map, its smallest stiffness and region per (λ2p, xp), the prototypes on it, the figures written."""
+
+    settings: MapSettings
+    map: DesignMap
+    min_stiffness: np.ndarray  # [N/m], [i_λ2p, i_xp]
+    regions: np.ndarray  # "stiff", "near-zero", "negative"
+    prototypes: list[tuple[int, float, DesignCurves, str]]  # (number, its λ2p, its curves, its region)
+    figures: list[Path]
+
+
+def design_map(out: Path = Path("runs/design-map"), voltages: tuple[float, ...] = (0.0, 3e3, 5e3, 7e3),
+               scheduler: str | None = None, workers: int | None = None) -> DesignMapResult:
+    """Compute the design map at ``voltages`` [V] (on a dask cluster if asked) and plot it into ``out``."""
+    from bench.app.cluster import cluster_client
+    from bench.design_map import MapSettings, compute_map, plot_map
+
+    settings = MapSettings(voltages=voltages)
+    with cluster_client(scheduler, workers) as client:
+        dmap = compute_map(settings, client=client)
+    regions = dmap.regions()
+    protos = []
+    for num, l2p in PROTOTYPES:
+        d = dmap.design(l2p, PROTOTYPE_XP)
+        protos.append((num, l2p, d, str(regions[settings.lambda2p.index(d.lambda2p), settings.xp.index(d.xp)])))
+    return DesignMapResult(settings, dmap, dmap.min_stiffness(), regions, protos, plot_map(dmap, out))
+
+
+@dataclass
+class RunReport:
+    """One run file's report: whether it is complete, its analysis, its figures."""
+
+    path: Path
+    state: str
+    complete: bool
+    incomplete_reason: str
+    recovered_at: str
+    steps_completed: int
+    steps_total: int
+    analysis: RunAnalysis
+    figures: list[Path]
+
+    def flags(self) -> dict[str, object]:
+        return {"state": self.state, "complete": self.complete, "incomplete_reason": self.incomplete_reason or None,
+                "recovered_at": self.recovered_at or None}
+
+
+@dataclass
+class Report:
+    """The report of run files: each one's, and the Table-3 grid of their isopotential steps (None without)."""
+
+    runs: list[RunReport] = field(default_factory=list)
+    grid: dict[str, Any] | None = None
+    grid_figure: Path | None = None  # the grid drawn (table3.png beside table3.csv)
+
+    @property
+    def figures(self) -> list[Path]:
+        return [p for r in self.runs for p in r.figures] + ([self.grid_figure] if self.grid_figure else [])
+
+
+def report_runs(runs: list[Path], out: Path | None = None, progress: Progress | None = None) -> Report:
+    """Analyse run files and write their figures (into ``out``, a folder per file when there are several; default
+    beside each file); the Table-3 grid of the isopotential steps, also written as CSV (its path in ``grid``) and
+    drawn beside it.
+    ``progress`` gets the fraction of the files done."""
+    from bench.report import report, save_figure, table3_figure
+    from bench.storage.runfile import open_run
+
+    done = Report()
+    for p in runs:
+        run = open_run(p, streams=False)
+        a, paths = report(p, out / p.stem if out is not None and len(runs) > 1 else out)
+        done.runs.append(RunReport(p, run.state, run.complete, run.incomplete_reason, run.recovered_at,
+                                   len(run.completed_steps()), run.program.shape[0], a, paths))
+        if progress is not None:
+            progress(len(done.runs) / len(runs))
+    grid = table3([s for r in done.runs for s in r.analysis.steps])
+    if grid is not None:
+        csv_path = (out if out is not None else runs[-1].with_name(runs[-1].stem + "-report")) / "table3.csv"
+        write_table3_csv(grid, csv_path)
+        grid["csv"] = str(csv_path)
+        done.grid_figure = save_figure(table3_figure(grid), csv_path.with_suffix(".png"))
+    done.grid = grid
+    return done
+
+
+def table3(steps: list[Any]) -> dict[str, Any] | None:
+    """The Table-3 grid of isopotential steps: per prototype, the hysteresis loss of the stabilised cycle at each
+    voltage for its largest stroke Δx. Conditions that differ between cells (Δx between rows, the frequency within
+    a row or a cell, several steps in one cell) are listed in ``warnings``, never mixed silently."""
+    iso = [s for s in steps if s.kind == "isopotential"]
+    if not iso:
+        return None
+    volts = sorted({round(s.voltage / 1e3) for s in iso})
+    rows, warnings = [], []
+    for proto in sorted({s.prototype for s in iso}):
+        ss = [s for s in iso if s.prototype == proto]
+        dx = max(round(s.figures["stroke"] * 1e3) for s in ss)  # mm: the imposed stroke
+        cells: dict[str, list[Any]] = {}
+        for s in ss:
+            if round(s.figures["stroke"] * 1e3) == dx:
+                cells.setdefault(str(round(s.voltage / 1e3)), []).append(s)
+        freqs = sorted({round(s.frequency, 6) for c in cells.values() for s in c})
+        for v, c in cells.items():
+            if len(c) > 1:
+                warnings.append(f"#{proto} at {v} kV, Δx {dx} mm: {len(c)} steps ({', '.join(s.name for s in c)}); "
+                                "the last one is shown")
+        if len(freqs) > 1:
+            warnings.append(f"#{proto}: cells at different frequencies ({', '.join(f'{f:g}' for f in freqs)} Hz)")
+        rows.append({"prototype": proto, "stroke_m": dx / 1e3, "frequencies_Hz": freqs,
+                     "loss": {v: c[-1].figures["loss_last"] for v, c in cells.items()},
+                     "steps": {v: [s.name for s in c] for v, c in cells.items()}})
+    strokes = sorted({r["stroke_m"] for r in rows})
+    if len(strokes) > 1:
+        warnings.append("rows at different strokes Δx: " + ", ".join(
+            f"#{r['prototype']} {r['stroke_m'] * 1e3:.0f} mm" for r in rows) + " (an incomplete campaign?)")
+    return {"quantity": "hysteresis loss of the stabilised cycle", "unit": "1", "voltages_kV": volts, "rows": rows,
+            "warnings": warnings}
+
+
+def write_table3_csv(grid: dict[str, Any], path: Path) -> None:
+    """The Table-3 grid as CSV: prototype, Δx [mm], frequencies [Hz], then the loss [%] at each voltage."""
+    import csv
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open("w", newline="", encoding="utf-8") as fh:
+        w = csv.writer(fh)
+        w.writerow(["prototype", "stroke_mm", "frequency_Hz", *(f"loss_{v}kV_percent" for v in grid["voltages_kV"])])
+        for row in grid["rows"]:
+            w.writerow([row["prototype"], f"{row['stroke_m'] * 1e3:.0f}",
+                        " ".join(f"{f:g}" for f in row["frequencies_Hz"]),
+                        *(f"{100 * row['loss'][str(v)]:.4g}" if str(v) in row["loss"] else ""
+                          for v in grid["voltages_kV"])])

@@ -1,0 +1,122 @@
+"""Use case: identify a model's parameters from recorded runs and store the fit with every file (``bench fit``)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from bench.app import Progress
+    from bench.identify.campaign import CampaignReport
+    from bench.identify.core import FitResult, FitSettings, Problem
+
+
+@dataclass
+class Fitted:
+    """A fit: the result, the (coarse) problem it was searched on (it holds the compared data), the campaign's
+    identifiability when several records were fitted, where it was stored, the rig file exported."""
+
+    model: str
+    runs: list[Path]
+    result: FitResult
+    problem: Problem
+    campaign: CampaignReport | None = None
+    stored: list[tuple[Path, str]] = field(default_factory=list)  # (file, group)
+    exported: Path | None = None
+
+
+def model_of_runs(runs: list[Path], asked: str = "auto") -> str:
+    """The model to fit: ``asked`` ("membrane", "lsdea"), or with "auto" the specimen kind the run files share
+    (ValueError when they hold different ones)."""
+    import json
+
+    from bench.storage.runfile import open_run
+
+    kinds = {json.loads(open_run(p, streams=False).attrs["specimen"])["kind"] for p in runs}
+    chosen = asked if asked != "auto" else (kinds.pop() if len(kinds) == 1 else "")
+    if not chosen:
+        raise ValueError("the run files hold different specimens: fit them separately or pass --model")
+    return str(chosen)
+
+
+def check_fittable(runs: list[Path], into: bool = False) -> None:
+    """Refuse, before any work, a file the fit cannot be stored with: not finalised (a crashed file that a resumed
+    campaign continued is fine), or crashed with ``into`` (fits go inside finished files only)."""
+    from bench.storage.runfile import open_run
+
+    for p in runs:
+        f = open_run(p, streams=False)
+        crashed = f.state == "running" and bool(f.orphaned or f.recovered_at)  # a resumed campaign's earlier part
+        if not (f.complete or crashed):
+            raise ValueError(f"run file {p}: not finalised ({f.incomplete_reason}); fit it when it has ended")
+        if into and not f.complete:
+            raise ValueError(f"run file {p}: not finalised (crashed); --into stores fits in finished files only — "
+                             "leave out --into to store the fit in its fit file beside it")
+
+
+def fit_runs(runs: list[Path], model: str, settings: FitSettings, *, branches: int = 1, export: Path | None = None,
+             scheduler: str | None = None, workers: int | None = None, into: bool = False,
+             on_read: Callable[[Problem], None] | None = None, on_cluster: Callable[[str], None] | None = None,
+             progress: Progress | None = None) -> Fitted:
+    """Fit ``model`` ("membrane" or "lsdea") to the records of ``runs`` (differential evolution on a coarse
+    integration step, polish and identifiability on a fine one); store the result with every file (in its fit
+    file, or with ``into`` in the run file) and optionally export a rig file. On a dask cluster when
+    ``scheduler`` (address) or ``workers`` (LocalCluster) is given (membrane model: ``on_cluster`` gets its
+    address). ``on_read`` gets the problem once the records are read; ``progress`` the fraction of generations."""
+    from bench.app.cluster import cluster_client
+    from bench.identify.campaign import campaign_identifiability
+    from bench.identify.core import fit
+    from bench.identify.problems import LozengeProblem, MembraneProblem
+    from bench.identify.store import export_rig, fit_sidecar, fitted_rig, write_fit
+    from bench.rig import rig_from_toml
+    from bench.storage.runfile import open_run
+
+    check_fittable(runs, into)
+    files: list[str | Path] = list(runs)
+    coarse: Problem
+    fine: Problem
+    if model == "membrane":
+        coarse, fine = MembraneProblem(files, h=5e-4), MembraneProblem(files, h=1e-4)
+    else:
+        coarse, fine = LozengeProblem(files, branches=branches, h=2e-3), LozengeProblem(files, branches=branches)
+    if on_read is not None:
+        on_read(coarse)
+    total = settings.generations * max(settings.starts, 1)  # progress is called at each generation of each start
+    done = [0]
+
+    def generation() -> None:
+        done[0] += 1
+        if progress is not None:
+            progress(done[0] / total)
+
+    with cluster_client(scheduler, workers) as client:
+        if client is not None:
+            if not isinstance(coarse, MembraneProblem) or not isinstance(fine, MembraneProblem):
+                raise ValueError("--scheduler/--workers: distributed fits are implemented for the membrane "
+                                 "model only; fit LS-DEA records in-process")
+            coarse.distribute(client)
+            fine.distribute(client)
+            if on_cluster is not None:
+                on_cluster(str(client.scheduler.address if client.scheduler is not None else scheduler))
+        try:
+            result = fit(coarse, settings, start=None, fine=fine, progress=generation)
+        finally:
+            for prob in (coarse, fine):
+                if isinstance(prob, MembraneProblem):
+                    prob.distribute(None)
+    out = Fitted(model, runs, result, coarse)
+    records = [r.source for r in coarse.records]
+    campaign = None
+    if len(records) > 1:
+        out.campaign = campaign_identifiability(fine, result)
+        campaign = out.campaign.as_dict()
+    for p in runs:
+        group = write_fit(p, model, result, records, campaign, sidecar=not into)
+        out.stored.append((p if into else fit_sidecar(p), group))
+    if export is not None:
+        rig = rig_from_toml(open_run(runs[0], streams=False).attrs["rig_toml"])
+        export_rig(fitted_rig(rig, model, result.names, result.values), export, str(runs[0]))
+        out.exported = export
+    return out

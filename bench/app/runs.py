@@ -1,0 +1,203 @@
+"""Use cases on runs: plan one (or the rest of a campaign), execute it, inspect run files."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from bench.runtime.engine import Engine, OperatorFn, RunResult
+    from bench.runtime.run import Plan, Resume
+    from bench.storage.runfile import RunFile
+
+
+@dataclass
+class PreparedRun:
+    """A run planned and ready to execute: the plan, where it writes, what it records as metadata; for a resumed
+    campaign, the link to the earlier file and the interlock reset that made it possible."""
+
+    plan: Plan
+    path: Path  # the run file it will write
+    metadata: dict[str, str]
+    link: Resume | None = None
+    reset: tuple[str, str] | None = None  # (who, why) when resuming reset a latched interlock
+
+    @property
+    def needs_operator(self) -> bool:
+        """Whether someone must confirm specimen changes (a real rig; the simulated one applies them itself)."""
+        return any(s.changes for s in self.plan.program.segments) and not self.plan.rig.simulated
+
+
+def login_name(operator: str | None) -> str:
+    """Who acts: ``operator`` or the login name, checked as a label."""
+    import getpass
+
+    from bench.protocol.schema import MAX_OPERATOR, check_label
+
+    return check_label(operator or getpass.getuser(), MAX_OPERATOR)
+
+
+def plan_protocol(protocol_file: Path, rig: Path | None = None, sim: bool = False,
+                  progress: Callable[[float], None] | None = None) -> Plan:
+    """Load, compile, check the link budget and dry-run a protocol on its rig (or ``rig``)."""
+    from bench.runtime.run import plan_run
+
+    if rig is not None and sim is False and not rig.exists():
+        raise ValueError(f"rig file {rig}: not found")
+    return plan_run(protocol_file, rig, sim, progress)
+
+
+def prepare_run(protocol_file: Path | None, *, rig: Path | None = None, sim: bool = False, out: Path = Path("runs"),
+                resume: Path | None = None, operator: str | None = None, specimen_id: str | None = None,
+                notes: list[str] | None = None, why: str | None = None, dry_run: bool = False,
+                on_recovered: Callable[[str], None] | None = None,
+                progress: Callable[[float], None] | None = None) -> PreparedRun:
+    """Plan a run of ``protocol_file``, or with ``resume`` the rest of that file's campaign (recovered first if a
+    crash left it open: each line of what was done goes to ``on_recovered``); on a latched rig a resume needs
+    ``why`` and resets the latch (not on a ``dry_run``). ValueError (one line) for what cannot run."""
+    from bench.runtime.run import default_output, run_metadata
+
+    link = None
+    reset = None
+    if resume is not None:
+        from bench.protocol.schema import load_protocol
+        from bench.runtime.run import plan_resume
+        from bench.storage.runfile import open_run
+
+        plan, link, recovered = plan_resume(resume, rig, sim, progress)
+        if protocol_file is not None and load_protocol(protocol_file).sha256 != plan.protocol.sha256:
+            raise ValueError(f"protocol file {protocol_file}: not the protocol of {resume} (its text differs); "
+                             "--resume needs no protocol file")
+        for line in recovered:
+            if on_recovered is not None:
+                on_recovered(line)
+        old = {k: v for k, v in open_run(resume, streams=False).attrs.items() if isinstance(v, str)}
+        metadata = run_metadata(plan.protocol, operator or old.get("operator"), specimen_id or old.get("specimen_id"),
+                                notes)
+        reset = _reset_for_resume(plan.rig.name, operator or old.get("operator"), why, dry_run, metadata)
+        out = resume.parent if out == Path("runs") else out
+    elif protocol_file is None:
+        raise ValueError("give a protocol file, or --resume RUN.h5 to continue a campaign")
+    else:
+        plan = plan_protocol(protocol_file, rig, sim, progress)
+        metadata = run_metadata(plan.protocol, operator, specimen_id, notes)
+    return PreparedRun(plan, default_output(plan, out), metadata, link, reset)
+
+
+def _reset_for_resume(rig_name: str, operator: str | None, why: str | None, dry_run: bool,
+                      metadata: dict[str, str]) -> tuple[str, str] | None:
+    """A resumed campaign on a latched rig: the operator's reset (who and why), recorded in the new file's
+    ``metadata``."""
+    from bench.runtime.latch import latched, reset
+
+    was = latched(rig_name)
+    if was is None:
+        return None
+    if not why or not why.strip():
+        raise ValueError(f"rig {rig_name}: interlock latched ({was.get('fault')}): --why '…' resets it to resume")
+    if dry_run:
+        return None
+    who = login_name(operator)
+    reset(rig_name, who, why)
+    metadata["interlock_reset"] = f"by {who}: {why} (latched at {was.get('at')}: {was.get('fault')})"
+    return who, why
+
+
+def check_executable(prepared: PreparedRun, *, virtual_time: bool, can_confirm: bool) -> None:
+    """Refuse, in one line, a run that cannot go: virtual time on a real rig, or specimen changes that nobody can
+    confirm (no terminal and no ``--yes``)."""
+    plan = prepared.plan
+    if virtual_time and not plan.rig.simulated:
+        raise ValueError(f"rig {plan.rig.name} is real: --virtual-time needs a simulated rig (add --sim)")
+    if prepared.needs_operator and not can_confirm:
+        raise ValueError("this protocol changes the specimen between tests: run it interactively or pass --yes")
+
+
+def execute_run(prepared: PreparedRun, *, virtual_time: bool = False, operator: OperatorFn | None = None,
+                allow_no_watchdog: bool = False, catalog: str | None = None,
+                on_engine: Callable[[Engine, object], None] | None = None) -> RunResult:
+    """Execute a prepared run into its file; ``on_engine`` gets the engine once built (a live view, pause keys);
+    ``catalog`` is the run catalogue's URL (default: $BENCH_CATALOG, else beside the runs)."""
+    from bench.runtime.run import execute
+
+    if catalog:  # what the run's catalogue hooks read (bench/storage/catalog.py)
+        os.environ["BENCH_CATALOG"] = catalog
+    kwargs: dict[str, Any] = {"on_engine": on_engine} if on_engine is not None else {}
+    return execute(prepared.plan, prepared.path, virtual=virtual_time, operator=operator,
+                   allow_no_watchdog=allow_no_watchdog, metadata=prepared.metadata, resume=prepared.link, **kwargs)
+
+
+@dataclass
+class Inspection:
+    """What a run file holds (``bench inspect``): the file read (streams, events, state), its attributes and
+    notes, the fits stored with it, and its campaign."""
+
+    file: Path
+    run: RunFile
+    notes: list[str]
+    fits: list[dict[str, Any]]
+    fits_error: str  # a fit file of another run beside it: said, the run itself still shown
+    campaign: list[dict[str, object]] | str  # the chain of linked files (an error text when a link is broken)
+    campaign_text: tuple[str, bool] | None = None  # the chain described (text, whether it is an error), if resumed
+    manual: bool = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.manual = bool(self.run.attrs.get("session_log"))  # a manual-control session's readings
+
+    @property
+    def complete(self) -> bool:
+        return bool(self.run.complete)
+
+    KEYS = ("protocol_name", "protocol_path", "protocol_sha256", "rig_name", "simulated", "clock", "software",
+            "start_time", "duration_planned", "operator", "specimen_id", "session_log")
+
+    def record(self) -> dict[str, object]:
+        """The inspection as plain data (``bench inspect --json``)."""
+        r, a = self.run, self.run.attrs
+        return {"file": str(self.file), **{k: a.get(k) for k in self.KEYS}, "notes": self.notes,
+                "fits": [{"file": f["file"], "group": f["group"], "model": f.get("model"), "rms": f.get("rms"),
+                          "created": f.get("created"), "records": f.get("records"),
+                          "parameters": dict(zip(f["names"], f["values"], strict=True))} for f in self.fits],
+                "fits_error": self.fits_error or None,
+                "state": r.state, "complete": r.complete,
+                "incomplete_reason": None if r.complete else r.incomplete_reason, "reason": r.reason,
+                "end_time": r.end_time, "recorded_up_to_s": r.updated,
+                "streams": {name: {"samples": len(s), "from_s": float(s.t[0]) if len(s) else None,
+                                   "to_s": float(s.t[-1]) if len(s) else None, "units": s.units,
+                                   "last": {k: (v[-1] if v.size else None) for k, v in s.columns.items()}}
+                            for name, s in r.streams.items()},
+                "events": [{"t_s": t, "step": step, "kind": kind, "text": text}
+                           for t, step, kind, text in r.event_list()],
+                "campaign": self.campaign, "recovered_at": r.recovered_at or None}
+
+
+def inspect_run(run_file: Path) -> Inspection:
+    """Read a run file (finished or being written) with its fits and campaign."""
+    from bench.identify.store import read_fits
+    from bench.storage.chain import chain, describe
+    from bench.storage.runfile import open_run
+
+    r = open_run(run_file)
+    a = r.attrs
+    notes = [n for n in str(a.get("notes", "")).split("\n") if n]
+    try:
+        fits, fits_error = read_fits(run_file), ""
+    except (ValueError, OSError) as exc:  # a fit file of another run beside it: the run itself is still shown
+        fits, fits_error = [], " ".join(str(exc).splitlines())
+    described = None
+    try:
+        links = chain(run_file)
+    except ValueError as exc:
+        campaign: list[dict[str, object]] | str = str(exc)
+        if a.get("previous_file"):
+            described = (str(exc), True)
+    else:
+        campaign = [{"file": str(ln.path), "state": ln.state, "complete": ln.complete,
+                     "resumed_at_step": ln.resumed_at_step}
+                    for ln in links] if len(links) > 1 or a.get("previous_file") else []
+        if a.get("previous_file"):
+            described = (describe(links), False)
+    return Inspection(run_file, r, notes, fits, fits_error, campaign, described)
