@@ -373,6 +373,16 @@ def _read_until(fd: int, wanted: str, seen: list[str], timeout: float = 60.0) ->
         seen.append(os.read(fd, 4096).decode("utf-8", "replace"))
 
 
+def _prompts(fd: int, n: int, seen: list[str], timeout: float = 60.0) -> None:
+    """Read the terminal until the prompt has been shown ``n`` times in all."""
+    import select
+
+    while "".join(seen).count("bench> ") < n:
+        ready, _, _ = select.select([fd], [], [], timeout)
+        assert ready, f"prompt {n} not shown; so far: {''.join(seen)[-500:]!r}"
+        seen.append(os.read(fd, 4096).decode("utf-8", "replace"))
+
+
 def test_the_prompt_has_line_editing_and_a_history_file_in_home(tmp_path: Path) -> None:
     pytest.importorskip("readline")
     import pty
@@ -388,13 +398,17 @@ def test_the_prompt_has_line_editing_and_a_history_file_in_home(tmp_path: Path) 
     os.close(slave)
     seen: list[str] = []
     try:
+        # each key sequence only once the prompt is back: keys typed while readline is not reading can be lost
         _read_until(master, "bench> ", seen)
         os.write(master, b"\x1b[A\r")  # ↑: the earlier session's command
         _read_until(master, "waited 0.5 s", seen)
+        _prompts(master, 2, seen)
         os.write(master, b"\x1b[A\x1b[D\x1b[D\x1b[D1\r")  # ↑ again, ← three times, "1": "wait 10.5"
         _read_until(master, "waited 10.5 s", seen)
+        _prompts(master, 3, seen)
         os.write(master, b"read\r")
         _read_until(master, "ok: t ", seen)
+        _prompts(master, 4, seen)
         os.write(master, b"\x04")  # Ctrl-D: end of input
         assert proc.wait(timeout=60) == 0, "".join(seen)[-2000:]
     finally:
