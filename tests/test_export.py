@@ -124,3 +124,22 @@ def test_streams_are_read_in_chunks_of_the_stated_size(run_file: Path, tmp_path:
                          strict=True))["laser"])
     laser = (tmp_path / "csv" / "laser.csv").read_text(encoding="utf-8").count("\n") - 1
     assert laser == n and max(reads) == 10_000 and len(files) == 5  # no read larger than a chunk
+
+
+@pytest.mark.parametrize("kind", ["csv", "mat73"])
+def test_progress_is_told_the_share_of_records_written_up_to_all(run_file: Path, tmp_path: Path, kind: str,
+                                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    import bench.storage.chunks as chunked
+    import bench.storage.export as export
+
+    monkeypatch.setattr(chunked, "CHUNK_ROWS", 20_000)
+    seen: list[float] = []
+    if kind == "csv":
+        export.to_csv(run_file, tmp_path / "csv", progress=seen.append)
+    else:
+        export.to_mat(run_file, tmp_path / "run.mat", "7.3", progress=seen.append)
+    with h5py.File(run_file, "r") as f:  # the records the file confirms, per stream, as plain h5py reads them
+        counts = dict(zip(json.loads(f["status/samples"].attrs["names"]), f["status/samples"][:], strict=True))
+        streams = [s for s in counts if s != "events" and s in f]
+        chunks = sum(-(-int(counts[s]) // 20_000) for s in streams if counts[s])
+    assert len(seen) == chunks and seen == sorted(seen) and seen[-1] == pytest.approx(1.0)

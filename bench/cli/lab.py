@@ -8,7 +8,7 @@ from typing import Annotated
 
 import typer
 
-from bench.cli.common import clean_errors, console, escape
+from bench.cli.common import clean_errors, console, escape, progress
 from bench.cli.completion import rig_files
 
 
@@ -31,10 +31,13 @@ def export(
     if csv is None and mat is None:
         raise ValueError("give --csv FOLDER and/or --mat FILE")
     if csv is not None:
-        files = to_csv(run_file, csv)
+        with progress("CSV export") as done:
+            files = to_csv(run_file, csv, progress=done)
         console.print(f"CSV: {len(files)} files in {escape(str(csv))} ({', '.join(f.name for f in files)})")
     if mat is not None:
-        console.print(f"MAT: {escape(str(to_mat(run_file, mat, mat_version)))}")  # type: ignore[arg-type]  # checked
+        with progress("MAT export") as done:
+            target = to_mat(run_file, mat, mat_version, progress=done)  # type: ignore[arg-type]  # checked above
+        console.print(f"MAT: {escape(str(target))}")
 
 
 @clean_errors

@@ -22,6 +22,7 @@ from __future__ import annotations
 import csv
 import json
 import re
+from collections.abc import Callable
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any, Literal
@@ -61,14 +62,23 @@ def _formats(streams: StreamChunks, stream: str) -> list[str]:
     return out
 
 
-def to_csv(run_path: str | Path, folder: str | Path) -> list[Path]:
-    """Write one CSV per stream, ``events.csv`` and ``metadata.json`` into ``folder``; returns the files."""
+Progress = Callable[[float], None]  # fraction of the run's records written, 0 … 1
+
+
+def _records(streams: StreamChunks) -> int:
+    return max(sum(streams.length.values()), 1)
+
+
+def to_csv(run_path: str | Path, folder: str | Path, progress: Progress | None = None) -> list[Path]:
+    """Write one CSV per stream, ``events.csv`` and ``metadata.json`` into ``folder``; returns the files.
+    ``progress`` is told the fraction of the records written after every chunk."""
     run = open_run(run_path, streams=False)
     out = Path(folder)
     out.mkdir(parents=True, exist_ok=True)
     written = []
     with open_h5(Path(run_path)) as f:
         streams = StreamChunks(f)
+        total, done = _records(streams), 0
         for stream in streams.length:
             units = streams.units(stream)
             row = ",".join(_formats(streams, stream)) + "\n"
@@ -78,6 +88,9 @@ def to_csv(run_path: str | Path, folder: str | Path) -> list[Path]:
                 for chunk in streams.chunks(stream):
                     table = np.column_stack([chunk[c] for c in streams.columns[stream]]).astype(np.float64)
                     fh.write((row * table.shape[0]) % tuple(table.ravel().tolist()))  # one format call a chunk
+                    done += table.shape[0]
+                    if progress is not None:
+                        progress(done / total)
             written.append(path)
     path = out / "events.csv"
     with path.open("w", newline="", encoding="utf-8") as fh:
@@ -107,14 +120,18 @@ def mat_version(run_path: str | Path, asked: MatVersion = "auto") -> Literal["5"
     return "7.3" if big else "5"
 
 
-def to_mat(run_path: str | Path, path: str | Path, version: MatVersion = "auto") -> Path:
-    """Write the run as a MATLAB file (see the module docstring); returns its path."""
+def to_mat(run_path: str | Path, path: str | Path, version: MatVersion = "auto",
+           progress: Progress | None = None) -> Path:
+    """Write the run as a MATLAB file (see the module docstring); returns its path. ``progress``: the fraction of
+    the records written, after every chunk (v7.3) or once at the end (v5, written in one call)."""
     target = Path(path)
     target.parent.mkdir(parents=True, exist_ok=True)
     if mat_version(run_path, version) == "7.3":
-        _to_mat73(run_path, target)
+        _to_mat73(run_path, target, progress)
     else:
         _to_mat5(run_path, target)
+        if progress is not None:
+            progress(1.0)
     return target
 
 
@@ -202,10 +219,11 @@ def _mat73_header() -> bytes:
     return text.ljust(116, b" ") + b"\x00" * 8 + b"\x00\x02" + b"IM"
 
 
-def _to_mat73(run_path: str | Path, target: Path) -> None:
+def _to_mat73(run_path: str | Path, target: Path, progress: Progress | None = None) -> None:
     run = open_run(run_path, streams=False)
     with open_h5(Path(run_path)) as src, h5py.File(target, "w", userblock_size=512) as out:
         streams = StreamChunks(src)
+        total, done = _records(streams), 0
         for stream, n in streams.length.items():
             cols = streams.columns[stream]
             units = streams.units(stream)
@@ -222,6 +240,9 @@ def _to_mat73(run_path: str | Path, target: Path) -> None:
                 for c in cols:
                     sets[c][0, a:b] = chunk[c].astype(np.float64)
                 a = b
+                done += chunk["t"].size
+                if progress is not None:
+                    progress(done / total)
             u = _struct(g, "units", [_mat_name(c) for c in cols])
             for c in cols:
                 _char(u, _mat_name(c), [units[c]])
