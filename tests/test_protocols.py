@@ -441,3 +441,11 @@ def test_the_dry_run_sends_a_ramps_end_value_so_a_creeping_hold_runs_away(tmp_pa
         ~np.isfinite(ref.stretch)
     assert bad.any()
     assert reported == pytest.approx(float(ref.t[int(np.argmax(bad))]), abs=0.05)
+
+
+def test_the_dry_run_tells_its_progress_as_a_share_of_the_run_time() -> None:
+    """`bench validate` draws a bar from this: one call per step, the share of the program's run time simulated."""
+    seen: list[float] = []
+    plan = plan_run(ROOT / "protocols" / "short" / "thesis-sweeps-short.toml", progress=seen.append)
+    starts = [s.t_end / plan.program.duration for s in plan.program.segments]  # from the compiled steps
+    assert seen == pytest.approx(starts) and seen[-1] == pytest.approx(1.0)

@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from bench.cli.common import JsonOpt, Table, clean_errors, console, escape, json_mode, print_json
+from bench.cli.common import JsonOpt, Table, clean_errors, console, escape, json_mode, print_json, progress
 from bench.cli.completion import protocol_files, protocol_names, rig_files
 from bench.cli.logs import log, run_log
 
@@ -37,8 +37,8 @@ def _hms(seconds: float) -> str:
 def _plan(protocol_file: Path, rig: Path | None, sim: bool):
     from bench.app.runs import plan_protocol
 
-    with console.status("validating and dry-running the protocol on the model…"):
-        plan = plan_protocol(protocol_file, rig, sim)
+    with progress("validating and dry-running the protocol on the model") as done:
+        plan = plan_protocol(protocol_file, rig, sim, progress=done)
     _warn(plan)
     return plan
 

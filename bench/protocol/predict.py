@@ -95,7 +95,8 @@ def check_budget(program: Program) -> None:
 
 
 def predict(program: Program, progress: Callable[[float], None] | None = None) -> Prediction:
-    """Run the program on the model; collect peaks, margins and predicted failures.
+    """Run the program on the model; collect peaks, margins and predicted failures. ``progress`` is told the
+    fraction of the program's run time simulated so far (0 … 1) after each step.
 
     Raises ProtocolLimitError (one line) if the program is beyond the dry run's budget (:func:`check_budget`).
     """
@@ -162,7 +163,7 @@ def predict(program: Program, progress: Callable[[float], None] | None = None) -
         clock.advance_to(seg.t_end)
         plant.advance_to(seg.t_end)
         if progress is not None:
-            progress(seg.t_end)
+            progress(seg.t_end / program.duration if program.duration > 0 else 1.0)
         if plant.broken:
             pred.failure = f"{seg.label}: model predicts {plant.failure}"
             break
