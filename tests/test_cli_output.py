@@ -142,3 +142,18 @@ def test_benchmark_json_prints_figures_only() -> None:
     figures = [f for rows in tables.values() for f in rows]
     assert figures and all({"name", "value", "unit"} <= set(f) for f in figures)
     assert any(f["unit"] == "× real time" and f["value"] > 0 for f in figures)
+
+
+def test_a_width_in_the_environment_when_the_console_is_made_does_not_stick(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The console is made on first print: COLUMNS at that moment (some earlier command's) must not cut a later
+    redirected output to its width."""
+    import io
+
+    from bench.cli.console import REDIRECTED_WIDTH, BenchConsole
+
+    monkeypatch.setenv("COLUMNS", "80")
+    console = BenchConsole(file=io.StringIO())  # not a terminal
+    assert console.size.width == 80  # COLUMNS sets the width while it is there
+    monkeypatch.delenv("COLUMNS")
+    assert console.size.width == REDIRECTED_WIDTH
+    assert BenchConsole(file=io.StringIO(), width=100).size.width == 100  # an explicit width stays

@@ -46,7 +46,18 @@ def literal_units(markup: str) -> str:
 
 
 class BenchConsole(Console):
-    """:class:`rich.console.Console` with units kept and full-width output when redirected (see module)."""
+    """:class:`rich.console.Console` with units kept and full-width output when redirected (see module).
+
+    ``COLUMNS``/``LINES`` are read when the size is asked, not once when the console is made: the console is made
+    on first print (fast ``--help``), and a width in the environment at that moment must not stick (it did: a
+    redirected ``inspect`` cut its paths at the width some earlier command in the process had been given)."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        if kwargs.get("width") is None:
+            self._width = None
+        if kwargs.get("height") is None:
+            self._height = None
 
     def render_str(self, text: str, **kwargs: Any) -> Text:
         markup = kwargs.get("markup")
