@@ -310,7 +310,10 @@ def test_the_page_follows_a_run_and_its_stop_button_makes_it_safe(tmp_path: Path
     assert [e[2] for e in run.event_list()][-1] == "safe"
     assert pause[0] < request[0] < 60.0  # paused, then stopped inside the 60-s drive
     assert "resume" not in [e[2] for e in run.event_list()]  # the stop ended the pause: no step restarted
-    # the output left at 0 V: the last commanded scan within the fault matrix's 0-V band (bench.benchmarks.faults
-    # ZERO_V, 5 V: a DAC code of the drive's zero after its offset correction is a few volts at the amplifier)
-    assert abs(run.streams["amplifier"].columns["commanded"][-1]) <= 5.0
+    # the output left at 0 V: the last set-point sent within the fault matrix's 0-V band (bench.benchmarks.faults
+    # ZERO_V, 5 V), and the monitor read back near 0 V. The set-points stream, not the amplifier stream's last scan:
+    # a stop that lands during the pause's ramp-down ends the run before any paused reading, and a DAQ rig's
+    # amplifier stream ends on its last streamed scan (still at the step's voltage), the ramp being command-response
+    assert abs(run.streams["setpoints"].columns["voltage"][-1]) <= 5.0
+    assert "verified: voltage monitor" in run.event_list()[-1][3], run.event_list()[-1]
     assert json.loads(control_path(run.path).read_text())["stop"] is True
