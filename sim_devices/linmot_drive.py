@@ -19,19 +19,30 @@ drive is told each advance (:meth:`VirtualClock.subscribe`); on the wall clock a
 Each transition is applied at its own time (a homing started by the cycle plans its motion from the instant the
 hardware tests ended), so what a poll reads never depends on when, or how often, the host polled.
 
-Modelled: main states 0, 1, 2, 4, 5, 6, 8, 9 (homing), 10 (clearance check: two positions), 11 (going to initial
-position), 12 (aborting), 13 (freezing, resumed on /Freeze), 15 (going to position), 16/17 (jogging to the stroke
-ends); status word bits 0–7, 9–13 (§3.23, bit 7 = warn word ≠ 0); warn word bit 7 "Motor Not Homed" (§3.24);
-motion commands 000xh, 001xh, 008xh, 010xh–017xh, 020xh–024xh, 027xh, 030xh, 03Fxh, 0B0xh–0B4xh; time curves
-040xh–04Fxh answer 0062h "Curve Not Defined" (§10: no curve is ever downloaded to the twin).
+Modelled: main states 0, 1, 2, 3 (setup error, after :meth:`LinMotDriveSim.inject_setup_error`), 4, 5, 6, 8, 9
+(homing), 10 (clearance check: two positions), 11 (going to initial position), 12 (aborting), 13 (freezing, resumed
+on /Freeze), 14 (error behaviour quick stop: an error raised while the motor moves), 15 (going to position), 16/17
+(jogging to the stroke ends); status word bits 0–15 (§3.23, bit 7 = warn word ≠ 0; bit 8 see below; bits 14/15 on
+the actual position, ``range_indicators``); warn word bit 7 "Motor Not Homed" (§3.24); motion commands 000xh,
+001xh, 008xh, 010xh–017xh, 020xh–024xh, 027xh, 030xh–035xh (P, PV, PVA streams, §4.3.38–4.3.43), 03Fxh,
+0B0xh–0B4xh; time curves 040xh–04Fxh answer 0062h "Curve Not Defined" (§10: no curve is ever downloaded to the
+twin).
 
-Not modelled (stated choices): state 3 (setup error), 7, 14 (error behaviour quick stop: an error goes to state 4
-at once, with the quick stop running there), 18–20; status bits 8 (event handler), 14/15 (range indicators); warn
-bits other than 7; following error (the actual position is the demand position, so the "From Act Pos" commands
-behave as their demand-position counterparts); every other command of the §4.2 list (trigger events, analog
-position, 16-bit VAI, encoder CAM, indexing, command table, Sin/Bestehorn, force control, …) is answered 0081h
-"Unknown Motion Cmd", as by a firmware without it [chosen: accepting a command whose motion the twin cannot
-produce would let a host believe it ran]. LinRS messages (the LinRS pages read, p. 11 and the
+States 18–20 (§3.18–3.20 p. 16) are never entered, as on the drive the twin stands for: "the phase search is only
+defined for three phase EC motors with hall switches and ABZ-sensors" (§3.19: a LinMot P01 linear motor is not
+one, so control word bit 15 "Phase Search" has no effect); "the Special Mode is available only on the B1100
+drives" (§3.20: the twin is an E1100/C1100, so bit 10 has no effect); linearizing (§3.18) has no control-word bit
+in §3.22 [chosen: it is started from LinMot-Talk, not over LinRS]. Status bit 8 "Event Handler Active" is set by
+a command that waits for an event (§4.3.6: "e.g. 'VAI Go To Pos On Rising Trigger Event'"); the twin refuses those
+commands (below), so its event handler is never set up and bit 8 reads 0, as on a drive where it is "cleared or
+disabled" (§3.23).
+
+Not modelled (stated choices): state 7 (not used, §3 table p. 13); warn bits other than 7; following error (the
+actual position is the demand position, so the "From Act Pos" commands behave as their demand-position
+counterparts); every other command of the §4.2 list (trigger events, analog position, 16-bit VAI, encoder CAM,
+indexing, command table, Sin/Bestehorn, force control, …) is answered 0081h "Unknown Motion Cmd", as by a
+firmware without it [chosen: accepting a command whose motion the twin cannot produce would let a host believe it
+ran]. LinRS messages (the LinRS pages read, p. 11 and the
 examples, describe Main 00h Sub 01h, 01h and 02h only; the rest follows the public drivers, marked [C]): Main 00h
 Sub 01h, 02h, 04h return the default response ([C] jbaboval/Test-tool-for-LinMot-drives reads the default
 response's fields from Sub 02h and 04h replies; what else they carry is not known here); Sub 03h the default
@@ -105,19 +116,22 @@ SW_VOLTAGE_ENABLE = 1 << 4  # control word bit 1
 SW_QUICK_STOP_N = 1 << 5  # control word bit 2
 SW_SWITCH_ON_LOCKED = 1 << 6  # released with control word bit 0 = 0
 SW_WARNING = 1 << 7  # "one or more bits in the Warn Word are set"
+SW_EVENT_HANDLER = 1 << 8  # "Event Handler setup": never in the twin (no event-waiting command is accepted)
 SW_SPECIAL_MOTION = 1 << 9  # special motion (homing, …) runs
 SW_IN_TARGET = 1 << 10
 SW_HOMED = 1 << 11
 SW_FATAL = 1 << 12
 SW_MOTION_ACTIVE = 1 << 13
+SW_RANGE_1 = 1 << 14  # "Defined UPID is in Range 1" [chosen UPID: the actual position]
+SW_RANGE_2 = 1 << 15  # "Defined UPID is in Range 2"
 
 # ---------------------------------------------------------------- warn word (MC-SW §3.24)
 WW_MOTOR_NOT_HOMED = 1 << 7  # "Warning Motor Not Homed Yet"
 
 # ---------------------------------------------------------------- main states (MC-SW §3, State Var table p. 13)
-NOT_READY, SWITCH_ON_DISABLED, READY_TO_SWITCH_ON, ERROR, HW_TESTS, READY_TO_OPERATE = 0, 1, 2, 4, 5, 6
-OPERATION_ENABLED, HOMING, CLEARANCE_CHECK, GOING_TO_INITIAL = 8, 9, 10, 11
-ABORTING, FREEZING, GOING_TO_POSITION, JOGGING_PLUS, JOGGING_MINUS = 12, 13, 15, 16, 17
+NOT_READY, SWITCH_ON_DISABLED, READY_TO_SWITCH_ON, SETUP_ERROR, ERROR, HW_TESTS = 0, 1, 2, 3, 4, 5
+READY_TO_OPERATE, OPERATION_ENABLED, HOMING, CLEARANCE_CHECK, GOING_TO_INITIAL = 6, 8, 9, 10, 11
+ABORTING, FREEZING, ERROR_QUICK_STOP, GOING_TO_POSITION, JOGGING_PLUS, JOGGING_MINUS = 12, 13, 14, 15, 16, 17
 SUB_FINISHED = 0x0F  # "Homing Finished", "Clearance Check Finished", …, "Jogging + Finished"
 SUB_RUNNING = 0x01  # states 16/17: "Moving positive/negative"; [assumed] the same in 9, 10, 11, 15 while running
 # The special states a control-word level starts from state 8, in the order tried [chosen: the manual gives no
@@ -156,6 +170,11 @@ MC_PREDEF_GOTO_ACT = 0x023  # §4.3.28 "from the actual position"
 MC_PREDEF_GOTO_ACT_V0 = 0x024  # §4.3.29
 MC_PREDEF_STOP = 0x027  # §4.3.30 "Predef VAI Stop With Quick Stop Deceleration"
 MC_P_STREAM = 0x030  # §4.3.38 SInt32 position; slave time stamp; period 2..5 ms
+MC_PV_STREAM = 0x031  # §4.3.39 SInt32 position, SInt32 velocity (1 µm/s); period 2..5 ms
+MC_P_STREAM_CFG = 0x032  # §4.3.40 as 030xh, derivation with the configured period (UPID 14E6h)
+MC_PV_STREAM_CFG = 0x033  # §4.3.41 position, velocity; "period length must be in the time range of 0.4ms .. 10ms"
+MC_PVA_STREAM = 0x034  # §4.3.42 position, velocity, acceleration (1E-5 m/s²); 0.4 .. 10 ms
+MC_PVA_STREAM_CFG = 0x035  # §4.3.43 as 034xh with the configured period
 MC_STOP_STREAMING = 0x03F  # §4.3.44 "used to leave the streaming mode"
 MC_PREDEF_ACC_GOTO = 0x0B0  # §4.3.99  SInt32 pos, UInt32 vel; acc/dec from the drive's parameters
 MC_PREDEF_ACC_INC_DEM = 0x0B1  # §4.3.100
@@ -164,6 +183,15 @@ MC_PREDEF_ACC_GOTO_ACT = 0x0B3  # §4.3.102 "from the actual position and with a
 MC_PREDEF_ACC_GOTO_ACT_V0 = 0x0B4  # §4.3.103
 TIME_CURVES = frozenset({0x040, 0x041, 0x042, 0x043, 0x044, 0x045, 0x046, 0x047, 0x04A, 0x04C, 0x04E, 0x04F})
 STREAM_PERIOD_S = (0.002, 0.005)  # §4.3.38: "the streaming period has to be in the time range 2..5ms"
+# Streams: (parameters carrying velocity, period range [s]) per §4.3.38–4.3.43. The "configured period" variants
+# derive velocity and acceleration with UPID 14E6h; the twin's configured period is the host's measured one
+# [chosen: the twin has no parameter store]. The PVA acceleration is read and not used to shape the motion (the
+# segment matches position and velocity) [chosen].
+_STREAMS: dict[int, tuple[bool, tuple[float, float]]] = {
+    MC_P_STREAM: (False, STREAM_PERIOD_S), MC_PV_STREAM: (True, STREAM_PERIOD_S),
+    MC_P_STREAM_CFG: (False, STREAM_PERIOD_S), MC_PV_STREAM_CFG: (True, (0.0004, 0.010)),
+    MC_PVA_STREAM: (True, (0.0004, 0.010)), MC_PVA_STREAM_CFG: (True, (0.0004, 0.010)),
+}
 
 # VAI families: (kind of target, start velocity forced to 0, parameters: "full" v/a/d, "predef", "predef acc")
 _VAI: dict[int, tuple[str, bool, str]] = {
@@ -191,14 +219,17 @@ class LinMotDriveSim:
                  predef_vai: tuple[float, float, float] = (0.5, 5.0, 5.0),
                  special_vai: tuple[float, float, float] = (0.1, 1.0, 1.0), jog_velocity: float = 0.01,
                  initial_position: float | None = None, go_to_position: float | None = None,
-                 clearance_positions: tuple[float, float] | None = None) -> None:
+                 clearance_positions: tuple[float, float] | None = None,
+                 range_indicators: tuple[tuple[float, float] | None, tuple[float, float] | None] = (None, None),
+                 ) -> None:
         """``hw_test_time``: state 5 lasts "about 300 ms" (MC-SW §3.6). ``homing_time``: shortest homing [assumed].
         ``predef_vai``: (velocity, acceleration, deceleration) the drive's parameters give Predef VAI commands
         (Predef Acc commands take acceleration and deceleration from it) [assumed values]. ``special_vai``: the
         same for homing, clearance check, going to initial position and going to position; ``jog_velocity`` the
         jog speed [assumed]. ``initial_position``, ``go_to_position`` (default: the home position) and
         ``clearance_positions`` (default: the stroke ends) are the drive's parameters for states 11, 15 and 10.
-        ``stroke``: the drive's min/max position parameters."""
+        ``stroke``: the drive's min/max position parameters. ``range_indicators``: (min, max) of the actual
+        position [m] for status bits 14 and 15, None for a range not set up (the bit reads 0)."""
         self.plant = plant
         self.clock = clock
         self.drive_id = drive_id
@@ -214,9 +245,12 @@ class LinMotDriveSim:
         self.initial_position = home_position if initial_position is None else initial_position
         self.go_to_position = home_position if go_to_position is None else go_to_position
         self.clearance_positions = stroke if clearance_positions is None else clearance_positions
+        self.range_indicators = range_indicators
         self.state = NOT_READY
         self.error_code = 0
         self.fatal = False
+        self.setup_error = 0  # a setup error the drive's configuration holds (inject_setup_error): state 3
+        self._pending: tuple[int, bool] = (0, False)  # the error state 14 logs when its quick stop ends
         self.homed = False
         self.special_done = False  # the special motion of states 9–11, 15–17 has finished (sub state 0Fh)
         self.control_word = 0
@@ -226,7 +260,8 @@ class LinMotDriveSim:
         self._special_end = math.inf  # when the special motion under way finishes
         self._phase = 0  # clearance check: 0 going to the first position, 1 to the second
         self._vai: tuple[float, float, float, float] | None = None  # last VAI (target, v, a, d): resumes a freeze
-        self._stream: tuple[float, float] | None = None  # P stream: (time, position) of the last point
+        # stream: (time, position, velocity or None, longest period) of the last point
+        self._stream: tuple[float, float, float | None, float] | None = None
         self._due = math.inf  # the next timed transition
         self._buf = b""
         self._rx_at = 0.0  # wall time of the last bytes received
@@ -279,7 +314,9 @@ class LinMotDriveSim:
         elif self.state in SPECIAL_BITS and not self.special_done:
             due = self._special_end
         elif self.state == OPERATION_ENABLED and self._stream is not None:
-            due = self._stream[0] + STREAM_PERIOD_S[1]
+            due = self._stream[0] + self._stream[3]
+        elif self.state == ERROR_QUICK_STOP:
+            due = self.plant.motion.t_end
         self._due = due
 
     def _timed_transition(self) -> None:
@@ -294,21 +331,42 @@ class LinMotDriveSim:
             self.homed = self.homed or s == HOMING
         elif s == OPERATION_ENABLED and self._stream is not None:
             self._error(ERR_PVT_MASTER_TOO_SLOW)  # §10 0085h: "the drive expects … every 2ms to 5ms"
+        elif s == ERROR_QUICK_STOP:  # §3.14: "after the quick stop is finished" → the error state
+            self.state, (self.error_code, fatal) = ERROR, self._pending
+            self.fatal = self.fatal or fatal
 
     # ------------------------------------------------------------ faults
     def inject_error(self, code: int, fatal: bool = False) -> None:
-        """Fault injection: put the drive in its error state (state 4) with ``code``."""
+        """Fault injection: the drive raises error ``code`` now (state 4, through state 14 if the motor moves)."""
         with self._lock:
             self._run_until(self.clock.now())
             self._error(code, fatal)
             self._reschedule()
 
+    def inject_setup_error(self, code: int) -> None:
+        """Fault injection: the drive's setup holds error ``code`` (e.g. 0050h "Setup Err: HW Not Supported"):
+        from state 1 the switch-on pattern leads to state 3 instead of 2 (§3 diagram p. 12); 0 clears it."""
+        with self._lock:
+            self.setup_error = code
+
     def _error(self, code: int, fatal: bool = False) -> None:
+        """§3.14: "most of the errors, which can occur during an active motion, cause a quick stop behavior to
+        stop the motion": in state 8 or higher with the motor moving the drive goes to state 14 and on to 4 when
+        the quick stop has ended; at rest, or below state 8, to state 4 at once [chosen: "most" is not a list,
+        the twin treats every error alike]."""
+        moving = self.state >= OPERATION_ENABLED and self._moving(self._now)
         self._halt(self.quick_stop_decel)
+        self._stream = None
+        if moving and self.state != ERROR_QUICK_STOP:
+            self.state, self._pending = ERROR_QUICK_STOP, (code, fatal)
+            return
         self.state = ERROR
         self.error_code = code
         self.fatal = self.fatal or fatal
-        self._stream = None
+
+    def _moving(self, t: float) -> bool:
+        _, vel = self.plant.motor_state(t)
+        return bool(abs(vel) > 0 or t < self.plant.motion.t_end)
 
     # ------------------------------------------------------------ state machine (MC-SW §3)
     def _apply_control_word(self, cw: int) -> None:
@@ -331,13 +389,19 @@ class LinMotDriveSim:
             if rising & CW_ERROR_ACK and not self.fatal:
                 self.state, self.error_code = NOT_READY, 0  # diagram: error → (bit 7) → state 0
             return
+        if s == ERROR_QUICK_STOP:
+            return  # §3.14: the quick stop runs to its end whatever the control word [chosen]
+        if s == SETUP_ERROR:  # §3.4: "rests in this state as long the bits 0 is cleared"; diagram: 3 → 4
+            if cw & CW_SWITCH_ON:
+                self.state, self.error_code = ERROR, self.setup_error
+            return
         if s == NOT_READY:  # §3.1: wait for the release of bit 0
             if not cw & CW_SWITCH_ON:
                 self.state = SWITCH_ON_DISABLED
             return
         if s == SWITCH_ON_DISABLED:  # §3.2 and diagram: control word xxxx x110 → state 2
             if cw & 0x0007 == 0x0006:
-                self.state = READY_TO_SWITCH_ON
+                self.state = SETUP_ERROR if self.setup_error else READY_TO_SWITCH_ON
             return
         if cw & enabled_bits != enabled_bits:  # OFF2 / OFF3 from any powered state: back to state 1
             if s >= HW_TESTS:
@@ -438,7 +502,7 @@ class LinMotDriveSim:
         if count == self.count:
             return
         self.count = count
-        if self.state == ERROR:
+        if self.state in (ERROR, ERROR_QUICK_STOP):
             return  # [assumed] in the error state the pending error stays; the command is dropped
         group, params = header >> 4, data[2:]
         if group == MC_NOP:
@@ -455,20 +519,23 @@ class LinMotDriveSim:
         if group in TIME_CURVES:
             self._error(ERR_CURVE_NOT_DEFINED)  # §10 0062h: no curve is defined in the twin
             return
-        if group not in _VAI and group not in (MC_VAI_STOP, MC_PREDEF_STOP, MC_P_STREAM, MC_STOP_STREAMING):
+        if group not in _VAI and group not in _STREAMS and group not in (MC_VAI_STOP, MC_PREDEF_STOP,
+                                                                          MC_STOP_STREAMING):
             self._error(ERR_UNKNOWN_MOTION_CMD)
             return
         if not self.homed:
             self._error(ERR_NOT_HOMED)
             return
         params = params.ljust(16, b"\0")  # [chosen] parameters a short telegram leaves out read as 0
-        if group == MC_P_STREAM:
-            self._stream_point(struct.unpack("<i", params[:4])[0] * POS_UNIT)
+        if group in _STREAMS:
+            with_velocity, periods = _STREAMS[group]
+            raw_p, raw_v = struct.unpack("<ii", params[:8])
+            self._stream_point(raw_p * POS_UNIT, raw_v * VEL_UNIT if with_velocity else None, periods)
             return
         last_stream, self._stream = self._stream, None  # any other command leaves the streaming mode [chosen]
         if group == MC_STOP_STREAMING:
             if last_stream is not None:  # the last point is still reached, at the stream's pace [chosen]
-                self._stream_segment(last_stream[1], STREAM_PERIOD_S[0])
+                self._stream_segment(last_stream[1], None, STREAM_PERIOD_S[0])
             return
         if group in (MC_VAI_STOP, MC_PREDEF_STOP):  # §4.3.16 deceleration parameter; §4.3.30 quick stop dec.
             dec = struct.unpack("<I", params[:4])[0] * ACC_UNIT if group == MC_VAI_STOP else self.quick_stop_decel
@@ -505,28 +572,40 @@ class LinMotDriveSim:
             return True
         return False
 
-    def _stream_point(self, position: float) -> None:
-        """§4.3.38 P stream: the interface time-stamps each point on receipt; 2..5 ms apart. The drive follows
-        the points one period late, interpolating linearly [assumed: the manual says "delayed" and "fine
-        interpolation" for the PV/PVA streams; the P stream's delay and interpolation are not given]."""
+    def _stream_point(self, position: float, velocity: float | None, periods: tuple[float, float]) -> None:
+        """§4.3.38–4.3.43 streams: the interface time-stamps each point on receipt, ``periods`` (shortest,
+        longest) apart. The drive follows the points one period late: when a point arrives it moves to the previous
+        one over the period just measured [assumed: §4.3.41–4.3.43 delay PV/PVA setpoints "1.5 times the period
+        length" with "fine interpolation"; the P stream's delay is not given — one planning rule for all streams,
+        the twin's lag is 2 periods from a point's receipt, half a period more than the PV/PVA streams']. A P point
+        is reached at a constant pace and at rest, a PV/PVA point with its velocity (two constant-acceleration halves
+        matching position and velocity)."""
         if self._out_of_stroke(position):
             return
         now, last = self._now, self._stream
         self._vai = None
         if last is not None:
-            if now - last[0] < STREAM_PERIOD_S[0]:
+            if now - last[0] < periods[0]:
                 self._error(ERR_PVT_MASTER_TOO_FAST)  # §10 0084h
                 return
-            self._stream_segment(last[1], now - last[0])
-        self._stream = (now, position)
+            self._stream_segment(last[1], last[2], now - last[0])
+        self._stream = (now, position, velocity, periods[1])
 
-    def _stream_segment(self, to: float, period: float) -> None:
+    def _stream_segment(self, to: float, velocity: float | None, period: float) -> None:
         t = self._now
 
-        def segment(p: float, _v: float) -> MotionProfile:
-            rate = (to - p) / period
-            return MotionProfile(np.array([t, t + period]), np.array([p, to]), np.array([rate, 0.0]),
-                                 np.zeros(2), t + period, to)
+        def segment(p: float, v: float) -> MotionProfile:
+            if velocity is None:  # P stream: straight to the point, at rest there
+                rate = (to - p) / period
+                return MotionProfile(np.array([t, t + period]), np.array([p, to]), np.array([rate, 0.0]),
+                                     np.zeros(2), t + period, to)
+            half = period / 2  # a1 + a2 = 2 (v1 − v) / T; 3 a1 + a2 = 8 (p1 − p − v T) / T²
+            s_sum, q = 2 * (velocity - v) / period, 8 * (to - p - v * period) / period ** 2
+            a1 = (q - s_sum) / 2
+            a2 = s_sum - a1
+            p_mid, v_mid = p + v * half + 0.5 * a1 * half ** 2, v + a1 * half
+            return MotionProfile(np.array([t, t + half, t + period]), np.array([p, p_mid, to]),
+                                 np.array([v, v_mid, velocity]), np.array([a1, a2, 0.0]), t + period, to)
         self._set_profile(segment)
 
     # ------------------------------------------------------------ response
@@ -551,7 +630,7 @@ class LinMotDriveSim:
             sw |= SW_OPERATION_ENABLED if s >= OPERATION_ENABLED else 0
             sw |= SW_SWITCH_ON_ACTIVE if cw & CW_SWITCH_ON else 0
             sw |= SW_ENABLE_OPERATION if cw & CW_ENABLE_OPERATION else 0
-            sw |= SW_ERROR if s == ERROR else 0
+            sw |= SW_ERROR if s in (SETUP_ERROR, ERROR, ERROR_QUICK_STOP) else 0  # [chosen] an error is pending
             sw |= SW_VOLTAGE_ENABLE if cw & CW_VOLTAGE_ENABLE else 0
             sw |= SW_QUICK_STOP_N if cw & CW_QUICK_STOP_N else 0
             sw |= SW_SWITCH_ON_LOCKED if s == NOT_READY else 0
@@ -561,14 +640,18 @@ class LinMotDriveSim:
             sw |= SW_HOMED if self.homed else 0
             sw |= SW_FATAL if self.fatal else 0
             sw |= SW_MOTION_ACTIVE if moving and s >= OPERATION_ENABLED else 0
+            for bit, window in zip((SW_RANGE_1, SW_RANGE_2), self.range_indicators, strict=True):
+                sw |= bit if window is not None and window[0] <= pos <= window[1] else 0
             if s == OPERATION_ENABLED:  # §3.8: Homed | InTarget | MotionActive | EventHandler | count
                 sub = (0x80 if self.homed else 0) | (0x40 if in_target else 0) | (0x20 if moving else 0) | self.count
             elif special:
                 sub = SUB_FINISHED if self.special_done else SUB_RUNNING
             elif s == ERROR:
                 sub = self.error_code & 0xFF  # "Logged Error Code"
+            elif s == SETUP_ERROR:
+                sub = self.setup_error & 0xFF  # "Error Code which will be logged"
             else:
-                sub = 0  # states 0–2, 5, 6: 0; 12, 13: "not yet defined"
+                sub = 0  # states 0–2, 5, 6: 0; 12–14: "not yet defined"
             return sw, (s << 8) | sub, round(pos / POS_UNIT)
 
     def _default_response(self, comm_state: int = COMM_OK, extra: bytes = b"") -> bytes:
