@@ -63,6 +63,7 @@ import struct
 import threading
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -210,6 +211,18 @@ _PARAM_BYTES = {"full": 16, "predef": 4, "acc": 8}  # §4.3.9 / §4.3.25 / §4.3
 WALL_IDLE_WAKE_S = 0.05  # wall clock: the cycle thread's longest sleep when nothing is due [chosen]
 
 
+@dataclass
+class _Stream:
+    """The streaming mode under way: its kind, its longest period, the last point and the nominal period."""
+
+    with_velocity: bool
+    longest: float
+    t_last: float
+    p_last: float
+    v_last: float
+    nominal: float | None = None
+
+
 class LinMotDriveSim:
     """Protocol handler + state machine of one simulated drive (feed it bytes; it returns replies)."""
 
@@ -260,8 +273,7 @@ class LinMotDriveSim:
         self._special_end = math.inf  # when the special motion under way finishes
         self._phase = 0  # clearance check: 0 going to the first position, 1 to the second
         self._vai: tuple[float, float, float, float] | None = None  # last VAI (target, v, a, d): resumes a freeze
-        # stream: (time, position, velocity or None, longest period) of the last point
-        self._stream: tuple[float, float, float | None, float] | None = None
+        self._stream: _Stream | None = None  # the streaming mode under way
         self._due = math.inf  # the next timed transition
         self._buf = b""
         self._rx_at = 0.0  # wall time of the last bytes received
@@ -314,7 +326,7 @@ class LinMotDriveSim:
         elif self.state in SPECIAL_BITS and not self.special_done:
             due = self._special_end
         elif self.state == OPERATION_ENABLED and self._stream is not None:
-            due = self._stream[0] + self._stream[3]
+            due = self._stream.t_last + self._stream.longest
         elif self.state == ERROR_QUICK_STOP:
             due = self.plant.motion.t_end
         self._due = due
@@ -534,8 +546,8 @@ class LinMotDriveSim:
             return
         last_stream, self._stream = self._stream, None  # any other command leaves the streaming mode [chosen]
         if group == MC_STOP_STREAMING:
-            if last_stream is not None:  # the last point is still reached, at the stream's pace [chosen]
-                self._stream_segment(last_stream[1], None, STREAM_PERIOD_S[0])
+            if last_stream is not None:  # the last point is still reached, then the drive rests [chosen]
+                self._leave_stream(last_stream)
             return
         if group in (MC_VAI_STOP, MC_PREDEF_STOP):  # §4.3.16 deceleration parameter; §4.3.30 quick stop dec.
             dec = struct.unpack("<I", params[:4])[0] * ACC_UNIT if group == MC_VAI_STOP else self.quick_stop_decel
@@ -574,39 +586,76 @@ class LinMotDriveSim:
 
     def _stream_point(self, position: float, velocity: float | None, periods: tuple[float, float]) -> None:
         """§4.3.38–4.3.43 streams: the interface time-stamps each point on receipt, ``periods`` (shortest,
-        longest) apart. The drive follows the points one period late: when a point arrives it moves to the previous
-        one over the period just measured [assumed: §4.3.41–4.3.43 delay PV/PVA setpoints "1.5 times the period
-        length" with "fine interpolation"; the P stream's delay is not given — one planning rule for all streams,
-        the twin's lag is 2 periods from a point's receipt, half a period more than the PV/PVA streams']. A P point
-        is reached at a constant pace and at rest, a PV/PVA point with its velocity (two constant-acceleration halves
-        matching position and velocity)."""
+        longest) apart. PV/PVA (§4.3.41–4.3.43): "The first two streaming commands are used to determine the
+        nominal period length. The setpoints are [then] delayed 1.5 times the period length. Between the setpoints,
+        the slave performs a fine interpolation" — each point is reached with its velocity 1.5 nominal periods after
+        its receipt, the drive moving between points in two constant-acceleration halves that match position and
+        velocity [chosen interpolation]. P (§4.3.38/4.3.40, delay not given): when a point arrives the drive moves
+        to the previous one over the period just measured, at a constant pace, to rest there [assumed]."""
         if self._out_of_stroke(position):
             return
-        now, last = self._now, self._stream
+        now, st = self._now, self._stream
         self._vai = None
-        if last is not None:
-            if now - last[0] < periods[0]:
-                self._error(ERR_PVT_MASTER_TOO_FAST)  # §10 0084h
-                return
-            self._stream_segment(last[1], last[2], now - last[0])
-        self._stream = (now, position, velocity, periods[1])
+        if st is not None and now - st.t_last < periods[0]:
+            self._error(ERR_PVT_MASTER_TOO_FAST)  # §10 0084h
+            return
+        if st is None or st.with_velocity != (velocity is not None):
+            st = self._stream = _Stream(velocity is not None, periods[1], now, position, velocity or 0.0)
+            return
+        if velocity is None:
+            self._p_segment(st.p_last, now - st.t_last)
+        else:
+            if st.nominal is None:
+                st.nominal = now - st.t_last  # "the first two streaming commands"
+            delay = 1.5 * st.nominal
+            self._pv_segments([(st.t_last + delay, st.p_last, st.v_last), (now + delay, position, velocity)])
+        st.t_last, st.p_last, st.v_last = now, position, velocity or 0.0
 
-    def _stream_segment(self, to: float, velocity: float | None, period: float) -> None:
+    def _leave_stream(self, st: _Stream) -> None:
+        """03Fxh: the last point is still reached (a P stream's at the shortest period, a PV/PVA stream's when
+        planned), and the drive comes to rest there [chosen: §4.3.44 says only that the command leaves the mode]."""
+        if not st.with_velocity:
+            self._p_segment(st.p_last, STREAM_PERIOD_S[0])
+            return
+        end = max(self.plant.motion.t_end, self._now + (st.nominal or STREAM_PERIOD_S[0]))
+        self._pv_segments([(end, st.p_last, 0.0)])
+
+    def _p_segment(self, to: float, period: float) -> None:
         t = self._now
 
-        def segment(p: float, v: float) -> MotionProfile:
-            if velocity is None:  # P stream: straight to the point, at rest there
-                rate = (to - p) / period
-                return MotionProfile(np.array([t, t + period]), np.array([p, to]), np.array([rate, 0.0]),
-                                     np.zeros(2), t + period, to)
-            half = period / 2  # a1 + a2 = 2 (v1 − v) / T; 3 a1 + a2 = 8 (p1 − p − v T) / T²
-            s_sum, q = 2 * (velocity - v) / period, 8 * (to - p - v * period) / period ** 2
-            a1 = (q - s_sum) / 2
-            a2 = s_sum - a1
-            p_mid, v_mid = p + v * half + 0.5 * a1 * half ** 2, v + a1 * half
-            return MotionProfile(np.array([t, t + half, t + period]), np.array([p, p_mid, to]),
-                                 np.array([v, v_mid, velocity]), np.array([a1, a2, 0.0]), t + period, to)
+        def segment(p: float, _v: float) -> MotionProfile:
+            rate = (to - p) / period
+            return MotionProfile(np.array([t, t + period]), np.array([p, to]), np.array([rate, 0.0]),
+                                 np.zeros(2), t + period, to)
         self._set_profile(segment)
+
+    def _pv_segments(self, points: list[tuple[float, float, float]]) -> None:
+        """From the drive's state now through (time, position, velocity) ``points`` still ahead, each segment in two
+        equal halves of constant acceleration: a1 + a2 = 2 (v1 − v0) / T, 3 a1 + a2 = 8 (p1 − p0 − v0 T) / T²; after
+        the last point the motion goes on at its velocity (the next point or a timeout changes it)."""
+        t0 = self._now
+
+        def plan(p: float, v: float) -> MotionProfile:
+            ts, ps, vs, accs = [], [], [], []
+            t = t0
+            for t1, p1, v1 in points:
+                if t1 <= t:
+                    continue  # already due: the next point takes over [chosen]
+                span = t1 - t
+                a1 = (8 * (p1 - p - v * span) / span ** 2 - 2 * (v1 - v) / span) / 2
+                a2 = 2 * (v1 - v) / span - a1
+                half = span / 2
+                ts += [t, t + half]
+                ps += [p, p + v * half + 0.5 * a1 * half ** 2]
+                vs += [v, v + a1 * half]
+                accs += [a1, a2]
+                t, p, v = t1, p1, v1
+            ts.append(t)
+            ps.append(p)
+            vs.append(v)
+            accs.append(0.0)
+            return MotionProfile(np.array(ts), np.array(ps), np.array(vs), np.array(accs), t, p)
+        self._set_profile(plan)
 
     # ------------------------------------------------------------ response
     def warn_word(self) -> int:

@@ -8,7 +8,9 @@ rests in this state as long the bits 0 is cleared"); §3.14 p. 16 ("Most of the 
 active motion, cause a quick stop behavior to stop the motion"); §3.19 ("the phase search is only defined for
 three phase EC motors"), §3.20 ("the Special Mode is available only on the B1100 drives"); §3.23 status word bits
 8 ("Event Handler Active"), 14/15 ("Defined UPID is in Range 1/2"); §4.3.39 PV stream 031xh (SInt32 position
-0.1 µm, SInt32 velocity 1 µm/s, period 2..5 ms); §4.3.42 PVA stream 034xh (period 0.4 .. 10 ms); §10 0084h/0085h.
+0.1 µm, SInt32 velocity 1 µm/s, period 2..5 ms); §4.3.41/4.3.42 ("The first two streaming commands are used to
+determine the nominal period length. The setpoints are [then] delayed 1.5 times the period length"); §4.3.42 PVA
+stream 034xh (period 0.4 .. 10 ms); §10 0084h/0085h.
 Expected positions are derived by hand in each test's comment.
 """
 
@@ -84,9 +86,11 @@ def test_pv_stream_031xh_keeps_the_velocity_and_a_silent_host_ends_in_14_then_00
         header ^= 0x0003
         twin.send(mci(header, struct.pack("<ii", 1_500 * k, 50_000)))
         twin.advance(0.003)
-    # the 10th point came at 27 ms; at 30 ms the drive is at point 9 (1.35 mm) moving at its 0.05 m/s
+    # §4.3.39/4.3.41: the first two points give the nominal period (3 ms); each point is reached 1.5 periods after
+    # its receipt: point 9 (received at 24 ms) at 28.5 ms, point 10 (27 ms) at 31.5 ms. At 30 ms the drive is
+    # 1.5 ms past point 9 on the ramp: 1.35 mm + 0.05 m/s · 1.5 ms = 1.425 mm, still moving
     _, sw, state, pos = twin.send(POLL)
-    assert state >> 8 == 8 and abs(pos - 13_500) <= 1 and sw & SW_MOTION_ACTIVE
+    assert state >> 8 == 8 and abs(pos - 14_250) <= 1 and sw & SW_MOTION_ACTIVE
     twin.advance(0.0025)  # 32.5 ms: no point for 5.5 ms (> 5 ms) while moving: quick stop (state 14)
     assert twin.state() == 0x0E00
     twin.advance(0.01)
