@@ -20,26 +20,26 @@ Each transition is applied at its own time (a homing started by the cycle plans 
 hardware tests ended), so what a poll reads never depends on when, or how often, the host polled.
 
 Modelled: main states 0, 1, 2, 3 (setup error, after :meth:`LinMotDriveSim.inject_setup_error`), 4, 5, 6, 8, 9
-(homing), 10 (clearance check: two positions), 11 (going to initial position), 12 (aborting), 13 (freezing, resumed
-on /Freeze), 14 (error behaviour quick stop: an error raised while the motor moves), 15 (going to position), 16/17
-(jogging to the stroke ends); status word bits 0–15 (§3.23, bit 7 = warn word ≠ 0; bit 8 see below; bits 14/15 on
-the actual position, ``range_indicators``); warn word bit 7 "Motor Not Homed" (§3.24); motion commands 000xh,
-001xh, 008xh, 010xh–017xh, 020xh–024xh, 027xh, 030xh–035xh (P, PV, PVA streams, §4.3.38–4.3.43), 03Fxh,
-0B0xh–0B4xh; time curves 040xh–04Fxh answer 0062h "Curve Not Defined" (§10: no curve is ever downloaded to the
-twin).
+(homing), 10 (clearance check: two positions), 11 (going to initial position), 12 (aborting), 13 (freezing,
+resumed on /Freeze), 14 (error behaviour quick stop: an error raised while the motor moves), 15 (going to
+position), 16/17 (jogging to the stroke ends); status word bits 0–15 (§3.23, bit 7 = warn word ≠ 0; bit 8 the
+event handler; bits 14/15 on the actual position, ``range_indicators``); warn word bit 7 "Motor Not Homed" (§3.24);
+motion commands 000xh, 001xh, 008xh, 010xh–017xh, 01Axh–01Dxh, 020xh–024xh, 027xh, 02Axh–02Dxh, 030xh–035xh (P,
+PV, PVA streams, §4.3.38–4.3.43), 03Fxh, 0B0xh–0B4xh; time curves 040xh–04Fxh answer 0062h "Curve Not Defined"
+(§10: no curve is ever downloaded to the twin).
 
 States 18–20 (§3.18–3.20 p. 16) are never entered, as on the drive the twin stands for: "the phase search is only
 defined for three phase EC motors with hall switches and ABZ-sensors" (§3.19: a LinMot P01 linear motor is not
 one, so control word bit 15 "Phase Search" has no effect); "the Special Mode is available only on the B1100
 drives" (§3.20: the twin is an E1100/C1100, so bit 10 has no effect); linearizing (§3.18) has no control-word bit
 in §3.22 [chosen: it is started from LinMot-Talk, not over LinRS]. Status bit 8 "Event Handler Active" is set by
-a command that waits for an event (§4.3.6: "e.g. 'VAI Go To Pos On Rising Trigger Event'"); the twin refuses those
-commands (below), so its event handler is never set up and bit 8 reads 0, as on a drive where it is "cleared or
-disabled" (§3.23).
+the trigger-event commands 01Axh–01Dxh and 02Axh–02Dxh (§4.3.19–4.3.22, §4.3.32–4.3.35) and cleared by 008xh
+(§4.3.6); the command runs again at each edge of the X4.6 trigger input, which nothing on the rig drives
+(:meth:`LinMotDriveSim.set_trigger` does in tests).
 
 Not modelled (stated choices): state 7 (not used, §3 table p. 13); warn bits other than 7; following error (the
 actual position is the demand position, so the "From Act Pos" commands behave as their demand-position
-counterparts); every other command of the §4.2 list (trigger events, analog position, 16-bit VAI, encoder CAM,
+counterparts); every other command of the §4.2 list (other trigger events, analog position, 16-bit VAI, encoder CAM,
 indexing, command table, Sin/Bestehorn, force control, …) is answered 0081h "Unknown Motion Cmd", as by a
 firmware without it [chosen: accepting a command whose motion the twin cannot produce would let a host believe it
 ran]. LinRS messages (the LinRS pages read, p. 11 and the
@@ -117,7 +117,7 @@ SW_VOLTAGE_ENABLE = 1 << 4  # control word bit 1
 SW_QUICK_STOP_N = 1 << 5  # control word bit 2
 SW_SWITCH_ON_LOCKED = 1 << 6  # released with control word bit 0 = 0
 SW_WARNING = 1 << 7  # "one or more bits in the Warn Word are set"
-SW_EVENT_HANDLER = 1 << 8  # "Event Handler setup": never in the twin (no event-waiting command is accepted)
+SW_EVENT_HANDLER = 1 << 8  # "Event Handler setup" (a trigger-event command), until 008xh clears it
 SW_SPECIAL_MOTION = 1 << 9  # special motion (homing, …) runs
 SW_IN_TARGET = 1 << 10
 SW_HOMED = 1 << 11
@@ -155,7 +155,7 @@ ERR_WRONG_STATE = 0x0086  # "User Err: Motion Cmd In Wrong St"
 # header = Master ID (bits 15–8) | Sub ID (7–4) | count (3–0); the twin keys on header >> 4 (e.g. 010h)
 MC_NOP = 0x000  # §4.3.1 "No Operation": "can be sent in any operational state"
 MC_WRITE_CONTROL_WORD = 0x001  # §4.3.2 UInt16 control word
-MC_CLEAR_EVENT = 0x008  # §4.3.6 resets the event handler (never active in the twin)
+MC_CLEAR_EVENT = 0x008  # §4.3.6 "resets the event handler"
 MC_VAI_GOTO = 0x010  # §4.3.9  SInt32 pos, UInt32 vel, acc, dec
 MC_VAI_INC_DEM = 0x011  # §4.3.10 increment added to the demand position
 MC_VAI_INC_TARGET = 0x012  # §4.3.11 increment added to the (former) target position
@@ -182,6 +182,16 @@ MC_PREDEF_ACC_INC_DEM = 0x0B1  # §4.3.100
 MC_PREDEF_ACC_INC_TARGET = 0x0B2  # §4.3.101
 MC_PREDEF_ACC_GOTO_ACT = 0x0B3  # §4.3.102 "from the actual position and with actual velocity"
 MC_PREDEF_ACC_GOTO_ACT_V0 = 0x0B4  # §4.3.103
+# §4.3.19–4.3.22, §4.3.32–4.3.35: VAI / Predef VAI on a trigger edge of X4.6: (rising edge, increment target,
+# parameters). They set up the event handler (status bit 8); "as long the event handler is active, the command to
+# be executed on the event situation will be restarted each time the event condition is fulfilled" (§4.3.6).
+# 02Dxh: the overview p. 22 names it "Predef VAI Increment Target Pos On Falling Trigger Event"; §4.3.35's heading
+# repeats 02Cxh's name [chosen: the overview, which follows the 01Dxh pattern].
+_TRIGGERED: dict[int, tuple[bool, bool, str]] = {
+    0x01A: (True, False, "full"), 0x01B: (True, True, "full"), 0x01C: (False, False, "full"),
+    0x01D: (False, True, "full"), 0x02A: (True, False, "predef"), 0x02B: (True, True, "predef"),
+    0x02C: (False, False, "predef"), 0x02D: (False, True, "predef"),
+}
 TIME_CURVES = frozenset({0x040, 0x041, 0x042, 0x043, 0x044, 0x045, 0x046, 0x047, 0x04A, 0x04C, 0x04E, 0x04F})
 STREAM_PERIOD_S = (0.002, 0.005)  # §4.3.38: "the streaming period has to be in the time range 2..5ms"
 # Streams: (parameters carrying velocity, period range [s]) per §4.3.38–4.3.43. The "configured period" variants
@@ -274,6 +284,9 @@ class LinMotDriveSim:
         self._phase = 0  # clearance check: 0 going to the first position, 1 to the second
         self._vai: tuple[float, float, float, float] | None = None  # last VAI (target, v, a, d): resumes a freeze
         self._stream: _Stream | None = None  # the streaming mode under way
+        # the event handler's command: (rising edge, increment target, raw position, v, a, d); None: not set up
+        self._event: tuple[bool, bool, float, float, float, float] | None = None
+        self.trigger_level = False  # X4.6 trigger input [chosen: configured as trigger input, low, not wired]
         self._due = math.inf  # the next timed transition
         self._buf = b""
         self._rx_at = 0.0  # wall time of the last bytes received
@@ -360,6 +373,24 @@ class LinMotDriveSim:
         from state 1 the switch-on pattern leads to state 3 instead of 2 (§3 diagram p. 12); 0 clears it."""
         with self._lock:
             self.setup_error = code
+
+    def set_trigger(self, level: bool) -> None:
+        """Drive the X4.6 trigger input (the rig wires nothing to it; tests and fault scripts do): an edge of the
+        event handler's kind starts its command again, in state 8 (§4.3.6, §4.3.19–4.3.22)."""
+        with self._lock:
+            self._run_until(self.clock.now())
+            rising = level and not self.trigger_level
+            falling = self.trigger_level and not level
+            self.trigger_level = level
+            if self._event is None or self.state != OPERATION_ENABLED:
+                return
+            on_rising, increment, raw, vmax, acc, dec = self._event
+            if (rising and on_rising) or (falling and not on_rising):
+                target = raw + (self.plant.motion.target if increment else 0.0)
+                if vmax > 0 and acc > 0 and dec > 0 and not self._out_of_stroke(target):
+                    self._stream, self._vai = None, (target, vmax, acc, dec)
+                    self._goto(self._now, target, vmax, acc, dec)
+            self._reschedule()
 
     def _error(self, code: int, fatal: bool = False) -> None:
         """§3.14: "most of the errors, which can occur during an active motion, cause a quick stop behavior to
@@ -527,18 +558,28 @@ class LinMotDriveSim:
             self._error(ERR_WRONG_STATE)  # §3.7, §10 0086h
             return
         if group == MC_CLEAR_EVENT:
-            return  # §4.3.6: the event handler is never active in the twin
+            self._event = None  # §4.3.6: "resets the event handler"
+            return
         if group in TIME_CURVES:
             self._error(ERR_CURVE_NOT_DEFINED)  # §10 0062h: no curve is defined in the twin
             return
-        if group not in _VAI and group not in _STREAMS and group not in (MC_VAI_STOP, MC_PREDEF_STOP,
-                                                                          MC_STOP_STREAMING):
+        if group not in _VAI and group not in _STREAMS and group not in _TRIGGERED and group not in (
+                MC_VAI_STOP, MC_PREDEF_STOP, MC_STOP_STREAMING):
             self._error(ERR_UNKNOWN_MOTION_CMD)
             return
         if not self.homed:
             self._error(ERR_NOT_HOMED)
             return
         params = params.ljust(16, b"\0")  # [chosen] parameters a short telegram leaves out read as 0
+        if group in _TRIGGERED:
+            rising, increment, layout = _TRIGGERED[group]
+            raw = struct.unpack("<i", params[:4])[0] * POS_UNIT
+            if layout == "full":
+                v_raw, a_raw, d_raw = struct.unpack("<III", params[4:16])
+                self._event = (rising, increment, raw, v_raw * VEL_UNIT, a_raw * ACC_UNIT, d_raw * ACC_UNIT)
+            else:
+                self._event = (rising, increment, raw, *self.predef_vai)
+            return  # waits for its edge; the streaming mode is not left [chosen]
         if group in _STREAMS:
             with_velocity, periods = _STREAMS[group]
             raw_p, raw_v = struct.unpack("<ii", params[:8])
@@ -684,6 +725,7 @@ class LinMotDriveSim:
             sw |= SW_QUICK_STOP_N if cw & CW_QUICK_STOP_N else 0
             sw |= SW_SWITCH_ON_LOCKED if s == NOT_READY else 0
             sw |= SW_WARNING if s >= OPERATION_ENABLED and not self.homed else 0  # warn word ≠ 0 (warn_word)
+            sw |= SW_EVENT_HANDLER if self._event is not None else 0
             sw |= SW_SPECIAL_MOTION if special and not self.special_done else 0
             sw |= SW_IN_TARGET if in_target and s == OPERATION_ENABLED else 0
             sw |= SW_HOMED if self.homed else 0
@@ -692,7 +734,8 @@ class LinMotDriveSim:
             for bit, window in zip((SW_RANGE_1, SW_RANGE_2), self.range_indicators, strict=True):
                 sw |= bit if window is not None and window[0] <= pos <= window[1] else 0
             if s == OPERATION_ENABLED:  # §3.8: Homed | InTarget | MotionActive | EventHandler | count
-                sub = (0x80 if self.homed else 0) | (0x40 if in_target else 0) | (0x20 if moving else 0) | self.count
+                sub = ((0x80 if self.homed else 0) | (0x40 if in_target else 0) | (0x20 if moving else 0)
+                       | (0x10 if self._event is not None else 0) | self.count)
             elif special:
                 sub = SUB_FINISHED if self.special_done else SUB_RUNNING
             elif s == ERROR:

@@ -1,4 +1,4 @@
-"""LinMot twin: states 3, 14 and 18–20, status bits 8, 14 and 15, and the PV/PVA streams, against the MC-SW manual.
+"""LinMot twin: states 3, 14, 18–20, status bits 8, 14, 15 (event handler, range indicators), PV/PVA streams (MC-SW).
 
 Sources (MC-SW manual 4.3.4 SG5, 23/09/2014, transcribed in Smart-Vision-Works/linmot_client
 ``linmot_client/reference/LinMot_MotionCtrl.txt``): state diagram p. 12 (switch-on pattern ``x110`` from state 1
@@ -7,10 +7,11 @@ state "Error Code which will be logged"; 14: "Quick Stop (Error Behaviour)"); §
 rests in this state as long the bits 0 is cleared"); §3.14 p. 16 ("Most of the errors, which can occur during an
 active motion, cause a quick stop behavior to stop the motion"); §3.19 ("the phase search is only defined for
 three phase EC motors"), §3.20 ("the Special Mode is available only on the B1100 drives"); §3.23 status word bits
-8 ("Event Handler Active"), 14/15 ("Defined UPID is in Range 1/2"); §4.3.39 PV stream 031xh (SInt32 position
-0.1 µm, SInt32 velocity 1 µm/s, period 2..5 ms); §4.3.41/4.3.42 ("The first two streaming commands are used to
-determine the nominal period length. The setpoints are [then] delayed 1.5 times the period length"); §4.3.42 PVA
-stream 034xh (period 0.4 .. 10 ms); §10 0084h/0085h.
+8 ("Event Handler Active"), 14/15 ("Defined UPID is in Range 1/2"); §4.3.6 ("As long the event handler is active,
+the command to be executed on the event situation will be restarted each time the event condition is fulfilled"),
+§4.3.20 (01Bxh); §4.3.39 PV stream 031xh (SInt32 position 0.1 µm, SInt32 velocity 1 µm/s, period 2..5 ms);
+§4.3.41/4.3.42 ("The first two streaming commands are used to determine the nominal period length. The setpoints
+are [then] delayed 1.5 times the period length"); §4.3.42 PVA stream 034xh (period 0.4 .. 10 ms); §10 0084h/0085h.
 Expected positions are derived by hand in each test's comment.
 """
 
@@ -65,7 +66,7 @@ def test_phase_search_and_special_mode_bits_leave_an_e1100_with_a_linear_motor_i
         assert twin.state(cw(word)) >> 8 == 8
 
 
-def test_range_indicators_on_the_actual_position_and_no_event_handler() -> None:
+def test_range_indicators_on_the_actual_position() -> None:
     twin = Twin(range_indicators=((-0.001, 0.001), (0.02, 0.03)))
     twin.homed()  # at the home position 0 m: in range 1
     sw = twin.send(POLL)[1]
@@ -74,8 +75,6 @@ def test_range_indicators_on_the_actual_position_and_no_event_handler() -> None:
     twin.advance(1.0)
     sw = twin.send(POLL)[1]
     assert sw & (SW_RANGE_1 | SW_RANGE_2) == SW_RANGE_2
-    twin.send(mci(0x0082))  # 008xh Clear Event Handler; no command that waits for an event was accepted
-    assert not twin.send(POLL)[1] & SW_EVENT_HANDLER
 
 
 def test_pv_stream_031xh_keeps_the_velocity_and_a_silent_host_ends_in_14_then_0085h() -> None:
@@ -108,3 +107,24 @@ def test_pva_stream_034xh_takes_1_ms_periods_the_pv_stream_does_not() -> None:
     twin.send(mci(0x0311, struct.pack("<ii", 300, 0)))
     twin.advance(0.001)  # §4.3.39: 2..5 ms
     assert twin.state(mci(0x0312, struct.pack("<ii", 400, 0))) == 0x0484
+
+
+def test_trigger_event_command_sets_up_the_event_handler_until_clear_event_008xh() -> None:
+    twin = Twin()
+    twin.homed()
+    # §4.3.20 VAI Increment Target Pos On Rising Trigger Event (01Bxh): +5 mm at 0.1 m/s, 1 m/s², 1 m/s²
+    _, sw, state, _ = twin.send(mci(0x01B1, struct.pack("<iIII", 50_000, 100_000, 100_000, 100_000)))
+    assert sw & SW_EVENT_HANDLER and state & 0x10  # §3.8: state var bit 4 "Event Handler Active"
+    twin.advance(0.5)
+    assert twin.send(POLL)[3] == 0  # waits for its event
+    for edge in (1, 2):  # §4.3.6: "restarted each time the event condition is fulfilled"
+        twin.drive.set_trigger(True)
+        twin.advance(1.0)
+        assert twin.send(POLL)[3] == 50_000 * edge
+        twin.drive.set_trigger(False)  # a falling edge does not start a rising-edge command
+        twin.advance(1.0)
+        assert twin.send(POLL)[3] == 50_000 * edge
+    assert not twin.send(mci(0x0082))[1] & SW_EVENT_HANDLER  # §4.3.6 Clear Event Evaluation
+    twin.drive.set_trigger(True)
+    twin.advance(1.0)
+    assert twin.send(POLL)[3] == 100_000
