@@ -133,6 +133,8 @@ def test_motor_refuses_and_recovers_from_errors(lsdea_motor: RunningRig) -> None
     motor.move_to(0.05, 0.5, 5.0)
     lsdea_motor.advance(0.05)
     twin.inject_error(0x0B)
+    assert motor.status().state == "error behaviour quick stop"  # MC-SW §3.14: an error while moving
+    lsdea_motor.advance(0.05)  # the quick stop (0.25 m/s at the twin's 50 m/s²: 5 ms) has ended: state 4
     s = motor.status()
     assert (s.error and s.error_code == 0x0B and not s.moving) or s.state == "error"
     with pytest.raises(InstrumentStateError, match="position lag"):

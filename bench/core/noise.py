@@ -8,6 +8,16 @@ Sources, marked as in ``/work/shared/instruments.md``: [V] a datasheet figure re
 catalogue's specification table as remembered (not found in the searchable corpora — check it against the
 catalogue); [assumed] found in no source, chosen here, with the reason.
 
+Searched again 2026-11-26 (issue 23), nothing found that replaces a [K] or [assumed] figure: the LK-G manual
+LK-G-M-NO5-E is stored page by page (azmanual.top / manualsdir.com …/657998/keyence-lk-g-series.html?page=N) but
+no stored page holds its specification table (queries: "LK-G152 repeatability linearity sampling frequency",
+"LK-G-M-NO5-E Specifications Repeatability", "LK-H152 LK-G5000 repeatability"); the LK-G Technology Book
+(scribd 332178422) is stored to its opening only. The TREK HS datasheets (markdown copies, Advanced Energy 2022)
+are stored to their first page (slew, large-signal bandwidth, currents: the [V] figures below); their technical
+data and the operator manual (monitor ratios, accuracy, bandwidth, noise) are in no store (queries: "10/10B-HS
+voltage monitor current monitor accuracy noise small signal bandwidth", "Trek 10/40A-HS operator manual voltage
+monitor", "advancedenergy.com Trek 10/10B-HS technical data").
+
 ``Realism(noise=False)`` (rig file ``[simulation] noise = false``) switches every random part off — noise and the
 monitors' drawn gain/offset errors — for golden tests; the deterministic dynamics (the amplifier's bandwidth,
 slew and current limit, the monitors' bandwidth) stay, they are the instruments' physics.
