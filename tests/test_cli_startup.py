@@ -24,7 +24,7 @@ from bench.cli.completion import protocol_files, protocol_names, rig_files
 from tests.conftest import ROOT
 
 # what `bench --help` must not load: third-party numerics and bench's heavy layers
-HEAVY = ("numpy", "scipy", "numba", "h5py", "matplotlib", "dask", "distributed", "bench.models", "bench.core",
+HEAVY = ("numpy", "scipy", "numba", "h5py", "matplotlib", "dask", "distributed", "pint", "bench.models", "bench.core",
          "bench.runtime", "bench.storage", "bench.identify", "bench.analysis", "bench.protocol.schema",
          "bench.protocol.program", "sim_devices")
 
