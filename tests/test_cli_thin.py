@@ -99,7 +99,7 @@ def test_progress_shows_a_bar_on_a_terminal_and_nothing_on_a_pipe_or_with_json(
             advance(1.0)
         return out.getvalue()
 
-    assert "analysing 2 run file(s)" in shown(terminal=True)
+    assert "analysing 2 run file(s)" in shown(terminal=True) and "ETA" in shown(terminal=True)
     assert shown(terminal=False) == ""
     assert shown(terminal=True, json_out=True) == ""
 
