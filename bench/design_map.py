@@ -15,6 +15,7 @@ independent, so a map can be computed on a dask cluster (:func:`compute_map` wit
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
@@ -136,12 +137,23 @@ def _row(lambda2p: float, settings: MapSettings, base: LozengeParams | None) -> 
 
 
 def compute_map(settings: MapSettings = MapSettings(), base: LozengeParams | None = None,
-                client: Client | None = None) -> DesignMap:
-    """The design map; with a dask ``client`` one task per λ2p row runs on the cluster."""
+                client: Client | None = None, progress: Callable[[float], None] | None = None) -> DesignMap:
+    """The design map; with a dask ``client`` one task per λ2p row runs on the cluster. ``progress`` gets the
+    fraction of the rows done, as each is."""
+    n = len(settings.lambda2p)
     if client is None:
-        rows = [_row(lam, settings, base) for lam in settings.lambda2p]
+        rows = []
+        for lam in settings.lambda2p:
+            rows.append(_row(lam, settings, base))
+            if progress is not None:
+                progress(len(rows) / n)
     else:
+        from distributed import as_completed
+
         futures = client.map(_row, list(settings.lambda2p), settings=settings, base=base, pure=False)
+        if progress is not None:
+            for k, _ in enumerate(as_completed(futures), 1):  # type: ignore[no-untyped-call]  # unannotated
+                progress(k / n)
         rows = client.gather(futures)  # type: ignore[no-untyped-call]  # dask's Client.gather is unannotated
     return DesignMap(settings, rows)
 

@@ -158,19 +158,32 @@ class LsdeaConfig(_Strict):
 
 
 class MembraneModelConfig(_Strict):
-    """Fitted (or alternative) rheology of the thesis membrane: Gent spring and Maxwell units (Pa, -, Pa·s)."""
+    """Fitted (or alternative) rheology of the thesis membrane: Gent spring and Maxwell units, each unit's dashpot
+    given as a relaxation time ``tau`` [s] (what ``bench fit`` reports and writes) or a viscosity ``eta`` [Pa·s]
+    (η = μτ)."""
 
-    mu0: float = Field(gt=0)
+    mu0: float = Field(gt=0, description="Pa")
     J0: float = Field(gt=0)
-    mu: list[float]
+    mu: list[float] = Field(description="Pa")
     J: list[float]
-    eta: list[float]
+    tau: list[float] | None = Field(None, description="s")
+    eta: list[float] | None = Field(None, description="Pa·s")
 
     @model_validator(mode="after")
     def _lengths(self) -> MembraneModelConfig:
-        if not len(self.mu) == len(self.J) == len(self.eta) or min([*self.mu, *self.J, *self.eta], default=1) <= 0:
-            raise ValueError("mu, J and eta need one positive value per Maxwell unit")
+        if (self.tau is None) == (self.eta is None):
+            raise ValueError("give each Maxwell unit's tau [s] or its eta [Pa·s], not both")
+        dashpots = self.tau if self.tau is not None else self.eta or []
+        if not len(self.mu) == len(self.J) == len(dashpots) or min([*self.mu, *self.J, *dashpots], default=1) <= 0:
+            raise ValueError(f"mu, J and {'tau' if self.tau is not None else 'eta'} need one positive value per "
+                             "Maxwell unit")
         return self
+
+    def viscosities(self) -> tuple[float, ...]:
+        """η_i [Pa·s] of the units (μ_i τ_i where the file gives τ)."""
+        if self.tau is not None:
+            return tuple(m * t for m, t in zip(self.mu, self.tau, strict=True))
+        return tuple(self.eta or ())
 
 
 class LsdeaModelConfig(_Strict):
@@ -207,7 +220,7 @@ class SpecimenConfig(_Strict):
         p = MembraneParams(L_d=self.displacement_length_m, breakdown_field=self.breakdown_field_V_per_m,
                            electrostriction=self.electrostriction)
         m = self.membrane_model
-        return p if m is None else p.with_units(m.mu0, m.J0, tuple(m.mu), tuple(m.J), tuple(m.eta))
+        return p if m is None else p.with_units(m.mu0, m.J0, tuple(m.mu), tuple(m.J), m.viscosities())
 
     def lozenge(self, prototype: int | None = None, hung_mass: float | None = None) -> LozengeParams:
         """Model B parameters for this specimen (Table 1 + VE-A, or ``lsdea_model`` if given)."""
@@ -502,8 +515,14 @@ def _first_error(path: Path, exc: ValidationError) -> str:
 
 def load_rig(path: str | Path) -> RigConfig:
     """Read and validate a rig file; raise RigFileError with a one-line message."""
+    return load_rig_text(path)[0]
+
+
+def load_rig_text(path: str | Path) -> tuple[RigConfig, str]:
+    """(rig, the file's text as written: comments, order, defaults left out) of a rig file; RigFileError with a
+    one-line message if it is not one."""
     p = Path(path)
-    _, data = read_toml(p, "rig", RigFileError)
+    text, data = read_toml(p, "rig", RigFileError)
     try:
         rig = RigConfig.model_validate(data)
     except ValidationError as exc:
@@ -512,7 +531,7 @@ def load_rig(path: str | Path) -> RigConfig:
     if replay is not None and not Path(replay).is_absolute():  # relative to the rig file, as its readers expect
         sim = rig.simulation.model_copy(update={"replay": str((p.parent / replay).resolve())})
         rig = rig.model_copy(update={"simulation": sim})
-    return rig
+    return rig, text
 
 
 def _toml_value(v: Any) -> str:

@@ -1,4 +1,5 @@
-"""Quantities with units on the command line, as in protocol files: ``7kV``, ``7 kV``, ``45 mm``, ``150 g``.
+"""Quantities with units on the command line, as in protocol files: ``7kV``, ``45 mm``, ``9 cm``, ``2 min``,
+``25 °C``, ``5 N/m``, ``5 %`` (any unit pint knows whose dimension fits the option).
 
 A plain number is read in the option's documented unit (``--voltage 7000`` is 7000 V). Parsing goes through
 :func:`bench.protocol.quantity.parse_quantity`, so the CLI accepts exactly what files accept.
@@ -13,10 +14,11 @@ from bench.protocol.quantity import parse_quantity
 PLAIN_UNITS: dict[str, tuple[str, float]] = {"V": ("voltage", 1.0), "kV": ("voltage", 1e3), "s": ("time", 1.0),
                                              "mm": ("length", 1e-3), "m": ("length", 1.0), "Hz": ("frequency", 1.0),
                                              "K": ("temperature", 1.0), "kg": ("mass", 1.0), "N": ("force", 1.0),
-                                             "mm/s": ("velocity", 1e-3), "m/s": ("velocity", 1.0)}
+                                             "mm/s": ("velocity", 1e-3), "m/s": ("velocity", 1.0),
+                                             "N/m": ("stiffness", 1.0), "%": ("ratio", 1e-2)}
 
 EXAMPLES = {"voltage": "7 kV", "time": "20 s", "length": "45 mm", "frequency": "0.5 Hz", "temperature": "296 K",
-            "mass": "150 g", "force": "2 N", "velocity": "0.1 m/s"}
+            "mass": "150 g", "force": "2 N", "velocity": "0.1 m/s", "stiffness": "5 N/m", "ratio": "5 %"}
 
 
 def to_si(text: str, plain_unit: str) -> float:

@@ -19,10 +19,11 @@ from bench.analysis.cycles import crest_to_trough, hysteresis_loss, last_cycles
 from bench.analysis.runs import analyse
 from bench.analysis.thesis import cycle_figures
 from bench.identify.core import FitSettings, fit
+from bench.identify.fitted_rig import export_rig
 from bench.identify.problems import LozengeProblem, MembraneProblem, match_membrane_units
-from bench.identify.store import export_rig, fitted_rig, read_fits, write_fit
+from bench.identify.store import read_fits, write_fit
 from bench.report import report
-from bench.rig import load_rig, rig_from_toml
+from bench.rig import load_rig
 from bench.runtime.run import execute, plan_run
 from bench.storage.runfile import open_run
 
@@ -183,9 +184,10 @@ def test_fit_stored_in_the_file_exports_a_rig_that_reproduces_the_record(thesis_
     assert stored["group"] == group and stored["names"] == thesis_fit.names
     np.testing.assert_array_equal(stored["values"], thesis_fit.values)
     assert stored["settings"]["population"] == 50 and stored["rms"] == pytest.approx(thesis_fit.rms)
-    rig = rig_from_toml(open_run(thesis_run, streams=False).attrs["rig_toml"])
+    source = open_run(thesis_run, streams=False).attrs["rig_text"]  # the rig file as written
+    assert source == (ROOT / "rigs" / "thesis-sim.toml").read_text(encoding="utf-8")
     rig_path = tmp_path / "fitted.toml"
-    export_rig(fitted_rig(rig, "membrane", thesis_fit.names, thesis_fit.values), rig_path, str(thesis_run))
+    export_rig(source, "membrane", thesis_fit.names, thesis_fit.values, rig_path, str(thesis_run))
     # run the protocol again on the fitted specimen: its record matches the original within the fit's residual
     again = execute(plan_run(ROOT / "protocols" / "thesis-identification.toml", rig_path), tmp_path / "again.h5",
                     virtual=True)
@@ -294,4 +296,7 @@ def test_fit_cli_fits_several_files_together_stores_in_each_and_exports_a_rig(tm
         assert stored["software"].startswith("dea-bench")
     fitted = load_rig(rig)
     assert fitted.specimen.lsdea_model is not None
+    # written from the rig file the first run was recorded on: its comments kept, its defaults not written out
+    source = (ROOT / "rigs" / "lsdea-motor-daq-sim.toml").read_text(encoding="utf-8")
+    assert source.splitlines()[0] in rig.read_text(encoding="utf-8") and "[interlock]" not in rig.read_text()
     assert fitted.specimen.lsdea_model.damping == pytest.approx(stored["values"][stored["names"].index("c")])

@@ -24,7 +24,7 @@ from bench.cli.completion import protocol_files, protocol_names, rig_files
 from tests.conftest import ROOT
 
 # what `bench --help` must not load: third-party numerics and bench's heavy layers
-HEAVY = ("numpy", "scipy", "numba", "h5py", "matplotlib", "dask", "distributed", "bench.models", "bench.core",
+HEAVY = ("numpy", "scipy", "numba", "h5py", "matplotlib", "dask", "distributed", "pint", "bench.models", "bench.core",
          "bench.runtime", "bench.storage", "bench.identify", "bench.analysis", "bench.protocol.schema",
          "bench.protocol.program", "sim_devices")
 
@@ -78,12 +78,18 @@ def test_top_level_help_loads_no_rich_console() -> None:
     assert json.loads(res.stdout.strip().splitlines()[-1]) == []
 
 
-def test_tab_completion_loads_no_numerics_and_completes_shipped_protocol_names() -> None:
-    heavy, out = loaded(env={"_BENCH_COMPLETE": "complete_bash", "COMP_WORDS": "bench protocols show thesis-v",
-                             "COMP_CWORD": "3"})
-    assert heavy == []
+@pytest.mark.parametrize(("words", "expected"), [
     # the shipped sweep over voltage (protocols/thesis-voltage-sweep.toml) is the only thesis-v… protocol
-    assert out.split() == ["thesis-voltage-sweep"]
+    ("bench protocols show thesis-v", ["thesis-voltage-sweep"]),
+    # rigs/ holds thesis-sim.toml and thesis-daq-sim.toml; only the first starts so (a rig option of `bench run`)
+    ("bench run protocols/thesis-identification.toml --rig rigs/thesis-s", ["rigs/thesis-sim.toml"]),
+])
+def test_tab_completion_loads_no_numerics_and_completes_names(words: str, expected: list[str]) -> None:
+    """Through typer's completion protocol (the environment a shell's completion script sets)."""
+    heavy, out = loaded(env={"_BENCH_COMPLETE": "complete_bash", "COMP_WORDS": words,
+                             "COMP_CWORD": str(len(words.split()) - 1)})
+    assert heavy == []
+    assert out.split() == expected
 
 
 def test_a_command_that_computes_still_loads_what_it_needs() -> None:

@@ -99,6 +99,24 @@ def test_progress_shows_a_bar_on_a_terminal_and_nothing_on_a_pipe_or_with_json(
             advance(1.0)
         return out.getvalue()
 
-    assert "analysing 2 run file(s)" in shown(terminal=True)
+    assert "analysing 2 run file(s)" in shown(terminal=True) and "ETA" in shown(terminal=True)
     assert shown(terminal=False) == ""
     assert shown(terminal=True, json_out=True) == ""
+
+
+def test_run_planning_shows_its_progress_on_a_terminal(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Issue 26 item 7: `bench run`'s validation and dry run (the model over the whole protocol) draws a bar through
+    common.progress (on a terminal only: the test above); a dry run plans and touches nothing."""
+    import io
+
+    from rich.console import Console
+    from typer.testing import CliRunner
+
+    from bench.cli import common
+
+    out = io.StringIO()
+    monkeypatch.setattr(common, "console", Console(file=out, force_terminal=True, width=120))
+    short = ROOT / "protocols" / "short" / "thesis-identification-short.toml"
+    res = CliRunner().invoke(app, ["run", str(short), "--dry-run"], env={"COLUMNS": "200"})
+    assert res.exit_code == 0 and "dry run" in res.output, res.output
+    assert "validating and dry-running the protocol on the model" in out.getvalue()

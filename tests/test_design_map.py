@@ -63,9 +63,19 @@ def _region(k: float, flat: float) -> str:
     return "stiff" if k > flat else "negative" if k < -flat else "near-zero"
 
 
+REPORTED: list[float] = []  # the fractions compute_map reported while the fixture's map was computed
+
+
 @pytest.fixture(scope="module")
 def dmap():
-    return compute_map(MapSettings(lambda2p=(2.0, 2.5, 2.75, 3.0, 3.5), xp=(0.025, 0.040, 0.055)))
+    REPORTED.clear()
+    return compute_map(MapSettings(lambda2p=(2.0, 2.5, 2.75, 3.0, 3.5), xp=(0.025, 0.040, 0.055)),
+                       progress=REPORTED.append)
+
+
+def test_the_map_reports_its_progress_row_by_row(dmap) -> None:
+    """Issue 26 item 7: one report per λ2p row (5 rows), rising to 1 (the command line draws it as a bar)."""
+    assert REPORTED == [0.2, 0.4, 0.6, 0.8, 1.0]
 
 
 def test_prototypes_fall_in_the_regions_physics_md_states(dmap) -> None:

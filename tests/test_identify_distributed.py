@@ -43,6 +43,8 @@ def test_campaign_fit_on_a_local_cluster_equals_the_in_process_fit(tmp_path: Pat
 
 def test_design_map_on_a_local_cluster_equals_the_in_process_map(client) -> None:
     s = MapSettings(lambda2p=(2.5, 2.75, 3.0), xp=(0.035, 0.040))
-    a, b = compute_map(s), compute_map(s, client=client)
+    reported: list[float] = []
+    a, b = compute_map(s), compute_map(s, client=client, progress=reported.append)
+    assert sorted(reported) == reported and reported[-1] == 1.0 and len(reported) == 3  # one report per row done
     np.testing.assert_array_equal(a.min_stiffness(), b.min_stiffness())
     np.testing.assert_array_equal(a.design(3.0, 0.040).force, b.design(3.0, 0.040).force)

@@ -31,14 +31,16 @@ class DesignMapResult:
 
 
 def design_map(out: Path = Path("runs/design-map"), voltages: tuple[float, ...] = (0.0, 3e3, 5e3, 7e3),
-               scheduler: str | None = None, workers: int | None = None) -> DesignMapResult:
-    """Compute the design map at ``voltages`` [V] (on a dask cluster if asked) and plot it into ``out``."""
+               scheduler: str | None = None, workers: int | None = None,
+               progress: Progress | None = None) -> DesignMapResult:
+    """Compute the design map at ``voltages`` [V] (on a dask cluster if asked) and plot it into ``out``;
+    ``progress`` gets the fraction of the map's rows computed."""
     from bench.app.cluster import cluster_client
     from bench.design_map import MapSettings, compute_map, plot_map
 
     settings = MapSettings(voltages=voltages)
     with cluster_client(scheduler, workers) as client:
-        dmap = compute_map(settings, client=client)
+        dmap = compute_map(settings, client=client, progress=progress)
     regions = dmap.regions()
     protos = []
     for num, l2p in PROTOTYPES:

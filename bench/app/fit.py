@@ -68,9 +68,9 @@ def fit_runs(runs: list[Path], model: str, settings: FitSettings, *, branches: i
     from bench.app.cluster import cluster_client
     from bench.identify.campaign import campaign_identifiability
     from bench.identify.core import fit
+    from bench.identify.fitted_rig import export_rig
     from bench.identify.problems import LozengeProblem, MembraneProblem
-    from bench.identify.store import export_rig, fit_sidecar, fitted_rig, write_fit
-    from bench.rig import rig_from_toml
+    from bench.identify.store import fit_sidecar, write_fit
     from bench.storage.runfile import open_run
 
     check_fittable(runs, into)
@@ -116,7 +116,8 @@ def fit_runs(runs: list[Path], model: str, settings: FitSettings, *, branches: i
         group = write_fit(p, model, result, records, campaign, sidecar=not into)
         out.stored.append((p if into else fit_sidecar(p), group))
     if export is not None:
-        rig = rig_from_toml(open_run(runs[0], streams=False).attrs["rig_toml"])
-        export_rig(fitted_rig(rig, model, result.names, result.values), export, str(runs[0]))
+        attrs = open_run(runs[0], streams=False).attrs  # the rig file as written, else (older runs) as parsed
+        export_rig(str(attrs.get("rig_text") or attrs["rig_toml"]), model, result.names, result.values, export,
+                   str(runs[0]))
         out.exported = export
     return out

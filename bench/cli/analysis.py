@@ -260,9 +260,10 @@ def show_design_map(out: Path = Path("runs/design-map"), voltages: tuple[float, 
     """Compute the design map and print it: the stiffness table, the prototypes, the figures (``bench
     design-map``, ``bench simulate lsdea map``)."""
     from bench.app.analysis import design_map
+    from bench.cli.common import progress
 
-    with console.status("computing the design map…"):
-        done = design_map(out, voltages, scheduler, workers)
+    with progress("computing the design map") as advance:
+        done = design_map(out, voltages, scheduler, workers, progress=advance)
     settings, k, regions = done.settings, done.min_stiffness, done.regions
     t = Table(title=f"smallest elastic stiffness over the {settings.stroke[0] * 1e3:g}–{settings.stroke[1] * 1e3:g} "
                     f"mm stroke [N/m] (stiff > {settings.flat:g}, near-zero, negative < −{settings.flat:g})")

@@ -142,15 +142,16 @@ def json_mode(enabled: bool) -> Iterator[None]:
 
 @contextlib.contextmanager
 def progress(description: str) -> Iterator[Callable[[float], None]]:
-    """A progress callback (fraction done, 0 … 1) for a use case that lasts: a rich progress bar on a terminal
-    (gone when done), nothing on a pipe, with -q or with --json (:func:`json_mode`)."""
+    """A progress callback (fraction done, 0 … 1) for a use case that lasts: a rich progress bar with the time
+    spent and an estimate of the time left on a terminal (gone when done), nothing on a pipe, with -q or with
+    --json (:func:`json_mode`)."""
     if console.quiet or not console.is_terminal:
         yield lambda _fraction: None
         return
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
     with Progress(TextColumn(description), BarColumn(), TextColumn("{task.percentage:>3.0f} %"), TimeElapsedColumn(),
-                  console=console, transient=True) as bar:
+                  TextColumn("ETA"), TimeRemainingColumn(), console=console, transient=True) as bar:
         task = bar.add_task(description, total=1.0)
         yield lambda fraction: bar.update(task, completed=min(max(fraction, 0.0), 1.0))
 

@@ -28,7 +28,8 @@ def main(version: Annotated[bool, typer.Option("--version", callback=_version, i
 
 
 def _qopt(help_text: str) -> Any:
-    """A typer option taking a quantity (``7kV``) or a plain number in the unit its help names."""
+    """A typer option taking a quantity (``7kV``, ``9 cm``, ``25 °C``: any unit of the option's dimension) or a plain
+    number in the unit its help names."""
     return typer.Option(metavar="<quantity>", help=help_text)
 
 
@@ -49,9 +50,9 @@ def simulate_thesis(
     voltage: Annotated[str, _qopt("Peak voltage Vmax [V]. 0–12 kV; or with a unit: 7kV.")] = "7000",
     frequency: Annotated[str | None, _qopt("Drive frequency [Hz]. 0.0001–1000 Hz (default 1/9 Hz, the thesis's); "
                                            "or with a unit: '0.5 Hz'.")] = None,
-    temperature: Annotated[str, _qopt("Temperature [K]. 150–450 K; or with a unit: '296 K'.")] = "296",
+    temperature: Annotated[str, _qopt("Temperature [K]. 150–450 K; or with a unit: '23 °C'.")] = "296",
     duration: Annotated[str, _qopt(f"Simulated time [s]. Up to {SIMULATE_MAX_S:g} s; or with a unit: "
-                                   "'20 s'.")] = "20",
+                                   "'2 min'.")] = "20",
     waveform: Annotated[WaveKindOption, typer.Option(help="Voltage waveform.")] = WaveKindOption.raised_cosine,
     electrostriction: Annotated[Electrostriction, typer.Option(
         help="Electrostatic stress: corrected (κ = 1/2) or as printed in the thesis (κ = 2).")]

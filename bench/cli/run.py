@@ -169,10 +169,10 @@ def run(
     brings the output to 0 V and holds, `bench resume RUN.h5` (or SIGUSR2) restarts the step it left."""
     from bench.app.runs import check_executable, execute_run, prepare_run
 
-    with console.status("recovering if needed, validating and dry-running the stored protocol…" if resume else
-                        "validating and dry-running the protocol on the model…"):
+    with progress("recovering if needed, validating and dry-running the stored protocol" if resume else
+                  "validating and dry-running the protocol on the model") as done:
         prepared = prepare_run(protocol_file, rig=rig, sim=sim, out=out, resume=resume, operator=operator_name,
-                               specimen_id=specimen_id, notes=note, why=why, dry_run=dry_run,
+                               specimen_id=specimen_id, notes=note, why=why, dry_run=dry_run, progress=done,
                                on_recovered=lambda line: console.print(f"recovered: {escape(line)}"))
     _show_prepared(prepared)
     if dry_run:

@@ -1,4 +1,4 @@
-"""Fit results written back beside the data, and exported as a rig file the simulated rig accepts.
+"""Fit results written back beside the data (the fitted rig file: :mod:`bench.identify.fitted_rig`).
 
 Where: by default in a *fit file* beside the run, ``<run>.fit.hdf5`` for ``<run>.h5`` (:func:`fit_sidecar`), so the
 run file itself is never modified after its run (and a ``runs/*.h5`` glob does not pick up fit files); or, on
@@ -33,7 +33,6 @@ import numpy as np
 
 from bench import __version__
 from bench.identify.core import FitResult
-from bench.rig import RigConfig, rig_to_toml
 from bench.storage.recorder import now_iso
 from bench.storage.runfile import open_run
 
@@ -162,29 +161,3 @@ def _read_groups(path: str | Path) -> list[dict]:
                         **{k: (json.loads(v) if k in ("settings", "records", "flags", "campaign", "trust") else v)
                            for k, v in g.attrs.items()}})
     return out
-
-
-def fitted_rig(rig: RigConfig, model: str, names: list[str], values: np.ndarray) -> RigConfig:
-    """The rig with the fitted specimen model (``membrane_model`` or ``lsdea_model``) set."""
-    v = dict(zip(names, (float(x) for x in values), strict=True))
-    data = rig.model_dump()
-    if model == "membrane":
-        mu = [v[f"mu{i}"] for i in range(1, 5)]
-        tau = [v[f"tau{i}"] for i in range(1, 5)]
-        data["specimen"]["membrane_model"] = {"mu0": v["mu0"], "J0": v["J0"], "mu": mu,
-                                              "J": [v[f"J{i}"] for i in range(1, 5)],
-                                              "eta": [m * t for m, t in zip(mu, tau, strict=True)]}
-    else:
-        K = sum(1 for n in names if n.startswith("mu_b"))
-        data["specimen"]["lsdea_model"] = {"mu": v["mu"], "Jm": v["Jm"], "C2": v["C2"],
-                                           "branch_mu": [v[f"mu_b{k + 1}"] for k in range(K)],
-                                           "branch_tau": [v[f"tau_b{k + 1}"] for k in range(K)],
-                                           "damping": v["c"]}
-    data["name"] = f"{rig.name}-fitted"
-    data["simulated"] = True
-    return RigConfig.model_validate(data)
-
-
-def export_rig(rig: RigConfig, path: str | Path, source: str) -> None:
-    """Write the fitted rig file."""
-    Path(path).write_text(f"# fitted by `bench fit` from {source}\n" + rig_to_toml(rig), encoding="utf-8")

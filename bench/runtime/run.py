@@ -27,7 +27,7 @@ from bench.protocol.program import (
     recording_shortfalls,
 )
 from bench.protocol.schema import MAX_OPERATOR, MAX_SPECIMEN_ID, Protocol, check_label, check_notes, load_protocol
-from bench.rig import RigConfig, load_rig, rig_to_toml
+from bench.rig import RigConfig, load_rig_text, rig_to_toml
 from bench.runtime.control import control_path
 from bench.runtime.engine import Engine, OperatorFn, RunResult
 from bench.runtime.hardware_timed import describe_streams
@@ -59,21 +59,27 @@ class Plan:
     prediction: Prediction
     link_problems: list[str] = field(default_factory=list)  # what the rig's lines cannot carry (see plan_run)
     shortfalls: list[str] = field(default_factory=list)  # streams recorded below the asked rate (software-timed rigs)
+    rig_text: str = ""  # the rig file as written (comments, order): recorded, the source of a fitted rig
 
 
 def resolve_rig(protocol: Protocol, rig_path: str | Path | None = None, simulate: bool = False) -> RigConfig:
     """The rig to run on: ``rig_path`` or the protocol's rig; ``simulate`` makes it the simulated twin."""
-    rig = load_rig(rig_path if rig_path is not None else protocol.rig_path())
+    return _resolve_rig(protocol, rig_path, simulate)[0]
+
+
+def _resolve_rig(protocol: Protocol, rig_path: str | Path | None, simulate: bool) -> tuple[RigConfig, str]:
+    """(:func:`resolve_rig`, the rig file's text: the simulated twin keeps the file's text)."""
+    rig, text = load_rig_text(rig_path if rig_path is not None else protocol.rig_path())
     if simulate and not rig.simulated:
         rig = RigConfig.model_validate({**rig.model_dump(), "simulated": True, "name": f"{rig.name}-simulated"})
-    return rig
+    return rig, text
 
 
 def plan_run(protocol_path: str | Path, rig_path: str | Path | None = None, simulate: bool = False,
              progress: Callable[[float], None] | None = None) -> Plan:
     """Load, validate, compile and dry-run a protocol; raise ValueError (one line) if it must not run."""
     protocol = load_protocol(protocol_path)
-    rig = resolve_rig(protocol, rig_path, simulate)
+    rig, rig_text = _resolve_rig(protocol, rig_path, simulate)
     program = compile_program(protocol, rig)
     links = check_links(program)
     if links and not rig.simulated:
@@ -83,7 +89,7 @@ def plan_run(protocol_path: str | Path, rig_path: str | Path | None = None, simu
         raise ProtocolLimitError(f"protocol file {protocol.path}: {prediction.failure}")
     if prediction.problems:
         raise ProtocolLimitError(f"protocol file {protocol.path}: {prediction.problems[0]}")
-    return Plan(protocol, rig, program, prediction, links, recording_shortfalls(program))
+    return Plan(protocol, rig, program, prediction, links, recording_shortfalls(program), rig_text)
 
 
 def _streams(rig: RigConfig, inst: Instruments, polled: bool = False) -> tuple[dict[str, list[Column]], dict[str, str]]:
@@ -236,7 +242,8 @@ def execute(plan: Plan, out: Path, *, virtual: bool = False, operator: OperatorF
             "software": f"dea-bench {__version__}", "start_time": now_iso(),
             "protocol_name": plan.protocol.protocol.name, "protocol_path": str(plan.protocol.path),
             "protocol_text": plan.protocol.text, "protocol_sha256": plan.protocol.sha256,
-            "rig_name": rig.name, "rig_toml": rig_to_toml(rig), "simulated": rig.simulated,
+            "rig_name": rig.name, "rig_toml": rig_to_toml(rig), "rig_text": plan.rig_text,
+            "simulated": rig.simulated,
             "clock": "virtual" if virtual else "wall", "specimen_kind": spec.kind,
             "specimen": json.dumps({**spec.model_dump(), "overrides": plan.protocol.specimen.model_dump(),
                                     "model": _model_params(params)}),
