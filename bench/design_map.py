@@ -142,7 +142,7 @@ def compute_map(settings: MapSettings = MapSettings(), base: LozengeParams | Non
         rows = [_row(lam, settings, base) for lam in settings.lambda2p]
     else:
         futures = client.map(_row, list(settings.lambda2p), settings=settings, base=base, pure=False)
-        rows = client.gather(futures)  # type: ignore[no-untyped-call]  # dask's Client.gather is unannotated
+        rows = client.gather(futures)
     return DesignMap(settings, rows)
 
 

@@ -56,7 +56,7 @@ def simulate_thesis(voltage: float, frequency: float, temperature: float, durati
     from bench.waveforms import Waveform
 
     params = MembraneParams(electrostriction=electrostriction)  # type: ignore[arg-type]  # checked by the CLI's enum
-    tr = simulate_membrane(params, Waveform(waveform, voltage, frequency), duration,  # type: ignore[arg-type]
+    tr = simulate_membrane(params, Waveform(waveform, voltage, frequency), duration,  # type: ignore[arg-type]  # Waveform checks
                            T=temperature, method=method)  # type: ignore[arg-type]  # checked above
     figs = cycle_figures(tr.t, tr.displacement, tr.voltage, frequency)
     valid = np.isfinite(tr.stretch)
