@@ -127,7 +127,7 @@ def simulate_lsdea(
     stroke_m = option_si(stroke, "mm", "--stroke", 1, 120)
     frequency_Hz = None if frequency is None else option_si(frequency, "Hz", "--frequency", 0.01, 100)
     with console.status(f"simulating LS-DEA #{prototype} ({test.value})…"):
-        sim = simulate(test.value, prototype, voltage_V, frequency=frequency_Hz, mass=mass_kg,  # type: ignore[arg-type]  # an LsdeaTest
+        sim = simulate(test.value, prototype, voltage_V, frequency=frequency_Hz, mass=mass_kg,
                        position=position_m, stroke=stroke_m, cycles=cycles)
     fig = sim.figure
     figure = (f"hysteresis loss of the last cycle {100 * fig['loss']:.1f} %" if "loss" in fig else
