@@ -152,9 +152,9 @@ def compute_map(settings: MapSettings = MapSettings(), base: LozengeParams | Non
 
         futures = client.map(_row, list(settings.lambda2p), settings=settings, base=base, pure=False)
         if progress is not None:
-            for k, _ in enumerate(as_completed(futures), 1):  # type: ignore[no-untyped-call]  # unannotated
+            for k, _ in enumerate(as_completed(futures), 1):
                 progress(k / n)
-        rows = client.gather(futures)  # type: ignore[no-untyped-call]  # dask's Client.gather is unannotated
+        rows = client.gather(futures)
     return DesignMap(settings, rows)
 
 

@@ -375,7 +375,7 @@ class RigConfig(_Strict):
         if self.specimen.kind == "lsdea" and self.specimen.lsdea.configuration == "motor" and self.motor is None:
             raise ValueError("specimen.lsdea.configuration = 'motor' needs a [motor] section")
         if adam and adam.bus == (self.load_cell.bus if self.load_cell else None):
-            au = {self.amplifier.ao_unit, self.amplifier.ai_unit}
+            au = {adam.ao_unit, adam.ai_unit}
             if self.load_cell and self.load_cell.unit in au:
                 raise ValueError(f"load_cell.unit {self.load_cell.unit} collides with an amplifier module on the bus")
         return self

@@ -18,7 +18,7 @@ from typing import Literal
 import numpy as np
 
 WaveKind = Literal["raised_cosine", "sine", "triangle", "square"]
-WAVE_KINDS: tuple[str, ...] = ("raised_cosine", "sine", "triangle", "square")
+WAVE_KINDS: tuple[WaveKind, ...] = ("raised_cosine", "sine", "triangle", "square")
 
 
 @dataclass(frozen=True)

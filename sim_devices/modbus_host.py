@@ -31,8 +31,9 @@ import socketserver
 import struct
 import threading
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Literal, cast
 
+from bench.core.clock import Clock, WallClock
 from sim_devices.modbus_devices import (
     DEVICE_FAILURE,
     ILLEGAL_FUNCTION,
@@ -128,7 +129,7 @@ class SimBus:
     baudrate: int = 19200
     port: int = 0  # TCP port of the endpoint (the relay; 0: ephemeral)
     faults: Faults = field(default_factory=Faults)
-    clock: Any = None  # the rig clock (wire time passes on it); None: no wire time
+    clock: Clock | None = None  # the rig clock (wire time passes on it); None: no wire time
     timing: bool = True  # emulate the line's wire time and turnarounds
     gateway_timeout: float = 0.2  # Modbus TCP: wait before exception 0Bh for an absent unit [assumed]
     endpoint: str = ""
@@ -138,7 +139,7 @@ class SimBus:
 
     def __post_init__(self) -> None:
         baud = self.baudrate if self.timing and self.clock is not None else None
-        self.line = Line(self.clock, baud, gap_chars=RTU_GAP_CHARS)
+        self.line = Line(self.clock if self.clock is not None else WallClock(), baud, gap_chars=RTU_GAP_CHARS)
         self.units = {d.unit: d for d in self.devices}
         self._buf = b""
 
@@ -161,8 +162,8 @@ class SimBus:
             return b""
         unit, pdu = frame[0], frame[1:-2]
         if unit == 0:
-            for module in self.units.values():
-                execute(module, pdu)  # broadcast: executed, no reply
+            for each in self.units.values():
+                execute(each, pdu)  # broadcast: executed, no reply
             return b""
         module = self.units.get(unit)
         if module is None:
@@ -180,8 +181,8 @@ class SimBus:
         with line.lock:  # the gateway forwards one request at a time onto the line
             line.request(len(pdu) + 3)
             if unit == 0:
-                for module in self.units.values():
-                    execute(module, pdu)
+                for each in self.units.values():
+                    execute(each, pdu)
                 return None
             module = self.units.get(unit)
             if module is None:
@@ -201,7 +202,7 @@ class _Server(socketserver.ThreadingTCPServer):
 
 class _GatewayHandler(socketserver.BaseRequestHandler):
     def handle(self) -> None:
-        bus: SimBus = self.server.bus  # type: ignore[attr-defined]
+        bus = cast(_Server, self.server).bus
         sock: socket.socket = self.request
         buf = b""
         with contextlib.suppress(OSError):
@@ -223,7 +224,7 @@ class _GatewayHandler(socketserver.BaseRequestHandler):
 
 class _RtuSocketHandler(socketserver.BaseRequestHandler):
     def handle(self) -> None:
-        bus: SimBus = self.server.bus  # type: ignore[attr-defined]
+        bus = cast(_Server, self.server).bus
         sock: socket.socket = self.request
         with contextlib.suppress(OSError):
             while data := sock.recv(65536):

@@ -31,11 +31,11 @@ import tty
 from collections import Counter
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Literal
 
 import numpy as np
 
-from bench.core.clock import VirtualClock
+from bench.core.clock import Clock, VirtualClock
 
 SWITCHES = ("latency", "mute", "garble_next", "garble_index", "drop", "drop_reset", "wire_baud", "mutate")
 
@@ -81,7 +81,7 @@ class Faults:
     last_latency: float = field(default=0.0, init=False)
     counts: Counter[str] = field(default_factory=Counter, init=False)
     _armed: list[_Armed] = field(default_factory=list, init=False, repr=False)
-    _lock: Any = field(default_factory=threading.RLock, init=False, repr=False, compare=False)  # re-entrant
+    _lock: threading.RLock = field(default_factory=threading.RLock, init=False, repr=False, compare=False)  # re-entrant
 
     def schedule(self, *, at_time: float | None = None, after_replies: int | None = None,
                  **switches: object) -> None:
@@ -293,7 +293,7 @@ class Line:
     may start only after it. ``baud`` None: no wire time at all (the old pty behaviour).
     """
 
-    def __init__(self, clock: Any, baud: float | None, *, gap_chars: float = 0.0, turnaround: float = 0.0,
+    def __init__(self, clock: Clock, baud: float | None, *, gap_chars: float = 0.0, turnaround: float = 0.0,
                  bits_per_char: int = 10) -> None:
         self.clock = clock
         self.baud = baud
@@ -470,11 +470,11 @@ class PtyDevice:
                     faults.unanswered()
                 if reply and line is not None:
                     line.reply(len(reply))
-                reply, delay = faults.process(reply, len(data))
-                if reply:
+                sent, delay = faults.process(reply, len(data))
+                if sent:
                     if delay:
                         time.sleep(delay)
-                    os.write(self._master, reply)
+                    os.write(self._master, sent)
         except BaseException as exc:  # the simulator must not die silently
             self.error = exc
         finally:

@@ -50,7 +50,8 @@ def last_cycles(t: np.ndarray, frequency: float, n_cycles: int = 1) -> np.ndarra
         raise ValueError(f"record holds {n_total} whole cycles, {n_cycles} requested")
     start = t[0] + (n_total - n_cycles) / frequency
     end = t[0] + n_total / frequency
-    return (t >= start - 1e-12) & (t <= end + 1e-12)
+    inside: np.ndarray = (t >= start - 1e-12) & (t <= end + 1e-12)
+    return inside
 
 
 def hysteresis_loss(x: np.ndarray, force: np.ndarray) -> float:

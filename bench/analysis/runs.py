@@ -19,15 +19,16 @@ import json
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-from bench.analysis.applied import applied_voltage
+from bench.analysis.applied import VoltageTrace, applied_voltage
 from bench.analysis.cycles import crest_to_trough, hysteresis_loss, phase_lag, smooth
 from bench.analysis.thesis import cycle_figures
 from bench.models.lozenge import LozengeParams
 from bench.protocol.schema import Protocol, WaveformStep, load_protocol
-from bench.storage.runfile import RunFile, open_run
+from bench.storage.runfile import RunFile, Stream, open_run
 
 PAPER_GRAVITY = 9.81  # m/s²: the value behind the paper's loads (3.1 / 4.6 / 4.9 N), not standard gravity
 
@@ -99,11 +100,12 @@ def protocol_of(run: RunFile) -> Protocol:
         return load_protocol(p)
 
 
-def _window(stream, t0: float, t1: float) -> np.ndarray:
-    return (stream.t >= t0 - 1e-9) & (stream.t <= t1 + 1e-9)
+def _window(stream: Stream | VoltageTrace, t0: float, t1: float) -> np.ndarray:
+    inside: np.ndarray = (stream.t >= t0 - 1e-9) & (stream.t <= t1 + 1e-9)
+    return inside
 
 
-def _specimen_at(t: float, history: list[tuple[float, dict[str, float]]], spec: dict) -> tuple[int, float]:
+def _specimen_at(t: float, history: list[tuple[float, dict[str, float]]], spec: dict[str, Any]) -> tuple[int, float]:
     over = spec.get("overrides", {})
     lsdea = spec.get("lsdea", {})
     proto = over.get("prototype") or lsdea.get("prototype", 1)
@@ -116,7 +118,7 @@ def _specimen_at(t: float, history: list[tuple[float, dict[str, float]]], spec: 
     return int(proto), float(mass)
 
 
-def _temperature_at(t: float, history: list[tuple[float, dict[str, float]]], spec: dict) -> float:
+def _temperature_at(t: float, history: list[tuple[float, dict[str, float]]], spec: dict[str, Any]) -> float:
     T = spec.get("overrides", {}).get("temperature_K") or spec.get("temperature_K", 296.0)
     for te, values in history:
         if te <= t + 1e-9:

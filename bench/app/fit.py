@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:
     from bench.app import Progress
     from bench.identify.campaign import CampaignReport
-    from bench.identify.core import FitResult, FitSettings, Problem
+    from bench.identify.core import FitResult, FitSettings, Problem, RecordedProblem
 
 
 @dataclass
@@ -58,7 +58,7 @@ def check_fittable(runs: list[Path], into: bool = False) -> None:
 
 def fit_runs(runs: list[Path], model: str, settings: FitSettings, *, branches: int = 1, export: Path | None = None,
              scheduler: str | None = None, workers: int | None = None, into: bool = False,
-             on_read: Callable[[Problem], None] | None = None, on_cluster: Callable[[str], None] | None = None,
+             on_read: Callable[[RecordedProblem], None] | None = None, on_cluster: Callable[[str], None] | None = None,
              progress: Progress | None = None) -> Fitted:
     """Fit ``model`` ("membrane" or "lsdea") to the records of ``runs`` (differential evolution on a coarse
     integration step, polish and identifiability on a fine one); store the result with every file (in its fit
@@ -75,8 +75,8 @@ def fit_runs(runs: list[Path], model: str, settings: FitSettings, *, branches: i
 
     check_fittable(runs, into)
     files: list[str | Path] = list(runs)
-    coarse: Problem
-    fine: Problem
+    coarse: RecordedProblem
+    fine: RecordedProblem
     if model == "membrane":
         coarse, fine = MembraneProblem(files, h=5e-4), MembraneProblem(files, h=1e-4)
     else:

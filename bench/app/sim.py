@@ -6,10 +6,11 @@ import contextlib
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
     from bench.rig import RigConfig
+    from bench.runtime.sim_rig import Endpoint
 
 
 @dataclass
@@ -17,7 +18,7 @@ class Serving:
     """What is served: the rig, each twin's endpoint (by name), the client rig file written (if asked)."""
 
     rig: RigConfig
-    endpoints: dict[str, Any]  # name → endpoint (name, protocol, address, details)
+    endpoints: dict[str, Endpoint]  # name → where a twin (or bus) listens
     client_rig: Path | None
     wire_time: bool
     duration: float | None

@@ -4,16 +4,27 @@ three test configurations (``bench simulate thesis|lsdea``)."""
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Literal
+from typing import TYPE_CHECKING, Literal, TypeVar
 
 if TYPE_CHECKING:
     from bench.analysis.thesis import CycleFigures
-    from bench.models.membrane import MembraneParams
+    from bench.models.lozenge_runs import LozengeTrace
+    from bench.models.membrane import MembraneParams, MembraneTrace
 
 SIMULATE_MAX_S = 600.0  # simulated time (the offline solver keeps 10 kHz output in memory)
 SIMULATE_MAX_CYCLES = 200  # thesis: drive cycles (the solver's cost grows with them: ~20 ms each)
 SIMULATE_MAX_SQUARE_CYCLES = 5  # the offline solver resolves every square-wave edge: 0.2–1.4 s per cycle
-METHODS = ("rodas", "radau", "fixed")
+Method = Literal["rodas", "radau", "fixed"]
+METHODS: tuple[Method, ...] = ("rodas", "radau", "fixed")
+Choice = TypeVar("Choice", bound=str)
+
+
+def one_of(value: str, options: tuple[Choice, ...], what: str) -> Choice:
+    """``value`` as the one of ``options`` it equals; ValueError (one line) naming ``what`` otherwise."""
+    for option in options:
+        if value == option:
+            return option
+    raise ValueError(f"{what} must be one of {', '.join(options)}, got {value!r}")
 
 
 def check_simulation_size(duration: float) -> None:
@@ -28,7 +39,7 @@ class ThesisSimulation:
     """The thesis membrane's trace, its per-cycle figures and the headline numbers."""
 
     params: MembraneParams
-    trace: Any  # bench.models.membrane_runs' trace: t, displacement, voltage, stretch, field, current, failed
+    trace: MembraneTrace
     figures: CycleFigures
     creep: float  # [%] (0 without drive)
     max_displacement: float  # [m]
@@ -41,9 +52,9 @@ def simulate_thesis(voltage: float, frequency: float, temperature: float, durati
                     waveform: str = "raised_cosine", electrostriction: str = "corrected",
                     method: str = "rodas") -> ThesisSimulation:
     """Thesis membrane (Model A) under a periodic voltage [V] at ``frequency`` [Hz], ``temperature`` [K], for
-    ``duration`` [s]. ValueError (one line) for an unknown method or too many cycles."""
-    if method not in METHODS:
-        raise ValueError(f"--method must be 'rodas', 'radau' or 'fixed', got {method!r}")
+    ``duration`` [s]. ValueError (one line) for an unknown method, waveform or form of electrostriction, or too
+    many cycles."""
+    solver = one_of(method, METHODS, "--method")
     max_cycles = SIMULATE_MAX_SQUARE_CYCLES if waveform == "square" and method != "fixed" else SIMULATE_MAX_CYCLES
     if frequency * duration > max_cycles:
         raise ValueError(f"--frequency {frequency:g} Hz × --duration {duration:g} s = {frequency * duration:g} cycles "
@@ -51,13 +62,13 @@ def simulate_thesis(voltage: float, frequency: float, temperature: float, durati
     import numpy as np
 
     from bench.analysis.thesis import cycle_figures
-    from bench.models.membrane import MembraneParams
+    from bench.models.membrane import ELECTROSTRICTIONS, MembraneParams
     from bench.models.membrane_runs import simulate_membrane
-    from bench.waveforms import Waveform
+    from bench.waveforms import WAVE_KINDS, Waveform
 
-    params = MembraneParams(electrostriction=electrostriction)  # type: ignore[arg-type]  # checked by the CLI's enum
-    tr = simulate_membrane(params, Waveform(waveform, voltage, frequency), duration,  # type: ignore[arg-type]
-                           T=temperature, method=method)  # type: ignore[arg-type]  # checked above
+    params = MembraneParams(electrostriction=one_of(electrostriction, ELECTROSTRICTIONS, "electrostriction"))
+    tr = simulate_membrane(params, Waveform(one_of(waveform, WAVE_KINDS, "waveform"), voltage, frequency), duration,
+                           T=temperature, method=solver)
     figs = cycle_figures(tr.t, tr.displacement, tr.voltage, frequency)
     valid = np.isfinite(tr.stretch)
     creep = figs.creep * 100 if figs.whole > 1 and figs.peaks[0] != 0 else 0.0  # no drive, no creep
@@ -67,6 +78,7 @@ def simulate_thesis(voltage: float, frequency: float, temperature: float, durati
 
 
 LsdeaTest = Literal["isopotential", "isometric", "isotonic"]
+LSDEA_TESTS: tuple[LsdeaTest, ...] = ("isopotential", "isometric", "isotonic")
 
 
 @dataclass
@@ -74,7 +86,7 @@ class LsdeaSimulation:
     """The LS-DEA's trace, its figure of merit (by test) and the headline numbers."""
 
     test: str
-    trace: Any  # bench.models.lozenge_runs' trace
+    trace: LozengeTrace
     figure: dict[str, float]  # isopotential: loss; isometric: force_swing [N]; isotonic: swing, mean_position [m]
     force_range: tuple[float, float]  # [N]
     peak_field: float  # [V/m]
@@ -82,7 +94,7 @@ class LsdeaSimulation:
     tension_lost: float  # fraction of samples
 
 
-def simulate_lsdea(test: LsdeaTest, prototype: int, voltage: float, *, frequency: float | None = None,
+def simulate_lsdea(test: str, prototype: int, voltage: float, *, frequency: float | None = None,
                    mass: float = 0.18, position: float = 0.1, stroke: float = 0.09,
                    cycles: int = 10) -> LsdeaSimulation:
     """LS-DEA (Model B) prototype ``prototype`` in one test configuration: ``voltage`` [V] constant
@@ -95,6 +107,7 @@ def simulate_lsdea(test: LsdeaTest, prototype: int, voltage: float, *, frequency
     from bench.models.lozenge_runs import simulate_lozenge
     from bench.waveforms import Waveform
 
+    test = one_of(test, LSDEA_TESTS, "test")
     params = LozengeParams.prototype(prototype, hung_mass=mass if test == "isotonic" else 0.0)
     f = (0.5 if test == "isopotential" else 1.0) if frequency is None else frequency
     duration = cycles / f

@@ -67,8 +67,9 @@ def _generic_candidate(prob: MembraneProblem, z: np.ndarray) -> np.ndarray:
     t_eval = np.arange(rec.data.size) * rec.stride * h
     sol = solve_ivp(fun, (0.0, float(t_eval[-1])), rec.y0, method="Radau", t_eval=t_eval, rtol=1e-6,
                     atol=np.full(rec.y0.size, 1e-9))
-    t = prob.template
-    return t.L_d * (sol.y[0] - t.lambda_pre)  # type: ignore[union-attr]
+    t = prob.recorded
+    u: np.ndarray = t.L_d * (sol.y[0] - t.lambda_pre)
+    return u
 
 
 def candidate_speed(prob: MembraneProblem, generic_candidates: int, repeats: int = 3) -> list[Figure]:
@@ -106,7 +107,7 @@ def candidate_speed(prob: MembraneProblem, generic_candidates: int, repeats: int
 def thesis_fit(path: Path, settings: FitSettings) -> list[Figure]:
     """The demo's fit (thesis DE settings on the coarse step, polish and identifiability on the fine one),
     the current path against the old one (reference kernel, no stop on convergence)."""
-    def one(reference: bool) -> tuple[float, object]:
+    def one(reference: bool) -> tuple[float, FitResult]:
         coarse = MembraneProblem([path], h=5e-4, reference_kernel=reference)
         fine = MembraneProblem([path], h=1e-4, reference_kernel=reference)
         s = replace(settings, stall_generations=0) if reference else settings
@@ -118,7 +119,7 @@ def thesis_fit(path: Path, settings: FitSettings) -> list[Figure]:
     label = f"DE {settings.population} × ≤{settings.generations} (F {settings.mutation}, CR {settings.crossover})"
     label += " + polish" if settings.polish else ", no polish"
 
-    def note(r) -> str:  # type: ignore[no-untyped-def]
+    def note(r: FitResult) -> str:
         return f"{r.generations} generations, {r.evaluations:,} evaluations, rms {r.rms * 1e6:.2f} µm"
 
     current = Figure(f"thesis fit, {label}: current path", wall_new, "s",
@@ -224,7 +225,7 @@ def campaign_fit(tmp: Path, quick: bool) -> list[Figure]:
 
     names = ["short/thesis-sweeps-short.toml", "short/thesis-identification-short.toml"] if quick else \
         ["thesis-voltage-sweep.toml", "thesis-frequency-sweep.toml", "thesis-temperature-sweep.toml"]
-    paths = []
+    paths: list[str | Path] = []
     for name in names:
         res = execute(plan_run(protocols_dir() / name), tmp / (Path(name).stem + ".h5"), virtual=True)
         if res.state != "completed":

@@ -12,9 +12,10 @@ import typer
 from bench.cli.common import JsonOpt, Table, clean_errors, console, escape, fail, json_mode, print_json
 
 if TYPE_CHECKING:
+    from bench.analysis.runs import StepResult
     from bench.app.analysis import Report
     from bench.identify.campaign import CampaignReport
-    from bench.identify.core import FitResult, FitSettings, Problem
+    from bench.identify.core import FitResult, FitSettings, Problem, RecordedProblem
     from bench.identify.problems import MembraneProblem
 
 RunsArg = Annotated[list[Path], typer.Argument(help="Run files (.h5) to fit together.")]
@@ -209,7 +210,7 @@ def run_fit(runs: list[Path], chosen: str, settings: FitSettings, branches: int 
         reading = stack.enter_context(console.status("reading the records…"))
         advance: list[Callable[[float], None]] = []
 
-        def read(coarse: Problem) -> None:
+        def read(coarse: RecordedProblem) -> None:
             reading.stop()
             console.print(f"fitting the {chosen} model ({len(coarse.names)} parameters) to "
                           f"{len(coarse.records)} records, {int(np.isfinite(coarse.data).sum()):,} points; "
@@ -302,21 +303,26 @@ def report_command(
                         "figures": s.figures} for s in r.analysis.steps]} for r in done.runs]})
 
 
-def figures_table(steps: list, title: str) -> Table:
+def figures_table(steps: list[StepResult], title: str) -> Table:
     """Figures of merit of analysed steps: one row per step, or one column per step when there are few."""
     keys = sorted({k for s in steps for k in s.figures})
     keys = [k for k in FIGURE_COLUMNS if k in keys] + [k for k in keys if k not in FIGURE_COLUMNS]
     has_where = any(s.prototype or s.hung_mass for s in steps)
     has_T = any(s.temperature for s in steps)
-    conditions = {"#": lambda s: f"{s.prototype or ''}" + (f" {s.hung_mass * 1e3:.0f} g" if s.hung_mass else ""),
-                  "T [K]": lambda s: f"{s.temperature:g}", "V [kV]": lambda s: f"{s.voltage / 1e3:.3g}",
-                  "f [Hz]": lambda s: f"{s.frequency:.3g}"}
+    conditions: dict[str, Callable[[StepResult], str]] = {
+        "#": lambda s: f"{s.prototype or ''}" + (f" {s.hung_mass * 1e3:.0f} g" if s.hung_mass else ""),
+        "T [K]": lambda s: f"{s.temperature:g}", "V [kV]": lambda s: f"{s.voltage / 1e3:.3g}",
+        "f [Hz]": lambda s: f"{s.frequency:.3g}"}
     if not has_where:
         del conditions["#"]
     if not has_T:
         del conditions["T [K]"]
+
+    def figure(k: str) -> Callable[[StepResult], str]:
+        return lambda s: _fmt(k, s.figures.get(k))
+
     rows = [(label, fn) for label, fn in conditions.items()] + \
-        [(FIGURE_COLUMNS.get(k, (k, 1.0))[0], lambda s, k=k: _fmt(k, s.figures.get(k))) for k in keys]
+        [(FIGURE_COLUMNS.get(k, (k, 1.0))[0], figure(k)) for k in keys]
     t = Table(title=title)
     if len(steps) <= 3:  # few steps: figures down, steps across (fits a narrow terminal)
         t.add_column("")
@@ -436,7 +442,7 @@ def demo(
     path = Path(result.path)
     fitted, problem = run_fit([path], "membrane", FitSettings(population=population, generations=generations,
                                                                        starts=starts, intervals=intervals))
-    console.print(twin_comparison(problem, fitted))  # type: ignore[arg-type]
+    console.print(twin_comparison(problem, fitted))  # type: ignore[arg-type]  # a "membrane" fit's problem is one
     peak = float(np.nanmax(np.abs(problem.data)))
     console.print(f"the fitted model reproduces the record to rms {fitted.rms * 1e6:.1f} µm "
                   f"({100 * fitted.rms / peak:.2f} % of the {peak * 1e3:.2f} mm peak)")

@@ -21,7 +21,7 @@ from bench.app.cluster import CLUSTER_EXTRA, cluster_client  # noqa: F401  # re-
 from drivers.errors import InstrumentError
 
 if TYPE_CHECKING:
-    from rich.table import Table
+    from rich.table import Table as Table
 
     from bench.cli.console import BenchConsole
 else:

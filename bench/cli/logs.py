@@ -11,13 +11,14 @@ import logging
 import sys
 from collections.abc import Iterator
 from pathlib import Path
+from typing import TextIO
 
 LOGGERS = ("bench", "drivers", "sim_devices")
 FORMAT = "%(asctime)s %(levelname)-7s %(name)s: %(message)s"
 log = logging.getLogger("bench.cli")
 
 
-class _Stderr(logging.StreamHandler):  # type: ignore[type-arg]
+class _Stderr(logging.StreamHandler[TextIO]):
     """Writes to the *current* sys.stderr (test runners swap it)."""
 
     def __init__(self) -> None:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from enum import StrEnum
 from pathlib import Path
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
@@ -12,6 +12,9 @@ from bench.app.simulate import SIMULATE_MAX_S
 from bench.cli.common import JsonOpt, Table, _version, clean_errors, console, fail, json_mode, print_json
 from bench.cli.completion import rig_files
 from bench.units import option_si
+
+if TYPE_CHECKING:
+    from bench.runtime.sim_rig import Endpoint
 
 
 def main(version: Annotated[bool, typer.Option("--version", callback=_version, is_eager=True,
@@ -125,7 +128,7 @@ def simulate_lsdea(
     stroke_m = option_si(stroke, "mm", "--stroke", 1, 120)
     frequency_Hz = None if frequency is None else option_si(frequency, "Hz", "--frequency", 0.01, 100)
     with console.status(f"simulating LS-DEA #{prototype} ({test.value})…"):
-        sim = simulate(test.value, prototype, voltage_V, frequency=frequency_Hz, mass=mass_kg,  # type: ignore[arg-type]
+        sim = simulate(test.value, prototype, voltage_V, frequency=frequency_Hz, mass=mass_kg,
                        position=position_m, stroke=stroke_m, cycles=cycles)
     fig = sim.figure
     figure = (f"hysteresis loss of the last cycle {100 * fig['loss']:.1f} %" if "loss" in fig else
@@ -143,7 +146,7 @@ def simulate_lsdea(
 RigArg = Annotated[Path, typer.Argument(help="Rig file (TOML), e.g. rigs/thesis-sim.toml.", autocompletion=rig_files)]
 
 
-def _endpoint_table(title: str, endpoints: dict) -> Table:
+def _endpoint_table(title: str, endpoints: dict[str, Endpoint]) -> Table:
     table = Table(title=title)
     for col in ("name", "protocol", "endpoint", "units / details"):
         table.add_column(col)

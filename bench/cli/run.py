@@ -17,7 +17,9 @@ from bench.cli.completion import protocol_files, protocol_names, rig_files
 from bench.cli.logs import log, run_log
 
 if TYPE_CHECKING:
+    from bench.app.runs import Inspection, PreparedRun
     from bench.runtime.engine import Engine, RunResult
+    from bench.runtime.run import Plan
 
 protocol_app = typer.Typer(help="Protocol files: the shipped ones (list, show, copy) and their schema.",
                             no_args_is_help=True, rich_markup_mode=None)
@@ -34,7 +36,7 @@ def _hms(seconds: float) -> str:
     return f"{s // 3600:d}:{s % 3600 // 60:02d}:{s % 60:02d}"
 
 
-def _plan(protocol_file: Path, rig: Path | None, sim: bool):
+def _plan(protocol_file: Path, rig: Path | None, sim: bool) -> Plan:
     from bench.app.runs import plan_protocol
 
     with progress("validating and dry-running the protocol on the model") as done:
@@ -43,7 +45,7 @@ def _plan(protocol_file: Path, rig: Path | None, sim: bool):
     return plan
 
 
-def _warn(plan) -> None:
+def _warn(plan: Plan) -> None:
     """The plan's warnings: what a real line would refuse, what a software-timed rig records below the asked rate."""
     for problem in plan.link_problems:  # refused on a real rig; the simulated rig rehearses what it would do
         console.print(f"[yellow]warning[/]: {escape(problem)} — a real line would refuse this protocol; the "
@@ -52,7 +54,7 @@ def _warn(plan) -> None:
         console.print(f"[yellow]warning[/]: {escape(short)}")
 
 
-def _summary(plan) -> Table:
+def _summary(plan: Plan) -> Table:
     pred, rig, prog = plan.prediction, plan.rig, plan.program
     t = Table(title=f"{plan.protocol.protocol.name} on {rig.name} ({'simulated' if rig.simulated else 'real'} rig)",
               show_header=False)
@@ -199,7 +201,7 @@ def run(
         raise typer.Exit(1)
 
 
-def _show_prepared(prepared) -> None:
+def _show_prepared(prepared: PreparedRun) -> None:
     """What was done to get the run ready (a reset latch, warnings), the plan's summary, where a campaign resumes."""
     plan, link = prepared.plan, prepared.link
     if prepared.reset is not None:
@@ -214,7 +216,7 @@ def _show_prepared(prepared) -> None:
                       f"({escape(seg.name)}); {link.step} step(s) completed there")
 
 
-def _log_plan(prepared, protocol_file: Path | None, virtual_time: bool) -> None:
+def _log_plan(prepared: PreparedRun, protocol_file: Path | None, virtual_time: bool) -> None:
     """The run's plan, its warnings and metadata, into the run log."""
     plan = prepared.plan
     log.info("bench run %s on rig %s (%s), %s clock → %s", protocol_file, plan.rig.name,
@@ -229,7 +231,7 @@ def _log_plan(prepared, protocol_file: Path | None, virtual_time: bool) -> None:
         log.info("%s: %s", key.replace("_", " "), value.replace("\n", " | "))
 
 
-def _show_result(result, log_file: Path) -> None:
+def _show_result(result: RunResult, log_file: Path) -> None:
     with contextlib.suppress(OSError):  # the terminal went away (SIGHUP): the file holds the whole account
         _print_result(result)
         console.print(f"run log: {escape(str(log_file))}")
@@ -238,13 +240,14 @@ def _show_result(result, log_file: Path) -> None:
             sys.stdout.flush()
 
 
-def _log_result(result) -> None:
+def _log_result(result: RunResult) -> None:
     """How the run ended, into the run log (its events are already there: the recorder logs each as it happens)."""
     log.log(logging.INFO if result.state == "completed" else logging.ERROR, "%s: %s; high voltage: %s; %d samples",
             result.state, result.reason, result.safe_path, result.samples)
 
 
-def _execute(prepared, live: bool, execute: Callable[[Callable[[Engine, object], None] | None], RunResult]):
+def _execute(prepared: PreparedRun, live: bool,
+             execute: Callable[[Callable[[Engine, object], None] | None], RunResult]) -> RunResult:
     """Execute the run (``execute``, given what to call with the engine), with the live view on a terminal."""
     from rich.live import Live
 
@@ -279,7 +282,7 @@ def _execute(prepared, live: bool, execute: Callable[[Callable[[Engine, object],
     return execute(None)
 
 
-def _print_result(result) -> None:
+def _print_result(result: RunResult) -> None:
     speed = result.run_time / result.wall_time if result.wall_time > 0 else float("nan")
     colour = "green" if result.state == "completed" else "red"
     console.print(f"[{colour}]{result.state}[/]: {escape(result.reason)}")
@@ -312,7 +315,7 @@ def _inspect(run_file: Path, json_out: bool) -> tuple[dict[str, object] | None, 
     return None, found.complete
 
 
-def _inspect_tables(found) -> None:
+def _inspect_tables(found: Inspection) -> None:
     """``bench inspect`` on a terminal: the run file's metadata, its streams, its last events and its fits."""
     r, a, run_file, manual = found.run, found.run.attrs, found.file, found.manual
     meta = Table(title="run file", show_header=False)

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bench.identify.core import FitResult, Problem, assess, to_optimiser
+from bench.identify.core import FitResult, RecordedProblem, assess, to_optimiser
 
 # flags that say a parameter is not determined (a bound is a property of the estimate, not of the data)
 UNDETERMINED = ("does not change the cost", "poorly determined", "correlated with")
@@ -36,7 +36,7 @@ class CampaignReport:
         return [n for n in self.names if n not in self.campaign_undetermined
                 and all(n in u for u in self.undetermined)]
 
-    def as_dict(self) -> dict:
+    def as_dict(self) -> dict[str, object]:
         """JSON-ready summary (stored beside the fit)."""
         return {"records": self.records, "conditions": self.conditions,
                 "undetermined_per_record": self.undetermined, "undetermined": self.campaign_undetermined,
@@ -47,10 +47,10 @@ def _undetermined(flags: list[str]) -> list[str]:
     return sorted({f.split(": ", 1)[0] for f in flags if any(k in f for k in UNDETERMINED)})
 
 
-def record_conditions(problem: Problem) -> list[str]:
+def record_conditions(problem: RecordedProblem) -> list[str]:
     """A short description of each record's conditions, from its inputs and packed template."""
     out = []
-    for rec in problem.records:  # type: ignore[attr-defined]
+    for rec in problem.records:
         U = rec.U
         if U.shape[1] == 2:  # membrane: (Φ, T)
             out.append(f"{np.max(np.abs(U[:, 0])) / 1e3:.3g} kV, {np.median(U[:, 1]):.0f} K")
@@ -60,12 +60,12 @@ def record_conditions(problem: Problem) -> list[str]:
     return out
 
 
-def campaign_identifiability(problem: Problem, result: FitResult) -> CampaignReport:
+def campaign_identifiability(problem: RecordedProblem, result: FitResult) -> CampaignReport:
     """Which parameters each record determines alone, at the campaign fit's optimum (``problem``: the one the
     fit's Jacobian was computed on — the fine problem when the fit had one)."""
     if result.jacobian is None or result.residual is None or result.z is None:
         raise ValueError("the fit result carries no Jacobian: campaign identifiability needs a fresh fit")
-    records = problem.records  # type: ignore[attr-defined]
+    records = problem.records
     mask = np.isfinite(problem.data)
     pos = np.cumsum(mask) - 1  # index of each compared point among the compared points
     log = np.asarray(problem.log, bool)

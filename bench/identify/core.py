@@ -12,7 +12,7 @@ no influence on the cost, or almost perfectly correlated with another are flagge
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Literal, Protocol
 
@@ -38,6 +38,23 @@ class Problem(Protocol):
 
     def predict(self, Z: np.ndarray) -> np.ndarray:
         """Model predictions for each row of Z (S × D) → S × len(data); NaN where a model failed."""
+
+
+class Record(Protocol):
+    """One record of a problem: its inputs per step, packed template, compared data and where it came from."""
+
+    U: np.ndarray
+    template: np.ndarray
+    data: np.ndarray
+    source: str
+
+
+class RecordedProblem(Problem, Protocol):
+    """A problem made of records whose data are concatenated in ``data`` (campaign analysis reads them)."""
+
+    @property
+    def records(self) -> Sequence[Record]:
+        """The records, in the order of their data."""
 
 
 @dataclass(frozen=True)
@@ -127,7 +144,7 @@ def noise_of(data: np.ndarray) -> float:
     floor = max(1e-9 * rms, 1e-300)
     if d4.size < 3:
         return floor
-    return max(1.4826 * float(np.median(np.abs(d4 - np.median(d4)))) / np.sqrt(70.0), floor)
+    return max(1.4826 * float(np.median(np.abs(d4 - np.median(d4)))) / float(np.sqrt(70.0)), floor)
 
 
 def sigma_of(problem: Problem) -> np.ndarray:
@@ -141,7 +158,7 @@ def sigma_of(problem: Problem) -> np.ndarray:
 def _costs(problem: Problem, pred: np.ndarray, kind: Cost) -> np.ndarray:
     mask = np.isfinite(problem.data)
     r = ((pred - problem.data) / sigma_of(problem))[:, mask]
-    c = np.sum(np.abs(r), axis=1) if kind == "sae" else np.sum(r * r, axis=1)
+    c: np.ndarray = np.sum(np.abs(r), axis=1) if kind == "sae" else np.sum(r * r, axis=1)
     c[~np.all(np.isfinite(r), axis=1)] = np.inf
     return c
 

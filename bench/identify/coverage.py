@@ -91,7 +91,8 @@ class Coverage:
 
     def rate(self) -> np.ndarray:
         """Coverage of each parameter over the repeats in which it was determined."""
-        return self.covered / np.maximum(self.determined, 1)
+        rate: np.ndarray = self.covered / np.maximum(self.determined, 1)
+        return rate
 
 
 def coverage(free: list[str], repeats: int, sigma: float = 0.5e-6, seed: int = 0,

@@ -47,7 +47,8 @@ def _lambda_part(part: tuple[list[np.ndarray], np.ndarray], P: np.ndarray, h: fl
 
     Us, Y0 = part
     threads = int(getattr(get_worker(), "nthreads", 1) or 1)  # the worker's share of cores: no oversubscription
-    numba.set_num_threads(max(1, min(threads, numba.config.NUMBA_NUM_THREADS)))
+    most = numba.config.NUMBA_NUM_THREADS  # type: ignore[attr-defined]  # numba.config sets its NUMBA_* at import
+    numba.set_num_threads(max(1, min(threads, int(most))))
     return membrane_batch_records(P, Y0, Us, h, stride, window)
 
 

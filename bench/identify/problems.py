@@ -15,7 +15,7 @@ import itertools
 import json
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -39,7 +39,8 @@ J_BOUNDS = ((100.0, 400.0), (200.0, 500.0), (300.0, 600.0), (400.0, 700.0), (500
 def _hold(t_set: np.ndarray, v_set: np.ndarray, t: np.ndarray) -> np.ndarray:
     """Zero-order hold: the value set at or before each time (the step ending at a set time sees the old one)."""
     i = np.searchsorted(t_set, t - 1e-9, side="left") - 1
-    return np.where(i >= 0, v_set[np.clip(i, 0, None)], 0.0)
+    held: np.ndarray = np.where(i >= 0, v_set[np.clip(i, 0, None)], 0.0)
+    return held
 
 
 def _sampled(t_grid: np.ndarray, t_data: np.ndarray, values: np.ndarray) -> np.ndarray:
@@ -47,7 +48,7 @@ def _sampled(t_grid: np.ndarray, t_data: np.ndarray, values: np.ndarray) -> np.n
     NaN elsewhere (between sparse samples, e.g. 10-Hz polling during rests, interpolation would invent data)."""
     if t_data.size < 2:
         return np.full(t_grid.size, np.nan)
-    out = np.interp(t_grid, t_data, values, left=np.nan, right=np.nan)
+    out: np.ndarray = np.interp(t_grid, t_data, values, left=np.nan, right=np.nan)
     spacing = float(t_grid[1] - t_grid[0]) if t_grid.size > 1 else np.inf
     j = np.clip(np.searchsorted(t_data, t_grid), 1, t_data.size - 1)
     gap = np.minimum(np.abs(t_grid - t_data[j - 1]), np.abs(t_data[j] - t_grid))
@@ -125,7 +126,8 @@ class MembraneProblem:
         the rest state where the drive resumes (the protocols' long rests are there for the specimen to
         recover) and keeps the first ``keep_rest`` s of the rest that ends it (``split_rest`` 0: whole files).
         """
-        self.h, self.data_rate, self.records, self.average = h, data_rate, [], average
+        self.h, self.data_rate, self.average = h, data_rate, average
+        self.records: list[_Record] = []
         self.reference_kernel = reference_kernel
         self.split_rest, self.keep_rest = split_rest, keep_rest
         self.remote: DistributedPredict | None = None
@@ -152,7 +154,8 @@ class MembraneProblem:
         if spec["kind"] != "membrane" or "laser" not in run.streams:
             raise ValueError(f"run file {source}: not a membrane run with laser data")
         model = spec["model"]
-        params = MembraneParams(**{k: tuple(v) if isinstance(v, list) else v for k, v in model.items()})
+        fields: dict[str, Any] = {k: tuple(v) if isinstance(v, list) else v for k, v in model.items()}  # JSON
+        params = MembraneParams(**fields)
         self.template = self.template or params
         stride = max(1, round(1.0 / (self.data_rate * self.h)))
         sp = applied_voltage(run, measured=True)
@@ -178,11 +181,18 @@ class MembraneProblem:
             where = source if len(windows) == 1 else f"{source} [{a:.1f}, {b:.1f}] s"
             self.records.append(_Record(U, params.initial_state(), params.pack(), stride, data, where))
 
+    @property
+    def recorded(self) -> MembraneParams:
+        """The specimen model recorded in the first run file read."""
+        if self.template is None:
+            raise ValueError("no membrane record read: no specimen model")
+        return self.template
+
     def params_of(self, z: np.ndarray) -> MembraneParams:
         """Physical MembraneParams for one optimiser vector."""
         v = to_physical(self.log, z)
         mu, J, tau = tuple(v[2:6]), tuple(v[6:10]), tuple(v[10:14])
-        return self.template.with_units(float(v[0]), float(v[1]), mu, J,  # type: ignore[union-attr]
+        return self.recorded.with_units(float(v[0]), float(v[1]), mu, J,
                                         tuple(m * t for m, t in zip(mu, tau, strict=True)))
 
     def predict(self, Z: np.ndarray) -> np.ndarray:
@@ -191,12 +201,12 @@ class MembraneProblem:
             return self.predict_reference(Z)
         Z = np.atleast_2d(Z)
         P = np.stack([self.params_of(z).pack() for z in Z])
-        t = self.template
+        t = self.recorded
         if self.remote is not None:
-            return t.L_d * (self.remote(P) - t.lambda_pre)  # type: ignore[union-attr]
+            return t.L_d * (self.remote(P) - t.lambda_pre)
         lam = membrane_batch_records(P, np.stack([r.y0 for r in self.records]), [r.U for r in self.records],
                                      self.h, self.records[0].stride, self.records[0].stride if self.average else 0)
-        return t.L_d * (lam - t.lambda_pre)  # type: ignore[union-attr]
+        return t.L_d * (lam - t.lambda_pre)
 
     def distribute(self, client: Client | None) -> None:
         """Evaluate candidates on a dask cluster from now on (None: in-process again)."""
@@ -215,23 +225,25 @@ class MembraneProblem:
         Z = np.atleast_2d(Z)
         out = []
         P = np.stack([self.params_of(z).pack() for z in Z])
-        t = self.template
+        t = self.recorded
         for rec in self.records:
             Y0 = np.tile(rec.y0, (Z.shape[0], 1))
             lam = run_fixed_batch(MODEL_MEMBRANE, Y0, rec.U, self.h, P, 0, rec.stride,
                                   rec.stride if self.average else 0)
-            out.append(t.L_d * (lam - t.lambda_pre))  # type: ignore[union-attr]
+            out.append(t.L_d * (lam - t.lambda_pre))
         return np.concatenate(out, axis=1)
 
     def reference(self) -> dict[str, float]:
         """Physical values of the specimen model recorded in the (first) run file, by parameter name."""
-        t = self.template
-        return dict(zip(self.names, (float(x) for x in (t.mu0, t.J0, *t.mu, *t.J, *t.tau)),  # type: ignore[union-attr]
+        t = self.recorded
+        return dict(zip(self.names, (float(x) for x in (t.mu0, t.J0, *t.mu, *t.J, *t.tau)),
                         strict=True))
 
     def start(self) -> np.ndarray:
         """Optimiser vector of the recorded specimen's parameters (thesis Table 4.4 unless the run says otherwise)."""
-        return np.clip(to_optimiser(self.log, list(self.reference().values())), self.lower, self.upper)
+        start: np.ndarray = np.clip(to_optimiser(self.log, np.array(list(self.reference().values()))), self.lower,
+                                    self.upper)
+        return start
 
 
 class LozengeProblem:
@@ -308,9 +320,11 @@ class LozengeProblem:
         v = to_physical(self.log, z)
         K = self.K
         base = template or self.base
-        material = replace(base.material, mu=float(v[0]), Jm=float(v[1]), C2=float(v[2]))  # type: ignore[union-attr]
+        if base is None:
+            raise ValueError("no LS-DEA record read: no specimen model")
+        material = replace(base.material, mu=float(v[0]), Jm=float(v[1]), C2=float(v[2]))
         branches = tuple(MaxwellBranch(float(v[3 + k]), float(v[3 + K + k])) for k in range(K))
-        return replace(base, material=material, branches=branches, damping=float(v[3 + 2 * K]))  # type: ignore[type-var]
+        return replace(base, material=material, branches=branches, damping=float(v[3 + 2 * K]))
 
     def predict(self, Z: np.ndarray) -> np.ndarray:
         """Forces [N] (motor / blocked) or apertures [m] (hung) for each row of Z, records concatenated."""
@@ -332,7 +346,8 @@ class LozengeProblem:
         m = b.material
         z = [m.mu, m.Jm, m.C2] + [np.log10(b.branches[0].mu)] * self.K + [np.log10(b.branches[0].tau)] * self.K + \
             [b.damping]
-        return np.clip(np.array(z, float), self.lower, self.upper)
+        start: np.ndarray = np.clip(np.array(z, float), self.lower, self.upper)
+        return start
 
 
 def match_membrane_units(fitted: dict[str, float], reference: dict[str, float]) -> dict[int, int]:

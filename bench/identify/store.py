@@ -27,6 +27,7 @@ from __future__ import annotations
 import json
 from dataclasses import asdict
 from pathlib import Path
+from typing import Any
 
 import h5py
 import numpy as np
@@ -73,7 +74,7 @@ def _check_sidecar(f: h5py.File, side: Path, run_path: str | Path, identity: dic
 
 
 def write_fit(run_path: str | Path, model: str, result: FitResult, records: list[str],
-              campaign: dict | None = None, *, sidecar: bool = False) -> str:
+              campaign: dict[str, object] | None = None, *, sidecar: bool = False) -> str:
     """Append the fit to a finished run file, or with ``sidecar`` to its fit file (:func:`fit_sidecar`, created if
     absent); returns the group name. ``campaign``: the campaign report (which parameters the records determine
     alone and together), stored as JSON in attribute ``campaign``."""
@@ -91,7 +92,8 @@ def write_fit(run_path: str | Path, model: str, result: FitResult, records: list
         return _write_group(f, model, result, records, campaign)
 
 
-def _write_group(f: h5py.File, model: str, result: FitResult, records: list[str], campaign: dict | None) -> str:
+def _write_group(f: h5py.File, model: str, result: FitResult, records: list[str],
+                 campaign: dict[str, object] | None) -> str:
     g0 = f.require_group("fit")
     k = 1
     while f"{model}-{k}" in g0:
@@ -123,10 +125,10 @@ def _write_group(f: h5py.File, model: str, result: FitResult, records: list[str]
         g.create_dataset("status", data=np.array(tr.status, dtype=object), dtype=text)
         g.attrs.update({"interval_method": tr.method, "confidence": tr.confidence, "chi2_reduced": tr.chi2_reduced,
                         "trust": json.dumps(tr.as_dict(result.names))})
-    return g.name
+    return str(g.name)
 
 
-def read_fits(run_path: str | Path) -> list[dict]:
+def read_fits(run_path: str | Path) -> list[dict[str, Any]]:
     """Fits stored in a run file and in its fit file (newest last): dicts with ``file`` (where it is stored),
     group, names, values, bounds, cost, flags, …; ValueError if the fit file belongs to another run."""
     out = _read_groups(run_path)
@@ -145,8 +147,8 @@ def _run_identity_any(run_path: str | Path) -> dict[str, str]:
                 "protocol_sha256": str(f.attrs.get("protocol_sha256", ""))}
 
 
-def _read_groups(path: str | Path) -> list[dict]:
-    out: list[dict] = []
+def _read_groups(path: str | Path) -> list[dict[str, Any]]:
+    out: list[dict[str, Any]] = []
     with h5py.File(path, "r") as f:
         if "fit" not in f:
             return out

@@ -31,6 +31,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from scipy.stats import chi2 as chi2_dist
@@ -60,8 +61,9 @@ class Trust:
     lag1: float  # lag-1 autocorrelation of the weighted residual
     scale: float  # factor on the χ² threshold (≥ 1)
     threshold: float  # Δχ² that bounds the intervals (quantile × scale)
-    tradeoffs: list[dict] = field(default_factory=list)  # {"names", "quantity", "value", "unit", "relative", ...}
-    starts: list[dict] = field(default_factory=list)  # per start: seed, chi2, values
+    # {"names", "quantity", "value", "unit", "relative", ...}
+    tradeoffs: list[dict[str, Any]] = field(default_factory=list)
+    starts: list[dict[str, Any]] = field(default_factory=list)  # per start: seed, chi2, values
     starts_agree: bool = True
     disagree: list[str] = field(default_factory=list)  # parameters on which the starts disagree
     spread: np.ndarray | None = None  # per parameter: (max − min)/|best| over the starts
@@ -71,7 +73,7 @@ class Trust:
     evaluations: int = 0
     wall_time: float = 0.0
 
-    def as_dict(self, names: list[str]) -> dict:
+    def as_dict(self, names: list[str]) -> dict[str, object]:
         """JSON-ready summary (stored with the fit)."""
         return {"method": self.method, "confidence": self.confidence, "noise": self.noise,
                 "chi2_reduced": self.chi2_reduced, "lag1": self.lag1, "scale": self.scale,
@@ -96,7 +98,7 @@ class Weighted:
         """S × N weighted residuals; rows with a failed model are +inf."""
         Z = np.atleast_2d(Z)
         self.evaluations += Z.shape[0]
-        R = (self.predict(Z)[:, self.mask] - self.data) / self.sigma
+        R: np.ndarray = (self.predict(Z)[:, self.mask] - self.data) / self.sigma
         R[~np.all(np.isfinite(R), axis=1)] = np.inf
         return R
 
@@ -295,7 +297,7 @@ def variance_scale(chi2_red: float, rho: float, n: int) -> float:
 
 
 def tradeoffs(names: list[str], units: list[str], values: np.ndarray, cov_phys: np.ndarray,
-              corr: np.ndarray, status: list[str], z_conf: float) -> list[dict]:
+              corr: np.ndarray, status: list[str], z_conf: float) -> list[dict[str, Any]]:
     """Pairs correlated beyond :data:`TRADE_OFF`: the combination (sum of like quantities, product, ratio) with
     the smallest relative spread, its value and relative half-width at the confidence level (local)."""
     out = []
@@ -373,12 +375,13 @@ def assess_trust(problem: Problem, result: FitResult, starts: list[tuple[int, np
     span = hi - lo
 
     def step_of(z: np.ndarray) -> np.ndarray:
-        return np.maximum(1e-4 * np.abs(z), 1e-6 * span)
+        step: np.ndarray = np.maximum(1e-4 * np.abs(z), 1e-6 * span)
+        return step
 
-    centres = []
+    centres: list[tuple[int, np.ndarray, float]] = []  # per start: seed, optimum, χ²
     for seed, z_k, lo_k, hi_k in starts:
         out = _lm(w, z_k[None, :], free, np.array([-1]), lo_k, hi_k, step_of(z_k), 25, 0.0, 1e-4)
-        centres.append([seed, out[0, :D], float(out[0, D])])
+        centres.append((seed, out[0, :D], float(out[0, D])))
     best = min(range(len(centres)), key=lambda k: centres[k][2])
     lo, hi = starts[best][2], starts[best][3]
     z, cmin = centres[best][1], centres[best][2]
@@ -405,7 +408,7 @@ def assess_trust(problem: Problem, result: FitResult, starts: list[tuple[int, np
             break
         out = _lm(w, z2[None, :], free, np.array([-1]), lo, hi, step_of(z2), 40, 0.01 * threshold)
         z, cmin = out[0, :D], float(out[0, D])
-        centres[best][1:] = [z, cmin]
+        centres[best] = (centres[best][0], z, cmin)
     step_shift = np.zeros(D)
     widened = np.zeros(D, bool)
     if coarse is not None:

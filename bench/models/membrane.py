@@ -39,6 +39,7 @@ P_L, P_L3, P_RHO, P_EPS, P_A, P_B, P_C, P_KAPPA, P_LPRE, P_KF, P_SPRE, P_MU0, P_
 P_BRANCHES = 14  # then mu[n], J[n], eta[n]
 
 Electrostriction = Literal["corrected", "thesis"]
+ELECTROSTRICTIONS: tuple[Electrostriction, ...] = ("corrected", "thesis")
 
 
 @dataclass(frozen=True)
@@ -72,7 +73,7 @@ class MembraneParams:
         if len(self.J) != n or len(self.eta) != n:
             raise ValueError(f"mu, J and eta need one entry per Maxwell unit; got {n}, {len(self.J)}, "
                              f"{len(self.eta)}")
-        if self.electrostriction not in ("corrected", "thesis"):
+        if self.electrostriction not in ELECTROSTRICTIONS:
             raise ValueError(f"electrostriction must be 'corrected' or 'thesis', got {self.electrostriction!r}")
         for name in ("L", "L3", "rho", "lambda_pre", "mu0", "J0"):
             if not getattr(self, name) > 0:

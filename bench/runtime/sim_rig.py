@@ -26,7 +26,7 @@ from sim_devices.keyence_lkg import TURNAROUND_S as LKG_TURNAROUND_S
 from sim_devices.keyence_lkg import KeyenceLKGSim, LaserHead
 from sim_devices.labjack_t7 import LabJackT7Sim
 from sim_devices.linmot_drive import LinMotDriveSim
-from sim_devices.modbus_devices import STANDARD_GRAVITY, Adam4017PSim, Adam4024Sim, Dgt1sSim, Scale
+from sim_devices.modbus_devices import STANDARD_GRAVITY, Adam4017PSim, Adam4024Sim, Dgt1sSim, ModbusModule, Scale
 from sim_devices.modbus_host import ModbusHost, SimBus
 from sim_devices.transport import Faults, Line, PtyDevice, TwinTimer
 
@@ -115,7 +115,7 @@ class SimRig:
                                                        checksum=m.checksum), m.baudrate, LINRS_TURNAROUND_S)
         if rig.daq is not None:
             self._start_daq()
-        buses: dict[str, list] = {}
+        buses: dict[str, list[ModbusModule]] = {}
         if (a := rig.amplifier) is not None and a.drive == "adam":
             trek = amplifier_spec(self.rig)
             ao = Adam4024Sim(a.ao_unit, self.plant, self.clock, amplifier_channel=a.ao_channel,
@@ -202,11 +202,11 @@ class SimRig:
                    stream_port=stream + UNPRIVILEGED_OFFSET if 0 < stream < 1024 else stream)
         return twin
 
-    def _serve_serial(self, role: str, twin: object, baud: float, turnaround: float) -> None:
+    def _serve_serial(self, role: str, twin: Callable[[bytes], bytes], baud: float, turnaround: float) -> None:
         self.faults[role] = Faults(latency=self.rig.simulation.latency_s, clock=self.clock.now)
         self.twins[role] = twin
         self.lines[role] = Line(self.clock, baud if self.timing == "real" else None, turnaround=turnaround)
-        self._serial[role] = PtyDevice(twin, role, self.faults[role], self.lines[role]).start()  # type: ignore[arg-type]
+        self._serial[role] = PtyDevice(twin, role, self.faults[role], self.lines[role]).start()
 
     def faults_of(self, name: str) -> Faults:
         """The :class:`Faults` of the link serving ``name``: a serial role (``laser``, ``motor``), a bus name

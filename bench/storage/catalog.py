@@ -29,7 +29,7 @@ import logging
 import os
 import socket
 from collections.abc import Iterable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -144,7 +144,7 @@ class Catalog:
         if self.backend == "postgresql":
             from sqlalchemy.dialects.postgresql import insert
         else:
-            from sqlalchemy.dialects.sqlite import insert  # type: ignore[assignment]
+            from sqlalchemy.dialects.sqlite import insert  # type: ignore[assignment]  # same upsert API, other class
         stmt = insert(self.runs)
         keys = {"host", "path"}
         stmt = stmt.on_conflict_do_update(index_elements=["host", "path"],
@@ -402,7 +402,7 @@ class Reconciled:
     added: int = 0
     updated: int = 0
     removed: int = 0
-    unreadable: list[str] | None = None
+    unreadable: list[str] = field(default_factory=list)
 
 
 def reconcile(cat: Catalog, folder: Path, rebuild: bool = False) -> Reconciled:
@@ -414,7 +414,7 @@ def reconcile(cat: Catalog, folder: Path, rebuild: bool = False) -> Reconciled:
         raise ValueError(f"runs folder {folder}: not found")
     host = host_name()
     have = {r["path"]: r for r in cat.rows(host=host, under=folder)}
-    out = Reconciled(unreadable=[])
+    out = Reconciled()
     rows, seen = [], set()
     for p in run_files(folder):
         key = _abs(p)
@@ -425,7 +425,7 @@ def reconcile(cat: Catalog, folder: Path, rebuild: bool = False) -> Reconciled:
         try:
             rows.append(row_from_file(p))
         except (ValueError, OSError, KeyError) as exc:
-            out.unreadable.append(f"{p}: {' '.join(str(exc).split())}")  # type: ignore[union-attr]
+            out.unreadable.append(f"{p}: {' '.join(str(exc).split())}")
             continue
         if old is None:
             out.added += 1

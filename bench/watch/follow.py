@@ -110,7 +110,7 @@ def _json(a: np.ndarray) -> list[float | None]:
     """Floats for JSON: NaN and ±inf (a bin with no finite value) as null."""
     out: list[float | None] = a.tolist()
     if not np.isfinite(a).all():
-        out = [v if np.isfinite(v) else None for v in out]  # type: ignore[arg-type]
+        out = [v if v is not None and np.isfinite(v) else None for v in out]
     return out
 
 

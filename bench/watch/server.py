@@ -20,7 +20,6 @@ import secrets
 import socket
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 from starlette.applications import Starlette
 from starlette.middleware import Middleware
@@ -29,7 +28,7 @@ from starlette.requests import Request
 from starlette.responses import FileResponse, JSONResponse, Response
 from starlette.routing import Mount, Route
 from starlette.staticfiles import StaticFiles
-from starlette.types import ASGIApp, Receive, Scope, Send
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from bench.runtime.control import write_control
 from bench.watch.follow import Follower
@@ -94,13 +93,13 @@ class TokenGate:
             return
         if secrets.compare_digest(offered[1].encode(), self.token.encode()):  # the page's address: keep it as cookie
 
-            async def with_cookie(message: dict[str, Any]) -> None:
+            async def with_cookie(message: Message) -> None:
                 if message["type"] == "http.response.start":
                     cookie = f"{TOKEN_COOKIE}={self.token}; Path=/; HttpOnly; SameSite=Strict"
                     message.setdefault("headers", []).append((b"set-cookie", cookie.encode()))
                 await send(message)
 
-            await self.app(scope, receive, with_cookie)  # type: ignore[arg-type]
+            await self.app(scope, receive, with_cookie)
             return
         await self.app(scope, receive, send)
 

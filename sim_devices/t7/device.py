@@ -157,7 +157,7 @@ class LabJackT7Sim(RegisterIO):
                 if self._writer is not None:
                     self._writer.close()
                 if self._server is not None:
-                    await self._server.shutdown()  # type: ignore[no-untyped-call]  # pymodbus 3.16: unannotated
+                    await self._server.shutdown()
 
             with contextlib.suppress(Exception):
                 asyncio.run_coroutine_threadsafe(shutdown(), loop).result(timeout=5)

@@ -142,7 +142,7 @@ class T7Server(ModbusTcpServer):
     over 264 bytes (the Modbus limit), a T7 takes MBFB packets up to 1040 and the twin answers a longer one."""
 
     def callback_new_connection(self) -> ServerRequestHandler:
-        handler = ServerRequestHandler(  # type: ignore[no-untyped-call]  # pymodbus 3.16: unannotated
+        handler = ServerRequestHandler(
             self, self.trace_packet, self.trace_pdu, self.trace_connect)
         handler.max_buffer_size = 6 + 0xFFFF  # MBAP: 6 header bytes + a 16-bit length
         return handler

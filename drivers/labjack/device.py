@@ -1,0 +1,65 @@
+"""The T7 as an instrument: connect (a T7, its calibration, no stream left running, its watchdog), check,
+identify, safe state and close, over the pieces in this package."""
+
+from __future__ import annotations
+
+import math
+
+from drivers.errors import InstrumentStateError
+from drivers.interfaces import CheckResult, Identity
+from drivers.labjack.registers import (
+    FIRMWARE_VERSION,
+    HARDWARE_VERSION,
+    PRODUCT_ID,
+    PRODUCT_T7,
+    SERIAL_NUMBER,
+    STREAM_ENABLE,
+)
+from drivers.labjack.stream_in import T7Stream
+from drivers.labjack.watchdog import T7Watchdog
+
+
+class LabJackT7(T7Stream, T7Watchdog):
+    """Driver of one LabJack T7 over Ethernet (command-response on ``port``, stream on ``stream_port``)."""
+
+    def connect(self) -> None:
+        """Open the Modbus link, check it is a T7, read its calibration, stop a stream left running."""
+        self.link.open()
+        product = self.read_f32(PRODUCT_ID)
+        if not (math.isfinite(product) and round(product) == PRODUCT_T7):  # inf, NaN, negative: one line too
+            raise InstrumentStateError(self.name, f"PRODUCT_ID (register {PRODUCT_ID}) reads {product:g}, "
+                                       f"expected {PRODUCT_T7} (T7)")
+        self.serial = self.read_u32(SERIAL_NUMBER)
+        self.cal = self.read_calibration()
+        if self.read_u32(STREAM_ENABLE):
+            self.write_u32(STREAM_ENABLE, 0)
+        if self.watchdog_s is not None:
+            self.configure_watchdog(self.watchdog_s, self.safe_dac)
+
+    def check(self) -> CheckResult:
+        """Whether a stream runs; AIN0 by command-response."""
+        return CheckResult("stream running" if self.streaming else "idle", (("AIN0", self.read_ain(0)),))
+
+    def identify(self) -> Identity:
+        """PRODUCT_ID, serial number, firmware and hardware versions."""
+        return Identity("LabJack", "T7", {"serial": str(self.read_u32(SERIAL_NUMBER)),
+                                          "firmware": f"{self.read_f32(FIRMWARE_VERSION):.4f}",
+                                          "hardware": f"{self.read_f32(HARDWARE_VERSION):.2f}"})
+
+    def safe_state(self) -> None:
+        """Stop the stream (the DACs stop updating) and write the safe DAC values."""
+        if not self.link.is_open:
+            return
+        try:
+            self.stop()
+        finally:
+            for ch, v in enumerate(self.safe_dac):
+                self.write_dac(ch, v)
+
+    def close(self) -> None:
+        """Safe state, then release both sockets."""
+        try:
+            self.safe_state()
+        finally:
+            self._close_stream_socket()
+            self.link.close()

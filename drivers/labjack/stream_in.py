@@ -1,0 +1,324 @@
+"""The T7's hardware-timed stream: arm (inputs, scan list, stream-out preloaded), kickoff, collect the
+spontaneous packets from the stream port as numbered scans, complete, stop ([D] §3.2, [E] the packet stream)."""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import select
+import socket
+import struct
+
+import numpy as np
+
+from drivers.cancel import check
+from drivers.errors import (
+    InstrumentConnectionError,
+    InstrumentError,
+    InstrumentStateError,
+    InstrumentTimeoutError,
+    ProtocolError,
+)
+from drivers.interfaces import StreamBlock, StreamSpec
+from drivers.labjack.packets import StreamPacket, parse_stream_packet
+from drivers.labjack.plan import StreamPlan, StreamState
+from drivers.labjack.registers import (
+    AIN0,
+    AUTO_TARGET,
+    CLOCK_SOURCE,
+    DAC0,
+    DUMMY,
+    ERRORS,
+    MAX_OUT_BUFFER_BYTES,
+    MAX_SAMPLES_PER_PACKET,
+    MAX_SCANLIST,
+    MAX_STREAM_BUFFER_BYTES,
+    OUT_ALLOC0,
+    OUT_ENABLE0,
+    OUT_PACKET_VALUES,
+    OUT_SCAN0,
+    OUT_TARGET0,
+    RANGES,
+    SCANLIST0,
+    SCANRATE,
+    ST_BUFFER_FULL,
+    ST_BURST_COMPLETE,
+    ST_RECOVER_END,
+    ST_RECOVER_OVERFLOW,
+    ST_SCAN_OVERLAP,
+    STREAM_ENABLE,
+    TARGET_SPONTANEOUS,
+    f32_words,
+    u32_words,
+)
+from drivers.labjack.stream_out import T7StreamOut
+
+
+class T7Stream(T7StreamOut):
+    """The stream's life: arm, kickoff, collect, complete, stop (the stream-out it plays: :class:`T7StreamOut`)."""
+
+    def arm(self, spec: StreamSpec) -> StreamPlan:
+        """Configure inputs, stream registers, scan list and stream-out; preload the out buffer.
+
+        Nothing runs until :meth:`kickoff`. Refuses (nothing sent) what the T7 cannot do.
+        """
+        if self.streaming:
+            raise InstrumentStateError(self.name, "arm while streaming: stop first")
+        n_in = len(spec.inputs)
+        out = spec.output
+        if n_in < 1:
+            raise ValueError(f"{self.name}: a stream needs at least one input")
+        n_addr = n_in + (out is not None)
+        if n_addr > MAX_SCANLIST:
+            raise ValueError(f"{self.name}: scan list of {n_addr} addresses, at most {MAX_SCANLIST}")
+        if not spec.scan_rate > 152.588:
+            raise ValueError(f"{self.name}: scan rates ≤ 152.588 Hz are not supported by this driver")
+        spp = spec.samples_per_packet or (MAX_SAMPLES_PER_PACKET // n_in) * n_in
+        if not 1 <= spp <= MAX_SAMPLES_PER_PACKET:
+            raise ValueError(f"{self.name}: samples_per_packet must be 1…{MAX_SAMPLES_PER_PACKET}")
+        codes = volts = None
+        capacity = 0
+        if out is not None:
+            v = self._checked_out(out.volts, out.dac)
+            if not 1 <= out.hold <= v.size:
+                raise ValueError(f"{self.name}: hold must be 1…{v.size} values")
+            codes = self.cal.dac_codes(v, out.dac, out.within, self.dac_bits)
+            volts = self.cal.dac_volts(codes, out.dac, self.dac_bits)
+            capacity = (spec.out_buffer_bytes or MAX_OUT_BUFFER_BYTES) // 2 - 1
+        gains = tuple(RANGES.index(i.range_volts) for i in spec.inputs)
+        scan_list = tuple([OUT_SCAN0] if out is not None else []) + tuple(AIN0 + 2 * i.ain for i in spec.inputs)
+        if self.read_u32(STREAM_ENABLE):
+            self.write_u32(STREAM_ENABLE, 0)
+        for i in spec.inputs:
+            self.configure_ain(i.ain, i.range_volts)
+        self.write_regs(SCANRATE, f32_words(spec.scan_rate) + u32_words(n_addr) + u32_words(spp)
+                        + f32_words(spec.settling_us) + u32_words(spec.resolution_index)
+                        + u32_words(spec.buffer_size_bytes or MAX_STREAM_BUFFER_BYTES))
+        self.write_regs(AUTO_TARGET, u32_words(TARGET_SPONTANEOUS) + u32_words(0) + u32_words(spec.num_scans))
+        self.write_u32(CLOCK_SOURCE, 0)
+        self.write_regs(SCANLIST0, [w for a in scan_list for w in u32_words(a)])
+        rate = self.read_f32(SCANRATE)
+        if not rate > 0:
+            raise ProtocolError(self.name, f"device reports scan rate {rate}")
+        names = tuple(i.name or f"AIN{i.ain}" for i in spec.inputs)
+        if spec.out_ahead_s < 0 or not math.isfinite(spec.out_ahead_s):
+            raise ValueError(f"{self.name}: out_ahead_s must be a finite time ≥ 0")
+        ahead = min(capacity, max(1, math.ceil(spec.out_ahead_s * rate))) if spec.out_ahead_s else capacity
+        chunk = min(OUT_PACKET_VALUES, max(1, ahead // 4))  # a collect tops up every ~quarter of it
+        interval = (ahead - chunk) / rate / 2 if out is not None else math.inf
+        plan = StreamPlan(rate, 1.0 / rate, names, scan_list, spp, codes, volts, capacity, interval, ahead, chunk)
+        self._stream = StreamState(plan, spec, n_in, gains, out_closed=out is None or out.final)
+        if out is not None:
+            o = 2 * out.dac
+            self.write_u32(OUT_TARGET0, DAC0 + o)
+            self.write_u32(OUT_ALLOC0, spec.out_buffer_bytes or MAX_OUT_BUFFER_BYTES)
+            self.write_u32(OUT_ENABLE0, 1)
+            self._feed_out()
+        return plan
+
+    def _open_stream_socket(self) -> socket.socket:
+        try:
+            sock = socket.create_connection((self.host, self.stream_port), timeout=self.timer.bound(self.timeout))
+        except OSError as exc:
+            raise InstrumentConnectionError(self.name, f"cannot open stream port {self.host}:{self.stream_port}: "
+                                            f"{exc.strerror or exc}") from None
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        return sock
+
+    def _close_stream_socket(self) -> None:
+        s = self._stream
+        if s is not None and s.sock is not None:
+            s.sock.close()
+            s.sock = None
+
+    def kickoff(self) -> float:
+        """Open the stream socket, write STREAM_ENABLE = 1; returns the rig time of scan 0.
+
+        The time is the clock read after the device acknowledged the enable, plus one scan period; its
+        uncertainty is one Modbus round trip.
+        """
+        s = self._stream
+        if s is None or s.done:
+            raise InstrumentStateError(self.name, "kickoff without arm")
+        if self.streaming:
+            raise InstrumentStateError(self.name, "stream already running")
+        s.sock = self._open_stream_socket()
+        asked = self.clock()
+        self.write_u32(STREAM_ENABLE, 1)
+        s.t_enable = self.clock()
+        s.t0 = s.t_enable + s.plan.dt
+        s.t0_uncertainty = s.t_enable - asked  # the device enabled somewhere within the request's round trip
+        self.streaming = True
+        return s.t0
+
+    @property
+    def scan_clock_uncertainty(self) -> float:
+        """How well scan 0's time on the host clock is known [s]: the enable request's round trip (the times of
+        the scans are t0 + k/rate with t0 taken at the acknowledgement; the true enable lies within this much
+        before it)."""
+        return self._stream.t0_uncertainty if self._stream is not None else math.nan
+
+    def _receive(self, until_packets: int, timeout: float) -> list[StreamPacket]:
+        """Packets available now, and (waiting until a deadline of ``timeout`` s expires: :mod:`drivers.deadline`)
+        until ``until_packets`` total."""
+        s = self._stream
+        assert s is not None and s.sock is not None
+        out: list[StreamPacket] = []
+        deadline = self.timer.start(timeout)
+        while True:
+            check(self.cancel, self.name)
+            wait = s.packets + len(out) < until_packets and not s.done
+            r, _, _ = select.select([s.sock], [], [], min(deadline.left(), 0.05) if wait else 0.0)
+            if r:
+                try:
+                    data = s.sock.recv(1 << 16)
+                except OSError as exc:
+                    raise InstrumentConnectionError(self.name, f"stream socket lost: {exc.strerror or exc}") \
+                        from None
+                if not data:
+                    raise InstrumentConnectionError(self.name, "stream socket closed by the device")
+                s.raw += data
+                while len(s.raw) >= 6:
+                    total = 6 + struct.unpack(">H", s.raw[4:6])[0]
+                    if len(s.raw) < total:
+                        break
+                    pkt = parse_stream_packet(bytes(s.raw[:total]), self.name)
+                    del s.raw[:total]
+                    if pkt.transaction_id != (s.next_tid & 0xFFFF):
+                        raise ProtocolError(self.name, f"stream packet {pkt.transaction_id} after "
+                                            f"{(s.next_tid - 1) & 0xFFFF}: packets lost")
+                    s.next_tid += 1
+                    out.append(pkt)
+                    if pkt.status in (ST_BURST_COMPLETE, ST_BUFFER_FULL, ST_SCAN_OVERLAP, ST_RECOVER_OVERFLOW):
+                        s.done = True
+                continue
+            if not wait:
+                return out
+            if deadline.expired():
+                raise InstrumentTimeoutError(self.name, f"stream packets up to #{until_packets} not received "
+                                             f"within {timeout:g} s (have {s.packets + len(out)}){deadline.detail}")
+
+    def _expected_packets(self, until: float) -> int:
+        s = self._stream
+        assert s is not None
+        scans = math.floor((until - s.t_enable) * s.plan.scan_rate + 1e-6)
+        if s.spec.num_scans:
+            scans = min(scans, s.spec.num_scans)
+        return max(scans, 0) * s.n_in // s.plan.samples_per_packet
+
+    def collect(self, until: float | None = None, timeout: float = 1.0) -> StreamBlock:
+        """Complete scans received since the last call (scan-numbered), after topping up the out buffer.
+
+        ``until`` (rig time): first wait, up to ``timeout`` s (:mod:`drivers.deadline`), for every whole packet the
+        device has filled by then — in virtual time, call it with the clock's present to get every scan so far.
+        A gap in the packet sequence is a :class:`ProtocolError`; a device status that ends the stream
+        (scan overlap, skip-counter overflow, buffer full) an :class:`InstrumentStateError` after the data.
+        Samples are 16-bit codes converted through the calibration read at connect, which is refused unless
+        every code of every range lies within 1.1 × the range (:data:`AIN_SPAN`): no streamed sample is beyond
+        what the converter makes.
+        """
+        s = self._stream
+        if s is None or s.sock is None:
+            raise InstrumentStateError(self.name, "collect without kickoff")
+        want = self._expected_packets(until) if until is not None else 0
+        packets = self._receive(want, timeout)
+        s.packets += len(packets)
+        first = s.scans
+        rows: list[np.ndarray] = []
+        valid: list[np.ndarray] = []
+        statuses: list[int] = []
+        skipped = 0
+        backlog = 0
+        chunk: list[np.ndarray] = []  # samples of consecutive packets, converted together
+        for pkt in packets:
+            if pkt.status:
+                statuses.append(pkt.status)
+            backlog = pkt.backlog_bytes // (2 * s.n_in)
+            samples = pkt.samples
+            if pkt.status == ST_RECOVER_END:
+                self._convert(chunk, rows, valid)
+                if s.pending:
+                    raise ProtocolError(self.name, "auto-recovery ended inside a scan")
+                if samples.size < s.n_in or np.any(samples[:s.n_in] != DUMMY):
+                    raise ProtocolError(self.name, "auto-recovery end without the dummy scan")
+                samples = samples[s.n_in:]
+                skipped += pkt.additional
+                rows.append(np.full((pkt.additional, s.n_in), np.nan))
+                valid.append(np.zeros((pkt.additional, s.n_in), bool))
+                s.scans += pkt.additional
+            chunk.append(samples)
+        self._convert(chunk, rows, valid)
+        v = np.concatenate(rows) if rows else np.empty((0, s.n_in))
+        ok = np.concatenate(valid) if valid else np.empty((0, s.n_in), bool)
+        if self.streaming and not s.done:
+            self._feed_out()
+        if s.done:
+            self.streaming = False
+        block = StreamBlock(first, s.t0, s.plan.dt, s.plan.names, v, ok, backlog, skipped, tuple(statuses), s.done)
+        fatal = [c for c in statuses if c in (ST_SCAN_OVERLAP, ST_RECOVER_OVERFLOW, ST_BUFFER_FULL)]
+        if fatal:
+            raise InstrumentStateError(self.name, f"stream ended by device status {fatal[0]} "
+                                       f"({ERRORS[fatal[0]]}) at scan {s.scans}")
+        return block
+
+    def _convert(self, chunk: list[np.ndarray], rows: list[np.ndarray], valid: list[np.ndarray]) -> None:
+        """Whole scans of the samples in ``chunk`` (after the samples left over from the last packet) to volts in
+        ``rows``; the rest of a scan waits for the next packet. Empties ``chunk``."""
+        s = self._stream
+        assert s is not None
+        if not chunk:
+            return
+        allsamp = np.concatenate([np.asarray(s.pending, np.uint16), *chunk])
+        chunk.clear()
+        whole = allsamp.size // s.n_in * s.n_in
+        s.pending = allsamp[whole:].tolist()
+        raw = allsamp[:whole].reshape(-1, s.n_in)
+        volts = np.empty(raw.shape)
+        for j, g in enumerate(s.gains):
+            volts[:, j] = self.cal.ain_volts(raw[:, j], g)
+        rows.append(volts)
+        valid.append(np.ones(raw.shape, bool))
+        s.scans += raw.shape[0]
+
+    @property
+    def scans_received(self) -> int:
+        """Scan index of the next scan :meth:`collect` will return."""
+        return self._stream.scans if self._stream else 0
+
+    def complete(self, timeout: float = 10.0, poll: float = 0.05) -> list[StreamBlock]:
+        """Wait (on the rig clock: a virtual clock advances) until the burst completed or, for a continuous
+        stream with an output, every waveform value has been played and its scan collected; returns the
+        blocks collected meanwhile. ``timeout``: seconds without progress before giving up (:mod:`drivers.deadline`)."""
+        s = self._stream
+        if s is None or not self.streaming:
+            raise InstrumentStateError(self.name, "complete without a running stream")
+        codes = s.plan.out_codes
+        if not s.spec.num_scans and codes is None:
+            raise InstrumentStateError(self.name, "a continuous input-only stream never completes; use stop")
+        target = s.spec.num_scans or (s.out_base + codes.size if codes is not None else 0)
+        blocks: list[StreamBlock] = []
+        while True:
+            block = self.collect(until=self.clock(), timeout=timeout)
+            blocks.append(block)
+            if block.done or s.scans >= target:
+                return blocks
+            self.sleep(poll)
+
+    def stop(self) -> StreamBlock | None:
+        """STREAM_ENABLE = 0 (the DAC keeps its last value) and close the stream socket; returns the complete
+        scans that had arrived (a partly filled packet is not sent by the device)."""
+        s = self._stream
+        if s is None or s.sock is None:
+            return None
+        block = None
+        try:
+            if self.streaming:
+                self._lj("stop stream", self.link.write_registers, STREAM_ENABLE, u32_words(0))
+            self.streaming = False
+            with contextlib.suppress(InstrumentError):  # stopping must not fail on the data's account
+                block = self.collect(timeout=0.0)
+        finally:
+            self.streaming = False
+            s.done = True
+            self._close_stream_socket()
+        return block
