@@ -64,7 +64,7 @@ class RunAnalysis:
     specimen: str  # "membrane" | "lsdea"
     configuration: str
     steps: list[StepResult]
-    run: RunFile | None = None  # the file's metadata, events and program as read (no streams)
+    run: RunFile  # the file's metadata, events and program as read (no streams)
 
     def by_kind(self, kind: str) -> list[StepResult]:
         """Steps of one kind, in run order."""
