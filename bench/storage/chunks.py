@@ -2,8 +2,9 @@
 
 Used by the export, the quick-look plot, the analysis and the report; each dataset is cut to the records the writer
 confirmed (``/status/samples``), as :func:`bench.storage.runfile.open_run` does. A time window of a stream (a step,
-its last cycles) is found from a coarse index — each chunk's first and last time, built by one chunked pass — and
-read alone; :func:`open_source` opens a run once for all of a command's reads.
+its last cycles) is found from a coarse index — each chunk's last time, built by one chunked pass — and read
+alone (the time base must not go back: the recorder writes it in order); :func:`open_source` opens a run once for
+all of a command's reads.
 """
 
 from __future__ import annotations
@@ -97,8 +98,8 @@ class StreamChunks:
 
     def span(self, stream: str, t0: float, t1: float) -> tuple[int, int]:
         """Records ``a`` … ``b``−1: those with ``t0 ≤ t ≤ t1``."""
-        return self._position(stream, t0, "left"), max(self._position(stream, t0, "left"),
-                                                        self._position(stream, t1, "right"))
+        a = self._position(stream, t0, "left")
+        return a, max(a, self._position(stream, t1, "right"))
 
     def window(self, stream: str, t0: float, t1: float, columns: list[str] | None = None,
                neighbours: bool = False, finite: str | None = None) -> dict[str, np.ndarray]:
