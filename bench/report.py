@@ -41,14 +41,18 @@ VECTOR_FORMATS = ("pdf", "svg")
 MEASURED_V = "tab:red"  # the amplifier monitor: solid, under the command; the right axis takes its colour
 COMMANDED_V = "#4d0000"  # the command: a dark red, dashed, drawn on top (visible where the two coincide)
 ARROWS_PER_LOOP = 3
+AGG_CHUNK = 500  # vertices of a line rasterised at a time (matplotlib's agg.path.chunksize)
 LOOP_POINTS = 200_000  # points of all the loops of one figure together (each loop every k-th sample beyond)
 
 
 def save_figure(fig: Figure, path: Path, close: bool = True) -> Path:
-    """Write ``fig`` as PNG (``path``) and as PDF and SVG beside it; the layout is the figure's (constrained)."""
-    fig.savefig(path, dpi=DPI)
-    for ext in VECTOR_FORMATS:
-        fig.savefig(path.with_suffix(f".{ext}"))
+    """Write ``fig`` as PNG (``path``) and as PDF and SVG beside it; the layout is the figure's (constrained).
+    Long lines are rasterised ``AGG_CHUNK`` vertices at a time: a whole-run curve reduced to min/max pairs zigzags
+    over the axes' height, and Agg would otherwise hold a cell for every pixel it crosses at once."""
+    with matplotlib.rc_context({"agg.path.chunksize": AGG_CHUNK}):
+        fig.savefig(path, dpi=DPI)
+        for ext in VECTOR_FORMATS:
+            fig.savefig(path.with_suffix(f".{ext}"))
     if close:
         plt.close(fig)
     return path
