@@ -6,12 +6,19 @@ right), never on the data; a fitted model is drawn over the record's time span o
 (model − record, its rms in the panel's title) under it; the commanded voltage is drawn dashed on top of the
 measured one (solid, another colour), and the right axis is coloured as its curves; hysteresis loops carry
 arrows in the direction they are traversed. :func:`table3_figure` draws the Table-3 grid of a campaign.
+
+The run file is opened once (:func:`bench.storage.chunks.open_source`) and read in windows: a figure over the whole
+run draws each curve reduced to the minimum and maximum of each of ``PIXELS`` spans (every extreme kept, as
+``bench plot``); a step's figure reads that step's records; the loops of a figure share ``LOOP_POINTS`` points.
 """
 
 from __future__ import annotations
 
 import json
+import math
 import re
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -23,23 +30,29 @@ import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 
-from bench.analysis.applied import VoltageTrace, applied_voltage, measured_voltage
-from bench.analysis.runs import RunAnalysis, analyse
+from bench.analysis.applied import VoltageTrace, applied_window
+from bench.analysis.quicklook import PIXELS
+from bench.analysis.runs import RunAnalysis, analyse_source, step_records
 from bench.identify.store import read_fits
-from bench.storage.runfile import RunFile, open_run
+from bench.storage.chunks import RunSource, StreamChunks, open_source
 
 DPI = 300  # publication resolution of the PNGs
 VECTOR_FORMATS = ("pdf", "svg")
 MEASURED_V = "tab:red"  # the amplifier monitor: solid, under the command; the right axis takes its colour
 COMMANDED_V = "#4d0000"  # the command: a dark red, dashed, drawn on top (visible where the two coincide)
 ARROWS_PER_LOOP = 3
+AGG_CHUNK = 500  # vertices of a line rasterised at a time (matplotlib's agg.path.chunksize)
+LOOP_POINTS = 200_000  # points of all the loops of one figure together (each loop every k-th sample beyond)
 
 
 def save_figure(fig: Figure, path: Path, close: bool = True) -> Path:
-    """Write ``fig`` as PNG (``path``) and as PDF and SVG beside it; the layout is the figure's (constrained)."""
-    fig.savefig(path, dpi=DPI)
-    for ext in VECTOR_FORMATS:
-        fig.savefig(path.with_suffix(f".{ext}"))
+    """Write ``fig`` as PNG (``path``) and as PDF and SVG beside it; the layout is the figure's (constrained).
+    Long lines are rasterised ``AGG_CHUNK`` vertices at a time: a whole-run curve reduced to min/max pairs zigzags
+    over the axes' height, and Agg would otherwise hold a cell for every pixel it crosses at once."""
+    with matplotlib.rc_context({"agg.path.chunksize": AGG_CHUNK}):
+        fig.savefig(path, dpi=DPI)
+        for ext in VECTOR_FORMATS:
+            fig.savefig(path.with_suffix(f".{ext}"))
     if close:
         plt.close(fig)
     return path
@@ -65,26 +78,53 @@ def _legend_outside(fig: Figure, axes: list[Axes], where: str = "upper", fontsiz
         fig.legend(handles, labels, loc="outside right upper", fontsize=fontsize)
 
 
-def _record_starts(prob: Any, sp: VoltageTrace) -> list[float]:
+@contextmanager
+def _opened(path: Path, src: RunSource | None) -> Iterator[RunSource]:
+    """The run file the report has open, or (a figure drawn on its own) the file opened for it."""
+    if src is not None:
+        yield src
+    else:
+        with open_source(path) as own:
+            yield own
+
+
+def _hardware_timed(streams: StreamChunks) -> bool:
+    return "commanded" in streams.columns.get("amplifier", []) and streams.length["amplifier"] > 0
+
+
+def _peak_voltage(streams: StreamChunks) -> float:
+    """max |V| of the voltage the specimen saw (:func:`bench.analysis.applied.applied_voltage`, measured) over the
+    whole run, a chunk at a time (NaN propagates, as ``np.max`` does)."""
+    peaks = [float(np.max(np.abs(c["voltage"][np.isfinite(c["voltage"])]), initial=-np.inf))
+             for c in streams.chunks("setpoints")]
+    if _hardware_timed(streams):
+        peaks += [float(np.max(np.abs(c["voltage"]))) for c in streams.chunks("amplifier")]
+    return float(np.max(peaks)) if peaks else float("nan")
+
+
+def _record_starts(prob: Any, streams: StreamChunks) -> list[float]:
     """Start time [s] of each record of a membrane problem: 0 for a whole file; for a file cut at its rests, the
     window named in the record's source (to 0.1 s), snapped to the set-point where the drive resumes there (the
-    problem's rule: a rest is a set-point below 1 % of the peak)."""
+    problem's rule: a rest is a set-point below 1 % of the peak). Only the 0.05 s around each start is read."""
     if len(prob.records) == 1:
         return [0.0]
-    quiet = np.abs(sp.v) <= 0.01 * float(np.max(np.abs(sp.v)))
-    resumes = sp.t[1:][quiet[:-1] & ~quiet[1:]]
+    peak = _peak_voltage(streams)
     starts = []
     for r in prob.records:
         m = re.search(r"\[([-+0-9.e]+), [-+0-9.e]+\] s$", r.source)
         a = float(m.group(1)) if m else 0.0
-        if a > 0 and resumes.size:
-            near = resumes[np.argmin(np.abs(resumes - a))]
-            a = float(near) if abs(near - a) <= 0.051 else a
+        if a > 0:
+            sp = applied_window(streams, a - 0.052, a + 0.052, measured=True)  # with the sample before
+            quiet = np.abs(sp.v) <= 0.01 * peak
+            resumes = sp.t[1:][quiet[:-1] & ~quiet[1:]]
+            if resumes.size:
+                near = resumes[np.argmin(np.abs(resumes - a))]
+                a = float(near) if abs(near - a) <= 0.051 else a
         starts.append(a)
     return starts
 
 
-def fitted_membrane(run_path: Path) -> dict[str, Any] | None:
+def fitted_membrane(run_path: Path, src: RunSource | None = None) -> dict[str, Any] | None:
     """The newest membrane fit of a run on the record's sample grid: ``t`` [s], ``model`` and ``record`` [m]
     (window means, NaN where the laser has no valid samples), the stored ``fit``; None without a fit. Points
     outside the laser record are left out (the model is not drawn past the record)."""
@@ -97,14 +137,12 @@ def fitted_membrane(run_path: Path) -> dict[str, Any] | None:
     prob = MembraneProblem([run_path], h=1e-4)  # the fine problem of `bench fit`: its rms is the fit's
     fit = fits[-1]
     u = prob.predict(to_optimiser(prob.log, fit["values"])[None, :])[0]
-    run = open_run(run_path)
-    sp = applied_voltage(run, measured=True)
-    ts = [a + np.arange(r.data.size) * r.stride * prob.h for a, r in zip(_record_starts(prob, sp), prob.records,
-                                                                        strict=True)]
+    with _opened(run_path, src) as s:
+        ts = [a + np.arange(r.data.size) * r.stride * prob.h
+              for a, r in zip(_record_starts(prob, s.streams), prob.records, strict=True)]
+        valid = s.streams.first_last("laser", "valid")
     t, data = np.concatenate(ts), prob.data
-    laser = run.streams["laser"]
-    ok = laser.columns["valid"] > 0
-    inside = (t >= laser.t[ok][0]) & (t <= laser.t[ok][-1]) if ok.any() else np.zeros(t.size, bool)
+    inside = (t >= valid[0]) & (t <= valid[1]) if valid is not None else np.zeros(t.size, bool)
     return {"t": t[inside], "model": u[inside], "record": data[inside], "fit": fit}
 
 
@@ -114,21 +152,38 @@ def _commanded_label(sp: VoltageTrace) -> str:
     return "commanded voltage (software set-points)"
 
 
-def _plot_voltages(ax: Axes, run: RunFile, t0: float, t1: float) -> None:
+def _line(streams: StreamChunks, stream: str, column: str, t0: float, t1: float, flag: str | None = None,
+          drop_nan: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """A curve over [t0, t1] as a screen draws it (:meth:`bench.storage.chunks.StreamChunks.decimate`)."""
+    if streams.length.get(stream, 0) == 0:
+        return np.zeros(0), np.zeros(0)
+    return streams.decimate(stream, column, t0, t1, PIXELS, flag=flag, drop_nan=drop_nan)
+
+
+def _dense(streams: StreamChunks, stream: str, t0: float, t1: float) -> bool:
+    """Whether the stream is sampled faster than every 10 ms over [t0, t1] (median of its first 1000 intervals)."""
+    a, b = streams.span(stream, t0, t1)
+    t = streams.read(stream, "t", a, min(b, a + 1001))
+    return t.size > 2 and float(np.median(np.diff(t))) < 1e-2
+
+
+def _plot_voltages(ax: Axes, streams: StreamChunks, t0: float, t1: float) -> None:
     """Measured (solid, under) and commanded (dashed, on top) voltage over [t0, t1], time from t0; the axis
-    label and ticks in the curves' colour."""
-    sp = applied_voltage(run)
-    got = measured_voltage(run)
-    if got is not None:
-        t, v = got
-        w = (t >= t0) & (t <= t1)
-        t, v = t[w] - t0, v[w]
-        dense = t.size > 2 and float(np.median(np.diff(t))) < 1e-2
-        style: dict[str, Any] = {"lw": 1.4} if dense else {"marker": ".", "ls": "none", "ms": 3}
-        ax.plot(t, v / 1e3, color=MEASURED_V, alpha=0.7, zorder=2, label="measured voltage (amplifier monitor)",
+    label and ticks in the curve's colour."""
+    hardware = _hardware_timed(streams)
+    if streams.length.get("amplifier", 0) > 0:
+        t, v = _line(streams, "amplifier", "voltage", t0, t1)
+        style: dict[str, Any] = {"lw": 1.4} if _dense(streams, "amplifier", t0, t1) else \
+            {"marker": ".", "ls": "none", "ms": 3}
+        ax.plot(t - t0, v / 1e3, color=MEASURED_V, alpha=0.7, zorder=2, label="measured voltage (amplifier monitor)",
                 **style)
-    w = (sp.t >= t0) & (sp.t <= t1)
-    ax.plot(sp.t[w] - t0, sp.v[w] / 1e3, color=COMMANDED_V, ls="--", lw=0.9, zorder=3,
+    t, v = _line(streams, "setpoints", "voltage", t0, t1, drop_nan=True)
+    if hardware:  # the set-points between streamed steps and the DAQ's output, merged in time order
+        ta, va = _line(streams, "amplifier", "commanded", t0, t1)
+        order = np.argsort(np.concatenate([t, ta]), kind="stable")
+        t, v = np.concatenate([t, ta])[order], np.concatenate([v, va])[order]
+    sp = VoltageTrace(t, v, "commanded" if hardware else "setpoints")
+    ax.plot(sp.t - t0, sp.v / 1e3, color=COMMANDED_V, ls="--", lw=0.9, zorder=3,
             drawstyle="default" if sp.hardware_timed else "steps-post", label=_commanded_label(sp))
     ax.set_ylabel("voltage [kV]", color=MEASURED_V)
     ax.tick_params(axis="y", colors=MEASURED_V)
@@ -154,109 +209,116 @@ def _arrows(ax: Axes, x: np.ndarray, y: np.ndarray, color: Any, n: int = ARROWS_
                     arrowprops={"arrowstyle": "-|>", "color": color, "lw": 1.0, "mutation_scale": 12})
 
 
-def thesis_time_figure(a: RunAnalysis) -> Figure:
+def thesis_time_figure(a: RunAnalysis, src: RunSource | None = None) -> Figure:
     """Displacement and voltage vs time; with a fitted model, the model over the record and a residual panel."""
-    run = open_run(a.path)
-    laser = run.streams["laser"]
-    ok = laser.columns["valid"] > 0
-    t, u = laser.t[ok], laser.columns["displacement"][ok] * 1e3
-    fitted = fitted_membrane(a.path)
-    if fitted is None:
-        fig, ax = _figure(figsize=(8, 4.4))
-        ax.set_xlabel("time [s]")
-    else:
-        fig, (ax, ax_r) = _figure(nrows=2, figsize=(8, 5.6), sharex=True,
-                                  gridspec_kw={"height_ratios": [3, 1]})
-    ax.plot(t, u, lw=0.8, color="tab:blue", label="measured displacement (laser)")
-    if fitted is not None:
-        rms_fit = float(fitted["fit"]["rms"])
-        ax.plot(fitted["t"], fitted["model"] * 1e3, "--", lw=1.0, color="black", zorder=4,
-                label=f"fitted model (rms {rms_fit * 1e6:.1f} µm)")
-        res = (fitted["model"] - fitted["record"]) * 1e6
-        fin = np.isfinite(res)
-        rms = float(np.sqrt(np.mean(res[fin] ** 2))) if fin.any() else float("nan")
-        ax_r.plot(fitted["t"], res, lw=0.8, color="black")
-        ax_r.axhline(0.0, color="0.6", lw=0.6, zorder=0)
-        ax_r.set_title(f"residual: model − record, rms {rms:.1f} µm", fontsize=9, loc="left")
-        ax_r.set_ylabel("residual [µm]")
-        ax_r.set_xlabel("time [s]")
-    ax2 = ax.twinx()
-    _plot_voltages(ax2, run, 0.0, float(run.updated) if run.updated else float(t[-1]))
+    with _opened(a.path, src) as s:
+        t, u = _line(s.streams, "laser", "displacement", -np.inf, np.inf, flag="valid")
+        u = u * 1e3
+        fitted = fitted_membrane(a.path, s)
+        if fitted is None:
+            fig, ax = _figure(figsize=(8, 4.4))
+            ax.set_xlabel("time [s]")
+        else:
+            fig, (ax, ax_r) = _figure(nrows=2, figsize=(8, 5.6), sharex=True,
+                                      gridspec_kw={"height_ratios": [3, 1]})
+        ax.plot(t, u, lw=0.8, color="tab:blue", label="measured displacement (laser)")
+        if fitted is not None:
+            rms_fit = float(fitted["fit"]["rms"])
+            ax.plot(fitted["t"], fitted["model"] * 1e3, "--", lw=1.0, color="black", zorder=4,
+                    label=f"fitted model (rms {rms_fit * 1e6:.1f} µm)")
+            res = (fitted["model"] - fitted["record"]) * 1e6
+            fin = np.isfinite(res)
+            rms = float(np.sqrt(np.mean(res[fin] ** 2))) if fin.any() else float("nan")
+            ax_r.plot(fitted["t"], res, lw=0.8, color="black")
+            ax_r.axhline(0.0, color="0.6", lw=0.6, zorder=0)
+            ax_r.set_title(f"residual: model − record, rms {rms:.1f} µm", fontsize=9, loc="left")
+            ax_r.set_ylabel("residual [µm]")
+            ax_r.set_xlabel("time [s]")
+        ax2 = ax.twinx()
+        _plot_voltages(ax2, s.streams, 0.0, float(s.run.updated) if s.run.updated else float(t[-1]))
     ax.set_ylabel("displacement u [mm]")
     ax.set_title(f"{a.protocol}: displacement vs time", fontsize=10)
     _legend_outside(fig, [ax, ax2])
     return fig
 
 
-def thesis_loop_figure(a: RunAnalysis) -> Figure:
+def _loop_stride(streams: StreamChunks, stream: str, windows: list[tuple[float, float]]) -> int:
+    """Every how many samples the loops over ``windows`` are drawn so that together they hold ``LOOP_POINTS``."""
+    total = sum(b - a for a, b in (streams.span(stream, t0, t1) for t0, t1 in windows))
+    return max(1, math.ceil(total / LOOP_POINTS))
+
+
+def thesis_loop_figure(a: RunAnalysis, src: RunSource | None = None) -> Figure:
     """Displacement vs (measured) voltage per step, with arrows in the direction of the loop."""
-    run = open_run(a.path)
-    laser = run.streams["laser"]
-    ok = laser.columns["valid"] > 0
-    t, u = laser.t[ok], laser.columns["displacement"][ok] * 1e3
-    seen = applied_voltage(run, measured=True)  # the loop against what the specimen saw (as the analysis)
-    v_loop = np.interp(t, seen.t, seen.v) / 1e3
     fig, ax = _figure(figsize=(7.5, 5))
-    for s in a.by_kind("thesis"):
-        w = (t >= s.t_start) & (t <= s.t_start + s.duration)
-        (line,) = ax.plot(v_loop[w], u[w], lw=0.8,
-                          label=f"{s.voltage / 1e3:.0f} kV, {s.frequency:.3g} Hz, {s.temperature:g} K")
-        _arrows(ax, v_loop[w], u[w], line.get_color())
-    ax.set_xlabel("measured voltage [kV]" if seen.source == "measured" else "commanded voltage [kV]")
+    steps = a.by_kind("thesis")
+    with _opened(a.path, src) as s:
+        stride = _loop_stride(s.streams, "laser", [(st.t_start, st.t_start + st.duration) for st in steps])
+        for st in steps:
+            t1 = st.t_start + st.duration
+            laser = s.streams.window("laser", st.t_start, t1, ["displacement", "valid"])
+            ok = laser["valid"] > 0
+            t, u = laser["t"][ok][::stride], laser["displacement"][ok][::stride] * 1e3
+            seen = applied_window(s.streams, st.t_start, t1, measured=True)  # what the specimen saw (as the analysis)
+            v_loop = np.interp(t, seen.t, seen.v) / 1e3
+            (line,) = ax.plot(v_loop, u, lw=0.8,
+                              label=f"{st.voltage / 1e3:.0f} kV, {st.frequency:.3g} Hz, {st.temperature:g} K")
+            _arrows(ax, v_loop, u, line.get_color())
+        measured = _hardware_timed(s.streams)
+    ax.set_xlabel("measured voltage [kV]" if measured else "commanded voltage [kV]")
     ax.set_ylabel("displacement u [mm]")
     ax.set_title("displacement vs voltage (arrows: direction of the loop)", fontsize=10)
     _legend_outside(fig, [ax], "right")
     return fig
 
 
-def thesis_figures(a: RunAnalysis, out: Path) -> list[Path]:
+def thesis_figures(a: RunAnalysis, out: Path, src: RunSource | None = None) -> list[Path]:
     """Displacement vs time and vs voltage (the thesis's Figs 4.15–4.22), with the fitted model if any."""
-    return [save_figure(thesis_time_figure(a), out / "displacement_vs_time.png"),
-            save_figure(thesis_loop_figure(a), out / "displacement_vs_voltage.png")]
+    return [save_figure(thesis_time_figure(a, src), out / "displacement_vs_time.png"),
+            save_figure(thesis_loop_figure(a, src), out / "displacement_vs_voltage.png")]
 
 
-def isopotential_loop_figures(a: RunAnalysis) -> dict[str, Figure]:
+def isopotential_loop_figures(a: RunAnalysis, src: RunSource | None = None) -> dict[str, Figure]:
     """Force–displacement loops of the last (stabilised) cycle at each voltage, per prototype and stroke, with
     arrows in the direction of the cycle; keyed by file name."""
-    run = open_run(a.path)
-    motor, lc = run.streams["motor"], run.streams["load_cell"]
     groups: dict[tuple[int | None, int], list[Any]] = {}
-    for s in a.by_kind("isopotential"):
-        groups.setdefault((s.prototype, round(s.figures["stroke"] * 1e3)), []).append(s)
+    for st in a.by_kind("isopotential"):
+        groups.setdefault((st.prototype, round(st.figures["stroke"] * 1e3)), []).append(st)
     figs = {}
-    for (proto, stroke), steps in sorted(groups.items()):
-        fig, ax = _figure(figsize=(7.5, 5))
-        for s in steps:
-            t0 = s.t_start + s.duration - 1 / s.frequency
-            w = (motor.t >= t0) & (motor.t <= s.t_start + s.duration)
-            f = np.interp(motor.t[w], lc.t, lc.columns["force"])
-            x = motor.columns["aperture"][w] * 1e3
-            label = f"{s.voltage / 1e3:.0f} kV: loss {100 * s.figures['loss_last']:.1f} %"
-            (line,) = ax.plot(x, f, lw=1.0, label=label)
-            _arrows(ax, x, f, line.get_color())
-        ax.set_xlabel("aperture x [mm]")
-        ax.set_ylabel("force F [N]")
-        ax.set_title(f"LS-DEA #{proto}, Δx {stroke} mm, stabilised cycle", fontsize=10)
-        _legend_outside(fig, [ax], "right")
-        figs[f"isopotential_p{proto}_dx{stroke}.png"] = fig
+    with _opened(a.path, src) as s:
+        for (proto, stroke), steps in sorted(groups.items()):
+            fig, ax = _figure(figsize=(7.5, 5))
+            for st in steps:
+                t0, t1 = st.t_start + st.duration - 1 / st.frequency, st.t_start + st.duration
+                motor = s.streams.window("motor", t0, t1, ["aperture"])
+                lc = s.streams.window("load_cell", t0, t1, ["force"], neighbours=True)  # interpolated as on the whole
+                f = np.interp(motor["t"], lc["t"], lc["force"])
+                x = motor["aperture"] * 1e3
+                label = f"{st.voltage / 1e3:.0f} kV: loss {100 * st.figures['loss_last']:.1f} %"
+                (line,) = ax.plot(x, f, lw=1.0, label=label)
+                _arrows(ax, x, f, line.get_color())
+            ax.set_xlabel("aperture x [mm]")
+            ax.set_ylabel("force F [N]")
+            ax.set_title(f"LS-DEA #{proto}, Δx {stroke} mm, stabilised cycle", fontsize=10)
+            _legend_outside(fig, [ax], "right")
+            figs[f"isopotential_p{proto}_dx{stroke}.png"] = fig
     return figs
 
 
-def isopotential_figures(a: RunAnalysis, out: Path) -> list[Path]:
+def isopotential_figures(a: RunAnalysis, out: Path, src: RunSource | None = None) -> list[Path]:
     """The stabilised loops of :func:`isopotential_loop_figures`, saved."""
-    return [save_figure(fig, out / name) for name, fig in isopotential_loop_figures(a).items()]
+    return [save_figure(fig, out / name) for name, fig in isopotential_loop_figures(a, src).items()]
 
 
-def isometric_time_figure(a: RunAnalysis) -> Figure:
+def isometric_time_figure(a: RunAnalysis, src: RunSource | None = None) -> Figure:
     """Force and voltage vs time in the step of the highest frequency."""
-    run = open_run(a.path)
-    lc = run.streams["load_cell"]
     top = max(a.by_kind("isometric"), key=lambda s: s.frequency)
-    w = (lc.t >= top.t_start) & (lc.t <= top.t_start + top.duration)
     fig, ax = _figure(figsize=(8, 4.4))
-    ax.plot(lc.t[w] - top.t_start, lc.columns["force"][w], lw=0.8, label="measured force (load cell)")
-    ax2 = ax.twinx()
-    _plot_voltages(ax2, run, top.t_start, top.t_start + top.duration)
+    with _opened(a.path, src) as s:
+        t, force = _line(s.streams, "load_cell", "force", top.t_start, top.t_start + top.duration)
+        ax.plot(t - top.t_start, force, lw=0.8, label="measured force (load cell)")
+        ax2 = ax.twinx()
+        _plot_voltages(ax2, s.streams, top.t_start, top.t_start + top.duration)
     ax.set_xlabel("time [s]")
     ax.set_ylabel("force [N]")
     ax.set_title(f"isometric, LS-DEA #{top.prototype}: {top.name}", fontsize=10)
@@ -264,10 +326,10 @@ def isometric_time_figure(a: RunAnalysis) -> Figure:
     return fig
 
 
-def isometric_figures(a: RunAnalysis, out: Path) -> list[Path]:
+def isometric_figures(a: RunAnalysis, out: Path, src: RunSource | None = None) -> list[Path]:
     """Force vs time at the highest frequency, and force variation vs output frequency (Fig. 7)."""
     steps = a.by_kind("isometric")
-    paths = [save_figure(isometric_time_figure(a), out / "isometric_time_series.png")]
+    paths = [save_figure(isometric_time_figure(a, src), out / "isometric_time_series.png")]
     fig, ax = _figure(figsize=(7.5, 4))
     series: dict[tuple[int | None, float], list[Any]] = {}
     for s in steps:
@@ -329,24 +391,22 @@ def table3_figure(grid: dict[str, Any]) -> Figure:
 
 
 def report(run_path: str | Path, out: str | Path | None = None) -> tuple[RunAnalysis, list[Path]]:
-    """Analyse a run file and write its figures; returns the analysis and the PNG paths."""
+    """Analyse a run file and write its figures; returns the analysis and the PNG paths. The file is opened once
+    and read a window at a time (see the module's docstring)."""
     run_path = Path(run_path)
     out = Path(out) if out is not None else run_path.with_suffix("").with_name(run_path.stem + "-report")
     out.mkdir(parents=True, exist_ok=True)
-    a = analyse(run_path)
     paths: list[Path] = []
-    kinds = {s.kind for s in a.steps}
-    if "thesis" in kinds:
-        paths += thesis_figures(a, out)
-    if "isopotential" in kinds:
-        paths += isopotential_figures(a, out)
-    if "isometric" in kinds:
-        paths += isometric_figures(a, out)
-    if "isotonic" in kinds:
-        paths += isotonic_figures(a, out)
-    (out / "figures.json").write_text(json.dumps(
-        [{"step": s.name, "kind": s.kind, "prototype": s.prototype, "hung_mass": s.hung_mass,
-          "temperature": s.temperature,
-          "frequency": s.frequency, "voltage": s.voltage,
-          **{k: (v if np.isfinite(v) else None) for k, v in s.figures.items()}} for s in a.steps], indent=1))
+    with open_source(run_path) as src:
+        a = analyse_source(src)
+        kinds = {s.kind for s in a.steps}
+        if "thesis" in kinds:
+            paths += thesis_figures(a, out, src)
+        if "isopotential" in kinds:
+            paths += isopotential_figures(a, out, src)
+        if "isometric" in kinds:
+            paths += isometric_figures(a, out, src)
+        if "isotonic" in kinds:
+            paths += isotonic_figures(a, out)
+    (out / "figures.json").write_text(json.dumps(step_records(a), indent=1))
     return a, paths

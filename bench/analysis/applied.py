@@ -8,6 +8,9 @@ motor-only rows. The applied voltage is the two merged in time order.
 
 The amplifier's measured output (``/amplifier/voltage``) is kept apart: it is what the monitor saw, with its
 noise and the amplifier's slew, and the papers' analyses compare the response with the command.
+
+:func:`applied_window` gives the same trace over a time window only, read from the file in chunks (a long record
+is never held whole); :func:`applied_voltage` takes a run read whole (the fit problems).
 """
 
 from __future__ import annotations
@@ -16,6 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from bench.storage.chunks import StreamChunks
 from bench.storage.runfile import RunFile
 
 
@@ -46,6 +50,21 @@ def applied_voltage(run: RunFile, measured: bool = False) -> VoltageTrace:
     column = "voltage" if measured else "commanded"
     t = np.concatenate([t_sp, amp.t])
     v = np.concatenate([v_sp, amp.columns[column]])
+    order = np.argsort(t, kind="stable")
+    return VoltageTrace(t[order], v[order], "measured" if measured else "commanded")
+
+
+def applied_window(streams: StreamChunks, t0: float, t1: float, measured: bool = False) -> VoltageTrace:
+    """:func:`applied_voltage` over ``t0 ≤ t ≤ t1`` only, with the sample before and the one after each source's
+    window: ``np.interp`` of it at any time of the window gives what it gives on the whole run's trace (the
+    bracketing samples are the same), and so does its maximum over the window."""
+    sp = streams.window("setpoints", t0, t1, ["voltage"], neighbours=True, finite="voltage")
+    if "commanded" not in streams.columns.get("amplifier", []) or streams.length["amplifier"] == 0:
+        return VoltageTrace(sp["t"], sp["voltage"], "setpoints")
+    column = "voltage" if measured else "commanded"
+    amp = streams.window("amplifier", t0, t1, [column], neighbours=True)
+    t = np.concatenate([sp["t"], amp["t"]])
+    v = np.concatenate([sp["voltage"], amp[column]])
     order = np.argsort(t, kind="stable")
     return VoltageTrace(t[order], v[order], "measured" if measured else "commanded")
 

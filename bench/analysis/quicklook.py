@@ -13,8 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.storage.chunks import StreamChunks
-from bench.storage.runfile import open_h5, open_run
+from bench.storage.chunks import StreamChunks, open_source
 
 FLAGS = ("valid", "ok")  # flag columns: not drawn as signals
 PIXELS = 2000  # min/max spans per column (about a screen's width)
@@ -35,41 +34,45 @@ class Envelope:
 
 def envelopes(run_path: str | Path, streams: list[str] | None = None, columns: int = PIXELS) -> list[Envelope]:
     """Min/max envelopes of every signal column of ``streams`` (all streams if None), read in chunks."""
+    with open_source(run_path) as src:
+        return _envelopes(src.streams, run_path, streams, columns)
+
+
+def _envelopes(reader: StreamChunks, run_path: str | Path, streams: list[str] | None,
+               columns: int) -> list[Envelope]:
     out: list[Envelope] = []
-    with open_h5(Path(run_path)) as f:
-        reader = StreamChunks(f)
-        names = streams if streams else list(reader.length)
-        unknown = [s for s in names if s not in reader.length]
-        if unknown:
-            raise ValueError(f"run file {run_path}: no stream {', '.join(unknown)} (it has "
-                             f"{', '.join(reader.length) or 'none'})")
-        for stream in names:
-            n = reader.length[stream]
-            if n == 0:
-                continue
-            units = reader.units(stream)
-            cols = [c for c in reader.columns[stream] if c != "t" and c not in FLAGS]
-            spans = min(columns, n)
-            edges = np.linspace(0, n, spans + 1).astype(np.int64)  # span k holds records edges[k] … edges[k+1]-1
-            lo = {c: np.full(spans, np.inf) for c in cols}
-            hi = {c: np.full(spans, -np.inf) for c in cols}
-            t_lo, t_hi = np.full(spans, np.inf), np.full(spans, -np.inf)
-            a = 0
-            for chunk in reader.chunks(stream):
-                b = a + chunk["t"].size
-                k = np.searchsorted(edges, np.arange(a, b), side="right") - 1  # span of each record
-                starts = np.flatnonzero(np.r_[True, k[1:] != k[:-1]])
-                which = k[starts]
-                np.minimum.at(t_lo, which, np.minimum.reduceat(chunk["t"], starts))
-                np.maximum.at(t_hi, which, np.maximum.reduceat(chunk["t"], starts))
-                for c in cols:
-                    v = chunk[c].astype(np.float64)
-                    np.minimum.at(lo[c], which, np.fmin.reduceat(v, starts))
-                    np.maximum.at(hi[c], which, np.fmax.reduceat(v, starts))
-                a = b
-            mid = (t_lo + t_hi) / 2
+    names = streams if streams else list(reader.length)
+    unknown = [s for s in names if s not in reader.length]
+    if unknown:
+        raise ValueError(f"run file {run_path}: no stream {', '.join(unknown)} (it has "
+                         f"{', '.join(reader.length) or 'none'})")
+    for stream in names:
+        n = reader.length[stream]
+        if n == 0:
+            continue
+        units = reader.units(stream)
+        cols = [c for c in reader.columns[stream] if c != "t" and c not in FLAGS]
+        spans = min(columns, n)
+        edges = np.linspace(0, n, spans + 1).astype(np.int64)  # span k holds records edges[k] … edges[k+1]-1
+        lo = {c: np.full(spans, np.inf) for c in cols}
+        hi = {c: np.full(spans, -np.inf) for c in cols}
+        t_lo, t_hi = np.full(spans, np.inf), np.full(spans, -np.inf)
+        a = 0
+        for chunk in reader.chunks(stream):
+            b = a + chunk["t"].size
+            k = np.searchsorted(edges, np.arange(a, b), side="right") - 1  # span of each record
+            starts = np.flatnonzero(np.r_[True, k[1:] != k[:-1]])
+            which = k[starts]
+            np.minimum.at(t_lo, which, np.minimum.reduceat(chunk["t"], starts))
+            np.maximum.at(t_hi, which, np.maximum.reduceat(chunk["t"], starts))
             for c in cols:
-                out.append(Envelope(stream, c, units.get(c, ""), mid, lo[c], hi[c], n))
+                v = chunk[c].astype(np.float64)
+                np.minimum.at(lo[c], which, np.fmin.reduceat(v, starts))
+                np.maximum.at(hi[c], which, np.fmax.reduceat(v, starts))
+            a = b
+        mid = (t_lo + t_hi) / 2
+        for c in cols:
+            out.append(Envelope(stream, c, units.get(c, ""), mid, lo[c], hi[c], n))
     return out
 
 
@@ -82,8 +85,8 @@ def quicklook(run_path: str | Path, streams: list[str] | None = None, out: str |
         matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    run = open_run(run_path, streams=False)
-    env = envelopes(run_path, streams)
+    with open_source(run_path) as src:  # opened once: metadata and streams
+        run, env = src.run, _envelopes(src.streams, run_path, streams, PIXELS)
     if not env:
         raise ValueError(f"run file {run_path}: no recorded samples to plot")
     fig, axes = plt.subplots(len(env), 1, sharex=True, figsize=(10, 1.9 * len(env) + 0.8), squeeze=False)

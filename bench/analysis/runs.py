@@ -10,7 +10,9 @@ Each waveform step of a run is analysed according to what it drives and what the
   drift removed, stroke as % of the link length, energy density per unit DE mass with and without the
   mechanism's weight; across frequencies, the resonance.
 
-The step parameters (channel, frequency, voltage) come from the protocol text stored in the file.
+The step parameters (channel, frequency, voltage) come from the protocol text stored in the file. The file is opened
+once (:func:`bench.storage.chunks.open_source`) and each step reads only its own time window (or its last cycles),
+so memory follows the longest step, never the record's length.
 """
 
 from __future__ import annotations
@@ -23,14 +25,16 @@ from typing import Any
 
 import numpy as np
 
-from bench.analysis.applied import VoltageTrace, applied_voltage
+from bench.analysis.applied import applied_window
 from bench.analysis.cycles import crest_to_trough, hysteresis_loss, phase_lag, smooth
 from bench.analysis.thesis import cycle_figures
 from bench.models.lozenge import LozengeParams
 from bench.protocol.schema import Protocol, WaveformStep, load_protocol
-from bench.storage.runfile import RunFile, Stream, open_run
+from bench.storage.chunks import RunSource, StreamChunks, open_source
+from bench.storage.runfile import RunFile
 
 PAPER_GRAVITY = 9.81  # m/s²: the value behind the paper's loads (3.1 / 4.6 / 4.9 N), not standard gravity
+TOL_S = 1e-9  # a window's bounds are widened by this much (step times are sums of floats)
 
 
 @dataclass
@@ -60,6 +64,7 @@ class RunAnalysis:
     specimen: str  # "membrane" | "lsdea"
     configuration: str
     steps: list[StepResult]
+    run: RunFile  # the file's metadata, events and program as read (no streams)
 
     def by_kind(self, kind: str) -> list[StepResult]:
         """Steps of one kind, in run order."""
@@ -78,17 +83,16 @@ class RunAnalysis:
         return out
 
 
-def _vf_lag(run: RunFile, t: np.ndarray, force: np.ndarray, f_out: float) -> float:
+def _vf_lag(streams: StreamChunks, t: np.ndarray, force: np.ndarray, f_out: float) -> float:
     """Time [s] by which the force's troughs lag the voltage's maxima (Fig. 7A: the force falls as V²), measured
     at the output frequency on the recorded voltage; NaN where the monitors were sampled too slowly for it (fewer
     than 20 samples per output period)."""
-    amp = run.streams.get("amplifier")
-    if amp is None or len(amp) < 2 or t.size < 20:
+    if streams.length.get("amplifier", 0) < 2 or t.size < 20:
         return float("nan")
-    w = _window(amp, float(t[0]), float(t[-1]))
-    if w.sum() < 20 * f_out * (t[-1] - t[0]):
+    amp = _window(streams, "amplifier", float(t[0]), float(t[-1]), ["voltage"])
+    if amp["t"].size < 20 * f_out * (t[-1] - t[0]):
         return float("nan")
-    v = np.interp(t, amp.t[w], amp.columns["voltage"][w])
+    v = np.interp(t, amp["t"], amp["voltage"])
     return phase_lag(t, v**2, -np.asarray(force, dtype=float), f_out)
 
 
@@ -100,9 +104,14 @@ def protocol_of(run: RunFile) -> Protocol:
         return load_protocol(p)
 
 
-def _window(stream: Stream | VoltageTrace, t0: float, t1: float) -> np.ndarray:
-    inside: np.ndarray = (stream.t >= t0 - 1e-9) & (stream.t <= t1 + 1e-9)
-    return inside
+def _window(streams: StreamChunks, stream: str, t0: float, t1: float, columns: list[str],
+            neighbours: bool = False) -> dict[str, np.ndarray]:
+    """A stream's records over [t0, t1] (bounds widened by ``TOL_S``), read alone from the file."""
+    return streams.window(stream, t0 - TOL_S, t1 + TOL_S, columns, neighbours=neighbours)
+
+
+def _inside(t: np.ndarray, t0: float, t1: float) -> np.ndarray:
+    return (t >= t0 - TOL_S) & (t <= t1 + TOL_S)
 
 
 def _specimen_at(t: float, history: list[tuple[float, dict[str, float]]], spec: dict[str, Any]) -> tuple[int, float]:
@@ -127,14 +136,19 @@ def _temperature_at(t: float, history: list[tuple[float, dict[str, float]]], spe
 
 
 def analyse(path: str | Path, last_cycles: int = 3) -> RunAnalysis:
-    """Analyse every waveform step of a run file."""
-    run = open_run(path)
+    """Analyse every waveform step of a run file (opened once, read a step window at a time)."""
+    with open_source(path) as src:
+        return analyse_source(src, last_cycles)
+
+
+def analyse_source(src: RunSource, last_cycles: int = 3) -> RunAnalysis:
+    """:func:`analyse` on a run file already open."""
+    run, streams = src.run, src.streams
     protocol = protocol_of(run)
     spec = json.loads(run.attrs["specimen"])
     kind_of_specimen = spec["kind"]
     config = spec.get("lsdea", {}).get("configuration", "membrane") if kind_of_specimen == "lsdea" else "membrane"
     history = run.specimen_changes()
-    sp = applied_voltage(run, measured=True)
     results: list[StepResult] = []
     done, offsets = run.completed_steps(), run.step_offsets()
     for row, step in zip(run.program, protocol.steps, strict=True):
@@ -144,69 +158,96 @@ def analyse(path: str | Path, last_cycles: int = 3) -> RunAnalysis:
         t0, dur = float(row["t_start"]) + offsets.get(index, 0.0), float(row["duration"])
         if index not in done or t0 + dur > run.updated + 1e-6:
             continue  # the run stopped (or paused, or resumed later in another file) before this step ended
-        sel = _window(sp, t0, t0 + dur)
+        sp = applied_window(streams, t0 - TOL_S, t0 + dur + TOL_S, measured=True)
+        sel = _inside(sp.t, t0, t0 + dur)
         vpk = float(np.max(np.abs(sp.v[sel]))) if sel.any() else 0.0
         proto, mass = _specimen_at(t0, history, spec)
         res = StepResult(int(row["index"]), row["name"].decode(), "", t0, dur, step.frequency_Hz, vpk,
                          proto if kind_of_specimen == "lsdea" else None, mass if config == "hung" else None)
-        f = step.frequency_Hz
         if kind_of_specimen == "membrane":
-            laser = run.streams["laser"]
-            w = _window(laser, t0, t0 + dur)
-            volts = np.interp(laser.t[w], sp.t, sp.v)
-            figs = cycle_figures(laser.t[w] - t0, laser.columns["displacement"][w], volts, f)
-            res.kind = "thesis"
             res.temperature = _temperature_at(t0, history, spec)
-            res.figures = {"peak_first": figs.peaks[0], "peak_last": figs.peaks[max(figs.whole, 1) - 1],
-                           "creep": figs.creep if figs.whole >= 2 else np.nan, "lag_first": figs.lags[0],
-                           "residual_first": figs.residuals[0] if figs.residuals else np.nan,
-                           "residual_last": figs.residuals[-1] if figs.residuals else np.nan}
-            res.series = {"peaks": list(figs.peaks), "residuals": list(figs.residuals), "lags": list(figs.lags)}
+            _thesis(res, streams, sp.t, sp.v)
         elif step.channel == "position":
-            motor, lc = run.streams["motor"], run.streams["load_cell"]
-            w = _window(motor, t0, t0 + dur)
-            x, tt = motor.columns["aperture"][w], motor.t[w]
-            force = np.interp(tt, lc.t, lc.columns["force"])
-            n_cyc = round(dur * f)
-            losses = []
-            for k in range(n_cyc):
-                c = (tt >= t0 + k / f - 1e-9) & (tt <= t0 + (k + 1) / f + 1e-9)
-                losses.append(hysteresis_loss(x[c], force[c]))
-            res.kind = "isopotential"
-            last = (tt >= t0 + (n_cyc - 1) / f - 1e-9)
-            fs = smooth(tt[last], force[last], 0.02 / f)  # extremes of the force, not of its noise
-            res.figures = {"loss_last": losses[-1], "loss_first": losses[0],
-                           "stroke": float(np.ptp(x[last])), "force_max": float(np.max(fs)),
-                           "force_min": float(np.min(fs))}
-            res.series = {"loss_per_cycle": losses}
+            _isopotential(res, streams)
         elif config == "hung":
-            laser = run.streams["laser"]
-            t_tail = t0 + dur - min(last_cycles, round(dur * f)) / f
-            w = _window(laser, t_tail, t0 + dur) & (laser.columns["valid"] > 0)
-            if w.sum() < 10:  # laser over range or invalid throughout: nothing to measure
-                res.kind, res.figures = "isotonic", {"amplitude": np.nan, "stroke_percent": np.nan,
-                                                     "energy_density": np.nan,
-                                                     "energy_density_with_mechanism": np.nan, "mean_position": np.nan}
-                results.append(res)
-                continue
-            amp = crest_to_trough(laser.t[w], laser.columns["displacement"][w], f)
-            params = LozengeParams.prototype(proto, hung_mass=mass)
-            de_mass = params.membrane_mass
-            work = mass * PAPER_GRAVITY * amp
-            work_total = (mass + 0.5 * params.mechanism_mass) * PAPER_GRAVITY * amp
-            res.kind = "isotonic"
-            res.figures = {"amplitude": amp, "stroke_percent": 100 * amp / params.l,
-                           "energy_density": work / de_mass,  # J/kg = mJ/g
-                           "energy_density_with_mechanism": work_total / de_mass,
-                           "mean_position": float(np.mean(laser.columns["displacement"][w]))}
+            _isotonic(res, streams, last_cycles, proto, mass)
         else:
-            lc = run.streams["load_cell"]
-            t_tail = t0 + dur - min(last_cycles, round(dur * f)) / f
-            w = _window(lc, t_tail, t0 + dur)
-            res.kind = "isometric"
-            f_out = 2 * f if step.kind == "sine" else f
-            res.figures = {"force_swing": crest_to_trough(lc.t[w], lc.columns["force"][w], f_out),
-                           "force_mean": float(np.mean(lc.columns["force"][w])),
-                           "output_frequency": f_out, "vf_lag": _vf_lag(run, lc.t[w], lc.columns["force"][w], f_out)}
+            _isometric(res, streams, last_cycles, 2 * step.frequency_Hz if step.kind == "sine" else step.frequency_Hz)
         results.append(res)
-    return RunAnalysis(Path(path), run.attrs["protocol_name"], kind_of_specimen, config, results)
+    return RunAnalysis(run.path, run.attrs["protocol_name"], kind_of_specimen, config, results, run)
+
+
+def _thesis(res: StepResult, streams: StreamChunks, t_v: np.ndarray, v: np.ndarray) -> None:
+    """Membrane: per-cycle peaks, creep, lag and residuals of the step's laser record against the voltage seen."""
+    t0, dur, f = res.t_start, res.duration, res.frequency
+    laser = _window(streams, "laser", t0, t0 + dur, ["displacement"])
+    volts = np.interp(laser["t"], t_v, v)
+    figs = cycle_figures(laser["t"] - t0, laser["displacement"], volts, f)
+    res.kind = "thesis"
+    res.figures = {"peak_first": figs.peaks[0], "peak_last": figs.peaks[max(figs.whole, 1) - 1],
+                   "creep": figs.creep if figs.whole >= 2 else np.nan, "lag_first": figs.lags[0],
+                   "residual_first": figs.residuals[0] if figs.residuals else np.nan,
+                   "residual_last": figs.residuals[-1] if figs.residuals else np.nan}
+    res.series = {"peaks": list(figs.peaks), "residuals": list(figs.residuals), "lags": list(figs.lags)}
+
+
+def _isopotential(res: StepResult, streams: StreamChunks) -> None:
+    """Imposed aperture: hysteresis loss of every cycle, stroke and force extremes of the last one."""
+    t0, dur, f = res.t_start, res.duration, res.frequency
+    motor = _window(streams, "motor", t0, t0 + dur, ["aperture"])
+    lc = _window(streams, "load_cell", t0, t0 + dur, ["force"], neighbours=True)  # interpolated as on the whole
+    x, tt = motor["aperture"], motor["t"]
+    force = np.interp(tt, lc["t"], lc["force"])
+    n_cyc = round(dur * f)
+    losses = []
+    for k in range(n_cyc):
+        c = (tt >= t0 + k / f - 1e-9) & (tt <= t0 + (k + 1) / f + 1e-9)
+        losses.append(hysteresis_loss(x[c], force[c]))
+    res.kind = "isopotential"
+    last = (tt >= t0 + (n_cyc - 1) / f - 1e-9)
+    fs = smooth(tt[last], force[last], 0.02 / f)  # extremes of the force, not of its noise
+    res.figures = {"loss_last": losses[-1], "loss_first": losses[0],
+                   "stroke": float(np.ptp(x[last])), "force_max": float(np.max(fs)),
+                   "force_min": float(np.min(fs))}
+    res.series = {"loss_per_cycle": losses}
+
+
+def _isotonic(res: StepResult, streams: StreamChunks, last_cycles: int, proto: int, mass: float) -> None:
+    """Hung mass: crest-to-trough displacement of the last cycles, stroke, energy density."""
+    t0, dur, f = res.t_start, res.duration, res.frequency
+    t_tail = t0 + dur - min(last_cycles, round(dur * f)) / f
+    laser = _window(streams, "laser", t_tail, t0 + dur, ["displacement", "valid"])
+    ok = laser["valid"] > 0
+    t, u = laser["t"][ok], laser["displacement"][ok]
+    res.kind = "isotonic"
+    if ok.sum() < 10:  # laser over range or invalid throughout: nothing to measure
+        res.figures = {"amplitude": np.nan, "stroke_percent": np.nan, "energy_density": np.nan,
+                       "energy_density_with_mechanism": np.nan, "mean_position": np.nan}
+        return
+    amp = crest_to_trough(t, u, f)
+    params = LozengeParams.prototype(proto, hung_mass=mass)
+    de_mass = params.membrane_mass
+    work = mass * PAPER_GRAVITY * amp
+    work_total = (mass + 0.5 * params.mechanism_mass) * PAPER_GRAVITY * amp
+    res.figures = {"amplitude": amp, "stroke_percent": 100 * amp / params.l,
+                   "energy_density": work / de_mass,  # J/kg = mJ/g
+                   "energy_density_with_mechanism": work_total / de_mass,
+                   "mean_position": float(np.mean(u))}
+
+
+def _isometric(res: StepResult, streams: StreamChunks, last_cycles: int, f_out: float) -> None:
+    """Blocked: crest-to-trough force of the last cycles at the output frequency, its mean, the V–F lag."""
+    t0, dur, f = res.t_start, res.duration, res.frequency
+    t_tail = t0 + dur - min(last_cycles, round(dur * f)) / f
+    lc = _window(streams, "load_cell", t_tail, t0 + dur, ["force"])
+    res.kind = "isometric"
+    res.figures = {"force_swing": crest_to_trough(lc["t"], lc["force"], f_out),
+                   "force_mean": float(np.mean(lc["force"])),
+                   "output_frequency": f_out, "vf_lag": _vf_lag(streams, lc["t"], lc["force"], f_out)}
+
+
+def step_records(a: RunAnalysis) -> list[dict[str, Any]]:
+    """The figures of merit of each step as plain records (``figures.json``; NaN as None)."""
+    return [{"step": s.name, "kind": s.kind, "prototype": s.prototype, "hung_mass": s.hung_mass,
+             "temperature": s.temperature, "frequency": s.frequency, "voltage": s.voltage,
+             **{k: (v if np.isfinite(v) else None) for k, v in s.figures.items()}} for s in a.steps]

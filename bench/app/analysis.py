@@ -87,12 +87,11 @@ def report_runs(runs: list[Path], out: Path | None = None, progress: Progress | 
     drawn beside it.
     ``progress`` gets the fraction of the files done."""
     from bench.report import report, save_figure, table3_figure
-    from bench.storage.runfile import open_run
 
     done = Report()
     for p in runs:
-        run = open_run(p, streams=False)
-        a, paths = report(p, out / p.stem if out is not None and len(runs) > 1 else out)
+        a, paths = report(p, out / p.stem if out is not None and len(runs) > 1 else out)  # opens the file once
+        run = a.run  # the file's state as the analysis read it
         done.runs.append(RunReport(p, run.state, run.complete, run.incomplete_reason, run.recovered_at,
                                    len(run.completed_steps()), run.program.shape[0], a, paths))
         if progress is not None:

@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:
     from bench.runtime.engine import Engine, OperatorFn, RunResult
     from bench.runtime.run import Plan, Resume
+    from bench.storage.chunks import StreamChunks
     from bench.storage.runfile import RunFile
 
 
@@ -131,12 +132,38 @@ def execute_run(prepared: PreparedRun, *, virtual_time: bool = False, operator: 
 
 
 @dataclass
+class StreamSummary:
+    """What ``bench inspect`` shows of a stream: its records, first and last time, units, last value of each
+    column — read as single records, never the stream whole."""
+
+    samples: int
+    first: float | None
+    last_t: float | None
+    units: dict[str, str]
+    last: dict[str, Any]  # column → its last value (None when the stream is empty)
+
+
+def summarise(streams: StreamChunks) -> dict[str, StreamSummary]:
+    """Each stream of an open run file summarised from its first and last records."""
+    out = {}
+    for name, n in streams.length.items():
+        cols = streams.columns[name][1:]
+        first = float(streams.read(name, "t", 0, 1)[0]) if n else None
+        last_t = float(streams.read(name, "t", n - 1, n)[0]) if n else None
+        last = {c: (streams.read(name, c, n - 1, n)[0] if n else None) for c in cols}
+        units = streams.units(name)
+        out[name] = StreamSummary(n, first, last_t, {k: units[k] for k in streams.f[name]}, last)  # file order
+    return out
+
+
+@dataclass
 class Inspection:
-    """What a run file holds (``bench inspect``): the file read (streams, events, state), its attributes and
-    notes, the fits stored with it, and its campaign."""
+    """What a run file holds (``bench inspect``): the file read (events, state; its streams summarised), its
+    attributes and notes, the fits stored with it, and its campaign."""
 
     file: Path
     run: RunFile
+    streams: dict[str, StreamSummary]
     notes: list[str]
     fits: list[dict[str, Any]]
     fits_error: str  # a fit file of another run beside it: said, the run itself still shown
@@ -165,10 +192,8 @@ class Inspection:
                 "state": r.state, "complete": r.complete,
                 "incomplete_reason": None if r.complete else r.incomplete_reason, "reason": r.reason,
                 "end_time": r.end_time, "recorded_up_to_s": r.updated,
-                "streams": {name: {"samples": len(s), "from_s": float(s.t[0]) if len(s) else None,
-                                   "to_s": float(s.t[-1]) if len(s) else None, "units": s.units,
-                                   "last": {k: (v[-1] if v.size else None) for k, v in s.columns.items()}}
-                            for name, s in r.streams.items()},
+                "streams": {name: {"samples": s.samples, "from_s": s.first, "to_s": s.last_t, "units": s.units,
+                                   "last": s.last} for name, s in self.streams.items()},
                 "events": [{"t_s": t, "step": step, "kind": kind, "text": text}
                            for t, step, kind, text in r.event_list()],
                 "campaign": self.campaign, "recovered_at": r.recovered_at or None}
@@ -178,9 +203,10 @@ def inspect_run(run_file: Path) -> Inspection:
     """Read a run file (finished or being written) with its fits and campaign."""
     from bench.identify.store import read_fits
     from bench.storage.chain import chain, describe
-    from bench.storage.runfile import open_run
+    from bench.storage.chunks import open_source
 
-    r = open_run(run_file)
+    with open_source(run_file) as src:
+        r, streams = src.run, summarise(src.streams)
     a = r.attrs
     notes = [n for n in str(a.get("notes", "")).split("\n") if n]
     try:
@@ -200,4 +226,4 @@ def inspect_run(run_file: Path) -> Inspection:
                     for ln in links] if len(links) > 1 or a.get("previous_file") else []
         if a.get("previous_file"):
             described = (describe(links), False)
-    return Inspection(run_file, r, notes, fits, fits_error, campaign, described)
+    return Inspection(run_file, r, streams, notes, fits, fits_error, campaign, described)

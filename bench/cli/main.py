@@ -266,7 +266,8 @@ BENCHMARK_SETS = (
     (BenchmarkSet.daq, "the hardware-timed rigs", "hardware-timed rigs (LabJack T7 twin)"),
     (BenchmarkSet.startup, "the command line's start-up",
      'start-up of the command line against python -c "import typer, rich"'),
-    (BenchmarkSet.export, "the export's memory", "export: peak memory against the run's length"),
+    (BenchmarkSet.export, "the export's and the report's memory",
+     "export and report: peak memory against the run's length"),
     (BenchmarkSet.watch, "bench watch", "bench watch: server CPU and lag during a run, page data"),
     (BenchmarkSet.faults, "the fault matrix (faults that a wall-clock timeout, a signal or a stall detects run in "
      "real time)", "fault matrix"),

@@ -351,11 +351,11 @@ def _inspect_tables(found: Inspection) -> None:
     streams = Table(title="streams")
     for col in ("stream", "samples", "from [s]", "to [s]", "columns (units): last value"):
         streams.add_column(col)
-    for name, s in r.streams.items():
-        last = ", ".join(f"{k} ({s.units.get(k, '')}): {v[-1]:.6g}" if v.size else f"{k} ({s.units.get(k, '')})"
-                         for k, v in s.columns.items())
-        streams.add_row(name, f"{len(s):,}", f"{s.t[0]:.3f}" if len(s) else "–", f"{s.t[-1]:.3f}" if len(s) else "–",
-                        last)
+    for name, s in found.streams.items():
+        last = ", ".join(f"{k} ({s.units.get(k, '')}): {v:.6g}" if v is not None else f"{k} ({s.units.get(k, '')})"
+                         for k, v in s.last.items())
+        streams.add_row(name, f"{s.samples:,}", f"{s.first:.3f}" if s.samples else "–",
+                        f"{s.last_t:.3f}" if s.samples else "–", last)
     console.print(streams)
     events = r.event_list()
     console.print(f"{len(events)} events; last: " + "; ".join(f"{t:.2f} s {kind} {escape(text)}"

@@ -160,35 +160,41 @@ def valid_counts(f: h5py.File) -> dict[str, int]:
 def open_run(path: str | Path, streams: bool = True) -> RunFile:
     """Read a run file; works on a file another process is writing (SWMR reader) and on the file of a
     crashed or killed run (``incomplete_reason`` says so). Every dataset is cut to the records the writer
-    confirmed (``/status/samples``): a failed or interrupted write can leave zero-filled records beyond."""
+    confirmed (``/status/samples``): a failed or interrupted write can leave zero-filled records beyond.
+    ``streams=False`` reads the metadata, events and program only (:mod:`bench.storage.chunks` reads the streams
+    a chunk at a time)."""
     p = Path(path)
     if not p.exists():
         raise FileNotFoundError(f"run file {p}: not found")
-    f = open_h5(p)
-    with f:
-        if f.attrs.get("format") not in FORMATS:
-            raise ValueError(f"run file {p}: not a dea-bench run file (format {f.attrs.get('format')!r})")
-        attrs = {k: _decode(v) for k, v in f.attrs.items()}
-        st = f["status"]
-        for name in ("state", "reason", "end_time", "updated"):
-            st[name].refresh()
-        run = RunFile(p, attrs, st["state"][0].decode(), st["reason"][0].decode(), st["end_time"][0].decode(),
-                      float(st["updated"][0]), bool(attrs.get("complete", False)))
-        valid = valid_counts(f)
-        run.events = read_table(f["events"], valid.get("events"))
-        run.program = read_table(f["program"])
-        if streams:
-            for name in ("setpoints", "amplifier", "laser", "motor", "load_cell"):
-                if name not in f:
-                    continue
-                g = f[name]
-                for d in g.values():
-                    d.refresh()
-                n = min(d.shape[0] for d in g.values())  # a reader may see columns mid-append
-                n = min(n, valid.get(name, n))
-                cols = {k: d[:n] for k, d in g.items() if k != "t"}
-                run.streams[name] = Stream(name, g["t"][:n], cols, {k: unit_of(d.attrs["units"]) for k, d in g.items()},
-                                           float(g.attrs.get("rate_Hz", 0.0)))
+    with open_h5(p) as f:
+        return read_run(f, p, streams)
+
+
+def read_run(f: h5py.File, p: Path, streams: bool = False) -> RunFile:
+    """The run in the open file ``f`` (of path ``p``): as :func:`open_run`, without opening the file again."""
+    if f.attrs.get("format") not in FORMATS:
+        raise ValueError(f"run file {p}: not a dea-bench run file (format {f.attrs.get('format')!r})")
+    attrs = {k: _decode(v) for k, v in f.attrs.items()}
+    st = f["status"]
+    for name in ("state", "reason", "end_time", "updated"):
+        st[name].refresh()
+    run = RunFile(p, attrs, st["state"][0].decode(), st["reason"][0].decode(), st["end_time"][0].decode(),
+                  float(st["updated"][0]), bool(attrs.get("complete", False)))
+    valid = valid_counts(f)
+    run.events = read_table(f["events"], valid.get("events"))
+    run.program = read_table(f["program"])
+    if streams:
+        for name in ("setpoints", "amplifier", "laser", "motor", "load_cell"):
+            if name not in f:
+                continue
+            g = f[name]
+            for d in g.values():
+                d.refresh()
+            n = min(d.shape[0] for d in g.values())  # a reader may see columns mid-append
+            n = min(n, valid.get(name, n))
+            cols = {k: d[:n] for k, d in g.items() if k != "t"}
+            run.streams[name] = Stream(name, g["t"][:n], cols, {k: unit_of(d.attrs["units"]) for k, d in g.items()},
+                                       float(g.attrs.get("rate_Hz", 0.0)))
     if run.state == "running" and not run.complete:
         run.orphaned = _orphaned(p)
     return run
