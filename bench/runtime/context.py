@@ -68,7 +68,9 @@ class RunContext:
 
     def __init__(self, program: Program, inst: Instruments, clock: Clock, recorder: Recorder,
                  supervisor: Supervisor, snapshot: Snapshot, *, check_stop: Callable[[], None],
-                 check_pause: Callable[[], None]) -> None:
+                 check_pause: Callable[[], None], streamed: bool = True) -> None:
+        """``streamed``: the rig's DAQ (if it has one) plays the steps; False: every set-point is command-response
+        (manual mode)."""
         self.program = program
         self.inst = inst
         self.clock = clock
@@ -85,7 +87,7 @@ class RunContext:
         self.overruns = 0  # real time: actions later than LATE_TOLERANCE_S
         self.worst_lateness = 0.0
         self.stream: Streaming | None = None  # set by the engine on a rig that plays its steps hardware-timed
-        hw = inst.stream_drive is not None
+        hw = streamed and inst.stream_drive is not None
         self.verifier = OutputVerifier(rig, rig.daq.scan_rate_Hz if hw and rig.daq else None)
         self.motion = MotionVerifier(rig)  # the encoder against the go-tos (a rig without a motor never feeds it)
         self._laser_offset = (rig.laser.offset_mm * 1e-3) if rig.laser else 0.0
