@@ -69,8 +69,6 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any, TextIO
 
-import numpy as np
-
 from bench import __version__
 from bench.core.clock import Clock, WallClock
 from bench.rig import RigConfig, rig_to_toml
@@ -354,15 +352,6 @@ class ManualSession:
         self._write("readings", "error", f"{exc}; the session goes on, readings in this log only")
         self.echo(f"error: {exc}; readings in the session log only")
 
-    def _record(self, stream: str, t: float, **values: float) -> None:
-        """One sample of ``stream`` at session time ``t``; columns not given are NaN (flags 0)."""
-        rec = self._rec
-        if rec is None or stream not in rec.streams:
-            return
-        row = {c.name: values.get(c.name, math.nan if np.dtype(c.dtype).kind == "f" else 0)
-               for c in rec.streams[stream]}
-        self._rec_call(lambda: rec.append(stream, t, **row))
-
     # ------------------------------------------------------------ commands
     def run_lines(self, lines: Iterable[str], stop_on_trip: bool = True) -> list[Outcome]:
         """Execute commands until ``quit``, the end or a stop signal; after a trip, stop if ``stop_on_trip``."""
@@ -517,7 +506,7 @@ class ManualSession:
             raise Refused(f"ramp duration {seconds:g} s: give 0 < DURATION ≤ 3600 s")
         start = float(self._amp().commanded)
         engine = self._engine()
-        n = engine.ramp(target, seconds, RAMP_HZ, self._check_monitors)
+        n = engine.ramp(target, seconds, RAMP_HZ)
         engine.hold(SETTLE_S)
         return f"ramped {start:.0f} → {target:.0f} V in {seconds:g} s ({n} set-points); " + self._cmd_read()
 
@@ -531,21 +520,9 @@ class ManualSession:
             raise Refused("this rig has no motor")
         return self._inst.motor
 
-    def _aperture(self, motor_position: float) -> float:
-        spec = self.rig.specimen
-        if spec.kind == "membrane" or spec.lsdea is None:
-            return math.nan
-        return spec.lsdea.x_at_motor_zero_m + spec.lsdea.motor_sign * motor_position
-
     def _go(self, target: float, speed: float) -> str:
         self._motor()  # refused on a rig without one
-
-        def each(position: float) -> None:
-            self._record("motor", self._now(), position=position, aperture=self._aperture(position))
-            assert self.engine is not None
-            self.engine.sup.check_motor(position, self._aperture(position))
-
-        here = self._engine().move(target, speed, each)
+        here = self._engine().move(target, speed)
         return f"motor at {here * 1e3:.3f} mm (target {target * 1e3:.3f} mm); " + self._cmd_read()
 
     def _cmd_move(self, position: str, speed: str = "") -> str:
@@ -575,43 +552,24 @@ class ManualSession:
         self._engine().hold(0.2)
         return "load cell zeroed; " + self._cmd_read()
 
-    def _check_monitors(self, late: float = math.nan) -> tuple[float, float]:
-        """Both monitors, checked by the supervisor and against the voltage commanded (the interlock)."""
-        return self._engine().check_monitors(late)
-
-    def _cmd_read(self, late: float = math.nan) -> str:
-        """Every channel once, each checked by the supervisor; one line with units."""
+    def _cmd_read(self, due: float = math.nan) -> str:
+        """Every channel once (the engine's polls: recorded, supervised, verified); one line with units."""
         assert self._inst is not None
-        sup = self._engine().sup
-        parts, t0 = [], self._t0 or 0.0
+        got, drive = self._engine().read_all(due)
+        parts = []
         if self._inst.amplifier is not None:
-            v, i = self._check_monitors(late)
-            parts.append(f"voltage {v:.0f} V, current {i * 1e6:.2f} µA")
+            parts.append(f"voltage {got['voltage']:.0f} V, current {got['current'] * 1e6:.2f} µA")
         if self._inst.laser is not None:
-            r = self._inst.laser.read()
-            laser = self.rig.laser
-            d = (r.value - laser.offset_mm * 1e-3) / laser.sign if laser is not None else r.value
-            self._record("laser", r.timestamp - t0, displacement=d, valid=float(r.ok and math.isfinite(d)),
-                         late=late)
-            if r.ok and math.isfinite(d):
-                sup.update_displacement(d)
-                parts.append(f"displacement {d * 1e3:.4f} mm")
-            else:
-                parts.append(f"displacement n/a ({r.status})")
-        if self._inst.motor is not None:
-            r = self._inst.motor.read_position()
-            self._record("motor", r.timestamp - t0, position=r.value, aperture=self._aperture(r.value), late=late)
-            sup.check_motor(r.value, self._aperture(r.value))
-            parts.append(f"motor {r.value * 1e3:.3f} mm" + (f" (aperture {self._aperture(r.value) * 1e3:.2f} mm)"
-                                                          if math.isfinite(self._aperture(r.value)) else ""))
+            parts.append(f"displacement {got['displacement'] * 1e3:.4f} mm" if "displacement" in got
+                         else "displacement n/a (no valid reading)")
+        if self._inst.motor is not None and drive:
+            parts.append(f"motor n/a ({drive})")
+        elif self._inst.motor is not None:
+            x = got.get("aperture", math.nan)
+            parts.append(f"motor {got['position'] * 1e3:.3f} mm"
+                         + (f" (aperture {x * 1e3:.2f} mm)" if math.isfinite(x) else ""))
         if self._inst.load_cell is not None:
-            r = self._inst.load_cell.read()
-            self._record("load_cell", r.timestamp - t0, force=r.value, ok=float(r.ok), late=late)
-            if r.status in ("overload", "underload"):
-                raise SafetyTrip(f"load cell {r.status}")
-            if r.ok or r.status == "unstable":
-                sup.check_force(r.value)
-            parts.append(f"force {r.value:.3f} N" + ("" if r.ok else f" ({r.status})"))
+            parts.append(f"force {got['force']:.3f} N")
         return f"t {self._now():.2f} s: " + ", ".join(parts)
 
     def _cmd_watch(self, duration: str, every: str = "0.5") -> str:
@@ -624,7 +582,7 @@ class ManualSession:
         for k in range(1, n + 1):
             due = t_begin + k * interval
             engine.hold(max(0.0, due - engine.now()))
-            line = self._cmd_read(late=engine.now() - due)
+            line = self._cmd_read(due)
             self._write("watch", "read", line)
             self.echo(line)
         return f"watched {n} readings over {seconds:g} s"

@@ -18,7 +18,6 @@ interlock fault latches until :meth:`ManualEngine.reset_latch`; a pause holds 0 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 
 from bench.core.clock import Clock
 from bench.protocol.program import Program
@@ -26,7 +25,8 @@ from bench.protocol.schema import Protocol, ProtocolHeader
 from bench.rig import RigConfig
 from bench.runtime.engine import Engine, PauseRequested, StopRequested
 from bench.runtime.instruments import Instruments
-from bench.runtime.interlock import InterlockTrip, OutputVerifier, mismatch_trip
+from bench.runtime.interlock import InterlockTrip, OutputVerifier, motion_trip
+from bench.runtime.polls import POLLS
 from bench.runtime.safety import SafetyTrip, Supervisor
 from bench.storage.recorder import Recorder
 from drivers.errors import InstrumentError, InstrumentStateError
@@ -58,6 +58,7 @@ class ManualEngine(Engine):
         self.rig = rig
         self.ctx.t0 = t0
         self.snapshot.state = "manual"
+        self._polls = {p.name: p for p in POLLS}
         self.latched_at = 0.0  # run time of the latch [s]
         self.paused = False
         if inst.amplifier is not None:  # what connecting left the output at (0 V): the first ramp starts there
@@ -115,8 +116,8 @@ class ManualEngine(Engine):
         if self.inst.amplifier is not None and self.ctx.v_req != 0.0:
             self.voltage(self.ctx.v_req)
 
-    def ramp(self, target: float, seconds: float, rate_hz: float, after: Callable[[], object]) -> int:
-        """The engine's ``_ramp_to`` at ``rate_hz`` set-points per second, ``after()`` following each; Refused
+    def ramp(self, target: float, seconds: float, rate_hz: float) -> int:
+        """The engine's ``_ramp_to`` at ``rate_hz`` set-points per second, the monitors checked after each; Refused
         before the first if the target is not allowed. Returns the number of set-points."""
         self._held(target, "ramp not started")
         try:
@@ -124,7 +125,7 @@ class ManualEngine(Engine):
         except SafetyTrip as exc:
             raise Refused(f"{exc.reason}; ramp not started") from None
         n = max(1, math.ceil(seconds * rate_hz))
-        self._ramp_to(target, seconds, n, after)
+        self._ramp_to(target, seconds, n, self.check_monitors)
         return n
 
     def zero(self) -> None:
@@ -157,10 +158,10 @@ class ManualEngine(Engine):
             super()._check_pause()
 
     # ------------------------------------------------------------ motor
-    def move(self, target: float, speed: float, each: Callable[[float], None]) -> float:
+    def move(self, target: float, speed: float) -> float:
         """A supervised go-to through the engine's ``_move_motor`` (Refused, nothing sent, if the supervisor does
-        not allow it), then its status every MOVE_POLL_S until it ends (``each(position)`` after each); returns
-        where the motor stopped."""
+        not allow it), then its status every MOVE_POLL_S until it ends — each position recorded, supervised and
+        verified against the go-to (the interlock's motion verifier); returns where the motor stopped."""
         motor, m = self.ctx.motor, self.rig.motor
         assert m is not None  # a motor driver comes from rig.motor
         speed = min(speed, m.max_velocity_m_per_s)
@@ -172,13 +173,19 @@ class ManualEngine(Engine):
             raise Refused(f"{exc.reason}; not sent") from None
         self._record(self.rec.append, "setpoints", self.now(), voltage=math.nan, aperture=x_cmd)
         deadline = self.now() + MOVE_SPARE_S + abs(target - motor.read_position().value) / speed * 1.5
+        prog = self.program
         while self.now() < deadline:
             self.hold(MOVE_POLL_S)
-            st = motor.status()
-            each(st.position)
+            st, t = motor.status(), self.now()
+            x = float(prog.aperture(st.position)) if prog.has_motor_axis else math.nan
+            self._record(self.rec.append, "motor", t, position=st.position, aperture=x,
+                         **self.ctx.late_columns("motor", math.nan))
+            self.sup.check_motor(st.position, x if prog.has_motor_axis else self.sup.aperture or 0.0)
             if st.error:
                 raise InstrumentStateError("motor", "drive error during the move: "
                                            + (st.error_text or f"code {st.error_code:#06x}"))
+            if (miss := self.motion.reading(t, st.position)) is not None:
+                raise motion_trip(miss)
             if st.in_target and not st.moving:
                 return float(motor.read_position().value)
         motor.stop()
@@ -190,18 +197,30 @@ class ManualEngine(Engine):
         self.motion.stopped(self.now())
 
     # ------------------------------------------------------------ monitors, latch, pause
-    def check_monitors(self, late: float) -> tuple[float, float]:
-        """Both monitors, recorded, checked by the supervisor and against the voltage commanded (the interlock's
-        output verifier: a mismatch raises InterlockTrip)."""
-        amp = self.ctx.amp
-        v, i = amp.read_monitors()
-        t = v.timestamp - self.ctx.t0
-        self._record(self.rec.append, "amplifier", t, voltage=v.value, current=i.value,
-                     **self.ctx.late_columns("amplifier", late))
-        self.sup.check_monitors(v.value, i.value)
-        if (m := self.verifier.reading(t, v.value, v.ok)) is not None:
-            raise mismatch_trip(m, "the voltage monitor")
-        return v.value, i.value
+    def read_all(self, due: float = math.nan) -> tuple[dict[str, float], str]:
+        """Every channel once through the run's polls (:data:`~bench.runtime.polls.POLLS`: recorded, supervised,
+        the monitors and the encoder verified against what was commanded); ``due``: the run time the reading was
+        scheduled for (its lateness is recorded; NaN: on request). Returns the values read (the snapshot's keys:
+        voltage, current, displacement, position, aperture, force; a laser reading that is not valid is left out)
+        and, for a drive in an error state (recorded; a run would stop here), its own account: the operator reads
+        on to see why."""
+        self.snapshot.values.clear()
+        drive = ""
+        for name, present_ in (("monitors", self.inst.amplifier), ("laser", self.inst.laser),
+                               ("position", self.inst.motor), ("force", self.inst.load_cell)):
+            if present_ is None:
+                continue
+            try:
+                self._polls[name].run(self.ctx, due)
+            except InstrumentStateError as exc:
+                if name != "position":
+                    raise
+                drive = exc.detail
+        return dict(self.snapshot.values), drive
+
+    def check_monitors(self) -> None:
+        """The monitors poll alone (a ramp's check after each set-point)."""
+        self._polls["monitors"].run(self.ctx, math.nan)
 
     def make_safe(self) -> str:
         """After a trip or an error: output zeroed at once, motor stopped, every instrument safe; what was done."""
