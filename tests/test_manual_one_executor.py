@@ -59,6 +59,9 @@ def test_a_manual_voltage_goes_through_the_engines_set_point_code_on_both_rig_ki
         assert out.status == "refused" and "beyond the voltage limit" in out.text and "not sent" in out.text
         assert len(sent) == n and s._amp().commanded == pytest.approx(AT_LIMIT[name], abs=1e-6)
         assert abs(float(s._sim.plant.observe().v_out[-1]) - AT_LIMIT[name]) < 30  # the plant holds the limit
+    run = open_run(tmp_path / "s.h5")  # the readings' file, in the layout of a run on this rig, complete
+    assert run.complete and run.state == "completed", (run.state, run.reason)
+    assert run.streams["setpoints"].columns["voltage"].max() == pytest.approx(AT_LIMIT[name], abs=1e-6)
 
 
 def _plant(sim: Any) -> list[tuple[float, float]]:

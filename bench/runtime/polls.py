@@ -53,7 +53,7 @@ class Poll:
 def _monitors(e: RunContext, due: float) -> None:
     v, i = e.amp.read_monitors()
     e.rec.append("amplifier", v.timestamp - e.t0, voltage=v.value, current=i.value,
-                 **e.late_columns("amplifier", e.lateness(due)))
+                 **e.monitor_columns(e.lateness(due)))
     e.snapshot.values["voltage"], e.snapshot.values["current"] = v.value, i.value
     e.sup.check_monitors(v.value, i.value)
     if (m := e.verifier.reading(v.timestamp - e.t0, v.value, v.ok)) is not None:
