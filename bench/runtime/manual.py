@@ -1,4 +1,8 @@
-"""Manual control of a rig's instruments under the run's safety supervisor, every action in a session log.
+"""Manual control of a rig's instruments on the one executor, every action in a session log.
+
+A session is the command parser, log and prompt on top of the engine in manual mode
+(:class:`~bench.runtime.manual_mode.ManualEngine`, labscript BLACS's ``transition_to_manual`` as the model): each
+set-point, ramp, move, pause, reading, stop signal and the session's end go through the code a run uses.
 
 Commands (one per line; ``#`` starts a comment; quantities as in files, plain numbers in the unit shown):
 
@@ -16,12 +20,14 @@ Commands (one per line; ``#`` starts a comment; quantities as in files, plain nu
     pause | resume          output ramped to 0 V and held there, motor stopped | high voltage allowed again
     help | quit
 
-Every set-point passes :meth:`bench.runtime.safety.Supervisor.check_setpoint` (voltage, field at the present stretch)
-or :meth:`~bench.runtime.safety.Supervisor.check_motor_setpoint` (travel, field at the new aperture) before it is
-sent; a refused command is not sent. Every reading passes the supervisor's sample checks; a reading beyond a
-limit (a trip) zeroes the output and stops the motor. A driver error of any kind, or an unexpected error in a
-command, is one ``error`` line (output zeroed, motor stopped) and the session goes on; a command whose
-instrument the rig lacks is refused (nothing sent).
+Every set-point passes the engine's set-point code: :meth:`bench.runtime.safety.Supervisor.check_setpoint` on the
+request and on the value the module will output after DAC rounding (voltage, field at the present stretch), or
+:meth:`~bench.runtime.safety.Supervisor.check_motor_setpoint` on the drive's increment (travel, field at the new
+aperture); a refused command is not sent. Every reading is one of the run's polls (:mod:`bench.runtime.polls`:
+recorded, supervised, the monitors and the encoder verified against what was commanded); a reading beyond a limit
+(a trip) zeroes the output and stops the motor. A driver error of any kind, or an unexpected error in a command,
+is one ``error`` line (output zeroed, motor stopped) and the session goes on; a command whose instrument the rig
+lacks is refused (nothing sent).
 
 Latched interlock (:mod:`bench.runtime.interlock`, as in a run): before every write that can drive the output
 (set-points, keep-alives, ramps) a host stall is checked — the set-point module unheard for longer than 0.8 × its
@@ -31,23 +37,31 @@ compared with the voltage commanded (:class:`~bench.runtime.interlock.OutputVeri
 output at once (no ramp) and latches: every command that would energise is refused, in one line naming the
 fault, until the operator types ``reset WHY…`` (logged with the reason and the ``--operator`` name).
 
+Pause: ``pause`` (or SIGUSR1, as for a run) is the run's pause — the output ramped to 0 V over the rig's
+``shutdown_ramp_s``, the motor stopped — and every set-point but 0 V is refused, in one line, until ``resume`` (or
+SIGUSR2); reading goes on. A SIGUSR1 during a command ends that command and pauses.
+
 Readings: every reading of the session (``read``, ``watch``, the monitors after set-points and in ramps, the
 motor during moves) and every set-point sent (keep-alives and the exit ramp included) go to an HDF5 file beside
 the log (``<log>.h5``; never overwritten: ``<log>-1.h5``…), in a run file's stream layout
 (:mod:`bench.storage.recorder`), with one event per log line (commands, refusals, trips, the operator, the
-exit) and the end state; ``bench inspect`` and :func:`bench.storage.runfile.open_run` read it. A storage fault
-is one ``error`` line; the session goes on with the log alone.
+engine's stop account, the exit) and the end state; ``bench inspect`` and :func:`bench.storage.runfile.open_run`
+read it. A file that cannot be created ends the session before any command (as a run that cannot create its
+file does not start); a storage fault later is one ``error`` line and the session goes on with the log alone.
 
-Leaving the session (quit, end of input, error, a stop signal) ramps the output to 0 V over the rig's
-``shutdown_ramp_s`` (at once on a second stop signal), stops the motor, puts every instrument in its safe state
-and closes it; the log's last line is the ``end`` line, naming the signal if one ended the session.
+Leaving the session (quit, end of input, error, a stop signal) is the engine's bounded stop
+(:meth:`~bench.runtime.engine.Engine._shut_down`): the output ramped to 0 V over ``shutdown_ramp_s`` (at once on
+a second stop signal or a latched fault), the motor stopped, every instrument in its safe state, 0 V verified on
+the voltage monitor; the log then has the stop's lines (``request``, why it stopped, ``ramp``, ``safe``) and its
+last line is the ``end`` line, naming the signal if one ended the session.
 
-Signals (:meth:`ManualSession.signal_handlers`, installed by ``bench devices control``): SIGTERM, SIGHUP and
-SIGQUIT end the session through that safe exit, whatever it is doing. Ctrl-C (SIGINT) at an interactive prompt
-ends the command under way (``watch``, ``wait``, ``ramp``, ``move``…): the motor is stopped, the output held at
-the last set-point sent, and the prompt comes back; a second Ctrl-C during the same command, or a Ctrl-C at the
-prompt, ends the session. In script mode (``--script``, or commands piped in) Ctrl-C ends the session through
-the safe exit, as it did before (then by KeyboardInterrupt, which could cut the safe exit short).
+Signals (:meth:`ManualSession.signal_handlers`, installed by ``bench devices control``; the engine's handler table,
+:func:`~bench.runtime.engine.stop_signals`): SIGTERM, SIGHUP and SIGQUIT end the session through that safe exit,
+whatever it is doing. Ctrl-C (SIGINT) at an interactive prompt ends the command under way (``watch``, ``wait``,
+``ramp``, ``move``…): the motor is stopped, the output held at the last set-point sent (0 V if paused), and the
+prompt comes back; a second Ctrl-C during the same command, or a Ctrl-C at the prompt, ends the session. In script
+mode (``--script``, or commands piped in) Ctrl-C ends the session through the safe exit. SIGUSR1 pauses, SIGUSR2
+resumes.
 
 At a terminal prompt (:func:`prompt_lines`) lines can be edited and ↑/↓ recall earlier commands, through the
 stdlib :mod:`readline` where Python has it; the history is kept in ``~/.bench_history`` (the user's home folder,
