@@ -118,3 +118,21 @@ def test_a_pause_signal_ends_the_command_under_way_and_pauses(tmp_path: Path) ->
     assert [o.status for o in s.outcomes] == ["ok", "paused", "refused", "ok"], s.outcomes
     assert "paused by signal SIGUSR1" in s.outcomes[1].text
     assert abs(volts) <= ZERO_V
+
+
+def test_a_pause_signal_at_the_prompt_pauses_before_the_next_set_point(tmp_path: Path) -> None:
+    """SIGUSR1 between two commands: the next `voltage` pauses instead of sending (virtual time: no keep-alive
+    thread runs between commands, so the pause comes with the next command)."""
+    trace: list[tuple[float, float]] = []
+
+    def echo(text: str) -> None:
+        if text.startswith("ok: set-point"):
+            os.kill(os.getpid(), signal.SIGUSR1)
+
+    s = ManualSession(_rig("thesis-sim"), tmp_path / "s.log", virtual=True, echo=echo)
+    with s.signal_handlers(), s:
+        trace = _plant(s._sim)
+        s.run_lines(["voltage 3kV", "voltage 6kV", "wait 1"], stop_on_trip=False)
+    assert [o.status for o in s.outcomes] == ["ok", "paused", "ok"], s.outcomes
+    assert max(abs(v) for _, v in trace) < 3100  # 6 kV never sent
+    assert abs(trace[-1][1]) <= ZERO_V

@@ -256,6 +256,8 @@ class ManualSession:
                     self.engine.keep_alive()
                 except InterlockTrip as trip:  # between commands: the operator is told at the prompt
                     self.echo(f"trip: {self._latch(trip)}")
+                except PauseRequested:  # SIGUSR1 at the prompt: paused now, not at the next command
+                    self.echo(f"paused: {self.engine.pause(self.engine.pause_asked_by())}")
 
     def __exit__(self, exc_type: type[BaseException] | None, *_exc: object) -> None:
         self._ending = True

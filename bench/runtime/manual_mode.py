@@ -86,7 +86,9 @@ class ManualEngine(Engine):
     def voltage(self, volts: float) -> float:
         """One supervised set-point (the engine's ``_set_voltage``); Refused before anything is sent if the latch,
         a pause or the supervisor (on the request or on the value after DAC rounding) does not allow it. Returns
-        the value sent."""
+        the value sent. A pause asked for meanwhile (SIGUSR1 at the prompt) comes first: PauseRequested, nothing
+        sent."""
+        self._check_pause()
         self._held(volts, "not sent")
         try:
             self._check_voltage(volts)
@@ -119,6 +121,7 @@ class ManualEngine(Engine):
     def ramp(self, target: float, seconds: float, rate_hz: float) -> int:
         """The engine's ``_ramp_to`` at ``rate_hz`` set-points per second, the monitors checked after each; Refused
         before the first if the target is not allowed. Returns the number of set-points."""
+        self._check_pause()
         self._held(target, "ramp not started")
         try:
             self.sup.check_setpoint(target)
