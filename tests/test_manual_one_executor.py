@@ -78,7 +78,7 @@ def test_pause_in_manual_control_ramps_to_zero_and_holds_it_until_resume(tmp_pat
         assert s.execute("voltage 3kV").status == "ok"
         t_pause = s._sim.clock.now()
         out = s.execute("pause")
-        assert out.status == "ok" and "paused by command by ada" in out.text, out
+        assert out.status == "ok" and "paused by ada (`pause`)" in out.text, out
         t_paused = s._sim.clock.now()
         for line in ("voltage 1kV", "ramp 2kV 1s", "voltage -500 V"):
             refused = s.execute(line)
@@ -94,7 +94,10 @@ def test_pause_in_manual_control_ramps_to_zero_and_holds_it_until_resume(tmp_pat
     assert t_paused - t_pause >= ramp_s * 0.999
     held = [v for t, v in trace if t_paused + 0.05 <= t < t_resume]
     assert held and max(abs(v) for v in held) <= ZERO_V
-    sp = open_run(tmp_path / "s.h5").streams["setpoints"]  # the engine's ramp: ten set-points down to 0 V
+    run = open_run(tmp_path / "s.h5")
+    marks = [kind for _, _, kind, _ in run.event_list() if kind in ("pause", "resume")]
+    assert marks == ["pause", "resume"]  # the events a run's pause writes (bench watch marks them)
+    sp = run.streams["setpoints"]  # the engine's ramp: ten set-points down to 0 V
     volts = sp.columns["voltage"][(sp.t > t_pause - s._t0 + 1e-6) & (sp.t <= t_paused - s._t0 + 1e-9)]  # type: ignore[operator]
     assert np.abs(volts - 3000 * (1 - np.arange(1, 11) / 10)).max() <= ZERO_V, volts
 

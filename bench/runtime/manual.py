@@ -493,11 +493,14 @@ class ManualSession:
         return f"interlock ({kind}) reset by {who}: {reason}"
 
     # ------------------------------------------------------------ pause
+    def _who(self, command: str) -> str:
+        return f"{self.operator or 'an operator not named (no --operator)'} (`{command}`)"
+
     def _cmd_pause(self) -> str:
-        return self._engine().pause(f"command by {self.operator or 'an operator not named (no --operator)'}")
+        return self._engine().pause(self._who("pause"))
 
     def _cmd_resume(self) -> str:
-        return self._engine().resume(f"command by {self.operator or 'an operator not named (no --operator)'}")
+        return self._engine().resume(self._who("resume"))
 
     # ------------------------------------------------------------ each _cmd_* returns one line of text
     def _cmd_help(self) -> str:

@@ -61,6 +61,7 @@ class ManualEngine(Engine):
         self._polls = {p.name: p for p in POLLS}
         self.latched_at = 0.0  # run time of the latch [s]
         self.paused = False
+        self._paused_at = 0.0  # run time of the pause [s]
         if inst.amplifier is not None:  # what connecting left the output at (0 V): the first ramp starts there
             self.ctx.v_cmd = float(inst.amplifier.commanded)
             self.verifier.commanded(self.now(), self.ctx.v_cmd)
@@ -264,9 +265,10 @@ class ManualEngine(Engine):
         if self.paused:
             raise Refused("already paused")
         self.request_pause(by)
-        self.paused = True
+        self.paused, self._paused_at = True, self.now()
         self.pauses += 1
         self.ctx.v_req = 0.0
+        self._event("pause", f"paused by {by}: output to 0 V, motor held, recording goes on")  # as a run's
         self._make_paused()
         return f"paused by {by}: output {self.ctx.v_cmd:.0f} V, motor held; `resume` lets high voltage on again"
 
@@ -284,6 +286,7 @@ class ManualEngine(Engine):
         self.request_resume(by)
         self.paused = False
         self._pause_by = self._resume_by = None
+        self._event("resume", f"resumed by {by} after {self.now() - self._paused_at:.3f} s paused")
         return f"resumed by {by}"
 
     # ------------------------------------------------------------ a Ctrl-C, the end
