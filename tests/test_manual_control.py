@@ -287,7 +287,9 @@ def test_a_stop_signal_ends_an_interactive_session_through_the_exit_ramp(tmp_pat
     s, rows, after, history = _session_with_signals(tmp_path, ["voltage 3kV", "watch 3600 0.5", "read"],
                                                     _kill(sig))
     assert [o.status for o in s.outcomes] == ["ok", "interrupted"]
-    assert rows[-2][2:4] == ["ramp", "session"] and "to 0 V over 0.25 s" in rows[-2][4]
+    # the engine's bounded stop: the ramp, then 0 V verified on the monitor, then the session's end line
+    assert rows[-3][2:4] == ["ramp", "session"] and "to 0 V over 0.25 s" in rows[-3][4]
+    assert rows[-2][2:4] == ["safe", "session"] and "verified: voltage monitor" in rows[-2][4]
     assert rows[-1][2] == "end" and rows[-1][4].startswith(SIGNALS[sig])
     assert abs(after) < ZERO_V
     # ramped, not dropped: the plant passed through the middle of the range on the way down
@@ -349,7 +351,8 @@ def test_a_signal_to_a_scripted_session_during_a_command_zeroes_the_output(tmp_p
     assert max(abs(v) for _, v in trace) > 2900 and abs(trace[-1][1]) < ZERO_V
     assert [(r[2], r[3]) for r in rows if r[3] not in ("connect", "watch")] == [
         ("start", "session"), ("ok", "voltage 3kV"), ("interrupted", "watch 3600 0.5"),  # the watch ended,
-        ("ramp", "session"), ("end", "session")]  # then the exit ramp, then the end line
+        ("request", "session"), ("interrupted", "session"),  # the engine's stop: the request, why it stopped,
+        ("ramp", "session"), ("safe", "session"), ("end", "session")]  # the exit ramp, 0 V verified, the end
     assert rows[-1][4].startswith(SIGNALS[sig])
 
 
@@ -449,13 +452,14 @@ def test_a_host_stall_longer_than_the_watchdog_latches_and_high_voltage_never_co
         assert s.execute("voltage 3kV").status == "ok"
         t_freeze = sim.clock.now()
         if where == "in a command":
-            sleep = s._sleep
+            ctx = s.engine.ctx  # the run context's wait: what the engine's hold waits in
+            wait = ctx.wait_until
 
-            def stalled(dt: float) -> None:
-                s._sleep = sleep
+            def stalled(t: float) -> None:
+                ctx.wait_until = wait  # type: ignore[method-assign]
                 time.sleep(freeze)
-                sleep(dt)
-            s._sleep = stalled
+                wait(t)
+            ctx.wait_until = stalled  # type: ignore[method-assign]
             out = s.execute("wait 1")
             assert out.status == "trip" and "interlock: host stall" in out.text and "latched" in out.text, out
         elif where == "at the prompt":
@@ -487,7 +491,8 @@ def test_a_host_stall_longer_than_the_watchdog_latches_and_high_voltage_never_co
     (latched,) = [r for r in rows if r[2:4] == ["latched", "interlock"]]
     assert "host stall" in latched[4] and "stays off" in latched[4]
     if where == "at the exit":
-        assert rows[-2][2:4] == ["ramp", "session"] and "0 V at once, no ramp" in rows[-2][4]
+        (ramp,) = [r for r in rows if r[2] == "ramp"]
+        assert ramp[3] == "session" and "0 V at once, no ramp" in ramp[4]
     else:
         (reset,) = [r for r in rows if r[3].startswith("reset because")]
         assert reset[2] == "ok" and "Ada Lovelace" in reset[4]

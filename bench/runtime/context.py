@@ -68,7 +68,9 @@ class RunContext:
 
     def __init__(self, program: Program, inst: Instruments, clock: Clock, recorder: Recorder,
                  supervisor: Supervisor, snapshot: Snapshot, *, check_stop: Callable[[], None],
-                 check_pause: Callable[[], None]) -> None:
+                 check_pause: Callable[[], None], streamed: bool = True) -> None:
+        """``streamed``: the rig's DAQ (if it has one) plays the steps; False: every set-point is command-response
+        (manual mode)."""
         self.program = program
         self.inst = inst
         self.clock = clock
@@ -85,12 +87,13 @@ class RunContext:
         self.overruns = 0  # real time: actions later than LATE_TOLERANCE_S
         self.worst_lateness = 0.0
         self.stream: Streaming | None = None  # set by the engine on a rig that plays its steps hardware-timed
-        hw = inst.stream_drive is not None
+        hw = streamed and inst.stream_drive is not None
         self.verifier = OutputVerifier(rig, rig.daq.scan_rate_Hz if hw and rig.daq else None)
         self.motion = MotionVerifier(rig)  # the encoder against the go-tos (a rig without a motor never feeds it)
         self._laser_offset = (rig.laser.offset_mm * 1e-3) if rig.laser else 0.0
         self._laser_sign = float(rig.laser.sign) if rig.laser else 1.0
         self._late_streams = {name for name, cols in recorder.streams.items() if any(c.name == "late" for c in cols)}
+        self._amp_commanded = any(c.name == "commanded" for c in recorder.streams.get("amplifier", []))
         self.laser_t_last = -math.inf  # run time of the last laser sample recorded (software-timed laser)
         self._heard_mark: float | None = None  # the set-point module's driver's last ``heard_at`` seen
         self._heard_rig = -math.inf  # rig clock: no later than this the module last heard from the host
@@ -187,7 +190,16 @@ class RunContext:
         """The ``late`` column of a software-timed stream: how long after its scheduled time a poll ran [s]."""
         return {"late": late} if stream in self._late_streams else {}
 
+    def monitor_columns(self, late: float) -> dict[str, float | np.ndarray]:
+        """The amplifier stream's columns besides the monitors for one command-response read: ``late`` on a
+        software-timed stream, and the output commanded where the layout has that column (a DAQ-driven
+        amplifier: its stream in a run, its polled reads in manual control)."""
+        cols = self.late_columns("amplifier", late)
+        if self._amp_commanded:
+            cols["commanded"] = self.v_cmd
+        return cols
+
     def unpolled_monitor_columns(self) -> dict[str, float | np.ndarray]:
         """The amplifier stream's other columns for a monitor read outside the schedule (paused, shutting down):
         on a DAQ rig the output commanded, else no lateness (NaN: not a scheduled poll)."""
-        return {"commanded": self.v_cmd} if self.stream is not None else self.late_columns("amplifier", math.nan)
+        return self.monitor_columns(math.nan)

@@ -20,13 +20,15 @@ and between waits of at most ``STOP_POLL_S``. The ramp-down then starts at once 
 
 from __future__ import annotations
 
+import contextlib
 import math
 import signal
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from types import FrameType
 from typing import Any
 
 import numpy as np
@@ -66,6 +68,28 @@ STOP_SIGNALS = {
 OperatorFn = Callable[[str], bool]
 
 
+@contextlib.contextmanager
+def stop_signals(on_stop: Callable[[str, int], None], on_pause: Callable[[str], None],
+                 on_resume: Callable[[str], None]) -> Iterator[None]:
+    """Within: SIGINT/SIGTERM/SIGHUP/SIGQUIT call ``on_stop(reason, signal)`` (reasons: :data:`STOP_SIGNALS`),
+    SIGUSR1 ``on_pause(by)``, SIGUSR2 ``on_resume(by)``; the old handlers after. Main thread only (elsewhere it
+    installs nothing). The handlers of runs and of manual control."""
+    old: list[tuple[signal.Signals, Any]] = []
+    if threading.current_thread() is threading.main_thread():
+        for sig, text in STOP_SIGNALS.items():
+            def handler(s: int, _f: FrameType | None, text: str = text) -> None:
+                on_stop(text, s)
+
+            old.append((sig, signal.signal(sig, handler)))
+        old.append((signal.SIGUSR1, signal.signal(signal.SIGUSR1, lambda *_a: on_pause("signal SIGUSR1"))))
+        old.append((signal.SIGUSR2, signal.signal(signal.SIGUSR2, lambda *_a: on_resume("signal SIGUSR2"))))
+    try:
+        yield
+    finally:
+        for sig, handler in old:
+            signal.signal(sig, handler)
+
+
 class StopRequested(Exception):  # noqa: N818 - control flow, not a failure
     """Ctrl-C / SIGTERM / a stop request from another thread."""
 
@@ -93,12 +117,17 @@ class Engine:
 
     def __init__(self, program: Program, inst: Instruments, clock: Clock, recorder: Recorder,
                  supervisor: Supervisor, *, apply_specimen: Callable[[dict[str, Any]], None] | None = None,
-                 operator: OperatorFn | None = None, start_step: int = 0, control: Path | None = None) -> None:
+                 operator: OperatorFn | None = None, start_step: int = 0, control: Path | None = None,
+                 commands: bool = False) -> None:
         """``start_step``: run the program from this step on (a resumed campaign; the steps before it ran in the
-        file it continues). ``control``: the run's control file (``bench pause`` / ``bench resume`` write it)."""
+        file it continues). ``control``: the run's control file (``bench pause`` / ``bench resume`` write it).
+        ``commands``: manual mode (:class:`bench.runtime.manual_mode.ManualEngine`) — set-points come one command
+        at a time, command-response (no DAQ stream plays), through the same set-point, ramp, move, interlock and
+        shutdown code as a program's."""
         if not 0 <= start_step < max(len(program.segments), 1):
             raise ValueError(f"start step {start_step} outside the program's {len(program.segments)} steps")
         self.program = program
+        self.commands = commands
         self.start_step = start_step
         self.control = control
         self.inst = inst
@@ -109,7 +138,7 @@ class Engine:
         self.operator = operator
         self.snapshot = Snapshot(duration=program.duration, steps=len(program.segments))
         self.ctx = RunContext(program, inst, clock, recorder, supervisor, self.snapshot,
-                              check_stop=self._check_stop, check_pause=self._check_pause)
+                              check_stop=self._check_stop, check_pause=self._check_pause, streamed=not commands)
         self._stop_reason: str | None = None
         self._stop_at: float | None = None  # run time of the first stop request
         self._urgent = threading.Event()
@@ -117,7 +146,7 @@ class Engine:
         self._in_prompt = False
         self._storing = False
         self._storage_failed = False
-        drive = inst.stream_drive  # the instruments' capability: steps played hardware-timed on a DAQ's stream
+        drive = inst.stream_drive if not commands else None  # steps played hardware-timed on a DAQ's stream
         self._stream = HardwareTimed(program.rig, *drive, self.ctx) if drive is not None else None
         self.ctx.stream = self._stream
         self.verifier, self.motion = self.ctx.verifier, self.ctx.motion
@@ -128,6 +157,11 @@ class Engine:
         self._control_seen: ControlWord = (0.0, False, "", False)  # control file: (mtime, pause?, by/why, stop?)
         self._control_checked = 0.0
         self.pauses = 0
+        # manual mode (commands instead of a program): a Ctrl-C while a command runs ends the command, not the
+        # session (``interruptible``); ``_interrupt`` is that request until the command has ended
+        self.interruptible = False
+        self._interrupt: str | None = None
+        self.on_event: Callable[[str, str], None] | None = None  # shutdown events go here instead (manual: its log)
 
     # ------------------------------------------------------------ stop requests (signals, other threads)
     def request_stop(self, reason: str) -> None:
@@ -174,25 +208,40 @@ class Engine:
         if not self._stopping and self._stop_reason is None and self._paused_wanted()[0]:
             raise PauseRequested
 
-    def _on_signal(self, reason: str) -> None:
+    def _on_signal(self, reason: str, sig: int | None = None) -> None:
+        """A stop signal: a stop request (an interrupt of the command under way in manual mode, interactive); at an
+        operator prompt (``input()`` blocks) leave it now."""
+        if (sig == signal.SIGINT and self.interruptible and self._interrupt is None and self._stop_reason is None
+                and not self._stopping):
+            self._interrupt = reason
+            self.inst.cancel.cancel(reason)
+            return
         self.request_stop(reason)
-        if self._in_prompt and not self._stopping:  # an operator prompt blocks in input(): leave it now
+        if self._in_prompt and not self._stopping:
             self._in_prompt = False
             raise StopRequested(reason)
 
-    def _install_signals(self) -> list[tuple[signal.Signals, Any]]:
-        if threading.current_thread() is not threading.main_thread():
-            return []
-        old: list[tuple[signal.Signals, Any]] = []
-        for sig, text in STOP_SIGNALS.items():
-            old.append((sig, signal.signal(sig, lambda *_a, text=text: self._on_signal(text))))
-        old.append((signal.SIGUSR1, signal.signal(signal.SIGUSR1, lambda *_a: self.request_pause("signal SIGUSR1"))))
-        old.append((signal.SIGUSR2, signal.signal(signal.SIGUSR2, lambda *_a: self.request_resume("signal SIGUSR2"))))
-        return old
+    def signals(self) -> contextlib.AbstractContextManager[None]:
+        """Within: the engine's stop, pause and resume requests by signal (:func:`stop_signals`)."""
+        return stop_signals(self._on_signal, self.request_pause, self.request_resume)
+
+    @contextlib.contextmanager
+    def prompt(self) -> Iterator[None]:
+        """Within: waiting for an operator (``input()``); a stop signal leaves the wait at once (StopRequested)."""
+        self._in_prompt = True
+        try:
+            self._check_stop()
+            yield
+        finally:
+            self._in_prompt = False
 
     def _check_stop(self) -> None:
-        if self._stop_reason is not None and not self._stopping:
+        if self._stopping:
+            return
+        if self._stop_reason is not None:
             raise StopRequested(self._stop_reason)
+        if self._interrupt is not None:
+            raise StopRequested(self._interrupt)
 
     @property
     def overruns(self) -> int:
@@ -256,10 +305,7 @@ class Engine:
         The supervisor checks the request, then the value the module will really output: the driver's nearest code
         within the supervisor's bound (one code toward zero at a limit, so a set-point at the limit runs and never
         exceeds it). A step the slew limit held back is checked as sent."""
-        self.sup.check_setpoint(v)
-        bound = self.sup.setpoint_bound()
-        want = self.ctx.amp.quantise(v, within=bound)
-        self.sup.check_setpoint(want)
+        bound, want = self._check_voltage(v)
         self.ctx.guard()
         sent = self.ctx.amp.set_voltage(v, within=bound)
         self.ctx.v_cmd, self.ctx.v_req = sent, v
@@ -267,6 +313,15 @@ class Engine:
         self.rec.append("setpoints", t, voltage=sent, aperture=x_cmd)
         if sent != want:
             self.sup.check_setpoint(sent)
+
+    def _check_voltage(self, v: float) -> tuple[float, float]:
+        """The supervisor's checks of a voltage set-point before it is sent: the request and the value the module
+        will output (SafetyTrip if either is refused); returns (the bound, that value)."""
+        self.sup.check_setpoint(v)
+        bound = self.sup.setpoint_bound()
+        want = self.ctx.amp.quantise(v, within=bound)
+        self.sup.check_setpoint(want)
+        return bound, want
 
     def _move_motor(self, target: float, vel: float, acc: float) -> float:
         """Send a supervised go-to; returns the commanded aperture [m]. The position checked and sent is the one the
@@ -284,12 +339,8 @@ class Engine:
     def _operator_confirms(self, text: str) -> bool:
         if self.operator is None:
             return False
-        self._in_prompt = True
-        try:
-            self._check_stop()
+        with self.prompt():
             return self.operator(f"set the specimen: {text}")
-        finally:
-            self._in_prompt = False
 
     def _segment(self, seg: Segment) -> None:
         prog, inst, rec = self.program, self.inst, self.program.protocol.recording
@@ -385,13 +436,17 @@ class Engine:
             raise StopRequested(f"operator did not confirm the specimen for the resumed campaign ({text})")
         self.rec.event(self.now(), seg.index, "specimen", text)
 
-    def _ramp_to(self, target: float, seconds: float) -> None:
-        """Supervised set-points from the present one to ``target`` over ``seconds`` (command-response)."""
-        v0 = self.ctx.v_cmd
-        for k in range(1, RAMP_STEPS + 1):
-            self._pause_until(self.now() + seconds / RAMP_STEPS, urgent_aborts=False)
+    def _ramp_to(self, target: float, seconds: float, steps: int = RAMP_STEPS,
+                 after: Callable[[], object] | None = None) -> None:
+        """Supervised set-points from the present one to ``target`` in ``steps`` equal steps, the k-th ``seconds``
+        × k/steps after the ramp began (command-response); ``after()`` follows each set-point."""
+        v0, t0 = self.ctx.v_cmd, self.now()
+        for k in range(1, steps + 1):
+            self._pause_until(t0 + seconds * k / steps, urgent_aborts=False)
             self._check_stop()
-            self._set_voltage(v0 + (target - v0) * k / RAMP_STEPS, self.now())
+            self._set_voltage(v0 + (target - v0) * k / steps, self.now())
+            if after is not None:
+                after()
 
     def _restart(self, seg: Segment, why: str) -> None:
         """Bring the rig to the state the program holds at the start of ``seg`` (motor to its position with the
@@ -429,18 +484,7 @@ class Engine:
         self.snapshot.state = "paused"
         self.rec.event(t_pause, seg.index, "pause", f"paused in step {seg.index} ({seg.name}) by {by}: output to "
                        "0 V, motor held, recording goes on")
-        if self._stream is not None:
-            self._stream.stop()
-            self._stream.forget()
-        if self._storing and self.inst.laser is not None:
-            self.inst.laser.stop_buffer()
-            self._storing = False
-            self._drain_laser(LASER_SHUTDOWN_DRAIN_S)
-        if self.inst.amplifier is not None:
-            self._ramp_to(0.0, self.program.rig.limits.shutdown_ramp_s)
-        if self.inst.motor is not None and self.program.has_motor_axis:
-            self.ctx.motor.stop()
-            self.motion.stopped(self.now())
+        self._make_paused()
         due = self.now() + RESTART_SETTLE_S  # the ramp's last charging current is over before the first reading
         while self._paused_wanted()[0]:
             self._check_stop()
@@ -456,6 +500,22 @@ class Engine:
         self.rec.event(self.now(), seg.index, "resume", f"resumed by {by} after {self.now() - t_pause:.3f} s paused")
         self.snapshot.state = "running"
         self._restart(seg, "resumed after a pause")
+
+    def _make_paused(self) -> None:
+        """The paused state, a run's or a manual session's: a playing stream stopped, stored laser data fetched,
+        the output ramped to 0 V over ``shutdown_ramp_s`` (supervised set-points), the motor stopped where it is."""
+        if self._stream is not None:
+            self._stream.stop()
+            self._stream.forget()
+        if self._storing and self.inst.laser is not None:
+            self.inst.laser.stop_buffer()
+            self._storing = False
+            self._drain_laser(LASER_SHUTDOWN_DRAIN_S)
+        if self.inst.amplifier is not None:
+            self._ramp_to(0.0, self.program.rig.limits.shutdown_ramp_s)
+        if self.inst.motor is not None and (self.program.has_motor_axis or self.commands):
+            self.ctx.motor.stop()
+            self.motion.stopped(self.now())
 
     def _paused_readings(self) -> None:
         """One reading of every polled channel while paused (the monitors by command-response on a DAQ rig);
@@ -477,7 +537,8 @@ class Engine:
     def run(self) -> RunResult:
         """Run the whole program; always returns with the rig safe and the file finalised."""
         wall0 = time.perf_counter()
-        old = self._install_signals()
+        signals = self.signals()
+        signals.__enter__()
         self.ctx.t0 = self.clock.now()
         state, reason = "completed", "protocol completed"
         try:
@@ -518,8 +579,7 @@ class Engine:
         try:
             safe_path = self._shut_down(state, reason)
         finally:
-            for sig, handler in old:
-                signal.signal(sig, handler)
+            signals.__exit__(None, None, None)
         if (self._storage_failed or self.rec.failed) and state != "error":
             # the run itself ended, but the file could not record its end: it is not a complete record
             state, reason = "error", f"storage fault: {self.rec.failure or 'run file not finalised'} (after: {reason})"
@@ -538,10 +598,14 @@ class Engine:
             self._storage_failed = True
 
     def _event(self, kind: str, text: str) -> None:
+        if self.on_event is not None:
+            self.on_event(kind, text)
+            return
         self._record(self.rec.event, self.now(), self.snapshot.step, kind, text)
 
-    def _shut_down(self, state: str, reason: str) -> str:
-        """Voltage to zero, motor stopped, instruments safe, safe state verified, file finalised.
+    def _shut_down(self, state: str, reason: str, finish: bool = True) -> str:
+        """Voltage to zero, motor stopped, instruments safe, safe state verified, file finalised (unless not
+        ``finish``: manual mode ends its file after its last log line).
 
         Returns the account of how the output was made safe (also in the file's events and reason).
         """
@@ -576,7 +640,8 @@ class Engine:
         for note in notes:
             self._event("fault", note)
         self._event("safe", safe_path)
-        self._record(self.rec.finish, state, f"{reason} | {safe_path}")
+        if finish:
+            self._record(self.rec.finish, state, f"{reason} | {safe_path}")
         self.snapshot.state = state
         return safe_path
 

@@ -1,4 +1,8 @@
-"""Manual control of a rig's instruments under the run's safety supervisor, every action in a session log.
+"""Manual control of a rig's instruments on the one executor, every action in a session log.
+
+A session is the command parser, log and prompt on top of the engine in manual mode
+(:class:`~bench.runtime.manual_mode.ManualEngine`, labscript BLACS's ``transition_to_manual`` as the model): each
+set-point, ramp, move, pause, reading, stop signal and the session's end go through the code a run uses.
 
 Commands (one per line; ``#`` starts a comment; quantities as in files, plain numbers in the unit shown):
 
@@ -13,14 +17,17 @@ Commands (one per line; ``#`` starts a comment; quantities as in files, plain nu
     watch DURATION [EVERY]  read every channel every EVERY [s] (default 0.5 s) for DURATION [s]
     wait DURATION           let time pass
     reset WHY...            clear a latched interlock (the reason and the --operator name are logged)
+    pause | resume          output ramped to 0 V and held there, motor stopped | high voltage allowed again
     help | quit
 
-Every set-point passes :meth:`bench.runtime.safety.Supervisor.check_setpoint` (voltage, field at the present stretch)
-or :meth:`~bench.runtime.safety.Supervisor.check_motor_setpoint` (travel, field at the new aperture) before it is
-sent; a refused command is not sent. Every reading passes the supervisor's sample checks; a reading beyond a
-limit (a trip) zeroes the output and stops the motor. A driver error of any kind, or an unexpected error in a
-command, is one ``error`` line (output zeroed, motor stopped) and the session goes on; a command whose
-instrument the rig lacks is refused (nothing sent).
+Every set-point passes the engine's set-point code: :meth:`bench.runtime.safety.Supervisor.check_setpoint` on the
+request and on the value the module will output after DAC rounding (voltage, field at the present stretch), or
+:meth:`~bench.runtime.safety.Supervisor.check_motor_setpoint` on the drive's increment (travel, field at the new
+aperture); a refused command is not sent. Every reading is one of the run's polls (:mod:`bench.runtime.polls`:
+recorded, supervised, the monitors and the encoder verified against what was commanded); a reading beyond a limit
+(a trip) zeroes the output and stops the motor. A driver error of any kind, or an unexpected error in a command,
+is one ``error`` line (output zeroed, motor stopped) and the session goes on; a command whose instrument the rig
+lacks is refused (nothing sent).
 
 Latched interlock (:mod:`bench.runtime.interlock`, as in a run): before every write that can drive the output
 (set-points, keep-alives, ramps) a host stall is checked — the set-point module unheard for longer than 0.8 × its
@@ -30,23 +37,31 @@ compared with the voltage commanded (:class:`~bench.runtime.interlock.OutputVeri
 output at once (no ramp) and latches: every command that would energise is refused, in one line naming the
 fault, until the operator types ``reset WHY…`` (logged with the reason and the ``--operator`` name).
 
+Pause: ``pause`` (or SIGUSR1, as for a run) is the run's pause — the output ramped to 0 V over the rig's
+``shutdown_ramp_s``, the motor stopped — and every set-point but 0 V is refused, in one line, until ``resume`` (or
+SIGUSR2); reading goes on. A SIGUSR1 during a command ends that command and pauses.
+
 Readings: every reading of the session (``read``, ``watch``, the monitors after set-points and in ramps, the
 motor during moves) and every set-point sent (keep-alives and the exit ramp included) go to an HDF5 file beside
 the log (``<log>.h5``; never overwritten: ``<log>-1.h5``…), in a run file's stream layout
 (:mod:`bench.storage.recorder`), with one event per log line (commands, refusals, trips, the operator, the
-exit) and the end state; ``bench inspect`` and :func:`bench.storage.runfile.open_run` read it. A storage fault
-is one ``error`` line; the session goes on with the log alone.
+engine's stop account, the exit) and the end state; ``bench inspect`` and :func:`bench.storage.runfile.open_run`
+read it. A file that cannot be created ends the session before any command (as a run that cannot create its
+file does not start); a storage fault later is one ``error`` line and the session goes on with the log alone.
 
-Leaving the session (quit, end of input, error, a stop signal) ramps the output to 0 V over the rig's
-``shutdown_ramp_s`` (at once on a second stop signal), stops the motor, puts every instrument in its safe state
-and closes it; the log's last line is the ``end`` line, naming the signal if one ended the session.
+Leaving the session (quit, end of input, error, a stop signal) is the engine's bounded stop
+(:meth:`~bench.runtime.engine.Engine._shut_down`): the output ramped to 0 V over ``shutdown_ramp_s`` (at once on
+a second stop signal or a latched fault), the motor stopped, every instrument in its safe state, 0 V verified on
+the voltage monitor; the log then has the stop's lines (``request``, why it stopped, ``ramp``, ``safe``) and its
+last line is the ``end`` line, naming the signal if one ended the session.
 
-Signals (:meth:`ManualSession.signal_handlers`, installed by ``bench devices control``): SIGTERM, SIGHUP and
-SIGQUIT end the session through that safe exit, whatever it is doing. Ctrl-C (SIGINT) at an interactive prompt
-ends the command under way (``watch``, ``wait``, ``ramp``, ``move``…): the motor is stopped, the output held at
-the last set-point sent, and the prompt comes back; a second Ctrl-C during the same command, or a Ctrl-C at the
-prompt, ends the session. In script mode (``--script``, or commands piped in) Ctrl-C ends the session through
-the safe exit, as it did before (then by KeyboardInterrupt, which could cut the safe exit short).
+Signals (:meth:`ManualSession.signal_handlers`, installed by ``bench devices control``; the engine's handler table,
+:func:`~bench.runtime.engine.stop_signals`): SIGTERM, SIGHUP and SIGQUIT end the session through that safe exit,
+whatever it is doing. Ctrl-C (SIGINT) at an interactive prompt ends the command under way (``watch``, ``wait``,
+``ramp``, ``move``…): the motor is stopped, the output held at the last set-point sent (0 V if paused), and the
+prompt comes back; a second Ctrl-C during the same command, or a Ctrl-C at the prompt, ends the session. In script
+mode (``--script``, or commands piped in) Ctrl-C ends the session through the safe exit. SIGUSR1 pauses, SIGUSR2
+resumes.
 
 At a terminal prompt (:func:`prompt_lines`) lines can be edited and ↑/↓ recall earlier commands, through the
 stdlib :mod:`readline` where Python has it; the history is kept in ``~/.bench_history`` (the user's home folder,
@@ -61,57 +76,39 @@ import inspect
 import json
 import math
 import shlex
-import signal
 import threading
-import time
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
-from types import FrameType
 from typing import Any, TextIO
 
-import numpy as np
-
 from bench import __version__
+from bench.core.clock import Clock, WallClock
 from bench.rig import RigConfig, rig_to_toml
 from bench.runtime import latch as rig_latch
-from bench.runtime.context import STOP_POLL_S
-from bench.runtime.engine import RAMP_STEPS, STOP_SIGNALS
+from bench.runtime.engine import stop_signals
 from bench.runtime.instruments import Instruments, build_instruments
-from bench.runtime.interlock import OUTPUT_ON_V, InterlockTrip, OutputVerifier, check_contact, mismatch_trip
-from bench.runtime.ramp import ramp_to_zero
+from bench.runtime.interlock import InterlockTrip
+from bench.runtime.manual_mode import KEEPALIVE_S, ManualEngine, PauseRequested, Refused, StopRequested
 from bench.runtime.safety import SafetyTrip, Supervisor
 from bench.storage.recorder import Recorder, now_iso
 from bench.units import to_si
-from drivers.errors import InstrumentError, InstrumentStateError, LimitError, OperationCancelledError
+from drivers.errors import InstrumentError, LimitError, OperationCancelledError
 
 RAMP_HZ = 20.0
 DEFAULT_SPEED = 0.02  # m/s
-DEFAULT_ACCEL = 0.5  # m/s²
-KEEPALIVE_S = 0.25  # set-point refresh while holding (feeds the analog module's communication watchdog)
 SETTLE_S = 0.3  # after a voltage set-point: the monitors convert at 10 S/s (ADAM-4017+)
-EXIT_RAMP_FROM_V = 50.0  # below this |set-point| the exit zeroes at once (no ramp)
 HISTORY_FILE = ".bench_history"  # in the user's home folder: what was typed at the interactive prompt
 HISTORY_LENGTH = 1000
 HELP = "\n".join(line[4:] for line in (__doc__ or "").splitlines() if line.startswith("    "))
 
-
-class Refused(Exception):  # noqa: N818 - a refusal is an outcome, not a program error
-    """A command the supervisor (or its syntax) does not allow; nothing was sent."""
-
-
-class Interrupted(Exception):  # noqa: N818 - control flow, not a failure
-    """A stop request (Ctrl-C, a stop signal) ended the command under way."""
-
-
-class SessionEnd(Exception):  # noqa: N818 - control flow, not a failure
-    """Raised by a signal handler while the session waits for the next command: leave the prompt now."""
+__all__ = ["HELP", "ManualSession", "Outcome", "Refused", "data_path", "prompt_lines", "session_log_name"]
 
 
 @dataclass
 class Outcome:
-    """What one command did: status ok | refused | trip | error, and one line of text."""
+    """What one command did: status ok | refused | trip | error | interrupted | paused, and one line of text."""
 
     command: str
     status: str
@@ -120,40 +117,42 @@ class Outcome:
 
 @dataclass
 class ManualSession:
-    """A connected rig (its simulated twins started if it is simulated) driven one command at a time."""
+    """A connected rig (its simulated twins started if it is simulated) driven one command at a time by the
+    engine in manual mode (:class:`~bench.runtime.manual_mode.ManualEngine`)."""
 
     rig: RigConfig
     log_file: Path
     virtual: bool = False
     echo: Callable[[str], None] = print
-    operator: str | None = None  # who runs the session (in the log's header)
+    operator: str | None = None  # who runs the session (in the log's header and the file's attributes)
     data_file: Path | None = None  # the readings' HDF5 file (default: beside the log, see data_path)
     outcomes: list[Outcome] = field(default_factory=list)
-    end_reason: str | None = None  # the stop signal (or exception) that ended the session, if any
+    engine: ManualEngine | None = None  # the executor, once connected
+    _end: str | None = None  # what ended the session before the engine existed (a signal while connecting)
     _sim: Any = None
     _inst: Instruments | None = None
-    _sup: Supervisor | None = None
     _log: TextIO | None = None
-    _clock: Callable[[], float] = time.monotonic
-    _sleep: Callable[[float], None] = time.sleep
+    _clock: Clock = field(default_factory=WallClock)
     _t0: float | None = None
-    _v_req: float = 0.0  # voltage set-point the operator asked for (re-sent to keep the module's watchdog fed)
     _lock: threading.RLock = field(default_factory=threading.RLock)
     _stop: threading.Event = field(default_factory=threading.Event)
     _keepalive: threading.Thread | None = None
-    # stop requests (signal handlers set these and cancel the rig's CancelToken; nothing more)
     _interactive: bool = False  # Ctrl-C ends the command under way, not the session
-    _busy: bool = False  # a command is under way
-    _idle: bool = False  # waiting for the next command (a stop signal then leaves the wait at once)
     _ending: bool = False  # leaving the session: making the rig safe
-    _interrupt: str | None = None  # Ctrl-C: end the command under way
-    _urgent: threading.Event = field(default_factory=threading.Event)  # second stop request: 0 V at once
-    _verifier: OutputVerifier | None = None  # measured output against what was commanded
-    _latched: InterlockTrip | None = None  # the interlock fault that holds high voltage off until `reset`
-    _latched_at: float = 0.0  # session time of the latch [s]
     _rec: Recorder | None = None  # the readings' file (None: not open, or its storage failed)
     _early: list[tuple[float, str, str, str]] | None = field(default_factory=list)  # log lines before the file
-    _late: float = math.nan  # a watch's reading: how long after its scheduled time it was taken [s]
+
+    @property
+    def end_reason(self) -> str | None:
+        """The stop signal (or exception) that ended the session, if any."""
+        if self.engine is not None and self.engine.stop_reason is not None:
+            return self.engine.stop_reason
+        return self._end
+
+    def _engine(self) -> ManualEngine:
+        if self.engine is None:
+            raise Refused("not connected")
+        return self.engine
 
     # ------------------------------------------------------------ life cycle
     def __enter__(self) -> ManualSession:
@@ -166,18 +165,17 @@ class ManualSession:
             self._write("session", "operator", self.operator)
         try:
             self._connect()
-        except BaseException:
-            self.__exit__(None, None, None)
+        except BaseException as exc:
+            self.__exit__(type(exc), exc, None)
             raise
-        self._open_recorder()
         return self
 
-    def _open_recorder(self) -> None:
+    def _open_recorder(self, sup: Supervisor) -> Recorder:
         """The readings' file, in a run file's layout (every stream polled: nothing is hardware-timed here)."""
         from bench.runtime.interlock import watchdog_period
         from bench.runtime.run import _model_params, _streams
 
-        assert self._inst is not None and self._sup is not None
+        assert self._inst is not None
         if self.data_file is None:
             self.data_file = data_path(self.log_file)
         rig, spec = self.rig, self.rig.specimen
@@ -188,21 +186,14 @@ class ManualSession:
             "protocol_name": "manual control", "protocol_path": "", "protocol_text": "", "protocol_sha256": "",
             "session_log": str(self.log_file), "rig_name": rig.name, "rig_toml": rig_to_toml(rig),
             "simulated": rig.simulated, "clock": "virtual" if self.virtual else "wall", "specimen_kind": spec.kind,
-            "specimen": json.dumps({**spec.model_dump(), "model": _model_params(self._sup.specimen)}),
+            "specimen": json.dumps({**spec.model_dump(), "model": _model_params(sup.specimen)}),
             "recording": json.dumps({"readings": "on request (read, watch, after set-points)"}),
             "sources": json.dumps(sources), "duration_planned": 0.0,
             "hv_watchdog": f"communication watchdog {watchdog:g} s" if watchdog is not None else "NO watchdog",
             **({"operator": self.operator} if self.operator else {}),
         }
-        early, self._early = self._early or [], None
-        try:
-            self._rec = Recorder(self.data_file, attrs, streams, [], dict.fromkeys(streams, 0.0))  # 0: irregular
-        except OSError as exc:
-            self._write("readings", "error", f"{exc}; the session goes on, readings in this log only")
-            self.echo(f"error: {exc}; readings in the session log only")
-            return
-        for t, status, command, text in early:
-            self._rec_call(self._rec.event, t, -1, status, f"{command}: {text}")
+        # a file that cannot be created: the session does not start (as a run), one line naming the file
+        return Recorder(self.data_file, attrs, streams, [], dict.fromkeys(streams, 0.0))  # 0: irregular
 
     def _connect(self) -> None:
         rig = self.rig
@@ -213,13 +204,15 @@ class ManualSession:
 
             self._sim = SimRig(rig, virtual=self.virtual)
             self._sim.start()
-            clock = self._sim.clock
-            self._clock, self._sleep = clock.now, clock.sleep
-            self._inst = build_instruments(rig, self._sim.port_map(), clock=clock.now, sleep=clock.sleep,
-                                           modbus_poll=0.0005, timers=self._sim.reply_timers())
+            self._clock = self._sim.clock
+            self._inst = build_instruments(rig, self._sim.port_map(), clock=self._clock.now,
+                                           sleep=self._clock.sleep, modbus_poll=0.0005,
+                                           timers=self._sim.reply_timers())
         else:
-            self._inst = build_instruments(rig)
-        self._t0 = self._clock()
+            self._inst = build_instruments(rig, clock=self._clock.now, sleep=self._clock.sleep)
+        self._t0 = self._clock.now()
+        if self._end is not None:  # a stop signal while the twins started
+            raise StopRequested(self._end)
         for role, drv in self._inst.items():
             drv.connect()
             self._write("connect", "ok", f"{role}: {drv.identify()}")
@@ -228,58 +221,67 @@ class ManualSession:
         spec = rig.specimen
         params = self._sim.plant.specimen if self._sim is not None else (
             spec.membrane() if spec.kind == "membrane" else spec.lozenge())
-        self._sup = Supervisor(rig, params)
-        self._verifier = OutputVerifier(rig, None)  # polled monitors: manual control plays no stream
-        if self._inst.amplifier is not None:  # what connecting left the output at (0 V): the first ramp starts there
-            self._verifier.commanded(self._now(), float(self._inst.amplifier.commanded))
+        sup = Supervisor(rig, params)
+        self._rec = self._open_recorder(sup)
+        early, self._early = self._early or [], None
+        for t, status, command, text in early:
+            self._rec_call(self._rec.event, t, -1, status, f"{command}: {text}")
+        engine = ManualEngine(rig, self._inst, self._clock, self._rec, sup, self._t0)
+        engine.on_event = lambda kind, text: self._write("session", kind, text)
+        if self._end is not None:  # a stop signal while connecting
+            engine.request_stop(self._end)
+        self.engine = engine
         was = rig_latch.latched(rig.name)
         if was is not None:  # a run or an earlier session latched this rig: it stays off until `reset WHY`
-            self._latched = InterlockTrip("latched before this session", f"{was.get('fault')} (in "
-                                          f"{was.get('where')}, at {was.get('at')})")
-            self._latched_at = self._now()
-            self._write("interlock", "latched", f"{self._latch_text()}; {self._latched.reason}")
-            self.echo(f"{self._latch_text()}: {self._latched.reason}")
+            engine.latched_before(f"{was.get('fault')} (in {was.get('where')}, at {was.get('at')})")
+            assert engine.latched is not None
+            self._write("interlock", "latched", f"{engine.latch_text()}; {engine.latched.reason}")
+            self.echo(f"{engine.latch_text()}: {engine.latched.reason}")
         if not self.virtual:  # wall clock: hold the set-point between commands (a human types slowly)
             self._keepalive = threading.Thread(target=self._feed, name="manual-keepalive", daemon=True)
             self._keepalive.start()
-        self.echo(f"connected to {rig.name}; limits: ±{self._sup.voltage_limit:.0f} V, "
+        self.echo(f"connected to {rig.name}; limits: ±{sup.voltage_limit:.0f} V, "
                   f"{rig.limits.max_current_A * 1e3:g} mA, ±{rig.limits.max_force_N:g} N"
                   + (f", motor {rig.motor.travel_m[0] * 1e3:g} … {rig.motor.travel_m[1] * 1e3:g} mm"
                      if rig.motor is not None else ""))
 
     def _feed(self) -> None:
+        """Between commands (wall clock): the set-point re-sent every KEEPALIVE_S; a fault latches at once."""
         while not self._stop.wait(KEEPALIVE_S):
-            with self._lock, contextlib.suppress(InstrumentError, SafetyTrip, Refused):
-                if self._inst is not None and self._inst.amplifier is not None and self._v_req != 0.0:
-                    try:
-                        self._checked_voltage(self._v_req)
-                    except InterlockTrip as trip:  # between commands: the operator is told at the prompt
-                        self.echo(f"trip: {self._latch(trip)}")
-
-    def _wait(self, seconds: float) -> None:
-        """Let ``seconds`` pass on the rig clock, re-sending the set-point every KEEPALIVE_S."""
-        end = self._clock() + seconds
-        while (left := end - self._clock()) > 0:
-            self._check_stop()
-            self._sleep(min(left, KEEPALIVE_S))
-            if self._v_req != 0.0 and self._inst is not None and self._inst.amplifier is not None:
-                self._checked_voltage(self._v_req)
-        self._check_stop()
+            with self._lock, contextlib.suppress(InstrumentError, SafetyTrip, Refused, StopRequested,
+                                                 PauseRequested, OSError):
+                if self.engine is None or self._ending:
+                    continue
+                try:
+                    self.engine.keep_alive()
+                except InterlockTrip as trip:  # between commands: the operator is told at the prompt
+                    self.echo(f"trip: {self._latch(trip)}")
+                except PauseRequested:  # SIGUSR1 at the prompt: paused now, not at the next command
+                    self.echo(f"paused: {self.engine.pause(self.engine.pause_asked_by())}")
 
     def __exit__(self, exc_type: type[BaseException] | None, *_exc: object) -> None:
         self._ending = True
-        if self.end_reason is None and exc_type is not None and exc_type is not SessionEnd:
-            self.end_reason = f"ended by {exc_type.__name__}"
+        if self.end_reason is None and exc_type is not None and exc_type is not StopRequested:
+            self._end = f"ended by {exc_type.__name__}"
         self._stop.set()
         if self._keepalive is not None:
             self._keepalive.join(timeout=2.0)
-        errors: list[str] = []
-        if self._inst is not None:
-            self._inst.cancel.clear()  # the safe exit's own commands must go out
-            errors += self._ramp_down()
+        engine, errors = self.engine, []
+        safe = ""
+        if engine is not None:
+            was_latched = engine.latched is not None
+            state = ("interrupted" if self.end_reason else "tripped" if was_latched else "completed")
+            try:
+                safe = engine.end(state, self.end_reason or "session ended")
+            except Exception as exc:  # the engine's stop reports driver faults; anything else is said
+                errors.append(f"{type(exc).__name__}: {exc}")
+                errors += self._inst.safe_state() if self._inst is not None else []
+            if engine.latched is not None and not was_latched:  # a stall seen at the exit
+                self._latched_line(engine.latched)
+        elif self._inst is not None:
+            self._inst.cancel.clear()
             errors += self._inst.safe_state()
-            if self._inst.amplifier is not None:
-                self._commanded(float(self._inst.amplifier.commanded))
+        if self._inst is not None:
             errors += self._inst.close()
             self._inst = None
         if self._sim is not None:
@@ -290,118 +292,51 @@ class ManualSession:
         if self._log is not None:
             self._write("session", "end", end)
         if self._rec is not None:
-            state = ("error" if exc_type not in (None, SessionEnd, KeyboardInterrupt) else
-                     "interrupted" if self.end_reason else "tripped" if self._latched is not None else "completed")
-            self._rec_call(self._rec.finish, state, end if self._latched is None else f"{self._latch_text()}; {end}")
+            latched = engine is not None and engine.latched is not None
+            state = ("error" if exc_type not in (None, StopRequested, KeyboardInterrupt) else
+                     "interrupted" if self.end_reason else "tripped" if latched else "completed")
+            why = f"{engine.latch_text()}; {end}" if engine is not None and engine.latched is not None else end
+            self._rec_call(self._rec.finish, state, f"{why} | {safe}" if safe else why)
             self._rec = None
         if self._log is not None:
             self._log.close()
             self._log = None
 
-    def _ramp_down(self) -> list[str]:
-        """Output from its set-point to 0 V over the rig's ``shutdown_ramp_s`` (cut short by a second stop
-        request); the caller then commands 0 V at once. Returns the errors met."""
-        amp = self._inst.amplifier if self._inst is not None else None
-        v0 = float(amp.commanded) if amp is not None else 0.0
-        if amp is None or abs(v0) < EXIT_RAMP_FROM_V:
-            return []
-        if self._latched is None:
-            try:
-                self._guard()  # a stall before the exit: the ramp's first set-point would re-energise
-            except InterlockTrip as trip:
-                self._latch(trip)
-        if self._latched is not None:
-            self._write("session", "ramp", f"interlock latched ({self._latched.kind}): 0 V at once, no ramp from a "
-                        "set-point the output may no longer hold")
-            return []
-        if self._urgent.is_set():
-            self._write("session", "ramp", f"second stop request: {v0:.0f} V to 0 V at once")
-            return []
-        ramp = self.rig.limits.shutdown_ramp_s
-        self._write("session", "ramp", f"from {v0:.0f} V to 0 V over {ramp:g} s")
-        t0 = self._clock()
-
-        def pause(offset: float) -> bool:
-            while (left := t0 + offset - self._clock()) > 0 and not self._urgent.is_set():
-                self._sleep(min(left, STOP_POLL_S))
-            try:
-                self._guard()
-            except InterlockTrip as trip:
-                self._latch(trip)
-                return False
-            return not self._urgent.is_set()
-
-        try:
-            if not ramp_to_zero(amp, v0, ramp, pause, self._commanded, RAMP_STEPS):
-                why = "interlock latched" if self._latched is not None else "second stop request"
-                self._write("session", "ramp", f"{why}: {amp.commanded:.0f} V to 0 V at once")
-        except InstrumentError as exc:
-            return [f"voltage ramp-down failed: {exc}"]
-        return []
-
     # ------------------------------------------------------------ stop requests
     @contextlib.contextmanager
     def signal_handlers(self, interactive: bool = False) -> Iterator[None]:
-        """Within: SIGINT/SIGTERM/SIGHUP/SIGQUIT request a stop (module docstring); the old handlers after.
+        """Within: the engine's signal handlers (:func:`~bench.runtime.engine.stop_signals`; module docstring).
 
         Enter it before the session and leave it after, so that a signal during the safe exit only cuts the
         exit ramp short. Main thread only (elsewhere it installs nothing)."""
         self._interactive = interactive
-        old: list[tuple[signal.Signals, Any]] = []
-        if threading.current_thread() is threading.main_thread():
-            for sig, text in STOP_SIGNALS.items():
-                def handler(_s: int, _f: FrameType | None, sig: signal.Signals = sig, text: str = text) -> None:
-                    self._on_signal(sig, text)
-
-                old.append((sig, signal.signal(sig, handler)))
-        try:
+        with stop_signals(self._on_signal, self._on_pause, self._on_resume):
             yield
-        finally:
-            for sig, handler in old:
-                signal.signal(sig, handler)
 
-    def _on_signal(self, sig: int, reason: str) -> None:
-        """A stop signal: flags, the rig's cancel token, and (at the prompt) leave the prompt; nothing more."""
-        if self._ending:  # already making the rig safe: a further request cuts the exit ramp short
-            self._urgent.set()
+    def _on_signal(self, reason: str, sig: int) -> None:
+        """A stop signal, to the engine (which sets flags, cancels the rig's waits and leaves a prompt)."""
+        if self._ending and self.engine is not None:  # making the rig safe: a request cuts the exit ramp short
+            self.engine.urgent()
             return
-        if (sig == signal.SIGINT and self._interactive and self._busy and self._interrupt is None
-                and self.end_reason is None):
-            self._interrupt = reason  # end the command, not the session
-        elif self.end_reason is None:
-            self.end_reason = reason
-        else:
-            self._urgent.set()
-        if self._inst is not None:
-            self._inst.cancel.cancel(reason)
-        if self._idle:
-            self._idle = False
-            raise SessionEnd(reason)
+        if self.engine is None:  # still connecting
+            if self._end is None:
+                self._end = reason
+            if self._inst is not None:
+                self._inst.cancel.cancel(reason)
+            return
+        self.engine.on_stop_signal(reason, sig)
 
-    def _check_stop(self) -> None:
-        if self.end_reason is not None or self._interrupt is not None:
-            raise Interrupted(self.end_reason or self._interrupt)
+    def _on_pause(self, by: str) -> None:
+        if self.engine is not None:
+            self.engine.request_pause(by)
 
-    def _after_interrupt(self) -> str:
-        """The command a Ctrl-C ended: traffic let through again, motor stopped, output held; what was done."""
-        assert self._inst is not None
-        reason, self._interrupt = self._interrupt, None
-        self._inst.cancel.clear()
-        notes = []
-        if self._inst.motor is not None:
-            try:
-                self._inst.motor.stop()
-                notes.append("motor stopped")
-            except InstrumentError as exc:
-                notes.append(f"motor stop failed: {exc}")
-        if self._inst.amplifier is not None:
-            self._v_req = float(self._inst.amplifier.commanded)  # held (and kept alive) at the last set-point sent
-            notes.append(f"output held at {self._v_req:.0f} V")
-        return f"{reason}: command ended" + "".join(f"; {n}" for n in notes)
+    def _on_resume(self, by: str) -> None:
+        if self.engine is not None:
+            self.engine.request_resume(by)
 
     # ------------------------------------------------------------ log
     def _now(self) -> float:
-        return self._clock() - self._t0 if self._t0 is not None else 0.0
+        return self._clock.now() - self._t0 if self._t0 is not None else 0.0
 
     def _write(self, command: str, status: str, text: str) -> None:
         """One log line; also an event in the readings' file (but a watch's readings: they are in its streams)."""
@@ -426,30 +361,22 @@ class ManualSession:
             try:
                 fn(*args)
             except OSError as exc:
-                self._rec = None
-                self._write("readings", "error", f"{exc}; the session goes on, readings in this log only")
-                self.echo(f"error: {exc}; readings in the session log only")
+                self._storage_failed(exc)
 
-    def _record(self, stream: str, t: float, **values: float) -> None:
-        """One sample of ``stream`` at session time ``t``; columns not given are NaN (flags 0)."""
-        rec = self._rec
-        if rec is None or stream not in rec.streams:
-            return
-        row = {c.name: values.get(c.name, math.nan if np.dtype(c.dtype).kind == "f" else 0)
-               for c in rec.streams[stream]}
-        self._rec_call(lambda: rec.append(stream, t, **row))
+    def _storage_failed(self, exc: OSError) -> None:
+        self._rec = None  # the recorder stays silent after its first failure; the engine's writes with it
+        self._write("readings", "error", f"{exc}; the session goes on, readings in this log only")
+        self.echo(f"error: {exc}; readings in the session log only")
 
     # ------------------------------------------------------------ commands
     def run_lines(self, lines: Iterable[str], stop_on_trip: bool = True) -> list[Outcome]:
         """Execute commands until ``quit``, the end or a stop signal; after a trip, stop if ``stop_on_trip``."""
         it = iter(lines)
+        engine = self._engine()
         try:
             while self.end_reason is None:
-                try:
-                    self._idle = True
+                with engine.prompt():  # a stop signal while waiting for a line leaves the wait at once
                     raw = next(it, None)
-                finally:
-                    self._idle = False
                 if raw is None:
                     break
                 line = raw.split("#", 1)[0].strip()
@@ -460,7 +387,7 @@ class ManualSession:
                 out = self.execute(line)
                 if out.status == "trip" and stop_on_trip:
                     break
-        except SessionEnd:
+        except StopRequested:
             pass
         finally:
             close = getattr(it, "close", None)
@@ -469,11 +396,12 @@ class ManualSession:
         return self.outcomes
 
     def execute(self, line: str) -> Outcome:
-        """Run one command; log and return its outcome (refusals, trips, errors and stops are outcomes).
+        """Run one command; log and return its outcome (refusals, trips, errors, stops and pauses are outcomes).
 
         Whatever a command raises (a driver's error of any class included) becomes one line; only
         KeyboardInterrupt and SystemExit pass."""
         shown = _printable(line)
+        engine = self.engine
         try:
             words = _join_units(shlex.split(line))
             if not words:
@@ -486,33 +414,43 @@ class ManualSession:
                 inspect.signature(handler).bind(*args)
             except TypeError:
                 raise Refused(f"wrong arguments for '{_printable(words[0])}' (help lists them)") from None
+            engine = self._engine()
             with self._lock:
-                self._busy = True
+                engine.interruptible = self._interactive
                 try:
                     text = handler(*args) or ""
                 finally:
-                    self._busy = False
+                    engine.interruptible = False
             out = Outcome(shown, "ok", text)
-        except (Interrupted, OperationCancelledError) as exc:
+        except (StopRequested, OperationCancelledError) as exc:
+            assert engine is not None
             if self.end_reason is not None:
                 out = Outcome(shown, "interrupted", f"{self.end_reason}: the session ends")
-            elif self._interrupt is not None:
-                out = Outcome(shown, "interrupted", self._after_interrupt())
+            elif engine.interrupted is not None:
+                out = Outcome(shown, "interrupted", engine.end_interrupt())
             else:  # a cancelled wait nobody asked for
-                out = Outcome(shown, "error", f"{exc}; {self._make_safe()}")
+                out = Outcome(shown, "error", f"{exc}; {engine.make_safe()}")
+        except PauseRequested:
+            assert engine is not None
+            out = self._paused(shown, engine, engine.pause_asked_by())
         except (Refused, ValueError, LimitError) as exc:
             out = Outcome(shown, "refused", str(exc))
         except InterlockTrip as trip:
             out = Outcome(shown, "trip", self._latch(trip))
         except SafetyTrip as exc:
-            out = Outcome(shown, "trip", f"{exc.reason}; {self._make_safe()}")
+            assert engine is not None
+            out = Outcome(shown, "trip", f"{exc.reason}; {engine.make_safe()}")
         except InstrumentError as exc:
-            out = Outcome(shown, "error", f"{exc}; {self._make_safe()}")
+            assert engine is not None
+            out = Outcome(shown, "error", f"{exc}; {engine.make_safe()}")
+        except OSError as exc:  # the readings' file (drivers raise InstrumentErrors): the log goes on alone
+            self._storage_failed(exc)
+            out = Outcome(shown, "error", f"{exc}; the session goes on, readings in this log only")
         except Exception as exc:  # a program error must not end the session with the output on
-            out = Outcome(shown, "error", f"internal error: {type(exc).__name__}: {exc}; {self._make_safe()}")
-        if self._interrupt is not None and self.end_reason is None and self._inst is not None:
-            self._interrupt = None  # a Ctrl-C as the command ended: nothing left to interrupt
-            self._inst.cancel.clear()
+            safe = engine.make_safe() if engine is not None else "no instruments connected"
+            out = Outcome(shown, "error", f"internal error: {type(exc).__name__}: {exc}; {safe}")
+        if engine is not None:
+            engine.clear_interrupt()
         out.text = _printable(" ".join(out.text.splitlines()))
         self.outcomes.append(out)
         self._write(out.command, out.status, out.text)
@@ -521,20 +459,50 @@ class ManualSession:
         self.echo(f"{out.status}: {out.text}" if out.text else out.status)
         return out
 
-    def _make_safe(self) -> str:
-        self._v_req = 0.0
-        if self._inst is None:
-            return "no instruments connected"
-        self._inst.cancel.clear()  # after a cancelled wait the safe-state commands must still go out
+    def _paused(self, shown: str, engine: ManualEngine, by: str) -> Outcome:
+        """A pause request (SIGUSR1, or ``bench pause`` on a run) ended the command under way: paused."""
         try:
-            errors = self._inst.safe_state()
-        except Exception as exc:  # safe_state reports driver errors; anything else is said, not raised
-            errors = [f"{type(exc).__name__}: {exc}"]
-        if self._inst.amplifier is not None:
-            self._commanded(float(self._inst.amplifier.commanded))
-        return "output zeroed, motor stopped" + (f" ({'; '.join(errors)})" if errors else "")
+            return Outcome(shown, "paused", engine.pause(by))
+        except InterlockTrip as trip:
+            return Outcome(shown, "trip", self._latch(trip))
+        except (SafetyTrip, InstrumentError, StopRequested, PauseRequested) as exc:
+            return Outcome(shown, "error", f"pause: {exc}; {engine.make_safe()}")
 
-    # each _cmd_* returns one line of text (what was done / read)
+    # ------------------------------------------------------------ latched interlock
+    def _latch(self, trip: InterlockTrip) -> str:
+        """Latch ``trip`` (the engine zeroes the output at once and holds it), a ``latched`` line in the log and the
+        rig's latch file (which also refuses runs until a reset); returns the outcome."""
+        done = self._engine().latch(trip)
+        self._latched_line(trip)
+        return f"{trip.reason}; {done}; latched"
+
+    def _latched_line(self, trip: InterlockTrip) -> None:
+        self._write("interlock", "latched", f"{self._engine().latch_text()}; {trip.reason}")
+        rig_latch.latch(self.rig.name, trip.reason, str(self.log_file))
+
+    def _cmd_reset(self, *why: str) -> str:
+        engine = self._engine()
+        if engine.latched is None:
+            raise Refused("no interlock latched: nothing to reset")
+        reason = " ".join(why).strip()
+        if not reason:
+            raise Refused("reset needs a reason: reset WHY... (logged with the operator's name)")
+        who = self.operator or "an operator not named (no --operator)"
+        rig_latch.reset(self.rig.name, who, reason)
+        kind = engine.reset_latch()
+        return f"interlock ({kind}) reset by {who}: {reason}"
+
+    # ------------------------------------------------------------ pause
+    def _who(self, command: str) -> str:
+        return f"{self.operator or 'an operator not named (no --operator)'} (`{command}`)"
+
+    def _cmd_pause(self) -> str:
+        return self._engine().pause(self._who("pause"))
+
+    def _cmd_resume(self) -> str:
+        return self._engine().resume(self._who("resume"))
+
+    # ------------------------------------------------------------ each _cmd_* returns one line of text
     def _cmd_help(self) -> str:
         return "commands: " + "; ".join(line.split("  ")[0].strip() for line in HELP.splitlines())
 
@@ -543,89 +511,12 @@ class ManualSession:
             raise Refused("this rig has no amplifier")
         return self._inst.amplifier
 
-    def _checked_voltage(self, volts: float) -> float:
-        """Send a set-point the latch and the supervisor allow, after the host-stall check; returns what was sent."""
-        assert self._sup is not None
-        amp = self._amp()
-        if self._latched is not None and volts != 0.0:
-            self._v_req = 0.0  # held at 0 V: nothing to keep alive
-            raise Refused(f"{self._latch_text()}; not sent")
-        bound = self._sup.setpoint_bound()
-        try:
-            self._sup.check_setpoint(volts)
-            self._sup.check_setpoint(amp.quantise(volts, within=bound))  # the value the module will output
-        except SafetyTrip as exc:
-            self._v_req = float(amp.commanded)
-            raise Refused(f"{exc.reason}; not sent") from None
-        self._guard()
-        sent = float(amp.set_voltage(volts, within=bound))
-        self._commanded(sent)
-        return sent
-
-    # ------------------------------------------------------------ latched interlock
-    def _guard(self) -> None:
-        """Before a write that can drive the output: latch a host stall (:func:`~bench.runtime.interlock.check_contact`
-        on the amplifier's ``longest_silence``). Real time only: a virtual clock cannot stall."""
-        amp = self._amp()
-        if not self.virtual:
-            check_contact(self.rig, amp.longest_silence(), abs(float(amp.commanded)) > OUTPUT_ON_V)
-
-    def _commanded(self, sent: float) -> None:
-        """A set-point the amplifier now outputs: what the monitors are checked against; recorded."""
-        t = self._now()
-        if self._verifier is not None:
-            self._verifier.commanded(t, sent)
-        self._record("setpoints", t, voltage=sent)
-
-    def _latch(self, trip: InterlockTrip) -> str:
-        """Latch ``trip``: output to 0 V at once, motor stopped, a ``latched`` line in the log; returns the outcome."""
-        self._latched, self._latched_at = trip, self._now()
-        done = self._make_safe()
-        self._verifier = OutputVerifier(self.rig, None)  # readings counted afresh from the zeroed output
-        self._verifier.commanded(self._now(), float(self._amp().commanded))
-        self._write("interlock", "latched", f"{self._latch_text()}; {trip.reason}")
-        rig_latch.latch(self.rig.name, trip.reason, str(self.log_file))  # also refuses runs until a reset
-        return f"{trip.reason}; {done}; latched"
-
-    def _latch_text(self) -> str:
-        assert self._latched is not None
-        return (f"interlock latched at t={self._latched_at:.3f} s ({self._latched.kind}): high voltage stays off "
-                "until `reset WHY...`")
-
-    def _cmd_reset(self, *why: str) -> str:
-        if self._latched is None:
-            raise Refused("no interlock latched: nothing to reset")
-        reason = " ".join(why).strip()
-        if not reason:
-            raise Refused("reset needs a reason: reset WHY... (logged with the operator's name)")
-        who = self.operator or "an operator not named (no --operator)"
-        rig_latch.reset(self.rig.name, who, reason)
-        kind, self._latched = self._latched.kind, None
-        return f"interlock ({kind}) reset by {who}: {reason}"
-
-    def _reach(self, volts: float) -> float:
-        """Send ``volts``; if the amplifier's slew limit cut the step, re-send once the limit allows the whole step
-        (after |gap| / slew limit on the rig clock). Returns the set-point finally sent.
-
-        In virtual time no time passes between two commands, so a first send right after another set-point is cut
-        to almost nothing: without this the answer named the previous set-point."""
-        sent = self._checked_voltage(volts)
-        slew = self.rig.amplifier.slew_limit_V_per_s if self.rig.amplifier is not None else math.inf
-        need = abs(volts - sent) / slew
-        while need > 0:
-            nap = min(need, KEEPALIVE_S)
-            self._sleep(nap)
-            self._check_stop()
-            sent = self._checked_voltage(volts)
-            need = 0.0 if nap >= need else abs(volts - sent) / slew
-        return sent
-
     def _cmd_voltage(self, value: str) -> str:
         target = to_si(value, "V")
         self._amp()  # refused on a rig without one, before anything is sent or kept alive
-        self._v_req = target
-        sent = self._reach(target)
-        self._wait(SETTLE_S)
+        engine = self._engine()
+        sent = engine.reach(target)
+        engine.hold(SETTLE_S)
         return f"set-point {sent:.0f} V; " + self._cmd_read()
 
     def _cmd_ramp(self, value: str, duration: str) -> str:
@@ -633,28 +524,14 @@ class ManualSession:
         if not 0 < seconds <= 3600:
             raise Refused(f"ramp duration {seconds:g} s: give 0 < DURATION ≤ 3600 s")
         start = float(self._amp().commanded)
-        assert self._sup is not None
-        if self._latched is not None and target != 0.0:
-            raise Refused(f"{self._latch_text()}; ramp not started")
-        try:
-            self._sup.check_setpoint(target)
-        except SafetyTrip as exc:
-            raise Refused(f"{exc.reason}; ramp not started") from None
-        n = max(1, math.ceil(seconds * RAMP_HZ))
-        t_begin = self._clock()
-        for k in range(1, n + 1):
-            self._check_stop()
-            self._v_req = start + (target - start) * k / n
-            self._checked_voltage(self._v_req)
-            self._sleep(max(0.0, t_begin + k * seconds / n - self._clock()))
-            self._check_monitors()
+        engine = self._engine()
+        n = engine.ramp(target, seconds, RAMP_HZ)
+        engine.hold(SETTLE_S)
         return f"ramped {start:.0f} → {target:.0f} V in {seconds:g} s ({n} set-points); " + self._cmd_read()
 
     def _cmd_zero(self) -> str:
-        self._v_req = 0.0
-        amp = self._amp()
-        amp.zero()
-        self._commanded(float(amp.commanded))
+        self._amp()
+        self._engine().zero()
         return "output 0 V"
 
     def _motor(self) -> Any:
@@ -662,41 +539,10 @@ class ManualSession:
             raise Refused("this rig has no motor")
         return self._inst.motor
 
-    def _aperture(self, motor_position: float) -> float:
-        spec = self.rig.specimen
-        if spec.kind == "membrane" or spec.lsdea is None:
-            return math.nan
-        return spec.lsdea.x_at_motor_zero_m + spec.lsdea.motor_sign * motor_position
-
     def _go(self, target: float, speed: float) -> str:
-        motor = self._motor()  # refused on a rig without one
-        assert self._sup is not None and self.rig.motor is not None  # a motor driver comes from rig.motor
-        speed = min(speed, self.rig.motor.max_velocity_m_per_s)
-        if not speed > 0:
-            raise Refused("speed must be positive")
-        try:
-            self._sup.check_motor_setpoint(target, self._aperture(target), float(self._amp().commanded)
-                                           if self._inst and self._inst.amplifier else 0.0)
-        except SafetyTrip as exc:
-            raise Refused(f"{exc.reason}; not sent") from None
-        motor.move_to(target, speed, min(DEFAULT_ACCEL, self.rig.motor.max_acceleration_m_per_s2))
-        self._record("setpoints", self._now(), aperture=self._aperture(target))
-        deadline = self._clock() + 2.0 + abs(target - motor.read_position().value) / speed * 1.5
-        while self._clock() < deadline:
-            self._wait(0.05)
-            st = motor.status()
-            self._record("motor", self._now(), position=st.position, aperture=self._aperture(st.position))
-            self._sup.check_motor(st.position, self._aperture(st.position))
-            if st.error:
-                raise InstrumentStateError("motor", "drive error during the move: "
-                                           + (st.error_text or f"code {st.error_code:#06x}"))
-            if st.in_target and not st.moving:
-                break
-        else:
-            motor.stop()
-            raise Refused(f"motor did not reach {target * 1e3:.2f} mm in time; stopped")
-        return f"motor at {motor.read_position().value * 1e3:.3f} mm (target {target * 1e3:.3f} mm); " + \
-            self._cmd_read()
+        self._motor()  # refused on a rig without one
+        here = self._engine().move(target, speed)
+        return f"motor at {here * 1e3:.3f} mm (target {target * 1e3:.3f} mm); " + self._cmd_read()
 
     def _cmd_move(self, position: str, speed: str = "") -> str:
         return self._go(to_si(position, "mm"), to_si(speed, "mm/s") if speed else DEFAULT_SPEED)
@@ -706,7 +552,8 @@ class ManualSession:
         return self._go(here + to_si(delta, "mm"), to_si(speed, "mm/s") if speed else DEFAULT_SPEED)
 
     def _cmd_stop(self) -> str:
-        self._motor().stop()
+        self._motor()
+        self._engine().stop_motor()
         return "motor stopped"
 
     def _cell(self) -> Any:
@@ -716,74 +563,45 @@ class ManualSession:
 
     def _cmd_tare(self) -> str:
         self._cell().tare()
-        self._wait(0.2)
+        self._engine().hold(0.2)
         return "load cell tared; " + self._cmd_read()
 
     def _cmd_zero_cell(self) -> str:
         self._cell().zero()
-        self._wait(0.2)
+        self._engine().hold(0.2)
         return "load cell zeroed; " + self._cmd_read()
 
-    def _check_monitors(self) -> tuple[float, float]:
-        """Both monitors, checked by the supervisor and against the voltage commanded (the interlock)."""
-        assert self._sup is not None and self._verifier is not None
-        amp = self._amp()
-        v, i = amp.read_monitors()
-        self._record("amplifier", v.timestamp - (self._t0 or 0.0), voltage=v.value, current=i.value,
-                     commanded=float(amp.commanded), late=self._late)
-        self._sup.check_monitors(v.value, i.value)
-        if (m := self._verifier.reading(v.timestamp - (self._t0 or 0.0), v.value, v.ok)) is not None:
-            raise mismatch_trip(m, "the voltage monitor")
-        return v.value, i.value
-
-    def _cmd_read(self) -> str:
-        """Every channel once, each checked by the supervisor; one line with units."""
-        assert self._inst is not None and self._sup is not None
-        parts, t0 = [], self._t0 or 0.0
+    def _cmd_read(self, due: float = math.nan) -> str:
+        """Every channel once (the engine's polls: recorded, supervised, verified); one line with units."""
+        assert self._inst is not None
+        got, drive = self._engine().read_all(due)
+        parts = []
         if self._inst.amplifier is not None:
-            v, i = self._check_monitors()
-            parts.append(f"voltage {v:.0f} V, current {i * 1e6:.2f} µA")
+            parts.append(f"voltage {got['voltage']:.0f} V, current {got['current'] * 1e6:.2f} µA")
         if self._inst.laser is not None:
-            r = self._inst.laser.read()
-            laser = self.rig.laser
-            d = (r.value - laser.offset_mm * 1e-3) / laser.sign if laser is not None else r.value
-            self._record("laser", r.timestamp - t0, displacement=d, valid=float(r.ok and math.isfinite(d)),
-                         late=self._late)
-            if r.ok and math.isfinite(d):
-                self._sup.update_displacement(d)
-                parts.append(f"displacement {d * 1e3:.4f} mm")
-            else:
-                parts.append(f"displacement n/a ({r.status})")
-        if self._inst.motor is not None:
-            r = self._inst.motor.read_position()
-            self._record("motor", r.timestamp - t0, position=r.value, aperture=self._aperture(r.value), late=self._late)
-            self._sup.check_motor(r.value, self._aperture(r.value))
-            parts.append(f"motor {r.value * 1e3:.3f} mm" + (f" (aperture {self._aperture(r.value) * 1e3:.2f} mm)"
-                                                          if math.isfinite(self._aperture(r.value)) else ""))
+            parts.append(f"displacement {got['displacement'] * 1e3:.4f} mm" if "displacement" in got
+                         else "displacement n/a (no valid reading)")
+        if self._inst.motor is not None and drive:
+            parts.append(f"motor n/a ({drive})")
+        elif self._inst.motor is not None:
+            x = got.get("aperture", math.nan)
+            parts.append(f"motor {got['position'] * 1e3:.3f} mm"
+                         + (f" (aperture {x * 1e3:.2f} mm)" if math.isfinite(x) else ""))
         if self._inst.load_cell is not None:
-            r = self._inst.load_cell.read()
-            self._record("load_cell", r.timestamp - t0, force=r.value, ok=float(r.ok), late=self._late)
-            if r.status in ("overload", "underload"):
-                raise SafetyTrip(f"load cell {r.status}")
-            if r.ok or r.status == "unstable":
-                self._sup.check_force(r.value)
-            parts.append(f"force {r.value:.3f} N" + ("" if r.ok else f" ({r.status})"))
+            parts.append(f"force {got['force']:.3f} N")
         return f"t {self._now():.2f} s: " + ", ".join(parts)
 
     def _cmd_watch(self, duration: str, every: str = "0.5") -> str:
         seconds, interval = to_si(duration, "s"), to_si(every, "s")
         if not (0 < seconds <= 86_400 and 0.05 <= interval <= seconds):
             raise Refused("watch DURATION [EVERY]: 0 < DURATION ≤ 86400 s, 0.05 s ≤ EVERY ≤ DURATION")
+        engine = self._engine()
         n = max(1, int(seconds / interval))
-        t_begin = self._clock()
+        t_begin = engine.now()
         for k in range(1, n + 1):
             due = t_begin + k * interval
-            self._wait(max(0.0, due - self._clock()))
-            self._late = self._clock() - due
-            try:
-                line = self._cmd_read()
-            finally:
-                self._late = math.nan
+            engine.hold(max(0.0, due - engine.now()))
+            line = self._cmd_read(due)
             self._write("watch", "read", line)
             self.echo(line)
         return f"watched {n} readings over {seconds:g} s"
@@ -792,7 +610,7 @@ class ManualSession:
         seconds = to_si(duration, "s")
         if not 0 <= seconds <= 86_400:
             raise Refused("wait DURATION: 0 … 86400 s")
-        self._wait(seconds)
+        self._engine().hold(seconds)
         return f"waited {seconds:g} s"
 
 

@@ -53,7 +53,7 @@ class Poll:
 def _monitors(e: RunContext, due: float) -> None:
     v, i = e.amp.read_monitors()
     e.rec.append("amplifier", v.timestamp - e.t0, voltage=v.value, current=i.value,
-                 **e.late_columns("amplifier", e.lateness(due)))
+                 **e.monitor_columns(e.lateness(due)))
     e.snapshot.values["voltage"], e.snapshot.values["current"] = v.value, i.value
     e.sup.check_monitors(v.value, i.value)
     if (m := e.verifier.reading(v.timestamp - e.t0, v.value, v.ok)) is not None:
@@ -67,7 +67,7 @@ def _position(e: RunContext, due: float) -> None:
     e.rec.append("motor", r.timestamp - e.t0, position=r.value, aperture=x, **e.late_columns("motor", e.lateness(due)))
     if not r.ok or not math.isfinite(r.value):
         raise InstrumentStateError("motor", f"drive reports {r.status}: {_drive_error_text(e)}")
-    e.snapshot.values["aperture"] = x
+    e.snapshot.values["position"], e.snapshot.values["aperture"] = r.value, x
     e.sup.check_motor(r.value, x if prog.has_motor_axis else e.sup.aperture or 0.0)
     if (m := e.motion.reading(r.timestamp - e.t0, r.value)) is not None:
         raise motion_trip(m)

@@ -1,8 +1,8 @@
-"""The shutdown ramp: the output from its set-point to 0 V in equal steps, the one ramp of runs and manual control.
+"""The shutdown ramp: the output from its set-point to 0 V in equal steps, the one ramp-down of every stop.
 
-The engine's shutdown (:meth:`bench.runtime.engine.Engine._zero_voltage`) and the exit of a manual session
-(:class:`bench.runtime.manual.ManualSession`) both call :func:`ramp_to_zero`; what each says about the ramp (run
-file events, session log lines), how it waits and what stops it early are the caller's.
+The engine's shutdown (:meth:`bench.runtime.engine.Engine._zero_voltage`) calls :func:`ramp_to_zero`, for a run
+and for a manual session's end alike (manual control is a mode of the engine, bench/runtime/manual_mode.py); what
+the ramp says (events), how it waits and what stops it early are the caller's.
 """
 
 from __future__ import annotations

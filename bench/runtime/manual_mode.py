@@ -1,0 +1,335 @@
+"""Manual mode of the engine: commands instead of a program, on the one executor.
+
+As labscript BLACS's ``transition_to_manual`` / ``transition_to_buffered``, manual control is a mode of the same
+executor, not a second one: :class:`ManualEngine` is the :class:`~bench.runtime.engine.Engine` with an empty
+program, its set-points command-response (no DAQ stream plays), and entry points for typed commands. Every
+voltage goes through the engine's ``_set_voltage`` (the supervisor on the request and on the value after DAC
+rounding, the host-stall guard, the output verifier, the set-points stream), every ramp through ``_ramp_to``,
+every go-to through ``_move_motor`` (the drive's increment, the travel and field checks), a pause through
+``_make_paused`` (ramp to 0 V, motor stopped), and the session's end through ``_shut_down`` (the bounded stop:
+ramp over ``shutdown_ramp_s``, at once on a second request or a latch; every instrument safe; 0 V verified on the
+monitor). Stop signals are the engine's handlers (:meth:`~bench.runtime.engine.Engine.signals`).
+
+What a manual session adds: a command the latch, a pause or the supervisor does not allow is :class:`Refused`
+(nothing sent) instead of ending anything; a trip zeroes the output at once and the session goes on; an
+interlock fault latches until :meth:`ManualEngine.reset_latch`; a pause holds 0 V until :meth:`ManualEngine.resume`.
+"""
+
+from __future__ import annotations
+
+import math
+
+from bench.core.clock import Clock
+from bench.protocol.program import Program
+from bench.protocol.schema import Protocol, ProtocolHeader
+from bench.rig import RigConfig
+from bench.runtime.engine import Engine, PauseRequested, StopRequested
+from bench.runtime.instruments import Instruments
+from bench.runtime.interlock import InterlockTrip, OutputVerifier, motion_trip
+from bench.runtime.polls import POLLS
+from bench.runtime.safety import SafetyTrip, Supervisor
+from bench.storage.recorder import Recorder
+from drivers.errors import InstrumentError, InstrumentStateError
+
+KEEPALIVE_S = 0.25  # set-point refresh while holding (feeds the analog module's communication watchdog)
+MOVE_POLL_S = 0.05  # a move's status is read this often until it ends
+MOVE_ACCEL = 0.5  # m/s², a manual move's acceleration (at most the rig's)
+MOVE_SPARE_S = 2.0  # a move must end within its distance / speed × 1.5 plus this
+
+__all__ = ["KEEPALIVE_S", "ManualEngine", "PauseRequested", "Refused", "StopRequested", "manual_program"]
+
+
+class Refused(Exception):  # noqa: N818 - a refusal is an outcome, not a program error
+    """A command the latch, a pause, the supervisor (or its syntax) does not allow; nothing was sent."""
+
+
+def manual_program(rig: RigConfig) -> Program:
+    """The program of a manual session: no steps (the commands are the program)."""
+    header = ProtocolHeader.model_construct(name="manual control", rig=rig.name)
+    return Program(Protocol.model_construct(protocol=header, steps=[]), rig, [])
+
+
+class ManualEngine(Engine):
+    """The engine in manual mode on connected instruments; run time 0 is ``t0`` on ``clock``."""
+
+    def __init__(self, rig: RigConfig, inst: Instruments, clock: Clock, recorder: Recorder,
+                 supervisor: Supervisor, t0: float) -> None:
+        super().__init__(manual_program(rig), inst, clock, recorder, supervisor, commands=True)
+        self.rig = rig
+        self.ctx.t0 = t0
+        self.snapshot.state = "manual"
+        self._polls = {p.name: p for p in POLLS}
+        self.latched_at = 0.0  # run time of the latch [s]
+        self.paused = False
+        self._paused_at = 0.0  # run time of the pause [s]
+        if inst.amplifier is not None:  # what connecting left the output at (0 V): the first ramp starts there
+            self.ctx.v_cmd = float(inst.amplifier.commanded)
+            self.verifier.commanded(self.now(), self.ctx.v_cmd)
+
+    # ------------------------------------------------------------ what holds the output off
+    def latch_text(self) -> str:
+        assert self.latched is not None
+        return (f"interlock latched at t={self.latched_at:.3f} s ({self.latched.kind}): high voltage stays off "
+                "until `reset WHY...`")
+
+    def _held(self, volts: float, what: str) -> None:
+        """Refused (nothing kept alive) while latched or paused, unless ``volts`` is 0."""
+        if volts == 0.0:
+            return
+        if self.latched is not None:
+            self.ctx.v_req = 0.0
+            raise Refused(f"{self.latch_text()}; {what}")
+        if self.paused:
+            self.ctx.v_req = 0.0
+            raise Refused(f"paused: high voltage stays off until `resume`; {what}")
+
+    # ------------------------------------------------------------ voltage
+    def voltage(self, volts: float) -> float:
+        """One supervised set-point (the engine's ``_set_voltage``); Refused before anything is sent if the latch,
+        a pause or the supervisor (on the request or on the value after DAC rounding) does not allow it. Returns
+        the value sent. A pause asked for meanwhile (SIGUSR1 at the prompt) comes first: PauseRequested, nothing
+        sent."""
+        self._check_pause()
+        self._held(volts, "not sent")
+        try:
+            self._check_voltage(volts)
+        except SafetyTrip as exc:
+            self.ctx.v_req = self.ctx.v_cmd
+            raise Refused(f"{exc.reason}; not sent") from None
+        self._set_voltage(volts, self.now())
+        return self.ctx.v_cmd
+
+    def reach(self, volts: float) -> float:
+        """:meth:`voltage`, re-sent once the amplifier's slew limit allows the whole step (after |gap| / slew on the
+        run clock): in virtual time no time passes between two commands, so a first send right after another
+        set-point is cut to almost nothing. Returns the set-point finally sent."""
+        sent = self.voltage(volts)
+        amp = self.rig.amplifier
+        slew = amp.slew_limit_V_per_s if amp is not None else math.inf
+        need = abs(volts - sent) / slew
+        while need > 0:
+            nap = min(need, KEEPALIVE_S)
+            self._wait(self.now() + nap)
+            sent = self.voltage(volts)
+            need = 0.0 if nap >= need else abs(volts - sent) / slew
+        return sent
+
+    def keep_alive(self) -> None:
+        """Re-send the set-point held (feeds the set-point module's watchdog); nothing at 0 V."""
+        if self.inst.amplifier is not None and self.ctx.v_req != 0.0:
+            self.voltage(self.ctx.v_req)
+
+    def ramp(self, target: float, seconds: float, rate_hz: float) -> int:
+        """The engine's ``_ramp_to`` at ``rate_hz`` set-points per second, the monitors checked after each; Refused
+        before the first if the target is not allowed. Returns the number of set-points."""
+        self._check_pause()
+        self._held(target, "ramp not started")
+        try:
+            self.sup.check_setpoint(target)
+        except SafetyTrip as exc:
+            raise Refused(f"{exc.reason}; ramp not started") from None
+        n = max(1, math.ceil(seconds * rate_hz))
+        self._ramp_to(target, seconds, n, self.check_monitors)
+        return n
+
+    def zero(self) -> None:
+        """The output to 0 V at once (nothing held)."""
+        self.ctx.v_req = 0.0
+        self.ctx.amp.zero()
+        self._output_is(float(self.ctx.amp.commanded))
+
+    def _output_is(self, volts: float) -> None:
+        """The amplifier now outputs ``volts``: what the monitors are checked against; recorded."""
+        self.ctx.v_cmd = volts
+        self.verifier.commanded(self.now(), volts)
+        self._record(self.rec.append, "setpoints", self.now(), voltage=volts, aperture=math.nan)
+
+    # ------------------------------------------------------------ time
+    def _wait(self, until: float) -> None:
+        """Until run time ``until``, stop and pause requests checked (the run context's wait)."""
+        self.ctx.wait_until(until)
+
+    def hold(self, seconds: float) -> None:
+        """Let ``seconds`` pass on the run clock, the set-point re-sent every KEEPALIVE_S."""
+        end = self.now() + seconds
+        while (left := end - self.now()) > 0:
+            self._wait(self.now() + min(left, KEEPALIVE_S))
+            self.keep_alive()
+        self._check_stop()
+
+    def _check_pause(self) -> None:
+        if not self.paused:
+            super()._check_pause()
+
+    # ------------------------------------------------------------ motor
+    def move(self, target: float, speed: float) -> float:
+        """A supervised go-to through the engine's ``_move_motor`` (Refused, nothing sent, if the supervisor does
+        not allow it), then its status every MOVE_POLL_S until it ends — each position recorded, supervised and
+        verified against the go-to (the interlock's motion verifier); returns where the motor stopped."""
+        motor, m = self.ctx.motor, self.rig.motor
+        assert m is not None  # a motor driver comes from rig.motor
+        speed = min(speed, m.max_velocity_m_per_s)
+        if not speed > 0:
+            raise Refused("speed must be positive")
+        try:
+            x_cmd = self._move_motor(target, speed, min(MOVE_ACCEL, m.max_acceleration_m_per_s2))
+        except SafetyTrip as exc:
+            raise Refused(f"{exc.reason}; not sent") from None
+        self._record(self.rec.append, "setpoints", self.now(), voltage=math.nan, aperture=x_cmd)
+        deadline = self.now() + MOVE_SPARE_S + abs(target - motor.read_position().value) / speed * 1.5
+        prog = self.program
+        while self.now() < deadline:
+            self.hold(MOVE_POLL_S)
+            st, t = motor.status(), self.now()
+            x = float(prog.aperture(st.position)) if prog.has_motor_axis else math.nan
+            self._record(self.rec.append, "motor", t, position=st.position, aperture=x,
+                         **self.ctx.late_columns("motor", math.nan))
+            self.sup.check_motor(st.position, x if prog.has_motor_axis else self.sup.aperture or 0.0)
+            if st.error:
+                raise InstrumentStateError("motor", "drive error during the move: "
+                                           + (st.error_text or f"code {st.error_code:#06x}"))
+            if (miss := self.motion.reading(t, st.position)) is not None:
+                raise motion_trip(miss)
+            if st.in_target and not st.moving:
+                return float(motor.read_position().value)
+        motor.stop()
+        self.motion.stopped(self.now())
+        raise Refused(f"motor did not reach {target * 1e3:.2f} mm in time; stopped")
+
+    def stop_motor(self) -> None:
+        self.ctx.motor.stop()
+        self.motion.stopped(self.now())
+
+    # ------------------------------------------------------------ monitors, latch, pause
+    def read_all(self, due: float = math.nan) -> tuple[dict[str, float], str]:
+        """Every channel once through the run's polls (:data:`~bench.runtime.polls.POLLS`: recorded, supervised,
+        the monitors and the encoder verified against what was commanded); ``due``: the run time the reading was
+        scheduled for (its lateness is recorded; NaN: on request). Returns the values read (the snapshot's keys:
+        voltage, current, displacement, position, aperture, force; a laser reading that is not valid is left out)
+        and, for a drive in an error state (recorded; a run would stop here), its own account: the operator reads
+        on to see why."""
+        self.snapshot.values.clear()
+        drive = ""
+        for name, present_ in (("monitors", self.inst.amplifier), ("laser", self.inst.laser),
+                               ("position", self.inst.motor), ("force", self.inst.load_cell)):
+            if present_ is None:
+                continue
+            try:
+                self._polls[name].run(self.ctx, due)
+            except InstrumentStateError as exc:
+                if name != "position":
+                    raise
+                drive = exc.detail
+        return dict(self.snapshot.values), drive
+
+    def check_monitors(self) -> None:
+        """The monitors poll alone (a ramp's check after each set-point)."""
+        self._polls["monitors"].run(self.ctx, math.nan)
+
+    def make_safe(self) -> str:
+        """After a trip or an error: output zeroed at once, motor stopped, every instrument safe; what was done."""
+        self.ctx.v_req = 0.0
+        self.inst.cancel.clear()  # after a cancelled wait the safe-state commands must still go out
+        try:
+            errors = self.inst.safe_state()
+        except Exception as exc:  # safe_state reports driver errors; anything else is said, not raised
+            errors = [f"{type(exc).__name__}: {exc}"]
+        if self.inst.amplifier is not None:
+            self._output_is(float(self.inst.amplifier.commanded))
+        if self.inst.motor is not None:
+            self.motion.stopped(self.now())
+        return "output zeroed, motor stopped" + (f" ({'; '.join(errors)})" if errors else "")
+
+    def latch(self, trip: InterlockTrip) -> str:
+        """Latch ``trip``: output to 0 V at once, motor stopped; refused energising until :meth:`reset_latch`."""
+        self.latched, self.latched_at = trip, self.now()
+        done = self.make_safe()
+        self.verifier = self.ctx.verifier = OutputVerifier(self.rig, None)  # counted afresh from the zeroed output
+        self.verifier.commanded(self.now(), self.ctx.v_cmd)
+        return done
+
+    def latched_before(self, fault: str) -> None:
+        """A latch this session found (a run or an earlier session left it): held off as one of its own."""
+        self.latched, self.latched_at = InterlockTrip("latched before this session", fault), self.now()
+
+    def reset_latch(self) -> str:
+        """Clear the latch; returns the kind of fault it held."""
+        if self.latched is None:
+            raise Refused("no interlock latched: nothing to reset")
+        kind, self.latched = self.latched.kind, None
+        return kind
+
+    def pause(self, by: str) -> str:
+        """Paused (the run's pause): output ramped to 0 V over ``shutdown_ramp_s``, motor stopped, an event; every
+        set-point but 0 V refused until :meth:`resume`."""
+        if self.paused:
+            raise Refused("already paused")
+        self.request_pause(by)
+        self.paused, self._paused_at = True, self.now()
+        self.pauses += 1
+        self.ctx.v_req = 0.0
+        self._event("pause", f"paused by {by}: output to 0 V, motor held, recording goes on")  # as a run's
+        self._make_paused()
+        return f"paused by {by}: output {self.ctx.v_cmd:.0f} V, motor held; `resume` lets high voltage on again"
+
+    def pause_asked_by(self) -> str:
+        """Who asked for the pause that ended a command (a signal, another thread)."""
+        return self._paused_wanted()[1] or "a pause request"
+
+    def on_stop_signal(self, reason: str, sig: int) -> None:
+        """A stop signal (:func:`~bench.runtime.engine.stop_signals`), as the engine takes it in a run."""
+        self._on_signal(reason, sig)
+
+    def resume(self, by: str) -> str:
+        if not self.paused:
+            raise Refused("not paused: nothing to resume")
+        self.request_resume(by)
+        self.paused = False
+        self._pause_by = self._resume_by = None
+        self._event("resume", f"resumed by {by} after {self.now() - self._paused_at:.3f} s paused")
+        return f"resumed by {by}"
+
+    # ------------------------------------------------------------ a Ctrl-C, the end
+    @property
+    def interrupted(self) -> str | None:
+        """The Ctrl-C that ended the command under way (not the session), if any."""
+        return self._interrupt
+
+    @property
+    def stop_reason(self) -> str | None:
+        """The stop request that ends the session, if any."""
+        return self._stop_reason
+
+    def end_interrupt(self) -> str:
+        """The command a Ctrl-C ended: traffic let through again, motor stopped, output held; what was done."""
+        reason, self._interrupt = self._interrupt, None
+        self.inst.cancel.clear()
+        notes = []
+        if self.inst.motor is not None:
+            try:
+                self.stop_motor()
+                notes.append("motor stopped")
+            except InstrumentError as exc:
+                notes.append(f"motor stop failed: {exc}")
+        if self.inst.amplifier is not None and self.paused:  # a pause's ramp cut short: 0 V now
+            self.zero()
+            notes.append("paused: output 0 V")
+        elif self.inst.amplifier is not None:
+            self.ctx.v_req = self.ctx.v_cmd  # held (and kept alive) at the last set-point sent
+            notes.append(f"output held at {self.ctx.v_req:.0f} V")
+        return f"{reason}: command ended" + "".join(f"; {n}" for n in notes)
+
+    def clear_interrupt(self) -> None:
+        """A Ctrl-C as the command ended: nothing left to interrupt."""
+        if self._interrupt is not None and self._stop_reason is None:
+            self._interrupt = None
+            self.inst.cancel.clear()
+
+    def urgent(self) -> None:
+        """A stop request during the end: the exit ramp is cut short (0 V at once)."""
+        self._urgent.set()
+
+    def end(self, state: str, reason: str) -> str:
+        """The engine's bounded stop (``_shut_down``), the file left open for the session's last line; returns
+        how the output was made safe."""
+        return self._shut_down(state, reason, finish=False)
