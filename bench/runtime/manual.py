@@ -744,7 +744,7 @@ class ManualSession:
             v, i = self._check_monitors()
             parts.append(f"voltage {v:.0f} V, current {i * 1e6:.2f} µA")
         if self._inst.laser is not None:
-            r = self._inst.laser.read()
+            r = self._inst.laser.read_displacement()
             laser = self.rig.laser
             d = (r.value - laser.offset_mm * 1e-3) / laser.sign if laser is not None else r.value
             self._record("laser", r.timestamp - t0, displacement=d, valid=float(r.ok and math.isfinite(d)),
@@ -761,7 +761,7 @@ class ManualSession:
             parts.append(f"motor {r.value * 1e3:.3f} mm" + (f" (aperture {self._aperture(r.value) * 1e3:.2f} mm)"
                                                           if math.isfinite(self._aperture(r.value)) else ""))
         if self._inst.load_cell is not None:
-            r = self._inst.load_cell.read()
+            r = self._inst.load_cell.read_force()
             self._record("load_cell", r.timestamp - t0, force=r.value, ok=float(r.ok), late=self._late)
             if r.status in ("overload", "underload"):
                 raise SafetyTrip(f"load cell {r.status}")

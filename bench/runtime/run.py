@@ -104,8 +104,7 @@ def _streams(rig: RigConfig, inst: Instruments, polled: bool = False) -> tuple[d
             and rig.amplifier.drive == "daq"):
         described = describe_streams(rig.daq, inst.amplifier)
     timed = {d.stream for d in described}
-    described += [drv.describe() for drv in (inst.amplifier, inst.laser, inst.motor, inst.load_cell)
-                  if drv is not None and drv.name not in timed]
+    described += [drv.describe() for _, drv in inst.readables() if drv.name not in timed]
     streams: dict[str, list[Column]] = {"setpoints": [Column("voltage", "V", "amplifier output commanded"),
                                                       Column("aperture", "m", "LS-DEA aperture commanded (NaN: none)")]}
     sources = {"setpoints": "engine"}
