@@ -655,12 +655,12 @@ class Engine:
 
     def _others_safe(self) -> list[str]:
         """Every instrument but the amplifier to its safe state (motor stopped first), each independently."""
-        notes = []
-        roles = [r for r, _ in self.inst.items() if r != "amplifier"
+        notes, drivers = [], dict(self.inst.items())  # by role: the rig's extra sensors are no attribute of inst
+        roles = [r for r in drivers if r != "amplifier"
                  and not (r == "daq" and self._output_dead)]  # a dead output path: the DAQ's watchdog must run out
         for role in sorted(roles, key=lambda r: r != "motor"):
             try:
-                getattr(self.inst, role).safe_state()
+                drivers[role].safe_state()
             except InstrumentError as exc:
                 notes.append(f"{role} safe state failed: {exc}")
         return notes

@@ -11,10 +11,9 @@ from collections.abc import Iterator
 import h5py
 import numpy as np
 
-from bench.storage.runfile import unit_of, valid_counts
+from bench.storage.runfile import stream_names, unit_of, valid_counts
 
 CHUNK_ROWS = 262_144  # records per stream read at a time (a few MB per column)
-STREAMS = ("setpoints", "amplifier", "laser", "motor", "load_cell")
 
 
 class StreamChunks:
@@ -25,9 +24,7 @@ class StreamChunks:
         valid = valid_counts(f)
         self.length: dict[str, int] = {}
         self.columns: dict[str, list[str]] = {}
-        for name in STREAMS:
-            if name not in f:
-                continue
+        for name in stream_names(f):
             g = f[name]
             for d in g.values():
                 d.refresh()
