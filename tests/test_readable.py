@@ -156,7 +156,7 @@ def test_a_new_instrument_is_recorded_to_its_own_stream_without_an_engine_change
     result = execute(plan_run(path), tmp_path / "run.h5", virtual=True)
     assert result.state == "completed", result.reason
     s = open_run(result.path).streams["thermometer"]
-    assert s.units["temperature"] == "K"
+    assert s.units["temperature"] == "K" and s.rate == 1 / SENSOR_PERIOD_S
     n = round(3.0 / SENSOR_PERIOD_S)  # polls at 0, 1, 2 s; none at the step's end
     assert s.columns["temperature"].tolist() == [START_K + STEP_K * k for k in range(n)]
     assert np.allclose(s.t, np.arange(n) * SENSOR_PERIOD_S, atol=0.05)  # on the run clock, stamped by the reading
