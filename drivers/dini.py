@@ -19,7 +19,7 @@ import time
 
 from drivers.cancel import check
 from drivers.errors import ImplausibleValueError, InstrumentStateError, InstrumentTimeoutError
-from drivers.interfaces import CheckResult, ClockFn, DataKey, Identity, Reading, SleepFn, StreamDescription
+from drivers.interfaces import CheckResult, ClockFn, DataKey, Identity, Reading, ReadingMap, SleepFn, StreamDescription
 from drivers.modbus_link import ModbusLink
 
 IR_GROSS, IR_STATUS, IR_COMMAND_STATUS = 0, 4, 5
@@ -61,7 +61,7 @@ class DiniDGT1S:
     def connect(self) -> None:
         """Open the bus and read the status once."""
         self.link.open()
-        self.read()
+        self.read_force()
 
     def close(self) -> None:
         """Release the bus (the transmitter has no unsafe state)."""
@@ -75,7 +75,7 @@ class DiniDGT1S:
 
     def check(self) -> CheckResult:
         """Whether the weight is stable; the force."""
-        r = self.read()
+        r = self.read_force()
         return CheckResult("stable" if r.ok else r.status, (("force", r),))
 
     def identify(self) -> Identity:
@@ -102,7 +102,12 @@ class DiniDGT1S:
                                         (0, MAX_DIVISIONS), "divisions", "the display's 6 digits")
         return (-value if status & negative else value) * self.division, status
 
-    def read(self) -> Reading:
+    def read(self) -> ReadingMap:
+        """One :meth:`read_force` keyed as :meth:`describe`: ``force`` [N], ``ok`` (1: stable)."""
+        r = self.read_force()
+        return {"force": r, "ok": Reading(float(r.ok), "1", r.timestamp)}
+
+    def read_force(self) -> Reading:
         """Force on the cell [N]; status 'overload'/'underload' (value NaN) or 'unstable' when flagged,
         'invalid' if the value is not finite."""
         weight, status = self.read_weight()

@@ -113,6 +113,25 @@ class MotorStatus:
     error_text: str = ""  # the drive's meaning of error_code ("" when no error)
 
 
+ReadingMap = dict[str, Reading]  # one reading of each column its describe() names, keyed by the column's name
+
+
+@runtime_checkable
+class Readable(Protocol):
+    """What a run records of an instrument (bluesky's ``Readable``): :meth:`read` returns one :class:`Reading` of
+    each column :meth:`describe` names, keyed by the column's name and in its unit (a flag column: 1.0 / 0.0,
+    unit "1") — nothing more, nothing less. The run time's software-timed poll (bench/runtime/polls.py) records
+    every readable instrument of a rig through these two methods alone."""
+
+    name: str
+
+    def describe(self) -> StreamDescription:
+        """The stream it records: its name (the role's), columns, units, source."""
+
+    def read(self) -> ReadingMap:
+        """One reading of every column :meth:`describe` names, keyed by column name."""
+
+
 @runtime_checkable
 class Instrument(Protocol):
     """Common part of every driver."""
@@ -136,7 +155,7 @@ class Instrument(Protocol):
 
 
 @runtime_checkable
-class Amplifier(Instrument, Protocol):
+class Amplifier(Instrument, Readable, Protocol):
     """High-voltage amplifier: voltage set-point, voltage and current monitors."""
 
     max_voltage: float
@@ -186,18 +205,22 @@ class Amplifier(Instrument, Protocol):
     def read_current(self) -> Reading:
         """Output current from the current monitor [A]."""
 
-    def describe(self) -> StreamDescription:
-        """The stream it records: columns, units, source."""
+    def read(self) -> ReadingMap:
+        """The monitors (``voltage`` [V], ``current`` [A]) as :meth:`read_monitors` gives them, with any other column
+        its :meth:`describe` names (a DAQ-driven amplifier: ``commanded`` [V])."""
 
 
 @runtime_checkable
-class DisplacementSensor(Instrument, Protocol):
+class DisplacementSensor(Instrument, Readable, Protocol):
     """Displacement sensor with single reads and a device-side buffer for high rates."""
 
     pending: int  # stored points known to the last fetch and not uploaded yet (a fetch may be partial)
 
-    def read(self) -> Reading:
-        """One displacement value [m]."""
+    def read_displacement(self) -> Reading:
+        """One displacement value [m] as the sensor measures it (its offset and sign are the run time's)."""
+
+    def read(self) -> ReadingMap:
+        """One :meth:`read_displacement` as ``displacement`` [m] and ``valid`` (1: a measurement)."""
 
     def start_buffer(self, interval: float) -> float:
         """Start buffered acquisition every ``interval`` [s]; returns the interval the device uses."""
@@ -209,12 +232,12 @@ class DisplacementSensor(Instrument, Protocol):
         """Stop buffered acquisition (samples already stored stay fetchable)."""
 
     def describe(self) -> StreamDescription:
-        """The stream it records: columns, units, source (its displacement's description says how it is measured;
-        the application prefixes what is measured)."""
+        """The stream it records: ``displacement``, ``valid`` (its displacement's description says how it is
+        measured; the application prefixes what is measured)."""
 
 
 @runtime_checkable
-class LinearMotor(Instrument, Protocol):
+class LinearMotor(Instrument, Readable, Protocol):
     """Position-controlled linear motor."""
 
     def enable(self) -> None:
@@ -232,6 +255,9 @@ class LinearMotor(Instrument, Protocol):
     def read_position(self) -> Reading:
         """Actual position [m]."""
 
+    def read(self) -> ReadingMap:
+        """One :meth:`read_position` as ``position`` [m]."""
+
     def status(self) -> MotorStatus:
         """Decoded drive state."""
 
@@ -243,11 +269,14 @@ class LinearMotor(Instrument, Protocol):
 
 
 @runtime_checkable
-class ForceSensor(Instrument, Protocol):
+class ForceSensor(Instrument, Readable, Protocol):
     """Load cell read through a transmitter."""
 
-    def read(self) -> Reading:
+    def read_force(self) -> Reading:
         """Force [N], tension positive."""
+
+    def read(self) -> ReadingMap:
+        """One :meth:`read_force` as ``force`` [N] and ``ok`` (1: a stable reading)."""
 
     def zero(self) -> None:
         """Zero the gross weight."""
@@ -257,6 +286,12 @@ class ForceSensor(Instrument, Protocol):
 
     def describe(self) -> StreamDescription:
         """The stream it records: columns, units, source."""
+
+
+@runtime_checkable
+class Sensor(Instrument, Readable, Protocol):
+    """An instrument the run time only reads (a thermometer, a hygrometer): a rig's
+    :attr:`~bench.runtime.instruments.Instruments.sensors`, each recorded to its own stream by the generic poll."""
 
 
 @dataclass(frozen=True)

@@ -31,7 +31,16 @@ import numpy as np
 
 from drivers.cancel import check
 from drivers.errors import ImplausibleValueError, InstrumentStateError, ProtocolError
-from drivers.interfaces import CheckResult, ClockFn, DataKey, Identity, Reading, SampleBlock, StreamDescription
+from drivers.interfaces import (
+    CheckResult,
+    ClockFn,
+    DataKey,
+    Identity,
+    Reading,
+    ReadingMap,
+    SampleBlock,
+    StreamDescription,
+)
 from drivers.serial_link import SerialLink
 
 Model = Literal["LK-G3000", "LK-G5000"]
@@ -188,7 +197,7 @@ class KeyenceLKG:
             self._settings_mode(False)
         except InstrumentStateError:
             self._comm_mode = False  # already in general mode: R0 answered with a status error
-        self.read()
+        self.read_displacement()
 
     def close(self) -> None:
         """Release the port (the sensor has no unsafe state)."""
@@ -202,7 +211,7 @@ class KeyenceLKG:
 
     def check(self) -> CheckResult:
         """One displacement reading in general mode."""
-        return CheckResult("general mode", (("displacement", self.read()),))
+        return CheckResult("general mode", (("displacement", self.read_displacement()),))
 
     def identify(self) -> Identity:
         """The controller has no identification command: report the configured model and program number."""
@@ -219,7 +228,12 @@ class KeyenceLKG:
     def _value_command(self) -> str:
         return f"M{self.out}" if self.model == "LK-G3000" else f"MS,{self.out:02d}"
 
-    def read(self) -> Reading:
+    def read(self) -> ReadingMap:
+        """One :meth:`read_displacement` keyed as :meth:`describe`: ``displacement`` [m], ``valid`` (1 / 0)."""
+        r = self.read_displacement()
+        return {"displacement": r, "valid": Reading(float(r.ok), "1", r.timestamp)}
+
+    def read_displacement(self) -> Reading:
         """One measured value of the OUT [m] (status tells over-range / invalid)."""
         self._settings_mode(False)
         fields = self.query(self._value_command())

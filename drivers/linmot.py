@@ -39,7 +39,17 @@ from drivers.errors import (
     LimitError,
     ProtocolError,
 )
-from drivers.interfaces import CheckResult, ClockFn, DataKey, Identity, MotorStatus, Reading, SleepFn, StreamDescription
+from drivers.interfaces import (
+    CheckResult,
+    ClockFn,
+    DataKey,
+    Identity,
+    MotorStatus,
+    Reading,
+    ReadingMap,
+    SleepFn,
+    StreamDescription,
+)
 from drivers.serial_link import SerialLink
 
 START, DATA, END = 0x01, 0x02, 0x04
@@ -391,6 +401,10 @@ class LinMotDrive:
 
         resp = self._wait(reached, "in-target position", timeout=timeout)
         return Reading(self.checked_position(resp), "m", self.clock())
+
+    def read(self) -> ReadingMap:
+        """One :meth:`read_position` keyed as :meth:`describe`: ``position`` [m]."""
+        return {"position": self.read_position()}
 
     def read_position(self) -> Reading:
         """Actual position [m]; status "error" whenever the drive is in its error state or flags an error; an

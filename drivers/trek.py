@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 from drivers.adam import Adam4017P, Adam4024
 from drivers.errors import LimitError
-from drivers.interfaces import CheckResult, ClockFn, DataKey, Identity, Reading, StreamDescription
+from drivers.interfaces import CheckResult, ClockFn, DataKey, Identity, Reading, ReadingMap, StreamDescription
 
 
 @dataclass(frozen=True)
@@ -159,6 +159,11 @@ class TrekAmplifier:
         commanded = self._output(raw)
         self._last_v, self._last_t = commanded, now
         return commanded
+
+    def read(self) -> ReadingMap:
+        """One :meth:`read_monitors` keyed as :meth:`describe`: ``voltage`` [V], ``current`` [A]."""
+        v, i = self.read_monitors()
+        return {"voltage": v, "current": i}
 
     def read_monitors(self) -> tuple[Reading, Reading]:
         """(output voltage [V], output current [A]) from one read of both monitor channels.

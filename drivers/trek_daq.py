@@ -16,7 +16,7 @@ import time
 import numpy as np
 
 from drivers.errors import LimitError
-from drivers.interfaces import CheckResult, ClockFn, DataKey, Identity, Reading, StreamDescription
+from drivers.interfaces import CheckResult, ClockFn, DataKey, Identity, Reading, ReadingMap, StreamDescription
 from drivers.labjack import DAC_RANGE, UNIT, LabJackT7
 from drivers.trek import TrekModel
 
@@ -137,6 +137,11 @@ class TrekOnDaq:
         dac_v, window = self._dac_request(volts, within)
         self._last_v = float(self.output_volts(self.daq.write_dac(self.dac, dac_v, window)))
         return self._last_v
+
+    def read(self) -> ReadingMap:
+        """One :meth:`read_monitors` keyed as :meth:`describe`, with the output ``commanded`` [V] at that time."""
+        v, i = self.read_monitors()
+        return {"voltage": v, "current": i, "commanded": Reading(self.commanded, "V", v.timestamp)}
 
     def read_monitors(self) -> tuple[Reading, Reading]:
         """(output voltage [V], output current [A]) from two command-response AIN reads; both "invalid" (NaN) unless

@@ -270,6 +270,10 @@ class FakeAmplifier:
         t = self.daq.clock.now()
         return Reading(float(v), "V", t), Reading(float(i), "A", t)
 
+    def read(self) -> dict[str, Reading]:
+        v, i = self.read_monitors()
+        return {"voltage": v, "current": i, "commanded": Reading(self.commanded, "V", v.timestamp)}
+
     def read_voltage(self) -> Reading:
         return self.read_monitors()[0]
 

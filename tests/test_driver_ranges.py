@@ -171,13 +171,13 @@ def test_a_dgt1s_weight_beyond_its_display_is_a_named_error(count: int) -> None:
     regs = count.to_bytes(4, "big") * 2 + b"\x00\x04"  # gross = net = count, stable
     with expected_protocol("lcx", [(rtu(1, 4, b"\x00\x00\x00\x05"), rtu(1, 4, 10, regs))]) as url:
         with pytest.raises(ImplausibleValueError, match=rf"^load_cell: net weight {count} divisions .* 999999"):
-            cell(url).read()
+            cell(url).read_force()
 
 
 def test_a_dgt1s_weight_at_its_display_limit_is_a_reading() -> None:
     regs = (999_999).to_bytes(4, "big") * 2 + b"\x00\x04"
     with expected_protocol("lcm", [(rtu(1, 4, b"\x00\x00\x00\x05"), rtu(1, 4, 10, regs))]) as url:
-        r = cell(url).read()
+        r = cell(url).read_force()
     assert r.ok and r.value == pytest.approx(999.999 * 9.80665)
 
 

@@ -140,15 +140,15 @@ def test_the_cycle_check_finds_a_cycle(monkeypatch: pytest.MonkeyPatch) -> None:
 
 
 def test_the_engine_polls_through_the_poll_table_not_by_instrument() -> None:
-    """Issue 9: a new acquisition (a fifth instrument) adds its Poll to bench/runtime/polls.py; the engine
-    iterates the table and names no polled quantity or recording rate itself."""
-    from bench.runtime.polls import POLLS
+    """Issue 9, issue 22: a new instrument declares (at most) its role's hooks in bench/runtime/polls.py; the engine
+    iterates the rig's polls and names no polled quantity or recording rate itself."""
+    from bench.runtime.polls import COLLECT, FETCH, ROLES
 
     engine = (ROOT / "bench" / "runtime" / "engine.py").read_text(encoding="utf-8")
-    for rate in ("monitors_Hz", "position_Hz", "force_Hz", "PASSIVE_LASER_HZ", "FETCH_PERIOD_S"):
+    for rate in ("monitors_Hz", "position_Hz", "force_Hz", "PASSIVE_LASER_HZ", "FETCH_PERIOD_S", "SENSOR_PERIOD_S"):
         assert rate not in engine, rate
-    assert "POLLS" in engine
-    names = [p.name for p in POLLS]
+    assert "rig_polls(self.ctx)" in engine
+    names = [p.name for p in ROLES.values()] + [FETCH.name, COLLECT.name]
     assert len(set(names)) == len(names) and {"monitors", "position", "force", "laser"} <= set(names)
 
 

@@ -171,7 +171,7 @@ def test_any_exception_in_a_command_is_one_line_and_the_session_goes_on(tmp_path
     with ManualSession(load_rig(THESIS_RIG), tmp_path / "s.log", virtual=True, echo=lambda _t: None) as s:
         assert s.execute("voltage 2kV").status == "ok"
         laser = s._inst.laser
-        read = laser.read
+        read = laser.read_displacement
 
         def fail():
             from drivers.errors import ImplausibleValueError
@@ -180,9 +180,9 @@ def test_any_exception_in_a_command_is_one_line_and_the_session_goes_on(tmp_path
                 raise ImplausibleValueError("laser", "displacement", 1e9, (-1.0, 1.0), "m", "first line\nsecond line")
             raise exc_class("laser", "first line\nsecond line") if issubclass(exc_class, InstrumentError) \
                 else exc_class("first line\nsecond line")
-        laser.read = fail
+        laser.read_displacement = fail
         out = s.execute("read")
-        laser.read = read
+        laser.read_displacement = read
         assert "\n" not in out.text and "second line" in out.text
         if exc_class is LimitError:  # "nothing was sent": a refusal, the output stays
             assert out.status == "refused"

@@ -44,21 +44,21 @@ def test_value_format_special_fields() -> None:
 
 def test_single_read_lk_g3000() -> None:
     with expected_protocol("kg3", [(b"M1\r", b"M1,+01.2345\r")]) as url:
-        r = laser(url).read()
+        r = laser(url).read_displacement()
     assert r.value == pytest.approx(1.2345e-3) and r.unit == "m" and r.ok and r.timestamp == 12.5
 
 
 def test_single_read_lk_g5000() -> None:
     with expected_protocol("kg5", [(b"MS,01\r", b"MS,01,-00.0120\r")]) as url:
-        r = laser(url, model="LK-G5000").read()
+        r = laser(url, model="LK-G5000").read_displacement()
     assert r.value == pytest.approx(-12e-6)
 
 
 def test_over_range_and_invalid_values() -> None:
     with expected_protocol("kor", [(b"M1\r", b"M1,+FFFFFFF\r"), (b"M1\r", b"M1,XXXXXXXX\r")]) as url:
         k = laser(url)
-        over = k.read()
-        invalid = k.read()
+        over = k.read_displacement()
+        invalid = k.read_displacement()
     assert over.status == "over_range_positive" and math.isnan(over.value) and not over.ok
     assert invalid.status == "invalid"
 
@@ -66,25 +66,25 @@ def test_over_range_and_invalid_values() -> None:
 def test_error_reply_names_the_code() -> None:
     with expected_protocol("ker", [(b"M1\r", b"ER,M1,01\r")]) as url:
         with pytest.raises(InstrumentStateError, match=r"laser: 'M1' refused: ER 01 \(status error"):
-            laser(url).read()
+            laser(url).read_displacement()
     with expected_protocol("ker5", [(b"MS,01\r", b"ER,MS,62\r")]) as url:
         with pytest.raises(InstrumentStateError, match="parameter range error"):
-            laser(url, model="LK-G5000").read()
+            laser(url, model="LK-G5000").read_displacement()
 
 
 def test_garbled_and_missing_replies() -> None:
     with expected_protocol("kgb", [(b"M1\r", b"N1,+01.2345\r")]) as url:
         with pytest.raises(ProtocolError, match="does not echo"):
-            laser(url).read()
+            laser(url).read_displacement()
     with expected_protocol("kna", [(b"M1\r", b"M1,+01.2\xff45\r")]) as url:
         with pytest.raises(ProtocolError, match="not ASCII"):
-            laser(url).read()
+            laser(url).read_displacement()
     with expected_protocol("kto", [(b"M1\r", None)]) as url:
         with pytest.raises(InstrumentTimeoutError, match="laser: no reply"):
-            laser(url).read()
+            laser(url).read_displacement()
     with expected_protocol("kpart", [(b"M1\r", b"M1,+01.23")]) as url:
         with pytest.raises(InstrumentTimeoutError, match="partial reply"):
-            laser(url).read()
+            laser(url).read_displacement()
 
 
 def test_connect_leaves_communication_mode_and_probes() -> None:
@@ -138,7 +138,7 @@ def test_non_manual_value_fields_are_protocol_errors(field: str) -> None:
         parse_value(field, "laser")
     with expected_protocol("knan", [(b"M1\r", b"M1," + field.encode() + b"\r")]) as url:
         with pytest.raises(ProtocolError, match=re.escape(repr(field))):
-            laser(url).read()
+            laser(url).read_displacement()
 
 
 @pytest.mark.parametrize("reply, bad", [

@@ -138,7 +138,7 @@ def test_load_cell_read_signed_net_weight() -> None:
     # gross 350 g, net 125 g negative (bit0), stable (bit2), tare active (bit5)
     regs = b"\x00\x00\x01\x5e" + b"\x00\x00\x00\x7d" + b"\x00\x25"
     with expected_protocol("lc", [(rtu(1, 4, b"\x00\x00\x00\x05"), rtu(1, 4, 10, regs))]) as url:
-        r = cell(url).read()
+        r = cell(url).read_force()
     assert r.value == pytest.approx(-0.125 * 9.80665) and r.unit == "N" and r.ok and r.timestamp == 3.0
 
 
@@ -149,8 +149,8 @@ def test_load_cell_overload_and_unstable() -> None:
               (rtu(1, 4, b"\x00\x00\x00\x05"), rtu(1, 4, 10, moving))]
     with expected_protocol("lco", script) as url:
         c = cell(url)
-        assert c.read().status == "overload"
-        r = c.read()
+        assert c.read_force().status == "overload"
+        r = c.read_force()
     assert r.status == "unstable" and r.value == pytest.approx(0.016 * 9.80665)
 
 
@@ -202,7 +202,7 @@ def test_non_finite_force_is_invalid() -> None:
     with expected_protocol("lcnf", [(rtu(1, 4, b"\x00\x00\x00\x05"), rtu(1, 4, 10, regs))]) as url:
         c = cell(url)
         c.g = math.inf  # a calibration that went wrong after construction
-        r = c.read()
+        r = c.read_force()
     assert r.status == "invalid" and not r.ok
     with pytest.raises(ValueError, match="g must be > 0"):
         DiniDGT1S(c.link, g=math.nan)

@@ -114,7 +114,7 @@ def test_replay_serves_the_record_not_the_model(tmp_path: Path, short_run: Path)
         assert sim.replay is not None
         sim.replay.anchor(sim.clock.now())
         sim.clock.advance(2.0)  # type: ignore[attr-defined]
-        assert inst.laser.read().value == pytest.approx(1.2345e-3, abs=LKG_M / 2)
+        assert inst.laser.read_displacement().value == pytest.approx(1.2345e-3, abs=LKG_M / 2)
         inst.close()
     finally:
         sim.stop()
@@ -146,7 +146,7 @@ def test_sim_serve_replay_serves_another_process(tmp_path: Path, short_run: Path
         assert rig.simulation.replay is None  # the client's rig is real instruments
         client = ("from bench.rig import load_rig\nfrom bench.runtime.instruments import build_instruments\n"
                   f"inst = build_instruments(load_rig({str(served)!r}))\ninst.laser.connect()\n"
-                  "print(inst.laser.read().value)\ninst.close()\n")
+                  "print(inst.laser.read_displacement().value)\ninst.close()\n")
         out = subprocess.run([sys.executable, "-c", client], cwd=ROOT, env=env, capture_output=True, text=True,
                              timeout=60)
         assert out.returncode == 0, out.stderr

@@ -20,7 +20,7 @@ def test_voltage_on_the_amplifier_moves_the_laser_as_the_model_predicts(thesis: 
     amp.set_voltage(6000.0)
     v_out = thesis.sim.plant.hv.gain * thesis.sim.plant.v_in  # after the ADAM's 12-bit quantisation
     thesis.advance(5.0)
-    measured = laser.read().value
+    measured = laser.read_displacement().value
     params = thesis.rig.specimen.membrane()
 
     def step(t: np.ndarray) -> np.ndarray:
@@ -40,13 +40,13 @@ def test_voltage_changes_the_load_cell_force_by_the_electrostatic_force(lsdea_mo
     rig.advance(30.0)
     x = rig.rig.specimen.lsdea.x_at_motor_zero_m + inst.motor.read_position().value
     assert x == pytest.approx(0.100, abs=1e-7)
-    f0 = inst.load_cell.read()
+    f0 = inst.load_cell.read_force()
     params = rig.rig.specimen.lozenge()
     assert f0.value == pytest.approx(static_force(params, x), abs=0.03)  # branch relaxed after 30 s
     inst.amplifier.set_voltage(6000.0)
     v_out = rig.sim.plant.hv.gain * rig.sim.plant.v_in
     rig.advance(0.5)
-    f1 = inst.load_cell.read()
+    f1 = inst.load_cell.read_force()
     # physics.md §2.2: −F_es of prototype #1 peaks at x = l√(2/3) = 98.0 mm with 1.426 N at 7 kV; F_es ∝ V²
     # and is flat at its peak (at 100 mm within 0.5 %)
     assert params.lambda2p == PROTOTYPE_LAMBDA2P[1]
@@ -60,11 +60,11 @@ def test_voltage_changes_the_load_cell_force_by_the_electrostatic_force(lsdea_mo
 def test_isotonic_rig_laser_follows_the_hung_mass(lsdea_isotonic: RunningRig) -> None:
     """5 kV DC on the hung-mass bench: the laser reading moves to the quasi-static equilibrium (B6)."""
     inst, head = lsdea_isotonic.inst, lsdea_isotonic.sim.twins["laser"].head
-    x_rest = inst.laser.read().value * 1e3 - head.offset_mm
+    x_rest = inst.laser.read_displacement().value * 1e3 - head.offset_mm
     assert x_rest == pytest.approx(66.04, abs=0.05)
     inst.amplifier.set_voltage(5000.0)
     lsdea_isotonic.advance(20.0)
-    x_on = inst.laser.read().value * 1e3 - head.offset_mm
+    x_on = inst.laser.read_displacement().value * 1e3 - head.offset_mm
     assert x_on == pytest.approx(83.52, abs=0.3)  # the branch relaxes over τ = 1 s
 
 

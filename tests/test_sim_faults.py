@@ -61,11 +61,11 @@ def _amp(r: RunningRig) -> object:
 
 
 def _cell(r: RunningRig) -> object:
-    return r.inst.load_cell.read()
+    return r.inst.load_cell.read_force()
 
 
 def _laser(r: RunningRig) -> object:
-    return r.inst.laser.read()
+    return r.inst.laser.read_displacement()
 
 
 def _motor(r: RunningRig) -> object:
@@ -273,11 +273,11 @@ def test_amplifier_bus_goes_silent_two_seconds_into_the_run(thesis: RunningRig) 
 def test_garble_after_n_replies(thesis: RunningRig) -> None:
     laser, faults = thesis.inst.laser, thesis.sim.faults_of("laser")
     faults.schedule(after_replies=2, garble_next=1, garble_index=0)
-    laser.read()
-    laser.read()
+    laser.read_displacement()
+    laser.read_displacement()
     with pytest.raises(ProtocolError):
-        laser.read()
-    assert laser.read().ok and faults.counts["garble"] == 1 and faults.pending == 0
+        laser.read_displacement()
+    assert laser.read_displacement().ok and faults.counts["garble"] == 1 and faults.pending == 0
 
 
 def test_scheduled_drop_fires_without_traffic(lsdea_motor: RunningRig) -> None:

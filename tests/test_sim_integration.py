@@ -19,10 +19,10 @@ from tests.conftest import RunningRig
 
 def test_laser_single_reads_follow_the_plant(thesis: RunningRig) -> None:
     laser, amp = thesis.inst.laser, thesis.inst.amplifier
-    assert abs(laser.read().value) < 20e-6  # at rest: noise only (LK-G152 at averaging 64: 4 µm rms, 5σ)
+    assert abs(laser.read_displacement().value) < 20e-6  # at rest: noise only (LK-G152 at averaging 64: 4 µm rms, 5σ)
     amp.set_voltage(6000.0)
     thesis.advance(3.0)
-    r = laser.read()
+    r = laser.read_displacement()
     plant_u = float(thesis.sim.plant.last.displacement[0])
     assert r.timestamp == pytest.approx(4.0)
     assert r.value == pytest.approx(plant_u, abs=20e-6)  # LK-G152 at averaging 64: 4 µm rms (5σ)
@@ -74,35 +74,35 @@ def test_laser_mode_errors_and_injected_faults(thesis: RunningRig) -> None:
         laser.query("AO,1")
     twin.fault_error_code = "99"
     with pytest.raises(InstrumentStateError, match="ER 99"):
-        laser.read()
+        laser.read_displacement()
     twin.fault_error_code = None
     faults.mute = True
     with pytest.raises(InstrumentTimeoutError, match="laser: no reply"):
-        laser.read()
+        laser.read_displacement()
     faults.mute = False
     laser.link.discard_input()
     faults.garble_next, faults.garble_index = 1, 0  # the echoed command garbled: a wrong reply
     with pytest.raises(ProtocolError):
-        laser.read()
+        laser.read_displacement()
     laser.link.discard_input()
-    assert laser.read().ok  # the link recovers after a garbled reply
+    assert laser.read_displacement().ok  # the link recovers after a garbled reply
     faults.garble_next, faults.garble_index = 1, -1  # the CR garbled: the reply never ends
     with pytest.raises(InstrumentTimeoutError):
-        laser.read()
+        laser.read_displacement()
     laser.link.discard_input()
     faults.garble_index = None
-    assert laser.read().ok
+    assert laser.read_displacement().ok
     faults.drop = True
     with pytest.raises(InstrumentConnectionError, match="laser: link on /dev/pts/"):
         for _ in range(50):
-            laser.read()
+            laser.read_displacement()
 
 
 def test_laser_over_range(lsdea_isotonic: RunningRig) -> None:
     laser = lsdea_isotonic.inst.laser
-    assert laser.read().ok  # x ≈ 66 mm reads ≈ −1 mm within ±40 mm
+    assert laser.read_displacement().ok  # x ≈ 66 mm reads ≈ −1 mm within ±40 mm
     lsdea_isotonic.sim.twins["laser"].head.offset_mm = -140.0
-    r = laser.read()
+    r = laser.read_displacement()
     assert r.status == "over_range_negative" and np.isnan(r.value)
 
 
@@ -226,28 +226,28 @@ def test_amplifier_device_failure_bus_faults_and_breakdown(thesis_rtu: RunningRi
     sim.faults["io"].mute = False
     amp.set_voltage(5000.0)
     thesis.advance(2.0)
-    before = thesis.inst.laser.read().value
+    before = thesis.inst.laser.read_displacement().value
     sim.plant.inject_breakdown()
     thesis.advance(2.0)
     v, i = amp.read_monitors()
     assert i.value == pytest.approx(10e-3, rel=0.02)  # current limit of the 10/10B-HS into the short
     assert v.value < 50.0  # output collapses: I_max × R_short = 10 V
-    assert thesis.inst.laser.read().value < 0.5 * before  # the membrane relaxes without field
+    assert thesis.inst.laser.read_displacement().value < 0.5 * before  # the membrane relaxes without field
     assert "breakdown" in sim.plant.failure
 
 
 def test_load_cell_zero_tare_and_failure(lsdea_motor: RunningRig) -> None:
     cell, twin = lsdea_motor.inst.load_cell, lsdea_motor.sim.twins["load_cell"]
     lsdea_motor.advance(1.0)
-    f0 = cell.read()
+    f0 = cell.read_force()
     assert f0.ok and f0.value == pytest.approx(float(lsdea_motor.sim.plant.last.force[0]), abs=0.02)
     with pytest.raises(InstrumentStateError, match="outside the zero range"):
         cell.zero()  # 1.1 N ≈ 113 g is beyond the ±2 % (100 g) zero band of a 5-kg cell
     cell.tare()
-    assert cell.read().value == pytest.approx(0.0, abs=0.02)
+    assert cell.read_force().value == pytest.approx(0.0, abs=0.02)
     twin.failed = True
     with pytest.raises(InstrumentStateError, match="device failure"):
-        cell.read()
+        cell.read_force()
 
 
 @pytest.mark.parametrize("transport, prefix", [("tcp", "tcp://127.0.0.1:"), ("rtu", "/dev/pts/"),
@@ -262,7 +262,7 @@ def test_modbus_transports(transport: str, prefix: str) -> None:
         r.inst.amplifier.set_voltage(3000.0)
         r.advance(0.5)
         assert r.inst.amplifier.read_voltage().value == pytest.approx(3000.0, abs=4.9 + 10.0 + 5.0)
-        assert r.inst.load_cell.read().ok
+        assert r.inst.load_cell.read_force().ok
     finally:
         r.inst.close()
         r.sim.stop()
@@ -331,7 +331,7 @@ def test_first_reply_after_idle_is_wire_time_not_integration_time() -> None:
         wire = (6 + 15) * 10 / 115200 + 0.5e-3  # "MS,01\r" + "MS,01,+dd.dddd\r" at 115200 Bd, turnaround
         time.sleep(1.0)
         t0 = time.perf_counter()
-        laser.read()
+        laser.read_displacement()
         after_1s = time.perf_counter() - t0
         moved = time.perf_counter()
         sim.clock._t0 -= 180.0  # type: ignore[attr-defined]  # three minutes have passed
@@ -340,7 +340,7 @@ def test_first_reply_after_idle_is_wire_time_not_integration_time() -> None:
             time.sleep(0.05)
         catch_up = time.perf_counter() - moved  # the background thread integrating 180 s of plant
         t0 = time.perf_counter()
-        reading = laser.read()
+        reading = laser.read_displacement()
         after_3min = time.perf_counter() - t0
         assert reading.timestamp > 180.0 and sim.plant.t > 180.0
         # ratios in the same run, not durations a loaded machine can exceed: the reply after idle is one reply

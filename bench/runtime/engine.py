@@ -40,7 +40,7 @@ from bench.runtime.control import CONTROL_POLL_S, ControlWord, read_control
 from bench.runtime.hardware_timed import HardwareTimed
 from bench.runtime.instruments import Instruments
 from bench.runtime.interlock import InterlockTrip, watchdog_period
-from bench.runtime.polls import PAUSED, POLLS, StepState, record_laser_block
+from bench.runtime.polls import PAUSED, StepState, record_laser_block, rig_polls
 from bench.runtime.ramp import ramp_to_zero
 from bench.runtime.safety import SafetyTrip, Supervisor
 from bench.storage.recorder import Recorder
@@ -363,7 +363,7 @@ class Engine:
             self.ctx.wait_until(seg.t_start)
             self._hw.start(seg)
         state = StepState(seg, streamed, laser_serial, storing)
-        polls = {p.name: (p, per) for p in POLLS if (per := p.period(self.ctx, state)) is not None}
+        polls = {p.name: (p, per) for p in rig_polls(self.ctx) if (per := p.period(self.ctx, state)) is not None}
         count = {k: p.first for k, (p, _) in polls.items()}
         due = {k: seg.t_start + n * polls[k][1] for k, n in count.items()}  # from counts: no drift
         schedule = ticks(prog, seg)  # the set-point schedule the dry run also executes
@@ -529,7 +529,7 @@ class Engine:
                             **self.ctx.unpolled_monitor_columns())
             self.sup.check_monitors(v.value, i.value)
             self.snapshot.values["voltage"], self.snapshot.values["current"] = v.value, i.value
-        for poll in POLLS:
+        for poll in rig_polls(self.ctx):
             if poll.name in ("position", "force") and poll.period(self.ctx, PAUSED) is not None:
                 poll.run(self.ctx, self.program_now())
 
@@ -720,12 +720,12 @@ class Engine:
 
     def _others_safe(self) -> list[str]:
         """Every instrument but the amplifier to its safe state (motor stopped first), each independently."""
-        notes = []
-        roles = [r for r, _ in self.inst.items() if r != "amplifier"
+        notes, drivers = [], dict(self.inst.items())  # by role: the rig's extra sensors are no attribute of inst
+        roles = [r for r in drivers if r != "amplifier"
                  and not (r == "daq" and self._output_dead)]  # a dead output path: the DAQ's watchdog must run out
         for role in sorted(roles, key=lambda r: r != "motor"):
             try:
-                getattr(self.inst, role).safe_state()
+                drivers[role].safe_state()
             except InstrumentError as exc:
                 notes.append(f"{role} safe state failed: {exc}")
         return notes

@@ -20,6 +20,8 @@ from drivers.interfaces import (
     ForceSensor,
     Instrument,
     LinearMotor,
+    Readable,
+    Sensor,
     SleepFn,
     StreamingDaq,
 )
@@ -41,6 +43,7 @@ class Instruments:
     motor: LinearMotor | None = None
     load_cell: ForceSensor | None = None
     daq: StreamingDaq | None = None  # hardware-timed drive and acquisition (the engine streams through it)
+    sensors: dict[str, Sensor] = field(default_factory=dict)  # role → an instrument the run only reads (its stream)
     links: dict[str, ModbusLink] = field(default_factory=dict)
     cancel: CancelToken = field(default_factory=CancelToken)  # shared by every link: one stop request reaches all
 
@@ -57,6 +60,16 @@ class Instruments:
         """(role, driver) of every instrument present, amplifier first."""
         for role in ("daq", "amplifier", "laser", "motor", "load_cell"):
             drv = getattr(self, role)
+            if drv is not None:
+                yield role, drv
+        yield from self.sensors.items()
+
+    def readables(self) -> Iterator[tuple[str, Readable]]:
+        """(role, driver) of every instrument a run records through ``describe()`` / ``read()`` (all but the DAQ)."""
+        roles: list[tuple[str, Readable | None]] = [("amplifier", self.amplifier), ("motor", self.motor),
+                                                    ("load_cell", self.load_cell), ("laser", self.laser),
+                                                    *self.sensors.items()]
+        for role, drv in roles:
             if drv is not None:
                 yield role, drv
 

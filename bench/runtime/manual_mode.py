@@ -26,7 +26,7 @@ from bench.rig import RigConfig
 from bench.runtime.engine import Engine, PauseRequested, StopRequested
 from bench.runtime.instruments import Instruments
 from bench.runtime.interlock import InterlockTrip, OutputVerifier, motion_trip
-from bench.runtime.polls import POLLS
+from bench.runtime.polls import rig_polls
 from bench.runtime.safety import SafetyTrip, Supervisor
 from bench.storage.recorder import Recorder
 from drivers.errors import InstrumentError, InstrumentStateError
@@ -58,7 +58,7 @@ class ManualEngine(Engine):
         self.rig = rig
         self.ctx.t0 = t0
         self.snapshot.state = "manual"
-        self._polls = {p.name: p for p in POLLS}
+        self._polls = {p.name: p for p in rig_polls(self.ctx)}  # the rig's polls: one per instrument it reads
         self.latched_at = 0.0  # run time of the latch [s]
         self.paused = False
         self._paused_at = 0.0  # run time of the pause [s]
@@ -202,7 +202,7 @@ class ManualEngine(Engine):
 
     # ------------------------------------------------------------ monitors, latch, pause
     def read_all(self, due: float = math.nan) -> tuple[dict[str, float], str]:
-        """Every channel once through the run's polls (:data:`~bench.runtime.polls.POLLS`: recorded, supervised,
+        """Every channel once through the run's polls (:func:`~bench.runtime.polls.rig_polls`: recorded, supervised,
         the monitors and the encoder verified against what was commanded); ``due``: the run time the reading was
         scheduled for (its lateness is recorded; NaN: on request). Returns the values read (the snapshot's keys:
         voltage, current, displacement, position, aperture, force; a laser reading that is not valid is left out)
@@ -210,9 +210,8 @@ class ManualEngine(Engine):
         on to see why."""
         self.snapshot.values.clear()
         drive = ""
-        for name, present_ in (("monitors", self.inst.amplifier), ("laser", self.inst.laser),
-                               ("position", self.inst.motor), ("force", self.inst.load_cell)):
-            if present_ is None:
+        for name in ("monitors", "laser", "position", "force", *self.inst.sensors):
+            if name not in self._polls:  # no such instrument on this rig
                 continue
             try:
                 self._polls[name].run(self.ctx, due)

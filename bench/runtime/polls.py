@@ -1,10 +1,15 @@
 """What the engine reads from each instrument during a step, how often, and what it does with each reading.
 
-One :class:`Poll` per kind of acquisition. The engine knows none of them by name: at every step it asks each
-poll for its period (None: not in this step) and calls the poll when it is due, on the run clock, with the
+One :class:`Poll` per kind of acquisition; the engine knows none of them by name: at every step it asks each of
+:func:`rig_polls` for its period (None: not in this step) and calls it when it is due, on the run clock, with the
 time it was due (its lateness goes to the stream's ``late`` column). A poll sees the run through the
-:class:`~bench.runtime.context.RunContext` the engine hands it, nothing else of the engine. A new instrument type
-brings its poll here — with its driver, its twin and its rig-file section — and the engine does not change.
+:class:`~bench.runtime.context.RunContext` the engine hands it, nothing else of the engine.
+
+Every instrument a run reads is polled by one generic poll (:func:`poll_once`): its ``read()`` is keyed exactly
+as its ``describe()`` (bluesky's ``Readable``), so the row goes to the stream that names. What a role does beyond
+recording — the supervisor's and the verifiers' checks, live values, the laser's offset and sign — is a small
+:class:`Polled` declaration in :data:`ROLES`; a role without one (a thermometer) is recorded as read. Only the
+block acquisitions have polls of their own: the laser storage's fetch and the DAQ stream's collect.
 """
 
 from __future__ import annotations
@@ -20,10 +25,12 @@ from bench.runtime.context import RunContext, present
 from bench.runtime.interlock import mismatch_trip, motion_trip
 from bench.runtime.safety import SafetyTrip
 from drivers.errors import InstrumentError, InstrumentStateError
+from drivers.interfaces import Readable, ReadingMap
 
 FETCH_PERIOD_S = 0.25  # laser storage upload period while storing (run time)
 COLLECT_PERIOD_S = 0.05  # hardware-timed rigs: collect the DAQ stream (and top up its output buffer) this often
 COLLECT_PERIOD_VIRTUAL_S = 0.25  # virtual time: fewer, larger blocks (the output buffer holds ~0.8 s at 10 kHz)
+SENSOR_PERIOD_S = 1.0  # a role the run time declares nothing for (a thermometer): read this often (run time)
 
 
 @dataclass(frozen=True)
@@ -50,52 +57,127 @@ class Poll:
     first: int = 0
 
 
-def _monitors(e: RunContext, due: float) -> None:
-    v, i = e.amp.read_monitors()
-    e.rec.append("amplifier", v.timestamp - e.t0, voltage=v.value, current=i.value,
-                 **e.monitor_columns(e.lateness(due)))
+Row = dict[str, float]  # the values one poll records, by column
+
+
+def _as_read(e: RunContext, r: ReadingMap) -> Row | None:
+    return {k: x.value for k, x in r.items()}
+
+
+def _no_check(e: RunContext, r: ReadingMap, row: Row) -> None:
+    return None
+
+
+@dataclass(frozen=True)
+class Polled:
+    """How the generic poll treats one role's readings, declared once per role: ``name`` (the engine's name for
+    the poll), ``period`` in a step (None: not in it), ``row``: the values to record from one ``read()`` (keyed as
+    ``describe()``; derived columns added; None: nothing new to record), ``check``: what the run does with a
+    recorded row (live values, supervisor, verifiers; raises to end the run), ``columns``: the stream's other
+    columns for a reading this late (default: its ``late`` column). A role without a declaration is
+    recorded as read every :data:`SENSOR_PERIOD_S`."""
+
+    name: str
+    period: Callable[[RunContext, StepState], float | None]
+    row: Callable[[RunContext, ReadingMap], Row | None] = _as_read
+    check: Callable[[RunContext, ReadingMap, Row], None] = _no_check
+    columns: Callable[[RunContext, str, float], dict[str, float | np.ndarray]] | None = None
+
+
+def poll_once(e: RunContext, drv: Readable, how: Polled, due: float) -> None:
+    """The software-timed poll of any readable instrument: one ``read()``, its row appended to the stream its
+    ``describe()`` names (stamped with the reading's time, its lateness in ``late``), then the role's check."""
+    d = drv.describe()
+    r = drv.read()
+    row = how.row(e, r)
+    if row is None:
+        return
+    late = e.lateness(due)
+    extra = how.columns(e, d.stream, late) if how.columns is not None else e.late_columns(d.stream, late)
+    e.rec.append(d.stream, r[d.columns[0].name].timestamp - e.t0, **row, **extra)
+    how.check(e, r, row)
+
+
+def _rate(hz: float) -> float | None:
+    return 1.0 / hz if hz else None
+
+
+# ------------------------------------------------------------ amplifier: the monitors
+def _monitors_period(e: RunContext, s: StepState) -> float | None:
+    """The amplifier's monitors on a software-timed rig (a DAQ samples them on its scan clock)."""
+    return _rate(e.program.protocol.recording.monitors_Hz) if e.stream is None else None
+
+
+def _monitors_check(e: RunContext, r: ReadingMap, row: Row) -> None:
+    v, i = r["voltage"], r["current"]
     e.snapshot.values["voltage"], e.snapshot.values["current"] = v.value, i.value
     e.sup.check_monitors(v.value, i.value)
     if (m := e.verifier.reading(v.timestamp - e.t0, v.value, v.ok)) is not None:
         raise mismatch_trip(m, "the voltage monitor")
 
 
-def _position(e: RunContext, due: float) -> None:
-    r = e.motor.read_position()
-    prog = e.program
-    x = float(prog.aperture(r.value)) if prog.has_motor_axis else math.nan
-    e.rec.append("motor", r.timestamp - e.t0, position=r.value, aperture=x, **e.late_columns("motor", e.lateness(due)))
-    if not r.ok or not math.isfinite(r.value):
-        raise InstrumentStateError("motor", f"drive reports {r.status}: {_drive_error_text(e)}")
-    e.snapshot.values["position"], e.snapshot.values["aperture"] = r.value, x
-    e.sup.check_motor(r.value, x if prog.has_motor_axis else e.sup.aperture or 0.0)
-    if (m := e.motion.reading(r.timestamp - e.t0, r.value)) is not None:
+# ------------------------------------------------------------ motor: the encoder, the aperture it gives
+def _position_row(e: RunContext, r: ReadingMap) -> Row | None:
+    x = r["position"].value
+    return {"position": x, "aperture": float(e.program.aperture(x)) if e.program.has_motor_axis else math.nan}
+
+
+def _position_check(e: RunContext, r: ReadingMap, row: Row) -> None:
+    p = r["position"]
+    if not p.ok or not math.isfinite(p.value):
+        raise InstrumentStateError("motor", f"drive reports {p.status}: {_drive_error_text(e)}")
+    x = row["aperture"]
+    e.snapshot.values["position"], e.snapshot.values["aperture"] = p.value, x
+    e.sup.check_motor(p.value, x if e.program.has_motor_axis else e.sup.aperture or 0.0)
+    if (m := e.motion.reading(p.timestamp - e.t0, p.value)) is not None:
         raise motion_trip(m)
 
 
-def _force(e: RunContext, due: float) -> None:
-    r = e.cell.read()
-    e.rec.append("load_cell", r.timestamp - e.t0, force=r.value, ok=np.array(r.ok, dtype="u1"),
-                 **e.late_columns("load_cell", e.lateness(due)))
-    e.snapshot.values["force"] = r.value
-    if r.status in ("overload", "underload"):
-        raise SafetyTrip(f"load cell {r.status}")
-    if r.ok or r.status == "unstable":
-        e.sup.check_force(r.value)
+# ------------------------------------------------------------ load cell
+def _force_check(e: RunContext, r: ReadingMap, row: Row) -> None:
+    f = r["force"]
+    e.snapshot.values["force"] = f.value
+    if f.status in ("overload", "underload"):
+        raise SafetyTrip(f"load cell {f.status}")
+    if f.ok or f.status == "unstable":
+        e.sup.check_force(f.value)
 
 
-def _laser(e: RunContext, due: float) -> None:
-    r = e.laser.read()
-    if r.timestamp - e.t0 <= e.laser_t_last:  # a time the stream already has (one time base, no duplicates)
-        return
-    e.laser_t_last = r.timestamp - e.t0
-    d = float(e.to_specimen(np.array([r.value]))[0])
-    ok = r.ok and math.isfinite(d)
-    e.rec.append("laser", r.timestamp - e.t0, displacement=d, valid=np.array(ok, dtype="u1"),
-                 **e.late_columns("laser", e.lateness(due)))
-    if ok:
-        e.sup.update_displacement(d)
-        e.snapshot.values["displacement"] = d
+# ------------------------------------------------------------ laser: single reads while its storage is idle
+def _laser_period(e: RunContext, s: StepState) -> float | None:
+    """Single laser reads while its storage is idle (a DAQ samples the laser's analog output itself)."""
+    return 1 / PASSIVE_LASER_HZ if s.laser_serial and not s.storing else None
+
+
+def _laser_row(e: RunContext, r: ReadingMap) -> Row | None:
+    raw = r["displacement"]
+    if raw.timestamp - e.t0 <= e.laser_t_last:  # a time the stream already has (one time base, no duplicates)
+        return None
+    d = float(e.to_specimen(np.array([raw.value]))[0])
+    return {"displacement": d, "valid": float(raw.ok and math.isfinite(d))}
+
+
+def _laser_check(e: RunContext, r: ReadingMap, row: Row) -> None:
+    e.laser_t_last = r["displacement"].timestamp - e.t0
+    if row["valid"]:
+        e.sup.update_displacement(row["displacement"])
+        e.snapshot.values["displacement"] = row["displacement"]
+
+
+def _sensor_period(e: RunContext, s: StepState) -> float | None:
+    return SENSOR_PERIOD_S
+
+
+ROLES: dict[str, Polled] = {
+    # the monitors' row carries the output commanded where the layout has that column (a DAQ-driven amplifier)
+    "amplifier": Polled("monitors", _monitors_period, check=_monitors_check,
+                        columns=lambda e, stream, late: e.monitor_columns(late)),
+    "motor": Polled("position", lambda e, s: _rate(e.program.protocol.recording.position_Hz),
+                    _position_row, _position_check),
+    "load_cell": Polled("force", lambda e, s: _rate(e.program.protocol.recording.force_Hz), check=_force_check),
+    "laser": Polled("laser", _laser_period, _laser_row, _laser_check),
+}
+"""The roles whose readings the run does more with than record them (any other role: :data:`SENSOR_PERIOD_S`)."""
 
 
 def _drive_error_text(e: RunContext) -> str:
@@ -126,35 +208,12 @@ def record_laser_block(e: RunContext) -> int:
     return int(block.values.size)
 
 
-def _rate(hz: float) -> float | None:
-    return 1.0 / hz if hz else None
-
-
-def _monitors_period(e: RunContext, s: StepState) -> float | None:
-    """The amplifier's monitors on a software-timed rig (a DAQ samples them on its scan clock)."""
-    return _rate(e.program.protocol.recording.monitors_Hz) if e.inst.amplifier is not None and e.stream is None \
-        else None
-
-
-def _position_period(e: RunContext, s: StepState) -> float | None:
-    return _rate(e.program.protocol.recording.position_Hz) if e.inst.motor is not None else None
-
-
-def _force_period(e: RunContext, s: StepState) -> float | None:
-    return _rate(e.program.protocol.recording.force_Hz) if e.inst.load_cell is not None else None
-
-
 def _fetch_period(e: RunContext, s: StepState) -> float | None:
     return FETCH_PERIOD_S if s.storing else None
 
 
 def _fetch(e: RunContext, due: float) -> None:
     record_laser_block(e)
-
-
-def _laser_period(e: RunContext, s: StepState) -> float | None:
-    """Single laser reads while its storage is idle (a DAQ samples the laser's analog output itself)."""
-    return 1 / PASSIVE_LASER_HZ if s.laser_serial and not s.storing else None
 
 
 def _collect_period(e: RunContext, s: StepState) -> float | None:
@@ -165,11 +224,16 @@ def _collect(e: RunContext, due: float) -> None:
     present(e.stream, "daq").collect()
 
 
-POLLS = (
-    Poll("monitors", _monitors_period, _monitors),
-    Poll("position", _position_period, _position),
-    Poll("force", _force_period, _force),
-    Poll("fetch", _fetch_period, _fetch, first=1),  # nothing is stored yet at the step's start
-    Poll("laser", _laser_period, _laser),
-    Poll("collect", _collect_period, _collect),
-)
+def _role_poll(drv: Readable, how: Polled) -> Poll:
+    return Poll(how.name, how.period, lambda e, due: poll_once(e, drv, how, due))
+
+
+FETCH = Poll("fetch", _fetch_period, _fetch, first=1)  # nothing is stored yet at the step's start
+COLLECT = Poll("collect", _collect_period, _collect)
+
+
+def rig_polls(e: RunContext) -> tuple[Poll, ...]:
+    """This rig's polls: the generic poll of each instrument it reads (:func:`poll_once`, as its role declares in
+    :data:`ROLES`), then the laser storage's fetch and the DAQ stream's collect (blocks, not single reads)."""
+    polls = [_role_poll(drv, ROLES.get(role) or Polled(role, _sensor_period)) for role, drv in e.inst.readables()]
+    return (*polls, FETCH, COLLECT)

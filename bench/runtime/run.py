@@ -34,6 +34,7 @@ from bench.runtime.hardware_timed import describe_streams
 from bench.runtime.instruments import Instruments, build_instruments
 from bench.runtime.interlock import watchdog_period
 from bench.runtime.latch import latch, refuse_if_latched
+from bench.runtime.polls import SENSOR_PERIOD_S
 from bench.runtime.safety import Supervisor
 from bench.storage import catalog
 from bench.storage.chain import chain
@@ -104,8 +105,7 @@ def _streams(rig: RigConfig, inst: Instruments, polled: bool = False) -> tuple[d
             and rig.amplifier.drive == "daq"):
         described = describe_streams(rig.daq, inst.amplifier)
     timed = {d.stream for d in described}
-    described += [drv.describe() for drv in (inst.amplifier, inst.laser, inst.motor, inst.load_cell)
-                  if drv is not None and drv.name not in timed]
+    described += [drv.describe() for _, drv in inst.readables() if drv.name not in timed]
     streams: dict[str, list[Column]] = {"setpoints": [Column("voltage", "V", "amplifier output commanded"),
                                                       Column("aperture", "m", "LS-DEA aperture commanded (NaN: none)")]}
     sources = {"setpoints": "engine"}
@@ -233,7 +233,8 @@ def execute(plan: Plan, out: Path, *, virtual: bool = False, operator: OperatorF
         streams, sources = _streams(rig, inst)
         r = plan.protocol.recording
         rates = {"setpoints": r.setpoint_Hz, "amplifier": r.monitors_Hz, "laser": r.displacement_Hz,
-                 "motor": r.position_Hz, "load_cell": r.force_Hz}
+                 "motor": r.position_Hz, "load_cell": r.force_Hz,
+                 **{role: 1.0 / SENSOR_PERIOD_S for role in inst.sensors}}  # read by the generic poll (polls.py)
         if rig.daq is not None and rig.amplifier is not None and rig.amplifier.drive == "daq":
             hw = {"amplifier", *(["load_cell"] if rig.daq.force_ain is not None else []),
                   *(["laser"] if rig.daq.laser_ain is not None else [])}

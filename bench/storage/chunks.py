@@ -18,10 +18,9 @@ from typing import Literal
 import h5py
 import numpy as np
 
-from bench.storage.runfile import RunFile, open_h5, read_run, unit_of, valid_counts
+from bench.storage.runfile import RunFile, open_h5, read_run, stream_names, unit_of, valid_counts
 
 CHUNK_ROWS = 262_144  # records per stream read at a time (a few MB per column)
-STREAMS = ("setpoints", "amplifier", "laser", "motor", "load_cell")
 
 
 class StreamChunks:
@@ -32,9 +31,7 @@ class StreamChunks:
         valid = valid_counts(f)
         self.length: dict[str, int] = {}
         self.columns: dict[str, list[str]] = {}
-        for name in STREAMS:
-            if name not in f:
-                continue
+        for name in stream_names(f):
             g = f[name]
             for d in g.values():
                 d.refresh()

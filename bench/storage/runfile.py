@@ -157,6 +157,16 @@ def valid_counts(f: h5py.File) -> dict[str, int]:
     return dict(zip(json.loads(d.attrs["names"]), (int(n) for n in d[:]), strict=True))
 
 
+KNOWN_STREAMS = ("setpoints", "amplifier", "laser", "motor", "load_cell")
+
+
+def stream_names(f: h5py.File) -> list[str]:
+    """The streams a file records: the known ones present, then any other instrument's that ``/entry`` links (a
+    rig's extra sensors: each records to a stream of its own)."""
+    known = [n for n in KNOWN_STREAMS if n in f]
+    return known + (sorted(n for n in f["entry"] if n not in KNOWN_STREAMS and n in f) if "entry" in f else [])
+
+
 def open_run(path: str | Path, streams: bool = True) -> RunFile:
     """Read a run file; works on a file another process is writing (SWMR reader) and on the file of a
     crashed or killed run (``incomplete_reason`` says so). Every dataset is cut to the records the writer
@@ -184,9 +194,7 @@ def read_run(f: h5py.File, p: Path, streams: bool = False) -> RunFile:
     run.events = read_table(f["events"], valid.get("events"))
     run.program = read_table(f["program"])
     if streams:
-        for name in ("setpoints", "amplifier", "laser", "motor", "load_cell"):
-            if name not in f:
-                continue
+        for name in stream_names(f):
             g = f[name]
             for d in g.values():
                 d.refresh()

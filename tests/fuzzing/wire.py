@@ -115,11 +115,11 @@ def _reads(inst: Instruments) -> dict[str, Callable[[], object]]:
     if inst.amplifier is not None:
         out["amplifier"] = inst.amplifier.read_monitors
     if inst.laser is not None:
-        out["laser"] = inst.laser.read
+        out["laser"] = inst.laser.read_displacement
     if inst.motor is not None:
         out["motor"] = inst.motor.read_position
     if inst.load_cell is not None:
-        out["load_cell"] = inst.load_cell.read
+        out["load_cell"] = inst.load_cell.read_force
     if inst.daq is not None:
         daq = inst.daq
         out["daq"] = lambda: daq.read_ain(0)
