@@ -73,15 +73,13 @@ class Polled:
     """How the generic poll treats one role's readings, declared once per role: ``name`` (the engine's name for
     the poll), ``period`` in a step (None: not in it), ``row``: the values to record from one ``read()`` (keyed as
     ``describe()``; derived columns added; None: nothing new to record), ``check``: what the run does with a
-    recorded row (live values, supervisor, verifiers; raises to end the run), ``columns``: the stream's other
-    columns for a reading this late (default: its ``late`` column). A role without a declaration is
+    recorded row (live values, supervisor, verifiers; raises to end the run). A role without a declaration is
     recorded as read every :data:`SENSOR_PERIOD_S`."""
 
     name: str
     period: Callable[[RunContext, StepState], float | None]
     row: Callable[[RunContext, ReadingMap], Row | None] = _as_read
     check: Callable[[RunContext, ReadingMap, Row], None] = _no_check
-    columns: Callable[[RunContext, str, float], dict[str, float | np.ndarray]] | None = None
 
 
 def poll_once(e: RunContext, drv: Readable, how: Polled, due: float) -> None:
@@ -92,9 +90,8 @@ def poll_once(e: RunContext, drv: Readable, how: Polled, due: float) -> None:
     row = how.row(e, r)
     if row is None:
         return
-    late = e.lateness(due)
-    extra = how.columns(e, d.stream, late) if how.columns is not None else e.late_columns(d.stream, late)
-    e.rec.append(d.stream, r[d.columns[0].name].timestamp - e.t0, **row, **extra)
+    e.rec.append(d.stream, r[d.columns[0].name].timestamp - e.t0, **row,
+                 **e.late_columns(d.stream, e.lateness(due)))
     how.check(e, r, row)
 
 
@@ -169,9 +166,7 @@ def _sensor_period(e: RunContext, s: StepState) -> float | None:
 
 
 ROLES: dict[str, Polled] = {
-    # the monitors' row carries the output commanded where the layout has that column (a DAQ-driven amplifier)
-    "amplifier": Polled("monitors", _monitors_period, check=_monitors_check,
-                        columns=lambda e, stream, late: e.monitor_columns(late)),
+    "amplifier": Polled("monitors", _monitors_period, check=_monitors_check),
     "motor": Polled("position", lambda e, s: _rate(e.program.protocol.recording.position_Hz),
                     _position_row, _position_check),
     "load_cell": Polled("force", lambda e, s: _rate(e.program.protocol.recording.force_Hz), check=_force_check),
