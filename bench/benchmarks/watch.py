@@ -34,7 +34,7 @@ from bench.watch import free_port
 from bench.watch.follow import PIXELS
 
 POLL_S = 0.5  # as the page (bench/watch/static/watch.js)
-QUICK_DRIVE_S = 4.0  # --quick: the followed run's drive [s] (the full run: the protocol's 10 s)
+QUICK_DRIVE_S = 3.0  # --quick: the followed run's drive [s] (the full run: the protocol's 10 s)
 BLOCK = 50_000
 
 
