@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import re
 from pathlib import Path
 
@@ -142,6 +143,16 @@ def test_benchmark_json_prints_figures_only() -> None:
     figures = [f for rows in tables.values() for f in rows]
     assert figures and all({"name", "value", "unit"} <= set(f) for f in figures)
     assert any(f["unit"] == "× real time" and f["value"] > 0 for f in figures)
+    # every ratio names the CPU it was measured on (issue 24: a speed-up is one CPU's), as the kernel reports it
+    ratios = [f for f in figures if f["unit"] in ("×", "× real time")]
+    assert ratios and all(f["cpu"] == ratios[0]["cpu"] for f in ratios)
+    cpu = ratios[0]["cpu"]
+    info = Path("/proc/cpuinfo").read_text()
+    model = next(line.split(":", 1)[1].strip() for line in info.splitlines() if line.startswith("model name"))
+    flags = set(next(line.split(":", 1)[1].split() for line in info.splitlines() if line.startswith("flags")))
+    assert cpu["model"] == model and cpu["flags"] and set(cpu["flags"]) <= flags
+    assert ("avx2" in cpu["flags"]) == ("avx2" in flags) and ("avx512f" in cpu["flags"]) == ("avx512f" in flags)
+    assert cpu["logical_cpus"] == len(os.sched_getaffinity(0)) and cpu["numba_threads"] >= 1 and cpu["numba_target"]
 
 
 def test_a_width_in_the_environment_when_the_console_is_made_does_not_stick(monkeypatch: pytest.MonkeyPatch) -> None:

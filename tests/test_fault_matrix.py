@@ -111,3 +111,19 @@ def test_an_output_still_high_or_back_on_is_a_finding() -> None:
     assert "all safe: NO" in lines[0]
     assert any("still on hold: output NOT at 0 V" in line for line in lines)
     assert sum("output back at 2000 V" in line for line in lines) == 2
+
+
+def test_quick_is_a_subset_of_the_matrix_with_every_fault_kind_both_rigs_and_both_modes() -> None:
+    """``--quick`` leaves cases out, never a kind of fault, a rig kind or a mode (the set of kinds is the full
+    matrix's own, not a list of this test's)."""
+    full = {spec.key: spec for spec in faults.matrix()}
+    quick = faults.matrix(quick=True)
+    assert len({spec.key for spec in quick}) == len(quick) < len(full)
+    assert all(spec.key in full for spec in quick)
+    assert {spec.fault.kind for spec in quick} == {spec.fault.kind for spec in full.values()}
+    assert {spec.rig for spec in quick} == {spec.rig for spec in full.values()} == set(faults.RIGS)
+    assert {spec.mode for spec in quick} == {spec.mode for spec in full.values()} == {"run", "control"}
+    for rig in faults.RIGS:  # a fault only one rig kind has (the T7's output writes) is in quick on that rig
+        own = {s.fault.kind for s in full.values() if s.rig == rig} - {s.fault.kind for s in full.values()
+                                                                       if s.rig != rig}
+        assert own <= {spec.fault.kind for spec in quick if spec.rig == rig}

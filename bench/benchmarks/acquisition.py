@@ -168,5 +168,5 @@ def run_all(quick: bool = False) -> list[Figure]:
     """All acquisition figures (``quick``: shorter runs)."""
     figs = polled(0.3 if quick else 1.0)
     figs += buffered_laser(2.0 if quick else 20.0)
-    figs.append(laser_upload(points=1000 if quick else 4000))
+    figs.append(laser_upload(points=500 if quick else 4000))
     return figs

@@ -254,7 +254,7 @@ def plant_alone(seconds: float = 10.0, block: float = 0.25) -> list[Figure]:
 
 
 def run_all(quick: bool = False, soak_s: float = 600.0) -> list[Figure]:
-    """Every figure; ``quick``: a 3-s soak instead of 10 minutes, and no real-time repeatability runs (three
+    """Every figure; ``quick``: a 2-s soak instead of 10 minutes, and no real-time repeatability runs (three
     real-time isotonic runs in the full run: 40 s of wall clock that a quick look cannot spend)."""
     with tempfile.TemporaryDirectory() as tmp:
         out = fidelity(Path(tmp))
@@ -268,5 +268,5 @@ def run_all(quick: bool = False, soak_s: float = 600.0) -> list[Figure]:
         out += exchange_floor()
         if not quick:
             out += repeatability(Path(tmp), runs=3)
-        out += soak(3.0 if quick else soak_s)
+        out += soak(2.0 if quick else soak_s)
     return out

@@ -156,9 +156,9 @@ def _export(kind: str, run: Path, out: Path) -> tuple[float, float, float]:
 
 
 def run_all(quick: bool = False) -> list[Figure]:
-    """Peak memory of CSV and MAT v7.3 export for a short and a long run file (--quick: 10 and 60 seconds; full:
+    """Peak memory of CSV and MAT v7.3 export for a short and a long run file (--quick: 10 and 30 seconds; full:
     10 and 60 minutes)."""
-    lengths = (10.0, 60.0) if quick else (600.0, 3600.0)
+    lengths = (10.0, 30.0) if quick else (600.0, 3600.0)
     figures = []
     with tempfile.TemporaryDirectory() as tmp:
         peaks: dict[str, list[float]] = {"csv": [], "mat": []}

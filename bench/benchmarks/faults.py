@@ -48,7 +48,12 @@ RIGS = {"ADAM": "thesis-sim", "T7": "thesis-daq-sim"}  # software-timed and hard
 PHASES = ("set-up", "waveform", "hold", "shutdown")
 AT = {"set-up": 0.15, "waveform": 0.8, "hold": 2.0, "shutdown": 2.0}  # run time [s] of the fault (shutdown: the stop)
 QUICK_PHASES = ("waveform",)
-QUICK_SKIP = ("replies too late", "slow wire")  # --quick: link faults left out (a late reply acts as silence)
+# --quick: the waveform phase, the amplifier's link; every virtual-clock fault on both rig kinds (a fraction of a
+# second each), each wall-clock fault once (they wait seconds in real time: 1-6 s a case), split between the rig
+# kinds so that their two processes take about as long; named by fault kind, or by name for the stop signals
+QUICK_WALL = {"ADAM": (("run", "silent link"), ("run", "garbled replies"), ("run", "SIGINT")),
+              "T7": (("run", "replies too late"), ("run", "slow wire"), ("run", "SIGTERM"), ("run", "host stall"),
+                     ("control", "SIGINT"))}
 JOBS = 2  # rig kinds run at once, each in its own process (a wall-clock case takes a sixth to a third of a core)
 
 PROTOCOL = """[protocol]
@@ -267,21 +272,27 @@ def faults_for(rig: RigConfig) -> list[Fault]:
 
 
 def matrix(quick: bool = False) -> list[Spec]:
-    """Every case (``quick``: the waveform phase; of the link faults, silence, garbling and a drop of the
-    amplifier's link; manual control: SIGINT)."""
+    """Every case (``quick``: a subset of the waveform phase that has every fault kind, both rig kinds and both
+    modes: the virtual-clock faults on both rigs, each wall-clock one once, :data:`QUICK_WALL`)."""
     specs = []
     for label, name in RIGS.items():
         rig = load_rig(rigs_dir() / f"{name}.toml")
         amp_link = links(rig)[0][0]
         for fault in faults_for(rig):
-            if quick and ":" in fault.name and (not fault.name.startswith(f"{amp_link}:")
-                                                or fault.kind in QUICK_SKIP):
+            if quick and ":" in fault.name and not fault.name.startswith(f"{amp_link}:"):
                 continue
             for mode in fault.modes:
-                if quick and mode == "control" and fault.name != "SIGINT":
+                if quick and not _in_quick(label, mode, fault):
                     continue
                 specs += [Spec(mode, label, fault, phase) for phase in (QUICK_PHASES if quick else PHASES)]
     return specs
+
+
+def _in_quick(rig: str, mode: str, fault: Fault) -> bool:
+    """Whether ``--quick`` runs this fault in this mode on this rig kind."""
+    if fault.clock == "virtual":
+        return mode == "run"
+    return any(m == mode and what in (fault.kind, fault.name) for m, what in QUICK_WALL[rig])
 
 
 # ---------------------------------------------------------------- one case
@@ -656,16 +667,22 @@ def summary_lines(s: Summary) -> list[str]:
 
 
 def run_all(quick: bool = False, jobs: int | None = None) -> list[Case]:
-    """Run the matrix (``quick``: a subset): each rig kind's cases in order, up to ``jobs`` (default
-    :data:`JOBS`) rig kinds at once in their own processes."""
+    """Run the matrix (``quick``: a subset): each rig kind's cases in order, up to ``jobs`` (default :data:`JOBS`)
+    rig kinds at once — the last in this process (its imports are done, and its main thread takes the signals),
+    the others each in a process of its own."""
     by_rig: dict[str, list[tuple[str, str, str, str]]] = {}
     for spec in matrix(quick):
         by_rig.setdefault(spec.rig, []).append(spec.key)
     jobs = JOBS if jobs is None else jobs
-    if jobs <= 1 or len(by_rig) <= 1:
-        return [case for keys in by_rig.values() for case in _run_keys(keys)]
+    groups = list(by_rig.values())
+    if jobs <= 1 or len(groups) <= 1:
+        return [case for keys in groups for case in _run_keys(keys)]
     from concurrent.futures import ProcessPoolExecutor
     from multiprocessing import get_context
 
-    with ProcessPoolExecutor(min(jobs, len(by_rig)), mp_context=get_context("spawn")) as pool:
-        return [case for cases in pool.map(_run_keys, by_rig.values()) for case in cases]
+    *others, here = groups[: jobs]
+    with ProcessPoolExecutor(len(others), mp_context=get_context("spawn")) as pool:
+        futures = [pool.submit(_run_keys, keys) for keys in others]
+        mine = _run_keys(here)
+        cases = [case for future in futures for case in future.result()] + mine
+    return cases + [case for keys in groups[jobs:] for case in _run_keys(keys)]

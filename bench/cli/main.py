@@ -262,7 +262,7 @@ BENCHMARK_SETS = (
     (BenchmarkSet.acquisition, "acquisition through the drivers",
      "acquisition through the drivers (simulated rigs on ptys)"),
     (BenchmarkSet.run, "whole runs", "whole runs: engine, recorder"),
-    (BenchmarkSet.fit, "identification", "identification (thesis record, 2 cores)"),
+    (BenchmarkSet.fit, "identification", "identification (thesis record, all numba threads unless a row says one)"),
     (BenchmarkSet.daq, "the hardware-timed rigs", "hardware-timed rigs (LabJack T7 twin)"),
     (BenchmarkSet.startup, "the command line's start-up",
      'start-up of the command line against python -c "import typer, rich"'),
@@ -306,10 +306,12 @@ def _benchmark(which: BenchmarkSet, quick: bool) -> dict[str, object]:
 
 def _physics(quick: bool) -> list[dict[str, object]]:
     """Run and print the integrators' figures; returns them."""
+    from bench.benchmarks.machine import cpu
     from bench.benchmarks.main import run_all
 
     results = run_all(quick=quick)
-    table = Table(title="physics integrators (one core, best of repeats)")
+    machine = cpu()
+    table = Table(title="physics integrators (one core, best of repeats)", caption=f"on {machine.label}")
     for col in ("case", "simulated [s]", "wall [s]", "× real time", "target", ""):
         table.add_column(col, justify="left" if col == "case" else "right")
     for r in results:
@@ -318,7 +320,8 @@ def _physics(quick: bool) -> list[dict[str, object]]:
                       f"≥ {r.target:g}" if r.target else "–", mark)
     console.print(table)
     return [{"case": r.name, "simulated_s": r.simulated, "wall_s": r.wall, "speed_x": r.speed,
-             "target_x": r.target or None, "passed": r.passed if r.target else None} for r in results]
+             "target_x": r.target or None, "passed": r.passed if r.target else None, "cpu": machine.as_dict()}
+            for r in results]
 
 
 def _figures(kind: BenchmarkSet, title: str, quick: bool) -> list[dict[str, object]]:
@@ -337,14 +340,23 @@ def _figures(kind: BenchmarkSet, title: str, quick: bool) -> list[dict[str, obje
         from bench.benchmarks.watch import run_all
     else:
         from bench.benchmarks.startup import run_all
+    from bench.benchmarks.machine import cpu
+
     figures = run_all(quick=quick)
-    table = Table(title=title)
+    machine = cpu()
+    ratios = [f.unit in RATIO_UNITS for f in figures]
+    table = Table(title=title, caption=f"on {machine.label}" if any(ratios) else None)
     for col in ("path", "value", "unit", "notes"):
         table.add_column(col, justify="right" if col == "value" else "left")
     for f in figures:
         table.add_row(f.name, f"{f.value:,.1f}" if f.value < 100 else f"{f.value:,.0f}", f.unit, f.note)
     console.print(table)
-    return [{"name": f.name, "value": f.value, "unit": f.unit, "note": f.note} for f in figures]
+    where = {"cpu": machine.as_dict()}
+    return [{"name": f.name, "value": f.value, "unit": f.unit, "note": f.note, **(where if r else {})}
+            for f, r in zip(figures, ratios, strict=True)]
+
+
+RATIO_UNITS = ("×", "× real time")  # a figure in these is a ratio: its JSON row names the CPU it was measured on
 
 
 def _seconds(x: float | None) -> str:
