@@ -197,3 +197,37 @@ def test_the_demo_like_record_s_determined_intervals_hold_the_twin_s_parameters(
     chi_nominal = float(np.sum(((prob.predict(nominal)[0] - prob.data)[m] / sigma) ** 2))
     chi_min = float(np.sum((res.residual / sigma) ** 2))
     assert chi_nominal - chi_min > 100 * tr.threshold
+
+
+class _Threads(_Linear):
+    """The linear problem, noting which threads evaluate it."""
+
+    def __init__(self, seed: int) -> None:
+        super().__init__(seed)
+        self.threads: set[int] = set()
+
+    def predict(self, Z: np.ndarray) -> np.ndarray:
+        import threading
+
+        self.threads.add(threading.get_ident())
+        return super().predict(Z)
+
+
+def test_starts_run_side_by_side_each_as_its_seed_alone_and_their_spread_is_reported() -> None:
+    """Three starts (seeds 7, 8, 9) run in threads of their own; each ends where a fit of that seed alone ends (a
+    start depends on its seed only), and the spread reported per parameter is (max − min)/|best| over them."""
+    settings = FitSettings(population=10, generations=8, cost="lsq", seed=7, starts=3, intervals=True,
+                           stall_generations=0)
+    prob = _Threads(seed=3)
+    res = fit(prob, settings)
+    tr = res.trust
+    assert tr is not None and [s["seed"] for s in tr.starts] == [7, 8, 9]
+    assert len(prob.threads) >= 2  # not one after another on the caller's thread
+    for k, s in enumerate(tr.starts):
+        alone = fit(_Linear(seed=3), FitSettings(population=10, generations=8, cost="lsq", seed=7 + k, starts=1,
+                                                 intervals=True, stall_generations=0))
+        assert alone.trust is not None
+        assert s["values"] == pytest.approx(alone.trust.starts[0]["values"], rel=1e-12, abs=1e-12)
+    V = np.array([s["values"] for s in tr.starts])
+    assert tr.spread is not None
+    assert tr.spread == pytest.approx((V.max(axis=0) - V.min(axis=0)) / np.abs(res.values), rel=1e-9)

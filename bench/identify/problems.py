@@ -147,7 +147,7 @@ class MembraneProblem:
 
     def __init__(self, paths: list[str | Path], h: float = 5e-4, data_rate: float = 100.0,
                  average: bool = True, reference_kernel: bool = False, split_rest: float = 30.0,
-                 keep_rest: float = 20.0) -> None:
+                 keep_rest: float = 20.0, input_smoothing_s: float = 1e-3) -> None:
         """``average``: compare 1/data_rate window means of record and model (removes the aliasing of
         fast ringing); otherwise point values at the record's sample times. ``reference_kernel``: predict
         through the scalar per-candidate kernel (the benchmark's old path) instead of the vectorised one.
@@ -155,10 +155,16 @@ class MembraneProblem:
         A file is cut into records at every rest (0 V) of at least ``split_rest`` s: each record starts from
         the rest state where the drive resumes (the protocols' long rests are there for the specimen to
         recover) and keeps the first ``keep_rest`` s of the rest that ends it (``split_rest`` 0: whole files).
+
+        A *measured* voltage (the monitor) carries the monitor's noise, which the specimen never saw: fed to the
+        model as it is, it drives a pressure noise (∝ 2VδV) that the fit then damps with a spurious fast unit. It
+        is smoothed by a zero-phase Gaussian of σ ``input_smoothing_s`` (1 ms: −3 dB near 130 Hz, far above the
+        drives' content; the white noise's power / 35); 0 leaves it as recorded.
         """
         self.h, self.data_rate, self.records, self.average = h, data_rate, [], average
         self.reference_kernel = reference_kernel
         self.split_rest, self.keep_rest = split_rest, keep_rest
+        self.input_smoothing_s = input_smoothing_s
         self.remote: DistributedPredict | None = None
         self.data_unit = "m"
         self.names = ["mu0", "J0"] + [f"mu{i}" for i in range(1, 5)] + [f"J{i}" for i in range(1, 5)] + \
@@ -220,6 +226,10 @@ class MembraneProblem:
             U = np.empty((n, 2))
             # commanded set-points hold from when they were set; monitor samples belong to the step they end
             U[:, 0] = _step_means(sp.t, sp.v, t_steps, self.h) if measured else _hold(sp.t, sp.v, t_steps)
+            if measured and self.input_smoothing_s > 0:
+                from scipy.ndimage import gaussian_filter1d
+
+                U[:, 0] = gaussian_filter1d(U[:, 0], self.input_smoothing_s / self.h, mode="nearest")
             U[:, 1] = T0
             for te, T in changes:
                 U[t_steps > te, 1] = T
