@@ -184,16 +184,13 @@ def _crossing(offsets: list[float], chis: list[float], cmin: float, threshold: f
 
 def profile(w: Weighted, z: np.ndarray, lo: np.ndarray, hi: np.ndarray, free: np.ndarray, sd: np.ndarray,
             threshold: float, cmin: float, *, growth: float = 3.0, steps: int = 7, iterations: int = 5,
-            tol: float = 0.02, cov: np.ndarray | None = None,
-            abort_below: float = -np.inf) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
+            tol: float = 0.02, cov: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
     """Profile-likelihood interval ends (optimiser coordinates) of every parameter: (ends 2 × D with the bound
     where the profile stays within the threshold, reached 2 × D bool, lowest χ² seen, where it was seen).
 
     ``sd``: the local standard deviation per parameter (the first step; the span/100 where it is not finite);
     each further step ``growth`` times the last, the others re-optimised warm from the previous steps. ``cov``:
-    the local covariance (optimiser coordinates), whose slopes start the walk along the valley. ``abort_below``:
-    stop as soon as a χ² below it is seen (the centre was not the optimum: the caller re-centres and profiles
-    again, so the remaining walk would be wasted; the ends returned then are not valid)."""
+    the local covariance (optimiser coordinates), whose slopes start the walk along the valley."""
     D = z.size
     ends = np.vstack([lo, hi]).astype(float)
     reached = np.zeros((2, D), bool)
@@ -263,8 +260,6 @@ def profile(w: Weighted, z: np.ndarray, lo: np.ndarray, hi: np.ndarray, free: np
                 off[d] = prev + (off[d] - prev) / 4.0
                 nxt.append(d)
         live = nxt
-        if cmin < abort_below:
-            return ends, reached, cmin, z_min
     for (s, j), (offs, chis) in walk.items():
         order = np.argsort(offs)
         o = _crossing([offs[i] for i in order], [chis[i] for i in order], cmin, threshold)
@@ -419,9 +414,7 @@ def assess_trust(problem: Problem, result: FitResult, starts: list[tuple[int, np
         C = np.full((D, D), np.nan)
         sd = np.full(D, np.nan)
         C[np.ix_(free, free)], sd[free] = covariance(Jw, scale)
-        # a walk that finds the centre was not the optimum stops there (re-centred below), except the last time
-        ends, reached, cmin2, z2 = profile(w, z, lo, hi, free, sd, threshold, cmin, tol=0.02 * threshold, cov=C,
-                                           abort_below=cmin - 0.1 * threshold if attempt < 3 else -np.inf)
+        ends, reached, cmin2, z2 = profile(w, z, lo, hi, free, sd, threshold, cmin, tol=0.02 * threshold, cov=C)
         if cmin2 >= cmin - 0.1 * threshold:
             break
         if attempt == 3:  # still lower after three re-centrings: the ends (against the lowest χ²) hold that point
