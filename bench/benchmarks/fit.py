@@ -6,8 +6,9 @@
   integrated on its own by scipy's Radau with a finite-difference Jacobian;
 * the thesis fit at the thesis's DE settings: the current path (vectorised kernel, stop on convergence)
   against the old one (reference kernel, run to scipy's criterion), wall time and rms;
-* time to a trusted answer: the thesis fit searched from 3 seeds with profile-likelihood intervals
-  (:mod:`bench.identify.trust`) against the plain fit (one search, no intervals), in the same run;
+* time to a trusted answer: the thesis fit searched from 3 seeds (concurrently) with profile-likelihood intervals
+  (:mod:`bench.identify.trust`) against the plain fit (one search, no intervals), in the same run (quick: both at
+  10 generations);
 * coverage of the stated 95 % intervals: repeated fits of records simulated with known parameters and white noise
   (:mod:`bench.identify.coverage`), the share of intervals that hold the truth per determined parameter;
 * LS-DEA candidates: the vectorised LS-DEA kernel (:mod:`bench.models.lozenge_batch`) against the scalar
@@ -174,11 +175,13 @@ def trusted_fit(path: Path, settings: FitSettings) -> list[Figure]:
     tr = trusted.trust
     assert tr is not None
     det = sum(s == "determined" for s in tr.status)
-    return [Figure("thesis fit, plain (one search + polish, local ± only)", wall_plain, "s",
+    de = f"DE {settings.population} × ≤{settings.generations}"
+    return [Figure(f"thesis fit, plain ({de}, one search + polish, local ± only)", wall_plain, "s",
                    f"search {plain.search_time:.0f} s"),
-            Figure("  time to a trusted answer (3 starts + profile-likelihood intervals)", wall_trust, "s",
-                   f"search {trusted.search_time:.0f} s, intervals {tr.wall_time:.0f} s ({tr.evaluations:,} "
-                   f"evaluations); {det} of {len(tr.status)} parameters determined; starts "
+            Figure(f"  time to a trusted answer (3 concurrent starts + {tr.method} at {100 * tr.confidence:g} %)",
+                   wall_trust, "s",
+                   f"search {trusted.search_time:.0f} s (summed over the starts), intervals {tr.wall_time:.0f} s "
+                   f"({tr.evaluations:,} evaluations); {det} of {len(tr.status)} parameters determined; starts "
                    f"{'agree' if tr.starts_agree else 'disagree'}; reduced χ² {tr.chi2_reduced:.3g}"),
             Figure("  trusted over plain", wall_trust / wall_plain, "×", "the price of the intervals")]
 
@@ -304,7 +307,7 @@ def run_all(quick: bool = False) -> list[Figure]:
         if not quick:  # the quick campaign fit had no target: the full run only
             figs += campaign_fit(Path(tmp), quick=False)
         figs += lsdea_candidates(Path(tmp), 1 if quick else 3, quick)
-        if not quick:  # minutes each on the membrane problem: the full run only
+        if not quick:  # minutes each on the membrane problem (the trusted fit, the coverage): the full run only
             figs += trusted_fit(path, FitSettings())
             figs += interval_coverage(quick=False)
     return figs

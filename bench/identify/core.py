@@ -79,6 +79,10 @@ class FitSettings:
     starts: int = 1
     intervals: bool = False
     confidence: float = 0.95
+    # simultaneous: the intervals hold *together* at ``confidence`` (each the projection of the joint region, Δχ²
+    # up to the χ²(p) quantile, p the fitted parameters) — for checking a whole table against a known truth;
+    # otherwise each on its own (χ²(1))
+    simultaneous: bool = False
 
 
 @dataclass
@@ -173,8 +177,7 @@ def fit(problem: Problem, settings: FitSettings = FitSettings(), start: np.ndarr
     ``settings.intervals`` the result carries profile-likelihood intervals (:mod:`bench.identify.trust`).
     """
     t0 = time.perf_counter()
-    runs = [_search(problem, replace(settings, seed=settings.seed + k), start if k == 0 else None, fine, progress)
-            for k in range(max(1, settings.starts))]
+    runs = searches(problem, settings, start, fine, progress)
     best = min(runs, key=lambda r: r.cost)
     target = fine or problem
     mask = np.isfinite(target.data)
@@ -195,6 +198,29 @@ def fit(problem: Problem, settings: FitSettings = FitSettings(), start: np.ndarr
                      coarse=problem if fine is not None else None)
         result.wall_time = time.perf_counter() - t0
     return result
+
+
+def searches(problem: Problem, settings: FitSettings, start: np.ndarray | None = None, fine: Problem | None = None,
+             progress: Callable[[], None] | None = None) -> list[_Run]:
+    """The search and polish from ``settings.starts`` seeds (seed, seed + 1, …), concurrently: one thread per start
+    (the model kernels release the GIL), each given its share of the kernel's threads (numba's thread count is
+    per thread); on a dask cluster (a distributed problem) the starts' evaluations are tasks side by side. Each
+    start depends on its seed only (its own generator and counters), not on the others or on the timing."""
+    n = max(1, settings.starts)
+    if n == 1:
+        return [_search(problem, settings, start, fine, progress)]
+    from concurrent.futures import ThreadPoolExecutor
+
+    import numba
+
+    share = max(1, numba.get_num_threads() // n)
+
+    def one(k: int) -> _Run:
+        numba.set_num_threads(share)
+        return _search(problem, replace(settings, seed=settings.seed + k), start if k == 0 else None, fine, progress)
+
+    with ThreadPoolExecutor(max_workers=n, thread_name_prefix="fit-start") as pool:
+        return list(pool.map(one, range(n)))
 
 
 @dataclass
@@ -282,9 +308,11 @@ def _search(problem: Problem, settings: FitSettings, start: np.ndarray | None, f
 
     pred, J = jac_batch(z)
     if settings.polish:
-        # polish the parameters that influence the output, at the fine step: the others only hurt conditioning
-        infl = np.sqrt(np.mean(J * J, axis=0)) * (hi - lo)
-        free = np.nonzero(infl >= 1e-3 * max(float(np.max(infl)), 1e-300))[0]
+        # polish the parameters that influence the cost (a move across the span changes χ²: √Δχ² ≥ 0.1), at the
+        # fine step: the others only hurt conditioning
+        from bench.identify.trust import influence
+
+        free = np.flatnonzero(influence(J, sigma, hi - lo) >= 0.1)
         z_fixed = z.copy()
 
         def full(zf: np.ndarray) -> np.ndarray:

@@ -6,7 +6,8 @@ Gaussian noise of a stated σ (white, independent per sample: the noise model th
 draws a new noise realisation, fits from the truth displaced by a random factor (the search is not what is
 tested here: the intervals are) with the least-squares polish, and computes the profile-likelihood intervals
 (:func:`bench.identify.trust.assess_trust`). :func:`coverage` counts, per parameter, how often the interval
-holds the truth.
+holds the truth. :class:`Subset` fits a few parameters of any problem, the others held (a twin's record checked
+against the parameters the twin was configured with).
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bench.identify.core import FitSettings, fit, to_optimiser
+from bench.identify.core import FitSettings, Problem, fit, sigma_of, to_optimiser
 from bench.models.membrane import MembraneParams
 from bench.models.membrane_batch import membrane_batch_records
 
@@ -124,3 +125,33 @@ def coverage(free: list[str], repeats: int, sigma: float = 0.5e-6, seed: int = 0
             elif not inside:
                 unflagged += 1
     return Coverage(list(free), repeats, confidence, det, cov, unflagged, float(np.mean(chis)))
+
+
+class Subset:
+    """A view of a problem with only the parameters ``free`` fitted, the others held at ``held`` (optimiser
+    coordinates, all parameters): for checks of a few parameters on a real record in seconds."""
+
+    def __init__(self, problem: Problem, free: list[str], held: np.ndarray) -> None:
+        self.problem = problem
+        self.index = np.array([problem.names.index(n) for n in free])
+        self.held = np.asarray(held, float)
+        self.names = list(free)
+        self.units = [problem.units[i] for i in self.index]
+        self.lower = np.asarray(problem.lower, float)[self.index]
+        self.upper = np.asarray(problem.upper, float)[self.index]
+        self.log = np.asarray(problem.log, bool)[self.index]
+        self.data = problem.data
+        self.data_unit = problem.data_unit
+        self.sigma = sigma_of(problem)
+        self.records = getattr(problem, "records", None)
+
+    def full(self, Z: np.ndarray) -> np.ndarray:
+        """Rows of all parameters for rows of the free ones."""
+        Z = np.atleast_2d(Z)
+        out = np.tile(self.held, (Z.shape[0], 1))
+        out[:, self.index] = Z
+        return out
+
+    def predict(self, Z: np.ndarray) -> np.ndarray:
+        """The problem's prediction with the free parameters set."""
+        return self.problem.predict(self.full(Z))

@@ -38,7 +38,7 @@ def cluster_client(scheduler: str | None = None, workers: int | None = None) -> 
 
 
 def _lambda_part(part: tuple[list[np.ndarray], np.ndarray], P: np.ndarray, h: float, stride: int,
-                 window: int) -> np.ndarray:
+                 window: int, cal: np.ndarray | None = None) -> np.ndarray:
     """λ samples of one group of records (worker side)."""
     import numba
     from distributed import get_worker
@@ -49,7 +49,7 @@ def _lambda_part(part: tuple[list[np.ndarray], np.ndarray], P: np.ndarray, h: fl
     threads = int(getattr(get_worker(), "nthreads", 1) or 1)  # the worker's share of cores: no oversubscription
     most = numba.config.NUMBA_NUM_THREADS  # type: ignore[attr-defined]  # numba.config sets its NUMBA_* at import
     numba.set_num_threads(max(1, min(threads, int(most))))
-    return membrane_batch_records(P, Y0, Us, h, stride, window)
+    return membrane_batch_records(P, Y0, Us, h, stride, window, cal)
 
 
 class DistributedPredict:
@@ -61,10 +61,12 @@ class DistributedPredict:
         n = len(Us)
         k = min(n, groups or max(1, len(client.scheduler_info().get("workers", {})) * 2))
         bounds = np.linspace(0, n, k + 1).round().astype(int)
-        self.parts = [client.scatter(([Us[i] for i in range(a, b)], Y0[a:b]), broadcast=True)
-                      for a, b in itertools.pairwise(bounds) if b > a]
+        self.ranges = [(a, b) for a, b in itertools.pairwise(bounds) if b > a]
+        self.parts = [client.scatter(([Us[i] for i in range(a, b)], Y0[a:b]), broadcast=True) for a, b in self.ranges]
 
-    def __call__(self, P: np.ndarray) -> np.ndarray:
-        futures = [self.client.submit(_lambda_part, part, P, self.h, self.stride, self.window, pure=False)
-                   for part in self.parts]
+    def __call__(self, P: np.ndarray, cal: np.ndarray | None = None) -> np.ndarray:
+        """λ of the packed sets P; ``cal``: the records' input calibration per set (records, len(P), 2) or None."""
+        futures = [self.client.submit(_lambda_part, part, P, self.h, self.stride, self.window,
+                                      None if cal is None else cal[a:b], pure=False)
+                   for part, (a, b) in zip(self.parts, self.ranges, strict=True)]
         return np.concatenate(self.client.gather(futures), axis=1)

@@ -3,7 +3,13 @@
 * :class:`MembraneProblem` — thesis model, 14 parameters: μ, J of unit 0 and μ, J, τ of units 1–4. Bounds:
   thesis Tables 4.2–4.3 read as physics.md §1.3 explains (μ 0.01…500 kPa; J 100…400, 200…500, 300…600,
   400…700, 500…800; τ = η/μ 1e-5…20 s, searched on a log scale). Data: the laser displacement u(t) of one or
-  more runs; inputs: the commanded voltages (zero-order hold, as the amplifier saw them) and temperatures.
+  more runs; inputs: the voltages (zero-order hold) and temperatures. Where the voltage is the amplifier's
+  *measured* monitor (a hardware-timed rig), two more parameters: the monitor's calibration, ``V_gain``
+  (relative) and ``V_offset`` [V] — the monitor reads (1 + V_gain)·V + V_offset of the output V —, bounded by
+  the monitor's DC accuracy (± accuracy on the gain, ± accuracy × full scale on the offset; a box around the
+  datasheet's ``|error| ≤ accuracy × full scale``). The records are precise enough (laser noise ~1e-4 of the
+  stroke) that a monitor error within its datasheet shifts the moduli well outside the noise's intervals: it
+  is fitted and profiled like the specimen's parameters, so the intervals hold it.
 * :class:`LozengeProblem` — LS-DEA material: Gent–Gent μ, Jm, C2, K Maxwell branches (μ_k, τ_k) and the
   lumped damper c. Data: the load-cell force of motor / blocked runs (aperture from the encoder imposed on
   the model) or the laser aperture of hung-mass runs; one record per stretch of constant prototype and mass.
@@ -28,6 +34,8 @@ from bench.models.membrane import MembraneParams
 from bench.models.membrane_batch import membrane_batch_records
 from bench.storage.runfile import RunFile, open_run
 
+CALIBRATION = ["V_gain", "V_offset"]  # the voltage monitor's calibration (membrane fits on a measured input)
+
 if TYPE_CHECKING:
     from distributed import Client
 
@@ -41,6 +49,18 @@ def _hold(t_set: np.ndarray, v_set: np.ndarray, t: np.ndarray) -> np.ndarray:
     i = np.searchsorted(t_set, t - 1e-9, side="left") - 1
     held: np.ndarray = np.where(i >= 0, v_set[np.clip(i, 0, None)], 0.0)
     return held
+
+
+def _step_means(t_samples: np.ndarray, values: np.ndarray, t_steps: np.ndarray, h: float) -> np.ndarray:
+    """A *sampled* input per model step: the mean of the samples in the step (t − h, t] — a sample at t reads what
+    the output was up to t, so it belongs to the step that ends there, not (as a command set at t) to the next
+    one —; a step without a sample holds the last sample before it (0 before the first)."""
+    c = np.concatenate([[0.0], np.cumsum(values)])
+    hi = np.searchsorted(t_samples, t_steps + 1e-9, side="right")
+    lo = np.searchsorted(t_samples, t_steps - h + 1e-9, side="right")
+    count = hi - lo
+    held = np.where(hi > 0, values[np.clip(hi - 1, 0, None)], 0.0)
+    return np.where(count > 0, (c[hi] - c[lo]) / np.maximum(count, 1), held)
 
 
 def _sampled(t_grid: np.ndarray, t_data: np.ndarray, values: np.ndarray) -> np.ndarray:
@@ -110,6 +130,17 @@ class _Record:
     stride: int
     data: np.ndarray
     source: str
+    measured: bool = False  # the voltage input is the amplifier's monitor (its calibration applies)
+
+
+def monitor_accuracy(run: RunFile) -> tuple[float, float]:
+    """(DC accuracy as a fraction of full scale, full scale [V]) of the voltage monitor of the run's amplifier
+    (the rig file stored in the run; the model's datasheet figures, :data:`bench.core.noise.TREK_DYNAMICS`)."""
+    from bench.core.noise import TREK_DYNAMICS
+    from bench.rig import amplifier_spec, rig_from_toml
+
+    spec = amplifier_spec(rig_from_toml(run.attrs["rig_toml"]))
+    return TREK_DYNAMICS[spec.model].vmon_accuracy, float(spec.max_output)
 
 
 class MembraneProblem:
@@ -117,7 +148,7 @@ class MembraneProblem:
 
     def __init__(self, paths: list[str | Path], h: float = 5e-4, data_rate: float = 100.0,
                  average: bool = True, reference_kernel: bool = False, split_rest: float = 30.0,
-                 keep_rest: float = 20.0) -> None:
+                 keep_rest: float = 20.0, input_smoothing_s: float = 1e-3) -> None:
         """``average``: compare 1/data_rate window means of record and model (removes the aliasing of
         fast ringing); otherwise point values at the record's sample times. ``reference_kernel``: predict
         through the scalar per-candidate kernel (the benchmark's old path) instead of the vectorised one.
@@ -125,11 +156,17 @@ class MembraneProblem:
         A file is cut into records at every rest (0 V) of at least ``split_rest`` s: each record starts from
         the rest state where the drive resumes (the protocols' long rests are there for the specimen to
         recover) and keeps the first ``keep_rest`` s of the rest that ends it (``split_rest`` 0: whole files).
+
+        A *measured* voltage (the monitor) carries the monitor's noise, which the specimen never saw: fed to the
+        model as it is, it drives a pressure noise (∝ 2VδV) that the fit then damps with a spurious fast unit. It
+        is smoothed by a zero-phase Gaussian of σ ``input_smoothing_s`` (1 ms: −3 dB near 130 Hz, far above the
+        drives' content; the white noise's power / 35); 0 leaves it as recorded.
         """
         self.h, self.data_rate, self.average = h, data_rate, average
         self.records: list[_Record] = []
         self.reference_kernel = reference_kernel
         self.split_rest, self.keep_rest = split_rest, keep_rest
+        self.input_smoothing_s = input_smoothing_s
         self.remote: DistributedPredict | None = None
         self.data_unit = "m"
         self.names = ["mu0", "J0"] + [f"mu{i}" for i in range(1, 5)] + [f"J{i}" for i in range(1, 5)] + \
@@ -139,10 +176,20 @@ class MembraneProblem:
         self.upper = np.array([500e3, 400.0] + [500e3] * 4 + [b[1] for b in J_BOUNDS[1:]] + [np.log10(20.0)] * 4)
         self.log = np.array([False] * 10 + [True] * 4)
         self.template: MembraneParams | None = None
+        self.accuracy: tuple[float, float] | None = None  # the voltage monitor's (accuracy, full scale)
+        self.rig_toml = ""  # the rig file stored in the first run
         for path in paths:
             self._add(open_run(path), str(path))
         if not self.records:
             raise ValueError("no membrane records with laser data in the given run files")
+        self.n_model = len(self.names)  # the specimen's parameters; then the monitor's calibration, if any
+        if self.accuracy is not None:
+            acc, full = self.accuracy
+            self.names += CALIBRATION
+            self.units += ["-", "V"]
+            self.lower = np.concatenate([self.lower, [-acc, -acc * full]])
+            self.upper = np.concatenate([self.upper, [acc, acc * full]])
+            self.log = np.concatenate([self.log, [False, False]])
         self.data = np.concatenate([r.data for r in self.records])
         # noise model: each record's σ from its own high-frequency content (core.noise_of)
         self.sigma = np.concatenate([np.full(r.data.size, noise_of(r.data)) for r in self.records])
@@ -157,6 +204,7 @@ class MembraneProblem:
         fields: dict[str, Any] = {k: tuple(v) if isinstance(v, list) else v for k, v in model.items()}  # JSON
         params = MembraneParams(**fields)
         self.template = self.template or params
+        self.rig_toml = self.rig_toml or str(run.attrs["rig_toml"])
         stride = max(1, round(1.0 / (self.data_rate * self.h)))
         sp = applied_voltage(run, measured=True)
         T0 = spec.get("overrides", {}).get("temperature_K") or spec.get("temperature_K", 296.0)
@@ -165,6 +213,13 @@ class MembraneProblem:
         ok = laser.columns["valid"] > 0
         sample = _window_means if self.average else _sampled
         windows = _record_windows(sp.t, sp.v, run.updated, self.split_rest, self.keep_rest)
+        measured = sp.source == "measured"
+        if measured:
+            acc = monitor_accuracy(run)
+            if self.accuracy is not None and self.accuracy != acc:
+                raise ValueError(f"run file {source}: its amplifier's voltage monitor differs from the other "
+                                 "files' (one calibration is fitted): fit them separately")
+            self.accuracy = acc
         for a, b in windows:
             n = int(np.floor((b - a) / self.h + 1e-9))
             n -= n % stride
@@ -172,14 +227,19 @@ class MembraneProblem:
                 continue
             t_steps = a + np.arange(1, n + 1) * self.h
             U = np.empty((n, 2))
-            U[:, 0] = _hold(sp.t, sp.v, t_steps)
+            # commanded set-points hold from when they were set; monitor samples belong to the step they end
+            U[:, 0] = _step_means(sp.t, sp.v, t_steps, self.h) if measured else _hold(sp.t, sp.v, t_steps)
+            if measured and self.input_smoothing_s > 0:
+                from scipy.ndimage import gaussian_filter1d
+
+                U[:, 0] = gaussian_filter1d(U[:, 0], self.input_smoothing_s / self.h, mode="nearest")
             U[:, 1] = T0
             for te, T in changes:
                 U[t_steps > te, 1] = T
             t_data = a + np.arange(0, n // stride + 1) * stride * self.h
             data = sample(t_data, laser.t[ok], laser.columns["displacement"][ok])
             where = source if len(windows) == 1 else f"{source} [{a:.1f}, {b:.1f}] s"
-            self.records.append(_Record(U, params.initial_state(), params.pack(), stride, data, where))
+            self.records.append(_Record(U, params.initial_state(), params.pack(), stride, data, where, measured))
 
     @property
     def recorded(self) -> MembraneParams:
@@ -195,17 +255,35 @@ class MembraneProblem:
         return self.recorded.with_units(float(v[0]), float(v[1]), mu, J,
                                         tuple(m * t for m, t in zip(mu, tau, strict=True)))
 
+    def calibration(self, Z: np.ndarray) -> np.ndarray | None:
+        """(records, rows of Z, 2): each record's voltage input correction per row, offset [V] and inverse gain
+        (the identity on a set-point input, or where Z has no calibration columns); None: none anywhere."""
+        Z = np.atleast_2d(Z)
+        if Z.shape[1] <= self.n_model or not any(r.measured for r in self.records):
+            return None
+        cal = np.empty((len(self.records), Z.shape[0], 2))
+        cal[:] = (0.0, 1.0)
+        for i, r in enumerate(self.records):
+            if r.measured:
+                cal[i, :, 0] = Z[:, self.n_model + 1]
+                cal[i, :, 1] = 1.0 / (1.0 + Z[:, self.n_model])
+        return cal
+
     def predict(self, Z: np.ndarray) -> np.ndarray:
-        """Displacements u [m] for each row of Z, all records concatenated (one parallel batch per record)."""
+        """Displacements u [m] for each row of Z, all records concatenated (one parallel batch per record). Rows of
+        the specimen's parameters only (a fit stored before the calibration was fitted) take the input as
+        recorded."""
         if self.reference_kernel:
             return self.predict_reference(Z)
         Z = np.atleast_2d(Z)
         P = np.stack([self.params_of(z).pack() for z in Z])
+        cal = self.calibration(Z)
         t = self.recorded
         if self.remote is not None:
-            return t.L_d * (self.remote(P) - t.lambda_pre)
+            return t.L_d * (self.remote(P, cal) - t.lambda_pre)
         lam = membrane_batch_records(P, np.stack([r.y0 for r in self.records]), [r.U for r in self.records],
-                                     self.h, self.records[0].stride, self.records[0].stride if self.average else 0)
+                                     self.h, self.records[0].stride, self.records[0].stride if self.average else 0,
+                                     cal)
         return t.L_d * (lam - t.lambda_pre)
 
     def distribute(self, client: Client | None) -> None:
@@ -225,24 +303,51 @@ class MembraneProblem:
         Z = np.atleast_2d(Z)
         out = []
         P = np.stack([self.params_of(z).pack() for z in Z])
+        cal = self.calibration(Z)
         t = self.recorded
-        for rec in self.records:
-            Y0 = np.tile(rec.y0, (Z.shape[0], 1))
-            lam = run_fixed_batch(MODEL_MEMBRANE, Y0, rec.U, self.h, P, 0, rec.stride,
-                                  rec.stride if self.average else 0)
+        for i, rec in enumerate(self.records):
+            window = rec.stride if self.average else 0
+            if cal is None or not rec.measured:
+                lam = run_fixed_batch(MODEL_MEMBRANE, np.tile(rec.y0, (Z.shape[0], 1)), rec.U, self.h, P, 0,
+                                      rec.stride, window)
+            else:  # the calibration changes the input: one candidate at a time
+                rows = []
+                for k in range(Z.shape[0]):
+                    U = rec.U.copy()
+                    U[:, 0] = (U[:, 0] - cal[i, k, 0]) * cal[i, k, 1]
+                    rows.append(run_fixed_batch(MODEL_MEMBRANE, rec.y0[None, :], U, self.h, P[k:k + 1], 0,
+                                                rec.stride, window)[0])
+                lam = np.array(rows)
             out.append(t.L_d * (lam - t.lambda_pre))
         return np.concatenate(out, axis=1)
 
     def reference(self) -> dict[str, float]:
         """Physical values of the specimen model recorded in the (first) run file, by parameter name."""
         t = self.recorded
-        return dict(zip(self.names, (float(x) for x in (t.mu0, t.J0, *t.mu, *t.J, *t.tau)),
+        return dict(zip(self.names[:self.n_model], (float(x) for x in (t.mu0, t.J0, *t.mu, *t.J, *t.tau)),
                         strict=True))
 
+    def simulated_calibration(self) -> dict[str, float]:
+        """On a simulated rig with noise, the voltage monitor's errors its twin drew from the rig's seed
+        (:func:`bench.core.amplifier_dynamics.monitors`), by parameter name; empty on a real rig, without noise or
+        without the calibration parameters."""
+        from bench.core.amplifier_dynamics import monitors
+        from bench.core.noise import TREK_DYNAMICS, Realism
+        from bench.rig import amplifier_spec, rig_from_toml
+
+        rig = rig_from_toml(self.rig_toml)
+        if not rig.simulated or not rig.simulation.noise or CALIBRATION[0] not in self.names:
+            return {}
+        spec = amplifier_spec(rig)
+        vm, _ = monitors(TREK_DYNAMICS[spec.model], spec.max_output, spec.max_current,
+                         Realism(noise=True, seed=rig.simulation.seed))
+        return {CALIBRATION[0]: vm.gain_error, CALIBRATION[1]: vm.offset}
+
     def start(self) -> np.ndarray:
-        """Optimiser vector of the recorded specimen's parameters (thesis Table 4.4 unless the run says otherwise)."""
-        start: np.ndarray = np.clip(to_optimiser(self.log, np.array(list(self.reference().values()))), self.lower,
-                                    self.upper)
+        """Optimiser vector of the recorded specimen's parameters (thesis Table 4.4 unless the run says otherwise),
+        the monitor's calibration at its nominal (no error)."""
+        v = list(self.reference().values()) + [0.0] * (len(self.names) - self.n_model)
+        start: np.ndarray = np.clip(to_optimiser(self.log, np.array(v)), self.lower, self.upper)
         return start
 
 

@@ -5,9 +5,10 @@ update of each Maxwell unit's elastic log-stretch, symplectic Euler for the memb
 the state is stored structure-of-arrays (one array per state component, one entry per candidate) and each
 step runs its loops *over the candidates*, innermost, with no calls that are not inlined: LLVM turns them
 into SIMD loops (exp/log from :mod:`bench.models.vecmath`). Threads split the candidates into chunks of whole
-registers. The units' stresses are summed as one fraction and the membrane's update puts springs, inertia
-and mass over one denominator: one division per candidate per step besides one per unit for its relaxation
-rate (a SIMD division costs as much as ten multiplications).
+registers (the GIL is released: concurrent searches in threads run side by side). The units' stresses are
+summed as one fraction and the membrane's update puts springs, inertia and mass over one denominator: one
+division per candidate per step besides one per unit for its relaxation rate (a SIMD division costs as much as
+ten multiplications). A per-candidate input calibration (offset, inverse gain) corrects a measured voltage.
 
 A candidate whose state leaves the model's domain (Gent lock-up, λ ≤ 0, non-finite) is marked dead, reset to
 a harmless state so that it costs nothing further, and outputs NaN from that step on — as the scalar kernel
@@ -42,15 +43,18 @@ LANES = 8  # float64 lanes of an AVX-512 register
 
 
 @njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy")
-def _chunk(P: np.ndarray, Y0: np.ndarray, U: np.ndarray, h: float, stride: int, window: int,
+def _chunk(P: np.ndarray, Y0: np.ndarray, U: np.ndarray, cal: np.ndarray, h: float, stride: int, window: int,
            out: np.ndarray) -> None:
-    """Integrate the candidates of one chunk (rows of P, Y0) and write λ samples into ``out``."""
+    """Integrate the candidates of one chunk (rows of P, Y0; ``cal`` rows: the input's offset and inverse gain,
+    Φ = (U − offset)·inverse gain) and write λ samples into ``out``."""
     c_in = P.shape[0]
     # lanes padded (copies of the last set) to whole registers: a scalar remainder loop costs as much as a register
     c = max(LANES, -(-c_in // LANES) * LANES)
     src = np.minimum(np.arange(c), c_in - 1)
     P = P[src]
     Y0 = Y0[src]
+    off = cal[src, 0].copy()
+    igain = cal[src, 1].copy()
     n_units = (P.shape[1] - P_BRANCHES) // 3
     n = U.shape[0]
     # parameters, structure of arrays
@@ -104,7 +108,6 @@ def _chunk(P: np.ndarray, Y0: np.ndarray, U: np.ndarray, h: float, stride: int, 
         out[j, 0] = lam[j]
     for k in range(n):
         phi = U[k, 0]
-        phi2 = phi * phi
         iT = 1.0 / U[k, 1]
         for m in range(nq):  # Maxwell units: exponential update of u = ln(λ/ξ), then their stress
             # Gent terms times e⁴ (no reciprocal of e needed): (e² − e⁻⁴)/G = (e⁶ − 1)/(G e⁴)
@@ -146,7 +149,8 @@ def _chunk(P: np.ndarray, Y0: np.ndarray, U: np.ndarray, h: float, stride: int, 
             g0 = l4 - (2.0 * l6 + 1.0 - 3.0 * l4) * iJ0[j]  # G0 λ⁴
             Ml6 = m_const[j] * l6 + 2.0 / 3.0 * rl3[j]  # M λ⁶
             er = a[j] * l2 + b[j] * iT + cc[j]
-            s_es = eps_l3[j] * phi2 * (er * l2 * lj + ka[j] * l4 * lj)
+            ph = (phi - off[j]) * igain[j]
+            s_es = eps_l3[j] * (ph * ph) * (er * l2 * lj + ka[j] * l4 * lj)
             R = spre[j] - kf[j] * (lj - lpre[j]) + s_es
             D = den[j]
             # f/M with every fraction over one denominator (numerator and denominator times λ⁷·G0λ⁴·D):
@@ -187,21 +191,23 @@ def _chunk(P: np.ndarray, Y0: np.ndarray, U: np.ndarray, h: float, stride: int, 
                     out[j, col] = lam[j] if alive[j] > 0.0 else np.nan
 
 
-@njit(cache=True, parallel=True, error_model="numpy")
-def _batch(P: np.ndarray, Y0: np.ndarray, U: np.ndarray, h: float, stride: int, window: int,
+@njit(cache=True, parallel=True, nogil=True, error_model="numpy")
+def _batch(P: np.ndarray, Y0: np.ndarray, U: np.ndarray, cal: np.ndarray, h: float, stride: int, window: int,
            tasks: np.ndarray, out: np.ndarray) -> None:
     """Run the tasks (rows: record's first and end step in U, first and end output column, first and end
-    candidate) in parallel; Y0 is (records, candidates, state)."""
+    candidate) in parallel; Y0 is (records, candidates, state), cal (records, candidates, 2)."""
     for s in prange(tasks.shape[0]):
         r, u0, u1, c0, c1, a, b = tasks[s]
-        _chunk(P[a:b], Y0[r, a:b], U[u0:u1], h, stride, window, out[a:b, c0:c1])
+        _chunk(P[a:b], Y0[r, a:b], U[u0:u1], cal[r, a:b], h, stride, window, out[a:b, c0:c1])
 
 
 def membrane_batch_records(P: np.ndarray, Y0: np.ndarray, Us: list[np.ndarray], h: float, stride: int,
-                           window: int = 0) -> np.ndarray:
+                           window: int = 0, cal: np.ndarray | None = None) -> np.ndarray:
     """λ of many parameter sets (rows of packed P) over several records at once, in parallel over records and
     candidate chunks. ``Y0`` is (records, len(P), state) or (records, state) (the same start for every set);
-    ``Us[r]`` the inputs of record r. Returns the records' outputs side by side: (len(P), Σ(len(U_r)//stride + 1)).
+    ``Us[r]`` the inputs of record r. ``cal``: per record and set (records, len(P), 2) the voltage input's
+    calibration, offset [V] and inverse gain — the specimen sees (U − offset)·inverse gain (None: as recorded).
+    Returns the records' outputs side by side: (len(P), Σ(len(U_r)//stride + 1)).
     """
     P = np.ascontiguousarray(P, dtype=np.float64)
     m = P.shape[0]
@@ -209,6 +215,9 @@ def membrane_batch_records(P: np.ndarray, Y0: np.ndarray, Us: list[np.ndarray], 
     if Y0.ndim == 2:
         Y0 = np.broadcast_to(Y0[:, None, :], (Y0.shape[0], m, Y0.shape[1]))
     Y0 = np.ascontiguousarray(Y0)
+    if cal is None:
+        cal = np.broadcast_to(np.array([0.0, 1.0]), (len(Us), m, 2))
+    cal = np.ascontiguousarray(np.broadcast_to(cal, (len(Us), m, 2)), dtype=np.float64)
     U = np.ascontiguousarray(np.concatenate(Us), dtype=np.float64)
     n_steps = np.array([u.shape[0] for u in Us])
     n_cols = n_steps // stride + 1
@@ -223,7 +232,7 @@ def membrane_batch_records(P: np.ndarray, Y0: np.ndarray, Us: list[np.ndarray], 
     bounds = np.minimum(np.linspace(0, regs, chunks + 1).round().astype(np.int64) * LANES, m)
     tasks = np.array([(r, u_off[r], u_off[r + 1], c_off[r], c_off[r + 1], bounds[k], bounds[k + 1])
                       for r in range(len(Us)) for k in range(chunks)], dtype=np.int64)
-    _batch(P, Y0, U, float(h), int(stride), int(window), tasks, out)
+    _batch(P, Y0, U, cal, float(h), int(stride), int(window), tasks, out)
     return out
 
 
