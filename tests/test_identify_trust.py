@@ -231,3 +231,28 @@ def test_starts_run_side_by_side_each_as_its_seed_alone_and_their_spread_is_repo
     V = np.array([s["values"] for s in tr.starts])
     assert tr.spread is not None
     assert tr.spread == pytest.approx((V.max(axis=0) - V.min(axis=0)) / np.abs(res.values), rel=1e-9)
+
+
+def test_the_polish_and_the_intervals_report_their_progress_as_stages() -> None:
+    """Issue 26 item 7: after the search the fit tells its two further stages, the polish (evaluations against its
+    limit) and the profile-likelihood intervals (walks finished), each rising to 1; the application layer passes
+    a stage on only when it advances (a re-centred profile starts its walks again)."""
+    from bench.app.fit import _forward_only
+
+    told: list[tuple[str, float]] = []
+    res = fit(_Linear(seed=3), FitSettings(population=10, generations=5, cost="lsq", starts=1, intervals=True),
+              stage=lambda name, fraction: told.append((name, fraction)))
+    assert res.trust is not None
+    names = [n for n, _ in told]
+    assert names and set(names) == {"polish", "intervals"}
+    assert names.index("intervals") > max(k for k, n in enumerate(names) if n == "polish")  # polish, then intervals
+    for name in ("polish", "intervals"):
+        shares = [f for n, f in told if n == name]
+        assert all(0.0 <= f <= 1.0 for f in shares) and shares[-1] == 1.0
+    polish = [f for n, f in told if n == "polish"]
+    assert polish == sorted(polish)  # one start: its share never goes back
+    passed: list[tuple[str, float]] = []
+    forward = _forward_only(lambda name, fraction: passed.append((name, fraction)))
+    for name, fraction in [("intervals", 0.5), ("intervals", 0.2), ("intervals", 0.5), ("intervals", 1.0)]:
+        forward(name, fraction)
+    assert passed == [("intervals", 0.5), ("intervals", 1.0)]

@@ -59,12 +59,13 @@ def check_fittable(runs: list[Path], into: bool = False) -> None:
 def fit_runs(runs: list[Path], model: str, settings: FitSettings, *, branches: int = 1, export: Path | None = None,
              scheduler: str | None = None, workers: int | None = None, into: bool = False,
              on_read: Callable[[RecordedProblem], None] | None = None, on_cluster: Callable[[str], None] | None = None,
-             progress: Progress | None = None) -> Fitted:
+             progress: Progress | None = None, stage: Callable[[str, float], None] | None = None) -> Fitted:
     """Fit ``model`` ("membrane" or "lsdea") to the records of ``runs`` (differential evolution on a coarse
     integration step, polish and identifiability on a fine one); store the result with every file (in its fit
     file, or with ``into`` in the run file) and optionally export a rig file. On a dask cluster when
     ``scheduler`` (address) or ``workers`` (LocalCluster) is given (membrane model: ``on_cluster`` gets its
-    address). ``on_read`` gets the problem once the records are read; ``progress`` the fraction of generations."""
+    address). ``on_read`` gets the problem once the records are read; ``progress`` the fraction of generations,
+    ``stage`` the stage after the search ("polish", "intervals") and the share of it done, never going back."""
     from bench.app.cluster import cluster_client
     from bench.identify.campaign import campaign_identifiability
     from bench.identify.core import fit
@@ -101,7 +102,8 @@ def fit_runs(runs: list[Path], model: str, settings: FitSettings, *, branches: i
             if on_cluster is not None:
                 on_cluster(str(client.scheduler.address if client.scheduler is not None else scheduler))
         try:
-            result = fit(coarse, settings, start=None, fine=fine, progress=generation)
+            result = fit(coarse, settings, start=None, fine=fine, progress=generation,
+                         stage=None if stage is None else _forward_only(stage))
         finally:
             for prob in (coarse, fine):
                 if isinstance(prob, MembraneProblem):
@@ -121,3 +123,14 @@ def fit_runs(runs: list[Path], model: str, settings: FitSettings, *, branches: i
                    str(runs[0]))
         out.exported = export
     return out
+
+
+def _forward_only(stage: Callable[[str, float], None]) -> Callable[[str, float], None]:
+    """``stage`` told only of progress: a profile re-centred (its walks start again) keeps its share shown."""
+    most: dict[str, float] = {}
+
+    def tell(name: str, fraction: float) -> None:
+        if fraction > most.get(name, -1.0):
+            most[name] = fraction
+            stage(name, fraction)
+    return tell

@@ -192,13 +192,18 @@ def campaign_files(runs: list[Path]) -> list[Path]:
     return out
 
 
+STAGES = {"polish": "least-squares polish", "intervals": "profile-likelihood intervals"}  # the bars' titles
+
+
 def run_fit(runs: list[Path], chosen: str, settings: FitSettings, branches: int = 1,
             export: Path | None = None, scheduler: str | None = None,
             workers: int | None = None, *, into: bool = False) -> tuple[FitResult, Problem]:
     """Fit (:func:`bench.app.fit.fit_runs`: stored with every file, optionally exported as a rig) and print it: a
-    spinner while the records are read, a progress bar over the generations, then the table, the campaign's
-    identifiability, where it was stored. Returns the result and the (coarse) problem it was searched on."""
+    spinner while the records are read, a progress bar over the generations, one over the polish, one over the
+    intervals, then the table, the campaign's identifiability, where it was stored. Returns the result and the
+    (coarse) problem it was searched on."""
     import contextlib
+    import threading
 
     import numpy as np
 
@@ -216,10 +221,25 @@ def run_fit(runs: list[Path], chosen: str, settings: FitSettings, branches: int 
                           f"{len(coarse.records)} records, {int(np.isfinite(coarse.data).sum()):,} points; "
                           f"DE population {s.population}, up to {s.generations} generations, F {s.mutation}, "
                           f"CR {s.crossover}, cost {s.cost}")
-            advance.append(stack.enter_context(progress("differential evolution")))
+            open_bar("differential evolution")
+
+        bar = stack.enter_context(contextlib.ExitStack())  # the bar shown: one live display at a time on a console
+        lock = threading.Lock()  # the starts polish in threads of their own
+        stages: list[str] = []
+
+        def open_bar(title: str) -> None:
+            bar.close()  # the bar before ends
+            advance.append(bar.enter_context(progress(title)))
+
+        def stage(name: str, fraction: float) -> None:  # a bar of its own for each stage after the search
+            with lock:
+                if not stages or stages[-1] != name:
+                    stages.append(name)
+                    open_bar(STAGES.get(name, name))
+                advance[-1](fraction)
 
         done = fit_runs(runs, chosen, s, branches=branches, export=export, scheduler=scheduler, workers=workers,
-                        into=into, on_read=read, progress=lambda fraction: advance[-1](fraction),
+                        into=into, on_read=read, progress=lambda fraction: advance[-1](fraction), stage=stage,
                         on_cluster=lambda address: console.print(f"evaluating candidates on the dask cluster "
                                                                  f"{address}"))
     result, coarse = done.result, done.problem

@@ -167,17 +167,23 @@ def _costs(problem: Problem, pred: np.ndarray, kind: Cost) -> np.ndarray:
     return c
 
 
+Stage = Callable[[str, float], None]  # (stage after the search: "polish" or "intervals", fraction of it done)
+
+
 def fit(problem: Problem, settings: FitSettings = FitSettings(), start: np.ndarray | None = None,
-        fine: Problem | None = None, progress: Callable[[], None] | None = None) -> FitResult:
+        fine: Problem | None = None, progress: Callable[[], None] | None = None,
+        stage: Stage | None = None) -> FitResult:
     """Identify the problem's parameters; returns values, cost and identifiability.
 
     ``fine``: the same problem at a finer integration step, used for the polish and the identifiability
-    (the search runs on the coarse, fast one). ``progress`` is called once per generation. With
+    (the search runs on the coarse, fast one). ``progress`` is called once per generation, ``stage`` with the
+    share done of the polish (its evaluations against the iteration limit, all starts together) and of the
+    intervals (the profiles' walks finished). With
     ``settings.starts`` > 1 the search and polish run from that many seeds and the best is kept; with
     ``settings.intervals`` the result carries profile-likelihood intervals (:mod:`bench.identify.trust`).
     """
     t0 = time.perf_counter()
-    runs = searches(problem, settings, start, fine, progress)
+    runs = searches(problem, settings, start, fine, progress, stage)
     best = min(runs, key=lambda r: r.cost)
     target = fine or problem
     mask = np.isfinite(target.data)
@@ -195,20 +201,32 @@ def fit(problem: Problem, settings: FitSettings = FitSettings(), start: np.ndarr
         from bench.identify.trust import assess_trust
 
         assess_trust(target, result, [(x.seed, x.z, x.lo, x.hi) for x in runs], best.lo, best.hi,
-                     coarse=problem if fine is not None else None)
+                     coarse=problem if fine is not None else None,
+                     on_profile=None if stage is None else lambda fraction: stage("intervals", fraction))
         result.wall_time = time.perf_counter() - t0
     return result
 
 
 def searches(problem: Problem, settings: FitSettings, start: np.ndarray | None = None, fine: Problem | None = None,
-             progress: Callable[[], None] | None = None) -> list[_Run]:
+             progress: Callable[[], None] | None = None, stage: Stage | None = None) -> list[_Run]:
     """The search and polish from ``settings.starts`` seeds (seed, seed + 1, …), concurrently: one thread per start
     (the model kernels release the GIL), each given its share of the kernel's threads (numba's thread count is
     per thread); on a dask cluster (a distributed problem) the starts' evaluations are tasks side by side. Each
     start depends on its seed only (its own generator and counters), not on the others or on the timing."""
     n = max(1, settings.starts)
+    shares = [0.0] * n  # each start's share of its polish done: the stage reports their mean
+
+    def polished(k: int) -> Callable[[float], None] | None:
+        if stage is None:
+            return None
+
+        def one(fraction: float) -> None:
+            shares[k] = fraction
+            stage("polish", sum(shares) / n)
+        return one
+
     if n == 1:
-        return [_search(problem, settings, start, fine, progress)]
+        return [_search(problem, settings, start, fine, progress, polished(0))]
     from concurrent.futures import ThreadPoolExecutor
 
     import numba
@@ -217,7 +235,8 @@ def searches(problem: Problem, settings: FitSettings, start: np.ndarray | None =
 
     def one(k: int) -> _Run:
         numba.set_num_threads(share)
-        return _search(problem, replace(settings, seed=settings.seed + k), start if k == 0 else None, fine, progress)
+        return _search(problem, replace(settings, seed=settings.seed + k), start if k == 0 else None, fine, progress,
+                       polished(k))
 
     with ThreadPoolExecutor(max_workers=n, thread_name_prefix="fit-start") as pool:
         return list(pool.map(one, range(n)))
@@ -252,8 +271,9 @@ def unit_order(problem: Problem, z: np.ndarray) -> np.ndarray:
 
 
 def _search(problem: Problem, settings: FitSettings, start: np.ndarray | None, fine: Problem | None,
-            progress: Callable[[], None] | None) -> _Run:
-    """One differential evolution from ``settings.seed`` and its polish."""
+            progress: Callable[[], None] | None, polished: Callable[[float], None] | None = None) -> _Run:
+    """One differential evolution from ``settings.seed`` and its polish (``polished``: the share of the polish's
+    evaluation limit used, as it goes; 1 when it ends)."""
     t0 = time.perf_counter()
     rng = np.random.default_rng(settings.seed)
     D = len(problem.names)
@@ -321,12 +341,16 @@ def _search(problem: Problem, settings: FitSettings, start: np.ndarray | None, f
             return zz
 
         cache: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
+        points = [0]  # points the polish evaluated (each with its Jacobian): its limit is max_nfev
 
         def both(zf: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             key = zf.tobytes()
             if key not in cache:
                 cache.clear()
                 cache[key] = jac_batch(full(zf), free)
+                if polished is not None:
+                    points[0] += 1
+                    polished(min(points[0] / max(settings.polish_iterations, 1), 1.0))
             return cache[key]
 
         def res(zc: np.ndarray) -> np.ndarray:
@@ -343,6 +367,8 @@ def _search(problem: Problem, settings: FitSettings, start: np.ndarray | None, f
         if np.isfinite(after) and after <= cost_of((pred - data) / sigma):
             z = full(ls.x)
             pred, J = jac_batch(z)
+    if polished is not None:
+        polished(1.0)
     perm = unit_order(problem, z)  # the model is symmetric under exchanging units: number them by τ
     return _Run(settings.seed, z[perm], pred, J[:, perm], cost_of(pred - data), lo[perm], hi[perm], evaluations,
                 int(de.nit), search_time)

@@ -187,13 +187,15 @@ def _crossing(offsets: list[float], chis: list[float], cmin: float, threshold: f
 
 def profile(w: Weighted, z: np.ndarray, lo: np.ndarray, hi: np.ndarray, free: np.ndarray, sd: np.ndarray,
             threshold: float, cmin: float, *, growth: float = 3.0, steps: int = 7, iterations: int = 5,
-            tol: float = 0.02, cov: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
+            tol: float = 0.02, cov: np.ndarray | None = None,
+            on_round: Callable[[float], None] | None = None) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
     """Profile-likelihood interval ends (optimiser coordinates) of every parameter: (ends 2 × D with the bound
     where the profile stays within the threshold, reached 2 × D bool, lowest χ² seen, where it was seen).
 
     ``sd``: the local standard deviation per parameter (the first step; the span/100 where it is not finite);
     each further step ``growth`` times the last, the others re-optimised warm from the previous steps. ``cov``:
-    the local covariance (optimiser coordinates), whose slopes start the walk along the valley."""
+    the local covariance (optimiser coordinates), whose slopes start the walk along the valley. ``on_round``: the
+    share of the walks finished, after each round."""
     D = z.size
     ends = np.vstack([lo, hi]).astype(float)
     reached = np.zeros((2, D), bool)
@@ -263,6 +265,10 @@ def profile(w: Weighted, z: np.ndarray, lo: np.ndarray, hi: np.ndarray, free: np
                 off[d] = prev + (off[d] - prev) / 4.0
                 nxt.append(d)
         live = nxt
+        if on_round is not None and dirs:
+            on_round(1.0 - len(live) / len(dirs))
+    if on_round is not None:
+        on_round(1.0)  # walks still open after the last round end here (their side is not reached)
     for (s, j), (offs, chis) in walk.items():
         order = np.argsort(offs)
         o = _crossing([offs[i] for i in order], [chis[i] for i in order], cmin, threshold)
@@ -365,7 +371,8 @@ def _record_noise(problem: Problem, sigma: np.ndarray) -> list[float]:
 
 
 def assess_trust(problem: Problem, result: FitResult, starts: list[tuple[int, np.ndarray, np.ndarray, np.ndarray]],
-                 lo: np.ndarray, hi: np.ndarray, coarse: Problem | None = None) -> Trust:
+                 lo: np.ndarray, hi: np.ndarray, coarse: Problem | None = None,
+                 on_profile: Callable[[float], None] | None = None) -> Trust:
     """Re-centre the fit on the noise-weighted least-squares optimum, profile every parameter and compare the
     starts; updates ``result`` (values, residual, uncertainty: the agreeing local figure, flags, lack of fit,
     ``trust``) and returns the :class:`Trust`. ``starts``: (seed, z, lower, upper) of each start, optimiser
@@ -418,7 +425,8 @@ def assess_trust(problem: Problem, result: FitResult, starts: list[tuple[int, np
         C = np.full((D, D), np.nan)
         sd = np.full(D, np.nan)
         C[np.ix_(free, free)], sd[free] = covariance(Jw, scale)
-        ends, reached, cmin2, z2 = profile(w, z, lo, hi, free, sd, threshold, cmin, tol=0.02 * threshold, cov=C)
+        ends, reached, cmin2, z2 = profile(w, z, lo, hi, free, sd, threshold, cmin, tol=0.02 * threshold, cov=C,
+                                           on_round=on_profile)
         if cmin2 >= cmin - 0.1 * threshold:
             break
         if attempt == 3:  # still lower after three re-centrings: the ends (against the lowest χ²) hold that point
