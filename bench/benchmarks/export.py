@@ -28,11 +28,13 @@ RATE_HZ = 10_000.0
 BLOCK = 50_000  # samples per append (5 s at 10 kHz)
 
 # VmHWM (the peak resident set of this process image): ru_maxrss on Linux keeps the parent's peak across exec
-_CHILD = """
+_HWM = """
 import re, sys, time
 def hwm():
     with open("/proc/self/status") as fh:
         return int(re.search(r"VmHWM:\\s+(\\d+) kB", fh.read()).group(1))
+"""  # each child below: its peak after imports, then after the work, and the work's time
+_CHILD = _HWM + """
 from bench.storage import export
 base = hwm()
 t0 = time.perf_counter()
@@ -42,12 +44,7 @@ else:
     export.to_mat(sys.argv[2], sys.argv[3], "7.3")
 print(base, hwm(), time.perf_counter() - t0)
 """
-
-_REPORT_CHILD = """
-import re, sys, time
-def hwm():
-    with open("/proc/self/status") as fh:
-        return int(re.search(r"VmHWM:\\s+(\\d+) kB", fh.read()).group(1))
+_REPORT_CHILD = _HWM + """
 from bench.report import report
 base = hwm()
 t0 = time.perf_counter()
