@@ -31,11 +31,11 @@ from bench.benchmarks import best_of
 from bench.benchmarks.acquisition import Figure
 from bench.identify.core import FitResult, FitSettings, fit
 from bench.identify.problems import LozengeProblem, MembraneProblem
+from bench.models.batch_plan import LANES
 from bench.models.integrate import MODEL_LOZENGE, run_fixed_batch
 from bench.models.lozenge import MODE_HUNG
 from bench.models.lozenge_batch import lozenge_batch
 from bench.models.membrane import membrane_rhs
-from bench.models.membrane_batch import LANES
 from bench.resources import protocols_dir
 from bench.runtime.run import execute, plan_run
 

@@ -17,6 +17,7 @@ import numba
 import numpy as np
 from numba import njit, prange
 
+from bench.models.batch_plan import LANES, plan
 from bench.models.lozenge import (
     MODE_HUNG,
     Q_ALPHA_HALF,
@@ -37,7 +38,6 @@ from bench.models.lozenge import (
     Q_T0,
     Q_XP,
 )
-from bench.models.membrane_batch import LANES
 from bench.models.vecmath import vexp, vlog
 
 
@@ -219,10 +219,11 @@ def _chunk(P: np.ndarray, Y0: np.ndarray, U: np.ndarray, h: float, stride: int, 
 
 @njit(cache=True, parallel=True)
 def _batch(P: np.ndarray, Y0: np.ndarray, U: np.ndarray, h: float, stride: int, channel: int,
-           bounds: np.ndarray, out: np.ndarray) -> None:
-    for s in prange(bounds.size - 1):
-        a, b = bounds[s], bounds[s + 1]
-        _chunk(P[a:b], Y0[a:b], U, h, stride, channel, out[a:b])
+           tasks: np.ndarray, out: np.ndarray) -> None:
+    """Run the tasks (:func:`bench.models.batch_plan.plan`) in parallel; Y0 is (candidates, state)."""
+    for s in prange(tasks.shape[0]):
+        _, u0, u1, c0, c1, a, b = tasks[s]
+        _chunk(P[a:b], Y0[a:b], U[u0:u1], h, stride, channel, out[a:b, c0:c1])
 
 
 def lozenge_batch(P: np.ndarray, Y0: np.ndarray, U: np.ndarray, h: float, channel: int, stride: int) -> np.ndarray:
@@ -238,9 +239,7 @@ def lozenge_batch(P: np.ndarray, Y0: np.ndarray, U: np.ndarray, h: float, channe
     if channel == -1 and int(P[0, Q_MODE]) == MODE_HUNG:
         raise ValueError("lozenge_batch: the force is an output of the imposed mode only (hung: channel 0 or 1)")
     m = P.shape[0]
-    out = np.full((m, U.shape[0] // stride + 1), np.nan)
-    regs = -(-m // LANES)
-    chunks = max(1, min(numba.get_num_threads(), regs))
-    bounds = np.minimum(np.linspace(0, regs, chunks + 1).round().astype(np.int64) * LANES, m)
-    _batch(P, Y0, U, float(h), int(stride), int(channel), bounds, out)
+    tasks, columns = plan(m, [U.shape[0]], stride, numba.get_num_threads())
+    out = np.full((m, columns), np.nan)
+    _batch(P, Y0, U, float(h), int(stride), int(channel), tasks, out)
     return out

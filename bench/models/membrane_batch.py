@@ -21,6 +21,7 @@ import numba
 import numpy as np
 from numba import njit, prange
 
+from bench.models.batch_plan import LANES, plan
 from bench.models.membrane import (
     P_A,
     P_B,
@@ -38,8 +39,6 @@ from bench.models.membrane import (
     P_SPRE,
 )
 from bench.models.vecmath import vexp, vlog
-
-LANES = 8  # float64 lanes of an AVX-512 register
 
 
 @njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy")
@@ -194,8 +193,8 @@ def _chunk(P: np.ndarray, Y0: np.ndarray, U: np.ndarray, cal: np.ndarray, h: flo
 @njit(cache=True, parallel=True, nogil=True, error_model="numpy")
 def _batch(P: np.ndarray, Y0: np.ndarray, U: np.ndarray, cal: np.ndarray, h: float, stride: int, window: int,
            tasks: np.ndarray, out: np.ndarray) -> None:
-    """Run the tasks (rows: record's first and end step in U, first and end output column, first and end
-    candidate) in parallel; Y0 is (records, candidates, state), cal (records, candidates, 2)."""
+    """Run the tasks (:func:`bench.models.batch_plan.plan`) in parallel; Y0 is (records, candidates, state), cal
+    (records, candidates, 2)."""
     for s in prange(tasks.shape[0]):
         r, u0, u1, c0, c1, a, b = tasks[s]
         _chunk(P[a:b], Y0[r, a:b], U[u0:u1], cal[r, a:b], h, stride, window, out[a:b, c0:c1])
@@ -219,19 +218,8 @@ def membrane_batch_records(P: np.ndarray, Y0: np.ndarray, Us: list[np.ndarray], 
         cal = np.broadcast_to(np.array([0.0, 1.0]), (len(Us), m, 2))
     cal = np.ascontiguousarray(np.broadcast_to(cal, (len(Us), m, 2)), dtype=np.float64)
     U = np.ascontiguousarray(np.concatenate(Us), dtype=np.float64)
-    n_steps = np.array([u.shape[0] for u in Us])
-    n_cols = n_steps // stride + 1
-    u_off = np.concatenate([[0], np.cumsum(n_steps)])
-    c_off = np.concatenate([[0], np.cumsum(n_cols)])
-    out = np.full((m, int(c_off[-1])), np.nan)
-    threads = numba.get_num_threads()
-    # chunks per record: enough tasks for the threads, none smaller than a register
-    regs = -(-m // LANES)
-    chunks = max(1, min(-(-threads // len(Us)), regs))
-    # whole registers per chunk (only the last one padded): 50 sets are 4 + 3 registers, not 2 × 4
-    bounds = np.minimum(np.linspace(0, regs, chunks + 1).round().astype(np.int64) * LANES, m)
-    tasks = np.array([(r, u_off[r], u_off[r + 1], c_off[r], c_off[r + 1], bounds[k], bounds[k + 1])
-                      for r in range(len(Us)) for k in range(chunks)], dtype=np.int64)
+    tasks, columns = plan(m, [u.shape[0] for u in Us], stride, numba.get_num_threads())
+    out = np.full((m, columns), np.nan)
     _batch(P, Y0, U, cal, float(h), int(stride), int(window), tasks, out)
     return out
 
