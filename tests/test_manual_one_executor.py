@@ -139,3 +139,28 @@ def test_a_pause_signal_at_the_prompt_pauses_before_the_next_set_point(tmp_path:
     assert [o.status for o in s.outcomes] == ["ok", "paused", "ok"], s.outcomes
     assert max(abs(v) for _, v in trace) < 3100  # 6 kV never sent
     assert abs(trace[-1][1]) <= ZERO_V
+
+
+def test_a_pause_signal_during_a_ramp_ends_the_ramp_at_once(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """SIGUSR1 at the second set-point of a 10-s ramp (20 set-points per second, 200 in all): the ramp stops there,
+    the output is ramped to 0 V and held — the ramp's remaining set-points are never sent."""
+    from bench.runtime.manual_mode import ManualEngine
+
+    checks = [0]
+    original = ManualEngine.check_monitors
+
+    def counted(self: ManualEngine) -> None:
+        checks[0] += 1
+        if checks[0] == 2:
+            os.kill(os.getpid(), signal.SIGUSR1)
+        original(self)
+
+    monkeypatch.setattr(ManualEngine, "check_monitors", counted)
+    s = ManualSession(_rig("thesis-sim"), tmp_path / "s.log", virtual=True)
+    with s.signal_handlers(), s:
+        s.run_lines(["ramp 4kV 10s", "read"], stop_on_trip=False)
+        s._sim.clock.advance(0.2)
+        volts = float(s._sim.plant.observe().v_out[-1])
+    assert [o.status for o in s.outcomes] == ["paused", "ok"], s.outcomes
+    assert checks[0] < 10  # the 2nd of 200, and the pause's own reads: not the whole ramp
+    assert abs(volts) <= ZERO_V

@@ -38,8 +38,9 @@ output at once (no ramp) and latches: every command that would energise is refus
 fault, until the operator types ``reset WHY…`` (logged with the reason and the ``--operator`` name).
 
 Pause: ``pause`` (or SIGUSR1, as for a run) is the run's pause — the output ramped to 0 V over the rig's
-``shutdown_ramp_s``, the motor stopped — and every set-point but 0 V is refused, in one line, until ``resume`` (or
-SIGUSR2); reading goes on. A SIGUSR1 during a command ends that command and pauses.
+``shutdown_ramp_s``, the motor stopped — and every set-point but 0 V is refused, in one line, until ``resume`` is typed
+(never by a signal: an operator is at the prompt); reading goes on. A SIGUSR1 during a command ends that
+command and pauses.
 
 Readings: every reading of the session (``read``, ``watch``, the monitors after set-points and in ramps, the
 motor during moves) and every set-point sent (keep-alives and the exit ramp included) go to an HDF5 file beside
@@ -60,8 +61,8 @@ Signals (:meth:`ManualSession.signal_handlers`, installed by ``bench devices con
 whatever it is doing. Ctrl-C (SIGINT) at an interactive prompt ends the command under way (``watch``, ``wait``,
 ``ramp``, ``move``…): the motor is stopped, the output held at the last set-point sent (0 V if paused), and the
 prompt comes back; a second Ctrl-C during the same command, or a Ctrl-C at the prompt, ends the session. In script
-mode (``--script``, or commands piped in) Ctrl-C ends the session through the safe exit. SIGUSR1 pauses, SIGUSR2
-resumes.
+mode (``--script``, or commands piped in) Ctrl-C ends the session through the safe exit. SIGUSR1 pauses; SIGUSR2
+does not resume a manual session (``resume`` is typed).
 
 At a terminal prompt (:func:`prompt_lines`) lines can be edited and ↑/↓ recall earlier commands, through the
 stdlib :mod:`readline` where Python has it; the history is kept in ``~/.bench_history`` (the user's home folder,
@@ -257,7 +258,9 @@ class ManualSession:
                 except InterlockTrip as trip:  # between commands: the operator is told at the prompt
                     self.echo(f"trip: {self._latch(trip)}")
                 except PauseRequested:  # SIGUSR1 at the prompt: paused now, not at the next command
-                    self.echo(f"paused: {self.engine.pause(self.engine.pause_asked_by())}")
+                    out = self._paused("(SIGUSR1 at the prompt)", self.engine, self.engine.pause_asked_by())
+                    self._write(out.command, out.status, out.text)  # a pause that failed latched or made safe
+                    self.echo(f"{out.status}: {out.text}")
 
     def __exit__(self, exc_type: type[BaseException] | None, *_exc: object) -> None:
         self._ending = True
@@ -277,6 +280,7 @@ class ManualSession:
                 errors.append(f"{type(exc).__name__}: {exc}")
                 errors += self._inst.safe_state() if self._inst is not None else []
             if engine.latched is not None and not was_latched:  # a stall seen at the exit
+                engine.latched_at = engine.now()  # the engine's stop latched it: the time is the session's end
                 self._latched_line(engine.latched)
         elif self._inst is not None:
             self._inst.cancel.clear()
@@ -331,8 +335,8 @@ class ManualSession:
             self.engine.request_pause(by)
 
     def _on_resume(self, by: str) -> None:
-        if self.engine is not None:
-            self.engine.request_resume(by)
+        """SIGUSR2 resumes a run, not a manual session: there ``resume`` is typed by the operator at the prompt
+        (a signal would also override a pause asked for and not yet taken)."""
 
     # ------------------------------------------------------------ log
     def _now(self) -> float:
@@ -467,6 +471,11 @@ class ManualSession:
             return Outcome(shown, "trip", self._latch(trip))
         except (SafetyTrip, InstrumentError, StopRequested, PauseRequested) as exc:
             return Outcome(shown, "error", f"pause: {exc}; {engine.make_safe()}")
+        except OSError as exc:  # the readings' file: the output is made safe all the same
+            self._storage_failed(exc)
+            return Outcome(shown, "error", f"pause: {exc}; {engine.make_safe()}")
+        except Exception as exc:  # a program error must not leave the output on
+            return Outcome(shown, "error", f"pause: internal error: {type(exc).__name__}: {exc}; {engine.make_safe()}")
 
     # ------------------------------------------------------------ latched interlock
     def _latch(self, trip: InterlockTrip) -> str:

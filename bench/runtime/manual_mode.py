@@ -129,8 +129,14 @@ class ManualEngine(Engine):
         except SafetyTrip as exc:
             raise Refused(f"{exc.reason}; ramp not started") from None
         n = max(1, math.ceil(seconds * rate_hz))
-        self._ramp_to(target, seconds, n, self.check_monitors)
+        self._ramp_to(target, seconds, n, self._ramp_step_done)
         return n
+
+    def _ramp_step_done(self) -> None:
+        """After each set-point of a manual ramp: the monitors checked, and a pause asked for meanwhile ends the
+        ramp (a ramp may last an hour)."""
+        self.check_monitors()
+        self._check_pause()
 
     def zero(self) -> None:
         """The output to 0 V at once (nothing held)."""
@@ -311,8 +317,11 @@ class ManualEngine(Engine):
             except InstrumentError as exc:
                 notes.append(f"motor stop failed: {exc}")
         if self.inst.amplifier is not None and self.paused:  # a pause's ramp cut short: 0 V now
-            self.zero()
-            notes.append("paused: output 0 V")
+            try:
+                self.zero()
+                notes.append("paused: output 0 V")
+            except InstrumentError as exc:
+                notes.append(f"0 V not commanded ({exc}); {self.make_safe()}")
         elif self.inst.amplifier is not None:
             self.ctx.v_req = self.ctx.v_cmd  # held (and kept alive) at the last set-point sent
             notes.append(f"output held at {self.ctx.v_req:.0f} V")
