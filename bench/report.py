@@ -136,7 +136,14 @@ def fitted_membrane(run_path: Path, src: RunSource | None = None) -> dict[str, A
 
     prob = MembraneProblem([run_path], h=1e-4)  # the fine problem of `bench fit`: its rms is the fit's
     fit = fits[-1]
-    u = prob.predict(to_optimiser(prob.log, fit["values"])[None, :])[0]
+    # by name: a fit stored before the monitor's calibration was fitted lacks V_gain/V_offset (nominal: 0), and a
+    # campaign's fit may carry them for a record that has no measured voltage
+    given = dict(zip(fit["names"], (float(v) for v in fit["values"]), strict=True))
+    lacking = [n for n in prob.names[:prob.n_model] if n not in given]
+    if lacking:
+        raise ValueError(f"run file {run_path}: its stored membrane fit lacks {', '.join(lacking)}")
+    values = np.array([given.get(n, 0.0) for n in prob.names])
+    u = prob.predict(to_optimiser(prob.log, values)[None, :])[0]
     with _opened(run_path, src) as s:
         ts = [a + np.arange(r.data.size) * r.stride * prob.h
               for a, r in zip(_record_starts(prob, s.streams), prob.records, strict=True)]

@@ -177,3 +177,26 @@ def test_table3_figure_shows_each_cell_of_the_campaign_grid(tmp_path: Path) -> N
     assert cells == {(0, 0): "23.1", (1, 0): "34.8", (0, 1): "19.5", (1, 1): "–"}
     assert [t.get_text() for t in ax.get_xticklabels()] == ["0 kV", "7 kV"]
     assert [t.get_text() for t in ax.get_yticklabels()] == ["#1, Δx 90 mm", "#2, Δx 70 mm"]
+
+
+def test_a_fit_stored_before_the_monitor_calibration_still_draws(short_run: Path,
+                                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+    """A membrane fit stored before V_gain/V_offset were fitted (14 values) on a DAQ record, whose problem now has
+    16 parameters: matched by name, the calibration at its nominal (no error); a fit lacking a model parameter is
+    one error naming the file."""
+    import bench.report as report_module
+    from bench.identify.problems import MembraneProblem
+
+    prob = MembraneProblem([short_run], h=1e-4)
+    assert prob.names[prob.n_model:] == ["V_gain", "V_offset"]  # the DAQ record's measured voltage
+    names = list(prob.names[:prob.n_model])
+    values = list(prob.reference().values())
+    monkeypatch.setattr(report_module, "read_fits",
+                        lambda _p: [{"model": "membrane", "names": names, "values": values, "rms": 0.0}])
+    drawn = report_module.fitted_membrane(short_run)
+    assert drawn is not None and drawn["model"].size == drawn["record"].size > 0
+    assert np.isfinite(drawn["model"]).all()
+    monkeypatch.setattr(report_module, "read_fits",
+                        lambda _p: [{"model": "membrane", "names": names[1:], "values": values[1:], "rms": 0.0}])
+    with pytest.raises(ValueError, match=f"run file {short_run}: its stored membrane fit lacks {names[0]}"):
+        report_module.fitted_membrane(short_run)
