@@ -256,3 +256,24 @@ def test_the_polish_and_the_intervals_report_their_progress_as_stages() -> None:
     for name, fraction in [("intervals", 0.5), ("intervals", 0.2), ("intervals", 0.5), ("intervals", 1.0)]:
         forward(name, fraction)
     assert passed == [("intervals", 0.5), ("intervals", 1.0)]
+
+
+def test_on_a_threading_layer_that_is_not_thread_safe_the_starts_run_one_after_another(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """numba's workqueue layer (neither TBB nor OpenMP installed) aborts the process when two threads call a
+    parallel kernel at once: there the starts run on the caller's thread, each still as its seed alone."""
+    import threading
+
+    from bench.identify import core
+
+    monkeypatch.setattr(core, "_kernels_thread_safe", lambda: False)
+    settings = FitSettings(population=10, generations=8, cost="lsq", seed=7, starts=3, intervals=True,
+                           stall_generations=0)
+    prob = _Threads(seed=3)
+    res = fit(prob, settings)
+    assert prob.threads == {threading.get_ident()}
+    assert res.trust is not None and [s["seed"] for s in res.trust.starts] == [7, 8, 9]
+    alone = fit(_Linear(seed=3), FitSettings(population=10, generations=8, cost="lsq", seed=8, starts=1,
+                                             intervals=True, stall_generations=0))
+    assert alone.trust is not None
+    assert res.trust.starts[1]["values"] == pytest.approx(alone.trust.starts[0]["values"], rel=1e-12, abs=1e-12)

@@ -225,8 +225,9 @@ def searches(problem: Problem, settings: FitSettings, start: np.ndarray | None =
             stage("polish", sum(shares) / n)
         return one
 
-    if n == 1:
-        return [_search(problem, settings, start, fine, progress, polished(0))]
+    if n == 1 or not _kernels_thread_safe():
+        return [_search(problem, replace(settings, seed=settings.seed + k), start if k == 0 else None, fine,
+                        progress, polished(k)) for k in range(n)]
     from concurrent.futures import ThreadPoolExecutor
 
     import numba
@@ -240,6 +241,29 @@ def searches(problem: Problem, settings: FitSettings, start: np.ndarray | None =
 
     with ThreadPoolExecutor(max_workers=n, thread_name_prefix="fit-start") as pool:
         return list(pool.map(one, range(n)))
+
+
+def _kernels_thread_safe() -> bool:
+    """Whether numba's threading layer lets several threads call the parallel kernels at once: TBB and OpenMP do,
+    the ``workqueue`` fallback (where neither is installed) aborts the process on concurrent use, so the starts
+    then run one after another."""
+    import importlib
+
+    import numba
+
+    try:
+        return bool(numba.threading_layer() != "workqueue")  # type: ignore[attr-defined]  # exported untyped
+    except ValueError:  # no parallel kernel ran yet: the layer numba will choose
+        pass
+    if numba.config.THREADING_LAYER == "workqueue":  # type: ignore[attr-defined]  # set by numba.config at import
+        return False
+    for layer in ("numba.np.ufunc.tbbpool", "numba.np.ufunc.omppool"):
+        try:
+            importlib.import_module(layer)
+            return True
+        except ImportError:
+            continue
+    return False
 
 
 @dataclass
