@@ -82,3 +82,14 @@ def test_a_membrane_model_needs_tau_or_eta(dashpots: str) -> None:
     table = f"name = 'x'\n[specimen.membrane_model]\nmu0 = 1.0\nJ0 = 2.0\nmu = [1.0]\nJ = [3.0]\n{dashpots}"
     with pytest.raises(ValueError, match=r"tau \[s\] or its eta"):
         rig_from_toml(table)
+
+
+def test_a_rig_that_replayed_a_record_becomes_the_model_again() -> None:
+    """A run made with ``[simulation] replay`` (a recorded run served instead of the model): its fitted rig is the
+    fitted model, so the replay (a path relative to the source rig's folder, wrong beside the export) goes."""
+    source = (ROOT / "rigs" / "thesis-sim.toml").read_text(encoding="utf-8").replace(
+        "[simulation]", '[simulation]\nreplay = "runs/old.h5"  # a record of last week', 1)
+    assert 'replay = "runs/old.h5"' in source
+    text = fitted_rig_text(source, "membrane", MEMBRANE, VALUES, "runs/d.h5")
+    assert "replay" not in tomllib.loads(text).get("simulation", {})
+    assert rig_from_toml(text).simulation.replay is None

@@ -42,6 +42,9 @@ def fitted_rig_text(source: str, model: str, names: list[str], values: np.ndarra
     doc["name"] = f"{name}-fitted"  # an existing item keeps its place and its comment
     if doc.get("simulated") is False:  # absent means true
         doc["simulated"] = True
+    sim = doc.get("simulation")
+    if sim is not None and "replay" in sim:  # a recorded run served instead of the model: the fitted rig is the model
+        del sim["replay"]
     if "specimen" not in doc:
         doc["specimen"] = tomlkit.table()
     specimen = doc["specimen"]
