@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -87,10 +88,14 @@ def fit_runs(runs: list[Path], model: str, settings: FitSettings, *, branches: i
     total = settings.generations * max(settings.starts, 1)  # progress is called at each generation of each start
     done = [0]
 
+    counting = threading.Lock()  # the starts search in threads of their own
+
     def generation() -> None:
-        done[0] += 1
+        with counting:
+            done[0] += 1
+            share = done[0] / total
         if progress is not None:
-            progress(done[0] / total)
+            progress(share)
 
     with cluster_client(scheduler, workers) as client:
         if client is not None:
@@ -128,9 +133,11 @@ def fit_runs(runs: list[Path], model: str, settings: FitSettings, *, branches: i
 def _forward_only(stage: Callable[[str, float], None]) -> Callable[[str, float], None]:
     """``stage`` told only of progress: a profile re-centred (its walks start again) keeps its share shown."""
     most: dict[str, float] = {}
+    lock = threading.Lock()  # the starts polish in threads of their own
 
     def tell(name: str, fraction: float) -> None:
-        if fraction > most.get(name, -1.0):
-            most[name] = fraction
-            stage(name, fraction)
+        with lock:
+            if fraction > most.get(name, -1.0):
+                most[name] = fraction
+                stage(name, fraction)
     return tell

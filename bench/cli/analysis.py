@@ -231,6 +231,8 @@ def run_fit(runs: list[Path], chosen: str, settings: FitSettings, branches: int 
             bar.close()  # the bar before ends
             advance.append(bar.enter_context(progress(title)))
 
+        # the search's bar takes the generations alone (a start still searching while another polishes updates a
+        # closed bar: nothing is drawn), each later stage its own
         def stage(name: str, fraction: float) -> None:  # a bar of its own for each stage after the search
             with lock:
                 if not stages or stages[-1] != name:
@@ -239,7 +241,7 @@ def run_fit(runs: list[Path], chosen: str, settings: FitSettings, branches: int 
                 advance[-1](fraction)
 
         done = fit_runs(runs, chosen, s, branches=branches, export=export, scheduler=scheduler, workers=workers,
-                        into=into, on_read=read, progress=lambda fraction: advance[-1](fraction), stage=stage,
+                        into=into, on_read=read, progress=lambda fraction: advance[0](fraction), stage=stage,
                         on_cluster=lambda address: console.print(f"evaluating candidates on the dask cluster "
                                                                  f"{address}"))
     result, coarse = done.result, done.problem
