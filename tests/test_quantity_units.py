@@ -52,6 +52,11 @@ def test_the_fast_table_agrees_with_pint() -> None:
     ("5 __import__('os')", None, "unknown unit"),
     ("1e308 km", None, "is not a finite number"),
     ("5", None, "is not a number with a unit"),
+    # pint counts angles and logarithmic units dimensionless: neither is a ratio (5 dB is 10^(5/20) ≈ 178 %, not
+    # a linear scale of any number)
+    ("5 dB", "ratio", "'dB' is not a linear unit"),
+    ("5 rad", "ratio", "'rad' is an angle, not a ratio"),
+    ("30 deg", "ratio", "'deg' is an angle, not a ratio"),
 ])
 def test_bad_quantities_are_refused(text: str, dimension: str | None, says: str) -> None:
     with pytest.raises(ValueError) as err:

@@ -94,11 +94,18 @@ def _pint_conversion(unit: str) -> tuple[str, float, float] | str:
         return f"unknown unit {unit!r}"
     for dim, si_unit in SI_UNIT.items():
         if dimensionality == ureg.Quantity(1.0, si_unit).dimensionality:
+            if dim == "ratio" and not one.unitless and ("radian" in str(one.to_base_units().units)
+                                                        or "degree" in str(one.units)):
+                return f"{unit!r} is an angle, not a ratio"  # pint counts angles dimensionless
             try:
                 offset = float(zero.to(si_unit).magnitude)
-                return dim, float(one.to(si_unit).magnitude) - offset, offset
+                factor = float(one.to(si_unit).magnitude) - offset
+                two = float(ureg.Quantity(2.0, written).to(si_unit).magnitude)
             except Exception:  # pint refuses some conversions of offset units
                 return f"cannot convert {unit!r} to {si_unit}"
+            if not math.isclose(two, 2.0 * factor + offset, rel_tol=1e-12, abs_tol=1e-300):
+                return f"{unit!r} is not a linear unit (e.g. a logarithmic one)"  # dB, neper, …
+            return dim, factor, offset
     return f"{dimensionality} ({one.units})", math.nan, math.nan  # a dimension bench has no name for
 
 
