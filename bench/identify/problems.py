@@ -139,7 +139,11 @@ def monitor_accuracy(run: RunFile) -> tuple[float, float]:
     from bench.core.noise import TREK_DYNAMICS
     from bench.rig import amplifier_spec, rig_from_toml
 
-    spec = amplifier_spec(rig_from_toml(run.attrs["rig_toml"]))
+    try:
+        spec = amplifier_spec(rig_from_toml(run.attrs["rig_toml"]))
+    except (KeyError, ValueError) as exc:  # no rig stored, or one today's rig schema refuses (pydantic: ValueError)
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise ValueError(f"run file {run.path}: its recorded rig cannot be read ({first})") from None
     return TREK_DYNAMICS[spec.model].vmon_accuracy, float(spec.max_output)
 
 
