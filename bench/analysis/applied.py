@@ -67,11 +67,3 @@ def applied_window(streams: StreamChunks, t0: float, t1: float, measured: bool =
     v = np.concatenate([sp["voltage"], amp[column]])
     order = np.argsort(t, kind="stable")
     return VoltageTrace(t[order], v[order], "measured" if measured else "commanded")
-
-
-def measured_voltage(run: RunFile) -> tuple[np.ndarray, np.ndarray] | None:
-    """The amplifier's voltage monitor (times [s], volts [V]), or None when the rig has no monitor stream."""
-    amp = run.streams.get("amplifier")
-    if amp is None or len(amp) == 0:
-        return None
-    return amp.t, amp.columns["voltage"]

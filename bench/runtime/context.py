@@ -190,16 +190,11 @@ class RunContext:
         """The ``late`` column of a software-timed stream: how long after its scheduled time a poll ran [s]."""
         return {"late": late} if stream in self._late_streams else {}
 
-    def monitor_columns(self, late: float) -> dict[str, float | np.ndarray]:
-        """The amplifier stream's columns besides the monitors for one command-response read: ``late`` on a
-        software-timed stream, and the output commanded where the layout has that column (a DAQ-driven
-        amplifier: its stream in a run, its polled reads in manual control)."""
-        cols = self.late_columns("amplifier", late)
+    def unpolled_monitor_columns(self) -> dict[str, float | np.ndarray]:
+        """The amplifier stream's other columns for a monitor read outside the schedule (paused, shutting down): no
+        lateness (NaN: not a scheduled poll), and the output commanded where the layout has that column (a
+        DAQ-driven amplifier; its polled reads carry it from the driver's ``read()``)."""
+        cols = self.late_columns("amplifier", math.nan)
         if self._amp_commanded:
             cols["commanded"] = self.v_cmd
         return cols
-
-    def unpolled_monitor_columns(self) -> dict[str, float | np.ndarray]:
-        """The amplifier stream's other columns for a monitor read outside the schedule (paused, shutting down):
-        on a DAQ rig the output commanded, else no lateness (NaN: not a scheduled poll)."""
-        return self.monitor_columns(math.nan)
