@@ -30,7 +30,7 @@ import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 
-from bench.analysis.applied import VoltageTrace, applied_window
+from bench.analysis.applied import VoltageTrace, applied_window, hardware_timed
 from bench.analysis.quicklook import PIXELS
 from bench.analysis.runs import RunAnalysis, analyse_source, step_records
 from bench.identify.store import read_fits
@@ -88,16 +88,12 @@ def _opened(path: Path, src: RunSource | None) -> Iterator[RunSource]:
             yield own
 
 
-def _hardware_timed(streams: StreamChunks) -> bool:
-    return "commanded" in streams.columns.get("amplifier", []) and streams.length["amplifier"] > 0
-
-
 def _peak_voltage(streams: StreamChunks) -> float:
     """max |V| of the voltage the specimen saw (:func:`bench.analysis.applied.applied_voltage`, measured) over the
     whole run, a chunk at a time (NaN propagates, as ``np.max`` does)."""
     peaks = [float(np.max(np.abs(c["voltage"][np.isfinite(c["voltage"])]), initial=-np.inf))
              for c in streams.chunks("setpoints")]
-    if _hardware_timed(streams):
+    if hardware_timed(streams):
         peaks += [float(np.max(np.abs(c["voltage"]))) for c in streams.chunks("amplifier")]
     return float(np.max(peaks)) if peaks else float("nan")
 
@@ -177,7 +173,7 @@ def _dense(streams: StreamChunks, stream: str, t0: float, t1: float) -> bool:
 def _plot_voltages(ax: Axes, streams: StreamChunks, t0: float, t1: float) -> None:
     """Measured (solid, under) and commanded (dashed, on top) voltage over [t0, t1], time from t0; the axis
     label and ticks in the curve's colour."""
-    hardware = _hardware_timed(streams)
+    hardware = hardware_timed(streams)
     if streams.length.get("amplifier", 0) > 0:
         t, v = _line(streams, "amplifier", "voltage", t0, t1)
         style: dict[str, Any] = {"lw": 1.4} if _dense(streams, "amplifier", t0, t1) else \
@@ -271,7 +267,7 @@ def thesis_loop_figure(a: RunAnalysis, src: RunSource | None = None) -> Figure:
             (line,) = ax.plot(v_loop, u, lw=0.8,
                               label=f"{st.voltage / 1e3:.0f} kV, {st.frequency:.3g} Hz, {st.temperature:g} K")
             _arrows(ax, v_loop, u, line.get_color())
-        measured = _hardware_timed(s.streams)
+        measured = hardware_timed(s.streams)
     ax.set_xlabel("measured voltage [kV]" if measured else "commanded voltage [kV]")
     ax.set_ylabel("displacement u [mm]")
     ax.set_title("displacement vs voltage (arrows: direction of the loop)", fontsize=10)

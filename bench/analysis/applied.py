@@ -54,12 +54,18 @@ def applied_voltage(run: RunFile, measured: bool = False) -> VoltageTrace:
     return VoltageTrace(t[order], v[order], "measured" if measured else "commanded")
 
 
+def hardware_timed(streams: StreamChunks) -> bool:
+    """Whether the run's amplifier stream records the DAQ's output in every scan (a ``commanded`` column, not
+    empty): the drive was played on the scan clock, not sent as software set-points."""
+    return "commanded" in streams.columns.get("amplifier", []) and streams.length["amplifier"] > 0
+
+
 def applied_window(streams: StreamChunks, t0: float, t1: float, measured: bool = False) -> VoltageTrace:
     """:func:`applied_voltage` over ``t0 ≤ t ≤ t1`` only, with the sample before and the one after each source's
     window: ``np.interp`` of it at any time of the window gives what it gives on the whole run's trace (the
     bracketing samples are the same), and so does its maximum over the window."""
     sp = streams.window("setpoints", t0, t1, ["voltage"], neighbours=True, finite="voltage")
-    if "commanded" not in streams.columns.get("amplifier", []) or streams.length["amplifier"] == 0:
+    if not hardware_timed(streams):
         return VoltageTrace(sp["t"], sp["voltage"], "setpoints")
     column = "voltage" if measured else "commanded"
     amp = streams.window("amplifier", t0, t1, [column], neighbours=True)
