@@ -41,6 +41,7 @@ KEEPALIVE_S = 0.25  # a command-response request at least this often (run clock)
 # development host at load 8–14, where the old 0.8 s did not). Virtual time too: a rehearsal of a lost link must
 # stop the drive as the bench would (its collects, every 0.25 s of rig time, keep two periods queued).
 OUT_AHEAD_S = 0.5
+OUT_LOOPS = True  # whole periods that repeat play from the T7's stream-out loop, written once (not refilled)
 FINISH_TIMEOUT_S = 5.0  # rig time allowed for the last scans of a step to arrive (wall time on hardware)
 FINISH_POLL_S = 0.01  # rig time between collects while waiting for a step's last scans
 
@@ -134,7 +135,7 @@ class HardwareTimed:
             self.ctx.guard()
             self.daq.arm(StreamSpec(self.cfg.scan_rate_Hz, self.inputs,
                                     StreamOut(self.cfg.dac, dac, hold=1, final=nxt is None, within=window),
-                                    out_ahead_s=OUT_AHEAD_S))
+                                    out_ahead_s=OUT_AHEAD_S, out_loops=OUT_LOOPS))
             self._base = 0
             self._commanded = commanded
             self._tail = float(volts[-1])
