@@ -234,6 +234,7 @@ class StreamEngine(StreamOut):
             o.loop_active = False
             codes, o.queue = np.array(o.queue, np.int64), deque()
             self._schedule(k, codes, now)
+            self._advance_out(k, now)  # a loop's repetitions queued at once: they follow the data without a gap
         self._next_packet_t = self._packet_due()
         return 0
 

@@ -78,6 +78,7 @@ class OutChannel:
     anchor: int = 0  # scan of the loop's first repetition
     buffer_writes: int = 0  # write frames (MBFB or FC16) to the buffer register: what a host sent
     values_written: int = 0  # values those frames carried
+    loops_set: int = 0  # SET_LOOP writes that set a loop of more than one value (a repeating waveform)
 
 
 
@@ -209,6 +210,9 @@ class StreamOut(PlantCoupling):
                     self._cut_loop(k, now)
             o.loop = np.array(list(o.tail)[len(o.tail) - o.loop_num:] if o.loop_num else [], np.int64)
             o.loop_pos = 0
+            o.loops_set += o.loop.size > 1
+            if self.streaming and k in self._out_indices():
+                self._advance_out(k, now)  # repetitions queued at once: they follow the data without a gap
         else:
             return ExcCodes.ILLEGAL_ADDRESS
         return None
