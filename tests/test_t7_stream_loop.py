@@ -279,3 +279,50 @@ def test_a_stop_during_a_looping_step_brings_the_output_to_zero_and_keeps_it_the
     sim.clock.advance(2.0)  # long after the stop: nothing plays the loop any more
     assert np.all(np.abs(sim.plant.observe().v_out) < 5.0)
     assert [t for t, _, k, _ in open_run(result.path).event_list() if k == "safe"]
+
+
+class _ToppedUpDaq:
+    """A DAQ whose every collect tops up its stream-out (a request the T7 answers) and whose reads are counted."""
+
+    timeout = 0.5
+    out_underrun_scans = 0
+
+    def __init__(self, clock) -> None:
+        self.clock, self.reads, self.answered_at, self.tops_up = clock, 0, -np.inf, True
+
+    def collect(self, until: float | None = None, timeout: float = 1.0):
+        from drivers.interfaces import StreamBlock
+
+        if self.tops_up:
+            self.answered_at = self.clock.now()
+        return StreamBlock(0, 0.0, 1e-4, ("vmon",), np.empty((0, 1)), np.empty((0, 1), bool))
+
+    def read_dac(self, dac: int) -> float:
+        self.reads += 1
+        return 0.0
+
+
+def test_a_collect_that_topped_up_the_stream_out_needs_no_keepalive_request() -> None:
+    """Any request clears the T7's watchdog timer (register map, WATCHDOG_*): a collect whose stream-out top-up the
+    T7 answered has fed it, so no separate command-response read is sent; one that wrote nothing still sends it."""
+    import types
+
+    from bench.core.clock import VirtualClock
+    from bench.rig import load_rig
+    from bench.runtime.hardware_timed import HardwareTimed
+    from bench.runtime.polls import COLLECT_PERIOD_VIRTUAL_S
+
+    clock = VirtualClock(100.0)
+    daq = _ToppedUpDaq(clock)
+    ctx = types.SimpleNamespace(clock=clock, guard=lambda streaming=False: None)
+    hw = HardwareTimed(load_rig(ROOT / "rigs" / "thesis-daq-sim.toml"), daq, object(), ctx)  # type: ignore[arg-type]
+    hw._keepalive = clock.now()
+    for _ in range(8):
+        clock.advance(COLLECT_PERIOD_VIRTUAL_S)
+        hw.collect()
+    assert daq.reads == 0
+    daq.tops_up = False  # nothing to write (a loop plays): the keep-alive goes out every period
+    for _ in range(4):
+        clock.advance(COLLECT_PERIOD_VIRTUAL_S)
+        hw.collect()
+    assert daq.reads == 4

@@ -229,7 +229,9 @@ class HardwareTimed:
         if (late := self.daq.out_underrun_scans) > 0:
             raise InterlockTrip("stream-out underrun", f"the DAQ played {late} scans past the values the host had "
                                 "written: the output did not follow the program")
-        if self.ctx.clock.now() - self._keepalive >= KEEPALIVE_S:  # the run's clock: the T7's watchdog counts rig time
+        # the run's clock: the T7's watchdog counts rig time; any request feeds it (a stream-out top-up too)
+        heard = max(self._keepalive, getattr(self.daq, "answered_at", -np.inf))
+        if self.ctx.clock.now() - heard >= KEEPALIVE_S:
             self.daq.read_dac(self.cfg.dac)
             self._keepalive = self.ctx.clock.now()
 
