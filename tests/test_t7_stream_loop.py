@@ -24,6 +24,7 @@ from bench.runtime import hardware_timed
 from bench.runtime.run import execute, plan_run
 from bench.storage.runfile import open_run
 from drivers.labjack import LabJackT7, StreamIn, StreamOut, StreamSpec
+from sim_devices.t7.analog import Conditioning
 from tests.conftest import ROOT
 from tests.test_labjack import Rig, _transact
 
@@ -148,6 +149,25 @@ def test_a_periodic_drive_is_written_once_and_plays_what_the_refill_path_plays()
     assert written[True][1] == 1 and written[True][0] <= 2 * 5000 + 1
     n = min(got[True].size, got[False].size)
     assert n > volts.size and np.array_equal(got[True][:n], got[False][:n])
+
+
+def test_behind_a_reconstruction_filter_a_looped_drive_reaches_the_amplifier_as_the_refilled_one() -> None:
+    """The rig's first-order low-pass (30 Hz, as thesis-daq-sim) filters the scans in order: where the twin cuts a
+    loop's queued repetitions, the filter goes on from the value it had after the last repetition played — the
+    amplifier input (the V monitor, noise off) is the refilled drive's, bit for bit."""
+    got = {}
+    for loops in (True, False):
+        r = Rig()
+        r.sim.conditioning = r.cond = Conditioning(4.0, -10.0, corner_Hz=30.0)
+        try:
+            r.daq.connect()
+            got[loops] = _play(r, np.concatenate([_sine(8), np.full(3000, 2.6)]), loops)
+            assert r.sim.outs[0].loops_set == int(loops)
+        finally:
+            r.close()
+        assert not r.sim.errors
+    n = min(got[True].size, got[False].size)
+    assert np.array_equal(got[True][:n], got[False][:n])
 
 
 def test_a_loop_the_host_does_not_leave_in_time_is_an_underrun(rig: Rig) -> None:

@@ -73,6 +73,7 @@ class OutChannel:
     loop_pos: int = 0
     next_scan: int = 0
     code: int = 0  # last code played
+    y: float | None = None  # the reconstruction filter's output after it (None without a filter)
     underrun_scans: int = 0
     loop_active: bool = False  # the loop repeats (the data ran out)
     anchor: int = 0  # scan of the loop's first repetition
@@ -132,6 +133,7 @@ class StreamOut(PlantCoupling):
             p = o.sched[0]
             played = min(cur - p.first + 1, p.codes.size)
             o.code = int(p.codes[played - 1])
+            o.y = None if p.y is None else float(p.y[played - 1])
             if played < p.codes.size:
                 o.sched[0] = Played(p.first + played, p.codes[played:], p.loop,
                                     None if p.y is None else p.y[played:])
@@ -164,7 +166,7 @@ class StreamOut(PlantCoupling):
         size = o.loop.size
         b = o.anchor if cur < o.anchor else o.anchor + size * ((cur - o.anchor) // size + 1)
         kept: deque[Played] = deque()
-        y_end: float | None = None
+        y_end = o.y  # the filter's state after scan b − 1: the last code played, or the last one kept below
         for p in o.sched:
             if p.first >= b:
                 break
