@@ -107,6 +107,27 @@ def test_data_written_while_a_loop_repeats_plays_when_the_repetition_in_progress
         assert rig.sim.outs[0].code == 9 and rig.sim.outs[0].underrun_scans == 0
 
 
+def test_a_loop_is_planned_on_codes_that_repeat_exactly_and_only_where_it_saves_writes() -> None:
+    """Expected periods and run lengths read off the made-up codes themselves."""
+    from drivers.labjack.looping import Loop, periodic_run, plan_loop
+
+    period = np.array([3, 1, 4, 1, 5, 9, 2, 6])
+    codes = np.concatenate([np.tile(period, 10), [7]])  # 10 periods of 8, then an end value
+    assert periodic_run(codes, 100) == (8, 80)
+    assert periodic_run(np.full(30, 5), 100) == (1, 30)  # a hold: period 1
+    assert periodic_run(np.arange(100), 100) == (0, 0)  # a ramp never repeats
+    assert periodic_run(codes, 7) == (0, 0)  # the period is longer than allowed
+    bumped = codes.copy()
+    bumped[50] += 1  # one code off in the 7th period: the run ends there
+    assert periodic_run(bumped, 100) == (8, 50)
+    # blocks of whole periods, at least min_block long: 8 → 10 blocks; 12 → two periods (16), 5 blocks;
+    # 20 → three periods (24), only 3 blocks (< 4: refilling costs as little); a block over max_block: none
+    assert plan_loop(codes, 1000, 8, 40) == Loop(1000, 8, 10) and Loop(1000, 8, 10).end == 1080
+    assert plan_loop(codes, 1000, 12, 40) == Loop(1000, 16, 5)
+    assert plan_loop(codes, 1000, 20, 40) is None
+    assert plan_loop(codes, 1000, 20, 20) is None
+
+
 def _sine(periods: int, period_s: float = 0.5) -> np.ndarray:
     """DAC volts of ``periods`` sine periods at RATE scans/s, ending on the start value."""
     t = np.arange(round(periods * period_s * RATE) + 1) / RATE

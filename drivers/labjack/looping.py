@@ -33,8 +33,10 @@ class Loop:
 
 
 def periodic_run(codes: np.ndarray, max_period: int) -> tuple[int, int]:
-    """(P, n): the smallest period P ≤ ``max_period`` with which ``codes`` repeat from their start, and the length
-    n ≥ 2P of that run (codes[k + P] == codes[k] for k < n − P); (0, 0) when there is none."""
+    """(P, n): a period P ≤ ``max_period`` with which ``codes`` repeat from their start, and the length n ≥ 2P of
+    that run (codes[k + P] == codes[k] for k < n − P); (0, 0) when there is none. P is the smallest of the first
+    eight candidates (offsets where the first :data:`WINDOW` codes recur): the smallest period where it is among
+    them (always, for a waveform whose first codes do not recur within one period)."""
     n = codes.size
     w = min(WINDOW, n // 2)
     lim = min(max_period, n - w)
