@@ -385,8 +385,8 @@ class Plant:
         if self.broken:
             target = np.copysign(np.minimum(np.abs(target), hv.max_current * hv.r_short), target)
         per_step = np.full(n, self._target)
-        for ai, bi, tg in zip(a.tolist(), b.tolist(), target.tolist(), strict=True):
-            per_step[ai:bi] = tg
+        if a.size:  # the pieces tile [a[0], n) in order (each ends where the next starts): one repeat, no loop
+            per_step[a[0]:] = np.repeat(target, b - a)
         self._target = float(per_step[-1])
         v, self._t_limited = output_response(per_step, self.v_out, self.h, 1.0 / (2.0 * math.pi * hv.bandwidth_Hz),
                                              hv.slew, max(self._C, 1e-15), hv.max_current,

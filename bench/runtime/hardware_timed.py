@@ -41,6 +41,10 @@ KEEPALIVE_S = 0.25  # a command-response request at least this often (run clock)
 # development host at load 8–14, where the old 0.8 s did not). Virtual time too: a rehearsal of a lost link must
 # stop the drive as the bench would (its collects, every 0.25 s of rig time, keep two periods queued).
 OUT_AHEAD_S = 0.5
+# simulated rigs: whole periods that repeat play from the T7's stream-out loop, written once (not refilled). Not on a
+# lab rig until checked on the hardware: the datasheet does not say that the watchdog's DAC action stops a repeating
+# loop (the twin assumes it does), and a loop that outlived a lost host would drive the amplifier on
+OUT_LOOPS = True
 FINISH_TIMEOUT_S = 5.0  # rig time allowed for the last scans of a step to arrive (wall time on hardware)
 FINISH_POLL_S = 0.01  # rig time between collects while waiting for a step's last scans
 
@@ -97,6 +101,7 @@ class HardwareTimed:
         if cfg is None:
             raise ValueError(f"rig {rig.name}: hardware-timed steps need a [daq] section")
         self.cfg = cfg
+        self.simulated = rig.simulated
         self.daq, self.amp, self.ctx = daq, amp, ctx
         inputs = [StreamIn(cfg.vmon_ain, 10.0, "vmon"), StreamIn(cfg.imon_ain, 10.0, "imon")]
         if cfg.force_ain is not None:
@@ -134,7 +139,7 @@ class HardwareTimed:
             self.ctx.guard()
             self.daq.arm(StreamSpec(self.cfg.scan_rate_Hz, self.inputs,
                                     StreamOut(self.cfg.dac, dac, hold=1, final=nxt is None, within=window),
-                                    out_ahead_s=OUT_AHEAD_S))
+                                    out_ahead_s=OUT_AHEAD_S, out_loops=OUT_LOOPS and self.simulated))
             self._base = 0
             self._commanded = commanded
             self._tail = float(volts[-1])
@@ -224,7 +229,9 @@ class HardwareTimed:
         if (late := self.daq.out_underrun_scans) > 0:
             raise InterlockTrip("stream-out underrun", f"the DAQ played {late} scans past the values the host had "
                                 "written: the output did not follow the program")
-        if self.ctx.clock.now() - self._keepalive >= KEEPALIVE_S:  # the run's clock: the T7's watchdog counts rig time
+        # the run's clock: the T7's watchdog counts rig time; any request feeds it (a stream-out top-up too)
+        heard = max(self._keepalive, getattr(self.daq, "answered_at", -np.inf))
+        if self.ctx.clock.now() - heard >= KEEPALIVE_S:
             self.daq.read_dac(self.cfg.dac)
             self._keepalive = self.ctx.clock.now()
 

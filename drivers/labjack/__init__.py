@@ -30,6 +30,12 @@ low-level TCP stream example; [A] = assumed, to check on a real T7.
   on the host clock, t0 known to the enable request's round trip; a lost host then stops the drive within it),
   topping up in chunks of at most a packet and at least a quarter of that; the device past the values written
   (the scan clock's lower bound) is an underrun (``out_underrun_scans``).
+* [D] looping (register map: LOOP_NUM_VALUES, SET_LOOP "1 = use new data immediately"; LabJack's stream-out update
+  example: a loop "will not be interrupted until [it] is complete", then the next data plays): with
+  ``StreamSpec.out_ahead_s`` and ``out_loops``, a stretch of whole periods whose codes repeat exactly
+  (:mod:`.looping`) is written once as a block of at least ``out_ahead_s`` and played from the device's loop; in its
+  last repetitions, when the scan clock's bounds place the device surely within one repetition (a packet's margin
+  included), the values after it are written with SET_LOOP. A device past the last repetition is an underrun.
 * [A] a buffer register takes k values in one Modbus Feedback write frame of k registers at its address
   ([D] register map: STREAM_OUT#_BUFFER_U16 is a buffer register, "a sequence of values to a single address").
 * [D] Modbus Feedback (MBFB), function 76: after the function code, frames of type (1 byte: 0 read, 1 write),
@@ -66,7 +72,8 @@ Engine API (bluesky-style): :meth:`LabJackT7.arm` (stage: configure inputs, scan
 The driver in pieces by responsibility (one class, :class:`LabJackT7`, composed of them): :mod:`.registers` (the
 register map and Modbus encodings), :mod:`.calibration`, :mod:`.packets` (the stream packet), :mod:`.plan` (an
 armed stream's plan and state), :mod:`.connection` (command-response: register I/O, calibration read, single
-inputs), :mod:`.watchdog`, :mod:`.stream_out` (DAC values and the stream-out), :mod:`.stream_in` (arm, kickoff,
+inputs), :mod:`.watchdog`, :mod:`.stream_out` (DAC values and the stream-out; :mod:`.looping`, where it repeats),
+:mod:`.stream_in` (arm, kickoff,
 collect, complete, stop), :mod:`.device` (connect, check, identify, safe state, close). Import from here.
 """
 

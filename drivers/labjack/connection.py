@@ -74,12 +74,17 @@ class T7Connection:
         self._ain_range: dict[int, float] = {}  # ±V of the inputs configured here (the rest: the ±10 V default)
         self._stream: StreamState | None = None
         self.streaming = False
+        self.answered_at = -math.inf  # rig time at which the last request the T7 answered was sent (its watchdog
+        # counts from the request it last received)
 
     # ------------------------------------------------------------------ command-response
     def _lj(self, what: str, fn: Callable[..., _T], *args: object) -> _T:
         """Run one link call; a Modbus exception is re-raised with the device's LAST_ERR_DETAIL name."""
         try:
-            return fn(UNIT, *args)
+            sent = self.clock()
+            result = fn(UNIT, *args)
+            self.answered_at = sent
+            return result
         except InstrumentStateError as exc:
             try:
                 code = self.link.read_holding(UNIT, LAST_ERR_DETAIL, 1)[0]

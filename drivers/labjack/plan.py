@@ -9,6 +9,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from drivers.interfaces import StreamSpec
+from drivers.labjack.looping import Loop
 from drivers.labjack.registers import OUT_PACKET_VALUES
 
 
@@ -53,4 +54,7 @@ class StreamState:
     out_final: bool = False  # the hold loop is written: the device plays nothing more from the host
     underrun_scans: int = 0
     done: bool = False
+    loop: Loop | None = None  # a looped stretch planned or playing (:mod:`.looping`)
+    looping: bool = False  # its block is in the device and repeats: the host writes nothing until it leaves it
+    loop_searched: tuple[int, int] = (-1, -1)  # (first value, values given) of the last search for a loop
 

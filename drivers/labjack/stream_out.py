@@ -10,6 +10,7 @@ import numpy as np
 from drivers.errors import InstrumentStateError, LimitError
 from drivers.interfaces import DacCoding
 from drivers.labjack.connection import T7Connection
+from drivers.labjack.looping import Loop, plan_loop
 from drivers.labjack.registers import DAC0, DAC_RANGE, OUT_BUFFER_U16_0, OUT_LOOP0, OUT_SET_LOOP0, Words, u32_words
 
 
@@ -68,7 +69,8 @@ class T7StreamOut(T7Connection):
 
     # ------------------------------------------------------------------ stream-out
     def _feed_out(self) -> None:
-        """Top up the stream-out buffer with as many values as fit; close it with the hold loop."""
+        """Top up the stream-out buffer with as many values as fit; close it with the hold loop. A stretch of whole
+        periods that repeats (:mod:`.looping`) is written once and played from the device's loop."""
         s = self._stream
         assert s is not None
         codes = s.plan.out_codes
@@ -80,12 +82,19 @@ class T7StreamOut(T7Connection):
             late = self.clock() - s.t0
             pos = max(pos, math.floor(late * s.plan.scan_rate) + 1)
             hi = max(pos, math.floor((late + s.t0_uncertainty) * s.plan.scan_rate) + 1)
+        if s.looping:
+            self._leave_loop(pos, hi, total)
+            return
         if self.streaming and pos > s.out_written:  # the device ran past the data it had (surely: lower bound)
             s.underrun_scans = max(s.underrun_scans, pos - s.out_written)
+        loop = self._next_loop(total)
+        if loop is not None and self._enter_loop(loop, pos, hi):
+            return
+        stop = loop.at if loop is not None else total  # a planned loop's block goes in whole
         played = min(hi, s.out_written)  # ahead of where the device may be: a slow enable reply costs no margin
         free = (s.plan.out_ahead or s.plan.out_capacity) - (s.out_written - played)
-        n = max(0, min(free, total - s.out_written))
-        if n < s.plan.out_chunk and s.out_written + n < total:
+        n = max(0, min(free, stop - s.out_written))
+        if n < s.plan.out_chunk and s.out_written + n < stop:
             return  # wait until a whole chunk fits
         k = s.out_written - s.out_base
         writes: list[tuple[int, Words]] = [(OUT_BUFFER_U16_0, codes[k:k + n])] if n else []
@@ -98,6 +107,80 @@ class T7StreamOut(T7Connection):
             writes.append((OUT_SET_LOOP0, u32_words(1)))
         if writes:
             self.write_feedback(writes)
+
+    def _next_loop(self, total: int) -> Loop | None:
+        """The looped stretch planned from the next value to write on (searched again when values were given or
+        the search point moved by a block)."""
+        s = self._stream
+        assert s is not None and s.plan.out_codes is not None
+        if s.loop is not None and s.loop.at >= s.out_written:
+            return s.loop
+        s.loop = None
+        ahead = s.plan.out_ahead
+        if not (s.spec.out_loops and ahead and s.plan.out_capacity > ahead):
+            return None
+        at, given = s.loop_searched
+        if given == total and s.out_written - at < ahead:
+            return None
+        s.loop_searched = (s.out_written, total)
+        # a block at least the values kept ahead (a collect or more between a loop's ends: it is left safely),
+        # and small enough that the buffer holds it and a packet of the data after it
+        s.loop = plan_loop(s.plan.out_codes[s.out_written - s.out_base:], s.out_written, ahead,
+                           s.plan.out_capacity - 1 - s.plan.out_chunk)
+        return s.loop
+
+    def _enter_loop(self, loop: Loop, pos: int, hi: int) -> bool:
+        """Write the data up to the loop and its block, LOOP_NUM_VALUES = the block, SET_LOOP: when the buffer
+        holds them all and the device surely has not reached the loop yet. False: not now (a loop the device
+        is about to reach without it is given up: the values are refilled as any others)."""
+        s = self._stream
+        assert s is not None and s.plan.out_codes is not None
+        if self.streaming and hi + s.plan.out_chunk >= loop.at:  # too late to be sure the block arrives first
+            s.loop = None
+            s.loop_searched = (loop.end, s.loop_searched[1])
+            return False
+        if loop.at + loop.block - pos > s.plan.out_capacity:
+            return False
+        k = s.out_written - s.out_base
+        values = s.plan.out_codes[k:loop.at + loop.block - s.out_base]
+        s.out_written = loop.at + loop.block
+        s.looping = True
+        self.write_feedback([(OUT_LOOP0, u32_words(loop.block)), (OUT_BUFFER_U16_0, values),
+                             (OUT_SET_LOOP0, u32_words(1))])
+        return True
+
+    def _leave_loop(self, pos: int, hi: int, total: int) -> None:
+        """While the device repeats the block: in the last repetitions, when the one in progress is surely known
+        (the values at both bounds of the scan clock, and a packet's margin, in the same repetition), write the
+        values after it with SET_LOOP — the T7 plays them when that repetition is complete. A device past the
+        last repetition has played values the program does not have there: an underrun (the run stops)."""
+        s = self._stream
+        assert s is not None and s.loop is not None and s.plan.out_codes is not None
+        loop = s.loop
+        margin = s.plan.out_chunk
+        first = max(0, (pos - 1 - loop.at) // loop.block)  # the repetition the device plays (lower bound) …
+        last = max(0, (hi - 1 + margin - loop.at) // loop.block)  # … and at most, when a request lands
+        if first >= loop.blocks:
+            s.underrun_scans = max(s.underrun_scans, pos - loop.end, 1)
+            return
+        leave_from = loop.blocks - 1 - max(1, (s.plan.out_ahead or s.plan.out_capacity) // loop.block)
+        if first != last or first < leave_from:
+            return
+        e = loop.at + (first + 1) * loop.block  # the device plays the values from e on after this repetition
+        n = min(total - e, s.plan.out_capacity - 1 - loop.block)
+        writes: list[tuple[int, Words]] = []
+        final = e + n == total and s.out_closed
+        assert s.spec.output is not None
+        writes.append((OUT_LOOP0, u32_words(s.spec.output.hold if final else 0)))
+        if n:
+            writes.append((OUT_BUFFER_U16_0, s.plan.out_codes[e - s.out_base:e + n - s.out_base]))
+        writes.append((OUT_SET_LOOP0, u32_words(1)))
+        s.out_written, s.looping, s.loop, s.out_final = e + n, False, None, final
+        self.write_feedback(writes)
+        if self.streaming:  # the request may have landed after the repetition ended: then the program slipped
+            reached = math.floor((self.clock() - s.t0 + s.t0_uncertainty) * s.plan.scan_rate) + 1
+            if reached > e:
+                s.underrun_scans = max(s.underrun_scans, reached - e)
 
     def _checked_out(self, volts: np.ndarray, dac: int) -> np.ndarray:
         """Stream-out values as floats, refused (nothing sent) unless a non-empty finite 1-D array the DAC spans."""

@@ -114,20 +114,24 @@ class PlantCoupling:
     def _codes_volts(self, codes: np.ndarray, ch: int) -> np.ndarray:
         return analog.dac_codes_volts(self.cal, codes, ch)
 
-    def _drive(self, first: int, codes: np.ndarray) -> None:
-        """Amplifier input events for DAC values played at scans ``first``, ``first`` + 1, …"""
+    def _drive(self, first: int, codes: np.ndarray) -> np.ndarray | None:
+        """Amplifier input events for DAC values played at scans ``first``, ``first`` + 1, …; returns the
+        reconstruction filter's output at each (None without a filter)."""
         times = self.t_enable + (first + 1 + np.arange(codes.size)) / self.rate
         volts = self.conditioning(self._codes_volts(codes, self.dac))
         fc = self.conditioning.corner_Hz
+        filtered = None
         if fc is not None and volts.size:  # exact first-order low-pass at the scan instants
             alpha = 1.0 - math.exp(-2.0 * math.pi * fc / self.rate)
             y = self.plant.v_in if self._filter_y is None else self._filter_y
             volts, _ = lfilter([alpha], [1.0, alpha - 1.0], volts, zi=[(1.0 - alpha) * y])
             self._filter_y = float(volts[-1])
+            filtered = volts
         try:
             self.plant.schedule_amplifier_input(times, volts)
         except ValueError as exc:  # cannot happen under the lock order; kept as a check
             self.errors.append(RuntimeError(f"DAC value: {exc}"))
+        return filtered
 
     def _undrive_after(self, t: float) -> None:
         self.plant.unschedule_amplifier_input(t)

@@ -227,6 +227,7 @@ class RegisterIO(StreamEngine):
         its configured DAC value — for a rig, the code of 0 V at the amplifier input); the twin arms the
         plant's input watchdog from those registers as the host writes them (:meth:`_arm_watchdog`)."""
         self.plant.feed_watchdog()
+        self.heard = self.clock.now()
         # The plant's lock first, then ours, and the time read inside both: the plant cannot integrate past
         # ``now`` while the request schedules DAC values from the next scan on (the device plays them on its own
         # clock; a plant that had moved on would take late values as one step, which a T7 never plays).

@@ -230,10 +230,11 @@ class StreamEngine(StreamOut):
         self.recovering, self.skipped = False, 0
         for k in outs:
             o = self.outs[k]
-            o.next_scan, o.sched, o.loop_pos = 0, deque(), 0
+            o.next_scan, o.sched, o.loop_pos, o.anchor = 0, deque(), 0, 0
             o.loop_active = False
             codes, o.queue = np.array(o.queue, np.int64), deque()
             self._schedule(k, codes, now)
+            self._advance_out(k, now)  # a loop's repetitions queued at once: they follow the data without a gap
         self._next_packet_t = self._packet_due()
         return 0
 
@@ -243,7 +244,7 @@ class StreamEngine(StreamOut):
         for k in self._out_indices():
             self._advance_out(k, now)
             o = self.outs[k]
-            unplayed = [int(c) for first, codes in o.sched for c in codes[max(cur + 1 - first, 0):]]
+            unplayed = [int(c) for p in o.sched if not p.loop for c in p.codes[max(cur + 1 - p.first, 0):]]
             o.queue.extendleft(reversed(unplayed))
             o.sched = deque()
         self.streaming = False

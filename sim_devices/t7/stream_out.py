@@ -1,13 +1,26 @@
 """The T7's stream-out: four channels, each a buffer of codes played one per scan on its target DAC.
 
 [D] one buffer value per scan, written to the target when the scan runs; after the data the last LOOP_NUM_VALUES
-values repeat. [A] 0 or 1: the output holds; data written while it loops plays after the repetitions already queued
-(1 s ahead); SET_LOOP 2/3 act as 1; BUFFER_STATUS = bytes not yet played. [L] a command-response write to a DAC that
-stream-out drives changes its register but not the plant.
+values repeat (register map, ljm_constants.json: STREAM_OUT#_LOOP_NUM_VALUES "the number of values, from the end of
+the array, that will be repeated after reaching the end of supplied data array"; T-Series Datasheet §3.2.1
+Stream-Out: "the buffer can be read ... in a looping mode to generate a periodic waveform"). [D] SET_LOOP "controls
+when new data and loop size are used. 1 = use new data immediately" (register map), and LabJack's stream-out update
+example: once values and SET_LOOP are written, "that set of values will continue to be output in order and will not
+be interrupted until their loop is complete. Only once that set of values have been output in their entirety will
+the next set of values that have been set using STREAM_OUT#_SET_LOOP start being used." So, while a loop repeats,
+data written waits; at SET_LOOP it plays from the end of the repetition in progress (the end of the data if the
+loop has not started repeating), and the new LOOP_NUM_VALUES applies after it.
+[A] (the datasheet is silent; chosen to be checked on a real T7): LOOP_NUM_VALUES 0 or 1: the output holds;
+SET_LOOP 2/3 act as 1; BUFFER_STATUS = bytes not yet played, the loop's values counted while it repeats;
+BUFFER_ALLOCATE_NUM_BYTES empties the buffer and forgets the loop (the stream-out is reconfigured); a watchdog
+timeout with a DAC action stops a repeating loop (the DAC takes the watchdog's value, the loop does not overwrite
+it) — the safe reading: the T7's watchdog is the lost-host bound of a looped drive. [L] a command-response write to
+a DAC that stream-out drives changes its register but not the plant.
 """
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from dataclasses import dataclass, field
 
@@ -31,6 +44,18 @@ from sim_devices.t7.registers import (
     R_O_SETLOOP,
     R_O_TARGET,
 )
+from sim_devices.t7.watchdog import Watchdog
+
+
+@dataclass
+class Played:
+    """Codes scheduled from scan ``first`` on: data, or a loop's repetitions; ``y``: the reconstruction filter's
+    output after each (None without a filter), to restart it where a loop is cut."""
+
+    first: int
+    codes: np.ndarray
+    loop: bool = False
+    y: np.ndarray | None = None
 
 
 @dataclass
@@ -41,15 +66,20 @@ class OutChannel:
     alloc: int = 0
     enable: int = 0
     loop_num: int = 0
-    queue: deque[int] = field(default_factory=deque)  # codes written, not yet scheduled (stream stopped)
-    sched: deque[tuple[int, np.ndarray]] = field(default_factory=deque)  # (first scan, codes) not yet played
+    queue: deque[int] = field(default_factory=deque)  # codes written, not yet scheduled (stopped, or waiting on a loop)
+    sched: deque[Played] = field(default_factory=deque)  # codes scheduled, not yet played
     tail: deque[int] = field(default_factory=deque)  # last values written (for the loop)
     loop: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     loop_pos: int = 0
     next_scan: int = 0
     code: int = 0  # last code played
+    y: float | None = None  # the reconstruction filter's output after it (None without a filter)
     underrun_scans: int = 0
-    loop_active: bool = False
+    loop_active: bool = False  # the loop repeats (the data ran out)
+    anchor: int = 0  # scan of the loop's first repetition
+    buffer_writes: int = 0  # write frames (MBFB or FC16) to the buffer register: what a host sent
+    values_written: int = 0  # values those frames carried
+    loops_set: int = 0  # SET_LOOP writes that set a loop of more than one value (a repeating waveform)
 
 
 
@@ -57,12 +87,14 @@ class StreamOut(PlantCoupling):
     """Stream-out channels: their registers, buffers and the codes they schedule on the amplifier input."""
 
     regs: dict[int, float]
+    watchdog: Watchdog
     dac_volts: list[float]
     scanlist: list[int]
     last_err: int
 
     def _init_stream_out(self) -> None:
         self.outs = [OutChannel() for _ in range(4)]
+        self.heard = self.clock.now()  # rig time of the last request (the watchdog counts from it)
 
     def _fail(self, code: int) -> ExcCodes:
         """Refuse with Modbus exception 4, the LabJack error code in LAST_ERR_DETAIL."""
@@ -73,7 +105,7 @@ class StreamOut(PlantCoupling):
         n = int(self.regs[R_NADDR])
         return [a - R_O_SCAN for a in self.scanlist[:n] if R_O_SCAN <= a < R_O_SCAN + 4]
 
-    def _schedule(self, k: int, codes: np.ndarray, now: float) -> None:
+    def _schedule(self, k: int, codes: np.ndarray, now: float, loop: bool = False) -> None:
         """Give stream-out ``k`` these codes at its next scans (after an underrun: from the next scan on)."""
         if not codes.size:
             return
@@ -81,40 +113,75 @@ class StreamOut(PlantCoupling):
         start = max(o.next_scan, self._cur_scan(now) + 1)
         if start > o.next_scan and not o.loop_active:
             o.underrun_scans += start - o.next_scan
-        o.sched.append((start, codes))
+        y = self._drive(start, codes) if o.target == R_DAC + 2 * self.dac else None
+        o.sched.append(Played(start, codes, loop, y))
         o.next_scan = start + codes.size
-        if o.target == R_DAC + 2 * self.dac:
-            self._drive(start, codes)
 
     def _level(self, k: int, now: float) -> int:
         o = self.outs[k]
         if not self.streaming:
             return len(o.queue)
         cur = self._cur_scan(now)
-        # scheduled scans after ``cur`` are contiguous up to next_scan − 1 (a gap only follows an underrun,
-        # and then every earlier scan has been played)
-        return max(0, min(sum(c.size for _, c in o.sched), o.next_scan - 1 - cur))
+        data = sum(max(0, min(p.codes.size, p.first + p.codes.size - 1 - cur)) for p in o.sched if not p.loop)
+        return data + len(o.queue) + (o.loop.size if o.loop_active and o.loop.size > 1 else 0)
 
 
     def _advance_out(self, k: int, now: float) -> None:
         o = self.outs[k]
         cur = self._cur_scan(now)
-        while o.sched and o.sched[0][0] <= cur:  # the codes played by now; the last one is the output
-            first, codes = o.sched[0]
-            played = min(cur - first + 1, codes.size)
-            o.code = int(codes[played - 1])
-            if played < codes.size:
-                o.sched[0] = (first + played, codes[played:])
+        while o.sched and o.sched[0].first <= cur:  # the codes played by now; the last one is the output
+            p = o.sched[0]
+            played = min(cur - p.first + 1, p.codes.size)
+            o.code = int(p.codes[played - 1])
+            o.y = None if p.y is None else float(p.y[played - 1])
+            if played < p.codes.size:
+                o.sched[0] = Played(p.first + played, p.codes[played:], p.loop,
+                                    None if p.y is None else p.y[played:])
                 break
             o.sched.popleft()
         if o.target in (R_DAC, R_DAC + 2):
             self.dac_volts[(o.target - R_DAC) // 2] = self._code_volts(o.code, (o.target - R_DAC) // 2)
-        if o.loop.size > 1 and o.next_scan <= cur + int(self.rate):  # periodic loop: keep 1 s queued
-            o.loop_active = True
-            n = cur + 2 * int(self.rate) - o.next_scan
-            codes = o.loop[(o.loop_pos + np.arange(n)) % o.loop.size]
-            o.loop_pos = (o.loop_pos + n) % o.loop.size
-            self._schedule(k, codes, now)
+        if o.loop.size > 1 and o.next_scan <= cur + int(self.rate):  # periodic loop: keep 1–2 s queued
+            end = cur + 2 * int(self.rate)
+            act = self.watchdog.action(self.dac) if o.target == R_DAC + 2 * self.dac else None
+            if act is not None:  # [A] the watchdog's timeout stops the loop: nothing queued past it
+                deadline = self.heard + act[0]
+                if deadline <= now:
+                    o.loop, o.loop_active = np.zeros(0, np.int64), False
+                    return
+                end = min(end, math.ceil((deadline - self.t_enable) * self.rate) - 1)  # scans played before it
+            if not o.loop_active:
+                o.loop_active, o.anchor = True, max(o.next_scan, cur + 1)
+            n = end - o.next_scan
+            if n > 0:
+                codes = o.loop[(o.loop_pos + np.arange(n)) % o.loop.size]
+                o.loop_pos = (o.loop_pos + n) % o.loop.size
+                self._schedule(k, codes, now, loop=True)
+
+    def _cut_loop(self, k: int, now: float) -> None:
+        """SET_LOOP while a loop repeats: drop its repetitions after the one in progress (LabJack: a loop is not
+        interrupted until it is complete); the data waiting in the queue plays from there."""
+        o = self.outs[k]
+        cur = self._cur_scan(now)
+        size = o.loop.size
+        b = o.anchor if cur < o.anchor else o.anchor + size * ((cur - o.anchor) // size + 1)
+        kept: deque[Played] = deque()
+        y_end = o.y  # the filter's state after scan b − 1: the last code played, or the last one kept below
+        for p in o.sched:
+            if p.first >= b:
+                break
+            n = min(p.codes.size, b - p.first)
+            kept.append(Played(p.first, p.codes[:n], p.loop, None if p.y is None else p.y[:n]))
+            if p.y is not None and n:
+                y_end = float(p.y[n - 1])
+        o.sched, o.next_scan = kept, b
+        if o.target == R_DAC + 2 * self.dac:
+            self._undrive_after(self.t_enable + b / self.rate)  # scan b − 1 plays at t_enable + b / rate
+            if y_end is not None:
+                self._filter_y = y_end
+        o.loop_active, o.loop_pos = False, 0
+        codes, o.queue = np.array(o.queue, np.int64), deque()
+        self._schedule(k, codes, now)
 
 
     def _apply_out(self, a: int, value: int, now: float) -> ExcCodes | None:
@@ -129,6 +196,7 @@ class StreamOut(PlantCoupling):
             if value < 32 or value & (value - 1) or value > 16384:
                 return self._fail(E_BUFSIZE)
             o.alloc, o.queue, o.tail = value, deque(), deque(maxlen=value // 2 - 1)
+            o.loop, o.loop_active = np.zeros(0, np.int64), False
         elif base == R_O_ENABLE:
             o.enable = int(bool(value))
         elif not o.enable:
@@ -138,8 +206,15 @@ class StreamOut(PlantCoupling):
                 return self._fail(E_LOOP_BIG)
             o.loop_num = value
         elif base == R_O_SETLOOP:
+            if self.streaming and o.loop_active and k in self._out_indices():
+                self._advance_out(k, now)
+                if o.loop_active:  # still repeating (a watchdog timeout stops it)
+                    self._cut_loop(k, now)
             o.loop = np.array(list(o.tail)[len(o.tail) - o.loop_num:] if o.loop_num else [], np.int64)
             o.loop_pos = 0
+            o.loops_set += o.loop.size > 1
+            if self.streaming and k in self._out_indices():
+                self._advance_out(k, now)  # repetitions queued at once: they follow the data without a gap
         else:
             return ExcCodes.ILLEGAL_ADDRESS
         return None
@@ -153,7 +228,12 @@ class StreamOut(PlantCoupling):
         room = o.alloc // 2 - 1 - self._level(k, now)
         take = codes[:max(room, 0)]
         o.tail.extend(take)
-        if self.streaming and k in self._out_indices():
+        o.buffer_writes += 1
+        o.values_written += len(take)
+        if self.streaming and k in self._out_indices() and o.loop_active and o.loop.size > 1:
+            self._advance_out(k, now)
+            o.queue.extend(take)  # waits for SET_LOOP: the loop in progress is not interrupted
+        elif self.streaming and k in self._out_indices():
             self._advance_out(k, now)
             self._schedule(k, np.array(take, np.int64), now)
         else:
