@@ -20,7 +20,7 @@ if TYPE_CHECKING:
 # order: that error is h_fine/(h_coarse - h_fine) of the shift). On the short isotonic twin run a 1-ms fine step's
 # optimum was 24x that shift away from the exact model's in mu (13x in Jm) and every start's polish ended in a worse
 # optimum (mu +10 %, Jm x2.3) whose intervals excluded the truth; at 0.2 ms (two 10-kHz scans: whole monitor samples
-# per step) the error is under 0.6 of the shift for every parameter and the intervals hold the truth, for 3.8x the
+# per step) the error is under 0.6 of the shift for every parameter and the intervals hold the truth, for 2-4x the
 # fit's time (0.1 ms: 8x). Tests: tests/test_identify_lsdea_monitor.py.
 LSDEA_SEARCH_STEP = 2e-3
 LSDEA_FINE_STEP = 2e-4
