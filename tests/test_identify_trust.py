@@ -126,14 +126,14 @@ def test_a_measured_sample_drives_the_step_it_ends() -> None:
     """A monitor sample at t reads the output up to t: the model step (t − h, t] gets the mean of the samples in
     it, not (as a command set at t) the step after. Samples every 1 ms of a ramp v = 1000·t, steps of 1 ms and
     of 2 ms; before the first sample the input is 0."""
-    from bench.identify.problems import _step_means
+    from bench.identify.monitor import step_means
 
     ts = np.arange(1, 11) * 1e-3
     v = 1000.0 * ts
-    assert _step_means(ts, v, ts, 1e-3) == pytest.approx(v)  # step ending at t_k: the sample at t_k
+    assert step_means(ts, v, ts, 1e-3) == pytest.approx(v)  # step ending at t_k: the sample at t_k
     steps = np.arange(1, 6) * 2e-3
-    assert _step_means(ts, v, steps, 2e-3) == pytest.approx([1.5, 3.5, 5.5, 7.5, 9.5])  # mean of 2 samples
-    assert _step_means(ts, v, np.array([0.5e-3, 10.5e-3]), 0.2e-3) == pytest.approx([0.0, 10.0])  # held
+    assert step_means(ts, v, steps, 2e-3) == pytest.approx([1.5, 3.5, 5.5, 7.5, 9.5])  # mean of 2 samples
+    assert step_means(ts, v, np.array([0.5e-3, 10.5e-3]), 0.2e-3) == pytest.approx([0.0, 10.0])  # held
 
 
 def test_the_kernel_applies_a_per_candidate_voltage_calibration() -> None:

@@ -14,6 +14,18 @@ if TYPE_CHECKING:
     from bench.identify.core import FitResult, FitSettings, Problem, RecordedProblem
 
 
+# LS-DEA integration steps [s]: the search's (coarse) and the polish's and intervals' (fine). The scheme is first
+# order (bench.models.lozenge.lozenge_step), and the intervals are widened by the optimum's shift from the fine to the
+# coarse step, which holds the fine step's own error only when the fine step is well below the coarse one (first
+# order: that error is h_fine/(h_coarse - h_fine) of the shift). On the short isotonic twin run a 1-ms fine step's
+# optimum was 24x that shift away from the exact model's in mu (13x in Jm) and every start's polish ended in a worse
+# optimum (mu +10 %, Jm x2.3) whose intervals excluded the truth; at 0.2 ms (two 10-kHz scans: whole monitor samples
+# per step) the error is under 0.6 of the shift for every parameter and the intervals hold the truth, for 2-4x the
+# fit's time (0.1 ms: 8x). Tests: tests/test_identify_lsdea_monitor.py.
+LSDEA_SEARCH_STEP = 2e-3
+LSDEA_FINE_STEP = 2e-4
+
+
 @dataclass
 class Fitted:
     """A fit: the result, the (coarse) problem it was searched on (it holds the compared data), the campaign's
@@ -82,7 +94,8 @@ def fit_runs(runs: list[Path], model: str, settings: FitSettings, *, branches: i
     if model == "membrane":
         coarse, fine = MembraneProblem(files, h=5e-4), MembraneProblem(files, h=1e-4)
     else:
-        coarse, fine = LozengeProblem(files, branches=branches, h=2e-3), LozengeProblem(files, branches=branches)
+        coarse = LozengeProblem(files, branches=branches, h=LSDEA_SEARCH_STEP)
+        fine = LozengeProblem(files, branches=branches, h=LSDEA_FINE_STEP)
     if on_read is not None:
         on_read(coarse)
     total = settings.generations * max(settings.starts, 1)  # progress is called at each generation of each start

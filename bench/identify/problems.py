@@ -13,6 +13,10 @@
 * :class:`LozengeProblem` — LS-DEA material: Gent–Gent μ, Jm, C2, K Maxwell branches (μ_k, τ_k) and the
   lumped damper c. Data: the load-cell force of motor / blocked runs (aperture from the encoder imposed on
   the model) or the laser aperture of hung-mass runs; one record per stretch of constant prototype and mass.
+  On a measured voltage, the same two calibration parameters follow the material's.
+
+A measured voltage drives the model step its samples end (:mod:`bench.identify.monitor`); the membrane's is smoothed
+over 1 ms.
 """
 
 from __future__ import annotations
@@ -27,6 +31,8 @@ import numpy as np
 
 from bench.analysis.applied import applied_voltage
 from bench.identify.core import noise_of, to_optimiser, to_physical
+from bench.identify.monitor import CALIBRATION as CALIBRATION  # the problems' parameter names, as before
+from bench.identify.monitor import MonitorCalibration, voltage_per_step
 from bench.models.integrate import MODEL_MEMBRANE, OBSERVE_FORCE, run_fixed_batch
 from bench.models.lozenge import MODE_HUNG, MODE_IMPOSED, PROTOTYPE_LAMBDA2P, LozengeParams, MaxwellBranch
 from bench.models.lozenge_batch import lozenge_batch
@@ -34,33 +40,12 @@ from bench.models.membrane import MembraneParams
 from bench.models.membrane_batch import membrane_batch_records
 from bench.storage.runfile import RunFile, open_run
 
-CALIBRATION = ["V_gain", "V_offset"]  # the voltage monitor's calibration (membrane fits on a measured input)
-
 if TYPE_CHECKING:
     from distributed import Client
 
     from bench.identify.distributed import DistributedPredict
 
 J_BOUNDS = ((100.0, 400.0), (200.0, 500.0), (300.0, 600.0), (400.0, 700.0), (500.0, 800.0))
-
-
-def _hold(t_set: np.ndarray, v_set: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """Zero-order hold: the value set at or before each time (the step ending at a set time sees the old one)."""
-    i = np.searchsorted(t_set, t - 1e-9, side="left") - 1
-    held: np.ndarray = np.where(i >= 0, v_set[np.clip(i, 0, None)], 0.0)
-    return held
-
-
-def _step_means(t_samples: np.ndarray, values: np.ndarray, t_steps: np.ndarray, h: float) -> np.ndarray:
-    """A *sampled* input per model step: the mean of the samples in the step (t − h, t] — a sample at t reads what
-    the output was up to t, so it belongs to the step that ends there, not (as a command set at t) to the next
-    one —; a step without a sample holds the last sample before it (0 before the first)."""
-    c = np.concatenate([[0.0], np.cumsum(values)])
-    hi = np.searchsorted(t_samples, t_steps + 1e-9, side="right")
-    lo = np.searchsorted(t_samples, t_steps - h + 1e-9, side="right")
-    count = hi - lo
-    held = np.where(hi > 0, values[np.clip(hi - 1, 0, None)], 0.0)
-    return np.where(count > 0, (c[hi] - c[lo]) / np.maximum(count, 1), held)
 
 
 def _sampled(t_grid: np.ndarray, t_data: np.ndarray, values: np.ndarray) -> np.ndarray:
@@ -133,21 +118,7 @@ class _Record:
     measured: bool = False  # the voltage input is the amplifier's monitor (its calibration applies)
 
 
-def monitor_accuracy(run: RunFile) -> tuple[float, float]:
-    """(DC accuracy as a fraction of full scale, full scale [V]) of the voltage monitor of the run's amplifier
-    (the rig file stored in the run; the model's datasheet figures, :data:`bench.core.noise.TREK_DYNAMICS`)."""
-    from bench.core.noise import TREK_DYNAMICS
-    from bench.rig import amplifier_spec, rig_from_toml
-
-    try:
-        spec = amplifier_spec(rig_from_toml(run.attrs["rig_toml"]))
-    except (KeyError, ValueError) as exc:  # no rig stored, or one today's rig schema refuses (pydantic: ValueError)
-        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise ValueError(f"run file {run.path}: its recorded rig cannot be read ({first})") from None
-    return TREK_DYNAMICS[spec.model].vmon_accuracy, float(spec.max_output)
-
-
-class MembraneProblem:
+class MembraneProblem(MonitorCalibration):
     """Thesis membrane identification from laser records."""
 
     def __init__(self, paths: list[str | Path], h: float = 5e-4, data_rate: float = 100.0,
@@ -180,20 +151,11 @@ class MembraneProblem:
         self.upper = np.array([500e3, 400.0] + [500e3] * 4 + [b[1] for b in J_BOUNDS[1:]] + [np.log10(20.0)] * 4)
         self.log = np.array([False] * 10 + [True] * 4)
         self.template: MembraneParams | None = None
-        self.accuracy: tuple[float, float] | None = None  # the voltage monitor's (accuracy, full scale)
-        self.rig_toml = ""  # the rig file stored in the first run
         for path in paths:
             self._add(open_run(path), str(path))
         if not self.records:
             raise ValueError("no membrane records with laser data in the given run files")
-        self.n_model = len(self.names)  # the specimen's parameters; then the monitor's calibration, if any
-        if self.accuracy is not None:
-            acc, full = self.accuracy
-            self.names += CALIBRATION
-            self.units += ["-", "V"]
-            self.lower = np.concatenate([self.lower, [-acc, -acc * full]])
-            self.upper = np.concatenate([self.upper, [acc, acc * full]])
-            self.log = np.concatenate([self.log, [False, False]])
+        self._add_calibration()
         self.data = np.concatenate([r.data for r in self.records])
         # noise model: each record's σ from its own high-frequency content (core.noise_of)
         self.sigma = np.concatenate([np.full(r.data.size, noise_of(r.data)) for r in self.records])
@@ -208,7 +170,6 @@ class MembraneProblem:
         fields: dict[str, Any] = {k: tuple(v) if isinstance(v, list) else v for k, v in model.items()}  # JSON
         params = MembraneParams(**fields)
         self.template = self.template or params
-        self.rig_toml = self.rig_toml or str(run.attrs["rig_toml"])
         stride = max(1, round(1.0 / (self.data_rate * self.h)))
         sp = applied_voltage(run, measured=True)
         T0 = spec.get("overrides", {}).get("temperature_K") or spec.get("temperature_K", 296.0)
@@ -218,12 +179,7 @@ class MembraneProblem:
         sample = _window_means if self.average else _sampled
         windows = _record_windows(sp.t, sp.v, run.updated, self.split_rest, self.keep_rest)
         measured = sp.source == "measured"
-        if measured:
-            acc = monitor_accuracy(run)
-            if self.accuracy is not None and self.accuracy != acc:
-                raise ValueError(f"run file {source}: its amplifier's voltage monitor differs from the other "
-                                 "files' (one calibration is fitted): fit them separately")
-            self.accuracy = acc
+        self._note_run(run, source, measured)
         for a, b in windows:
             n = int(np.floor((b - a) / self.h + 1e-9))
             n -= n % stride
@@ -231,12 +187,7 @@ class MembraneProblem:
                 continue
             t_steps = a + np.arange(1, n + 1) * self.h
             U = np.empty((n, 2))
-            # commanded set-points hold from when they were set; monitor samples belong to the step they end
-            U[:, 0] = _step_means(sp.t, sp.v, t_steps, self.h) if measured else _hold(sp.t, sp.v, t_steps)
-            if measured and self.input_smoothing_s > 0:
-                from scipy.ndimage import gaussian_filter1d
-
-                U[:, 0] = gaussian_filter1d(U[:, 0], self.input_smoothing_s / self.h, mode="nearest")
+            U[:, 0] = voltage_per_step(sp, t_steps, self.h, self.input_smoothing_s)
             U[:, 1] = T0
             for te, T in changes:
                 U[t_steps > te, 1] = T
@@ -258,20 +209,6 @@ class MembraneProblem:
         mu, J, tau = tuple(v[2:6]), tuple(v[6:10]), tuple(v[10:14])
         return self.recorded.with_units(float(v[0]), float(v[1]), mu, J,
                                         tuple(m * t for m, t in zip(mu, tau, strict=True)))
-
-    def calibration(self, Z: np.ndarray) -> np.ndarray | None:
-        """(records, rows of Z, 2): each record's voltage input correction per row, offset [V] and inverse gain
-        (the identity on a set-point input, or where Z has no calibration columns); None: none anywhere."""
-        Z = np.atleast_2d(Z)
-        if Z.shape[1] <= self.n_model or not any(r.measured for r in self.records):
-            return None
-        cal = np.empty((len(self.records), Z.shape[0], 2))
-        cal[:] = (0.0, 1.0)
-        for i, r in enumerate(self.records):
-            if r.measured:
-                cal[i, :, 0] = Z[:, self.n_model + 1]
-                cal[i, :, 1] = 1.0 / (1.0 + Z[:, self.n_model])
-        return cal
 
     def predict(self, Z: np.ndarray) -> np.ndarray:
         """Displacements u [m] for each row of Z, all records concatenated (one parallel batch per record). Rows of
@@ -331,35 +268,26 @@ class MembraneProblem:
         return dict(zip(self.names[:self.n_model], (float(x) for x in (t.mu0, t.J0, *t.mu, *t.J, *t.tau)),
                         strict=True))
 
-    def simulated_calibration(self) -> dict[str, float]:
-        """On a simulated rig with noise, the voltage monitor's errors its twin drew from the rig's seed
-        (:func:`bench.core.amplifier_dynamics.monitors`), by parameter name; empty on a real rig, without noise or
-        without the calibration parameters."""
-        from bench.core.amplifier_dynamics import monitors
-        from bench.core.noise import TREK_DYNAMICS, Realism
-        from bench.rig import amplifier_spec, rig_from_toml
-
-        rig = rig_from_toml(self.rig_toml)
-        if not rig.simulated or not rig.simulation.noise or CALIBRATION[0] not in self.names:
-            return {}
-        spec = amplifier_spec(rig)
-        vm, _ = monitors(TREK_DYNAMICS[spec.model], spec.max_output, spec.max_current,
-                         Realism(noise=True, seed=rig.simulation.seed))
-        return {CALIBRATION[0]: vm.gain_error, CALIBRATION[1]: vm.offset}
-
     def start(self) -> np.ndarray:
         """Optimiser vector of the recorded specimen's parameters (thesis Table 4.4 unless the run says otherwise),
         the monitor's calibration at its nominal (no error)."""
-        v = list(self.reference().values()) + [0.0] * (len(self.names) - self.n_model)
-        start: np.ndarray = np.clip(to_optimiser(self.log, np.array(v)), self.lower, self.upper)
+        model = to_optimiser(self.log[:self.n_model], np.array(list(self.reference().values())))
+        start: np.ndarray = np.clip(self._with_nominal_calibration(model), self.lower, self.upper)
         return start
 
 
-class LozengeProblem:
+class LozengeProblem(MonitorCalibration):
     """LS-DEA material identification from load-cell or laser records."""
 
-    def __init__(self, paths: list[str | Path], branches: int = 1, h: float = 1e-3, data_rate: float = 50.0) -> None:
+    def __init__(self, paths: list[str | Path], branches: int = 1, h: float = 1e-3, data_rate: float = 50.0,
+                 input_smoothing_s: float = 0.0) -> None:
+        """``input_smoothing_s``: σ of a zero-phase Gaussian over a measured voltage
+        (:func:`bench.identify.monitor.voltage_per_step`); 0, the default: as recorded. Unlike the membrane's, the
+        LS-DEA's response hardly sees the monitor's noise (the force goes through the mass and the load cell),
+        while a Gaussian of σ attenuates a drive of frequency f by (2πfσ)²/2 — 1.5e-4 at 2.75 Hz for 1 ms, 2e-3
+        at 10 Hz, twice that in the force ∝ V² —, a bias the laser of a hung-mass record resolves."""
         self.h, self.data_rate, self.K = h, data_rate, branches
+        self.input_smoothing_s = input_smoothing_s
         self.names = ["mu", "Jm", "C2"] + [f"mu_b{k + 1}" for k in range(branches)] + \
             [f"tau_b{k + 1}" for k in range(branches)] + ["c"]
         self.units = ["Pa", "-", "Pa"] + ["Pa"] * branches + ["s"] * branches + ["N·s/m"]
@@ -372,6 +300,7 @@ class LozengeProblem:
             self._add(open_run(path), str(path))
         if not self.records:
             raise ValueError("no LS-DEA records in the given run files")
+        self._add_calibration()
         self.data = np.concatenate([r.data for r in self.records])
         self.sigma = np.concatenate([np.full(r.data.size, noise_of(r.data)) for r in self.records])
         # the Maxwell branches are interchangeable (μ_b, τ_b; τ last): the fit numbers them by τ
@@ -394,6 +323,8 @@ class LozengeProblem:
         changes = run.specimen_changes()
         cuts = sorted({0.0, *[t for t, _ in changes], run.updated})
         sp = applied_voltage(run, measured=True)
+        measured = sp.source == "measured"
+        self._note_run(run, source, measured)
         stride = max(1, round(1.0 / (self.data_rate * self.h)))
         proto, mass = base.lambda2p, base.hung_mass
         for a, b in itertools.pairwise(cuts):
@@ -407,7 +338,7 @@ class LozengeProblem:
                 continue
             t_steps = a + np.arange(0, n + 1) * self.h
             U = np.zeros((n + 1, 3))
-            U[:, 0] = _hold(sp.t, sp.v, t_steps)
+            U[:, 0] = voltage_per_step(sp, t_steps, self.h, self.input_smoothing_s)
             params = replace(base, lambda2p=proto, hung_mass=mass)
             if config == "hung":
                 laser = run.streams["laser"]
@@ -421,7 +352,8 @@ class LozengeProblem:
                 U[:, 2] = np.gradient(U[:, 1], t_steps)
                 mode, y0 = MODE_IMPOSED, params.relaxed_state(float(U[0, 1]))
                 data = _sampled(t_steps[::stride], lc.t, lc.columns["force"])  # "ok" means stable, not valid
-            self.records.append(_Record(U[1:], y0, params.pack(mode), stride, data, f"{source} [{a:.1f}, {b:.1f}] s"))
+            self.records.append(_Record(U[1:], y0, params.pack(mode), stride, data, f"{source} [{a:.1f}, {b:.1f}] s",
+                                        measured))
         self._mode_channel = 0 if config == "hung" else OBSERVE_FORCE
 
     def params_of(self, z: np.ndarray, template: LozengeParams | None = None) -> LozengeParams:
@@ -436,26 +368,28 @@ class LozengeProblem:
         return replace(base, material=material, branches=branches, damping=float(v[3 + 2 * K]))
 
     def predict(self, Z: np.ndarray) -> np.ndarray:
-        """Forces [N] (motor / blocked) or apertures [m] (hung) for each row of Z, records concatenated."""
+        """Forces [N] (motor / blocked) or apertures [m] (hung) for each row of Z, records concatenated. Rows of the
+        specimen's parameters only (a fit stored before the calibration was fitted) take the input as recorded."""
         Z = np.atleast_2d(Z)
+        cal = self.calibration(Z)
         out = []
-        for rec in self.records:
+        for i, rec in enumerate(self.records):
             mode = int(rec.template[16])  # Q_MODE
             lam2p = float(rec.template[10])  # Q_L2P
             mass = float(rec.template[13])  # Q_MHUNG
             P = np.stack([replace(self.params_of(z), lambda2p=lam2p, hung_mass=mass).pack(mode) for z in Z])
             Y0 = np.tile(rec.y0, (Z.shape[0], 1))
             channel = 0 if mode == MODE_HUNG else OBSERVE_FORCE
-            out.append(lozenge_batch(P, Y0, rec.U, self.h, channel, rec.stride))
+            out.append(lozenge_batch(P, Y0, rec.U, self.h, channel, rec.stride, None if cal is None else cal[i]))
         return np.concatenate(out, axis=1)
 
     def start(self) -> np.ndarray:
-        """Optimiser vector of Table 1 + VE-A (the defaults)."""
+        """Optimiser vector of Table 1 + VE-A (the defaults), the monitor's calibration at its nominal (no error)."""
         b = LozengeParams()
         m = b.material
         z = [m.mu, m.Jm, m.C2] + [np.log10(b.branches[0].mu)] * self.K + [np.log10(b.branches[0].tau)] * self.K + \
             [b.damping]
-        start: np.ndarray = np.clip(np.array(z, float), self.lower, self.upper)
+        start: np.ndarray = np.clip(self._with_nominal_calibration(np.array(z, float)), self.lower, self.upper)
         return start
 
 

@@ -5,6 +5,7 @@ The LS-DEA identification's inner loop, as :mod:`bench.models.membrane_batch` is
 Euler for a hung mass), with the state stored structure-of-arrays and every loop running over the candidates
 (for the branches: over (branch, candidate) pairs, branch-major), innermost, so that LLVM makes SIMD loops of
 them (exp/log from :mod:`bench.models.vecmath`). Threads split the candidates into chunks of whole registers.
+A per-candidate input calibration (offset, inverse gain) corrects a measured voltage.
 
 A candidate that leaves the model's domain (aperture outside (0, 2l), Gent lock-up, non-finite) is marked dead,
 reset to a harmless state and outputs NaN from that step on, as with the scalar kernel
@@ -64,15 +65,18 @@ def _force(x: float, v: float, V: float, l1: float, l2: float, yy: float, s1: fl
 
 
 @njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy")
-def _chunk(P: np.ndarray, Y0: np.ndarray, U: np.ndarray, h: float, stride: int, channel: int,
+def _chunk(P: np.ndarray, Y0: np.ndarray, U: np.ndarray, cal: np.ndarray, h: float, stride: int, channel: int,
            out: np.ndarray) -> None:
-    """Integrate the candidates of one chunk (rows of P, Y0; one mode) and write the output channel (a state
-    component, or -1: the force) every ``stride`` steps into ``out``."""
+    """Integrate the candidates of one chunk (rows of P, Y0; one mode; ``cal`` rows: the voltage input's offset
+    and inverse gain, V = (U − offset)·inverse gain) and write the output channel (a state component, or -1: the
+    force) every ``stride`` steps into ``out``."""
     c_in = P.shape[0]
     c = max(LANES, -(-c_in // LANES) * LANES)
     src = np.minimum(np.arange(c), c_in - 1)
     P = P[src]
     Y0 = Y0[src]
+    off = cal[src, 0].copy()
+    igain = cal[src, 1].copy()
     K = int(P[0, Q_K])
     hung = int(P[0, Q_MODE]) == MODE_HUNG
     n = U.shape[0]
@@ -182,7 +186,8 @@ def _chunk(P: np.ndarray, Y0: np.ndarray, U: np.ndarray, h: float, stride: int, 
             for j in range(c):  # hung mass: symplectic Euler
                 x = X[j]
                 v = Vx[j]
-                F = _force(x, v, V, l1[j], l2[j], yy[j], s1[j], s2[j], mu[j], Jm[j], C2[j], om[j], l1_x[j],
+                Vj = (V - off[j]) * igain[j]  # the output the monitor's reading stands for
+                F = _force(x, v, Vj, l1[j], l2[j], yy[j], s1[j], s2[j], mu[j], Jm[j], C2[j], om[j], l1_x[j],
                            l2p_yp[j], kc[j], l[j], damp[j])
                 D = 4.0 * l[j] * l[j] - x * x
                 alpha = 0.5 if half[j] else 9.0 / 32.0 + (5.0 * l[j] * l[j] / 24.0 + x * x / 32.0) / D
@@ -210,7 +215,8 @@ def _chunk(P: np.ndarray, Y0: np.ndarray, U: np.ndarray, h: float, stride: int, 
             col = (k + 1) // stride
             for j in range(c_in):
                 if want_force:
-                    val = _force(X[j], Vx[j], V, l1[j], l2[j], yy[j], s1[j], s2[j], mu[j], Jm[j], C2[j], om[j],
+                    Vj = (V - off[j]) * igain[j]
+                    val = _force(X[j], Vx[j], Vj, l1[j], l2[j], yy[j], s1[j], s2[j], mu[j], Jm[j], C2[j], om[j],
                                  l1_x[j], l2p_yp[j], kc[j], l[j], damp[j])
                 else:
                     val = X[j] if channel == 0 else Vx[j]
@@ -218,17 +224,21 @@ def _chunk(P: np.ndarray, Y0: np.ndarray, U: np.ndarray, h: float, stride: int, 
 
 
 @njit(cache=True, parallel=True)
-def _batch(P: np.ndarray, Y0: np.ndarray, U: np.ndarray, h: float, stride: int, channel: int,
+def _batch(P: np.ndarray, Y0: np.ndarray, U: np.ndarray, cal: np.ndarray, h: float, stride: int, channel: int,
            tasks: np.ndarray, out: np.ndarray) -> None:
-    """Run the tasks (:func:`bench.models.batch_plan.plan`) in parallel; Y0 is (candidates, state)."""
+    """Run the tasks (:func:`bench.models.batch_plan.plan`) in parallel; Y0 is (candidates, state), cal
+    (candidates, 2)."""
     for s in prange(tasks.shape[0]):
         _, u0, u1, c0, c1, a, b = tasks[s]
-        _chunk(P[a:b], Y0[a:b], U[u0:u1], h, stride, channel, out[a:b, c0:c1])
+        _chunk(P[a:b], Y0[a:b], U[u0:u1], cal[a:b], h, stride, channel, out[a:b, c0:c1])
 
 
-def lozenge_batch(P: np.ndarray, Y0: np.ndarray, U: np.ndarray, h: float, channel: int, stride: int) -> np.ndarray:
+def lozenge_batch(P: np.ndarray, Y0: np.ndarray, U: np.ndarray, h: float, channel: int, stride: int,
+                  cal: np.ndarray | None = None) -> np.ndarray:
     """Same contract as ``run_fixed_batch(MODEL_LOZENGE, Y0, U, h, P, channel, stride)`` (channel 0 or 1: a
-    state component, OBSERVE_FORCE = −1: the force), for parameter sets of one mode (that of P's first row)."""
+    state component, OBSERVE_FORCE = −1: the force), for parameter sets of one mode (that of P's first row).
+    ``cal``: per set (len(P), 2) the voltage input's calibration, offset [V] and inverse gain — the specimen sees
+    (U − offset)·inverse gain (None: as recorded)."""
     P = np.ascontiguousarray(P, dtype=np.float64)
     Y0 = np.ascontiguousarray(Y0, dtype=np.float64)
     U = np.ascontiguousarray(U, dtype=np.float64)
@@ -239,7 +249,10 @@ def lozenge_batch(P: np.ndarray, Y0: np.ndarray, U: np.ndarray, h: float, channe
     if channel == -1 and int(P[0, Q_MODE]) == MODE_HUNG:
         raise ValueError("lozenge_batch: the force is an output of the imposed mode only (hung: channel 0 or 1)")
     m = P.shape[0]
+    if cal is None:
+        cal = np.broadcast_to(np.array([0.0, 1.0]), (m, 2))
+    cal = np.ascontiguousarray(np.broadcast_to(cal, (m, 2)), dtype=np.float64)
     tasks, columns = plan(m, [U.shape[0]], stride, numba.get_num_threads())
     out = np.full((m, columns), np.nan)
-    _batch(P, Y0, U, float(h), int(stride), int(channel), tasks, out)
+    _batch(P, Y0, U, cal, float(h), int(stride), int(channel), tasks, out)
     return out
