@@ -75,7 +75,8 @@ def cluster(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Cluster]:
     catch.emit = ours.append  # type: ignore[method-assign]
     logging.getLogger("distributed").addHandler(catch)
     processes = {"scheduler": _start(logs, "scheduler", "distributed.cli.dask_scheduler", "--host", "127.0.0.1",
-                                     "--port", "0", "--no-dashboard", "--scheduler-file", str(file))}
+                                     "--port", "0", "--no-dashboard", "--dashboard-address", "127.0.0.1:0",
+                                     "--scheduler-file", str(file))}
     try:
         address = _address(file, processes)
         assert address.startswith("tcp://127.0.0.1:")
