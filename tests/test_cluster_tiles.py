@@ -54,3 +54,7 @@ def test_a_generation_of_fifty_finishes_near_the_even_share(threads: int) -> Non
     assert _makespan([tile_cost(CAMPAIGN, t) for t in plan], threads) <= 1.15 * bound
     if threads >= 8:  # split by record alone (the old plan: a task per record), the longest one sets the pace
         assert _makespan(sorted((regs * n for n in CAMPAIGN), reverse=True), threads) > 1.5 * bound
+
+
+def test_no_candidates_no_tiles() -> None:
+    assert tiles(0, CAMPAIGN, 4) == [] and tiles(50, [], 4) == []

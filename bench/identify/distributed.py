@@ -58,8 +58,10 @@ def tiles(m: int, steps: Sequence[int], threads: int, per_thread: int = TILES_PE
     the candidates (chunks of whole registers, :func:`bench.models.batch_plan.candidate_bounds`), neighbouring
     cheaper ones are grouped whole (a group closes where the next record would overshoot the share by more than
     the group falls short of it)."""
+    if m == 0 or not steps:
+        return []
     regs = -(-m // LANES)
-    share = regs * float(sum(steps)) / max(1, threads * per_thread)
+    share = max(regs * float(sum(steps)) / max(1, threads * per_thread), 1.0)
     out: list[Tile] = []
     first, acc = 0, 0.0  # the open group: records first … r − 1, its cost
     for r, n in enumerate(steps):
@@ -110,8 +112,8 @@ class DistributedPredict:
         self.evaluations = 0  # candidates evaluated on the cluster
         self._count = threading.Lock()  # the starts evaluate from threads of their own
         workers = client.scheduler_info().get("workers", {})
-        self.threads = max(1, sum(int(w.get("nthreads", 1)) for w in workers.values()))  # the tiles' count
-
+        # worker threads when distributed: the tiles' count
+        self.threads = max(1, sum(int(w.get("nthreads", 1)) for w in workers.values()))
 
     def __call__(self, P: np.ndarray, cal: np.ndarray | None = None) -> np.ndarray:
         """λ of the packed sets P (one row per set, every record's samples side by side); ``cal``: the records'
