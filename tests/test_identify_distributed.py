@@ -115,6 +115,19 @@ def runs(tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
     return out
 
 
+def _lm_steps(problem: MembraneProblem, z: np.ndarray) -> tuple[np.ndarray, int]:
+    """Two batched Levenberg–Marquardt iterations of the intervals (two rows, one with a column held) from z:
+    the rows and their χ², and the evaluations they made."""
+    from bench.identify.core import sigma_of
+    from bench.identify.trust import Weighted, _lm
+
+    w = Weighted(problem.predict, problem.data, sigma_of(problem))
+    lo, hi = np.asarray(problem.lower, float), np.asarray(problem.upper, float)
+    free = np.arange(z.size)
+    out = _lm(w, np.vstack([z, z]), free, np.array([-1, 0]), lo, hi, 1e-4 * (hi - lo), 2, 0.0)
+    return out, w.evaluations
+
+
 def test_campaign_fit_on_a_real_cluster_equals_the_in_process_fit(runs: list[Path], cluster: Cluster) -> None:
     # a short polish keeps it cheap; every Jacobian of it is a batch on the cluster all the same
     settings = FitSettings(population=12, generations=3, polish_iterations=3)
@@ -126,13 +139,20 @@ def test_campaign_fit_on_a_real_cluster_equals_the_in_process_fit(runs: list[Pat
         remote = fit(coarse, settings, fine=fine)
         assert coarse.remote is not None and fine.remote is not None
         on_cluster = coarse.remote.evaluations + fine.remote.evaluations
+        # the intervals' batched Levenberg–Marquardt (trust.py) evaluates through the same predict
+        before = coarse.remote.evaluations
+        assert remote.z is not None
+        lm_remote, lm_evaluations = _lm_steps(coarse, remote.z)
+        assert coarse.remote.evaluations - before == lm_evaluations > 0
         coarse.distribute(None)
         fine.distribute(None)
+    np.testing.assert_array_equal(lm_remote, _lm_steps(coarse, remote.z)[0])
     assert len(coarse.records) == 2
     np.testing.assert_array_equal(remote.values, local.values)
     assert remote.cost == local.cost and remote.evaluations == local.evaluations
     np.testing.assert_array_equal(remote.sensitivity, local.sensitivity)
-    # every evaluation went through the cluster: the search's generations, the polish's Jacobians
+    # every evaluation went through the cluster: the search's generations, the polish's Jacobians (and the
+    # intervals' batches above)
     assert on_cluster == remote.evaluations > settings.population * (settings.generations + 1)
 
 
