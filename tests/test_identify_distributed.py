@@ -1,12 +1,28 @@
-"""Campaign fits and design maps on a dask.distributed LocalCluster give the in-process results, bit for bit."""
+"""Campaign fits and design maps on a real multi-process dask cluster give the in-process results, bit for bit.
+
+The module starts a scheduler and two single-threaded workers, each its own process (`python -m
+distributed.cli.dask_scheduler` / `dask_worker`) on loopback with a free port, fits through
+``scheduler="tcp://127.0.0.1:PORT"`` (the API and `bench fit --scheduler`), shuts the cluster down and checks that
+every process exited 0 with no traceback or error on its output, nor on this process's dask log.
+"""
 
 from __future__ import annotations
 
+import json
+import logging
+import os
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import pytest
+from typer.testing import CliRunner
 
+from bench.cli import app
 from bench.design_map import MapSettings, compute_map
 from bench.identify.core import FitSettings, fit
 from bench.identify.distributed import cluster_client
@@ -14,37 +30,147 @@ from bench.identify.problems import MembraneProblem
 from bench.runtime.run import run_protocol
 
 pytest.importorskip("distributed")
-SHORT = Path(__file__).resolve().parent.parent / "protocols" / "short"
+ROOT = Path(__file__).resolve().parent.parent
+SHORT = ROOT / "protocols" / "short"
+
+
+@dataclass
+class Cluster:
+    address: str  # tcp://127.0.0.1:PORT
+    processes: dict[str, subprocess.Popen[bytes]]  # scheduler, worker-0, worker-1
+    logs: Path
+
+
+def _start(logs: Path, name: str, *args: str) -> subprocess.Popen[bytes]:
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in (str(ROOT), os.environ.get("PYTHONPATH")) if p)}
+    with (logs / f"{name}.log").open("wb") as out:  # stdout and stderr together
+        return subprocess.Popen([sys.executable, "-m", *args], stdout=out, stderr=subprocess.STDOUT, env=env,
+                                cwd=ROOT)
+
+
+def _address(file: Path, processes: dict[str, subprocess.Popen[bytes]], timeout: float = 60.0) -> str:
+    t_end = time.monotonic() + timeout
+    while time.monotonic() < t_end:
+        if file.exists():
+            try:
+                return str(json.loads(file.read_text())["address"])
+            except (ValueError, KeyError):  # being written
+                pass
+        assert processes["scheduler"].poll() is None, "the scheduler exited before it wrote its address"
+        time.sleep(0.05)
+    raise TimeoutError("the scheduler wrote no address")
 
 
 @pytest.fixture(scope="module")
-def client():
-    with cluster_client(workers=2) as c:
-        yield c
+def cluster(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Cluster]:
+    """A scheduler and two `--nthreads 1` workers, three processes on 127.0.0.1; shut down through the scheduler at
+    the end (workers, then the scheduler), then every process's exit and output checked (and this process's dask
+    log)."""
+    from distributed import Client
+
+    logs = tmp_path_factory.mktemp("cluster")
+    file = logs / "scheduler.json"
+    ours: list[logging.LogRecord] = []
+    catch = logging.Handler(logging.WARNING)
+    catch.emit = ours.append  # type: ignore[method-assign]
+    logging.getLogger("distributed").addHandler(catch)
+    processes = {"scheduler": _start(logs, "scheduler", "distributed.cli.dask_scheduler", "--host", "127.0.0.1",
+                                     "--port", "0", "--no-dashboard", "--dashboard-address", "127.0.0.1:0",
+                                     "--scheduler-file", str(file))}
+    try:
+        address = _address(file, processes)
+        assert address.startswith("tcp://127.0.0.1:")
+        for k in range(2):
+            processes[f"worker-{k}"] = _start(logs, f"worker-{k}", "distributed.cli.dask_worker", address,
+                                              "--nthreads", "1", "--no-nanny", "--no-dashboard", "--host", "127.0.0.1")
+        with Client(address) as client:
+            client.wait_for_workers(2, timeout=60)
+        yield Cluster(address, processes, logs)
+        with Client(address) as client:  # the workers first (the scheduler closing first cuts their streams)
+            client.retire_workers(close_workers=True)
+            codes = {name: p.wait(timeout=30) for name, p in processes.items() if name != "scheduler"}
+            client.shutdown()
+        codes["scheduler"] = processes["scheduler"].wait(timeout=30)
+    finally:
+        for p in processes.values():
+            if p.poll() is None:
+                p.kill()
+                p.wait()
+        logging.getLogger("distributed").removeHandler(catch)
+    assert codes == dict.fromkeys(processes, 0)
+    for name in processes:
+        text = (logs / f"{name}.log").read_text(errors="replace")
+        assert "Traceback" not in text and " - ERROR - " not in text, f"{name}:\n{text}"
+    assert not [r for r in ours if r.levelno >= logging.ERROR or r.exc_info], [r.getMessage() for r in ours]
 
 
-def test_campaign_fit_on_a_local_cluster_equals_the_in_process_fit(tmp_path: Path, client) -> None:
-    paths = []
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
+    tmp = tmp_path_factory.mktemp("runs")
+    out = []
     for name in ("thesis-sweeps-short.toml", "thesis-identification-short.toml"):
-        res = run_protocol(SHORT / name, virtual=True, out=tmp_path / f"{Path(name).stem}.h5")
+        res = run_protocol(SHORT / name, virtual=True, out=tmp / f"{Path(name).stem}.h5")
         assert res.state == "completed", res.reason
-        paths.append(res.path)
-    settings = FitSettings(population=12, generations=3)
-    local = fit(MembraneProblem(paths), settings, fine=MembraneProblem(paths, h=1e-4))
-    coarse, fine = MembraneProblem(paths), MembraneProblem(paths, h=1e-4)
-    coarse.distribute(client)
-    fine.distribute(client)
-    remote = fit(coarse, settings, fine=fine)
+        out.append(Path(res.path))
+    return out
+
+
+def _lm_steps(problem: MembraneProblem, z: np.ndarray) -> tuple[np.ndarray, int]:
+    """Two batched Levenberg–Marquardt iterations of the intervals (two rows, one with a column held) from z:
+    the rows and their χ², and the evaluations they made."""
+    from bench.identify.core import sigma_of
+    from bench.identify.trust import Weighted, _lm
+
+    w = Weighted(problem.predict, problem.data, sigma_of(problem))
+    lo, hi = np.asarray(problem.lower, float), np.asarray(problem.upper, float)
+    free = np.arange(z.size)
+    out = _lm(w, np.vstack([z, z]), free, np.array([-1, 0]), lo, hi, 1e-4 * (hi - lo), 2, 0.0)
+    return out, w.evaluations
+
+
+def test_campaign_fit_on_a_real_cluster_equals_the_in_process_fit(runs: list[Path], cluster: Cluster) -> None:
+    # a short polish keeps it cheap; every Jacobian of it is a batch on the cluster all the same
+    settings = FitSettings(population=12, generations=3, polish_iterations=3)
+    local = fit(MembraneProblem(runs), settings, fine=MembraneProblem(runs, h=1e-4))
+    coarse, fine = MembraneProblem(runs), MembraneProblem(runs, h=1e-4)
+    with cluster_client(scheduler=cluster.address) as client:
+        coarse.distribute(client)
+        fine.distribute(client)
+        remote = fit(coarse, settings, fine=fine)
+        assert coarse.remote is not None and fine.remote is not None
+        on_cluster = coarse.remote.evaluations + fine.remote.evaluations
+        # the intervals' batched Levenberg–Marquardt (trust.py) evaluates through the same predict
+        before = coarse.remote.evaluations
+        assert remote.z is not None
+        lm_remote, lm_evaluations = _lm_steps(coarse, remote.z)
+        assert coarse.remote.evaluations - before == lm_evaluations > 0
+        coarse.distribute(None)
+        fine.distribute(None)
+    np.testing.assert_array_equal(lm_remote, _lm_steps(coarse, remote.z)[0])
     assert len(coarse.records) == 2
     np.testing.assert_array_equal(remote.values, local.values)
     assert remote.cost == local.cost and remote.evaluations == local.evaluations
     np.testing.assert_array_equal(remote.sensitivity, local.sensitivity)
+    # every evaluation went through the cluster: the search's generations, the polish's Jacobians (and the
+    # intervals' batches above)
+    assert on_cluster == remote.evaluations > settings.population * (settings.generations + 1)
 
 
-def test_design_map_on_a_local_cluster_equals_the_in_process_map(client) -> None:
+def test_bench_fit_with_a_scheduler_equals_the_in_process_fit(runs: list[Path], cluster: Cluster) -> None:
+    settings = FitSettings(population=12, generations=3, polish=False)
+    local = fit(MembraneProblem(runs), settings, fine=MembraneProblem(runs, h=1e-4))
+    res = CliRunner().invoke(app, ["fit", *map(str, runs), "--population", "12", "--generations", "3", "--no-polish",
+                                   "--starts", "1", "--no-intervals", "--scheduler", cluster.address, "--json"])
+    assert res.exit_code == 0, res.output
+    values = [p["value"] for p in json.loads(res.stdout)["parameters"]]
+    assert values == local.values.tolist()  # JSON floats round-trip exactly
+
+
+def test_design_map_on_a_real_cluster_equals_the_in_process_map(cluster: Cluster) -> None:
     s = MapSettings(lambda2p=(2.5, 2.75, 3.0), xp=(0.035, 0.040))
     reported: list[float] = []
-    a, b = compute_map(s), compute_map(s, client=client, progress=reported.append)
+    with cluster_client(scheduler=cluster.address) as client:
+        a, b = compute_map(s), compute_map(s, client=client, progress=reported.append)
     assert sorted(reported) == reported and reported[-1] == 1.0 and len(reported) == 3  # one report per row done
     np.testing.assert_array_equal(a.min_stiffness(), b.min_stiffness())
     np.testing.assert_array_equal(a.design(3.0, 0.040).force, b.design(3.0, 0.040).force)

@@ -232,6 +232,7 @@ class BenchmarkSet(StrEnum):
     acquisition = "acquisition"
     run = "run"
     fit = "fit"
+    cluster = "cluster"
     daq = "daq"
     faults = "faults"
     startup = "startup"
@@ -263,6 +264,8 @@ BENCHMARK_SETS = (
      "acquisition through the drivers (simulated rigs on ptys)"),
     (BenchmarkSet.run, "whole runs", "whole runs: engine, recorder"),
     (BenchmarkSet.fit, "identification", "identification (thesis record, all numba threads unless a row says one)"),
+    (BenchmarkSet.cluster, "the distributed fit (--workers 1 and 2 against in-process)",
+     "distributed fit: the campaign search in-process against dask --workers 1 and 2"),
     (BenchmarkSet.daq, "the hardware-timed rigs", "hardware-timed rigs (LabJack T7 twin)"),
     (BenchmarkSet.startup, "the command line's start-up",
      'start-up of the command line against python -c "import typer, rich"'),
@@ -274,6 +277,11 @@ BENCHMARK_SETS = (
 )
 
 
+# sets that `bench benchmark --quick` leaves out unless named: the cluster's worker start-up and runs take a third of
+# the quick run's 60 s
+FULL_ONLY = (BenchmarkSet.cluster,)
+
+
 def _benchmark(which: BenchmarkSet, quick: bool) -> dict[str, object]:
     """Run and print the chosen benchmark sets, with a progress line (set k of n, elapsed); returns their figures
     by set."""
@@ -281,7 +289,8 @@ def _benchmark(which: BenchmarkSet, quick: bool) -> dict[str, object]:
 
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-    chosen = [entry for entry in BENCHMARK_SETS if which in (entry[0], BenchmarkSet.all)]
+    chosen = [entry for entry in BENCHMARK_SETS if which is entry[0]
+              or (which is BenchmarkSet.all and not (quick and entry[0] in FULL_ONLY))]
     collected: dict[str, object] = {}
     t0 = time.perf_counter()
     took: list[str] = []
@@ -325,13 +334,15 @@ def _physics(quick: bool) -> list[dict[str, object]]:
 
 
 def _figures(kind: BenchmarkSet, title: str, quick: bool) -> list[dict[str, object]]:
-    """Run and print one set of figures (acquisition, run, fit, daq, export, watch, startup); returns them."""
+    """Run and print one set of figures (acquisition, run, fit, cluster, daq, export, watch, startup); returns them."""
     if kind is BenchmarkSet.acquisition:
         from bench.benchmarks.acquisition import run_all
     elif kind is BenchmarkSet.run:
         from bench.benchmarks.run import run_all
     elif kind is BenchmarkSet.fit:
         from bench.benchmarks.fit import run_all
+    elif kind is BenchmarkSet.cluster:
+        from bench.benchmarks.cluster import run_all
     elif kind is BenchmarkSet.daq:
         from bench.benchmarks.daq import run_all
     elif kind is BenchmarkSet.export:

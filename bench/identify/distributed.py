@@ -1,25 +1,34 @@
 """Campaign fits and design maps on a dask.distributed cluster (an existing scheduler, or a LocalCluster).
 
-The fit's search stays in this process; each generation's model evaluations — every candidate over every
-record — are split by record into tasks on the cluster's workers. The records' inputs are scattered to the
-workers once; a task receives only the candidates' packed parameters. Every candidate is integrated
-independently, so the result is the same as in-process, bit for bit.
+The fit stays in this process; every batch of model evaluations it makes — a search generation, a polish
+Jacobian, a batch of the intervals' Levenberg–Marquardt — is cut into tiles of candidates × records of about
+equal cost (:func:`tiles`: cost ∝ input steps × SIMD registers of candidates), a few per worker thread, run
+longest first. Each record's inputs are scattered to every worker once; a task receives the packed parameters
+of its candidates and returns only their outputs. Every candidate is integrated independently, so the result is
+the same as in-process, bit for bit. A task integrates on one numba thread: a worker's threads are its
+parallelism (``dask worker --nthreads N`` runs N tiles at once, N × one thread, no oversubscription).
 """
 
 from __future__ import annotations
 
+import contextlib
 import itertools
-from collections.abc import Iterator
-from contextlib import contextmanager
+import threading
+from collections.abc import Iterator, Sequence
 from typing import TYPE_CHECKING
 
 import numpy as np
 
+from bench.models.batch_plan import LANES, candidate_bounds
+
 if TYPE_CHECKING:
-    from distributed import Client
+    from distributed import Client, Future
+
+TILES_PER_THREAD = 3  # tiles per worker thread: run longest first, they even out the unequal ones
+Tile = tuple[int, int, int, int]  # first record, end record, first candidate, end candidate
 
 
-@contextmanager
+@contextlib.contextmanager
 def cluster_client(scheduler: str | None = None, workers: int | None = None) -> Iterator[Client | None]:
     """A dask client: to ``scheduler`` (e.g. tcp://host:8786) when given, else to a LocalCluster of ``workers``
     single-threaded worker processes when ``workers`` is given, else None (in-process)."""
@@ -32,41 +41,92 @@ def cluster_client(scheduler: str | None = None, workers: int | None = None) -> 
         with Client(scheduler) as client:
             yield client
         return
-    with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \
+    with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster, \
             Client(cluster) as client:
         yield client
 
 
-def _lambda_part(part: tuple[list[np.ndarray], np.ndarray], P: np.ndarray, h: float, stride: int,
-                 window: int, cal: np.ndarray | None = None) -> np.ndarray:
-    """λ samples of one group of records (worker side)."""
-    import numba
-    from distributed import get_worker
+def tile_cost(steps: Sequence[int], tile: Tile) -> int:
+    """Cost of a tile in register-steps: its records' input steps × its candidates' SIMD registers."""
+    r0, r1, a, b = tile
+    return int(sum(steps[r0:r1])) * -(-(b - a) // LANES)
 
+
+def tiles(m: int, steps: Sequence[int], threads: int, per_thread: int = TILES_PER_THREAD) -> list[Tile]:
+    """Tiles covering ``m`` candidates × records of ``steps`` input steps each, longest first, about
+    ``threads × per_thread`` of them of about equal cost: a record costing more than that share is split along
+    the candidates (chunks of whole registers, :func:`bench.models.batch_plan.candidate_bounds`), neighbouring
+    cheaper ones are grouped whole (a group closes where the next record would overshoot the share by more than
+    the group falls short of it)."""
+    if m == 0 or not steps:
+        return []
+    regs = -(-m // LANES)
+    share = max(regs * float(sum(steps)) / max(1, threads * per_thread), 1.0)
+    out: list[Tile] = []
+    first, acc = 0, 0.0  # the open group: records first … r − 1, its cost
+    for r, n in enumerate(steps):
+        cost = regs * float(n)
+        if cost >= share:
+            if r > first:
+                out.append((first, r, 0, m))
+            bounds = candidate_bounds(m, max(1, round(cost / share)))
+            out += [(r, r + 1, int(a), int(b)) for a, b in itertools.pairwise(bounds) if b > a]
+            first, acc = r + 1, 0.0
+            continue
+        if r > first and acc + cost - share > share - acc:
+            out.append((first, r, 0, m))
+            first, acc = r, 0.0
+        acc += cost
+    if len(steps) > first:
+        out.append((first, len(steps), 0, m))
+    return sorted(out, key=lambda t: -tile_cost(steps, t))
+
+
+_SERIAL = threading.Lock()  # numba's workqueue layer aborts on concurrent parallel launches: one tile at a time
+
+
+def _tile(Us: list[np.ndarray], Y0: np.ndarray, P: np.ndarray, h: float, stride: int, window: int,
+          cal: np.ndarray | None) -> np.ndarray:
+    """λ samples of one tile (worker side): the candidates P over the records Us, on one numba thread."""
+    import numba
+
+    from bench.identify.core import _kernels_thread_safe
     from bench.models.membrane_batch import membrane_batch_records
 
-    Us, Y0 = part
-    threads = int(getattr(get_worker(), "nthreads", 1) or 1)  # the worker's share of cores: no oversubscription
-    most = numba.config.NUMBA_NUM_THREADS  # type: ignore[attr-defined]  # numba.config sets its NUMBA_* at import
-    numba.set_num_threads(max(1, min(threads, int(most))))
-    return membrane_batch_records(P, Y0, Us, h, stride, window, cal)
+    numba.set_num_threads(1)  # per calling thread: the worker runs one tile per thread of its own
+    with contextlib.nullcontext() if _kernels_thread_safe() else _SERIAL:
+        return membrane_batch_records(P, Y0, Us, h, stride, window, cal)
 
 
 class DistributedPredict:
-    """Batched λ of a membrane problem's records, one task per group of records on a dask cluster."""
+    """Batched λ of a membrane problem's records on a dask cluster, tiled over candidates × records."""
 
-    def __init__(self, client: Client, Us: list[np.ndarray], Y0: np.ndarray, h: float, stride: int, window: int,
-                 groups: int | None = None) -> None:
+    def __init__(self, client: Client, Us: list[np.ndarray], Y0: np.ndarray, h: float, stride: int,
+                 window: int) -> None:
         self.client, self.h, self.stride, self.window = client, h, stride, window
-        n = len(Us)
-        k = min(n, groups or max(1, len(client.scheduler_info().get("workers", {})) * 2))
-        bounds = np.linspace(0, n, k + 1).round().astype(int)
-        self.ranges = [(a, b) for a, b in itertools.pairwise(bounds) if b > a]
-        self.parts = [client.scatter(([Us[i] for i in range(a, b)], Y0[a:b]), broadcast=True) for a, b in self.ranges]
+        self.Y0 = Y0
+        self.steps = [len(U) for U in Us]
+        cols = np.array(self.steps) // stride + 1
+        self.columns = np.concatenate([[0], np.cumsum(cols)]).astype(int)
+        self.records: list[Future[np.ndarray]] = client.scatter(list(Us), broadcast=True)  # once, to every worker
+        self.evaluations = 0  # candidates evaluated on the cluster
+        self._count = threading.Lock()  # the starts evaluate from threads of their own
+        workers = client.scheduler_info().get("workers", {})
+        # worker threads when distributed: the tiles' count
+        self.threads = max(1, sum(int(w.get("nthreads", 1)) for w in workers.values()))
 
     def __call__(self, P: np.ndarray, cal: np.ndarray | None = None) -> np.ndarray:
-        """λ of the packed sets P; ``cal``: the records' input calibration per set (records, len(P), 2) or None."""
-        futures = [self.client.submit(_lambda_part, part, P, self.h, self.stride, self.window,
-                                      None if cal is None else cal[a:b], pure=False)
-                   for part, (a, b) in zip(self.parts, self.ranges, strict=True)]
-        return np.concatenate(self.client.gather(futures), axis=1)
+        """λ of the packed sets P (one row per set, every record's samples side by side); ``cal``: the records'
+        input calibration per set (records, len(P), 2) or None."""
+        m = P.shape[0]
+        plan = tiles(m, self.steps, self.threads)
+        futures = [self.client.submit(_tile, self.records[r0:r1], self.Y0[r0:r1], P[a:b], self.h, self.stride,
+                                      self.window, None if cal is None else cal[r0:r1, a:b], pure=False,
+                                      priority=len(plan) - k)  # longest first
+                   for k, (r0, r1, a, b) in enumerate(plan)]
+        out = np.empty((m, int(self.columns[-1])))
+        for (r0, r1, a, b), part in zip(plan, self.client.gather(futures), strict=True):
+            out[a:b, self.columns[r0]:self.columns[r1]] = part
+        with self._count:
+            self.evaluations += m
+        return out

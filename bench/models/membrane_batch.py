@@ -217,7 +217,7 @@ def membrane_batch_records(P: np.ndarray, Y0: np.ndarray, Us: list[np.ndarray], 
     if cal is None:
         cal = np.broadcast_to(np.array([0.0, 1.0]), (len(Us), m, 2))
     cal = np.ascontiguousarray(np.broadcast_to(cal, (len(Us), m, 2)), dtype=np.float64)
-    U = np.ascontiguousarray(np.concatenate(Us), dtype=np.float64)
+    U = np.ascontiguousarray(Us[0] if len(Us) == 1 else np.concatenate(Us), dtype=np.float64)  # one: no copy
     tasks, columns = plan(m, [u.shape[0] for u in Us], stride, numba.get_num_threads())
     out = np.full((m, columns), np.nan)
     _batch(P, Y0, U, cal, float(h), int(stride), int(window), tasks, out)
