@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from pathlib import Path
+from typing import Any
 
 
 def best_of(fn: Callable[[], object], repeats: int = 3) -> float:
@@ -16,3 +18,16 @@ def best_of(fn: Callable[[], object], repeats: int = 3) -> float:
         fn()
         best = min(best, time.perf_counter() - t0)
     return best
+
+
+def copy_protocol(source: Path, copy: Path, edit: Callable[[Any], None]) -> Path:
+    """A copy of the protocol file ``source`` at ``copy``, changed by ``edit`` (given the parsed TOML document, to
+    change in place); its rig path made absolute, since the copy lives in another folder. Returns ``copy``."""
+    import tomlkit
+
+    doc = tomlkit.parse(source.read_text(encoding="utf-8"))
+    head: Any = doc["protocol"]
+    head["rig"] = (source.parent / str(head["rig"])).resolve().as_posix()
+    edit(doc)
+    copy.write_text(tomlkit.dumps(doc), encoding="utf-8")
+    return copy

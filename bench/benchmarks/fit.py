@@ -27,7 +27,7 @@ import numba
 import numpy as np
 from scipy.integrate import solve_ivp
 
-from bench.benchmarks import best_of
+from bench.benchmarks import best_of, copy_protocol
 from bench.benchmarks.acquisition import Figure
 from bench.identify.core import FitResult, FitSettings, fit
 from bench.identify.problems import LozengeProblem, MembraneProblem
@@ -224,18 +224,12 @@ def _lsdea_generation(prob: LozengeProblem, repeats: int = 3) -> tuple[int, floa
 
 def _first_of_each_sweep(source: Path, tmp: Path) -> Path:
     """A copy of the protocol ``source`` whose sweeps keep their first value only (the same first record)."""
-    import tomlkit
+    def first_only(doc: Any) -> None:
+        for step in doc["steps"]:
+            for key in step.get("over", {}):
+                step["over"][key] = step["over"][key][:1]
 
-    doc = tomlkit.parse(source.read_text(encoding="utf-8"))
-    head: Any = doc["protocol"]
-    head["rig"] = (source.parent / str(head["rig"])).resolve().as_posix()
-    steps: Any = doc["steps"]
-    for step in steps:
-        for key in step.get("over", {}):
-            step["over"][key] = step["over"][key][:1]
-    copy = tmp / f"{source.stem}-first.toml"
-    copy.write_text(tomlkit.dumps(doc), encoding="utf-8")
-    return copy
+    return copy_protocol(source, tmp / f"{source.stem}-first.toml", first_only)
 
 
 def lsdea_candidates(tmp: Path, repeats: int = 3, quick: bool = False) -> list[Figure]:
