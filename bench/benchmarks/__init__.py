@@ -9,9 +9,11 @@ from pathlib import Path
 from typing import Any
 
 
-def best_of(fn: Callable[[], object], repeats: int = 3) -> float:
-    """Best wall time of ``repeats`` calls [s], after one call that is not timed (JIT compilation / cache load)."""
-    fn()
+def best_of(fn: Callable[[], object], repeats: int = 3, warm: Callable[[], object] | None = None) -> float:
+    """Best wall time of ``repeats`` calls [s], after one call that is not timed (JIT compilation / cache load):
+    ``warm`` if given — a small case of the same code (one step, one candidate), which loads it as well at a
+    fraction of the cost: with one repeat (``--quick``) a whole untimed call doubled the set's time — else ``fn``."""
+    (warm or fn)()
     best = float("inf")
     for _ in range(repeats):
         t0 = time.perf_counter()
