@@ -45,6 +45,7 @@ from sim_devices.transport import Faults, Line, PtyDevice, SocketRelay
 
 GATEWAY_NO_RESPONSE = 0x0B  # "Gateway Target Device Failed to Respond"
 RTU_GAP_CHARS = 3.5
+SERVE_POLL_S = 0.05  # how often a server thread looks for shutdown: stop() waits up to this (socketserver: 0.5 s)
 
 
 def crc16(frame: bytes) -> bytes:
@@ -261,7 +262,8 @@ class ModbusHost:
             handler = _GatewayHandler if bus.transport == "tcp" else _RtuSocketHandler
             server = _Server(("127.0.0.1", 0), handler)
             server.bus = bus
-            threading.Thread(target=server.serve_forever, name=f"sim-modbus-{bus.name}", daemon=True).start()
+            threading.Thread(target=server.serve_forever, kwargs={"poll_interval": SERVE_POLL_S},
+                             name=f"sim-modbus-{bus.name}", daemon=True).start()
             self._servers.append(server)
             inner = server.server_address[1]
             framing: Literal["mbap", "stream"] = "mbap" if bus.transport == "tcp" else "stream"

@@ -9,6 +9,7 @@ import re
 import signal
 import subprocess
 import sys
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -601,3 +602,73 @@ def test_a_scripted_session_records_readings_commands_and_its_end_in_an_hdf5_fil
     assert np.abs(last - [900, 800, 700, 600, 500, 400, 300, 200, 100, 0, 0]).max() <= 2 * ZERO_V, last
     shown = CliRunner().invoke(app, ["inspect", str(tmp_path / "session.h5")], env={"COLUMNS": "200"})
     assert shown.exit_code == 0 and "manual control" in shown.output and "completed" in shown.output, shown.output
+
+
+class _Turns:
+    """The keep-alive thread's wait between set-points (``ManualSession._stop``), made a turn the test gives."""
+
+    def __init__(self) -> None:
+        self.go = threading.Event()
+        self.ended = False
+
+    def wait(self, _timeout: float) -> bool:
+        self.go.wait()
+        self.go.clear()
+        return self.ended
+
+    def set(self) -> None:  # the session ends
+        self.ended = True
+        self.go.set()
+
+
+class _SeenLock:
+    """The session's lock; records whether the keep-alive thread got it at once or had to wait."""
+
+    def __init__(self) -> None:
+        self._lock = threading.RLock()
+        self.got = threading.Event()
+        self.waited = threading.Event()
+        self.tried = threading.Event()  # either of the two
+
+    def __enter__(self) -> None:
+        if threading.current_thread().name != "manual-keepalive":
+            self._lock.acquire()
+        elif self._lock.acquire(blocking=False):
+            self.got.set()
+            self.tried.set()
+        else:
+            self.waited.set()
+            self.tried.set()
+            self._lock.acquire()
+
+    def __exit__(self, *_exc: object) -> None:
+        self._lock.release()
+
+
+def test_the_keep_alive_waits_while_a_command_error_is_handled(tmp_path: Path, monkeypatch) -> None:
+    """Wall clock (the keep-alive thread runs there only): a command fails and, while its handler makes the rig
+    safe, the keep-alive thread is given its turn. It must wait for the lock until the handling is over — between
+    an error and its make_safe it could re-send the set-point the error left (here 2 kV)."""
+    s = ManualSession(load_rig(THESIS_RIG), tmp_path / "s.log", virtual=False, echo=lambda _t: None)
+    turns, lock = _Turns(), _SeenLock()
+    s._stop, s._lock = turns, lock  # type: ignore[assignment]
+    with s:
+        assert s.execute("voltage 2kV").status == "ok"
+        engine = s._engine()
+        make_safe = engine.make_safe
+        during: list[bool] = []
+
+        def handled() -> str:
+            turns.go.set()  # the keep-alive's turn, now, during the error's handling
+            assert lock.tried.wait(10)
+            during.append(lock.got.is_set())
+            return make_safe()
+
+        def fails(_duration: str) -> str:
+            raise RuntimeError("a program error in a command")
+
+        monkeypatch.setattr(engine, "make_safe", handled)
+        monkeypatch.setattr(s, "_cmd_wait", fails)
+        out = s.execute("wait 1")
+        assert out.status == "error" and "output zeroed" in out.text, out
+        assert during == [False] and lock.waited.is_set()  # it waited for the lock: nothing sent meanwhile

@@ -84,6 +84,35 @@ def test_a_pause_zeroes_the_output_records_on_and_restarts_the_step(tmp_path: Pa
     assert result.run_time >= plan.program.duration + (t_resume - t_pause)
 
 
+@pytest.mark.parametrize("rig", [ADAM_RIG, DAQ_RIG], ids=["adam", "daq"])
+def test_a_paused_output_that_stays_up_latches(tmp_path: Path, rig: Path) -> None:
+    """The amplifier's input sticks at 3 V (3 kV out, TREK gain 1000) from the pause's ramp on: the host commands
+    0 V and the monitors, read while paused, say 3 kV. The verifier sees those readings (not only the supervisor,
+    whose 8-kV limit 3 kV is well within): the run latches while paused, before the resume the test asks for."""
+    stuck: list[float] = []  # run time of the fault
+
+    def hook(engine: Engine, sim) -> None:
+        def at(_now: float) -> None:
+            if engine.snapshot.state == "running" and engine.pauses == 0 and engine.now() >= 3.0:
+                engine.request_pause("the test")
+            if engine.snapshot.state == "paused" and not stuck:  # the pause's ramp to 0 V is under way
+                stuck.append(engine.now())
+                set_input = sim.plant.set_amplifier_input
+                set_input(3.0)
+                sim.plant.set_amplifier_input = lambda _volts: set_input(3.0)
+            if stuck and engine.now() >= stuck[0] + 2.0:
+                engine.request_resume("the test")
+        sim.clock.subscribe(at)
+
+    result = execute(plan_run(SWEEPS, rig), tmp_path / "run.h5", virtual=True, on_engine=hook)
+    assert result.state == "tripped" and "interlock: output mismatch" in result.reason, result.reason
+    run = open_run(result.path)
+    assert [k for _, _, k, _ in events(run) if k in ("pause", "resume")] == ["pause"]  # latched while paused
+    amp = run.streams["amplifier"]
+    paused = (amp.t > stuck[0]) & (amp.t < stuck[0] + 2.0)
+    assert np.nanmax(amp.columns["voltage"][paused]) > 2500.0  # the file has what the monitors said
+
+
 def test_the_control_file_is_read_only_when_whole(tmp_path: Path) -> None:
     run_file = tmp_path / "r.h5"
     seen = (0.0, False, "")

@@ -51,9 +51,8 @@ QUICK_PHASES = ("waveform",)
 # --quick: the waveform phase, the amplifier's link; every virtual-clock fault on both rig kinds (a fraction of a
 # second each), each wall-clock fault once (they wait seconds in real time: 1-6 s a case), split between the rig
 # kinds so that their two processes take about as long; named by fault kind, or by name for the stop signals
-QUICK_WALL = {"ADAM": (("run", "silent link"), ("run", "garbled replies"), ("run", "SIGINT")),
-              "T7": (("run", "replies too late"), ("run", "slow wire"), ("run", "SIGTERM"), ("run", "host stall"),
-                     ("control", "SIGINT"))}
+QUICK_WALL = {"ADAM": (("run", "silent link"), ("run", "garbled replies"), ("run", "SIGINT"), ("run", "SIGTERM")),
+              "T7": (("run", "replies too late"), ("run", "slow wire"), ("run", "host stall"), ("control", "SIGINT"))}
 JOBS = 2  # rig kinds run at once, each in its own process (a wall-clock case takes a sixth to a third of a core)
 
 PROTOCOL = """[protocol]

@@ -26,6 +26,7 @@ from typing import Any
 
 import numpy as np
 
+from bench.benchmarks import copy_protocol
 from bench.benchmarks.acquisition import Figure
 from bench.resources import protocols_dir
 from bench.storage.recorder import Column, Recorder
@@ -90,14 +91,12 @@ def _protocol(tmp: Path, quick: bool) -> tuple[Path, float]:
     import tomlkit
 
     source = protocols_dir() / "short" / "thesis-identification-short.toml"
-    doc = tomlkit.parse(source.read_text(encoding="utf-8"))
-    steps: Any = doc["steps"]
     if quick:
-        head: Any = doc["protocol"]
-        head["rig"] = (source.parent / str(head["rig"])).resolve().as_posix()
-        steps[0]["duration_s"] = QUICK_DRIVE_S
-        source = tmp / "watch-quick.toml"
-        source.write_text(tomlkit.dumps(doc), encoding="utf-8")
+        def cut(doc: Any) -> None:
+            doc["steps"][0]["duration_s"] = QUICK_DRIVE_S
+
+        source = copy_protocol(source, tmp / "watch-quick.toml", cut)
+    steps: Any = tomlkit.parse(source.read_text(encoding="utf-8"))["steps"]
     return source, float(sum(step["duration_s"] for step in steps))
 
 

@@ -191,7 +191,7 @@ class RunContext:
         return {"late": late} if stream in self._late_streams else {}
 
     def unpolled_monitor_columns(self) -> dict[str, float | np.ndarray]:
-        """The amplifier stream's other columns for a monitor read outside the schedule (paused, shutting down): no
+        """The amplifier stream's other columns for a monitor read outside the schedule (shutting down): no
         lateness (NaN: not a scheduled poll), and the output commanded where the layout has that column (a
         DAQ-driven amplifier; its polled reads carry it from the driver's ``read()``)."""
         cols = self.late_columns("amplifier", math.nan)

@@ -518,19 +518,16 @@ class Engine:
             self.motion.stopped(self.now())
 
     def _paused_readings(self) -> None:
-        """One reading of every polled channel while paused (the monitors by command-response on a DAQ rig);
-        supervised, and the set-point module kept fed."""
-        amp = self.inst.amplifier
-        if amp is not None:
-            if self._stream is None and self.ctx.unheard_for() >= HOLD_KEEPALIVE_S:
-                self._set_voltage(0.0, self.now())
-            v, i = amp.read_monitors()
-            self.rec.append("amplifier", v.timestamp - self.ctx.t0, voltage=v.value, current=i.value,
-                            **self.ctx.unpolled_monitor_columns())
-            self.sup.check_monitors(v.value, i.value)
-            self.snapshot.values["voltage"], self.snapshot.values["current"] = v.value, i.value
+        """One reading of every polled channel while paused, through the run's polls: the monitors (by
+        command-response on a DAQ rig; no lateness, the pause schedules them, not the program) recorded,
+        supervised and verified against the 0 V commanded — an output that stays up latches — and the set-point
+        module kept fed."""
+        if self.inst.amplifier is not None and self._stream is None and self.ctx.unheard_for() >= HOLD_KEEPALIVE_S:
+            self._set_voltage(0.0, self.now())
         for poll in rig_polls(self.ctx):
-            if poll.name in ("position", "force") and poll.period(self.ctx, PAUSED) is not None:
+            if poll.name == "monitors":
+                poll.run(self.ctx, math.nan)
+            elif poll.name in ("position", "force") and poll.period(self.ctx, PAUSED) is not None:
                 poll.run(self.ctx, self.program_now())
 
     # ------------------------------------------------------------ run and shut down

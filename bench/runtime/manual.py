@@ -406,55 +406,57 @@ class ManualSession:
         KeyboardInterrupt and SystemExit pass."""
         shown = _printable(line)
         engine = self.engine
-        try:
-            words = _join_units(shlex.split(line))
-            if not words:
-                raise Refused("empty command")
-            name, args = words[0].lower(), words[1:]
-            handler = getattr(self, f"_cmd_{name.replace('-', '_')}", None)
-            if handler is None:
-                raise Refused(f"unknown command '{_printable(words[0])}' (help lists them)")
+        # the lock is held until the outcome is handled: the keep-alive thread cannot re-send a set-point between
+        # a command's error (or trip) and its handler's make_safe or latch
+        with self._lock:
             try:
-                inspect.signature(handler).bind(*args)
-            except TypeError:
-                raise Refused(f"wrong arguments for '{_printable(words[0])}' (help lists them)") from None
-            engine = self._engine()
-            with self._lock:
+                words = _join_units(shlex.split(line))
+                if not words:
+                    raise Refused("empty command")
+                name, args = words[0].lower(), words[1:]
+                handler = getattr(self, f"_cmd_{name.replace('-', '_')}", None)
+                if handler is None:
+                    raise Refused(f"unknown command '{_printable(words[0])}' (help lists them)")
+                try:
+                    inspect.signature(handler).bind(*args)
+                except TypeError:
+                    raise Refused(f"wrong arguments for '{_printable(words[0])}' (help lists them)") from None
+                engine = self._engine()
                 engine.interruptible = self._interactive
                 try:
                     text = handler(*args) or ""
                 finally:
                     engine.interruptible = False
-            out = Outcome(shown, "ok", text)
-        except (StopRequested, OperationCancelledError) as exc:
-            assert engine is not None
-            if self.end_reason is not None:
-                out = Outcome(shown, "interrupted", f"{self.end_reason}: the session ends")
-            elif engine.interrupted is not None:
-                out = Outcome(shown, "interrupted", engine.end_interrupt())
-            else:  # a cancelled wait nobody asked for
+                out = Outcome(shown, "ok", text)
+            except (StopRequested, OperationCancelledError) as exc:
+                assert engine is not None
+                if self.end_reason is not None:
+                    out = Outcome(shown, "interrupted", f"{self.end_reason}: the session ends")
+                elif engine.interrupted is not None:
+                    out = Outcome(shown, "interrupted", engine.end_interrupt())
+                else:  # a cancelled wait nobody asked for
+                    out = Outcome(shown, "error", f"{exc}; {engine.make_safe()}")
+            except PauseRequested:
+                assert engine is not None
+                out = self._paused(shown, engine, engine.pause_asked_by())
+            except (Refused, ValueError, LimitError) as exc:
+                out = Outcome(shown, "refused", str(exc))
+            except InterlockTrip as trip:
+                out = Outcome(shown, "trip", self._latch(trip))
+            except SafetyTrip as exc:
+                assert engine is not None
+                out = Outcome(shown, "trip", f"{exc.reason}; {engine.make_safe()}")
+            except InstrumentError as exc:
+                assert engine is not None
                 out = Outcome(shown, "error", f"{exc}; {engine.make_safe()}")
-        except PauseRequested:
-            assert engine is not None
-            out = self._paused(shown, engine, engine.pause_asked_by())
-        except (Refused, ValueError, LimitError) as exc:
-            out = Outcome(shown, "refused", str(exc))
-        except InterlockTrip as trip:
-            out = Outcome(shown, "trip", self._latch(trip))
-        except SafetyTrip as exc:
-            assert engine is not None
-            out = Outcome(shown, "trip", f"{exc.reason}; {engine.make_safe()}")
-        except InstrumentError as exc:
-            assert engine is not None
-            out = Outcome(shown, "error", f"{exc}; {engine.make_safe()}")
-        except OSError as exc:  # the readings' file (drivers raise InstrumentErrors): the log goes on alone
-            self._storage_failed(exc)
-            out = Outcome(shown, "error", f"{exc}; the session goes on, readings in this log only")
-        except Exception as exc:  # a program error must not end the session with the output on
-            safe = engine.make_safe() if engine is not None else "no instruments connected"
-            out = Outcome(shown, "error", f"internal error: {type(exc).__name__}: {exc}; {safe}")
-        if engine is not None:
-            engine.clear_interrupt()
+            except OSError as exc:  # the readings' file (drivers raise InstrumentErrors): the log goes on alone
+                self._storage_failed(exc)
+                out = Outcome(shown, "error", f"{exc}; the session goes on, readings in this log only")
+            except Exception as exc:  # a program error must not end the session with the output on
+                safe = engine.make_safe() if engine is not None else "no instruments connected"
+                out = Outcome(shown, "error", f"internal error: {type(exc).__name__}: {exc}; {safe}")
+            if engine is not None:
+                engine.clear_interrupt()
         out.text = _printable(" ".join(out.text.splitlines()))
         self.outcomes.append(out)
         self._write(out.command, out.status, out.text)
