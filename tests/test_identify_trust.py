@@ -12,7 +12,7 @@ from typing import ClassVar
 import numpy as np
 import pytest
 
-from bench.identify.core import FitSettings, fit, noise_of, unit_order
+from bench.identify.core import FitResult, FitSettings, fit, noise_of, unit_order
 from bench.identify.coverage import coverage
 from bench.identify.trust import covariance
 
@@ -277,3 +277,88 @@ def test_on_a_threading_layer_that_is_not_thread_safe_the_starts_run_one_after_a
                                              intervals=True, stall_generations=0))
     assert alone.trust is not None
     assert res.trust.starts[1]["values"] == pytest.approx(alone.trust.starts[0]["values"], rel=1e-12, abs=1e-12)
+
+
+class _TwoWells:
+    """χ² = m(a² − 1)² + εm(a − 1)² + m(b − 2)² (noiseless data, σ = 1 and 1/√ε): a = 1, b = 2 is the best
+    optimum (χ² 0); d/da ∝ (a − 1)(4a² + 4a + 2ε) vanishes again at a* = (−1 − √(1 − 2ε))/2, a worse optimum
+    m(a*² − 1)² + εm(a* − 1)² above it, with b = 2 there too (b is separable)."""
+
+    names: ClassVar[list[str]] = ["a", "b"]
+    units: ClassVar[list[str]] = ["-", "-"]
+    lower = np.array([-2.0, 0.0])
+    upper = np.array([2.0, 4.0])
+    log = np.array([False, False])
+    data_unit = "-"
+
+    def __init__(self, m: int, eps: float) -> None:
+        self.m, self.eps = m, eps
+        self.data = np.concatenate([np.ones(m), np.ones(m), np.full(m, 2.0)])
+        self.sigma = np.concatenate([np.ones(m), np.full(m, 1.0 / np.sqrt(eps)), np.ones(m)])
+
+    def predict(self, Z: np.ndarray) -> np.ndarray:
+        Z = np.atleast_2d(Z)
+        a, b = Z[:, :1], Z[:, 1:2]
+        return np.concatenate([np.repeat(a * a, self.m, 1), np.repeat(a, self.m, 1), np.repeat(b, self.m, 1)], 1)
+
+    def stuck(self) -> tuple[float, float]:
+        """The worse optimum's a* and its χ² above the best (the derivation in the class docstring)."""
+        a = (-1.0 - np.sqrt(1.0 - 2.0 * self.eps)) / 2.0
+        return a, self.m * (a * a - 1.0) ** 2 + self.eps * self.m * (a - 1.0) ** 2
+
+
+def _trust_with_starts(prob: _TwoWells, starts: list[tuple[float, float]]) -> FitResult:
+    """The best fit, then the intervals judged with the given starts (seeds 1, 2, …; the first the best)."""
+    from bench.identify.trust import assess_trust
+
+    res = fit(prob, FitSettings(population=10, generations=10, cost="lsq", seed=3))
+    assert res.values == pytest.approx([1.0, 2.0], abs=1e-3)
+    lo, hi = prob.lower, prob.upper
+    assess_trust(prob, res, [(k + 1, np.array(z), lo, hi) for k, z in enumerate(starts)], lo, hi)
+    return res
+
+
+def test_a_start_stuck_in_a_worse_optimum_is_a_failed_search_when_two_others_agree() -> None:
+    """Three starts: two end at the best optimum (a = 1, b = 2), the third in the worse one a* = −0.947 (ε 0.1,
+    m 100: 39.0 χ² units above, far beyond 3.84). Two starts confirm the best, so the third is a failed search:
+    named with its Δχ², while a and b stay determined by their profiles (a's 95 % interval, 1 ± √(3.84/(4.1m))
+    ≈ 1 ± 0.097 to first order, does not reach a*)."""
+    prob = _TwoWells(m=100, eps=0.1)
+    a_star, above = prob.stuck()
+    assert a_star == pytest.approx(-0.947, abs=1e-3) and above == pytest.approx(38.98, abs=0.01)
+    res = _trust_with_starts(prob, [(1.0, 2.0), (1.05, 1.9), (a_star + 0.05, 2.1)])
+    tr = res.trust
+    assert tr is not None and tr.threshold == pytest.approx(3.841, abs=1e-3)
+    assert tr.arrived == [1, 2]
+    assert [f["seed"] for f in tr.failed] == [3] and tr.failed[0]["above"] == pytest.approx(above, rel=1e-3)
+    assert tr.status == ["determined", "determined"] and not tr.disagree and not tr.starts_agree
+    assert tr.lower[0] > 0.8 and tr.upper[0] < 1.2 and tr.lower[0] < 1.0 < tr.upper[0]
+    assert not any("not determined" in f for f in res.flags)
+
+
+def test_with_no_start_to_confirm_the_best_a_parameter_a_worse_start_puts_elsewhere_is_not_determined() -> None:
+    """The same wells, only the best and the stuck start: nothing confirms that the best optimum found is the
+    lowest, so a — on which the stuck start lands outside the interval — is not determined, its range holding
+    a*; b, equal at both optima (separable), stays determined."""
+    prob = _TwoWells(m=100, eps=0.1)
+    a_star, _ = prob.stuck()
+    res = _trust_with_starts(prob, [(1.0, 2.0), (a_star + 0.05, 2.1)])
+    tr = res.trust
+    assert tr is not None and tr.arrived == [1] and [f["seed"] for f in tr.failed] == [2]
+    assert tr.status == ["not determined", "determined"]
+    assert tr.lower[0] == pytest.approx(a_star, abs=1e-3) and tr.upper[0] > 1.0
+    assert any(f.startswith("a: not determined: the search is not settled (1 of 2") for f in res.flags)
+
+
+def test_starts_that_reach_the_best_chi2_in_different_optima_leave_the_parameter_not_determined() -> None:
+    """Shallower wells (ε 0.01, m 50): the second optimum a* = −0.995 is only 2.0 χ² units above the best,
+    within 3.84 — the data do not choose between a = 1 and a = a*, so a is not determined over both; b stays
+    determined."""
+    prob = _TwoWells(m=50, eps=0.01)
+    a_star, above = prob.stuck()
+    assert a_star == pytest.approx(-0.995, abs=1e-3) and above == pytest.approx(1.995, abs=0.01)
+    res = _trust_with_starts(prob, [(1.0, 2.0), (a_star + 0.02, 2.1)])
+    tr = res.trust
+    assert tr is not None and tr.arrived == [1, 2] and not tr.failed and tr.disagree == ["a"]
+    assert tr.status == ["not determined", "determined"]
+    assert tr.lower[0] == pytest.approx(a_star, abs=1e-3)

@@ -17,6 +17,7 @@ if TYPE_CHECKING:
     from bench.identify.campaign import CampaignReport
     from bench.identify.core import FitResult, FitSettings, Problem, RecordedProblem
     from bench.identify.problems import MembraneProblem
+    from bench.identify.trust import Trust
 
 RunsArg = Annotated[list[Path], typer.Argument(help="Run files (.h5) to fit together.")]
 SchedulerOpt = Annotated[str | None, typer.Option(
@@ -74,9 +75,7 @@ def fit_result_table(result: FitResult, title: str) -> Table:
                  "data: determined = both ends inside the search bounds; an open side is shown at its bound",
                  "± local: the Jacobian's estimate, shown only where it agrees with the interval"]
         if tr.starts:
-            verdict = "agree" if tr.starts_agree else "DISAGREE (" + (", ".join(tr.disagree) or "cost") + ")"
-            lines.append(f"{len(tr.starts)} independent starts (seeds {tr.starts[0]['seed']}…"
-                         f"{tr.starts[-1]['seed']}): {verdict}")
+            lines.append(starts_line(tr))
         for td in tr.tradeoffs:
             if td["determined"]:
                 lines.append(f"trade-off {' ↔ '.join(td['names'])}: {td['quantity']} = {td['value']:.4g} "
@@ -85,6 +84,21 @@ def fit_result_table(result: FitResult, title: str) -> Table:
             lines.append(tr.order)
         t.caption = "\n".join(lines)
     return t
+
+
+def starts_line(tr: Trust) -> str:
+    """The caption's line on the starts: how many reached the best χ², the failed searches, where they disagree."""
+    n = len(tr.starts)
+    line = (f"{n} independent starts (seeds {tr.starts[0]['seed']}…{tr.starts[-1]['seed']}): {len(tr.arrived)} of "
+            f"{n} reached the best optimum (χ² within the threshold)")
+    if tr.failed:
+        line += "; " + ", ".join(f"seed {f['seed']} ended Δχ² {f['above']:,.0f} above it" for f in tr.failed) + \
+            (": failed searches" if len(tr.failed) > 1 else ": a failed search")
+        line += " (ignored: two starts confirm the best)" if len(tr.arrived) >= 2 else \
+            " and nothing confirms the best: the parameters they put elsewhere are not determined (more --generations)"
+    if tr.disagree:
+        line += "; the starts that reached it end apart on " + ", ".join(tr.disagree)
+    return line
 
 
 def campaign_table(report: CampaignReport) -> Table:
