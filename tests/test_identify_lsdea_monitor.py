@@ -164,3 +164,26 @@ def test_the_lsdea_fit_s_model_step_widening_holds_its_fine_step_s_error(isotoni
     bias, shift = np.abs(fine - exact), np.abs(coarse - fine)
     names = LozengeProblem([isotonic_run], h=LSDEA_SEARCH_STEP).names
     assert all(bias <= shift), [(n, b, d) for n, b, d in zip(names, bias, shift, strict=True) if b > d]
+
+
+def test_a_file_without_a_stored_rig_fits_on_its_set_points(tmp_path: Path) -> None:
+    """A run file that stores no rig (older files, replays) and whose voltage is the set-points (a software-timed
+    rig: monitors polled, not sampled at the scan rate) builds its LS-DEA problem as before the monitor calibration:
+    no calibration parameters, no twin's drawn error — not a KeyError on the missing attribute."""
+    import shutil
+
+    import h5py
+
+    from bench.runtime.run import execute, plan_run
+
+    res = execute(plan_run(ROOT / "protocols" / "short" / "lsdea-isotonic-short.toml",
+                           ROOT / "rigs" / "lsdea-isotonic-sim.toml"), tmp_path / "run.h5", virtual=True,
+                  operator=lambda _msg: True)
+    assert res.state == "completed", res.reason
+    bare = tmp_path / "bare.h5"
+    shutil.copy(res.path, bare)
+    with h5py.File(bare, "a") as f:
+        del f.attrs["rig_toml"]
+    prob = LozengeProblem([bare], h=2e-3)
+    assert not set(CALIBRATION) & set(prob.names)
+    assert prob.simulated_calibration() == {}

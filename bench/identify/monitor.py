@@ -97,7 +97,7 @@ class MonitorCalibration:
 
     def _note_run(self, run: RunFile, source: str, measured: bool) -> None:
         """Note a run's rig; on a measured input its monitor's accuracy, which every file fitted together shares."""
-        self.rig_toml = self.rig_toml or str(run.attrs["rig_toml"])
+        self.rig_toml = self.rig_toml or str(run.attrs.get("rig_toml", ""))  # older files and replays: none
         if not measured:
             return
         acc = monitor_accuracy(run)
@@ -141,6 +141,8 @@ class MonitorCalibration:
         from bench.core.noise import TREK_DYNAMICS, Realism
         from bench.rig import amplifier_spec, rig_from_toml
 
+        if not self.rig_toml or CALIBRATION[0] not in self.names:
+            return {}
         rig = rig_from_toml(self.rig_toml)
         if not rig.simulated or not rig.simulation.noise or CALIBRATION[0] not in self.names:
             return {}
