@@ -330,7 +330,8 @@ class StreamSpec:
     buffer_size_bytes: int = 0  # 0: the device's largest
     out_buffer_bytes: int = 0  # 0: the device's largest
     out_ahead_s: float = 0.0  # > 0: stream-out values written at most this far [s] ahead of the scan played now
-    out_loops: bool = True  # with out_ahead_s: whole periods that repeat play from the device's loop, not refills
+    out_loops: bool = False  # with out_ahead_s: whole periods that repeat play from the device's loop, not refills
+    # (the device's watchdog must be armed: a loop that outlives a lost host drives on until it fires)
 
 
 @dataclass(frozen=True)

@@ -96,7 +96,7 @@ def test_dac_codes_within_a_window_take_the_nearest_code_inside() -> None:
 class Rig:
     """A membrane plant on a virtual clock, the T7 twin on loopback and a connected driver."""
 
-    def __init__(self) -> None:
+    def __init__(self, watchdog_s: int | None = None) -> None:
         self.clock = VirtualClock()
         self.plant = Plant(self.clock, MembraneParams(), hv=HVStage())
         self.cond = Conditioning(gain=4.0, offset=-10.0)
@@ -104,7 +104,7 @@ class Rig:
         self.sim = LabJackT7Sim(self.plant, self.clock, conditioning=self.cond, noise=False)
         self.port, self.stream_port = self.sim.start()
         self.daq = LabJackT7("127.0.0.1", port=self.port, stream_port=self.stream_port, clock=self.clock.now,
-                             sleep=self.clock.sleep, safe_dac=(2.5, 0.0), timeout=1.0)
+                             sleep=self.clock.sleep, safe_dac=(2.5, 0.0), timeout=1.0, watchdog_s=watchdog_s)
 
     def close(self) -> None:
         try:

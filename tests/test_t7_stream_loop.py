@@ -20,10 +20,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from bench.benchmarks import noise_free_rig
 from bench.runtime import hardware_timed
 from bench.runtime.run import execute, plan_run
 from bench.storage.runfile import open_run
-from drivers.labjack import LabJackT7, StreamIn, StreamOut, StreamSpec
+from drivers.labjack import StreamIn, StreamOut, StreamSpec
 from sim_devices.t7.analog import Conditioning
 from tests.conftest import ROOT
 from tests.test_labjack import Rig, _transact
@@ -63,7 +64,7 @@ def _scheduled(rig: Rig, first: int, n: int) -> list[int | None]:
 
 @pytest.fixture
 def rig() -> Iterator[Rig]:
-    r = Rig()
+    r = Rig(watchdog_s=1)  # the driver loops only with the watchdog armed
     r.daq.connect()
     yield r
     r.close()
@@ -107,6 +108,27 @@ def test_data_written_while_a_loop_repeats_plays_when_the_repetition_in_progress
         assert rig.sim.outs[0].code == 9 and rig.sim.outs[0].underrun_scans == 0
 
 
+def test_a_loop_not_pumped_for_longer_than_was_queued_plays_on_in_phase() -> None:
+    """The device repeats a loop whatever its host does: after 3.05 s in which the twin was not pumped (more than
+    the 1–2 s it queues), the output is the loop's phase, not where the queue stopped: scan k (run at (k + 1)/rate
+    after the start) plays code 1000 + k mod 1000, so at 3.05 s the last scan run is 30,499 (code 1499) and 30,500
+    is next (1500); no scan is an underrun (no watchdog armed here: nothing stops the loop)."""
+    r = Rig()
+    try:
+        r.daq.connect()
+        with _raw_stream_out(r, (LOOP, _u32(1000)), (BUFFER, list(range(1000, 2000))), (SET_LOOP, _u32(1))) as sock:
+            r.daq.kickoff()
+            r.sim.pump()
+            r.clock.advance(3.05)
+            r.sim.pump()
+            o = r.sim.outs[0]
+            assert o.code == 1499 and o.underrun_scans == 0
+            assert _scheduled(r, 30_500, 3) == [1500, 1501, 1502]
+            sock.close()
+    finally:
+        r.close()
+
+
 def test_a_loop_is_planned_on_codes_that_repeat_exactly_and_only_where_it_saves_writes() -> None:
     """Expected periods and run lengths read off the made-up codes themselves."""
     from drivers.labjack.looping import Loop, periodic_run, plan_loop
@@ -136,7 +158,8 @@ def _sine(periods: int, period_s: float = 0.5) -> np.ndarray:
 
 def _play(rig: Rig, volts: np.ndarray, loops: bool, extra_s: float = 0.3) -> np.ndarray:
     """Play ``volts`` with 0.5 s kept ahead (the run time's OUT_AHEAD_S), collected every 0.25 s of rig time as the
-    engine collects in virtual time; returns the V monitor's scans."""
+    engine collects in virtual time, with its keep-alive request (the watchdog counts silence of the command
+    port); returns the V monitor's scans."""
     rig.daq.arm(StreamSpec(RATE, (StreamIn(0, name="vmon"),), StreamOut(0, volts), out_ahead_s=0.5,
                            out_loops=loops))
     rig.daq.kickoff()
@@ -144,6 +167,7 @@ def _play(rig: Rig, volts: np.ndarray, loops: bool, extra_s: float = 0.3) -> np.
     while rig.daq.scans_received < volts.size + extra_s * RATE:
         rig.clock.advance(0.25)
         blocks.append(rig.daq.collect(until=rig.clock.now()).volts[:, 0])
+        rig.daq.read_dac(0)
     rig.daq.stop()
     return np.concatenate(blocks)
 
@@ -156,7 +180,7 @@ def test_a_periodic_drive_is_written_once_and_plays_what_the_refill_path_plays()
     got = {}
     written = {}
     for loops in (True, False):
-        r = Rig()
+        r = Rig(watchdog_s=1)
         try:
             r.daq.connect()
             got[loops] = _play(r, volts, loops)
@@ -178,7 +202,7 @@ def test_behind_a_reconstruction_filter_a_looped_drive_reaches_the_amplifier_as_
     amplifier input (the V monitor, noise off) is the refilled drive's, bit for bit."""
     got = {}
     for loops in (True, False):
-        r = Rig()
+        r = Rig(watchdog_s=1)
         r.sim.conditioning = r.cond = Conditioning(4.0, -10.0, corner_Hz=30.0)
         try:
             r.daq.connect()
@@ -195,7 +219,8 @@ def test_a_loop_the_host_does_not_leave_in_time_is_an_underrun(rig: Rig) -> None
     """The host stalls past the loop's last repetition: the device has repeated the period where the program has
     something else — reported as an underrun (the run time trips its interlock on it)."""
     volts = np.concatenate([_sine(8), np.full(20_000, 2.0)])
-    rig.daq.arm(StreamSpec(RATE, (StreamIn(0, name="vmon"),), StreamOut(0, volts), out_ahead_s=0.5))
+    rig.daq.arm(StreamSpec(RATE, (StreamIn(0, name="vmon"),), StreamOut(0, volts), out_ahead_s=0.5,
+                           out_loops=True))
     rig.daq.kickoff()
     rig.clock.advance(0.25)
     rig.daq.collect(until=rig.clock.now())
@@ -209,12 +234,12 @@ def test_a_loop_the_host_does_not_leave_in_time_is_an_underrun(rig: Rig) -> None
 def test_a_lost_host_stops_a_looping_drive_by_the_watchdog() -> None:
     """The T7's watchdog (1 s) with its DAC action (2.5 V: 0 V at the amplifier through the rig's 4·V − 10): a
     host that goes silent while a loop repeats leaves the amplifier input at 0 V once the timeout has passed."""
-    r = Rig()
-    daq = LabJackT7("127.0.0.1", port=r.port, stream_port=r.stream_port, clock=r.clock.now, sleep=r.clock.sleep,
-                    safe_dac=(2.5, 0.0), timeout=1.0, watchdog_s=1)
+    r = Rig(watchdog_s=1)
+    daq = r.daq
     try:
         daq.connect()
-        daq.arm(StreamSpec(RATE, (StreamIn(0, name="vmon"),), StreamOut(0, _sine(40)), out_ahead_s=0.5))
+        daq.arm(StreamSpec(RATE, (StreamIn(0, name="vmon"),), StreamOut(0, _sine(40)), out_ahead_s=0.5,
+                               out_loops=True))
         daq.kickoff()
         for _ in range(4):
             r.clock.advance(0.25)
@@ -231,6 +256,20 @@ def test_a_lost_host_stops_a_looping_drive_by_the_watchdog() -> None:
         daq.close()
         r.sim.stop()
     assert not r.sim.errors
+
+
+def test_without_the_watchdog_the_driver_refuses_to_loop() -> None:
+    """A loop outlives a lost host until something stops it; on a T7 whose watchdog the driver has not armed nothing
+    would: arming a looping stream-out is refused, one line naming the device; the refill path stays allowed."""
+    r = Rig()  # no watchdog
+    try:
+        r.daq.connect()
+        with pytest.raises(ValueError, match=r"T7.*watchdog"):
+            r.daq.arm(StreamSpec(RATE, (StreamIn(0, name="vmon"),), StreamOut(0, _sine(8)), out_ahead_s=0.5,
+                                 out_loops=True))
+        r.daq.arm(StreamSpec(RATE, (StreamIn(0, name="vmon"),), StreamOut(0, _sine(8)), out_ahead_s=0.5))
+    finally:
+        r.close()
 
 
 # ---------------------------------------------------------------------------- a periodic protocol on a DAQ rig
@@ -266,9 +305,7 @@ duration_s = 0.5
 
 def _periodic_protocol(tmp: Path) -> Path:
     """The protocol above on a noise-free copy of the isotonic DAQ rig (golden comparison: same bits)."""
-    rig = tmp / "isotonic-daq-quiet.toml"
-    rig.write_text((ROOT / "rigs" / "lsdea-isotonic-daq-sim.toml").read_text()
-                   .replace("[simulation]", "[simulation]\nnoise = false", 1))
+    rig = noise_free_rig(ROOT / "rigs" / "lsdea-isotonic-daq-sim.toml", tmp)
     proto = tmp / "periodic.toml"
     proto.write_text(PERIODIC.format(rig=rig))
     return proto
@@ -309,13 +346,16 @@ def test_a_stop_during_a_looping_step_brings_the_output_to_zero_and_keeps_it_the
         twins.append(sim.twins["daq"])
 
         def stop() -> None:
-            while engine.snapshot.state == "starting" or engine.now() < 1.5:
+            for _ in range(50_000):  # ≤ 100 s of wall clock; the run reaches 1.5 s of rig time long before
+                if engine.snapshot.state != "starting" and engine.now() >= 1.5:
+                    break
                 threading.Event().wait(0.002)
             engine.request_stop("stopped by the test")
         threading.Thread(target=stop, daemon=True).start()
 
     result = execute(plan_run(proto), tmp_path / "stopped.h5", virtual=True, on_engine=hook)
-    assert result.state != "completed" and twins[0].outs[0].loops_set == 1  # stopped while the loop played
+    assert result.state == "interrupted" and "stopped by the test" in result.reason, (result.state, result.reason)
+    assert twins[0].outs[0].loops_set == 1  # stopped while the loop played
     sim = sims[0]
     sim.clock.advance(2.0)  # long after the stop: nothing plays the loop any more
     assert np.all(np.abs(sim.plant.observe().v_out) < 5.0)

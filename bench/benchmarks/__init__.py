@@ -33,3 +33,16 @@ def copy_protocol(source: Path, copy: Path, edit: Callable[[Any], None]) -> Path
     edit(doc)
     copy.write_text(tomlkit.dumps(doc), encoding="utf-8")
     return copy
+
+
+def noise_free_rig(rig: Path, folder: Path) -> Path:
+    """A copy of the rig file ``rig`` in ``folder`` with the twins' datasheet noise and monitor errors off
+    (``[simulation] noise = false``), for comparisons that must not read the noise. Returns the copy."""
+    import tomlkit
+
+    doc = tomlkit.parse(rig.read_text(encoding="utf-8"))
+    sim: Any = doc.setdefault("simulation", tomlkit.table())
+    sim["noise"] = False
+    copy = folder / f"{rig.stem}-noise-free.toml"
+    copy.write_text(tomlkit.dumps(doc), encoding="utf-8")
+    return copy

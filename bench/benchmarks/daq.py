@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from bench.analysis.cycles import crest_to_trough
+from bench.benchmarks import noise_free_rig
 from bench.benchmarks.acquisition import Figure
 from bench.core.clock import Clock
 from bench.models.membrane import MembraneParams
@@ -31,18 +32,6 @@ from drivers.labjack import LabJackT7, StreamIn, StreamOut, StreamSpec
 
 SHORT = protocols_dir() / "short"
 RIGS = rigs_dir()
-
-
-def _noise_free(rig: str, tmp: Path) -> Path:
-    """A copy of the rig ``rig`` in ``tmp`` with the twins' datasheet noise and monitor errors off."""
-    import tomlkit
-
-    doc = tomlkit.parse((RIGS / f"{rig}.toml").read_text(encoding="utf-8"))
-    sim: Any = doc.setdefault("simulation", tomlkit.table())
-    sim["noise"] = False
-    copy = tmp / f"{rig}-noise-free.toml"
-    copy.write_text(tomlkit.dumps(doc), encoding="utf-8")
-    return copy
 
 
 def _run(protocol: Path, rig: str | Path, tmp: Path, virtual: bool, name: str,
@@ -61,8 +50,8 @@ def fidelity(tmp: Path) -> list[Figure]:
 
     The chain's fidelity (drive timing, DAC staircase, reconstruction filter, sampling on one clock), so the twins'
     noise is off: with it the maximum of |Δλ| over 100,000 raw samples reads the LK-G's noise, not the chain."""
-    result, f, wall = _run(SHORT / "thesis-identification-short.toml", _noise_free("thesis-daq-sim", tmp), tmp,
-                           True, "fidelity")
+    rig = noise_free_rig(RIGS / "thesis-daq-sim.toml", tmp)
+    result, f, wall = _run(SHORT / "thesis-identification-short.toml", rig, tmp, True, "fidelity")
     model = json.loads(f.attrs["specimen"])["model"]
     kwargs: dict[str, Any] = {k: tuple(v) if isinstance(v, list) else v for k, v in model.items()}
     p = MembraneParams(**kwargs)
@@ -71,8 +60,8 @@ def fidelity(tmp: Path) -> list[Figure]:
     sel = laser.t <= 10.0
     dlam = np.max(np.abs(laser.columns["displacement"][sel] - np.interp(laser.t[sel], smooth.t,
                                                                          smooth.displacement))) / p.L_d
-    return [Figure("thesis identification (10 s) on thesis-daq-sim, noise off: max |Δλ| against the smooth drive", dlam * 1e4,
-                   "× 1e-4", "target ≤ 2 (the 20-Hz ADAM staircase gave 45)"),
+    return [Figure("thesis identification (10 s) on thesis-daq-sim, noise off: max |Δλ| against the smooth drive",
+                   dlam * 1e4, "× 1e-4", "target ≤ 2 (the 20-Hz ADAM staircase gave 45)"),
             Figure("  the same run in virtual time", result.run_time / wall, "× real time",
                    f"{result.run_time:.1f} s in {wall:.1f} s, start to finalised file")]
 
@@ -163,12 +152,12 @@ def virtual_speed(tmp: Path) -> list[Figure]:
                           f"{result.run_time:.1f} s in {wall:.2f} s ({aim}stream-out: {o.loops_set} loops, "
                           f"{o.values_written:,} values written for {result.run_time * 1e4:,.0f} scans)"))
     protocol, rig, _ = DAQ_RUNS[0]
-    hardware_timed.OUT_LOOPS = False
+    was, hardware_timed.OUT_LOOPS = hardware_timed.OUT_LOOPS, False
     try:
         twins = []
         result, _, wall = _run(protocol, rig, tmp, True, f"{protocol.stem}-refilled", twins)
     finally:
-        hardware_timed.OUT_LOOPS = True
+        hardware_timed.OUT_LOOPS = was
     out.append(Figure(f"  {protocol.stem}, every stream-out value refilled by the host (no loops)",
                       result.run_time / wall, "× real time",
                       f"{twins[0].outs[0].values_written:,} values written; the looped run above is the default"))

@@ -41,9 +41,12 @@ KEEPALIVE_S = 0.25  # a command-response request at least this often (run clock)
 # development host at load 8–14, where the old 0.8 s did not). Virtual time too: a rehearsal of a lost link must
 # stop the drive as the bench would (its collects, every 0.25 s of rig time, keep two periods queued).
 OUT_AHEAD_S = 0.5
-# simulated rigs: whole periods that repeat play from the T7's stream-out loop, written once (not refilled). Not on a
-# lab rig until checked on the hardware: the datasheet does not say that the watchdog's DAC action stops a repeating
-# loop (the twin assumes it does), and a loop that outlived a lost host would drive the amplifier on
+# simulated rigs in virtual time, with the T7's watchdog configured: whole periods that repeat play from the T7's
+# stream-out loop, written once (not refilled). Not on a lab rig until checked on the hardware: the datasheet does not
+# say that the watchdog's DAC action stops a repeating loop (the twin assumes it does), and a loop that outlived a lost
+# host would drive the amplifier on. Not in wall-clock runs either: a rehearsal on the simulated rig (lost link,
+# stalled host) then takes the lab rig's path — the last value held after at most OUT_AHEAD_S, until the watchdog —
+# and loops are a speed device for virtual time only
 OUT_LOOPS = True
 FINISH_TIMEOUT_S = 5.0  # rig time allowed for the last scans of a step to arrive (wall time on hardware)
 FINISH_POLL_S = 0.01  # rig time between collects while waiting for a step's last scans
@@ -139,7 +142,7 @@ class HardwareTimed:
             self.ctx.guard()
             self.daq.arm(StreamSpec(self.cfg.scan_rate_Hz, self.inputs,
                                     StreamOut(self.cfg.dac, dac, hold=1, final=nxt is None, within=window),
-                                    out_ahead_s=OUT_AHEAD_S, out_loops=OUT_LOOPS and self.simulated))
+                                    out_ahead_s=OUT_AHEAD_S, out_loops=self._loops()))
             self._base = 0
             self._commanded = commanded
             self._tail = float(volts[-1])
@@ -201,6 +204,11 @@ class HardwareTimed:
         self._base += keep
         self._appended = (nxt, self._base + self._commanded.size - 1)
         self._tail = float(volts[-1])
+
+    def _loops(self) -> bool:
+        """Whether repeating periods may play from the T7's stream-out loop (OUT_LOOPS: simulated rigs in virtual
+        time whose watchdog is configured)."""
+        return OUT_LOOPS and self.simulated and self.ctx.clock.virtual and self.cfg.watchdog_s is not None
 
     def _window(self) -> tuple[float, tuple[float, float]]:
         """(the supervisor's bound on |V| now, the DAC volts whose output lies within it)."""

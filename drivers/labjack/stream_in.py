@@ -82,6 +82,9 @@ class T7Stream(T7StreamOut):
             v = self._checked_out(out.volts, out.dac)
             if not 1 <= out.hold <= v.size:
                 raise ValueError(f"{self.name}: hold must be 1…{v.size} values")
+            if spec.out_loops and spec.out_ahead_s > 0 and self.watchdog_s is None:
+                raise ValueError(f"{self.name}: stream-out loops need the T7's watchdog (watchdog_s): a loop that "
+                                 "outlives a lost host plays on until the watchdog stops it")
             codes = self.cal.dac_codes(v, out.dac, out.within, self.dac_bits)
             volts = self.cal.dac_volts(codes, out.dac, self.dac_bits)
             capacity = (spec.out_buffer_bytes or MAX_OUT_BUFFER_BYTES) // 2 - 1

@@ -152,6 +152,12 @@ class StreamOut(PlantCoupling):
                 end = min(end, math.ceil((deadline - self.t_enable) * self.rate) - 1)  # scans played before it
             if not o.loop_active:
                 o.loop_active, o.anchor = True, max(o.next_scan, cur + 1)
+            elif o.next_scan <= cur:  # not pumped for longer than was queued: the device repeated on regardless
+                o.loop_pos = (o.loop_pos + cur + 1 - o.next_scan) % o.loop.size
+                o.next_scan, o.y = cur + 1, None  # the filter restarts from the code playing now
+                o.code = int(o.loop[(o.loop_pos - 1) % o.loop.size])
+                if o.target in (R_DAC, R_DAC + 2):
+                    self.dac_volts[(o.target - R_DAC) // 2] = self._code_volts(o.code, (o.target - R_DAC) // 2)
             n = end - o.next_scan
             if n > 0:
                 codes = o.loop[(o.loop_pos + np.arange(n)) % o.loop.size]
