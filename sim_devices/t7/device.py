@@ -32,7 +32,7 @@ _LAYOUT: dict[int, Any] = {}  # the built register space of a T7 (the same for e
 
 class _T7Device(SimDevice):
     """pymodbus' ``SimDevice`` of a T7: every address 0…65534 a register, served through the twin's action.
-    pymodbus builds that space in Python, one register at a time (25-35 ms, at every twin start); it is the same
+    pymodbus builds that space in Python, one register at a time (milliseconds, at every twin start); it is the same
     for every T7 twin, so the first build is kept and each twin gets its own copy of its lists."""
 
     def build_device(self) -> Any:
