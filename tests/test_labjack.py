@@ -56,6 +56,23 @@ def test_parse_stream_packet_status_and_additional_info() -> None:
     assert (pkt.status, pkt.additional, pkt.samples.tolist()) == (2941, 3, [0xFFFF, 0xFFFF])
 
 
+def test_stream_packets_of_one_receive_split_and_parsed_together() -> None:
+    """Two whole packets and the first 10 bytes of a third in one buffer: two spans of 6 + Length bytes, each
+    packet's fields and samples as the packet alone gives them (the bytes above); the partial one waits."""
+    from drivers.labjack.packets import parse_stream_packets, split_stream_packets
+
+    second = bytes.fromhex("0006 0000 000e 01 4c 10 00 0000 0b7d 0003 ffff ffff")  # TransID 6, two samples
+    buf = PACKET + second + PACKET[:10]
+    spans = split_stream_packets(buf)
+    assert spans == [(0, 24), (24, 20)]
+    a, b = parse_stream_packets(buf, spans)
+    assert (a.transaction_id, a.backlog_bytes, a.samples.tolist()) == (5, 8, [0x82F3, 0x8300, 0x7F00, 0xFFFF])
+    assert (b.transaction_id, b.status, b.additional, b.samples.tolist()) == (6, 2941, 3, [0xFFFF, 0xFFFF])
+    bad = PACKET + PACKET[:7] + b"\x4b" + PACKET[8:]  # the second is function 75: refused, as alone
+    with pytest.raises(ProtocolError, match="not a stream packet"):
+        parse_stream_packets(bad, split_stream_packets(bad))
+
+
 @pytest.mark.parametrize("frame, why", [
     (PACKET[:7] + b"\x4b" + PACKET[8:], "function"),  # function 75
     (PACKET[:8] + b"\x11" + PACKET[9:], "type"),  # stream type 17

@@ -150,6 +150,19 @@ def test_a_loop_is_planned_on_codes_that_repeat_exactly_and_only_where_it_saves_
     assert plan_loop(codes, 1000, 20, 20) is None
 
 
+def test_a_long_run_is_measured_to_its_first_differing_code() -> None:
+    """Runs longer than the first stretch the search compares (4,096 codes), ended by one code far in: the run
+    length is the index of that code (as for the 7th-period bump above), or every code when none differs."""
+    from drivers.labjack.looping import periodic_run
+
+    codes = np.tile(np.array([2, 7, 1, 8, 2, 8, 1]), 3000)  # 21,000 codes of period 7 (the window recurs only there)
+    assert periodic_run(codes, 100) == (7, 21_000)
+    for at in (4_102, 4_103, 15_000, 20_999):  # k = at − 7: the first stretch's last, the second's first, …
+        bumped = codes.copy()
+        bumped[at] += 1
+        assert periodic_run(bumped, 100) == (7, at)
+
+
 def _sine(periods: int, period_s: float = 0.5) -> np.ndarray:
     """DAC volts of ``periods`` sine periods at RATE scans/s, ending on the start value."""
     t = np.arange(round(periods * period_s * RATE) + 1) / RATE

@@ -36,13 +36,14 @@ RIGS = rigs_dir()
 
 def _run(protocol: Path, rig: str | Path, tmp: Path, virtual: bool, name: str,
          twins: list[Any] | None = None) -> tuple[RunResult, RunFile, float]:
-    """Run ``protocol`` on ``rig`` (a shipped rig's name or a rig file; the wall time from start to finalised
-    file); ``twins``: gets the T7 twin."""
+    """Run ``protocol`` on ``rig`` (a shipped rig's name or a rig file; the wall time from start to finalised file,
+    not the reading back of it that the caller inspects); ``twins``: gets the T7 twin."""
     plan = plan_run(protocol, rig if isinstance(rig, Path) else RIGS / f"{rig}.toml")
     grab = None if twins is None else (lambda _e, sim: twins.append(sim.twins["daq"]))
     t0 = time.perf_counter()
     result = execute(plan, tmp / f"{name}.h5", virtual=virtual, on_engine=grab)
-    return result, open_run(result.path), time.perf_counter() - t0
+    wall = time.perf_counter() - t0
+    return result, open_run(result.path), wall
 
 
 def fidelity(tmp: Path) -> list[Figure]:

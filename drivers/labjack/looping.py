@@ -42,14 +42,29 @@ def periodic_run(codes: np.ndarray, max_period: int) -> tuple[int, int]:
     lim = min(max_period, n - w)
     if w < 1 or lim < 1:
         return 0, 0
-    rows = np.lib.stride_tricks.sliding_window_view(codes[1:lim + w], w)
-    for p in (np.flatnonzero((rows == codes[:w]).all(axis=1)) + 1)[:8]:
+    # the offsets where the first code recurs, then those of them where the whole window does (in offset order)
+    at = np.flatnonzero(codes[1:lim + 1] == codes[0]) + 1
+    rows = codes[at[:, None] + np.arange(w)]
+    for p in at[(rows == codes[:w]).all(axis=1)][:8]:
         p = int(p)
-        diff = np.flatnonzero(codes[p:] != codes[:n - p])
-        run = n if diff.size == 0 else p + int(diff[0])
+        run = p + _agree(codes, p)
         if run >= 2 * p:
             return p, run
     return 0, 0
+
+
+def _agree(codes: np.ndarray, p: int) -> int:
+    """How many codes from the start equal those ``p`` later (the first k with codes[p + k] != codes[k], or all
+    n − p): compared in stretches that double, so a candidate that fails early costs little."""
+    m = codes.size - p
+    k, step = 0, 4096
+    while k < m:
+        e = min(k + step, m)
+        diff = np.flatnonzero(codes[p + k:p + e] != codes[k:e])
+        if diff.size:
+            return k + int(diff[0])
+        k, step = e, 2 * step
+    return m
 
 
 def plan_loop(codes: np.ndarray, at: int, min_block: int, max_block: int, min_blocks: int = 4) -> Loop | None:

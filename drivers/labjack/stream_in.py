@@ -7,7 +7,6 @@ import contextlib
 import math
 import select
 import socket
-import struct
 
 import numpy as np
 
@@ -20,7 +19,7 @@ from drivers.errors import (
     ProtocolError,
 )
 from drivers.interfaces import StreamBlock, StreamSpec
-from drivers.labjack.packets import StreamPacket, parse_stream_packet
+from drivers.labjack.packets import StreamPacket, parse_stream_packets, split_stream_packets
 from drivers.labjack.plan import StreamPlan, StreamState
 from drivers.labjack.registers import (
     AIN0,
@@ -181,19 +180,19 @@ class T7Stream(T7StreamOut):
                 if not data:
                     raise InstrumentConnectionError(self.name, "stream socket closed by the device")
                 s.raw += data
-                while len(s.raw) >= 6:
-                    total = 6 + struct.unpack(">H", s.raw[4:6])[0]
-                    if len(s.raw) < total:
-                        break
-                    pkt = parse_stream_packet(bytes(s.raw[:total]), self.name)
-                    del s.raw[:total]
-                    if pkt.transaction_id != (s.next_tid & 0xFFFF):
-                        raise ProtocolError(self.name, f"stream packet {pkt.transaction_id} after "
-                                            f"{(s.next_tid - 1) & 0xFFFF}: packets lost")
-                    s.next_tid += 1
-                    out.append(pkt)
-                    if pkt.status in (ST_BURST_COMPLETE, ST_BUFFER_FULL, ST_SCAN_OVERLAP, ST_RECOVER_OVERFLOW):
-                        s.done = True
+                spans = split_stream_packets(s.raw)
+                if spans:  # every whole packet received, parsed together (one conversion of their samples)
+                    end = spans[-1][0] + spans[-1][1]
+                    frames = bytes(s.raw[:end])
+                    del s.raw[:end]
+                    for pkt in parse_stream_packets(frames, spans, self.name):
+                        if pkt.transaction_id != (s.next_tid & 0xFFFF):
+                            raise ProtocolError(self.name, f"stream packet {pkt.transaction_id} after "
+                                                f"{(s.next_tid - 1) & 0xFFFF}: packets lost")
+                        s.next_tid += 1
+                        out.append(pkt)
+                        if pkt.status in (ST_BURST_COMPLETE, ST_BUFFER_FULL, ST_SCAN_OVERLAP, ST_RECOVER_OVERFLOW):
+                            s.done = True
                 continue
             if not wait:
                 return out

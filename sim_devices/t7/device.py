@@ -14,6 +14,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import threading
+from typing import Any
 
 from pymodbus.server import ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
@@ -25,6 +26,20 @@ from sim_devices.t7.feedback import FeedbackPDU, T7Server
 from sim_devices.t7.register_io import RegisterIO
 from sim_devices.t7.registers import R_O_U16, UNIT
 from sim_devices.transport import Faults, SocketRelay
+
+_LAYOUT: dict[int, Any] = {}  # the built register space of a T7 (the same for every twin): pymodbus' build, once
+
+
+class _T7Device(SimDevice):
+    """pymodbus' ``SimDevice`` of a T7: every address 0…65534 a register, served through the twin's action.
+    pymodbus builds that space in Python, one register at a time (milliseconds, at every twin start); it is the same
+    for every T7 twin, so the first build is kept and each twin gets its own copy of its lists."""
+
+    def build_device(self) -> Any:
+        if UNIT not in _LAYOUT:
+            _LAYOUT[UNIT] = super().build_device()
+        start, registers, flags = _LAYOUT[UNIT]
+        return start, list(registers), list(flags)
 
 
 class LabJackT7Sim(RegisterIO):
@@ -42,7 +57,7 @@ class LabJackT7Sim(RegisterIO):
         self._init_stream_out()
         self._init_stream_in()
         words_ = [SimData(0, count=65535, values=0, datatype=DataType.REGISTERS)]
-        self.device = SimDevice(UNIT, words_, action=self.action)
+        self.device = _T7Device(UNIT, words_, action=self.action)
         self._loop: asyncio.AbstractEventLoop | None = None
         self._thread: threading.Thread | None = None
         self._ready = threading.Event()
