@@ -93,14 +93,16 @@ class Monitor:
 def monitors(dyn: TrekDynamics, full_scale_V: float, full_scale_A: float,
              realism: Realism) -> tuple[Monitor, Monitor]:
     """The voltage and current monitors of an amplifier, their errors drawn from the rig's seed (none with noise
-    off): gain and offset each uniform within half the DC accuracy (together within it)."""
+    off): gain and offset each uniform within half the DC accuracy (together within it). Each monitor's noise has a
+    stream of its own (11, 12): one shared generator gave each monitor other draws whenever the plant's blocks, which
+    follow the host's polling, were cut differently — a seed did not reproduce a run."""
     rng = realism.rng(10)
     vm, im = Monitor(dyn.vmon_bandwidth_Hz), Monitor(dyn.imon_bandwidth_Hz)
     if realism.noise:
-        for mon, acc, fs, noise in ((vm, dyn.vmon_accuracy, full_scale_V, dyn.vmon_noise),
-                                    (im, dyn.imon_accuracy, full_scale_A, dyn.imon_noise)):
+        for k, (mon, acc, fs, noise) in enumerate(((vm, dyn.vmon_accuracy, full_scale_V, dyn.vmon_noise),
+                                                   (im, dyn.imon_accuracy, full_scale_A, dyn.imon_noise))):
             mon.gain_error = float(rng.uniform(-acc / 2, acc / 2))
             mon.offset = float(rng.uniform(-acc / 2, acc / 2)) * fs
             mon.noise = noise
-            mon.rng = rng
+            mon.rng = realism.rng(11 + k)
     return vm, im
