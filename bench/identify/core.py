@@ -68,7 +68,6 @@ class FitSettings:
     cost: Cost = "sae"  # the thesis's sum of absolute errors, or least squares
     polish: bool = True
     polish_iterations: int = 20
-    polish_candidates: int = 1  # the best few distinct members of the final population polished, the lowest kept
     seed: int = 1
     tol: float = 0.01  # scipy's relative convergence tolerance of the population's costs
     # stop on convergence of the best cost: when it improved by less than stall_tol (relative) over the last
@@ -415,9 +414,8 @@ def _search(problem: Problem, settings: FitSettings, start: np.ndarray | None, f
             return np.inf
         return float(np.sum(np.abs(r)) if settings.cost == "sae" else np.sum(r * r))
 
-    candidates = _distinct_best(pop, E, max(1, settings.polish_candidates) if settings.polish else 1)
-    points = [0]  # points the polishes evaluated (each with its Jacobian): each one's limit is max_nfev
-    limit = max(settings.polish_iterations, 1) * len(candidates)
+    points = [0]  # points the polish evaluated (each with its Jacobian): its limit is max_nfev
+    limit = max(settings.polish_iterations, 1)
 
     def polish(z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The polish of one candidate: (z, prediction, Jacobian) after it."""
@@ -464,26 +462,12 @@ def _search(problem: Problem, settings: FitSettings, start: np.ndarray | None, f
             pred, J = jac_batch(z)
         return z, pred, J
 
-    # the best few members, each polished at the fine step (the coarse step's optimum is not the fine one's: the
-    # polish does most of the work), the lowest χ² kept
-    z, pred, J = min((polish(c) for c in candidates), key=lambda o: cost_of((o[1] - data) / sigma))
+    z, pred, J = polish(pop[int(np.argmin(E))])
     if polished is not None:
         polished(1.0)
     perm = unit_order(problem, z)  # the model is symmetric under exchanging units: number them by τ
     return _Run(settings.seed, z[perm], pred, J[:, perm], cost_of(pred - data), lo[perm], hi[perm], evaluations,
                 nit, search_time)
-
-
-def _distinct_best(pop: np.ndarray, E: np.ndarray, k: int) -> list[np.ndarray]:
-    """Up to ``k`` members of a final population, best first, each differing from those before it (a converged
-    population holds many copies of its best)."""
-    out: list[np.ndarray] = []
-    for i in np.argsort(E, kind="stable"):
-        if len(out) == k:
-            break
-        if np.isfinite(E[i]) and not any(np.allclose(pop[i], o, rtol=1e-6, atol=0.0) for o in out):
-            out.append(pop[i].copy())
-    return out or [pop[int(np.argmin(E))].copy()]
 
 
 LACK_OF_FIT_SHARE = 0.02  # residual rms above this share of the data's spread ...
