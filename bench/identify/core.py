@@ -17,7 +17,7 @@ from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Literal, Protocol
 
 import numpy as np
-from scipy.optimize import differential_evolution, least_squares
+from scipy.optimize import OptimizeResult, differential_evolution, least_squares
 
 if TYPE_CHECKING:
     from bench.identify.trust import Trust
@@ -382,12 +382,15 @@ def _search(problem: Problem, settings: FitSettings, start: np.ndarray | None, f
         if n and len(best) > n and best[-1 - n] - best[-1] <= settings.stall_tol * abs(best[-1 - n]):
             raise StopIteration  # converged: the best cost no longer moves
 
+    def scipy_generation(intermediate_result: OptimizeResult) -> None:  # scipy passes the result by this name
+        generation(float(intermediate_result.fun))
+
     if not sorts_units(problem):  # no interchangeable units: scipy's differential evolution
         de = differential_evolution(batch_cost, list(zip(lo, hi, strict=True)), init=init,
                                     maxiter=settings.generations, mutation=settings.mutation,
                                     recombination=settings.crossover, tol=settings.tol, polish=False,
                                     vectorized=True, updating="deferred", seed=settings.seed,
-                                    callback=lambda res: generation(float(res.fun)))
+                                    callback=scipy_generation)
         pop, E, nit = np.asarray(de.population, float), np.asarray(de.population_energies, float), int(de.nit)
     else:  # the same, with each candidate's units sorted by τ (:func:`canonical`)
         pop, E, nit = _evolve(lambda Z: batch_cost(Z.T), lo, hi, init, settings, rng,
