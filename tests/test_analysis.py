@@ -287,7 +287,9 @@ def test_fit_cli_fits_several_files_together_stores_in_each_and_exports_a_rig(tm
         paths.append(str(res.path))
     rig = tmp_path / "fitted.toml"
     out = CliRunner().invoke(app, ["fit", *paths, "--population", "12", "--generations", "5", "--starts", "1",
-                                   "--no-intervals", "--cost", "lsq", "--export", str(rig)], env={"COLUMNS": "200"})
+                                   "--no-intervals", "--cost", "lsq", "--polish-iterations", "20",
+                                   "--export", str(rig)],
+                             env={"COLUMNS": "200"})
     assert out.exit_code == 0, out.output
     assert "lsdea model fitted to 2 run(s)" in out.output
     for p in paths:

@@ -77,8 +77,8 @@ def test_acquisition_benchmark_reports_complete_10kHz_storage() -> None:
 
 def test_demo_runs_records_fits_and_reports_from_the_file(tmp_path) -> None:
     res = runner.invoke(app, ["demo", "--out", str(tmp_path), "--generations", "3", "--population", "10",
-                              "--starts", "1", "--no-intervals"],
-                        env={"COLUMNS": "200"})
+                              "--starts", "1", "--no-intervals", "--polish-iterations", "20"],
+                        env={"COLUMNS": "200"})  # the command's polish cap (150) is for a real search: 20 as before
     assert res.exit_code == 0, res.output
     files = list(tmp_path.glob("thesis-identification-*.h5"))
     assert len(files) == 1 and str(files[0]) in res.output

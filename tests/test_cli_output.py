@@ -120,7 +120,8 @@ def test_fit_json_is_the_stored_fit(tmp_path: Path) -> None:
     result = execute(plan_run(protocol), tmp_path / "run.h5", virtual=True)
     assert result.state == "completed", result.reason
     run = Path(result.path)
-    res = runner.invoke(app, ["fit", str(run), "--population", "6", "--generations", "2", "--starts", "2", "--json"])
+    res = runner.invoke(app, ["fit", str(run), "--population", "6", "--generations", "2", "--starts", "2", "--json",
+                              "--polish-iterations", "20"])
     assert res.exit_code == 0, res.output
     data = json.loads(res.stdout)
     (stored,) = read_fits(run)

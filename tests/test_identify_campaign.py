@@ -87,7 +87,7 @@ def test_campaign_fit_cli_stores_the_joint_result_in_every_file(tmp_path: Path, 
 
     paths = _runs(tmp_path, names)
     out = CliRunner().invoke(app, ["fit", *paths, "--population", "12", "--generations", "4", "--starts", "1",
-                                   "--no-intervals"],
+                                   "--no-intervals", "--polish-iterations", "20"],
                              env={"COLUMNS": "250"})
     assert out.exit_code == 0, out.output
     assert "what each record determines alone" in out.output

@@ -362,3 +362,65 @@ def test_starts_that_reach_the_best_chi2_in_different_optima_leave_the_parameter
     assert tr is not None and tr.arrived == [1, 2] and not tr.failed and tr.disagree == ["a"]
     assert tr.status == ["not determined", "determined"]
     assert tr.lower[0] == pytest.approx(a_star, abs=1e-3)
+
+
+class _Decays(_Units):
+    """Two interchangeable decays s + m1·e^(−x/10^t1) + m2·e^(−x/10^t2), the same bounds for both units; notes
+    every candidate it is asked for."""
+
+    units: ClassVar[list[str]] = ["m", "m", "m", "s", "s"]
+    lower = np.array([-1.0, 0.0, 0.0, -2.0, -2.0])
+    upper = np.array([1.0, 2.0, 2.0, 1.0, 1.0])
+    log = np.array([False] * 5)
+    data_unit = "m"
+
+    def __init__(self) -> None:
+        self.x = np.linspace(0.0, 5.0, 200)
+        self.data = self.predict(np.array([0.1, 1.0, 0.5, -0.5, 0.5]))[0]
+        self.sigma = np.full(self.x.size, 1e-3)
+        self.asked: list[np.ndarray] = []
+
+    def predict(self, Z: np.ndarray) -> np.ndarray:
+        Z = np.atleast_2d(Z)
+        if hasattr(self, "asked"):
+            self.asked.append(Z.copy())
+        return Z[:, :1] + Z[:, 1:2] * np.exp(-self.x / 10 ** Z[:, 3:4]) + Z[:, 2:3] * np.exp(-self.x / 10 ** Z[:, 4:5])
+
+
+def test_the_search_evaluates_each_candidate_as_its_copy_with_units_sorted_by_relaxation_time() -> None:
+    """Interchangeable units: a candidate and its copy with the units exchanged predict the same, so the search
+    holds one of them, units by increasing τ (unit 1: fastest). A start given with its units the other way round
+    (τ 10^0.5 before 10^-1) is evaluated as its sorted copy, and so is every candidate of the search."""
+    from bench.identify.core import canonical
+
+    prob = _Decays()
+    z = np.array([0.1, 0.5, 1.0, 0.5, -0.5])
+    assert np.array_equal(canonical(prob, z)[0], [0.1, 1.0, 0.5, -0.5, 0.5])  # s stays; (m, t) move together
+    fit(prob, FitSettings(population=8, generations=3, polish=False, seed=2), start=z)  # type: ignore[arg-type]
+    asked = np.concatenate(prob.asked)
+    assert asked.shape[0] >= 8 * 4  # the initial population and three generations
+    assert np.all(asked[:, 3] <= asked[:, 4])
+    assert any(np.array_equal(row, [0.1, 1.0, 0.5, -0.5, 0.5]) for row in asked)  # the start, sorted
+
+
+def test_the_membrane_s_four_units_share_one_j_range_the_union_of_the_thesis_s(short_run: Path) -> None:
+    """The thesis bounds J of units 1–4 by position (200…500, 300…600, 400…700, 500…800, Table 4.3) but does not
+    number them by τ (its unit 3 is the fastest); the fit does, so the four share the union, 200…800, and the
+    thesis's specimen (physics.md §1.1) sorted by τ — units 3, 4, 1, 2 — lies inside the box."""
+    from bench.identify.core import canonical, to_optimiser, to_physical
+    from bench.identify.problems import MembraneProblem
+
+    prob = MembraneProblem([short_run], h=1e-3)
+    for i in range(1, 5):
+        j = prob.names.index(f"J{i}")
+        assert (prob.lower[j], prob.upper[j]) == (200.0, 800.0)
+    thesis = {"mu0": 65.4472e3, "J0": 351.629, "mu1": 123.636e3, "mu2": 30.8529e3, "mu3": 499.622e3,
+              "mu4": 398.081e3, "J1": 400.619, "J2": 432.838, "J3": 405.422, "J4": 795.496, "tau1": 0.089513,
+              "tau2": 4.9967, "tau3": 1.0e-5, "tau4": 0.067572, "V_gain": 0.0, "V_offset": 0.0}
+    z = to_optimiser(prob.log, np.array([thesis[n] for n in prob.names]))
+    s = dict(zip(prob.names, to_physical(prob.log, canonical(prob, z)[0]), strict=True))
+    assert [s[f"mu{i}"] for i in range(1, 5)] == pytest.approx([499.622e3, 398.081e3, 123.636e3, 30.8529e3])
+    assert [s[f"J{i}"] for i in range(1, 5)] == pytest.approx([405.422, 795.496, 400.619, 432.838])
+    assert [s[f"tau{i}"] for i in range(1, 5)] == pytest.approx([1.0e-5, 0.067572, 0.089513, 4.9967])
+    zs = canonical(prob, z)[0]
+    assert np.all((prob.lower <= zs) & (zs <= prob.upper))

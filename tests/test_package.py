@@ -75,8 +75,9 @@ def test_wheel_in_a_fresh_venv_runs_demo_init_run_and_export(wheel: Path, tmp_pa
                   "print(r.protocols_dir())"], work, env=env)
     assert str(venv) in where and str(ROOT) not in where
     bench = str(venv / "bin" / "bench")
+    # the intervals and the polish have their own tests: this one is the wheel
     out = _run([bench, "demo", "--out", "demo", "--generations", "2", "--population", "6", "--starts", "1",
-                "--no-intervals"], work, env=env)  # the intervals have their own tests: this one is the wheel
+                "--no-intervals", "--polish-iterations", "20"], work, env=env)
     assert "completed" in out and "figures:" in out
     assert list((work / "demo").glob("thesis-identification-*.h5"))
     _run([bench, "init", "lab"], work, env=env)

@@ -3,8 +3,10 @@
 A :class:`Problem` gives parameter names, bounds in optimiser coordinates (linear or log10 per parameter),
 a *batched* predictor (many parameter sets at once, on all cores) and the measured data. Differential
 evolution (scipy, ``vectorized=True``: one batch per generation) searches the bounded space with the
-thesis's settings (Table 4.1: population 50, F = 0.6, CR = 0.9, 100 generations); a bounded least-squares
-step (scipy ``least_squares``, finite-difference Jacobian evaluated as one batch) polishes the best member.
+thesis's settings (Table 4.1: population 50, F = 0.6, CR = 0.9, 100 generations); where the problem has
+interchangeable units of equal bounds, the same scheme with each candidate's units sorted by τ (:func:`canonical`).
+A bounded least-squares step (scipy ``least_squares``, finite-difference Jacobian evaluated as one batch) polishes
+the best member.
 The same Jacobian gives each parameter's sensitivity and the correlation matrix; parameters on a bound, with
 no influence on the cost, or almost perfectly correlated with another are flagged.
 """
@@ -294,6 +296,65 @@ def unit_order(problem: Problem, z: np.ndarray) -> np.ndarray:
     return perm
 
 
+def sorts_units(problem: Problem) -> bool:
+    """Whether the search sorts the problem's interchangeable units (:func:`canonical`): two groups or more, all
+    with the same bounds."""
+    groups = np.asarray(getattr(problem, "unit_groups", None) or [], int)
+    if groups.ndim != 2 or groups.shape[0] < 2:
+        return False
+    lo, hi = np.asarray(problem.lower, float), np.asarray(problem.upper, float)
+    return bool(np.all(lo[groups] == lo[groups[:1]]) and np.all(hi[groups] == hi[groups[:1]]))
+
+
+def canonical(problem: Problem, Z: np.ndarray) -> np.ndarray:
+    """Each row of Z (S × D, optimiser coordinates) with its interchangeable units sorted by relaxation time (the
+    problem's ``unit_groups``, τ last): the one representative of the row's copies under exchanging units, which
+    the model cannot tell apart. Z unchanged where the problem has fewer than two groups, or where the groups'
+    bounds differ (a sorted row could leave the box)."""
+    Z = np.atleast_2d(np.asarray(Z, float))
+    if not sorts_units(problem):
+        return Z
+    groups = np.array(getattr(problem, "unit_groups", None), dtype=np.intp)  # sorts_units: it has them
+    order = np.argsort(Z[:, groups[:, -1]], axis=1, kind="stable")  # S × units: the unit in each slot
+    out = Z.copy()
+    out[:, groups] = Z[np.arange(Z.shape[0])[:, None, None], groups[order]]
+    return out
+
+
+def _evolve(cost: Callable[[np.ndarray], np.ndarray], lo: np.ndarray, hi: np.ndarray, init: np.ndarray,
+            settings: FitSettings, rng: np.random.Generator, canon: Callable[[np.ndarray], np.ndarray],
+            generation: Callable[[float], None]) -> tuple[np.ndarray, np.ndarray, int]:
+    """Differential evolution (best/1/bin, one batch per generation, as scipy's ``updating="deferred"``) whose
+    population is kept canonical (``canon``: units sorted by τ) so that its differences compare like units; a
+    component driven out of the box is redrawn uniformly in it (scipy's rule). Ends after ``settings.generations``,
+    when the population's costs agree within ``settings.tol`` (scipy's criterion) or when ``generation`` (called
+    with the best cost after each) raises StopIteration. Returns the population, its costs and the generations
+    run."""
+    pop = canon(init)
+    S, D = pop.shape
+    E = cost(pop)
+    nit = 0
+    while nit < settings.generations:
+        nit += 1
+        b = int(np.argmin(E))
+        r = np.argsort(rng.random((S, S)) + np.eye(S), axis=1)[:, :2]  # two other members each, distinct
+        mutant = pop[b] + settings.mutation * (pop[r[:, 0]] - pop[r[:, 1]])
+        cross = rng.random((S, D)) < settings.crossover
+        cross[np.arange(S), rng.integers(D, size=S)] = True
+        trial = np.where(cross, mutant, pop)
+        trial = canon(np.where((trial < lo) | (trial > hi), lo + (hi - lo) * rng.random((S, D)), trial))
+        Et = cost(trial)
+        better = Et <= E
+        pop[better], E[better] = trial[better], Et[better]
+        try:
+            generation(float(np.min(E)))
+        except StopIteration:
+            break
+        if np.all(np.isfinite(E)) and np.std(E) <= settings.tol * abs(float(np.mean(E))):
+            break
+    return pop, E, nit
+
+
 def _search(problem: Problem, settings: FitSettings, start: np.ndarray | None, fine: Problem | None,
             progress: Callable[[], None] | None, polished: Callable[[float], None] | None = None) -> _Run:
     """One differential evolution from ``settings.seed`` and its polish (``polished``: the share of the polish's
@@ -315,19 +376,27 @@ def _search(problem: Problem, settings: FitSettings, start: np.ndarray | None, f
 
     best: list[float] = []
 
-    def generation(intermediate_result: OptimizeResult) -> None:
+    def generation(fun: float) -> None:
         if progress:
             progress()
-        best.append(float(intermediate_result.fun))
+        best.append(fun)
         n = settings.stall_generations
         if n and len(best) > n and best[-1 - n] - best[-1] <= settings.stall_tol * abs(best[-1 - n]):
             raise StopIteration  # converged: the best cost no longer moves
 
-    de = differential_evolution(batch_cost, list(zip(lo, hi, strict=True)), init=init,
-                                maxiter=settings.generations, mutation=settings.mutation,
-                                recombination=settings.crossover, tol=settings.tol, polish=False,
-                                vectorized=True, updating="deferred", seed=settings.seed, callback=generation)
-    z = np.asarray(de.x, dtype=float)
+    def scipy_generation(intermediate_result: OptimizeResult) -> None:  # scipy passes the result by this name
+        generation(float(intermediate_result.fun))
+
+    if not sorts_units(problem):  # no interchangeable units: scipy's differential evolution
+        de = differential_evolution(batch_cost, list(zip(lo, hi, strict=True)), init=init,
+                                    maxiter=settings.generations, mutation=settings.mutation,
+                                    recombination=settings.crossover, tol=settings.tol, polish=False,
+                                    vectorized=True, updating="deferred", seed=settings.seed,
+                                    callback=scipy_generation)
+        pop, E, nit = np.asarray(de.population, float), np.asarray(de.population_energies, float), int(de.nit)
+    else:  # the same, with each candidate's units sorted by τ (:func:`canonical`)
+        pop, E, nit = _evolve(lambda Z: batch_cost(Z.T), lo, hi, init, settings, rng,
+                              lambda Z: canonical(problem, Z), generation)
     search_time = time.perf_counter() - t0
     problem = fine or problem
     mask = np.isfinite(problem.data)
@@ -350,8 +419,14 @@ def _search(problem: Problem, settings: FitSettings, start: np.ndarray | None, f
             return np.inf
         return float(np.sum(np.abs(r)) if settings.cost == "sae" else np.sum(r * r))
 
-    pred, J = jac_batch(z)
-    if settings.polish:
+    points = [0]  # points the polish evaluated (each with its Jacobian): its limit is max_nfev
+    limit = max(settings.polish_iterations, 1)
+
+    def polish(z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The polish of one candidate: (z, prediction, Jacobian) after it."""
+        pred, J = jac_batch(z)
+        if not settings.polish:
+            return z, pred, J
         # polish the parameters that influence the cost (a move across the span changes χ²: √Δχ² ≥ 0.1), at the
         # fine step: the others only hurt conditioning
         from bench.identify.trust import influence
@@ -365,7 +440,6 @@ def _search(problem: Problem, settings: FitSettings, start: np.ndarray | None, f
             return zz
 
         cache: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
-        points = [0]  # points the polish evaluated (each with its Jacobian): its limit is max_nfev
 
         def both(zf: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             key = zf.tobytes()
@@ -374,7 +448,7 @@ def _search(problem: Problem, settings: FitSettings, start: np.ndarray | None, f
                 cache[key] = jac_batch(full(zf), free)
                 if polished is not None:
                     points[0] += 1
-                    polished(min(points[0] / max(settings.polish_iterations, 1), 1.0))
+                    polished(min(points[0] / limit, 1.0))
             return cache[key]
 
         def res(zc: np.ndarray) -> np.ndarray:
@@ -391,11 +465,14 @@ def _search(problem: Problem, settings: FitSettings, start: np.ndarray | None, f
         if np.isfinite(after) and after <= cost_of((pred - data) / sigma):
             z = full(ls.x)
             pred, J = jac_batch(z)
+        return z, pred, J
+
+    z, pred, J = polish(pop[int(np.argmin(E))])
     if polished is not None:
         polished(1.0)
     perm = unit_order(problem, z)  # the model is symmetric under exchanging units: number them by τ
     return _Run(settings.seed, z[perm], pred, J[:, perm], cost_of(pred - data), lo[perm], hi[perm], evaluations,
-                int(de.nit), search_time)
+                nit, search_time)
 
 
 LACK_OF_FIT_SHARE = 0.02  # residual rms above this share of the data's spread ...

@@ -1,10 +1,13 @@
 """Identification problems built from run files (analysis reads files only).
 
 * :class:`MembraneProblem` — thesis model, 14 parameters: μ, J of unit 0 and μ, J, τ of units 1–4. Bounds:
-  thesis Tables 4.2–4.3 read as physics.md §1.3 explains (μ 0.01…500 kPa; J 100…400, 200…500, 300…600,
-  400…700, 500…800; τ = η/μ 1e-5…20 s, searched on a log scale). Data: the laser displacement u(t) of one or
-  more runs; inputs: the voltages (zero-order hold) and temperatures. Where the voltage is the amplifier's
-  *measured* monitor (a hardware-timed rig), two more parameters: the monitor's calibration, ``V_gain``
+  thesis Tables 4.2–4.3 read as physics.md §1.3 explains (μ 0.01…500 kPa; τ = η/μ 1e-5…20 s, searched on a log
+  scale; J0 100…400), except that units 1–4 share one J range, 200…800, the union of the thesis's per-unit
+  ranges (200…500, 300…600, 400…700, 500…800): the fit numbers units by relaxation time, the thesis did not
+  (its unit 3 is the fastest), so a per-position range would exclude a unit's J once it is renumbered, and the
+  search sorts each candidate's units by τ, which needs the same box for all four. Data: the laser displacement
+  u(t) of one or more runs; inputs: the voltages (zero-order hold) and temperatures. Where the voltage is the
+  amplifier's *measured* monitor (a hardware-timed rig), two more parameters: the monitor's calibration, ``V_gain``
   (relative) and ``V_offset`` [V] — the monitor reads (1 + V_gain)·V + V_offset of the output V —, bounded by
   the monitor's DC accuracy (± accuracy on the gain, ± accuracy × full scale on the offset; a box around the
   datasheet's ``|error| ≤ accuracy × full scale``). The records are precise enough (laser noise ~1e-4 of the
@@ -45,7 +48,9 @@ if TYPE_CHECKING:
 
     from bench.identify.distributed import DistributedPredict
 
-J_BOUNDS = ((100.0, 400.0), (200.0, 500.0), (300.0, 600.0), (400.0, 700.0), (500.0, 800.0))
+J_BOUNDS = ((100.0, 400.0), (200.0, 500.0), (300.0, 600.0), (400.0, 700.0), (500.0, 800.0))  # thesis, per unit
+# units 1–4 (interchangeable, numbered by τ): one range, the union of the thesis's (module docstring)
+UNIT_J_BOUNDS = (min(b[0] for b in J_BOUNDS[1:]), max(b[1] for b in J_BOUNDS[1:]))
 
 
 def _sampled(t_grid: np.ndarray, t_data: np.ndarray, values: np.ndarray) -> np.ndarray:
@@ -147,8 +152,8 @@ class MembraneProblem(MonitorCalibration):
         self.names = ["mu0", "J0"] + [f"mu{i}" for i in range(1, 5)] + [f"J{i}" for i in range(1, 5)] + \
             [f"tau{i}" for i in range(1, 5)]
         self.units = ["Pa", "-"] + ["Pa"] * 4 + ["-"] * 4 + ["s"] * 4
-        self.lower = np.array([10.0, 100.0] + [10.0] * 4 + [b[0] for b in J_BOUNDS[1:]] + [-5.0] * 4)
-        self.upper = np.array([500e3, 400.0] + [500e3] * 4 + [b[1] for b in J_BOUNDS[1:]] + [np.log10(20.0)] * 4)
+        self.lower = np.array([10.0, J_BOUNDS[0][0]] + [10.0] * 4 + [UNIT_J_BOUNDS[0]] * 4 + [-5.0] * 4)
+        self.upper = np.array([500e3, J_BOUNDS[0][1]] + [500e3] * 4 + [UNIT_J_BOUNDS[1]] * 4 + [np.log10(20.0)] * 4)
         self.log = np.array([False] * 10 + [True] * 4)
         self.template: MembraneParams | None = None
         for path in paths:
@@ -396,8 +401,8 @@ class LozengeProblem(MonitorCalibration):
 def match_membrane_units(fitted: dict[str, float], reference: dict[str, float]) -> dict[int, int]:
     """Fitted Maxwell unit → reference unit, paired in order of relaxation time τ.
 
-    The membrane model is symmetric under exchanging its Maxwell units (only their J bounds differ, and J
-    hardly acts), so a search may find a unit under another number; compare units by τ rank, not by number.
+    The membrane model is symmetric under exchanging its Maxwell units, and the fit numbers them by τ while a
+    reference (the thesis's Table 4.4) may not; compare units by τ rank, not by number.
     """
     units = range(1, 5)
     by_tau_fit = sorted(units, key=lambda i: fitted[f"tau{i}"])
