@@ -424,3 +424,40 @@ def test_the_membrane_s_four_units_share_one_j_range_the_union_of_the_thesis_s(s
     assert [s[f"tau{i}"] for i in range(1, 5)] == pytest.approx([1.0e-5, 0.067572, 0.089513, 4.9967])
     zs = canonical(prob, z)[0]
     assert np.all((prob.lower <= zs) & (zs <= prob.upper))
+
+
+class _Relaxation:
+    """y = 1 − exp(−t/τ) on 0…5 s (400 points, σ 0.01), τ = 0.5 s fitted as log10 τ in −3…1; ``h``: the model's
+    integration step the problem declares."""
+
+    names: ClassVar[list[str]] = ["tau"]
+    units: ClassVar[list[str]] = ["s"]
+    lower = np.array([-3.0])
+    upper = np.array([1.0])
+    log = np.array([True])
+    data_unit = "m"
+
+    def __init__(self, h: float) -> None:
+        self.h = h
+        self.t = np.linspace(0.0, 5.0, 400)
+        self.sigma = np.full(self.t.size, 0.01)
+        self.data = 1.0 - np.exp(-self.t / 0.5) + np.random.default_rng(5).normal(0.0, 0.01, self.t.size)
+
+    def predict(self, Z: np.ndarray) -> np.ndarray:
+        tau = 10.0 ** np.atleast_2d(Z)[:, :1]
+        out: np.ndarray = 1.0 - np.exp(-self.t / tau)
+        return out
+
+
+def test_a_time_constant_whose_interval_reaches_below_the_model_step_is_open_to_its_bound() -> None:
+    """τ = 0.5 s is well determined by the data (its interval a few % wide). Declared on a model whose step is
+    0.01 s, the interval stands; on one whose step is 1 s — so the interval's lower end lies below the step, where
+    the model does not resolve relaxation — it runs on to the search bound (1 ms) and τ is bounded on one side only,
+    flagged as depending on the model's step."""
+    settings = FitSettings(population=10, generations=10, cost="lsq", intervals=True)
+    fine = fit(_Relaxation(h=0.01), settings).trust
+    assert fine is not None and fine.status == ["determined"] and 0.45 < fine.lower[0] < 0.5 < fine.upper[0] < 0.55
+    coarse_step = fit(_Relaxation(h=1.0), settings).trust
+    assert coarse_step is not None and coarse_step.status == ["bounded on one side only"]
+    assert coarse_step.lower[0] == pytest.approx(1e-3) and coarse_step.upper[0] == pytest.approx(fine.upper[0])
+    assert coarse_step.step_shift == ["tau"]
