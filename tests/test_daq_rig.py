@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 
 from bench.analysis.cycles import crest_to_trough, phase_lag, smooth
+from bench.benchmarks import noise_free_rig
 from bench.models.membrane import MembraneParams
 from bench.models.membrane_runs import simulate_membrane
 from bench.rig import RigConfig, RigFileError, load_rig
@@ -44,13 +45,6 @@ def run(protocol: Path, rig: Path, tmp: Path, virtual: bool = True, hook=None):
 
     result = execute(plan, tmp / f"{protocol.stem}.h5", virtual=virtual, on_engine=grab)
     return result, open_run(result.path), sims[0]
-
-
-def quiet(rig: Path, tmp: Path) -> Path:
-    """A copy of ``rig`` with ``[simulation] noise = false`` (ideal readings, for golden comparisons)."""
-    out = tmp / f"{rig.stem}-quiet.toml"
-    out.write_text(rig.read_text().replace("[simulation]", "[simulation]\nnoise = false", 1))
-    return out
 
 
 def steps(run_file) -> dict[str, tuple[float, float]]:
@@ -257,12 +251,12 @@ def test_identification_reads_the_measured_drive_of_a_daq_record(tmp_path: Path)
     from bench.analysis.applied import applied_voltage
     from bench.identify.problems import LozengeProblem, MembraneProblem
 
-    _, f, _ = run(SHORT / "thesis-identification-short.toml", quiet(THESIS_DAQ, tmp_path), tmp_path)
+    _, f, _ = run(SHORT / "thesis-identification-short.toml", noise_free_rig(THESIS_DAQ, tmp_path), tmp_path)
     assert applied_voltage(f, measured=True).source == "measured"
     prob = MembraneProblem([f.path], h=1e-4)
     u, ok = prob.predict(prob.start()[None, :])[0], np.isfinite(prob.data)
     assert ok.sum() > 1000 and np.sqrt(np.mean((u[ok] - prob.data[ok]) ** 2)) < 0.63e-6
-    _, iso, _ = run(SHORT / "lsdea-isometric-short.toml", quiet(MOTOR_DAQ, tmp_path), tmp_path)
+    _, iso, _ = run(SHORT / "lsdea-isometric-short.toml", noise_free_rig(MOTOR_DAQ, tmp_path), tmp_path)
     lp = LozengeProblem([iso.path], h=1e-4)
     force, ok = lp.predict(lp.start()[None, :])[0], np.isfinite(lp.data)
     assert ok.sum() > 100

@@ -420,3 +420,18 @@ def test_a_collect_that_topped_up_the_stream_out_needs_no_keepalive_request() ->
         clock.advance(COLLECT_PERIOD_VIRTUAL_S)
         hw.collect()
     assert daq.reads == 4
+
+
+@pytest.mark.parametrize(("simulated", "virtual", "watchdog_s", "loops"), [
+    (True, True, 1.0, True),  # the one case: a simulated rig in virtual time with its watchdog configured
+    (True, False, 1.0, False),  # a wall-clock rehearsal takes the lab rig's path
+    (False, True, 1.0, False),  # a lab rig: not until the watchdog's action on a loop is checked on hardware
+    (True, True, None, False),  # no watchdog (--allow-no-watchdog): nothing would stop a loop
+])
+def test_a_run_loops_its_stream_out_only_in_virtual_time_on_a_simulated_rig_with_a_watchdog(
+        simulated: bool, virtual: bool, watchdog_s: float | None, loops: bool) -> None:
+    from types import SimpleNamespace
+
+    side = SimpleNamespace(simulated=simulated, ctx=SimpleNamespace(clock=SimpleNamespace(virtual=virtual)),
+                           cfg=SimpleNamespace(watchdog_s=watchdog_s))
+    assert hardware_timed.HardwareTimed._loops(side) is loops  # type: ignore[arg-type]

@@ -332,6 +332,8 @@ def _evolve(cost: Callable[[np.ndarray], np.ndarray], lo: np.ndarray, hi: np.nda
     run."""
     pop = canon(init)
     S, D = pop.shape
+    if S < 5:  # scipy's rule: best/1/bin draws two members other than the target
+        raise ValueError(f"differential evolution needs a population of at least 5, got {S}")
     E = cost(pop)
     nit = 0
     while nit < settings.generations:
