@@ -68,8 +68,12 @@ def fit_result_table(result: FitResult, title: str) -> Table:
                   f"[{style}]{status}[/]", local, f"[yellow]{flags}[/]" if flags else "")
     if tr is not None:
         noise = ", ".join(f"{s:.3g}" for s in tr.noise[:4]) + (" …" if len(tr.noise) > 4 else "")
+        if any(tr.noise_datasheet):
+            noise += "; datasheet " + ", ".join(f"{s:.3g}" for s in tr.noise_datasheet[:4]) + \
+                (" …" if len(tr.noise_datasheet) > 4 else "")
         lines = [f"interval: {tr.method} at {100 * tr.confidence:g} % (the values with Δχ² ≤ {tr.threshold:.3g}, "
-                 f"the others re-optimised); χ² against the noise σ estimated from each record ({noise}); "
+                 f"the others re-optimised); χ² against each record's noise σ, the max of the record's and the "
+                 f"datasheet's ({noise}); "
                  f"reduced χ² {tr.chi2_reduced:.3g}, threshold widened ×{tr.scale:.3g} for the residual above the "
                  "noise / its correlation",
                  "data: determined = both ends inside the search bounds; an open side is shown at its bound",

@@ -144,6 +144,7 @@ class Subset:
         self.data_unit = problem.data_unit
         self.sigma = sigma_of(problem)
         self.records = getattr(problem, "records", None)
+        self.noise_datasheet = getattr(problem, "noise_datasheet", [])
 
     def full(self, Z: np.ndarray) -> np.ndarray:
         """Rows of all parameters for rows of the free ones."""

@@ -33,6 +33,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from bench.analysis.applied import applied_voltage
+from bench.identify import floors
 from bench.identify.core import noise_of, to_optimiser, to_physical
 from bench.identify.monitor import CALIBRATION as CALIBRATION  # the problems' parameter names, as before
 from bench.identify.monitor import MonitorCalibration, voltage_per_step
@@ -112,6 +113,13 @@ def _record_windows(t_set: np.ndarray, v_set: np.ndarray, t_end: float, split_re
     return windows
 
 
+def _noise_model(records: list[_Record]) -> tuple[np.ndarray, list[float]]:
+    """σ per data point — each record's, the larger of its own estimate (:func:`noise_of`, its high-frequency
+    content) and its instrument's datasheet floor (:mod:`bench.identify.floors`) — and the floors per record."""
+    sigma = np.concatenate([np.full(r.data.size, max(noise_of(r.data), r.floor)) for r in records])
+    return sigma, [r.floor for r in records]
+
+
 @dataclass
 class _Record:
     U: np.ndarray  # inputs per step
@@ -121,6 +129,7 @@ class _Record:
     data: np.ndarray
     source: str
     measured: bool = False  # the voltage input is the amplifier's monitor (its calibration applies)
+    floor: float = 0.0  # the datasheet's noise σ of a data point (bench.identify.floors); 0: no figure
 
 
 class MembraneProblem(MonitorCalibration):
@@ -162,8 +171,7 @@ class MembraneProblem(MonitorCalibration):
             raise ValueError("no membrane records with laser data in the given run files")
         self._add_calibration()
         self.data = np.concatenate([r.data for r in self.records])
-        # noise model: each record's σ from its own high-frequency content (core.noise_of)
-        self.sigma = np.concatenate([np.full(r.data.size, noise_of(r.data)) for r in self.records])
+        self.sigma, self.noise_datasheet = _noise_model(self.records)
         # Maxwell units 1–4 are interchangeable (μ_i, J_i, τ_i; τ last): the fit numbers them by τ
         self.unit_groups = [[1 + i, 5 + i, 9 + i] for i in range(1, 5)]
 
@@ -182,6 +190,7 @@ class MembraneProblem(MonitorCalibration):
         laser = run.streams["laser"]
         ok = laser.columns["valid"] > 0
         sample = _window_means if self.average else _sampled
+        head = floors.laser_noise_m(floors.stored_rig(run))
         windows = _record_windows(sp.t, sp.v, run.updated, self.split_rest, self.keep_rest)
         measured = sp.source == "measured"
         self._note_run(run, source, measured)
@@ -198,8 +207,10 @@ class MembraneProblem(MonitorCalibration):
                 U[t_steps > te, 1] = T
             t_data = a + np.arange(0, n // stride + 1) * stride * self.h
             data = sample(t_data, laser.t[ok], laser.columns["displacement"][ok])
+            floor = (floors.of_window_means if self.average else floors.of_points)(head, t_data, laser.t[ok])
             where = source if len(windows) == 1 else f"{source} [{a:.1f}, {b:.1f}] s"
-            self.records.append(_Record(U, params.initial_state(), params.pack(), stride, data, where, measured))
+            self.records.append(_Record(U, params.initial_state(), params.pack(), stride, data, where, measured,
+                                        floor))
 
     @property
     def recorded(self) -> MembraneParams:
@@ -307,7 +318,7 @@ class LozengeProblem(MonitorCalibration):
             raise ValueError("no LS-DEA records in the given run files")
         self._add_calibration()
         self.data = np.concatenate([r.data for r in self.records])
-        self.sigma = np.concatenate([np.full(r.data.size, noise_of(r.data)) for r in self.records])
+        self.sigma, self.noise_datasheet = _noise_model(self.records)
         # the Maxwell branches are interchangeable (μ_b, τ_b; τ last): the fit numbers them by τ
         self.unit_groups = [[3 + k, 3 + branches + k] for k in range(branches)]
         hung = {int(r.template[16]) == MODE_HUNG for r in self.records}  # Q_MODE
@@ -330,6 +341,7 @@ class LozengeProblem(MonitorCalibration):
         sp = applied_voltage(run, measured=True)
         measured = sp.source == "measured"
         self._note_run(run, source, measured)
+        rig = floors.stored_rig(run)
         stride = max(1, round(1.0 / (self.data_rate * self.h)))
         proto, mass = base.lambda2p, base.hung_mass
         for a, b in itertools.pairwise(cuts):
@@ -351,14 +363,16 @@ class LozengeProblem(MonitorCalibration):
                 x_start = float(np.interp(a, laser.t[ok], laser.columns["displacement"][ok]))
                 mode, y0 = MODE_HUNG, params.relaxed_state(x_start)
                 data = _sampled(t_steps[::stride], laser.t[ok], laser.columns["displacement"][ok])
+                floor = floors.of_points(floors.laser_noise_m(rig), t_steps[::stride], laser.t[ok])
             else:
                 motor, lc = run.streams["motor"], run.streams["load_cell"]
                 U[:, 1] = np.interp(t_steps, motor.t, motor.columns["aperture"])
                 U[:, 2] = np.gradient(U[:, 1], t_steps)
                 mode, y0 = MODE_IMPOSED, params.relaxed_state(float(U[0, 1]))
                 data = _sampled(t_steps[::stride], lc.t, lc.columns["force"])  # "ok" means stable, not valid
+                floor = floors.of_points(floors.force_noise_N(rig), t_steps[::stride], lc.t)
             self.records.append(_Record(U[1:], y0, params.pack(mode), stride, data, f"{source} [{a:.1f}, {b:.1f}] s",
-                                        measured))
+                                        measured, floor))
         self._mode_channel = 0 if config == "hung" else OBSERVE_FORCE
 
     def params_of(self, z: np.ndarray, template: LozengeParams | None = None) -> LozengeParams:

@@ -4,8 +4,9 @@ The local linearisation at the optimum (:func:`bench.identify.core.assess`) does
 problem: interchangeable Maxwell units, pairs that trade off and directions the data do not see make the cost
 surface far from quadratic. This module states, per parameter, the interval the data allow:
 
-* **noise model** — each record's noise σ is estimated from the record itself (robust spread of its second
-  differences, :func:`bench.identify.core.noise_of`); the residual is weighted by it, χ² = Σ (r/σ)²;
+* **noise model** — each record's noise σ is the larger of its estimate from the record itself (robust spread
+  of its fourth differences, :func:`bench.identify.core.noise_of`) and its instrument's datasheet floor
+  (:mod:`bench.identify.floors`); the residual is weighted by it, χ² = Σ (r/σ)²;
 * **variance scale** — when the residual exceeds the noise (reduced χ² > 1: the model does not follow the
   record within its noise) or is correlated from point to point (lag-1 autocorrelation ρ > 3/√N), the
   χ² threshold is widened by reduced χ² × (1+ρ)/(1−ρ) (the variance of a mean of AR(1) residuals), so that
@@ -84,6 +85,7 @@ class Trust:
     wall_time: float = 0.0
     arrived: list[int] = field(default_factory=list)  # seeds of the starts that reached the best χ² (threshold)
     failed: list[dict[str, Any]] = field(default_factory=list)  # the others: seed, Δχ² above the best ("above")
+    noise_datasheet: list[float] = field(default_factory=list)  # per record: the datasheet's floor of σ (0: none)
 
     def as_dict(self, names: list[str]) -> dict[str, object]:
         """JSON-ready summary (stored with the fit)."""
@@ -94,7 +96,7 @@ class Trust:
                 "spread": None if self.spread is None else dict(zip(names, map(float, self.spread), strict=True)),
                 "order": self.order, "lack_of_fit": self.lack_of_fit, "widened_by_model_step": self.step_shift,
                 "arrived": self.arrived, "failed": self.failed, "evaluations": self.evaluations,
-                "wall_time": self.wall_time}
+                "wall_time": self.wall_time, "noise_datasheet": self.noise_datasheet}
 
 
 class Weighted:
@@ -520,7 +522,8 @@ def assess_trust(problem: Problem, result: FitResult, starts: list[tuple[int, np
                   not failed and not disagree, sorted(disagree, key=result.names.index), spread,
                   ORDER_RULE if getattr(problem, "unit_groups", None) else "", lof,
                   [n for j, n in enumerate(result.names) if widened[j]], w.evaluations, time.perf_counter() - t0,
-                  [int(seed) for seed in arrived], [{"seed": int(seed), "above": float(d)} for seed, d in failed])
+                  [int(seed) for seed in arrived], [{"seed": int(seed), "above": float(d)} for seed, d in failed],
+                  [float(f) for f in getattr(problem, "noise_datasheet", [])])
     # the result: re-centred, with the profile's verdicts as flags
     r = R * w.sigma
     result.z, result.values, result.residual = z, values, r
