@@ -290,10 +290,16 @@ def unit_order(problem: Problem, z: np.ndarray) -> np.ndarray:
     groups = getattr(problem, "unit_groups", None)
     if not groups:
         return perm
-    order = sorted(range(len(groups)), key=lambda k: z[groups[k][-1]])
-    for slot, k in enumerate(order):
-        perm[groups[slot]] = groups[k]
+    g = np.asarray(groups, dtype=np.intp)
+    perm[g] = g[_slots(z[None, :], g)[0]]
     return perm
+
+
+def _slots(Z: np.ndarray, groups: np.ndarray) -> np.ndarray:
+    """For each row of Z, the unit that goes into each slot: the units by increasing relaxation time (the last
+    index of each group), ties kept in order."""
+    order: np.ndarray = np.argsort(Z[:, groups[:, -1]], axis=1, kind="stable")
+    return order
 
 
 def sorts_units(problem: Problem) -> bool:
@@ -315,9 +321,8 @@ def canonical(problem: Problem, Z: np.ndarray) -> np.ndarray:
     if not sorts_units(problem):
         return Z
     groups = np.array(getattr(problem, "unit_groups", None), dtype=np.intp)  # sorts_units: it has them
-    order = np.argsort(Z[:, groups[:, -1]], axis=1, kind="stable")  # S × units: the unit in each slot
     out = Z.copy()
-    out[:, groups] = Z[np.arange(Z.shape[0])[:, None, None], groups[order]]
+    out[:, groups] = Z[np.arange(Z.shape[0])[:, None, None], groups[_slots(Z, groups)]]
     return out
 
 
