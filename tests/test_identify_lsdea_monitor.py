@@ -187,3 +187,11 @@ def test_a_file_without_a_stored_rig_fits_on_its_set_points(tmp_path: Path) -> N
     prob = LozengeProblem([bare], h=2e-3)
     assert not set(CALIBRATION) & set(prob.names)
     assert prob.simulated_calibration() == {}
+    # a stored rig that today's schema refuses (an unknown field): one line naming the file, not pydantic's report
+    stale = tmp_path / "stale.h5"
+    shutil.copy(res.path, stale)
+    with h5py.File(stale, "a") as f:
+        f.attrs["rig_toml"] = str(f.attrs["rig_toml"]) + "\nbogus_field = 1\n"
+    with pytest.raises(ValueError, match=r"stale\.h5: its recorded rig cannot be read") as err:
+        LozengeProblem([stale], h=2e-3)
+    assert "\n" not in str(err.value)

@@ -23,9 +23,16 @@ DGT1S_RATE_HZ = 100.0  # [assumed] the DGT1S twin's conversion rate (sim_devices
 
 
 def stored_rig(run: RunFile) -> RigConfig | None:
-    """The rig a run file records, or None where it records none."""
+    """The rig a run file records, or None where it records none; ValueError (one line naming the file) for one
+    that today's rig schema refuses."""
     text = str(run.attrs.get("rig_toml", ""))
-    return rig_from_toml(text) if text else None
+    if not text:
+        return None
+    try:
+        return rig_from_toml(text)
+    except ValueError as exc:  # pydantic's ValidationError is one: many lines, no file name
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise ValueError(f"run file {run.path}: its recorded rig cannot be read ({first})") from None
 
 
 def laser_noise_m(rig: RigConfig | None) -> float | None:

@@ -64,13 +64,13 @@ def monitor_accuracy(run: RunFile) -> tuple[float, float]:
     """(DC accuracy as a fraction of full scale, full scale [V]) of the voltage monitor of the run's amplifier
     (the rig file stored in the run; the model's datasheet figures, :data:`bench.core.noise.TREK_DYNAMICS`)."""
     from bench.core.noise import TREK_DYNAMICS
-    from bench.rig import amplifier_spec, rig_from_toml
+    from bench.identify.floors import stored_rig
+    from bench.rig import amplifier_spec
 
-    try:
-        spec = amplifier_spec(rig_from_toml(run.attrs["rig_toml"]))
-    except (KeyError, ValueError) as exc:  # no rig stored, or one today's rig schema refuses (pydantic: ValueError)
-        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise ValueError(f"run file {run.path}: its recorded rig cannot be read ({first})") from None
+    rig = stored_rig(run)
+    if rig is None:
+        raise ValueError(f"run file {run.path}: its recorded rig cannot be read (none stored)")
+    spec = amplifier_spec(rig)
     return TREK_DYNAMICS[spec.model].vmon_accuracy, float(spec.max_output)
 
 
