@@ -317,3 +317,15 @@ def run_all(quick: bool = False) -> list[Figure]:
             figs += trusted_fit(path, FitSettings())
             figs += interval_coverage(quick=False)
     return figs
+
+
+def kernels(quick: bool = False) -> list[Figure]:
+    """The fit set's CPU-bound rows alone, for a second machine in minutes (issue 24): both membrane kernels on all
+    threads and on one, the thesis fit at the thesis settings against the old path, the LS-DEA kernels; not the
+    generic scipy candidate, the campaign fit, the trusted fit or the coverage (``quick``: on the short record)."""
+    with tempfile.TemporaryDirectory() as tmp:
+        path = _record(Path(tmp), quick)
+        figs = candidate_speed(MembraneProblem([path], h=5e-4), 0, 3)
+        figs += thesis_fit(path, FitSettings())
+        figs += lsdea_candidates(Path(tmp), 3, quick)
+    return figs

@@ -14,6 +14,9 @@ from bench.cli.completion import rig_files
 from bench.units import option_si
 
 if TYPE_CHECKING:
+    from collections.abc import Callable
+
+    from bench.benchmarks.acquisition import Figure
     from bench.runtime.sim_rig import Endpoint
 
 
@@ -232,6 +235,7 @@ class BenchmarkSet(StrEnum):
     acquisition = "acquisition"
     run = "run"
     fit = "fit"
+    kernels = "kernels"
     cluster = "cluster"
     daq = "daq"
     faults = "faults"
@@ -246,13 +250,22 @@ def benchmark(
     which: Annotated[BenchmarkSet, typer.Argument(help="Which figures.")] = BenchmarkSet.all,
     quick: Annotated[bool, typer.Option(help="One repeat / short runs; the slow reference timings (the generic "
                                         "scipy candidate) only in the full run.")] = False,
+    sizes: Annotated[str, typer.Option(help="The cluster set's worker counts, each against the in-process fit on as "
+                                       "many numba threads (1 is always measured), e.g. 1,2,4,8,16 on a 16-core "
+                                       "machine.")] = "1,2",
     json_out: JsonOpt = False,
 ) -> None:
     """Measure the integrators, the acquisition rates through the drivers, whole runs, the fitter and the command
     line's start-up; run the fault matrix (every fault × every phase × both rig kinds: is the plant's output at 0 V
     when the run returns?)."""
+    from bench.benchmarks.cluster import parse_sizes
+
+    try:
+        scale = parse_sizes(sizes)
+    except ValueError as e:
+        raise fail(str(e)) from None
     with json_mode(json_out):
-        collected = _benchmark(which, quick)
+        collected = _benchmark(which, quick, scale)
     if json_out:
         print_json(collected)
 
@@ -264,8 +277,10 @@ BENCHMARK_SETS = (
      "acquisition through the drivers (simulated rigs on ptys)"),
     (BenchmarkSet.run, "whole runs", "whole runs: engine, recorder"),
     (BenchmarkSet.fit, "identification", "identification (thesis record, all numba threads unless a row says one)"),
-    (BenchmarkSet.cluster, "the distributed fit (--workers 1 and 2 against in-process)",
-     "distributed fit: the campaign search in-process against dask --workers 1 and 2"),
+    (BenchmarkSet.kernels, "the kernels and the thesis fit against their reference paths",
+     "identification kernels and thesis fit against their reference paths (all numba threads unless a row says one)"),
+    (BenchmarkSet.cluster, "the distributed fit (--workers N against in-process on N threads)",
+     "distributed fit: the campaign search in-process on N numba threads against dask --workers N"),
     (BenchmarkSet.daq, "the hardware-timed rigs", "hardware-timed rigs (LabJack T7 twin)"),
     (BenchmarkSet.startup, "the command line's start-up",
      'start-up of the command line against python -c "import typer, rich"'),
@@ -280,9 +295,12 @@ BENCHMARK_SETS = (
 # sets that `bench benchmark --quick` leaves out unless named: the cluster's worker start-up and runs take a third of
 # the quick run's 60 s
 FULL_ONLY = (BenchmarkSet.cluster,)
+# sets that run only when named: the kernels' rows are the fit set's too (named alone, a second machine's CPU figures
+# in minutes, without the fit set's generic scipy candidate, campaign, trusted fit and coverage)
+NAMED_ONLY = (BenchmarkSet.kernels,)
 
 
-def _benchmark(which: BenchmarkSet, quick: bool) -> dict[str, object]:
+def _benchmark(which: BenchmarkSet, quick: bool, sizes: tuple[int, ...] = (1, 2)) -> dict[str, object]:
     """Run and print the chosen benchmark sets, with a progress line (set k of n, elapsed); returns their figures
     by set."""
     import time
@@ -290,7 +308,7 @@ def _benchmark(which: BenchmarkSet, quick: bool) -> dict[str, object]:
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
     chosen = [entry for entry in BENCHMARK_SETS if which is entry[0]
-              or (which is BenchmarkSet.all and not (quick and entry[0] in FULL_ONLY))]
+              or (which is BenchmarkSet.all and entry[0] not in NAMED_ONLY and not (quick and entry[0] in FULL_ONLY))]
     collected: dict[str, object] = {}
     t0 = time.perf_counter()
     took: list[str] = []
@@ -305,7 +323,7 @@ def _benchmark(which: BenchmarkSet, quick: bool) -> dict[str, object]:
             elif kind is BenchmarkSet.faults:
                 collected["faults"] = _fault_matrix(quick)
             else:
-                collected[title] = _figures(kind, title, quick)
+                collected[title] = _figures(kind, title, quick, sizes)
             took.append(f"{kind.value} {time.perf_counter() - t_set:.1f}")
             bar.advance(task)
     console.print(f"benchmark {which.value}{' --quick' if quick else ''}: {len(chosen)} set(s) in "
@@ -333,16 +351,23 @@ def _physics(quick: bool) -> list[dict[str, object]]:
             for r in results]
 
 
-def _figures(kind: BenchmarkSet, title: str, quick: bool) -> list[dict[str, object]]:
-    """Run and print one set of figures (acquisition, run, fit, cluster, daq, export, watch, startup); returns them."""
+def _figures(kind: BenchmarkSet, title: str, quick: bool, sizes: tuple[int, ...]) -> list[dict[str, object]]:
+    """Run and print one set of figures (acquisition, run, fit, kernels, cluster, daq, export, watch, startup);
+    returns them."""
+    run_all: Callable[..., list[Figure]]
     if kind is BenchmarkSet.acquisition:
         from bench.benchmarks.acquisition import run_all
     elif kind is BenchmarkSet.run:
         from bench.benchmarks.run import run_all
     elif kind is BenchmarkSet.fit:
         from bench.benchmarks.fit import run_all
+    elif kind is BenchmarkSet.kernels:
+        from bench.benchmarks.fit import kernels as run_all
     elif kind is BenchmarkSet.cluster:
-        from bench.benchmarks.cluster import run_all
+        from bench.benchmarks.cluster import scaling
+
+        def run_all(quick: bool) -> list[Figure]:
+            return scaling(quick, sizes)
     elif kind is BenchmarkSet.daq:
         from bench.benchmarks.daq import run_all
     elif kind is BenchmarkSet.export:
