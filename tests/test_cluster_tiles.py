@@ -1,5 +1,7 @@
 """The distributed fit's tiles (bench.identify.distributed.tiles): every candidate of every record in exactly one
-tile, about equal costs, longest first — checked against hand-worked cases and a longest-first schedule."""
+tile, longest first, a record cut only where that finishes sooner — checked against hand-worked cases and against
+every uniform cut, scheduled longest first under the cost model the module states (a chunk's step costs its
+registers plus a fixed part)."""
 
 from __future__ import annotations
 
@@ -9,25 +11,32 @@ import numpy as np
 import pytest
 
 from bench.identify.distributed import tile_cost, tiles
-from bench.models.batch_plan import LANES
+from bench.models.batch_plan import CHUNK_OVERHEAD, LANES, candidate_bounds
 
 # input steps of 12 records as unequal as the thesis sweeps' (a few long slow cycles, many short fast ones)
 CAMPAIGN = [180_000, 60_000, 45_000, 24_000, 16_000, 12_000, 240_000, 96_000, 30_000, 120_000, 120_000, 120_000]
 
 
-def _makespan(costs: list[int], threads: int) -> int:
+def _makespan(costs: list[float], threads: int) -> float:
     """Finish time of tasks run in the given order, each on the first thread free (a dask queue, longest first)."""
-    free = [0] * threads
+    free = [0.0] * threads
     for c in costs:
         heapq.heappush(free, heapq.heappop(free) + c)
     return max(free)
 
 
+def _cost(steps: int, sets: int) -> float:
+    return steps * (-(-sets // LANES) + CHUNK_OVERHEAD)
+
+
 def test_hand_worked_tiles() -> None:
-    # 50 sets = 7 registers; costs 2100 | 700 700 700 against a share of 7·600/2 = 2100: one tile each side
-    assert tiles(50, [300, 100, 100, 100], threads=1, per_thread=2) == [(0, 1, 0, 50), (1, 4, 0, 50)]
-    # 16 sets = 2 registers: the long record is split to single registers (no finer), the short one stays whole
-    assert tiles(16, [800, 100], threads=2, per_thread=2) == [(0, 1, 0, 8), (0, 1, 8, 16), (1, 2, 0, 16)]
+    # one thread: cutting only adds the fixed part; every record whole, longest first
+    assert tiles(50, [300, 100, 100, 100], threads=1) == [(0, 1, 0, 50), (1, 2, 0, 50), (2, 3, 0, 50), (3, 4, 0, 50)]
+    # 16 sets = 2 registers on 2 threads, fixed part f: the long record whole finishes at 800·(2 + f), cut to one
+    # register a thread at 800·(1 + f) + 100·(2 + f) (f < 6); the short one whole fits in that finish
+    assert tiles(16, [800, 100], threads=2) == [(0, 1, 0, 8), (0, 1, 8, 16), (1, 2, 0, 16)]
+    # 12 equal records on 16 threads: whole (7 + f each); cut in two, 24 chunks need a second round (7 + 2f)
+    assert tiles(50, [80_000] * 12, threads=16) == [(r, r + 1, 0, 50) for r in range(12)]
 
 
 @pytest.mark.parametrize(("m", "threads"), [(50, 1), (50, 2), (50, 16), (15, 2), (15, 16), (3, 4), (200, 8)])
@@ -41,19 +50,22 @@ def test_every_candidate_of_every_record_is_in_exactly_one_tile(m: int, threads:
     assert np.all(covered == 1)
     costs = [tile_cost(CAMPAIGN, t) for t in plan]
     assert costs == sorted(costs, reverse=True)  # longest first
-    assert len(plan) <= 2 * 3 * threads + len(CAMPAIGN)  # a few per thread, not one per register and record
+    assert costs == [_cost(sum(CAMPAIGN[r0:r1]), b - a) for r0, r1, a, b in plan]  # the stated cost model
 
 
 @pytest.mark.parametrize("threads", [2, 4, 8, 16])
-def test_a_generation_of_fifty_finishes_near_the_even_share(threads: int) -> None:
-    """Run longest first on ``threads`` threads, the tiles of a 50-set generation finish within 15 % of the even
-    share of the work — or of the longest record on one register, which cannot be split (time is sequential)."""
-    plan = tiles(50, CAMPAIGN, threads)
-    regs = -(-50 // LANES)
-    bound = max(regs * sum(CAMPAIGN) / threads, max(CAMPAIGN))
-    assert _makespan([tile_cost(CAMPAIGN, t) for t in plan], threads) <= 1.15 * bound
-    if threads >= 8:  # split by record alone (the old plan: a task per record), the longest one sets the pace
-        assert _makespan(sorted((regs * n for n in CAMPAIGN), reverse=True), threads) > 1.5 * bound
+def test_a_generation_of_fifty_finishes_no_later_than_any_uniform_cut(threads: int) -> None:
+    """Run longest first on ``threads`` threads, the tiles of a 50-set generation finish no later than every
+    record cut into the same number of chunks, for every such number; from 8 threads on, well before one task per
+    record (the old plan: the longest record sets the pace)."""
+    finish = _makespan(sorted((tile_cost(CAMPAIGN, t) for t in tiles(50, CAMPAIGN, threads)), reverse=True),
+                       threads)
+    for s in range(1, 8):
+        widths = np.diff(candidate_bounds(50, s))
+        uniform = sorted((_cost(n, int(w)) for n in CAMPAIGN for w in widths), reverse=True)
+        assert finish <= _makespan(uniform, threads) * (1 + 1e-9)
+    if threads >= 8:
+        assert _makespan(sorted((_cost(n, 50) for n in CAMPAIGN), reverse=True), threads) > 1.5 * finish
 
 
 def test_no_candidates_no_tiles() -> None:

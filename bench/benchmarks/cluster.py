@@ -11,7 +11,7 @@ sessions hold the cores, two workers get no more CPU than one, and the ratio say
 from __future__ import annotations
 
 import contextlib
-import heapq
+import functools
 import os
 import tempfile
 import time
@@ -22,10 +22,13 @@ from typing import TYPE_CHECKING
 import numba
 import numpy as np
 
+from bench.benchmarks import best_of
 from bench.benchmarks.acquisition import Figure
 from bench.identify.core import FitResult, FitSettings, fit
 from bench.identify.distributed import cluster_client, tile_cost, tiles
 from bench.identify.problems import MembraneProblem
+from bench.models.batch_plan import CHUNK_OVERHEAD, LANES, chunk_cost, makespan
+from bench.models.membrane_batch import membrane_batch_records
 from bench.resources import protocols_dir
 from bench.runtime.run import execute, plan_run
 
@@ -62,13 +65,12 @@ def _runs(tmp: Path, quick: bool) -> list[str | Path]:
 
 
 def _balance(steps: list[int], threads: int) -> tuple[int, float]:
-    """(tiles of a 50-set generation, the even share of its work over the finish time of its tiles run longest
-    first, each on the first thread free): 1.0 is perfect balance, whatever the machine's load."""
+    """(tiles of a 50-set generation, the even share of its work — every record one chunk of all 50 — over the
+    finish of its tiles run longest first, each on the first thread free, under the plans' cost model): 1.0 is
+    perfect balance at no cost of cutting, whatever the machine's load."""
     plan = tiles(50, steps, threads)
-    free = [0] * threads
-    for t in plan:
-        heapq.heappush(free, heapq.heappop(free) + tile_cost(steps, t))
-    return len(plan), sum(free) / threads / max(free)
+    whole = sum(chunk_cost(n, 50) for n in steps)
+    return len(plan), whole / threads / makespan((tile_cost(steps, t) for t in plan), threads)
 
 
 def _cpu(client: Client | None) -> float:
@@ -89,41 +91,68 @@ def _threads(n: int) -> Iterator[None]:
         numba.set_num_threads(was)
 
 
+def chunk_widths(problem: MembraneProblem, repeats: int = 3) -> list[Figure]:
+    """One thread, one record: the vectorised kernel on chunks 1…7 registers wide, and the fixed per-step cost of
+    a chunk fitted to them (time = a·(registers + overhead)): the figure behind the plans' cost model
+    (:data:`bench.models.batch_plan.CHUNK_OVERHEAD`), on this CPU."""
+    rec = problem.records[0]
+    lo, hi = problem.lower, problem.upper
+    Z = lo + (hi - lo) * np.random.default_rng(1).random((7 * LANES, lo.size))
+    P = np.stack([problem.params_of(z).pack() for z in Z])
+    cal = problem.calibration(Z)
+    Y0, steps = rec.y0[None], rec.U.shape[0]
+
+    def chunk(k: int) -> None:
+        membrane_batch_records(P[:k * LANES], Y0, [rec.U], problem.h, rec.stride, 0,
+                               None if cal is None else cal[:1, :k * LANES])
+
+    regs = np.arange(1, 8)
+    with _threads(1):
+        chunk(1)
+        per_step = np.array([best_of(functools.partial(chunk, int(k)), repeats) for k in regs]) / steps
+    slope, intercept = np.polyfit(regs, per_step, 1)
+    overhead = intercept / slope
+    return [Figure("a chunk's fixed cost per step (one thread, chunks 1…7 registers wide)", overhead, "registers",
+                   f"fitted to time = a·(registers + overhead); per register and step {per_step[0] * 1e9:.0f} ns at 1 "
+                   f"register, {per_step[-1] / 7 * 1e9:.0f} ns at 7; the plans' cost model uses {CHUNK_OVERHEAD:g}")]
+
+
 def scaling(quick: bool = False, sizes: tuple[int, ...] = DEFAULT_SIZES) -> list[Figure]:
     """The campaign search (full thesis sweeps, 12 records; quick: the short campaign, 2 records), a few
-    generations of 50, for each size N of ``sizes``: in-process on N numba threads against ``--workers N``."""
+    generations of 50, for each size N of ``sizes``: in-process on N numba threads against ``--workers N``. Each
+    cluster is started for its turn and closed after it (untimed), so that no idle worker or scheduler shares
+    the machine with the configuration timed."""
     generations, repeats = (3, 1) if quick else (4, 2)
     settings = FitSettings(generations=generations, polish=False, stall_generations=0, tol=0.0)
     configs = [(kind, n) for n in sizes for kind in ("in-process", "workers")]
     load0 = os.getloadavg()[0]
-    with tempfile.TemporaryDirectory() as tmp, contextlib.ExitStack() as stack:
+    with tempfile.TemporaryDirectory() as tmp:
         problem = MembraneProblem(_runs(Path(tmp), quick), h=5e-4)
-        clients = {n: stack.enter_context(cluster_client(workers=n)) for n in sizes}
+        widths = chunk_widths(problem)
         lo, hi = problem.lower, problem.upper
         warm = lo + (hi - lo) * np.random.default_rng(0).random((50, lo.size))  # a generation's worth
         best = dict.fromkeys(configs, float("inf"))
         used = dict.fromkeys(configs, 0.0)  # CPU seconds of the fit's integrating processes
         cores = dict.fromkeys(configs, 0.0)  # the same per wall second: the CPUs they got
         results: dict[tuple[str, int], FitResult] = {}
-        for k in range(repeats):  # the configurations take turns within each repeat
+        for _ in range(repeats):  # the configurations take turns within each repeat
             for kind, n in configs:
-                client = clients[n] if kind == "workers" else None
-                with _threads(n) if client is None else contextlib.nullcontext():
+                with cluster_client(workers=n if kind == "workers" else None) as client, \
+                        _threads(n) if client is None else contextlib.nullcontext():
                     problem.distribute(client)
-                    if k == 0:
-                        problem.predict(warm)
+                    problem.predict(warm)  # JIT cache loaded, records scattered
                     cpu0 = _cpu(client)
                     r = results[kind, n] = fit(problem, settings)
                     if r.search_time < best[kind, n]:
                         best[kind, n] = r.search_time
                         used[kind, n] = _cpu(client) - cpu0
                         cores[kind, n] = used[kind, n] / r.wall_time
-            problem.distribute(None)
+                    problem.distribute(None)
         steps = [r.U.shape[0] for r in problem.records]
     load1 = os.getloadavg()[0]
     first = results[configs[0]]
     what = f"{len(problem.records)} records, {generations} generations of 50"
-    out = []
+    out = list(widths)
     for n in sizes:
         plan, even = _balance(steps, n)
         inproc, workers = ("in-process", n), ("workers", n)
@@ -142,7 +171,7 @@ def scaling(quick: bool = False, sizes: tuple[int, ...] = DEFAULT_SIZES) -> list
         out.append(Figure(f"--workers {n} against --workers 1, same run", scale, "×",
                           f"{verdict}load average {load0:.1f} → {load1:.1f} on {os.cpu_count()} CPUs"))
     n16, even16 = _balance(steps, 16)
-    by_record = sum(steps) / 16 / max(steps) if len(steps) <= 16 else float("nan")  # the old plan, ≤ 1 task a thread
+    by_record = sum(steps) / 16 / max(steps) if len(steps) <= 16 else float("nan")  # one task per record, ≤ 16
     agree = sum(np.array_equal(r.values, first.values) for r in results.values())
     out += [Figure("configurations whose result is the first's bit for bit", agree, f"of {len(results)}",
                    "the same result bit for bit in all" if agree == len(results) else "RESULTS DIFFER"),

@@ -1,10 +1,11 @@
 """Campaign fits and design maps on a dask.distributed cluster (an existing scheduler, or a LocalCluster).
 
 The fit stays in this process; every batch of model evaluations it makes — a search generation, a polish
-Jacobian, a batch of the intervals' Levenberg–Marquardt — is cut into tiles of candidates × records of about
-equal cost (:func:`tiles`: cost ∝ input steps × SIMD registers of candidates), a few per worker thread, run
-longest first. Each record's inputs are scattered to every worker once; a task receives the packed parameters
-of its candidates and returns only their outputs. Every candidate is integrated independently, so the result is
+Jacobian, a batch of the intervals' Levenberg–Marquardt — is cut into tiles of candidates × records (:func:`tiles`:
+a record is cut along its candidates only as far as that finishes sooner, since a narrow chunk costs more per
+candidate), run longest first. Each record's inputs are
+scattered to every worker once; a task receives the packed parameters of its candidates and returns only their
+outputs. Every candidate is integrated independently, so the result is
 the same as in-process, bit for bit. A task integrates on one numba thread: a worker's threads are its
 parallelism (``dask worker --nthreads N`` runs N tiles at once, N × one thread, no oversubscription).
 """
@@ -19,12 +20,11 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from bench.models.batch_plan import LANES, candidate_bounds
+from bench.models.batch_plan import candidate_bounds, chunk_cost, chunks_per_record
 
 if TYPE_CHECKING:
     from distributed import Client, Future
 
-TILES_PER_THREAD = 3  # tiles per worker thread: run longest first, they even out the unequal ones
 Tile = tuple[int, int, int, int]  # first record, end record, first candidate, end candidate
 
 
@@ -46,39 +46,24 @@ def cluster_client(scheduler: str | None = None, workers: int | None = None) -> 
         yield client
 
 
-def tile_cost(steps: Sequence[int], tile: Tile) -> int:
-    """Cost of a tile in register-steps: its records' input steps × its candidates' SIMD registers."""
+def tile_cost(steps: Sequence[int], tile: Tile) -> float:
+    """Cost of a tile in register-steps (:func:`bench.models.batch_plan.chunk_cost`: each of its records is one
+    chunk of its candidates)."""
     r0, r1, a, b = tile
-    return int(sum(steps[r0:r1])) * -(-(b - a) // LANES)
+    return chunk_cost(int(sum(steps[r0:r1])), b - a)
 
 
-def tiles(m: int, steps: Sequence[int], threads: int, per_thread: int = TILES_PER_THREAD) -> list[Tile]:
-    """Tiles covering ``m`` candidates × records of ``steps`` input steps each, longest first, about
-    ``threads × per_thread`` of them of about equal cost: a record costing more than that share is split along
-    the candidates (chunks of whole registers, :func:`bench.models.batch_plan.candidate_bounds`), neighbouring
-    cheaper ones are grouped whole (a group closes where the next record would overshoot the share by more than
-    the group falls short of it)."""
+def tiles(m: int, steps: Sequence[int], threads: int) -> list[Tile]:
+    """Tiles covering ``m`` candidates × records of ``steps`` input steps each, longest first: each record cut
+    along the candidates (chunks of whole registers) as far as :func:`bench.models.batch_plan.chunks_per_record`
+    finds that it finishes the batch sooner on ``threads`` threads — a narrow chunk costs more per candidate —
+    and no records grouped (a task's round trip is a millisecond against the tens of a record's integration;
+    grouping would coarsen the longest-first schedule)."""
     if m == 0 or not steps:
         return []
-    regs = -(-m // LANES)
-    share = max(regs * float(sum(steps)) / max(1, threads * per_thread), 1.0)
-    out: list[Tile] = []
-    first, acc = 0, 0.0  # the open group: records first … r − 1, its cost
-    for r, n in enumerate(steps):
-        cost = regs * float(n)
-        if cost >= share:
-            if r > first:
-                out.append((first, r, 0, m))
-            bounds = candidate_bounds(m, max(1, round(cost / share)))
-            out += [(r, r + 1, int(a), int(b)) for a, b in itertools.pairwise(bounds) if b > a]
-            first, acc = r + 1, 0.0
-            continue
-        if r > first and acc + cost - share > share - acc:
-            out.append((first, r, 0, m))
-            first, acc = r, 0.0
-        acc += cost
-    if len(steps) > first:
-        out.append((first, len(steps), 0, m))
+    split = chunks_per_record(m, tuple(int(n) for n in steps), threads)
+    out = [(r, r + 1, int(a), int(b)) for r in range(len(steps))
+           for a, b in itertools.pairwise(candidate_bounds(m, split[r])) if b > a]
     return sorted(out, key=lambda t: -tile_cost(steps, t))
 
 

@@ -4,11 +4,18 @@ Both vectorised kernels (:mod:`bench.models.membrane_batch`, :mod:`bench.models.
 parameter matrix (one row per candidate), records of inputs laid end to end, and write every record's outputs
 side by side. Their parallel driver is the same loop over one task table: a task is one record's span of the
 inputs and of the output columns and one chunk of candidates, a whole number of SIMD registers wide (only the last
-chunk padded), with enough chunks per record to give every thread work. Each model keeps its own step function;
-the plan below is theirs in common.
+chunk padded). How many chunks a record is cut into follows a cost model (:func:`chunk_cost`): a chunk's step costs
+its registers plus a fixed part (the loops' set-up around the lanes, :data:`CHUNK_OVERHEAD`), so a narrow chunk
+costs more per candidate than a wide one, and a record is cut only as far as that finishes the batch sooner on the
+threads there are. Each model keeps its own step function; the plan below is theirs in common.
 """
 
 from __future__ import annotations
+
+import functools
+import heapq
+import itertools
+from collections.abc import Iterable
 
 import numpy as np
 
@@ -26,6 +33,49 @@ def candidate_bounds(m: int, chunks: int) -> np.ndarray:
     return bounds
 
 
+# a chunk's fixed cost per input step, in registers' worth: `bench benchmark cluster` fits it per CPU from one-thread
+# timings of chunks 1…7 registers wide ("a chunk's fixed cost per step"; 1.8 on the development machine's EPYC)
+CHUNK_OVERHEAD = 1.8
+
+
+def chunk_cost(steps: int, candidates: int) -> float:
+    """Cost of integrating ``candidates`` over ``steps`` input steps as one chunk, in register-steps: steps ×
+    (its SIMD registers + :data:`CHUNK_OVERHEAD`)."""
+    return steps * (-(-candidates // LANES) + CHUNK_OVERHEAD)
+
+
+def makespan(costs: Iterable[float], threads: int) -> float:
+    """When tasks of these costs finish, run longest first, each on the first of ``threads`` threads free."""
+    free = [0.0] * max(1, threads)
+    for c in sorted(costs, reverse=True):
+        heapq.heappush(free, heapq.heappop(free) + c)
+    return max(free)
+
+
+@functools.lru_cache(maxsize=512)
+def chunks_per_record(m: int, steps: tuple[int, ...], threads: int) -> tuple[int, ...]:
+    """How many chunks of ``m`` candidates each record of ``steps`` input steps is cut into on ``threads`` threads:
+    the one count for all records that finishes soonest under :func:`chunk_cost` (the fewest chunks among equals),
+    then each record cut no further than its widest chunk needs to fit in that finish."""
+    regs = -(-m // LANES)
+    if not steps or regs == 0:
+        return tuple(1 for _ in steps)
+    most = max(1, min(regs, 2 * -(-threads // len(steps))))  # more chunks than twice the threads' share never pay
+    best, finish = 1, float("inf")
+    for s in range(1, most + 1):
+        widths = np.diff(candidate_bounds(m, s))
+        span = makespan((chunk_cost(n, int(w)) for n in steps for w in widths), threads)
+        if span < finish * (1 - 1e-9):
+            best, finish = s, span
+    out = []
+    for n in steps:
+        s = 1
+        while s < best and max(chunk_cost(n, int(w)) for w in np.diff(candidate_bounds(m, s))) > finish * (1 + 1e-9):
+            s += 1
+        out.append(s)
+    return tuple(out)
+
+
 def plan(m: int, steps: list[int], stride: int, threads: int) -> tuple[np.ndarray, int]:
     """The task table (rows as :data:`TASK_COLUMNS`, int64) for ``m`` candidates over records of ``steps`` input
     steps each, an output every ``stride`` steps (the start included), on ``threads`` threads; and the number of
@@ -34,7 +84,8 @@ def plan(m: int, steps: list[int], stride: int, threads: int) -> tuple[np.ndarra
     n_cols = n_steps // stride + 1
     u_off = np.concatenate([[0], np.cumsum(n_steps)])
     c_off = np.concatenate([[0], np.cumsum(n_cols)])
-    bounds = candidate_bounds(m, -(-threads // len(steps)))  # enough tasks for the threads, none below a register
-    tasks = np.array([(r, u_off[r], u_off[r + 1], c_off[r], c_off[r + 1], bounds[k], bounds[k + 1])
-                      for r in range(len(steps)) for k in range(bounds.size - 1)], dtype=np.int64)
+    split = chunks_per_record(m, tuple(int(n) for n in steps), threads)
+    tasks = np.array([(r, u_off[r], u_off[r + 1], c_off[r], c_off[r + 1], a, b)
+                      for r in range(len(steps))
+                      for a, b in itertools.pairwise(candidate_bounds(m, split[r]).tolist())], dtype=np.int64)
     return tasks, int(c_off[-1])
