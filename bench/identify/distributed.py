@@ -83,11 +83,25 @@ def _tile(Us: list[np.ndarray], Y0: np.ndarray, P: np.ndarray, h: float, stride:
         return membrane_batch_records(P, Y0, Us, h, stride, window, cal)
 
 
+def _warm(U: np.ndarray, Y0: np.ndarray, P: np.ndarray, h: float, stride: int) -> bool:
+    """Load the kernel on a worker (numba's cache, its threading layer) with a few steps of one set: what the
+    first tile on a cold worker would otherwise pay, while the other tiles of its batch wait."""
+    _tile([U], Y0, P, h, stride, 0, None)
+    return True
+
+
+def kernel_ready() -> bool:
+    """On a worker: whether the batch kernel is loaded there (compiled or read from numba's cache)."""
+    from bench.models.membrane_batch import _batch
+
+    return bool(_batch.signatures)
+
+
 class DistributedPredict:
     """Batched λ of a membrane problem's records on a dask cluster, tiled over candidates × records."""
 
     def __init__(self, client: Client, Us: list[np.ndarray], Y0: np.ndarray, h: float, stride: int,
-                 window: int) -> None:
+                 window: int, P0: np.ndarray) -> None:
         self.client, self.h, self.stride, self.window = client, h, stride, window
         self.Y0 = Y0
         self.steps = [len(U) for U in Us]
@@ -99,6 +113,10 @@ class DistributedPredict:
         workers = client.scheduler_info().get("workers", {})
         # worker threads when distributed: the tiles' count
         self.threads = max(1, sum(int(w.get("nthreads", 1)) for w in workers.values()))
+        # every worker loads the kernel now: a batch's tiles go to any worker, and one cold worker holds up a batch
+        few = np.ascontiguousarray(Us[0][:2 * stride])
+        client.gather([client.submit(_warm, few, Y0[:1], np.atleast_2d(P0), h, stride, workers=[address],
+                                     pure=False) for address in workers])
 
     def __call__(self, P: np.ndarray, cal: np.ndarray | None = None) -> np.ndarray:
         """λ of the packed sets P (one row per set, every record's samples side by side); ``cal``: the records'

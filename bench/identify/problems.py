@@ -252,7 +252,7 @@ class MembraneProblem(MonitorCalibration):
 
         stride = self.records[0].stride
         self.remote = DistributedPredict(client, [r.U for r in self.records], np.stack([r.y0 for r in self.records]),
-                                         self.h, stride, stride if self.average else 0)
+                                         self.h, stride, stride if self.average else 0, self.recorded.pack())
 
     def predict_reference(self, Z: np.ndarray) -> np.ndarray:
         """:meth:`predict` through the scalar per-candidate kernel (``run_fixed_batch``): the benchmark's
