@@ -367,6 +367,8 @@ class Engine:
         count = {k: p.first for k, (p, _) in polls.items()}
         due = {k: seg.t_start + n * polls[k][1] for k, n in count.items()}  # from counts: no drift
         schedule = ticks(prog, seg)  # the set-point schedule the dry run also executes
+        if streamed:  # the device plays the voltage: a tick without a go-to has nothing to send, so no wake-up
+            schedule = (tk for tk in schedule if tk.motor is not None or tk.end)
         tick = next(schedule, None)
         while True:
             t_set = tick.t if tick is not None and not tick.end else math.inf
