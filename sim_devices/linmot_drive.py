@@ -522,7 +522,7 @@ class LinMotDriveSim:
     # ------------------------------------------------------------ motion on the plant
     def _set_profile(self, make: Callable[[float, float], MotionProfile]) -> MotionProfile:
         """Replace the motion from the cycle's time: ``make(position, velocity)`` at that time."""
-        p, v = (float(a) for a in self.plant.motion.evaluate(self._now))
+        p, v = self.plant.motion.at(self._now)
         profile = make(p, v)
         self.plant.set_motion(lambda _t, _p, _v: profile)  # planned from self._now, however late applied
         return profile

@@ -439,6 +439,7 @@ class PtyDevice:
             line.crosses_pty()
         self._master, self._slave, self.path = _open_raw_pty()
         self._stop = threading.Event()
+        self._wake_r, self._wake_w = os.pipe()  # stop() wakes the select at once, not at its next timeout
         self._thread = threading.Thread(target=self._run, name=f"sim-{name}", daemon=True)
         self.error: BaseException | None = None
 
@@ -455,8 +456,8 @@ class PtyDevice:
                 if faults.drop:
                     faults.note("drop")
                     break
-                ready, _, _ = select.select([self._master], [], [], 0.01)
-                if not ready:
+                ready, _, _ = select.select([self._master, self._wake_r], [], [], 0.01)
+                if self._master not in ready:
                     continue
                 try:
                     data = os.read(self._master, 65536)
@@ -494,10 +495,17 @@ class PtyDevice:
     def stop(self) -> None:
         """Stop serving and close the pty."""
         self._stop.set()
+        with contextlib.suppress(OSError):
+            os.write(self._wake_w, b"x")
         if self._thread.is_alive():
             self._thread.join(timeout=2)
         elif self._master != -1:
             self._close_fds()
+        if not self._thread.is_alive():
+            for fd in (self._wake_r, self._wake_w):
+                with contextlib.suppress(OSError):
+                    os.close(fd)
+            self._wake_r = self._wake_w = -1
 
 
 class PtyBridge:

@@ -422,6 +422,20 @@ def test_the_motion_verifier_follows_the_drive_s_trapezoid() -> None:
     assert v.reading(0.5, 0.04) is None and not v.anchored  # the drive's own stop ramp: no expectation yet
 
 
+def test_one_sample_of_the_trapezoid_is_the_derived_state() -> None:
+    """The derived go-to above, started at t = 1 s and sampled one time at a time as a drive's poll reads it: at rest
+    at 0 before the start; at 1.3 s 25 mm at 0.1 m/s; at 1.55 s, 0.05 s into the stop that begins at 45 mm,
+    45 + 0.1·0.05 − ½·1·0.05² m = 48.75 mm at 0.05 m/s; at 50 mm and rest after 1.6 s."""
+    from bench.core.motion import MotionProfile
+
+    m = MotionProfile.plan(1.0, 0.0, 0.0, 0.050, 0.1, 1.0, 1.0)
+    assert m.at(0.5) == (0.0, 0.0)
+    assert m.at(1.3) == pytest.approx((0.025, 0.1), abs=1e-12)
+    assert m.at(1.55) == pytest.approx((0.045 + 0.1 * 0.05 - 0.5 * 0.05 ** 2, 0.05), abs=1e-12)
+    assert m.at(2.0) == pytest.approx((0.050, 0.0), abs=1e-12)
+    assert all(type(x) is float for x in m.at(1.3))
+
+
 def test_a_ramp_from_rest_is_in_band_while_the_monitor_still_shows_rest() -> None:
     """Polled monitors lag (ADAM-4017+, 10 S/s): 0.13 s into a 20-Hz ramp from 0 V the monitor may still read the
     rest value. With what connecting left (0 V) known, that is in band; without any earlier value, a reading is not

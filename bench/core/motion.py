@@ -7,7 +7,9 @@ velocity; it handles a start while moving (towards, away from, or overshooting t
 from __future__ import annotations
 
 import math
+from bisect import bisect_right
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -89,9 +91,21 @@ class MotionProfile:
         vel = self.v_start[i] + self.acc[i] * tau
         return pos, vel
 
+    @cached_property
+    def _phases(self) -> tuple[list[float], list[float], list[float], list[float]]:
+        return self.t_start.tolist(), self.p_start.tolist(), self.v_start.tolist(), self.acc.tolist()
+
+    def at(self, t: float) -> tuple[float, float]:
+        """(position [m], velocity [m/s]) at one time t, as floats: :meth:`evaluate`'s arithmetic on one sample without
+        numpy's per-call cost (a drive polled for its position, a go-to planned from the present state)."""
+        ts, ps, vs, accs = self._phases
+        i = max(bisect_right(ts, t) - 1, 0)
+        tau = max(t - ts[i], 0.0)
+        return ps[i] + vs[i] * tau + 0.5 * accs[i] * tau * tau, vs[i] + accs[i] * tau
+
     def stop(self, t: float, dec: float) -> MotionProfile:
         """Profile that decelerates at ``dec`` from the state at t and holds where it comes to rest."""
-        p, v = (float(a) for a in self.evaluate(t))
+        p, v = self.at(t)
         if v == 0.0:
             return MotionProfile.hold(t, p)
         return MotionProfile.plan(t, p, v, p + v * abs(v) / (2 * dec), abs(v) + 1e-12, dec, dec)

@@ -253,7 +253,7 @@ class Plant:
         """Replace the motor's motion from now: ``make(t, position, velocity)`` returns the new profile."""
         with self.lock:
             now = self.clock.now()
-            p, v = (float(a) for a in self.motion.evaluate(now))
+            p, v = self.motion.at(now)
             profile = make(now, p, v)
             self._motions.append((now, profile))
             return profile
@@ -263,8 +263,7 @@ class Plant:
 
         Kinematic, so without the plant's lock: a drive polled for its position does not wait for an integration
         under way (the profile in force is one atomic read; profiles are only appended or dropped from the front)."""
-        p, v = self.motion.evaluate(self.clock.now() if t is None else t)
-        return float(p), float(v)
+        return self.motion.at(self.clock.now() if t is None else t)
 
     def change_specimen(self, temperature_K: float | None = None, hung_mass_kg: float | None = None,
                         prototype: int | None = None) -> None:

@@ -367,7 +367,12 @@ def ticks(program: Program, seg: Segment) -> Iterator[Tick]:
         yield Tick(t, voltage_at(seg, t), motor_command(program, seg, t, dt, first=k == 0))
         k += 1
         t = seg.t_start + k * dt if t + dt <= seg.stream_until + 1e-12 else t + max(dt, HOLD_KEEPALIVE_S)
-    yield Tick(seg.t_end, voltage_at(seg, seg.t_end), None, end=True)
+    yield end_tick(seg)
+
+
+def end_tick(seg: Segment) -> Tick:
+    """The last tick of :func:`ticks`: the segment's end value at its end."""
+    return Tick(seg.t_end, voltage_at(seg, seg.t_end), None, end=True)
 
 
 def motor_command(program: Program, seg: Segment, t: float, dt: float,

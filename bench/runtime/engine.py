@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 
 from bench.core.clock import Clock
-from bench.protocol.program import HOLD_KEEPALIVE_S, Program, Segment, ticks, voltage_at
+from bench.protocol.program import HOLD_KEEPALIVE_S, Program, Segment, end_tick, ticks, voltage_at
 from bench.runtime.context import LATE_TOLERANCE_S, STOP_POLL_S, RunContext, Snapshot, present
 from bench.runtime.control import CONTROL_POLL_S, ControlWord, read_control
 from bench.runtime.hardware_timed import HardwareTimed
@@ -367,6 +367,9 @@ class Engine:
         count = {k: p.first for k, (p, _) in polls.items()}
         due = {k: seg.t_start + n * polls[k][1] for k, n in count.items()}  # from counts: no drift
         schedule = ticks(prog, seg)  # the set-point schedule the dry run also executes
+        if streamed:  # the device plays the voltage: a tick without a go-to has nothing to send, so no wake-up
+            schedule = (tk for tk in schedule if tk.motor is not None or tk.end) \
+                if seg.move is not None or seg.position is not None else iter([end_tick(seg)])
         tick = next(schedule, None)
         while True:
             t_set = tick.t if tick is not None and not tick.end else math.inf

@@ -217,7 +217,7 @@ class MotionVerifier:
         """A go-to sent at run time ``t`` (after :meth:`anchor` or a reading gave a starting point)."""
         if self._profile is None:
             return
-        p, v = (float(a) for a in self._profile.evaluate(t))
+        p, v = self._profile.at(t)
         self._profile = MotionProfile.plan(t, p, v, target, vmax, acc, acc)
 
     def stopped(self, t: float) -> None:

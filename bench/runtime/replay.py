@@ -213,7 +213,7 @@ class ReplayPlant(Plant):
         """The recorded motor position at t (default: now) and the commanded profile's velocity (the drive's
         state machine runs as commanded; only the position is the record's)."""
         when = self.clock.now() if t is None else t
-        _, vel = self.motion.evaluate(when)
+        _, vel = self.motion.at(when)
         track = self.recording.tracks.get(MOTOR)
         if track is None:
             return super().motor_state(when)
