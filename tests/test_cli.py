@@ -67,6 +67,17 @@ def test_benchmark_prints_its_table() -> None:
     assert numba.get_num_threads() == threads  # the single-core measurement does not leak into the process
 
 
+def test_benchmark_sizes_out_of_range_or_malformed_are_one_line_errors() -> None:
+    import numba
+
+    most = numba.config.NUMBA_NUM_THREADS
+    for sizes, says in ((f"1,{most + 1}", f"each size must be 1…{most}"), ("0", "each size must be"),
+                        ("2,x", "not a comma-separated list")):
+        res = runner.invoke(app, ["benchmark", "cluster", "--sizes", sizes])
+        assert res.exit_code != 0 and "--sizes" in res.output and says in res.output, res.output
+        assert "Traceback" not in res.output and len(res.output.strip().splitlines()) == 1
+
+
 def test_acquisition_benchmark_reports_complete_10kHz_storage() -> None:
     res = runner.invoke(app, ["benchmark", "acquisition", "--quick"], env={"COLUMNS": "250"})
     assert res.exit_code == 0, res.output
