@@ -33,8 +33,12 @@ def test_hand_worked_tiles() -> None:
     # one thread: cutting only adds the fixed part; every record whole, longest first
     assert tiles(50, [300, 100, 100, 100], threads=1) == [(0, 1, 0, 50), (1, 2, 0, 50), (2, 3, 0, 50), (3, 4, 0, 50)]
     # 16 sets = 2 registers on 2 threads, fixed part f: the long record whole finishes at 800·(2 + f), cut to one
-    # register a thread at 800·(1 + f) + 100·(2 + f) (f < 6); the short one whole fits in that finish
-    assert tiles(16, [800, 100], threads=2) == [(0, 1, 0, 8), (0, 1, 8, 16), (1, 2, 0, 16)]
+    # register a thread at 900·(1 + f) with the short one cut too; left whole, the short one would end at
+    # 800·(1 + f) + 100·(2 + f), later
+    assert tiles(16, [800, 100], threads=2) == [(0, 1, 0, 8), (0, 1, 8, 16), (1, 2, 0, 8), (1, 2, 8, 16)]
+    # a short record that fits beside the long one's chunks stays whole: 250·(7 + f) ≤ 1000·(1 + f) for f ≥ 1
+    assert tiles(50, [1000, 250], threads=16) == [(0, 1, 8 * k, min(8 * k + 8, 50)) for k in range(7)] + [
+        (1, 2, 0, 50)]
     # 12 equal records on 16 threads: whole (7 + f each); cut in two, 24 chunks need a second round (7 + 2f)
     assert tiles(50, [80_000] * 12, threads=16) == [(r, r + 1, 0, 50) for r in range(12)]
 
@@ -53,18 +57,19 @@ def test_every_candidate_of_every_record_is_in_exactly_one_tile(m: int, threads:
     assert costs == [_cost(sum(CAMPAIGN[r0:r1]), b - a) for r0, r1, a, b in plan]  # the stated cost model
 
 
-@pytest.mark.parametrize("threads", [2, 4, 8, 16])
-def test_a_generation_of_fifty_finishes_no_later_than_any_uniform_cut(threads: int) -> None:
-    """Run longest first on ``threads`` threads, the tiles of a 50-set generation finish no later than every
-    record cut into the same number of chunks, for every such number; from 8 threads on, well before one task per
-    record (the old plan: the longest record sets the pace)."""
-    finish = _makespan(sorted((tile_cost(CAMPAIGN, t) for t in tiles(50, CAMPAIGN, threads)), reverse=True),
-                       threads)
-    for s in range(1, 8):
-        widths = np.diff(candidate_bounds(50, s))
-        uniform = sorted((_cost(n, int(w)) for n in CAMPAIGN for w in widths), reverse=True)
+@pytest.mark.parametrize(("m", "steps"), [(50, CAMPAIGN), (100, CAMPAIGN), (200, CAMPAIGN), (50, [1000, 2000]),
+                                          (200, [1000, 2000]), (15, CAMPAIGN)])
+@pytest.mark.parametrize("threads", [2, 3, 4, 5, 8, 10, 11, 12, 16])
+def test_tiles_finish_no_later_than_any_uniform_cut(m: int, steps: list[int], threads: int) -> None:
+    """Run longest first on ``threads`` threads, the tiles of a batch finish no later than every record cut into
+    the same number of chunks, for every such number; for the campaign's 50 sets from 8 threads on, well before
+    one task per record (the old plan: the longest record sets the pace)."""
+    finish = _makespan(sorted((tile_cost(steps, t) for t in tiles(m, steps, threads)), reverse=True), threads)
+    for s in range(1, -(-m // LANES) + 1):
+        widths = np.diff(candidate_bounds(m, s))
+        uniform = sorted((_cost(n, int(w)) for n in steps for w in widths), reverse=True)
         assert finish <= _makespan(uniform, threads) * (1 + 1e-9)
-    if threads >= 8:
+    if m == 50 and steps is CAMPAIGN and threads >= 8:
         assert _makespan(sorted((_cost(n, 50) for n in CAMPAIGN), reverse=True), threads) > 1.5 * finish
 
 

@@ -25,6 +25,7 @@ from bench.models.batch_plan import candidate_bounds, chunk_cost, chunks_per_rec
 if TYPE_CHECKING:
     from distributed import Client, Future
 
+WARM_TIMEOUT_S = 60.0  # the longest a new DistributedPredict waits for its workers to load the kernel
 Tile = tuple[int, int, int, int]  # first record, end record, first candidate, end candidate
 
 
@@ -57,8 +58,7 @@ def tiles(m: int, steps: Sequence[int], threads: int) -> list[Tile]:
     """Tiles covering ``m`` candidates × records of ``steps`` input steps each, longest first: each record cut
     along the candidates (chunks of whole registers) as far as :func:`bench.models.batch_plan.chunks_per_record`
     finds that it finishes the batch sooner on ``threads`` threads — a narrow chunk costs more per candidate —
-    and no records grouped (a task's round trip is a millisecond against the tens of a record's integration;
-    grouping would coarsen the longest-first schedule)."""
+    and no records grouped (a campaign has few records, and grouping would coarsen the longest-first schedule)."""
     if m == 0 or not steps:
         return []
     split = chunks_per_record(m, tuple(int(n) for n in steps), threads)
@@ -107,16 +107,22 @@ class DistributedPredict:
         self.steps = [len(U) for U in Us]
         cols = np.array(self.steps) // stride + 1
         self.columns = np.concatenate([[0], np.cumsum(cols)]).astype(int)
+        from distributed import wait
+
         self.records: list[Future[np.ndarray]] = client.scatter(list(Us), broadcast=True)  # once, to every worker
         self.evaluations = 0  # candidates evaluated on the cluster
         self._count = threading.Lock()  # the starts evaluate from threads of their own
         workers = client.scheduler_info().get("workers", {})
         # worker threads when distributed: the tiles' count
         self.threads = max(1, sum(int(w.get("nthreads", 1)) for w in workers.values()))
-        # every worker loads the kernel now: a batch's tiles go to any worker, and one cold worker holds up a batch
+        # every worker known now loads the kernel: a batch's tiles go to any worker, and a cold one holds up a
+        # batch; a worker gone meanwhile leaves its warm-up to another, and a slow one is not waited for past
+        # WARM_TIMEOUT_S (the warm-up only saves time, results do not depend on it)
         few = np.ascontiguousarray(Us[0][:2 * stride])
-        client.gather([client.submit(_warm, few, Y0[:1], np.atleast_2d(P0), h, stride, workers=[address],
-                                     pure=False) for address in workers])
+        warming = [client.submit(_warm, few, Y0[:1], np.atleast_2d(P0), h, stride, workers=[address],
+                                 allow_other_workers=True, pure=False) for address in workers]
+        with contextlib.suppress(TimeoutError):
+            wait(warming, timeout=WARM_TIMEOUT_S)
 
     def __call__(self, P: np.ndarray, cal: np.ndarray | None = None) -> np.ndarray:
         """λ of the packed sets P (one row per set, every record's samples side by side); ``cal``: the records'

@@ -52,27 +52,38 @@ def makespan(costs: Iterable[float], threads: int) -> float:
     return max(free)
 
 
+REFINE_RECORDS = 64  # up to this many records each is cut no further than needed; beyond, all alike (the cost grows)
+
+
+def _finish(m: int, steps: tuple[int, ...], chunks: list[int], threads: int) -> float:
+    """When the chunks of every record (``chunks[r]`` of record r) finish, run longest first on ``threads``."""
+    return makespan((chunk_cost(n, int(w)) for n, s in zip(steps, chunks, strict=True)
+                     for w in np.diff(candidate_bounds(m, s))), threads)
+
+
 @functools.lru_cache(maxsize=512)
 def chunks_per_record(m: int, steps: tuple[int, ...], threads: int) -> tuple[int, ...]:
     """How many chunks of ``m`` candidates each record of ``steps`` input steps is cut into on ``threads`` threads:
     the one count for all records that finishes soonest under :func:`chunk_cost` (the fewest chunks among equals),
-    then each record cut no further than its widest chunk needs to fit in that finish."""
+    then, shortest record first, each cut into fewer where the whole schedule still finishes no later."""
     regs = -(-m // LANES)
     if not steps or regs == 0:
         return tuple(1 for _ in steps)
-    most = max(1, min(regs, 2 * -(-threads // len(steps))))  # more chunks than twice the threads' share never pay
+    most = max(1, min(regs, 2 * threads))  # a record in more chunks than twice the threads cannot finish sooner
     best, finish = 1, float("inf")
     for s in range(1, most + 1):
-        widths = np.diff(candidate_bounds(m, s))
-        span = makespan((chunk_cost(n, int(w)) for n in steps for w in widths), threads)
+        span = _finish(m, steps, [s] * len(steps), threads)
         if span < finish * (1 - 1e-9):
             best, finish = s, span
-    out = []
-    for n in steps:
-        s = 1
-        while s < best and max(chunk_cost(n, int(w)) for w in np.diff(candidate_bounds(m, s))) > finish * (1 + 1e-9):
-            s += 1
-        out.append(s)
+    out = [best] * len(steps)
+    if len(steps) > REFINE_RECORDS:
+        return tuple(out)
+    for r in sorted(range(len(steps)), key=lambda i: steps[i]):  # shortest first: cut each no further than needed
+        for s in range(1, best):
+            trial = [*out[:r], s, *out[r + 1:]]
+            if _finish(m, steps, trial, threads) <= finish * (1 + 1e-9):
+                out[r] = s
+                break
     return tuple(out)
 
 
@@ -80,6 +91,8 @@ def plan(m: int, steps: list[int], stride: int, threads: int) -> tuple[np.ndarra
     """The task table (rows as :data:`TASK_COLUMNS`, int64) for ``m`` candidates over records of ``steps`` input
     steps each, an output every ``stride`` steps (the start included), on ``threads`` threads; and the number of
     output columns of all records together."""
+    if not steps:
+        return np.zeros((0, len(TASK_COLUMNS)), dtype=np.int64), 0
     n_steps = np.asarray(steps, dtype=np.int64)
     n_cols = n_steps // stride + 1
     u_off = np.concatenate([[0], np.cumsum(n_steps)])
