@@ -235,7 +235,8 @@ class RegisterIO(StreamEngine):
             if fc in (3, 4):
                 return self._read(address, count, start, regs)
             if fc in (6, 16) and values is not None:
-                return self._write_regs(address, cast(list[int], values))  # register values: ints
+                return self._write_regs(address, cast(list[int], values))  # register values: ints (an MBFB buffer
+                # frame's: an integer array)
             return ExcCodes.ILLEGAL_FUNCTION
 
     def _read(self, address: int, count: int, start: int, regs: list[int]) -> ExcCodes | None:
@@ -262,7 +263,7 @@ class RegisterIO(StreamEngine):
             regs[address - start + i] = out[i]
         return None
 
-    def _write_regs(self, address: int, data: list[int]) -> ExcCodes | None:
+    def _write_regs(self, address: int, data: list[int] | np.ndarray) -> ExcCodes | None:
         now = self.clock.now()
         if R_O_U16 <= address < R_O_U16 + 4:
             return self._buffer(address - R_O_U16, data, now)
