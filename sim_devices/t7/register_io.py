@@ -267,6 +267,8 @@ class RegisterIO(StreamEngine):
         now = self.clock.now()
         if R_O_U16 <= address < R_O_U16 + 4:
             return self._buffer(address - R_O_U16, data, now)
+        if isinstance(data, np.ndarray):  # only buffer frames come as arrays; anything else as a list of words
+            data = [int(w) for w in data]
         if R_O_F32 <= address < R_O_F32 + 8 and address % 2 == 0:
             k = (address - R_O_F32) // 2
             ch = max((self.outs[k].target - R_DAC) // 2, 0)
