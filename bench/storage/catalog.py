@@ -239,15 +239,16 @@ def _s(v: Any) -> str | None:
     return None if v is None else str(v)
 
 
-def row_from_file(path: Path) -> dict[str, Any]:
-    """The row of a run file, read from the file (and its fit file and report). ValueError if it is not one."""
+def row_from_file(path: Path, hv: HvStats | None = None) -> dict[str, Any]:
+    """The row of a run file, read from the file (and its fit file and report). ValueError if it is not one.
+    ``hv``: the file's :func:`hv_statistics` already known (its recorder's :class:`HvAccumulator`), not read again."""
     from bench.storage.runfile import open_run
 
     sig = signature(path)  # before reading: a change while reading makes the next reconcile read it again
     run = open_run(path, streams=False)
     a = run.attrs
     row = row_from_attrs(path, a)
-    stats = hv_statistics(path)
+    stats = hv if hv is not None else hv_statistics(path)
     spec = _specimen(a)
     row.update({
         "state": run.state, "complete": bool(run.complete), "reason": run.reason,
@@ -339,14 +340,64 @@ class HvStats:
     max_voltage_V: float
 
 
+class HvAccumulator:
+    """The statistics of :func:`hv_statistics` over (t, V) given in pieces of any size, in order: they are
+    evaluated in the same :data:`CHUNK`-sample groups as a read of the file, so the result is the file's bit for bit
+    (the recorder feeds it what it writes, and the run's end need not read the data back)."""
+
+    def __init__(self, threshold: float = HV_THRESHOLD_V) -> None:
+        self.threshold = threshold
+        self.hv, self.cycles, self.vmax = 0.0, 0, 0.0
+        self.armed = True
+        self.prev: tuple[float, float] | None = None  # the last (t, |v|) of the previous chunk
+        self._t: list[np.ndarray] = []
+        self._v: list[np.ndarray] = []
+        self._n = 0
+
+    def add(self, t: np.ndarray, v: np.ndarray) -> None:
+        """The next samples (times, measured voltage as stored)."""
+        self._t.append(t)
+        self._v.append(v)
+        self._n += t.size
+        if self._n >= CHUNK:
+            t_all, v_all = np.concatenate(self._t), np.concatenate(self._v)
+            k = 0
+            while self._n - k >= CHUNK:
+                self.chunk(t_all[k:k + CHUNK], v_all[k:k + CHUNK])
+                k += CHUNK
+            self._t, self._v, self._n = [t_all[k:]], [v_all[k:]], self._n - k
+
+    def chunk(self, t_in: np.ndarray, v_in: np.ndarray) -> None:
+        """One group of samples (at most :data:`CHUNK`), after those of the groups before."""
+        t = np.asarray(t_in, dtype=float)
+        v = np.abs(np.asarray(v_in, dtype=float))
+        prev, threshold = self.prev, self.threshold
+        if prev is not None:
+            t, v = np.concatenate(([prev[0]], t)), np.concatenate(([prev[1]], v))
+        ok = np.isfinite(v)
+        if ok.any():
+            self.vmax = max(self.vmax, float(v[ok].max()))
+        above = v > threshold
+        self.hv += float(np.sum(np.diff(t)[above[:-1]]))
+        first = 1 if prev is not None else 0  # the carried sample was counted in the previous chunk
+        cycles_k, self.armed = _rises(v[first:], threshold, self.armed)
+        self.cycles += cycles_k
+        self.prev = (float(t[-1]), float(v[-1]))
+
+    def stats(self) -> HvStats:
+        """The statistics of every sample added (the samples still pending evaluated as the last group)."""
+        if self._n:
+            self.chunk(np.concatenate(self._t), np.concatenate(self._v))
+            self._t, self._v, self._n = [], [], 0
+        return HvStats(self.hv, self.cycles, self.vmax)
+
+
 def hv_statistics(path: Path, threshold: float = HV_THRESHOLD_V) -> HvStats:
     """Time under high voltage, high-voltage cycles and peak |V| from the measured amplifier voltage, read in
     chunks (see the module's docstring for the definitions). Zero for a file with no amplifier stream."""
     from bench.storage.runfile import open_h5
 
-    hv, cycles, vmax = 0.0, 0, 0.0
-    armed = True
-    prev: tuple[float, float] | None = None  # the last (t, |v|) of the previous chunk
+    acc = HvAccumulator(threshold)
     with open_h5(path) as f:
         if "amplifier" not in f or "voltage" not in f["amplifier"]:
             return HvStats(0.0, 0, 0.0)
@@ -359,20 +410,8 @@ def hv_statistics(path: Path, threshold: float = HV_THRESHOLD_V) -> HvStats:
             counts = dict(zip(json.loads(f["status/samples"].attrs["names"]), f["status/samples"][:], strict=True))
             n = min(n, int(counts.get("amplifier", n)))
         for k in range(0, n, CHUNK):
-            t = np.asarray(g["t"][k:min(k + CHUNK, n)], dtype=float)
-            v = np.abs(np.asarray(g["voltage"][k:min(k + CHUNK, n)], dtype=float))
-            if prev is not None:
-                t, v = np.concatenate(([prev[0]], t)), np.concatenate(([prev[1]], v))
-            ok = np.isfinite(v)
-            if ok.any():
-                vmax = max(vmax, float(v[ok].max()))
-            above = v > threshold
-            hv += float(np.sum(np.diff(t)[above[:-1]]))
-            first = 1 if prev is not None else 0  # the carried sample was counted in the previous chunk
-            cycles_k, armed = _rises(v[first:], threshold, armed)
-            cycles += cycles_k
-            prev = (float(t[-1]), float(v[-1]))
-    return HvStats(hv, cycles, vmax)
+            acc.chunk(g["t"][k:min(k + CHUNK, n)], g["voltage"][k:min(k + CHUNK, n)])
+    return acc.stats()
 
 
 def _rises(v: np.ndarray, threshold: float, armed: bool) -> tuple[int, bool]:
@@ -454,11 +493,12 @@ def record_start(path: Path, attrs: dict[str, Any], url: str | None = None) -> N
                     "from the files): %s", " ".join(str(exc).split())[:300])
 
 
-def record_end(path: Path, url: str | None = None) -> None:
-    """Catalogue a run that has ended, from its file; on any failure one warning line."""
+def record_end(path: Path, url: str | None = None, hv: HvStats | None = None) -> None:
+    """Catalogue a run that has ended, from its file (``hv``: its high-voltage statistics, as the recorder counted
+    what it wrote: :meth:`~bench.storage.recorder.Recorder.hv_stats`); on any failure one warning line."""
     try:
         with Catalog(catalog_url(path.parent, url)) as cat:
-            cat.upsert([row_from_file(path)])
+            cat.upsert([row_from_file(path, hv)])
     except Exception as exc:
         log.warning("run catalogue not written at the end (`bench runs list` reconciles it from the files): %s",
                     " ".join(str(exc).split())[:300])
