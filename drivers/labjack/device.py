@@ -14,6 +14,7 @@ from drivers.labjack.registers import (
     PRODUCT_T7,
     SERIAL_NUMBER,
     STREAM_ENABLE,
+    words_u32,
 )
 from drivers.labjack.stream_in import T7Stream
 from drivers.labjack.watchdog import T7Watchdog
@@ -29,9 +30,10 @@ class LabJackT7(T7Stream, T7Watchdog):
         if not (math.isfinite(product) and round(product) == PRODUCT_T7):  # inf, NaN, negative: one line too
             raise InstrumentStateError(self.name, f"PRODUCT_ID (register {PRODUCT_ID}) reads {product:g}, "
                                        f"expected {PRODUCT_T7} (T7)")
-        self.serial = self.read_u32(SERIAL_NUMBER)
+        serial, running = self.feedback([(SERIAL_NUMBER, 2), (STREAM_ENABLE, 2)])  # one MBFB packet
+        self.serial = words_u32(serial)
         self.cal = self.read_calibration()
-        if self.read_u32(STREAM_ENABLE):
+        if words_u32(running):
             self.write_u32(STREAM_ENABLE, 0)
         if self.watchdog_s is not None:
             self.configure_watchdog(self.watchdog_s, self.safe_dac)
