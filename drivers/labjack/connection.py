@@ -138,20 +138,20 @@ class T7Connection:
         return out
 
     def read_f32(self, address: int) -> float:
-        """One FLOAT32 register pair."""
-        return words_f32(self.read_regs(address, 2))
+        """One FLOAT32 register pair (an MBFB read: the T7's own command-response packet)."""
+        return words_f32(self.feedback([(address, 2)])[0])
 
     def read_u32(self, address: int) -> int:
-        """One UINT32 register pair."""
-        return words_u32(self.read_regs(address, 2))
+        """One UINT32 register pair (an MBFB read)."""
+        return words_u32(self.feedback([(address, 2)])[0])
 
     def write_f32(self, address: int, value: float) -> None:
-        """Write one FLOAT32."""
-        self.write_regs(address, f32_words(value))
+        """Write one FLOAT32 (an MBFB write)."""
+        self.feedback([(address, f32_words(value))])
 
     def write_u32(self, address: int, value: int) -> None:
-        """Write one UINT32."""
-        self.write_regs(address, u32_words(value))
+        """Write one UINT32 (an MBFB write)."""
+        self.feedback([(address, u32_words(value))])
 
     def read_calibration(self) -> Calibration:
         """Read the 41 calibration constants from flash (as LabJack's example does: pointer, then a read, four times;
@@ -190,7 +190,7 @@ class T7Connection:
         A value that is not finite or lies beyond 1.1 × the input's range (±11 V on the ±10 V range, the
         default of an input this driver has not configured) is no reading the converter makes (:data:`AIN_SPAN`):
         status "invalid", value NaN — one bad sample, not a broken link."""
-        v = self.read_f32(AIN0 + 2 * ain)
+        v = words_f32(self.read_regs(AIN0 + 2 * ain, 2))  # FC3
         limit = AIN_SPAN * self._ain_range.get(ain, RANGES[0])
         if not abs(v) <= limit:
             return Reading(math.nan, "V", self.clock(), "invalid")

@@ -14,6 +14,7 @@ from drivers.labjack.registers import (
     PRODUCT_T7,
     SERIAL_NUMBER,
     STREAM_ENABLE,
+    words_f32,
     words_u32,
 )
 from drivers.labjack.stream_in import T7Stream
@@ -26,7 +27,7 @@ class LabJackT7(T7Stream, T7Watchdog):
     def connect(self) -> None:
         """Open the Modbus link, check it is a T7, read its calibration, stop a stream left running."""
         self.link.open()
-        product = self.read_f32(PRODUCT_ID)
+        product = words_f32(self.read_regs(PRODUCT_ID, 2))  # FC3: a device that is no T7 may not know MBFB
         if not (math.isfinite(product) and round(product) == PRODUCT_T7):  # inf, NaN, negative: one line too
             raise InstrumentStateError(self.name, f"PRODUCT_ID (register {PRODUCT_ID}) reads {product:g}, "
                                        f"expected {PRODUCT_T7} (T7)")
