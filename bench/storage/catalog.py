@@ -33,7 +33,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import numpy as np
+from bench.storage import hv_stats
+from bench.storage.hv_stats import HV_THRESHOLD_V, HvAccumulator, HvStats
 
 if TYPE_CHECKING:
     import sqlalchemy as sa
@@ -42,8 +43,6 @@ log = logging.getLogger("bench.storage.catalog")
 
 ENV = "BENCH_CATALOG"
 FILE_NAME = "catalog.sqlite"
-HV_THRESHOLD_V = 500.0  # above the monitors' zero offset and noise (a few V), below any drive the protocols use
-CHUNK = 1 << 20  # samples read at a time: a long run's statistics in bounded memory
 SQLITE_BUSY_S = 60.0  # how long a SQLite writer waits for another bench's transaction
 PG_CONNECT_S = 5  # a shared server that does not answer: give up quickly (the run goes on)
 
@@ -333,71 +332,13 @@ def _text(v: Any) -> str:
     return v.decode() if isinstance(v, bytes) else str(v)
 
 
-@dataclass
-class HvStats:
-    hv_time_s: float
-    cycles: int
-    max_voltage_V: float
-
-
-class HvAccumulator:
-    """The statistics of :func:`hv_statistics` over (t, V) given in pieces of any size, in order: they are
-    evaluated in the same :data:`CHUNK`-sample groups as a read of the file, so the result is the file's bit for bit
-    (the recorder feeds it what it writes, and the run's end need not read the data back)."""
-
-    def __init__(self, threshold: float = HV_THRESHOLD_V) -> None:
-        self.threshold = threshold
-        self.hv, self.cycles, self.vmax = 0.0, 0, 0.0
-        self.armed = True
-        self.prev: tuple[float, float] | None = None  # the last (t, |v|) of the previous chunk
-        self._t: list[np.ndarray] = []
-        self._v: list[np.ndarray] = []
-        self._n = 0
-
-    def add(self, t: np.ndarray, v: np.ndarray) -> None:
-        """The next samples (times, measured voltage as stored)."""
-        self._t.append(t)
-        self._v.append(v)
-        self._n += t.size
-        if self._n >= CHUNK:
-            t_all, v_all = np.concatenate(self._t), np.concatenate(self._v)
-            k = 0
-            while self._n - k >= CHUNK:
-                self.chunk(t_all[k:k + CHUNK], v_all[k:k + CHUNK])
-                k += CHUNK
-            self._t, self._v, self._n = [t_all[k:]], [v_all[k:]], self._n - k
-
-    def chunk(self, t_in: np.ndarray, v_in: np.ndarray) -> None:
-        """One group of samples (at most :data:`CHUNK`), after those of the groups before."""
-        t = np.asarray(t_in, dtype=float)
-        v = np.abs(np.asarray(v_in, dtype=float))
-        prev, threshold = self.prev, self.threshold
-        if prev is not None:
-            t, v = np.concatenate(([prev[0]], t)), np.concatenate(([prev[1]], v))
-        ok = np.isfinite(v)
-        if ok.any():
-            self.vmax = max(self.vmax, float(v[ok].max()))
-        above = v > threshold
-        self.hv += float(np.sum(np.diff(t)[above[:-1]]))
-        first = 1 if prev is not None else 0  # the carried sample was counted in the previous chunk
-        cycles_k, self.armed = _rises(v[first:], threshold, self.armed)
-        self.cycles += cycles_k
-        self.prev = (float(t[-1]), float(v[-1]))
-
-    def stats(self) -> HvStats:
-        """The statistics of every sample added (the samples still pending evaluated as the last group)."""
-        if self._n:
-            self.chunk(np.concatenate(self._t), np.concatenate(self._v))
-            self._t, self._v, self._n = [], [], 0
-        return HvStats(self.hv, self.cycles, self.vmax)
-
-
 def hv_statistics(path: Path, threshold: float = HV_THRESHOLD_V) -> HvStats:
     """Time under high voltage, high-voltage cycles and peak |V| from the measured amplifier voltage, read in
     chunks (see the module's docstring for the definitions). Zero for a file with no amplifier stream."""
     from bench.storage.runfile import open_h5
 
     acc = HvAccumulator(threshold)
+    chunk = hv_stats.CHUNK
     with open_h5(path) as f:
         if "amplifier" not in f or "voltage" not in f["amplifier"]:
             return HvStats(0.0, 0, 0.0)
@@ -409,23 +350,9 @@ def hv_statistics(path: Path, threshold: float = HV_THRESHOLD_V) -> HvStats:
             f["status/samples"].refresh()
             counts = dict(zip(json.loads(f["status/samples"].attrs["names"]), f["status/samples"][:], strict=True))
             n = min(n, int(counts.get("amplifier", n)))
-        for k in range(0, n, CHUNK):
-            acc.chunk(g["t"][k:min(k + CHUNK, n)], g["voltage"][k:min(k + CHUNK, n)])
+        for k in range(0, n, chunk):
+            acc.chunk(g["t"][k:min(k + chunk, n)], g["voltage"][k:min(k + chunk, n)])
     return acc.stats()
-
-
-def _rises(v: np.ndarray, threshold: float, armed: bool) -> tuple[int, bool]:
-    """Rises of ``v`` above ``threshold`` while armed; re-armed below threshold/2. Returns (rises, armed at end)."""
-    code = np.where(v > threshold, 1, np.where(v < threshold / 2, 0, -1))
-    known = code >= 0
-    if not known.any():
-        return 0, armed
-    idx = np.where(known, np.arange(code.size), -1)
-    np.maximum.accumulate(idx, out=idx)
-    level = np.where(idx >= 0, code[np.maximum(idx, 0)], 0 if armed else 1)  # 1: above (disarmed)
-    before = np.concatenate(([0 if armed else 1], level[:-1]))
-    rises = int(np.sum((level == 1) & (before == 0)))
-    return rises, bool(level[-1] == 0)
 
 
 # ---- keeping the catalogue true to the files ----------------------------------------------------------------------

@@ -58,7 +58,7 @@ from typing import Any
 import h5py
 import numpy as np
 
-from bench.storage.catalog import HvAccumulator, HvStats
+from bench.storage.hv_stats import HvAccumulator, HvStats
 from drivers.interfaces import DataKey
 
 event_log = logging.getLogger("bench.run")  # every event, as it is recorded (the run log beside the file follows it)
