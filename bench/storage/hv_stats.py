@@ -56,7 +56,7 @@ class HvAccumulator:
             t, v = np.concatenate(([prev[0]], t)), np.concatenate(([prev[1]], v))
         ok = np.isfinite(v)
         if ok.any():
-            self.vmax = max(self.vmax, float(v[ok].max()))
+            self.vmax = max(self.vmax, float(np.max(v, where=ok, initial=-np.inf)))
         above = v > threshold
         self.hv += float(np.sum(np.diff(t)[above[:-1]]))
         first = 1 if prev is not None else 0  # the carried sample was counted in the previous chunk
@@ -73,14 +73,14 @@ class HvAccumulator:
 
 
 def _rises(v: np.ndarray, threshold: float, armed: bool) -> tuple[int, bool]:
-    """Rises of ``v`` above ``threshold`` while armed; re-armed below threshold/2. Returns (rises, armed at end)."""
-    code = np.where(v > threshold, 1, np.where(v < threshold / 2, 0, -1))
-    known = code >= 0
-    if not known.any():
+    """Rises of ``v`` above ``threshold`` while armed; re-armed below threshold/2. Returns (rises, armed at end).
+
+    Only the samples above the threshold or below its half change the state (NaN and the band between change
+    nothing): a rise is such a sample above after one below (or after the start, when armed)."""
+    high = v > threshold
+    known = high | (v < threshold / 2)
+    above = high[known]  # the state after each sample that sets it: True = above (disarmed)
+    if not above.size:
         return 0, armed
-    idx = np.where(known, np.arange(code.size), -1)
-    np.maximum.accumulate(idx, out=idx)
-    level = np.where(idx >= 0, code[np.maximum(idx, 0)], 0 if armed else 1)  # 1: above (disarmed)
-    before = np.concatenate(([0 if armed else 1], level[:-1]))
-    rises = int(np.sum((level == 1) & (before == 0)))
-    return rises, bool(level[-1] == 0)
+    before = np.concatenate(([not armed], above[:-1]))
+    return int(np.count_nonzero(above & ~before)), not bool(above[-1])
