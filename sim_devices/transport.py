@@ -439,7 +439,7 @@ class PtyDevice:
             line.crosses_pty()
         self._master, self._slave, self.path = _open_raw_pty()
         self._stop = threading.Event()
-        self._wake_r, self._wake_w = os.pipe()  # stop() wakes the select at once, not at its next timeout
+        self._wake_r, self._wake_w = os.pipe()  # stop() wakes the serving thread's select at once (closed by stop)
         self._thread = threading.Thread(target=self._run, name=f"sim-{name}", daemon=True)
         self.error: BaseException | None = None
 
@@ -493,15 +493,16 @@ class PtyDevice:
         return self._thread.is_alive()
 
     def stop(self) -> None:
-        """Stop serving and close the pty."""
+        """Stop serving and close the pty (the serving thread is woken, not left to its next 10-ms poll)."""
         self._stop.set()
-        with contextlib.suppress(OSError):
-            os.write(self._wake_w, b"x")
+        if self._wake_w != -1:
+            with contextlib.suppress(OSError):
+                os.write(self._wake_w, b"\0")
         if self._thread.is_alive():
             self._thread.join(timeout=2)
         elif self._master != -1:
             self._close_fds()
-        if not self._thread.is_alive():
+        if not self._thread.is_alive():  # nothing selects on the pipe any more
             for fd in (self._wake_r, self._wake_w):
                 with contextlib.suppress(OSError):
                     os.close(fd)

@@ -373,11 +373,36 @@ def test_specimen_history_of_three_runs(lab: dict[str, Path], catalog_url: str) 
 def test_statistics_read_in_chunks_equal_the_plain_count(lab: dict[str, Path], monkeypatch: pytest.MonkeyPatch) -> None:
     """A long run is read in chunks: a chunk boundary (here every 997 samples, inside rises and plateaus) changes
     nothing against the plain loop over the whole record."""
-    from bench.storage import catalog
+    from bench.storage import catalog, hv_stats
 
-    monkeypatch.setattr(catalog, "CHUNK", 997)
+    monkeypatch.setattr(hv_stats, "CHUNK", 997)
     for path in (lab["killed"], lab["resumed"], lab["fitted"]):
         hv, rises, peak = _expected(path)
         got = catalog.hv_statistics(path)
         assert (got.cycles, got.max_voltage_V) == (rises, pytest.approx(peak, rel=1e-12))
         assert got.hv_time_s == pytest.approx(hv, rel=1e-9, abs=1e-9)
+
+
+@pytest.mark.parametrize("chunk", [97, 1 << 20])
+def test_the_recorders_statistics_are_the_files_bit_for_bit(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                            chunk: int) -> None:
+    """The run's end catalogues the statistics the recorder counted while writing (no read-back): equal to a read
+    of the file bit for bit, whatever the pieces written and the read's chunks; and to the plain loop."""
+    from bench.storage import catalog, hv_stats
+    from bench.storage.recorder import Column, Recorder
+
+    monkeypatch.setattr(hv_stats, "CHUNK", chunk)
+    rng = np.random.default_rng(3)
+    path = tmp_path / "hv.h5"
+    rec = Recorder(path, {"protocol_name": "hv"}, {"amplifier": [Column("voltage", "V", "")]}, [], {"amplifier": 1e4})
+    k = 0
+    for size in rng.integers(1, 400, 40):  # pieces of every size, across the read's chunks
+        t = (k + np.arange(size)) * 1e-4
+        rec.append("amplifier", t, voltage=3000.0 * np.sin(2 * np.pi * 7.0 * t) + rng.normal(0.0, 300.0, size))
+        k += size
+        rec.flush()
+    rec.finish("completed", "")
+    got = rec.hv_stats()
+    assert got is not None and got == catalog.hv_statistics(path)
+    hv, rises, peak = _expected(path)
+    assert (got.cycles, got.max_voltage_V) == (rises, peak) and got.hv_time_s == pytest.approx(hv, rel=1e-9)

@@ -315,11 +315,12 @@ class HardwareTimed:
         self.scans += block.n
         t = block.times() - self.ctx.t0
         idx = np.clip(block.first_scan - self._base + np.arange(block.n), 0, self._commanded.size - 1)
+        commanded = self._commanded[idx]
         col = {name: block.volts[:, i] for i, name in enumerate(block.names)}
         ok = block.valid.all(axis=1)
         v, i = self.amp.monitor_values(col["vmon"], col["imon"])
         rec, snap = self.ctx.rec, self.ctx.snapshot
-        rec.append("amplifier", t, voltage=v, current=i, commanded=self._commanded[idx])
+        rec.append("amplifier", t, voltage=v, current=i, commanded=commanded)
         disp = force = None
         if self.has_force:
             force = self.cfg.force_N_per_V * col["force"] + self.cfg.force_offset_N
@@ -341,11 +342,10 @@ class HardwareTimed:
             snap.values["force"] = float(force[last])
         if not supervise:
             return
-        good = np.flatnonzero(ok)
-        self.ctx.sup.check_monitors(float(v[good[np.argmax(np.abs(v[good]))]]),
-                                  float(i[good[np.argmax(np.abs(i[good]))]]))
+        good = slice(None) if ok.all() else np.flatnonzero(ok)  # every scan valid (the rule): no copies
+        self.ctx.sup.check_monitors(_peak(v[good]), _peak(i[good]))
         if force is not None:
-            self.ctx.sup.check_force(float(force[good[np.argmax(np.abs(force[good]))]]))
-        if (m := self.ctx.verifier.scans(t, v, self._commanded[idx], np.asarray(ok))) is not None:
+            self.ctx.sup.check_force(_peak(force[good]))
+        if (m := self.ctx.verifier.scans(t, v, commanded, np.asarray(ok))) is not None:
             raise mismatch_trip(m, "the voltage monitor (scan clock)")
 

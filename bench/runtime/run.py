@@ -268,7 +268,7 @@ def execute(plan: Plan, out: Path, *, virtual: bool = False, operator: OperatorF
         if sim is not None and sim.replay is not None:
             sim.replay.anchor(clock.now())  # record time 0 = this run's time 0 (the engine starts its clock now)
         result = engine.run()
-        catalog.record_end(out)
+        catalog.record_end(out, hv=recorder.hv_stats())  # the file's data, counted as it was written
         if engine.latched is not None:
             latch(rig.name, engine.latched.reason, str(out))
         return result

@@ -33,7 +33,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import numpy as np
+from bench.storage import hv_stats
+from bench.storage.hv_stats import HV_THRESHOLD_V, HvAccumulator, HvStats
 
 if TYPE_CHECKING:
     import sqlalchemy as sa
@@ -42,8 +43,6 @@ log = logging.getLogger("bench.storage.catalog")
 
 ENV = "BENCH_CATALOG"
 FILE_NAME = "catalog.sqlite"
-HV_THRESHOLD_V = 500.0  # above the monitors' zero offset and noise (a few V), below any drive the protocols use
-CHUNK = 1 << 20  # samples read at a time: a long run's statistics in bounded memory
 SQLITE_BUSY_S = 60.0  # how long a SQLite writer waits for another bench's transaction
 PG_CONNECT_S = 5  # a shared server that does not answer: give up quickly (the run goes on)
 
@@ -239,15 +238,16 @@ def _s(v: Any) -> str | None:
     return None if v is None else str(v)
 
 
-def row_from_file(path: Path) -> dict[str, Any]:
-    """The row of a run file, read from the file (and its fit file and report). ValueError if it is not one."""
+def row_from_file(path: Path, hv: HvStats | None = None) -> dict[str, Any]:
+    """The row of a run file, read from the file (and its fit file and report). ValueError if it is not one.
+    ``hv``: the file's :func:`hv_statistics` already known (its recorder's :class:`HvAccumulator`), not read again."""
     from bench.storage.runfile import open_run
 
     sig = signature(path)  # before reading: a change while reading makes the next reconcile read it again
     run = open_run(path, streams=False)
     a = run.attrs
     row = row_from_attrs(path, a)
-    stats = hv_statistics(path)
+    stats = hv if hv is not None else hv_statistics(path)
     spec = _specimen(a)
     row.update({
         "state": run.state, "complete": bool(run.complete), "reason": run.reason,
@@ -332,21 +332,13 @@ def _text(v: Any) -> str:
     return v.decode() if isinstance(v, bytes) else str(v)
 
 
-@dataclass
-class HvStats:
-    hv_time_s: float
-    cycles: int
-    max_voltage_V: float
-
-
 def hv_statistics(path: Path, threshold: float = HV_THRESHOLD_V) -> HvStats:
     """Time under high voltage, high-voltage cycles and peak |V| from the measured amplifier voltage, read in
     chunks (see the module's docstring for the definitions). Zero for a file with no amplifier stream."""
     from bench.storage.runfile import open_h5
 
-    hv, cycles, vmax = 0.0, 0, 0.0
-    armed = True
-    prev: tuple[float, float] | None = None  # the last (t, |v|) of the previous chunk
+    acc = HvAccumulator(threshold)
+    chunk = hv_stats.CHUNK
     with open_h5(path) as f:
         if "amplifier" not in f or "voltage" not in f["amplifier"]:
             return HvStats(0.0, 0, 0.0)
@@ -358,35 +350,9 @@ def hv_statistics(path: Path, threshold: float = HV_THRESHOLD_V) -> HvStats:
             f["status/samples"].refresh()
             counts = dict(zip(json.loads(f["status/samples"].attrs["names"]), f["status/samples"][:], strict=True))
             n = min(n, int(counts.get("amplifier", n)))
-        for k in range(0, n, CHUNK):
-            t = np.asarray(g["t"][k:min(k + CHUNK, n)], dtype=float)
-            v = np.abs(np.asarray(g["voltage"][k:min(k + CHUNK, n)], dtype=float))
-            if prev is not None:
-                t, v = np.concatenate(([prev[0]], t)), np.concatenate(([prev[1]], v))
-            ok = np.isfinite(v)
-            if ok.any():
-                vmax = max(vmax, float(v[ok].max()))
-            above = v > threshold
-            hv += float(np.sum(np.diff(t)[above[:-1]]))
-            first = 1 if prev is not None else 0  # the carried sample was counted in the previous chunk
-            cycles_k, armed = _rises(v[first:], threshold, armed)
-            cycles += cycles_k
-            prev = (float(t[-1]), float(v[-1]))
-    return HvStats(hv, cycles, vmax)
-
-
-def _rises(v: np.ndarray, threshold: float, armed: bool) -> tuple[int, bool]:
-    """Rises of ``v`` above ``threshold`` while armed; re-armed below threshold/2. Returns (rises, armed at end)."""
-    code = np.where(v > threshold, 1, np.where(v < threshold / 2, 0, -1))
-    known = code >= 0
-    if not known.any():
-        return 0, armed
-    idx = np.where(known, np.arange(code.size), -1)
-    np.maximum.accumulate(idx, out=idx)
-    level = np.where(idx >= 0, code[np.maximum(idx, 0)], 0 if armed else 1)  # 1: above (disarmed)
-    before = np.concatenate(([0 if armed else 1], level[:-1]))
-    rises = int(np.sum((level == 1) & (before == 0)))
-    return rises, bool(level[-1] == 0)
+        for k in range(0, n, chunk):
+            acc.chunk(g["t"][k:min(k + chunk, n)], g["voltage"][k:min(k + chunk, n)])
+    return acc.stats()
 
 
 # ---- keeping the catalogue true to the files ----------------------------------------------------------------------
@@ -454,11 +420,12 @@ def record_start(path: Path, attrs: dict[str, Any], url: str | None = None) -> N
                     "from the files): %s", " ".join(str(exc).split())[:300])
 
 
-def record_end(path: Path, url: str | None = None) -> None:
-    """Catalogue a run that has ended, from its file; on any failure one warning line."""
+def record_end(path: Path, url: str | None = None, hv: HvStats | None = None) -> None:
+    """Catalogue a run that has ended, from its file (``hv``: its high-voltage statistics, as the recorder counted
+    what it wrote: :meth:`~bench.storage.recorder.Recorder.hv_stats`); on any failure one warning line."""
     try:
         with Catalog(catalog_url(path.parent, url)) as cat:
-            cat.upsert([row_from_file(path)])
+            cat.upsert([row_from_file(path, hv)])
     except Exception as exc:
         log.warning("run catalogue not written at the end (`bench runs list` reconciles it from the files): %s",
                     " ".join(str(exc).split())[:300])

@@ -58,6 +58,7 @@ from typing import Any
 import h5py
 import numpy as np
 
+from bench.storage.hv_stats import HvAccumulator, HvStats
 from drivers.interfaces import DataKey
 
 event_log = logging.getLogger("bench.run")  # every event, as it is recorded (the run log beside the file follows it)
@@ -206,6 +207,8 @@ class Recorder:
         self._f: h5py.File | None = None
         self._names = [*streams, "events"]
         self._counts = np.zeros(len(self._names), dtype=np.int64)  # valid records on disk, per stream and events
+        # the catalogue's high-voltage statistics of the measured amplifier voltage, over what is written
+        self._hv = HvAccumulator() if any(c.name == "voltage" for c in streams.get("amplifier", [])) else None
         ignore_sigxfsz()
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -444,10 +447,14 @@ class Recorder:
         for k, stream, data, n_new in blocks:
             datasets = self._datasets[stream]
             n = int(counts[k])
+            written = {}
             for name, values in data.items():
                 d = datasets[name]
                 d.resize((n + n_new,))
-                d.write_direct(np.ascontiguousarray(values, dtype=d.dtype), dest_sel=np.s_[n:n + n_new])
+                written[name] = np.ascontiguousarray(values, dtype=d.dtype)
+                d.write_direct(written[name], dest_sel=np.s_[n:n + n_new])
+            if stream == "amplifier" and self._hv is not None:
+                self._hv.add(written["t"], written["voltage"])
             counts[k] = n + n_new
         if events is not None:
             n = int(counts[-1])
@@ -465,6 +472,14 @@ class Recorder:
         self._counts = counts
         self.write_seconds += time.perf_counter() - t0
         self._cpu_write += time.thread_time() - c0
+
+    def hv_stats(self) -> HvStats | None:
+        """The catalogue's high-voltage statistics of what was written (those :func:`~bench.storage.catalog.
+        hv_statistics` reads from the file, bit for bit), once the file is finished; None while it is open, after a
+        failed write, or without a measured amplifier voltage."""
+        if self._f is not None or self.failure or self._hv is None:
+            return None
+        return self._hv.stats()
 
     def set_state(self, state: str, reason: str = "") -> None:
         """Record the run's state (visible to readers at once); a no-op once the recorder has failed."""

@@ -43,7 +43,10 @@ low-level TCP stream example; [A] = assumed, to check on a real T7.
   and the read frames' data in order. [D] T7 Ethernet packets ≤ 1040 bytes (LabJackM.h,
   LJM_MAX_ETHERNET_PACKET_NUM_BYTES_T7). [A] an error is answered as a Modbus exception (function 0xCC and a
   code, anything after it ignored); the stream-out buffer is topped up through MBFB (510 values a packet, not
-  120 — four times fewer exchanges per second of waveform).
+  120 — four times fewer exchanges per second of waveform). Command-response work that can share a packet does
+  (:meth:`~LabJackT7.feedback`: reads and writes in order, one round trip): connect's serial, stream state and
+  calibration, the watchdog's settings, arm's registers with the scan rate read back, DAC reads and writes;
+  PRODUCT_ID (the first request, to a device that may be no T7), single AIN reads and the stream's stop are FC3/FC16.
 * [E] packet: TransID(2) ProtoID(2)=0 Length(2) Unit(1)=1 Function(1)=76 Type(1)=16 Reserved(1)
   Backlog(2, bytes) Status(2) AddInfo(2), then samples (2 bytes, MSB first, scan-list order, STREAM_OUT
   entries excluded); TransID 0 at STREAM_ENABLE, +1 per packet. [A] Length = 10 + 2·samples (MBAP rule).

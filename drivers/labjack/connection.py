@@ -5,8 +5,9 @@ the driver's state."""
 from __future__ import annotations
 
 import math
+import struct
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import TypeVar
 
 import numpy as np
@@ -34,9 +35,11 @@ from drivers.labjack.registers import (
     STREAM_PORT,
     UNIT,
     Feedback,
+    Frame,
     Words,
     f32_words,
     feedback_packets,
+    read_count,
     u32_words,
     words_f32,
     words_u32,
@@ -112,34 +115,51 @@ class T7Connection:
         taken it — a second attempt would play its values twice and shift the rest of the waveform. A timeout is
         an :class:`InstrumentTimeoutError` (the run stops and makes the rig safe) rather than a drive played late.
         """
-        for packet in feedback_packets(writes):
-            n = sum(len(w) for _, w in packet)
-            self._lj(f"feedback write of {n} registers at {packet[0][0]}",
-                     lambda unit, pdu: self.link.execute(unit, pdu, retry=False), Feedback(packet))
+        self.feedback(writes, retry=False)
+
+    def feedback(self, frames: Sequence[Frame], *, retry: bool = True) -> list[list[int]]:
+        """Reads and writes in order, in as few Modbus Feedback packets as hold them ([D] MBFB: the frames of a
+        packet run in order, the reply carries the reads' data): one round trip where each register alone would
+        take one. Returns the registers of each read frame, in order. ``retry``: a packet whose reply was lost is
+        sent again (only for frames that may take effect twice: not a stream-out buffer's)."""
+        out: list[list[int]] = []
+        for packet in feedback_packets(frames):
+            counts = [n for f in packet if (n := read_count(f)) is not None]
+            what = f"feedback of {len(packet)} frames at {packet[0][0]}"
+            reply = self._lj(what, lambda unit, pdu: self.link.execute(unit, pdu, retry=retry), Feedback(packet))
+            data = getattr(reply, "data", b"")
+            if len(data) != 2 * sum(counts):
+                raise ProtocolError(self.name, f"{what}: {len(data)} bytes of read data, {2 * sum(counts)} expected")
+            words = struct.unpack(f">{len(data) // 2}H", data)
+            k = 0
+            for n in counts:
+                out.append(list(words[k:k + n]))
+                k += n
+        return out
 
     def read_f32(self, address: int) -> float:
-        """One FLOAT32 register pair."""
-        return words_f32(self.read_regs(address, 2))
+        """One FLOAT32 register pair (an MBFB read: the T7's own command-response packet)."""
+        return words_f32(self.feedback([(address, 2)])[0])
 
     def read_u32(self, address: int) -> int:
-        """One UINT32 register pair."""
-        return words_u32(self.read_regs(address, 2))
+        """One UINT32 register pair (an MBFB read)."""
+        return words_u32(self.feedback([(address, 2)])[0])
 
     def write_f32(self, address: int, value: float) -> None:
-        """Write one FLOAT32."""
-        self.write_regs(address, f32_words(value))
+        """Write one FLOAT32 (an MBFB write)."""
+        self.feedback([(address, f32_words(value))])
 
     def write_u32(self, address: int, value: int) -> None:
-        """Write one UINT32."""
-        self.write_regs(address, u32_words(value))
+        """Write one UINT32 (an MBFB write)."""
+        self.feedback([(address, u32_words(value))])
 
     def read_calibration(self) -> Calibration:
-        """Read the 41 calibration constants from flash (as LabJack's example does)."""
-        values: list[float] = []
+        """Read the 41 calibration constants from flash (as LabJack's example does: pointer, then a read, four times;
+        here the eight in order in one MBFB packet)."""
+        frames: list[Frame] = []
         for i, n in enumerate(CAL_READ_REGS):
-            self.write_u32(FLASH_POINTER, CAL_FLASH_ADDRESS + i * 13 * 4)
-            w = self.read_regs(FLASH_READ, n)
-            values += [words_f32(w[j:j + 2]) for j in range(0, n, 2)]
+            frames += [(FLASH_POINTER, u32_words(CAL_FLASH_ADDRESS + i * 13 * 4)), (FLASH_READ, n)]
+        values = [words_f32(w[j:j + 2]) for w in self.feedback(frames) for j in range(0, len(w), 2)]
         cal = Calibration(tuple(values))
         if not all(math.isfinite(v) for v in values) or cal.hs(0)[0] <= 0 or cal.dac(0)[0] <= 0:
             raise ProtocolError(self.name, "calibration constants read from flash are not plausible")
@@ -155,11 +175,14 @@ class T7Connection:
     # ------------------------------------------------------------------ single inputs
     def configure_ain(self, ain: int, range_volts: float = 10.0, negative_channel: int = SINGLE_ENDED) -> None:
         """Range (±10/1/0.1/0.01 V) and negative channel (199: single-ended) of one input."""
+        self.feedback(self._ain_frames(ain, range_volts, negative_channel))
+        self._ain_range[ain] = range_volts
+
+    def _ain_frames(self, ain: int, range_volts: float, negative_channel: int = SINGLE_ENDED) -> list[Frame]:
+        """The writes that configure one input (refused, nothing sent, for a range the T7 does not have)."""
         if range_volts not in RANGES:
             raise ValueError(f"{self.name}: AIN range must be one of {RANGES} V, got {range_volts}")
-        self.write_f32(AIN_RANGE0 + 2 * ain, range_volts)
-        self.write_regs(AIN_NEG0 + ain, [negative_channel])
-        self._ain_range[ain] = range_volts
+        return [(AIN_RANGE0 + 2 * ain, f32_words(range_volts)), (AIN_NEG0 + ain, [negative_channel])]
 
     def read_ain(self, ain: int) -> Reading:
         """One command-response reading of AIN ``ain`` [V].
@@ -167,7 +190,7 @@ class T7Connection:
         A value that is not finite or lies beyond 1.1 × the input's range (±11 V on the ±10 V range, the
         default of an input this driver has not configured) is no reading the converter makes (:data:`AIN_SPAN`):
         status "invalid", value NaN — one bad sample, not a broken link."""
-        v = self.read_f32(AIN0 + 2 * ain)
+        v = words_f32(self.read_regs(AIN0 + 2 * ain, 2))  # FC3
         limit = AIN_SPAN * self._ain_range.get(ain, RANGES[0])
         if not abs(v) <= limit:
             return Reading(math.nan, "V", self.clock(), "invalid")

@@ -14,6 +14,8 @@ from drivers.labjack.registers import (
     PRODUCT_T7,
     SERIAL_NUMBER,
     STREAM_ENABLE,
+    words_f32,
+    words_u32,
 )
 from drivers.labjack.stream_in import T7Stream
 from drivers.labjack.watchdog import T7Watchdog
@@ -25,13 +27,14 @@ class LabJackT7(T7Stream, T7Watchdog):
     def connect(self) -> None:
         """Open the Modbus link, check it is a T7, read its calibration, stop a stream left running."""
         self.link.open()
-        product = self.read_f32(PRODUCT_ID)
+        product = words_f32(self.read_regs(PRODUCT_ID, 2))  # FC3: a device that is no T7 may not know MBFB
         if not (math.isfinite(product) and round(product) == PRODUCT_T7):  # inf, NaN, negative: one line too
             raise InstrumentStateError(self.name, f"PRODUCT_ID (register {PRODUCT_ID}) reads {product:g}, "
                                        f"expected {PRODUCT_T7} (T7)")
-        self.serial = self.read_u32(SERIAL_NUMBER)
+        serial, running = self.feedback([(SERIAL_NUMBER, 2), (STREAM_ENABLE, 2)])  # one MBFB packet
+        self.serial = words_u32(serial)
         self.cal = self.read_calibration()
-        if self.read_u32(STREAM_ENABLE):
+        if words_u32(running):
             self.write_u32(STREAM_ENABLE, 0)
         if self.watchdog_s is not None:
             self.configure_watchdog(self.watchdog_s, self.safe_dac)

@@ -6,6 +6,7 @@ Sources and the [D]/[E]/[A] marks: :mod:`drivers.labjack`.
 from __future__ import annotations
 
 import struct
+from collections.abc import Sequence
 
 import numpy as np
 from pymodbus.pdu import ModbusPDU
@@ -67,6 +68,7 @@ ERRORS = {
 
 
 Words = list[int] | np.ndarray  # register values of one write: a list, or an integer array (a stream-out's codes)
+Frame = tuple[int, Words | int]  # one MBFB frame: (address, the registers to write) or (address, how many to read)
 
 
 def _u16_bytes(words: Words) -> bytes:
@@ -77,41 +79,59 @@ def _u16_bytes(words: Words) -> bytes:
     return w.astype(">u2").tobytes()
 
 
+def read_count(frame: Frame) -> int | None:
+    """The registers an MBFB frame reads (its second item a count), None for a write (the registers)."""
+    w = frame[1]
+    return int(w) if isinstance(w, int | np.integer) else None
+
+
 class Feedback(ModbusPDU):
-    """LabJack Modbus Feedback (MBFB, function 76) packet: write frames (address, registers) in order; its reply
-    (decoded by the same class) carries the read frames' data, none for a write-only packet."""
+    """LabJack Modbus Feedback (MBFB, function 76) packet: frames in order, each a write (address, registers) or a
+    read (address, number of registers); its reply (decoded by the same class) carries the read frames' data in
+    order, none for a write-only packet."""
 
     function_code = MBFB_FUNCTION
 
-    def __init__(self, writes: tuple[tuple[int, Words], ...] = (), dev_id: int = 0,
-                 transaction_id: int = 0) -> None:
+    def __init__(self, writes: tuple[Frame, ...] = (), dev_id: int = 0, transaction_id: int = 0) -> None:
         super().__init__(dev_id=dev_id, transaction_id=transaction_id)
         self.writes = writes
         self.data = b""
 
     def encode(self) -> bytes:
-        """Write frames: 1, address, n, n registers (big-endian)."""
-        return b"".join(struct.pack(">BHB", 1, a, len(w)) + _u16_bytes(w) for a, w in self.writes)
+        """Write frames: 1, address, n, n registers (big-endian); read frames: 0, address, n."""
+        return b"".join(struct.pack(">BHB", 0, f[0], n) if (n := read_count(f)) is not None
+                        else struct.pack(">BHB", 1, f[0], len(f[1])) + _u16_bytes(f[1])  # type: ignore[arg-type]
+                        for f in self.writes)
 
     def decode(self, data: bytes) -> None:
-        """The reply: the data of the read frames (none here)."""
+        """The reply: the data of the read frames."""
         self.data = bytes(data)
 
 
-def feedback_packets(writes: list[tuple[int, Words]]) -> list[tuple[tuple[int, Words], ...]]:
-    """Pack register writes, in order, into MBFB packets of at most :data:`MBFB_MAX_BYTES`; a write longer than a
-    frame holds goes in several frames at the same address (for a buffer register: the values in order)."""
-    frames = [(a, w[i:i + MBFB_FRAME_REGS]) for a, w in writes for i in range(0, len(w), MBFB_FRAME_REGS)]
-    packets: list[tuple[tuple[int, Words], ...]] = []
-    cur: list[tuple[int, Words]] = []
-    size = MBFB_HEADER_BYTES
+def feedback_packets(frames: Sequence[Frame]) -> list[tuple[Frame, ...]]:
+    """Pack register writes and reads, in order, into MBFB packets of at most :data:`MBFB_MAX_BYTES`, request and
+    reply; a write longer than a frame holds goes in several frames at the same address (for a buffer register: the
+    values in order). A read is one frame (at most :data:`MBFB_FRAME_REGS` registers)."""
+    split: list[Frame] = []
     for a, w in frames:
-        need = MBFB_FRAME_BYTES + 2 * len(w)
-        if cur and size + need > MBFB_MAX_BYTES:
+        if isinstance(w, int | np.integer):
+            if not 1 <= w <= MBFB_FRAME_REGS:
+                raise ValueError(f"an MBFB read frame reads 1…{MBFB_FRAME_REGS} registers, not {w}")
+            split.append((a, w))
+        else:
+            split += [(a, w[i:i + MBFB_FRAME_REGS]) for i in range(0, len(w), MBFB_FRAME_REGS)]
+    packets: list[tuple[Frame, ...]] = []
+    cur: list[Frame] = []
+    size = reply = MBFB_HEADER_BYTES
+    for a, w in split:
+        need = MBFB_FRAME_BYTES + (0 if isinstance(w, int | np.integer) else 2 * len(w))
+        back = 2 * int(w) if isinstance(w, int | np.integer) else 0
+        if cur and (size + need > MBFB_MAX_BYTES or reply + back > MBFB_MAX_BYTES):
             packets.append(tuple(cur))
-            cur, size = [], MBFB_HEADER_BYTES
+            cur, size, reply = [], MBFB_HEADER_BYTES, MBFB_HEADER_BYTES
         cur.append((a, w))
         size += need
+        reply += back
     if cur:
         packets.append(tuple(cur))
     return packets

@@ -47,8 +47,10 @@ from drivers.labjack.registers import (
     ST_SCAN_OVERLAP,
     STREAM_ENABLE,
     TARGET_SPONTANEOUS,
+    Frame,
     f32_words,
     u32_words,
+    words_f32,
 )
 from drivers.labjack.stream_out import T7StreamOut
 
@@ -91,15 +93,18 @@ class T7Stream(T7StreamOut):
         scan_list = tuple([OUT_SCAN0] if out is not None else []) + tuple(AIN0 + 2 * i.ain for i in spec.inputs)
         if self.read_u32(STREAM_ENABLE):
             self.write_u32(STREAM_ENABLE, 0)
+        # the inputs, the stream's registers and its scan list in order, and the scan rate read back: one MBFB packet
+        frames: list[Frame] = [f for i in spec.inputs for f in self._ain_frames(i.ain, i.range_volts)]
+        frames += [(SCANRATE, f32_words(spec.scan_rate) + u32_words(n_addr) + u32_words(spp)
+                    + f32_words(spec.settling_us) + u32_words(spec.resolution_index)
+                    + u32_words(spec.buffer_size_bytes or MAX_STREAM_BUFFER_BYTES)),
+                   (AUTO_TARGET, u32_words(TARGET_SPONTANEOUS) + u32_words(0) + u32_words(spec.num_scans)),
+                   (CLOCK_SOURCE, u32_words(0))]
+        frames += [(SCANLIST0 + 2 * k, [w for a in scan_list[k:k + 64] for w in u32_words(a)])
+                   for k in range(0, len(scan_list), 64)]  # a frame holds 255 registers: 64 addresses at a time
+        rate = words_f32(self.feedback([*frames, (SCANRATE, 2)])[0])
         for i in spec.inputs:
-            self.configure_ain(i.ain, i.range_volts)
-        self.write_regs(SCANRATE, f32_words(spec.scan_rate) + u32_words(n_addr) + u32_words(spp)
-                        + f32_words(spec.settling_us) + u32_words(spec.resolution_index)
-                        + u32_words(spec.buffer_size_bytes or MAX_STREAM_BUFFER_BYTES))
-        self.write_regs(AUTO_TARGET, u32_words(TARGET_SPONTANEOUS) + u32_words(0) + u32_words(spec.num_scans))
-        self.write_u32(CLOCK_SOURCE, 0)
-        self.write_regs(SCANLIST0, [w for a in scan_list for w in u32_words(a)])
-        rate = self.read_f32(SCANRATE)
+            self._ain_range[i.ain] = i.range_volts
         if not rate > 0:
             raise ProtocolError(self.name, f"device reports scan rate {rate}")
         names = tuple(i.name or f"AIN{i.ain}" for i in spec.inputs)
@@ -111,10 +116,9 @@ class T7Stream(T7StreamOut):
         plan = StreamPlan(rate, 1.0 / rate, names, scan_list, spp, codes, volts, capacity, interval, ahead, chunk)
         self._stream = StreamState(plan, spec, n_in, gains, out_closed=out is None or out.final)
         if out is not None:
-            o = 2 * out.dac
-            self.write_u32(OUT_TARGET0, DAC0 + o)
-            self.write_u32(OUT_ALLOC0, spec.out_buffer_bytes or MAX_OUT_BUFFER_BYTES)
-            self.write_u32(OUT_ENABLE0, 1)
+            self.feedback([(OUT_TARGET0, u32_words(DAC0 + 2 * out.dac)),
+                           (OUT_ALLOC0, u32_words(spec.out_buffer_bytes or MAX_OUT_BUFFER_BYTES)),
+                           (OUT_ENABLE0, u32_words(1))])  # in this order ([D] stream-out), one MBFB packet
             self._feed_out()
         return plan
 

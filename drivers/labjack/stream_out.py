@@ -11,7 +11,17 @@ from drivers.errors import InstrumentStateError, LimitError
 from drivers.interfaces import DacCoding
 from drivers.labjack.connection import T7Connection
 from drivers.labjack.looping import Loop, plan_loop
-from drivers.labjack.registers import DAC0, DAC_RANGE, OUT_BUFFER_U16_0, OUT_LOOP0, OUT_SET_LOOP0, Words, u32_words
+from drivers.labjack.registers import (
+    DAC0,
+    DAC_RANGE,
+    OUT_BUFFER_U16_0,
+    OUT_LOOP0,
+    OUT_SET_LOOP0,
+    Words,
+    f32_words,
+    u32_words,
+    words_f32,
+)
 
 
 class T7StreamOut(T7Connection):
@@ -53,7 +63,7 @@ class T7StreamOut(T7Connection):
         level of the code the T7 makes of the value. ``within`` (lo, hi) [V]: that output lies within [lo, hi]
         (:meth:`dac_output` chooses the value sent)."""
         send, played = self.dac_output(dac, volts, within)
-        self.write_f32(DAC0 + 2 * dac, send)
+        self.feedback([(DAC0 + 2 * dac, f32_words(send))])  # MBFB: the T7's own command-response format
         return played
 
     def dac_coding(self, dac: int, within: tuple[float, float]) -> DacCoding:
@@ -65,7 +75,7 @@ class T7StreamOut(T7Connection):
 
     def read_dac(self, dac: int) -> float:
         """The DAC's present value [V]."""
-        return self.read_f32(DAC0 + 2 * dac)
+        return words_f32(self.feedback([(DAC0 + 2 * dac, 2)])[0])
 
     # ------------------------------------------------------------------ stream-out
     def _feed_out(self) -> None:

@@ -6,7 +6,17 @@ from __future__ import annotations
 import numpy as np
 
 from drivers.labjack.connection import T7Connection
-from drivers.labjack.registers import WATCHDOG_DAC, WATCHDOG_DAC_ENABLE, WATCHDOG_ENABLE, WATCHDOG_TIMEOUT_S
+from drivers.labjack.registers import (
+    WATCHDOG_DAC,
+    WATCHDOG_DAC_ENABLE,
+    WATCHDOG_ENABLE,
+    WATCHDOG_TIMEOUT_S,
+    Frame,
+    f32_words,
+    u32_words,
+    words_f32,
+    words_u32,
+)
 
 
 class T7Watchdog(T7Connection):
@@ -14,8 +24,10 @@ class T7Watchdog(T7Connection):
 
     def read_watchdog(self) -> tuple[int, int, tuple[tuple[int, float], ...]]:
         """(enabled, timeout [s], ((DAC0 action enabled, volts), (DAC1 …))) as the device holds them."""
-        dacs = tuple((self.read_u32(WATCHDOG_DAC_ENABLE[k]), self.read_f32(WATCHDOG_DAC[k])) for k in (0, 1))
-        return self.read_u32(WATCHDOG_ENABLE), self.read_u32(WATCHDOG_TIMEOUT_S), dacs
+        w = self.feedback([(a, 2) for k in (0, 1) for a in (WATCHDOG_DAC_ENABLE[k], WATCHDOG_DAC[k])]
+                          + [(WATCHDOG_ENABLE, 2), (WATCHDOG_TIMEOUT_S, 2)])  # one MBFB packet
+        dacs = tuple((words_u32(w[2 * k]), words_f32(w[2 * k + 1])) for k in (0, 1))
+        return words_u32(w[4]), words_u32(w[5]), dacs
 
     def configure_watchdog(self, timeout_s: int, dac_volts: tuple[float, float]) -> bool:
         """Enable the watchdog: after ``timeout_s`` s without communication both DACs go to ``dac_volts``.
@@ -25,10 +37,8 @@ class T7Watchdog(T7Connection):
         want = (1, int(timeout_s), tuple((1, float(np.float32(v))) for v in dac_volts))
         if self.read_watchdog() == want:
             return False
-        self.write_u32(WATCHDOG_ENABLE, 0)
-        self.write_u32(WATCHDOG_TIMEOUT_S, int(timeout_s))
+        writes: list[Frame] = [(WATCHDOG_ENABLE, u32_words(0)), (WATCHDOG_TIMEOUT_S, u32_words(int(timeout_s)))]
         for k, v in enumerate(dac_volts):
-            self.write_u32(WATCHDOG_DAC_ENABLE[k], 1)
-            self.write_f32(WATCHDOG_DAC[k], v)
-        self.write_u32(WATCHDOG_ENABLE, 1)
+            writes += [(WATCHDOG_DAC_ENABLE[k], u32_words(1)), (WATCHDOG_DAC[k], f32_words(v))]
+        self.feedback([*writes, (WATCHDOG_ENABLE, u32_words(1))])  # in order, in one MBFB packet
         return True

@@ -87,7 +87,8 @@ class PlantCoupling:
         elif sig is None or ain == AIN_GROUND:
             v = np.zeros(n)
         else:
-            v = sig.gain * np.nan_to_num(obs[sig.observable]) + sig.offset
+            x = obs[sig.observable]
+            v = sig.gain * (x if np.isfinite(x).all() else np.nan_to_num(x)) + sig.offset
         own = sig.noise if sig is not None and ain not in (AIN_TEMPERATURE, AIN_GROUND) else 0.0
         rms = math.hypot(own, adc_rms)
         if rms and self.noise:

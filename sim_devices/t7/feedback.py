@@ -11,7 +11,9 @@ from __future__ import annotations
 
 import struct
 from collections.abc import Awaitable, Callable
+from typing import Any
 
+import numpy as np
 from pymodbus.constants import ExcCodes
 from pymodbus.datastore import ModbusServerContext
 from pymodbus.pdu import ExceptionResponse, ModbusPDU
@@ -37,7 +39,8 @@ class FeedbackPDU(ModbusPDU):
 
     def __init__(self, dev_id: int = 0, transaction_id: int = 0) -> None:
         super().__init__(dev_id=dev_id, transaction_id=transaction_id)
-        self.frames: list[tuple[int, int, int, list[int]]] = []  # (type, address, registers, write words)
+        self.frames: list[tuple[int, int, int, Any]] = []  # (type, address, registers, write words: a list, or
+        # for a buffer register an array of them)
         self.malformed = False
         self.reply = b""
 
@@ -59,12 +62,15 @@ class FeedbackPDU(ModbusPDU):
                 break
             kind, address, count = data[i], int.from_bytes(data[i + 1:i + 3], "big"), data[i + 3]
             i += 4
-            words: list[int] = []
+            words: Any = []
             if kind == 1:
                 if i + 2 * count > n:
                     self.malformed = True
                     break
-                words = list(struct.unpack(f">{count}H", data[i:i + 2 * count]))
+                if address in self.buffers:  # values appended to a buffer: kept as one array, not 2·n objects
+                    words = np.frombuffer(data, ">u2", count, i).astype(np.int64)
+                else:
+                    words = list(struct.unpack(f">{count}H", data[i:i + 2 * count]))
                 i += 2 * count
             self.frames.append((kind, address, count, words))
 
@@ -91,13 +97,13 @@ class FeedbackPDU(ModbusPDU):
                 data += struct.pack(f">{count}H", *regs)
         return bytes(data)
 
-    def _merged(self) -> list[tuple[int, int, int, list[int]]]:
+    def _merged(self) -> list[tuple[int, int, int, Any]]:
         """The frames, with write frames in a row to one buffer register joined."""
-        out: list[tuple[int, int, int, list[int]]] = []
+        out: list[tuple[int, int, int, Any]] = []
         for kind, address, count, words in self.frames:
             if out and kind == 1 and out[-1][0] == 1 and out[-1][1] == address and address in self.buffers:
                 prev = out[-1]
-                out[-1] = (1, address, prev[2] + count, prev[3] + words)
+                out[-1] = (1, address, prev[2] + count, np.concatenate([prev[3], words]))
             else:
                 out.append((kind, address, count, words))
         return out

@@ -235,7 +235,8 @@ class RegisterIO(StreamEngine):
             if fc in (3, 4):
                 return self._read(address, count, start, regs)
             if fc in (6, 16) and values is not None:
-                return self._write_regs(address, cast(list[int], values))  # register values: ints
+                return self._write_regs(address, cast(list[int], values))  # register values: ints (an MBFB buffer
+                # frame's: an integer array)
             return ExcCodes.ILLEGAL_FUNCTION
 
     def _read(self, address: int, count: int, start: int, regs: list[int]) -> ExcCodes | None:
@@ -262,10 +263,12 @@ class RegisterIO(StreamEngine):
             regs[address - start + i] = out[i]
         return None
 
-    def _write_regs(self, address: int, data: list[int]) -> ExcCodes | None:
+    def _write_regs(self, address: int, data: list[int] | np.ndarray) -> ExcCodes | None:
         now = self.clock.now()
         if R_O_U16 <= address < R_O_U16 + 4:
             return self._buffer(address - R_O_U16, data, now)
+        if isinstance(data, np.ndarray):  # only buffer frames come as arrays; anything else as a list of words
+            data = [int(w) for w in data]
         if R_O_F32 <= address < R_O_F32 + 8 and address % 2 == 0:
             k = (address - R_O_F32) // 2
             ch = max((self.outs[k].target - R_DAC) // 2, 0)

@@ -152,11 +152,14 @@ class StreamEngine(StreamOut):
         return 0 if w.transport is None else int(w.transport.get_write_buffer_size())
 
     def _packet(self, samples: np.ndarray, status: int, extra: int) -> bytes:
-        backlog = min(int(self.fifo.size * 2), 0xFFFF)
-        head = struct.pack(">HHHBBBBHHH", self.tid & 0xFFFF, 0, 10 + 2 * samples.size, UNIT, 76, 16, 0, backlog,
-                           status, extra)
+        return self._head(samples.size, min(int(self.fifo.size * 2), 0xFFFF), status, extra) \
+            + samples.astype(">u2").tobytes()
+
+    def _head(self, n: int, backlog: int, status: int, extra: int) -> bytes:
+        """The header of the next packet, of ``n`` samples, ``backlog`` bytes still buffered after it."""
+        head = struct.pack(">HHHBBBBHHH", self.tid & 0xFFFF, 0, 10 + 2 * n, UNIT, 76, 16, 0, backlog, status, extra)
         self.tid += 1
-        return head + samples.astype(">u2").tobytes()
+        return head
 
     def _send(self, *, final: bool = False, status: int = 0, extra: int = 0,
               prefix: np.ndarray | None = None) -> None:
@@ -167,14 +170,21 @@ class StreamEngine(StreamOut):
             samples, self.fifo = np.concatenate([prefix, self.fifo[:take]]), self.fifo[take:]
             self._write(w, self._packet(samples, status, extra))
             return
-        packets = []
-        while self.fifo.size >= spp or (final and self.fifo.size):
-            samples, self.fifo = self.fifo[:spp], self.fifo[spp:]
-            last = final and not self.fifo.size
-            st = S_BURST if last else (S_RECOVER if self.recovering else 0)
-            packets.append(self._packet(samples, st, 0))
-        if packets:  # one socket write for the packets a pump has filled (the bytes a T7 sends, fewer syscalls)
-            self._write(w, b"".join(packets), len(packets))
+        size = self.fifo.size
+        whole = size // spp
+        count = whole + (final and size > whole * spp)  # a burst's last packet may be short
+        if count:  # one socket write for the packets a pump has filled (the bytes a T7 sends, fewer syscalls)
+            n = min(size, count * spp)
+            body = self.fifo[:n].astype(">u2").tobytes()  # the samples of every packet, converted at once
+            self.fifo = self.fifo[n:]
+            packets = []
+            for i in range(count):
+                k = min(spp, n - i * spp)
+                last = final and i == count - 1
+                st = S_BURST if last else (S_RECOVER if self.recovering else 0)
+                backlog = min(2 * (size - i * spp - k), 0xFFFF)  # bytes still buffered after this packet
+                packets.append(self._head(k, backlog, st, 0) + body[2 * i * spp:2 * (i * spp + k)])
+            self._write(w, b"".join(packets), count)
         if final:
             self._stop_stream(self.clock.now())
 

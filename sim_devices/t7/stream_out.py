@@ -225,7 +225,8 @@ class StreamOut(PlantCoupling):
             return ExcCodes.ILLEGAL_ADDRESS
         return None
 
-    def _buffer(self, k: int, codes: list[int], now: float) -> ExcCodes | None:
+    def _buffer(self, k: int, codes: list[int] | np.ndarray, now: float) -> ExcCodes | None:
+        """Append ``codes`` (a list, or an integer array from an MBFB frame) to stream-out ``k``'s buffer."""
         o = self.outs[k]
         if not o.alloc:
             return self._fail(E_OUT_DNE)
@@ -233,15 +234,16 @@ class StreamOut(PlantCoupling):
             return self._fail(E_OUT_DISABLED)
         room = o.alloc // 2 - 1 - self._level(k, now)
         take = codes[:max(room, 0)]
-        o.tail.extend(take)
+        values = take.tolist() if isinstance(take, np.ndarray) else take  # the deques hold ints
+        o.tail.extend(values)
         o.buffer_writes += 1
         o.values_written += len(take)
         if self.streaming and k in self._out_indices() and o.loop_active and o.loop.size > 1:
             self._advance_out(k, now)
-            o.queue.extend(take)  # waits for SET_LOOP: the loop in progress is not interrupted
+            o.queue.extend(values)  # waits for SET_LOOP: the loop in progress is not interrupted
         elif self.streaming and k in self._out_indices():
             self._advance_out(k, now)
             self._schedule(k, np.array(take, np.int64), now)
         else:
-            o.queue.extend(take)
+            o.queue.extend(values)
         return self._fail(E_OUT_FULL) if len(take) < len(codes) else None
