@@ -137,21 +137,29 @@ DAQ_RUNS = ((SHORT / "lsdea-isometric-short.toml", "lsdea-motor-daq-sim", 50),
 """The DAQ-rig protocols timed in virtual time, with the speed the hardware-timed issue set them (0: none)."""
 
 
-def virtual_speed(tmp: Path) -> list[Figure]:
-    """The papers' protocols on the DAQ rigs in virtual time (start rig, connect, run, finalised file), with what
+def virtual_speed(tmp: Path, repeats: int = 3) -> list[Figure]:
+    """The papers' protocols on the DAQ rigs in virtual time (start rig, connect, run, finalised file), each the
+    best of ``repeats`` runs as the ceiling is (the shares compare like with like), with what
     the host wrote to the T7's stream-out (a loop plays repeating periods from the device: :mod:`drivers.labjack.
     looping`); and the isometric campaign again with every value refilled, for the loops' gain in the same run."""
     from bench.runtime import hardware_timed
 
     out = []
     for protocol, rig, target in DAQ_RUNS:
-        twins: list[Any] = []
-        result, _, wall = _run(protocol, rig, tmp, True, protocol.stem, twins)
+        best = None
+        for k in range(repeats):  # best of the repeats, as the ceiling is measured
+            twins: list[Any] = []
+            result, _, wall = _run(protocol, rig, tmp, True, f"{protocol.stem}-{k}", twins)
+            if best is None or wall < best[1]:
+                best = (result, wall, twins)
+        assert best is not None
+        result, wall, twins = best
         o = twins[0].outs[0]
         aim = f"target ≥ {target}; " if target else ""
         out.append(Figure(f"{protocol.stem} on {rig}, virtual time", result.run_time / wall, "× real time",
-                          f"{result.run_time:.1f} s in {wall:.2f} s ({aim}stream-out: {o.loops_set} loops, "
-                          f"{o.values_written:,} values written for {result.run_time * 1e4:,.0f} scans)"))
+                          f"{result.run_time:.1f} s in {wall:.2f} s, best of {repeats} ({aim}stream-out: "
+                          f"{o.loops_set} loops, {o.values_written:,} values written for "
+                          f"{result.run_time * 1e4:,.0f} scans)"))
     protocol, rig, _ = DAQ_RUNS[0]
     was, hardware_timed.OUT_LOOPS = hardware_timed.OUT_LOOPS, False
     try:
@@ -165,30 +173,34 @@ def virtual_speed(tmp: Path) -> list[Figure]:
     return out
 
 
-def exchange_ceiling(seconds: float = 10.0) -> list[Figure]:
+def exchange_ceiling(seconds: float = 10.0, repeats: int = 3) -> list[Figure]:
     """The driver and the T7 twin alone in virtual time — no engine, no supervisor, no file: 4 inputs and the
-    stream-out at 10 kHz, collected every 0.25 s of rig time as the engine does. What this reaches bounds any run
-    on a DAQ rig: every scan still crosses the wire as bytes (stream packets in, MBFB packets out)."""
+    stream-out at 10 kHz, collected every 0.25 s of rig time as the engine does; best of ``repeats`` (one takes
+    about a tenth of a second, which one descheduling on a shared machine can double). What this reaches bounds any
+    run on a DAQ rig: every scan still crosses the wire as bytes (stream packets in, MBFB packets out)."""
     from bench.core.clock import VirtualClock
 
-    clock = VirtualClock()
     rate = 10_000.0
     t = np.arange(int(seconds * rate)) / rate
     volts = 2.5 + 1.5 * np.sin(2 * np.pi * t / 9.0)
-    with _daq_and_twin(clock) as daq:
-        t0 = time.perf_counter()
-        daq.arm(StreamSpec(rate, tuple(StreamIn(a, 10.0, f"ain{a}") for a in range(4)),
-                           StreamOut(0, volts, hold=1)))
-        daq.kickoff()
-        scans = 0
-        while scans < volts.size:
-            clock.advance(0.25)
-            scans += daq.collect(until=clock.now()).n
-        daq.stop()
-        wall = time.perf_counter() - t0
+    walls = []
+    for _ in range(repeats):
+        clock = VirtualClock()
+        with _daq_and_twin(clock) as daq:
+            t0 = time.perf_counter()
+            daq.arm(StreamSpec(rate, tuple(StreamIn(a, 10.0, f"ain{a}") for a in range(4)),
+                               StreamOut(0, volts, hold=1)))
+            daq.kickoff()
+            scans = 0
+            while scans < volts.size:
+                clock.advance(0.25)
+                scans += daq.collect(until=clock.now()).n
+            daq.stop()
+            walls.append(time.perf_counter() - t0)
     return [Figure(f"driver ↔ T7 twin alone, 4 inputs + stream-out at 10 kHz, {seconds:g} s, virtual time",
-                   seconds / wall, "× real time", "every scan crosses the loopback as bytes, nothing else runs: "
-                   "no DAQ-rig run goes faster; target ≥ 100×")]
+                   seconds / min(walls), "× real time", f"best of {repeats} (worst {seconds / max(walls):.0f}×); "
+                   "every scan crosses the loopback as bytes, nothing else runs: no DAQ-rig run goes faster; "
+                   "target ≥ 100×")]
 
 
 def _echo_round_trip(request_bytes: int, reply_bytes: int, n: int = 2000) -> float:
