@@ -5,6 +5,10 @@ write data; processed in order as FC3 reads / FC16 writes; the reply is the func
 in order. [D] a packet is at most 1040 bytes (T7 Ethernet). [A] a longer packet, an unknown frame type or a cut
 frame is refused with exception 3 (illegal data value); a frame the registers refuse ends the packet with that
 frame's exception (the frames before it took effect).
+[D] LAST_ERR_FRAME (55002, register map): "the frame number that caused the last error"; [A] frames are numbered
+from 1 in the packet as sent (the register's default 0 then means no frame, as LAST_ERR_DETAIL's 0 means no error).
+[L] write frames in a row to one buffer register run as one write (:meth:`FeedbackPDU.bound_to`): a refusal there
+names the first of them. [A] a malformed packet names no frame (0).
 """
 
 from __future__ import annotations
@@ -36,6 +40,7 @@ class FeedbackPDU(ModbusPDU):
     unit: int | None = None  # the device the bound action serves (others take pymodbus' path)
     action: Callable[..., Awaitable[ExcCodes | None]] | None = None
     buffers: frozenset[int] = frozenset()  # buffer registers: write frames in a row to one append as one write
+    failed: Callable[[int, int], None] | None = None  # told the frame (from 1) that ended a packet, and its code
 
     def __init__(self, dev_id: int = 0, transaction_id: int = 0) -> None:
         super().__init__(dev_id=dev_id, transaction_id=transaction_id)
@@ -46,11 +51,15 @@ class FeedbackPDU(ModbusPDU):
 
     @classmethod
     def bound_to(cls, unit: int, action: Callable[..., Awaitable[ExcCodes | None]],
-                 buffers: frozenset[int] = frozenset()) -> type[FeedbackPDU]:
+                 buffers: frozenset[int] = frozenset(),
+                 failed: Callable[[int, int], None] | None = None) -> type[FeedbackPDU]:
         """The PDU class a twin registers: MBFB frames for ``unit`` run through ``action``. ``buffers``: the
         addresses where write frames in a row go to the action as one write (each value appends, so that is
-        the same: a buffer takes as many values as fit and refuses the rest, in one frame or in two)."""
-        return type("FeedbackPDU", (cls,), {"unit": unit, "action": staticmethod(action), "buffers": buffers})
+        the same: a buffer takes as many values as fit and refuses the rest, in one frame or in two).
+        ``failed``: called with the number of the frame that ended a packet (the device's LAST_ERR_FRAME)
+        and the exception code."""
+        return type("FeedbackPDU", (cls,), {"unit": unit, "action": staticmethod(action), "buffers": buffers,
+                                            "failed": None if failed is None else staticmethod(failed)})
 
     def decode(self, data: bytes) -> None:
         """Frames from the bytes after the function code; malformed unless they split exactly."""
@@ -82,30 +91,37 @@ class FeedbackPDU(ModbusPDU):
         """Run the frames in order through a device's ``action`` (as FC3 reads / FC16 writes): the read frames'
         data, or the exception that ended the packet (the frames before it took effect)."""
         if self.malformed:
-            return ExcCodes.ILLEGAL_VALUE
+            return self._refused(ExcCodes.ILLEGAL_VALUE, 0)
         data = bytearray()
-        for kind, address, count, words in self._merged():
+        for number, (kind, address, count, words) in self._merged():
             if kind == 1:
                 rc = await action(16, address, address, count, [], words)
                 if rc:
-                    return rc
+                    return self._refused(rc, number)
             else:
                 regs = [0] * count
                 rc = await action(3, address, address, count, regs, None)
                 if rc:
-                    return rc
+                    return self._refused(rc, number)
                 data += struct.pack(f">{count}H", *regs)
         return bytes(data)
 
-    def _merged(self) -> list[tuple[int, int, int, Any]]:
-        """The frames, with write frames in a row to one buffer register joined."""
-        out: list[tuple[int, int, int, Any]] = []
-        for kind, address, count, words in self.frames:
-            if out and kind == 1 and out[-1][0] == 1 and out[-1][1] == address and address in self.buffers:
-                prev = out[-1]
-                out[-1] = (1, address, prev[2] + count, np.concatenate([prev[3], words]))
+    def _refused(self, rc: ExcCodes, number: int) -> ExcCodes:
+        """The exception that ends the packet, its frame number told to the device."""
+        if self.failed is not None:
+            self.failed(number, int(rc))
+        return rc
+
+    def _merged(self) -> list[tuple[int, tuple[int, int, int, Any]]]:
+        """The frames with their numbers (from 1), write frames in a row to one buffer register joined (numbered
+        as the first of them)."""
+        out: list[tuple[int, tuple[int, int, int, Any]]] = []
+        for number, (kind, address, count, words) in enumerate(self.frames, 1):
+            prev = out[-1][1] if out else None
+            if prev and kind == 1 and prev[0] == 1 and prev[1] == address and address in self.buffers:
+                out[-1] = (out[-1][0], (1, address, prev[2] + count, np.concatenate([prev[3], words])))
             else:
-                out.append((kind, address, count, words))
+                out.append((number, (kind, address, count, words)))
         return out
 
     async def datastore_update(self, context: ModbusServerContext, device_id: int) -> ModbusPDU:

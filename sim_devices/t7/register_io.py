@@ -6,6 +6,9 @@ DIO and identity state.
 read-only, and any address the twin does not serve get Modbus exception 2 (illegal data address) with
 LAST_ERR_DETAIL = 1202 (LJME_MBE2_ILLEGAL_DATA_ADDRESS: "… illegal access to a device register such as trying to
 write to a read only register"); [A] the device stores that code as it stores its own error codes.
+[D] LAST_MB_ERR 55001 ("the last Modbus TCP error code"): [A] the exception code sent; LAST_ERR_FRAME 55002 ("the
+frame number that caused the last error"): [A] numbered from 1 in an MBFB packet (:mod:`~sim_devices.t7.feedback`),
+0 after a refused plain (FC3/FC16) request.
 [D] error codes 2600, 2605, 2607, 2608, 2611–2615, 2617, 2618, 2620, 2622, 2627 in LAST_ERR_DETAIL; [A] sent as
 Modbus exception 4.
 [D] TEST 55100 reads 0x00112233, and "allows you to read a single word from 55100 or 55101"; TEST_UINT16/UINT32/
@@ -66,6 +69,8 @@ from sim_devices.t7.registers import (
     R_FW,
     R_HW,
     R_LAST_ERR,
+    R_LAST_ERR_FRAME,
+    R_LAST_MB_ERR,
     R_NADDR,
     R_NSCANS,
     R_O_ALLOC,
@@ -118,6 +123,8 @@ class RegisterIO(StreamEngine):
         self.dio_dir = 0  # 1 = output
         self.t_created = self.clock.now()
         self.last_err = 0
+        self.last_mb_err = 0  # LAST_MB_ERR: the Modbus exception code last sent
+        self.last_err_frame = 0  # LAST_ERR_FRAME: the MBFB frame (from 1) that caused it, 0 for a plain request
         self.flash_ptr = 0
 
     @property
@@ -187,6 +194,10 @@ class RegisterIO(StreamEngine):
             return kind, 0
         if a == R_LAST_ERR:
             return kind, self.last_err
+        if a == R_LAST_MB_ERR:
+            return kind, self.last_mb_err
+        if a == R_LAST_ERR_FRAME:
+            return kind, self.last_err_frame
         if a == R_TEST:
             return kind, TEST_VALUE
         if a in self.tests:
@@ -233,11 +244,21 @@ class RegisterIO(StreamEngine):
         # clock; a plant that had moved on would take late values as one step, which a T7 never plays).
         with self.plant.lock, self.lock:
             if fc in (3, 4):
-                return self._read(address, count, start, regs)
-            if fc in (6, 16) and values is not None:
-                return self._write_regs(address, cast(list[int], values))  # register values: ints (an MBFB buffer
+                rc = self._read(address, count, start, regs)
+            elif fc in (6, 16) and values is not None:
+                rc = self._write_regs(address, cast(list[int], values))  # register values: ints (an MBFB buffer
                 # frame's: an integer array)
-            return ExcCodes.ILLEGAL_FUNCTION
+            else:
+                rc = ExcCodes.ILLEGAL_FUNCTION
+            if rc:
+                self.last_mb_err, self.last_err_frame = int(rc), 0  # an MBFB frame's number: :meth:`frame_failed`
+            return rc
+
+    def frame_failed(self, number: int, code: int) -> None:
+        """LAST_ERR_FRAME and LAST_MB_ERR after an MBFB packet ended at frame ``number`` (from 1; 0: a malformed
+        packet) with exception ``code``."""
+        with self.lock:
+            self.last_err_frame, self.last_mb_err = number, code
 
     def _read(self, address: int, count: int, start: int, regs: list[int]) -> ExcCodes | None:
         if address == R_FLASH_READ:
