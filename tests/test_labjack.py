@@ -31,6 +31,7 @@ from drivers.labjack import (
     feedback_packets,
     parse_stream_packet,
 )
+from drivers.labjack.registers import Frame, frames_summary
 from drivers.trek import TREK_MODELS
 from drivers.trek_daq import TrekOnDaq
 from sim_devices.labjack_t7 import Conditioning, LabJackT7Sim
@@ -267,14 +268,22 @@ def test_twin_runs_feedback_frames_in_order_and_returns_the_reads(raw_twin: Rig)
         assert reply == bytes.fromhex("0005 0000 000a 01 4c 4000 0000 40e0 0000")
 
 
-def test_twin_stops_a_feedback_packet_at_the_refused_frame(raw_twin: Rig) -> None:
+def test_twin_stops_a_feedback_packet_at_the_refused_frame_and_names_it_in_last_err_frame(raw_twin: Rig) -> None:
+    """[D] LAST_ERR_DETAIL, LAST_MB_ERR, LAST_ERR_FRAME are 55000–55002 (U16); [A] frames counted from 1."""
     with socket.create_connection(("127.0.0.1", raw_twin.port), timeout=2) as s:
         # DAC0 ← 1.0 V, then a write to 1500 (no register there in the map), then DAC0 ← 3.0 V
         reply = _transact(s, bytes.fromhex("0006 0000 001a 01 4c 01 03e8 02 3f80 0000 01 05dc 02 0000 0000"
                                            " 01 03e8 02 4040 0000"))
         assert reply[7] == 0xCC and reply[8] == 2  # exception to function 76: illegal data address
+        # FC3 of 3 at 55000 (0xD6D8): 1202 (0x04B2, LJME_MBE2_ILLEGAL_DATA_ADDRESS), exception 2, the 2nd frame
+        assert _transact(s, bytes.fromhex("0008 0000 0006 01 03 d6d8 0003")) == \
+            bytes.fromhex("0008 0000 0009 01 03 06 04b2 0002 0002")
         assert _transact(s, bytes.fromhex("0007 0000 0006 01 03 03e8 0002")) == \
             bytes.fromhex("0007 0000 0007 01 03 04 3f80 0000")  # the frame before took effect, the one after not
+        # a plain FC16 to 1500 refused: no frame (0)
+        assert _transact(s, bytes.fromhex("0009 0000 000b 01 10 05dc 0002 04 0000 0000"))[7] == 0x90
+        assert _transact(s, bytes.fromhex("000a 0000 0006 01 03 d6da 0001")) == \
+            bytes.fromhex("000a 0000 0005 01 03 02 0000")
 
 
 @pytest.mark.parametrize("frames", [1, 2])
@@ -379,6 +388,25 @@ def test_trek_on_the_dac_at_its_limit_commands_a_level_within_it(rig: Rig) -> No
     assert amp.set_voltage(7000.0, within=7000.0) <= 7000.0 and rig.plant.v_in * 1000 <= 7000.0
     with pytest.raises(LimitError, match="no 12-bit DAC0 level lies within"):
         amp.quantise(0.0, within=1.0)  # 0 V's neighbours are ±2.42 V
+
+
+def test_a_refused_feedback_packet_names_the_frame_that_failed(rig: Rig) -> None:
+    """A valid write (DAC0 ← 1.0 V) then a write to 1500 (no register there in the map): one line naming the
+    second frame, not the packet's first address."""
+    good, bad, words = 1000, 1500, [0, 0]
+    with pytest.raises(InstrumentStateError) as err:
+        rig.daq.feedback([(good, [0x3F80, 0x0000]), (bad, words)])
+    msg = str(err.value)
+    assert "\n" not in msg and f"frame 2 of 2 (write {bad}+{len(words)})" in msg and "error 1202" in msg, msg
+
+
+def test_a_packets_frames_are_listed_compactly() -> None:
+    """The fallback when LAST_ERR_FRAME names no frame of the packet: runs of like frames counted."""
+    frames: list[Frame] = [(4420, list(range(255))), (4420, list(range(255))), (4070, [0, 1])]
+    frames += [(i, 2) for i in range(8)]
+    assert frames_summary(frames[:3]) == "write 4420+255 ×2, write 4070+2"
+    assert frames_summary(frames) == ("write 4420+255 ×2, write 4070+2, read 0+2, read 1+2, read 2+2, read 3+2, "
+                                      "… 4 more")
 
 
 def test_waveform_outside_dac_range_is_refused_before_sending(rig: Rig) -> None:

@@ -59,8 +59,13 @@ low-level TCP stream example; [A] = assumed, to check on a real T7.
   F32 (HS[4], HR[4] × PSlope/NSlope/Center/Offset, DAC[2] × Slope/Offset, temperature, current sources,
   I_bias); raw → V = (raw − Center)·PSlope if raw ≥ Center else (Center − raw)·NSlope, gain 0..3 = ±10/1/0.1/
   0.01 V. [A] DAC code = V·Slope + Offset; [D] the 12-bit DAC ignores the low 4 bits of DAC#_BINARY.
-* [D] error names (LAST_ERR_DETAIL); [A] which Modbus exception code carries them (the driver reads 55000
-  after any exception).
+* [D] error names (LAST_ERR_DETAIL); [A] which Modbus exception code carries them (the driver reads 55000–55002,
+  LAST_ERR_DETAIL, LAST_MB_ERR, LAST_ERR_FRAME, in one FC3 request after any exception).
+* [D] LAST_ERR_FRAME 55002 U16 R: "the frame number that caused the last error". [A] MBFB frames are numbered from
+  1 in the packet as sent: the register's default is 0, as LAST_ERR_DETAIL's 0 is "no error", and numbering from 1
+  keeps 0 free for "no frame". An MBFB refusal names that frame (its number, read/write, address and registers);
+  a number outside the packet, or error registers that cannot be read, list the packet's frames instead (and the
+  number): were the count from 0, the message would name the frame after the failing one, its number shown to check.
 
 Why spontaneous stream on its own socket rather than command-response stream (STREAM_DATA_CR 4500): the
 datasheet documents the spontaneous packet byte by byte (and LabJack's example parses it); the C-R read

@@ -30,6 +30,7 @@ from drivers.labjack.registers import (
     FLASH_POINTER,
     FLASH_READ,
     LAST_ERR_DETAIL,
+    LAST_ERR_FRAME,
     RANGES,
     SINGLE_ENDED,
     STREAM_PORT,
@@ -39,6 +40,8 @@ from drivers.labjack.registers import (
     Words,
     f32_words,
     feedback_packets,
+    frame_name,
+    frames_summary,
     read_count,
     u32_words,
     words_f32,
@@ -81,18 +84,27 @@ class T7Connection:
         # counts from the request it last received)
 
     # ------------------------------------------------------------------ command-response
-    def _lj(self, what: str, fn: Callable[..., _T], *args: object) -> _T:
-        """Run one link call; a Modbus exception is re-raised with the device's LAST_ERR_DETAIL name."""
+    def _lj(self, what: str, fn: Callable[..., _T], *args: object, packet: Sequence[Frame] = ()) -> _T:
+        """Run one link call; a Modbus exception is re-raised with the device's LAST_ERR_DETAIL name. For an MBFB
+        ``packet`` the message names the frame LAST_ERR_FRAME gives ([A] numbered from 1), or lists the packet's
+        frames where that number is none of them or the error registers cannot be read."""
         try:
             sent = self.clock()
             result = fn(UNIT, *args)
             self.answered_at = sent
             return result
         except InstrumentStateError as exc:
-            try:
-                code = self.link.read_holding(UNIT, LAST_ERR_DETAIL, 1)[0]
+            try:  # LAST_ERR_DETAIL, LAST_MB_ERR, LAST_ERR_FRAME in one request
+                code, _, frame = self.link.read_holding(UNIT, LAST_ERR_DETAIL, LAST_ERR_FRAME - LAST_ERR_DETAIL + 1)
             except Exception:  # the first error is the one to report
-                raise exc from None
+                if not packet:
+                    raise exc from None
+                raise InstrumentStateError(self.name, f"feedback of {len(packet)} frames ({frames_summary(packet)})"
+                                           f" refused: {exc.detail}") from None
+            if packet:
+                what = (f"feedback frame {frame} of {len(packet)} ({frame_name(packet[frame - 1])})"
+                        if 1 <= frame <= len(packet) else
+                        f"feedback of {len(packet)} frames ({frames_summary(packet)}; LAST_ERR_FRAME {frame})")
             raise InstrumentStateError(self.name, f"{what} refused: LabJack error {code} "
                                        f"({ERRORS.get(code, 'see the register map')})") from None
 
@@ -126,7 +138,8 @@ class T7Connection:
         for packet in feedback_packets(frames):
             counts = [n for f in packet if (n := read_count(f)) is not None]
             what = f"feedback of {len(packet)} frames at {packet[0][0]}"
-            reply = self._lj(what, lambda unit, pdu: self.link.execute(unit, pdu, retry=retry), Feedback(packet))
+            reply = self._lj(what, lambda unit, pdu: self.link.execute(unit, pdu, retry=retry), Feedback(packet),
+                             packet=packet)
             data = getattr(reply, "data", b"")
             if len(data) != 2 * sum(counts):
                 raise ProtocolError(self.name, f"{what}: {len(data)} bytes of read data, {2 * sum(counts)} expected")

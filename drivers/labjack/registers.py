@@ -23,7 +23,7 @@ SCANLIST0, STREAM_ENABLE = 4100, 4990
 OUT_SCAN0, OUT_TARGET0, OUT_ALLOC0, OUT_LOOP0, OUT_SET_LOOP0, OUT_STATUS0, OUT_ENABLE0 = \
     4800, 4040, 4050, 4060, 4070, 4080, 4090
 OUT_BUFFER_U16_0 = 4420
-LAST_ERR_DETAIL = 55000
+LAST_ERR_DETAIL, LAST_MB_ERR, LAST_ERR_FRAME = 55000, 55001, 55002  # [D] U16 R each: read together after an error
 PRODUCT_ID, HARDWARE_VERSION, FIRMWARE_VERSION, SERIAL_NUMBER = 60000, 60002, 60004, 60028
 FLASH_POINTER, FLASH_READ, CAL_FLASH_ADDRESS = 61810, 61812, 0x3C4000
 WATCHDOG_ENABLE, WATCHDOG_TIMEOUT_S = 61600, 61604
@@ -106,6 +106,25 @@ class Feedback(ModbusPDU):
     def decode(self, data: bytes) -> None:
         """The reply: the data of the read frames."""
         self.data = bytes(data)
+
+
+def frame_name(frame: Frame) -> str:
+    """An MBFB frame as an error message names it: ``write 1000+2`` (address + registers) or ``read 0+2``."""
+    a, w = frame
+    return f"read {a}+{int(w)}" if isinstance(w, int | np.integer) else f"write {a}+{len(w)}"
+
+
+def frames_summary(frames: Sequence[Frame], most: int = 6) -> str:
+    """A packet's frames in order, compactly: runs of like frames as ``write 4420+255 ×2``, at most ``most``
+    entries then how many more."""
+    runs: list[tuple[str, int]] = []
+    for f in frames:
+        name = frame_name(f)
+        runs[-1:] = [(name, runs[-1][1] + 1)] if runs and runs[-1][0] == name else [*runs[-1:], (name, 1)]
+    parts = [f"{name} ×{k}" if k > 1 else name for name, k in runs[:most]]
+    if len(runs) > most:
+        parts.append(f"… {sum(k for _, k in runs[most:])} more")
+    return ", ".join(parts)
 
 
 def feedback_packets(frames: Sequence[Frame]) -> list[tuple[Frame, ...]]:
