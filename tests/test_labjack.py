@@ -633,6 +633,31 @@ def test_wall_clock_stream_out_never_steps_while_the_plant_runs_on_its_own() -> 
     assert np.max(np.abs(np.diff(v))) <= peak * 2 * np.pi * f / rate + dac_step  # the sine's slope, no step
 
 
+def test_watchdog_settings_the_device_did_not_take_are_refused() -> None:
+    """The watchdog's settings are read back in the packet that writes them: a device that kept another timeout
+    (here 5 s where 1 s was written) is a one-line error naming both, not a watchdog assumed armed."""
+    from drivers.labjack.watchdog import T7Watchdog
+
+    def u32(v: int) -> list[int]:
+        return list(struct.unpack(">2H", struct.pack(">I", v)))
+
+    def f32(v: float) -> list[int]:
+        return list(struct.unpack(">2H", struct.pack(">f", v)))
+
+    def device(timeout_s: int, enabled: int) -> list[list[int]]:  # DAC0 action, value, DAC1 …, enable, timeout
+        return [u32(1), f32(2.5), u32(1), f32(0.0), u32(enabled), u32(timeout_s)]
+
+    wd = T7Watchdog.__new__(T7Watchdog)
+    wd.name = "daq"
+    replies = iter([device(5, 0), device(5, 1)])  # the read before, then the write packet's read-back
+    sent: list[list[Frame]] = []
+    wd.feedback = lambda frames, **_: (sent.append(list(frames)), next(replies))[1]  # type: ignore[method-assign]
+    with pytest.raises(InstrumentStateError, match=r"watchdog read back .*\(1, 5, .*\(1, 1, ") as err:
+        wd.configure_watchdog(1, (2.5, 0.0))
+    assert "\n" not in str(err.value)
+    assert len(sent) == 2 and sum(isinstance(f[1], int) for f in sent[1]) == 6  # one packet: writes, then reads
+
+
 def test_watchdog_is_configured_once_from_the_register_map_and_zeroes_the_amplifier(raw_twin: Rig) -> None:
     """WATCHDOG_*_DEFAULT (LabJack Modbus map: 61600 enable, 61604 timeout [s], 61640/61642 DAC0 action and
     value, 61650/61652 DAC1): the driver writes them on connect, only when they differ (flash), and a device

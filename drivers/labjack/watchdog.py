@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from drivers.errors import InstrumentStateError
 from drivers.labjack.connection import T7Connection
 from drivers.labjack.registers import (
     WATCHDOG_DAC,
@@ -18,20 +19,29 @@ from drivers.labjack.registers import (
     words_u32,
 )
 
+_READS: list[Frame] = [*((a, 2) for k in (0, 1) for a in (WATCHDOG_DAC_ENABLE[k], WATCHDOG_DAC[k])),
+                       (WATCHDOG_ENABLE, 2), (WATCHDOG_TIMEOUT_S, 2)]
+Settings = tuple[int, int, tuple[tuple[int, float], ...]]
+
+
+def _settings(w: list[list[int]]) -> Settings:
+    """The watchdog's settings from the words of :data:`_READS`."""
+    dacs = tuple((words_u32(w[2 * k]), words_f32(w[2 * k + 1])) for k in (0, 1))
+    return words_u32(w[4]), words_u32(w[5]), dacs
+
 
 class T7Watchdog(T7Connection):
     """Reading and setting the watchdog."""
 
-    def read_watchdog(self) -> tuple[int, int, tuple[tuple[int, float], ...]]:
+    def read_watchdog(self) -> Settings:
         """(enabled, timeout [s], ((DAC0 action enabled, volts), (DAC1 …))) as the device holds them."""
-        w = self.feedback([(a, 2) for k in (0, 1) for a in (WATCHDOG_DAC_ENABLE[k], WATCHDOG_DAC[k])]
-                          + [(WATCHDOG_ENABLE, 2), (WATCHDOG_TIMEOUT_S, 2)])  # one MBFB packet
-        dacs = tuple((words_u32(w[2 * k]), words_f32(w[2 * k + 1])) for k in (0, 1))
-        return words_u32(w[4]), words_u32(w[5]), dacs
+        return _settings(self.feedback(_READS))  # one MBFB packet
 
     def configure_watchdog(self, timeout_s: int, dac_volts: tuple[float, float]) -> bool:
         """Enable the watchdog: after ``timeout_s`` s without communication both DACs go to ``dac_volts``.
-        Writes (disable, settings, enable) only when the device's settings differ; returns whether it wrote."""
+        Writes (disable, settings, enable) only when the device's settings differ, then reads them back in the same
+        MBFB packet (the frames run in order) and refuses settings the device did not take; returns whether it
+        wrote."""
         if not 1 <= int(timeout_s) == timeout_s:
             raise ValueError(f"{self.name}: watchdog timeout must be a whole number of seconds ≥ 1")
         want = (1, int(timeout_s), tuple((1, float(np.float32(v))) for v in dac_volts))
@@ -40,5 +50,8 @@ class T7Watchdog(T7Connection):
         writes: list[Frame] = [(WATCHDOG_ENABLE, u32_words(0)), (WATCHDOG_TIMEOUT_S, u32_words(int(timeout_s)))]
         for k, v in enumerate(dac_volts):
             writes += [(WATCHDOG_DAC_ENABLE[k], u32_words(1)), (WATCHDOG_DAC[k], f32_words(v))]
-        self.feedback([*writes, (WATCHDOG_ENABLE, u32_words(1))])  # in order, in one MBFB packet
+        got = _settings(self.feedback([*writes, (WATCHDOG_ENABLE, u32_words(1)), *_READS]))  # in order, one packet
+        if got != want:
+            raise InstrumentStateError(self.name, f"watchdog read back as (enabled, timeout s, DAC actions) {got}, "
+                                       f"{want} written")
         return True
