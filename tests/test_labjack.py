@@ -286,6 +286,20 @@ def test_twin_stops_a_feedback_packet_at_the_refused_frame_and_names_it_in_last_
             bytes.fromhex("000a 0000 0005 01 03 02 0000")
 
 
+def test_twin_refuses_a_feedback_packet_whose_reply_would_exceed_the_packet_limit(raw_twin: Rig) -> None:
+    """[D] 1040 bytes a packet; a reply over it is error 2300 MODBUS_RSP_OVERFLOW (register map). Reads of AIN0–7
+    (16 registers at 0): 32 of them make a reply of 7 + 1 + 32·32 = 1032 bytes, served; 33 make 1064, refused."""
+    with socket.create_connection(("127.0.0.1", raw_twin.port), timeout=2) as s:
+        frame = "00 0000 10"
+        reply = _transact(s, bytes.fromhex(f"000b 0000 {2 + 4 * 32:04x} 01 4c {frame * 32}"))
+        assert len(reply) == 1032 and reply[7] == 0x4C
+        reply = _transact(s, bytes.fromhex(f"000c 0000 {2 + 4 * 33:04x} 01 4c {frame * 33}"))
+        assert reply[7] == 0xCC and reply[8] == 3  # exception 3 (illegal data value)
+        # FC3 of 3 at 55000: LAST_ERR_DETAIL 2300 (0x08FC), exception 3, no frame
+        assert _transact(s, bytes.fromhex("000d 0000 0006 01 03 d6d8 0003")) == \
+            bytes.fromhex("000d 0000 0009 01 03 06 08fc 0003 0000")
+
+
 @pytest.mark.parametrize("frames", [1, 2])
 def test_a_stream_out_buffer_takes_what_fits_of_an_mbfb_packet_and_refuses_the_rest(raw_twin: Rig,
                                                                                      frames: int) -> None:

@@ -7,6 +7,8 @@ frame is refused with exception 3 (illegal data value); a frame the registers re
 frame's exception (the frames before it took effect).
 [D] LAST_ERR_FRAME (55002, register map): "the frame number that caused the last error"; [A] frames are numbered
 from 1 in the packet as sent (the register's default 0 then means no frame, as LAST_ERR_DETAIL's 0 means no error).
+[D] a reply longer than the packet limit: error 2300 MODBUS_RSP_OVERFLOW (register map's errors); [A] refused before
+any frame runs, with exception 3 and no frame (0), LAST_ERR_DETAIL 2300.
 [L] write frames in a row to one buffer register run as one write (:meth:`FeedbackPDU.bound_to`): a refusal there
 names the first of them. [A] a malformed packet names no frame (0).
 """
@@ -24,7 +26,7 @@ from pymodbus.pdu import ExceptionResponse, ModbusPDU
 from pymodbus.server import ModbusTcpServer
 from pymodbus.server.requesthandler import ServerRequestHandler
 
-from sim_devices.t7.registers import FC_FEEDBACK, FEEDBACK_MAX_PACKET
+from sim_devices.t7.registers import E_RSP_OVERFLOW, FC_FEEDBACK, FEEDBACK_MAX_PACKET
 
 
 class FeedbackPDU(ModbusPDU):
@@ -40,7 +42,8 @@ class FeedbackPDU(ModbusPDU):
     unit: int | None = None  # the device the bound action serves (others take pymodbus' path)
     action: Callable[..., Awaitable[ExcCodes | None]] | None = None
     buffers: frozenset[int] = frozenset()  # buffer registers: write frames in a row to one append as one write
-    failed: Callable[[int, int], None] | None = None  # told the frame (from 1) that ended a packet, and its code
+    # told the frame (from 1) that ended a packet, its exception code and an error detail (0: the register's own)
+    failed: Callable[[int, int, int], None] | None = None
 
     def __init__(self, dev_id: int = 0, transaction_id: int = 0) -> None:
         super().__init__(dev_id=dev_id, transaction_id=transaction_id)
@@ -52,12 +55,12 @@ class FeedbackPDU(ModbusPDU):
     @classmethod
     def bound_to(cls, unit: int, action: Callable[..., Awaitable[ExcCodes | None]],
                  buffers: frozenset[int] = frozenset(),
-                 failed: Callable[[int, int], None] | None = None) -> type[FeedbackPDU]:
+                 failed: Callable[[int, int, int], None] | None = None) -> type[FeedbackPDU]:
         """The PDU class a twin registers: MBFB frames for ``unit`` run through ``action``. ``buffers``: the
         addresses where write frames in a row go to the action as one write (each value appends, so that is
         the same: a buffer takes as many values as fit and refuses the rest, in one frame or in two).
-        ``failed``: called with the number of the frame that ended a packet (the device's LAST_ERR_FRAME)
-        and the exception code."""
+        ``failed``: called with the number of the frame that ended a packet (the device's LAST_ERR_FRAME),
+        the exception code and an error detail for LAST_ERR_DETAIL (0: what the refusing register set)."""
         return type("FeedbackPDU", (cls,), {"unit": unit, "action": staticmethod(action), "buffers": buffers,
                                             "failed": None if failed is None else staticmethod(failed)})
 
@@ -92,6 +95,8 @@ class FeedbackPDU(ModbusPDU):
         data, or the exception that ended the packet (the frames before it took effect)."""
         if self.malformed:
             return self._refused(ExcCodes.ILLEGAL_VALUE, 0)
+        if 8 + sum(2 * count for kind, _, count, _ in self.frames if kind == 0) > FEEDBACK_MAX_PACKET:
+            return self._refused(ExcCodes.ILLEGAL_VALUE, 0, E_RSP_OVERFLOW)  # MBAP 7 + function 1 + the reads
         data = bytearray()
         for number, (kind, address, count, words) in self._merged():
             if kind == 1:
@@ -106,10 +111,10 @@ class FeedbackPDU(ModbusPDU):
                 data += struct.pack(f">{count}H", *regs)
         return bytes(data)
 
-    def _refused(self, rc: ExcCodes, number: int) -> ExcCodes:
-        """The exception that ends the packet, its frame number told to the device."""
+    def _refused(self, rc: ExcCodes, number: int, detail: int = 0) -> ExcCodes:
+        """The exception that ends the packet, its frame number (and ``detail``, if any) told to the device."""
         if self.failed is not None:
-            self.failed(number, int(rc))
+            self.failed(number, int(rc), detail)
         return rc
 
     def _merged(self) -> list[tuple[int, tuple[int, int, int, Any]]]:

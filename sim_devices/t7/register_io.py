@@ -254,11 +254,14 @@ class RegisterIO(StreamEngine):
                 self.last_mb_err, self.last_err_frame = int(rc), 0  # an MBFB frame's number: :meth:`frame_failed`
             return rc
 
-    def frame_failed(self, number: int, code: int) -> None:
+    def frame_failed(self, number: int, code: int, detail: int = 0) -> None:
         """LAST_ERR_FRAME and LAST_MB_ERR after an MBFB packet ended at frame ``number`` (from 1; 0: a malformed
-        packet) with exception ``code``."""
+        or too large packet) with exception ``code``; LAST_ERR_DETAIL ← ``detail`` where the packet, not a
+        register, was refused."""
         with self.lock:
             self.last_err_frame, self.last_mb_err = number, code
+            if detail:
+                self.last_err = detail
 
     def _read(self, address: int, count: int, start: int, regs: list[int]) -> ExcCodes | None:
         if address == R_FLASH_READ:

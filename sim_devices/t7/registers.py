@@ -45,6 +45,8 @@ CORE_CLOCK_HZ = 80e6  # [D] "a core clock of 80 MHz" (STREAM_SCANRATE_HZ); CORE_
 # ---- error codes (LAST_ERR_DETAIL) ----
 E_ILLEGAL_ADDRESS = 1202  # [D] ljm_constants.json errors: LJME_MBE2_ILLEGAL_DATA_ADDRESS, "an invalid address …
 # or illegal access to a device register such as trying to write to a read only register"
+E_RSP_OVERFLOW = 2300  # [D] ljm_constants.json errors: MODBUS_RSP_OVERFLOW, "Response packet greater than max
+# packet size."
 E_WD_ENABLED = 2671  # [D] SWDT_ENABLED: "The watchdog must be disabled before the requested operation …"
 E_RES_INDEX, E_SETTLING, E_TEMP_RATE = 2606, 2621, 2631  # [D] STREAM_CONFIG_INVALID ("Stream resolution can not be
 # greater than 8"), STREAM_SETTLING_INVALID, STREAM_RATE_INVALID_FOR_TEMPERATURE_SENSOR ("… above 250Hz")
