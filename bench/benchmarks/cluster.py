@@ -8,6 +8,7 @@ search's own time (:attr:`bench.identify.core.FitResult.search_time`); beside it
 the integrating processes got (their CPU seconds over the fit's wall time): on a shared machine whose other
 sessions hold the cores, two workers get no more CPU than one, and the ratio says so.
 """
+
 from __future__ import annotations
 
 import contextlib

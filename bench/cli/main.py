@@ -364,10 +364,10 @@ def _figures(kind: BenchmarkSet, title: str, quick: bool, sizes: tuple[int, ...]
     elif kind is BenchmarkSet.kernels:
         from bench.benchmarks.fit import kernels as run_all
     elif kind is BenchmarkSet.cluster:
-        from bench.benchmarks.cluster import scaling
+        from bench.benchmarks import cluster
 
         def run_all(quick: bool) -> list[Figure]:
-            return scaling(quick, sizes)
+            return cluster.run_all(quick, sizes)
     elif kind is BenchmarkSet.daq:
         from bench.benchmarks.daq import run_all
     elif kind is BenchmarkSet.export:

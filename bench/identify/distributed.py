@@ -3,11 +3,11 @@
 The fit stays in this process; every batch of model evaluations it makes — a search generation, a polish
 Jacobian, a batch of the intervals' Levenberg–Marquardt — is cut into tiles of candidates × records (:func:`tiles`:
 a record is cut along its candidates only as far as that finishes sooner, since a narrow chunk costs more per
-candidate), run longest first. Each record's inputs are
-scattered to every worker once; a task receives the packed parameters of its candidates and returns only their
-outputs. Every candidate is integrated independently, so the result is
-the same as in-process, bit for bit. A task integrates on one numba thread: a worker's threads are its
-parallelism (``dask worker --nthreads N`` runs N tiles at once, N × one thread, no oversubscription).
+candidate), run longest first. Each record's inputs are scattered to every worker once, and every worker loads the
+kernel then; a task receives the packed parameters of its candidates and returns only their outputs. Every
+candidate is integrated independently, so the result is the same as in-process, bit for bit. A task integrates on
+one numba thread: a worker's threads are its parallelism (``dask worker --nthreads N`` runs N tiles at once, N ×
+one thread, no oversubscription).
 """
 
 from __future__ import annotations
