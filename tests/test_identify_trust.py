@@ -158,6 +158,31 @@ def test_the_kernel_applies_a_per_candidate_voltage_calibration() -> None:
     assert not np.allclose(got[0], got[1])
 
 
+def test_the_reference_kernel_applies_the_calibration_per_candidate_in_one_parallel_batch() -> None:
+    """The scalar reference (the benchmarks' old path) takes the same per-candidate calibration in one batch over
+    the candidates: each row equal, bit for bit, to that candidate integrated alone on its input corrected by
+    hand."""
+    from bench.models.integrate import MODEL_MEMBRANE, run_fixed_batch, run_fixed_batch_calibrated
+    from bench.models.membrane import MembraneParams
+
+    p = MembraneParams()
+    n = 2000
+    U = np.empty((n, 2))
+    U[:, 0] = 6000.0 * np.sin(np.linspace(0.0, np.pi, n)) ** 2
+    U[:, 1] = 296.0
+    cal = np.array([[5.0, 1.0 / (1.0 + 1e-3)], [-8.0, 1.0 / (1.0 - 2e-3)], [0.0, 1.0]])
+    P = np.stack([p.pack()] * 3)
+    Y0 = np.stack([p.initial_state()] * 3)
+    for window in (0, 20):
+        got = run_fixed_batch_calibrated(MODEL_MEMBRANE, Y0, U, 1e-4, P, cal, 0, 20, window)
+        for k, (off, igain) in enumerate(cal):
+            Uk = U.copy()
+            Uk[:, 0] = (U[:, 0] - off) * igain
+            np.testing.assert_array_equal(got[k], run_fixed_batch(MODEL_MEMBRANE, Y0[:1], Uk, 1e-4, P[:1], 0, 20,
+                                                                  window)[0])
+    assert not np.allclose(got[0], got[1])
+
+
 def test_the_demo_like_record_s_determined_intervals_hold_the_twin_s_parameters(short_run: Path) -> None:
     """The demo's case reduced: the short thesis identification run on the simulated DAQ rig (laser noise, the
     voltage monitor's drawn gain/offset error, its noise), μ0, the slow unit's μ and τ and the monitor's

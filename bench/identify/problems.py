@@ -37,7 +37,7 @@ from bench.identify import floors
 from bench.identify.core import noise_of, to_optimiser, to_physical
 from bench.identify.monitor import CALIBRATION as CALIBRATION  # the problems' parameter names, as before
 from bench.identify.monitor import MonitorCalibration, voltage_per_step
-from bench.models.integrate import MODEL_MEMBRANE, OBSERVE_FORCE, run_fixed_batch
+from bench.models.integrate import MODEL_MEMBRANE, OBSERVE_FORCE, run_fixed_batch, run_fixed_batch_calibrated
 from bench.models.lozenge import MODE_HUNG, MODE_IMPOSED, PROTOTYPE_LAMBDA2P, LozengeParams, MaxwellBranch
 from bench.models.lozenge_batch import lozenge_batch
 from bench.models.membrane import MembraneParams
@@ -267,14 +267,9 @@ class MembraneProblem(MonitorCalibration):
             if cal is None or not rec.measured:
                 lam = run_fixed_batch(MODEL_MEMBRANE, np.tile(rec.y0, (Z.shape[0], 1)), rec.U, self.h, P, 0,
                                       rec.stride, window)
-            else:  # the calibration changes the input: one candidate at a time
-                rows = []
-                for k in range(Z.shape[0]):
-                    U = rec.U.copy()
-                    U[:, 0] = (U[:, 0] - cal[i, k, 0]) * cal[i, k, 1]
-                    rows.append(run_fixed_batch(MODEL_MEMBRANE, rec.y0[None, :], U, self.h, P[k:k + 1], 0,
-                                                rec.stride, window)[0])
-                lam = np.array(rows)
+            else:  # the calibration changes the input per candidate, still in parallel over the candidates
+                lam = run_fixed_batch_calibrated(MODEL_MEMBRANE, np.tile(rec.y0, (Z.shape[0], 1)), rec.U, self.h, P,
+                                                 np.ascontiguousarray(cal[i]), 0, rec.stride, window)
             out.append(t.L_d * (lam - t.lambda_pre))
         return np.concatenate(out, axis=1)
 
