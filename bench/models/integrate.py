@@ -67,44 +67,10 @@ def run_fixed(model: int, y0: np.ndarray, U: np.ndarray, h: float, p: np.ndarray
 
 
 @njit(cache=True, parallel=True)
-def run_fixed_batch(model: int, Y0: np.ndarray, U: np.ndarray, h: float, P: np.ndarray, channel: int,
-                    stride: int, window: int = 0) -> np.ndarray:
-    """Integrate one input history for many parameter sets (rows of P, initial states rows of Y0) in parallel.
-
-    Returns state component ``channel`` (or OBSERVE_FORCE) every ``stride`` steps, shape
-    (len(P), len(U)//stride + 1); NaN from the first sample after a set leaves the model's domain.
-    ``window`` > 0: each output (after the first) is the mean over the last ``window`` step ends (≤ stride),
-    as a window average of a densely sampled record is.
-    """
-    m = P.shape[0]
-    n = U.shape[0]
-    n_out = n // stride + 1
-    out = np.full((m, n_out), np.nan)
-    for j in prange(m):
-        y = Y0[j].copy()
-        grad = np.empty(y.size)
-        out[j, 0] = observe_model(model, y, U[0], P[j], channel, grad)
-        acc = 0.0
-        for k in range(n):
-            if not step_model(model, y, U[k], h, P[j]):
-                break
-            pos = (k + 1) % stride
-            if window > 0 and (pos == 0 or pos > stride - window):
-                acc += y[channel] if channel >= 0 else observe_model(model, y, U[k], P[j], channel, grad)
-            if pos == 0:
-                if window > 0:
-                    out[j, (k + 1) // stride] = acc / window
-                    acc = 0.0
-                else:
-                    out[j, (k + 1) // stride] = observe_model(model, y, U[k], P[j], channel, grad)
-    return out
-
-
-@njit(cache=True, parallel=True)
 def run_fixed_batch_calibrated(model: int, Y0: np.ndarray, U: np.ndarray, h: float, P: np.ndarray, cal: np.ndarray,
                                channel: int, stride: int, window: int = 0) -> np.ndarray:
     """:func:`run_fixed_batch` where set j sees input 0 as (U[:, 0] − cal[j, 0]) · cal[j, 1] (a monitor's offset
-    and inverse gain, fitted per set): in parallel over the sets like it, each step's input made per set."""
+    and inverse gain, fitted per set), in parallel over the sets; each step's input is made per set."""
     m = P.shape[0]
     n = U.shape[0]
     n_out = n // stride + 1
@@ -131,6 +97,22 @@ def run_fixed_batch_calibrated(model: int, Y0: np.ndarray, U: np.ndarray, h: flo
                 else:
                     out[j, (k + 1) // stride] = observe_model(model, y, u, P[j], channel, grad)
     return out
+
+
+@njit(cache=True)
+def run_fixed_batch(model: int, Y0: np.ndarray, U: np.ndarray, h: float, P: np.ndarray, channel: int,
+                    stride: int, window: int = 0) -> np.ndarray:
+    """Integrate one input history for many parameter sets (rows of P, initial states rows of Y0) in parallel.
+
+    Returns state component ``channel`` (or OBSERVE_FORCE) every ``stride`` steps, shape
+    (len(P), len(U)//stride + 1); NaN from the first sample after a set leaves the model's domain.
+    ``window`` > 0: each output (after the first) is the mean over the last ``window`` step ends (≤ stride),
+    as a window average of a densely sampled record is. (:func:`run_fixed_batch_calibrated` with every set's
+    input as recorded: x − 0 and x · 1 are x.)
+    """
+    cal = np.zeros((P.shape[0], 2))
+    cal[:, 1] = 1.0
+    return run_fixed_batch_calibrated(model, Y0, U, h, P, cal, channel, stride, window)
 
 
 class FixedStepper:
