@@ -187,6 +187,12 @@ def test_an_mbfb_error_reply_is_read_as_an_exception_with_or_without_a_frame_byt
     assert pdu.function_code == 0xCC and pdu.exception_code == 2
 
 
+def test_an_empty_write_frame_is_refused_not_dropped() -> None:
+    """A write of no registers is a caller's mistake: refused by name, not silently left out of the packet."""
+    with pytest.raises(ValueError, match="at 1000 writes at least one register"):
+        feedback_packets([(1000, [0, 0]), (1000, [])])
+
+
 def test_feedback_packets_stay_within_the_t7_packet_size_and_keep_the_order() -> None:
     values = list(range(1200))
     packets = feedback_packets([(4420, values), (4070, [0, 1])])

@@ -45,9 +45,10 @@ class LabJackT7(T7Stream, T7Watchdog):
 
     def identify(self) -> Identity:
         """PRODUCT_ID, serial number, firmware and hardware versions."""
-        return Identity("LabJack", "T7", {"serial": str(self.read_u32(SERIAL_NUMBER)),
-                                          "firmware": f"{self.read_f32(FIRMWARE_VERSION):.4f}",
-                                          "hardware": f"{self.read_f32(HARDWARE_VERSION):.2f}"})
+        serial, firmware, hardware = self.feedback([(SERIAL_NUMBER, 2), (FIRMWARE_VERSION, 2),
+                                                    (HARDWARE_VERSION, 2)])  # one MBFB packet
+        return Identity("LabJack", "T7", {"serial": str(words_u32(serial)), "firmware": f"{words_f32(firmware):.4f}",
+                                          "hardware": f"{words_f32(hardware):.2f}"})
 
     def safe_state(self) -> None:
         """Stop the stream (the DACs stop updating) and write the safe DAC values."""

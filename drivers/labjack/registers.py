@@ -137,6 +137,8 @@ def feedback_packets(frames: Sequence[Frame]) -> list[tuple[Frame, ...]]:
             if not 1 <= w <= MBFB_FRAME_REGS:
                 raise ValueError(f"an MBFB read frame reads 1…{MBFB_FRAME_REGS} registers, not {w}")
             split.append((a, w))
+        elif len(w) == 0:
+            raise ValueError(f"an MBFB write frame at {a} writes at least one register, not none")
         else:
             split += [(a, w[i:i + MBFB_FRAME_REGS]) for i in range(0, len(w), MBFB_FRAME_REGS)]
     packets: list[tuple[Frame, ...]] = []
