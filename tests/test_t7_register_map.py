@@ -156,6 +156,17 @@ def test_ain_all_range_sets_every_range_and_reads_minus_9999_when_they_differ() 
     assert _f32(_read(sim, BY_NAME["AIN_ALL_RANGE"], 2)) == -9999.0  # type: ignore[arg-type]
 
 
+def test_a_range_or_resolution_the_t7_lacks_is_refused_with_its_error_code() -> None:
+    """AIN#_RANGE takes 10, 1, 0.1, 0.01 (map); AIN#_RESOLUTION_INDEX 0–8 on a T7 that is no Pro: otherwise
+    LAST_ERR_DETAIL names AIN_RANGE_INVALID / AIN_RESOLUTION_INVALID, and the setting is unchanged."""
+    sim = _sim()
+    assert _write(sim, BY_NAME["AIN2_RANGE"], list(struct.unpack(">HH", struct.pack(">f", 3.0)))) is not None
+    assert _read(sim, BY_NAME["LAST_ERR_DETAIL"], 1) == [ERRORS["AIN_RANGE_INVALID"]]
+    assert _f32(_read(sim, BY_NAME["AIN2_RANGE"], 2)) == 10.0  # type: ignore[arg-type]
+    assert _write(sim, BY_NAME["AIN2_RESOLUTION_INDEX"], [9]) is not None
+    assert _read(sim, BY_NAME["LAST_ERR_DETAIL"], 1) == [ERRORS["AIN_RESOLUTION_INVALID"]]
+
+
 def test_core_timer_counts_at_half_the_80_mhz_core_clock() -> None:
     clock = VirtualClock()
     sim = LabJackT7Sim(Plant(clock, MembraneParams(), hv=HVStage()), clock)

@@ -17,7 +17,8 @@ INT32/FLOAT32 keep what is written (defaults as the map).
 [D] AIN#_RESOLUTION_INDEX (0–8; 0 = 8) sets the ADC noise of a command-response read of that input
 (:mod:`~sim_devices.t7.resolution`); AIN_ALL_RESOLUTION_INDEX writes every input's, reads the common one or 0xFFFF;
 [A] a value above 8 (T7-Pro indices 9–12 included: the twin is a T7) answers exception 3, as a range not in the
-list does. [L] a read returns at once (the index's sample time is not spent).
+list does; [D] LAST_ERR_DETAIL then holds 2375 AIN_RESOLUTION_INVALID or 2370 AIN_RANGE_INVALID (register map's
+errors). [L] a read returns at once (the index's sample time is not spent).
 [D] CORE_TIMER: 32-bit timer at half the 80-MHz core clock, [A] 0 at the twin's creation, on the rig's clock.
 [D] DIO: FIO#/EIO#/CIO#/MIO# (2000+n) read makes the line an input, write an output at that level; _STATE (2500+p)
 and DIO_STATE (2800) do not configure direction; the upper 8 bits of a port _STATE/_DIRECTION write are inhibits.
@@ -40,6 +41,8 @@ from sim_devices.t7.registers import (
     CORE_CLOCK_HZ,
     DIO_PORTS,
     E_ACTIVE,
+    E_AIN_RANGE,
+    E_AIN_RESOLUTION,
     E_ILLEGAL_ADDRESS,
     E_NOT_RUNNING,
     F32,
@@ -348,6 +351,7 @@ class RegisterIO(StreamEngine):
             # a FLOAT32 register: 0.1 and 0.01 arrive as their nearest float32, not the double
             rng = min(RANGE_GAIN, key=lambda r: abs(r - value))
             if abs(rng - value) > 1e-6 * max(rng, 1e-3):
+                self.last_err = E_AIN_RANGE
                 return ExcCodes.ILLEGAL_VALUE
             rng = 10.0 if rng == 0 else rng
             if a == R_AIN_ALL_RANGE:
@@ -358,6 +362,7 @@ class RegisterIO(StreamEngine):
             self.ain_neg[a - R_AIN_NEG] = int(value)
         elif R_AIN_RES <= a < R_AIN_RES + N_AIN_ALL or a == R_AIN_ALL_RES:
             if not 0 <= value <= resolution.MAX_INDEX:
+                self.last_err = E_AIN_RESOLUTION
                 return ExcCodes.ILLEGAL_VALUE
             if a == R_AIN_ALL_RES:
                 self.ain_res = [int(value)] * N_AIN_ALL

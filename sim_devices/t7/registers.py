@@ -47,6 +47,8 @@ E_ILLEGAL_ADDRESS = 1202  # [D] ljm_constants.json errors: LJME_MBE2_ILLEGAL_DAT
 # or illegal access to a device register such as trying to write to a read only register"
 E_RSP_OVERFLOW = 2300  # [D] ljm_constants.json errors: MODBUS_RSP_OVERFLOW, "Response packet greater than max
 # packet size."
+E_AIN_RANGE, E_AIN_RESOLUTION = 2370, 2375  # [D] AIN_RANGE_INVALID ("Specified range not available on this
+# device"), AIN_RESOLUTION_INVALID ("Selected resolution is invalid")
 E_WD_ENABLED = 2671  # [D] SWDT_ENABLED: "The watchdog must be disabled before the requested operation …"
 E_RES_INDEX, E_SETTLING, E_TEMP_RATE = 2606, 2621, 2631  # [D] STREAM_CONFIG_INVALID ("Stream resolution can not be
 # greater than 8"), STREAM_SETTLING_INVALID, STREAM_RATE_INVALID_FOR_TEMPERATURE_SENSOR ("… above 250Hz")
