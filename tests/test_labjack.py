@@ -733,3 +733,19 @@ def test_extend_plays_the_appended_values_on_the_next_scans(rig: Rig) -> None:
     assert np.all(np.abs(v[n + 1:] - expected[-1]) <= lsb) and rig.daq.out_underrun_scans == 0
     with pytest.raises(InstrumentStateError, match="extend needs an armed stream-out"):
         rig.daq.extend(second)
+
+
+def test_twin_says_its_serving_threads_cpu_time_from_another_thread() -> None:
+    """The benchmarks' split of a run's CPU: the twin's thread, read from the host's (NaN before it serves)."""
+    clock = VirtualClock()
+    sim = LabJackT7Sim(Plant(clock, MembraneParams(), hv=HVStage()), clock, noise=False)
+    assert np.isnan(sim.cpu_seconds())
+    port, _ = sim.start()
+    try:
+        first = sim.cpu_seconds()
+        with socket.create_connection(("127.0.0.1", port), timeout=2) as s:
+            for k in range(200):  # work done on the twin's thread, not this one
+                _transact(s, bytes.fromhex(f"{k:04x} 0000 0006 01 03 ea60 0002"))
+        assert 0.0 <= first < sim.cpu_seconds()
+    finally:
+        sim.stop()

@@ -13,7 +13,9 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import math
 import threading
+import time
 from typing import Any
 
 from pymodbus.server import ModbusTcpServer
@@ -133,6 +135,18 @@ class LabJackT7Sim(RegisterIO):
             if self._writer is writer:
                 self._writer = None
         writer.close()
+
+    def cpu_seconds(self) -> float:
+        """CPU time [s] the serving thread (requests, stream packets, the plant it advances) has used so far, read
+        from any thread (benchmarks: what the twin costs its host); NaN where the platform cannot say."""
+        thread = self._thread
+        getcpu = getattr(time, "pthread_getcpuclockid", None)
+        if thread is None or thread.ident is None or getcpu is None:
+            return math.nan
+        try:
+            return time.clock_gettime(getcpu(thread.ident))
+        except (OSError, ProcessLookupError):  # the thread has ended
+            return math.nan
 
     def _on_clock(self, now: float) -> None:
         """The virtual clock moved (in the thread that moved it): pump at once if a whole packet is now due, as a
