@@ -26,6 +26,7 @@ from bench.runtime.run import execute, plan_run
 from bench.storage.runfile import open_run
 from drivers.labjack import StreamIn, StreamOut, StreamSpec
 from sim_devices.t7.analog import Conditioning
+from sim_devices.t7.stream_out import Tail
 from tests.conftest import ROOT
 from tests.test_labjack import Rig, _transact
 
@@ -79,6 +80,23 @@ def _raw_stream_out(rig: Rig, *frames: tuple[int, list[int]]) -> socket.socket:
     _write(sock, 1, (TARGET, _u32(1000)), (ALLOC, _u32(4096)))
     _write(sock, 2, *frames)
     return sock
+
+
+def test_the_values_a_loop_is_taken_from_are_the_last_written_as_a_bounded_queue_keeps_them() -> None:
+    """The twin's ring of the last values written (LOOP_NUM_VALUES counts "from the end of the array") against a
+    plain bounded deque, through writes shorter than, equal to and longer than its size, and wrapping."""
+    from collections import deque
+
+    rng = np.random.default_rng(3)
+    tail, ref = Tail(15), deque(maxlen=15)
+    assert tail.last(5).size == 0
+    for n in (4, 9, 15, 1, 40, 7, 0, 16, 3):
+        values = rng.integers(0, 65536, n)
+        tail.extend(values)
+        ref.extend(values.tolist())
+        assert len(tail) == len(ref)
+        for k in (1, 5, 15, 20):  # more than kept: all that is kept
+            assert tail.last(k).tolist() == list(ref)[max(len(ref) - k, 0):]
 
 
 def test_after_the_data_the_last_loop_num_values_repeat(rig: Rig) -> None:

@@ -58,6 +58,33 @@ class Played:
     y: np.ndarray | None = None
 
 
+class Tail:
+    """The last ``size`` values written to a stream-out buffer, for SET_LOOP's LOOP_NUM_VALUES (a ring of codes: a
+    packet's values go in as one array copy, not one Python integer each)."""
+
+    def __init__(self, size: int = 0) -> None:
+        self.size = size
+        self._ring = np.zeros(max(size, 1), np.int64)
+        self._count = 0  # values written since the buffer was allocated
+
+    def __len__(self) -> int:
+        return min(self._count, self.size)
+
+    def extend(self, values: np.ndarray) -> None:
+        """Append ``values`` (the oldest fall out)."""
+        v = values[values.size - min(values.size, self.size):]
+        start = (self._count + values.size - v.size) % max(self.size, 1)  # ring index of v[0]
+        first = min(v.size, self.size - start)
+        self._ring[start:start + first] = v[:first]
+        self._ring[:v.size - first] = v[first:]
+        self._count += values.size
+
+    def last(self, n: int) -> np.ndarray:
+        """The last ``n`` values written, oldest first (fewer if fewer are kept)."""
+        n = min(n, len(self))
+        return self._ring[(self._count - n + np.arange(n)) % max(self.size, 1)]
+
+
 @dataclass
 class OutChannel:
     """One stream-out channel."""
@@ -68,7 +95,7 @@ class OutChannel:
     loop_num: int = 0
     queue: deque[int] = field(default_factory=deque)  # codes written, not yet scheduled (stopped, or waiting on a loop)
     sched: deque[Played] = field(default_factory=deque)  # codes scheduled, not yet played
-    tail: deque[int] = field(default_factory=deque)  # last values written (for the loop)
+    tail: Tail = field(default_factory=Tail)  # last values written (for the loop)
     loop: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     loop_pos: int = 0
     next_scan: int = 0
@@ -201,7 +228,7 @@ class StreamOut(PlantCoupling):
         elif base == R_O_ALLOC:
             if value < 32 or value & (value - 1) or value > 16384:
                 return self._fail(E_BUFSIZE)
-            o.alloc, o.queue, o.tail = value, deque(), deque(maxlen=value // 2 - 1)
+            o.alloc, o.queue, o.tail = value, deque(), Tail(value // 2 - 1)
             o.loop, o.loop_active = np.zeros(0, np.int64), False
         elif base == R_O_ENABLE:
             o.enable = int(bool(value))
@@ -216,7 +243,7 @@ class StreamOut(PlantCoupling):
                 self._advance_out(k, now)
                 if o.loop_active:  # still repeating (a watchdog timeout stops it)
                     self._cut_loop(k, now)
-            o.loop = np.array(list(o.tail)[len(o.tail) - o.loop_num:] if o.loop_num else [], np.int64)
+            o.loop = o.tail.last(o.loop_num) if o.loop_num else np.zeros(0, np.int64)
             o.loop_pos = 0
             o.loops_set += o.loop.size > 1
             if self.streaming and k in self._out_indices():
@@ -233,17 +260,16 @@ class StreamOut(PlantCoupling):
         if not o.enable:
             return self._fail(E_OUT_DISABLED)
         room = o.alloc // 2 - 1 - self._level(k, now)
-        take = codes[:max(room, 0)]
-        values = take.tolist() if isinstance(take, np.ndarray) else take  # the deques hold ints
-        o.tail.extend(values)
+        take = np.asarray(codes[:max(room, 0)], np.int64)  # a frame's array as it is (no copy), a list converted
+        o.tail.extend(take)
         o.buffer_writes += 1
         o.values_written += len(take)
         if self.streaming and k in self._out_indices() and o.loop_active and o.loop.size > 1:
             self._advance_out(k, now)
-            o.queue.extend(values)  # waits for SET_LOOP: the loop in progress is not interrupted
+            o.queue.extend(take.tolist())  # waits for SET_LOOP: the loop in progress is not interrupted
         elif self.streaming and k in self._out_indices():
             self._advance_out(k, now)
-            self._schedule(k, np.array(take, np.int64), now)
+            self._schedule(k, take, now)
         else:
-            o.queue.extend(values)
+            o.queue.extend(take.tolist())  # the queue holds ints
         return self._fail(E_OUT_FULL) if len(take) < len(codes) else None
