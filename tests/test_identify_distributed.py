@@ -1,4 +1,5 @@
-"""Campaign fits and design maps on a real multi-process dask cluster give the in-process results, bit for bit.
+"""Campaign fits, the search's per-record costs and design maps on a real multi-process dask cluster give the
+in-process results, bit for bit (and the per-record costs those of the whole prediction, up to the sums' order).
 
 The module starts a scheduler and two single-threaded workers, each its own process (`python -m
 distributed.cli.dask_scheduler` / `dask_worker`) on loopback with a free port, fits through

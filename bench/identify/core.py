@@ -4,8 +4,9 @@ A :class:`Problem` gives parameter names, bounds in optimiser coordinates (linea
 a *batched* predictor (many parameter sets at once, on all cores) and the measured data; a problem may compute the
 search's costs itself (:class:`Costs`: where its predictions are made, on a cluster one number per candidate back
 instead of its prediction). Differential evolution (scipy, ``vectorized=True``: one batch per generation) searches
-the bounded space with the thesis's settings (Table 4.1: population 50, F = 0.6, CR = 0.9, 100 generations); where the problem has
-interchangeable units of equal bounds, the same scheme with each candidate's units sorted by τ (:func:`canonical`).
+the bounded space with the thesis's settings (Table 4.1: population 50, F = 0.6, CR = 0.9, 100 generations);
+where the problem has interchangeable units of equal bounds, the same scheme with each candidate's units sorted by
+τ (:func:`canonical`).
 A bounded least-squares step (scipy ``least_squares``, finite-difference Jacobian evaluated as one batch) polishes
 the best member.
 The same Jacobian gives each parameter's sensitivity and the correlation matrix; parameters on a bound, with
