@@ -141,7 +141,7 @@ def scaling(quick: bool = False, sizes: tuple[int, ...] = DEFAULT_SIZES) -> list
                 with cluster_client(workers=n if kind == "workers" else None) as client, \
                         _threads(n) if client is None else contextlib.nullcontext():
                     problem.distribute(client)
-                    problem.predict(warm)  # JIT cache loaded, records scattered
+                    problem.costs(warm, settings.cost)  # JIT caches loaded (model and costs), records scattered
                     cpu0 = _cpu(client)
                     r = results[kind, n] = fit(problem, settings)
                     if r.search_time < best[kind, n]:

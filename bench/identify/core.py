@@ -1,10 +1,12 @@
 """Parameter identification: differential evolution (as in the thesis), least-squares polish, identifiability.
 
 A :class:`Problem` gives parameter names, bounds in optimiser coordinates (linear or log10 per parameter),
-a *batched* predictor (many parameter sets at once, on all cores) and the measured data. Differential
-evolution (scipy, ``vectorized=True``: one batch per generation) searches the bounded space with the
-thesis's settings (Table 4.1: population 50, F = 0.6, CR = 0.9, 100 generations); where the problem has
-interchangeable units of equal bounds, the same scheme with each candidate's units sorted by τ (:func:`canonical`).
+a *batched* predictor (many parameter sets at once, on all cores) and the measured data; a problem may compute the
+search's costs itself (:class:`Costs`: where its predictions are made, on a cluster one number per candidate back
+instead of its prediction). Differential evolution (scipy, ``vectorized=True``: one batch per generation) searches
+the bounded space with the thesis's settings (Table 4.1: population 50, F = 0.6, CR = 0.9, 100 generations);
+where the problem has interchangeable units of equal bounds, the same scheme with each candidate's units sorted by
+τ (:func:`canonical`).
 A bounded least-squares step (scipy ``least_squares``, finite-difference Jacobian evaluated as one batch) polishes
 the best member.
 The same Jacobian gives each parameter's sensitivity and the correlation matrix; parameters on a bound, with
@@ -16,7 +18,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
-from typing import TYPE_CHECKING, Literal, Protocol
+from typing import TYPE_CHECKING, Literal, Protocol, runtime_checkable
 
 import numpy as np
 from scipy.optimize import OptimizeResult, differential_evolution, least_squares
@@ -40,6 +42,15 @@ class Problem(Protocol):
 
     def predict(self, Z: np.ndarray) -> np.ndarray:
         """Model predictions for each row of Z (S × D) → S × len(data); NaN where a model failed."""
+
+
+@runtime_checkable
+class Costs(Protocol):
+    """A problem that computes the search's costs itself (e.g. where its predictions are made, on a cluster): the
+    values of :func:`_costs` on its prediction, up to the order of the sums."""
+
+    def costs(self, Z: np.ndarray, kind: Cost) -> np.ndarray:
+        """The cost of each row of Z (S × D) → S; inf where a compared residual is not finite."""
 
 
 class Record(Protocol):
@@ -374,11 +385,14 @@ def _search(problem: Problem, settings: FitSettings, start: np.ndarray | None, f
     if start is not None:
         init[0] = np.clip(start, lo, hi)
     evaluations = 0
+    own = problem.costs if isinstance(problem, Costs) else None  # its own costs (one number per candidate back)
 
     def batch_cost(Zt: np.ndarray) -> np.ndarray:
         nonlocal evaluations
         Z = np.atleast_2d(Zt.T) if Zt.ndim == 2 else Zt[None, :]
         evaluations += Z.shape[0]
+        if own is not None:
+            return own(Z, settings.cost)
         return _costs(problem, problem.predict(Z), settings.cost)
 
     best: list[float] = []

@@ -3,11 +3,14 @@
 The fit stays in this process; every batch of model evaluations it makes — a search generation, a polish
 Jacobian, a batch of the intervals' Levenberg–Marquardt — is cut into tiles of candidates × records (:func:`tiles`:
 a record is cut along its candidates only as far as that finishes sooner, since a narrow chunk costs more per
-candidate), run longest first. Each record's inputs are scattered to every worker once, and every worker loads the
-kernel then; a task receives the packed parameters of its candidates and returns only their outputs. Every
-candidate is integrated independently, so the result is the same as in-process, bit for bit. A task integrates on
-one numba thread: a worker's threads are its parallelism (``dask worker --nthreads N`` runs N tiles at once, N ×
-one thread, no oversubscription).
+candidate), run longest first. Each record's inputs, data, σ and compared columns are scattered to every worker
+once, and every worker loads the kernels then; a task receives the packed parameters of its candidates and returns
+their outputs (:meth:`DistributedPredict.__call__`: the polish, the Jacobians, the intervals) or, for the search,
+only their partial costs per record (:meth:`DistributedPredict.costs`, :mod:`bench.identify.record_costs`: the
+outputs converted and compared on the worker, b − a numbers per tile and record instead of their samples). Every
+candidate is integrated independently and each partial cost summed row by row, so the results are the same as
+in-process, bit for bit. A task integrates on one numba thread: a worker's threads are its parallelism (``dask
+worker --nthreads N`` runs N tiles at once, N × one thread, no oversubscription).
 """
 
 from __future__ import annotations
@@ -83,33 +86,62 @@ def _tile(Us: list[np.ndarray], Y0: np.ndarray, P: np.ndarray, h: float, stride:
         return membrane_batch_records(P, Y0, Us, h, stride, window, cal)
 
 
-def _warm(U: np.ndarray, Y0: np.ndarray, P: np.ndarray, h: float, stride: int) -> bool:
-    """Load the kernel on a worker (numba's cache, its threading layer) with a few steps of one set: what the
-    first tile on a cold worker would otherwise pay, while the other tiles of its batch wait."""
-    _tile([U], Y0, P, h, stride, 0, None)
+def _tile_costs(Us: list[np.ndarray], Y0: np.ndarray, P: np.ndarray, h: float, stride: int, window: int,
+                cal: np.ndarray | None, gain: float, offset: float, data: list[np.ndarray], sigma: list[np.ndarray],
+                mask: list[np.ndarray], kind: str) -> np.ndarray:
+    """Partial costs of one tile (worker side; records × candidates): its λ samples (:func:`_tile`) converted to
+    the outputs gain·(λ − offset) and compared with each record's data (:func:`bench.identify.record_costs.
+    record_costs`)."""
+    from bench.identify.record_costs import record_costs
+
+    pred = gain * (_tile(Us, Y0, P, h, stride, window, cal) - offset)
+    out = np.empty((len(data), P.shape[0]))
+    c0 = 0
+    for k, (d, s, m) in enumerate(zip(data, sigma, mask, strict=True)):
+        out[k] = record_costs(pred, c0, d, s, m, kind)
+        c0 += d.size
+    return out
+
+
+def _warm(U: np.ndarray, Y0: np.ndarray, P: np.ndarray, h: float, stride: int, data: np.ndarray, sigma: np.ndarray,
+          mask: np.ndarray) -> bool:
+    """Load the kernels on a worker (numba's cache, its threading layer) with a few steps of one set, compared
+    with the first columns of a record scattered there (the arrays the tasks get): what the first tile on a cold
+    worker would otherwise pay, while the other tiles of its batch wait."""
+    n = U.shape[0] // stride + 1
+    _tile_costs([U], Y0, P, h, stride, 0, None, 1.0, 0.0, [data[:n]], [sigma[:n]], [mask[:n]], "sae")
     return True
 
 
 def kernel_ready() -> bool:
-    """On a worker: whether the batch kernel is loaded there (compiled or read from numba's cache)."""
+    """On a worker: whether the batch kernel and the cost kernel are loaded there (compiled or read from numba's
+    cache)."""
+    from bench.identify.record_costs import _partial
     from bench.models.membrane_batch import _batch
 
-    return bool(_batch.signatures)
+    return bool(_batch.signatures) and bool(_partial.signatures)
 
 
 class DistributedPredict:
-    """Batched λ of a membrane problem's records on a dask cluster, tiled over candidates × records."""
+    """Batched λ of a membrane problem's records on a dask cluster, tiled over candidates × records, or the
+    candidates' partial costs against the records' data (``data``, ``sigma``: per record, NaN data not compared)."""
 
     def __init__(self, client: Client, Us: list[np.ndarray], Y0: np.ndarray, h: float, stride: int,
-                 window: int, P0: np.ndarray) -> None:
+                 window: int, P0: np.ndarray, data: list[np.ndarray], sigma: list[np.ndarray]) -> None:
         self.client, self.h, self.stride, self.window = client, h, stride, window
         self.Y0 = Y0
         self.steps = [len(U) for U in Us]
         cols = np.array(self.steps) // stride + 1
         self.columns = np.concatenate([[0], np.cumsum(cols)]).astype(int)
+        if [d.size for d in data] != cols.tolist() or [s.size for s in sigma] != cols.tolist():
+            raise ValueError("each record's data and σ must have one value per output sample of the record")
         from distributed import wait
 
-        self.records: list[Future[np.ndarray]] = client.scatter(list(Us), broadcast=True)  # once, to every worker
+        # once, to every worker: the records' inputs, and what their outputs are compared with
+        self.records: list[Future[np.ndarray]] = client.scatter(list(Us), broadcast=True)
+        self.data: list[Future[np.ndarray]] = client.scatter([np.array(d, float) for d in data], broadcast=True)
+        self.sigma: list[Future[np.ndarray]] = client.scatter([np.array(s, float) for s in sigma], broadcast=True)
+        self.mask: list[Future[np.ndarray]] = client.scatter([np.isfinite(d) for d in data], broadcast=True)
         self.evaluations = 0  # candidates evaluated on the cluster
         self._count = threading.Lock()  # the starts evaluate from threads of their own
         workers = client.scheduler_info().get("workers", {})
@@ -119,8 +151,9 @@ class DistributedPredict:
         # batch; a worker gone meanwhile leaves its warm-up to another, and a slow one is not waited for past
         # WARM_TIMEOUT_S (the warm-up only saves time, results do not depend on it)
         few = np.ascontiguousarray(Us[0][:2 * stride])
-        warming = [client.submit(_warm, few, Y0[:1], np.atleast_2d(P0), h, stride, workers=[address],
-                                 allow_other_workers=True, pure=False) for address in workers]
+        warming = [client.submit(_warm, few, Y0[:1], np.atleast_2d(P0), h, stride, self.data[0], self.sigma[0],
+                                 self.mask[0], workers=[address], allow_other_workers=True, pure=False)
+                   for address in workers]
         with contextlib.suppress(TimeoutError):
             wait(warming, timeout=WARM_TIMEOUT_S)
 
@@ -136,6 +169,24 @@ class DistributedPredict:
         out = np.empty((m, int(self.columns[-1])))
         for (r0, r1, a, b), part in zip(plan, self.client.gather(futures), strict=True):
             out[a:b, self.columns[r0]:self.columns[r1]] = part
+        with self._count:
+            self.evaluations += m
+        return out
+
+    def costs(self, P: np.ndarray, cal: np.ndarray | None, gain: float, offset: float, kind: str) -> np.ndarray:
+        """Each record's partial cost (records × len(P); :mod:`bench.identify.record_costs`) of the packed sets P,
+        whose outputs are gain·(λ − offset); ``cal`` as for a call. Each task returns its tile's partial costs only,
+        never its samples."""
+        m = P.shape[0]
+        plan = tiles(m, self.steps, self.threads)
+        futures = [self.client.submit(_tile_costs, self.records[r0:r1], self.Y0[r0:r1], P[a:b], self.h, self.stride,
+                                      self.window, None if cal is None else cal[r0:r1, a:b], gain, offset,
+                                      self.data[r0:r1], self.sigma[r0:r1], self.mask[r0:r1], kind, pure=False,
+                                      priority=len(plan) - k)  # longest first
+                   for k, (r0, r1, a, b) in enumerate(plan)]
+        out = np.empty((len(self.steps), m))
+        for (r0, r1, a, b), part in zip(plan, self.client.gather(futures), strict=True):
+            out[r0:r1, a:b] = part
         with self._count:
             self.evaluations += m
         return out

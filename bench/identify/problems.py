@@ -34,9 +34,10 @@ import numpy as np
 
 from bench.analysis.applied import applied_voltage
 from bench.identify import floors
-from bench.identify.core import noise_of, to_optimiser, to_physical
+from bench.identify.core import Cost, noise_of, sigma_of, to_optimiser, to_physical
 from bench.identify.monitor import CALIBRATION as CALIBRATION  # the problems' parameter names, as before
 from bench.identify.monitor import MonitorCalibration, voltage_per_step
+from bench.identify.record_costs import record_costs, total
 from bench.models.integrate import MODEL_MEMBRANE, OBSERVE_FORCE, run_fixed_batch, run_fixed_batch_calibrated
 from bench.models.lozenge import MODE_HUNG, MODE_IMPOSED, PROTOTYPE_LAMBDA2P, LozengeParams, MaxwellBranch
 from bench.models.lozenge_batch import lozenge_batch
@@ -251,8 +252,35 @@ class MembraneProblem(MonitorCalibration):
         from bench.identify.distributed import DistributedPredict
 
         stride = self.records[0].stride
+        data, sigma = zip(*self._targets(), strict=True)
         self.remote = DistributedPredict(client, [r.U for r in self.records], np.stack([r.y0 for r in self.records]),
-                                         self.h, stride, stride if self.average else 0, self.recorded.pack())
+                                         self.h, stride, stride if self.average else 0, self.recorded.pack(),
+                                         list(data), list(sigma))
+
+    def _targets(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Each record's data and σ (slices of ``data`` and ``sigma``)."""
+        bounds = np.cumsum([0] + [r.data.size for r in self.records])
+        sigma = sigma_of(self)
+        return [(self.data[a:b], sigma[a:b]) for a, b in itertools.pairwise(bounds.tolist())]
+
+    def costs(self, Z: np.ndarray, kind: Cost) -> np.ndarray:
+        """The search's cost of each row of Z (:func:`bench.identify.core._costs`' sum over the compared points of
+        |r| or r², r the residual over σ; inf where one is not finite), summed record by record where the
+        predictions are made (:mod:`bench.identify.record_costs`): on a cluster, the workers return one number per
+        candidate and record. The same bits in-process and distributed, however the batch is cut. The data and σ
+        are those when :meth:`distribute` was called."""
+        Z = np.atleast_2d(Z)
+        if self.remote is not None and not self.reference_kernel:
+            P = np.stack([self.params_of(z).pack() for z in Z])
+            t = self.recorded
+            return total(self.remote.costs(P, self.calibration(Z), t.L_d, t.lambda_pre, kind))
+        pred = self.predict(Z)
+        parts = np.empty((len(self.records), Z.shape[0]))
+        c0 = 0
+        for k, (data, sigma) in enumerate(self._targets()):
+            parts[k] = record_costs(pred, c0, data, sigma, np.isfinite(data), kind)
+            c0 += data.size
+        return total(parts)
 
     def predict_reference(self, Z: np.ndarray) -> np.ndarray:
         """:meth:`predict` through the scalar per-candidate kernel (``run_fixed_batch``): the benchmark's
