@@ -75,3 +75,13 @@ def test_tiles_finish_no_later_than_any_uniform_cut(m: int, steps: list[int], th
 
 def test_no_candidates_no_tiles() -> None:
     assert tiles(0, CAMPAIGN, 4) == [] and tiles(50, [], 4) == []
+
+
+@pytest.mark.parametrize(("c0", "n_data", "n_sigma"), [(8, 4, 4), (-1, 4, 4), (0, 4, 3)])
+def test_a_record_outside_the_prediction_is_refused_not_read_past(c0: int, n_data: int, n_sigma: int) -> None:
+    """The compiled per-record sum checks no bounds: columns beyond the prediction or a σ of another length are
+    refused before it runs."""
+    from bench.identify.record_costs import record_costs
+
+    with pytest.raises(ValueError, match="record columns"):
+        record_costs(np.zeros((3, 10)), c0, np.zeros(n_data), np.ones(n_sigma), np.ones(n_data, bool), "lsq")

@@ -736,16 +736,27 @@ def test_extend_plays_the_appended_values_on_the_next_scans(rig: Rig) -> None:
 
 
 def test_twin_says_its_serving_threads_cpu_time_from_another_thread() -> None:
-    """The benchmarks' split of a run's CPU: the twin's thread, read from the host's (NaN before it serves)."""
+    """The benchmarks' split of a run's CPU: the twin's thread, read from the host's — bracketing what that thread
+    reads of itself (NaN before it serves, its total once stopped)."""
+    import asyncio
+
     clock = VirtualClock()
     sim = LabJackT7Sim(Plant(clock, MembraneParams(), hv=HVStage()), clock, noise=False)
     assert np.isnan(sim.cpu_seconds())
     port, _ = sim.start()
     try:
-        first = sim.cpu_seconds()
         with socket.create_connection(("127.0.0.1", port), timeout=2) as s:
-            for k in range(200):  # work done on the twin's thread, not this one
+            for k in range(200):  # work done on the twin's thread
                 _transact(s, bytes.fromhex(f"{k:04x} 0000 0006 01 03 ea60 0002"))
-        assert 0.0 <= first < sim.cpu_seconds()
+        assert sim._loop is not None
+
+        async def own() -> float:
+            return time.thread_time()  # on the twin's thread
+
+        before = sim.cpu_seconds()
+        inside = asyncio.run_coroutine_threadsafe(own(), sim._loop).result(timeout=5)
+        after = sim.cpu_seconds()
+        assert 0.0 < before <= inside <= after < time.thread_time()  # not this (importing, testing) thread's
     finally:
         sim.stop()
+    assert sim.cpu_seconds() >= after  # its total, not an ended thread's id

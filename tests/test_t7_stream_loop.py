@@ -99,11 +99,16 @@ def test_the_values_a_loop_is_taken_from_are_the_last_written_as_a_bounded_queue
             assert tail.last(k).tolist() == list(ref)[max(len(ref) - k, 0):]
 
 
-def test_after_the_data_the_last_loop_num_values_repeat(rig: Rig) -> None:
-    with _raw_stream_out(rig, (LOOP, _u32(3)), (BUFFER, [100, 200, 300, 400, 500]), (SET_LOOP, _u32(1))) as sock:
+@pytest.mark.parametrize(("loop_num", "after"), [
+    (3, [300, 400, 500, 300, 400, 500]),
+    (7, [100, 200, 300, 400, 500, 100]),  # [A] more than were written: all of them repeat
+])
+def test_after_the_data_the_last_loop_num_values_repeat(rig: Rig, loop_num: int, after: list[int]) -> None:
+    data = [100, 200, 300, 400, 500]
+    with _raw_stream_out(rig, (LOOP, _u32(loop_num)), (BUFFER, data), (SET_LOOP, _u32(1))) as sock:
         rig.daq.kickoff()
         rig.sim.pump()
-        assert _scheduled(rig, 0, 11) == [100, 200, 300, 400, 500, 300, 400, 500, 300, 400, 500]
+        assert _scheduled(rig, 0, 11) == data + after
         sock.close()
 
 

@@ -34,6 +34,10 @@ def record_costs(pred: np.ndarray, c0: int, data: np.ndarray, sigma: np.ndarray,
                  kind: str) -> np.ndarray:
     """One record's partial cost of each row of ``pred`` (candidates × columns), whose columns c0 … c0 + len(data)
     are the record's; ``mask``: its data columns compared (finite); ``kind``: "sae" or "lsq"."""
+    # the compiled loop checks no bounds: a record outside the prediction would read past it
+    if not (c0 >= 0 and c0 + data.size <= pred.shape[1] and sigma.size == data.size == mask.size):
+        raise ValueError(f"record columns {c0}…{c0 + data.size} of a {pred.shape[1]}-column prediction, "
+                         f"σ {sigma.size} and mask {mask.size} for {data.size} data points")
     out = np.empty(pred.shape[0])
     _partial(np.ascontiguousarray(pred, dtype=np.float64), int(c0), np.ascontiguousarray(data, dtype=np.float64),
              np.ascontiguousarray(sigma, dtype=np.float64), np.ascontiguousarray(mask, dtype=np.bool_),

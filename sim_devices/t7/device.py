@@ -71,6 +71,8 @@ class LabJackT7Sim(RegisterIO):
         self.port = 0
         self.stream_port = 0
         self._wake_pending = False
+        self._cpu_lock = threading.Lock()
+        self._cpu_final = math.nan  # the serving thread's CPU time when it ended
 
     # ------------------------------------------------------------------ serving
     def start(self, timeout: float = 10.0, *, host: str = "127.0.0.1", port: int = 0,
@@ -97,6 +99,8 @@ class LabJackT7Sim(RegisterIO):
             loop.run_forever()
         finally:
             loop.close()
+            with self._cpu_lock:  # the thread's CPU clock is read from other threads only while it lives
+                self._cpu_final = time.thread_time()
 
     async def _serve(self, port: int, stream_port: int) -> None:
         try:
@@ -138,15 +142,16 @@ class LabJackT7Sim(RegisterIO):
 
     def cpu_seconds(self) -> float:
         """CPU time [s] the serving thread (requests, stream packets, the plant it advances) has used so far, read
-        from any thread (benchmarks: what the twin costs its host); NaN where the platform cannot say."""
-        thread = self._thread
-        getcpu = getattr(time, "pthread_getcpuclockid", None)
-        if thread is None or thread.ident is None or getcpu is None:
-            return math.nan
-        try:
+        from any thread (benchmarks: what the twin costs its host); once it has stopped, what it used in all; NaN
+        before it starts or where the platform cannot say."""
+        with self._cpu_lock:  # the thread cannot end (and its id be reused) while its clock is read
+            if not math.isnan(self._cpu_final):
+                return self._cpu_final
+            thread = self._thread
+            getcpu = getattr(time, "pthread_getcpuclockid", None)
+            if thread is None or thread.ident is None or getcpu is None:
+                return math.nan
             return time.clock_gettime(getcpu(thread.ident))
-        except (OSError, ProcessLookupError):  # the thread has ended
-            return math.nan
 
     def _on_clock(self, now: float) -> None:
         """The virtual clock moved (in the thread that moved it): pump at once if a whole packet is now due, as a

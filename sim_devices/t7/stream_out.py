@@ -11,6 +11,7 @@ the next set of values that have been set using STREAM_OUT#_SET_LOOP start being
 data written waits; at SET_LOOP it plays from the end of the repetition in progress (the end of the data if the
 loop has not started repeating), and the new LOOP_NUM_VALUES applies after it.
 [A] (the datasheet is silent; chosen to be checked on a real T7): LOOP_NUM_VALUES 0 or 1: the output holds;
+LOOP_NUM_VALUES larger than the values written since the buffer was allocated: all of those repeat;
 SET_LOOP 2/3 act as 1; BUFFER_STATUS = bytes not yet played, the loop's values counted while it repeats;
 BUFFER_ALLOCATE_NUM_BYTES empties the buffer and forgets the loop (the stream-out is reconfigured); a watchdog
 timeout with a DAC action stops a repeating loop (the DAC takes the watchdog's value, the loop does not overwrite
