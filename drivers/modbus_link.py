@@ -348,13 +348,14 @@ class ModbusLink:
         """Teach the client a device's own function code (its reply is decoded by ``pdu``)."""
         self._client.register(pdu)
 
-    def execute(self, unit: int, request: ModbusPDU, *, retry: bool = True) -> ModbusPDU:
+    def execute(self, unit: int, request: ModbusPDU, *, retry: bool = True, always_send: bool = False) -> ModbusPDU:
         """Run a request of a function taught by :meth:`register`, with the link's reply checks (function code,
         device, transaction id; an exception reply is an :class:`InstrumentStateError`) and its retries — none
         with ``retry=False``, for a request that must not take effect twice (values appended to a device's
-        buffer: after a timeout the device may have taken them, and a second attempt would append them again)."""
+        buffer: after a timeout the device may have taken them, and a second attempt would append them again).
+        ``always_send``: as for :meth:`write_register`."""
         request.dev_id = unit
-        return self._call(f"function {request.function_code}", unit, request, retry=retry)
+        return self._call(f"function {request.function_code}", unit, request, always_send, retry)
 
     def read_holding(self, unit: int, address: int, count: int = 1) -> list[int]:
         """FC3 read of ``count`` holding registers at 0-based ``address``."""
@@ -375,7 +376,7 @@ class ModbusLink:
         req = WriteSingleRegisterRequest(address=address, registers=[value], dev_id=unit)
         self._call(f"write register {address}={value}", unit, req, always_send)
 
-    def write_registers(self, unit: int, address: int, values: list[int]) -> None:
-        """FC16 write of consecutive holding registers."""
+    def write_registers(self, unit: int, address: int, values: list[int], *, always_send: bool = False) -> None:
+        """FC16 write of consecutive holding registers (``always_send``: as for :meth:`write_register`)."""
         req = WriteMultipleRegistersRequest(address=address, registers=values, dev_id=unit)
-        self._call(f"write registers {address}+{len(values)}", unit, req)
+        self._call(f"write registers {address}+{len(values)}", unit, req, always_send)

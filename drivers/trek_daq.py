@@ -116,12 +116,13 @@ class TrekOnDaq:
     def safe_state(self) -> None:
         """Stop any stream and command 0 V at once."""
         if self.daq.streaming:
-            self.daq.stop()
+            self.daq.stop(always_send=True)
         self.zero()
 
     def zero(self) -> None:
-        """Command 0 V (the DAC code nearest to 0 V at the amplifier input)."""
-        self._last_v = float(self.output_volts(self.daq.write_dac(self.dac, float(self.dac_volts(0.0)))))
+        """Command 0 V (the DAC code nearest to 0 V at the amplifier input); goes out even after a stop request."""
+        self._last_v = float(self.output_volts(self.daq.write_dac(self.dac, float(self.dac_volts(0.0)),
+                                                                  always_send=True)))
 
     def quantise(self, volts: float, within: float | None = None) -> float:
         """The output [V] a set-point of ``volts`` really commands, sending nothing: the DAC's nearest code (code =

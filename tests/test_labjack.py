@@ -760,3 +760,34 @@ def test_twin_says_its_serving_threads_cpu_time_from_another_thread() -> None:
     finally:
         sim.stop()
     assert sim.cpu_seconds() >= after  # its total, not an ended thread's id
+
+
+def test_the_safe_state_goes_out_after_a_stop_request_has_cancelled_the_rigs_waits() -> None:
+    """A stop request cancels every wait on an instrument, and the commands that make the rig safe must still go
+    out (as the analog drive's zero does): the stream's stop and the safe DAC values reach the T7, while an
+    ordinary request is refused."""
+    from drivers.cancel import CancelToken
+    from drivers.errors import OperationCancelledError
+
+    rig, token = Rig(), CancelToken()
+    try:
+        rig.daq.close()
+        rig.daq = LabJackT7("127.0.0.1", port=rig.port, stream_port=rig.stream_port, clock=rig.clock.now,
+                            sleep=rig.clock.sleep, safe_dac=(2.5, 1.0), timeout=1.0, cancel=token)
+        rig.daq.connect()
+        rig.daq.arm(StreamSpec(10_000.0, (StreamIn(0),), StreamOut(0, np.full(2000, 4.0))))
+        rig.daq.kickoff()
+        rig.clock.advance(0.05)
+        assert rig.sim.streaming
+        token.cancel("operator stop")
+        with pytest.raises(OperationCancelledError):
+            rig.daq.write_dac(1, 3.0)  # not a safe command: cancelled
+        rig.daq.safe_state()
+        assert not rig.sim.streaming
+        assert rig.sim.dac_volts == pytest.approx([2.5, 1.0], abs=2e-3)  # within one 12-bit step of 0–5 V
+        # the amplifier's zero on the DAQ: 0 V at the amplifier input is (0 − offset)/gain = 2.5 V on DAC1 here
+        TrekOnDaq(rig.daq, TREK_MODELS["10/10B-HS"], dac=1, gain=4.0, offset=-10.0).zero()
+        assert rig.sim.dac_volts[1] == pytest.approx(2.5, abs=2e-3)
+    finally:
+        token.clear()
+        rig.close()

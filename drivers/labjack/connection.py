@@ -129,17 +129,19 @@ class T7Connection:
         """
         self.feedback(writes, retry=False)
 
-    def feedback(self, frames: Sequence[Frame], *, retry: bool = True) -> list[list[int]]:
+    def feedback(self, frames: Sequence[Frame], *, retry: bool = True, always_send: bool = False) -> list[list[int]]:
         """Reads and writes in order, in as few Modbus Feedback packets as hold them ([D] MBFB: the frames of a
         packet run in order, the reply carries the reads' data): one round trip where each register alone would
         take one. Returns the registers of each read frame, in order. ``retry``: a packet whose reply was lost is
-        sent again (only for frames that may take effect twice: not a stream-out buffer's)."""
+        sent again (only for frames that may take effect twice: not a stream-out buffer's). ``always_send``: each
+        packet's first attempt goes out even after a stop request (a command that makes the rig safe:
+        :meth:`~drivers.modbus_link.ModbusLink.write_register`)."""
         out: list[list[int]] = []
         for packet in feedback_packets(frames):
             counts = [n for f in packet if (n := read_count(f)) is not None]
             what = f"feedback of {len(packet)} frames at {packet[0][0]}"
-            reply = self._lj(what, lambda unit, pdu: self.link.execute(unit, pdu, retry=retry), Feedback(packet),
-                             packet=packet)
+            reply = self._lj(what, lambda unit, pdu: self.link.execute(unit, pdu, retry=retry, always_send=always_send),
+                             Feedback(packet), packet=packet)
             data = getattr(reply, "data", b"")
             if len(data) != 2 * sum(counts):
                 raise ProtocolError(self.name, f"{what}: {len(data)} bytes of read data, {2 * sum(counts)} expected")

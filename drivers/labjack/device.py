@@ -51,14 +51,15 @@ class LabJackT7(T7Stream, T7Watchdog):
                                           "hardware": f"{words_f32(hardware):.2f}"})
 
     def safe_state(self) -> None:
-        """Stop the stream (the DACs stop updating) and write the safe DAC values."""
+        """Stop the stream (the DACs stop updating) and write the safe DAC values — both go out even after a stop
+        request has cancelled the rig's waits."""
         if not self.link.is_open:
             return
         try:
-            self.stop()
+            self.stop(always_send=True)
         finally:
             for ch, v in enumerate(self.safe_dac):
-                self.write_dac(ch, v)
+                self.write_dac(ch, v, always_send=True)
 
     def close(self) -> None:
         """Safe state, then release both sockets."""

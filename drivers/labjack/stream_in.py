@@ -310,16 +310,18 @@ class T7Stream(T7StreamOut):
                 return blocks
             self.sleep(poll)
 
-    def stop(self) -> StreamBlock | None:
+    def stop(self, *, always_send: bool = False) -> StreamBlock | None:
         """STREAM_ENABLE = 0 (the DAC keeps its last value) and close the stream socket; returns the complete
-        scans that had arrived (a partly filled packet is not sent by the device)."""
+        scans that had arrived (a partly filled packet is not sent by the device). ``always_send``: the stop goes
+        out even after a stop request (making the rig safe)."""
         s = self._stream
         if s is None or s.sock is None:
             return None
         block = None
         try:
             if self.streaming:
-                self._lj("stop stream", self.link.write_registers, STREAM_ENABLE, u32_words(0))
+                self._lj("stop stream", lambda unit, *a: self.link.write_registers(unit, *a, always_send=always_send),
+                         STREAM_ENABLE, u32_words(0))
             self.streaming = False
             with contextlib.suppress(InstrumentError):  # stopping must not fail on the data's account
                 block = self.collect(timeout=0.0)

@@ -58,12 +58,14 @@ class T7StreamOut(T7Connection):
         play them."""
         return self.cal.dac_volts(self.cal.dac_codes(volts, dac, within, self.dac_bits), dac, self.dac_bits)
 
-    def write_dac(self, dac: int, volts: float, within: tuple[float, float] | None = None) -> float:
+    def write_dac(self, dac: int, volts: float, within: tuple[float, float] | None = None, *,
+                  always_send: bool = False) -> float:
         """Set DAC0/DAC1 [V]; refuses values outside the DAC's 0–5 V. Returns what the DAC outputs: the 12-bit
         level of the code the T7 makes of the value. ``within`` (lo, hi) [V]: that output lies within [lo, hi]
-        (:meth:`dac_output` chooses the value sent)."""
+        (:meth:`dac_output` chooses the value sent). ``always_send``: goes out even after a stop request (a safe
+        value)."""
         send, played = self.dac_output(dac, volts, within)
-        self.feedback([(DAC0 + 2 * dac, f32_words(send))])  # MBFB: the T7's own command-response format
+        self.feedback([(DAC0 + 2 * dac, f32_words(send))], always_send=always_send)  # MBFB: the T7's own format
         return played
 
     def dac_coding(self, dac: int, within: tuple[float, float]) -> DacCoding:
