@@ -303,10 +303,14 @@ class LinMotDrive:
                                                   "state": STATE_NAMES.get(resp.main_state, str(resp.main_state))})
 
     def safe_state(self) -> None:
-        """Abort motion (controlled stop, position held) if the drive is operating."""
-        resp = self.poll()
-        if resp.main_state == 8 and resp.status_word & SW_MOTION_ACTIVE:
-            self.stop()
+        """Abort whatever the drive is doing — a go-to, homing, a jog, its own special motions — with a controlled
+        stop, position held (MC-SW §3.12 /Abort; §3.22: Home and the other special-motion bits are levels, and the
+        abort word clears them). Where this driver switched the drive on, the abort goes out first, before any
+        reply is waited for: a stop request cancels waits, and a serial write always goes out. Otherwise one poll
+        decides: a drive not operating (main state below 8) is left as it is — nothing here switches it on."""
+        if not self._control_word & CW_SWITCH_ON and self.poll().main_state < 8:
+            return
+        self.stop()
 
     # ----------------------------------------------------------- LinearMotor
     def enable(self, home: bool = True) -> None:

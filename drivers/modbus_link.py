@@ -26,7 +26,6 @@ import threading
 import time
 from typing import cast
 
-import serial
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOException
 from pymodbus.framer import FramerRTU
@@ -47,12 +46,7 @@ from drivers.errors import (
     OperationCancelledError,
     ProtocolError,
 )
-from drivers.serial_link import POLL_SLICE_S, set_slice_timeout
-
-try:  # pyserial's POSIX port lets termios.error (not an OSError) out of reset_input_buffer on a dead pty
-    from termios import error as _termios_error
-except ImportError:  # pragma: no cover - Windows
-    _termios_error = OSError  # type: ignore[misc,assignment]  # the same name bound to another class there
+from drivers.serial_link import POLL_SLICE_S, PORT_ERRORS, set_slice_timeout
 
 EXCEPTION_TEXT = {1: "illegal function", 2: "illegal data address", 3: "illegal data value",
                   4: "device failure", 5: "acknowledge", 6: "device busy", 11: "gateway target failed to respond"}
@@ -213,7 +207,7 @@ class ModbusLink:
         if isinstance(client, _SerialClient) and client.socket is not None:
             try:
                 client.socket.reset_input_buffer()
-            except (OSError, _termios_error, serial.SerialException):
+            except PORT_ERRORS:
                 client.close()
                 raise InstrumentConnectionError(self.device, f"Modbus link {self.url} lost during {what}") \
                     from None

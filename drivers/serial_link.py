@@ -25,6 +25,14 @@ from drivers.cancel import CancelToken
 from drivers.deadline import WALL, Deadline, ReplyTimer
 from drivers.errors import InstrumentConnectionError, InstrumentTimeoutError
 
+try:  # pyserial's POSIX port lets termios.error (not an OSError) out of reset_input_buffer on a dead pty
+    from termios import error as _termios_error
+except ImportError:  # pragma: no cover - Windows
+    _termios_error = OSError  # type: ignore[misc,assignment]  # the same name bound to another class there
+
+PORT_ERRORS = (serial.SerialException, OSError, _termios_error)
+"""What a serial port's calls raise when its line is gone: a lost link, not a crash of the caller."""
+
 POLL_SLICE_S = 0.05  # longest single blocking read: a stop request is seen within one slice
 QUIET_S = 0.02  # after an abandoned read: the line counts as quiet (late reply over) after this long
 MAX_DRAIN_S = 0.25  # ... but a write waits at most this long for that
@@ -72,7 +80,7 @@ class SerialLink:
                                          write_timeout=self.timer.bound(self.timeout),
                                          exclusive=self.exclusive)
             self._port = port
-        except (serial.SerialException, OSError, ValueError) as exc:
+        except (*PORT_ERRORS, ValueError) as exc:
             errno = getattr(exc, "errno", None)
             reason = os.strerror(errno) if isinstance(errno, int) else str(exc)
             raise InstrumentConnectionError(self.device, f"cannot open {self.url}: {reason}") from None
@@ -101,7 +109,7 @@ class SerialLink:
         self._dirty = False
         try:
             port.reset_input_buffer()
-        except (serial.SerialException, OSError) as exc:
+        except PORT_ERRORS as exc:
             raise self._lost(exc) from None
 
     def _drain(self, port: serial.Serial) -> None:
@@ -117,7 +125,7 @@ class SerialLink:
                     quiet_since = time.monotonic()
                 else:
                     time.sleep(0.002)
-        except (serial.SerialException, OSError) as exc:
+        except PORT_ERRORS as exc:
             raise self._lost(exc) from None
 
     def write(self, data: bytes) -> None:
@@ -134,7 +142,7 @@ class SerialLink:
             port.write(data)
         except serial.SerialTimeoutException:
             raise InstrumentTimeoutError(self.device, f"write to {self.url} timed out") from None
-        except (serial.SerialException, OSError) as exc:
+        except PORT_ERRORS as exc:
             raise self._lost(exc) from None
 
     def _slice_timeout(self, port: serial.Serial, deadline: Deadline) -> None:
@@ -162,7 +170,7 @@ class SerialLink:
                 buf += port.read(n - len(buf))
                 if len(buf) < n and deadline.expired():
                     raise self._timed_out(waited, deadline, bytes(buf), f", {len(buf)} of {n} bytes")
-        except (serial.SerialException, OSError) as exc:
+        except PORT_ERRORS as exc:
             raise self._lost(exc) from None
         return bytes(buf)
 
@@ -193,5 +201,5 @@ class SerialLink:
                     raise self._timed_out(waited, deadline, bytes(buf))
                 self._slice_timeout(port, deadline)
                 buf += port.read(max(1, min(port.in_waiting, max_size - len(buf))))
-        except (serial.SerialException, OSError) as exc:
+        except PORT_ERRORS as exc:
             raise self._lost(exc) from None

@@ -129,3 +129,17 @@ def test_a_late_reply_to_an_abandoned_read_is_dropped_before_the_next_request(pe
     os.write(peer.master, b"fresh reply\r")
     assert link.read_until(b"\r") == b"fresh reply\r"
     link.close()
+
+
+def test_a_pty_gone_from_under_the_link_is_a_lost_link_not_a_termios_error() -> None:
+    """pyserial lets termios.error (no OSError) out of reset_input_buffer when the far end of a pty has gone: the
+    link says it is lost, one line naming the device, as for any other dead port."""
+    from drivers.errors import InstrumentConnectionError
+
+    p = PtyPeer()
+    link = SerialLink(p.name, "probe", timeout=0.1, exclusive=False)
+    link.open()
+    os.close(p.master)
+    os.close(p.slave)
+    with pytest.raises(InstrumentConnectionError, match=r"probe: link on .* lost"):
+        link.discard_input()

@@ -238,3 +238,40 @@ def test_a_state_wait_polls_every_10_ms_by_default() -> None:
         d.link.open()
         d._wait(lambda r: r.main_state == 8, "operation enabled")
     assert pauses == [0.01, 0.01]
+
+
+ABORT = bytes.fromhex("01 11 05 02 00 01 2F 00 04")  # 003Fh with bit 4 /Abort clear (§3.12) and Home (bit 11) clear
+REARM = bytes.fromhex("01 11 05 02 00 01 3F 00 04")
+
+
+def test_the_safe_state_aborts_homing_first_without_waiting_for_a_poll() -> None:
+    """Homing is a motion too: the safe state clears /Abort with Home released (both levels, §3.22) as its first
+    telegram — no poll before it — then re-arms; the drive rests in position (§3.12)."""
+    script = [(bytes.fromhex("01 11 05 02 00 01 3F 08 04"), response(0x2036, 0x0901, 0)),  # homing under way
+              (ABORT, response(0x4C37, 0x0C00, 0)), (REARM, response(0x4C37, 0x0800, 0))]
+    with expected_protocol("safe-homing", script) as url:
+        d = drive(url)
+        d.write_control_word(0x083F)
+        d.safe_state()
+
+
+def test_the_safe_state_s_abort_goes_out_after_a_stop_request() -> None:
+    """With the stop request's token set, the abort still goes out (a serial write always does); only the wait
+    for its reply is abandoned — the drive stays stopped, /Abort clear."""
+    token = CancelToken()
+    script = [(bytes.fromhex("01 11 05 02 00 01 3F 00 04"), response(0x6C37, 0x08E3, 0)),  # a go-to under way
+              (ABORT, response(0x4C37, 0x0C00, 0))]
+    with expected_protocol("safe-cancelled", script) as url:
+        d = drive(url)
+        d.write_control_word(0x003F)
+        d.link.cancel = token
+        token.cancel("Ctrl-C")
+        with pytest.raises(OperationCancelledError, match="Ctrl-C"):
+            d.safe_state()
+
+
+def test_the_safe_state_leaves_a_drive_it_did_not_switch_on_as_it_is() -> None:
+    """A drive this driver never switched on, found ready to switch on (main state 2): one poll, nothing that
+    could switch it on."""
+    with expected_protocol("safe-off", [(POLL, response(0x0036, 0x0200, 0))]) as url:
+        drive(url).safe_state()

@@ -728,6 +728,8 @@ class Engine:
                 drivers[role].safe_state()
             except InstrumentError as exc:
                 notes.append(f"{role} safe state failed: {exc}")
+            except Exception as exc:  # anything a dead port lets out: said, and the next instrument still made safe
+                notes.append(f"{role} safe state failed: {type(exc).__name__}: {exc}")
         return notes
 
     def _verify_safe(self, zero_at: float | None, notes: list[str]) -> str:

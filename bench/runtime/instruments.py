@@ -74,16 +74,23 @@ class Instruments:
                 yield role, drv
 
     def _each(self, method: str) -> list[str]:
+        """``method`` of every instrument — the output's path first (DAQ, amplifier), then the motor, then the
+        rest — each tried whatever the one before raised: one failure (a driver's, or anything else a dead port
+        lets out) must not leave the next instrument unsafe. Returns the errors met, one line each."""
         errors = []
-        for role, drv in self.items():
+        first = {"daq": 0, "amplifier": 1, "motor": 2}
+        for role, drv in sorted(self.items(), key=lambda item: first.get(item[0], 3)):
             try:
                 getattr(drv, method)()
             except InstrumentError as exc:
                 errors.append(f"{role}: {exc}")
+            except Exception as exc:  # not a driver's error: said in the same line, never skipping the rest
+                errors.append(f"{role}: {type(exc).__name__}: {exc}")
         return errors
 
     def safe_state(self) -> list[str]:
-        """Every instrument to its safe state (HV zero first); returns the errors met, one line each."""
+        """Every instrument to its safe state (HV zero first, then the motor); returns the errors met, one line
+        each."""
         return self._each("safe_state")
 
     def close(self) -> list[str]:

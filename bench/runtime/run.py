@@ -267,10 +267,12 @@ def execute(plan: Plan, out: Path, *, virtual: bool = False, operator: OperatorF
             on_engine(engine, sim)
         if sim is not None and sim.replay is not None:
             sim.replay.anchor(clock.now())  # record time 0 = this run's time 0 (the engine starts its clock now)
-        result = engine.run()
+        try:
+            result = engine.run()
+        finally:  # a fault latches even when the run ends by an exception the engine let through
+            if engine.latched is not None:
+                latch(rig.name, engine.latched.reason, str(out))
         catalog.record_end(out, hv=recorder.hv_stats())  # the file's data, counted as it was written
-        if engine.latched is not None:
-            latch(rig.name, engine.latched.reason, str(out))
         return result
     finally:
         inst.close()

@@ -8,12 +8,14 @@ import math
 from drivers.errors import InstrumentStateError
 from drivers.interfaces import CheckResult, Identity
 from drivers.labjack.registers import (
+    DAC0,
     FIRMWARE_VERSION,
     HARDWARE_VERSION,
     PRODUCT_ID,
     PRODUCT_T7,
     SERIAL_NUMBER,
     STREAM_ENABLE,
+    f32_words,
     words_f32,
     words_u32,
 )
@@ -51,15 +53,16 @@ class LabJackT7(T7Stream, T7Watchdog):
                                           "hardware": f"{words_f32(hardware):.2f}"})
 
     def safe_state(self) -> None:
-        """Stop the stream (the DACs stop updating) and write the safe DAC values — both go out even after a stop
-        request has cancelled the rig's waits."""
+        """Stop the stream (the DACs stop updating) and write the safe DAC values, both DACs in one MBFB packet (one
+        failing cannot leave the other unwritten) — all of it goes out even after a stop request has cancelled the
+        rig's waits."""
         if not self.link.is_open:
             return
         try:
             self.stop(always_send=True)
         finally:
-            for ch, v in enumerate(self.safe_dac):
-                self.write_dac(ch, v, always_send=True)
+            self.feedback([(DAC0 + 2 * ch, f32_words(self.dac_output(ch, v)[0])) for ch, v in enumerate(self.safe_dac)],
+                          always_send=True)
 
     def close(self) -> None:
         """Safe state, then release both sockets."""
