@@ -59,3 +59,37 @@ def test_a_latched_fault_is_kept_when_the_run_ends_by_an_exception(tmp_path: Pat
     assert latched(plan.rig.name) is not None
     with pytest.raises(LatchedError):
         refuse_if_latched(plan.rig.name)
+
+
+def test_sigterm_while_the_motor_homes_closes_the_instruments_instead_of_killing_the_process(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Before the engine installs its handlers, SIGTERM (as Ctrl-C already did) ends the run by an exception that
+    names it, so the instruments are closed — the LinMot's safe state aborts the homing — rather than the process
+    dying with the motor moving."""
+    import os
+    import signal
+
+    from drivers.errors import OperationCancelledError
+    from drivers.linmot import LinMotDrive
+
+    home, closed = LinMotDrive.home, []
+
+    def homing(self: LinMotDrive) -> None:
+        os.kill(os.getpid(), signal.SIGTERM)  # arrives while the drive homes
+        home(self)
+
+    close = Instruments.close
+
+    def spy(self: Instruments) -> list[str]:
+        closed.append(True)
+        return close(self)
+
+    monkeypatch.setattr(LinMotDrive, "home", homing)
+    monkeypatch.setattr(Instruments, "close", spy)
+    plan = plan_run(ROOT / "protocols" / "short" / "lsdea-isometric-short.toml",
+                    ROOT / "rigs" / "lsdea-motor-sim.toml")
+    before = signal.getsignal(signal.SIGTERM)
+    with pytest.raises(OperationCancelledError, match="SIGTERM while connecting the instruments"):
+        execute(plan, tmp_path / "run.h5", virtual=True)
+    assert closed == [True]
+    assert signal.getsignal(signal.SIGTERM) is before  # the handler was the connect phase's only

@@ -90,6 +90,26 @@ def stop_signals(on_stop: Callable[[str, int], None], on_pause: Callable[[str], 
             signal.signal(sig, handler)
 
 
+@contextlib.contextmanager
+def termination_raises(what: str) -> Iterator[None]:
+    """Within (before the engine has its own handlers: connecting, enabling and homing the motor): SIGTERM, SIGHUP
+    and SIGQUIT raise, as Ctrl-C already does there, an :class:`OperationCancelledError` naming the signal and
+    ``what`` was under way — so the caller's ``finally`` closes the instruments (output zeroed, motor aborted)
+    instead of the process dying with a homing motor. The old handlers after; main thread only."""
+    old: list[tuple[signal.Signals, Any]] = []
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT):
+            def handler(s: int, _f: FrameType | None) -> None:
+                raise OperationCancelledError("run", f"{STOP_SIGNALS[signal.Signals(s)]} while {what}")
+
+            old.append((sig, signal.signal(sig, handler)))
+    try:
+        yield
+    finally:
+        for sig, h in old:
+            signal.signal(sig, h)
+
+
 class StopRequested(Exception):  # noqa: N818 - control flow, not a failure
     """Ctrl-C / SIGTERM / a stop request from another thread."""
 

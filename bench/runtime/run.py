@@ -29,7 +29,7 @@ from bench.protocol.program import (
 from bench.protocol.schema import MAX_OPERATOR, MAX_SPECIMEN_ID, Protocol, check_label, check_notes, load_protocol
 from bench.rig import RigConfig, load_rig_text, rig_to_toml
 from bench.runtime.control import control_path
-from bench.runtime.engine import Engine, OperatorFn, RunResult
+from bench.runtime.engine import Engine, OperatorFn, RunResult, termination_raises
 from bench.runtime.hardware_timed import describe_streams
 from bench.runtime.instruments import Instruments, build_instruments
 from bench.runtime.interlock import watchdog_period
@@ -221,10 +221,11 @@ def execute(plan: Plan, out: Path, *, virtual: bool = False, operator: OperatorF
         clock = WallClock()
         inst = build_instruments(rig, clock=clock.now, sleep=clock.sleep)
     try:
-        for _, drv in inst.items():
-            drv.connect()
-        if inst.motor is not None and program.has_motor_axis:
-            inst.motor.enable()
+        with termination_raises("connecting the instruments (and homing the motor)"):
+            for _, drv in inst.items():
+                drv.connect()
+            if inst.motor is not None and program.has_motor_axis:
+                inst.motor.enable()
         spec = rig.specimen
         params = spec.membrane() if spec.kind == "membrane" else spec.lozenge()
         if sim is not None:
