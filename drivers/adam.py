@@ -24,6 +24,7 @@ from drivers.modbus_link import ModbusLink
 
 REG_VALUE = 0
 REG_MODULE_NAME = 210
+REG_SAFETY_ENABLE = 214  # 40215 communication-safety (watchdog) enable: 1 = on (App. G p. G-7)
 REG_SAFETY_FLAG = 215  # 40216 communication-safety flag: 1 once the module's watchdog has fired
 
 
@@ -114,6 +115,11 @@ class Adam4024(AdamModule):
             raise ValueError(f"{self.name}: register value {raw} outside 0…65535")
         self.link.write_register(self.unit, REG_VALUE + channel, raw, always_send=always_send)
         return raw
+
+    def safety_enabled(self) -> int:
+        """The communication-safety (watchdog) enable register 40215 as the module reports it: 1 = on, 0 = off
+        (App. G p. G-7; any other value is not one the manual gives)."""
+        return self.link.read_holding(self.unit, REG_SAFETY_ENABLE, 1)[0]
 
     def safety_flag(self) -> bool:
         """Whether the module's communication watchdog has fired since the flag was last cleared (40216)."""

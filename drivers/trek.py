@@ -6,6 +6,12 @@ set-point through an ADAM-4024 analog output and reads the monitors through an A
 pretends the TREK speaks a protocol. It enforces a software voltage limit (refusing, not clipping, a
 set-point beyond it, and holding it on the code sent: never a code whose output lies beyond), a software slew
 limit (clamping each step to slew·elapsed time), and zero on close.
+
+Where the rig expects the ADAM-4024's communication watchdog (``comm_watchdog_s``: what zeroes the amplifier's
+input when the host stalls or dies), :meth:`TrekAmplifier.connect` reads the module's communication-safety enable
+(40215, ADAM-4000 manual appendix G p. G-7) and refuses a module that reports it off, as the T7 path reads its
+watchdog settings back (:mod:`drivers.labjack.watchdog`). The period itself has no register in the pages read: it
+is not checked.
 """
 
 from __future__ import annotations
@@ -15,7 +21,7 @@ import time
 from dataclasses import dataclass
 
 from drivers.adam import Adam4017P, Adam4024
-from drivers.errors import LimitError
+from drivers.errors import InstrumentStateError, LimitError
 from drivers.interfaces import CheckResult, ClockFn, DataKey, Identity, Reading, ReadingMap, StreamDescription
 
 
@@ -42,7 +48,8 @@ class TrekAmplifier:
 
     def __init__(self, ao: Adam4024, ai: Adam4017P, *, name: str = "amplifier", model: str = "10/10B-HS",
                  ao_channel: int = 0, vmon_channel: int = 0, imon_channel: int = 1, max_voltage: float = 10e3,
-                 slew_limit: float = 1e6, clock: ClockFn = time.monotonic, trek: TrekModel | None = None) -> None:
+                 slew_limit: float = 1e6, clock: ClockFn = time.monotonic, trek: TrekModel | None = None,
+                 comm_watchdog_s: float | None = None) -> None:
         if model not in TREK_MODELS and trek is None:
             raise ValueError(f"{name}: unknown TREK model {model!r}; known: {', '.join(TREK_MODELS)}")
         self.trek = trek or TREK_MODELS[model]
@@ -59,6 +66,7 @@ class TrekAmplifier:
         self.ao_channel, self.vmon_channel, self.imon_channel = ao_channel, vmon_channel, imon_channel
         self.max_voltage = max_voltage
         self.slew_limit = slew_limit
+        self.comm_watchdog_s = comm_watchdog_s  # the rig expects the ADAM-4024's watchdog (None: not checked)
         self.clock = clock
         self._last_v = 0.0
         self._last_t: float | None = None
@@ -69,7 +77,9 @@ class TrekAmplifier:
         return self._last_v
 
     def connect(self) -> None:
-        """Open the bus, check both modules are what the rig says, and command 0 V."""
+        """Open the bus, check both modules are what the rig says, command 0 V, and (where the rig expects one)
+        check the ADAM-4024's communication watchdog is on: InstrumentStateError, after the 0 V, if it reports
+        it off."""
         self.ao.link.open()
         if self.ai.link is not self.ao.link:
             self.ai.link.open()
@@ -78,6 +88,12 @@ class TrekAmplifier:
         if self.ao.safety_flag():  # fired while no host talked to it (the end of an earlier session): a fresh start
             self.ao.clear_safety_flag()
         self.zero()
+        if self.comm_watchdog_s is not None and (on := self.ao.safety_enabled()) != 1:
+            raise InstrumentStateError(self.ao.name, f"ADAM-4024 unit {self.ao.unit}: communication watchdog "
+                                       f"reported off (register 40215 reads {on}, 1 = on) but the rig expects "
+                                       f"one (amplifier.comm_watchdog_s = {self.comm_watchdog_s:g} s): enable "
+                                       "the module's communication safety, or set comm_watchdog_s to none and "
+                                       "run with --allow-no-watchdog")
 
     def close(self) -> None:
         """Zero the output, then release the bus."""

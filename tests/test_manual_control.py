@@ -18,7 +18,7 @@ from typer.testing import CliRunner
 
 from bench.cli import app
 from bench.rig import load_rig
-from bench.runtime.manual import ManualSession
+from bench.runtime.manual import ManualSession, Refused
 
 ROOT = Path(__file__).resolve().parent.parent
 MOTOR_RIG = ROOT / "rigs" / "lsdea-motor-sim.toml"
@@ -629,10 +629,13 @@ class _SeenLock:
         self.got = threading.Event()
         self.waited = threading.Event()
         self.tried = threading.Event()  # either of the two
+        self.stop_waited = threading.Event()  # another thread (the stop) found it held and waited
 
     def __enter__(self) -> None:
         if threading.current_thread().name != "manual-keepalive":
-            self._lock.acquire()
+            if not self._lock.acquire(blocking=False):
+                self.stop_waited.set()
+                self._lock.acquire()
         elif self._lock.acquire(blocking=False):
             self.got.set()
             self.tried.set()
@@ -672,3 +675,80 @@ def test_the_keep_alive_waits_while_a_command_error_is_handled(tmp_path: Path, m
         out = s.execute("wait 1")
         assert out.status == "error" and "output zeroed" in out.text, out
         assert during == [False] and lock.waited.is_set()  # it waited for the lock: nothing sent meanwhile
+
+
+# ADAM-4024 datasheet: 12-bit offset binary over ±10 V, TREK 1000 V/V: 0 V → code 2047.5 → 2048 (0x0800), the
+# code the stop's zero sends; every code above it is a positive set-point.
+ZERO_CODE = 2048
+
+
+def _ao_writes(s: ManualSession, monkeypatch) -> list[int]:
+    """The codes written to the ADAM-4024's output register from now on (a recording link)."""
+    amp = s._amp()
+    link, unit, channel = amp.ao.link, amp.ao.unit, amp.ao_channel
+    codes: list[int] = []
+    write = link.write_register
+
+    def recording(u: int, address: int, value: int, *, always_send: bool = False) -> None:
+        write(u, address, value, always_send=always_send)
+        if u == unit and address == channel:  # 40001 + channel (App. G p. G-7)
+            codes.append(value)
+    monkeypatch.setattr(link, "write_register", recording)
+    return codes
+
+
+def test_nothing_follows_the_zero_once_the_stop_has_begun(tmp_path: Path, monkeypatch) -> None:
+    """A keep-alive tick (or a set-point) that lands after the session's stop has zeroed the output sends nothing:
+    before, the keep-alive re-sent the held set-point (2 kV) after the zero. Checked on the codes written."""
+    after: list[object] = []
+    with ManualSession(load_rig(THESIS_RIG), tmp_path / "s.log", virtual=True, echo=lambda _t: None) as s:
+        assert s.execute("voltage 2kV").status == "ok"
+        engine, amp = s._engine(), s._amp()
+        codes = _ao_writes(s, monkeypatch)
+        safe_state = amp.safe_state
+
+        def then_a_tick() -> None:  # the stop's 0 V, then the keep-alive thread's turn
+            safe_state()
+            after.append(len(codes))
+            engine.keep_alive()
+            try:
+                engine.voltage(2000.0)
+            except Refused as exc:
+                after.append(str(exc))
+        monkeypatch.setattr(amp, "safe_state", then_a_tick)
+    zeroed = after[0]
+    assert isinstance(zeroed, int) and codes[zeroed - 1] == ZERO_CODE, codes  # the tick came after the stop's zero
+    assert set(codes[zeroed:]) <= {ZERO_CODE}, codes  # after it, 0 V alone (closing zeroes again)
+    assert len(after) == 2 and isinstance(after[1], str), after  # the set-point was refused
+    assert "\n" not in after[1] and "session is ending" in after[1] and "not sent" in after[1], after
+
+
+def test_the_stop_waits_for_a_set_point_in_flight(tmp_path: Path, monkeypatch) -> None:
+    """A keep-alive set-point already on the wire when the stop begins is sent before the stop's ramp and zero,
+    never after them: the stop takes the engine's set-point lock (here it finds it held, waits, and the set-point
+    in flight is released only then)."""
+    with ManualSession(load_rig(THESIS_RIG), tmp_path / "s.log", virtual=True, echo=lambda _t: None) as s:
+        assert s.execute("voltage 2kV").status == "ok"
+        engine, amp = s._engine(), s._amp()
+        codes = _ao_writes(s, monkeypatch)
+        seen = _SeenLock()
+        engine._setpoint_lock = seen  # type: ignore[assignment]
+        in_flight, release = threading.Event(), threading.Event()
+        set_voltage = amp.set_voltage
+
+        def held(volts: float, within: float | None = None) -> float:
+            in_flight.set()
+            assert release.wait(10)
+            return set_voltage(volts, within)
+        monkeypatch.setattr(amp, "set_voltage", held)
+        tick = threading.Thread(target=engine.keep_alive, name="manual-keepalive")
+        tick.start()
+        assert in_flight.wait(10)
+        monkeypatch.setattr(amp, "set_voltage", set_voltage)  # the stop's own ramp goes straight out
+        releaser = threading.Thread(target=lambda: (seen.stop_waited.wait(10), release.set()))
+        releaser.start()
+    tick.join(10)
+    releaser.join(10)
+    assert seen.stop_waited.is_set() and not tick.is_alive()
+    first_zero = codes.index(ZERO_CODE)
+    assert codes[0] > ZERO_CODE and set(codes[first_zero:]) == {ZERO_CODE}, codes  # the tick's code, then the stop

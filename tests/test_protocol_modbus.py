@@ -6,12 +6,16 @@ import math
 
 import pytest
 
+from bench.rig import RigConfig, load_rig
+from bench.runtime.instruments import build_instruments
+from bench.runtime.sim_rig import SimRig
 from drivers.adam import Adam4017P, Adam4024, RawScale
 from drivers.cancel import CancelToken
 from drivers.dini import DiniDGT1S
 from drivers.errors import InstrumentStateError, InstrumentTimeoutError, LimitError, OperationCancelledError
 from drivers.modbus_link import ModbusLink
 from drivers.trek import TrekAmplifier, TrekModel
+from tests.conftest import RIGS
 from tests.protocol_expect import expected_protocol, rtu
 
 
@@ -232,3 +236,67 @@ def test_the_watchdog_flag_is_40216_read_and_cleared() -> None:
         assert amp.watchdog_fired() is True
         amp.ao.clear_safety_flag()
         assert amp.watchdog_fired() is False
+
+
+# ADAM-4000 manual, appendix G p. G-7: 40215 is the communication-safety (WDT) enable, 1 = on; protocol address
+# 40215 − 40001 = 214 = 0x00D6. Connect reads both module names (40211, 0x00D2), the flag (40216, 0x00D7), sends
+# 0 V (ADAM-4024 datasheet: 12-bit offset binary over ±10 V, 0 V → code 2047.5 → 2048 = 0x0800), then the enable.
+def _connect_script(enable: bytes) -> list[tuple[bytes, bytes | None]]:
+    return [(rtu(1, 3, b"\x00\xd2\x00\x02"), rtu(1, 3, 4, b"\x40\x24\x00\x00")),
+            (rtu(2, 3, b"\x00\xd2\x00\x02"), rtu(2, 3, 4, b"\x40\x17\x50\x00")),
+            (rtu(1, 3, b"\x00\xd7\x00\x01"), rtu(1, 3, 2, b"\x00\x00")),
+            (rtu(1, 6, b"\x00\x00\x08\x00"), rtu(1, 6, b"\x00\x00\x08\x00")),
+            (rtu(1, 3, b"\x00\xd6\x00\x01"), rtu(1, 3, 2, enable))]
+
+
+def _expecting_watchdog(url: str) -> TrekAmplifier:
+    link = ModbusLink(url, "bus io", timeout=0.05, retries=0)
+    return TrekAmplifier(Adam4024(link, 1, "amplifier AO"), Adam4017P(link, 2), max_voltage=8000,
+                         clock=lambda: 0.0, comm_watchdog_s=1.0)
+
+
+def test_connect_refuses_an_adam_4024_whose_watchdog_is_off_when_the_rig_expects_one() -> None:
+    with expected_protocol("wdt-off", _connect_script(b"\x00\x00")) as url:
+        amp = _expecting_watchdog(url)
+        with pytest.raises(InstrumentStateError) as err:
+            amp.connect()
+    text = str(err.value)
+    assert "\n" not in text and text.startswith("amplifier AO: ADAM-4024 unit 1")
+    assert "register 40215 reads 0" in text and "comm_watchdog_s = 1 s" in text
+    assert amp.commanded == pytest.approx(20e3 * 2048 / 4095 - 10e3)  # refused after the 0 V, not before
+
+
+def test_connect_accepts_an_adam_4024_whose_watchdog_is_on() -> None:
+    with expected_protocol("wdt-on", _connect_script(b"\x00\x01")) as url:
+        _expecting_watchdog(url).connect()
+
+
+def _twin_amplifier(watchdog_on: bool) -> None:
+    """thesis-sim's twins (the rig expects a 1-s watchdog), the ADAM-4024 twin's 40215 written as the module's
+    configuration would leave it, then the rig's amplifier driver connected."""
+    data = load_rig(RIGS / "thesis-sim.toml").model_dump()
+    data["amplifier"] = {**data["amplifier"], "comm_watchdog_s": 1.0}
+    rig = RigConfig.model_validate(data)
+    sim = SimRig(rig, virtual=True, timing="none")
+    sim.start()
+    try:
+        sim.twins["amplifier AO"].write(6, 214, [int(watchdog_on)])  # FC6 to 40215 (address 214)
+        inst = build_instruments(rig, sim.port_map(), clock=sim.clock.now, sleep=sim.clock.sleep,
+                                 timers=sim.reply_timers())
+        assert inst.amplifier is not None
+        try:
+            inst.amplifier.connect()
+        finally:
+            inst.close()
+    finally:
+        sim.stop()
+
+
+def test_the_twin_with_its_watchdog_off_is_refused_at_connect() -> None:
+    with pytest.raises(InstrumentStateError, match=r"^amplifier AO: ADAM-4024 unit 1: communication watchdog "
+                       r"reported off \(register 40215 reads 0"):
+        _twin_amplifier(watchdog_on=False)
+
+
+def test_the_twin_with_its_watchdog_on_connects() -> None:
+    _twin_amplifier(watchdog_on=True)

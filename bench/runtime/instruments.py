@@ -159,7 +159,8 @@ def build_instruments(rig: RigConfig, endpoints: dict[str, str] | None = None,
         inst.amplifier = TrekAmplifier(ao, ai, model=a.model, trek=trek, ao_channel=a.ao_channel,
                                        vmon_channel=a.vmon_channel, imon_channel=a.imon_channel,
                                        max_voltage=min(a.max_voltage_V, rig.limits.max_voltage_V),
-                                       slew_limit=a.slew_limit_V_per_s, clock=clock)
+                                       slew_limit=a.slew_limit_V_per_s, clock=clock,
+                                       comm_watchdog_s=a.comm_watchdog_s)
     return _rest(rig, inst, ep, clock, sleep, bus, serial)
 
 

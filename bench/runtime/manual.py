@@ -267,8 +267,8 @@ class ManualSession:
         if self.end_reason is None and exc_type is not None and exc_type is not StopRequested:
             self._end = f"ended by {exc_type.__name__}"
         self._stop.set()
-        if self._keepalive is not None:
-            self._keepalive.join(timeout=2.0)
+        if self._keepalive is not None:  # a tick stuck on the bus may outlast this wait: the engine's stop takes its
+            self._keepalive.join(timeout=2.0)  # set-point lock, so that tick goes out before the stop, none after
         engine, errors = self.engine, []
         safe = ""
         if engine is not None:

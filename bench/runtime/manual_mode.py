@@ -13,11 +13,16 @@ monitor). Stop signals are the engine's handlers (:meth:`~bench.runtime.engine.E
 What a manual session adds: a command the latch, a pause or the supervisor does not allow is :class:`Refused`
 (nothing sent) instead of ending anything; a trip zeroes the output at once and the session goes on; an
 interlock fault latches until :meth:`ManualEngine.reset_latch`; a pause holds 0 V until :meth:`ManualEngine.resume`.
+
+Nothing follows the stop's zero: once the stop has begun every set-point is refused (:class:`Refused`, nothing sent)
+and a keep-alive sends nothing. The set-point lock makes the two one after the other: a set-point already going
+out (the session's keep-alive thread) is sent before the stop begins, never after its ramp and zero.
 """
 
 from __future__ import annotations
 
 import math
+import threading
 
 from bench.core.clock import Clock
 from bench.protocol.program import Program
@@ -62,6 +67,7 @@ class ManualEngine(Engine):
         self.latched_at = 0.0  # run time of the latch [s]
         self.paused = False
         self._paused_at = 0.0  # run time of the pause [s]
+        self._setpoint_lock = threading.RLock()  # one set-point, or the start of the stop: never interleaved
         if inst.amplifier is not None:  # what connecting left the output at (0 V): the first ramp starts there
             self.ctx.v_cmd = float(inst.amplifier.commanded)
             self.verifier.commanded(self.now(), self.ctx.v_cmd)
@@ -73,7 +79,9 @@ class ManualEngine(Engine):
                 "until `reset WHY...`")
 
     def _held(self, volts: float, what: str) -> None:
-        """Refused (nothing kept alive) while latched or paused, unless ``volts`` is 0."""
+        """Refused (nothing kept alive) once the stop has begun; while latched or paused, unless ``volts`` is 0."""
+        if self._stopping:
+            raise Refused(f"{self._ending_text()}; {what}")
         if volts == 0.0:
             return
         if self.latched is not None:
@@ -83,12 +91,31 @@ class ManualEngine(Engine):
             self.ctx.v_req = 0.0
             raise Refused(f"paused: high voltage stays off until `resume`; {what}")
 
+    def _ending_text(self) -> str:
+        return "the session is ending: the stop zeroes the output and nothing may follow it"
+
+    def _set_voltage(self, v: float, t: float, x_cmd: float = math.nan) -> None:
+        """The engine's set-point (every set-point of the session: commands, keep-alives, ramps, a pause's ramp),
+        under the set-point lock and refused once the stop has begun (Refused, nothing sent)."""
+        with self._setpoint_lock:
+            if self._stopping:
+                raise Refused(f"{self._ending_text()}; not sent")
+            super()._set_voltage(v, t, x_cmd)
+
+    def _shut_down(self, state: str, reason: str, finish: bool = True) -> str:
+        """The engine's stop, begun under the set-point lock: a set-point in flight is sent first, and none after."""
+        with self._setpoint_lock:
+            self._stopping = True
+        return super()._shut_down(state, reason, finish)
+
     # ------------------------------------------------------------ voltage
     def voltage(self, volts: float) -> float:
         """One supervised set-point (the engine's ``_set_voltage``); Refused before anything is sent if the latch,
         a pause or the supervisor (on the request or on the value after DAC rounding) does not allow it. Returns
         the value sent. A pause asked for meanwhile (SIGUSR1 at the prompt) comes first: PauseRequested, nothing
-        sent."""
+        sent. Once the stop has begun: Refused, nothing sent."""
+        if self._stopping:
+            raise Refused(f"{self._ending_text()}; not sent")
         self._check_pause()
         self._held(volts, "not sent")
         try:
@@ -115,8 +142,9 @@ class ManualEngine(Engine):
         return sent
 
     def keep_alive(self) -> None:
-        """Re-send the set-point held (feeds the set-point module's watchdog); nothing at 0 V."""
-        if self.inst.amplifier is not None and self.ctx.v_req != 0.0:
+        """Re-send the set-point held (feeds the set-point module's watchdog); nothing at 0 V, nothing once the
+        stop has begun (a tick that finds it begun meanwhile is refused by :meth:`_set_voltage`)."""
+        if self.inst.amplifier is not None and self.ctx.v_req != 0.0 and not self._stopping:
             self.voltage(self.ctx.v_req)
 
     def ramp(self, target: float, seconds: float, rate_hz: float) -> int:

@@ -136,7 +136,9 @@ def check_watchdog(rig: RigConfig, allow_no_watchdog: bool = False) -> str:
     """Refuse a rig whose voltage set-point module has no communication watchdog, unless overridden.
 
     The watchdog is the last line of defence when the host cannot command 0 V (lost bus, failed module,
-    crashed host). Returns the line the run file records about it.
+    crashed host). Returns the line the run file records about it. This checks the rig file; the drivers check the
+    module at connect (the ADAM-4024's enable register 40215, :meth:`drivers.trek.TrekAmplifier.connect`; the T7's
+    settings read back, :mod:`drivers.labjack.watchdog`) and refuse one that reports it off.
     """
     amp = rig.amplifier
     if amp is None:
