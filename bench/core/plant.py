@@ -18,7 +18,7 @@ import math
 import re
 import threading
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
@@ -27,7 +27,7 @@ from bench.core.amplifier_dynamics import lowpass, monitors, output_response
 from bench.core.clock import Clock
 from bench.core.motion import MotionProfile
 from bench.core.noise import TREK_DYNAMICS, Realism
-from bench.models.lozenge import PROTOTYPE_LAMBDA2P, LozengeParams
+from bench.models.lozenge import LozengeParams
 from bench.models.lozenge_runs import LozengeStream
 from bench.models.membrane import MembraneParams
 from bench.models.membrane_runs import MembraneStream
@@ -284,10 +284,7 @@ class Plant:
             params = self.specimen
             if self._lozenge is None or not isinstance(params, LozengeParams):
                 raise ValueError("hung mass and prototype apply to the LS-DEA")
-            if prototype is not None:  # another prototype of the same material (fitted parameters kept)
-                params = replace(params, lambda2p=PROTOTYPE_LAMBDA2P[int(prototype)])
-            if hung_mass_kg is not None:
-                params = replace(params, hung_mass=float(hung_mass_kg))
+            params = params.changed(prototype, hung_mass_kg)  # another prototype keeps the fitted material
             y = self._lozenge.state.copy()
             lmode: Literal["hung", "imposed"] = "hung" if self.configuration == "hung" else "imposed"
             stream = LozengeStream(params, lmode, float(y[0]), h=self.h,

@@ -24,7 +24,7 @@ a_k = ln ξk1, b_k = ln ξk2 the inelastic log-stretches. Inputs ``(V, x_in, ẋ
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Literal
 
 import numpy as np
@@ -109,6 +109,18 @@ class LozengeParams:
         if number not in PROTOTYPE_LAMBDA2P:
             raise ValueError(f"unknown LS-DEA prototype #{number}; known: 1, 2, 3")
         return cls(lambda2p=PROTOTYPE_LAMBDA2P[number], **overrides)
+
+    def changed(self, prototype: int | None = None, hung_mass: float | None = None) -> LozengeParams:
+        """These parameters after a set step: another prototype of the same material (its λ2p, the fitted
+        material and rheology kept) and/or another hung mass."""
+        params = self
+        if prototype is not None:
+            if int(prototype) not in PROTOTYPE_LAMBDA2P:
+                raise ValueError(f"unknown LS-DEA prototype #{prototype}; known: 1, 2, 3")
+            params = replace(params, lambda2p=PROTOTYPE_LAMBDA2P[int(prototype)])
+        if hung_mass is not None:
+            params = replace(params, hung_mass=float(hung_mass))
+        return params
 
     @property
     def lambda1p(self) -> float:

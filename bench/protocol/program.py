@@ -212,6 +212,9 @@ class _Compiler:
             raise self.refuse(label, "temperature_K acts on the membrane model only")
         if "hung_mass_kg" in changes and spec.lsdea.configuration != "hung":
             raise self.refuse(label, "hung_mass_kg needs the hung-mass (isotonic) configuration")
+        if self.v_now != 0.0:  # the operator acts on the rig (mounts a prototype, hangs a mass, sets the chamber)
+            raise self.refuse(label, f"a specimen change needs the output at 0 V, and the step before leaves it at "
+                              f"{self.v_now:g} V: end that step at 0 V (a relax step, or a ramp to 0)")
         return Segment(i, label, name, "set", self.t, 0.0, changes=changes)
 
     # ------------------------------------------------------------------ what every step gets

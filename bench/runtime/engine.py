@@ -34,6 +34,7 @@ from typing import Any
 import numpy as np
 
 from bench.core.clock import Clock
+from bench.models.lozenge import LozengeParams
 from bench.protocol.program import HOLD_KEEPALIVE_S, Program, Segment, end_tick, ticks, voltage_at
 from bench.runtime.context import LATE_TOLERANCE_S, STOP_POLL_S, RunContext, Snapshot, present
 from bench.runtime.control import CONTROL_POLL_S, ControlWord, read_control
@@ -372,6 +373,9 @@ class Engine:
                 self.apply_specimen(seg.changes)
             elif not self._operator_confirms(text):
                 raise StopRequested(f"operator did not confirm '{seg.name}' ({text})")
+            if isinstance(self.sup.specimen, LozengeParams):  # the limits follow the specimen now mounted
+                proto, mass = seg.changes.get("prototype"), seg.changes.get("hung_mass_kg")
+                self.sup.specimen = self.sup.specimen.changed(None if proto is None else int(proto), mass)
             self.rec.event(self.now(), seg.index, "specimen", text)
         streamed = self._stream is not None and seg.duration > 0
         laser_serial = inst.laser is not None and not (self._stream is not None and self._stream.has_laser)

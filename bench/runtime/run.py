@@ -229,7 +229,8 @@ def execute(plan: Plan, out: Path, *, virtual: bool = False, operator: OperatorF
             if inst.motor is not None and program.has_motor_axis:
                 inst.motor.enable()
         spec = rig.specimen
-        params = spec.membrane() if spec.kind == "membrane" else spec.lozenge()
+        over = plan.protocol.specimen  # the protocol's prototype and hung mass: the supervisor's limits follow them
+        params = spec.membrane() if spec.kind == "membrane" else spec.lozenge(over.prototype, over.hung_mass_kg)
         if sim is not None:
             params = sim.plant.specimen
         supervisor = Supervisor(rig, params)
