@@ -10,6 +10,7 @@ holds the end value). Software-timed actions (motor go-tos, encoder polls) keep 
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import replace
 
 import numpy as np
@@ -134,11 +135,12 @@ class HardwareTimed:
             self._n = self._appended[1]
         else:
             volts = self._wanted(seg, self.ctx.v_req, first=True)
-            self.ctx.sup.check_setpoint(_peak(volts))
-            bound, window = self._window()
+            xs = self._apertures(seg, seg)  # where the step's own move or path takes the LS-DEA while they play
+            self.ctx.sup.check_setpoint_over(_peak(volts), xs)
+            bound, window = self._window(xs)
             dac = self._dac_values(volts, self.ctx.v_cmd, bound, window)
             commanded = self._follows(dac, window, self.ctx.v_cmd)
-            self.ctx.sup.check_setpoint(_peak(commanded))
+            self.ctx.sup.check_setpoint_over(_peak(commanded), xs)
             self.ctx.guard()
             self.daq.arm(StreamSpec(self.cfg.scan_rate_Hz, self.inputs,
                                     StreamOut(self.cfg.dac, dac, hold=1, final=nxt is None, within=window),
@@ -157,7 +159,7 @@ class HardwareTimed:
         self.ctx.v_req = self._tail  # this step's end value: the last one in the stream until the next is appended
         self._appended = None
         if nxt is not None and self.daq.out_open:
-            self._append(nxt)
+            self._append(seg, nxt)
 
     def _wanted(self, seg: Segment, hold: float, first: bool) -> np.ndarray:
         """The step's amplifier output on the scan grid [V]: from its start (``first``: a new stream plays the
@@ -187,16 +189,19 @@ class HardwareTimed:
         nxt = segs[pos + 1]
         return nxt if plays_on(seg, nxt) else None
 
-    def _append(self, nxt: Segment) -> None:
-        """Append the next step's values to the running stream-out (supervised like a new step's)."""
+    def _append(self, seg: Segment, nxt: Segment) -> None:
+        """Append the next step's values to the running stream-out (supervised like a new step's), checked and
+        windowed at every aperture the LS-DEA passes while they play (:meth:`_apertures`), not only at the present
+        one: appended while ``seg`` moves the motor, they play where the move ends."""
         volts = self._wanted(nxt, self._tail, first=False)
-        self.ctx.sup.check_setpoint(_peak(volts))
+        xs = self._apertures(seg, nxt)
+        self.ctx.sup.check_setpoint_over(_peak(volts), xs)
         after = self._next_chainable(nxt)
         present = float(self._commanded[-1]) if self._commanded.size else self.ctx.v_cmd
-        bound, window = self._window()
+        bound, window = self._window(xs)
         dac = self._dac_values(volts, self._tail, bound, window)
         new = self._follows(dac, window, present)
-        self.ctx.sup.check_setpoint(_peak(new))
+        self.ctx.sup.check_setpoint_over(_peak(new), xs)
         self.ctx.guard(streaming=True)
         self.daq.extend(dac, final=after is None, within=window)
         keep = max(0, self.daq.scans_received - 1 - self._base)  # the scans still to be recorded, and the last
@@ -210,10 +215,28 @@ class HardwareTimed:
         time whose watchdog is configured)."""
         return OUT_LOOPS and self.simulated and self.ctx.clock.virtual and self.cfg.watchdog_s is not None
 
-    def _window(self) -> tuple[float, tuple[float, float]]:
-        """(the supervisor's bound on |V| now, the DAC volts whose output lies within it)."""
-        bound = self.ctx.sup.setpoint_bound()
+    def _window(self, apertures: Sequence[float] = ()) -> tuple[float, tuple[float, float]]:
+        """(the supervisor's bound on |V| now and at each of ``apertures``, the DAC volts whose output lies within
+        it)."""
+        bound = self.ctx.sup.setpoint_bound_over(apertures)
         return bound, self.amp.dac_window(bound)
+
+    @staticmethod
+    def _apertures(seg: Segment, nxt: Segment) -> list[float]:
+        """The apertures [m] the LS-DEA reaches while ``nxt``'s values play behind ``seg``: where ``seg``'s move or
+        path ends, and the extremes of ``nxt``'s own (the present one is the supervisor's). The true field at a
+        given voltage rises with the aperture over the rigs' travel (below √2·l), so a path's ends bound it."""
+        xs = []
+        if seg.move is not None:
+            xs.append(seg.move[0])
+        if seg.position is not None:
+            xs.append(float(np.asarray(seg.position(np.array([seg.t_end])))[0]))
+        if nxt.move is not None:
+            xs.append(nxt.move[0])
+        if nxt.position is not None:
+            path = np.asarray(nxt.position(nxt.t_start + np.linspace(0.0, nxt.duration, 513)), dtype=float)
+            xs += [float(np.min(path)), float(np.max(path))]
+        return xs
 
     def _dac_values(self, volts: np.ndarray, present: float, bound: float,
                     window: tuple[float, float]) -> np.ndarray:

@@ -10,7 +10,9 @@ A trip raises :class:`SafetyTrip`; the engine then brings the rig to its safe st
 
 from __future__ import annotations
 
+import contextlib
 import math
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 
 from bench.models.lozenge import LozengeParams, kinematics
@@ -90,6 +92,39 @@ class Supervisor:
         while bound > 0 and not self.field_and_breakdown(bound)[0] <= e_max:  # the last bits of the division
             bound = math.nextafter(bound, 0.0)
         return bound
+
+    def check_setpoint_over(self, volts: float, apertures: Sequence[float]) -> None:
+        """:meth:`check_setpoint` at the present aperture and at each of ``apertures`` (LS-DEA: values that will
+        play while the motor moves there; a membrane has no aperture)."""
+        self.check_setpoint(volts)
+        for x in self._other_apertures(apertures):
+            with self._at_aperture(x):
+                self.check_setpoint(volts)
+
+    def setpoint_bound_over(self, apertures: Sequence[float]) -> float:
+        """The smallest :meth:`setpoint_bound` at the present aperture and at each of ``apertures``."""
+        bound = self.setpoint_bound()
+        for x in self._other_apertures(apertures):
+            with self._at_aperture(x):
+                bound = min(bound, self.setpoint_bound())
+        return bound
+
+    def _other_apertures(self, apertures: Sequence[float]) -> list[float]:
+        if not isinstance(self.specimen, LozengeParams):
+            return []
+        bad = [x for x in apertures if not math.isfinite(x)]
+        if bad:
+            self._trip(f"aperture {bad[0]} m is not a number")
+        return [x for x in apertures if x != self.aperture]
+
+    @contextlib.contextmanager
+    def _at_aperture(self, x: float) -> Iterator[None]:
+        """The field model evaluated at aperture ``x`` (the measured one restored after)."""
+        present, self.aperture = self.aperture, x
+        try:
+            yield
+        finally:
+            self.aperture = present
 
     def check_monitors(self, volts: float, amps: float) -> None:
         """Output voltage and current from the amplifier monitors."""
