@@ -123,3 +123,32 @@ def test_a_step_after_a_motor_move_on_a_daq_rig_is_supervised_at_the_aperture_th
     assert result.state == "tripped" and "would give a true field" in result.reason, result.reason
     commanded = open_run(result.path).streams["amplifier"].columns["commanded"]
     assert commanded.size == 0 or float(np.max(np.abs(commanded))) < 100.0  # nothing of the sine was played
+
+
+def test_a_motor_go_to_is_refused_where_its_path_passes_the_field_s_peak(tmp_path: Path) -> None:
+    """λ1·λ2, and with it the LS-DEA's true field at a voltage, peaks at the aperture √2·l (l = 120 mm: 169.7 mm):
+    on a rig whose travel crosses it, a go-to from 100 to 220 mm at a voltage both ends allow must still be refused,
+    because the path passes the peak."""
+    import math
+
+    from bench.runtime.safety import SafetyTrip, Supervisor
+
+    text = (ROOT / "rigs" / "lsdea-motor-sim.toml").read_text(encoding="utf-8")
+    text = text.replace("travel_m = [0.0, 0.095]", "travel_m = [0.0, 0.12]").replace(
+        "x_at_motor_zero_m = 0.045", "x_at_motor_zero_m = 0.1").replace("max_voltage_V = 7000.0",
+                                                                        "max_voltage_V = 9700.0")
+    path = tmp_path / "rig.toml"
+    path.write_text(text, encoding="utf-8")
+    rig = load_rig(path)
+    sup = Supervisor(rig, rig.specimen.lozenge())
+    bounds = {}
+    for x in (0.10, math.sqrt(2.0) * 0.120, 0.22):
+        sup.aperture = x
+        bounds[x] = sup.setpoint_bound()
+    ends, peak = min(bounds[0.10], bounds[0.22]), bounds[math.sqrt(2.0) * 0.120]
+    assert peak < ends  # the set-up: the field limit binds hardest in the middle of the path
+    volts = (peak + ends) / 2
+    sup.aperture = 0.10
+    sup.check_motor_setpoint(0.0, 0.102, volts)  # a short go-to, well short of the peak: allowed
+    with pytest.raises(SafetyTrip, match="passing"):
+        sup.check_motor_setpoint(0.12, 0.22, volts)

@@ -169,16 +169,26 @@ class Supervisor:
             self._trip(f"motor set-point {motor_position * 1e3:.2f} mm outside travel "
                        f"[{m.travel_m[0] * 1e3:.1f}, {m.travel_m[1] * 1e3:.1f}] mm")
         if isinstance(self.specimen, LozengeParams) and math.isfinite(aperture) and volts != 0.0:
-            present = self.aperture
-            self.aperture = aperture
-            try:
-                e, e_max = self.field_and_breakdown(volts)
-            finally:
-                self.aperture = present
-            if not e <= e_max:
-                self._trip(f"motor set-point to aperture {aperture * 1e3:.1f} mm at {volts:.0f} V would give a true "
-                           f"field of {e / 1e6:.1f} MV/m, limit {e_max / 1e6:.1f} MV/m")
+            for x in self._path(aperture):
+                with self._at_aperture(x):
+                    e, e_max = self.field_and_breakdown(volts)
+                if not e <= e_max:
+                    where = "" if x == aperture else f" (passing {x * 1e3:.1f} mm on the way)"
+                    self._trip(f"motor set-point to aperture {aperture * 1e3:.1f} mm at {volts:.0f} V would give a "
+                               f"true field of {e / 1e6:.1f} MV/m{where}, limit {e_max / 1e6:.1f} MV/m")
         self.motor_setpoints += 1
+
+    def _path(self, target: float, samples: int = 16) -> list[float]:
+        """Apertures a go-to to ``target`` passes, the target last: evenly spaced from the present aperture, and
+        √2·l where the path crosses it (λ1·λ2, and with it the true field at a voltage, peaks there: a path over
+        it may exceed the limit in its middle while both ends are within)."""
+        start = self.aperture if self.aperture is not None and math.isfinite(self.aperture) else target
+        path = [start + (target - start) * k / samples for k in range(samples)]
+        assert isinstance(self.specimen, LozengeParams)
+        peak = math.sqrt(2.0) * self.specimen.l
+        if min(start, target) < peak < max(start, target):
+            path.append(peak)
+        return [*path, target]
 
     def update_displacement(self, value: float) -> None:
         """Latest laser value in specimen coordinates (membrane u, or LS-DEA aperture x) [m]."""
