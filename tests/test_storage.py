@@ -435,3 +435,39 @@ def test_recover_names_a_file_that_is_not_a_run_file(tmp_path: Path, content: by
                          timeout=60, cwd=ROOT, env=_env())
     lines = res.stderr.strip().splitlines()
     assert res.returncode == 2 and len(lines) == 1 and str(path) in lines[0] and expected in lines[0], res.stderr
+
+
+def test_a_full_disk_at_the_final_stamp_is_a_storage_error_not_a_crash(tmp_path: Path) -> None:
+    """The end of a run reopens the file to stamp its root attributes; when the disk fills there (RLIMIT_FSIZE at
+    the file's size: EFBIG), the close fails half-way and asking the handle for its descriptor then crashed the
+    interpreter (SIGSEGV) — everything after it (the latch, closing the instruments) was lost. The stamp's failure
+    must be one StorageError, in a process that goes on (run in a child: a crash would take pytest with it)."""
+    script = textwrap.dedent(f"""
+        import os, resource
+        import numpy as np
+        from pathlib import Path
+        import bench.storage.recorder as R
+        p = Path({str(tmp_path / "run.h5")!r})
+        rec = R.Recorder(p, {{"start_time": R.now_iso(), "protocol_text": "x" * 5000}},
+                         {{"amplifier": [R.Column("voltage", "V", "")]}}, [(0, "a", "a", "hold", 0.0, 1.0)],
+                         {{"amplifier": 1000.0}})
+        for i in range(50):
+            t = np.arange(i * 100, (i + 1) * 100) / 1000.0
+            rec.append("amplifier", t, voltage=np.sin(t))
+        File = R.h5py.File
+        def reopen(path, mode="r", *a, **k):
+            if mode == "r+":  # the disk is full from here on
+                resource.setrlimit(resource.RLIMIT_FSIZE, (os.path.getsize(path) + 100, resource.RLIM_INFINITY))
+            return File(path, mode, *a, **k)
+        R.h5py.File = reopen
+        try:
+            rec.finish("completed", "ok")
+        except R.StorageError as exc:
+            print("StorageError:", exc)
+        print("alive")
+    """)
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parent.parent)}
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, timeout=120)
+    assert out.returncode == 0, (out.returncode, out.stderr[-2000:])
+    assert "StorageError: run file" in out.stdout and "cannot stamp the end of the run" in out.stdout
+    assert out.stdout.rstrip().endswith("alive")

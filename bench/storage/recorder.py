@@ -104,15 +104,16 @@ def cause(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {first}" if first else type(exc).__name__
 
 
-def abandon(f: h5py.File) -> None:
+def abandon(f: h5py.File, fd: int | None = None) -> None:
     """Close ``f`` after a failed write without touching the file again and without crashing.
 
     HDF5 keeps the metadata it could not write and retries at close; that fails again and (at close or at
     interpreter exit) ends in a segfault. Pointing the descriptor at /dev/null lets the close succeed while
-    the file on disk stays as the last successful flush left it.
+    the file on disk stays as the last successful flush left it. ``fd``: the descriptor, taken when the file was
+    opened — after a close that failed half-way, asking the handle for it crashes the interpreter.
     """
     try:
-        fd = f.id.get_vfd_handle()
+        fd = f.id.get_vfd_handle() if fd is None else fd
         null = os.open(os.devnull, os.O_RDWR)
         try:
             os.dup2(null, int(fd))
@@ -516,8 +517,10 @@ class Recorder:
             raise self._fail("cannot close", exc) from None
         self._f = None
         g: h5py.File | None = None
+        fd: int | None = None
         try:
             g = h5py.File(self.path, "r+")
+            fd = int(g.id.get_vfd_handle())  # now: once a close has failed, asking for it crashes the interpreter
             g.attrs["end_time"] = end
             g.attrs["exit_status"] = state
             g.attrs["exit_reason"] = reason
@@ -525,6 +528,6 @@ class Recorder:
             g.close()
         except Exception as exc:
             if g is not None:
-                abandon(g)
+                abandon(g, fd)
             self.failure = f"run file {self.path}: cannot stamp the end of the run: {cause(exc)}"
             raise StorageError(self.failure) from None
