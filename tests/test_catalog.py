@@ -406,3 +406,24 @@ def test_the_recorders_statistics_are_the_files_bit_for_bit(tmp_path: Path, monk
     assert got is not None and got == catalog.hv_statistics(path)
     hv, rises, peak = _expected(path)
     assert (got.cycles, got.max_voltage_V) == (rises, peak) and got.hv_time_s == pytest.approx(hv, rel=1e-9)
+
+
+def test_a_locked_catalogue_table_on_the_shared_server_fails_the_row_instead_of_holding_the_run(
+        pg_server: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Another client holds the runs table locked (a stuck transaction on the lab's server): the catalogue's write
+    gives up after its statement/lock timeout (the run's hooks turn that into one warning line) — the catalogue is
+    an index and must never hold a run; before, nothing bounded the wait."""
+    from bench.storage import catalog as cat_mod
+
+    monkeypatch.setattr(cat_mod, "PG_STATEMENT_S", 1)
+    url = _new_pg_db(pg_server)
+    with Catalog(url):
+        pass  # the schema exists
+    blocker = sa.create_engine(url)
+    with blocker.connect() as conn:
+        conn.execute(sa.text("BEGIN"))
+        conn.execute(sa.text("LOCK TABLE bench_runs IN ACCESS EXCLUSIVE MODE"))
+        with Catalog(url) as locked, pytest.raises(sa.exc.OperationalError, match=r"(statement|lock) timeout"):
+            locked.upsert([row_from_attrs(tmp_path / "r.h5", {"protocol_name": "x", "start_time": "2026-01-01"})])
+        conn.execute(sa.text("ROLLBACK"))
+    blocker.dispose()

@@ -45,6 +45,8 @@ ENV = "BENCH_CATALOG"
 FILE_NAME = "catalog.sqlite"
 SQLITE_BUSY_S = 60.0  # how long a SQLite writer waits for another bench's transaction
 PG_CONNECT_S = 5  # a shared server that does not answer: give up quickly (the run goes on)
+PG_STATEMENT_S = 10  # a statement or lock wait on it (a locked table, a hung server) ends after this: the run goes on
+PG_KEEPALIVE_S = 5  # a connection dropped mid-query is noticed within about 2 × this (TCP keepalives)
 
 # columns compared when a test or a user asks whether two catalogues hold the same rows
 COLUMNS = ("host", "path", "run_id", "campaign_id", "protocol_name", "protocol_sha256", "rig", "specimen_id",
@@ -104,7 +106,11 @@ class Catalog:
                 Path(parsed.database).parent.mkdir(parents=True, exist_ok=True)
             kwargs["connect_args"] = {"timeout": SQLITE_BUSY_S}
         elif parsed.get_backend_name() == "postgresql":
-            kwargs["connect_args"] = {"connect_timeout": PG_CONNECT_S}
+            kwargs["connect_args"] = {  # libpq's: no wait on the shared server may hold a run for long
+                "connect_timeout": PG_CONNECT_S,
+                "options": f"-c statement_timeout={PG_STATEMENT_S * 1000} -c lock_timeout={PG_STATEMENT_S * 1000}",
+                "keepalives": 1, "keepalives_idle": PG_KEEPALIVE_S, "keepalives_interval": PG_KEEPALIVE_S,
+                "keepalives_count": 2}
         self.backend = parsed.get_backend_name()
         self.display = parsed.render_as_string(hide_password=True)
         try:
