@@ -224,8 +224,8 @@ class HardwareTimed:
     @staticmethod
     def _apertures(seg: Segment, nxt: Segment) -> list[float]:
         """The apertures [m] the LS-DEA reaches while ``nxt``'s values play behind ``seg``: where ``seg``'s move or
-        path ends, and the extremes of ``nxt``'s own (the present one is the supervisor's). The true field at a
-        given voltage rises with the aperture over the rigs' travel (below √2·l), so a path's ends bound it."""
+        path ends, and the extremes of ``nxt``'s own (the present one is the supervisor's, which also checks the
+        field's peak where they span it: :meth:`~bench.runtime.safety.Supervisor.setpoint_bound_over`)."""
         xs = []
         if seg.move is not None:
             xs.append(seg.move[0])

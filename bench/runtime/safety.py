@@ -110,12 +110,19 @@ class Supervisor:
         return bound
 
     def _other_apertures(self, apertures: Sequence[float]) -> list[float]:
+        """The apertures to check besides the present one — and √2·l, where λ1·λ2 and the true field at a voltage
+        peak, when they and the present one span it (between it the field is monotonic: the ends bound it)."""
         if not isinstance(self.specimen, LozengeParams):
             return []
         bad = [x for x in apertures if not math.isfinite(x)]
         if bad:
             self._trip(f"aperture {bad[0]} m is not a number")
-        return [x for x in apertures if x != self.aperture]
+        xs = [x for x in apertures if x != self.aperture]
+        span = [*xs, *([self.aperture] if self.aperture is not None else [])]
+        peak = math.sqrt(2.0) * self.specimen.l
+        if span and min(span) < peak < max(span):
+            xs.append(peak)
+        return xs
 
     @contextlib.contextmanager
     def _at_aperture(self, x: float) -> Iterator[None]:
@@ -180,15 +187,11 @@ class Supervisor:
 
     def _path(self, target: float, samples: int = 16) -> list[float]:
         """Apertures a go-to to ``target`` passes, the target last: evenly spaced from the present aperture, and
-        √2·l where the path crosses it (λ1·λ2, and with it the true field at a voltage, peaks there: a path over
-        it may exceed the limit in its middle while both ends are within)."""
+        √2·l where the path crosses it (:meth:`_other_apertures`: a path over the field's peak may exceed the limit
+        in its middle while both ends are within)."""
         start = self.aperture if self.aperture is not None and math.isfinite(self.aperture) else target
-        path = [start + (target - start) * k / samples for k in range(samples)]
-        assert isinstance(self.specimen, LozengeParams)
-        peak = math.sqrt(2.0) * self.specimen.l
-        if min(start, target) < peak < max(start, target):
-            path.append(peak)
-        return [*path, target]
+        path = [start + (target - start) * k / samples for k in range(1, samples)]
+        return [*self._other_apertures(path), target]
 
     def update_displacement(self, value: float) -> None:
         """Latest laser value in specimen coordinates (membrane u, or LS-DEA aperture x) [m]."""

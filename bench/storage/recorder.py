@@ -206,6 +206,7 @@ class Recorder:
         self._writing: threading.Thread | None = None  # the background write under way (maybe_flush)
         self._write_error: Exception | None = None  # its failure, raised by the caller's next call
         self._f: h5py.File | None = None
+        self._fd: int | None = None  # its descriptor, taken at open (abandon)
         self._names = [*streams, "events"]
         self._counts = np.zeros(len(self._names), dtype=np.int64)  # valid records on disk, per stream and events
         # the catalogue's high-voltage statistics of the measured amplifier voltage, over what is written
@@ -216,7 +217,7 @@ class Recorder:
             self._create(attrs, streams, program, rates)
         except Exception as exc:  # whatever stopped the file being made, said in one line
             if self._f is not None:
-                abandon(self._f)
+                abandon(self._f, self._fd)
                 self._f = None
             self.failure = f"run file {self.path}: cannot create: {cause(exc)}"
             raise StorageError(self.failure) from None
@@ -225,6 +226,7 @@ class Recorder:
                 program: Sequence[tuple[int, str, str, str, float, float]], rates: dict[str, float]) -> None:
         f = h5py.File(self.path, "w", libver=("v110", "v110"))  # SWMR needs the 1.10 format; newer breaks 1.10 tools
         self._f = f
+        self._fd = int(f.id.get_vfd_handle())  # for abandon(): a handle whose close failed cannot say
         f.attrs["format"] = FORMAT
         for key, value in attrs.items():
             f.attrs[key] = value if not isinstance(value, dict | list) else json.dumps(value)
@@ -334,7 +336,7 @@ class Recorder:
         """Enter the failed state: drop queued data, release the file safely; the error to raise."""
         self.failure = f"run file {self.path}: {what}: {cause(exc)}"
         if self._f is not None:  # first: releasing a dataset flushes its chunk cache, which must not reach the file
-            abandon(self._f)
+            abandon(self._f, self._fd)
             self._f = None
         for buf in self._buffers.values():
             for parts in buf.values():
