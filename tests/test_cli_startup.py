@@ -159,13 +159,18 @@ def test_benchmark_help_lists_the_startup_set() -> None:
 
 
 def test_cluster_options_with_dask_installed_reach_the_cluster() -> None:
-    """With the extra installed, the seam hands over a working client (a LocalCluster of one worker process)."""
+    """With the extra installed, the seam hands over a working client (a LocalCluster of one worker process),
+    whose worker process samples no stacks (dask's profiler is on by default, dask's distributed.yaml)."""
     pytest.importorskip("distributed")
+    import dask
+
     from bench.cli.common import cluster_client
 
     with cluster_client(None, 1) as client:
         assert client is not None
         assert client.submit(pow, 2, 10).result(timeout=60) == 1024
+        settings = client.run(dask.config.get, "distributed.worker.profile.enabled")
+        assert list(settings.values()) == [False]
 
 
 def test_the_console_made_on_first_use_stands_for_the_bench_console() -> None:

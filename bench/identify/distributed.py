@@ -39,13 +39,18 @@ def cluster_client(scheduler: str | None = None, workers: int | None = None) -> 
     if scheduler is None and not workers:
         yield None
         return
+    import dask
     from distributed import Client, LocalCluster
 
     if scheduler is not None:
         with Client(scheduler) as client:
             yield client
         return
-    with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster, \
+    # our own workers sample no stacks: the profiler (every 10 ms, for the dashboard's profile page, which a fit
+    # never shows) cost each worker a few per cent of a CPU in `bench benchmark cluster`; the nannies hand this
+    # configuration to the worker processes they start
+    with dask.config.set({"distributed.worker.profile.enabled": False}), \
+            LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster, \
             Client(cluster) as client:
         yield client
 
