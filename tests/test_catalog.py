@@ -427,3 +427,62 @@ def test_a_locked_catalogue_table_on_the_shared_server_fails_the_row_instead_of_
             locked.upsert([row_from_attrs(tmp_path / "r.h5", {"protocol_name": "x", "start_time": "2026-01-01"})])
         conn.execute(sa.text("ROLLBACK"))
     blocker.dispose()
+
+
+# ---- the start row on its own thread -------------------------------------------------------------------------------
+
+
+def _slow_start_row(monkeypatch: pytest.MonkeyPatch, delay_s: float) -> list[str]:
+    """Make the catalogue's start row late by ``delay_s``; returns a list that gets "written" once it is."""
+    from bench.storage import catalog
+
+    done: list[str] = []
+    real = catalog.record_start
+
+    def late(path: Path, attrs: dict, url: str | None = None) -> None:
+        import time
+
+        time.sleep(delay_s)
+        real(path, attrs, url)
+        done.append("written")
+
+    monkeypatch.setattr(catalog, "record_start", late)
+    return done
+
+
+def _rows(folder: Path) -> list[dict]:
+    from bench.storage.catalog import catalog_url
+
+    with Catalog(catalog_url(folder)) as cat:
+        return cat.rows(under=folder)
+
+
+def test_a_late_start_row_never_replaces_the_end_row(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The start row is written beside the run's first steps; the run's end waits for it, so the row left is the
+    end's (read from the file: its signature set, complete), however late the start row was."""
+    from bench.runtime.run import execute, plan_run
+
+    monkeypatch.delenv("BENCH_CATALOG", raising=False)
+    done = _slow_start_row(monkeypatch, 0.5)  # longer than this virtual-time run takes to stream
+    result = execute(plan_run(IDENT), tmp_path / "run.h5", virtual=True)
+    assert result.state == "completed" and done == ["written"]
+    (row,) = _rows(tmp_path)
+    assert row["signature"] != "" and row["complete"] and row["state"] == "completed"
+
+
+def test_a_run_that_raises_still_leaves_its_start_row(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from bench.runtime.engine import Engine
+    from bench.runtime.run import execute, plan_run
+
+    monkeypatch.delenv("BENCH_CATALOG", raising=False)
+    done = _slow_start_row(monkeypatch, 0.2)
+
+    def broken(self: Engine) -> None:
+        raise RuntimeError("engine broke")
+
+    monkeypatch.setattr(Engine, "run", broken)
+    with pytest.raises(RuntimeError, match="engine broke"):
+        execute(plan_run(IDENT), tmp_path / "run.h5", virtual=True)
+    assert done == ["written"]
+    (row,) = _rows(tmp_path)
+    assert row["signature"] == "" and row["protocol_name"] == "thesis-identification-short"

@@ -6,6 +6,7 @@ import json
 import os
 import re
 import tempfile
+import threading
 import time
 import uuid
 from collections.abc import Callable
@@ -222,6 +223,7 @@ def execute(plan: Plan, out: Path, *, virtual: bool = False, operator: OperatorF
     else:
         clock = WallClock()
         inst = build_instruments(rig, clock=clock.now, sleep=clock.sleep)
+    start_row: threading.Thread | None = None
     try:
         with termination_raises("connecting the instruments (and homing the motor)"):
             for _, drv in inst.items():
@@ -263,7 +265,7 @@ def execute(plan: Plan, out: Path, *, virtual: bool = False, operator: OperatorF
             attrs.update(replay_of=str(sim.replay.recording.path), replay_of_run_id=sim.replay.recording.run_id)
         prog_rows = [(s.index, s.label, s.name, s.kind, s.t_start, s.duration) for s in program.segments]
         recorder = Recorder(out, attrs, streams, prog_rows, rates)
-        catalog.record_start(out, attrs)  # never raises: the catalogue is an index of the files
+        start_row = _start_row(out, attrs)
         apply = partial(change_specimen, sim.plant) if sim is not None else None
         engine = Engine(program, inst, clock, recorder, supervisor, apply_specimen=apply, operator=operator,
                         start_step=resume.step if resume is not None else 0, control=control_path(out))
@@ -276,12 +278,34 @@ def execute(plan: Plan, out: Path, *, virtual: bool = False, operator: OperatorF
         finally:  # a fault latches even when the run ends by an exception the engine let through
             if engine.latched is not None:
                 latch(rig.name, engine.latched.reason, str(out))
+        _join(start_row)  # the end row replaces the start row, never the other way round
         catalog.record_end(out, hv=recorder.hv_stats())  # the file's data, counted as it was written
         return result
     finally:
         inst.close()
         if sim is not None:
             sim.stop()
+        _join(start_row)  # a run that ended by an exception still leaves its start row
+
+
+# the longest a run's end waits for its start row: the catalogue's own bounds (SQLite's busy wait, a server's
+# connect and statement timeouts) end the attempt well before this; past it the row is left to `bench runs list`
+START_ROW_WAIT_S = 60.0
+
+
+def _start_row(out: Path, attrs: dict[str, Any]) -> threading.Thread:
+    """Catalogue the run's start on a thread of its own (:func:`catalog.record_start`: never raises): its
+    synchronous commit overlaps the run's first steps instead of holding them up."""
+    row = threading.Thread(target=catalog.record_start, args=(out, dict(attrs)), name="catalogue start row",
+                           daemon=True)
+    row.start()
+    return row
+
+
+def _join(row: threading.Thread | None) -> None:
+    """Wait for the start row's thread, at most :data:`START_ROW_WAIT_S`."""
+    if row is not None:
+        row.join(START_ROW_WAIT_S)
 
 
 @dataclass
