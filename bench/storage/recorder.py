@@ -384,15 +384,22 @@ class Recorder:
 
     # -------------------------------------------------------------- writing
     def append(self, stream: str, t: np.ndarray | float, **columns: np.ndarray | float) -> None:
-        """Queue samples of ``stream``; flushes if the flush interval has passed (may raise :class:`StorageError`)."""
+        """Queue samples of ``stream``: the time base and every column, as many of each (ValueError, with nothing
+        queued, otherwise); flushes if the flush interval has passed (may raise :class:`StorageError`)."""
         if self.failure:
             return
         c0 = time.thread_time()
         buf = self._buffers[stream]
-        buf["t"].append(np.atleast_1d(np.asarray(t, dtype=float)))
+        block = {"t": np.atleast_1d(np.asarray(t, dtype=float))}
         for name, values in columns.items():
-            buf[name].append(np.atleast_1d(np.asarray(values)))
-        self._last_t = max(self._last_t, float(np.max(buf["t"][-1])) if buf["t"][-1].size else self._last_t)
+            block[name] = np.atleast_1d(np.asarray(values))
+        if block.keys() != buf.keys() or any(a.size != block["t"].size for a in block.values()):
+            got = ", ".join(f"{k} ({a.size})" for k, a in block.items())
+            raise ValueError(f"stream {stream}: a block needs t and every column ({', '.join(buf)}), one value per "
+                             f"time; got {got} (nothing of it queued)")
+        for name, values in block.items():  # all or nothing: the columns of a stream stay equally long
+            buf[name].append(values)
+        self._last_t = max(self._last_t, float(np.max(block["t"])) if block["t"].size else self._last_t)
         self._cpu_queue += time.thread_time() - c0
         self.maybe_flush()
 
