@@ -1,7 +1,8 @@
-"""The recorder's queue: a bad block is refused whole."""
+"""The recorder's queue: a bad block is refused whole, and a flush whose thread cannot start is written anyway."""
 
 from __future__ import annotations
 
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -44,4 +45,26 @@ def test_a_bad_block_is_refused_whole_and_the_stream_records_on(tmp_path: Path, 
     amp = open_run(path).streams["amplifier"]
     np.testing.assert_array_equal(amp.t, t)
     np.testing.assert_array_equal(amp.columns["voltage"], t)
+    np.testing.assert_array_equal(amp.columns["current"], -t)
+
+
+class _NoThread(threading.Thread):
+    def start(self) -> None:
+        raise RuntimeError("can't start new thread")
+
+
+def test_an_interval_flush_whose_thread_cannot_start_is_written_on_the_callers_thread(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    path = tmp_path / "run.h5"
+    rec = _recorder(path, flush_interval=0.0)  # every append flushes
+    monkeypatch.setattr(recorder.threading, "Thread", _NoThread)
+    t = np.arange(300) / RATE
+    for k in range(3):
+        part = t[k * 100:(k + 1) * 100]
+        rec.append("amplifier", part, voltage=part, current=-part)
+        assert rec.samples_written == (k + 1) * 100  # on disk already: not lost with the thread
+    monkeypatch.undo()
+    rec.finish("completed", "ok")
+    amp = open_run(path).streams["amplifier"]
+    np.testing.assert_array_equal(amp.t, t)
     np.testing.assert_array_equal(amp.columns["current"], -t)

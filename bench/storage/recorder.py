@@ -429,8 +429,16 @@ class Recorder:
             self._last_flush = time.monotonic()
             work = self._take()
             # not a daemon: the interpreter finishes a write under way before h5py's exit handler closes the file
-            self._writing = threading.Thread(target=self._write_in_background, args=(work,), name="recorder-flush")
-            self._writing.start()
+            writing = threading.Thread(target=self._write_in_background, args=(work,), name="recorder-flush")
+            try:
+                writing.start()
+            except RuntimeError:  # no thread to be had (process or memory limits): write the data here instead
+                try:
+                    self._write(work)
+                except Exception as exc:
+                    raise self._fail("write failed", exc) from None
+                return
+            self._writing = writing
 
     def flush(self) -> None:
         """Write every queued sample and event, and make them visible to readers (after a background write under
