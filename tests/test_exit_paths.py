@@ -282,3 +282,20 @@ def _run_into(trial: Trial, folder: Path):
 
     result = execute(plan, folder / "run.h5", virtual=False, on_engine=hook)
     return result, seen[0], seen[1]
+
+
+def test_ctrl_c_before_the_engine_runs_ends_the_file_interrupted(tmp_path: Path,
+                                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    """Ctrl-C while the new run is catalogued (the file exists, the engine has not started) left the file saying
+    "running", as if the run had crashed; it must record the interruption and its end."""
+    def interrupted(path: Path, attrs: dict) -> None:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr("bench.runtime.run.catalog.record_start", interrupted)
+    out = tmp_path / "run.h5"
+    with pytest.raises(KeyboardInterrupt):
+        execute(plan_run(THESIS, ADAM_RIG), out, virtual=True)
+    run = open_run(out)
+    assert run.state == "interrupted" and run.complete and run.end_time
+    assert run.reason == "stopped before the run started: KeyboardInterrupt"
+    assert all(len(s) == 0 for s in run.streams.values()) and run.event_list() == []

@@ -550,11 +550,21 @@ class Recorder:
         except Exception as exc:
             raise self._fail("write failed", exc) from None
 
+    def end_unstarted(self, exc: BaseException) -> None:
+        """Record the end of a run stopped before it started (``exc``: Ctrl-C or an exit — interrupted —, any other
+        error — error), so its file never stays "running"; quiet (the caller raises ``exc``), a no-op once
+        finished or failed."""
+        state = "interrupted" if isinstance(exc, KeyboardInterrupt | SystemExit) else "error"
+        why = " ".join(str(exc).split())
+        reason = f"stopped before the run started: {type(exc).__name__}" + (f": {why}" if why else "")
+        with contextlib.suppress(Exception):
+            self.finish(state, reason)
+
     def finish(self, state: str, reason: str) -> None:
         """Final flush, close, and stamp the root attributes (the file is complete after this).
 
         Once the recorder has failed this only makes sure the file is released, and does not raise again;
-        the file then keeps ``state = running`` and no ``complete`` attribute: a reader reports it incomplete.
+        the file then keeps ``state = running`` and ``complete`` False (or absent): a reader reports it incomplete.
         """
         if self.failure or self._f is None:
             return
