@@ -108,8 +108,10 @@ def _drop_attributes(chunk: bytearray, start: int, flags: int, sb: Superblock, e
 
 def root_attribute_patches(path: Path, head: bytes | bytearray, sb: Superblock, eoa: int) -> Patches:
     """Patches that drop every root attribute (the root object header and its continuation chunks); {} if the
-    root object header is not a version 2 header."""
+    root object header is not a version 2 header (or the superblock older than version 2)."""
     patches: Patches = {}
+    if sb.version < 2:
+        return patches
     with path.open("rb") as fh:
         addr = _root_address(head, sb)
         fh.seek(addr)
