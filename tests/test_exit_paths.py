@@ -282,3 +282,18 @@ def _run_into(trial: Trial, folder: Path):
 
     result = execute(plan, folder / "run.h5", virtual=False, on_engine=hook)
     return result, seen[0], seen[1]
+
+
+def test_ctrl_c_before_the_engine_runs_ends_the_file_interrupted(tmp_path: Path) -> None:
+    """Ctrl-C after the file is made and before the engine runs (here: as the engine is handed to its caller) left
+    the file saying "running", as if the run had crashed; it must record the interruption and its end."""
+    def interrupted(engine: object, sim: object) -> None:
+        raise KeyboardInterrupt
+
+    out = tmp_path / "run.h5"
+    with pytest.raises(KeyboardInterrupt):
+        execute(plan_run(THESIS, ADAM_RIG), out, virtual=True, on_engine=interrupted)
+    run = open_run(out)
+    assert run.state == "interrupted" and run.complete and run.end_time
+    assert run.reason == "stopped before the run started: KeyboardInterrupt"
+    assert all(len(s) == 0 for s in run.streams.values()) and run.event_list() == []

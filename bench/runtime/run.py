@@ -265,14 +265,20 @@ def execute(plan: Plan, out: Path, *, virtual: bool = False, operator: OperatorF
             attrs.update(replay_of=str(sim.replay.recording.path), replay_of_run_id=sim.replay.recording.run_id)
         prog_rows = [(s.index, s.label, s.name, s.kind, s.t_start, s.duration) for s in program.segments]
         recorder = Recorder(out, attrs, streams, prog_rows, rates)
-        start_row = _start_row(out, attrs)
-        apply = partial(change_specimen, sim.plant) if sim is not None else None
-        engine = Engine(program, inst, clock, recorder, supervisor, apply_specimen=apply, operator=operator,
-                        start_step=resume.step if resume is not None else 0, control=control_path(out))
-        if on_engine is not None:
-            on_engine(engine, sim)
-        if sim is not None and sim.replay is not None:
-            sim.replay.anchor(clock.now())  # record time 0 = this run's time 0 (the engine starts its clock now)
+        try:  # until the engine runs, the file's end is this function's to record (the engine's from then on)
+            start_row = _start_row(out, attrs)
+            apply = partial(change_specimen, sim.plant) if sim is not None else None
+            engine = Engine(program, inst, clock, recorder, supervisor, apply_specimen=apply, operator=operator,
+                            start_step=resume.step if resume is not None else 0, control=control_path(out))
+            if on_engine is not None:
+                on_engine(engine, sim)
+            if sim is not None and sim.replay is not None:
+                sim.replay.anchor(clock.now())  # record time 0 = this run's time 0 (the engine starts its clock now)
+        except BaseException as exc:  # Ctrl-C included: the file must not say "running" for a run that never ran
+            recorder.end_unstarted(exc)
+            _join(start_row)
+            catalog.record_end(out)
+            raise
         try:
             result = engine.run()
         finally:  # a fault latches even when the run ends by an exception the engine let through

@@ -5,7 +5,9 @@ compound datasets that netCDF readers cannot read):
 
 * root attributes — software version, protocol (name, path, full text, SHA-256), rig (name, TOML of the
   effective rig), specimen (JSON), recording settings (JSON), clock kind, simulated flag, start time;
-  after a clean finish also end time, exit status and reason, ``complete = True``;
+  the end stamp — ``end_time``, ``exit_status``, ``exit_reason`` (fixed-length UTF-8, empty while the run goes on)
+  and ``complete`` (False) — is created with the file and overwritten in place by a clean finish (``complete =
+  True``), so a full disk cannot strike there (files of earlier versions add these attributes at the finish);
 * ``/status`` — datasets ``state`` (running / completed / tripped / error / interrupted), ``reason``,
   ``end_time``, ``updated`` (rig time of the last flush), ``samples`` (valid records per stream and of
   ``/events``, in the order of its ``names`` attribute, written only once the data of a flush is on disk):
@@ -73,6 +75,10 @@ PROGRAM_UNITS = {"index": "1", "t_start": "s", "duration": "s"}
 TEXT = h5py.string_dtype("utf-8")  # variable-length UTF-8 (for data written before SWMR mode only)
 STATUS_TEXT = {"state": 16, "reason": 400, "end_time": 40}  # fixed-length UTF-8 fields of /status [bytes]
 STATES = ("running", "completed", "tripped", "error", "interrupted")
+# the end-of-run stamp: root attributes created with the file (text: fixed-length UTF-8 of the /status limit plus a
+# terminator), so that finish() overwrites them in place and needs no new space in the file
+STAMP_TEXT = {"end_time": STATUS_TEXT["end_time"] + 1, "exit_status": STATUS_TEXT["state"] + 1,
+              "exit_reason": STATUS_TEXT["reason"] + 1}
 FLUSH_INTERVAL_S = 0.2  # wall time between flushes: a kill -9 loses at most this plus one flush (goal ≤ 0.5 s)
 CHUNK_S = 0.25  # chunk length [s of a stream]: about one flush, so a compressed chunk is rewritten once or twice
 # (a flush rewrites the partial last chunk elsewhere in the file: 2-s chunks made files 2-3x larger)
@@ -143,6 +149,25 @@ def fixed_text(size: int) -> np.dtype:
     """Fixed-length UTF-8 string type of ``size`` bytes (appendable under SWMR, declared UTF-8 in the file)."""
     dtype: np.dtype = h5py.string_dtype("utf-8", size)
     return dtype
+
+
+def stamp_text(size: int) -> h5py.h5t.TypeID:
+    """Fixed-length, NUL-terminated UTF-8 string of ``size`` bytes (the stamp; HDF5 tools print no padding)."""
+    t = h5py.h5t.C_S1.copy()
+    t.set_size(size)
+    t.set_strpad(h5py.h5t.STR_NULLTERM)
+    t.set_cset(h5py.h5t.CSET_UTF8)
+    return t
+
+
+def stamp(f: h5py.File, end: str, state: str, reason: str) -> None:
+    """Overwrite the end-of-run placeholders of ``f`` in place (no new space in the file: a full disk cannot
+    move the root object header); texts cut to their fields at a character boundary."""
+    for name, text in (("end_time", end), ("exit_status", state), ("exit_reason", reason)):
+        size = STAMP_TEXT[name]
+        a = h5py.h5a.open(f.id, name.encode())
+        a.write(np.array(utf8(text, size - 1), dtype=f"S{size}"), mtype=a.get_type())
+    f.attrs.modify("complete", True)
 
 
 def dimension_scale(g: h5py.Group, name: str, data: np.ndarray | None = None, **kwargs: Any) -> h5py.Dataset:
@@ -231,6 +256,7 @@ class Recorder:
         for key, value in attrs.items():
             f.attrs[key] = value if not isinstance(value, dict | list) else json.dumps(value)
         time_units = seconds_since(attrs.get("start_time"))
+        self._create_stamp(f)
         self._create_status(f)
         self._create_program(f, program)
         self._create_events(f, time_units)
@@ -244,6 +270,17 @@ class Recorder:
         self._samples = f["status/samples"]
         f.swmr_mode = True
         f.flush()
+
+    @staticmethod
+    def _create_stamp(f: h5py.File) -> None:
+        """The end-of-run stamp as placeholders (empty texts, ``complete = False``), overwritten by :func:`stamp`."""
+        space = h5py.h5s.create(h5py.h5s.SCALAR)
+        for name, size in STAMP_TEXT.items():
+            if name in f.attrs:
+                del f.attrs[name]
+            h5py.h5a.create(f.id, name.encode(), stamp_text(size), space).write(np.array(b"", dtype=f"S{size}"),
+                                                                              mtype=stamp_text(size))
+        f.attrs["complete"] = False
 
     def _create_status(self, f: h5py.File) -> None:
         """``/status``: the run's state and the valid-record counts, rewritten in place during the run."""
@@ -347,15 +384,22 @@ class Recorder:
 
     # -------------------------------------------------------------- writing
     def append(self, stream: str, t: np.ndarray | float, **columns: np.ndarray | float) -> None:
-        """Queue samples of ``stream``; flushes if the flush interval has passed (may raise :class:`StorageError`)."""
+        """Queue samples of ``stream``: the time base and every column, as many of each (ValueError, with nothing
+        queued, otherwise); flushes if the flush interval has passed (may raise :class:`StorageError`)."""
         if self.failure:
             return
         c0 = time.thread_time()
         buf = self._buffers[stream]
-        buf["t"].append(np.atleast_1d(np.asarray(t, dtype=float)))
+        block = {"t": np.atleast_1d(np.asarray(t, dtype=float))}
         for name, values in columns.items():
-            buf[name].append(np.atleast_1d(np.asarray(values)))
-        self._last_t = max(self._last_t, float(np.max(buf["t"][-1])) if buf["t"][-1].size else self._last_t)
+            block[name] = np.atleast_1d(np.asarray(values))
+        if block.keys() != buf.keys() or any(a.size != block["t"].size for a in block.values()):
+            got = ", ".join(f"{k} ({a.size})" for k, a in block.items())
+            raise ValueError(f"stream {stream}: a block needs t and every column ({', '.join(buf)}), one value per "
+                             f"time; got {got} (nothing of it queued)")
+        for name, values in block.items():  # all or nothing: the columns of a stream stay equally long
+            buf[name].append(values)
+        self._last_t = max(self._last_t, float(np.max(block["t"])) if block["t"].size else self._last_t)
         self._cpu_queue += time.thread_time() - c0
         self.maybe_flush()
 
@@ -385,8 +429,16 @@ class Recorder:
             self._last_flush = time.monotonic()
             work = self._take()
             # not a daemon: the interpreter finishes a write under way before h5py's exit handler closes the file
-            self._writing = threading.Thread(target=self._write_in_background, args=(work,), name="recorder-flush")
-            self._writing.start()
+            writing = threading.Thread(target=self._write_in_background, args=(work,), name="recorder-flush")
+            try:
+                writing.start()
+            except RuntimeError:  # no thread to be had (process or memory limits): write the data here instead
+                try:
+                    self._write(work)
+                except Exception as exc:
+                    raise self._fail("write failed", exc) from None
+                return
+            self._writing = writing
 
     def flush(self) -> None:
         """Write every queued sample and event, and make them visible to readers (after a background write under
@@ -498,11 +550,21 @@ class Recorder:
         except Exception as exc:
             raise self._fail("write failed", exc) from None
 
+    def end_unstarted(self, exc: BaseException) -> None:
+        """Record the end of a run stopped before it started (``exc``: Ctrl-C or an exit — interrupted —, any other
+        error — error), so its file never stays "running"; quiet (the caller raises ``exc``), a no-op once
+        finished or failed."""
+        state = "interrupted" if isinstance(exc, KeyboardInterrupt | SystemExit) else "error"
+        why = " ".join(str(exc).split())
+        reason = f"stopped before the run started: {type(exc).__name__}" + (f": {why}" if why else "")
+        with contextlib.suppress(Exception):
+            self.finish(state, reason)
+
     def finish(self, state: str, reason: str) -> None:
         """Final flush, close, and stamp the root attributes (the file is complete after this).
 
         Once the recorder has failed this only makes sure the file is released, and does not raise again;
-        the file then keeps ``state = running`` and no ``complete`` attribute: a reader reports it incomplete.
+        the file then keeps ``state = running`` and ``complete`` False (or absent): a reader reports it incomplete.
         """
         if self.failure or self._f is None:
             return
@@ -523,10 +585,7 @@ class Recorder:
         try:
             g = h5py.File(self.path, "r+")
             fd = int(g.id.get_vfd_handle())  # now: once a close has failed, asking for it crashes the interpreter
-            g.attrs["end_time"] = end
-            g.attrs["exit_status"] = state
-            g.attrs["exit_reason"] = reason
-            g.attrs["complete"] = True
+            stamp(g, end, state, reason)
             g.close()
         except Exception as exc:
             if g is not None:

@@ -7,7 +7,13 @@ superblock's Jenkins lookup3 checksum, extends a file shorter than its recorded 
 that failed on a full disk), cuts every dataset to the records the writer confirmed (``/status/samples``)
 and marks the file: attribute ``recovered_at``, "recovered after crash" in ``/status/reason`` (after the
 reason a run killed while stamping its end had already written). The state stays as it was (``running``) and
-there is no ``complete`` attribute, so readers still report the run incomplete.
+``complete`` is not set, so readers still report the run incomplete.
+
+Everything is decided on a patched, read-only view of the file (:mod:`bench.storage.repair`) before a byte is
+changed; a file it refuses is left as it was. A run file whose root attributes cannot be read (an earlier version's
+end stamp failed on a full disk) is identified by its structure (``/status``, ``/events``, ``/program``): its root
+attribute messages are dropped and the root rebuilt from ``/status`` (format, end time, exit status and reason;
+attribute ``recovered_root`` says what was lost). Any other file is refused in one line.
 """
 
 from __future__ import annotations
@@ -20,11 +26,15 @@ from pathlib import Path
 
 import h5py
 
-from bench.storage.recorder import FORMATS, abandon, cause, ignore_sigxfsz, now_iso
-from bench.storage.runfile import open_h5, open_run
-from bench.storage.superblock import clear_consistency_flags, open_elsewhere, read_superblock
+from bench.storage.recorder import FORMAT, FORMATS, abandon, cause, ignore_sigxfsz, now_iso
+from bench.storage.repair import Patches, open_view, root_attribute_patches, superblock_patches, write_patches
+from bench.storage.runfile import open_run
+from bench.storage.superblock import Superblock, open_elsewhere, read_superblock
 
 RECOVERED_REASON = "recovered after crash"
+REBUILT_REASON = "recovered: end stamp failed, root attributes rebuilt from /status"
+LOST = ("root attributes unreadable (the end stamp of an earlier version failed on a full disk): rebuilt from "
+        "/status; the run's metadata (protocol, rig, specimen, start time) is lost")
 SPACE_MARGIN = 1 << 20  # bytes free beyond the extension: HDF5 writes a little metadata when it trims and marks
 
 
@@ -63,23 +73,20 @@ def recover(path: str | Path) -> RecoveryReport:
     sb = read_superblock(head)
     if sb is None:
         raise ValueError(f"run file {p}: not an HDF5 file (no superblock)")
-    try:
-        with open_h5(p) as f:
-            fmt = f.attrs.get("format")
-    except (OSError, ValueError) as exc:
-        raise ValueError(f"run file {p}: not a readable HDF5 file ({' '.join(str(exc).split())})") from None
-    if fmt not in FORMATS:
-        raise ValueError(f"run file {p}: not a dea-bench run file (format {fmt!r})")
+    end = sb.base_address + sb.eoa
+    size = p.stat().st_size
+    grow = end - size if sb.version >= 2 and size < end else 0  # a failed write left the file short
+    patches = superblock_patches(head, sb)
+    fmt, damaged = _identify(p, patches, size + grow)  # as it reads once released: nothing is changed yet
+    if damaged:
+        patches |= _root_patches(p, head, sb, patches, size + grow)
     writers = open_elsewhere(p)
     if writers:
         raise ValueError(f"run file {p}: still open in process {', '.join(map(str, writers))}: "
                          "a run may be writing it (stop it first)")
     report = RecoveryReport(p)
-    end = sb.base_address + sb.eoa
-    size = p.stat().st_size
-    grow = end - size if sb.version >= 2 and size < end else 0  # a failed write left the file short
     free = shutil.disk_usage(p.parent).free
-    if (sb.flags or grow) and free < grow + SPACE_MARGIN:
+    if (patches or grow) and free < grow + SPACE_MARGIN:
         raise ValueError(f"run file {p}: {free:,} bytes free on its disk, recovery needs {grow + SPACE_MARGIN:,}: "
                          "free some space and run it again (nothing was changed)")
     ignore_sigxfsz()
@@ -90,26 +97,26 @@ def recover(path: str | Path) -> RecoveryReport:
             raise ValueError(f"run file {p}: cannot extend it to {end:,} bytes: {cause(exc)} (nothing was changed)"
                              ) from None
         report.actions.append(f"extended the file from {size:,} to {end:,} bytes (a write had failed)")
-    if clear_consistency_flags(head):
-        with p.open("r+b") as fh:
-            fh.seek(sb.offset + 11)
-            fh.write(head[sb.offset + 11:sb.offset + 12])
-            fh.seek(sb.checksum_at)
-            fh.write(head[sb.checksum_at:sb.checksum_at + 4])
-            fh.flush()
-            os.fsync(fh.fileno())
+    if patches:
+        write_patches(p, patches)
+    if sb.flags and sb.version >= 2:
         report.actions.append(f"cleared the file consistency flags (0x{sb.flags:02x}) left by the writer")
+    if damaged:
+        report.actions.append("dropped the unreadable root attributes (the end stamp of an earlier version failed)")
     try:
         f = h5py.File(p, "r+")
     except OSError as exc:
         raise ValueError(f"run file {p}: HDF5 cannot open it even now ({' '.join(str(exc).split())})") from None
     try:
+        if damaged:
+            report.actions += _rebuild_root(f, fmt)
         if not f.attrs.get("complete", False):
             report.actions += _trim(f)
             if report.actions:
                 f.attrs["recovered_at"] = now_iso()
                 before = f["status/reason"][0].decode(errors="replace")  # a run killed while stamping its end
-                tail = f" | {RECOVERED_REASON}" if before else RECOVERED_REASON  # such a run keeps its reason
+                note = REBUILT_REASON if damaged else RECOVERED_REASON
+                tail = f" | {note}" if before else note  # such a run keeps its reason
                 kept = before.encode()[:400 - len(tail)].decode(errors="ignore")  # whole characters only
                 f["status/reason"][0] = (kept + tail).encode()
                 report.actions.append("marked it recovered (attribute recovered_at)")
@@ -121,6 +128,61 @@ def recover(path: str | Path) -> RecoveryReport:
     report.samples = {name: len(s) for name, s in run.streams.items()}
     report.recorded_up_to, report.state, report.incomplete_reason = run.updated, run.state, run.incomplete_reason
     return report
+
+
+def _is_run(f: h5py.File) -> bool:
+    """Whether ``f`` has the structure of a dea-bench run file (what identifies one whose root attributes are lost)."""
+    status = f.get("status")
+    return (isinstance(status, h5py.Group) and all(isinstance(status.get(k), h5py.Dataset)
+                                                   for k in ("state", "reason", "end_time", "updated"))
+            and "events" in f and "program" in f)
+
+
+def _identify(p: Path, patches: Patches, size: int) -> tuple[str, bool]:
+    """The run file's format as it reads once released, and whether its root attributes are unreadable (then
+    its structure identifies it); ValueError (one line) for anything else."""
+    try:
+        with open_view(p, patches, size) as f:
+            try:
+                fmt = dict(f.attrs).get("format")
+            except Exception:  # the root object header points at attribute storage that never reached the disk
+                if _is_run(f):
+                    return (FORMAT if isinstance(f["events"], h5py.Group) else FORMATS[0]), True
+                fmt = None
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"run file {p}: not a readable HDF5 file ({' '.join(str(exc).split())})") from None
+    if fmt not in FORMATS:
+        raise ValueError(f"run file {p}: not a dea-bench run file (format {fmt!r})")
+    return str(fmt), False
+
+
+def _root_patches(p: Path, head: bytearray, sb: Superblock, patches: Patches, size: int) -> Patches:
+    """The patches that drop the root attributes, checked to leave a readable run file (ValueError if not)."""
+    root = root_attribute_patches(p, head, sb, size)
+    try:
+        with open_view(p, patches | root, size) as f:
+            if root and not dict(f.attrs) and _is_run(f):
+                return root
+    except Exception:  # said below, in one line
+        pass
+    raise ValueError(f"run file {p}: its root attributes are unreadable and its root object header cannot be "
+                     "repaired (nothing was changed)")
+
+
+def _rebuild_root(f: h5py.File, fmt: str) -> list[str]:
+    """Root attributes of a run file whose own were lost, from its structure and ``/status``."""
+    f.attrs["format"] = fmt
+    f.attrs["recovered_root"] = LOST
+    if "entry" in f:
+        f.attrs["Conventions"] = "CF-1.10"
+        f.attrs["NX_class"] = "NXroot"
+        f.attrs["default"] = "entry"
+    state = f["status/state"][0].decode(errors="replace")
+    if state != "running":
+        f.attrs["end_time"] = f["status/end_time"][0].decode(errors="replace")
+        f.attrs["exit_status"] = state
+        f.attrs["exit_reason"] = f["status/reason"][0].decode(errors="replace")
+    return [f"rebuilt the root attributes from /status (format {fmt!r}, state {state})"]
 
 
 def _trim(f: h5py.File) -> list[str]:

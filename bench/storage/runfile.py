@@ -55,6 +55,8 @@ class RunFile:
         """Why the file is not a complete record ('' if it is)."""
         if self.complete:
             return ""
+        if self.recovered_at and self.state != "running":  # its end is in /status: the stamp of the root failed
+            return f"finished ({self.state}) but not finalised (file recovered at {self.recovered_at})"
         if self.recovered_at:
             return f"no end recorded: the run crashed or was killed (file recovered at {self.recovered_at})"
         if self.orphaned:
@@ -182,9 +184,13 @@ def open_run(path: str | Path, streams: bool = True) -> RunFile:
 
 def read_run(f: h5py.File, p: Path, streams: bool = False) -> RunFile:
     """The run in the open file ``f`` (of path ``p``): as :func:`open_run`, without opening the file again."""
-    if f.attrs.get("format") not in FORMATS:
-        raise ValueError(f"run file {p}: not a dea-bench run file (format {f.attrs.get('format')!r})")
-    attrs = {k: _decode(v) for k, v in f.attrs.items()}
+    try:
+        attrs = {k: _decode(v) for k, v in f.attrs.items()}
+    except Exception as exc:  # e.g. an earlier version's end stamp failed on a full disk
+        raise ValueError(f"run file {p}: its root attributes are unreadable ({' '.join(str(exc).split())}): "
+                         "`bench recover` rebuilds them") from None
+    if attrs.get("format") not in FORMATS:
+        raise ValueError(f"run file {p}: not a dea-bench run file (format {attrs.get('format')!r})")
     st = f["status"]
     for name in ("state", "reason", "end_time", "updated"):
         st[name].refresh()

@@ -1,0 +1,171 @@
+"""The end-of-run stamp: a full disk there loses nothing, and `bench recover` releases the file an earlier version
+left unreadable there (its root object header pointing at attribute storage that never reached the disk).
+
+The file-size limit (RLIMIT_FSIZE, soft only: the hard limit stays, so it can be lifted again) stands in for a full
+disk from the moment the file is reopened for the stamp; the writes happen in this process (no HDF5 crash is
+expected any more; tests/test_storage.py keeps the child-process check of the failure path).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import resource
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+from bench.storage import recorder
+from bench.storage.recover import recover
+from bench.storage.runfile import open_run
+
+RATE = 1000.0  # Hz: sample k is recorded at k / RATE s with voltage = sin(t)
+N = 2000
+
+
+def _record(path: Path, extra_attrs: int = 0) -> recorder.Recorder:
+    """A run file with N amplifier samples (flushed in blocks), not yet finished."""
+    attrs = {"start_time": recorder.now_iso(), "protocol_text": "x" * 5000,
+             **{f"meta{i}": f"v{i}" for i in range(extra_attrs)}}
+    rec = recorder.Recorder(path, attrs, {"amplifier": [recorder.Column("voltage", "V", "")]},
+                            [(0, "a", "a", "hold", 0.0, 1.0)], {"amplifier": RATE})
+    for b in range(0, N, 500):
+        t = np.arange(b, b + 500) / RATE
+        rec.append("amplifier", t, voltage=np.sin(t))
+        rec.flush()
+    return rec
+
+
+@contextlib.contextmanager
+def _disk_full_at_reopen(monkeypatch: pytest.MonkeyPatch, margin: int) -> Iterator[None]:
+    """From the reopen of the file for the stamp (mode r+), no write may reach past its size + ``margin`` bytes."""
+    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+    opener = h5py.File
+
+    def reopen(path: object, mode: str = "r", *args: object, **kwargs: object) -> h5py.File:
+        if mode == "r+":
+            resource.setrlimit(resource.RLIMIT_FSIZE, (os.path.getsize(str(path)) + margin, hard))
+        return opener(path, mode, *args, **kwargs)
+
+    monkeypatch.setattr(recorder.h5py, "File", reopen)
+    try:
+        yield
+    finally:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
+        monkeypatch.setattr(recorder.h5py, "File", opener)
+
+
+def _old_stamp(f: h5py.File, end: str, state: str, reason: str) -> None:
+    """How versions before the placeholders stamped the end: new root attributes (new space in the file)."""
+    f.attrs["end_time"] = end
+    f.attrs["exit_status"] = state
+    f.attrs["exit_reason"] = reason
+    f.attrs["complete"] = True
+
+
+@pytest.fixture
+def old_style(monkeypatch: pytest.MonkeyPatch) -> Callable[[], None]:
+    """Make the recorder write files as earlier versions did: no stamp placeholders, the stamp added at the end."""
+    def apply() -> None:
+        monkeypatch.setattr(recorder.Recorder, "_create_stamp", staticmethod(lambda f: None), raising=False)
+        monkeypatch.setattr(recorder, "stamp", _old_stamp, raising=False)  # (absent before the placeholders)
+    return apply
+
+
+def _check_samples(path: Path) -> None:
+    run = open_run(path)
+    t = np.arange(N) / RATE  # what _record wrote, computed here anew
+    np.testing.assert_array_equal(run.streams["amplifier"].t, t)
+    np.testing.assert_array_equal(run.streams["amplifier"].columns["voltage"], np.sin(t))
+
+
+def test_a_disk_full_from_the_reopen_on_still_stamps_the_run_complete(tmp_path: Path,
+                                                                    monkeypatch: pytest.MonkeyPatch) -> None:
+    """The stamp overwrites placeholders made with the file: not one byte more is needed (limit = the size)."""
+    path = tmp_path / "run.h5"
+    rec = _record(path)
+    with _disk_full_at_reopen(monkeypatch, 0):
+        rec.finish("completed", "protocol completed")
+    run = open_run(path)
+    assert run.complete and run.state == "completed" and run.attrs["exit_status"] == "completed"
+    assert run.attrs["exit_reason"] == "protocol completed" and run.attrs["end_time"] == run.end_time != ""
+    _check_samples(path)
+
+
+def test_the_stamp_is_empty_while_the_run_goes_on_and_cut_like_the_status(tmp_path: Path) -> None:
+    path = tmp_path / "run.h5"
+    rec = _record(path)
+    running = open_run(path)
+    assert not running.complete and running.state == "running" and "no end recorded" in running.incomplete_reason
+    assert (running.attrs["end_time"], running.attrs["exit_status"], running.attrs["exit_reason"]) == ("", "", "")
+    rec.finish("error", "ü" * 300)  # 600 bytes of UTF-8: /status/reason and the stamp keep 400, whole characters
+    run = open_run(path)
+    assert run.complete and run.attrs["exit_reason"] == run.reason == "ü" * 200
+
+
+@pytest.mark.parametrize("extra_attrs", [0, 15], ids=["compact-root-attrs", "dense-root-attrs"])
+def test_recover_releases_the_file_an_earlier_version_broke_at_the_stamp(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, old_style: Callable[[], None], extra_attrs: int) -> None:
+    """The old stamp, run out of space 100 bytes past the file, left the root attributes unreadable (and the file
+    marked open): recover identifies the run by its structure, rebuilds the root from /status, keeps every sample."""
+    old_style()
+    path = tmp_path / "old.h5"
+    rec = _record(path, extra_attrs)
+    with _disk_full_at_reopen(monkeypatch, 100), pytest.raises(recorder.StorageError) as err:
+        rec.finish("completed", "protocol completed")
+    assert str(err.value).startswith(f"run file {path}: cannot stamp the end of the run") and "\n" not in str(err.value)
+    with pytest.raises(ValueError) as unreadable:  # what the earlier version left
+        open_run(path)
+    assert str(unreadable.value).startswith(f"run file {path}: its root attributes are unreadable")
+    assert str(unreadable.value).endswith("`bench recover` rebuilds them") and "\n" not in str(unreadable.value)
+    report = recover(path)
+    assert report.state == "completed" and report.samples == {"amplifier": N}
+    with h5py.File(path, "r") as f:  # every HDF5 tool opens it again
+        assert f.attrs["format"] == recorder.FORMAT and f.attrs["exit_status"] == "completed"
+    run = open_run(path)
+    assert run.state == "completed" and run.reason.startswith("protocol completed | recovered")
+    assert not run.complete and "finished (completed) but not finalised" in run.incomplete_reason
+    _check_samples(path)
+
+
+def test_recover_refuses_another_programs_file_with_unreadable_root_attributes(tmp_path: Path) -> None:
+    """Broken the same way but without a run's structure: one line, and the file is left as it was."""
+    path = tmp_path / "other.h5"
+    with h5py.File(path, "w", libver=("v110", "v110")) as f:
+        f["x"] = np.arange(3)
+        for i in range(6):
+            f.attrs[f"a{i}"] = "v" * 50
+    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+    recorder.ignore_sigxfsz()
+    g = h5py.File(path, "r+")
+    fd = int(g.id.get_vfd_handle())
+    resource.setrlimit(resource.RLIMIT_FSIZE, (path.stat().st_size + 100, hard))
+    try:
+        for i in range(6, 12):
+            g.attrs[f"a{i}"] = "w" * 50
+        g.close()
+    except Exception:
+        recorder.abandon(g, fd)
+    finally:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
+    before = path.read_bytes()
+    with pytest.raises(ValueError) as err:
+        recover(path)
+    assert str(err.value).startswith(f"run file {path}: not a") and "\n" not in str(err.value)
+    assert path.read_bytes() == before
+
+
+def test_a_file_of_an_earlier_version_without_placeholders_still_reads(
+        tmp_path: Path, old_style: Callable[[], None]) -> None:
+    old_style()
+    path = tmp_path / "old.h5"
+    _record(path).finish("completed", "protocol completed")
+    with h5py.File(path, "r") as f:
+        assert isinstance(f.attrs["exit_status"], str)  # variable-length, as earlier versions wrote it
+    run = open_run(path)
+    assert run.complete and run.attrs["exit_status"] == "completed" and run.attrs["exit_reason"] == "protocol completed"
+    _check_samples(path)
+    assert recover(path).actions == []
