@@ -486,3 +486,52 @@ def test_a_run_that_raises_still_leaves_its_start_row(tmp_path: Path, monkeypatc
     assert done == ["written"]
     (row,) = _rows(tmp_path)
     assert row["signature"] == "" and row["protocol_name"] == "thesis-identification-short"
+
+
+def test_a_start_row_replaces_only_a_start_row_or_another_runs_row(short_run: Path, catalog_url: str) -> None:
+    """The end row (read from the file) is never replaced by the same run's start row, however late it comes; a
+    start row still replaces an earlier run's row at the same path, and a row without a run ID (older files)."""
+    from bench.storage.catalog import row_from_file
+    from bench.storage.runfile import open_run
+
+    attrs = dict(open_run(short_run, streams=False).attrs)
+    with Catalog(catalog_url) as cat:
+        cat.upsert([row_from_file(short_run)])
+        cat.upsert([row_from_attrs(short_run, attrs)], start=True)  # late: after the end row
+        (row,) = cat.rows()
+        assert row["signature"] != "" and row["complete"] and row["run_id"] == attrs["run_id"]
+        cat.upsert([row_from_attrs(short_run, {**attrs, "run_id": "f" * 32})], start=True)  # a new run, same path
+        (row,) = cat.rows()
+        assert row["signature"] == "" and row["run_id"] == "f" * 32 and not row["complete"]
+        cat.upsert([{**row_from_file(short_run), "run_id": None}])  # an older file's row: no run ID
+        cat.upsert([row_from_attrs(short_run, attrs)], start=True)
+        (row,) = cat.rows()
+        assert row["signature"] == "" and row["run_id"] == attrs["run_id"]
+
+
+def test_a_run_whose_start_row_gets_no_thread_writes_it_in_line(tmp_path: Path,
+                                                                monkeypatch: pytest.MonkeyPatch) -> None:
+    """Where no thread can be started the run goes on and writes its start row itself (a run never depends on its
+    catalogue); the end row follows."""
+    import threading
+    import types
+
+    from bench.runtime import run as run_module
+    from bench.runtime.run import execute, plan_run
+    from bench.storage import catalog
+
+    monkeypatch.delenv("BENCH_CATALOG", raising=False)
+
+    class NoThread(threading.Thread):
+        def start(self) -> None:
+            raise RuntimeError("can't start new thread")
+
+    monkeypatch.setattr(run_module, "threading", types.SimpleNamespace(Thread=NoThread))
+    callers: list[str] = []
+    real = catalog.record_start
+    monkeypatch.setattr(catalog, "record_start",
+                        lambda *a, **k: (callers.append(threading.current_thread().name), real(*a, **k))[1])
+    result = execute(plan_run(IDENT), tmp_path / "run.h5", virtual=True)
+    assert result.state == "completed" and callers == [threading.main_thread().name]
+    (row,) = _rows(tmp_path)
+    assert row["signature"] != "" and row["complete"]

@@ -294,17 +294,23 @@ def execute(plan: Plan, out: Path, *, virtual: bool = False, operator: OperatorF
         _join(start_row)  # a run that ended by an exception still leaves its start row
 
 
-# the longest a run's end waits for its start row: the catalogue's own bounds (SQLite's busy wait, a server's
-# connect and statement timeouts) end the attempt well before this; past it the row is left to `bench runs list`
-START_ROW_WAIT_S = 60.0
+# the longest a run's end waits for its start row before writing its end row. A start row later than that (a
+# catalogue held by another writer) never replaces the end row (`Catalog.upsert(start=True)`), so the order of the
+# rows does not rest on this wait, which only keeps the end row from being written first and then rewritten
+START_ROW_WAIT_S = 10.0
 
 
-def _start_row(out: Path, attrs: dict[str, Any]) -> threading.Thread:
+def _start_row(out: Path, attrs: dict[str, Any]) -> threading.Thread | None:
     """Catalogue the run's start on a thread of its own (:func:`catalog.record_start`: never raises): its
-    synchronous commit overlaps the run's first steps instead of holding them up."""
+    synchronous commit overlaps the run's first steps instead of holding them up. Where no thread can be started
+    (process or memory limits) the row is written here: a run never depends on its catalogue."""
     row = threading.Thread(target=catalog.record_start, args=(out, dict(attrs)), name="catalogue start row",
                            daemon=True)
-    row.start()
+    try:
+        row.start()
+    except RuntimeError:
+        catalog.record_start(out, attrs)
+        return None
     return row
 
 

@@ -141,8 +141,11 @@ class Catalog:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def upsert(self, rows: Iterable[dict[str, Any]]) -> None:
-        """Insert or replace rows (by host and path), in one transaction."""
+    def upsert(self, rows: Iterable[dict[str, Any]], *, start: bool = False) -> None:
+        """Insert or replace rows (by host and path), in one transaction; ``start``: rows written at a run's
+        start, which never replace a row read from the same run's file (a late start row after the end row)."""
+        import sqlalchemy as sa
+
         rows = list(rows)
         if not rows:
             return
@@ -152,8 +155,11 @@ class Catalog:
             from sqlalchemy.dialects.sqlite import insert  # type: ignore[assignment]  # same upsert API, other class
         stmt = insert(self.runs)
         keys = {"host", "path"}
+        t = self.runs
+        where = sa.or_(t.c.signature == "", t.c.signature.is_(None),
+                       t.c.run_id.is_distinct_from(stmt.excluded.run_id)) if start else None
         stmt = stmt.on_conflict_do_update(index_elements=["host", "path"],
-                                          set_={c: stmt.excluded[c] for c in COLUMNS if c not in keys})
+                                          set_={c: stmt.excluded[c] for c in COLUMNS if c not in keys}, where=where)
         with self.engine.begin() as conn:
             conn.execute(stmt, rows)
 
@@ -420,7 +426,7 @@ def record_start(path: Path, attrs: dict[str, Any], url: str | None = None) -> N
     """Catalogue a run that has just started; on any failure one warning line (the run goes on)."""
     try:
         with Catalog(catalog_url(path.parent, url)) as cat:
-            cat.upsert([row_from_attrs(path, attrs)])
+            cat.upsert([row_from_attrs(path, attrs)], start=True)
     except Exception as exc:  # the catalogue is an index: a run never depends on it
         log.warning("run catalogue not written at the start (the run goes on; `bench runs list` reconciles it "
                     "from the files): %s", " ".join(str(exc).split())[:300])
