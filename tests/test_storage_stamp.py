@@ -128,6 +128,40 @@ def test_recover_releases_the_file_an_earlier_version_broke_at_the_stamp(
     run = open_run(path)
     assert run.state == "completed" and run.reason.startswith("protocol completed | recovered")
     assert not run.complete and "finished (completed) but not finalised" in run.incomplete_reason
+    if extra_attrs:  # in dense storage already: what could still be read one by one is written back
+        assert run.attrs["protocol_text"] == "x" * 5000 and run.attrs["start_time"].startswith("20")
+        assert [run.attrs[f"meta{i}"] for i in range(extra_attrs)] == [f"v{i}" for i in range(extra_attrs)]
+    else:  # the stamp's four attributes moved the root's into dense storage that never reached the disk: none left
+        assert "protocol_text" not in run.attrs and any("0 of them read one by one" in a for a in report.actions)
+    _check_samples(path)
+
+
+def test_a_recover_stopped_half_way_leaves_a_file_the_next_recover_finishes(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, old_style: Callable[[], None]) -> None:
+    """Ctrl-C after the root attributes were dropped and before they were rebuilt: the file names the cure in one
+    line, and the next `bench recover` rebuilds the root from /status, every sample kept."""
+    from bench.storage import recover as recover_module
+
+    old_style()
+    path = tmp_path / "old.h5"
+    rec = _record(path, 15)
+    with _disk_full_at_reopen(monkeypatch, 100), pytest.raises(recorder.StorageError):
+        rec.finish("completed", "protocol completed")
+
+    def interrupted(*args: object) -> list[str]:
+        raise KeyboardInterrupt
+
+    with monkeypatch.context() as m:
+        m.setattr(recover_module, "_rebuild_root", interrupted)
+        with pytest.raises(KeyboardInterrupt):
+            recover(path)
+    with pytest.raises(ValueError) as half:
+        open_run(path)
+    assert str(half.value) == f"run file {path}: its root attributes are missing: `bench recover` rebuilds them"
+    report = recover(path)
+    assert report.state == "completed" and report.samples == {"amplifier": N}
+    run = open_run(path)
+    assert run.attrs["format"] == recorder.FORMAT and run.attrs["exit_status"] == "completed"
     _check_samples(path)
 
 

@@ -18,11 +18,13 @@ attribute ``recovered_root`` says what was lost). Any other file is refused in o
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import h5py
 
@@ -34,7 +36,15 @@ from bench.storage.superblock import Superblock, open_elsewhere, read_superblock
 RECOVERED_REASON = "recovered after crash"
 REBUILT_REASON = "recovered: end stamp failed, root attributes rebuilt from /status"
 LOST = ("root attributes unreadable (the end stamp of an earlier version failed on a full disk): rebuilt from "
-        "/status; the run's metadata (protocol, rig, specimen, start time) is lost")
+        "/status and the attributes that could still be read one by one")
+STAMP = ("end_time", "exit_status", "exit_reason", "complete")  # the end stamp: rebuilt from /status, never salvaged
+# root attributes a run file holds (bench.runtime.run.execute, the recorder): looked up by name where the header's
+# list of names cannot be read
+KNOWN = ("format", "Conventions", "NX_class", "default", "software", "start_time", "protocol_name", "protocol_path",
+         "protocol_text", "protocol_sha256", "rig_name", "rig_toml", "rig_text", "simulated", "clock", "specimen_kind",
+         "specimen", "recording", "sources", "duration_planned", "hv_watchdog", "run_id", "campaign_id", "operator",
+         "specimen_id", "notes", "wire_time", "previous_file", "previous_run_id", "resumed_at_step", "replay_of",
+         "replay_of_run_id", "fits")
 SPACE_MARGIN = 1 << 20  # bytes free beyond the extension: HDF5 writes a little metadata when it trims and marks
 
 
@@ -77,7 +87,7 @@ def recover(path: str | Path) -> RecoveryReport:
     size = p.stat().st_size
     grow = end - size if sb.version >= 2 and size < end else 0  # a failed write left the file short
     patches = superblock_patches(head, sb)
-    fmt, damaged = _identify(p, patches, size + grow)  # as it reads once released: nothing is changed yet
+    fmt, damaged, kept = _identify(p, patches, size + grow)  # as it reads once released: nothing is changed yet
     if damaged:
         patches |= _root_patches(p, head, sb, patches, size + grow)
     writers = open_elsewhere(p)
@@ -101,21 +111,22 @@ def recover(path: str | Path) -> RecoveryReport:
         write_patches(p, patches)
     if sb.flags and sb.version >= 2:
         report.actions.append(f"cleared the file consistency flags (0x{sb.flags:02x}) left by the writer")
-    if damaged:
-        report.actions.append("dropped the unreadable root attributes (the end stamp of an earlier version failed)")
+    if damaged and kept is not None:
+        report.actions.append("dropped the root attributes (the end stamp of an earlier version failed; "
+                              f"{len(kept)} of them read one by one first, to be written back)")
     try:
         f = h5py.File(p, "r+")
     except OSError as exc:
         raise ValueError(f"run file {p}: HDF5 cannot open it even now ({' '.join(str(exc).split())})") from None
     try:
-        if damaged:
-            report.actions += _rebuild_root(f, fmt)
+        if kept is not None:
+            report.actions += _rebuild_root(f, fmt, kept)
         if not f.attrs.get("complete", False):
             report.actions += _trim(f)
             if report.actions:
                 f.attrs["recovered_at"] = now_iso()
                 before = f["status/reason"][0].decode(errors="replace")  # a run killed while stamping its end
-                note = REBUILT_REASON if damaged else RECOVERED_REASON
+                note = REBUILT_REASON if kept is not None else RECOVERED_REASON
                 tail = f" | {note}" if before else note  # such a run keeps its reason
                 kept = before.encode()[:400 - len(tail)].decode(errors="ignore")  # whole characters only
                 f["status/reason"][0] = (kept + tail).encode()
@@ -138,22 +149,51 @@ def _is_run(f: h5py.File) -> bool:
             and "events" in f and "program" in f)
 
 
-def _identify(p: Path, patches: Patches, size: int) -> tuple[str, bool]:
-    """The run file's format as it reads once released, and whether its root attributes are unreadable (then
-    its structure identifies it); ValueError (one line) for anything else."""
+def _identify(p: Path, patches: Patches, size: int) -> tuple[str, bool, dict[str, Any] | None]:
+    """The run file's format as it reads once released; whether its root attributes are unreadable (then its
+    structure identifies it); and the root attributes to write back (None: the root is as it should be). A root
+    with no attributes at all on a run's structure is one a recover stopped half-way left (its attributes dropped,
+    not yet rebuilt). ValueError (one line) for anything else."""
     try:
         with open_view(p, patches, size) as f:
             try:
-                fmt = dict(f.attrs).get("format")
+                attrs = dict(f.attrs)
             except Exception:  # the root object header points at attribute storage that never reached the disk
                 if _is_run(f):
-                    return (FORMAT if isinstance(f["events"], h5py.Group) else FORMATS[0]), True
-                fmt = None
+                    return _format_of(f), True, _salvage(f)
+                attrs = {}
+            else:
+                if not attrs and _is_run(f):
+                    return _format_of(f), False, {}
+            fmt = attrs.get("format")
     except (OSError, ValueError) as exc:
         raise ValueError(f"run file {p}: not a readable HDF5 file ({' '.join(str(exc).split())})") from None
     if fmt not in FORMATS:
         raise ValueError(f"run file {p}: not a dea-bench run file (format {fmt!r})")
-    return str(fmt), False
+    return str(fmt), False, None
+
+
+def _format_of(f: h5py.File) -> str:
+    """A run file's format from its structure (events a group of columns: the current format)."""
+    return FORMAT if isinstance(f["events"], h5py.Group) else FORMATS[0]
+
+
+def _salvage(f: h5py.File) -> dict[str, Any]:
+    """The root attributes of ``f`` that can still be read one by one (the end stamp left out), by the names the
+    header lists where it can, else by the names a run file has."""
+    names: list[str] = []
+    try:
+        for i in range(h5py.h5a.get_num_attrs(f.id)):
+            with contextlib.suppress(Exception):
+                names.append(h5py.h5a.open(f.id, index=i).get_name().decode("utf-8", "replace"))
+    except Exception:  # the count itself is unreadable
+        pass
+    out: dict[str, Any] = {}
+    for name in dict.fromkeys([*names, *KNOWN]):
+        if name not in STAMP:
+            with contextlib.suppress(Exception):
+                out[name] = f.attrs[name]
+    return out
 
 
 def _root_patches(p: Path, head: bytearray, sb: Superblock, patches: Patches, size: int) -> Patches:
@@ -169,8 +209,11 @@ def _root_patches(p: Path, head: bytearray, sb: Superblock, patches: Patches, si
                      "repaired (nothing was changed)")
 
 
-def _rebuild_root(f: h5py.File, fmt: str) -> list[str]:
-    """Root attributes of a run file whose own were lost, from its structure and ``/status``."""
+def _rebuild_root(f: h5py.File, fmt: str, kept: dict[str, Any]) -> list[str]:
+    """Root attributes of a run file whose own were lost: ``kept`` (those read one by one before), the format from
+    its structure, the end from ``/status``."""
+    for name, value in kept.items():
+        f.attrs[name] = value
     f.attrs["format"] = fmt
     f.attrs["recovered_root"] = LOST
     if "entry" in f:
@@ -182,7 +225,8 @@ def _rebuild_root(f: h5py.File, fmt: str) -> list[str]:
         f.attrs["end_time"] = f["status/end_time"][0].decode(errors="replace")
         f.attrs["exit_status"] = state
         f.attrs["exit_reason"] = f["status/reason"][0].decode(errors="replace")
-    return [f"rebuilt the root attributes from /status (format {fmt!r}, state {state})"]
+    return [f"rebuilt the root attributes from /status (format {fmt!r}, state {state}) and wrote back the {len(kept)} "
+            "read one by one"]
 
 
 def _trim(f: h5py.File) -> list[str]:

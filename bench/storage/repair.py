@@ -84,9 +84,11 @@ def _root_address(head: bytes | bytearray, sb: Superblock) -> int:
     return int(struct.unpack_from(fmt, head, sb.offset + 12 + 3 * sb.size_of_offsets)[0]) + sb.base_address
 
 
-def _drop_attributes(chunk: bytearray, start: int, flags: int, sb: Superblock, eoa: int) -> list[tuple[int, int]]:
+def _drop_attributes(chunk: bytearray, start: int, flags: int, sb: Superblock, sl: int,
+                     eoa: int) -> list[tuple[int, int]]:
     """NIL every attribute and attribute-info message of one header chunk (messages from ``start``, a checksum at
-    the end); the continuation chunks it names inside the file, as (address, length)."""
+    the end); the continuation chunks it names inside the file, as (address, length); ``sl``: the superblock's
+    size of lengths (a continuation's length field; its address field is the size of offsets)."""
     header = 6 if flags & 0x04 else 4  # type, size, flags (and the creation order where tracked)
     so = sb.size_of_offsets
     chunks, pos, end = [], start, len(chunk) - 4
@@ -98,7 +100,7 @@ def _drop_attributes(chunk: bytearray, start: int, flags: int, sb: Superblock, e
             chunk[pos + 3] = 0
         elif kind == CONTINUATION:
             addr = int.from_bytes(chunk[body:body + so], "little") + sb.base_address
-            length = int.from_bytes(chunk[body + so:body + 2 * so], "little")
+            length = int.from_bytes(chunk[body + so:body + so + sl], "little")
             if addr + length <= eoa:
                 chunks.append((addr, length))
         pos = body + size
@@ -112,6 +114,7 @@ def root_attribute_patches(path: Path, head: bytes | bytearray, sb: Superblock, 
     patches: Patches = {}
     if sb.version < 2:
         return patches
+    sl = head[sb.offset + 10]  # size of lengths: the byte after the size of offsets (superblock version 2/3)
     with path.open("rb") as fh:
         addr = _root_address(head, sb)
         fh.seek(addr)
@@ -125,7 +128,7 @@ def root_attribute_patches(path: Path, head: bytes | bytearray, sb: Superblock, 
         start = at + width
         fh.seek(addr)
         chunk = bytearray(fh.read(start + size + 4))
-        todo = _drop_attributes(chunk, start, flags, sb, eoa)
+        todo = _drop_attributes(chunk, start, flags, sb, sl, eoa)
         patches[addr] = bytes(chunk)
         while todo:
             addr, length = todo.pop()
@@ -133,7 +136,7 @@ def root_attribute_patches(path: Path, head: bytes | bytearray, sb: Superblock, 
             chunk = bytearray(fh.read(length))
             if chunk[:4] != b"OCHK" or len(chunk) != length:
                 continue
-            todo += _drop_attributes(chunk, 4, flags, sb, eoa)
+            todo += _drop_attributes(chunk, 4, flags, sb, sl, eoa)
             patches[addr] = bytes(chunk)
     return patches
 

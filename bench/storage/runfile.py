@@ -189,6 +189,8 @@ def read_run(f: h5py.File, p: Path, streams: bool = False) -> RunFile:
     except Exception as exc:  # e.g. an earlier version's end stamp failed on a full disk
         raise ValueError(f"run file {p}: its root attributes are unreadable ({' '.join(str(exc).split())}): "
                          "`bench recover` rebuilds them") from None
+    if not attrs and isinstance(f.get("status"), h5py.Group):  # a recover stopped between dropping and rebuilding
+        raise ValueError(f"run file {p}: its root attributes are missing: `bench recover` rebuilds them")
     if attrs.get("format") not in FORMATS:
         raise ValueError(f"run file {p}: not a dea-bench run file (format {attrs.get('format')!r})")
     st = f["status"]
