@@ -250,6 +250,24 @@ def test_twin_stream_packet_bytes(raw_twin: Rig) -> None:
         assert data.recv(64)[:2] == b"\x00\x01"  # transaction id increments per packet
 
 
+def test_packets_one_pump_fills_are_numbered_in_order_and_each_carries_the_backlog_after_it(raw_twin: Rig) -> None:
+    """Three packets due at once (6 scans of 2 inputs, 4 samples a packet) leave together: TransID 0, 1, 2 and
+    backlog ([A] bytes still buffered after the packet) 16, 8, 0 — each header the datasheet's layout."""
+    with socket.create_connection(("127.0.0.1", raw_twin.port), timeout=2) as s, \
+            socket.create_connection(("127.0.0.1", raw_twin.stream_port), timeout=STREAM_WAIT_S) as data:
+        for f in ["0010 0000 000b 01 10 0fa2 0002 04 447a 0000", "0011 0000 000b 01 10 0fa4 0002 04 0000 0002",
+                  "0012 0000 000b 01 10 0fa6 0002 04 0000 0004", "0013 0000 000b 01 10 0fb0 0002 04 0000 0001",
+                  "0014 0000 000f 01 10 1004 0004 08 0000 0000 0000 0002",
+                  "0015 0000 000b 01 10 137e 0002 04 0000 0001"]:  # as above: 1 kHz, AIN0/1, 4 samples, enable
+            assert _transact(s, bytes.fromhex(f))[7] == 0x10
+        raw_twin.clock.advance(0.0065)  # scans 0…5 (at 1…6 ms) are due: 12 samples, three whole packets
+        got = data.recv(3 * 28, socket.MSG_WAITALL)
+    samples = "82f3 82f3 82f3 82f3"  # the plant at rest, as above
+    assert got == bytes.fromhex(f"0000 0000 0012 01 4c 10 00 0010 0000 0000 {samples}"
+                                f"0001 0000 0012 01 4c 10 00 0008 0000 0000 {samples}"
+                                f"0002 0000 0012 01 4c 10 00 0000 0000 0000 {samples}")
+
+
 def test_twin_keeps_packets_due_before_a_client_connects_to_the_stream_port(raw_twin: Rig) -> None:
     """A stream enabled (spontaneous, Ethernet) before the host's stream socket is accepted: the device keeps its
     packets in its stream buffer and sends them when a client connects (they used to be dropped — a race the host's

@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 import threading
 from collections import deque
+from collections.abc import Iterable
 
 import numpy as np
 from scipy.signal import lfilter
@@ -61,19 +62,27 @@ class PlantCoupling:
                 self._hist_t.popleft()
                 self._hist.popleft()
 
-    def _observe(self, times: np.ndarray) -> dict[str, np.ndarray]:
-        """Plant observables held at the last model step at or before each time."""
+    def _observe(self, times: np.ndarray, keys: Iterable[str] | None = None) -> dict[str, np.ndarray]:
+        """Plant observables held at the last model step at or before each time (``keys``: only these; None:
+        all four)."""
         self.plant.advance_to(float(times[-1]))
         with self._hist_lock:
             first = len(self._hist_t) - 1  # only the blocks that cover the requested times (and the one before)
             while first > 0 and self._hist_t[first][0] > times[0]:
                 first -= 1
-            hist_t = [self._hist_t[i] for i in range(first, len(self._hist_t))]
-            hist = [self._hist[i] for i in range(first, len(self._hist))]
-            t = np.concatenate(hist_t)
-            idx = np.clip(np.searchsorted(t, times + 1e-9, side="right") - 1, 0, t.size - 1)
-            return {k: np.concatenate([h[k] for h in hist])[idx] for k in hist[0]}
-
+            if first == len(self._hist_t) - 1:  # one block covers them all (a pump's usual case): nothing to join
+                t = self._hist_t[first]
+            else:
+                t = np.concatenate([self._hist_t[i] for i in range(first, len(self._hist_t))])
+            blocks = [self._hist[i] for i in range(first, len(self._hist))]
+            idx = np.searchsorted(t, times + 1e-9, side="right")
+            idx -= 1
+            np.maximum(idx, 0, out=idx)  # np.clip's result, without its call overhead
+            np.minimum(idx, t.size - 1, out=idx)
+            names = blocks[0] if keys is None else keys
+            if len(blocks) == 1:
+                return {k: blocks[0][k][idx] for k in names}
+            return {k: np.concatenate([h[k] for h in blocks])[idx] for k in names}
 
     def _ain_volts(self, ain: int, obs: dict[str, np.ndarray], n: int, adc_rms: float = 0.0, *,
                    slot: int = -1) -> np.ndarray:
