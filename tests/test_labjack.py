@@ -587,6 +587,35 @@ def test_twin_dac_volts_of_one_code_equal_those_of_the_code_in_a_block() -> None
         assert sim._code_volts(0x1237, ch) == sim._code_volts(0x1230, ch)
 
 
+def test_the_twins_compiled_stream_conversions_give_the_doubles_of_the_array_formulas() -> None:
+    """The twin converts a stream block in compiled passes (speed); each must give bit for bit what the formulas
+    give as array expressions: scan k at t_enable + (k + 1)/rate ([D]), DAC output through the conditioning
+    stage, and the AIN code c + V/slope rounded half to even and held within 0…65535."""
+    from sim_devices.t7 import analog
+
+    cal = analog.nominal_calibration()
+    rng = np.random.default_rng(5)
+    cond = Conditioning(gain=4.0, offset=-10.0, limit=7.5)  # a limit inside the DAC's span: both clips act
+    codes = np.concatenate([rng.integers(0, 65536, 20_000), [0, 15, 16, 0x1237, 65535]])
+    times, volts = analog.dac_drive(123_456, codes, 0.1234, 9_999.7, cal[32], cal[33], cond.gain, cond.offset,
+                                    cond.limit)
+    assert np.array_equal(times, 0.1234 + (123_456 + 1 + np.arange(codes.size)) / 9_999.7)
+    assert np.array_equal(volts, cond(analog.dac_codes_volts(cal, codes, 0)))
+    x = np.concatenate([rng.normal(0.0, 4.0, 20_000), [0.0, -0.0, 1e300, -1e300, np.inf, -np.inf]])
+    noise = rng.normal(0.0, 1e-3, x.size)
+    for g in range(4):
+        for gain, offset, nz in ((1.0, 0.0, noise), (200.0, 0.25, noise), (1e-3, -0.5, np.zeros(0))):
+            out = np.empty(x.size, np.uint16)
+            analog.ain_codes_of(x, gain, offset, nz, *cal[4 * g:4 * g + 3], out)
+            with np.errstate(over="ignore", invalid="ignore"):
+                v = gain * x + offset + (nz if nz.size else 0.0)
+                assert np.array_equal(out, analog.ain_codes(cal, v, g))
+    ties = np.array([2.5, 3.5, -0.5, 0.49, 65534.5, 65535.5, 70000.0])  # slope 1, centre 0: code = rint(V)
+    out = np.empty(ties.size, np.uint16)
+    analog.ain_codes_of(ties, 1.0, 0.0, np.zeros(0), 1.0, -1.0, 0.0, out)
+    assert out.tolist() == [2, 4, 0, 0, 65534, 65535, 65535]
+
+
 def test_wall_clock_stream_loses_and_repeats_nothing() -> None:
     from bench.core.clock import WallClock
 

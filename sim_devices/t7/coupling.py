@@ -22,6 +22,8 @@ from bench.core.plant import Plant, PlantBlock
 from sim_devices.t7 import analog
 from sim_devices.t7.analog import AIN_GROUND, AIN_TEMPERATURE, Conditioning, Signal, default_signals
 
+_NO_NOISE = np.zeros(0)  # an input read without noise (analog.ain_codes_of)
+
 
 class PlantCoupling:
     """Plant history, AIN sampling, DAC conversion and the amplifier-input drive of one T7 twin."""
@@ -104,6 +106,22 @@ class PlantCoupling:
             v = v + self._noise(ain, slot).normal(0.0, rms, n)
         return np.asarray(v, float)
 
+    def _ain_stream_codes(self, ain: int, obs: dict[str, np.ndarray], n: int, adc_rms: float, slot: int,
+                          gain: int, out: np.ndarray) -> None:
+        """``out`` ← the stream codes of ``n`` samples of input ``ain`` on calibration gain index ``gain``: the codes
+        of :meth:`_ain_volts` (the same noise draws), a wired input's in one compiled pass
+        (:func:`~sim_devices.t7.analog.ain_codes_of`)."""
+        sig = self.signals.get(ain)
+        if sig is None or ain in (AIN_TEMPERATURE, AIN_GROUND):
+            out[:] = self._raw(self._ain_volts(ain, obs, n, adc_rms, slot=slot), gain)
+            return
+        x = obs[sig.observable]
+        x = np.ascontiguousarray(x if np.isfinite(x).all() else np.nan_to_num(x), dtype=float)
+        rms = math.hypot(sig.noise, adc_rms)
+        noise = self._noise(ain, slot).normal(0.0, rms, n) if rms and self.noise else _NO_NOISE
+        p, nslope, c = self.cal[4 * gain:4 * gain + 3]
+        analog.ain_codes_of(x, float(sig.gain), float(sig.offset), noise, p, nslope, c, out)
+
     def _noise(self, ain: int, slot: int) -> np.random.Generator:
         """The generator of input ``ain``'s samples at scan-list ``slot`` (−1: its command-response reads), seeded
         from the twin's seed: one draw per sample in sample order, so a run repeats whatever the pumps' sizes."""
@@ -127,9 +145,11 @@ class PlantCoupling:
     def _drive(self, first: int, codes: np.ndarray) -> np.ndarray | None:
         """Amplifier input events for DAC values played at scans ``first``, ``first`` + 1, …; returns the
         reconstruction filter's output at each (None without a filter)."""
-        times = self.t_enable + (first + 1 + np.arange(codes.size)) / self.rate
-        volts = self.conditioning(self._codes_volts(codes, self.dac))
-        fc = self.conditioning.corner_Hz
+        cond = self.conditioning  # t_enable + (first + 1 + k)/rate and conditioning(_codes_volts(codes)), compiled
+        slope, off = self.cal[32 + 2 * self.dac:34 + 2 * self.dac]
+        times, volts = analog.dac_drive(first, np.ascontiguousarray(codes, dtype=np.int64), self.t_enable, self.rate,
+                                        slope, off, cond.gain, cond.offset, cond.limit)
+        fc = cond.corner_Hz
         filtered = None
         if fc is not None and volts.size:  # exact first-order low-pass at the scan instants
             alpha = 1.0 - math.exp(-2.0 * math.pi * fc / self.rate)

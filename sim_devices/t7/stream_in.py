@@ -129,11 +129,11 @@ class StreamEngine(StreamOut):
                  and a not in (AIN_TEMPERATURE, AIN_GROUND)}  # the observables the inputs read, no others
         obs = self._observe(times, wired)
         index = resolution.stream_index(self.regs[R_RES])
-        scans = np.empty((ks.size, len(ains)), np.uint16)  # the samples in scan order, one column per input
+        cols = np.empty((len(ains), ks.size), np.uint16)  # one row per input, then interleaved in scan order
         for j, a in enumerate(ains):
-            scans[:, j] = self._raw(self._ain_volts(a, obs, ks.size, resolution.noise_rms(self.ain_range[a], index),
-                                                    slot=j), RANGE_GAIN[self.ain_range[a]])
-        data = scans.reshape(-1)
+            self._ain_stream_codes(a, obs, ks.size, resolution.noise_rms(self.ain_range[a], index), j,
+                                   RANGE_GAIN[self.ain_range[a]], cols[j])
+        data = cols.T.reshape(-1)
         self.produced = due
         unsent = self._unsent_bytes()  # the host does not read: the device buffer fills
         cap = int(self.regs[R_BUFSIZE]) or 4096
