@@ -88,6 +88,7 @@ class StreamEngine(StreamOut):
         # auto-recovery starts when they exceed STREAM_BUFFER_SIZE_BYTES as for a client that does not read
         self._held: list[bytes] = []
         self._next_packet_t = math.inf  # rig time at which the next whole stream packet is due
+        self._pumped_at: float | None = None  # rig time of the last pump (None: a request came since)
 
     def _in_addresses(self) -> list[int]:
         """The scan list's analog inputs (AIN addresses), in scan order."""
@@ -100,6 +101,8 @@ class StreamEngine(StreamOut):
             if not self.streaming:
                 return
             now = self.clock.now()
+            if now == self._pumped_at:  # pumped at this very time, no request since: nothing new is due (a virtual
+                return  # clock that has not moved between polls)
             due = self._cur_scan(now) + 1
             nscans = int(self.regs[R_NSCANS])
             if nscans:
@@ -110,6 +113,7 @@ class StreamEngine(StreamOut):
                 self._take_scans(due)
             self._send(final=bool(nscans) and self.produced >= nscans)
             self._next_packet_t = self._packet_due()
+            self._pumped_at = now
 
     def _packet_due(self) -> float:
         """Rig time of the scan that completes the next whole packet (inf when not streaming)."""
