@@ -250,6 +250,24 @@ def test_twin_stream_packet_bytes(raw_twin: Rig) -> None:
         assert data.recv(64)[:2] == b"\x00\x01"  # transaction id increments per packet
 
 
+def test_packets_one_pump_fills_are_numbered_in_order_and_each_carries_the_backlog_after_it(raw_twin: Rig) -> None:
+    """Three packets due at once (6 scans of 2 inputs, 4 samples a packet) leave together: TransID 0, 1, 2 and
+    backlog ([A] bytes still buffered after the packet) 16, 8, 0 — each header the datasheet's layout."""
+    with socket.create_connection(("127.0.0.1", raw_twin.port), timeout=2) as s, \
+            socket.create_connection(("127.0.0.1", raw_twin.stream_port), timeout=STREAM_WAIT_S) as data:
+        for f in ["0010 0000 000b 01 10 0fa2 0002 04 447a 0000", "0011 0000 000b 01 10 0fa4 0002 04 0000 0002",
+                  "0012 0000 000b 01 10 0fa6 0002 04 0000 0004", "0013 0000 000b 01 10 0fb0 0002 04 0000 0001",
+                  "0014 0000 000f 01 10 1004 0004 08 0000 0000 0000 0002",
+                  "0015 0000 000b 01 10 137e 0002 04 0000 0001"]:  # as above: 1 kHz, AIN0/1, 4 samples, enable
+            assert _transact(s, bytes.fromhex(f))[7] == 0x10
+        raw_twin.clock.advance(0.0065)  # scans 0…5 (at 1…6 ms) are due: 12 samples, three whole packets
+        got = data.recv(3 * 28, socket.MSG_WAITALL)
+    samples = "82f3 82f3 82f3 82f3"  # the plant at rest, as above
+    assert got == bytes.fromhex(f"0000 0000 0012 01 4c 10 00 0010 0000 0000 {samples}"
+                                f"0001 0000 0012 01 4c 10 00 0008 0000 0000 {samples}"
+                                f"0002 0000 0012 01 4c 10 00 0000 0000 0000 {samples}")
+
+
 def test_twin_keeps_packets_due_before_a_client_connects_to_the_stream_port(raw_twin: Rig) -> None:
     """A stream enabled (spontaneous, Ethernet) before the host's stream socket is accepted: the device keeps its
     packets in its stream buffer and sends them when a client connects (they used to be dropped — a race the host's
@@ -567,6 +585,35 @@ def test_twin_dac_volts_of_one_code_equal_those_of_the_code_in_a_block() -> None
         assert sim._codes_volts(codes, ch) == pytest.approx(expected, rel=1e-15, abs=0)
         assert [sim._code_volts(int(c), ch) for c in codes] == pytest.approx(expected, rel=1e-15, abs=0)
         assert sim._code_volts(0x1237, ch) == sim._code_volts(0x1230, ch)
+
+
+def test_the_twins_compiled_stream_conversions_give_the_doubles_of_the_array_formulas() -> None:
+    """The twin converts a stream block in compiled passes (speed); each must give bit for bit what the formulas
+    give as array expressions: scan k at t_enable + (k + 1)/rate ([D]), DAC output through the conditioning
+    stage, and the AIN code c + V/slope rounded half to even and held within 0…65535."""
+    from sim_devices.t7 import analog
+
+    cal = analog.nominal_calibration()
+    rng = np.random.default_rng(5)
+    cond = Conditioning(gain=4.0, offset=-10.0, limit=7.5)  # a limit inside the DAC's span: both clips act
+    codes = np.concatenate([rng.integers(0, 65536, 20_000), [0, 15, 16, 0x1237, 65535]])
+    times, volts = analog.dac_drive(123_456, codes, 0.1234, 9_999.7, cal[32], cal[33], cond.gain, cond.offset,
+                                    cond.limit)
+    assert np.array_equal(times, 0.1234 + (123_456 + 1 + np.arange(codes.size)) / 9_999.7)
+    assert np.array_equal(volts, cond(analog.dac_codes_volts(cal, codes, 0)))
+    x = np.concatenate([rng.normal(0.0, 4.0, 20_000), [0.0, -0.0, 1e300, -1e300, np.inf, -np.inf]])
+    noise = rng.normal(0.0, 1e-3, x.size)
+    for g in range(4):
+        for gain, offset, nz in ((1.0, 0.0, noise), (200.0, 0.25, noise), (1e-3, -0.5, np.zeros(0))):
+            out = np.empty(x.size, np.uint16)
+            analog.ain_codes_of(x, gain, offset, nz, *cal[4 * g:4 * g + 3], out)
+            with np.errstate(over="ignore", invalid="ignore"):
+                v = gain * x + offset + (nz if nz.size else 0.0)
+                assert np.array_equal(out, analog.ain_codes(cal, v, g))
+    ties = np.array([2.5, 3.5, -0.5, 0.49, 65534.5, 65535.5, 70000.0])  # slope 1, centre 0: code = rint(V)
+    out = np.empty(ties.size, np.uint16)
+    analog.ain_codes_of(ties, 1.0, 0.0, np.zeros(0), 1.0, -1.0, 0.0, out)
+    assert out.tolist() == [2, 4, 0, 0, 65534, 65535, 65535]
 
 
 def test_wall_clock_stream_loses_and_repeats_nothing() -> None:

@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 import threading
 from collections import deque
+from collections.abc import Iterable
 
 import numpy as np
 from scipy.signal import lfilter
@@ -20,6 +21,8 @@ from bench.core.clock import Clock
 from bench.core.plant import Plant, PlantBlock
 from sim_devices.t7 import analog
 from sim_devices.t7.analog import AIN_GROUND, AIN_TEMPERATURE, Conditioning, Signal, default_signals
+
+_NO_NOISE = np.zeros(0)  # an input read without noise (analog.ain_codes_of)
 
 
 class PlantCoupling:
@@ -61,19 +64,27 @@ class PlantCoupling:
                 self._hist_t.popleft()
                 self._hist.popleft()
 
-    def _observe(self, times: np.ndarray) -> dict[str, np.ndarray]:
-        """Plant observables held at the last model step at or before each time."""
+    def _observe(self, times: np.ndarray, keys: Iterable[str] | None = None) -> dict[str, np.ndarray]:
+        """Plant observables held at the last model step at or before each time (``keys``: only these; None:
+        all four)."""
         self.plant.advance_to(float(times[-1]))
         with self._hist_lock:
             first = len(self._hist_t) - 1  # only the blocks that cover the requested times (and the one before)
             while first > 0 and self._hist_t[first][0] > times[0]:
                 first -= 1
-            hist_t = [self._hist_t[i] for i in range(first, len(self._hist_t))]
-            hist = [self._hist[i] for i in range(first, len(self._hist))]
-            t = np.concatenate(hist_t)
-            idx = np.clip(np.searchsorted(t, times + 1e-9, side="right") - 1, 0, t.size - 1)
-            return {k: np.concatenate([h[k] for h in hist])[idx] for k in hist[0]}
-
+            if first == len(self._hist_t) - 1:  # one block covers them all (a pump's usual case): nothing to join
+                t = self._hist_t[first]
+            else:
+                t = np.concatenate([self._hist_t[i] for i in range(first, len(self._hist_t))])
+            blocks = [self._hist[i] for i in range(first, len(self._hist))]
+            idx = np.searchsorted(t, times + 1e-9, side="right")
+            idx -= 1
+            np.maximum(idx, 0, out=idx)  # np.clip's result, without its call overhead
+            np.minimum(idx, t.size - 1, out=idx)
+            names = blocks[0] if keys is None else keys
+            if len(blocks) == 1:
+                return {k: blocks[0][k][idx] for k in names}
+            return {k: np.concatenate([h[k] for h in blocks])[idx] for k in names}
 
     def _ain_volts(self, ain: int, obs: dict[str, np.ndarray], n: int, adc_rms: float = 0.0, *,
                    slot: int = -1) -> np.ndarray:
@@ -94,6 +105,22 @@ class PlantCoupling:
         if rms and self.noise:
             v = v + self._noise(ain, slot).normal(0.0, rms, n)
         return np.asarray(v, float)
+
+    def _ain_stream_codes(self, ain: int, obs: dict[str, np.ndarray], n: int, adc_rms: float, slot: int,
+                          gain: int, out: np.ndarray) -> None:
+        """``out`` ← the stream codes of ``n`` samples of input ``ain`` on calibration gain index ``gain``: the codes
+        of :meth:`_ain_volts` (the same noise draws), a wired input's in one compiled pass
+        (:func:`~sim_devices.t7.analog.ain_codes_of`)."""
+        sig = self.signals.get(ain)
+        if sig is None or ain in (AIN_TEMPERATURE, AIN_GROUND):
+            out[:] = self._raw(self._ain_volts(ain, obs, n, adc_rms, slot=slot), gain)
+            return
+        x = obs[sig.observable]
+        x = np.ascontiguousarray(x if np.isfinite(x).all() else np.nan_to_num(x), dtype=float)
+        rms = math.hypot(sig.noise, adc_rms)
+        noise = self._noise(ain, slot).normal(0.0, rms, n) if rms and self.noise else _NO_NOISE
+        p, nslope, c = self.cal[4 * gain:4 * gain + 3]
+        analog.ain_codes_of(x, float(sig.gain), float(sig.offset), noise, p, nslope, c, out)
 
     def _noise(self, ain: int, slot: int) -> np.random.Generator:
         """The generator of input ``ain``'s samples at scan-list ``slot`` (−1: its command-response reads), seeded
@@ -118,9 +145,11 @@ class PlantCoupling:
     def _drive(self, first: int, codes: np.ndarray) -> np.ndarray | None:
         """Amplifier input events for DAC values played at scans ``first``, ``first`` + 1, …; returns the
         reconstruction filter's output at each (None without a filter)."""
-        times = self.t_enable + (first + 1 + np.arange(codes.size)) / self.rate
-        volts = self.conditioning(self._codes_volts(codes, self.dac))
-        fc = self.conditioning.corner_Hz
+        cond = self.conditioning  # t_enable + (first + 1 + k)/rate and conditioning(_codes_volts(codes)), compiled
+        slope, off = self.cal[32 + 2 * self.dac:34 + 2 * self.dac]
+        times, volts = analog.dac_drive(first, np.ascontiguousarray(codes, dtype=np.int64), self.t_enable, self.rate,
+                                        slope, off, cond.gain, cond.offset, cond.limit)
+        fc = cond.corner_Hz
         filtered = None
         if fc is not None and volts.size:  # exact first-order low-pass at the scan instants
             alpha = 1.0 - math.exp(-2.0 * math.pi * fc / self.rate)

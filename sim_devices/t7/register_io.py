@@ -246,6 +246,7 @@ class RegisterIO(StreamEngine):
         # ``now`` while the request schedules DAC values from the next scan on (the device plays them on its own
         # clock; a plant that had moved on would take late values as one step, which a T7 never plays).
         with self.plant.lock, self.lock:
+            self._pumped_at = None  # a request may change what the next pump does, at any time
             if fc in (3, 4):
                 rc = self._read(address, count, start, regs)
             elif fc in (6, 16) and values is not None:

@@ -31,7 +31,7 @@ from collections import deque
 import numpy as np
 
 from sim_devices.t7 import resolution
-from sim_devices.t7.analog import AIN_TEMPERATURE, RANGE_GAIN
+from sim_devices.t7.analog import AIN_GROUND, AIN_TEMPERATURE, RANGE_GAIN
 from sim_devices.t7.registers import (
     E_ACTIVE,
     E_BUFSIZE,
@@ -65,6 +65,8 @@ from sim_devices.t7.registers import (
 from sim_devices.t7.stream_out import StreamOut
 
 MAX_SAMPLE_RATE = 100_000.0
+STREAM_FUNCTION, STREAM_TYPE = 76, 16  # [E] a stream packet's function and type bytes
+HEADER_WORDS = 8  # [E] a stream packet's header: 16 bytes
 
 
 class StreamEngine(StreamOut):
@@ -86,6 +88,7 @@ class StreamEngine(StreamOut):
         # auto-recovery starts when they exceed STREAM_BUFFER_SIZE_BYTES as for a client that does not read
         self._held: list[bytes] = []
         self._next_packet_t = math.inf  # rig time at which the next whole stream packet is due
+        self._pumped_at: float | None = None  # rig time of the last pump (None: a request came since)
 
     def _in_addresses(self) -> list[int]:
         """The scan list's analog inputs (AIN addresses), in scan order."""
@@ -98,6 +101,8 @@ class StreamEngine(StreamOut):
             if not self.streaming:
                 return
             now = self.clock.now()
+            if now == self._pumped_at:  # pumped at this very time, no request since: nothing new is due (a virtual
+                return  # clock that has not moved between polls)
             due = self._cur_scan(now) + 1
             nscans = int(self.regs[R_NSCANS])
             if nscans:
@@ -108,6 +113,7 @@ class StreamEngine(StreamOut):
                 self._take_scans(due)
             self._send(final=bool(nscans) and self.produced >= nscans)
             self._next_packet_t = self._packet_due()
+            self._pumped_at = now
 
     def _packet_due(self) -> float:
         """Rig time of the scan that completes the next whole packet (inf when not streaming)."""
@@ -122,19 +128,23 @@ class StreamEngine(StreamOut):
     def _take_scans(self, due: int) -> None:
         ks = np.arange(self.produced, due)
         times = self.t_enable + (ks + 1) / self.rate
-        ins = self._in_addresses()
-        obs = self._observe(times)
+        ains = [a // 2 for a in self._in_addresses()]
+        wired = {sig.observable for a in ains if (sig := self.signals.get(a)) is not None
+                 and a not in (AIN_TEMPERATURE, AIN_GROUND)}  # the observables the inputs read, no others
+        obs = self._observe(times, wired)
         index = resolution.stream_index(self.regs[R_RES])
-        cols = [self._raw(self._ain_volts(a // 2, obs, ks.size, resolution.noise_rms(self.ain_range[a // 2], index),
-                                          slot=j), RANGE_GAIN[self.ain_range[a // 2]]) for j, a in enumerate(ins)]
-        data = np.stack(cols, axis=1).reshape(-1)
+        cols = np.empty((len(ains), ks.size), np.uint16)  # one row per input, then interleaved in scan order
+        for j, a in enumerate(ains):
+            self._ain_stream_codes(a, obs, ks.size, resolution.noise_rms(self.ain_range[a], index), j,
+                                   RANGE_GAIN[self.ain_range[a]], cols[j])
+        data = cols.T.reshape(-1)
         self.produced = due
         unsent = self._unsent_bytes()  # the host does not read: the device buffer fills
         cap = int(self.regs[R_BUFSIZE]) or 4096
         if self.recovering or unsent > cap:
             if self.recovering and unsent < cap // 2:
                 self.recovering = False
-                dummy = np.full(len(ins), 0xFFFF, np.uint16)
+                dummy = np.full(len(ains), 0xFFFF, np.uint16)
                 self._send(status=S_RECOVER_END, extra=self.skipped, prefix=dummy)
                 self.scans_skipped_total += self.skipped
                 self.skipped = 0
@@ -157,7 +167,8 @@ class StreamEngine(StreamOut):
 
     def _head(self, n: int, backlog: int, status: int, extra: int) -> bytes:
         """The header of the next packet, of ``n`` samples, ``backlog`` bytes still buffered after it."""
-        head = struct.pack(">HHHBBBBHHH", self.tid & 0xFFFF, 0, 10 + 2 * n, UNIT, 76, 16, 0, backlog, status, extra)
+        head = struct.pack(">HHHBBBBHHH", self.tid & 0xFFFF, 0, 10 + 2 * n, UNIT, STREAM_FUNCTION, STREAM_TYPE, 0,
+                           backlog, status, extra)
         self.tid += 1
         return head
 
@@ -175,16 +186,28 @@ class StreamEngine(StreamOut):
         count = whole + (final and size > whole * spp)  # a burst's last packet may be short
         if count:  # one socket write for the packets a pump has filled (the bytes a T7 sends, fewer syscalls)
             n = min(size, count * spp)
-            body = self.fifo[:n].astype(">u2").tobytes()  # the samples of every packet, converted at once
+            short = n - whole * spp if count > whole else 0  # samples of a short last packet (0: none)
+            # the whole packets at once: header words ([E] TransID, ProtoID, Length, unit·function, type·reserved,
+            # backlog, status, AddInfo) and samples, one row each, big-endian as on the wire
+            rows = np.empty((whole, HEADER_WORDS + spp), ">u2")
+            i = np.arange(whole)
+            rows[:, 0] = (self.tid + i) & 0xFFFF
+            rows[:, 1] = 0
+            rows[:, 2] = 10 + 2 * spp
+            rows[:, 3] = UNIT << 8 | STREAM_FUNCTION
+            rows[:, 4] = STREAM_TYPE << 8
+            rows[:, 5] = np.minimum(2 * (size - (i + 1) * spp), 0xFFFF)  # bytes still buffered after the packet
+            rows[:, 6] = S_RECOVER if self.recovering else 0
+            rows[:, 7] = 0
+            if final and not short and whole:
+                rows[-1, 6] = S_BURST
+            rows[:, HEADER_WORDS:] = self.fifo[:whole * spp].reshape(whole, spp)
+            self.tid += whole
+            data = rows.tobytes()
+            if short:
+                data += self._head(short, 0, S_BURST, 0) + self.fifo[whole * spp:n].astype(">u2").tobytes()
             self.fifo = self.fifo[n:]
-            packets = []
-            for i in range(count):
-                k = min(spp, n - i * spp)
-                last = final and i == count - 1
-                st = S_BURST if last else (S_RECOVER if self.recovering else 0)
-                backlog = min(2 * (size - i * spp - k), 0xFFFF)  # bytes still buffered after this packet
-                packets.append(self._head(k, backlog, st, 0) + body[2 * i * spp:2 * (i * spp + k)])
-            self._write(w, b"".join(packets), count)
+            self._write(w, data, count)
         if final:
             self._stop_stream(self.clock.now())
 

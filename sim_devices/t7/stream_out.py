@@ -150,7 +150,13 @@ class StreamOut(PlantCoupling):
         if not self.streaming:
             return len(o.queue)
         cur = self._cur_scan(now)
-        data = sum(max(0, min(p.codes.size, p.first + p.codes.size - 1 - cur)) for p in o.sched if not p.loop)
+        data = 0
+        for p in o.sched:  # the data scheduled and not played yet (a loop's repetitions are not values written)
+            if not p.loop:
+                size = p.codes.size
+                left = p.first + size - 1 - cur
+                if left > 0:
+                    data += left if left < size else size
         return data + len(o.queue) + (o.loop.size if o.loop_active and o.loop.size > 1 else 0)
 
 
@@ -265,10 +271,11 @@ class StreamOut(PlantCoupling):
         o.tail.extend(take)
         o.buffer_writes += 1
         o.values_written += len(take)
-        if self.streaming and k in self._out_indices() and o.loop_active and o.loop.size > 1:
+        played = self.streaming and k in self._out_indices()
+        if played and o.loop_active and o.loop.size > 1:
             self._advance_out(k, now)
             o.queue.extend(take.tolist())  # waits for SET_LOOP: the loop in progress is not interrupted
-        elif self.streaming and k in self._out_indices():
+        elif played:
             self._advance_out(k, now)
             self._schedule(k, take, now)
         else:
