@@ -10,7 +10,7 @@ import heapq
 import numpy as np
 import pytest
 
-from bench.identify.distributed import tile_cost, tiles
+from bench.identify.distributed import DistributedPredict, tile_cost, tiles
 from bench.models.batch_plan import CHUNK_OVERHEAD, LANES, candidate_bounds
 
 # input steps of 12 records as unequal as the thesis sweeps' (a few long slow cycles, many short fast ones)
@@ -85,3 +85,30 @@ def test_a_record_outside_the_prediction_is_refused_not_read_past(c0: int, n_dat
 
     with pytest.raises(ValueError, match="record columns"):
         record_costs(np.zeros((3, 10)), c0, np.zeros(n_data), np.ones(n_sigma), np.ones(n_data, bool), "lsq")
+
+
+def _placer(slots: list[str], steps: list[int]) -> DistributedPredict:
+    """A DistributedPredict with only what placing needs (no cluster): its worker-thread slots and record lengths."""
+    p = DistributedPredict.__new__(DistributedPredict)
+    p.slots, p.steps = slots, steps
+    return p
+
+
+def test_tiles_are_placed_longest_first_on_the_thread_free_first() -> None:
+    """Worker a with one thread, b with two (slots a, b, b); four one-register tiles of 400, 300, 200 and 100 steps:
+    by hand, 400 → a, 300 → b, 200 → b's second thread, and 100 to the thread free first, b's second (200)."""
+    plan = [(0, 1, 0, LANES), (1, 2, 0, LANES), (2, 3, 0, LANES), (3, 4, 0, LANES)]
+    assert _placer(["a", "b", "b"], [400, 300, 200, 100]).place(plan) == ["a", "b", "b", "b"]
+
+
+def test_a_generation_of_twelve_tiles_takes_twelve_of_sixteen_workers() -> None:
+    """The campaign's generation (12 records of nearly equal length, one tile each) on 16 single-thread workers:
+    no worker gets two tiles while another idles (the scheduler left to itself put up to three on one)."""
+    steps = [80960, 80280, 80340, 80400, 80980, 80600, 80380, 80200, 80960, 80380, 80380, 80380]
+    plan = tiles(50, steps, 16)
+    placed = _placer([f"w{k:02d}" for k in range(16)], steps).place(plan)
+    assert len(plan) == 12 and len(set(placed)) == 12
+
+
+def test_without_known_workers_the_scheduler_places_the_tiles() -> None:
+    assert _placer([], [100]).place([(0, 1, 0, LANES)]) == [None]

@@ -16,6 +16,7 @@ worker --nthreads N`` runs N tiles at once, N × one thread, no oversubscription
 from __future__ import annotations
 
 import contextlib
+import heapq
 import itertools
 import threading
 from collections.abc import Iterator, Sequence
@@ -152,6 +153,8 @@ class DistributedPredict:
         workers = client.scheduler_info().get("workers", {})
         # worker threads when distributed: the tiles' count
         self.threads = max(1, sum(int(w.get("nthreads", 1)) for w in workers.values()))
+        # each worker thread a slot: a batch's tiles are placed on them here, longest first on the least loaded
+        self.slots = [address for address, w in sorted(workers.items()) for _ in range(int(w.get("nthreads", 1)))]
         # every worker known now loads the kernel: a batch's tiles go to any worker, and a cold one holds up a
         # batch; a worker gone meanwhile leaves its warm-up to another, and a slow one is not waited for past
         # WARM_TIMEOUT_S (the warm-up only saves time, results do not depend on it)
@@ -169,13 +172,29 @@ class DistributedPredict:
         plan = tiles(m, self.steps, self.threads)
         futures = [self.client.submit(_tile, self.records[r0:r1], self.Y0[r0:r1], P[a:b], self.h, self.stride,
                                       self.window, None if cal is None else cal[r0:r1, a:b], pure=False,
-                                      priority=len(plan) - k)  # longest first
-                   for k, (r0, r1, a, b) in enumerate(plan)]
+                                      priority=len(plan) - k, workers=None if at is None else [at],
+                                      allow_other_workers=True)
+                   for k, ((r0, r1, a, b), at) in enumerate(zip(plan, self.place(plan), strict=True))]
         out = np.empty((m, int(self.columns[-1])))
         for (r0, r1, a, b), part in zip(plan, self.client.gather(futures), strict=True):
             out[a:b, self.columns[r0]:self.columns[r1]] = part
         with self._count:
             self.evaluations += m
+        return out
+
+    def place(self, plan: list[Tile]) -> list[str | None]:
+        """The worker of each tile of ``plan`` (longest first): the worker thread that is free first, as the plan's
+        cost model counts (:func:`tile_cost`), so no two tiles share a thread while another idles. Left to itself
+        the scheduler put up to three of a generation's 12 tiles on one of 16 idle workers. A worker gone since
+        (loose restriction) leaves its tiles to any other; results never depend on where a tile ran."""
+        if not self.slots:  # no worker known when the records were scattered: the scheduler places them
+            return [None for _ in plan]
+        free = [(0.0, k) for k in range(len(self.slots))]
+        out: list[str | None] = []
+        for tile in plan:
+            load, k = heapq.heappop(free)
+            out.append(self.slots[k])
+            heapq.heappush(free, (load + tile_cost(self.steps, tile), k))
         return out
 
     def costs(self, P: np.ndarray, cal: np.ndarray | None, gain: float, offset: float, kind: str) -> np.ndarray:
@@ -187,8 +206,9 @@ class DistributedPredict:
         futures = [self.client.submit(_tile_costs, self.records[r0:r1], self.Y0[r0:r1], P[a:b], self.h, self.stride,
                                       self.window, None if cal is None else cal[r0:r1, a:b], gain, offset,
                                       self.data[r0:r1], self.sigma[r0:r1], self.mask[r0:r1], kind, pure=False,
-                                      priority=len(plan) - k)  # longest first
-                   for k, (r0, r1, a, b) in enumerate(plan)]
+                                      priority=len(plan) - k, workers=None if at is None else [at],
+                                      allow_other_workers=True)
+                   for k, ((r0, r1, a, b), at) in enumerate(zip(plan, self.place(plan), strict=True))]
         out = np.empty((len(self.steps), m))
         for (r0, r1, a, b), part in zip(plan, self.client.gather(futures), strict=True):
             out[r0:r1, a:b] = part
