@@ -128,8 +128,8 @@ def recover(path: str | Path) -> RecoveryReport:
                 before = f["status/reason"][0].decode(errors="replace")  # a run killed while stamping its end
                 note = REBUILT_REASON if kept is not None else RECOVERED_REASON
                 tail = f" | {note}" if before else note  # such a run keeps its reason
-                kept = before.encode()[:400 - len(tail)].decode(errors="ignore")  # whole characters only
-                f["status/reason"][0] = (kept + tail).encode()
+                head_of = before.encode()[:400 - len(tail)].decode(errors="ignore")  # whole characters only
+                f["status/reason"][0] = (head_of + tail).encode()
                 report.actions.append("marked it recovered (attribute recovered_at)")
         f.close()
     except Exception as exc:  # e.g. the disk filled meanwhile: release the file without crashing
