@@ -87,28 +87,50 @@ def test_a_record_outside_the_prediction_is_refused_not_read_past(c0: int, n_dat
         record_costs(np.zeros((3, 10)), c0, np.zeros(n_data), np.ones(n_sigma), np.ones(n_data, bool), "lsq")
 
 
-def _placer(slots: list[str], steps: list[int]) -> DistributedPredict:
-    """A DistributedPredict with only what placing needs (no cluster): its worker-thread slots and record lengths."""
+def _placer(steps: list[int]) -> DistributedPredict:
+    """A DistributedPredict with only what placing needs (no cluster): its record lengths and nothing placed yet."""
+    import threading
+
     p = DistributedPredict.__new__(DistributedPredict)
-    p.slots, p.steps = slots, steps
+    p.steps, p._loads, p._placing = steps, {}, threading.Lock()
     return p
 
 
 def test_tiles_are_placed_longest_first_on_the_thread_free_first() -> None:
-    """Worker a with one thread, b with two (slots a, b, b); four one-register tiles of 400, 300, 200 and 100 steps:
-    by hand, 400 → a, 300 → b, 200 → b's second thread, and 100 to the thread free first, b's second (200)."""
+    """Worker a with one thread, b with two; four one-register tiles of 400, 300, 200 and 100 steps: by hand,
+    400 → a, 300 → b's first thread, 200 → b's second, and 100 to the thread free first, b's second (200)."""
     plan = [(0, 1, 0, LANES), (1, 2, 0, LANES), (2, 3, 0, LANES), (3, 4, 0, LANES)]
-    assert _placer(["a", "b", "b"], [400, 300, 200, 100]).place(plan) == ["a", "b", "b", "b"]
+    got = _placer([400, 300, 200, 100]).assign(plan, [("a", 0), ("b", 0), ("b", 1)])
+    assert [slot for slot, _ in got] == [("a", 0), ("b", 0), ("b", 1), ("b", 1)]
+
+
+STEPS_12 = [80960, 80280, 80340, 80400, 80980, 80600, 80380, 80200, 80960, 80380, 80380, 80380]
+SLOTS_16 = [(f"w{k:02d}", 0) for k in range(16)]
 
 
 def test_a_generation_of_twelve_tiles_takes_twelve_of_sixteen_workers() -> None:
     """The campaign's generation (12 records of nearly equal length, one tile each) on 16 single-thread workers:
     no worker gets two tiles while another idles (the scheduler left to itself put up to three on one)."""
-    steps = [80960, 80280, 80340, 80400, 80980, 80600, 80380, 80200, 80960, 80380, 80380, 80380]
-    plan = tiles(50, steps, 16)
-    placed = _placer([f"w{k:02d}" for k in range(16)], steps).place(plan)
-    assert len(plan) == 12 and len(set(placed)) == 12
+    plan = tiles(50, STEPS_12, 16)
+    placed = _placer(STEPS_12).assign(plan, SLOTS_16)
+    assert len(plan) == 12 and len({slot for slot, _ in placed}) == 12
+
+
+def test_two_batches_under_way_together_share_the_threads_and_a_finished_one_frees_them() -> None:
+    """Two starts' generations at once (12 + 12 tiles, 16 threads): the second takes the 4 idle threads first, so
+    every thread works and none has more than two tiles; once both are done, the next batch finds all 16 free."""
+    p = _placer(STEPS_12)
+    plan = tiles(50, STEPS_12, 16)
+    with p._placed(plan, SLOTS_16) as first, p._placed(plan, SLOTS_16) as second:
+        both = first + second
+        assert {f"w{k:02d}" for k in range(16)} == set(both)
+        assert max(both.count(w) for w in set(both)) == 2
+        assert set(second) >= {w for w, _ in SLOTS_16} - set(first)  # the idle four first
+    assert p._loads == {}
+    with p._placed(plan, SLOTS_16) as third:
+        assert len(set(third)) == 12
 
 
 def test_without_known_workers_the_scheduler_places_the_tiles() -> None:
-    assert _placer([], [100]).place([(0, 1, 0, LANES)]) == [None]
+    with _placer([100])._placed([(0, 1, 0, LANES)], []) as where:
+        assert where == [None]

@@ -31,6 +31,7 @@ if TYPE_CHECKING:
 
 WARM_TIMEOUT_S = 60.0  # the longest a new DistributedPredict waits for its workers to load the kernel
 Tile = tuple[int, int, int, int]  # first record, end record, first candidate, end candidate
+Slot = tuple[str, int]  # a worker thread: the worker's address, the thread's number there
 
 
 @contextlib.contextmanager
@@ -151,10 +152,9 @@ class DistributedPredict:
         self.evaluations = 0  # candidates evaluated on the cluster
         self._count = threading.Lock()  # the starts evaluate from threads of their own
         workers = client.scheduler_info().get("workers", {})
-        # worker threads when distributed: the tiles' count
-        self.threads = max(1, sum(int(w.get("nthreads", 1)) for w in workers.values()))
-        # each worker thread a slot: a batch's tiles are placed on them here, longest first on the least loaded
-        self.slots = [address for address, w in sorted(workers.items()) for _ in range(int(w.get("nthreads", 1)))]
+        # the cost each worker thread (address, thread) has been given by batches still under way (:meth:`_placed`)
+        self._loads: dict[Slot, float] = {}
+        self._placing = threading.Lock()
         # every worker known now loads the kernel: a batch's tiles go to any worker, and a cold one holds up a
         # batch; a worker gone meanwhile leaves its warm-up to another, and a slow one is not waited for past
         # WARM_TIMEOUT_S (the warm-up only saves time, results do not depend on it)
@@ -169,48 +169,80 @@ class DistributedPredict:
         """λ of the packed sets P (one row per set, every record's samples side by side); ``cal``: the records'
         input calibration per set (records, len(P), 2) or None."""
         m = P.shape[0]
-        plan = tiles(m, self.steps, self.threads)
-        futures = [self.client.submit(_tile, self.records[r0:r1], self.Y0[r0:r1], P[a:b], self.h, self.stride,
-                                      self.window, None if cal is None else cal[r0:r1, a:b], pure=False,
-                                      priority=len(plan) - k, workers=None if at is None else [at],
-                                      allow_other_workers=True)
-                   for k, ((r0, r1, a, b), at) in enumerate(zip(plan, self.place(plan), strict=True))]
+        slots = self.slots()
+        plan = tiles(m, self.steps, max(1, len(slots)))
+        with self._placed(plan, slots) as where:
+            futures = [self.client.submit(_tile, self.records[r0:r1], self.Y0[r0:r1], P[a:b], self.h, self.stride,
+                                          self.window, None if cal is None else cal[r0:r1, a:b], pure=False,
+                                          priority=len(plan) - k, workers=None if at is None else [at],
+                                          allow_other_workers=True)
+                       for k, ((r0, r1, a, b), at) in enumerate(zip(plan, where, strict=True))]
+            parts = self.client.gather(futures)
         out = np.empty((m, int(self.columns[-1])))
-        for (r0, r1, a, b), part in zip(plan, self.client.gather(futures), strict=True):
+        for (r0, r1, a, b), part in zip(plan, parts, strict=True):
             out[a:b, self.columns[r0]:self.columns[r1]] = part
         with self._count:
             self.evaluations += m
         return out
 
-    def place(self, plan: list[Tile]) -> list[str | None]:
-        """The worker of each tile of ``plan`` (longest first): the worker thread that is free first, as the plan's
-        cost model counts (:func:`tile_cost`), so no two tiles share a thread while another idles. Left to itself
-        the scheduler put up to three of a generation's 12 tiles on one of 16 idle workers. A worker gone since
-        (loose restriction) leaves its tiles to any other; results never depend on where a tile ran."""
-        if not self.slots:  # no worker known when the records were scattered: the scheduler places them
-            return [None for _ in plan]
-        free = [(0.0, k) for k in range(len(self.slots))]
-        out: list[str | None] = []
-        for tile in plan:
-            load, k = heapq.heappop(free)
-            out.append(self.slots[k])
-            heapq.heappush(free, (load + tile_cost(self.steps, tile), k))
-        return out
+    def slots(self) -> list[Slot]:
+        """The cluster's worker threads now, one slot each (address, thread): the tiles' count, and where
+        :meth:`_placed` puts them (read at every batch: workers come and go)."""
+        workers = self.client.scheduler_info().get("workers", {})
+        return [(address, k) for address, w in sorted(workers.items()) for k in range(int(w.get("nthreads", 1)))]
+
+    @contextlib.contextmanager
+    def _placed(self, plan: list[Tile], slots: list[Slot]) -> Iterator[list[str | None]]:
+        """The worker of each tile of ``plan`` (longest first) while its batch is under way: the worker thread
+        free first, as the plan's cost model counts (:func:`tile_cost`), counting the tiles that batches running
+        beside it (the fit's parallel starts) were given. Left to itself the scheduler put up to three of a
+        generation's 12 tiles on one of 16 idle workers. The placement is a loose restriction: a worker gone
+        leaves its tiles to any other, and work stealing may still move one; results never depend on it."""
+        if not slots:  # no worker known: the scheduler places them
+            yield [None for _ in plan]
+            return
+        charges = self.assign(plan, slots)
+        try:
+            yield [slot[0] for slot, _ in charges]
+        finally:
+            with self._placing:
+                for slot, cost in charges:
+                    self._loads[slot] -= cost
+                    if self._loads[slot] <= 1e-9 * cost:
+                        del self._loads[slot]
+
+    def assign(self, plan: list[Tile], slots: list[Slot]) -> list[tuple[Slot, float]]:
+        """Each tile of ``plan`` given to the slot least loaded (its load counted in :attr:`_loads`, which this
+        adds to), with its cost: longest-first list scheduling over the worker threads."""
+        with self._placing:
+            free = [(self._loads.get(slot, 0.0), k) for k, slot in enumerate(slots)]
+            heapq.heapify(free)
+            out = []
+            for tile in plan:
+                load, k = heapq.heappop(free)
+                cost = tile_cost(self.steps, tile)
+                out.append((slots[k], cost))
+                self._loads[slots[k]] = self._loads.get(slots[k], 0.0) + cost
+                heapq.heappush(free, (load + cost, k))
+            return out
 
     def costs(self, P: np.ndarray, cal: np.ndarray | None, gain: float, offset: float, kind: str) -> np.ndarray:
         """Each record's partial cost (records × len(P); :mod:`bench.identify.record_costs`) of the packed sets P,
         whose outputs are gain·(λ − offset); ``cal`` as for a call. Each task returns its tile's partial costs only,
         never its samples."""
         m = P.shape[0]
-        plan = tiles(m, self.steps, self.threads)
-        futures = [self.client.submit(_tile_costs, self.records[r0:r1], self.Y0[r0:r1], P[a:b], self.h, self.stride,
-                                      self.window, None if cal is None else cal[r0:r1, a:b], gain, offset,
-                                      self.data[r0:r1], self.sigma[r0:r1], self.mask[r0:r1], kind, pure=False,
-                                      priority=len(plan) - k, workers=None if at is None else [at],
-                                      allow_other_workers=True)
-                   for k, ((r0, r1, a, b), at) in enumerate(zip(plan, self.place(plan), strict=True))]
+        slots = self.slots()
+        plan = tiles(m, self.steps, max(1, len(slots)))
+        with self._placed(plan, slots) as where:
+            futures = [self.client.submit(_tile_costs, self.records[r0:r1], self.Y0[r0:r1], P[a:b], self.h,
+                                          self.stride, self.window, None if cal is None else cal[r0:r1, a:b], gain,
+                                          offset, self.data[r0:r1], self.sigma[r0:r1], self.mask[r0:r1], kind,
+                                          pure=False, priority=len(plan) - k, workers=None if at is None else [at],
+                                          allow_other_workers=True)
+                       for k, ((r0, r1, a, b), at) in enumerate(zip(plan, where, strict=True))]
+            parts = self.client.gather(futures)
         out = np.empty((len(self.steps), m))
-        for (r0, r1, a, b), part in zip(plan, self.client.gather(futures), strict=True):
+        for (r0, r1, a, b), part in zip(plan, parts, strict=True):
             out[r0:r1, a:b] = part
         with self._count:
             self.evaluations += m
