@@ -216,6 +216,18 @@ def test_twin_answers_product_id_and_serial_as_the_register_map(raw_twin: Rig) -
             bytes.fromhex("0002 0000 0007 01 03 04 1c03 d1b9")
 
 
+def test_the_twins_stream_kernels_are_compiled_before_it_answers_and_for_the_arrays_a_stream_gives_them(
+        raw_twin: Rig) -> None:
+    """A fresh install has no numba cache: the twin compiles its conversions at start, not inside its first stream
+    reply (where the host would wait seconds); a stream then calls them with those very types (no second
+    compile)."""
+    from sim_devices.t7 import analog
+
+    assert len(analog.ain_codes_of.signatures) == 1 and len(analog.dac_drive.signatures) == 1  # compiled by start()
+    test_twin_stream_packet_bytes(raw_twin)
+    assert len(analog.ain_codes_of.signatures) == 1 and len(analog.dac_drive.signatures) == 1
+
+
 def test_twin_refuses_empty_stream_with_labjack_error(raw_twin: Rig) -> None:
     with socket.create_connection(("127.0.0.1", raw_twin.port), timeout=2) as s:
         # FC16 STREAM_ENABLE (4990 = 0x137E) ← UINT32 1 with no scan list

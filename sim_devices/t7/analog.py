@@ -106,6 +106,13 @@ def dac_drive(first: int, codes: np.ndarray, t_enable: float, rate: float, slope
     return times, volts
 
 
+def warm_up() -> None:
+    """Compile :func:`ain_codes_of` and :func:`dac_drive` now (a fresh install has no numba cache: compiling at the
+    first stream pump would take seconds inside the twin's reply, with its locks held, and the host would wait)."""
+    ain_codes_of(np.zeros(1), 1.0, 0.0, np.zeros(1), 1.0, 1.0, 0.0, np.zeros(1, np.uint16))
+    dac_drive(0, np.zeros(1, np.int64), 0.0, 1.0, 1.0, 0.0, 1.0, 0.0, 1.0)
+
+
 @dataclass(frozen=True)
 class Conditioning:
     """Rig's stage between a DAC (0–5 V) and the amplifier input: ``gain``·V + ``offset``, clipped ±``limit``,

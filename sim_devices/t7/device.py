@@ -23,7 +23,7 @@ from pymodbus.simulator import DataType, SimData, SimDevice
 
 from bench.core.clock import Clock
 from bench.core.plant import Plant
-from sim_devices.t7.analog import Conditioning, Signal
+from sim_devices.t7.analog import Conditioning, Signal, warm_up
 from sim_devices.t7.feedback import FeedbackPDU, T7Server
 from sim_devices.t7.register_io import RegisterIO
 from sim_devices.t7.registers import R_O_U16, UNIT
@@ -82,6 +82,7 @@ class LabJackT7Sim(RegisterIO):
         returns (Modbus port, stream port). A port that cannot be bound (in use, or below 1024 without the
         privilege) raises RuntimeError naming it."""
         self.host = host
+        warm_up()  # before the first request: no compile inside a reply
         self._thread = threading.Thread(target=self._run, args=(port, stream_port), name="sim-labjack", daemon=True)
         self._thread.start()
         if not self._ready.wait(timeout) or not self.port:
