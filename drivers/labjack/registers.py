@@ -75,7 +75,7 @@ def _u16_bytes(words: Words) -> bytes:
     """Register values as big-endian 16-bit words; a value outside 0…65535 is refused, not wrapped."""
     w = np.asarray(words)
     # one pass: the OR of all values has a bit above 15 (or is negative) exactly when one of them lies outside
-    if w.size and (w.dtype.kind not in "iu" or int(np.bitwise_or.reduce(w)) >> 16):
+    if w.size and (w.dtype.kind not in "iu" or int(np.bitwise_or.reduce(w, axis=None)) >> 16):
         raise ValueError(f"register values must be integers 0…65535, got {w.min()}…{w.max()}")
     return w.astype(">u2").tobytes()
 
