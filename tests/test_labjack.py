@@ -850,3 +850,14 @@ def test_the_safe_state_goes_out_after_a_stop_request_has_cancelled_the_rigs_wai
     finally:
         token.clear()
         rig.close()
+
+
+def test_register_words_of_any_shape_are_range_checked_as_one() -> None:
+    """Big-endian 16-bit words, row by row (Modbus Application Protocol §4.2: registers big-endian); a value a
+    register cannot hold is refused in any shape of array."""
+    from drivers.labjack.registers import _u16_bytes
+
+    assert _u16_bytes(np.array([[1, 2], [3, 0xFFFF]])) == bytes.fromhex("0001 0002 0003 ffff")
+    for bad in (np.array([[1, -1]]), np.array([[0x10000], [0]]), np.array([2**63], dtype=np.uint64)):
+        with pytest.raises(ValueError, match="0…65535"):
+            _u16_bytes(bad)
