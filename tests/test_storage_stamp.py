@@ -165,11 +165,19 @@ def test_a_recover_stopped_half_way_leaves_a_file_the_next_recover_finishes(
     _check_samples(path)
 
 
-def test_recover_refuses_another_programs_file_with_unreadable_root_attributes(tmp_path: Path) -> None:
-    """Broken the same way but without a run's structure: one line, and the file is left as it was."""
+@pytest.mark.parametrize("lookalike", [False, True], ids=["other-structure", "status-events-program-groups"])
+def test_recover_refuses_another_programs_file_with_unreadable_root_attributes(tmp_path: Path,
+                                                                               lookalike: bool) -> None:
+    """Broken the same way but without a run's structure — also one with groups named as a run's (/status with its
+    four datasets, /events, /program) but not a run's program: one line, and the file is left as it was."""
     path = tmp_path / "other.h5"
     with h5py.File(path, "w", libver=("v110", "v110")) as f:
         f["x"] = np.arange(3)
+        if lookalike:
+            for k in ("state", "reason", "end_time", "updated"):
+                f[f"status/{k}"] = np.array([b"running"])
+            f.create_group("events")
+            f["program/steps"] = np.arange(3)
         for i in range(6):
             f.attrs[f"a{i}"] = "v" * 50
     soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)

@@ -28,7 +28,7 @@ from typing import Any
 
 import h5py
 
-from bench.storage.recorder import FORMAT, FORMATS, abandon, cause, ignore_sigxfsz, now_iso
+from bench.storage.recorder import FORMAT, FORMATS, STATES, abandon, cause, ignore_sigxfsz, now_iso
 from bench.storage.repair import Patches, open_view, root_attribute_patches, superblock_patches, write_patches
 from bench.storage.runfile import open_run
 from bench.storage.superblock import Superblock, open_elsewhere, read_superblock
@@ -142,11 +142,20 @@ def recover(path: str | Path) -> RecoveryReport:
 
 
 def _is_run(f: h5py.File) -> bool:
-    """Whether ``f`` has the structure of a dea-bench run file (what identifies one whose root attributes are lost)."""
-    status = f.get("status")
-    return (isinstance(status, h5py.Group) and all(isinstance(status.get(k), h5py.Dataset)
-                                                   for k in ("state", "reason", "end_time", "updated"))
-            and "events" in f and "program" in f)
+    """Whether ``f`` has the structure of a dea-bench run file (what identifies one whose root attributes are lost):
+    ``/status`` with its texts, a state the recorder writes and a floating-point ``updated``, ``/events``, and a
+    ``/program`` with its start times and durations (columns of a group, or fields of format 1's compound)."""
+    try:
+        status, program = f.get("status"), f.get("program")
+        if not (isinstance(status, h5py.Group) and "events" in f and program is not None
+                and all(isinstance(status.get(k), h5py.Dataset) for k in ("state", "reason", "end_time", "updated"))):
+            return False
+        state = status["state"][0]
+        columns = set(program) if isinstance(program, h5py.Group) else set(program.dtype.names or ())
+        return (isinstance(state, bytes) and state.rstrip(b"\0").decode("utf-8", "replace") in STATES
+                and status["updated"].dtype.kind == "f" and {"t_start", "duration"} <= columns)
+    except Exception:  # anything unreadable in that structure: not one to rebuild
+        return False
 
 
 def _identify(p: Path, patches: Patches, size: int) -> tuple[str, bool, dict[str, Any] | None]:
