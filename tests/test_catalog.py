@@ -535,3 +535,33 @@ def test_a_run_whose_start_row_gets_no_thread_writes_it_in_line(tmp_path: Path,
     assert result.state == "completed" and callers == [threading.main_thread().name]
     (row,) = _rows(tmp_path)
     assert row["signature"] != "" and row["complete"]
+
+
+@pytest.mark.parametrize("ending", ["completed", "stopped before the engine ran"])
+def test_the_instruments_are_closed_before_the_run_waits_on_its_catalogue(tmp_path: Path,
+                                                                          monkeypatch: pytest.MonkeyPatch,
+                                                                          ending: str) -> None:
+    """A catalogue held by another writer may keep its rows waiting for seconds: the run closes its instruments
+    (and stops its twins) first, then waits for the start row and writes the end row."""
+    from bench.runtime.instruments import Instruments
+    from bench.runtime.run import execute, plan_run
+    from bench.storage import catalog
+
+    monkeypatch.delenv("BENCH_CATALOG", raising=False)
+    order: list[str] = []
+    _slow_start_row(monkeypatch, 0.3)
+    closing, ending_row = Instruments.close, catalog.record_end
+    monkeypatch.setattr(Instruments, "close", lambda self: (order.append("instruments closed"), closing(self))[1])
+    monkeypatch.setattr(catalog, "record_end", lambda *a, **k: (order.append("end row"), ending_row(*a, **k))[1])
+
+    def refuse(engine: object, sim: object) -> None:
+        raise RuntimeError("refused before the run")
+
+    if ending == "completed":
+        assert execute(plan_run(IDENT), tmp_path / "run.h5", virtual=True).state == "completed"
+    else:
+        with pytest.raises(RuntimeError, match="refused before the run"):
+            execute(plan_run(IDENT), tmp_path / "run.h5", virtual=True, on_engine=refuse)
+    assert order == ["instruments closed", "end row"]
+    (row,) = _rows(tmp_path)
+    assert row["signature"] != "" and row["state"] == ("completed" if ending == "completed" else "error")

@@ -207,9 +207,11 @@ class DistributedPredict:
         finally:
             with self._placing:
                 for slot, cost in charges:
-                    self._loads[slot] -= cost
-                    if self._loads[slot] <= 1e-9 * cost:
-                        del self._loads[slot]
+                    left = self._loads.get(slot, 0.0) - cost
+                    if left > 1e-9 * cost:
+                        self._loads[slot] = left
+                    else:  # this batch's share was the last (to rounding)
+                        self._loads.pop(slot, None)
 
     def assign(self, plan: list[Tile], slots: list[Slot]) -> list[tuple[Slot, float]]:
         """Each tile of ``plan`` given to the slot least loaded (its load counted in :attr:`_loads`, which this

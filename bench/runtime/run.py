@@ -224,6 +224,7 @@ def execute(plan: Plan, out: Path, *, virtual: bool = False, operator: OperatorF
         clock = WallClock()
         inst = build_instruments(rig, clock=clock.now, sleep=clock.sleep)
     start_row: threading.Thread | None = None
+    end_row: dict[str, Any] | None = None  # the catalogue's end row, once the file has its end (record_end's args)
     try:
         with termination_raises("connecting the instruments (and homing the motor)"):
             for _, drv in inst.items():
@@ -276,22 +277,33 @@ def execute(plan: Plan, out: Path, *, virtual: bool = False, operator: OperatorF
                 sim.replay.anchor(clock.now())  # record time 0 = this run's time 0 (the engine starts its clock now)
         except BaseException as exc:  # Ctrl-C included: the file must not say "running" for a run that never ran
             recorder.end_unstarted(exc)
-            _join(start_row)
-            catalog.record_end(out)
+            end_row = {}
             raise
         try:
             result = engine.run()
         finally:  # a fault latches even when the run ends by an exception the engine let through
             if engine.latched is not None:
                 latch(rig.name, engine.latched.reason, str(out))
-        _join(start_row)  # the end row replaces the start row, never the other way round
-        catalog.record_end(out, hv=recorder.hv_stats())  # the file's data, counted as it was written
+        end_row = {"hv": recorder.hv_stats()}  # the file's data, counted as it was written
         return result
     finally:
-        inst.close()
+        inst.close()  # first: no wait on the catalogue keeps an instrument open
         if sim is not None:
             sim.stop()
-        _join(start_row)  # a run that ended by an exception still leaves its start row
+        _catalogue_end(out, start_row, end_row)
+
+
+def _catalogue_end(out: Path, start_row: threading.Thread | None, end_row: dict[str, Any] | None) -> None:
+    """With the instruments closed: wait for the start row, then write the end row (``end_row``: its arguments;
+    None: the run ended by an exception the engine let through, and `bench runs list` reconciles its row from the
+    file). Ctrl-C here skips what is left with a warning: the file already holds the run's end."""
+    try:
+        _join(start_row)  # the end row replaces the start row, never the other way round
+        if end_row is not None:
+            catalog.record_end(out, **end_row)
+    except KeyboardInterrupt:
+        catalog.log.warning("run catalogue not written at the end (Ctrl-C; `bench runs list` reconciles it from the "
+                            "files)")
 
 
 # the longest a run's end waits for its start row before writing its end row. A start row later than that (a
