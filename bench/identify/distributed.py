@@ -19,7 +19,7 @@ import contextlib
 import heapq
 import itertools
 import threading
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -169,21 +169,28 @@ class DistributedPredict:
         """λ of the packed sets P (one row per set, every record's samples side by side); ``cal``: the records'
         input calibration per set (records, len(P), 2) or None."""
         m = P.shape[0]
-        slots = self.slots()
-        plan = tiles(m, self.steps, max(1, len(slots)))
-        with self._placed(plan, slots) as where:
-            futures = [self.client.submit(_tile, self.records[r0:r1], self.Y0[r0:r1], P[a:b], self.h, self.stride,
-                                          self.window, None if cal is None else cal[r0:r1, a:b], pure=False,
-                                          priority=len(plan) - k, workers=None if at is None else [at],
-                                          allow_other_workers=True)
-                       for k, ((r0, r1, a, b), at) in enumerate(zip(plan, where, strict=True))]
-            parts = self.client.gather(futures)
+        plan, parts = self._batch(m, _tile, lambda r0, r1, a, b: (
+            self.records[r0:r1], self.Y0[r0:r1], P[a:b], self.h, self.stride, self.window,
+            None if cal is None else cal[r0:r1, a:b]))
         out = np.empty((m, int(self.columns[-1])))
         for (r0, r1, a, b), part in zip(plan, parts, strict=True):
             out[a:b, self.columns[r0]:self.columns[r1]] = part
+        return out
+
+    def _batch(self, m: int, task: Callable[..., np.ndarray],
+               args: Callable[[int, int, int, int], tuple[object, ...]]) -> tuple[list[Tile], list[np.ndarray]]:
+        """One batch of ``m`` candidates: its tiles (longest first) and each tile's result, ``task(*args(tile))``
+        run on the worker :meth:`_placed` gives it; the candidates counted as evaluated."""
+        slots = self.slots()
+        plan = tiles(m, self.steps, max(1, len(slots)))
+        with self._placed(plan, slots) as where:
+            futures = [self.client.submit(task, *args(*tile), pure=False, priority=len(plan) - k,
+                                          workers=None if at is None else [at], allow_other_workers=True)
+                       for k, (tile, at) in enumerate(zip(plan, where, strict=True))]
+            parts = self.client.gather(futures)
         with self._count:
             self.evaluations += m
-        return out
+        return plan, parts
 
     def slots(self) -> list[Slot]:
         """The cluster's worker threads now, one slot each (address, thread): the tiles' count, and where
@@ -233,19 +240,11 @@ class DistributedPredict:
         whose outputs are gain·(λ − offset); ``cal`` as for a call. Each task returns its tile's partial costs only,
         never its samples."""
         m = P.shape[0]
-        slots = self.slots()
-        plan = tiles(m, self.steps, max(1, len(slots)))
-        with self._placed(plan, slots) as where:
-            futures = [self.client.submit(_tile_costs, self.records[r0:r1], self.Y0[r0:r1], P[a:b], self.h,
-                                          self.stride, self.window, None if cal is None else cal[r0:r1, a:b], gain,
-                                          offset, self.data[r0:r1], self.sigma[r0:r1], self.mask[r0:r1], kind,
-                                          pure=False, priority=len(plan) - k, workers=None if at is None else [at],
-                                          allow_other_workers=True)
-                       for k, ((r0, r1, a, b), at) in enumerate(zip(plan, where, strict=True))]
-            parts = self.client.gather(futures)
+        plan, parts = self._batch(m, _tile_costs, lambda r0, r1, a, b: (
+            self.records[r0:r1], self.Y0[r0:r1], P[a:b], self.h, self.stride, self.window,
+            None if cal is None else cal[r0:r1, a:b], gain, offset, self.data[r0:r1], self.sigma[r0:r1],
+            self.mask[r0:r1], kind))
         out = np.empty((len(self.steps), m))
         for (r0, r1, a, b), part in zip(plan, parts, strict=True):
             out[r0:r1, a:b] = part
-        with self._count:
-            self.evaluations += m
         return out
