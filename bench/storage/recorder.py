@@ -278,8 +278,8 @@ class Recorder:
         for name, size in STAMP_TEXT.items():
             if name in f.attrs:
                 del f.attrs[name]
-            h5py.h5a.create(f.id, name.encode(), stamp_text(size), space).write(np.array(b"", dtype=f"S{size}"),
-                                                                              mtype=stamp_text(size))
+            kind = stamp_text(size)
+            h5py.h5a.create(f.id, name.encode(), kind, space).write(np.array(b"", dtype=f"S{size}"), mtype=kind)
         f.attrs["complete"] = False
 
     def _create_status(self, f: h5py.File) -> None:
