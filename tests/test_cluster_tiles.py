@@ -134,3 +134,38 @@ def test_two_batches_under_way_together_share_the_threads_and_a_finished_one_fre
 def test_without_known_workers_the_scheduler_places_the_tiles() -> None:
     with _placer([100])._placed([(0, 1, 0, LANES)], []) as where:
         assert where == [None]
+
+
+class _Client:
+    """A stand-in for a dask client with no worker registered yet: it runs each task at once and refuses a loose
+    restriction without workers, as distributed's Client.submit does (its docs: allow_other_workers "only used
+    if workers is not None")."""
+
+    def __init__(self) -> None:
+        self.kwargs: list[dict] = []
+
+    def scheduler_info(self) -> dict:
+        return {"workers": {}}
+
+    def submit(self, fn, *args, **kwargs):  # type: ignore[no-untyped-def]
+        if kwargs.get("allow_other_workers") and kwargs.get("workers") is None:
+            raise ValueError("Only use allow_other_workers= if using workers=")
+        self.kwargs.append(kwargs)
+        return fn(*args)
+
+    def gather(self, futures: list) -> list:
+        return futures
+
+
+def test_a_batch_before_any_worker_registered_goes_to_the_scheduler_unrestricted() -> None:
+    """The scheduler may list no worker yet (a cluster just started, under load): the batch is submitted without
+    a placement, and runs."""
+    import threading
+
+    p = DistributedPredict.__new__(DistributedPredict)
+    p.client, p.steps, p._loads, p._placing, p._count, p.evaluations = _Client(), [100, 50], {}, threading.Lock(), \
+        threading.Lock(), 0
+    plan, parts = p._batch(9, lambda r0, r1, a, b: (r0, a, b), lambda r0, r1, a, b: (r0, r1, a, b))
+    assert parts == [(r0, a, b) for r0, _, a, b in plan]
+    assert all("workers" not in k and "allow_other_workers" not in k for k in p.client.kwargs)
+    assert p.evaluations == 9

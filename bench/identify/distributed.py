@@ -184,8 +184,9 @@ class DistributedPredict:
         slots = self.slots()
         plan = tiles(m, self.steps, max(1, len(slots)))
         with self._placed(plan, slots) as where:
+            # no worker known (none registered yet): no restriction, which dask refuses to make loose
             futures = [self.client.submit(task, *args(*tile), pure=False, priority=len(plan) - k,
-                                          workers=None if at is None else [at], allow_other_workers=True)
+                                          **({} if at is None else {"workers": [at], "allow_other_workers": True}))
                        for k, (tile, at) in enumerate(zip(plan, where, strict=True))]
             parts = self.client.gather(futures)
         with self._count:
