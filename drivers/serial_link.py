@@ -8,6 +8,12 @@ slices of at most ``POLL_SLICE_S``, checking the optional :class:`~drivers.cance
 A read abandoned by a timeout or a stop leaves the link "dirty": the next write first drops whatever has
 arrived since, so a late reply is never taken for the answer to the next request.
 
+A POSIX port (a device path: a USB adapter, a pty) is read and written on its file descriptor: a read takes
+everything that has arrived in one call (what the caller did not ask for yet waits in the link for its next read,
+so a reply read as header then body costs one wait, not two), and a write that the port takes whole returns at
+once (pyserial's ``write`` follows every write with a wait for writability: a second system call, and a hand-off of
+the GIL to any other thread, per request). Other ports (``socket://``, test schemes) go through pyserial.
+
 When a read gives up is the :class:`~drivers.deadline.ReplyTimer`'s business: the wall clock on hardware; in a
 virtual-time simulation the twin's own account of the request (:mod:`drivers.deadline`), so that a host starved
 of CPU never turns into a timeout. The port's write timeout is the timer's wall-clock bound.
@@ -15,7 +21,9 @@ of CPU never turns into a timeout. The port's write timeout is the timer's wall-
 
 from __future__ import annotations
 
+import contextlib
 import os
+import select
 import threading
 import time
 
@@ -36,15 +44,31 @@ PORT_ERRORS = (serial.SerialException, OSError, _termios_error)
 POLL_SLICE_S = 0.05  # longest single blocking read: a stop request is seen within one slice
 QUIET_S = 0.02  # after an abandoned read: the line counts as quiet (late reply over) after this long
 MAX_DRAIN_S = 0.25  # ... but a write waits at most this long for that
+READ_CHUNK = 4096  # a POSIX port's read takes up to this much of what has arrived (more only when asked for more)
+
+
+def slice_s(left: float) -> float:
+    """How long the next blocking read may last [s]: one poll slice, never more than ``left`` [s] (at least 1 ms)."""
+    return max(min(POLL_SLICE_S, left), 0.001)
 
 
 def set_slice_timeout(port: serial.Serial, left: float) -> None:
     """Let the port's next blocking read last at most one poll slice, and never more than ``left`` [s].
 
     Changing pyserial's timeout reconfigures the port (a tcsetattr), so it changes only by more than 5 ms."""
-    want = max(min(POLL_SLICE_S, left), 0.001)
+    want = slice_s(left)
     if port.timeout is None or abs(port.timeout - want) > 0.005:
         port.timeout = want
+
+
+def posix_fd(port: serial.Serial) -> int | None:
+    """The open file descriptor of pyserial's POSIX port (non-blocking, as pyserial opens it); None for any other
+    kind of port (a URL scheme, or a subclass with a read of its own such as ``VTIMESerial``)."""
+    posix = getattr(serial, "serialposix", None)
+    if posix is None or type(port) is not posix.Serial:
+        return None
+    fd = port.fd
+    return fd if isinstance(fd, int) and fd >= 0 else None
 
 
 class SerialLink:
@@ -62,7 +86,8 @@ class SerialLink:
         self.timer = timer
         self.lock = threading.RLock()
         self._port: serial.Serial | None = None
-        self._rest = b""  # bytes received after the last terminator
+        self._fd: int | None = None  # a POSIX port's descriptor: read and written directly (module docstring)
+        self._rest = b""  # bytes received and not yet read by the caller (after a terminator, or beyond a count)
         self._dirty = False  # a read was abandoned: a late reply may still arrive
 
     @property
@@ -80,6 +105,7 @@ class SerialLink:
                                          write_timeout=self.timer.bound(self.timeout),
                                          exclusive=self.exclusive)
             self._port = port
+            self._fd = posix_fd(port)
         except (*PORT_ERRORS, ValueError) as exc:
             errno = getattr(exc, "errno", None)
             reason = os.strerror(errno) if isinstance(errno, int) else str(exc)
@@ -92,6 +118,7 @@ class SerialLink:
                 self._port.close()
             finally:
                 self._port = None
+                self._fd = None
 
     def _require(self) -> serial.Serial:
         if self._port is None:
@@ -139,18 +166,38 @@ class SerialLink:
             self._drain(port)
         self.timer.sending()
         try:
-            port.write(data)
+            if self._fd is not None:
+                with contextlib.suppress(BlockingIOError):  # output buffer full: pyserial's write waits for room
+                    data = data[os.write(self._fd, data):]
+            if data:
+                port.write(data)
         except serial.SerialTimeoutException:
             raise InstrumentTimeoutError(self.device, f"write to {self.url} timed out") from None
         except PORT_ERRORS as exc:
             raise self._lost(exc) from None
 
-    def _slice_timeout(self, port: serial.Serial, deadline: Deadline) -> None:
-        """Block at most one poll slice, and never past the deadline (checks the stop request first)."""
+    def _receive(self, port: serial.Serial, deadline: Deadline, want: int, limit: int) -> bytes:
+        """Wait at most one poll slice, never past the deadline (the stop request checked first), for input; return
+        what came: at most ``want`` bytes through pyserial, from a POSIX port all that has arrived up to ``limit``
+        (≥ ``want``) bytes. Empty: nothing came in the slice."""
         if self.cancel is not None and self.cancel.cancelled:
             self._dirty = True
             self.cancel.check(self.device)
-        set_slice_timeout(port, deadline.left())
+        fd = self._fd
+        if fd is None:
+            set_slice_timeout(port, deadline.left())
+            return port.read(want)
+        ready, _, _ = select.select([fd], [], [], slice_s(deadline.left()))
+        if not ready:
+            return b""
+        try:
+            data = os.read(fd, limit)
+        except BlockingIOError:  # readable, yet nothing there after all: as a slice that saw nothing
+            return b""
+        if not data:  # as pyserial: a vanished device (an unplugged adapter, a closed pty) reads ready and empty
+            raise serial.SerialException("device reports readiness to read but returned no data (device "
+                                         "disconnected or multiple access on port?)")
+        return data
 
     def _timed_out(self, waited: float, deadline: Deadline, partial: bytes, need: str = "") -> InstrumentTimeoutError:
         self._dirty = True
@@ -166,12 +213,15 @@ class SerialLink:
         self._rest = self._rest[n:]
         try:
             while len(buf) < n:
-                self._slice_timeout(port, deadline)
-                buf += port.read(n - len(buf))
+                want = n - len(buf)
+                buf += self._receive(port, deadline, want, max(want, READ_CHUNK))
                 if len(buf) < n and deadline.expired():
                     raise self._timed_out(waited, deadline, bytes(buf), f", {len(buf)} of {n} bytes")
         except PORT_ERRORS as exc:
             raise self._lost(exc) from None
+        if len(buf) > n:  # read beyond the count (the rest was empty before): kept for the next read
+            self._rest = bytes(buf[n:])
+            del buf[n:]
         return bytes(buf)
 
     def read_until(self, terminator: bytes, max_size: int = 1 << 20, timeout: float | None = None) -> bytes:
@@ -199,7 +249,8 @@ class SerialLink:
                     raise InstrumentTimeoutError(self.device, f"no terminator within {max_size} bytes")
                 if deadline.expired():
                     raise self._timed_out(waited, deadline, bytes(buf))
-                self._slice_timeout(port, deadline)
-                buf += port.read(max(1, min(port.in_waiting, max_size - len(buf))))
+                room = max_size - len(buf)
+                want = 1 if self._fd is not None else max(1, min(port.in_waiting, room))
+                buf += self._receive(port, deadline, want, room)
         except PORT_ERRORS as exc:
             raise self._lost(exc) from None

@@ -143,3 +143,76 @@ def test_a_pty_gone_from_under_the_link_is_a_lost_link_not_a_termios_error() -> 
     os.close(p.slave)
     with pytest.raises(InstrumentConnectionError, match=r"probe: link on .* lost"):
         link.discard_input()
+
+
+class SyscallCount:
+    """Counts the port's system calls from here on (``os.read``, ``os.write``, ``select.select``: pyserial's POSIX
+    port and the link both call them through the modules)."""
+
+    def __init__(self, monkeypatch: pytest.MonkeyPatch) -> None:
+        import select
+
+        self.calls: list[str] = []
+        for module, name in ((os, "read"), (os, "write"), (select, "select")):
+            real = getattr(module, name)
+
+            def counted(*args: object, _real: object = real, _name: str = name) -> object:
+                self.calls.append(_name)
+                return _real(*args)  # type: ignore[operator]
+
+            monkeypatch.setattr(module, name, counted)
+
+
+def test_a_request_is_one_write_and_a_reply_read_as_header_then_body_one_wait_and_one_read(
+        peer: PtyPeer, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A LinRS exchange as the LinMot driver makes it: the request written whole, the 16-byte default response
+    (LinRS manual p. 11) read as its 3-byte header, then the 13 bytes its length byte announces. On a POSIX port the
+    write is one system call (no wait for writability after it) and the reply, there whole, one wait and one read:
+    the body comes from what the header's read already took."""
+    link = link_on(peer, timeout=1.0)
+    request = bytes.fromhex("01 11 03 02 01 00 04")
+    reply = bytes.fromhex("01 11 0C 02 00 00 00 37 68 A1 08 8B FC FF FF 04")
+    count = SyscallCount(monkeypatch)
+    link.write(request)
+    assert count.calls == ["write"]
+    monkeypatch.undo()
+    assert os.read(peer.master, 100) == request
+    os.write(peer.master, reply)
+    count = SyscallCount(monkeypatch)
+    head = link.read_exact(3)
+    body = link.read_exact(head[2] + 1)
+    assert head + body == reply
+    assert count.calls == ["select", "read"]
+    monkeypatch.undo()
+    link.close()
+
+
+def test_bytes_read_beyond_a_count_go_to_the_next_read_and_are_dropped_with_the_input(peer: PtyPeer) -> None:
+    link = link_on(peer, timeout=1.0)
+    os.write(peer.master, b"abcdef\r")
+    time.sleep(0.05)  # all of it has arrived: the first read takes it all from the port
+    assert link.read_exact(2) == b"ab"
+    assert link.read_exact(3) == b"cde"
+    assert link.read_until(b"\r") == b"f\r"
+    os.write(peer.master, b"stale")
+    time.sleep(0.05)
+    assert link.read_exact(1) == b"s"
+    link.discard_input()  # "tale" is in the link now, not in the port: dropped all the same
+    os.write(peer.master, b"new")
+    assert link.read_exact(3) == b"new"
+    link.close()
+
+
+def test_a_pty_whose_far_end_closes_during_a_read_is_a_lost_link() -> None:
+    from drivers.errors import InstrumentConnectionError
+
+    p = PtyPeer()
+    link = SerialLink(p.name, "probe", timeout=5.0, exclusive=False)
+    link.open()
+    threading.Timer(0.1, os.close, (p.master,)).start()
+    t0 = time.monotonic()
+    with pytest.raises(InstrumentConnectionError, match=r"probe: link on .* lost"):
+        link.read_exact(16)
+    assert time.monotonic() - t0 < 4.0  # an order: the closed line ends the read, not the 5-s timeout
+    assert not link.is_open
+    os.close(p.slave)
