@@ -422,6 +422,26 @@ def test_the_motion_verifier_follows_the_drive_s_trapezoid() -> None:
     assert v.reading(0.5, 0.04) is None and not v.anchored  # the drive's own stop ramp: no expectation yet
 
 
+def test_the_motion_verifier_s_band_is_the_trapezoid_sampled_evenly_over_the_lag() -> None:
+    """The expected positions a reading is judged against are the profile at 11 evenly spaced times over the last
+    ``motor_lag_s``: exactly what numpy's linspace and the vectorised evaluation give, for go-tos from rest, reversals
+    while moving and times before, inside and after every phase (the per-reading path is computed without numpy)."""
+    from bench.runtime.interlock import MOTION_SAMPLES, MotionVerifier
+
+    v = MotionVerifier(load_rig(ROOT / "rigs" / "lsdea-motor-sim.toml"))
+    rng = np.random.default_rng(7)
+    v.anchor(0.0, 0.02)
+    t = 0.0
+    for _ in range(12):
+        v.commanded(t, float(rng.uniform(0.0, 0.095)), float(rng.uniform(0.01, 1.0)), float(rng.uniform(0.5, 20.0)))
+        profile = v._profile
+        assert profile is not None
+        for when in np.concatenate([t + rng.uniform(-0.2, 1.5, 40), profile.t_start, profile.t_start + v.lag]):
+            want = profile.evaluate(np.linspace(when - v.lag, when, MOTION_SAMPLES))[0].tolist()
+            assert v._expected(float(when)) == want
+        t += float(rng.uniform(0.01, 0.6))  # the next go-to may come while this one still moves
+
+
 def test_one_sample_of_the_trapezoid_is_the_derived_state() -> None:
     """The derived go-to above, started at t = 1 s and sampled one time at a time as a drive's poll reads it: at rest
     at 0 before the start; at 1.3 s 25 mm at 0.1 m/s; at 1.55 s, 0.05 s into the stop that begins at 45 mm,

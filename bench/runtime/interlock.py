@@ -32,6 +32,7 @@ STALL_NO_WATCHDOG_S = 1.0  # default stall bound of a set-point module without a
 DAQ_LAG_S = 1e-3  # default lag allowance on the scan clock (the TREK follows within one 10-kHz scan)
 POLLED_LAG_S = 0.3  # default lag allowance of polled monitors (ADAM-4017+: 10 S/s for all channels)
 POLLED_READINGS = 2  # a polled mismatch must be seen in this many readings in a row
+MOTION_SAMPLES = 11  # the motion verifier compares a reading with the expected positions at this many times
 OUTPUT_ON_V = 50.0  # |commanded| above this: the output is on (a watchdog firing would change it)
 
 
@@ -246,16 +247,25 @@ class MotionVerifier:
         if self._profile is None:
             self._profile = MotionProfile.hold(t, position)
             return None
-        expected = self._profile.evaluate(np.linspace(t - self.lag, t, 11))[0]
-        if float(expected.min()) - self.tol <= position <= float(expected.max()) + self.tol:
+        expected = self._expected(t)
+        if min(expected) - self.tol <= position <= max(expected) + self.tol:
             self._bad = 0
             return None
         self._bad += 1
         if self._bad == 1:
             self._bad_since = t
         if self._bad >= POLLED_READINGS:
-            return Mismatch(t, position, float(expected[-1]), t - self._bad_since)
+            return Mismatch(t, position, expected[-1], t - self._bad_since)
         return None
+
+    def _expected(self, t: float) -> list[float]:
+        """The expected positions at ``MOTION_SAMPLES`` times evenly spaced over [t − lag, t], t last: the values
+        ``profile.evaluate(np.linspace(t - lag, t, MOTION_SAMPLES))`` gives, computed as floats (the same
+        operations in the same order) without numpy's per-call cost at every encoder poll."""
+        assert self._profile is not None
+        at, start = self._profile.at, t - self.lag
+        step = (t - start) / (MOTION_SAMPLES - 1)
+        return [at(k * step + start)[0] for k in range(MOTION_SAMPLES - 1)] + [at(t)[0]]
 
 
 def motion_trip(m: Mismatch) -> InterlockTrip:
