@@ -44,7 +44,8 @@ PORT_ERRORS = (serial.SerialException, OSError, _termios_error)
 POLL_SLICE_S = 0.05  # longest single blocking read: a stop request is seen within one slice
 QUIET_S = 0.02  # after an abandoned read: the line counts as quiet (late reply over) after this long
 MAX_DRAIN_S = 0.25  # ... but a write waits at most this long for that
-READ_CHUNK = 4096  # a POSIX port's read takes up to this much of what has arrived (more only when asked for more)
+READ_CHUNK = 4096  # a POSIX port's read takes up to this much of what has arrived (a tty hands at most its 4-KiB
+#                   line-discipline buffer per read); more only when a count asks for more
 
 
 def slice_s(left: float) -> float:
@@ -250,7 +251,9 @@ class SerialLink:
                 if deadline.expired():
                     raise self._timed_out(waited, deadline, bytes(buf))
                 room = max_size - len(buf)
-                want = 1 if self._fd is not None else max(1, min(port.in_waiting, room))
-                buf += self._receive(port, deadline, want, room)
+                if self._fd is not None:
+                    buf += self._receive(port, deadline, 1, min(room, READ_CHUNK))
+                else:
+                    buf += self._receive(port, deadline, max(1, min(port.in_waiting, room)), room)
         except PORT_ERRORS as exc:
             raise self._lost(exc) from None
