@@ -53,6 +53,7 @@ import signal
 import threading
 import time
 from collections.abc import Sequence
+from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -208,6 +209,28 @@ def now_iso() -> str:
     return datetime.now(UTC).isoformat(timespec="milliseconds")
 
 
+def stored_text(text: str, size: int) -> str:
+    """``text`` as a reader reads it back from a fixed-length UTF-8 field of ``size`` bytes (cut at a character
+    boundary; NUL padding, and so trailing NULs, dropped)."""
+    return utf8(text, size).rstrip(b"\0").decode()
+
+
+@dataclass(frozen=True)
+class Written:
+    """What a finished run file holds, as :func:`bench.storage.runfile.open_run` reads it back: the root
+    attributes given at its creation, its end (state, reason, end time; ``complete``), its steps completed and in
+    all, and the file's size and modification time [ns] when the recorder closed it (a change since: not this
+    account's file). The run's end catalogues it instead of reading the file again."""
+
+    attrs: dict[str, Any]
+    state: str
+    reason: str
+    end_time: str
+    steps_completed: int
+    steps_total: int
+    file_stat: tuple[int, int]
+
+
 class Recorder:
     """Appends blocks of samples to an HDF5 file in SWMR mode; see the module docstring for the layout."""
 
@@ -236,6 +259,11 @@ class Recorder:
         self._counts = np.zeros(len(self._names), dtype=np.int64)  # valid records on disk, per stream and events
         # the catalogue's high-voltage statistics of the measured amplifier voltage, over what is written
         self._hv = HvAccumulator() if any(c.name == "voltage" for c in streams.get("amplifier", [])) else None
+        # what the file holds once finished, followed as it is written (the catalogue's end row: Written)
+        self._attrs = {k: v if not isinstance(v, dict | list) else json.dumps(v) for k, v in attrs.items()}
+        self._steps_total = len(program)
+        self._steps_done: set[int] = set()  # steps whose end is queued after their last start
+        self._written: Written | None = None
         ignore_sigxfsz()
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -411,7 +439,12 @@ class Recorder:
         event_log.info("event t=%.3f s step %d %s: %s", t, step, kind, " | ".join(text.splitlines()))
         if self.failure:
             return
-        self._events.append((t, step, utf8(kind, 16), utf8(text, 200)))
+        stored = utf8(kind, 16)
+        self._events.append((t, step, stored, utf8(text, 200)))
+        if stored == b"start":  # as RunFile.completed_steps counts them
+            self._steps_done.discard(step)
+        elif stored == b"end":
+            self._steps_done.add(step)
         self.maybe_flush()
 
     def maybe_flush(self) -> None:
@@ -587,8 +620,16 @@ class Recorder:
             fd = int(g.id.get_vfd_handle())  # now: once a close has failed, asking for it crashes the interpreter
             stamp(g, end, state, reason)
             g.close()
+            st = os.stat(self.path)
         except Exception as exc:
             if g is not None:
                 abandon(g, fd)
             self.failure = f"run file {self.path}: cannot stamp the end of the run: {cause(exc)}"
             raise StorageError(self.failure) from None
+        self._written = Written(dict(self._attrs), state, stored_text(reason, STATUS_TEXT["reason"]), end,
+                                len(self._steps_done), self._steps_total, (st.st_size, st.st_mtime_ns))
+
+    def written(self) -> Written | None:
+        """What the finished file holds (:class:`Written`); None unless :meth:`finish` completed (a failed write, a
+        file not yet finished)."""
+        return self._written
