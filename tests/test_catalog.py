@@ -651,3 +651,27 @@ def test_a_runs_end_row_is_its_files_row_without_reading_the_file_back(tmp_path:
     monkeypatch.undo()
     (row,) = _rows(tmp_path)
     assert {c: row[c] for c in COLUMNS} == {c: v for c, v in row_from_file(Path(result.path)).items() if c in COLUMNS}
+
+
+def test_a_processs_catalogues_share_their_engine_and_survive_their_file_being_deleted(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A run's two rows (and a benchmark's many runs) reuse one SQLite engine, its table and compiled statements
+    (before: built again for every row); no connection outlives its transaction, so a catalogue file deleted
+    between two rows is created again and gets the row."""
+    from bench.storage import catalog
+
+    made: list[str] = []
+    real = sa.create_engine
+    monkeypatch.setattr(sa, "create_engine", lambda *a, **k: (made.append(str(a[0])), real(*a, **k))[1])
+    url = f"sqlite:///{tmp_path / 'catalog.sqlite'}"
+    rows = [row_from_attrs(tmp_path / f"r{k}.h5", {"protocol_name": f"p{k}", "start_time": f"2026-01-0{k + 1}"})
+            for k in range(2)]
+    with Catalog(url) as cat:
+        cat.upsert(rows[:1])
+    (tmp_path / "catalog.sqlite").unlink()
+    with Catalog(url) as cat:
+        cat.upsert(rows[1:])
+        assert [r["protocol_name"] for r in cat.rows()] == ["p1"]
+    assert len(made) == 1 and (tmp_path / "catalog.sqlite").is_file()
+    catalog.record_start(tmp_path / "r2.h5", {"protocol_name": "p2"}, url)
+    assert len(made) == 1

@@ -28,6 +28,7 @@ import json
 import logging
 import os
 import socket
+import threading
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -90,6 +91,13 @@ def _table(md: sa.MetaData) -> sa.Table:
     )
 
 
+# SQLite catalogues' engines, tables and compiled statements, kept across Catalog objects of this process (a run
+# writes two rows, a benchmark many runs): building them again for every row cost more CPU than the rows' SQL
+_SHARED: dict[tuple[str, str], tuple[sa.Engine, sa.MetaData, sa.Table]] = {}
+_SHARED_LOCK = threading.Lock()
+SHARED_ENGINES = 16  # catalogues kept (the oldest is let go)
+
+
 class Catalog:
     """A connection to one catalogue (created on first use); every write is its own transaction."""
 
@@ -115,13 +123,24 @@ class Catalog:
                 "keepalives_count": 2}
         self.backend = parsed.get_backend_name()
         self.display = parsed.render_as_string(hide_password=True)
-        try:
-            self.engine = sa.create_engine(parsed, **kwargs)
-        except (ImportError, sa.exc.ArgumentError) as exc:
-            raise ValueError(f"catalogue {parsed.render_as_string()}: {exc}") from None
-        self.md = sa.MetaData()
-        self.runs = _table(self.md)
-        self._create()
+        shared = self.backend == "sqlite" and parsed.database not in (None, "", ":memory:")
+        key = (parsed.render_as_string(hide_password=False), repr(sorted(kwargs.items())))
+        with _SHARED_LOCK:
+            found = _SHARED.get(key) if shared else None
+            if found is None:
+                try:  # a shared one opens a connection per transaction: none outlives it (file replaced, fork)
+                    engine = sa.create_engine(parsed, **kwargs, **({"poolclass": sa.pool.NullPool} if shared else {}))
+                except (ImportError, sa.exc.ArgumentError) as exc:
+                    raise ValueError(f"catalogue {parsed.render_as_string()}: {exc}") from None
+                md = sa.MetaData()
+                found = (engine, md, _table(md))
+                if shared:
+                    _SHARED[key] = found
+                    while len(_SHARED) > SHARED_ENGINES:
+                        _SHARED.pop(next(iter(_SHARED)))
+        self.engine, self.md, self.runs = found
+        self._shared = shared
+        self._create()  # every time: a catalogue file deleted since is created again
 
     def _create(self) -> None:
         import sqlalchemy as sa
@@ -135,7 +154,8 @@ class Catalog:
                     raise
 
     def close(self) -> None:
-        self.engine.dispose()
+        if not self._shared:  # a shared engine holds no connection between transactions
+            self.engine.dispose()
 
     def __enter__(self) -> Catalog:
         return self
