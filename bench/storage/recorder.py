@@ -29,11 +29,12 @@ Datasets, dimension scales and attributes are created before SWMR mode starts (H
 under SWMR); the datasets are then appended in blocks and flushed at least every
 ``flush_interval`` seconds of wall time, so another process can read the file during the run: every
 ``append``/``event`` checks the interval itself (a caller busy elsewhere, e.g. uploading stored laser data for
-30 s, still has its data on disk within the interval), and ``maybe_flush`` covers stretches without data. Those
-interval flushes take the queued data on the caller's thread and write it on a background thread (h5py releases
-the GIL while HDF5 compresses and writes, so the run goes on meanwhile); one write at a time, in order. A failure
-there is raised on the caller's thread by its next recorder call. :meth:`Recorder.flush`, ``set_state`` and
-``finish`` first wait for a write under way, then write on the caller's thread.
+30 s, still has its data on disk within the interval), and ``maybe_flush`` covers stretches without data. A stream
+with :data:`FLUSH_CHUNKS` chunks queued is written sooner, its whole chunks only (data faster than real time: a
+virtual-time run). Those flushes take the queued data on the caller's thread and write it on a background thread
+(h5py releases the GIL while HDF5 compresses and writes, so the run goes on meanwhile); one write at a time, in
+order. A failure there is raised on the caller's thread by its next recorder call. :meth:`Recorder.flush`,
+``set_state`` and ``finish`` first wait for a write under way, then write on the caller's thread.
 
 A failed write (disk full, file-size limit, unwritable directory, any HDF5 error) raises one
 :class:`StorageError` naming the file and the cause; the recorder is then *failed*: further calls are no-ops,
@@ -83,6 +84,15 @@ STAMP_TEXT = {"end_time": STATUS_TEXT["end_time"] + 1, "exit_status": STATUS_TEX
 FLUSH_INTERVAL_S = 0.2  # wall time between flushes: a kill -9 loses at most this plus one flush (goal ≤ 0.5 s)
 CHUNK_S = 0.25  # chunk length [s of a stream]: about one flush, so a compressed chunk is rewritten once or twice
 # (a flush rewrites the partial last chunk elsewhere in the file: 2-s chunks made files 2-3x larger)
+FLUSH_CHUNKS = 16  # a stream with this many chunks queued is written at once (its whole chunks), whatever the
+# interval: faster than real time (virtual time) the interval alone left a short run's whole file to be written after
+# its last step; a write costs about two chunks' compression besides its data, which 16 keep to an eighth of it (real
+# time: the interval comes first)
+
+
+def chunk_length(rate: float) -> int:
+    """Samples per chunk of a stream recorded at ``rate`` [Hz]: :data:`CHUNK_S` of it, 256 to 65,536."""
+    return int(min(65536, max(256, rate * CHUNK_S)))
 
 
 # what one flush writes: per stream with data (its index, name, columns, sample count), the events, the rig time
@@ -243,9 +253,15 @@ class Recorder:
         self._buffers: dict[str, dict[str, list[np.ndarray]]] = {s: {c.name: [] for c in [Column("t", "s", ""), *cols]}
                                                                  for s, cols in streams.items()}
         self._events: list[tuple[float, int, bytes, bytes]] = []
+        # per stream: samples queued, taken for writing so far, its chunk length; a stream is due for writing at
+        # FLUSH_CHUNKS chunks queued
+        self._queued = dict.fromkeys(streams, 0)
+        self._taken = dict.fromkeys(streams, 0)
+        self._chunks = {s: chunk_length(rates.get(s, 100.0)) for s in streams}
+        self._due = False
+        self._taken_t = 0.0  # rig time of the last sample taken for writing
         self._events_ds: dict[str, h5py.Dataset] = {}
         self._last_flush = time.monotonic()
-        self._last_t = 0.0
         self.samples_written = 0
         self.write_seconds = 0.0  # wall time spent writing
         self._cpu_queue = 0.0  # CPU time of the caller's thread spent queueing (append)
@@ -358,7 +374,7 @@ class Recorder:
         if cols:
             g.attrs["signal"] = cols[0].name
         g.attrs["axes"] = "t"
-        chunk = int(min(65536, max(256, rate * CHUNK_S)))
+        chunk = chunk_length(rate)
         layout: dict[str, Any] = {"shape": (0,), "maxshape": (None,), "chunks": (chunk,), "compression": "gzip",
                                   "compression_opts": 1, "shuffle": True}
         t = dimension_scale(g, "t", dtype="f8", **layout)
@@ -427,7 +443,8 @@ class Recorder:
                              f"time; got {got} (nothing of it queued)")
         for name, values in block.items():  # all or nothing: the columns of a stream stay equally long
             buf[name].append(values)
-        self._last_t = max(self._last_t, float(np.max(block["t"])) if block["t"].size else self._last_t)
+        self._queued[stream] += block["t"].size
+        self._due = self._due or self._queued[stream] >= FLUSH_CHUNKS * self._chunks[stream]
         self._cpu_queue += time.thread_time() - c0
         self.maybe_flush()
 
@@ -448,9 +465,10 @@ class Recorder:
         self.maybe_flush()
 
     def maybe_flush(self) -> None:
-        """Flush if the flush interval has passed (call it often): the data is taken here and written on a
-        background thread, unless the last such write is still under way (then at a later call). Raises the
-        :class:`StorageError` of a background write that failed."""
+        """Flush if the flush interval has passed (call it often), or only the whole chunks queued if a stream has
+        :data:`FLUSH_CHUNKS` of them: the data is taken here and written on a background thread, unless the last
+        such write is still under way (then at a later call). Raises the :class:`StorageError` of a background
+        write that failed."""
         if self.failure:
             return
         writing = self._writing
@@ -458,9 +476,11 @@ class Recorder:
             if writing.is_alive():
                 return
             self._await_write()
-        if time.monotonic() - self._last_flush >= self.flush_interval:
-            self._last_flush = time.monotonic()
-            work = self._take()
+        interval = time.monotonic() - self._last_flush >= self.flush_interval
+        if interval or self._due:
+            if interval:  # (a write of whole chunks leaves the rest queued: the interval still runs for it)
+                self._last_flush = time.monotonic()
+            work = self._take(whole_chunks=not interval)
             # not a daemon: the interpreter finishes a write under way before h5py's exit handler closes the file
             writing = threading.Thread(target=self._write_in_background, args=(work,), name="recorder-flush")
             try:
@@ -500,26 +520,39 @@ class Recorder:
         if exc is not None and not self.failure:
             raise self._fail("write failed", exc) from None
 
-    def _take(self) -> _Work:
+    def _take(self, whole_chunks: bool = False) -> _Work:
         """The queued samples per stream, the queued events and the rig time of the last sample; the queues are
-        left empty (caller's thread: appends go on into new lists)."""
+        left empty (caller's thread: appends go on into new lists). ``whole_chunks``: of each stream only the samples
+        up to its dataset's last chunk boundary, the rest left queued — a write that compresses every chunk once,
+        complete, and rewrites no partial one."""
         blocks: list[tuple[int, str, dict[str, np.ndarray], int]] = []
         for k, (stream, buf) in enumerate(self._buffers.items()):
             if not buf["t"]:
                 continue
-            n_new = sum(a.size for a in buf["t"])
+            queued = self._queued[stream]
+            n_new = queued
+            if whole_chunks:
+                chunk = self._chunks[stream]
+                n_new = (self._taken[stream] + queued) // chunk * chunk - self._taken[stream]
+                if n_new <= 0:
+                    continue
             data = {}
             for name, parts in buf.items():
-                data[name] = np.concatenate(parts) if len(parts) > 1 else parts[0]
-                if data[name].size != n_new:
-                    raise ValueError(f"stream {stream}: column {name} has {data[name].size} samples, t has {n_new}")
+                whole = np.concatenate(parts) if len(parts) > 1 else parts[0]
+                if whole.size != queued:
+                    raise ValueError(f"stream {stream}: column {name} has {whole.size} samples queued, {queued} "
+                                     "expected")
+                data[name] = whole[:n_new]
+                parts[:] = [whole[n_new:]] if n_new < queued else []
             blocks.append((k, stream, data, n_new))
+            self._queued[stream] = queued - n_new
+            self._taken[stream] += n_new
+            if n_new:
+                self._taken_t = max(self._taken_t, float(np.max(data["t"])))
         events = np.array(self._events, dtype=EVENT_DTYPE) if self._events else None
-        for buf in self._buffers.values():
-            for parts in buf.values():
-                parts.clear()
         self._events.clear()
-        return blocks, events, self._last_t
+        self._due = False
+        return blocks, events, self._taken_t
 
     def _write_in_background(self, work: _Work) -> None:
         try:
