@@ -565,3 +565,113 @@ def test_the_instruments_are_closed_before_the_run_waits_on_its_catalogue(tmp_pa
     assert order == ["instruments closed", "end row"]
     (row,) = _rows(tmp_path)
     assert row["signature"] != "" and row["state"] == ("completed" if ending == "completed" else "error")
+
+
+# ---- the end row from the recorder's account of the file it wrote ---------------------------------------------------
+
+
+def _recorded(path: Path, reason: str) -> object:
+    """A file written by a recorder: metadata, a membrane model, a campaign link, three steps (one restarted and
+    not ended again, one ended, one never started) and a measured voltage; finished with ``reason``."""
+    from bench.storage.recorder import Column, Recorder
+
+    attrs = {"protocol_name": "p", "start_time": "2026-01-02T03:04:05.000+00:00", "run_id": "a" * 32,
+             "campaign_id": "b" * 32, "protocol_sha256": "c" * 64, "rig_name": "rig", "operator": "ada",
+             "specimen_id": "S9", "notes": "first\nsecond", "previous_file": "../old/run.h5",
+             "specimen": {"model": {"L3": 5e-5, "breakdown_field": 2e8}}}
+    program = [(0, "0", "drive", "waveform", 0.0, 1.0), (1, "1", "rest", "relax", 1.0, 1.0),
+               (2, "2", "drive", "waveform", 2.0, 1.0)]
+    rec = Recorder(path, attrs, {"amplifier": [Column("voltage", "V", "")]}, program, {"amplifier": 10.0})
+    for step, kind in ((0, "start"), (0, "end"), (1, "start"), (1, "end"), (1, "start"), (-1, "stop")):
+        rec.event(float(step), step, kind, f"step {step}")
+    t = np.arange(40) * 0.1
+    rec.append("amplifier", t, voltage=3000.0 * np.sin(2 * np.pi * t))
+    rec.finish("interrupted", reason)
+    return rec
+
+
+@pytest.mark.parametrize("reason", ["stop requested", "é" * 250 + " cut at 400 bytes, between two characters"])
+def test_the_end_row_from_the_recorders_account_is_the_row_read_from_the_file(tmp_path: Path, reason: str) -> None:
+    """Every column of the end row the run's end builds from what its recorder wrote equals the row read back from
+    the file (the reason as the file's 400-byte field holds it)."""
+    from bench.storage import catalog
+
+    rec = _recorded(tmp_path / "run.h5", reason)
+    written = rec.written()  # type: ignore[attr-defined]
+    assert written is not None
+    ours = catalog.row_from_written(tmp_path / "run.h5", written, rec.hv_stats())  # type: ignore[attr-defined]
+    read = catalog.row_from_file(tmp_path / "run.h5")
+    assert {c: ours[c] for c in COLUMNS} == {c: read[c] for c in COLUMNS}
+    assert (read["steps_completed"], read["steps_total"], read["state"]) == (1, 3, "interrupted")
+
+
+def test_a_file_changed_after_its_recorder_closed_it_is_catalogued_from_the_file(tmp_path: Path) -> None:
+    """A fit written into the run file before its end row (another process): the recorder's account is no longer
+    the file's, so the row is read from the file, fit included."""
+    from bench.storage import catalog
+
+    path = tmp_path / "run.h5"
+    rec = _recorded(path, "stop requested")
+    with h5py.File(path, "r+") as f:  # bench/identify/store.py's layout: /fit/<model>-<n>
+        g = f.create_group("fit/membrane-1")
+        g.attrs.update(model="membrane", created="2026-01-02T04:00:00", rms=0.5, records="[]")
+        g["names"], g["values"] = np.array([b"mu"]), np.array([1.0])
+    row = catalog.row_from_written(path, rec.written(), rec.hv_stats())  # type: ignore[attr-defined]
+    assert [fit["model"] for fit in json.loads(row["fits"])] == ["membrane"]
+    assert row == catalog.row_from_file(path)
+
+
+@pytest.mark.parametrize("ending", ["completed", "interrupted"])
+def test_a_runs_end_row_is_its_files_row_without_reading_the_file_back(tmp_path: Path,
+                                                                        monkeypatch: pytest.MonkeyPatch,
+                                                                        ending: str) -> None:
+    """The run's end catalogues what its recorder wrote: the row equals the one read from the file afterwards, and
+    the run never opens its file for reading (before: twice, the row's read and the fits' look-up)."""
+    from bench.runtime.engine import Engine
+    from bench.runtime.run import execute, plan_run
+    from bench.storage.catalog import row_from_file
+
+    monkeypatch.delenv("BENCH_CATALOG", raising=False)
+    reads: list[str] = []
+    opening = h5py.File.__init__
+
+    def counted(self: h5py.File, name: object, mode: str = "r", *args: object, **kwargs: object) -> None:
+        if isinstance(name, str | Path) and Path(name).name == "run.h5" and mode == "r":
+            reads.append(str(name))
+        opening(self, name, mode, *args, **kwargs)
+
+    monkeypatch.setattr(h5py.File, "__init__", counted)
+
+    def stop(engine: Engine, sim: object) -> None:
+        if ending == "interrupted":
+            engine.request_stop("stopped by the test")
+
+    result = execute(plan_run(IDENT), tmp_path / "run.h5", virtual=True, on_engine=stop)
+    assert result.state == ending and reads == []
+    monkeypatch.undo()
+    (row,) = _rows(tmp_path)
+    assert {c: row[c] for c in COLUMNS} == {c: v for c, v in row_from_file(Path(result.path)).items() if c in COLUMNS}
+
+
+def test_a_processs_catalogues_share_their_engine_and_survive_their_file_being_deleted(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A run's two rows (and a benchmark's many runs) reuse one SQLite engine, its table and compiled statements
+    (before: built again for every row); no connection outlives its transaction, so a catalogue file deleted
+    between two rows is created again and gets the row."""
+    from bench.storage import catalog
+
+    made: list[str] = []
+    real = sa.create_engine
+    monkeypatch.setattr(sa, "create_engine", lambda *a, **k: (made.append(str(a[0])), real(*a, **k))[1])
+    url = f"sqlite:///{tmp_path / 'catalog.sqlite'}"
+    rows = [row_from_attrs(tmp_path / f"r{k}.h5", {"protocol_name": f"p{k}", "start_time": f"2026-01-0{k + 1}"})
+            for k in range(2)]
+    with Catalog(url) as cat:
+        cat.upsert(rows[:1])
+    (tmp_path / "catalog.sqlite").unlink()
+    with Catalog(url) as cat:
+        cat.upsert(rows[1:])
+        assert [r["protocol_name"] for r in cat.rows()] == ["p1"]
+    assert len(made) == 1 and (tmp_path / "catalog.sqlite").is_file()
+    catalog.record_start(tmp_path / "r2.h5", {"protocol_name": "p2"}, url)
+    assert len(made) == 1

@@ -68,3 +68,37 @@ def test_an_interval_flush_whose_thread_cannot_start_is_written_on_the_callers_t
     amp = open_run(path).streams["amplifier"]
     np.testing.assert_array_equal(amp.t, t)
     np.testing.assert_array_equal(amp.columns["current"], -t)
+
+
+def test_a_stream_with_eight_chunks_queued_is_written_at_once_in_whole_chunks(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Faster than real time the flush interval alone left a short run's whole file to its end: a stream with
+    FLUSH_CHUNKS (8 here) chunks queued is written at once, every stream up to its last chunk boundary (no partial
+    chunk written, so none rewritten), the rest at the finish. Chunks are 0.25 s of a stream, at least 256 samples:
+    256 at 1 kHz, 1000 at 4 kHz. Writes on the caller's thread (no thread to be had), so their order is fixed."""
+    monkeypatch.setattr(recorder, "FLUSH_CHUNKS", 8)
+    path = tmp_path / "run.h5"
+    cols = [recorder.Column("voltage", "V", "")]
+    rec = recorder.Recorder(path, {"protocol_name": "chunks"}, {"amplifier": cols, "laser": cols}, [],
+                            {"amplifier": 1000.0, "laser": 4000.0}, flush_interval=3600.0)
+    writes: list[dict[str, int]] = []
+    write = recorder.Recorder._write
+    monkeypatch.setattr(recorder.Recorder, "_write",
+                        lambda self, work: (writes.append({s: n for _, s, _, n in work[0]}), write(self, work))[1])
+    amp_t, laser_t = np.arange(14 * 300) / 1000.0, np.arange(14 * 700) / 4000.0
+    with monkeypatch.context() as m:
+        m.setattr(recorder.threading, "Thread", _NoThread)
+        for k in range(14):  # 300 amplifier and 700 laser samples a step
+            rec.append("amplifier", amp_t[k * 300:(k + 1) * 300], voltage=-amp_t[k * 300:(k + 1) * 300])
+            rec.append("laser", laser_t[k * 700:(k + 1) * 700], voltage=laser_t[k * 700:(k + 1) * 700])
+    rec.finish("completed", "ok")
+    # step 7's amplifier block makes 2100 ≥ 8 × 256 queued: 2048 of them written, and of the laser's 4200 the
+    # 4000 up to its 4th chunk boundary; step 14's makes 52 + 2100 ≥ 2048 again: to 4096 (2048) and to 9000 (5000)
+    assert writes == [{"amplifier": 2048, "laser": 4000}, {"amplifier": 2048, "laser": 5000},
+                      {"amplifier": 104, "laser": 800}]
+    run = open_run(path)
+    np.testing.assert_array_equal(run.streams["amplifier"].t, amp_t)
+    np.testing.assert_array_equal(run.streams["amplifier"].columns["voltage"], -amp_t)
+    np.testing.assert_array_equal(run.streams["laser"].t, laser_t)
+    np.testing.assert_array_equal(run.streams["laser"].columns["voltage"], laser_t)
+    assert run.updated == max(amp_t[-1], laser_t[-1])  # the last sample's rig time

@@ -284,7 +284,7 @@ def execute(plan: Plan, out: Path, *, virtual: bool = False, operator: OperatorF
         finally:  # a fault latches even when the run ends by an exception the engine let through
             if engine.latched is not None:
                 latch(rig.name, engine.latched.reason, str(out))
-        end_row = {"hv": recorder.hv_stats()}  # the file's data, counted as it was written
+        end_row = {"hv": recorder.hv_stats(), "written": recorder.written()}  # the file, as it was written
         return result
     finally:
         inst.close()  # first: no wait on the catalogue keeps an instrument open

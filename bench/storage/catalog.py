@@ -28,6 +28,7 @@ import json
 import logging
 import os
 import socket
+import threading
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -38,6 +39,8 @@ from bench.storage.hv_stats import HV_THRESHOLD_V, HvAccumulator, HvStats
 
 if TYPE_CHECKING:
     import sqlalchemy as sa
+
+    from bench.storage.recorder import Written
 
 log = logging.getLogger("bench.storage.catalog")
 
@@ -88,6 +91,13 @@ def _table(md: sa.MetaData) -> sa.Table:
     )
 
 
+# SQLite catalogues' engines, tables and compiled statements, kept across Catalog objects of this process (a run
+# writes two rows, a benchmark many runs): building them again for every row cost more CPU than the rows' SQL
+_SHARED: dict[tuple[str, str], tuple[sa.Engine, sa.MetaData, sa.Table]] = {}
+_SHARED_LOCK = threading.Lock()
+SHARED_ENGINES = 16  # catalogues kept (the oldest is let go)
+
+
 class Catalog:
     """A connection to one catalogue (created on first use); every write is its own transaction."""
 
@@ -113,13 +123,24 @@ class Catalog:
                 "keepalives_count": 2}
         self.backend = parsed.get_backend_name()
         self.display = parsed.render_as_string(hide_password=True)
-        try:
-            self.engine = sa.create_engine(parsed, **kwargs)
-        except (ImportError, sa.exc.ArgumentError) as exc:
-            raise ValueError(f"catalogue {parsed.render_as_string()}: {exc}") from None
-        self.md = sa.MetaData()
-        self.runs = _table(self.md)
-        self._create()
+        shared = self.backend == "sqlite" and parsed.database not in (None, "", ":memory:")
+        key = (parsed.render_as_string(hide_password=False), repr(sorted(kwargs.items())))
+        with _SHARED_LOCK:
+            found = _SHARED.get(key) if shared else None
+            if found is None:
+                try:  # a shared one opens a connection per transaction: none outlives it (file replaced, fork)
+                    engine = sa.create_engine(parsed, **kwargs, **({"poolclass": sa.pool.NullPool} if shared else {}))
+                except (ImportError, sa.exc.ArgumentError) as exc:
+                    raise ValueError(f"catalogue {parsed.render_as_string()}: {exc}") from None
+                md = sa.MetaData()
+                found = (engine, md, _table(md))
+                if shared:
+                    _SHARED[key] = found
+                    while len(_SHARED) > SHARED_ENGINES:
+                        _SHARED.pop(next(iter(_SHARED)))
+        self.engine, self.md, self.runs = found
+        self._shared = shared
+        self._create()  # every time: a catalogue file deleted since is created again
 
     def _create(self) -> None:
         import sqlalchemy as sa
@@ -133,7 +154,8 @@ class Catalog:
                     raise
 
     def close(self) -> None:
-        self.engine.dispose()
+        if not self._shared:  # a shared engine holds no connection between transactions
+            self.engine.dispose()
 
     def __enter__(self) -> Catalog:
         return self
@@ -257,18 +279,36 @@ def row_from_file(path: Path, hv: HvStats | None = None) -> dict[str, Any]:
 
     sig = signature(path)  # before reading: a change while reading makes the next reconcile read it again
     run = open_run(path, streams=False)
-    a = run.attrs
-    row = row_from_attrs(path, a)
+    return _end_row(path, run.attrs, sig, hv, state=run.state, complete=bool(run.complete), reason=run.reason,
+                    incomplete_reason=run.incomplete_reason or None, end_time=run.end_time,
+                    steps_completed=len(run.completed_steps()), steps_total=int(run.program.shape[0]))
+
+
+def row_from_written(path: Path, written: Written, hv: HvStats | None = None) -> dict[str, Any]:
+    """The row of the run file a recorder has just finished, from its account of what it wrote (:meth:`~bench.
+    storage.recorder.Recorder.written`) — the row :func:`row_from_file` reads, without reading the file again — or
+    read from the file where it changed since the recorder closed it."""
+    sig = signature(path)
+    if json.loads(sig)["run"] != list(written.file_stat):
+        return row_from_file(path, hv)
+    return _end_row(path, written.attrs, sig, hv, in_file=False, state=written.state, complete=True,
+                    reason=written.reason, incomplete_reason=None, end_time=written.end_time,
+                    steps_completed=written.steps_completed, steps_total=written.steps_total)
+
+
+def _end_row(path: Path, attrs: dict[str, Any], sig: str, hv: HvStats | None, in_file: bool = True,
+             **end: Any) -> dict[str, Any]:
+    """A row from a run file's root attributes, its end (``end``: the columns of its state and steps) and its
+    statistics; ``in_file``: the run file may hold fits (False: a file the recorder wrote holds none)."""
+    row = row_from_attrs(path, attrs)
     stats = hv if hv is not None else hv_statistics(path)
-    spec = _specimen(a)
+    spec = _specimen(attrs)
     row.update({
-        "state": run.state, "complete": bool(run.complete), "reason": run.reason,
-        "incomplete_reason": run.incomplete_reason or None, "end_time": run.end_time,
-        "steps_completed": len(run.completed_steps()), "steps_total": int(run.program.shape[0]),
+        **end,
         "hv_time_s": stats.hv_time_s, "hv_cycles": stats.cycles, "max_voltage_V": stats.max_voltage_V,
         "max_nominal_field_V_per_m": stats.max_voltage_V / spec[0] if spec[0] else None,
         "breakdown_field_V_per_m": spec[1], "figures": json.dumps(_figures(path)),
-        "fits": json.dumps(_fits(path, a)),
+        "fits": json.dumps(_fits(path, attrs, in_file)),
         "signature": sig,
     })
     return row
@@ -300,7 +340,7 @@ def _figures(path: Path) -> list[dict[str, Any]]:
     return data if isinstance(data, list) else []
 
 
-def _fits(path: Path, attrs: dict[str, Any]) -> list[dict[str, Any]]:
+def _fits(path: Path, attrs: dict[str, Any], in_file: bool = True) -> list[dict[str, Any]]:
     """The fits stored with a run — ``/fit/<model>-<n>`` groups in the run file and in its fit file (layout:
     bench/identify/store.py), oldest first — as model, when, rms, records (file names) and the parameters. A fit file
     of another run of the same name (start time or protocol hash differ) is not this run's: left out. Read with
@@ -325,8 +365,9 @@ def _fits(path: Path, attrs: dict[str, Any]) -> list[dict[str, Any]]:
                            "units": dict(zip(names, units, strict=False))})
 
     try:
-        with open_h5(path) as f:
-            read(f)
+        if in_file:
+            with open_h5(path) as f:
+                read(f)
         side = fit_file(path)
         if side.is_file():
             import h5py
@@ -432,12 +473,14 @@ def record_start(path: Path, attrs: dict[str, Any], url: str | None = None) -> N
                     "from the files): %s", " ".join(str(exc).split())[:300])
 
 
-def record_end(path: Path, url: str | None = None, hv: HvStats | None = None) -> None:
+def record_end(path: Path, url: str | None = None, hv: HvStats | None = None, written: Written | None = None) -> None:
     """Catalogue a run that has ended, from its file (``hv``: its high-voltage statistics, as the recorder counted
-    what it wrote: :meth:`~bench.storage.recorder.Recorder.hv_stats`); on any failure one warning line."""
+    what it wrote: :meth:`~bench.storage.recorder.Recorder.hv_stats`; ``written``: the recorder's account of the
+    finished file, :func:`row_from_written`, instead of reading it again); on any failure one warning line."""
     try:
+        row = row_from_written(path, written, hv) if written is not None else row_from_file(path, hv)
         with Catalog(catalog_url(path.parent, url)) as cat:
-            cat.upsert([row_from_file(path, hv)])
+            cat.upsert([row])
     except Exception as exc:
         log.warning("run catalogue not written at the end (`bench runs list` reconciles it from the files): %s",
                     " ".join(str(exc).split())[:300])

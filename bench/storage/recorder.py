@@ -29,11 +29,12 @@ Datasets, dimension scales and attributes are created before SWMR mode starts (H
 under SWMR); the datasets are then appended in blocks and flushed at least every
 ``flush_interval`` seconds of wall time, so another process can read the file during the run: every
 ``append``/``event`` checks the interval itself (a caller busy elsewhere, e.g. uploading stored laser data for
-30 s, still has its data on disk within the interval), and ``maybe_flush`` covers stretches without data. Those
-interval flushes take the queued data on the caller's thread and write it on a background thread (h5py releases
-the GIL while HDF5 compresses and writes, so the run goes on meanwhile); one write at a time, in order. A failure
-there is raised on the caller's thread by its next recorder call. :meth:`Recorder.flush`, ``set_state`` and
-``finish`` first wait for a write under way, then write on the caller's thread.
+30 s, still has its data on disk within the interval), and ``maybe_flush`` covers stretches without data. A stream
+with :data:`FLUSH_CHUNKS` chunks queued is written sooner, its whole chunks only (data faster than real time: a
+virtual-time run). Those flushes take the queued data on the caller's thread and write it on a background thread
+(h5py releases the GIL while HDF5 compresses and writes, so the run goes on meanwhile); one write at a time, in
+order. A failure there is raised on the caller's thread by its next recorder call. :meth:`Recorder.flush`,
+``set_state`` and ``finish`` first wait for a write under way, then write on the caller's thread.
 
 A failed write (disk full, file-size limit, unwritable directory, any HDF5 error) raises one
 :class:`StorageError` naming the file and the cause; the recorder is then *failed*: further calls are no-ops,
@@ -53,6 +54,7 @@ import signal
 import threading
 import time
 from collections.abc import Sequence
+from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -82,6 +84,15 @@ STAMP_TEXT = {"end_time": STATUS_TEXT["end_time"] + 1, "exit_status": STATUS_TEX
 FLUSH_INTERVAL_S = 0.2  # wall time between flushes: a kill -9 loses at most this plus one flush (goal ≤ 0.5 s)
 CHUNK_S = 0.25  # chunk length [s of a stream]: about one flush, so a compressed chunk is rewritten once or twice
 # (a flush rewrites the partial last chunk elsewhere in the file: 2-s chunks made files 2-3x larger)
+FLUSH_CHUNKS = 16  # a stream with this many chunks queued is written at once (its whole chunks), whatever the
+# interval: faster than real time (virtual time) the interval alone left a short run's whole file to be written after
+# its last step; a write costs about two chunks' compression besides its data, which 16 keep to an eighth of it (real
+# time: the interval comes first)
+
+
+def chunk_length(rate: float) -> int:
+    """Samples per chunk of a stream recorded at ``rate`` [Hz]: :data:`CHUNK_S` of it, 256 to 65,536."""
+    return int(min(65536, max(256, rate * CHUNK_S)))
 
 
 # what one flush writes: per stream with data (its index, name, columns, sample count), the events, the rig time
@@ -170,6 +181,25 @@ def stamp(f: h5py.File, end: str, state: str, reason: str) -> None:
     f.attrs.modify("complete", True)
 
 
+_VLEN = h5py.string_dtype()  # a Python str as h5py stores it: variable-length UTF-8, NUL-terminated, scalar
+_VLEN_FILE, _VLEN_MEMORY = h5py.h5t.py_create(_VLEN, logical=True), h5py.h5t.py_create(_VLEN)
+_SCALAR = h5py.h5s.create(h5py.h5s.SCALAR)
+
+
+def set_attrs(obj: h5py.HLObject, values: dict[str, Any]) -> None:
+    """``obj.attrs[name] = value`` for each item, in order. A text (ASCII name, no NUL: what h5py refuses takes its
+    path) goes through h5py's low-level calls with the type and space h5py's ``attrs`` would make for it, made once:
+    the same attribute at a sixth of the cost (~100 µs each through ``attrs``, most of a new run file's creation)."""
+    for name, value in values.items():
+        if type(value) is str and name.isascii() and "\0" not in value:
+            key = name.encode()
+            if h5py.h5a.exists(obj.id, key):
+                h5py.h5a.delete(obj.id, key)
+            h5py.h5a.create(obj.id, key, _VLEN_FILE, _SCALAR).write(np.asarray(value, dtype=_VLEN), mtype=_VLEN_MEMORY)
+        else:
+            obj.attrs[name] = value
+
+
 def dimension_scale(g: h5py.Group, name: str, data: np.ndarray | None = None, **kwargs: Any) -> h5py.Dataset:
     """Create ``g[name]`` as the group's dimension scale (a netCDF dimension and coordinate of that name)."""
     d = g.create_dataset(name, data=data, **kwargs)
@@ -181,7 +211,7 @@ def attach(d: h5py.Dataset, scale: h5py.Dataset, units: str | None = None) -> h5
     """Attach ``scale`` as the dimension of the 1-D dataset ``d`` (and set its units, if given)."""
     d.dims[0].attach_scale(scale)
     if units is not None:
-        d.attrs["units"] = units
+        set_attrs(d, {"units": units})
     return d
 
 
@@ -197,15 +227,34 @@ def seconds_since(start: object) -> str:
 
 
 def _time_axis(t: h5py.Dataset, units: str) -> None:
-    t.attrs["units"] = units
-    t.attrs["standard_name"] = "time"
-    t.attrs["long_name"] = "time on the run clock"
-    t.attrs["axis"] = "T"
+    set_attrs(t, {"units": units, "standard_name": "time", "long_name": "time on the run clock", "axis": "T"})
 
 
 def now_iso() -> str:
     """UTC time stamp, ISO 8601."""
     return datetime.now(UTC).isoformat(timespec="milliseconds")
+
+
+def stored_text(text: str, size: int) -> str:
+    """``text`` as a reader reads it back from a fixed-length UTF-8 field of ``size`` bytes (cut at a character
+    boundary; NUL padding, and so trailing NULs, dropped)."""
+    return utf8(text, size).rstrip(b"\0").decode()
+
+
+@dataclass(frozen=True)
+class Written:
+    """What a finished run file holds, as :func:`bench.storage.runfile.open_run` reads it back: the root
+    attributes given at its creation, its end (state, reason, end time; ``complete``), its steps completed and in
+    all, and the file's size and modification time [ns] when the recorder closed it (a change since: not this
+    account's file). The run's end catalogues it instead of reading the file again."""
+
+    attrs: dict[str, Any]
+    state: str
+    reason: str
+    end_time: str
+    steps_completed: int
+    steps_total: int
+    file_stat: tuple[int, int]
 
 
 class Recorder:
@@ -220,9 +269,15 @@ class Recorder:
         self._buffers: dict[str, dict[str, list[np.ndarray]]] = {s: {c.name: [] for c in [Column("t", "s", ""), *cols]}
                                                                  for s, cols in streams.items()}
         self._events: list[tuple[float, int, bytes, bytes]] = []
+        # per stream: samples queued, taken for writing so far, its chunk length; a stream is due for writing at
+        # FLUSH_CHUNKS chunks queued
+        self._queued = dict.fromkeys(streams, 0)
+        self._taken = dict.fromkeys(streams, 0)
+        self._chunks = {s: chunk_length(rates.get(s, 100.0)) for s in streams}
+        self._due = False
+        self._taken_t = 0.0  # rig time of the last sample taken for writing
         self._events_ds: dict[str, h5py.Dataset] = {}
         self._last_flush = time.monotonic()
-        self._last_t = 0.0
         self.samples_written = 0
         self.write_seconds = 0.0  # wall time spent writing
         self._cpu_queue = 0.0  # CPU time of the caller's thread spent queueing (append)
@@ -236,6 +291,11 @@ class Recorder:
         self._counts = np.zeros(len(self._names), dtype=np.int64)  # valid records on disk, per stream and events
         # the catalogue's high-voltage statistics of the measured amplifier voltage, over what is written
         self._hv = HvAccumulator() if any(c.name == "voltage" for c in streams.get("amplifier", [])) else None
+        # what the file holds once finished, followed as it is written (the catalogue's end row: Written)
+        self._attrs = {k: v if not isinstance(v, dict | list) else json.dumps(v) for k, v in attrs.items()}
+        self._steps_total = len(program)
+        self._steps_done: set[int] = set()  # steps whose end is queued after their last start
+        self._written: Written | None = None
         ignore_sigxfsz()
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -252,22 +312,16 @@ class Recorder:
         f = h5py.File(self.path, "w", libver=("v110", "v110"))  # SWMR needs the 1.10 format; newer breaks 1.10 tools
         self._f = f
         self._fd = int(f.id.get_vfd_handle())  # for abandon(): a handle whose close failed cannot say
-        f.attrs["format"] = FORMAT
-        for key, value in attrs.items():
-            f.attrs[key] = value if not isinstance(value, dict | list) else json.dumps(value)
+        set_attrs(f, {"format": FORMAT, **self._attrs})
         time_units = seconds_since(attrs.get("start_time"))
         self._create_stamp(f)
-        self._create_status(f)
+        self._updated, self._samples = self._create_status(f)
         self._create_program(f, program)
-        self._create_events(f, time_units)
-        for name, cols in streams.items():
-            self._create_stream(f, name, cols, rates.get(name, 100.0), time_units)
+        # the appended datasets, kept as created: group look-ups cost more than the writes
+        self._events_ds = self._create_events(f, time_units)
+        self._datasets = {name: self._create_stream(f, name, cols, rates.get(name, 100.0), time_units)
+                          for name, cols in streams.items()}
         self._create_entry(f, list(streams))
-        self._datasets = {s: {c.name: f[s][c.name] for c in [Column("t", "s", ""), *cols]}
-                          for s, cols in streams.items()}  # cached: group look-ups cost more than the writes
-        self._events_ds = {k: f["events"][k] for k in EVENT_FIELDS}
-        self._updated = f["status/updated"]
-        self._samples = f["status/samples"]
         f.swmr_mode = True
         f.flush()
 
@@ -282,18 +336,19 @@ class Recorder:
             h5py.h5a.create(f.id, name.encode(), kind, space).write(np.array(b"", dtype=f"S{size}"), mtype=kind)
         f.attrs["complete"] = False
 
-    def _create_status(self, f: h5py.File) -> None:
-        """``/status``: the run's state and the valid-record counts, rewritten in place during the run."""
+    def _create_status(self, f: h5py.File) -> tuple[h5py.Dataset, h5py.Dataset]:
+        """``/status``: the run's state and the valid-record counts, rewritten in place during the run; returns
+        ``updated`` and ``samples``."""
         status = f.create_group("status")
         for name, size in STATUS_TEXT.items():
             initial = b"running" if name == "state" else b""
             status.create_dataset(name, data=np.array([initial], dtype=fixed_text(size)))
-        status.create_dataset("updated", data=np.array([0.0]))
-        status["updated"].attrs["units"] = "s"
+        updated = status.create_dataset("updated", data=np.array([0.0]))
+        set_attrs(updated, {"units": "s"})
         samples = status.create_dataset("samples", data=self._counts)
-        samples.attrs["names"] = json.dumps(self._names)
-        samples.attrs["units"] = "1"
-        samples.attrs["description"] = "valid records per stream (and of /events) at the last successful flush"
+        set_attrs(samples, {"names": json.dumps(self._names), "units": "1",
+                            "description": "valid records per stream (and of /events) at the last successful flush"})
+        return updated, samples
 
     @staticmethod
     def _create_program(f: h5py.File, program: Sequence[tuple[int, str, str, str, float, float]]) -> None:
@@ -302,62 +357,61 @@ class Recorder:
         rows = list(zip(*program, strict=True)) if program else [()] * len(PROGRAM_FIELDS)
         columns = dict(zip(PROGRAM_FIELDS, rows, strict=True))
         index = dimension_scale(g, "index", np.array(columns["index"], dtype="i4"))
-        index.attrs["units"] = PROGRAM_UNITS["index"]
+        set_attrs(index, {"units": PROGRAM_UNITS["index"]})
         for field in ("label", "name", "kind"):
             attach(g.create_dataset(field, data=np.array(columns[field], dtype=object), dtype=TEXT), index)
         for field in ("t_start", "duration"):
             attach(g.create_dataset(field, data=np.array(columns[field], dtype="f8")), index, PROGRAM_UNITS[field])
 
     @staticmethod
-    def _create_events(f: h5py.File, time_units: str) -> None:
-        """``/events``: one appendable dataset per event field, along the dimension scale ``t``."""
+    def _create_events(f: h5py.File, time_units: str) -> dict[str, h5py.Dataset]:
+        """``/events``: one appendable dataset per event field, along the dimension scale ``t``; returns them by
+        field."""
         g = f.create_group("events")
         t = dimension_scale(g, "t", shape=(0,), maxshape=(None,), dtype="f8", chunks=(256,))
         _time_axis(t, time_units)
+        out = {"t": t}
         for field in EVENT_FIELDS[1:]:
             kind, size = EVENT_DTYPE[field].kind, EVENT_DTYPE[field].itemsize
             dtype = fixed_text(size) if kind == "S" else EVENT_DTYPE[field]
             d = g.create_dataset(field, shape=(0,), maxshape=(None,), dtype=dtype, chunks=(256,))
-            attach(d, t, EVENT_UNITS.get(field))
+            out[field] = attach(d, t, EVENT_UNITS.get(field))
+        return out
 
     @staticmethod
-    def _create_stream(f: h5py.File, name: str, cols: list[Column], rate: float, time_units: str) -> None:
+    def _create_stream(f: h5py.File, name: str, cols: list[Column], rate: float,
+                       time_units: str) -> dict[str, h5py.Dataset]:
         """One group per stream (a NeXus NXdata): the time base ``t`` (dimension scale, the NXdata's axis) and one
-        dataset per column (the first is the group's signal)."""
+        dataset per column (the first is the group's signal); returns them by name, ``t`` first."""
         g = f.create_group(name)
-        g.attrs["rate_Hz"] = rate
-        g.attrs["NX_class"] = "NXdata"
-        if cols:
-            g.attrs["signal"] = cols[0].name
-        g.attrs["axes"] = "t"
-        chunk = int(min(65536, max(256, rate * CHUNK_S)))
+        set_attrs(g, {"rate_Hz": rate, "NX_class": "NXdata", **({"signal": cols[0].name} if cols else {}), "axes": "t"})
+        chunk = chunk_length(rate)
         layout: dict[str, Any] = {"shape": (0,), "maxshape": (None,), "chunks": (chunk,), "compression": "gzip",
                                   "compression_opts": 1, "shuffle": True}
         t = dimension_scale(g, "t", dtype="f8", **layout)
         _time_axis(t, time_units)
-        t.attrs["description"] = "time on the run clock"
+        set_attrs(t, {"description": "time on the run clock"})
+        out = {"t": t}
         for col in cols:
-            d = attach(g.create_dataset(col.name, dtype=col.dtype, **layout), t, col.unit)
-            d.attrs["description"] = col.description
-            d.attrs["long_name"] = col.description or col.name
-            if col.name == "valid" and np.dtype(col.dtype).kind in "ub":
-                d.attrs["flag_values"] = np.array([0, 1], dtype=col.dtype)
-                d.attrs["flag_meanings"] = "invalid valid"
+            d = out[col.name] = attach(g.create_dataset(col.name, dtype=col.dtype, **layout), t, col.unit)
+            flags = ({"flag_values": np.array([0, 1], dtype=col.dtype), "flag_meanings": "invalid valid"}
+                     if col.name == "valid" and np.dtype(col.dtype).kind in "ub" else {})
+            set_attrs(d, {"description": col.description, "long_name": col.description or col.name, **flags})
+        return out
 
     @staticmethod
     def _create_entry(f: h5py.File, streams: list[str]) -> None:
         """NeXus and CF conventions at the root: ``/entry`` (NXentry) links every stream group and names the one
         a viewer plots by default (the displacement where there is one)."""
-        f.attrs["Conventions"] = "CF-1.10"
-        f.attrs["NX_class"] = "NXroot"
+        set_attrs(f, {"Conventions": "CF-1.10", "NX_class": "NXroot"})
         entry = f.create_group("entry")
-        entry.attrs["NX_class"] = "NXentry"
+        set_attrs(entry, {"NX_class": "NXentry"})
         for name in streams:
             entry[name] = h5py.SoftLink(f"/{name}")
         preferred = [s for s in ("laser", "amplifier", "load_cell", "motor", "setpoints") if s in streams]
         if preferred:
-            entry.attrs["default"] = preferred[0]
-            f.attrs["default"] = "entry"
+            set_attrs(entry, {"default": preferred[0]})
+            set_attrs(f, {"default": "entry"})
 
     @property
     def cpu_seconds(self) -> float:
@@ -399,7 +453,8 @@ class Recorder:
                              f"time; got {got} (nothing of it queued)")
         for name, values in block.items():  # all or nothing: the columns of a stream stay equally long
             buf[name].append(values)
-        self._last_t = max(self._last_t, float(np.max(block["t"])) if block["t"].size else self._last_t)
+        self._queued[stream] += block["t"].size
+        self._due = self._due or self._queued[stream] >= FLUSH_CHUNKS * self._chunks[stream]
         self._cpu_queue += time.thread_time() - c0
         self.maybe_flush()
 
@@ -411,13 +466,19 @@ class Recorder:
         event_log.info("event t=%.3f s step %d %s: %s", t, step, kind, " | ".join(text.splitlines()))
         if self.failure:
             return
-        self._events.append((t, step, utf8(kind, 16), utf8(text, 200)))
+        stored = utf8(kind, 16)
+        self._events.append((t, step, stored, utf8(text, 200)))
+        if stored == b"start":  # as RunFile.completed_steps counts them
+            self._steps_done.discard(step)
+        elif stored == b"end":
+            self._steps_done.add(step)
         self.maybe_flush()
 
     def maybe_flush(self) -> None:
-        """Flush if the flush interval has passed (call it often): the data is taken here and written on a
-        background thread, unless the last such write is still under way (then at a later call). Raises the
-        :class:`StorageError` of a background write that failed."""
+        """Flush if the flush interval has passed (call it often), or only the whole chunks queued if a stream has
+        :data:`FLUSH_CHUNKS` of them: the data is taken here and written on a background thread, unless the last
+        such write is still under way (then at a later call). Raises the :class:`StorageError` of a background
+        write that failed."""
         if self.failure:
             return
         writing = self._writing
@@ -425,9 +486,11 @@ class Recorder:
             if writing.is_alive():
                 return
             self._await_write()
-        if time.monotonic() - self._last_flush >= self.flush_interval:
-            self._last_flush = time.monotonic()
-            work = self._take()
+        interval = time.monotonic() - self._last_flush >= self.flush_interval
+        if interval or self._due:
+            if interval:  # (a write of whole chunks leaves the rest queued: the interval still runs for it)
+                self._last_flush = time.monotonic()
+            work = self._take(whole_chunks=not interval)
             # not a daemon: the interpreter finishes a write under way before h5py's exit handler closes the file
             writing = threading.Thread(target=self._write_in_background, args=(work,), name="recorder-flush")
             try:
@@ -467,26 +530,39 @@ class Recorder:
         if exc is not None and not self.failure:
             raise self._fail("write failed", exc) from None
 
-    def _take(self) -> _Work:
+    def _take(self, whole_chunks: bool = False) -> _Work:
         """The queued samples per stream, the queued events and the rig time of the last sample; the queues are
-        left empty (caller's thread: appends go on into new lists)."""
+        left empty (caller's thread: appends go on into new lists). ``whole_chunks``: of each stream only the samples
+        up to its dataset's last chunk boundary, the rest left queued — a write that compresses every chunk once,
+        complete, and rewrites no partial one."""
         blocks: list[tuple[int, str, dict[str, np.ndarray], int]] = []
         for k, (stream, buf) in enumerate(self._buffers.items()):
             if not buf["t"]:
                 continue
-            n_new = sum(a.size for a in buf["t"])
+            queued = self._queued[stream]
+            n_new = queued
+            if whole_chunks:
+                chunk = self._chunks[stream]
+                n_new = (self._taken[stream] + queued) // chunk * chunk - self._taken[stream]
+                if n_new <= 0:
+                    continue
             data = {}
             for name, parts in buf.items():
-                data[name] = np.concatenate(parts) if len(parts) > 1 else parts[0]
-                if data[name].size != n_new:
-                    raise ValueError(f"stream {stream}: column {name} has {data[name].size} samples, t has {n_new}")
+                whole = np.concatenate(parts) if len(parts) > 1 else parts[0]
+                if whole.size != queued:
+                    raise ValueError(f"stream {stream}: column {name} has {whole.size} samples queued, {queued} "
+                                     "expected")
+                data[name] = whole[:n_new]
+                parts[:] = [whole[n_new:]] if n_new < queued else []
             blocks.append((k, stream, data, n_new))
+            self._queued[stream] = queued - n_new
+            self._taken[stream] += n_new
+            if n_new:
+                self._taken_t = max(self._taken_t, float(np.max(data["t"])))
         events = np.array(self._events, dtype=EVENT_DTYPE) if self._events else None
-        for buf in self._buffers.values():
-            for parts in buf.values():
-                parts.clear()
         self._events.clear()
-        return blocks, events, self._last_t
+        self._due = False
+        return blocks, events, self._taken_t
 
     def _write_in_background(self, work: _Work) -> None:
         try:
@@ -587,8 +663,16 @@ class Recorder:
             fd = int(g.id.get_vfd_handle())  # now: once a close has failed, asking for it crashes the interpreter
             stamp(g, end, state, reason)
             g.close()
+            st = os.stat(self.path)
         except Exception as exc:
             if g is not None:
                 abandon(g, fd)
             self.failure = f"run file {self.path}: cannot stamp the end of the run: {cause(exc)}"
             raise StorageError(self.failure) from None
+        self._written = Written(dict(self._attrs), state, stored_text(reason, STATUS_TEXT["reason"]), end,
+                                len(self._steps_done), self._steps_total, (st.st_size, st.st_mtime_ns))
+
+    def written(self) -> Written | None:
+        """What the finished file holds (:class:`Written`); None unless :meth:`finish` completed (a failed write, a
+        file not yet finished)."""
+        return self._written
