@@ -114,8 +114,20 @@ COVERAGE_REPEATS = 40  # reduced case: 40 fits × 3 parameters; the full case is
 def test_stated_95_percent_intervals_hold_the_truth_90_to_99_percent_of_the_time() -> None:
     """Coverage (reduced case): 40 records simulated with the thesis membrane specimen (Table 4.4) and white
     noise of 0.5 µm, μ0 and the slow unit's μ and τ fitted. Each determined parameter's interval holds the truth
-    in 36–39 of the 40 repeats (90–99 %); a parameter not determined never misses silently."""
-    cov = coverage(["mu0", "mu2", "tau2"], COVERAGE_REPEATS, sigma=0.5e-6, seed=0)
+    in 36–39 of the 40 repeats (90–99 %); a parameter not determined never misses silently.
+
+    The batch kernel runs on one thread here: its candidates are independent, so the counts are the same (checked:
+    the 40 repeats give the same coverage and mean χ² bit for bit on 1 and 2 threads), and on a host whose cores
+    are busy (the suite's other worker, a CI neighbour) the parallel kernel's threads wait on each other for about
+    twice the time of one thread; every other test runs it on its default threads."""
+    import numba
+
+    threads = numba.get_num_threads()
+    numba.set_num_threads(1)
+    try:
+        cov = coverage(["mu0", "mu2", "tau2"], COVERAGE_REPEATS, sigma=0.5e-6, seed=0)
+    finally:
+        numba.set_num_threads(threads)
     assert cov.repeats == COVERAGE_REPEATS
     assert np.all(cov.determined == COVERAGE_REPEATS)  # the drive is long enough for all three
     assert np.all(cov.rate() >= 0.90) and np.all(cov.rate() <= 0.99), cov

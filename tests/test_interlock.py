@@ -58,9 +58,9 @@ class Plant:
 
 
 def run_with_fault(rig: Path, tmp: Path, at: float, action: Callable[[Engine, object], None],
-                   virtual: bool) -> tuple[object, RunFile, Plant]:
-    """Run the short thesis protocol with ``action`` done at run time ``at`` (on the engine's thread when it
-    freezes the host; from the rig clock in virtual time; from a watcher thread in real time)."""
+                   virtual: bool, protocol: Path = THESIS) -> tuple[object, RunFile, Plant]:
+    """Run the short thesis protocol (or ``protocol``) with ``action`` done at run time ``at`` (on the engine's
+    thread when it freezes the host; from the rig clock in virtual time; from a watcher thread in real time)."""
     plant = Plant()
 
     def hook(engine: Engine, sim) -> None:
@@ -83,7 +83,7 @@ def run_with_fault(rig: Path, tmp: Path, at: float, action: Callable[[Engine, ob
                 act()
             threading.Thread(target=watch, daemon=True).start()
 
-    result = execute(plan_run(THESIS, rig), tmp / "run.h5", virtual=virtual, on_engine=hook)
+    result = execute(plan_run(protocol, rig), tmp / "run.h5", virtual=virtual, on_engine=hook)
     return result, open_run(result.path), plant
 
 
@@ -133,10 +133,16 @@ def test_a_short_pause_of_the_host_is_not_a_stall(tmp_path: Path) -> None:
     """Below the stated bound (0.8 × the 1-s watchdog) the run goes on: a late action, not a fault. (On the DAQ
     rig: the ADAM rig's serial laser storage, at 10 kHz, never catches up with a pause at 115200 Bd.) On the DAQ
     rig the stream-out holds only OUT_AHEAD_S (0.5 s) ahead of the scan clock in real time, topped up every 0.05 s:
-    a pause of more than ~0.4 s starves it (an underrun, latched — README "Interlock"), so the pause here is 0.15 s."""
+    a pause of more than ~0.4 s starves it (an underrun, latched — README "Interlock"), so the pause here is 0.15 s.
+    The run is in wall time and must end on its own: the short protocol with a 4-s drive (not 10 s), so it goes on
+    2 s past the pause (a stall latches at the first action after it, an underrun within the 0.5 s ahead)."""
     bound = stall_bound(load_rig(DAQ_RIG))
     assert bound == pytest.approx(0.8)  # README "Interlock": 80 % of the module's communication watchdog
-    result, _run, _plant = run_with_fault(DAQ_RIG, tmp_path, 2.0, freeze_host(0.15), virtual=False)
+    protocol = tmp_path / "identification-4s.toml"
+    protocol.write_text(THESIS.read_text(encoding="utf-8").replace('rig = "../../rigs/', f'rig = "{ROOT}/rigs/')
+                        .replace("duration_s = 10.0", "duration_s = 4.0"), encoding="utf-8")
+    assert "duration_s = 4.0" in protocol.read_text(encoding="utf-8")
+    result, _run, _plant = run_with_fault(DAQ_RIG, tmp_path, 2.0, freeze_host(0.15), virtual=False, protocol=protocol)
     assert result.state == "completed", result.reason
 
 

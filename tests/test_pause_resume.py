@@ -233,12 +233,19 @@ def test_a_stopped_motor_campaign_resumes_from_the_state_its_step_starts_in(tmp_
 
 
 def test_pause_and_resume_with_keys_at_the_live_view(tmp_path: Path) -> None:
-    """`bench run` on a terminal (a pseudo-terminal here): `p` pauses, `r` resumes, without Enter."""
+    """`bench run` on a terminal (a pseudo-terminal here): `p` pauses, `r` resumes, without Enter. The run is in
+    wall time: the short identification protocol with a 5-s drive (not 10 s), which the pause restarts — `p` comes
+    1 s into it, 4 s before its end, and the whole run takes some 8 s instead of 13."""
     import pty
 
+    protocol = tmp_path / "identification-5s.toml"
+    protocol.write_text((SHORT / "thesis-identification-short.toml").read_text(encoding="utf-8")
+                        .replace('rig = "../../rigs/', f'rig = "{ROOT}/rigs/')
+                        .replace("duration_s = 10.0", "duration_s = 5.0"), encoding="utf-8")
+    assert "duration_s = 5.0" in protocol.read_text(encoding="utf-8")
     master, slave = pty.openpty()
-    proc = subprocess.Popen([sys.executable, "-m", "bench", "run", str(SHORT / "thesis-identification-short.toml"),
-                             "--out", str(tmp_path)], cwd=ROOT, env={**ENV, "TERM": "xterm"}, stdin=slave,
+    proc = subprocess.Popen([sys.executable, "-m", "bench", "run", str(protocol),
+                             "--out", str(tmp_path / "runs")], cwd=ROOT, env={**ENV, "TERM": "xterm"}, stdin=slave,
                             stdout=slave, stderr=slave, close_fds=True)
     os.close(slave)
     screen = bytearray()
@@ -254,7 +261,7 @@ def test_pause_and_resume_with_keys_at_the_live_view(tmp_path: Path) -> None:
 
     def logged(text: str) -> bool:
         read_some()
-        logs = list(tmp_path.glob("*.log"))
+        logs = list((tmp_path / "runs").glob("*.log"))
         return bool(logs) and text in logs[0].read_text()
 
     try:
@@ -271,7 +278,7 @@ def test_pause_and_resume_with_keys_at_the_live_view(tmp_path: Path) -> None:
         os.close(master)
     assert proc.returncode == 0, screen.decode(errors="replace")[-2000:]
     assert b"p: pause" in screen  # the key help under the live panel
-    run = open_run(next(tmp_path.glob("*.h5")))
+    run = open_run(next((tmp_path / "runs").glob("*.h5")))
     (_, _, _, p_text), = events(run, "pause")
     (_, _, _, r_text), = events(run, "resume")
     assert "live view (key p)" in p_text and "live view (key r)" in r_text
