@@ -175,6 +175,14 @@ def test_feedback_request_from_an_array_of_codes_has_the_same_bytes_and_refuses_
             Feedback(((4420, bad),)).encode()
 
 
+@pytest.mark.parametrize("bad", [[1, 65536], [-1], [1.5], [True]])
+def test_feedback_register_values_given_as_a_list_are_refused_as_an_array_is(bad: list) -> None:
+    """A few registers go out as a list (a FLOAT32's two words): a value outside a 16-bit register, or not an
+    integer, is refused before anything is sent, as in an array — never wrapped or cast to a code."""
+    with pytest.raises(ValueError, match="0…65535"):
+        Feedback(((1000, [0, 0]), (4420, bad))).encode()
+
+
 @pytest.mark.parametrize("reply_hex", ["0007 0000 0003 01 cc 02", "0007 0000 0004 01 cc 02 05"])
 def test_an_mbfb_error_reply_is_read_as_an_exception_with_or_without_a_frame_byte_after_the_code(
         reply_hex: str) -> None:
