@@ -268,8 +268,9 @@ class T7Stream(T7StreamOut):
                     s.scans += pkt.additional
                 chunk.append(samples)
         self._convert(chunk, rows, valid)
-        v = np.concatenate(rows) if rows else np.empty((0, s.n_in))
-        ok = np.concatenate(valid) if valid else np.empty((0, s.n_in), bool)
+        # one piece (the usual collect) is returned as made: no copy
+        v = (rows[0] if len(rows) == 1 else np.concatenate(rows)) if rows else np.empty((0, s.n_in))
+        ok = (valid[0] if len(valid) == 1 else np.concatenate(valid)) if valid else np.empty((0, s.n_in), bool)
         if self.streaming and not s.done:
             self._feed_out()
         if s.done:
@@ -288,7 +289,8 @@ class T7Stream(T7StreamOut):
         assert s is not None
         if not chunk:
             return
-        allsamp = np.concatenate([np.asarray(s.pending, np.uint16), *chunk])
+        allsamp = chunk[0] if len(chunk) == 1 and not s.pending else \
+            np.concatenate([np.asarray(s.pending, np.uint16), *chunk])
         chunk.clear()
         whole = allsamp.size // s.n_in * s.n_in
         s.pending = allsamp[whole:].tolist()
