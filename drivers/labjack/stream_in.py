@@ -199,8 +199,9 @@ class T7Stream(T7StreamOut):
                     # status that ends the stream among them counts), then the gap is an error
                     lost = np.flatnonzero(batch.transaction_ids != (s.next_tid + np.arange(n)) & 0xFFFF)
                     ok = int(lost[0]) if lost.size else n
-                    if np.isin(batch.statuses[:ok], _ENDING).any():
-                        s.done = True
+                    taken = batch.statuses[:ok]
+                    if taken.any() and not s.done:  # (np.isin costs more than the rest of these checks)
+                        s.done = any(status in _ENDING for status in taken.tolist())
                     s.next_tid += ok
                     if lost.size:
                         raise ProtocolError(self.name, f"stream packet {int(batch.transaction_ids[ok])} after "
@@ -247,9 +248,10 @@ class T7Stream(T7StreamOut):
         backlog = 0
         chunk: list[np.ndarray] = []  # samples of consecutive packets, converted together
         for batch in batches:
-            statuses += batch.statuses[batch.statuses != 0].tolist()
+            seen = batch.statuses[batch.statuses != 0].tolist()
+            statuses += seen
             backlog = int(batch.backlog_bytes[-1]) // (2 * s.n_in)
-            if not np.any(batch.statuses == ST_RECOVER_END):  # the usual batch: its samples in one piece
+            if ST_RECOVER_END not in seen:  # the usual batch: its samples in one piece
                 chunk.append(batch.samples)
                 continue
             for i in range(len(batch)):
