@@ -1,7 +1,8 @@
 """A Modbus bus (RTU on a serial port, or TCP) shared by the modules on it, with named driver errors.
 
 ``url``: a serial device or pyserial URL (``/dev/ttyUSB0``, ``/dev/pts/7``, ``socket://host:port``) for RTU,
-or ``tcp://host:port`` for Modbus TCP. Uses the pymodbus 3.16 synchronous clients.
+or ``tcp://host:port`` for Modbus TCP. Uses the pymodbus 3.16 synchronous clients; on TCP an attempt runs
+through pymodbus' framer and transaction counter without its transaction manager (:meth:`_TcpClient.exchange`).
 
 Retries are ours, not pymodbus' (its ``retries`` is 0): the optional :class:`~drivers.cancel.CancelToken` is
 checked before every attempt (and, on RTU, at every receive poll), so a stop waits out at most one attempt.
@@ -130,7 +131,8 @@ class _TcpClient(ModbusTcpClient):
         if size is not None or sock is None:
             return super().recv(size)
         deadline = self.link._deadline
-        sock.setblocking(False)
+        if sock.gettimeout() != 0.0:  # non-blocking from the first receive on (each setblocking is a system call)
+            sock.setblocking(False)
         while True:
             ready, _, _ = select.select([sock], [], [], min(POLL_SLICE_S, deadline.left()))
             if ready:
@@ -139,6 +141,38 @@ class _TcpClient(ModbusTcpClient):
                 return data
             if deadline.expired():
                 return b""
+
+    def exchange(self, request: ModbusPDU) -> ModbusPDU:
+        """One attempt of ``request`` as pymodbus' ``sync_execute`` makes it with no retries, without its layers
+        (lock, trace hooks, local echo, logging): the frame its framer builds, numbered by its transaction counter,
+        sent as its ``send`` does; then bytes received until its framer takes a reply for this unit and id (others
+        skipped, as there). The same bytes on the wire and the same exceptions: ModbusIOException when no reply
+        came (or one pymodbus cannot decode), ConnectionException when the link is lost. For the requests a device
+        sends many of (the T7's stream-out packets: ~20 per second of rig time)."""
+        if not self.connect():
+            raise ConnectionException(f"Failed to connect[{self!s}]")
+        tx = self.transaction
+        request.transaction_id = tid = tx.getNextTID()
+        dev_id = request.dev_id
+        self.send(self.framer.buildFrame(request))
+        buffer = b""
+        end = time.monotonic() + self.comm_params.timeout_connect
+        while True:
+            if not (data := self.recv(None)):
+                raise ModbusIOException("no reply", function_code=request.function_code, transaction_id=tid,
+                                        dev_id=dev_id)
+            buffer += data
+            used, reply = self.framer.handleFrame(buffer, dev_id, tid)
+            buffer = buffer[used:]
+            if reply is not None:
+                break
+            if time.monotonic() >= end:
+                raise ModbusIOException("no whole reply", function_code=request.function_code, transaction_id=tid,
+                                        dev_id=dev_id)
+        if reply.dev_id != dev_id or reply.transaction_id != tid:  # a reply numbered 0 passes the framer
+            raise ModbusIOException(f"reply from unit {reply.dev_id} with id {reply.transaction_id}",
+                                    function_code=request.function_code, transaction_id=tid, dev_id=dev_id)
+        return reply
 
 
 class ModbusLink:
@@ -223,6 +257,8 @@ class ModbusLink:
               retry: bool = True) -> ModbusPDU:
         """Run one request with our retries (none unless ``retry``); returns the checked reply."""
         attempts = self.retries + 1 if retry else 1
+        client = self._client
+        run = client.exchange if isinstance(client, _TcpClient) else lambda pdu: client.execute(False, pdu)
         with self.lock:
             for attempt in range(attempts):
                 self._cancellable = bool(attempt) or not always_send
@@ -232,8 +268,8 @@ class ModbusLink:
                 self._deadline = self.timer.start(self._timeout)
                 sent = time.monotonic()
                 try:
-                    resp = self._client.execute(False, request)
-                    if isinstance(self._client, _SerialClient):
+                    resp = run(request)
+                    if isinstance(client, _SerialClient):
                         resp = self._latest_reply(resp, unit, what)
                 except ModbusIOException:
                     self._stale = True

@@ -229,3 +229,53 @@ def test_an_exception_reply_to_the_request_is_a_refusal() -> None:
         link.open()
         with pytest.raises(InstrumentStateError, match=r"exception 2 \(illegal data address\)"):
             link.write_register(1, 0, 2048)
+
+
+def _scripted_tcp_peer(replies: Callable[[bytes], list[bytes]]) -> tuple[int, threading.Thread]:
+    """A one-connection MBAP peer: for each request ADU read, the whole ADUs ``replies(request)`` gives, sent in one
+    write."""
+    server = socket.create_server(("127.0.0.1", 0))
+
+    def serve() -> None:
+        conn, _ = server.accept()
+        server.close()
+        with conn:
+            buf = b""
+            while data := conn.recv(1024):
+                buf += data
+                while len(buf) >= 6 and len(buf) >= 6 + struct.unpack(">H", buf[4:6])[0]:
+                    size = 6 + struct.unpack(">H", buf[4:6])[0]
+                    frame, buf = buf[:size], buf[size:]
+                    conn.sendall(b"".join(replies(frame)))
+
+    thread = threading.Thread(target=serve, daemon=True)
+    thread.start()
+    return server.getsockname()[1], thread
+
+
+def _mbap(tid: bytes, unit: int, pdu: bytes) -> bytes:
+    return tid + struct.pack(">HHB", 0, len(pdu) + 1, unit) + pdu
+
+
+def test_tcp_a_reply_from_another_unit_is_skipped_and_one_numbered_0_is_no_answer() -> None:
+    """MBAP: the answer carries the request's transaction id and unit. A reply from another unit before it is passed
+    over; a reply numbered 0 answers no request (the attempt fails); the answer that followed it, late, is not taken
+    for the next request's."""
+    def replies(req: bytes) -> list[bytes]:
+        if req[:2] == b"\x00\x01":
+            return [_mbap(req[:2], 2, fc3_reply(7)), _mbap(req[:2], 1, fc3_reply(8))]
+        if req[:2] == b"\x00\x02":
+            return [_mbap(b"\x00\x00", 1, fc3_reply(9)), _mbap(req[:2], 1, fc3_reply(10))]
+        return [_mbap(req[:2], 1, fc3_reply(11))]
+
+    port, thread = _scripted_tcp_peer(replies)
+    link = ModbusLink(f"tcp://127.0.0.1:{port}", "bus io", timeout=0.2, retries=0)
+    link.open()
+    try:
+        assert link.read_holding(1, 0, 1) == [8]
+        with pytest.raises(Exception, match="no valid reply from unit 1"):
+            link.read_holding(1, 0, 1)
+        assert link.read_holding(1, 0, 1) == [11]
+    finally:
+        link.close()
+        thread.join(2.0)

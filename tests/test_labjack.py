@@ -74,6 +74,31 @@ def test_stream_packets_of_one_receive_split_and_parsed_together() -> None:
         parse_stream_packets(bad, split_stream_packets(bad))
 
 
+def test_stream_packets_of_one_size_parse_as_one_batch_with_each_packets_fields() -> None:
+    """A running stream's packets (one size) are checked and split as rows of one array: each packet's header fields
+    and samples as the packet alone gives them (the bytes above, TransIDs 5, 6, 7); a packet among them that is not a
+    stream packet, or whose Length disagrees, is refused as alone."""
+    from drivers.labjack.packets import parse_stream_batch, split_stream_packets
+
+    second = bytes.fromhex("0006 0000 0012 01 4c 10 00 0000 0b7d 0003 ffff ffff 0001 0002")  # 2941, 3 skipped
+    third = bytes.fromhex("0007 0000 0012 01 4c 10 00 0010 0000 0000 0003 0004 0005 0006")
+    buf = PACKET + second + third
+    batch = parse_stream_batch(buf, split_stream_packets(buf))
+    assert len(batch) == 3
+    assert batch.transaction_ids.tolist() == [5, 6, 7]
+    assert batch.backlog_bytes.tolist() == [8, 0, 16]
+    assert batch.statuses.tolist() == [0, 2941, 0] and batch.additional.tolist() == [0, 3, 0]
+    assert batch.samples.tolist() == [0x82F3, 0x8300, 0x7F00, 0xFFFF, 0xFFFF, 0xFFFF, 1, 2, 3, 4, 5, 6]
+    assert batch.packet(1).samples.tolist() == [0xFFFF, 0xFFFF, 1, 2]
+    assert (batch.packet(2).transaction_id, batch.packet(2).backlog_bytes) == (7, 16)
+    for bad, why in ((second[:7] + b"\x4b" + second[8:], "not a stream packet"),
+                     (second[:8] + b"\x11" + second[9:], "not a stream packet"),
+                     (second[:4] + b"\x00\x10" + second[6:], "length field 16 for 24 bytes")):
+        buf = PACKET + bad + third
+        with pytest.raises(ProtocolError, match=why):
+            parse_stream_batch(buf, [(0, 24), (24, 24), (48, 24)])  # spans of one size, as the stream's
+
+
 @pytest.mark.parametrize("frame, why", [
     (PACKET[:7] + b"\x4b" + PACKET[8:], "function"),  # function 75
     (PACKET[:8] + b"\x11" + PACKET[9:], "type"),  # stream type 17
@@ -173,6 +198,14 @@ def test_feedback_request_from_an_array_of_codes_has_the_same_bytes_and_refuses_
     for bad in (np.array([1, 65536]), np.array([-1]), np.array([1.5])):
         with pytest.raises(ValueError, match="0…65535"):
             Feedback(((4420, bad),)).encode()
+
+
+@pytest.mark.parametrize("bad", [[1, 65536], [-1], [1.5], [True]])
+def test_feedback_register_values_given_as_a_list_are_refused_as_an_array_is(bad: list) -> None:
+    """A few registers go out as a list (a FLOAT32's two words): a value outside a 16-bit register, or not an
+    integer, is refused before anything is sent, as in an array — never wrapped or cast to a code."""
+    with pytest.raises(ValueError, match="0…65535"):
+        Feedback(((1000, [0, 0]), (4420, bad))).encode()
 
 
 @pytest.mark.parametrize("reply_hex", ["0007 0000 0003 01 cc 02", "0007 0000 0004 01 cc 02 05"])

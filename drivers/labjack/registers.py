@@ -5,6 +5,7 @@ Sources and the [D]/[E]/[A] marks: :mod:`drivers.labjack`.
 
 from __future__ import annotations
 
+import contextlib
 import struct
 from collections.abc import Sequence
 
@@ -71,8 +72,14 @@ Words = list[int] | np.ndarray  # register values of one write: a list, or an in
 Frame = tuple[int, Words | int]  # one MBFB frame: (address, the registers to write) or (address, how many to read)
 
 
+_FRAME_HEAD = struct.Struct(">BHB")  # [D] MBFB frame: type, address, number of registers
+
+
 def _u16_bytes(words: Words) -> bytes:
     """Register values as big-endian 16-bit words; a value outside 0…65535 is refused, not wrapped."""
+    if isinstance(words, list) and all(type(v) is int for v in words):  # a few registers: struct, not numpy
+        with contextlib.suppress(struct.error):  # out of range: refused below, naming the values
+            return struct.pack(f">{len(words)}H", *words)
     w = np.asarray(words)
     # one pass: the OR of all values has a bit above 15 (or is negative) exactly when one of them lies outside
     if w.size and (w.dtype.kind not in "iu" or int(np.bitwise_or.reduce(w, axis=None)) >> 16):
@@ -100,9 +107,13 @@ class Feedback(ModbusPDU):
 
     def encode(self) -> bytes:
         """Write frames: 1, address, n, n registers (big-endian); read frames: 0, address, n."""
-        return b"".join(struct.pack(">BHB", 0, f[0], n) if (n := read_count(f)) is not None
-                        else struct.pack(">BHB", 1, f[0], len(f[1])) + _u16_bytes(f[1])  # type: ignore[arg-type]
-                        for f in self.writes)
+        parts: list[bytes] = []
+        for a, w in self.writes:
+            if isinstance(w, int | np.integer):
+                parts.append(_FRAME_HEAD.pack(0, a, int(w)))
+            else:
+                parts += (_FRAME_HEAD.pack(1, a, len(w)), _u16_bytes(w))
+        return b"".join(parts)
 
     def decode(self, data: bytes) -> None:
         """The reply: the data of the read frames."""

@@ -19,7 +19,7 @@ from drivers.errors import (
     ProtocolError,
 )
 from drivers.interfaces import StreamBlock, StreamSpec
-from drivers.labjack.packets import StreamPacket, parse_stream_packets, split_stream_packets
+from drivers.labjack.packets import StreamBatch, parse_stream_batch, split_stream_packets
 from drivers.labjack.plan import StreamPlan, StreamState
 from drivers.labjack.registers import (
     AIN0,
@@ -53,6 +53,9 @@ from drivers.labjack.registers import (
     words_f32,
 )
 from drivers.labjack.stream_out import T7StreamOut
+
+# the statuses after which the device sends no more packets
+_ENDING = (ST_BURST_COMPLETE, ST_BUFFER_FULL, ST_SCAN_OVERLAP, ST_RECOVER_OVERFLOW)
 
 
 class T7Stream(T7StreamOut):
@@ -164,16 +167,17 @@ class T7Stream(T7StreamOut):
         before it)."""
         return self._stream.t0_uncertainty if self._stream is not None else math.nan
 
-    def _receive(self, until_packets: int, timeout: float) -> list[StreamPacket]:
+    def _receive(self, until_packets: int, timeout: float) -> list[StreamBatch]:
         """Packets available now, and (waiting until a deadline of ``timeout`` s expires: :mod:`drivers.deadline`)
-        until ``until_packets`` total."""
+        until ``until_packets`` total: the whole packets of each receive as one batch."""
         s = self._stream
         assert s is not None and s.sock is not None
-        out: list[StreamPacket] = []
+        out: list[StreamBatch] = []
+        got = 0
         deadline = self.timer.start(timeout)
         while True:
             check(self.cancel, self.name)
-            wait = s.packets + len(out) < until_packets and not s.done
+            wait = s.packets + got < until_packets and not s.done
             r, _, _ = select.select([s.sock], [], [], min(deadline.left(), 0.05) if wait else 0.0)
             if r:
                 try:
@@ -189,20 +193,27 @@ class T7Stream(T7StreamOut):
                     end = spans[-1][0] + spans[-1][1]
                     frames = bytes(s.raw[:end])
                     del s.raw[:end]
-                    for pkt in parse_stream_packets(frames, spans, self.name):
-                        if pkt.transaction_id != (s.next_tid & 0xFFFF):
-                            raise ProtocolError(self.name, f"stream packet {pkt.transaction_id} after "
-                                                f"{(s.next_tid - 1) & 0xFFFF}: packets lost")
-                        s.next_tid += 1
-                        out.append(pkt)
-                        if pkt.status in (ST_BURST_COMPLETE, ST_BUFFER_FULL, ST_SCAN_OVERLAP, ST_RECOVER_OVERFLOW):
-                            s.done = True
+                    batch = parse_stream_batch(frames, spans, self.name)
+                    n = len(batch)
+                    # numbered on from the last packet: the packets up to the first that is not are taken (a device
+                    # status that ends the stream among them counts), then the gap is an error
+                    lost = np.flatnonzero(batch.transaction_ids != (s.next_tid + np.arange(n)) & 0xFFFF)
+                    ok = int(lost[0]) if lost.size else n
+                    taken = batch.statuses[:ok]
+                    if taken.any() and not s.done:  # (np.isin costs more than the rest of these checks)
+                        s.done = any(status in _ENDING for status in taken.tolist())
+                    s.next_tid += ok
+                    if lost.size:
+                        raise ProtocolError(self.name, f"stream packet {int(batch.transaction_ids[ok])} after "
+                                            f"{(s.next_tid - 1) & 0xFFFF}: packets lost")
+                    out.append(batch)
+                    got += n
                 continue
             if not wait:
                 return out
             if deadline.expired():
                 raise InstrumentTimeoutError(self.name, f"stream packets up to #{until_packets} not received "
-                                             f"within {timeout:g} s (have {s.packets + len(out)}){deadline.detail}")
+                                             f"within {timeout:g} s (have {s.packets + got}){deadline.detail}")
 
     def _expected_packets(self, until: float) -> int:
         s = self._stream
@@ -227,8 +238,8 @@ class T7Stream(T7StreamOut):
         if s is None or s.sock is None:
             raise InstrumentStateError(self.name, "collect without kickoff")
         want = self._expected_packets(until) if until is not None else 0
-        packets = self._receive(want, timeout)
-        s.packets += len(packets)
+        batches = self._receive(want, timeout)
+        s.packets += sum(len(b) for b in batches)
         first = s.scans
         rows: list[np.ndarray] = []
         valid: list[np.ndarray] = []
@@ -236,26 +247,32 @@ class T7Stream(T7StreamOut):
         skipped = 0
         backlog = 0
         chunk: list[np.ndarray] = []  # samples of consecutive packets, converted together
-        for pkt in packets:
-            if pkt.status:
-                statuses.append(pkt.status)
-            backlog = pkt.backlog_bytes // (2 * s.n_in)
-            samples = pkt.samples
-            if pkt.status == ST_RECOVER_END:
-                self._convert(chunk, rows, valid)
-                if s.pending:
-                    raise ProtocolError(self.name, "auto-recovery ended inside a scan")
-                if samples.size < s.n_in or np.any(samples[:s.n_in] != DUMMY):
-                    raise ProtocolError(self.name, "auto-recovery end without the dummy scan")
-                samples = samples[s.n_in:]
-                skipped += pkt.additional
-                rows.append(np.full((pkt.additional, s.n_in), np.nan))
-                valid.append(np.zeros((pkt.additional, s.n_in), bool))
-                s.scans += pkt.additional
-            chunk.append(samples)
+        for batch in batches:
+            seen = batch.statuses[batch.statuses != 0].tolist()
+            statuses += seen
+            backlog = int(batch.backlog_bytes[-1]) // (2 * s.n_in)
+            if ST_RECOVER_END not in seen:  # the usual batch: its samples in one piece
+                chunk.append(batch.samples)
+                continue
+            for i in range(len(batch)):
+                pkt = batch.packet(i)
+                samples = pkt.samples
+                if pkt.status == ST_RECOVER_END:
+                    self._convert(chunk, rows, valid)
+                    if s.pending:
+                        raise ProtocolError(self.name, "auto-recovery ended inside a scan")
+                    if samples.size < s.n_in or np.any(samples[:s.n_in] != DUMMY):
+                        raise ProtocolError(self.name, "auto-recovery end without the dummy scan")
+                    samples = samples[s.n_in:]
+                    skipped += pkt.additional
+                    rows.append(np.full((pkt.additional, s.n_in), np.nan))
+                    valid.append(np.zeros((pkt.additional, s.n_in), bool))
+                    s.scans += pkt.additional
+                chunk.append(samples)
         self._convert(chunk, rows, valid)
-        v = np.concatenate(rows) if rows else np.empty((0, s.n_in))
-        ok = np.concatenate(valid) if valid else np.empty((0, s.n_in), bool)
+        # one piece (the usual collect) is returned as made: no copy
+        v = (rows[0] if len(rows) == 1 else np.concatenate(rows)) if rows else np.empty((0, s.n_in))
+        ok = (valid[0] if len(valid) == 1 else np.concatenate(valid)) if valid else np.empty((0, s.n_in), bool)
         if self.streaming and not s.done:
             self._feed_out()
         if s.done:
@@ -274,14 +291,18 @@ class T7Stream(T7StreamOut):
         assert s is not None
         if not chunk:
             return
-        allsamp = np.concatenate([np.asarray(s.pending, np.uint16), *chunk])
+        allsamp = chunk[0] if len(chunk) == 1 and not s.pending else \
+            np.concatenate([np.asarray(s.pending, np.uint16), *chunk])
         chunk.clear()
         whole = allsamp.size // s.n_in * s.n_in
         s.pending = allsamp[whole:].tolist()
         raw = allsamp[:whole].reshape(-1, s.n_in)
-        volts = np.empty(raw.shape)
-        for j, g in enumerate(s.gains):
-            volts[:, j] = self.cal.ain_volts(raw[:, j], g)
+        if len(set(s.gains)) == 1:  # every input on one range: one table look-up for all
+            volts = self.cal.ain_volts(raw, s.gains[0])
+        else:
+            volts = np.empty(raw.shape)
+            for j, g in enumerate(s.gains):
+                volts[:, j] = self.cal.ain_volts(raw[:, j], g)
         rows.append(volts)
         valid.append(np.ones(raw.shape, bool))
         s.scans += raw.shape[0]

@@ -28,6 +28,8 @@ from pymodbus.server.requesthandler import ServerRequestHandler
 
 from sim_devices.t7.registers import E_RSP_OVERFLOW, FC_FEEDBACK, FEEDBACK_MAX_PACKET
 
+_FRAME_HEAD = struct.Struct(">BHB")  # [D] a frame's type, address, number of registers
+
 
 class FeedbackPDU(ModbusPDU):
     """MBFB as the T7 serves it: the request's frames, run in order through the device's registers.
@@ -50,6 +52,7 @@ class FeedbackPDU(ModbusPDU):
         self.frames: list[tuple[int, int, int, Any]] = []  # (type, address, registers, write words: a list, or
         # for a buffer register an array of them)
         self.malformed = False
+        self.read_registers = 0  # what the read frames read, in all (the reply's size)
         self.reply = b""
 
     @classmethod
@@ -68,23 +71,26 @@ class FeedbackPDU(ModbusPDU):
         """Frames from the bytes after the function code; malformed unless they split exactly."""
         i, n = 0, len(data)
         self.malformed = n + 8 > FEEDBACK_MAX_PACKET or n == 0
+        frames, buffers = self.frames, self.buffers
         while i < n and not self.malformed:
             if i + 4 > n or data[i] not in (0, 1):
                 self.malformed = True
                 break
-            kind, address, count = data[i], int.from_bytes(data[i + 1:i + 3], "big"), data[i + 3]
+            kind, address, count = _FRAME_HEAD.unpack_from(data, i)
             i += 4
             words: Any = []
             if kind == 1:
                 if i + 2 * count > n:
                     self.malformed = True
                     break
-                if address in self.buffers:  # values appended to a buffer: kept as one array, not 2·n objects
+                if address in buffers:  # values appended to a buffer: kept as one array, not 2·n objects
                     words = np.frombuffer(data, ">u2", count, i).astype(np.int64)
                 else:
-                    words = list(struct.unpack(f">{count}H", data[i:i + 2 * count]))
+                    words = list(struct.unpack_from(f">{count}H", data, i))
                 i += 2 * count
-            self.frames.append((kind, address, count, words))
+            else:
+                self.read_registers += count
+            frames.append((kind, address, count, words))
 
     def encode(self) -> bytes:
         """The reply: the read frames' data."""
@@ -95,7 +101,7 @@ class FeedbackPDU(ModbusPDU):
         data, or the exception that ended the packet (the frames before it took effect)."""
         if self.malformed:
             return self._refused(ExcCodes.ILLEGAL_VALUE, 0)
-        if 8 + sum(2 * count for kind, _, count, _ in self.frames if kind == 0) > FEEDBACK_MAX_PACKET:
+        if 8 + 2 * self.read_registers > FEEDBACK_MAX_PACKET:
             return self._refused(ExcCodes.ILLEGAL_VALUE, 0, E_RSP_OVERFLOW)  # MBAP 7 + function 1 + the reads
         data = bytearray()
         for number, (kind, address, count, words) in self._merged():
