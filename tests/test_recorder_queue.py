@@ -102,3 +102,66 @@ def test_a_stream_with_eight_chunks_queued_is_written_at_once_in_whole_chunks(
     np.testing.assert_array_equal(run.streams["laser"].t, laser_t)
     np.testing.assert_array_equal(run.streams["laser"].columns["voltage"], laser_t)
     assert run.updated == max(amp_t[-1], laser_t[-1])  # the last sample's rig time
+
+
+def test_a_whole_chunk_write_takes_no_event_and_no_valid_time_ahead_of_another_stream_s_tail(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A write of whole chunks leaves each stream's tail queued, so it must leave the events (a step's end) and the
+    valid-up-to time queued too: a kill after it would otherwise leave a step ended on disk without its last
+    samples, and resume would never rerun it (review finding). Laser: step 0's 1000 samples at 1 kHz (3 chunks of
+    256 and 232 queued), its end, then the amplifier reaching FLUSH_CHUNKS (8) chunks: 2048 of 2100 written, the
+    laser's first 768, no event, the valid time still 0; the finish writes the rest with both events."""
+    monkeypatch.setattr(recorder, "FLUSH_CHUNKS", 8)
+    path = tmp_path / "run.h5"
+    cols = [recorder.Column("voltage", "V", "")]
+    rec = recorder.Recorder(path, {"protocol_name": "events"}, {"amplifier": cols, "laser": cols}, [],
+                            {"amplifier": 1000.0, "laser": 1000.0}, flush_interval=3600.0)
+    works: list[tuple[dict[str, int], int, float]] = []
+    write = recorder.Recorder._write
+
+    def spy(self: recorder.Recorder, work: recorder._Work) -> None:
+        blocks, events, last_t = work
+        works.append(({s: n for _, s, _, n in blocks}, 0 if events is None else events.size, last_t))
+        write(self, work)
+
+    monkeypatch.setattr(recorder.Recorder, "_write", spy)
+    laser_t, amp_t = np.arange(1000) / 1000.0, np.arange(2100) / 1000.0
+    with monkeypatch.context() as m:
+        m.setattr(recorder.threading, "Thread", _NoThread)
+        rec.event(0.0, 0, "start", "drive")
+        rec.append("laser", laser_t, voltage=laser_t)
+        rec.event(1.0, 0, "end", "drive")
+        rec.append("amplifier", amp_t, voltage=amp_t)
+        assert works == [({"amplifier": 2048, "laser": 768}, 0, 0.0)]
+        assert open_run(path).completed_steps() == set()  # what a reader (or a kill) finds now
+    rec.finish("completed", "ok")
+    assert works[1] == ({"amplifier": 52, "laser": 232}, 2, amp_t[-1])
+    run = open_run(path)
+    assert run.completed_steps() == {0}
+    np.testing.assert_array_equal(run.streams["laser"].t, laser_t)
+
+
+def test_a_stat_that_fails_after_the_stamp_leaves_the_finished_file_and_other_descriptors_alone(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The file is stamped and closed when the recorder asks for its size and time (for the catalogue's end row):
+    a stat failing then (the file moved, a network share) must neither abandon the closed file's descriptor
+    number — by then it may be another open's — nor report the complete run as a storage fault; the end row then
+    reads the file (``written()`` None) (review finding)."""
+    path = tmp_path / "run.h5"
+    rec = _recorder(path)
+    rec.append("amplifier", np.arange(5) / RATE, voltage=np.zeros(5), current=np.zeros(5))
+    abandoned: list[object] = []
+    monkeypatch.setattr(recorder, "abandon", lambda *a: abandoned.append(a))
+    real_stat = recorder.os.stat
+
+    def stat(p: object, *a: object, **k: object) -> object:
+        if Path(str(p)) == path:
+            raise FileNotFoundError(2, "No such file or directory", str(p))
+        return real_stat(p, *a, **k)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(recorder.os, "stat", stat)
+    rec.finish("completed", "ok")
+    monkeypatch.setattr(recorder.os, "stat", real_stat)
+    assert abandoned == [] and not rec.failure and rec.written() is None
+    run = open_run(path)
+    assert run.state == "completed" and run.complete

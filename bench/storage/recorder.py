@@ -275,7 +275,8 @@ class Recorder:
         self._taken = dict.fromkeys(streams, 0)
         self._chunks = {s: chunk_length(rates.get(s, 100.0)) for s in streams}
         self._due = False
-        self._taken_t = 0.0  # rig time of the last sample taken for writing
+        self._taken_t = 0.0  # rig time up to which every stream's samples and the events are taken for writing
+        self._ahead_t = 0.0  # rig time of the last sample taken for writing (whole-chunk writes run ahead of it)
         self._events_ds: dict[str, h5py.Dataset] = {}
         self._last_flush = time.monotonic()
         self.samples_written = 0
@@ -534,7 +535,8 @@ class Recorder:
         """The queued samples per stream, the queued events and the rig time of the last sample; the queues are
         left empty (caller's thread: appends go on into new lists). ``whole_chunks``: of each stream only the samples
         up to its dataset's last chunk boundary, the rest left queued — a write that compresses every chunk once,
-        complete, and rewrites no partial one."""
+        complete, and rewrites no partial one; the events and the valid-up-to time then stay queued with the tails, so
+        that nothing reaches the file ahead of samples that precede it."""
         blocks: list[tuple[int, str, dict[str, np.ndarray], int]] = []
         for k, (stream, buf) in enumerate(self._buffers.items()):
             if not buf["t"]:
@@ -558,10 +560,13 @@ class Recorder:
             self._queued[stream] = queued - n_new
             self._taken[stream] += n_new
             if n_new:
-                self._taken_t = max(self._taken_t, float(np.max(data["t"])))
+                self._ahead_t = max(self._ahead_t, float(np.max(data["t"])))
+        self._due = False
+        if whole_chunks:  # other streams' tails stay queued: no event (a step's end) and no valid-up-to time may
+            return blocks, None, self._taken_t  # reach the file before the samples that precede them
+        self._taken_t = self._ahead_t
         events = np.array(self._events, dtype=EVENT_DTYPE) if self._events else None
         self._events.clear()
-        self._due = False
         return blocks, events, self._taken_t
 
     def _write_in_background(self, work: _Work) -> None:
@@ -663,12 +668,15 @@ class Recorder:
             fd = int(g.id.get_vfd_handle())  # now: once a close has failed, asking for it crashes the interpreter
             stamp(g, end, state, reason)
             g.close()
-            st = os.stat(self.path)
         except Exception as exc:
             if g is not None:
                 abandon(g, fd)
             self.failure = f"run file {self.path}: cannot stamp the end of the run: {cause(exc)}"
             raise StorageError(self.failure) from None
+        try:  # the file is complete and closed: a failing stat only means the end row reads the file back
+            st = os.stat(self.path)
+        except OSError:
+            return
         self._written = Written(dict(self._attrs), state, stored_text(reason, STATUS_TEXT["reason"]), end,
                                 len(self._steps_done), self._steps_total, (st.st_size, st.st_mtime_ns))
 
