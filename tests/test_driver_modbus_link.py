@@ -18,7 +18,7 @@ from collections.abc import Callable, Iterator
 import pytest
 
 from drivers.cancel import CancelToken
-from drivers.errors import InstrumentStateError, OperationCancelledError, ProtocolError
+from drivers.errors import InstrumentStateError, InstrumentTimeoutError, OperationCancelledError, ProtocolError
 from drivers.modbus_link import ModbusLink
 from tests.protocol_expect import expected_protocol, rtu
 
@@ -273,7 +273,7 @@ def test_tcp_a_reply_from_another_unit_is_skipped_and_one_numbered_0_is_no_answe
     link.open()
     try:
         assert link.read_holding(1, 0, 1) == [8]
-        with pytest.raises(Exception, match="no valid reply from unit 1"):
+        with pytest.raises(InstrumentTimeoutError, match="no valid reply from unit 1"):
             link.read_holding(1, 0, 1)
         assert link.read_holding(1, 0, 1) == [11]
     finally:

@@ -58,11 +58,14 @@ def test_wheel_ships_protocols_rigs_schema_and_license(wheel: Path) -> None:
 
 def _reuse_compiled_kernels(site: Path) -> None:
     """Copy the checkout's numba cache files (``__pycache__/*.nbi``, ``*.nbc``: the kernels other tests and runs
-    compiled) beside the installed package's sources. Numba keys each index by the SHA-256 of the source file it
-    sits beside (numba.core.caching), so a copied entry is used only where the installed file is byte for byte the
-    compiled one, and anything else (a kernel not compiled yet, a changed file) compiles in the fresh venv as a
-    user's first run does. Without it the demo spent some 50 of its 65 s compiling kernels the suite compiles
-    anyway; the wheel's code, data and entry points run all the same."""
+    compiled) beside the installed package's sources. Numba (0.68 on) keys each index by the SHA-256 of the source
+    file it sits beside (numba.core.caching), so a copied entry is used only where the installed file is byte for
+    byte the compiled one; a kernel not compiled yet or a changed file compiles in the fresh venv as a user's first
+    run does (older numba compares times and sizes instead: the copies are then just not used). What this does not
+    see is a change in another file's jitted function that a cached kernel calls: the kernel loads as compiled. The
+    suite's own tests compile every kernel from the checkout, so such a break fails there (CI starts from a clean
+    clone, with no cache). Without the copies the demo spent some 50 of its 65 s compiling kernels the suite
+    compiles anyway; the wheel's code, data and entry points run all the same."""
     installed = [d.name for d in site.iterdir() if (d / "__init__.py").is_file() and (ROOT / d.name).is_dir()]
     for cached in (c for pkg in installed for c in (ROOT / pkg).glob("**/__pycache__/*.nb[ic]")):
         rel = cached.relative_to(ROOT)
