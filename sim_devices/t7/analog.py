@@ -9,6 +9,7 @@ offset with the temperature constants of the calibration (flash words 36, 37); [
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -17,6 +18,7 @@ from numba import njit
 RANGE_GAIN = {0.0: 0, 10.0: 0, 1.0: 1, 0.1: 2, 0.01: 3}  # [D] AIN#_RANGE values → gain index of the calibration
 DEVICE_TEMPERATURE_K = 298.15  # [A] the device's own temperature (the datasheet's 25 °C specification point)
 AIN_TEMPERATURE, AIN_GROUND = 14, 15
+_DOUBLE_MAX = float(np.finfo(np.float64).max)  # np.nan_to_num's value for +inf
 
 
 def nominal_calibration() -> list[float]:
@@ -72,10 +74,15 @@ def ain_codes_of(x: np.ndarray, gain: float, offset: float, noise: np.ndarray, p
                  out: np.ndarray) -> None:
     """``out`` ← the codes of gain·x + offset (+ ``noise``, where it has one value per sample): the doubles of
     :func:`ain_codes` on ``gain * x + offset + noise``, in one compiled pass over a stream block instead of a dozen
-    array passes (the same IEEE operations in the same order; np.rint rounds half to even as numpy does)."""
+    array passes (the same IEEE operations in the same order; np.rint rounds half to even as numpy does). A
+    non-finite x (a failed specimen's observable) reads as np.nan_to_num makes it: NaN 0, ±inf ± the largest
+    double."""
     noisy = noise.size == x.size
     for k in range(x.size):
-        v = gain * x[k] + offset
+        xk = x[k]
+        if not math.isfinite(xk):
+            xk = 0.0 if xk != xk else (_DOUBLE_MAX if xk > 0 else -_DOUBLE_MAX)
+        v = gain * xk + offset
         if noisy:
             v = v + noise[k]
         r = np.rint(v / (p if v >= 0 else -nslope) + c)

@@ -56,10 +56,11 @@ class PlantCoupling:
         return math.floor((now - self.t_enable) * self.rate + 1e-6) - 1
 
     def _on_block(self, block: PlantBlock) -> None:
-        with self._hist_lock:
-            self._hist_t.append(block.t.copy())
-            self._hist.append({"voltage": block.voltage.copy(), "current": block.current.copy(),
-                               "force": block.force.copy(), "displacement": block.displacement.copy()})
+        c = np.ascontiguousarray  # a block's arrays are its own (the plant never writes them again): kept as they
+        with self._hist_lock:  # are, a column of a larger array copied (it would keep the whole array alive)
+            self._hist_t.append(c(block.t))
+            self._hist.append({"voltage": c(block.voltage), "current": c(block.current), "force": c(block.force),
+                               "displacement": c(block.displacement)})
             while len(self._hist_t) > 2 and self._hist_t[1][-1] < self.clock.now() - 2.0:
                 self._hist_t.popleft()
                 self._hist.popleft()
@@ -77,7 +78,7 @@ class PlantCoupling:
             else:
                 t = np.concatenate([self._hist_t[i] for i in range(first, len(self._hist_t))])
             blocks = [self._hist[i] for i in range(first, len(self._hist))]
-            idx = np.searchsorted(t, times + 1e-9, side="right")
+            idx = t.searchsorted(times + 1e-9, side="right")
             idx -= 1
             np.maximum(idx, 0, out=idx)  # np.clip's result, without its call overhead
             np.minimum(idx, t.size - 1, out=idx)
@@ -115,8 +116,7 @@ class PlantCoupling:
         if sig is None or ain in (AIN_TEMPERATURE, AIN_GROUND):
             out[:] = self._raw(self._ain_volts(ain, obs, n, adc_rms, slot=slot), gain)
             return
-        x = obs[sig.observable]
-        x = np.ascontiguousarray(x if np.isfinite(x).all() else np.nan_to_num(x), dtype=float)
+        x = np.ascontiguousarray(obs[sig.observable], dtype=float)  # non-finite values: the kernel's nan_to_num
         rms = math.hypot(sig.noise, adc_rms)
         noise = self._noise(ain, slot).normal(0.0, rms, n) if rms and self.noise else _NO_NOISE
         p, nslope, c = self.cal[4 * gain:4 * gain + 3]

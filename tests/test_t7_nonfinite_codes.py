@@ -1,0 +1,27 @@
+"""A failed specimen's observable (NaN, ±inf) reaches the T7 twin's inputs as np.nan_to_num makes it: the compiled
+conversion gives the codes of the array formula on those values, bit for bit."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from sim_devices.t7 import analog
+
+
+def test_non_finite_observables_read_as_nan_to_num_makes_them() -> None:
+    cal = analog.nominal_calibration()
+    rng = np.random.default_rng(11)
+    x = rng.normal(0.0, 4.0, 5000)
+    x[[10, 11, 500, 4999]] = [np.nan, np.inf, -np.inf, np.nan]
+    noise = rng.normal(0.0, 1e-3, x.size)
+    for g in range(4):
+        for gain, offset, nz in ((1.0, 0.0, noise), (1e-308, 0.25, noise), (2.0, -0.5, np.zeros(0))):
+            out = np.empty(x.size, np.uint16)
+            analog.ain_codes_of(x, gain, offset, nz, *cal[4 * g:4 * g + 3], out)
+            with np.errstate(over="ignore"):
+                v = gain * np.nan_to_num(x) + offset + (nz if nz.size else 0.0)
+                assert np.array_equal(out, analog.ain_codes(cal, v, g))
+            assert out[10] == analog.ain_codes(cal, np.array([offset + (nz[10] if nz.size else 0.0)]), g)[0]  # NaN: 0
+    out = np.empty(2, np.uint16)  # +inf as the largest double: through a tiny gain, ~1.8 V, not full scale
+    analog.ain_codes_of(np.array([np.inf, -np.inf]), 1e-308, 0.0, np.zeros(0), *cal[0:3], out)
+    assert out.tolist() == analog.ain_codes(cal, np.array([1.7976931348623157, -1.7976931348623157]), 0).tolist()
