@@ -113,11 +113,37 @@ def dac_drive(first: int, codes: np.ndarray, t_enable: float, rate: float, slope
     return times, volts
 
 
+@njit(cache=True, nogil=True)
+def held_index(t: np.ndarray, times: np.ndarray) -> np.ndarray:
+    """For each of ``times``, the index of the last of the samples at ``t`` (increasing) at or before it (+1 ns),
+    within 0…t.size − 1: np.searchsorted(t, times + 1e-9, side="right") − 1, clipped — in one merge-like pass
+    when ``times`` increase (a stream block's scans), the search restarting where they do not."""
+    m = t.size
+    idx = np.empty(times.size, np.int64)
+    j = 0
+    prev = -math.inf
+    for i in range(times.size):
+        x = times[i] + 1e-9
+        if x != x:  # NaN: numpy sorts it after everything
+            j = m
+        else:
+            if not x >= prev:
+                j = 0
+            while j < m and t[j] <= x:
+                j += 1
+        prev = x
+        k = j - 1
+        idx[i] = 0 if k < 0 else (m - 1 if k > m - 1 else k)
+    return idx
+
+
 def warm_up() -> None:
-    """Compile :func:`ain_codes_of` and :func:`dac_drive` now (a fresh install has no numba cache: compiling at the
-    first stream pump would take seconds inside the twin's reply, with its locks held, and the host would wait)."""
+    """Compile :func:`ain_codes_of`, :func:`dac_drive` and :func:`held_index` now (a fresh install has no numba
+    cache: compiling at the first stream pump would take seconds inside the twin's reply, with its locks held, and
+    the host would wait)."""
     ain_codes_of(np.zeros(1), 1.0, 0.0, np.zeros(1), 1.0, 1.0, 0.0, np.zeros(1, np.uint16))
     dac_drive(0, np.zeros(1, np.int64), 0.0, 1.0, 1.0, 0.0, 1.0, 0.0, 1.0)
+    held_index(np.zeros(2), np.zeros(2))
 
 
 @dataclass(frozen=True)

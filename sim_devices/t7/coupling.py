@@ -78,10 +78,7 @@ class PlantCoupling:
             else:
                 t = np.concatenate([self._hist_t[i] for i in range(first, len(self._hist_t))])
             blocks = [self._hist[i] for i in range(first, len(self._hist))]
-            idx = t.searchsorted(times + 1e-9, side="right")
-            idx -= 1
-            np.maximum(idx, 0, out=idx)  # np.clip's result, without its call overhead
-            np.minimum(idx, t.size - 1, out=idx)
+            idx = analog.held_index(t, times)
             names = blocks[0] if keys is None else keys
             if len(blocks) == 1:
                 return {k: blocks[0][k][idx] for k in names}

@@ -1,5 +1,6 @@
-"""A failed specimen's observable (NaN, ±inf) reaches the T7 twin's inputs as np.nan_to_num makes it: the compiled
-conversion gives the codes of the array formula on those values, bit for bit."""
+"""The T7 twin's compiled pump kernels against the array formulas they replaced: a failed specimen's observable (NaN,
+±inf) reaches the inputs as np.nan_to_num makes it, and each scan reads the plant sample that numpy's searchsorted
+finds."""
 
 from __future__ import annotations
 
@@ -25,3 +26,14 @@ def test_non_finite_observables_read_as_nan_to_num_makes_them() -> None:
     out = np.empty(2, np.uint16)  # +inf as the largest double: through a tiny gain, ~1.8 V, not full scale
     analog.ain_codes_of(np.array([np.inf, -np.inf]), 1e-308, 0.0, np.zeros(0), *cal[0:3], out)
     assert out.tolist() == analog.ain_codes(cal, np.array([1.7976931348623157, -1.7976931348623157]), 0).tolist()
+
+
+def test_held_index_is_searchsorted_right_minus_one_clipped() -> None:
+    rng = np.random.default_rng(2)
+    t = np.cumsum(rng.uniform(0.5e-4, 1.5e-4, 3000)) + 0.2  # plant step ends, increasing
+    scans = 0.2 + (np.arange(-50, 3500) + 1) / 9_999.7  # a stream block, before, across and after the samples
+    cases = [scans, t[100:900].copy(), t[100:900] - 1e-9, np.r_[scans[:800], scans[200:300], scans[900:1000]],
+             np.array([t[0] - 1.0]), np.array([t[-1] + 1.0]), np.array([0.3, np.nan, 0.25, 0.31]), np.zeros(0)]
+    for times in cases:
+        want = np.searchsorted(t, times + 1e-9, side="right") - 1
+        assert np.array_equal(analog.held_index(t, times), np.clip(want, 0, t.size - 1))
