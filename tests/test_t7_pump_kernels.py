@@ -1,8 +1,10 @@
 """The T7 twin's compiled pump kernels against the array formulas they replaced: a failed specimen's observable (NaN,
-±inf) reaches the inputs as np.nan_to_num makes it, and each scan reads the plant sample that numpy's searchsorted
-finds."""
+±inf) reaches the inputs as np.nan_to_num makes it, each scan reads the plant sample that numpy's searchsorted
+finds, and the reconstruction filter gives scipy's lfilter's doubles."""
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 
@@ -37,3 +39,18 @@ def test_held_index_is_searchsorted_right_minus_one_clipped() -> None:
     for times in cases:
         want = np.searchsorted(t, times + 1e-9, side="right") - 1
         assert np.array_equal(analog.held_index(t, times), np.clip(want, 0, t.size - 1))
+
+
+def test_reconstruct_is_lfilters_first_order_low_pass() -> None:
+    from scipy.signal import lfilter
+
+    rng = np.random.default_rng(9)
+    for trial in range(300):
+        n = int(rng.integers(1, 700))
+        volts = rng.normal(0.0, 5.0, n)
+        volts[rng.integers(0, n, 3)] = [0.0, -0.0, 10.0]
+        alpha = 1.0 - math.exp(-2.0 * math.pi * rng.uniform(1.0, 20e3) / rng.uniform(1e3, 1e5))
+        y0 = float(rng.normal(0.0, 5.0)) if trial % 4 else 0.0
+        want, _ = lfilter([alpha], [1.0, alpha - 1.0], volts, zi=[(1.0 - alpha) * y0])
+        got = analog.reconstruct(volts, alpha, y0)
+        assert np.array_equal(got.view(np.uint64), want.view(np.uint64))

@@ -114,6 +114,22 @@ def dac_drive(first: int, codes: np.ndarray, t_enable: float, rate: float, slope
 
 
 @njit(cache=True, nogil=True)
+def reconstruct(volts: np.ndarray, alpha: float, y0: float) -> np.ndarray:
+    """The reconstruction filter's output at each scan: scipy.signal.lfilter([alpha], [1, alpha − 1], volts,
+    zi=[(1 − alpha)·y0]) computed as lfilter computes it (direct form II transposed: y = z + alpha·x, then
+    z = 0·x − (alpha − 1)·y), the same doubles without its per-call cost."""
+    out = np.empty(volts.size)
+    a1 = alpha - 1.0
+    z = (1.0 - alpha) * y0
+    for k in range(volts.size):
+        x = volts[k]
+        y = z + alpha * x
+        z = 0.0 * x - a1 * y
+        out[k] = y
+    return out
+
+
+@njit(cache=True, nogil=True)
 def held_index(t: np.ndarray, times: np.ndarray) -> np.ndarray:
     """For each of ``times``, the index of the last of the samples at ``t`` (increasing) at or before it (+1 ns),
     within 0…t.size − 1: np.searchsorted(t, times + 1e-9, side="right") − 1, clipped — in one merge-like pass
@@ -138,12 +154,13 @@ def held_index(t: np.ndarray, times: np.ndarray) -> np.ndarray:
 
 
 def warm_up() -> None:
-    """Compile :func:`ain_codes_of`, :func:`dac_drive` and :func:`held_index` now (a fresh install has no numba
-    cache: compiling at the first stream pump would take seconds inside the twin's reply, with its locks held, and
-    the host would wait)."""
+    """Compile :func:`ain_codes_of`, :func:`dac_drive`, :func:`held_index` and :func:`reconstruct` now (a fresh
+    install has no numba cache: compiling at the first stream pump would take seconds inside the twin's reply, with
+    its locks held, and the host would wait)."""
     ain_codes_of(np.zeros(1), 1.0, 0.0, np.zeros(1), 1.0, 1.0, 0.0, np.zeros(1, np.uint16))
     dac_drive(0, np.zeros(1, np.int64), 0.0, 1.0, 1.0, 0.0, 1.0, 0.0, 1.0)
     held_index(np.zeros(2), np.zeros(2))
+    reconstruct(np.zeros(2), 0.5, 0.0)
 
 
 @dataclass(frozen=True)

@@ -15,7 +15,6 @@ from collections import deque
 from collections.abc import Iterable
 
 import numpy as np
-from scipy.signal import lfilter
 
 from bench.core.clock import Clock
 from bench.core.plant import Plant, PlantBlock
@@ -151,7 +150,7 @@ class PlantCoupling:
         if fc is not None and volts.size:  # exact first-order low-pass at the scan instants
             alpha = 1.0 - math.exp(-2.0 * math.pi * fc / self.rate)
             y = self.plant.v_in if self._filter_y is None else self._filter_y
-            volts, _ = lfilter([alpha], [1.0, alpha - 1.0], volts, zi=[(1.0 - alpha) * y])
+            volts = analog.reconstruct(volts, alpha, float(y))  # lfilter's doubles, compiled
             self._filter_y = float(volts[-1])
             filtered = volts
         try:
