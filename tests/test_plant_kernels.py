@@ -174,3 +174,27 @@ def test_a_lozenge_stream_checks_one_sample_blocks() -> None:
     s = LozengeStream(LozengeParams(), "imposed", 0.05)
     tr = s.advance_rig(np.array([[0.0, 0.05, 0.0]]))
     assert not tr.failed and tr.position.shape == (1,)
+
+
+def test_warm_up_compiles_what_advancing_calls() -> None:
+    """Plant.warm_up compiles the kernels for the very types a block gives them: advancing (one-step blocks
+    included) adds no signature, so no compile happens inside a twin's reply."""
+    from bench.core.amplifier_dynamics import output_response
+    from bench.models.integrate import run_fixed
+    from bench.models.lozenge import lozenge_observe_rig
+
+    kernels = [step_targets, monitor_response, motion_into, _failed_rig, _any_failure, output_response, run_fixed,
+               lozenge_observe_rig]
+    for specimen in ("membrane", "lozenge"):
+        clock = VirtualClock()
+        plant = (Plant(clock, MembraneParams(), hv=HVStage()) if specimen == "membrane" else _lsdea_plant(clock))
+        plant.warm_up()
+        before = [len(k.signatures) for k in kernels]
+        if specimen == "lozenge":
+            plant.set_motion(lambda t0, p, v: MotionProfile.plan(t0, p, v, 0.004, 0.05, 0.5, 0.5))
+        plant.schedule_amplifier_input(np.arange(1, 3001) / 1e4, np.linspace(0.0, 3.0, 3000))
+        for dt in (1e-4, 0.0123, 1e-4, 0.2):
+            clock.advance(dt)
+            plant.advance_to(clock.now())
+        assert plant._n == 2125
+        assert [len(k.signatures) for k in kernels] == before
