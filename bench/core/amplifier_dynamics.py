@@ -68,6 +68,57 @@ def lowpass(x: np.ndarray, a: float, y0: float) -> np.ndarray:
     return y
 
 
+@njit(cache=True)
+def step_targets(t: np.ndarray, v: np.ndarray, m: int, first: int, n: int, h: float, gain: float, max_output: float,
+                 cap: float, prev: float) -> np.ndarray:
+    """The output stage's target during each of the next ``n`` steps (from step ``first``): the amplifier inputs
+    ``v[:m]`` that start at ``t[:m]`` (in time order), each from the step it falls in until the next one's,
+    times ``gain`` and clipped to ±``max_output`` (then, ``cap`` ≥ 0, to ±``cap``: a shorted load); before the
+    first of them, ``prev``. The doubles of the plant's former array passes (floor, ×, clip, copysign), one loop."""
+    out = np.empty(n)
+    for k in range(n):
+        out[k] = prev
+    for i in range(m):
+        s = min(max(0, math.floor(t[i] / h + 1e-6) - first), n)
+        e = n if i + 1 == m else min(max(0, math.floor(t[i + 1] / h + 1e-6) - first), n)
+        if e <= s:
+            continue
+        x = gain * v[i]
+        if x < -max_output:
+            x = -max_output
+        if x > max_output:
+            x = max_output
+        if cap >= 0.0:
+            a = abs(x)
+            if a > cap:
+                a = cap
+            x = math.copysign(a, x)
+        for k in range(s, e):
+            out[k] = x
+    return out
+
+
+@njit(cache=True)
+def monitor_response(x: np.ndarray, a: float, y0: float, scale: float, offset: float,
+                     noise: np.ndarray) -> tuple[np.ndarray, float]:
+    """A monitor's samples: :func:`lowpass` of ``x`` from ``y0``, times ``scale`` plus ``offset`` plus ``noise``
+    (where it has one value per sample), in one pass; returns (samples, the low-pass's last output)."""
+    out = np.empty(x.size)
+    noisy = noise.size == x.size
+    yk = y0
+    for k in range(x.size):
+        xk = x[k] if math.isfinite(x[k]) else 0.0
+        yk = a * yk + (1.0 - a) * xk
+        o = scale * yk + offset
+        if noisy:
+            o = o + noise[k]
+        out[k] = o
+    return out, yk
+
+
+_NO_NOISE = np.zeros(0)
+
+
 @dataclass
 class Monitor:
     """One monitor output (in the output's units): low-pass, gain and offset errors, noise."""
@@ -82,11 +133,9 @@ class Monitor:
     def __call__(self, x: np.ndarray, h: float) -> np.ndarray:
         """Monitor samples at the step ends of the true signal ``x`` (held over each step: exact discretisation)."""
         a = math.exp(-2.0 * math.pi * self.corner_Hz * h)
-        y = lowpass(np.asarray(x, dtype=float), a, self._y)
-        self._y = float(y[-1]) if y.size else self._y
-        out: np.ndarray = (1.0 + self.gain_error) * np.asarray(y) + self.offset
-        if self.noise and self.rng is not None:
-            out = out + self.rng.normal(0.0, self.noise, x.size)
+        x = np.ascontiguousarray(x, dtype=float)
+        noise = self.rng.normal(0.0, self.noise, x.size) if self.noise and self.rng is not None else _NO_NOISE
+        out, self._y = monitor_response(x, a, self._y, 1.0 + self.gain_error, self.offset, noise)
         return out
 
 

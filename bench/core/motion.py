@@ -12,6 +12,33 @@ from dataclasses import dataclass
 from functools import cached_property
 
 import numpy as np
+from numba import njit
+
+
+@njit(cache=True)
+def motion_into(t_start: np.ndarray, p_start: np.ndarray, v_start: np.ndarray, acc: np.ndarray, t: np.ndarray,
+                a: int, b: int, x0: float, sign: float, U: np.ndarray) -> None:
+    """``U[k, 1]`` ← x0 + sign·position, ``U[k, 2]`` ← sign·velocity at ``t[k]`` for a ≤ k < b, of the profile with
+    these phases: :meth:`MotionProfile.evaluate`'s doubles (the same operations in the same order), in one pass —
+    the plant's motor input, without a dozen array passes per block."""
+    last = t_start.size - 1
+    for k in range(a, b):
+        tk = t[k]
+        lo, hi = 0, t_start.size  # searchsorted(t_start, tk, side="right")
+        while lo < hi:
+            mid = (lo + hi) // 2
+            if tk < t_start[mid]:
+                hi = mid
+            else:
+                lo = mid + 1
+        i = min(max(lo - 1, 0), last)
+        tau = tk - t_start[i]
+        if tau < 0.0:
+            tau = 0.0
+        pos = p_start[i] + v_start[i] * tau + 0.5 * acc[i] * tau * tau
+        vel = v_start[i] + acc[i] * tau
+        U[k, 1] = x0 + sign * pos
+        U[k, 2] = sign * vel
 
 
 @dataclass(frozen=True)

@@ -23,9 +23,9 @@ from typing import Literal
 
 import numpy as np
 
-from bench.core.amplifier_dynamics import lowpass, monitors, output_response
+from bench.core.amplifier_dynamics import lowpass, monitor_response, monitors, output_response, step_targets
 from bench.core.clock import Clock
-from bench.core.motion import MotionProfile
+from bench.core.motion import MotionProfile, motion_into
 from bench.core.noise import TREK_DYNAMICS, Realism
 from bench.models.lozenge import LozengeParams
 from bench.models.lozenge_runs import LozengeStream
@@ -162,6 +162,7 @@ class Plant:
         # input histories not yet integrated: (time, value) — the model integrates lazily, in large blocks
         # amplifier analog input [V] not yet integrated: chunks of (times, values), merged in time order on use
         self._v_chunks: list[tuple[np.ndarray, np.ndarray]] = [(np.zeros(1), np.zeros(1))]
+        self._v_ordered = True  # the chunks joined are in time order: nothing to merge, the last one ends them
         self._motions: list[tuple[float, MotionProfile]] = [(0.0, MotionProfile.hold(0.0, 0.0))]
         self.input_watchdog: float | None = None  # analog module's communication safety period [s]
         self._last_feed = 0.0
@@ -195,7 +196,7 @@ class Plant:
     def v_in(self) -> float:
         """Latest amplifier analog input [V]."""
         with self.lock:
-            return float(self._v_inputs()[1][-1])
+            return float(self._v_last()[1])
 
     @property
     def motion(self) -> MotionProfile:
@@ -205,7 +206,7 @@ class Plant:
     def set_amplifier_input(self, volts: float) -> None:
         """New analog input of the amplifier [V], effective from the clock's present (integrated lazily)."""
         with self.lock:
-            self._v_chunks.append((np.array([self.clock.now()]), np.array([float(volts)])))
+            self._add_input(np.array([self.clock.now()]), np.array([float(volts)]), True)
 
     def schedule_amplifier_input(self, times: np.ndarray | list[float], volts: np.ndarray | list[float]) -> None:
         """Analog inputs of the amplifier at given times (a hardware-timed output's samples, played by its own
@@ -219,7 +220,7 @@ class Plant:
         with self.lock:
             if t[0] < self.t - 1e-9:
                 raise ValueError(f"amplifier input scheduled {self.t - t[0]:.6f} s in the plant's past")
-            self._v_chunks.append((t, v))
+            self._add_input(t, v, not (t.size > 1 and bool(np.any(t[1:] < t[:-1]))))
 
     def unschedule_amplifier_input(self, after: float) -> None:
         """Drop the scheduled amplifier inputs later than ``after`` (a hardware-timed output stopped)."""
@@ -243,9 +244,9 @@ class Plant:
             return
         deadline = self._last_feed + self.input_watchdog
         with self.lock:
-            t, v = self._v_inputs()
-            if deadline <= t_end and deadline > t[-1] and v[-1] != 0.0:
-                self._v_chunks.append((np.array([deadline]), np.zeros(1)))
+            t_last, v_last = self._v_last()
+            if deadline <= t_end and deadline > t_last and v_last != 0.0:
+                self._add_input(np.array([deadline]), np.zeros(1), True)
                 self.watchdog_tripped = True
                 self.watchdog_trips += 1
 
@@ -313,10 +314,15 @@ class Plant:
         with self.lock:
             output_response(np.zeros(2), 0.0, self.h, 1e-5, 1e8, 1e-9, 1e-2, 4e-2, 1e-3, 0.0)  # the output stage
             lowpass(np.zeros(2), 0.5, 0.0)  # and its monitors
+            monitor_response(np.zeros(2), 0.5, 0.0, 1.0, 0.0, np.zeros(2))
+            step_targets(np.zeros(2), np.zeros(2), 2, 0, 2, float(self.h), 1.0, 1.0, -1.0, 0.0)
+            motion_into(np.zeros(1), np.zeros(1), np.zeros(1), np.zeros(1), np.zeros(2), 0, 2, 0.0, 1.0,
+                        np.zeros((2, 3)))
             if self._membrane is not None:
                 copy.deepcopy(self._membrane).advance(np.zeros(2), self.temperature)
             if self._lozenge is not None:
                 copy.deepcopy(self._lozenge).advance(np.tile(np.array([0.0, self.x0, 0.0]), (2, 1)))
+                copy.deepcopy(self._lozenge).advance_rig(np.tile(np.array([0.0, self.x0, 0.0]), (2, 1)))
 
     def observe(self) -> PlantBlock:
         """Advance to now and return the last sample (arrays of length 1)."""
@@ -347,6 +353,18 @@ class Plant:
         del events[:keep]
         return out
 
+    def _add_input(self, t: np.ndarray, v: np.ndarray, ordered: bool) -> None:
+        """Append amplifier inputs (``ordered``: their times do not decrease), noting whether all the pending
+        ones are still in time order (then nothing has to be merged or sorted: :meth:`_input_pieces`)."""
+        chunks = self._v_chunks
+        self._v_ordered = self._v_ordered and ordered and not (chunks and t[0] < chunks[-1][0][-1])
+        chunks.append((t, v))
+
+    def _v_last(self) -> tuple[float, float]:
+        """The last pending amplifier input in time order: (time, value)."""
+        t, v = self._v_chunks[-1] if self._v_ordered else self._v_inputs()
+        return float(t[-1]), float(v[-1])
+
     def _v_inputs(self) -> tuple[np.ndarray, np.ndarray]:
         """The pending amplifier inputs as one (times, values) pair in time order (equal times: in the order
         they were given)."""
@@ -358,42 +376,49 @@ class Plant:
                 order = np.argsort(t, kind="stable")
                 t, v = t[order], v[order]
             self._v_chunks = chunks = [(t, v)]
+            self._v_ordered = True
         return chunks[0]
 
-    def _input_pieces(self, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """As :meth:`_pieces` for the amplifier input, vectorised: (first steps, end steps, values). Only the
-        inputs that start within the block are looked at (a DAQ twin schedules ~1 s of 10-kHz inputs ahead)."""
-        first = self._n
-        t, v = self._v_inputs()
-        m = int(np.searchsorted(t, (first + n + 1 - 1e-6) * self.h, side="left"))
-        starts = np.minimum(np.maximum(0, np.floor(t[:m] / self.h + 1e-6).astype(np.int64) - first), n)
-        ends = np.append(starts[1:], n)
-        used = ends > starts
+    def _input_pieces(self, n: int) -> tuple[np.ndarray, np.ndarray, int]:
+        """The amplifier inputs that start up to the end of the next ``n`` steps: (times, values, how many) in
+        time order, the value in force at the block's end kept pending. Only the inputs that start within the
+        block are looked at and joined (a DAQ twin schedules ~1 s of 10-kHz inputs ahead, in chunks in time
+        order: those are not merged again at every block)."""
+        bound = (self._n + n + 1 - 1e-6) * self.h
+        chunks = self._v_chunks
+        if not self._v_ordered:
+            chunks = [self._v_inputs()]
+        j = 1  # the chunks that hold the inputs before the bound (in time order: a prefix of them)
+        while j < len(chunks) and chunks[j][0][0] < bound:
+            j += 1
+        if j == 1:
+            t, v = chunks[0]
+        else:
+            t, v = np.concatenate([c[0] for c in chunks[:j]]), np.concatenate([c[1] for c in chunks[:j]])
+        m = int(np.searchsorted(t, bound, side="left"))
         keep = max(m - 1, 0)  # keep the value in force at the block's end
-        self._v_chunks = [(t[keep:], v[keep:])]
-        return starts[used], ends[used], v[:m][used]
+        self._v_chunks = [(t[keep:], v[keep:]), *chunks[j:]]
+        return t, v, m
 
     def _hv_output(self, n: int) -> np.ndarray:
         self._check_watchdog((self._n + n) * self.h)
         hv = self.hv
-        a, b, v_in = self._input_pieces(n)
-        target = np.clip(hv.gain * v_in, -hv.max_output, hv.max_output)
-        if self.broken:
-            target = np.copysign(np.minimum(np.abs(target), hv.max_current * hv.r_short), target)
-        per_step = np.full(n, self._target)
-        if a.size:  # the pieces tile [a[0], n) in order (each ends where the next starts): one repeat, no loop
-            per_step[a[0]:] = np.repeat(target, b - a)
+        t, v, m = self._input_pieces(n)
+        per_step = step_targets(t, v, m, self._n, n, float(self.h), float(hv.gain), float(hv.max_output),
+                                float(hv.max_current * hv.r_short) if self.broken else -1.0, self._target)
         self._target = float(per_step[-1])
         v, self._t_limited = output_response(per_step, self.v_out, self.h, 1.0 / (2.0 * math.pi * hv.bandwidth_Hz),
                                              hv.slew, max(self._C, 1e-15), hv.max_current,
                                              max(hv.peak_current, hv.max_current), hv.peak_s, self._t_limited)
         return v
 
-    def _motor(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        pos, vel = np.empty(t.size), np.empty(t.size)
-        for a, b, profile in self._pieces(self._motions, t.size):
-            pos[a:b], vel[a:b] = profile.evaluate(t[a:b])
-        return pos, vel
+    def _motor_into(self, t: np.ndarray, U: np.ndarray) -> None:
+        """The motor's inputs at the step ends ``t``: ``U[:, 1]`` ← x0 + sign·position, ``U[:, 2]`` ← sign·velocity
+        (:meth:`MotionProfile.evaluate`'s values, compiled)."""
+        x0, sign = float(self.x0), float(self.motor_sign)
+        for a, b, pr in self._pieces(self._motions, t.size):
+            motion_into(np.asarray(pr.t_start, np.float64), np.asarray(pr.p_start, np.float64),
+                        np.asarray(pr.v_start, np.float64), np.asarray(pr.acc, np.float64), t, a, b, x0, sign, U)
 
     def _advance(self, n: int) -> None:
         k = np.arange(1, n + 1, dtype=float)
@@ -416,9 +441,7 @@ class Plant:
             U = np.zeros((n, 3))
             U[:, 0] = v_dea
             if self.configuration == "motor":
-                pos, vel = self._motor(t)
-                U[:, 1] = self.x0 + self.motor_sign * pos
-                U[:, 2] = self.motor_sign * vel
+                self._motor_into(t, U)
             elif self.configuration == "blocked":
                 U[:, 1] = self.x0
             if self.configuration != "motor":
@@ -436,13 +459,17 @@ class Plant:
                 with np.errstate(invalid="ignore"):
                     bad = ~np.isfinite(lt.position) | (np.abs(field) > breakdown)  # lozenge_runs' tests
                 self._break(f"specimen failure: {_without_when(lt.failure)}", _first(t, bad))
-        q = np.concatenate([[self._q_prev], charge])
-        current = np.diff(q) / self.h
         if self.broken:
             current = v_amp / self.hv.r_short
-        self._q_prev = float(charge[-1]) if np.isfinite(charge[-1]) else self._q_prev
-        if np.isfinite(cap[-1]) and cap[-1] > 0:
-            self._C = float(cap[-1])
+        else:  # dQ/dt over each step: np.diff of the charge after the last block's, without joining them
+            current = np.empty(n)
+            current[0] = charge[0] - self._q_prev
+            np.subtract(charge[1:], charge[:-1], out=current[1:])
+            current /= self.h
+        q_end, c_end = float(charge[-1]), float(cap[-1])
+        self._q_prev = q_end if math.isfinite(q_end) else self._q_prev
+        if math.isfinite(c_end) and c_end > 0:
+            self._C = c_end
         self.v_out = float(v_amp[-1])
         self._n += n
         self.t = self._n * self.h

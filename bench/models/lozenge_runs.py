@@ -8,6 +8,7 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
+from numba import njit
 from scipy.optimize import brentq
 
 from bench.models.integrate import MODEL_LOZENGE, FixedStepper, run_fixed, solve_offline
@@ -204,6 +205,18 @@ def lozenge_outputs(params: LozengeParams, t: np.ndarray, Y: np.ndarray, V: np.n
     return trace
 
 
+@njit(cache=True)
+def _failed_rig(Y: np.ndarray, obs: np.ndarray) -> bool:
+    """Whether :func:`_failure` finds anything in a rig block (position ``Y[:, 0]``; gent margin, field and breakdown
+    field ``obs[:, 4]``, ``obs[:, 2]``, ``obs[:, 3]`` of :func:`lozenge_observe_rig`): the same comparisons in one
+    pass, no arrays made (whole 2-D arrays: a block of one sample is not another compiled signature)."""
+    for i in range(Y.shape[0]):
+        x = Y[i, 0]
+        if not math.isfinite(x) or not obs[i, 4] > 0 or abs(obs[i, 2]) > obs[i, 3]:
+            return True
+    return False
+
+
 def _failure(time_of: Callable[[int], float], position: np.ndarray, gent_margin: np.ndarray, field: np.ndarray,
              breakdown: np.ndarray) -> str:
     """Why a block failed ("" if it did not): the state left the model's domain, or the field broke down.
@@ -274,7 +287,8 @@ class LozengeStream:
         lozenge_observe_rig(Y, V, self._p, obs)
         position = Y[:, 0]
         h = self._stepper.h
-        failure = _failure(lambda i: t0 + h * (i + 1), position, obs[:, 4], obs[:, 2], obs[:, 3])
+        failure = _failure(lambda i: t0 + h * (i + 1), position, obs[:, 4], obs[:, 2], obs[:, 3]) \
+            if _failed_rig(Y, obs) else ""
         return LozengeRigTrace(position, obs[:, 0], obs[:, 1], obs[:, 1] * V, obs[:, 2], obs[:, 3],
                                bool(failure), failure)
 

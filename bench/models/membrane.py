@@ -317,25 +317,38 @@ def membrane_observe(t: np.ndarray, Y: np.ndarray, phi: np.ndarray, T: np.ndarra
         out[k, 3] = dC * Y[k, 1] * phi[k] + C * phidot
 
 
+@njit(cache=True)
+def _any_failure(Y: np.ndarray, obs: np.ndarray, runaway: float, breakdown: float) -> bool:
+    """Whether :func:`failure_reason` finds anything in λ = ``Y[:, 0]`` and E = ``obs[:, 0]`` (its comparisons in one
+    pass, no arrays made; whole 2-D arrays, so that a block of one sample is not another compiled signature)."""
+    for k in range(Y.shape[0]):
+        lam = Y[k, 0]
+        if lam > runaway or abs(obs[k, 0]) > breakdown or not math.isfinite(lam):
+            return True
+    return False
+
+
 def membrane_outputs(params: MembraneParams, t: np.ndarray, Y: np.ndarray, phi: np.ndarray,
-                     T: np.ndarray | float) -> MembraneTrace:
+                     T: np.ndarray | float, packed: np.ndarray | None = None) -> MembraneTrace:
     """Observable quantities from the state history ``Y`` (n×(2+n_units)) and inputs (physics.md §1.2, §1.4).
 
     u = L_d(λ − λ_pre); E = Φλ²/L3 (true field); C = ε_vac ε_r L²λ⁴/L3; Q = CΦ; I = dQ/dt.
     Flags failure at the first sample with λ > runaway_stretch, E > breakdown_field or non-finite state.
+    ``packed``: ``params.pack()`` where the caller keeps it (a stream, block after block).
     """
     t = np.ascontiguousarray(t, dtype=float)
     phi = np.ascontiguousarray(np.broadcast_to(np.asarray(phi, dtype=float), t.shape))
     Tarr = np.ascontiguousarray(np.broadcast_to(np.asarray(T, dtype=float), t.shape))
     obs = np.empty((t.size, 4))
-    membrane_observe(t, Y, phi, Tarr, params.pack(), obs)
+    membrane_observe(t, Y, phi, Tarr, params.pack() if packed is None else packed, obs)
     lam = Y[:, 0]
     trace = MembraneTrace(
         t=t, stretch=lam, stretch_rate=Y[:, 1], voltage=phi, temperature=Tarr,
         displacement=params.L_d * (lam - params.lambda_pre), field=obs[:, 0], capacitance=obs[:, 1],
         charge=obs[:, 2], current=obs[:, 3], xi=Y[:, 2:],
     )
-    reason = failure_reason(params, lam, obs[:, 0])
+    reason = failure_reason(params, lam, obs[:, 0]) \
+        if _any_failure(Y, obs, float(params.runaway_stretch), float(params.breakdown_field)) else ""
     if reason:
         trace.failed, trace.failure = True, reason
     return trace

@@ -138,6 +138,7 @@ class MembraneStream:
         self.method = method
         self._stepper = FixedStepper(MODEL_MEMBRANE, params.pack(), params.initial_state(), h)
         self._phi_end = 0.0  # Φ at the end of the last block (where a rodas block's input starts)
+        self._packed = (params, params.pack())  # the observables' parameter vector, made again if params change
 
     @property
     def t(self) -> float:
@@ -174,7 +175,9 @@ class MembraneStream:
         t0 = self._stepper.t
         Y = self._stepper.advance(U)
         t = t0 + self._stepper.h * np.arange(1, phi.size + 1)
-        return membrane_outputs(self.params, t, Y, phi, U[:, 1])
+        if self._packed[0] is not self.params:
+            self._packed = (self.params, self.params.pack())
+        return membrane_outputs(self.params, t, Y, phi, U[:, 1], self._packed[1])
 
 
     def _advance_rodas(self, phi: np.ndarray, T: float) -> MembraneTrace:

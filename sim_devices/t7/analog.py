@@ -9,6 +9,7 @@ offset with the temperature constants of the calibration (flash words 36, 37); [
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -17,6 +18,7 @@ from numba import njit
 RANGE_GAIN = {0.0: 0, 10.0: 0, 1.0: 1, 0.1: 2, 0.01: 3}  # [D] AIN#_RANGE values → gain index of the calibration
 DEVICE_TEMPERATURE_K = 298.15  # [A] the device's own temperature (the datasheet's 25 °C specification point)
 AIN_TEMPERATURE, AIN_GROUND = 14, 15
+_DOUBLE_MAX = float(np.finfo(np.float64).max)  # np.nan_to_num's value for +inf
 
 
 def nominal_calibration() -> list[float]:
@@ -72,10 +74,15 @@ def ain_codes_of(x: np.ndarray, gain: float, offset: float, noise: np.ndarray, p
                  out: np.ndarray) -> None:
     """``out`` ← the codes of gain·x + offset (+ ``noise``, where it has one value per sample): the doubles of
     :func:`ain_codes` on ``gain * x + offset + noise``, in one compiled pass over a stream block instead of a dozen
-    array passes (the same IEEE operations in the same order; np.rint rounds half to even as numpy does)."""
+    array passes (the same IEEE operations in the same order; np.rint rounds half to even as numpy does). A
+    non-finite x (a failed specimen's observable) reads as np.nan_to_num makes it: NaN 0, ±inf ± the largest
+    double."""
     noisy = noise.size == x.size
     for k in range(x.size):
-        v = gain * x[k] + offset
+        xk = x[k]
+        if not math.isfinite(xk):
+            xk = 0.0 if xk != xk else (_DOUBLE_MAX if xk > 0 else -_DOUBLE_MAX)
+        v = gain * xk + offset
         if noisy:
             v = v + noise[k]
         r = np.rint(v / (p if v >= 0 else -nslope) + c)
@@ -106,11 +113,54 @@ def dac_drive(first: int, codes: np.ndarray, t_enable: float, rate: float, slope
     return times, volts
 
 
+@njit(cache=True, nogil=True)
+def reconstruct(volts: np.ndarray, alpha: float, y0: float) -> np.ndarray:
+    """The reconstruction filter's output at each scan: scipy.signal.lfilter([alpha], [1, alpha − 1], volts,
+    zi=[(1 − alpha)·y0]) computed as lfilter computes it (direct form II transposed: y = z + alpha·x, then
+    z = 0·x − (alpha − 1)·y), the same doubles without its per-call cost."""
+    out = np.empty(volts.size)
+    a1 = alpha - 1.0
+    z = (1.0 - alpha) * y0
+    for k in range(volts.size):
+        x = volts[k]
+        y = z + alpha * x
+        z = 0.0 * x - a1 * y
+        out[k] = y
+    return out
+
+
+@njit(cache=True, nogil=True)
+def held_index(t: np.ndarray, times: np.ndarray) -> np.ndarray:
+    """For each of ``times``, the index of the last of the samples at ``t`` (increasing) at or before it (+1 ns),
+    within 0…t.size − 1: np.searchsorted(t, times + 1e-9, side="right") − 1, clipped — in one merge-like pass
+    when ``times`` increase (a stream block's scans), the search restarting where they do not."""
+    m = t.size
+    idx = np.empty(times.size, np.int64)
+    j = 0
+    prev = -math.inf
+    for i in range(times.size):
+        x = times[i] + 1e-9
+        if x != x:  # NaN: numpy sorts it after everything
+            j = m
+        else:
+            if not x >= prev:
+                j = 0
+            while j < m and t[j] <= x:
+                j += 1
+        prev = x
+        k = j - 1
+        idx[i] = 0 if k < 0 else (m - 1 if k > m - 1 else k)
+    return idx
+
+
 def warm_up() -> None:
-    """Compile :func:`ain_codes_of` and :func:`dac_drive` now (a fresh install has no numba cache: compiling at the
-    first stream pump would take seconds inside the twin's reply, with its locks held, and the host would wait)."""
+    """Compile :func:`ain_codes_of`, :func:`dac_drive`, :func:`held_index` and :func:`reconstruct` now (a fresh
+    install has no numba cache: compiling at the first stream pump would take seconds inside the twin's reply, with
+    its locks held, and the host would wait)."""
     ain_codes_of(np.zeros(1), 1.0, 0.0, np.zeros(1), 1.0, 1.0, 0.0, np.zeros(1, np.uint16))
     dac_drive(0, np.zeros(1, np.int64), 0.0, 1.0, 1.0, 0.0, 1.0, 0.0, 1.0)
+    held_index(np.zeros(2), np.zeros(2))
+    reconstruct(np.zeros(2), 0.5, 0.0)
 
 
 @dataclass(frozen=True)

@@ -15,7 +15,6 @@ from collections import deque
 from collections.abc import Iterable
 
 import numpy as np
-from scipy.signal import lfilter
 
 from bench.core.clock import Clock
 from bench.core.plant import Plant, PlantBlock
@@ -56,10 +55,11 @@ class PlantCoupling:
         return math.floor((now - self.t_enable) * self.rate + 1e-6) - 1
 
     def _on_block(self, block: PlantBlock) -> None:
-        with self._hist_lock:
-            self._hist_t.append(block.t.copy())
-            self._hist.append({"voltage": block.voltage.copy(), "current": block.current.copy(),
-                               "force": block.force.copy(), "displacement": block.displacement.copy()})
+        c = np.ascontiguousarray  # a block's arrays are its own (the plant never writes them again): kept as they
+        with self._hist_lock:  # are, a column of a larger array copied (it would keep the whole array alive)
+            self._hist_t.append(c(block.t))
+            self._hist.append({"voltage": c(block.voltage), "current": c(block.current), "force": c(block.force),
+                               "displacement": c(block.displacement)})
             while len(self._hist_t) > 2 and self._hist_t[1][-1] < self.clock.now() - 2.0:
                 self._hist_t.popleft()
                 self._hist.popleft()
@@ -77,10 +77,7 @@ class PlantCoupling:
             else:
                 t = np.concatenate([self._hist_t[i] for i in range(first, len(self._hist_t))])
             blocks = [self._hist[i] for i in range(first, len(self._hist))]
-            idx = np.searchsorted(t, times + 1e-9, side="right")
-            idx -= 1
-            np.maximum(idx, 0, out=idx)  # np.clip's result, without its call overhead
-            np.minimum(idx, t.size - 1, out=idx)
+            idx = analog.held_index(t, times)
             names = blocks[0] if keys is None else keys
             if len(blocks) == 1:
                 return {k: blocks[0][k][idx] for k in names}
@@ -115,8 +112,7 @@ class PlantCoupling:
         if sig is None or ain in (AIN_TEMPERATURE, AIN_GROUND):
             out[:] = self._raw(self._ain_volts(ain, obs, n, adc_rms, slot=slot), gain)
             return
-        x = obs[sig.observable]
-        x = np.ascontiguousarray(x if np.isfinite(x).all() else np.nan_to_num(x), dtype=float)
+        x = np.ascontiguousarray(obs[sig.observable], dtype=float)  # non-finite values: the kernel's nan_to_num
         rms = math.hypot(sig.noise, adc_rms)
         noise = self._noise(ain, slot).normal(0.0, rms, n) if rms and self.noise else _NO_NOISE
         p, nslope, c = self.cal[4 * gain:4 * gain + 3]
@@ -154,7 +150,7 @@ class PlantCoupling:
         if fc is not None and volts.size:  # exact first-order low-pass at the scan instants
             alpha = 1.0 - math.exp(-2.0 * math.pi * fc / self.rate)
             y = self.plant.v_in if self._filter_y is None else self._filter_y
-            volts, _ = lfilter([alpha], [1.0, alpha - 1.0], volts, zi=[(1.0 - alpha) * y])
+            volts = analog.reconstruct(volts, alpha, float(y))  # lfilter's doubles, compiled
             self._filter_y = float(volts[-1])
             filtered = volts
         try:

@@ -126,8 +126,8 @@ class StreamEngine(StreamOut):
 
 
     def _take_scans(self, due: int) -> None:
-        ks = np.arange(self.produced, due)
-        times = self.t_enable + (ks + 1) / self.rate
+        ks = np.arange(self.produced + 1, due + 1)  # scan k at t_enable + (k + 1) / rate
+        times = self.t_enable + ks / self.rate
         ains = [a // 2 for a in self._in_addresses()]
         wired = {sig.observable for a in ains if (sig := self.signals.get(a)) is not None
                  and a not in (AIN_TEMPERATURE, AIN_GROUND)}  # the observables the inputs read, no others

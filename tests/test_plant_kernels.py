@@ -1,0 +1,200 @@
+"""The plant's compiled per-block kernels give the very doubles of the numpy array passes they replaced (the
+reference formulas are written out here), and a plant fed its amplifier inputs in many chunks, in order or not,
+integrates exactly as one fed them at once: the twins' streams stay bit-identical."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from bench.core.amplifier_dynamics import lowpass, monitor_response, step_targets
+from bench.core.clock import VirtualClock
+from bench.core.motion import MotionProfile, motion_into
+from bench.core.plant import HVStage, Plant
+from bench.models.lozenge import LozengeParams
+from bench.models.lozenge_runs import LozengeStream, _failed_rig, _failure
+from bench.models.membrane import MembraneParams, _any_failure, failure_reason
+
+
+def _same(a: np.ndarray, b: np.ndarray) -> bool:
+    """The same doubles, bit for bit (−0.0 is not 0.0 here)."""
+    a, b = np.ascontiguousarray(a, dtype=float), np.ascontiguousarray(b, dtype=float)
+    return a.shape == b.shape and np.array_equal(a.view(np.uint64), b.view(np.uint64))
+
+
+def _targets_reference(t: np.ndarray, v: np.ndarray, first: int, n: int, h: float, gain: float, vmax: float,
+                       cap: float | None, prev: float) -> np.ndarray:
+    """The plant's former numpy formulation: pieces from searchsorted and floor, clip, copysign, one repeat."""
+    m = int(np.searchsorted(t, (first + n + 1 - 1e-6) * h, side="left"))
+    starts = np.minimum(np.maximum(0, np.floor(t[:m] / h + 1e-6).astype(np.int64) - first), n)
+    ends = np.append(starts[1:], n)
+    used = ends > starts
+    a, b, v_in = starts[used], ends[used], v[:m][used]
+    target = np.clip(gain * v_in, -vmax, vmax)
+    if cap is not None:
+        target = np.copysign(np.minimum(np.abs(target), cap), target)
+    per_step = np.full(n, prev)
+    if a.size:
+        per_step[a[0]:] = np.repeat(target, b - a)
+    return per_step
+
+
+@pytest.mark.parametrize("cap", [None, 10.0, 0.0])
+def test_step_targets_are_the_array_formulas_doubles(cap: float | None) -> None:
+    rng = np.random.default_rng(3)
+    h = 1e-4
+    for first, n in ((0, 1), (0, 500), (1234, 37), (99_000, 2500)):
+        t = np.sort(np.concatenate([(first + rng.uniform(-20, n + 40, 300)) * h,
+                                    (first + np.arange(0, n + 5, 7)) * h]))  # on and between the step instants
+        t[5:9] = t[5]  # equal times
+        v = rng.uniform(-14.0, 14.0, t.size)  # beyond ±10 kV through 1000 V/V: clipped
+        m = int(np.searchsorted(t, (first + n + 1 - 1e-6) * h, side="left"))
+        got = step_targets(t, v, m, first, n, h, 1000.0, 10e3, -1.0 if cap is None else cap, -3.5)
+        want = _targets_reference(t, v, first, n, h, 1000.0, 10e3, cap, -3.5)
+        assert _same(got, want)
+
+
+def test_monitor_response_is_lowpass_gain_offset_and_noise() -> None:
+    rng = np.random.default_rng(5)
+    x = rng.normal(0.0, 3e3, 4000)
+    x[[3, 100, 2000]] = [np.nan, np.inf, -np.inf]  # a failed specimen's current: counts as 0 in the low-pass
+    a, y0, gain_error, offset = math.exp(-2 * math.pi * 20e3 * 1e-4), 12.5, -3.1e-3, 0.7
+    noise = rng.normal(0.0, 0.9, x.size)
+    for nz in (noise, np.zeros(0)):
+        out, y_end = monitor_response(x, a, y0, 1.0 + gain_error, offset, nz)
+        y = lowpass(x, a, y0)
+        want = (1.0 + gain_error) * np.asarray(y) + offset
+        if nz.size:
+            want = want + nz
+        assert _same(out, want)
+        assert y_end == y[-1]
+
+
+def test_motion_into_is_the_profiles_evaluate() -> None:
+    profiles = [MotionProfile.hold(0.3, 0.012),
+                MotionProfile.plan(0.1, 0.0, 0.0, 0.02, 0.05, 0.4, 0.3),  # accelerate, cruise, decelerate
+                MotionProfile.plan(0.2, 0.01, -0.04, 0.015, 0.05, 0.5, 0.5)]  # starts moving away from the target
+    t = np.linspace(0.0, 1.5, 15_001)  # before each start, in every phase, after the end
+    for pr in profiles:
+        U = np.zeros((t.size, 3))
+        motion_into(pr.t_start, pr.p_start, pr.v_start, pr.acc, t, 0, t.size, 0.05, -1.0, U)
+        pos, vel = pr.evaluate(t)
+        assert _same(U[:, 1], 0.05 + -1.0 * pos)
+        assert _same(U[:, 2], -1.0 * vel)
+        assert not U[:, 0].any()
+
+
+def test_the_compiled_failure_checks_find_what_the_messages_report() -> None:
+    p = MembraneParams()
+    rng = np.random.default_rng(1)
+    for case in range(4):
+        Y = np.full((50, 3), p.lambda_pre)
+        obs = np.zeros((50, 4))
+        obs[:, 0] = rng.uniform(0.0, 0.9 * p.breakdown_field, 50)
+        if case == 1:
+            Y[20, 0] = p.runaway_stretch * 1.01
+        elif case == 2:
+            obs[30, 0] = -1.1 * p.breakdown_field
+        elif case == 3:
+            Y[40, 0] = np.nan
+        found = _any_failure(Y, obs, float(p.runaway_stretch), float(p.breakdown_field))
+        assert found == bool(failure_reason(p, Y[:, 0], obs[:, 0])) == (case > 0)
+    for case in range(4):
+        Y = np.full((50, 4), 0.05)
+        obs = np.ones((50, 5))
+        obs[:, 3] = 2.0
+        if case == 1:
+            Y[7, 0] = np.inf
+        elif case == 2:
+            obs[8, 4] = 0.0  # the Gent margin gone
+        elif case == 3:
+            obs[9, 2] = -2.5  # |E| above the breakdown field
+        found = _failed_rig(Y, obs)
+        assert found == bool(_failure(float, Y[:, 0], obs[:, 4], obs[:, 2], obs[:, 3])) == (case > 0)
+
+
+def _lsdea_plant(clock: VirtualClock) -> Plant:
+    plant = Plant(clock, LozengeParams(), configuration="motor", hv=HVStage())
+    plant.warm_up()
+    return plant
+
+
+@pytest.mark.parametrize("specimen", ["membrane", "lozenge"])
+def test_inputs_in_chunks_integrate_as_inputs_given_at_once(specimen: str) -> None:
+    """Chunks in time order (the fast path: not merged at each block), a chunk out of order (merged and sorted) and
+    a watchdog input: the plant's blocks equal those of a plant given every input at once, sorted."""
+    t = np.arange(1, 20_001) / 10_000.0
+    volts = 5.0 * np.sin(2 * np.pi * 7.0 * t) + 1.0
+    order = np.r_[0:3000, 5000:6000, 3000:5000, 6000:20_000]  # one chunk scheduled before the inputs it follows
+    records = []
+    for chunks in ([(0, 20_000)], [(0, 3000), (3000, 4000), (4000, 6000), (6000, 13_000), (13_000, 20_000)]):
+        clock = VirtualClock()
+        plant = (Plant(clock, MembraneParams(), hv=HVStage()) if specimen == "membrane" else _lsdea_plant(clock))
+        if specimen == "lozenge":
+            plant.set_motion(lambda t0, p, v: MotionProfile.plan(t0, p, v, 0.004, 0.05, 0.5, 0.5))
+        got: list[np.ndarray] = []
+        plant.listeners.append(lambda b, got=got: got.append(np.stack([b.t, b.voltage, b.current, b.displacement,
+                                                                       b.force])))
+        for k, (a, b) in enumerate(chunks):
+            idx = order[a:b] if len(chunks) > 1 else np.arange(20_000)
+            plant.schedule_amplifier_input(t[idx], volts[idx])
+            clock.advance(0.013 * (k + 1))
+            plant.advance_to(clock.now())
+        clock.advance_to(2.0)
+        plant.advance_to(clock.now())
+        records.append((np.concatenate(got, axis=1), plant.v_in))
+    (whole, v_whole), (chunked, v_chunked) = records
+    assert whole.shape == chunked.shape == (5, 20_000)
+    assert _same(whole, chunked)
+    assert v_whole == v_chunked == volts[-1]
+
+
+def test_watchdog_zero_follows_the_last_input_in_time_order() -> None:
+    """A watchdog trip appends 0 V after the last input in time order, whether or not the pending inputs were
+    merged: the output decays to 0 after the deadline either way."""
+    for split in (False, True):
+        clock = VirtualClock()
+        plant = Plant(clock, MembraneParams(), hv=HVStage())
+        plant.input_watchdog = 0.05
+        if split:
+            plant.schedule_amplifier_input([0.01, 0.02], [2.0, 3.0])
+            plant.schedule_amplifier_input([0.03], [4.0])
+        else:
+            plant.schedule_amplifier_input([0.01, 0.02, 0.03], [2.0, 3.0, 4.0])
+        clock.advance_to(0.2)
+        plant.advance_to(clock.now())
+        assert plant.watchdog_trips == 1
+        assert plant.v_in == 0.0
+        assert abs(plant.v_out) < 1.0
+
+
+def test_a_lozenge_stream_checks_one_sample_blocks() -> None:
+    s = LozengeStream(LozengeParams(), "imposed", 0.05)
+    tr = s.advance_rig(np.array([[0.0, 0.05, 0.0]]))
+    assert not tr.failed and tr.position.shape == (1,)
+
+
+def test_warm_up_compiles_what_advancing_calls() -> None:
+    """Plant.warm_up compiles the kernels for the very types a block gives them: advancing (one-step blocks
+    included) adds no signature, so no compile happens inside a twin's reply."""
+    from bench.core.amplifier_dynamics import output_response
+    from bench.models.integrate import run_fixed
+    from bench.models.lozenge import lozenge_observe_rig
+
+    kernels = [step_targets, monitor_response, motion_into, _failed_rig, _any_failure, output_response, run_fixed,
+               lozenge_observe_rig]
+    for specimen in ("membrane", "lozenge"):
+        clock = VirtualClock()
+        plant = (Plant(clock, MembraneParams(), hv=HVStage()) if specimen == "membrane" else _lsdea_plant(clock))
+        plant.warm_up()
+        before = [len(k.signatures) for k in kernels]
+        if specimen == "lozenge":
+            plant.set_motion(lambda t0, p, v: MotionProfile.plan(t0, p, v, 0.004, 0.05, 0.5, 0.5))
+        plant.schedule_amplifier_input(np.arange(1, 3001) / 1e4, np.linspace(0.0, 3.0, 3000))
+        for dt in (1e-4, 0.0123, 1e-4, 0.2):
+            clock.advance(dt)
+            plant.advance_to(clock.now())
+        assert plant._n == 2125
+        assert [len(k.signatures) for k in kernels] == before
