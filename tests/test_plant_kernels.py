@@ -170,6 +170,40 @@ def test_watchdog_zero_follows_the_last_input_in_time_order() -> None:
         assert abs(plant.v_out) < 1.0
 
 
+def test_the_watchdog_s_zero_lands_after_the_last_input_of_inputs_given_out_of_order() -> None:
+    """5 V at 10 and 30 ms, then 0 V at 20 ms given after them: in time order the last input is 5 V at 30 ms, so
+    with no request for 50 ms (watchdog 0.05 s, last feed at 0) the module outputs 0 V from 50 ms on — the
+    input at 20 ms does not make the last one 0 V (review: a last-input look-up that ignored the order lost the
+    zero and held 5 kV): one trip, and the output near 0 V well after 50 ms."""
+    clock = VirtualClock()
+    plant = Plant(clock, MembraneParams(), hv=HVStage())
+    plant.input_watchdog = 0.05
+    plant.schedule_amplifier_input([0.01, 0.03], [5.0, 5.0])
+    plant.schedule_amplifier_input([0.02], [0.0])
+    clock.advance_to(0.2)  # in one block: the chunks are still apart when the watchdog looks for the last input
+    plant.advance_to(clock.now())
+    assert plant.watchdog_trips == 1 and plant.v_in == 0.0
+    assert abs(plant.v_out) < 1.0
+
+
+@pytest.mark.parametrize("bad", [math.nan, math.inf])
+def test_a_scheduled_input_at_a_time_that_is_not_finite_is_refused(bad: float) -> None:
+    """A chunk starting at NaN would stop every later chunk from playing (NaN < t is False): refused whole, and
+    the inputs before it still play."""
+    clock = VirtualClock()
+    plant = Plant(clock, MembraneParams(), hv=HVStage())
+    plant.schedule_amplifier_input([0.01], [2.0])
+    with pytest.raises(ValueError, match="finite"):
+        plant.schedule_amplifier_input([bad, 0.02], [4.0, 0.0])
+    plant.schedule_amplifier_input([0.03], [0.0])
+    clock.advance_to(0.02)
+    plant.advance_to(clock.now())
+    assert plant.v_out > 1500.0  # 2 V in at 1 kV/V, settled
+    clock.advance_to(0.1)
+    plant.advance_to(clock.now())
+    assert abs(plant.v_out) < 1.0
+
+
 def test_a_lozenge_stream_checks_one_sample_blocks() -> None:
     s = LozengeStream(LozengeParams(), "imposed", 0.05)
     tr = s.advance_rig(np.array([[0.0, 0.05, 0.0]]))

@@ -217,6 +217,8 @@ class Plant:
             raise ValueError("amplifier input: times and values must be 1-D arrays of one length")
         if not t.size:
             return
+        if not np.isfinite(t).all():  # a NaN time would stop every later input from playing (review finding)
+            raise ValueError("amplifier input: every scheduled time must be finite")
         with self.lock:
             if t[0] < self.t - 1e-9:
                 raise ValueError(f"amplifier input scheduled {self.t - t[0]:.6f} s in the plant's past")
