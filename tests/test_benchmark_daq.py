@@ -30,3 +30,17 @@ def test_a_protocol_is_timed_best_of_three_and_a_whole_campaign_once(
     result, wall, _ = daq._best(Path("campaign.toml"), "rig", tmp_path, 3)
     assert len(calls) == runs and wall == best and result.run_time == rig_time
     assert list(tmp_path.iterdir()) == []  # each file removed once timed: a campaign's file is hundreds of MB
+
+
+def test_a_fixed_part_below_zero_is_said_to_be_noise() -> None:
+    """The fixed part is the difference of two walls (wall = fixed + rig time / speed, solved from a long and a
+    short run): 25.8 s in 0.40 s and 11.8 s in 0.25 s give 0.15 s per 14 s, so 0.25 − 11.8·0.15/14 = 123.6 ms; a
+    short run in 0.18 s gives −5.4 ms, which the row must not let pass for a gain."""
+    def rows(short_wall: float) -> list[Any]:
+        return daq._fixed_cost((25.8, 0.40), (SimpleNamespace(run_time=11.8), short_wall, []))  # type: ignore[arg-type]
+
+    fixed, speed = rows(0.25)
+    assert fixed.value == pytest.approx(123.57, abs=0.01) and "noise" not in fixed.note
+    assert speed.value == pytest.approx(14 / 0.15)
+    fixed, _ = rows(0.18)
+    assert fixed.value == pytest.approx(-5.43, abs=0.01) and "noise, not a gain" in fixed.note

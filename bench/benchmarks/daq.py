@@ -216,9 +216,10 @@ def _fixed_cost(full: tuple[float, float], short: tuple[RunResult, float, list[A
     (t_full, w_full), (t_short, w_short) = full, (short[0].run_time, short[1])
     per_s = (w_full - w_short) / (t_full - t_short)
     fixed = w_short - per_s * t_short
+    noise = "; below 0: smaller than the two walls' noise, not a gain" if fixed < 0 else ""
     return [Figure("thesis-identification on thesis-daq-sim, its wall split: fixed per run", fixed * 1e3, "ms",
                    f"from the best walls of it ({t_full:.1f} s in {w_full:.2f} s) and of thesis-identification-short "
-                   f"({t_short:.1f} s in {w_short:.2f} s): wall = fixed + rig time / speed"),
+                   f"({t_short:.1f} s in {w_short:.2f} s): wall = fixed + rig time / speed{noise}"),
             Figure("  thesis-identification, its speed beyond the fixed part", 1.0 / per_s if per_s > 0 else math.nan,
                    "× real time", "the streaming itself (engine, supervisor, recorder, driver, twins)")]
 
