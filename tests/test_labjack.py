@@ -10,7 +10,7 @@ from __future__ import annotations
 import socket
 import struct
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 import numpy as np
 import pytest
@@ -895,3 +895,43 @@ def test_register_words_of_any_shape_are_range_checked_as_one() -> None:
     for bad in (np.array([[1, -1]]), np.array([[0x10000], [0]]), np.array([2**63], dtype=np.uint64)):
         with pytest.raises(ValueError, match="0…65535"):
             _u16_bytes(bad)
+
+
+def test_twin_auto_recovery_skips_scans_while_its_buffer_is_full_and_says_how_many_after_a_dummy_scan(
+        raw_twin: Rig) -> None:
+    """[E] (LabJack's low-level stream example) auto-recovery: with more than STREAM_BUFFER_SIZE_BYTES unsent (no
+    client reads the stream port: the device keeps the packets), new scans are dropped; once there is room again
+    the next packet carries status 2941 (STREAM_AUTO_RECOVER_END), AddInfo = the scans skipped, and starts with one
+    dummy scan of 0xFFFF. 1 kHz, AIN0/1, 4 samples (2 scans) a packet of 24 bytes; the default buffer of 4096
+    bytes: the first 0.5 s (500 scans, 250 packets, 6000 bytes) fill it past its size, so the next 0.1 s (scans
+    500–599: 100 scans) are skipped; a client then reads the 250 packets, and the scans of the next 10 ms come
+    after the 2941 packet."""
+    sim, clock = raw_twin.sim, raw_twin.clock
+    with socket.create_connection(("127.0.0.1", raw_twin.port), timeout=2) as s:
+        for f in ["0010 0000 000b 01 10 0fa2 0002 04 447a 0000", "0011 0000 000b 01 10 0fa4 0002 04 0000 0002",
+                  "0012 0000 000b 01 10 0fa6 0002 04 0000 0004", "0013 0000 000b 01 10 0fb0 0002 04 0000 0001",
+                  "0014 0000 000f 01 10 1004 0004 08 0000 0000 0000 0002",
+                  "0015 0000 000b 01 10 137e 0002 04 0000 0001"]:  # 1 kHz, AIN0/1, 4 samples, enable (as above)
+            assert _transact(s, bytes.fromhex(f))[7] == 0x10
+        clock.advance(0.5005)  # scans 0…499 due: 250 packets kept for a client
+        _wait_for(lambda: sim.packets_sent == 250)
+        clock.advance(0.1)  # scans 500…599: the buffer holds 6000 > 4096 bytes unsent
+        _wait_for(lambda: sim.recovering)
+        with socket.create_connection(("127.0.0.1", raw_twin.stream_port), timeout=STREAM_WAIT_S) as data:
+            kept = data.recv(250 * 24, socket.MSG_WAITALL)
+            assert [struct.unpack(">H", kept[k:k + 2])[0] for k in range(0, len(kept), 24)] == list(range(250))
+            clock.advance(0.01)  # scans 600…609: room again
+            head = data.recv(16, socket.MSG_WAITALL)
+            tid, _, length, _, fn, _, _, _, status, skipped = struct.unpack(">HHHBBBBHHH", head)
+            body = data.recv(length - 10, socket.MSG_WAITALL)
+    assert (tid, fn, status, skipped) == (250, 0x4C, 2941, 100)
+    assert body[:4] == b"\xff\xff\xff\xff"  # one dummy scan (two inputs) first
+
+
+def _wait_for(done: Callable[[], bool]) -> None:
+    """Until ``done()`` (the twin's thread acts on a clock move asynchronously); a count, not a duration: the
+    limit is only a guard against a twin that never gets there."""
+    end = time.monotonic() + STREAM_WAIT_S
+    while not done():
+        assert time.monotonic() < end, "the twin did not get there"
+        time.sleep(0.001)
