@@ -108,11 +108,12 @@ class Feedback(ModbusPDU):
     def encode(self) -> bytes:
         """Write frames: 1, address, n, n registers (big-endian); read frames: 0, address, n."""
         parts: list[bytes] = []
-        for a, w in self.writes:
-            if isinstance(w, int | np.integer):
-                parts.append(_FRAME_HEAD.pack(0, a, int(w)))
+        for f in self.writes:
+            if (n := read_count(f)) is not None:
+                parts.append(_FRAME_HEAD.pack(0, f[0], n))
             else:
-                parts += (_FRAME_HEAD.pack(1, a, len(w)), _u16_bytes(w))
+                w: Words = f[1]  # type: ignore[assignment]  # a write: the registers
+                parts += (_FRAME_HEAD.pack(1, f[0], len(w)), _u16_bytes(w))
         return b"".join(parts)
 
     def decode(self, data: bytes) -> None:

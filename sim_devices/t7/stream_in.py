@@ -126,7 +126,7 @@ class StreamEngine(StreamOut):
 
 
     def _take_scans(self, due: int) -> None:
-        ks = np.arange(self.produced + 1, due + 1)  # scan k at t_enable + (k + 1) / rate
+        ks = np.arange(self.produced + 1, due + 1)  # k + 1 for the scans k due: scan k at t_enable + (k + 1) / rate
         times = self.t_enable + ks / self.rate
         ains = [a // 2 for a in self._in_addresses()]
         wired = {sig.observable for a in ains if (sig := self.signals.get(a)) is not None
