@@ -12,13 +12,21 @@ from __future__ import annotations
 import socket
 import struct
 from collections.abc import Iterator
+from pathlib import Path
 
 import numpy as np
 import pytest
 
+import drivers.labjack.stream_in as driver_stream_in
 from bench.core.clock import VirtualClock
+from bench.runtime.run import execute, plan_run
+from bench.runtime.sim_rig import SimRig
+from bench.storage.runfile import open_run
 from drivers.labjack import LabJackT7, StreamIn, StreamOut, StreamSpec
+from drivers.labjack.packets import StreamBatch
+from sim_devices.labjack_t7 import LabJackT7Sim
 from sim_devices.transport import Faults, TwinTimer
+from tests.conftest import ROOT
 from tests.test_labjack import STREAM_WAIT_S, Rig, _transact, _wait_for
 
 # 1 kHz, AIN0/1, 4 samples a packet, spontaneous stream, enable (hand-written Modbus TCP frames, as test_labjack)
@@ -196,3 +204,76 @@ def test_a_lost_host_in_demand_mode_is_still_stopped_by_the_t7_watchdog() -> Non
     finally:
         r.close()
     assert not r.sim.errors
+
+
+@pytest.mark.parametrize("virtual", [False, True])
+def test_only_a_virtual_time_rig_pumps_its_t7_on_demand_and_only_its_daq_link_tells_it(virtual: bool) -> None:
+    """Real time: no reply timers, the twin pumps on its poll and at every clock move as a T7 streams; virtual
+    time: the "daq" link's timer tells the twin when the host waits, the other links' timers do not."""
+    from bench.rig import load_rig
+
+    sim = SimRig(load_rig(ROOT / "rigs" / "lsdea-motor-daq-sim.toml"), virtual=virtual)
+    sim.start()
+    try:
+        timers = sim.reply_timers()
+        daq = sim.twins["daq"]
+        assert isinstance(daq, LabJackT7Sim) and daq.demand is virtual
+        assert sorted(timers) == ([] if not virtual else sorted(sim.faults))
+        assert [n for n, t in timers.items() if t.waiting is not None] == (["daq"] if virtual else [])
+        if virtual:
+            assert timers["daq"].waiting == daq.host_waits
+    finally:
+        sim.stop()
+
+
+def _run_isometric(tmp: Path, demand: bool, monkeypatch: pytest.MonkeyPatch) -> tuple[Path, list[StreamBatch]]:
+    """lsdea-isometric-short on its motor + DAQ rig in virtual time; the stream packets the driver received."""
+    with monkeypatch.context() as m:
+        got: list[StreamBatch] = []
+        parse = driver_stream_in.parse_stream_batch
+
+        def keep(frames: bytes, spans: list[tuple[int, int]], device: str = "T7") -> StreamBatch:
+            got.append(batch := parse(frames, spans, device))
+            return batch
+
+        m.setattr(driver_stream_in, "parse_stream_batch", keep)
+        if not demand:  # today's mode: the host's waits tell the twin nothing, it pumps at every clock move
+            m.setattr(LabJackT7Sim, "on_demand", lambda self: lambda: None)
+        plan = plan_run(ROOT / "protocols" / "short" / "lsdea-isometric-short.toml",
+                        ROOT / "rigs" / "lsdea-motor-daq-sim.toml")
+        twins: list[object] = []
+        result = execute(plan, tmp / f"{'demand' if demand else 'clock'}.h5", virtual=True,
+                         on_engine=lambda engine, sim: twins.append(sim.twins["daq"]))
+        assert result.state == "completed"
+        assert [getattr(t, "demand", None) for t in twins] == [demand]  # the mode each run was meant to test
+        return result.path, got
+
+
+def _packets(batches: list[StreamBatch]) -> dict[str, np.ndarray]:
+    return {"tid": np.concatenate([b.transaction_ids for b in batches]),
+            "status": np.concatenate([b.statuses for b in batches]),
+            "additional": np.concatenate([b.additional for b in batches]),
+            "size": np.concatenate([np.diff(b.ends, prepend=0) for b in batches]),
+            "samples": np.concatenate([b.samples for b in batches])}
+
+
+def test_on_demand_the_isometric_run_records_what_pumping_at_every_clock_move_records(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The same run with the twin pumping at every clock move and on demand: the same packets (TransIDs, statuses,
+    AddInfo, sizes, samples — only the backlog words may differ) and the same recorded streams and events."""
+    clock_path, clock_batches = _run_isometric(tmp_path, False, monkeypatch)
+    demand_path, demand_batches = _run_isometric(tmp_path, True, monkeypatch)
+    a, b = _packets(clock_batches), _packets(demand_batches)
+    assert a["tid"].size > 100  # the stream ran (the run records ~9 s of 10 kHz scans)
+    for key in a:
+        assert np.array_equal(a[key], b[key]), key
+    assert len(demand_batches) < len(clock_batches)  # fewer pumps: more packets in each receive
+    fa, fb = open_run(clock_path), open_run(demand_path)
+    assert sorted(fa.streams) == sorted(fb.streams)
+    for name in fa.streams:
+        sa, sb = fa.streams[name], fb.streams[name]
+        assert np.array_equal(sa.t, sb.t), name
+        assert sorted(sa.columns) == sorted(sb.columns)
+        for col in sa.columns:
+            assert np.array_equal(sa.columns[col], sb.columns[col], equal_nan=True), (name, col)
+    assert fa.event_list() == fb.event_list()
