@@ -213,10 +213,12 @@ class TwinTimer:
     that long. ``bound`` (for the blocking calls a link cannot slice: a port write, a connect) is the guard too.
     """
 
-    def __init__(self, faults: Faults, clock: VirtualClock, stall: float = TWIN_STALL_S) -> None:
+    def __init__(self, faults: Faults, clock: VirtualClock, stall: float = TWIN_STALL_S,
+                 waiting: Callable[[], None] | None = None) -> None:
         self.faults = faults
         self.clock = clock
         self.stall = stall
+        self.waiting = waiting  # told before each blocking read of a wait (a twin that sends on demand: the T7's)
         self.mark = self._counts()
 
     def _counts(self) -> tuple[int, int, int]:
@@ -241,6 +243,7 @@ class TwinDeadline:
 
     def __init__(self, timer: TwinTimer, timeout: float) -> None:
         self.faults, self.clock, self.stall = timer.faults, timer.clock, timer.stall
+        self.waiting = timer.waiting
         self.timeout = timeout
         self.withheld, self.altered, self.delayed = timer.mark
         self.rig_end = self.clock.now() + timeout
@@ -271,9 +274,12 @@ class TwinDeadline:
         return False
 
     def left(self) -> float:
-        """Wall seconds a blocking read may last before :meth:`expired` is asked again."""
+        """Wall seconds a blocking read may last before :meth:`expired` is asked again; the driver is about to
+        block, so the timer's ``waiting`` callback (if any) is told first: a twin that sends on demand sends now."""
         if self.timeout <= 0 or self._silent():
             return 0.0
+        if self.waiting is not None:
+            self.waiting()
         end = self._altered_end() if self.faults.altered > self.altered else self.guard_end
         return max(end - time.monotonic(), 0.0)
 

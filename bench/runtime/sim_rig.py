@@ -261,10 +261,15 @@ class SimRig:
     def reply_timers(self) -> dict[str, TwinTimer]:
         """Virtual time: a :class:`TwinTimer` per link (role, bus name, "daq"), for
         :func:`bench.runtime.instruments.build_instruments` — waits for a reply end on what the twin did with the
-        request, never on the host's speed. Wall clock: none (the drivers' timeouts are real time, as on hardware)."""
+        request, never on the host's speed. Wall clock: none (the drivers' timeouts are real time, as on hardware).
+        The T7 twin then pumps on demand (:meth:`LabJackT7Sim.on_demand`): when its link waits, not at every move
+        of the clock (the other links' waits move it too)."""
         if not isinstance(self.clock, VirtualClock):
             return {}
-        return {name: TwinTimer(faults, self.clock) for name, faults in self.faults.items()}
+        daq = self.twins.get("daq")
+        return {name: TwinTimer(faults, self.clock,
+                                waiting=daq.on_demand() if name == "daq" and isinstance(daq, LabJackT7Sim) else None)
+                for name, faults in self.faults.items()}
 
     def port_map(self) -> dict[str, str]:
         """Role / bus name → port, for :func:`bench.runtime.instruments.build_instruments`."""

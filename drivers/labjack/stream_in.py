@@ -219,9 +219,10 @@ class T7Stream(T7StreamOut):
         s = self._stream
         assert s is not None
         scans = math.floor((until - s.t_enable) * s.plan.scan_rate + 1e-6)
-        if s.spec.num_scans:
-            scans = min(scans, s.spec.num_scans)
-        return max(scans, 0) * s.n_in // s.plan.samples_per_packet
+        spp = s.plan.samples_per_packet
+        if s.spec.num_scans and scans >= s.spec.num_scans:  # [A] a burst ends with its last packet, short or whole
+            return -(-s.spec.num_scans * s.n_in // spp)
+        return max(scans, 0) * s.n_in // spp
 
     def collect(self, until: float | None = None, timeout: float = 1.0) -> StreamBlock:
         """Complete scans received since the last call (scan-numbered), after topping up the out buffer.

@@ -16,6 +16,7 @@ import contextlib
 import math
 import threading
 import time
+from collections.abc import Callable
 from typing import Any
 
 from pymodbus.server import ModbusTcpServer
@@ -29,6 +30,9 @@ from sim_devices.t7.register_io import RegisterIO
 from sim_devices.t7.registers import R_O_U16, UNIT
 from sim_devices.transport import Faults, SocketRelay
 
+DEMAND_STEP_S = 0.5  # on demand, the twin still pumps after this much rig time without a pump: a lost host's
+# device plays on (its loop refills, its watchdog acts) — shorter than the 1 s of stream-out a loop keeps queued
+# at least (StreamOut._advance_out) and the 2 s of plant history a late scan is read from
 _LAYOUT: dict[int, Any] = {}  # the built register space of a T7 (the same for every twin): pymodbus' build, once
 
 
@@ -71,6 +75,7 @@ class LabJackT7Sim(RegisterIO):
         self.port = 0
         self.stream_port = 0
         self._wake_pending = False
+        self.demand = False  # pump on demand (:meth:`on_demand`), not at every move of a virtual clock
         self._cpu_lock = threading.Lock()
         self._cpu_final = math.nan  # the serving thread's CPU time when it ended
 
@@ -154,11 +159,37 @@ class LabJackT7Sim(RegisterIO):
                 return math.nan
             return time.clock_gettime(getcpu(thread.ident))
 
+    def on_demand(self) -> Callable[[], None]:
+        """Virtual time: pump when the host waits on the twin instead of at every move of the clock; returns the
+        callback the host's link calls before each blocking read (:class:`~sim_devices.transport.TwinTimer`'s
+        ``waiting``). A T7 sends a packet the moment it fills, but in virtual time nobody sees it before the host
+        reads: the same packets (bytes, numbers, statuses) leave in fewer pumps — only the backlog words differ,
+        as they do for a host that reads late. Without a host wait the twin still pumps every
+        :data:`DEMAND_STEP_S` of rig time."""
+        self.demand = True
+        return self.host_waits
+
+    def host_waits(self) -> None:
+        """The host is about to block on this twin (a reply, stream packets; any thread): pump now if a packet is
+        due."""
+        if self.clock.now() >= self._next_packet_t:
+            self._post_wake()
+
+    def _stepped(self, now: float) -> bool:
+        """Whether a pump is due without a host wait: always, unless on demand (then after a rig-time step)."""
+        return not self.demand or now >= self._worked_at + DEMAND_STEP_S
+
     def _on_clock(self, now: float) -> None:
         """The virtual clock moved (in the thread that moved it): pump at once if a whole packet is now due, as a
-        T7 sends a packet when it fills — rather than up to ``poll`` of wall time later."""
+        T7 sends a packet when it fills — rather than up to ``poll`` of wall time later (on demand: only once a
+        step has passed since the last pump)."""
+        if now >= self._next_packet_t and self._stepped(now):
+            self._post_wake()
+
+    def _post_wake(self) -> None:
+        """Pump on the serving thread, soon (from any thread; one pending wake at a time)."""
         loop = self._loop
-        if self._wake_pending or now < self._next_packet_t or loop is None:
+        if self._wake_pending or loop is None:
             return
         self._wake_pending = True
         with contextlib.suppress(RuntimeError):  # the loop has closed: the twin is stopping
@@ -166,6 +197,8 @@ class LabJackT7Sim(RegisterIO):
 
     def _wake(self) -> None:
         self._wake_pending = False
+        if self.clock.now() < self._next_packet_t:  # a wake asked for while a pump ran (it read the time that pump
+            return  # then sent for): nothing is due now
         try:
             self.pump()
         except Exception as exc:  # as in the pump loop: keep serving; tests inspect errors
@@ -173,10 +206,11 @@ class LabJackT7Sim(RegisterIO):
 
     async def _pump_loop(self) -> None:
         while True:
-            try:
-                self.pump()
-            except Exception as exc:  # keep serving; tests inspect errors
-                self.errors.append(exc)
+            if self._stepped(self.clock.now()):
+                try:
+                    self.pump()
+                except Exception as exc:  # keep serving; tests inspect errors
+                    self.errors.append(exc)
             await asyncio.sleep(self.poll)
 
     def stop(self) -> None:

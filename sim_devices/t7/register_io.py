@@ -152,6 +152,10 @@ class RegisterIO(StreamEngine):
             rms = resolution.noise_rms(self.ain_range[ain], resolution.command_index(self.ain_res[ain]))
             return kind, float(self._ain_volts(ain, obs, 1, rms)[0])
         if a in (R_DAC, R_DAC + 2):
+            if self.streaming:  # what a stream-out driving it has played by now (pumps may be rarer than reads)
+                for k in self._out_indices():
+                    if self.outs[k].target == a:
+                        self._advance_out(k, now)
             return kind, self.dac_volts[(a - R_DAC) // 2]
         if R_DIO <= a < R_DIO + N_DIO:
             self.dio_dir &= ~(1 << (a - R_DIO))  # [D] a read makes the line an input
@@ -382,6 +386,8 @@ class RegisterIO(StreamEngine):
                 return self._fail(err) if err else None
             if not self.streaming:
                 return self._fail(E_NOT_RUNNING)
+            self._catch_up(now)
+            self._send()  # the whole packets filled by now leave first (a twin pumping on demand holds them)
             self._stop_stream(now)
         elif a in self.tests:
             self.tests[a] = value

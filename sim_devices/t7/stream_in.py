@@ -16,7 +16,7 @@ both from :mod:`~sim_devices.t7.resolution`, which says what was found and what 
 and packets carry 2940; when room returns the next packet carries 2941, AddInfo = scans skipped, and starts with one
 dummy scan of 0xFFFF.
 [A] burst (STREAM_NUM_SCANS > 0): the rest goes in a last, possibly short packet with status 2944, then the stream
-stops; on STREAM_ENABLE = 0 a partial packet is discarded.
+stops; on STREAM_ENABLE = 0 the whole packets filled by then are sent and a partial packet is discarded.
 [L] command-response stream (STREAM_AUTO_TARGET ≠ 1: 2612), output-only streams and a STREAM_OUT# twice in one scan
 list (2607) are not simulated.
 """
@@ -89,6 +89,7 @@ class StreamEngine(StreamOut):
         self._held: list[bytes] = []
         self._next_packet_t = math.inf  # rig time at which the next whole stream packet is due
         self._pumped_at: float | None = None  # rig time of the last pump (None: a request came since)
+        self._worked_at = -math.inf  # rig time of the last pump of a running stream (on demand: the step's start)
 
     def _in_addresses(self) -> list[int]:
         """The scan list's analog inputs (AIN addresses), in scan order."""
@@ -96,33 +97,40 @@ class StreamEngine(StreamOut):
 
     def pump(self) -> None:
         """Take the scans due by now, play stream-out, send whole packets (called every ``poll`` s, and on a virtual
-        clock also as soon as a whole packet is due: :meth:`_on_clock`)."""
+        clock also as soon as a whole packet is due: :meth:`_on_clock`; on demand when the host waits)."""
         with self.plant.lock, self.lock:  # plant first (see ``action``)
             if not self.streaming:
                 return
             now = self.clock.now()
             if now == self._pumped_at:  # pumped at this very time, no request since: nothing new is due (a virtual
                 return  # clock that has not moved between polls)
-            due = self._cur_scan(now) + 1
             nscans = int(self.regs[R_NSCANS])
-            if nscans:
-                due = min(due, nscans)
-            for k in self._out_indices():
-                self._advance_out(k, now)
-            if due > self.produced:
-                self._take_scans(due)
+            self._catch_up(now)
             self._send(final=bool(nscans) and self.produced >= nscans)
             self._next_packet_t = self._packet_due()
-            self._pumped_at = now
+            self._pumped_at = self._worked_at = now
+
+    def _catch_up(self, now: float) -> None:
+        """Play stream-out and take the scans due by ``now`` (a burst's: up to its last)."""
+        for k in self._out_indices():
+            self._advance_out(k, now)
+        due = self._cur_scan(now) + 1
+        nscans = int(self.regs[R_NSCANS])
+        if nscans:
+            due = min(due, nscans)
+        if due > self.produced:
+            self._take_scans(due)
 
     def _packet_due(self) -> float:
-        """Rig time of the scan that completes the next whole packet (inf when not streaming)."""
+        """Rig time of the scan that completes the next whole packet, or a burst's last scan if that comes first
+        (its short last packet leaves then); inf when not streaming."""
         n_in = len(self._in_addresses())
         if not self.streaming or not n_in:
             return math.inf
         missing = max(int(self.regs[R_SPP]) - self.fifo.size, 1)
         scans = -(-missing // n_in)  # scan k is taken at t_enable + (k + 1) / rate
-        return self.t_enable + (self.produced + scans) / self.rate
+        nscans = int(self.regs[R_NSCANS])
+        return self.t_enable + (min(self.produced + scans, nscans) if nscans else self.produced + scans) / self.rate
 
 
     def _take_scans(self, due: int) -> None:
@@ -269,6 +277,7 @@ class StreamEngine(StreamOut):
             self._schedule(k, codes, now)
             self._advance_out(k, now)  # a loop's repetitions queued at once: they follow the data without a gap
         self._next_packet_t = self._packet_due()
+        self._worked_at = now
         return 0
 
     def _stop_stream(self, now: float) -> None:
