@@ -196,12 +196,17 @@ class LinMotDrive:
         self.checksum = checksum
         self._count = 0
         self._control_word = 0
+        self._poll_telegram: tuple[tuple[int, bool], bytes] = ((-1, False), b"")  # (drive id, checksum), telegram
 
     # ----------------------------------------------------------- protocol
     def transact(self, main: int, sub: int, data: bytes = b"") -> DefaultResponse:
         """Send one telegram and read the default response."""
+        return self._exchange(encode(self.drive_id, main, sub, data, self.checksum))
+
+    def _exchange(self, telegram: bytes) -> DefaultResponse:
+        """Send ``telegram`` and read the default response."""
         with self.link.lock:
-            self.link.write(encode(self.drive_id, main, sub, data, self.checksum))
+            self.link.write(telegram)
             head = self.link.read_exact(3)
             if head[0] != START:
                 self.link.discard_input()
@@ -213,8 +218,12 @@ class LinMotDrive:
         return resp
 
     def poll(self) -> DefaultResponse:
-        """Request the default response."""
-        return self.transact(MAIN_RESPONSE, SUB_DEFAULT_RESPONSE_REQUEST)
+        """Request the default response (the telegram encoded once for this drive id and checksum setting)."""
+        key = (self.drive_id, self.checksum)
+        if self._poll_telegram[0] != key:
+            self._poll_telegram = key, encode(self.drive_id, MAIN_RESPONSE, SUB_DEFAULT_RESPONSE_REQUEST,
+                                              checksum=self.checksum)
+        return self._exchange(self._poll_telegram[1])
 
     def write_control_word(self, word: int) -> DefaultResponse:
         """Write the control word."""
