@@ -140,6 +140,9 @@ class DefaultResponse:
         return self.position_counts * POS_UNIT
 
 
+_RESPONSE_FIELDS = struct.Struct("<BHHi")  # comm state, status word, state var, actual position: bytes 6–14
+
+
 def decode_default_response(frame: bytes, drive_id: int, device: str, checksum: bool = False) -> DefaultResponse:
     """Decode and check a default-response telegram."""
     size = 18 if checksum else 16
@@ -153,8 +156,7 @@ def decode_default_response(frame: bytes, drive_id: int, device: str, checksum: 
         raise ProtocolError(device, f"response from drive id {frame[1]:#04x}, expected {drive_id:#04x}")
     if frame[2] != 0x0C or frame[3] != DATA or frame[4] != 0x00 or frame[5] != MAIN_RESPONSE:
         raise ProtocolError(device, f"not a default response: {frame.hex(' ')}")
-    comm, status, state, pos = struct.unpack("<BHHi", frame[6:15])
-    return DefaultResponse(comm, status, state, pos)
+    return DefaultResponse(*_RESPONSE_FIELDS.unpack_from(frame, 6))
 
 
 class LinMotDrive:
