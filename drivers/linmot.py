@@ -140,6 +140,9 @@ class DefaultResponse:
         return self.position_counts * POS_UNIT
 
 
+_RESPONSE_FIELDS = struct.Struct("<BHHi")  # comm state, status word, state var, actual position: bytes 6–14
+
+
 def decode_default_response(frame: bytes, drive_id: int, device: str, checksum: bool = False) -> DefaultResponse:
     """Decode and check a default-response telegram."""
     size = 18 if checksum else 16
@@ -153,8 +156,7 @@ def decode_default_response(frame: bytes, drive_id: int, device: str, checksum: 
         raise ProtocolError(device, f"response from drive id {frame[1]:#04x}, expected {drive_id:#04x}")
     if frame[2] != 0x0C or frame[3] != DATA or frame[4] != 0x00 or frame[5] != MAIN_RESPONSE:
         raise ProtocolError(device, f"not a default response: {frame.hex(' ')}")
-    comm, status, state, pos = struct.unpack("<BHHi", frame[6:15])
-    return DefaultResponse(comm, status, state, pos)
+    return DefaultResponse(*_RESPONSE_FIELDS.unpack_from(frame, 6))
 
 
 class LinMotDrive:
@@ -196,12 +198,17 @@ class LinMotDrive:
         self.checksum = checksum
         self._count = 0
         self._control_word = 0
+        self._poll_telegram: tuple[tuple[int, bool], bytes] = ((-1, False), b"")  # (drive id, checksum), telegram
 
     # ----------------------------------------------------------- protocol
     def transact(self, main: int, sub: int, data: bytes = b"") -> DefaultResponse:
         """Send one telegram and read the default response."""
+        return self._exchange(encode(self.drive_id, main, sub, data, self.checksum))
+
+    def _exchange(self, telegram: bytes) -> DefaultResponse:
+        """Send ``telegram`` and read the default response."""
         with self.link.lock:
-            self.link.write(encode(self.drive_id, main, sub, data, self.checksum))
+            self.link.write(telegram)
             head = self.link.read_exact(3)
             if head[0] != START:
                 self.link.discard_input()
@@ -213,8 +220,12 @@ class LinMotDrive:
         return resp
 
     def poll(self) -> DefaultResponse:
-        """Request the default response."""
-        return self.transact(MAIN_RESPONSE, SUB_DEFAULT_RESPONSE_REQUEST)
+        """Request the default response (the telegram encoded once for this drive id and checksum setting)."""
+        key = (self.drive_id, self.checksum)
+        if self._poll_telegram[0] != key:
+            self._poll_telegram = key, encode(self.drive_id, MAIN_RESPONSE, SUB_DEFAULT_RESPONSE_REQUEST,
+                                              checksum=self.checksum)
+        return self._exchange(self._poll_telegram[1])
 
     def write_control_word(self, word: int) -> DefaultResponse:
         """Write the control word."""

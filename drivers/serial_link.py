@@ -208,10 +208,12 @@ class SerialLink:
     def read_exact(self, n: int, timeout: float | None = None) -> bytes:
         """Read exactly n bytes within ``timeout`` [s] in total, or raise InstrumentTimeoutError."""
         port = self._require()
-        buf = bytearray(self._rest[:n])
-        self._rest = self._rest[n:]
-        if len(buf) == n:  # all there already (read with what came before): no wait, so no deadline to set
-            return bytes(buf)
+        rest = self._rest
+        if len(rest) >= n:  # all there already (read with what came before): no wait, so no deadline to set
+            self._rest = rest[n:]
+            return rest[:n]
+        buf = bytearray(rest)
+        self._rest = b""
         waited = self.timeout if timeout is None else timeout
         deadline = self.timer.start(waited)
         try:

@@ -73,6 +73,7 @@ from bench.core.plant import Plant
 
 # ---------------------------------------------------------------- LinRS framing (LinRS manual p. 11)
 STX, DATA_START, ETX = 0x01, 0x02, 0x04  # 01h | ID | Len | 02h | SubID | MainID | data… | [CRC lo hi] | 04h
+STX_BYTE, ETX_BYTE = bytes([STX]), bytes([ETX])
 MAIN_RESPONSE = 0x00  # request Sub 01h: "return default response" (manual examples; drivers found)
 MAIN_CONTROL_WORD = 0x01  # Sub 00h, 2-byte control word (manual "Write Control Word" example)
 MAIN_MOTION_COMMAND = 0x02  # Sub 00h, header + parameters (manual "Write Motion Command Interface" example)
@@ -83,6 +84,7 @@ SUB_WARN_WORD = 0x03
 MAIN_READ_UPID = 0x03
 UPID_MOTION_COMMAND_COUNT = 0x1DB0
 COMM_OK = 0x00
+_RESPONSE_IDS = bytes([DATA_START, 0x00, MAIN_RESPONSE])  # a response's 02h, Sub ID 00h, Main ID 00h
 # A telegram left incomplete for this long (wall time) is discarded before new bytes are taken. [chosen: the
 # LinRS pages read do not say how the drive resynchronises after line noise; a receive timeout is what a UART
 # protocol without a length-independent delimiter needs, and a host writes a telegram in one go, so a pause
@@ -750,9 +752,9 @@ class LinMotDriveSim:
         """The default response, ``extra`` appended after the position [assumed: the response IDs stay 00h 00h
         for the extended replies too; the drivers found do not read them]."""
         sw, sv, pos = self.status()
-        body = bytes([DATA_START, 0x00, MAIN_RESPONSE]) + struct.pack("<BHHi", comm_state, sw, sv, pos) + extra
+        body = _RESPONSE_IDS + struct.pack("<BHHi", comm_state, sw, sv, pos) + extra
         crc = struct.pack("<H", crc16_ccitt_reflected(body)) if self.checksum else b""
-        return bytes([STX, self.drive_id, len(body)]) + body + crc + bytes([ETX])
+        return bytes((STX, self.drive_id, len(body))) + body + crc + ETX_BYTE
 
     def __call__(self, data: bytes) -> bytes:
         """Feed received bytes; returns the responses to all complete telegrams."""
@@ -763,7 +765,7 @@ class LinMotDriveSim:
         self._buf += data
         out = b""
         while True:
-            start = self._buf.find(bytes([STX]))
+            start = self._buf.find(STX_BYTE)
             if start < 0:
                 self._buf = b""
                 break

@@ -203,6 +203,17 @@ def test_bytes_read_beyond_a_count_go_to_the_next_read_and_are_dropped_with_the_
     link.close()
 
 
+def test_a_count_longer_than_what_the_link_holds_takes_that_first_then_waits_for_the_rest(peer: PtyPeer) -> None:
+    link = link_on(peer, timeout=1.0)
+    os.write(peer.master, b"abcd")
+    time.sleep(0.05)
+    assert link.read_exact(1) == b"a"  # "bcd" stays in the link
+    os.write(peer.master, b"efg")
+    assert link.read_exact(5) == b"bcdef"
+    assert link.read_exact(1) == b"g"
+    link.close()
+
+
 def test_a_pty_whose_far_end_closes_during_a_read_is_a_lost_link() -> None:
     from drivers.errors import InstrumentConnectionError
 

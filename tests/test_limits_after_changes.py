@@ -152,3 +152,30 @@ def test_a_motor_go_to_is_refused_where_its_path_passes_the_field_s_peak(tmp_pat
     sup.check_motor_setpoint(0.0, 0.102, volts)  # a short go-to, well short of the peak: allowed
     with pytest.raises(SafetyTrip, match="passing"):
         sup.check_motor_setpoint(0.12, 0.22, volts)
+
+
+def test_the_field_model_follows_each_new_aperture_and_specimen_at_once() -> None:
+    """The supervisor remembers the stretch of the last aperture it was asked about (the live view's headroom asks at
+    every engine wake-up): a new aperture, a new prototype and a return to an earlier aperture are each judged at
+    their own stretch. Expected: the paper's eq 1 and the true field E = V·λ1·λ2/t0, E_B = E0·(λ1λ2)^(r/2),
+    λ1 = λ1p·x/xp, λ2 = λ2p·√(4l² − x²)/√(4l² − xp²), written out here from the parameters."""
+    from bench.runtime.safety import Supervisor
+
+    rig = load_rig(RIG)
+    sup = Supervisor(rig, rig.specimen.lozenge(1))
+    margin = rig.limits.breakdown_margin
+
+    def paper(q: Any, x: float, volts: float) -> tuple[float, float]:
+        l1 = q.lambda2p ** -0.5 * x / q.xp
+        l2 = q.lambda2p * np.sqrt(4 * q.l ** 2 - x * x) / np.sqrt(4 * q.l ** 2 - q.xp ** 2)
+        return volts * l1 * l2 / q.t0, q.material.E0 * (l1 * l2) ** (q.material.r / 2) / margin
+
+    q1 = sup.specimen
+    x_a, x_b = 1.2 * q1.xp, 1.6 * q1.xp
+    for specimen, x in ((q1, x_a), (q1, x_b), (q1.changed(prototype=3), x_b), (q1, x_a)):
+        sup.specimen, sup.aperture = specimen, x
+        for volts in (3000.0, -5000.0):
+            e, e_max = sup.field_and_breakdown(volts)
+            want = paper(specimen, x, abs(volts))
+            assert (e, e_max) == pytest.approx(want, rel=1e-12)
+    assert sup.headroom()["field"] == pytest.approx(0.0)  # no voltage measured yet

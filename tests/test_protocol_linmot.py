@@ -14,7 +14,7 @@ from drivers.errors import (
     OperationCancelledError,
     ProtocolError,
 )
-from drivers.linmot import LinMotDrive, decode_default_response, encode
+from drivers.linmot import LinMotDrive, crc16_ccitt_reflected, decode_default_response, encode
 from drivers.serial_link import SerialLink
 from tests.protocol_expect import expected_protocol
 
@@ -275,3 +275,23 @@ def test_the_safe_state_leaves_a_drive_it_did_not_switch_on_as_it_is() -> None:
     could switch it on."""
     with expected_protocol("safe-off", [(POLL, response(0x0036, 0x0200, 0))]) as url:
         drive(url).safe_state()
+
+
+def test_each_poll_sends_the_default_response_request_of_the_drive_id_and_checksum_set_now() -> None:
+    """The poll telegram (LinRS manual p. 11: 01h | ID | Len 03h | 02h | Sub 01h | Main 00h | 04h) is the same bytes at
+    every poll, and follows a drive id or checksum setting changed after the first: 01 12 03 02 01 00 04 for drive
+    12h; with the checksum, its two bytes before the 04h (the CRC checked against CRC-16/KERMIT above)."""
+    other = bytes.fromhex("01 12 03 02 01 00 04")
+    checked = encode(0x12, 0x00, 0x01, checksum=True)
+    assert checked[:6] == other[:6] and len(checked) == 9
+    reply = response(0x0837, 0x0800, 13, drive=0x12)
+    script = [(POLL, response(0x0837, 0x0800, 10)), (POLL, response(0x0837, 0x0800, 11)),
+              (other, response(0x0837, 0x0800, 12, drive=0x12)),
+              (checked, reply[:15] + struct.pack("<H", crc16_ccitt_reflected(reply[3:15])) + b"\x04")]
+    with expected_protocol("poll-ids", script) as url:
+        d = drive(url)
+        assert [d.poll().position_counts for _ in range(2)] == [10, 11]
+        d.drive_id = 0x12
+        assert d.poll().position_counts == 12
+        d.checksum = True
+        assert d.poll().position_counts == 13

@@ -161,3 +161,31 @@ def test_a_new_instrument_is_recorded_to_its_own_stream_without_an_engine_change
     assert s.columns["temperature"].tolist() == [START_K + STEP_K * k for k in range(n)]
     assert np.allclose(s.t, np.arange(n) * SENSOR_PERIOD_S, atol=0.05)  # on the run clock, stamped by the reading
     assert np.all(s.columns["late"] >= 0)  # the generic poll's lateness column, as every software-timed stream
+
+
+def test_a_step_s_poll_asks_describe_once_and_records_every_read_to_its_stream() -> None:
+    """The generic poll of one step asks the instrument's describe() once, at its first poll, not at each of its
+    reads (a 20-Hz encoder poll would build the same description 20 times a second); every read still lands in the
+    stream it names, stamped with the reading's time on the run clock and its lateness."""
+    from types import SimpleNamespace
+
+    from bench.runtime.polls import Polled, _role_poll, _sensor_period
+
+    described = 0
+
+    class Counted(Thermometer):
+        def describe(self) -> StreamDescription:
+            nonlocal described
+            described += 1
+            return super().describe()
+
+    rows: list[tuple[Any, ...]] = []
+    e = SimpleNamespace(t0=10.0, rec=SimpleNamespace(append=lambda *a, **k: rows.append((*a, k))),
+                        late_columns=lambda stream, late: {"late": late}, lateness=lambda due: 0.5 - due)
+    clock = iter([11.0, 12.0, 13.0])
+    poll = _role_poll(Counted(lambda: next(clock)), Polled("thermometer", _sensor_period))
+    for due in (0.0, 0.1, 0.2):
+        poll.run(e, due)  # type: ignore[arg-type]  # the context's parts a poll uses
+    assert described == 1
+    assert rows == [("thermometer", t - 10.0, {"temperature": START_K + STEP_K * k, "late": 0.5 - due})
+                    for k, (t, due) in enumerate(((11.0, 0.0), (12.0, 0.1), (13.0, 0.2)))]

@@ -122,6 +122,15 @@ class MotionProfile:
     def _phases(self) -> tuple[list[float], list[float], list[float], list[float]]:
         return self.t_start.tolist(), self.p_start.tolist(), self.v_start.tolist(), self.acc.tolist()
 
+    @cached_property
+    def rest(self) -> tuple[float, float] | None:
+        """(time [s], position [m]) from which the profile stands still, the position exactly what :meth:`at` gives
+        at any later time; None if its last phase moves (then no such time)."""
+        ts, ps, vs, accs = self._phases
+        if vs[-1] != 0.0 or accs[-1] != 0.0:
+            return None
+        return ts[-1], ps[-1] + vs[-1] * 0.0 + 0.5 * accs[-1] * 0.0 * 0.0  # at()'s sum for any τ ≥ 0 (signed zeros too)
+
     def at(self, t: float) -> tuple[float, float]:
         """(position [m], velocity [m/s]) at one time t, as floats: :meth:`evaluate`'s arithmetic on one sample without
         numpy's per-call cost (a drive polled for its position, a go-to planned from the present state)."""

@@ -263,7 +263,11 @@ class MotionVerifier:
         ``profile.evaluate(np.linspace(t - lag, t, MOTION_SAMPLES))`` gives, computed as floats (the same
         operations in the same order) without numpy's per-call cost at every encoder poll."""
         assert self._profile is not None
-        at, start = self._profile.at, t - self.lag
+        start = t - self.lag
+        rest = self._profile.rest
+        if rest is not None and min(start, t) >= rest[0]:  # at rest over the whole window: every sample the same
+            return [rest[1]] * MOTION_SAMPLES
+        at = self._profile.at
         step = (t - start) / (MOTION_SAMPLES - 1)
         return [at(k * step + start)[0] for k in range(MOTION_SAMPLES - 1)] + [at(t)[0]]
 

@@ -25,7 +25,7 @@ from bench.runtime.context import RunContext, present
 from bench.runtime.interlock import mismatch_trip, motion_trip
 from bench.runtime.safety import SafetyTrip
 from drivers.errors import InstrumentError, InstrumentStateError
-from drivers.interfaces import Readable, ReadingMap
+from drivers.interfaces import Readable, ReadingMap, StreamDescription
 
 FETCH_PERIOD_S = 0.25  # laser storage upload period while storing (run time)
 COLLECT_PERIOD_S = 0.05  # hardware-timed rigs: collect the DAQ stream (and top up its output buffer) this often
@@ -82,10 +82,12 @@ class Polled:
     check: Callable[[RunContext, ReadingMap, Row], None] = _no_check
 
 
-def poll_once(e: RunContext, drv: Readable, how: Polled, due: float) -> None:
+def poll_once(e: RunContext, drv: Readable, how: Polled, due: float, d: StreamDescription | None = None) -> None:
     """The software-timed poll of any readable instrument: one ``read()``, its row appended to the stream its
-    ``describe()`` names (stamped with the reading's time, its lateness in ``late``), then the role's check."""
-    d = drv.describe()
+    ``describe()`` names (stamped with the reading's time, its lateness in ``late``), then the role's check.
+    ``d``: the instrument's ``describe()``, where the caller has it already."""
+    if d is None:
+        d = drv.describe()
     r = drv.read()
     row = how.row(e, r)
     if row is None:
@@ -220,7 +222,13 @@ def _collect(e: RunContext, due: float) -> None:
 
 
 def _role_poll(drv: Readable, how: Polled) -> Poll:
-    return Poll(how.name, how.period, lambda e, due: poll_once(e, drv, how, due))
+    described: list[StreamDescription] = []  # the instrument's describe(), asked once, at the first poll
+
+    def run(e: RunContext, due: float) -> None:
+        if not described:
+            described.append(drv.describe())
+        poll_once(e, drv, how, due, described[0])
+    return Poll(how.name, how.period, run)
 
 
 FETCH = Poll("fetch", _fetch_period, _fetch, first=1)  # nothing is stored yet at the step's start

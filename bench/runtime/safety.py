@@ -41,6 +41,8 @@ class Supervisor:
     displacement: float | None = None  # membrane u [m]
     aperture: float | None = None  # LS-DEA x [m]
     motor_setpoints: int = 0  # go-to commands checked (and passed)
+    _last_stretch: tuple[LozengeParams, float, tuple[float, float, float]] | None = field(
+        default=None, init=False, repr=False, compare=False)  # (specimen, aperture, _stretch's answer)
 
     def __post_init__(self) -> None:
         lim = self.rig.limits.max_voltage_V
@@ -64,9 +66,20 @@ class Supervisor:
             return abs(volts) * lam * lam / p.L3, min(cap, p.breakdown_field / margin)
         q = self.specimen
         x = min(max(self.aperture or q.xp, 1.0001 * q.xp), 1.999 * q.l)
-        l1, l2, *_ = kinematics(x, q.pack())
-        e_b = q.material.E0 * (l1 * l2) ** (q.material.r / 2)
+        l1, l2, e_b = self._stretch(q, x)
         return abs(volts) * l1 * l2 / q.t0, min(cap, e_b / margin)
+
+    def _stretch(self, q: LozengeParams, x: float) -> tuple[float, float, float]:
+        """(λ1, λ2, breakdown field E_B [V/m]) of the LS-DEA ``q`` at aperture ``x`` [m]: the last one remembered, as
+        the aperture changes only with a motor reading (the live view's headroom asks at every engine wake-up, and
+        packing the specimen for the kinematics costs more than the rest of the field model)."""
+        last = self._last_stretch
+        if last is not None and last[0] is q and last[1] == x:
+            return last[2]
+        l1, l2, *_ = kinematics(x, q.pack())
+        out = l1, l2, q.material.E0 * (l1 * l2) ** (q.material.r / 2)
+        self._last_stretch = q, x, out
+        return out
 
     # ------------------------------------------------------------ checks
     def check_setpoint(self, volts: float) -> None:

@@ -257,6 +257,14 @@ class Written:
     file_stat: tuple[int, int]
 
 
+def _samples(values: np.ndarray | float, dtype: type | None = None) -> np.ndarray:
+    """``values`` as a 1-d array (of ``dtype``, if given): ``np.atleast_1d(np.asarray(values, dtype))``, a Python
+    float (a poll's value) without numpy's conversion machinery (the same float64 array of one sample)."""
+    if type(values) is float:
+        return np.array((values,))
+    return np.atleast_1d(np.asarray(values, dtype=dtype))
+
+
 class Recorder:
     """Appends blocks of samples to an HDF5 file in SWMR mode; see the module docstring for the layout."""
 
@@ -445,9 +453,9 @@ class Recorder:
             return
         c0 = time.thread_time()
         buf = self._buffers[stream]
-        block = {"t": np.atleast_1d(np.asarray(t, dtype=float))}
+        block = {"t": _samples(t, float)}
         for name, values in columns.items():
-            block[name] = np.atleast_1d(np.asarray(values))
+            block[name] = _samples(values)
         if block.keys() != buf.keys() or any(a.size != block["t"].size for a in block.values()):
             got = ", ".join(f"{k} ({a.size})" for k, a in block.items())
             raise ValueError(f"stream {stream}: a block needs t and every column ({', '.join(buf)}), one value per "
