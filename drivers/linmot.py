@@ -198,7 +198,7 @@ class LinMotDrive:
         self.checksum = checksum
         self._count = 0
         self._control_word = 0
-        self._poll_telegram: tuple[tuple[int, bool], bytes] = ((-1, False), b"")  # (drive id, checksum), telegram
+        self._poll_telegram: tuple[tuple[int, bool], bytes] | None = None  # (drive id, checksum), telegram
 
     # ----------------------------------------------------------- protocol
     def transact(self, main: int, sub: int, data: bytes = b"") -> DefaultResponse:
@@ -222,10 +222,11 @@ class LinMotDrive:
     def poll(self) -> DefaultResponse:
         """Request the default response (the telegram encoded once for this drive id and checksum setting)."""
         key = (self.drive_id, self.checksum)
-        if self._poll_telegram[0] != key:
-            self._poll_telegram = key, encode(self.drive_id, MAIN_RESPONSE, SUB_DEFAULT_RESPONSE_REQUEST,
-                                              checksum=self.checksum)
-        return self._exchange(self._poll_telegram[1])
+        cached = self._poll_telegram
+        if cached is None or cached[0] != key:  # encode() checks the id: a bad one raises as on every telegram
+            cached = self._poll_telegram = key, encode(self.drive_id, MAIN_RESPONSE, SUB_DEFAULT_RESPONSE_REQUEST,
+                                                       checksum=self.checksum)
+        return self._exchange(cached[1])
 
     def write_control_word(self, word: int) -> DefaultResponse:
         """Write the control word."""

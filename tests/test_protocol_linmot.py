@@ -295,3 +295,14 @@ def test_each_poll_sends_the_default_response_request_of_the_drive_id_and_checks
         assert d.poll().position_counts == 12
         d.checksum = True
         assert d.poll().position_counts == 13
+
+
+def test_a_poll_for_a_drive_id_outside_a_byte_is_refused_before_anything_is_sent() -> None:
+    """The LinRS ID field is one byte (LinRS manual p. 11): a drive id of −1 or 256 cannot be sent, and the poll says
+    so at once (as every other telegram does) instead of sending nothing and waiting out a timeout."""
+    for bad in (-1, 256):
+        with expected_protocol(f"bad-id-{bad}", []) as url:
+            d = drive(url)
+            d.drive_id = bad
+            with pytest.raises(ValueError):
+                d.poll()
