@@ -22,6 +22,7 @@ from bench.core.clock import VirtualClock
 from bench.runtime.run import execute, plan_run
 from bench.runtime.sim_rig import SimRig
 from bench.storage.runfile import open_run
+from drivers.errors import InstrumentTimeoutError
 from drivers.labjack import LabJackT7, StreamIn, StreamOut, StreamSpec
 from drivers.labjack.packets import StreamBatch
 from sim_devices.labjack_t7 import LabJackT7Sim
@@ -204,6 +205,74 @@ def test_a_lost_host_in_demand_mode_is_still_stopped_by_the_t7_watchdog() -> Non
     finally:
         r.close()
     assert not r.sim.errors
+
+
+def test_a_request_after_the_watchdogs_timeout_cannot_restart_the_loop_it_stopped() -> None:
+    """The host goes silent while a loop repeats; the clock passes the 1-s watchdog timeout in steps below the
+    twin's 0.5-s pump step (nothing has played up to there); a DAC read then arrives 0.05 s after the timeout. On a T7
+    the timeout acted when it ended (datasheet, Watchdog: "if the timeout is reached, the T7 performs the
+    configured actions"), so the read finds the loop stopped and the amplifier input at 0 V — it must not play on."""
+    from tests.test_t7_stream_loop import _sine
+
+    r = _demand_rig(watchdog_s=1)
+    try:
+        r.daq.arm(StreamSpec(RATE, (StreamIn(0, name="vmon"),), StreamOut(0, _sine(40)), out_ahead_s=0.5,
+                             out_loops=True))
+        r.daq.kickoff()
+        for _ in range(4):
+            r.clock.advance(0.25)
+            r.daq.collect(until=r.clock.now())
+            r.daq.read_dac(0)
+        with socket.create_connection(("127.0.0.1", r.port), timeout=2) as s:
+            _round_trip(s)  # the last request: the watchdog counts from here
+            last = r.clock.now()
+            r.clock.advance_to(last + 0.3)  # below the twin's 0.5-s pump step: no pump
+            r.clock.advance_to(last + 0.6)  # a step: the twin pumps (plays up to here) on its own thread
+            _wait_for(lambda: r.sim._worked_at == last + 0.6)
+            r.clock.advance_to(last + 0.9)
+            r.clock.advance_to(last + 1.05)  # 0.45 s since that pump: nothing has played past 0.6 s
+            _transact(s, bytes.fromhex("0021 0000 0006 01 03 03e8 0002"))  # FC3 DAC0, 0.05 s after the timeout
+        assert r.sim.outs[0].loop.size == 0 and not r.sim.outs[0].loop_active
+        r.clock.advance(0.5)
+        _wait_for(lambda: r.sim.outs[0].loop.size == 0)
+        r.plant.observe()
+        assert r.plant.watchdog_tripped and r.plant.v_in == 0.0
+    finally:
+        r.close()
+    assert not r.sim.errors
+
+
+def test_a_stop_written_after_a_burst_ended_is_refused_and_the_burst_ends_whole(rig: Rig) -> None:
+    """A burst of 1000 scans ends at 0.1 s (scan 999); no host wait and no pump step until the host writes
+    STREAM_ENABLE ← 0 at 0.12 s. A T7 stopped streaming when the burst ended: the write is refused (exception 4,
+    2620 STREAM_NOT_RUNNING) and every scan arrives, the last packet with status 2944."""
+    rig.daq.arm(StreamSpec(RATE, tuple(StreamIn(i) for i in range(4)), num_scans=1000, samples_per_packet=512))
+    rig.daq.kickoff()
+    rig.clock.advance(0.12)
+    with socket.create_connection(("127.0.0.1", rig.port), timeout=2) as s:
+        reply = _transact(s, bytes.fromhex("0016 0000 000b 01 10 137e 0002 04 0000 0000"))
+    assert reply[7] == 0x90
+    block = rig.daq.collect(until=rig.clock.now(), timeout=2.0)
+    assert (block.n, block.done, block.statuses) == (1000, True, (2944,))
+
+
+def test_a_reply_the_twin_withheld_does_not_stop_the_stream_from_arriving(rig: Rig) -> None:
+    """The Modbus link is muted for one request (it times out, as a T7 that does not answer); the stream socket is
+    another connection, and its packets still come: after the mute is lifted, the next 0.1 s of scans (1000 at 10
+    kHz) is collected whole."""
+    rig.daq.arm(StreamSpec(RATE, (StreamIn(0),), samples_per_packet=100))
+    rig.daq.kickoff()
+    rig.clock.advance(0.1)
+    assert rig.daq.collect(until=rig.clock.now()).n == 1000
+    rig.sim.faults.mute = True
+    with pytest.raises(InstrumentTimeoutError):
+        rig.daq.read_dac(0)
+    rig.sim.faults.mute = False
+    seen = rig.daq.scans_received
+    rig.clock.advance(0.1)
+    block = rig.daq.collect(until=rig.clock.now())
+    assert rig.daq.scans_received - seen == block.n >= 1000
+    rig.daq.stop()
 
 
 @pytest.mark.parametrize("virtual", [False, True])

@@ -174,7 +174,8 @@ class T7Stream(T7StreamOut):
         assert s is not None and s.sock is not None
         out: list[StreamBatch] = []
         got = 0
-        deadline = self.timer.start(timeout)
+        self.timer.sending()  # what is waited for from here: the packets, not the reply to the last request (one the
+        deadline = self.timer.start(timeout)  # twin withheld says nothing of the stream, which a T7 sends regardless)
         while True:
             check(self.cancel, self.name)
             wait = s.packets + got < until_packets and not s.done

@@ -237,6 +237,17 @@ class RegisterIO(StreamEngine):
         self.last_err = E_ILLEGAL_ADDRESS
         return ExcCodes.ILLEGAL_ADDRESS
 
+    def _lapsed(self, now: float) -> None:
+        """A request after the watchdog's timeout finds it fired ([D] the timeout acts when it ends, not at the next
+        request): a stream-out loop it stops is played up to ``now`` first, so the request cannot restart it (a
+        twin pumping on demand may not have played that far yet)."""
+        act = self.watchdog.action(self.dac)
+        if act is None or not self.streaming or now < self.heard + act[0]:
+            return
+        with self.plant.lock, self.lock:
+            for k in self._out_indices():
+                self._advance_out(k, now)
+
     async def action(self, fc: int, start: int, address: int, count: int, regs: list[int],
                      values: list[int] | list[bool] | None) -> ExcCodes | None:
         """Serve reads by computing the registers, writes by applying them (pymodbus stores nothing we use).
@@ -244,6 +255,7 @@ class RegisterIO(StreamEngine):
         Every request resets the T7 watchdog ([D] WATCHDOG_*_DEFAULT registers: on timeout the device writes
         its configured DAC value — for a rig, the code of 0 V at the amplifier input); the twin arms the
         plant's input watchdog from those registers as the host writes them (:meth:`_arm_watchdog`)."""
+        self._lapsed(self.clock.now())
         self.plant.feed_watchdog()
         self.heard = self.clock.now()
         # The plant's lock first, then ours, and the time read inside both: the plant cannot integrate past
@@ -387,7 +399,11 @@ class RegisterIO(StreamEngine):
             if not self.streaming:
                 return self._fail(E_NOT_RUNNING)
             self._catch_up(now)
-            self._send()  # the whole packets filled by now leave first (a twin pumping on demand holds them)
+            nscans = int(self.regs[R_NSCANS])
+            ended = bool(nscans) and self.produced >= nscans
+            self._send(final=ended)  # the packets filled by now leave first (a twin pumping on demand holds them)
+            if ended:  # a burst that ended before this request had stopped: as if the pump had seen it end
+                return self._fail(E_NOT_RUNNING)
             self._stop_stream(now)
         elif a in self.tests:
             self.tests[a] = value
