@@ -31,10 +31,12 @@ under SWMR); the datasets are then appended in blocks and flushed at least every
 ``append``/``event`` checks the interval itself (a caller busy elsewhere, e.g. uploading stored laser data for
 30 s, still has its data on disk within the interval), and ``maybe_flush`` covers stretches without data. A stream
 with :data:`FLUSH_CHUNKS` chunks queued is written sooner, its whole chunks only (data faster than real time: a
-virtual-time run). Those flushes take the queued data on the caller's thread and write it on a background thread
-(h5py releases the GIL while HDF5 compresses and writes, so the run goes on meanwhile); one write at a time, in
-order. A failure there is raised on the caller's thread by its next recorder call. :meth:`Recorder.flush`,
-``set_state`` and ``finish`` first wait for a write under way, then write on the caller's thread.
+virtual-time run); so is every stream's at a step's end from :data:`STEP_END_CHUNKS` chunks and at the run's end
+from one (:meth:`Recorder.write_ahead`), which leaves the finish only the tails. Those flushes take the queued
+data on the caller's thread and write it on a background thread (h5py releases the GIL while HDF5 compresses and
+writes, so the run goes on meanwhile); one write at a time, in order. A failure there is raised on the caller's
+thread by its next recorder call. :meth:`Recorder.flush`, ``set_state`` and ``finish`` first wait for a write under
+way, then write on the caller's thread.
 
 A failed write (disk full, file-size limit, unwritable directory, any HDF5 error) raises one
 :class:`StorageError` naming the file and the cause; the recorder is then *failed*: further calls are no-ops,
@@ -88,6 +90,9 @@ FLUSH_CHUNKS = 16  # a stream with this many chunks queued is written at once (i
 # interval: faster than real time (virtual time) the interval alone left a short run's whole file to be written after
 # its last step; a write costs about two chunks' compression besides its data, which 16 keep to an eighth of it (real
 # time: the interval comes first)
+STEP_END_CHUNKS = FLUSH_CHUNKS // 4  # a step's end starts a write of the whole chunks queued once a stream has this
+# many (a second of it): its data then compresses during the next step, not after the last one on the run's thread;
+# steps of less leave theirs to the rules above, so that short steps do not multiply the writes and their own cost
 
 
 def chunk_length(rate: float) -> int:
@@ -491,18 +496,37 @@ class Recorder:
         if interval or self._due:
             if interval:  # (a write of whole chunks leaves the rest queued: the interval still runs for it)
                 self._last_flush = time.monotonic()
-            work = self._take(whole_chunks=not interval)
-            # not a daemon: the interpreter finishes a write under way before h5py's exit handler closes the file
-            writing = threading.Thread(target=self._write_in_background, args=(work,), name="recorder-flush")
+            self._start_write(self._take(whole_chunks=not interval))
+
+    def _start_write(self, work: _Work) -> None:
+        """Write ``work`` on a background thread (none under way), or here where no thread can be started."""
+        # not a daemon: the interpreter finishes a write under way before h5py's exit handler closes the file
+        writing = threading.Thread(target=self._write_in_background, args=(work,), name="recorder-flush")
+        try:
+            writing.start()
+        except RuntimeError:  # no thread to be had (process or memory limits): write the data here instead
             try:
-                writing.start()
-            except RuntimeError:  # no thread to be had (process or memory limits): write the data here instead
-                try:
-                    self._write(work)
-                except Exception as exc:
-                    raise self._fail("write failed", exc) from None
-                return
-            self._writing = writing
+                self._write(work)
+            except Exception as exc:
+                raise self._fail("write failed", exc) from None
+            return
+        self._writing = writing
+
+    def write_ahead(self, min_chunks: int = 1) -> None:
+        """Start writing the whole chunks queued on the background thread now, if some stream has ``min_chunks`` of
+        them, whatever :data:`FLUSH_CHUNKS` says (unless a write is under way): at a step's end and at the run's
+        end, so that what the run does meanwhile overlaps their compression instead of :meth:`finish` doing it all
+        on the caller's thread after the last step. Raises the :class:`StorageError` of a background write that
+        failed."""
+        if self.failure:
+            return
+        if self._writing is not None and not self._writing.is_alive():
+            self._await_write()
+        if self._writing is not None or not any(
+                (self._taken[s] + q) // self._chunks[s] - self._taken[s] // self._chunks[s] >= min_chunks
+                for s, q in self._queued.items()):
+            return  # a write under way, or fewer whole chunks queued (as _take counts them)
+        self._start_write(self._take(whole_chunks=True))
 
     def flush(self) -> None:
         """Write every queued sample and event, and make them visible to readers (after a background write under
