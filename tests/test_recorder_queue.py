@@ -213,3 +213,32 @@ def test_write_ahead_writes_the_whole_chunks_queued_from_its_minimum_and_nothing
     np.testing.assert_array_equal(run.streams["amplifier"].columns["voltage"], -amp_t)
     np.testing.assert_array_equal(run.streams["laser"].t, laser_t)
     np.testing.assert_array_equal(run.streams["laser"].columns["voltage"], laser_t)
+
+
+def test_write_ahead_during_a_write_under_way_writes_once_that_one_has_finished(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A step's end that finds the previous write still under way (a loaded host) is not lost: its whole chunks go
+    at the first recorder call after that write, not at FLUSH_CHUNKS (16) chunks or at the finish."""
+    path = tmp_path / "run.h5"
+    rec = _recorder(path, flush_interval=3600.0)  # 1 kHz: chunks of 256
+    sizes: list[int] = []
+    write = recorder.Recorder._write
+    monkeypatch.setattr(recorder.Recorder, "_write",
+                        lambda self, work: (sizes.extend(n for _, _, _, n in work[0]), write(self, work))[1])
+    release = threading.Event()
+    under_way = threading.Thread(target=release.wait)
+    under_way.start()
+    rec._writing = under_way  # the previous write, still going
+    t = np.arange(1100) / RATE
+    with monkeypatch.context() as m:
+        m.setattr(recorder.threading, "Thread", _NoThread)
+        rec.append("amplifier", t[:1000], voltage=t[:1000], current=-t[:1000])  # 3 whole chunks
+        rec.write_ahead(3)
+        assert sizes == []  # waits for the write under way
+        release.set()
+        under_way.join()
+        rec.append("amplifier", t[1000:], voltage=t[1000:], current=-t[1000:])  # 1100 queued: 4 whole chunks
+        assert sizes == [1024]
+    rec.finish("completed", "ok")
+    assert sizes == [1024, 76]
+    np.testing.assert_array_equal(open_run(path).streams["amplifier"].t, t)

@@ -513,20 +513,17 @@ class Recorder:
         self._writing = writing
 
     def write_ahead(self, min_chunks: int = 1) -> None:
-        """Start writing the whole chunks queued on the background thread now, if some stream has ``min_chunks`` of
-        them, whatever :data:`FLUSH_CHUNKS` says (unless a write is under way): at a step's end and at the run's
-        end, so that what the run does meanwhile overlaps their compression instead of :meth:`finish` doing it all
-        on the caller's thread after the last step. Raises the :class:`StorageError` of a background write that
-        failed."""
+        """Write the whole chunks queued on the background thread now (or, with a write under way, as soon as it
+        has finished) if some stream has ``min_chunks`` of them, whatever :data:`FLUSH_CHUNKS` says: at a step's end
+        and at the run's end, so that what the run does meanwhile overlaps their compression instead of
+        :meth:`finish` doing it all on the caller's thread after the last step. Raises the :class:`StorageError` of
+        a background write that failed."""
         if self.failure:
             return
-        if self._writing is not None and not self._writing.is_alive():
-            self._await_write()
-        if self._writing is not None or not any(
-                (self._taken[s] + q) // self._chunks[s] - self._taken[s] // self._chunks[s] >= min_chunks
-                for s, q in self._queued.items()):
-            return  # a write under way, or fewer whole chunks queued (as _take counts them)
-        self._start_write(self._take(whole_chunks=True))
+        if any((self._taken[s] + q) // self._chunks[s] - self._taken[s] // self._chunks[s] >= min_chunks
+               for s, q in self._queued.items()):  # whole chunks, as _take counts them
+            self._due = True
+        self.maybe_flush()
 
     def flush(self) -> None:
         """Write every queued sample and event, and make them visible to readers (after a background write under
