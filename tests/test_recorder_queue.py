@@ -170,8 +170,9 @@ def test_a_stat_that_fails_after_the_stamp_leaves_the_finished_file_and_other_de
 def test_write_ahead_writes_the_whole_chunks_queued_from_its_minimum_and_nothing_ahead_of_a_tail(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """A step's or the run's end writes ahead of FLUSH_CHUNKS (16, none reached here): every stream's whole chunks
-    once one stream has ``min_chunks`` of them, its tail, the events and the valid-up-to time left queued, as a
-    write of whole chunks does; the finish writes the rest. Chunks: 256 samples at 1 kHz, 1000 at 4 kHz. Writes on
+    once one stream has ``min_chunks`` of them and would not reach FLUSH_CHUNKS in the time still to come, its
+    tail, the events and the valid-up-to time left queued, as a write of whole chunks does; the finish writes the
+    rest. Chunks: 256 samples at 1 kHz, 1000 at 4 kHz. Writes on
     the caller's thread (no thread to be had), so their order is fixed."""
     path = tmp_path / "run.h5"
     cols = [recorder.Column("voltage", "V", "")]
@@ -196,7 +197,9 @@ def test_write_ahead_writes_the_whole_chunks_queued_from_its_minimum_and_nothing
         assert works == []  # no stream has 4 whole chunks
         rec.append("amplifier", amp_t[1000:], voltage=-amp_t[1000:])  # 1100: 4 whole chunks
         rec.event(1.1, 0, "end", "drive")
-        rec.write_ahead(4)
+        rec.write_ahead(4, remaining_s=3.0)  # 1100 + 3 s at 1 kHz reach 16 × 256: a FLUSH_CHUNKS write comes first
+        assert works == []
+        rec.write_ahead(4, remaining_s=2.9)  # 1100 + 2900 < 4096: none would come before the end
         assert works == [({"amplifier": 1024, "laser": 2000}, 0, 0.0)]  # the laser's 2 as well; tails stay
         assert open_run(path).completed_steps() == set()
         rec.write_ahead(4)

@@ -430,7 +430,8 @@ class Engine:
             self._storing = False
             self._drain_laser(LASER_DRAIN_BUDGET_S)
         self.rec.event(self.now(), seg.index, "end", seg.name)
-        self.rec.write_ahead(STEP_END_CHUNKS)  # the step's data compresses while the next step runs
+        # the last steps' data compresses while the next steps run (where no FLUSH_CHUNKS write comes before the end)
+        self.rec.write_ahead(STEP_END_CHUNKS, max(0.0, self.program.duration - seg.t_end))
 
     # ------------------------------------------------------------ pause, resume, a resumed start
     def _state_before(self, seg: Segment) -> tuple[float, float | None]:

@@ -91,8 +91,9 @@ FLUSH_CHUNKS = 16  # a stream with this many chunks queued is written at once (i
 # its last step; a write costs about two chunks' compression besides its data, which 16 keep to an eighth of it (real
 # time: the interval comes first)
 STEP_END_CHUNKS = FLUSH_CHUNKS // 4  # a step's end starts a write of the whole chunks queued once a stream has this
-# many (a second of it): its data then compresses during the next step, not after the last one on the run's thread;
-# steps of less leave theirs to the rules above, so that short steps do not multiply the writes and their own cost
+# many (a second of it) and would not reach FLUSH_CHUNKS before the program ends: its data then compresses during the
+# next steps, not after the last one on the run's thread; earlier steps' chunks, and those of steps of less, are left
+# to the rules above, so that the steps' ends do not multiply the writes and their own cost
 
 
 def chunk_length(rate: float) -> int:
@@ -278,7 +279,8 @@ class Recorder:
         # FLUSH_CHUNKS chunks queued
         self._queued = dict.fromkeys(streams, 0)
         self._taken = dict.fromkeys(streams, 0)
-        self._chunks = {s: chunk_length(rates.get(s, 100.0)) for s in streams}
+        self._rates = {s: rates.get(s, 100.0) for s in streams}
+        self._chunks = {s: chunk_length(r) for s, r in self._rates.items()}
         self._due = False
         self._taken_t = 0.0  # rig time up to which every stream's samples and the events are taken for writing
         self._ahead_t = 0.0  # rig time of the last sample taken for writing (whole-chunk writes run ahead of it)
@@ -512,15 +514,17 @@ class Recorder:
             return
         self._writing = writing
 
-    def write_ahead(self, min_chunks: int = 1) -> None:
+    def write_ahead(self, min_chunks: int = 1, remaining_s: float = 0.0) -> None:
         """Write the whole chunks queued on the background thread now (or, with a write under way, as soon as it
-        has finished) if some stream has ``min_chunks`` of them, whatever :data:`FLUSH_CHUNKS` says: at a step's end
-        and at the run's end, so that what the run does meanwhile overlaps their compression instead of
-        :meth:`finish` doing it all on the caller's thread after the last step. Raises the :class:`StorageError` of
-        a background write that failed."""
+        has finished) if some stream has ``min_chunks`` of them and would not reach :data:`FLUSH_CHUNKS` in the
+        ``remaining_s`` of the run still to come: at a step's end and at the run's end, so that what the run does
+        meanwhile overlaps their compression instead of :meth:`finish` doing it all on the caller's thread after
+        the last step (a stream that reaches FLUSH_CHUNKS before then is written then, at no extra write). Raises
+        the :class:`StorageError` of a background write that failed."""
         if self.failure:
             return
         if any((self._taken[s] + q) // self._chunks[s] - self._taken[s] // self._chunks[s] >= min_chunks
+               and q + self._rates[s] * remaining_s < FLUSH_CHUNKS * self._chunks[s]
                for s, q in self._queued.items()):  # whole chunks, as _take counts them
             self._due = True
         self.maybe_flush()
