@@ -23,6 +23,7 @@ from bench.models.membrane import MembraneParams
 from bench.models.membrane_runs import simulate_membrane
 from bench.rig import RigConfig, RigFileError, load_rig
 from bench.runtime.run import execute, plan_run
+from bench.storage import recorder
 from bench.storage.runfile import open_run
 from bench.waveforms import Waveform
 from tests.conftest import ROOT
@@ -130,6 +131,40 @@ def test_a_ramp_ends_exactly_on_its_target_on_a_daq_rig(tmp_path: Path) -> None:
     measured = amp.columns["voltage"][sel]
     assert abs(float(np.mean(measured)) - 7000.0) <= code + 10.0
     assert 0.5 < float(np.std(measured)) < 2 * code
+
+
+def test_a_virtual_run_leaves_its_finish_no_whole_chunk_to_write(tmp_path: Path,
+                                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+    """Faster than real time a stream writes at FLUSH_CHUNKS (16) chunks queued, so the last step's seconds of
+    10-kHz scans were left to the finish, written on the run's thread after the rig was safe (the thesis run's
+    last 3.3 s: 13 chunks a stream). The steps' ends and the shutdown write their whole chunks ahead: the finish
+    finds less than one chunk a stream. The shutdown's comes after 0 V is commanded (nothing of the file ahead of
+    it). The writes are made on the run's thread here, so that no write under way can hold one back; the file still
+    holds every scan."""
+    monkeypatch.setattr(recorder.Recorder, "_start_write", recorder.Recorder._write, raising=False)
+    left: list[dict[str, int]] = []
+    calls: list[str] = []
+
+    def hook(engine, sim) -> None:
+        rec, finish, amp = engine.rec, engine.rec.finish, engine.inst.amplifier
+        ahead, safe = getattr(rec, "write_ahead", None), amp.safe_state
+
+        def counted(state: str, reason: str) -> None:
+            left.append({s: (rec._taken[s] + q) // rec._chunks[s] - rec._taken[s] // rec._chunks[s]
+                         for s, q in rec._queued.items()})
+            finish(state, reason)
+
+        rec.finish = counted
+        if ahead is not None:
+            rec.write_ahead = lambda *a: (calls.append("write ahead"), ahead(*a))[1]
+        amp.safe_state = lambda: (calls.append("0 V"), safe())[1]
+
+    result, f, _ = run(SHORT / "thesis-identification-short.toml", THESIS_DAQ, tmp_path, hook=hook)
+    assert result.state == "completed" and f.complete
+    assert left == [dict.fromkeys(f.streams, 0)]
+    assert calls[-2:] == ["0 V", "write ahead"]  # the steps' ends before, the shutdown's after
+    laser = f.streams["laser"]
+    np.testing.assert_allclose(np.diff(laser.t), 1 / RATE, rtol=1e-6)  # no scan lost on the way
 
 
 def test_isometric_force_and_voltage_at_10_kHz(tmp_path: Path) -> None:

@@ -165,3 +165,83 @@ def test_a_stat_that_fails_after_the_stamp_leaves_the_finished_file_and_other_de
     assert abandoned == [] and not rec.failure and rec.written() is None
     run = open_run(path)
     assert run.state == "completed" and run.complete
+
+
+def test_write_ahead_writes_the_whole_chunks_queued_from_its_minimum_and_nothing_ahead_of_a_tail(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A step's or the run's end writes ahead of FLUSH_CHUNKS (16, none reached here): every stream's whole chunks
+    once one stream has ``min_chunks`` of them and would not reach FLUSH_CHUNKS in the time still to come, its
+    tail, the events and the valid-up-to time left queued, as a write of whole chunks does; the finish writes the
+    rest. Chunks: 256 samples at 1 kHz, 1000 at 4 kHz. Writes on
+    the caller's thread (no thread to be had), so their order is fixed."""
+    path = tmp_path / "run.h5"
+    cols = [recorder.Column("voltage", "V", "")]
+    rec = recorder.Recorder(path, {"protocol_name": "ahead"}, {"amplifier": cols, "laser": cols}, [],
+                            {"amplifier": 1000.0, "laser": 4000.0}, flush_interval=3600.0)
+    works: list[tuple[dict[str, int], int, float]] = []
+    write = recorder.Recorder._write
+
+    def spy(self: recorder.Recorder, work: recorder._Work) -> None:
+        blocks, events, last_t = work
+        works.append(({s: n for _, s, _, n in blocks}, 0 if events is None else events.size, last_t))
+        write(self, work)
+
+    monkeypatch.setattr(recorder.Recorder, "_write", spy)
+    amp_t, laser_t = np.arange(1100) / 1000.0, np.arange(4000) / 4000.0
+    with monkeypatch.context() as m:
+        m.setattr(recorder.threading, "Thread", _NoThread)
+        rec.event(0.0, 0, "start", "drive")
+        rec.append("amplifier", amp_t[:1000], voltage=-amp_t[:1000])  # 3 whole chunks of 256
+        rec.append("laser", laser_t[:2500], voltage=laser_t[:2500])  # 2 whole chunks of 1000
+        rec.write_ahead(4)
+        assert works == []  # no stream has 4 whole chunks
+        rec.append("amplifier", amp_t[1000:], voltage=-amp_t[1000:])  # 1100: 4 whole chunks
+        rec.event(1.1, 0, "end", "drive")
+        rec.write_ahead(4, remaining_s=3.0)  # 1100 + 3 s at 1 kHz reach 16 × 256: a FLUSH_CHUNKS write comes first
+        assert works == []
+        rec.write_ahead(4, remaining_s=2.9)  # 1100 + 2900 < 4096: none would come before the end
+        assert works == [({"amplifier": 1024, "laser": 2000}, 0, 0.0)]  # the laser's 2 as well; tails stay
+        assert open_run(path).completed_steps() == set()
+        rec.write_ahead(4)
+        rec.append("laser", laser_t[2500:], voltage=laser_t[2500:])  # 500 + 1500 queued: 2 whole chunks
+        rec.write_ahead(4)
+        assert len(works) == 1
+        rec.write_ahead()  # the run's end: from one whole chunk
+        assert works[1:] == [({"laser": 2000}, 0, 0.0)]
+    rec.finish("completed", "ok")
+    assert works[2:] == [({"amplifier": 76}, 2, amp_t[-1])]
+    run = open_run(path)
+    assert run.completed_steps() == {0}
+    np.testing.assert_array_equal(run.streams["amplifier"].t, amp_t)
+    np.testing.assert_array_equal(run.streams["amplifier"].columns["voltage"], -amp_t)
+    np.testing.assert_array_equal(run.streams["laser"].t, laser_t)
+    np.testing.assert_array_equal(run.streams["laser"].columns["voltage"], laser_t)
+
+
+def test_write_ahead_during_a_write_under_way_writes_once_that_one_has_finished(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A step's end that finds the previous write still under way (a loaded host) is not lost: its whole chunks go
+    at the first recorder call after that write, not at FLUSH_CHUNKS (16) chunks or at the finish."""
+    path = tmp_path / "run.h5"
+    rec = _recorder(path, flush_interval=3600.0)  # 1 kHz: chunks of 256
+    sizes: list[int] = []
+    write = recorder.Recorder._write
+    monkeypatch.setattr(recorder.Recorder, "_write",
+                        lambda self, work: (sizes.extend(n for _, _, _, n in work[0]), write(self, work))[1])
+    release = threading.Event()
+    under_way = threading.Thread(target=release.wait)
+    under_way.start()
+    rec._writing = under_way  # the previous write, still going
+    t = np.arange(1100) / RATE
+    with monkeypatch.context() as m:
+        m.setattr(recorder.threading, "Thread", _NoThread)
+        rec.append("amplifier", t[:1000], voltage=t[:1000], current=-t[:1000])  # 3 whole chunks
+        rec.write_ahead(3)
+        assert sizes == []  # waits for the write under way
+        release.set()
+        under_way.join()
+        rec.append("amplifier", t[1000:], voltage=t[1000:], current=-t[1000:])  # 1100 queued: 4 whole chunks
+        assert sizes == [1024]
+    rec.finish("completed", "ok")
+    assert sizes == [1024, 76]
+    np.testing.assert_array_equal(open_run(path).streams["amplifier"].t, t)

@@ -44,7 +44,7 @@ from bench.runtime.interlock import InterlockTrip, watchdog_period
 from bench.runtime.polls import PAUSED, StepState, record_laser_block, rig_polls
 from bench.runtime.ramp import ramp_to_zero
 from bench.runtime.safety import SafetyTrip, Supervisor
-from bench.storage.recorder import Recorder
+from bench.storage.recorder import STEP_END_CHUNKS, Recorder
 from drivers.errors import InstrumentConnectionError, InstrumentError, InstrumentStateError, OperationCancelledError
 
 SHUTDOWN_REPLY_S = 0.1  # shutdown: a request to the set-point module waits this long for its reply, once
@@ -430,6 +430,8 @@ class Engine:
             self._storing = False
             self._drain_laser(LASER_DRAIN_BUDGET_S)
         self.rec.event(self.now(), seg.index, "end", seg.name)
+        # the last steps' data compresses while the next steps run (where no FLUSH_CHUNKS write comes before the end)
+        self.rec.write_ahead(STEP_END_CHUNKS, max(0.0, self.program.duration - seg.t_end))
 
     # ------------------------------------------------------------ pause, resume, a resumed start
     def _state_before(self, seg: Segment) -> tuple[float, float | None]:
@@ -645,6 +647,7 @@ class Engine:
             self._event("interlock", f"latched at {t:.3f} s ({self.latched.kind}); the output stays at 0 V until an "
                         "operator resets the latch")
         zero_at = self._zero_voltage(t, notes)
+        self._record(self.rec.write_ahead)  # 0 V commanded: the file's tail compresses while the rest is made safe
         notes += self._others_safe()
         if self._storing and self.inst.laser is not None:
             try:

@@ -31,10 +31,12 @@ under SWMR); the datasets are then appended in blocks and flushed at least every
 ``append``/``event`` checks the interval itself (a caller busy elsewhere, e.g. uploading stored laser data for
 30 s, still has its data on disk within the interval), and ``maybe_flush`` covers stretches without data. A stream
 with :data:`FLUSH_CHUNKS` chunks queued is written sooner, its whole chunks only (data faster than real time: a
-virtual-time run). Those flushes take the queued data on the caller's thread and write it on a background thread
-(h5py releases the GIL while HDF5 compresses and writes, so the run goes on meanwhile); one write at a time, in
-order. A failure there is raised on the caller's thread by its next recorder call. :meth:`Recorder.flush`,
-``set_state`` and ``finish`` first wait for a write under way, then write on the caller's thread.
+virtual-time run); so is every stream's at a step's end from :data:`STEP_END_CHUNKS` chunks and at the run's end
+from one (:meth:`Recorder.write_ahead`), which leaves the finish only the tails. Those flushes take the queued
+data on the caller's thread and write it on a background thread (h5py releases the GIL while HDF5 compresses and
+writes, so the run goes on meanwhile); one write at a time, in order. A failure there is raised on the caller's
+thread by its next recorder call. :meth:`Recorder.flush`, ``set_state`` and ``finish`` first wait for a write under
+way, then write on the caller's thread.
 
 A failed write (disk full, file-size limit, unwritable directory, any HDF5 error) raises one
 :class:`StorageError` naming the file and the cause; the recorder is then *failed*: further calls are no-ops,
@@ -88,6 +90,10 @@ FLUSH_CHUNKS = 16  # a stream with this many chunks queued is written at once (i
 # interval: faster than real time (virtual time) the interval alone left a short run's whole file to be written after
 # its last step; a write costs about two chunks' compression besides its data, which 16 keep to an eighth of it (real
 # time: the interval comes first)
+STEP_END_CHUNKS = FLUSH_CHUNKS // 4  # a step's end starts a write of the whole chunks queued once a stream has this
+# many (a second of it) and would not reach FLUSH_CHUNKS before the program ends: its data then compresses during the
+# next steps, not after the last one on the run's thread; earlier steps' chunks, and those of steps of less, are left
+# to the rules above, so that the steps' ends do not multiply the writes and their own cost
 
 
 def chunk_length(rate: float) -> int:
@@ -281,7 +287,8 @@ class Recorder:
         # FLUSH_CHUNKS chunks queued
         self._queued = dict.fromkeys(streams, 0)
         self._taken = dict.fromkeys(streams, 0)
-        self._chunks = {s: chunk_length(rates.get(s, 100.0)) for s in streams}
+        self._rates = {s: rates.get(s, 100.0) for s in streams}
+        self._chunks = {s: chunk_length(r) for s, r in self._rates.items()}
         self._due = False
         self._taken_t = 0.0  # rig time up to which every stream's samples and the events are taken for writing
         self._ahead_t = 0.0  # rig time of the last sample taken for writing (whole-chunk writes run ahead of it)
@@ -499,18 +506,36 @@ class Recorder:
         if interval or self._due:
             if interval:  # (a write of whole chunks leaves the rest queued: the interval still runs for it)
                 self._last_flush = time.monotonic()
-            work = self._take(whole_chunks=not interval)
-            # not a daemon: the interpreter finishes a write under way before h5py's exit handler closes the file
-            writing = threading.Thread(target=self._write_in_background, args=(work,), name="recorder-flush")
+            self._start_write(self._take(whole_chunks=not interval))
+
+    def _start_write(self, work: _Work) -> None:
+        """Write ``work`` on a background thread (none under way), or here where no thread can be started."""
+        # not a daemon: the interpreter finishes a write under way before h5py's exit handler closes the file
+        writing = threading.Thread(target=self._write_in_background, args=(work,), name="recorder-flush")
+        try:
+            writing.start()
+        except RuntimeError:  # no thread to be had (process or memory limits): write the data here instead
             try:
-                writing.start()
-            except RuntimeError:  # no thread to be had (process or memory limits): write the data here instead
-                try:
-                    self._write(work)
-                except Exception as exc:
-                    raise self._fail("write failed", exc) from None
-                return
-            self._writing = writing
+                self._write(work)
+            except Exception as exc:
+                raise self._fail("write failed", exc) from None
+            return
+        self._writing = writing
+
+    def write_ahead(self, min_chunks: int = 1, remaining_s: float = 0.0) -> None:
+        """Write the whole chunks queued on the background thread now (or, with a write under way, as soon as it
+        has finished) if some stream has ``min_chunks`` of them and would not reach :data:`FLUSH_CHUNKS` in the
+        ``remaining_s`` of the run still to come: at a step's end and at the run's end, so that what the run does
+        meanwhile overlaps their compression instead of :meth:`finish` doing it all on the caller's thread after
+        the last step (a stream that reaches FLUSH_CHUNKS before then is written then, at no extra write). Raises
+        the :class:`StorageError` of a background write that failed."""
+        if self.failure:
+            return
+        if any((self._taken[s] + q) // self._chunks[s] - self._taken[s] // self._chunks[s] >= min_chunks
+               and q + self._rates[s] * remaining_s < FLUSH_CHUNKS * self._chunks[s]
+               for s, q in self._queued.items()):  # whole chunks, as _take counts them
+            self._due = True
+        self.maybe_flush()
 
     def flush(self) -> None:
         """Write every queued sample and event, and make them visible to readers (after a background write under
