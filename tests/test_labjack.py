@@ -121,6 +121,19 @@ def test_nominal_calibration_conversions() -> None:
     assert cal.dac_volts(np.array([33000]), 0)[0] == pytest.approx((33000 >> 4 << 4) / 13200)
 
 
+def test_every_stream_code_converts_to_its_volts_in_the_shape_of_the_scans() -> None:
+    """All 65,536 codes as a block of scans (rows) by channels, at each range: (r − Center)·PSlope at or above the
+    centre, (Center − r)·NSlope below ([E] calibration.c), element by element, in the block's shape."""
+    cal = Calibration.nominal()
+    codes = np.arange(65536).reshape(-1, 4)[::-1]  # scans in reverse: no code at its own index
+    for gain in range(4):
+        p, n, c, _ = cal.hs(gain)
+        want = [[(r - c) * p if r >= c else (c - r) * n for r in row] for row in codes.tolist()]
+        got = cal.ain_volts(codes.astype(np.uint16), gain)
+        assert got.shape == codes.shape and got.dtype == np.float64
+        np.testing.assert_array_equal(got, want)
+
+
 def test_dac_codes_within_a_window_take_the_nearest_code_inside() -> None:
     """±7 kV through the conditioning stage (4·DAC − 10 V, 1000 V/V) is DAC 0.75…4.25 V. By hand (nominal: 13,200
     codes/V, offset 0; 12-bit, low 4 bits ignored): 0.75 V → 9900 → level 618 (9888 → 0.74909 V, outside) → the

@@ -179,3 +179,45 @@ def test_the_field_model_follows_each_new_aperture_and_specimen_at_once() -> Non
             want = paper(specimen, x, abs(volts))
             assert (e, e_max) == pytest.approx(want, rel=1e-12)
     assert sup.headroom()["field"] == pytest.approx(0.0)  # no voltage measured yet
+
+
+def test_the_headroom_follows_each_value_it_reads_and_each_specimen() -> None:
+    """The live view's headroom, asked at every engine wake-up, gives its last answer again only while nothing it
+    reads has changed: a new monitor reading, force, aperture or prototype each shows at once, and a caller's change
+    to one answer is not in the next. Expected: each reading over its limit (rig file), the field from eq 1 (above)."""
+    from bench.runtime.safety import Supervisor
+
+    rig = load_rig(RIG)
+    lim = rig.limits
+    sup = Supervisor(rig, rig.specimen.lozenge(1))
+    q1 = sup.specimen
+
+    def field(q: Any, x: float, volts: float) -> float:
+        l1 = q.lambda2p ** -0.5 * x / q.xp
+        l2 = q.lambda2p * np.sqrt(4 * q.l ** 2 - x * x) / np.sqrt(4 * q.l ** 2 - q.xp ** 2)
+        return volts * l1 * l2 / q.t0 / (q.material.E0 * (l1 * l2) ** (q.material.r / 2) / lim.breakdown_margin)
+
+    def want(q: Any, x: float, volts: float, amps: float, newtons: float) -> dict[str, Any]:
+        return {"voltage": pytest.approx(abs(volts) / min(lim.max_voltage_V, rig.amplifier.max_voltage_V)),
+                "field": pytest.approx(field(q, x, abs(volts)), rel=1e-12),
+                "current": pytest.approx(abs(amps) / lim.max_current_A), "force": pytest.approx(abs(newtons) /
+                                                                                                 lim.max_force_N)}
+
+    x = 1.3 * q1.xp
+    sup.aperture = x
+    sup.check_monitors(2000.0, 1e-3)
+    for _ in range(3):  # the answer, then the same twice: each the caller's own copy
+        answer = sup.headroom()
+        assert answer == want(q1, x, 2000.0, 1e-3, 0.0)
+        answer["voltage"] = 99.0
+    sup.check_monitors(-3000.0, 1e-3)
+    assert sup.headroom() == want(q1, x, -3000.0, 1e-3, 0.0)
+    sup.check_monitors(-3000.0, -2e-3)
+    assert sup.headroom() == want(q1, x, -3000.0, -2e-3, 0.0)
+    sup.check_force(1.5)
+    assert sup.headroom() == want(q1, x, -3000.0, -2e-3, 1.5)
+    sup.update_displacement(1.5 * q1.xp)  # the laser's aperture
+    assert sup.headroom() == want(q1, 1.5 * q1.xp, -3000.0, -2e-3, 1.5)
+    q3 = q1.changed(prototype=3)
+    sup.specimen = q3
+    assert sup.headroom() == want(q3, 1.5 * q1.xp, -3000.0, -2e-3, 1.5)

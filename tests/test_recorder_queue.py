@@ -245,3 +245,18 @@ def test_write_ahead_during_a_write_under_way_writes_once_that_one_has_finished(
     rec.finish("completed", "ok")
     assert sizes == [1024, 76]
     np.testing.assert_array_equal(open_run(path).streams["amplifier"].t, t)
+
+
+@pytest.mark.parametrize("values", [
+    0.25, np.float64(0.25), np.float32(0.25), np.array(0.25), [0.25, 0.5], np.arange(3.0),
+    np.arange(3, dtype=np.float32), np.arange(3, dtype=np.uint8), np.arange(6.0).reshape(2, 3)[:, 1], np.zeros(0),
+    np.arange(4.0)[::-1],
+], ids=["float", "f8-scalar", "f4-scalar", "0-d", "list", "f8", "f4", "u1", "strided", "empty", "reversed"])
+@pytest.mark.parametrize("dtype", [None, float], ids=["column", "time"])
+def test_samples_are_what_numpy_makes_of_them(values: object, dtype: type | None) -> None:
+    """Each form a value may come in (a poll's float, numpy scalars, a DAQ block's column, arrays of another type): the
+    queued array is numpy's ``atleast_1d(asarray(values, dtype))``, its type, shape and values."""
+    got = recorder._samples(values, dtype)  # type: ignore[arg-type]
+    want = np.atleast_1d(np.asarray(values, dtype=dtype))
+    assert got.dtype == want.dtype and got.shape == want.shape
+    np.testing.assert_array_equal(got, want)

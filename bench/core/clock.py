@@ -80,9 +80,10 @@ class VirtualClock:
         return t
 
     def now(self) -> float:
-        """Current virtual time [s]."""
-        with self._lock:
-            return self._t
+        """Current virtual time [s]. Read without the lock (the hosts' most frequent call: every wait, poll and driver
+        deadline): a float attribute is read whole, so a reader gets the time before or after a concurrent advance,
+        as with the lock; only the advances, which read and write it, take the lock."""
+        return self._t
 
     def advance(self, dt: float) -> float:
         """Move time forward by dt ≥ 0 [s]; returns the new time."""

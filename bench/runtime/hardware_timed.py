@@ -332,15 +332,26 @@ class HardwareTimed:
         k = min(max(self.daq.scans_received - 1 - self._base, 0), self._commanded.size - 1)
         return float(self._commanded[k]) if self._commanded.size else 0.0
 
+    def _commanded_at(self, first: int, n: int) -> np.ndarray:
+        """The output commanded at scans ``first`` … ``first + n − 1`` (a scan before or after the values kept: the
+        first or last of them); a copy, never a view of the values kept."""
+        lo, last = first - self._base, self._commanded.size - 1
+        if 0 <= lo and lo + n - 1 <= last:  # the usual block: every scan's value kept, in one slice
+            return self._commanded[lo:lo + n].copy()
+        return self._commanded[np.clip(lo + np.arange(n), 0, last)]
+
     def _record(self, block: StreamBlock, supervise: bool = True) -> None:
-        if block.n == 0:
+        n = block.n
+        if n == 0:
             return
-        self.scans += block.n
+        self.scans += n
         t = block.times() - self.ctx.t0
-        idx = np.clip(block.first_scan - self._base + np.arange(block.n), 0, self._commanded.size - 1)
-        commanded = self._commanded[idx]
+        commanded = self._commanded_at(block.first_scan, n)
         col = {name: block.volts[:, i] for i, name in enumerate(block.names)}
-        ok = block.valid.all(axis=1)
+        # a scan is valid when every channel is: a block whose every sample is valid (the rule) needs no reduction
+        # scan by scan, which costs far more on a few channels than one over the whole block
+        every = bool(block.valid.all())
+        ok = np.ones(n, bool) if every else block.valid.all(axis=1)
         v, i = self.amp.monitor_values(col["vmon"], col["imon"])
         rec, snap = self.ctx.rec, self.ctx.snapshot
         rec.append("amplifier", t, voltage=v, current=i, commanded=commanded)
@@ -354,9 +365,9 @@ class HardwareTimed:
             rec.append("laser", t, displacement=disp, valid=(ok & np.isfinite(disp)).astype("u1"))
         self.ctx.v_cmd = self._played()
         snap.values["setpoint"] = self.ctx.v_cmd
-        if not ok.any():
+        if not every and not ok.any():
             return
-        last = int(np.flatnonzero(ok)[-1])
+        last = n - 1 if every else int(np.flatnonzero(ok)[-1])
         snap.values["voltage"], snap.values["current"] = float(v[last]), float(i[last])
         if disp is not None:
             self.ctx.sup.update_displacement(float(disp[last]))
@@ -365,7 +376,7 @@ class HardwareTimed:
             snap.values["force"] = float(force[last])
         if not supervise:
             return
-        good = slice(None) if ok.all() else np.flatnonzero(ok)  # every scan valid (the rule): no copies
+        good = slice(None) if every else np.flatnonzero(ok)  # every scan valid (the rule): no copies
         self.ctx.sup.check_monitors(_peak(v[good]), _peak(i[good]))
         if force is not None:
             self.ctx.sup.check_force(_peak(force[good]))

@@ -43,6 +43,8 @@ class Supervisor:
     motor_setpoints: int = 0  # go-to commands checked (and passed)
     _last_stretch: tuple[LozengeParams, float, tuple[float, float, float]] | None = field(
         default=None, init=False, repr=False, compare=False)  # (specimen, aperture, _stretch's answer)
+    _last_headroom: tuple[object, object, tuple[float | None, ...], dict[str, float]] | None = field(
+        default=None, init=False, repr=False, compare=False)  # (specimen, rig, the values it read, headroom())
 
     def __post_init__(self) -> None:
         lim = self.rig.limits.max_voltage_V
@@ -219,11 +221,21 @@ class Supervisor:
             self.aperture = value
 
     def headroom(self) -> dict[str, float]:
-        """Fraction of each limit in use (0…1+), for the live view."""
+        """Fraction of each limit in use (0…1+), for the live view (a new dict at each call). The engine asks at every
+        wake-up (each 20-Hz position poll) while the values it depends on change far less often (the monitors at a
+        DAQ collect): the last answer is given again while the specimen, the rig (both frozen) and the values read
+        here are the same."""
+        values = (self.last_voltage, self.last_current, self.last_force, self.displacement, self.aperture,
+                  self.voltage_limit)
+        last = self._last_headroom
+        if last is not None and last[0] is self.specimen and last[1] is self.rig and last[2] == values:
+            return dict(last[3])
         e, e_max = self.field_and_breakdown(self.last_voltage)
-        return {"voltage": abs(self.last_voltage) / self.voltage_limit, "field": e / e_max,
-                "current": abs(self.last_current) / self.rig.limits.max_current_A,
-                "force": abs(self.last_force) / self.rig.limits.max_force_N}
+        out = {"voltage": abs(self.last_voltage) / self.voltage_limit, "field": e / e_max,
+               "current": abs(self.last_current) / self.rig.limits.max_current_A,
+               "force": abs(self.last_force) / self.rig.limits.max_force_N}
+        self._last_headroom = self.specimen, self.rig, values, out
+        return dict(out)
 
     def _trip(self, reason: str) -> None:
         raise SafetyTrip(reason)

@@ -264,9 +264,13 @@ class Written:
 
 
 def _samples(values: np.ndarray | float, dtype: type | None = None) -> np.ndarray:
-    """``values`` as a 1-d array (of ``dtype``, if given): ``np.atleast_1d(np.asarray(values, dtype))``, a Python
-    float (a poll's value) without numpy's conversion machinery (the same float64 array of one sample)."""
-    if type(values) is float:
+    """``values`` as a 1-d array (of ``dtype``, if given): ``np.atleast_1d(np.asarray(values, dtype))``, without
+    numpy's conversion machinery for a Python float (a poll's value: the same float64 array of one sample) or for a
+    1-d array already of ``dtype`` (a DAQ block's column: the array itself, as asarray and atleast_1d return it)."""
+    if type(values) is np.ndarray:
+        if values.ndim == 1 and (dtype is None or values.dtype == dtype):
+            return values
+    elif type(values) is float:
         return np.array((values,))
     return np.atleast_1d(np.asarray(values, dtype=dtype))
 
@@ -460,16 +464,20 @@ class Recorder:
             return
         c0 = time.thread_time()
         buf = self._buffers[stream]
-        block = {"t": _samples(t, float)}
+        times = _samples(t, float)
+        n = times.size
+        block = {"t": times}
+        sized = True
         for name, values in columns.items():
-            block[name] = _samples(values)
-        if block.keys() != buf.keys() or any(a.size != block["t"].size for a in block.values()):
+            a = block[name] = _samples(values)
+            sized = sized and a.size == n
+        if not sized or block.keys() != buf.keys():
             got = ", ".join(f"{k} ({a.size})" for k, a in block.items())
             raise ValueError(f"stream {stream}: a block needs t and every column ({', '.join(buf)}), one value per "
                              f"time; got {got} (nothing of it queued)")
         for name, values in block.items():  # all or nothing: the columns of a stream stay equally long
             buf[name].append(values)
-        self._queued[stream] += block["t"].size
+        self._queued[stream] += n
         self._due = self._due or self._queued[stream] >= FLUSH_CHUNKS * self._chunks[stream]
         self._cpu_queue += time.thread_time() - c0
         self.maybe_flush()

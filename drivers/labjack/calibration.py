@@ -45,9 +45,10 @@ class Calibration:
         return s, o
 
     def ain_volts(self, raw: np.ndarray, gain: int) -> np.ndarray:
-        """Stream samples (16-bit binary) to volts (through a table of all 65536 codes)."""
+        """Stream samples (16-bit binary) to volts (through a table of all 65536 codes), in the shape of ``raw``."""
         p, n, c, _ = self.hs(gain)
-        return _ain_table(p, n, c)[np.asarray(raw, dtype=np.uint16)]
+        # take: the same gather as indexing the table with the codes, without the indexing machinery (a third less)
+        return np.take(_ain_table(p, n, c), np.asarray(raw, dtype=np.uint16))
 
     def dac_codes(self, volts: np.ndarray, channel: int, within: tuple[float, float] | None = None,
                   bits: int = 12) -> np.ndarray:
