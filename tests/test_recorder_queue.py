@@ -104,6 +104,20 @@ def test_a_stream_with_eight_chunks_queued_is_written_at_once_in_whole_chunks(
     assert run.updated == max(amp_t[-1], laser_t[-1])  # the last sample's rig time
 
 
+def _spy_on_writes(monkeypatch: pytest.MonkeyPatch) -> list[tuple[dict[str, int], int, float]]:
+    """Each write the recorder makes, as (samples per stream, events, valid-up-to time), in order."""
+    works: list[tuple[dict[str, int], int, float]] = []
+    write = recorder.Recorder._write
+
+    def spy(self: recorder.Recorder, work: recorder._Work) -> None:
+        blocks, events, last_t = work
+        works.append(({s: n for _, s, _, n in blocks}, 0 if events is None else events.size, last_t))
+        write(self, work)
+
+    monkeypatch.setattr(recorder.Recorder, "_write", spy)
+    return works
+
+
 def test_a_whole_chunk_write_takes_no_event_and_no_valid_time_ahead_of_another_stream_s_tail(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """A write of whole chunks leaves each stream's tail queued, so it must leave the events (a step's end) and the
@@ -116,15 +130,7 @@ def test_a_whole_chunk_write_takes_no_event_and_no_valid_time_ahead_of_another_s
     cols = [recorder.Column("voltage", "V", "")]
     rec = recorder.Recorder(path, {"protocol_name": "events"}, {"amplifier": cols, "laser": cols}, [],
                             {"amplifier": 1000.0, "laser": 1000.0}, flush_interval=3600.0)
-    works: list[tuple[dict[str, int], int, float]] = []
-    write = recorder.Recorder._write
-
-    def spy(self: recorder.Recorder, work: recorder._Work) -> None:
-        blocks, events, last_t = work
-        works.append(({s: n for _, s, _, n in blocks}, 0 if events is None else events.size, last_t))
-        write(self, work)
-
-    monkeypatch.setattr(recorder.Recorder, "_write", spy)
+    works = _spy_on_writes(monkeypatch)
     laser_t, amp_t = np.arange(1000) / 1000.0, np.arange(2100) / 1000.0
     with monkeypatch.context() as m:
         m.setattr(recorder.threading, "Thread", _NoThread)
@@ -178,15 +184,7 @@ def test_write_ahead_writes_the_whole_chunks_queued_from_its_minimum_and_nothing
     cols = [recorder.Column("voltage", "V", "")]
     rec = recorder.Recorder(path, {"protocol_name": "ahead"}, {"amplifier": cols, "laser": cols}, [],
                             {"amplifier": 1000.0, "laser": 4000.0}, flush_interval=3600.0)
-    works: list[tuple[dict[str, int], int, float]] = []
-    write = recorder.Recorder._write
-
-    def spy(self: recorder.Recorder, work: recorder._Work) -> None:
-        blocks, events, last_t = work
-        works.append(({s: n for _, s, _, n in blocks}, 0 if events is None else events.size, last_t))
-        write(self, work)
-
-    monkeypatch.setattr(recorder.Recorder, "_write", spy)
+    works = _spy_on_writes(monkeypatch)
     amp_t, laser_t = np.arange(1100) / 1000.0, np.arange(4000) / 4000.0
     with monkeypatch.context() as m:
         m.setattr(recorder.threading, "Thread", _NoThread)

@@ -177,10 +177,9 @@ def test_a_dac_read_during_stream_out_gives_the_value_played_by_now(rig: Rig) ->
     rig.daq.stop()
 
 
-def test_a_lost_host_in_demand_mode_is_still_stopped_by_the_t7_watchdog() -> None:
-    """As tests/test_t7_stream_loop.py's lost host, with nobody pumping the twin by hand: the host goes silent
-    while a loop repeats, just after a keepalive; the clock alone (steps of 0.1 s for 2 s) makes the twin act — the
-    watchdog (1 s) stops the loop and the amplifier input is at 0 V."""
+def _looping_with_watchdog() -> Rig:
+    """A demand rig with a 1-s watchdog playing a looped sine for 1 s, a DAC keep-alive after each collect (as a
+    run's engine sends): the watchdog counts from the last."""
     from tests.test_t7_stream_loop import _sine
 
     r = _demand_rig(watchdog_s=1)
@@ -191,7 +190,19 @@ def test_a_lost_host_in_demand_mode_is_still_stopped_by_the_t7_watchdog() -> Non
         for _ in range(4):
             r.clock.advance(0.25)
             r.daq.collect(until=r.clock.now())
-            r.daq.read_dac(0)  # a keepalive (as a run's engine sends): the watchdog counts from the last
+            r.daq.read_dac(0)
+    except BaseException:
+        r.close()
+        raise
+    return r
+
+
+def test_a_lost_host_in_demand_mode_is_still_stopped_by_the_t7_watchdog() -> None:
+    """As tests/test_t7_stream_loop.py's lost host, with nobody pumping the twin by hand: the host goes silent
+    while a loop repeats, just after a keepalive; the clock alone (steps of 0.1 s for 2 s) makes the twin act — the
+    watchdog (1 s) stops the loop and the amplifier input is at 0 V."""
+    r = _looping_with_watchdog()
+    try:
         assert r.sim.outs[0].loops_set == 1
         with socket.create_connection(("127.0.0.1", r.port), timeout=2) as s:
             _round_trip(s)  # at the same rig time: a wake the host's waits asked for has run by its reply
@@ -212,17 +223,8 @@ def test_a_request_after_the_watchdogs_timeout_cannot_restart_the_loop_it_stoppe
     twin's 0.5-s pump step (nothing has played up to there); a DAC read then arrives 0.05 s after the timeout. On a T7
     the timeout acted when it ended (datasheet, Watchdog: "if the timeout is reached, the T7 performs the
     configured actions"), so the read finds the loop stopped and the amplifier input at 0 V — it must not play on."""
-    from tests.test_t7_stream_loop import _sine
-
-    r = _demand_rig(watchdog_s=1)
+    r = _looping_with_watchdog()
     try:
-        r.daq.arm(StreamSpec(RATE, (StreamIn(0, name="vmon"),), StreamOut(0, _sine(40)), out_ahead_s=0.5,
-                             out_loops=True))
-        r.daq.kickoff()
-        for _ in range(4):
-            r.clock.advance(0.25)
-            r.daq.collect(until=r.clock.now())
-            r.daq.read_dac(0)
         with socket.create_connection(("127.0.0.1", r.port), timeout=2) as s:
             _round_trip(s)  # the last request: the watchdog counts from here
             last = r.clock.now()
