@@ -245,8 +245,7 @@ class RegisterIO(StreamEngine):
         if act is None or not self.streaming or now < self.heard + act[0]:
             return
         with self.plant.lock, self.lock:
-            for k in self._out_indices():
-                self._advance_out(k, now)
+            self._play_out(now)
 
     async def action(self, fc: int, start: int, address: int, count: int, regs: list[int],
                      values: list[int] | list[bool] | None) -> ExcCodes | None:
@@ -399,8 +398,7 @@ class RegisterIO(StreamEngine):
             if not self.streaming:
                 return self._fail(E_NOT_RUNNING)
             self._catch_up(now)
-            nscans = int(self.regs[R_NSCANS])
-            ended = bool(nscans) and self.produced >= nscans
+            ended = self._burst_ended()
             self._send(final=ended)  # the packets filled by now leave first (a twin pumping on demand holds them)
             if ended:  # a burst that ended before this request had stopped: as if the pump had seen it end
                 return self._fail(E_NOT_RUNNING)

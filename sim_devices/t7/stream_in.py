@@ -104,16 +104,24 @@ class StreamEngine(StreamOut):
             now = self.clock.now()
             if now == self._pumped_at:  # pumped at this very time, no request since: nothing new is due (a virtual
                 return  # clock that has not moved between polls)
-            nscans = int(self.regs[R_NSCANS])
             self._catch_up(now)
-            self._send(final=bool(nscans) and self.produced >= nscans)
+            self._send(final=self._burst_ended())
             self._next_packet_t = self._packet_due()
             self._pumped_at = self._worked_at = now
 
-    def _catch_up(self, now: float) -> None:
-        """Play stream-out and take the scans due by ``now`` (a burst's: up to its last)."""
+    def _burst_ended(self) -> bool:
+        """Whether a burst (STREAM_NUM_SCANS > 0) has taken its last scan."""
+        nscans = int(self.regs[R_NSCANS])
+        return bool(nscans) and self.produced >= nscans
+
+    def _play_out(self, now: float) -> None:
+        """Play every stream-out up to ``now``."""
         for k in self._out_indices():
             self._advance_out(k, now)
+
+    def _catch_up(self, now: float) -> None:
+        """Play stream-out and take the scans due by ``now`` (a burst's: up to its last)."""
+        self._play_out(now)
         due = self._cur_scan(now) + 1
         nscans = int(self.regs[R_NSCANS])
         if nscans:
