@@ -189,3 +189,21 @@ def test_the_console_made_on_first_use_stands_for_the_bench_console() -> None:
     c.quiet = True
     c.print("not shown")
     assert out.getvalue() == "peak 7.68 [mm]\n" and c.quiet is True
+
+
+def test_a_run_on_the_daq_rig_loads_no_scipy_signal_optimize_or_integrate(tmp_path: Path) -> None:
+    """``bench run`` (plan, dry run, a virtual-time run on the hardware-timed rig with its reconstruction filter,
+    file, catalogue) needs none of scipy's signal, optimize or integrate packages (0.4 s, 0.3 s and 0.1 s to import
+    each); only fitting and the offline solver do."""
+    probe = ("import json, sys\nfrom bench.cli import app\ntry:\n    app(sys.argv[1:], prog_name='bench')\n"
+             "except SystemExit as e:\n    assert not e.code, e.code\n"
+             "print(json.dumps(sorted(m for m in sys.modules if m.startswith('scipy.'))))")
+    res = subprocess.run([sys.executable, "-c", probe, "run", "protocols/short/thesis-identification-short.toml",
+                          "--virtual-time", "--no-live", "--yes", "--out", str(tmp_path)], cwd=ROOT,
+                         capture_output=True, text=True, timeout=300,
+                         env={**os.environ, "BENCH_STATE_DIR": str(tmp_path / "state")})
+    assert res.returncode == 0 and "Traceback" not in res.stderr, res.stderr
+    assert list(tmp_path.glob("*.h5"))  # the run happened
+    scipy = json.loads(res.stdout.rstrip("\n").rpartition("\n")[2])
+    assert "scipy.linalg" in scipy  # the probe sees scipy's modules (numba loads linalg)
+    assert [m for m in scipy if m.split(".")[1] in ("signal", "optimize", "integrate")] == []

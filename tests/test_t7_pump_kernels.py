@@ -1,6 +1,7 @@
 """The T7 twin's compiled pump kernels against the array formulas they replaced: a failed specimen's observable (NaN,
 ±inf) reaches the inputs as np.nan_to_num makes it, each scan reads the plant sample that numpy's searchsorted
-finds, and the reconstruction filter gives scipy's lfilter's doubles."""
+finds, and the reconstruction filter (bench.core.one_pole: the twin applies it, the host predicts through it) gives
+scipy's lfilter's doubles."""
 
 from __future__ import annotations
 

@@ -19,7 +19,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from numba import njit, prange
-from scipy.integrate import solve_ivp
 
 from bench.models.lozenge import lozenge_force, lozenge_step
 from bench.models.membrane import membrane_step
@@ -175,6 +174,8 @@ def solve_offline(fun: Callable[[float, np.ndarray], np.ndarray],
     ``stop(t, y)`` is a terminal event (the run ends where it crosses zero, e.g. runaway stretch);
     samples after the stop are NaN so the output always has len(t_eval) rows.
     """
+    from scipy.integrate import solve_ivp  # here: only the offline path needs scipy (a run's start does not)
+
     events = None
     if stop is not None:
         def event(t: float, y: np.ndarray) -> float:

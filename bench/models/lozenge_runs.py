@@ -9,7 +9,6 @@ from typing import Literal
 
 import numpy as np
 from numba import njit
-from scipy.optimize import brentq
 
 from bench.models.integrate import MODEL_LOZENGE, FixedStepper, run_fixed, solve_offline
 from bench.models.lozenge import (
@@ -92,6 +91,8 @@ def isotonic_equilibrium(params: LozengeParams, V: float = 0.0, x_max: float | N
     sign = np.nonzero(np.sign(r[:-1]) != np.sign(r[1:]))[0]
     if sign.size == 0:
         return None
+    from scipy.optimize import brentq  # here: scipy.optimize takes 0.3 s to import (every `bench run` would)
+
     i = int(sign[0])
     return float(brentq(lambda x: static_force(params, x, V) - W, grid[i], grid[i + 1], xtol=1e-12))
 

@@ -15,8 +15,8 @@ from dataclasses import replace
 
 import numpy as np
 from numba import njit
-from scipy.signal import lfilter
 
+from bench.core.one_pole import one_pole
 from bench.protocol.program import Segment, plays_on, voltage_at
 from bench.rig import DaqConfig, RigConfig
 from bench.runtime.context import RunContext
@@ -324,8 +324,7 @@ class HardwareTimed:
         if alpha is None:
             return played
         # y[k] = y[k−1] + α(x[k] − y[k−1]), from y[−1] = present
-        out, _ = lfilter([alpha], [1.0, alpha - 1.0], played, zi=[(1.0 - alpha) * present])
-        return np.asarray(out)
+        return one_pole(np.ascontiguousarray(played, dtype=float), alpha, present)
 
     # ------------------------------------------------------------ data
     def _played(self) -> float:

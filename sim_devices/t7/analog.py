@@ -15,6 +15,10 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
+from bench.core.one_pole import one_pole
+
+reconstruct = one_pole  # the reconstruction filter (an RC between DAC and amplifier on the rig): the twin applies it
+
 RANGE_GAIN = {0.0: 0, 10.0: 0, 1.0: 1, 0.1: 2, 0.01: 3}  # [D] AIN#_RANGE values → gain index of the calibration
 DEVICE_TEMPERATURE_K = 298.15  # [A] the device's own temperature (the datasheet's 25 °C specification point)
 AIN_TEMPERATURE, AIN_GROUND = 14, 15
@@ -111,22 +115,6 @@ def dac_drive(first: int, codes: np.ndarray, t_enable: float, rate: float, slope
             v = limit
         volts[k] = v
     return times, volts
-
-
-@njit(cache=True, nogil=True)
-def reconstruct(volts: np.ndarray, alpha: float, y0: float) -> np.ndarray:
-    """The reconstruction filter's output at each scan: scipy.signal.lfilter([alpha], [1, alpha − 1], volts,
-    zi=[(1 − alpha)·y0]) computed as lfilter computes it (direct form II transposed: y = z + alpha·x, then
-    z = 0·x − (alpha − 1)·y), the same doubles without its per-call cost."""
-    out = np.empty(volts.size)
-    a1 = alpha - 1.0
-    z = (1.0 - alpha) * y0
-    for k in range(volts.size):
-        x = volts[k]
-        y = z + alpha * x
-        z = 0.0 * x - a1 * y
-        out[k] = y
-    return out
 
 
 @njit(cache=True, nogil=True)
