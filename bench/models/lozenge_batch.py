@@ -19,6 +19,7 @@ import numpy as np
 from numba import njit, prange
 
 from bench.models.batch_plan import LANES, plan
+from bench.models.kernel_args import kernel_array
 from bench.models.lozenge import (
     MODE_HUNG,
     Q_ALPHA_HALF,
@@ -239,9 +240,7 @@ def lozenge_batch(P: np.ndarray, Y0: np.ndarray, U: np.ndarray, h: float, channe
     state component, OBSERVE_FORCE = −1: the force), for parameter sets of one mode (that of P's first row).
     ``cal``: per set (len(P), 2) the voltage input's calibration, offset [V] and inverse gain — the specimen sees
     (U − offset)·inverse gain (None: as recorded)."""
-    P = np.ascontiguousarray(P, dtype=np.float64)
-    Y0 = np.ascontiguousarray(Y0, dtype=np.float64)
-    U = np.ascontiguousarray(U, dtype=np.float64)
+    P, Y0, U = kernel_array(P), kernel_array(Y0), kernel_array(U)  # one form: one compiled variant (kernel_args)
     if channel not in (-1, 0, 1):
         raise ValueError(f"channel must be -1 (force), 0 or 1, got {channel}")
     if np.any(P[:, Q_MODE] != P[0, Q_MODE]) or np.any(P[:, Q_K] != P[0, Q_K]):
@@ -249,9 +248,7 @@ def lozenge_batch(P: np.ndarray, Y0: np.ndarray, U: np.ndarray, h: float, channe
     if channel == -1 and int(P[0, Q_MODE]) == MODE_HUNG:
         raise ValueError("lozenge_batch: the force is an output of the imposed mode only (hung: channel 0 or 1)")
     m = P.shape[0]
-    if cal is None:
-        cal = np.broadcast_to(np.array([0.0, 1.0]), (m, 2))
-    cal = np.ascontiguousarray(np.broadcast_to(cal, (m, 2)), dtype=np.float64)
+    cal = kernel_array(np.array([0.0, 1.0]) if cal is None else cal, (m, 2))
     tasks, columns = plan(m, [U.shape[0]], stride, numba.get_num_threads())
     out = np.full((m, columns), np.nan)
     _batch(P, Y0, U, cal, float(h), int(stride), int(channel), tasks, out)

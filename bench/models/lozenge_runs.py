@@ -11,6 +11,7 @@ import numpy as np
 from numba import njit
 
 from bench.models.integrate import MODEL_LOZENGE, FixedStepper, run_fixed, solve_offline
+from bench.models.kernel_args import kernel_array
 from bench.models.lozenge import (
     MODE_HUNG,
     MODE_IMPOSED,
@@ -190,8 +191,8 @@ def simulate_lozenge(params: LozengeParams, config: Config, voltage: Signal, t_e
 def lozenge_outputs(params: LozengeParams, t: np.ndarray, Y: np.ndarray, V: np.ndarray,
                     mode: int = MODE_IMPOSED) -> LozengeTrace:
     """Observables of a state history (forces, capacitance, field, stresses) and the failure check."""
-    Y = np.ascontiguousarray(Y, dtype=float)
-    V = np.ascontiguousarray(np.broadcast_to(np.asarray(V, dtype=float), t.shape))
+    Y = kernel_array(Y)  # one form: one compiled variant of lozenge_observe (kernel_args)
+    V = kernel_array(V, np.shape(t))
     obs = np.empty((t.size, 12))
     lozenge_observe(Y, V, params.pack(mode), obs)
     trace = LozengeTrace(

@@ -31,6 +31,7 @@ import numpy as np
 from numba import njit
 
 from bench.models.gent import gent_h, gent_h_e2, relaxation_rate
+from bench.models.kernel_args import kernel_array
 
 EPS_VAC = 8.85418e-12  # F/m, thesis Table 4.1
 
@@ -336,9 +337,10 @@ def membrane_outputs(params: MembraneParams, t: np.ndarray, Y: np.ndarray, phi: 
     Flags failure at the first sample with λ > runaway_stretch, E > breakdown_field or non-finite state.
     ``packed``: ``params.pack()`` where the caller keeps it (a stream, block after block).
     """
-    t = np.ascontiguousarray(t, dtype=float)
-    phi = np.ascontiguousarray(np.broadcast_to(np.asarray(phi, dtype=float), t.shape))
-    Tarr = np.ascontiguousarray(np.broadcast_to(np.asarray(T, dtype=float), t.shape))
+    t = kernel_array(t)  # every array in one form: one compiled variant of each kernel (kernel_args)
+    Y = kernel_array(Y)  # an offline solve's history is the solver's array transposed (F order): copied here
+    phi = kernel_array(phi, t.shape)
+    Tarr = kernel_array(T, t.shape)
     obs = np.empty((t.size, 4))
     membrane_observe(t, Y, phi, Tarr, params.pack() if packed is None else packed, obs)
     lam = Y[:, 0]

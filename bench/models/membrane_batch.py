@@ -22,6 +22,7 @@ import numpy as np
 from numba import njit, prange
 
 from bench.models.batch_plan import LANES, plan
+from bench.models.kernel_args import kernel_array
 from bench.models.membrane import (
     P_A,
     P_B,
@@ -208,16 +209,14 @@ def membrane_batch_records(P: np.ndarray, Y0: np.ndarray, Us: list[np.ndarray], 
     calibration, offset [V] and inverse gain — the specimen sees (U − offset)·inverse gain (None: as recorded).
     Returns the records' outputs side by side: (len(P), Σ(len(U_r)//stride + 1)).
     """
-    P = np.ascontiguousarray(P, dtype=np.float64)
+    P = kernel_array(P)  # every argument in one form: one compiled variant of _batch (kernel_args)
     m = P.shape[0]
     Y0 = np.asarray(Y0, dtype=np.float64)
     if Y0.ndim == 2:
-        Y0 = np.broadcast_to(Y0[:, None, :], (Y0.shape[0], m, Y0.shape[1]))
-    Y0 = np.ascontiguousarray(Y0)
-    if cal is None:
-        cal = np.broadcast_to(np.array([0.0, 1.0]), (len(Us), m, 2))
-    cal = np.ascontiguousarray(np.broadcast_to(cal, (len(Us), m, 2)), dtype=np.float64)
-    U = np.ascontiguousarray(Us[0] if len(Us) == 1 else np.concatenate(Us), dtype=np.float64)  # one: no copy
+        Y0 = Y0[:, None, :]
+    Y0 = kernel_array(Y0, (Y0.shape[0], m, Y0.shape[2]))
+    cal = kernel_array(np.array([0.0, 1.0]) if cal is None else cal, (len(Us), m, 2))
+    U = kernel_array(Us[0] if len(Us) == 1 else np.concatenate(Us))  # one record: no copy
     tasks, columns = plan(m, [u.shape[0] for u in Us], stride, numba.get_num_threads())
     out = np.full((m, columns), np.nan)
     _batch(P, Y0, U, cal, float(h), int(stride), int(window), tasks, out)
