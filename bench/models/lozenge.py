@@ -28,7 +28,8 @@ from dataclasses import dataclass, field, replace
 from typing import Any, Literal
 
 import numpy as np
-from numba import njit
+
+from bench.jit import njit
 
 EPS_VAC_PAPER = 8.85e-12  # F/m, as written in the paper's Table 1
 PROTOTYPE_LAMBDA2P = {1: 2.5, 2: 2.75, 3: 3.0}  # Table 2, prototypes #1–#3
@@ -224,6 +225,42 @@ def gentgent(l1: float, l2: float, p: np.ndarray) -> tuple[float, float, float, 
 
 
 @njit(cache=True)
+def gent_stress(l1: float, l2: float, p: np.ndarray) -> tuple[float, float, float]:
+    """(Ψ1, Ψ2, G) of :func:`gentgent` in its very operations, without the energy's two logarithms and the second
+    derivatives: what a fixed step and a rig's force need, the same doubles."""
+    mu, Jm, C2 = p[Q_MU], p[Q_JM], p[Q_C2]
+    a = 1.0 / (l1 * l1 * l2 * l2)  # λ3²
+    I1 = l1 * l1 + l2 * l2 + a
+    I1_1 = 2.0 * (l1 - a / l1)
+    I1_2 = 2.0 * (l2 - a / l2)
+    G = 1.0 - (I1 - 3.0) / Jm
+    I2 = 1.0 / (l1 * l1) + 1.0 / (l2 * l2) + l1 * l1 * l2 * l2
+    I2_1 = -2.0 / l1**3 + 2.0 * l1 * l2 * l2
+    I2_2 = -2.0 / l2**3 + 2.0 * l2 * l1 * l1
+    h = 0.5 * mu
+    P1 = h * I1_1 / G + C2 * I2_1 / I2
+    P2 = h * I1_2 / G + C2 * I2_2 / I2
+    return P1, P2, G
+
+
+@njit(cache=True)
+def rig_force(y: np.ndarray, x: float, v: float, V: float, p: np.ndarray, d1: float, d2: float, yy: float,
+              ll1: float, ll2: float, P1: float, P2: float, dC: float) -> float:
+    """The total force of :func:`lozenge_force` in its very operations (the same double), from what the caller has
+    at x (:func:`kinematics`' dλ1/dx, dλ2/dx and y, ln λ1, ln λ2, :func:`gent_stress`' Ψ1, Ψ2, dC/dx), without the
+    stiffness and gradient: a step's and a rig's force."""
+    K = int(p[Q_K])
+    om = volume(p)
+    F = om * (P1 * d1 + P2 * d2)
+    F += -0.5 * V * V * dC + p[Q_C] * v
+    q = x / (yy * yy)
+    for i in range(K):
+        W1, W2, _, _, _ = branch_energy_derivs(ll1 - y[2 + i], ll2 - y[2 + K + i], p[Q_BRANCHES + i])
+        F += om * (W1 / x - W2 * q)
+    return float(F)
+
+
+@njit(cache=True)
 def elastic_force(x: float, p: np.ndarray) -> tuple[float, float]:
     """F_el = Ω dΨ/dx [N] and its stiffness dF_el/dx [N/m] (eq 4)."""
     l1, l2, d1, d2, dd2, _ = kinematics(x, p)
@@ -389,7 +426,7 @@ def lozenge_step(y: np.ndarray, V: float, x_in: float, v_in: float, h: float, p:
     v = y[1]
     if not 0.0 < x < 2.0 * p[Q_L]:
         return False
-    l1, l2, _, _, _, _ = kinematics(x, p)
+    l1, l2, d1, d2, _, yy = kinematics(x, p)
     ll1 = math.log(l1)
     ll2 = math.log(l2)
     for i in range(K):
@@ -402,16 +439,16 @@ def lozenge_step(y: np.ndarray, V: float, x_in: float, v_in: float, h: float, p:
         p2n = p2 * decay - (1.0 - decay) * (tau * fb - p2)
         y[2 + i] = ll1 - p1n
         y[2 + K + i] = ll2 - p2n
+    P1, P2, G = gent_stress(l1, l2, p)
     if hung:
-        grad = np.empty(y.size)
-        F = lozenge_force(y, x, v, V, p, grad)
+        _, dC, _ = capacitance(x, p)
+        F = rig_force(y, x, v, V, p, d1, d2, yy, ll1, ll2, P1, P2, dC)  # lozenge_force's value, branches updated
         me, dme, _ = effective_mass(x, p)
         R = (p[Q_MHUNG] + 0.5 * p[Q_M]) * p[Q_G] - F - 0.5 * dme * v * v
         v = v + h * R / me
         x = x + h * v
         y[0] = x
         y[1] = v
-    _, _, _, _, _, _, G = gentgent(l1, l2, p)
     return G > 0.0 and math.isfinite(x) and math.isfinite(v)
 
 
@@ -460,22 +497,12 @@ def lozenge_observe_rig(Y: np.ndarray, V: np.ndarray, p: np.ndarray, out: np.nda
     """What a rig measures of a state history, into ``out`` (n×5): F, C, E, E_B, G — the columns of
     :func:`lozenge_observe` the simulated bench needs, each computed once per sample (no force split, stresses or
     stiffness). F follows :func:`lozenge_force` operation for operation, so the values are the same doubles."""
-    K = int(p[Q_K])
-    om = volume(p)
     for n in range(Y.shape[0]):
         x, v = Y[n, 0], Y[n, 1]
         l1, l2, d1, d2, _, yy = kinematics(x, p)
-        _, P1, P2, _, _, _, G = gentgent(l1, l2, p)
+        P1, P2, G = gent_stress(l1, l2, p)
         C, dC, _ = capacitance(x, p)
-        F = om * (P1 * d1 + P2 * d2)
-        F += -0.5 * V[n] * V[n] * dC + p[Q_C] * v
-        q = x / (yy * yy)
-        ll1 = math.log(l1)
-        ll2 = math.log(l2)
-        for i in range(K):
-            W1, W2, _, _, _ = branch_energy_derivs(ll1 - Y[n, 2 + i], ll2 - Y[n, 2 + K + i], p[Q_BRANCHES + i])
-            F += om * (W1 / x - W2 * q)
-        out[n, 0] = F
+        out[n, 0] = rig_force(Y[n], x, v, V[n], p, d1, d2, yy, math.log(l1), math.log(l2), P1, P2, dC)
         out[n, 1] = C
         out[n, 2] = V[n] * l1 * l2 / p[Q_T0]
         out[n, 3] = p[Q_E0] * (l1 * l2) ** (0.5 * p[Q_R])
