@@ -21,8 +21,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
-from numba import njit
 
+from bench.jit import njit
 from bench.models.lozenge import (
     PROTOTYPE_LAMBDA2P,
     Q_E0,

@@ -16,9 +16,9 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
 
 from bench.core.noise import Realism, TrekDynamics
+from bench.jit import njit
 
 
 @njit(cache=True)

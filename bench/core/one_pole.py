@@ -4,7 +4,8 @@ the amplifier's input), which the host predicts and the T7 twin applies, each on
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+
+from bench.jit import njit
 
 
 @njit(cache=True, nogil=True)

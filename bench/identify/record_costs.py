@@ -11,7 +11,8 @@ candidates were evaluated with it (numpy's axis reductions may change their orde
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+
+from bench.jit import njit
 
 
 @njit(cache=True, nogil=True, error_model="numpy")

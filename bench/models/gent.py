@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 
-from numba import njit
+from bench.jit import njit
 
 
 @njit(cache=True)

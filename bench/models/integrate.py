@@ -18,8 +18,9 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit, prange
+from numba import prange
 
+from bench.jit import njit
 from bench.models.lozenge import lozenge_force, lozenge_step
 from bench.models.membrane import membrane_step
 

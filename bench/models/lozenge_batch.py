@@ -16,8 +16,9 @@ from __future__ import annotations
 
 import numba
 import numpy as np
-from numba import njit, prange
+from numba import prange
 
+from bench.jit import njit
 from bench.models.batch_plan import LANES, plan
 from bench.models.kernel_args import kernel_array
 from bench.models.lozenge import (

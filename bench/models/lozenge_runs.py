@@ -8,8 +8,8 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
-from numba import njit
 
+from bench.jit import njit
 from bench.models.integrate import MODEL_LOZENGE, FixedStepper, run_fixed, solve_offline
 from bench.models.kernel_args import kernel_array
 from bench.models.lozenge import (

@@ -28,8 +28,8 @@ from dataclasses import dataclass, replace
 from typing import Literal
 
 import numpy as np
-from numba import njit
 
+from bench.jit import njit
 from bench.models.gent import gent_h, gent_h_e2, relaxation_rate
 from bench.models.kernel_args import kernel_array
 

@@ -17,8 +17,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
 
+from bench.jit import njit
 from bench.models.membrane import es_stress, inertia, membrane_jac, membrane_rhs
 
 GAMMA = 0.5

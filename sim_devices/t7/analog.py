@@ -13,9 +13,9 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
 
 from bench.core.one_pole import one_pole
+from bench.jit import njit
 
 reconstruct = one_pole  # the reconstruction filter (an RC between DAC and amplifier on the rig): the twin applies it
 

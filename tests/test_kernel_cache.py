@@ -1,0 +1,54 @@
+"""The compiled-kernel cache is keyed by all kernel sources (bench.jit): numba keys a cached kernel by its own file
+only, so a caller whose callee changed in another file would load the old callee's machine code. Here a copy of
+the packages is edited the way a `git pull` or an upgrade edits it, and the cache a fresh interpreter uses is
+read back from numba itself."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+from tests.conftest import ROOT
+
+PROBE = """
+import numba, numpy as np
+from bench.core.one_pole import one_pole
+one_pole(np.zeros(3), 0.5, 0.0)
+print(numba.config.CACHE_DIR)
+print(one_pole._cache._cache_path)
+"""
+
+
+def _cache_of(tree: Path, base: Path) -> tuple[Path, Path]:
+    res = subprocess.run([sys.executable, "-c", PROBE], cwd=tree, capture_output=True, text=True, timeout=120,
+                         env={**os.environ, "PYTHONPATH": str(tree), "NUMBA_CACHE_DIR": str(base)})
+    assert res.returncode == 0, res.stderr
+    cache_dir, kernel_dir = res.stdout.split()
+    return Path(cache_dir), Path(kernel_dir)
+
+
+def test_a_change_to_any_kernel_source_starts_a_new_cache_and_nothing_else_does(tmp_path: Path) -> None:
+    tree = tmp_path / "tree"
+    for package in ("bench", "sim_devices", "drivers"):
+        shutil.copytree(ROOT / package, tree / package, ignore=shutil.ignore_patterns("__pycache__"))
+    base = tmp_path / "cache"
+    first, kernel = _cache_of(tree, base)
+    assert first.parent == base and kernel.is_relative_to(first)  # numba caches the kernel there
+    assert any(kernel.glob("*.nbi")) and any(kernel.glob("*.nbc"))
+    assert _cache_of(tree, base)[0] == first  # same sources: the same cache, loaded again
+
+    cli = tree / "bench" / "cli" / "main.py"  # no kernel in it
+    cli.write_text(cli.read_text() + "\n# edited\n")
+    assert _cache_of(tree, base)[0] == first
+
+    callee = tree / "bench" / "models" / "lozenge.py"  # kernels of integrate.py call its step
+    callee.write_text(callee.read_text().replace("return G > 0.0 and", "return 0.0 < G and"))
+    second = _cache_of(tree, base)[0]
+    assert second != first and second.parent == base
+
+    twin = tree / "sim_devices" / "t7" / "analog.py"
+    twin.write_text(twin.read_text() + "\n# edited\n")
+    assert _cache_of(tree, base)[0] not in (first, second)
