@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
-from bench.jit import njit
+from bench.models.jit import njit
 from bench.models.lozenge import (
     PROTOTYPE_LAMBDA2P,
     Q_E0,

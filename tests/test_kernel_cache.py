@@ -1,6 +1,6 @@
-"""The compiled-kernel cache is keyed by all kernel sources (bench.jit): numba keys a cached kernel by its own file
-only, so a caller whose callee changed in another file would load the old callee's machine code. Here a copy of
-the packages is edited the way a `git pull` or an upgrade edits it, and the cache a fresh interpreter uses is
+"""The compiled-kernel cache is keyed by all kernel sources (bench.models.jit): numba keys a cached kernel by its own
+file only, so a caller whose callee changed in another file would load the old callee's machine code. Here a copy
+of the packages is edited the way a `git pull` or an upgrade edits it, and the cache a fresh interpreter uses is
 read back from numba itself."""
 
 from __future__ import annotations

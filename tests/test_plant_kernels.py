@@ -294,3 +294,50 @@ def test_lozenge_step_and_rig_observables_are_the_full_forces_doubles(mode: str)
         assert _same(rig[:, 0], full[:, 0]) and _same(rig[:, 1], full[:, 4]) and _same(rig[:, 4], full[:, 11])
         if mode == "hung":
             assert np.ptp(hist[:, 0]) > 1e-6  # the hung end moved under the drive: the force path ran
+
+
+def _membrane_step_reference(y: np.ndarray, phi: float, T: float, h: float, p: np.ndarray) -> bool:
+    """The membrane's fixed step as first written (physics.md §1.5): every Gent unit through the full
+    :func:`gent_h_e2` (dh/du computed and dropped); in Python around the compiled model functions."""
+    from bench.models import membrane as mb
+    from bench.models.gent import gent_h_e2, relaxation_rate
+
+    lam, v = float(y[0]), float(y[1])
+    n = int(p[mb.P_N])
+    h0, _, G0 = gent_h_e2(lam * lam, p[mb.P_J0])
+    M, dM = mb.inertia(lam, p)
+    force = -0.5 * dM * v * v - p[mb.P_MU0] * h0 / lam
+    ok = G0 > 0.0
+    for i in range(n):
+        mu, J, eta = p[mb.P_BRANCHES + i], p[mb.P_BRANCHES + n + i], p[mb.P_BRANCHES + 2 * n + i]
+        e = lam / y[2 + i]
+        u = math.log(e)
+        hu, _, _ = gent_h_e2(e * e, J)
+        u *= math.exp(-h * relaxation_rate(u, hu, mu, eta))
+        e2 = math.exp(2.0 * u)
+        y[2 + i] = lam / math.sqrt(e2)
+        hu, _, G = gent_h_e2(e2, J)
+        ok = ok and G > 0.0
+        force -= mu * hu / lam
+    s_es, _ = mb.es_stress(lam, phi, T, p)
+    force += p[mb.P_SPRE] - p[mb.P_KF] * (lam - p[mb.P_LPRE]) + s_es
+    v = v + h * force / M
+    lam = lam + h * v
+    y[0], y[1] = lam, v
+    return bool(ok and lam > 0.0 and math.isfinite(lam))
+
+
+def test_membrane_step_is_the_full_gent_units_doubles() -> None:
+    """The membrane step's Gent units without dh/du (``gent_h_G``) give the doubles of the full unit, step after
+    step under a driven voltage, through a relaxed start and a large stretch."""
+    from bench.models.membrane import membrane_step
+
+    params = MembraneParams()
+    p = params.pack()
+    rng = np.random.default_rng(8)
+    ref, new = params.initial_state(), params.initial_state()
+    phi = 7000.0 * (1.0 - np.cos(np.linspace(0.0, 2.0 * np.pi, 600))) / 2.0 + rng.normal(0.0, 50.0, 600)
+    for k, f in enumerate(phi):
+        assert _membrane_step_reference(ref, float(f), 296.0, 1e-4, p) == membrane_step(new, float(f), 296.0, 1e-4, p)
+        assert _same(ref, new), k
+    assert new[0] > params.lambda_pre * 1.0001  # the drive stretched the membrane: the force path ran

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from bench.core.noise import Realism, TrekDynamics
-from bench.jit import njit
+from bench.models.jit import njit
 
 
 @njit(cache=True)

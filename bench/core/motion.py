@@ -13,7 +13,7 @@ from functools import cached_property
 
 import numpy as np
 
-from bench.jit import njit
+from bench.models.jit import njit
 
 
 @njit(cache=True)

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from bench.jit import njit
+from bench.models.jit import njit
 
 
 @njit(cache=True, nogil=True)

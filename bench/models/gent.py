@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 
-from bench.jit import njit
+from bench.models.jit import njit
 
 
 @njit(cache=True)
@@ -27,6 +27,16 @@ def gent_h_e2(e2: float, J: float) -> tuple[float, float, float]:
     h = g / G
     dh = (2.0 * e2 + 4.0 * e4) / G + 4.0 * g * g / (J * G * G)
     return h, dh, G
+
+
+@njit(cache=True)
+def gent_h_G(e2: float, J: float) -> tuple[float, float]:
+    """(h, G) of :func:`gent_h_e2` in its very operations, without dh/du: what a fixed step needs, the same
+    doubles for two divisions fewer."""
+    e4 = 1.0 / (e2 * e2)
+    g = e2 - e4
+    G = 1.0 - (2.0 * e2 + e4 - 3.0) / J
+    return g / G, G
 
 
 @njit(cache=True)

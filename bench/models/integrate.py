@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import prange
 
-from bench.jit import njit
+from bench.models.jit import njit
 from bench.models.lozenge import lozenge_force, lozenge_step
 from bench.models.membrane import membrane_step
 

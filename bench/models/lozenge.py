@@ -29,7 +29,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from bench.jit import njit
+from bench.models.jit import njit
 
 EPS_VAC_PAPER = 8.85e-12  # F/m, as written in the paper's Table 1
 PROTOTYPE_LAMBDA2P = {1: 2.5, 2: 2.75, 3: 3.0}  # Table 2, prototypes #1–#3

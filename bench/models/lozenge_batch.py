@@ -18,8 +18,8 @@ import numba
 import numpy as np
 from numba import prange
 
-from bench.jit import njit
 from bench.models.batch_plan import LANES, plan
+from bench.models.jit import njit
 from bench.models.kernel_args import kernel_array
 from bench.models.lozenge import (
     MODE_HUNG,

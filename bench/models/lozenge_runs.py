@@ -9,8 +9,8 @@ from typing import Literal
 
 import numpy as np
 
-from bench.jit import njit
 from bench.models.integrate import MODEL_LOZENGE, FixedStepper, run_fixed, solve_offline
+from bench.models.jit import njit
 from bench.models.kernel_args import kernel_array
 from bench.models.lozenge import (
     MODE_HUNG,

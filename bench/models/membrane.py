@@ -29,8 +29,8 @@ from typing import Literal
 
 import numpy as np
 
-from bench.jit import njit
-from bench.models.gent import gent_h, gent_h_e2, relaxation_rate
+from bench.models.gent import gent_h, gent_h_e2, gent_h_G, relaxation_rate
+from bench.models.jit import njit
 from bench.models.kernel_args import kernel_array
 
 EPS_VAC = 8.85418e-12  # F/m, thesis Table 4.1
@@ -238,7 +238,7 @@ def membrane_step(y: np.ndarray, phi: float, T: float, h: float, p: np.ndarray) 
     lam = y[0]
     v = y[1]
     n = int(p[P_N])
-    h0, _, G0 = gent_h_e2(lam * lam, p[P_J0])
+    h0, G0 = gent_h_G(lam * lam, p[P_J0])
     M, dM = inertia(lam, p)
     force = -0.5 * dM * v * v - p[P_MU0] * h0 / lam  # 2ρL3²λ⁻⁷λ̇² = −½ (dM/dλ) λ̇²
     ok = G0 > 0.0
@@ -248,11 +248,11 @@ def membrane_step(y: np.ndarray, phi: float, T: float, h: float, p: np.ndarray) 
         eta = p[P_BRANCHES + 2 * n + i]
         e = lam / y[2 + i]  # elastic stretch e = e^u
         u = math.log(e)
-        hu, _, _ = gent_h_e2(e * e, J)
+        hu, _ = gent_h_G(e * e, J)
         u *= math.exp(-h * relaxation_rate(u, hu, mu, eta))
         e2 = math.exp(2.0 * u)
         y[2 + i] = lam / math.sqrt(e2)  # ξ = λ e^{−u}
-        hu, _, G = gent_h_e2(e2, J)
+        hu, G = gent_h_G(e2, J)
         ok = ok and G > 0.0
         force -= mu * hu / lam
     s_es, _ = es_stress(lam, phi, T, p)

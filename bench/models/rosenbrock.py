@@ -18,7 +18,7 @@ import math
 
 import numpy as np
 
-from bench.jit import njit
+from bench.models.jit import njit
 from bench.models.membrane import es_stress, inertia, membrane_jac, membrane_rhs
 
 GAMMA = 0.5

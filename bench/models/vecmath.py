@@ -14,7 +14,7 @@ from llvmlite import ir
 from numba import types
 from numba.extending import intrinsic
 
-from bench.jit import njit
+from bench.models.jit import njit
 
 LN2_HI = 6.93147180369123816490e-01  # fdlibm split of ln 2: k·LN2_HI is exact for |k| < 2^11
 LN2_LO = 1.90821492927058770002e-10

@@ -16,7 +16,7 @@ from dataclasses import replace
 import numpy as np
 
 from bench.core.one_pole import one_pole
-from bench.jit import njit
+from bench.models.jit import njit
 from bench.protocol.program import Segment, plays_on, voltage_at
 from bench.rig import DaqConfig, RigConfig
 from bench.runtime.context import RunContext

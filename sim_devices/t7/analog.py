@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from bench.core.one_pole import one_pole
-from bench.jit import njit
+from bench.models.jit import njit
 
 reconstruct = one_pole  # the reconstruction filter (an RC between DAC and amplifier on the rig): the twin applies it
 

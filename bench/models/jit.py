@@ -28,7 +28,7 @@ __all__ = ["cache_dir", "njit"]
 
 def _kernel_sources() -> list[Path]:
     """The project's kernel modules: the ``.py`` files of ``bench`` and ``sim_devices`` that use ``njit``."""
-    roots = [Path(__file__).resolve().parent]
+    roots = [Path(__file__).resolve().parents[1]]  # bench
     spec = importlib.util.find_spec("sim_devices")
     if spec is not None and spec.origin is not None:
         roots.append(Path(spec.origin).resolve().parent)
