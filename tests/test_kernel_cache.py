@@ -52,3 +52,22 @@ def test_a_change_to_any_kernel_source_starts_a_new_cache_and_nothing_else_does(
     twin = tree / "sim_devices" / "t7" / "analog.py"
     twin.write_text(twin.read_text() + "\n# edited\n")
     assert _cache_of(tree, base)[0] not in (first, second)
+
+
+def test_caches_of_other_sources_unused_for_30_days_are_removed_and_the_one_in_use_is_marked(tmp_path: Path) -> None:
+    base = tmp_path / "cache"
+    old, recent, other = base / ("a" * 16), base / ("b" * 16), base / "not-a-digest"
+    for d in (old, recent, other):
+        (d / "x").mkdir(parents=True)
+    month = 31 * 86400
+    for d in (old, other):
+        os.utime(d, (d.stat().st_atime - month, d.stat().st_mtime - month))
+    os.utime(recent, (recent.stat().st_atime - 20 * 86400, recent.stat().st_mtime - 20 * 86400))
+    res = subprocess.run([sys.executable, "-c", "import numba, bench.models.jit; print(numba.config.CACHE_DIR)"],
+                         cwd=ROOT, capture_output=True, text=True, timeout=120,
+                         env={**os.environ, "NUMBA_CACHE_DIR": str(base)})
+    assert res.returncode == 0, res.stderr
+    used = Path(res.stdout.strip())
+    assert used.parent == base and used.is_dir()
+    assert not old.exists() and recent.exists() and other.exists()  # only digest-named folders are the bench's
+    assert used.stat().st_mtime > recent.stat().st_mtime  # marked as used now

@@ -9,7 +9,9 @@ digest of all kernel sources (the files of ``bench`` and ``sim_devices`` that us
 them starts an empty cache, and identical sources share one (checkouts, dask workers, installed wheels).
 
 The directory: ``$NUMBA_CACHE_DIR/<digest>`` where that is set, else ``$XDG_CACHE_HOME/dea-bench/numba/<digest>``
-(``~/.cache/…``), else a folder in the temporary directory when neither can be written.
+(``~/.cache/…``), else a folder in the temporary directory when neither can be written. Each use marks it (its
+time stamp); a sibling of another digest unused for :data:`UNUSED_DAYS` is removed (a few MB each: one per version
+of the sources a machine has run).
 """
 
 from __future__ import annotations
@@ -17,13 +19,19 @@ from __future__ import annotations
 import hashlib
 import importlib.util
 import os
+import re
+import shutil
 import tempfile
+import time
 from pathlib import Path
 
 import numba
 from numba import njit
 
 __all__ = ["cache_dir", "njit"]
+
+UNUSED_DAYS = 30.0  # a cache of other sources not used this long is removed
+_DIGEST = re.compile(r"[0-9a-f]{16}")
 
 
 def _kernel_sources() -> list[Path]:
@@ -52,6 +60,19 @@ def _writable(path: Path) -> bool:
         return False
 
 
+def _mark_and_prune(used: Path) -> None:
+    """Stamp ``used`` as in use now; remove its siblings of other digests unused for :data:`UNUSED_DAYS`."""
+    now = time.time()
+    try:
+        os.utime(used, (now, now))
+        for other in used.parent.iterdir():
+            if other != used and _DIGEST.fullmatch(other.name) and other.is_dir() \
+                    and now - other.stat().st_mtime > UNUSED_DAYS * 86400.0:
+                shutil.rmtree(other, ignore_errors=True)
+    except OSError:  # another process pruned first, or a read-only parent: the cache still works
+        pass
+
+
 def cache_dir() -> Path:
     """Where the compiled kernels of these sources are cached (created)."""
     digest = sources_digest()
@@ -59,6 +80,7 @@ def cache_dir() -> Path:
         str(Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "dea-bench" / "numba")
     for candidate in (Path(base) / digest, Path(tempfile.gettempdir()) / f"dea-bench-numba-{os.getuid()}" / digest):
         if _writable(candidate):
+            _mark_and_prune(candidate)
             return candidate
     return Path(base) / digest  # numba reports the failure to cache; the kernels still compile and run
 
