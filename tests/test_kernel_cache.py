@@ -63,7 +63,7 @@ def test_caches_of_other_sources_unused_for_30_days_are_removed_and_the_one_in_u
     for d in (old, other):
         os.utime(d, (d.stat().st_atime - month, d.stat().st_mtime - month))
     os.utime(recent, (recent.stat().st_atime - 20 * 86400, recent.stat().st_mtime - 20 * 86400))
-    res = subprocess.run([sys.executable, "-c", "import numba, bench.models.jit; print(numba.config.CACHE_DIR)"],
+    res = subprocess.run([sys.executable, "-c", "import bench.models.jit as jit; print(jit._CACHE)"],
                          cwd=ROOT, capture_output=True, text=True, timeout=120,
                          env={**os.environ, "NUMBA_CACHE_DIR": str(base)})
     assert res.returncode == 0, res.stderr
@@ -71,3 +71,55 @@ def test_caches_of_other_sources_unused_for_30_days_are_removed_and_the_one_in_u
     assert used.parent == base and used.is_dir()
     assert not old.exists() and recent.exists() and other.exists()  # only digest-named folders are the bench's
     assert used.stat().st_mtime > recent.stat().st_mtime  # marked as used now
+
+
+NO_HOME = """
+import pwd, sys
+def refuse(uid):
+    raise KeyError(uid)
+pwd.getpwuid = refuse  # a uid without a passwd entry (containers, services): Path.home() fails
+import numba, numpy as np
+from bench.core.one_pole import one_pole
+one_pole(np.zeros(3), 0.5, 0.0)
+print(type(one_pole._cache).__name__, getattr(one_pole._cache, "_cache_path", ""))
+"""
+
+
+def _no_home(tmp_path: Path) -> tuple[str, str]:
+    env = {k: v for k, v in os.environ.items() if k not in ("HOME", "XDG_CACHE_HOME", "NUMBA_CACHE_DIR")}
+    res = subprocess.run([sys.executable, "-c", NO_HOME], cwd=ROOT, capture_output=True, text=True, timeout=120,
+                         env={**env, "TMPDIR": str(tmp_path)})
+    assert res.returncode == 0, res.stderr
+    kind, _, path = res.stdout.strip().partition(" ")
+    return kind, path
+
+
+def test_without_a_home_the_cache_is_the_users_own_folder_in_the_temporary_directory(tmp_path: Path) -> None:
+    kind, path = _no_home(tmp_path)
+    own = tmp_path / f"dea-bench-numba-{os.getuid()}"
+    assert kind == "FunctionCache" and Path(path).is_relative_to(own)
+    assert own.stat().st_mode & 0o777 == 0o700
+
+
+def test_a_temporary_folder_others_may_write_is_not_used_and_nothing_is_cached(tmp_path: Path) -> None:
+    shared = tmp_path / f"dea-bench-numba-{os.getuid()}"
+    shared.mkdir(mode=0o777)
+    shared.chmod(0o777)  # planted, or made by a careless umask: numba would unpickle what others put there
+    kind, _ = _no_home(tmp_path)
+    assert kind == "NullCache"  # compiled in this process, not cached (and not in the sources' __pycache__)
+    assert list(shared.iterdir()) == []
+
+
+def test_a_changed_numba_variable_does_not_move_the_kernels_cache(tmp_path: Path) -> None:
+    """numba re-reads its config from the environment at a compile after any NUMBA_* variable changed; a kernel
+    module imported after that still caches in the digest's folder."""
+    probe = ("import os, numba, bench.models.jit as jit\n"
+             "os.environ['NUMBA_DISABLE_PERFORMANCE_WARNINGS'] = '1'\n"
+             "numba.njit(lambda x: x + 1)(1)\n"
+             "from bench.identify.record_costs import _partial\n"
+             "print(jit.cache_dir())\nprint(_partial._cache._cache_path)\n")
+    res = subprocess.run([sys.executable, "-c", probe], cwd=ROOT, capture_output=True, text=True, timeout=120,
+                         env={**os.environ, "NUMBA_CACHE_DIR": str(tmp_path)})
+    assert res.returncode == 0, res.stderr
+    folder, kernel = res.stdout.split()
+    assert Path(folder).parent == tmp_path and Path(kernel).is_relative_to(folder)

@@ -20,7 +20,7 @@ import heapq
 import itertools
 import threading
 from collections.abc import Callable, Iterator, Sequence
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 
@@ -126,7 +126,7 @@ def kernel_ready() -> bool:
     from bench.identify.record_costs import _partial
     from bench.models.membrane_batch import _batch
 
-    return bool(_batch.signatures) and bool(_partial.signatures)
+    return all(bool(cast(Any, kernel).signatures) for kernel in (_batch, _partial))  # numba dispatchers
 
 
 class DistributedPredict:

@@ -9,9 +9,11 @@ digest of all kernel sources (the files of ``bench`` and ``sim_devices`` that us
 them starts an empty cache, and identical sources share one (checkouts, dask workers, installed wheels).
 
 The directory: ``$NUMBA_CACHE_DIR/<digest>`` where that is set, else ``$XDG_CACHE_HOME/dea-bench/numba/<digest>``
-(``~/.cache/…``), else a folder in the temporary directory when neither can be written. Each use marks it (its
+(``~/.cache/…``), else the user's own folder (mode 0700) in the temporary directory; where none can be used the
+kernels are compiled in every process and not cached (never numba's per-file cache). Each use marks the folder (its
 time stamp); a sibling of another digest unused for :data:`UNUSED_DAYS` is removed (a few MB each: one per version
-of the sources a machine has run).
+of the sources a machine has run). The digest covers every file of ``bench/models`` and ``bench/core`` (a kernel
+compiles in the constants it reads, such as ``batch_plan.LANES``) and every other file that uses ``njit``.
 """
 
 from __future__ import annotations
@@ -21,30 +23,37 @@ import importlib.util
 import os
 import re
 import shutil
+import stat
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any, TypeVar
 
 import numba
-from numba import njit
 
 __all__ = ["cache_dir", "njit"]
 
+K = TypeVar("K", bound=Callable[..., Any])
 UNUSED_DAYS = 30.0  # a cache of other sources not used this long is removed
 _DIGEST = re.compile(r"[0-9a-f]{16}")
 
 
 def _kernel_sources() -> list[Path]:
-    """The project's kernel modules: the ``.py`` files of ``bench`` and ``sim_devices`` that use ``njit``."""
-    roots = [Path(__file__).resolve().parents[1]]  # bench
+    """What the compiled kernels are made of: every ``.py`` file of ``bench/models`` and ``bench/core``, and the
+    other files of ``bench`` and ``sim_devices`` that use ``njit``."""
+    bench = Path(__file__).resolve().parents[1]
+    roots = [bench]
     spec = importlib.util.find_spec("sim_devices")
     if spec is not None and spec.origin is not None:
         roots.append(Path(spec.origin).resolve().parent)
-    return [f for root in roots for f in sorted(root.rglob("*.py")) if b"njit" in f.read_bytes()]
+    model_dirs = (bench / "models", bench / "core")
+    return [f for root in roots for f in sorted(root.rglob("*.py"))
+            if f.parent in model_dirs or b"njit" in f.read_bytes()]
 
 
 def sources_digest() -> str:
-    """A digest of every kernel module's path (within its package) and contents."""
+    """A digest of every kernel source's path (within its package) and contents."""
     h = hashlib.sha256()
     for f in _kernel_sources():
         h.update(f"{f.parent.name}/{f.name}\0".encode())
@@ -52,8 +61,15 @@ def sources_digest() -> str:
     return h.hexdigest()[:16]
 
 
-def _writable(path: Path) -> bool:
+def _usable(path: Path, private: bool = False) -> bool:
+    """Whether ``path`` exists or could be made, and can be written; ``private``: its parent is this user's own
+    folder that no one else may write (the temporary directory is shared: numba reads its index with pickle)."""
     try:
+        if private:
+            path.parent.mkdir(mode=0o700, exist_ok=True)
+            st = path.parent.lstat()
+            if not stat.S_ISDIR(st.st_mode) or st.st_uid != os.getuid() or st.st_mode & 0o077:
+                return False
         path.mkdir(parents=True, exist_ok=True)
         return os.access(path, os.W_OK)
     except OSError:
@@ -73,16 +89,42 @@ def _mark_and_prune(used: Path) -> None:
         pass
 
 
-def cache_dir() -> Path:
-    """Where the compiled kernels of these sources are cached (created)."""
+def _user_cache() -> Path | None:
+    """``$XDG_CACHE_HOME`` or ``~/.cache`` (None where there is no home: a uid without a passwd entry)."""
+    if os.environ.get("XDG_CACHE_HOME"):
+        return Path(os.environ["XDG_CACHE_HOME"])
+    try:
+        return Path.home() / ".cache"
+    except (RuntimeError, KeyError):
+        return None
+
+
+def cache_dir() -> Path | None:
+    """Where the compiled kernels of these sources are cached (created); None: nowhere usable."""
     digest = sources_digest()
-    base = os.environ.get("NUMBA_CACHE_DIR") or \
-        str(Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "dea-bench" / "numba")
-    for candidate in (Path(base) / digest, Path(tempfile.gettempdir()) / f"dea-bench-numba-{os.getuid()}" / digest):
-        if _writable(candidate):
+    user = _user_cache()
+    candidates = [(Path(os.environ["NUMBA_CACHE_DIR"]) / digest, False)] if os.environ.get("NUMBA_CACHE_DIR") else \
+        ([(user / "dea-bench" / "numba" / digest, False)] if user is not None else [])
+    candidates.append((Path(tempfile.gettempdir()) / f"dea-bench-numba-{os.getuid()}" / digest, True))
+    for candidate, private in candidates:
+        if _usable(candidate, private):
             _mark_and_prune(candidate)
             return candidate
-    return Path(base) / digest  # numba reports the failure to cache; the kernels still compile and run
+    return None
 
 
-numba.config.CACHE_DIR = str(cache_dir())  # type: ignore[attr-defined]  # read as a kernel with cache=True is decorated
+_CACHE = cache_dir()
+
+
+def njit(**options: Any) -> Callable[[K], K]:
+    """numba's ``njit(**options)`` (always with its options: ``@njit(cache=True)``), caching in :func:`cache_dir`'s
+    folder, or not at all where there is none. numba picks a kernel's cache folder as it decorates it, from its
+    config, which it re-reads from the environment when a ``NUMBA_*`` variable changed: so the folder is set again
+    at every decoration."""
+    if options.get("cache"):
+        if _CACHE is None:
+            options["cache"] = False
+        else:
+            numba.config.CACHE_DIR = str(_CACHE)  # type: ignore[attr-defined]
+    decorate: Callable[[K], K] = numba.njit(**options)
+    return decorate
