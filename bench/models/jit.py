@@ -39,25 +39,25 @@ UNUSED_DAYS = 30.0  # a cache of other sources not used this long is removed
 _DIGEST = re.compile(r"[0-9a-f]{16}")
 
 
-def _kernel_sources() -> list[Path]:
-    """What the compiled kernels are made of: every ``.py`` file of ``bench/models`` and ``bench/core``, and the
-    other files of ``bench`` and ``sim_devices`` that use ``njit``."""
+def _kernel_sources() -> list[tuple[Path, bytes]]:
+    """What the compiled kernels are made of, each file with its contents: every ``.py`` file of ``bench/models``
+    and ``bench/core``, and the other files of ``bench`` and ``sim_devices`` that use ``njit``."""
     bench = Path(__file__).resolve().parents[1]
     roots = [bench]
     spec = importlib.util.find_spec("sim_devices")
     if spec is not None and spec.origin is not None:
         roots.append(Path(spec.origin).resolve().parent)
     model_dirs = (bench / "models", bench / "core")
-    return [f for root in roots for f in sorted(root.rglob("*.py"))
-            if f.parent in model_dirs or b"njit" in f.read_bytes()]
+    found = ((f, f.read_bytes()) for root in roots for f in sorted(root.rglob("*.py")))
+    return [(f, data) for f, data in found if f.parent in model_dirs or b"njit" in data]
 
 
 def sources_digest() -> str:
     """A digest of every kernel source's path (within its package) and contents."""
     h = hashlib.sha256()
-    for f in _kernel_sources():
+    for f, data in _kernel_sources():
         h.update(f"{f.parent.name}/{f.name}\0".encode())
-        h.update(f.read_bytes())
+        h.update(data)
     return h.hexdigest()[:16]
 
 
