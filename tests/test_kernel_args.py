@@ -5,6 +5,8 @@ depend on the form an array came in."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
 from bench.models.kernel_args import kernel_array
@@ -76,3 +78,30 @@ def test_observables_compile_one_variant_whatever_form_the_history_and_inputs_co
     again = lozenge_outputs(q, t, np.asfortranarray(Z), _read_only(phi))
     assert np.array_equal(first.force, again.force)
     assert len(lozenge_observe.signatures) == 1
+
+
+def test_a_daq_run_compiles_its_host_kernels_before_it_connects_and_no_other_variant(tmp_path: Path,
+                                                                                      monkeypatch) -> None:
+    """The host's kernels of a hardware-timed run (error diffusion, the reconstruction filter) are compiled before
+    any instrument or twin runs, with the argument types the run passes: a first compile inside a wall-clock run
+    holds the interpreter ~0.3 s while the twins' threads wait."""
+    from bench.core.one_pole import one_pole
+    from bench.runtime import hardware_timed
+    from bench.runtime.run import execute, plan_run
+    from tests.conftest import ROOT
+
+    order: list[str] = []
+    warm = hardware_timed.warm_up
+    monkeypatch.setattr(hardware_timed, "warm_up", lambda: (order.append("warm"), warm())[1])
+    from bench.runtime import sim_rig
+
+    start = sim_rig.SimRig.start
+    monkeypatch.setattr(sim_rig.SimRig, "start", lambda self: (order.append("twins"), start(self))[1])
+    warm()
+    before = (list(hardware_timed._diffuse.signatures), list(one_pole.signatures))
+    plan = plan_run(ROOT / "protocols" / "short" / "thesis-identification-short.toml")
+    assert plan.rig.daq is not None and plan.rig.daq.drive_filter_Hz is not None  # both kernels run in it
+    result = execute(plan, tmp_path / "r.h5", virtual=True)
+    assert result.state == "completed"
+    assert order == ["warm", "twins"]
+    assert (list(hardware_timed._diffuse.signatures), list(one_pole.signatures)) == before

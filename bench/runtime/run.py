@@ -29,6 +29,7 @@ from bench.protocol.program import (
 )
 from bench.protocol.schema import MAX_OPERATOR, MAX_SPECIMEN_ID, Protocol, check_label, check_notes, load_protocol
 from bench.rig import RigConfig, load_rig_text, rig_to_toml
+from bench.runtime import hardware_timed
 from bench.runtime.control import control_path
 from bench.runtime.engine import Engine, OperatorFn, RunResult, termination_raises
 from bench.runtime.hardware_timed import describe_streams
@@ -202,6 +203,8 @@ def execute(plan: Plan, out: Path, *, virtual: bool = False, operator: OperatorF
         raise ValueError(f"rig {rig.name} is real: virtual time needs a simulated rig (use --sim)")
     watchdog = check_watchdog(rig, allow_no_watchdog)
     refuse_if_latched(rig.name)
+    if rig.daq is not None:
+        hardware_timed.warm_up()  # the host's kernels, before any instrument (or twin) runs
     sim = None
     if rig.simulated:
         from bench.runtime.sim_rig import SimRig
