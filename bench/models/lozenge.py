@@ -193,6 +193,16 @@ def volume(p: np.ndarray) -> float:
 
 
 @njit(cache=True)
+def _invariants(l1: float, l2: float) -> tuple[float, float, float, float, float, float, float]:
+    """(λ3², I1, ∂I1/∂λ1, ∂I1/∂λ2, I2, ∂I2/∂λ1, ∂I2/∂λ2) at (λ1, λ2), λ3 eliminated (eq 2)."""
+    a = 1.0 / (l1 * l1 * l2 * l2)  # λ3²
+    I1 = l1 * l1 + l2 * l2 + a
+    I2 = 1.0 / (l1 * l1) + 1.0 / (l2 * l2) + l1 * l1 * l2 * l2
+    return (a, I1, 2.0 * (l1 - a / l1), 2.0 * (l2 - a / l2), I2, -2.0 / l1**3 + 2.0 * l1 * l2 * l2,
+            -2.0 / l2**3 + 2.0 * l2 * l1 * l1)
+
+
+@njit(cache=True)
 def gentgent(l1: float, l2: float, p: np.ndarray) -> tuple[float, float, float, float, float, float, float]:
     """Gent–Gent energy per volume Ψ(λ1, λ2) with λ3 eliminated (eq 2): (Ψ, Ψ1, Ψ2, Ψ11, Ψ12, Ψ22, G) in Pa.
 
@@ -200,17 +210,11 @@ def gentgent(l1: float, l2: float, p: np.ndarray) -> tuple[float, float, float, 
     I1 = λ1² + λ2² + λ1⁻²λ2⁻²,  I2 = λ1⁻² + λ2⁻² + λ1²λ2².
     """
     mu, Jm, C2 = p[Q_MU], p[Q_JM], p[Q_C2]
-    a = 1.0 / (l1 * l1 * l2 * l2)  # λ3²
-    I1 = l1 * l1 + l2 * l2 + a
-    I1_1 = 2.0 * (l1 - a / l1)
-    I1_2 = 2.0 * (l2 - a / l2)
+    a, I1, I1_1, I1_2, I2, I2_1, I2_2 = _invariants(l1, l2)
     I1_11 = 2.0 + 6.0 * a / (l1 * l1)
     I1_12 = 4.0 * a / (l1 * l2)
     I1_22 = 2.0 + 6.0 * a / (l2 * l2)
     G = 1.0 - (I1 - 3.0) / Jm
-    I2 = 1.0 / (l1 * l1) + 1.0 / (l2 * l2) + l1 * l1 * l2 * l2
-    I2_1 = -2.0 / l1**3 + 2.0 * l1 * l2 * l2
-    I2_2 = -2.0 / l2**3 + 2.0 * l2 * l1 * l1
     I2_11 = 6.0 / l1**4 + 2.0 * l2 * l2
     I2_12 = 4.0 * l1 * l2
     I2_22 = 6.0 / l2**4 + 2.0 * l1 * l1
@@ -229,14 +233,8 @@ def gent_stress(l1: float, l2: float, p: np.ndarray) -> tuple[float, float, floa
     """(Ψ1, Ψ2, G) of :func:`gentgent` in its very operations, without the energy's two logarithms and the second
     derivatives: what a fixed step and a rig's force need, the same doubles."""
     mu, Jm, C2 = p[Q_MU], p[Q_JM], p[Q_C2]
-    a = 1.0 / (l1 * l1 * l2 * l2)  # λ3²
-    I1 = l1 * l1 + l2 * l2 + a
-    I1_1 = 2.0 * (l1 - a / l1)
-    I1_2 = 2.0 * (l2 - a / l2)
+    _, I1, I1_1, I1_2, I2, I2_1, I2_2 = _invariants(l1, l2)
     G = 1.0 - (I1 - 3.0) / Jm
-    I2 = 1.0 / (l1 * l1) + 1.0 / (l2 * l2) + l1 * l1 * l2 * l2
-    I2_1 = -2.0 / l1**3 + 2.0 * l1 * l2 * l2
-    I2_2 = -2.0 / l2**3 + 2.0 * l2 * l1 * l1
     h = 0.5 * mu
     P1 = h * I1_1 / G + C2 * I2_1 / I2
     P2 = h * I1_2 / G + C2 * I2_2 / I2
