@@ -123,3 +123,27 @@ def test_a_changed_numba_variable_does_not_move_the_kernels_cache(tmp_path: Path
     assert res.returncode == 0, res.stderr
     folder, kernel = res.stdout.split()
     assert Path(folder).parent == tmp_path and Path(kernel).is_relative_to(folder)
+
+
+def test_a_temporary_folder_of_ours_that_others_may_only_read_is_used(tmp_path: Path) -> None:
+    own = tmp_path / f"dea-bench-numba-{os.getuid()}"
+    own.mkdir(mode=0o755)
+    own.chmod(0o755)  # as an earlier version made it
+    kind, path = _no_home(tmp_path)
+    assert kind == "FunctionCache" and Path(path).is_relative_to(own)
+
+
+def test_a_relative_cache_folder_stays_where_it_was_when_the_process_changes_directory(tmp_path: Path) -> None:
+    probe = ("import os, sys, numpy as np, bench.models.jit\n"
+             "os.chdir(sys.argv[1])\n"
+             "from bench.core.one_pole import one_pole\n"
+             "one_pole(np.zeros(2), 0.5, 0.0)\n"
+             "print(one_pole._cache._cache_path)\n")
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    env = {**os.environ, "NUMBA_CACHE_DIR": "relnc", "PYTHONPATH": str(ROOT)}  # run from another folder
+    res = subprocess.run([sys.executable, "-c", probe, str(elsewhere)], cwd=tmp_path, capture_output=True, text=True,
+                         timeout=120, env=env)
+    assert res.returncode == 0, res.stderr
+    assert Path(res.stdout.strip()).is_relative_to(tmp_path / "relnc")
+    assert not (elsewhere / "relnc").exists()

@@ -63,12 +63,13 @@ def sources_digest() -> str:
 
 def _usable(path: Path, private: bool = False) -> bool:
     """Whether ``path`` exists or could be made, and can be written; ``private``: its parent is this user's own
-    folder that no one else may write (the temporary directory is shared: numba reads its index with pickle)."""
+    folder that no one else may write (the temporary directory is shared: numba reads its index with pickle; made
+    0700, and one of ours that others may only read is fine)."""
     try:
         if private:
             path.parent.mkdir(mode=0o700, exist_ok=True)
             st = path.parent.lstat()
-            if not stat.S_ISDIR(st.st_mode) or st.st_uid != os.getuid() or st.st_mode & 0o077:
+            if not stat.S_ISDIR(st.st_mode) or st.st_uid != os.getuid() or st.st_mode & 0o022:
                 return False
         path.mkdir(parents=True, exist_ok=True)
         return os.access(path, os.W_OK)
@@ -106,7 +107,8 @@ def cache_dir() -> Path | None:
     candidates = [(Path(os.environ["NUMBA_CACHE_DIR"]) / digest, False)] if os.environ.get("NUMBA_CACHE_DIR") else \
         ([(user / "dea-bench" / "numba" / digest, False)] if user is not None else [])
     candidates.append((Path(tempfile.gettempdir()) / f"dea-bench-numba-{os.getuid()}" / digest, True))
-    for candidate, private in candidates:
+    for relative, private in candidates:
+        candidate = Path(os.path.abspath(relative))  # numba resolves a relative folder anew at every decoration
         if _usable(candidate, private):
             _mark_and_prune(candidate)
             return candidate
