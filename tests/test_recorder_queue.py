@@ -48,6 +48,14 @@ def test_a_bad_block_is_refused_whole_and_the_stream_records_on(tmp_path: Path, 
     np.testing.assert_array_equal(amp.columns["current"], -t)
 
 
+def _two_streams(path: Path, name: str, laser_hz: float) -> recorder.Recorder:
+    """A recorder of one voltage column on an amplifier stream at 1 kHz and a laser stream at ``laser_hz``, with no
+    timed flush: only chunk counts and the finish write."""
+    cols = [recorder.Column("voltage", "V", "")]
+    return recorder.Recorder(path, {"protocol_name": name}, {"amplifier": cols, "laser": cols}, [],
+                             {"amplifier": 1000.0, "laser": laser_hz}, flush_interval=3600.0)
+
+
 class _NoThread(threading.Thread):
     def start(self) -> None:
         raise RuntimeError("can't start new thread")
@@ -78,9 +86,7 @@ def test_a_stream_with_eight_chunks_queued_is_written_at_once_in_whole_chunks(
     256 at 1 kHz, 1000 at 4 kHz. Writes on the caller's thread (no thread to be had), so their order is fixed."""
     monkeypatch.setattr(recorder, "FLUSH_CHUNKS", 8)
     path = tmp_path / "run.h5"
-    cols = [recorder.Column("voltage", "V", "")]
-    rec = recorder.Recorder(path, {"protocol_name": "chunks"}, {"amplifier": cols, "laser": cols}, [],
-                            {"amplifier": 1000.0, "laser": 4000.0}, flush_interval=3600.0)
+    rec = _two_streams(path, "chunks", 4000.0)
     writes: list[dict[str, int]] = []
     write = recorder.Recorder._write
     monkeypatch.setattr(recorder.Recorder, "_write",
@@ -127,9 +133,7 @@ def test_a_whole_chunk_write_takes_no_event_and_no_valid_time_ahead_of_another_s
     laser's first 768, no event, the valid time still 0; the finish writes the rest with both events."""
     monkeypatch.setattr(recorder, "FLUSH_CHUNKS", 8)
     path = tmp_path / "run.h5"
-    cols = [recorder.Column("voltage", "V", "")]
-    rec = recorder.Recorder(path, {"protocol_name": "events"}, {"amplifier": cols, "laser": cols}, [],
-                            {"amplifier": 1000.0, "laser": 1000.0}, flush_interval=3600.0)
+    rec = _two_streams(path, "events", 1000.0)
     works = _spy_on_writes(monkeypatch)
     laser_t, amp_t = np.arange(1000) / 1000.0, np.arange(2100) / 1000.0
     with monkeypatch.context() as m:
@@ -181,9 +185,7 @@ def test_write_ahead_writes_the_whole_chunks_queued_from_its_minimum_and_nothing
     rest. Chunks: 256 samples at 1 kHz, 1000 at 4 kHz. Writes on
     the caller's thread (no thread to be had), so their order is fixed."""
     path = tmp_path / "run.h5"
-    cols = [recorder.Column("voltage", "V", "")]
-    rec = recorder.Recorder(path, {"protocol_name": "ahead"}, {"amplifier": cols, "laser": cols}, [],
-                            {"amplifier": 1000.0, "laser": 4000.0}, flush_interval=3600.0)
+    rec = _two_streams(path, "ahead", 4000.0)
     works = _spy_on_writes(monkeypatch)
     amp_t, laser_t = np.arange(1100) / 1000.0, np.arange(4000) / 4000.0
     with monkeypatch.context() as m:
