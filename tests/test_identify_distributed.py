@@ -233,3 +233,53 @@ def test_distributed_costs_equal_the_in_process_costs(runs: list[Path], cluster:
     for kind in local:
         assert np.isinf(local[kind]).sum() == 2
         np.testing.assert_array_equal(remote[kind], local[kind])
+
+
+def test_a_closing_workers_failed_heartbeat_is_dropped_and_a_running_ones_kept() -> None:
+    """dask logs a heartbeat cut by the worker's own close as an ERROR with a traceback (seen at the end of a
+    16-worker LocalCluster); the filter drops only that record, and only while its worker closes."""
+    import inspect
+
+    from distributed import Worker
+    from distributed.core import Status
+
+    from bench.identify.worker_plugins import HEARTBEAT_FAILED, ClosingHeartbeatFilter
+
+    # the message is dask's own (its source), not ours
+    assert f'"{HEARTBEAT_FAILED}.' in inspect.getsource(Worker.heartbeat)
+
+    class FakeWorker:
+        status = Status.running
+
+    worker = FakeWorker()
+    keep = ClosingHeartbeatFilter(worker)
+    log = logging.getLogger("distributed.worker")
+    try:
+        raise OSError("Stream is closed")
+    except OSError:
+        exc = sys.exc_info()
+    failed = log.makeRecord(log.name, logging.ERROR, __file__, 1, HEARTBEAT_FAILED + ".", (), exc)
+    other = log.makeRecord(log.name, logging.ERROR, __file__, 1, "Unexpected exception during heartbeat.", (), exc)
+    assert keep.filter(failed) and keep.filter(other)  # running: a scheduler really lost
+    for status in (Status.closing, Status.closing_gracefully, Status.closed):
+        worker.status = status
+        assert not keep.filter(failed), status
+        assert keep.filter(other), status
+    del worker
+    assert not keep.filter(failed)  # the worker is gone: its heartbeat cannot matter
+    assert keep.filter(other)
+
+
+def test_the_workers_of_our_local_cluster_carry_the_filter_and_close_without_a_traceback(
+        capfd: pytest.CaptureFixture[str]) -> None:
+    from bench.identify.worker_plugins import ClosingHeartbeatFilter
+
+    def installed() -> int:
+        return sum(isinstance(f, ClosingHeartbeatFilter) for f in logging.getLogger("distributed.worker").filters)
+
+    with cluster_client(workers=2) as client:
+        assert client is not None
+        client.wait_for_workers(2, timeout=60)
+        assert sorted(client.run(installed).values()) == [1, 1]
+    err = capfd.readouterr().err  # the worker processes write to this process's stderr
+    assert "Traceback" not in err and " - ERROR - " not in err, err
