@@ -76,6 +76,9 @@ def test_benchmark_sizes_out_of_range_or_malformed_are_one_line_errors() -> None
         res = runner.invoke(app, ["benchmark", "cluster", "--sizes", sizes])
         assert res.exit_code != 0 and "--sizes" in res.output and says in res.output, res.output
         assert "Traceback" not in res.output and len(res.output.strip().splitlines()) == 1
+    for copies in ("0", "17", "two"):  # the campaign's records 1…16 times over
+        res = runner.invoke(app, ["benchmark", "cluster", "--copies", copies])
+        assert res.exit_code == 2 and "--copies" in res.output and "Traceback" not in res.output, res.output
 
 
 def test_acquisition_benchmark_reports_complete_10kHz_storage() -> None:

@@ -253,6 +253,9 @@ def benchmark(
     sizes: Annotated[str, typer.Option(help="The cluster set's worker counts, each against the in-process fit on as "
                                        "many numba threads (1 is always measured), e.g. 1,2,4,8,16 on a 16-core "
                                        "machine.")] = "1,2",
+    copies: Annotated[int, typer.Option(min=1, max=16, help="The cluster set's campaign: its records this many "
+                                        "times over (2: 24 records), to show scale-out where there are more "
+                                        "records than workers.")] = 1,
     json_out: JsonOpt = False,
 ) -> None:
     """Measure the integrators, the acquisition rates through the drivers, whole runs, the fitter and the command
@@ -265,7 +268,7 @@ def benchmark(
     except ValueError as e:
         raise fail(str(e)) from None
     with json_mode(json_out):
-        collected = _benchmark(which, quick, scale)
+        collected = _benchmark(which, quick, scale, copies)
     if json_out:
         print_json(collected)
 
@@ -300,7 +303,7 @@ FULL_ONLY = (BenchmarkSet.cluster,)
 NAMED_ONLY = (BenchmarkSet.kernels,)
 
 
-def _benchmark(which: BenchmarkSet, quick: bool, sizes: tuple[int, ...] = (1, 2)) -> dict[str, object]:
+def _benchmark(which: BenchmarkSet, quick: bool, sizes: tuple[int, ...] = (1, 2), copies: int = 1) -> dict[str, object]:
     """Run and print the chosen benchmark sets, with a progress line (set k of n, elapsed); returns their figures
     by set."""
     import time
@@ -323,7 +326,7 @@ def _benchmark(which: BenchmarkSet, quick: bool, sizes: tuple[int, ...] = (1, 2)
             elif kind is BenchmarkSet.faults:
                 collected["faults"] = _fault_matrix(quick)
             else:
-                collected[title] = _figures(kind, title, quick, sizes)
+                collected[title] = _figures(kind, title, quick, sizes, copies)
             took.append(f"{kind.value} {time.perf_counter() - t_set:.1f}")
             bar.advance(task)
     console.print(f"benchmark {which.value}{' --quick' if quick else ''}: {len(chosen)} set(s) in "
@@ -351,7 +354,8 @@ def _physics(quick: bool) -> list[dict[str, object]]:
             for r in results]
 
 
-def _figures(kind: BenchmarkSet, title: str, quick: bool, sizes: tuple[int, ...]) -> list[dict[str, object]]:
+def _figures(kind: BenchmarkSet, title: str, quick: bool, sizes: tuple[int, ...],
+             copies: int = 1) -> list[dict[str, object]]:
     """Run and print one set of figures (acquisition, run, fit, kernels, cluster, daq, export, watch, startup);
     returns them."""
     run_all: Callable[..., list[Figure]]
@@ -367,7 +371,7 @@ def _figures(kind: BenchmarkSet, title: str, quick: bool, sizes: tuple[int, ...]
         from bench.benchmarks import cluster
 
         def run_all(quick: bool) -> list[Figure]:
-            return cluster.run_all(quick, sizes)
+            return cluster.run_all(quick, sizes, copies)
     elif kind is BenchmarkSet.daq:
         from bench.benchmarks.daq import run_all
     elif kind is BenchmarkSet.export:
