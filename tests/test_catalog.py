@@ -470,6 +470,43 @@ def test_a_late_start_row_never_replaces_the_end_row(tmp_path: Path, monkeypatch
     assert row["signature"] != "" and row["complete"] and row["state"] == "completed"
 
 
+def test_ctrl_c_while_the_end_waits_for_the_start_row_skips_the_end_row_with_a_warning(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture) -> None:
+    """Ctrl-C while the run's end waits for a late start row ends the wait: the run returns its result (its file
+    already holds the end), the catalogue's end row is skipped with a warning, and `bench runs list` reconciles
+    the row from the file."""
+    import signal
+    import threading
+    import time
+
+    from bench.runtime import run as run_module
+    from bench.runtime.run import execute, plan_run
+    from bench.storage.catalog import catalog_url, reconcile
+
+    monkeypatch.delenv("BENCH_CATALOG", raising=False)
+    done = _slow_start_row(monkeypatch, 3.0)
+    real_join = run_module._join
+
+    def ctrl_c_while_joining(row: threading.Thread | None) -> None:
+        threading.Timer(0.2, os.kill, (os.getpid(), signal.SIGINT)).start()  # a real signal, mid-wait
+        real_join(row)
+
+    monkeypatch.setattr(run_module, "_join", ctrl_c_while_joining)
+    result = execute(plan_run(IDENT), tmp_path / "run.h5", virtual=True)
+    assert done == []  # returned before the start row was written: the signal ended the wait
+    assert result.state == "completed"
+    assert any("run catalogue not written at the end (Ctrl-C" in r.getMessage() for r in caplog.records)
+    for _ in range(100):  # the start row's thread goes on and writes its row
+        if done:
+            break
+        time.sleep(0.05)
+    assert done == ["written"]
+    with Catalog(catalog_url(tmp_path)) as cat:
+        reconcile(cat, tmp_path)
+    (row,) = _rows(tmp_path)
+    assert row["signature"] != "" and row["complete"] and row["state"] == "completed"  # from the file
+
+
 def test_a_run_that_raises_still_leaves_its_start_row(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     from bench.runtime.engine import Engine
     from bench.runtime.run import execute, plan_run
