@@ -60,6 +60,7 @@ def _first(t: np.ndarray, bad: np.ndarray) -> float | None:
 
 Listener = Callable[["PlantBlock"], None]
 BLOCK_STEPS = 20_000  # longest block handed to the compiled integrator at once
+PIECES_NUMPY = 32  # more pending motion events than this: split a block at them in numpy passes
 
 
 @dataclass(frozen=True)
@@ -261,6 +262,12 @@ class Plant:
             self._motions.append((now, profile))
             return profile
 
+    def add_motions(self, motions: list[tuple[float, MotionProfile]]) -> None:
+        """Profiles planned ahead, each (time, profile) replacing the motion from its time on — not before the last
+        one's: what :meth:`set_motion` does at each of those times (the dry run plans a segment's go-tos at once)."""
+        with self.lock:
+            self._motions.extend(motions)
+
     def motor_state(self, t: float | None = None) -> tuple[float, float]:
         """Motor (position [m], velocity [m/s]) at t (default: now).
 
@@ -343,6 +350,8 @@ class Plant:
 
     def _pieces(self, events: list[tuple[float, MotionProfile]], n: int) -> list[tuple[int, int, MotionProfile]]:
         """Split the next n steps at the input events: [(first step, end step, value)], dropping used history."""
+        if len(events) > PIECES_NUMPY:
+            return self._many_pieces(events, n)
         first_step = self._n
         starts = [max(0, math.floor(te / self.h + 1e-6) - first_step) for te, _ in events]
         out: list[tuple[int, int, MotionProfile]] = []
@@ -352,6 +361,17 @@ class Plant:
             if b > a or (i == len(events) - 1 and a < n):
                 out.append((a, b, value))
         keep = max(i for i, st in enumerate(starts) if st <= n)  # the value in force at the block's end
+        del events[:keep]
+        return out
+
+    def _many_pieces(self, events: list[tuple[float, MotionProfile]], n: int) -> list[tuple[int, int, MotionProfile]]:
+        """:meth:`_pieces` in numpy passes (the dry run queues a segment's thousands of go-tos before it advances)."""
+        t = np.fromiter((te for te, _ in events), dtype=float, count=len(events))
+        starts = np.maximum(np.floor(t / self.h + 1e-6).astype(np.int64) - self._n, 0)
+        a = np.minimum(starts, n)
+        b = np.append(a[1:], n)  # each piece ends where the next one starts (the last: at the block's end)
+        out = [(int(a[i]), int(b[i]), events[i][1]) for i in np.flatnonzero(b > a).tolist()]
+        keep = max(np.flatnonzero(starts <= n).tolist())
         del events[:keep]
         return out
 
