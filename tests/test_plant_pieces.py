@@ -45,3 +45,30 @@ def test_many_pending_events_split_a_block_as_the_python_loop() -> None:
         assert [(a, b, id(p)) for a, b, p in got] == [(a, b, id(p)) for a, b, p in want]
         assert all(type(a) is int and type(b) is int for a, b, _ in got)
         assert [id(p) for _, p in mine] == [id(p) for _, p in ref]
+
+
+def test_many_pieces_fill_the_motor_inputs_as_each_profile_evaluates() -> None:
+    """Past ``PIECES_NUMPY`` pieces the block's motor inputs come from one compiled call over the joined phases:
+    each piece is still its profile's :meth:`MotionProfile.evaluate` (x0 + sign·position, sign·velocity)."""
+    rng = np.random.default_rng(5)
+    clock = VirtualClock()
+    plant = Plant(clock, LozengeParams(), configuration="motor", x0=0.05, motor_sign=-1.0)
+    for _ in range(3 * PIECES_NUMPY):
+        clock.advance(float(rng.uniform(0.0, 0.012)))
+        target, vmax = float(rng.uniform(-0.02, 0.02)), float(rng.choice([0.01, 0.05, 0.3]))
+
+        def plan(t0: float, p: float, v: float, g: float = target, vm: float = vmax) -> MotionProfile:
+            return MotionProfile.plan(t0, p, v, g, vm, 1.0, 1.0)
+
+        plant.set_motion(plan)
+    n = int(clock.now() / plant.h) + 7
+    t = (np.arange(1, n + 1) + plant._n) * plant.h
+    pieces = _reference(list(plant._motions), plant._n, plant.h, n)
+    assert len(pieces) > PIECES_NUMPY
+    U = np.zeros((n, 3))
+    plant._motor_into(t, U)
+    want = np.zeros((n, 3))
+    for a, b, pr in pieces:
+        pos, vel = pr.evaluate(t[a:b])
+        want[a:b, 1], want[a:b, 2] = 0.05 + -1.0 * pos, -1.0 * vel
+    assert np.array_equal(U.view(np.uint64), want.view(np.uint64))

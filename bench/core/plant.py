@@ -25,7 +25,7 @@ import numpy as np
 
 from bench.core.amplifier_dynamics import lowpass, monitor_response, monitors, output_response, step_targets
 from bench.core.clock import Clock
-from bench.core.motion import MotionProfile, motion_into
+from bench.core.motion import MotionProfile, motion_into, motions_into
 from bench.core.noise import TREK_DYNAMICS, Realism
 from bench.models.lozenge import LozengeParams
 from bench.models.lozenge_runs import LozengeStream
@@ -60,7 +60,7 @@ def _first(t: np.ndarray, bad: np.ndarray) -> float | None:
 
 Listener = Callable[["PlantBlock"], None]
 BLOCK_STEPS = 20_000  # longest block handed to the compiled integrator at once
-PIECES_NUMPY = 32  # more pending motion events than this: split a block at them in numpy passes
+PIECES_NUMPY = 32  # more pending motion events (or pieces) than this: a block split and filled in batches
 
 
 @dataclass(frozen=True)
@@ -436,9 +436,19 @@ class Plant:
 
     def _motor_into(self, t: np.ndarray, U: np.ndarray) -> None:
         """The motor's inputs at the step ends ``t``: ``U[:, 1]`` ← x0 + sign·position, ``U[:, 2]`` ← sign·velocity
-        (:meth:`MotionProfile.evaluate`'s values, compiled)."""
+        (:meth:`MotionProfile.evaluate`'s values, compiled; many pieces in one call, their phases joined)."""
         x0, sign = float(self.x0), float(self.motor_sign)
-        for a, b, pr in self._pieces(self._motions, t.size):
+        pieces = self._pieces(self._motions, t.size)
+        if len(pieces) > PIECES_NUMPY:
+            starts, ends, profiles = zip(*pieces, strict=True)
+            ts, ps, vs, accs = zip(*((pr.t_start, pr.p_start, pr.v_start, pr.acc) for pr in profiles), strict=True)
+            offsets = np.zeros(len(ts) + 1, dtype=np.int64)
+            np.cumsum(np.fromiter(map(len, ts), np.int64, len(ts)), out=offsets[1:])
+            t0, p0, v0, a0 = (np.concatenate(c, dtype=np.float64) for c in (ts, ps, vs, accs))
+            motions_into(t0, p0, v0, a0, offsets, np.array(starts, dtype=np.int64), np.array(ends, dtype=np.int64),
+                         t, x0, sign, U)
+            return
+        for a, b, pr in pieces:
             motion_into(np.asarray(pr.t_start, np.float64), np.asarray(pr.p_start, np.float64),
                         np.asarray(pr.v_start, np.float64), np.asarray(pr.acc, np.float64), t, a, b, x0, sign, U)
 
