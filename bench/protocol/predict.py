@@ -102,7 +102,7 @@ def _apply_ticks(program: Program, seg: Segment, plant: Plant, clock: VirtualClo
     at the clock's time does, the plant advancing (and failing) only at the segment's end. Returns the lowest and
     highest motor target (inf, −inf: none); notes the peak voltage in ``pred``."""
     tab = tick_arrays(program, seg)
-    act = np.zeros(tab.t.size, dtype=bool)  # the ticks that change an input (the rest keep the model's alive)
+    act = np.zeros(tab.t.size, dtype=bool)  # the ticks that change an input (the rest: keep-alives)
     act[tab.motor] = True
     if pred is not None and tab.voltage is not None:
         act[:] = True
