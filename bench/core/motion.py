@@ -42,6 +42,17 @@ def motion_into(t_start: np.ndarray, p_start: np.ndarray, v_start: np.ndarray, a
         U[k, 2] = sign * vel
 
 
+@njit(cache=True)
+def motions_into(t_start: np.ndarray, p_start: np.ndarray, v_start: np.ndarray, acc: np.ndarray,
+                 offsets: np.ndarray, a: np.ndarray, b: np.ndarray, t: np.ndarray, x0: float, sign: float,
+                 U: np.ndarray) -> None:
+    """:func:`motion_into` for many pieces in one call: piece k is the profile of phases ``offsets[k]`` up to
+    ``offsets[k + 1]`` of the joined phase arrays, over the steps ``a[k]`` ≤ k < ``b[k]``."""
+    for k in range(a.size):
+        o, e = offsets[k], offsets[k + 1]
+        motion_into(t_start[o:e], p_start[o:e], v_start[o:e], acc[o:e], t, a[k], b[k], x0, sign, U)
+
+
 @dataclass(frozen=True)
 class MotionProfile:
     """Phases of constant acceleration: start times [s], start positions [m], velocities [m/s], accelerations."""

@@ -25,7 +25,7 @@ import numpy as np
 
 from bench.core.amplifier_dynamics import lowpass, monitor_response, monitors, output_response, step_targets
 from bench.core.clock import Clock
-from bench.core.motion import MotionProfile, motion_into
+from bench.core.motion import MotionProfile, motion_into, motions_into
 from bench.core.noise import TREK_DYNAMICS, Realism
 from bench.models.lozenge import LozengeParams
 from bench.models.lozenge_runs import LozengeStream
@@ -60,6 +60,7 @@ def _first(t: np.ndarray, bad: np.ndarray) -> float | None:
 
 Listener = Callable[["PlantBlock"], None]
 BLOCK_STEPS = 20_000  # longest block handed to the compiled integrator at once
+PIECES_NUMPY = 32  # more pending motion events (or pieces) than this: a block split and filled in batches
 
 
 @dataclass(frozen=True)
@@ -261,6 +262,12 @@ class Plant:
             self._motions.append((now, profile))
             return profile
 
+    def add_motions(self, motions: list[tuple[float, MotionProfile]]) -> None:
+        """Profiles planned ahead, each (time, profile) replacing the motion from its time on — not before the last
+        one's: what :meth:`set_motion` does at each of those times (the dry run plans a segment's go-tos at once)."""
+        with self.lock:
+            self._motions.extend(motions)
+
     def motor_state(self, t: float | None = None) -> tuple[float, float]:
         """Motor (position [m], velocity [m/s]) at t (default: now).
 
@@ -343,6 +350,8 @@ class Plant:
 
     def _pieces(self, events: list[tuple[float, MotionProfile]], n: int) -> list[tuple[int, int, MotionProfile]]:
         """Split the next n steps at the input events: [(first step, end step, value)], dropping used history."""
+        if len(events) > PIECES_NUMPY:
+            return self._many_pieces(events, n)
         first_step = self._n
         starts = [max(0, math.floor(te / self.h + 1e-6) - first_step) for te, _ in events]
         out: list[tuple[int, int, MotionProfile]] = []
@@ -352,6 +361,17 @@ class Plant:
             if b > a or (i == len(events) - 1 and a < n):
                 out.append((a, b, value))
         keep = max(i for i, st in enumerate(starts) if st <= n)  # the value in force at the block's end
+        del events[:keep]
+        return out
+
+    def _many_pieces(self, events: list[tuple[float, MotionProfile]], n: int) -> list[tuple[int, int, MotionProfile]]:
+        """:meth:`_pieces` in numpy passes (the dry run queues a segment's thousands of go-tos before it advances)."""
+        t = np.fromiter((te for te, _ in events), dtype=float, count=len(events))
+        starts = np.maximum(np.floor(t / self.h + 1e-6).astype(np.int64) - self._n, 0)
+        a = np.minimum(starts, n)
+        b = np.append(a[1:], n)  # each piece ends where the next one starts (the last: at the block's end)
+        out = [(int(a[i]), int(b[i]), events[i][1]) for i in np.flatnonzero(b > a).tolist()]
+        keep = max(np.flatnonzero(starts <= n).tolist())
         del events[:keep]
         return out
 
@@ -416,9 +436,19 @@ class Plant:
 
     def _motor_into(self, t: np.ndarray, U: np.ndarray) -> None:
         """The motor's inputs at the step ends ``t``: ``U[:, 1]`` ← x0 + sign·position, ``U[:, 2]`` ← sign·velocity
-        (:meth:`MotionProfile.evaluate`'s values, compiled)."""
+        (:meth:`MotionProfile.evaluate`'s values, compiled; many pieces in one call, their phases joined)."""
         x0, sign = float(self.x0), float(self.motor_sign)
-        for a, b, pr in self._pieces(self._motions, t.size):
+        pieces = self._pieces(self._motions, t.size)
+        if len(pieces) > PIECES_NUMPY:
+            starts, ends, profiles = zip(*pieces, strict=True)
+            ts, ps, vs, accs = zip(*((pr.t_start, pr.p_start, pr.v_start, pr.acc) for pr in profiles), strict=True)
+            offsets = np.zeros(len(ts) + 1, dtype=np.int64)
+            np.cumsum(np.fromiter(map(len, ts), np.int64, len(ts)), out=offsets[1:])
+            t0, p0, v0, a0 = (np.concatenate(c, dtype=np.float64) for c in (ts, ps, vs, accs))
+            motions_into(t0, p0, v0, a0, offsets, np.array(starts, dtype=np.int64), np.array(ends, dtype=np.int64),
+                         t, x0, sign, U)
+            return
+        for a, b, pr in pieces:
             motion_into(np.asarray(pr.t_start, np.float64), np.asarray(pr.p_start, np.float64),
                         np.asarray(pr.v_start, np.float64), np.asarray(pr.acc, np.float64), t, a, b, x0, sign, U)
 

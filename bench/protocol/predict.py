@@ -20,9 +20,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from bench.core.clock import VirtualClock
-from bench.core.motion import MotionProfile
+from bench.core.motion_chain import chain
 from bench.core.plant import Plant, PlantBlock
-from bench.protocol.program import Program, ProtocolLimitError, change_specimen, sample_counts, ticks
+from bench.protocol.program import Program, ProtocolLimitError, Segment, change_specimen, sample_counts
+from bench.protocol.tick_arrays import tick_arrays
 from bench.rig import plant_for
 
 STREAM_COLUMNS = {"setpoints": 2, "amplifier": 3, "laser": 2, "motor": 2, "load_cell": 1}
@@ -94,6 +95,34 @@ def check_budget(program: Program) -> None:
             f"budget of {DRY_RUN_BUDGET_S:.0f} s: lower recording.setpoint_Hz or split the protocol")
 
 
+def _apply_ticks(program: Program, seg: Segment, plant: Plant, clock: VirtualClock, gain: float,
+                 pred: Prediction | None) -> tuple[float, float]:
+    """The set-points of a segment's ticks on the plant, at once: the voltages (unless ``pred`` is None: the DAQ
+    plays them) and the go-tos, each planned from the motion in force at its tick — what sending them one by one
+    at the clock's time does, the plant advancing (and failing) only at the segment's end. Returns the lowest and
+    highest motor target (inf, −inf: none); notes the peak voltage in ``pred``."""
+    tab = tick_arrays(program, seg)
+    act = np.zeros(tab.t.size, dtype=bool)  # the ticks that change an input (the rest: keep-alives)
+    act[tab.motor] = True
+    if pred is not None and tab.voltage is not None:
+        act[:] = True
+    now = np.maximum.accumulate(np.concatenate(([clock.now()], tab.t[act])))[1:]  # the clock at each of them
+    at = np.full(tab.t.size, np.nan)
+    at[act] = now
+    if act.any():
+        clock.advance_to(float(now[-1]))
+    if pred is not None and tab.voltage is not None and tab.voltage.size:
+        pred.peak_voltage = max(pred.peak_voltage, float(np.max(np.abs(tab.voltage))))
+        plant.schedule_amplifier_input(now, tab.voltage / gain)
+    if not tab.motor.size:
+        return np.inf, -np.inf
+    times = at[tab.motor]
+    plant.add_motions(list(zip(times.tolist(),
+                               chain(plant.motion, times, tab.target, tab.velocity, tab.acceleration), strict=True)))
+    lo, hi = tab.target[int(np.argmin(tab.target))], tab.target[int(np.argmax(tab.target))]  # the first of equals
+    return float(lo), float(hi)
+
+
 def predict(program: Program, progress: Callable[[float], None] | None = None) -> Prediction:
     """Run the program on the model; collect peaks, margins and predicted failures. ``progress`` is told the
     fraction of the program's run time simulated so far (0 … 1) after each step.
@@ -141,25 +170,9 @@ def predict(program: Program, progress: Callable[[float], None] | None = None) -
             vs = np.asarray(seg.voltage(ts), dtype=float)
             pred.peak_voltage = max(pred.peak_voltage, float(np.max(np.abs(vs))))
             plant.schedule_amplifier_input(ts, vs / gain)
-        for tick in () if played and not program.has_motor_axis else ticks(program, seg):
-            v = None if played else tick.voltage
-            if v is None and tick.motor is None:
-                continue  # a keep-alive: the model's input does not change
-            clock.advance_to(tick.t)
-            if v is not None:
-                pred.peak_voltage = max(pred.peak_voltage, abs(v))
-                plant.set_amplifier_input(v / gain)
-            if tick.motor is not None:
-                target, vel, acc = tick.motor
-                motor_lo, motor_hi = min(motor_lo, target), max(motor_hi, target)
-
-                def plan(t0: float, p: float, vv: float, tg: float = target, ve: float = vel,
-                         ac: float = acc) -> MotionProfile:
-                    return MotionProfile.plan(t0, p, vv, tg, ve, ac, ac)
-
-                plant.set_motion(plan)
-            if plant.broken:
-                break
+        if not (played and not program.has_motor_axis):
+            lo, hi = _apply_ticks(program, seg, plant, clock, gain, None if played else pred)
+            motor_lo, motor_hi = min(motor_lo, lo), max(motor_hi, hi)
         clock.advance_to(seg.t_end)
         plant.advance_to(seg.t_end)
         if progress is not None:
