@@ -34,6 +34,19 @@ def thesis_virtual(repeats: int = 3) -> list[Figure]:
                    f"{t_plan:.3f} s")]
 
 
+def campaign_dry_run(name: str = "lsdea-isopotential.toml") -> list[Figure]:
+    """Validation and dry run of the longest shipped campaign (the LS-DEA isopotential one: a motor go-to per
+    set-point tick), against its run time on the rig."""
+    path = protocols_dir() / name
+    plan_run(protocols_dir() / "short" / "lsdea-isopotential-short.toml")  # kernels loaded: not what is timed
+    t0 = time.perf_counter()
+    plan = plan_run(path)
+    took = time.perf_counter() - t0
+    duration = plan.program.duration
+    return [Figure(f"{Path(name).stem}: validation and dry run on the model", duration / took, "× real time",
+                   f"{duration:,.0f} s of protocol in {took:.2f} s")]
+
+
 def recorder_throughput(seconds: float = 20.0) -> Figure:
     """Samples per second through Recorder.append + flush for a thesis-like stream mix (10-kHz laser)."""
     streams = {"laser": [Column("displacement", "m", ""), Column("valid", "1", "", "u1")],
@@ -81,4 +94,5 @@ def run_all(quick: bool = False) -> list[Figure]:
     figs.append(recorder_throughput(5.0 if quick else 20.0))
     if not quick:
         figs += recorder_cpu_share()
+        figs += campaign_dry_run()
     return figs
