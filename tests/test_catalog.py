@@ -477,29 +477,41 @@ def test_ctrl_c_while_the_end_waits_for_the_start_row_skips_the_end_row_with_a_w
     the row from the file."""
     import signal
     import threading
-    import time
 
     from bench.runtime import run as run_module
     from bench.runtime.run import execute, plan_run
+    from bench.storage import catalog
     from bench.storage.catalog import catalog_url, reconcile
 
     monkeypatch.delenv("BENCH_CATALOG", raising=False)
-    done = _slow_start_row(monkeypatch, 3.0)
-    real_join = run_module._join
+    release, done = threading.Event(), []
+    real_start, real_join = catalog.record_start, run_module._join
+
+    def held(path: Path, attrs: dict, url: str | None = None) -> None:  # the start row, held until released
+        release.wait(60)
+        real_start(path, attrs, url)
+        done.append("written")
 
     def ctrl_c_while_joining(row: threading.Thread | None) -> None:
+        assert row is not None and row.is_alive()  # the start row is held: the join below waits
         threading.Timer(0.2, os.kill, (os.getpid(), signal.SIGINT)).start()  # a real signal, mid-wait
         real_join(row)
 
+    monkeypatch.setattr(catalog, "record_start", held)
     monkeypatch.setattr(run_module, "_join", ctrl_c_while_joining)
-    result = execute(plan_run(IDENT), tmp_path / "run.h5", virtual=True)
-    assert done == []  # returned before the start row was written: the signal ended the wait
+    monkeypatch.setattr(run_module, "START_ROW_WAIT_S", 3600.0)  # only the signal can end the wait before release
+    try:
+        result = execute(plan_run(IDENT), tmp_path / "run.h5", virtual=True)
+        at_return = list(done)
+    finally:
+        release.set()
+    assert at_return == []  # returned while the start row was held: the signal ended the wait
     assert result.state == "completed"
     assert any("run catalogue not written at the end (Ctrl-C" in r.getMessage() for r in caplog.records)
-    for _ in range(100):  # the start row's thread goes on and writes its row
+    for _ in range(600):  # the start row's thread goes on and writes its row
         if done:
             break
-        time.sleep(0.05)
+        threading.Event().wait(0.05)
     assert done == ["written"]
     with Catalog(catalog_url(tmp_path)) as cat:
         reconcile(cat, tmp_path)

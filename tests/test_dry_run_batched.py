@@ -52,17 +52,21 @@ def test_tick_arrays_are_the_ticks(path: Path, rig: str | None) -> None:
             assert _bits([m[col] for _, m in motor]) == _bits(arr)
 
 
-def _tick_by_tick(program: Program, seg: Segment, plant: Plant, clock: VirtualClock, gain: float, played: bool) -> None:
-    """The former dry run's loop over one segment's ticks."""
+def _tick_by_tick(program: Program, seg: Segment, plant: Plant, clock: VirtualClock, gain: float, played: bool,
+                  seen: list[float]) -> None:
+    """The former dry run's loop over one segment's ticks; ``seen``: [peak |voltage|, lowest, highest motor target]
+    so far, updated as that loop did."""
     for tick in ticks(program, seg):
         v = None if played else tick.voltage
         if v is None and tick.motor is None:
             continue
         clock.advance_to(tick.t)
         if v is not None:
+            seen[0] = max(seen[0], abs(v))
             plant.set_amplifier_input(v / gain)
         if tick.motor is not None:
             target, vel, acc = tick.motor
+            seen[1], seen[2] = min(seen[1], target), max(seen[2], target)
 
             def plan(t0: float, p: float, vv: float, tg: float = target, ve: float = vel,
                      ac: float = acc) -> MotionProfile:
@@ -76,6 +80,7 @@ def test_a_segment_at_once_drives_the_plant_as_tick_by_tick(path: Path, rig: str
     program = _program(path, rig)
     runs = []
     for batched in (False, True):
+        seen = [0.0, math.inf, -math.inf]  # peak |voltage|, motor range: what the dry run reports
         clock = VirtualClock()
         plant = build_plant(program, clock)
         blocks: list[PlantBlock] = []
@@ -88,15 +93,19 @@ def test_a_segment_at_once_drives_the_plant_as_tick_by_tick(path: Path, rig: str
             if seg_played and not program.has_motor_axis:
                 continue
             if batched:
-                peaks = None if seg_played else Prediction(0.0, {}, 0)
-                _apply_ticks(program, seg, plant, clock, plant.hv.gain, peaks)
+                peaks = None if seg_played else Prediction(0.0, {}, 0, peak_voltage=seen[0])
+                lo, hi = _apply_ticks(program, seg, plant, clock, plant.hv.gain, peaks)
+                seen[1], seen[2] = min(seen[1], lo), max(seen[2], hi)
+                if peaks is not None:
+                    seen[0] = peaks.peak_voltage
             else:
-                _tick_by_tick(program, seg, plant, clock, plant.hv.gain, seg_played)
+                _tick_by_tick(program, seg, plant, clock, plant.hv.gain, seg_played, seen)
             clock.advance_to(seg.t_end)
             plant.advance_to(seg.t_end)
-        runs.append((blocks, plant.motion, clock.now()))
-    (ref, ref_motion, ref_now), (got, got_motion, got_now) = runs
+        runs.append((blocks, plant.motion, clock.now(), seen))
+    (ref, ref_motion, ref_now, ref_seen), (got, got_motion, got_now, got_seen) = runs
     assert len(ref) == len(got) > 0 and ref_now == got_now
+    assert _bits(ref_seen) == _bits(got_seen)  # the peak voltage and the motor range the dry run reports
     for a, b in zip(ref, got, strict=True):
         for f in ("t", "voltage", "current", "displacement", "force", "field", "breakdown", "v_out", "i_out"):
             assert _bits(getattr(a, f)) == _bits(getattr(b, f)), f

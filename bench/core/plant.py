@@ -327,6 +327,8 @@ class Plant:
             step_targets(np.zeros(2), np.zeros(2), 2, 0, 2, float(self.h), 1.0, 1.0, -1.0, 0.0)
             motion_into(np.zeros(1), np.zeros(1), np.zeros(1), np.zeros(1), np.zeros(2), 0, 2, 0.0, 1.0,
                         np.zeros((2, 3)))
+            motions_into(np.zeros(1), np.zeros(1), np.zeros(1), np.zeros(1), np.array([0, 1]), np.zeros(1, np.int64),
+                         np.full(1, 2, np.int64), np.zeros(2), 0.0, 1.0, np.zeros((2, 3)))  # > PIECES_NUMPY events
             if self._membrane is not None:
                 copy.deepcopy(self._membrane).advance(np.zeros(2), self.temperature)
             if self._lozenge is not None:
