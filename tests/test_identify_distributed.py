@@ -261,10 +261,13 @@ def test_a_closing_workers_failed_heartbeat_is_dropped_and_a_running_ones_kept()
     failed = log.makeRecord(log.name, logging.ERROR, __file__, 1, HEARTBEAT_FAILED + ".", (), exc)
     other = log.makeRecord(log.name, logging.ERROR, __file__, 1, "Unexpected exception during heartbeat.", (), exc)
     assert keep.filter(failed) and keep.filter(other)  # running: a scheduler really lost
-    for status in (Status.closing, Status.closing_gracefully, Status.closed):
+    for status in (Status.closing, Status.closed):
         worker.status = status
         assert not keep.filter(failed), status
         assert keep.filter(other), status
+    worker.status = Status.closing_gracefully  # retiring: still running, a lost scheduler still logs
+    assert keep.filter(failed)
+    worker.status = Status.closed
     del worker
     assert not keep.filter(failed)  # the worker is gone: its heartbeat cannot matter
     assert keep.filter(other)

@@ -17,7 +17,8 @@ from distributed import WorkerPlugin
 from distributed.core import Status
 
 HEARTBEAT_FAILED = "Failed to communicate with scheduler during heartbeat"  # distributed/worker.py, Worker.heartbeat
-CLOSING = frozenset({Status.closing, Status.closing_gracefully, Status.closed})
+# a worker that closes (not one retiring gracefully: it still runs, and its scheduler may really be lost)
+CLOSING = frozenset({Status.closing, Status.closed})
 
 
 class ClosingHeartbeatFilter(logging.Filter):
@@ -28,7 +29,7 @@ class ClosingHeartbeatFilter(logging.Filter):
         self._worker = weakref.ref(worker)
 
     def filter(self, record: logging.LogRecord) -> bool:
-        if not record.getMessage().startswith(HEARTBEAT_FAILED):
+        if not str(record.msg).startswith(HEARTBEAT_FAILED):  # the format string: getMessage() may raise
             return True
         worker = self._worker()
         return worker is not None and getattr(worker, "status", None) not in CLOSING
