@@ -184,7 +184,7 @@ def test_ctrl_c_while_the_laser_is_silent(tmp_path: Path) -> None:
 
     # the laser's timeout far beyond the signal: Ctrl-C must end the blocked read itself, however late a loaded host
     # delivers the signal (with the rig's 0.5 s a heavily loaded host let the timeout win: state error)
-    trial = Trial(THESIS, 3.0, mute_then_stop, timeouts={"laser": 5.0})
+    trial = Trial(THESIS, 3.0, mute_then_stop, timeouts={"laser": 2.0})
     _, run, sim = trial.run(tmp_path)
     assert run.state == "interrupted" and run.reason.startswith("interrupted by Ctrl-C")
     assert trial.last_high(sim) <= trial.t_action + 0.05 + 0.25 + BOUND_S
