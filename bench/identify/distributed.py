@@ -48,11 +48,11 @@ def cluster_client(scheduler: str | None = None, workers: int | None = None) -> 
         with Client(scheduler) as client:
             yield client
         return
+    from bench.identify.worker_plugins import QuietClosingHeartbeat
+
     # our own workers sample no stacks: the profiler (every 10 ms, for the dashboard's profile page, which a fit
     # never shows) cost each worker a few per cent of a CPU in `bench benchmark cluster`; the nannies hand this
     # configuration to the worker processes they start
-    from bench.identify.worker_plugins import QuietClosingHeartbeat
-
     with dask.config.set({"distributed.worker.profile.enabled": False}), \
             LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster, \
             Client(cluster) as client:
