@@ -493,8 +493,10 @@ def test_ctrl_c_while_the_end_waits_for_the_start_row_skips_the_end_row_with_a_w
         done.append("written")
 
     def ctrl_c_while_joining(row: threading.Thread | None) -> None:
-        assert row is not None and row.is_alive()  # the start row is held: the join below waits
-        threading.Timer(0.2, os.kill, (os.getpid(), signal.SIGINT)).start()  # a real signal, mid-wait
+        assert row is not None and row.is_alive() and row.ident is not None  # held: the join below waits
+        # a real SIGINT, mid-wait, delivered to another thread than the waiting one (the kernel may pick any thread
+        # of the process for a terminal's Ctrl-C; CI once saw the join wait the start row out)
+        threading.Timer(0.2, signal.pthread_kill, (row.ident, signal.SIGINT)).start()
         real_join(row)
 
     monkeypatch.setattr(catalog, "record_start", held)

@@ -329,10 +329,22 @@ def _start_row(out: Path, attrs: dict[str, Any]) -> threading.Thread | None:
     return row
 
 
+JOIN_SLICE_S = 0.1  # the wait for the start row returns to Python this often: see _join
+
+
 def _join(row: threading.Thread | None) -> None:
-    """Wait for the start row's thread, at most :data:`START_ROW_WAIT_S`."""
-    if row is not None:
-        row.join(START_ROW_WAIT_S)
+    """Wait for the start row's thread, at most :data:`START_ROW_WAIT_S`, in slices of :data:`JOIN_SLICE_S`: a
+    Ctrl-C that the kernel gave another thread of the process does not wake a thread blocked in one long join, and
+    Python runs the handler only when the main thread gets back to Python (seen once in CI: one join waited the
+    start row out)."""
+    if row is None:
+        return
+    deadline = time.monotonic() + START_ROW_WAIT_S
+    while row.is_alive():
+        left = deadline - time.monotonic()
+        if left <= 0:
+            return
+        row.join(min(left, JOIN_SLICE_S))
 
 
 @dataclass
