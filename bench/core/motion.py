@@ -16,6 +16,19 @@ import numpy as np
 from bench.models.jit import njit
 
 
+@njit(cache=True, inline="always")
+def bisect_right_in(ts: np.ndarray, m: int, t: float) -> int:
+    """``bisect_right(ts[:m], t)`` (``np.searchsorted(ts[:m], t, side="right")``) in compiled code."""
+    lo, hi = 0, m
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if t < ts[mid]:
+            hi = mid
+        else:
+            lo = mid + 1
+    return lo
+
+
 @njit(cache=True)
 def motion_into(t_start: np.ndarray, p_start: np.ndarray, v_start: np.ndarray, acc: np.ndarray, t: np.ndarray,
                 a: int, b: int, x0: float, sign: float, U: np.ndarray) -> None:
@@ -25,14 +38,7 @@ def motion_into(t_start: np.ndarray, p_start: np.ndarray, v_start: np.ndarray, a
     last = t_start.size - 1
     for k in range(a, b):
         tk = t[k]
-        lo, hi = 0, t_start.size  # searchsorted(t_start, tk, side="right")
-        while lo < hi:
-            mid = (lo + hi) // 2
-            if tk < t_start[mid]:
-                hi = mid
-            else:
-                lo = mid + 1
-        i = min(max(lo - 1, 0), last)
+        i = min(max(bisect_right_in(t_start, t_start.size, tk) - 1, 0), last)
         tau = tk - t_start[i]
         if tau < 0.0:
             tau = 0.0

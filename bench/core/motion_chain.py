@@ -13,7 +13,7 @@ import math
 
 import numpy as np
 
-from bench.core.motion import MotionProfile
+from bench.core.motion import MotionProfile, bisect_right_in
 from bench.models.jit import njit
 
 MAX_PHASES = 8  # a plan has at most 6 moving phases, plus the rest at its end
@@ -22,14 +22,7 @@ MAX_PHASES = 8  # a plan has at most 6 moving phases, plus the rest at its end
 @njit(cache=True)
 def _at(ts: np.ndarray, ps: np.ndarray, vs: np.ndarray, accs: np.ndarray, m: int, t: float) -> tuple[float, float]:
     """:meth:`MotionProfile.at` on the first m phases."""
-    lo, hi = 0, m  # bisect_right(ts[:m], t)
-    while lo < hi:
-        mid = (lo + hi) // 2
-        if t < ts[mid]:
-            hi = mid
-        else:
-            lo = mid + 1
-    i = max(lo - 1, 0)
+    i = max(bisect_right_in(ts, m, t) - 1, 0)
     tau = t - ts[i]
     if 0.0 > tau:  # max(tau, 0.0)
         tau = 0.0
