@@ -335,8 +335,8 @@ JOIN_SLICE_S = 0.1  # the wait for the start row returns to Python this often: s
 def _join(row: threading.Thread | None) -> None:
     """Wait for the start row's thread, at most :data:`START_ROW_WAIT_S`, in slices of :data:`JOIN_SLICE_S`: a
     Ctrl-C that the kernel gave another thread of the process does not wake a thread blocked in one long join, and
-    Python runs the handler only when the main thread gets back to Python (seen once in CI: one join waited the
-    start row out)."""
+    Python runs the handler only when the main thread gets back to Python (tests/test_catalog.py sends the signal to
+    the start row's thread: one long join waits the row out)."""
     if row is None:
         return
     deadline = time.monotonic() + START_ROW_WAIT_S
