@@ -13,6 +13,8 @@ from pathlib import Path
 
 import pytest
 
+from bench.models.jit import sources_digest
+
 ROOT = Path(__file__).resolve().parent.parent
 
 
@@ -56,24 +58,6 @@ def test_wheel_ships_protocols_rigs_schema_and_license(wheel: Path) -> None:
     assert not any(n.startswith(("tests/", "protocols/", "rigs/")) for n in names)
 
 
-def _reuse_compiled_kernels(site: Path) -> None:
-    """Copy the checkout's numba cache files (``__pycache__/*.nbi``, ``*.nbc``: the kernels other tests and runs
-    compiled) beside the installed package's sources. Numba (0.68 on) keys each index by the SHA-256 of the source
-    file it sits beside (numba.core.caching), so a copied entry is used only where the installed file is byte for
-    byte the compiled one; a kernel not compiled yet or a changed file compiles in the fresh venv as a user's first
-    run does (older numba compares times and sizes instead: the copies are then just not used). What this does not
-    see is a change in another file's jitted function that a cached kernel calls: the kernel loads as compiled. The
-    suite's own tests compile every kernel from the checkout, so such a break fails there (CI starts from a clean
-    clone, with no cache). Without the copies the demo spent some 50 of its 65 s compiling kernels the suite
-    compiles anyway; the wheel's code, data and entry points run all the same."""
-    installed = [d.name for d in site.iterdir() if (d / "__init__.py").is_file() and (ROOT / d.name).is_dir()]
-    for cached in (c for pkg in installed for c in (ROOT / pkg).glob("**/__pycache__/*.nb[ic]")):
-        rel = cached.relative_to(ROOT)
-        if (site / rel.parent.parent).is_dir():
-            (site / rel.parent).mkdir(exist_ok=True)
-            shutil.copyfile(cached, site / rel)
-
-
 @pytest.mark.slow
 def test_wheel_in_a_fresh_venv_runs_demo_init_run_and_export(wheel: Path, tmp_path: Path) -> None:
     venv = tmp_path / "venv"
@@ -85,7 +69,6 @@ def test_wheel_in_a_fresh_venv_runs_demo_init_run_and_export(wheel: Path, tmp_pa
     # site dir, so its editable-install hook of dea-bench does not run)
     site = Path(_run([str(py), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"], tmp_path).strip())
     (site / "zz_deps.pth").write_text(sysconfig.get_paths()["purelib"] + "\n", encoding="utf-8")
-    _reuse_compiled_kernels(site)
     work = tmp_path / "empty"
     work.mkdir()
     env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "VIRTUAL_ENV")}
@@ -93,6 +76,10 @@ def test_wheel_in_a_fresh_venv_runs_demo_init_run_and_export(wheel: Path, tmp_pa
     where = _run([str(py), "-c", "import bench, bench.resources as r; print(bench.__file__); "
                   "print(r.protocols_dir())"], work, env=env)
     assert str(venv) in where and str(ROOT) not in where
+    # the same kernel sources: the kernels the suite compiled from the checkout load from the shared cache
+    # (bench.models.jit finds them by their place in the package) instead of compiling again
+    digest = _run([str(py), "-c", "import bench.models.jit as j; print(j.sources_digest())"], work, env=env)
+    assert digest.strip() == sources_digest()
     bench = str(venv / "bin" / "bench")
     # the intervals and the polish have their own tests: this one is the wheel
     out = _run([bench, "demo", "--out", "demo", "--generations", "2", "--population", "6", "--starts", "1",

@@ -6,7 +6,11 @@ every kernel it calls (compiled in, often inlined). After a change to ``lozenge.
 ``git pull`` or a package upgrade that leaves the caller's file as it was would run a model that is no longer in
 the sources. So every kernel module takes ``njit`` from here, and the cache lives in a directory named by a
 digest of all kernel sources (the files of ``bench`` and ``sim_devices`` that use ``njit``): any change to any of
-them starts an empty cache, and identical sources share one (checkouts, dask workers, installed wheels).
+them starts an empty cache, and identical sources share one (checkouts, dask workers, installed wheels). Within it a
+kernel's entry is found by its file's place in the package (``bench/models``), not by the file's absolute folder as
+numba's own locator does (it names the entry by a hash of that folder): a checkout elsewhere or the installed wheel
+of the same sources loads the kernels another compiled. numba checks each entry against the SHA-256 of the source
+file beside the kernel (0.68 on; where an older numba stamps times and sizes, the entries are numba's own).
 
 The directory: ``$NUMBA_CACHE_DIR/<digest>`` where that is set, else ``$XDG_CACHE_HOME/dea-bench/numba/<digest>``
 (``~/.cache/…``), else the user's own folder (mode 0700) in the temporary directory; where none can be used the
@@ -20,6 +24,7 @@ from __future__ import annotations
 
 import hashlib
 import importlib.util
+import inspect
 import os
 import re
 import shutil
@@ -31,6 +36,7 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 import numba
+from numba.core import caching
 
 __all__ = ["cache_dir", "njit"]
 
@@ -129,4 +135,63 @@ def njit(**options: Any) -> Callable[[K], K]:
         else:
             numba.config.CACHE_DIR = str(_CACHE)  # type: ignore[attr-defined]
     decorate: Callable[[K], K] = numba.njit(**options)
-    return decorate
+    if not options.get("cache") or _PackageCache is None:
+        return decorate
+    uncached: Callable[[K], K] = numba.njit(**{**options, "cache": False})
+
+    def cached(func: K) -> K:
+        """numba's dispatcher with the cache found by the file's place in its package (numba's own cache where
+        the file is in none, or the folder cannot be made: as ``cache=True`` alone)."""
+        if _package_folder(inspect.getfile(func)) is None:
+            return decorate(func)
+        try:
+            cache = _PackageCache(func)
+        except RuntimeError:  # no locator: the folder cannot be made or written
+            return decorate(func)
+        dispatcher = uncached(func)
+        dispatcher._cache = cache  # type: ignore[attr-defined]  # what numba's enable_caching() sets
+        return dispatcher
+
+    return cached
+
+
+def _package_folder(py_file: str) -> Path | None:
+    """``py_file``'s folder relative to the folder that holds its top-level package (``bench/models``); None
+    where the file is not in a package."""
+    folder = Path(py_file).resolve().parent
+    top = folder
+    while (top.parent / "__init__.py").is_file():
+        top = top.parent
+    return folder.relative_to(top.parent) if (top / "__init__.py").is_file() else None
+
+
+# numba's content-stamped cache (0.68 on: an entry is used only where its source file hashes the same) with the
+# locator class numba then has; with an older numba the kernels keep numba's own locator
+_Locator = getattr(caching, "UserProvidedCacheLocator", None)
+_CONTENT_STAMPED = hasattr(caching, "_hash_source_file")
+
+if _Locator is not None and _CONTENT_STAMPED:
+    class _PackageLocator(_Locator):  # type: ignore[misc, valid-type]
+        """numba's locator for ``config.CACHE_DIR``, the entry named by the file's place in its package."""
+
+        def __init__(self, py_func: Any, py_file: str) -> None:
+            super().__init__(py_func, py_file)
+            folder = _package_folder(py_file)
+            assert folder is not None  # from_function returns None first
+            self._cache_path = os.path.join(numba.config.CACHE_DIR, *folder.parts)  # type: ignore[attr-defined]
+
+        @classmethod
+        def from_function(cls, py_func: Any, py_file: str) -> Any:
+            if not numba.config.CACHE_DIR or _package_folder(py_file) is None:  # type: ignore[attr-defined]
+                return None
+            return super().from_function(py_func, py_file)
+
+    class _PackageCacheImpl(caching.CompileResultCacheImpl):
+        _locator_classes = [_PackageLocator]  # noqa: RUF012  (numba's own class attribute)
+
+    class _PackageFunctionCache(caching.FunctionCache):
+        _impl_class = _PackageCacheImpl
+
+    _PackageCache: Any = _PackageFunctionCache
+else:
+    _PackageCache = None
