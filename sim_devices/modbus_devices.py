@@ -171,15 +171,22 @@ class Adam4024Sim(ModbusModule):
         self.read_only = {A24_MODULE_NAME, A24_MODULE_NAME + 1, A24_VERSION, A24_VERSION + 1}
         self.coils.update({c: 0 for c in range(4)})  # 00001–00004 emergency-DI flags (read-only)
         self._period = watchdog_s or 1.0
+        self._at = self.clock.now()  # the instant the request being served arrived (set by heard)
 
     def heard(self) -> None:
-        """Any request to the module feeds its communication watchdog (after noting a trip that came first)."""
+        """Any request to the module feeds its communication watchdog (after noting a trip that came first).
+
+        Everything a request does happens at the instant it arrived (:attr:`_at`; the bus serves one request at a
+        time): on a virtual clock the host may stop waiting for the reply (a dropped link) and move the clock on
+        while this thread still works, and a write applied at that later time would land after the watchdog's
+        deadline and keep the output up past it [chosen: the modules act within milliseconds of a request]."""
+        self._at = self.clock.now()
         self.refresh(3, 0, 0)
-        self.plant.feed_watchdog()
+        self.plant.feed_watchdog(self._at)
 
     def refresh(self, fc: int, address: int, count: int) -> None:
-        """After the watchdog fired: flag set, outputs read back their safe value."""
-        self.plant.advance_to(self.clock.now())
+        """After the watchdog fired: flag set, outputs read back their safe value (as of the request's instant)."""
+        self.plant.advance_to(self._at)
         with self.lock:
             if self.plant.watchdog_trips > self._trips_seen:
                 self._trips_seen = self.plant.watchdog_trips
@@ -201,7 +208,7 @@ class Adam4024Sim(ModbusModule):
                 self.refresh(3, a, 1)  # a trip before this write is accounted for first
                 with self.lock:
                     self.holding[a] = v
-                self.plant.set_amplifier_input(self.scale.to_volts(v))
+                self.plant.set_amplifier_input(self.scale.to_volts(v), at=self._at)
             elif a == A24_SAFETY_ENABLE:
                 self.plant.input_watchdog = self._period if v else None
 

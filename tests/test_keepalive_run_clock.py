@@ -82,11 +82,11 @@ def test_a_long_laser_drain_in_virtual_time_keeps_the_adam_fed(tmp_path: Path,
         feed = plant.feed_watchdog
         last = [sim.clock.now()]
 
-        def fed() -> None:
-            now = sim.clock.now()
+        def fed(at: float | None = None) -> None:
+            now = sim.clock.now() if at is None else at  # the request's instant (the ADAM twin passes it)
             gaps.append(now - last[0])
             last[0] = now
-            feed()
+            feed(at)
         plant.feed_watchdog = fed
 
     result = execute(plan_run(proto, ROOT / "rigs" / "thesis-sim.toml"), tmp_path / "run.h5", virtual=True,

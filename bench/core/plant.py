@@ -204,10 +204,13 @@ class Plant:
         """The motor's current motion profile."""
         return self._motions[-1][1]
 
-    def set_amplifier_input(self, volts: float) -> None:
-        """New analog input of the amplifier [V], effective from the clock's present (integrated lazily)."""
+    def set_amplifier_input(self, volts: float, at: float | None = None) -> None:
+        """New analog input of the amplifier [V], effective from ``at`` (default: the clock's present; integrated
+        lazily). A twin passes the instant the request arrived: a virtual clock may have moved on while its thread
+        worked (a host that stopped waiting for the reply), and the write happened when it arrived."""
+        t = self.clock.now() if at is None else at
         with self.lock:
-            self._add_input(np.array([self.clock.now()]), np.array([float(volts)]), True)
+            self._add_input(np.array([t]), np.array([float(volts)]), True)
 
     def schedule_amplifier_input(self, times: np.ndarray | list[float], volts: np.ndarray | list[float]) -> None:
         """Analog inputs of the amplifier at given times (a hardware-timed output's samples, played by its own
@@ -232,14 +235,15 @@ class Plant:
             keep = max(int(np.searchsorted(t, after, side="right")), 1)
             self._v_chunks = [(t[:keep], v[:keep])]
 
-    def feed_watchdog(self) -> None:
-        """The analog output module heard from the host (resets its communication-safety timer) — after noting a
-        timeout that came first: the model integrates lazily, and a request after a long silence must not
-        undo a watchdog that fired in it (a virtual clock has no ticker that would have seen it)."""
-        now = self.clock.now()
+    def feed_watchdog(self, at: float | None = None) -> None:
+        """The analog output module heard from the host at ``at`` (default: the clock's present), which resets its
+        communication-safety timer — after noting a timeout that came first: the model integrates lazily, and a
+        request after a long silence must not undo a watchdog that fired in it (a virtual clock has no ticker
+        that would have seen it)."""
+        now = self.clock.now() if at is None else at
         if self.input_watchdog is not None and now - self._last_feed >= self.input_watchdog:
             self._check_watchdog(now)
-        self._last_feed = now
+        self._last_feed = max(self._last_feed, now)
 
     def _check_watchdog(self, t_end: float) -> None:
         """Communication safety: with no request for ``input_watchdog`` s, the module outputs 0 V."""

@@ -359,7 +359,7 @@ class RegisterIO(StreamEngine):
             self.dac_volts[ch] = self._code_volts(code, ch)
             driven = self.streaming and any(self.outs[k].target == a for k in self._out_indices())
             if ch == self.dac and not driven:
-                self.plant.set_amplifier_input(float(self.conditioning(np.array([self.dac_volts[ch]]))[0]))
+                self.plant.set_amplifier_input(float(self.conditioning(np.array([self.dac_volts[ch]]))[0]), at=now)
         elif R_DIO <= a < R_DIO + N_DIO or R_FIO_STATE <= a < R_FIO_STATE + 4 or R_FIO_DIR <= a < R_FIO_DIR + 4 \
                 or a in (R_DIO_STATE, R_DIO_DIR):
             self._write_dio(a, int(value))
