@@ -204,9 +204,9 @@ def _t7_spies(codes: list[np.ndarray], inputs: list[np.ndarray]):
             inputs.append(np.array(volts, dtype=float))
             schedule(times, volts)
 
-        def spy_set(volts: float) -> None:
+        def spy_set(volts: float, at: float | None = None) -> None:
             inputs.append(np.array([volts]))
-            set_input(volts)
+            set_input(volts, at)
         twin._drive = spy_drive
         plant.schedule_amplifier_input, plant.set_amplifier_input = spy_schedule, spy_set
     return hook

@@ -99,7 +99,7 @@ def test_a_paused_output_that_stays_up_latches(tmp_path: Path, rig: Path) -> Non
                 stuck.append(engine.now())
                 set_input = sim.plant.set_amplifier_input
                 set_input(3.0)
-                sim.plant.set_amplifier_input = lambda _volts: set_input(3.0)
+                sim.plant.set_amplifier_input = lambda _volts, at=None: set_input(3.0, at)
             if stuck and engine.now() >= stuck[0] + 2.0:
                 engine.request_resume("the test")
         sim.clock.subscribe(at)
