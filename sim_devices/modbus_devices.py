@@ -120,8 +120,8 @@ class ModbusModule:
                 self.holding[a] = v
         self.written(address, values)
 
-    def heard(self) -> None:
-        """Any request addressed to this unit arrived (watchdogs are fed here)."""
+    def heard(self, at: float | None = None) -> None:
+        """Any request addressed to this unit arrived, at line time ``at`` (None: now); watchdogs are fed here."""
 
     def refresh(self, fc: int, address: int, count: int) -> None:
         """Bring computed registers up to date before a read."""
@@ -173,14 +173,15 @@ class Adam4024Sim(ModbusModule):
         self._period = watchdog_s or 1.0
         self._at = self.clock.now()  # the instant the request being served arrived (set by heard)
 
-    def heard(self) -> None:
+    def heard(self, at: float | None = None) -> None:
         """Any request to the module feeds its communication watchdog (after noting a trip that came first).
 
-        Everything a request does happens at the instant it arrived (:attr:`_at`; the bus serves one request at a
-        time): on a virtual clock the host may stop waiting for the reply (a dropped link) and move the clock on
+        Everything a request does happens at the instant it arrived, ``at`` (the line's time of the request's end;
+        kept in :attr:`_at` for the request's read or write: the bus serves one request at a time, under its line's
+        lock): on a virtual clock the host may stop waiting for the reply (a dropped link) and move the clock on
         while this thread still works, and a write applied at that later time would land after the watchdog's
         deadline and keep the output up past it [chosen: the modules act within milliseconds of a request]."""
-        self._at = self.clock.now()
+        self._at = self.clock.now() if at is None else at
         self.refresh(3, 0, 0)
         self.plant.feed_watchdog(self._at)
 

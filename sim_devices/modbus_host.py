@@ -62,12 +62,13 @@ def _exception(fc: int, code: int) -> bytes:
     return bytes([fc | 0x80, code])
 
 
-def execute(module: ModbusModule, pdu: bytes) -> bytes:
-    """One request PDU on one module → reply PDU (normal or exception), Application Protocol §6/§7."""
+def execute(module: ModbusModule, pdu: bytes, at: float | None = None) -> bytes:
+    """One request PDU on one module → reply PDU (normal or exception), Application Protocol §6/§7; ``at``: the
+    line time the request arrived (None: now), which everything the request does takes as its instant."""
     fc = pdu[0]
     if module.failed:
         return _exception(fc, DEVICE_FAILURE)  # a failed module does not feed its watchdog either
-    module.heard()
+    module.heard(at)
     try:
         if fc in (1, 2, 3, 4):
             if len(pdu) != 5:
@@ -157,22 +158,23 @@ class SimBus:
     def _rtu_frame(self, frame: bytes) -> bytes:
         line = self.line
         assert line is not None
-        line.request(len(frame))
-        if len(frame) < 4 or crc16(frame[:-2]) != frame[-2:]:
-            self._buf = b""  # a damaged frame: ignored, and the rest of the chunk with it (resynchronise)
-            return b""
-        unit, pdu = frame[0], frame[1:-2]
-        if unit == 0:
-            for each in self.units.values():
-                execute(each, pdu)  # broadcast: executed, no reply
-            return b""
-        module = self.units.get(unit)
-        if module is None:
-            return b""  # another address (or nobody): silence
-        reply = bytes([unit]) + execute(module, pdu)
-        reply += crc16(reply)
-        line.reply(len(reply), module.turnaround)
-        return reply
+        with line.lock:  # one request at a time on the line (a reconnected socket's handler beside an old one)
+            at = line.request(len(frame))
+            if len(frame) < 4 or crc16(frame[:-2]) != frame[-2:]:
+                self._buf = b""  # a damaged frame: ignored, and the rest of the chunk with it (resynchronise)
+                return b""
+            unit, pdu = frame[0], frame[1:-2]
+            if unit == 0:
+                for each in self.units.values():
+                    execute(each, pdu, at)  # broadcast: executed, no reply
+                return b""
+            module = self.units.get(unit)
+            if module is None:
+                return b""  # another address (or nobody): silence
+            reply = bytes([unit]) + execute(module, pdu, at)
+            reply += crc16(reply)
+            line.reply(len(reply), module.turnaround)
+            return reply
 
     # ------------------------------------------------------------ Modbus TCP gateway
     def gateway(self, unit: int, pdu: bytes) -> bytes | None:
@@ -180,16 +182,16 @@ class SimBus:
         line = self.line
         assert line is not None
         with line.lock:  # the gateway forwards one request at a time onto the line
-            line.request(len(pdu) + 3)
+            at = line.request(len(pdu) + 3)
             if unit == 0:
                 for each in self.units.values():
-                    execute(each, pdu)
+                    execute(each, pdu, at)
                 return None
             module = self.units.get(unit)
             if module is None:
                 line.silent(self.gateway_timeout)
                 return _exception(pdu[0] if pdu else 0, GATEWAY_NO_RESPONSE)
-            reply = execute(module, pdu)
+            reply = execute(module, pdu, at)
             line.reply(len(reply) + 3, module.turnaround)
             return reply
 

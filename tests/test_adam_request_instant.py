@@ -45,11 +45,13 @@ def test_a_write_whose_host_moved_the_clock_on_still_lets_the_watchdog_zero_the_
 
     module.check_write = slow_thread  # type: ignore[method-assign]
     assert _write_output(module, CODE_5V)[0] == 6
-    plant.advance_to(clock.now())  # 3.225 s: the host's wait has ended
+    assert clock.now() > 3.2  # the host's wait has ended
+    clock.advance(1.3)  # and no request comes again: the link is gone
+    plant.advance_to(clock.now())
 
     t = np.concatenate([b[0] for b in out])
     v = np.concatenate([b[1] for b in out])
     deadline = 2.025 + WATCHDOG_S
     assert v[(t > 2.1) & (t < deadline - 0.01)].min() > 1000.0  # the set-point was on before the deadline
-    assert v[t > deadline + 0.05].max() <= 5.0  # and 0 V after it, before the host looked again at 3.225 s
-    assert plant.watchdog_trips == 1
+    assert v[t > deadline + 0.05].max() <= 5.0  # and 0 V from it on, through 4.5 s with no request
+    assert t[-1] > 4.49 and plant.watchdog_trips == 1

@@ -11,8 +11,10 @@ import sysconfig
 import zipfile
 from pathlib import Path
 
+import numpy as np
 import pytest
 
+from bench.core.one_pole import one_pole
 from bench.models.jit import sources_digest
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -80,6 +82,10 @@ def test_wheel_in_a_fresh_venv_runs_demo_init_run_and_export(wheel: Path, tmp_pa
     # (bench.models.jit finds them by their place in the package) instead of compiling again
     digest = _run([str(py), "-c", "import bench.models.jit as j; print(j.sources_digest())"], work, env=env)
     assert digest.strip() == sources_digest()
+    one_pole(np.zeros(3), 0.5, 0.0)  # compiled (or loaded) here, from the checkout, into the shared cache
+    probe = ("import numpy as np\nfrom bench.core.one_pole import one_pole\none_pole(np.zeros(3), 0.5, 0.0)\n"
+             "print(sum(one_pole.stats.cache_hits.values()), sum(one_pole.stats.cache_misses.values()))")
+    assert _run([str(py), "-c", probe], work, env=env).split() == ["1", "0"]  # the wheel loads it: no compile
     bench = str(venv / "bin" / "bench")
     # the intervals and the polish have their own tests: this one is the wheel
     out = _run([bench, "demo", "--out", "demo", "--generations", "2", "--population", "6", "--starts", "1",

@@ -45,14 +45,20 @@ UNUSED_DAYS = 30.0  # a cache of other sources not used this long is removed
 _DIGEST = re.compile(r"[0-9a-f]{16}")
 
 
-def _kernel_sources() -> list[tuple[Path, bytes]]:
-    """What the compiled kernels are made of, each file with its contents: every ``.py`` file of ``bench/models``
-    and ``bench/core``, and the other files of ``bench`` and ``sim_devices`` that use ``njit``."""
-    bench = Path(__file__).resolve().parents[1]
-    roots = [bench]
+def _kernel_roots() -> list[Path]:
+    """The packages whose kernels the digest covers: ``bench`` and ``sim_devices`` (where installed)."""
+    roots = [Path(__file__).resolve().parents[1]]
     spec = importlib.util.find_spec("sim_devices")
     if spec is not None and spec.origin is not None:
         roots.append(Path(spec.origin).resolve().parent)
+    return roots
+
+
+def _kernel_sources() -> list[tuple[Path, bytes]]:
+    """What the compiled kernels are made of, each file with its contents: every ``.py`` file of ``bench/models``
+    and ``bench/core``, and the other files of ``bench`` and ``sim_devices`` that use ``njit``."""
+    roots = _kernel_roots()
+    bench = roots[0]
     model_dirs = (bench / "models", bench / "core")
     found = ((f, f.read_bytes()) for root in roots for f in sorted(root.rglob("*.py")))
     return [(f, data) for f, data in found if f.parent in model_dirs or b"njit" in data]
@@ -122,6 +128,7 @@ def cache_dir() -> Path | None:
 
 
 _CACHE = cache_dir()
+_ROOTS = _kernel_roots()
 
 
 def njit(**options: Any) -> Callable[[K], K]:
@@ -140,14 +147,16 @@ def njit(**options: Any) -> Callable[[K], K]:
     uncached: Callable[[K], K] = numba.njit(**{**options, "cache": False})
 
     def cached(func: K) -> K:
-        """numba's dispatcher with the cache found by the file's place in its package (numba's own cache where
-        the file is in none, or the folder cannot be made: as ``cache=True`` alone)."""
-        if _package_folder(inspect.getfile(func)) is None:
+        """numba's dispatcher with the cache found by the file's place in its package, for the files the digest
+        covers (numba's own cache for any other file: only the digest makes a shared entry safe); compiled in
+        this process, not cached, where the folder cannot be made or written (never numba's per-file cache)."""
+        source = Path(inspect.getfile(func)).resolve()
+        if not any(source.is_relative_to(root) for root in _ROOTS):
             return decorate(func)
         try:
             cache = _PackageCache(func)
-        except RuntimeError:  # no locator: the folder cannot be made or written
-            return decorate(func)
+        except RuntimeError:  # no locator: the folder went away or cannot be written since the import
+            return uncached(func)
         dispatcher = uncached(func)
         dispatcher._cache = cache  # type: ignore[attr-defined]  # what numba's enable_caching() sets
         return dispatcher
