@@ -44,3 +44,40 @@ def test_a_fixed_part_below_zero_is_said_to_be_noise() -> None:
     assert speed.value == pytest.approx(14 / 0.15)
     fixed, _ = rows(0.18)
     assert fixed.value == pytest.approx(-5.43, abs=0.01) and "noise, not a gain" in fixed.note
+
+
+def test_a_ceiling_sample_is_taken_just_before_each_timed_run(tmp_path: Path,
+                                                               monkeypatch: pytest.MonkeyPatch) -> None:
+    """The share divides a protocol's best run by the ceiling of the same minutes: one sample before each run
+    (a whole campaign, timed once, gets as many, the others right after it)."""
+    order: list[str] = []
+
+    def timed(protocol: Path, rig: str, tmp: Path, virtual: bool, name: str,
+              twins: list[Any] | None = None) -> tuple[Any, float]:
+        order.append("run")
+        return SimpleNamespace(run_time=float(protocol.stem)), 0.5
+
+    monkeypatch.setattr(daq, "_timed", timed)
+    monkeypatch.setattr(daq, "ceiling_sample", lambda: order.append("ceiling") or daq.CeilingSample(0.2, 0.1, 0.1))
+    samples: list[daq.CeilingSample] = []
+    daq._best(Path("25.8.toml"), "rig", tmp_path, 3, samples)
+    assert order == ["ceiling", "run"] * 3 and len(samples) == 3
+    order.clear()
+    daq._best(Path("1985.6.toml"), "rig", tmp_path, 3, samples := [])
+    assert order == ["ceiling", "run", "ceiling", "ceiling"] and len(samples) == 3
+
+
+def test_each_share_divides_by_the_best_ceiling_sampled_beside_its_own_runs() -> None:
+    """25× against samples of 10 s of rig time in 0.25, 0.20 and 0.40 s (best: 50×) is 50 %; 40× against one
+    sample of 10 s in 0.125 s (80×) is 50 % too; a row that is no speed, or has no samples, gets no share."""
+    runs = [daq.Figure("a on rig, virtual time", 25.0, "× real time", ""),
+            daq.Figure("  its file", 10.0, "%", ""),
+            daq.Figure("b on rig, virtual time", 40.0, "× real time", ""),
+            daq.Figure("c on rig, virtual time", 30.0, "× real time", "")]
+    beside = {"a on rig, virtual time": [daq.CeilingSample(w, 0.0, 0.0) for w in (0.25, 0.20, 0.40)],
+              "its file": [daq.CeilingSample(0.1, 0.0, 0.0)],
+              "b on rig, virtual time": [daq.CeilingSample(0.125, 0.0, 0.0)]}
+    rows = daq.share_rows(runs, beside)
+    assert [r.name for r in rows] == [f"  {x}: share of the driver ↔ twin ceiling" for x in "ab"]
+    assert [r.value for r in rows] == [pytest.approx(50.0), pytest.approx(50.0)]
+    assert "50.0× (best of 3)" in rows[0].note and "80.0× (best of 1)" in rows[1].note
