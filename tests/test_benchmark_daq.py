@@ -75,9 +75,33 @@ def test_each_share_divides_by_the_best_ceiling_sampled_beside_its_own_runs() ->
             daq.Figure("b on rig, virtual time", 40.0, "× real time", ""),
             daq.Figure("c on rig, virtual time", 30.0, "× real time", "")]
     beside = {"a on rig, virtual time": [daq.CeilingSample(w, 0.0, 0.0) for w in (0.25, 0.20, 0.40)],
-              "its file": [daq.CeilingSample(0.1, 0.0, 0.0)],
+              "  its file": [daq.CeilingSample(0.1, 0.0, 0.0)],
               "b on rig, virtual time": [daq.CeilingSample(0.125, 0.0, 0.0)]}
     rows = daq.share_rows(runs, beside)
     assert [r.name for r in rows] == [f"  {x}: share of the driver ↔ twin ceiling" for x in "ab"]
     assert [r.value for r in rows] == [pytest.approx(50.0), pytest.approx(50.0)]
     assert "50.0× (best of 3)" in rows[0].note and "80.0× (best of 1)" in rows[1].note
+
+
+def test_every_speed_row_of_the_set_gets_a_share(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Each "× real time" row of the protocols (the looped ones, the refilled one and the thesis run's speed beyond
+    its fixed part) has ceiling samples of its own, so every one of them gets its share row."""
+    rig_time = {"thesis-identification": 25.8, "thesis-identification-short": 11.8}
+
+    def timed(protocol: Path, rig: str, tmp: Path, virtual: bool, name: str,
+              twins: list[Any] | None = None) -> tuple[Any, float]:
+        if twins is not None:
+            twins += [SimpleNamespace(outs=[SimpleNamespace(loops_set=1, values_written=10)]),
+                      SimpleNamespace(cpu_seconds=0.01)]
+        t = rig_time.get(protocol.stem, 10.0)
+        return SimpleNamespace(run_time=t), 0.1 + t / 50.0
+
+    monkeypatch.setattr(daq, "_timed", timed)
+    monkeypatch.setattr(daq, "ceiling_sample", lambda: daq.CeilingSample(0.2, 0.1, 0.1))
+    beside: dict[str, list[daq.CeilingSample]] = {}
+    runs = daq.virtual_speed(tmp_path, beside=beside)
+    speeds = [r.name for r in runs if r.unit == "× real time"]
+    assert len(speeds) == 5  # three protocols, the speed beyond the fixed part, the refilled run
+    shares = daq.share_rows(runs, beside)
+    assert [r.name for r in shares] == [f"  {n.split(' on ')[0].strip()}: share of the driver ↔ twin ceiling"
+                                        for n in speeds]
