@@ -167,6 +167,7 @@ def virtual_speed(tmp: Path, repeats: int = 3, full: bool = False,
 
     out = []
     walls: dict[str, tuple[float, float]] = {}  # protocol → (rig time, best wall)
+    names: dict[str, str] = {}  # protocol → its speed row's name
     for protocol, rig, target in DAQ_RUNS + (FULL_RUNS if full else ()):
         samples: list[CeilingSample] = []
         result, wall, twins = _best(protocol, rig, tmp, repeats, samples)
@@ -174,7 +175,7 @@ def virtual_speed(tmp: Path, repeats: int = 3, full: bool = False,
         best_of = "once" if result.run_time > LONG_RUN_S else f"best of {repeats}"
         o = twins[0].outs[0]
         aim = f"target ≥ {target}; " if target else ""
-        name = f"{protocol.stem} on {rig}, virtual time"
+        name = names[protocol.stem] = f"{protocol.stem} on {rig}, virtual time"
         if beside is not None:
             beside[name] = samples
         out += [Figure(name, result.run_time / wall, "× real time",
@@ -189,7 +190,7 @@ def virtual_speed(tmp: Path, repeats: int = 3, full: bool = False,
     out += _fixed_cost(walls["thesis-identification"], _best(SHORT / "thesis-identification-short.toml",
                                                              "thesis-daq-sim", tmp, repeats, short))
     if beside is not None:  # the streaming speed comes from both thesis runs: the samples beside either
-        beside[FIXED_PART_SPEED] = beside.get("thesis-identification on thesis-daq-sim, virtual time", []) + short
+        beside[FIXED_PART_SPEED] = beside[names["thesis-identification"]] + short
     protocol, rig, _ = DAQ_RUNS[0]
     was, hardware_timed.OUT_LOOPS = hardware_timed.OUT_LOOPS, False
     try:

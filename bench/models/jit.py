@@ -57,7 +57,7 @@ def _kernel_roots() -> list[Path]:
 def _kernel_sources() -> list[tuple[Path, bytes]]:
     """What the compiled kernels are made of, each file with its contents: every ``.py`` file of ``bench/models``
     and ``bench/core``, and the other files of ``bench`` and ``sim_devices`` that use ``njit``."""
-    roots = _kernel_roots()
+    roots = _ROOTS
     bench = roots[0]
     model_dirs = (bench / "models", bench / "core")
     found = ((f, f.read_bytes()) for root in roots for f in sorted(root.rglob("*.py")))
@@ -127,8 +127,8 @@ def cache_dir() -> Path | None:
     return None
 
 
+_ROOTS = _kernel_roots()  # found once: the digest's sources and the files whose kernels share entries
 _CACHE = cache_dir()
-_ROOTS = _kernel_roots()
 
 
 def njit(**options: Any) -> Callable[[K], K]:
