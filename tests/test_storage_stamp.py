@@ -106,6 +106,44 @@ def test_the_stamp_is_empty_while_the_run_goes_on_and_cut_like_the_status(tmp_pa
     assert run.complete and run.attrs["exit_reason"] == run.reason == "ü" * 200
 
 
+READER = """
+import sys
+from pathlib import Path
+from bench.storage.runfile import open_h5
+f = open_h5(Path(sys.argv[1]))  # as bench watch's follower opens it: an SWMR reader, kept open
+print(f["status/state"][0].decode(), flush=True)
+sys.stdin.read()  # held open until the test closes stdin
+f["status/state"].refresh()
+print(f["status/state"][0].decode(), flush=True)
+"""
+
+
+def test_a_reader_holding_the_file_open_does_not_keep_the_end_unstamped(tmp_path: Path) -> None:
+    """A reader in another process (bench run --web's page server) holds HDF5's shared file lock while the run ends;
+    the reopen for the stamp, refused with EAGAIN until then (CI, 2026-11-27), stamps the file complete."""
+    import subprocess
+    import sys
+
+    path = tmp_path / "run.h5"
+    rec = _record(path)
+    root = Path(__file__).resolve().parents[1]
+    reader = subprocess.Popen([sys.executable, "-c", READER, str(path)], cwd=root, stdin=subprocess.PIPE,
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert reader.stdout is not None and reader.stdout.readline().strip() == "running", reader.stderr
+        with open("/proc/locks", encoding="ascii") as locks:  # the lock the reader holds (Linux): what the writer meets
+            assert f":{os.stat(path).st_ino} " in locks.read()
+        rec.finish("completed", "protocol completed")
+        out, err = reader.communicate("", timeout=60)  # the reader, still open, reads the final state
+    finally:
+        reader.kill()
+    assert reader.returncode == 0 and out.strip() == "completed", err
+    run = open_run(path)
+    assert run.complete and run.state == "completed" and run.attrs["exit_status"] == "completed"
+    assert run.attrs["exit_reason"] == "protocol completed"
+    _check_samples(path)
+
+
 @pytest.mark.parametrize("extra_attrs", [0, 15], ids=["compact-root-attrs", "dense-root-attrs"])
 def test_recover_releases_the_file_an_earlier_version_broke_at_the_stamp(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch, old_style: Callable[[], None], extra_attrs: int) -> None:

@@ -48,6 +48,7 @@ The file keeps everything up to the last successful flush.
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import logging
 import os
@@ -67,6 +68,7 @@ import numpy as np
 from bench.storage.hv_stats import HvAccumulator, HvStats
 from drivers.interfaces import DataKey
 
+log = logging.getLogger(__name__)
 event_log = logging.getLogger("bench.run")  # every event, as it is recorded (the run log beside the file follows it)
 
 FORMAT = "dea-bench run 2"
@@ -185,6 +187,24 @@ def stamp(f: h5py.File, end: str, state: str, reason: str) -> None:
         a = h5py.h5a.open(f.id, name.encode())
         a.write(np.array(utf8(text, size - 1), dtype=f"S{size}"), mtype=a.get_type())
     f.attrs.modify("complete", True)
+
+
+def reopen_for_stamp(path: Path) -> h5py.File:
+    """The just-closed run file opened again to write its end stamp (mode ``r+``).
+
+    A reader that has the file open — ``bench watch`` (``bench run --web``), ``h5py`` with ``swmr=True``, HDFView —
+    holds HDF5's advisory lock (a shared ``flock`` kept while open), which refuses this writer with EAGAIN, and the
+    run ended unstamped (CI, 2026-11-27). This process created the file and has just closed it, so no other writer
+    can hold it; on that refusal only, the file is opened without the lock. The stamp overwrites placeholders in
+    place (:func:`stamp`), in a header HDF5 checksums: an SWMR reader that reads it at that instant reads it again.
+    """
+    try:
+        return h5py.File(path, "r+")
+    except OSError as exc:
+        if exc.errno != errno.EAGAIN and f"errno = {errno.EAGAIN}," not in str(exc):
+            raise
+    log.info("run file %s: held open by a reader; the end stamp is written without HDF5's file lock", path)
+    return h5py.File(path, "r+", locking=False)
 
 
 _VLEN = h5py.string_dtype()  # a Python str as h5py stores it: variable-length UTF-8, NUL-terminated, scalar
@@ -705,7 +725,7 @@ class Recorder:
         g: h5py.File | None = None
         fd: int | None = None
         try:
-            g = h5py.File(self.path, "r+")
+            g = reopen_for_stamp(self.path)
             fd = int(g.id.get_vfd_handle())  # now: once a close has failed, asking for it crashes the interpreter
             stamp(g, end, state, reason)
             g.close()
