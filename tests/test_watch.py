@@ -7,6 +7,7 @@ Expected bins come from numpy over the records' index ranges (the definition: bi
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import re
@@ -238,10 +239,40 @@ def _has(module: str) -> bool:
     return importlib.util.find_spec(module) is not None
 
 
+LOAD_TRIPS = ("stream-out underrun", "host stall")  # what a host starved of CPU (CI beside a hog) trips, rightly
+
+
+class _LoadTripError(Exception):
+    """The run tripped because the loaded host fell behind, before the page's buttons were pressed."""
+
+
 def test_the_page_follows_a_run_and_its_stop_button_makes_it_safe(tmp_path: Path) -> None:
     """A wall-clock run on the simulated DAQ rig with --web; the page's plots grow; its pause button pauses the run,
-    its stop button ends it; both recorded in the file as coming from the page's address."""
+    its stop button ends it; both recorded in the file as coming from the page's address.
+
+    A wall-clock run on a starved host trips (a stream-out underrun: CI, 2026-11-27), as the lab's would: such a run
+    is checked to have ended tripped, stamped and safe, and the page is tried again on a new run (three runs at most).
+    """
     chromium = _chromium()
+    tripped = ""
+    for attempt in range(3):
+        folder = tmp_path / f"try{attempt}"
+        folder.mkdir()
+        try:
+            proc, output = _page_pauses_and_stops(folder, chromium)
+            break
+        except _LoadTripError as trip:
+            tripped = str(trip)
+            run = open_run(next(folder.glob("*.h5")))
+            assert run.complete and run.state == "tripped" and any(k in run.reason for k in LOAD_TRIPS), tripped
+            assert [e[2] for e in run.event_list()][-1] == "safe", tripped
+    else:
+        raise AssertionError(f"three wall-clock runs tripped by the loaded host; the last:\n{tripped}")
+    _check_the_page_s_stop(folder, proc, output)
+
+
+def _page_pauses_and_stops(tmp_path: Path, chromium: str) -> tuple[subprocess.Popen[str], str]:
+    """Run with --web in ``tmp_path``; the page sees the plots grow, pauses the run, then stops it."""
     from playwright.sync_api import sync_playwright
 
     # the short identification protocol with a 60-s drive, so a loaded machine (the server starting, the browser)
@@ -256,6 +287,7 @@ def test_the_page_follows_a_run_and_its_stop_button_makes_it_safe(tmp_path: Path
                             env={**ENV, "BENCH_STATE_DIR": str(tmp_path / "state")}, stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True)
     lines: list[str] = []
+    pressed = False
     try:
         assert proc.stdout is not None
         for line in proc.stdout:
@@ -285,6 +317,7 @@ def test_the_page_follows_a_run_and_its_stop_button_makes_it_safe(tmp_path: Path
             assert grown["state"] == "running" and grown["panels"] >= 3 and grown["points"] > 0
             if os.environ.get("BENCH_SCREENSHOT"):
                 page.screenshot(path=str(ROOT / "docs" / "watch.png"))
+            pressed = True
             page.click("#pause")
             page.wait_for_function("window.benchWatch.state === 'paused'", timeout=30_000)
             assert "pause asked" in page.inner_text("#message")
@@ -294,12 +327,22 @@ def test_the_page_follows_a_run_and_its_stop_button_makes_it_safe(tmp_path: Path
             browser.close()
         rest, _ = proc.communicate(timeout=60)
     except Exception as exc:  # say how the run went: a wait that timed out alone says nothing
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            proc.wait(timeout=10)  # a run that tripped is ending: its file is being stamped
         proc.kill()
         rest = proc.communicate()[0]
-        raise AssertionError(f"{exc}\nbench run printed:\n{''.join(lines)}{rest}") from exc
+        printed = f"{exc}\nbench run printed:\n{''.join(lines)}{rest}"
+        tripped = re.search(r"safety trip: interlock: ([a-z -]+):", rest)
+        if tripped and tripped.group(1) in LOAD_TRIPS and not pressed:
+            raise _LoadTripError(printed) from exc
+        raise AssertionError(printed) from exc
     finally:
         proc.kill()
-    output = "".join(lines) + rest
+    return proc, "".join(lines) + rest
+
+
+def _check_the_page_s_stop(tmp_path: Path, proc: subprocess.Popen[str], output: str) -> None:
+    """The run that the page paused and stopped: the file says so and the output is at 0 V."""
     assert proc.returncode == 1, output  # interrupted
     run = open_run(next(tmp_path.glob("*.h5")))
     assert run.state == "interrupted" and "web 127.0.0.1" in run.reason, output
