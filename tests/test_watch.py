@@ -299,7 +299,7 @@ def _page_pauses_and_stops(tmp_path: Path, chromium: str) -> tuple[subprocess.Po
         else:
             raise AssertionError("no address printed:\n" + "".join(lines))
         with sync_playwright() as pw:
-            browser = pw.chromium.launch(executable_path=chromium, args=["--no-sandbox"])
+            browser = pw.chromium.launch(executable_path=_nicer(chromium, tmp_path), args=["--no-sandbox"])
             page = browser.new_page(viewport={"width": 1200, "height": 900})
             end = time.monotonic() + 60
             while True:  # the server process starts beside the run
@@ -310,6 +310,9 @@ def _page_pauses_and_stops(tmp_path: Path, chromium: str) -> tuple[subprocess.Po
                     if time.monotonic() > end:
                         raise
                     time.sleep(0.3)
+            servers = _children(proc.pid)  # the page's server yields the CPU to the run that feeds the DAQ
+            assert servers and all(os.getpriority(os.PRIO_PROCESS, c) > os.getpriority(os.PRIO_PROCESS, proc.pid)
+                                   for c in servers), servers
             page.wait_for_function("(window.benchWatch.records.amplifier || 0) > 0", timeout=60_000)
             first = page.evaluate("window.benchWatch.records.amplifier")
             page.wait_for_function(f"window.benchWatch.records.amplifier > {first} + 20000", timeout=30_000)
@@ -339,6 +342,24 @@ def _page_pauses_and_stops(tmp_path: Path, chromium: str) -> tuple[subprocess.Po
     finally:
         proc.kill()
     return proc, "".join(lines) + rest
+
+
+def _children(pid: int) -> list[int]:
+    """The child processes of ``pid`` (Linux: /proc/PID/task/*/children)."""
+    out: list[int] = []
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        with contextlib.suppress(OSError):
+            out += [int(c) for c in (task / "children").read_text().split()]
+    return out
+
+
+def _nicer(chromium: str, folder: Path) -> str:
+    """A launcher of ``chromium`` at lower CPU priority: the test's browser, as the page's server, must not starve
+    the run it watches on a loaded host (the lab's browser is not the test's to slow down)."""
+    launcher = folder / "chromium-nice"
+    launcher.write_text(f'#!/bin/sh\nexec nice -n 10 "{chromium}" "$@"\n', encoding="ascii")
+    launcher.chmod(0o755)
+    return str(launcher)
 
 
 def _check_the_page_s_stop(tmp_path: Path, proc: subprocess.Popen[str], output: str) -> None:
