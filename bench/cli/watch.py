@@ -56,6 +56,8 @@ def watch(
     Safe by default: it binds 127.0.0.1; on any other address every request needs the token printed here. The page
     can only pause a run or stop it (go safe), through the run's control file as `bench pause` does; both are
     recorded in the run file as coming from "web <client address>"."""
+    if pending:  # first: Linux lowers the calling thread's priority, which the threads started later inherit
+        _yield_to_the_run()
     from bench.watch.server import Served, bind, create_app, is_loopback, serve
 
     _web_libraries()
@@ -75,7 +77,6 @@ def watch(
     app = create_app(Served(files, folders), token=token, loopback=loopback)
     if pending:  # bench run --web: the server ends with the run's process, also when that one is killed
         _end_with(os.getppid())
-        _yield_to_the_run()
     if not pending:
         console.print(f"watching {len(files) + len(folders)} run(s): {url(host, sock.getsockname()[1], token)}")
         if token:

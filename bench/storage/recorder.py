@@ -192,11 +192,12 @@ def stamp(f: h5py.File, end: str, state: str, reason: str) -> None:
 def reopen_for_stamp(path: Path) -> h5py.File:
     """The just-closed run file opened again to write its end stamp (mode ``r+``).
 
-    A reader that has the file open — ``bench watch`` (``bench run --web``), ``h5py`` with ``swmr=True``, HDFView —
+    A reader that has the file open — ``bench watch`` (``bench run --web``), ``h5py`` with ``swmr=True`` —
     holds HDF5's advisory lock (a shared ``flock`` kept while open), which refuses this writer with EAGAIN, and the
     run ended unstamped (CI, 2026-11-27). This process created the file and has just closed it, so no other writer
     can hold it; on that refusal only, the file is opened without the lock. The stamp overwrites placeholders in
-    place (:func:`stamp`), in a header HDF5 checksums: an SWMR reader that reads it at that instant reads it again.
+    place (:func:`stamp`), in a header HDF5 checksums: an SWMR reader that reads it at that instant reads it again;
+    a reader that keeps its handle sees the stamp once it opens the file anew (``/status`` at its next refresh).
     """
     try:
         return h5py.File(path, "r+")
