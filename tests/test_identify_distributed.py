@@ -235,6 +235,39 @@ def test_distributed_costs_equal_the_in_process_costs(runs: list[Path], cluster:
         np.testing.assert_array_equal(remote[kind], local[kind])
 
 
+def test_one_worker_thread_gets_a_batch_as_one_task_and_the_same_bits(runs: list[Path], cluster: Cluster,
+                                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    """With one worker thread known, a batch's tiles (one per record here) go as one task, run one after the other
+    there (no scheduler round trip between them); the costs and the predictions are the in-process ones, bit for
+    bit."""
+    problem = MembraneProblem(runs)
+    Z = _candidates(problem)
+    local = {kind: problem.costs(Z, kind) for kind in KINDS}
+    local_pred = problem.predict(Z)
+    with cluster_client(scheduler=cluster.address) as client:
+        problem.distribute(client)
+        remote = problem.remote
+        assert remote is not None and len(remote.slots()) == 2
+        assert len(tiles(len(Z), remote.steps, 1)) == 2  # the batch has two tiles
+        one = remote.slots()[:1]
+        monkeypatch.setattr(remote, "slots", lambda: one)
+        submitted: list[object] = []
+        submit = client.submit
+
+        def counted(func: object, *args: object, **kwargs: object) -> object:
+            submitted.append(func)
+            return submit(func, *args, **kwargs)
+
+        monkeypatch.setattr(client, "submit", counted)
+        got = {kind: problem.costs(Z, kind) for kind in KINDS}
+        pred = problem.predict(Z)
+        problem.distribute(None)
+    assert len(submitted) == len(KINDS) + 1  # one task a batch
+    for kind in KINDS:
+        np.testing.assert_array_equal(got[kind], local[kind])
+    np.testing.assert_array_equal(pred, local_pred)
+
+
 def test_a_closing_workers_failed_heartbeat_is_dropped_and_a_running_ones_kept() -> None:
     """dask logs a heartbeat cut by the worker's own close as an ERROR with a traceback (seen at the end of a
     16-worker LocalCluster); the filter drops only that record, and only while its worker closes."""

@@ -2,10 +2,11 @@
 threads and on a LocalCluster of N single-threaded worker processes (``--workers N``), for each N of ``--sizes``
 (default 1 and 2, the development machine's cores; 1, 2, 4, 8, 16 on a 16-core machine), in one run.
 
-The configurations take turns within each repeat (a change of the machine's load touches all alike), best of the
-repeats; each is warmed first (JIT cache loaded in the workers, the records scattered). The figure is the
-search's own time (:attr:`bench.identify.core.FitResult.search_time`); beside it the load average and the CPUs
-the integrating processes got (their CPU seconds over the fit's wall time): on a shared machine whose other
+The configurations take turns within each repeat (a change of the machine's load touches all alike), in the
+reverse order every other repeat (none always first), best of the repeats; each is warmed first (JIT cache loaded
+in the workers, the records scattered). The figure is the search's own time
+(:attr:`bench.identify.core.FitResult.search_time`); beside it the load average and the CPUs the integrating
+processes got (their CPU seconds over the fit's wall time): on a shared machine whose other
 sessions hold the cores, two workers get no more CPU than one, and the ratio says so.
 """
 
@@ -137,8 +138,8 @@ def scaling(quick: bool = False, sizes: tuple[int, ...] = DEFAULT_SIZES, copies:
         used = dict.fromkeys(configs, 0.0)  # CPU seconds of the fit's integrating processes
         cores = dict.fromkeys(configs, 0.0)  # the same per wall second: the CPUs they got
         results: dict[tuple[str, int], FitResult] = {}
-        for _ in range(repeats):  # the configurations take turns within each repeat
-            for kind, n in configs:
+        for repeat in range(repeats):  # the configurations take turns within each repeat, in turn first and last
+            for kind, n in configs if repeat % 2 == 0 else configs[::-1]:
                 with cluster_client(workers=n if kind == "workers" else None) as client, \
                         _threads(n) if client is None else contextlib.nullcontext():
                     problem.distribute(client)
@@ -162,7 +163,8 @@ def scaling(quick: bool = False, sizes: tuple[int, ...] = DEFAULT_SIZES, copies:
         out += [Figure(f"campaign search ({what}), in-process, numba {n} thread{'s' if n > 1 else ''}", best[inproc],
                        "s", f"best of {repeats}; {cores[inproc]:.2f} CPUs busy, {used[inproc]:.1f} CPU-s"),
                 Figure(f"  same, --workers {n} (LocalCluster, single-threaded processes)", best[workers], "s",
-                       f"{plan} tiles a generation, {100 * even:.0f} % balanced; the workers got "
+                       f"{plan} tiles a generation{' in one task' if n == 1 else ''}, {100 * even:.0f} % balanced; "
+                       f"the workers got "
                        f"{cores[workers]:.2f} CPUs, {used[workers]:.1f} CPU-s"),
                 Figure(f"  --workers {n} against the in-process threads, same run", best[inproc] / best[workers], "×",
                        "target ≥ 1× (issue 24: never slower than in-process): "
