@@ -121,14 +121,15 @@ def test_two_batches_under_way_together_share_the_threads_and_a_finished_one_fre
     every thread works and none has more than two tiles; once both are done, the next batch finds all 16 free."""
     p = _placer(STEPS_12)
     plan = tiles(50, STEPS_12, 16)
-    with p._placed(plan, SLOTS_16) as first, p._placed(plan, SLOTS_16) as second:
+    with p._placed(plan, SLOTS_16) as first_slots, p._placed(plan, SLOTS_16) as second_slots:
+        first, second = [s[0] for s in first_slots], [s[0] for s in second_slots]  # the workers' addresses
         both = first + second
         assert {f"w{k:02d}" for k in range(16)} == set(both)
         assert max(both.count(w) for w in set(both)) == 2
         assert set(second) >= {w for w, _ in SLOTS_16} - set(first)  # the idle four first
     assert p._loads == {}
     with p._placed(plan, SLOTS_16) as third:
-        assert len(set(third)) == 12
+        assert len({s[0] for s in third}) == 12
 
 
 def test_without_known_workers_the_scheduler_places_the_tiles() -> None:
@@ -141,11 +142,12 @@ class _Client:
     restriction without workers, as distributed's Client.submit does (its docs: allow_other_workers "only used
     if workers is not None")."""
 
-    def __init__(self) -> None:
+    def __init__(self, workers: dict | None = None) -> None:
         self.kwargs: list[dict] = []
+        self.workers = workers or {}
 
     def scheduler_info(self) -> dict:
-        return {"workers": {}}
+        return {"workers": self.workers}
 
     def submit(self, fn, *args, **kwargs):  # type: ignore[no-untyped-def]
         if kwargs.get("allow_other_workers") and kwargs.get("workers") is None:
@@ -169,3 +171,21 @@ def test_a_batch_before_any_worker_registered_goes_to_the_scheduler_unrestricted
     assert parts == [(r0, a, b) for r0, _, a, b in plan]
     assert all("workers" not in k and "allow_other_workers" not in k for k in p.client.kwargs)
     assert p.evaluations == 9
+
+
+def test_the_tiles_a_worker_thread_is_given_go_as_one_task_and_come_back_in_plan_order() -> None:
+    """Two single-thread workers, five records of 400, 300, 200, 100 and 50 steps (a tile each, one register of
+    candidates): by hand, longest first on the thread free first (a tie to the first), a gets 400, 100 and 50, b
+    300 and 200: two tasks, each placed on its worker, and each tile's result where the plan has it."""
+    import threading
+
+    p = DistributedPredict.__new__(DistributedPredict)
+    p.client = _Client({"a": {"nthreads": 1}, "b": {"nthreads": 1}})
+    p.steps, p._loads, p._placing, p._count, p.evaluations = [400, 300, 200, 100, 50], {}, threading.Lock(), \
+        threading.Lock(), 0
+    plan, parts = p._batch(LANES, lambda r0, r1, a, b: (r0, a, b), lambda r0, r1, a, b: (r0, r1, a, b))
+    assert [t[0] for t in plan] == [0, 1, 2, 3, 4]  # one tile a record, longest first
+    assert parts == [(r0, a, b) for r0, _, a, b in plan]
+    assert [k["workers"] for k in p.client.kwargs] == [["a"], ["b"]]
+    assert p._loads == {} and p.evaluations == LANES
+

@@ -163,7 +163,7 @@ def scaling(quick: bool = False, sizes: tuple[int, ...] = DEFAULT_SIZES, copies:
         out += [Figure(f"campaign search ({what}), in-process, numba {n} thread{'s' if n > 1 else ''}", best[inproc],
                        "s", f"best of {repeats}; {cores[inproc]:.2f} CPUs busy, {used[inproc]:.1f} CPU-s"),
                 Figure(f"  same, --workers {n} (LocalCluster, single-threaded processes)", best[workers], "s",
-                       f"{plan} tiles a generation{' in one task' if n == 1 else ''}, {100 * even:.0f} % balanced; "
+                       f"{plan} tiles a generation (a worker thread's as one task), {100 * even:.0f} % balanced; "
                        f"the workers got "
                        f"{cores[workers]:.2f} CPUs, {used[workers]:.1f} CPU-s"),
                 Figure(f"  --workers {n} against the in-process threads, same run", best[inproc] / best[workers], "×",

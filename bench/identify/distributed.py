@@ -10,8 +10,8 @@ only their partial costs per record (:meth:`DistributedPredict.costs`, :mod:`ben
 outputs converted and compared on the worker, b − a numbers per tile and record instead of their samples). Every
 candidate is integrated independently and each partial cost summed row by row, so the results are the same as
 in-process, bit for bit. A task integrates on one numba thread: a worker's threads are its parallelism (``dask
-worker --nthreads N`` runs N tiles at once, N × one thread, no oversubscription). With one worker thread in the
-cluster, a batch's tiles go as one task run there in turn (:func:`_in_turn`): no scheduler round trip between them.
+worker --nthreads N`` runs N tiles at once, N × one thread, no oversubscription). The tiles a batch gives one worker
+thread go there as one task that runs them in turn (:func:`_in_turn`): no scheduler round trip between them.
 """
 
 from __future__ import annotations
@@ -116,6 +116,11 @@ def _tile_costs(Us: list[np.ndarray], Y0: np.ndarray, P: np.ndarray, h: float, s
     return out
 
 
+def _on(slot: Slot | None) -> dict[str, object]:
+    """A task's placement on ``slot``'s worker: loose (a worker gone leaves it to any other); none for None."""
+    return {} if slot is None else {"workers": [slot[0]], "allow_other_workers": True}
+
+
 def _in_turn(task: Callable[..., np.ndarray], tiles: list[tuple[object, ...]]) -> list[np.ndarray]:
     """Several tiles of a batch on one worker thread, one after the other (worker side): ``task(*args)`` each."""
     return [task(*args) for args in tiles]
@@ -195,18 +200,21 @@ class DistributedPredict:
         slots = self.slots()
         plan = tiles(m, self.steps, max(1, len(slots)))
         with self._placed(plan, slots) as where:
-            # no worker known (none registered yet): no restriction, which dask refuses to make loose
-            def on(at: str | None) -> dict[str, object]:
-                return {} if at is None else {"workers": [at], "allow_other_workers": True}
-
-            if len(slots) == 1 and len(plan) > 1:  # one worker thread runs the tiles one after another anyway: as
-                # one task, without a scheduler round trip between them (a few ms each on a 2-core machine)
-                parts = self.client.submit(_in_turn, task, [args(*tile) for tile in plan], pure=False,
-                                           **on(where[0])).result()
-            else:
-                futures = [self.client.submit(task, *args(*tile), pure=False, priority=len(plan) - k, **on(at))
-                           for k, (tile, at) in enumerate(zip(plan, where, strict=True))]
-                parts = self.client.gather(futures)
+            # the tiles a worker thread is given run there one after another anyway: as one task, without a
+            # scheduler round trip between them (a few ms each on a 2-core machine, where the scheduler's work also
+            # takes CPU from the workers); no worker known (none registered yet): one task a tile, unrestricted
+            # (dask refuses to make a restriction to no worker loose)
+            turns: dict[Slot | None, list[int]] = {}
+            for k, slot in enumerate(where):
+                turns.setdefault(slot, []).append(k)
+            groups = [(slot, ks) for slot, ks in turns.items() if slot is not None] \
+                + [(None, [k]) for k in turns.get(None, [])]
+            futures = [self.client.submit(_in_turn, task, [args(*plan[k]) for k in ks], pure=False,
+                                          priority=len(plan) - ks[0], **_on(slot)) for slot, ks in groups]
+            parts: list[np.ndarray] = [np.empty(0)] * len(plan)
+            for (_, ks), got in zip(groups, self.client.gather(futures), strict=True):
+                for k, part in zip(ks, got, strict=True):
+                    parts[k] = part
         with self._count:
             self.evaluations += m
         return plan, parts
@@ -218,8 +226,8 @@ class DistributedPredict:
         return [(address, k) for address, w in sorted(workers.items()) for k in range(int(w.get("nthreads", 1)))]
 
     @contextlib.contextmanager
-    def _placed(self, plan: list[Tile], slots: list[Slot]) -> Iterator[list[str | None]]:
-        """The worker of each tile of ``plan`` (longest first) while its batch is under way: the worker thread
+    def _placed(self, plan: list[Tile], slots: list[Slot]) -> Iterator[list[Slot | None]]:
+        """The worker thread of each tile of ``plan`` (longest first) while its batch is under way: the worker thread
         free first, as the plan's cost model counts (:func:`tile_cost`), counting the tiles that batches running
         beside it (the fit's parallel starts) were given. Left to itself the scheduler put up to three of a
         generation's 12 tiles on one of 16 idle workers. The placement is a loose restriction: a worker gone
@@ -229,7 +237,7 @@ class DistributedPredict:
             return
         charges = self.assign(plan, slots)
         try:
-            yield [slot[0] for slot, _ in charges]
+            yield [slot for slot, _ in charges]
         finally:
             with self._placing:
                 for slot, cost in charges:
