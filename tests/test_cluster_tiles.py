@@ -189,3 +189,18 @@ def test_the_tiles_a_worker_thread_is_given_go_as_one_task_and_come_back_in_plan
     assert [k["workers"] for k in p.client.kwargs] == [["a"], ["b"]]
     assert p._loads == {} and p.evaluations == LANES
 
+
+def test_a_worker_with_two_threads_gets_a_turn_for_each() -> None:
+    """One worker with two threads: two slots, so two turns placed on that worker (run side by side there), each
+    tile's result in plan order."""
+    import threading
+
+    p = DistributedPredict.__new__(DistributedPredict)
+    p.client = _Client({"a": {"nthreads": 2}})
+    p.steps, p._loads, p._placing, p._count, p.evaluations = [400, 300, 200, 100], {}, threading.Lock(), \
+        threading.Lock(), 0
+    plan, parts = p._batch(LANES, lambda r0, r1, a, b: (r0, a, b), lambda r0, r1, a, b: (r0, r1, a, b))
+    assert parts == [(r0, a, b) for r0, _, a, b in plan]
+    assert [k["workers"] for k in p.client.kwargs] == [["a"], ["a"]]
+    assert p._loads == {}
+

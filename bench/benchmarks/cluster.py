@@ -3,7 +3,8 @@ threads and on a LocalCluster of N single-threaded worker processes (``--workers
 (default 1 and 2, the development machine's cores; 1, 2, 4, 8, 16 on a 16-core machine), in one run.
 
 The configurations take turns within each repeat (a change of the machine's load touches all alike), in the
-reverse order every other repeat (none always first), best of the repeats; each is warmed first (JIT cache loaded
+reverse order every other repeat (none always first where there are two repeats or more: not in ``--quick``),
+best of the repeats; each is warmed first (JIT cache loaded
 in the workers, the records scattered). The figure is the search's own time
 (:attr:`bench.identify.core.FitResult.search_time`); beside it the load average and the CPUs the integrating
 processes got (their CPU seconds over the fit's wall time): on a shared machine whose other

@@ -20,6 +20,7 @@ import contextlib
 import heapq
 import itertools
 import threading
+import uuid
 from collections.abc import Callable, Iterator, Sequence
 from typing import TYPE_CHECKING, Any, cast
 
@@ -121,9 +122,9 @@ def _on(slot: Slot | None) -> dict[str, object]:
     return {} if slot is None else {"workers": [slot[0]], "allow_other_workers": True}
 
 
-def _in_turn(task: Callable[..., np.ndarray], tiles: list[tuple[object, ...]]) -> list[np.ndarray]:
+def _in_turn(task: Callable[..., np.ndarray], turn: list[tuple[object, ...]]) -> list[np.ndarray]:
     """Several tiles of a batch on one worker thread, one after the other (worker side): ``task(*args)`` each."""
-    return [task(*args) for args in tiles]
+    return [task(*args) for args in turn]
 
 
 def _warm(U: np.ndarray, Y0: np.ndarray, P: np.ndarray, h: float, stride: int, data: np.ndarray, sigma: np.ndarray,
@@ -209,7 +210,9 @@ class DistributedPredict:
                 turns.setdefault(slot, []).append(k)
             groups = [(slot, ks) for slot, ks in turns.items() if slot is not None] \
                 + [(None, [k]) for k in turns.get(None, [])]
+            # keyed by the task (prediction or costs): dask's duration estimates go by the key's prefix
             futures = [self.client.submit(_in_turn, task, [args(*plan[k]) for k in ks], pure=False,
+                                          key=f"{getattr(task, '__name__', 'tile')}-turn-{uuid.uuid4().hex}",
                                           priority=len(plan) - ks[0], **_on(slot)) for slot, ks in groups]
             parts: list[np.ndarray] = [np.empty(0)] * len(plan)
             for (_, ks), got in zip(groups, self.client.gather(futures), strict=True):
