@@ -4,10 +4,9 @@ threads and on a LocalCluster of N single-threaded worker processes (``--workers
 
 The configurations take turns within each repeat (a change of the machine's load touches all alike), in the
 reverse order every other repeat (none always first where there are two repeats or more: not in ``--quick``),
-best of the repeats; each is warmed first (JIT cache loaded
-in the workers, the records scattered). The figure is the search's own time
-(:attr:`bench.identify.core.FitResult.search_time`); beside it the load average and the CPUs the integrating
-processes got (their CPU seconds over the fit's wall time): on a shared machine whose other
+best of the repeats; each is warmed first (JIT cache loaded in the workers, the records scattered). The figure is
+the search's own time (:attr:`bench.identify.core.FitResult.search_time`); beside it the load average and the CPUs
+the integrating processes got (their CPU seconds over the fit's wall time): on a shared machine whose other
 sessions hold the cores, two workers get no more CPU than one, and the ratio says so.
 """
 
@@ -139,7 +138,7 @@ def scaling(quick: bool = False, sizes: tuple[int, ...] = DEFAULT_SIZES, copies:
         used = dict.fromkeys(configs, 0.0)  # CPU seconds of the fit's integrating processes
         cores = dict.fromkeys(configs, 0.0)  # the same per wall second: the CPUs they got
         results: dict[tuple[str, int], FitResult] = {}
-        for repeat in range(repeats):  # the configurations take turns within each repeat, in turn first and last
+        for repeat in range(repeats):  # the configurations take turns within each repeat, first and last in turn
             for kind, n in configs if repeat % 2 == 0 else configs[::-1]:
                 with cluster_client(workers=n if kind == "workers" else None) as client, \
                         _threads(n) if client is None else contextlib.nullcontext():
@@ -165,8 +164,7 @@ def scaling(quick: bool = False, sizes: tuple[int, ...] = DEFAULT_SIZES, copies:
                        "s", f"best of {repeats}; {cores[inproc]:.2f} CPUs busy, {used[inproc]:.1f} CPU-s"),
                 Figure(f"  same, --workers {n} (LocalCluster, single-threaded processes)", best[workers], "s",
                        f"{plan} tiles a generation (a worker thread's as one task), {100 * even:.0f} % balanced; "
-                       f"the workers got "
-                       f"{cores[workers]:.2f} CPUs, {used[workers]:.1f} CPU-s"),
+                       f"the workers got {cores[workers]:.2f} CPUs, {used[workers]:.1f} CPU-s"),
                 Figure(f"  --workers {n} against the in-process threads, same run", best[inproc] / best[workers], "×",
                        "target ≥ 1× (issue 24: never slower than in-process): "
                        + ("ok" if best[inproc] >= best[workers] else "BELOW"))]
