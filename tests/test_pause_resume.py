@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 import time
@@ -171,6 +172,17 @@ def test_a_killed_campaign_resumes_in_a_linked_file_and_reports_as_one(tmp_path:
     kill_at_step(proc, tmp_path, 4, 120)  # kill -9 once the second sweep point (the 7-kV drive) has started
     first = next(tmp_path.glob("*.h5"))
     assert open_run(first, streams=False).state == "running"  # killed: no end recorded
+    # a copy released first by `bench recover` (as the README's recovery section has it) resumes at the same step
+    released = tmp_path / "released" / first.name
+    released.parent.mkdir()
+    shutil.copy2(first, released)
+    recovered = subprocess.run([*bench, "recover", str(released)], cwd=ROOT, env=ENV, capture_output=True,
+                               text=True, timeout=120)
+    assert recovered.returncode == 0, recovered.stdout + recovered.stderr
+    assert open_run(released, streams=False).recovered_at
+    killed_in = min(set(range(6)) - open_run(first, streams=False).completed_steps())
+    plan, link, notes = plan_resume(released)
+    assert plan.program.segments[link.step].index == killed_in and notes == []  # nothing left to recover
     resumed = subprocess.run([*bench, "run", "--resume", str(first), "--virtual-time", "--no-live"], cwd=ROOT,
                              env=ENV, capture_output=True, text=True, timeout=300)
     assert resumed.returncode == 0, resumed.stdout + resumed.stderr

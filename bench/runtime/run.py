@@ -370,17 +370,17 @@ class Resume:
 
 def plan_resume(run_file: str | Path, rig_path: str | Path | None = None, simulate: bool = False,
                 progress: Callable[[float], None] | None = None) -> tuple[Plan, Resume, list[str]]:
-    """Plan the rest of the campaign of ``run_file``: recover it if a crash left it open, re-plan its stored
-    protocol on its stored rig (or ``rig_path``), and find the first step that did not complete. Returns the
-    plan, the link, and what was done to the file (recovery lines). ValueError (one line) if there is nothing
-    to resume or the file cannot be read."""
+    """Plan the rest of the campaign of ``run_file``: recover it if a crash left it open (one that ``bench recover``
+    already released is resumed as it is), re-plan its stored protocol on its stored rig (or ``rig_path``), and
+    find the first step that did not complete. Returns the plan, the link, and what was done to the file (recovery
+    lines). ValueError (one line) if there is nothing to resume or the file cannot be read."""
     p = Path(run_file)
     notes: list[str] = []
     run = open_run(p, streams=False)
     if run.state == "running" and run.orphaned:
         notes = recover(p).lines()
         run = open_run(p, streams=False)
-    elif run.state == "running":
+    elif run.state == "running" and not run.recovered_at:  # recovered: `bench recover` found no writer (a crash)
         raise ValueError(f"run file {p}: a run is still writing it (stop it first, or pause it with bench pause)")
     for key in ("protocol_text", "rig_toml", "protocol_sha256"):
         if key not in run.attrs:
