@@ -174,3 +174,21 @@ def test_a_width_in_the_environment_when_the_console_is_made_does_not_stick(monk
     monkeypatch.delenv("COLUMNS")
     assert console.size.width == REDIRECTED_WIDTH
     assert BenchConsole(file=io.StringIO(), width=100).size.width == 100  # an explicit width stays
+
+
+def test_a_run_that_latched_its_rig_says_so_and_how_to_reset_it() -> None:
+    from bench.cli.common import console
+    from bench.cli.run import _print_result
+    from bench.runtime.engine import RunResult
+
+    def shown(result: RunResult) -> str:
+        with console.capture() as cap:
+            _print_result(result, "thesis-daq-sim")
+        return " ".join(cap.get().split())
+
+    ended = RunResult("runs/x.h5", "error", "lost link: amplifier", 3.0, 1.0, 10, safe_path="0 V NOT commanded",
+                      latched="interlock: output path dead: 0 V could not be commanded")
+    text = shown(ended)
+    assert "rig thesis-daq-sim latched: interlock: output path dead" in text
+    assert "bench interlock reset thesis-daq-sim --why" in text
+    assert "latched" not in shown(RunResult("runs/y.h5", "completed", "protocol completed", 3.0, 1.0, 10))

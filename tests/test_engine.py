@@ -20,6 +20,7 @@ from bench.models.membrane_runs import simulate_membrane
 from bench.protocol.schema import load_protocol
 from bench.rig import RigConfig
 from bench.runtime.engine import Engine
+from bench.runtime.latch import latched
 from bench.runtime.run import execute, plan_run, run_protocol
 from bench.storage.runfile import open_run
 from bench.waveforms import Waveform
@@ -180,6 +181,7 @@ def test_lost_laser_link_stops_the_run_safely(tmp_path: Path) -> None:
     assert sim.faults["laser"].counts["drop"] > 0
     check_safe_end(run, sim, "error")
     assert 3.0 < run.updated < 5.0  # data up to the fault (and the shutdown) are in the file
+    assert latched(run.attrs["rig_name"]) is None  # 0 V commanded and read back: a lost sensor is no latched fault
 
 
 @pytest.mark.parametrize("transport", ["rtu", "tcp"])
@@ -197,6 +199,27 @@ def test_lost_amplifier_link_relies_on_the_module_watchdog(tmp_path: Path, trans
     assert run.complete
     sim.clock.advance(1.5)  # the ADAM-4024's communication safety (1 s in the rig file)
     assert sim.plant.observe().v_out[0] == 0.0 and sim.plant.watchdog_tripped
+    # the host never had the output under control at the end: the rig stays off until an operator resets it
+    latch = latched(run.attrs["rig_name"])
+    assert latch is not None and "output path dead" in latch["fault"] and latch["where"] == str(result.path)
+    assert any("output path dead" in text for _, _, kind, text in run.event_list() if kind == "interlock")
+
+
+def test_a_monitor_that_cannot_be_read_back_at_the_end_latches_the_rig(tmp_path: Path) -> None:
+    """The ADAM-4017+ (the TREK's monitors) fails 3 s in: the run stops, commands 0 V through the ADAM-4024 (which
+    still answers), but cannot read 0 V back — the output is unproven, so the rig latches."""
+    def hook(_engine: Engine, sim) -> None:
+        at = sim.clock.now() + 3.0
+        sim.clock.subscribe(lambda now: setattr(sim.twins["amplifier AI"], "failed", True) if now >= at else None)
+
+    result, run, sim = run_virtual(SHORT / "thesis-identification-short.toml", tmp_path, hook=hook)
+    assert result.state == "error", result.reason
+    (safe,) = [text for _, _, kind, text in run.event_list() if kind == "safe"]
+    assert safe.startswith("0 V commanded by the host") and "NOT verified" in safe, safe
+    latch = latched(run.attrs["rig_name"])
+    assert latch is not None and "output not verified" in latch["fault"], latch
+    sim.clock.advance(0.5)
+    assert abs(sim.plant.observe().v_out[0]) < ZERO_V  # the output is at 0 V: the latch is about what was proven
 
 
 def _start_cli_run(tmp_path: Path, protocol: str = "thesis-identification-short.toml") -> tuple[subprocess.Popen, Path]:

@@ -211,6 +211,10 @@ def test_a_refused_output_path_stops_feeding_the_watchdog_and_the_run_ends_at_ze
     result, run, plant = run_with_fault(DAQ_RIG, tmp_path, 3.0, refuse_writes, virtual=True)
     assert result.state == "error" and "refused" in result.reason, result.reason
     assert any("output path dead" in text for text in events(run, "watchdog"))
+    assert any(text.startswith("latched at") and "output path dead" in text for text in events(run, "interlock"))
+    from bench.runtime.latch import latched
+    latch = latched(run.attrs["rig_name"])  # the next run and manual control are refused until a reset
+    assert latch is not None and "output path dead" in latch["fault"]
     (safe,) = events(run, "safe")
     assert "verified: voltage monitor" in safe, safe
     # 0 V by the T7's own watchdog (1 s, the rig file) counted from the last request the host made before it

@@ -196,7 +196,7 @@ def run(
                 prepared, virtual_time=virtual_time, operator=operator, allow_no_watchdog=allow_no_watchdog,
                 catalog=catalog, on_engine=on_engine))
         _log_result(result)
-    _show_result(result, log_file)
+    _show_result(result, log_file, prepared.plan.rig.name)
     if result.state != "completed":
         raise typer.Exit(1)
 
@@ -231,9 +231,9 @@ def _log_plan(prepared: PreparedRun, protocol_file: Path | None, virtual_time: b
         log.info("%s: %s", key.replace("_", " "), value.replace("\n", " | "))
 
 
-def _show_result(result: RunResult, log_file: Path) -> None:
+def _show_result(result: RunResult, log_file: Path, rig_name: str) -> None:
     with contextlib.suppress(OSError):  # the terminal went away (SIGHUP): the file holds the whole account
-        _print_result(result)
+        _print_result(result, rig_name)
         console.print(f"run log: {escape(str(log_file))}")
         if console.quiet:  # -q: the run file's path alone, for scripts (f=$(bench -q run …)), whatever the outcome
             sys.stdout.write(f"{result.path}\n")
@@ -282,13 +282,16 @@ def _execute(prepared: PreparedRun, live: bool,
     return execute(None)
 
 
-def _print_result(result: RunResult) -> None:
+def _print_result(result: RunResult, rig_name: str) -> None:
     speed = result.run_time / result.wall_time if result.wall_time > 0 else float("nan")
     colour = "green" if result.state == "completed" else "red"
     console.print(f"[{colour}]{result.state}[/]: {escape(result.reason)}")
     console.print(f"run {result.run_time:.1f} s in {result.wall_time:.1f} s of wall time ({speed:.1f}× real time), "
                   f"{result.samples:,} samples" + (f", {result.overruns} late actions" if result.overruns else ""))
     console.print(f"high voltage: {escape(result.safe_path)}")
+    if result.latched:
+        console.print(f"[red]rig {escape(rig_name)} latched[/]: {escape(result.latched)}; nothing energises it until "
+                      f"an operator resets it: bench interlock reset {escape(rig_name)} --why '…'")
     console.print(f"run file: {escape(str(result.path))}")
 
 

@@ -131,6 +131,7 @@ class RunResult:
     samples: int
     overruns: int = 0
     safe_path: str = ""
+    latched: str = ""  # the interlock fault the run latched its rig for ('' if none)
 
 
 class Engine:
@@ -173,6 +174,7 @@ class Engine:
         self.verifier, self.motion = self.ctx.verifier, self.ctx.motion
         self.latched: InterlockTrip | None = None  # the interlock fault that ended the run (0 V at once, no ramp)
         self._output_dead = False  # 0 V could not be commanded: no request may feed the module's watchdog
+        self._zero_verified = False  # the shutdown read 0 V back from the voltage monitor
         self._pause_by: str | None = None  # who asked for a pause (signal, another thread); None: nobody
         self._resume_by: str | None = None
         self._control_seen: ControlWord = (0.0, False, "", False)  # control file: (mtime, pause?, by/why, stop?)
@@ -610,7 +612,8 @@ class Engine:
             # the run itself ended, but the file could not record its end: it is not a complete record
             state, reason = "error", f"storage fault: {self.rec.failure or 'run file not finalised'} (after: {reason})"
         return RunResult(str(self.rec.path), state, reason, self.now(), time.perf_counter() - wall0,
-                         self.rec.samples_written, self.overruns, safe_path)
+                         self.rec.samples_written, self.overruns, safe_path,
+                         self.latched.reason if self.latched is not None else "")
 
     def _record(self, fn: Callable[..., object], *args: Any, **kwargs: Any) -> None:
         """A recorder call during shutdown: a storage fault must not stop the rig being made safe."""
@@ -661,6 +664,7 @@ class Engine:
                     raise
                 self._storage_failed = True
         safe_path = self._verify_safe(zero_at, notes)
+        self._latch_unproven(zero_at, safe_path)
         if not self.clock.virtual:
             self._event("timing", f"{self.overruns} late actions (> {LATE_TOLERANCE_S * 1e3:.0f} ms), worst "
                         f"lateness {self.ctx.worst_lateness * 1e3:.1f} ms")
@@ -759,6 +763,23 @@ class Engine:
                 notes.append(f"{role} safe state failed: {type(exc).__name__}: {exc}")
         return notes
 
+    def _latch_unproven(self, zero_at: float | None, safe_path: str) -> None:
+        """Latch the rig when the host could not command 0 V (a dead output path: its watchdog had to zero it) or
+        could not read 0 V back at the end: the output was not under the host's control, so nothing may energise the
+        rig again until an operator has looked at it and reset the latch. A fault latched earlier stays the one
+        named."""
+        if self.latched is not None or self.inst.amplifier is None:
+            return
+        if zero_at is None:
+            trip = InterlockTrip("output path dead", f"0 V could not be commanded by the host ({safe_path})")
+        elif not self._zero_verified:
+            trip = InterlockTrip("output not verified", f"0 V was commanded but not read back ({safe_path})")
+        else:
+            return
+        self.latched = trip
+        self._event("interlock", f"latched at {self.now():.3f} s ({trip.kind}): {trip.detail}; nothing energises "
+                    "the rig until an operator resets the latch")
+
     def _verify_safe(self, zero_at: float | None, notes: list[str]) -> str:
         """Check the output really is at 0 V and say which path made it so."""
         amp = self.inst.amplifier
@@ -787,6 +808,7 @@ class Engine:
                 self._record(self.rec.append, "amplifier", v.timestamp - self.ctx.t0, voltage=v.value,
                              current=i.value, **self.ctx.unpolled_monitor_columns())
             if math.isfinite(v.value) and abs(v.value) <= SAFE_MONITOR_V:
+                self._zero_verified = True
                 return f"{path}; verified: voltage monitor {v.value:.0f} V at {self.now():.3f} s"
             if self.now() >= deadline:
                 return f"{path}; WARNING: voltage monitor still reads {v.value:.0f} V at {self.now():.3f} s"
