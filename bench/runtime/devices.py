@@ -7,6 +7,7 @@ from pathlib import Path
 
 from bench.rig import RigConfig, rig_to_toml
 from bench.runtime.instruments import build_instruments
+from bench.runtime.rig_lock import claimed
 from bench.units import si
 from drivers.errors import InstrumentError
 from drivers.interfaces import Reading
@@ -30,7 +31,13 @@ def _reading(quantity: str, r: Reading) -> str:
 
 
 def check_instruments(rig: RigConfig, endpoints: dict[str, str] | None = None) -> list[CheckRow]:
-    """Connect to every instrument, identify it, read it once, leave it safe; one row per instrument."""
+    """Connect to every instrument, identify it, read it once, leave it safe; one row per instrument. Refused
+    (RigInUseError, nothing touched) while another process drives one of them: a check would disturb its run."""
+    with claimed(rig, endpoints):
+        return _check_claimed(rig, endpoints)
+
+
+def _check_claimed(rig: RigConfig, endpoints: dict[str, str] | None) -> list[CheckRow]:
     inst = build_instruments(rig, endpoints)
     rows: list[CheckRow] = []
     try:

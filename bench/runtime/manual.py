@@ -92,6 +92,7 @@ from bench.runtime.engine import stop_signals
 from bench.runtime.instruments import Instruments, build_instruments
 from bench.runtime.interlock import InterlockTrip
 from bench.runtime.manual_mode import KEEPALIVE_S, ManualEngine, PauseRequested, Refused, StopRequested
+from bench.runtime.rig_lock import claimed
 from bench.runtime.safety import SafetyTrip, Supervisor
 from bench.storage.recorder import Recorder, now_iso
 from bench.units import to_si
@@ -132,6 +133,7 @@ class ManualSession:
     _end: str | None = None  # what ended the session before the engine existed (a signal while connecting)
     _sim: Any = None
     _inst: Instruments | None = None
+    _claim: contextlib.ExitStack = field(default_factory=contextlib.ExitStack)  # the rig's instruments, held
     _log: TextIO | None = None
     _clock: Clock = field(default_factory=WallClock)
     _t0: float | None = None
@@ -209,7 +211,8 @@ class ManualSession:
             self._inst = build_instruments(rig, self._sim.port_map(), clock=self._clock.now,
                                            sleep=self._clock.sleep, modbus_poll=0.0005,
                                            timers=self._sim.reply_timers())
-        else:
+        else:  # claimed before any is touched, held until they are closed (one process per instrument)
+            self._claim.enter_context(claimed(rig))
             self._inst = build_instruments(rig, clock=self._clock.now, sleep=self._clock.sleep)
         self._t0 = self._clock.now()
         if self._end is not None:  # a stop signal while the twins started
@@ -288,6 +291,7 @@ class ManualSession:
         if self._inst is not None:
             errors += self._inst.close()
             self._inst = None
+        self._claim.close()
         if self._sim is not None:
             self._sim.stop()
             self._sim = None

@@ -37,6 +37,7 @@ from bench.runtime.instruments import Instruments, build_instruments
 from bench.runtime.interlock import watchdog_period
 from bench.runtime.latch import latch, refuse_if_latched
 from bench.runtime.polls import SENSOR_PERIOD_S
+from bench.runtime.rig_lock import claimed
 from bench.runtime.safety import Supervisor
 from bench.storage import catalog
 from bench.storage.chain import chain
@@ -190,6 +191,8 @@ def execute(plan: Plan, out: Path, *, virtual: bool = False, operator: OperatorF
             metadata: dict[str, str] | None = None, resume: Resume | None = None) -> RunResult:
     """Connect the rig (starting its twins if simulated), record, run; returns how the run ended.
 
+    A real rig's instruments are claimed first (:func:`~bench.runtime.rig_lock.claimed`): RigInUseError, before
+    anything is touched, while another process drives one of them.
     Errors while connecting (before anything is recorded) propagate as InstrumentError.
     ``on_engine(engine, sim)`` is called before the run starts (sim: the SimRig, or None for a real rig).
     ``metadata``: operator, specimen ID and notes (:func:`run_metadata`; default: the protocol file's).
@@ -197,6 +200,15 @@ def execute(plan: Plan, out: Path, *, virtual: bool = False, operator: OperatorF
     (:func:`plan_resume`); the new file is linked to it. The run's control file (``bench pause``) is
     :func:`~bench.runtime.control.control_path` of ``out``.
     """
+    with claimed(plan.rig):
+        return _execute_claimed(plan, out, virtual=virtual, operator=operator, on_engine=on_engine,
+                                allow_no_watchdog=allow_no_watchdog, metadata=metadata, resume=resume)
+
+
+def _execute_claimed(plan: Plan, out: Path, *, virtual: bool, operator: OperatorFn | None,
+                     on_engine: Callable[[Engine, Any], None] | None, allow_no_watchdog: bool,
+                     metadata: dict[str, str] | None, resume: Resume | None) -> RunResult:
+    """:func:`execute` with the rig's instruments claimed."""
     rig, program = plan.rig, plan.program
     meta = metadata if metadata is not None else run_metadata(plan.protocol)
     if virtual and not rig.simulated:

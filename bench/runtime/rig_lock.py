@@ -1,0 +1,114 @@
+"""One process at a time per instrument: a run, a manual-control session or a device check claims every instrument
+address of a real rig before it connects to any, and holds the claims until its instruments are closed.
+
+Without it a second ``bench run`` on a rig that is running got as far as connecting to the T7 (whose connect stops
+a stream) before a serial port refused it, and ``bench devices control`` could set a voltage on an output the run
+believed was its own. A serial port is also opened exclusively by its driver; the claims add the TCP instruments
+(T7, Modbus TCP) and refuse before anything is touched, naming the process that holds the instrument.
+
+Claims are ``flock`` locks on one file per address in the temporary directory (``$BENCH_LOCK_DIR`` to change it),
+so they cover every user of this machine and are released by the kernel when the holder ends, however it ends. They
+do not see another computer on the same network: an instrument reached over TCP from two machines is not caught.
+A simulated rig's twins belong to the process that starts them: nothing to claim. Where the platform has no
+``flock`` (Windows) nothing is claimed either.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import os
+import sys
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+
+from bench.rig import RigConfig
+
+LOCK_DIR_ENV = "BENCH_LOCK_DIR"
+
+
+class RigInUseError(ValueError):
+    """An instrument of the rig is held by another process (one line: the instrument, its address, the holder)."""
+
+
+def lock_dir() -> Path:
+    """Where the claims live (``$BENCH_LOCK_DIR``, or the temporary directory: shared by every user)."""
+    return Path(os.environ.get(LOCK_DIR_ENV) or tempfile.gettempdir())
+
+
+def _serial(port: str) -> str:
+    """A serial port's address: a device path resolved (``/dev/serial/by-id/…`` → ``/dev/ttyUSB0``), a URL as is."""
+    return port if "://" in port else f"serial:{os.path.realpath(port)}"
+
+
+def addresses(rig: RigConfig, endpoints: dict[str, str] | None = None) -> dict[str, str]:
+    """Role (or bus name) → the address of every instrument ``rig`` connects to (``endpoints`` override the file's
+    ports, as :func:`~bench.runtime.instruments.build_instruments` takes them)."""
+    ep = endpoints or {}
+    out: dict[str, str] = {}
+    if (d := rig.daq) is not None:
+        out["daq"] = f"tcp://{d.host.lower()}:{d.port}" if "daq" not in ep else f"tcp://{ep['daq'].rsplit(':', 1)[0]}"
+    buses = set()
+    if (a := rig.amplifier) is not None and a.drive != "daq":
+        buses.add(a.bus)
+    if (c := rig.load_cell) is not None:
+        buses.add(c.bus)
+    for name in sorted(buses):
+        port = ep.get(name, rig.buses[name].port)
+        out[f"bus {name}"] = port.lower() if port.startswith("tcp://") else _serial(port)
+    if (lz := rig.laser) is not None:
+        out["laser"] = _serial(ep.get("laser", lz.port))
+    if (m := rig.motor) is not None:
+        out["motor"] = _serial(ep.get("motor", m.port))
+    return out
+
+
+def _holder(fd: int) -> str:
+    """What the claim file says of its holder (``process PID (command)``), or a plain 'another process'."""
+    with contextlib.suppress(OSError, UnicodeDecodeError):
+        text = os.pread(fd, 512, 0).decode().strip()
+        if text:
+            return text
+    return "another process"
+
+
+@contextlib.contextmanager
+def claimed(rig: RigConfig, endpoints: dict[str, str] | None = None) -> Iterator[None]:
+    """Hold every instrument address of ``rig`` for the block; RigInUseError (nothing connected, nothing held) if
+    another process holds one. A simulated rig claims nothing."""
+    if rig.simulated or sys.platform == "win32":
+        yield
+        return
+    import fcntl
+
+    held: list[int] = []
+    try:
+        folder = lock_dir()
+        for role, address in sorted(addresses(rig, endpoints).items(), key=lambda item: item[1]):
+            name = hashlib.sha256(address.encode()).hexdigest()[:16]
+            path = folder / f"dea-bench-instrument-{name}.lock"
+            try:  # O_NOFOLLOW: a link planted in a shared folder is not followed; 0o666: any user may claim it next
+                fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o666)
+            except PermissionError:  # another user's claim file that umask left read-only: a read lock still locks
+                fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW)
+            except OSError as exc:
+                raise RigInUseError(f"rig {rig.name}: cannot claim the {role} at {address} ({path}: "
+                                    f"{exc.strerror})") from None
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                holder = _holder(fd)
+                os.close(fd)
+                raise RigInUseError(f"rig {rig.name}: the {role} at {address} is in use by {holder}; one process "
+                                    "at a time drives an instrument (stop that one first)") from None
+            held.append(fd)
+            with contextlib.suppress(OSError):  # who holds it, for the next one refused (a read-only file: unsaid)
+                os.ftruncate(fd, 0)
+                os.pwrite(fd, f"process {os.getpid()} ({' '.join(sys.argv[:3])[:200]})".encode(), 0)
+        yield
+    finally:
+        for fd in held:
+            with contextlib.suppress(OSError):
+                os.ftruncate(fd, 0)
+            os.close(fd)  # closing the descriptor releases the lock
