@@ -287,6 +287,36 @@ def test_a_full_disk_mid_run_zeroes_the_output_and_says_why(tmp_path: Path) -> N
         assert t[np.abs(v) > ZERO_V][-1] <= engine.ctx.t0 + zero_at + 1e-3  # off from the moment 0 V was commanded
 
 
+def test_a_run_whose_folder_is_deleted_stops_instead_of_driving_unrecorded(tmp_path: Path) -> None:
+    """The run's folder removed 2 s in (the file lives on unlinked and takes every write): the run used to drive
+    the whole protocol with nothing recorded. The next flush sees it: a storage fault, 0 V, long before the end."""
+    import shutil
+
+    folder = tmp_path / "campaign"
+    trial = Trial(THESIS, 2.0, lambda _e, _s: shutil.rmtree(folder))
+    plan = plan_run(THESIS, ADAM_RIG)
+    seen: list = []
+
+    def hook(engine: Engine, sim) -> None:
+        seen.append(sim)
+        sim.plant.listeners.append(lambda b: trial.blocks.append((b.t.copy(), b.v_out.copy())))
+
+        def fire() -> None:
+            while engine.snapshot.state == "starting" or engine.now() < trial.at:
+                time.sleep(0.005)
+            trial.t_action = sim.clock.now()
+            trial.action(engine, sim)
+        threading.Thread(target=fire, daemon=True).start()
+
+    result = execute(plan, folder / "run.h5", virtual=False, on_engine=hook)
+    assert result.state == "error" and "deleted while the run was writing it" in result.reason, result.reason
+    assert result.safe_path.startswith("0 V commanded by the host") and "verified" in result.safe_path
+    assert result.run_time < plan.program.duration / 2  # stopped, not run to the protocol's end
+    assert trial.last_high(seen[0]) > trial.t_action  # high voltage was on when the folder went …
+    assert abs(seen[0].plant.observe().v_out[-1]) <= ZERO_V  # … and is off now
+    assert not folder.exists()
+
+
 def _run_into(trial: Trial, folder: Path):
     """Like Trial.run, with the run file in ``folder``: (result, simulated rig, engine)."""
     plan = plan_run(trial.protocol, trial.rig or ADAM_RIG)

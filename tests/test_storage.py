@@ -196,6 +196,27 @@ def test_an_interval_flush_writes_on_a_background_thread_and_flush_waits_for_it(
     np.testing.assert_array_equal(open_run(tmp_path / "run.h5").streams["laser"].t, t)
 
 
+def test_a_run_file_deleted_while_written_fails_the_next_write(tmp_path: Path) -> None:
+    """The run's folder removed under it: the file lives on unlinked and takes every write, so nothing would stop the
+    run before its end (found by an exploratory test: a run drove up to 7 kV to its end with nothing recorded). The
+    next flush sees the file is no longer in any folder: a storage fault, raised once, naming the cause."""
+    from bench.storage.recorder import Column, Recorder, StorageError
+
+    folder = tmp_path / "campaign"
+    rec = Recorder(folder / "run.h5", {"protocol_name": "deleted"}, {"laser": [Column("displacement", "m", "")]},
+                   [], {"laser": RATE})
+    t = np.arange(BLOCK) / RATE
+    rec.append("laser", t, displacement=t * 1e-3)
+    rec.flush()  # healthy
+    shutil.rmtree(folder)
+    rec.append("laser", t + 1, displacement=t * 1e-3)
+    with pytest.raises(StorageError, match=r"write failed: the file \(or its folder\) was deleted while the run"):
+        rec.flush()
+    assert rec.failed
+    rec.flush()  # once: later calls are no-ops
+    rec.finish("error", "test")
+
+
 def _check_recovers(path: Path, confirmed: int) -> None:
     """`bench recover` (no size limit now) releases the file for every tool with exactly the confirmed records."""
     res = subprocess.run([sys.executable, "-m", "bench", "recover", str(path)], capture_output=True, text=True,

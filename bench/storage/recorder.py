@@ -115,11 +115,17 @@ class StorageError(OSError):
     """
 
 
+class UnlinkedError(OSError):
+    """The run file is no longer in any folder (deleted, or its folder removed, while the run writes it)."""
+
+
 def cause(exc: BaseException) -> str:
     """One line on why an HDF5/OS call failed: the errno text if there is one, else the first line.
 
     h5py's OSError carries the errno but HDF5's multi-line driver message as ``strerror``: the errno decides.
     """
+    if isinstance(exc, UnlinkedError):
+        return str(exc)
     if isinstance(exc, OSError) and exc.errno and not isinstance(exc, StorageError):
         return f"{os.strerror(exc.errno)} (errno {exc.errno})"
     m = re.search(r"errno = (\d+)", str(exc))
@@ -638,7 +644,12 @@ class Recorder:
             self._write_error = exc
 
     def _write(self, work: _Work) -> None:
-        """The file side of a flush (one at a time: the caller's thread or the background thread)."""
+        """The file side of a flush (one at a time: the caller's thread or the background thread). A file no longer
+        linked in any folder (deleted, or its folder removed, while the run writes it) fails the write: its data
+        could never be read, and the run must stop rather than drive the rig with nothing recorded."""
+        if self._fd is not None and os.fstat(self._fd).st_nlink == 0:
+            raise UnlinkedError("the file (or its folder) was deleted while the run was writing it: nothing more "
+                                "can be recorded")
         blocks, events, last_t = work
         t0, c0 = time.perf_counter(), time.thread_time()
         counts = self._counts.copy()
