@@ -195,6 +195,8 @@ def test_a_killed_campaign_resumes_in_a_linked_file_and_reports_as_one(tmp_path:
     # every step of the protocol completed once over the campaign (6 steps: chamber, drive, recovery × 2)
     assert sorted(a.completed_steps() | b.completed_steps()) == list(range(6))
     assert not a.completed_steps() & b.completed_steps()
+    with pytest.raises(ValueError, match=f"already resumed in {second}"):  # a second resume would fork the campaign
+        plan_resume(first)
     # the report of the last file is the campaign's: both drives, each once, at the protocol's voltages
     rep = subprocess.run([*bench, "report", str(second), "--json", "--out", str(tmp_path / "report")], cwd=ROOT,
                          env=ENV, capture_output=True, text=True, timeout=300)

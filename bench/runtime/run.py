@@ -40,7 +40,7 @@ from bench.runtime.polls import SENSOR_PERIOD_S
 from bench.runtime.rig_lock import claimed
 from bench.runtime.safety import Supervisor
 from bench.storage import catalog
-from bench.storage.chain import chain
+from bench.storage.chain import chain, continued_in
 from bench.storage.recorder import Column, Recorder, now_iso
 from bench.storage.recover import recover
 from bench.storage.runfile import open_run
@@ -397,6 +397,9 @@ def plan_resume(run_file: str | Path, rig_path: str | Path | None = None, simula
     for key in ("protocol_text", "rig_toml", "protocol_sha256"):
         if key not in run.attrs:
             raise ValueError(f"run file {p}: no {key} attribute: not a run file this version can resume")
+    if (later := continued_in(p)) is not None:  # a second resume would fork the campaign into two chains
+        raise ValueError(f"run file {p}: its campaign was already resumed in {later}: resume the campaign's latest "
+                         "file instead")
     with tempfile.TemporaryDirectory() as tmp:
         proto = Path(tmp) / Path(str(run.attrs.get("protocol_path", "protocol.toml"))).name
         proto.write_text(str(run.attrs["protocol_text"]), encoding="utf-8")
