@@ -355,6 +355,12 @@ def test_a_latched_rig_refuses_the_next_run_until_an_operator_resets_it(tmp_path
     assert not (tmp_path / "next.h5").exists()
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     bench = [sys.executable, "-m", "bench"]
+    # the command line refuses it before showing a plan or making the run's log
+    cli = subprocess.run([*bench, "run", str(THESIS), "--rig", str(DAQ_RIG), "--virtual-time", "--yes", "--no-live",
+                          "--out", str(tmp_path / "cli")], cwd=ROOT, env=env, capture_output=True, text=True,
+                         timeout=300)
+    assert cli.returncode == 2 and "interlock latched" in cli.stderr, cli.stdout + cli.stderr
+    assert "running" not in cli.stdout and not (tmp_path / "cli").exists(), cli.stdout
     # resuming the campaign needs the operator's reason; with it, the latch is reset and the reset recorded
     refused = subprocess.run([*bench, "run", "--resume", str(result.path), "--virtual-time", "--no-live"], cwd=ROOT,
                              env=env, capture_output=True, text=True, timeout=300)

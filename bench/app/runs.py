@@ -85,6 +85,10 @@ def prepare_run(protocol_file: Path | None, *, rig: Path | None = None, sim: boo
     else:
         plan = plan_protocol(protocol_file, rig, sim, progress)
         metadata = run_metadata(plan.protocol, operator, specimen_id, notes)
+        if not dry_run:  # refused before the plan is shown and the run's log made (execute checks again)
+            from bench.runtime.latch import refuse_if_latched
+
+            refuse_if_latched(plan.rig.name)
     return PreparedRun(plan, default_output(plan, out), metadata, link, reset)
 
 
