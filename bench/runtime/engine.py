@@ -41,7 +41,7 @@ from bench.runtime.control import CONTROL_POLL_S, ControlWord, read_control
 from bench.runtime.hardware_timed import HardwareTimed
 from bench.runtime.instruments import Instruments
 from bench.runtime.interlock import InterlockTrip, watchdog_period
-from bench.runtime.polls import PAUSED, StepState, record_laser_block, rig_polls
+from bench.runtime.polls import PAUSED, Poll, StepState, record_laser_block, rig_polls
 from bench.runtime.ramp import ramp_to_zero
 from bench.runtime.safety import SafetyTrip, Supervisor
 from bench.storage.recorder import STEP_END_CHUNKS, Recorder
@@ -54,6 +54,7 @@ SAFE_MONITOR_V = 50.0  # |monitor| at or below this after zeroing counts as "out
 DISCHARGE_WAIT_S = 2.0  # how long to keep reading a monitor that is not yet at 0 V before reporting it
 WATCHDOG_MARGIN_S = 0.2  # wait past the module's communication-safety period before checking the output
 LASER_DRAIN_BUDGET_S = 30.0  # at most this long (rig time) fetching a step's stored laser data after the step
+DRAIN_HOLD_S = 1.0  # a step's end value is held (supervised) at most this long (run time) while its data upload
 LASER_SHUTDOWN_DRAIN_S = 5.0  # after a stop or fault (high voltage already at 0 V): then what is left is reported
 PAUSE_POLL_S = 0.1  # while paused: the monitors and sensors are read this often (run time)
 RESTART_STEP_V = 10.0  # a restart ramps the output to the step's start value unless it is this close already
@@ -306,20 +307,110 @@ class Engine:
         return not (urgent_aborts and self._urgent.is_set())
 
     # ------------------------------------------------------------ acquisition
-    def _drain_laser(self, budget: float) -> None:
-        """Fetch stored laser data until the storage is empty, ``budget`` s pass, or a stop request comes.
+    def _drain_laser(self, budget: float, hold: float = math.inf, due: dict[str, float] | None = None) -> bool:
+        """Fetch stored laser data until the storage is empty, ``budget`` s pass, or a stop request comes; returns
+        whether the output was ramped to 0 V meanwhile.
 
         The budget is rig time: real time on hardware; in virtual time the wire time the uploads take (the time in
-        which the storage fills on), so that a host starved of CPU cannot exhaust it."""
-        end = self.now() + budget
+        which the storage fills on), so that a host starved of CPU cannot exhaust it.
+
+        Unless the run is stopping (0 V is commanded then, and verified right after), the run stays supervised
+        between uploads as in a step: the polls of :meth:`_drain_polls` run at their step rates (``due``: each
+        one's next run time, the step's schedule continued), recorded and checked by the supervisor and the
+        verifiers — a trip ends the run as any trip does — and the set-point module is kept fed.
+
+        An output still above ``RESTART_STEP_V`` ``hold`` s after the drain began is ramped to 0 V (supervised
+        set-points, as a pause does). A drain that long means the link cannot upload as fast as the storage fills
+        (the link budget says so before the run): holding a high voltage the protocol did not ask for, for up to
+        the drain budget, loads the specimen (creep, time under field towards breakdown) in a way nobody planned,
+        on an overnight run nobody watches; 0 V is the state every other unplanned wait (pause, stop) leaves it
+        in, and the caller restarts the next step as after a resume. A short drain — the last upload of a step on
+        a link that carries the protocol — holds the value: a ramp down and up after every stored step would add
+        load cycles the protocol did not ask for."""
+        start = self.now()
+        end = start + budget
+        polls = {} if self._stopping else self._drain_polls()
+        nxt = {name: (due or {}).get(name, start) for name in polls}
+        zeroed = False
+
+        def supervise() -> None:
+            now = self.now()
+            for name, (poll, period) in polls.items():
+                if nxt[name] <= now + 1e-12:
+                    self._check_stop()
+                    poll.run(self.ctx, nxt[name] - self.ctx.offset)  # its lateness: against the drain's schedule
+                    nxt[name] += period * (math.floor((now - nxt[name]) / period) + 1)  # next slot of its grid
+            if polls:
+                self.snapshot.headroom = self.sup.headroom()
+                self.rec.maybe_flush()
+
         while record_laser_block(self.ctx) > 0 or self.ctx.laser.pending > 0:
             if self._stopping and self._urgent.is_set():
-                return
+                return zeroed
             self._check_stop()
             self._keep_fed()
+            supervise()
+            if (not zeroed and self.now() - start >= hold and self.inst.amplifier is not None
+                    and abs(self.ctx.v_cmd) > RESTART_STEP_V):
+                self.rec.event(self.now(), self.snapshot.step, "drain", f"stored laser data still uploading "
+                               f"{self.now() - start:.3f} s after the step's end: output ramped from "
+                               f"{self.ctx.v_cmd:.0f} V to 0 V while the upload goes on (the link cannot upload "
+                               "as fast as the storage fills)")
+                self._ramp_to(0.0, self.program.rig.limits.shutdown_ramp_s, after=supervise)
+                zeroed = True
             if self.now() > end:
                 raise InstrumentStateError("laser", f"stored data not fetched within {budget:g} s: the link "
                                            "cannot upload as fast as the storage fills")
+        return zeroed
+
+    def _drain_polls(self) -> dict[str, tuple[Poll, float]]:
+        """The polls that go on while stored laser data upload outside a step, with their periods (run time): every
+        reading the run supervises (monitors, encoder, load cell, other sensors) at its step rate; on a DAQ rig
+        the stream's collect while it still plays (the next step already in it), else the monitors by
+        command-response every ``PAUSE_POLL_S``, as a pause reads them (the DAC holds the value it played last,
+        which the output verifier is told of)."""
+        playing = self._stream is not None and self._hw.daq.streaming
+        state = StepState(None, streamed=playing, laser_serial=False, storing=False)
+        out: dict[str, tuple[Poll, float]] = {}
+        for poll in rig_polls(self.ctx):
+            period = poll.period(self.ctx, state)
+            if period is None and poll.name == "monitors" and self._stream is not None and not playing:
+                period = PAUSE_POLL_S
+                self.verifier.commanded(self.now(), self.ctx.v_cmd)
+            if period is not None:
+                out[poll.name] = (poll, period)
+        return out
+
+    def _drain_after(self, seg: Segment, due: dict[str, float]) -> bool:
+        """Fetch the stored laser data of ``seg``, just ended (``due``: the next run time of each of its polls),
+        and account for the time it took: the program's schedule is shifted by it (an ``offset`` event, as a
+        pause's), so that the next step runs whole, never cut short by the upload; a ``drain`` event says how
+        long, at what output. Returns whether the output went to 0 V meanwhile (:meth:`_drain_laser`): then the
+        next step restarts as after a resume. On a DAQ rig whose stream plays on into the next step, the program
+        runs on the device's clock and cannot shift: the event says how late the host's own actions are."""
+        t_end = seg.t_end + self.ctx.offset  # the step's scheduled end (run time)
+        v, start = self.ctx.v_cmd, self.now()
+        playing = self._stream is not None and self._hw.daq.streaming
+        zeroed = self._drain_laser(LASER_DRAIN_BUDGET_S, math.inf if playing else DRAIN_HOLD_S, due)
+        behind = self.now() - t_end
+        if behind <= 1e-9:  # nothing to upload (or no time on the run's clock)
+            return zeroed
+        took = f"stored laser data fetched for {self.now() - start:.3f} s after the step's end"
+        if playing:
+            self.rec.event(self.now(), seg.index, "drain", f"{took} while the DAQ played the next step on its own "
+                           f"clock: that step's host-side actions (motor, polls) start {behind:.3f} s late")
+        elif zeroed:
+            then = "the next step restarts from its start" if seg is not self.program.segments[-1] else "the run ends"
+            self.rec.event(self.now(), seg.index, "drain", f"{took}, the output at 0 V for the rest of it; {then}")
+        else:
+            held = f"the output held at {v:.0f} V under supervision" if self.inst.amplifier is not None else \
+                "sensors supervised"
+            self.ctx.offset += behind
+            self.rec.event(self.now(), seg.index, "drain", f"{took}, {held}; the program's schedule shifted by the "
+                           f"{behind:.3f} s the run is behind it (the step's own lateness included) so that the next "
+                           "step runs whole")
+            self.rec.event(self.now(), seg.index, "offset", f"run time = program time + {self.ctx.offset:.9f} s")
+        return zeroed
 
     # ------------------------------------------------------------ set-points
     def _set_voltage(self, v: float, t: float, x_cmd: float = math.nan) -> None:
@@ -427,11 +518,15 @@ class Engine:
             self._hw.finish()  # the device played the end value itself
         elif inst.amplifier is not None and v_end is not None and v_end != self.ctx.v_req:
             self._set_voltage(v_end, seg.t_end + self.ctx.offset)  # ticks stop before t_end: a ramp must reach its end
+        zeroed = False
         if storing:
             self.ctx.laser.stop_buffer()
             self._storing = False
-            self._drain_laser(LASER_DRAIN_BUDGET_S)
+            zeroed = self._drain_after(seg, {k: d + self.ctx.offset for k, d in due.items()})
         self.rec.event(self.now(), seg.index, "end", seg.name)
+        segs = self.program.segments
+        if zeroed and (k := segs.index(seg) + 1) < len(segs):
+            self._restart(segs[k], f"the output went to 0 V while step {seg.index}'s stored laser data uploaded")
         # the last steps' data compresses while the next steps run (where no FLUSH_CHUNKS write comes before the end)
         self.rec.write_ahead(STEP_END_CHUNKS, max(0.0, self.program.duration - seg.t_end))
 
@@ -533,20 +628,21 @@ class Engine:
         self._restart(seg, "resumed after a pause")
 
     def _make_paused(self) -> None:
-        """The paused state, a run's or a manual session's: a playing stream stopped, stored laser data fetched,
-        the output ramped to 0 V over ``shutdown_ramp_s`` (supervised set-points), the motor stopped where it is."""
+        """The paused state, a run's or a manual session's: a playing stream stopped, the output ramped to 0 V over
+        ``shutdown_ramp_s`` (supervised set-points), the motor stopped where it is, then stored laser data fetched
+        (supervised, :meth:`_drain_laser`)."""
         if self._stream is not None:
             self._stream.stop()
             self._stream.forget()
-        if self._storing and self.inst.laser is not None:
-            self.inst.laser.stop_buffer()
-            self._storing = False
-            self._drain_laser(LASER_SHUTDOWN_DRAIN_S)
         if self.inst.amplifier is not None:
             self._ramp_to(0.0, self.program.rig.limits.shutdown_ramp_s)
         if self.inst.motor is not None and (self.program.has_motor_axis or self.commands):
             self.ctx.motor.stop()
             self.motion.stopped(self.now())
+        if self._storing and self.inst.laser is not None:  # at 0 V: the pause does not wait on the upload
+            self.inst.laser.stop_buffer()
+            self._storing = False
+            self._drain_laser(LASER_SHUTDOWN_DRAIN_S)
 
     def _paused_readings(self) -> None:
         """One reading of every polled channel while paused, through the run's polls: the monitors (by

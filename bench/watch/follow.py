@@ -32,9 +32,10 @@ PIXELS = 1000  # bins per stream at least (at most twice that): about a screen's
 BUDGET = 2_000_000  # records read per stream per look (a finished long file is caught up over several looks)
 MIN_LOOK_S = 0.2  # a look sooner than this after the last one reads nothing (several pages poll one file)
 LIMITS = {"V": "max_voltage_V", "A": "max_current_A", "N": "max_force_N"}  # rig limit drawn on panels of a unit
-# events drawn on the time axis (the engine's kinds): step starts, operator actions, how the run ended
-MARKED = ("start", "pause", "resume", "restart", "specimen", "request", "stop", "interrupted", "tripped", "error",
-          "interlock", "fault", "watchdog", "safe")
+# events drawn on the time axis (the engine's kinds): step starts, operator actions, uploads after a step, how the run
+# ended
+MARKED = ("start", "pause", "resume", "restart", "drain", "specimen", "request", "stop", "interrupted", "tripped",
+          "error", "interlock", "fault", "watchdog", "safe")
 FAULTS = ("tripped", "error", "interlock", "fault", "watchdog")  # listed as the run's faults
 
 

@@ -1,0 +1,220 @@
+"""The upload of a step's stored laser data after the step (the drain) on the software-timed thesis rig: the run
+stays supervised meanwhile, a long drain leaves the specimen at 0 V, and the next step is never cut short.
+
+The drain's length is set by the test: each upload after the ramp takes ``UPLOAD_S`` more of rig time, as a slow
+wire would (virtual time; the host takes next to no wall time). Expected values come from the protocol below
+(5 kV at the ramp's end, a 2-s hold), the rig file (``shutdown_ramp_s``, the 8-kV limit, the ADAM-4024's code)
+and the plant's own output history, never from the engine's account of itself.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+import bench.runtime.engine as engine_mod
+from bench.runtime.run import execute, plan_run
+from bench.storage.runfile import RunFile, open_run
+from tests.conftest import ROOT
+
+PROTOCOL = """[protocol]
+name = "drain"
+description = "a ramp to 5 kV with laser storage, then a hold"
+rig = "thesis-sim"
+
+[recording]
+displacement_Hz = 200
+monitors_Hz = 5
+setpoint_Hz = 20
+
+[[steps]]
+type = "ramp"
+name = "up"
+to = "5 kV"
+duration_s = 1.0
+
+[[steps]]
+type = "hold"
+name = "hold"
+duration_s = 2.0
+
+[[steps]]
+type = "relax"
+name = "end"
+duration_s = 0.5
+"""
+RIG = ROOT / "rigs" / "thesis-sim.toml"
+RAMP_END = 1.0  # program time of the ramp's end (its duration): the drain begins there
+HOLD_S = 2.0  # the hold step's duration
+V_HOLD = 5000.0  # the ramp's target, held by the next step
+MONITORS_HZ = 5.0
+UPLOAD_S = 0.2  # rig time each upload after the ramp takes (the driver sizes one upload to ~0.2 s on the wire)
+ZERO_V = 5.0  # |output| at or below this counts as 0 V (one ADAM-4024 code × the TREK gain)
+
+
+@dataclasses.dataclass
+class Drained:
+    """A virtual-time run whose drain after the ramp was made ``uploads`` × ``UPLOAD_S`` longer."""
+
+    result: Any
+    run: RunFile
+    sim: Any
+    t0: float  # rig-clock time of run time 0
+    blocks: list[tuple[np.ndarray, np.ndarray]]
+    t_fault: float = float("nan")  # run time of the fault injected during the drain, if any
+
+    def output(self) -> tuple[np.ndarray, np.ndarray]:
+        """The plant's output (run time, volts)."""
+        self.sim.plant.observe()
+        return (np.concatenate([b[0] for b in self.blocks]) - self.t0,
+                np.concatenate([b[1] for b in self.blocks]))
+
+    def events(self, kind: str) -> list[tuple[float, int, str]]:
+        return [(t, step, text) for t, step, k, text in self.run.event_list() if k == kind]
+
+    def step_span(self, index: int) -> tuple[float, float]:
+        """Run times of the last start and the end of step ``index`` in the file."""
+        (t_start, *_), = [e for e in self.events("start") if e[1] == index][-1:]
+        (t_end, *_), = [e for e in self.events("end") if e[1] == index]
+        return t_start, t_end
+
+
+def drained_run(tmp: Path, monkeypatch: pytest.MonkeyPatch, uploads: int, fault: bool = False,
+                pause: tuple[float, float] | None = None) -> Drained:
+    """``pause``: (run time of a pause request, of the resume request): then the uploads of the pause's drain are
+    the slow ones, not the ramp's."""
+    proto = tmp / "drain.toml"
+    proto.write_text(PROTOCOL)
+    real = engine_mod.record_laser_block  # type: ignore[attr-defined]  # the name the engine calls
+    left = [uploads]
+    seen: dict[str, Any] = {}
+
+    def slow_upload(ctx: Any) -> int:
+        n = real(ctx)
+        draining = seen["engine"].snapshot.state == "paused" if pause else ctx.program_now() >= RAMP_END
+        if draining and left[0] > 0:  # the drain after the ramp or in the pause (the engine's own calls)
+            if fault and "fault" not in seen:  # the amplifier's gain 25 % off, at the drain's first upload
+                seen["fault"] = ctx.now()
+                plant = seen["sim"].plant
+                plant.hv = dataclasses.replace(plant.hv, gain=plant.hv.gain * 1.25)
+            left[0] -= 1
+            seen["sim"].clock.advance(UPLOAD_S)
+            return max(n, 1)
+        return n
+
+    monkeypatch.setattr(engine_mod, "record_laser_block", slow_upload)
+    blocks: list[tuple[np.ndarray, np.ndarray]] = []
+
+    def hook(engine: Any, sim: Any) -> None:
+        seen["sim"], seen["engine"] = sim, engine
+        sim.plant.listeners.append(lambda b: blocks.append((b.t.copy(), b.v_out.copy())))
+
+        def at(_now: float) -> None:
+            if "t0" not in seen and engine.snapshot.state == "running":
+                seen["t0"] = sim.clock.now() - engine.now()
+            if pause and engine.pauses == 0 and engine.snapshot.state == "running" and engine.now() >= pause[0]:
+                engine.request_pause("the test")
+            if pause and engine.snapshot.state == "paused" and engine.now() >= pause[1]:
+                engine.request_resume("the test")
+        sim.clock.subscribe(at)
+
+    result = execute(plan_run(proto, RIG), tmp / "run.h5", virtual=True, on_engine=hook)
+    assert left[0] == 0 or fault  # the drain took the uploads asked for (a fault may end it sooner)
+    return Drained(result, open_run(result.path), seen["sim"], seen["t0"], blocks, seen.get("fault", float("nan")))
+
+
+def test_a_long_drain_is_supervised_goes_to_zero_and_the_next_step_restarts_whole(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """3 s of uploads after the ramp to 5 kV (a link far behind its storage): monitor readings all through the
+    drain; the output, at 5 kV when it began, at 0 V for the second half of it at least (high voltage the protocol
+    did not ask for is not held while the link catches up); then the hold step restarts — the output back at
+    5 kV — and runs its whole 2 s."""
+    uploads = 15
+    d = drained_run(tmp_path, monkeypatch, uploads)
+    assert d.result.state == "completed", d.result.reason
+    t_hold, t_hold_end = d.step_span(1)
+    assert t_hold >= RAMP_END + uploads * UPLOAD_S  # the drain was as long as the test made it
+    # monitor readings at the protocol's rate all through the drain: one period, plus one upload between two polls
+    amp = d.run.streams["amplifier"]
+    during = amp.t[(amp.t >= RAMP_END) & (amp.t <= t_hold)]
+    assert during.size >= uploads * UPLOAD_S * MONITORS_HZ * 0.8
+    gaps = np.diff(np.concatenate([[RAMP_END], during, [t_hold]]))
+    assert gaps.max() <= 1 / MONITORS_HZ + UPLOAD_S + 0.1, gaps.max()
+    # the output: at 5 kV when the drain began, at 0 V from half-way through it until the restart
+    t, v = d.output()
+    (t_restart, _, text), = d.events("restart")
+    assert "output to 5000 V" in text
+    assert abs(np.interp(RAMP_END + 0.05, t, v) - V_HOLD) < 0.02 * V_HOLD
+    zero = (t > RAMP_END + uploads * UPLOAD_S / 2) & (t < t_restart)
+    assert zero.any() and np.abs(v[zero]).max() <= ZERO_V
+    # the hold step whole, at 5 kV, after the restart
+    assert t_hold >= t_restart and t_hold_end - t_hold == pytest.approx(HOLD_S, abs=1e-6)
+    held = (t > t_hold + 0.1) & (t < t_hold_end)
+    assert np.abs(v[held] - V_HOLD).max() < 0.02 * V_HOLD
+    assert d.run.step_offsets()[1] == pytest.approx(t_hold - RAMP_END, abs=1e-6)
+
+
+def test_a_short_drain_holds_the_output_and_shifts_the_schedule_so_the_next_step_runs_whole(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Two uploads (0.4 s) after the ramp: the output holds 5 kV through them (no ramp down and up for a short
+    upload), monitored; the hold step then starts late but runs its whole 2 s, and the file says by how much the
+    program's schedule moved (an ``offset`` event the analysis reads)."""
+    uploads = 2
+    d = drained_run(tmp_path, monkeypatch, uploads)
+    assert d.result.state == "completed", d.result.reason
+    t_hold, t_hold_end = d.step_span(1)
+    assert t_hold >= RAMP_END + uploads * UPLOAD_S
+    assert t_hold_end - t_hold == pytest.approx(HOLD_S, abs=1e-6)  # not cut short by the drain
+    assert d.events("restart") == []
+    t, v = d.output()
+    drain = (t > RAMP_END + 0.05) & (t < t_hold)
+    assert np.abs(v[drain] - V_HOLD).max() < 0.02 * V_HOLD  # held through the drain
+    amp = d.run.streams["amplifier"]
+    assert ((amp.t > RAMP_END) & (amp.t < t_hold)).sum() >= 2
+    # the file's account: a drain event and the shift, which the analysis applies to the hold step
+    assert [step for _, step, _ in d.events("drain")] == [0]
+    shift = d.run.step_offsets()[1]
+    assert shift == pytest.approx(t_hold - RAMP_END, abs=1e-6)
+    assert d.result.run_time >= 3.5 + uploads * UPLOAD_S  # the protocol's 3.5 s, plus the drain
+
+
+def test_a_fault_during_the_drain_trips_the_run_to_zero(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The amplifier's gain goes 25 % off at the drain's first upload, the output held at 5 kV (6.25 kV now): the
+    monitors, read during the drain, disagree with the set-point; the run latches in the drain — the hold step
+    never starts — and ends at 0 V within the polled verifier's bound (two readings at the protocol's rate after
+    the 0.3-s lag, plus one upload between polls)."""
+    d = drained_run(tmp_path, monkeypatch, 15, fault=True)
+    assert d.result.state == "tripped" and "interlock: output mismatch" in d.result.reason, d.result.reason
+    assert [e for e in d.events("start") if e[1] == 1] == []  # tripped in the drain, before the next step
+    (t_trip, step, _), = d.events("tripped")
+    assert step == 0 and t_trip < RAMP_END + 15 * UPLOAD_S
+    t, v = d.output()
+    assert np.abs(v[t < d.t_fault]).max() > 0.9 * V_HOLD  # it was at high voltage when the fault came
+    last_high = float(t[np.abs(v) > ZERO_V][-1])
+    assert last_high <= d.t_fault + 0.3 + 3 / MONITORS_HZ + UPLOAD_S + 0.05
+    assert np.abs(v[t > last_high]).max(initial=0.0) <= ZERO_V
+    assert d.run.streams["setpoints"].columns["voltage"][-1] == 0.0
+
+
+def test_a_pause_zeroes_the_output_before_the_upload_not_after_it(tmp_path: Path,
+                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    """Paused half-way up the ramp (2.5 kV), with 3 s of stored data to upload: the output is at 0 V once the rig's
+    shutdown ramp is over, all through the upload, until the resume — the pause does not hold the voltage while
+    the laser catches up."""
+    uploads = 15
+    d = drained_run(tmp_path, monkeypatch, uploads, pause=(0.5, 6.0))
+    assert d.result.state == "completed", d.result.reason
+    (t_pause, *_), = d.events("pause")
+    (t_resume, *_), = d.events("resume")
+    assert t_resume - t_pause >= uploads * UPLOAD_S  # the upload was inside the pause
+    t, v = d.output()
+    assert np.abs(v[t < t_pause]).max() > 0.4 * V_HOLD  # under high voltage when paused
+    ramp_s = plan_run(tmp_path / "drain.toml", RIG).rig.limits.shutdown_ramp_s
+    paused = (t > t_pause + ramp_s + 0.05) & (t < t_resume)
+    assert np.abs(v[paused]).max() <= ZERO_V
+    amp = d.run.streams["amplifier"]  # and the monitors read on through the upload
+    assert ((amp.t > t_pause + ramp_s) & (amp.t < t_pause + uploads * UPLOAD_S)).sum() >= uploads * UPLOAD_S * 2
