@@ -29,7 +29,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from types import FrameType
-from typing import Any
+from typing import Any, NoReturn
 
 import numpy as np
 
@@ -91,21 +91,45 @@ def stop_signals(on_stop: Callable[[str, int], None], on_pause: Callable[[str], 
             signal.signal(sig, handler)
 
 
+class Phase:
+    """What a run is doing before its engine has its own stop handlers (:func:`termination_raises`); the
+    message of a stop signal then names it."""
+
+    def __init__(self, what: str) -> None:
+        self.what = what
+        self.stopped: str | None = None  # the first stop signal's account, once one came
+
+    def stop(self, sig: int) -> NoReturn:
+        """A stop signal: noted, and raised as an :class:`OperationCancelledError` naming it and the phase."""
+        if self.stopped is None:
+            self.stopped = f"{STOP_SIGNALS[signal.Signals(sig)]} while {self.what}"
+        raise OperationCancelledError("run", self.stopped)
+
+    def check(self) -> None:
+        """Raise as :meth:`stop` did if a stop signal came (a library that caught the first raise, and retried or
+        turned it into an error of its own, must not lose it)."""
+        if self.stopped is not None:
+            raise OperationCancelledError("run", self.stopped)
+
+
 @contextlib.contextmanager
-def termination_raises(what: str) -> Iterator[None]:
-    """Within (before the engine has its own handlers: connecting, enabling and homing the motor): SIGTERM, SIGHUP
-    and SIGQUIT raise, as Ctrl-C already does there, an :class:`OperationCancelledError` naming the signal and
-    ``what`` was under way — so the caller's ``finally`` closes the instruments (output zeroed, motor aborted)
-    instead of the process dying with a homing motor. The old handlers after; main thread only."""
+def termination_raises(what: str) -> Iterator[Phase]:
+    """Within (before the engine has its own handlers: starting a simulated rig, connecting, enabling and homing
+    the motor): SIGINT, SIGTERM, SIGHUP and SIGQUIT raise an :class:`OperationCancelledError` naming the signal
+    and what was under way (``what``, or what the caller set the yielded :class:`Phase` to since) — so the
+    caller's ``finally`` closes the instruments (output zeroed, motor aborted) instead of the process dying with a
+    homing motor. Ctrl-C too: a bare KeyboardInterrupt left the command line silent (exit 130, nothing said, nothing
+    in the run log) where the other signals print one line. The old handlers after; main thread only."""
+    phase = Phase(what)
     old: list[tuple[signal.Signals, Any]] = []
     if threading.current_thread() is threading.main_thread():
-        for sig in (signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT):
+        for sig in STOP_SIGNALS:
             def handler(s: int, _f: FrameType | None) -> None:
-                raise OperationCancelledError("run", f"{STOP_SIGNALS[signal.Signals(s)]} while {what}")
+                phase.stop(s)
 
             old.append((sig, signal.signal(sig, handler)))
     try:
-        yield
+        yield phase
     finally:
         for sig, h in old:
             signal.signal(sig, h)
