@@ -147,10 +147,10 @@ def test_a_silent_motor_link_delays_neither_the_ramp_down_nor_zero_volts_and_the
 def test_ctrl_c_mid_move_on_the_wall_clock_stops_the_carriage_while_the_voltage_ramps_down(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """The wall-clock path (the motor's stop on its own thread, concurrent with the ramp), with a real SIGINT as
-    in the report: the carriage is at rest within the bound of the engine's stop request (one 50-ms poll slice for
-    the request to end the wait under way, then the abort's way to the drive and the drive's deceleration), and
-    before the first half of the voltage's ramp-down is over — it used to start stopping only when 0 V was
-    commanded."""
+    in the report: the carriage is at rest before the first half of the voltage's ramp-down is over — it used to
+    start stopping only when 0 V was commanded — and within the README's 0.2-s bound of the engine's stop request
+    (the wall clock's allowance for a loaded host to end the wait under way) plus the abort's way to the drive and
+    the drive's deceleration."""
     import os
     import signal
     import threading
@@ -183,14 +183,27 @@ def test_ctrl_c_mid_move_on_the_wall_clock_stops_the_carriage_while_the_voltage_
     if result.state == "tripped" and "t_action" not in seen:  # the interlock's verdict on a starved host, before it
         pytest.skip(f"the host stalled before the signal: {result.reason}")
     assert result.state == "interrupted" and result.reason.startswith("interrupted by Ctrl-C"), result.reason
-    events = {k: (t, text) for t, _, k, text in run.event_list() if k in ("request", "ramp", "motor", "safe")}
-    t_req = events["request"][0] + engine.ctx.t0  # the engine's stop request, on the rig clock
-    zero_at = float(re.search(r"at ([0-9.]+) s", events["safe"][1]).group(1)) + engine.ctx.t0  # type: ignore[union-attr]
-    t_halt, _, v, dec = next(h for h in halts if h[0] >= seen["t_action"])
-    at_rest = t_halt + abs(v) / dec
+    events: dict[str, tuple[float, str]] = {}
+    for t, _, k, text in run.event_list():
+        events.setdefault(k, (t, text))  # each kind's first
+    requested = re.search(r"stop requested at ([0-9.]+) s", events["request"][1])
+    assert requested, events["request"]
+    t_req = float(requested.group(1)) + engine.ctx.t0  # the engine's stop request (the signal), on the rig clock
     ramp = plan.rig.limits.shutdown_ramp_s
-    assert v == pytest.approx(plan.program.segments[0].move[1])  # type: ignore[index]  # stopped mid-move
-    assert at_rest - t_req <= 0.05 + REACT_S + abs(v) / dec, (t_req, at_rest)
-    assert at_rest <= zero_at - ramp / 2, (at_rest, zero_at)
+    zero_at = float(re.search(r"at ([0-9.]+) s", events["safe"][1]).group(1)) + engine.ctx.t0  # type: ignore[union-attr]
+    assert zero_at - t_req <= ramp + BOUND_S  # the voltage's bound holds with the motor stopping beside it
+    after = [h for h in halts if h[0] >= seen["t_action"]]
+    assert after, f"the drive never halted after the signal at {seen['t_action']:.3f} s: {halts}"
+    t_halt, _, v, dec = after[0]
+    v_move = plan.program.segments[0].move[1]  # type: ignore[index]
+    if v == 0 and seen["t_action"] - engine.ctx.t0 > 1.0:  # the move (about 1.1 s) over before the signal went out
+        pytest.skip(f"the host sent the signal at {seen['t_action'] - engine.ctx.t0:.3f} s, after the move")
+    assert v == pytest.approx(v_move), halts  # stopped mid-move
+    at_rest = t_halt + abs(v) / dec
+    told = f"request {t_req:.4f}, at rest {at_rest:.4f}, 0 V {zero_at:.4f} s (rig clock); events {events}"
+    assert at_rest - t_req <= BOUND_S + REACT_S + abs(v) / dec, told
+    t_ramp, how = events["ramp"]
+    if how.startswith("ramp from"):  # (a stall the interlock latched zeroes at once: then no ramp to beat)
+        assert at_rest <= t_ramp + engine.ctx.t0 + ramp / 2, told  # before the ramp-down is half over
     x_end = sim.plant.motor_state(sim.clock.now())[0]
     assert final_position(events["motor"][1]) == pytest.approx(x_end, abs=1e-7)
