@@ -264,6 +264,10 @@ class LinearMotor(Instrument, Readable, Protocol):
     def stop(self) -> None:
         """Abort the current motion and hold position."""
 
+    def hurry(self, reply_timeout: float) -> None:
+        """From now on, requests to the drive wait at most ``reply_timeout`` [s] for their reply (shutdown: the abort
+        takes effect when it arrives; a reply that never comes must not hold the rest of the stop back)."""
+
     def describe(self) -> StreamDescription:
         """The stream it records: columns, units, source."""
 

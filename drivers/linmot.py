@@ -443,6 +443,10 @@ class LinMotDrive:
         self.write_control_word(CW_OPERATE & ~CW_NOT_ABORT)
         self.write_control_word(CW_OPERATE)
 
+    def hurry(self, reply_timeout: float) -> None:
+        """Shorter reply waits on the LinRS link (see the LinearMotor contract); a telegram is sent once anyway."""
+        self.link.timeout = min(self.link.timeout, reply_timeout)
+
     def quick_stop(self) -> None:
         """Quick stop (clear /Quick Stop): maximum deceleration, then the drive leaves Operation Enabled."""
         self.write_control_word(CW_OPERATE & ~CW_NOT_QUICK_STOP)

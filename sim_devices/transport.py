@@ -387,12 +387,15 @@ def pty_hop_latency() -> float:
     busy one (the actual hop is then longer)."""
     master, slave, _ = _open_raw_pty()
     woke: list[float] = []
-    ready = threading.Event()
+    ready, done = threading.Event(), threading.Event()
 
     def reader() -> None:
         for _ in range(HOP_SAMPLES):
             ready.set()
-            select.select([master], [], [], 1.0)
+            while not done.is_set() and not select.select([master], [], [], 0.01)[0]:
+                pass
+            if done.is_set():
+                return
             woke.append(time.perf_counter())
             os.read(master, 64)
 
@@ -408,8 +411,12 @@ def pty_hop_latency() -> float:
             os.write(slave, b"x")
             while len(woke) < len(sent) and thread.is_alive():
                 time.sleep(1e-4)
-        thread.join(1.0)
     finally:
+        # the reader ends before its pty closes: an exception here (a stop signal while the rig starts) must not
+        # leave it selecting on a closed descriptor (a traceback from its thread on the way out)
+        done.set()
+        if thread.is_alive():
+            thread.join(1.0)
         for fd in (master, slave):
             with contextlib.suppress(OSError):
                 os.close(fd)

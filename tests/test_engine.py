@@ -129,7 +129,9 @@ def test_isopotential_loss_matches_the_model_on_the_recorded_motion(tmp_path: Pa
     prog = {row["name"].decode(): (row["t_start"], row["duration"]) for row in run.program}
     t0, dur = prog["tensile cycles [voltage=7 kV]"]
     sel = (motor.t >= t0 + dur - 2.0) & (motor.t <= t0 + dur)  # the last (stabilised) cycle
-    measured = hysteresis_loss(motor.columns["aperture"][sel], lc.columns["force"][sel])
+    # each stream's samples by its own times: the motor's has one more, its final position read at the stop
+    lc_sel = (lc.t >= t0 + dur - 2.0) & (lc.t <= t0 + dur)
+    measured = hysteresis_loss(motor.columns["aperture"][sel], lc.columns["force"][lc_sel])
     from bench.models.lozenge import LozengeParams
 
     x_of = lambda t: np.interp(t, motor.t, motor.columns["aperture"])  # noqa: E731

@@ -3,6 +3,11 @@ raises — a driver's error or anything else a dead port lets out (e.g. termios.
 
 from __future__ import annotations
 
+import os
+import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 from typing import Any, cast
 
@@ -89,7 +94,47 @@ def test_sigterm_while_the_motor_homes_closes_the_instruments_instead_of_killing
     plan = plan_run(ROOT / "protocols" / "short" / "lsdea-isometric-short.toml",
                     ROOT / "rigs" / "lsdea-motor-sim.toml")
     before = signal.getsignal(signal.SIGTERM)
-    with pytest.raises(OperationCancelledError, match="SIGTERM while connecting the instruments"):
+    with pytest.raises(OperationCancelledError, match="SIGTERM while enabling and homing the motor; nothing recorded; "
+                       "rig safe"):
         execute(plan, tmp_path / "run.h5", virtual=True)
     assert closed == [True]
     assert signal.getsignal(signal.SIGTERM) is before  # the handler was the connect phase's only
+
+
+@pytest.mark.parametrize("sig, said", [(signal.SIGINT, "interrupted by Ctrl-C"),
+                                       (signal.SIGTERM, "terminated by SIGTERM"),
+                                       (signal.SIGHUP, "hang-up (SIGHUP: terminal closed or connection dropped)")],
+                         ids=["SIGINT", "SIGTERM", "SIGHUP"])
+def test_a_stop_signal_while_the_motor_homes_says_in_one_line_what_it_stopped_and_that_the_rig_is_safe(
+        tmp_path: Path, sig: int, said: str) -> None:
+    """`bench run` on a simulated motor rig (wall clock), a stop signal while the LinMot homes: Ctrl-C exited 130
+    saying nothing (typer's silent KeyboardInterrupt), with nothing in the run log, where SIGTERM and SIGHUP printed
+    one line. Every one of them must print the same one line — what was interrupted, and what was made safe — put
+    it in the run log, and no thread's traceback. The signal goes out once the run log says the motor is homing
+    (the drive's hardware tests and homing take over a second of wall time from there), never after a fixed wait."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "bench", "run", str(ROOT / "protocols" / "short" / "lsdea-isometric-short.toml"),
+         "--out", str(tmp_path), "--no-live"], cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+        text=True, env={**os.environ, "COLUMNS": "300"},
+        # a suite started as a background job of a non-interactive shell inherits SIGINT ignored: not this run
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    try:
+        deadline = time.monotonic() + 120
+        log = ""
+        while "enabling and homing the motor" not in log:
+            assert proc.poll() is None and time.monotonic() < deadline, "bench run ended or never homed"
+            time.sleep(0.01)
+            log = "".join(p.read_text(encoding="utf-8") for p in tmp_path.glob("*.log"))
+        proc.send_signal(sig)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    line = (f"error: run: {said} while enabling and homing the motor; nothing recorded; rig safe: every instrument "
+            "made safe and closed (output zeroed, motor stopped)")
+    assert "Traceback" not in err and "Exception" not in err, err
+    assert err.splitlines() == [line], err
+    assert proc.returncode == 2
+    (log_file,) = tmp_path.glob("*.log")
+    assert f"not run: {line.removeprefix('error: run: ')}" in log_file.read_text(encoding="utf-8")
+    assert not list(tmp_path.glob("*.h5"))  # nothing recorded, as the line says

@@ -392,3 +392,35 @@ def test_the_pty_hop_is_taken_out_of_the_emulated_wire_time_not_added_to_it() ->
     assert end_req == pytest.approx(1.0 - 1e-4 + 6 * char)
     line.reply(15)
     assert clock.now() == pytest.approx(end_req + 0.5e-3 + 15 * char - 1e-4)
+
+
+def test_a_stop_while_the_pty_hop_is_measured_leaves_no_thread_to_fail(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The hop is measured when a rig's first serial twin starts; a stop signal raised there (Ctrl-C in the first
+    second of `bench run`) closed the pty under the measuring thread, which then printed its own traceback
+    (``Exception in thread … OSError: [Errno 9] Bad file descriptor``) after the run's one line."""
+    import threading
+    import time
+    from types import SimpleNamespace
+
+    from sim_devices import transport
+
+    class StopSignalError(Exception):
+        pass
+
+    sleeps = [0]
+
+    def sleep(dt: float) -> None:  # the signal's exception, raised in the main thread mid-measurement
+        sleeps[0] += 1
+        if sleeps[0] == 5:
+            raise StopSignalError
+        time.sleep(dt)
+
+    monkeypatch.setattr(transport, "time", SimpleNamespace(sleep=sleep, perf_counter=time.perf_counter))
+    failed: list[object] = []
+    monkeypatch.setattr(threading, "excepthook", failed.append)
+    before = set(threading.enumerate())
+    with pytest.raises(StopSignalError):
+        transport.pty_hop_latency.__wrapped__()
+    for thread in set(threading.enumerate()) - before:  # the measuring thread, if it outlived the call
+        thread.join(2.0)
+    assert failed == []

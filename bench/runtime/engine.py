@@ -7,10 +7,12 @@ against real or simulated instruments, or in virtual time against a simulated ri
 next scheduled action; the bytes on the wire are the same).
 
 Every exit — end of the protocol, safety trip, instrument error or lost link, Ctrl-C, SIGTERM, SIGHUP,
-SIGQUIT, a storage fault — goes through :meth:`Engine._shut_down`: voltage ramped to zero (at once on a second
-signal, or if the ramp fails), motor stopped, every other instrument put in its safe state, stored laser data
-fetched, and the safe state *verified* (0 V on the voltage monitor, or the set-point module's communication
-watchdog waited out); the file records which path made the output safe, when, and why the run stopped.
+SIGQUIT, a storage fault — goes through :meth:`Engine._shut_down`: motor stopped first (concurrently with what
+follows on the wall clock: :meth:`Engine._stop_motor`), voltage ramped to zero (at once on a second signal, or if
+the ramp fails), every other instrument put in its safe state, stored laser data fetched, and the safe state
+*verified* (0 V on the voltage monitor, or the set-point module's communication watchdog waited out), then the
+motor's final position read; the file records which path made the output safe, when, where the motor came to rest,
+and why the run stopped.
 
 Stop bound: a stop request cancels the rig's :class:`~drivers.cancel.CancelToken`, so whatever wait on an
 instrument is under way ends within one driver poll slice; the engine checks the request before every action
@@ -29,7 +31,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from types import FrameType
-from typing import Any
+from typing import Any, NoReturn
 
 import numpy as np
 
@@ -47,7 +49,9 @@ from bench.runtime.safety import SafetyTrip, Supervisor
 from bench.storage.recorder import STEP_END_CHUNKS, Recorder
 from drivers.errors import InstrumentConnectionError, InstrumentError, InstrumentStateError, OperationCancelledError
 
-SHUTDOWN_REPLY_S = 0.1  # shutdown: a request to the set-point module waits this long for its reply, once
+SHUTDOWN_REPLY_S = 0.1  # shutdown: a request to the set-point module (or the motor) waits this long for its reply, once
+MOTOR_SETTLE_S = 0.2  # shutdown: the motor's final position is read at least this long after its abort went out
+MOTOR_STOP_JOIN_S = 2.0  # shutdown, wall clock: how long the end waits for the motor's stop thread (its link's waits)
 MONITOR_SETTLE_S = 0.5  # after zeroing, wait for fresh monitor conversions before the final read
 RAMP_STEPS = 10  # shutdown ramp: set-points from the last voltage to 0 V
 SAFE_MONITOR_V = 50.0  # |monitor| at or below this after zeroing counts as "output at 0 V" (0.5 % of 10 kV)
@@ -92,21 +96,45 @@ def stop_signals(on_stop: Callable[[str, int], None], on_pause: Callable[[str], 
             signal.signal(sig, handler)
 
 
+class Phase:
+    """What a run is doing before its engine has its own stop handlers (:func:`termination_raises`); the
+    message of a stop signal then names it."""
+
+    def __init__(self, what: str) -> None:
+        self.what = what
+        self.stopped: str | None = None  # the first stop signal's account, once one came
+
+    def stop(self, sig: int) -> NoReturn:
+        """A stop signal: noted, and raised as an :class:`OperationCancelledError` naming it and the phase."""
+        if self.stopped is None:
+            self.stopped = f"{STOP_SIGNALS[signal.Signals(sig)]} while {self.what}"
+        raise OperationCancelledError("run", self.stopped)
+
+    def check(self) -> None:
+        """Raise as :meth:`stop` did if a stop signal came (a library that caught the first raise, and retried or
+        turned it into an error of its own, must not lose it)."""
+        if self.stopped is not None:
+            raise OperationCancelledError("run", self.stopped)
+
+
 @contextlib.contextmanager
-def termination_raises(what: str) -> Iterator[None]:
-    """Within (before the engine has its own handlers: connecting, enabling and homing the motor): SIGTERM, SIGHUP
-    and SIGQUIT raise, as Ctrl-C already does there, an :class:`OperationCancelledError` naming the signal and
-    ``what`` was under way — so the caller's ``finally`` closes the instruments (output zeroed, motor aborted)
-    instead of the process dying with a homing motor. The old handlers after; main thread only."""
+def termination_raises(what: str) -> Iterator[Phase]:
+    """Within (before the engine has its own handlers: starting a simulated rig, connecting, enabling and homing
+    the motor): SIGINT, SIGTERM, SIGHUP and SIGQUIT raise an :class:`OperationCancelledError` naming the signal
+    and what was under way (``what``, or what the caller set the yielded :class:`Phase` to since) — so the
+    caller's ``finally`` closes the instruments (output zeroed, motor aborted) instead of the process dying with a
+    homing motor. Ctrl-C too: a bare KeyboardInterrupt left the command line silent (exit 130, nothing said, nothing
+    in the run log) where the other signals print one line. The old handlers after; main thread only."""
+    phase = Phase(what)
     old: list[tuple[signal.Signals, Any]] = []
     if threading.current_thread() is threading.main_thread():
-        for sig in (signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT):
+        for sig in STOP_SIGNALS:
             def handler(s: int, _f: FrameType | None) -> None:
-                raise OperationCancelledError("run", f"{STOP_SIGNALS[signal.Signals(s)]} while {what}")
+                phase.stop(s)
 
             old.append((sig, signal.signal(sig, handler)))
     try:
-        yield
+        yield phase
     finally:
         for sig, h in old:
             signal.signal(sig, h)
@@ -133,6 +161,17 @@ class RunResult:
     overruns: int = 0
     safe_path: str = ""
     latched: str = ""  # the interlock fault the run latched its rig for ('' if none)
+
+
+@dataclass
+class _MotorStop:
+    """The motor's stop at the start of a shutdown: when it was sent, when its telegrams were answered (NaN: not
+    yet), what went wrong; on the wall clock the thread that sends it."""
+
+    sent_at: float
+    done_at: float = math.nan
+    error: str | None = None
+    thread: threading.Thread | None = None
 
 
 class Engine:
@@ -729,13 +768,14 @@ class Engine:
         self._record(self.rec.event, self.now(), self.snapshot.step, kind, text)
 
     def _shut_down(self, state: str, reason: str, finish: bool = True) -> str:
-        """Voltage to zero, motor stopped, instruments safe, safe state verified, file finalised (unless not
-        ``finish``: manual mode ends its file after its last log line).
+        """Motor stopped, voltage to zero, instruments safe, safe state verified, the motor's final position read,
+        file finalised (unless not ``finish``: manual mode ends its file after its last log line).
 
         Returns the account of how the output was made safe (also in the file's events and reason).
         """
         self._stopping = True
         self.inst.cancel.clear()  # the shutdown's own commands must go out
+        motor = self._stop_motor()  # first of all: a commanded move must not go on through the voltage's ramp
         self.snapshot.state = "stopping"
         notes: list[str] = []
         t = self.now()
@@ -761,6 +801,7 @@ class Engine:
                 self._storage_failed = True
         safe_path = self._verify_safe(zero_at, notes)
         self._latch_unproven(zero_at, safe_path)
+        self._motor_stopped(motor, notes)
         if not self.clock.virtual:
             self._event("timing", f"{self.overruns} late actions (> {LATE_TOLERANCE_S * 1e3:.0f} ms), worst "
                         f"lateness {self.ctx.worst_lateness * 1e3:.1f} ms")
@@ -846,11 +887,12 @@ class Engine:
         return True
 
     def _others_safe(self) -> list[str]:
-        """Every instrument but the amplifier to its safe state (motor stopped first), each independently."""
+        """Every instrument but the amplifier and the motor (:meth:`_stop_motor`) to its safe state, each
+        independently."""
         notes, drivers = [], dict(self.inst.items())  # by role: the rig's extra sensors are no attribute of inst
-        roles = [r for r in drivers if r != "amplifier"
+        roles = [r for r in drivers if r not in ("amplifier", "motor")
                  and not (r == "daq" and self._output_dead)]  # a dead output path: the DAQ's watchdog must run out
-        for role in sorted(roles, key=lambda r: r != "motor"):
+        for role in roles:
             try:
                 drivers[role].safe_state()
             except InstrumentError as exc:
@@ -875,6 +917,94 @@ class Engine:
         self.latched = trip
         self._event("interlock", f"latched at {self.now():.3f} s ({trip.kind}): {trip.detail}; nothing energises "
                     "the rig until an operator resets the latch")
+
+    def _stop_motor(self) -> _MotorStop | None:
+        """Stop the motor at once — the start of every shutdown — without holding the voltage's zeroing back.
+
+        Before, the motor was stopped only after the voltage's ramp-down (``shutdown_ramp_s``), so a go-to under way
+        went on through the whole ramp, and a slow motor link could not have been put first without delaying the
+        ramp. Now the motor's safe state (the LinMot's abort: the drive decelerates on its own quick-stop ramp and
+        holds) goes out first, with the driver's reply waits cut to ``SHUTDOWN_REPLY_S`` (the abort acts when it
+        arrives; its reply only confirms it), and:
+
+        * on the wall clock on a thread of its own, concurrently with the ramp: a serial write goes out at once
+          whatever the line does next, while a silent drive (its reply timeout) or a dirty link (the driver first
+          drains a reply a cancelled read left, up to its quiet-line bound) would otherwise delay the ramp's start
+          past the 0.2-s bound. Sending it first in line with a short timeout keeps the motor's bound but not the
+          voltage's; the thread keeps both;
+        * in virtual time in line, before the ramp: the rig clock moves only with the bytes on the wire, so a thread
+          racing the ramp's jumps of the clock would stamp the abort wherever the host's scheduling put it (up to
+          the whole ramp late); in line it costs its wire time (ms), or ``SHUTDOWN_REPLY_S`` when the drive stays
+          silent — within the ramp's bound.
+
+        :meth:`_motor_stopped` waits for it, reads the final position and records both."""
+        motor = self.inst.motor
+        if motor is None:
+            return None
+        stop = _MotorStop(self.now())
+
+        def send() -> None:
+            try:
+                motor.hurry(SHUTDOWN_REPLY_S)
+                motor.safe_state()
+                stop.done_at = self.now()
+            except InstrumentError as exc:
+                stop.error = str(exc)
+            except Exception as exc:  # anything a dead port lets out: said, and the rest of the stop goes on
+                stop.error = f"{type(exc).__name__}: {exc}"
+
+        if self.clock.virtual:
+            send()
+        else:
+            stop.thread = threading.Thread(target=send, name="motor-stop", daemon=True)
+            stop.thread.start()
+        if self.program.has_motor_axis or self.commands:
+            self.motion.stopped(stop.sent_at)
+        return stop
+
+    def _motor_stopped(self, stop: _MotorStop | None, notes: list[str]) -> None:
+        """The motor's stop, accounted for: waited for (its thread), tried once more if it failed, then the drive's
+        position read once (at least ``MOTOR_SETTLE_S`` after the abort: the drive's own deceleration is over) and
+        recorded — a ``motor`` event with the stop's times and the final position, and the motor stream's last
+        sample (the polls before the stop may have left the carriage well short of where it came to rest)."""
+        motor = self.inst.motor
+        if stop is None or motor is None:
+            return
+        if stop.thread is not None:
+            stop.thread.join(MOTOR_STOP_JOIN_S)
+            if stop.thread.is_alive():
+                notes.append(f"motor stop sent at {stop.sent_at:.3f} s still unanswered after {MOTOR_STOP_JOIN_S:g} "
+                             "s")
+                self._event("motor", f"stop sent at {stop.sent_at:.3f} s, unanswered; final position not read")
+                return
+        sent = f"stop sent at {stop.sent_at:.3f} s"
+        if stop.error is not None:
+            notes.append(f"motor stop at {stop.sent_at:.3f} s failed: {stop.error}")
+            try:
+                motor.safe_state()
+                sent += f" (failed: {stop.error}; sent again at {self.now():.3f} s)"
+            except Exception as exc:
+                notes.append(f"motor safe state failed again: {exc}")
+                sent += f", failed: {stop.error}"
+        else:
+            sent += f", answered at {stop.done_at:.3f} s"
+        self._pause_until(max(self.now(), stop.sent_at + MOTOR_SETTLE_S), urgent_aborts=False)
+        try:
+            st = motor.status()
+        except InstrumentError as exc:
+            notes.append(f"motor final position unreadable: {exc}")
+            self._event("motor", f"{sent}; final position unreadable")
+            return
+        t = self.now()
+        x = float(self.program.aperture(st.position)) if self.program.has_motor_axis else math.nan
+        state = f"drive {st.state}" + (" and still moving" if st.moving else ", at rest") + (
+            f", error {st.error_code:#06x} ({st.error_text})" if st.error else "")
+        self._event("motor", f"{sent}; final position {st.position * 1e3:.4f} mm at {t:.3f} s"
+                    + (f" (aperture {x * 1e3:.4f} mm)" if math.isfinite(x) else "") + f"; {state}")
+        stream = motor.describe().stream
+        if stream in self.rec.streams:
+            self._record(self.rec.append, stream, t, position=st.position, aperture=x,
+                         **self.ctx.late_columns(stream, math.nan))
 
     def _verify_safe(self, zero_at: float | None, notes: list[str]) -> str:
         """Check the output really is at 0 V and say which path made it so."""

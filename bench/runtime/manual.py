@@ -51,10 +51,10 @@ read it. A file that cannot be created ends the session before any command (as a
 file does not start); a storage fault later is one ``error`` line and the session goes on with the log alone.
 
 Leaving the session (quit, end of input, error, a stop signal) is the engine's bounded stop
-(:meth:`~bench.runtime.engine.Engine._shut_down`): the output ramped to 0 V over ``shutdown_ramp_s`` (at once on
-a second stop signal or a latched fault), the motor stopped, every instrument in its safe state, 0 V verified on
-the voltage monitor; the log then has the stop's lines (``request``, why it stopped, ``ramp``, ``safe``) and its
-last line is the ``end`` line, naming the signal if one ended the session.
+(:meth:`~bench.runtime.engine.Engine._shut_down`): the motor stopped first, the output ramped to 0 V over
+``shutdown_ramp_s`` (at once on a second stop signal or a latched fault), every instrument in its safe state, 0 V
+verified on the voltage monitor; the log then has the stop's lines (``request``, why it stopped, ``ramp``,
+``motor``, ``safe``) and its last line is the ``end`` line, naming the signal if one ended the session.
 
 Signals (:meth:`ManualSession.signal_handlers`, installed by ``bench devices control``; the engine's handler table,
 :func:`~bench.runtime.engine.stop_signals`): SIGTERM, SIGHUP and SIGQUIT end the session through that safe exit,

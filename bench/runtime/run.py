@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 import os
 import re
 import tempfile
@@ -17,7 +18,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
 from bench import __version__
-from bench.core.clock import WallClock
+from bench.core.clock import Clock, WallClock
 from bench.protocol.link_budget import check_links
 from bench.protocol.predict import Prediction, predict
 from bench.protocol.program import (
@@ -44,12 +45,15 @@ from bench.storage.chain import chain, continued_in
 from bench.storage.recorder import Column, Recorder, now_iso
 from bench.storage.recover import recover
 from bench.storage.runfile import open_run
+from drivers.errors import InstrumentError, OperationCancelledError
 from drivers.interfaces import StreamDescription
 
 if TYPE_CHECKING:
     from bench.models.lozenge import LozengeParams
     from bench.models.membrane import MembraneParams
+    from bench.runtime.sim_rig import SimRig
 
+log = logging.getLogger(__name__)
 SIM_MODBUS_POLL_S = 5e-5  # RTU receive poll interval against twins on ptys (they answer at once)
 
 
@@ -215,85 +219,101 @@ def _execute_claimed(plan: Plan, out: Path, *, virtual: bool, operator: Operator
         raise ValueError(f"rig {rig.name} is real: virtual time needs a simulated rig (use --sim)")
     watchdog = check_watchdog(rig, allow_no_watchdog)
     refuse_if_latched(rig.name)
-    if rig.daq is not None:
-        hardware_timed.warm_up()  # the host's kernels, before any instrument (or twin) runs
-    sim = None
-    if rig.simulated:
-        from bench.runtime.sim_rig import SimRig
-
-        # wire time (baud rates, gaps, turnarounds) also in virtual time, so that a virtual run takes the time a
-        # real one would — unless the protocol outruns the rig's lines (the plan says which), where a virtual
-        # run at wire time would only be late everywhere: then pty speed, as the console and the file say
-        timing: Literal["real", "none"] = "real" if not virtual or not plan.link_problems else "none"
-        sim = SimRig(rig, virtual=virtual, timing=timing)
-        meta = {**meta, "wire_time": "real" if timing == "real" else "off (the protocol outruns the rig's lines)"}
-        over = plan.protocol.specimen
-        changes = {k: v for k, v in over.model_dump().items() if v is not None}
-        if changes:
-            sim.plant.change_specimen(**changes)
-        sim.start()
-        clock = sim.clock
-        inst = build_instruments(rig, sim.port_map(), clock=clock.now, sleep=clock.sleep,
-                                 modbus_poll=SIM_MODBUS_POLL_S, timers=sim.reply_timers())
-    else:
-        clock = WallClock()
-        inst = build_instruments(rig, clock=clock.now, sleep=clock.sleep)
+    sim: SimRig | None = None
+    inst: Instruments | None = None
+    recorder: Recorder | None = None
     start_row: threading.Thread | None = None
     end_row: dict[str, Any] | None = None  # the catalogue's end row, once the file has its end (record_end's args)
     try:
-        with termination_raises("connecting the instruments (and homing the motor)"):
-            for _, drv in inst.items():
-                drv.connect()
-            if inst.motor is not None and program.has_motor_axis:
-                inst.motor.enable()
-        spec = rig.specimen
-        over = plan.protocol.specimen  # the protocol's prototype and hung mass: the supervisor's limits follow them
-        params = spec.membrane() if spec.kind == "membrane" else spec.lozenge(over.prototype, over.hung_mass_kg)
-        if sim is not None:
-            params = sim.plant.specimen
-        supervisor = Supervisor(rig, params)
-        streams, sources = _streams(rig, inst)
-        r = plan.protocol.recording
-        rates = {"setpoints": r.setpoint_Hz, "amplifier": r.monitors_Hz, "laser": r.displacement_Hz,
-                 "motor": r.position_Hz, "load_cell": r.force_Hz,
-                 **{role: 1.0 / SENSOR_PERIOD_S for role in inst.sensors}}  # read by the generic poll (polls.py)
-        if rig.daq is not None and rig.amplifier is not None and rig.amplifier.drive == "daq":
-            hw = {"amplifier", *(["load_cell"] if rig.daq.force_ain is not None else []),
-                  *(["laser"] if rig.daq.laser_ain is not None else [])}
-            rates.update({k: rig.daq.scan_rate_Hz for k in hw})
-        attrs: dict[str, Any] = {
-            "software": f"dea-bench {__version__}", "start_time": now_iso(),
-            "protocol_name": plan.protocol.protocol.name, "protocol_path": str(plan.protocol.path),
-            "protocol_text": plan.protocol.text, "protocol_sha256": plan.protocol.sha256,
-            "rig_name": rig.name, "rig_toml": rig_to_toml(rig), "rig_text": plan.rig_text,
-            "simulated": rig.simulated,
-            "clock": "virtual" if virtual else "wall", "specimen_kind": spec.kind,
-            "specimen": json.dumps({**spec.model_dump(), "overrides": plan.protocol.specimen.model_dump(),
-                                    "model": _model_params(params)}),
-            "recording": json.dumps(plan.protocol.recording.model_dump()),
-            "sources": json.dumps(sources), "duration_planned": program.duration, "hv_watchdog": watchdog,
-            "run_id": uuid.uuid4().hex, **meta,
-        }
-        attrs["campaign_id"] = attrs["run_id"]
-        if resume is not None:
-            attrs.update(resume.attrs(out))
-        if sim is not None and sim.replay is not None:  # measured signals are a record's, not the model's
-            attrs.update(replay_of=str(sim.replay.recording.path), replay_of_run_id=sim.replay.recording.run_id)
-        prog_rows = [(s.index, s.label, s.name, s.kind, s.t_start, s.duration) for s in program.segments]
-        recorder = Recorder(out, attrs, streams, prog_rows, rates)
-        try:  # until the engine runs, the file's end is this function's to record (the engine's from then on)
-            start_row = _start_row(out, attrs)
-            apply = partial(change_specimen, sim.plant) if sim is not None else None
-            engine = Engine(program, inst, clock, recorder, supervisor, apply_specimen=apply, operator=operator,
-                            start_step=resume.step if resume is not None else 0, control=control_path(out))
-            if on_engine is not None:
-                on_engine(engine, sim)
-            if sim is not None and sim.replay is not None:
-                sim.replay.anchor(clock.now())  # record time 0 = this run's time 0 (the engine starts its clock now)
-        except BaseException as exc:  # Ctrl-C included: the file must not say "running" for a run that never ran
-            recorder.end_unstarted(exc)
-            end_row = {}
-            raise
+        # until the engine has its own handlers a stop signal raises (naming what was under way), and the rig is made
+        # safe below; from engine.run() on the engine's shutdown does that
+        try:
+            with termination_raises("loading the host's kernels") as phase:
+                if rig.daq is not None:
+                    hardware_timed.warm_up()  # the host's kernels, before any instrument (or twin) runs
+                clock: Clock
+                if rig.simulated:
+                    phase.what = "starting the simulated rig"
+                    sim, meta = _start_sim(plan, virtual, meta)
+                    clock = sim.clock
+                    inst = build_instruments(rig, sim.port_map(), clock=clock.now, sleep=clock.sleep,
+                                             modbus_poll=SIM_MODBUS_POLL_S, timers=sim.reply_timers())
+                else:
+                    clock = WallClock()
+                    inst = build_instruments(rig, clock=clock.now, sleep=clock.sleep)
+                phase.what = "connecting the instruments"
+                log.info("connecting the instruments of %s", rig.name)
+                for _, drv in inst.items():
+                    drv.connect()
+                if inst.motor is not None and program.has_motor_axis:
+                    phase.what = "enabling and homing the motor"
+                    log.info("enabling and homing the motor")
+                    inst.motor.enable()
+                phase.what = "creating the run file"
+                spec = rig.specimen
+                over = plan.protocol.specimen  # the protocol's prototype and hung mass: the limits follow them
+                params = spec.membrane() if spec.kind == "membrane" else spec.lozenge(over.prototype,
+                                                                                       over.hung_mass_kg)
+                if sim is not None:
+                    params = sim.plant.specimen
+                supervisor = Supervisor(rig, params)
+                streams, sources = _streams(rig, inst)
+                r = plan.protocol.recording
+                rates = {"setpoints": r.setpoint_Hz, "amplifier": r.monitors_Hz, "laser": r.displacement_Hz,
+                         "motor": r.position_Hz, "load_cell": r.force_Hz,
+                         **{role: 1.0 / SENSOR_PERIOD_S for role in inst.sensors}}  # the generic poll (polls.py)
+                if rig.daq is not None and rig.amplifier is not None and rig.amplifier.drive == "daq":
+                    hw = {"amplifier", *(["load_cell"] if rig.daq.force_ain is not None else []),
+                          *(["laser"] if rig.daq.laser_ain is not None else [])}
+                    rates.update({k: rig.daq.scan_rate_Hz for k in hw})
+                attrs: dict[str, Any] = {
+                    "software": f"dea-bench {__version__}", "start_time": now_iso(),
+                    "protocol_name": plan.protocol.protocol.name, "protocol_path": str(plan.protocol.path),
+                    "protocol_text": plan.protocol.text, "protocol_sha256": plan.protocol.sha256,
+                    "rig_name": rig.name, "rig_toml": rig_to_toml(rig), "rig_text": plan.rig_text,
+                    "simulated": rig.simulated,
+                    "clock": "virtual" if virtual else "wall", "specimen_kind": spec.kind,
+                    "specimen": json.dumps({**spec.model_dump(), "overrides": plan.protocol.specimen.model_dump(),
+                                            "model": _model_params(params)}),
+                    "recording": json.dumps(plan.protocol.recording.model_dump()),
+                    "sources": json.dumps(sources), "duration_planned": program.duration, "hv_watchdog": watchdog,
+                    "run_id": uuid.uuid4().hex, **meta,
+                }
+                attrs["campaign_id"] = attrs["run_id"]
+                if resume is not None:
+                    attrs.update(resume.attrs(out))
+                if sim is not None and sim.replay is not None:  # measured signals are a record's, not the model's
+                    attrs.update(replay_of=str(sim.replay.recording.path),
+                                 replay_of_run_id=sim.replay.recording.run_id)
+                prog_rows = [(s.index, s.label, s.name, s.kind, s.t_start, s.duration) for s in program.segments]
+                recorder = Recorder(out, attrs, streams, prog_rows, rates)
+                try:  # until the engine runs, the file's end is this function's to record (the engine's from then on)
+                    start_row = _start_row(out, attrs)
+                    apply = partial(change_specimen, sim.plant) if sim is not None else None
+                    engine = Engine(program, inst, clock, recorder, supervisor, apply_specimen=apply,
+                                    operator=operator, start_step=resume.step if resume is not None else 0,
+                                    control=control_path(out))
+                    if on_engine is not None:
+                        on_engine(engine, sim)
+                    if sim is not None and sim.replay is not None:
+                        sim.replay.anchor(clock.now())  # record time 0 = this run's time 0 (the engine starts now)
+                    phase.check()
+                except BaseException as exc:  # Ctrl-C included: no file may say "running" for a run that never ran
+                    recorder.end_unstarted(exc)
+                    end_row = {}
+                    raise
+        except InstrumentError:
+            if phase.stopped is None:
+                raise
+            # a stop signal before the engine ran: the rig is made safe here, and one line says what was done
+            safe, inst = _made_safe(inst), None
+            if sim is not None:
+                sim.stop()
+                sim = None
+            kept = "nothing recorded" if recorder is None else f"run file {out} ended 'interrupted'"
+            done = f"{phase.stopped}; {kept}; {safe}"
+            log.info("not run: %s", done)
+            raise OperationCancelledError("run", done) from None
         try:
             result = engine.run()
         finally:  # a fault latches even when the run ends by an exception the engine let through
@@ -302,10 +322,44 @@ def _execute_claimed(plan: Plan, out: Path, *, virtual: bool, operator: Operator
         end_row = {"hv": recorder.hv_stats(), "written": recorder.written()}  # the file, as it was written
         return result
     finally:
-        inst.close()  # first: no wait on the catalogue keeps an instrument open
+        if inst is not None:
+            inst.close()  # first: no wait on the catalogue keeps an instrument open
         if sim is not None:
             sim.stop()
         _catalogue_end(out, start_row, end_row)
+
+
+def _start_sim(plan: Plan, virtual: bool, meta: dict[str, str]) -> tuple[SimRig, dict[str, str]]:
+    """The rig's twins started (the protocol's specimen applied to the plant), and the run's metadata with how the
+    wire is timed. Twins that a signal or an error interrupts while they start are stopped again here."""
+    from bench.runtime.sim_rig import SimRig
+
+    # wire time (baud rates, gaps, turnarounds) also in virtual time, so that a virtual run takes the time a real
+    # one would — unless the protocol outruns the rig's lines (the plan says which), where a virtual run at wire
+    # time would only be late everywhere: then pty speed, as the console and the file say
+    timing: Literal["real", "none"] = "real" if not virtual or not plan.link_problems else "none"
+    sim = SimRig(plan.rig, virtual=virtual, timing=timing)
+    meta = {**meta, "wire_time": "real" if timing == "real" else "off (the protocol outruns the rig's lines)"}
+    changes = {k: v for k, v in plan.protocol.specimen.model_dump().items() if v is not None}
+    if changes:
+        sim.plant.change_specimen(**changes)
+    try:
+        sim.start()
+    except BaseException:
+        sim.stop()
+        raise
+    return sim, meta
+
+
+def _made_safe(inst: Instruments | None) -> str:
+    """Close the instruments after a stop before the run (:meth:`Instruments.close`: each made safe first — output
+    zeroed, motor aborted — then closed), and say what that did."""
+    if inst is None:
+        return "no instrument was connected yet"
+    errors = inst.close()
+    if not errors:
+        return "rig safe: every instrument made safe and closed (output zeroed, motor stopped)"
+    return "rig NOT confirmed safe, closing failed: " + "; ".join(errors)
 
 
 def _catalogue_end(out: Path, start_row: threading.Thread | None, end_row: dict[str, Any] | None) -> None:

@@ -66,6 +66,7 @@ import h5py
 import numpy as np
 
 from bench.storage.hv_stats import HvAccumulator, HvStats
+from drivers.errors import OperationCancelledError
 from drivers.interfaces import DataKey
 
 log = logging.getLogger(__name__)
@@ -705,10 +706,10 @@ class Recorder:
             raise self._fail("write failed", exc) from None
 
     def end_unstarted(self, exc: BaseException) -> None:
-        """Record the end of a run stopped before it started (``exc``: Ctrl-C or an exit — interrupted —, any other
-        error — error), so its file never stays "running"; quiet (the caller raises ``exc``), a no-op once
-        finished or failed."""
-        state = "interrupted" if isinstance(exc, KeyboardInterrupt | SystemExit) else "error"
+        """Record the end of a run stopped before it started (``exc``: Ctrl-C, a stop signal or an exit — interrupted
+        —, any other error — error), so its file never stays "running"; quiet (the caller raises ``exc``), a no-op
+        once finished or failed."""
+        state = "interrupted" if isinstance(exc, KeyboardInterrupt | SystemExit | OperationCancelledError) else "error"
         why = " ".join(str(exc).split())
         reason = f"stopped before the run started: {type(exc).__name__}" + (f": {why}" if why else "")
         with contextlib.suppress(Exception):
