@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import io
 import json
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -113,7 +114,10 @@ def unit_of(v: Any) -> str:
 
 def open_h5(p: Path) -> h5py.File:
     """Open for reading: as an SWMR reader (also while a run writes, or after a crash), else — a writer that
-    died before SWMR mode left the file marked open — from an in-memory copy with those marks cleared."""
+    died before SWMR mode left the file marked open — from an in-memory copy with those marks cleared. A file its
+    writer closed that is shorter than its superblock says is refused at once: an SWMR reader does not check the
+    length (a live file grows) and retried its reads past the end for minutes, deaf to Ctrl-C."""
+    _refuse_truncated(p)
     try:
         return h5py.File(p, "r", libver="latest", swmr=True)
     except OSError as exc:
@@ -125,6 +129,22 @@ def open_h5(p: Path) -> h5py.File:
         return h5py.File(io.BytesIO(bytes(image)), "r")
     except (OSError, ValueError):
         raise ValueError(f"run file {p}: not a readable HDF5 file ({' '.join(str(first).split())})") from None
+
+
+def _refuse_truncated(p: Path) -> None:
+    """ValueError (one line) when ``p`` was closed by its writer (no consistency flags) and is shorter than the end
+    of the space its superblock allocated: a copy cut short, a partial download."""
+    try:
+        with p.open("rb") as fh:
+            head = fh.read(1 << 16)
+            size = os.fstat(fh.fileno()).st_size
+    except OSError:
+        return  # the open below says why, as before
+    sb = read_superblock(head)
+    if sb is not None and sb.version >= 2 and sb.flags == 0 and size < sb.base_address + sb.eoa:
+        raise ValueError(f"run file {p}: truncated: {size:,} bytes where its HDF5 superblock ends the file at "
+                         f"{sb.base_address + sb.eoa:,} (a copy cut short? copy it again from the "
+                         "original)")
 
 
 def read_table(obj: h5py.Dataset | h5py.Group, n: int | None = None) -> np.ndarray:
