@@ -281,3 +281,21 @@ def test_a_control_file_stop_during_the_drain_ends_the_run_without_raising_the_o
     ramp_s = plan_run(tmp_path / "drain.toml", RIG).rig.limits.shutdown_ramp_s
     assert np.abs(v[t > d.t_asked + UPLOAD_S + ramp_s + 0.05]).max() <= ZERO_V
     assert d.run.streams["setpoints"].columns["voltage"][-1] == 0.0
+
+
+def test_the_restart_ramp_after_a_long_drain_is_monitored(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The restart after a long drain ramps the output from 0 V to 5 kV over the rig's shutdown ramp: the monitors
+    are read (and so supervised) during that ramp and its settle, at the protocol's rate, not only once the hold
+    step has started — a fault that shows on the way up is seen on the way up."""
+    d = drained_run(tmp_path, monkeypatch, 15)
+    assert d.result.state == "completed", d.result.reason
+    (t_restart, *_), = d.events("restart")
+    t_hold, _ = d.step_span(1)
+    ramp_s = plan_run(tmp_path / "drain.toml", RIG).rig.limits.shutdown_ramp_s
+    assert t_hold - t_restart >= ramp_s  # the ramp up lies between the two
+    amp = d.run.streams["amplifier"]
+    during = amp.t[(amp.t > t_restart) & (amp.t < t_hold)]
+    assert during.size >= int(ramp_s * MONITORS_HZ) + 1, during
+    # readings on the way up: a monitored voltage between 0 V and the hold's 5 kV
+    v_mon = amp.columns["voltage"][(amp.t > t_restart) & (amp.t < t_hold)]
+    assert ((v_mon > 0.05 * V_HOLD) & (v_mon < 0.95 * V_HOLD)).any(), v_mon

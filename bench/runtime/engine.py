@@ -327,21 +327,8 @@ class Engine:
         load cycles the protocol did not ask for."""
         start = self.now()
         end = start + budget
-        polls = {} if self._stopping else self._drain_polls()
-        nxt = {name: (due or {}).get(name, start) for name in polls}
+        supervise = self._supervised(due)
         zeroed = False
-
-        def supervise() -> None:
-            now = self.now()
-            for name, (poll, period) in polls.items():
-                if nxt[name] <= now + 1e-12:
-                    self._check_stop()
-                    poll.run(self.ctx, nxt[name] - self.ctx.offset)  # its lateness: against the drain's schedule
-                    nxt[name] += period * (math.floor((now - nxt[name]) / period) + 1)  # next slot of its grid
-            if polls:
-                self.snapshot.headroom = self.sup.headroom()
-                self.rec.maybe_flush()
-
         while record_laser_block(self.ctx) > 0 or self.ctx.laser.pending > 0:
             if self._stopping and self._urgent.is_set():
                 return zeroed
@@ -364,6 +351,27 @@ class Engine:
                 raise InstrumentStateError("laser", f"stored data not fetched within {budget:g} s: the link "
                                            "cannot upload as fast as the storage fills")
         return zeroed
+
+    def _supervised(self, due: dict[str, float] | None = None) -> Callable[[], None]:
+        """A supervised reading for host-side work outside a step (a drain, a restart's ramp): each call runs the
+        polls of :meth:`_drain_polls` that are due (``due``: each one's next run time, a step's schedule continued;
+        else now), recorded and checked by the supervisor and the verifiers; nothing while stopping (0 V is
+        commanded then, and verified right after)."""
+        start = self.now()
+        polls = {} if self._stopping else self._drain_polls()
+        nxt = {name: (due or {}).get(name, start) for name in polls}
+
+        def supervise() -> None:
+            now = self.now()
+            for name, (poll, period) in polls.items():
+                if nxt[name] <= now + 1e-12:
+                    self._check_stop()
+                    poll.run(self.ctx, nxt[name] - self.ctx.offset)  # its lateness: against this schedule
+                    nxt[name] += period * (math.floor((now - nxt[name]) / period) + 1)  # next slot of its grid
+            if polls:
+                self.snapshot.headroom = self.sup.headroom()
+                self.rec.maybe_flush()
+        return supervise
 
     def _streaming(self) -> bool:
         """Whether a DAQ stream plays (the next step already in it): the output is the device's, not a set-point's."""
@@ -601,10 +609,14 @@ class Engine:
                                                f"{RESTART_MOVE_S:g} s to restart step {seg.index}")
                 self._pause_until(self.now() + 0.02, urgent_aborts=False)
         if self.inst.amplifier is not None and abs(volts - self.ctx.v_cmd) > RESTART_STEP_V:
-            self._ramp_to(volts, self.program.rig.limits.shutdown_ramp_s)
+            # supervised as a step is: the monitors (and the other polled sensors) read, recorded and checked
+            # after every set-point of the ramp up, not only once the next step has started
+            supervise = self._supervised()
+            self._ramp_to(volts, self.program.rig.limits.shutdown_ramp_s, after=supervise)
             # the last step's charging current (at the amplifier's current limit for tens of µs) is over before
             # the step's own acquisition starts
             self._pause_until(self.now() + RESTART_SETTLE_S, urgent_aborts=False)
+            supervise()
         self.ctx.v_req = volts
         self.ctx.offset = self.now() - seg.t_start
         self.rec.event(self.now(), seg.index, "offset", f"run time = program time + {self.ctx.offset:.9f} s")
