@@ -89,11 +89,13 @@ class Drained:
 
 def drained_run(tmp: Path, monkeypatch: pytest.MonkeyPatch, uploads: int, fault: bool = False,
                 pause: tuple[float, float] | None = None, slow_pause: bool = True,
-                stop_at: float | None = None) -> Drained:
+                stop_at: float | None = None, withhold: bool = False) -> Drained:
     """``pause``: (run time of a pause request, of the resume request): then the uploads of the pause's drain are
     the slow ones, not the ramp's, unless not ``slow_pause`` (the request comes during the ramp's drain).
     ``stop_at``: run time at which the run's control file asks for a stop (the watch page's stop button); each
-    upload then also takes a control-file look's worth of wall time, so the engine may see the file meanwhile."""
+    upload then also takes a control-file look's worth of wall time, so the engine may see the file meanwhile.
+    ``withhold``: the slow uploads bring nothing (the storage's data come only with the first upload after them),
+    so that a drain cut short leaves stored data behind."""
     proto = tmp / "drain.toml"
     proto.write_text(PROTOCOL)
     real = engine_mod.record_laser_block  # type: ignore[attr-defined]  # the name the engine calls
@@ -101,9 +103,9 @@ def drained_run(tmp: Path, monkeypatch: pytest.MonkeyPatch, uploads: int, fault:
     seen: dict[str, Any] = {}
 
     def slow_upload(ctx: Any) -> int:
-        n = real(ctx)
         draining = seen["engine"].snapshot.state == "paused" if pause and slow_pause else \
             ctx.program_now() >= RAMP_END
+        n = 0 if withhold and draining and left[0] > 0 else real(ctx)
         if draining and left[0] > 0:  # the drain after the ramp or in the pause (the engine's own calls)
             if fault and "fault" not in seen:  # the amplifier's gain 25 % off, at the drain's first upload
                 seen["fault"] = ctx.now()
@@ -299,3 +301,27 @@ def test_the_restart_ramp_after_a_long_drain_is_monitored(tmp_path: Path, monkey
     # readings on the way up: a monitored voltage between 0 V and the hold's 5 kV
     v_mon = amp.columns["voltage"][(amp.t > t_restart) & (amp.t < t_hold)]
     assert ((v_mon > 0.05 * V_HOLD) & (v_mon < 0.95 * V_HOLD)).any(), v_mon
+
+
+def test_a_stop_during_the_drain_leaves_what_is_left_to_the_shutdowns_fetch(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A control-file stop 0.3 s into a drain whose uploads bring nothing yet (a link far behind): the shutdown,
+    at 0 V, fetches the step's stored data that the drain did not — the file holds the ramp's displacement up to
+    its end (200 Hz), not only what the step's own fetches brought."""
+    d = drained_run(tmp_path, monkeypatch, 15, stop_at=RAMP_END + 0.3, withhold=True)
+    assert d.result.state == "interrupted", d.result.reason
+    laser = d.run.streams["laser"]
+    assert laser.t.max() >= RAMP_END - 2 / 200 and laser.t.size >= 200 * RAMP_END, (laser.t.size, laser.t.max())
+
+
+def test_a_pause_whose_upload_outlasts_the_shutdown_budget_goes_on(tmp_path: Path,
+                                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    """6 s of stored data to upload in a pause (more than the 5 s a stop's shutdown allows itself): the output is
+    at 0 V and the run supervised, so the pause uploads it all with a step's drain budget, and the run completes
+    after the resume instead of ending with an error."""
+    uploads = 30
+    d = drained_run(tmp_path, monkeypatch, uploads, pause=(0.5, 9.0))
+    assert d.result.state == "completed", d.result.reason
+    (t_pause, *_), = d.events("pause")
+    (t_resume, *_), = d.events("resume")
+    assert t_resume - t_pause >= uploads * UPLOAD_S

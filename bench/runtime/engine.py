@@ -535,8 +535,8 @@ class Engine:
         zeroed = False
         if storing:
             self.ctx.laser.stop_buffer()
-            self._storing = False
             zeroed = self._drain_after(seg, {k: d + self.ctx.offset for k, d in due.items()})
+            self._storing = False  # only now: a stop in the drain leaves what is left to the shutdown's fetch
         self.rec.event(self.now(), seg.index, "end", seg.name)
         segs = self.program.segments
         # a pause asked for during the drain: no ramp back up to the next step's value — the next step's first
@@ -661,8 +661,10 @@ class Engine:
             self.motion.stopped(self.now())
         if self._storing and self.inst.laser is not None:  # at 0 V: the pause does not wait on the upload
             self.inst.laser.stop_buffer()
-            self._storing = False
-            self._drain_laser(LASER_SHUTDOWN_DRAIN_S)
+            # a pause is no stop or fault: the run goes on, supervised, so its upload has a step's drain budget
+            # (LASER_SHUTDOWN_DRAIN_S is the shutdown's, past which what is left is only reported)
+            self._drain_laser(LASER_DRAIN_BUDGET_S)
+            self._storing = False  # only now: a stop in the upload leaves what is left to the shutdown's fetch
 
     def _paused_readings(self) -> None:
         """One reading of every polled channel while paused, through the run's polls: the monitors (by
