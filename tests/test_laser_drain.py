@@ -204,8 +204,8 @@ def test_a_short_drain_holds_the_output_and_shifts_the_schedule_so_the_next_step
 def test_a_fault_during_the_drain_trips_the_run_to_zero(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """The amplifier's gain goes 25 % off at the drain's first upload, the output held at 5 kV (6.25 kV now): the
     monitors, read during the drain, disagree with the set-point; the run latches in the drain — the hold step
-    never starts — and ends at 0 V within the polled verifier's bound (two readings at the protocol's rate after
-    the 0.3-s lag, plus one upload between polls)."""
+    never starts — and ends at 0 V within the polled verifier's bound (three reading periods at the protocol's
+    rate after the 0.3-s lag, plus one upload between polls)."""
     d = drained_run(tmp_path, monkeypatch, 15, fault=True)
     assert d.result.state == "tripped" and "interlock: output mismatch" in d.result.reason, d.result.reason
     assert [e for e in d.events("start") if e[1] == 1] == []  # tripped in the drain, before the next step
