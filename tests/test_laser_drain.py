@@ -10,6 +10,7 @@ and the plant's own output history, never from the engine's account of itself.
 from __future__ import annotations
 
 import dataclasses
+import time
 from pathlib import Path
 from typing import Any
 
@@ -17,6 +18,7 @@ import numpy as np
 import pytest
 
 import bench.runtime.engine as engine_mod
+from bench.runtime.control import write_control
 from bench.runtime.run import execute, plan_run
 from bench.storage.runfile import RunFile, open_run
 from tests.conftest import ROOT
@@ -54,6 +56,7 @@ V_HOLD = 5000.0  # the ramp's target, held by the next step
 MONITORS_HZ = 5.0
 UPLOAD_S = 0.2  # rig time each upload after the ramp takes (the driver sizes one upload to ~0.2 s on the wire)
 ZERO_V = 5.0  # |output| at or below this counts as 0 V (one ADAM-4024 code × the TREK gain)
+CONTROL_LOOK_S = 0.12  # wall time: more than the engine's CONTROL_POLL_S between two looks at the control file
 
 
 @dataclasses.dataclass
@@ -66,6 +69,7 @@ class Drained:
     t0: float  # rig-clock time of run time 0
     blocks: list[tuple[np.ndarray, np.ndarray]]
     t_fault: float = float("nan")  # run time of the fault injected during the drain, if any
+    t_asked: float = float("nan")  # run time of the pause or stop request, as the test made it
 
     def output(self) -> tuple[np.ndarray, np.ndarray]:
         """The plant's output (run time, volts)."""
@@ -84,9 +88,14 @@ class Drained:
 
 
 def drained_run(tmp: Path, monkeypatch: pytest.MonkeyPatch, uploads: int, fault: bool = False,
-                pause: tuple[float, float] | None = None) -> Drained:
+                pause: tuple[float, float] | None = None, slow_pause: bool = True,
+                stop_at: float | None = None, withhold: bool = False) -> Drained:
     """``pause``: (run time of a pause request, of the resume request): then the uploads of the pause's drain are
-    the slow ones, not the ramp's."""
+    the slow ones, not the ramp's, unless not ``slow_pause`` (the request comes during the ramp's drain).
+    ``stop_at``: run time at which the run's control file asks for a stop (the watch page's stop button); each
+    upload then also takes a control-file look's worth of wall time, so the engine may see the file meanwhile.
+    ``withhold``: the slow uploads bring nothing (the storage's data come only with the first upload after them),
+    so that a drain cut short leaves stored data behind."""
     proto = tmp / "drain.toml"
     proto.write_text(PROTOCOL)
     real = engine_mod.record_laser_block  # type: ignore[attr-defined]  # the name the engine calls
@@ -94,14 +103,17 @@ def drained_run(tmp: Path, monkeypatch: pytest.MonkeyPatch, uploads: int, fault:
     seen: dict[str, Any] = {}
 
     def slow_upload(ctx: Any) -> int:
-        n = real(ctx)
-        draining = seen["engine"].snapshot.state == "paused" if pause else ctx.program_now() >= RAMP_END
+        draining = seen["engine"].snapshot.state == "paused" if pause and slow_pause else \
+            ctx.program_now() >= RAMP_END
+        n = 0 if withhold and draining and left[0] > 0 else real(ctx)
         if draining and left[0] > 0:  # the drain after the ramp or in the pause (the engine's own calls)
             if fault and "fault" not in seen:  # the amplifier's gain 25 % off, at the drain's first upload
                 seen["fault"] = ctx.now()
                 plant = seen["sim"].plant
                 plant.hv = dataclasses.replace(plant.hv, gain=plant.hv.gain * 1.25)
             left[0] -= 1
+            if stop_at is not None:
+                time.sleep(CONTROL_LOOK_S)
             seen["sim"].clock.advance(UPLOAD_S)
             return max(n, 1)
         return n
@@ -116,15 +128,22 @@ def drained_run(tmp: Path, monkeypatch: pytest.MonkeyPatch, uploads: int, fault:
         def at(_now: float) -> None:
             if "t0" not in seen and engine.snapshot.state == "running":
                 seen["t0"] = sim.clock.now() - engine.now()
-            if pause and engine.pauses == 0 and engine.snapshot.state == "running" and engine.now() >= pause[0]:
+            if pause and engine.pauses == 0 and engine.snapshot.state == "running" and engine.now() >= pause[0] \
+                    and "asked" not in seen:
+                seen["asked"] = engine.now()
                 engine.request_pause("the test")
+            if stop_at is not None and engine.now() >= stop_at and "asked" not in seen:
+                seen["asked"] = engine.now()
+                write_control(tmp / "run.h5", False, "the test", "stop button", stop=True)
             if pause and engine.snapshot.state == "paused" and engine.now() >= pause[1]:
                 engine.request_resume("the test")
         sim.clock.subscribe(at)
 
     result = execute(plan_run(proto, RIG), tmp / "run.h5", virtual=True, on_engine=hook)
-    assert left[0] == 0 or fault  # the drain took the uploads asked for (a fault may end it sooner)
-    return Drained(result, open_run(result.path), seen["sim"], seen["t0"], blocks, seen.get("fault", float("nan")))
+    assert left[0] == 0 or fault or stop_at is not None  # the drain took the uploads asked for (a fault or a stop
+    # may end it sooner)
+    return Drained(result, open_run(result.path), seen["sim"], seen["t0"], blocks, seen.get("fault", float("nan")),
+                   seen.get("asked", float("nan")))
 
 
 def test_a_long_drain_is_supervised_goes_to_zero_and_the_next_step_restarts_whole(
@@ -185,8 +204,8 @@ def test_a_short_drain_holds_the_output_and_shifts_the_schedule_so_the_next_step
 def test_a_fault_during_the_drain_trips_the_run_to_zero(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """The amplifier's gain goes 25 % off at the drain's first upload, the output held at 5 kV (6.25 kV now): the
     monitors, read during the drain, disagree with the set-point; the run latches in the drain — the hold step
-    never starts — and ends at 0 V within the polled verifier's bound (two readings at the protocol's rate after
-    the 0.3-s lag, plus one upload between polls)."""
+    never starts — and ends at 0 V within the polled verifier's bound (three reading periods at the protocol's
+    rate after the 0.3-s lag, plus one upload between polls)."""
     d = drained_run(tmp_path, monkeypatch, 15, fault=True)
     assert d.result.state == "tripped" and "interlock: output mismatch" in d.result.reason, d.result.reason
     assert [e for e in d.events("start") if e[1] == 1] == []  # tripped in the drain, before the next step
@@ -218,3 +237,91 @@ def test_a_pause_zeroes_the_output_before_the_upload_not_after_it(tmp_path: Path
     assert np.abs(v[paused]).max() <= ZERO_V
     amp = d.run.streams["amplifier"]  # and the monitors read on through the upload
     assert ((amp.t > t_pause + ramp_s) & (amp.t < t_pause + uploads * UPLOAD_S)).sum() >= uploads * UPLOAD_S * 2
+
+
+def test_a_pause_during_the_drain_zeroes_the_output_at_once_and_the_resume_restarts_the_next_step(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A pause asked for 0.3 s into a 3-s drain after the ramp to 5 kV (before the drain's own 1-s hold is over):
+    the output goes to 0 V at the next upload, over the rig's shutdown ramp, and stays there until the resume — no
+    ramp back up to the hold's 5 kV when the upload ends; the resume then restarts the hold step, which runs whole."""
+    uploads = 15
+    d = drained_run(tmp_path, monkeypatch, uploads, pause=(RAMP_END + 0.3, 8.0), slow_pause=False)
+    assert d.result.state == "completed", d.result.reason
+    assert RAMP_END < d.t_asked < RAMP_END + 0.5  # asked for inside the drain, the output then at 5 kV
+    (t_pause, step, _), = d.events("pause")
+    (t_resume, *_), = d.events("resume")
+    assert step == 1 and t_pause >= RAMP_END + uploads * UPLOAD_S  # the pause itself: after the drain, in the hold
+    t, v = d.output()
+    assert abs(np.interp(d.t_asked, t, v) - V_HOLD) < 0.02 * V_HOLD
+    ramp_s = plan_run(tmp_path / "drain.toml", RIG).rig.limits.shutdown_ramp_s
+    paused = (t > d.t_asked + UPLOAD_S + ramp_s + 0.05) & (t < t_resume)
+    assert paused.any() and np.abs(v[paused]).max() <= ZERO_V  # 0 V from one upload + the ramp after the request
+    # no restart before the pause (it would ramp the output back up); one after the resume, of the hold step
+    (t_restart, step, text), = d.events("restart")
+    assert step == 1 and t_restart >= t_resume and "output to 5000 V" in text
+    t_hold, t_hold_end = d.step_span(1)
+    assert t_hold >= t_restart and t_hold_end - t_hold == pytest.approx(HOLD_S, abs=1e-6)
+    held = (t > t_hold + 0.1) & (t < t_hold_end)
+    assert np.abs(v[held] - V_HOLD).max() < 0.02 * V_HOLD
+
+
+def test_a_control_file_stop_during_the_drain_ends_the_run_without_raising_the_output(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The watch page's stop button (the control file's stop word) 0.3 s into a 3-s drain after the ramp to 5 kV:
+    the run ends interrupted, by that request, at 0 V; the output never rises after the request (no restart of the
+    hold step's 5 kV before the stop is seen), and the ramp down starts within one upload of it."""
+    uploads = 15
+    d = drained_run(tmp_path, monkeypatch, uploads, stop_at=RAMP_END + 0.3)
+    assert d.result.state == "interrupted" and "stop asked by the test" in d.result.reason, d.result.reason
+    assert RAMP_END < d.t_asked < RAMP_END + 0.5
+    assert d.events("restart") == []
+    t, v = d.output()
+    v_asked = float(np.interp(d.t_asked, t, v))
+    assert abs(v_asked - V_HOLD) < 0.02 * V_HOLD
+    after = t > d.t_asked
+    assert np.abs(v[after]).max() <= v_asked + 0.01 * V_HOLD  # never above its value at the request
+    ramp_s = plan_run(tmp_path / "drain.toml", RIG).rig.limits.shutdown_ramp_s
+    assert np.abs(v[t > d.t_asked + UPLOAD_S + ramp_s + 0.05]).max() <= ZERO_V
+    assert d.run.streams["setpoints"].columns["voltage"][-1] == 0.0
+
+
+def test_the_restart_ramp_after_a_long_drain_is_monitored(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The restart after a long drain ramps the output from 0 V to 5 kV over the rig's shutdown ramp: the monitors
+    are read (and so supervised) during that ramp and its settle, at the protocol's rate, not only once the hold
+    step has started — a fault that shows on the way up is seen on the way up."""
+    d = drained_run(tmp_path, monkeypatch, 15)
+    assert d.result.state == "completed", d.result.reason
+    (t_restart, *_), = d.events("restart")
+    t_hold, _ = d.step_span(1)
+    ramp_s = plan_run(tmp_path / "drain.toml", RIG).rig.limits.shutdown_ramp_s
+    assert t_hold - t_restart >= ramp_s  # the ramp up lies between the two
+    amp = d.run.streams["amplifier"]
+    during = amp.t[(amp.t > t_restart) & (amp.t < t_hold)]
+    assert during.size >= int(ramp_s * MONITORS_HZ) + 1, during
+    # readings on the way up: a monitored voltage between 0 V and the hold's 5 kV
+    v_mon = amp.columns["voltage"][(amp.t > t_restart) & (amp.t < t_hold)]
+    assert ((v_mon > 0.05 * V_HOLD) & (v_mon < 0.95 * V_HOLD)).any(), v_mon
+
+
+def test_a_stop_during_the_drain_leaves_what_is_left_to_the_shutdowns_fetch(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A control-file stop 0.3 s into a drain whose uploads bring nothing yet (a link far behind): the shutdown,
+    at 0 V, fetches the step's stored data that the drain did not — the file holds the ramp's displacement up to
+    its end (200 Hz), not only what the step's own fetches brought."""
+    d = drained_run(tmp_path, monkeypatch, 15, stop_at=RAMP_END + 0.3, withhold=True)
+    assert d.result.state == "interrupted", d.result.reason
+    laser = d.run.streams["laser"]
+    assert laser.t.max() >= RAMP_END - 2 / 200 and laser.t.size >= 200 * RAMP_END, (laser.t.size, laser.t.max())
+
+
+def test_a_pause_whose_upload_outlasts_the_shutdown_budget_goes_on(tmp_path: Path,
+                                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    """6 s of stored data to upload in a pause (more than the 5 s a stop's shutdown allows itself): the output is
+    at 0 V and the run supervised, so the pause uploads it all with a step's drain budget, and the run completes
+    after the resume instead of ending with an error."""
+    uploads = 30
+    d = drained_run(tmp_path, monkeypatch, uploads, pause=(0.5, 9.0))
+    assert d.result.state == "completed", d.result.reason
+    (t_pause, *_), = d.events("pause")
+    (t_resume, *_), = d.events("resume")
+    assert t_resume - t_pause >= uploads * UPLOAD_S

@@ -368,33 +368,24 @@ class Engine:
         load cycles the protocol did not ask for."""
         start = self.now()
         end = start + budget
-        polls = {} if self._stopping else self._drain_polls()
-        nxt = {name: (due or {}).get(name, start) for name in polls}
+        supervise = self._supervised(due)
         zeroed = False
-
-        def supervise() -> None:
-            now = self.now()
-            for name, (poll, period) in polls.items():
-                if nxt[name] <= now + 1e-12:
-                    self._check_stop()
-                    poll.run(self.ctx, nxt[name] - self.ctx.offset)  # its lateness: against the drain's schedule
-                    nxt[name] += period * (math.floor((now - nxt[name]) / period) + 1)  # next slot of its grid
-            if polls:
-                self.snapshot.headroom = self.sup.headroom()
-                self.rec.maybe_flush()
-
         while record_laser_block(self.ctx) > 0 or self.ctx.laser.pending > 0:
             if self._stopping and self._urgent.is_set():
                 return zeroed
+            # pause and stop requests (the control file's stop word included: it raises here) are seen on every
+            # upload, not only once the drain is over — a pause zeroes the output within the README's 0.1 s
+            pausing = not self._stopping and self._paused_wanted()[0]
             self._check_stop()
             self._keep_fed()
             supervise()
-            if (not zeroed and self.now() - start >= hold and self.inst.amplifier is not None
-                    and abs(self.ctx.v_cmd) > RESTART_STEP_V):
+            if (not zeroed and (self.now() - start >= hold or pausing) and self.inst.amplifier is not None
+                    and abs(self.ctx.v_cmd) > RESTART_STEP_V and not self._streaming()):
+                why = ("a pause was asked for" if pausing and self.now() - start < hold else
+                       "the link cannot upload as fast as the storage fills")
                 self.rec.event(self.now(), self.snapshot.step, "drain", f"stored laser data still uploading "
                                f"{self.now() - start:.3f} s after the step's end: output ramped from "
-                               f"{self.ctx.v_cmd:.0f} V to 0 V while the upload goes on (the link cannot upload "
-                               "as fast as the storage fills)")
+                               f"{self.ctx.v_cmd:.0f} V to 0 V while the upload goes on ({why})")
                 self._ramp_to(0.0, self.program.rig.limits.shutdown_ramp_s, after=supervise)
                 zeroed = True
             if self.now() > end:
@@ -402,13 +393,38 @@ class Engine:
                                            "cannot upload as fast as the storage fills")
         return zeroed
 
+    def _supervised(self, due: dict[str, float] | None = None) -> Callable[[], None]:
+        """A supervised reading for host-side work outside a step (a drain, a restart's ramp): each call runs the
+        polls of :meth:`_drain_polls` that are due (``due``: each one's next run time, a step's schedule continued;
+        else now), recorded and checked by the supervisor and the verifiers; nothing while stopping (0 V is
+        commanded then, and verified right after)."""
+        start = self.now()
+        polls = {} if self._stopping else self._drain_polls()
+        nxt = {name: (due or {}).get(name, start) for name in polls}
+
+        def supervise() -> None:
+            now = self.now()
+            for name, (poll, period) in polls.items():
+                if nxt[name] <= now + 1e-12:
+                    self._check_stop()
+                    poll.run(self.ctx, nxt[name] - self.ctx.offset)  # its lateness: against this schedule
+                    nxt[name] += period * (math.floor((now - nxt[name]) / period) + 1)  # next slot of its grid
+            if polls:
+                self.snapshot.headroom = self.sup.headroom()
+                self.rec.maybe_flush()
+        return supervise
+
+    def _streaming(self) -> bool:
+        """Whether a DAQ stream plays (the next step already in it): the output is the device's, not a set-point's."""
+        return self._stream is not None and self._hw.daq.streaming
+
     def _drain_polls(self) -> dict[str, tuple[Poll, float]]:
         """The polls that go on while stored laser data upload outside a step, with their periods (run time): every
         reading the run supervises (monitors, encoder, load cell, other sensors) at its step rate; on a DAQ rig
         the stream's collect while it still plays (the next step already in it), else the monitors by
         command-response every ``PAUSE_POLL_S``, as a pause reads them (the DAC holds the value it played last,
         which the output verifier is told of)."""
-        playing = self._stream is not None and self._hw.daq.streaming
+        playing = self._streaming()
         state = StepState(None, streamed=playing, laser_serial=False, storing=False)
         out: dict[str, tuple[Poll, float]] = {}
         for poll in rig_polls(self.ctx):
@@ -429,7 +445,7 @@ class Engine:
         runs on the device's clock and cannot shift: the event says how late the host's own actions are."""
         t_end = seg.t_end + self.ctx.offset  # the step's scheduled end (run time)
         v, start = self.ctx.v_cmd, self.now()
-        playing = self._stream is not None and self._hw.daq.streaming
+        playing = self._streaming()
         zeroed = self._drain_laser(LASER_DRAIN_BUDGET_S, math.inf if playing else DRAIN_HOLD_S, due)
         behind = self.now() - t_end
         if behind <= 1e-9:  # nothing to upload (or no time on the run's clock)
@@ -560,11 +576,13 @@ class Engine:
         zeroed = False
         if storing:
             self.ctx.laser.stop_buffer()
-            self._storing = False
             zeroed = self._drain_after(seg, {k: d + self.ctx.offset for k, d in due.items()})
+            self._storing = False  # only now: a stop in the drain leaves what is left to the shutdown's fetch
         self.rec.event(self.now(), seg.index, "end", seg.name)
         segs = self.program.segments
-        if zeroed and (k := segs.index(seg) + 1) < len(segs):
+        # a pause asked for during the drain: no ramp back up to the next step's value — the next step's first
+        # wait raises PauseRequested, and the resume restarts that step
+        if zeroed and (k := segs.index(seg) + 1) < len(segs) and not self._paused_wanted()[0]:
             self._restart(segs[k], f"the output went to 0 V while step {seg.index}'s stored laser data uploaded")
         # the last steps' data compresses while the next steps run (where no FLUSH_CHUNKS write comes before the end)
         self.rec.write_ahead(STEP_END_CHUNKS, max(0.0, self.program.duration - seg.t_end))
@@ -632,10 +650,14 @@ class Engine:
                                                f"{RESTART_MOVE_S:g} s to restart step {seg.index}")
                 self._pause_until(self.now() + 0.02, urgent_aborts=False)
         if self.inst.amplifier is not None and abs(volts - self.ctx.v_cmd) > RESTART_STEP_V:
-            self._ramp_to(volts, self.program.rig.limits.shutdown_ramp_s)
+            # supervised as a step is: the monitors (and the other polled sensors) read, recorded and checked
+            # after every set-point of the ramp up, not only once the next step has started
+            supervise = self._supervised()
+            self._ramp_to(volts, self.program.rig.limits.shutdown_ramp_s, after=supervise)
             # the last step's charging current (at the amplifier's current limit for tens of µs) is over before
             # the step's own acquisition starts
             self._pause_until(self.now() + RESTART_SETTLE_S, urgent_aborts=False)
+            supervise()
         self.ctx.v_req = volts
         self.ctx.offset = self.now() - seg.t_start
         self.rec.event(self.now(), seg.index, "offset", f"run time = program time + {self.ctx.offset:.9f} s")
@@ -653,7 +675,7 @@ class Engine:
         due = self.now() + RESTART_SETTLE_S  # the ramp's last charging current is over before the first reading
         while self._paused_wanted()[0]:
             self._check_stop()
-            if self.now() >= due:
+            if self.now() >= due - 1e-9:  # run time is rig time less t0: it may read one rounding short of due
                 self._paused_readings()
                 due += PAUSE_POLL_S
             self._pause_until(min(due, self.now() + STOP_POLL_S), urgent_aborts=False)
@@ -680,8 +702,10 @@ class Engine:
             self.motion.stopped(self.now())
         if self._storing and self.inst.laser is not None:  # at 0 V: the pause does not wait on the upload
             self.inst.laser.stop_buffer()
-            self._storing = False
-            self._drain_laser(LASER_SHUTDOWN_DRAIN_S)
+            # a pause is no stop or fault: the run goes on, supervised, so its upload has a step's drain budget
+            # (LASER_SHUTDOWN_DRAIN_S is the shutdown's, past which what is left is only reported)
+            self._drain_laser(LASER_DRAIN_BUDGET_S)
+            self._storing = False  # only now: a stop in the upload leaves what is left to the shutdown's fetch
 
     def _paused_readings(self) -> None:
         """One reading of every polled channel while paused, through the run's polls: the monitors (by
