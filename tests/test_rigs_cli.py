@@ -266,3 +266,39 @@ def test_t7_ports_below_1024_move_up_where_binding_them_is_refused(monkeypatch: 
     finally:
         sim.stop()
     assert asked == [(502, 702), (10502, 10702)]
+
+
+def test_sim_serve_on_t7_ports_in_use_is_one_line(tmp_path: Path) -> None:
+    """The T7's own ports taken by another program: one line naming them, no traceback (it printed 65 lines)."""
+    import socket
+
+    from bench.runtime.sim_rig import T7_PORTS
+
+    held = []
+    try:
+        for port in T7_PORTS:
+            s = socket.socket()
+            try:
+                s.bind(("127.0.0.1", port))
+            except OSError:
+                s.close()
+                pytest.skip(f"port {port} cannot be bound here")
+            s.listen()
+            held.append(s)
+        res = subprocess.run([sys.executable, "-m", "bench", "sim", "serve", str(RIGS / "thesis-daq-sim.toml"),
+                              "--t7-ports", "--duration", "1"], capture_output=True, text=True, timeout=120, cwd=ROOT,
+                             env={**os.environ, "COLUMNS": "300"})
+    finally:
+        for s in held:
+            s.close()
+    assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr
+    (line,) = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    assert "did not start" in line and "address already in use" in line, line
+
+
+@pytest.mark.parametrize("args", [["watch", "x.h5", "--port", "99999"], ["watch", "x.h5", "--port", "-5"],
+                                  ["run", "x.toml", "--web", "--web-port", "70000"]])
+def test_a_port_out_of_range_is_refused_by_the_option(args: list[str]) -> None:
+    res = CliRunner().invoke(app, args)
+    assert res.exit_code == 2, res.output
+    assert "Invalid value for '--" in res.output and "port" in res.output, res.output

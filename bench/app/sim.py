@@ -60,7 +60,11 @@ def serve_rig(rig_file: Path | None, *, write_rig: Path | None = None, duration:
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGTERM, signal.SIGINT)}
     sim = SimRig(rig, timing="real" if wire_time else "none", daq_ports=T7_PORTS if t7_ports else (0, 0))
     try:
-        served = Serving(rig, sim.start(), write_rig, wire_time, duration, replay)
+        try:
+            ports = sim.start()
+        except RuntimeError as exc:  # a port in use or needing privileges: one line naming it, no traceback
+            raise ValueError(f"bench sim serve {rig.name}: {' '.join(str(exc).split())}") from None
+        served = Serving(rig, ports, write_rig, wire_time, duration, replay)
         if sim.replay is not None:  # record time 0: now
             sim.replay.anchor(sim.clock.now())
         if write_rig is not None:

@@ -162,7 +162,8 @@ def run(
         "catalog.sqlite in the --out folder).")] = None,
     web: Annotated[bool, typer.Option("--web", help="Serve live plots of the run to a browser (bench watch, on "
                                       "127.0.0.1; the page can pause or stop the run).")] = False,
-    web_port: Annotated[int, typer.Option("--web-port", help="Port of --web (0: a free one).")] = 8765,
+    web_port: Annotated[int, typer.Option("--web-port", help="Port of --web (0: a free one).", min=0,
+                                          max=65535)] = 8765,
 ) -> None:
     """Run a protocol on a rig (simulated by default), streaming everything to one HDF5 file.
 

@@ -46,7 +46,7 @@ def watch(
                                                "run files (also new ones) are served.")],
     host: Annotated[str, typer.Option(help="Address to serve on; any other than the loopback needs the token "
                                       "printed at start.")] = "127.0.0.1",
-    port: Annotated[int, typer.Option(help="Port (0: a free one).")] = DEFAULT_PORT,
+    port: Annotated[int, typer.Option(help="Port (0: a free one).", min=0, max=65535)] = DEFAULT_PORT,
     pending: Annotated[bool, typer.Option("--pending", hidden=True, help="The run file may not exist yet "
                                           "(bench run --web).")] = False,
 ) -> None:
