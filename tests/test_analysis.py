@@ -302,3 +302,26 @@ def test_fit_cli_fits_several_files_together_stores_in_each_and_exports_a_rig(tm
     source = (ROOT / "rigs" / "lsdea-motor-daq-sim.toml").read_text(encoding="utf-8")
     assert source.splitlines()[0] in rig.read_text(encoding="utf-8") and "[interlock]" not in rig.read_text()
     assert fitted.specimen.lsdea_model.damping == pytest.approx(stored["values"][stored["names"].index("c")])
+
+
+def test_a_record_without_one_valid_point_is_not_fitted(short_run: Path, tmp_path: Path) -> None:
+    """The laser out of range for the whole run (every sample NaN, flagged invalid): `bench fit` printed a cost of
+    0 over 0 points and stored random parameters as a fit, exit 0 (found by an exploratory test). Refused now, and
+    nothing is stored."""
+    import shutil
+
+    import h5py
+    from typer.testing import CliRunner
+
+    from bench.cli import app
+
+    run = tmp_path / "blind.h5"
+    shutil.copy2(short_run, run)
+    with h5py.File(run, "r+") as f:
+        f["laser/displacement"][:] = np.nan
+        if "valid" in f["laser"]:
+            f["laser/valid"][:] = 0
+    res = CliRunner().invoke(app, ["fit", str(run), "--starts", "1", "--no-intervals", "--generations", "1"])
+    assert res.exit_code == 2, res.output
+    assert "0 valid data points for" in res.output and "nothing to fit" in res.output, res.output
+    assert not list(tmp_path.glob("*.fit.hdf5"))

@@ -196,6 +196,10 @@ def fit(problem: Problem, settings: FitSettings = FitSettings(), start: np.ndarr
     ``settings.intervals`` the result carries profile-likelihood intervals (:mod:`bench.identify.trust`).
     """
     t0 = time.perf_counter()
+    n_data = int(np.isfinite(problem.data).sum())
+    if n_data <= len(problem.names):  # no fit to be had: a cost of 0 over no points would be stored as one
+        raise ValueError(f"{n_data} valid data points for {len(problem.names)} parameters: nothing to fit (the "
+                         "sensor read out of range or invalid through the whole record?)")
     runs = searches(problem, settings, start, fine, progress, stage)
     best = min(runs, key=lambda r: r.cost)
     target = fine or problem
