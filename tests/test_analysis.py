@@ -325,3 +325,29 @@ def test_a_record_without_one_valid_point_is_not_fitted(short_run: Path, tmp_pat
     assert res.exit_code == 2, res.output
     assert "0 valid data points for" in res.output and "nothing to fit" in res.output, res.output
     assert not list(tmp_path.glob("*.fit.hdf5"))
+
+
+@pytest.mark.parametrize(("command", "damage", "said"), [
+    ("report", lambda f: f.__delitem__("laser"), "no 'laser' stream, which this step's analysis needs"),
+    ("report", lambda f: f["laser/displacement"].__setitem__(slice(None), np.nan), "no valid laser displacement"),
+    ("inspect", lambda f: f.__delitem__("events"), "damaged, a part every run file has is missing"),
+    ("report", lambda f: f.__delitem__("program"), "damaged, a part every run file has is missing"),
+], ids=["no-laser", "laser-all-nan", "no-events", "no-program"])
+def test_a_damaged_or_empty_record_is_one_line_not_a_traceback(short_run: Path, tmp_path: Path, command: str,
+                                                               damage, said: str) -> None:
+    """Found by an exploratory test: KeyError and IndexError tracebacks from report and inspect."""
+    import shutil
+
+    import h5py
+    from typer.testing import CliRunner
+
+    from bench.cli import app
+
+    run = tmp_path / "damaged.h5"
+    shutil.copy2(short_run, run)
+    with h5py.File(run, "r+") as f:
+        damage(f)
+    args = [command, str(run)] + (["--out", str(tmp_path / "report")] if command == "report" else [])
+    res = CliRunner().invoke(app, args)
+    assert res.exit_code == 2 and not isinstance(res.exception, (KeyError, IndexError)), res.output
+    assert said in " ".join(res.output.split()), res.output

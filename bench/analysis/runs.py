@@ -106,8 +106,18 @@ def protocol_of(run: RunFile) -> Protocol:
 
 def _window(streams: StreamChunks, stream: str, t0: float, t1: float, columns: list[str],
             neighbours: bool = False) -> dict[str, np.ndarray]:
-    """A stream's records over [t0, t1] (bounds widened by ``TOL_S``), read alone from the file."""
-    return streams.window(stream, t0 - TOL_S, t1 + TOL_S, columns, neighbours=neighbours)
+    """A stream's records over [t0, t1] (bounds widened by ``TOL_S``), read alone from the file. ValueError (one
+    line) when the file has no such stream, or no finite value of the columns in the window: nothing to analyse."""
+    try:
+        out = streams.window(stream, t0 - TOL_S, t1 + TOL_S, columns, neighbours=neighbours)
+    except KeyError:
+        raise ValueError(f"run file {streams.f.filename}: no {stream!r} stream, which this step's analysis needs "
+                         f"({t0:.3f}–{t1:.3f} s)") from None
+    for name in columns:
+        if not np.isfinite(out[name]).any():
+            raise ValueError(f"run file {streams.f.filename}: no valid {stream} {name} between {t0:.3f} and {t1:.3f} s "
+                             "(the sensor read out of range or invalid throughout): nothing to analyse")
+    return out
 
 
 def _inside(t: np.ndarray, t0: float, t1: float) -> np.ndarray:

@@ -213,6 +213,15 @@ def read_run(f: h5py.File, p: Path, streams: bool = False) -> RunFile:
         raise ValueError(f"run file {p}: its root attributes are missing: `bench recover` rebuilds them")
     if attrs.get("format") not in FORMATS:
         raise ValueError(f"run file {p}: not a dea-bench run file (format {attrs.get('format')!r})")
+    try:
+        return _read_body(f, p, attrs, streams)
+    except KeyError as exc:  # a group or dataset every run file has is gone: said in one line, not a traceback
+        raise ValueError(f"run file {p}: damaged, a part every run file has is missing "
+                         f"({' '.join(str(exc).split())})") from None
+
+
+def _read_body(f: h5py.File, p: Path, attrs: dict[str, Any], streams: bool) -> RunFile:
+    """:func:`read_run` past the root attributes (KeyError where a required group or dataset is missing)."""
     st = f["status"]
     for name in ("state", "reason", "end_time", "updated"):
         st[name].refresh()
