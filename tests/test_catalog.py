@@ -730,3 +730,20 @@ def test_a_processs_catalogues_share_their_engine_and_survive_their_file_being_d
     assert len(made) == 1 and (tmp_path / "catalog.sqlite").is_file()
     catalog.record_start(tmp_path / "r2.h5", {"protocol_name": "p2"}, url)
     assert len(made) == 1
+
+
+def test_a_misspelt_runs_folder_or_state_is_refused_and_nothing_is_made(tmp_path: Path) -> None:
+    """`runs list --dir typo` made the folder and a catalogue in it and listed nothing; `--state foo` listed nothing
+    (found by an exploratory test)."""
+    from bench.cli.catalog import RUN_STATES
+    from bench.storage.recorder import STATES
+
+    assert sorted(RUN_STATES) == sorted(STATES)  # the CLI's list is the recorder's (kept apart for a fast --help)
+    env = {**os.environ, "BENCH_STATE_DIR": str(tmp_path / "state")}
+    for args, said in ((["runs", "list", "--dir", str(tmp_path / "typo")], "runs folder"),
+                       (["catalog", "rebuild", str(tmp_path / "typo")], "runs folder"),
+                       (["runs", "list", "--dir", str(tmp_path), "--state", "finished"], "is not a run state")):
+        res = subprocess.run([sys.executable, "-m", "bench", *args], cwd=ROOT, env=env, capture_output=True,
+                             text=True, timeout=120)
+        assert res.returncode == 2 and said in res.stderr and "Traceback" not in res.stderr, res.stderr
+    assert not (tmp_path / "typo").exists()

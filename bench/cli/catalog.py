@@ -39,6 +39,9 @@ def _db_errors(fn: Callable[P, R]) -> Callable[P, R]:
     return wrapper
 
 
+RUN_STATES = ("completed", "running", "interrupted", "tripped", "error")  # a run file's /status/state
+
+
 def _open(folder: Path, url: str | None) -> Any:
     """The catalogue, reconciled with the run files of ``folder`` (a missing folder: nothing to reconcile)."""
     from bench.storage.catalog import Catalog, catalog_url, reconcile
@@ -83,6 +86,10 @@ def runs_list(
     import json
 
     cutoff = _since(since) if since is not None else None
+    if state is not None and state not in RUN_STATES:
+        raise ValueError(f"--state: {state!r} is not a run state ({', '.join(RUN_STATES)})")
+    if catalog is None and not folder.is_dir():  # its catalogue would be made there: a typo made a new lab folder
+        raise ValueError(f"runs folder {folder}: not found (no run recorded there yet, or --dir misspelt?)")
     with _open(folder, catalog) as cat:
         rows = cat.rows(specimen=specimen, protocol=protocol, since=cutoff, state=state)
     if json_out:
@@ -168,6 +175,8 @@ def catalog_rebuild(
     """Rebuild the catalogue's rows of a runs folder from the run files (the files are the source of truth)."""
     from bench.storage.catalog import Catalog, catalog_url, reconcile
 
+    if not folder.is_dir():
+        raise ValueError(f"runs folder {folder}: not found (nothing to rebuild the catalogue from)")
     with Catalog(catalog_url(folder, catalog)) as cat:
         done = reconcile(cat, folder, rebuild=True)
         n = len(cat.rows(under=folder.resolve()))
