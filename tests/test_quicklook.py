@@ -72,3 +72,19 @@ def test_bench_plot_writes_a_png_with_units_on_every_axis(run_file: Path, tmp_pa
 def test_a_stream_the_file_lacks_is_one_line_naming_it(run_file: Path) -> None:
     res = CliRunner().invoke(app, ["plot", str(run_file), "motor"], env={"COLUMNS": "300"})
     assert res.exit_code == 2 and "no stream motor" in res.output and str(run_file) in res.output
+
+
+def test_out_a_folder_holds_the_figure_and_nan_pixels_warn_nothing(run_file: Path, tmp_path: Path) -> None:
+    """`--out FOLDER` printed "figure: FOLDER" and wrote FOLDER.png; every plot printed numpy RuntimeWarnings for the
+    pixels with no valid reading (found by an exploratory test)."""
+    import warnings
+
+    folder = tmp_path / "figures"
+    folder.mkdir()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        res = CliRunner().invoke(app, ["plot", str(run_file), "--out", str(folder)], env={"COLUMNS": "300"})
+    assert res.exit_code == 0, res.output
+    target = folder / f"{run_file.stem}-plot.png"
+    assert target.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and f"figure: {target}" in res.output
+    assert not (tmp_path / "figures.png").exists()

@@ -67,8 +67,9 @@ def _envelopes(reader: StreamChunks, run_path: str | Path, streams: list[str] | 
             np.maximum.at(t_hi, which, np.maximum.reduceat(chunk["t"], starts))
             for c in cols:
                 v = chunk[c].astype(np.float64)
-                np.minimum.at(lo[c], which, np.fmin.reduceat(v, starts))
-                np.maximum.at(hi[c], which, np.fmax.reduceat(v, starts))
+                with np.errstate(invalid="ignore"):  # a pixel of only NaN (no valid reading) stays NaN: not drawn
+                    np.minimum.at(lo[c], which, np.fmin.reduceat(v, starts))
+                    np.maximum.at(hi[c], which, np.fmax.reduceat(v, starts))
             a = b
         mid = (t_lo + t_hi) / 2
         for c in cols:
@@ -78,7 +79,8 @@ def _envelopes(reader: StreamChunks, run_path: str | Path, streams: list[str] | 
 
 def quicklook(run_path: str | Path, streams: list[str] | None = None, out: str | Path | None = None,
               show: bool = False) -> Path | None:
-    """Draw the envelopes of ``streams``; save a PNG (``out``, default ``RUN-plot.png``) or show a window."""
+    """Draw the envelopes of ``streams``; save a PNG (``out``: a file, or a folder to hold ``RUN-plot.png``; default
+    ``RUN-plot.png`` beside the run) or show a window."""
     import matplotlib
 
     if not show:
@@ -107,7 +109,9 @@ def quicklook(run_path: str | Path, streams: list[str] | None = None, out: str |
         plt.show()
         plt.close(fig)
         return None
-    target = Path(out) if out is not None else Path(run_path).with_name(Path(run_path).stem + "-plot.png")
+    default = Path(run_path).stem + "-plot.png"
+    target = Path(run_path).with_name(default) if out is None else Path(out) / default if Path(out).is_dir() \
+        else Path(out)
     target.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(target, dpi=110)
     plt.close(fig)
