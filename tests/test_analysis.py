@@ -351,3 +351,20 @@ def test_a_damaged_or_empty_record_is_one_line_not_a_traceback(short_run: Path, 
     res = CliRunner().invoke(app, args)
     assert res.exit_code == 2 and not isinstance(res.exception, (KeyError, IndexError)), res.output
     assert said in " ".join(res.output.split()), res.output
+
+
+def test_an_export_into_a_missing_folder_is_refused_before_the_fit(short_run: Path, tmp_path: Path) -> None:
+    """`bench fit --export nodir/x.toml` fitted and stored, then failed at the export: a second try stored the fit
+    again (found by an exploratory test). Refused before anything is fitted or stored."""
+    import shutil
+
+    from typer.testing import CliRunner
+
+    from bench.cli import app
+
+    run = tmp_path / "run.h5"
+    shutil.copy2(short_run, run)
+    res = CliRunner().invoke(app, ["fit", str(run), "--export", str(tmp_path / "nodir" / "x.toml"), "--starts", "1",
+                                   "--no-intervals", "--generations", "1"])
+    assert res.exit_code == 2 and "folder" in res.output and "not found" in res.output, res.output
+    assert not list(tmp_path.glob("*.fit.hdf5"))

@@ -88,6 +88,8 @@ def fit_runs(runs: list[Path], model: str, settings: FitSettings, *, branches: i
     from bench.storage.runfile import open_run
 
     check_fittable(runs, into)
+    if export is not None and not export.parent.is_dir():  # said before minutes of fitting, not after the store
+        raise ValueError(f"--export {export}: folder {export.parent} not found")
     files: list[str | Path] = list(runs)
     coarse: RecordedProblem
     fine: RecordedProblem
