@@ -309,7 +309,7 @@ def test_a_run_whose_folder_is_deleted_stops_instead_of_driving_unrecorded(tmp_p
         threading.Thread(target=fire, daemon=True).start()
 
     result = execute(plan, folder / "run.h5", virtual=False, on_engine=hook)
-    assert result.state == "error" and "deleted while the run was writing it" in result.reason, result.reason
+    assert result.state == "error" and "deleted or moved while the run was writing it" in result.reason, result.reason
     assert result.safe_path.startswith("0 V commanded by the host") and "verified" in result.safe_path
     assert result.run_time < plan.program.duration / 2  # stopped, not run to the protocol's end
     assert trial.last_high(seen[0]) > trial.t_action  # high voltage was on when the folder went …

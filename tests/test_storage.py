@@ -210,7 +210,7 @@ def test_a_run_file_deleted_while_written_fails_the_next_write(tmp_path: Path) -
     rec.flush()  # healthy
     shutil.rmtree(folder)
     rec.append("laser", t + 1, displacement=t * 1e-3)
-    with pytest.raises(StorageError, match=r"write failed: the file \(or its folder\) was deleted while the run"):
+    with pytest.raises(StorageError, match=r"write failed: the file \(or its folder\) was deleted or moved while"):
         rec.flush()
     assert rec.failed
     rec.flush()  # once: later calls are no-ops

@@ -78,6 +78,11 @@ def prepare_run(protocol_file: Path | None, *, rig: Path | None = None, sim: boo
         old = {k: v for k, v in open_run(resume, streams=False).attrs.items() if isinstance(v, str)}
         metadata = run_metadata(plan.protocol, operator or old.get("operator"), specimen_id or old.get("specimen_id"),
                                 notes)
+        if not dry_run:  # an instrument another process holds refuses the resume before the latch is reset
+            from bench.runtime.rig_lock import claimed
+
+            with claimed(plan.rig):
+                pass
         reset = _reset_for_resume(plan.rig.name, operator or old.get("operator"), why, dry_run, metadata)
         out = resume.parent if out == Path("runs") else out
     elif protocol_file is None:

@@ -18,6 +18,7 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import os
+import stat
 import sys
 import tempfile
 from collections.abc import Iterator
@@ -83,18 +84,32 @@ def claimed(rig: RigConfig, endpoints: dict[str, str] | None = None) -> Iterator
     import fcntl
 
     held: list[int] = []
+    by_address: dict[str, list[str]] = {}  # one claim per address (two buses on one gateway are one instrument)
+    for role, address in addresses(rig, endpoints).items():
+        by_address.setdefault(address, []).append(role)
     try:
         folder = lock_dir()
-        for role, address in sorted(addresses(rig, endpoints).items(), key=lambda item: item[1]):
+        for address, roles in sorted(by_address.items()):
+            role = " and ".join(roles)
             name = hashlib.sha256(address.encode()).hexdigest()[:16]
             path = folder / f"dea-bench-instrument-{name}.lock"
-            try:  # O_NOFOLLOW: a link planted in a shared folder is not followed; 0o666: any user may claim it next
-                fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o666)
-            except PermissionError:  # another user's claim file that umask left read-only: a read lock still locks
-                fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW)
+
+            def refused(why: str, path: Path = path, role: str = role, address: str = address) -> RigInUseError:
+                return RigInUseError(f"rig {rig.name}: cannot claim the {role} at {address} ({path}: {why})")
+
+            # O_NOFOLLOW: a link planted in a shared folder is not followed; O_NONBLOCK: nor does a planted FIFO
+            # block the open; 0o666: any user may claim it next
+            flags = os.O_NOFOLLOW | os.O_NONBLOCK
+            try:
+                try:
+                    fd = os.open(path, os.O_RDWR | os.O_CREAT | flags, 0o666)
+                except PermissionError:  # another user's claim file umask left read-only: a read lock still locks
+                    fd = os.open(path, os.O_RDONLY | flags)
             except OSError as exc:
-                raise RigInUseError(f"rig {rig.name}: cannot claim the {role} at {address} ({path}: "
-                                    f"{exc.strerror})") from None
+                raise refused(exc.strerror or type(exc).__name__) from None
+            if not stat.S_ISREG(os.fstat(fd).st_mode):
+                os.close(fd)
+                raise refused("not a regular file: remove it")
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:
@@ -102,6 +117,9 @@ def claimed(rig: RigConfig, endpoints: dict[str, str] | None = None) -> Iterator
                 os.close(fd)
                 raise RigInUseError(f"rig {rig.name}: the {role} at {address} is in use by {holder}; one process "
                                     "at a time drives an instrument (stop that one first)") from None
+            except OSError as exc:  # no locks on this filesystem (some network or FUSE mounts): $BENCH_LOCK_DIR
+                os.close(fd)
+                raise refused(f"{exc.strerror}; set {LOCK_DIR_ENV} to a local folder") from None
             held.append(fd)
             with contextlib.suppress(OSError):  # who holds it, for the next one refused (a read-only file: unsaid)
                 os.ftruncate(fd, 0)

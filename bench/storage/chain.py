@@ -48,22 +48,18 @@ def chain(path: str | Path) -> list[Link]:
 
 def continued_in(path: str | Path) -> Path | None:
     """A file in ``path``'s folder that continues it (its ``previous_run_id`` is ``path``'s ``run_id``), or None.
-    Files that cannot be read as HDF5 are passed over."""
-    import h5py
-
+    Files that cannot be read as run files are passed over."""
     p = Path(path)
-    with h5py.File(p, "r", locking=False) as f:
-        rid = str(f.attrs.get("run_id", ""))
+    rid = str(open_run(p, streams=False).attrs.get("run_id", ""))
     if not rid:
         return None
     for other in sorted(p.parent.glob("*.h5")):
         if other.resolve() == p.resolve():
             continue
-        try:
-            with h5py.File(other, "r", locking=False) as f:
-                if str(f.attrs.get("previous_run_id", "")) == rid:
-                    return other
-        except (OSError, ValueError):  # not a run file, or one a crash left unreadable: not a continuation
+        try:  # as every reader opens a run: also one still being written, or a crashed writer's
+            if str(open_run(other, streams=False).attrs.get("previous_run_id", "")) == rid:
+                return other
+        except (OSError, ValueError):  # not a run file, or one damaged beyond reading: not a continuation
             continue
     return None
 

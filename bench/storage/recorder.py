@@ -335,6 +335,7 @@ class Recorder:
         self._write_error: Exception | None = None  # its failure, raised by the caller's next call
         self._f: h5py.File | None = None
         self._fd: int | None = None  # its descriptor, taken at open (abandon)
+        self._links_counted = False  # set at open (see _unlinked)
         self._names = [*streams, "events"]
         self._counts = np.zeros(len(self._names), dtype=np.int64)  # valid records on disk, per stream and events
         # the catalogue's high-voltage statistics of the measured amplifier voltage, over what is written
@@ -360,6 +361,7 @@ class Recorder:
         f = h5py.File(self.path, "w", libver=("v110", "v110"))  # SWMR needs the 1.10 format; newer breaks 1.10 tools
         self._f = f
         self._fd = int(f.id.get_vfd_handle())  # for abandon(): a handle whose close failed cannot say
+        self._links_counted = os.fstat(self._fd).st_nlink >= 1  # a filesystem that counts links (see _unlinked)
         set_attrs(f, {"format": FORMAT, **self._attrs})
         time_units = seconds_since(attrs.get("start_time"))
         self._create_stamp(f)
@@ -647,10 +649,11 @@ class Recorder:
     def _write(self, work: _Work) -> None:
         """The file side of a flush (one at a time: the caller's thread or the background thread). A file no longer
         linked in any folder (deleted, or its folder removed, while the run writes it) fails the write: its data
-        could never be read, and the run must stop rather than drive the rig with nothing recorded."""
-        if self._fd is not None and os.fstat(self._fd).st_nlink == 0:
-            raise UnlinkedError("the file (or its folder) was deleted while the run was writing it: nothing more "
-                                "can be recorded")
+        could never be read, and the run must stop rather than drive the rig with nothing recorded (a file moved
+        away is treated alike: the end stamp could not find it)."""
+        if self._fd is not None and self._unlinked():
+            raise UnlinkedError("the file (or its folder) was deleted or moved while the run was writing it: "
+                                "nothing more can be recorded")
         blocks, events, last_t = work
         t0, c0 = time.perf_counter(), time.thread_time()
         counts = self._counts.copy()
@@ -682,6 +685,22 @@ class Recorder:
         self._counts = counts
         self.write_seconds += time.perf_counter() - t0
         self._cpu_write += time.thread_time() - c0
+
+    def _unlinked(self) -> bool:
+        """Whether the open file is no longer the one at its path: its last link gone (where the filesystem counts
+        links: some FUSE mounts say 0 throughout), or its path now missing or another file (NFS renames a deleted
+        open file to ``.nfsXXXX`` and keeps it linked)."""
+        assert self._fd is not None
+        st = os.fstat(self._fd)
+        if self._links_counted and st.st_nlink == 0:
+            return True
+        try:
+            at = os.stat(self.path)
+        except FileNotFoundError:
+            return True
+        except OSError:  # the folder unreadable for a moment: not a reason to stop a run
+            return False
+        return (at.st_dev, at.st_ino) != (st.st_dev, st.st_ino)
 
     def hv_stats(self) -> HvStats | None:
         """The catalogue's high-voltage statistics of what was written (those :func:`~bench.storage.catalog.
