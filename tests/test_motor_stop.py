@@ -207,3 +207,38 @@ def test_ctrl_c_mid_move_on_the_wall_clock_stops_the_carriage_while_the_voltage_
         assert at_rest <= t_ramp + engine.ctx.t0 + ramp / 2, told  # before the ramp-down is half over
     x_end = sim.plant.motor_state(sim.clock.now())[0]
     assert final_position(events["motor"][1]) == pytest.approx(x_end, abs=1e-7)
+
+
+def test_a_pause_mid_move_stops_the_carriage_before_the_voltage_ramp(tmp_path: Path,
+                                                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    """The pause stopped the motor only after ramping the voltage down (the same order the shutdown had)."""
+    halts: list[tuple[float, float, float, float]] = []
+    halt = LinMotDriveSim._halt
+
+    def spy(self: LinMotDriveSim, dec: float) -> None:
+        p, v = self.plant.motor_state(self._now)
+        halts.append((self._now, p, v, dec))
+        halt(self, dec)
+
+    monkeypatch.setattr(LinMotDriveSim, "_halt", spy)
+    seen: dict[str, Any] = {}
+
+    def hook(engine: Engine, sim: Any) -> None:
+        def at(_t: float) -> None:
+            if "t_req" not in seen and engine.snapshot.state == "running" and engine.now() >= T_STOP:
+                seen.update(t_req=sim.clock.now(), v=sim.plant.motor_state(sim.clock.now())[1])
+                engine.request_pause("paused by the test")
+            elif "t_req" in seen and "stop" not in seen and sim.clock.now() >= seen["t_req"] + 3.0:
+                seen["stop"] = True
+                engine.request_stop("stopped by the test")
+        sim.clock.subscribe(at)
+
+    plan = plan_run(ISOMETRIC)
+    result = execute(plan, tmp_path / "run.h5", virtual=True, on_engine=hook)
+    assert result.state == "interrupted", result.reason
+    _, v_move, _ = plan.program.segments[0].move or (0.0, 0.0, 0.0)
+    assert seen["v"] == pytest.approx(v_move)  # paused mid-move
+    t_halt, _, v, dec = next(h for h in halts if h[0] >= seen["t_req"])
+    run = open_run(result.path)
+    assert any(k == "pause" for _, _, k, _ in run.event_list())
+    assert t_halt + abs(v) / dec - seen["t_req"] < plan.rig.limits.shutdown_ramp_s / 4  # at rest before the ramp ends

@@ -689,17 +689,17 @@ class Engine:
         self._restart(seg, "resumed after a pause")
 
     def _make_paused(self) -> None:
-        """The paused state, a run's or a manual session's: a playing stream stopped, the output ramped to 0 V over
-        ``shutdown_ramp_s`` (supervised set-points), the motor stopped where it is, then stored laser data fetched
-        (supervised, :meth:`_drain_laser`)."""
+        """The paused state, a run's or a manual session's: a playing stream stopped, the motor stopped where it is
+        (first: a move under way does not go on through the ramp), the output ramped to 0 V over ``shutdown_ramp_s``
+        (supervised set-points), then stored laser data fetched (supervised, :meth:`_drain_laser`)."""
         if self._stream is not None:
             self._stream.stop()
             self._stream.forget()
-        if self.inst.amplifier is not None:
-            self._ramp_to(0.0, self.program.rig.limits.shutdown_ramp_s)
         if self.inst.motor is not None and (self.program.has_motor_axis or self.commands):
             self.ctx.motor.stop()
             self.motion.stopped(self.now())
+        if self.inst.amplifier is not None:
+            self._ramp_to(0.0, self.program.rig.limits.shutdown_ramp_s)
         if self._storing and self.inst.laser is not None:  # at 0 V: the pause does not wait on the upload
             self.inst.laser.stop_buffer()
             # a pause is no stop or fault: the run goes on, supervised, so its upload has a step's drain budget
