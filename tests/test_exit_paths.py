@@ -66,7 +66,8 @@ class Trial:
     t0: float = 0.0  # rig-clock time of the run's start
     blocks: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list)
 
-    def run(self, tmp: Path):
+    def run(self, tmp: Path, read: bool = True):
+        """(result, the run file read back — None unless ``read`` —, the simulated rig)."""
         plan = plan_run(self.protocol, self.rig or ADAM_RIG)
         if self.rig_overrides or self.timeouts:
             fields = {**plan.rig.model_dump(), **self.rig_overrides}
@@ -89,7 +90,7 @@ class Trial:
 
         result = execute(plan, tmp / f"{self.protocol.stem}.h5", virtual=False, on_engine=hook)
         sim = sims[0]
-        return result, open_run(result.path), sim
+        return result, open_run(result.path) if read else None, sim
 
     def last_high(self, sim) -> float:
         """Rig-clock time of the last plant sample with |output| above ZERO_V (after advancing to now)."""
@@ -295,25 +296,12 @@ def test_a_run_whose_folder_is_deleted_stops_instead_of_driving_unrecorded(tmp_p
     folder = tmp_path / "campaign"
     trial = Trial(THESIS, 2.0, lambda _e, _s: shutil.rmtree(folder))
     plan = plan_run(THESIS, ADAM_RIG)
-    seen: list = []
-
-    def hook(engine: Engine, sim) -> None:
-        seen.append(sim)
-        sim.plant.listeners.append(lambda b: trial.blocks.append((b.t.copy(), b.v_out.copy())))
-
-        def fire() -> None:
-            while engine.snapshot.state == "starting" or engine.now() < trial.at:
-                time.sleep(0.005)
-            trial.t_action = sim.clock.now()
-            trial.action(engine, sim)
-        threading.Thread(target=fire, daemon=True).start()
-
-    result = execute(plan, folder / "run.h5", virtual=False, on_engine=hook)
+    result, _, sim = trial.run(folder, read=False)  # the file is gone: nothing to read back
     assert result.state == "error" and "deleted or moved while the run was writing it" in result.reason, result.reason
     assert result.safe_path.startswith("0 V commanded by the host") and "verified" in result.safe_path
     assert result.run_time < plan.program.duration / 2  # stopped, not run to the protocol's end
-    assert trial.last_high(seen[0]) > trial.t_action  # high voltage was on when the folder went …
-    assert abs(seen[0].plant.observe().v_out[-1]) <= ZERO_V  # … and is off now
+    assert trial.last_high(sim) > trial.t_action  # high voltage was on when the folder went …
+    assert abs(sim.plant.observe().v_out[-1]) <= ZERO_V  # … and is off now
     assert not folder.exists()
 
 

@@ -59,10 +59,9 @@ class Stopped:
         return [(t, text) for t, _, k, text in self.run.event_list() if k == kind]
 
 
-def stop_mid_move(tmp: Path, monkeypatch: pytest.MonkeyPatch, mute_motor: bool = False) -> Stopped:
-    """Run lsdea-isometric-short in virtual time and request a stop at ``T_STOP`` (``mute_motor``: the drive
-    answers nothing from the request on)."""
-    seen: dict[str, Any] = {}
+def spy_halts(monkeypatch: pytest.MonkeyPatch) -> list[tuple[float, float, float, float]]:
+    """The LinMot twin's halts from now on, as (rig time, position, velocity, deceleration): the drive's own account
+    of when and how fast it began to stop."""
     halts: list[tuple[float, float, float, float]] = []
     halt = LinMotDriveSim._halt
 
@@ -72,6 +71,14 @@ def stop_mid_move(tmp: Path, monkeypatch: pytest.MonkeyPatch, mute_motor: bool =
         halt(self, dec)
 
     monkeypatch.setattr(LinMotDriveSim, "_halt", spy)
+    return halts
+
+
+def stop_mid_move(tmp: Path, monkeypatch: pytest.MonkeyPatch, mute_motor: bool = False) -> Stopped:
+    """Run lsdea-isometric-short in virtual time and request a stop at ``T_STOP`` (``mute_motor``: the drive
+    answers nothing from the request on)."""
+    seen: dict[str, Any] = {}
+    halts = spy_halts(monkeypatch)
 
     def hook(engine: Engine, sim: Any) -> None:
         seen.update(engine=engine, sim=sim)
@@ -156,15 +163,7 @@ def test_ctrl_c_mid_move_on_the_wall_clock_stops_the_carriage_while_the_voltage_
     import threading
     import time
 
-    halts: list[tuple[float, float, float, float]] = []
-    halt = LinMotDriveSim._halt
-
-    def spy(self: LinMotDriveSim, dec: float) -> None:
-        p, v = self.plant.motor_state(self._now)
-        halts.append((self._now, p, v, dec))
-        halt(self, dec)
-
-    monkeypatch.setattr(LinMotDriveSim, "_halt", spy)
+    halts = spy_halts(monkeypatch)
     seen: dict[str, Any] = {}
 
     def hook(engine: Engine, sim: Any) -> None:
@@ -212,15 +211,7 @@ def test_ctrl_c_mid_move_on_the_wall_clock_stops_the_carriage_while_the_voltage_
 def test_a_pause_mid_move_stops_the_carriage_before_the_voltage_ramp(tmp_path: Path,
                                                                       monkeypatch: pytest.MonkeyPatch) -> None:
     """The pause stopped the motor only after ramping the voltage down (the same order the shutdown had)."""
-    halts: list[tuple[float, float, float, float]] = []
-    halt = LinMotDriveSim._halt
-
-    def spy(self: LinMotDriveSim, dec: float) -> None:
-        p, v = self.plant.motor_state(self._now)
-        halts.append((self._now, p, v, dec))
-        halt(self, dec)
-
-    monkeypatch.setattr(LinMotDriveSim, "_halt", spy)
+    halts = spy_halts(monkeypatch)
     seen: dict[str, Any] = {}
 
     def hook(engine: Engine, sim: Any) -> None:
