@@ -18,7 +18,7 @@ from typing import Literal
 import h5py
 import numpy as np
 
-from bench.storage.runfile import RunFile, open_h5, read_run, stream_names, unit_of, valid_counts
+from bench.storage.runfile import RunFile, damaged, open_h5, read_run, stream_names, unit_of, valid_counts
 
 CHUNK_ROWS = 262_144  # records per stream read at a time (a few MB per column)
 
@@ -65,8 +65,13 @@ class StreamChunks:
             yield {c: self.read(stream, c, a, b) for c in self.columns[stream]}
 
     def read(self, stream: str, column: str, a: int, b: int) -> np.ndarray:
-        """Records ``a`` … ``b``−1 of one column: every read of a stream goes through here."""
-        data: np.ndarray = self.f[stream][column][a:b]
+        """Records ``a`` … ``b``−1 of one column: every read of a stream goes through here (a damaged file: one line
+        naming it and the records)."""
+        try:
+            data: np.ndarray = self.f[stream][column][a:b]
+        except OSError as exc:  # HDF5 could not read them (a checksum, a compression filter)
+            raise ValueError(f"run file {self.f.filename}: damaged, HDF5 cannot read {stream}/{column} records "
+                             f"{a}–{b - 1} ({' '.join(str(exc).split())[:200]})") from None
         return data
 
     def _blocks(self, stream: str) -> tuple[int, np.ndarray]:
@@ -207,5 +212,8 @@ def open_source(path: str | Path) -> Iterator[RunSource]:
     if not p.exists():
         raise FileNotFoundError(f"run file {p}: not found")
     with open_h5(p) as f:
-        run = read_run(f, p)
+        try:
+            run = read_run(f, p)
+        except (OSError, UnicodeDecodeError) as exc:  # as open_run says it
+            raise damaged(p, exc) from None
         yield RunSource(run, StreamChunks(f))

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import functools
 import io
 import json
 import os
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -119,7 +121,7 @@ def open_h5(p: Path) -> h5py.File:
     length (a live file grows) and retried its reads past the end for minutes, deaf to Ctrl-C."""
     _refuse_truncated(p)
     try:
-        return h5py.File(p, "r", libver="latest", swmr=True)
+        return _open_swmr(p)
     except OSError as exc:
         first = exc
     try:
@@ -129,6 +131,53 @@ def open_h5(p: Path) -> h5py.File:
         return h5py.File(io.BytesIO(bytes(image)), "r")
     except (OSError, ValueError):
         raise ValueError(f"run file {p}: not a readable HDF5 file ({' '.join(str(first).split())})") from None
+
+
+# HDF5's SWMR reader retries a metadata read that fails its checksum (a writer mid-update) 100 times, waiting longer
+# each time: on a damaged file, minutes per object, deaf to Ctrl-C (an exploratory test's copy with 200 kB of noise
+# written into it hung `bench inspect` for ten minutes). A live writer's update needs a few; these last about 2 s.
+SWMR_READ_ATTEMPTS = 12
+
+
+@functools.cache
+def _read_attempts_setter() -> Callable[[int, int], int] | None:
+    """``H5Pset_metadata_read_attempts`` of the HDF5 library h5py runs on (h5py does not expose it), found among the
+    libraries this process has loaded (Linux); None where it cannot be found (then HDF5's default holds)."""
+    import ctypes
+
+    try:
+        maps = Path("/proc/self/maps").read_text(encoding="utf-8", errors="replace")
+    except OSError:
+        return None
+    paths = {line.split(None, 5)[-1] for line in maps.splitlines() if "libhdf5" in line and "_hl" not in line
+             and len(line.split(None, 5)) == 6}
+    for path in sorted(paths):
+        try:
+            fn = ctypes.CDLL(path).H5Pset_metadata_read_attempts
+        except (OSError, AttributeError):
+            continue
+        fn.argtypes, fn.restype = [ctypes.c_int64, ctypes.c_uint], ctypes.c_int
+        return lambda fapl, n: int(fn(fapl, n))
+    return None
+
+
+def _open_swmr(p: Path) -> h5py.File:
+    """``h5py.File(p, "r", libver="latest", swmr=True)`` with :data:`SWMR_READ_ATTEMPTS` metadata read attempts."""
+    setter = _read_attempts_setter()
+    if setter is None:
+        return h5py.File(p, "r", libver="latest", swmr=True)
+    fapl = h5py.h5p.create(h5py.h5p.FILE_ACCESS)
+    fapl.set_libver_bounds(h5py.h5f.LIBVER_LATEST, h5py.h5f.LIBVER_LATEST)
+    if setter(fapl.id, SWMR_READ_ATTEMPTS) < 0:
+        return h5py.File(p, "r", libver="latest", swmr=True)
+    fid = h5py.h5f.open(os.fsencode(p), h5py.h5f.ACC_RDONLY | h5py.h5f.ACC_SWMR_READ, fapl=fapl)
+    return h5py.File(fid)
+
+
+def damaged(p: Path, exc: BaseException) -> ValueError:
+    """The one-line error for a run file HDF5 opened but could not read a part of (``exc``: what failed)."""
+    return ValueError(f"run file {p}: damaged, a part cannot be read ({type(exc).__name__}: "
+                      f"{' '.join(str(exc).split())[:200]})")
 
 
 def _refuse_truncated(p: Path) -> None:
@@ -199,7 +248,10 @@ def open_run(path: str | Path, streams: bool = True) -> RunFile:
     if not p.exists():
         raise FileNotFoundError(f"run file {p}: not found")
     with open_h5(p) as f:
-        return read_run(f, p, streams)
+        try:
+            return read_run(f, p, streams)
+        except (OSError, UnicodeDecodeError) as exc:  # a part HDF5 cannot read (a checksum, a filter) or text that is
+            raise damaged(p, exc) from None  # no longer UTF-8: damaged, said in one line
 
 
 def read_run(f: h5py.File, p: Path, streams: bool = False) -> RunFile:
