@@ -449,3 +449,20 @@ def test_the_dry_run_tells_its_progress_as_a_share_of_the_run_time() -> None:
     plan = plan_run(ROOT / "protocols" / "short" / "thesis-sweeps-short.toml", progress=seen.append)
     starts = [s.t_end / plan.program.duration for s in plan.program.segments]  # from the compiled steps
     assert seen == pytest.approx(starts) and seen[-1] == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize(("specimen", "rig", "said"), [
+    ("hung_mass_kg = 0.18", "thesis-daq-sim", "hung_mass_kg and prototype apply to the LS-DEA"),
+    ("prototype = 2", "thesis-sim", "hung_mass_kg and prototype apply to the LS-DEA"),
+    ("temperature_K = 300.0", "lsdea-motor-sim", "temperature_K acts on the membrane model only"),
+    ("hung_mass_kg = 0.18", "lsdea-motor-sim", "hung_mass_kg needs the hung-mass (isotonic) configuration"),
+])
+def test_specimen_overrides_the_rig_s_specimen_cannot_take_are_refused(tmp_path: Path, specimen: str, rig: str,
+                                                                       said: str) -> None:
+    """`[specimen]` is checked as a `set` step is (the rig file says which specimen it holds): an LS-DEA protocol's
+    hung mass on the membrane rig validated and ran on the membrane (found by an exploratory test)."""
+    protocol = tmp_path / "p.toml"
+    protocol.write_text(f'[protocol]\nname = "p"\nrig = "{RIGS / (rig + ".toml")}"\n\n[specimen]\n{specimen}\n\n'
+                        '[[steps]]\ntype = "hold"\nduration_s = 1.0\n', encoding="utf-8")
+    with pytest.raises(ProtocolLimitError, match=rf"\[specimen\]: {re.escape(said)}"):
+        plan_run(protocol)

@@ -235,7 +235,22 @@ class _Compiler:
                                   f"{rec.displacement_Hz:g} exceed the {rig.laser.model} storage of "
                                   f"{rig.laser.capacity} points; lower the rate or split the step")
 
+    def specimen(self) -> None:
+        """The protocol's ``[specimen]`` overrides against the rig's specimen, as a ``set`` step's are checked: an
+        LS-DEA protocol's hung mass on a membrane rig was ignored and the run went ahead on the wrong specimen."""
+        over, spec = self.protocol.specimen, self.rig.specimen
+        if spec.kind == "membrane" and (over.hung_mass_kg is not None or over.prototype is not None):
+            raise self.refuse("[specimen]", f"hung_mass_kg and prototype apply to the LS-DEA, rig {self.rig.name} "
+                              "holds a membrane")
+        if spec.kind == "lsdea" and over.temperature_K is not None:
+            raise self.refuse("[specimen]", f"temperature_K acts on the membrane model only (rig {self.rig.name} "
+                              "holds an LS-DEA)")
+        if spec.kind == "lsdea" and over.hung_mass_kg is not None and spec.lsdea.configuration != "hung":
+            raise self.refuse("[specimen]", f"hung_mass_kg needs the hung-mass (isotonic) configuration; rig "
+                              f"{self.rig.name} is {spec.lsdea.configuration}")
+
     def compile(self) -> Program:
+        self.specimen()
         steps: dict[type, Callable[..., Segment]] = {WaveformStep: self.waveform, RampStep: self.ramp,
                                                      HoldStep: self.hold, MoveStep: self.move, SetStep: self.set}
         for i, (step, label) in enumerate(zip(self.protocol.steps, self.protocol.labels, strict=True)):
