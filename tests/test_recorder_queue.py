@@ -165,8 +165,8 @@ def test_a_stat_that_fails_after_the_stamp_leaves_the_finished_file_and_other_de
     real_stat = recorder.os.stat
 
     def stat(p: object, *a: object, **k: object) -> object:
-        if Path(str(p)) == path:
-            raise FileNotFoundError(2, "No such file or directory", str(p))
+        if Path(str(p)) == path and rec._f is None:  # once the file is stamped and closed (while it is written, each
+            raise FileNotFoundError(2, "No such file or directory", str(p))  # flush checks it is still at its path)
         return real_stat(p, *a, **k)  # type: ignore[arg-type]
 
     monkeypatch.setattr(recorder.os, "stat", stat)
