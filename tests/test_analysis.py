@@ -332,10 +332,13 @@ def test_a_record_without_one_valid_point_is_not_fitted(short_run: Path, tmp_pat
     ("report", lambda f: f["laser/displacement"].__setitem__(slice(None), np.nan), "no valid laser displacement"),
     ("inspect", lambda f: f.__delitem__("events"), "damaged, a part every run file has is missing"),
     ("report", lambda f: f.__delitem__("program"), "damaged, a part every run file has is missing"),
-], ids=["no-laser", "laser-all-nan", "no-events", "no-program"])
+    ("report", lambda f: f["laser/displacement"].attrs.__setitem__("units", "kg"),
+     "laser/displacement is in 'kg', the analysis reads 'm'"),  # README "Run files": displacement [m]
+], ids=["no-laser", "laser-all-nan", "no-events", "no-program", "units-kg"])
 def test_a_damaged_or_empty_record_is_one_line_not_a_traceback(short_run: Path, tmp_path: Path, command: str,
                                                                damage, said: str) -> None:
-    """Found by an exploratory test: KeyError and IndexError tracebacks from report and inspect."""
+    """Found by an exploratory test: KeyError and IndexError tracebacks from report and inspect, and a displacement
+    whose units attribute said kg analysed as metres."""
     import shutil
 
     import h5py

@@ -104,15 +104,26 @@ def protocol_of(run: RunFile) -> Protocol:
         return load_protocol(p)
 
 
+# the unit of each column the analysis reads, as bench records it (README "Run files")
+ANALYSED_UNITS = {"displacement": "m", "aperture": "m", "position": "m", "force": "N", "voltage": "V",
+                  "current": "A"}
+
+
 def _window(streams: StreamChunks, stream: str, t0: float, t1: float, columns: list[str],
             neighbours: bool = False) -> dict[str, np.ndarray]:
     """A stream's records over [t0, t1] (bounds widened by ``TOL_S``), read alone from the file. ValueError (one
     line) when the file has no such stream, or no finite value of the columns in the window: nothing to analyse."""
     try:
         out = streams.window(stream, t0 - TOL_S, t1 + TOL_S, columns, neighbours=neighbours)
+        units = streams.units(stream)
     except KeyError:
         raise ValueError(f"run file {streams.f.filename}: no {stream!r} stream, which this step's analysis needs "
                          f"({t0:.3f}–{t1:.3f} s)") from None
+    for name in columns:  # the figures are computed in SI units: a column in another unit would be misread
+        want = ANALYSED_UNITS.get(name)
+        if want is not None and units.get(name) != want:
+            raise ValueError(f"run file {streams.f.filename}: {stream}/{name} is in {units.get(name)!r}, the "
+                             f"analysis reads {want!r}")
     for name in columns:
         if not np.isfinite(out[name]).any():
             raise ValueError(f"run file {streams.f.filename}: no valid {stream} {name} between {t0:.3f} and {t1:.3f} s "
