@@ -30,7 +30,7 @@ import h5py
 
 from bench.storage.recorder import FORMAT, FORMATS, STATES, abandon, cause, ignore_sigxfsz, now_iso
 from bench.storage.repair import Patches, open_view, root_attribute_patches, superblock_patches, write_patches
-from bench.storage.runfile import open_run
+from bench.storage.runfile import open_run, refuse_truncated
 from bench.storage.superblock import Superblock, open_elsewhere, read_superblock
 
 RECOVERED_REASON = "recovered after crash"
@@ -85,9 +85,7 @@ def recover(path: str | Path) -> RecoveryReport:
         raise ValueError(f"run file {p}: not an HDF5 file (no superblock)")
     end = sb.base_address + sb.eoa
     size = p.stat().st_size
-    if sb.version >= 2 and sb.flags == 0 and size < end:  # closed by its writer, then cut: nothing to recover
-        raise ValueError(f"run file {p}: truncated: {size:,} bytes where its HDF5 superblock ends the file at "
-                         f"{end:,}; its writer had closed it (a copy cut short? copy it again from the original)")
+    refuse_truncated(p)  # closed by its writer, then cut: nothing to recover (a crashed writer's short file is)
     grow = end - size if sb.version >= 2 and size < end else 0  # a failed write left the file short
     patches = superblock_patches(head, sb)
     fmt, damaged, kept = _identify(p, patches, size + grow)  # as it reads once released: nothing is changed yet

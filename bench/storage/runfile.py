@@ -119,7 +119,7 @@ def open_h5(p: Path) -> h5py.File:
     died before SWMR mode left the file marked open — from an in-memory copy with those marks cleared. A file its
     writer closed that is shorter than its superblock says is refused at once: an SWMR reader does not check the
     length (a live file grows) and retried its reads past the end for minutes, deaf to Ctrl-C."""
-    _refuse_truncated(p)
+    refuse_truncated(p)
     try:
         return _open_swmr(p)
     except OSError as exc:
@@ -180,7 +180,7 @@ def damaged(p: Path, exc: BaseException) -> ValueError:
                       f"{' '.join(str(exc).split())[:200]})")
 
 
-def _refuse_truncated(p: Path) -> None:
+def refuse_truncated(p: Path) -> None:
     """ValueError (one line) when ``p`` was closed by its writer (no consistency flags) and is shorter than the end
     of the space its superblock allocated: a copy cut short, a partial download."""
     try:
