@@ -81,6 +81,8 @@ def _u16_bytes(words: Words) -> bytes:
         with contextlib.suppress(struct.error):  # out of range: refused below, naming the values
             return struct.pack(f">{len(words)}H", *words)
     w = np.asarray(words)
+    if w.dtype == np.uint16:  # a stream-out's codes (Calibration.dac_codes): every value in range by its type
+        return w.astype(">u2").tobytes()
     # one pass: the OR of all values has a bit above 15 (or is negative) exactly when one of them lies outside
     if w.size and (w.dtype.kind not in "iu" or int(np.bitwise_or.reduce(w, axis=None)) >> 16):
         raise ValueError(f"register values must be integers 0…65535, got {w.min()}…{w.max()}")
