@@ -188,6 +188,9 @@ def run(
 
         return yes or Confirm.ask(f"[bold]operator:[/] {message} — done?", console=console)
 
+    from bench.runtime.run import reserve_output
+
+    prepared.path = reserve_output(prepared.path)  # claimed: a run started in the same second names another
     with run_log(prepared.path) as log_file:
         _log_plan(prepared, protocol_file, virtual_time)
         from bench.cli.watch import serving

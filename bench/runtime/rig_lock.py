@@ -21,7 +21,7 @@ import os
 import stat
 import sys
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 from bench.rig import RigConfig
@@ -74,6 +74,45 @@ def _holder(fd: int) -> str:
     return "another process"
 
 
+def _claim(path: Path, refused: Callable[[str], ValueError], busy: Callable[[str], ValueError]) -> int:
+    """An ``flock`` on the claim file ``path``, its holder written into it: the descriptor (closing it releases the
+    claim). ``refused(why)`` for a claim file that cannot be used, ``busy(holder)`` for one another process holds."""
+    import fcntl
+
+    # O_NOFOLLOW: a link planted in a shared folder is not followed; O_NONBLOCK: nor does a planted FIFO block the
+    # open; 0o666: any user may claim it next
+    flags = os.O_NOFOLLOW | os.O_NONBLOCK
+    try:
+        try:
+            fd = os.open(path, os.O_RDWR | os.O_CREAT | flags, 0o666)
+        except PermissionError:  # another user's claim file umask left read-only: a read lock still locks
+            fd = os.open(path, os.O_RDONLY | flags)
+    except OSError as exc:
+        raise refused(exc.strerror or type(exc).__name__) from None
+    if not stat.S_ISREG(os.fstat(fd).st_mode):
+        os.close(fd)
+        raise refused("not a regular file: remove it")
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        holder = _holder(fd)
+        os.close(fd)
+        raise busy(holder) from None
+    except OSError as exc:  # no locks on this filesystem (some network or FUSE mounts): $BENCH_LOCK_DIR
+        os.close(fd)
+        raise refused(f"{exc.strerror}; set {LOCK_DIR_ENV} to a local folder") from None
+    with contextlib.suppress(OSError):  # who holds it, for the next one refused (a read-only file: unsaid)
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"process {os.getpid()} ({' '.join(sys.argv[:3])[:200]})".encode(), 0)
+    return fd
+
+
+def _release(fd: int) -> None:
+    with contextlib.suppress(OSError):
+        os.ftruncate(fd, 0)
+    os.close(fd)  # closing the descriptor releases the lock
+
+
 @contextlib.contextmanager
 def claimed(rig: RigConfig, endpoints: dict[str, str] | None = None) -> Iterator[None]:
     """Hold every instrument address of ``rig`` for the block; RigInUseError (nothing connected, nothing held) if
@@ -81,8 +120,6 @@ def claimed(rig: RigConfig, endpoints: dict[str, str] | None = None) -> Iterator
     if rig.simulated or sys.platform == "win32":
         yield
         return
-    import fcntl
-
     held: list[int] = []
     by_address: dict[str, list[str]] = {}  # one claim per address (two buses on one gateway are one instrument)
     for role, address in addresses(rig, endpoints).items():
@@ -94,39 +131,41 @@ def claimed(rig: RigConfig, endpoints: dict[str, str] | None = None) -> Iterator
             name = hashlib.sha256(address.encode()).hexdigest()[:16]
             path = folder / f"dea-bench-instrument-{name}.lock"
 
-            def refused(why: str, path: Path = path, role: str = role, address: str = address) -> RigInUseError:
+            def refused(why: str, path: Path = path, role: str = role, address: str = address) -> ValueError:
                 return RigInUseError(f"rig {rig.name}: cannot claim the {role} at {address} ({path}: {why})")
 
-            # O_NOFOLLOW: a link planted in a shared folder is not followed; O_NONBLOCK: nor does a planted FIFO
-            # block the open; 0o666: any user may claim it next
-            flags = os.O_NOFOLLOW | os.O_NONBLOCK
-            try:
-                try:
-                    fd = os.open(path, os.O_RDWR | os.O_CREAT | flags, 0o666)
-                except PermissionError:  # another user's claim file umask left read-only: a read lock still locks
-                    fd = os.open(path, os.O_RDONLY | flags)
-            except OSError as exc:
-                raise refused(exc.strerror or type(exc).__name__) from None
-            if not stat.S_ISREG(os.fstat(fd).st_mode):
-                os.close(fd)
-                raise refused("not a regular file: remove it")
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except BlockingIOError:
-                holder = _holder(fd)
-                os.close(fd)
-                raise RigInUseError(f"rig {rig.name}: the {role} at {address} is in use by {holder}; one process "
-                                    "at a time drives an instrument (stop that one first)") from None
-            except OSError as exc:  # no locks on this filesystem (some network or FUSE mounts): $BENCH_LOCK_DIR
-                os.close(fd)
-                raise refused(f"{exc.strerror}; set {LOCK_DIR_ENV} to a local folder") from None
-            held.append(fd)
-            with contextlib.suppress(OSError):  # who holds it, for the next one refused (a read-only file: unsaid)
-                os.ftruncate(fd, 0)
-                os.pwrite(fd, f"process {os.getpid()} ({' '.join(sys.argv[:3])[:200]})".encode(), 0)
+            def busy(holder: str, role: str = role, address: str = address) -> ValueError:
+                return RigInUseError(f"rig {rig.name}: the {role} at {address} is in use by {holder}; one process "
+                                     "at a time drives an instrument (stop that one first)")
+
+            held.append(_claim(path, refused, busy))
         yield
     finally:
         for fd in held:
-            with contextlib.suppress(OSError):
-                os.ftruncate(fd, 0)
-            os.close(fd)  # closing the descriptor releases the lock
+            _release(fd)
+
+
+@contextlib.contextmanager
+def campaign_claimed(previous: Path) -> Iterator[None]:
+    """Hold the continuation of the campaign whose latest file is ``previous`` for the block (a resumed run, from
+    before its file is made to its end): ValueError (one line) while another process resumes it. Without it two
+    ``bench run --resume`` of one file started together both passed the "already resumed" check and forked the
+    campaign. Simulated rigs too: the file is the campaign's, whatever drives it."""
+    if sys.platform == "win32":
+        yield
+        return
+    where = os.path.realpath(previous)
+    path = lock_dir() / f"dea-bench-campaign-{hashlib.sha256(where.encode()).hexdigest()[:16]}.lock"
+
+    def refused(why: str) -> ValueError:
+        return ValueError(f"run file {previous}: cannot claim its campaign ({path}: {why})")
+
+    def busy(holder: str) -> ValueError:
+        return ValueError(f"run file {previous}: its campaign is being resumed by {holder}; one continuation at a "
+                          "time")
+
+    fd = _claim(path, refused, busy)
+    try:
+        yield
+    finally:
+        _release(fd)

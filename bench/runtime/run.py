@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -38,7 +39,7 @@ from bench.runtime.instruments import Instruments, build_instruments
 from bench.runtime.interlock import watchdog_period
 from bench.runtime.latch import latch, refuse_if_latched
 from bench.runtime.polls import SENSOR_PERIOD_S
-from bench.runtime.rig_lock import claimed
+from bench.runtime.rig_lock import campaign_claimed, claimed
 from bench.runtime.safety import Supervisor
 from bench.storage import catalog
 from bench.storage.chain import chain, continued_in
@@ -128,15 +129,41 @@ def _streams(rig: RigConfig, inst: Instruments, polled: bool = False) -> tuple[d
 
 
 def default_output(plan: Plan, out_dir: str | Path) -> Path:
-    """runs/<protocol>-<YYYYmmdd-HHMMSS>.h5 (never overwriting)."""
+    """runs/<protocol>-<YYYYmmdd-HHMMSS>.h5, or the first free :func:`numbered` name after it (a name, not a claim:
+    :func:`reserve_output` claims it)."""
     stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
     safe = re.sub(r"[^A-Za-z0-9_.-]+", "-", plan.protocol.protocol.name)
     path = Path(out_dir) / f"{safe}-{stamp}.h5"
-    k = 1
-    while path.exists():
-        path = Path(out_dir) / f"{safe}-{stamp}-{k}.h5"
+    k = 0
+    while numbered(path, k).exists():
         k += 1
-    return path
+    return numbered(path, k)
+
+
+def numbered(path: Path, k: int) -> Path:
+    """``path`` (k = 0), else ``NAME-k.h5`` beside it."""
+    return path if k == 0 else path.with_name(f"{path.stem}-{k}{path.suffix}")
+
+
+def reserve_output(path: Path) -> Path:
+    """The run file a new run writes: ``path``, or the next free :func:`numbered` name when another run took it
+    since it was named. The claim is the run's log file (``RUN.log``, which every run writes), created here
+    exclusively: two runs started in one second into one folder named the same file, and one's data was lost
+    (the Recorder also never overwrites a file). OSError (one line, naming the file) when the folder cannot take it."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        k = 0
+        while True:
+            candidate = numbered(path, k)
+            if not candidate.exists():
+                try:
+                    os.close(os.open(candidate.with_suffix(".log"), os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644))
+                    return candidate
+                except FileExistsError:
+                    pass
+            k += 1
+    except OSError as exc:
+        raise OSError(f"run file {path}: cannot create its folder or log ({exc.strerror or exc})") from None
 
 
 def check_watchdog(rig: RigConfig, allow_no_watchdog: bool = False) -> str:
@@ -204,7 +231,10 @@ def execute(plan: Plan, out: Path, *, virtual: bool = False, operator: OperatorF
     (:func:`plan_resume`); the new file is linked to it. The run's control file (``bench pause``) is
     :func:`~bench.runtime.control.control_path` of ``out``.
     """
-    with claimed(plan.rig):
+    with claimed(plan.rig), campaign_claimed(resume.previous) if resume is not None else contextlib.nullcontext():
+        if resume is not None and (later := continued_in(resume.previous)) is not None:  # resumed since it was planned
+            raise ValueError(f"run file {resume.previous}: its campaign was already resumed in {later}: resume the "
+                             "campaign's latest file instead")
         return _execute_claimed(plan, out, virtual=virtual, operator=operator, on_engine=on_engine,
                                 allow_no_watchdog=allow_no_watchdog, metadata=metadata, resume=resume)
 

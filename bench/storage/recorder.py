@@ -48,7 +48,6 @@ The file keeps everything up to the last successful flush.
 from __future__ import annotations
 
 import contextlib
-import errno
 import json
 import logging
 import os
@@ -346,6 +345,9 @@ class Recorder:
         self._steps_done: set[int] = set()  # steps whose end is queued after their last start
         self._written: Written | None = None
         ignore_sigxfsz()
+        if self.path.exists():  # said plainly; the "w-" of _create keeps a file made meanwhile as well
+            self.failure = f"run file {self.path}: exists: a run file is never overwritten"
+            raise StorageError(self.failure)
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             self._create(attrs, streams, program, rates)
@@ -358,7 +360,8 @@ class Recorder:
 
     def _create(self, attrs: dict[str, Any], streams: dict[str, list[Column]],
                 program: Sequence[tuple[int, str, str, str, float, float]], rates: dict[str, float]) -> None:
-        f = h5py.File(self.path, "w", libver=("v110", "v110"))  # SWMR needs the 1.10 format; newer breaks 1.10 tools
+        # w-: create, never truncate (another run's file); SWMR needs the 1.10 format, newer breaks 1.10 tools
+        f = h5py.File(self.path, "w-", libver=("v110", "v110"))
         self._f = f
         self._fd = int(f.id.get_vfd_handle())  # for abandon(): a handle whose close failed cannot say
         self._links_counted = os.fstat(self._fd).st_nlink >= 1  # a filesystem that counts links (see _unlinked)
