@@ -356,6 +356,43 @@ def test_a_damaged_or_empty_record_is_one_line_not_a_traceback(short_run: Path, 
     assert said in " ".join(res.output.split()), res.output
 
 
+@pytest.mark.parametrize("args", [["fit"], ["fit", "--model", "membrane"], ["fit", "--model", "lsdea"], ["report"]],
+                         ids=["fit-auto", "fit-membrane", "fit-lsdea", "report"])
+@pytest.mark.parametrize(("stored", "said"), [
+    ("{not json", "is not valid JSON"),
+    ("[1, 2]", "is not a JSON object"),
+    ('{"kind": "membrane"}', "lacks the specimen's 'kind' (text) or 'model'"),
+    (None, "is missing"),
+], ids=["garbled", "a-list", "no-model", "missing"])
+def test_a_bad_specimen_attribute_is_one_line_naming_file_and_attribute(short_run: Path, tmp_path: Path,
+                                                                        args: list[str], stored: str | None,
+                                                                        said: str) -> None:
+    """Found by an outside tester: a ``specimen`` attribute that is not JSON gave json's own message ("Expecting
+    property name …") naming neither the file nor the attribute, from fit, the fit's problems and the report."""
+    import shutil
+
+    import h5py
+    from typer.testing import CliRunner
+
+    from bench.cli import app
+
+    run = tmp_path / "specimen.h5"
+    shutil.copy2(short_run, run)
+    with h5py.File(run, "r+") as f:
+        if stored is None:
+            del f.attrs["specimen"]
+        else:
+            f.attrs["specimen"] = stored
+    extra = ["--out", str(tmp_path / "report")] if args == ["report"] else ["--starts", "1", "--no-intervals",
+                                                                             "--generations", "1"]
+    res = CliRunner().invoke(app, [*args, str(run), *extra])
+    lines = res.output.strip().splitlines()
+    assert res.exit_code == 2 and len(lines) == 1, res.output
+    text = " ".join(res.output.split())
+    assert f"run file {run}: attribute 'specimen' {said}" in text, res.output
+    assert not list(tmp_path.glob("*.fit.hdf5"))
+
+
 def test_an_export_into_a_missing_folder_is_refused_before_the_fit(short_run: Path, tmp_path: Path) -> None:
     """`bench fit --export nodir/x.toml` fitted and stored, then failed at the export: a second try stored the fit
     again (found by an exploratory test). Refused before anything is fitted or stored."""

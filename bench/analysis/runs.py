@@ -17,7 +17,6 @@ so memory follows the longest step, never the record's length.
 
 from __future__ import annotations
 
-import json
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -166,7 +165,7 @@ def analyse_source(src: RunSource, last_cycles: int = 3) -> RunAnalysis:
     """:func:`analyse` on a run file already open."""
     run, streams = src.run, src.streams
     protocol = protocol_of(run)
-    spec = json.loads(run.attrs["specimen"])
+    spec = run.specimen
     kind_of_specimen = spec["kind"]
     config = spec.get("lsdea", {}).get("configuration", "membrane") if kind_of_specimen == "lsdea" else "membrane"
     history = run.specimen_changes()

@@ -25,7 +25,6 @@ over 1 ms.
 from __future__ import annotations
 
 import itertools
-import json
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -177,7 +176,7 @@ class MembraneProblem(MonitorCalibration):
         self.unit_groups = [[1 + i, 5 + i, 9 + i] for i in range(1, 5)]
 
     def _add(self, run: RunFile, source: str) -> None:
-        spec = json.loads(run.attrs["specimen"])
+        spec = run.specimen
         if spec["kind"] != "membrane" or "laser" not in run.streams:
             raise ValueError(f"run file {source}: not a membrane run with laser data")
         model = spec["model"]
@@ -348,7 +347,7 @@ class LozengeProblem(MonitorCalibration):
         self.data_unit = "m" if hung == {True} else "N" if hung == {False} else "N and m"
 
     def _add(self, run: RunFile, source: str) -> None:
-        spec = json.loads(run.attrs["specimen"])
+        spec = run.specimen
         if spec["kind"] != "lsdea":
             raise ValueError(f"run file {source}: not an LS-DEA run")
         lsdea, over = spec["lsdea"], spec.get("overrides", {})

@@ -6,7 +6,7 @@ import functools
 import io
 import json
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -69,6 +69,11 @@ class RunFile:
             return "no end recorded: the run is still going, or it crashed / was killed"
         return "finished but not finalised (writer stopped before stamping the file)"
 
+    @property
+    def specimen(self) -> dict[str, Any]:
+        """The ``specimen`` attribute: the specimen the run was made on and its model (:func:`specimen_of`)."""
+        return specimen_of(self.attrs, self.path)
+
     def event_list(self) -> list[tuple[float, int, str, str]]:
         """Events as (t, step, kind, text)."""
         return [(float(e["t"]), int(e["step"]), e["kind"].decode(), e["text"].decode()) for e in self.events]
@@ -102,6 +107,26 @@ class RunFile:
             if kind == "specimen":
                 out.append((t, {k.strip(): float(v) for k, _, v in (p.partition("=") for p in text.split(","))}))
         return out
+
+
+def specimen_of(attrs: Mapping[str, Any], p: Path) -> dict[str, Any]:
+    """The run file ``p``'s ``specimen`` attribute (JSON: the rig's specimen, its ``kind`` and ``model``, and a
+    protocol's ``overrides``) from its root attributes ``attrs``. ValueError (one line naming the file and the
+    attribute) when it is missing, not JSON, or not an object with a ``kind`` and a ``model``: every reader of the
+    specimen goes through here, so a damaged or hand-edited attribute is refused alike wherever it is read."""
+    where = f"run file {p}: attribute 'specimen'"
+    if "specimen" not in attrs:
+        raise ValueError(f"{where} is missing")
+    text = _decode(attrs["specimen"])
+    try:
+        spec = json.loads(text)
+    except (ValueError, TypeError) as exc:  # JSONDecodeError, bad UTF-8, or not text at all
+        raise ValueError(f"{where} is not valid JSON ({' '.join(str(exc).split())[:200]})") from None
+    if not isinstance(spec, dict):
+        raise ValueError(f"{where} is not a JSON object (a {type(spec).__name__})")
+    if not isinstance(spec.get("kind"), str) or not isinstance(spec.get("model"), dict):
+        raise ValueError(f"{where} lacks the specimen's 'kind' (text) or 'model' (an object)")
+    return spec
 
 
 def _decode(v: Any) -> Any:
