@@ -393,6 +393,35 @@ def test_a_bad_specimen_attribute_is_one_line_naming_file_and_attribute(short_ru
     assert not list(tmp_path.glob("*.fit.hdf5"))
 
 
+@pytest.mark.parametrize("command", ["fit", "report"])
+@pytest.mark.parametrize(("column", "value"), [("amplifier/voltage", np.inf), ("amplifier/voltage", -np.inf),
+                                               ("laser/displacement", np.inf)],
+                         ids=["voltage-inf", "voltage-minus-inf", "displacement-inf"])
+def test_an_infinite_value_is_one_line_naming_file_and_stream(short_run: Path, tmp_path: Path, command: str,
+                                                              column: str, value: float) -> None:
+    """Found by an outside tester: infinities in a run's amplifier/voltage made fit and report say "array must not
+    contain infs or NaNs" (scipy's words) naming neither the file nor the stream. No instrument reads an infinity:
+    the record is damaged, said in one line naming both, and no fit is stored."""
+    import shutil
+
+    import h5py
+    from typer.testing import CliRunner
+
+    from bench.cli import app
+
+    run = tmp_path / "inf.h5"
+    shutil.copy2(short_run, run)
+    with h5py.File(run, "r+") as f:
+        f[column][1000:1010] = value  # 0.1 s in, inside the first step, every record valid
+    extra = ["--out", str(tmp_path / "report")] if command == "report" else ["--starts", "1", "--no-intervals",
+                                                                             "--generations", "1"]
+    res = CliRunner().invoke(app, [command, str(run), *extra])
+    lines = res.output.strip().splitlines()
+    assert res.exit_code == 2 and len(lines) == 1, res.output
+    assert f"run file {run}: {column} holds 10 " in " ".join(res.output.split()), res.output
+    assert not list(tmp_path.glob("*.fit.hdf5"))
+
+
 def test_an_export_into_a_missing_folder_is_refused_before_the_fit(short_run: Path, tmp_path: Path) -> None:
     """`bench fit --export nodir/x.toml` fitted and stored, then failed at the export: a second try stored the fit
     again (found by an exploratory test). Refused before anything is fitted or stored."""

@@ -42,7 +42,7 @@ from bench.models.lozenge import MODE_HUNG, MODE_IMPOSED, PROTOTYPE_LAMBDA2P, Lo
 from bench.models.lozenge_batch import lozenge_batch
 from bench.models.membrane import MembraneParams
 from bench.models.membrane_batch import membrane_batch_records
-from bench.storage.runfile import RunFile, open_run
+from bench.storage.runfile import RunFile, open_run, refuse_nonfinite
 
 if TYPE_CHECKING:
     from distributed import Client
@@ -189,6 +189,7 @@ class MembraneProblem(MonitorCalibration):
         changes = [(te, v["temperature_K"]) for te, v in run.specimen_changes() if "temperature_K" in v]
         laser = run.streams["laser"]
         ok = laser.columns["valid"] > 0
+        refuse_nonfinite(run.path, "laser", "displacement", laser.t[ok], laser.columns["displacement"][ok])
         sample = _window_means if self.average else _sampled
         head = floors.laser_noise_m(floors.stored_rig(run))
         windows = _record_windows(sp.t, sp.v, run.updated, self.split_rest, self.keep_rest)
@@ -362,6 +363,10 @@ class LozengeProblem(MonitorCalibration):
         cuts = sorted({0.0, *[t for t, _ in changes], run.updated})
         sp = applied_voltage(run, measured=True)
         measured = sp.source == "measured"
+        for stream, column in (("laser", "displacement"), ("motor", "aperture"), ("load_cell", "force")):
+            if stream in run.streams:
+                got = run.streams[stream]
+                refuse_nonfinite(run.path, stream, column, got.t, got.columns[column])
         self._note_run(run, source, measured)
         rig = floors.stored_rig(run)
         stride = max(1, round(1.0 / (self.data_rate * self.h)))

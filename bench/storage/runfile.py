@@ -129,6 +129,20 @@ def specimen_of(attrs: Mapping[str, Any], p: Path) -> dict[str, Any]:
     return spec
 
 
+def refuse_nonfinite(p: str | Path, stream: str, column: str, t: np.ndarray, values: np.ndarray,
+                     nan: bool = True) -> None:
+    """ValueError (one line naming the file and ``stream/column``) when ``values`` (at times ``t``) hold an
+    infinity — no instrument reads one: a damaged or edited record — or, with ``nan`` False, a NaN where the reader
+    needs a number at every record (the applied voltage). NaN is otherwise what a sensor out of range records."""
+    bad = ~np.isfinite(values) if not nan else np.isinf(values)
+    if bad.any():
+        i = int(np.argmax(bad))
+        when = f" at t = {float(t[i]):.6g} s" if i < len(t) else ""
+        raise ValueError(f"run file {p}: {stream}/{column} holds {int(bad.sum()):,} "
+                         f"{'non-finite' if not nan else 'infinite'} value(s), the first {float(values[i])}{when}: "
+                         "a damaged record, not a measurement")
+
+
 def _decode(v: Any) -> Any:
     return v.decode() if isinstance(v, bytes) else v
 
