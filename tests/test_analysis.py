@@ -422,6 +422,59 @@ def test_an_infinite_value_is_one_line_naming_file_and_stream(short_run: Path, t
     assert not list(tmp_path.glob("*.fit.hdf5"))
 
 
+def _set_status(name: str, data: object):  # type: ignore[no-untyped-def]
+    def damage(f) -> None:  # type: ignore[no-untyped-def]
+        attrs = dict(f["status"][name].attrs)
+        del f["status"][name]
+        d = f["status"].create_dataset(name, data=data)
+        for k, v in attrs.items():
+            d.attrs[k] = v
+    return damage
+
+
+def _negative_counts(f) -> None:  # type: ignore[no-untyped-def]
+    f["status/samples"][:2] = [-5, -100]  # setpoints, amplifier: t[:-100] would drop the last 100 records
+
+
+@pytest.mark.parametrize("command", ["inspect", "report", "export", "plot"])
+@pytest.mark.parametrize(("damage", "said"), [
+    (_negative_counts, "/status/samples: negative record counts (setpoints -5, amplifier -100)"),
+    (lambda f: f["status/samples"].attrs.__setitem__("names", "[oops"),
+     "/status/samples: its 'names' attribute is missing or not JSON"),
+    (_set_status("samples", np.array([1.5, 2.5])), "/status/samples: not a list of record counts"),
+    (_set_status("samples", np.array([1, 2], dtype=np.int64)), "/status/samples: 2 counts for the 4 names"),
+    (lambda f: f["status/updated"].__setitem__(0, np.nan), "/status/updated is"),
+    (lambda f: f["status/updated"].__setitem__(0, -3.0), "/status/updated is -3.0, not a run time ≥ 0 s"),
+    (lambda f: f["status/state"].__setitem__(0, b"banana"), "/status/state is 'banana', not one of running,"),
+    (_set_status("state", np.zeros(0, dtype="S16")), "/status/state holds 0 values"),
+    (_set_status("reason", np.array([1.0])), "/status/reason is not UTF-8 text"),
+], ids=["negative-samples", "names-not-json", "float-samples", "too-few-samples", "updated-nan", "updated-negative",
+        "unknown-state", "no-state", "numeric-reason"])
+def test_nonsense_in_the_status_group_is_one_line_naming_file_and_field(short_run: Path, tmp_path: Path,
+                                                                        command: str, damage, said: str) -> None:
+    """Found by an outside tester: a negative /status/samples was read as a slice from the end (``t[:-100]``):
+    inspect showed -100 records, export and fit went on with the wrong records, plot failed with numpy's words.
+    Every reader refuses such a file in one line naming it and the field."""
+    import shutil
+
+    import h5py
+    from typer.testing import CliRunner
+
+    from bench.cli import app
+
+    run = tmp_path / "status.h5"
+    shutil.copy2(short_run, run)
+    with h5py.File(run, "r+") as f:
+        damage(f)
+    out = {"report": ["--out", str(tmp_path / "report")], "export": ["--csv", str(tmp_path / "csv")],
+           "plot": ["--out", str(tmp_path / "plot.png")]}.get(command, [])
+    res = CliRunner().invoke(app, [command, str(run), *out])
+    lines = res.output.strip().splitlines()
+    assert res.exit_code == 2 and len(lines) == 1, res.output
+    assert f"run file {run}: {said}" in " ".join(res.output.split()), res.output
+    assert not (tmp_path / "csv").exists() or not any((tmp_path / "csv").iterdir())
+
+
 def test_an_export_into_a_missing_folder_is_refused_before_the_fit(short_run: Path, tmp_path: Path) -> None:
     """`bench fit --export nodir/x.toml` fitted and stored, then failed at the export: a second try stored the fit
     again (found by an exploratory test). Refused before anything is fitted or stored."""

@@ -105,7 +105,7 @@ def to_csv(run_path: str | Path, folder: str | Path, progress: Progress | None =
         out.mkdir(parents=True, exist_ok=True)
     written = []
     with open_h5(Path(run_path)) as f:
-        streams = StreamChunks(f)
+        streams = StreamChunks(f, run_path)
         total, done = _records(streams), 0
         for stream in streams.length:
             units = streams.units(stream)
@@ -155,7 +155,7 @@ def mat_version(run_path: str | Path, asked: MatVersion = "auto") -> Literal["5"
     if asked != "auto":
         return asked
     with open_h5(Path(run_path)) as f:
-        streams = StreamChunks(f)
+        streams = StreamChunks(f, run_path)
         big = any(streams.nbytes(s) > MAT5_MAX_STREAM_BYTES for s in streams.length)
     return "7.3" if big else "5"
 
@@ -269,7 +269,7 @@ def _to_mat73(run_path: str | Path, target: Path, progress: Progress | None = No
     events = run.event_list()
     meta = _mat_metadata(run)
     with open_h5(Path(run_path)) as src:
-        streams = StreamChunks(src)
+        streams = StreamChunks(src, run_path)
         total, done = _records(streams), 0
         with _into(target):
             out = h5py.File(target, "w", userblock_size=512)

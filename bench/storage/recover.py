@@ -19,7 +19,6 @@ attribute ``recovered_root`` says what was lost). Any other file is refused in o
 from __future__ import annotations
 
 import contextlib
-import json
 import os
 import shutil
 from dataclasses import dataclass, field
@@ -30,7 +29,7 @@ import h5py
 
 from bench.storage.recorder import FORMAT, FORMATS, STATES, abandon, cause, ignore_sigxfsz, now_iso
 from bench.storage.repair import Patches, open_view, root_attribute_patches, superblock_patches, write_patches
-from bench.storage.runfile import open_run, refuse_truncated
+from bench.storage.runfile import open_run, refuse_truncated, valid_counts
 from bench.storage.superblock import Superblock, open_elsewhere, read_superblock
 
 RECOVERED_REASON = "recovered after crash"
@@ -242,8 +241,7 @@ def _rebuild_root(f: h5py.File, fmt: str, kept: dict[str, Any]) -> list[str]:
 def _trim(f: h5py.File) -> list[str]:
     """Cut every dataset to the records the writer confirmed, so no tool shows zero-filled records."""
     if "samples" in f["status"]:
-        d = f["status/samples"]
-        valid = dict(zip(json.loads(d.attrs["names"]), (int(n) for n in d[:]), strict=True))
+        valid = valid_counts(f)  # a negative count would cut records the writer confirmed: refused
     else:
         valid = {name: min(d.shape[0] for d in f[name].values()) for name in f
                  if isinstance(f[name], h5py.Group) and "t" in f[name]}
