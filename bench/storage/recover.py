@@ -27,12 +27,13 @@ from typing import Any
 
 import h5py
 
-from bench.storage.recorder import FORMAT, FORMATS, STATES, abandon, cause, ignore_sigxfsz, now_iso
+from bench.storage.recorder import FORMAT, FORMATS, STATES, STORAGE_FAULT, abandon, cause, ignore_sigxfsz, now_iso
 from bench.storage.repair import Patches, open_view, root_attribute_patches, superblock_patches, write_patches
 from bench.storage.runfile import open_run, refuse_truncated, valid_counts
 from bench.storage.superblock import Superblock, open_elsewhere, read_superblock
 
 RECOVERED_REASON = "recovered after crash"
+FAULT_REASON = "recovered after the storage fault"  # the writer marked /status/reason "storage fault: …"
 REBUILT_REASON = "recovered: end stamp failed, root attributes rebuilt from /status"
 LOST = ("root attributes unreadable (the end stamp of an earlier version failed on a full disk): rebuilt from "
         "/status and the attributes that could still be read one by one")
@@ -126,7 +127,8 @@ def recover(path: str | Path) -> RecoveryReport:
             if report.actions:
                 f.attrs["recovered_at"] = now_iso()
                 before = f["status/reason"][0].decode(errors="replace")  # a run killed while stamping its end
-                note = REBUILT_REASON if kept is not None else RECOVERED_REASON
+                note = (REBUILT_REASON if kept is not None else FAULT_REASON if before.startswith(STORAGE_FAULT)
+                        else RECOVERED_REASON)
                 tail = f" | {note}" if before else note  # such a run keeps its reason
                 head_of = before.encode()[:400 - len(tail)].decode(errors="ignore")  # whole characters only
                 f["status/reason"][0] = (head_of + tail).encode()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import functools
 import io
 import json
@@ -15,7 +16,7 @@ from typing import Any
 import h5py
 import numpy as np
 
-from bench.storage.recorder import EVENT_FIELDS, FORMATS, PROGRAM_FIELDS, STATES
+from bench.storage.recorder import EVENT_FIELDS, FORMATS, PROGRAM_FIELDS, STATES, STORAGE_FAULT
 from bench.storage.superblock import clear_consistency_flags, open_elsewhere, read_superblock
 
 
@@ -55,10 +56,22 @@ class RunFile:
         return str(self.attrs.get("recovered_at", ""))
 
     @property
+    def storage_fault(self) -> str:
+        """Why writing the file failed, as its writer marked ``/status/reason`` then ('' if it did not)."""
+        if self.state == "running" and self.reason.startswith(STORAGE_FAULT):
+            return self.reason[len(STORAGE_FAULT):].split(" | ")[0]
+        return ""
+
+    @property
     def incomplete_reason(self) -> str:
         """Why the file is not a complete record ('' if it is)."""
         if self.complete:
             return ""
+        if self.storage_fault:
+            full = any(f"(errno {e})" in self.storage_fault for e in (errno.ENOSPC, errno.EDQUOT))
+            why = "the disk was full: " if full else ""
+            return (f"no end recorded: {why}writing the file failed ({self.storage_fault})"
+                    + (f"; file recovered at {self.recovered_at}" if self.recovered_at else ""))
         if self.recovered_at and self.state != "running":  # its end is in /status: the stamp of the root failed
             return f"finished ({self.state}) but not finalised (file recovered at {self.recovered_at})"
         if self.recovered_at:
