@@ -361,9 +361,9 @@ def test_a_damaged_or_empty_record_is_one_line_not_a_traceback(short_run: Path, 
 @pytest.mark.parametrize(("stored", "said"), [
     ("{not json", "is not valid JSON"),
     ("[1, 2]", "is not a JSON object"),
-    ('{"kind": "membrane"}', "lacks the specimen's 'kind' (text) or 'model'"),
+    ('{"model": {}}', "has no 'kind' (text)"),
     (None, "is missing"),
-], ids=["garbled", "a-list", "no-model", "missing"])
+], ids=["garbled", "a-list", "no-kind", "missing"])
 def test_a_bad_specimen_attribute_is_one_line_naming_file_and_attribute(short_run: Path, tmp_path: Path,
                                                                         args: list[str], stored: str | None,
                                                                         said: str) -> None:
@@ -390,6 +390,30 @@ def test_a_bad_specimen_attribute_is_one_line_naming_file_and_attribute(short_ru
     assert res.exit_code == 2 and len(lines) == 1, res.output
     text = " ".join(res.output.split())
     assert f"run file {run}: attribute 'specimen' {said}" in text, res.output
+    assert not list(tmp_path.glob("*.fit.hdf5"))
+
+
+@pytest.mark.parametrize("model", ["membrane", "lsdea"])
+def test_a_specimen_without_its_model_is_not_fitted(short_run: Path, tmp_path: Path, model: str) -> None:
+    """The fit starts from the specimen's model stored in the run file: without one, one line naming the file and
+    the attribute (was a KeyError traceback), and nothing stored. The report needs no model."""
+    import shutil
+
+    import h5py
+    from typer.testing import CliRunner
+
+    from bench.cli import app
+
+    run = tmp_path / "specimen.h5"
+    shutil.copy2(short_run, run)
+    with h5py.File(run, "r+") as f:
+        f.attrs["specimen"] = '{"kind": "membrane"}'
+    res = CliRunner().invoke(app, ["fit", str(run), "--model", model, "--starts", "1", "--no-intervals",
+                                   "--generations", "1"])
+    lines = res.output.strip().splitlines()
+    assert res.exit_code == 2 and len(lines) == 1, res.output
+    assert f"run file {run}: attribute 'specimen' has no 'model' (an object)" in " ".join(res.output.split()), \
+        res.output
     assert not list(tmp_path.glob("*.fit.hdf5"))
 
 

@@ -166,7 +166,7 @@ def analyse_source(src: RunSource, last_cycles: int = 3) -> RunAnalysis:
     """:func:`analyse` on a run file already open."""
     run, streams = src.run, src.streams
     protocol = protocol_of(run)
-    spec = run.specimen
+    spec = run.specimen()
     kind_of_specimen = spec["kind"]
     config = spec.get("lsdea", {}).get("configuration", "membrane") if kind_of_specimen == "lsdea" else "membrane"
     history = run.specimen_changes()

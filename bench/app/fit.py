@@ -45,7 +45,7 @@ def model_of_runs(runs: list[Path], asked: str = "auto") -> str:
     (ValueError when they hold different ones)."""
     from bench.storage.runfile import open_run
 
-    kinds = {open_run(p, streams=False).specimen["kind"] for p in runs}
+    kinds = {open_run(p, streams=False).specimen()["kind"] for p in runs}
     chosen = asked if asked != "auto" else (kinds.pop() if len(kinds) == 1 else "")
     if not chosen:
         raise ValueError("the run files hold different specimens: fit them separately or pass --model")

@@ -176,7 +176,7 @@ class MembraneProblem(MonitorCalibration):
         self.unit_groups = [[1 + i, 5 + i, 9 + i] for i in range(1, 5)]
 
     def _add(self, run: RunFile, source: str) -> None:
-        spec = run.specimen
+        spec = run.specimen(model=True)
         if spec["kind"] != "membrane" or "laser" not in run.streams:
             raise ValueError(f"run file {source}: not a membrane run with laser data")
         model = spec["model"]
@@ -348,7 +348,7 @@ class LozengeProblem(MonitorCalibration):
         self.data_unit = "m" if hung == {True} else "N" if hung == {False} else "N and m"
 
     def _add(self, run: RunFile, source: str) -> None:
-        spec = run.specimen
+        spec = run.specimen(model=True)
         if spec["kind"] != "lsdea":
             raise ValueError(f"run file {source}: not an LS-DEA run")
         lsdea, over = spec["lsdea"], spec.get("overrides", {})

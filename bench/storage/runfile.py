@@ -83,10 +83,10 @@ class RunFile:
             return "no end recorded: the run is still going, or it crashed / was killed"
         return "finished but not finalised (writer stopped before stamping the file)"
 
-    @property
-    def specimen(self) -> dict[str, Any]:
-        """The ``specimen`` attribute: the specimen the run was made on and its model (:func:`specimen_of`)."""
-        return specimen_of(self.attrs, self.path)
+    def specimen(self, model: bool = False) -> dict[str, Any]:
+        """The ``specimen`` attribute: the specimen the run was made on, with its ``model`` if asked (a fit needs
+        it); :func:`specimen_of`."""
+        return specimen_of(self.attrs, self.path, model)
 
     def event_list(self) -> list[tuple[float, int, str, str]]:
         """Events as (t, step, kind, text)."""
@@ -123,11 +123,12 @@ class RunFile:
         return out
 
 
-def specimen_of(attrs: Mapping[str, Any], p: Path) -> dict[str, Any]:
+def specimen_of(attrs: Mapping[str, Any], p: Path, model: bool = False) -> dict[str, Any]:
     """The run file ``p``'s ``specimen`` attribute (JSON: the rig's specimen, its ``kind`` and ``model``, and a
     protocol's ``overrides``) from its root attributes ``attrs``. ValueError (one line naming the file and the
-    attribute) when it is missing, not JSON, or not an object with a ``kind`` and a ``model``: every reader of the
-    specimen goes through here, so a damaged or hand-edited attribute is refused alike wherever it is read."""
+    attribute) when it is missing, not JSON, not an object with a ``kind``, or — with ``model`` (a fit) — without a
+    ``model`` object: every reader of the specimen goes through here, so a damaged or hand-edited attribute is
+    refused alike wherever it is read."""
     where = f"run file {p}: attribute 'specimen'"
     if "specimen" not in attrs:
         raise ValueError(f"{where} is missing")
@@ -138,8 +139,10 @@ def specimen_of(attrs: Mapping[str, Any], p: Path) -> dict[str, Any]:
         raise ValueError(f"{where} is not valid JSON ({' '.join(str(exc).split())[:200]})") from None
     if not isinstance(spec, dict):
         raise ValueError(f"{where} is not a JSON object (a {type(spec).__name__})")
-    if not isinstance(spec.get("kind"), str) or not isinstance(spec.get("model"), dict):
-        raise ValueError(f"{where} lacks the specimen's 'kind' (text) or 'model' (an object)")
+    if not isinstance(spec.get("kind"), str):
+        raise ValueError(f"{where} has no 'kind' (text): the kind of specimen")
+    if model and not isinstance(spec.get("model"), dict):
+        raise ValueError(f"{where} has no 'model' (an object): the specimen's model, which the fit starts from")
     return spec
 
 
