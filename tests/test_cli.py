@@ -106,3 +106,37 @@ def test_demo_runs_records_fits_and_reports_from_the_file(tmp_path) -> None:
     report = files[0].with_name(files[0].stem + "-report")
     assert (report / "displacement_vs_time.png").stat().st_size > 10_000
     assert json.loads((report / "figures.json").read_text())[0]["kind"] == "thesis"
+
+
+def test_ctrl_c_while_validating_says_so_in_one_line_and_exits_130(tmp_path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """Found by an outside tester: Ctrl-C while `bench run` validated the protocol (dry run on the model, before
+    anything is connected) ended with exit 130 and not a word (typer's KeyboardInterrupt). One line now, still 130,
+    and nothing made: no run file, no log."""
+    import contextlib
+    import os
+    import signal
+    from pathlib import Path
+
+    import bench.cli.run as cli_run
+
+    @contextlib.contextmanager
+    def ctrl_c_on_progress(_what: str):  # type: ignore[no-untyped-def]
+        def tick(fraction: float) -> None:  # the dry run on the model reports its progress: Ctrl-C mid-way
+            if 0 < fraction < 1:
+                os.kill(os.getpid(), signal.SIGINT)
+        yield tick
+
+    monkeypatch.setattr(cli_run, "progress", ctrl_c_on_progress)
+    # SIGINT raising KeyboardInterrupt, as in a `bench` started from a terminal (a suite started as a background job
+    # of a non-interactive shell inherits SIGINT ignored)
+    was = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        protocol = Path(__file__).resolve().parent.parent / "protocols" / "short" / "thesis-identification-short.toml"
+        res = CliRunner().invoke(app, ["run", str(protocol), "--virtual-time", "--no-live", "--yes",
+                                       "--out", str(tmp_path / "runs")])
+    finally:
+        signal.signal(signal.SIGINT, was)
+    lines = res.output.strip().splitlines()
+    assert res.exit_code == 130, res.output
+    assert lines == ["error: interrupted by Ctrl-C before the run started; nothing was connected"], res.output
+    assert not (tmp_path / "runs").exists() or not list((tmp_path / "runs").rglob("*.h5"))

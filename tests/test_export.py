@@ -143,3 +143,46 @@ def test_progress_is_told_the_share_of_records_written_up_to_all(run_file: Path,
         streams = [s for s in counts if s != "events" and s in f]
         chunks = sum(-(-int(counts[s]) // 20_000) for s in streams if counts[s])
     assert len(seen) == chunks and seen == sorted(seen) and seen[-1] == pytest.approx(1.0)
+
+
+def _one_line_error(res, target: Path) -> None:  # type: ignore[no-untyped-def]
+    lines = res.output.strip().splitlines()
+    assert res.exit_code == 2 and len(lines) == 1, res.output
+    assert str(target) in lines[0] and "Traceback" not in res.output
+
+
+@pytest.mark.parametrize("version", ["5", "7.3"])
+def test_an_unwritable_mat_target_is_named_in_one_line(run_file: Path, tmp_path: Path, version: str) -> None:
+    targets = [tmp_path]  # a folder where the file should go
+    if Path("/proc/self").is_dir():
+        targets.append(Path("/proc/x.mat"))  # the outside tester's: a folder no file can be created in
+    for target in targets:
+        res = CliRunner().invoke(app, ["export", str(run_file), "--mat", str(target), "--mat-version", version])
+        _one_line_error(res, target)
+
+
+def test_an_unwritable_csv_target_is_named_in_one_line(run_file: Path, tmp_path: Path) -> None:
+    (tmp_path / "taken").write_text("a file, not a folder", encoding="utf-8")
+    target = tmp_path / "taken" / "csv"
+    res = CliRunner().invoke(app, ["export", str(run_file), "--csv", str(target)])
+    _one_line_error(res, target)
+
+
+@pytest.mark.parametrize("version", ["5", "7.3"])
+def test_a_full_disk_names_the_mat_target_and_leaves_no_cut_off_file(run_file: Path, tmp_path: Path, version: str,
+                                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    import errno
+
+    import scipy.io
+
+    import bench.storage.export as export
+
+    def full(*_args: object, **_kwargs: object) -> None:
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(scipy.io, "savemat", full)
+    monkeypatch.setattr(export, "_char", full)  # v7.3: a write after the streams
+    target = tmp_path / "run.mat"
+    res = CliRunner().invoke(app, ["export", str(run_file), "--mat", str(target), "--mat-version", version])
+    _one_line_error(res, target)
+    assert "No space left on device" in res.output and not target.exists()

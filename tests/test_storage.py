@@ -263,6 +263,43 @@ def test_disk_full_fails_once_cleanly_and_keeps_every_flushed_sample(tmp_path: P
     _check_recovers(Path(moved), out["confirmed"])
 
 
+@pytest.mark.parametrize("fault", ["disk-full", "file-size-limit"])
+def test_a_file_whose_writing_failed_says_why_not_crashed_before_and_after_recover(tmp_path: Path,
+                                                                                   fault: str) -> None:
+    """Found by an outside tester: a file recovered after its disk filled was described as "the run crashed or was
+    killed". The writer marks the failure in /status/reason (in place: no new space), so readers and `bench
+    recover` say the disk was full (ENOSPC) — or, for another failure, that writing the file failed, and why."""
+    if fault == "disk-full":
+        with _tmpfs(tmp_path / "small", "256k") as disk:
+            _, out = _run_fault_writer(disk / "run.h5")
+            moved = Path(shutil.copy(disk / "run.h5", tmp_path / "run.h5"))  # where there is space to recover
+        said, cause = "the disk was full", f"{os.strerror(errno.ENOSPC)} (errno {errno.ENOSPC})"
+    else:
+        _, out = _run_fault_writer(tmp_path / "run.h5", _limit_file_size(300_000))
+        moved, said, cause = tmp_path / "run.h5", "writing the file failed", f"(errno {errno.EFBIG})"
+    assert len(out["errors"]) == 1 and cause in out["errors"][0], out["errors"]
+    run = open_run(moved)
+    assert run.state == "running" and not run.complete
+    for text in (run.incomplete_reason, " ".join(_inspect(moved).split())):
+        assert said in text and cause in text and "crashed" not in text, text
+    res = subprocess.run([sys.executable, "-m", "bench", "recover", str(moved)], capture_output=True, text=True,
+                         timeout=60, cwd=ROOT, env=_env())
+    assert res.returncode == 0, res.stdout + res.stderr
+    assert said in res.stdout and cause in res.stdout and "crashed" not in res.stdout, res.stdout
+    assert (fault == "disk-full") == ("the disk was full" in res.stdout)
+    with h5py.File(moved, "r") as f:
+        reason = f["status/reason"][0].decode()
+    assert reason.startswith("storage fault: run file ") and reason.endswith("| recovered after the storage fault")
+    _check_known_record(moved, out["confirmed"])
+
+
+def _inspect(path: Path) -> str:
+    res = subprocess.run([sys.executable, "-m", "bench", "inspect", str(path)], capture_output=True, text=True,
+                         timeout=60, cwd=ROOT, env=_env())
+    assert res.returncode in (0, 1), res.stdout + res.stderr  # 1: an incomplete file
+    return res.stdout
+
+
 @pytest.mark.parametrize("limit", [
     300_000,  # the first flush in the run fails (a complete file of this run is ~840 kB)
     600_000,  # only the final flush fails: the run ended, but its end is not on file — still an error

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from bench.storage.chunks import StreamChunks
-from bench.storage.runfile import RunFile
+from bench.storage.runfile import RunFile, refuse_nonfinite
 
 
 @dataclass(frozen=True)
@@ -42,12 +42,14 @@ def applied_voltage(run: RunFile, measured: bool = False) -> VoltageTrace:
     all), the set-points filling the time between streamed steps. On a software-timed rig the monitor is
     polled a few times a second, too sparse to stand for the drive: the set-points are used either way."""
     sp = run.streams["setpoints"]
+    refuse_nonfinite(run.path, "setpoints", "voltage", sp.t, sp.columns["voltage"])  # NaN: a motor-only row
     keep = np.isfinite(sp.columns["voltage"])
     t_sp, v_sp = sp.t[keep], sp.columns["voltage"][keep]
     amp = run.streams.get("amplifier")
     if amp is None or "commanded" not in amp.columns or len(amp) == 0:
         return VoltageTrace(t_sp, v_sp, "setpoints")
     column = "voltage" if measured else "commanded"
+    refuse_nonfinite(run.path, "amplifier", column, amp.t, amp.columns[column], nan=False)
     t = np.concatenate([t_sp, amp.t])
     v = np.concatenate([v_sp, amp.columns[column]])
     order = np.argsort(t, kind="stable")
@@ -69,6 +71,7 @@ def applied_window(streams: StreamChunks, t0: float, t1: float, measured: bool =
         return VoltageTrace(sp["t"], sp["voltage"], "setpoints")
     column = "voltage" if measured else "commanded"
     amp = streams.window("amplifier", t0, t1, [column], neighbours=True)
+    refuse_nonfinite(streams.f.filename, "amplifier", column, amp["t"], amp[column], nan=False)
     t = np.concatenate([sp["t"], amp["t"]])
     v = np.concatenate([sp["voltage"], amp[column]])
     order = np.argsort(t, kind="stable")

@@ -17,7 +17,6 @@ so memory follows the longest step, never the record's length.
 
 from __future__ import annotations
 
-import json
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -31,7 +30,7 @@ from bench.analysis.thesis import cycle_figures
 from bench.models.lozenge import LozengeParams
 from bench.protocol.schema import Protocol, WaveformStep, load_protocol
 from bench.storage.chunks import RunSource, StreamChunks, open_source
-from bench.storage.runfile import RunFile
+from bench.storage.runfile import RunFile, refuse_nonfinite
 
 PAPER_GRAVITY = 9.81  # m/s²: the value behind the paper's loads (3.1 / 4.6 / 4.9 N), not standard gravity
 TOL_S = 1e-9  # a window's bounds are widened by this much (step times are sums of floats)
@@ -125,6 +124,7 @@ def _window(streams: StreamChunks, stream: str, t0: float, t1: float, columns: l
             raise ValueError(f"run file {streams.f.filename}: {stream}/{name} is in {units.get(name)!r}, the "
                              f"analysis reads {want!r}")
     for name in columns:
+        refuse_nonfinite(streams.f.filename, stream, name, out["t"], out[name])
         if not np.isfinite(out[name]).any():
             raise ValueError(f"run file {streams.f.filename}: no valid {stream} {name} between {t0:.3f} and {t1:.3f} s "
                              "(the sensor read out of range or invalid throughout): nothing to analyse")
@@ -166,7 +166,7 @@ def analyse_source(src: RunSource, last_cycles: int = 3) -> RunAnalysis:
     """:func:`analyse` on a run file already open."""
     run, streams = src.run, src.streams
     protocol = protocol_of(run)
-    spec = json.loads(run.attrs["specimen"])
+    spec = run.specimen()
     kind_of_specimen = spec["kind"]
     config = spec.get("lsdea", {}).get("configuration", "membrane") if kind_of_specimen == "lsdea" else "membrane"
     history = run.specimen_changes()

@@ -43,11 +43,9 @@ class Fitted:
 def model_of_runs(runs: list[Path], asked: str = "auto") -> str:
     """The model to fit: ``asked`` ("membrane", "lsdea"), or with "auto" the specimen kind the run files share
     (ValueError when they hold different ones)."""
-    import json
-
     from bench.storage.runfile import open_run
 
-    kinds = {json.loads(open_run(p, streams=False).attrs["specimen"])["kind"] for p in runs}
+    kinds = {open_run(p, streams=False).specimen()["kind"] for p in runs}
     chosen = asked if asked != "auto" else (kinds.pop() if len(kinds) == 1 else "")
     if not chosen:
         raise ValueError("the run files hold different specimens: fit them separately or pass --model")

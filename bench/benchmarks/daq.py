@@ -8,7 +8,6 @@ reference (Δλ), the repeatability of real-time isotonic runs, a wall-clock str
 from __future__ import annotations
 
 import contextlib
-import json
 import math
 import tempfile
 import time
@@ -61,7 +60,7 @@ def fidelity(tmp: Path) -> list[Figure]:
     noise is off: with it the maximum of |Δλ| over 100,000 raw samples reads the LK-G's noise, not the chain."""
     rig = noise_free_rig(RIGS / "thesis-daq-sim.toml", tmp)
     result, f, wall = _run(SHORT / "thesis-identification-short.toml", rig, tmp, True, "fidelity")
-    model = json.loads(f.attrs["specimen"])["model"]
+    model = f.specimen(model=True)["model"]
     kwargs: dict[str, Any] = {k: tuple(v) if isinstance(v, list) else v for k, v in model.items()}
     p = MembraneParams(**kwargs)
     smooth = simulate_membrane(p, Waveform("raised_cosine", 7000.0, 1 / 9), 10.0, fs=10_000.0)

@@ -6,13 +6,13 @@ import contextlib
 import logging
 import math
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from bench.cli.common import JsonOpt, Table, clean_errors, console, escape, json_mode, print_json, progress
+from bench.cli.common import JsonOpt, Table, clean_errors, console, escape, fail, json_mode, print_json, progress
 from bench.cli.completion import protocol_files, protocol_names, rig_files
 from bench.cli.logs import log, run_log
 
@@ -172,16 +172,16 @@ def run(
     brings the output to 0 V and holds, `bench resume RUN.h5` (or SIGUSR2) restarts the step it left."""
     from bench.app.runs import check_executable, execute_run, prepare_run
 
-    with progress("recovering if needed, validating and dry-running the stored protocol" if resume else
-                  "validating and dry-running the protocol on the model") as done:
+    with _before_the_run(), progress("recovering if needed, validating and dry-running the stored protocol"
+                                     if resume else "validating and dry-running the protocol on the model") as done:
         prepared = prepare_run(protocol_file, rig=rig, sim=sim, out=out, resume=resume, operator=operator_name,
                                specimen_id=specimen_id, notes=note, why=why, dry_run=dry_run, progress=done,
                                on_recovered=lambda line: console.print(f"recovered: {escape(line)}"))
-    _show_prepared(prepared)
+    _show_prepared(prepared, dry_run)
     if dry_run:
-        console.print("[green]dry run[/]: nothing was touched")
         return
-    check_executable(prepared, virtual_time=virtual_time, can_confirm=yes or sys.stdin.isatty())
+    with _before_the_run():
+        check_executable(prepared, virtual_time=virtual_time, can_confirm=yes or sys.stdin.isatty())
 
     def operator(message: str) -> bool:
         from rich.prompt import Confirm
@@ -205,8 +205,20 @@ def run(
         raise typer.Exit(1)
 
 
-def _show_prepared(prepared: PreparedRun) -> None:
-    """What was done to get the run ready (a reset latch, warnings), the plan's summary, where a campaign resumes."""
+@contextlib.contextmanager
+def _before_the_run() -> Iterator[None]:
+    """Ctrl-C before the run starts (recovering a resumed file, validating, dry-running on the model): nothing is
+    connected yet, and typer would end the command with exit 130 and not a word. One line, and exit 130 still (the
+    run's own phases, from starting the rig on, say what they were doing: :func:`execute_run`)."""
+    try:
+        yield
+    except KeyboardInterrupt:
+        raise fail("interrupted by Ctrl-C before the run started; nothing was connected", code=130) from None
+
+
+def _show_prepared(prepared: PreparedRun, dry_run: bool = False) -> None:
+    """What was done to get the run ready (a reset latch, warnings), the plan's summary, where a campaign resumes;
+    that nothing was touched, on a ``dry_run``."""
     plan, link = prepared.plan, prepared.link
     if prepared.reset is not None:
         who, why = prepared.reset
@@ -218,6 +230,8 @@ def _show_prepared(prepared: PreparedRun) -> None:
         seg = plan.program.segments[link.step]
         console.print(f"resuming the campaign of {escape(str(link.previous))} at step {link.step + 1} of {link.steps} "
                       f"({escape(seg.name)}); {link.step} step(s) completed there")
+    if dry_run:
+        console.print("[green]dry run[/]: nothing was touched")
 
 
 def _log_plan(prepared: PreparedRun, protocol_file: Path | None, virtual_time: bool) -> None:

@@ -25,7 +25,6 @@ over 1 ms.
 from __future__ import annotations
 
 import itertools
-import json
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -43,7 +42,7 @@ from bench.models.lozenge import MODE_HUNG, MODE_IMPOSED, PROTOTYPE_LAMBDA2P, Lo
 from bench.models.lozenge_batch import lozenge_batch
 from bench.models.membrane import MembraneParams
 from bench.models.membrane_batch import membrane_batch_records
-from bench.storage.runfile import RunFile, open_run
+from bench.storage.runfile import RunFile, open_run, refuse_nonfinite
 
 if TYPE_CHECKING:
     from distributed import Client
@@ -177,7 +176,7 @@ class MembraneProblem(MonitorCalibration):
         self.unit_groups = [[1 + i, 5 + i, 9 + i] for i in range(1, 5)]
 
     def _add(self, run: RunFile, source: str) -> None:
-        spec = json.loads(run.attrs["specimen"])
+        spec = run.specimen(model=True)
         if spec["kind"] != "membrane" or "laser" not in run.streams:
             raise ValueError(f"run file {source}: not a membrane run with laser data")
         model = spec["model"]
@@ -190,6 +189,7 @@ class MembraneProblem(MonitorCalibration):
         changes = [(te, v["temperature_K"]) for te, v in run.specimen_changes() if "temperature_K" in v]
         laser = run.streams["laser"]
         ok = laser.columns["valid"] > 0
+        refuse_nonfinite(run.path, "laser", "displacement", laser.t[ok], laser.columns["displacement"][ok])
         sample = _window_means if self.average else _sampled
         head = floors.laser_noise_m(floors.stored_rig(run))
         windows = _record_windows(sp.t, sp.v, run.updated, self.split_rest, self.keep_rest)
@@ -348,7 +348,7 @@ class LozengeProblem(MonitorCalibration):
         self.data_unit = "m" if hung == {True} else "N" if hung == {False} else "N and m"
 
     def _add(self, run: RunFile, source: str) -> None:
-        spec = json.loads(run.attrs["specimen"])
+        spec = run.specimen(model=True)
         if spec["kind"] != "lsdea":
             raise ValueError(f"run file {source}: not an LS-DEA run")
         lsdea, over = spec["lsdea"], spec.get("overrides", {})
@@ -363,6 +363,10 @@ class LozengeProblem(MonitorCalibration):
         cuts = sorted({0.0, *[t for t, _ in changes], run.updated})
         sp = applied_voltage(run, measured=True)
         measured = sp.source == "measured"
+        for stream, column in (("laser", "displacement"), ("motor", "aperture"), ("load_cell", "force")):
+            if stream in run.streams:
+                got = run.streams[stream]
+                refuse_nonfinite(run.path, stream, column, got.t, got.columns[column])
         self._note_run(run, source, measured)
         rig = floors.stored_rig(run)
         stride = max(1, round(1.0 / (self.data_rate * self.h)))

@@ -388,7 +388,7 @@ def _text(v: Any) -> str:
 def hv_statistics(path: Path, threshold: float = HV_THRESHOLD_V) -> HvStats:
     """Time under high voltage, high-voltage cycles and peak |V| from the measured amplifier voltage, read in
     chunks (see the module's docstring for the definitions). Zero for a file with no amplifier stream."""
-    from bench.storage.runfile import open_h5
+    from bench.storage.runfile import open_h5, valid_counts
 
     acc = HvAccumulator(threshold)
     chunk = hv_stats.CHUNK
@@ -399,10 +399,7 @@ def hv_statistics(path: Path, threshold: float = HV_THRESHOLD_V) -> HvStats:
         for d in (g["t"], g["voltage"]):
             d.refresh()
         n = min(g["t"].shape[0], g["voltage"].shape[0])
-        if "samples" in f["status"]:
-            f["status/samples"].refresh()
-            counts = dict(zip(json.loads(f["status/samples"].attrs["names"]), f["status/samples"][:], strict=True))
-            n = min(n, int(counts.get("amplifier", n)))
+        n = min(n, valid_counts(f, path).get("amplifier", n))
         for k in range(0, n, chunk):
             acc.chunk(g["t"][k:min(k + chunk, n)], g["voltage"][k:min(k + chunk, n)])
     return acc.stats()

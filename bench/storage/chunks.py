@@ -26,9 +26,10 @@ CHUNK_ROWS = 262_144  # records per stream read at a time (a few MB per column)
 class StreamChunks:
     """The run file's streams, read a chunk at a time: names, units, lengths trimmed to the confirmed records."""
 
-    def __init__(self, f: h5py.File) -> None:
+    def __init__(self, f: h5py.File, path: str | Path | None = None) -> None:
         self.f = f
-        valid = valid_counts(f)
+        self.path = Path(path if path is not None else f.filename)  # for messages (an in-memory copy has no name)
+        valid = valid_counts(f, self.path)
         self.length: dict[str, int] = {}
         self.columns: dict[str, list[str]] = {}
         for name in stream_names(f):
@@ -216,4 +217,4 @@ def open_source(path: str | Path) -> Iterator[RunSource]:
             run = read_run(f, p)
         except (OSError, UnicodeDecodeError) as exc:  # as open_run says it
             raise damaged(p, exc) from None
-        yield RunSource(run, StreamChunks(f))
+        yield RunSource(run, StreamChunks(f, p))

@@ -19,10 +19,12 @@ not grow with the length of the run (``bench benchmark export`` prints it).
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import json
 import re
-from collections.abc import Callable
+import stat
+from collections.abc import Callable, Iterator
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any, Literal
@@ -31,6 +33,7 @@ import h5py
 import numpy as np
 
 from bench.storage.chunks import StreamChunks
+from bench.storage.recorder import cause
 from bench.storage.runfile import RunFile, open_h5, open_run
 
 MAT5_MAX_STREAM_BYTES = 256 * 2**20  # auto: above this a stream goes to MAT v7.3, written in chunks
@@ -65,6 +68,30 @@ def _formats(streams: StreamChunks, stream: str) -> list[str]:
 Progress = Callable[[float], None]  # fraction of the run's records written, 0 … 1
 
 
+@contextlib.contextmanager
+def _into(target: Path) -> Iterator[None]:
+    """A failure to write the export's ``target`` (no such folder, not writable, a folder, disk full) as one line
+    naming it: the OSError of a write names no file (``No space left on device``), scipy's failed open says
+    ``Reader needs file name``, HDF5's a paragraph."""
+    try:
+        yield
+    except OSError as exc:
+        raise OSError(f"{target}: cannot write the export: {cause(exc)}") from None
+
+
+@contextlib.contextmanager
+def _no_partial(target: Path) -> Iterator[None]:
+    """Remove ``target``, written by the export, if writing it fails: a cut-off file would pass for an export.
+    Only a plain file: a device (``/dev/full``) or a pipe given as the target stays."""
+    try:
+        yield
+    except BaseException:
+        with contextlib.suppress(OSError):
+            if stat.S_ISREG(target.lstat().st_mode):
+                target.unlink()
+        raise
+
+
 def _records(streams: StreamChunks) -> int:
     return max(sum(streams.length.values()), 1)
 
@@ -74,32 +101,45 @@ def to_csv(run_path: str | Path, folder: str | Path, progress: Progress | None =
     ``progress`` is told the fraction of the records written after every chunk."""
     run = open_run(run_path, streams=False)
     out = Path(folder)
-    out.mkdir(parents=True, exist_ok=True)
+    with _into(out):
+        out.mkdir(parents=True, exist_ok=True)
     written = []
     with open_h5(Path(run_path)) as f:
-        streams = StreamChunks(f)
+        streams = StreamChunks(f, run_path)
         total, done = _records(streams), 0
         for stream in streams.length:
             units = streams.units(stream)
             row = ",".join(_formats(streams, stream)) + "\n"
             path = out / f"{stream}.csv"
-            with path.open("w", newline="", encoding="utf-8") as fh:
-                fh.write(",".join(_header(c, units[c]) for c in streams.columns[stream]) + "\n")
-                for chunk in streams.chunks(stream):
+            with _into(path):
+                fh = path.open("w", newline="", encoding="utf-8")
+            with _no_partial(path), fh:
+                with _into(path):
+                    fh.write(",".join(_header(c, units[c]) for c in streams.columns[stream]) + "\n")
+                for chunk in streams.chunks(stream):  # reads: the run file's own errors
                     table = np.column_stack([chunk[c] for c in streams.columns[stream]]).astype(np.float64)
-                    fh.write((row * table.shape[0]) % tuple(table.ravel().tolist()))  # one format call a chunk
+                    with _into(path):
+                        fh.write((row * table.shape[0]) % tuple(table.ravel().tolist()))  # one format call a chunk
                     done += table.shape[0]
                     if progress is not None:
                         progress(done / total)
+                with _into(path):
+                    fh.flush()
             written.append(path)
     path = out / "events.csv"
-    with path.open("w", newline="", encoding="utf-8") as fh:
+    with _into(path):
+        fh = path.open("w", newline="", encoding="utf-8")
+    with _into(path), _no_partial(path), fh:
         w = csv.writer(fh)
         w.writerow(["t [s]", "step", "kind", "text"])
         w.writerows([f"{t:.12g}", step, kind, text] for t, step, kind, text in run.event_list())
     written.append(path)
     path = out / "metadata.json"
-    path.write_text(json.dumps(_metadata(run), indent=1, ensure_ascii=False, default=str), encoding="utf-8")
+    text = json.dumps(_metadata(run), indent=1, ensure_ascii=False, default=str)
+    with _into(path):
+        fh = path.open("w", encoding="utf-8")
+    with _into(path), _no_partial(path), fh:
+        fh.write(text)
     written.append(path)
     return written
 
@@ -115,7 +155,7 @@ def mat_version(run_path: str | Path, asked: MatVersion = "auto") -> Literal["5"
     if asked != "auto":
         return asked
     with open_h5(Path(run_path)) as f:
-        streams = StreamChunks(f)
+        streams = StreamChunks(f, run_path)
         big = any(streams.nbytes(s) > MAT5_MAX_STREAM_BYTES for s in streams.length)
     return "7.3" if big else "5"
 
@@ -125,8 +165,10 @@ def to_mat(run_path: str | Path, path: str | Path, version: MatVersion = "auto",
     """Write the run as a MATLAB file (see the module docstring); returns its path. ``progress``: the fraction of
     the records written, after every chunk (v7.3) or once at the end (v5, written in one call)."""
     target = Path(path)
-    target.parent.mkdir(parents=True, exist_ok=True)
-    if mat_version(run_path, version) == "7.3":
+    version = mat_version(run_path, version)
+    with _into(target):
+        target.parent.mkdir(parents=True, exist_ok=True)
+    if version == "7.3":
         _to_mat73(run_path, target, progress)
     else:
         _to_mat5(run_path, target)
@@ -151,7 +193,10 @@ def _to_mat5(run_path: str | Path, target: Path) -> None:
                       "kind": np.array([e[2] for e in events], dtype=object).reshape(-1, 1),
                       "text": np.array([e[3] for e in events], dtype=object).reshape(-1, 1)}
     data["metadata"] = _mat_metadata(run)
-    savemat(target, data, do_compression=True, oned_as="column")
+    with _into(target):
+        fh = target.open("wb")
+    with _into(target), _no_partial(target), fh:
+        savemat(fh, data, do_compression=True, oned_as="column")
 
 
 def _mat_metadata(run: RunFile) -> dict[str, Any]:
@@ -221,43 +266,55 @@ def _mat73_header() -> bytes:
 
 def _to_mat73(run_path: str | Path, target: Path, progress: Progress | None = None) -> None:
     run = open_run(run_path, streams=False)
-    with open_h5(Path(run_path)) as src, h5py.File(target, "w", userblock_size=512) as out:
-        streams = StreamChunks(src)
+    events = run.event_list()
+    meta = _mat_metadata(run)
+    with open_h5(Path(run_path)) as src:
+        streams = StreamChunks(src, run_path)
         total, done = _records(streams), 0
-        for stream, n in streams.length.items():
-            cols = streams.columns[stream]
-            units = streams.units(stream)
-            g = _struct(out, _mat_name(stream), [*map(_mat_name, cols), "units"])
-            sets = {}
-            for c in cols:
-                d = g.create_dataset(_mat_name(c), shape=(1, n), dtype=np.float64, chunks=(1, min(max(n, 1), 65_536)),
-                                     compression="gzip", compression_opts=1)
-                _mat_class(d, "double")
-                sets[c] = d
-            a = 0
-            for chunk in streams.chunks(stream):
-                b = a + chunk["t"].size
-                for c in cols:
-                    sets[c][0, a:b] = chunk[c].astype(np.float64)
-                a = b
-                done += chunk["t"].size
-                if progress is not None:
-                    progress(done / total)
-            u = _struct(g, "units", [_mat_name(c) for c in cols])
-            for c in cols:
-                _char(u, _mat_name(c), [units[c]])
-        events = run.event_list()
-        ev = _struct(out, "events", ["t", "step", "kind", "text"])
-        _double(ev, "t", np.array([e[0] for e in events], dtype=float))
-        _double(ev, "step", np.array([e[1] for e in events], dtype=float))
-        _cellstr(ev, "kind", [e[2] for e in events])
-        _cellstr(ev, "text", [e[3] for e in events])
-        meta = _mat_metadata(run)
-        m = _struct(out, "metadata", list(meta))
-        for k, v in meta.items():
-            if isinstance(v, bool | int | float | np.integer | np.floating):
-                _double(m, k, np.array([float(v)]))
-            else:
-                _char(m, k, [str(v)])
-    with target.open("r+b") as fh:
-        fh.write(_mat73_header())
+        with _into(target):
+            out = h5py.File(target, "w", userblock_size=512)
+        with _no_partial(target):
+            try:
+                for stream, n in streams.length.items():
+                    cols = streams.columns[stream]
+                    units = streams.units(stream)
+                    with _into(target):
+                        g = _struct(out, _mat_name(stream), [*map(_mat_name, cols), "units"])
+                        sets = {}
+                        for c in cols:
+                            d = g.create_dataset(_mat_name(c), shape=(1, n), dtype=np.float64,
+                                                 chunks=(1, min(max(n, 1), 65_536)), compression="gzip",
+                                                 compression_opts=1)
+                            _mat_class(d, "double")
+                            sets[c] = d
+                    a = 0
+                    for chunk in streams.chunks(stream):  # reads: the run file's own errors
+                        b = a + chunk["t"].size
+                        with _into(target):
+                            for c in cols:
+                                sets[c][0, a:b] = chunk[c].astype(np.float64)
+                        a = b
+                        done += chunk["t"].size
+                        if progress is not None:
+                            progress(done / total)
+                    with _into(target):
+                        u = _struct(g, "units", [_mat_name(c) for c in cols])
+                        for c in cols:
+                            _char(u, _mat_name(c), [units[c]])
+                with _into(target):
+                    ev = _struct(out, "events", ["t", "step", "kind", "text"])
+                    _double(ev, "t", np.array([e[0] for e in events], dtype=float))
+                    _double(ev, "step", np.array([e[1] for e in events], dtype=float))
+                    _cellstr(ev, "kind", [e[2] for e in events])
+                    _cellstr(ev, "text", [e[3] for e in events])
+                    m = _struct(out, "metadata", list(meta))
+                    for k, v in meta.items():
+                        if isinstance(v, bool | int | float | np.integer | np.floating):
+                            _double(m, k, np.array([float(v)]))
+                        else:
+                            _char(m, k, [str(v)])
+            finally:
+                with _into(target):
+                    out.close()
+            with _into(target), target.open("r+b") as fh:
+                fh.write(_mat73_header())

@@ -42,7 +42,11 @@ A failed write (disk full, file-size limit, unwritable directory, any HDF5 error
 :class:`StorageError` naming the file and the cause; the recorder is then *failed*: further calls are no-ops,
 and the HDF5 handle is closed with its descriptor pointed at ``/dev/null`` — HDF5 cannot write the rest of
 its metadata to a file whose last write failed, and closing it there (or at exit) crashed the interpreter.
-The file keeps everything up to the last successful flush.
+The file keeps everything up to the last successful flush, and its ``/status/reason`` says why it stops there:
+"storage fault: <the error>" (:data:`STORAGE_FAULT`), written straight into the bytes the reason has held since the
+file was created — an overwrite in place, which needs no new space on a disk that has just filled — while the
+state stays ``running`` (the run's end is not on file). Readers and ``bench recover`` name the cause (a full
+disk) rather than a crash.
 """
 
 from __future__ import annotations
@@ -79,6 +83,7 @@ EVENT_UNITS = {"t": "s", "step": "1"}
 PROGRAM_FIELDS = ("index", "label", "name", "kind", "t_start", "duration")
 PROGRAM_UNITS = {"index": "1", "t_start": "s", "duration": "s"}
 TEXT = h5py.string_dtype("utf-8")  # variable-length UTF-8 (for data written before SWMR mode only)
+STORAGE_FAULT = "storage fault: "  # /status/reason of a file whose writing failed: the failure follows
 STATUS_TEXT = {"state": 16, "reason": 400, "end_time": 40}  # fixed-length UTF-8 fields of /status [bytes]
 STATES = ("running", "completed", "tripped", "error", "interrupted")
 # the end-of-run stamp: root attributes created with the file (text: fixed-length UTF-8 of the /status limit plus a
@@ -334,6 +339,7 @@ class Recorder:
         self._write_error: Exception | None = None  # its failure, raised by the caller's next call
         self._f: h5py.File | None = None
         self._fd: int | None = None  # its descriptor, taken at open (abandon)
+        self._reason_at: tuple[int, int, int] | None = None  # /status/reason: file offset; the file's device, inode
         self._links_counted = False  # set at open (see _unlinked)
         self._names = [*streams, "events"]
         self._counts = np.zeros(len(self._names), dtype=np.int64)  # valid records on disk, per stream and events
@@ -377,6 +383,9 @@ class Recorder:
         self._create_entry(f, list(streams))
         f.swmr_mode = True
         f.flush()
+        offset = f["status/reason"].id.get_offset()  # contiguous, written at creation: its bytes stay where they are
+        st = os.fstat(self._fd)
+        self._reason_at = (int(offset), st.st_dev, st.st_ino) if offset is not None else None
 
     @staticmethod
     def _create_stamp(f: h5py.File) -> None:
@@ -480,6 +489,7 @@ class Recorder:
         """Enter the failed state: drop queued data, release the file safely; the error to raise."""
         self.failure = f"run file {self.path}: {what}: {cause(exc)}"
         if self._f is not None:  # first: releasing a dataset flushes its chunk cache, which must not reach the file
+            self._mark_fault()  # while the descriptor is still the file's
             abandon(self._f, self._fd)
             self._f = None
         for buf in self._buffers.values():
@@ -488,6 +498,20 @@ class Recorder:
         self._events.clear()
         self._datasets, self._events_ds, self._updated, self._samples = {}, {}, None, None
         return StorageError(self.failure)
+
+    def _mark_fault(self) -> None:
+        """Write "storage fault: <failure>" into ``/status/reason`` through the file's descriptor, past HDF5 (whose
+        handle is abandoned next): the reason's bytes were written when the file was created, so overwriting them
+        needs no new space. Best effort: nothing when the descriptor is no longer this file's, or the write fails."""
+        if self._fd is None or self._reason_at is None:
+            return
+        offset, dev, ino = self._reason_at
+        size = STATUS_TEXT["reason"]
+        text = utf8(STORAGE_FAULT + self.failure, size).ljust(size, b"\0")
+        with contextlib.suppress(OSError):
+            st = os.fstat(self._fd)
+            if (st.st_dev, st.st_ino) == (dev, ino):  # the descriptor is still this file's
+                os.pwrite(self._fd, text, offset)
 
     # -------------------------------------------------------------- writing
     def append(self, stream: str, t: np.ndarray | float, **columns: np.ndarray | float) -> None:

@@ -19,7 +19,6 @@ attribute ``recovered_root`` says what was lost). Any other file is refused in o
 from __future__ import annotations
 
 import contextlib
-import json
 import os
 import shutil
 from dataclasses import dataclass, field
@@ -28,12 +27,13 @@ from typing import Any
 
 import h5py
 
-from bench.storage.recorder import FORMAT, FORMATS, STATES, abandon, cause, ignore_sigxfsz, now_iso
+from bench.storage.recorder import FORMAT, FORMATS, STATES, STORAGE_FAULT, abandon, cause, ignore_sigxfsz, now_iso
 from bench.storage.repair import Patches, open_view, root_attribute_patches, superblock_patches, write_patches
-from bench.storage.runfile import open_run, refuse_truncated
+from bench.storage.runfile import open_run, refuse_truncated, valid_counts
 from bench.storage.superblock import Superblock, open_elsewhere, read_superblock
 
 RECOVERED_REASON = "recovered after crash"
+FAULT_REASON = "recovered after the storage fault"  # the writer marked /status/reason "storage fault: …"
 REBUILT_REASON = "recovered: end stamp failed, root attributes rebuilt from /status"
 LOST = ("root attributes unreadable (the end stamp of an earlier version failed on a full disk): rebuilt from "
         "/status and the attributes that could still be read one by one")
@@ -127,7 +127,8 @@ def recover(path: str | Path) -> RecoveryReport:
             if report.actions:
                 f.attrs["recovered_at"] = now_iso()
                 before = f["status/reason"][0].decode(errors="replace")  # a run killed while stamping its end
-                note = REBUILT_REASON if kept is not None else RECOVERED_REASON
+                note = (REBUILT_REASON if kept is not None else FAULT_REASON if before.startswith(STORAGE_FAULT)
+                        else RECOVERED_REASON)
                 tail = f" | {note}" if before else note  # such a run keeps its reason
                 head_of = before.encode()[:400 - len(tail)].decode(errors="ignore")  # whole characters only
                 f["status/reason"][0] = (head_of + tail).encode()
@@ -242,8 +243,7 @@ def _rebuild_root(f: h5py.File, fmt: str, kept: dict[str, Any]) -> list[str]:
 def _trim(f: h5py.File) -> list[str]:
     """Cut every dataset to the records the writer confirmed, so no tool shows zero-filled records."""
     if "samples" in f["status"]:
-        d = f["status/samples"]
-        valid = dict(zip(json.loads(d.attrs["names"]), (int(n) for n in d[:]), strict=True))
+        valid = valid_counts(f)  # a negative count would cut records the writer confirmed: refused
     else:
         valid = {name: min(d.shape[0] for d in f[name].values()) for name in f
                  if isinstance(f[name], h5py.Group) and "t" in f[name]}

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import errno
 import functools
 import io
 import json
+import math
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -14,7 +16,7 @@ from typing import Any
 import h5py
 import numpy as np
 
-from bench.storage.recorder import EVENT_FIELDS, FORMATS, PROGRAM_FIELDS
+from bench.storage.recorder import EVENT_FIELDS, FORMATS, PROGRAM_FIELDS, STATES, STORAGE_FAULT
 from bench.storage.superblock import clear_consistency_flags, open_elsewhere, read_superblock
 
 
@@ -54,10 +56,22 @@ class RunFile:
         return str(self.attrs.get("recovered_at", ""))
 
     @property
+    def storage_fault(self) -> str:
+        """Why writing the file failed, as its writer marked ``/status/reason`` then ('' if it did not)."""
+        if self.state == "running" and self.reason.startswith(STORAGE_FAULT):
+            return self.reason[len(STORAGE_FAULT):].split(" | ")[0]
+        return ""
+
+    @property
     def incomplete_reason(self) -> str:
         """Why the file is not a complete record ('' if it is)."""
         if self.complete:
             return ""
+        if self.storage_fault:
+            full = any(f"(errno {e})" in self.storage_fault for e in (errno.ENOSPC, errno.EDQUOT))
+            why = "the disk was full: " if full else ""
+            return (f"no end recorded: {why}writing the file failed ({self.storage_fault})"
+                    + (f"; file recovered at {self.recovered_at}" if self.recovered_at else ""))
         if self.recovered_at and self.state != "running":  # its end is in /status: the stamp of the root failed
             return f"finished ({self.state}) but not finalised (file recovered at {self.recovered_at})"
         if self.recovered_at:
@@ -68,6 +82,11 @@ class RunFile:
         if self.state == "running":
             return "no end recorded: the run is still going, or it crashed / was killed"
         return "finished but not finalised (writer stopped before stamping the file)"
+
+    def specimen(self, model: bool = False) -> dict[str, Any]:
+        """The ``specimen`` attribute: the specimen the run was made on, with its ``model`` if asked (a fit needs
+        it); :func:`specimen_of`."""
+        return specimen_of(self.attrs, self.path, model)
 
     def event_list(self) -> list[tuple[float, int, str, str]]:
         """Events as (t, step, kind, text)."""
@@ -102,6 +121,43 @@ class RunFile:
             if kind == "specimen":
                 out.append((t, {k.strip(): float(v) for k, _, v in (p.partition("=") for p in text.split(","))}))
         return out
+
+
+def specimen_of(attrs: Mapping[str, Any], p: Path, model: bool = False) -> dict[str, Any]:
+    """The run file ``p``'s ``specimen`` attribute (JSON: the rig's specimen, its ``kind`` and ``model``, and a
+    protocol's ``overrides``) from its root attributes ``attrs``. ValueError (one line naming the file and the
+    attribute) when it is missing, not JSON, not an object with a ``kind``, or — with ``model`` (a fit) — without a
+    ``model`` object: every reader of the specimen goes through here, so a damaged or hand-edited attribute is
+    refused alike wherever it is read."""
+    where = f"run file {p}: attribute 'specimen'"
+    if "specimen" not in attrs:
+        raise ValueError(f"{where} is missing")
+    text = _decode(attrs["specimen"])
+    try:
+        spec = json.loads(text)
+    except (ValueError, TypeError) as exc:  # JSONDecodeError, bad UTF-8, or not text at all
+        raise ValueError(f"{where} is not valid JSON ({' '.join(str(exc).split())[:200]})") from None
+    if not isinstance(spec, dict):
+        raise ValueError(f"{where} is not a JSON object (a {type(spec).__name__})")
+    if not isinstance(spec.get("kind"), str):
+        raise ValueError(f"{where} has no 'kind' (text): the kind of specimen")
+    if model and not isinstance(spec.get("model"), dict):
+        raise ValueError(f"{where} has no 'model' (an object): the specimen's model, which the fit starts from")
+    return spec
+
+
+def refuse_nonfinite(p: str | Path, stream: str, column: str, t: np.ndarray, values: np.ndarray,
+                     nan: bool = True) -> None:
+    """ValueError (one line naming the file and ``stream/column``) when ``values`` (at times ``t``) hold an
+    infinity — no instrument reads one: a damaged or edited record — or, with ``nan`` False, a NaN where the reader
+    needs a number at every record (the applied voltage). NaN is otherwise what a sensor out of range records."""
+    bad = ~np.isfinite(values) if not nan else np.isinf(values)
+    if bad.any():
+        i = int(np.argmax(bad))
+        when = f" at t = {float(t[i]):.6g} s" if i < len(t) else ""
+        raise ValueError(f"run file {p}: {stream}/{column} holds {int(bad.sum()):,} "
+                         f"{'non-finite' if not nan else 'infinite'} value(s), the first {float(values[i])}{when}: "
+                         "a damaged record, not a measurement")
 
 
 def _decode(v: Any) -> Any:
@@ -219,13 +275,68 @@ def read_table(obj: h5py.Dataset | h5py.Group, n: int | None = None) -> np.ndarr
     return table
 
 
-def valid_counts(f: h5py.File) -> dict[str, int]:
-    """Valid records per stream and of ``events`` at the writer's last successful flush ({} in older files)."""
+def valid_counts(f: h5py.File, p: str | Path | None = None) -> dict[str, int]:
+    """Valid records per stream and of ``events`` at the writer's last successful flush ({} in older files) of the
+    open run file ``f`` (path ``p``, default its name). ValueError (one line naming the file and the field) when
+    ``/status/samples`` is not a count per name in its ``names`` attribute, or a count is negative: a reader would
+    cut the stream from its end (``t[:-5]``) and show, export or fit the wrong records."""
     if "samples" not in f["status"]:
         return {}
     d = f["status/samples"]
     d.refresh()
-    return dict(zip(json.loads(d.attrs["names"]), (int(n) for n in d[:]), strict=True))
+    where = f"run file {p if p is not None else f.filename}: /status/samples"
+    try:
+        names = json.loads(_decode(d.attrs["names"]))
+    except (KeyError, ValueError, TypeError):
+        raise ValueError(f"{where}: its 'names' attribute is missing or not JSON") from None
+    if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+        raise ValueError(f"{where}: its 'names' attribute is not a list of stream names")
+    if d.ndim != 1 or d.dtype.kind not in "iu":
+        raise ValueError(f"{where}: not a list of record counts (shape {d.shape}, type {d.dtype})")
+    counts = [int(n) for n in d[:]]
+    if len(counts) != len(names):
+        raise ValueError(f"{where}: {len(counts)} counts for the {len(names)} names of its 'names' attribute")
+    negative = [f"{n} {c}" for n, c in zip(names, counts, strict=True) if c < 0]
+    if negative:
+        raise ValueError(f"{where}: negative record counts ({', '.join(negative)})")
+    return dict(zip(names, counts, strict=True))
+
+
+def _status_value(st: h5py.Group, name: str, p: Path) -> Any:
+    """The one value of ``/status/<name>`` (KeyError where it is missing: a part every run file has)."""
+    d = st[name]
+    d.refresh()
+    if d.shape != (1,):
+        raise ValueError(f"run file {p}: /status/{name} holds {d.size} values of shape {d.shape}, not one")
+    return d[0]
+
+
+def read_status(f: h5py.File, p: Path) -> tuple[str, str, str, float]:
+    """``/status``: the run's state, reason, end time and the run time of the writer's last flush [s]. ValueError
+    (one line naming the file and the field) for a state bench does not write, text that is not UTF-8 text, or a
+    time that is not a finite number ≥ 0."""
+    st = f["status"]
+    text: dict[str, str] = {}
+    for name in ("state", "reason", "end_time"):
+        v = _status_value(st, name, p)
+        try:
+            decoded = v.decode() if isinstance(v, bytes) else v
+        except UnicodeDecodeError:
+            decoded = None
+        if not isinstance(decoded, str):
+            raise ValueError(f"run file {p}: /status/{name} is not UTF-8 text ({v!r:.60})")
+        text[name] = decoded
+    if text["state"] not in STATES:
+        raise ValueError(f"run file {p}: /status/state is {text['state']!r:.60}, not one of {', '.join(STATES)}")
+    v = _status_value(st, "updated", p)
+    try:
+        updated = float(v)
+        shown = str(updated)
+    except (TypeError, ValueError):
+        updated, shown = math.nan, f"{v!r:.60}"
+    if not math.isfinite(updated) or updated < 0:
+        raise ValueError(f"run file {p}: /status/updated is {shown}, not a run time ≥ 0 s")
+    return text["state"], text["reason"], text["end_time"], updated
 
 
 KNOWN_STREAMS = ("setpoints", "amplifier", "laser", "motor", "load_cell")
@@ -274,12 +385,8 @@ def read_run(f: h5py.File, p: Path, streams: bool = False) -> RunFile:
 
 def _read_body(f: h5py.File, p: Path, attrs: dict[str, Any], streams: bool) -> RunFile:
     """:func:`read_run` past the root attributes (KeyError where a required group or dataset is missing)."""
-    st = f["status"]
-    for name in ("state", "reason", "end_time", "updated"):
-        st[name].refresh()
-    run = RunFile(p, attrs, st["state"][0].decode(), st["reason"][0].decode(), st["end_time"][0].decode(),
-                  float(st["updated"][0]), bool(attrs.get("complete", False)))
-    valid = valid_counts(f)
+    run = RunFile(p, attrs, *read_status(f, p), bool(attrs.get("complete", False)))
+    valid = valid_counts(f, p)
     run.events = read_table(f["events"], valid.get("events"))
     run.program = read_table(f["program"])
     if streams:

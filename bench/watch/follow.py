@@ -154,7 +154,7 @@ class Follower:
                 self._static()
             f = self.f
             self._status(f)
-            reader = StreamChunks(f)
+            reader = StreamChunks(f, self.path)
             for name in reader.length:
                 if name not in self.bins:
                     self.units[name] = reader.units(name)
@@ -191,7 +191,7 @@ class Follower:
         st = f["status"]
         for k in ("state", "reason", "updated"):
             st[k].refresh()
-        valid = valid_counts(f)
+        valid = valid_counts(f, self.path)
         events = read_table(f["events"], valid.get("events"))
         marks = [{"t": float(e["t"]), "step": int(e["step"]), "kind": e["kind"].decode(errors="replace"),
                   "text": e["text"].decode(errors="replace")} for e in events]
