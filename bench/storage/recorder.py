@@ -308,6 +308,11 @@ def _samples(values: np.ndarray | float, dtype: type | None = None) -> np.ndarra
     return np.atleast_1d(np.asarray(values, dtype=dtype))
 
 
+def _same_row(a: list[Any], b: list[Any] | None) -> bool:
+    """Whether two single-sample rows hold the same values (NaN equal to NaN: a column not set in either)."""
+    return b is not None and all(x == y or (x != x and y != y) for x, y in zip(a, b, strict=True))
+
+
 class Recorder:
     """Appends blocks of samples to an HDF5 file in SWMR mode; see the module docstring for the layout."""
 
@@ -317,6 +322,7 @@ class Recorder:
         self.path = Path(path)
         self.flush_interval = flush_interval
         self.streams = streams
+        self._last_row: dict[str, list[Any]] = {}  # each stream's last single-sample row (append)
         self._buffers: dict[str, dict[str, list[np.ndarray]]] = {s: {c.name: [] for c in [Column("t", "s", ""), *cols]}
                                                                  for s, cols in streams.items()}
         self._events: list[tuple[float, int, bytes, bytes]] = []
@@ -533,6 +539,14 @@ class Recorder:
             got = ", ".join(f"{k} ({a.size})" for k, a in block.items())
             raise ValueError(f"stream {stream}: a block needs t and every column ({', '.join(buf)}), one value per "
                              f"time; got {got} (nothing of it queued)")
+        if n == 1:  # a polled row: the same row again (same time, same values) is the same sample, recorded once
+            row = [float(a[0]) if a.dtype.kind == "f" else a[0] for a in block.values()]
+            if _same_row(row, self._last_row.get(stream)):
+                self._cpu_queue += time.thread_time() - c0
+                return
+            self._last_row[stream] = row
+        elif n:
+            self._last_row.pop(stream, None)
         for name, values in block.items():  # all or nothing: the columns of a stream stay equally long
             buf[name].append(values)
         self._queued[stream] += n
