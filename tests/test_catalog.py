@@ -843,3 +843,27 @@ def test_a_folder_shows_only_its_files_and_each_run_once(tmp_path: Path) -> None
     assert sorted(r["file"] for r in h["runs"]) == sorted(str(files[0]) for files in alive.values())
     assert h["hv_cycles"] == sum(_expected(files[0])[1] for files in alive.values()) == 2 * 4
     assert "no longer exist" in out.stderr
+
+
+def test_specimens_whose_names_differ_only_in_replaced_characters_get_their_own_plots(tmp_path: Path) -> None:
+    """`a b` and `a/b` both plotted to specimen-a-b.png by default, the second silently replacing the first (found by
+    an exploratory test): each specimen's default plot is its own file."""
+    env = _env(tmp_path / "state")
+    runs = tmp_path / "runs"
+    runs.mkdir()
+    ids = ["a b", "a/b"]
+    for k, specimen in enumerate(ids):
+        _small_run(runs / f"r{k}.h5", f"{k}" * 32, specimen, f"2026-01-0{k + 1}T00:00:00.000+00:00", 3000.0,
+                   fit={"mu": 1.0 + k})
+    plots = []
+    for specimen in ids:
+        out = _bench("specimen", "show", specimen, "--dir", str(runs), "--json", env=env)
+        assert out.returncode == 0, out.stderr
+        h = json.loads(out.stdout)
+        assert [p["value"] for p in h["parameters"]["mu"]] == [1.0 + ids.index(specimen)]
+        plots.append(Path(h["plot"]))
+    assert len(set(plots)) == len(ids)  # two specimens, two files, neither overwritten
+    assert all(p.parent == runs and p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" for p in plots)
+    from bench.cli.catalog import plot_name
+
+    assert plot_name("a-b") == "specimen-a-b.png" not in {p.name for p in plots}  # a plain ID keeps its plain name

@@ -117,6 +117,19 @@ def _since(text: str) -> str:
     return when.astimezone(UTC).isoformat(timespec="milliseconds")
 
 
+def plot_name(specimen: str) -> str:
+    """The default name of a specimen's plot: ``specimen-<ID>.png``, the ID's characters other than letters, digits,
+    ``_.-`` replaced by ``-`` — and where that changed it (or cut it to 100), a short hash of the exact ID added, so
+    two specimens never share a plot (``a b`` and ``a/b`` both gave ``specimen-a-b.png``, the second overwriting the
+    first)."""
+    import hashlib
+
+    safe = re.sub(r"[^A-Za-z0-9_.-]+", "-", specimen)
+    if safe == specimen and len(safe) <= 100:
+        return f"specimen-{safe}.png"
+    return f"specimen-{safe[:100]}-{hashlib.sha256(specimen.encode()).hexdigest()[:8]}.png"
+
+
 def _hours(s: float | None) -> str:
     if s is None:
         return "–"
@@ -187,7 +200,8 @@ def specimen_show(
     specimen: Annotated[str, typer.Argument(help="Specimen ID (as given by --specimen-id or the protocol).")],
     folder: DirOpt = Path("runs"),
     plot: Annotated[Path | None, typer.Option(
-        "--plot", help="PNG of each fitted parameter vs cumulative cycles (default: DIR/specimen-<ID>.png).")] = None,
+        "--plot", help="PNG of each fitted parameter vs cumulative cycles (default: DIR/specimen-<ID>.png, a hash of "
+        "the ID added where its characters were replaced).")] = None,
     everywhere: EverywhereOpt = False,
     catalog: CatalogOpt = None,
     json_out: JsonOpt = False,
@@ -203,8 +217,7 @@ def specimen_show(
     if not rows:
         raise ValueError(f"specimen {specimen!r}: no catalogued run (runs folder {folder}; `bench runs list`)")
     h = specimen_history(rows)
-    safe = re.sub(r"[^A-Za-z0-9_.-]+", "-", specimen)
-    png = plot_history(h, specimen, plot if plot is not None else folder / f"specimen-{safe}.png")
+    png = plot_history(h, specimen, plot if plot is not None else folder / plot_name(specimen))
     h["plot"] = str(png) if png is not None else None
     if json_out:
         print_json({"specimen": specimen, **h})
