@@ -466,14 +466,14 @@ def in_folder(folder: Path, host: str | None = None) -> Callable[[dict[str, Any]
 def one_per_run(rows: list[dict[str, Any]], prefer: Path | None = None) -> list[dict[str, Any]]:
     """One row per run: files that are copies of one run (the same run ID: a backup, a folder copied with its
     catalogue) count once. The row kept is the copy in ``prefer`` (the folder asked about) on this host, else one on
-    this host, else the most complete (complete, most steps), else the first by path. Returns the rows kept, in
-    their order, each with ``copies``: the other copies' paths (``host:path`` for another host's)."""
+    this host, else the most complete (complete, most steps), else the least deep, else the first by path. Returns
+    the rows kept, in their order, each with ``copies``: the other copies' paths (``host:path`` for another host's)."""
     host = host_name()
     inside = in_folder(prefer, host) if prefer is not None else lambda r: False
 
-    def rank(r: dict[str, Any]) -> tuple[bool, bool, bool, int, str, str]:
-        return (not inside(r), r["host"] != host, not r["complete"],
-                -(r["steps_completed"] or 0), r["host"], r["path"])
+    def rank(r: dict[str, Any]) -> tuple[bool, bool, bool, int, int, str, str]:
+        return (not inside(r), r["host"] != host, not r["complete"], -(r["steps_completed"] or 0),
+                str(r["path"]).count("/"), r["host"], r["path"])
 
     groups: dict[tuple[str, ...], list[dict[str, Any]]] = {}
     for r in rows:  # a row without a run ID (an older file) is a run of its own
