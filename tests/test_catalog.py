@@ -747,3 +747,123 @@ def test_a_misspelt_runs_folder_or_state_is_refused_and_nothing_is_made(tmp_path
                              text=True, timeout=120)
         assert res.returncode == 2 and said in res.stderr and "Traceback" not in res.stderr, res.stderr
     assert not (tmp_path / "typo").exists()
+
+
+# ---- which files a folder's listing shows, and each run once --------------------------------------------------------
+
+
+def _small_run(path: Path, run_id: str, specimen: str, start: str, amplitude_V: float,
+               fit: dict[str, float] | None = None) -> None:
+    """A completed run file written by a recorder: 4 s of a raised cosine 0 → ``amplitude_V`` at 1 Hz (4 rises above
+    the 500-V threshold), sampled at 100 Hz; ``fit``: a fit stored in it (bench/identify/store.py's layout)."""
+    from bench.storage.recorder import Column, Recorder
+
+    attrs = {"protocol_name": "p", "start_time": start, "run_id": run_id, "campaign_id": run_id,
+             "specimen_id": specimen, "specimen": {"model": {"L3": 1e-3, "breakdown_field": 1e8}}}
+    rec = Recorder(path, attrs, {"amplifier": [Column("voltage", "V", "")]}, [], {"amplifier": 100.0})
+    t = np.arange(400) * 0.01
+    rec.append("amplifier", t, voltage=amplitude_V * (1 - np.cos(2 * np.pi * t)) / 2)
+    rec.finish("completed", "")
+    if fit:
+        with h5py.File(path, "r+") as f:
+            g = f.create_group("fit/membrane-1")
+            g.attrs.update(model="membrane", created="2026-01-05T00:00:00", rms=0.1, records="[]")
+            g["names"], g["values"] = np.array([n.encode() for n in fit]), np.array(list(fit.values()))
+
+
+def _by_run(folder: Path, specimen: str | None = None) -> dict[str, list[Path]]:
+    """The run files under ``folder`` by run ID, read here with h5py."""
+    out: dict[str, list[Path]] = {}
+    for p in sorted(folder.rglob("*.h5")):
+        with h5py.File(p, "r") as f:
+            attrs = {k: v.decode() if isinstance(v, bytes) else str(v) for k, v in f.attrs.items()}
+        if specimen is None or attrs["specimen_id"] == specimen:
+            out.setdefault(attrs["run_id"], []).append(p.resolve())
+    return out
+
+
+def test_a_folder_shows_only_its_files_and_each_run_once(tmp_path: Path) -> None:
+    """`cp -a runs copy; bench specimen show S1 --dir copy` counted every run twice (the copied catalogue's rows of
+    runs/ and those of copy/), and a shared catalogue kept counting a file deleted from another folder (found by an
+    exploratory test). Now: the files under --dir, a run (a run ID) once whatever its copies, and with --everywhere
+    the rows elsewhere whose file still exists."""
+    env = _env(tmp_path / "state")
+    runs = tmp_path / "runs"
+    runs.mkdir()
+    _small_run(runs / "r1.h5", "1" * 32, "S1", "2026-01-01T00:00:00.000+00:00", 3000.0)
+    _small_run(runs / "r2.h5", "2" * 32, "S1", "2026-01-02T00:00:00.000+00:00", 5000.0)
+    _small_run(runs / "r3.h5", "3" * 32, "S2", "2026-01-03T00:00:00.000+00:00", 5000.0)
+    assert _bench("runs", "list", "--dir", str(runs), env=env).returncode == 0  # runs/catalog.sqlite, rows of runs/
+    copy = tmp_path / "copy"
+    shutil.copytree(runs, copy)  # `cp -a`: the files and the catalogue beside them
+    (copy / "backup").mkdir()
+    shutil.copy2(copy / "r1.h5", copy / "backup" / "r1.h5")  # and a copy of a run inside the folder
+
+    out = _bench("specimen", "show", "S1", "--dir", str(copy), "--json", env=env)
+    assert out.returncode == 0, out.stderr
+    h = json.loads(out.stdout)
+    mine = _by_run(copy, "S1")
+    assert len(mine) == 2 and sum(map(len, mine.values())) == 3  # two runs, three files
+    assert len(h["runs"]) == len(mine)
+    for r in h["runs"]:
+        assert Path(r["file"]).is_relative_to(copy.resolve())
+        (run_id,) = [k for k, files in mine.items() if Path(r["file"]) in files]
+        assert sorted([r["file"], *r["copies"]]) == sorted(map(str, mine[run_id]))
+    per = [_expected(files[0]) for files in mine.values()]
+    assert h["hv_time_s"] == pytest.approx(sum(e[0] for e in per), rel=1e-9)
+    assert h["hv_cycles"] == sum(e[1] for e in per) == 2 * 4  # 4 s at 1 Hz, each run
+    phi = math.acos(1 - 2 * THRESHOLD_V / 3000), math.acos(1 - 2 * THRESHOLD_V / 5000)
+    assert h["hv_time_s"] == pytest.approx(sum(4 * (1 - p / math.pi) for p in phi), abs=0.1)  # 100-Hz sampling
+    assert "copies of a run" in out.stderr and "outside" in out.stderr  # said, on stderr beside the JSON
+    listed = _bench("runs", "list", "--dir", str(copy), "--json", env=env)
+    assert listed.returncode == 0, listed.stderr
+    rows = json.loads(listed.stdout)
+    assert len(rows) == len(_by_run(copy)) == 3
+    assert all(Path(r["path"]).is_relative_to(copy.resolve()) for r in rows)
+
+    # a shared catalogue: a file deleted from a folder other than --dir is neither listed nor counted
+    shared = f"sqlite:///{tmp_path / 'shared.sqlite'}"
+    other = tmp_path / "other"
+    other.mkdir()
+    _small_run(other / "r4.h5", "4" * 32, "S1", "2026-01-04T00:00:00.000+00:00", 3000.0)
+    from bench.storage.catalog import reconcile
+
+    with Catalog(shared) as cat:
+        reconcile(cat, runs)
+        reconcile(cat, other)
+    (runs / "r2.h5").unlink()
+    here = _bench("specimen", "show", "S1", "--dir", str(other), "--catalog", shared, "--json", env=env)
+    assert here.returncode == 0, here.stderr
+    assert [r["file"] for r in json.loads(here.stdout)["runs"]] == [str(p) for p in _by_run(other)["4" * 32]]
+    out = _bench("specimen", "show", "S1", "--dir", str(other), "--catalog", shared, "--everywhere", "--json",
+                 env=env)
+    assert out.returncode == 0, out.stderr
+    h = json.loads(out.stdout)
+    alive = {**_by_run(runs, "S1"), **_by_run(other, "S1")}  # r2.h5 is gone
+    assert sorted(r["file"] for r in h["runs"]) == sorted(str(files[0]) for files in alive.values())
+    assert h["hv_cycles"] == sum(_expected(files[0])[1] for files in alive.values()) == 2 * 4
+    assert "no longer exist" in out.stderr
+
+
+def test_specimens_whose_names_differ_only_in_replaced_characters_get_their_own_plots(tmp_path: Path) -> None:
+    """`a b` and `a/b` both plotted to specimen-a-b.png by default, the second silently replacing the first (found by
+    an exploratory test): each specimen's default plot is its own file."""
+    env = _env(tmp_path / "state")
+    runs = tmp_path / "runs"
+    runs.mkdir()
+    ids = ["a b", "a/b"]
+    for k, specimen in enumerate(ids):
+        _small_run(runs / f"r{k}.h5", f"{k}" * 32, specimen, f"2026-01-0{k + 1}T00:00:00.000+00:00", 3000.0,
+                   fit={"mu": 1.0 + k})
+    plots = []
+    for specimen in ids:
+        out = _bench("specimen", "show", specimen, "--dir", str(runs), "--json", env=env)
+        assert out.returncode == 0, out.stderr
+        h = json.loads(out.stdout)
+        assert [p["value"] for p in h["parameters"]["mu"]] == [1.0 + ids.index(specimen)]
+        plots.append(Path(h["plot"]))
+    assert len(set(plots)) == len(ids)  # two specimens, two files, neither overwritten
+    assert all(p.parent == runs and p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" for p in plots)
+    from bench.cli.catalog import plot_name
+
+    assert plot_name("a-b") == "specimen-a-b.png" not in {p.name for p in plots}  # a plain ID keeps its plain name

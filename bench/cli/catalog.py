@@ -16,7 +16,11 @@ from bench.cli.common import JsonOpt, Table, clean_errors, console, escape, prin
 CatalogOpt = Annotated[str | None, typer.Option(
     "--catalog", metavar="URL", help="Catalogue database URL (default: $BENCH_CATALOG, else DIR/catalog.sqlite), "
     "e.g. postgresql+psycopg://lab@server/bench for a lab's shared server.")]
-DirOpt = Annotated[Path, typer.Option("--dir", help="The lab's runs folder (reconciled with the catalogue first).")]
+DirOpt = Annotated[Path, typer.Option("--dir", help="The lab's runs folder (reconciled with the catalogue first); only "
+                                      "its files are shown, each run once.")]
+EverywhereOpt = Annotated[bool, typer.Option(
+    "--everywhere", help="Also the catalogue's runs outside --dir (this host's: if their file still exists) and of "
+    "other hosts sharing it (as last catalogued there).")]
 
 
 P = ParamSpec("P")
@@ -42,16 +46,66 @@ def _db_errors(fn: Callable[P, R]) -> Callable[P, R]:
 RUN_STATES = ("completed", "running", "interrupted", "tripped", "error")  # a run file's /status/state
 
 
-def _open(folder: Path, url: str | None) -> Any:
-    """The catalogue, reconciled with the run files of ``folder`` (a missing folder: nothing to reconcile)."""
+def _open(folder: Path, url: str | None, notes: list[str]) -> Any:
+    """The catalogue, reconciled with the run files of ``folder`` (a missing folder: nothing to reconcile); what the
+    reconciliation found worth saying is added to ``notes``."""
     from bench.storage.catalog import Catalog, catalog_url, reconcile
 
     cat = Catalog(catalog_url(folder, url))
     if folder.is_dir():
         done = reconcile(cat, folder)
-        for line in done.unreadable or []:
-            console.print(f"[yellow]not a readable run file[/]: {escape(line)}", soft_wrap=True)
+        notes.extend(f"[yellow]not a readable run file[/]: {escape(line)}" for line in done.unreadable or [])
+        if done.removed:
+            notes.append(f"{done.removed} catalogued file(s) no longer in {escape(str(folder))}: their rows removed")
     return cat
+
+
+def _select(cat: Any, folder: Path, everywhere: bool, notes: list[str], **filters: Any) -> list[dict[str, Any]]:
+    """The catalogue's rows (``filters``: :meth:`~bench.storage.catalog.Catalog.rows`) of the files in ``folder`` on
+    this host — just reconciled, so each file exists — one per run (copies of a run, the same run ID, count once:
+    :func:`~bench.storage.catalog.one_per_run`). ``everywhere``: also rows of this host's other folders whose file
+    still exists, and other hosts' rows as they were last catalogued (their files cannot be checked here)."""
+    from bench.storage.catalog import host_name, in_folder, one_per_run
+
+    host, inside = host_name(), in_folder(folder)
+    kept, outside, gone, foreign = [], 0, 0, 0
+    for r in cat.rows(**filters):
+        if inside(r):
+            kept.append(r)
+        elif not everywhere:
+            outside += 1
+        elif r["host"] != host:
+            kept.append(r)
+            foreign += 1
+        elif Path(r["path"]).is_file():
+            kept.append(r)
+        else:
+            gone += 1
+    rows = one_per_run(kept, prefer=folder)
+    where = escape(str(folder))
+    if outside:
+        notes.append(f"{outside} catalogued file(s) outside {where} or on other hosts not shown (--everywhere)")
+    if gone:
+        notes.append(f"{gone} catalogued file(s) outside {where} no longer exist: not counted (`bench catalog rebuild "
+                     "THEIR-FOLDER` removes their rows)")
+    if foreign:
+        notes.append(f"{foreign} file(s) of other hosts as last catalogued there (not checked from here)")
+    copies = [r for r in rows if r["copies"]]
+    if copies:
+        n = sum(len(r["copies"]) for r in copies)
+        shown = "; ".join(f"{escape(r['path'])} = " + ", ".join(escape(c) for c in r["copies"]) for r in copies[:3])
+        notes.append(f"{n} file(s) are copies of a run shown (the same run ID, counted once; the copy in {where} "
+                     f"shown): {shown}" + (f"; and {len(copies) - 3} more run(s) (--json: copies)"
+                                           if len(copies) > 3 else ""))
+    return rows
+
+
+def _notes(notes: list[str], json_out: bool) -> None:
+    """What the listing left out or counted once: on stdout, or on stderr where stdout holds the JSON."""
+    from bench.cli.common import err_console
+
+    for line in notes:
+        (err_console if json_out else console).print(line, soft_wrap=True, highlight=False)
 
 
 def _since(text: str) -> str:
@@ -61,6 +115,19 @@ def _since(text: str) -> str:
     except ValueError:
         raise ValueError(f"--since: {text!r} is not a date (YYYY-MM-DD) or date-time (YYYY-MM-DDTHH:MM)") from None
     return when.astimezone(UTC).isoformat(timespec="milliseconds")
+
+
+def plot_name(specimen: str) -> str:
+    """The default name of a specimen's plot: ``specimen-<ID>.png``, the ID's characters other than letters, digits,
+    ``_.-`` replaced by ``-`` — and where that changed it (or cut it to 100), a short hash of the exact ID added, so
+    two specimens never share a plot (``a b`` and ``a/b`` both gave ``specimen-a-b.png``, the second overwriting the
+    first)."""
+    import hashlib
+
+    safe = re.sub(r"[^A-Za-z0-9_.-]+", "-", specimen)
+    if safe == specimen and len(safe) <= 100:
+        return f"specimen-{safe}.png"
+    return f"specimen-{safe[:100]}-{hashlib.sha256(specimen.encode()).hexdigest()[:8]}.png"
 
 
 def _hours(s: float | None) -> str:
@@ -79,10 +146,12 @@ def runs_list(
                                               "(YYYY-MM-DD[THH:MM], local time).")] = None,
     state: Annotated[str | None, typer.Option("--state", help="Only runs in this state (completed, running, "
                                               "interrupted, tripped, error).")] = None,
+    everywhere: EverywhereOpt = False,
     catalog: CatalogOpt = None,
     json_out: JsonOpt = False,
 ) -> None:
-    """List the catalogued runs (one row per run file), after reconciling the catalogue with the files."""
+    """List the catalogued runs of --dir (one row per run; copies of a run file counted once), after reconciling
+    the catalogue with the files."""
     import json
 
     cutoff = _since(since) if since is not None else None
@@ -90,8 +159,10 @@ def runs_list(
         raise ValueError(f"--state: {state!r} is not a run state ({', '.join(RUN_STATES)})")
     if catalog is None and not folder.is_dir():  # its catalogue would be made there: a typo made a new lab folder
         raise ValueError(f"runs folder {folder}: not found (no run recorded there yet, or --dir misspelt?)")
-    with _open(folder, catalog) as cat:
-        rows = cat.rows(specimen=specimen, protocol=protocol, since=cutoff, state=state)
+    notes: list[str] = []
+    with _open(folder, catalog, notes) as cat:
+        rows = _select(cat, folder, everywhere, notes, specimen=specimen, protocol=protocol, since=cutoff, state=state)
+    _notes(notes, json_out)
     if json_out:
         print_json([{**r, "figures": json.loads(r["figures"] or "[]"), "fits": json.loads(r["fits"] or "[]"),
                      "signature": None} for r in rows])
@@ -129,7 +200,9 @@ def specimen_show(
     specimen: Annotated[str, typer.Argument(help="Specimen ID (as given by --specimen-id or the protocol).")],
     folder: DirOpt = Path("runs"),
     plot: Annotated[Path | None, typer.Option(
-        "--plot", help="PNG of each fitted parameter vs cumulative cycles (default: DIR/specimen-<ID>.png).")] = None,
+        "--plot", help="PNG of each fitted parameter vs cumulative cycles (default: DIR/specimen-<ID>.png, a hash of "
+        "the ID added where its characters were replaced).")] = None,
+    everywhere: EverywhereOpt = False,
     catalog: CatalogOpt = None,
     json_out: JsonOpt = False,
 ) -> None:
@@ -137,13 +210,14 @@ def specimen_show(
     model's breakdown field, failures, and each fitted parameter over its cycles (with a plot)."""
     from bench.storage.catalog import plot_history, specimen_history
 
-    with _open(folder, catalog) as cat:
-        rows = cat.rows(specimen=specimen)
+    notes: list[str] = []
+    with _open(folder, catalog, notes) as cat:
+        rows = _select(cat, folder, everywhere, notes, specimen=specimen)
+    _notes(notes, json_out)
     if not rows:
         raise ValueError(f"specimen {specimen!r}: no catalogued run (runs folder {folder}; `bench runs list`)")
     h = specimen_history(rows)
-    safe = re.sub(r"[^A-Za-z0-9_.-]+", "-", specimen)
-    png = plot_history(h, specimen, plot if plot is not None else folder / f"specimen-{safe}.png")
+    png = plot_history(h, specimen, plot if plot is not None else folder / plot_name(specimen))
     h["plot"] = str(png) if png is not None else None
     if json_out:
         print_json({"specimen": specimen, **h})

@@ -29,7 +29,7 @@ import logging
 import os
 import socket
 import threading
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -457,6 +457,34 @@ def reconcile(cat: Catalog, folder: Path, rebuild: bool = False) -> Reconciled:
     return out
 
 
+def in_folder(folder: Path, host: str | None = None) -> Callable[[dict[str, Any]], bool]:
+    """Whether a row's file is in ``folder`` (or below) on ``host`` (default: this host)."""
+    prefix, host = str(folder.resolve()).rstrip("/") + "/", host if host is not None else host_name()
+    return lambda row: row["host"] == host and str(row["path"]).startswith(prefix)
+
+
+def one_per_run(rows: list[dict[str, Any]], prefer: Path | None = None) -> list[dict[str, Any]]:
+    """One row per run: files that are copies of one run (the same run ID: a backup, a folder copied with its
+    catalogue) count once. The row kept is the copy in ``prefer`` (the folder asked about) on this host, else one on
+    this host, else the most complete (complete, most steps), else the least deep, else the first by path. Returns
+    the rows kept, in their order, each with ``copies``: the other copies' paths (``host:path`` for another host's)."""
+    host = host_name()
+    inside = in_folder(prefer, host) if prefer is not None else lambda r: False
+
+    def rank(r: dict[str, Any]) -> tuple[bool, bool, bool, int, int, str, str]:
+        return (not inside(r), r["host"] != host, not r["complete"], -(r["steps_completed"] or 0),
+                str(r["path"]).count("/"), r["host"], r["path"])
+
+    groups: dict[tuple[str, ...], list[dict[str, Any]]] = {}
+    for r in rows:  # a row without a run ID (an older file) is a run of its own
+        groups.setdefault(("id", r["run_id"]) if r["run_id"] else ("file", r["host"], r["path"]), []).append(r)
+    chosen: dict[int, list[str]] = {}
+    for group in groups.values():
+        best, *others = sorted(group, key=rank)
+        chosen[id(best)] = [o["path"] if o["host"] == host else f"{o['host']}:{o['path']}" for o in others]
+    return [{**r, "copies": chosen[id(r)]} for r in rows if id(r) in chosen]
+
+
 # ---- the run's hooks: never let the catalogue stop or fail a run ---------------------------------------------------
 
 
@@ -510,7 +538,8 @@ def specimen_history(rows: list[dict[str, Any]]) -> dict[str, Any]:
         runs.append({"file": r["path"], "start_time": r["start_time"], "protocol": r["protocol_name"],
                      "state": r["state"], "complete": bool(r["complete"]),
                      "steps": f"{r['steps_completed'] or 0}/{r['steps_total'] or 0}",
-                     "previous_file": r["previous_file"], "hv_time_s": r["hv_time_s"], "hv_cycles": r["hv_cycles"],
+                     "previous_file": r["previous_file"], "copies": r.get("copies", []),
+                     "hv_time_s": r["hv_time_s"], "hv_cycles": r["hv_cycles"],
                      "cumulative_hv_time_s": cum_t, "cumulative_cycles": cum_c,
                      "max_nominal_field_V_per_m": field})
     params: dict[str, list[dict[str, Any]]] = {}
