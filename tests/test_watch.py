@@ -179,6 +179,16 @@ def test_an_h5_that_is_no_run_file_is_one_line_on_the_page(served: tuple[Path, P
         assert r.status_code == 500 and r.json()["error"].startswith("other.h5: ") and "\n" not in r.json()["error"]
 
 
+def test_a_status_bench_does_not_write_is_one_line_naming_the_field(served: tuple[Path, Path]) -> None:
+    import h5py
+
+    with h5py.File(served[0] / "a.h5", "r+") as f:  # a state no run writes: shown as if it were one before
+        f["status/state"][0] = b"exploded"
+    with client(served[0]) as c:
+        r = c.get("/api/runs/a.h5")
+        assert r.status_code == 500 and "/status/state" in r.json()["error"] and "\n" not in r.json()["error"]
+
+
 def test_the_web_extra_missing_is_one_line(served: tuple[Path, Path], monkeypatch: pytest.MonkeyPatch) -> None:
     from typer.testing import CliRunner
 

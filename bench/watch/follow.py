@@ -25,7 +25,7 @@ import h5py
 import numpy as np
 
 from bench.storage.chunks import StreamChunks
-from bench.storage.runfile import open_h5, read_table, valid_counts
+from bench.storage.runfile import open_h5, read_status, read_table, valid_counts
 
 FLAGS = ("valid", "ok")  # flag columns: not drawn as signals (as bench plot)
 PIXELS = 1000  # bins per stream at least (at most twice that): about a screen's width
@@ -188,14 +188,11 @@ class Follower:
                                   "duration": float(p["duration"])} for p in program]}
 
     def _status(self, f: h5py.File) -> None:
-        st = f["status"]
-        for k in ("state", "reason", "updated"):
-            st[k].refresh()
+        state, reason, _, updated = read_status(f, self.path)  # checked: one line naming the field, on the page
         valid = valid_counts(f, self.path)
         events = read_table(f["events"], valid.get("events"))
         marks = [{"t": float(e["t"]), "step": int(e["step"]), "kind": e["kind"].decode(errors="replace"),
                   "text": e["text"].decode(errors="replace")} for e in events]
-        state = st["state"][0].decode()
         held = [m["kind"] for m in marks if m["kind"] in ("pause", "resume")]
         if state == "running" and held and held[-1] == "pause":  # the file says running; its events, paused
             state = "paused"
@@ -203,7 +200,7 @@ class Follower:
 
         latch = latched(self.static["rig"]) if self.static.get("rig") else None
         faults = [m for m in marks if m["kind"] in FAULTS]
-        self.info = {"state": state, "reason": st["reason"][0].decode(), "updated": float(st["updated"][0]),
+        self.info = {"state": state, "reason": reason, "updated": updated,
                      "events": [m for m in marks if m["kind"] in MARKED], "faults": faults,
                      "latched": json.dumps(latch) if latch else ""}
 
