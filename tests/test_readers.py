@@ -297,3 +297,28 @@ def test_format_1_files_still_read_and_recover(tmp_path: Path) -> None:
     assert "events: 1 unconfirmed record cut" in report.actions and report.samples == {"laser": 3}
     with h5py.File(path, "r") as f:
         assert f["events"].shape == (2,) and f["events"][1]["kind"] == b"end"
+
+
+def test_a_file_a_crash_left_open_is_inspected_without_a_fits_error(tmp_path: Path) -> None:
+    """A writer killed mid-run leaves HDF5's "open for write" marks: the readers open it as an SWMR reader, and the
+    fits (none yet) are read the same way — before, `bench inspect` said "fits not read: Unable to synchronously
+    open file (file is already open for write …)" beside a run it had just read."""
+    from bench.app.runs import inspect_run
+
+    path = tmp_path / "killed.h5"
+    code = textwrap.dedent(f"""
+        import os
+        import numpy as np
+        from bench.storage.recorder import Column, Recorder
+        rec = Recorder({str(path)!r}, {{"protocol_name": "p", "rig_name": "r"}},
+                       {{"amplifier": [Column("voltage", "V", "")]}}, [], {{"amplifier": 10.0}})
+        rec.append("amplifier", np.arange(5) / 10.0, voltage=np.ones(5))
+        rec.flush()
+        os._exit(0)  # no close: the marks stay, as after kill -9
+    """)
+    subprocess.run([sys.executable, "-c", code], cwd=ROOT, check=True, timeout=120)
+    with pytest.raises(OSError, match="already open for write"):  # the marks are there: plain h5py refuses it
+        h5py.File(path, "r")
+    found = inspect_run(path)
+    assert found.run.state == "running" and found.streams["amplifier"].samples == 5
+    assert found.fits == [] and found.fits_error == ""

@@ -126,6 +126,14 @@ def check_executable(prepared: PreparedRun, *, virtual_time: bool, can_confirm: 
         raise ValueError("this protocol changes the specimen between tests: run it interactively or pass --yes")
 
 
+def claim_output(prepared: PreparedRun) -> None:
+    """Claim the run's file before its log is written (:func:`~bench.runtime.run.reserve_output`): the planned name,
+    or the next free one when another run took it since."""
+    from bench.runtime.run import reserve_output
+
+    prepared.path = reserve_output(prepared.path)
+
+
 def execute_run(prepared: PreparedRun, *, virtual_time: bool = False, operator: OperatorFn | None = None,
                 allow_no_watchdog: bool = False, catalog: str | None = None,
                 on_engine: Callable[[Engine, object], None] | None = None) -> RunResult:

@@ -170,7 +170,7 @@ def run(
     Operator, specimen ID and notes come from the protocol's [protocol] table and these options; they are kept in
     the run file as root attributes (`bench inspect` shows them). While it runs, `bench pause RUN.h5` (or SIGUSR1)
     brings the output to 0 V and holds, `bench resume RUN.h5` (or SIGUSR2) restarts the step it left."""
-    from bench.app.runs import check_executable, execute_run, prepare_run
+    from bench.app.runs import check_executable, claim_output, execute_run, prepare_run
 
     with _before_the_run(), progress("recovering if needed, validating and dry-running the stored protocol"
                                      if resume else "validating and dry-running the protocol on the model") as done:
@@ -182,15 +182,8 @@ def run(
         return
     with _before_the_run():
         check_executable(prepared, virtual_time=virtual_time, can_confirm=yes or sys.stdin.isatty())
-
-    def operator(message: str) -> bool:
-        from rich.prompt import Confirm
-
-        return yes or Confirm.ask(f"[bold]operator:[/] {message} — done?", console=console)
-
-    from bench.runtime.run import reserve_output
-
-    prepared.path = reserve_output(prepared.path)  # claimed: a run started in the same second names another
+        claim_output(prepared)  # its file and log: a run started in the same second into --out names the next
+    operator = _operator(yes)
     with run_log(prepared.path) as log_file:
         _log_plan(prepared, protocol_file, virtual_time)
         from bench.cli.watch import serving
@@ -203,6 +196,16 @@ def run(
     _show_result(result, log_file, prepared.plan.rig.name)
     if result.state != "completed":
         raise typer.Exit(1)
+
+
+def _operator(yes: bool) -> Callable[[str], bool]:
+    """The operator's confirmation of a specimen change: at the terminal, or given by ``--yes``."""
+    def operator(message: str) -> bool:
+        from rich.prompt import Confirm
+
+        return yes or Confirm.ask(f"[bold]operator:[/] {message} — done?", console=console)
+
+    return operator
 
 
 @contextlib.contextmanager

@@ -35,7 +35,7 @@ import numpy as np
 from bench import __version__
 from bench.identify.core import FitResult
 from bench.storage.recorder import now_iso
-from bench.storage.runfile import open_run
+from bench.storage.runfile import open_h5, open_run
 
 SIDECAR_FORMAT = "dea-bench fits 1"
 SIDECAR_SUFFIX = ".fit.hdf5"
@@ -137,19 +137,20 @@ def read_fits(run_path: str | Path) -> list[dict[str, Any]]:
         identity = _run_identity_any(run_path)
         with h5py.File(side, "r") as f:
             _check_sidecar(f, side, run_path, identity)
-        out += _read_groups(side)
+        out += _read_groups(side, run_file=False)
     return sorted(out, key=lambda d: str(d.get("created", "")))
 
 
 def _run_identity_any(run_path: str | Path) -> dict[str, str]:
-    with h5py.File(run_path, "r") as f:
+    with open_h5(Path(run_path)) as f:  # as every reader opens a run file: also one a crash left marked open
         return {"run_file": Path(run_path).name, "run_start_time": str(f.attrs.get("start_time", "")),
                 "protocol_sha256": str(f.attrs.get("protocol_sha256", ""))}
 
 
-def _read_groups(path: str | Path) -> list[dict[str, Any]]:
+def _read_groups(path: str | Path, run_file: bool = True) -> list[dict[str, Any]]:
+    """The fit groups of a run file (opened as readers open one: :func:`open_h5`) or of a fit file."""
     out: list[dict[str, Any]] = []
-    with h5py.File(path, "r") as f:
+    with open_h5(Path(path)) if run_file else h5py.File(path, "r") as f:
         if "fit" not in f:
             return out
         for name in sorted(f["fit"], key=lambda n: f["fit"][n].attrs["created"]):
