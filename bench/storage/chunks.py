@@ -18,7 +18,16 @@ from typing import Literal
 import h5py
 import numpy as np
 
-from bench.storage.runfile import RunFile, damaged, open_h5, read_run, stream_names, unit_of, valid_counts
+from bench.storage.runfile import (
+    RunFile,
+    damaged,
+    open_h5,
+    read_run,
+    refuse_nonfinite,
+    stream_names,
+    unit_of,
+    valid_counts,
+)
 
 CHUNK_ROWS = 262_144  # records per stream read at a time (a few MB per column)
 
@@ -121,7 +130,8 @@ class StreamChunks:
 
     def _rows(self, stream: str, cols: list[str], a: int, b: int, finite: str | None) -> dict[str, np.ndarray]:
         out = {c: self.read(stream, c, a, b) for c in cols}
-        if finite is not None:
+        if finite is not None:  # NaN: a row that does not set the column (a motor-only set-point); inf: damaged
+            refuse_nonfinite(self.path, stream, finite, out["t"] if "t" in out else np.empty(0), out[finite])
             keep = np.isfinite(out[finite])
             out = {c: v[keep] for c, v in out.items()}
         return out
