@@ -222,3 +222,33 @@ def test_a_record_read_in_small_chunks_gives_the_next_sample_hold(short_run: Pat
         np.testing.assert_array_equal(track.at(times), v_all[[1, 2]])
     finally:
         rec.close()
+
+
+def test_a_record_whose_stream_started_late_replays_aligned_on_its_kickoff(tmp_path: Path, short_run: Path) -> None:
+    """A record made on the wall clock starts its DAQ stream some 0.1 s into the run (connects, arming); a run
+    replaying it in virtual time starts at once. Aligned on the run's start alone, the replayed monitors lagged the
+    drive and the output verifier tripped on the recorded protocol (found from outside: 'read 760 V where 428 V was
+    commanded'). Here the record's every time is moved 83.3 ms later, as such a record's are; the replay of the
+    recorded protocol completes and serves scan k of the record at its own scan k."""
+    late = 0.0833
+    shifted = tmp_path / "late.h5"
+    shutil.copy2(short_run, shifted)
+    with h5py.File(shifted, "r+") as f:
+        for s in ("setpoints", "amplifier", "laser"):
+            f[s]["t"][...] = f[s]["t"][:] + late
+        ev = f["events"]
+        ev["t"][...] = ev["t"][:] + late
+        texts = list(ev["text"][:])
+        for k, text in enumerate(texts):
+            if text.startswith(b"DAQ scan clock: scan 0 at "):
+                was = float(text.split(b" at ")[1].split(b" s ")[0])
+                ev["text"][k] = text.replace(f"{was:.6f}".encode(), f"{was + late:.6f}".encode(), 1)
+        assert b"scan 0 at 0.0834" in b" ".join(ev["text"][:])
+    again = execute(plan_run(PROTOCOL, replay_rig(RIGS / "thesis-daq-sim.toml", shifted, tmp_path / "replay.toml")),
+                    tmp_path / "again.h5", virtual=True)
+    assert again.state == "completed", again.reason
+    with h5py.File(shifted, "r") as a, h5py.File(again.path, "r") as b:
+        n = min(a["amplifier"]["t"].size, b["amplifier"]["t"].size)
+        assert n > 0.99 * a["amplifier"]["t"].size
+        worst = np.max(np.abs(a["amplifier"]["voltage"][:n] - b["amplifier"]["voltage"][:n]))
+        assert worst <= QUANTUM["daq", "amplifier", "voltage"] * (1 + 1e-9)

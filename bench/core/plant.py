@@ -232,6 +232,10 @@ class Plant:
                 raise ValueError(f"amplifier input scheduled {self.t - t[0]:.6f} s in the plant's past")
             self._add_input(t, v, ordered)  # finite: not all ≥ is some <
 
+    def stream_started(self, t: float) -> None:
+        """A hardware-timed stream's scan 0 falls at plant time ``t`` (the T7 twin's enable): the model needs nothing
+        of it (a replayed record aligns its own kickoffs to it: :class:`bench.runtime.replay.ReplayPlant`)."""
+
     def unschedule_amplifier_input(self, after: float) -> None:
         """Drop the scheduled amplifier inputs later than ``after`` (a hardware-timed output stopped)."""
         with self.lock:

@@ -27,17 +27,19 @@ the motor's position is the recorded one. The record is read a chunk at a time
 from __future__ import annotations
 
 import math
+import re
 import threading
 from pathlib import Path
 from typing import Any
 
+import h5py
 import numpy as np
 
 from bench.core.clock import Clock
 from bench.core.plant import PLANT_FIELDS, Plant, PlantBlock
 from bench.rig import RigConfig, rig_from_toml
 from bench.storage.chunks import StreamChunks
-from bench.storage.runfile import open_h5
+from bench.storage.runfile import open_h5, read_table, valid_counts
 
 TIME_TOL = 1e-9  # s: a record time this close before a plant step counts as at it (float sums of the time base)
 # plant observable ← (stream, column) of the record
@@ -109,6 +111,7 @@ class Recording:
         except ReplayError:
             self.file.close()
             raise
+        self.kickoffs = _kickoffs(self.file)
         self.tracks: dict[tuple[str, str], _Track] = {}
         for stream, column in (*SOURCES.values(), MOTOR):
             if column in self.chunks.columns.get(stream, []) and self.chunks.length[stream] > 0:
@@ -127,6 +130,18 @@ class Recording:
     def close(self) -> None:
         """Close the file."""
         self.file.close()
+
+
+KICKOFF = re.compile(rb"DAQ scan clock: scan 0 at (-?[0-9.]+) s on the run clock")
+
+
+def _kickoffs(f: h5py.File) -> list[float]:
+    """The record's hardware-timed streams' scan 0 times [s, record time], in order: its ``timing`` events
+    (:meth:`bench.runtime.hardware_timed.HardwareTimed.start` writes them); none on a software-timed rig."""
+    if "events" not in f:
+        return []
+    events = read_table(f["events"], valid_counts(f).get("events"))
+    return [float(m.group(1)) for e in events if e["kind"] == b"timing" and (m := KICKOFF.match(bytes(e["text"])))]
 
 
 def replay_rig(path: str | Path) -> RigConfig:
@@ -159,6 +174,7 @@ class ReplayPlant(Plant):
         of it); its model is not advanced."""
         self.recording = recording
         self.origin = math.inf  # not anchored yet: the record's first sample (its state at record time 0)
+        self._kickoffs = 0  # hardware-timed streams started so far (stream_started)
         self.__dict__.update({k: v for k, v in base.__dict__.items() if k not in ("lock", "listeners")})
         self.lock = threading.RLock()
         self.listeners = []
@@ -169,6 +185,16 @@ class ReplayPlant(Plant):
         """Record time 0 is plant time ``t`` from now on (the run recorded against the replay starts)."""
         with self.lock:
             self.origin = float(t)
+
+    def stream_started(self, t: float) -> None:
+        """The k-th hardware-timed stream's scan 0 is at plant time ``t``: the record's k-th kickoff (its scan 0, from
+        its ``timing`` event) is served from then on. A record made on the wall clock started its stream some
+        0.1 s after the run (connects, arming), a run in virtual time at once: aligned on the run's start alone, the
+        replayed monitors lagged the drive by that much and the output verifier tripped (found from outside)."""
+        with self.lock:
+            k, self._kickoffs = self._kickoffs, self._kickoffs + 1
+            if math.isfinite(self.origin) and k < len(self.recording.kickoffs):
+                self.origin = float(t) - self.recording.kickoffs[k]
 
     def warm_up(self) -> None:
         """Nothing to compile: no model runs."""

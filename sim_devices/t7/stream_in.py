@@ -286,6 +286,7 @@ class StreamEngine(StreamOut):
             self._advance_out(k, now)  # a loop's repetitions queued at once: they follow the data without a gap
         self._next_packet_t = self._packet_due()
         self._worked_at = now
+        self.plant.stream_started(now + 1.0 / self.rate)  # scan 0, one scan period after the enable
         return 0
 
     def _stop_stream(self, now: float) -> None:
