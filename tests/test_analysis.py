@@ -447,23 +447,24 @@ def test_an_infinite_value_is_one_line_naming_file_and_stream(short_run: Path, t
 
 
 def test_an_infinite_set_point_is_refused_by_the_report_s_windowed_reads(short_run: Path, tmp_path: Path) -> None:
-    """The report reads the applied voltage window by window, dropping a set-point row without a voltage (NaN: a
-    motor-only row); an infinite one was dropped with them, without a word (an outside finding's remainder)."""
+    """The report reads the applied voltage window by window (applied_window), dropping a set-point row without a
+    voltage (NaN: a motor-only row); an infinite one was dropped with them, without a word (an outside finding's
+    remainder). The report's CLI turns this ValueError into its one line (the test above)."""
     import shutil
 
     import h5py
-    from typer.testing import CliRunner
 
-    from bench.cli import app
+    from bench.analysis.applied import applied_window
+    from bench.storage.chunks import open_source
 
     run = tmp_path / "inf-setpoint.h5"
     shutil.copy2(short_run, run)
     with h5py.File(run, "r+") as f:
         f["setpoints/voltage"][1] = np.inf
-    res = CliRunner().invoke(app, ["report", str(run), "--out", str(tmp_path / "report")])
-    lines = res.output.strip().splitlines()
-    assert res.exit_code == 2 and len(lines) == 1, res.output
-    assert f"run file {run}: setpoints/voltage holds 1 infinite value(s)" in " ".join(res.output.split()), res.output
+        t1 = float(f["setpoints/t"][1])
+    with open_source(run) as src, pytest.raises(ValueError) as err:
+        applied_window(src.streams, t1 - 1.0, t1 + 1.0)
+    assert str(err.value).startswith(f"run file {run}: setpoints/voltage holds 1 infinite value(s)")
 
 
 def _set_status(name: str, data: object):  # type: ignore[no-untyped-def]
