@@ -67,6 +67,6 @@ def test_one_continuation_of_a_campaign_at_a_time(tmp_path: Path) -> None:
     assert not (tmp_path / "second.h5").exists()
     second = execute(plan, tmp_path / "second.h5", virtual=True, resume=link)
     assert second.state == "completed", second.reason
-    with pytest.raises(ValueError, match="already resumed in .*second.h5"):  # the other, planned before it ran
+    with pytest.raises(ValueError, match=r"already resumed in .*second\.h5"):  # the other, planned before it ran
         execute(plan, tmp_path / "third.h5", virtual=True, resume=link)
     assert not (tmp_path / "third.h5").exists()

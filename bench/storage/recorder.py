@@ -52,6 +52,7 @@ disk) rather than a crash.
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import logging
 import os
