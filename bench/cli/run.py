@@ -452,10 +452,9 @@ interlock_app = typer.Typer(help="The interlock latch: after a latched fault not
 @clean_errors
 def interlock_status(json_out: JsonOpt = False) -> None:
     """Every latched rig: the fault, when, and in which run file or session."""
-    from bench.runtime.latch import latched, state_dir
+    from bench.runtime.latch import all_latched, state_dir
 
-    rigs = sorted(p.stem.removeprefix("interlock-") for p in state_dir().glob("interlock-*.json"))
-    found = {r: latched(r) for r in rigs}
+    found = all_latched()
     if json_out:
         print_json({"state_dir": str(state_dir()), "latched": found})
         return
@@ -468,14 +467,18 @@ def interlock_status(json_out: JsonOpt = False) -> None:
 @clean_errors
 def interlock_reset(rig_name: Annotated[str, typer.Argument(help="Rig name (the rig file's name field).")],
                     why: WhyOpt = "", operator: ByOpt = None) -> None:
-    """Reset a rig's latched interlock (who and why go to the interlock history)."""
-    from bench.runtime.latch import reset
+    """Reset a rig's latched interlock (who and why go to the interlock history); the exact rig name, and an
+    error if that rig is not latched."""
+    from bench.runtime.latch import all_latched, reset
 
     if not why.strip():
         raise ValueError("--why: say why it is safe to energise the rig again")
     was = reset(rig_name, _who(operator), why)
-    console.print(f"rig {escape(rig_name)}: " + ("not latched" if was is None else
-                                                 f"reset (was: {escape(str(was.get('fault')))})"))
+    if was is None:
+        others = sorted(all_latched())
+        raise ValueError(f"rig {rig_name}: not latched: nothing to reset"
+                         + (f" (latched: {', '.join(others)})" if others else ""))
+    console.print(f"rig {escape(rig_name)}: reset (was: {escape(str(was.get('fault')))})")
 
 
 def protocol_schema(
