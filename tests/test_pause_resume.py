@@ -85,6 +85,48 @@ def test_a_pause_zeroes_the_output_records_on_and_restarts_the_step(tmp_path: Pa
     assert result.run_time >= plan.program.duration + (t_resume - t_pause)
 
 
+def test_every_pause_and_resume_request_is_recorded_even_one_that_changes_nothing(tmp_path: Path) -> None:
+    """A pause (ada), a second pause while paused (bo), the resume (ada), then a resume while running (cy), and a
+    pause asked for while the completed run is being made safe (dee): one pause and one resume, and each request
+    that changed nothing is a ``request`` event that says why (README: no pause or resume request is lost without a
+    word)."""
+    asked: list[str] = []
+    plan = plan_run(SWEEPS, ADAM_RIG)
+
+    def hook(engine: Engine, sim) -> None:
+        def at(_now: float) -> None:
+            t, state = engine.now(), engine.snapshot.state
+            if not asked and state == "running" and t >= 3.0:
+                asked.append("ada pause")
+                engine.request_pause("ada")
+            elif asked == ["ada pause"] and state == "paused" and t >= 4.0:
+                asked.append("bo pause")
+                engine.request_pause("bo")
+            elif asked == ["ada pause", "bo pause"] and t >= 6.0:
+                asked.append("ada resume")
+                engine.request_resume("ada")
+            elif len(asked) == 3 and state == "running" and t >= 9.0:
+                asked.append("cy resume")
+                engine.request_resume("cy")
+            elif len(asked) == 4 and state == "stopping":
+                asked.append("dee pause")
+                engine.request_pause("dee")
+        sim.clock.subscribe(at)
+
+    result = execute(plan, tmp_path / "run.h5", virtual=True, on_engine=hook)
+    assert result.state == "completed", result.reason
+    assert len(asked) == 5, asked
+    run = open_run(result.path)
+    (_, _, _, paused), = events(run, "pause")
+    (_, _, _, resumed), = events(run, "resume")
+    assert "by ada" in paused and "by ada" in resumed
+    texts = [text for *_, text in events(run, "request")]
+    assert len(texts) == 3, texts
+    assert "pause asked by bo" in texts[0] and "already paused" in texts[0]
+    assert "resume asked by cy" in texts[1] and "not paused" in texts[1]
+    assert "pause asked by dee" in texts[2] and "ended" in texts[2]
+
+
 @pytest.mark.parametrize("rig", [ADAM_RIG, DAQ_RIG], ids=["adam", "daq"])
 def test_a_paused_output_that_stays_up_latches(tmp_path: Path, rig: Path) -> None:
     """The amplifier's input sticks at 3 V (3 kV out, TREK gain 1000) from the pause's ramp on: the host commands
