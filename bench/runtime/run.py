@@ -484,8 +484,9 @@ def plan_resume(run_file: str | Path, rig_path: str | Path | None = None, simula
     if (later := continued_in(p)) is not None:  # a second resume would fork the campaign into two chains
         raise ValueError(f"run file {p}: its campaign was already resumed in {later}: resume the campaign's latest "
                          "file instead")
+    stored = str(run.attrs.get("protocol_path", ""))
     with tempfile.TemporaryDirectory() as tmp:
-        proto = Path(tmp) / Path(str(run.attrs.get("protocol_path", "protocol.toml"))).name
+        proto = Path(tmp) / (Path(stored).name or "protocol.toml")
         proto.write_text(str(run.attrs["protocol_text"]), encoding="utf-8")
         rig_file = Path(rig_path) if rig_path is not None else Path(tmp) / "rig.toml"
         if rig_path is None:
@@ -493,6 +494,8 @@ def plan_resume(run_file: str | Path, rig_path: str | Path | None = None, simula
         plan = plan_run(proto, rig_file, simulate, progress)
     if plan.protocol.sha256 != run.attrs["protocol_sha256"]:
         raise ValueError(f"run file {p}: its stored protocol no longer reads the same (hash differs)")
+    if stored:  # the protocol file the campaign was planned from, not the temporary copy planned here (deleted)
+        plan.protocol = plan.program.protocol = plan.protocol.model_copy(update={"path": stored})
     done: set[int] = set()  # over the whole campaign: a resumed file holds only the steps from its start on
     for link in chain(p):
         done |= open_run(link.path, streams=False).completed_steps()
