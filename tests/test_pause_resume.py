@@ -172,7 +172,7 @@ def test_the_control_file_is_read_only_when_whole(tmp_path: Path) -> None:
 
 def test_pause_and_resume_from_another_terminal(tmp_path: Path) -> None:
     """A virtual-time run in its own process, paused from the start by its control file (what `bench pause` writes),
-    then `bench pause` and `bench resume` from another process while it holds."""
+    then `bench pause` (refused: already paused) and `bench resume` from another process while it holds."""
     bench = [sys.executable, "-m", "bench"]
     proc = subprocess.Popen([*bench, "run", str(SHORT / "thesis-identification-short.toml"), "--virtual-time",
                              "--out", str(tmp_path), "--no-live"], cwd=ROOT, env=ENV, stdout=subprocess.PIPE,
@@ -187,8 +187,8 @@ def test_pause_and_resume_from_another_terminal(tmp_path: Path) -> None:
         assert refused.returncode != 0 and "--why" in refused.stdout + refused.stderr
         paused = subprocess.run([*bench, "pause", str(run_file), "--why", "adjust the laser", "--operator", "ada"],
                                 cwd=ROOT, env=ENV, capture_output=True, text=True)
-        assert paused.returncode == 0, paused.stdout + paused.stderr
-        assert json.loads(control_path(run_file).read_text())["why"] == "adjust the laser"
+        assert paused.returncode == 2 and "already paused" in paused.stderr, paused.stdout + paused.stderr
+        assert json.loads(control_path(run_file).read_text())["why"] == "before the first step"  # nothing sent
         assert proc.poll() is None  # still paused
         resumed = subprocess.run([*bench, "resume", str(run_file), "--why", "laser fixed", "--operator", "bo"],
                                  cwd=ROOT, env=ENV, capture_output=True, text=True)
@@ -203,7 +203,8 @@ def test_pause_and_resume_from_another_terminal(tmp_path: Path) -> None:
     (_, _, _, r_text), = events(run, "resume")
     assert "ada" in p_text and "before the first step" in p_text and "bo" in r_text and "laser fixed" in r_text
     after = subprocess.run([*bench, "pause", str(run_file)], cwd=ROOT, env=ENV, capture_output=True, text=True)
-    assert after.returncode != 0 and "bench run --resume" in after.stdout + after.stderr  # no run writes it now
+    assert after.returncode != 0 and "no run is writing it" in after.stderr  # and every step completed: no resume
+    assert "every step completed" in after.stderr and "bench run --resume" not in after.stdout + after.stderr
 
 
 # ---------------------------------------------------------------- a crashed or stopped campaign goes on

@@ -5,7 +5,9 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
+import shlex
 import sys
+import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
@@ -20,6 +22,7 @@ if TYPE_CHECKING:
     from bench.app.runs import Inspection, PreparedRun
     from bench.runtime.engine import Engine, RunResult
     from bench.runtime.run import Plan
+    from bench.storage.runfile import RunFile
 
 protocol_app = typer.Typer(help="Protocol files: the shipped ones (list, show, copy) and their schema.",
                             no_args_is_help=True, rich_markup_mode=None)
@@ -404,15 +407,44 @@ WhyOpt = Annotated[str, typer.Option("--why", help="Why (recorded in the run fil
 ByOpt = Annotated[str | None, typer.Option("--operator", help="Who (default: the login name).")]
 
 
-def _running(run_file: Path) -> None:
+CONTROL_SETTLE_S = 0.5  # a control word this fresh may not be in the run file yet (looked at every 0.1 s, flushed
+# every 0.2 s): bench pause / resume wait until it is this old before reading whether the run is paused
+
+
+def _running(run_file: Path) -> RunFile:
+    """The run file of a protocol run under way; ValueError (one line) otherwise — suggesting `bench run --resume`
+    only where it can continue the campaign."""
+    from bench.runtime.run import resume_refusal
     from bench.storage.runfile import open_run
 
     if not run_file.is_file():
         raise ValueError(f"run file {run_file}: not found")
     f = open_run(run_file, streams=False)
+    if f.attrs.get("session_log"):
+        raise ValueError(f"run file {run_file}: a manual-control session, not a protocol run: pause and resume it at "
+                         "its prompt (pause, resume WHY...)")
     if f.state != "running" or f.orphaned:
+        refusal = resume_refusal(run_file, f)
         raise ValueError(f"run file {run_file}: no run is writing it ({f.state}{', crashed' if f.orphaned else ''}); "
-                         "to continue its campaign: bench run --resume " + str(run_file))
+                         + ("to continue its campaign: bench run --resume " + shlex.quote(str(run_file))
+                            if refusal is None else refusal))
+    return f
+
+
+def _paused(run_file: Path) -> tuple[RunFile, str | None]:
+    """The run under way in ``run_file`` (:func:`_running`) and the pause it is in (who, from its ``pause`` event),
+    or None if it is not paused; read once the last control word has had time to reach the file."""
+    from bench.runtime.control import control_path
+
+    with contextlib.suppress(OSError):
+        age = time.time() - control_path(run_file).stat().st_mtime
+        if 0.0 <= age < CONTROL_SETTLE_S:
+            time.sleep(CONTROL_SETTLE_S - age)
+    f = _running(run_file)
+    held = [(kind, text) for _t, _step, kind, text in f.event_list() if kind in ("pause", "resume")]
+    if not held or held[-1][0] != "pause":
+        return f, None
+    return f, held[-1][1].split(": output to", 1)[0]
 
 
 def _who(operator: str | None) -> str:
@@ -427,7 +459,10 @@ def pause(run_file: RunArg, why: WhyOpt = "", operator: ByOpt = None) -> None:
     restarts the step it left). The same as SIGUSR1 to the run's process."""
     from bench.runtime.control import write_control
 
-    _running(run_file)
+    _f, paused = _paused(run_file)
+    if paused is not None:
+        raise ValueError(f"run file {run_file}: already paused ({paused}): nothing to do; bench resume "
+                         f"{shlex.quote(str(run_file))} --why '…' lets it go on")
     path = write_control(run_file, True, _who(operator), why)
     console.print(f"pause asked ({escape(str(path))}); the run takes it within 0.1 s and records it")
 
@@ -440,9 +475,11 @@ def resume_run(run_file: RunArg, why: WhyOpt = "", operator: ByOpt = None) -> No
 
     if not why.strip():
         raise ValueError("--why: say why it is safe to go on (recorded in the run file)")
-    _running(run_file)
+    _f, paused = _paused(run_file)
+    if paused is None:
+        raise ValueError(f"run file {run_file}: not paused: nothing to resume")
     path = write_control(run_file, False, _who(operator), why)
-    console.print(f"resume asked ({escape(str(path))})")
+    console.print(f"resume asked ({escape(str(path))}); the run takes it within 0.1 s and records it")
 
 
 interlock_app = typer.Typer(help="The interlock latch: after a latched fault nothing energises the rig until an "
