@@ -312,7 +312,7 @@ def _print_result(result: RunResult, rig_name: str) -> None:
     console.print(f"high voltage: {escape(result.safe_path)}")
     if result.latched:
         console.print(f"[red]rig {escape(rig_name)} latched[/]: {escape(result.latched)}; nothing energises it until "
-                      f"an operator resets it: bench interlock reset {escape(rig_name)} --why '…'")
+                      f"an operator resets it: bench interlock reset {escape(shlex.quote(rig_name))} --why '…'")
     console.print(f"run file: {escape(str(result.path))}")
 
 
