@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -89,13 +90,15 @@ class Drained:
 
 def drained_run(tmp: Path, monkeypatch: pytest.MonkeyPatch, uploads: int, fault: bool = False,
                 pause: tuple[float, float] | None = None, slow_pause: bool = True,
-                stop_at: float | None = None, withhold: bool = False) -> Drained:
+                stop_at: float | None = None, withhold: bool = False,
+                also: Callable[[Any], None] | None = None) -> Drained:
     """``pause``: (run time of a pause request, of the resume request): then the uploads of the pause's drain are
     the slow ones, not the ramp's, unless not ``slow_pause`` (the request comes during the ramp's drain).
     ``stop_at``: run time at which the run's control file asks for a stop (the watch page's stop button); each
     upload then also takes a control-file look's worth of wall time, so the engine may see the file meanwhile.
     ``withhold``: the slow uploads bring nothing (the storage's data come only with the first upload after them),
-    so that a drain cut short leaves stored data behind."""
+    so that a drain cut short leaves stored data behind. ``also(engine)``: called at every tick of the rig's clock
+    as well."""
     proto = tmp / "drain.toml"
     proto.write_text(PROTOCOL)
     real = engine_mod.record_laser_block  # type: ignore[attr-defined]  # the name the engine calls
@@ -137,6 +140,8 @@ def drained_run(tmp: Path, monkeypatch: pytest.MonkeyPatch, uploads: int, fault:
                 write_control(tmp / "run.h5", False, "the test", "stop button", stop=True)
             if pause and engine.snapshot.state == "paused" and engine.now() >= pause[1]:
                 engine.request_resume("the test")
+            if also is not None:
+                also(engine)
         sim.clock.subscribe(at)
 
     result = execute(plan_run(proto, RIG), tmp / "run.h5", virtual=True, on_engine=hook)
@@ -263,6 +268,34 @@ def test_a_pause_during_the_drain_zeroes_the_output_at_once_and_the_resume_resta
     assert t_hold >= t_restart and t_hold_end - t_hold == pytest.approx(HOLD_S, abs=1e-6)
     held = (t > t_hold + 0.1) & (t < t_hold_end)
     assert np.abs(v[held] - V_HOLD).max() < 0.02 * V_HOLD
+
+
+def test_a_pause_withdrawn_during_the_drain_at_0_v_is_recorded_not_lost(tmp_path: Path,
+                                                                         monkeypatch: pytest.MonkeyPatch) -> None:
+    """A pause, then a resume 0.3 s later, both while the drain after the ramp holds the output at 0 V (its own 1-s
+    hold over, the upload going on until 3 s after the ramp): neither takes effect — the run never pauses — but
+    both reach the file, as one ``request`` event saying the pause was withdrawn before it was taken (README:
+    every pause and resume request the run receives is recorded)."""
+    asked: dict[str, float] = {}
+
+    def also(engine: Any) -> None:
+        now = engine.now()
+        if "pause" not in asked and now >= RAMP_END + 2.0:
+            asked["pause"] = now
+            asked["v"] = engine.ctx.v_cmd
+            engine.request_pause("ada")
+        elif "pause" in asked and "resume" not in asked and now >= asked["pause"] + 0.3:
+            asked["resume"] = now
+            engine.request_resume("bo")
+
+    uploads = 15
+    d = drained_run(tmp_path, monkeypatch, uploads, also=also)
+    assert d.result.state == "completed", d.result.reason
+    assert abs(asked["v"]) <= ZERO_V and asked["resume"] < RAMP_END + uploads * UPLOAD_S  # both inside the zeroed drain
+    assert not d.events("pause") and not d.events("resume")
+    (t, _, text), = d.events("request")
+    assert asked["resume"] <= t <= RAMP_END + uploads * UPLOAD_S + 0.5
+    assert "pause asked by ada" in text and "resume asked by bo" in text and "withdrawn" in text, text
 
 
 def test_a_control_file_stop_during_the_drain_ends_the_run_without_raising_the_output(

@@ -85,6 +85,48 @@ def test_a_pause_zeroes_the_output_records_on_and_restarts_the_step(tmp_path: Pa
     assert result.run_time >= plan.program.duration + (t_resume - t_pause)
 
 
+def test_every_pause_and_resume_request_is_recorded_even_one_that_changes_nothing(tmp_path: Path) -> None:
+    """A pause (ada), a second pause while paused (bo), the resume (ada), then a resume while running (cy), and a
+    pause asked for while the completed run is being made safe (dee): one pause and one resume, and each request
+    that changed nothing is a ``request`` event that says why (README: no pause or resume request is lost without a
+    word)."""
+    asked: list[str] = []
+    plan = plan_run(SWEEPS, ADAM_RIG)
+
+    def hook(engine: Engine, sim) -> None:
+        def at(_now: float) -> None:
+            t, state = engine.now(), engine.snapshot.state
+            if not asked and state == "running" and t >= 3.0:
+                asked.append("ada pause")
+                engine.request_pause("ada")
+            elif asked == ["ada pause"] and state == "paused" and t >= 4.0:
+                asked.append("bo pause")
+                engine.request_pause("bo")
+            elif asked == ["ada pause", "bo pause"] and t >= 6.0:
+                asked.append("ada resume")
+                engine.request_resume("ada")
+            elif len(asked) == 3 and state == "running" and t >= 9.0:
+                asked.append("cy resume")
+                engine.request_resume("cy")
+            elif len(asked) == 4 and state == "stopping":
+                asked.append("dee pause")
+                engine.request_pause("dee")
+        sim.clock.subscribe(at)
+
+    result = execute(plan, tmp_path / "run.h5", virtual=True, on_engine=hook)
+    assert result.state == "completed", result.reason
+    assert len(asked) == 5, asked
+    run = open_run(result.path)
+    (_, _, _, paused), = events(run, "pause")
+    (_, _, _, resumed), = events(run, "resume")
+    assert "by ada" in paused and "by ada" in resumed
+    texts = [text for *_, text in events(run, "request")]
+    assert len(texts) == 3, texts
+    assert "pause asked by bo" in texts[0] and "already paused" in texts[0]
+    assert "resume asked by cy" in texts[1] and "not paused" in texts[1]
+    assert "pause asked by dee" in texts[2] and "ended" in texts[2]
+
+
 @pytest.mark.parametrize("rig", [ADAM_RIG, DAQ_RIG], ids=["adam", "daq"])
 def test_a_paused_output_that_stays_up_latches(tmp_path: Path, rig: Path) -> None:
     """The amplifier's input sticks at 3 V (3 kV out, TREK gain 1000) from the pause's ramp on: the host commands
@@ -130,7 +172,7 @@ def test_the_control_file_is_read_only_when_whole(tmp_path: Path) -> None:
 
 def test_pause_and_resume_from_another_terminal(tmp_path: Path) -> None:
     """A virtual-time run in its own process, paused from the start by its control file (what `bench pause` writes),
-    then `bench pause` and `bench resume` from another process while it holds."""
+    then `bench pause` (refused: already paused) and `bench resume` from another process while it holds."""
     bench = [sys.executable, "-m", "bench"]
     proc = subprocess.Popen([*bench, "run", str(SHORT / "thesis-identification-short.toml"), "--virtual-time",
                              "--out", str(tmp_path), "--no-live"], cwd=ROOT, env=ENV, stdout=subprocess.PIPE,
@@ -145,8 +187,8 @@ def test_pause_and_resume_from_another_terminal(tmp_path: Path) -> None:
         assert refused.returncode != 0 and "--why" in refused.stdout + refused.stderr
         paused = subprocess.run([*bench, "pause", str(run_file), "--why", "adjust the laser", "--operator", "ada"],
                                 cwd=ROOT, env=ENV, capture_output=True, text=True)
-        assert paused.returncode == 0, paused.stdout + paused.stderr
-        assert json.loads(control_path(run_file).read_text())["why"] == "adjust the laser"
+        assert paused.returncode == 2 and "already paused" in paused.stderr, paused.stdout + paused.stderr
+        assert json.loads(control_path(run_file).read_text())["why"] == "before the first step"  # nothing sent
         assert proc.poll() is None  # still paused
         resumed = subprocess.run([*bench, "resume", str(run_file), "--why", "laser fixed", "--operator", "bo"],
                                  cwd=ROOT, env=ENV, capture_output=True, text=True)
@@ -161,7 +203,8 @@ def test_pause_and_resume_from_another_terminal(tmp_path: Path) -> None:
     (_, _, _, r_text), = events(run, "resume")
     assert "ada" in p_text and "before the first step" in p_text and "bo" in r_text and "laser fixed" in r_text
     after = subprocess.run([*bench, "pause", str(run_file)], cwd=ROOT, env=ENV, capture_output=True, text=True)
-    assert after.returncode != 0 and "bench run --resume" in after.stdout + after.stderr  # no run writes it now
+    assert after.returncode != 0 and "no run is writing it" in after.stderr  # and every step completed: no resume
+    assert "every step completed" in after.stderr and "bench run --resume" not in after.stdout + after.stderr
 
 
 # ---------------------------------------------------------------- a crashed or stopped campaign goes on

@@ -5,7 +5,9 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
+import shlex
 import sys
+import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
@@ -20,6 +22,7 @@ if TYPE_CHECKING:
     from bench.app.runs import Inspection, PreparedRun
     from bench.runtime.engine import Engine, RunResult
     from bench.runtime.run import Plan
+    from bench.storage.runfile import RunFile
 
 protocol_app = typer.Typer(help="Protocol files: the shipped ones (list, show, copy) and their schema.",
                             no_args_is_help=True, rich_markup_mode=None)
@@ -312,7 +315,7 @@ def _print_result(result: RunResult, rig_name: str) -> None:
     console.print(f"high voltage: {escape(result.safe_path)}")
     if result.latched:
         console.print(f"[red]rig {escape(rig_name)} latched[/]: {escape(result.latched)}; nothing energises it until "
-                      f"an operator resets it: bench interlock reset {escape(rig_name)} --why '…'")
+                      f"an operator resets it: bench interlock reset {escape(shlex.quote(rig_name))} --why '…'")
     console.print(f"run file: {escape(str(result.path))}")
 
 
@@ -407,15 +410,44 @@ WhyOpt = Annotated[str, typer.Option("--why", help="Why (recorded in the run fil
 ByOpt = Annotated[str | None, typer.Option("--operator", help="Who (default: the login name).")]
 
 
-def _running(run_file: Path) -> None:
+CONTROL_SETTLE_S = 0.5  # a control word this fresh may not be in the run file yet (looked at every 0.1 s, flushed
+# every 0.2 s): bench pause / resume wait until it is this old before reading whether the run is paused
+
+
+def _running(run_file: Path) -> RunFile:
+    """The run file of a protocol run under way; ValueError (one line) otherwise — suggesting `bench run --resume`
+    only where it can continue the campaign."""
+    from bench.runtime.run import resume_refusal
     from bench.storage.runfile import open_run
 
     if not run_file.is_file():
         raise ValueError(f"run file {run_file}: not found")
     f = open_run(run_file, streams=False)
+    if f.attrs.get("session_log"):
+        raise ValueError(f"run file {run_file}: a manual-control session, not a protocol run: pause and resume it at "
+                         "its prompt (pause, resume WHY...)")
     if f.state != "running" or f.orphaned:
+        refusal = resume_refusal(run_file, f)
         raise ValueError(f"run file {run_file}: no run is writing it ({f.state}{', crashed' if f.orphaned else ''}); "
-                         "to continue its campaign: bench run --resume " + str(run_file))
+                         + ("to continue its campaign: bench run --resume " + shlex.quote(str(run_file))
+                            if refusal is None else refusal))
+    return f
+
+
+def _paused(run_file: Path) -> tuple[RunFile, str | None]:
+    """The run under way in ``run_file`` (:func:`_running`) and the pause it is in (who, from its ``pause`` event),
+    or None if it is not paused; read once the last control word has had time to reach the file."""
+    from bench.runtime.control import control_path
+
+    with contextlib.suppress(OSError):
+        age = time.time() - control_path(run_file).stat().st_mtime
+        if 0.0 <= age < CONTROL_SETTLE_S:
+            time.sleep(CONTROL_SETTLE_S - age)
+    f = _running(run_file)
+    held = [(kind, text) for _t, _step, kind, text in f.event_list() if kind in ("pause", "resume")]
+    if not held or held[-1][0] != "pause":
+        return f, None
+    return f, held[-1][1].split(": output to", 1)[0]
 
 
 def _who(operator: str | None) -> str:
@@ -430,7 +462,10 @@ def pause(run_file: RunArg, why: WhyOpt = "", operator: ByOpt = None) -> None:
     restarts the step it left). The same as SIGUSR1 to the run's process."""
     from bench.runtime.control import write_control
 
-    _running(run_file)
+    _f, paused = _paused(run_file)
+    if paused is not None:
+        raise ValueError(f"run file {run_file}: already paused ({paused}): nothing to do; bench resume "
+                         f"{shlex.quote(str(run_file))} --why '…' lets it go on")
     path = write_control(run_file, True, _who(operator), why)
     console.print(f"pause asked ({escape(str(path))}); the run takes it within 0.1 s and records it")
 
@@ -443,9 +478,11 @@ def resume_run(run_file: RunArg, why: WhyOpt = "", operator: ByOpt = None) -> No
 
     if not why.strip():
         raise ValueError("--why: say why it is safe to go on (recorded in the run file)")
-    _running(run_file)
+    _f, paused = _paused(run_file)
+    if paused is None:
+        raise ValueError(f"run file {run_file}: not paused: nothing to resume")
     path = write_control(run_file, False, _who(operator), why)
-    console.print(f"resume asked ({escape(str(path))})")
+    console.print(f"resume asked ({escape(str(path))}); the run takes it within 0.1 s and records it")
 
 
 interlock_app = typer.Typer(help="The interlock latch: after a latched fault nothing energises the rig until an "
@@ -455,10 +492,9 @@ interlock_app = typer.Typer(help="The interlock latch: after a latched fault not
 @clean_errors
 def interlock_status(json_out: JsonOpt = False) -> None:
     """Every latched rig: the fault, when, and in which run file or session."""
-    from bench.runtime.latch import latched, state_dir
+    from bench.runtime.latch import all_latched, state_dir
 
-    rigs = sorted(p.stem.removeprefix("interlock-") for p in state_dir().glob("interlock-*.json"))
-    found = {r: latched(r) for r in rigs}
+    found = all_latched()
     if json_out:
         print_json({"state_dir": str(state_dir()), "latched": found})
         return
@@ -471,14 +507,18 @@ def interlock_status(json_out: JsonOpt = False) -> None:
 @clean_errors
 def interlock_reset(rig_name: Annotated[str, typer.Argument(help="Rig name (the rig file's name field).")],
                     why: WhyOpt = "", operator: ByOpt = None) -> None:
-    """Reset a rig's latched interlock (who and why go to the interlock history)."""
-    from bench.runtime.latch import reset
+    """Reset a rig's latched interlock (who and why go to the interlock history); the exact rig name, and an
+    error if that rig is not latched."""
+    from bench.runtime.latch import all_latched, reset
 
     if not why.strip():
         raise ValueError("--why: say why it is safe to energise the rig again")
     was = reset(rig_name, _who(operator), why)
-    console.print(f"rig {escape(rig_name)}: " + ("not latched" if was is None else
-                                                 f"reset (was: {escape(str(was.get('fault')))})"))
+    if was is None:
+        others = sorted(all_latched())
+        raise ValueError(f"rig {rig_name}: not latched: nothing to reset"
+                         + (f" (latched: {', '.join(others)})" if others else ""))
+    console.print(f"rig {escape(rig_name)}: reset (was: {escape(str(was.get('fault')))})")
 
 
 def protocol_schema(

@@ -27,6 +27,7 @@ import math
 import signal
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -219,6 +220,12 @@ class Engine:
         self._resume_by: str | None = None
         self._control_seen: ControlWord = (0.0, False, "", False)  # control file: (mtime, pause?, by/why, stop?)
         self._control_checked = 0.0
+        # a run's pause and resume requests, each taken in (:meth:`_take_requests`) in the order they came: what the
+        # run wants, or a ``request`` event saying why it changed nothing (none is lost without a word)
+        self._asked: deque[tuple[bool, str]] = deque()  # (pause?, by whom) not yet taken in
+        self._pending_pause: str | None = None  # a pause asked for (by whom) and not yet taken
+        self._paused_by: str | None = None  # while paused: who asked for the pause
+        self._resume_asked: str | None = None  # while paused: who asked it to go on (not yet taken)
         self.pauses = 0
         # manual mode (commands instead of a program): a Ctrl-C while a command runs ends the command, not the
         # session (``interruptible``); ``_interrupt`` is that request until the command has ended
@@ -244,28 +251,92 @@ class Engine:
         """Ask the run to pause (output to 0 V, motor held, recording on); safe from a signal handler or thread."""
         self._resume_by = None
         self._pause_by = by
+        if not self.commands:  # manual mode answers its own pause and resume commands
+            self._asked.append((True, by))
 
     def request_resume(self, by: str) -> None:
         """Ask a paused run to go on (its step restarts from its beginning)."""
         self._pause_by = None
         self._resume_by = by
+        if not self.commands:
+            self._asked.append((False, by))
+
+    def _take_requests(self, ending: str | None = None) -> None:
+        """A run's pause and resume requests (signals, keys, other threads, a new word in the control file, looked
+        at every 0.1 s wall time), in the order they came: each one either changes what the run wants (a pause
+        to take, a pause to leave) or is recorded as a ``request`` event saying why it changed nothing. The same
+        request repeated before the run took it (a key held down, a hook asking at every tick) counts once.
+        ``ending``: the run's end (its state); what is left is answered as too late, the control file read once
+        more."""
+        if self.control is not None and (ending is not None
+                                         or time.monotonic() - self._control_checked >= CONTROL_POLL_S):
+            self._control_checked = time.monotonic()
+            seen, self._control_seen = self._control_seen, read_control(self.control, self._control_seen)
+            if self._control_seen[0] != seen[0]:  # a new word
+                _, pause, who, stop = self._control_seen
+                if not stop:
+                    self._asked.append((pause, who))
+                elif ending is not None:
+                    self._request_event(f"stop asked by {who} as the run ended ({ending}): nothing more to do")
+                elif self._stop_reason is None:  # a stop word (bench watch): as Ctrl-C
+                    self.request_stop(f"stop asked by {who}")
+                    self._check_stop()
+        while self._asked:
+            pause, by = self._asked.popleft()
+            what = f"{'pause' if pause else 'resume'} asked by {by}"
+            if ending is not None or self._stopping:
+                self._request_event(f"{what} as the run ended ({ending or 'stopping'}): no effect")
+            elif self._paused_by is not None:  # paused
+                if not pause and self._resume_asked in (None, by):
+                    self._resume_asked = by
+                elif not pause:
+                    self._request_event(f"{what}: already resuming (asked by {self._resume_asked}): nothing "
+                                        "more changes")
+                elif self._resume_asked is not None:
+                    self._request_event(f"{what} before the resume asked by {self._resume_asked} was taken: "
+                                        "that resume withdrawn, the run stays paused")
+                    self._resume_asked = None
+                else:
+                    self._request_event(f"{what}: already paused (by {self._paused_by}): nothing changes")
+            elif self._pending_pause is not None:  # asked for, not yet taken
+                if pause and by != self._pending_pause:
+                    self._request_event(f"{what}: a pause asked by {self._pending_pause} is being taken: one pause")
+                elif not pause:
+                    self._request_event(f"{what} before the pause asked by {self._pending_pause} was taken: that "
+                                        "pause withdrawn, the run went on")
+                    self._pending_pause = None
+            elif pause:
+                self._pending_pause = by
+            else:
+                self._request_event(f"{what}: the run is not paused: nothing to resume")
+        if ending is not None:
+            if self._pending_pause is not None:
+                self._request_event(f"pause asked by {self._pending_pause}: the run ended ({ending}) before it "
+                                    "paused")
+            if self._paused_by is not None and self._resume_asked is not None:
+                self._request_event(f"resume asked by {self._resume_asked}: the run ended ({ending}) before it "
+                                    "resumed")
+            self._pending_pause = self._resume_asked = None
+
+    def _request_event(self, text: str) -> None:
+        """A pause, resume or stop request that changed nothing, and why (a ``request`` event)."""
+        if self._stopping:
+            self._event("request", text)
+        else:
+            self.rec.event(self.now(), self.snapshot.step, "request", text)
 
     def _paused_wanted(self) -> tuple[bool, str]:
-        """(pause wanted?, by whom and why): a request, or the control file (looked at every 0.1 s wall time)."""
+        """(pause wanted?, by whom and why). A run: its requests as :meth:`_take_requests` took them in; manual
+        mode: a request by signal or another thread (its ``pause`` and ``resume`` commands answer for
+        themselves)."""
+        if not self.commands:
+            self._take_requests()
+            if self._paused_by is not None:
+                return self._resume_asked is None, self._resume_asked or self._paused_by
+            return self._pending_pause is not None, self._pending_pause or ""
         if self._pause_by is not None:
             return True, self._pause_by
-        if self._resume_by is not None:
-            return False, self._resume_by
-        if self.control is None:
-            return False, ""
-        now = time.monotonic()
-        if now - self._control_checked >= CONTROL_POLL_S:
-            self._control_checked = now
-            self._control_seen = read_control(self.control, self._control_seen)
-            if self._control_seen[3] and self._stop_reason is None:  # a stop word (bench watch): as Ctrl-C
-                self.request_stop(f"stop asked by {self._control_seen[2]}")
-                self._check_stop()
-        return self._control_seen[1], self._control_seen[2]
+        return False, self._resume_by or ""
 
     def _check_pause(self) -> None:
         if not self._stopping and self._stop_reason is None and self._paused_wanted()[0]:
@@ -666,6 +737,8 @@ class Engine:
         """Paused: the step under way is left, the output ramped to 0 V, the motor held where it is, the monitors
         and sensors read on; on resume the step restarts from its start. A stop request ends the run."""
         _, by = self._paused_wanted()
+        by = by or "a pause request"
+        self._paused_by, self._pending_pause, self._resume_asked = by, None, None
         t_pause = self.now()
         self.pauses += 1
         self.snapshot.state = "paused"
@@ -680,10 +753,7 @@ class Engine:
                 due += PAUSE_POLL_S
             self._pause_until(min(due, self.now() + STOP_POLL_S), urgent_aborts=False)
         _, by = self._paused_wanted()
-        self._pause_by = self._resume_by = None
-        # a control file that asked for this pause is answered: it counts again only when it is written again (a
-        # resume by key or signal would otherwise be undone by the file's old word)
-        self._control_seen = (self._control_seen[0], False, self._control_seen[2], False)
+        self._pause_by = self._resume_by = self._paused_by = self._resume_asked = None
         self.rec.event(self.now(), seg.index, "resume", f"resumed by {by} after {self.now() - t_pause:.3f} s paused")
         self.snapshot.state = "running"
         self._restart(seg, "resumed after a pause")
@@ -831,6 +901,8 @@ class Engine:
                         f"lateness {self.ctx.worst_lateness * 1e3:.1f} ms")
         for note in notes:
             self._event("fault", note)
+        if not self.commands:  # a request that came too late to change anything is recorded, not lost
+            self._take_requests(ending=state)
         self._event("safe", safe_path)
         if finish:
             self._record(self.rec.finish, state, f"{reason} | {safe_path}")

@@ -2,16 +2,21 @@
 resets it, whether the next attempt is a run, a resumed campaign or manual control.
 
 One JSON file per rig name in the bench's state folder (``$BENCH_STATE_DIR``, default
-``~/.local/state/dea-bench``): ``interlock-<rig>.json`` with the fault, when it latched and in which run file.
+``~/.local/state/dea-bench``): ``interlock-<rig>-<hash>.json`` with the exact rig name, the fault, when it latched
+and in which run file. The file name is the rig name made safe for a file name plus a short hash of the exact
+name, so two rigs whose names differ only in punctuation or spaces never share a latch. A latch file of the
+older form (``interlock-<rig>.json``, no hash) still counts for the rig whose exact name it records.
 Every latch and reset is also appended to ``interlock.log`` there (who, why, when), so the history survives
 the reset.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import re
+import shlex
 from datetime import datetime
 from pathlib import Path
 from typing import Any
@@ -29,9 +34,41 @@ def state_dir() -> Path:
     return Path(env) if env else Path.home() / ".local" / "state" / "dea-bench"
 
 
+def _safe(rig_name: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.-]+", "-", rig_name)
+
+
 def latch_path(rig_name: str) -> Path:
-    """The latch file of rig ``rig_name``."""
-    return state_dir() / f"interlock-{re.sub(r'[^A-Za-z0-9_.-]+', '-', rig_name)}.json"
+    """The latch file of rig ``rig_name``: one per exact name (the hash keeps names that clean up alike apart)."""
+    digest = hashlib.sha256(rig_name.encode("utf-8", "surrogatepass")).hexdigest()[:12]
+    return state_dir() / f"interlock-{_safe(rig_name)}-{digest}.json"
+
+
+def _legacy_path(rig_name: str) -> Path:
+    """Where a bench before the hashed names kept the latch of ``rig_name`` (shared by names that clean up
+    alike; it records the exact name)."""
+    return state_dir() / f"interlock-{_safe(rig_name)}.json"
+
+
+def _read(path: Path) -> dict[str, Any] | None:
+    """The latch in ``path``; None if it is unreadable or not a latch."""
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    return data if isinstance(data, dict) else None
+
+
+def _legacy(rig_name: str) -> dict[str, Any] | None:
+    """The old-format latch of ``rig_name``, if there is one and it is this rig's (or cannot say whose it is:
+    an unreadable latch counts as latched)."""
+    path = _legacy_path(rig_name)
+    if not path.exists():
+        return None
+    data = _read(path)
+    if data is None or not isinstance(data.get("rig"), str):
+        return {"rig": rig_name, "fault": f"latch file {path} unreadable", "where": "?", "at": "?"}
+    return data if data["rig"] == rig_name else None
 
 
 def _now() -> str:
@@ -58,14 +95,24 @@ def latched(rig_name: str) -> dict[str, Any] | None:
     """The latch of rig ``rig_name`` (fault, where, at), or None. An unreadable latch file counts as latched."""
     path = latch_path(rig_name)
     if not path.exists():
-        return None
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-        if isinstance(data, dict):
-            return data
-    except (OSError, ValueError):
-        pass
+        return _legacy(rig_name)
+    data = _read(path)
+    if data is not None:
+        return data
     return {"rig": rig_name, "fault": f"latch file {path} unreadable", "where": "?", "at": "?"}
+
+
+def all_latched() -> dict[str, dict[str, Any]]:
+    """Every latch in the state folder, by exact rig name (as its file records it; the file name if it cannot
+    be read)."""
+    found: dict[str, dict[str, Any]] = {}
+    for path in sorted(state_dir().glob("interlock-*.json")):
+        data = _read(path)
+        if data is None or not isinstance(data.get("rig"), str):
+            name = path.stem.removeprefix("interlock-")
+            data = {"rig": name, "fault": f"latch file {path} unreadable", "where": "?", "at": "?"}
+        found.setdefault(data["rig"], data)
+    return found
 
 
 def reset(rig_name: str, by: str, why: str) -> dict[str, Any] | None:
@@ -77,6 +124,8 @@ def reset(rig_name: str, by: str, why: str) -> dict[str, Any] | None:
     if was is None:
         return None
     latch_path(rig_name).unlink(missing_ok=True)
+    if _legacy(rig_name) is not None:
+        _legacy_path(rig_name).unlink(missing_ok=True)
     _history(f"reset\t{rig_name}\tby {by}: {why}\t(was: {was.get('fault')} in {was.get('where')})")
     return was
 
@@ -87,4 +136,5 @@ def refuse_if_latched(rig_name: str) -> None:
     if was is not None:
         raise LatchedError(f"rig {rig_name}: interlock latched at {was.get('at')} ({was.get('fault')}; in "
                            f"{was.get('where')}): nothing energises it until an operator resets it — "
-                           f"bench interlock reset {rig_name} --why '…', or bench run --resume RUN.h5 --why '…'")
+                           f"bench interlock reset {shlex.quote(rig_name)} --why '…', or bench run --resume RUN.h5 "
+                           "--why '…'")

@@ -45,7 +45,7 @@ from bench.storage import catalog
 from bench.storage.chain import chain, continued_in
 from bench.storage.recorder import Column, Recorder, now_iso
 from bench.storage.recover import recover
-from bench.storage.runfile import open_run
+from bench.storage.runfile import RunFile, open_run
 from drivers.errors import InstrumentError, OperationCancelledError
 from drivers.interfaces import StreamDescription
 
@@ -473,19 +473,16 @@ def plan_resume(run_file: str | Path, rig_path: str | Path | None = None, simula
     p = Path(run_file)
     notes: list[str] = []
     run = open_run(p, streams=False)
+    if (why := _not_a_campaign(p, run)) is not None:  # before a crashed file is recovered: nothing is touched
+        raise ValueError(f"run file {p}: {why}")
     if run.state == "running" and run.orphaned:
         notes = recover(p).lines()
         run = open_run(p, streams=False)
     elif run.state == "running" and not run.recovered_at:  # recovered: `bench recover` found no writer (a crash)
         raise ValueError(f"run file {p}: a run is still writing it (stop it first, or pause it with bench pause)")
-    for key in ("protocol_text", "rig_toml", "protocol_sha256"):
-        if key not in run.attrs:
-            raise ValueError(f"run file {p}: no {key} attribute: not a run file this version can resume")
-    if (later := continued_in(p)) is not None:  # a second resume would fork the campaign into two chains
-        raise ValueError(f"run file {p}: its campaign was already resumed in {later}: resume the campaign's latest "
-                         "file instead")
+    stored = str(run.attrs.get("protocol_path", ""))
     with tempfile.TemporaryDirectory() as tmp:
-        proto = Path(tmp) / Path(str(run.attrs.get("protocol_path", "protocol.toml"))).name
+        proto = Path(tmp) / (Path(stored).name or "protocol.toml")
         proto.write_text(str(run.attrs["protocol_text"]), encoding="utf-8")
         rig_file = Path(rig_path) if rig_path is not None else Path(tmp) / "rig.toml"
         if rig_path is None:
@@ -493,6 +490,8 @@ def plan_resume(run_file: str | Path, rig_path: str | Path | None = None, simula
         plan = plan_run(proto, rig_file, simulate, progress)
     if plan.protocol.sha256 != run.attrs["protocol_sha256"]:
         raise ValueError(f"run file {p}: its stored protocol no longer reads the same (hash differs)")
+    if stored:  # the protocol file the campaign was planned from, not the temporary copy planned here (deleted)
+        plan.protocol = plan.program.protocol = plan.protocol.model_copy(update={"path": stored})
     done: set[int] = set()  # over the whole campaign: a resumed file holds only the steps from its start on
     for link in chain(p):
         done |= open_run(link.path, streams=False).completed_steps()
@@ -503,6 +502,35 @@ def plan_resume(run_file: str | Path, rig_path: str | Path | None = None, simula
     rid = str(run.attrs.get("run_id", "")) or p.stem
     resume = Resume(p, rid, str(run.attrs.get("campaign_id", "")) or rid, todo, len(indices))
     return plan, resume, notes
+
+
+def _not_a_campaign(p: Path, run: RunFile) -> str | None:
+    """Why run file ``p`` is no campaign that can be resumed (a manual-control session, a file without its protocol
+    and rig, a campaign already continued elsewhere), or None."""
+    if run.attrs.get("session_log") or run.attrs.get("mode") == "manual control":
+        return "a manual-control session, not a protocol run: nothing to resume"
+    for key in ("protocol_text", "rig_toml", "protocol_sha256"):
+        if not str(run.attrs.get(key, "")):
+            return f"no {key} attribute: not a run file this version can resume"
+    if (later := continued_in(p)) is not None:  # a second resume would fork the campaign into two chains
+        return f"its campaign was already resumed in {later}: resume the campaign's latest file instead"
+    return None
+
+
+def resume_refusal(run_file: str | Path, run: RunFile | None = None) -> str | None:
+    """Why ``bench run --resume`` cannot continue the campaign of ``run_file`` (the line's tail after "run file
+    …: "), or None if it may (it plans the rest and checks again). From the files alone, without planning: quick
+    enough to decide whether a hint may suggest it."""
+    p = Path(run_file)
+    run = run if run is not None else open_run(p, streams=False)
+    if (why := _not_a_campaign(p, run)) is not None:
+        return why
+    done: set[int] = set()
+    for link in chain(p):
+        done |= open_run(link.path, streams=False).completed_steps()
+    # the file's program holds the campaign's steps from its own start on; those before it completed earlier
+    left = {int(i) for i in run.program["index"]} - done if len(run.program) else {-1}
+    return None if left else f"every step completed ({run.state}): nothing to resume"
 
 
 def _model_params(params: MembraneParams | LozengeParams) -> dict[str, Any]:

@@ -1,0 +1,126 @@
+"""What `bench pause`, `bench resume` and `bench run --resume` say of a file: a hint never suggests a command
+that cannot work (a manual-control session, a campaign whose every step completed), a request that would change
+nothing is refused in one line (already paused, not paused), and a resumed file names the protocol file the
+campaign was planned from, not the temporary copy its resume was planned from."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+from typer.testing import CliRunner
+
+from bench.cli import app
+from bench.rig import load_rig
+from bench.runtime.control import control_path
+from bench.runtime.engine import Engine
+from bench.runtime.manual import ManualSession
+from bench.runtime.run import execute, plan_resume, plan_run
+from bench.storage.runfile import open_run
+from tests.campaign_kill import wait_for
+from tests.conftest import ROOT
+
+SWEEPS = ROOT / "protocols" / "short" / "thesis-sweeps-short.toml"
+RIG = ROOT / "rigs" / "thesis-sim.toml"
+ENV = {**os.environ, "PYTHONPATH": str(ROOT), "COLUMNS": "300"}
+runner = CliRunner()
+
+
+def said(res) -> str:  # type: ignore[no-untyped-def]
+    return " ".join(res.output.split())
+
+
+def test_a_manual_control_session_file_is_no_campaign_to_resume_or_pause(tmp_path: Path) -> None:
+    log = tmp_path / "m1.log"
+    with ManualSession(load_rig(RIG), log, virtual=True, echo=lambda _t: None) as s:
+        assert s.execute("voltage 1kV").status == "ok"
+        m1 = s.data_file
+    assert m1 is not None
+    assert open_run(m1, streams=False).attrs["session_log"]
+    res = runner.invoke(app, ["run", "--resume", str(m1), "--virtual-time", "--no-live"])
+    assert res.exit_code == 2, res.output
+    assert said(res) == f"error: run file {m1}: a manual-control session, not a protocol run: nothing to resume"
+    for cmd in (["resume", str(m1), "--why", "x"], ["pause", str(m1)]):
+        res = runner.invoke(app, cmd)
+        assert res.exit_code == 2 and "manual-control session" in said(res), res.output
+        assert "bench run --resume" not in said(res)
+
+
+def test_hints_suggest_a_resume_only_where_one_can_continue_the_campaign(tmp_path: Path) -> None:
+    plan = plan_run(SWEEPS, RIG)
+    done = execute(plan, tmp_path / "done.h5", virtual=True)
+    assert done.state == "completed", done.reason
+    res = runner.invoke(app, ["pause", done.path])
+    assert res.exit_code == 2 and "every step completed" in said(res), res.output
+    assert "bench run --resume" not in said(res)
+
+    def stop_at_3(engine: Engine, sim) -> None:  # type: ignore[no-untyped-def]
+        sim.clock.subscribe(lambda _now: engine.request_stop("the test") if engine.now() >= 3.0 else None)
+
+    stopped = execute(plan, tmp_path / "stopped.h5", virtual=True, on_engine=stop_at_3)
+    assert stopped.state == "interrupted", stopped.reason
+    res = runner.invoke(app, ["resume", stopped.path, "--why", "x"])
+    assert res.exit_code == 2 and f"bench run --resume {stopped.path}" in said(res), res.output
+
+
+def test_a_resumed_file_names_the_protocol_file_its_campaign_was_planned_from(tmp_path: Path) -> None:
+    """Its ``protocol_path`` is the original file's (the resume plans from a temporary copy of the stored text,
+    deleted once planned)."""
+    plan = plan_run(SWEEPS, RIG)
+
+    def stop_at_3(engine: Engine, sim) -> None:  # type: ignore[no-untyped-def]
+        sim.clock.subscribe(lambda _now: engine.request_stop("the test") if engine.now() >= 3.0 else None)
+
+    stopped = execute(plan, tmp_path / "stopped.h5", virtual=True, on_engine=stop_at_3)
+    assert stopped.state == "interrupted", stopped.reason
+    original = open_run(stopped.path, streams=False).attrs["protocol_path"]
+    assert original == str(SWEEPS)
+    plan2, link, _ = plan_resume(stopped.path)
+    assert str(plan2.protocol.path) == original
+    resumed = execute(plan2, tmp_path / "resumed.h5", virtual=True, resume=link)
+    assert resumed.state == "completed", resumed.reason
+    assert open_run(resumed.path, streams=False).attrs["protocol_path"] == original
+    res = runner.invoke(app, ["inspect", resumed.path])
+    assert str(SWEEPS) in said(res) and "/tmp" not in said(res).replace(str(tmp_path), ""), res.output
+
+
+def test_pause_and_resume_refuse_what_would_change_nothing(tmp_path: Path) -> None:
+    """A run in its own process, on the wall clock (it holds still long enough for a command to look at it):
+    `bench resume` while it runs, and a second `bench pause` once it is paused, are refused in one line and send
+    nothing; the pause and the resume that do something are recorded, and nothing else is."""
+    bench = [sys.executable, "-m", "bench"]
+    proc = subprocess.Popen([*bench, "run", str(SWEEPS), "--rig", str(RIG), "--out", str(tmp_path), "--no-live",
+                             "--yes"], cwd=ROOT, env=ENV, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+
+    def cli(*args: str) -> subprocess.CompletedProcess[str]:
+        return subprocess.run([*bench, *args], cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=120)
+
+    try:
+        wait_for(lambda: any(tmp_path.glob("*.log")) and "step 0 start" in next(tmp_path.glob("*.log")).read_text(),
+                 120, "the run to start")
+        run_file = next(tmp_path.glob("*.h5"))
+        log = run_file.with_suffix(".log")
+        not_paused = cli("resume", str(run_file), "--why", "go on")
+        assert not_paused.returncode == 2, not_paused.stdout + not_paused.stderr
+        assert f"run file {run_file}: not paused: nothing to resume" in " ".join(not_paused.stderr.split())
+        assert not control_path(run_file).exists()  # nothing sent
+        first = cli("pause", str(run_file), "--why", "adjust the laser", "--operator", "ada")
+        assert first.returncode == 0 and "pause asked" in first.stdout, first.stdout + first.stderr
+        wait_for(lambda: " pause: " in log.read_text(), 60, "the pause event")
+        again = cli("pause", str(run_file), "--why", "twice", "--operator", "bo")
+        assert again.returncode == 2 and "already paused" in again.stderr, again.stdout + again.stderr
+        assert "ada" in again.stderr  # who paused it
+        assert json.loads(control_path(run_file).read_text())["why"] == "adjust the laser"  # nothing sent
+        resumed = cli("resume", str(run_file), "--why", "laser fixed", "--operator", "cy")
+        assert resumed.returncode == 0, resumed.stdout + resumed.stderr
+        out, _ = proc.communicate(timeout=300)
+    finally:
+        proc.kill()
+    assert proc.returncode == 0, out
+    run = open_run(run_file, streams=False)
+    kinds = [(kind, text) for _t, _s, kind, text in run.event_list() if kind in ("pause", "resume", "request")]
+    assert [k for k, _ in kinds] == ["pause", "resume"], kinds
+    assert "ada" in kinds[0][1] and "cy" in kinds[1][1]

@@ -1,0 +1,53 @@
+"""The interlock latch belongs to the exact rig name: rigs whose names clean up alike for a file name
+(``thesis sim``, ``thesis-sim``) never share a latch, a latch file of the older form (no hash) is still honoured,
+and resetting a rig that is not latched is an error, not a reset."""
+
+from __future__ import annotations
+
+import json
+
+from typer.testing import CliRunner
+
+from bench.cli import app
+from bench.runtime import latch as rig_latch
+
+runner = CliRunner()
+
+
+def test_names_that_clean_up_alike_have_their_own_latches() -> None:
+    rig_latch.latch("thesis-sim", "interlock: host stall 2.5 s", "m1.h5")
+    assert rig_latch.latched("thesis sim") is None
+    assert rig_latch.latched("thesis/sim") is None
+    assert rig_latch.latch_path("thesis sim") != rig_latch.latch_path("thesis-sim")
+    res = runner.invoke(app, ["interlock", "reset", "thesis sim", "--why", "x", "--operator", "bo"])
+    assert res.exit_code == 2, res.output
+    assert "rig thesis sim: not latched: nothing to reset (latched: thesis-sim)" in " ".join(res.output.split())
+    was = rig_latch.latched("thesis-sim")  # the other rig's latch is untouched
+    assert was is not None and was["fault"] == "interlock: host stall 2.5 s"
+    res = runner.invoke(app, ["interlock", "reset", "thesis-sim", "--why", "x", "--operator", "bo"])
+    assert res.exit_code == 0 and "rig thesis-sim: reset (was: interlock: host stall 2.5 s)" in res.output
+    assert rig_latch.latched("thesis-sim") is None
+
+
+def test_both_rigs_latched_are_listed_apart_and_reset_apart() -> None:
+    rig_latch.latch("thesis-sim", "fault a", "a.h5")
+    rig_latch.latch("thesis sim", "fault b", "b.h5")
+    assert set(rig_latch.all_latched()) == {"thesis-sim", "thesis sim"}
+    assert rig_latch.reset("thesis sim", "bo", "checked") is not None
+    assert rig_latch.latched("thesis sim") is None
+    was = rig_latch.latched("thesis-sim")
+    assert was is not None and was["fault"] == "fault a"
+
+
+def test_an_old_format_latch_file_still_latches_its_own_rig_only() -> None:
+    old = rig_latch.state_dir() / "interlock-thesis-sim.json"  # as a bench before the hashed names wrote it
+    old.parent.mkdir(parents=True, exist_ok=True)
+    old.write_text(json.dumps({"rig": "thesis-sim", "fault": "old fault", "where": "r.h5", "at": "then"}))
+    was = rig_latch.latched("thesis-sim")
+    assert was is not None and was["fault"] == "old fault"
+    assert rig_latch.latched("thesis sim") is None
+    assert rig_latch.reset("thesis sim", "bo", "x") is None and old.exists()
+    res = runner.invoke(app, ["interlock", "status", "--json"])
+    assert res.exit_code == 0 and set(json.loads(res.output)["latched"]) == {"thesis-sim"}
+    assert rig_latch.reset("thesis-sim", "bo", "x") is not None and not old.exists()
+    assert rig_latch.latched("thesis-sim") is None
