@@ -29,7 +29,7 @@ import threading
 import time
 import tty
 from collections import Counter
-from collections.abc import Awaitable, Callable
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -587,15 +587,16 @@ class SocketRelay:
     open connection (as a server that died: FIN; with ``drop_reset``: RST) and the listening socket (new
     connections are refused) until it is cleared, then the relay listens on the same port again.
 
-    ``local`` (``"mbap"`` only): a device's own answer to a request, given the whole ADU, or None to pass it on.
-    It is asked only for a read that holds exactly one whole ADU while no request passed on is unanswered (so
-    replies keep the requests' order); its reply goes through the same faults as the server's. A twin answers its
-    busiest request here (the T7's MBFB packets) and saves the hop to its server and back.
+    ``local`` (``"mbap"`` only): a device's own answer to a request, given the whole ADU, or None to pass it on,
+    computed at once (no await: the request read, answered and its reply written in one step). It is asked only
+    for a read that holds exactly one whole ADU while no request passed on is unanswered (so replies keep the
+    requests' order); its reply goes through the same faults as the server's. A twin answers its busiest request
+    here (the T7's MBFB packets) and saves the hop to its server and back.
     """
 
     def __init__(self, name: str, upstream: tuple[str, int], faults: Faults | None = None,
                  framing: Literal["mbap", "stream"] = "stream", poll: float = 0.005,
-                 local: Callable[[bytes], Awaitable[bytes | None]] | None = None) -> None:
+                 local: Callable[[bytes], bytes | None] | None = None) -> None:
         self.name = name
         self.upstream = upstream
         self.faults = faults or Faults()
@@ -696,7 +697,7 @@ class SocketRelay:
                 conn.last_request = len(data)
                 if self.local is not None and not conn.pending and len(data) >= 8 \
                         and len(data) == 6 + int.from_bytes(data[4:6], "big"):
-                    reply = await self.local(data)
+                    reply = self.local(data)
                     if reply is not None:
                         if not await self._deliver(client, reply, len(data)):
                             return
@@ -734,7 +735,8 @@ class SocketRelay:
             await self._drop()
             return False
         writer.write(out)
-        await writer.drain()
+        if writer.transport.get_write_buffer_size():  # only a reply the socket did not take at once waits for it
+            await writer.drain()
         return True
 
 

@@ -110,8 +110,8 @@ class LabJackT7Sim(RegisterIO):
 
     async def _serve(self, port: int, stream_port: int) -> None:
         try:
-            feedback = FeedbackPDU.bound_to(UNIT, self.action, frozenset(range(R_O_U16, R_O_U16 + 4)),
-                                            self.frame_failed)
+            feedback = FeedbackPDU.bound_to(UNIT, self.serve_frame, self.request,
+                                            frozenset(range(R_O_U16, R_O_U16 + 4)), self.frame_failed)
             self._server = T7Server(self.device, address=("127.0.0.1", 0), custom_pdu=[feedback])
             await self._server.serve_forever(background=True)
             inner = self._server.transport.sockets[0].getsockname()[1]  # type: ignore[attr-defined]  # asyncio transport
