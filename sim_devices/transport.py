@@ -616,7 +616,7 @@ class SocketRelay:
     async def start(self, host: str = "127.0.0.1", port: int = 0) -> SocketRelay:
         """Listen on ``host:port`` (0: ephemeral) and start watching the faults."""
         self.host = host
-        self._server = await asyncio.start_server(self._handle, host, port)
+        self._server = await self._listen(host, port)
         self.port = self._server.sockets[0].getsockname()[1]
         self._watch = asyncio.get_running_loop().create_task(self._watch_faults())
         return self
@@ -652,7 +652,7 @@ class SocketRelay:
                 await self._drop()
             elif self._server is None:
                 with contextlib.suppress(OSError):  # port briefly taken: try again next poll
-                    self._server = await asyncio.start_server(self._handle, self.host, self.port)
+                    self._server = await self._listen(self.host, self.port)
             await asyncio.sleep(self._poll)
 
     async def _drop(self) -> None:
@@ -662,6 +662,15 @@ class SocketRelay:
         self._stop_listening()
         self._close_all(reset=self.faults.drop_reset)
         self.faults.note("drop")
+
+    async def _listen(self, host: str, port: int) -> asyncio.Server:
+        """``asyncio.start_server`` of :meth:`_handle`, with the clients' bytes read by a :class:`_Requests`."""
+        loop = asyncio.get_running_loop()
+
+        def protocol() -> asyncio.StreamReaderProtocol:
+            return asyncio.StreamReaderProtocol(_Requests(loop=loop), self._handle, loop=loop)
+
+        return await loop.create_server(protocol, host, port)
 
     async def _handle(self, creader: asyncio.StreamReader, cwriter: asyncio.StreamWriter) -> None:
         if self.faults.drop:  # accepted just before the listener closed
@@ -678,6 +687,8 @@ class SocketRelay:
         pair = (cwriter, swriter)
         self._conns.add(pair)
         conn = _Conn()
+        if self.local is not None and isinstance(creader, _Requests):
+            creader.answer = functools.partial(self._answer_now, cwriter, conn)
         loop = asyncio.get_running_loop()
         tasks = [loop.create_task(self._requests(creader, swriter, cwriter, conn)),
                  loop.create_task(self._replies(sreader, cwriter, conn))]
@@ -694,18 +705,41 @@ class SocketRelay:
                         client: asyncio.StreamWriter, conn: _Conn) -> None:
         with contextlib.suppress(OSError):
             while data := await reader.read(65536):
-                conn.last_request = len(data)
-                if self.local is not None and not conn.pending and len(data) >= 8 \
-                        and len(data) == 6 + int.from_bytes(data[4:6], "big"):
-                    reply = self.local(data)
-                    if reply is not None:
-                        if not await self._deliver(client, reply, len(data)):
-                            return
-                        continue
-                if self.local is not None:  # only a relay that answers locally needs the count
-                    conn.pending += _adus(data)
-                writer.write(data)
-                await writer.drain()
+                try:
+                    conn.last_request = len(data)
+                    if self.local is not None and not conn.pending and len(data) >= 8 \
+                            and len(data) == 6 + int.from_bytes(data[4:6], "big"):
+                        reply = self.local(data)
+                        if reply is not None:
+                            if not await self._deliver(client, reply, len(data)):
+                                return
+                            continue
+                    if self.local is not None:  # only a relay that answers locally needs the count
+                        conn.pending += _adus(data)
+                    writer.write(data)
+                    await writer.drain()
+                finally:
+                    if isinstance(reader, _Requests):
+                        reader.queued -= len(data)
+
+    def _answer_now(self, writer: asyncio.StreamWriter, conn: _Conn, data: bytes) -> bool:
+        """Answer the request in ``data`` as it arrives, if ``local`` answers it and its reply can go on the wire at
+        once: no request passed on unanswered, no reply waiting in the socket, no latency, wire time, drop or
+        schedule to wait on (those take :meth:`_requests`' path). False: not answered (nothing was done)."""
+        f = self.faults
+        if conn.pending or not 8 <= len(data) == 6 + int.from_bytes(data[4:6], "big") \
+                or f.latency or f.wire_baud or f.drop or f._armed or writer.transport.get_write_buffer_size():
+            return False
+        reply = self.local(data) if self.local is not None else None
+        if reply is None:
+            return False
+        conn.last_request = len(data)
+        out, _ = f.process(reply, len(data))  # no delay: neither latency nor wire time is set
+        if f.drop:  # set by another thread meanwhile: as :meth:`_deliver`, the link goes before the reply
+            asyncio.get_running_loop().create_task(self._drop())
+        elif out is not None:
+            writer.write(out)
+        return True
 
     async def _replies(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, conn: _Conn) -> None:
         with contextlib.suppress(OSError, asyncio.IncompleteReadError):
@@ -738,6 +772,23 @@ class SocketRelay:
         if writer.transport.get_write_buffer_size():  # only a reply the socket did not take at once waits for it
             await writer.drain()
         return True
+
+
+class _Requests(asyncio.StreamReader):
+    """The client's side of a relayed connection. Once the relay sets ``answer`` (a relay with a ``local`` answer,
+    :meth:`SocketRelay._answer_now`), bytes that arrive while nothing earlier waits in the relay's task are offered
+    to it first, in the event loop's read callback: a request answered there costs no task hop, no future, no
+    second pass of the loop. Bytes it does not take go to the task (:meth:`SocketRelay._requests`), and so do all
+    that follow until the task has handled them (``queued``): the replies keep the requests' order."""
+
+    answer: Callable[[bytes], bool] | None = None
+    queued = 0  # bytes fed to the task and not yet handled by it
+
+    def feed_data(self, data: bytes) -> None:  # type: ignore[override]  # the protocol feeds what it received: bytes
+        if not self.queued and self.answer is not None and self.answer(data):
+            return
+        self.queued += len(data)
+        super().feed_data(data)
 
 
 @dataclass
