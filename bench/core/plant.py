@@ -232,6 +232,19 @@ class Plant:
                 raise ValueError(f"amplifier input scheduled {self.t - t[0]:.6f} s in the plant's past")
             self._add_input(t, v, ordered)  # finite: not all ≥ is some <
 
+    def schedule_amplifier_scans(self, times: np.ndarray, volts: np.ndarray) -> None:
+        """:meth:`schedule_amplifier_input` of samples on a scan clock, as a DAQ twin makes them for the plant: 1-D
+        float arrays of one length, its own (kept as they are, never written again), times that do not decrease
+        (scan k at t0 + k / rate); what is still checked: every time finite, none in the plant's past."""
+        if not times.size:
+            return
+        if not (math.isfinite(times[0]) and math.isfinite(times[-1])):  # not decreasing: the ends bound the rest
+            raise ValueError("amplifier input: every scheduled time must be finite")
+        with self.lock:
+            if times[0] < self.t - 1e-9:
+                raise ValueError(f"amplifier input scheduled {self.t - times[0]:.6f} s in the plant's past")
+            self._add_input(times, volts, True)
+
     def unschedule_amplifier_input(self, after: float) -> None:
         """Drop the scheduled amplifier inputs later than ``after`` (a hardware-timed output stopped)."""
         with self.lock:

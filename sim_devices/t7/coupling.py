@@ -154,7 +154,7 @@ class PlantCoupling:
             self._filter_y = float(volts[-1])
             filtered = volts
         try:
-            self.plant.schedule_amplifier_input(times, volts)
+            self.plant.schedule_amplifier_scans(times, volts)  # its arrays, on the scan clock (dac_drive's times)
         except ValueError as exc:  # cannot happen under the lock order; kept as a check
             self.errors.append(RuntimeError(f"DAC value: {exc}"))
         return filtered

@@ -274,6 +274,7 @@ class StreamEngine(StreamOut):
         if size and (size & (size - 1) or size > 32768):
             return E_BUFSIZE
         now = self.clock.now()
+        self._streamed = outs
         self.t_enable, self.streaming, self.tid, self.produced = now, True, 0, 0
         self.fifo = np.zeros(0, np.uint16)
         self.recovering, self.skipped = False, 0
