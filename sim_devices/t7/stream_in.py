@@ -283,7 +283,7 @@ class StreamEngine(StreamOut):
         self.recovering, self.skipped = False, 0
         for k in outs:
             o = self.outs[k]
-            o.next_scan, o.sched, o.loop_pos, o.anchor = 0, deque(), 0, 0
+            o.next_scan, o.sched, o.loop_pos, o.anchor, o.loop_until = 0, deque(), 0, 0, 0
             o.loop_active = False
             codes, o.queue = np.array(o.queue, np.int64), deque()
             self._schedule(k, codes, now)
@@ -300,7 +300,7 @@ class StreamEngine(StreamOut):
             o = self.outs[k]
             unplayed = [int(c) for p in o.sched if not p.loop for c in p.codes[max(cur + 1 - p.first, 0):]]
             o.queue.extendleft(reversed(unplayed))
-            o.sched = deque()
+            o.sched, o.loop_until = deque(), 0
         self.streaming = False
         self._next_packet_t = math.inf
         self._undrive_after(now)

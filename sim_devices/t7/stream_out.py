@@ -100,6 +100,7 @@ class OutChannel:
     loop: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     loop_pos: int = 0
     next_scan: int = 0
+    loop_until: int = 0  # the scan after the last loop repetition scheduled (none left to play once it is reached)
     code: int = 0  # last code played
     y: float | None = None  # the reconstruction filter's output after it (None without a filter)
     underrun_scans: int = 0
@@ -149,6 +150,8 @@ class StreamOut(PlantCoupling):
         y = self._drive(start, codes) if o.target == R_DAC + 2 * self.dac else None
         o.sched.append(Played(start, codes, loop, y))
         o.next_scan = start + codes.size
+        if loop:
+            o.loop_until = o.next_scan
 
     def _level(self, k: int, now: float) -> int:
         o = self.outs[k]
@@ -296,17 +299,21 @@ class StreamOut(PlantCoupling):
         the general path (``_level`` after ``_advance_out``: every value still scheduled is after the scan now)."""
         o = self.outs[k]
         self._advance_out(k, now)
+        cur = self._cur_scan(now)
         level = len(o.queue)
-        for p in o.sched:  # all after the scan now: whole (the data written, not a loop's repetitions)
-            if not p.loop:
-                level += p.codes.size
+        if o.loop_until <= cur + 1:  # no repetition left: the values scheduled fill the scans after now, up to
+            level += max(o.next_scan - cur - 1, 0)  # next_scan (a schedule after an underrun starts after the last)
+        else:
+            for p in o.sched:  # all after the scan now: whole (the data written, not a loop's repetitions)
+                if not p.loop:
+                    level += p.codes.size
         room = o.alloc // 2 - 1 - level
         take = np.asarray(codes[:max(room, 0)], np.int64)  # a frame's array as it is (no copy), a list converted
         o.tail.extend(take)
         o.buffer_writes += 1
         o.values_written += take.size
         if take.size:
-            start = max(o.next_scan, self._cur_scan(now) + 1)
+            start = max(o.next_scan, cur + 1)
             if start > o.next_scan and not o.loop_active:
                 o.underrun_scans += start - o.next_scan
             y = self._drive(start, take) if o.target == R_DAC + 2 * self.dac else None
