@@ -90,9 +90,13 @@ class StreamEngine(StreamOut):
         self._next_packet_t = math.inf  # rig time at which the next whole stream packet is due
         self._pumped_at: float | None = None  # rig time of the last pump (None: a request came since)
         self._worked_at = -math.inf  # rig time of the last pump of a running stream (on demand: the step's start)
+        self._ins: list[int] = []  # the running stream's analog inputs (_start_stream)
 
     def _in_addresses(self) -> list[int]:
-        """The scan list's analog inputs (AIN addresses), in scan order."""
+        """The scan list's analog inputs (AIN addresses), in scan order (while streaming, the running stream's: its
+        scan list cannot change then)."""
+        if self.streaming:
+            return self._ins
         return [a for a in self.scanlist[:int(self.regs[R_NADDR])] if a < 2 * N_AIN_ALL]
 
     def pump(self) -> None:
@@ -132,9 +136,9 @@ class StreamEngine(StreamOut):
     def _packet_due(self) -> float:
         """Rig time of the scan that completes the next whole packet, or a burst's last scan if that comes first
         (its short last packet leaves then); inf when not streaming."""
-        n_in = len(self._in_addresses())
-        if not self.streaming or not n_in:
+        if not self.streaming or not self._ins:
             return math.inf
+        n_in = len(self._ins)
         missing = max(int(self.regs[R_SPP]) - self.fifo.size, 1)
         scans = -(-missing // n_in)  # scan k is taken at t_enable + (k + 1) / rate
         nscans = int(self.regs[R_NSCANS])
@@ -277,7 +281,7 @@ class StreamEngine(StreamOut):
         if size and (size & (size - 1) or size > 32768):
             return E_BUFSIZE
         now = self.clock.now()
-        self._streamed = outs
+        self._streamed, self._ins = outs, [a for a in entries if a < 2 * N_AIN_ALL]
         self.t_enable, self.streaming, self.tid, self.produced = now, True, 0, 0
         self.fifo = np.zeros(0, np.uint16)
         self.recovering, self.skipped = False, 0
