@@ -73,6 +73,11 @@ class Tail:
 
     def extend(self, values: np.ndarray) -> None:
         """Append ``values`` (the oldest fall out)."""
+        start = self._count % max(self.size, 1)
+        if values.size <= self.size - start:  # they fit before the ring's end (a packet, mostly): one copy
+            self._ring[start:start + values.size] = values
+            self._count += values.size
+            return
         v = values[values.size - min(values.size, self.size):]
         start = (self._count + values.size - v.size) % max(self.size, 1)  # ring index of v[0]
         first = min(v.size, self.size - start)
