@@ -605,7 +605,7 @@ class SocketRelay:
         self.host, self.port = "127.0.0.1", 0
         self._poll = poll
         self._server: asyncio.Server | None = None
-        self._watch: asyncio.Task[None] | None = None
+        self._watch: asyncio.Handle | asyncio.Task[None] | None = None  # the next look at the faults, or its action
         self._conns: set[tuple[asyncio.StreamWriter, asyncio.StreamWriter]] = set()
 
     @property
@@ -618,15 +618,17 @@ class SocketRelay:
         self.host = host
         self._server = await self._listen(host, port)
         self.port = self._server.sockets[0].getsockname()[1]
-        self._watch = asyncio.get_running_loop().create_task(self._watch_faults())
+        self._watch = asyncio.get_running_loop().call_soon(self._watch_faults)
         return self
 
     async def close(self) -> None:
         """Stop listening and reset every connection."""
-        if self._watch is not None:
-            self._watch.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await self._watch
+        watch = self._watch
+        if watch is not None:
+            watch.cancel()
+            if isinstance(watch, asyncio.Task):
+                with contextlib.suppress(asyncio.CancelledError):
+                    await watch
         self._stop_listening()
         self._close_all()
 
@@ -644,16 +646,25 @@ class SocketRelay:
             else:
                 cwriter.close()
 
-    async def _watch_faults(self) -> None:
+    def _watch_faults(self) -> None:
+        """Every ``poll`` s: tick the faults' schedules; a drop (while listening) or its end (listening again) is
+        acted on in a task, and the watch goes on after it. A timer callback while there is nothing to act on (a
+        task sleeping between looks took a future and a second pass of the loop at every poll)."""
         faults = self.faults
-        while True:
-            faults.tick()
-            if faults.drop:
-                await self._drop()
-            elif self._server is None:
-                with contextlib.suppress(OSError):  # port briefly taken: try again next poll
-                    self._server = await self._listen(self.host, self.port)
-            await asyncio.sleep(self._poll)
+        faults.tick()
+        loop = asyncio.get_running_loop()
+        if bool(faults.drop) == (self._server is not None):  # dropped while listening, or no longer dropped
+            self._watch = loop.create_task(self._act_on_faults())
+        else:
+            self._watch = loop.call_later(self._poll, self._watch_faults)
+
+    async def _act_on_faults(self) -> None:
+        if self.faults.drop:
+            await self._drop()
+        else:
+            with contextlib.suppress(OSError):  # port briefly taken: try again next poll
+                self._server = await self._listen(self.host, self.port)
+        self._watch = asyncio.get_running_loop().call_later(self._poll, self._watch_faults)
 
     async def _drop(self) -> None:
         """Stop listening first (no reconnection slips in), then close the open connections."""
