@@ -162,6 +162,8 @@ class _TcpClient(ModbusTcpClient):
                 raise ModbusIOException("no reply", function_code=request.function_code, transaction_id=tid,
                                         dev_id=dev_id)
             buffer += data
+            if (reply := self._whole_reply(buffer, dev_id, tid, request.function_code)) is not None:
+                break
             used, reply = self.framer.handleFrame(buffer, dev_id, tid)
             buffer = buffer[used:]
             if reply is not None:
@@ -173,6 +175,29 @@ class _TcpClient(ModbusTcpClient):
             raise ModbusIOException(f"reply from unit {reply.dev_id} with id {reply.transaction_id}",
                                     function_code=request.function_code, transaction_id=tid, dev_id=dev_id)
         return reply
+
+
+    def _whole_reply(self, buffer: bytes, dev_id: int, tid: int, function_code: int) -> ModbusPDU | None:
+        """The reply in ``buffer`` when it is exactly one whole MBAP frame (protocol 0) from this unit with this id
+        and the request's function code, decoded as pymodbus' framer would (the decoder's class for that code, no
+        sub-function), without its framer's passes and debug formatting; None for anything else (an exception
+        reply, a frame cut short or followed by more, another unit or id), which the framer then handles."""
+        if len(buffer) < 8 or buffer[2:4] != b"\0\0" or buffer[6] != dev_id or buffer[7] != function_code \
+                or len(buffer) != 6 + int.from_bytes(buffer[4:6], "big") or int.from_bytes(buffer[:2], "big") != tid:
+            return None
+        decoder = self.framer.decoder
+        entry = decoder.pdu_table.get(function_code)
+        if entry is None or (cls := entry[decoder.pdu_inx]) is None:
+            return None
+        try:
+            pdu = cls()
+            pdu.decode(buffer[8:])
+        except Exception:  # the framer decides what a frame its decoder refuses is
+            return None
+        if pdu.sub_function_code >= 0:  # a sub-function's own class: the decoder's lookup
+            return None
+        pdu.dev_id, pdu.transaction_id = dev_id, tid
+        return pdu
 
 
 class ModbusLink:

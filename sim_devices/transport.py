@@ -29,7 +29,7 @@ import threading
 import time
 import tty
 from collections import Counter
-from collections.abc import Awaitable, Callable
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -587,15 +587,16 @@ class SocketRelay:
     open connection (as a server that died: FIN; with ``drop_reset``: RST) and the listening socket (new
     connections are refused) until it is cleared, then the relay listens on the same port again.
 
-    ``local`` (``"mbap"`` only): a device's own answer to a request, given the whole ADU, or None to pass it on.
-    It is asked only for a read that holds exactly one whole ADU while no request passed on is unanswered (so
-    replies keep the requests' order); its reply goes through the same faults as the server's. A twin answers its
-    busiest request here (the T7's MBFB packets) and saves the hop to its server and back.
+    ``local`` (``"mbap"`` only): a device's own answer to a request, given the whole ADU, or None to pass it on,
+    computed at once (no await: the request read, answered and its reply written in one step). It is asked only
+    for a read that holds exactly one whole ADU while no request passed on is unanswered (so replies keep the
+    requests' order); its reply goes through the same faults as the server's. A twin answers its busiest request
+    here (the T7's MBFB packets) and saves the hop to its server and back.
     """
 
     def __init__(self, name: str, upstream: tuple[str, int], faults: Faults | None = None,
                  framing: Literal["mbap", "stream"] = "stream", poll: float = 0.005,
-                 local: Callable[[bytes], Awaitable[bytes | None]] | None = None) -> None:
+                 local: Callable[[bytes], bytes | None] | None = None) -> None:
         self.name = name
         self.upstream = upstream
         self.faults = faults or Faults()
@@ -604,7 +605,7 @@ class SocketRelay:
         self.host, self.port = "127.0.0.1", 0
         self._poll = poll
         self._server: asyncio.Server | None = None
-        self._watch: asyncio.Task[None] | None = None
+        self._watch: asyncio.Handle | asyncio.Task[None] | None = None  # the next look at the faults, or its action
         self._conns: set[tuple[asyncio.StreamWriter, asyncio.StreamWriter]] = set()
 
     @property
@@ -615,17 +616,19 @@ class SocketRelay:
     async def start(self, host: str = "127.0.0.1", port: int = 0) -> SocketRelay:
         """Listen on ``host:port`` (0: ephemeral) and start watching the faults."""
         self.host = host
-        self._server = await asyncio.start_server(self._handle, host, port)
+        self._server = await self._listen(host, port)
         self.port = self._server.sockets[0].getsockname()[1]
-        self._watch = asyncio.get_running_loop().create_task(self._watch_faults())
+        self._watch = asyncio.get_running_loop().call_soon(self._watch_faults)
         return self
 
     async def close(self) -> None:
         """Stop listening and reset every connection."""
-        if self._watch is not None:
-            self._watch.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await self._watch
+        watch = self._watch
+        if watch is not None:
+            watch.cancel()
+            if isinstance(watch, asyncio.Task):
+                with contextlib.suppress(asyncio.CancelledError):
+                    await watch
         self._stop_listening()
         self._close_all()
 
@@ -643,16 +646,25 @@ class SocketRelay:
             else:
                 cwriter.close()
 
-    async def _watch_faults(self) -> None:
+    def _watch_faults(self) -> None:
+        """Every ``poll`` s: tick the faults' schedules; a drop (while listening) or its end (listening again) is
+        acted on in a task, and the watch goes on after it. A timer callback while there is nothing to act on (a
+        task sleeping between looks took a future and a second pass of the loop at every poll)."""
         faults = self.faults
-        while True:
-            faults.tick()
-            if faults.drop:
-                await self._drop()
-            elif self._server is None:
-                with contextlib.suppress(OSError):  # port briefly taken: try again next poll
-                    self._server = await asyncio.start_server(self._handle, self.host, self.port)
-            await asyncio.sleep(self._poll)
+        faults.tick()
+        loop = asyncio.get_running_loop()
+        if bool(faults.drop) == (self._server is not None):  # dropped while listening, or no longer dropped
+            self._watch = loop.create_task(self._act_on_faults())
+        else:
+            self._watch = loop.call_later(self._poll, self._watch_faults)
+
+    async def _act_on_faults(self) -> None:
+        if self.faults.drop:
+            await self._drop()
+        else:
+            with contextlib.suppress(OSError):  # port briefly taken: try again next poll
+                self._server = await self._listen(self.host, self.port)
+        self._watch = asyncio.get_running_loop().call_later(self._poll, self._watch_faults)
 
     async def _drop(self) -> None:
         """Stop listening first (no reconnection slips in), then close the open connections."""
@@ -661,6 +673,15 @@ class SocketRelay:
         self._stop_listening()
         self._close_all(reset=self.faults.drop_reset)
         self.faults.note("drop")
+
+    async def _listen(self, host: str, port: int) -> asyncio.Server:
+        """``asyncio.start_server`` of :meth:`_handle`, with the clients' bytes read by a :class:`_Requests`."""
+        loop = asyncio.get_running_loop()
+
+        def protocol() -> asyncio.StreamReaderProtocol:
+            return asyncio.StreamReaderProtocol(_Requests(loop=loop), self._handle, loop=loop)
+
+        return await loop.create_server(protocol, host, port)
 
     async def _handle(self, creader: asyncio.StreamReader, cwriter: asyncio.StreamWriter) -> None:
         if self.faults.drop:  # accepted just before the listener closed
@@ -677,6 +698,8 @@ class SocketRelay:
         pair = (cwriter, swriter)
         self._conns.add(pair)
         conn = _Conn()
+        if self.local is not None and isinstance(creader, _Requests):
+            creader.answer = functools.partial(self._answer_now, cwriter, conn)
         loop = asyncio.get_running_loop()
         tasks = [loop.create_task(self._requests(creader, swriter, cwriter, conn)),
                  loop.create_task(self._replies(sreader, cwriter, conn))]
@@ -693,18 +716,41 @@ class SocketRelay:
                         client: asyncio.StreamWriter, conn: _Conn) -> None:
         with contextlib.suppress(OSError):
             while data := await reader.read(65536):
-                conn.last_request = len(data)
-                if self.local is not None and not conn.pending and len(data) >= 8 \
-                        and len(data) == 6 + int.from_bytes(data[4:6], "big"):
-                    reply = await self.local(data)
-                    if reply is not None:
-                        if not await self._deliver(client, reply, len(data)):
-                            return
-                        continue
-                if self.local is not None:  # only a relay that answers locally needs the count
-                    conn.pending += _adus(data)
-                writer.write(data)
-                await writer.drain()
+                try:
+                    conn.last_request = len(data)
+                    if self.local is not None and not conn.pending and len(data) >= 8 \
+                            and len(data) == 6 + int.from_bytes(data[4:6], "big"):
+                        reply = self.local(data)
+                        if reply is not None:
+                            if not await self._deliver(client, reply, len(data)):
+                                return
+                            continue
+                    if self.local is not None:  # only a relay that answers locally needs the count
+                        conn.pending += _adus(data)
+                    writer.write(data)
+                    await writer.drain()
+                finally:
+                    if isinstance(reader, _Requests):
+                        reader.queued -= len(data)
+
+    def _answer_now(self, writer: asyncio.StreamWriter, conn: _Conn, data: bytes) -> bool:
+        """Answer the request in ``data`` as it arrives, if ``local`` answers it and its reply can go on the wire at
+        once: no request passed on unanswered, no reply waiting in the socket, no latency, wire time, drop or
+        schedule to wait on (those take :meth:`_requests`' path). False: not answered (nothing was done)."""
+        f = self.faults
+        if conn.pending or not 8 <= len(data) == 6 + int.from_bytes(data[4:6], "big") \
+                or f.latency or f.wire_baud or f.drop or f._armed or writer.transport.get_write_buffer_size():
+            return False
+        reply = self.local(data) if self.local is not None else None
+        if reply is None:
+            return False
+        conn.last_request = len(data)
+        out, _ = f.process(reply, len(data))  # no delay: neither latency nor wire time is set
+        if f.drop:  # set by another thread meanwhile: as :meth:`_deliver`, the link goes before the reply
+            asyncio.get_running_loop().create_task(self._drop())
+        elif out is not None:
+            writer.write(out)
+        return True
 
     async def _replies(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, conn: _Conn) -> None:
         with contextlib.suppress(OSError, asyncio.IncompleteReadError):
@@ -734,8 +780,26 @@ class SocketRelay:
             await self._drop()
             return False
         writer.write(out)
-        await writer.drain()
+        if writer.transport.get_write_buffer_size():  # only a reply the socket did not take at once waits for it
+            await writer.drain()
         return True
+
+
+class _Requests(asyncio.StreamReader):
+    """The client's side of a relayed connection. Once the relay sets ``answer`` (a relay with a ``local`` answer,
+    :meth:`SocketRelay._answer_now`), bytes that arrive while nothing earlier waits in the relay's task are offered
+    to it first, in the event loop's read callback: a request answered there costs no task hop, no future, no
+    second pass of the loop. Bytes it does not take go to the task (:meth:`SocketRelay._requests`), and so do all
+    that follow until the task has handled them (``queued``): the replies keep the requests' order."""
+
+    answer: Callable[[bytes], bool] | None = None
+    queued = 0  # bytes fed to the task and not yet handled by it
+
+    def feed_data(self, data: bytes) -> None:  # type: ignore[override]  # the protocol feeds what it received: bytes
+        if not self.queued and self.answer is not None and self.answer(data):
+            return
+        self.queued += len(data)
+        super().feed_data(data)
 
 
 @dataclass

@@ -269,10 +269,10 @@ def test_the_twins_stream_kernels_are_compiled_before_it_answers_and_for_the_arr
     compile)."""
     from sim_devices.t7 import analog
 
-    kernels = (analog.ain_codes_of, analog.dac_drive, analog.held_index, analog.reconstruct)
-    assert [len(k.signatures) for k in kernels] == [1, 1, 1, 1]  # compiled by start()
+    kernels = (analog.ain_codes_of, analog.ain_scan_codes, analog.dac_drive, analog.held_index, analog.reconstruct)
+    assert [len(k.signatures) for k in kernels] == [1, 1, 1, 1, 1]  # compiled by start()
     test_twin_stream_packet_bytes(raw_twin)
-    assert [len(k.signatures) for k in kernels] == [1, 1, 1, 1]
+    assert [len(k.signatures) for k in kernels] == [1, 1, 1, 1, 1]
 
 
 def test_twin_refuses_empty_stream_with_labjack_error(raw_twin: Rig) -> None:

@@ -24,7 +24,7 @@ async def _exchange(requests: list[bytes], faults: Faults | None = None) -> list
             writer.write(_adu(int.from_bytes(head[:2], "big"), bytes([body[1], 2, 0x12, 0x34])))
             await writer.drain()
 
-    async def local(adu: bytes) -> bytes | None:
+    def local(adu: bytes) -> bytes | None:
         return _adu(int.from_bytes(adu[:2], "big"), bytes([76])) if adu[7] == 76 else None
 
     server = await asyncio.start_server(slow_server, "127.0.0.1", 0)

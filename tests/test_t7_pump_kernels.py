@@ -31,6 +31,31 @@ def test_non_finite_observables_read_as_nan_to_num_makes_them() -> None:
     assert out.tolist() == analog.ain_codes(cal, np.array([1.7976931348623157, -1.7976931348623157]), 0).tolist()
 
 
+def test_a_stream_blocks_inputs_in_one_pass_give_each_inputs_codes_and_noise_draws() -> None:
+    """ain_scan_codes (all inputs of a block, in scan order) against ain_codes_of per input with the noise its own
+    generator's normal(0, rms) draws: the same codes (the draws as standard normals, scaled in the kernel)."""
+    cal = analog.nominal_calibration()
+    rng = np.random.default_rng(5)
+    n = 3000
+    xs = rng.normal(0.0, 3.0, (4, n))
+    xs[1, [7, 8, 9]] = [np.nan, np.inf, -np.inf]
+    inputs = [(1.0, 0.0, 1e-3, 0), (1e3, -0.5, 0.0, 1), (0.2, 0.1, 2.5e-5, 2), (200.0, 0.0, 7e-4, 3)]
+    normals = np.zeros((4, n))
+    params = np.empty((4, 6))
+    want = np.empty((n, 4), np.uint16)
+    for j, (gain, offset, rms, g) in enumerate(inputs):
+        if rms:
+            np.random.default_rng([7, j]).standard_normal(out=normals[j])
+        params[j] = (gain, offset, rms, *cal[4 * g:4 * g + 3])
+        noise = np.random.default_rng([7, j]).normal(0.0, rms, n) if rms else np.zeros(0)
+        col = np.empty(n, np.uint16)
+        analog.ain_codes_of(xs[j], gain, offset, noise, *cal[4 * g:4 * g + 3], col)
+        want[:, j] = col
+    out = np.empty((n, 4), np.uint16)
+    analog.ain_scan_codes(xs, params, normals, out)
+    assert np.array_equal(out, want)
+
+
 def test_held_index_is_searchsorted_right_minus_one_clipped() -> None:
     rng = np.random.default_rng(2)
     t = np.cumsum(rng.uniform(0.5e-4, 1.5e-4, 3000)) + 0.2  # plant step ends, increasing

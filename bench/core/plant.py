@@ -236,6 +236,19 @@ class Plant:
         """A hardware-timed stream's scan 0 falls at plant time ``t`` (the T7 twin's enable): the model needs nothing
         of it (a replayed record aligns its own kickoffs to it: :class:`bench.runtime.replay.ReplayPlant`)."""
 
+    def schedule_amplifier_scans(self, times: np.ndarray, volts: np.ndarray) -> None:
+        """:meth:`schedule_amplifier_input` of samples on a scan clock, as a DAQ twin makes them for the plant: 1-D
+        float arrays of one length, its own (kept as they are, never written again), times that do not decrease
+        (scan k at t0 + k / rate); what is still checked: every time finite, none in the plant's past."""
+        if not times.size:
+            return
+        if not (math.isfinite(times[0]) and math.isfinite(times[-1])):  # not decreasing: the ends bound the rest
+            raise ValueError("amplifier input: every scheduled time must be finite")
+        with self.lock:
+            if times[0] < self.t - 1e-9:
+                raise ValueError(f"amplifier input scheduled {self.t - times[0]:.6f} s in the plant's past")
+            self._add_input(times, volts, True)
+
     def unschedule_amplifier_input(self, after: float) -> None:
         """Drop the scheduled amplifier inputs later than ``after`` (a hardware-timed output stopped)."""
         with self.lock:

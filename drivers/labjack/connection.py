@@ -11,6 +11,7 @@ from collections.abc import Callable, Sequence
 from typing import TypeVar
 
 import numpy as np
+from pymodbus.pdu import ModbusPDU
 
 from drivers.cancel import CancelToken
 from drivers.deadline import WALL, ReplyTimer
@@ -137,14 +138,19 @@ class T7Connection:
         packet's first attempt goes out even after a stop request (a command that makes the rig safe:
         :meth:`~drivers.modbus_link.ModbusLink.write_register`)."""
         out: list[list[int]] = []
+
+        def execute(unit: int, pdu: Feedback) -> ModbusPDU:
+            return self.link.execute(unit, pdu, retry=retry, always_send=always_send)
+
         for packet in feedback_packets(frames):
             counts = [n for f in packet if (n := read_count(f)) is not None]
             what = f"feedback of {len(packet)} frames at {packet[0][0]}"
-            reply = self._lj(what, lambda unit, pdu: self.link.execute(unit, pdu, retry=retry, always_send=always_send),
-                             Feedback(packet), packet=packet)
+            reply = self._lj(what, execute, Feedback(packet), packet=packet)
             data = getattr(reply, "data", b"")
             if len(data) != 2 * sum(counts):
                 raise ProtocolError(self.name, f"{what}: {len(data)} bytes of read data, {2 * sum(counts)} expected")
+            if not counts:  # a write-only packet (the stream-out's): no read data
+                continue
             words = struct.unpack(f">{len(data) // 2}H", data)
             k = 0
             for n in counts:

@@ -77,6 +77,8 @@ _FRAME_HEAD = struct.Struct(">BHB")  # [D] MBFB frame: type, address, number of 
 
 def _u16_bytes(words: Words) -> bytes:
     """Register values as big-endian 16-bit words; a value outside 0…65535 is refused, not wrapped."""
+    if type(words) is np.ndarray and words.dtype == np.uint16:  # a stream-out's codes: in range by their type
+        return words.astype(">u2").tobytes()
     if isinstance(words, list) and all(type(v) is int for v in words):  # a few registers: struct, not numpy
         with contextlib.suppress(struct.error):  # out of range: refused below, naming the values
             return struct.pack(f">{len(words)}H", *words)
@@ -89,10 +91,13 @@ def _u16_bytes(words: Words) -> bytes:
     return w.astype(">u2").tobytes()
 
 
+_COUNT = (int, np.integer)  # what the second item of a read frame is (a write's: the registers)
+
+
 def read_count(frame: Frame) -> int | None:
     """The registers an MBFB frame reads (its second item a count), None for a write (the registers)."""
     w = frame[1]
-    return int(w) if isinstance(w, int | np.integer) else None
+    return int(w) if isinstance(w, _COUNT) else None
 
 
 class Feedback(ModbusPDU):
@@ -110,12 +115,11 @@ class Feedback(ModbusPDU):
     def encode(self) -> bytes:
         """Write frames: 1, address, n, n registers (big-endian); read frames: 0, address, n."""
         parts: list[bytes] = []
-        for f in self.writes:
-            if (n := read_count(f)) is not None:
-                parts.append(_FRAME_HEAD.pack(0, f[0], n))
+        for a, w in self.writes:
+            if isinstance(w, _COUNT):  # a read (read_count)
+                parts.append(_FRAME_HEAD.pack(0, a, int(w)))
             else:
-                w: Words = f[1]  # type: ignore[assignment]  # a write: the registers
-                parts += (_FRAME_HEAD.pack(1, f[0], len(w)), _u16_bytes(w))
+                parts += (_FRAME_HEAD.pack(1, a, len(w)), _u16_bytes(w))
         return b"".join(parts)
 
     def decode(self, data: bytes) -> None:

@@ -97,6 +97,31 @@ def ain_codes_of(x: np.ndarray, gain: float, offset: float, noise: np.ndarray, p
 
 
 @njit(cache=True, nogil=True)
+def ain_scan_codes(xs: np.ndarray, params: np.ndarray, normals: np.ndarray, out: np.ndarray) -> None:
+    """``out[k, j]`` ← the stream code of input j's sample k, every input of a stream block in one compiled pass,
+    written in scan order (the packets' interleaving): :func:`ain_codes_of` of row j of ``xs`` with
+    ``params[j]`` = (gain, offset, noise rms, p, nslope, c) and, where that rms is not 0, the noise
+    0.0 + rms·``normals[j, k]`` — the doubles of ``Generator.normal(0.0, rms)`` ([numpy] loc + scale · a standard
+    normal) from the same draws of the input's own generator."""
+    n_in, n = xs.shape
+    for j in range(n_in):
+        gain, offset, rms, p, nslope, c = params[j, 0], params[j, 1], params[j, 2], params[j, 3], params[j, 4], \
+            params[j, 5]
+        for k in range(n):
+            xk = xs[j, k]
+            if not math.isfinite(xk):
+                xk = 0.0 if xk != xk else (_DOUBLE_MAX if xk > 0 else -_DOUBLE_MAX)
+            v = gain * xk + offset
+            if rms != 0.0:
+                v = v + (0.0 + rms * normals[j, k])
+            r = np.rint(v / (p if v >= 0 else -nslope) + c)
+            if r != r:  # NaN: numpy's cast gives 0
+                out[k, j] = 0
+            else:
+                out[k, j] = 0 if r < 0 else (65535 if r > 65535 else int(r))
+
+
+@njit(cache=True, nogil=True)
 def dac_drive(first: int, codes: np.ndarray, t_enable: float, rate: float, slope: float, off: float, gain: float,
               offset: float, limit: float) -> tuple[np.ndarray, np.ndarray]:
     """(times, amplifier inputs) of DAC ``codes`` played at scans ``first``, ``first`` + 1, … ([D] scan k at
@@ -142,10 +167,11 @@ def held_index(t: np.ndarray, times: np.ndarray) -> np.ndarray:
 
 
 def warm_up() -> None:
-    """Compile :func:`ain_codes_of`, :func:`dac_drive`, :func:`held_index` and :func:`reconstruct` now (a fresh
-    install has no numba cache: compiling at the first stream pump would take seconds inside the twin's reply, with
-    its locks held, and the host would wait)."""
+    """Compile :func:`ain_codes_of`, :func:`ain_scan_codes`, :func:`dac_drive`, :func:`held_index` and
+    :func:`reconstruct` now (a fresh install has no numba cache: compiling at the first stream pump would take
+    seconds inside the twin's reply, with its locks held, and the host would wait)."""
     ain_codes_of(np.zeros(1), 1.0, 0.0, np.zeros(1), 1.0, 1.0, 0.0, np.zeros(1, np.uint16))
+    ain_scan_codes(np.zeros((1, 1)), np.ones((1, 6)), np.zeros((1, 1)), np.zeros((1, 1), np.uint16))
     dac_drive(0, np.zeros(1, np.int64), 0.0, 1.0, 1.0, 0.0, 1.0, 0.0, 1.0)
     held_index(np.zeros(2), np.zeros(2))
     reconstruct(np.zeros(2), 0.5, 0.0)

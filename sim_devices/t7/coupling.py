@@ -118,6 +118,32 @@ class PlantCoupling:
         p, nslope, c = self.cal[4 * gain:4 * gain + 3]
         analog.ain_codes_of(x, float(sig.gain), float(sig.offset), noise, p, nslope, c, out)
 
+    def _ain_scan_block(self, ains: list[int], obs: dict[str, np.ndarray], n: int, adc_rms: list[float],
+                        gains: list[int]) -> np.ndarray | None:
+        """The stream codes of ``n`` scans of the inputs ``ains`` (scan-list slots 0, 1, …), interleaved in scan order:
+        :meth:`_ain_stream_codes` of each (the same noise draws, the same codes) in one compiled pass
+        (:func:`~sim_devices.t7.analog.ain_scan_codes`); ``adc_rms``, ``gains``: each input's ADC noise and
+        calibration gain index. None when an input reads no plant observable (temperature, ground, nothing wired):
+        those take :meth:`_ain_stream_codes`."""
+        sigs = [self.signals.get(a) for a in ains]
+        if any(sig is None or a in (AIN_TEMPERATURE, AIN_GROUND) for a, sig in zip(ains, sigs, strict=True)):
+            return None  # before any draw: those inputs' generators are the per-input path's
+        m = len(ains)
+        xs = np.empty((m, n))
+        params = np.empty((m, 6))
+        normals = np.empty((m, n))
+        for j, (a, sig) in enumerate(zip(ains, sigs, strict=True)):
+            assert sig is not None
+            xs[j] = obs[sig.observable]
+            rms = math.hypot(sig.noise, adc_rms[j]) if self.noise else 0.0
+            if rms:
+                self._noise(a, j).standard_normal(out=normals[j])
+            g = 4 * gains[j]
+            params[j] = (sig.gain, sig.offset, rms, self.cal[g], self.cal[g + 1], self.cal[g + 2])
+        out = np.empty((n, m), np.uint16)
+        analog.ain_scan_codes(xs, params, normals, out)
+        return out.reshape(-1)
+
     def _noise(self, ain: int, slot: int) -> np.random.Generator:
         """The generator of input ``ain``'s samples at scan-list ``slot`` (−1: its command-response reads), seeded
         from the twin's seed: one draw per sample in sample order, so a run repeats whatever the pumps' sizes."""
@@ -154,7 +180,7 @@ class PlantCoupling:
             self._filter_y = float(volts[-1])
             filtered = volts
         try:
-            self.plant.schedule_amplifier_input(times, volts)
+            self.plant.schedule_amplifier_scans(times, volts)  # its arrays, on the scan clock (dac_drive's times)
         except ValueError as exc:  # cannot happen under the lock order; kept as a check
             self.errors.append(RuntimeError(f"DAC value: {exc}"))
         return filtered

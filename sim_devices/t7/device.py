@@ -70,7 +70,7 @@ class LabJackT7Sim(RegisterIO):
         self._server: ModbusTcpServer | None = None
         self._relay: SocketRelay | None = None
         self._stream_server: asyncio.Server | None = None
-        self._pump_task: asyncio.Task[None] | None = None
+        self._poll_handle: asyncio.Handle | None = None  # the pump's next poll (_poll)
         self.host = "127.0.0.1"
         self.port = 0
         self.stream_port = 0
@@ -110,8 +110,8 @@ class LabJackT7Sim(RegisterIO):
 
     async def _serve(self, port: int, stream_port: int) -> None:
         try:
-            feedback = FeedbackPDU.bound_to(UNIT, self.action, frozenset(range(R_O_U16, R_O_U16 + 4)),
-                                            self.frame_failed)
+            feedback = FeedbackPDU.bound_to(UNIT, self.serve_frame, self.request,
+                                            frozenset(range(R_O_U16, R_O_U16 + 4)), self.frame_failed)
             self._server = T7Server(self.device, address=("127.0.0.1", 0), custom_pdu=[feedback])
             await self._server.serve_forever(background=True)
             inner = self._server.transport.sockets[0].getsockname()[1]  # type: ignore[attr-defined]  # asyncio transport
@@ -119,7 +119,7 @@ class LabJackT7Sim(RegisterIO):
                                             local=feedback.answer).start(self.host, port)
             self._stream_server = await asyncio.start_server(self._on_stream_client, self.host, stream_port)
             self.stream_port = self._stream_server.sockets[0].getsockname()[1]
-            self._pump_task = asyncio.get_running_loop().create_task(self._pump_loop())
+            self._poll_handle = asyncio.get_running_loop().call_soon(self._poll)
             subscribe = getattr(self.clock, "subscribe", None)
             if subscribe is not None:  # a virtual clock says when it moves: packets leave when they are due
                 subscribe(self._on_clock)
@@ -204,22 +204,25 @@ class LabJackT7Sim(RegisterIO):
         except Exception as exc:  # as in the pump loop: keep serving; tests inspect errors
             self.errors.append(exc)
 
-    async def _pump_loop(self) -> None:
-        while True:
-            if self._stepped(self.clock.now()):
-                try:
-                    self.pump()
-                except Exception as exc:  # keep serving; tests inspect errors
-                    self.errors.append(exc)
-            await asyncio.sleep(self.poll)
+    def _poll(self) -> None:
+        """Pump (when a step is due), then again ``poll`` s of wall time later: a timer callback that sets the next
+        one (a task sleeping between pumps took a future and a second pass of the loop at every poll)."""
+        if self._stepped(self.clock.now()):
+            try:
+                self.pump()
+            except Exception as exc:  # keep serving; tests inspect errors
+                self.errors.append(exc)
+        loop = self._loop
+        if loop is not None:
+            self._poll_handle = loop.call_later(self.poll, self._poll)
 
     def stop(self) -> None:
         """Stop serving."""
         loop = self._loop
         if loop is not None and loop.is_running():
             async def shutdown() -> None:
-                if self._pump_task is not None:
-                    self._pump_task.cancel()
+                if self._poll_handle is not None:
+                    self._poll_handle.cancel()
                 if self._relay is not None:
                     await self._relay.close()
                 if self._stream_server is not None:

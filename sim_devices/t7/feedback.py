@@ -29,42 +29,49 @@ from pymodbus.server.requesthandler import ServerRequestHandler
 from sim_devices.t7.registers import E_RSP_OVERFLOW, FC_FEEDBACK, FEEDBACK_MAX_PACKET
 
 _FRAME_HEAD = struct.Struct(">BHB")  # [D] a frame's type, address, number of registers
+Request = Callable[[Callable[[], "bytes | ExcCodes"]], "bytes | ExcCodes"]  # runs its argument as one device request
 
 
 class FeedbackPDU(ModbusPDU):
     """MBFB as the T7 serves it: the request's frames, run in order through the device's registers.
 
-    A twin serves the subclass :meth:`bound_to` its ``SimDevice`` action: the frames go straight to that action,
-    as FC3 reads / FC16 writes. pymodbus' own path (``context.async_setValues``) first re-checks every register
-    of a frame against the ``SimData`` flags — the twin's one block spans every address and marks none read-only,
-    so the check never refuses, but it cost more per 255-register frame than the twin's own work; the
-    T7's rules (which addresses exist, what they take) are the action's, on either path."""
+    A twin serves the subclass :meth:`bound_to` its registers: the frames go straight to the device's ``serve``
+    (as FC3 reads / FC16 writes), all within one ``request`` of the device (a packet is one request: its watchdog,
+    its locks), computed at once — no awaits. pymodbus' own path (``context.async_setValues``) first re-checks every
+    register of a frame against the ``SimData`` flags — the twin's one block spans every address and marks none
+    read-only, so the check never refuses, but it cost more per 255-register frame than the twin's own work; the
+    T7's rules (which addresses exist, what they take) are the device's, on either path."""
 
     function_code = FC_FEEDBACK
-    unit: int | None = None  # the device the bound action serves (others take pymodbus' path)
-    action: Callable[..., Awaitable[ExcCodes | None]] | None = None
+    unit: int | None = None  # the device the bound registers serve (others take pymodbus' path)
+    # one frame as an FC3 read / FC16 write: (function, start, address, count, registers read, values written)
+    serve: Callable[..., ExcCodes | None] | None = None
+    request: Request | None = None  # runs a packet's frames as one request of the device
     buffers: frozenset[int] = frozenset()  # buffer registers: write frames in a row to one append as one write
     # told the frame (from 1) that ended a packet, its exception code and an error detail (0: the register's own)
     failed: Callable[[int, int, int], None] | None = None
 
     def __init__(self, dev_id: int = 0, transaction_id: int = 0) -> None:
         super().__init__(dev_id=dev_id, transaction_id=transaction_id)
-        self.frames: list[tuple[int, int, int, Any]] = []  # (type, address, registers, write words: a list, or
-        # for a buffer register an array of them)
+        # (number from 1, type, address, registers, write words: a list, or for a buffer register an array of them);
+        # write frames in a row to one buffer register joined as they are read (numbered as the first of them)
+        self.frames: list[tuple[int, int, int, int, Any]] = []
         self.malformed = False
         self.read_registers = 0  # what the read frames read, in all (the reply's size)
         self.reply = b""
 
     @classmethod
-    def bound_to(cls, unit: int, action: Callable[..., Awaitable[ExcCodes | None]],
-                 buffers: frozenset[int] = frozenset(),
+    def bound_to(cls, unit: int, serve: Callable[..., ExcCodes | None],
+                 request: Request, buffers: frozenset[int] = frozenset(),
                  failed: Callable[[int, int, int], None] | None = None) -> type[FeedbackPDU]:
-        """The PDU class a twin registers: MBFB frames for ``unit`` run through ``action``. ``buffers``: the
-        addresses where write frames in a row go to the action as one write (each value appends, so that is
-        the same: a buffer takes as many values as fit and refuses the rest, in one frame or in two).
+        """The PDU class a twin registers: MBFB frames for ``unit`` run through ``serve`` (one frame, as an FC3
+        read or FC16 write), the packet's frames all within one call of ``request`` (one request of the device).
+        ``buffers``: the addresses where write frames in a row go to the action as one write (each value appends,
+        so that is the same: a buffer takes as many values as fit and refuses the rest, in one frame or in two).
         ``failed``: called with the number of the frame that ended a packet (the device's LAST_ERR_FRAME),
         the exception code and an error detail for LAST_ERR_DETAIL (0: what the refusing register set)."""
-        return type("FeedbackPDU", (cls,), {"unit": unit, "action": staticmethod(action), "buffers": buffers,
+        return type("FeedbackPDU", (cls,), {"unit": unit, "serve": staticmethod(serve),
+                                            "request": staticmethod(request), "buffers": buffers,
                                             "failed": None if failed is None else staticmethod(failed)})
 
     def decode(self, data: bytes) -> None:
@@ -72,12 +79,14 @@ class FeedbackPDU(ModbusPDU):
         i, n = 0, len(data)
         self.malformed = n + 8 > FEEDBACK_MAX_PACKET or n == 0
         frames, buffers = self.frames, self.buffers
+        number = 0
         while i < n and not self.malformed:
             if i + 4 > n or data[i] not in (0, 1):
                 self.malformed = True
                 break
             kind, address, count = _FRAME_HEAD.unpack_from(data, i)
             i += 4
+            number += 1
             words: Any = []
             if kind == 1:
                 if i + 2 * count > n:
@@ -85,26 +94,65 @@ class FeedbackPDU(ModbusPDU):
                     break
                 if address in buffers:  # values appended to a buffer: kept as one array, not 2·n objects
                     words = np.frombuffer(data, ">u2", count, i).astype(np.int64)
+                    i += 2 * count
+                    prev = frames[-1] if frames else None
+                    if prev is not None and prev[1] == 1 and prev[2] == address:  # the same buffer again: one write
+                        frames[-1] = (prev[0], 1, address, prev[3] + count, np.concatenate([prev[4], words]))
+                        continue
                 else:
                     words = list(struct.unpack_from(f">{count}H", data, i))
-                i += 2 * count
+                    i += 2 * count
             else:
                 self.read_registers += count
-            frames.append((kind, address, count, words))
+            frames.append((number, kind, address, count, words))
 
     def encode(self) -> bytes:
         """The reply: the read frames' data."""
         return self.reply
 
-    async def run(self, action: Callable[..., Awaitable[ExcCodes | None]]) -> bytes | ExcCodes:
-        """Run the frames in order through a device's ``action`` (as FC3 reads / FC16 writes): the read frames'
-        data, or the exception that ended the packet (the frames before it took effect)."""
+    def _checked(self) -> ExcCodes | None:
+        """The exception that refuses the whole packet before any frame runs (None: it may run)."""
         if self.malformed:
             return self._refused(ExcCodes.ILLEGAL_VALUE, 0)
         if 8 + 2 * self.read_registers > FEEDBACK_MAX_PACKET:
             return self._refused(ExcCodes.ILLEGAL_VALUE, 0, E_RSP_OVERFLOW)  # MBAP 7 + function 1 + the reads
+        return None
+
+    def run_frames(self, serve: Callable[..., ExcCodes | None]) -> bytes | ExcCodes:
+        """Run the frames in order through a device's ``serve`` (as FC3 reads / FC16 writes; the packet already
+        :meth:`_checked`): the read frames' data, or the exception that ended the packet (the frames before it took
+        effect)."""
         data = bytearray()
-        for number, (kind, address, count, words) in self._merged():
+        for number, kind, address, count, words in self.frames:
+            if kind == 1:
+                rc = serve(16, address, address, count, [], words)
+                if rc:
+                    return self._refused(rc, number)
+            else:
+                regs = [0] * count
+                rc = serve(3, address, address, count, regs, None)
+                if rc:
+                    return self._refused(rc, number)
+                data += struct.pack(f">{count}H", *regs)
+        return bytes(data)
+
+    def run_bound(self) -> bytes | ExcCodes:
+        """The packet through the bound device: refused whole, or its frames run as one request."""
+        rc = self._checked()
+        if rc is not None:
+            return rc
+        assert self.request is not None and self.serve is not None
+        serve = self.serve
+        return self.request(lambda: self.run_frames(serve))
+
+    async def run(self, action: Callable[..., Awaitable[ExcCodes | None]]) -> bytes | ExcCodes:
+        """Run the frames in order through an asynchronous ``action`` (as FC3 reads / FC16 writes; pymodbus' path
+        for a unit no device is bound to): as :meth:`run_frames`."""
+        rc = self._checked()
+        if rc is not None:
+            return rc
+        data = bytearray()
+        for number, kind, address, count, words in self.frames:
             if kind == 1:
                 rc = await action(16, address, address, count, [], words)
                 if rc:
@@ -123,22 +171,10 @@ class FeedbackPDU(ModbusPDU):
             self.failed(number, int(rc), detail)
         return rc
 
-    def _merged(self) -> list[tuple[int, tuple[int, int, int, Any]]]:
-        """The frames with their numbers (from 1), write frames in a row to one buffer register joined (numbered
-        as the first of them)."""
-        out: list[tuple[int, tuple[int, int, int, Any]]] = []
-        for number, (kind, address, count, words) in enumerate(self.frames, 1):
-            prev = out[-1][1] if out else None
-            if prev and kind == 1 and prev[0] == 1 and prev[1] == address and address in self.buffers:
-                out[-1] = (out[-1][0], (1, address, prev[2] + count, np.concatenate([prev[3], words])))
-            else:
-                out.append((number, (kind, address, count, words)))
-        return out
-
     async def datastore_update(self, context: ModbusServerContext, device_id: int) -> ModbusPDU:
         """Each frame as an FC3 read or FC16 write of the device's registers, in order."""
-        if self.action is not None and device_id == self.unit:
-            out = await self.run(self.action)
+        if self.serve is not None and device_id == self.unit:
+            out = self.run_bound()
         else:
             async def through_context(fc: int, start: int, address: int, count: int, regs: list[int],
                                       values: list[int] | None) -> ExcCodes | None:
@@ -158,16 +194,18 @@ class FeedbackPDU(ModbusPDU):
         return reply
 
     @classmethod
-    async def answer(cls, adu: bytes) -> bytes | None:
+    def answer(cls, adu: bytes) -> bytes | None:
         """The whole reply ADU to a request ADU that is an MBFB packet for the bound unit (None: not one) — the
-        bytes the server would send, made without it (:class:`~sim_devices.transport.SocketRelay` ``local``)."""
-        if cls.action is None or adu[2:4] != b"\0\0" or adu[6] != cls.unit or adu[7] != FC_FEEDBACK:
+        bytes the server would send, made at once without it (:class:`~sim_devices.transport.SocketRelay`
+        ``local``)."""
+        if cls.serve is None or adu[2:4] != b"\0\0" or adu[6] != cls.unit or adu[7] != FC_FEEDBACK:
             return None
         pdu = cls()
         pdu.decode(adu[8:])
-        out = await pdu.run(cls.action)
-        body = bytes([FC_FEEDBACK]) + out if isinstance(out, bytes) else bytes([FC_FEEDBACK | 0x80, int(out)])
-        return adu[:4] + (1 + len(body)).to_bytes(2, "big") + adu[6:7] + body
+        out = pdu.run_bound()
+        if isinstance(out, bytes):
+            return adu[:4] + (2 + len(out)).to_bytes(2, "big") + adu[6:8] + out
+        return adu[:4] + b"\0\3" + adu[6:7] + bytes([FC_FEEDBACK | 0x80, int(out)])
 
 
 class T7Server(ModbusTcpServer):

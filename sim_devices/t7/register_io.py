@@ -29,7 +29,8 @@ factory state all inputs. [L] DIO_INHIBIT is not served (DIO_STATE/DIO_DIRECTION
 
 from __future__ import annotations
 
-from typing import cast
+from collections.abc import Callable
+from typing import TypeVar, cast
 
 import numpy as np
 from pymodbus.constants import ExcCodes
@@ -105,6 +106,7 @@ from sim_devices.t7.stream_in import StreamEngine
 from sim_devices.t7.watchdog import Watchdog
 
 FIRMWARE, HARDWARE, BOOTLOADER = 1.0299, 1.30, 0.94  # [A] the versions the twin reports
+_T = TypeVar("_T")
 
 
 class RegisterIO(StreamEngine):
@@ -247,13 +249,12 @@ class RegisterIO(StreamEngine):
         with self.plant.lock, self.lock:
             self._play_out(now)
 
-    async def action(self, fc: int, start: int, address: int, count: int, regs: list[int],
-                     values: list[int] | list[bool] | None) -> ExcCodes | None:
-        """Serve reads by computing the registers, writes by applying them (pymodbus stores nothing we use).
-
-        Every request resets the T7 watchdog ([D] WATCHDOG_*_DEFAULT registers: on timeout the device writes
-        its configured DAC value — for a rig, the code of 0 V at the amplifier input); the twin arms the
-        plant's input watchdog from those registers as the host writes them (:meth:`_arm_watchdog`)."""
+    def request(self, serve: Callable[[], _T]) -> _T:
+        """Run ``serve`` as one request the device receives (a plain one, or an MBFB packet with all its frames):
+        every request resets the T7 watchdog ([D] WATCHDOG_*_DEFAULT registers: on timeout the device writes its
+        configured DAC value — for a rig, the code of 0 V at the amplifier input); the twin arms the plant's input
+        watchdog from those registers as the host writes them (:meth:`_arm_watchdog`). ``serve`` runs under the
+        plant's lock, then ours, the time read inside both (:meth:`serve_frame`)."""
         self._lapsed(self.clock.now())
         self.plant.feed_watchdog()
         self.heard = self.clock.now()
@@ -262,16 +263,28 @@ class RegisterIO(StreamEngine):
         # clock; a plant that had moved on would take late values as one step, which a T7 never plays).
         with self.plant.lock, self.lock:
             self._pumped_at = None  # a request may change what the next pump does, at any time
-            if fc in (3, 4):
-                rc = self._read(address, count, start, regs)
-            elif fc in (6, 16) and values is not None:
-                rc = self._write_regs(address, cast(list[int], values))  # register values: ints (an MBFB buffer
-                # frame's: an integer array)
-            else:
-                rc = ExcCodes.ILLEGAL_FUNCTION
-            if rc:
-                self.last_mb_err, self.last_err_frame = int(rc), 0  # an MBFB frame's number: :meth:`frame_failed`
-            return rc
+            return serve()
+
+    def serve_frame(self, fc: int, start: int, address: int, count: int, regs: list[int],
+                    values: list[int] | list[bool] | None) -> ExcCodes | None:
+        """One read (FC3/4) or write (FC6/16) of the registers, within a :meth:`request`: reads computed into
+        ``regs``, writes applied (an MBFB packet's frames come here one by one, in one request)."""
+        if fc in (3, 4):
+            rc = self._read(address, count, start, regs)
+        elif fc in (6, 16) and values is not None:
+            rc = self._write_regs(address, cast(list[int], values))  # register values: ints (an MBFB buffer
+            # frame's: an integer array)
+        else:
+            rc = ExcCodes.ILLEGAL_FUNCTION
+        if rc:
+            self.last_mb_err, self.last_err_frame = int(rc), 0  # an MBFB frame's number: :meth:`frame_failed`
+        return rc
+
+    async def action(self, fc: int, start: int, address: int, count: int, regs: list[int],
+                     values: list[int] | list[bool] | None) -> ExcCodes | None:
+        """Serve reads by computing the registers, writes by applying them (pymodbus stores nothing we use): one
+        plain request (:meth:`request` of :meth:`serve_frame`)."""
+        return self.request(lambda: self.serve_frame(fc, start, address, count, regs, values))
 
     def frame_failed(self, number: int, code: int, detail: int = 0) -> None:
         """LAST_ERR_FRAME and LAST_MB_ERR after an MBFB packet ended at frame ``number`` (from 1; 0: a malformed

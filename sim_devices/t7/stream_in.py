@@ -90,9 +90,13 @@ class StreamEngine(StreamOut):
         self._next_packet_t = math.inf  # rig time at which the next whole stream packet is due
         self._pumped_at: float | None = None  # rig time of the last pump (None: a request came since)
         self._worked_at = -math.inf  # rig time of the last pump of a running stream (on demand: the step's start)
+        self._ins: list[int] = []  # the running stream's analog inputs (_start_stream)
 
     def _in_addresses(self) -> list[int]:
-        """The scan list's analog inputs (AIN addresses), in scan order."""
+        """The scan list's analog inputs (AIN addresses), in scan order (while streaming, the running stream's: its
+        scan list cannot change then)."""
+        if self.streaming:
+            return self._ins
         return [a for a in self.scanlist[:int(self.regs[R_NADDR])] if a < 2 * N_AIN_ALL]
 
     def pump(self) -> None:
@@ -132,9 +136,9 @@ class StreamEngine(StreamOut):
     def _packet_due(self) -> float:
         """Rig time of the scan that completes the next whole packet, or a burst's last scan if that comes first
         (its short last packet leaves then); inf when not streaming."""
-        n_in = len(self._in_addresses())
-        if not self.streaming or not n_in:
+        if not self.streaming or not self._ins:
             return math.inf
+        n_in = len(self._ins)
         missing = max(int(self.regs[R_SPP]) - self.fifo.size, 1)
         scans = -(-missing // n_in)  # scan k is taken at t_enable + (k + 1) / rate
         nscans = int(self.regs[R_NSCANS])
@@ -149,11 +153,14 @@ class StreamEngine(StreamOut):
                  and a not in (AIN_TEMPERATURE, AIN_GROUND)}  # the observables the inputs read, no others
         obs = self._observe(times, wired)
         index = resolution.stream_index(self.regs[R_RES])
-        cols = np.empty((len(ains), ks.size), np.uint16)  # one row per input, then interleaved in scan order
-        for j, a in enumerate(ains):
-            self._ain_stream_codes(a, obs, ks.size, resolution.noise_rms(self.ain_range[a], index), j,
-                                   RANGE_GAIN[self.ain_range[a]], cols[j])
-        data = cols.T.reshape(-1)
+        adc_rms = [resolution.noise_rms(self.ain_range[a], index) for a in ains]
+        gains = [RANGE_GAIN[self.ain_range[a]] for a in ains]
+        data = self._ain_scan_block(ains, obs, ks.size, adc_rms, gains)  # the wired inputs' usual block: one pass
+        if data is None:
+            cols = np.empty((len(ains), ks.size), np.uint16)  # one row per input, then interleaved in scan order
+            for j, a in enumerate(ains):
+                self._ain_stream_codes(a, obs, ks.size, adc_rms[j], j, gains[j], cols[j])
+            data = cols.T.reshape(-1)
         self.produced = due
         unsent = self._unsent_bytes()  # the host does not read: the device buffer fills
         cap = int(self.regs[R_BUFSIZE]) or 4096
@@ -274,12 +281,13 @@ class StreamEngine(StreamOut):
         if size and (size & (size - 1) or size > 32768):
             return E_BUFSIZE
         now = self.clock.now()
+        self._streamed, self._ins = outs, [a for a in entries if a < 2 * N_AIN_ALL]
         self.t_enable, self.streaming, self.tid, self.produced = now, True, 0, 0
         self.fifo = np.zeros(0, np.uint16)
         self.recovering, self.skipped = False, 0
         for k in outs:
             o = self.outs[k]
-            o.next_scan, o.sched, o.loop_pos, o.anchor = 0, deque(), 0, 0
+            o.next_scan, o.sched, o.loop_pos, o.anchor, o.loop_until = 0, deque(), 0, 0, 0
             o.loop_active = False
             codes, o.queue = np.array(o.queue, np.int64), deque()
             self._schedule(k, codes, now)
@@ -297,7 +305,7 @@ class StreamEngine(StreamOut):
             o = self.outs[k]
             unplayed = [int(c) for p in o.sched if not p.loop for c in p.codes[max(cur + 1 - p.first, 0):]]
             o.queue.extendleft(reversed(unplayed))
-            o.sched = deque()
+            o.sched, o.loop_until = deque(), 0
         self.streaming = False
         self._next_packet_t = math.inf
         self._undrive_after(now)

@@ -73,6 +73,11 @@ class Tail:
 
     def extend(self, values: np.ndarray) -> None:
         """Append ``values`` (the oldest fall out)."""
+        start = self._count % max(self.size, 1)
+        if values.size <= self.size - start:  # they fit before the ring's end (a packet, mostly): one copy
+            self._ring[start:start + values.size] = values
+            self._count += values.size
+            return
         v = values[values.size - min(values.size, self.size):]
         start = (self._count + values.size - v.size) % max(self.size, 1)  # ring index of v[0]
         first = min(v.size, self.size - start)
@@ -100,6 +105,7 @@ class OutChannel:
     loop: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     loop_pos: int = 0
     next_scan: int = 0
+    loop_until: int = 0  # the scan after the last loop repetition scheduled (none left to play once it is reached)
     code: int = 0  # last code played
     y: float | None = None  # the reconstruction filter's output after it (None without a filter)
     underrun_scans: int = 0
@@ -123,6 +129,7 @@ class StreamOut(PlantCoupling):
     def _init_stream_out(self) -> None:
         self.outs = [OutChannel() for _ in range(4)]
         self.heard = self.clock.now()  # rig time of the last request (the watchdog counts from it)
+        self._streamed: list[int] = []  # the stream-outs in the scan list of the running stream (_start_stream)
 
     def _fail(self, code: int) -> ExcCodes:
         """Refuse with Modbus exception 4, the LabJack error code in LAST_ERR_DETAIL."""
@@ -130,6 +137,10 @@ class StreamOut(PlantCoupling):
         return ExcCodes.DEVICE_FAILURE
 
     def _out_indices(self) -> list[int]:
+        """The stream-outs in the scan list, in its order (while streaming, those of the running stream: its scan
+        list cannot change then — a write to it is refused, STREAM_IS_ACTIVE)."""
+        if self.streaming:
+            return self._streamed
         n = int(self.regs[R_NADDR])
         return [a - R_O_SCAN for a in self.scanlist[:n] if R_O_SCAN <= a < R_O_SCAN + 4]
 
@@ -144,6 +155,8 @@ class StreamOut(PlantCoupling):
         y = self._drive(start, codes) if o.target == R_DAC + 2 * self.dac else None
         o.sched.append(Played(start, codes, loop, y))
         o.next_scan = start + codes.size
+        if loop:
+            o.loop_until = o.next_scan
 
     def _level(self, k: int, now: float) -> int:
         o = self.outs[k]
@@ -266,6 +279,8 @@ class StreamOut(PlantCoupling):
             return self._fail(E_OUT_DNE)
         if not o.enable:
             return self._fail(E_OUT_DISABLED)
+        if self.streaming and o.loop.size <= 1 and k in self._streamed:  # the usual packet: one step
+            return self._append(k, codes, now)
         room = o.alloc // 2 - 1 - self._level(k, now)
         take = np.asarray(codes[:max(room, 0)], np.int64)  # a frame's array as it is (no copy), a list converted
         o.tail.extend(take)
@@ -281,3 +296,32 @@ class StreamOut(PlantCoupling):
         else:
             o.queue.extend(take.tolist())  # the queue holds ints
         return self._fail(E_OUT_FULL) if len(take) < len(codes) else None
+
+    def _append(self, k: int, codes: list[int] | np.ndarray, now: float) -> ExcCodes | None:
+        """:meth:`_buffer` while stream-out ``k`` plays in a running stream and no loop of more than one value is
+        set (nothing waits for a SET_LOOP): what the device has played by ``now`` is played, the values that fit
+        are kept for the loop and scheduled on the next scans, in one pass — the same codes, times and counts as
+        the general path (``_level`` after ``_advance_out``: every value still scheduled is after the scan now)."""
+        o = self.outs[k]
+        self._advance_out(k, now)
+        cur = self._cur_scan(now)
+        level = len(o.queue)
+        if o.loop_until <= cur + 1:  # no repetition left: the values scheduled fill the scans after now, up to
+            level += max(o.next_scan - cur - 1, 0)  # next_scan (a schedule after an underrun starts after the last)
+        else:
+            for p in o.sched:  # all after the scan now: whole (the data written, not a loop's repetitions)
+                if not p.loop:
+                    level += p.codes.size
+        room = o.alloc // 2 - 1 - level
+        take = np.asarray(codes[:max(room, 0)], np.int64)  # a frame's array as it is (no copy), a list converted
+        o.tail.extend(take)
+        o.buffer_writes += 1
+        o.values_written += take.size
+        if take.size:
+            start = max(o.next_scan, cur + 1)
+            if start > o.next_scan and not o.loop_active:
+                o.underrun_scans += start - o.next_scan
+            y = self._drive(start, take) if o.target == R_DAC + 2 * self.dac else None
+            o.sched.append(Played(start, take, False, y))
+            o.next_scan = start + take.size
+        return self._fail(E_OUT_FULL) if take.size < len(codes) else None
