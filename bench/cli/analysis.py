@@ -398,6 +398,8 @@ def print_report(runs: list[Path], out: Path | None = None) -> Report:
 
     with progress(f"analysing and plotting {len(runs)} run file(s)") as advance:
         done = report_runs(runs, out, advance)
+    for note in done.notes:
+        console.print(escape(note), soft_wrap=True)
     for r in done.runs:
         a, p = r.analysis, r.path
         if not r.complete:
