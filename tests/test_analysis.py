@@ -569,3 +569,28 @@ def test_report_of_two_files_of_the_same_name_gives_each_its_folder(short_run: P
     assert seen == [(runs[0], out / "x"), (runs[1], out / "x-3"), (runs[2], out / "x-2")]
     assert f"{runs[1]}: figures in {out / 'x-3'} (another run file is named x.h5)" in res.output
     assert str(runs[0]) + ":" not in res.output and str(runs[2]) + ":" not in res.output
+
+
+def test_an_export_over_a_file_or_into_a_folder_is_refused_before_the_fit(short_run: Path, tmp_path: Path) -> None:
+    """`bench fit --export f.toml` replaced an existing f.toml (protocols copy refuses the same), and an existing
+    folder as --export was reported after the fit as a raw "[Errno 21] Is a directory" (found by an outside
+    tester). Both are refused before anything is fitted or stored, in one line naming the path."""
+    import shutil
+
+    from typer.testing import CliRunner
+
+    from bench.cli import app
+
+    run = tmp_path / "run.h5"
+    shutil.copy2(short_run, run)
+    kept = tmp_path / "f.toml"
+    kept.write_text("# mine\n", encoding="utf-8")
+    folder = tmp_path / "rigs"
+    folder.mkdir()
+    for target, said in ((kept, "exists"), (folder, "a folder")):
+        res = CliRunner().invoke(app, ["fit", str(run), "--export", str(target), "--starts", "1", "--no-intervals",
+                                       "--generations", "1"])
+        lines = res.output.strip().splitlines()
+        assert res.exit_code == 2 and len(lines) == 1 and f"--export {target}: {said}" in lines[0], res.output
+    assert kept.read_text(encoding="utf-8") == "# mine\n" and not any(folder.iterdir())
+    assert not list(tmp_path.glob("*.fit.hdf5"))
