@@ -535,3 +535,63 @@ def test_an_export_into_a_missing_folder_is_refused_before_the_fit(short_run: Pa
                                    "--no-intervals", "--generations", "1"])
     assert res.exit_code == 2 and "folder" in res.output and "not found" in res.output, res.output
     assert not list(tmp_path.glob("*.fit.hdf5"))
+
+
+def test_report_of_two_files_of_the_same_name_gives_each_its_folder(short_run: Path, tmp_path: Path,
+                                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    """`bench report A/x.h5 B/x.h5 --out d` wrote both into d/x/, the second file's figures replacing the first's
+    (found by an outside tester). Each file gets its own folder, and the report says which (the analysis stubbed:
+    the folders are the matter here)."""
+    import shutil
+    from types import SimpleNamespace
+
+    from typer.testing import CliRunner
+
+    import bench.report
+    from bench.cli import app
+
+    runs = []
+    for folder in ("A", "B", "C"):
+        (tmp_path / folder).mkdir()
+        runs.append(tmp_path / folder / ("x-2.h5" if folder == "C" else "x.h5"))  # x-2: a name of its own
+        shutil.copy2(short_run, runs[-1])
+    seen: list[tuple[Path, Path]] = []
+
+    def report(path: Path, out: Path) -> tuple[object, list[Path]]:
+        seen.append((Path(path), Path(out)))
+        run = SimpleNamespace(state="completed", complete=True, incomplete_reason="", recovered_at="",
+                              completed_steps=lambda: [], program=np.zeros((0, 1)))
+        return SimpleNamespace(run=run, steps=[], protocol="p", by_kind=lambda kind: []), []
+
+    monkeypatch.setattr(bench.report, "report", report)
+    out = tmp_path / "d"
+    res = CliRunner().invoke(app, ["report", *map(str, runs), "--out", str(out)], env={"COLUMNS": "400"})
+    assert res.exit_code == 0, res.output
+    assert seen == [(runs[0], out / "x"), (runs[1], out / "x-3"), (runs[2], out / "x-2")]
+    assert f"{runs[1]}: figures in {out / 'x-3'} (another run file is named x.h5)" in res.output
+    assert str(runs[0]) + ":" not in res.output and str(runs[2]) + ":" not in res.output
+
+
+def test_an_export_over_a_file_or_into_a_folder_is_refused_before_the_fit(short_run: Path, tmp_path: Path) -> None:
+    """`bench fit --export f.toml` replaced an existing f.toml (protocols copy refuses the same), and an existing
+    folder as --export was reported after the fit as a raw "[Errno 21] Is a directory" (found by an outside
+    tester). Both are refused before anything is fitted or stored, in one line naming the path."""
+    import shutil
+
+    from typer.testing import CliRunner
+
+    from bench.cli import app
+
+    run = tmp_path / "run.h5"
+    shutil.copy2(short_run, run)
+    kept = tmp_path / "f.toml"
+    kept.write_text("# mine\n", encoding="utf-8")
+    folder = tmp_path / "rigs"
+    folder.mkdir()
+    for target, said in ((kept, "exists"), (folder, "a folder")):
+        res = CliRunner().invoke(app, ["fit", str(run), "--export", str(target), "--starts", "1", "--no-intervals",
+                                       "--generations", "1"])
+        lines = res.output.strip().splitlines()
+        assert res.exit_code == 2 and len(lines) == 1 and f"--export {target}: {said}" in lines[0], res.output
+    assert kept.read_text(encoding="utf-8") == "# mine\n" and not any(folder.iterdir())
+    assert not list(tmp_path.glob("*.fit.hdf5"))

@@ -186,3 +186,41 @@ def test_a_full_disk_names_the_mat_target_and_leaves_no_cut_off_file(run_file: P
     res = CliRunner().invoke(app, ["export", str(run_file), "--mat", str(target), "--mat-version", version])
     _one_line_error(res, target)
     assert "No space left on device" in res.output and not target.exists()
+
+
+def test_a_csv_folder_holds_one_run_an_export_of_the_same_run_replaces_its_own(run_file: Path,
+                                                                                tmp_path: Path) -> None:
+    """`bench export --csv out/x` of one run, then of another into the same folder: the first run's CSVs stayed
+    beside the second's metadata.json, a folder mixing two runs (found by an outside tester). Refused in one line
+    before anything is written; an export of the same run again replaces its files and removes its stale ones."""
+    import shutil
+
+    other = tmp_path / "other.h5"
+    shutil.copy2(run_file, other)
+    with h5py.File(other, "r+") as f:
+        f.attrs["run_id"] = "another-run"
+    folder = tmp_path / "x"
+    res = CliRunner().invoke(app, ["export", str(run_file), "--csv", str(folder)])
+    assert res.exit_code == 0, res.output
+    before = {p.name: p.stat().st_mtime_ns for p in folder.iterdir()}
+    res = CliRunner().invoke(app, ["export", str(other), "--csv", str(folder)])
+    _one_line_error(res, folder)
+    with h5py.File(run_file, "r") as f:
+        assert f"another run (run_id {f.attrs['run_id']})" in res.output  # the run whose export the folder holds
+    assert {p.name: p.stat().st_mtime_ns for p in folder.iterdir()} == before  # nothing written, nothing removed
+    # the same run again: its own files replaced; a stream file of its earlier export it no longer writes removed,
+    # a file of the user's kept
+    meta = json.loads((folder / "metadata.json").read_text(encoding="utf-8"))
+    assert set(meta["export_files"]) == set(before)
+    meta["export_files"].append("motor.csv")
+    (folder / "metadata.json").write_text(json.dumps(meta), encoding="utf-8")
+    (folder / "motor.csv").write_text("t [s],position [m]\n", encoding="utf-8")
+    (folder / "notes.csv").write_text("mine\n", encoding="utf-8")
+    res = CliRunner().invoke(app, ["export", str(run_file), "--csv", str(folder)])
+    assert res.exit_code == 0, res.output
+    assert "replaced the earlier export of this run" in res.output and "motor.csv" in res.output
+    assert sorted(p.name for p in folder.iterdir()) == sorted([*before, "notes.csv"])
+    # CSVs of no recognised export (no metadata.json): refused too
+    (folder / "metadata.json").unlink()
+    res = CliRunner().invoke(app, ["export", str(run_file), "--csv", str(folder)])
+    _one_line_error(res, folder)

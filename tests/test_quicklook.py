@@ -88,3 +88,18 @@ def test_out_a_folder_holds_the_figure_and_nan_pixels_warn_nothing(run_file: Pat
     target = folder / f"{run_file.stem}-plot.png"
     assert target.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and f"figure: {target}" in res.output
     assert not (tmp_path / "figures.png").exists()
+
+
+def test_plots_of_different_streams_are_named_by_them_and_keep_each_other(run_file: Path, tmp_path: Path) -> None:
+    """`bench plot F laser` then `bench plot F amplifier` both wrote RUN-plot.png, the second replacing the first
+    (found by an outside tester): the default name says the streams drawn. `--out figures` where no such folder
+    is: a folder too."""
+    folder = tmp_path / "figures"  # not there yet: a name without a file type is a folder (it wrote figures.png
+    # and said "figure: figures", and the second plot replaced the first)
+    for stream in ("laser", "amplifier"):
+        res = CliRunner().invoke(app, ["plot", str(run_file), stream, "--out", str(folder)])
+        target = folder / f"{run_file.stem}-plot-{stream}.png"
+        assert res.exit_code == 0 and f"figure: {target}" in res.output, res.output
+    assert sorted(p.name for p in folder.iterdir()) == [f"{run_file.stem}-plot-amplifier.png",
+                                                        f"{run_file.stem}-plot-laser.png"]
+    assert not (tmp_path / "figures.png").exists()

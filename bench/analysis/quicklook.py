@@ -8,6 +8,8 @@ Step starts are marked; an incomplete file says so in the title.
 
 from __future__ import annotations
 
+import os
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -77,10 +79,17 @@ def _envelopes(reader: StreamChunks, run_path: str | Path, streams: list[str] | 
     return out
 
 
+def plot_name(run_path: str | Path, streams: list[str] | None = None) -> str:
+    """The default name of a quick look: ``RUN-plot.png`` of all streams, ``RUN-plot-laser-amplifier.png`` of those
+    chosen (in their order), so that plots of different streams of a run do not replace each other."""
+    chosen = list(dict.fromkeys(streams or []))  # each once, in the order given
+    return "-".join([f"{Path(run_path).stem}-plot", *(re.sub(r"[^\w.]", "_", s) for s in chosen)]) + ".png"
+
+
 def quicklook(run_path: str | Path, streams: list[str] | None = None, out: str | Path | None = None,
               show: bool = False) -> Path | None:
-    """Draw the envelopes of ``streams``; save a PNG (``out``: a file, or a folder to hold ``RUN-plot.png``; default
-    ``RUN-plot.png`` beside the run) or show a window."""
+    """Draw the envelopes of ``streams``; save a PNG (``out``: a file, or a folder to hold :func:`plot_name` — one
+    that exists or a name without a file type; default that name beside the run) or show a window."""
     import matplotlib
 
     if not show:
@@ -109,9 +118,11 @@ def quicklook(run_path: str | Path, streams: list[str] | None = None, out: str |
         plt.show()
         plt.close(fig)
         return None
-    default = Path(run_path).stem + "-plot.png"
-    target = Path(run_path).with_name(default) if out is None else Path(out) / default if Path(out).is_dir() \
-        else Path(out)
+    default = plot_name(run_path, streams)
+    # a folder: one that exists, or a name without a file type (``--out figs``, ``--out figs/``), which matplotlib
+    # would have written as figs.png while the plot said "figure: figs"
+    folder = out is not None and (Path(out).is_dir() or not Path(out).suffix or str(out).endswith(("/", os.sep)))
+    target = Path(run_path).with_name(default) if out is None else Path(out) / default if folder else Path(out)
     target.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(target, dpi=110)
     plt.close(fig)

@@ -75,6 +75,7 @@ class Report:
     runs: list[RunReport] = field(default_factory=list)
     grid: dict[str, Any] | None = None
     grid_figure: Path | None = None  # the grid drawn (table3.png beside table3.csv)
+    notes: list[str] = field(default_factory=list)  # what the caller should say (a folder renamed for a collision)
 
     @property
     def figures(self) -> list[Path]:
@@ -82,15 +83,19 @@ class Report:
 
 
 def report_runs(runs: list[Path], out: Path | None = None, progress: Progress | None = None) -> Report:
-    """Analyse run files and write their figures (into ``out``, a folder per file when there are several; default
-    beside each file); the Table-3 grid of the isopotential steps, also written as CSV (its path in ``grid``) and
-    drawn beside it.
+    """Analyse run files and write their figures (into ``out``, a folder per file when there are several: its name,
+    another for a name that collides, said in ``notes``; default beside each file); the Table-3 grid of the
+    isopotential steps, also written as CSV (its path in ``grid``) and drawn beside it.
     ``progress`` gets the fraction of the files done."""
     from bench.report import report, save_figure, table3_figure
 
     done = Report()
-    for p in runs:
-        a, paths = report(p, out / p.stem if out is not None and len(runs) > 1 else out)  # opens the file once
+    folders = report_folders(runs) if len(runs) > 1 else {}
+    for i, p in enumerate(runs):
+        where = out / folders[i] if out is not None and folders else out
+        if where is not None and where.name != p.stem and folders:
+            done.notes.append(f"{p}: figures in {where} (another run file is named {p.name})")
+        a, paths = report(p, where)  # opens the file once
         run = a.run  # the file's state as the analysis read it
         done.runs.append(RunReport(p, run.state, run.complete, run.incomplete_reason, run.recovered_at,
                                    len(run.completed_steps()), run.program.shape[0], a, paths))
@@ -104,6 +109,22 @@ def report_runs(runs: list[Path], out: Path | None = None, progress: Progress | 
         done.grid_figure = save_figure(table3_figure(grid), csv_path.with_suffix(".png"))
     done.grid = grid
     return done
+
+
+def report_folders(runs: list[Path]) -> dict[int, str]:
+    """The folder of each run's figures in a report of several: its name (``x`` for ``A/x.h5``), or for a name
+    another file took before it ``x-2``, ``x-3`` … (one no run's name takes), so that no file's figures replace
+    another's."""
+    stems = {p.stem for p in runs}
+    taken: set[str] = set()
+    out: dict[int, str] = {}
+    for i, p in enumerate(runs):
+        name, k = p.stem, 2
+        while name in taken or (name != p.stem and name in stems):
+            name, k = f"{p.stem}-{k}", k + 1
+        taken.add(name)
+        out[i] = name
+    return out
 
 
 def table3(steps: list[Any]) -> dict[str, Any] | None:

@@ -86,8 +86,8 @@ def fit_runs(runs: list[Path], model: str, settings: FitSettings, *, branches: i
     from bench.storage.runfile import open_run
 
     check_fittable(runs, into)
-    if export is not None and not export.parent.is_dir():  # said before minutes of fitting, not after the store
-        raise ValueError(f"--export {export}: folder {export.parent} not found")
+    if export is not None:
+        check_export(export)
     files: list[str | Path] = list(runs)
     coarse: RecordedProblem
     fine: RecordedProblem
@@ -137,10 +137,30 @@ def fit_runs(runs: list[Path], model: str, settings: FitSettings, *, branches: i
         out.stored.append((p if into else fit_sidecar(p), group))
     if export is not None:
         attrs = open_run(runs[0], streams=False).attrs  # the rig file as written, else (older runs) as parsed
-        export_rig(str(attrs.get("rig_text") or attrs["rig_toml"]), model, result.names, result.values, export,
-                   str(runs[0]))
+        try:
+            export_rig(str(attrs.get("rig_text") or attrs["rig_toml"]), model, result.names, result.values, export,
+                       str(runs[0]))
+        except FileExistsError:  # made while the fit ran
+            raise FileExistsError(f"--export {export}: exists; bench fit does not overwrite files: choose another "
+                                  "name (the fit is stored)") from None
+        except OSError as exc:
+            raise OSError(f"--export {export}: cannot write the rig file: {exc.strerror or exc} (the fit is "
+                          "stored)") from None
         out.exported = export
     return out
+
+
+def check_export(export: Path) -> None:
+    """Refuse an ``--export`` target before minutes of fitting, not after the store, in one line naming it: an
+    existing file (never replaced, as ``bench protocols copy`` and ``bench init`` do not), a folder, a missing
+    folder."""
+    if export.is_dir():
+        raise IsADirectoryError(f"--export {export}: a folder; give the rig file's name "
+                                f"(e.g. {export / 'fitted.toml'})")
+    if export.exists() or export.is_symlink():
+        raise FileExistsError(f"--export {export}: exists; bench fit does not overwrite files: choose another name")
+    if not export.parent.is_dir():
+        raise ValueError(f"--export {export}: folder {export.parent} not found")
 
 
 def _forward_only(stage: Callable[[str, float], None]) -> Callable[[str, float], None]:

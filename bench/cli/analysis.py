@@ -398,6 +398,8 @@ def print_report(runs: list[Path], out: Path | None = None) -> Report:
 
     with progress(f"analysing and plotting {len(runs)} run file(s)") as advance:
         done = report_runs(runs, out, advance)
+    for note in done.notes:
+        console.print(escape(note), soft_wrap=True)
     for r in done.runs:
         a, p = r.analysis, r.path
         if not r.complete:
@@ -551,7 +553,9 @@ def plot_command(
     run: Annotated[Path, typer.Argument(help="Run file (.h5).")],
     streams: Annotated[list[str] | None, typer.Argument(help="Streams to draw (default: all), e.g. laser amplifier.")]
     = None,
-    out: Annotated[Path | None, typer.Option(help="PNG file (default: RUN-plot.png beside the run file).")] = None,
+    out: Annotated[Path | None, typer.Option(help="PNG file, or folder for it (one that exists or a name without "
+                                          "a file type; default: beside the run file), the figure named RUN-plot.png "
+                                          "for all streams, RUN-plot-laser.png for laser.")] = None,
     show: Annotated[bool, typer.Option("--show", help="Open a window instead of writing a file.")] = False,
 ) -> None:
     """Quick look at a run file: every column of the chosen streams on the run clock, units on each axis, step

@@ -16,7 +16,9 @@ from bench.cli.completion import rig_files
 def export(
     run_file: Annotated[Path, typer.Argument(help="Run file (.h5).")],
     csv: Annotated[Path | None, typer.Option("--csv", help="Folder for one CSV per stream (units in the "
-                                             "header), events.csv and metadata.json.")] = None,
+                                             "header), events.csv and metadata.json: new, empty, or an earlier "
+                                             "export of the same run (replaced; another run's is refused).")]
+    = None,
     mat: Annotated[Path | None, typer.Option("--mat", help="MATLAB file (.mat): one struct per stream.")] = None,
     mat_version: Annotated[str, typer.Option(help="MAT version: 5 (scipy; whole streams in memory), 7.3 (HDF5, "
                                              "written in chunks: any length), or auto: 7.3 when a stream exceeds "
@@ -32,7 +34,7 @@ def export(
         raise ValueError("give --csv FOLDER and/or --mat FILE")
     if csv is not None:
         with progress("CSV export") as done:
-            files = to_csv(run_file, csv, progress=done)
+            files = to_csv(run_file, csv, progress=done, said=lambda text: console.print(escape(text)))
         console.print(f"CSV: {len(files)} files in {escape(str(csv))} ({', '.join(f.name for f in files)})")
     if mat is not None:
         with progress("MAT export") as done:

@@ -64,8 +64,10 @@ def fitted_rig_text(source: str, model: str, names: list[str], values: np.ndarra
 
 def export_rig(source: str, model: str, names: list[str], values: np.ndarray, path: str | Path,
                run: str) -> RigConfig:
-    """Write the fitted rig file (:func:`fitted_rig_text`) once it validates as a rig; return that rig."""
+    """Write the fitted rig file (:func:`fitted_rig_text`) once it validates as a rig, a new file only (an existing
+    ``path``: FileExistsError); return that rig."""
     text = fitted_rig_text(source, model, names, values, run)
     rig = rig_from_toml(text)
-    Path(path).write_text(text, encoding="utf-8")
+    with Path(path).open("x", encoding="utf-8") as fh:  # never replaces a file (FileExistsError)
+        fh.write(text)
     return rig

@@ -1,10 +1,16 @@
 """Run files out to the formats other tools read: CSV (one file per stream) and MATLAB ``.mat``, in bounded memory.
 
 CSV: ``<stream>.csv`` with a header naming each column and its unit (``t [s],voltage [V],…``), plus
-``events.csv`` (t [s], step, kind, text) and ``metadata.json`` (the run file's attributes). Numbers are written
+``events.csv`` (t [s], step, kind, text) and ``metadata.json`` (the run file's attributes, and under
+``export_files`` the names of the files the export wrote). Numbers are written
 with the precision the instruments have, not every bit of a float: time with 12 significant digits (0.1 µs
 over a week of run time), measured and commanded values with 9 (a 24-bit converter has about 7), flags and
 counts as integers.
+
+A CSV folder holds one run: an export into a folder that holds another run's export (its ``metadata.json`` names
+another run), or CSV files of no export this module recognises, is refused before anything is written. An export
+of the same run again (the same ``run_id``) replaces its own files and removes those of its earlier export it no
+longer writes (listed in that export's ``export_files``); any other file in the folder is left alone.
 
 MAT: one struct per stream (``t`` and the columns as column vectors, ``units`` a struct of unit strings),
 ``events`` and ``metadata`` (MATLAB: ``s = load('run.mat'); plot(s.laser.t, s.laser.displacement)``). Two
@@ -96,16 +102,80 @@ def _records(streams: StreamChunks) -> int:
     return max(sum(streams.length.values()), 1)
 
 
-def to_csv(run_path: str | Path, folder: str | Path, progress: Progress | None = None) -> list[Path]:
+EXPORT_FILES = "export_files"  # metadata.json: the files the export wrote (a later export of the run removes stale)
+VOLATILE = {"state", "reason", "complete", EXPORT_FILES, "end_time", "exit_status", "exit_reason"}  # change at its end
+
+
+def _same_run(meta: dict[str, Any], run: dict[str, Any]) -> bool:
+    """Whether an export's ``metadata.json`` (``meta``) is of the run whose metadata is ``run``: the same ``run_id``;
+    for files older than run ids, the same attributes but those that change as a run ends."""
+    ours, theirs = str(run.get("run_id") or ""), str(meta.get("run_id") or "")
+    if ours or theirs:
+        return ours == theirs
+    return {k: v for k, v in meta.items() if k not in VOLATILE} == \
+        {k: v for k, v in json.loads(json.dumps(run, default=str)).items() if k not in VOLATILE}
+
+
+def _csv_folder(out: Path, run: dict[str, Any], names: list[str]) -> tuple[bool, list[Path]]:
+    """Check that ``out`` may take the CSV export of ``run`` (its metadata) writing the files ``names``: new or
+    empty, or holding an earlier export of the same run. Returns whether it holds one, and that export's files this
+    one no longer writes (to remove). Another run's export, or CSV files of no recognised export: refused, one line."""
+    if not out.is_dir():
+        return False, []  # none yet (or not a folder: said when it is created)
+    refuse = f"; bench export does not mix runs in a folder: choose an empty or new folder (or remove {out})"
+    meta_path = out / "metadata.json"
+    if not meta_path.exists():
+        found = sorted(p.name for p in out.glob("*.csv"))
+        if found:
+            raise FileExistsError(f"{out}: holds {', '.join(found[:3])}{' …' if len(found) > 3 else ''} of no "
+                                  f"export of this run (no metadata.json){refuse}")
+        return False, []
+    try:
+        meta = json.loads(meta_path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        raise FileExistsError(f"{out}: holds a metadata.json that is no export's ({cause(exc)}){refuse}") from None
+    if not isinstance(meta, dict):
+        raise FileExistsError(f"{out}: holds a metadata.json that is no export's{refuse}")
+    if not _same_run(meta, run):
+        other = f"run_id {meta['run_id']}" if meta.get("run_id") else f"protocol {meta.get('protocol_name', '?')}"
+        raise FileExistsError(f"{out}: holds the export of another run ({other}){refuse}")
+    listed = meta.get(EXPORT_FILES, [])
+    earlier = [n for n in listed if isinstance(n, str)] if isinstance(listed, list) else []
+    # only plain names of export files (a hand-edited list naming ../x or a folder removes nothing)
+    stale = [out / n for n in earlier if n not in names and Path(n).name == n and n.endswith(".csv")
+             and (out / n).is_file()]
+    return True, stale
+
+
+def to_csv(run_path: str | Path, folder: str | Path, progress: Progress | None = None,
+           said: Callable[[str], None] | None = None) -> list[Path]:
     """Write one CSV per stream, ``events.csv`` and ``metadata.json`` into ``folder``; returns the files.
-    ``progress`` is told the fraction of the records written after every chunk."""
+    ``progress`` is told the fraction of the records written after every chunk; ``said`` that an earlier export of
+    the same run is replaced (and which of its files were removed). A folder holding another run's export is
+    refused (see the module docstring)."""
     run = open_run(run_path, streams=False)
     out = Path(folder)
-    with _into(out):
-        out.mkdir(parents=True, exist_ok=True)
     written = []
     with open_h5(Path(run_path)) as f:
         streams = StreamChunks(f, run_path)
+        names = [f"{stream}.csv" for stream in streams.length] + ["events.csv", "metadata.json"]
+        meta = _metadata(run)
+        again, stale = _csv_folder(out, meta, names)
+        with _into(out):
+            out.mkdir(parents=True, exist_ok=True)
+        for p in stale:
+            with _into(p):
+                p.unlink()
+        if again and said is not None:
+            said(f"{out}: replaced the earlier export of this run"
+                 + (f"; removed its {', '.join(p.name for p in stale)}" if stale else ""))
+        # metadata.json first: a cut-off export still says whose it is (a second try of the run may replace it)
+        meta_path = out / "metadata.json"
+        text = json.dumps(meta | {EXPORT_FILES: names}, indent=1, ensure_ascii=False, default=str)
+        with _into(meta_path):
+            fh = meta_path.open("w", encoding="utf-8")
+        with _into(meta_path), _no_partial(meta_path), fh:
+            fh.write(text)
         total, done = _records(streams), 0
         for stream in streams.length:
             units = streams.units(stream)
@@ -134,13 +204,7 @@ def to_csv(run_path: str | Path, folder: str | Path, progress: Progress | None =
         w.writerow(["t [s]", "step", "kind", "text"])
         w.writerows([f"{t:.12g}", step, kind, text] for t, step, kind, text in run.event_list())
     written.append(path)
-    path = out / "metadata.json"
-    text = json.dumps(_metadata(run), indent=1, ensure_ascii=False, default=str)
-    with _into(path):
-        fh = path.open("w", encoding="utf-8")
-    with _into(path), _no_partial(path), fh:
-        fh.write(text)
-    written.append(path)
+    written.append(meta_path)
     return written
 
 
