@@ -135,25 +135,15 @@ def _inside(t: np.ndarray, t0: float, t1: float) -> np.ndarray:
     return (t >= t0 - TOL_S) & (t <= t1 + TOL_S)
 
 
-def _specimen_at(t: float, history: list[tuple[float, dict[str, float]]], spec: dict[str, Any]) -> tuple[int, float]:
+def _specimen_at(run: RunFile, t: float, spec: dict[str, Any]) -> tuple[int, float]:
+    """LS-DEA prototype and hung mass at run time ``t`` (:meth:`RunFile.specimen_at`)."""
     over = spec.get("overrides", {})
     lsdea = spec.get("lsdea", {})
     proto = over.get("prototype") or lsdea.get("prototype", 1)
     mass = over.get("hung_mass_kg")
     mass = lsdea.get("hung_mass_kg", 0.0) if mass is None else mass
-    for te, values in history:
-        if te <= t + 1e-9:
-            proto = int(values.get("prototype", proto))
-            mass = values.get("hung_mass_kg", mass)
-    return int(proto), float(mass)
-
-
-def _temperature_at(t: float, history: list[tuple[float, dict[str, float]]], spec: dict[str, Any]) -> float:
-    T = spec.get("overrides", {}).get("temperature_K") or spec.get("temperature_K", 296.0)
-    for te, values in history:
-        if te <= t + 1e-9:
-            T = values.get("temperature_K", T)
-    return float(T)
+    changed = run.specimen_at(t)
+    return int(changed.get("prototype", proto)), float(changed.get("hung_mass_kg", mass))
 
 
 def analyse(path: str | Path, last_cycles: int = 3) -> RunAnalysis:
@@ -169,9 +159,8 @@ def analyse_source(src: RunSource, last_cycles: int = 3) -> RunAnalysis:
     spec = run.specimen()
     kind_of_specimen = spec["kind"]
     config = spec.get("lsdea", {}).get("configuration", "membrane") if kind_of_specimen == "lsdea" else "membrane"
-    history = run.specimen_changes()
     results: list[StepResult] = []
-    done, offsets = run.completed_steps(), run.step_offsets()
+    done, offsets, began = run.completed_steps(), run.step_offsets(), run.step_starts()
     for row, step in zip(run.program, protocol.steps, strict=True):
         if not isinstance(step, WaveformStep):
             continue
@@ -182,11 +171,14 @@ def analyse_source(src: RunSource, last_cycles: int = 3) -> RunAnalysis:
         sp = applied_window(streams, t0 - TOL_S, t0 + dur + TOL_S, measured=True)
         sel = _inside(sp.t, t0, t0 + dur)
         vpk = float(np.max(np.abs(sp.v[sel]))) if sel.any() else 0.0
-        proto, mass = _specimen_at(t0, history, spec)
+        # the specimen as the step found it: the changes logged up to its recorded start (a set step before it
+        # logs its change after the program time this step starts at: the program does not wait for it)
+        at = max(t0, began.get(index, t0))
+        proto, mass = _specimen_at(run, at, spec)
         res = StepResult(int(row["index"]), row["name"].decode(), "", t0, dur, step.frequency_Hz, vpk,
                          proto if kind_of_specimen == "lsdea" else None, mass if config == "hung" else None)
         if kind_of_specimen == "membrane":
-            res.temperature = _temperature_at(t0, history, spec)
+            res.temperature = float(run.temperature_at(at))
             _thesis(res, streams, sp.t, sp.v)
         elif step.channel == "position":
             _isopotential(res, streams)
