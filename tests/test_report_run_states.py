@@ -78,3 +78,20 @@ def test_each_step_of_a_temperature_sweep_is_reported_at_the_temperature_set_bef
     # the fit reads the same history: the 7-kV drive's inputs at 316 K from its recorded start
     r = open_run(runs["done"], streams=False)
     assert float(r.temperature_at(r.step_starts()[4])) == TEMPERATURES[1]
+
+
+def test_a_manual_session_is_skipped_by_report_and_refused_alone_and_by_fit(runs: dict[str, Path],
+                                                                            tmp_path: Path) -> None:
+    session = runs["session"]
+    assert open_run(session, streams=False).attrs.get("session_log")
+    code, text = _cli("report", str(runs["a"]), str(session), "--out", str(tmp_path))
+    assert code == 0, text
+    skipped = [x for x in text.splitlines() if "manual-control session" in x]
+    assert skipped == [f"skipping run file {session}: a manual-control session: no protocol steps to report"]
+    assert "no step of a.h5 could be analysed" in text  # the other file reported (it stopped in its first drive)
+    for cmd in (["report", str(session), "--out", str(tmp_path / "alone")], ["fit", str(session)]):
+        code, text = _cli(*cmd)
+        assert code == 2 and text.count("\n") == 1, text
+        assert text.startswith(f"error: run file {session}: a manual-control session: "), text
+        assert "protocol.toml" not in text and "valid data points" not in text
+    assert not (tmp_path / "alone").exists()

@@ -30,7 +30,7 @@ from bench.analysis.thesis import cycle_figures
 from bench.models.lozenge import LozengeParams
 from bench.protocol.schema import Protocol, WaveformStep, load_protocol
 from bench.storage.chunks import RunSource, StreamChunks, open_source
-from bench.storage.runfile import RunFile, refuse_nonfinite
+from bench.storage.runfile import RunFile, refuse_manual_session, refuse_nonfinite
 
 PAPER_GRAVITY = 9.81  # m/s²: the value behind the paper's loads (3.1 / 4.6 / 4.9 N), not standard gravity
 TOL_S = 1e-9  # a window's bounds are widened by this much (step times are sums of floats)
@@ -155,6 +155,7 @@ def analyse(path: str | Path, last_cycles: int = 3) -> RunAnalysis:
 def analyse_source(src: RunSource, last_cycles: int = 3) -> RunAnalysis:
     """:func:`analyse` on a run file already open."""
     run, streams = src.run, src.streams
+    refuse_manual_session(run, "no protocol steps to report")  # its protocol text is an empty program
     protocol = protocol_of(run)
     spec = run.specimen()
     kind_of_specimen = spec["kind"]

@@ -75,6 +75,7 @@ class Report:
     runs: list[RunReport] = field(default_factory=list)
     grid: dict[str, Any] | None = None
     grid_figure: Path | None = None  # the grid drawn (table3.png beside table3.csv)
+    skipped: list[tuple[Path, str]] = field(default_factory=list)  # (file, why): a manual session's readings
 
     @property
     def figures(self) -> list[Path]:
@@ -87,15 +88,25 @@ def report_runs(runs: list[Path], out: Path | None = None, progress: Progress | 
     drawn beside it.
     ``progress`` gets the fraction of the files done."""
     from bench.report import report, save_figure, table3_figure
+    from bench.storage.runfile import ManualSessionError
 
     done = Report()
-    for p in runs:
-        a, paths = report(p, out / p.stem if out is not None and len(runs) > 1 else out)  # opens the file once
+    for k, p in enumerate(runs):
+        try:
+            a, paths = report(p, out / p.stem if out is not None and len(runs) > 1 else out)  # opens the file once
+        except ManualSessionError as exc:  # among run files (a glob of runs/): skipped, said; alone: refused
+            if len(runs) == 1:
+                raise
+            done.skipped.append((p, str(exc)))
+            continue
         run = a.run  # the file's state as the analysis read it
         done.runs.append(RunReport(p, run.state, run.complete, run.incomplete_reason, run.recovered_at,
                                    len(run.completed_steps()), run.program.shape[0], a, paths))
         if progress is not None:
-            progress(len(done.runs) / len(runs))
+            progress((k + 1) / len(runs))
+    if not done.runs:  # every file given was a manual session's
+        raise ValueError(f"no run file to report: {len(runs)} manual-control session files "
+                         "(bench devices control), which hold no protocol steps")
     grid = table3([s for r in done.runs for s in r.analysis.steps])
     if grid is not None:
         csv_path = (out if out is not None else runs[-1].with_name(runs[-1].stem + "-report")) / "table3.csv"

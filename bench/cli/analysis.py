@@ -343,7 +343,8 @@ def report_command(
     json_out: JsonOpt = False,
 ) -> None:
     """Figures of merit and plots (PNG, PDF, SVG) of recorded runs; several files add a campaign table (Table 3
-    layout, also written as CSV). An incomplete, killed or recovered file is flagged."""
+    layout, also written as CSV). An incomplete, killed or recovered file is flagged. A manual-control session's
+    file among the runs is skipped, said."""
     with json_mode(json_out):
         done = print_report(runs_only(runs), out)
     if json_out:
@@ -351,7 +352,8 @@ def report_command(
             {"file": str(r.path), **r.flags(), "protocol": r.analysis.protocol,
              "steps": [{"step": s.name, "kind": s.kind, "prototype": s.prototype, "hung_mass_kg": s.hung_mass,
                         "temperature_K": s.temperature, "frequency_Hz": s.frequency, "voltage_V": s.voltage,
-                        "figures": s.figures} for s in r.analysis.steps]} for r in done.runs]})
+                        "figures": s.figures} for s in r.analysis.steps]} for r in done.runs],
+            "skipped": [{"file": str(p), "why": why} for p, why in done.skipped]})
 
 
 def figures_table(steps: list[StepResult], title: str) -> Table:
@@ -398,6 +400,8 @@ def print_report(runs: list[Path], out: Path | None = None) -> Report:
 
     with progress(f"analysing and plotting {len(runs)} run file(s)") as advance:
         done = report_runs(runs, out, advance)
+    for _, why in done.skipped:
+        console.print(f"[yellow]skipping[/] {escape(why)}", soft_wrap=True)
     for r in done.runs:
         a, p = r.analysis, r.path
         if not r.complete:

@@ -150,6 +150,17 @@ class RunFile:
         return out
 
 
+class ManualSessionError(ValueError):
+    """The readings of a manual-control session (``bench devices control``: attribute ``session_log``) where the
+    record of a protocol's run was needed: it has no program of steps to analyse or fit against."""
+
+
+def refuse_manual_session(run: RunFile, what: str) -> None:
+    """ManualSessionError (one line naming the file, then ``what`` cannot be done) for a manual session's file."""
+    if run.attrs.get("session_log"):
+        raise ManualSessionError(f"run file {run.path}: a manual-control session: {what}")
+
+
 def specimen_of(attrs: Mapping[str, Any], p: Path, model: bool = False) -> dict[str, Any]:
     """The run file ``p``'s ``specimen`` attribute (JSON: the rig's specimen, its ``kind`` and ``model``, and a
     protocol's ``overrides``) from its root attributes ``attrs``. ValueError (one line naming the file and the
