@@ -9,6 +9,7 @@ Expected temperatures and step counts come from protocols/short/thesis-sweeps-sh
 
 from __future__ import annotations
 
+import json
 import tomllib
 from pathlib import Path
 
@@ -78,6 +79,24 @@ def test_each_step_of_a_temperature_sweep_is_reported_at_the_temperature_set_bef
     # the fit reads the same history: the 7-kV drive's inputs at 316 K from its recorded start
     r = open_run(runs["done"], streams=False)
     assert float(r.temperature_at(r.step_starts()[4])) == TEMPERATURES[1]
+
+
+def test_a_stopped_run_says_so_with_its_reason_and_the_steps_it_did_not_run(
+        runs: dict[str, Path], tmp_path: Path) -> None:
+    code, out = _cli("report", str(runs["a"]), "--out", str(tmp_path / "j"), "--json")
+    assert code == 0, out
+    (run,) = json.loads(out)["runs"]
+    assert run["state"] == "interrupted" and run["reason"].startswith("Ctrl-C")
+    assert run["complete"] is True  # the file was finalised: all that ran is in it
+    # the campaign's report (the stopped file, then the one that resumed it)
+    code, text = _cli("report", str(runs["b"]), "--out", str(tmp_path / "c"))
+    assert code == 0, text
+    line = next(x for x in text.splitlines() if x.startswith("run interrupted"))
+    assert "Ctrl-C" in line and "in step 2 of 6 (index 1, drive" in line  # stopped in the 5-kV drive
+    assert f"steps 2–{STEPS} of {STEPS} not run to their end" in line and "the campaign goes on in b.h5" in line
+    assert "run completed" not in text
+    index = int(open_run(runs["b"], streams=False).attrs["resumed_at_step"])
+    assert index == 1  # the 5-kV drive, the second step of the program
 
 
 def test_a_manual_session_is_skipped_by_report_and_refused_alone_and_by_fit(runs: dict[str, Path],

@@ -343,8 +343,9 @@ def report_command(
     json_out: JsonOpt = False,
 ) -> None:
     """Figures of merit and plots (PNG, PDF, SVG) of recorded runs; several files add a campaign table (Table 3
-    layout, also written as CSV). An incomplete, killed or recovered file is flagged. A manual-control session's
-    file among the runs is skipped, said."""
+    layout, also written as CSV). An incomplete, killed or recovered file is flagged; a run that stopped before
+    its protocol ended (interrupted, tripped, error) says so in one line (--json: state, reason; complete means the
+    file was finalised, as for a stopped run). A manual-control session's file among the runs is skipped, said."""
     with json_mode(json_out):
         done = print_report(runs_only(runs), out)
     if json_out:
@@ -407,7 +408,10 @@ def print_report(runs: list[Path], out: Path | None = None) -> Report:
         if not r.complete:
             console.print(f"[red]INCOMPLETE[/] {escape(p.name)} ({r.state}): {escape(r.incomplete_reason)}; "
                           f"{r.steps_completed} of {r.steps_total} steps completed", soft_wrap=True)
-        console.print(figures_table(a.steps, f"{a.protocol} ({p.name})" + ("" if r.complete else " — INCOMPLETE FILE")))
+        if r.stopped:
+            console.print(f"[yellow]{escape(r.stopped)}[/]", soft_wrap=True)
+        console.print(figures_table(a.steps, f"{a.protocol} ({p.name})" + ("" if r.complete else " — INCOMPLETE FILE")
+                                    + (f" — {r.state.upper()}" if r.stopped else "")))
         if not a.steps:
             console.print(f"no step of {escape(p.name)} could be analysed")
         if a.by_kind("isotonic"):
