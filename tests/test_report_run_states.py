@@ -81,7 +81,7 @@ def test_each_step_of_a_temperature_sweep_is_reported_at_the_temperature_set_bef
     assert float(r.temperature_at(r.step_starts()[4])) == TEMPERATURES[1]
 
 
-def test_a_stopped_run_says_so_with_its_reason_and_the_steps_it_did_not_run(
+def test_a_stopped_run_says_so_and_a_resumed_campaign_is_numbered_as_bench_run_resume_announces_it(
         runs: dict[str, Path], tmp_path: Path) -> None:
     code, out = _cli("report", str(runs["a"]), "--out", str(tmp_path / "j"), "--json")
     assert code == 0, out
@@ -97,6 +97,13 @@ def test_a_stopped_run_says_so_with_its_reason_and_the_steps_it_did_not_run(
     assert "run completed" not in text
     index = int(open_run(runs["b"], streams=False).attrs["resumed_at_step"])
     assert index == 1  # the 5-kV drive, the second step of the program
+    said = f"step {index + 1} of {STEPS} (index {index})"
+    assert f"resumed at {said}" in " ".join(text.split()), text
+    assert said in " ".join(runs["announced"].read_text(encoding="utf-8").split())
+    code, text = _cli("inspect", str(runs["b"]))
+    assert f"resumed at {said}" in " ".join(text.split()), text
+    (restart,) = [text for _, _, kind, text in open_run(runs["b"], streams=False).event_list() if kind == "restart"]
+    assert f"{said[:-1]}, drive [voltage=5 kV, T=266.0]) restarts from its start" in restart, restart
 
 
 def test_a_manual_session_is_skipped_by_report_and_refused_alone_and_by_fit(runs: dict[str, Path],
