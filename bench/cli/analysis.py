@@ -410,9 +410,11 @@ def print_report(runs: list[Path], out: Path | None = None) -> Report:
                           f"{r.steps_completed} of {r.steps_total} steps completed", soft_wrap=True)
         if r.stopped:
             console.print(f"[yellow]{escape(r.stopped)}[/]", soft_wrap=True)
-        console.print(figures_table(a.steps, f"{a.protocol} ({p.name})" + ("" if r.complete else " — INCOMPLETE FILE")
-                                    + (f" — {r.state.upper()}" if r.stopped else "")))
-        if not a.steps:
+        if a.steps:
+            console.print(figures_table(a.steps, f"{a.protocol} ({p.name})"
+                                        + ("" if r.complete else " — INCOMPLETE FILE")
+                                        + (f" — {r.state.upper()}" if r.stopped else "")))
+        else:  # (an empty table's title wraps to its narrow width)
             console.print(f"no step of {escape(p.name)} could be analysed")
         if a.by_kind("isotonic"):
             console.print("resonance: " + ", ".join(f"{m * 1e3:.0f} g at {f:g} Hz ({amp * 1e3:.1f} mm)"
