@@ -398,10 +398,10 @@ def report(run_path: str | Path, out: str | Path | None = None) -> tuple[RunAnal
     and read a window at a time (see the module's docstring)."""
     run_path = Path(run_path)
     out = Path(out) if out is not None else run_path.with_suffix("").with_name(run_path.stem + "-report")
-    out.mkdir(parents=True, exist_ok=True)
     paths: list[Path] = []
     with open_source(run_path) as src:
         a = analyse_source(src)
+        out.mkdir(parents=True, exist_ok=True)  # (not for a file refused: a manual session's)
         kinds = {s.kind for s in a.steps}
         if "thesis" in kinds:
             paths += thesis_figures(a, out, src)

@@ -30,7 +30,7 @@ from bench.analysis.thesis import cycle_figures
 from bench.models.lozenge import LozengeParams
 from bench.protocol.schema import Protocol, WaveformStep, load_protocol
 from bench.storage.chunks import RunSource, StreamChunks, open_source
-from bench.storage.runfile import RunFile, refuse_nonfinite
+from bench.storage.runfile import RunFile, refuse_manual_session, refuse_nonfinite
 
 PAPER_GRAVITY = 9.81  # m/s²: the value behind the paper's loads (3.1 / 4.6 / 4.9 N), not standard gravity
 TOL_S = 1e-9  # a window's bounds are widened by this much (step times are sums of floats)
@@ -135,25 +135,15 @@ def _inside(t: np.ndarray, t0: float, t1: float) -> np.ndarray:
     return (t >= t0 - TOL_S) & (t <= t1 + TOL_S)
 
 
-def _specimen_at(t: float, history: list[tuple[float, dict[str, float]]], spec: dict[str, Any]) -> tuple[int, float]:
+def _specimen_at(run: RunFile, t: float, spec: dict[str, Any]) -> tuple[int, float]:
+    """LS-DEA prototype and hung mass at run time ``t`` (:meth:`RunFile.specimen_at`)."""
     over = spec.get("overrides", {})
     lsdea = spec.get("lsdea", {})
     proto = over.get("prototype") or lsdea.get("prototype", 1)
     mass = over.get("hung_mass_kg")
     mass = lsdea.get("hung_mass_kg", 0.0) if mass is None else mass
-    for te, values in history:
-        if te <= t + 1e-9:
-            proto = int(values.get("prototype", proto))
-            mass = values.get("hung_mass_kg", mass)
-    return int(proto), float(mass)
-
-
-def _temperature_at(t: float, history: list[tuple[float, dict[str, float]]], spec: dict[str, Any]) -> float:
-    T = spec.get("overrides", {}).get("temperature_K") or spec.get("temperature_K", 296.0)
-    for te, values in history:
-        if te <= t + 1e-9:
-            T = values.get("temperature_K", T)
-    return float(T)
+    changed = run.specimen_at(t)
+    return int(changed.get("prototype", proto)), float(changed.get("hung_mass_kg", mass))
 
 
 def analyse(path: str | Path, last_cycles: int = 3) -> RunAnalysis:
@@ -165,13 +155,13 @@ def analyse(path: str | Path, last_cycles: int = 3) -> RunAnalysis:
 def analyse_source(src: RunSource, last_cycles: int = 3) -> RunAnalysis:
     """:func:`analyse` on a run file already open."""
     run, streams = src.run, src.streams
+    refuse_manual_session(run, "no protocol steps to report")  # its protocol text is an empty program
     protocol = protocol_of(run)
     spec = run.specimen()
     kind_of_specimen = spec["kind"]
     config = spec.get("lsdea", {}).get("configuration", "membrane") if kind_of_specimen == "lsdea" else "membrane"
-    history = run.specimen_changes()
     results: list[StepResult] = []
-    done, offsets = run.completed_steps(), run.step_offsets()
+    done, offsets, began = run.completed_steps(), run.step_offsets(), run.step_starts()
     for row, step in zip(run.program, protocol.steps, strict=True):
         if not isinstance(step, WaveformStep):
             continue
@@ -182,11 +172,14 @@ def analyse_source(src: RunSource, last_cycles: int = 3) -> RunAnalysis:
         sp = applied_window(streams, t0 - TOL_S, t0 + dur + TOL_S, measured=True)
         sel = _inside(sp.t, t0, t0 + dur)
         vpk = float(np.max(np.abs(sp.v[sel]))) if sel.any() else 0.0
-        proto, mass = _specimen_at(t0, history, spec)
+        # the specimen as the step found it: the changes logged up to its recorded start (a set step before it
+        # logs its change after the program time this step starts at: the program does not wait for it)
+        at = max(t0, began.get(index, t0))
+        proto, mass = _specimen_at(run, at, spec)
         res = StepResult(int(row["index"]), row["name"].decode(), "", t0, dur, step.frequency_Hz, vpk,
                          proto if kind_of_specimen == "lsdea" else None, mass if config == "hung" else None)
         if kind_of_specimen == "membrane":
-            res.temperature = _temperature_at(t0, history, spec)
+            res.temperature = float(run.temperature_at(at))
             _thesis(res, streams, sp.t, sp.v)
         elif step.channel == "position":
             _isopotential(res, streams)

@@ -13,6 +13,7 @@ if TYPE_CHECKING:
     from bench.analysis.runs import RunAnalysis
     from bench.app import Progress
     from bench.design_map import DesignCurves, DesignMap, MapSettings
+    from bench.storage.runfile import RunFile
 
 PROTOTYPES = ((1, 2.5), (2, 2.75), (3, 3.0))  # Moretti's prototypes: number, pre-stretch λ2p (all at xp 40 mm)
 PROTOTYPE_XP = 0.040
@@ -62,10 +63,51 @@ class RunReport:
     steps_total: int
     analysis: RunAnalysis
     figures: list[Path]
+    reason: str = ""  # the file's /status/reason: why the run ended, then how the output was made safe
+    stopped: str = ""  # a run that ended before its protocol did: one line saying so (:func:`stopped_line`)
 
     def flags(self) -> dict[str, object]:
-        return {"state": self.state, "complete": self.complete, "incomplete_reason": self.incomplete_reason or None,
+        """The file's state for ``--json``: ``state`` and ``reason`` say how the run ended (``completed`` or
+        interrupted, tripped, error; running when no end was recorded), ``complete`` only that the file was
+        finalised (a stopped run's file is complete: it holds all that was run)."""
+        return {"state": self.state, "reason": self.reason or None, "stopped": self.stopped or None,
+                "complete": self.complete, "incomplete_reason": self.incomplete_reason or None,
                 "recovered_at": self.recovered_at or None}
+
+
+def _steps(first: int, last: int, total: int) -> str:
+    """Steps ``first``–``last`` (indices) as the CLI counts them: 1-based, of ``total``."""
+    if first == last:
+        return f"step {first + 1} of {total}"
+    return f"steps {first + 1}–{last + 1} of {total}"
+
+
+def stopped_line(run: RunFile, continued_in: Path | None = None) -> str:
+    """One line on a run that ended before its protocol did ('' for a completed run, or one with no end recorded:
+    that is the INCOMPLETE line's): how it ended and when, why, and the steps it did not run to their end
+    (numbered from 1, as ``bench run --resume`` counts them; the file's step indices are 0-based)."""
+    if run.state in ("completed", "running"):
+        return ""
+    events = run.event_list()
+    t, step = run.updated, None
+    for te, st, kind, _ in events:
+        if kind == run.state:  # the engine's event of the stop: its time and the step it stopped in
+            t, step = te, st
+    why = run.reason.split(" | ")[0] or "no reason recorded"
+    total = int(run.program.shape[0])
+    first = int(run.attrs.get("resumed_at_step") or 0)  # steps before ran in the earlier file of the campaign
+    done = run.completed_steps()
+    left = [i for i in range(first, total) if i not in done]
+    line = f"run {run.state} at {t:.2f} s: {why}"
+    if step is not None and 0 <= step < total:
+        name = run.program[step]["name"]
+        line += f" — in step {step + 1} of {total} (index {step}, {name.decode() if isinstance(name, bytes) else name})"
+    if left:
+        line += "; " + _steps(left[0], left[-1], total) + (" not run to their end" if len(left) > 1 else
+                                                          " not run to its end")
+    if continued_in is not None:
+        line += f"; the campaign goes on in {continued_in.name}"
+    return line
 
 
 @dataclass
@@ -76,6 +118,7 @@ class Report:
     grid: dict[str, Any] | None = None
     grid_figure: Path | None = None  # the grid drawn (table3.png beside table3.csv)
     notes: list[str] = field(default_factory=list)  # what the caller should say (a folder renamed for a collision)
+    skipped: list[tuple[Path, str]] = field(default_factory=list)  # (file, why): a manual session's readings
 
     @property
     def figures(self) -> list[Path]:
@@ -88,19 +131,31 @@ def report_runs(runs: list[Path], out: Path | None = None, progress: Progress | 
     isopotential steps, also written as CSV (its path in ``grid``) and drawn beside it.
     ``progress`` gets the fraction of the files done."""
     from bench.report import report, save_figure, table3_figure
+    from bench.storage.runfile import ManualSessionError
 
     done = Report()
     folders = report_folders(runs) if len(runs) > 1 else {}
-    for i, p in enumerate(runs):
-        where = out / folders[i] if out is not None and folders else out
+    for k, p in enumerate(runs):
+        where = out / folders[k] if out is not None and folders else out
+        try:
+            a, paths = report(p, where)  # opens the file once
+        except ManualSessionError as exc:  # among run files (a glob of runs/): skipped, said; alone: refused
+            if len(runs) == 1:
+                raise
+            done.skipped.append((p, str(exc)))
+            continue
         if where is not None and where.name != p.stem and folders:
             done.notes.append(f"{p}: figures in {where} (another run file is named {p.name})")
-        a, paths = report(p, where)  # opens the file once
         run = a.run  # the file's state as the analysis read it
+        later = _continued_in(run, runs[k + 1:]) if run.state not in ("completed", "running") else None
         done.runs.append(RunReport(p, run.state, run.complete, run.incomplete_reason, run.recovered_at,
-                                   len(run.completed_steps()), run.program.shape[0], a, paths))
+                                   len(run.completed_steps()), run.program.shape[0], a, paths, run.reason,
+                                   stopped_line(run, later)))
         if progress is not None:
-            progress(len(done.runs) / len(runs))
+            progress((k + 1) / len(runs))
+    if not done.runs:  # every file given was a manual session's
+        raise ValueError(f"no run file to report: {len(runs)} manual-control session files "
+                         "(bench devices control), which hold no protocol steps")
     grid = table3([s for r in done.runs for s in r.analysis.steps])
     if grid is not None:
         csv_path = (out if out is not None else runs[-1].with_name(runs[-1].stem + "-report")) / "table3.csv"
@@ -125,6 +180,17 @@ def report_folders(runs: list[Path]) -> dict[int, str]:
         taken.add(name)
         out[i] = name
     return out
+
+
+def _continued_in(run: RunFile, later: list[Path]) -> Path | None:
+    """The file among ``later`` (reported with it) that resumed ``run``'s campaign (``previous_run_id``)."""
+    from bench.storage.runfile import open_run
+
+    rid = run.attrs.get("run_id")
+    for q in later:
+        if rid and open_run(q, streams=False).attrs.get("previous_run_id") == rid:
+            return q
+    return None
 
 
 def table3(steps: list[Any]) -> dict[str, Any] | None:

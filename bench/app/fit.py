@@ -43,9 +43,12 @@ class Fitted:
 def model_of_runs(runs: list[Path], asked: str = "auto") -> str:
     """The model to fit: ``asked`` ("membrane", "lsdea"), or with "auto" the specimen kind the run files share
     (ValueError when they hold different ones)."""
-    from bench.storage.runfile import open_run
+    from bench.storage.runfile import open_run, refuse_manual_session
 
-    kinds = {open_run(p, streams=False).specimen()["kind"] for p in runs}
+    files = [open_run(p, streams=False) for p in runs]
+    for f in files:  # its readings follow commands typed, not a protocol's drive: nothing to fit them against
+        refuse_manual_session(f, "no protocol drive to fit against (fit the files of `bench run`)")
+    kinds = {f.specimen()["kind"] for f in files}
     chosen = asked if asked != "auto" else (kinds.pop() if len(kinds) == 1 else "")
     if not chosen:
         raise ValueError("the run files hold different specimens: fit them separately or pass --model")

@@ -343,7 +343,9 @@ def report_command(
     json_out: JsonOpt = False,
 ) -> None:
     """Figures of merit and plots (PNG, PDF, SVG) of recorded runs; several files add a campaign table (Table 3
-    layout, also written as CSV). An incomplete, killed or recovered file is flagged."""
+    layout, also written as CSV). An incomplete, killed or recovered file is flagged; a run that stopped before
+    its protocol ended (interrupted, tripped, error) says so in one line (--json: state, reason; complete means the
+    file was finalised, as for a stopped run). A manual-control session's file among the runs is skipped, said."""
     with json_mode(json_out):
         done = print_report(runs_only(runs), out)
     if json_out:
@@ -351,7 +353,8 @@ def report_command(
             {"file": str(r.path), **r.flags(), "protocol": r.analysis.protocol,
              "steps": [{"step": s.name, "kind": s.kind, "prototype": s.prototype, "hung_mass_kg": s.hung_mass,
                         "temperature_K": s.temperature, "frequency_Hz": s.frequency, "voltage_V": s.voltage,
-                        "figures": s.figures} for s in r.analysis.steps]} for r in done.runs]})
+                        "figures": s.figures} for s in r.analysis.steps]} for r in done.runs],
+            "skipped": [{"file": str(p), "why": why} for p, why in done.skipped]})
 
 
 def figures_table(steps: list[StepResult], title: str) -> Table:
@@ -398,6 +401,8 @@ def print_report(runs: list[Path], out: Path | None = None) -> Report:
 
     with progress(f"analysing and plotting {len(runs)} run file(s)") as advance:
         done = report_runs(runs, out, advance)
+    for _, why in done.skipped:
+        console.print(f"[yellow]skipping[/] {escape(why)}", soft_wrap=True)
     for note in done.notes:
         console.print(escape(note), soft_wrap=True)
     for r in done.runs:
@@ -405,8 +410,13 @@ def print_report(runs: list[Path], out: Path | None = None) -> Report:
         if not r.complete:
             console.print(f"[red]INCOMPLETE[/] {escape(p.name)} ({r.state}): {escape(r.incomplete_reason)}; "
                           f"{r.steps_completed} of {r.steps_total} steps completed", soft_wrap=True)
-        console.print(figures_table(a.steps, f"{a.protocol} ({p.name})" + ("" if r.complete else " — INCOMPLETE FILE")))
-        if not a.steps:
+        if r.stopped:
+            console.print(f"[yellow]{escape(r.stopped)}[/]", soft_wrap=True)
+        if a.steps:
+            console.print(figures_table(a.steps, f"{a.protocol} ({p.name})"
+                                        + ("" if r.complete else " — INCOMPLETE FILE")
+                                        + (f" — {r.state.upper()}" if r.stopped else "")))
+        else:  # (an empty table's title wraps to its narrow width)
             console.print(f"no step of {escape(p.name)} could be analysed")
         if a.by_kind("isotonic"):
             console.print("resonance: " + ", ".join(f"{m * 1e3:.0f} g at {f:g} Hz ({amp * 1e3:.1f} mm)"

@@ -225,6 +225,8 @@ def _before_the_run() -> Iterator[None]:
 def _show_prepared(prepared: PreparedRun, dry_run: bool = False) -> None:
     """What was done to get the run ready (a reset latch, warnings), the plan's summary, where a campaign resumes;
     that nothing was touched, on a ``dry_run``."""
+    from bench.storage.chain import resumed_text
+
     plan, link = prepared.plan, prepared.link
     if prepared.reset is not None:
         who, why = prepared.reset
@@ -234,8 +236,8 @@ def _show_prepared(prepared: PreparedRun, dry_run: bool = False) -> None:
     console.print(_summary(plan))
     if link is not None:
         seg = plan.program.segments[link.step]
-        console.print(f"resuming the campaign of {escape(str(link.previous))} at step {link.step + 1} of {link.steps} "
-                      f"({escape(seg.name)}); {link.step} step(s) completed there")
+        console.print(f"resuming the campaign of {escape(str(link.previous))} at "
+                      f"{resumed_text(link.step, link.steps)}: {escape(seg.name)}; {link.step} step(s) completed there")
     if dry_run:
         console.print("[green]dry run[/]: nothing was touched")
 

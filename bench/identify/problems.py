@@ -185,8 +185,6 @@ class MembraneProblem(MonitorCalibration):
         self.template = self.template or params
         stride = max(1, round(1.0 / (self.data_rate * self.h)))
         sp = applied_voltage(run, measured=True)
-        T0 = spec.get("overrides", {}).get("temperature_K") or spec.get("temperature_K", 296.0)
-        changes = [(te, v["temperature_K"]) for te, v in run.specimen_changes() if "temperature_K" in v]
         laser = run.streams["laser"]
         ok = laser.columns["valid"] > 0
         refuse_nonfinite(run.path, "laser", "displacement", laser.t[ok], laser.columns["displacement"][ok])
@@ -203,9 +201,7 @@ class MembraneProblem(MonitorCalibration):
             t_steps = a + np.arange(1, n + 1) * self.h
             U = np.empty((n, 2))
             U[:, 0] = voltage_per_step(sp, t_steps, self.h, self.input_smoothing_s)
-            U[:, 1] = T0
-            for te, T in changes:
-                U[t_steps > te, 1] = T
+            U[:, 1] = run.temperature_at(t_steps)  # as the report reads a step's temperature
             t_data = a + np.arange(0, n // stride + 1) * stride * self.h
             data = sample(t_data, laser.t[ok], laser.columns["displacement"][ok])
             floor = (floors.of_window_means if self.average else floors.of_points)(head, t_data, laser.t[ok])

@@ -702,12 +702,17 @@ class Engine:
             if after is not None:
                 after()
 
+    def _step_text(self, seg: Segment) -> str:
+        """A step as the CLI names it (``bench run --resume``, ``report``): from 1, with its 0-based index (the
+        events' step column) and name."""
+        return f"step {seg.index + 1} of {len(self.program.segments)} (index {seg.index}, {seg.name})"
+
     def _restart(self, seg: Segment, why: str) -> None:
         """Bring the rig to the state the program holds at the start of ``seg`` (motor to its position with the
         output at 0 V, then the voltage ramped up over ``shutdown_ramp_s``) and shift the program so that ``seg``
         starts now; recorded as events."""
         volts, motor = self._state_before(seg)
-        self.rec.event(self.now(), seg.index, "restart", f"{why}; step {seg.index} ({seg.name}) restarts from its "
+        self.rec.event(self.now(), seg.index, "restart", f"{why}; {self._step_text(seg)} restarts from its "
                        f"start: motor to {'-' if motor is None else f'{motor * 1e3:.2f} mm'}, output to {volts:.0f} V")
         if motor is not None and self.inst.motor is not None:
             m = self.program.rig.motor
@@ -718,7 +723,7 @@ class Engine:
                 self._check_stop()
                 if self.now() > deadline:
                     raise InstrumentStateError("motor", f"did not reach {motor * 1e3:.2f} mm within "
-                                               f"{RESTART_MOVE_S:g} s to restart step {seg.index}")
+                                               f"{RESTART_MOVE_S:g} s to restart {self._step_text(seg)}")
                 self._pause_until(self.now() + 0.02, urgent_aborts=False)
         if self.inst.amplifier is not None and abs(volts - self.ctx.v_cmd) > RESTART_STEP_V:
             # supervised as a step is: the monitors (and the other polled sensors) read, recorded and checked
@@ -807,7 +812,8 @@ class Engine:
             k = self.start_step
             if k > 0:
                 self._resume_specimen(segs[k])
-                self._restart(segs[k], f"resumed campaign: steps before {k} ran in the previous file")
+                self._restart(segs[k], f"resumed campaign: steps 1–{k} of {len(segs)} ran in the previous file"
+                              if k > 1 else f"resumed campaign: step 1 of {len(segs)} ran in the previous file")
             while k < len(segs):
                 try:
                     self._segment(segs[k])

@@ -21,7 +21,8 @@ class Link:
     path: Path
     state: str
     complete: bool
-    resumed_at_step: int | None
+    resumed_at_step: int | None  # the step's index in the program (0-based, as the file's events number steps)
+    steps: int = 0  # the program's steps
 
 
 def chain(path: str | Path) -> list[Link]:
@@ -40,7 +41,7 @@ def chain(path: str | Path) -> list[Link]:
                              "(keep a campaign's files together)")
         run = open_run(p, streams=False)
         step = run.attrs.get("resumed_at_step")
-        out.append(Link(p, run.state, run.complete, None if step is None else int(step)))
+        out.append(Link(p, run.state, run.complete, None if step is None else int(step), int(run.program.shape[0])))
         prev = run.attrs.get("previous_file")
         p = (p.parent / str(prev)) if prev else None
     return out[::-1]
@@ -77,9 +78,16 @@ def with_chains(paths: list[Path]) -> list[Path]:
     return out
 
 
+def resumed_text(step: int, steps: int) -> str:
+    """Where a campaign resumed, as the CLI says it (``bench run --resume``, ``inspect``, ``report``): counted from
+    1 of the program's steps, with the 0-based index the file's ``resumed_at_step`` and events hold."""
+    return f"step {step + 1} of {steps} (index {step})"
+
+
 def describe(links: list[Link]) -> str:
     """One line: the campaign's files, how each ended and where each resumed."""
     parts = [f"{ln.path.name} ({ln.state}{'' if ln.complete else ', incomplete'}"
-             + (f", resumed at step {ln.resumed_at_step + 1}" if ln.resumed_at_step is not None else "") + ")"
+             + (f", resumed at {resumed_text(ln.resumed_at_step, ln.steps)}" if ln.resumed_at_step is not None
+                else "") + ")"
              for ln in links]
     return " → ".join(parts)

@@ -122,6 +122,44 @@ class RunFile:
                 out.append((t, {k.strip(): float(v) for k, _, v in (p.partition("=") for p in text.split(","))}))
         return out
 
+    def step_starts(self) -> dict[int, float]:
+        """Run time of each step's last ``start`` event [s]: when the step began as recorded (a step of the program
+        begins when the one before it has ended, a little after its program time on any clock)."""
+        return {step: t for t, step, kind, _ in self.event_list() if kind == "start"}
+
+    def specimen_at(self, t: float) -> dict[str, float]:
+        """The specimen changes in effect at run time ``t`` [s]: each change (``specimen`` event) holds from the
+        time it was logged on, the latest of each key kept (keys never changed are absent)."""
+        out: dict[str, float] = {}
+        for te, values in self.specimen_changes():
+            if te <= t + 1e-9:
+                out.update(values)
+        return out
+
+    def temperature_at(self, t: np.ndarray | float) -> np.ndarray:
+        """The specimen temperature [K] at run time(s) ``t``: the specimen's (its override, else 296 K) until a
+        ``temperature_K`` change is logged, that change's from its time on (as :meth:`specimen_at`). The one
+        reading of the temperature history: the fit's inputs and the report's steps both come from it."""
+        spec = self.specimen()
+        T0 = spec.get("overrides", {}).get("temperature_K") or spec.get("temperature_K", 296.0)
+        tt = np.asarray(t, dtype=float)
+        out = np.full(tt.shape, float(T0))
+        for te, values in self.specimen_changes():
+            if "temperature_K" in values:
+                out[tt + 1e-9 >= te] = float(values["temperature_K"])
+        return out
+
+
+class ManualSessionError(ValueError):
+    """The readings of a manual-control session (``bench devices control``: attribute ``session_log``) where the
+    record of a protocol's run was needed: it has no program of steps to analyse or fit against."""
+
+
+def refuse_manual_session(run: RunFile, what: str) -> None:
+    """ManualSessionError (one line naming the file, then ``what`` cannot be done) for a manual session's file."""
+    if run.attrs.get("session_log"):
+        raise ManualSessionError(f"run file {run.path}: a manual-control session: {what}")
+
 
 def specimen_of(attrs: Mapping[str, Any], p: Path, model: bool = False) -> dict[str, Any]:
     """The run file ``p``'s ``specimen`` attribute (JSON: the rig's specimen, its ``kind`` and ``model``, and a

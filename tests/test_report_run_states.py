@@ -1,0 +1,123 @@
+"""`bench report` on what a lab's runs/ folder holds besides completed runs: a temperature sweep (each step at the
+temperature its set step logged), a stopped run and the file that resumed it (state, reason, steps left, the
+step numbering `bench run --resume` uses), a manual-control session's readings (skipped, or refused alone; `bench
+fit` refuses it).
+
+Expected temperatures and step counts come from protocols/short/thesis-sweeps-short.toml: a sweep of two points
+(5 kV at 266 K, 7 kV at 316 K), each a 0-s chamber step, a 5-s drive and a 2-s recovery (6 steps).
+"""
+
+from __future__ import annotations
+
+import json
+import tomllib
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from bench.analysis.runs import analyse
+from bench.cli import app
+from bench.runtime.engine import Engine
+from bench.runtime.run import execute, plan_resume, plan_run
+from bench.storage.runfile import open_run
+from tests.conftest import ROOT
+
+SWEEPS = ROOT / "protocols" / "short" / "thesis-sweeps-short.toml"
+THESIS_RIG = ROOT / "rigs" / "thesis-sim.toml"
+GRID = tomllib.loads(SWEEPS.read_text(encoding="utf-8"))["steps"][0]
+TEMPERATURES = GRID["over"]["T"]  # [266.0, 316.0]: one per sweep point, set before its drive
+STEPS = len(TEMPERATURES) * len(GRID["steps"])  # 6
+
+
+def _cli(*args: str) -> tuple[int, str]:
+    res = CliRunner().invoke(app, list(args), env={"COLUMNS": "200"})
+    return res.exit_code, res.output
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """A completed sweep; one stopped ("Ctrl-C") 2.3 s into its first drive, the `bench run --resume --dry-run`
+    announcement of its continuation, and the file that continued it; a scripted manual session's readings."""
+    d = tmp_path_factory.mktemp("states")
+    done = execute(plan_run(SWEEPS), d / "done" / "sweep.h5", virtual=True)
+    assert done.state == "completed", done.reason
+
+    def ctrl_c(engine: Engine, sim) -> None:  # type: ignore[no-untyped-def]
+        def at(_now: float) -> None:
+            if engine.snapshot.step == 1 and engine.program_now() > 2.3:
+                engine.request_stop("Ctrl-C")
+        sim.clock.subscribe(at)
+
+    stopped = execute(plan_run(SWEEPS), d / "camp" / "a.h5", virtual=True, on_engine=ctrl_c)
+    assert stopped.state == "interrupted", stopped.reason
+    code, announced = _cli("run", "--resume", str(stopped.path), "--virtual-time", "--dry-run")
+    assert code == 0, announced
+    (d / "announced.txt").write_text(announced, encoding="utf-8")
+    plan, link, _ = plan_resume(stopped.path)
+    resumed = execute(plan, d / "camp" / "b.h5", virtual=True, resume=link)
+    assert resumed.state == "completed", resumed.reason
+    script = d / "cmds.txt"
+    script.write_text("voltage 2kV\nwatch 1 0.25\n", encoding="utf-8")
+    code, out = _cli("devices", "control", str(THESIS_RIG), "--virtual-time", "--log", str(d / "session.log"),
+                     "--script", str(script))
+    assert code == 0, out
+    return {"done": Path(done.path), "a": Path(stopped.path), "b": Path(resumed.path),
+            "session": d / "session.h5", "announced": d / "announced.txt"}
+
+
+def test_each_step_of_a_temperature_sweep_is_reported_at_the_temperature_set_before_it(runs: dict[str, Path],
+                                                                                       tmp_path: Path) -> None:
+    """The 7-kV point was reported at 266 K: its chamber step logs 316 K a little after the program time the
+    drive starts at, and the report compared the change with the program time."""
+    assert [s.temperature for s in analyse(runs["done"]).steps] == TEMPERATURES  # what --json and the plots show
+    code, text = _cli("report", str(runs["done"]), "--out", str(tmp_path))
+    assert code == 0, text
+    row = next(line for line in text.splitlines() if "T [K]" in line)
+    assert [c.strip() for c in row.split("│") if c.strip()] == ["T [K]", *(f"{T:g}" for T in TEMPERATURES)], row
+    assert "run completed" not in text and "interrupted" not in text  # a completed run: no state line
+    # the fit reads the same history: the 7-kV drive's inputs at 316 K from its recorded start
+    r = open_run(runs["done"], streams=False)
+    assert float(r.temperature_at(r.step_starts()[4])) == TEMPERATURES[1]
+
+
+def test_a_stopped_run_says_so_and_a_resumed_campaign_is_numbered_as_bench_run_resume_announces_it(
+        runs: dict[str, Path], tmp_path: Path) -> None:
+    code, out = _cli("report", str(runs["a"]), "--out", str(tmp_path / "j"), "--json")
+    assert code == 0, out
+    (run,) = json.loads(out)["runs"]
+    assert run["state"] == "interrupted" and run["reason"].startswith("Ctrl-C")
+    assert run["complete"] is True  # the file was finalised: all that ran is in it
+    # the campaign's report (the stopped file, then the one that resumed it)
+    code, text = _cli("report", str(runs["b"]), "--out", str(tmp_path / "c"))
+    assert code == 0, text
+    line = next(x for x in text.splitlines() if x.startswith("run interrupted"))
+    assert "Ctrl-C" in line and "in step 2 of 6 (index 1, drive" in line  # stopped in the 5-kV drive
+    assert f"steps 2–{STEPS} of {STEPS} not run to their end" in line and "the campaign goes on in b.h5" in line
+    assert "run completed" not in text
+    index = int(open_run(runs["b"], streams=False).attrs["resumed_at_step"])
+    assert index == 1  # the 5-kV drive, the second step of the program
+    said = f"step {index + 1} of {STEPS} (index {index})"
+    assert f"resumed at {said}" in " ".join(text.split()), text
+    assert said in " ".join(runs["announced"].read_text(encoding="utf-8").split())
+    code, text = _cli("inspect", str(runs["b"]))
+    assert f"resumed at {said}" in " ".join(text.split()), text
+    (restart,) = [text for _, _, kind, text in open_run(runs["b"], streams=False).event_list() if kind == "restart"]
+    assert f"{said[:-1]}, drive [voltage=5 kV, T=266.0]) restarts from its start" in restart, restart
+
+
+def test_a_manual_session_is_skipped_by_report_and_refused_alone_and_by_fit(runs: dict[str, Path],
+                                                                            tmp_path: Path) -> None:
+    session = runs["session"]
+    assert open_run(session, streams=False).attrs.get("session_log")
+    code, text = _cli("report", str(runs["a"]), str(session), "--out", str(tmp_path))
+    assert code == 0, text
+    skipped = [x for x in text.splitlines() if "manual-control session" in x]
+    assert skipped == [f"skipping run file {session}: a manual-control session: no protocol steps to report"]
+    assert "no step of a.h5 could be analysed" in text  # the other file reported (it stopped in its first drive)
+    for cmd in (["report", str(session), "--out", str(tmp_path / "alone")], ["fit", str(session)]):
+        code, text = _cli(*cmd)
+        assert code == 2 and text.count("\n") == 1, text
+        assert text.startswith(f"error: run file {session}: a manual-control session: "), text
+        assert "protocol.toml" not in text and "valid data points" not in text
+    assert not (tmp_path / "alone").exists()
