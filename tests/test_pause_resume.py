@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from bench.analysis.runs import analyse
-from bench.runtime.control import control_path, read_control, write_control
+from bench.runtime.control import NO_WORD, control_path, read_control, write_control
 from bench.runtime.engine import Engine
 from bench.runtime.run import execute, plan_resume, plan_run
 from bench.storage.chain import chain
@@ -158,7 +158,7 @@ def test_a_paused_output_that_stays_up_latches(tmp_path: Path, rig: Path) -> Non
 
 def test_the_control_file_is_read_only_when_whole(tmp_path: Path) -> None:
     run_file = tmp_path / "r.h5"
-    seen = (0.0, False, "")
+    seen = NO_WORD
     path = control_path(run_file)
     assert read_control(path, seen) == seen  # absent: nothing changes
     path.write_text('{"pause": tr', encoding="utf-8")  # half written
@@ -166,13 +166,21 @@ def test_the_control_file_is_read_only_when_whole(tmp_path: Path) -> None:
     path.write_text('{"pause": "yes"}', encoding="utf-8")  # not a boolean
     assert read_control(path, seen) == seen
     write_control(run_file, True, "ada", "check the clamp")
-    _, pause, who, stop = read_control(path, seen)
+    first = read_control(path, seen)
+    _, pause, who, stop = first
     assert pause and not stop and "ada" in who and "check the clamp" in who
+    # a second word in the same second, on a filesystem that keeps whole seconds: still a new word (its inode)
+    stamp = os.stat(path).st_mtime_ns
+    write_control(run_file, False, "bo", "clamp fixed")
+    os.utime(path, ns=(stamp, stamp))
+    second = read_control(path, first)
+    assert second != first and second[1] is False and "bo" in second[2]
 
 
 def test_pause_and_resume_from_another_terminal(tmp_path: Path) -> None:
     """A virtual-time run in its own process, paused from the start by its control file (what `bench pause` writes),
-    then `bench pause` (refused: already paused) and `bench resume` from another process while it holds."""
+    then `bench pause` (already paused: sent all the same, recorded as a request) and `bench resume` from another
+    process while it holds."""
     bench = [sys.executable, "-m", "bench"]
     proc = subprocess.Popen([*bench, "run", str(SHORT / "thesis-identification-short.toml"), "--virtual-time",
                              "--out", str(tmp_path), "--no-live"], cwd=ROOT, env=ENV, stdout=subprocess.PIPE,
@@ -187,8 +195,8 @@ def test_pause_and_resume_from_another_terminal(tmp_path: Path) -> None:
         assert refused.returncode != 0 and "--why" in refused.stdout + refused.stderr
         paused = subprocess.run([*bench, "pause", str(run_file), "--why", "adjust the laser", "--operator", "ada"],
                                 cwd=ROOT, env=ENV, capture_output=True, text=True)
-        assert paused.returncode == 2 and "already paused" in paused.stderr, paused.stdout + paused.stderr
-        assert json.loads(control_path(run_file).read_text())["why"] == "before the first step"  # nothing sent
+        assert paused.returncode == 0 and "already paused" in paused.stdout, paused.stdout + paused.stderr
+        assert json.loads(control_path(run_file).read_text())["why"] == "adjust the laser"  # sent all the same
         assert proc.poll() is None  # still paused
         resumed = subprocess.run([*bench, "resume", str(run_file), "--why", "laser fixed", "--operator", "bo"],
                                  cwd=ROOT, env=ENV, capture_output=True, text=True)

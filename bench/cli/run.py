@@ -465,10 +465,13 @@ def pause(run_file: RunArg, why: WhyOpt = "", operator: ByOpt = None) -> None:
     from bench.runtime.control import write_control
 
     _f, paused = _paused(run_file)
-    if paused is not None:
-        raise ValueError(f"run file {run_file}: already paused ({paused}): nothing to do; bench resume "
-                         f"{shlex.quote(str(run_file))} --why '…' lets it go on")
+    # never refused: the file may not show a resume already on its way (asked meanwhile, or taken after an upload
+    # the pause waits on), which this pause then withdraws; the run records what it did with it (found in review)
     path = write_control(run_file, True, _who(operator), why)
+    if paused is not None:
+        console.print(f"run file {escape(str(run_file))}: already paused ({escape(paused)}); the pause is sent anyway "
+                      f"({escape(str(path))}): it withdraws a resume on its way, and the run records it")
+        return
     console.print(f"pause asked ({escape(str(path))}); the run takes it within 0.1 s and records it")
 
 

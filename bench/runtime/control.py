@@ -2,7 +2,7 @@
 
 ``RUN.control`` beside ``RUN.h5`` holds one JSON object: ``{"pause": true|false, "by": "...", "why": "...",
 "at": "ISO time"}``, and ``"stop": true`` to end the run (``bench watch``'s stop button: the run goes safe as on
-Ctrl-C, the stop recorded with who asked). The engine looks at the file's modification time every
+Ctrl-C, the stop recorded with who asked). The engine looks at the file's stamp (time, inode) every
 :data:`CONTROL_POLL_S` of wall time and reads it when it changed. A file that cannot be read or parsed changes
 nothing (the run goes on as it was): a half-written file is read again at the next look.
 """
@@ -37,15 +37,22 @@ def write_control(run_file: str | Path, pause: bool, by: str, why: str, stop: bo
     return path
 
 
-ControlWord = tuple[float, bool, str, bool]  # the control file's (mtime, pause?, "by (why)", stop?)
+FileStamp = tuple[int, int, int]  # the control file's (mtime in ns, inode, size): which word it holds
+ControlWord = tuple[FileStamp, bool, str, bool]  # the control file's (stamp, pause?, "by (why)", stop?)
+NO_WORD: ControlWord = ((0, 0, 0), False, "", False)
 
 
 def read_control(path: Path, seen: ControlWord) -> ControlWord:
-    """(mtime, pause?, "by (why)", stop?) of the control file; ``seen`` when it is absent, unchanged or unreadable."""
+    """(stamp, pause?, "by (why)", stop?) of the control file; ``seen`` when it is absent, unchanged or unreadable.
+
+    A word is new when the file's stamp changed: its modification time to the nanosecond, and its inode — every word
+    is a new file renamed into place — since some filesystems keep the time in whole seconds (FAT: two), and a
+    second word within that time had the first's and was never seen (found in review)."""
     try:
-        mtime = path.stat().st_mtime
+        st = path.stat()
     except OSError:
         return seen
+    mtime = (st.st_mtime_ns, st.st_ino, st.st_size)
     if mtime == seen[0]:
         return seen
     try:

@@ -40,7 +40,7 @@ from bench.core.clock import Clock
 from bench.models.lozenge import LozengeParams
 from bench.protocol.program import HOLD_KEEPALIVE_S, Program, Segment, end_tick, ticks, voltage_at
 from bench.runtime.context import LATE_TOLERANCE_S, STOP_POLL_S, RunContext, Snapshot, present
-from bench.runtime.control import CONTROL_POLL_S, ControlWord, read_control
+from bench.runtime.control import CONTROL_POLL_S, NO_WORD, ControlWord, read_control
 from bench.runtime.hardware_timed import HardwareTimed
 from bench.runtime.instruments import Instruments
 from bench.runtime.interlock import InterlockTrip, watchdog_period
@@ -218,7 +218,7 @@ class Engine:
         self._zero_verified = False  # the shutdown read 0 V back from the voltage monitor
         self._pause_by: str | None = None  # who asked for a pause (signal, another thread); None: nobody
         self._resume_by: str | None = None
-        self._control_seen: ControlWord = (0.0, False, "", False)  # control file: (mtime, pause?, by/why, stop?)
+        self._control_seen: ControlWord = NO_WORD  # control file: (stamp, pause?, by/why, stop?)
         self._control_checked = 0.0
         # a run's pause and resume requests, each taken in (:meth:`_take_requests`) in the order they came: what the
         # run wants, or a ``request`` event saying why it changed nothing (none is lost without a word)
