@@ -458,3 +458,33 @@ def test_a_run_loops_its_stream_out_only_in_virtual_time_on_a_simulated_rig_with
     side = SimpleNamespace(simulated=simulated, ctx=SimpleNamespace(clock=SimpleNamespace(virtual=virtual)),
                            cfg=SimpleNamespace(watchdog_s=watchdog_s))
     assert hardware_timed.HardwareTimed._loops(side) is loops  # type: ignore[arg-type]
+
+
+def test_a_buffer_emptied_after_a_cut_loop_takes_a_whole_buffer_again() -> None:
+    """A loop of 4000 values at 1 kHz, cut (LOOP_NUM 0 + SET_LOOP 1) mid-repetition, leaves scans without data
+    before that repetition's end; once played out, BUFFER_STATUS reads 0 and the buffer takes alloc/2 − 1 = 8191
+    values again, as the datasheet's buffer rule says. The faster append path took the empty scans for data and
+    refused packets as full (exception 4) while the status read 0 (found in review)."""
+    r = Rig()
+    r.daq.connect()
+    try:
+        r.daq.arm(StreamSpec(1000.0, (StreamIn(0, name="vmon"),), StreamOut(0, np.array([2.5]))))
+        sock = socket.create_connection(("127.0.0.1", r.port), timeout=2)
+        _write(sock, 1, (TARGET, _u32(1000)), (ALLOC, _u32(16384)))
+        _write(sock, 2, (LOOP, _u32(4000)))
+        _write(sock, 3, (BUFFER, list(range(1000, 5000))))
+        _write(sock, 4, (SET_LOOP, _u32(1)))
+        r.daq.kickoff()
+        r.sim.pump()
+        for t in (3.5, 4.6):
+            r.clock.advance(t - r.clock.now() + r.sim.t_enable)
+            r.sim.pump()
+        _write(sock, 5, (LOOP, _u32(0)), (SET_LOOP, _u32(1)))
+        r.clock.advance(6.7 - r.clock.now() + r.sim.t_enable)
+        r.sim.pump()
+        status = _transact(sock, struct.pack(">HHHBBHH", 6, 0, 6, 1, 3, STATUS, 2))
+        assert int.from_bytes(status[9:13], "big") == 0  # nothing left to play
+        _write(sock, 7, (BUFFER, list(range(20000, 20000 + 8191))))  # every packet answered as written
+        sock.close()
+    finally:
+        r.close()

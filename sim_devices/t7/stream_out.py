@@ -304,14 +304,10 @@ class StreamOut(PlantCoupling):
         the general path (``_level`` after ``_advance_out``: every value still scheduled is after the scan now)."""
         o = self.outs[k]
         self._advance_out(k, now)
+        # the data waiting, as BUFFER_STATUS counts it: counting the scans up to next_scan instead took the empty
+        # scans a cut loop leaves before its repetition's end for data, and refused writes as full (found in review)
         cur = self._cur_scan(now)
-        level = len(o.queue)
-        if o.loop_until <= cur + 1:  # no repetition left: the values scheduled fill the scans after now, up to
-            level += max(o.next_scan - cur - 1, 0)  # next_scan (a schedule after an underrun starts after the last)
-        else:
-            for p in o.sched:  # all after the scan now: whole (the data written, not a loop's repetitions)
-                if not p.loop:
-                    level += p.codes.size
+        level = self._level(k, now)
         room = o.alloc // 2 - 1 - level
         take = np.asarray(codes[:max(room, 0)], np.int64)  # a frame's array as it is (no copy), a list converted
         o.tail.extend(take)
