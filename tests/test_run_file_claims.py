@@ -70,3 +70,18 @@ def test_one_continuation_of_a_campaign_at_a_time(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match=r"already resumed in .*second\.h5"):  # the other, planned before it ran
         execute(plan, tmp_path / "third.h5", virtual=True, resume=link)
     assert not (tmp_path / "third.h5").exists()
+
+
+def test_a_resume_into_another_folder_is_refused_before_anything_is_done(tmp_path: Path) -> None:
+    """A continuation is looked for beside the campaign's latest file: a resume written elsewhere (--out) was not
+    found by the next resume, and the campaign forked (found in review). Refused, naming the folder it belongs in."""
+    def stop_at_once(engine: Engine, _sim: object) -> None:
+        engine.request_stop("stopped by the test")
+
+    (tmp_path / "a").mkdir()
+    first = execute(plan_run(SWEEPS), tmp_path / "a" / "first.h5", virtual=True, on_engine=stop_at_once)
+    with pytest.raises(ValueError, match=r"--out .*b: a resumed campaign is written beside its latest file"):
+        prepare_run(None, resume=Path(first.path), out=tmp_path / "b")
+    assert not (tmp_path / "b").exists()
+    here = prepare_run(None, resume=Path(first.path), out=tmp_path / "a", dry_run=True)  # its own folder: fine
+    assert here.path.parent == tmp_path / "a"

@@ -68,6 +68,10 @@ def prepare_run(protocol_file: Path | None, *, rig: Path | None = None, sim: boo
         from bench.runtime.run import plan_resume
         from bench.storage.runfile import open_run
 
+        if out != Path("runs") and out.resolve() != resume.resolve().parent:  # before anything is done to the file
+            raise ValueError(f"--out {out}: a resumed campaign is written beside its latest file, in "
+                             f"{resume.parent} (a second resume looks for a continuation there; elsewhere it would "
+                             "fork the campaign)")
         plan, link, recovered = plan_resume(resume, rig, sim, progress)
         if protocol_file is not None and load_protocol(protocol_file).sha256 != plan.protocol.sha256:
             raise ValueError(f"protocol file {protocol_file}: not the protocol of {resume} (its text differs); "
@@ -84,7 +88,7 @@ def prepare_run(protocol_file: Path | None, *, rig: Path | None = None, sim: boo
             with claimed(plan.rig):
                 pass
         reset = _reset_for_resume(plan.rig.name, operator or old.get("operator"), why, dry_run, metadata)
-        out = resume.parent if out == Path("runs") else out
+        out = resume.parent
     elif protocol_file is None:
         raise ValueError("give a protocol file, or --resume RUN.h5 to continue a campaign")
     else:
