@@ -260,3 +260,25 @@ def test_samples_are_what_numpy_makes_of_them(values: object, dtype: type | None
     want = np.atleast_1d(np.asarray(values, dtype=dtype))
     assert got.dtype == want.dtype and got.shape == want.shape
     np.testing.assert_array_equal(got, want)
+
+
+def test_a_file_whose_making_fails_is_removed_and_one_already_there_is_kept(tmp_path: Path,
+                                                                           monkeypatch: pytest.MonkeyPatch) -> None:
+    """The disk filling while the file's layout is written left a half-made .h5 that readers then called damaged
+    (found in review): the recorder made it ("w-"), so it removes it; a file already at the path is refused in one
+    line and kept as it was."""
+    import errno
+
+    def full(self: recorder.Recorder, f: object) -> None:
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    path = tmp_path / "run.h5"
+    monkeypatch.setattr(recorder.Recorder, "_create_stamp", full)
+    with pytest.raises(recorder.StorageError, match="cannot create: No space left on device"):
+        _recorder(path)
+    assert not path.exists()
+    monkeypatch.undo()
+    path.write_bytes(b"another run's file")
+    with pytest.raises(recorder.StorageError, match="exists: a run file is never overwritten"):
+        _recorder(path)
+    assert path.read_bytes() == b"another run's file"

@@ -368,6 +368,9 @@ class Recorder:
             if self._f is not None:
                 abandon(self._f, self._fd)
                 self._f = None
+                # made here ("w-"), half made and holding nothing: removed, not left for readers to call damaged
+                with contextlib.suppress(OSError):
+                    self.path.unlink()
             self.failure = f"run file {self.path}: cannot create: {cause(exc)}"
             raise StorageError(self.failure) from None
 
