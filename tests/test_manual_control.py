@@ -752,3 +752,34 @@ def test_the_stop_waits_for_a_set_point_in_flight(tmp_path: Path, monkeypatch) -
     assert seen.stop_waited.is_set() and not tick.is_alive()
     first_zero = codes.index(ZERO_CODE)
     assert codes[0] > ZERO_CODE and set(codes[first_zero:]) == {ZERO_CODE}, codes  # the tick's code, then the stop
+
+
+def test_a_zero_that_could_not_be_commanded_latches_the_session(tmp_path: Path,
+                                                                monkeypatch: pytest.MonkeyPatch) -> None:
+    """The amplifier's link lost under a set-point, and lost for the safe state too: 0 V was not commanded, the
+    output is the set-point module's watchdog's to zero. Found from outside: the line said "output zeroed, motor
+    stopped" (on a rig without a motor), nothing latched, and the next `voltage` energised the rig again once the
+    link was back. Now: said as it is, latched as a run latches ("output path dead"), refused until a reset."""
+    from bench.runtime.latch import latched
+    from drivers.errors import InstrumentError
+
+    monkeypatch.setenv("BENCH_STATE_DIR", str(tmp_path / "state"))
+    rig = load_rig(THESIS_RIG)
+    with ManualSession(rig, tmp_path / "s.log", virtual=True, echo=lambda _t: None) as s:
+        assert s.execute("voltage 3kV").status == "ok"
+        amp = s._inst.amplifier
+
+        def lost(*_a: object, **_k: object) -> None:
+            raise InstrumentError("amplifier", "bus io: connection lost during write register 0")
+
+        monkeypatch.setattr(amp, "set_voltage", lost)
+        monkeypatch.setattr(amp, "safe_state", lost)
+        out = s.execute("voltage 2kV")
+        assert out.status == "error" and "0 V NOT commanded" in out.text and "latched" in out.text, out
+        assert "output zeroed" not in out.text and "motor" not in out.text.split("(")[0]  # no motor on this rig
+        monkeypatch.undo()  # the link is back
+        monkeypatch.setenv("BENCH_STATE_DIR", str(tmp_path / "state"))
+        again = s.execute("voltage 2kV")
+        assert again.status == "refused" and "latched" in again.text, again
+        assert latched(rig.name) is not None  # the rig's latch: runs are refused too
+        assert "output path dead" in str(latched(rig.name))

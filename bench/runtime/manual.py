@@ -26,7 +26,8 @@ request and on the value the module will output after DAC rounding (voltage, fie
 aperture); a refused command is not sent. Every reading is one of the run's polls (:mod:`bench.runtime.polls`:
 recorded, supervised, the monitors and the encoder verified against what was commanded); a reading beyond a limit
 (a trip) zeroes the output and stops the motor. A driver error of any kind, or an unexpected error in a command,
-is one ``error`` line (output zeroed, motor stopped) and the session goes on; a command whose instrument the rig
+is one ``error`` line (output zeroed, motor stopped; 0 V not commanded latches) and the session goes on; a command whose
+instrument the rig
 lacks is refused (nothing sent).
 
 Latched interlock (:mod:`bench.runtime.interlock`, as in a run): before every write that can drive the output
@@ -439,7 +440,7 @@ class ManualSession:
                 elif engine.interrupted is not None:
                     out = Outcome(shown, "interrupted", engine.end_interrupt())
                 else:  # a cancelled wait nobody asked for
-                    out = Outcome(shown, "error", f"{exc}; {engine.make_safe()}")
+                    out = Outcome(shown, "error", f"{exc}; {self._made_safe(engine)}")
             except PauseRequested:
                 assert engine is not None
                 out = self._paused(shown, engine, engine.pause_asked_by())
@@ -449,15 +450,15 @@ class ManualSession:
                 out = Outcome(shown, "trip", self._latch(trip))
             except SafetyTrip as exc:
                 assert engine is not None
-                out = Outcome(shown, "trip", f"{exc.reason}; {engine.make_safe()}")
+                out = Outcome(shown, "trip", f"{exc.reason}; {self._made_safe(engine)}")
             except InstrumentError as exc:
                 assert engine is not None
-                out = Outcome(shown, "error", f"{exc}; {engine.make_safe()}")
+                out = Outcome(shown, "error", f"{exc}; {self._made_safe(engine)}")
             except OSError as exc:  # the readings' file (drivers raise InstrumentErrors): the log goes on alone
                 self._storage_failed(exc)
                 out = Outcome(shown, "error", f"{exc}; the session goes on, readings in this log only")
             except Exception as exc:  # a program error must not end the session with the output on
-                safe = engine.make_safe() if engine is not None else "no instruments connected"
+                safe = self._made_safe(engine) if engine is not None else "no instruments connected"
                 out = Outcome(shown, "error", f"internal error: {type(exc).__name__}: {exc}; {safe}")
             if engine is not None:
                 engine.clear_interrupt()
@@ -476,12 +477,23 @@ class ManualSession:
         except InterlockTrip as trip:
             return Outcome(shown, "trip", self._latch(trip))
         except (SafetyTrip, InstrumentError, StopRequested, PauseRequested) as exc:
-            return Outcome(shown, "error", f"pause: {exc}; {engine.make_safe()}")
+            return Outcome(shown, "error", f"pause: {exc}; {self._made_safe(engine)}")
         except OSError as exc:  # the readings' file: the output is made safe all the same
             self._storage_failed(exc)
-            return Outcome(shown, "error", f"pause: {exc}; {engine.make_safe()}")
+            return Outcome(shown, "error", f"pause: {exc}; {self._made_safe(engine)}")
         except Exception as exc:  # a program error must not leave the output on
-            return Outcome(shown, "error", f"pause: internal error: {type(exc).__name__}: {exc}; {engine.make_safe()}")
+            safe = self._made_safe(engine)
+            return Outcome(shown, "error", f"pause: internal error: {type(exc).__name__}: {exc}; {safe}")
+
+    def _made_safe(self, engine: ManualEngine) -> str:
+        """``engine.make_safe()``, and where it latched (0 V could not be commanded) the latch recorded as any other:
+        the log's ``latched`` line and the rig's latch file, which also refuses runs until a reset."""
+        done = engine.make_safe()
+        if engine.unproven is not None:
+            trip, engine.unproven = engine.unproven, None
+            self._latched_line(trip)
+            done += "; latched"
+        return done
 
     # ------------------------------------------------------------ latched interlock
     def _latch(self, trip: InterlockTrip) -> str:

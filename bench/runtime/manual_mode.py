@@ -65,6 +65,7 @@ class ManualEngine(Engine):
         self.snapshot.state = "manual"
         self._polls = {p.name: p for p in rig_polls(self.ctx)}  # the rig's polls: one per instrument it reads
         self.latched_at = 0.0  # run time of the latch [s]
+        self.unproven: InterlockTrip | None = None  # make_safe's latch (0 V not commanded): the session records it
         self.paused = False
         self._paused_at = 0.0  # run time of the pause [s]
         self._setpoint_lock = threading.RLock()  # one set-point, or the start of the stop: never interleaved
@@ -260,18 +261,36 @@ class ManualEngine(Engine):
         self._polls["monitors"].run(self.ctx, math.nan)
 
     def make_safe(self) -> str:
-        """After a trip or an error: output zeroed at once, motor stopped, every instrument safe; what was done."""
+        """After a trip or an error: output zeroed at once, motor stopped, every instrument safe; what was done.
+
+        Where 0 V could not be commanded (the DAQ's or the amplifier's safe state failed: a lost link) the output is
+        left to the set-point module's watchdog and the session latches ("output path dead", as a run does), so that
+        no set-point goes out until an operator has looked and reset it: :attr:`unproven` holds that trip for the
+        session to record. Before, the line said "output zeroed" and the next ``voltage`` energised the rig again
+        (found from outside)."""
         self.ctx.v_req = 0.0
         self.inst.cancel.clear()  # after a cancelled wait the safe-state commands must still go out
         try:
             errors = self.inst.safe_state()
         except Exception as exc:  # safe_state reports driver errors; anything else is said, not raised
-            errors = [f"{type(exc).__name__}: {exc}"]
-        if self.inst.amplifier is not None:
+            errors = [f"output path: {type(exc).__name__}: {exc}"]
+        output = [e for e in errors if e.split(":", 1)[0] in ("daq", "amplifier", "output path")]
+        motor = [e for e in errors if e.startswith("motor:")]
+        done: list[str] = []
+        if self.inst.amplifier is not None and output:
+            if self.latched is None:
+                trip = InterlockTrip("output path dead", f"0 V could not be commanded by the host "
+                                     f"({'; '.join(output)}): left to the set-point module's watchdog")
+                self.latched, self.latched_at, self.unproven = trip, self.now(), trip
+            done.append("0 V NOT commanded (left to the set-point module's watchdog)")
+        elif self.inst.amplifier is not None:
             self._output_is(float(self.inst.amplifier.commanded))
+            done.append("output zeroed")
         if self.inst.motor is not None:
             self.motion.stopped(self.now())
-        return "output zeroed, motor stopped" + (f" ({'; '.join(errors)})" if errors else "")
+            done.append("motor NOT stopped" if motor else "motor stopped")
+        text = ", ".join(done) or "every instrument to its safe state"
+        return text + (f" ({'; '.join(errors)})" if errors else "")
 
     def latch(self, trip: InterlockTrip) -> str:
         """Latch ``trip``: output to 0 V at once, motor stopped; refused energising until :meth:`reset_latch`."""
