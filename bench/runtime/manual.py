@@ -26,9 +26,8 @@ request and on the value the module will output after DAC rounding (voltage, fie
 aperture); a refused command is not sent. Every reading is one of the run's polls (:mod:`bench.runtime.polls`:
 recorded, supervised, the monitors and the encoder verified against what was commanded); a reading beyond a limit
 (a trip) zeroes the output and stops the motor. A driver error of any kind, or an unexpected error in a command,
-is one ``error`` line (output zeroed, motor stopped; 0 V not commanded latches) and the session goes on; a command whose
-instrument the rig
-lacks is refused (nothing sent).
+is one ``error`` line (output zeroed, motor stopped; 0 V not commanded latches) and the session goes on; a command
+whose instrument the rig lacks is refused (nothing sent).
 
 Latched interlock (:mod:`bench.runtime.interlock`, as in a run): before every write that can drive the output
 (set-points, keep-alives, ramps) a host stall is checked — the set-point module unheard for longer than 0.8 × its
