@@ -105,3 +105,17 @@ def test_a_second_process_is_refused_in_one_line_naming_the_holder(served: RigCo
     again = subprocess.run([sys.executable, "-m", "bench", "devices", "check", str(tmp_path / "served.toml")],
                            cwd=ROOT, env=env, capture_output=True, text=True, timeout=120)
     assert again.returncode == 0, again.stdout + again.stderr
+
+
+def test_a_missing_lock_folder_is_made_and_one_that_cannot_be_is_named(tmp_path: Path,
+                                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    """$BENCH_LOCK_DIR naming a folder not made yet: made (before, every claim failed with 'No such file or
+    directory', the variable unnamed; found from outside); one that cannot be made: one line naming the variable."""
+    rig = load_rig(RIGS / "lsdea-motor-lab.toml")  # a real rig's serial ports: claims, nothing opened
+    monkeypatch.setenv(LOCK_DIR_ENV, str(tmp_path / "new" / "locks"))
+    with claimed(rig):
+        assert any((tmp_path / "new" / "locks").glob("dea-bench-instrument-*.lock"))
+    (tmp_path / "file").write_text("")
+    monkeypatch.setenv(LOCK_DIR_ENV, str(tmp_path / "file" / "locks"))
+    with pytest.raises(ValueError, match=rf"^{LOCK_DIR_ENV}=.*file/locks: cannot make the folder"), claimed(rig):
+        pass

@@ -15,6 +15,8 @@ import time
 from datetime import datetime
 from pathlib import Path
 
+import pytest
+
 from bench.storage.runfile import open_run
 from tests.conftest import ROOT
 
@@ -88,3 +90,15 @@ def test_a_completed_run_s_log_has_each_event_of_the_file_once_and_q_prints_only
         assert text.startswith(stored_text)  # the file keeps at most 200 bytes of a text
     walls = [w for w, *_ in logged]
     assert walls == sorted(walls)
+
+
+def test_what_ended_the_command_is_the_log_s_last_line(tmp_path: Path) -> None:
+    """A failure that ends `bench run` inside its log (a dead port while connecting) is the log's last line: before,
+    the log ended at 'connecting the instruments' and the reason was on the terminal only (found from outside)."""
+    from bench.cli.logs import run_log
+
+    run = tmp_path / "r.h5"
+    with pytest.raises(OSError), run_log(run) as log_file:
+        raise OSError("laser at /dev/ttyUSB9: cannot open the port\n(no such device)")
+    last = log_file.read_text(encoding="utf-8").splitlines()[-1]
+    assert "not completed: laser at /dev/ttyUSB9: cannot open the port (no such device)" in last

@@ -66,6 +66,9 @@ def run_log(run_file: Path, level: int = logging.INFO) -> Iterator[Path]:
         logging.getLogger(name).addHandler(handler)
     try:
         yield path
+    except Exception as exc:  # what ended the command (a dead port while connecting, …): the log's last line says it
+        log.error("not completed: %s", " ".join(str(exc).split()) or type(exc).__name__)
+        raise
     finally:
         for name in LOGGERS:
             logging.getLogger(name).removeHandler(handler)

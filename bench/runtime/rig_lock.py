@@ -34,8 +34,15 @@ class RigInUseError(ValueError):
 
 
 def lock_dir() -> Path:
-    """Where the claims live (``$BENCH_LOCK_DIR``, or the temporary directory: shared by every user)."""
-    return Path(os.environ.get(LOCK_DIR_ENV) or tempfile.gettempdir())
+    """Where the claims live (``$BENCH_LOCK_DIR``, made if missing, or the temporary directory: shared by every
+    user). ValueError (one line naming the variable) when it cannot be made."""
+    folder = Path(os.environ.get(LOCK_DIR_ENV) or tempfile.gettempdir())
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ValueError(f"{LOCK_DIR_ENV}={folder}: cannot make the folder of the instrument claims "
+                         f"({exc.strerror or exc})") from None
+    return folder
 
 
 def _serial(port: str) -> str:
