@@ -282,3 +282,25 @@ def test_a_file_whose_making_fails_is_removed_and_one_already_there_is_kept(tmp_
     with pytest.raises(recorder.StorageError, match="exists: a run file is never overwritten"):
         _recorder(path)
     assert path.read_bytes() == b"another run's file"
+
+
+@pytest.mark.parametrize("state", ["running", "tripped"])
+def test_a_storage_fault_marks_the_reason_only_of_a_run_without_an_end_state(tmp_path: Path, state: str) -> None:
+    """A write failure marks "storage fault: …" in /status/reason, so readers do not call the file crashed; but once
+    an end state is on disk (a trip and its cause) a fault at the final close kept the state and replaced the
+    cause, and the report said "run tripped: storage fault" (found in review). The cause stays now."""
+    import errno
+
+    import h5py
+
+    path = tmp_path / "run.h5"
+    rec = _recorder(path)
+    rec.append("amplifier", np.arange(5) / RATE, voltage=np.ones(5), current=np.zeros(5))
+    rec.set_state(state, "breakdown at 3 kV" if state == "tripped" else "")
+    rec._fail("write failed", OSError(errno.ENOSPC, "No space left on device"))  # the close's flush, say
+    with h5py.File(path, "r", libver="latest", swmr=True) as f:
+        reason = f["status/reason"][0].decode()
+    if state == "tripped":
+        assert reason == "breakdown at 3 kV"
+    else:
+        assert reason.startswith("storage fault: run file ") and "No space left on device" in reason

@@ -347,6 +347,7 @@ class Recorder:
         self._f: h5py.File | None = None
         self._fd: int | None = None  # its descriptor, taken at open (abandon)
         self._reason_at: tuple[int, int, int] | None = None  # /status/reason: file offset; the file's device, inode
+        self._state_written = False  # an end state and its reason flushed to the file (_mark_fault leaves them)
         self._links_counted = False  # set at open (see _unlinked)
         self._names = [*streams, "events"]
         self._counts = np.zeros(len(self._names), dtype=np.int64)  # valid records on disk, per stream and events
@@ -513,8 +514,8 @@ class Recorder:
         """Write "storage fault: <failure>" into ``/status/reason`` through the file's descriptor, past HDF5 (whose
         handle is abandoned next): the reason's bytes were written when the file was created, so overwriting them
         needs no new space. Best effort: nothing when the descriptor is no longer this file's, or the write fails."""
-        if self._fd is None or self._reason_at is None:
-            return
+        if self._fd is None or self._reason_at is None or self._state_written:
+            return  # a state already on disk keeps its reason (a trip's cause), as readers show it (review finding)
         offset, dev, ino = self._reason_at
         size = STATUS_TEXT["reason"]
         text = utf8(STORAGE_FAULT + self.failure, size).ljust(size, b"\0")
@@ -766,6 +767,7 @@ class Recorder:
             self._f["status/state"][0] = state.encode()
             self._f["status/reason"][0] = utf8(reason, STATUS_TEXT["reason"])
             self._f.flush()
+            self._state_written = state != "running"
         except Exception as exc:
             raise self._fail("write failed", exc) from None
 
