@@ -867,3 +867,13 @@ def test_specimens_whose_names_differ_only_in_replaced_characters_get_their_own_
     from bench.cli.catalog import plot_name
 
     assert plot_name("a-b") == "specimen-a-b.png" not in {p.name for p in plots}  # a plain ID keeps its plain name
+
+
+@pytest.mark.parametrize("specimen", ['{"model": {"L3": null}}', '{"model": "L3"}',
+                                      '{"model": {"t0": 0.001, "material": null}}', '{"model": {"t0": "thin"}}'])
+def test_an_edited_specimen_attribute_is_no_thickness_not_a_traceback(specimen: str) -> None:
+    """The catalogue reads the model's reference thickness from the `specimen` attribute; an edited one (a null, a
+    string where an object was) raised TypeError or AttributeError through `bench runs list` (found in review)."""
+    from bench.storage.catalog import _specimen
+
+    assert _specimen({"specimen": specimen}) == (None, None)

@@ -316,14 +316,14 @@ def _end_row(path: Path, attrs: dict[str, Any], sig: str, hv: HvStats | None, in
 
 def _specimen(attrs: dict[str, Any]) -> tuple[float | None, float | None]:
     """(reference thickness [m], breakdown field [V/m]) of the model stored in the run file (None if absent)."""
-    try:
+    try:  # an edited attribute (a null, a string where an object was) is no thickness: None, never a traceback
         model = json.loads(str(attrs.get("specimen", "{}"))).get("model", {})
-    except (ValueError, AttributeError):
+        if "L3" in model:  # membrane (thesis): E = Φλ²/L3; failure where the true field exceeds breakdown_field
+            return float(model["L3"]), _f(model.get("breakdown_field"))
+        if "t0" in model:  # LS-DEA: E_B = E0 λ3^(−r/2), E0 at λ3 = 1
+            return float(model["t0"]), _f(model.get("material", {}).get("E0"))
+    except (ValueError, TypeError, AttributeError):
         return None, None
-    if "L3" in model:  # membrane (thesis): E = Φλ²/L3; failure where the true field exceeds breakdown_field
-        return float(model["L3"]), _f(model.get("breakdown_field"))
-    if "t0" in model:  # LS-DEA: E_B = E0 λ3^(−r/2), E0 at λ3 = 1
-        return float(model["t0"]), _f(model.get("material", {}).get("E0"))
     return None, None
 
 
