@@ -67,7 +67,8 @@ def run_log(run_file: Path, level: int = logging.INFO) -> Iterator[Path]:
     try:
         yield path
     except Exception as exc:  # what ended the command (a dead port while connecting, …): the log's last line says it
-        log.error("not completed: %s", " ".join(str(exc).split()) or type(exc).__name__)
+        # info: the file's line only (stderr shows warnings and up, and the command prints its own one line there)
+        log.info("not completed: %s", " ".join(str(exc).split()) or type(exc).__name__)
         raise
     finally:
         for name in LOGGERS:
