@@ -876,4 +876,4 @@ def test_an_edited_specimen_attribute_is_no_thickness_not_a_traceback(specimen: 
     string where an object was) raised TypeError or AttributeError through `bench runs list` (found in review)."""
     from bench.storage.catalog import _specimen
 
-    assert _specimen({"specimen": specimen}) == (None, None)
+    assert _specimen(Path("r.h5"), {"specimen": specimen}) == (None, None)

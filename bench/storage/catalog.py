@@ -302,7 +302,7 @@ def _end_row(path: Path, attrs: dict[str, Any], sig: str, hv: HvStats | None, in
     statistics; ``in_file``: the run file may hold fits (False: a file the recorder wrote holds none)."""
     row = row_from_attrs(path, attrs)
     stats = hv if hv is not None else hv_statistics(path)
-    spec = _specimen(attrs)
+    spec = _specimen(path, attrs)
     row.update({
         **end,
         "hv_time_s": stats.hv_time_s, "hv_cycles": stats.cycles, "max_voltage_V": stats.max_voltage_V,
@@ -314,15 +314,18 @@ def _end_row(path: Path, attrs: dict[str, Any], sig: str, hv: HvStats | None, in
     return row
 
 
-def _specimen(attrs: dict[str, Any]) -> tuple[float | None, float | None]:
-    """(reference thickness [m], breakdown field [V/m]) of the model stored in the run file (None if absent)."""
-    try:  # an edited attribute (a null, a string where an object was) is no thickness: None, never a traceback
-        model = json.loads(str(attrs.get("specimen", "{}"))).get("model", {})
+def _specimen(path: Path, attrs: dict[str, Any]) -> tuple[float | None, float | None]:
+    """(reference thickness [m], breakdown field [V/m]) of the model stored in the run file (None if absent, or not
+    numbers: a catalogue row is no place to refuse a file). Read through the runs' one reader of the attribute."""
+    from bench.storage.runfile import specimen_of
+
+    try:
+        model = specimen_of(attrs, path).get("model", {})
         if "L3" in model:  # membrane (thesis): E = Φλ²/L3; failure where the true field exceeds breakdown_field
             return float(model["L3"]), _f(model.get("breakdown_field"))
         if "t0" in model:  # LS-DEA: E_B = E0 λ3^(−r/2), E0 at λ3 = 1
             return float(model["t0"]), _f(model.get("material", {}).get("E0"))
-    except (ValueError, TypeError, AttributeError):
+    except (ValueError, TypeError, AttributeError):  # an edited attribute: a null, a string where an object was
         return None, None
     return None, None
 
