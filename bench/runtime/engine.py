@@ -331,6 +331,12 @@ class Engine:
         themselves)."""
         if not self.commands:
             self._take_requests()
+        return self._wanted_now()
+
+    def _wanted_now(self) -> tuple[bool, str]:
+        """:meth:`_paused_wanted` as the requests already taken in say, none taken in: what the pause's start and
+        end name (taking requests there could record a request as undoing what the run then did anyway)."""
+        if not self.commands:
             if self._paused_by is not None:
                 return self._resume_asked is None, self._resume_asked or self._paused_by
             return self._pending_pause is not None, self._pending_pause or ""
@@ -741,7 +747,7 @@ class Engine:
     def _pause(self, seg: Segment) -> None:
         """Paused: the step under way is left, the output ramped to 0 V, the motor held where it is, the monitors
         and sensors read on; on resume the step restarts from its start. A stop request ends the run."""
-        _, by = self._paused_wanted()
+        _, by = self._wanted_now()
         by = by or "a pause request"
         self._paused_by, self._pending_pause, self._resume_asked = by, None, None
         t_pause = self.now()
@@ -757,7 +763,7 @@ class Engine:
                 self._paused_readings()
                 due += PAUSE_POLL_S
             self._pause_until(min(due, self.now() + STOP_POLL_S), urgent_aborts=False)
-        _, by = self._paused_wanted()
+        _, by = self._wanted_now()  # the resume the loop ended on
         self._pause_by = self._resume_by = self._paused_by = self._resume_asked = None
         self.rec.event(self.now(), seg.index, "resume", f"resumed by {by} after {self.now() - t_pause:.3f} s paused")
         self.snapshot.state = "running"
