@@ -357,6 +357,18 @@ class RigConfig(_Strict):
     load_cell: LoadCellConfig | None = None
     daq: DaqConfig | None = None
 
+    def drive_path(self) -> str | None:
+        """The hardware that sets the amplifier's input on a real rig (set-point module port, unit and channel, or
+        the T7's address and DAC), which a latch holds whatever the rig file is named; None on a simulated rig
+        (its twins are its own) or without an amplifier."""
+        amp = self.amplifier
+        if self.simulated or amp is None:
+            return None
+        if amp.drive == "daq":
+            return f"T7 {self.daq.host}:{self.daq.port} DAC{self.daq.dac}" if self.daq else None
+        bus = self.buses.get(amp.bus)
+        return f"{bus.port if bus else amp.bus} unit {amp.ao_unit} channel {amp.ao_channel}"
+
     @model_validator(mode="after")
     def _consistent(self) -> RigConfig:
         if self.amplifier and self.amplifier.drive == "daq":

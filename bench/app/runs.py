@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
+    from bench.rig import RigConfig
     from bench.runtime.engine import Engine, OperatorFn, RunResult
     from bench.runtime.run import Plan, Resume
     from bench.storage.chunks import StreamChunks
@@ -87,7 +88,7 @@ def prepare_run(protocol_file: Path | None, *, rig: Path | None = None, sim: boo
 
             with claimed(plan.rig):
                 pass
-        reset = _reset_for_resume(plan.rig.name, operator or old.get("operator"), why, dry_run, metadata)
+        reset = _reset_for_resume(plan.rig, operator or old.get("operator"), why, dry_run, metadata)
         out = resume.parent
     elif protocol_file is None:
         raise ValueError("give a protocol file, or --resume RUN.h5 to continue a campaign")
@@ -97,25 +98,26 @@ def prepare_run(protocol_file: Path | None, *, rig: Path | None = None, sim: boo
         if not dry_run:  # refused before the plan is shown and the run's log made (execute checks again)
             from bench.runtime.latch import refuse_if_latched
 
-            refuse_if_latched(plan.rig.name)
+            refuse_if_latched(plan.rig.name, plan.rig.drive_path())
     return PreparedRun(plan, default_output(plan, out), metadata, link, reset)
 
 
-def _reset_for_resume(rig_name: str, operator: str | None, why: str | None, dry_run: bool,
+def _reset_for_resume(rig: RigConfig, operator: str | None, why: str | None, dry_run: bool,
                       metadata: dict[str, str]) -> tuple[str, str] | None:
-    """A resumed campaign on a latched rig: the operator's reset (who and why), recorded in the new file's
-    ``metadata``."""
+    """A resumed campaign on a latched rig (or on a real rig's amplifier drive latched under another name): the
+    operator's reset (who and why), recorded in the new file's ``metadata``."""
     from bench.runtime.latch import latched, reset
 
-    was = latched(rig_name)
+    drive = rig.drive_path()
+    was = latched(rig.name, drive)
     if was is None:
         return None
     if not why or not why.strip():
-        raise ValueError(f"rig {rig_name}: interlock latched ({was.get('fault')}): --why '…' resets it to resume")
+        raise ValueError(f"rig {rig.name}: interlock latched ({was.get('fault')}): --why '…' resets it to resume")
     if dry_run:
         return None
     who = login_name(operator)
-    reset(rig_name, who, why)
+    reset(rig.name, who, why, drive)
     metadata["interlock_reset"] = f"by {who}: {why} (latched at {was.get('at')}: {was.get('fault')})"
     return who, why
 

@@ -6,6 +6,11 @@ One JSON file per rig name in the bench's state folder (``$BENCH_STATE_DIR``, de
 and in which run file. The file name is the rig name made safe for a file name plus a short hash of the exact
 name, so two rigs whose names differ only in punctuation or spaces never share a latch. A latch file of the
 older form (``interlock-<rig>.json``, no hash) still counts for the rig whose exact name it records.
+A bench before the hashed names reads only that older form, so a latch is written in both while the older file
+is free or already this rig's (a latch under another name that cleans up alike is never replaced).
+A real rig's latch also records its amplifier's drive path (``RigConfig.drive_path``: the set-point module's port
+and unit, or the T7's address), and holds every rig file that drives the same hardware: renaming the rig, or a
+copy of its file under another name, does not get round a latch.
 Every latch and reset is also appended to ``interlock.log`` there (who, why, when), so the history survives
 the reset.
 """
@@ -80,19 +85,30 @@ def _history(line: str) -> None:
         fh.write(f"{_now()}\t{line}\n")
 
 
-def latch(rig_name: str, fault: str, where: str) -> Path:
-    """Latch rig ``rig_name`` after ``fault`` (one line) seen in ``where`` (a run file or a manual session)."""
+def _write(path: Path, record: dict[str, Any]) -> None:
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps(record), encoding="utf-8")
+    os.replace(tmp, path)
+
+
+def latch(rig_name: str, fault: str, where: str, drive: str | None = None) -> Path:
+    """Latch rig ``rig_name`` after ``fault`` (one line) seen in ``where`` (a run file or a manual session);
+    ``drive``: the amplifier's drive path of a real rig (``RigConfig.drive_path``), which the latch holds too."""
     path = latch_path(rig_name)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp")
-    tmp.write_text(json.dumps({"rig": rig_name, "fault": fault, "where": where, "at": _now()}), encoding="utf-8")
-    os.replace(tmp, path)
+    record: dict[str, Any] = {"rig": rig_name, "fault": fault, "where": where, "at": _now()}
+    if drive is not None:
+        record["drive"] = drive
+    _write(path, record)
+    old = _legacy_path(rig_name)
+    mine = (_read(old) or {}).get("rig") == rig_name if old.exists() else True  # free, or this rig's (readable)
+    if mine:  # an older bench sees it too
+        _write(old, record)
     _history(f"latched\t{rig_name}\t{fault}\t{where}")
     return path
 
 
-def latched(rig_name: str) -> dict[str, Any] | None:
-    """The latch of rig ``rig_name`` (fault, where, at), or None. An unreadable latch file counts as latched."""
+def _own(rig_name: str) -> dict[str, Any] | None:
     path = latch_path(rig_name)
     if not path.exists():
         return _legacy(rig_name)
@@ -100,6 +116,19 @@ def latched(rig_name: str) -> dict[str, Any] | None:
     if data is not None:
         return data
     return {"rig": rig_name, "fault": f"latch file {path} unreadable", "where": "?", "at": "?"}
+
+
+def latched(rig_name: str, drive: str | None = None) -> dict[str, Any] | None:
+    """The latch of rig ``rig_name`` (fault, where, at), or else a latch of any rig on the same amplifier drive
+    path ``drive`` (its ``rig`` names the rig it was latched under), or None. An unreadable latch file counts as
+    latched."""
+    own = _own(rig_name)
+    if own is not None or drive is None:
+        return own
+    for was in all_latched().values():
+        if was.get("drive") == drive:
+            return was
+    return None
 
 
 def all_latched() -> dict[str, dict[str, Any]]:
@@ -115,26 +144,32 @@ def all_latched() -> dict[str, dict[str, Any]]:
     return found
 
 
-def reset(rig_name: str, by: str, why: str) -> dict[str, Any] | None:
-    """Reset the latch of ``rig_name`` (an operator's explicit act: ``by`` and ``why`` required, recorded in the
-    history); returns what was latched, or None if nothing was."""
+def reset(rig_name: str, by: str, why: str, drive: str | None = None) -> dict[str, Any] | None:
+    """Reset the latch that :func:`latched` finds for ``rig_name`` and ``drive`` (an operator's explicit act: ``by``
+    and ``why`` required, recorded in the history); returns what was latched, or None if nothing was."""
     if not by.strip() or not why.strip():
         raise ValueError("resetting the interlock needs who (--operator) and why (--why)")
-    was = latched(rig_name)
+    was = latched(rig_name, drive)
     if was is None:
         return None
-    latch_path(rig_name).unlink(missing_ok=True)
-    if _legacy(rig_name) is not None:
-        _legacy_path(rig_name).unlink(missing_ok=True)
-    _history(f"reset\t{rig_name}\tby {by}: {why}\t(was: {was.get('fault')} in {was.get('where')})")
+    name = was["rig"] if isinstance(was.get("rig"), str) else rig_name
+    latch_path(name).unlink(missing_ok=True)
+    if _legacy(name) is not None:
+        _legacy_path(name).unlink(missing_ok=True)
+    via = "" if name == rig_name else f" (latched under rig {name}, the same amplifier drive {drive})"
+    _history(f"reset\t{name}\tby {by}: {why}{via}\t(was: {was.get('fault')} in {was.get('where')})")
     return was
 
 
-def refuse_if_latched(rig_name: str) -> None:
-    """LatchedError (one line) while rig ``rig_name`` is latched."""
-    was = latched(rig_name)
-    if was is not None:
-        raise LatchedError(f"rig {rig_name}: interlock latched at {was.get('at')} ({was.get('fault')}; in "
-                           f"{was.get('where')}): nothing energises it until an operator resets it — "
-                           f"bench interlock reset {shlex.quote(rig_name)} --why '…', or bench run --resume RUN.h5 "
-                           "--why '…'")
+def refuse_if_latched(rig_name: str, drive: str | None = None) -> None:
+    """LatchedError (one line) while rig ``rig_name``, or another rig on its amplifier drive path, is latched."""
+    was = latched(rig_name, drive)
+    if was is None:
+        return
+    name = was["rig"] if isinstance(was.get("rig"), str) else rig_name
+    who = f"rig {rig_name}:" if name == rig_name else f"rig {rig_name}: its amplifier drive ({drive}) is latched " \
+        f"under rig {name};"
+    raise LatchedError(f"{who} interlock latched at {was.get('at')} ({was.get('fault')}; in "
+                       f"{was.get('where')}): nothing energises it until an operator resets it — "
+                       f"bench interlock reset {shlex.quote(name)} --why '…', or bench run --resume RUN.h5 "
+                       "--why '…'")
