@@ -308,14 +308,32 @@ def test_a_closing_workers_failed_heartbeat_is_dropped_and_a_running_ones_kept()
 
 def test_the_workers_of_our_local_cluster_carry_the_filter_and_close_without_a_traceback(
         capfd: pytest.CaptureFixture[str]) -> None:
+    """Also: their malloc reuses a freed buffer. Dask's nannies set MALLOC_TRIM_THRESHOLD_, which switches off
+    glibc's sliding mmap threshold (mallopt(3)), so each tile's few-MB buffers were mapped afresh and every page
+    faulted in again. 40 rounds of a freed 4-MiB buffer (1,024 pages of 4 KiB) fault tens of thousands of times
+    that way, each round mapping it afresh; reused, a buffer's worth at most."""
     from bench.identify.worker_plugins import ClosingHeartbeatFilter
 
     def installed() -> int:
         return sum(isinstance(f, ClosingHeartbeatFilter) for f in logging.getLogger("distributed.worker").filters)
 
+    def faults_of_40_buffers() -> int:
+        import resource
+
+        import numpy
+
+        numpy.ones(1 << 19).sum()  # the first buffer may fault in: not counted
+        before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+        for _ in range(40):
+            numpy.ones(1 << 19).sum()  # 4 MiB, written, freed
+        return resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before
+
     with cluster_client(workers=2) as client:
         assert client is not None
         client.wait_for_workers(2, timeout=60)
         assert sorted(client.run(installed).values()) == [1, 1]
+        if sys.platform.startswith("linux"):  # glibc's malloc (the CI's and the lab PCs' Linux)
+            faults = client.run(faults_of_40_buffers)
+            assert max(faults.values()) < 4 * 1024, faults  # a few buffers' worth, not 40
     err = capfd.readouterr().err  # the worker processes write to this process's stderr
     assert "Traceback" not in err and " - ERROR - " not in err, err

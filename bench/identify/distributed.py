@@ -55,7 +55,12 @@ def cluster_client(scheduler: str | None = None, workers: int | None = None) -> 
     # our own workers sample no stacks: the profiler (every 10 ms, for the dashboard's profile page, which a fit
     # never shows) cost each worker a few per cent of a CPU in `bench benchmark cluster`; the nannies hand this
     # configuration to the worker processes they start
-    with dask.config.set({"distributed.worker.profile.enabled": False}), \
+    # and their nannies leave glibc's malloc as it is: dask sets MALLOC_TRIM_THRESHOLD_ in a worker's environment
+    # (to hand freed memory back to the system at once), which also switches off glibc's sliding mmap threshold,
+    # so every tile's prediction buffers (a few MB, freed at the tile's end) were mapped afresh and page-faulted in
+    # again: tens of thousands of page faults a search that the in-process fit never pays (README "On a cluster")
+    with dask.config.set({"distributed.worker.profile.enabled": False,
+                          "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}), \
             LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster, \
             Client(cluster) as client:
         # our workers' closing heartbeats fail without a traceback on stderr (worker_plugins); another's cluster
