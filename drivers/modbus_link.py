@@ -23,6 +23,7 @@ from __future__ import annotations
 import logging
 import os
 import select
+import socket
 import threading
 import time
 from typing import cast
@@ -125,6 +126,22 @@ class _TcpClient(ModbusTcpClient):
     def __init__(self, host: str, *, port: int, link: ModbusLink, timeout: float) -> None:
         super().__init__(host, port=port, timeout=timeout, retries=0)
         self.link = link
+        self.connect_error: OSError | None = None  # why the last connection failed
+
+    def connect(self) -> bool:
+        """pymodbus' ``connect`` (3.16), keeping why a connection failed (``connect_error``) instead of logging it:
+        a refused port, a host name that does not resolve and a silent address each get their own words."""
+        if self.socket:
+            return True
+        params = self.comm_params
+        try:
+            self.socket = socket.create_connection((params.host, params.port), timeout=params.timeout_connect,
+                                                   source_address=params.source_address)
+            self.connect_error = None
+        except OSError as exc:
+            self.connect_error = exc
+            self.close()
+        return self.socket is not None
 
     def recv(self, size: int | None) -> bytes:
         sock = self.socket
@@ -200,6 +217,19 @@ class _TcpClient(ModbusTcpClient):
         return pdu
 
 
+def _connect_failure(exc: OSError | None) -> str:
+    """Why a TCP connection could not be made, in a few words."""
+    if isinstance(exc, ConnectionRefusedError):
+        return "connection refused (nothing listening there)"
+    if isinstance(exc, socket.gaierror):
+        return f"host name not found ({exc.strerror})"
+    if isinstance(exc, TimeoutError):
+        return "no answer (connection timed out)"
+    if exc is None:
+        return "connection failed"
+    return exc.strerror or str(exc)
+
+
 class ModbusLink:
     """One Modbus client; serialises requests from every module on the bus."""
 
@@ -219,6 +249,7 @@ class ModbusLink:
         self._deadline: Deadline = timer.start(timeout)  # the present attempt's (set before each request)
         self.lock = threading.RLock()
         self._stale = False  # RTU: an earlier attempt went unanswered, its reply may still come
+        self.open_failure = ""  # why the last open() could not connect
         self._cancellable = True  # False during the first attempt of an always_send request
         self._heard: dict[int, float] = {}  # unit → time.monotonic() when its last answered request was sent
         self._gap: dict[int, float] = {}  # unit → longest time between two answered requests since last asked
@@ -250,11 +281,14 @@ class ModbusLink:
         return bool(self._client.connected)
 
     def open(self) -> None:
-        """Connect (RTU: open the port; TCP: connect the socket)."""
-        if not self._client.connect():
-            local = "://" not in self.url
-            reason = "no such device" if local and not os.path.exists(self.url) else "connection refused or port busy"
-            raise InstrumentConnectionError(self.device, f"cannot open Modbus link {self.url}: {reason}")
+        """Connect (RTU: open the port; TCP: connect the socket); ``open_failure`` says why it could not."""
+        if self._client.connect():
+            return
+        if isinstance(self._client, _TcpClient):
+            self.open_failure = _connect_failure(self._client.connect_error)
+            raise InstrumentConnectionError(self.device, f"cannot connect to {self.url}: {self.open_failure}")
+        self.open_failure = "no such device" if not os.path.exists(self.url) else "connection refused or port busy"
+        raise InstrumentConnectionError(self.device, f"cannot open Modbus link {self.url}: {self.open_failure}")
 
     def close(self) -> None:
         """Close the connection (idempotent)."""

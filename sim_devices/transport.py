@@ -706,7 +706,7 @@ class SocketRelay:
         try:
             await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
         finally:
-            for t in tasks:
+            for t in [*tasks, *([conn.later] if conn.later is not None else [])]:
                 t.cancel()
             self._conns.discard(pair)
             for w in pair:
@@ -717,6 +717,8 @@ class SocketRelay:
         with contextlib.suppress(OSError):
             while data := await reader.read(65536):
                 try:
+                    if (later := conn.later) is not None and not await later:  # a local reply held back goes first
+                        return
                     conn.last_request = len(data)
                     if self.local is not None and not conn.pending and len(data) >= 8 \
                             and len(data) == 6 + int.from_bytes(data[4:6], "big"):
@@ -736,18 +738,25 @@ class SocketRelay:
     def _answer_now(self, writer: asyncio.StreamWriter, conn: _Conn, data: bytes) -> bool:
         """Answer the request in ``data`` as it arrives, if ``local`` answers it and its reply can go on the wire at
         once: no request passed on unanswered, no reply waiting in the socket, no latency, wire time, drop or
-        schedule to wait on (those take :meth:`_requests`' path). False: not answered (nothing was done)."""
+        schedule to wait on (those take :meth:`_requests`' path). False: not answered (nothing was done).
+
+        A latency or wire time another thread switches on while the reply is made is this reply's too: the faults
+        decide once (:meth:`Faults.process`, under their lock), and a delay they give holds the reply back in a
+        task (``conn.later``) that the connection's next request waits behind."""
         f = self.faults
-        if conn.pending or not 8 <= len(data) == 6 + int.from_bytes(data[4:6], "big") \
+        if conn.pending or conn.later is not None or not 8 <= len(data) == 6 + int.from_bytes(data[4:6], "big") \
                 or f.latency or f.wire_baud or f.drop or f._armed or writer.transport.get_write_buffer_size():
             return False
         reply = self.local(data) if self.local is not None else None
         if reply is None:
             return False
         conn.last_request = len(data)
-        out, _ = f.process(reply, len(data))  # no delay: neither latency nor wire time is set
+        out, delay = f.process(reply, len(data))
         if f.drop:  # set by another thread meanwhile: as :meth:`_deliver`, the link goes before the reply
             asyncio.get_running_loop().create_task(self._drop())
+        elif delay and out is not None:  # switched on since the check above: counted delayed, so sent late
+            conn.later = later = asyncio.get_running_loop().create_task(self._send(writer, out, delay))
+            later.add_done_callback(lambda t: setattr(conn, "later", None) if conn.later is t else None)
         elif out is not None:
             writer.write(out)
         return True
@@ -769,6 +778,11 @@ class SocketRelay:
     async def _deliver(self, writer: asyncio.StreamWriter, reply: bytes, request_len: int) -> bool:
         """Put one reply on the client's wire through the faults; False once the link has been dropped."""
         out, delay = self.faults.process(reply, request_len)
+        return await self._send(writer, out, delay)
+
+    async def _send(self, writer: asyncio.StreamWriter, out: bytes | None, delay: float) -> bool:
+        """Put a reply the faults have processed (``out``, None: nothing) on the wire after ``delay`` [s]; False
+        once the link has been dropped."""
         if self.faults.drop:
             await self._drop()
             return False
@@ -809,6 +823,7 @@ class _Conn:
 
     last_request: int = 0
     pending: int = 0
+    later: asyncio.Task[bool] | None = None  # a local reply held back by a latency switched on while it was made
 
 
 def _adus(data: bytes) -> int:

@@ -877,3 +877,35 @@ def test_an_edited_specimen_attribute_is_no_thickness_not_a_traceback(specimen: 
     from bench.storage.catalog import _specimen
 
     assert _specimen(Path("r.h5"), {"specimen": specimen}) == (None, None)
+
+
+def test_a_run_file_linked_into_the_folder_is_inside_it(tmp_path: Path) -> None:
+    """A run file reached through a symlink under --dir was listed as outside it (rows are keyed on the resolved
+    path) and read again at every listing (found by an outside tester). Now it is one of the folder's runs, its one
+    row shared with the folder it lives in."""
+    env = _env(tmp_path / "state")
+    store, lab = tmp_path / "store", tmp_path / "lab"
+    store.mkdir()
+    lab.mkdir()
+    _small_run(store / "r1.h5", "1" * 32, "S1", "2026-01-01T00:00:00.000+00:00", 3000.0)
+    _small_run(lab / "r2.h5", "2" * 32, "S1", "2026-01-02T00:00:00.000+00:00", 5000.0)
+    (lab / "linked.h5").symlink_to(store / "r1.h5")
+    shared = f"sqlite:///{tmp_path / 'shared.sqlite'}"
+    from bench.storage.catalog import reconcile
+
+    with Catalog(shared) as cat:
+        reconcile(cat, store)  # the file's row, as its own folder catalogues it
+    for url in (f"sqlite:///{lab / 'catalog.sqlite'}", shared):
+        out = _bench("runs", "list", "--dir", str(lab), "--catalog", url, "--json", env=env)
+        assert out.returncode == 0, out.stderr
+        assert sorted(r["run_id"] for r in json.loads(out.stdout)) == ["1" * 32, "2" * 32]
+        assert "outside" not in out.stderr
+        shown = _bench("specimen", "show", "S1", "--dir", str(lab), "--catalog", url, "--json", env=env)
+        assert shown.returncode == 0, shown.stderr
+        assert len(json.loads(shown.stdout)["runs"]) == 2 and "outside" not in shown.stderr
+    with Catalog(shared) as cat:
+        again = reconcile(cat, lab)
+        assert (again.added, again.updated, again.removed) == (0, 0, 0)  # the linked file's row is not read again
+        assert sorted(Path(r["path"]).name for r in cat.rows()) == ["r1.h5", "r2.h5"]  # one row per file
+    out = _bench("runs", "list", "--dir", str(store), "--catalog", shared, "--json", env=env)
+    assert [r["run_id"] for r in json.loads(out.stdout)] == ["1" * 32]  # still its own folder's run too

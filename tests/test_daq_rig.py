@@ -296,3 +296,52 @@ def test_identification_reads_the_measured_drive_of_a_daq_record(tmp_path: Path)
     force, ok = lp.predict(lp.start()[None, :])[0], np.isfinite(lp.data)
     assert ok.sum() > 100
     assert np.sqrt(np.mean((force[ok] - lp.data[ok]) ** 2)) < 0.01 * np.sqrt(np.mean(lp.data[ok] ** 2))
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:  # bound, then closed: nothing listens there
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def test_an_unreachable_t7_is_reported_as_one_that_could_not_connect() -> None:
+    """Nothing listening at the T7's address, or a name that does not resolve: the error names the T7 and its
+    address and says why it could not connect (it said 'connection refused or port busy' for both, and a refused
+    connection read as a lost link to outside testers)."""
+    from drivers.errors import InstrumentConnectionError
+    from drivers.labjack import LabJackT7
+
+    port = _free_port()
+    for host, why in (("127.0.0.1", "connection refused"), ("t7.invalid", "host name not found")):
+        t7 = LabJackT7(host, port=port, timeout=0.2)
+        with pytest.raises(InstrumentConnectionError) as err:
+            t7.connect()
+        assert str(err.value).startswith(f"daq: T7 at {host}:{port}: cannot connect: {why}"), str(err.value)
+        assert "lost" not in str(err.value) and "\n" not in str(err.value)
+
+
+def test_a_run_whose_t7_does_not_connect_says_no_run_file_was_written(tmp_path: Path) -> None:
+    """`bench run` on a rig whose T7 is unreachable printed 'running … → RUN.h5' before the failed connect, and its
+    error did not say that no RUN.h5 was written (found by an outside tester). Now the line comes once the file
+    exists, and the one error line says nothing was recorded and where the run's log is."""
+    import subprocess
+    import sys
+
+    rig = tmp_path / "unreachable.toml"
+    rig.write_text((ROOT / "rigs" / "thesis-daq-lab.toml").read_text().replace(
+        'host = "t7.invalid"', f'host = "127.0.0.1"\nport = {_free_port()}'))
+    out = tmp_path / "runs"
+    proc = subprocess.run([sys.executable, "-m", "bench", "run", str(SHORT / "thesis-identification-short.toml"),
+                           "--rig", str(rig), "--out", str(out), "--no-live", "--yes"], cwd=ROOT,
+                          capture_output=True, text=True, timeout=300,
+                          env={**os.environ, "COLUMNS": "300", "PYTHONPATH": str(ROOT)})
+    assert proc.returncode == 2, proc.stdout + proc.stderr
+    assert "Traceback" not in proc.stdout + proc.stderr
+    assert "running " not in proc.stdout  # no run started
+    assert list(out.glob("*.h5")) == []
+    (log,) = out.glob("*.log")
+    (line,) = proc.stderr.strip().splitlines()
+    assert "T7 at 127.0.0.1" in line and "connection refused" in line
+    assert f"no run file {log.with_suffix('.h5').name} written" in line and str(log) in line

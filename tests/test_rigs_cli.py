@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import subprocess
@@ -302,3 +303,41 @@ def test_a_port_out_of_range_is_refused_by_the_option(args: list[str]) -> None:
     res = CliRunner().invoke(app, args)
     assert res.exit_code == 2, res.output
     assert "Invalid value for '--" in res.output and "port" in res.output, res.output
+
+
+def test_devices_check_counts_only_instruments_when_closing_fails(tmp_path: Path) -> None:
+    """A T7 address where something accepts the connection and never answers: the check's close step fails too,
+    and its row was counted as an instrument ("4 of 4 instruments failed" on a rig of three; found by an outside
+    tester). Now the summary counts the rig's instruments and names the closing error apart."""
+    import socket
+    import threading
+
+    server = socket.create_server(("127.0.0.1", 0))
+    held: list[socket.socket] = []
+    stop = threading.Event()
+
+    def accept() -> None:  # hold every connection open, read nothing back
+        server.settimeout(0.05)
+        while not stop.is_set():
+            with contextlib.suppress(TimeoutError):
+                held.append(server.accept()[0])
+
+    thread = threading.Thread(target=accept, daemon=True)
+    thread.start()
+    rig = tmp_path / "silent-t7.toml"
+    port = server.getsockname()[1]
+    rig.write_text((RIGS / "thesis-daq-lab.toml").read_text().replace(
+        'host = "t7.invalid"', f'host = "127.0.0.1"\nport = {port}\ntimeout_s = 0.1'))
+    try:
+        res = runner.invoke(app, ["devices", "check", str(rig)], env={"COLUMNS": "200"})
+    finally:
+        stop.set()
+        thread.join()
+        for s in held:
+            s.close()
+        server.close()
+    n = len(load_rig(rig).instruments)
+    assert n == 3  # daq, amplifier, laser
+    assert res.exit_code == 1, res.output
+    assert f"3 of {n} instruments failed" in res.output and "closing the instruments: daq:" in res.output
+    assert "Traceback" not in res.output

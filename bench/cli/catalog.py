@@ -46,28 +46,36 @@ def _db_errors(fn: Callable[P, R]) -> Callable[P, R]:
 RUN_STATES = ("completed", "running", "interrupted", "tripped", "error")  # a run file's /status/state
 
 
-def _open(folder: Path, url: str | None, notes: list[str]) -> Any:
-    """The catalogue, reconciled with the run files of ``folder`` (a missing folder: nothing to reconcile); what the
-    reconciliation found worth saying is added to ``notes``."""
+def _open(folder: Path, url: str | None, notes: list[str]) -> tuple[Any, set[str]]:
+    """The catalogue, reconciled with the run files of ``folder`` (a missing folder: nothing to reconcile), and the
+    rows' paths of the files found there (a file linked into it among them); what the reconciliation found worth
+    saying is added to ``notes``."""
     from bench.storage.catalog import Catalog, catalog_url, reconcile
 
     cat = Catalog(catalog_url(folder, url))
-    if folder.is_dir():
+    if not folder.is_dir():
+        return cat, set()
+    try:
         done = reconcile(cat, folder)
-        notes.extend(f"[yellow]not a readable run file[/]: {escape(line)}" for line in done.unreadable or [])
-        if done.removed:
-            notes.append(f"{done.removed} catalogued file(s) no longer in {escape(str(folder))}: their rows removed")
-    return cat
+    except BaseException:
+        cat.close()
+        raise
+    notes.extend(f"[yellow]not a readable run file[/]: {escape(line)}" for line in done.unreadable or [])
+    if done.removed:
+        notes.append(f"{done.removed} catalogued file(s) no longer in {escape(str(folder))}: their rows removed")
+    return cat, done.found
 
 
-def _select(cat: Any, folder: Path, everywhere: bool, notes: list[str], **filters: Any) -> list[dict[str, Any]]:
+def _select(cat: Any, folder: Path, found: set[str], everywhere: bool, notes: list[str],
+            **filters: Any) -> list[dict[str, Any]]:
     """The catalogue's rows (``filters``: :meth:`~bench.storage.catalog.Catalog.rows`) of the files in ``folder`` on
-    this host — just reconciled, so each file exists — one per run (copies of a run, the same run ID, count once:
-    :func:`~bench.storage.catalog.one_per_run`). ``everywhere``: also rows of this host's other folders whose file
-    still exists, and other hosts' rows as they were last catalogued (their files cannot be checked here)."""
+    this host — just reconciled, so each file exists; ``found``: their paths, a file linked into the folder counted
+    in it — one per run (copies of a run, the same run ID, count once: :func:`~bench.storage.catalog.one_per_run`).
+    ``everywhere``: also rows of this host's other folders whose file still exists, and other hosts' rows as they
+    were last catalogued (their files cannot be checked here)."""
     from bench.storage.catalog import host_name, in_folder, one_per_run
 
-    host, inside = host_name(), in_folder(folder)
+    host, inside = host_name(), in_folder(folder, found=found)
     kept, outside, gone, foreign = [], 0, 0, 0
     for r in cat.rows(**filters):
         if inside(r):
@@ -81,7 +89,7 @@ def _select(cat: Any, folder: Path, everywhere: bool, notes: list[str], **filter
             kept.append(r)
         else:
             gone += 1
-    rows = one_per_run(kept, prefer=folder)
+    rows = one_per_run(kept, prefer=folder, found=found)
     where = escape(str(folder))
     if outside:
         notes.append(f"{outside} catalogued file(s) outside {where} or on other hosts not shown (--everywhere)")
@@ -160,8 +168,10 @@ def runs_list(
     if catalog is None and not folder.is_dir():  # its catalogue would be made there: a typo made a new lab folder
         raise ValueError(f"runs folder {folder}: not found (no run recorded there yet, or --dir misspelt?)")
     notes: list[str] = []
-    with _open(folder, catalog, notes) as cat:
-        rows = _select(cat, folder, everywhere, notes, specimen=specimen, protocol=protocol, since=cutoff, state=state)
+    cat, found = _open(folder, catalog, notes)
+    with cat:
+        rows = _select(cat, folder, found, everywhere, notes, specimen=specimen, protocol=protocol, since=cutoff,
+                       state=state)
     _notes(notes, json_out)
     if json_out:
         print_json([{**r, "figures": json.loads(r["figures"] or "[]"), "fits": json.loads(r["fits"] or "[]"),
@@ -211,8 +221,9 @@ def specimen_show(
     from bench.storage.catalog import plot_history, specimen_history
 
     notes: list[str] = []
-    with _open(folder, catalog, notes) as cat:
-        rows = _select(cat, folder, everywhere, notes, specimen=specimen)
+    cat, found = _open(folder, catalog, notes)
+    with cat:
+        rows = _select(cat, folder, found, everywhere, notes, specimen=specimen)
     _notes(notes, json_out)
     if not rows:
         raise ValueError(f"specimen {specimen!r}: no catalogued run (runs folder {folder}; `bench runs list`)")
@@ -253,7 +264,8 @@ def catalog_rebuild(
         raise ValueError(f"runs folder {folder}: not found (nothing to rebuild the catalogue from)")
     with Catalog(catalog_url(folder, catalog)) as cat:
         done = reconcile(cat, folder, rebuild=True)
-        n = len(cat.rows(under=folder.resolve()))
+        prefix = str(folder.resolve()).rstrip("/") + "/"
+        n = len(cat.rows(under=folder.resolve())) + sum(not k.startswith(prefix) for k in done.found)  # + linked
     if json_out:
         print_json({"catalog": cat.display, "rows": n,
                     "removed": done.removed, "unreadable": done.unreadable})

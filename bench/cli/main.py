@@ -203,7 +203,7 @@ def sim_serve(
 def devices_check(rig_file: RigArg) -> None:
     """Connect to every instrument of a rig, identify it, print its state and a first reading."""
     from bench.rig import load_rig
-    from bench.runtime.devices import check_instruments
+    from bench.runtime.devices import check_instruments, failures
     from bench.runtime.sim_rig import SimRig
 
     rig = load_rig(rig_file)
@@ -223,11 +223,10 @@ def devices_check(rig_file: RigArg) -> None:
         if r.ok:
             table.add_row(r.role, "[green]ok[/]", r.identity, r.state, r.reading)
         else:
-            table.add_row(r.role, "[red]FAIL[/]", "", r.error, "")
+            table.add_row(r.role if r.instrument else "(closing)", "[red]FAIL[/]", "", r.error, "")
     console.print(table)
-    failed = [r for r in rows if not r.ok]
-    if failed:
-        raise fail(f"{len(failed)} of {len(rows)} instruments failed: " + "; ".join(r.error for r in failed), code=1)
+    if said := failures(rows):
+        raise fail(said, code=1)
 
 
 class BenchmarkSet(StrEnum):

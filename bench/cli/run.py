@@ -187,7 +187,7 @@ def run(
         check_executable(prepared, virtual_time=virtual_time, can_confirm=yes or sys.stdin.isatty())
         claim_output(prepared)  # its file and log: a run started in the same second into --out names the next
     operator = _operator(yes)
-    with run_log(prepared.path) as log_file:
+    with _unstarted(prepared.path), run_log(prepared.path) as log_file:
         _log_plan(prepared, protocol_file, virtual_time)
         from bench.cli.watch import serving
 
@@ -199,6 +199,24 @@ def run(
     _show_result(result, log_file, prepared.plan.rig.name)
     if result.state != "completed":
         raise typer.Exit(1)
+
+
+@contextlib.contextmanager
+def _unstarted(path: Path) -> Iterator[None]:
+    """A run that failed before its file was created (an instrument that did not connect): its one error line says
+    that nothing was recorded, and where its log is (the only file the run left)."""
+    from bench.cli.logs import log_path
+    from drivers.errors import InstrumentError, OperationCancelledError
+
+    try:
+        yield
+    except OperationCancelledError:  # a stop before the engine ran: its line already says what was kept
+        raise
+    except (ValueError, OSError, InstrumentError) as exc:
+        if path.exists():
+            raise
+        raise fail(f"{' '.join(str(exc).split())} — nothing recorded, no run file {path.name} written (run log: "
+                   f"{log_path(path)})") from None
 
 
 def _operator(yes: bool) -> Callable[[str], bool]:
@@ -304,8 +322,8 @@ def _execute(prepared: PreparedRun, live: bool,
         keys = Keys({"p": lambda: on_engine("p"), "r": lambda: on_engine("r")}) if keyed else contextlib.nullcontext()
         with keys, Live(console=console, refresh_per_second=4, transient=False) as live_ctx:
             return execute(attach)
-    console.print(f"running {escape(title)}")
-    return execute(None)
+    # said once the run file exists (the instruments connected): a rig that fails to connect leaves none
+    return execute(lambda _engine, _sim: console.print(f"running {escape(title)}"))
 
 
 def _print_result(result: RunResult, rig_name: str) -> None:

@@ -12,10 +12,12 @@ from bench.units import si
 from drivers.errors import InstrumentError
 from drivers.interfaces import Reading
 
+CLOSE = "close"  # the role of a row that is no instrument: an error met while closing them all
+
 
 @dataclass(frozen=True)
 class CheckRow:
-    """Outcome of checking one instrument."""
+    """Outcome of checking one instrument (``role`` :data:`CLOSE`: of closing the instruments)."""
 
     role: str
     ok: bool
@@ -24,6 +26,11 @@ class CheckRow:
     reading: str = ""
     error: str = ""
 
+    @property
+    def instrument(self) -> bool:
+        """Whether the row is an instrument's (not an error met while closing them)."""
+        return self.role != CLOSE
+
 
 def _reading(quantity: str, r: Reading) -> str:
     """``quantity value unit`` with an SI prefix (the driver's unit), or why it is not a measurement."""
@@ -31,7 +38,8 @@ def _reading(quantity: str, r: Reading) -> str:
 
 
 def check_instruments(rig: RigConfig, endpoints: dict[str, str] | None = None) -> list[CheckRow]:
-    """Connect to every instrument, identify it, read it once, leave it safe; one row per instrument. Refused
+    """Connect to every instrument, identify it, read it once, leave it safe; one row per instrument, then one
+    (role :data:`CLOSE`) per error met while closing them. Refused
     (RigInUseError, nothing touched) while another process drives one of them: a check would disturb its run."""
     with claimed(rig, endpoints):
         return _check_claimed(rig, endpoints)
@@ -52,8 +60,22 @@ def _check_claimed(rig: RigConfig, endpoints: dict[str, str] | None) -> list[Che
                 rows.append(CheckRow(role, False, error=str(exc)))
     finally:
         for err in inst.close():
-            rows.append(CheckRow("close", False, error=err))
+            rows.append(CheckRow(CLOSE, False, error=err))
     return rows
+
+
+def failures(rows: list[CheckRow]) -> str:
+    """The check's failures in one line ('' when none): the instruments that failed, counted among the rig's
+    instruments (a row of closing them is none), then what closing them met."""
+    checked = [r for r in rows if r.instrument]
+    failed = [r for r in checked if not r.ok]
+    closing = [r.error for r in rows if not r.instrument]
+    said = []
+    if failed:
+        said.append(f"{len(failed)} of {len(checked)} instruments failed: " + "; ".join(r.error for r in failed))
+    if closing:
+        said.append("closing the instruments: " + "; ".join(closing))
+    return "; ".join(said)
 
 
 def served_rig(rig: RigConfig, ports: dict[str, str]) -> RigConfig:

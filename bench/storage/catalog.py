@@ -29,7 +29,7 @@ import logging
 import os
 import socket
 import threading
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Collection, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -194,9 +194,11 @@ class Catalog:
                 conn.execute(self.runs.delete().where(self.runs.c.host == host,
                                                       self.runs.c.path.in_(paths[k:k + 500])))
 
-    def rows(self, *, host: str | None = None, under: Path | None = None, specimen: str | None = None,
-             protocol: str | None = None, since: str | None = None, state: str | None = None) -> list[dict[str, Any]]:
-        """Rows in start order, filtered; ``under``: only files in that folder (and below)."""
+    def rows(self, *, host: str | None = None, under: Path | None = None, paths: Iterable[str] | None = None,
+             specimen: str | None = None, protocol: str | None = None, since: str | None = None,
+             state: str | None = None) -> list[dict[str, Any]]:
+        """Rows in start order, filtered; ``under``: only files in that folder (and below); ``paths``: only these
+        (resolved) paths."""
         import sqlalchemy as sa
 
         t = self.runs
@@ -206,6 +208,15 @@ class Catalog:
         if under is not None:
             prefix = str(under.resolve()).rstrip("/") + "/"
             q = q.where(t.c.path.startswith(prefix, autoescape=True))
+        if paths is not None:
+            wanted = sorted(set(paths))
+            if not wanted:
+                return []
+            if len(wanted) > 500:  # a long IN list: ask for them all, keep these
+                keep = set(wanted)
+                return [r for r in self.rows(host=host, under=under, specimen=specimen, protocol=protocol,
+                                             since=since, state=state) if r["path"] in keep]
+            q = q.where(t.c.path.in_(wanted))
         if specimen is not None:
             q = q.where(t.c.specimen_id == specimen)
         if protocol is not None:
@@ -422,35 +433,41 @@ class Reconciled:
     updated: int = 0
     removed: int = 0
     unreadable: list[str] = field(default_factory=list)
+    found: set[str] = field(default_factory=set)  # the rows' paths of the run files found there (links resolved)
 
 
 def reconcile(cat: Catalog, folder: Path, rebuild: bool = False) -> Reconciled:
     """Make the rows of this host's files under ``folder`` those the files give: rows of changed or new files
-    re-read, rows of missing files removed (``rebuild``: every row re-read). Files that are not run files are
-    listed in ``unreadable``."""
+    re-read, rows of missing files removed (``rebuild``: every row re-read). A file linked into the folder from
+    elsewhere is one of its files, its row (keyed on the resolved path) the one row of that file. Files that are not
+    run files are listed in ``unreadable``; the rows' paths of the others in ``found``."""
     folder = folder.resolve()
     if not folder.is_dir():
         raise ValueError(f"runs folder {folder}: not found")
     host = host_name()
+    files = {_abs(p): p for p in run_files(folder)}
+    prefix = str(folder).rstrip("/") + "/"
     have = {r["path"]: r for r in cat.rows(host=host, under=folder)}
+    have.update({r["path"]: r for r in cat.rows(host=host, paths=[k for k in files if not k.startswith(prefix)])})
     out = Reconciled()
     rows, seen = [], set()
-    for p in run_files(folder):
-        key = _abs(p)
+    for key, p in files.items():
         seen.add(key)
         old = have.get(key)
         if not rebuild and old is not None and old["signature"] and old["signature"] == signature(p):
+            out.found.add(key)
             continue
         try:
             rows.append(row_from_file(p))
         except (ValueError, OSError, KeyError) as exc:
             out.unreadable.append(f"{p}: {' '.join(str(exc).split())}")
             continue
+        out.found.add(key)
         if old is None:
             out.added += 1
         else:
             out.updated += 1
-    gone = [k for k in have if k not in seen]
+    gone = [k for k in have if k not in seen]  # a linked file's row is in have only while it is seen
     if rebuild:
         cat.delete(host, list(have))
     else:
@@ -460,19 +477,22 @@ def reconcile(cat: Catalog, folder: Path, rebuild: bool = False) -> Reconciled:
     return out
 
 
-def in_folder(folder: Path, host: str | None = None) -> Callable[[dict[str, Any]], bool]:
-    """Whether a row's file is in ``folder`` (or below) on ``host`` (default: this host)."""
+def in_folder(folder: Path, host: str | None = None, found: Collection[str] = ()) -> Callable[[dict[str, Any]], bool]:
+    """Whether a row's file is in ``folder`` (or below) on ``host`` (default: this host): its path is, or it is one
+    of ``found`` (:attr:`Reconciled.found`: files found in the folder, a file linked into it among them)."""
     prefix, host = str(folder.resolve()).rstrip("/") + "/", host if host is not None else host_name()
-    return lambda row: row["host"] == host and str(row["path"]).startswith(prefix)
+    return lambda row: row["host"] == host and (str(row["path"]).startswith(prefix) or row["path"] in found)
 
 
-def one_per_run(rows: list[dict[str, Any]], prefer: Path | None = None) -> list[dict[str, Any]]:
+def one_per_run(rows: list[dict[str, Any]], prefer: Path | None = None,
+                found: Collection[str] = ()) -> list[dict[str, Any]]:
     """One row per run: files that are copies of one run (the same run ID: a backup, a folder copied with its
-    catalogue) count once. The row kept is the copy in ``prefer`` (the folder asked about) on this host, else one on
-    this host, else the most complete (complete, most steps), else the least deep, else the first by path. Returns
-    the rows kept, in their order, each with ``copies``: the other copies' paths (``host:path`` for another host's)."""
+    catalogue) count once. The row kept is the copy in ``prefer`` (the folder asked about; ``found``: as for
+    :func:`in_folder`) on this host, else one on this host, else the most complete (complete, most steps), else the
+    least deep, else the first by path. Returns the rows kept, in their order, each with ``copies``: the other
+    copies' paths (``host:path`` for another host's)."""
     host = host_name()
-    inside = in_folder(prefer, host) if prefer is not None else lambda r: False
+    inside = in_folder(prefer, host, found) if prefer is not None else lambda r: False
 
     def rank(r: dict[str, Any]) -> tuple[bool, bool, bool, int, int, str, str]:
         return (not inside(r), r["host"] != host, not r["complete"], -(r["steps_completed"] or 0),

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import math
 
-from drivers.errors import InstrumentStateError
+from drivers.errors import InstrumentConnectionError, InstrumentStateError
 from drivers.interfaces import CheckResult, Identity
 from drivers.labjack.registers import (
     DAC0,
@@ -28,7 +28,11 @@ class LabJackT7(T7Stream, T7Watchdog):
 
     def connect(self) -> None:
         """Open the Modbus link, check it is a T7, read its calibration, stop a stream left running."""
-        self.link.open()
+        try:
+            self.link.open()
+        except InstrumentConnectionError:  # the link's words, naming the device at that address
+            raise InstrumentConnectionError(self.name, f"T7 at {self.host}:{self.port}: cannot connect: "
+                                            f"{self.link.open_failure}") from None
         product = words_f32(self.read_regs(PRODUCT_ID, 2))  # FC3: a device that is no T7 may not know MBFB
         if not (math.isfinite(product) and round(product) == PRODUCT_T7):  # inf, NaN, negative: one line too
             raise InstrumentStateError(self.name, f"PRODUCT_ID (register {PRODUCT_ID}) reads {product:g}, "
