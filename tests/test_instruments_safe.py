@@ -138,3 +138,22 @@ def test_a_stop_signal_while_the_motor_homes_says_in_one_line_what_it_stopped_an
     (log_file,) = tmp_path.glob("*.log")
     assert f"not run: {line.removeprefix('error: run: ')}" in log_file.read_text(encoding="utf-8")
     assert not list(tmp_path.glob("*.h5"))  # nothing recorded, as the line says
+
+
+def test_closing_errors_name_each_device_once() -> None:
+    """A driver's error already names its device ("daq: …"); closing the rig adds the role only where the device
+    is named otherwise (it printed "daq: daq: no valid reply …")."""
+    from typing import Any, cast
+
+    from bench.runtime.instruments import Instruments
+    from drivers.errors import InstrumentTimeoutError
+
+    class Failing:
+        def __init__(self, device: str) -> None:
+            self.device = device
+
+        def close(self) -> None:
+            raise InstrumentTimeoutError(self.device, "no valid reply within 0.5 s")
+
+    inst = Instruments(daq=cast(Any, Failing("daq")), laser=cast(Any, Failing("LK-G5000")))
+    assert inst.close() == ["daq: no valid reply within 0.5 s", "laser: LK-G5000: no valid reply within 0.5 s"]

@@ -82,8 +82,8 @@ class Instruments:
         for role, drv in sorted(self.items(), key=lambda item: first.get(item[0], 3)):
             try:
                 getattr(drv, method)()
-            except InstrumentError as exc:
-                errors.append(f"{role}: {exc}")
+            except InstrumentError as exc:  # its line names its device: the role again only where that differs
+                errors.append(str(exc) if exc.device == role else f"{role}: {exc}")
             except Exception as exc:  # not a driver's error: said in the same line, never skipping the rest
                 errors.append(f"{role}: {type(exc).__name__}: {exc}")
         return errors
