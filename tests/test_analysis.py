@@ -596,3 +596,47 @@ def test_an_export_over_a_file_or_into_a_folder_is_refused_before_the_fit(short_
         assert res.exit_code == 2 and len(lines) == 1 and f"--export {target}: {said}" in lines[0], res.output
     assert kept.read_text(encoding="utf-8") == "# mine\n" and not any(folder.iterdir())
     assert not list(tmp_path.glob("*.fit.hdf5"))
+
+
+def test_a_failed_export_write_leaves_no_cut_off_rig_file_and_a_retry_succeeds(
+        short_run: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """`bench fit --export F.toml` cut off mid-write (a full disk) left half a F.toml, which the no-overwrite check
+    then refused on every retry (found by outside testers). The rig file is written beside and moved into place
+    only when whole: the failure leaves nothing, and the same command again writes it."""
+    import errno
+    import io
+    import shutil
+
+    from typer.testing import CliRunner
+
+    from bench.cli import app
+
+    run = tmp_path / "run.h5"
+    shutil.copy2(short_run, run)
+    target = tmp_path / "rigs" / "fitted.toml"
+    target.parent.mkdir()
+    opened = Path.open
+
+    class HalfWritten(io.TextIOWrapper):
+        def write(self, text: str) -> int:  # half the text reaches the file, then the disk is full
+            super().write(text[: len(text) // 2])
+            self.flush()
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+    def full(self: Path, mode: str = "r", *args: object, **kwargs: object) -> object:
+        if self.parent == target.parent and ("w" in mode or "x" in mode):
+            return HalfWritten(opened(self, mode.replace("t", "") + "b"), encoding="utf-8")
+        return opened(self, mode, *args, **kwargs)  # type: ignore[call-overload]
+
+    args = ["fit", str(run), "--export", str(target), "--starts", "1", "--no-intervals", "--generations", "1"]
+    monkeypatch.setattr(Path, "open", full)
+    res = CliRunner().invoke(app, args)
+    monkeypatch.undo()
+    lines = res.output.strip().splitlines()
+    assert res.exit_code == 2 and f"--export {target}" in lines[-1] and "No space left" in lines[-1], res.output
+    assert "Traceback" not in res.output
+    assert not list(target.parent.iterdir())  # neither the cut-off file nor a temporary
+    res = CliRunner().invoke(app, args)
+    assert res.exit_code == 0, res.output
+    assert [p.name for p in target.parent.iterdir()] == ["fitted.toml"]
+    assert "[specimen.membrane_model]" in target.read_text(encoding="utf-8")
