@@ -573,6 +573,40 @@ def test_report_of_two_files_of_the_same_name_gives_each_its_folder(short_run: P
     assert str(runs[0]) + ":" not in res.output and str(runs[2]) + ":" not in res.output
 
 
+def test_a_report_folder_holds_one_run_another_run_s_report_there_is_refused(short_run: Path,
+                                                                            tmp_path: Path) -> None:
+    """`bench report A/run.h5 --out d` then `bench report B/run.h5 --out d` (another run, the same file name): the
+    second replaced the first's report in d silently (found by outside testers). A report folder holds one run, as an
+    export folder does (its report.json names it): another run's report is refused in one line before anything is
+    written; the same run's report again replaces its own."""
+    import shutil
+
+    from typer.testing import CliRunner
+
+    from bench.cli import app
+
+    runs = []
+    for folder in ("A", "B"):
+        (tmp_path / folder).mkdir()
+        runs.append(tmp_path / folder / "run.h5")
+        shutil.copy2(short_run, runs[-1])
+    with h5py.File(runs[1], "r+") as f:
+        f.attrs["run_id"] = "another-run"
+    out = tmp_path / "d"
+    res = CliRunner().invoke(app, ["report", str(runs[0]), "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    before = {p.name: p.stat().st_mtime_ns for p in out.iterdir()}
+    assert "figures.json" in before and "report.json" in before
+    res = CliRunner().invoke(app, ["report", str(runs[1]), "--out", str(out)], env={"COLUMNS": "400"})
+    lines = res.output.strip().splitlines()
+    assert res.exit_code == 2 and len(lines) == 1 and "Traceback" not in res.output, res.output
+    assert f"{out}: holds the report of another run (run_id " in lines[0] and "choose an empty or new folder" in lines[0]
+    assert {p.name: p.stat().st_mtime_ns for p in out.iterdir()} == before  # nothing written
+    res = CliRunner().invoke(app, ["report", str(runs[0]), "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    assert sorted(p.name for p in out.iterdir()) == sorted(before)  # replaced in place, no temporary left
+
+
 def test_an_export_over_a_file_or_into_a_folder_is_refused_before_the_fit(short_run: Path, tmp_path: Path) -> None:
     """`bench fit --export f.toml` replaced an existing f.toml (protocols copy refuses the same), and an existing
     folder as --export was reported after the fit as a raw "[Errno 21] Is a directory" (found by an outside
