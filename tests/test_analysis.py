@@ -600,7 +600,8 @@ def test_a_report_folder_holds_one_run_another_run_s_report_there_is_refused(sho
     res = CliRunner().invoke(app, ["report", str(runs[1]), "--out", str(out)], env={"COLUMNS": "400"})
     lines = res.output.strip().splitlines()
     assert res.exit_code == 2 and len(lines) == 1 and "Traceback" not in res.output, res.output
-    assert f"{out}: holds the report of another run (run_id " in lines[0] and "choose an empty or new folder" in lines[0]
+    assert f"{out}: holds the report of another run (run_id " in lines[0]
+    assert "choose an empty or new folder" in lines[0]
     assert {p.name: p.stat().st_mtime_ns for p in out.iterdir()} == before  # nothing written
     res = CliRunner().invoke(app, ["report", str(runs[0]), "--out", str(out)])
     assert res.exit_code == 0, res.output
