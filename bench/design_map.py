@@ -166,6 +166,8 @@ def plot_map(dmap: DesignMap, out: Path) -> list[Path]:
     import matplotlib.pyplot as plt
     from matplotlib.colors import TwoSlopeNorm
 
+    from bench.storage.outputs import atomic_output
+
     out.mkdir(parents=True, exist_ok=True)
     s = dmap.settings
     k = dmap.min_stiffness()
@@ -188,7 +190,8 @@ def plot_map(dmap: DesignMap, out: Path) -> list[Path]:
                  f"stroke {s.stroke[0] * 1e3:g}–{s.stroke[1] * 1e3:g} mm, elastic (0 V)")
     fig.tight_layout()
     p1 = out / "design-map.png"
-    fig.savefig(p1, dpi=120)
+    with atomic_output(p1, replace=True) as tmp:  # whole or not at all
+        fig.savefig(tmp, dpi=120)
     plt.close(fig)
     # F–x small multiples: the extreme and the prototypes' pre-stretches × the extreme and the prototypes' aperture
     protos = {l2p: num for num, l2p in PROTOTYPE_LAMBDA2P.items()}
@@ -207,7 +210,8 @@ def plot_map(dmap: DesignMap, out: Path) -> list[Path]:
     fig.supylabel("force F [N]")
     fig.tight_layout()
     p2 = out / "design-map-curves.png"
-    fig.savefig(p2, dpi=110)
+    with atomic_output(p2, replace=True) as tmp:
+        fig.savefig(tmp, dpi=110)
     plt.close(fig)
     return [p1, p2]
 

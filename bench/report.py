@@ -35,6 +35,7 @@ from bench.analysis.quicklook import PIXELS
 from bench.analysis.runs import RunAnalysis, analyse_source, step_records
 from bench.identify.store import read_fits
 from bench.storage.chunks import RunSource, StreamChunks, open_source
+from bench.storage.outputs import atomic_output, claim_folder, write_text
 
 DPI = 300  # publication resolution of the PNGs
 VECTOR_FORMATS = ("pdf", "svg")
@@ -46,15 +47,20 @@ LOOP_POINTS = 200_000  # points of all the loops of one figure together (each lo
 
 
 def save_figure(fig: Figure, path: Path, close: bool = True) -> Path:
-    """Write ``fig`` as PNG (``path``) and as PDF and SVG beside it; the layout is the figure's (constrained).
-    Long lines are rasterised ``AGG_CHUNK`` vertices at a time: a whole-run curve reduced to min/max pairs zigzags
-    over the axes' height, and Agg would otherwise hold a cell for every pixel it crosses at once."""
-    with matplotlib.rc_context({"agg.path.chunksize": AGG_CHUNK}):
-        fig.savefig(path, dpi=DPI)
-        for ext in VECTOR_FORMATS:
-            fig.savefig(path.with_suffix(f".{ext}"))
-    if close:
-        plt.close(fig)
+    """Write ``fig`` as PNG (``path``) and as PDF and SVG beside it, each moved into place whole; the layout is the
+    figure's (constrained). Long lines are rasterised ``AGG_CHUNK`` vertices at a time: a whole-run curve reduced
+    to min/max pairs zigzags over the axes' height, and Agg would otherwise hold a cell for every pixel it crosses
+    at once."""
+    try:
+        with matplotlib.rc_context({"agg.path.chunksize": AGG_CHUNK}):
+            with atomic_output(path, replace=True) as tmp:  # whole or not at all (the format: its suffix)
+                fig.savefig(tmp, dpi=DPI)
+            for ext in VECTOR_FORMATS:
+                with atomic_output(path.with_suffix(f".{ext}"), replace=True) as tmp:
+                    fig.savefig(tmp)
+    finally:
+        if close:
+            plt.close(fig)
     return path
 
 
@@ -393,15 +399,28 @@ def table3_figure(grid: dict[str, Any]) -> Figure:
     return fig
 
 
+REPORT_MARKER = "report.json"  # a report folder's: the metadata of the run whose report it holds
+
+
 def report(run_path: str | Path, out: str | Path | None = None) -> tuple[RunAnalysis, list[Path]]:
     """Analyse a run file and write its figures; returns the analysis and the PNG paths. The file is opened once
-    and read a window at a time (see the module's docstring)."""
+    and read a window at a time (see the module's docstring). A folder holds one run's report (``report.json``
+    names it): an earlier report of the same run is replaced; another run's, or (in ``out``) a ``figures.json``
+    of no marked report, is refused in one line before anything is written."""
+    from bench.storage.export import run_metadata
+
     run_path = Path(run_path)
+    default = out is None  # beside the run, named by it: its own (an older report there has no marker)
     out = Path(out) if out is not None else run_path.with_suffix("").with_name(run_path.stem + "-report")
     paths: list[Path] = []
     with open_source(run_path) as src:
         a = analyse_source(src)
+        meta = run_metadata(a.run)
+        loose = ["figures.json"] if not default and (out / "figures.json").exists() else []
+        claim_folder(out, REPORT_MARKER, meta, "report", "report", loose)
         out.mkdir(parents=True, exist_ok=True)  # (not for a file refused: a manual session's)
+        # the marker first: a report cut off still says whose it is
+        write_text(out / REPORT_MARKER, json.dumps(meta, indent=1, ensure_ascii=False, default=str), replace=True)
         kinds = {s.kind for s in a.steps}
         if "thesis" in kinds:
             paths += thesis_figures(a, out, src)
@@ -411,5 +430,5 @@ def report(run_path: str | Path, out: str | Path | None = None) -> tuple[RunAnal
             paths += isometric_figures(a, out, src)
         if "isotonic" in kinds:
             paths += isotonic_figures(a, out)
-    (out / "figures.json").write_text(json.dumps(step_records(a), indent=1))
+    write_text(out / "figures.json", json.dumps(step_records(a), indent=1), replace=True)
     return a, paths

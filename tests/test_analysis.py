@@ -573,6 +573,42 @@ def test_report_of_two_files_of_the_same_name_gives_each_its_folder(short_run: P
     assert str(runs[0]) + ":" not in res.output and str(runs[2]) + ":" not in res.output
 
 
+def test_a_report_folder_holds_one_run_another_run_s_report_there_is_refused(short_run: Path,
+                                                                            tmp_path: Path) -> None:
+    """`bench report A/run.h5 --out d` then `bench report B/run.h5 --out d` (another run, the same file name): the
+    second replaced the first's report in d silently (found by outside testers). A report folder holds one run, as an
+    export folder does (its report.json names it): another run's report is refused in one line before anything is
+    written; the same run's report again replaces its own."""
+    import shutil
+
+    from typer.testing import CliRunner
+
+    from bench.cli import app
+
+    runs = []
+    for folder in ("A", "B"):
+        (tmp_path / folder).mkdir()
+        runs.append(tmp_path / folder / "run.h5")
+        shutil.copy2(short_run, runs[-1])
+    with h5py.File(runs[1], "r+") as f:
+        f.attrs["run_id"] = "another-run"
+    out = tmp_path / "d"
+    res = CliRunner().invoke(app, ["report", str(runs[0]), "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    before = {p.name: p.stat().st_mtime_ns for p in out.iterdir()}
+    assert "figures.json" in before
+    res = CliRunner().invoke(app, ["report", str(runs[1]), "--out", str(out)], env={"COLUMNS": "400"})
+    lines = res.output.strip().splitlines()
+    assert res.exit_code == 2 and len(lines) == 1 and "Traceback" not in res.output, res.output
+    assert f"{out}: holds the report of another run (run_id " in lines[0]
+    assert "choose an empty or new folder" in lines[0]
+    assert {p.name: p.stat().st_mtime_ns for p in out.iterdir()} == before  # nothing written
+    res = CliRunner().invoke(app, ["report", str(runs[0]), "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    assert sorted(p.name for p in out.iterdir()) == sorted(before)  # replaced in place, no temporary left
+    assert json.loads((out / "report.json").read_text(encoding="utf-8"))["run_id"] != "another-run"
+
+
 def test_an_export_over_a_file_or_into_a_folder_is_refused_before_the_fit(short_run: Path, tmp_path: Path) -> None:
     """`bench fit --export f.toml` replaced an existing f.toml (protocols copy refuses the same), and an existing
     folder as --export was reported after the fit as a raw "[Errno 21] Is a directory" (found by an outside
@@ -596,3 +632,47 @@ def test_an_export_over_a_file_or_into_a_folder_is_refused_before_the_fit(short_
         assert res.exit_code == 2 and len(lines) == 1 and f"--export {target}: {said}" in lines[0], res.output
     assert kept.read_text(encoding="utf-8") == "# mine\n" and not any(folder.iterdir())
     assert not list(tmp_path.glob("*.fit.hdf5"))
+
+
+def test_a_failed_export_write_leaves_no_cut_off_rig_file_and_a_retry_succeeds(
+        short_run: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """`bench fit --export F.toml` cut off mid-write (a full disk) left half a F.toml, which the no-overwrite check
+    then refused on every retry (found by outside testers). The rig file is written beside and moved into place
+    only when whole: the failure leaves nothing, and the same command again writes it."""
+    import errno
+    import io
+    import shutil
+
+    from typer.testing import CliRunner
+
+    from bench.cli import app
+
+    run = tmp_path / "run.h5"
+    shutil.copy2(short_run, run)
+    target = tmp_path / "rigs" / "fitted.toml"
+    target.parent.mkdir()
+    opened = Path.open
+
+    class HalfWritten(io.TextIOWrapper):
+        def write(self, text: str) -> int:  # half the text reaches the file, then the disk is full
+            super().write(text[: len(text) // 2])
+            self.flush()
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+    def full(self: Path, mode: str = "r", *args: object, **kwargs: object) -> object:
+        if self.parent == target.parent and ("w" in mode or "x" in mode):
+            return HalfWritten(opened(self, mode.replace("t", "") + "b"), encoding="utf-8")
+        return opened(self, mode, *args, **kwargs)  # type: ignore[call-overload]
+
+    args = ["fit", str(run), "--export", str(target), "--starts", "1", "--no-intervals", "--generations", "1"]
+    monkeypatch.setattr(Path, "open", full)
+    res = CliRunner().invoke(app, args)
+    monkeypatch.undo()
+    lines = res.output.strip().splitlines()
+    assert res.exit_code == 2 and f"--export {target}" in lines[-1] and "No space left" in lines[-1], res.output
+    assert "Traceback" not in res.output
+    assert not list(target.parent.iterdir())  # neither the cut-off file nor a temporary
+    res = CliRunner().invoke(app, args)
+    assert res.exit_code == 0, res.output
+    assert [p.name for p in target.parent.iterdir()] == ["fitted.toml"]
+    assert "[specimen.membrane_model]" in target.read_text(encoding="utf-8")

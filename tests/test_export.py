@@ -186,6 +186,7 @@ def test_a_full_disk_names_the_mat_target_and_leaves_no_cut_off_file(run_file: P
     res = CliRunner().invoke(app, ["export", str(run_file), "--mat", str(target), "--mat-version", version])
     _one_line_error(res, target)
     assert "No space left on device" in res.output and not target.exists()
+    assert not list(tmp_path.iterdir())  # nor its temporary
 
 
 def test_a_csv_folder_holds_one_run_an_export_of_the_same_run_replaces_its_own(run_file: Path,
@@ -224,3 +225,18 @@ def test_a_csv_folder_holds_one_run_an_export_of_the_same_run_replaces_its_own(r
     (folder / "metadata.json").unlink()
     res = CliRunner().invoke(app, ["export", str(run_file), "--csv", str(folder)])
     _one_line_error(res, folder)
+
+
+@pytest.mark.parametrize("version", ["5", "7.3"])
+def test_an_existing_mat_file_is_refused_not_replaced(run_file: Path, tmp_path: Path, version: str) -> None:
+    """`bench export --mat F` replaced an existing F silently (found by outside testers), where --csv refuses
+    another run's folder and `bench fit --export` an existing file. Refused in one line naming it, before anything
+    is written (the --csv folder given with it included); the file is left as it was."""
+    target = tmp_path / "run.mat"
+    target.write_bytes(b"mine")
+    res = CliRunner().invoke(app, ["export", str(run_file), "--mat", str(target), "--mat-version", version,
+                                   "--csv", str(tmp_path / "csv")])
+    _one_line_error(res, target)
+    assert "exists; bench export does not overwrite files" in res.output
+    assert target.read_bytes() == b"mine" and not (tmp_path / "csv").exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run.mat"]  # no temporary left beside it

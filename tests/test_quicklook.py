@@ -103,3 +103,19 @@ def test_plots_of_different_streams_are_named_by_them_and_keep_each_other(run_fi
     assert sorted(p.name for p in folder.iterdir()) == [f"{run_file.stem}-plot-amplifier.png",
                                                         f"{run_file.stem}-plot-laser.png"]
     assert not (tmp_path / "figures.png").exists()
+
+
+def test_an_explicit_out_file_that_exists_is_refused_not_replaced(run_file: Path, tmp_path: Path) -> None:
+    """`bench plot F --out x.png` replaced an existing x.png silently (found by outside testers), where `bench fit
+    --export` and `bench export --mat` refuse an existing file. Refused in one line naming it, the file kept; a new
+    name is written whole (no temporary left beside it)."""
+    target = tmp_path / "x.png"
+    target.write_bytes(b"mine")
+    res = CliRunner().invoke(app, ["plot", str(run_file), "laser", "--out", str(target)], env={"COLUMNS": "300"})
+    lines = res.output.strip().splitlines()
+    assert res.exit_code == 2 and len(lines) == 1 and "Traceback" not in res.output, res.output
+    assert f"--out {target}: exists; bench plot does not overwrite files" in lines[0]
+    assert target.read_bytes() == b"mine"
+    res = CliRunner().invoke(app, ["plot", str(run_file), "laser", "--out", str(tmp_path / "y.png")])
+    assert res.exit_code == 0, res.output
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["x.png", "y.png"]

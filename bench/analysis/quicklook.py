@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from bench.storage.chunks import StreamChunks, open_source
+from bench.storage.outputs import atomic_output, refuse_existing
 
 FLAGS = ("valid", "ok")  # flag columns: not drawn as signals
 PIXELS = 2000  # min/max spans per column (about a screen's width)
@@ -88,14 +89,23 @@ def plot_name(run_path: str | Path, streams: list[str] | None = None) -> str:
 
 def quicklook(run_path: str | Path, streams: list[str] | None = None, out: str | Path | None = None,
               show: bool = False) -> Path | None:
-    """Draw the envelopes of ``streams``; save a PNG (``out``: a file, or a folder to hold :func:`plot_name` — one
-    that exists or a name without a file type; default that name beside the run) or show a window."""
+    """Draw the envelopes of ``streams``; save a PNG (``out``: a new file — an existing one is refused — or a folder
+    to hold :func:`plot_name`, one that exists or a name without a file type; default that name beside the run,
+    replaced) or show a window. The PNG is written beside its target and moved into place whole."""
     import matplotlib
 
     if not show:
         matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    default = plot_name(run_path, streams)
+    # a folder: one that exists, or a name without a file type (``--out figs``, ``--out figs/``), which matplotlib
+    # would have written as figs.png while the plot said "figure: figs"
+    folder = out is not None and (Path(out).is_dir() or not Path(out).suffix or str(out).endswith(("/", os.sep)))
+    target = Path(run_path).with_name(default) if out is None else Path(out) / default if folder else Path(out)
+    named = out is not None and not folder  # a file the user named is a new file; the default name is the run's own
+    if named and not show:  # before the drawing
+        refuse_existing(target, "plot", "--out")
     with open_source(run_path) as src:  # opened once: metadata and streams
         run, env = src.run, _envelopes(src.streams, run_path, streams, PIXELS)
     if not env:
@@ -118,12 +128,10 @@ def quicklook(run_path: str | Path, streams: list[str] | None = None, out: str |
         plt.show()
         plt.close(fig)
         return None
-    default = plot_name(run_path, streams)
-    # a folder: one that exists, or a name without a file type (``--out figs``, ``--out figs/``), which matplotlib
-    # would have written as figs.png while the plot said "figure: figs"
-    folder = out is not None and (Path(out).is_dir() or not Path(out).suffix or str(out).endswith(("/", os.sep)))
-    target = Path(run_path).with_name(default) if out is None else Path(out) / default if folder else Path(out)
     target.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(target, dpi=110)
-    plt.close(fig)
+    try:
+        with atomic_output(target, replace=not named) as tmp:  # whole or not at all
+            fig.savefig(tmp, dpi=110)
+    finally:
+        plt.close(fig)
     return target

@@ -231,8 +231,10 @@ def write_table3_csv(grid: dict[str, Any], path: Path) -> None:
     """The Table-3 grid as CSV: prototype, Δx [mm], frequencies [Hz], then the loss [%] at each voltage."""
     import csv
 
+    from bench.storage.outputs import atomic_output
+
     path.parent.mkdir(parents=True, exist_ok=True)
-    with path.open("w", newline="", encoding="utf-8") as fh:
+    with atomic_output(path, replace=True) as tmp, tmp.open("w", newline="", encoding="utf-8") as fh:
         w = csv.writer(fh)
         w.writerow(["prototype", "stroke_mm", "frequency_Hz", *(f"loss_{v}kV_percent" for v in grid["voltages_kV"])])
         for row in grid["rows"]:

@@ -157,11 +157,9 @@ def check_export(export: Path) -> None:
     """Refuse an ``--export`` target before minutes of fitting, not after the store, in one line naming it: an
     existing file (never replaced, as ``bench protocols copy`` and ``bench init`` do not), a folder, a missing
     folder."""
-    if export.is_dir():
-        raise IsADirectoryError(f"--export {export}: a folder; give the rig file's name "
-                                f"(e.g. {export / 'fitted.toml'})")
-    if export.exists() or export.is_symlink():
-        raise FileExistsError(f"--export {export}: exists; bench fit does not overwrite files: choose another name")
+    from bench.storage.outputs import refuse_existing
+
+    refuse_existing(export, "fit", "--export", "fitted.toml")
     if not export.parent.is_dir():
         raise ValueError(f"--export {export}: folder {export.parent} not found")
 

@@ -563,9 +563,10 @@ def plot_command(
     run: Annotated[Path, typer.Argument(help="Run file (.h5).")],
     streams: Annotated[list[str] | None, typer.Argument(help="Streams to draw (default: all), e.g. laser amplifier.")]
     = None,
-    out: Annotated[Path | None, typer.Option(help="PNG file, or folder for it (one that exists or a name without "
-                                          "a file type; default: beside the run file), the figure named RUN-plot.png "
-                                          "for all streams, RUN-plot-laser.png for laser.")] = None,
+    out: Annotated[Path | None, typer.Option(help="PNG file (a new one: an existing file is refused), or folder for "
+                                          "it (one that exists or a name without a file type; default: beside the "
+                                          "run file), the figure named RUN-plot.png for all streams, "
+                                          "RUN-plot-laser.png for laser.")] = None,
     show: Annotated[bool, typer.Option("--show", help="Open a window instead of writing a file.")] = False,
 ) -> None:
     """Quick look at a run file: every column of the chosen streams on the run clock, units on each axis, step

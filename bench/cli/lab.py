@@ -19,7 +19,8 @@ def export(
                                              "header), events.csv and metadata.json: new, empty, or an earlier "
                                              "export of the same run (replaced; another run's is refused).")]
     = None,
-    mat: Annotated[Path | None, typer.Option("--mat", help="MATLAB file (.mat): one struct per stream.")] = None,
+    mat: Annotated[Path | None, typer.Option("--mat", help="MATLAB file (.mat): one struct per stream; a new file "
+                                             "(an existing one is refused).")] = None,
     mat_version: Annotated[str, typer.Option(help="MAT version: 5 (scipy; whole streams in memory), 7.3 (HDF5, "
                                              "written in chunks: any length), or auto: 7.3 when a stream exceeds "
                                              "256 MB.")] = "auto",
@@ -27,11 +28,14 @@ def export(
     """Export a run file's streams to CSV files and/or a MATLAB file, reading the run in chunks (memory does not
     grow with its length). CSV numbers carry the instruments' precision: time 12 digits, values 9."""
     from bench.storage.export import to_csv, to_mat
+    from bench.storage.outputs import refuse_existing
 
     if mat_version not in ("auto", "5", "7.3"):
         raise ValueError(f"--mat-version {mat_version!r}: give 5, 7.3 or auto")
     if csv is None and mat is None:
         raise ValueError("give --csv FOLDER and/or --mat FILE")
+    if mat is not None:  # before the CSV files are written
+        refuse_existing(mat, "export", example="run.mat")
     if csv is not None:
         with progress("CSV export") as done:
             files = to_csv(run_file, csv, progress=done, said=lambda text: console.print(escape(text)))

@@ -15,6 +15,7 @@ import tomlkit
 from tomlkit.items import Table
 
 from bench.rig import RigConfig, rig_from_toml
+from bench.storage.outputs import write_text
 
 HEADER = "# fitted by `bench fit` from "
 
@@ -68,6 +69,5 @@ def export_rig(source: str, model: str, names: list[str], values: np.ndarray, pa
     ``path``: FileExistsError); return that rig."""
     text = fitted_rig_text(source, model, names, values, run)
     rig = rig_from_toml(text)
-    with Path(path).open("x", encoding="utf-8") as fh:  # never replaces a file (FileExistsError)
-        fh.write(text)
+    write_text(Path(path), text)  # whole or not at all; never replaces a file (FileExistsError)
     return rig

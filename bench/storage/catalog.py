@@ -600,5 +600,8 @@ def plot_history(history: dict[str, Any], specimen: str, out: Path) -> Path | No
         ax.grid(True, alpha=0.3)
     fig.suptitle(f"specimen {specimen}: fitted parameters over its life")
     out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=110)
+    from bench.storage.outputs import atomic_output
+
+    with atomic_output(out, replace=True) as tmp:  # whole or not at all
+        fig.savefig(tmp, dpi=110)
     return out

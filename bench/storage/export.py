@@ -12,7 +12,9 @@ another run), or CSV files of no export this module recognises, is refused befor
 of the same run again (the same ``run_id``) replaces its own files and removes those of its earlier export it no
 longer writes (listed in that export's ``export_files``); any other file in the folder is left alone.
 
-MAT: one struct per stream (``t`` and the columns as column vectors, ``units`` a struct of unit strings),
+MAT: a new file (an existing one is refused, :func:`bench.storage.outputs.refuse_existing`), written to a
+temporary file beside it and moved into place once whole; one struct per stream (``t`` and the columns as column
+vectors, ``units`` a struct of unit strings),
 ``events`` and ``metadata`` (MATLAB: ``s = load('run.mat'); plot(s.laser.t, s.laser.displacement)``). Two
 versions: v5 (scipy.io; events' kind and text as cell arrays of strings), and v7.3 — the HDF5-based format
 MATLAB uses for variables beyond v5's 2 GB — written here with h5py chunk by chunk (events' kind and text as
@@ -39,6 +41,7 @@ import h5py
 import numpy as np
 
 from bench.storage.chunks import StreamChunks
+from bench.storage.outputs import atomic_output, claim_folder, refuse_existing
 from bench.storage.recorder import cause
 from bench.storage.runfile import RunFile, open_h5, open_run
 
@@ -50,7 +53,7 @@ def _header(name: str, unit: str) -> str:
     return f"{name} [{unit}]" if unit else name
 
 
-def _metadata(run: RunFile) -> dict[str, Any]:
+def run_metadata(run: RunFile) -> dict[str, Any]:
     def plain(v: Any) -> Any:
         if isinstance(v, np.generic):
             return v.item()
@@ -103,42 +106,16 @@ def _records(streams: StreamChunks) -> int:
 
 
 EXPORT_FILES = "export_files"  # metadata.json: the files the export wrote (a later export of the run removes stale)
-VOLATILE = {"state", "reason", "complete", EXPORT_FILES, "end_time", "exit_status", "exit_reason"}  # change at its end
-
-
-def _same_run(meta: dict[str, Any], run: dict[str, Any]) -> bool:
-    """Whether an export's ``metadata.json`` (``meta``) is of the run whose metadata is ``run``: the same ``run_id``;
-    for files older than run ids, the same attributes but those that change as a run ends."""
-    ours, theirs = str(run.get("run_id") or ""), str(meta.get("run_id") or "")
-    if ours or theirs:
-        return ours == theirs
-    return {k: v for k, v in meta.items() if k not in VOLATILE} == \
-        {k: v for k, v in json.loads(json.dumps(run, default=str)).items() if k not in VOLATILE}
 
 
 def _csv_folder(out: Path, run: dict[str, Any], names: list[str]) -> tuple[bool, list[Path]]:
-    """Check that ``out`` may take the CSV export of ``run`` (its metadata) writing the files ``names``: new or
-    empty, or holding an earlier export of the same run. Returns whether it holds one, and that export's files this
-    one no longer writes (to remove). Another run's export, or CSV files of no recognised export: refused, one line."""
-    if not out.is_dir():
+    """Check that ``out`` may take the CSV export of ``run`` (its metadata) writing the files ``names``
+    (:func:`bench.storage.outputs.claim_folder`: new or empty, or holding an earlier export of the same run). Returns
+    whether it holds one, and that export's files this one no longer writes (to remove)."""
+    loose = sorted(p.name for p in out.glob("*.csv")) if out.is_dir() else []
+    meta = claim_folder(out, "metadata.json", run, "export", "export", loose)
+    if meta is None:
         return False, []  # none yet (or not a folder: said when it is created)
-    refuse = f"; bench export does not mix runs in a folder: choose an empty or new folder (or remove {out})"
-    meta_path = out / "metadata.json"
-    if not meta_path.exists():
-        found = sorted(p.name for p in out.glob("*.csv"))
-        if found:
-            raise FileExistsError(f"{out}: holds {', '.join(found[:3])}{' …' if len(found) > 3 else ''} of no "
-                                  f"export of this run (no metadata.json){refuse}")
-        return False, []
-    try:
-        meta = json.loads(meta_path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, ValueError) as exc:
-        raise FileExistsError(f"{out}: holds a metadata.json that is no export's ({cause(exc)}){refuse}") from None
-    if not isinstance(meta, dict):
-        raise FileExistsError(f"{out}: holds a metadata.json that is no export's{refuse}")
-    if not _same_run(meta, run):
-        other = f"run_id {meta['run_id']}" if meta.get("run_id") else f"protocol {meta.get('protocol_name', '?')}"
-        raise FileExistsError(f"{out}: holds the export of another run ({other}){refuse}")
     listed = meta.get(EXPORT_FILES, [])
     earlier = [n for n in listed if isinstance(n, str)] if isinstance(listed, list) else []
     # only plain names of export files (a hand-edited list naming ../x or a folder removes nothing)
@@ -159,7 +136,7 @@ def to_csv(run_path: str | Path, folder: str | Path, progress: Progress | None =
     with open_h5(Path(run_path)) as f:
         streams = StreamChunks(f, run_path)
         names = [f"{stream}.csv" for stream in streams.length] + ["events.csv", "metadata.json"]
-        meta = _metadata(run)
+        meta = run_metadata(run)
         again, stale = _csv_folder(out, meta, names)
         with _into(out):
             out.mkdir(parents=True, exist_ok=True)
@@ -226,22 +203,29 @@ def mat_version(run_path: str | Path, asked: MatVersion = "auto") -> Literal["5"
 
 def to_mat(run_path: str | Path, path: str | Path, version: MatVersion = "auto",
            progress: Progress | None = None) -> Path:
-    """Write the run as a MATLAB file (see the module docstring); returns its path. ``progress``: the fraction of
-    the records written, after every chunk (v7.3) or once at the end (v5, written in one call)."""
+    """Write the run as a MATLAB file (see the module docstring), a new file (an existing ``path`` is refused),
+    moved into place only once whole; returns its path. ``progress``: the fraction of the records written, after
+    every chunk (v7.3) or once at the end (v5, written in one call)."""
     target = Path(path)
+    refuse_existing(target, "export", example="run.mat")
     version = mat_version(run_path, version)
     with _into(target):
         target.parent.mkdir(parents=True, exist_ok=True)
-    if version == "7.3":
-        _to_mat73(run_path, target, progress)
-    else:
-        _to_mat5(run_path, target)
-        if progress is not None:
-            progress(1.0)
+    stack = contextlib.ExitStack()
+    with _into(target):  # a folder no file can be made in
+        tmp = stack.enter_context(atomic_output(target))
+    with stack:  # written whole into place, or not at all (the temporary removed)
+        if version == "7.3":
+            _to_mat73(run_path, tmp, target, progress)
+        else:
+            _to_mat5(run_path, tmp, target)
+            if progress is not None:
+                progress(1.0)
     return target
 
 
-def _to_mat5(run_path: str | Path, target: Path) -> None:
+def _to_mat5(run_path: str | Path, tmp: Path, target: Path) -> None:
+    """The v5 file into ``tmp``; errors name ``target``."""
     from scipy.io import savemat
 
     run = open_run(run_path)
@@ -258,14 +242,14 @@ def _to_mat5(run_path: str | Path, target: Path) -> None:
                       "text": np.array([e[3] for e in events], dtype=object).reshape(-1, 1)}
     data["metadata"] = _mat_metadata(run)
     with _into(target):
-        fh = target.open("wb")
-    with _into(target), _no_partial(target), fh:
+        fh = tmp.open("wb")
+    with _into(target), fh:
         savemat(fh, data, do_compression=True, oned_as="column")
 
 
 def _mat_metadata(run: RunFile) -> dict[str, Any]:
     return {_mat_name(k): (json.dumps(v) if isinstance(v, dict | list) else ("" if v is None else v))
-            for k, v in _metadata(run).items()}
+            for k, v in run_metadata(run).items()}
 
 
 # ---------------------------------------------------------------- MAT v7.3: HDF5 with MATLAB's conventions
@@ -328,7 +312,8 @@ def _mat73_header() -> bytes:
     return text.ljust(116, b" ") + b"\x00" * 8 + b"\x00\x02" + b"IM"
 
 
-def _to_mat73(run_path: str | Path, target: Path, progress: Progress | None = None) -> None:
+def _to_mat73(run_path: str | Path, tmp: Path, target: Path, progress: Progress | None = None) -> None:
+    """The v7.3 file into ``tmp``; errors name ``target``."""
     run = open_run(run_path, streams=False)
     events = run.event_list()
     meta = _mat_metadata(run)
@@ -336,49 +321,48 @@ def _to_mat73(run_path: str | Path, target: Path, progress: Progress | None = No
         streams = StreamChunks(src, run_path)
         total, done = _records(streams), 0
         with _into(target):
-            out = h5py.File(target, "w", userblock_size=512)
-        with _no_partial(target):
-            try:
-                for stream, n in streams.length.items():
-                    cols = streams.columns[stream]
-                    units = streams.units(stream)
-                    with _into(target):
-                        g = _struct(out, _mat_name(stream), [*map(_mat_name, cols), "units"])
-                        sets = {}
-                        for c in cols:
-                            d = g.create_dataset(_mat_name(c), shape=(1, n), dtype=np.float64,
-                                                 chunks=(1, min(max(n, 1), 65_536)), compression="gzip",
-                                                 compression_opts=1)
-                            _mat_class(d, "double")
-                            sets[c] = d
-                    a = 0
-                    for chunk in streams.chunks(stream):  # reads: the run file's own errors
-                        b = a + chunk["t"].size
-                        with _into(target):
-                            for c in cols:
-                                sets[c][0, a:b] = chunk[c].astype(np.float64)
-                        a = b
-                        done += chunk["t"].size
-                        if progress is not None:
-                            progress(done / total)
-                    with _into(target):
-                        u = _struct(g, "units", [_mat_name(c) for c in cols])
-                        for c in cols:
-                            _char(u, _mat_name(c), [units[c]])
+            out = h5py.File(tmp, "w", userblock_size=512)
+        try:
+            for stream, n in streams.length.items():
+                cols = streams.columns[stream]
+                units = streams.units(stream)
                 with _into(target):
-                    ev = _struct(out, "events", ["t", "step", "kind", "text"])
-                    _double(ev, "t", np.array([e[0] for e in events], dtype=float))
-                    _double(ev, "step", np.array([e[1] for e in events], dtype=float))
-                    _cellstr(ev, "kind", [e[2] for e in events])
-                    _cellstr(ev, "text", [e[3] for e in events])
-                    m = _struct(out, "metadata", list(meta))
-                    for k, v in meta.items():
-                        if isinstance(v, bool | int | float | np.integer | np.floating):
-                            _double(m, k, np.array([float(v)]))
-                        else:
-                            _char(m, k, [str(v)])
-            finally:
+                    g = _struct(out, _mat_name(stream), [*map(_mat_name, cols), "units"])
+                    sets = {}
+                    for c in cols:
+                        d = g.create_dataset(_mat_name(c), shape=(1, n), dtype=np.float64,
+                                             chunks=(1, min(max(n, 1), 65_536)), compression="gzip",
+                                             compression_opts=1)
+                        _mat_class(d, "double")
+                        sets[c] = d
+                a = 0
+                for chunk in streams.chunks(stream):  # reads: the run file's own errors
+                    b = a + chunk["t"].size
+                    with _into(target):
+                        for c in cols:
+                            sets[c][0, a:b] = chunk[c].astype(np.float64)
+                    a = b
+                    done += chunk["t"].size
+                    if progress is not None:
+                        progress(done / total)
                 with _into(target):
-                    out.close()
-            with _into(target), target.open("r+b") as fh:
-                fh.write(_mat73_header())
+                    u = _struct(g, "units", [_mat_name(c) for c in cols])
+                    for c in cols:
+                        _char(u, _mat_name(c), [units[c]])
+            with _into(target):
+                ev = _struct(out, "events", ["t", "step", "kind", "text"])
+                _double(ev, "t", np.array([e[0] for e in events], dtype=float))
+                _double(ev, "step", np.array([e[1] for e in events], dtype=float))
+                _cellstr(ev, "kind", [e[2] for e in events])
+                _cellstr(ev, "text", [e[3] for e in events])
+                m = _struct(out, "metadata", list(meta))
+                for k, v in meta.items():
+                    if isinstance(v, bool | int | float | np.integer | np.floating):
+                        _double(m, k, np.array([float(v)]))
+                    else:
+                        _char(m, k, [str(v)])
+        finally:
+            with _into(target):
+                out.close()
+        with _into(target), tmp.open("r+b") as fh:
+            fh.write(_mat73_header())
