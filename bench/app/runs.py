@@ -96,9 +96,9 @@ def prepare_run(protocol_file: Path | None, *, rig: Path | None = None, sim: boo
         plan = plan_protocol(protocol_file, rig, sim, progress)
         metadata = run_metadata(plan.protocol, operator, specimen_id, notes)
         if not dry_run:  # refused before the plan is shown and the run's log made (execute checks again)
-            from bench.runtime.latch import refuse_if_latched
+            from bench.runtime.latch import drive_of, refuse_if_latched
 
-            refuse_if_latched(plan.rig.name, plan.rig.drive_path())
+            refuse_if_latched(plan.rig.name, drive_of(plan.rig))
     return PreparedRun(plan, default_output(plan, out), metadata, link, reset)
 
 
@@ -106,9 +106,9 @@ def _reset_for_resume(rig: RigConfig, operator: str | None, why: str | None, dry
                       metadata: dict[str, str]) -> tuple[str, str] | None:
     """A resumed campaign on a latched rig (or on a real rig's amplifier drive latched under another name): the
     operator's reset (who and why), recorded in the new file's ``metadata``."""
-    from bench.runtime.latch import latched, reset
+    from bench.runtime.latch import drive_of, latched, reset
 
-    drive = rig.drive_path()
+    drive = drive_of(rig)
     was = latched(rig.name, drive)
     if was is None:
         return None

@@ -8,9 +8,11 @@ name, so two rigs whose names differ only in punctuation or spaces never share a
 older form (``interlock-<rig>.json``, no hash) still counts for the rig whose exact name it records.
 A bench before the hashed names reads only that older form, so a latch is written in both while the older file
 is free or already this rig's (a latch under another name that cleans up alike is never replaced).
-A real rig's latch also records its amplifier's drive path (``RigConfig.drive_path``: the set-point module's port
-and unit, or the T7's address), and holds every rig file that drives the same hardware: renaming the rig, or a
-copy of its file under another name, does not get round a latch.
+A real rig's latch also records its amplifier's drive (:func:`drive_of`: the set-point module's port, unit and
+channel, or the T7's address and DAC, under every name this machine knows for it), and holds every rig file that
+drives the same hardware: renaming the rig, copying its file under another name, or naming the port another way
+(a ``/dev/serial/by-id`` link, a host name in other letters) does not get round a latch. A host name and its IP
+address are not matched: no name server is asked before a start.
 Every latch and reset is also appended to ``interlock.log`` there (who, why, when), so the history survives
 the reset.
 """
@@ -18,19 +20,83 @@ the reset.
 from __future__ import annotations
 
 import hashlib
+import ipaddress
 import json
 import os
 import re
 import shlex
+from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
+from urllib.parse import urlsplit
+
+if TYPE_CHECKING:
+    from bench.rig import RigConfig
 
 STATE_ENV = "BENCH_STATE_DIR"
 
 
 class LatchedError(ValueError):
     """A rig whose interlock is latched: refused until an operator resets it (one line, names the command)."""
+
+
+@dataclass(frozen=True)
+class Drive:
+    """A real rig's amplifier drive: as its rig file gives it (``text``) and every name of it this machine knows
+    (``ids``: a latch holds any rig whose drive shares one)."""
+
+    text: str
+    ids: frozenset[str]
+
+
+def _host(host: str) -> str:
+    """A host as one spelling: an IP address in its compressed form, a name in lower case."""
+    try:
+        return ipaddress.ip_address(host.strip("[]")).compressed
+    except ValueError:
+        return host.lower()
+
+
+def _port_names(port: str) -> set[str]:
+    """A port's names: a serial device as written, resolved, and every ``/dev/serial`` link to it (a replugged
+    adapter keeps its by-id name when its number changes); a URL's host as :func:`_host` spells it."""
+    if "://" in port:
+        url = urlsplit(port)
+        try:
+            number = f":{url.port}" if url.port is not None else ""
+        except ValueError:
+            number = ""
+        return {f"{url.scheme.lower()}://{_host(url.hostname or '')}{number}"}
+    real = os.path.realpath(port)
+    names = {port, real}
+    for folder in (Path("/dev/serial/by-id"), Path("/dev/serial/by-path")):
+        try:
+            names.update(str(link) for link in folder.iterdir() if os.path.realpath(link) == real)
+        except OSError:
+            continue
+    return names
+
+
+def drive_of(rig: RigConfig) -> Drive | None:
+    """The amplifier drive of a real rig (None: a simulated rig, whose twins are its own, or no amplifier)."""
+    text = rig.drive_path()
+    amp = rig.amplifier
+    if text is None or amp is None:
+        return None
+    if amp.drive == "daq" and rig.daq is not None:
+        return Drive(text, frozenset({f"tcp://{_host(rig.daq.host)}:{rig.daq.port} DAC{rig.daq.dac}"}))
+    bus = rig.buses.get(amp.bus)
+    names = _port_names(bus.port) if bus is not None else {amp.bus}
+    return Drive(text, frozenset(f"{n} unit {amp.ao_unit} channel {amp.ao_channel}" for n in names))
+
+
+def _on(was: dict[str, Any], drive: Drive) -> bool:
+    """Whether the latch ``was`` holds ``drive`` (a latch from before the drive's names: by its text)."""
+    ids = was.get("drive_ids")
+    if isinstance(ids, list) and drive.ids & {str(i) for i in ids}:
+        return True
+    return was.get("drive") == drive.text
 
 
 def state_dir() -> Path:
@@ -72,7 +138,8 @@ def _legacy(rig_name: str) -> dict[str, Any] | None:
         return None
     data = _read(path)
     if data is None or not isinstance(data.get("rig"), str):
-        return {"rig": rig_name, "fault": f"latch file {path} unreadable", "where": "?", "at": "?"}
+        return {"rig": rig_name, "fault": f"latch file {path} unreadable", "where": "?", "at": "?",
+                "unreadable": str(path)}
     return data if data["rig"] == rig_name else None
 
 
@@ -91,14 +158,14 @@ def _write(path: Path, record: dict[str, Any]) -> None:
     os.replace(tmp, path)
 
 
-def latch(rig_name: str, fault: str, where: str, drive: str | None = None) -> Path:
+def latch(rig_name: str, fault: str, where: str, drive: Drive | None = None) -> Path:
     """Latch rig ``rig_name`` after ``fault`` (one line) seen in ``where`` (a run file or a manual session);
-    ``drive``: the amplifier's drive path of a real rig (``RigConfig.drive_path``), which the latch holds too."""
+    ``drive``: a real rig's amplifier drive (:func:`drive_of`), which the latch holds too."""
     path = latch_path(rig_name)
     path.parent.mkdir(parents=True, exist_ok=True)
     record: dict[str, Any] = {"rig": rig_name, "fault": fault, "where": where, "at": _now()}
     if drive is not None:
-        record["drive"] = drive
+        record["drive"], record["drive_ids"] = drive.text, sorted(drive.ids)
     _write(path, record)
     old = _legacy_path(rig_name)
     mine = (_read(old) or {}).get("rig") == rig_name if old.exists() else True  # free, or this rig's (readable)
@@ -108,27 +175,35 @@ def latch(rig_name: str, fault: str, where: str, drive: str | None = None) -> Pa
     return path
 
 
-def _own(rig_name: str) -> dict[str, Any] | None:
+def _own(rig_name: str) -> list[dict[str, Any]]:
+    """Rig ``rig_name``'s own latches: its file (an unreadable one counts), then an older-form file that is its own
+    or unreadable (names that clean up alike share it)."""
+    found = []
     path = latch_path(rig_name)
-    if not path.exists():
-        return _legacy(rig_name)
-    data = _read(path)
-    if data is not None:
-        return data
-    return {"rig": rig_name, "fault": f"latch file {path} unreadable", "where": "?", "at": "?"}
+    if path.exists():
+        data = _read(path)
+        found.append(data if data is not None else
+                     {"rig": rig_name, "fault": f"latch file {path} unreadable", "where": "?", "at": "?"})
+    old = _legacy(rig_name)
+    if old is not None and (old.get("unreadable") or not found):
+        found.append(old)
+    return found
 
 
-def latched(rig_name: str, drive: str | None = None) -> dict[str, Any] | None:
+def _holding(rig_name: str, drive: Drive | None) -> list[dict[str, Any]]:
+    """Every latch that holds rig ``rig_name``: its own first, then those of other rigs on ``drive``."""
+    found = _own(rig_name)
+    if drive is not None:
+        found += [was for name, was in all_latched().items() if name != rig_name and _on(was, drive)]
+    return found
+
+
+def latched(rig_name: str, drive: Drive | None = None) -> dict[str, Any] | None:
     """The latch of rig ``rig_name`` (fault, where, at), or else a latch of any rig on the same amplifier drive
-    path ``drive`` (its ``rig`` names the rig it was latched under), or None. An unreadable latch file counts as
+    ``drive`` (its ``rig`` names the rig it was latched under), or None. An unreadable latch file counts as
     latched."""
-    own = _own(rig_name)
-    if own is not None or drive is None:
-        return own
-    for was in all_latched().values():
-        if was.get("drive") == drive:
-            return was
-    return None
+    found = _holding(rig_name, drive)
+    return found[0] if found else None
 
 
 def all_latched() -> dict[str, dict[str, Any]]:
@@ -144,31 +219,39 @@ def all_latched() -> dict[str, dict[str, Any]]:
     return found
 
 
-def reset(rig_name: str, by: str, why: str, drive: str | None = None) -> dict[str, Any] | None:
-    """Reset the latch that :func:`latched` finds for ``rig_name`` and ``drive`` (an operator's explicit act: ``by``
-    and ``why`` required, recorded in the history); returns what was latched, or None if nothing was."""
+def reset(rig_name: str, by: str, why: str, drive: Drive | None = None) -> dict[str, Any] | None:
+    """Reset every latch that holds ``rig_name`` (its own, and those of other rigs on ``drive``: the operator
+    vouches for the hardware) — an explicit act: ``by`` and ``why`` required, each reset recorded in the history.
+    Returns the first latch reset, or None if nothing was latched. An unreadable older-form latch file is left
+    (it may be another rig's whose name cleans up alike): it still latches, its fault says to remove it by hand."""
     if not by.strip() or not why.strip():
         raise ValueError("resetting the interlock needs who (--operator) and why (--why)")
-    was = latched(rig_name, drive)
-    if was is None:
-        return None
-    name = was["rig"] if isinstance(was.get("rig"), str) else rig_name
-    latch_path(name).unlink(missing_ok=True)
-    if _legacy(name) is not None:
-        _legacy_path(name).unlink(missing_ok=True)
-    via = "" if name == rig_name else f" (latched under rig {name}, the same amplifier drive {drive})"
-    _history(f"reset\t{name}\tby {by}: {why}{via}\t(was: {was.get('fault')} in {was.get('where')})")
-    return was
+    found = _holding(rig_name, drive)
+    for was in found:
+        if was.get("unreadable"):  # the older form, whose name other rigs may share: not this command's to remove
+            raise ValueError(f"rig {rig_name}: latch file {was['unreadable']} is unreadable and may be another rig's "
+                             "(the older form: names that clean up alike share it): check the rigs, then remove "
+                             "it by hand")
+    for was in found:
+        name = was["rig"] if isinstance(was.get("rig"), str) else rig_name
+        latch_path(name).unlink(missing_ok=True)
+        old = _read(_legacy_path(name)) if _legacy_path(name).exists() else None
+        if old is not None and old.get("rig") == name:  # only a readable one of this very rig
+            _legacy_path(name).unlink(missing_ok=True)
+        same = drive.text if drive else "?"
+        via = "" if name == rig_name else f" (latched under rig {name}, the same amplifier drive {same})"
+        _history(f"reset\t{name}\tby {by}: {why}{via}\t(was: {was.get('fault')} in {was.get('where')})")
+    return found[0] if found else None
 
 
-def refuse_if_latched(rig_name: str, drive: str | None = None) -> None:
+def refuse_if_latched(rig_name: str, drive: Drive | None = None) -> None:
     """LatchedError (one line) while rig ``rig_name``, or another rig on its amplifier drive path, is latched."""
     was = latched(rig_name, drive)
     if was is None:
         return
     name = was["rig"] if isinstance(was.get("rig"), str) else rig_name
-    who = f"rig {rig_name}:" if name == rig_name else f"rig {rig_name}: its amplifier drive ({drive}) is latched " \
-        f"under rig {name};"
+    who = f"rig {rig_name}:" if name == rig_name else f"rig {rig_name}: its amplifier drive " \
+        f"({drive.text if drive else '?'}) is latched under rig {name};"
     raise LatchedError(f"{who} interlock latched at {was.get('at')} ({was.get('fault')}; in "
                        f"{was.get('where')}): nothing energises it until an operator resets it — "
                        f"bench interlock reset {shlex.quote(name)} --why '…', or bench run --resume RUN.h5 "

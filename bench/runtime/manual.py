@@ -235,7 +235,7 @@ class ManualSession:
         if self._end is not None:  # a stop signal while connecting
             engine.request_stop(self._end)
         self.engine = engine
-        was = rig_latch.latched(rig.name, rig.drive_path())
+        was = rig_latch.latched(rig.name, rig_latch.drive_of(rig))
         if was is not None:  # a run or an earlier session latched this rig: it stays off until `reset WHY`
             engine.latched_before(f"{was.get('fault')} (in {was.get('where')}, at {was.get('at')})")
             assert engine.latched is not None
@@ -504,7 +504,7 @@ class ManualSession:
 
     def _latched_line(self, trip: InterlockTrip) -> None:
         self._write("interlock", "latched", f"{self._engine().latch_text()}; {trip.reason}")
-        rig_latch.latch(self.rig.name, trip.reason, str(self.log_file), self.rig.drive_path())
+        rig_latch.latch(self.rig.name, trip.reason, str(self.log_file), rig_latch.drive_of(self.rig))
 
     def _cmd_reset(self, *why: str) -> str:
         engine = self._engine()
@@ -514,7 +514,10 @@ class ManualSession:
         if not reason:
             raise Refused("reset needs a reason: reset WHY... (logged with the operator's name)")
         who = self.operator or "an operator not named (no --operator)"
-        rig_latch.reset(self.rig.name, who, reason, self.rig.drive_path())
+        try:
+            rig_latch.reset(self.rig.name, who, reason, rig_latch.drive_of(self.rig))
+        except ValueError as exc:  # a latch file it may not remove: the rig stays latched
+            raise Refused(str(exc)) from None
         kind = engine.reset_latch()
         return f"interlock ({kind}) reset by {who}: {reason}"
 

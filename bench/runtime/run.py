@@ -37,7 +37,7 @@ from bench.runtime.engine import Engine, OperatorFn, RunResult, termination_rais
 from bench.runtime.hardware_timed import describe_streams
 from bench.runtime.instruments import Instruments, build_instruments
 from bench.runtime.interlock import watchdog_period
-from bench.runtime.latch import latch, refuse_if_latched
+from bench.runtime.latch import drive_of, latch, refuse_if_latched
 from bench.runtime.polls import SENSOR_PERIOD_S
 from bench.runtime.rig_lock import campaign_claimed, claimed
 from bench.runtime.safety import Supervisor
@@ -248,7 +248,7 @@ def _execute_claimed(plan: Plan, out: Path, *, virtual: bool, operator: Operator
     if virtual and not rig.simulated:
         raise ValueError(f"rig {rig.name} is real: virtual time needs a simulated rig (use --sim)")
     watchdog = check_watchdog(rig, allow_no_watchdog)
-    refuse_if_latched(rig.name, rig.drive_path())
+    refuse_if_latched(rig.name, drive_of(rig))
     sim: SimRig | None = None
     inst: Instruments | None = None
     recorder: Recorder | None = None
@@ -348,7 +348,7 @@ def _execute_claimed(plan: Plan, out: Path, *, virtual: bool, operator: Operator
             result = engine.run()
         finally:  # a fault latches even when the run ends by an exception the engine let through
             if engine.latched is not None:
-                latch(rig.name, engine.latched.reason, str(out), rig.drive_path())
+                latch(rig.name, engine.latched.reason, str(out), drive_of(rig))
         end_row = {"hv": recorder.hv_stats(), "written": recorder.written()}  # the file, as it was written
         return result
     finally:

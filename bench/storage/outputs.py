@@ -15,6 +15,7 @@ import errno
 import json
 import os
 import secrets
+import shutil
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -40,7 +41,7 @@ def _temporary(target: Path) -> Path:
     """A new empty file beside ``target`` (same folder: the move is a rename), hidden, with its file type (the
     writers that infer the format from it, matplotlib's, see the same), mode as the umask gives a new file."""
     while True:
-        tmp = target.with_name(f".{target.stem}.{secrets.token_hex(4)}.part{target.suffix}")
+        tmp = target.with_name(f".{target.stem[:64]}.{secrets.token_hex(4)}.part{target.suffix}")  # a long name fits
         try:
             os.close(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))
         except FileExistsError:
@@ -57,6 +58,8 @@ def atomic_output(target: Path, *, replace: bool = False) -> Iterator[Path]:
     try:
         yield tmp
         if replace:
+            with contextlib.suppress(OSError):  # the file it replaces keeps its permissions (a 640 stays 640)
+                shutil.copymode(target, tmp)
             os.replace(tmp, target)
             return
         try:
