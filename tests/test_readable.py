@@ -183,7 +183,7 @@ def test_a_step_s_poll_asks_describe_once_and_records_every_read_to_its_stream()
     rows: list[tuple[Any, ...]] = []
     e = SimpleNamespace(t0=10.0, rec=SimpleNamespace(append=lambda *a, **k: rows.append((*a, k))),
                         late_columns=lambda stream, late: {"late": late}, lateness=lambda due: 0.5 - due,
-                        waiting_on=lambda role: contextlib.nullcontext())
+                        offset=0.0, waiting_on=lambda role, due: contextlib.nullcontext())
     clock = iter([11.0, 12.0, 13.0])
     poll = _role_poll("thermometer", Counted(lambda: next(clock)), Polled("thermometer", _sensor_period))
     for due in (0.0, 0.1, 0.2):

@@ -61,6 +61,7 @@ class Wait:
 
     role: str
     start: float
+    due: float = math.nan  # run time the read was scheduled for (NaN: not scheduled)
     end: float | None = None  # None: under way
     unanswered: bool = False  # a request of it went unanswered (a timeout; its link may have retried)
     detail: str = ""  # the driver's words when the wait ended in a timeout
@@ -186,11 +187,12 @@ class RunContext:
 
     # ------------------------------------------------------------ waits on instruments
     @contextlib.contextmanager
-    def waiting_on(self, role: str) -> Iterator[None]:
-        """Around a read of the instrument of ``role``: the wait is kept, so that a set-point module starved while
-        the host waited on an instrument that did not answer is laid to that instrument, not to a host stall; a
-        timeout is raised again naming the role ("load cell (bus scale): no valid reply …")."""
-        w = self._wait = Wait(role, time.monotonic())
+    def waiting_on(self, role: str, due: float = math.nan) -> Iterator[None]:
+        """Around a read of the instrument of ``role`` scheduled for run time ``due``: the wait is kept, so that a
+        set-point module starved while the host waited on an instrument that did not answer is laid to that
+        instrument, not to a host stall; a timeout is raised again naming the role ("load cell (bus scale): no
+        valid reply …")."""
+        w = self._wait = Wait(role, time.monotonic(), due)
         try:
             yield
         except InstrumentTimeoutError as exc:
@@ -206,11 +208,15 @@ class RunContext:
             w.end = time.monotonic()
             self._wait = None
 
-    def unanswered(self) -> None:
-        """A request of the instrument waited on went unanswered and its link retries it."""
-        if (w := self._wait) is not None:
-            w.unanswered = True
-            self._silent = w
+    def unanswered(self) -> float:
+        """A request of the instrument waited on went unanswered and its link retries it; returns the run time to
+        record a set-point sent meanwhile at: the read's scheduled time (every set-point recorded so far is no
+        later, every one to come later: the stream stays in time order), else now."""
+        if (w := self._wait) is None:
+            return self.now()
+        w.unanswered = True
+        self._silent = w
+        return w.due if math.isfinite(w.due) else self.now()
 
     def feed_failed(self) -> None:
         """A keep-alive sent during the present wait failed (its error is the amplifier's, not the waited one's)."""

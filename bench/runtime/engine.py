@@ -410,10 +410,14 @@ class Engine:
     def _between_attempts(self) -> None:
         """Before a retry of a request another instrument left unanswered (its link, not the set-point module's):
         the wait noted (a watchdog that fires meanwhile is laid to that instrument), and the module kept fed, so
-        that one silent instrument's timeout and retry do not starve its keep-alive."""
-        self.ctx.unanswered()
+        that one silent instrument's timeout and retry do not starve its keep-alive (as :meth:`_keep_fed`, the
+        set-point recorded at the read's scheduled time: the stream stays in time order)."""
+        t = self.ctx.unanswered()
+        if self.inst.amplifier is None or self._stream is not None or self._stopping:
+            return
         try:
-            self._keep_fed()
+            if self.ctx.unheard_for() >= HOLD_KEEPALIVE_S:
+                self._set_voltage(self.ctx.v_req, t)
         except InstrumentError:
             self.ctx.feed_failed()
             raise

@@ -226,7 +226,7 @@ def _role_poll(role: str, drv: Readable, how: Polled) -> Poll:
     described: list[StreamDescription] = []  # the instrument's describe(), asked once, at the first poll
 
     def run(e: RunContext, due: float) -> None:
-        with e.waiting_on(role):
+        with e.waiting_on(role, due + e.offset):
             if not described:
                 described.append(drv.describe())
             poll_once(e, drv, how, due, described[0])
