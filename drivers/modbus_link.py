@@ -26,6 +26,7 @@ import select
 import socket
 import threading
 import time
+from collections.abc import Callable
 from typing import cast
 
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
@@ -239,12 +240,16 @@ class ModbusLink:
         """``poll_interval``: how often the RTU client polls for reply bytes (pymodbus default: 4 character
         times, at least 1 ms). Twins on a pty answer at once, so simulated rigs use a shorter one.
         ``retries``: further attempts after a timeout (each checks ``cancel`` first).
-        ``timer``: how a wait for a reply ends (:mod:`drivers.deadline`)."""
+        ``timer``: how a wait for a reply ends (:mod:`drivers.deadline`).
+        ``retrying`` (attribute, None by default): called before each retry of an unanswered request, with this
+        link's lock held — work that must not wait out the retry on another link (the engine feeds the set-point
+        module's keep-alive there); never a request on this link."""
         self.url = url
         self.device = device
         self.retries = retries
         self.cancel = cancel
         self.timer = timer
+        self.retrying: Callable[[], None] | None = None
         self._timeout = timeout
         self._deadline: Deadline = timer.start(timeout)  # the present attempt's (set before each request)
         self.lock = threading.RLock()
@@ -320,6 +325,8 @@ class ModbusLink:
         run = client.exchange if isinstance(client, _TcpClient) else lambda pdu: client.execute(False, pdu)
         with self.lock:
             for attempt in range(attempts):
+                if attempt and self.retrying is not None:
+                    self.retrying()
                 self._cancellable = bool(attempt) or not always_send
                 self._check_cancel()
                 self._discard_input(what)

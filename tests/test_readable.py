@@ -167,6 +167,7 @@ def test_a_step_s_poll_asks_describe_once_and_records_every_read_to_its_stream()
     """The generic poll of one step asks the instrument's describe() once, at its first poll, not at each of its
     reads (a 20-Hz encoder poll would build the same description 20 times a second); every read still lands in the
     stream it names, stamped with the reading's time on the run clock and its lateness."""
+    import contextlib
     from types import SimpleNamespace
 
     from bench.runtime.polls import Polled, _role_poll, _sensor_period
@@ -181,9 +182,10 @@ def test_a_step_s_poll_asks_describe_once_and_records_every_read_to_its_stream()
 
     rows: list[tuple[Any, ...]] = []
     e = SimpleNamespace(t0=10.0, rec=SimpleNamespace(append=lambda *a, **k: rows.append((*a, k))),
-                        late_columns=lambda stream, late: {"late": late}, lateness=lambda due: 0.5 - due)
+                        late_columns=lambda stream, late: {"late": late}, lateness=lambda due: 0.5 - due,
+                        offset=0.0, waiting_on=lambda role, due: contextlib.nullcontext())
     clock = iter([11.0, 12.0, 13.0])
-    poll = _role_poll(Counted(lambda: next(clock)), Polled("thermometer", _sensor_period))
+    poll = _role_poll("thermometer", Counted(lambda: next(clock)), Polled("thermometer", _sensor_period))
     for due in (0.0, 0.1, 0.2):
         poll.run(e, due)  # type: ignore[arg-type]  # the context's parts a poll uses
     assert described == 1

@@ -9,9 +9,10 @@ the context the two checks that raise them.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Protocol, TypeVar
 
@@ -20,10 +21,18 @@ import numpy as np
 from bench.core.clock import Clock
 from bench.protocol.program import Program
 from bench.runtime.instruments import Instruments
-from bench.runtime.interlock import OUTPUT_ON_V, InterlockTrip, MotionVerifier, OutputVerifier, check_contact
+from bench.runtime.interlock import (
+    OUTPUT_ON_V,
+    InterlockTrip,
+    MotionVerifier,
+    OutputVerifier,
+    SilentWait,
+    check_contact,
+    stall_bound,
+)
 from bench.runtime.safety import Supervisor
 from bench.storage.recorder import Recorder
-from drivers.errors import InstrumentError, InstrumentStateError
+from drivers.errors import InstrumentError, InstrumentStateError, InstrumentTimeoutError
 from drivers.interfaces import Amplifier, DisplacementSensor, ForceSensor, LinearMotor
 
 LATE_TOLERANCE_S = 0.05  # real time: an action later than this counts as an overrun
@@ -44,6 +53,19 @@ class Snapshot:
     values: dict[str, float] = field(default_factory=dict)
     headroom: dict[str, float] = field(default_factory=dict)
     state: str = "starting"
+
+
+@dataclass
+class Wait:
+    """One wait on an instrument's reply (:meth:`RunContext.waiting_on`), on :func:`time.monotonic`."""
+
+    role: str
+    start: float
+    due: float = math.nan  # run time the read was scheduled for (NaN: not scheduled)
+    end: float | None = None  # None: under way
+    unanswered: bool = False  # a request of it went unanswered (a timeout; its link may have retried)
+    detail: str = ""  # the driver's words when the wait ended in a timeout
+    feed_failed: bool = False  # a keep-alive sent during the wait failed: its error is the amplifier's
 
 
 class Streaming(Protocol):
@@ -98,6 +120,8 @@ class RunContext:
         self._heard_mark: float | None = None  # the set-point module's driver's last ``heard_at`` seen
         self._heard_rig = -math.inf  # rig clock: no later than this the module last heard from the host
         self._looked_rig = -math.inf  # rig clock: the last look at ``heard_at``
+        self._wait: Wait | None = None  # the wait on an instrument under way
+        self._silent: Wait | None = None  # the last wait in which a request went unanswered
 
     # ------------------------------------------------------------ instruments the program uses (typed)
     @property
@@ -161,16 +185,69 @@ class RunContext:
         self._looked_rig = now
         return now - self._heard_rig if heard is not None else math.inf
 
+    # ------------------------------------------------------------ waits on instruments
+    @contextlib.contextmanager
+    def waiting_on(self, role: str, due: float = math.nan) -> Iterator[None]:
+        """Around a read of the instrument of ``role`` scheduled for run time ``due``: the wait is kept, so that a
+        set-point module starved while the host waited on an instrument that did not answer is laid to that
+        instrument, not to a host stall; a timeout is raised again naming the role ("load cell (bus scale): no
+        valid reply …")."""
+        w = self._wait = Wait(role, time.monotonic(), due)
+        try:
+            yield
+        except InstrumentTimeoutError as exc:
+            if w.feed_failed:
+                raise
+            w.unanswered, w.detail = True, str(exc)
+            self._silent = w
+            name = role.replace("_", " ")
+            if exc.device.startswith(name):
+                raise
+            raise InstrumentTimeoutError(f"{name} ({exc.device})", exc.detail) from exc
+        finally:
+            w.end = time.monotonic()
+            self._wait = None
+
+    def unanswered(self) -> float:
+        """A request of the instrument waited on went unanswered and its link retries it; returns the run time to
+        record a set-point sent meanwhile at: the read's scheduled time (every set-point recorded so far is no
+        later, every one to come later: the stream stays in time order), else now."""
+        if (w := self._wait) is None:
+            return self.now()
+        w.unanswered = True
+        self._silent = w
+        return w.due if math.isfinite(w.due) else self.now()
+
+    def feed_failed(self) -> None:
+        """A keep-alive sent during the present wait failed (its error is the amplifier's, not the waited one's)."""
+        if self._wait is not None:
+            self._wait.feed_failed = True
+
+    def _waited_on(self, away: float) -> SilentWait | None:
+        """The unanswered wait on another instrument that explains a silence of the set-point module of ``away`` s
+        ending now: it reached into the silence, and the rest of the silence is within the stall bound."""
+        w = self._silent
+        if w is None or w.role == "amplifier":
+            return None
+        now = time.monotonic()
+        end = now if w.end is None else w.end
+        waited = end - w.start
+        if end < now - away or waited + stall_bound(self.program.rig) < away:
+            return None
+        return SilentWait(w.role, waited, w.detail or "a request went unanswered and its link retried")
+
     # ------------------------------------------------------------ interlock
     def guard(self, streaming: bool = False) -> None:
-        """Before anything that can drive the output: latch a host stall — the set-point module unheard for
-        longer than the stall bound while the output is on (``streaming``: a DAQ stream plays), so that its
-        watchdog may have zeroed the output and this write would turn high voltage back on by itself."""
+        """Before anything that can drive the output: latch when the set-point module went unheard for longer
+        than the stall bound while the output is on (``streaming``: a DAQ stream plays), so that its watchdog may
+        have zeroed the output and this write would turn high voltage back on by itself — a host stall, or the
+        silence of the instrument the host was waiting on meanwhile."""
         amp = self.inst.amplifier
         if amp is None or self.clock.virtual:
             return
         try:
-            check_contact(self.program.rig, amp.longest_silence(), streaming or abs(self.v_cmd) > OUTPUT_ON_V)
+            away = amp.longest_silence()
+            check_contact(self.program.rig, away, streaming or abs(self.v_cmd) > OUTPUT_ON_V, self._waited_on(away))
         except InterlockTrip as trip:
             try:
                 fired = amp.watchdog_fired()

@@ -232,6 +232,11 @@ class Engine:
         self.interruptible = False
         self._interrupt: str | None = None
         self.on_event: Callable[[str, str], None] | None = None  # shutdown events go here instead (manual: its log)
+        amp = program.rig.amplifier
+        amp_bus = amp.bus if amp is not None and amp.drive != "daq" else None
+        for name, link in inst.links.items():  # a retry on another bus: the set-point module fed before it
+            if name != amp_bus:
+                link.retrying = self._between_attempts
 
     # ------------------------------------------------------------ stop requests (signals, other threads)
     def request_stop(self, reason: str) -> None:
@@ -401,6 +406,21 @@ class Engine:
             return
         if self.ctx.unheard_for() >= HOLD_KEEPALIVE_S:  # run clock: the module's watchdog counts rig time
             self._set_voltage(self.ctx.v_req, self.now())
+
+    def _between_attempts(self) -> None:
+        """Before a retry of a request another instrument left unanswered (its link, not the set-point module's):
+        the wait noted (a watchdog that fires meanwhile is laid to that instrument), and the module kept fed, so
+        that one silent instrument's timeout and retry do not starve its keep-alive (as :meth:`_keep_fed`, the
+        set-point recorded at the read's scheduled time: the stream stays in time order)."""
+        t = self.ctx.unanswered()
+        if self.inst.amplifier is None or self._stream is not None or self._stopping:
+            return
+        try:
+            if self.ctx.unheard_for() >= HOLD_KEEPALIVE_S:
+                self._set_voltage(self.ctx.v_req, t)
+        except InstrumentError:
+            self.ctx.feed_failed()
+            raise
 
     # ------------------------------------------------------------ time
     def now(self) -> float:

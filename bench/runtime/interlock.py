@@ -6,7 +6,8 @@ Three kinds, each raised as :class:`InterlockTrip` (a :class:`~bench.runtime.saf
   stall bound while the output was on (a frozen process, a stalled USB driver, a suspended laptop). Its
   communication watchdog may have zeroed the output behind the host's back; the next write would turn high
   voltage back on by itself. Seen on :func:`time.monotonic` before any next write (real time only: a virtual
-  clock cannot stall).
+  clock cannot stall). Where the host spent that time waiting on another instrument that did not answer, the
+  fault is that instrument's (**<instrument> silent**, e.g. "load cell silent"), not a host stall.
 * **output mismatch** — the measured output voltage left the band around what was commanded (see
   :class:`OutputVerifier`): a stream-out the device did not play, a refused or lost set-point, a dead monitor, a
   calibration outside the datasheet's tolerance, a watchdog that fired.
@@ -37,7 +38,7 @@ OUTPUT_ON_V = 50.0  # |commanded| above this: the output is on (a watchdog firin
 
 
 class InterlockTrip(SafetyTrip):
-    """A latched fault: ``kind`` (host stall, output mismatch, stream-out underrun) and one line of detail."""
+    """A latched fault: ``kind`` (host stall, <instrument> silent, output mismatch, …) and one line of detail."""
 
     def __init__(self, kind: str, detail: str) -> None:
         self.kind, self.detail = kind, detail
@@ -62,9 +63,25 @@ def stall_bound(rig: RigConfig) -> float:
     return STALL_FRACTION * watchdog if watchdog is not None else STALL_NO_WATCHDOG_S
 
 
-def check_contact(rig: RigConfig, away: float, output_on: bool) -> None:
-    """Latch a host stall: the set-point module unheard for ``away`` s, longer than the bound, while the output was
-    on."""
+@dataclass(frozen=True)
+class SilentWait:
+    """The host waited ``waited`` s on the instrument of ``role`` and at least one request went unanswered
+    (``detail``: the driver's words, or what was seen)."""
+
+    role: str
+    waited: float
+    detail: str
+
+    @property
+    def name(self) -> str:
+        """The role as a researcher reads it ("load cell")."""
+        return self.role.replace("_", " ")
+
+
+def check_contact(rig: RigConfig, away: float, output_on: bool, waited_on: SilentWait | None = None) -> None:
+    """Latch when the set-point module went unheard for ``away`` s, longer than the bound, while the output was on:
+    a host stall — or, where the host spent that time waiting on another instrument that did not answer
+    (``waited_on``), that instrument's silence, named (the host did not stall; the wait starved the keep-alive)."""
     if not output_on:
         return
     bound = stall_bound(rig)
@@ -72,6 +89,11 @@ def check_contact(rig: RigConfig, away: float, output_on: bool) -> None:
         watchdog = watchdog_period(rig)
         fired = (f"its {watchdog:g}-s communication watchdog {'has' if away >= watchdog else 'may have'} zeroed "
                  "the output" if watchdog is not None else "the output ran unsupervised")
+        if waited_on is not None:
+            raise InterlockTrip(f"{waited_on.name} silent", f"the host waited {waited_on.waited:.2f} s on the "
+                                f"{waited_on.name}, which did not answer ({waited_on.detail}), and the set-point "
+                                f"module went {away:.2f} s without a request meanwhile (bound {bound:.2f} s); "
+                                f"{fired}; high voltage stays off until an operator resets")
         raise InterlockTrip("host stall", f"the set-point module went {away:.2f} s without a request from the "
                             f"host that it answered (bound {bound:.2f} s: a stalled host, or replies lost); {fired}; "
                             "high voltage stays off until an operator resets")

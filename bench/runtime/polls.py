@@ -221,13 +221,15 @@ def _collect(e: RunContext, due: float) -> None:
     present(e.stream, "daq").collect()
 
 
-def _role_poll(drv: Readable, how: Polled) -> Poll:
+def _role_poll(role: str, drv: Readable, how: Polled) -> Poll:
+    """The poll of the instrument of ``role``; its wait kept by the run (:meth:`RunContext.waiting_on`)."""
     described: list[StreamDescription] = []  # the instrument's describe(), asked once, at the first poll
 
     def run(e: RunContext, due: float) -> None:
-        if not described:
-            described.append(drv.describe())
-        poll_once(e, drv, how, due, described[0])
+        with e.waiting_on(role, due + e.offset):
+            if not described:
+                described.append(drv.describe())
+            poll_once(e, drv, how, due, described[0])
     return Poll(how.name, how.period, run)
 
 
@@ -238,5 +240,5 @@ COLLECT = Poll("collect", _collect_period, _collect)
 def rig_polls(e: RunContext) -> tuple[Poll, ...]:
     """This rig's polls: the generic poll of each instrument it reads (:func:`poll_once`, as its role declares in
     :data:`ROLES`), then the laser storage's fetch and the DAQ stream's collect (blocks, not single reads)."""
-    polls = [_role_poll(drv, ROLES.get(role) or Polled(role, _sensor_period)) for role, drv in e.inst.readables()]
+    polls = [_role_poll(role, drv, ROLES.get(role) or Polled(role, _sensor_period)) for role, drv in e.inst.readables()]
     return (*polls, FETCH, COLLECT)
