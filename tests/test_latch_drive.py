@@ -144,3 +144,36 @@ def test_an_unreadable_older_latch_file_is_not_removed_by_another_rigs_reset() -
     with pytest.raises(ValueError, match="unreadable and may be another rig's"):
         rig_latch.reset("thesis sim", "bo", "checked")
     assert old.exists() and rig_latch.latched("thesis-sim") is not None
+
+
+def test_a_latch_keeps_the_names_its_adapter_had_at_the_start(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The run takes its drive's names at the start, while the adapter is there (bench/runtime/run.py, manual
+    control): an "output path dead" latch is written after the adapter is gone, when its by-id link no longer
+    resolves to it. Replugged as another device node, the rig file naming the by-id link, or the new node, is
+    still refused."""
+    links = tmp_path / "by-id"
+    links.mkdir()
+    monkeypatch.setattr(rig_latch, "SERIAL_LINKS", (links,))
+    node0, node1 = tmp_path / "ttyUSB0", tmp_path / "ttyUSB1"
+    node0.touch()
+    by_id = links / "usb-FTDI_FT232R_A1B2C3-if00-port0"
+    by_id.symlink_to(node0)
+    rig = load_rig(_renamed(LAB, "night", tmp_path, **{'"/dev/ttyUSB0"': f'"{node0}"'}))
+    at_start = drive_of(rig)
+    node0.unlink()  # the adapter drops out during the run
+    by_id.unlink()
+    rig_latch.latch(rig.name, "interlock: output path dead", "n.h5", at_start)
+    node1.touch()  # replugged: a new node, udev's by-id link to it
+    by_id.symlink_to(node1)
+    for name, port in (("by-link", str(by_id)), ("new-node", str(node1))):
+        copy = load_rig(_renamed(LAB, name, tmp_path, **{'"/dev/ttyUSB0"': f'"{port}"'}))
+        with pytest.raises(rig_latch.LatchedError, match="latched under rig night"):
+            rig_latch.refuse_if_latched(copy.name, drive_of(copy))
+
+
+def test_odd_ports_have_names_and_no_traceback() -> None:
+    """A Windows device name in either case is one port; a URL pyserial would refuse is kept as written (no
+    ValueError before the driver says what is wrong with it); no name server is asked."""
+    assert rig_latch._port_names("com3") == rig_latch._port_names("COM3")
+    assert rig_latch._port_names("socket://[::1") == {"socket://[::1"}
+    assert rig_latch._port_names("RFC2217://Adapter.lab:2217") == {"rfc2217://adapter.lab:2217"}

@@ -117,3 +117,50 @@ def test_a_watchdog_that_fires_while_the_host_waits_on_the_load_cell_latches_nam
     assert any("load cell silent" in text for text in events(run, "interlock"))
     _ends_safe(result, run, plant)
 
+
+
+# ---------------------------------------------------------------- which silence is the instrument's (review)
+def _context(monkeypatch, now: float, wait: tuple[float, float]):  # type: ignore[no-untyped-def]
+    """A run context's view of the last unanswered wait (``wait``: its start and end on time.monotonic) at
+    ``now``: only what :meth:`RunContext._waited_on` reads."""
+    import types
+
+    from bench.rig import load_rig
+    from bench.runtime import context
+
+    monkeypatch.setattr(context.time, "monotonic", lambda: now)
+    ctx = object.__new__(context.RunContext)
+    ctx._silent = context.Wait("load_cell", wait[0], end=wait[1], unanswered=True)
+    ctx.program = types.SimpleNamespace(rig=load_rig(RIG))
+    return ctx
+
+
+def test_a_silence_the_wait_covers_is_the_instruments_one_left_after_it_is_a_host_stall(monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """lsdea-motor-sim: 1-s watchdog, stall bound 0.8 s (0.8 × the watchdog, README "Interlock"). A 1.0-s wait on
+    the load cell inside a 1.05-s silence leaves 0.05 s uncovered: the load cell's. A wait whose keep-alive fed
+    the module at 100.5 s and a 1.0-s freeze after it: the silence (100.5…101.55 s) is covered by the wait for
+    0.03 s only, so it is the host's (it was laid to the load cell: the wait was long enough, but not in it)."""
+    ctx = _context(monkeypatch, 101.05, (100.0, 101.0))
+    blamed = ctx._waited_on(1.05)
+    assert blamed is not None and blamed.role == "load_cell"
+    ctx = _context(monkeypatch, 101.55, (100.0, 100.53))
+    assert ctx._waited_on(1.05) is None
+    ctx = _context(monkeypatch, 100.5, (100.0, 100.5))  # a 1.0-s freeze before the read, then its 0.5-s wait
+    assert ctx._waited_on(1.5) is None
+
+
+def test_a_keep_alive_between_attempts_is_recorded_after_the_last_set_point() -> None:
+    """A set-point recorded at a ramp's time (5.0 s) and then a read scheduled for 4.9 s whose request went
+    unanswered: the keep-alive sent before its retry is recorded at 5.0 s, not 4.9 s (the stream stays in time
+    order; the windowed readers rely on it)."""
+    import types
+
+    sent: list[float] = []
+    engine = object.__new__(Engine)
+    engine._setpoint_t = 5.0
+    engine._stream, engine._stopping = None, False
+    engine.inst = types.SimpleNamespace(amplifier=object())
+    engine.ctx = types.SimpleNamespace(unanswered=lambda: 4.9, unheard_for=lambda: 1.0, v_req=300.0)
+    engine._set_voltage = lambda v, t, x=float("nan"): sent.append(t)  # type: ignore[method-assign]
+    engine._between_attempts()
+    assert sent == [5.0]

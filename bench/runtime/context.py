@@ -225,16 +225,17 @@ class RunContext:
 
     def _waited_on(self, away: float) -> SilentWait | None:
         """The unanswered wait on another instrument that explains a silence of the set-point module of ``away`` s
-        ending now: it reached into the silence, and the rest of the silence is within the stall bound."""
+        ending now: the part of the silence the wait covers leaves no more than the stall bound uncovered (a
+        freeze before the wait, or after a keep-alive fed during it, is the host's own stall)."""
         w = self._silent
         if w is None or w.role == "amplifier":
             return None
         now = time.monotonic()
         end = now if w.end is None else w.end
-        waited = end - w.start
-        if end < now - away or waited + stall_bound(self.program.rig) < away:
+        covered = end - max(w.start, now - away)  # the wait within the silence
+        if covered <= 0 or away - covered > stall_bound(self.program.rig):
             return None
-        return SilentWait(w.role, waited, w.detail or "a request went unanswered and its link retried")
+        return SilentWait(w.role, end - w.start, w.detail or "a request went unanswered and its link retried")
 
     # ------------------------------------------------------------ interlock
     def guard(self, streaming: bool = False) -> None:

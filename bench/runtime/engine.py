@@ -232,6 +232,7 @@ class Engine:
         self.interruptible = False
         self._interrupt: str | None = None
         self.on_event: Callable[[str, str], None] | None = None  # shutdown events go here instead (manual: its log)
+        self._setpoint_t = -math.inf  # run time of the last set-point recorded (a keep-alive is recorded no earlier)
         amp = program.rig.amplifier
         amp_bus = amp.bus if amp is not None and amp.drive != "daq" else None
         for name, link in inst.links.items():  # a retry on another bus: the set-point module fed before it
@@ -411,8 +412,9 @@ class Engine:
         """Before a retry of a request another instrument left unanswered (its link, not the set-point module's):
         the wait noted (a watchdog that fires meanwhile is laid to that instrument), and the module kept fed, so
         that one silent instrument's timeout and retry do not starve its keep-alive (as :meth:`_keep_fed`, the
-        set-point recorded at the read's scheduled time: the stream stays in time order)."""
-        t = self.ctx.unanswered()
+        set-point recorded at the read's scheduled time, or after the last set-point recorded if that is later: the
+        stream stays in time order)."""
+        t = max(self.ctx.unanswered(), self._setpoint_t)
         if self.inst.amplifier is None or self._stream is not None or self._stopping:
             return
         try:
@@ -577,6 +579,7 @@ class Engine:
         self.ctx.v_cmd, self.ctx.v_req = sent, v
         self.verifier.commanded(self.now(), sent)
         self.rec.append("setpoints", t, voltage=sent, aperture=x_cmd)
+        self._setpoint_t = max(self._setpoint_t, t)
         if sent != want:
             self.sup.check_setpoint(sent)
 
@@ -653,6 +656,7 @@ class Engine:
                                       x_cmd)
                 elif tick.motor is not None:
                     self.rec.append("setpoints", t_set + self.ctx.offset, voltage=math.nan, aperture=x_cmd)
+                    self._setpoint_t = max(self._setpoint_t, t_set + self.ctx.offset)
                 self.snapshot.values["setpoint"] = self.ctx.v_cmd
                 tick = next(schedule, None)
             for kind in [k for k, tk in due.items() if tk <= t_next + 1e-12]:

@@ -35,6 +35,7 @@ if TYPE_CHECKING:
     from bench.rig import RigConfig
 
 STATE_ENV = "BENCH_STATE_DIR"
+SERIAL_LINKS = (Path("/dev/serial/by-id"), Path("/dev/serial/by-path"))  # udev's stable names of serial adapters
 
 
 class LatchedError(ValueError):
@@ -62,15 +63,17 @@ def _port_names(port: str) -> set[str]:
     """A port's names: a serial device as written, resolved, and every ``/dev/serial`` link to it (a replugged
     adapter keeps its by-id name when its number changes); a URL's host as :func:`_host` spells it."""
     if "://" in port:
-        url = urlsplit(port)
         try:
+            url = urlsplit(port)
             number = f":{url.port}" if url.port is not None else ""
-        except ValueError:
-            number = ""
+        except ValueError:  # not a URL pyserial would open either: the text as it is
+            return {port.lower()}
         return {f"{url.scheme.lower()}://{_host(url.hostname or '')}{number}"}
+    if not os.path.isabs(port) and "/" not in port and "\\" not in port:  # a device name: COM3 (Windows, any case)
+        return {port.upper()}
     real = os.path.realpath(port)
     names = {port, real}
-    for folder in (Path("/dev/serial/by-id"), Path("/dev/serial/by-path")):
+    for folder in SERIAL_LINKS:
         try:
             names.update(str(link) for link in folder.iterdir() if os.path.realpath(link) == real)
         except OSError:

@@ -144,6 +144,7 @@ class ManualSession:
     _ending: bool = False  # leaving the session: making the rig safe
     _rec: Recorder | None = None  # the readings' file (None: not open, or its storage failed)
     _early: list[tuple[float, str, str, str]] | None = field(default_factory=list)  # log lines before the file
+    _drive: rig_latch.Drive | None = None  # the amplifier drive's names at the start (while its port is there)
 
     @property
     def end_reason(self) -> str | None:
@@ -235,7 +236,8 @@ class ManualSession:
         if self._end is not None:  # a stop signal while connecting
             engine.request_stop(self._end)
         self.engine = engine
-        was = rig_latch.latched(rig.name, rig_latch.drive_of(rig))
+        self._drive = rig_latch.drive_of(rig)  # its port's names while it is there (a lost adapter has fewer)
+        was = rig_latch.latched(rig.name, self._drive)
         if was is not None:  # a run or an earlier session latched this rig: it stays off until `reset WHY`
             engine.latched_before(f"{was.get('fault')} (in {was.get('where')}, at {was.get('at')})")
             assert engine.latched is not None
@@ -502,9 +504,13 @@ class ManualSession:
         self._latched_line(trip)
         return f"{trip.reason}; {done}; latched"
 
+    def _drive_now(self) -> rig_latch.Drive | None:
+        """The amplifier drive as the session found it at its start (a lost adapter's port has fewer names now)."""
+        return self._drive if self._drive is not None else rig_latch.drive_of(self.rig)
+
     def _latched_line(self, trip: InterlockTrip) -> None:
         self._write("interlock", "latched", f"{self._engine().latch_text()}; {trip.reason}")
-        rig_latch.latch(self.rig.name, trip.reason, str(self.log_file), rig_latch.drive_of(self.rig))
+        rig_latch.latch(self.rig.name, trip.reason, str(self.log_file), self._drive_now())
 
     def _cmd_reset(self, *why: str) -> str:
         engine = self._engine()
@@ -515,7 +521,7 @@ class ManualSession:
             raise Refused("reset needs a reason: reset WHY... (logged with the operator's name)")
         who = self.operator or "an operator not named (no --operator)"
         try:
-            rig_latch.reset(self.rig.name, who, reason, rig_latch.drive_of(self.rig))
+            rig_latch.reset(self.rig.name, who, reason, self._drive_now())
         except ValueError as exc:  # a latch file it may not remove: the rig stays latched
             raise Refused(str(exc)) from None
         kind = engine.reset_latch()

@@ -248,7 +248,8 @@ def _execute_claimed(plan: Plan, out: Path, *, virtual: bool, operator: Operator
     if virtual and not rig.simulated:
         raise ValueError(f"rig {rig.name} is real: virtual time needs a simulated rig (use --sim)")
     watchdog = check_watchdog(rig, allow_no_watchdog)
-    refuse_if_latched(rig.name, drive_of(rig))
+    drive = drive_of(rig)  # its port's names now, while it is there: a latch written after a lost adapter keeps them
+    refuse_if_latched(rig.name, drive)
     sim: SimRig | None = None
     inst: Instruments | None = None
     recorder: Recorder | None = None
@@ -348,7 +349,7 @@ def _execute_claimed(plan: Plan, out: Path, *, virtual: bool, operator: Operator
             result = engine.run()
         finally:  # a fault latches even when the run ends by an exception the engine let through
             if engine.latched is not None:
-                latch(rig.name, engine.latched.reason, str(out), drive_of(rig))
+                latch(rig.name, engine.latched.reason, str(out), drive)
         end_row = {"hv": recorder.hv_stats(), "written": recorder.written()}  # the file, as it was written
         return result
     finally:
