@@ -783,3 +783,19 @@ def test_a_zero_that_could_not_be_commanded_latches_the_session(tmp_path: Path,
         assert again.status == "refused" and "latched" in again.text, again
         assert latched(rig.name) is not None  # the rig's latch: runs are refused too
         assert "output path dead" in str(latched(rig.name))
+
+
+def test_a_speed_beyond_the_rig_limit_is_refused_not_capped(tmp_path: Path) -> None:
+    """As a protocol's move step is refused ("beyond the rig's 1 m/s"), a manual move faster than the rig file's
+    motor.max_velocity_m_per_s is refused in one line, nothing sent, and the session goes on."""
+    rig_text = MOTOR_RIG.read_text(encoding="utf-8")
+    limit = float(re.search(r"^max_velocity_m_per_s = ([\d.]+)", rig_text, re.M).group(1))  # type: ignore[union-attr]
+    assert limit == 1.0
+    with ManualSession(load_rig(MOTOR_RIG), tmp_path / "s.log", virtual=True, echo=lambda _t: None) as s:
+        for line in ("move 90 mm 5 m/s", "jog 10 mm 50 m/s", "move 30 mm 1001 mm/s"):
+            out = s.execute(line)
+            assert out.status == "refused" and "beyond the rig's 1 m/s" in out.text and "not sent" in out.text, out
+            assert "motor 0.000 mm" in s.execute("read").text  # nothing was sent: the motor stands at home
+        assert s.execute("move 30 mm 1 m/s").status == "ok"  # the limit itself is allowed; the session went on
+    rows = _rows(tmp_path / "s.log")
+    assert [r[2] for r in rows if r[3] == "move 90 mm 5 m/s"] == ["refused"]

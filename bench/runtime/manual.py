@@ -9,7 +9,7 @@ Commands (one per line; ``#`` starts a comment; quantities as in files, plain nu
     voltage V               set the amplifier output (e.g. ``voltage 3kV``)
     ramp V DURATION         ramp from the present set-point to V over DURATION (20 set-points per second)
     zero                    output to 0 V at once
-    move POSITION [SPEED]   motor to POSITION [mm] (motor coordinates) at SPEED [mm/s] (default 20 mm/s)
+    move POSITION [SPEED]   motor to POSITION [mm] (motor coordinates) at SPEED [mm/s] (default 20 mm/s; ≤ rig's limit)
     jog DELTA [SPEED]       motor by DELTA [mm] from where it is
     stop                    stop the motor
     tare | zero-cell        load cell: tare (net = 0) or zero (gross = 0)
@@ -568,17 +568,25 @@ class ManualSession:
             raise Refused("this rig has no motor")
         return self._inst.motor
 
+    def _speed(self, text: str) -> float:
+        """The speed asked for; none given: DEFAULT_SPEED, or the rig's limit where that is lower (a speed typed
+        beyond the limit is refused by the engine, as a protocol's move step is)."""
+        if text:
+            return to_si(text, "mm/s")
+        m = self.rig.motor
+        return min(DEFAULT_SPEED, m.max_velocity_m_per_s) if m is not None else DEFAULT_SPEED
+
     def _go(self, target: float, speed: float) -> str:
         self._motor()  # refused on a rig without one
         here = self._engine().move(target, speed)
         return f"motor at {here * 1e3:.3f} mm (target {target * 1e3:.3f} mm); " + self._cmd_read()
 
     def _cmd_move(self, position: str, speed: str = "") -> str:
-        return self._go(to_si(position, "mm"), to_si(speed, "mm/s") if speed else DEFAULT_SPEED)
+        return self._go(to_si(position, "mm"), self._speed(speed))
 
     def _cmd_jog(self, delta: str, speed: str = "") -> str:
         here = float(self._motor().read_position().value)
-        return self._go(here + to_si(delta, "mm"), to_si(speed, "mm/s") if speed else DEFAULT_SPEED)
+        return self._go(here + to_si(delta, "mm"), self._speed(speed))
 
     def _cmd_stop(self) -> str:
         self._motor()
