@@ -799,3 +799,35 @@ def test_a_speed_beyond_the_rig_limit_is_refused_not_capped(tmp_path: Path) -> N
         assert s.execute("move 30 mm 1 m/s").status == "ok"  # the limit itself is allowed; the session went on
     rows = _rows(tmp_path / "s.log")
     assert [r[2] for r in rows if r[3] == "move 90 mm 5 m/s"] == ["refused"]
+
+
+def test_move_says_motor_position_and_aperture_and_takes_an_aperture(tmp_path: Path) -> None:
+    """``move X`` is the motor's position, a protocol's move step the aperture: the answer names both, and
+    ``move aperture X`` goes where the aperture is X. Expected values from the rig file's own mapping (aperture =
+    x_at_motor_zero_m + motor_sign × motor position)."""
+    rig_text = MOTOR_RIG.read_text(encoding="utf-8")
+    x0_mm = float(re.search(r"^x_at_motor_zero_m = ([\d.]+)", rig_text, re.M).group(1)) * 1e3  # type: ignore[union-attr]
+    sign = int(re.search(r"^motor_sign = (-?1)", rig_text, re.M).group(1))  # type: ignore[union-attr]
+    assert (x0_mm, sign) == (45.0, 1)
+    with ManualSession(load_rig(MOTOR_RIG), tmp_path / "s.log", virtual=True, echo=lambda _t: None) as s:
+        out = s.execute("move 50 mm")
+        assert out.status == "ok" and out.text.startswith(
+            f"motor position 50.000 mm = aperture {x0_mm + sign * 50:.3f} mm"), out
+        out = s.execute("move aperture 60 mm 10 mm/s")
+        assert out.status == "ok" and out.text.startswith(
+            f"motor position {(60 - x0_mm) / sign:.3f} mm = aperture 60.000 mm"), out
+        assert f"motor {(60 - x0_mm) / sign:.3f} mm" in s.execute("read").text
+        assert s.execute("move motor 20").text.startswith("motor position 20.000 mm = aperture")
+        low = s.execute(f"move aperture {x0_mm - 10:g} mm")  # motor position -10 mm: outside the travel
+        assert low.status == "refused" and "outside travel" in low.text, low
+        for bad in ("move aperture", "move", "move aperture 1 mm 2 mm/s 3"):
+            assert s.execute(bad).status == "refused" and "move [motor|aperture] POSITION" in s.outcomes[-1].text
+        assert "move aperture X [SPEED]" in s.execute("help").text
+    base = load_rig(MOTOR_RIG)  # the same motor, the LS-DEA blocked: the motor sets no aperture
+    dump = base.model_dump()
+    dump["specimen"]["lsdea"]["configuration"] = "blocked"
+    with ManualSession(type(base).model_validate(dump), tmp_path / "b.log", virtual=True, echo=lambda _t: None) as s:
+        out = s.execute("move aperture 60 mm")
+        assert out.status == "refused" and "does not set an LS-DEA aperture" in out.text, out
+        out = s.execute("move 10 mm")
+        assert out.status == "ok" and out.text.startswith("motor position 10.000 mm (target"), out

@@ -6,19 +6,26 @@ set-point, ramp, move, pause, reading, stop signal and the session's end go thro
 
 Commands (one per line; ``#`` starts a comment; quantities as in files, plain numbers in the unit shown):
 
-    voltage V               set the amplifier output (e.g. ``voltage 3kV``)
-    ramp V DURATION         ramp from the present set-point to V over DURATION (20 set-points per second)
-    zero                    output to 0 V at once
-    move POSITION [SPEED]   motor to POSITION [mm] (motor coordinates) at SPEED [mm/s] (default 20 mm/s; ≤ rig's limit)
-    jog DELTA [SPEED]       motor by DELTA [mm] from where it is
-    stop                    stop the motor
-    tare | zero-cell        load cell: tare (net = 0) or zero (gross = 0)
-    read                    read every channel once
-    watch DURATION [EVERY]  read every channel every EVERY [s] (default 0.5 s) for DURATION [s]
-    wait DURATION           let time pass
-    reset WHY...            clear a latched interlock (the reason and the --operator name are logged)
-    pause | resume          output ramped to 0 V and held there, motor stopped | high voltage allowed again
+    voltage V                    set the amplifier output (e.g. ``voltage 3kV``)
+    ramp V DURATION              ramp from the present set-point to V over DURATION (20 set-points per second)
+    zero                         output to 0 V at once
+    move POSITION [SPEED]        motor position [mm], not the aperture, at SPEED [mm/s] (20 mm/s; ≤ rig's limit)
+    move motor POSITION [SPEED]  the same, said explicitly
+    move aperture X [SPEED]      motor to where the LS-DEA aperture is X [mm] (a protocol move step's position)
+    jog DELTA [SPEED]            motor position by DELTA [mm] from where it is
+    stop                         stop the motor
+    tare | zero-cell             load cell: tare (net = 0) or zero (gross = 0)
+    read                         read every channel once
+    watch DURATION [EVERY]       read every channel every EVERY [s] (default 0.5 s) for DURATION [s]
+    wait DURATION                let time pass
+    reset WHY...                 clear a latched interlock (the reason and the --operator name are logged)
+    pause | resume               output ramped to 0 V and held there, motor stopped | high voltage allowed again
     help | quit
+
+Motor coordinates: ``move POSITION`` and ``jog`` are in the drive's own coordinates (0 … the rig's travel), while a
+protocol's move step gives the LS-DEA's aperture (aperture = ``x_at_motor_zero_m`` + ``motor_sign`` × motor
+position); ``move aperture X`` takes the protocol's coordinate, and every move's answer names both ("motor position
+50.000 mm = aperture 95.000 mm").
 
 Every set-point passes the engine's set-point code: :meth:`bench.runtime.safety.Supervisor.check_setpoint` on the
 request and on the value the module will output after DAC rounding (voltage, field at the present stretch), or
@@ -576,13 +583,35 @@ class ManualSession:
         m = self.rig.motor
         return min(DEFAULT_SPEED, m.max_velocity_m_per_s) if m is not None else DEFAULT_SPEED
 
+    def _where(self, motor_position: float) -> str:
+        """``motor position X mm = aperture Y mm`` (the aperture only where the motor drives an LS-DEA's)."""
+        prog = self._engine().program
+        text = f"motor position {motor_position * 1e3:.3f} mm"
+        if prog.has_motor_axis:
+            text += f" = aperture {float(prog.aperture(motor_position)) * 1e3:.3f} mm"
+        return text
+
     def _go(self, target: float, speed: float) -> str:
         self._motor()  # refused on a rig without one
         here = self._engine().move(target, speed)
-        return f"motor at {here * 1e3:.3f} mm (target {target * 1e3:.3f} mm); " + self._cmd_read()
+        return f"{self._where(here)} (target {self._where(target)}); " + self._cmd_read()
 
-    def _cmd_move(self, position: str, speed: str = "") -> str:
-        return self._go(to_si(position, "mm"), self._speed(speed))
+    def _cmd_move(self, *args: str) -> str:
+        """``move [motor|aperture] POSITION [SPEED]``: a bare POSITION is the motor's (as it always was)."""
+        self._motor()
+        axis = "motor"
+        if args and args[0].lower() in ("motor", "aperture"):
+            axis, args = args[0].lower(), args[1:]
+        if not 1 <= len(args) <= 2:
+            raise Refused("wrong arguments for 'move': move [motor|aperture] POSITION [SPEED] (help lists them)")
+        value, speed = to_si(args[0], "mm"), self._speed(args[1] if len(args) == 2 else "")
+        if axis == "motor":
+            return self._go(value, speed)
+        prog = self._engine().program
+        if not prog.has_motor_axis:
+            raise Refused(f"move aperture: the motor of rig {self.rig.name} does not set an LS-DEA aperture "
+                          "(specimen.lsdea.configuration is not \"motor\"); give its position: move motor POSITION")
+        return self._go(float(prog.motor_position(value)), speed)
 
     def _cmd_jog(self, delta: str, speed: str = "") -> str:
         here = float(self._motor().read_position().value)
