@@ -831,3 +831,26 @@ def test_move_says_motor_position_and_aperture_and_takes_an_aperture(tmp_path: P
         assert out.status == "refused" and "does not set an LS-DEA aperture" in out.text, out
         out = s.execute("move 10 mm")
         assert out.status == "ok" and out.text.startswith("motor position 10.000 mm (target"), out
+
+
+def test_a_script_stops_at_a_trip_and_says_the_rest_is_not_run(tmp_path: Path) -> None:
+    """A scripted session (stop_on_trip, as ``--script`` and piped input run it) does not go on after a trip — the
+    README's account — and the log and the terminal say that the commands after it were not run."""
+    import dataclasses
+
+    seen: list[str] = []
+    with ManualSession(load_rig(THESIS_RIG), tmp_path / "s.log", virtual=True, echo=seen.append) as s:
+        def script():
+            yield "voltage 4kV"
+            hv = s._sim.plant.hv  # the amplifier's gain 25 % off: the output verifier latches on the watch
+            s._sim.plant.hv = dataclasses.replace(hv, gain=hv.gain * 1.25)
+            yield "watch 5 0.25"
+            yield "read"  # never run
+            yield "voltage 1kV"  # never run
+        s.run_lines(script(), stop_on_trip=True)
+    assert [(o.command, o.status) for o in s.outcomes] == [("voltage 4kV", "ok"), ("watch 5 0.25", "trip")]
+    rows = _rows(tmp_path / "s.log")
+    (stopped,) = [r for r in rows if r[2:4] == ["stopped", "session"]]
+    assert "'watch 5 0.25'" in stopped[4] and "not run" in stopped[4]
+    assert any(line.startswith("stopped: ") and "not run" in line for line in seen), seen
+    assert not any(r[3] in ("read", "voltage 1kV") for r in rows)

@@ -44,6 +44,11 @@ compared with the voltage commanded (:class:`~bench.runtime.interlock.OutputVeri
 output at once (no ramp) and latches: every command that would energise is refused, in one line naming the
 fault, until the operator types ``reset WHY…`` (logged with the reason and the ``--operator`` name).
 
+A trip in a script (``--script``, or commands piped in: :meth:`ManualSession.run_lines` with ``stop_on_trip``) — a
+latched fault or a limit the supervisor trips on — ends the script there: the commands after it are not run (an
+unattended script does not go on after a trip), a ``stopped`` line in the log says so, and the session ends through
+its safe exit. At a prompt the session goes on (latched: refusing what would energise until ``reset``).
+
 Pause: ``pause`` (or SIGUSR1, as for a run) is the run's pause — the output ramped to 0 V over the rig's
 ``shutdown_ramp_s``, the motor stopped — and every set-point but 0 V is refused, in one line, until ``resume`` is typed
 (never by a signal: an operator is at the prompt); reading goes on. A SIGUSR1 during a command ends that
@@ -385,7 +390,8 @@ class ManualSession:
 
     # ------------------------------------------------------------ commands
     def run_lines(self, lines: Iterable[str], stop_on_trip: bool = True) -> list[Outcome]:
-        """Execute commands until ``quit``, the end or a stop signal; after a trip, stop if ``stop_on_trip``."""
+        """Execute commands until ``quit``, the end or a stop signal; after a trip, stop if ``stop_on_trip`` (a
+        script: an unattended session does not go on after a trip), saying so in the log and to the operator."""
         it = iter(lines)
         engine = self._engine()
         try:
@@ -401,6 +407,11 @@ class ManualSession:
                     break
                 out = self.execute(line)
                 if out.status == "trip" and stop_on_trip:
+                    text = (f"the script stops at the trip of '{out.command}': the commands after it are not run "
+                            "(an unattended script does not go on after a trip); the session ends through its "
+                            "safe exit")
+                    self._write("session", "stopped", text)
+                    self.echo(f"stopped: {text}")
                     break
         except StopRequested:
             pass
