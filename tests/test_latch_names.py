@@ -51,3 +51,25 @@ def test_an_old_format_latch_file_still_latches_its_own_rig_only() -> None:
     assert res.exit_code == 0 and set(json.loads(res.output)["latched"]) == {"thesis-sim"}
     assert rig_latch.reset("thesis-sim", "bo", "x") is not None and not old.exists()
     assert rig_latch.latched("thesis-sim") is None
+
+
+def test_status_prints_one_readable_line_per_latch_not_a_dict() -> None:
+    """The tester's finding: ``bench interlock status`` printed the latch's raw Python dict. The latches are written
+    here by hand, in the file form the state folder holds, so the values expected are the test's own."""
+    folder = rig_latch.state_dir()
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "interlock-lab-rig.json").write_text(json.dumps({
+        "rig": "lab-rig", "fault": "interlock: host stall 2.5 s", "where": "runs/r1.h5",
+        "at": "2026-11-27T10:00:00+00:00", "drive": "/dev/ttyUSB0 unit 1 channel 0",
+        "drive_ids": ["/dev/ttyUSB0 unit 1 channel 0"]}))
+    (folder / "interlock-sim-rig.json").write_text(json.dumps({
+        "rig": "sim-rig", "fault": "output verifier: monitor 3000 V, commanded 0 V", "where": "manual.log",
+        "at": "2026-11-27T11:00:00+00:00"}))
+    res = runner.invoke(app, ["interlock", "status"], terminal_width=60)
+    assert res.exit_code == 0, res.output
+    lines = res.output.splitlines()
+    assert lines == [
+        "latched lab-rig: interlock: host stall 2.5 s; at 2026-11-27T10:00:00+00:00; in runs/r1.h5; "
+        "drive /dev/ttyUSB0 unit 1 channel 0",
+        "latched sim-rig: output verifier: monitor 3000 V, commanded 0 V; at 2026-11-27T11:00:00+00:00; "
+        "in manual.log"], res.output

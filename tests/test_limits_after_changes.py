@@ -221,3 +221,35 @@ def test_the_headroom_follows_each_value_it_reads_and_each_specimen() -> None:
     q3 = q1.changed(prototype=3)
     sup.specimen = q3
     assert sup.headroom() == want(q3, 1.5 * q1.xp, -3000.0, -2e-3, 1.5)
+
+
+SINE = """
+[[steps]]
+type = "waveform"
+name = "two whole cycles"
+kind = "sine"
+channel = "voltage"
+amplitude = "5 kV"
+frequency_Hz = 0.1111111111111111
+cycles = 2
+"""
+
+
+def test_a_set_step_after_whole_sine_cycles_is_allowed_and_a_volt_left_on_still_refused(tmp_path: Path) -> None:
+    """A whole-cycle sine ends at 0 V up to floating point (the tester's "leaves it at -2.44929e-12 V"): the set
+    step is allowed within 1 ppm of the rig's voltage limit (7000 V in the rig file: 7 mV), not beyond."""
+    import math
+    import re
+
+    end = 5000 * math.sin(2 * math.pi * 2)  # where the sine's formula lands after 2 cycles, in floating point
+    assert end != 0.0 and abs(end) < 1e-9
+    limit = float(re.search(r"^max_voltage_V = ([\d.]+)", RIG.read_text(encoding="utf-8"), re.M).group(1))  # type: ignore[union-attr]
+    program = compile_program(load_protocol(_protocol(tmp_path, SINE + SET + SINE)), load_rig(RIG))
+    assert [s.kind for s in program.segments] == ["waveform", "set", "waveform"]
+    for to, allowed in ((f"{0.5e-6 * limit:g} V", True), (f"{2e-6 * limit:g} V", False), ("1 V", False)):
+        path = _protocol(tmp_path, RAMP.format(to=to) + SET)
+        if allowed:
+            compile_program(load_protocol(path), load_rig(RIG))
+        else:
+            with pytest.raises(ValueError, match=r"needs the output at 0 V.*1 ppm of the rig's 7000 V limit"):
+                compile_program(load_protocol(path), load_rig(RIG))

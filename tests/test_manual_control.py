@@ -783,3 +783,74 @@ def test_a_zero_that_could_not_be_commanded_latches_the_session(tmp_path: Path,
         assert again.status == "refused" and "latched" in again.text, again
         assert latched(rig.name) is not None  # the rig's latch: runs are refused too
         assert "output path dead" in str(latched(rig.name))
+
+
+def test_a_speed_beyond_the_rig_limit_is_refused_not_capped(tmp_path: Path) -> None:
+    """As a protocol's move step is refused ("beyond the rig's 1 m/s"), a manual move faster than the rig file's
+    motor.max_velocity_m_per_s is refused in one line, nothing sent, and the session goes on."""
+    rig_text = MOTOR_RIG.read_text(encoding="utf-8")
+    limit = float(re.search(r"^max_velocity_m_per_s = ([\d.]+)", rig_text, re.M).group(1))  # type: ignore[union-attr]
+    assert limit == 1.0
+    with ManualSession(load_rig(MOTOR_RIG), tmp_path / "s.log", virtual=True, echo=lambda _t: None) as s:
+        for line in ("move 90 mm 5 m/s", "jog 10 mm 50 m/s", "move 30 mm 1001 mm/s"):
+            out = s.execute(line)
+            assert out.status == "refused" and "beyond the rig's 1 m/s" in out.text and "not sent" in out.text, out
+            assert "motor 0.000 mm" in s.execute("read").text  # nothing was sent: the motor stands at home
+        assert s.execute("move 30 mm 1 m/s").status == "ok"  # the limit itself is allowed; the session went on
+    rows = _rows(tmp_path / "s.log")
+    assert [r[2] for r in rows if r[3] == "move 90 mm 5 m/s"] == ["refused"]
+
+
+def test_move_says_motor_position_and_aperture_and_takes_an_aperture(tmp_path: Path) -> None:
+    """``move X`` is the motor's position, a protocol's move step the aperture: the answer names both, and
+    ``move aperture X`` goes where the aperture is X. Expected values from the rig file's own mapping (aperture =
+    x_at_motor_zero_m + motor_sign × motor position)."""
+    rig_text = MOTOR_RIG.read_text(encoding="utf-8")
+    x0_mm = float(re.search(r"^x_at_motor_zero_m = ([\d.]+)", rig_text, re.M).group(1)) * 1e3  # type: ignore[union-attr]
+    sign = int(re.search(r"^motor_sign = (-?1)", rig_text, re.M).group(1))  # type: ignore[union-attr]
+    assert (x0_mm, sign) == (45.0, 1)
+    with ManualSession(load_rig(MOTOR_RIG), tmp_path / "s.log", virtual=True, echo=lambda _t: None) as s:
+        out = s.execute("move 50 mm")
+        assert out.status == "ok" and out.text.startswith(
+            f"motor position 50.000 mm = aperture {x0_mm + sign * 50:.3f} mm"), out
+        out = s.execute("move aperture 60 mm 10 mm/s")
+        assert out.status == "ok" and out.text.startswith(
+            f"motor position {(60 - x0_mm) / sign:.3f} mm = aperture 60.000 mm"), out
+        assert f"motor {(60 - x0_mm) / sign:.3f} mm" in s.execute("read").text
+        assert s.execute("move motor 20").text.startswith("motor position 20.000 mm = aperture")
+        low = s.execute(f"move aperture {x0_mm - 10:g} mm")  # motor position -10 mm: outside the travel
+        assert low.status == "refused" and "outside travel" in low.text, low
+        for bad in ("move aperture", "move", "move aperture 1 mm 2 mm/s 3"):
+            assert s.execute(bad).status == "refused" and "move [motor|aperture] POSITION" in s.outcomes[-1].text
+        assert "move aperture X [SPEED]" in s.execute("help").text
+    base = load_rig(MOTOR_RIG)  # the same motor, the LS-DEA blocked: the motor sets no aperture
+    dump = base.model_dump()
+    dump["specimen"]["lsdea"]["configuration"] = "blocked"
+    with ManualSession(type(base).model_validate(dump), tmp_path / "b.log", virtual=True, echo=lambda _t: None) as s:
+        out = s.execute("move aperture 60 mm")
+        assert out.status == "refused" and "does not set an LS-DEA aperture" in out.text, out
+        out = s.execute("move 10 mm")
+        assert out.status == "ok" and out.text.startswith("motor position 10.000 mm (target"), out
+
+
+def test_a_script_stops_at_a_trip_and_says_the_rest_is_not_run(tmp_path: Path) -> None:
+    """A scripted session (stop_on_trip, as ``--script`` and piped input run it) does not go on after a trip — the
+    README's account — and the log and the terminal say that the commands after it were not run."""
+    import dataclasses
+
+    seen: list[str] = []
+    with ManualSession(load_rig(THESIS_RIG), tmp_path / "s.log", virtual=True, echo=seen.append) as s:
+        def script():
+            yield "voltage 4kV"
+            hv = s._sim.plant.hv  # the amplifier's gain 25 % off: the output verifier latches on the watch
+            s._sim.plant.hv = dataclasses.replace(hv, gain=hv.gain * 1.25)
+            yield "watch 5 0.25"
+            yield "read"  # never run
+            yield "voltage 1kV"  # never run
+        s.run_lines(script(), stop_on_trip=True)
+    assert [(o.command, o.status) for o in s.outcomes] == [("voltage 4kV", "ok"), ("watch 5 0.25", "trip")]
+    rows = _rows(tmp_path / "s.log")
+    (stopped,) = [r for r in rows if r[2:4] == ["stopped", "session"]]
+    assert "'watch 5 0.25'" in stopped[4] and "not run" in stopped[4]
+    assert any(line.startswith("stopped: ") and "not run" in line for line in seen), seen
+    assert not any(r[3] in ("read", "voltage 1kV") for r in rows)

@@ -466,3 +466,57 @@ def test_specimen_overrides_the_rig_s_specimen_cannot_take_are_refused(tmp_path:
                         '[[steps]]\ntype = "hold"\nduration_s = 1.0\n', encoding="utf-8")
     with pytest.raises(ProtocolLimitError, match=rf"\[specimen\]: {re.escape(said)}"):
         plan_run(protocol)
+
+
+UNITS_IN_NAMED_FIELDS = """
+[[steps]]
+type = "wait"
+duration_s = "2 min"
+
+[[steps]]
+type = "sweep"
+over = {{ m = ["150 g", 0.2] }}
+
+[[steps.steps]]
+type = "set"
+hung_mass_kg = "{{m}}"
+
+[[steps.steps]]
+type = "relax"
+duration_s = "{{d}}"
+ramp_down_s = "500 ms"
+
+[[steps]]
+type = "waveform"
+amplitude = "1 kV"
+frequency_Hz = "{f}"
+cycles = 1
+"""
+
+
+def test_fields_with_the_unit_in_their_name_take_quantities_as_the_readme_says(tmp_path: Path) -> None:
+    """README: quantities "150 g" or "2 min" in any unit of the field's dimension. Expected values by hand:
+    2 min = 120 s, 150 g = 0.15 kg, 500 ms = 0.5 s, 1.5 min = 90 s, 500 mHz = 0.5 Hz."""
+    body = UNITS_IN_NAMED_FIELDS.replace('"{{d}}"', '"1.5 min"').format(f="500 mHz")
+    p = load_protocol(write(tmp_path, body, rig=ISOTONIC_RIG))
+    got = [(s.type, getattr(s, "duration_s", None), getattr(s, "hung_mass_kg", None)) for s in p.steps]
+    assert got == [("wait", 120.0, None), ("set", None, 0.15), ("relax", 90.0, None), ("set", None, 0.2),
+                   ("relax", 90.0, None), ("waveform", None, None)]
+    assert p.steps[2].ramp_down_s == 0.5 and p.steps[-1].frequency_Hz == 0.5  # type: ignore[union-attr]
+    body = '[specimen]\ntemperature_K = "43 degC"\n[[steps]]\ntype = "wait"\nduration_s = 1\n'
+    spec = load_protocol(write(tmp_path, body))
+    assert spec.specimen is not None and spec.specimen.temperature_K == pytest.approx(316.15)
+    # a unit of the wrong kind, or a value beyond the field's bounds once converted: one line naming the field
+    for body, fragment in ((UNITS_IN_NAMED_FIELDS.replace('"2 min"', '"2 kV"'), r"steps\[0\]\(wait\)\.duration_s: "
+                            r"'2 kV' is a voltage, expected a time"),
+                           (UNITS_IN_NAMED_FIELDS.replace('"150 g"', '"3 kg"'), r"hung_mass_kg: .*less than or equal "
+                            r"to 2"),
+                           (UNITS_IN_NAMED_FIELDS.replace('"2 min"', '"8 d"'), r"duration_s: .*less than or equal")):
+        with pytest.raises(ProtocolFileError, match=fragment):
+            load_protocol(write(tmp_path, body.replace('"{{d}}"', '"1 s"').format(f="1 Hz"), rig=ISOTONIC_RIG))
+
+
+def test_an_undefined_placeholder_is_named(tmp_path: Path) -> None:
+    body = UNITS_IN_NAMED_FIELDS.format(f="1 Hz")  # {d}: no sweep defines it
+    with pytest.raises(ProtocolFileError, match=r"steps\[1\]\(relax\)\.duration_s: placeholder \{d\} is not defined"):
+        load_protocol(write(tmp_path, body, rig=ISOTONIC_RIG))

@@ -64,7 +64,8 @@ def devices_control(
     an HDF5 file beside the log (`bench inspect` reads it). Commands: see `help` in the session.
 
     A host stall longer than the set-point module's watchdog allows, or an output that is not what was
-    commanded, zeroes the output at once and latches: high voltage is refused until `reset WHY...`.
+    commanded, zeroes the output at once and latches: high voltage is refused until `reset WHY...`. A script
+    (--script, or piped commands) stops at a trip: the commands after it are not run.
 
     On a terminal the prompt has line editing and a history (~/.bench_history). Ctrl-C ends the command under
     way; a second Ctrl-C, Ctrl-C at the prompt, SIGTERM, SIGHUP or SIGQUIT end the session: output ramped to

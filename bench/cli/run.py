@@ -524,7 +524,17 @@ def interlock_status(json_out: JsonOpt = False) -> None:
     if not found:
         console.print(f"no rig latched ({escape(str(state_dir()))})")
     for rig_name, was in found.items():
-        console.print(f"[red]latched[/] {escape(rig_name)}: {escape(str(was))}")
+        console.print(f"[red]latched[/] {escape(_latch_line(rig_name, was))}", soft_wrap=True)
+
+
+def _latch_line(rig_name: str, was: dict[str, object]) -> str:
+    """One latch, readable on one line: ``RIG: FAULT; at WHEN; in WHERE[; drive DRIVE]``."""
+
+    def flat(key: str) -> str:
+        return " ".join(str(was.get(key) or "?").split())
+
+    drive = f"; drive {flat('drive')}" if was.get("drive") else ""
+    return f"{' '.join(rig_name.split())}: {flat('fault')}; at {flat('at')}; in {flat('where')}{drive}"
 
 
 @clean_errors

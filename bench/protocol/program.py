@@ -29,6 +29,10 @@ MOVE_SETTLE_S = 0.05
 MAX_SAMPLES = 10**10  # recorded samples over a whole run (all streams): ~ 1 TB uncompressed
 PASSIVE_LASER_HZ = 10.0  # single laser reads while its data storage is idle (software-timed rigs)
 HOLD_KEEPALIVE_S = 0.25  # set-point refresh during holds (keeps the analog module's watchdog fed)
+# a set step's "output at 0 V", as a fraction of the rig's voltage limit: 1 ppm (7 mV at 7 kV) is far below one step
+# of the finest set-point DAC a rig file allows (16 bits over ±limit: 30 ppm), so the code sent is the 0-V request's,
+# and far above a waveform's floating-point end (a whole-cycle 5-kV sine ends at -2.4e-12 V)
+ZERO_V_FRACTION = 1e-6
 
 
 class ProtocolLimitError(ValueError):
@@ -212,9 +216,13 @@ class _Compiler:
             raise self.refuse(label, "temperature_K acts on the membrane model only")
         if "hung_mass_kg" in changes and spec.lsdea.configuration != "hung":
             raise self.refuse(label, "hung_mass_kg needs the hung-mass (isotonic) configuration")
-        if self.v_now != 0.0:  # the operator acts on the rig (mounts a prototype, hangs a mass, sets the chamber)
+        # the operator acts on the rig (mounts a prototype, hangs a mass, sets the chamber): at 0 V, to within
+        # ZERO_V_FRACTION of the voltage limit (a whole-cycle sine ends at sin(2πn) ≈ -2e-12 V in floating point)
+        if abs(self.v_now) > ZERO_V_FRACTION * self.v_limit:
             raise self.refuse(label, f"a specimen change needs the output at 0 V, and the step before leaves it at "
-                              f"{self.v_now:g} V: end that step at 0 V (a relax step, or a ramp to 0)")
+                              f"{self.v_now:g} V (0 V means within {ZERO_V_FRACTION * 1e6:g} ppm of the rig's "
+                              f"{self.v_limit:.0f} V limit, {ZERO_V_FRACTION * self.v_limit * 1e3:g} mV): end that "
+                              "step at 0 V (a relax step, or a ramp to 0)")
         return Segment(i, label, name, "set", self.t, 0.0, changes=changes)
 
     # ------------------------------------------------------------------ what every step gets

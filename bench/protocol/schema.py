@@ -15,7 +15,9 @@ named steps. Step types (``type = ...``):
   with ``{name}`` placeholders in the nested steps replaced by the swept values.
 
 Channels: ``voltage`` (V) and ``position`` (the LS-DEA aperture x, m; the engine maps it to the motor).
-Values whose field name carries no unit are quantities with units: ``"7 kV"``, ``"45 mm"``, ``"0.1 m/s"``.
+Values whose field name carries no unit are quantities with units: ``"7 kV"``, ``"45 mm"``, ``"0.1 m/s"``; a field
+whose name carries the unit (``duration_s``, ``frequency_Hz``, ``temperature_K``, ``hung_mass_kg``) takes a plain
+number in that unit or a quantity (``"2 min"``, ``"150 g"``, ``"25 °C"``).
 """
 
 from __future__ import annotations
@@ -30,7 +32,16 @@ from typing import Annotated, Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Field,
+    TypeAdapter,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
 from bench.protocol.quantity import format_quantity, parse_quantity
 from bench.tomlfile import one_line, read_toml
@@ -66,6 +77,29 @@ def _q(dimension: str) -> Any:
     return parse
 
 
+def _unit_in_name(dimension: str) -> BeforeValidator:
+    """A field whose name carries its unit (``duration_s``, ``hung_mass_kg``): a plain number in that unit, or a
+    quantity of its dimension with any unit (``"2 min"``, ``"150 g"``, ``"25 °C"``), read by the same parser as
+    the quantity fields and converted to the SI unit the name gives; the field's own bounds apply after."""
+
+    def convert(v: Any) -> Any:
+        if not isinstance(v, str):
+            return v  # numbers (and None) go to the field's own validation
+        try:
+            return float(v)  # "2": a plain number in the field's unit, as before ("nan" refused by the model)
+        except ValueError:
+            return parse_quantity(v, dimension)[0]
+
+    return BeforeValidator(convert)
+
+
+Seconds = Annotated[float, _unit_in_name("time")]
+Hertz = Annotated[float, _unit_in_name("frequency")]
+MaybeSeconds = Annotated[float | None, _unit_in_name("time")]
+MaybeKelvin = Annotated[float | None, _unit_in_name("temperature")]
+MaybeKilograms = Annotated[float | None, _unit_in_name("mass")]
+
+
 class _StepBase(_Strict):
     name: str = ""
 
@@ -78,9 +112,9 @@ class WaveformStep(_StepBase):
     kind: Literal["sine", "raised_cosine", "triangle", "square"] = "raised_cosine"
     offset: str = "0 V"
     amplitude: str
-    frequency_Hz: float = Field(gt=0, le=1000)
+    frequency_Hz: Hertz = Field(gt=0, le=1000)
     cycles: float | None = Field(None, gt=0, le=MAX_DURATION_S * 1000)
-    duration_s: float | None = Field(None, ge=MIN_DURATION_S, le=MAX_DURATION_S)
+    duration_s: MaybeSeconds = Field(None, ge=MIN_DURATION_S, le=MAX_DURATION_S)
 
     @model_validator(mode="after")
     def _check(self) -> WaveformStep:
@@ -125,7 +159,7 @@ class RampStep(_StepBase):
     type: Literal["ramp"]
     channel: Channel = "voltage"
     to: str
-    duration_s: float = Field(ge=MIN_DURATION_S, le=MAX_DURATION_S)
+    duration_s: Seconds = Field(ge=MIN_DURATION_S, le=MAX_DURATION_S)
 
     @field_validator("to")
     @classmethod
@@ -148,8 +182,8 @@ class HoldStep(_StepBase):
     """Keep the set-points (``hold``/``wait``), or zero the voltage first (``relax``)."""
 
     type: Literal["hold", "wait", "relax"]
-    duration_s: float = Field(ge=MIN_DURATION_S, le=MAX_DURATION_S)
-    ramp_down_s: float | None = Field(default=None, ge=MIN_DURATION_S, le=MAX_DURATION_S)
+    duration_s: Seconds = Field(ge=MIN_DURATION_S, le=MAX_DURATION_S)
+    ramp_down_s: MaybeSeconds = Field(default=None, ge=MIN_DURATION_S, le=MAX_DURATION_S)
 
     @model_validator(mode="after")
     def _check(self) -> HoldStep:
@@ -202,8 +236,8 @@ class SetStep(_StepBase):
     """Change specimen parameters between tests."""
 
     type: Literal["set"]
-    temperature_K: float | None = Field(None, gt=150, lt=450)
-    hung_mass_kg: float | None = Field(None, ge=0, le=2)
+    temperature_K: MaybeKelvin = Field(None, gt=150, lt=450)
+    hung_mass_kg: MaybeKilograms = Field(None, ge=0, le=2)
     prototype: Literal[1, 2, 3] | None = None
 
     @model_validator(mode="after")
@@ -242,8 +276,8 @@ class RecordingConfig(_Strict):
 class SpecimenOverrides(_Strict):
     """Specimen parameters the protocol sets for the whole run (applied to the rig's specimen)."""
 
-    temperature_K: float | None = Field(None, gt=150, lt=450)
-    hung_mass_kg: float | None = Field(None, ge=0, le=2)
+    temperature_K: MaybeKelvin = Field(None, gt=150, lt=450)
+    hung_mass_kg: MaybeKilograms = Field(None, ge=0, le=2)
     prototype: Literal[1, 2, 3] | None = None
 
 
@@ -543,6 +577,11 @@ def load_protocol(path: str | Path) -> Protocol:
     steps: list[AnyStep] = []
     total = 0.0
     for label, st in expanded:
+        for key, value in st.items():  # every sweep has substituted its values: a placeholder left is a typo
+            left = _PLACEHOLDER.search(value) if isinstance(value, str) and key != "name" else None
+            if left is not None:
+                raise ProtocolFileError(f"protocol file {p}: {label}.{key}: placeholder {left.group(0)} is not "
+                                        f"defined: no enclosing sweep's over names {left.group(1)}")
         try:
             steps.append(STEP_ADAPTER.validate_python(st))
         except ValidationError as exc:
@@ -573,4 +612,39 @@ def json_schema() -> str:
     schema.setdefault("$defs", {})["AnyStep"] = {"anyOf": [step_ref, container]}
     schema["properties"]["steps"]["items"] = {"$ref": "#/$defs/AnyStep"}
     schema["title"] = "dea-bench protocol file"
+    _quantity_alternative(schema)
     return json.dumps(schema, indent=2)
+
+
+UNIT_IN_NAME = ("duration_s", "ramp_down_s", "frequency_Hz", "temperature_K", "hung_mass_kg")
+
+
+def _quantity_alternative(node: Any) -> None:
+    """In the schema, the fields of :data:`UNIT_IN_NAME` (a number in the unit the name gives) also take a quantity
+    string (``"2 min"``), as the loader does (:func:`_unit_in_name`)."""
+    if isinstance(node, list):
+        for item in node:
+            _quantity_alternative(item)
+        return
+    if not isinstance(node, dict):
+        return
+    for key, value in node.items():
+        if key == "properties" and isinstance(value, dict):
+            for name in UNIT_IN_NAME:
+                prop = value.get(name)
+                if isinstance(prop, dict):
+                    value[name] = _or_quantity(prop)
+        _quantity_alternative(value)
+
+
+def _or_quantity(prop: dict[str, Any]) -> dict[str, Any]:
+    quantity = {"type": "string", "description": "a quantity with a unit of the field's dimension, e.g. '2 min', "
+                "'150 g', '25 °C' (converted to the unit in the field's name)"}
+    if prop.get("type") == "number":  # required: {type, minimum, maximum, title}
+        title = prop.pop("title", None)
+        return {"anyOf": [prop, quantity], **({"title": title} if title else {})}
+    options = prop.get("anyOf")
+    if isinstance(options, list):  # optional: anyOf [number, null]
+        prop["anyOf"] = [*options[:1], quantity, *options[1:]] if options[:1] and \
+            options[0].get("type") == "number" else options
+    return prop

@@ -6,19 +6,26 @@ set-point, ramp, move, pause, reading, stop signal and the session's end go thro
 
 Commands (one per line; ``#`` starts a comment; quantities as in files, plain numbers in the unit shown):
 
-    voltage V               set the amplifier output (e.g. ``voltage 3kV``)
-    ramp V DURATION         ramp from the present set-point to V over DURATION (20 set-points per second)
-    zero                    output to 0 V at once
-    move POSITION [SPEED]   motor to POSITION [mm] (motor coordinates) at SPEED [mm/s] (default 20 mm/s)
-    jog DELTA [SPEED]       motor by DELTA [mm] from where it is
-    stop                    stop the motor
-    tare | zero-cell        load cell: tare (net = 0) or zero (gross = 0)
-    read                    read every channel once
-    watch DURATION [EVERY]  read every channel every EVERY [s] (default 0.5 s) for DURATION [s]
-    wait DURATION           let time pass
-    reset WHY...            clear a latched interlock (the reason and the --operator name are logged)
-    pause | resume          output ramped to 0 V and held there, motor stopped | high voltage allowed again
+    voltage V                    set the amplifier output (e.g. ``voltage 3kV``)
+    ramp V DURATION              ramp from the present set-point to V over DURATION (20 set-points per second)
+    zero                         output to 0 V at once
+    move POSITION [SPEED]        motor position [mm], not the aperture, at SPEED [mm/s] (20 mm/s; ≤ rig's limit)
+    move motor POSITION [SPEED]  the same, said explicitly
+    move aperture X [SPEED]      motor to where the LS-DEA aperture is X [mm] (a protocol move step's position)
+    jog DELTA [SPEED]            motor position by DELTA [mm] from where it is
+    stop                         stop the motor
+    tare | zero-cell             load cell: tare (net = 0) or zero (gross = 0)
+    read                         read every channel once
+    watch DURATION [EVERY]       read every channel every EVERY [s] (default 0.5 s) for DURATION [s]
+    wait DURATION                let time pass
+    reset WHY...                 clear a latched interlock (the reason and the --operator name are logged)
+    pause | resume               output ramped to 0 V and held there, motor stopped | high voltage allowed again
     help | quit
+
+Motor coordinates: ``move POSITION`` and ``jog`` are in the drive's own coordinates (0 … the rig's travel), while a
+protocol's move step gives the LS-DEA's aperture (aperture = ``x_at_motor_zero_m`` + ``motor_sign`` × motor
+position); ``move aperture X`` takes the protocol's coordinate, and every move's answer names both ("motor position
+50.000 mm = aperture 95.000 mm").
 
 Every set-point passes the engine's set-point code: :meth:`bench.runtime.safety.Supervisor.check_setpoint` on the
 request and on the value the module will output after DAC rounding (voltage, field at the present stretch), or
@@ -36,6 +43,11 @@ zeroed the output, and the next keep-alive would turn high voltage back on by it
 compared with the voltage commanded (:class:`~bench.runtime.interlock.OutputVerifier`). Either fault zeroes the
 output at once (no ramp) and latches: every command that would energise is refused, in one line naming the
 fault, until the operator types ``reset WHY…`` (logged with the reason and the ``--operator`` name).
+
+A trip in a script (``--script``, or commands piped in: :meth:`ManualSession.run_lines` with ``stop_on_trip``) — a
+latched fault or a limit the supervisor trips on — ends the script there: the commands after it are not run (an
+unattended script does not go on after a trip), a ``stopped`` line in the log says so, and the session ends through
+its safe exit. At a prompt the session goes on (latched: refusing what would energise until ``reset``).
 
 Pause: ``pause`` (or SIGUSR1, as for a run) is the run's pause — the output ramped to 0 V over the rig's
 ``shutdown_ramp_s``, the motor stopped — and every set-point but 0 V is refused, in one line, until ``resume`` is typed
@@ -380,7 +392,8 @@ class ManualSession:
 
     # ------------------------------------------------------------ commands
     def run_lines(self, lines: Iterable[str], stop_on_trip: bool = True) -> list[Outcome]:
-        """Execute commands until ``quit``, the end or a stop signal; after a trip, stop if ``stop_on_trip``."""
+        """Execute commands until ``quit``, the end or a stop signal; after a trip, stop if ``stop_on_trip`` (a
+        script: an unattended session does not go on after a trip), saying so in the log and to the operator."""
         it = iter(lines)
         engine = self._engine()
         try:
@@ -396,6 +409,11 @@ class ManualSession:
                     break
                 out = self.execute(line)
                 if out.status == "trip" and stop_on_trip:
+                    text = (f"the script stops at the trip of '{out.command}': the commands after it are not run "
+                            "(an unattended script does not go on after a trip); the session ends through its "
+                            "safe exit")
+                    self._write("session", "stopped", text)
+                    self.echo(f"stopped: {text}")
                     break
         except StopRequested:
             pass
@@ -574,17 +592,47 @@ class ManualSession:
             raise Refused("this rig has no motor")
         return self._inst.motor
 
+    def _speed(self, text: str) -> float:
+        """The speed asked for; none given: DEFAULT_SPEED, or the rig's limit where that is lower (a speed typed
+        beyond the limit is refused by the engine, as a protocol's move step is)."""
+        if text:
+            return to_si(text, "mm/s")
+        m = self.rig.motor
+        return min(DEFAULT_SPEED, m.max_velocity_m_per_s) if m is not None else DEFAULT_SPEED
+
+    def _where(self, motor_position: float) -> str:
+        """``motor position X mm = aperture Y mm`` (the aperture only where the motor drives an LS-DEA's)."""
+        prog = self._engine().program
+        text = f"motor position {motor_position * 1e3:.3f} mm"
+        if prog.has_motor_axis:
+            text += f" = aperture {float(prog.aperture(motor_position)) * 1e3:.3f} mm"
+        return text
+
     def _go(self, target: float, speed: float) -> str:
         self._motor()  # refused on a rig without one
         here = self._engine().move(target, speed)
-        return f"motor at {here * 1e3:.3f} mm (target {target * 1e3:.3f} mm); " + self._cmd_read()
+        return f"{self._where(here)} (target {self._where(target)}); " + self._cmd_read()
 
-    def _cmd_move(self, position: str, speed: str = "") -> str:
-        return self._go(to_si(position, "mm"), to_si(speed, "mm/s") if speed else DEFAULT_SPEED)
+    def _cmd_move(self, *args: str) -> str:
+        """``move [motor|aperture] POSITION [SPEED]``: a bare POSITION is the motor's (as it always was)."""
+        self._motor()
+        axis = "motor"
+        if args and args[0].lower() in ("motor", "aperture"):
+            axis, args = args[0].lower(), args[1:]
+        if not 1 <= len(args) <= 2:
+            raise Refused("wrong arguments for 'move': move [motor|aperture] POSITION [SPEED] (help lists them)")
+        value, speed = to_si(args[0], "mm"), self._speed(args[1] if len(args) == 2 else "")
+        if axis == "motor":
+            return self._go(value, speed)
+        prog = self._engine().program
+        if not prog.has_motor_axis:
+            raise Refused(f"move aperture: the motor of rig {self.rig.name} does not set an LS-DEA aperture "
+                          "(specimen.lsdea.configuration is not \"motor\"); give its position: move motor POSITION")
+        return self._go(float(prog.motor_position(value)), speed)
 
     def _cmd_jog(self, delta: str, speed: str = "") -> str:
         here = float(self._motor().read_position().value)
-        return self._go(here + to_si(delta, "mm"), to_si(speed, "mm/s") if speed else DEFAULT_SPEED)
+        return self._go(here + to_si(delta, "mm"), self._speed(speed))
 
     def _cmd_stop(self) -> str:
         self._motor()

@@ -203,9 +203,11 @@ class ManualEngine(Engine):
         verified against the go-to (the interlock's motion verifier); returns where the motor stopped."""
         motor, m = self.ctx.motor, self.rig.motor
         assert m is not None  # a motor driver comes from rig.motor
-        speed = min(speed, m.max_velocity_m_per_s)
         if not speed > 0:
             raise Refused("speed must be positive")
+        if speed > m.max_velocity_m_per_s:  # refused as a protocol's move step is, never capped in silence
+            raise Refused(f"speed {speed:g} m/s beyond the rig's {m.max_velocity_m_per_s:g} m/s "
+                          "(motor.max_velocity_m_per_s); not sent")
         try:
             x_cmd = self._move_motor(target, speed, min(MOVE_ACCEL, m.max_acceleration_m_per_s2))
         except SafetyTrip as exc:
