@@ -49,6 +49,23 @@ def _bench(*args: str, env: dict[str, str], timeout: float = 600) -> subprocess.
                           timeout=timeout)
 
 
+def _bench_here(*args: str, env: dict[str, str]) -> subprocess.CompletedProcess[str]:
+    """The same command in this process (typer's runner, the environment ``env`` set for the call): for a test's
+    further calls once one has gone through ``python -m bench``, without a Python start-up and its imports each.
+    An exception the command lets out is a traceback on stderr, as it would be from the process."""
+    import traceback
+
+    from typer.testing import CliRunner
+
+    from bench.cli import app
+
+    res = CliRunner().invoke(app, list(args), env={**env, "BENCH_CATALOG": env.get("BENCH_CATALOG")})
+    err = res.stderr
+    if res.exception is not None and not isinstance(res.exception, SystemExit):
+        err += "".join(traceback.format_exception(res.exception))
+    return subprocess.CompletedProcess(["bench", *args], res.exit_code, res.stdout, err)
+
+
 # ---- a real PostgreSQL server ---------------------------------------------------------------------------------------
 
 
@@ -159,9 +176,9 @@ def _comparable(rows: list[dict]) -> list[tuple]:
     return sorted(tuple(r[c] for c in COLUMNS) for r in rows)
 
 
-def _list(lab: dict[str, Path], url: str, *extra: str) -> list[dict]:
-    out = _bench("runs", "list", "--dir", str(lab["runs"]), "--catalog", url, "--json", *extra,
-                 env=_env(lab["state"]))
+def _list(lab: dict[str, Path], url: str, *extra: str, here: bool = False) -> list[dict]:
+    out = (_bench_here if here else _bench)("runs", "list", "--dir", str(lab["runs"]), "--catalog", url, "--json",
+                                            *extra, env=_env(lab["state"]))
     assert out.returncode == 0, out.stderr
     return json.loads(out.stdout)
 
@@ -187,15 +204,16 @@ def test_the_runs_wrote_their_rows_and_a_lost_end_is_reconciled(lab: dict[str, P
     assert listed[lab["resumed"].name]["previous_file"] == str(lab["killed"].resolve())
     assert len(listed[lab["fitted"].name]["fits"]) == 1
     assert len(listed[lab["killed"].name]["fits"]) == len(listed[lab["resumed"].name]["fits"]) == 1  # the campaign's
-    assert [r["protocol_name"] for r in _list(lab, url, "--protocol", "thesis-identification-short")] == \
+    # the filters: the same command in this process (the listing above went through `python -m bench`)
+    assert [r["protocol_name"] for r in _list(lab, url, "--protocol", "thesis-identification-short", here=True)] == \
         ["thesis-identification-short"]
-    assert {Path(r["path"]).name for r in _list(lab, url, "--state", "completed")} == \
+    assert {Path(r["path"]).name for r in _list(lab, url, "--state", "completed", here=True)} == \
         {lab["resumed"].name, lab["fitted"].name}
-    assert len(_list(lab, url, "--specimen", SPECIMEN)) == 3
-    assert _list(lab, url, "--specimen", "S8") == []
-    assert _list(lab, url, "--since", "2999-01-01") == []
-    assert len(_list(lab, url, "--since", "2000-01-01")) == 3
-    bad = _bench("runs", "list", "--dir", str(lab["runs"]), "--since", "monday", env=_env(lab["state"]))
+    assert len(_list(lab, url, "--specimen", SPECIMEN, here=True)) == 3
+    assert _list(lab, url, "--specimen", "S8", here=True) == []
+    assert _list(lab, url, "--since", "2999-01-01", here=True) == []
+    assert len(_list(lab, url, "--since", "2000-01-01", here=True)) == 3
+    bad = _bench_here("runs", "list", "--dir", str(lab["runs"]), "--since", "monday", env=_env(lab["state"]))
     assert bad.returncode == 2 and "--since" in bad.stderr and "Traceback" not in bad.stderr
 
 
@@ -213,7 +231,7 @@ def test_a_deleted_or_stale_catalogue_is_rebuilt_to_the_same_rows(lab: dict[str,
 
         cat.upsert([row_from_attrs(p, open_run(p, streams=False).attrs) for p in files[1:]])
         cat.upsert([{**row_from_attrs(lab["runs"] / "gone.h5", {"specimen_id": SPECIMEN}), "state": "completed"}])
-    listed = _list(lab, catalog_url)
+    listed = _list(lab, catalog_url, here=True)
     with Catalog(catalog_url) as cat:
         reconciled = cat.rows()
     assert _comparable(reconciled) == _comparable(rebuilt)
@@ -221,7 +239,7 @@ def test_a_deleted_or_stale_catalogue_is_rebuilt_to_the_same_rows(lab: dict[str,
     # deleted: the whole catalogue gone, rebuilt to the same rows
     with Catalog(catalog_url) as cat:
         cat.runs.drop(cat.engine)
-    assert _bench("catalog", "rebuild", str(lab["runs"]), "--catalog", catalog_url, env=env).returncode == 0
+    assert _bench_here("catalog", "rebuild", str(lab["runs"]), "--catalog", catalog_url, env=env).returncode == 0
     with Catalog(catalog_url) as cat:
         assert _comparable(cat.rows()) == _comparable(rebuilt)
     # and the backends agree: the same rows as the hooks' SQLite catalogue once reconciled
@@ -361,12 +379,12 @@ def test_specimen_history_of_three_runs(lab: dict[str, Path], catalog_url: str) 
         assert [p["value"] for p in pts] == [pytest.approx(stored[0][name], rel=1e-12),
                                              pytest.approx(stored[1][name], rel=1e-12)]
     assert h["plot"] == str(plot) and plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    text = _bench("specimen", "show", SPECIMEN, "--dir", str(lab["runs"]), "--catalog", catalog_url, "--plot",
-                  str(plot), env=env)
+    text = _bench_here("specimen", "show", SPECIMEN, "--dir", str(lab["runs"]), "--catalog", catalog_url, "--plot",
+                       str(plot), env=env)
     assert text.returncode == 0 and f"> {THRESHOLD_V:g} V" in text.stdout and "killed" in text.stdout
     with contextlib.suppress(FileNotFoundError):
         plot.unlink()
-    missing = _bench("specimen", "show", "S99", "--dir", str(lab["runs"]), "--catalog", catalog_url, env=env)
+    missing = _bench_here("specimen", "show", "S99", "--dir", str(lab["runs"]), "--catalog", catalog_url, env=env)
     assert missing.returncode == 2 and "S99" in missing.stderr and "Traceback" not in missing.stderr
 
 
@@ -799,7 +817,7 @@ def test_a_folder_shows_only_its_files_and_each_run_once(tmp_path: Path) -> None
     (copy / "backup").mkdir()
     shutil.copy2(copy / "r1.h5", copy / "backup" / "r1.h5")  # and a copy of a run inside the folder
 
-    out = _bench("specimen", "show", "S1", "--dir", str(copy), "--json", env=env)
+    out = _bench_here("specimen", "show", "S1", "--dir", str(copy), "--json", env=env)
     assert out.returncode == 0, out.stderr
     h = json.loads(out.stdout)
     mine = _by_run(copy, "S1")
@@ -815,7 +833,7 @@ def test_a_folder_shows_only_its_files_and_each_run_once(tmp_path: Path) -> None
     phi = math.acos(1 - 2 * THRESHOLD_V / 3000), math.acos(1 - 2 * THRESHOLD_V / 5000)
     assert h["hv_time_s"] == pytest.approx(sum(4 * (1 - p / math.pi) for p in phi), abs=0.1)  # 100-Hz sampling
     assert "copies of a run" in out.stderr and "outside" in out.stderr  # said, on stderr beside the JSON
-    listed = _bench("runs", "list", "--dir", str(copy), "--json", env=env)
+    listed = _bench_here("runs", "list", "--dir", str(copy), "--json", env=env)
     assert listed.returncode == 0, listed.stderr
     rows = json.loads(listed.stdout)
     assert len(rows) == len(_by_run(copy)) == 3
@@ -832,11 +850,11 @@ def test_a_folder_shows_only_its_files_and_each_run_once(tmp_path: Path) -> None
         reconcile(cat, runs)
         reconcile(cat, other)
     (runs / "r2.h5").unlink()
-    here = _bench("specimen", "show", "S1", "--dir", str(other), "--catalog", shared, "--json", env=env)
+    here = _bench_here("specimen", "show", "S1", "--dir", str(other), "--catalog", shared, "--json", env=env)
     assert here.returncode == 0, here.stderr
     assert [r["file"] for r in json.loads(here.stdout)["runs"]] == [str(p) for p in _by_run(other)["4" * 32]]
-    out = _bench("specimen", "show", "S1", "--dir", str(other), "--catalog", shared, "--everywhere", "--json",
-                 env=env)
+    out = _bench_here("specimen", "show", "S1", "--dir", str(other), "--catalog", shared, "--everywhere", "--json",
+                      env=env)
     assert out.returncode == 0, out.stderr
     h = json.loads(out.stdout)
     alive = {**_by_run(runs, "S1"), **_by_run(other, "S1")}  # r2.h5 is gone
@@ -856,8 +874,9 @@ def test_specimens_whose_names_differ_only_in_replaced_characters_get_their_own_
         _small_run(runs / f"r{k}.h5", f"{k}" * 32, specimen, f"2026-01-0{k + 1}T00:00:00.000+00:00", 3000.0,
                    fit={"mu": 1.0 + k})
     plots = []
-    for specimen in ids:
-        out = _bench("specimen", "show", specimen, "--dir", str(runs), "--json", env=env)
+    for specimen in ids:  # the first through `python -m bench`, the second in this process
+        out = (_bench if specimen == ids[0] else _bench_here)("specimen", "show", specimen, "--dir", str(runs),
+                                                              "--json", env=env)
         assert out.returncode == 0, out.stderr
         h = json.loads(out.stdout)
         assert [p["value"] for p in h["parameters"]["mu"]] == [1.0 + ids.index(specimen)]
