@@ -102,6 +102,19 @@ def test_pause_and_resume_refuse_what_would_change_nothing(tmp_path: Path) -> No
     def cli(*args: str) -> subprocess.CompletedProcess[str]:
         return subprocess.run([*bench, *args], cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=120)
 
+    def cli_here(*args: str) -> subprocess.CompletedProcess[str]:
+        """The same command through typer's runner in this process (the control word is a file beside the run's:
+        this process is another terminal as much as a new one); the refused resume below is a process of its own,
+        and tests/test_pause_resume.py runs pause and resume as processes. A fresh interpreter per command costs
+        seconds, on a run that holds still in wall time."""
+        from typer.testing import CliRunner
+
+        from bench.cli import app
+
+        res = CliRunner().invoke(app, list(args))
+        leaked = "" if res.exception is None or isinstance(res.exception, SystemExit) else repr(res.exception)
+        return subprocess.CompletedProcess(args, res.exit_code, res.stdout, res.stderr + leaked)
+
     try:
         wait_for(lambda: any(tmp_path.glob("*.log")) and "step 0 start" in next(tmp_path.glob("*.log")).read_text(),
                  120, "the run to start")
@@ -111,16 +124,16 @@ def test_pause_and_resume_refuse_what_would_change_nothing(tmp_path: Path) -> No
         assert not_paused.returncode == 2, not_paused.stdout + not_paused.stderr
         assert f"run file {run_file}: not paused: nothing to resume" in " ".join(not_paused.stderr.split())
         assert not control_path(run_file).exists()  # nothing sent
-        first = cli("pause", str(run_file), "--why", "adjust the laser", "--operator", "ada")
+        first = cli_here("pause", str(run_file), "--why", "adjust the laser", "--operator", "ada")
         assert first.returncode == 0 and "pause asked" in first.stdout, first.stdout + first.stderr
         wait_for(lambda: " pause: " in log.read_text(), 60, "the pause event")
-        again = cli("pause", str(run_file), "--why", "twice", "--operator", "bo")
+        again = cli_here("pause", str(run_file), "--why", "twice", "--operator", "bo")
         # a pause is never refused (a resume may be on its way that the file does not show yet): sent, and said
         assert again.returncode == 0 and "already paused" in again.stdout, again.stdout + again.stderr
         assert "ada" in again.stdout  # who paused it
         assert json.loads(control_path(run_file).read_text())["why"] == "twice"
         wait_for(lambda: "pause asked by bo" in log.read_text(), 60, "the second pause's request event")
-        resumed = cli("resume", str(run_file), "--why", "laser fixed", "--operator", "cy")
+        resumed = cli_here("resume", str(run_file), "--why", "laser fixed", "--operator", "cy")
         assert resumed.returncode == 0, resumed.stdout + resumed.stderr
         wait_for(lambda: " resume: " in log.read_text(), 60, "the resume event")
         proc.send_signal(signal.SIGINT)  # the rest of the campaign in wall time would add nothing here

@@ -362,9 +362,15 @@ def test_a_latched_rig_refuses_the_next_run_until_an_operator_resets_it(tmp_path
     assert cli.returncode == 2 and "interlock latched" in cli.stderr, cli.stdout + cli.stderr
     assert "running" not in cli.stdout and not (tmp_path / "cli").exists(), cli.stdout
     # resuming the campaign needs the operator's reason; with it, the latch is reset and the reset recorded
-    refused = subprocess.run([*bench, "run", "--resume", str(result.path), "--virtual-time", "--no-live"], cwd=ROOT,
-                             env=env, capture_output=True, text=True, timeout=300)
-    assert refused.returncode != 0 and "--why" in refused.stdout + refused.stderr
+    # (the refusals and the CLI resets go through typer's runner in this process, same app and arguments: the run
+    # and the resumed run above and below are the processes; a fresh interpreter per refusal costs seconds)
+    from typer.testing import CliRunner
+
+    from bench.cli import app
+
+    refused = CliRunner().invoke(app, ["run", "--resume", str(result.path), "--virtual-time", "--no-live"])
+    assert refused.exit_code not in (0, None) and "--why" in refused.stdout + refused.stderr
+    assert isinstance(refused.exception, SystemExit), refused.exception  # refused, not a traceback
     resumed = subprocess.run([*bench, "run", "--resume", str(result.path), "--virtual-time", "--no-live", "--why",
                               "conditioning stage recalibrated", "--operator", "ada"], cwd=ROOT, env=env,
                              capture_output=True, text=True, timeout=300)
@@ -376,12 +382,10 @@ def test_a_latched_rig_refuses_the_next_run_until_an_operator_resets_it(tmp_path
     from bench.runtime.latch import latch
 
     latch(rig_name, "test fault", "a test")
-    no_why = subprocess.run([*bench, "interlock", "reset", rig_name], cwd=ROOT, env=env, capture_output=True,
-                            text=True)
-    assert no_why.returncode != 0 and latched(rig_name) is not None
-    ok = subprocess.run([*bench, "interlock", "reset", rig_name, "--why", "checked", "--operator", "bo"], cwd=ROOT,
-                        env=env, capture_output=True, text=True)
-    assert ok.returncode == 0 and latched(rig_name) is None
+    no_why = CliRunner().invoke(app, ["interlock", "reset", rig_name])
+    assert no_why.exit_code != 0 and isinstance(no_why.exception, SystemExit) and latched(rig_name) is not None
+    ok = CliRunner().invoke(app, ["interlock", "reset", rig_name, "--why", "checked", "--operator", "bo"])
+    assert ok.exit_code == 0 and latched(rig_name) is None, ok.stdout + ok.stderr
     history = (state_dir() / "interlock.log").read_text()
     assert "reset\t" + rig_name + "\tby bo: checked" in history and "ada: conditioning stage recalibrated" in history
 

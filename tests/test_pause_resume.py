@@ -248,19 +248,24 @@ def test_a_killed_campaign_resumes_in_a_linked_file_and_reports_as_one(tmp_path:
     assert not a.completed_steps() & b.completed_steps()
     with pytest.raises(ValueError, match=f"already resumed in {second}"):  # a second resume would fork the campaign
         plan_resume(first)
-    # the report of the last file is the campaign's: both drives, each once, at the protocol's voltages
-    rep = subprocess.run([*bench, "report", str(second), "--json", "--out", str(tmp_path / "report")], cwd=ROOT,
-                         env=ENV, capture_output=True, text=True, timeout=300)
-    assert rep.returncode == 0, rep.stderr
+    # the report of the last file is the campaign's: both drives, each once, at the protocol's voltages (report and
+    # fit in this process through typer's runner, same app and arguments: the commands above went through
+    # `python -m bench`, and a fresh interpreter with the analysis imports costs seconds per call)
+    from typer.testing import CliRunner
+
+    from bench.cli import app
+
+    rep = CliRunner().invoke(app, ["report", str(second), "--json", "--out", str(tmp_path / "report")],
+                             env={"COLUMNS": "200"})
+    assert rep.exit_code == 0, rep.stderr + repr(rep.exception)
     data = json.loads(rep.stdout)
     assert [r["file"] for r in data["runs"]] == [str(first), str(second)]
     volts = sorted(s["voltage_V"] for r in data["runs"] for s in r["steps"])
     assert volts == [pytest.approx(5000.0, rel=0.02), pytest.approx(7000.0, rel=0.02)]
     # and the fit takes both files as records of one campaign
-    fit = subprocess.run([*bench, "fit", str(second), "--population", "6", "--generations", "1", "--no-polish",
-                          "--starts", "1", "--no-intervals",
-                          "--json"], cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=600)
-    assert fit.returncode == 0, fit.stderr
+    fit = CliRunner().invoke(app, ["fit", str(second), "--population", "6", "--generations", "1", "--no-polish",
+                                   "--starts", "1", "--no-intervals", "--json"], env={"COLUMNS": "200"})
+    assert fit.exit_code == 0, fit.stderr + repr(fit.exception)
     assert json.loads(fit.stdout)["runs"] == [str(first), str(second)]
 
 
