@@ -572,21 +572,17 @@ class Engine:
         lateness, as a pause or a drain does (an ``offset`` event the analysis applies), so that the next step runs
         whole instead of being cut short by the time this one overran; a ``late`` event says how late and that the
         schedule moved. (Shifting only beyond ``LATE_TOLERANCE_S`` would let every step lose up to 50 ms, and a
-        step after a slightly late ramp lost that much in the tester's run.) On a DAQ rig whose stream plays
-        on into the next step the program runs on the device's clock and cannot shift: the event says how late
-        the host's own actions are."""
+        step after a slightly late ramp lost that much in the tester's run.) A late end also follows a step that
+        waited for the operator (a specimen change confirmed at the prompt). Software-timed rigs only: on a DAQ rig
+        the device plays each step with a duration whole on its own clock (the host's finish waits for its end
+        value), and a chained next step is already playing."""
         behind = self.now() - (seg.t_end + self.ctx.offset)
         if behind <= SLIP_S:
             return
-        took = (f"step {seg.index} ({seg.name}) ended {behind:.3f} s after its scheduled end: its actions took "
-                f"longer on the wires than the schedule gave them")
-        if self._streaming():
-            self.rec.event(self.now(), seg.index, "late", f"{took}; the DAQ plays the next step on its own clock: "
-                           f"that step's host-side actions (motor, polls) start {behind:.3f} s late")
-            return
         self.ctx.offset += behind
-        self.rec.event(self.now(), seg.index, "late", f"{took}; the program's schedule shifted by {behind:.3f} s so "
-                       "that the next step runs whole")
+        self.rec.event(self.now(), seg.index, "late", f"step {seg.index} ({seg.name}) ended {behind:.3f} s after its "
+                       "scheduled end (its actions took longer on the wires than the schedule gave them): the "
+                       f"program's schedule shifted by {behind:.3f} s so that the next step runs whole")
         self.rec.event(self.now(), seg.index, "offset", f"run time = program time + {self.ctx.offset:.9f} s")
 
     # ------------------------------------------------------------ set-points
@@ -700,8 +696,8 @@ class Engine:
             self.ctx.laser.stop_buffer()
             zeroed = self._drain_after(seg, {k: d + self.ctx.offset for k, d in due.items()})
             self._storing = False  # only now: a stop in the drain leaves what is left to the shutdown's fetch
-        if not zeroed:  # zeroed: the next step restarts, its schedule set by the restart
-            self._keep_schedule(seg)
+        if not zeroed and self._stream is None:  # zeroed: the next step restarts, its schedule set by the restart;
+            self._keep_schedule(seg)  # a DAQ rig: the device plays each step whole on its own clock
         self.rec.event(self.now(), seg.index, "end", seg.name)
         segs = self.program.segments
         # a pause asked for during the drain: no ramp back up to the next step's value — the next step's first
