@@ -19,6 +19,11 @@ from tests.conftest import RIGS, ROOT
 PROTOCOLS = sorted((ROOT / "protocols").glob("*.toml")) + sorted((ROOT / "protocols" / "short").glob("*.toml"))
 FC6_19200 = 16 * 10 / 19200 + 2 * 3.5 * 10 / 19200 + 1e-3  # 12.98 ms: at most 77 set-points/s
 FC4_19200 = 23 * 10 / 19200 + 2 * 3.5 * 10 / 19200 + 1e-3  # 16.6 ms: at most 60 load-cell reads/s
+FC3_2REG_19200 = (8 + 9) * 10 / 19200 + 2 * 3.5 * 10 / 19200 + 1e-3  # 13.5 ms: V and I monitors
+# LinRS at 115,200 Bd (LinMot LinRS manual): a VAI go-to telegram 25 bytes, a default-response request 7 bytes,
+# the default response 16 bytes; 1 ms drive turnaround [assumed]
+GOTO_115200 = (25 + 16) * 10 / 115200 + 1e-3  # 4.56 ms
+POLL_115200 = (7 + 16) * 10 / 115200 + 1e-3  # 3.00 ms
 
 
 def compiled(path: Path, kind: str, **recording: float) -> tuple[Protocol, Program]:
@@ -53,7 +58,7 @@ def test_what_fits_is_accepted(kind: str) -> None:
     for name, changes in [("thesis-identification", {"displacement_Hz": 1000.0, "setpoint_Hz": 20.0}),
                           ("lsdea-isotonic-short", {"displacement_Hz": 1000.0, "setpoint_Hz": 60.0,
                                                     "points_per_cycle": 20}),
-                          ("lsdea-isopotential", {"setpoint_Hz": 50.0, "force_Hz": 50.0, "position_Hz": 50.0})]:
+                          ("lsdea-isopotential", {"setpoint_Hz": 20.0, "force_Hz": 20.0, "position_Hz": 20.0})]:
         path = next(p for p in PROTOCOLS if p.stem == name)
         _, program = compiled(path, kind, **changes)
         assert check_links(program) == [], name
@@ -70,3 +75,69 @@ def test_conversion_rates_bound_the_polling_rates() -> None:
     problems = check_links(program)
     assert problems == ["amplifier monitors: polled at 20/s but the ADAM-4017+ converts 10 S/s over 2 channels "
                         "(5 S/s each): most reads repeat a value; lower recording.monitors_Hz to ≤ 5"]
+
+
+P2 = """[protocol]
+name = "p2"
+rig = "{rig}"
+
+[recording]
+setpoint_Hz = {hz}
+monitors_Hz = 5
+force_Hz = 20
+position_Hz = 20
+
+[[steps]]
+type = "move"
+position = "9 cm"
+velocity = "100 mm/s"
+
+[[steps]]
+type = "waveform"
+name = "pos"
+channel = "position"
+kind = "triangle"
+offset = "90 mm"
+amplitude = "-40 mm"
+frequency_Hz = 0.5
+cycles = 1.5
+
+[[steps]]
+type = "ramp"
+channel = "voltage"
+to = "4 kV"
+duration_s = 1
+
+[[steps]]
+type = "hold"
+duration_s = 2
+
+[[steps]]
+type = "relax"
+duration_s = 1
+"""
+
+
+@pytest.mark.parametrize("kind", ["lab", "sim"])
+def test_links_that_each_fit_but_together_outrun_the_host_are_refused(tmp_path: Path, kind: str) -> None:
+    """A triangle on the motor at 50 set-points/s on the software-timed LS-DEA motor bench: the io bus (FC6 at
+    50/s + monitors), the scale bus (load cell at 20/s) and the LinRS link (go-tos at 50/s + polls at 20/s) are each
+    below 100 %, but the engine waits on one link at a time, so together they need more than the host's second —
+    the outside tester's run played the 0.5-Hz triangle at ~0.41 Hz. One line names the step, the sum and the rate
+    that fits in 90 % of the host's time."""
+    io = 50 * FC6_19200 + 5 * FC3_2REG_19200
+    scale = 20 * FC4_19200
+    motor = 50 * GOTO_115200 + 20 * POLL_115200
+    assert max(io, scale, motor) < 1 < io + scale + motor  # each wire fits; the host does not
+    fits = int((0.9 - 5 * FC3_2REG_19200 - scale - 20 * POLL_115200) / (FC6_19200 + GOTO_115200))  # 25
+    path = tmp_path / "p2.toml"
+    path.write_text(P2.format(rig=RIGS / f"lsdea-motor-{kind}.toml", hz=50))
+    problems = check_links(compile_program(load_protocol(path), load_rig(RIGS / f"lsdea-motor-{kind}.toml")))
+    assert len(problems) == 1, problems
+    (line,) = problems
+    assert "recording.setpoint_Hz = 50" in line and "steps[1](pos)" in line
+    assert f"{io + scale + motor:.0%} of the time" in line
+    assert f"lower recording.setpoint_Hz to ≤ {fits}" in line and "\n" not in line
+    # at 20 set-points/s (the tester's run kept time there) nothing is said
+    path.write_text(P2.format(rig=RIGS / f"lsdea-motor-{kind}.toml", hz=20))
+    assert check_links(compile_program(load_protocol(path), load_rig(RIGS / f"lsdea-motor-{kind}.toml"))) == []

@@ -7,6 +7,12 @@ silences (Modbus RTU: 3.5 characters, 1.75 ms above 19200 Bd — Modbus over Ser
 and the device's turnaround. Besides the load: the laser's storage fill rate against its upload rate (the
 engine uploads while it stores), and polling rates against the instruments' conversion rates.
 
+**The host waits on one link at a time.** The engine runs every transaction of a step from one thread and waits
+for each reply before the next request (a set-point tick sends the amplifier's FC6 *and* the motor's go-to, then
+the due polls), so the links' loads add up: three links each busy 30–70 % of the time keep one host busy more than
+all of it, and its software-timed schedule falls behind although no single wire is full. :func:`check_links`
+therefore also checks the sum over every serial link.
+
 :func:`check_links` returns one line per problem, naming the channel, the numbers and what would fit;
 an empty list means every link can carry the program. The traffic model follows :mod:`bench.runtime.engine`:
 set-points at ``recording.setpoint_Hz`` while a step streams, then one keep-alive per
@@ -111,6 +117,33 @@ def link_loads(program: Program) -> list[LinkLoad]:
     return out
 
 
+def _streaming_step(program: Program) -> str:
+    """The step whose set-points load the links most: the first that streams go-tos to the motor, else the first
+    that streams at ``setpoint_Hz`` (else the first step)."""
+    streaming = [s for s in program.segments if s.duration > 0 and s.stream_until > s.t_start]
+    moving = [s for s in streaming if s.position is not None]
+    seg = (moving or streaming or list(program.segments))[0]
+    return seg.label.rsplit("/", 1)[-1]  # the innermost step of a sweep: its name and its path
+
+
+def _check_host(program: Program, links: list[LinkLoad]) -> str | None:
+    """One line if the links' loads together exceed the host's time (see the module's docstring)."""
+    total = sum(link.load for link in links)
+    if total <= MAX_LOAD or len([link for link in links if link.items]) < 2:
+        return None  # one link alone: its own line says it
+    rec = program.protocol.recording
+    per_setpoint = sum(t for link in links for ch, _, t in link.items if "set-points" in ch)
+    setpoint_load = sum(rate * t for link in links for ch, rate, t in link.items if "set-points" in ch)
+    shares = ", ".join(f"{link.link} {link.load:.0%}" for link in links if link.items)
+    room = (MAX_LOAD * 0.9 - (total - setpoint_load)) / per_setpoint if per_setpoint > 0 else 0.0
+    fit = (f"lower recording.setpoint_Hz to ≤ {int(room)}" if room >= 1 else
+           "lower the polling rates (recording.force_Hz, position_Hz, monitors_Hz)") + \
+        " (or a hardware-timed drive)"
+    return (f"host at recording.setpoint_Hz = {rec.setpoint_Hz:g}: step {_streaming_step(program)} keeps the host "
+            f"on the wire {total:.0%} of the time ({shares}; the engine waits on one link at a time), so its "
+            f"schedule would fall behind; {fit}")
+
+
 def laser_upload_rate(baud: int) -> float:
     """Stored values per second an RS-232 upload carries (AO requests sized to LKG_UPLOAD_CHUNK_S, each with
     its AN status query, request echo and turnarounds)."""
@@ -124,11 +157,14 @@ def check_links(program: Program) -> list[str]:
     """One line per link the program would overload (empty: every link carries it)."""
     rig, rec = program.rig, program.protocol.recording
     problems: list[str] = []
-    for link in link_loads(program):
+    loads = link_loads(program)
+    for link in loads:
         if link.load > MAX_LOAD:
             parts = ", ".join(f"{ch} {rate:g}/s × {t * 1e3:.1f} ms" for ch, rate, t in link.items)
             fit = _fit_setpoints(link)
             problems.append(f"{link.link} at {link.baud} Bd: busy {link.load:.0%} of the time ({parts}); {fit}")
+    if (host := _check_host(program, loads)) is not None:
+        problems.append(host)
     amp_daq, laser_daq = _hardware_timed(program)
     if (lz := rig.laser) is not None and not laser_daq and any(s.storing for s in program.segments):
         upload = laser_upload_rate(lz.baudrate)

@@ -35,7 +35,7 @@ from bench.storage.recorder import Recorder
 from drivers.errors import InstrumentError, InstrumentStateError, InstrumentTimeoutError
 from drivers.interfaces import Amplifier, DisplacementSensor, ForceSensor, LinearMotor
 
-LATE_TOLERANCE_S = 0.05  # real time: an action later than this counts as an overrun
+LATE_TOLERANCE_S = 0.05  # an action later than this (run clock) counts as an overrun
 STOP_POLL_S = 0.02  # real time: longest sleep between two looks at the stop request
 
 T = TypeVar("T")
@@ -106,7 +106,7 @@ class RunContext:
         self.offset = 0.0  # run time − program time: a resumed start and each pause shift the program's schedule
         self.v_cmd = 0.0  # last voltage commanded (the module's code, as sent; on a DAQ rig the value it plays)
         self.v_req = 0.0  # last voltage requested by the program
-        self.overruns = 0  # real time: actions later than LATE_TOLERANCE_S
+        self.overruns = 0  # actions later than LATE_TOLERANCE_S (run clock: real or virtual)
         self.worst_lateness = 0.0
         self.stream: Streaming | None = None  # set by the engine on a rig that plays its steps hardware-timed
         hw = streamed and inst.stream_drive is not None
@@ -154,8 +154,9 @@ class RunContext:
         return self.program_now() - due
 
     def wait_until(self, t: float) -> None:
-        """Wait until program time ``t`` (checking for stop and pause requests meanwhile); in real time, an action
-        later than ``LATE_TOLERANCE_S`` counts as an overrun."""
+        """Wait until program time ``t`` (checking for stop and pause requests meanwhile); an action later than
+        ``LATE_TOLERANCE_S`` counts as an overrun — on a virtual clock too, where the wire time of the transactions
+        before it (rig time) is what makes it late: a virtual run whose links outrun the schedule says so."""
         self.check_stop()
         self.check_pause()
         t += self.offset
@@ -164,12 +165,12 @@ class RunContext:
                 self.check_stop()
                 self.check_pause()
                 time.sleep(min(left, STOP_POLL_S))
-            late = self.now() - t
-            self.worst_lateness = max(self.worst_lateness, late)
-            if late > LATE_TOLERANCE_S:
-                self.overruns += 1
         else:
             self.clock.wait_until(self.t0 + t)
+        late = self.now() - t
+        self.worst_lateness = max(self.worst_lateness, late)
+        if late > LATE_TOLERANCE_S:
+            self.overruns += 1
 
     def unheard_for(self) -> float:
         """How long [s of the run's clock] the set-point module may have gone without a request from this host: an

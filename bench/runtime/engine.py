@@ -64,6 +64,7 @@ LASER_SHUTDOWN_DRAIN_S = 5.0  # after a stop or fault (high voltage already at 0
 PAUSE_POLL_S = 0.1  # while paused: the monitors and sensors are read this often (run time)
 RESTART_STEP_V = 10.0  # a restart ramps the output to the step's start value unless it is this close already
 RESTART_SETTLE_S = 0.1  # after a restart's ramp, before the step starts
+SLIP_S = 1e-3  # a step that ends later than this after its scheduled end shifts the rest of the schedule (run time)
 RESTART_MOVE_S = 30.0  # a restart's motor move to the step's start position must end within this (run time)
 STOP_SIGNALS = {
     signal.SIGINT: "interrupted by Ctrl-C",
@@ -391,7 +392,7 @@ class Engine:
 
     @property
     def overruns(self) -> int:
-        """Real time: actions later than ``LATE_TOLERANCE_S``."""
+        """Actions later than ``LATE_TOLERANCE_S`` on the run clock (real or virtual)."""
         return self.ctx.overruns
 
     @property
@@ -566,6 +567,26 @@ class Engine:
             self.rec.event(self.now(), seg.index, "offset", f"run time = program time + {self.ctx.offset:.9f} s")
         return zeroed
 
+    def _keep_schedule(self, seg: Segment) -> None:
+        """After ``seg``'s last action: if it ends more than ``SLIP_S`` after its scheduled end — its set-points and
+        polls needed more time on the wires than the schedule gave them (the link budget warns before the run when
+        it can tell), or its end value's own request spilled past the end — shift the program's schedule by that
+        lateness, as a pause or a drain does (an ``offset`` event the analysis applies), so that the next step runs
+        whole instead of being cut short by the time this one overran; a ``late`` event says how late and that the
+        schedule moved. (Shifting only beyond ``LATE_TOLERANCE_S`` would let every step lose up to 50 ms, and a
+        step after a slightly late ramp lost that much in the tester's run.) A late end also follows a step that
+        waited for the operator (a specimen change confirmed at the prompt). Software-timed rigs only: on a DAQ rig
+        the device plays each step with a duration whole on its own clock (the host's finish waits for its end
+        value), and a chained next step is already playing."""
+        behind = self.now() - (seg.t_end + self.ctx.offset)
+        if behind <= SLIP_S:
+            return
+        self.ctx.offset += behind
+        self.rec.event(self.now(), seg.index, "late", f"step {seg.index} ({seg.name}) ended {behind:.3f} s after its "
+                       "scheduled end (its actions took longer on the wires than the schedule gave them): the "
+                       f"program's schedule shifted by {behind:.3f} s so that the next step runs whole")
+        self.rec.event(self.now(), seg.index, "offset", f"run time = program time + {self.ctx.offset:.9f} s")
+
     # ------------------------------------------------------------ set-points
     def _set_voltage(self, v: float, t: float, x_cmd: float = math.nan) -> None:
         """Send a supervised voltage set-point and record the value sent.
@@ -679,6 +700,8 @@ class Engine:
             self.ctx.laser.stop_buffer()
             zeroed = self._drain_after(seg, {k: d + self.ctx.offset for k, d in due.items()})
             self._storing = False  # only now: a stop in the drain leaves what is left to the shutdown's fetch
+        if not zeroed and self._stream is None:  # zeroed: the next step restarts, its schedule set by the restart;
+            self._keep_schedule(seg)  # a DAQ rig: the device plays each step whole on its own clock
         self.rec.event(self.now(), seg.index, "end", seg.name)
         segs = self.program.segments
         # a pause asked for during the drain: no ramp back up to the next step's value — the next step's first
@@ -932,9 +955,10 @@ class Engine:
         safe_path = self._verify_safe(zero_at, notes)
         self._latch_unproven(zero_at, safe_path)
         self._motor_stopped(motor, notes)
-        if not self.clock.virtual:
+        if not self.clock.virtual or self.overruns:  # virtual time: said when the wires outran the schedule
             self._event("timing", f"{self.overruns} late actions (> {LATE_TOLERANCE_S * 1e3:.0f} ms), worst "
-                        f"lateness {self.ctx.worst_lateness * 1e3:.1f} ms")
+                        f"lateness {self.ctx.worst_lateness * 1e3:.1f} ms"
+                        + (" of rig time (virtual clock)" if self.clock.virtual else ""))
         for note in notes:
             self._event("fault", note)
         if not self.commands:  # a request that came too late to change anything is recorded, not lost

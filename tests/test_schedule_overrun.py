@@ -1,0 +1,118 @@
+"""A step that overruns its schedule on a software-timed rig: the later steps keep their planned durations.
+
+The outside tester's protocol: on ``lsdea-motor-sim`` at 50 set-points/s, a 1.5-cycle triangle on the motor
+(3 s), a ramp to 4 kV over 1 s, a 2-s hold and a 1-s relax. The host sends the ADAM-4024's FC6 and the LinMot
+go-to at every tick and polls the load cell and the encoder at 20/s, all in turn, so the triangle step needs more
+rig time than its 3 s (the link budget warns; here the plan's warning is lifted so that the twins keep the wire
+time, as a real line would). Before the fix the triangle ended ~0.6 s late and the hold lasted ~1.3 s.
+
+Expected values come from the protocol (2-s hold, 1-s relax, 4 kV) and the plant's own output history, never
+from the engine's account of itself. Virtual time: deterministic in rig time.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from bench.runtime.run import execute, plan_run
+from bench.storage.runfile import open_run
+from tests.conftest import RIGS
+
+PROTOCOL = """[protocol]
+name = "p2"
+rig = "{rig}"
+
+[recording]
+setpoint_Hz = 50
+monitors_Hz = 5
+force_Hz = 20
+position_Hz = 20
+
+[[steps]]
+type = "move"
+position = "9 cm"
+velocity = "100 mm/s"
+
+[[steps]]
+type = "waveform"
+name = "pos"
+channel = "position"
+kind = "triangle"
+offset = "90 mm"
+amplitude = "-40 mm"
+frequency_Hz = 0.5
+cycles = 1.5
+
+[[steps]]
+type = "ramp"
+name = "up"
+channel = "voltage"
+to = "4 kV"
+duration_s = 1
+
+[[steps]]
+type = "hold"
+name = "hold"
+duration_s = 2
+
+[[steps]]
+type = "relax"
+name = "relax"
+duration_s = 1
+"""
+V_HOLD = 4000.0  # the ramp's target, held by the hold step
+HOLD_S, RELAX_S, RAMP_S = 2.0, 1.0, 1.0
+TRIANGLE_S = 1.5 / 0.5  # cycles / frequency
+
+
+def test_a_step_that_overruns_shifts_the_schedule_and_the_hold_keeps_its_two_seconds(tmp_path: Path) -> None:
+    proto = tmp_path / "p2.toml"
+    proto.write_text(PROTOCOL.format(rig=RIGS / "lsdea-motor-sim.toml"))
+    plan = plan_run(proto)
+    assert plan.link_problems  # the link budget warns about this protocol (tests/test_protocol_link_budget.py)
+    plan = dataclasses.replace(plan, link_problems=[])  # wire time on: the twins take a real line's time
+    seen: dict[str, Any] = {}
+    blocks: list[tuple[np.ndarray, np.ndarray]] = []
+
+    def hook(engine: Any, sim: Any) -> None:
+        seen["sim"] = sim
+        sim.plant.listeners.append(lambda b: blocks.append((b.t.copy(), b.v_out.copy())))
+
+        def at(_now: float) -> None:
+            if "t0" not in seen and engine.snapshot.state == "running":
+                seen["t0"] = sim.clock.now() - engine.now()
+        sim.clock.subscribe(at)
+
+    result = execute(plan, tmp_path / "run.h5", virtual=True, on_engine=hook)
+    assert result.state == "completed", result.reason
+    run = open_run(result.path)
+    events = run.event_list()
+    starts = {step: t for t, step, kind, _ in events if kind == "start"}
+    ends = {step: t for t, step, kind, _ in events if kind == "end"}
+    # the triangle overran (the bug's premise): it played all its set-points, later than planned
+    assert ends[1] - starts[1] > TRIANGLE_S + 0.3
+    # every later step runs its planned duration (the events)
+    assert ends[2] - starts[2] >= RAMP_S - 1e-6
+    assert ends[3] - starts[3] == pytest.approx(HOLD_S, abs=1e-3)
+    assert ends[4] - starts[4] == pytest.approx(RELAX_S, abs=1e-3)
+    # the plant's output: at 4 kV for the hold's 2 s (from the ramp's top to the relax's ramp down)
+    seen["sim"].plant.observe()
+    t = np.concatenate([b[0] for b in blocks]) - seen["t0"]
+    v = np.concatenate([b[1] for b in blocks])
+    top = np.flatnonzero(v >= 0.99 * V_HOLD)
+    assert top.size
+    held = t[top[-1]] - t[top[0]]
+    # never shorter; longer by the relax's first staircase set-point (1/50 s after its start, the ramp down's first
+    # value still 4 kV) and the amplifier's fall from 4 kV
+    assert HOLD_S - 0.01 <= held <= HOLD_S + 0.1, held
+    # the file says how late the triangle was and that the schedule moved
+    late = [(step, text) for _, step, kind, text in events if kind == "late"]
+    assert late and late[0][0] == 1 and "schedule shifted" in late[0][1]
+    # lateness counted in virtual time: the summary's late-actions figure and the file's timing event
+    assert result.overruns > 0
+    assert any(kind == "timing" and "late actions" in text for _, _, kind, text in events)
