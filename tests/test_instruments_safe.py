@@ -42,7 +42,7 @@ def test_every_instrument_is_made_safe_in_order_whatever_one_raises() -> None:
         load_cell=cast(Any, _Fake("load_cell", calls)))
     errors = inst.safe_state()
     assert calls == ["daq", "amplifier", "motor", "laser", "load_cell"]  # output path, motor, then the rest
-    assert errors == ["daq: RuntimeError: not a driver error", "amplifier: amplifier: link lost",
+    assert errors == ["daq: RuntimeError: not a driver error", "amplifier: link lost",
                       "laser: OSError: [Errno 5] Input/output error"]
 
 

@@ -102,3 +102,26 @@ def test_what_ended_the_command_is_the_log_s_last_line(tmp_path: Path) -> None:
         raise OSError("laser at /dev/ttyUSB9: cannot open the port\n(no such device)")
     last = log_file.read_text(encoding="utf-8").splitlines()[-1]
     assert "not completed: laser at /dev/ttyUSB9: cannot open the port (no such device)" in last
+
+
+def test_a_stop_signal_raised_while_the_log_is_written_reaches_the_run(tmp_path: Path,
+                                                                        capsys: pytest.CaptureFixture[str]) -> None:
+    """A stop signal's handler raises where the main thread is (bench.runtime.engine.termination_raises); landing in
+    the run log's flush, logging printed it as a "Logging error" traceback and swallowed it, and the run went on
+    homing the motor (seen in the suite's signal-while-homing test). It must go on to the run."""
+    import logging
+
+    from bench.cli.logs import run_log
+    from drivers.errors import OperationCancelledError
+
+    def stopped() -> None:
+        raise OperationCancelledError("run", "interrupted by Ctrl-C while enabling and homing the motor")
+
+    with run_log(tmp_path / "run.h5"):
+        handler = next(h for h in logging.getLogger("bench").handlers if isinstance(h, logging.FileHandler))
+        assert handler.stream is not None
+        handler.stream.flush = stopped  # type: ignore[method-assign]  # the signal arrives inside the flush
+        with pytest.raises(OperationCancelledError, match="interrupted by Ctrl-C"):
+            logging.getLogger("bench.runtime.run").info("enabling and homing the motor")
+        handler.stream.flush = lambda: None  # type: ignore[method-assign]
+    assert "Logging error" not in capsys.readouterr().err

@@ -90,6 +90,7 @@ def test_a_silent_load_cell_ends_the_run_as_the_load_cells_fault(tmp_path: Path)
     starved by the wait); the run ends as the load cell's timeout."""
     wire: list[str] = []
     result, run, plant = _run(tmp_path, RIG, wire)
+    assert wire.count("scale muted") >= 2, (result.state, result.reason, result.latched)  # two attempts went unanswered
     first = wire.index("scale muted")
     second = wire.index("scale muted", first + 1)
     assert "io" in wire[first + 1:second], wire[first:second + 1]

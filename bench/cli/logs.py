@@ -18,8 +18,29 @@ FORMAT = "%(asctime)s %(levelname)-7s %(name)s: %(message)s"
 log = logging.getLogger("bench.cli")
 
 
+def _reraise_stops(handler: logging.Handler, record: logging.LogRecord) -> None:
+    """A handler's ``handleError``: a stop signal's exception raised while the handler wrote (the signal handlers
+    of :func:`bench.runtime.engine.termination_raises` raise where the main thread is) goes on to the run, which
+    makes the rig safe and says what it stopped; logging would print it as a "Logging error" traceback and swallow
+    it, and the run would go on. Any other error is logging's as usual."""
+    from drivers.errors import OperationCancelledError
+
+    exc = sys.exc_info()[1]
+    if isinstance(exc, OperationCancelledError):
+        raise exc
+    logging.Handler.handleError(handler, record)
+
+
+class _RunLog(logging.FileHandler):
+    """The run's log file (:func:`run_log`); a stop signal while it writes is not swallowed."""
+
+    def handleError(self, record: logging.LogRecord) -> None:
+        _reraise_stops(self, record)
+
+
 class _Stderr(logging.StreamHandler[TextIO]):
-    """Writes to the *current* sys.stderr (test runners swap it)."""
+    """Writes to the *current* sys.stderr (test runners swap it); a stop signal while it writes is not
+    swallowed."""
 
     def __init__(self) -> None:
         super().__init__(sys.stderr)
@@ -27,6 +48,9 @@ class _Stderr(logging.StreamHandler[TextIO]):
     def emit(self, record: logging.LogRecord) -> None:
         self.stream = sys.stderr
         super().emit(record)
+
+    def handleError(self, record: logging.LogRecord) -> None:
+        _reraise_stops(self, record)
 
 
 _stderr = _Stderr()
@@ -56,7 +80,7 @@ def run_log(run_file: Path, level: int = logging.INFO) -> Iterator[Path]:
     path = log_path(run_file)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        handler = logging.FileHandler(path, encoding="utf-8")
+        handler = _RunLog(path, encoding="utf-8")
     except OSError as exc:  # before anything runs: one line naming the run file's folder
         raise OSError(f"run file {run_file}: cannot create its folder or log ({exc.strerror or exc})") from None
     handler.setLevel(level)
