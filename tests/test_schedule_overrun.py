@@ -110,6 +110,14 @@ def test_a_step_that_overruns_shifts_the_schedule_and_the_hold_keeps_its_two_sec
     # never shorter; longer by the relax's first staircase set-point (1/50 s after its start, the ramp down's first
     # value still 4 kV) and the amplifier's fall from 4 kV
     assert HOLD_S - 0.01 <= held <= HOLD_S + 0.1, held
+    # its set-points recorded when they went out, not at their planned times: the triangle's last one no earlier
+    # than 0.1 s before the step's (late) end, where its planned time was 3 s after the step's start
+    sp = run.streams["setpoints"]
+    sp_t = np.asarray(sp.t)
+    go_to = np.isfinite(np.asarray(sp.columns["aperture"]))  # the triangle's rows (the ramp's carry no aperture)
+    in_triangle = sp_t[(sp_t >= starts[1]) & (sp_t <= ends[1]) & go_to]
+    assert in_triangle[-1] > ends[1] - 0.1, (in_triangle[-1], ends[1])
+    assert np.all(np.diff(sp_t) >= 0)  # in time order
     # the file says how late the triangle was and that the schedule moved
     late = [(step, text) for _, step, kind, text in events if kind == "late"]
     assert late and late[0][0] == 1 and "schedule shifted" in late[0][1]

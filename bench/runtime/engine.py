@@ -588,6 +588,14 @@ class Engine:
         self.rec.event(self.now(), seg.index, "offset", f"run time = program time + {self.ctx.offset:.9f} s")
 
     # ------------------------------------------------------------ set-points
+    def _sent_at(self, due: float) -> float:
+        """The run time to record a set-point due at ``due`` at: its scheduled time while it goes out on time, the
+        time it went out once it is later than ``LATE_TOLERANCE_S`` (a step whose wires outran the schedule: the
+        file must not say it was commanded earlier than it was), and never before the set-point before it (sent
+        before it)."""
+        now = self.now()
+        return max(now if now - due > LATE_TOLERANCE_S else due, self._setpoint_t)  # never before the one before it
+
     def _set_voltage(self, v: float, t: float, x_cmd: float = math.nan) -> None:
         """Send a supervised voltage set-point and record the value sent.
 
@@ -671,13 +679,13 @@ class Engine:
                 break
             self.ctx.wait_until(t_next)
             if tick is not None and t_set <= t_next:
+                t_rec = self._sent_at(t_set + self.ctx.offset)
                 x_cmd = self._move_motor(*tick.motor) if tick.motor is not None else math.nan
                 if inst.amplifier is not None and not streamed:
-                    self._set_voltage(self.ctx.v_req if tick.voltage is None else tick.voltage, t_set + self.ctx.offset,
-                                      x_cmd)
+                    self._set_voltage(self.ctx.v_req if tick.voltage is None else tick.voltage, t_rec, x_cmd)
                 elif tick.motor is not None:
-                    self.rec.append("setpoints", t_set + self.ctx.offset, voltage=math.nan, aperture=x_cmd)
-                    self._setpoint_t = max(self._setpoint_t, t_set + self.ctx.offset)
+                    self.rec.append("setpoints", t_rec, voltage=math.nan, aperture=x_cmd)
+                    self._setpoint_t = max(self._setpoint_t, t_rec)
                 self.snapshot.values["setpoint"] = self.ctx.v_cmd
                 tick = next(schedule, None)
             for kind in [k for k, tk in due.items() if tk <= t_next + 1e-12]:
@@ -694,7 +702,8 @@ class Engine:
         if streamed:
             self._hw.finish()  # the device played the end value itself
         elif inst.amplifier is not None and v_end is not None and v_end != self.ctx.v_req:
-            self._set_voltage(v_end, seg.t_end + self.ctx.offset)  # ticks stop before t_end: a ramp must reach its end
+            # ticks stop before t_end: a ramp must reach its end
+            self._set_voltage(v_end, self._sent_at(seg.t_end + self.ctx.offset))
         zeroed = False
         if storing:
             self.ctx.laser.stop_buffer()
