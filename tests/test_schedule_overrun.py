@@ -22,49 +22,9 @@ import pytest
 from bench.runtime.run import execute, plan_run
 from bench.storage.runfile import open_run
 from tests.conftest import RIGS
+from tests.test_protocol_link_budget import P2
 
-PROTOCOL = """[protocol]
-name = "p2"
-rig = "{rig}"
-
-[recording]
-setpoint_Hz = 50
-monitors_Hz = 5
-force_Hz = 20
-position_Hz = 20
-
-[[steps]]
-type = "move"
-position = "9 cm"
-velocity = "100 mm/s"
-
-[[steps]]
-type = "waveform"
-name = "pos"
-channel = "position"
-kind = "triangle"
-offset = "90 mm"
-amplitude = "-40 mm"
-frequency_Hz = 0.5
-cycles = 1.5
-
-[[steps]]
-type = "ramp"
-name = "up"
-channel = "voltage"
-to = "4 kV"
-duration_s = 1
-
-[[steps]]
-type = "hold"
-name = "hold"
-duration_s = 2
-
-[[steps]]
-type = "relax"
-name = "relax"
-duration_s = 1
-"""
+PROTOCOL = P2.replace("{hz}", "50")  # the tester's protocol, as the link-budget test holds it (steps by index)
 V_HOLD = 4000.0  # the ramp's target, held by the hold step
 HOLD_S, RELAX_S, RAMP_S = 2.0, 1.0, 1.0
 TRIANGLE_S = 1.5 / 0.5  # cycles / frequency
