@@ -253,6 +253,20 @@ def test_report_cli_prints_the_table3_grid_for_an_isopotential_campaign(tmp_path
     for s in steps:
         assert f"{100 * s.figures['loss_last']:.1f}" in out.output
     assert (tmp_path / "rep" / "isopotential_p1_dx90.png").stat().st_size > 10_000
+    # a folder's Table 3 is one campaign's: the same files again replace it, other files' are refused, not mixed
+    copies = []
+    for k, name in enumerate("abcd"):
+        dst = tmp_path / f"{name}.h5"
+        dst.write_bytes(Path(res.path).read_bytes())
+        with h5py.File(dst, "r+") as f:
+            f.attrs["run_id"] = f"{k + 1}" * 32
+        copies.append(str(dst))
+    grid = tmp_path / "grid"
+    for files, code in ((copies[:2], 0), (copies[:2], 0), (copies[2:], 2)):
+        out = CliRunner().invoke(app, ["report", *files, "--out", str(grid)], env={"COLUMNS": "200"})
+        assert out.exit_code == code, out.output
+    assert "holds the Table 3 of other runs" in " ".join(out.output.split())
+    assert json.loads((grid / "table3.json").read_text())["runs"] == ["1" * 32, "2" * 32]
 
 
 def test_fit_and_report_refuse_bad_files_in_one_line(tmp_path: Path) -> None:

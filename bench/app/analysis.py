@@ -159,11 +159,34 @@ def report_runs(runs: list[Path], out: Path | None = None, progress: Progress | 
     grid = table3([s for r in done.runs for s in r.analysis.steps])
     if grid is not None:
         csv_path = (out if out is not None else runs[-1].with_name(runs[-1].stem + "-report")) / "table3.csv"
+        _claim_table3(csv_path, [r.analysis.run.attrs.get("run_id") or str(r.path.resolve()) for r in done.runs])
         write_table3_csv(grid, csv_path)
         grid["csv"] = str(csv_path)
         done.grid_figure = save_figure(table3_figure(grid), csv_path.with_suffix(".png"))
     done.grid = grid
     return done
+
+
+def _claim_table3(csv_path: Path, runs: list[Any]) -> None:
+    """The Table 3 of ``runs`` (their run ids) may go to ``csv_path``: none there yet, or the same runs' (replaced;
+    ``table3.json`` beside it names them). Another set of runs' Table 3 is refused in one line, as a report folder
+    refuses another run's report (bench/storage/outputs.py)."""
+    import json
+
+    from bench.storage.outputs import write_text
+
+    marker = csv_path.with_name("table3.json")
+    ids = sorted(str(r) for r in runs)
+    if marker.exists() or csv_path.exists():
+        try:
+            held = json.loads(marker.read_text(encoding="utf-8")).get("runs")
+        except (OSError, ValueError, AttributeError):
+            held = None
+        if held != ids:
+            raise FileExistsError(f"{csv_path.parent}: holds the Table 3 of other runs ({csv_path.name}); bench "
+                                  "report does not replace another campaign's: choose another --out")
+    csv_path.parent.mkdir(parents=True, exist_ok=True)
+    write_text(marker, json.dumps({"runs": ids}, indent=1) + "\n", replace=True)
 
 
 def report_folders(runs: list[Path]) -> dict[int, str]:
