@@ -4,6 +4,7 @@ the file as plain h5py reads it), units on every axis, one line of error for a s
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import h5py
@@ -67,6 +68,15 @@ def test_bench_plot_writes_a_png_with_units_on_every_axis(run_file: Path, tmp_pa
     assert any("laser/displacement" in s and "[m]" in s for s in labels)
     assert any("amplifier/voltage" in s and "[V]" in s for s in labels)
     assert all("[" in s for s in labels) and quicklook.FLAGS[0] not in " ".join(labels)
+    # the shutdown's verified 0 V is marked on the amplifier's voltage, where the file's safe event says
+    from bench.storage.runfile import open_run
+
+    (safe,) = [text for _, _, kind, text in open_run(run_file, streams=False).event_list() if kind == "safe"]
+    said = re.search(r"voltage monitor (\S+) V at (\S+) s", safe)
+    assert said is not None, safe
+    (amp,) = [ax for ax in fig.axes if "amplifier/voltage" in ax.get_ylabel()]  # type: ignore[attr-defined]
+    (mark,) = [ln for ln in amp.get_lines() if ln.get_label() == "0 V verified at the stop"]
+    assert list(mark.get_xdata()) == [float(said[2])] and list(mark.get_ydata()) == [float(said[1])]
 
 
 def test_a_stream_the_file_lacks_is_one_line_naming_it(run_file: Path) -> None:

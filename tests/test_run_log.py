@@ -125,3 +125,22 @@ def test_a_stop_signal_raised_while_the_log_is_written_reaches_the_run(tmp_path:
             logging.getLogger("bench.runtime.run").info("enabling and homing the motor")
         handler.stream.flush = lambda: None  # type: ignore[method-assign]
     assert "Logging error" not in capsys.readouterr().err
+
+
+def test_a_stop_raised_in_the_console_write_leaves_the_run_log_its_line(tmp_path: Path) -> None:
+    """The run log's handler comes before the console's: a stop signal landing in the console's write (re-raised,
+    see above) no longer keeps the line from the run's log file (review finding)."""
+    import logging
+
+    from bench.cli.logs import _stderr, run_log
+    from drivers.errors import OperationCancelledError
+
+    def stopped(_record: logging.LogRecord) -> None:
+        raise OperationCancelledError("run", "interrupted by Ctrl-C while connecting")
+
+    with run_log(tmp_path / "run.h5") as log_file, pytest.MonkeyPatch.context() as mp:
+        mp.setattr(_stderr, "emit", stopped)
+        mp.setattr(_stderr, "level", logging.DEBUG)
+        with pytest.raises(OperationCancelledError):
+            logging.getLogger("bench.runtime.run").warning("connecting the instruments")
+    assert "connecting the instruments" in log_file.read_text(encoding="utf-8")

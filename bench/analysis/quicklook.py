@@ -3,7 +3,9 @@
 A record of hours at 10 kHz does not fit on a screen: each column is reduced, chunk by chunk as the file is read
 (:mod:`bench.storage.chunks`), to its minimum and maximum in each of ``columns`` equal spans of the record — the
 envelope a screen of that width shows, every extreme kept — so memory and drawing time do not grow with the run.
-Step starts are marked; an incomplete file says so in the title.
+Step starts are marked, and so is the shutdown's verified 0 V on the amplifier's voltage (a DAQ rig's streams end
+on the last scan before the stop: the reading after it is in the ``safe`` event); an incomplete file says so in the
+title.
 """
 
 from __future__ import annotations
@@ -20,6 +22,9 @@ from bench.storage.outputs import atomic_output, refuse_existing
 
 FLAGS = ("valid", "ok")  # flag columns: not drawn as signals
 PIXELS = 2000  # min/max spans per column (about a screen's width)
+# the shutdown's own reading (bench/runtime/engine.py ``_verify_safe``): a DAQ rig's streams end on the last scan
+# before the stop, so without it the amplifier panel ends at the voltage then, not at the 0 V verified after
+VERIFIED = re.compile(r"verified: voltage monitor (-?\d+(?:\.\d+)?) V at (-?\d+(?:\.\d+)?) s")
 
 
 @dataclass
@@ -87,6 +92,12 @@ def plot_name(run_path: str | Path, streams: list[str] | None = None) -> str:
     return "-".join([f"{Path(run_path).stem}-plot", *(re.sub(r"[^\w.]", "_", s) for s in chosen)]) + ".png"
 
 
+def verified_zero(events: list[tuple[float, int, str, str]]) -> list[tuple[float, float]]:
+    """(run time [s], monitor voltage [V]) of each shutdown's verified reading, from the run's ``safe`` events."""
+    return [(float(m[2]), float(m[1])) for _t, _step, kind, text in events
+            if kind == "safe" and (m := VERIFIED.search(text)) is not None]
+
+
 def quicklook(run_path: str | Path, streams: list[str] | None = None, out: str | Path | None = None,
               show: bool = False) -> Path | None:
     """Draw the envelopes of ``streams``; save a PNG (``out``: a new file — an existing one is refused — or a folder
@@ -111,8 +122,14 @@ def quicklook(run_path: str | Path, streams: list[str] | None = None, out: str |
     if not env:
         raise ValueError(f"run file {run_path}: no recorded samples to plot")
     fig, axes = plt.subplots(len(env), 1, sharex=True, figsize=(10, 1.9 * len(env) + 0.8), squeeze=False)
-    starts = [(t, text.split(" | ")[0]) for t, _, kind, text in run.event_list() if kind == "start"]
+    events = run.event_list()
+    starts = [(t, text.split(" | ")[0]) for t, _, kind, text in events if kind == "start"]
+    zero = verified_zero(events)
     for ax, e in zip(axes[:, 0], env, strict=True):
+        if (e.stream, e.column) == ("amplifier", "voltage") and zero:
+            ax.plot([t for t, _ in zero], [v for _, v in zero], "o", color="tab:red", markersize=4,
+                    label="0 V verified at the stop")
+            ax.legend(loc="upper right", fontsize=7)
         finite = np.isfinite(e.lo) & np.isfinite(e.hi)
         ax.fill_between(e.t[finite], e.lo[finite], e.hi[finite], color="tab:blue", linewidth=0.6, step="mid")
         ax.plot(e.t[finite], e.hi[finite], color="tab:blue", linewidth=0.5)

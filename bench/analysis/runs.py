@@ -34,6 +34,9 @@ from bench.storage.runfile import RunFile, refuse_manual_session, refuse_nonfini
 
 PAPER_GRAVITY = 9.81  # m/s²: the value behind the paper's loads (3.1 / 4.6 / 4.9 N), not standard gravity
 TOL_S = 1e-9  # a window's bounds are widened by this much (step times are sums of floats)
+# a waveform step that ended this much after its planned end (the larger of the two) was stretched, not played at
+# its frequency: not analysed, said (a ramp's end value sent at its end makes a step some ms late: no stretch)
+STRETCH_S, STRETCH_FRACTION = 0.05, 0.01
 
 
 @dataclass
@@ -64,6 +67,7 @@ class RunAnalysis:
     configuration: str
     steps: list[StepResult]
     run: RunFile  # the file's metadata, events and program as read (no streams)
+    notes: list[str] = field(default_factory=list)  # steps not analysed, and why (one line each)
 
     def by_kind(self, kind: str) -> list[StepResult]:
         """Steps of one kind, in run order."""
@@ -161,7 +165,9 @@ def analyse_source(src: RunSource, last_cycles: int = 3) -> RunAnalysis:
     kind_of_specimen = spec["kind"]
     config = spec.get("lsdea", {}).get("configuration", "membrane") if kind_of_specimen == "lsdea" else "membrane"
     results: list[StepResult] = []
+    notes: list[str] = []
     done, offsets, began = run.completed_steps(), run.step_offsets(), run.step_starts()
+    ended = {step: t for t, step, kind, _ in run.event_list() if kind == "end"}  # each step's last end
     for row, step in zip(run.program, protocol.steps, strict=True):
         if not isinstance(step, WaveformStep):
             continue
@@ -169,6 +175,12 @@ def analyse_source(src: RunSource, last_cycles: int = 3) -> RunAnalysis:
         t0, dur = float(row["t_start"]) + offsets.get(index, 0.0), float(row["duration"])
         if index not in done or t0 + dur > run.updated + 1e-6:
             continue  # the run stopped (or paused, or resumed later in another file) before this step ended
+        behind = ended.get(index, t0 + dur) - (t0 + dur)
+        if behind > max(STRETCH_S, STRETCH_FRACTION * dur):  # its wires outran the schedule (a `late` event)
+            notes.append(f"step {index + 1} of {run.program.shape[0]} (index {index}, {row['name'].decode()}) ended "
+                         f"{behind:.3f} s after its planned end: its waveform was played slower than the protocol's "
+                         f"{step.frequency_Hz:g} Hz, so no figures are computed for it")
+            continue
         sp = applied_window(streams, t0 - TOL_S, t0 + dur + TOL_S, measured=True)
         sel = _inside(sp.t, t0, t0 + dur)
         vpk = float(np.max(np.abs(sp.v[sel]))) if sel.any() else 0.0
@@ -188,7 +200,7 @@ def analyse_source(src: RunSource, last_cycles: int = 3) -> RunAnalysis:
         else:
             _isometric(res, streams, last_cycles, 2 * step.frequency_Hz if step.kind == "sine" else step.frequency_Hz)
         results.append(res)
-    return RunAnalysis(run.path, run.attrs["protocol_name"], kind_of_specimen, config, results, run)
+    return RunAnalysis(run.path, run.attrs["protocol_name"], kind_of_specimen, config, results, run, notes)
 
 
 def _thesis(res: StepResult, streams: StreamChunks, t_v: np.ndarray, v: np.ndarray) -> None:

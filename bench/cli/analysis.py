@@ -412,6 +412,8 @@ def print_report(runs: list[Path], out: Path | None = None) -> Report:
                           f"{r.steps_completed} of {r.steps_total} steps completed", soft_wrap=True)
         if r.stopped:
             console.print(f"[yellow]{escape(r.stopped)}[/]", soft_wrap=True)
+        for note in a.notes:
+            console.print(f"[yellow]{escape(note)}[/]", soft_wrap=True)
         if a.steps:
             console.print(figures_table(a.steps, f"{a.protocol} ({p.name})"
                                         + ("" if r.complete else " — INCOMPLETE FILE")

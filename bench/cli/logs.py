@@ -86,8 +86,8 @@ def run_log(run_file: Path, level: int = logging.INFO) -> Iterator[Path]:
     handler.setLevel(level)
     handler.setFormatter(logging.Formatter(FORMAT))
     configure_console(*_console_state())
-    for name in LOGGERS:
-        logging.getLogger(name).addHandler(handler)
+    for name in LOGGERS:  # first: a stop signal raised in the console's write (re-raised) leaves the file its line
+        logging.getLogger(name).handlers.insert(0, handler)
     try:
         yield path
     except Exception as exc:  # what ended the command (a dead port while connecting, …): the log's last line says it
