@@ -93,3 +93,18 @@ def test_a_rig_that_replayed_a_record_becomes_the_model_again() -> None:
     text = fitted_rig_text(source, "membrane", MEMBRANE, VALUES, "runs/d.h5")
     assert "replay" not in tomllib.loads(text).get("simulation", {})
     assert rig_from_toml(text).simulation.replay is None
+
+
+def test_a_fit_that_set_the_monitor_calibration_says_so_under_the_header() -> None:
+    """A DAQ rig's fit also sets V_gain and V_offset (the voltage monitor's calibration), which no rig table holds;
+    the specimen it exports is the one seen through that calibration (an outside tester's rerun on such a rig
+    missed the record by 15× the fit's residual with V_gain poorly determined). The file says so, once."""
+    source = (ROOT / "rigs" / "thesis-daq-sim.toml").read_text(encoding="utf-8")
+    names, values = [*MEMBRANE, "V_gain", "V_offset"], np.append(VALUES, [8e-4, -2.5])
+    text = fitted_rig_text(source, "membrane", names, values, "runs/e.h5")
+    second = text.splitlines()[1]
+    assert second.startswith("# the same fit set the voltage monitor's calibration")
+    assert "V_gain = 0.0008, V_offset = -2.5 V" in second
+    again = fitted_rig_text(text, "membrane", names, values, "runs/f.h5")
+    assert again.count("voltage monitor's calibration") == 1 and again.count("# fitted by `bench fit`") == 1
+    assert "voltage monitor's calibration" not in fitted_rig_text(source, "membrane", MEMBRANE, VALUES, "r")

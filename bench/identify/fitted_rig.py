@@ -18,6 +18,9 @@ from bench.rig import RigConfig, rig_from_toml
 from bench.storage.outputs import write_text
 
 HEADER = "# fitted by `bench fit` from "
+# a DAQ rig's fit also sets the voltage monitor's calibration (bench/identify/monitor.py), which no rig table holds:
+# the specimen is the one seen through it, and the file says so under its header
+CALIBRATION_NOTE = "# the same fit set the voltage monitor's calibration, which a rig file does not hold: "
 
 
 def fitted_model(model: str, names: list[str], values: np.ndarray) -> tuple[str, dict[str, Any]]:
@@ -36,7 +39,7 @@ def fitted_model(model: str, names: list[str], values: np.ndarray) -> tuple[str,
 def fitted_rig_text(source: str, model: str, names: list[str], values: np.ndarray, run: str) -> str:
     """``source`` (a rig file's TOML text) with the fitted values set; every other line as in ``source``."""
     lines = source.splitlines(keepends=True)
-    if lines and lines[0].startswith(HEADER):  # a fitted rig fitted again: one header, the newest
+    while lines and lines[0].startswith((HEADER, CALIBRATION_NOTE)):  # a fitted rig fitted again: the newest only
         lines = lines[1:]
     doc = tomlkit.parse("".join(lines))
     name = str(doc.get("name", "rig")).removesuffix("-fitted")
@@ -60,7 +63,12 @@ def fitted_rig_text(source: str, model: str, names: list[str], values: np.ndarra
         del table["eta"]
     if isinstance(table, Table) and not tomlkit.dumps(table).endswith("\n\n"):
         table.add(tomlkit.nl())  # a blank line before the next table, as rig files are written
-    return f"{HEADER}{run}\n" + tomlkit.dumps(doc)
+    v = dict(zip(names, (float(x) for x in values), strict=True))
+    note = "" if "V_gain" not in v else (
+        f"{CALIBRATION_NOTE}V_gain = {v['V_gain']:.6g}, V_offset = {v.get('V_offset', 0.0):.6g} V (the monitor read "
+        "(1 + V_gain)·V + V_offset of the output V); the specimen below is the one seen through it, so a run on "
+        "this rig reproduces the record only as well as the fit determined that calibration (see its flags)\n")
+    return f"{HEADER}{run}\n{note}" + tomlkit.dumps(doc)
 
 
 def export_rig(source: str, model: str, names: list[str], values: np.ndarray, path: str | Path,
