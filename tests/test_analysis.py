@@ -576,7 +576,7 @@ def test_report_of_two_files_of_the_same_name_gives_each_its_folder(short_run: P
         run = SimpleNamespace(state="completed", complete=True, incomplete_reason="", recovered_at="", attrs={},
                               reason="protocol completed",
                               completed_steps=lambda: [], program=np.zeros((0, 1)))
-        return SimpleNamespace(run=run, steps=[], protocol="p", by_kind=lambda kind: []), []
+        return SimpleNamespace(run=run, steps=[], protocol="p", by_kind=lambda kind: [], notes=[]), []
 
     monkeypatch.setattr(bench.report, "report", report)
     out = tmp_path / "d"

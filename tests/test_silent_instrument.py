@@ -90,10 +90,14 @@ def test_a_silent_load_cell_ends_the_run_as_the_load_cells_fault(tmp_path: Path)
     starved by the wait); the run ends as the load cell's timeout."""
     wire: list[str] = []
     result, run, plant = _run(tmp_path, RIG, wire)
-    assert wire.count("scale muted") >= 2, (result.state, result.reason, result.latched)  # two attempts went unanswered
-    first = wire.index("scale muted")
-    second = wire.index("scale muted", first + 1)
-    assert "io" in wire[first + 1:second], wire[first:second + 1]
+    assert "scale muted" in wire, (result.state, result.reason, result.latched)
+    if wire.count("scale muted") >= 2:  # both attempts: the module was fed between them
+        first = wire.index("scale muted")
+        second = wire.index("scale muted", first + 1)
+        assert "io" in wire[first + 1:second], wire[first:second + 1]
+    else:  # a host loaded enough that the module went unheard past the bound already in the first attempt's wait:
+        # latched, and named for the load cell the host waited on (not a host stall)
+        assert result.latched.startswith("interlock: load cell silent"), result.latched
     assert result.state in ("error", "tripped"), result.reason
     assert "host stall" not in result.reason and "host stall" not in result.latched, (result.reason, result.latched)
     assert not any("host stall" in text for text in events(run, "interlock"))

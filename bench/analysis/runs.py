@@ -17,6 +17,7 @@ so memory follows the longest step, never the record's length.
 
 from __future__ import annotations
 
+import re
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -35,8 +36,9 @@ from bench.storage.runfile import RunFile, refuse_manual_session, refuse_nonfini
 PAPER_GRAVITY = 9.81  # m/s²: the value behind the paper's loads (3.1 / 4.6 / 4.9 N), not standard gravity
 TOL_S = 1e-9  # a window's bounds are widened by this much (step times are sums of floats)
 # a waveform step that ended this much after its planned end (the larger of the two) was stretched, not played at
-# its frequency: not analysed, said (a ramp's end value sent at its end makes a step some ms late: no stretch)
+# its frequency: said above its figures (a ramp's end value sent at its end makes a step some ms late: no stretch)
 STRETCH_S, STRETCH_FRACTION = 0.05, 0.01
+LATE = re.compile(r"ended (\d+(?:\.\d+)?) s after its scheduled end")  # the engine's `late` event
 
 
 @dataclass
@@ -167,7 +169,8 @@ def analyse_source(src: RunSource, last_cycles: int = 3) -> RunAnalysis:
     results: list[StepResult] = []
     notes: list[str] = []
     done, offsets, began = run.completed_steps(), run.step_offsets(), run.step_starts()
-    ended = {step: t for t, step, kind, _ in run.event_list() if kind == "end"}  # each step's last end
+    late = {step: float(m[1]) for _, step, kind, text in run.event_list()
+            if kind == "late" and (m := LATE.search(text)) is not None}  # each step's own lateness [s]
     for row, step in zip(run.program, protocol.steps, strict=True):
         if not isinstance(step, WaveformStep):
             continue
@@ -175,12 +178,11 @@ def analyse_source(src: RunSource, last_cycles: int = 3) -> RunAnalysis:
         t0, dur = float(row["t_start"]) + offsets.get(index, 0.0), float(row["duration"])
         if index not in done or t0 + dur > run.updated + 1e-6:
             continue  # the run stopped (or paused, or resumed later in another file) before this step ended
-        behind = ended.get(index, t0 + dur) - (t0 + dur)
-        if behind > max(STRETCH_S, STRETCH_FRACTION * dur):  # its wires outran the schedule (a `late` event)
+        behind = late.get(index, 0.0)
+        if behind > max(STRETCH_S, STRETCH_FRACTION * dur):  # its actions outran the schedule (its `late` event)
             notes.append(f"step {index + 1} of {run.program.shape[0]} (index {index}, {row['name'].decode()}) ended "
                          f"{behind:.3f} s after its planned end: its waveform was played slower than the protocol's "
-                         f"{step.frequency_Hz:g} Hz, so no figures are computed for it")
-            continue
+                         f"{step.frequency_Hz:g} Hz; its figures below read its planned window at that frequency")
         sp = applied_window(streams, t0 - TOL_S, t0 + dur + TOL_S, measured=True)
         sel = _inside(sp.t, t0, t0 + dur)
         vpk = float(np.max(np.abs(sp.v[sel]))) if sel.any() else 0.0

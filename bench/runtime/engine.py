@@ -546,6 +546,10 @@ class Engine:
         t_end = seg.t_end + self.ctx.offset  # the step's scheduled end (run time)
         v, start = self.ctx.v_cmd, self.now()
         playing = self._streaming()
+        if start - t_end > LATE_TOLERANCE_S and not playing:  # the step's own lateness, before the upload's
+            self.rec.event(start, seg.index, "late", f"step {seg.index} ({seg.name}) ended {start - t_end:.3f} s "
+                           "after its scheduled end: the program's schedule shifted by it and by the laser's upload "
+                           "(the drain event) so that the next step runs whole")
         zeroed = self._drain_laser(LASER_DRAIN_BUDGET_S, math.inf if playing else DRAIN_HOLD_S, due)
         behind = self.now() - t_end
         if behind <= 1e-9:  # nothing to upload (or no time on the run's clock)
