@@ -11,7 +11,8 @@ engine uploads while it stores), and polling rates against the instruments' conv
 for each reply before the next request (a set-point tick sends the amplifier's FC6 *and* the motor's go-to, then
 the due polls), so the links' loads add up: three links each busy 30–70 % of the time keep one host busy more than
 all of it, and its software-timed schedule falls behind although no single wire is full. :func:`check_links`
-therefore also checks the sum over every serial link.
+therefore also checks the sum over every serial link, the laser's storage upload included (fetched while the step
+stores: its share of the time is the storage rate over :func:`laser_upload_rate`).
 
 :func:`check_links` returns one line per problem, naming the channel, the numbers and what would fit;
 an empty list means every link can carry the program. The traffic model follows :mod:`bench.runtime.engine`:
@@ -126,19 +127,21 @@ def _streaming_step(program: Program) -> str:
     return seg.label.rsplit("/", 1)[-1]  # the innermost step of a sweep: its name and its path
 
 
-def _check_host(program: Program, links: list[LinkLoad]) -> str | None:
-    """One line if the links' loads together exceed the host's time (see the module's docstring)."""
-    total = sum(link.load for link in links)
-    if total <= MAX_LOAD or len([link for link in links if link.items]) < 2:
+def _check_host(program: Program, links: list[LinkLoad], upload: float = 0.0) -> str | None:
+    """One line if the links' loads together exceed the host's time (see the module's docstring); ``upload``: the
+    share of the time the laser's storage upload holds the host while a step stores (it is fetched in the step)."""
+    total = sum(link.load for link in links) + upload
+    if total <= MAX_LOAD or len([link for link in links if link.items]) + (upload > 0) < 2:
         return None  # one link alone: its own line says it
     rec = program.protocol.recording
     per_setpoint = sum(t for link in links for ch, _, t in link.items if "set-points" in ch)
     setpoint_load = sum(rate * t for link in links for ch, rate, t in link.items if "set-points" in ch)
-    shares = ", ".join(f"{link.link} {link.load:.0%}" for link in links if link.items)
+    shares = ", ".join([f"{link.link} {link.load:.0%}" for link in links if link.items]
+                       + ([f"laser storage upload {upload:.0%}"] if upload > 0 else []))
     room = (MAX_LOAD * 0.9 - (total - setpoint_load)) / per_setpoint if per_setpoint > 0 else 0.0
     fit = (f"lower recording.setpoint_Hz to ≤ {int(room)}" if room >= 1 else
-           "lower the polling rates (recording.force_Hz, position_Hz, monitors_Hz)") + \
-        " (or a hardware-timed drive)"
+           "lower the polling rates (recording.force_Hz, position_Hz, monitors_Hz"
+           + (", displacement_Hz" if upload > 0 else "") + ")") + " (or a hardware-timed drive)"
     return (f"host at recording.setpoint_Hz = {rec.setpoint_Hz:g}: step {_streaming_step(program)} keeps the host "
             f"on the wire {total:.0%} of the time ({shares}; the engine waits on one link at a time), so its "
             f"schedule would fall behind; {fit}")
@@ -163,9 +166,11 @@ def check_links(program: Program) -> list[str]:
             parts = ", ".join(f"{ch} {rate:g}/s × {t * 1e3:.1f} ms" for ch, rate, t in link.items)
             fit = _fit_setpoints(link)
             problems.append(f"{link.link} at {link.baud} Bd: busy {link.load:.0%} of the time ({parts}); {fit}")
-    if (host := _check_host(program, loads)) is not None:
-        problems.append(host)
     amp_daq, laser_daq = _hardware_timed(program)
+    storing = (lz := rig.laser) is not None and not laser_daq and any(s.storing for s in program.segments)
+    upload = rec.displacement_Hz / laser_upload_rate(lz.baudrate) if storing and lz is not None else 0.0
+    if (host := _check_host(program, loads, upload)) is not None:
+        problems.append(host)
     if (lz := rig.laser) is not None and not laser_daq and any(s.storing for s in program.segments):
         upload = laser_upload_rate(lz.baudrate)
         if rec.displacement_Hz > upload:
