@@ -12,9 +12,12 @@ import shutil
 from pathlib import Path
 
 import h5py
+import pytest
 from typer.testing import CliRunner
 
 from bench.cli import app
+from bench.runtime.engine import Engine
+from bench.runtime.run import execute, plan_run
 from tests.conftest import ROOT
 
 SHORT = ROOT / "protocols" / "short" / "thesis-identification-short.toml"
@@ -61,3 +64,32 @@ def test_runs_of_different_rigs_and_specimens_are_warned_about_before_the_fit(sh
     c = _copy(short_run, tmp_path / "C.h5", specimen_id="VHB-01")
     _with_specimen(c, {"temperature_K": 316.0, "overrides": {"temperature_K": 316.0}})
     assert specimen_mismatch([a, c]) == ""
+
+
+@pytest.fixture(scope="module")
+def stopped_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The short identification run, stopped ("Ctrl-C") 3 s into its drive (its first step)."""
+    def ctrl_c(engine: Engine, sim) -> None:  # type: ignore[no-untyped-def]
+        def at(_now: float) -> None:
+            if engine.snapshot.step == 0 and engine.program_now() > 3.0:
+                engine.request_stop("Ctrl-C")
+        sim.clock.subscribe(at)
+
+    d = tmp_path_factory.mktemp("stopped")
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("BENCH_STATE_DIR", str(d / "state"))
+        run = execute(plan_run(SHORT), d / "stopped.h5", virtual=True, on_engine=ctrl_c)
+    assert run.state == "interrupted", run.reason
+    return Path(run.path)
+
+
+def test_a_stopped_run_is_said_to_have_stopped_before_the_fit(stopped_run: Path) -> None:
+    code, out = _fit(str(stopped_run))
+    assert code == 0, out
+    notes = [line for line in out.splitlines() if line.startswith("note: ")]
+    assert len(notes) == 1, out
+    note = notes[0]
+    assert str(stopped_run) in note and "run interrupted at" in note and "Ctrl-C" in note, note
+    # stopped in its first step: neither of the protocol's two steps ran to its end
+    assert "in step 1 of 2" in note and "steps 1–2 of 2 not run to their end" in note, note
+    assert out.index(note) < out.index("fitting the membrane model")

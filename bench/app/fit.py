@@ -101,6 +101,21 @@ def specimen_mismatch(runs: list[Path]) -> str:
             "parameters is usually a mistake (fitting anyway)")
 
 
+def stopped_notices(runs: list[Path]) -> list[str]:
+    """One line per run file that stopped before its protocol ended (interrupted, tripped, error): the report's
+    wording (:func:`bench.app.analysis.stopped_line`), naming the file among ``runs`` that continued it."""
+    from bench.app.analysis import continued_in, stopped_line
+    from bench.storage.runfile import open_run
+
+    out = []
+    for k, p in enumerate(runs):
+        run = open_run(p, streams=False)
+        line = stopped_line(run, continued_in(run, runs[:k] + runs[k + 1:])) if run.state != "completed" else ""
+        if line:
+            out.append(f"{p}: {line}; fitting what was recorded")
+    return out
+
+
 def check_fittable(runs: list[Path], into: bool = False) -> None:
     """Refuse, before any work, a file the fit cannot be stored with: not finalised (a crashed file that a resumed
     campaign continued is fine), or crashed with ``into`` (fits go inside finished files only)."""
