@@ -14,6 +14,7 @@ from bench.models.membrane import (
     MembraneParams,
     capacitance,
     es_stress,
+    failure_reason,
     membrane_jac,
     membrane_rhs,
 )
@@ -302,3 +303,32 @@ def test_compiled_offline_integrator_matches_a_tight_reference() -> None:
     assert t_a == pytest.approx(t_b, abs=0.01)
     ok = np.isfinite(a.stretch) & np.isfinite(b.stretch) & (b.stretch < 3.0)  # before the runaway
     assert np.max(np.abs(a.stretch[ok] - b.stretch[ok])) < 1e-5
+
+
+def test_breakdown_before_runaway_is_reported_first() -> None:
+    """At 10 kV (raised cosine, 1/9 Hz) the true field E = Φ/l3 with l3 = L3 λ⁻² (physics.md §1.2, incompressible
+    film) passes the breakdown field before λ passes 4: the failure named first is the breakdown, at its time."""
+    tr = simulate_membrane(PARAMS, Waveform("raised_cosine", 10_000.0, 1 / 9), 5.0, fs=1000.0)
+    assert tr.failed
+    thickness = PARAMS.L3 / tr.stretch**2  # l3 = L3 λ⁻², from the simulated λ series
+    with np.errstate(invalid="ignore"):
+        above = np.abs(tr.voltage / thickness) > PARAMS.breakdown_field
+    assert above.any()
+    i = int(np.argmax(above))
+    assert tr.stretch[i] < PARAMS.runaway_stretch  # breakdown first: λ has not yet run away there
+    first, _, then = tr.failure.partition("; then ")
+    assert "breakdown" in first and f"t = {tr.t[i]:.3f} s" in first
+    assert "runaway" in then  # and the runaway that followed is named second
+
+
+def test_failure_reason_names_the_earlier_failure_first() -> None:
+    lam = np.full(20, 2.0)
+    E = np.zeros(20)
+    lam[12:] = PARAMS.runaway_stretch + 0.5  # runaway from sample 12
+    E[5:] = 2 * PARAMS.breakdown_field  # breakdown from sample 5
+    reason = failure_reason(PARAMS, lam, E)
+    assert reason.startswith("true field") and "sample 5" in reason
+    assert "then runaway" in reason and "sample 12" in reason
+    E[:] = 0.0
+    E[15:] = 2 * PARAMS.breakdown_field  # now the runaway comes first
+    assert failure_reason(PARAMS, lam, E).startswith("runaway stretch")

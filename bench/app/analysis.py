@@ -147,7 +147,7 @@ def report_runs(runs: list[Path], out: Path | None = None, progress: Progress | 
         if where is not None and where.name != p.stem and folders:
             done.notes.append(f"{p}: figures in {where} (another run file is named {p.name})")
         run = a.run  # the file's state as the analysis read it
-        later = _continued_in(run, runs[k + 1:]) if run.state not in ("completed", "running") else None
+        later = continued_in(run, runs[k + 1:]) if run.state not in ("completed", "running") else None
         done.runs.append(RunReport(p, run.state, run.complete, run.incomplete_reason, run.recovered_at,
                                    len(run.completed_steps()), run.program.shape[0], a, paths, run.reason,
                                    stopped_line(run, later)))
@@ -205,7 +205,7 @@ def report_folders(runs: list[Path]) -> dict[int, str]:
     return out
 
 
-def _continued_in(run: RunFile, later: list[Path]) -> Path | None:
+def continued_in(run: RunFile, later: list[Path]) -> Path | None:
     """The file among ``later`` (reported with it) that resumed ``run``'s campaign (``previous_run_id``)."""
     from bench.storage.runfile import open_run
 

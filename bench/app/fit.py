@@ -55,6 +55,67 @@ def model_of_runs(runs: list[Path], asked: str = "auto") -> str:
     return str(chosen)
 
 
+# what a campaign's records may differ in (bench.identify.campaign: each record keeps its own conditions, the LS-DEA's
+# prototype and hung mass among them; the rest of ``lsdea`` is how it is mounted on its rig, which the rig's name
+# already tells), and the specimen's starting model (derived from the rest of the attribute): any other difference
+# of the ``specimen`` attribute, or of the rig or specimen id, is said
+RECORD_CONDITIONS = ("overrides", "temperature_K", "model", "lsdea")
+
+
+def _flat(value: object, prefix: str = "") -> dict[str, object]:
+    """A JSON object's leaves by dotted path."""
+    if not isinstance(value, dict):
+        return {prefix: value}
+    out: dict[str, object] = {}
+    for k, v in value.items():
+        out.update(_flat(v, f"{prefix}.{k}" if prefix else str(k)))
+    return out
+
+
+def specimen_mismatch(runs: list[Path]) -> str:
+    """One line naming what differs between the run files' rigs and specimens (``rig_name``, ``specimen_id``, the
+    ``specimen`` attribute less the per-record conditions a campaign allows), with the first file's and the first
+    differing file's values; '' when they agree. Fitting two specimens as one set of parameters is usually a
+    mistake: said before the fit, which still goes ahead."""
+    from bench.storage.runfile import open_run
+
+    if len(runs) < 2:
+        return ""
+    files = [open_run(p, streams=False) for p in runs]
+    keys: dict[str, list[object]] = {}
+    for f in files:
+        keys.setdefault("rig_name", []).append(f.attrs.get("rig_name"))
+        keys.setdefault("specimen_id", []).append(f.attrs.get("specimen_id") or None)
+    flats = [_flat(f.specimen()) for f in files]
+    for name in sorted(set().union(*flats)):
+        if not any(name == c or name.startswith(c + ".") for c in RECORD_CONDITIONS):
+            keys["specimen." + name] = [flat.get(name) for flat in flats]
+    said = []
+    for name, values in keys.items():
+        other = next((k for k, v in enumerate(values) if v != values[0]), None)
+        if other is not None:
+            said.append(f"{name} {values[0]!r} ({runs[0].name}) vs {values[other]!r} ({runs[other].name})")
+    if not said:
+        return ""
+    return ("the runs are not of one rig and specimen: " + "; ".join(said) + " — fitting them as one set of "
+            "parameters is usually a mistake (fitting anyway)")
+
+
+def stopped_notices(runs: list[Path]) -> list[str]:
+    """One line per run file that stopped before its protocol ended (interrupted, tripped, error): the report's
+    wording (:func:`bench.app.analysis.stopped_line`), naming the file among ``runs`` that continued it."""
+    from bench.app.analysis import continued_in, stopped_line
+    from bench.storage.runfile import open_run
+
+    out = []
+    for k, p in enumerate(runs):
+        run = open_run(p, streams=False)
+        line = stopped_line(run, continued_in(run, runs[:k] + runs[k + 1:])) if run.state != "completed" else ""
+        if line:
+            out.append(f"{p}: {line}; fitting what was recorded")
+    return out
+
+
 def check_fittable(runs: list[Path], into: bool = False) -> None:
     """Refuse, before any work, a file the fit cannot be stored with: not finalised (a crashed file that a resumed
     campaign continued is fine), or crashed with ``into`` (fits go inside finished files only)."""

@@ -168,12 +168,19 @@ def fit_command(
     campaign determines. The campaign's fit is stored with every one of its files (in each fit file, or with
     --into in each run file), so the report of any of them finds it. Fit files given among the runs (a glob such
     as runs/*) are skipped."""
-    from bench.app.fit import model_of_runs
+    from bench.app.fit import model_of_runs, specimen_mismatch, stopped_notices
     from bench.identify.core import FitSettings
 
     with json_mode(json_out):
         runs = runs_only(runs)
     chosen = model_of_runs(runs, model.value)
+    mismatch = specimen_mismatch(runs)
+    stopped = stopped_notices(runs)
+    with json_mode(json_out):  # before the minutes of fitting, when the command can still be stopped
+        if mismatch:
+            console.print(f"[yellow]warning: {escape(mismatch)}[/]")
+        for line in stopped:
+            console.print(f"note: {escape(line)}")
     settings = FitSettings(population, generations, mutation, crossover, cost.value, polish, polish_iterations,
                            seed=seed, starts=starts, intervals=intervals)
     with json_mode(json_out):
@@ -181,7 +188,7 @@ def fit_command(
     if json_out:
         print_json({"model": chosen, "runs": [str(p) for p in runs], "cost": result.cost,
                     "cost_kind": result.cost_kind, "rms": result.rms, "rms_unit": problem.data_unit,
-                    "lack_of_fit": result.lack_of_fit,
+                    "lack_of_fit": result.lack_of_fit, "specimen_mismatch": mismatch or None, "stopped": stopped,
                     **({"intervals": result.trust.as_dict(result.names)} if result.trust is not None else {}),
                     "parameters": [{"name": n, "value": result.values[j], "unit": result.units[j],
                                     "lower": result.lower[j], "upper": result.upper[j],

@@ -330,12 +330,14 @@ def _any_failure(Y: np.ndarray, obs: np.ndarray, runaway: float, breakdown: floa
 
 
 def membrane_outputs(params: MembraneParams, t: np.ndarray, Y: np.ndarray, phi: np.ndarray,
-                     T: np.ndarray | float, packed: np.ndarray | None = None) -> MembraneTrace:
+                     T: np.ndarray | float, packed: np.ndarray | None = None,
+                     runaway_at: float = math.inf) -> MembraneTrace:
     """Observable quantities from the state history ``Y`` (n×(2+n_units)) and inputs (physics.md §1.2, §1.4).
 
     u = L_d(λ − λ_pre); E = Φλ²/L3 (true field); C = ε_vac ε_r L²λ⁴/L3; Q = CΦ; I = dQ/dt.
-    Flags failure at the first sample with λ > runaway_stretch, E > breakdown_field or non-finite state.
-    ``packed``: ``params.pack()`` where the caller keeps it (a stream, block after block).
+    Flags failure at the first sample with λ > runaway_stretch, E > breakdown_field or non-finite state (the
+    earliest kind named first, :func:`failure_reason`). ``packed``: ``params.pack()`` where the caller keeps it (a
+    stream, block after block). ``runaway_at``: the time where the integrator stopped at runaway stretch.
     """
     t = kernel_array(t)  # every array in one form: one compiled variant of each kernel (kernel_args)
     Y = kernel_array(Y)  # an offline solve's history is the solver's array transposed (F order): copied here
@@ -349,27 +351,47 @@ def membrane_outputs(params: MembraneParams, t: np.ndarray, Y: np.ndarray, phi: 
         displacement=params.L_d * (lam - params.lambda_pre), field=obs[:, 0], capacitance=obs[:, 1],
         charge=obs[:, 2], current=obs[:, 3], xi=Y[:, 2:],
     )
-    reason = failure_reason(params, lam, obs[:, 0]) \
-        if _any_failure(Y, obs, float(params.runaway_stretch), float(params.breakdown_field)) else ""
+    failed = math.isfinite(runaway_at) or _any_failure(Y, obs, float(params.runaway_stretch),
+                                                        float(params.breakdown_field))
+    reason = failure_reason(params, lam, obs[:, 0], t, runaway_at) if failed else ""
     if reason:
         trace.failed, trace.failure = True, reason
     return trace
 
 
-def failure_reason(params: MembraneParams, lam: np.ndarray, E: np.ndarray) -> str:
-    """Return why the run failed ('' when it did not): non-finite state, runaway stretch or breakdown."""
+def failure_reason(params: MembraneParams, lam: np.ndarray, E: np.ndarray, t: np.ndarray | None = None,
+                   runaway_at: float = math.inf) -> str:
+    """Return why the run failed ('' when it did not): breakdown, runaway stretch or a non-finite state, whichever
+    came first in time; a second kind that followed is named after it ("…; then …").
+
+    ``t``: the sample times (messages then say when, not which sample). ``runaway_at``: where the integrator stopped
+    at runaway stretch (its later samples are NaN, the stop's and not a failure of their own)."""
+    n = lam.size
+    times = np.arange(n, dtype=float) if t is None else np.asarray(t, dtype=float)
+    stopped = times >= runaway_at if t is not None else np.zeros(n, dtype=bool)
     with np.errstate(invalid="ignore"):
         over = lam > params.runaway_stretch
         brk = np.abs(E) > params.breakdown_field
-    if over.any():
-        i = int(np.argmax(over))
-        return f"runaway stretch λ = {lam[i]:.3f} > {params.runaway_stretch} at sample {i} (pull-in)"
+    bad = ~np.isfinite(lam) & ~stopped
+
+    def when(i: int) -> str:
+        return f"at sample {i}" if t is None else f"at t = {times[i]:.3f} s"
+
+    kinds: list[tuple[float, str]] = []
     if brk.any():
         i = int(np.argmax(brk))
-        return (f"true field {abs(E[i]) / 1e6:.1f} MV/m above breakdown "
-                f"{params.breakdown_field / 1e6:.1f} MV/m at sample {i}")
-    bad = ~np.isfinite(lam)
+        kinds.append((times[i], f"true field {abs(E[i]) / 1e6:.1f} MV/m above breakdown "
+                                f"{params.breakdown_field / 1e6:.1f} MV/m {when(i)}"
+                                + ("" if t is None else f" (λ = {lam[i]:.3f})")))
+    if over.any() or (t is not None and math.isfinite(runaway_at)):
+        i = int(np.argmax(over)) if over.any() else n
+        if i < n and times[i] < runaway_at:
+            kinds.append((times[i], f"runaway stretch λ = {lam[i]:.3f} > {params.runaway_stretch} {when(i)} (pull-in)"))
+        else:
+            kinds.append((runaway_at, f"runaway stretch: λ passed {params.runaway_stretch} at t = {runaway_at:.3f} s "
+                                      "(pull-in); the run was stopped there"))
     if bad.any():
         i = int(np.argmax(bad))
-        return f"non-finite stretch at sample {i} (Gent lock-up or numerical blow-up)"
-    return ""
+        kinds.append((times[i], f"non-finite stretch {when(i)} (Gent lock-up or numerical blow-up)"))
+    kinds.sort(key=lambda k: k[0])  # stable: at one sample, breakdown before runaway before non-finite
+    return "; then ".join(text for _, text in kinds[:2])

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from typing import Literal, cast
 
@@ -68,22 +69,24 @@ def simulate_membrane(params: MembraneParams, voltage: VoltageInput, t_end: floa
         Y, _ = run_fixed(MODEL_MEMBRANE, params.initial_state(), U, h, params.pack())
         Y = Y[::stride]
         t_out = np.arange(len(Y)) * h * stride
-        stop_reason = ""
+        stop_reason, t_stop = "", math.inf
     else:
-        Y, stop_reason, phi = integrate_membrane(params, voltage, t_out, T, method, rtol)
+        Y, stop_reason, phi, t_stop = integrate_membrane(params, voltage, t_out, T, method, rtol)
     if phi is None:
         phi = np.asarray(voltage(t_out), dtype=float)
-    trace = membrane_outputs(params, t_out, Y, phi, T)
-    if stop_reason:
+    # a runaway stop is one failure among others: the trace names whichever came first (breakdown often does)
+    trace = membrane_outputs(params, t_out, Y, phi, T, runaway_at=t_stop)
+    if stop_reason and not math.isfinite(t_stop):
         trace.failed, trace.failure = True, stop_reason
     return trace
 
 
 def integrate_membrane(params: MembraneParams, voltage: VoltageInput, t_out: np.ndarray, T: float = 296.0,
                        method: Literal["rodas", "radau", "bdf"] = "rodas",
-                       rtol: float | None = None) -> tuple[np.ndarray, str, np.ndarray | None]:
+                       rtol: float | None = None) -> tuple[np.ndarray, str, np.ndarray | None, float]:
     """States at the uniform times ``t_out`` (from 0) by an adaptive stiff integrator (see
-    :func:`simulate_membrane`). Returns (Y, why the run stopped early or '', Φ at t_out when it was sampled)."""
+    :func:`simulate_membrane`). Returns (Y, why the run stopped early or '', Φ at t_out when it was sampled, the
+    time where it stopped at runaway stretch or inf)."""
     p = params.pack()
     y0 = params.initial_state()
     stop = f"runaway stretch: λ passed {params.runaway_stretch} at t = {{:.3f}} s (pull-in); the run was stopped there"
@@ -99,7 +102,7 @@ def integrate_membrane(params: MembraneParams, voltage: VoltageInput, t_out: np.
                                                atol_for(params, rtol), params.runaway_stretch, Y)
         reason = stop.format(t_stop) if status == STATUS_STOPPED else "" if status == 0 else \
             f"integration failed at t = {t_stop:.3f} s (step size underflow or non-finite state)"
-        return Y, reason, phi_in[::k]
+        return Y, reason, phi_in[::k], float(t_stop) if status == STATUS_STOPPED else math.inf
     phi_of = _scalar(voltage)
     ny = y0.size
 
@@ -119,7 +122,7 @@ def integrate_membrane(params: MembraneParams, voltage: VoltageInput, t_out: np.
                         stop=lambda t, y: params.runaway_stretch - y[0])
     reason = stop.format(res.t_stop) if res.t_stop is not None else "" if res.success else \
         f"integration failed: {res.message}"
-    return res.Y, reason, None
+    return res.Y, reason, None, math.inf if res.t_stop is None else float(res.t_stop)
 
 
 class MembraneStream:
@@ -193,10 +196,9 @@ class MembraneStream:
         st.y = Y[last].copy()  # a stopped run keeps its last finite state
         st.t = t0 + h * n
         self._phi_end = float(phi[-1]) if n else self._phi_end
-        trace = membrane_outputs(params, t_out[1:], Y[1:], phi, T)
-        if status == STATUS_STOPPED:
-            trace.failed = True
-            trace.failure = f"runaway stretch: λ passed {params.runaway_stretch} at t = {t_stop:.4f} s (pull-in)"
+        stopped = status == STATUS_STOPPED
+        trace = membrane_outputs(params, t_out[1:], Y[1:], phi, T, runaway_at=float(t_stop) if stopped else math.inf)
+        if stopped:  # the failure text names breakdown first where it came before the runaway
             trace.extra["runaway_at"] = float(t_stop)
         elif status != 0:
             trace.failed = True

@@ -1,0 +1,95 @@
+"""`bench fit` says, before fitting, what a user may not have meant: run files of different rigs or specimens fitted
+as one set of parameters (a warning naming what differs; the fit still goes ahead), and a run that stopped before
+its protocol ended (the report's one-line wording).
+
+Expected values come from what each test does to its files (the attributes it changes, the stop it requests) and
+from protocols/short/thesis-identification-short.toml (two steps: a 10-s identification drive, a 1-s recovery)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import h5py
+import pytest
+from typer.testing import CliRunner
+
+from bench.cli import app
+from bench.runtime.engine import Engine
+from bench.runtime.run import execute, plan_run
+from tests.conftest import ROOT
+
+SHORT = ROOT / "protocols" / "short" / "thesis-identification-short.toml"
+QUICK = ["--population", "5", "--generations", "1", "--starts", "1", "--no-intervals", "--no-polish"]
+
+
+def _fit(*args: str) -> tuple[int, str]:
+    res = CliRunner().invoke(app, ["fit", *args, *QUICK], env={"COLUMNS": "400"})
+    return res.exit_code, res.output
+
+
+def _copy(src: Path, dst: Path, **attrs: str) -> Path:
+    shutil.copy2(src, dst)
+    with h5py.File(dst, "r+") as f:
+        for k, v in attrs.items():
+            f.attrs[k] = v
+    return dst
+
+
+def _with_specimen(path: Path, change: dict[str, object]) -> None:
+    with h5py.File(path, "r+") as f:
+        raw = f.attrs["specimen"]
+        spec = json.loads(raw.decode() if isinstance(raw, bytes) else raw)
+        spec.update(change)
+        f.attrs["specimen"] = json.dumps(spec)
+
+
+def test_runs_of_different_rigs_and_specimens_are_warned_about_before_the_fit(short_run: Path,
+                                                                               tmp_path: Path) -> None:
+    a = _copy(short_run, tmp_path / "A.h5", specimen_id="VHB-01")
+    b = _copy(short_run, tmp_path / "B.h5", rig_name="other-rig", specimen_id="VHB-02")
+    _with_specimen(b, {"breakdown_field_V_per_m": 80e6})
+    code, out = _fit(str(a), str(b))
+    assert code == 0, out
+    warning = next(line for line in out.splitlines() if line.startswith("warning: the runs are not of one"))
+    for said in ("rig_name", "'other-rig'", "specimen_id", "'VHB-01'", "'VHB-02'",
+                 "specimen.breakdown_field_V_per_m", "80000000.0", "A.h5", "B.h5"):
+        assert said in warning, warning
+    assert out.index(warning) < out.index("fitting the membrane model")  # before the fit, which still ran
+    assert "stored in" in out
+    # a campaign of one specimen at other conditions (its records' own temperature) is not warned about
+    from bench.app.fit import specimen_mismatch
+
+    c = _copy(short_run, tmp_path / "C.h5", specimen_id="VHB-01")
+    _with_specimen(c, {"temperature_K": 316.0, "overrides": {"temperature_K": 316.0}})
+    assert specimen_mismatch([a, c]) == ""
+
+
+@pytest.fixture(scope="module")
+def stopped_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The short identification run, stopped ("Ctrl-C") 3 s into its drive (its first step)."""
+    def ctrl_c(engine: Engine, sim) -> None:  # type: ignore[no-untyped-def]
+        def at(_now: float) -> None:
+            if engine.snapshot.step == 0 and engine.program_now() > 3.0:
+                engine.request_stop("Ctrl-C")
+        sim.clock.subscribe(at)
+
+    d = tmp_path_factory.mktemp("stopped")
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("BENCH_STATE_DIR", str(d / "state"))
+        run = execute(plan_run(SHORT), d / "stopped.h5", virtual=True, on_engine=ctrl_c)
+    assert run.state == "interrupted", run.reason
+    return Path(run.path)
+
+
+def test_a_stopped_run_is_said_to_have_stopped_before_the_fit(stopped_run: Path) -> None:
+    code, out = _fit(str(stopped_run))
+    assert code == 0, out
+    notes = [line for line in out.splitlines() if line.startswith("note: ")]
+    assert len(notes) == 1, out
+    note = notes[0]
+    assert str(stopped_run) in note and "run interrupted at" in note and "Ctrl-C" in note, note
+    # stopped in its first step: neither of the protocol's two steps ran to its end
+    assert "in step 1 of 2" in note and "steps 1–2 of 2 not run to their end" in note, note
+    assert out.index(note) < out.index("fitting the membrane model")
