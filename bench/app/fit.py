@@ -73,10 +73,11 @@ def _flat(value: object, prefix: str = "") -> dict[str, object]:
 
 
 def specimen_mismatch(runs: list[Path]) -> str:
-    """One line naming what differs between the run files' rigs and specimens (``rig_name``, ``specimen_id``, the
-    ``specimen`` attribute less the per-record conditions a campaign allows), with the first file's and the first
-    differing file's values; '' when they agree. Fitting two specimens as one set of parameters is usually a
-    mistake: said before the fit, which still goes ahead."""
+    """One line naming what differs between the run files' specimens (``specimen_id``, the ``specimen`` attribute
+    less the per-record conditions a campaign allows), with the first file's and the first differing file's values;
+    '' when they agree. Fitting two specimens as one set of parameters is usually a mistake: said before the fit,
+    which still goes ahead. The rig may differ: one specimen measured on two benches (the LS-DEA campaign's motor
+    and hung-mass rigs) is one specimen."""
     from bench.storage.runfile import open_run
 
     if len(runs) < 2:
@@ -84,7 +85,6 @@ def specimen_mismatch(runs: list[Path]) -> str:
     files = [open_run(p, streams=False) for p in runs]
     keys: dict[str, list[object]] = {}
     for f in files:
-        keys.setdefault("rig_name", []).append(f.attrs.get("rig_name"))
         keys.setdefault("specimen_id", []).append(f.attrs.get("specimen_id") or None)
     flats = [_flat(f.specimen()) for f in files]
     for name in sorted(set().union(*flats)):
@@ -97,7 +97,7 @@ def specimen_mismatch(runs: list[Path]) -> str:
             said.append(f"{name} {values[0]!r} ({runs[0].name}) vs {values[other]!r} ({runs[other].name})")
     if not said:
         return ""
-    return ("the runs are not of one rig and specimen: " + "; ".join(said) + " — fitting them as one set of "
+    return ("the runs are not of one specimen: " + "; ".join(said) + " — fitting them as one set of "
             "parameters is usually a mistake (fitting anyway)")
 
 
