@@ -7,6 +7,7 @@ engine counts the monitor as reading 0 V (bench.runtime.engine.SAFE_MONITOR_V).
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import pytest
@@ -45,4 +46,29 @@ def test_fit_of_an_undriven_run_is_refused_in_one_line(zero_run: Path) -> None:
     assert len(err) == 1, res.output
     assert str(zero_run) in err[0] and "never driven above 50 V" in err[0] and "identifiable" in err[0]
     assert not Path(str(zero_run).removesuffix(".h5") + ".fit.hdf5").exists()  # nothing was fitted or stored
+
+
+def test_report_of_an_undriven_run_gives_no_lag_or_creep(zero_run: Path, tmp_path: Path) -> None:
+    res = runner.invoke(app, ["report", str(zero_run), "--out", str(tmp_path / "text")], env={"COLUMNS": "300"})
+    assert res.exit_code == 0, res.output
+    assert "not driven, so lag and creep" in res.output
+    lag_row = next(line for line in res.output.splitlines() if "lag 1 [s]" in line)
+    assert "–" in lag_row and not any(c.isdigit() for c in lag_row.split("lag 1 [s]")[1]), lag_row
+    res = runner.invoke(app, ["report", str(zero_run), "--out", str(tmp_path / "json"), "--json"])
+    assert res.exit_code == 0, res.output
+    (step,) = json.loads(res.output)["runs"][0]["steps"]
+    assert step["voltage_V"] < 50.0  # the monitor's noise, not a drive
+    assert step["figures"]["lag_first"] is None and step["figures"]["creep"] is None
+    assert step["figures"]["peak_first"] is not None  # what the laser saw is still reported
+
+
+def test_simulate_thesis_at_0_V_gives_no_lag_or_creep() -> None:
+    res = runner.invoke(app, ["simulate", "thesis", "--voltage", "0", "--frequency", "0.1"], env={"COLUMNS": "300"})
+    assert res.exit_code == 0, res.output
+    rows = [line for line in res.output.splitlines() if line.startswith("│")]
+    assert len(rows) == 2, res.output  # 20 s at 0.1 Hz: two cycles
+    for row in rows:
+        assert row.split("│")[4].strip() == "–", row  # the lag column
+    assert "not driven, so lag and creep" in res.output
+    assert "creep –" in res.output
 
