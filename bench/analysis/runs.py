@@ -27,7 +27,7 @@ import numpy as np
 
 from bench.analysis.applied import applied_window
 from bench.analysis.cycles import crest_to_trough, hysteresis_loss, phase_lag, smooth
-from bench.analysis.thesis import cycle_figures
+from bench.analysis.thesis import cycle_figures, undriven, undriven_note
 from bench.models.lozenge import LozengeParams
 from bench.protocol.schema import Protocol, WaveformStep, load_protocol
 from bench.storage.chunks import RunSource, StreamChunks, open_source
@@ -195,6 +195,9 @@ def analyse_source(src: RunSource, last_cycles: int = 3) -> RunAnalysis:
         if kind_of_specimen == "membrane":
             res.temperature = float(run.temperature_at(at))
             _thesis(res, streams, sp.t, sp.v)
+            if undriven(vpk):
+                notes.append(undriven_note(f"step {index + 1} of {run.program.shape[0]} (index {index}, "
+                                           f"{row['name'].decode()})", vpk))
         elif step.channel == "position":
             _isopotential(res, streams)
         elif config == "hung":
@@ -217,6 +220,9 @@ def _thesis(res: StepResult, streams: StreamChunks, t_v: np.ndarray, v: np.ndarr
                    "residual_first": figs.residuals[0] if figs.residuals else np.nan,
                    "residual_last": figs.residuals[-1] if figs.residuals else np.nan}
     res.series = {"peaks": list(figs.peaks), "residuals": list(figs.residuals), "lags": list(figs.lags)}
+    if undriven(res.voltage):  # no drive: its "peak" is monitor noise, and the response's creep is not to a drive
+        res.figures["lag_first"] = res.figures["creep"] = np.nan
+        res.series["lags"] = [np.nan] * len(figs.lags)
 
 
 def _isopotential(res: StepResult, streams: StreamChunks) -> None:

@@ -10,6 +10,22 @@ from bench.analysis.cycles import smooth
 
 SMOOTH_PERIODS = 50  # the smoothing window is this fraction of a period
 NO_DISPLACEMENT_M = 1e-12  # peaks below 1 pm are rounding, not a displacement (no sensor resolves them)
+# a step (or run) whose peak |V| stays at or below this was not driven: it is the band in which the engine counts
+# the voltage monitor as reading 0 V after zeroing (bench.runtime.engine.SAFE_MONITOR_V, 0.5 % of the TREK's 10-kV
+# full scale: monitor noise and offset). Below it a "voltage peak" is the monitor's noise, so a lag from it to the
+# displacement's peak, a creep of the response to it, or a fitted parameter of the response means nothing.
+NO_DRIVE_V = 50.0
+
+
+def undriven(peak_voltage: float) -> bool:
+    """Whether a peak |V| [V] is no drive at all (at or below :data:`NO_DRIVE_V`, the monitor's 0-V band)."""
+    return not abs(peak_voltage) > NO_DRIVE_V
+
+
+def undriven_note(what: str, peak_voltage: float) -> str:
+    """One line saying why ``what``'s drive-dependent figures are not given."""
+    return (f"{what}: peak voltage {abs(peak_voltage):.3g} V is within the monitor's 0-V band (≤ {NO_DRIVE_V:g} V): "
+            "not driven, so lag and creep (figures relative to the drive) are not given")
 
 
 @dataclass(frozen=True)

@@ -131,6 +131,29 @@ def check_fittable(runs: list[Path], into: bool = False) -> None:
                              "leave out --into to store the fit in its fit file beside it")
 
 
+def check_driven(runs: list[Path]) -> None:
+    """Refuse, before any work, membrane runs none of which drove the amplifier beyond the voltage monitor's 0-V
+    band (:data:`bench.analysis.thesis.NO_DRIVE_V`): the membrane moves only under voltage, so its record at rest
+    holds no information on any parameter (the search would run to the end and find every one insensitive).
+    One undriven file among driven ones is a record at rest of the campaign, and is fitted with them."""
+    import numpy as np
+
+    from bench.analysis.applied import applied_window
+    from bench.analysis.thesis import NO_DRIVE_V, undriven
+    from bench.storage.chunks import open_source
+
+    peaks = []
+    for p in runs:
+        with open_source(p) as src:
+            v = applied_window(src.streams, -np.inf, np.inf, measured=True).v
+        peaks.append(float(np.max(np.abs(v))) if v.size else 0.0)
+    if all(undriven(v) for v in peaks):
+        names = ", ".join(str(p) for p in runs)
+        raise ValueError(f"run file{'s' if len(runs) > 1 else ''} {names}: the amplifier was never driven above "
+                         f"{NO_DRIVE_V:g} V (the voltage monitor's 0-V band; peak {max(peaks):.3g} V): no model "
+                         "parameter is identifiable without a drive")
+
+
 def fit_runs(runs: list[Path], model: str, settings: FitSettings, *, branches: int = 1, export: Path | None = None,
              scheduler: str | None = None, workers: int | None = None, into: bool = False,
              on_read: Callable[[RecordedProblem], None] | None = None, on_cluster: Callable[[str], None] | None = None,
@@ -150,6 +173,8 @@ def fit_runs(runs: list[Path], model: str, settings: FitSettings, *, branches: i
     from bench.storage.runfile import open_run
 
     check_fittable(runs, into)
+    if model == "membrane":
+        check_driven(runs)
     if export is not None:
         check_export(export)
     files: list[str | Path] = list(runs)

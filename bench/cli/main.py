@@ -69,6 +69,7 @@ def simulate_thesis(
     = "rodas",
 ) -> None:
     """Thesis membrane (Model A) under a periodic voltage: per-cycle peaks, creep, residual, lag, field."""
+    from bench.analysis.thesis import undriven, undriven_note
     from bench.app.simulate import simulate_thesis as simulate
 
     voltage_V = option_si(voltage, "V", "--voltage", 0, 12_000)
@@ -83,12 +84,16 @@ def simulate_thesis(
                         f"{temperature_K:g} K, {duration_s:g} s")
     for col in ("cycle", "peak u [mm]", "at t [s]", "lag [s]", "u at cycle end [mm]"):
         table.add_column(col, justify="right")
+    driven = not undriven(voltage_V)  # at 0 V the "voltage peak" is any sample: no lag or creep to the drive
     for k, (pk, tk, lag) in enumerate(zip(figs.peaks, figs.peak_times, figs.lags, strict=True)):
         res = f"{figs.residuals[k] * 1e3:.3f}" if k < len(figs.residuals) else "–"
-        table.add_row(str(k + 1), f"{pk * 1e3:.3f}", f"{tk:.3f}", f"{lag:.3f}", res)
+        table.add_row(str(k + 1), f"{pk * 1e3:.3f}", f"{tk:.3f}", f"{lag:.3f}" if driven else "–", res)
     console.print(table)
+    if not driven:
+        console.print(undriven_note(f"--voltage {voltage_V:g} V", voltage_V), soft_wrap=True)
+    creep = f"{sim.creep:+.1f} %" if driven else "–"
     console.print(f"max displacement {sim.max_displacement * 1e3:.3f} mm (L_d = {sim.params.L_d * 1e3:g} mm), "
-                  f"max stretch {sim.max_stretch:.4f}, creep {sim.creep:+.1f} %, "
+                  f"max stretch {sim.max_stretch:.4f}, creep {creep}, "
                   f"peak true field {sim.peak_field / 1e6:.1f} MV/m, peak current {sim.peak_current * 1e6:.2f} µA")
     if sim.trace.failed:
         raise fail(f"specimen failed: {sim.trace.failure}", code=1)
