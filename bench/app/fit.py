@@ -12,6 +12,7 @@ if TYPE_CHECKING:
     from bench.app import Progress
     from bench.identify.campaign import CampaignReport
     from bench.identify.core import FitResult, FitSettings, Problem, RecordedProblem
+    from bench.storage.chunks import StreamChunks
 
 
 # LS-DEA integration steps [s]: the search's (coarse) and the polish's and intervals' (fine). The scheme is first
@@ -136,22 +137,39 @@ def check_driven(runs: list[Path]) -> None:
     band (:data:`bench.analysis.thesis.NO_DRIVE_V`): the membrane moves only under voltage, so its record at rest
     holds no information on any parameter (the search would run to the end and find every one insensitive).
     One undriven file among driven ones is a record at rest of the campaign, and is fitted with them."""
-    import numpy as np
-
-    from bench.analysis.applied import applied_window
     from bench.analysis.thesis import NO_DRIVE_V, undriven
     from bench.storage.chunks import open_source
 
     peaks = []
     for p in runs:
         with open_source(p) as src:
-            v = applied_window(src.streams, -np.inf, np.inf, measured=True).v
-        peaks.append(float(np.max(np.abs(v))) if v.size else 0.0)
+            peaks.append(_peak_voltage(src.streams))
     if all(undriven(v) for v in peaks):
         names = ", ".join(str(p) for p in runs)
         raise ValueError(f"run file{'s' if len(runs) > 1 else ''} {names}: the amplifier was never driven above "
                          f"{NO_DRIVE_V:g} V (the voltage monitor's 0-V band; peak {max(peaks):.3g} V): no model "
                          "parameter is identifiable without a drive")
+
+
+def _peak_voltage(streams: StreamChunks) -> float:
+    """The largest |V| a run applied (the set-points; on a hardware-timed rig also the measured output, as
+    :func:`bench.analysis.applied.applied_window` reads it), read a chunk at a time: a long 10-kHz record is
+    never held whole."""
+    import numpy as np
+
+    from bench.analysis.applied import hardware_timed
+
+    sources = [("setpoints", "voltage")] + ([("amplifier", "voltage")] if hardware_timed(streams) else [])
+    peak = 0.0
+    for stream, column in sources:
+        if stream not in streams.columns:
+            continue
+        for chunk in streams.chunks(stream):
+            v = np.abs(chunk[column])
+            if bool(np.isnan(v).all()):
+                continue
+            peak = max(peak, float(np.nanmax(v)))
+    return peak
 
 
 def fit_runs(runs: list[Path], model: str, settings: FitSettings, *, branches: int = 1, export: Path | None = None,
