@@ -168,19 +168,13 @@ def fit_command(
     campaign determines. The campaign's fit is stored with every one of its files (in each fit file, or with
     --into in each run file), so the report of any of them finds it. Fit files given among the runs (a glob such
     as runs/*) are skipped."""
-    from bench.app.fit import model_of_runs, specimen_mismatch, stopped_notices
+    from bench.app.fit import model_of_runs
     from bench.identify.core import FitSettings
 
     with json_mode(json_out):
         runs = runs_only(runs)
     chosen = model_of_runs(runs, model.value)
-    mismatch = specimen_mismatch(runs)
-    stopped = stopped_notices(runs)
-    with json_mode(json_out):  # before the minutes of fitting, when the command can still be stopped
-        if mismatch:
-            console.print(f"[yellow]warning: {escape(mismatch)}[/]")
-        for line in stopped:
-            console.print(f"note: {escape(line)}")
+    mismatch, stopped = fit_notices(runs, json_out)
     settings = FitSettings(population, generations, mutation, crossover, cost.value, polish, polish_iterations,
                            seed=seed, starts=starts, intervals=intervals)
     with json_mode(json_out):
@@ -199,6 +193,20 @@ def fit_command(
                                         "status": result.trust.status[j]} if result.trust is not None else {}),
                                     "sensitivity": result.sensitivity[j], "flags": result.flags_of(n)}
                                    for j, n in enumerate(result.names)]})
+
+
+def fit_notices(runs: list[Path], json_out: bool) -> tuple[str, list[str]]:
+    """What a user may not have meant, said before the minutes of fitting (when the command can still be stopped):
+    files of more than one specimen, runs that stopped early; returned for ``--json``."""
+    from bench.app.fit import specimen_mismatch, stopped_notices
+
+    mismatch, stopped = specimen_mismatch(runs), stopped_notices(runs)
+    with json_mode(json_out):
+        if mismatch:
+            console.print(f"[yellow]warning: {escape(mismatch)}[/]")
+        for line in stopped:
+            console.print(f"note: {escape(line)}")
+    return mismatch, stopped
 
 
 def runs_only(paths: list[Path]) -> list[Path]:

@@ -168,10 +168,8 @@ def check_links(program: Program) -> list[str]:
             problems.append(f"{link.link} at {link.baud} Bd: busy {link.load:.0%} of the time ({parts}); {fit}")
     amp_daq, laser_daq = _hardware_timed(program)
     storing = (lz := rig.laser) is not None and not laser_daq and any(s.storing for s in program.segments)
-    upload = rec.displacement_Hz / laser_upload_rate(lz.baudrate) if storing and lz is not None else 0.0
-    if (host := _check_host(program, loads, upload)) is not None:
-        problems.append(host)
-    if (lz := rig.laser) is not None and not laser_daq and any(s.storing for s in program.segments):
+    upload_share = rec.displacement_Hz / laser_upload_rate(lz.baudrate) if storing and lz is not None else 0.0
+    if storing and lz is not None:
         upload = laser_upload_rate(lz.baudrate)
         if rec.displacement_Hz > upload:
             longest = max(s.duration for s in program.segments if s.storing)
@@ -190,6 +188,8 @@ def check_links(program: Program) -> list[str]:
     if rig.load_cell is not None and rec.force_Hz > DGT1S_RATE:
         problems.append(f"load cell: polled at {rec.force_Hz:g}/s but the DGT1S converts {DGT1S_RATE:g} S/s; "
                         f"lower recording.force_Hz to ≤ {DGT1S_RATE:g}")
+    if (host := _check_host(program, loads, upload_share)) is not None:  # last: the links' own lines say what to change
+        problems.append(host)
     return problems
 
 
