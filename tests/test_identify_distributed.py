@@ -83,7 +83,8 @@ def cluster(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Cluster]:
         assert address.startswith("tcp://127.0.0.1:")
         for k in range(2):
             processes[f"worker-{k}"] = _start(logs, f"worker-{k}", "distributed.cli.dask_worker", address,
-                                              "--nthreads", "1", "--no-nanny", "--no-dashboard", "--host", "127.0.0.1")
+                                              "--nthreads", "1", "--no-nanny", "--no-dashboard", "--host", "127.0.0.1",
+                                              "--preload", "bench.identify.worker_plugins")  # README
         with Client(address) as client:
             client.wait_for_workers(2, timeout=60)
         yield Cluster(address, processes, logs)
@@ -304,6 +305,20 @@ def test_a_closing_workers_failed_heartbeat_is_dropped_and_a_running_ones_kept()
     del worker
     assert not keep.filter(failed)  # the worker is gone: its heartbeat cannot matter
     assert keep.filter(other)
+
+
+def test_workers_of_a_cluster_of_ones_own_carry_the_filter_through_the_preload(cluster: Cluster) -> None:
+    """The README's `dask worker --preload bench.identify.worker_plugins`: the fixture's two worker processes carry
+    the closing-heartbeat filter once each (the fixture then checks their logs for a traceback at the close)."""
+    from distributed import Client
+
+    from bench.identify.worker_plugins import ClosingHeartbeatFilter
+
+    def installed() -> int:
+        return sum(isinstance(f, ClosingHeartbeatFilter) for f in logging.getLogger("distributed.worker").filters)
+
+    with Client(cluster.address) as client:
+        assert sorted(client.run(installed).values()) == [1, 1]
 
 
 def test_the_workers_of_our_local_cluster_carry_the_filter_and_close_without_a_traceback(

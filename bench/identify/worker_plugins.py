@@ -5,6 +5,9 @@ closing its own connections then fails that heartbeat, and dask logs it as an ER
 traceback on the worker's stderr (seen at the end of a ``--workers 16`` cluster on a 16-core machine, issue 24).
 The worker is shutting down on purpose, so the failed heartbeat says nothing: the plugin drops that one record
 while its worker is closing or closed. The same failure on a running worker (a scheduler really lost) still logs.
+
+On a cluster of your own, ``dask worker --preload bench.identify.worker_plugins ADDRESS`` installs the same filter
+(:func:`dask_setup`, dask's preload hook): the race is dask's and happens on any cluster's close.
 """
 
 from __future__ import annotations
@@ -46,3 +49,8 @@ class QuietClosingHeartbeat(WorkerPlugin):
         for old in [f for f in log.filters if isinstance(f, ClosingHeartbeatFilter)]:  # an earlier worker's
             log.removeFilter(old)
         log.addFilter(ClosingHeartbeatFilter(worker))
+
+
+def dask_setup(worker: Any) -> None:
+    """dask's preload hook (``dask worker --preload bench.identify.worker_plugins``): the filter on this worker."""
+    QuietClosingHeartbeat().setup(worker)
