@@ -198,6 +198,10 @@ def analyse_source(src: RunSource, last_cycles: int = 3) -> RunAnalysis:
             if undriven(vpk):
                 notes.append(undriven_note(f"step {index + 1} of {run.program.shape[0]} (index {index}, "
                                            f"{row['name'].decode()})", vpk))
+        elif whole_cycles(dur, step.frequency_Hz) == 0:  # the LS-DEA's figures are per whole cycle
+            notes.append(f"step {index + 1} of {run.program.shape[0]} (index {index}, {row['name'].decode()}) "
+                         f"plays {dur * step.frequency_Hz:g} cycles, less than one whole: no figures")
+            continue
         elif step.channel == "position":
             _isopotential(res, streams)
         elif config == "hung":
@@ -206,6 +210,11 @@ def analyse_source(src: RunSource, last_cycles: int = 3) -> RunAnalysis:
             _isometric(res, streams, last_cycles, 2 * step.frequency_Hz if step.kind == "sine" else step.frequency_Hz)
         results.append(res)
     return RunAnalysis(run.path, run.attrs["protocol_name"], kind_of_specimen, config, results, run, notes)
+
+
+def whole_cycles(duration: float, frequency: float) -> int:
+    """Whole periods in a step (a 1.5-cycle waveform has one: the half cycle has no loading branch of its own)."""
+    return int(np.floor(duration * frequency + 1e-6))
 
 
 def _thesis(res: StepResult, streams: StreamChunks, t_v: np.ndarray, v: np.ndarray) -> None:
@@ -232,7 +241,7 @@ def _isopotential(res: StepResult, streams: StreamChunks) -> None:
     lc = _window(streams, "load_cell", t0, t0 + dur, ["force"], neighbours=True)  # interpolated as on the whole
     x, tt = motor["aperture"], motor["t"]
     force = np.interp(tt, lc["t"], lc["force"])
-    n_cyc = round(dur * f)
+    n_cyc = whole_cycles(dur, f)
     losses = []
     for k in range(n_cyc):
         c = (tt >= t0 + k / f - 1e-9) & (tt <= t0 + (k + 1) / f + 1e-9)
@@ -249,7 +258,7 @@ def _isopotential(res: StepResult, streams: StreamChunks) -> None:
 def _isotonic(res: StepResult, streams: StreamChunks, last_cycles: int, proto: int, mass: float) -> None:
     """Hung mass: crest-to-trough displacement of the last cycles, stroke, energy density."""
     t0, dur, f = res.t_start, res.duration, res.frequency
-    t_tail = t0 + dur - min(last_cycles, round(dur * f)) / f
+    t_tail = t0 + dur - min(last_cycles, whole_cycles(dur, f)) / f
     laser = _window(streams, "laser", t_tail, t0 + dur, ["displacement", "valid"])
     ok = laser["valid"] > 0
     t, u = laser["t"][ok], laser["displacement"][ok]
@@ -272,7 +281,7 @@ def _isotonic(res: StepResult, streams: StreamChunks, last_cycles: int, proto: i
 def _isometric(res: StepResult, streams: StreamChunks, last_cycles: int, f_out: float) -> None:
     """Blocked: crest-to-trough force of the last cycles at the output frequency, its mean, the V–F lag."""
     t0, dur, f = res.t_start, res.duration, res.frequency
-    t_tail = t0 + dur - min(last_cycles, round(dur * f)) / f
+    t_tail = t0 + dur - min(last_cycles, whole_cycles(dur, f)) / f
     lc = _window(streams, "load_cell", t_tail, t0 + dur, ["force"])
     res.kind = "isometric"
     res.figures = {"force_swing": crest_to_trough(lc["t"], lc["force"], f_out),

@@ -29,7 +29,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from types import FrameType
 from typing import Any, NoReturn
@@ -38,7 +38,7 @@ import numpy as np
 
 from bench.core.clock import Clock
 from bench.models.lozenge import LozengeParams
-from bench.protocol.program import HOLD_KEEPALIVE_S, Program, Segment, end_tick, ticks, voltage_at
+from bench.protocol.program import HOLD_KEEPALIVE_S, Program, Segment, Tick, end_tick, ticks, voltage_at
 from bench.runtime.context import LATE_TOLERANCE_S, STOP_POLL_S, RunContext, Snapshot, present
 from bench.runtime.control import CONTROL_POLL_S, NO_WORD, ControlWord, read_control
 from bench.runtime.hardware_timed import HardwareTimed
@@ -74,6 +74,31 @@ STOP_SIGNALS = {
 }
 
 OperatorFn = Callable[[str], bool]
+
+
+def supersedes(tick: Tick, later: Tick) -> bool:
+    """Whether ``later`` makes ``tick`` pointless once both are due: it sends everything ``tick`` would (a voltage
+    where ``tick`` has one, a go-to where ``tick`` has one; both are absolute), and it is not the step's end value
+    (sent at the end, after the loop). A move step's one go-to is followed by ticks without one: never skipped."""
+    return not later.end and (tick.voltage is None or later.voltage is not None) \
+        and (tick.motor is None or later.motor is not None)
+
+
+@dataclass
+class Skipped:
+    """What a step behind its schedule skipped: set-points superseded before they went out, polls' missed slots."""
+
+    setpoints: int = 0
+    sent: int = 0
+    polls: dict[str, int] = field(default_factory=dict)
+
+    def text(self, seg: Segment) -> str:
+        """The ``skipped`` event's words."""
+        polls = ", ".join(f"{k} {n}" for k, n in self.polls.items())
+        return (f"step {seg.index} ({seg.name}) fell behind its schedule (the links need more time than it gives: "
+                f"validate's link budget): {self.setpoints} of {self.setpoints + self.sent} set-points skipped, each "
+                "superseded by a later one already due, so the waveform kept its times, sampled more coarsely"
+                + (f"; polls' missed slots skipped: {polls}" if polls else ""))
 
 
 @contextlib.contextmanager
@@ -547,9 +572,7 @@ class Engine:
         v, start = self.ctx.v_cmd, self.now()
         playing = self._streaming()
         if start - t_end > LATE_TOLERANCE_S and not playing:  # the step's own lateness, before the upload's
-            self.rec.event(start, seg.index, "late", f"step {seg.index} ({seg.name}) ended {start - t_end:.3f} s "
-                           "after its scheduled end: the program's schedule shifted by it and by the laser's upload "
-                           "(the drain event) so that the next step runs whole")
+            self._late(start, seg, start - t_end, "by it and by the laser's upload (the drain event)")
         zeroed = self._drain_laser(LASER_DRAIN_BUDGET_S, math.inf if playing else DRAIN_HOLD_S, due)
         behind = self.now() - t_end
         if behind <= 1e-9:  # nothing to upload (or no time on the run's clock)
@@ -587,10 +610,14 @@ class Engine:
             return
         self.ctx.offset += behind
         if behind > LATE_TOLERANCE_S:  # a slip of a few ms (a ramp's end value sent at its end) shifts, unsaid
-            self.rec.event(self.now(), seg.index, "late", f"step {seg.index} ({seg.name}) ended {behind:.3f} s after "
-                           f"its scheduled end: the program's schedule shifted by {behind:.3f} s so that the next "
-                           "step runs whole")
+            self._late(self.now(), seg, behind, f"by {behind:.3f} s")
         self.rec.event(self.now(), seg.index, "offset", f"run time = program time + {self.ctx.offset:.9f} s")
+
+    def _late(self, t: float, seg: Segment, behind: float, shift: str) -> None:
+        """The ``late`` event of a step that ended ``behind`` s after its scheduled end; ``shift``: by what the
+        program's schedule shifted."""
+        self.rec.event(t, seg.index, "late", f"step {seg.index} ({seg.name}) ended {behind:.3f} s after its "
+                       f"scheduled end: the program's schedule shifted {shift} so that the next step runs whole")
 
     # ------------------------------------------------------------ set-points
     def _sent_at(self, due: float) -> float:
@@ -612,10 +639,25 @@ class Engine:
         sent = self.ctx.amp.set_voltage(v, within=bound)
         self.ctx.v_cmd, self.ctx.v_req = sent, v
         self.verifier.commanded(self.now(), sent)
-        self.rec.append("setpoints", t, voltage=sent, aperture=x_cmd)
-        self._setpoint_t = max(self._setpoint_t, t)
+        self._record_setpoint(t, sent, x_cmd)
         if sent != want:
             self.sup.check_setpoint(sent)
+
+    def _record_setpoint(self, t: float, voltage: float, aperture: float) -> None:
+        """A set-point row at run time ``t``, remembered as the last (a keep-alive is recorded no earlier)."""
+        self.rec.append("setpoints", t, voltage=voltage, aperture=aperture)
+        self._setpoint_t = max(self._setpoint_t, t)
+
+    def _send_tick(self, tick: Tick, streamed: bool) -> None:
+        """Send one tick of a step's schedule (its go-to, its voltage unless a DAQ stream plays it) and record it
+        (:meth:`_sent_at`)."""
+        t_rec = self._sent_at(tick.t + self.ctx.offset)
+        x_cmd = self._move_motor(*tick.motor) if tick.motor is not None else math.nan
+        if self.inst.amplifier is not None and not streamed:
+            self._set_voltage(self.ctx.v_req if tick.voltage is None else tick.voltage, t_rec, x_cmd)
+        elif tick.motor is not None:
+            self._record_setpoint(t_rec, math.nan, x_cmd)
+        self.snapshot.values["setpoint"] = self.ctx.v_cmd
 
     def _check_voltage(self, v: float) -> tuple[float, float]:
         """The supervisor's checks of a voltage set-point before it is sent: the request and the value the module
@@ -676,7 +718,8 @@ class Engine:
         if streamed:  # the device plays the voltage: a tick without a go-to has nothing to send, so no wake-up
             schedule = (tk for tk in schedule if tk.motor is not None or tk.end) \
                 if seg.move is not None or seg.position is not None else iter([end_tick(seg)])
-        tick = next(schedule, None)
+        tick, following = next(schedule, None), next(schedule, None)
+        skipped = Skipped()
         while True:
             t_set = tick.t if tick is not None and not tick.end else math.inf
             t_next = min([t_set, *due.values()])
@@ -684,19 +727,23 @@ class Engine:
                 break
             self.ctx.wait_until(t_next)
             if tick is not None and t_set <= t_next:
-                t_rec = self._sent_at(t_set + self.ctx.offset)
-                x_cmd = self._move_motor(*tick.motor) if tick.motor is not None else math.nan
-                if inst.amplifier is not None and not streamed:
-                    self._set_voltage(self.ctx.v_req if tick.voltage is None else tick.voltage, t_rec, x_cmd)
-                elif tick.motor is not None:
-                    self.rec.append("setpoints", t_rec, voltage=math.nan, aperture=x_cmd)
-                    self._setpoint_t = max(self._setpoint_t, t_rec)
-                self.snapshot.values["setpoint"] = self.ctx.v_cmd
-                tick = next(schedule, None)
+                # behind the schedule (the links slower than it): a set-point whose successor is already due is
+                # skipped, never sent late, so the waveform keeps its times (sampled more coarsely), not stretched
+                while following is not None and supersedes(tick, following) and following.t <= self.program_now():
+                    tick, following = following, next(schedule, None)
+                    skipped.setpoints += 1
+                self._send_tick(tick, streamed)
+                skipped.sent += 1
+                tick, following = following, next(schedule, None)
             for kind in [k for k, tk in due.items() if tk <= t_next + 1e-12]:
                 self._check_stop()
                 poll, period = polls[kind]
-                poll.run(self.ctx, due[kind])
+                # the same for a poll: its slots already passed but the latest are skipped (one read, not a burst)
+                while (nxt := seg.t_start + (count[kind] + 1) * period) <= self.program_now() \
+                        and nxt < seg.t_end - 1e-12:
+                    count[kind] += 1
+                    skipped.polls[kind] = skipped.polls.get(kind, 0) + 1
+                poll.run(self.ctx, seg.t_start + count[kind] * period)
                 count[kind] += 1
                 due[kind] = seg.t_start + count[kind] * period
             self.snapshot.t = t_next
@@ -709,6 +756,8 @@ class Engine:
         elif inst.amplifier is not None and v_end is not None and v_end != self.ctx.v_req:
             # ticks stop before t_end: a ramp must reach its end
             self._set_voltage(v_end, self._sent_at(seg.t_end + self.ctx.offset))
+        if skipped.setpoints or skipped.polls:
+            self.rec.event(self.now(), seg.index, "skipped", skipped.text(seg))
         zeroed = False
         if storing:
             self.ctx.laser.stop_buffer()
