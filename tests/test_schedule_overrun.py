@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
 import shutil
 from pathlib import Path
 from typing import Any
@@ -94,6 +95,11 @@ def test_a_step_behind_its_schedule_skips_superseded_set_points_and_every_step_k
     assert len(skipped) == 1 and f"{int(TRIANGLE_S * 50 - mine.sum())} of {int(TRIANGLE_S * 50)} set-points" \
         in skipped[0], skipped
     assert np.all(np.diff(sp_t) >= 0)  # in time order
+    # the run's summary counts them (every step's), and so does its timing event
+    n_skipped = sum(int(re.search(r"(\d+) of \d+ set-points", text)[1])  # type: ignore[index]
+                    for _, _, kind, text in events if kind == "skipped")
+    assert result.skipped == n_skipped >= TRIANGLE_S * 50 - mine.sum()
+    assert any(kind == "timing" and f"{n_skipped} set-points skipped" in text for _, _, kind, text in events)
     # the triangle ended on time: no late event for it
     assert not [step for _, step, kind, _ in events if kind == "late" and step == 1]
     # a poll behind its slots reads once at the latest: its lateness (counted on the virtual clock, in rig time)

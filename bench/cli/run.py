@@ -331,7 +331,9 @@ def _print_result(result: RunResult, rig_name: str) -> None:
     colour = "green" if result.state == "completed" else "red"
     console.print(f"[{colour}]{result.state}[/]: {escape(result.reason)}")
     console.print(f"run {result.run_time:.1f} s in {result.wall_time:.1f} s of wall time ({speed:.1f}× real time), "
-                  f"{result.samples:,} samples" + (f", {result.overruns} late actions" if result.overruns else ""))
+                  f"{result.samples:,} samples" + (f", {result.overruns} late actions" if result.overruns else "")
+                  + (f", [yellow]{result.skipped} set-points skipped[/] (behind the schedule: the skipped events say "
+                     "where; validate's link budget says why)" if result.skipped else ""))
     console.print(f"high voltage: {escape(result.safe_path)}")
     if result.latched:
         console.print(f"[red]rig {escape(rig_name)} latched[/]: {escape(result.latched)}; nothing energises it until "

@@ -188,6 +188,7 @@ class RunResult:
     overruns: int = 0
     safe_path: str = ""
     latched: str = ""  # the interlock fault the run latched its rig for ('' if none)
+    skipped: int = 0  # set-points skipped because the run was behind its schedule (each step's `skipped` event)
 
 
 @dataclass
@@ -259,6 +260,7 @@ class Engine:
         self._interrupt: str | None = None
         self.on_event: Callable[[str, str], None] | None = None  # shutdown events go here instead (manual: its log)
         self._setpoint_t = -math.inf  # run time of the last set-point recorded (a keep-alive is recorded no earlier)
+        self.skipped = 0  # set-points skipped in the run, each superseded by a later one already due
         amp = program.rig.amplifier
         amp_bus = amp.bus if amp is not None and amp.drive != "daq" else None
         for name, link in inst.links.items():  # a retry on another bus: the set-point module fed before it
@@ -757,6 +759,7 @@ class Engine:
             # ticks stop before t_end: a ramp must reach its end
             self._set_voltage(v_end, self._sent_at(seg.t_end + self.ctx.offset))
         if skipped.setpoints or skipped.polls:
+            self.skipped += skipped.setpoints
             self.rec.event(self.now(), seg.index, "skipped", skipped.text(seg))
         zeroed = False
         if storing:
@@ -964,7 +967,7 @@ class Engine:
             state, reason = "error", f"storage fault: {self.rec.failure or 'run file not finalised'} (after: {reason})"
         return RunResult(str(self.rec.path), state, reason, self.now(), time.perf_counter() - wall0,
                          self.rec.samples_written, self.overruns, safe_path,
-                         self.latched.reason if self.latched is not None else "")
+                         self.latched.reason if self.latched is not None else "", self.skipped)
 
     def _record(self, fn: Callable[..., object], *args: Any, **kwargs: Any) -> None:
         """A recorder call during shutdown: a storage fault must not stop the rig being made safe."""
@@ -1018,10 +1021,11 @@ class Engine:
         safe_path = self._verify_safe(zero_at, notes)
         self._latch_unproven(zero_at, safe_path)
         self._motor_stopped(motor, notes)
-        if not self.clock.virtual or self.overruns:  # virtual time: said when the wires outran the schedule
+        if not self.clock.virtual or self.overruns or self.skipped:  # virtual: said when the wires outran it
             self._event("timing", f"{self.overruns} late actions (> {LATE_TOLERANCE_S * 1e3:.0f} ms), worst "
                         f"lateness {self.ctx.worst_lateness * 1e3:.1f} ms"
-                        + (" of rig time (virtual clock)" if self.clock.virtual else ""))
+                        + (" of rig time (virtual clock)" if self.clock.virtual else "")
+                        + (f"; {self.skipped} set-points skipped, behind the schedule" if self.skipped else ""))
         for note in notes:
             self._event("fault", note)
         if not self.commands:  # a request that came too late to change anything is recorded, not lost
