@@ -111,7 +111,8 @@ def test_a_step_behind_its_schedule_skips_superseded_set_points_and_every_step_k
     from bench.analysis.runs import analyse
 
     a = analyse(result.path)
-    assert not a.notes, a.notes
+    assert [n for n in a.notes if "index 1" in n and f"{int(TRIANGLE_S * 50 - mine.sum())} of its 150 set-points "
+            "skipped" in n and f"sampled at {mine.sum() / TRIANGLE_S:.3g} set-points/s" in n] == a.notes, a.notes
     (tri_step,) = a.steps
     assert tri_step.kind == "isopotential" and len(tri_step.series["loss_per_cycle"]) == 1
     assert 0.035 < tri_step.figures["stroke"] <= 0.040 + 1e-6
@@ -130,3 +131,51 @@ def test_a_step_behind_its_schedule_skips_superseded_set_points_and_every_step_k
         counts[json.loads(counts.attrs["names"]).index("events")] += 1
     notes = analyse(stretched).notes
     assert any("index 1" in n and "0.5 Hz" in n and "played slower" in n for n in notes), notes
+
+
+SINE = """[protocol]
+name = "sine-behind"
+rig = "{rig}"
+
+[recording]
+displacement_Hz = 1000
+monitors_Hz = 5
+setpoint_Hz = 50
+
+[[steps]]
+type = "waveform"
+name = "sine"
+channel = "voltage"
+kind = "sine"
+amplitude = "3 kV"
+offset = "3 kV"
+frequency_Hz = 0.5
+cycles = 2
+
+[[steps]]
+type = "relax"
+duration_s = 1
+"""
+
+
+def test_a_skip_never_moves_the_voltage_further_than_twice_the_waveforms_own_step(tmp_path: Path) -> None:
+    """thesis-sim with the laser's storage upload inside the step (the link budget: 154 % of the host): skipping
+    every set-point already superseded jumped the output by 2 kV in one write (the reviewer's run), a step load
+    the dry run never saw. A skip now stops within twice the sine's largest change between two set-points,
+    2π f A / setpoint_Hz (the protocol's numbers)."""
+    proto = tmp_path / "sine.toml"
+    proto.write_text(SINE.format(rig=RIGS / "thesis-sim.toml"))
+    plan = plan_run(proto)
+    assert plan.link_problems
+    result = execute(dataclasses.replace(plan, link_problems=[]), tmp_path / "run.h5", virtual=True)
+    assert result.state == "completed", result.reason
+    run = open_run(result.path)
+    events = run.event_list()
+    end = next(t for t, step, kind, _ in events if kind == "end" and step == 0)
+    sp = run.streams["setpoints"]
+    t, v = np.asarray(sp.t), np.asarray(sp.columns["voltage"])
+    sine = t <= end
+    assert result.skipped > 0 and any(kind == "skipped" and step == 0 for _, step, kind, _ in events)
+    own = 2 * np.pi * 0.5 * 3000.0 / 50  # the sine's largest change between two set-points [V]
+    code = 10_000.0 / 4095  # one DAC code of the set-point module at most (0–10 kV over 12 bits)
+    assert np.max(np.abs(np.diff(v[sine]))) <= 2 * own + code

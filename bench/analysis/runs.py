@@ -38,6 +38,7 @@ TOL_S = 1e-9  # a window's bounds are widened by this much (step times are sums 
 # a waveform step that ended this much after its planned end (the larger of the two) was stretched, not played at
 # its frequency: said above its figures (a ramp's end value sent at its end makes a step some ms late: no stretch)
 STRETCH_S, STRETCH_FRACTION = 0.05, 0.01
+SKIPPED = re.compile(r"(\d+) of (\d+) set-points skipped")  # the engine's `skipped` event
 LATE = re.compile(r"ended (\d+(?:\.\d+)?) s after its scheduled end")  # the engine's `late` event
 
 
@@ -171,6 +172,10 @@ def analyse_source(src: RunSource, last_cycles: int = 3) -> RunAnalysis:
     done, offsets, began = run.completed_steps(), run.step_offsets(), run.step_starts()
     late = {step: float(m[1]) for _, step, kind, text in run.event_list()
             if kind == "late" and (m := LATE.search(text)) is not None}  # each step's own lateness [s]
+    skipped: dict[int, tuple[int, int]] = {}  # each step's set-points (skipped, planned) behind its schedule
+    for _, step, kind, text in run.event_list():
+        if kind == "skipped" and (m := SKIPPED.search(text)) is not None:
+            skipped[step] = (skipped.get(step, (0, 0))[0] + int(m[1]), skipped.get(step, (0, 0))[1] + int(m[2]))
     for row, step in zip(run.program, protocol.steps, strict=True):
         if not isinstance(step, WaveformStep):
             continue
@@ -183,6 +188,11 @@ def analyse_source(src: RunSource, last_cycles: int = 3) -> RunAnalysis:
             notes.append(f"step {index + 1} of {run.program.shape[0]} (index {index}, {row['name'].decode()}) ended "
                          f"{behind:.3f} s after its planned end: its waveform was played slower than the protocol's "
                          f"{step.frequency_Hz:g} Hz; its figures below read its planned window at that frequency")
+        if (n := skipped.get(index, (0, 0)))[0]:
+            notes.append(f"step {index + 1} of {run.program.shape[0]} (index {index}, {row['name'].decode()}): "
+                         f"{n[0]} of its {n[1]} set-points skipped behind the schedule, so its drive was sampled at "
+                         f"{(n[1] - n[0]) / dur:.3g} set-points/s, not the protocol's {n[1] / dur:.3g}; its figures "
+                         "are of that drive")
         sp = applied_window(streams, t0 - TOL_S, t0 + dur + TOL_S, measured=True)
         sel = _inside(sp.t, t0, t0 + dur)
         vpk = float(np.max(np.abs(sp.v[sel]))) if sel.any() else 0.0

@@ -396,6 +396,18 @@ def ticks(program: Program, seg: Segment) -> Iterator[Tick]:
     yield end_tick(seg)
 
 
+def largest_voltage_change(program: Program, seg: Segment) -> float:
+    """The largest voltage change [V] between two consecutive set-points of :func:`ticks` while ``seg`` streams
+    (its end value included; 0 without a voltage): how far one set-point moves the output as planned."""
+    if seg.voltage is None or seg.duration <= 0:
+        return 0.0
+    dt = 1.0 / program.protocol.recording.setpoint_Hz
+    n = int(np.floor((min(seg.stream_until, seg.t_end) - seg.t_start) / dt + 1e-9)) + 1
+    t = seg.t_start + np.arange(n) * dt
+    v = np.append(seg.voltage(t[t < seg.t_end - 1e-12]), seg.voltage(np.array([seg.t_end])))
+    return float(np.max(np.abs(np.diff(v)))) if v.size > 1 else 0.0
+
+
 def end_tick(seg: Segment) -> Tick:
     """The last tick of :func:`ticks`: the segment's end value at its end."""
     return Tick(seg.t_end, voltage_at(seg, seg.t_end), None, end=True)

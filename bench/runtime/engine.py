@@ -38,7 +38,16 @@ import numpy as np
 
 from bench.core.clock import Clock
 from bench.models.lozenge import LozengeParams
-from bench.protocol.program import HOLD_KEEPALIVE_S, Program, Segment, Tick, end_tick, ticks, voltage_at
+from bench.protocol.program import (
+    HOLD_KEEPALIVE_S,
+    Program,
+    Segment,
+    Tick,
+    end_tick,
+    largest_voltage_change,
+    ticks,
+    voltage_at,
+)
 from bench.runtime.context import LATE_TOLERANCE_S, STOP_POLL_S, RunContext, Snapshot, present
 from bench.runtime.control import CONTROL_POLL_S, NO_WORD, ControlWord, read_control
 from bench.runtime.hardware_timed import HardwareTimed
@@ -92,13 +101,12 @@ class Skipped:
     sent: int = 0
     polls: dict[str, int] = field(default_factory=dict)
 
-    def text(self, seg: Segment) -> str:
-        """The ``skipped`` event's words."""
+    def text(self) -> str:
+        """The ``skipped`` event's words (the event holds 200 bytes: the counts first)."""
         polls = ", ".join(f"{k} {n}" for k, n in self.polls.items())
-        return (f"step {seg.index} ({seg.name}) fell behind its schedule (the links need more time than it gives: "
-                f"validate's link budget): {self.setpoints} of {self.setpoints + self.sent} set-points skipped, each "
-                "superseded by a later one already due, so the waveform kept its times, sampled more coarsely"
-                + (f"; polls' missed slots skipped: {polls}" if polls else ""))
+        return (f"{self.setpoints} of {self.setpoints + self.sent} set-points skipped"
+                + (f", missed slots of polls skipped: {polls}" if polls else "")
+                + "; behind the schedule, each superseded by a later one already due: the step kept its times")
 
 
 @contextlib.contextmanager
@@ -615,6 +623,43 @@ class Engine:
             self._late(self.now(), seg, behind, f"by {behind:.3f} s")
         self.rec.event(self.now(), seg.index, "offset", f"run time = program time + {self.ctx.offset:.9f} s")
 
+    def _steps_of(self, seg: Segment, polls: dict[str, tuple[Poll, float]], count: dict[str, int],
+                  due: dict[str, float], schedule: Iterator[Tick], ahead: tuple[Tick | None, Tick | None],
+                  skipped: Skipped, streamed: bool, jump: float) -> None:
+        """The body of a step up to its end: each tick of ``schedule`` (``ahead``: its first two) and each poll
+        when due, in time order. Behind the schedule (the links slower than it), a set-point whose successor is
+        already due is skipped, never sent late — within ``jump`` [V] of the last voltage asked for — so that the
+        step keeps its times (its waveform sampled more coarsely), not stretched; a reading's missed slots
+        likewise (one read at the latest, not a burst)."""
+        tick, following = ahead
+        while True:
+            t_set = tick.t if tick is not None and not tick.end else math.inf
+            t_next = min([t_set, *due.values()])
+            if seg.duration == 0 or t_next >= seg.t_end - 1e-12:
+                break
+            self.ctx.wait_until(t_next)
+            if tick is not None and t_set <= t_next:
+                while following is not None and supersedes(tick, following) and following.t <= self.program_now() \
+                        and (following.voltage is None or abs(following.voltage - self.ctx.v_req) <= jump):
+                    tick, following = following, next(schedule, None)
+                    skipped.setpoints += 1
+                self._send_tick(tick, streamed)
+                skipped.sent += 1
+                tick, following = following, next(schedule, None)
+            for kind in [k for k, tk in due.items() if tk <= t_next + 1e-12]:
+                self._check_stop()
+                poll, period = polls[kind]
+                while not poll.backlog and (nxt := seg.t_start + (count[kind] + 1) * period) <= self.program_now() \
+                        and nxt < seg.t_end - 1e-12:
+                    count[kind] += 1
+                    skipped.polls[kind] = skipped.polls.get(kind, 0) + 1
+                poll.run(self.ctx, seg.t_start + count[kind] * period)
+                count[kind] += 1
+                due[kind] = seg.t_start + count[kind] * period
+            self.snapshot.t = t_next
+            self.snapshot.headroom = self.sup.headroom()
+            self.rec.maybe_flush()
+
     def _late(self, t: float, seg: Segment, behind: float, shift: str) -> None:
         """The ``late`` event of a step that ended ``behind`` s after its scheduled end; ``shift``: by what the
         program's schedule shifted."""
@@ -722,45 +767,22 @@ class Engine:
                 if seg.move is not None or seg.position is not None else iter([end_tick(seg)])
         tick, following = next(schedule, None), next(schedule, None)
         skipped = Skipped()
-        while True:
-            t_set = tick.t if tick is not None and not tick.end else math.inf
-            t_next = min([t_set, *due.values()])
-            if seg.duration == 0 or t_next >= seg.t_end - 1e-12:
-                break
-            self.ctx.wait_until(t_next)
-            if tick is not None and t_set <= t_next:
-                # behind the schedule (the links slower than it): a set-point whose successor is already due is
-                # skipped, never sent late, so the waveform keeps its times (sampled more coarsely), not stretched
-                while following is not None and supersedes(tick, following) and following.t <= self.program_now():
-                    tick, following = following, next(schedule, None)
-                    skipped.setpoints += 1
-                self._send_tick(tick, streamed)
-                skipped.sent += 1
-                tick, following = following, next(schedule, None)
-            for kind in [k for k, tk in due.items() if tk <= t_next + 1e-12]:
-                self._check_stop()
-                poll, period = polls[kind]
-                # the same for a poll: its slots already passed but the latest are skipped (one read, not a burst)
-                while (nxt := seg.t_start + (count[kind] + 1) * period) <= self.program_now() \
-                        and nxt < seg.t_end - 1e-12:
-                    count[kind] += 1
-                    skipped.polls[kind] = skipped.polls.get(kind, 0) + 1
-                poll.run(self.ctx, seg.t_start + count[kind] * period)
-                count[kind] += 1
-                due[kind] = seg.t_start + count[kind] * period
-            self.snapshot.t = t_next
-            self.snapshot.headroom = self.sup.headroom()
-            self.rec.maybe_flush()
+        # a skip never moves the output further in one set-point than twice the step's own largest move
+        jump = 2 * largest_voltage_change(prog, seg) + 1e-6 if inst.amplifier is not None and not streamed \
+            else math.inf
+        try:
+            self._steps_of(seg, polls, count, due, schedule, (tick, following), skipped, streamed, jump)
+        finally:  # a stop, a trip or a pause inside the step: what it skipped so far is said too
+            if skipped.setpoints or skipped.polls:
+                self.skipped += skipped.setpoints
+                self._record(self.rec.event, self.now(), seg.index, "skipped", skipped.text())
         self.ctx.wait_until(seg.t_end)
-        v_end = tick.voltage if tick is not None and tick.end else None  # the schedule's end value
+        v_end = end_tick(seg).voltage if seg.duration > 0 else None  # the schedule's end value (ticks' last)
         if streamed:
             self._hw.finish()  # the device played the end value itself
         elif inst.amplifier is not None and v_end is not None and v_end != self.ctx.v_req:
             # ticks stop before t_end: a ramp must reach its end
             self._set_voltage(v_end, self._sent_at(seg.t_end + self.ctx.offset))
-        if skipped.setpoints or skipped.polls:
-            self.skipped += skipped.setpoints
-            self.rec.event(self.now(), seg.index, "skipped", skipped.text(seg))
         zeroed = False
         if storing:
             self.ctx.laser.stop_buffer()

@@ -49,12 +49,15 @@ PAUSED = StepState(None, streamed=False, laser_serial=False, storing=False)  # a
 @dataclass(frozen=True)
 class Poll:
     """One kind of acquisition: its name, its period in a step (None: not in it) and what one poll does.
-    ``first``: the first poll comes this many periods after the step's start (0: at the start)."""
+    ``first``: the first poll comes this many periods after the step's start (0: at the start). ``backlog``: it
+    fetches what accumulated (stored laser data, a stream's scans), so a slot missed behind the schedule is never
+    skipped (the engine skips a reading's missed slots, not a backlog's)."""
 
     name: str
     period: Callable[[RunContext, StepState], float | None]
     run: Callable[[RunContext, float], None]
     first: int = 0
+    backlog: bool = False
 
 
 Row = dict[str, float]  # the values one poll records, by column
@@ -233,8 +236,8 @@ def _role_poll(role: str, drv: Readable, how: Polled) -> Poll:
     return Poll(how.name, how.period, run)
 
 
-FETCH = Poll("fetch", _fetch_period, _fetch, first=1)  # nothing is stored yet at the step's start
-COLLECT = Poll("collect", _collect_period, _collect)
+FETCH = Poll("fetch", _fetch_period, _fetch, first=1, backlog=True)  # nothing is stored yet at the step's start
+COLLECT = Poll("collect", _collect_period, _collect, backlog=True)
 
 
 def rig_polls(e: RunContext) -> tuple[Poll, ...]:
