@@ -48,7 +48,7 @@ def _with_specimen(path: Path, change: dict[str, object]) -> None:
 def test_runs_of_different_rigs_and_specimens_are_warned_about_before_the_fit(short_run: Path,
                                                                                tmp_path: Path) -> None:
     a = _copy(short_run, tmp_path / "A.h5", specimen_id="VHB-01")
-    b = _copy(short_run, tmp_path / "B.h5", rig_name="other-rig", specimen_id="VHB-02")
+    b = _copy(short_run, tmp_path / "B.h5", rig_name="other-rig", specimen_id="VHB-02", run_id="b" * 32)
     _with_specimen(b, {"breakdown_field_V_per_m": 80e6})
     code, out = _fit(str(a), str(b))
     assert code == 0, out
@@ -67,6 +67,21 @@ def test_runs_of_different_rigs_and_specimens_are_warned_about_before_the_fit(sh
     # nor one specimen on another bench (the LS-DEA campaign's motor and hung-mass rigs)
     d = _copy(short_run, tmp_path / "D.h5", rig_name="other-rig", specimen_id="VHB-01")
     assert specimen_mismatch([a, d]) == ""
+
+
+def test_a_copy_of_a_run_is_refused_not_fitted_as_a_second_record(short_run: Path, tmp_path: Path) -> None:
+    """A copy has its original's run_id: fitted beside it, its record counted twice and the intervals narrowed by √2
+    on no new data (the tester's run). One line names both files; a file that is not there is 'not found'."""
+    a = _copy(short_run, tmp_path / "A.h5")
+    copy = _copy(short_run, tmp_path / "copy.h5")
+    code, out = _fit(str(a), str(copy))
+    assert code != 0 and "fitting" not in out
+    line = next(ln for ln in out.splitlines() if "same run" in ln)
+    assert "A.h5" in line and "copy.h5" in line and "Traceback" not in out
+    code, out = _fit(str(a), str(a))  # the same path twice: one file, fitted once
+    assert code == 0, out
+    code, out = _fit(str(tmp_path / "nothere.h5"))
+    assert code != 0 and "nothere.h5: not found" in out and "continues" not in out, out
 
 
 @pytest.fixture(scope="module")

@@ -23,6 +23,7 @@ class Link:
     complete: bool
     resumed_at_step: int | None  # the step's index in the program (0-based, as the file's events number steps)
     steps: int = 0  # the program's steps
+    run_id: str = ""  # the file's run_id: a copy of a file has its original's
 
 
 def chain(path: str | Path) -> list[Link]:
@@ -37,11 +38,14 @@ def chain(path: str | Path) -> list[Link]:
             raise ValueError(f"run file {path}: its previous_file links loop back to {p}")
         seen.add(key)
         if not p.is_file():
-            raise ValueError(f"run file {out[-1].path if out else path}: the file it continues, {p}, is missing "
+            if not out:
+                raise ValueError(f"run file {path}: not found")
+            raise ValueError(f"run file {out[-1].path}: the file it continues, {p}, is missing "
                              "(keep a campaign's files together)")
         run = open_run(p, streams=False)
         step = run.attrs.get("resumed_at_step")
-        out.append(Link(p, run.state, run.complete, None if step is None else int(step), int(run.program.shape[0])))
+        out.append(Link(p, run.state, run.complete, None if step is None else int(step), int(run.program.shape[0]),
+                        str(run.attrs.get("run_id", ""))))
         prev = run.attrs.get("previous_file")
         p = (p.parent / str(prev)) if prev else None
     return out[::-1]
@@ -66,15 +70,23 @@ def continued_in(path: str | Path) -> Path | None:
 
 
 def with_chains(paths: list[Path]) -> list[Path]:
-    """``paths`` with the earlier files of each one's campaign before it, each file once, in campaign order."""
+    """``paths`` with the earlier files of each one's campaign before it, each file once, in campaign order.
+    ValueError (one line naming both) for two files of one run (the same ``run_id``: a copy), whose record would
+    count twice — a fit's intervals would narrow by √2 on no new data."""
     out: list[Path] = []
     seen: set[Path] = set()
+    runs: dict[str, Path] = {}
     for p in paths:
         for link in chain(p):
             key = link.path.resolve()
-            if key not in seen:
-                seen.add(key)
-                out.append(link.path)
+            if key in seen:
+                continue
+            if link.run_id and (first := runs.get(link.run_id)) is not None:
+                raise ValueError(f"run files {first} and {link.path} are the same run (run_id {link.run_id}): a copy "
+                                 "would count its record twice; give one of them")
+            seen.add(key)
+            runs[link.run_id] = link.path
+            out.append(link.path)
     return out
 
 
