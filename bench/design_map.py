@@ -67,11 +67,12 @@ class DesignCurves:
     tension_lost: np.ndarray  # (voltages, n) bool: σ1 ≤ 0 or σ2 ≤ 0
     breakdown_voltage: np.ndarray  # (n,) V_B [V]
     breakdown_force: np.ndarray  # (n,) F at V_B [N]
+    elastic_stiffness: np.ndarray  # (n,) dF_el/dx [N/m]: at 0 V, whichever voltages the rows hold
 
     @property
     def min_stiffness(self) -> float:
-        """Smallest elastic (0 V) stiffness over the stroke [N/m]."""
-        return float(np.min(self.stiffness[0]))
+        """Smallest elastic (0 V) stiffness over the stroke [N/m] (the map's regions: never the first voltage's)."""
+        return float(np.min(self.elastic_stiffness))
 
 
 @dataclass
@@ -99,10 +100,11 @@ class DesignMap:
 
 @njit(cache=True)
 def _curves(p: np.ndarray, x: np.ndarray, volts: np.ndarray, F: np.ndarray, K: np.ndarray, lost: np.ndarray,
-            VB: np.ndarray, FB: np.ndarray) -> None:
+            VB: np.ndarray, FB: np.ndarray, KEL: np.ndarray) -> None:
     eps, t0 = p[Q_EPS], p[Q_T0]
     for n in range(x.size):
         Fel, kel = elastic_force(x[n], p)
+        KEL[n] = kel
         l1, l2, _, _, _, _ = kinematics(x[n], p)
         _, P1, P2, _, _, _, _ = gentgent(l1, l2, p)
         lam3 = 1.0 / (l1 * l2)
@@ -127,9 +129,9 @@ def design_curves(lambda2p: float, xp: float, settings: MapSettings,
     volts = np.asarray(settings.voltages, dtype=float)
     F, K = np.empty((volts.size, x.size)), np.empty((volts.size, x.size))
     lost = np.zeros((volts.size, x.size), dtype=np.bool_)
-    VB, FB = np.empty(x.size), np.empty(x.size)
-    _curves(params.pack(), x, volts, F, K, lost, VB, FB)
-    return DesignCurves(lambda2p, xp, x, F, K, lost, VB, FB)
+    VB, FB, KEL = np.empty(x.size), np.empty(x.size), np.empty(x.size)
+    _curves(params.pack(), x, volts, F, K, lost, VB, FB, KEL)
+    return DesignCurves(lambda2p, xp, x, F, K, lost, VB, FB, KEL)
 
 
 def _row(lambda2p: float, settings: MapSettings, base: LozengeParams | None) -> list[DesignCurves]:

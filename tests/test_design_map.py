@@ -91,6 +91,18 @@ def test_prototypes_fall_in_the_regions_physics_md_states(dmap) -> None:
     assert _min_stiffness(3.0, 0.040) == pytest.approx(-9.6, rel=0.03)
 
 
+def test_the_elastic_stiffness_is_at_0_V_whichever_voltages_are_asked_for() -> None:
+    """`design-map --voltages 3` classed #2 "stiff" (5.2 N/m, the stiffness at 3 kV) where physics.md §2.2 gives
+    4.9 N/m at 0 V: the regions are the elastic (0 V) stiffness's, never the first voltage's."""
+    flat = MapSettings().flat
+    for volts in ((3000.0,), (7000.0, 5000.0)):
+        m = compute_map(MapSettings(lambda2p=(2.75, 3.0), xp=(0.040,), voltages=volts))
+        for l2p in (2.75, 3.0):
+            k_ref = _min_stiffness(l2p, 0.040)
+            assert m.design(l2p, 0.040).min_stiffness == pytest.approx(k_ref, rel=0.02, abs=0.2)
+        assert list(m.regions()[:, 0]) == [_region(_min_stiffness(2.75, 0.040), flat), "negative"]
+
+
 def test_map_regions_agree_with_the_independent_model_over_the_grid(dmap) -> None:
     """Stiff at low λ2p and xp, negative at large values, a near-zero band between."""
     s = dmap.settings
