@@ -152,3 +152,12 @@ def test_simulate_lsdea_map_cli_prints_the_prototypes_and_writes_the_figures(tmp
                  "prototype #3 (λ2p 3, xp 40 mm): negative"):
         assert line in out.output
     assert (tmp_path / "runs" / "design-map" / "design-map.png").exists()
+    assert "replaced" not in out.output
+    # a design's options are refused with the map (they were ignored without a word), before any computing
+    out = CliRunner().invoke(app, ["simulate", "lsdea", "map", "--voltage", "3kV", "--prototype", "2"],
+                             env={"COLUMNS": "200"})
+    assert out.exit_code == 2 and "takes no --prototype, --voltage" in out.output and "figures" not in out.output
+    # the map again into its own folder: it says that it replaced the earlier figures
+    out = CliRunner().invoke(app, ["design-map", "--voltages", "0,7"], env={"COLUMNS": "200"})
+    assert out.exit_code == 0, out.output
+    assert "replaced the earlier map's design-map.png" in " ".join(out.output.split())

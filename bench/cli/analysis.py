@@ -329,6 +329,7 @@ def show_design_map(out: Path = Path("runs/design-map"), voltages: tuple[float, 
     from bench.app.analysis import design_map
     from bench.cli.common import progress
 
+    before = set(out.glob("*.png")) if out.is_dir() else set()
     with progress("computing the design map") as advance:
         done = design_map(out, voltages, scheduler, workers, progress=advance)
     settings, k, regions = done.settings, done.min_stiffness, done.regions
@@ -348,6 +349,9 @@ def show_design_map(out: Path = Path("runs/design-map"), voltages: tuple[float, 
                       f"{d.breakdown_voltage.max() / 1e3:.2f} kV, tension lost at {voltages[-1] / 1e3:g} kV in "
                       f"{100 * lost.mean():.0f} % of the stroke")
     console.print("figures: " + ", ".join(str(p) for p in done.figures))
+    if replaced := [p.name for p in done.figures if p in before]:
+        console.print(f"[yellow]replaced[/] the earlier map's {', '.join(replaced)} in {escape(str(out))} (the map's "
+                      "own folder; --out another folder keeps them)")
     return done.figures
 
 

@@ -108,6 +108,7 @@ class LsdeaTest(StrEnum):
 
 @clean_errors
 def simulate_lsdea(
+    ctx: typer.Context,
     test: Annotated[LsdeaTest, typer.Argument(help="Test configuration.")] = LsdeaTest.isotonic,
     prototype: Annotated[int, typer.Option(help="Prototype #1–#3 (Table 2).", min=1, max=3)] = 1,
     voltage: Annotated[str, _qopt("Voltage [V]: constant (isopotential), sine amplitude (isometric) or "
@@ -126,6 +127,7 @@ def simulate_lsdea(
     if test is LsdeaTest.map:
         from bench.cli.analysis import show_design_map
 
+        _map_takes_no_options(ctx)
         show_design_map()
         return
     from bench.app.simulate import simulate_lsdea as simulate
@@ -149,6 +151,16 @@ def simulate_lsdea(
                   f"tension lost in {100 * sim.tension_lost:.1f} % of samples")
     if sim.trace.failed:
         raise fail(f"specimen failed: {sim.trace.failure}", code=1)
+
+
+def _map_takes_no_options(ctx: typer.Context) -> None:
+    """`simulate lsdea map` covers every design at the map's voltages: a design option given with it is refused,
+    never ignored without a word."""
+    given = [f"--{name}" for name in ("prototype", "voltage", "frequency", "mass", "position", "stroke", "cycles")
+             if getattr(ctx.get_parameter_source(name), "name", "") == "COMMANDLINE"]
+    if given:
+        raise fail(f"simulate lsdea map takes no {', '.join(given)}: the map covers every design (prototypes "
+                   "#1–#3 marked on it); its voltages: bench design-map --voltages 0,3,5,7")
 
 
 RigArg = Annotated[Path, typer.Argument(help="Rig file (TOML), e.g. rigs/thesis-sim.toml.", autocompletion=rig_files)]
