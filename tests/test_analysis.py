@@ -678,7 +678,9 @@ def test_a_failed_export_write_leaves_no_cut_off_rig_file_and_a_retry_succeeds(
             return HalfWritten(opened(self, mode.replace("t", "") + "b"), encoding="utf-8")
         return opened(self, mode, *args, **kwargs)  # type: ignore[call-overload]
 
-    args = ["fit", str(run), "--export", str(target), "--starts", "1", "--no-intervals", "--generations", "1"]
+    # the cheapest fit the CLI runs (one start, no polish: 0.4 s, was 40 s a fit, twice): the matter is the write
+    args = ["fit", str(run), "--export", str(target), "--starts", "1", "--no-intervals", "--generations", "1",
+            "--population", "5", "--no-polish"]
     monkeypatch.setattr(Path, "open", full)
     res = CliRunner().invoke(app, args)
     monkeypatch.undo()
