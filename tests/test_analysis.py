@@ -237,17 +237,30 @@ def test_lsdea_fit_recovers_the_material_it_does_not_flag(campaign: str, tmp_pat
 # --- command line --------------------------------------------------------------------------------------------
 
 
-def test_report_cli_prints_the_table3_grid_for_an_isopotential_campaign(tmp_path: Path) -> None:
+@pytest.fixture(scope="module")
+def isopotential_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A completed virtual-time run of the short isopotential campaign on the protocol's own rig (the DAQ motor
+    bench), run once for the module's command-line tests (read only: each test copies it)."""
+    out = tmp_path_factory.mktemp("isopotential")
+    res = execute(plan_run(ROOT / "protocols" / "short" / "lsdea-isopotential-short.toml"), out / "iso.h5",
+                  virtual=True, operator=lambda _msg: True)
+    assert res.state == "completed", res.reason
+    return Path(res.path)
+
+
+def test_report_cli_prints_the_table3_grid_for_an_isopotential_campaign(isopotential_run: Path,
+                                                                         tmp_path: Path) -> None:
+    import shutil
+
     from typer.testing import CliRunner
 
     from bench.cli import app
 
-    res = execute(plan_run(ROOT / "protocols" / "short" / "lsdea-isopotential-short.toml"), tmp_path / "iso.h5",
-                  virtual=True, operator=lambda _msg: True)
-    assert res.state == "completed", res.reason
-    out = CliRunner().invoke(app, ["report", str(res.path), "--out", str(tmp_path / "rep")], env={"COLUMNS": "200"})
+    path = tmp_path / "iso.h5"
+    shutil.copy2(isopotential_run, path)
+    out = CliRunner().invoke(app, ["report", str(path), "--out", str(tmp_path / "rep")], env={"COLUMNS": "200"})
     assert out.exit_code == 0, out.output
-    steps = [s for s in analyse(res.path).steps if s.kind == "isopotential"]
+    steps = [s for s in analyse(path).steps if s.kind == "isopotential"]
     assert re.search(r"Table\s+3\s+layout", out.output)
     # the grid shows the stabilised-cycle loss of each voltage, as computed from the file
     for s in steps:
@@ -257,7 +270,7 @@ def test_report_cli_prints_the_table3_grid_for_an_isopotential_campaign(tmp_path
     copies = []
     for k, name in enumerate("abcd"):
         dst = tmp_path / f"{name}.h5"
-        dst.write_bytes(Path(res.path).read_bytes())
+        dst.write_bytes(path.read_bytes())
         with h5py.File(dst, "r+") as f:
             f.attrs["run_id"] = f"{k + 1}" * 32
         copies.append(str(dst))
@@ -289,16 +302,19 @@ def test_fit_and_report_refuse_bad_files_in_one_line(tmp_path: Path) -> None:
         assert res.output.count("\n") == 1 and res.output.startswith("error: run file"), res.output
 
 
-def test_fit_cli_fits_several_files_together_stores_in_each_and_exports_a_rig(tmp_path: Path) -> None:
+def test_fit_cli_fits_several_files_together_stores_in_each_and_exports_a_rig(isopotential_run: Path,
+                                                                              tmp_path: Path) -> None:
+    import shutil
+
     from typer.testing import CliRunner
 
     from bench.cli import app
 
-    paths = []
-    for campaign in ("isopotential", "isotonic"):
-        res = execute(plan_run(ROOT / "protocols" / "short" / f"lsdea-{campaign}-short.toml"),
-                      tmp_path / f"{campaign}.h5", virtual=True, operator=lambda _msg: True)
-        paths.append(str(res.path))
+    shutil.copy2(isopotential_run, tmp_path / "isopotential.h5")  # the fit is stored beside it: a copy of our own
+    res = execute(plan_run(ROOT / "protocols" / "short" / "lsdea-isotonic-short.toml"), tmp_path / "isotonic.h5",
+                  virtual=True, operator=lambda _msg: True)
+    assert res.state == "completed", res.reason
+    paths = [str(tmp_path / "isopotential.h5"), str(res.path)]
     rig = tmp_path / "fitted.toml"
     out = CliRunner().invoke(app, ["fit", *paths, "--population", "12", "--generations", "5", "--starts", "1",
                                    "--no-intervals", "--cost", "lsq", "--polish-iterations", "20",
@@ -678,7 +694,9 @@ def test_a_failed_export_write_leaves_no_cut_off_rig_file_and_a_retry_succeeds(
             return HalfWritten(opened(self, mode.replace("t", "") + "b"), encoding="utf-8")
         return opened(self, mode, *args, **kwargs)  # type: ignore[call-overload]
 
-    args = ["fit", str(run), "--export", str(target), "--starts", "1", "--no-intervals", "--generations", "1"]
+    # the cheapest fit the CLI runs (one start, no polish: 0.4 s, was 40 s a fit, twice): the matter is the write
+    args = ["fit", str(run), "--export", str(target), "--starts", "1", "--no-intervals", "--generations", "1",
+            "--population", "5", "--no-polish"]
     monkeypatch.setattr(Path, "open", full)
     res = CliRunner().invoke(app, args)
     monkeypatch.undo()
