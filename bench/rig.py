@@ -200,6 +200,8 @@ class LsdeaModelConfig(_Strict):
     def _branches(self) -> LsdeaModelConfig:
         if len(self.branch_mu) != len(self.branch_tau):
             raise ValueError("branch_mu and branch_tau need the same length")
+        if min([*self.branch_mu, *self.branch_tau], default=1) <= 0:  # as the membrane's units (physics.md §2.4)
+            raise ValueError("branch_mu and branch_tau need one positive value per Maxwell branch")
         return self
 
 

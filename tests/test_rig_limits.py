@@ -301,3 +301,14 @@ def test_bench_validate_in_a_process_exits_2_without_a_traceback(tmp_path: Path)
                           timeout=120, cwd=ROOT, env={"COLUMNS": "400", "PATH": ""})
     assert proc.returncode == 2 and "Traceback" not in proc.stderr + proc.stdout
     assert proc.stderr.strip().count("\n") == 0 and "limits.max_force_N" in proc.stderr
+
+
+@pytest.mark.parametrize("mu, tau", [("[1e5]", "[0.0]"), ("[0.0]", "[1.0]"), ("[1e5]", "[-1.0]")])
+def test_a_maxwell_branch_without_a_positive_modulus_and_time_is_refused_naming_the_file_and_field(
+        tmp_path: Path, mu: str, tau: str) -> None:
+    """physics.md §2.4: a branch (μ_k, τ_k) relaxes at rate 1/τ_k, so τ_k > 0 and μ_k > 0. The tester's rig file with
+    branch_tau = [0.0] failed as "Maxwell branches need mu > 0 and tau > 0", naming neither file nor field."""
+    text = MOTOR + f"\n[specimen.lsdea_model]\nmu = 312.6e3\nJm = 30.58\nC2 = 183.5e3\nbranch_mu = {mu}\n" \
+                   f"branch_tau = {tau}\n"
+    msg = _refused(tmp_path, text, "specimen.lsdea_model")
+    assert "branch_mu and branch_tau" in msg, msg

@@ -77,7 +77,9 @@ class RunAnalysis:
         return [s for s in self.steps if s.kind == kind]
 
     def resonance(self) -> dict[float, tuple[float, float]]:
-        """Isotonic: per hung mass, (frequency of the largest amplitude [Hz], that amplitude [m])."""
+        """Isotonic: per hung mass, (frequency of the largest amplitude [Hz], that amplitude [m]) — the sweep's
+        peak: the resonance where the sweep brackets f_n, else an edge or the f_n/2 bump that V²'s 2f content
+        excites (physics.md §2.4: 3.25 Hz at m = 0, whose f_n lies above the paper's 1–4 Hz)."""
         out: dict[float, tuple[float, float]] = {}
         for s in self.by_kind("isotonic"):
             amp = s.figures["amplitude"]

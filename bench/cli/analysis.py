@@ -440,8 +440,9 @@ def print_report(runs: list[Path], out: Path | None = None) -> Report:
         else:  # (an empty table's title wraps to its narrow width)
             console.print(f"no step of {escape(p.name)} could be analysed")
         if a.by_kind("isotonic"):
-            console.print("resonance: " + ", ".join(f"{m * 1e3:.0f} g at {f:g} Hz ({amp * 1e3:.1f} mm)"
-                                                   for m, (f, amp) in a.resonance().items()))
+            console.print("largest crest-to-trough per hung mass: " + ", ".join(
+                f"{m * 1e3:.0f} g at {f:g} Hz ({amp * 1e3:.1f} mm)" for m, (f, amp) in a.resonance().items())
+                + " (a resonance only where the sweep brackets it; V²'s 2f content also peaks at half of it)")
         console.print("figures: " + ", ".join(str(x) for x in r.figures))
     grid = done.grid
     if grid is None:
