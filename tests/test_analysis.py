@@ -322,6 +322,9 @@ def test_fit_cli_fits_several_files_together_stores_in_each_and_exports_a_rig(is
                              env={"COLUMNS": "200"})
     assert out.exit_code == 0, out.output
     assert "lsdea model fitted to 2 run(s)" in out.output
+    # a force record and a laser record: the residual's rms in each one's unit, never over N and m together
+    rms = re.search(r"residual rms ([^,]+ N), ([^,]+ m),", " ".join(out.output.split()))
+    assert rms is not None and "N and m" not in out.output, out.output
     for p in paths:
         (stored,) = read_fits(p)
         assert stored["model"] == "lsdea" and stored["cost_kind"] == "lsq" and len(stored["records"]) == 2

@@ -182,6 +182,7 @@ def fit_command(
     if json_out:
         print_json({"model": chosen, "runs": [str(p) for p in runs], "cost": result.cost,
                     "cost_kind": result.cost_kind, "rms": result.rms, "rms_unit": problem.data_unit,
+                    "rms_by_unit": result.rms_by_unit or None,
                     "lack_of_fit": result.lack_of_fit, "specimen_mismatch": mismatch or None, "stopped": stopped,
                     **({"intervals": result.trust.as_dict(result.names)} if result.trust is not None else {}),
                     "parameters": [{"name": n, "value": result.values[j], "unit": result.units[j],
@@ -290,7 +291,8 @@ def run_fit(runs: list[Path], chosen: str, settings: FitSettings, branches: int 
                                                                  f"{address}"))
     result, coarse = done.result, done.problem
     console.print(fit_result_table(result, f"{chosen} model fitted to {len(runs)} run(s)"))
-    console.print(f"cost ({result.cost_kind}) {result.cost:.4g}, residual rms {result.rms:.4g} {coarse.data_unit}, "
+    rms = ", ".join(f"{v:.4g} {u}" for u, v in result.rms_by_unit.items()) or f"{result.rms:.4g} {coarse.data_unit}"
+    console.print(f"cost ({result.cost_kind}) {result.cost:.4g}, residual rms {rms}, "
                   f"{result.evaluations:,} model evaluations, {result.generations} generations, "
                   f"{result.wall_time:.1f} s (search {result.search_time:.1f} s)")
     if result.lack_of_fit:

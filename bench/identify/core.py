@@ -18,7 +18,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
-from typing import TYPE_CHECKING, Literal, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any, Literal, Protocol, runtime_checkable
 
 import numpy as np
 from scipy.optimize import OptimizeResult, differential_evolution, least_squares
@@ -125,10 +125,24 @@ class FitResult:
     search_time: float = 0.0  # s of the wall time spent in the differential evolution (the rest: polish, analysis)
     lack_of_fit: str = ""  # why the model does not follow the data ('' when it does): see :func:`lack_of_fit`
     trust: Trust | None = None  # intervals, identifiability, noise, multi-start agreement (settings.intervals)
+    rms_by_unit: dict[str, float] = field(default_factory=dict)  # a campaign of force and laser records: each's rms
 
     def flags_of(self, name: str) -> list[str]:
         """Flags of one parameter."""
         return [f.split(": ", 1)[1] for f in self.flags if f.startswith(name + ": ")]
+
+
+def rms_by_unit(problem: Any, residual: np.ndarray) -> dict[str, float]:
+    """The residual's rms over each unit's compared points, where ``problem`` holds records of more than one unit
+    (``point_units``: the unit of each data point; an rms over newtons and metres together means nothing); {}
+    otherwise."""
+    units_of = getattr(problem, "point_units", None)
+    if units_of is None:
+        return {}
+    units = np.asarray(units_of())[np.isfinite(problem.data)]
+    if units.size != residual.size or len(set(units.tolist())) < 2:
+        return {}
+    return {str(u): float(np.sqrt(np.mean(residual[units == u] ** 2))) for u in dict.fromkeys(units.tolist())}
 
 
 def to_physical(log: np.ndarray, Z: np.ndarray) -> np.ndarray:
@@ -213,7 +227,7 @@ def fit(problem: Problem, settings: FitSettings = FitSettings(), start: np.ndarr
                        physical(target, best.hi), best.cost, settings.cost, float(np.sqrt(np.mean(r * r))),
                        int(data.size), sum(x.evaluations for x in runs), best.generations,
                        time.perf_counter() - t0, sens, corr, uncertainty, flags, settings, J, r, z,
-                       sum(x.search_time for x in runs), lack_of_fit(r, data))
+                       sum(x.search_time for x in runs), lack_of_fit(r, data), rms_by_unit=rms_by_unit(target, r))
     if settings.intervals:
         from bench.identify.trust import assess_trust
 

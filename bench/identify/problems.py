@@ -343,6 +343,11 @@ class LozengeProblem(MonitorCalibration):
         hung = {int(r.template[16]) == MODE_HUNG for r in self.records}  # Q_MODE
         self.data_unit = "m" if hung == {True} else "N" if hung == {False} else "N and m"
 
+    def point_units(self) -> np.ndarray:
+        """The unit of each data point: a hung-mass record's laser in m, a motor record's force in N."""
+        return np.concatenate([np.full(r.data.size, "m" if int(r.template[16]) == MODE_HUNG else "N")
+                               for r in self.records])
+
     def _add(self, run: RunFile, source: str) -> None:
         spec = run.specimen(model=True)
         if spec["kind"] != "lsdea":

@@ -48,7 +48,7 @@ import numpy as np
 from scipy.stats import chi2 as chi2_dist
 from scipy.stats import norm
 
-from bench.identify.core import FitResult, Problem, sigma_of, to_physical
+from bench.identify.core import FitResult, Problem, rms_by_unit, sigma_of, to_physical
 
 METHOD = "profile likelihood"
 TRADE_OFF = 0.9  # |correlation| beyond which a pair is reported as trading off
@@ -532,6 +532,7 @@ def assess_trust(problem: Problem, result: FitResult, starts: list[tuple[int, np
     J[:, free] = Jw * w.sigma[:, None]
     result.jacobian = J
     result.rms = float(np.sqrt(np.mean(r * r)))
+    result.rms_by_unit = rms_by_unit(problem, r)
     result.cost = float(np.sum(np.abs(r)) if result.cost_kind == "sae" else np.sum(r * r))
     result.uncertainty = local
     flags = [f for f in result.flags if "poorly determined" not in f]
