@@ -588,6 +588,8 @@ def test_report_of_two_files_of_the_same_name_gives_each_its_folder(short_run: P
         (tmp_path / folder).mkdir()
         runs.append(tmp_path / folder / ("x-2.h5" if folder == "C" else "x.h5"))  # x-2: a name of its own
         shutil.copy2(short_run, runs[-1])
+        with h5py.File(runs[-1], "r+") as f:  # three runs (a copy of one run is refused: one record counted twice)
+            f.attrs["run_id"] = folder * 32
     seen: list[tuple[Path, Path]] = []
 
     def report(path: Path, out: Path) -> tuple[object, list[Path]]:

@@ -386,7 +386,7 @@ def figures_table(steps: list[StepResult], title: str) -> Table:
     has_T = any(s.temperature for s in steps)
     conditions: dict[str, Callable[[StepResult], str]] = {
         "#": lambda s: f"{s.prototype or ''}" + (f" {s.hung_mass * 1e3:.0f} g" if s.hung_mass else ""),
-        "T [K]": lambda s: f"{s.temperature:g}", "V [kV]": lambda s: f"{s.voltage / 1e3:.3g}",
+        "T [K]": lambda s: f"{s.temperature:g}", "V [kV]": _peak_kV,
         "f [Hz]": lambda s: f"{s.frequency:.3g}"}
     if not has_where:
         del conditions["#"]
@@ -486,12 +486,25 @@ FIGURE_UNITS: dict[str, str] = {
 }
 
 
+RESOLUTION = {"vf_lag": 1e-4}  # [s]: the V–F lag read on a 10-kHz record, one sample (a finer digit is noise)
+
+
 def _fmt(key: str, value: float | None) -> str:
     import numpy as np
 
     if value is None or not np.isfinite(value):
         return "–"
-    return f"{value * FIGURE_COLUMNS.get(key, ('', 1.0))[1]:.4g}"
+    scale = FIGURE_COLUMNS.get(key, ('', 1.0))[1]
+    if key in RESOLUTION:  # as many decimals as one step of its resolution shows
+        return f"{value * scale:.{max(0, -int(np.floor(np.log10(RESOLUTION[key] * scale))))}f}"
+    return f"{value * scale:.4g}"
+
+
+def _peak_kV(s: StepResult) -> str:
+    """The step's measured peak voltage [kV]; "0" within the monitor's 0-V band (an undriven step's noise)."""
+    from bench.analysis.thesis import undriven
+
+    return "0" if undriven(s.voltage) else f"{s.voltage / 1e3:.3g}"
 
 
 @clean_errors

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from enum import StrEnum
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any
@@ -147,8 +148,9 @@ def simulate_lsdea(
               f"{fig['mean_position'] * 1e3:.2f} mm")
     console.print(f"LS-DEA #{prototype} {test.value}: {figure}")
     console.print(f"force {sim.force_range[0]:.3f} … {sim.force_range[1]:.3f} N, peak true field "
-                  f"{sim.peak_field / 1e6:.1f} MV/m, smallest breakdown margin E_B/E = {sim.margin:.2f}×, "
-                  f"tension lost in {100 * sim.tension_lost:.1f} % of samples")
+                  f"{sim.peak_field / 1e6:.1f} MV/m, smallest breakdown margin E_B/E = "
+                  + (f"{sim.margin:.2f}×, " if math.isfinite(sim.margin) else "– (no field), ")
+                  + f"tension lost in {100 * sim.tension_lost:.1f} % of samples")
     if sim.trace.failed:
         raise fail(f"specimen failed: {sim.trace.failure}", code=1)
 
