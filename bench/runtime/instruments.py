@@ -122,9 +122,11 @@ def build_instruments(rig: RigConfig, endpoints: dict[str, str] | None = None,
     def bus(name: str) -> ModbusLink:
         if name not in inst.links:
             cfg = rig.buses[name]
+            # a bus's modules (ADAM-4000, DGT1S) speak RS-485 only: on tcp:// the peer is a TCP/RTU gateway whose
+            # line runs at the bus's baud rate (as the twins' Modbus TCP transport serves them)
             inst.links[name] = ModbusLink(ep.get(name, cfg.port), f"bus {name}", baudrate=cfg.baudrate,
                                           timeout=cfg.timeout_s, retries=cfg.retries, poll_interval=modbus_poll,
-                                          timer=tm.get(name, WALL), wire=wire_time)
+                                          timer=tm.get(name, WALL), wire=wire_time, gateway_baud=cfg.baudrate)
             inst.links[name].cancel = inst.cancel
         return inst.links[name]
 
