@@ -115,3 +115,49 @@ def test_at_pty_speed_no_wire_time_is_taken_off_the_stamps(tmp_path: Path) -> No
     assert wire_time.startswith("off")
     assert n >= 25
     assert abs(delay) < 0.1e-3, f"motor position {delay * 1e3:.3f} ms behind the plant"
+
+
+def _sampled_at(twin: Any, method: str, clock: Any) -> list[float]:
+    """Record the rig-clock instant at which ``twin`` calls its own ``method`` (where it reads its instrument)."""
+    seen: list[float] = []
+    original = getattr(twin, method)
+
+    def recording(*args: Any, **kwargs: Any) -> Any:
+        seen.append(clock.now())
+        return original(*args, **kwargs)
+    setattr(twin, method, recording)
+    return seen
+
+
+@pytest.mark.parametrize("rig", ["lsdea-motor-sim", "thesis-sim"])
+def test_every_polled_reading_is_stamped_when_its_twin_read_its_instrument(rig: str) -> None:
+    """Wire time on, virtual clock, nothing else moving it: each driver's stamp is the instant its twin read the
+    plant — the LinMot drive its status (115,200 Bd), the DGT1S and the ADAM-4017+ their registers (behind the
+    twins' Modbus TCP gateway, on its 19,200-Bd RS-485 line), the LK-G its measured value (115,200 Bd). Before,
+    each was late by its turnaround and its reply's wire time (LinMot 2.4 ms, LK-G 1.5 ms, DGT1S 8.8 ms)."""
+    from tests.conftest import start_rig
+
+    r = start_rig(rig, timing="real")
+    try:
+        clock, twins, inst = r.sim.clock, r.sim.twins, r.inst
+        reads: list[tuple[str, Any, list[float]]] = [
+            ("amplifier monitors", lambda: inst.amplifier.read_monitors()[0],  # type: ignore[union-attr]
+             _sampled_at(twins["amplifier AI"], "read", clock))]
+        if rig == "lsdea-motor-sim":
+            reads += [("motor position", inst.motor.read_position,  # type: ignore[union-attr]
+                       _sampled_at(twins["motor"], "status", clock)),
+                      ("load cell", inst.load_cell.read_force,  # type: ignore[union-attr]
+                       _sampled_at(twins["load_cell"], "read", clock))]
+        else:
+            reads.append(("laser", inst.laser.read_displacement,  # type: ignore[union-attr]
+                          _sampled_at(twins["laser"], "reply", clock)))
+        for name, read, sampled in reads:
+            before = clock.now()
+            reading = read()
+            assert sampled and sampled[-1] > before, name  # the twin read its instrument for this request
+            assert clock.now() > sampled[-1]  # and its reply took wire time after that
+            assert reading.timestamp == pytest.approx(sampled[-1], abs=1e-9), \
+                f"{name}: stamped {(reading.timestamp - sampled[-1]) * 1e3:.3f} ms after its twin read it"
+    finally:
+        r.inst.close()
+        r.sim.stop()
