@@ -47,7 +47,9 @@ class _Strict(BaseModel):
 
 
 class BusConfig(_Strict):
-    """A Modbus bus: serial device / pyserial URL (RTU) or ``tcp://host:port``."""
+    """A Modbus bus: serial device / pyserial URL (RTU) or ``tcp://host:port`` (a Modbus TCP/RTU gateway: the bus's
+    modules speak RS-485 only, and ``baudrate`` is then its RS-485 line's, whose wire time a reading's stamp leaves
+    out)."""
 
     port: str = "sim"
     baudrate: int = Field(19200, gt=0)

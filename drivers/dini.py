@@ -109,9 +109,11 @@ class DiniDGT1S:
 
     def read_force(self) -> Reading:
         """Force on the cell [N]; status 'overload'/'underload' (value NaN) or 'unstable' when flagged,
-        'invalid' if the value is not finite."""
-        weight, status = self.read_weight()
-        t = self.clock()
+        'invalid' if the value is not finite. Stamped at the start of the transmitter's reply
+        (:meth:`ModbusLink.reply_started`), not after its wire time."""
+        with self.link.lock:
+            weight, status = self.read_weight()
+            t = self.link.reply_started(self.clock())
         if status & ST_OVERLOAD:
             return Reading(float("nan"), "N", t, "overload")
         if status & ST_UNDERLOAD:

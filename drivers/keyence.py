@@ -234,10 +234,12 @@ class KeyenceLKG:
         return {"displacement": r, "valid": Reading(float(r.ok), "1", r.timestamp)}
 
     def read_displacement(self) -> Reading:
-        """One measured value of the OUT [m] (status tells over-range / invalid)."""
-        self._settings_mode(False)
-        fields = self.query(self._value_command())
-        t = self.clock()
+        """One measured value of the OUT [m] (status tells over-range / invalid), stamped at the start of the
+        controller's reply (:meth:`SerialLink.reply_started`), not after its wire time."""
+        with self.link.lock:
+            self._settings_mode(False)
+            fields = self.query(self._value_command())
+            t = self.link.reply_started(self.clock())
         if len(fields) != (2 if self.model == "LK-G3000" else 3):
             raise ProtocolError(self.name, f"unexpected reply fields {fields!r}")
         mm, status = parse_value(fields[-1], self.name)

@@ -16,6 +16,11 @@ first), the later one is the answer to the latest request.
 Each attempt waits for its reply until a :class:`~drivers.deadline.Deadline` of the link's timer expires: the
 attempt's timeout on the wall clock on hardware; in a virtual-time simulation, what the twin did with the request
 (:mod:`drivers.deadline`). pymodbus' own receive loop and connect are bounded by the timer's wall-clock ``bound``.
+
+A reading is stamped at the start of its reply (:meth:`ModbusLink.reply_started`): on RTU the arrival of the reply's
+last byte less the frame's wire time at the port's baud rate and framing (:func:`drivers.serial_link.wire_time`); on
+TCP the arrival itself (a frame's time on Ethernet is microseconds) — unless the TCP peer is a Modbus TCP/RTU gateway
+(``gateway_baud``), whose reply follows the RTU frame on its RS-485 line: then that frame's wire time is taken off.
 """
 
 from __future__ import annotations
@@ -49,12 +54,15 @@ from drivers.errors import (
     OperationCancelledError,
     ProtocolError,
 )
-from drivers.serial_link import POLL_SLICE_S, PORT_ERRORS, set_slice_timeout
+from drivers.serial_link import POLL_SLICE_S, PORT_ERRORS, char_bits, set_slice_timeout, wire_time
 
 EXCEPTION_TEXT = {1: "illegal function", 2: "illegal data address", 3: "illegal data value",
                   4: "device failure", 5: "acknowledge", 6: "device busy", 11: "gateway target failed to respond"}
 
 logging.getLogger("pymodbus").setLevel(logging.CRITICAL)  # errors are reported by the drivers, one line each
+
+
+_RTU_SIZE = FramerRTU(DecodePDU(False))  # sizes a reply's RTU frame (on the port, or behind a gateway)
 
 
 class _TrailingRTUFramer(FramerRTU):
@@ -236,11 +244,14 @@ class ModbusLink:
 
     def __init__(self, url: str, device: str, *, baudrate: int = 19200, timeout: float = 0.5,
                  retries: int = 1, poll_interval: float | None = None, cancel: CancelToken | None = None,
-                 timer: ReplyTimer = WALL) -> None:
+                 timer: ReplyTimer = WALL, wire: bool = True, gateway_baud: int | None = None) -> None:
         """``poll_interval``: how often the RTU client polls for reply bytes (pymodbus default: 4 character
         times, at least 1 ms). Twins on a pty answer at once, so simulated rigs use a shorter one.
         ``retries``: further attempts after a timeout (each checks ``cancel`` first).
         ``timer``: how a wait for a reply ends (:mod:`drivers.deadline`).
+        ``wire``: whether RTU frames take their wire time at ``baudrate`` (False: a simulated line at pty speed).
+        ``gateway_baud``: on TCP, the baud rate of the RS-485 line behind a Modbus TCP/RTU gateway (8N1), whose
+        frames' wire time a reply's stamp leaves out (None: a device on Ethernet itself, as the T7).
         ``retrying`` (attribute, None by default): called before each retry of an unanswered request, with this
         link's lock held — work that must not wait out the retry on another link (the engine feeds the set-point
         module's keep-alive there); never a request on this link."""
@@ -250,6 +261,9 @@ class ModbusLink:
         self.cancel = cancel
         self.timer = timer
         self.retrying: Callable[[], None] | None = None
+        self.wire = wire
+        self.gateway_baud = gateway_baud
+        self._reply_frame = 0  # bytes of the last reply's RTU frame (address, PDU, CRC): on the port or gateway line
         self._timeout = timeout
         self._deadline: Deadline = timer.start(timeout)  # the present attempt's (set before each request)
         self.lock = threading.RLock()
@@ -360,6 +374,7 @@ class ModbusLink:
                 except ProtocolError:
                     self._stale = True
                     raise
+                self._reply_frame = len(_RTU_SIZE.buildFrame(resp))
                 return resp
         tries = f" ({attempts} attempts)" if attempts > 1 else ""
         raise InstrumentTimeoutError(self.device, f"no valid reply from unit {unit} to {what} on {self.url}{tries}"
@@ -421,6 +436,26 @@ class ModbusLink:
                 raise ProtocolError(self.device, f"unit {unit} echoed {echo[0]}={echo[1]} to {what}")
         elif fc == 16 and (resp.address, resp.count) != (request.address, request.count):
             raise ProtocolError(self.device, f"unit {unit} echoed {resp.address}+{resp.count} to {what}")
+
+    def reply_wire_s(self) -> float:
+        """Wire time [s] of the last reply's RTU frame at the port's baud rate and framing (pymodbus' serial
+        settings: 8N1 unless set otherwise), or on a gateway's RS-485 line (``gateway_baud``, 8N1); 0 on TCP to a
+        device on Ethernet, and where the link has no wire time (``wire=False``)."""
+        client = self._client
+        if not self.wire:
+            return 0.0
+        if isinstance(client, _TcpClient):
+            return wire_time(self._reply_frame, self.gateway_baud) if self.gateway_baud else 0.0
+        p = client.comm_params
+        if not p.baudrate:
+            return 0.0
+        return wire_time(self._reply_frame, p.baudrate, char_bits(p.bytesize or 8, p.parity or "N", p.stopbits or 1))
+
+    def reply_started(self, arrived: float) -> float:
+        """When the last reply started, given ``arrived``, the time (on the caller's clock) its last byte arrived:
+        ``arrived`` less its wire time (:meth:`reply_wire_s`) — when the device put its reading on the wire. Call
+        it with the link's lock held since the request (another module's request on the bus would replace it)."""
+        return arrived - self.reply_wire_s()
 
     def heard_at(self, unit: int) -> float | None:
         """``time.monotonic()`` at which the last request that ``unit`` answered was sent (None: none yet).

@@ -14,6 +14,10 @@ so a reply read as header then body costs one wait, not two), and a write that t
 once (pyserial's ``write`` follows every write with a wait for writability: a second system call, and a hand-off of
 the GIL to any other thread, per request). Other ports (``socket://``, test schemes) go through pyserial.
 
+A reading is stamped when the device sampled it, best estimated as the start of its reply: the time its last byte
+arrived less the reply's wire time (:meth:`SerialLink.reply_started`; :func:`wire_time` is the one computation,
+the Modbus link's RTU replies use it too). A simulated line served at pty speed (``wire=False``) has no wire time.
+
 When a read gives up is the :class:`~drivers.deadline.ReplyTimer`'s business: the wall clock on hardware; in a
 virtual-time simulation the twin's own account of the request (:mod:`drivers.deadline`), so that a host starved
 of CPU never turns into a timeout. The port's write timeout is the timer's wall-clock bound.
@@ -48,6 +52,17 @@ READ_CHUNK = 4096  # a POSIX port's read takes up to this much of what has arriv
 #                   line-discipline buffer per read); more only when a count asks for more
 
 
+def char_bits(bytesize: int = 8, parity: str = "N", stopbits: float = 1) -> float:
+    """Bits one character occupies on an asynchronous serial wire: a start bit, the data bits, a parity bit unless
+    the parity is none ("N"), the stop bits — 10 for 8N1, 11 for 8E1, 8O1 and 8N2."""
+    return 1 + bytesize + (0 if parity == "N" else 1) + stopbits
+
+
+def wire_time(nbytes: int, baudrate: float, bits_per_char: float = 10.0) -> float:
+    """Seconds ``nbytes`` characters take on the wire at ``baudrate``, back to back: bytes × bits per char ÷ baud."""
+    return nbytes * bits_per_char / baudrate
+
+
 def slice_s(left: float) -> float:
     """How long the next blocking read may last [s]: one poll slice, never more than ``left`` [s] (at least 1 ms)."""
     return max(min(POLL_SLICE_S, left), 0.001)
@@ -75,12 +90,19 @@ def posix_fd(port: serial.Serial) -> int | None:
 class SerialLink:
     """One serial port shared by one instrument; all exchanges are serialised by a lock."""
 
+    bytesize, parity, stopbits = 8, "N", 1  # the framing :meth:`open` sets (8N1: every instrument here)
+
     def __init__(self, url: str, device: str, *, baudrate: int = 115200, timeout: float = 0.5,
-                 exclusive: bool = True, cancel: CancelToken | None = None, timer: ReplyTimer = WALL) -> None:
-        """``timeout``: default reply timeout [s]; ``timer``: how a wait for a reply ends (:mod:`drivers.deadline`)."""
+                 exclusive: bool = True, cancel: CancelToken | None = None, timer: ReplyTimer = WALL,
+                 wire: bool = True) -> None:
+        """``timeout``: default reply timeout [s]; ``timer``: how a wait for a reply ends (:mod:`drivers.deadline`);
+        ``wire``: whether bytes take their wire time at ``baudrate`` (False: a simulated line served at pty speed,
+        where a reply arrives the moment it is made — :meth:`reply_started` then subtracts nothing)."""
         self.url = url
         self.device = device
         self.baudrate = baudrate
+        self.wire = wire
+        self._replied = 0  # bytes handed to the caller since the last write: the reply read so far
         self.timeout = timeout
         self.exclusive = exclusive
         self.cancel = cancel
@@ -101,7 +123,8 @@ class SerialLink:
         if self._port is not None:
             return
         try:
-            port = serial.serial_for_url(self.url, baudrate=self.baudrate, bytesize=8, parity="N", stopbits=1,
+            port = serial.serial_for_url(self.url, baudrate=self.baudrate, bytesize=self.bytesize,
+                                         parity=self.parity, stopbits=self.stopbits,
                                          timeout=min(self.timeout, POLL_SLICE_S),
                                          write_timeout=self.timer.bound(self.timeout),
                                          exclusive=self.exclusive)
@@ -165,6 +188,7 @@ class SerialLink:
         port = self._require()
         if self._dirty:
             self._drain(port)
+        self._replied = 0
         self.timer.sending()
         try:
             if self._fd is not None:
@@ -211,6 +235,7 @@ class SerialLink:
         rest = self._rest
         if len(rest) >= n:  # all there already (read with what came before): no wait, so no deadline to set
             self._rest = rest[n:]
+            self._replied += n
             return rest[:n]
         buf = bytearray(rest)
         self._rest = b""
@@ -227,6 +252,7 @@ class SerialLink:
         if len(buf) > n:  # read beyond the count (the rest was empty before): kept for the next read
             self._rest = bytes(buf[n:])
             del buf[n:]
+        self._replied += n
         return bytes(buf)
 
     def read_until(self, terminator: bytes, max_size: int = 1 << 20, timeout: float | None = None) -> bytes:
@@ -247,6 +273,7 @@ class SerialLink:
                 if end >= 0:
                     end += len(terminator)
                     self._rest = bytes(buf[end:])
+                    self._replied += end
                     return bytes(buf[:end])
                 searched = max(0, len(buf) - len(terminator) + 1)
                 if len(buf) >= max_size:
@@ -261,3 +288,17 @@ class SerialLink:
                     buf += self._receive(port, deadline, max(1, min(port.in_waiting, room)), room)
         except PORT_ERRORS as exc:
             raise self._lost(exc) from None
+
+    def reply_wire_s(self) -> float:
+        """Wire time [s] of the reply read since the last write (every byte read since: a reply read in parts counts
+        whole), at this link's baud rate and framing; 0 where the link has no wire time (``wire=False``)."""
+        if not self.wire:
+            return 0.0
+        return wire_time(self._replied, self.baudrate, char_bits(self.bytesize, self.parity, self.stopbits))
+
+    def reply_started(self, arrived: float) -> float:
+        """When the reply read since the last write started on the wire, given ``arrived``, the time (on the
+        caller's clock) its last byte arrived: ``arrived`` less the reply's wire time. A device puts its reading
+        into the reply as it starts sending it; the reply's own bytes take their wire time to follow, so this,
+        not ``arrived``, is when the reading was taken (call it with the link's lock held since the exchange)."""
+        return arrived - self.reply_wire_s()

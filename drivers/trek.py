@@ -184,11 +184,13 @@ class TrekAmplifier:
     def read_monitors(self) -> tuple[Reading, Reading]:
         """(output voltage [V], output current [A]) from one read of both monitor channels.
 
-        A value that is not finite has status "invalid"."""
+        A value that is not finite has status "invalid". Both are stamped at the start of the ADAM-4017+'s reply
+        (:meth:`ModbusLink.reply_started`), not after its wire time."""
         first = min(self.vmon_channel, self.imon_channel)
         n = abs(self.vmon_channel - self.imon_channel) + 1
-        volts = self.ai.read_volts(first, n)
-        t = self.clock()
+        with self.ai.link.lock:
+            volts = self.ai.read_volts(first, n)
+            t = self.ai.link.reply_started(self.clock())
         v = volts[self.vmon_channel - first] * self.trek.vmon_ratio
         i = volts[self.imon_channel - first] * self.trek.imon_ratio
         return (Reading(v, "V", t, "ok" if math.isfinite(v) else "invalid"),

@@ -171,6 +171,7 @@ class SimBus:
             module = self.units.get(unit)
             if module is None:
                 return b""  # another address (or nobody): silence
+            line.ready(module.turnaround)  # a read takes the module's values as its reply starts; a write acts at `at`
             reply = bytes([unit]) + execute(module, pdu, at)
             reply += crc16(reply)
             line.reply(len(reply), module.turnaround)
@@ -191,6 +192,7 @@ class SimBus:
             if module is None:
                 line.silent(self.gateway_timeout)
                 return _exception(pdu[0] if pdu else 0, GATEWAY_NO_RESPONSE)
+            line.ready(module.turnaround)  # a read takes the module's values as its reply starts; a write acts at `at`
             reply = execute(module, pdu, at)
             line.reply(len(reply) + 3, module.turnaround)
             return reply

@@ -348,6 +348,17 @@ class Line:
         self._until(end)
         return end
 
+    def ready(self, turnaround: float | None = None) -> None:
+        """The device is about to answer the request just received: wait until its reply may start, its turnaround
+        after the wire was last busy (the request's end). A twin that reads its instrument after this puts into the
+        reply what the device holds as it starts sending it — the instant a host stamps the reading with (the
+        reply's arrival less its wire time), not the turnaround before."""
+        if not self.baud:
+            return
+        with self.lock:
+            t = self._free + (self.turnaround if turnaround is None else turnaround)
+        self._until(t)
+
     def reply(self, nbytes: int, turnaround: float | None = None) -> None:
         """The device turns around and sends ``nbytes``; returns when the last byte has arrived.
 
@@ -479,6 +490,7 @@ class PtyDevice:
                 line = self.line
                 if line is not None:
                     line.request(len(data))
+                    line.ready()  # the reply reads the instrument as it starts, after the turnaround
                 reply = self.handler(data)
                 if not reply:
                     faults.unanswered()

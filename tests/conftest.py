@@ -87,7 +87,7 @@ def start_rig(name: str, virtual: bool = True, watchdog: bool = False, timing: T
     sim = SimRig(rig, virtual=virtual, timing=timing)
     sim.start()
     inst = build_instruments(rig, sim.port_map(), clock=sim.clock.now, sleep=sim.clock.sleep,
-                             timers=sim.reply_timers())
+                             timers=sim.reply_timers(), wire_time=sim.wire_time)
     for link in inst.links.values():
         link.timeout = 0.3
     try:

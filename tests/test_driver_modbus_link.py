@@ -279,3 +279,34 @@ def test_tcp_a_reply_from_another_unit_is_skipped_and_one_numbered_0_is_no_answe
     finally:
         link.close()
         thread.join(2.0)
+
+
+@pytest.mark.parametrize("gateway_baud", [None, 9600])
+def test_tcp_reply_stamp_is_the_arrival_unless_a_gateways_rs485_line_carried_it(gateway_baud: int | None) -> None:
+    """A device on Ethernet: a frame's time on the wire is microseconds, nothing is taken off. Behind a Modbus
+    TCP/RTU gateway the reply first crossed the RS-485 line as an RTU frame — address, function, byte count, one
+    register, CRC: 7 characters of 10 bits (8N1) — and started that long before the TCP reply arrived."""
+    port, thread = _scripted_tcp_peer(lambda req: [_mbap(req[:2], 1, fc3_reply(5))])
+    link = ModbusLink(f"tcp://127.0.0.1:{port}", "bus io", timeout=0.2, retries=0, gateway_baud=gateway_baud)
+    link.open()
+    try:
+        assert link.read_holding(1, 0, 1) == [5]
+        assert link.reply_started(4.0) == pytest.approx(4.0 - (7 * 10 / 9600 if gateway_baud else 0.0), abs=1e-12)
+    finally:
+        link.close()
+        thread.join(2.0)
+
+
+def test_rtu_reply_stamp_counts_the_whole_frame_at_the_ports_baud() -> None:
+    """On the port itself: the FC3 reply of one register is 7 characters (address, function, byte count, 2 data
+    bytes, CRC), 10 bits each at pymodbus' 8N1, here at 9600 Bd; without wire time (a line at pty speed) none."""
+    for wire, expected in ((True, 4.0 - 7 * 10 / 9600), (False, 4.0)):
+        peer = RtuPeer(lambda _pdu, _n: [(0.0, fc3_reply(5))])
+        link = ModbusLink(peer.name, "bus io", baudrate=9600, timeout=0.2, retries=0, wire=wire)
+        link.open()
+        try:
+            assert link.read_holding(1, 0, 1) == [5]
+            assert link.reply_started(4.0) == pytest.approx(expected, abs=1e-12)
+        finally:
+            link.close()
+            peer.close()

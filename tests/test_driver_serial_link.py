@@ -227,3 +227,33 @@ def test_a_pty_whose_far_end_closes_during_a_read_is_a_lost_link() -> None:
     assert time.monotonic() - t0 < 4.0  # an order: the closed line ends the read, not the 5-s timeout
     assert not link.is_open
     os.close(p.slave)
+
+
+def test_the_reply_start_is_its_arrival_less_the_wire_time_of_every_byte_read_since_the_request(
+        peer: PtyPeer) -> None:
+    """A reply read in parts (header, then body) counts whole; bytes read beyond it wait for the next read and are not
+    counted; the next request starts a new count. 8N1: 10 bits a character (start, 8 data, stop)."""
+    link = SerialLink(peer.name, "probe", baudrate=9600, timeout=1.0, exclusive=False)
+    link.open()
+    link.write(b"?")
+    os.write(peer.master, b"0123456789ABCDEF\rnext")
+    assert link.read_exact(3) == b"012"
+    assert link.reply_started(10.0) == pytest.approx(10.0 - 3 * 10 / 9600, abs=1e-12)
+    assert link.read_until(b"\r") == b"3456789ABCDEF\r"
+    assert link.reply_started(10.0) == pytest.approx(10.0 - 17 * 10 / 9600, abs=1e-12)  # 17 characters: 17.7 ms
+    link.write(b"?")
+    assert link.reply_started(2.0) == 2.0  # nothing read since the request
+    assert link.read_exact(4) == b"next"
+    assert link.reply_started(2.0) == pytest.approx(2.0 - 4 * 10 / 9600, abs=1e-12)
+    link.close()
+
+
+def test_a_link_without_wire_time_stamps_a_reply_at_its_arrival(peer: PtyPeer) -> None:
+    """A simulated line at pty speed (``wire=False``): the reply arrived the moment it was made."""
+    link = SerialLink(peer.name, "probe", baudrate=9600, timeout=1.0, exclusive=False, wire=False)
+    link.open()
+    link.write(b"?")
+    os.write(peer.master, b"0123456789\r")
+    assert link.read_until(b"\r") == b"0123456789\r"
+    assert link.reply_started(3.0) == 3.0
+    link.close()

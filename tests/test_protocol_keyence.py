@@ -45,7 +45,19 @@ def test_value_format_special_fields() -> None:
 def test_single_read_lk_g3000() -> None:
     with expected_protocol("kg3", [(b"M1\r", b"M1,+01.2345\r")]) as url:
         r = laser(url).read_displacement()
-    assert r.value == pytest.approx(1.2345e-3) and r.unit == "m" and r.ok and r.timestamp == 12.5
+    assert r.value == pytest.approx(1.2345e-3) and r.unit == "m" and r.ok
+    # stamped at the reply's start: its 12 characters (CR included) at 115,200 Bd, 8N1 (10 bits each), end at 12.5 s
+    assert r.timestamp == pytest.approx(12.5 - 12 * 10 / 115200, abs=1e-12)
+
+
+def test_single_read_stamped_at_the_reply_start_at_the_links_baud() -> None:
+    """The same read at 9600 Bd: 12 characters × 10 bits = 12.5 ms of wire before the clock's 12.5 s (the manual's
+    8N1, instruments.md §1.2; the line's end-of-reply is when the driver reads its clock)."""
+    with expected_protocol("kg9", [(b"M1\r", b"M1,+01.2345\r")]) as url:
+        k = KeyenceLKG(SerialLink(url, "laser", baudrate=9600, timeout=0.05), clock=lambda: 12.5)
+        k.link.open()
+        r = k.read_displacement()
+    assert r.timestamp == pytest.approx(12.5 - 0.0125, abs=1e-12)
 
 
 def test_single_read_lk_g5000() -> None:

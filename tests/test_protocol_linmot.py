@@ -191,6 +191,24 @@ def test_position_is_not_ok_when_the_drive_is_in_error(status: int, state: int) 
     assert r.value == pytest.approx(12.3456e-3)
 
 
+@pytest.mark.parametrize("baud, checksum", [(115200, False), (9600, False), (115200, True)])
+def test_position_is_stamped_at_the_start_of_the_default_response(baud: int, checksum: bool) -> None:
+    """The drive puts its actual position into the default response as it starts sending it; the 16 bytes (18
+    with the checksum: LinRS manual p. 11, instruments.md §2.2) then take 10 bits each (8N1) at the drive's baud
+    rate. The clock reads 7.0 s when the reply is in: the reading is stamped 16 × 10 / baud before that."""
+    frame = response(0x0C37, 0x08C0, 42)
+    if checksum:
+        frame = frame[:15] + struct.pack("<H", crc16_ccitt_reflected(frame[3:15])) + b"\x04"
+    poll = encode(0x11, 0x00, 0x01, checksum=checksum)
+    with expected_protocol("posstamp", [(poll, frame)]) as url:
+        d = LinMotDrive(SerialLink(url, "motor", baudrate=baud, timeout=0.05), travel=(0.0, 0.1),
+                        clock=lambda: 7.0, checksum=checksum)
+        d.link.open()
+        r = d.read_position()
+    assert len(frame) == (18 if checksum else 16)
+    assert r.timestamp == pytest.approx(7.0 - len(frame) * 10 / baud, abs=1e-12)
+
+
 def test_a_count_echo_we_never_sent_is_a_protocol_error() -> None:
     params = struct.pack("<HiIII", 0x0101, 100_000, 100_000, 100_000, 100_000)
     req = bytes.fromhex("01 11 15 02 00 02") + params + b"\x04"

@@ -105,6 +105,22 @@ def test_monitors_read_both_channels_in_one_request() -> None:
         v, i = amplifier(url, [0.0]).read_monitors()
     assert v.value == pytest.approx(5000.0, abs=0.2) and v.unit == "V"
     assert i.value == pytest.approx(-0.25e-3, abs=1e-7) and i.unit == "A"
+    # both stamped at the reply's start: 1 + 1 + 1 + 4 + 2 = 9 characters × 10 bits at 19,200 Bd before 0 s
+    assert v.timestamp == i.timestamp == pytest.approx(-9 * 10 / 19200, abs=1e-12)
+
+
+def test_rtu_reply_stamp_follows_the_links_baud_and_parity() -> None:
+    """An 8E1 link (11 bits a character: the Modbus serial default, Serial Line v1.02 §2.5.1) at 9600 Bd: the
+    monitors' 9-character reply started 9 × 11 / 9600 s before the clock's 5 s."""
+    v_raw = i_raw = 32768
+    reply = rtu(2, 3, 4, v_raw.to_bytes(2, "big") + i_raw.to_bytes(2, "big"))
+    with expected_protocol("ai8e1", [(rtu(2, 3, b"\x00\x00\x00\x02"), reply)]) as url:
+        link = ModbusLink(url, "bus io", baudrate=9600, timeout=0.05, retries=0)
+        link._client.comm_params.parity = "E"  # as a port opened 8E1 (pymodbus' own setting)
+        link.open()
+        amp = TrekAmplifier(Adam4024(link, 1), Adam4017P(link, 2), max_voltage=8000, clock=lambda: 5.0)
+        v, i = amp.read_monitors()
+    assert v.timestamp == i.timestamp == pytest.approx(5.0 - 9 * 11 / 9600, abs=1e-12)
 
 
 def test_module_identity_and_exception_replies() -> None:
@@ -143,7 +159,10 @@ def test_load_cell_read_signed_net_weight() -> None:
     regs = b"\x00\x00\x01\x5e" + b"\x00\x00\x00\x7d" + b"\x00\x25"
     with expected_protocol("lc", [(rtu(1, 4, b"\x00\x00\x00\x05"), rtu(1, 4, 10, regs))]) as url:
         r = cell(url).read_force()
-    assert r.value == pytest.approx(-0.125 * 9.80665) and r.unit == "N" and r.ok and r.timestamp == 3.0
+    assert r.value == pytest.approx(-0.125 * 9.80665) and r.unit == "N" and r.ok
+    # stamped at the reply's start: address, function, byte count, 10 data bytes, CRC = 15 characters of 10 bits
+    # (8N1) at pymodbus' default 19,200 Bd before the clock's 3.0 s (Modbus over Serial Line v1.02 §2.5.1)
+    assert r.timestamp == pytest.approx(3.0 - 15 * 10 / 19200, abs=1e-12)
 
 
 def test_load_cell_overload_and_unstable() -> None:
@@ -282,7 +301,7 @@ def _twin_amplifier(watchdog_on: bool) -> None:
     try:
         sim.twins["amplifier AO"].write(6, 214, [int(watchdog_on)])  # FC6 to 40215 (address 214)
         inst = build_instruments(rig, sim.port_map(), clock=sim.clock.now, sleep=sim.clock.sleep,
-                                 timers=sim.reply_timers())
+                                 timers=sim.reply_timers(), wire_time=sim.wire_time)
         assert inst.amplifier is not None
         try:
             inst.amplifier.connect()

@@ -108,7 +108,7 @@ def test_replay_serves_the_record_not_the_model(tmp_path: Path, short_run: Path)
     sim.start()
     try:
         inst = build_instruments(sim.rig, sim.port_map(), clock=sim.clock.now, sleep=sim.clock.sleep,
-                                 timers=sim.reply_timers())
+                                 timers=sim.reply_timers(), wire_time=sim.wire_time)
         assert inst.laser is not None
         inst.laser.connect()
         assert sim.replay is not None

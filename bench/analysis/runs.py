@@ -175,9 +175,10 @@ def analyse_source(src: RunSource, last_cycles: int = 3) -> RunAnalysis:
     late = {step: float(m[1]) for _, step, kind, text in run.event_list()
             if kind == "late" and (m := LATE.search(text)) is not None}  # each step's own lateness [s]
     skipped: dict[int, tuple[int, int]] = {}  # each step's set-points (skipped, planned) behind its schedule
-    for _, step, kind, text in run.event_list():
+    for _, at_step, kind, text in run.event_list():
         if kind == "skipped" and (m := SKIPPED.search(text)) is not None:
-            skipped[step] = (skipped.get(step, (0, 0))[0] + int(m[1]), skipped.get(step, (0, 0))[1] + int(m[2]))
+            was = skipped.get(at_step, (0, 0))
+            skipped[at_step] = (was[0] + int(m[1]), was[1] + int(m[2]))
     for row, step in zip(run.program, protocol.steps, strict=True):
         if not isinstance(step, WaveformStep):
             continue

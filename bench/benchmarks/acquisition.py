@@ -51,7 +51,7 @@ def _rig(name: str, virtual: bool, modbus: str | None = None, timing: Timing = "
                                         "simulation": {**rig.simulation.model_dump(), "modbus_transport": modbus}})
     sim = SimRig(rig, virtual=virtual, timing=timing)
     sim.start()
-    inst = build_instruments(rig, sim.port_map(), clock=sim.clock.now, sleep=sim.clock.sleep)
+    inst = build_instruments(rig, sim.port_map(), clock=sim.clock.now, sleep=sim.clock.sleep, wire_time=sim.wire_time)
     for _, drv in inst.items():
         drv.connect()
     return sim, inst

@@ -103,14 +103,17 @@ class Instruments:
 
 def build_instruments(rig: RigConfig, endpoints: dict[str, str] | None = None,
                       clock: ClockFn = time.monotonic, sleep: SleepFn = time.sleep,
-                      modbus_poll: float | None = None, timers: Mapping[str, ReplyTimer] | None = None) -> Instruments:
+                      modbus_poll: float | None = None, timers: Mapping[str, ReplyTimer] | None = None,
+                      wire_time: bool = True) -> Instruments:
     """Create (not connect) the drivers; ``endpoints`` (role or bus name → port) override the file's ports.
 
     ``clock``/``sleep`` are the rig's time: wall time for hardware, the simulated rig's clock otherwise;
     ``modbus_poll`` is the RTU receive poll interval (None: pymodbus' default, right for real wires);
     ``timers`` (role, bus name or "daq" → :class:`~drivers.deadline.ReplyTimer`) decide when a link gives up on
     a reply — a virtual-time run's twins (:meth:`bench.runtime.sim_rig.SimRig.reply_timers`); the rest, and all of
-    them on hardware, wait on the wall clock.
+    them on hardware, wait on the wall clock. ``wire_time``: whether the serial lines take their wire time (always on
+    hardware; a simulated rig's :attr:`~bench.runtime.sim_rig.SimRig.wire_time`) — polled readings are stamped at
+    the start of their reply, the arrival less the reply's wire time, and a line at pty speed has none to subtract.
     """
     ep = endpoints or {}
     tm = timers or {}
@@ -119,14 +122,16 @@ def build_instruments(rig: RigConfig, endpoints: dict[str, str] | None = None,
     def bus(name: str) -> ModbusLink:
         if name not in inst.links:
             cfg = rig.buses[name]
+            # a bus's modules (ADAM-4000, DGT1S) speak RS-485 only: on tcp:// the peer is a TCP/RTU gateway whose
+            # line runs at the bus's baud rate (as the twins' Modbus TCP transport serves them)
             inst.links[name] = ModbusLink(ep.get(name, cfg.port), f"bus {name}", baudrate=cfg.baudrate,
                                           timeout=cfg.timeout_s, retries=cfg.retries, poll_interval=modbus_poll,
-                                          timer=tm.get(name, WALL))
+                                          timer=tm.get(name, WALL), wire=wire_time, gateway_baud=cfg.baudrate)
             inst.links[name].cancel = inst.cancel
         return inst.links[name]
 
     def serial(url: str, device: str, baudrate: int, timeout: float) -> SerialLink:
-        link = SerialLink(url, device, baudrate=baudrate, timeout=timeout, timer=tm.get(device, WALL))
+        link = SerialLink(url, device, baudrate=baudrate, timeout=timeout, timer=tm.get(device, WALL), wire=wire_time)
         link.cancel = inst.cancel
         return link
 

@@ -223,7 +223,7 @@ class ManualSession:
             self._clock = self._sim.clock
             self._inst = build_instruments(rig, self._sim.port_map(), clock=self._clock.now,
                                            sleep=self._clock.sleep, modbus_poll=0.0005,
-                                           timers=self._sim.reply_timers())
+                                           timers=self._sim.reply_timers(), wire_time=self._sim.wire_time)
         else:  # claimed before any is touched, held until they are closed (one process per instrument)
             self._claim.enter_context(claimed(rig))
             self._inst = build_instruments(rig, clock=self._clock.now, sleep=self._clock.sleep)

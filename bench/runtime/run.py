@@ -268,7 +268,8 @@ def _execute_claimed(plan: Plan, out: Path, *, virtual: bool, operator: Operator
                     sim, meta = _start_sim(plan, virtual, meta)
                     clock = sim.clock
                     inst = build_instruments(rig, sim.port_map(), clock=clock.now, sleep=clock.sleep,
-                                             modbus_poll=SIM_MODBUS_POLL_S, timers=sim.reply_timers())
+                                             modbus_poll=SIM_MODBUS_POLL_S, timers=sim.reply_timers(),
+                                             wire_time=sim.wire_time)
                 else:
                     clock = WallClock()
                     inst = build_instruments(rig, clock=clock.now, sleep=clock.sleep)

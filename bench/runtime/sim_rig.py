@@ -208,6 +208,14 @@ class SimRig:
         self.lines[role] = Line(self.clock, baud if self.timing == "real" else None, turnaround=turnaround)
         self._serial[role] = PtyDevice(twin, role, self.faults[role], self.lines[role]).start()
 
+    @property
+    def wire_time(self) -> bool:
+        """Whether the twins' serial lines and buses take their wire time ("real" timing). The drivers are told
+        (:func:`bench.runtime.instruments.build_instruments`): they stamp a polled reading at the start of its reply,
+        its arrival less its wire time — at pty speed ("none") a reply arrives the moment it is made, and a stamp
+        moved back by a wire time that never passed would be early by that much."""
+        return self.timing == "real"
+
     def faults_of(self, name: str) -> Faults:
         """The :class:`Faults` of the link serving ``name``: a serial role (``laser``, ``motor``), a bus name
         (``io``), ``daq``, or a Modbus role (``amplifier``, ``load_cell``: its bus; the amplifier of a

@@ -103,7 +103,7 @@ def _start(name: str, transport: str | None = None) -> tuple[SimRig, RigConfig]:
 
 
 def _connect(rig: RigConfig, sim: SimRig) -> Instruments:
-    inst = build_instruments(rig, sim.port_map(), clock=sim.clock.now, sleep=sim.clock.sleep)
+    inst = build_instruments(rig, sim.port_map(), clock=sim.clock.now, sleep=sim.clock.sleep, wire_time=sim.wire_time)
     for _, drv in inst.items():
         drv.connect()
     return inst
