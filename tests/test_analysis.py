@@ -265,6 +265,14 @@ def test_report_cli_prints_the_table3_grid_for_an_isopotential_campaign(isopoten
     # the grid shows the stabilised-cycle loss of each voltage, as computed from the file
     for s in steps:
         assert f"{100 * s.figures['loss_last']:.1f}" in out.output
+    # and those losses are the model's: physics.md §2.4, VE-A prototype #1, 24.3 % at 0 kV and 30.9 % at 7 kV (its
+    # 10th sine cycle; this is the 3rd raised-cosine one, within half a point). The motor's encoder stamped on its
+    # reply's arrival (2.4 ms late against the DAQ's scans) read 25.1 / 31.8 %.
+    reference = {0.0: 24.3, 7000.0: 30.9}
+    assert len(steps) == 2
+    for s in steps:
+        volts = min(reference, key=lambda v: abs(v - s.voltage))
+        assert abs(100 * s.figures["loss_last"] - reference[volts]) < 0.5, (s.name, s.figures["loss_last"])
     assert (tmp_path / "rep" / "isopotential_p1_dx90.png").stat().st_size > 10_000
     # a folder's Table 3 is one campaign's: the same files again replace it, other files' are refused, not mixed
     copies = []
