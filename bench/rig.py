@@ -47,12 +47,14 @@ class _Strict(BaseModel):
 
 
 class BusConfig(_Strict):
-    """A Modbus bus: serial device / pyserial URL (RTU) or ``tcp://host:port`` (a Modbus TCP/RTU gateway: the bus's
-    modules speak RS-485 only, and ``baudrate`` is then its RS-485 line's, whose wire time a reading's stamp leaves
-    out)."""
+    """A Modbus bus: serial device / pyserial URL (RTU) or ``tcp://host:port``. On tcp:// the peer is either a
+    Modbus TCP device or a TCP/RTU gateway to RS-485 modules (the ADAM-4000 and DGT1S speak RS-485 only): give the
+    gateway's line rate as ``gateway_baudrate`` and a reading's stamp leaves out its reply's wire time on that line;
+    without it nothing is taken off (a simulated rig's twins serve the bus as such a gateway at ``baudrate``)."""
 
     port: str = "sim"
     baudrate: int = Field(19200, gt=0)
+    gateway_baudrate: int | None = Field(None, gt=0, description="tcp:// only: the RS-485 line behind a gateway")
     timeout_s: float = Field(0.5, gt=0, le=30)
     retries: int = Field(1, ge=0, le=5)
 

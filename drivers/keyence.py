@@ -278,8 +278,9 @@ class KeyenceLKG:
         finally:
             self._settings_mode(False)
         self.query("AQ")
-        self.query("AS")
-        self._t0 = self.clock()
+        with self.link.lock:  # storage starts as the controller replies to AS (its start on the wire, as a read's)
+            self.query("AS")
+            self._t0 = self.link.reply_started(self.clock())
         self._dt = sampling * cycle * 1e-6
         self._fetched = 0
         self.pending = 0

@@ -54,7 +54,14 @@ from drivers.errors import (
     OperationCancelledError,
     ProtocolError,
 )
-from drivers.serial_link import POLL_SLICE_S, PORT_ERRORS, char_bits, set_slice_timeout, wire_time
+from drivers.serial_link import (
+    POLL_SLICE_S,
+    PORT_ERRORS,
+    char_bits,
+    set_slice_timeout,
+    warn_usb_latency,
+    wire_time,
+)
 
 EXCEPTION_TEXT = {1: "illegal function", 2: "illegal data address", 3: "illegal data value",
                   4: "device failure", 5: "acknowledge", 6: "device busy", 11: "gateway target failed to respond"}
@@ -264,6 +271,11 @@ class ModbusLink:
         self.wire = wire
         self.gateway_baud = gateway_baud
         self._reply_frame = 0  # bytes of the last reply's RTU frame (address, PDU, CRC): on the port or gateway line
+        # the clock a reply's arrival is noted on (the drivers' own, set by whoever builds them; None: the caller's
+        # time of asking stands for it), and the last reply's arrival on it: a retry's late reply that wins is
+        # followed by a wait for the line to go quiet, which must not make the reading look that much later
+        self.clock: Callable[[], float] | None = None
+        self._arrived: float | None = None
         self._timeout = timeout
         self._deadline: Deadline = timer.start(timeout)  # the present attempt's (set before each request)
         self.lock = threading.RLock()
@@ -302,6 +314,8 @@ class ModbusLink:
     def open(self) -> None:
         """Connect (RTU: open the port; TCP: connect the socket); ``open_failure`` says why it could not."""
         if self._client.connect():
+            if isinstance(self._client, _SerialClient):
+                warn_usb_latency(self.url, self.device)
             return
         if isinstance(self._client, _TcpClient):
             self.open_failure = _connect_failure(self._client.connect_error)
@@ -349,6 +363,7 @@ class ModbusLink:
                 sent = time.monotonic()
                 try:
                     resp = run(request)
+                    self._arrived = self.clock() if self.clock is not None else None
                     if isinstance(client, _SerialClient):
                         resp = self._latest_reply(resp, unit, what)
                 except ModbusIOException:
@@ -389,6 +404,7 @@ class ModbusLink:
         if not self._stale and not extra:
             return resp
         deadline = time.monotonic() + self.timeout
+        read_at = self._arrived  # when the bytes in ``extra`` came (the first reply's own, at first)
         while True:
             while extra:
                 used, later = framer.handleFrame(extra, unit, 0)
@@ -398,12 +414,14 @@ class ModbusLink:
                                             f"from unit {unit}")
                     break  # incomplete: wait for the rest
                 resp, extra, framer.trailing = later, framer.trailing, b""
+                self._arrived = read_at  # a later whole frame wins: its arrival, not the end of this wait
             if time.monotonic() >= deadline:
                 break
             self._check_cancel()
             waiting = client.socket.in_waiting
             if waiting:
                 extra += client.socket.read(waiting)
+                read_at = self.clock() if self.clock is not None else None
             else:
                 time.sleep(min(0.005, max(deadline - time.monotonic(), 0.0)))
         if extra:
@@ -452,10 +470,12 @@ class ModbusLink:
         return wire_time(self._reply_frame, p.baudrate, char_bits(p.bytesize or 8, p.parity or "N", p.stopbits or 1))
 
     def reply_started(self, arrived: float) -> float:
-        """When the last reply started, given ``arrived``, the time (on the caller's clock) its last byte arrived:
-        ``arrived`` less its wire time (:meth:`reply_wire_s`) — when the device put its reading on the wire. Call
-        it with the link's lock held since the request (another module's request on the bus would replace it)."""
-        return arrived - self.reply_wire_s()
+        """When the last reply started: its arrival less its wire time (:meth:`reply_wire_s`) — when the device put
+        its reading on the wire. The arrival is the one the link noted on :attr:`clock` when the reply that
+        answered came (after a retry, the late reply's, not the end of the wait for the line to go quiet); without
+        a clock, ``arrived`` (the caller's time now). Call it with the link's lock held since the request (another
+        module's request on the bus would replace it)."""
+        return (self._arrived if self._arrived is not None else arrived) - self.reply_wire_s()
 
     def heard_at(self, unit: int) -> float | None:
         """``time.monotonic()`` at which the last request that ``unit`` answered was sent (None: none yet).

@@ -26,10 +26,12 @@ of CPU never turns into a timeout. The port's write timeout is the timer's wall-
 from __future__ import annotations
 
 import contextlib
+import logging
 import os
 import select
 import threading
 import time
+from pathlib import Path
 
 import serial
 
@@ -61,6 +63,34 @@ def char_bits(bytesize: int = 8, parity: str = "N", stopbits: float = 1) -> floa
 def wire_time(nbytes: int, baudrate: float, bits_per_char: float = 10.0) -> float:
     """Seconds ``nbytes`` characters take on the wire at ``baudrate``, back to back: bytes × bits per char ÷ baud."""
     return nbytes * bits_per_char / baudrate
+
+
+USB_SERIAL_SYSFS = Path("/sys/bus/usb-serial/devices")  # Linux: one folder per USB-serial tty (FTDI's latency_timer)
+log = logging.getLogger(__name__)
+
+
+def usb_latency_ms(url: str, sysfs: Path = USB_SERIAL_SYSFS) -> int | None:
+    """The latency timer [ms] of the USB-serial adapter behind ``url`` (a /dev path, a /dev/serial/by-id link
+    too), or None where there is none to read (not a USB-serial tty, not Linux, a URL): an FTDI-type adapter holds
+    a short reply up to that long before the host sees it, which no stamp can take off."""
+    try:
+        name = Path(os.path.realpath(url)).name
+        return int((sysfs / name / "latency_timer").read_text().strip())
+    except (OSError, ValueError):
+        return None
+
+
+def warn_usb_latency(url: str, device: str, sysfs: Path = USB_SERIAL_SYSFS) -> str | None:
+    """Log (and return) a warning when ``url``'s USB-serial adapter holds replies longer than 1 ms."""
+    ms = usb_latency_ms(url, sysfs)
+    if ms is None or ms <= 1:
+        return None
+    tty = Path(os.path.realpath(url)).name
+    text = (f"{device}: the USB-serial adapter {tty} holds a reply up to {ms} ms (its latency timer) before the host "
+            f"sees it, so its readings' stamps lag by 0–{ms} ms: set it to 1 (echo 1 > "
+            f"{sysfs / tty / 'latency_timer'}, or a udev rule)")
+    log.warning(text)
+    return text
 
 
 def slice_s(left: float) -> float:
@@ -130,6 +160,7 @@ class SerialLink:
                                          exclusive=self.exclusive)
             self._port = port
             self._fd = posix_fd(port)
+            warn_usb_latency(self.url, self.device)
         except (*PORT_ERRORS, ValueError) as exc:
             errno = getattr(exc, "errno", None)
             reason = os.strerror(errno) if isinstance(errno, int) else str(exc)

@@ -310,3 +310,24 @@ def test_rtu_reply_stamp_counts_the_whole_frame_at_the_ports_baud() -> None:
         finally:
             link.close()
             peer.close()
+
+
+def test_a_reply_after_a_retry_is_stamped_at_its_arrival_not_after_the_wait_for_a_quiet_line() -> None:
+    """The first request goes unanswered; the retry's reply comes, and the link then waits one more timeout for
+    the line to go quiet (a late reply to the first request would win). The reading was taken when that reply
+    came, so its stamp lies a whole timeout before the wait ended — it read 0.297 s later in a reviewer's run
+    (the caller's time of asking stood for the arrival). An order, not a duration: a loaded host only widens it."""
+    peer = RtuPeer(lambda _pdu, n: [] if n == 1 else [(0.0, fc3_reply(5))])
+    link = ModbusLink(peer.name, "bus io", baudrate=19200, timeout=0.3, retries=1)
+    link.clock = time.monotonic
+    link.open()
+    try:
+        with link.lock:
+            asked = time.monotonic()
+            assert link.read_holding(1, 0, 1) == [5]
+            done = time.monotonic()
+            stamp = link.reply_started(done)
+        assert asked < stamp and done - stamp >= link.timeout
+    finally:
+        link.close()
+        peer.close()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import pathlib
 import threading
 import time
 import tty
@@ -257,3 +258,26 @@ def test_a_link_without_wire_time_stamps_a_reply_at_its_arrival(peer: PtyPeer) -
     assert link.read_until(b"\r") == b"0123456789\r"
     assert link.reply_started(3.0) == 3.0
     link.close()
+
+
+def test_a_usb_serial_adapter_holding_replies_longer_than_1_ms_is_warned_about(
+        tmp_path: pathlib.Path, caplog: pytest.LogCaptureFixture) -> None:
+    """An FTDI-type adapter holds a short reply up to its latency timer (16 ms by default) before the host sees it:
+    no stamp can take that off, so opening such a port says so, naming the device, the tty and the fix. A tty
+    without a latency timer (a pty, a twin's port) or one at 1 ms says nothing. The sysfs tree is a stand-in."""
+    from drivers.serial_link import usb_latency_ms, warn_usb_latency
+
+    sysfs = tmp_path / "sysfs"
+    for name, ms in (("ttyUSB0", "16\n"), ("ttyUSB1", "1\n")):
+        (sysfs / name).mkdir(parents=True)
+        (sysfs / name / "latency_timer").write_text(ms)
+    (tmp_path / "by-id").mkdir()
+    link = tmp_path / "by-id" / "usb-FTDI_FT232R-if00-port0"
+    link.symlink_to(tmp_path / "ttyUSB0")  # a /dev/serial/by-id link resolves to the tty
+    assert usb_latency_ms(str(link), sysfs) == 16
+    with caplog.at_level("WARNING", logger="drivers.serial_link"):
+        text = warn_usb_latency(str(link), "laser", sysfs)
+    assert text is not None and "laser" in text and "ttyUSB0" in text and "16 ms" in text and "echo 1 >" in text
+    assert any("ttyUSB0" in r.getMessage() for r in caplog.records)
+    assert warn_usb_latency(str(tmp_path / "ttyUSB1"), "motor", sysfs) is None
+    assert warn_usb_latency("/dev/pts/7", "motor", sysfs) is None

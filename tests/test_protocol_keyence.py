@@ -126,7 +126,9 @@ def test_storage_start_fetch_stop() -> None:
     assert b1.first_index == 0 and b2.first_index == 3
     assert np.allclose(b1.values[:2], [1e-3, 1.0001e-3]) and list(b1.valid) == [True, True, False]
     assert b2.values[0] == pytest.approx(-0.5e-3)
-    assert np.allclose(b2.times(), [12.5 + 3e-4])
+    # the storage's time base starts at the AS reply's start: 3 characters (A, S, CR) of 10 bits at the link's
+    # 115,200 Bd (8N1, instruments.md §1.2) before the clock's 12.5 s; the fourth point 3 intervals later
+    assert np.allclose(b2.times(), [12.5 - 3 * 10 / 115200 + 3e-4], rtol=0, atol=1e-12)
 
 
 def test_storage_interval_choice() -> None:

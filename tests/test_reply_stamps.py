@@ -161,3 +161,27 @@ def test_every_polled_reading_is_stamped_when_its_twin_read_its_instrument(rig: 
     finally:
         r.inst.close()
         r.sim.stop()
+
+
+@pytest.mark.parametrize("gateway, endpoint, expected", [
+    (None, False, None),  # a Modbus TCP device itself: nothing taken off
+    (9600, False, 9600),  # the rig file says a TCP/RTU gateway's RS-485 line runs at 9600 Bd
+    (None, True, 19200),  # a twin's endpoint: its transport serves the bus as a gateway at the bus's baud rate
+])
+def test_a_tcp_bus_takes_a_gateways_line_time_off_only_where_there_is_one(tmp_path: Path, gateway: int | None,
+                                                                          endpoint: bool, expected: int | None) -> None:
+    """A reviewer's finding: every tcp:// bus was taken for a gateway at ``baudrate`` (19,200 Bd by default), so a
+    real Modbus TCP device's readings were stamped up to 7.8 ms early. The rig file now says so (gateway_baudrate)."""
+    from bench.rig import load_rig
+    from bench.runtime.instruments import build_instruments
+    from tests.test_validation import _set
+
+    text = (RIGS / "lsdea-motor-sim.toml").read_text()
+    bus = next(line.split(".", 1)[1].rstrip("]") for line in text.splitlines() if line.startswith("[buses."))
+    text = _set(text, f"buses.{bus}", "port", '"tcp://192.0.2.1:502"')
+    if gateway is not None:
+        text = _set(text, f"buses.{bus}", "gateway_baudrate", str(gateway))
+    (tmp_path / "rig.toml").write_text(text)
+    rig = load_rig(tmp_path / "rig.toml")
+    inst = build_instruments(rig, {bus: "tcp://127.0.0.1:5020"} if endpoint else {})
+    assert inst.links[bus].gateway_baud == expected

@@ -122,12 +122,15 @@ def build_instruments(rig: RigConfig, endpoints: dict[str, str] | None = None,
     def bus(name: str) -> ModbusLink:
         if name not in inst.links:
             cfg = rig.buses[name]
-            # a bus's modules (ADAM-4000, DGT1S) speak RS-485 only: on tcp:// the peer is a TCP/RTU gateway whose
-            # line runs at the bus's baud rate (as the twins' Modbus TCP transport serves them)
+            # a bus's modules (ADAM-4000, DGT1S) speak RS-485 only: on tcp:// to a real rig the rig file says
+            # whether a TCP/RTU gateway's line is behind it (gateway_baudrate); a twin's endpoint is one, at the
+            # bus's baud rate (the twins' Modbus TCP transport paces its frames so)
+            gateway = cfg.baudrate if name in ep else cfg.gateway_baudrate
             inst.links[name] = ModbusLink(ep.get(name, cfg.port), f"bus {name}", baudrate=cfg.baudrate,
                                           timeout=cfg.timeout_s, retries=cfg.retries, poll_interval=modbus_poll,
-                                          timer=tm.get(name, WALL), wire=wire_time, gateway_baud=cfg.baudrate)
+                                          timer=tm.get(name, WALL), wire=wire_time, gateway_baud=gateway)
             inst.links[name].cancel = inst.cancel
+            inst.links[name].clock = clock  # a reply's arrival, on the rig's clock (a retry's late reply's too)
         return inst.links[name]
 
     def serial(url: str, device: str, baudrate: int, timeout: float) -> SerialLink:
