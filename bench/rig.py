@@ -289,6 +289,9 @@ class SimulationConfig(_Strict):
     replay: str | None = Field(None, description="a run file (HDF5) whose measured signals the twins serve instead "
                                "of the model's, on the record's time base, noise off (bench.runtime.replay); "
                                "relative to the rig file")
+    wire_time: bool = Field(True, description="false: the rig's ports are twins served at pty speed (`bench sim "
+                            "serve --no-wire-time --write-rig` writes it): no wire time passes on them, so the "
+                            "readings' stamps take none off")
 
 
 class DaqConfig(_Strict):

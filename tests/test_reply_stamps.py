@@ -185,3 +185,19 @@ def test_a_tcp_bus_takes_a_gateways_line_time_off_only_where_there_is_one(tmp_pa
     rig = load_rig(tmp_path / "rig.toml")
     inst = build_instruments(rig, {bus: "tcp://127.0.0.1:5020"} if endpoint else {})
     assert inst.links[bus].gateway_baud == expected
+
+
+def test_a_rig_file_of_twins_served_without_wire_time_takes_none_off_the_stamps(tmp_path: Path) -> None:
+    """`bench sim serve --no-wire-time --write-rig` wrote a rig that connected as real hardware, wire time on: every
+    stamp early by its reply's wire time (a reviewer's finding). The written rig now says that its lines take none."""
+    from bench.rig import load_rig
+    from bench.runtime.devices import served_rig, write_rig
+    from bench.runtime.instruments import build_instruments
+
+    rig = load_rig(RIGS / "lsdea-motor-sim.toml")
+    ports = {name: f"tcp://127.0.0.1:{5020 + k}" for k, name in enumerate(rig.buses)}
+    for wire in (False, True):
+        write_rig(served_rig(rig, ports, wire_time=wire), tmp_path / "served.toml")
+        inst = build_instruments(load_rig(tmp_path / "served.toml"))
+        assert inst.links and all(link.wire is wire for link in inst.links.values())
+        assert inst.motor is not None and inst.motor.link.wire is wire  # type: ignore[attr-defined]

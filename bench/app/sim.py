@@ -70,7 +70,7 @@ def serve_rig(rig_file: Path | None, *, write_rig: Path | None = None, duration:
         if write_rig is not None:
             # the clients' rig is real instruments: the replay is this process's business, not theirs
             plain = rig.model_copy(update={"simulation": rig.simulation.model_copy(update={"replay": None})})
-            write_rig_file(served_rig(plain, sim.port_map()), write_rig)
+            write_rig_file(served_rig(plain, sim.port_map(), wire_time=wire_time), write_rig)
         if on_started is not None:
             on_started(served)
         with contextlib.suppress(KeyboardInterrupt):

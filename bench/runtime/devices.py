@@ -78,11 +78,13 @@ def failures(rows: list[CheckRow]) -> str:
     return "; ".join(said)
 
 
-def served_rig(rig: RigConfig, ports: dict[str, str]) -> RigConfig:
+def served_rig(rig: RigConfig, ports: dict[str, str], wire_time: bool = True) -> RigConfig:
     """The rig as seen from outside: real (not simulated), ports set to the running twins' endpoints (the DAQ's
-    ``host:port:stream_port`` endpoint sets ``daq.host``, ``daq.port`` and ``daq.stream_port``)."""
+    ``host:port:stream_port`` endpoint sets ``daq.host``, ``daq.port`` and ``daq.stream_port``); ``wire_time``:
+    whether the twins take their lines' wire time (false: readings' stamps take none off)."""
     data = rig.model_dump()
     data["simulated"] = False
+    data["simulation"]["wire_time"] = wire_time
     data["name"] = f"{rig.name}-served"
     for name, port in ports.items():
         if name == "daq" and data.get("daq") is not None:  # the T7 twin: "host:port:stream_port" (two sockets)

@@ -117,6 +117,7 @@ def build_instruments(rig: RigConfig, endpoints: dict[str, str] | None = None,
     """
     ep = endpoints or {}
     tm = timers or {}
+    wire_time = wire_time and rig.simulation.wire_time  # a rig of twins served at pty speed says so
     inst = Instruments()
 
     def bus(name: str) -> ModbusLink:
