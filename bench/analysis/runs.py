@@ -176,7 +176,9 @@ def analyse_source(src: RunSource, last_cycles: int = 3) -> RunAnalysis:
             if kind == "late" and (m := LATE.search(text)) is not None}  # each step's own lateness [s]
     skipped: dict[int, tuple[int, int]] = {}  # each step's set-points (skipped, planned) behind its schedule
     for _, at_step, kind, text in run.event_list():
-        if kind == "skipped" and (m := SKIPPED.search(text)) is not None:
+        if kind == "start":  # a step restarted (after a pause, a drain at 0 V): its last attempt's skips only
+            skipped.pop(at_step, None)
+        elif kind == "skipped" and (m := SKIPPED.search(text)) is not None:
             was = skipped.get(at_step, (0, 0))
             skipped[at_step] = (was[0] + int(m[1]), was[1] + int(m[2]))
     for row, step in zip(run.program, protocol.steps, strict=True):

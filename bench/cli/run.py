@@ -52,7 +52,9 @@ def _warn(plan: Plan) -> None:
     """The plan's warnings: what a real line would refuse, what a software-timed rig records below the asked rate."""
     for problem in plan.link_problems:  # refused on a real rig; the simulated rig rehearses what it would do
         console.print(f"[yellow]warning[/]: {escape(problem)} — a real line would refuse this protocol; the "
-                      "simulated rig will show the consequences in wall-clock runs")
+                      "simulated rig will show the consequences in wall-clock runs (set-points skipped, the drive and "
+                      "the motor's path sampled more coarsely; beyond about twice the host's time, steps run long); "
+                      "a virtual-time run takes no wire time then")
     for short in plan.shortfalls:  # what a software-timed rig records below the asked rate: said, never silent
         console.print(f"[yellow]warning[/]: {escape(short)}")
 

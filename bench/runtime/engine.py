@@ -106,7 +106,7 @@ class Skipped:
         polls = ", ".join(f"{k} {n}" for k, n in self.polls.items())
         return (f"{self.setpoints} of {self.setpoints + self.sent} set-points skipped"
                 + (f", missed slots of polls skipped: {polls}" if polls else "")
-                + "; behind the schedule, each superseded by a later one already due: the step kept its times")
+                + "; behind the schedule, each superseded by a later one already due")
 
 
 @contextlib.contextmanager
