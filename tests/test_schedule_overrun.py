@@ -44,11 +44,11 @@ def test_a_step_behind_its_schedule_skips_superseded_set_points_and_every_step_k
     assert plan.link_problems  # the link budget warns about this protocol (tests/test_protocol_link_budget.py)
     plan = dataclasses.replace(plan, link_problems=[])  # wire time on: the twins take a real line's time
     seen: dict[str, Any] = {}
-    blocks: list[tuple[np.ndarray, np.ndarray]] = []
+    blocks: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
 
     def hook(engine: Any, sim: Any) -> None:
         seen["sim"] = sim
-        sim.plant.listeners.append(lambda b: blocks.append((b.t.copy(), b.v_out.copy())))
+        sim.plant.listeners.append(lambda b: blocks.append((b.t.copy(), b.v_out.copy(), b.displacement.copy())))
 
         def at(_now: float) -> None:
             if "t0" not in seen and engine.snapshot.state == "running":
@@ -100,7 +100,12 @@ def test_a_step_behind_its_schedule_skips_superseded_set_points_and_every_step_k
                     for _, _, kind, text in events if kind == "skipped")
     assert result.skipped == n_skipped >= TRIANGLE_S * 50 - mine.sum()
     assert any(kind == "timing" and f"{n_skipped} set-points skipped" in text for _, _, kind, text in events)
-    # the triangle ended on time: no late event for it
+    # the carriage itself (the plant's aperture) reaches the triangle's turns, 50 mm and back at 90 mm: a skip never
+    # drops a turn's set-point, and a go-to after a skip catches up (before: 89.0 mm, the turn cut by a skipped one)
+    x = np.concatenate([b[2] for b in blocks])
+    in_tri = (t >= starts[1]) & (t <= ends[1])
+    assert abs(x[in_tri].min() - 0.050) < 3e-4
+    assert abs(x[in_tri & (t > starts[1] + 1.5)].max() - 0.090) < 3e-4
     assert not [step for _, step, kind, _ in events if kind == "late" and step == 1]
     # a poll behind its slots reads once at the latest: its lateness (counted on the virtual clock, in rig time)
     # stays within about one period (20/s), where it grew to 0.6 s in the stretched triangle

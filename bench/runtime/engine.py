@@ -93,6 +93,19 @@ def supersedes(tick: Tick, later: Tick) -> bool:
         and (tick.motor is None or later.motor is not None)
 
 
+def turns_at(sent: Tick | None, tick: Tick, later: Tick) -> bool:
+    """Whether ``tick`` is a turn of the voltage or of the go-to's target between the last tick ``sent`` and
+    ``later``: a waveform's crest or trough, which a skip would cut off (the stroke or the peak voltage short by the
+    path between two set-points), so it is sent even when ``later`` is due."""
+    def values(k: Tick) -> tuple[float | None, float | None]:
+        return k.voltage, None if k.motor is None else k.motor[0]
+
+    if sent is None:
+        return False
+    return any(p is not None and a is not None and b is not None and (a - p) * (b - a) < 0
+               for p, a, b in zip(values(sent), values(tick), values(later), strict=True))
+
+
 @dataclass
 class Skipped:
     """What a step behind its schedule skipped: set-points superseded before they went out, polls' missed slots."""
@@ -632,6 +645,7 @@ class Engine:
         step keeps its times (its waveform sampled more coarsely), not stretched; a reading's missed slots
         likewise (one read at the latest, not a burst)."""
         tick, following = ahead
+        sent: Tick | None = None  # the last tick sent (a turn between it and a later one is never skipped)
         while True:
             t_set = tick.t if tick is not None and not tick.end else math.inf
             t_next = min([t_set, *due.values()])
@@ -639,11 +653,14 @@ class Engine:
                 break
             self.ctx.wait_until(t_next)
             if tick is not None and t_set <= t_next:
+                behind = skipped.setpoints
                 while following is not None and supersedes(tick, following) and following.t <= self.program_now() \
-                        and (following.voltage is None or abs(following.voltage - self.ctx.v_req) <= jump):
+                        and (following.voltage is None or abs(following.voltage - self.ctx.v_req) <= jump) \
+                        and not turns_at(sent, tick, following):
                     tick, following = following, next(schedule, None)
                     skipped.setpoints += 1
-                self._send_tick(tick, streamed)
+                self._send_tick(tick, streamed, catch_up=skipped.setpoints > behind)
+                sent = tick
                 skipped.sent += 1
                 tick, following = following, next(schedule, None)
             for kind in [k for k, tk in due.items() if tk <= t_next + 1e-12]:
@@ -695,11 +712,20 @@ class Engine:
         self.rec.append("setpoints", t, voltage=voltage, aperture=aperture)
         self._setpoint_t = max(self._setpoint_t, t)
 
-    def _send_tick(self, tick: Tick, streamed: bool) -> None:
+    def _send_tick(self, tick: Tick, streamed: bool, catch_up: bool = False) -> None:
         """Send one tick of a step's schedule (its go-to, its voltage unless a DAQ stream plays it) and record it
-        (:meth:`_sent_at`)."""
+        (:meth:`_sent_at`). ``catch_up``: set-points were skipped just before it, so the motor lags the path its
+        go-tos had it on: the go-to's speed is raised (to the rig's limit at most) to reach the target when the
+        path does, two ticks on, instead of the path's own speed, which would keep the lag and cut every turn
+        short (a tester's isopotential stroke lost 2 mm at each end)."""
         t_rec = self._sent_at(tick.t + self.ctx.offset)
-        x_cmd = self._move_motor(*tick.motor) if tick.motor is not None else math.nan
+        motor = tick.motor
+        if catch_up and motor is not None and (at := self.motion.expected_at(self.now())) is not None:
+            dt = 1.0 / self.program.protocol.recording.setpoint_Hz
+            left = max(tick.t + 2 * dt + self.ctx.offset - self.now(), dt)
+            v_max = self.program.rig.motor.max_velocity_m_per_s if self.program.rig.motor is not None else motor[1]
+            motor = (motor[0], min(v_max, max(motor[1], abs(motor[0] - at) / left)), motor[2])
+        x_cmd = self._move_motor(*motor) if motor is not None else math.nan
         if self.inst.amplifier is not None and not streamed:
             self._set_voltage(self.ctx.v_req if tick.voltage is None else tick.voltage, t_rec, x_cmd)
         elif tick.motor is not None:

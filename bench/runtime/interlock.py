@@ -257,6 +257,10 @@ class MotionVerifier:
         p, v = self._profile.at(t)
         self._profile = MotionProfile.plan(t, p, v, target, vmax, acc, acc)
 
+    def expected_at(self, t: float) -> float | None:
+        """Where the go-tos so far put the motor at run time ``t`` [m, motor coordinates] (None: no starting point)."""
+        return None if self._profile is None else self._profile.at(t)[0]
+
     def stopped(self, t: float) -> None:
         """The motion was aborted at run time ``t`` (the drive's own deceleration): start again after it."""
         self._profile = None
