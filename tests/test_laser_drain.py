@@ -91,7 +91,7 @@ class Drained:
 def drained_run(tmp: Path, monkeypatch: pytest.MonkeyPatch, uploads: int, fault: bool = False,
                 pause: tuple[float, float] | None = None, slow_pause: bool = True,
                 stop_at: float | None = None, withhold: bool = False,
-                also: Callable[[Any], None] | None = None) -> Drained:
+                also: Callable[[Any], None] | None = None, protocol: str = PROTOCOL) -> Drained:
     """``pause``: (run time of a pause request, of the resume request): then the uploads of the pause's drain are
     the slow ones, not the ramp's, unless not ``slow_pause`` (the request comes during the ramp's drain).
     ``stop_at``: run time at which the run's control file asks for a stop (the watch page's stop button); each
@@ -100,7 +100,7 @@ def drained_run(tmp: Path, monkeypatch: pytest.MonkeyPatch, uploads: int, fault:
     so that a drain cut short leaves stored data behind. ``also(engine)``: called at every tick of the rig's clock
     as well."""
     proto = tmp / "drain.toml"
-    proto.write_text(PROTOCOL)
+    proto.write_text(protocol)
     real = engine_mod.record_laser_block  # type: ignore[attr-defined]  # the name the engine calls
     left = [uploads]
     seen: dict[str, Any] = {}
@@ -180,6 +180,26 @@ def test_a_long_drain_is_supervised_goes_to_zero_and_the_next_step_restarts_whol
     held = (t > t_hold + 0.1) & (t < t_hold_end)
     assert np.abs(v[held] - V_HOLD).max() < 0.02 * V_HOLD
     assert d.run.step_offsets()[1] == pytest.approx(t_hold - RAMP_END, abs=1e-6)
+
+
+def test_a_restarted_step_starts_from_its_own_first_value_not_the_step_before_its_end(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A tester's run: after the upload's 0 V, a raised cosine that starts at 0 V was restarted by ramping the output
+    back to the ramp's 5 kV, which the step then dropped at once to its own 0 V — a 5-kV pulse the protocol never
+    asks for in that place. The restart now brings the output to the step's own first value (0 V here: nothing
+    to ramp), and the step runs whole."""
+    cosine = PROTOCOL.replace('type = "hold"\nname = "hold"\nduration_s = 2.0',
+                              'type = "waveform"\nname = "hold"\nkind = "raised_cosine"\namplitude = "3 kV"\n'
+                              'frequency_Hz = 1.0\ncycles = 2')
+    assert cosine != PROTOCOL
+    d = drained_run(tmp_path, monkeypatch, 15, protocol=cosine)
+    assert d.result.state == "completed", d.result.reason
+    (t_restart, step, text), = d.events("restart")
+    assert step == 1 and "output to 0 V" in text, text
+    t_step, t_step_end = d.step_span(1)
+    t, v = d.output()
+    assert np.abs(v[(t > t_restart) & (t < t_step)]).max(initial=0.0) <= ZERO_V  # no pulse before the step
+    assert t_step_end - t_step >= HOLD_S - 1e-6  # 2 cycles at 1 Hz, whole (its own upload before its end event)
 
 
 def test_a_short_drain_holds_the_output_and_shifts_the_schedule_so_the_next_step_runs_whole(

@@ -827,6 +827,23 @@ class Engine:
 
     # ------------------------------------------------------------ pause, resume, a resumed start
     def _state_before(self, seg: Segment) -> tuple[float, float | None]:
+        """(voltage, motor position) ``seg`` starts from: its own first value where it sets one (a waveform, a
+        ramp), else the last end value of a step before it that sets one (0 V, no motor move when none does) —
+        a restart never brings back a value the step itself leaves at once (a raised cosine from 0 V after a
+        ramp's 5 kV: a pulse the protocol does not ask for there)."""
+        own_v, own_x = voltage_at(seg, seg.t_start), self._start_position(seg)
+        volts, motor = self._end_state_before(seg)
+        return (volts if own_v is None else own_v), (motor if own_x is None else own_x)
+
+    def _start_position(self, seg: Segment) -> float | None:
+        """The motor position a waveform or ramp on the aperture starts at (None: the step sets none itself)."""
+        m = self.program.rig.motor
+        if m is None or not self.program.has_motor_axis or seg.position is None:
+            return None
+        x = float(self.program.motor_position(float(seg.position(np.array([seg.t_start]))[0])))
+        return min(max(x, m.travel_m[0]), m.travel_m[1])
+
+    def _end_state_before(self, seg: Segment) -> tuple[float, float | None]:
         """(voltage, motor position) the program holds when ``seg`` starts: the last end value of a step before
         it that sets one (0 V, no motor move when none does)."""
         prog, volts, motor = self.program, 0.0, None
