@@ -520,3 +520,45 @@ def test_an_undefined_placeholder_is_named(tmp_path: Path) -> None:
     body = UNITS_IN_NAMED_FIELDS.format(f="1 Hz")  # {d}: no sweep defines it
     with pytest.raises(ProtocolFileError, match=r"steps\[1\]\(relax\)\.duration_s: placeholder \{d\} is not defined"):
         load_protocol(write(tmp_path, body, rig=ISOTONIC_RIG))
+
+
+DROP = """[protocol]
+name = "drop"
+rig = "{rig}"
+
+[recording]
+setpoint_Hz = 50
+
+[[steps]]
+type = "ramp"
+channel = "voltage"
+to = "6 kV"
+duration_s = 0.5
+
+[[steps]]
+type = "{then}"
+channel = "voltage"
+{body}
+"""
+
+
+def test_a_voltage_step_whose_charging_current_trips_the_limit_is_refused_before_the_run(tmp_path: Path) -> None:
+    """A tester's protocol dropped from 6 kV to a triangle's 0 V in one set-point: `validate` passed it, and the run
+    tripped on −5.92 mA against the rig's 5 mA limit (the film discharging at the amplifier's own limit). The dry
+    run now reads the current as the monitor reports it, as the supervisor does, and refuses in one line; the
+    same drop as a 1-s ramp (6 kV/s: a charging current C·dV/dt well under a mA for a film of some nF) passes."""
+    from typer.testing import CliRunner
+
+    from bench.cli import app
+
+    rig = RIGS / "lsdea-motor-sim.toml"
+    assert load_rig(rig).limits.max_current_A == pytest.approx(5e-3)
+    drop = tmp_path / "drop.toml"
+    drop.write_text(DROP.format(rig=rig, then="waveform", body='kind = "triangle"\namplitude = "2 kV"\n'
+                                'offset = "0 kV"\nfrequency_Hz = 1\ncycles = 2'))
+    out = CliRunner().invoke(app, ["validate", str(drop)], env={"COLUMNS": "300"})
+    assert out.exit_code == 2 and "limits.max_current_A 5 mA" in out.output, out.output
+    assert out.output.strip().count("\n") == 0
+    ramp = tmp_path / "ramp.toml"
+    ramp.write_text(DROP.format(rig=rig, then="ramp", body='to = "0 kV"\nduration_s = 1'))
+    assert plan_run(ramp).prediction.peak_current < 1e-3

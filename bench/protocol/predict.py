@@ -51,6 +51,7 @@ class Prediction:
     displacement_range: tuple[float, float] = (np.inf, -np.inf)
     force_range: tuple[float, float] = (np.inf, -np.inf)
     motor_range: tuple[float, float] | None = None
+    peak_current: float = 0.0  # |current| as the amplifier's current monitor reports it [A]
     failure: str = ""
     problems: list[str] = field(default_factory=list)
 
@@ -144,6 +145,8 @@ def predict(program: Program, progress: Callable[[float], None] | None = None) -
             return  # the model stopped (runaway) before this block's first sample: nothing to observe
         e = np.abs(block.field)
         pred.peak_field = max(pred.peak_field, float(np.nanmax(e)))
+        if np.isfinite(block.current).any():
+            pred.peak_current = max(pred.peak_current, float(np.nanmax(np.abs(block.current))))
         with np.errstate(all="ignore"):  # E → 0 or tiny: an infinite margin
             margin = np.where(e > 0, block.breakdown / e, np.inf)
         i = int(np.nanargmin(margin))
@@ -190,6 +193,12 @@ def predict(program: Program, progress: Callable[[float], None] | None = None) -
         pred.problems.append(f"true field {pred.field_at_min_margin / 1e6:.1f} MV/m against a breakdown field of "
                              f"{pred.breakdown_at_min_margin / 1e6:.1f} MV/m: margin {pred.min_breakdown_margin:.2f} "
                              f"below limits.breakdown_margin {limits.breakdown_margin:g}")
+    if program.rig.amplifier is not None and pred.peak_current > limits.max_current_A:
+        # the supervisor trips on the monitor's reading: a set-point step charges (or discharges) the film at the
+        # amplifier's current limit; a DAQ rig's 10-kHz scan sees it every time, a polled monitor when it lands on it
+        pred.problems.append(f"current {pred.peak_current * 1e3:.2f} mA (the monitor's reading) exceeds "
+                             f"limits.max_current_A {limits.max_current_A * 1e3:g} mA: a voltage step too steep "
+                             "for the film's capacitance (a ramp instead)")
     peak_force = max(abs(pred.force_range[0]), abs(pred.force_range[1]))
     if np.isfinite(peak_force) and peak_force > limits.max_force_N:
         pred.problems.append(f"force {max(abs(x) for x in pred.force_range):.2f} N exceeds limits.max_force_N "
