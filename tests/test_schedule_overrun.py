@@ -203,3 +203,23 @@ def test_a_skip_never_moves_the_voltage_further_than_twice_the_waveforms_own_ste
     code = 10_000.0 / 4095  # one DAC code of the set-point module at most (0–10 kV over 12 bits)
     assert np.max(np.abs(np.diff(v[sine]))) <= 2 * own + code
 
+
+
+def test_inspect_says_when_a_virtual_run_took_no_wire_time(tmp_path: Path) -> None:
+    """A virtual run of a protocol that outruns its lines runs at pty speed (no skips, nothing late: the run can
+    not show what a real line would do); a tester found that only the file's attribute said so. `bench inspect`
+    now says it beside the rig, in text and in --json."""
+    from typer.testing import CliRunner
+
+    from bench.cli import app
+
+    proto = tmp_path / "p2.toml"
+    proto.write_text(PROTOCOL.format(rig=RIGS / "lsdea-motor-sim.toml"))
+    plan = plan_run(proto)
+    assert plan.link_problems
+    result = execute(plan, tmp_path / "run.h5", virtual=True)
+    out = CliRunner().invoke(app, ["inspect", result.path], env={"COLUMNS": "300"})
+    assert out.exit_code == 0, out.output
+    assert "wire time off (the protocol outruns the rig's lines)" in " ".join(out.output.split())
+    out = CliRunner().invoke(app, ["inspect", result.path, "--json"])
+    assert json.loads(out.output)["wire_time"].startswith("off")

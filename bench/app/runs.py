@@ -201,8 +201,8 @@ class Inspection:
     def complete(self) -> bool:
         return bool(self.run.complete)
 
-    KEYS = ("protocol_name", "protocol_path", "protocol_sha256", "rig_name", "simulated", "clock", "software",
-            "start_time", "duration_planned", "operator", "specimen_id", "session_log")
+    KEYS = ("protocol_name", "protocol_path", "protocol_sha256", "rig_name", "simulated", "clock", "wire_time",
+            "software", "start_time", "duration_planned", "operator", "specimen_id", "session_log")
 
     def record(self) -> dict[str, object]:
         """The inspection as plain data (``bench inspect --json``)."""

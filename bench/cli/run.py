@@ -382,7 +382,9 @@ def _inspect_tables(found: Inspection) -> None:
     else:
         meta.add_row("protocol", f"{a.get('protocol_name')} ({a.get('protocol_path')}, sha256 {sha}…)")
     kind = "simulated" if a.get("simulated") else "real"
-    meta.add_row("rig", f"{a.get('rig_name')} ({kind}, {a.get('clock')} clock)")
+    wire = str(a.get("wire_time", "real"))
+    meta.add_row("rig", f"{a.get('rig_name')} ({kind}, {a.get('clock')} clock"
+                 + ("" if wire == "real" else f", wire time {escape(wire)}") + ")")
     meta.add_row("software", str(a.get("software")))
     for key, label in (("operator", "operator"), ("specimen_id", "specimen ID")):
         if a.get(key):
