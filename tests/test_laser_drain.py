@@ -378,3 +378,4 @@ def test_a_pause_whose_upload_outlasts_the_shutdown_budget_goes_on(tmp_path: Pat
     (t_pause, *_), = d.events("pause")
     (t_resume, *_), = d.events("resume")
     assert t_resume - t_pause >= uploads * UPLOAD_S
+

@@ -57,6 +57,8 @@ def _warn(plan: Plan) -> None:
                       "a virtual-time run takes no wire time then")
     for short in plan.shortfalls:  # what a software-timed rig records below the asked rate: said, never silent
         console.print(f"[yellow]warning[/]: {escape(short)}")
+    for said in plan.prediction.warnings:  # what may trip the run but need not (a polled monitor's current)
+        console.print(f"[yellow]warning[/]: {escape(said)}")
 
 
 def _summary(plan: Plan) -> Table:
@@ -124,7 +126,8 @@ def validate(protocol_file: ProtocolArg, rig: RigOpt = None, sim: SimOpt = False
                     "min_breakdown_margin": pred.min_breakdown_margin,
                     "motor_range_m": list(pred.motor_range) if pred.motor_range is not None else None,
                     "displacement_range_m": list(pred.displacement_range), "force_range_N": list(pred.force_range),
-                    "link_problems": list(plan.link_problems), "recording_shortfalls": list(plan.shortfalls)})
+                    "link_problems": list(plan.link_problems), "recording_shortfalls": list(plan.shortfalls),
+                    "prediction_warnings": list(pred.warnings)})
         return
     console.print(_summary(plan))
     console.print("[green]valid[/]: within the rig's and the specimen's limits")

@@ -831,6 +831,8 @@ class Engine:
         ramp), else the last end value of a step before it that sets one (0 V, no motor move when none does) —
         a restart never brings back a value the step itself leaves at once (a raised cosine from 0 V after a
         ramp's 5 kV: a pulse the protocol does not ask for there)."""
+        # (a relax's own first value is the value it ramps down from: its first set-point sends it, so a restart
+        # ramps up to it first, never leaving the step to jump there)
         own_v, own_x = voltage_at(seg, seg.t_start), self._start_position(seg)
         volts, motor = self._end_state_before(seg)
         return (volts if own_v is None else own_v), (motor if own_x is None else own_x)
