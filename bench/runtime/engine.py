@@ -73,6 +73,7 @@ LASER_SHUTDOWN_DRAIN_S = 5.0  # after a stop or fault (high voltage already at 0
 PAUSE_POLL_S = 0.1  # while paused: the monitors and sensors are read this often (run time)
 RESTART_STEP_V = 10.0  # a restart ramps the output to the step's start value unless it is this close already
 RESTART_SETTLE_S = 0.1  # after a restart's ramp, before the step starts
+CATCH_UP = 2.0  # a go-to after skipped set-points goes at most this many times its path's own speed
 SLIP_S = 1e-3  # a step that ends later than this after its scheduled end shifts the rest of the schedule (run time)
 RESTART_MOVE_S = 30.0  # a restart's motor move to the step's start position must end within this (run time)
 STOP_SIGNALS = {
@@ -724,7 +725,9 @@ class Engine:
             dt = 1.0 / self.program.protocol.recording.setpoint_Hz
             left = max(tick.t + 2 * dt + self.ctx.offset - self.now(), dt)
             v_max = self.program.rig.motor.max_velocity_m_per_s if self.program.rig.motor is not None else motor[1]
-            motor = (motor[0], min(v_max, max(motor[1], abs(motor[0] - at) / left)), motor[2])
+            # at most twice the path's own speed: a carriage far behind catches up over a few set-points rather
+            # than at the rig's top speed, a force on the specimen the dry run never saw
+            motor = (motor[0], min(v_max, CATCH_UP * motor[1], max(motor[1], abs(motor[0] - at) / left)), motor[2])
         x_cmd = self._move_motor(*motor) if motor is not None else math.nan
         if self.inst.amplifier is not None and not streamed:
             self._set_voltage(self.ctx.v_req if tick.voltage is None else tick.voltage, t_rec, x_cmd)
