@@ -716,9 +716,9 @@ class Engine:
     def _send_tick(self, tick: Tick, streamed: bool, catch_up: bool = False) -> None:
         """Send one tick of a step's schedule (its go-to, its voltage unless a DAQ stream plays it) and record it
         (:meth:`_sent_at`). ``catch_up``: set-points were skipped just before it, so the motor lags the path its
-        go-tos had it on: the go-to's speed is raised (to the rig's limit at most) to reach the target when the
-        path does, two ticks on, instead of the path's own speed, which would keep the lag and cut every turn
-        short (a tester's isopotential stroke lost 2 mm at each end)."""
+        go-tos had it on: the go-to's speed is raised (to ``CATCH_UP`` times the path's own and the rig's limit at
+        most) to reach the target when the path does, two ticks on, instead of the path's own speed, which would
+        keep the lag and cut every turn short (a tester's isopotential stroke lost 2 mm at each end)."""
         t_rec = self._sent_at(tick.t + self.ctx.offset)
         motor = tick.motor
         if catch_up and motor is not None and (at := self.motion.expected_at(self.now())) is not None:
