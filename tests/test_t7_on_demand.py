@@ -348,3 +348,24 @@ def test_on_demand_the_isometric_run_records_what_pumping_at_every_clock_move_re
         for col in sa.columns:
             assert np.array_equal(sa.columns[col], sb.columns[col], equal_nan=True), (name, col)
     assert fa.event_list() == fb.event_list()
+
+
+def test_a_refill_never_writes_more_than_the_buffer_surely_holds_whatever_the_clock_says(rig: Rig) -> None:
+    """The host tops the stream-out up to out_ahead_s beyond where the scan clock may be (t0 + its uncertainty).
+    A device that played less than that — one that started later than t0 says, or a twin whose thread lags a loaded
+    host (a CI run beside a CPU hog) — had no room for it: the write was refused, STREAM_OUT_BUFF_FULL (2613), and
+    the run ended in an error. Here the host's clock says 1 s has passed while the twin, never pumped, played
+    nothing: the refill stays within the buffer's capacity less what is unplayed for sure (datasheet §3.2.3: the
+    device refuses a write beyond its buffer)."""
+    plan = rig.daq.arm(StreamSpec(RATE, (StreamIn(0),), StreamOut(0, np.full(40_000, 2.5)), out_ahead_s=0.2))
+    rig.daq.kickoff()
+    s = rig.daq._stream
+    assert s is not None and plan.out_ahead is not None and plan.out_capacity > plan.out_ahead
+    now = rig.clock.now()
+    rig.daq.clock = lambda: now + 1.0  # the host's clock far ahead of what the device played
+    for _ in range(8):  # every collect tops up again: before, each wrote out_ahead more until the twin refused
+        rig.daq._feed_out()
+    assert s.out_written - s.scans <= plan.out_capacity
+    assert s.out_written >= plan.out_ahead  # what fits still went in
+    rig.daq.clock = rig.clock.now
+    rig.daq.stop()

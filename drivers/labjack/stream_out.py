@@ -104,7 +104,12 @@ class T7StreamOut(T7Connection):
             return
         stop = loop.at if loop is not None else total  # a planned loop's block goes in whole
         played = min(hi, s.out_written)  # ahead of where the device may be: a slow enable reply costs no margin
-        free = (s.plan.out_ahead or s.plan.out_capacity) - (s.out_written - played)
+        # … but never more than the buffer surely holds: the device has played at least the scans it sent back
+        # (one scan clock), so capacity − (written − scans received) is free whatever the clock says (a device that
+        # started later than t0 says, or a twin whose thread lags a loaded host, refused a write as
+        # STREAM_OUT_BUFF_FULL, 2613)
+        sure = s.plan.out_capacity - (s.out_written - min(s.scans, s.out_written))
+        free = min((s.plan.out_ahead or s.plan.out_capacity) - (s.out_written - played), sure)
         n = max(0, min(free, stop - s.out_written))
         if n < s.plan.out_chunk and s.out_written + n < stop:
             return  # wait until a whole chunk fits
