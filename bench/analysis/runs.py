@@ -185,19 +185,19 @@ def analyse_source(src: RunSource, last_cycles: int = 3) -> RunAnalysis:
         if not isinstance(step, WaveformStep):
             continue
         index = int(row["index"])
+        said = f"step {index + 1} of {run.program.shape[0]} (index {index}, {row['name'].decode()})"  # notes' words
         t0, dur = float(row["t_start"]) + offsets.get(index, 0.0), float(row["duration"])
         if index not in done or t0 + dur > run.updated + 1e-6:
             continue  # the run stopped (or paused, or resumed later in another file) before this step ended
         behind = late.get(index, 0.0)
         if behind > max(STRETCH_S, STRETCH_FRACTION * dur):  # its actions outran the schedule (its `late` event)
-            notes.append(f"step {index + 1} of {run.program.shape[0]} (index {index}, {row['name'].decode()}) ended "
-                         f"{behind:.3f} s after its planned end: its waveform was played slower than the protocol's "
-                         f"{step.frequency_Hz:g} Hz; its figures below read its planned window at that frequency")
+            notes.append(f"{said} ended {behind:.3f} s after its planned end: its waveform was played slower than "
+                         f"the protocol's {step.frequency_Hz:g} Hz; its figures below read its planned window at that "
+                         "frequency")
         if (n := skipped.get(index, (0, 0)))[0]:
-            notes.append(f"step {index + 1} of {run.program.shape[0]} (index {index}, {row['name'].decode()}): "
-                         f"{n[0]} of its {n[1]} set-points skipped behind the schedule, so its drive was sampled at "
-                         f"{(n[1] - n[0]) / dur:.3g} set-points/s, not the protocol's {n[1] / dur:.3g}; its figures "
-                         "are of that drive")
+            notes.append(f"{said}: {n[0]} of its {n[1]} set-points skipped behind the schedule, so its drive was "
+                         f"sampled at {(n[1] - n[0]) / dur:.3g} set-points/s, not the protocol's {n[1] / dur:.3g}; its "
+                         "figures are of that drive")
         sp = applied_window(streams, t0 - TOL_S, t0 + dur + TOL_S, measured=True)
         sel = _inside(sp.t, t0, t0 + dur)
         vpk = float(np.max(np.abs(sp.v[sel]))) if sel.any() else 0.0
@@ -211,11 +211,9 @@ def analyse_source(src: RunSource, last_cycles: int = 3) -> RunAnalysis:
             res.temperature = float(run.temperature_at(at))
             _thesis(res, streams, sp.t, sp.v)
             if undriven(vpk):
-                notes.append(undriven_note(f"step {index + 1} of {run.program.shape[0]} (index {index}, "
-                                           f"{row['name'].decode()})", vpk))
+                notes.append(undriven_note(said, vpk))
         elif whole_cycles(dur, step.frequency_Hz) == 0:  # the LS-DEA's figures are per whole cycle
-            notes.append(f"step {index + 1} of {run.program.shape[0]} (index {index}, {row['name'].decode()}) "
-                         f"plays {dur * step.frequency_Hz:g} cycles, less than one whole: no figures")
+            notes.append(f"{said} plays {dur * step.frequency_Hz:g} cycles, less than one whole: no figures")
             continue
         elif step.channel == "position":
             _isopotential(res, streams)

@@ -166,8 +166,10 @@ def predict(program: Program, progress: Callable[[float], None] | None = None) -
         pred.force_range = (min(pred.force_range[0], float(np.nanmin(f))),
                             max(pred.force_range[1], float(np.nanmax(f))))
 
-    scanned = program.rig.daq is not None and program.rig.amplifier is not None \
-        and program.rig.amplifier.drive == "daq"
+    rig = program.rig
+    scan_rate = rig.daq.scan_rate_Hz if rig.daq is not None and rig.amplifier is not None \
+        and rig.amplifier.drive == "daq" else None
+    scanned = scan_rate is not None  # the DAQ plays the amplifier and scans its monitors
     tail: list[np.ndarray] = [np.zeros(0)]  # the last conversion window's current samples (a polled rig)
 
     def read_current(block: PlantBlock) -> float:
@@ -185,9 +187,6 @@ def predict(program: Program, progress: Callable[[float], None] | None = None) -
         return float(np.max(np.abs(c[n:] - c[:-n]))) / n
 
     plant.listeners.append(watch)
-    rig = program.rig
-    scan_rate = rig.daq.scan_rate_Hz if rig.daq is not None and rig.amplifier is not None \
-        and rig.amplifier.drive == "daq" else None
     label = ""  # the step the plant is advanced through (the peaks name it)
     for seg in program.segments:
         label = seg.label
