@@ -257,16 +257,20 @@ class Adam4017PSim(ModbusModule):
         plant.listeners.append(self._on_block)
 
     def _on_block(self, block: PlantBlock) -> None:
+        """Convert what is due by the block's end. Every block joins the tail first, also one with no conversion
+        due: the plant's blocks follow the host's requests (a 5-ms set-point tick each), and a tail kept only from
+        blocks with a conversion left the window (ts − T, ts] holding just the last block, so a charging pulse
+        read as its charge over that block's few ms instead of over T."""
         with self.lock:
             t_end = float(block.t[-1])
-            k_last = math.floor(t_end * self.rate + 0.5 * self.plant.h * self.rate)  # due within half a step: now
-            if k_last < self._conversion:
-                return
             t_all = np.concatenate([self._tail[0], block.t])
             v_all = np.concatenate([self._tail[1], block.voltage])
             i_all = np.concatenate([self._tail[2], block.current])
             keep = t_all > t_end - self.integration - 1e-12
             self._tail = (t_all[keep], v_all[keep], i_all[keep])
+            k_last = math.floor(t_end * self.rate + 0.5 * self.plant.h * self.rate)  # due within half a step: now
+            if k_last < self._conversion:
+                return
             ks = np.arange(self._conversion, k_last + 1)
             ts = ks / self.rate
             cv = np.concatenate([[0.0], np.cumsum(v_all)])  # integrating conversion: mean over (ts − T, ts]
