@@ -222,7 +222,7 @@ def predict(program: Program, progress: Callable[[float], None] | None = None) -
     if program.rig.amplifier is not None and pred.peak_current > limits.max_current_A:
         # the supervisor trips on the monitor's reading: a set-point step charges (or discharges) the film at the
         # amplifier's current limit for well under a ms; a DAQ rig's scan sees every such pulse (refused), a polled
-        # monitor only when a poll lands on one (said: a tester's virtual run tripped so, most runs do not)
+        # monitor only as its charge over a 20-ms conversion, and only when a conversion's window holds it (said)
         text = (f"{pred.peak_current_step}: current {pred.peak_current * 1e3:.2f} mA (as the current monitor "
                 f"{'reports it' if scanned else 'reads over a 20-ms conversion'}) beyond limits.max_current_A "
                 f"{limits.max_current_A * 1e3:g} mA, a voltage step too steep for the film's capacitance")
