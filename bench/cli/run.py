@@ -105,7 +105,8 @@ def _summary(plan: Plan) -> Table:
     relax = sorted({s.ramp_down for s in prog.segments if s.kind == "relax" and s.voltage is not None})
     if relax:
         t.add_row("relax steps", "voltage to 0 V over " + ", ".join(f"{r:g} s" for r in relax) +
-                  " (ramp_down_s; default 0.5 s or a tenth of the step)")
+                  " (ramp_down_s; default 0.5 s or a tenth of the step, at least 10 set-points and the shutdown "
+                  "ramp)")
     ops = [s for s in prog.segments if s.changes]
     if ops:
         t.add_row("specimen changes", f"{len(ops)} ({'applied to the model' if rig.simulated else 'operator actions'})")

@@ -10,6 +10,7 @@ set-point density of waveforms, and laser storage capacity per storing step. The
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Literal
@@ -17,7 +18,17 @@ from typing import TYPE_CHECKING, Literal
 import numpy as np
 
 from bench.core.motion import MotionProfile
-from bench.protocol.schema import MAX_DURATION_S, HoldStep, MoveStep, Protocol, RampStep, SetStep, WaveformStep
+from bench.protocol.schema import (
+    MAX_DURATION_S,
+    RELAX_RAMP_S,
+    RELAX_SETPOINTS,
+    HoldStep,
+    MoveStep,
+    Protocol,
+    RampStep,
+    SetStep,
+    WaveformStep,
+)
 from bench.rig import RigConfig
 from bench.waveforms import Waveform
 
@@ -185,10 +196,33 @@ class _Compiler:
     def hold(self, i: int, label: str, name: str, step: HoldStep) -> Segment:
         seg = Segment(i, label, name, step.type, self.t, step.duration_s)
         if step.type == "relax" and self.v_now != 0.0:
-            seg.ramp_down = step.ramp_down
+            seg.ramp_down = step.ramp_down_s if step.ramp_down_s is not None else self.relax_ramp(step)
             seg.voltage = _ramp(self.t, seg.ramp_down, self.v_now, 0.0)
             self.v_now = 0.0
         return seg
+
+    def relax_ramp(self, step: HoldStep) -> float:
+        """A relax step's default ramp of the voltage from ``v_now`` to 0 V [s] (no ``ramp_down_s``): the longest of
+
+        * ``RELAX_RAMP_S`` (0.5 s) or a tenth of the step, whichever is shorter (the default as first stated);
+        * ``RELAX_SETPOINTS`` (10) set-point periods, 1/``recording.setpoint_Hz`` each: a ramp of at least 10
+          set-points, none moving the output more than a tenth of the way (the shutdown ramp's count). Alone, the
+          first rule gave a 0.5-s relax at 20 set-points/s one set-point: 5 kV to 0 V in one tick, a charging
+          pulse that a DAQ rig's monitor scan reads far beyond ``limits.max_current_A``;
+        * ``limits.shutdown_ramp_s``: never steeper than the rig's own ramp to 0 V from the same voltage;
+        * |``v_now``| / ``amplifier.slew_limit_V_per_s`` (ADAM drive, where the driver applies it): a ramp the
+          slew limit would hold back ends late;
+
+        rounded up to whole set-point periods (the ramp's last set-point is sent at its end, not a keep-alive
+        later), and at most the step's ``duration_s``: a shorter relax ramps over its whole length, then steeper
+        than the rules say (the dry run's current check judges it). The rig file gives no specimen capacitance
+        (the model's varies with stretch), so the current limit is left to that check, not turned into a rate."""
+        hz = self.rec.setpoint_Hz
+        amp = self.rig.amplifier
+        slew = amp.slew_limit_V_per_s if amp is not None and amp.drive == "adam" else math.inf
+        want = max(min(RELAX_RAMP_S, step.duration_s / 10), RELAX_SETPOINTS / hz,
+                   self.rig.limits.shutdown_ramp_s, abs(self.v_now) / slew)
+        return min(step.duration_s, math.ceil(want * hz - 1e-9) / hz)
 
     def move(self, i: int, label: str, name: str, step: MoveStep) -> Segment:
         m = self.rig.motor

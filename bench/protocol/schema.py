@@ -7,7 +7,9 @@ named steps. Step types (``type = ...``):
   ``offset``, ``amplitude``, ``frequency_Hz`` and ``cycles`` or ``duration_s``;
 * ``ramp`` — linear ramp of a channel ``to`` a value over ``duration_s``;
 * ``hold`` / ``wait`` — keep the set-points for ``duration_s``; ``relax`` — voltage to 0 V over ``ramp_down_s``
-  (default: 0.5 s or a tenth of the step, whichever is shorter), then wait;
+  (default: 0.5 s or a tenth of the step, whichever is shorter, but at least 10 set-points, the rig's
+  ``limits.shutdown_ramp_s`` and what its amplifier's slew limit allows, at most the step:
+  :meth:`bench.protocol.program._Compiler.relax_ramp`), then wait;
 * ``move`` — motor go-to ``position`` with ``velocity`` / ``acceleration``;
 * ``set`` — change specimen parameters (temperature, hung mass, prototype: an operator action on a real rig);
 * ``repeat`` — ``count`` times the nested ``steps``;
@@ -56,7 +58,8 @@ MAX_DURATION_S = 7 * 86_400.0  # one protocol's run time: 7 days
 # The shortest step [s]: two set-point periods at the fastest recording.setpoint_Hz (2 kHz). A shorter one has no
 # set-point of its own, and a subnormal one (5e-324 s) made ramps divide by it (NaN set-points).
 MIN_DURATION_S = 1e-3
-RELAX_RAMP_S = 0.5  # a relax step's default ramp to 0 V (or a tenth of the step, whichever is shorter)
+RELAX_RAMP_S = 0.5  # a relax step's default ramp to 0 V (or a tenth of the step, whichever is shorter) ...
+RELAX_SETPOINTS = 10  # ... but at least this many set-points (program.py, _Compiler.relax_ramp: the full rule)
 MAX_EXPANSION = 50_000_000  # characters sweeps may copy while substituting their values
 MAX_OPERATOR = 100  # characters of [protocol] operator / `bench run --operator`
 MAX_SPECIMEN_ID = 100  # characters of [protocol] specimen_id / `bench run --specimen-id`
@@ -194,11 +197,6 @@ class HoldStep(_StepBase):
                 raise ValueError(f"ramp_down_s = {self.ramp_down_s:g} s is longer than the step's duration_s = "
                                  f"{self.duration_s:g} s")
         return self
-
-    @property
-    def ramp_down(self) -> float:
-        """Time a relax step takes to bring the voltage to 0 V [s]: ``ramp_down_s`` or the stated default."""
-        return self.ramp_down_s if self.ramp_down_s is not None else min(RELAX_RAMP_S, self.duration_s / 10)
 
 
 class MoveStep(_StepBase):
