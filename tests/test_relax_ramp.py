@@ -135,3 +135,12 @@ def test_a_relax_shorter_than_its_ramp_ramps_over_its_whole_length(tmp_path: Pat
     assert seg.stream_until == pytest.approx(seg.t_end)
     assert t[-1] == pytest.approx(seg.t_end) and len(t) == 5
     assert np.max(-np.diff(v)) == pytest.approx(5000.0 / 4)
+
+
+def test_a_stated_ramp_down_off_the_set_point_grid_reaches_0_v_on_the_next_set_point(tmp_path: Path) -> None:
+    """ramp_down_s = 0.12 s at 20/s ends between two set-points (0.10 and 0.15 s): 0 V goes out at 0.15 s, the
+    first set-point at or after the ramp's end — not at the next keep-alive, 0.25 s after the one at 0.10 s, with
+    5 kV × (1 − 0.10/0.12) ≈ 833 V standing until then."""
+    _, t, v = _relax(tmp_path, "duration_s = 2.0\nramp_down_s = 0.12\n")
+    assert np.allclose(np.asarray(t) - t[0], [0.0, 0.05, 0.10, 0.15])
+    assert np.allclose(v, [5000.0, 5000.0 * (1 - 0.05 / 0.12), 5000.0 * (1 - 0.10 / 0.12), 0.0])

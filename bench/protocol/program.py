@@ -417,8 +417,9 @@ class Tick:
 
 def ticks(program: Program, seg: Segment) -> Iterator[Tick]:
     """The set-point schedule of one segment, executed by the engine on the instruments and by the dry run on
-    the model: every 1/setpoint_Hz while the segment streams (waveforms, ramps, a relax step's ramp-down), a
-    keep-alive every ``HOLD_KEEPALIVE_S`` after, and the end value at the segment's end."""
+    the model: every 1/setpoint_Hz while the segment streams (waveforms, ramps, a relax step's ramp-down: up to the
+    first set-point at or after its end, so that a ramp-down off the grid ends on a set-point), a keep-alive every
+    ``HOLD_KEEPALIVE_S`` after, and the end value at the segment's end."""
     if seg.duration <= 0:
         return
     dt = 1.0 / program.protocol.recording.setpoint_Hz
@@ -426,7 +427,7 @@ def ticks(program: Program, seg: Segment) -> Iterator[Tick]:
     while t < seg.t_end - 1e-12:
         yield Tick(t, voltage_at(seg, t), motor_command(program, seg, t, dt, first=k == 0))
         k += 1
-        t = seg.t_start + k * dt if t + dt <= seg.stream_until + 1e-12 else t + max(dt, HOLD_KEEPALIVE_S)
+        t = seg.t_start + k * dt if t < seg.stream_until - 1e-12 else t + max(dt, HOLD_KEEPALIVE_S)
     yield end_tick(seg)
 
 
@@ -436,7 +437,7 @@ def largest_voltage_change(program: Program, seg: Segment) -> float:
     if seg.voltage is None or seg.duration <= 0:
         return 0.0
     dt = 1.0 / program.protocol.recording.setpoint_Hz
-    n = int(np.floor((min(seg.stream_until, seg.t_end) - seg.t_start) / dt + 1e-9)) + 1
+    n = int(np.ceil((min(seg.stream_until, seg.t_end) - seg.t_start) / dt - 1e-9)) + 1  # ticks' streaming ones
     t = seg.t_start + np.arange(n) * dt
     v = np.append(seg.voltage(t[t < seg.t_end - 1e-12]), seg.voltage(np.array([seg.t_end])))
     return float(np.max(np.abs(np.diff(v)))) if v.size > 1 else 0.0

@@ -48,7 +48,7 @@ def tick_times(program: Program, seg: Segment) -> np.ndarray:
     while t < seg.t_end - 1e-12:
         out.append(t)
         k += 1
-        t = seg.t_start + k * dt if t + dt <= seg.stream_until + 1e-12 else t + max(dt, HOLD_KEEPALIVE_S)
+        t = seg.t_start + k * dt if t < seg.stream_until - 1e-12 else t + max(dt, HOLD_KEEPALIVE_S)
     return np.array(out, dtype=float)
 
 
