@@ -52,6 +52,7 @@ if TYPE_CHECKING:
 J_BOUNDS = ((100.0, 400.0), (200.0, 500.0), (300.0, 600.0), (400.0, 700.0), (500.0, 800.0))  # thesis, per unit
 # units 1–4 (interchangeable, numbered by τ): one range, the union of the thesis's (module docstring)
 UNIT_J_BOUNDS = (min(b[0] for b in J_BOUNDS[1:]), max(b[1] for b in J_BOUNDS[1:]))
+SAME_INSTANT_S = 1e-9  # times closer than this are one instant (a model step's end k·h and a stamp, both rounded)
 
 
 def _sampled(t_grid: np.ndarray, t_data: np.ndarray, values: np.ndarray) -> np.ndarray:
@@ -64,6 +65,31 @@ def _sampled(t_grid: np.ndarray, t_data: np.ndarray, values: np.ndarray) -> np.n
     j = np.clip(np.searchsorted(t_data, t_grid), 1, t_data.size - 1)
     gap = np.minimum(np.abs(t_grid - t_data[j - 1]), np.abs(t_data[j] - t_grid))
     out[gap > 0.1 * spacing] = np.nan
+    return out
+
+
+def arriving_velocity(t: np.ndarray, t_samples: np.ndarray, x_samples: np.ndarray) -> np.ndarray:
+    """The velocity at each time ``t`` of the path through the position samples (straight between them, as
+    ``np.interp`` joins them): the slope of the sample interval (s_{j−1}, s_j] that holds t — at a sample, the
+    interval that ends there, the motion up to it; 0 outside the samples (``np.interp`` holds the end values).
+
+    Not ``np.gradient`` of the interpolated path: at a sample that averages the slope after it in, the motion of a
+    go-to the host sends at that sample's tick, which the carriage (and the load cell read at the same tick) has
+    not yet seen. The LinMot cruises at constant speed between the 100-Hz go-tos (each one's change of speed takes
+    ≤ 0.25 ms at the rig's acceleration); on a software-timed rig in virtual time the position and force polls share
+    the go-to's tick, so every force sample sat on a change of speed and the damper saw half of the next one —
+    ~x″·5 ms, up to 2.5 mm/s (1.4 mm/s rms) on the short isopotential run —, which put c, τb, μb and Jm 2.4–4.1 σ
+    off the twin's and their intervals just past it (``tests/test_identify_lsdea_input.py``). Where the speed
+    changes between samples (the poll a few ms after the go-to, as on the DAQ rig or in a wall-clock run),
+    neither slope is the carriage's near that change; the two agree everywhere else."""
+    out = np.zeros(t.size)
+    if t_samples.size < 2:
+        return out
+    at = t - SAME_INSTANT_S  # a step time a rounding off a sample's (k·h against the stamp) is at the sample
+    j = np.clip(np.searchsorted(t_samples, at, side="left"), 1, t_samples.size - 1)
+    dt = t_samples[j] - t_samples[j - 1]
+    inside = (at > t_samples[0]) & (at <= t_samples[-1]) & (dt > 0)
+    out[inside] = (x_samples[j] - x_samples[j - 1])[inside] / dt[inside]
     return out
 
 
@@ -395,7 +421,7 @@ class LozengeProblem(MonitorCalibration):
             else:
                 motor, lc = run.streams["motor"], run.streams["load_cell"]
                 U[:, 1] = np.interp(t_steps, motor.t, motor.columns["aperture"])
-                U[:, 2] = np.gradient(U[:, 1], t_steps)
+                U[:, 2] = arriving_velocity(t_steps, motor.t, motor.columns["aperture"])
                 mode, y0 = MODE_IMPOSED, params.relaxed_state(float(U[0, 1]))
                 data = _sampled(t_steps[::stride], lc.t, lc.columns["force"])  # "ok" means stable, not valid
                 floor = floors.of_points(floors.force_noise_N(rig), t_steps[::stride], lc.t)
