@@ -20,7 +20,7 @@ from bench.core.noise import Realism
 from bench.core.plant import TREK_DATASHEET, AmplifierSpec, HVStage, Plant
 from bench.models.lozenge import LozengeParams, MaxwellBranch
 from bench.models.membrane import MembraneParams
-from bench.tomlfile import one_line, read_toml
+from bench.tomlfile import one_line, read_toml, type_hint
 
 STANDARD_GRAVITY_M_PER_S2 = 9.80665  # CGPM 1901 (the load cell's kg → N)
 # LK-G data storage per OUT [points] when the rig file does not say: not from a manual page we could read
@@ -52,7 +52,7 @@ class BusConfig(_Strict):
     gateway's line rate as ``gateway_baudrate`` and a reading's stamp leaves out its reply's wire time on that line;
     without it nothing is taken off (a simulated rig's twins serve the bus as such a gateway at ``baudrate``)."""
 
-    port: str = "sim"
+    port: str = Field("sim", min_length=1)
     baudrate: int = Field(19200, gt=0)
     gateway_baudrate: int | None = Field(None, gt=0, description="tcp:// only: the RS-485 line behind a gateway")
     timeout_s: float = Field(0.5, gt=0, le=30)
@@ -86,7 +86,7 @@ class LaserConfig(_Strict):
     """Keyence LK-G controller on a serial port."""
 
     model: Literal["LK-G3000", "LK-G5000"] = "LK-G3000"
-    port: str = "sim"
+    port: str = Field("sim", min_length=1)
     baudrate: int = Field(115200, gt=0)
     timeout_s: float = Field(0.5, gt=0, le=30)
     out: int = Field(1, ge=1, le=12)
@@ -109,7 +109,7 @@ class LaserConfig(_Strict):
 class MotorConfig(_Strict):
     """LinMot drive on a LinRS serial link."""
 
-    port: str = "sim"
+    port: str = Field("sim", min_length=1)
     baudrate: int = Field(115200, gt=0)
     timeout_s: float = Field(0.5, gt=0, le=30)
     drive_id: int = Field(0x11, ge=0, le=255)
@@ -300,7 +300,7 @@ class DaqConfig(_Strict):
     amplifier, laser analog output)."""
 
     model: Literal["T7"] = "T7"
-    host: str = "sim"
+    host: str = Field("sim", min_length=1)
     port: int = Field(502, ge=1, le=65535)
     stream_port: int = Field(702, ge=1, le=65535)
     timeout_s: float = Field(0.5, gt=0, le=30)
@@ -529,7 +529,7 @@ class RigFileError(ValueError):
 def _first_error(path: Path, exc: ValidationError) -> str:
     err = exc.errors()[0]
     loc = ".".join(str(x) for x in err["loc"])
-    msg = err["msg"].removeprefix("Value error, ")
+    msg = err["msg"].removeprefix("Value error, ") + type_hint(err)
     more = f" (and {exc.error_count() - 1} more)" if exc.error_count() > 1 else ""
     return f"rig file {path}: {loc + ': ' if loc else ''}{msg}{more}"  # a whole-rig check names its fields itself
 

@@ -9,10 +9,13 @@ from __future__ import annotations
 
 import stat
 import tomllib
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 MAX_FILE_BYTES = 4_000_000  # the shipped files are a few kB
+# the units field names end in (rig and protocol files), longest first: `max_voltage_V` takes a number in V
+UNIT_SUFFIXES = ("V_per_s", "m_per_s2", "m_per_s", "Hz", "kg", "mm", "s", "m", "V", "A", "N", "K")
 MAX_DEPTH = 64  # tables and arrays; a protocol's repeats and sweeps nest ≤ 20 deep (2 levels each)
 
 
@@ -20,6 +23,22 @@ def one_line(message: str, limit: int = 400) -> str:
     """``message`` on one line (control characters escaped) and at most ``limit`` characters."""
     text = "".join(c if c.isprintable() else repr(c)[1:-1] for c in message)
     return text if len(text) <= limit else text[: limit - 1] + "…"
+
+
+def type_hint(err: Mapping[str, Any]) -> str:
+    """What to write instead, for a pydantic error of a value of the wrong TOML type ("" if none applies): a string
+    where a field whose name ends in its unit (``max_voltage_V``) takes a plain number, or a number where a quantity
+    takes a string with its unit (``amplitude = "5 kV"``)."""
+    field, value = (err.get("loc") or ("",))[-1], err.get("input")
+    if not isinstance(field, str):
+        return ""
+    if err.get("type") in ("float_parsing", "int_parsing", "float_type", "int_type") and isinstance(value, str):
+        unit = next((u for u in UNIT_SUFFIXES if field.endswith("_" + u)), None)
+        where = f" in {unit.replace('_per_', '/')}, the unit its name ends in" if unit else ""
+        return f' (got "{one_line(value, 40)}": write a plain number{where}, without quotes)'
+    if err.get("type") == "string_type" and isinstance(value, int | float) and not isinstance(value, bool):
+        return f' (got {value!r}: write the value with its unit, in quotes, e.g. {field} = "{value!r} <unit>")'
+    return ""
 
 
 def _too_deep(data: Any, limit: int) -> str | None:

@@ -46,7 +46,7 @@ from pydantic import (
 )
 
 from bench.protocol.quantity import format_quantity, parse_quantity
-from bench.tomlfile import one_line, read_toml
+from bench.tomlfile import one_line, read_toml, type_hint
 
 Channel = Literal["voltage", "position"]
 CHANNEL_DIMENSION = {"voltage": "voltage", "position": "length"}
@@ -555,7 +555,7 @@ def _error_line(path: Path, label: str, exc: ValidationError) -> str:
     err = exc.errors()[0]
     loc = ".".join(str(x) for x in err["loc"] if not str(x).endswith("Step") and x not in
                    ("waveform", "ramp", "hold", "wait", "relax", "move", "set"))
-    msg = err["msg"].removeprefix("Value error, ")
+    msg = err["msg"].removeprefix("Value error, ") + type_hint(err)
     return f"protocol file {path}: {label}{'.' + loc if loc else ''}: {msg}"
 
 

@@ -1,0 +1,50 @@
+"""A value of the wrong TOML type says what to write instead (a tester: `max_voltage_V = "5kV"` gave only pydantic's
+"unable to parse string as a number"; `amplitude = 5000` "Input should be a valid string"; `port = ""` passed
+validation and failed at connect as "cannot open Modbus link : no such device").
+
+The expected hints follow the files' convention stated in the README: a rig field's unit is its name's suffix and
+takes a plain number; a protocol quantity is a string with its unit.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from bench.protocol.schema import ProtocolFileError, load_protocol
+from bench.rig import RigFileError, load_rig
+from tests.conftest import ROOT
+
+
+def _rig_with(tmp: Path, old: str, new: str) -> Path:
+    text = (ROOT / "rigs" / "thesis-sim.toml").read_text()
+    assert old in text
+    f = tmp / "r.toml"
+    f.write_text(text.replace(old, new, 1))
+    return f
+
+
+@pytest.mark.parametrize("value", ['"5kV"', '"5 kv"'])
+def test_a_number_written_with_its_unit_says_the_unit_is_in_the_name(tmp_path: Path, value: str) -> None:
+    f = _rig_with(tmp_path, "max_voltage_V = 8000.0", f"max_voltage_V = {value}")
+    with pytest.raises(RigFileError) as e:
+        load_rig(f)
+    msg = str(e.value)
+    assert "max_voltage_V" in msg and value in msg and "plain number in V" in msg and "\n" not in msg
+
+
+def test_an_empty_port_is_refused_when_the_rig_is_read_not_at_connect(tmp_path: Path) -> None:
+    f = _rig_with(tmp_path, 'port = "sim"', 'port = ""')
+    with pytest.raises(RigFileError, match=r"port: String should have at least 1 character"):
+        load_rig(f)
+
+
+def test_a_quantity_written_as_a_bare_number_says_to_give_its_unit(tmp_path: Path) -> None:
+    f = tmp_path / "p.toml"
+    f.write_text(f'[protocol]\nname = "t"\nrig = "{ROOT / "rigs" / "thesis-sim.toml"}"\n\n[[steps]]\n'
+                 'type = "waveform"\nchannel = "voltage"\nkind = "sine"\noffset = "2 kV"\namplitude = 1000\n'
+                 'frequency_Hz = 1\ncycles = 1\n')
+    with pytest.raises(ProtocolFileError) as e:
+        load_protocol(f)
+    assert 'amplitude = "1000 <unit>"' in str(e.value)
