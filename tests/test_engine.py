@@ -167,11 +167,15 @@ def check_safe_end(run, sim, state: str) -> None:
 def test_current_trip_ramps_down_and_is_recorded(tmp_path: Path) -> None:
     plan_rig = plan_run(SHORT / "thesis-identification-short.toml").rig
     limits = {**plan_rig.limits.model_dump(), "max_current_A": 1e-7}
-    result, run, sim = run_virtual(SHORT / "thesis-identification-short.toml", tmp_path, {"limits": limits})
+    engines: list[Engine] = []
+    result, run, sim = run_virtual(SHORT / "thesis-identification-short.toml", tmp_path, {"limits": limits},
+                                   hook=lambda engine, _sim: engines.append(engine))
     assert result.state == "tripped" and "current" in result.reason and "trip level 0.00 mA" in result.reason
     check_safe_end(run, sim, "tripped")
     kinds = [e[2] for e in run.event_list()]
     assert "tripped" in kinds
+    # the live view's last frame shows the end state and the 0 V the stop commanded, not the set-point before it
+    assert engines[0].snapshot.state == "tripped" and engines[0].snapshot.values["setpoint"] == 0.0
 
 
 def test_lost_laser_link_stops_the_run_safely(tmp_path: Path) -> None:

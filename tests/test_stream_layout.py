@@ -117,3 +117,24 @@ def test_the_live_view_shows_what_the_instruments_describe_in_their_units() -> N
     for shown in ("voltage 6 kV", "current 32 µA", "aperture 100 mm", "force -1.05 N", "setpoint 6 kV"):
         assert shown in text, shown
     assert "colour" not in text
+
+
+@pytest.mark.parametrize("state", ["tripped", "latched", "error", "completed"])
+def test_a_run_that_ended_shows_no_eta(state: str) -> None:
+    """A tester's last frame after a trip read "ETA 0:00:09" from the speed before the trip: a run that ended has no
+    time left to estimate."""
+    from rich.console import Console
+
+    from bench.runtime.context import Snapshot
+    from bench.runtime.live import LiveView
+
+    view = LiveView("run", Snapshot(t=1.0, duration=10.0, steps=1, state=state), {})
+    view._wall0 -= 1.0  # one second of wall time: 1× real time, 9 s of the run left had it gone on
+    console = Console(width=200, record=True)
+    console.print(view)
+    text = console.export_text()
+    assert "ETA –" in text and f"[{state}]" in text
+    running = LiveView("run", Snapshot(t=1.0, duration=10.0, steps=1, state="running"), {})
+    running._wall0 -= 1.0
+    console.print(running)
+    assert "ETA 0:00:09" in console.export_text()

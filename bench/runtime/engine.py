@@ -1088,6 +1088,8 @@ class Engine:
             self._event("interlock", f"latched at {t:.3f} s ({self.latched.kind}); the output stays at 0 V until an "
                         "operator resets the latch")
         zero_at = self._zero_voltage(t, notes)
+        if zero_at is not None:  # the live view's last frame: what is commanded now, not the set-point before the stop
+            self.snapshot.values["setpoint"] = self.ctx.v_cmd
         self._record(self.rec.write_ahead)  # 0 V commanded: the file's tail compresses while the rest is made safe
         notes += self._others_safe()
         if self._storing and self.inst.laser is not None:

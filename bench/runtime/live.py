@@ -13,6 +13,7 @@ from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 from rich.console import Group, RenderableType
+from rich.markup import escape
 from rich.panel import Panel
 from rich.progress_bar import ProgressBar
 from rich.table import Table
@@ -37,6 +38,9 @@ def _hms(seconds: float) -> str:
     return f"{seconds // 3600:d}:{seconds % 3600 // 60:02d}:{seconds % 60:02d}"
 
 
+UNDER_WAY = ("starting", "running", "paused", "manual")  # Snapshot.state while a run goes on
+
+
 class LiveView:
     """Renders a :class:`Snapshot`; the ETA comes from the observed speed (virtual time runs faster)."""
 
@@ -53,12 +57,13 @@ class LiveView:
         frac = s.t / s.duration if s.duration > 0 else 0.0
         wall = time.monotonic() - self._wall0
         speed = s.t / wall if wall > 0 and s.t > 0 else 0.0
-        eta = (s.duration - s.t) / speed if speed > 0 else float("nan")
+        ended = s.state not in UNDER_WAY  # a run that ended has no time left: no ETA from its speed before the end
+        eta = (s.duration - s.t) / speed if speed > 0 and not ended else float("nan")
         head = Text.assemble((f"step {s.step + 1}/{s.steps} ", "bold"), s.step_name[:70])
         progress = Table.grid(padding=(0, 1))
         progress.add_row(ProgressBar(total=1.0, completed=min(frac, 1.0), width=40),
                          f"{100 * frac:5.1f} %  run {_hms(s.t)} / {_hms(s.duration)}",
-                         f"ETA {_hms(eta) if eta == eta else '–'}  ({speed:.1f}× real time)  [{s.state}]")
+                         escape(f"ETA {_hms(eta) if eta == eta else '–'}  ({speed:.1f}× real time)  [{s.state}]"))
         values = Table.grid(padding=(0, 2))
         cells = []
         for key, value in list(s.values.items()):
