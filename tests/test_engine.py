@@ -264,7 +264,7 @@ def test_signals_stop_the_run_with_zero_voltage_and_a_marked_file(tmp_path: Path
     out, err = proc.communicate(timeout=60)
     assert proc.returncode == 1 and "Traceback" not in err, err
     run = open_run(path)
-    assert run.complete and run.state == state and run.reason.startswith(reason)
+    assert run.complete and run.state == state and run.reason.startswith(reason), (run.state, run.reason)
     assert run.streams["setpoints"].columns["voltage"][-1] == 0.0
     assert abs(run.streams["amplifier"].columns["voltage"][-1]) < 10.0  # monitor read after zeroing
     assert "run file:" in out and str(path) in out
