@@ -55,11 +55,13 @@ def test_shipped_protocols_are_refused_where_a_real_line_cannot_carry_them(proto
 
 @pytest.mark.parametrize("kind", ["lab", "sim"])
 def test_what_fits_is_accepted(kind: str) -> None:
-    # thesis-identification stores the laser at 500 S/s: the upload holds the host 40 % of the time (500 of the
-    # 1,253 values/s the link uploads), beside the io bus's set-points and monitors (at 1,000 S/s it would not fit)
-    for name, changes in [("thesis-identification", {"displacement_Hz": 500.0, "setpoint_Hz": 20.0}),
-                          # at 60 set-points/s the io bus alone is busy 85 %: the laser stores at 100 S/s (8 %)
-                          ("lsdea-isotonic-short", {"displacement_Hz": 100.0, "setpoint_Hz": 60.0,
+    # thesis-identification stores the laser at 200 S/s: each 0.25-s fetch uploads 50 values, 43 ms on the wire
+    # ((50·9 + 38)·10/115200 s + 2 × 0.5 ms), within the 50-ms set-point period (at 500 S/s: 102 ms, two set-points
+    # fall in one fetch), and the upload holds the host 16 % of the time beside the io bus's set-points and monitors
+    for name, changes in [("thesis-identification", {"displacement_Hz": 200.0, "setpoint_Hz": 20.0}),
+                          # at 60 set-points/s the io bus alone is busy 85 %: the laser stores at 50 S/s (4 %;
+                          # a fetch of 13 values, 14.5 ms, within the 16.7-ms period: 100 S/s takes 23.8 ms)
+                          ("lsdea-isotonic-short", {"displacement_Hz": 50.0, "setpoint_Hz": 60.0,
                                                     "points_per_cycle": 20}),
                           ("lsdea-isopotential", {"setpoint_Hz": 20.0, "force_Hz": 20.0, "position_Hz": 20.0})]:
         path = next(p for p in PROTOCOLS if p.stem == name)
@@ -74,7 +76,7 @@ def test_laser_upload_rate_is_the_wire_rate_less_the_request_overhead() -> None:
 
 def test_conversion_rates_bound_the_polling_rates() -> None:
     _, program = compiled(ROOT / "protocols" / "thesis-identification.toml", "lab", monitors_Hz=20.0,
-                          displacement_Hz=500.0)
+                          displacement_Hz=200.0)
     problems = check_links(program)
     assert problems == ["amplifier monitors: polled at 20/s but the ADAM-4017+ converts 10 S/s over 2 channels "
                         "(5 S/s each): most reads repeat a value; lower recording.monitors_Hz to ≤ 5"]
@@ -156,3 +158,23 @@ def test_the_laser_upload_counts_in_the_host_s_time() -> None:
                           setpoint_Hz=20.0)
     (host,) = [p for p in check_links(program) if p.startswith("host")]
     assert "laser storage upload 80%" in host and "displacement_Hz" in host
+
+
+@pytest.mark.parametrize("kind", ["lab", "sim"])
+def test_a_laser_upload_longer_than_a_set_point_period_is_said(kind: str) -> None:
+    """A tester's protocol (500 S/s stored, 20 set-points/s) validated and then skipped 15 set-points: the engine
+    fetches the storage every 0.25 s, 125 values, and sends nothing while it waits on the upload —
+    (125·9 + 16 + 3 + 3 + 16) characters × 10/115200 s + 2 × 0.5 ms (LK-G turnaround, assumed) = 102 ms, two
+    50-ms set-point periods. At most 0.05 s of upload fits a period: 58 values (232 S/s: 48.7 + 3.3 + 1 = 49.6 ms)."""
+    path = ROOT / "protocols" / "thesis-identification.toml"
+    hold = (125 * 9 + 38) * 10 / 115200 + 1e-3
+    fit = max(n for n in range(1, 500) if (-(-n // 4) * 9 + 38) * 10 / 115200 + 1e-3 <= 0.05)  # ceil(0.25·n)
+    assert fit == 232
+    _, program = compiled(path, kind, displacement_Hz=500.0, setpoint_Hz=20.0)
+    (line,) = [p for p in check_links(program) if p.startswith("laser storage upload")]
+    assert f"holds the host about {hold * 1e3:.0f} ms" in line and "set-point period (50 ms" in line
+    assert f"displacement_Hz to ≤ {fit}" in line and f"setpoint_Hz to ≤ {int(1 / hold)}" in line
+    _, program = compiled(path, kind, displacement_Hz=float(fit), setpoint_Hz=20.0)
+    assert not [p for p in check_links(program) if p.startswith("laser storage upload")]
+    _, program = compiled(path, kind, displacement_Hz=500.0, setpoint_Hz=float(int(1 / hold)))
+    assert not [p for p in check_links(program) if p.startswith("laser storage upload")]

@@ -23,9 +23,10 @@ fetched every ``FETCH_PERIOD_S`` while storing, single reads at ``PASSIVE_LASER_
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
-from bench.protocol.program import HOLD_KEEPALIVE_S, PASSIVE_LASER_HZ, Program
+from bench.protocol.program import FETCH_PERIOD_S, HOLD_KEEPALIVE_S, PASSIVE_LASER_HZ, Program
 
 TURNAROUND_MODBUS_S = 1e-3  # ADAM / DGT1S request → reply [assumed: no figure in the manuals read]
 TURNAROUND_LKG_S = 0.5e-3  # LK-G command → reply [assumed]
@@ -147,13 +148,23 @@ def _check_host(program: Program, links: list[LinkLoad], upload: float = 0.0) ->
             f"schedule would fall behind; {fit}")
 
 
-def laser_upload_rate(baud: int) -> float:
-    """Stored values per second an RS-232 upload carries (AO requests sized to LKG_UPLOAD_CHUNK_S, each with
-    its AN status query, request echo and turnarounds)."""
+def _upload_chunk(baud: int) -> int:
+    """Values per AO request: LKG_UPLOAD_CHUNK_S of wire time (as the driver sizes them), 1–1000."""
+    return max(1, min(1000, int(LKG_UPLOAD_CHUNK_S / (LKG_VALUE_BYTES * char_time(baud)))))
+
+
+def laser_fetch_time(baud: int, points: int) -> float:
+    """Seconds one upload of ``points`` stored values takes on the RS-232 line: AO requests of
+    :func:`_upload_chunk` values, each with its AN status query, request echo and turnarounds."""
     ct = char_time(baud)
-    n = max(1, min(1000, int(LKG_UPLOAD_CHUNK_S / (LKG_VALUE_BYTES * ct))))
-    per_request = (16 + 3 + LKG_VALUE_BYTES * n) * ct + TURNAROUND_LKG_S + (3 + 16) * ct + TURNAROUND_LKG_S
-    return n / per_request
+    requests = -(-points // _upload_chunk(baud))
+    return requests * ((16 + 3 + 3 + 16) * ct + 2 * TURNAROUND_LKG_S) + points * LKG_VALUE_BYTES * ct
+
+
+def laser_upload_rate(baud: int) -> float:
+    """Stored values per second an RS-232 upload carries (:func:`laser_fetch_time` of full AO requests)."""
+    n = _upload_chunk(baud)
+    return n / laser_fetch_time(baud, n)
 
 
 def check_links(program: Program) -> list[str]:
@@ -179,6 +190,8 @@ def check_links(program: Program) -> list[str]:
                 f"at most {upload:,.0f} S/s while it records (9 bytes a value); lower recording.displacement_Hz "
                 f"to ≤ {int(upload * 0.9):,} or store each step and upload between steps (longest step "
                 f"{longest:g} s = {points:,.0f} points, {points / upload:,.0f} s of upload)")
+        if (line := _check_upload_hold(program, lz.baudrate)) is not None:
+            problems.append(line)
     if rig.amplifier is not None and not amp_daq and rec.monitors_Hz:
         per_channel = ADAM_4017P_RATE / 2  # V and I monitors enabled: round robin over two channels
         if rec.monitors_Hz > per_channel:
@@ -191,6 +204,30 @@ def check_links(program: Program) -> list[str]:
     if (host := _check_host(program, loads, upload_share)) is not None:  # last: the links' own lines say what to change
         problems.append(host)
     return problems
+
+
+def _check_upload_hold(program: Program, baud: int) -> str | None:
+    """One line if one laser storage upload holds the host longer than a set-point period in a step that both stores
+    and streams set-points. The engine fetches every ``FETCH_PERIOD_S`` what was stored since, FETCH_PERIOD_S ×
+    displacement_Hz values, and sends nothing while it waits on the upload (``hold``): the set-points due in it wait
+    to its end, where all but the last are skipped — two fall in it whenever hold exceeds a period and the fetch
+    starts just before a tick — however little of the time the links are busy on average."""
+    rec = program.protocol.recording
+    hold = laser_fetch_time(baud, math.ceil(FETCH_PERIOD_S * rec.displacement_Hz))
+    period = 1.0 / rec.setpoint_Hz
+    amp_daq, _ = _hardware_timed(program)  # a DAQ plays the voltage itself: only go-tos are the host's to send
+    steps = [s for s in program.segments if s.storing and s.stream_until > s.t_start
+             and ((s.voltage is not None and not amp_daq) or s.position is not None)]
+    if not steps or hold <= period:
+        return None
+    fits = [n for n in range(int(rec.displacement_Hz), 0, -1)  # displacement_Hz whose upload fits in a period
+            if laser_fetch_time(baud, math.ceil(FETCH_PERIOD_S * n)) <= period]
+    lower = f"lower recording.displacement_Hz to ≤ {fits[0]:,} or " if fits else ""
+    return (f"laser storage upload: each fetch (every {FETCH_PERIOD_S:g} s) holds the host about {hold * 1e3:.0f} ms "
+            f"at recording.displacement_Hz = {rec.displacement_Hz:g}, longer than a set-point period "
+            f"({period * 1e3:.0f} ms at setpoint_Hz = {rec.setpoint_Hz:g}): set-points due meanwhile go out up to "
+            f"{(hold - period) * 1e3:.0f} ms late or are skipped in step {steps[0].label.rsplit('/', 1)[-1]}; "
+            f"{lower}recording.setpoint_Hz to ≤ {max(1, int(1 / hold)):,} (or a hardware-timed drive)")
 
 
 def _fit_setpoints(link: LinkLoad) -> str:

@@ -20,14 +20,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bench.protocol.program import PASSIVE_LASER_HZ, Segment
+from bench.protocol.program import FETCH_PERIOD_S, PASSIVE_LASER_HZ, Segment
 from bench.runtime.context import RunContext, present
 from bench.runtime.interlock import mismatch_trip, motion_trip
 from bench.runtime.safety import SafetyTrip
 from drivers.errors import InstrumentError, InstrumentStateError
 from drivers.interfaces import Readable, ReadingMap, StreamDescription
 
-FETCH_PERIOD_S = 0.25  # laser storage upload period while storing (run time)
 COLLECT_PERIOD_S = 0.05  # hardware-timed rigs: collect the DAQ stream (and top up its output buffer) this often
 COLLECT_PERIOD_VIRTUAL_S = 0.25  # virtual time: fewer, larger blocks (the output buffer holds ~0.8 s at 10 kHz)
 SENSOR_PERIOD_S = 1.0  # a role the run time declares nothing for (a thermometer): read this often (run time)
