@@ -85,6 +85,80 @@ def test_a_pause_zeroes_the_output_records_on_and_restarts_the_step(tmp_path: Pa
     assert result.run_time >= plan.program.duration + (t_resume - t_pause)
 
 
+RELAX_LOOPS = """
+[protocol]
+name = "relax-loops"
+description = "a 7-kV raised cosine, a relax the T7 plays from its stream-out loop, the raised cosine again"
+rig = "{rig}"
+
+[recording]
+displacement_Hz = 2000
+setpoint_Hz = 20
+
+[[steps]]
+type = "repeat"
+count = 2
+
+  [[steps.steps]]
+  type = "waveform"
+  name = "drive"
+  channel = "voltage"
+  kind = "raised_cosine"
+  amplitude = "7 kV"
+  frequency_Hz = 0.5
+  duration_s = 2.0
+
+  [[steps.steps]]
+  type = "relax"
+  name = "recovery"
+  duration_s = 3.0
+"""
+
+
+@pytest.mark.parametrize(("pause_s", "paused_s"), [(1.5, 0.5), (0.05, 0.0)], ids=["mid-relax", "relax-start"])
+def test_a_pause_in_a_relax_the_daq_loops_resumes_and_the_run_completes(
+        tmp_path: Path, pause_s: float, paused_s: float) -> None:
+    """A pause in a relax whose 0 V the T7 repeats from its stream-out loop (virtual time, watchdog set), resumed
+    after ``paused_s``: the relax restarts and the campaign runs to its end — the outside tester's run ended on the
+    resume's first top-up, refused as STREAM_OUT_BUFF_FULL (2613). Expected from the protocol: both drives reach
+    7 kV, the output is at 0 V while paused (after the pause's 0.25-s ramp)."""
+    proto = tmp_path / "relax-loops.toml"
+    proto.write_text(RELAX_LOOPS.format(rig=DAQ_RIG.as_posix()))
+    plan = plan_run(proto)
+    relax = plan.program.segments[1]
+    blocks: list[tuple[np.ndarray, np.ndarray]] = []
+    t0: list[float] = []
+    looping: list[bool] = []  # the twin's loop at the pause
+
+    def hook(engine: Engine, sim) -> None:
+        sim.plant.listeners.append(lambda b: blocks.append((b.t.copy(), b.v_out.copy())))
+        out = sim.twins["daq"].outs[0]
+
+        def at(_now: float) -> None:
+            if engine.snapshot.state == "running" and not t0:
+                t0.append(sim.clock.now() - engine.now())
+            if engine.snapshot.state == "running" and engine.pauses == 0 and engine.now() >= relax.t_start + pause_s:
+                looping.append(out.loop_active)
+                engine.request_pause("the test")
+            if engine.snapshot.state == "paused" and engine.now() >= relax.t_start + pause_s + paused_s:
+                engine.request_resume("the test")
+        sim.clock.subscribe(at)
+
+    result = execute(plan, tmp_path / "run.h5", virtual=True, on_engine=hook)
+    assert result.state == "completed", result.reason
+    run = open_run(result.path)
+    (t_pause, step, _, _), = events(run, "pause")
+    (t_resume, *_), = events(run, "resume")
+    assert step == 1  # in the relax
+    if pause_s > 1.0:
+        assert looping == [True]  # the device repeated the relax's loop when the pause stopped its stream
+    t = np.concatenate([b[0] for b in blocks]) - t0[0]
+    v = np.concatenate([b[1] for b in blocks])
+    if t_resume > t_pause + 0.3:
+        assert np.abs(v[(t > t_pause + 0.25 + 0.05) & (t < t_resume)]).max() <= ZERO_V
+    assert v[t < t_pause].max() > 6500.0 and v[t > t_resume].max() > 6500.0  # both drives played
+
+
 def test_every_pause_and_resume_request_is_recorded_even_one_that_changes_nothing(tmp_path: Path) -> None:
     """A pause (ada), a second pause while paused (bo), the resume (ada), then a resume while running (cy), and a
     pause asked for while the completed run is being made safe (dee): one pause and one resume, and each request

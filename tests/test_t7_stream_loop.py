@@ -488,3 +488,39 @@ def test_a_buffer_emptied_after_a_cut_loop_takes_a_whole_buffer_again() -> None:
         sock.close()
     finally:
         r.close()
+
+
+def test_a_stream_armed_after_one_stopped_mid_loop_plays_its_data_and_is_topped_up(rig: Rig) -> None:
+    """A pause stops a stream while its loop repeats; the next stream's values then play as data. [D] every buffer
+    update is LOOP_NUM_VALUES, the values, SET_LOOP (T-series datasheet, "Performing Stream-Out"), LOOP_NUM_VALUES
+    "the number of values, from the end of the array, that will be repeated"; nothing there says allocating the
+    buffer resets it (the twin keeps it, as a register keeps what was written). An arm that did not write it left
+    the stopped stream's loop size in force: the preload's last 5000 values repeated in the device, and with the
+    loop counted in the buffer ([A], module docstring) the first top-up (2500 values, half the preload still
+    unplayed) no longer fit its alloc/2 − 1 = 8191 values: refused, STREAM_OUT_BUFF_FULL (2613) — the error a
+    pause in a looping relax ended a run with."""
+    spec = StreamSpec(RATE, (StreamIn(0, name="vmon"),), StreamOut(0, _sine(8)), out_ahead_s=0.5, out_loops=True)
+    rig.daq.arm(spec)
+    rig.daq.kickoff()
+    for _ in range(4):  # into the loop's repetitions (its block is ≥ the 0.5 s kept ahead: 5000 values)
+        rig.clock.advance(0.25)
+        rig.daq.collect(until=rig.clock.now())
+        rig.daq.read_dac(0)  # the run time's keep-alive: the watchdog does not stop the loop
+    assert rig.sim.outs[0].loop_active and rig.sim.outs[0].loop.size >= 5000  # stopped while it repeats
+    rig.daq.stop()
+    # the next stream: a 2-s ramp, kept 0.5 s ahead, no loops of its own (every update is data)
+    ramp = np.linspace(1.0, 3.0, 20_001)
+    rig.daq.arm(StreamSpec(RATE, (StreamIn(0, name="vmon"),), StreamOut(0, ramp), out_ahead_s=0.5))
+    rig.daq.kickoff()
+    got: dict[int, int] = {}
+    for _ in range(10):  # every top-up is taken
+        rig.clock.advance(0.25)
+        rig.daq.collect(until=rig.clock.now())
+        rig.daq.read_dac(0)
+        got.update((p.first + i, int(c)) for p in rig.sim.outs[0].sched if not p.loop
+                   for i, c in enumerate(p.codes))
+    assert rig.sim.outs[0].loop.size <= 1  # no loop set on the new stream's data
+    assert rig.daq.out_underrun_scans == 0
+    codes = rig.daq.cal.dac_codes(ramp, 0, None, rig.daq.dac_bits)
+    assert [got.get(k) for k in range(5000, 5010)] == [int(c) for c in codes[5000:5010]]  # the data, in order
+    rig.daq.stop()

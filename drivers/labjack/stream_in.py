@@ -34,6 +34,7 @@ from drivers.labjack.registers import (
     MAX_STREAM_BUFFER_BYTES,
     OUT_ALLOC0,
     OUT_ENABLE0,
+    OUT_LOOP0,
     OUT_PACKET_VALUES,
     OUT_SCAN0,
     OUT_TARGET0,
@@ -119,9 +120,16 @@ class T7Stream(T7StreamOut):
         plan = StreamPlan(rate, 1.0 / rate, names, scan_list, spp, codes, volts, capacity, interval, ahead, chunk)
         self._stream = StreamState(plan, spec, n_in, gains, out_closed=out is None or out.final)
         if out is not None:
+            # in this order, one MBFB packet ([D] stream-out: configure — target, allocate, enable — then each
+            # buffer update starts with LOOP_NUM_VALUES). LOOP_NUM_VALUES 0 here: the preload is data, not a loop.
+            # [A] (the datasheet does not say allocating resets it) the register keeps what the last stream wrote —
+            # one stopped while its loop repeated (a pause in a relax) left that loop's block, the preload's
+            # SET_LOOP then repeated its last values in the device, in buffer room this driver does not count, and
+            # the next top-up was refused (STREAM_OUT_BUFF_FULL, 2613). Later updates write it themselves (a loop
+            # entered or left, the hold loop)
             self.feedback([(OUT_TARGET0, u32_words(DAC0 + 2 * out.dac)),
                            (OUT_ALLOC0, u32_words(spec.out_buffer_bytes or MAX_OUT_BUFFER_BYTES)),
-                           (OUT_ENABLE0, u32_words(1))])  # in this order ([D] stream-out), one MBFB packet
+                           (OUT_ENABLE0, u32_words(1)), (OUT_LOOP0, u32_words(0))])
             self._feed_out()
         return plan
 
