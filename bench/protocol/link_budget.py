@@ -207,13 +207,18 @@ def check_links(program: Program) -> list[str]:
 
 
 def _check_upload_hold(program: Program, baud: int) -> str | None:
-    """One line if one laser storage upload holds the host longer than a set-point period in a step that both stores
-    and streams set-points. The engine fetches every ``FETCH_PERIOD_S`` what was stored since, FETCH_PERIOD_S ×
-    displacement_Hz values, and sends nothing while it waits on the upload (``hold``): the set-points due in it wait
-    to its end, where all but the last are skipped — two fall in it whenever hold exceeds a period and the fetch
-    starts just before a tick — however little of the time the links are busy on average."""
+    """One line if a laser storage upload holds the host longer than a set-point period in a step that both stores
+    and streams set-points. The engine fetches every ``FETCH_PERIOD_S``, on a set-point's tick, what was stored
+    since — FETCH_PERIOD_S × displacement_Hz values, at most one AO request's worth per call (the driver's budget,
+    :data:`LKG_UPLOAD_CHUNK_S` of wire) — and sends nothing while it waits (``hold``). A set-point due meanwhile
+    waits; after the tick's other traffic (its own set-point, a monitor or load-cell poll due at once) two can come
+    due, and the first is skipped. Said from hold > one period, not from the sum reaching two: the other traffic's
+    timing is the run's (a virtual run at 352 S/s and 20/s skipped 3 set-points where one exchange of each channel
+    and the upload add up to 99.5 ms), so the line errs on the side of saying so (at 240 S/s, 51 ms, a reviewer's
+    runs skipped none)."""
     rec = program.protocol.recording
-    hold = laser_fetch_time(baud, math.ceil(FETCH_PERIOD_S * rec.displacement_Hz))
+    chunk = _upload_chunk(baud)
+    hold = laser_fetch_time(baud, min(math.ceil(FETCH_PERIOD_S * rec.displacement_Hz), chunk))
     period = 1.0 / rec.setpoint_Hz
     amp_daq, _ = _hardware_timed(program)  # a DAQ plays the voltage itself: only go-tos are the host's to send
     steps = [s for s in program.segments if s.storing and s.stream_until > s.t_start
@@ -221,13 +226,12 @@ def _check_upload_hold(program: Program, baud: int) -> str | None:
     if not steps or hold <= period:
         return None
     fits = [n for n in range(int(rec.displacement_Hz), 0, -1)  # displacement_Hz whose upload fits in a period
-            if laser_fetch_time(baud, math.ceil(FETCH_PERIOD_S * n)) <= period]
+            if laser_fetch_time(baud, min(math.ceil(FETCH_PERIOD_S * n), chunk)) <= period]
     lower = f"lower recording.displacement_Hz to ≤ {fits[0]:,} or " if fits else ""
-    return (f"laser storage upload: each fetch (every {FETCH_PERIOD_S:g} s) holds the host about {hold * 1e3:.0f} ms "
-            f"at recording.displacement_Hz = {rec.displacement_Hz:g}, longer than a set-point period "
-            f"({period * 1e3:.0f} ms at setpoint_Hz = {rec.setpoint_Hz:g}): set-points due meanwhile go out up to "
-            f"{(hold - period) * 1e3:.0f} ms late or are skipped in step {steps[0].label.rsplit('/', 1)[-1]}; "
-            f"{lower}recording.setpoint_Hz to ≤ {max(1, int(1 / hold)):,} (or a hardware-timed drive)")
+    return (f"laser storage upload: a fetch every {FETCH_PERIOD_S:g} s holds the host ~{hold * 1e3:.0f} ms at "
+            f"displacement_Hz = {rec.displacement_Hz:g}, over a set-point period ({period * 1e3:.0f} ms): set-points "
+            f"wait and one can be skipped (step {steps[0].label.rsplit('/', 1)[-1][:60]}); {lower}"
+            f"recording.setpoint_Hz to ≤ {max(1, int(1 / hold)):,} (or a hardware-timed drive)")
 
 
 def _fit_setpoints(link: LinkLoad) -> str:
