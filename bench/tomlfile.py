@@ -14,8 +14,10 @@ from pathlib import Path
 from typing import Any
 
 MAX_FILE_BYTES = 4_000_000  # the shipped files are a few kB
-# the units field names end in (rig and protocol files), longest first: `max_voltage_V` takes a number in V
-UNIT_SUFFIXES = ("V_per_s", "m_per_s2", "m_per_s", "Hz", "kg", "mm", "s", "m", "V", "A", "N", "K")
+# the units field names end in (rig and protocol files): `max_voltage_V` takes a number in V, `laser_m_per_V` in m/V
+UNIT_SUFFIXES = ("Hz", "kg", "mm", "s", "m", "V", "A", "N", "K")
+# protocol fields that take a quantity as a string with its unit (bench/protocol/schema.py: parse_quantity)
+QUANTITY_FIELDS = ("offset", "amplitude", "to", "position", "velocity", "acceleration")
 MAX_DEPTH = 64  # tables and arrays; a protocol's repeats and sweeps nest ≤ 20 deep (2 levels each)
 
 
@@ -25,18 +27,30 @@ def one_line(message: str, limit: int = 400) -> str:
     return text if len(text) <= limit else text[: limit - 1] + "…"
 
 
+def _unit_of(field: str) -> str | None:
+    """The unit a field's name ends in (``max_voltage_V``: V; ``laser_m_per_V``: m/V), None if it names none."""
+    head, per, tail = field.rpartition("_per_")
+    if per:
+        num = head.rpartition("_")[2]
+        return f"{num}/{tail.replace('_per_', '/')}" if num in UNIT_SUFFIXES and tail.rstrip("2") in UNIT_SUFFIXES \
+            else None
+    last = field.rpartition("_")[2]
+    return last if "_" in field and last in UNIT_SUFFIXES else None
+
+
 def type_hint(err: Mapping[str, Any]) -> str:
     """What to write instead, for a pydantic error of a value of the wrong TOML type ("" if none applies): a string
-    where a field whose name ends in its unit (``max_voltage_V``) takes a plain number, or a number where a quantity
-    takes a string with its unit (``amplitude = "5 kV"``)."""
+    where a field whose name ends in its unit (``max_voltage_V``) takes a plain number, or a number where a protocol
+    quantity (``QUANTITY_FIELDS``) takes a string with its unit (``amplitude = "5 kV"``)."""
     field, value = (err.get("loc") or ("",))[-1], err.get("input")
     if not isinstance(field, str):
         return ""
     if err.get("type") in ("float_parsing", "int_parsing", "float_type", "int_type") and isinstance(value, str):
-        unit = next((u for u in UNIT_SUFFIXES if field.endswith("_" + u)), None)
-        where = f" in {unit.replace('_per_', '/')}, the unit its name ends in" if unit else ""
+        unit = _unit_of(field)
+        where = f" in {unit}, the unit its name ends in" if unit else ""
         return f' (got "{one_line(value, 40)}": write a plain number{where}, without quotes)'
-    if err.get("type") == "string_type" and isinstance(value, int | float) and not isinstance(value, bool):
+    if err.get("type") == "string_type" and field in QUANTITY_FIELDS and isinstance(value, int | float) \
+            and not isinstance(value, bool):
         return f' (got {value!r}: write the value with its unit, in quotes, e.g. {field} = "{value!r} <unit>")'
     return ""
 

@@ -48,3 +48,14 @@ def test_a_quantity_written_as_a_bare_number_says_to_give_its_unit(tmp_path: Pat
     with pytest.raises(ProtocolFileError) as e:
         load_protocol(f)
     assert 'amplitude = "1000 <unit>"' in str(e.value)
+
+
+def test_a_ratio_field_names_its_whole_unit_and_a_plain_string_field_gets_no_unit_hint(tmp_path: Path) -> None:
+    """A reviewer: `laser_m_per_V = "0.001 m/V"` was told "a plain number in V"; `port = 3` was told
+    `port = "3 <unit>"`."""
+    from bench.tomlfile import type_hint
+
+    err = {"type": "float_parsing", "loc": ("daq", "laser_m_per_V"), "input": "0.001 m/V"}
+    assert "plain number in m/V," in type_hint(err)
+    assert "plain number in V/s," in type_hint({**err, "loc": ("amplifier", "slew_limit_V_per_s")})
+    assert type_hint({"type": "string_type", "loc": ("buses", "io", "port"), "input": 3}) == ""
