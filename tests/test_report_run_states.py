@@ -85,7 +85,7 @@ def test_a_stopped_run_says_so_and_a_resumed_campaign_is_numbered_as_bench_run_r
         runs: dict[str, Path], tmp_path: Path) -> None:
     code, out = _cli("report", str(runs["a"]), "--out", str(tmp_path / "j"), "--json")
     assert code == 0, out
-    (run,) = json.loads(out)["runs"]
+    run, _ = json.loads(out)["runs"]  # the stopped file, then the one that continued it (the campaign)
     assert run["state"] == "interrupted" and run["reason"].startswith("Ctrl-C")
     assert run["complete"] is True  # the file was finalised: all that ran is in it
     # the campaign's report (the stopped file, then the one that resumed it)
@@ -104,6 +104,35 @@ def test_a_stopped_run_says_so_and_a_resumed_campaign_is_numbered_as_bench_run_r
     assert f"resumed at {said}" in " ".join(text.split()), text
     (restart,) = [text for _, _, kind, text in open_run(runs["b"], streams=False).event_list() if kind == "restart"]
     assert f"{said[:-1]}, drive [voltage=5 kV, T=266.0]) restarts from its start" in restart, restart
+
+
+def test_the_first_file_of_a_resumed_campaign_reports_and_inspects_as_the_whole_campaign(
+        runs: dict[str, Path], tmp_path: Path) -> None:
+    """The tester's morning: `bench report FIRST --json` listed only the first file ("INCOMPLETE … 9 of 80
+    steps") and `inspect FIRST` showed no continuation; the last file gave the whole chain. The continuation
+    links back only (b.h5's previous_file names a.h5), so the first file finds it in its folder."""
+    assert open_run(runs["b"], streams=False).attrs["previous_file"] == "a.h5"  # the link the fixture wrote
+    for given in ("a", "b"):
+        code, out = _cli("report", str(runs[given]), "--out", str(tmp_path / given), "--json")
+        assert code == 0, out
+        got = json.loads(out)["runs"]
+        assert [Path(r["file"]).name for r in got] == ["a.h5", "b.h5"], (given, got)
+        assert [r["state"] for r in got] == ["interrupted", "completed"]
+    code, text = _cli("inspect", str(runs["a"]))
+    assert code == 0, text
+    flat = " ".join(text.split())
+    assert f"continued in {runs['b']}" in flat, text
+    assert "a.h5 (interrupted" in flat and "b.h5 (completed" in flat, text  # the campaign's line
+    code, out = _cli("inspect", str(runs["a"]), "--json")
+    assert code == 0, out
+    rec = json.loads(out)
+    rec = rec[0] if isinstance(rec, list) else rec
+    assert rec["continued_in"] == str(runs["b"])
+    assert [Path(str(c["file"])).name for c in rec["campaign"]] == ["a.h5", "b.h5"]
+    code, out = _cli("inspect", str(runs["b"]), "--json")  # the last file: nothing after it
+    rec = json.loads(out)
+    rec = rec[0] if isinstance(rec, list) else rec
+    assert rec["continued_in"] is None
 
 
 def test_a_manual_session_is_skipped_by_report_and_refused_alone_and_by_fit(runs: dict[str, Path],

@@ -192,6 +192,7 @@ class Inspection:
     fits_error: str  # a fit file of another run beside it: said, the run itself still shown
     campaign: list[dict[str, object]] | str  # the chain of linked files (an error text when a link is broken)
     campaign_text: tuple[str, bool] | None = None  # the chain described (text, whether it is an error), if resumed
+    continued_in: Path | None = None  # the file that continued this one's campaign (bench run --resume), if any
     manual: bool = field(init=False)
 
     def __post_init__(self) -> None:
@@ -219,13 +220,15 @@ class Inspection:
                                    "last": s.last} for name, s in self.streams.items()},
                 "events": [{"t_s": t, "step": step, "kind": kind, "text": text}
                            for t, step, kind, text in r.event_list()],
-                "campaign": self.campaign, "recovered_at": r.recovered_at or None}
+                "campaign": self.campaign, "recovered_at": r.recovered_at or None,
+                "continued_in": None if self.continued_in is None else str(self.continued_in)}
 
 
 def inspect_run(run_file: Path) -> Inspection:
     """Read a run file (finished or being written) with its fits and campaign."""
     from bench.identify.store import read_fits
-    from bench.storage.chain import chain, describe
+    from bench.storage.chain import campaign as campaign_of
+    from bench.storage.chain import describe
     from bench.storage.chunks import open_source
 
     with open_source(run_file) as src:
@@ -236,9 +239,9 @@ def inspect_run(run_file: Path) -> Inspection:
         fits, fits_error = read_fits(run_file), ""
     except (ValueError, OSError) as exc:  # a fit file of another run beside it: the run itself is still shown
         fits, fits_error = [], " ".join(str(exc).splitlines())
-    described = None
+    described, later = None, None
     try:
-        links = chain(run_file)
+        links = campaign_of(run_file)  # also the files that continued it: the first file shows the whole campaign
     except ValueError as exc:
         campaign: list[dict[str, object]] | str = str(exc)
         if a.get("previous_file"):
@@ -247,6 +250,8 @@ def inspect_run(run_file: Path) -> Inspection:
         campaign = [{"file": str(ln.path), "state": ln.state, "complete": ln.complete,
                      "resumed_at_step": ln.resumed_at_step}
                     for ln in links] if len(links) > 1 or a.get("previous_file") else []
-        if a.get("previous_file"):
+        mine = next(k for k, ln in enumerate(links) if ln.path.resolve() == run_file.resolve())
+        later = links[mine + 1].path if mine + 1 < len(links) else None
+        if len(links) > 1:
             described = (describe(links), False)
-    return Inspection(run_file, r, streams, notes, fits, fits_error, campaign, described)
+    return Inspection(run_file, r, streams, notes, fits, fits_error, campaign, described, later)

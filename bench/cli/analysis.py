@@ -227,13 +227,15 @@ def runs_only(paths: list[Path]) -> list[Path]:
 def campaign_files(runs: list[Path]) -> list[Path]:
     """``runs`` with the earlier files of each resumed campaign (``bench run --resume``), saying so: a chain of
     linked files is one campaign (each step counted from the file in which it completed)."""
-    from bench.storage.chain import chain, describe, with_chains
+    from bench.storage.chain import campaign, describe, with_chains
 
     out = with_chains(runs)
+    said: set[str] = set()
     for p in runs:
-        links = chain(p)
-        if len(links) > 1:
-            console.print(f"campaign of {len(links)} linked files: {escape(describe(links))}")
+        links = campaign(p)  # also the files that continued it: its first file reads as the whole campaign
+        if len(links) > 1 and (line := describe(links)) not in said:
+            said.add(line)
+            console.print(f"campaign of {len(links)} linked files: {escape(line)}")
     return out
 
 

@@ -380,6 +380,8 @@ def _inspect_tables(found: Inspection) -> None:
     if found.campaign_text is not None:
         text, broken = found.campaign_text
         meta.add_row("campaign", f"[red]{escape(text)}[/]" if broken else escape(text))
+    if found.continued_in is not None:
+        meta.add_row("continued", f"continued in {escape(str(found.continued_in))}")
     sha = str(a.get("protocol_sha256", ""))[:12]
     if manual:  # the readings of a manual-control session (bench devices control)
         meta.add_row("session", f"manual control (log {escape(str(a['session_log']))})")

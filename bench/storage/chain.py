@@ -69,15 +69,35 @@ def continued_in(path: str | Path) -> Path | None:
     return None
 
 
+def campaign(path: str | Path) -> list[Link]:
+    """The whole campaign ``path`` belongs to, first file first: :func:`chain` up to ``path``, then the files that
+    continued it, each found in its predecessor's folder (where ``bench run --resume`` writes it: a resume elsewhere
+    is refused) by its ``previous_run_id``. The first file of a resumed campaign thus reads as the whole campaign,
+    as its last does. ValueError as for :func:`chain`, or when the forward links loop."""
+    out = chain(path)
+    seen = {ln.path.resolve() for ln in out}
+    # a completed file is never resumed (nothing is left): the folder is searched only after one that stopped
+    while out[-1].state != "completed" and (later := continued_in(out[-1].path)) is not None:
+        if later.resolve() in seen or len(out) >= MAX_CHAIN:
+            raise ValueError(f"run file {path}: the files continuing it loop back to {later}")
+        seen.add(later.resolve())
+        run = open_run(later, streams=False)
+        step = run.attrs.get("resumed_at_step")
+        out.append(Link(later, run.state, run.complete, None if step is None else int(step),
+                        int(run.program.shape[0]), str(run.attrs.get("run_id", ""))))
+    return out
+
+
 def with_chains(paths: list[Path]) -> list[Path]:
-    """``paths`` with the earlier files of each one's campaign before it, each file once, in campaign order.
+    """``paths`` with the other files of each one's campaign (:func:`campaign`: the earlier ones and those that
+    continued it), each file once, in campaign order.
     ValueError (one line naming both) for two files of one run (the same ``run_id``: a copy), whose record would
     count twice — a fit's intervals would narrow by √2 on no new data."""
     out: list[Path] = []
     seen: set[Path] = set()
     runs: dict[str, Path] = {}
     for p in paths:
-        for link in chain(p):
+        for link in campaign(p):
             key = link.path.resolve()
             if key in seen:
                 continue
