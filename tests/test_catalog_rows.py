@@ -12,7 +12,9 @@ import os
 import shutil
 import subprocess
 import sys
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import h5py
 import numpy as np
@@ -580,3 +582,77 @@ def test_a_run_file_linked_into_the_folder_is_inside_it(tmp_path: Path) -> None:
         assert sorted(Path(r["path"]).name for r in cat.rows()) == ["r1.h5", "r2.h5"]  # one row per file
     out = _bench("runs", "list", "--dir", str(store), "--catalog", shared, "--json", env=env)
     assert [r["run_id"] for r in json.loads(out.stdout)] == ["1" * 32]  # still its own folder's run too
+
+
+# ---- reading a catalogue on a read-only or full medium ---------------------------------------------------------------
+
+
+@pytest.fixture
+def refuse_writes() -> Iterator[Callable[[Path, str], None]]:
+    """``refuse(db, how)``: SQLite refuses every write to the catalogue file ``db`` from here on as a read-only folder
+    does (``"readonly"``: "attempt to write a readonly database") or lets it grow no further, as a full disk does
+    (``"full"``: "database or disk is full"). SQLite's own refusals, set on each new connection to that file: the
+    tests run as root, whom a chmod'ed folder does not stop."""
+    from sqlalchemy import event
+
+    refused: dict[str, str] = {}
+
+    def on_connect(dbapi_conn: Any, _record: Any) -> None:
+        for _, _name, file in dbapi_conn.execute("PRAGMA database_list").fetchall():
+            how = refused.get(file)
+            if how == "readonly":
+                dbapi_conn.execute("PRAGMA query_only = ON")
+            elif how == "full":
+                pages = dbapi_conn.execute("PRAGMA page_count").fetchone()[0]
+                dbapi_conn.execute(f"PRAGMA max_page_count = {max(pages, 1)}")
+
+    event.listen(sa.engine.Engine, "connect", on_connect)
+    try:
+        yield lambda db, how: refused.__setitem__(str(db.resolve()), how)
+    finally:
+        event.remove(sa.engine.Engine, "connect", on_connect)
+
+
+@pytest.mark.parametrize("how", ["readonly", "full"])
+def test_runs_list_and_specimen_show_read_a_catalogue_that_cannot_be_written(
+        tmp_path: Path, refuse_writes: Callable[[Path, str], None], how: str) -> None:
+    """`bench runs list --dir arch` on a read-only folder failed "error: run catalogue: attempt to write a readonly
+    database" (exit 2), `specimen show` too, and "database or disk is full" on a full disk (found by an outside
+    tester): the reconciliation's update was let fail the read. Now the listing is made from the files, said in a
+    note, and the catalogue file is left as it was."""
+    env = _env(tmp_path / "state")
+    arch = tmp_path / "arch"
+    arch.mkdir()
+    _small_run(arch / "r1.h5", "1" * 32, "S1", "2026-01-01T00:00:00.000+00:00", 3000.0)
+    assert _bench_here("runs", "list", "--dir", str(arch), env=env).returncode == 0  # its catalogue: r1's row
+    db = arch / "catalog.sqlite"
+    before = db.read_bytes()
+    for k in range(2, 7):  # runs the catalogue has not seen: their rows would need writing (and room)
+        _small_run(arch / f"r{k}.h5", str(k) * 32, "S1", f"2026-01-0{k}T00:00:00.000+00:00", 5000.0)
+        with h5py.File(arch / f"r{k}.h5", "r+") as f:  # a long note: rows no free room in the file's pages holds
+            f.attrs["notes"] = "n" * 20000
+    refuse_writes(db, how)
+    said = "attempt to write a readonly database" if how == "readonly" else "database or disk is full"
+    out = _bench_here("runs", "list", "--dir", str(arch), "--json", env=env)
+    assert out.returncode == 0, out.stderr
+    assert sorted(r["run_id"] for r in json.loads(out.stdout)) == sorted(_by_run(arch))  # the files, read by h5py
+    assert "cannot be written" in out.stderr and said in out.stderr and "not updated" in out.stderr, out.stderr
+    shown = _bench_here("specimen", "show", "S1", "--dir", str(arch), "--json", env=env)
+    assert shown.returncode == 0, shown.stderr
+    assert len(json.loads(shown.stdout)["runs"]) == len(_by_run(arch, "S1")) == 6
+    assert db.read_bytes() == before  # nothing written
+    table = _bench_here("runs", "list", "--dir", str(arch), env=env)
+    assert table.returncode == 0 and "r6.h5" in table.stdout and "cannot be written" in table.stdout, table.stdout
+
+
+def test_a_read_only_folder_without_a_catalogue_is_listed_from_its_files(
+        tmp_path: Path, refuse_writes: Callable[[Path, str], None]) -> None:
+    """No catalogue in the folder yet and none can be made there: the listing is the files'."""
+    arch = tmp_path / "arch"
+    arch.mkdir()
+    _small_run(arch / "r1.h5", "1" * 32, "S1", "2026-01-01T00:00:00.000+00:00", 3000.0)
+    refuse_writes(arch / "catalog.sqlite", "readonly")
+    out = _bench_here("runs", "list", "--dir", str(arch), "--json", env=_env(tmp_path / "state"))
+    assert out.returncode == 0, out.stderr
+    assert [r["run_id"] for r in json.loads(out.stdout)] == ["1" * 32]
+    assert "cannot be written" in out.stderr, out.stderr

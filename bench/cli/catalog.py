@@ -50,13 +50,44 @@ def _open(folder: Path, url: str | None, notes: list[str]) -> tuple[Any, set[str
     """The catalogue, reconciled with the run files of ``folder`` (a missing folder: nothing to reconcile), and the
     rows' paths of the files found there (a file linked into it among them); what the reconciliation found worth
     saying is added to ``notes``."""
-    from bench.storage.catalog import Catalog, catalog_url, reconcile
+    from bench.storage.catalog import (
+        Catalog,
+        CatalogNotWrittenError,
+        catalog_url,
+        memory_copy,
+        reconcile,
+        write_refused,
+    )
 
-    cat = Catalog(catalog_url(folder, url))
+    url = catalog_url(folder, url)
+    try:
+        cat = Catalog(url)
+    except Exception as exc:  # none there yet on a read-only or full medium: made in memory, if SQLite
+        if (why := write_refused(exc)) is None or (copy := memory_copy(url)) is None:
+            raise
+        cat = copy
+        notes.append(f"[yellow]run catalogue {escape(url)} cannot be written ({escape(why)})[/]: listed from the "
+                     "files; the catalogue itself is not updated")
     if not folder.is_dir():
         return cat, set()
     try:
         done = reconcile(cat, folder)
+    except CatalogNotWrittenError as exc:  # a listing is a read: the files are read, the update that failed is let go
+        shown = escape(cat.display)
+        if (copy := memory_copy(cat.url)) is None:  # a shared server: its rows as they are
+            notes.append(f"[yellow]run catalogue {shown} cannot be written ({escape(exc.why)})[/]: the listing may "
+                         "be stale (its rows as last written)")
+            done = exc.done
+        else:
+            cat.close()
+            cat = copy
+            notes.append(f"[yellow]run catalogue {shown} cannot be written ({escape(exc.why)})[/]: listed from the "
+                         "files; the catalogue itself is not updated")
+            try:
+                done = reconcile(cat, folder)
+            except BaseException:
+                cat.close()
+                raise
     except BaseException:
         cat.close()
         raise
@@ -228,7 +259,14 @@ def specimen_show(
     if not rows:
         raise ValueError(f"specimen {specimen!r}: no catalogued run (runs folder {folder}; `bench runs list`)")
     h = specimen_history(rows)
-    png = plot_history(h, specimen, plot if plot is not None else folder / plot_name(specimen))
+    try:
+        png = plot_history(h, specimen, plot if plot is not None else folder / plot_name(specimen))
+    except OSError as exc:
+        if plot is not None:  # asked for: its failure is the command's
+            raise
+        png = None  # the default beside the runs, on a read-only or full medium: the history is still shown
+        _notes([f"[yellow]plot not written[/] ({escape(' '.join(str(exc).split()))}): give --plot elsewhere"],
+               json_out)
     h["plot"] = str(png) if png is not None else None
     if json_out:
         print_json({"specimen": specimen, **h})
@@ -247,7 +285,8 @@ def specimen_show(
     for name, pts in sorted(h["parameters"].items()):
         console.print(f"{escape(name)}: " + ", ".join(f"{p['value']:.5g} at {p['cumulative_cycles']} cycles"
                                                       for p in pts), soft_wrap=True)
-    console.print(f"plot: {escape(str(png))}" if png is not None else "no fitted parameters: no plot")
+    if png is not None or not h["parameters"]:
+        console.print(f"plot: {escape(str(png))}" if png is not None else "no fitted parameters: no plot")
 
 
 @clean_errors

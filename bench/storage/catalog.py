@@ -427,6 +427,56 @@ def run_files(folder: Path) -> Iterator[Path]:
     yield from sorted(p for p in folder.rglob("*.h5") if p.is_file())
 
 
+# what a database says when a write is refused by the medium or the rights, not by the query: a read-only folder or
+# file ("attempt to write a readonly database", "unable to open database file"), a full disk, a read-only role
+_WRITE_REFUSED = ("readonly", "read-only", "read only", "disk is full", "disk full", "no space", "unable to open",
+                  "permission denied")
+
+
+def write_refused(exc: BaseException) -> str | None:
+    """Why a catalogue write failed, in one line, where the medium or the rights refused it (read-only, full disk);
+    None for any other failure."""
+    import sqlalchemy as sa
+
+    if not isinstance(exc, sa.exc.DBAPIError):
+        return None
+    why = " ".join(str(getattr(exc, "orig", None) or exc).split())[:300]
+    return why if any(w in why.lower() for w in _WRITE_REFUSED) else None
+
+
+class CatalogNotWrittenError(Exception):
+    """:func:`reconcile` read the folder but could not write what it found (``why``: read-only medium, full disk);
+    ``done``: what it found (the rows' paths in ``found``)."""
+
+    def __init__(self, why: str, done: Reconciled) -> None:
+        super().__init__(why)
+        self.why, self.done = why, done
+
+
+def memory_copy(url: str) -> Catalog | None:
+    """An in-memory catalogue holding the rows of the SQLite catalogue ``url`` (read through a read-only
+    connection: the file may lie on a read-only or full medium; none there yet: empty), for a read command to
+    reconcile and list when the file cannot be written; None for another database (a shared server)."""
+    import sqlite3
+
+    import sqlalchemy as sa
+
+    parsed = sa.engine.make_url(url)
+    if parsed.get_backend_name() != "sqlite" or parsed.database in (None, "", ":memory:"):
+        return None
+    cat = Catalog("sqlite://")  # one connection per thread for a memory database: the rows stay while cat does
+    path = Path(parsed.database)
+    if path.is_file():
+        src = sqlite3.connect(f"{path.resolve().as_uri()}?mode=ro", uri=True)
+        try:
+            with cat.engine.connect() as conn:
+                src.backup(conn.connection.driver_connection)  # type: ignore[arg-type]
+        finally:
+            src.close()
+        cat._create()  # a file without the table yet
+    return cat
+
+
 @dataclass
 class Reconciled:
     added: int = 0
@@ -468,12 +518,17 @@ def reconcile(cat: Catalog, folder: Path, rebuild: bool = False) -> Reconciled:
         else:
             out.updated += 1
     gone = [k for k in have if k not in seen]  # a linked file's row is in have only while it is seen
-    if rebuild:
-        cat.delete(host, list(have))
-    else:
-        cat.delete(host, gone)
     out.removed = len(gone)
-    cat.upsert(rows)
+    try:
+        if rebuild:
+            cat.delete(host, list(have))
+        else:
+            cat.delete(host, gone)
+        cat.upsert(rows)
+    except Exception as exc:  # a read-only or full medium: the caller may still list (CatalogNotWrittenError says what)
+        if (why := write_refused(exc)) is None:
+            raise
+        raise CatalogNotWrittenError(why, out) from exc
     return out
 
 
