@@ -1,6 +1,7 @@
 """What `bench pause`, `bench resume` and `bench run --resume` say of a file: a hint never suggests a command
-that cannot work (a manual-control session, a campaign whose every step completed), a request that would change
-nothing is refused in one line (already paused, not paused), and a resumed file names the protocol file the
+that cannot work (a manual-control session, a campaign whose every step completed), a resume that would change
+nothing is refused in one line (not paused) while a second pause is sent and said (already paused), and a resumed
+file names the protocol file the
 campaign was planned from, not the temporary copy its resume was planned from."""
 
 from __future__ import annotations
@@ -147,3 +148,14 @@ def test_pause_and_resume_refuse_what_would_change_nothing(tmp_path: Path) -> No
              if kind in ("pause", "resume", "request") and not text.startswith("stop requested")]
     assert [k for k, _ in kinds] == ["pause", "request", "resume"], kinds
     assert "ada" in kinds[0][1] and "bo" in kinds[1][1] and "already paused" in kinds[1][1] and "cy" in kinds[2][1]
+
+
+def test_the_readme_says_what_a_second_pause_does() -> None:
+    """The README said a second `bench pause` on a paused run "sends nothing … exit 2" (found by an outside tester),
+    while the command sends it and exits 0 by design (tests above: a resume may be on its way that the file does not
+    show yet). The README's paragraph on pause and resume now says what the command does."""
+    text = " ".join((ROOT / "README.md").read_text(encoding="utf-8").split())
+    para = text[text.index("**Pause and resume.**"):]
+    para = para[:para.index("**", len("**Pause and resume.**"))]
+    assert "already paused" in para and "the pause is sent anyway" in para and "exit 0" in para, para
+    assert "is not, send nothing" not in para  # the old sentence that put pause among the refusals
