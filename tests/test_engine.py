@@ -170,7 +170,7 @@ def test_current_trip_ramps_down_and_is_recorded(tmp_path: Path) -> None:
     engines: list[Engine] = []
     result, run, sim = run_virtual(SHORT / "thesis-identification-short.toml", tmp_path, {"limits": limits},
                                    hook=lambda engine, _sim: engines.append(engine))
-    assert result.state == "tripped" and "current" in result.reason and "trip level 0.00 mA" in result.reason
+    assert result.state == "tripped" and "current" in result.reason and "trip level 0.0001 mA" in result.reason
     check_safe_end(run, sim, "tripped")
     kinds = [e[2] for e in run.event_list()]
     assert "tripped" in kinds

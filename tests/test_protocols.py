@@ -573,3 +573,26 @@ def test_a_voltage_step_whose_charging_current_trips_the_limit_is_refused_or_sai
         ramp.write_text(DROP.format(rig=rig, then="ramp", body='to = "0 kV"\nduration_s = 1'))
         pred = plan_run(ramp).prediction
         assert not pred.problems and not pred.warnings
+
+
+def test_the_dry_runs_current_line_shows_the_current_and_the_limit_apart(tmp_path: Path) -> None:
+    """`bench validate` said "current 0.02 mA … beyond limits.max_current_A 0.0235 mA" (found by an outside tester):
+    the current at two decimals against the limit at full length. Both now at 4 significant figures or more."""
+    from typer.testing import CliRunner
+
+    from bench.cli import app
+    from tests.test_validation import _set
+
+    polled = tmp_path / "polled-0.0235mA.toml"
+    polled.write_text(_set((RIGS / "lsdea-motor-sim.toml").read_text(), "limits", "max_current_A", "2.35e-5"))
+    drop = tmp_path / "drop.toml"
+    drop.write_text(DROP.format(rig=polled, then="waveform", body='kind = "triangle"\namplitude = "2 kV"\n'
+                                'offset = "0 kV"\nfrequency_Hz = 1\ncycles = 2'))
+    out = CliRunner().invoke(app, ["validate", str(drop)], env={"COLUMNS": "400"})
+    (said,) = [ln for ln in out.output.splitlines() if "limits.max_current_A" in ln]
+    found = re.search(r"current (\S+) mA .* beyond limits\.max_current_A (\S+) mA", said)
+    assert found is not None, said
+    value, limit = found.groups()
+    assert limit == "0.0235", said  # the rig file's 2.35e-5 A
+    assert len(value.lstrip("-0.").replace(".", "")) >= 4 or float(value) == 0, said  # 4 significant figures
+    assert abs(float(value)) > float(limit) and value.lstrip("-") != limit, said

@@ -312,3 +312,21 @@ def test_a_maxwell_branch_without_a_positive_modulus_and_time_is_refused_naming_
                    f"branch_tau = {tau}\n"
     msg = _refused(tmp_path, text, "specimen.lsdea_model")
     assert "branch_mu and branch_tau" in msg, msg
+
+
+def test_a_trip_message_shows_the_value_and_the_limit_apart(tmp_path: Path) -> None:
+    """A 0.0235-mA current limit tripped with "current -0.02 mA beyond the trip level 0.02 mA" (found by an outside
+    tester): both rounded to two decimals. Now 4 significant figures, more where those still read the same."""
+    rig = _load(tmp_path, _set(ADAM, "limits", "max_current_A", "2.35e-5"))
+    sup = Supervisor(rig, rig.specimen.membrane())
+    with pytest.raises(SafetyTrip) as trip:
+        sup.check_monitors(0.0, -2.351e-5)
+    assert "current -0.02351 mA beyond the trip level 0.0235 mA" in trip.value.reason, trip.value.reason
+    with pytest.raises(SafetyTrip) as trip:  # past the limit in the 6th figure: shown to the 6th
+        sup.check_monitors(0.0, 2.350001e-5)
+    assert "current 0.02350001 mA beyond the trip level 0.0235 mA" in trip.value.reason, trip.value.reason
+    force = _load(tmp_path, _set(MOTOR_DAQ, "limits", "max_force_N", "2.345"))
+    sup = Supervisor(force, force.specimen.lozenge())
+    with pytest.raises(SafetyTrip) as trip:
+        sup.check_force(-2.3452)
+    assert "force -2.3452 N beyond the limit ±2.345 N" in trip.value.reason, trip.value.reason

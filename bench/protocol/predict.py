@@ -22,6 +22,7 @@ import numpy as np
 from bench.core.clock import VirtualClock
 from bench.core.motion_chain import chain
 from bench.core.plant import Plant, PlantBlock
+from bench.numbers import against
 from bench.protocol.program import Program, ProtocolLimitError, Segment, change_specimen, sample_counts
 from bench.protocol.tick_arrays import tick_arrays
 from bench.rig import plant_for
@@ -213,8 +214,8 @@ def predict(program: Program, progress: Callable[[float], None] | None = None) -
         pred.motor_range = (float(motor_lo), float(motor_hi)) if motor_lo <= motor_hi else None
     limits = program.rig.limits
     if limits.max_field_V_per_m is not None and pred.peak_field > limits.max_field_V_per_m:
-        pred.problems.append(f"peak true field {pred.peak_field / 1e6:.1f} MV/m exceeds limits.max_field_V_per_m "
-                             f"{limits.max_field_V_per_m / 1e6:.1f} MV/m")
+        field_text, limit_text = against(pred.peak_field, limits.max_field_V_per_m, 1e-6)
+        pred.problems.append(f"peak true field {field_text} MV/m exceeds limits.max_field_V_per_m {limit_text} MV/m")
     if pred.min_breakdown_margin < limits.breakdown_margin:
         pred.problems.append(f"true field {pred.field_at_min_margin / 1e6:.1f} MV/m against a breakdown field of "
                              f"{pred.breakdown_at_min_margin / 1e6:.1f} MV/m: margin {pred.min_breakdown_margin:.2f} "
@@ -223,9 +224,10 @@ def predict(program: Program, progress: Callable[[float], None] | None = None) -
         # the supervisor trips on the monitor's reading: a set-point step charges (or discharges) the film at the
         # amplifier's current limit for well under a ms; a DAQ rig's scan sees every such pulse (refused), a polled
         # monitor only as its charge over a 20-ms conversion, and only when a conversion's window holds it (said)
-        text = (f"{pred.peak_current_step}: current {pred.peak_current * 1e3:.2f} mA (as the current monitor "
+        current_text, limit_text = against(pred.peak_current, limits.max_current_A, 1e3)
+        text = (f"{pred.peak_current_step}: current {current_text} mA (as the current monitor "
                 f"{'reports it' if scanned else 'reads over a 20-ms conversion'}) beyond limits.max_current_A "
-                f"{limits.max_current_A * 1e3:g} mA, a voltage step too steep for the film's capacitance")
+                f"{limit_text} mA, a voltage step too steep for the film's capacitance")
         if scanned:
             pred.problems.append(text + " (the DAQ's monitor scan would trip the run: a slower ramp)")
         else:
@@ -233,6 +235,6 @@ def predict(program: Program, progress: Callable[[float], None] | None = None) -
                                  "more set-points avoid it)")
     peak_force = max(abs(pred.force_range[0]), abs(pred.force_range[1]))
     if np.isfinite(peak_force) and peak_force > limits.max_force_N:
-        pred.problems.append(f"force {max(abs(x) for x in pred.force_range):.2f} N exceeds limits.max_force_N "
-                             f"{limits.max_force_N:g} N")
+        force_text, limit_text = against(peak_force, limits.max_force_N)
+        pred.problems.append(f"force {force_text} N exceeds limits.max_force_N {limit_text} N")
     return pred

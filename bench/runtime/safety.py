@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 
 from bench.models.lozenge import LozengeParams, kinematics
 from bench.models.membrane import MembraneParams
+from bench.numbers import against
 from bench.rig import MONITOR_TRIP_FACTOR, MONITOR_TRIP_MARGIN_V, RigConfig
 
 
@@ -92,8 +93,9 @@ class Supervisor:
             self._trip(f"set-point {volts:.0f} V beyond the voltage limit ±{self.voltage_limit:.0f} V")
         e, e_max = self.field_and_breakdown(volts)
         if not e <= e_max:  # also trips when the estimate is NaN: an unknown field is not a safe one
-            self._trip(f"set-point {volts:.0f} V would give a true field of {e / 1e6:.1f} MV/m, limit "
-                       f"{e_max / 1e6:.1f} MV/m at the present stretch")
+            field_text, limit_text = against(e, e_max, 1e-6)
+            self._trip(f"set-point {volts:.0f} V would give a true field of {field_text} MV/m, limit "
+                       f"{limit_text} MV/m at the present stretch")
 
     def setpoint_bound(self) -> float:
         """The largest |V| [V] :meth:`check_setpoint` passes at the present stretch: the voltage limit, or less where
@@ -154,13 +156,14 @@ class Supervisor:
             self._trip(f"amplifier monitors read {volts} V, {amps} A: not a measurement")
         self.last_voltage, self.last_current = volts, amps
         if abs(amps) > self.rig.limits.max_current_A:
-            limit = self.rig.limits.max_current_A
-            self._trip(f"current {amps * 1e3:.2f} mA beyond the trip level {limit * 1e3:.2f} mA")
+            value, limit = against(amps, self.rig.limits.max_current_A, 1e3)
+            self._trip(f"current {value} mA beyond the trip level {limit} mA")
         if abs(volts) > self.voltage_limit * MONITOR_TRIP_FACTOR + MONITOR_TRIP_MARGIN_V:
             self._trip(f"output {volts:.0f} V beyond the voltage limit ±{self.voltage_limit:.0f} V")
         e, e_max = self.field_and_breakdown(volts)
         if not e <= e_max:
-            self._trip(f"true field {e / 1e6:.1f} MV/m beyond the limit {e_max / 1e6:.1f} MV/m")
+            field_text, limit_text = against(e, e_max, 1e-6)
+            self._trip(f"true field {field_text} MV/m beyond the limit {limit_text} MV/m")
 
     def check_force(self, newtons: float) -> None:
         """Load-cell force."""
@@ -168,7 +171,8 @@ class Supervisor:
             self._trip(f"load cell reads {newtons} N: not a measurement")
         self.last_force = newtons
         if abs(newtons) > self.rig.limits.max_force_N:
-            self._trip(f"force {newtons:.2f} N beyond the limit ±{self.rig.limits.max_force_N:g} N")
+            value, limit = against(newtons, self.rig.limits.max_force_N)
+            self._trip(f"force {value} N beyond the limit ±{limit} N")
 
     def check_motor(self, motor_position: float, aperture: float) -> None:
         """Motor encoder position against the travel limits; updates the aperture estimate."""
@@ -196,8 +200,9 @@ class Supervisor:
                     e, e_max = self.field_and_breakdown(volts)
                 if not e <= e_max:
                     where = "" if x == aperture else f" (passing {x * 1e3:.1f} mm on the way)"
+                    field_text, limit_text = against(e, e_max, 1e-6)
                     self._trip(f"motor set-point to aperture {aperture * 1e3:.1f} mm at {volts:.0f} V would give a "
-                               f"true field of {e / 1e6:.1f} MV/m{where}, limit {e_max / 1e6:.1f} MV/m")
+                               f"true field of {field_text} MV/m{where}, limit {limit_text} MV/m")
         self.motor_setpoints += 1
 
     def _path(self, target: float, samples: int = 16) -> list[float]:

@@ -1,0 +1,24 @@
+"""Numbers in messages that compare a value with its limit ("current 0.02351 mA beyond the trip level 0.0235 mA").
+
+Rounded to a fixed number of decimals, a value just past its limit reads as the limit itself, or a small limit as
+a rounded figure ("current -0.02 mA beyond the trip level 0.02 mA" for a 0.0235-mA limit, found by an outside
+tester). :func:`against` gives both at 4 significant figures, more where that still shows them equal.
+"""
+
+from __future__ import annotations
+
+import math
+
+MIN_DIGITS = 4  # significant figures at least
+MAX_DIGITS = 12  # beyond this a float's own rounding shows
+
+
+def against(value: float, limit: float, scale: float = 1.0) -> tuple[str, str]:
+    """``value`` and ``limit`` (each times ``scale``, e.g. 1e3 for mA from A) as text with as many significant figures,
+    at least :data:`MIN_DIGITS`, as make the value's magnitude visibly differ from the limit's when they differ."""
+    v, lim = value * scale, limit * scale
+    for digits in range(MIN_DIGITS, MAX_DIGITS + 1):
+        a, b = f"{v:.{digits}g}", f"{lim:.{digits}g}"
+        if not (math.isfinite(v) and math.isfinite(lim)) or abs(v) == abs(lim) or a.lstrip("-") != b.lstrip("-"):
+            return a, b
+    return a, b
