@@ -410,6 +410,43 @@ def test_kill_9_loses_at_most_half_a_second_and_recover_releases_the_file(tmp_pa
     assert max(lost) <= 0.5, lost
 
 
+def test_a_killed_and_recovered_file_reads_as_killed_and_says_how_far_its_streams_go(tmp_path: Path) -> None:
+    """After `bench recover`, a killed file still listed as "running, incomplete", and inspect said "recorded up to
+    124.746 s" while its streams ended at 128.5 s (found by an outside tester): /status/updated is the time to which
+    every stream is complete, and a stream's whole-chunk writes run ahead of it. Now the listing says the run crashed
+    or was killed, and inspect and recover say how far the streams go."""
+    from typer.testing import CliRunner
+
+    from bench.cli import app
+    from bench.storage.recover import recover
+
+    _, path = _kill_once(tmp_path, 0, random.Random(5))
+    recover(path)
+    with h5py.File(path, "r+") as f:  # a stream ahead of the time to which all are complete, as the tester's file
+        last = float(f["laser/t"][-1])
+        f["status/updated"][0] = last - 0.25
+        state = f["status/state"][0]
+    assert state == b"running"  # the file's state: nothing stamped its end
+    said = "\n".join(recover(path).lines())  # already released: nothing to do, and what the file holds
+    assert "state crashed or killed — INCOMPLETE" in said, said
+    assert f"recorded up to {last - 0.25:.3f} s (every stream complete to here; some stream's samples go on to " \
+           f"{last:.3f} s)" in said, said
+    runner = CliRunner()
+    out = runner.invoke(app, ["inspect", str(path)], env={"COLUMNS": "300"})
+    flat = " ".join(out.output.split())
+    assert f"{last - 0.25:.3f} s of" in flat and f"go on to {last:.3f} s" in flat, out.output
+    assert "crashed or killed — INCOMPLETE" in flat, out.output
+    out = runner.invoke(app, ["inspect", str(path), "--json"])
+    rec = json.loads(out.output)
+    rec = rec[0] if isinstance(rec, list) else rec
+    assert rec["last_sample_s"] == last and rec["recorded_up_to_s"] == last - 0.25 and rec["state"] == "running"
+    out = runner.invoke(app, ["runs", "list", "--dir", str(tmp_path)],
+                        env={"COLUMNS": "300", "BENCH_CATALOG": f"sqlite:///{tmp_path / 'cat.sqlite'}"})
+    assert out.exit_code == 0, out.output
+    row = next(ln for ln in out.output.splitlines() if path.name in ln)
+    assert "crashed or killed, incomplete" in row and "running" not in row, out.output
+
+
 STAMP_KILLER = textwrap.dedent(f"""
     import os, signal, sys
     from pathlib import Path

@@ -199,6 +199,13 @@ class Inspection:
         self.manual = bool(self.run.attrs.get("session_log"))  # a manual-control session's readings
 
     @property
+    def last_sample(self) -> float | None:
+        """The time of the last sample of any stream [s] (None: no samples): a stream's whole-chunk writes run
+        ahead of ``recorded up to`` (``/status/updated``, the time to which every stream is complete)."""
+        ends = [s.last_t for s in self.streams.values() if s.samples and s.last_t is not None]
+        return max(ends) if ends else None
+
+    @property
     def complete(self) -> bool:
         return bool(self.run.complete)
 
@@ -215,7 +222,8 @@ class Inspection:
                 "fits_error": self.fits_error or None,
                 "state": r.state, "complete": r.complete,
                 "incomplete_reason": None if r.complete else r.incomplete_reason, "reason": r.reason,
-                "end_time": r.end_time, "recorded_up_to_s": r.updated,
+                "end_time": r.end_time, "recorded_up_to_s": r.updated, "last_sample_s": self.last_sample,
+                "state_shown": r.state_shown,
                 "streams": {name: {"samples": s.samples, "from_s": s.first, "to_s": s.last_t, "units": s.units,
                                    "last": s.last} for name, s in self.streams.items()},
                 "events": [{"t_s": t, "step": step, "kind": kind, "text": text}

@@ -193,6 +193,8 @@ def runs_list(
     the catalogue with the files."""
     import json
 
+    from bench.storage.runfile import state_shown
+
     cutoff = _since(since) if since is not None else None
     if state is not None and state not in RUN_STATES:
         raise ValueError(f"--state: {state!r} is not a run state ({', '.join(RUN_STATES)})")
@@ -212,7 +214,8 @@ def runs_list(
     for col in ("started (UTC)", "file", "protocol", "specimen", "operator", "state", "steps", "HV time", "fits"):
         t.add_column(col)
     for r in rows:
-        state_txt = r["state"] if r["complete"] else f"[red]{r['state']}, incomplete[/]"
+        shown = state_shown(r["state"], bool(r["complete"]), r["incomplete_reason"] or "")
+        state_txt = shown if r["complete"] else f"[red]{shown}, incomplete[/]"
         t.add_row(str(r["start_time"] or "")[:19], escape(Path(r["path"]).name), escape(r["protocol_name"] or ""),
                   escape(r["specimen_id"] or ""), escape(r["operator"] or ""), state_txt,
                   f"{r['steps_completed'] or 0}/{r['steps_total'] or 0}", _hours(r["hv_time_s"]),
@@ -229,7 +232,7 @@ def _history_table(specimen: str, h: dict[str, Any]) -> Any:
     for r in h["runs"]:
         field = r["max_nominal_field_V_per_m"]
         t.add_row(str(r["start_time"] or "")[:19], escape(Path(r["file"]).name), escape(r["protocol"] or ""),
-                  r["state"] if r["complete"] else f"[red]{r['state']}, incomplete[/]", r["steps"],
+                  r["state_shown"] if r["complete"] else f"[red]{r['state_shown']}, incomplete[/]", r["steps"],
                   _hours(r["hv_time_s"]), str(r["hv_cycles"] or 0), _hours(r["cumulative_hv_time_s"]),
                   str(r["cumulative_cycles"]), "–" if field is None else f"{field / 1e6:.2f}")
     return t

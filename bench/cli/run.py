@@ -372,6 +372,8 @@ def _inspect(run_file: Path, json_out: bool) -> tuple[dict[str, object] | None, 
 
 def _inspect_tables(found: Inspection) -> None:
     """``bench inspect`` on a terminal: the run file's metadata, its streams, its last events and its fits."""
+    from bench.storage.runfile import recorded_note
+
     r, a, run_file, manual = found.run, found.run.attrs, found.file, found.manual
     meta = Table(title="run file", show_header=False)
     meta.add_column("", style="bold")
@@ -398,14 +400,15 @@ def _inspect_tables(found: Inspection) -> None:
     for k, text in enumerate(found.notes):
         meta.add_row("notes" if k == 0 else "", escape(text))
     meta.add_row("started", str(a.get("start_time")))
-    state = r.state if r.complete else f"[red]{r.state} — INCOMPLETE: {r.incomplete_reason}[/]"
+    state = r.state if r.complete else f"[red]{r.state_shown} — INCOMPLETE: {r.incomplete_reason}[/]"
     meta.add_row("state", state)
     if r.reason:
         meta.add_row("reason", r.reason)
     if r.end_time:
         meta.add_row("ended", r.end_time)
-    meta.add_row("recorded up to", f"{r.updated:.3f} s" if manual else
-                 f"{r.updated:.3f} s of {float(a.get('duration_planned', 0)):.1f} s planned")
+    meta.add_row("recorded up to", f"{r.updated:.3f} s" + ("" if manual else
+                 f" of {float(a.get('duration_planned', 0)):.1f} s planned") + recorded_note(r.updated,
+                                                                                    found.last_sample))
     console.print(meta)
     streams = Table(title="streams")
     for col in ("stream", "samples", "from [s]", "to [s]", "columns (units): last value"):

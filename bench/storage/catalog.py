@@ -596,6 +596,8 @@ def specimen_history(rows: list[dict[str, Any]]) -> dict[str, Any]:
     """A specimen's runs in start order with cumulative high-voltage time and cycles, its peak nominal field against
     the model's breakdown field, the runs that failed or did not finish, and each fitted parameter over its life
     (a fit stored with every file of a campaign counts once, at the last of them)."""
+    from bench.storage.runfile import state_shown
+
     runs, cum_t, cum_c = [], 0.0, 0
     best: tuple[float, float | None, str] | None = None  # (nominal field, breakdown field, file)
     fits: dict[tuple[str, str, str], tuple[int, dict[str, Any], str]] = {}
@@ -615,6 +617,7 @@ def specimen_history(rows: list[dict[str, Any]]) -> dict[str, Any]:
             fits[key] = (cum_c, fit, r["path"])  # the last file holding it wins
         runs.append({"file": r["path"], "start_time": r["start_time"], "protocol": r["protocol_name"],
                      "state": r["state"], "complete": bool(r["complete"]),
+                     "state_shown": state_shown(r["state"], bool(r["complete"]), r["incomplete_reason"] or ""),
                      "steps": f"{r['steps_completed'] or 0}/{r['steps_total'] or 0}",
                      "previous_file": r["previous_file"], "copies": r.get("copies", []),
                      "hv_time_s": r["hv_time_s"], "hv_cycles": r["hv_cycles"],

@@ -29,7 +29,7 @@ import h5py
 
 from bench.storage.recorder import FORMAT, FORMATS, STATES, STORAGE_FAULT, abandon, cause, ignore_sigxfsz, now_iso
 from bench.storage.repair import Patches, open_view, root_attribute_patches, superblock_patches, write_patches
-from bench.storage.runfile import open_run, refuse_truncated, valid_counts
+from bench.storage.runfile import open_run, recorded_note, refuse_truncated, state_shown, valid_counts
 from bench.storage.superblock import Superblock, open_elsewhere, read_superblock
 
 RECOVERED_REASON = "recovered after crash"
@@ -55,16 +55,21 @@ class RecoveryReport:
     path: Path
     actions: list[str] = field(default_factory=list)  # what was changed ([] if the file needed nothing)
     samples: dict[str, int] = field(default_factory=dict)  # valid records per stream after recovery
-    recorded_up_to: float = 0.0  # run time of the writer's last successful flush [s]
+    recorded_up_to: float = 0.0  # run time to which the writer's last successful flush completed every stream [s]
+    last_sample: float | None = None  # the last sample of any stream [s] (whole-chunk writes run ahead of the above)
     state: str = ""
     incomplete_reason: str = ""
 
     def lines(self) -> list[str]:
         """The report as text, one item a line."""
         out = [f"run file {self.path}: " + ("; ".join(self.actions) if self.actions else "nothing to recover")]
-        out.append(f"state {self.state}" + (f" — INCOMPLETE: {self.incomplete_reason}" if self.incomplete_reason
-                                            else " (complete)"))
-        out.append(f"recorded up to {self.recorded_up_to:.3f} s")
+        if self.incomplete_reason:
+            out.append(f"state {state_shown(self.state, False, self.incomplete_reason)} — INCOMPLETE: "
+                       f"{self.incomplete_reason}")
+        else:
+            out.append(f"state {self.state} (complete)")
+        out.append(f"recorded up to {self.recorded_up_to:.3f} s" + recorded_note(self.recorded_up_to,
+                                                                                   self.last_sample))
         out += [f"{name}: {n:,} samples" for name, n in self.samples.items()]
         return out
 
@@ -139,6 +144,8 @@ def recover(path: str | Path) -> RecoveryReport:
         raise ValueError(f"run file {p}: cannot write the recovery marks: {cause(exc)}") from None
     run = open_run(p)
     report.samples = {name: len(s) for name, s in run.streams.items()}
+    ends = [float(s.t[-1]) for s in run.streams.values() if len(s)]
+    report.last_sample = max(ends) if ends else None
     report.recorded_up_to, report.state, report.incomplete_reason = run.updated, run.state, run.incomplete_reason
     return report
 

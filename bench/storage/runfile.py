@@ -34,6 +34,26 @@ class Stream:
         return int(self.t.size)
 
 
+KILLED = "no end recorded: the run crashed or was killed"  # a dead writer's file: the start of its incomplete_reason
+
+
+def state_shown(state: str, complete: bool, incomplete_reason: str) -> str:
+    """A run's state as a listing shows it: the file's ``/status/state``, except that a file whose writer died says
+    so — its state stays ``running`` (nothing stamped its end; ``bench recover`` keeps it), which read as a run
+    still going after ``bench recover`` (found by an outside tester)."""
+    if state == "running" and not complete and incomplete_reason.startswith(KILLED):
+        return "crashed or killed"
+    return state
+
+
+def recorded_note(updated: float, last_sample: float | None) -> str:
+    """What "recorded up to ``updated`` s" means where a stream runs past it (its whole-chunk writes run ahead of the
+    time to which every stream is complete, ``/status/updated``): '' where none does."""
+    if last_sample is None or last_sample <= updated + 5e-4:  # the same at the 3 decimals shown
+        return ""
+    return f" (every stream complete to here; some stream's samples go on to {last_sample:.3f} s)"
+
+
 @dataclass
 class RunFile:
     """Contents of a run file."""
@@ -56,6 +76,11 @@ class RunFile:
         return str(self.attrs.get("recovered_at", ""))
 
     @property
+    def state_shown(self) -> str:
+        """:func:`state_shown` of this file."""
+        return state_shown(self.state, self.complete, self.incomplete_reason)
+
+    @property
     def storage_fault(self) -> str:
         """Why writing the file failed, as its writer marked ``/status/reason`` then ('' if it did not)."""
         if self.state == "running" and self.reason.startswith(STORAGE_FAULT):
@@ -75,10 +100,10 @@ class RunFile:
         if self.recovered_at and self.state != "running":  # its end is in /status: the stamp of the root failed
             return f"finished ({self.state}) but not finalised (file recovered at {self.recovered_at})"
         if self.recovered_at:
-            return f"no end recorded: the run crashed or was killed (file recovered at {self.recovered_at})"
+            return f"{KILLED} (file recovered at {self.recovered_at})"
         if self.orphaned:
-            return ("no end recorded: the run crashed or was killed (no process on this machine has the file "
-                    "open; `bench recover` releases it for other HDF5 tools)")
+            return (f"{KILLED} (no process on this machine has the file open; `bench recover` releases it for other "
+                    "HDF5 tools)")
         if self.state == "running":
             return "no end recorded: the run is still going, or it crashed / was killed"
         return "finished but not finalised (writer stopped before stamping the file)"
