@@ -656,3 +656,24 @@ def test_a_read_only_folder_without_a_catalogue_is_listed_from_its_files(
     assert out.returncode == 0, out.stderr
     assert [r["run_id"] for r in json.loads(out.stdout)] == ["1" * 32]
     assert "cannot be written" in out.stderr, out.stderr
+
+
+def test_specimen_show_skips_a_default_plot_it_cannot_write(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """On a read-only archive the history is shown and the default plot beside the runs skipped, said in one line;
+    a --plot asked for that cannot be written is the command's error."""
+    from bench.storage import catalog
+
+    arch = tmp_path / "arch"
+    arch.mkdir()
+    _small_run(arch / "r1.h5", "1" * 32, "S1", "2026-01-01T00:00:00.000+00:00", 3000.0, fit={"mu": 1.0})
+
+    def refused(_h: object, _specimen: str, out: Path) -> Path:
+        raise PermissionError(13, "Permission denied", str(out))
+
+    monkeypatch.setattr(catalog, "plot_history", refused)
+    env = _env(tmp_path / "state")
+    out = _bench_here("specimen", "show", "S1", "--dir", str(arch), "--json", env=env)
+    assert out.returncode == 0, out.stderr
+    assert json.loads(out.stdout)["plot"] is None and "plot not written" in out.stderr, out.stderr
+    asked = _bench_here("specimen", "show", "S1", "--dir", str(arch), "--plot", str(tmp_path / "p.png"), env=env)
+    assert asked.returncode == 2 and "Permission denied" in asked.stderr, asked.stderr

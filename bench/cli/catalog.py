@@ -43,6 +43,7 @@ def _db_errors(fn: Callable[P, R]) -> Callable[P, R]:
     return wrapper
 
 
+NO_FIT_PLOT = "no fitted parameters: no plot"  # specimen show on a specimen whose runs hold no fit
 RUN_STATES = ("completed", "running", "interrupted", "tripped", "error")  # a run file's /status/state
 
 
@@ -238,6 +239,21 @@ def _history_table(specimen: str, h: dict[str, Any]) -> Any:
     return t
 
 
+def _plot(h: dict[str, Any], specimen: str, folder: Path, plot: Path | None, json_out: bool) -> Path | None:
+    """The specimen's parameter plot (``plot``, default beside the runs); a default that cannot be written (a
+    read-only or full medium) is skipped, said in one line: the history is still shown."""
+    from bench.storage.catalog import plot_history
+
+    try:
+        return plot_history(h, specimen, plot if plot is not None else folder / plot_name(specimen))
+    except OSError as exc:
+        if plot is not None:  # asked for: its failure is the command's
+            raise
+        _notes([f"[yellow]plot not written[/] ({escape(' '.join(str(exc).split()))}): give --plot elsewhere"],
+               json_out)
+        return None
+
+
 @clean_errors
 @_db_errors
 def specimen_show(
@@ -252,7 +268,7 @@ def specimen_show(
 ) -> None:
     """A specimen's life: its runs in order, time under high voltage, cycles, highest nominal field against the
     model's breakdown field, failures, and each fitted parameter over its cycles (with a plot)."""
-    from bench.storage.catalog import plot_history, specimen_history
+    from bench.storage.catalog import specimen_history
 
     notes: list[str] = []
     cat, found = _open(folder, catalog, notes)
@@ -262,14 +278,7 @@ def specimen_show(
     if not rows:
         raise ValueError(f"specimen {specimen!r}: no catalogued run (runs folder {folder}; `bench runs list`)")
     h = specimen_history(rows)
-    try:
-        png = plot_history(h, specimen, plot if plot is not None else folder / plot_name(specimen))
-    except OSError as exc:
-        if plot is not None:  # asked for: its failure is the command's
-            raise
-        png = None  # the default beside the runs, on a read-only or full medium: the history is still shown
-        _notes([f"[yellow]plot not written[/] ({escape(' '.join(str(exc).split()))}): give --plot elsewhere"],
-               json_out)
+    png = _plot(h, specimen, folder, plot, json_out)
     h["plot"] = str(png) if png is not None else None
     if json_out:
         print_json({"specimen": specimen, **h})
@@ -283,13 +292,12 @@ def specimen_show(
                       + (f" = {ratio:.3f} × the model's breakdown field {h['breakdown_field_V_per_m'] / 1e6:.1f} MV/m"
                          if ratio is not None else ""))
     for f in h["failures"]:
-        console.print(f"[red]failed / incomplete[/]: {escape(Path(f['file']).name)} ({f['state']}): "
+        console.print(f"[red]failed / incomplete[/]: {escape(Path(f['file']).name)} ({f['state_shown']}): "
                       f"{escape(str(f['reason']))}", soft_wrap=True)
     for name, pts in sorted(h["parameters"].items()):
         console.print(f"{escape(name)}: " + ", ".join(f"{p['value']:.5g} at {p['cumulative_cycles']} cycles"
                                                       for p in pts), soft_wrap=True)
-    if png is not None or not h["parameters"]:
-        console.print(f"plot: {escape(str(png))}" if png is not None else "no fitted parameters: no plot")
+    console.print(f"plot: {escape(str(png))}" if png else ("no plot" if h["parameters"] else NO_FIT_PLOT))
 
 
 @clean_errors

@@ -610,6 +610,7 @@ def specimen_history(rows: list[dict[str, Any]]) -> dict[str, Any]:
             best = (field, r["breakdown_field_V_per_m"], r["path"])
         if r["state"] in ("tripped", "error") or not r["complete"]:
             failures.append({"file": r["path"], "state": r["state"],
+                             "state_shown": state_shown(r["state"], bool(r["complete"]), r["incomplete_reason"] or ""),
                              "reason": r["incomplete_reason"] if not r["complete"] else r["reason"]})
         for fit in json.loads(r["fits"] or "[]"):
             # a campaign fit is stored with each of its files (each copy stamped when written): one fit, one key
