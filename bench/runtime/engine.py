@@ -547,6 +547,11 @@ class Engine:
         polls of :meth:`_drain_polls` that are due (``due``: each one's next run time, a step's schedule continued;
         else now), recorded and checked by the supervisor and the verifiers; nothing while stopping (0 V is
         commanded then, and verified right after)."""
+        return self._supervision(due)[0]
+
+    def _supervision(self, due: dict[str, float] | None = None) -> tuple[Callable[[], None], dict[str, float]]:
+        """:meth:`_supervised`'s call, and its schedule: each poll's next run time, advanced by the call (a manual
+        session waits until the earliest of them, between commands as in a ``wait``)."""
         start = self.now()
         polls = {} if self._stopping else self._drain_polls()
         nxt = {name: (due or {}).get(name, start) for name in polls}
@@ -557,11 +562,12 @@ class Engine:
                 if nxt[name] <= now + 1e-12:
                     self._check_stop()
                     poll.run(self.ctx, nxt[name] - self.ctx.offset)  # its lateness: against this schedule
-                    nxt[name] += period * (math.floor((now - nxt[name]) / period) + 1)  # next slot of its grid
+                    # the next slot of its grid (one that fell due within the 1e-12 tolerance counts as run)
+                    nxt[name] += period * (max(0, math.floor((now - nxt[name]) / period)) + 1)
             if polls:
                 self.snapshot.headroom = self.sup.headroom()
                 self.rec.maybe_flush()
-        return supervise
+        return supervise, nxt
 
     def _streaming(self) -> bool:
         """Whether a DAQ stream plays (the next step already in it): the output is the device's, not a set-point's."""
