@@ -109,6 +109,24 @@ class Mismatch:
     lasted: float
 
 
+@dataclass(frozen=True)
+class Verdict:
+    """The last polled monitor reading as the verifier judged it: run time [s], measured [V], its band [V], whether
+    the band is the last set-point's alone (``settled``: no earlier value within the lag may still show), and how
+    many readings in a row were out of it (:data:`POLLED_READINGS` latch)."""
+
+    t: float
+    measured: float
+    lo: float
+    hi: float
+    settled: bool
+    bad: int
+
+    @property
+    def in_band(self) -> bool:
+        return self.lo <= self.measured <= self.hi
+
+
 def _trailing_extremes(x: np.ndarray, width: int, n: int) -> tuple[np.ndarray, np.ndarray]:
     """(min, max) of the ``width`` values of ``x`` ending at each of its last ``n`` (``x`` holds at least
     n + width − 1): extremes of power-of-two spans built by doubling, two of them cover a window — exact, and
@@ -146,6 +164,7 @@ class OutputVerifier:
         self._bad_since: float | None = None  # run time of the first out-of-band sample of the present run
         self._bad_count = 0
         self._history: list[tuple[float, float]] = []  # polled: (run time, commanded) of recent set-points
+        self.last: Verdict | None = None  # polled: the last reading judged against a band
 
     def _band(self, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         tol = self.tol_v + self.tol_rel * np.maximum(np.abs(lo), np.abs(hi))
@@ -211,10 +230,13 @@ class OutputVerifier:
             return None
         window.append(before[-1])
         lo, hi = self._band(np.array([min(window)]), np.array([max(window)]))
+        settled = min(window) == max(window) == self._history[-1][1]
         if lo[0] <= measured <= hi[0]:
             self._bad_count, self._bad_since = 0, None
+            self.last = Verdict(t, measured, float(lo[0]), float(hi[0]), settled, 0)
             return None
         self._bad_count += 1
+        self.last = Verdict(t, measured, float(lo[0]), float(hi[0]), settled, self._bad_count)
         if self._bad_since is None:
             self._bad_since = t
         if self._bad_count >= POLLED_READINGS:
