@@ -151,7 +151,9 @@ def test_a_motor_drive_error_during_a_move_is_an_error_line_and_the_output_is_ze
             twin.inject_error(ERR_MAX_POS_OVERSHOT)
         motor.move_to = failing_move
         out = s.execute("move 30")
-        assert out.status == "error" and "motor: drive error" in out.text and "output zeroed" in out.text, out
+        # said by the move's own status loop or by the encoder's poll in between (a run's move step polls it)
+        assert out.status == "error" and re.search(r"motor: drive (reports )?error", out.text), out
+        assert "output zeroed" in out.text, out
         assert abs(_plant_volts(s._sim)) < ZERO_V
         assert s.execute("read").status == "ok"
 
@@ -523,8 +525,9 @@ def test_a_monitor_that_disagrees_with_the_set_point_latches_the_output_off(tmp_
         out = s.execute("voltage 1kV")
         assert out.status == "refused" and "latched" in out.text and "output mismatch" in out.text
         assert abs(_plant_volts(s._sim)) < ZERO_V
-    # one reading out of the band (logged), the second latched: the trip names it
-    assert len([r for r in _rows(tmp_path / "s.log") if r[3] == "watch"]) == 1
+    # one reading out of the band, the second latched (the monitors are polled between the watch's readings too,
+    # as in a run's hold: the trip may come before the watch's first): the trip names it
+    assert len([r for r in _rows(tmp_path / "s.log") if r[3] == "watch"]) <= 1
     from bench.storage.runfile import open_run
 
     run = open_run(tmp_path / "s.h5")  # the readings' file: still latched at the end
@@ -532,6 +535,7 @@ def test_a_monitor_that_disagrees_with_the_set_point_latches_the_output_off(tmp_
     (latched,) = [text for _, _, kind, text in run.event_list() if kind == "latched"]
     assert "(output mismatch)" in latched and "stays off" in latched
     assert run.streams["amplifier"].columns["voltage"].max() > 4900  # the reading that latched is on file
+    assert (run.streams["amplifier"].columns["voltage"] > 4500).sum() == 2  # README: two readings in a row latch
     measured, commanded = map(float, re.search(r"read (-?\d+) V .* where (-?\d+) V was commanded",  # type: ignore[union-attr]
                                                out_trip.text).groups())
     assert abs(commanded - 4000) <= ZERO_V and abs(measured - 1.25 * 4000) < 50, out_trip

@@ -102,8 +102,8 @@ from bench.rig import RigConfig, rig_to_toml
 from bench.runtime import latch as rig_latch
 from bench.runtime.engine import stop_signals
 from bench.runtime.instruments import Instruments, build_instruments
-from bench.runtime.interlock import InterlockTrip
-from bench.runtime.manual_mode import KEEPALIVE_S, ManualEngine, PauseRequested, Refused, StopRequested
+from bench.runtime.interlock import POLLED_READINGS, InterlockTrip
+from bench.runtime.manual_mode import IDLE_MIN_S, KEEPALIVE_S, ManualEngine, PauseRequested, Refused, StopRequested
 from bench.runtime.rig_lock import claimed
 from bench.runtime.safety import SafetyTrip, Supervisor
 from bench.storage.recorder import Recorder, now_iso
@@ -115,14 +115,16 @@ DEFAULT_SPEED = 0.02  # m/s
 SETTLE_S = 0.3  # after a voltage set-point: the monitors convert at 10 S/s (ADAM-4017+)
 HISTORY_FILE = ".bench_history"  # in the user's home folder: what was typed at the interactive prompt
 HISTORY_LENGTH = 1000
-HELP = "\n".join(line[4:] for line in (__doc__ or "").splitlines() if line.startswith("    "))
+HELP = "\n".join(line[4:].replace("``", "") for line in (__doc__ or "").splitlines() if line.startswith("    "))
+PROMPT = "(at the prompt)"  # the log's command column for what happened between commands
 
 __all__ = ["HELP", "ManualSession", "Outcome", "Refused", "data_path", "prompt_lines", "session_log_name"]
 
 
 @dataclass
 class Outcome:
-    """What one command did: status ok | refused | trip | error | interrupted | paused, and one line of text."""
+    """What one command did: status ok | unsettled (a set-point sent, the output not verified on its monitor) |
+    refused | trip | error | interrupted | paused, and one line of text."""
 
     command: str
     status: str
@@ -264,18 +266,33 @@ class ManualSession:
                      if rig.motor is not None else ""))
 
     def _feed(self) -> None:
-        """Between commands (wall clock): the set-point re-sent every KEEPALIVE_S; a fault latches at once."""
-        while not self._stop.wait(KEEPALIVE_S):
-            with self._lock, contextlib.suppress(InstrumentError, SafetyTrip, Refused, StopRequested,
-                                                 PauseRequested, OSError):
-                if self.engine is None or self._ending:
+        """Between commands (wall clock): what a run's hold does (:meth:`ManualEngine.idle`) — the set-point re-sent
+        every KEEPALIVE_S and, while the output is on or the motor moves, the rig's polls at their rates (current
+        limit, output against the commanded band, encoder, load cell); a trip zeroes the output and a fault latches
+        at once, without waiting for a command."""
+        wait = KEEPALIVE_S
+        while not self._stop.wait(wait):
+            wait = KEEPALIVE_S
+            with self._lock, contextlib.suppress(Refused, StopRequested, PauseRequested, OSError):
+                engine = self.engine
+                if engine is None or self._ending:
                     continue
+                out: Outcome | None = None
                 try:
-                    self.engine.keep_alive()
+                    engine.idle()
+                    wait = min(KEEPALIVE_S, max(IDLE_MIN_S, engine.idle_due() - engine.now()))
                 except InterlockTrip as trip:  # between commands: the operator is told at the prompt
-                    self.echo(f"trip: {self._latch(trip)}")
+                    out = Outcome(PROMPT, "trip", self._latch(trip))
+                except SafetyTrip as exc:
+                    out = Outcome(PROMPT, "trip", f"{exc.reason}; {self._made_safe(engine)}")
+                except InstrumentError as exc:
+                    out = Outcome(PROMPT, "error", f"{exc}; {self._made_safe(engine)}")
                 except PauseRequested:  # SIGUSR1 at the prompt: paused now, not at the next command
-                    out = self._paused("(SIGUSR1 at the prompt)", self.engine, self.engine.pause_asked_by())
+                    out = self._paused("(SIGUSR1 at the prompt)", engine, engine.pause_asked_by())
+                if out is not None:
+                    out.text = _printable(" ".join(out.text.splitlines()))
+                    if out.status != "paused":
+                        self.outcomes.append(out)  # counted as a command's trip: a script stops at it
                     self._write(out.command, out.status, out.text)  # a pause that failed latched or made safe
                     self.echo(f"{out.status}: {out.text}")
 
@@ -396,6 +413,7 @@ class ManualSession:
         script: an unattended session does not go on after a trip), saying so in the log and to the operator."""
         it = iter(lines)
         engine = self._engine()
+        checked = len(self.outcomes)  # outcomes looked at for a trip (a command's, or one between commands)
         try:
             while self.end_reason is None:
                 with engine.prompt():  # a stop signal while waiting for a line leaves the wait at once
@@ -407,10 +425,17 @@ class ManualSession:
                     continue
                 if line in ("quit", "exit"):
                     break
-                out = self.execute(line)
-                if out.status == "trip" and stop_on_trip:
-                    text = (f"the script stops at the trip of '{out.command}': the commands after it are not run "
-                            "(an unattended script does not go on after a trip); the session ends through its "
+                with self._lock:  # a trip between commands (the keep-alive thread's polls) stops a script too
+                    trips = [o for o in self.outcomes[checked:] if o.status == "trip"]
+                    checked = len(self.outcomes)
+                if not (trips and stop_on_trip):
+                    self.execute(line)
+                    with self._lock:
+                        trips += [o for o in self.outcomes[checked:] if o.status == "trip"]
+                        checked = len(self.outcomes)
+                if trips and stop_on_trip:
+                    text = (f"the script stops at the trip of '{trips[0].command}': the commands after it are not "
+                            "run (an unattended script does not go on after a trip); the session ends through its "
                             "safe exit")
                     self._write("session", "stopped", text)
                     self.echo(f"stopped: {text}")
@@ -448,10 +473,10 @@ class ManualSession:
                 engine = self._engine()
                 engine.interruptible = self._interactive
                 try:
-                    text = handler(*args) or ""
+                    said = handler(*args) or ""
                 finally:
                     engine.interruptible = False
-                out = Outcome(shown, "ok", text)
+                out = Outcome(shown, *said) if isinstance(said, tuple) else Outcome(shown, "ok", said)
             except (StopRequested, OperationCancelledError) as exc:
                 assert engine is not None
                 if self.end_reason is not None:
@@ -564,28 +589,48 @@ class ManualSession:
             raise Refused("this rig has no amplifier")
         return self._inst.amplifier
 
-    def _cmd_voltage(self, value: str) -> str:
+    def _cmd_voltage(self, value: str) -> str | tuple[str, str]:
         target = to_si(value, "V")
         self._amp()  # refused on a rig without one, before anything is sent or kept alive
         engine = self._engine()
         sent = engine.reach(target)
-        engine.hold(SETTLE_S)
-        return f"set-point {sent:.0f} V; " + self._cmd_read()
+        return self._settled(f"set-point {sent:.0f} V")
 
-    def _cmd_ramp(self, value: str, duration: str) -> str:
+    def _cmd_ramp(self, value: str, duration: str) -> str | tuple[str, str]:
         target, seconds = to_si(value, "V"), to_si(duration, "s")
         if not 0 < seconds <= 3600:
             raise Refused(f"ramp duration {seconds:g} s: give 0 < DURATION ≤ 3600 s")
         start = float(self._amp().commanded)
         engine = self._engine()
         n = engine.ramp(target, seconds, RAMP_HZ)
-        engine.hold(SETTLE_S)
-        return f"ramped {start:.0f} → {target:.0f} V in {seconds:g} s ({n} set-points); " + self._cmd_read()
+        return self._settled(f"ramped {start:.0f} → {target:.0f} V in {seconds:g} s ({n} set-points)")
+
+    def _settled(self, what: str) -> str | tuple[str, str]:
+        """After a set-point: the output let settle (SETTLE_S, at least the verifier's lag: its band is then the
+        set-point's alone), every channel read, and the output verifier's judgement of that reading said — ``ok``
+        only where the voltage monitor is within the set-point's band; else status ``unsettled``, the reading and
+        the band (the interlock latches when it stays out: :data:`~bench.runtime.interlock.POLLED_READINGS`)."""
+        engine = self._engine()
+        t_sent = engine.now()
+        engine.hold(max(SETTLE_S, engine.verifier.lag))
+        read = self._cmd_read()
+        v = engine.verifier.last
+        if v is None or v.t < t_sent:
+            return "unsettled", f"{what}, not verified: no valid voltage-monitor reading since it; {read}"
+        band = f"{v.lo:.0f} … {v.hi:.0f} V"
+        if not v.in_band:
+            return "unsettled", (f"{what}, not verified: the voltage monitor reads {v.measured:.0f} V, outside "
+                                 f"{band} ({v.bad} of {POLLED_READINGS} readings in a row; the interlock latches at "
+                                 f"{POLLED_READINGS}); {read}")
+        if not v.settled:
+            return "unsettled", f"{what}, not yet settled: the band still spans an earlier set-point ({band}); {read}"
+        return f"{what}, verified on the voltage monitor (within {band}); {read}"
 
     def _cmd_zero(self) -> str:
         self._amp()
-        self._engine().zero()
-        return "output 0 V"
+        engine = self._engine()
+        engine.zero()
+        return f"output to {engine.ctx.v_cmd:.1f} V (the set-point sent and recorded: the DAC's code nearest 0 V)"
 
     def _motor(self) -> Any:
         if self._inst is None or self._inst.motor is None:

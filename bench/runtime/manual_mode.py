@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 import threading
+from collections.abc import Callable
 
 from bench.core.clock import Clock
 from bench.protocol.program import Program
@@ -30,13 +31,14 @@ from bench.protocol.schema import Protocol, ProtocolHeader
 from bench.rig import RigConfig
 from bench.runtime.engine import Engine, PauseRequested, StopRequested
 from bench.runtime.instruments import Instruments
-from bench.runtime.interlock import InterlockTrip, OutputVerifier, motion_trip
+from bench.runtime.interlock import OUTPUT_ON_V, InterlockTrip, OutputVerifier, motion_trip
 from bench.runtime.polls import rig_polls
 from bench.runtime.safety import SafetyTrip, Supervisor
 from bench.storage.recorder import Recorder
 from drivers.errors import InstrumentError, InstrumentStateError
 
 KEEPALIVE_S = 0.25  # set-point refresh while holding (feeds the analog module's communication watchdog)
+IDLE_MIN_S = 1e-3  # a hold waits at least this long between two idle actions (no busy loop on a late schedule)
 MOVE_POLL_S = 0.05  # a move's status is read this often until it ends
 MOVE_ACCEL = 0.5  # m/s², a manual move's acceleration (at most the rig's)
 MOVE_SPARE_S = 2.0  # a move must end within its distance / speed × 1.5 plus this
@@ -69,6 +71,9 @@ class ManualEngine(Engine):
         self.paused = False
         self._paused_at = 0.0  # run time of the pause [s]
         self._setpoint_lock = threading.RLock()  # one set-point, or the start of the stop: never interleaved
+        self._idle: tuple[Callable[[], None], dict[str, float]] | None = None  # the polls between commands
+        self._idle_at = -math.inf  # run time of the last idle poll at 0 V
+        self._moving = False  # a manual go-to under way
         if inst.amplifier is not None:  # what connecting left the output at (0 V): the first ramp starts there
             self.ctx.v_cmd = float(inst.amplifier.commanded)
             self.verifier.commanded(self.now(), self.ctx.v_cmd)
@@ -185,12 +190,52 @@ class ManualEngine(Engine):
         self.ctx.wait_until(until)
 
     def hold(self, seconds: float) -> None:
-        """Let ``seconds`` pass on the run clock, the set-point re-sent every KEEPALIVE_S."""
+        """Let ``seconds`` pass on the run clock, supervised as a run's hold is (:meth:`idle`): the set-point re-sent
+        every KEEPALIVE_S, the rig's polls run when due."""
         end = self.now() + seconds
-        while (left := end - self.now()) > 0:
-            self._wait(self.now() + min(left, KEEPALIVE_S))
-            self.keep_alive()
+        while end - self.now() > 0:
+            self._wait(min(end, max(self.idle_due(), self.now() + IDLE_MIN_S)))
+            self.idle()
         self._check_stop()
+
+    def _energised(self) -> bool:
+        """The output is on (above ``OUTPUT_ON_V`` commanded or asked for) or the motor has a go-to under way."""
+        return (max(abs(self.ctx.v_cmd), abs(self.ctx.v_req)) > OUTPUT_ON_V
+                or (self.inst.motor is not None and self._moving))
+
+    def _idle_schedule(self) -> tuple[Callable[[], None], dict[str, float]]:
+        """The run's supervised reading outside a step (the engine's :meth:`_supervision`: every polled channel at
+        the rate the program's recording gives it, recorded, supervised and verified), made once per session."""
+        if self._idle is None:
+            self._idle = self._supervision()
+        return self._idle
+
+    def idle_due(self) -> float:
+        """Run time of the next :meth:`idle` action: the keep-alive while the output is held, the earliest poll due
+        while energised, else (0 V, motor still) the polls at the keep-alive's pace."""
+        now = self.now()
+        due = now + KEEPALIVE_S
+        if self.inst.amplifier is not None and self.ctx.v_req != 0.0:
+            due = min(due, self._setpoint_t + KEEPALIVE_S)
+        if self._energised():
+            due = min([due, *self._idle_schedule()[1].values()])
+        return due
+
+    def idle(self) -> None:
+        """Between commands, in a ``wait`` and in every other hold: what a run's hold step does — the set-point
+        re-sent (the host-stall guard before it) once KEEPALIVE_S has gone since the last, and the rig's polls
+        (monitors against the current limit and the commanded band, encoder, load cell, sensors) when due. While
+        the output is at 0 V and the motor still, the polls slow to the keep-alive's pace. A trip or a latch is
+        raised here, without any command: the caller zeroes and latches as after a command."""
+        if self._stopping:
+            return
+        now = self.now()
+        if self.inst.amplifier is not None and self.ctx.v_req != 0.0 and now >= self._setpoint_t + KEEPALIVE_S - 1e-3:
+            self.keep_alive()
+        supervise, _ = self._idle_schedule()
+        if self._energised() or now >= self._idle_at + KEEPALIVE_S - 1e-3:
+            self._idle_at = now
+            supervise()
 
     def _check_pause(self) -> None:
         if not self.paused:
@@ -201,7 +246,7 @@ class ManualEngine(Engine):
         """A supervised go-to through the engine's ``_move_motor`` (Refused, nothing sent, if the supervisor does
         not allow it), then its status every MOVE_POLL_S until it ends — each position recorded, supervised and
         verified against the go-to (the interlock's motion verifier); returns where the motor stopped."""
-        motor, m = self.ctx.motor, self.rig.motor
+        m = self.rig.motor
         assert m is not None  # a motor driver comes from rig.motor
         if not speed > 0:
             raise Refused("speed must be positive")
@@ -213,6 +258,15 @@ class ManualEngine(Engine):
         except SafetyTrip as exc:
             raise Refused(f"{exc.reason}; not sent") from None
         self._record(self.rec.append, "setpoints", self.now(), voltage=math.nan, aperture=x_cmd)
+        self._moving = True
+        try:
+            return self._follow(target, speed)
+        finally:
+            self._moving = False
+
+    def _follow(self, target: float, speed: float) -> float:
+        """A go-to sent: its status every MOVE_POLL_S until it ends (:meth:`move`)."""
+        motor = self.ctx.motor
         deadline = self.now() + MOVE_SPARE_S + abs(target - motor.read_position().value) / speed * 1.5
         prog = self.program
         while self.now() < deadline:

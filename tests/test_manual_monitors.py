@@ -1,0 +1,139 @@
+"""Manual control reads the monitors while high voltage is held (tester's HIGH defect): between commands, during
+`wait` and at the prompt, the amplifier's monitors are polled, recorded and verified at the monitor rate, as a
+run's hold polls them — an output fault trips and latches without waiting for the operator's next command.
+
+Expected figures come from the README and the datasheets, not from the code under test: the monitors are polled
+at 5 S/s (README "Recording": the ADAM-4017+ converts 10 S/s over V and I), a polled output mismatch latches after
+two readings in a row out of the band (README "Interlock"), and the output's band opens 0.3 s after a set-point
+(the polled lag allowance, README "Interlock"); the ADAM-4024's code nearest 0 V is the datasheet's 12-bit offset
+binary over ±10 V (tests/test_limits_as_sent.py's ``adam_out``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import re
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bench.rig import load_rig
+from bench.runtime.manual import HELP, ManualSession
+from bench.storage.runfile import open_run
+from tests.conftest import RIGS
+from tests.test_limits_as_sent import adam_out
+
+MONITORS_HZ = 5.0  # README: the monitors polled at 5 S/s each
+LATCH_READINGS = 2  # README "Interlock": two polled readings in a row out of the band latch
+LAG_S = 0.3  # README "Interlock": the polled monitors' lag allowance
+ZERO_V = 5.0  # one ADAM-4024 code times the TREK gain
+
+
+def _gain_off(s: ManualSession) -> float:
+    """The amplifier's output stage dead (gain 0: the monitor reads 0 V whatever is commanded); the rig time."""
+    s._sim.plant.hv = dataclasses.replace(s._sim.plant.hv, gain=0.0)
+    return float(s.engine.now())
+
+
+@pytest.mark.parametrize("name", ["thesis-sim", "thesis-daq-sim"])
+def test_a_held_voltage_is_read_at_the_monitor_rate_during_a_wait(tmp_path: Path, name: str) -> None:
+    """2 kV held for 20 s of `wait`: the readings' file has the monitors at 5 S/s over the wait (before: none)."""
+    with ManualSession(load_rig(RIGS / f"{name}.toml"), tmp_path / "s.log", virtual=True,
+                       echo=lambda _t: None) as s:
+        assert s.execute("voltage 2kV").status == "ok"
+        t0 = s.engine.now()
+        assert s.execute("wait 20").status == "ok"
+        t1 = s.engine.now()
+    amp = open_run(tmp_path / "s.h5").streams["amplifier"]
+    inside = (amp.t > t0) & (amp.t <= t1)
+    assert abs(int(inside.sum()) - 20 * MONITORS_HZ) <= 2, int(inside.sum())
+    assert np.all(np.abs(amp.columns["voltage"][inside] - 2000) < 100)  # what was held, as read
+
+
+@pytest.mark.parametrize("name", ["thesis-sim", "thesis-daq-sim"])
+def test_an_output_fault_during_a_wait_latches_within_two_readings(tmp_path: Path, name: str) -> None:
+    """The output dies while 3 kV is held in a 4-s `wait`: the wait ends in a trip that latches, at most two
+    readings after the fault — not when the operator next types `read` (the tester's 4073.8 ms)."""
+    with ManualSession(load_rig(RIGS / f"{name}.toml"), tmp_path / "s.log", virtual=True,
+                       echo=lambda _t: None) as s:
+        assert s.execute("voltage 3kV").status == "ok"
+        assert s.execute("wait 1").status == "ok"  # settled, read all along
+        t_fault = _gain_off(s)
+        out = s.execute("wait 4")
+        assert out.status == "trip" and "output mismatch" in out.text and "latched" in out.text, out
+        assert s.engine.latched is not None
+        t_latch = s.engine.latched_at
+        assert s.execute("voltage 1kV").status == "refused"
+    amp = open_run(tmp_path / "s.h5").streams["amplifier"]
+    after = int(((amp.t > t_fault) & (amp.t <= t_latch + 1e-9)).sum())
+    assert 1 <= after <= LATCH_READINGS, after
+    lasted = float(re.search(r"out of the commanded band for ([\d.]+) ms", out.text).group(1))  # type: ignore[union-attr]
+    assert lasted <= 1e3 * LATCH_READINGS / MONITORS_HZ + 1, out.text
+
+
+def test_an_output_fault_at_the_prompt_latches_without_a_command(tmp_path: Path) -> None:
+    """Wall clock, nothing typed: 3 kV held at the prompt, the output dies — the keep-alive thread's polls trip
+    and latch within two readings, told at the prompt and in the log; the plant's output goes to 0 V."""
+    seen: list[str] = []
+    with ManualSession(load_rig(RIGS / "thesis-sim.toml"), tmp_path / "s.log", echo=seen.append) as s:
+        assert s.execute("voltage 3kV").status == "ok"
+        time.sleep(1.0)  # at the prompt: held and read
+        with s._lock:  # not between two reads of the keep-alive thread
+            t_fault = _gain_off(s)
+        deadline = time.monotonic() + 30  # hang guard only; the bound is counted in readings below
+        while not any(line.startswith("trip: interlock: output mismatch") for line in seen):
+            assert time.monotonic() < deadline, seen
+            time.sleep(0.05)
+        assert s.engine.latched is not None
+        t_latch = s.engine.latched_at
+        assert s.execute("voltage 1kV").status == "refused"
+    rows = [line.split("\t") for line in (tmp_path / "s.log").read_text(encoding="utf-8").splitlines()]
+    assert any(r[2:4] == ["trip", "(at the prompt)"] and "latched" in r[4] for r in rows), rows
+    run = open_run(tmp_path / "s.h5")
+    amp = run.streams["amplifier"]
+    held = (amp.t > t_fault - 1.0) & (amp.t <= t_fault)
+    assert int(held.sum()) >= MONITORS_HZ * 1.0 - 2  # read at the prompt before the fault
+    after = int(((amp.t > t_fault) & (amp.t <= t_latch + 1e-9)).sum())
+    assert 1 <= after <= LATCH_READINGS + 1, after  # +1: the reading already on the wire when the gain went
+
+
+@pytest.mark.parametrize("name", ["thesis-sim", "thesis-daq-sim"])
+def test_a_set_point_the_monitor_does_not_show_is_not_ok(tmp_path: Path, name: str) -> None:
+    """`voltage 1kV` on a dead output: never "ok: … voltage 0 V" — the verifier's judgement is said (or the
+    interlock has latched already); the next wait latches."""
+    with ManualSession(load_rig(RIGS / f"{name}.toml"), tmp_path / "s.log", virtual=True,
+                       echo=lambda _t: None) as s:
+        _gain_off(s)
+        out = s.execute("voltage 1kV")
+        assert out.status in ("unsettled", "trip"), out
+        if out.status == "unsettled":
+            assert "not verified" in out.text and "outside" in out.text, out
+            out = s.execute("wait 1")
+        assert out.status == "trip" and "latched" in out.text, out
+        assert s.execute("voltage 1kV").status == "refused"
+
+
+def test_a_verified_set_point_says_so(tmp_path: Path) -> None:
+    with ManualSession(load_rig(RIGS / "thesis-sim.toml"), tmp_path / "s.log", virtual=True,
+                       echo=lambda _t: None) as s:
+        out = s.execute("voltage 2kV")
+        assert out.status == "ok" and "verified on the voltage monitor" in out.text, out
+
+
+def test_zero_prints_the_set_point_it_records(tmp_path: Path) -> None:
+    """`zero` sends the ADAM-4024's code nearest 0 V (2048: +2.4 V after the TREK): said as recorded."""
+    with ManualSession(load_rig(RIGS / "thesis-sim.toml"), tmp_path / "s.log", virtual=True,
+                       echo=lambda _t: None) as s:
+        assert s.execute("voltage 2kV").status == "ok"
+        out = s.execute("zero")
+        t_zero = s.engine.now()
+        assert out.status == "ok" and f"{adam_out(2048):.1f} V" in out.text, out
+    sp = open_run(tmp_path / "s.h5").streams["setpoints"]
+    v = sp.columns["voltage"][(sp.t <= t_zero) & np.isfinite(sp.columns["voltage"])]
+    assert v[-1] == pytest.approx(adam_out(2048), abs=1e-3)  # the zero's row (the exit ramp's come after)
+
+
+def test_help_has_no_markup() -> None:
+    assert "``" not in HELP and "voltage 3kV" in HELP
