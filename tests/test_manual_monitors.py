@@ -99,6 +99,25 @@ def test_an_output_fault_at_the_prompt_latches_without_a_command(tmp_path: Path)
     assert 1 <= after <= LATCH_READINGS + 1, after  # +1: the reading already on the wire when the gain went
 
 
+def test_a_script_stops_at_a_trip_between_its_commands(tmp_path: Path) -> None:
+    """Piped commands (wall clock): the output dies while the script waits for its next line — the trip at the
+    prompt stops the script as a command's trip does; the commands after it are not run."""
+    seen: list[str] = []
+    with ManualSession(load_rig(RIGS / "thesis-sim.toml"), tmp_path / "s.log", echo=seen.append) as s:
+        def lines():  # type: ignore[no-untyped-def]
+            yield "voltage 3kV"
+            _gain_off(s)
+            deadline = time.monotonic() + 30  # hang guard: the next line comes once the trip is seen
+            while not any(line.startswith("trip:") for line in seen):
+                assert time.monotonic() < deadline, seen
+                time.sleep(0.05)
+            yield "voltage 2kV"
+        s.run_lines(lines(), stop_on_trip=True)
+    commands = [r.split("\t")[3] for r in (tmp_path / "s.log").read_text(encoding="utf-8").splitlines()]
+    assert "voltage 3kV" in commands and "voltage 2kV" not in commands, commands
+    assert any(line.startswith("stopped: the script stops at the trip of '(at the prompt)'") for line in seen), seen
+
+
 @pytest.mark.parametrize("name", ["thesis-sim", "thesis-daq-sim"])
 def test_a_set_point_the_monitor_does_not_show_is_not_ok(tmp_path: Path, name: str) -> None:
     """`voltage 1kV` on a dead output: never "ok: … voltage 0 V" — the verifier's judgement is said (or the

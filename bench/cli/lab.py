@@ -71,8 +71,11 @@ def devices_control(
     way; a second Ctrl-C, Ctrl-C at the prompt, SIGTERM, SIGHUP or SIGQUIT end the session: output ramped to
     0 V, motor stopped, instruments safe.
 
-    Exit status 0 if every command passed, 1 if one was refused, tripped a limit or failed, or a signal ended
-    the session.
+    While the output is on, the monitors are polled and verified between commands too (a fault trips with nothing
+    typed); `voltage` and `ramp` say whether the monitor shows the set-point (status unsettled where it does not).
+
+    Exit status 0 if every command passed, 1 if one was refused, not verified, tripped a limit or failed, or a
+    signal ended the session.
     """
     from bench.app.manual import manual_session
 

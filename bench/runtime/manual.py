@@ -54,9 +54,16 @@ Pause: ``pause`` (or SIGUSR1, as for a run) is the run's pause — the output ra
 (never by a signal: an operator is at the prompt); reading goes on. A SIGUSR1 during a command ends that
 command and pauses.
 
-Readings: every reading of the session (``read``, ``watch``, the monitors after set-points and in ramps, the
-motor during moves) and every set-point sent (keep-alives and the exit ramp included) go to an HDF5 file beside
-the log (``<log>.h5``; never overwritten: ``<log>-1.h5``…), in a run file's stream layout
+Between commands and in every wait (``wait``, ``watch``, a set-point's settling, a move), while the output is on or
+the motor moves, the session is supervised as a run's hold step is (:meth:`ManualEngine.idle`): the keep-alive, and
+the rig's polls at their recording rates — a fault trips and latches within two monitor readings with nothing
+typed (at the prompt: a ``trip`` line, ``(at the prompt)``; a script stops at it). At 0 V they slow to the
+keep-alive's pace. ``voltage`` and ``ramp`` say what the output verifier made of the reading after them (status
+``unsettled`` where the monitor is outside the set-point's band).
+
+Readings: every reading of the session (``read``, ``watch``, the monitors after set-points, in ramps and while
+energised, the motor during moves) and every set-point sent (keep-alives and the exit ramp included) go to an HDF5
+file beside the log (``<log>.h5``; never overwritten: ``<log>-1.h5``…), in a run file's stream layout
 (:mod:`bench.storage.recorder`), with one event per log line (commands, refusals, trips, the operator, the
 engine's stop account, the exit) and the end state; ``bench inspect`` and :func:`bench.storage.runfile.open_run`
 read it. A file that cannot be created ends the session before any command (as a run that cannot create its
@@ -103,7 +110,15 @@ from bench.runtime import latch as rig_latch
 from bench.runtime.engine import stop_signals
 from bench.runtime.instruments import Instruments, build_instruments
 from bench.runtime.interlock import POLLED_READINGS, InterlockTrip
-from bench.runtime.manual_mode import IDLE_MIN_S, KEEPALIVE_S, ManualEngine, PauseRequested, Refused, StopRequested
+from bench.runtime.manual_mode import (
+    IDLE_MIN_S,
+    KEEPALIVE_S,
+    ManualEngine,
+    PauseRequested,
+    Refused,
+    StopRequested,
+    manual_program,
+)
 from bench.runtime.rig_lock import claimed
 from bench.runtime.safety import SafetyTrip, Supervisor
 from bench.storage.recorder import Recorder, now_iso
@@ -199,13 +214,15 @@ class ManualSession:
         rig, spec = self.rig, self.rig.specimen
         streams, sources = _streams(rig, self._inst, polled=True)
         watchdog = watchdog_period(rig)
+        monitors_hz = manual_program(rig).protocol.recording.monitors_Hz
         attrs: dict[str, Any] = {
             "software": f"dea-bench {__version__}", "start_time": now_iso(), "mode": "manual control",
             "protocol_name": "manual control", "protocol_path": "", "protocol_text": "", "protocol_sha256": "",
             "session_log": str(self.log_file), "rig_name": rig.name, "rig_toml": rig_to_toml(rig),
             "simulated": rig.simulated, "clock": "virtual" if self.virtual else "wall", "specimen_kind": spec.kind,
             "specimen": json.dumps({**spec.model_dump(), "model": _model_params(sup.specimen)}),
-            "recording": json.dumps({"readings": "on request (read, watch, after set-points)"}),
+            "recording": json.dumps({"readings": "on request (read, watch, after set-points) and polled while "
+                                                 f"energised (monitors {monitors_hz:g} S/s)"}),
             "sources": json.dumps(sources), "duration_planned": 0.0,
             "hv_watchdog": f"communication watchdog {watchdog:g} s" if watchdog is not None else "NO watchdog",
             **({"operator": self.operator} if self.operator else {}),
