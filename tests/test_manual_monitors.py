@@ -99,6 +99,33 @@ def test_an_output_fault_at_the_prompt_latches_without_a_command(tmp_path: Path)
     assert 1 <= after <= LATCH_READINGS + 1, after  # +1: the reading already on the wire when the gain went
 
 
+def test_a_monitor_link_lost_at_the_prompt_zeroes_the_output_and_is_said_once(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Wall clock: the monitors' reads fail while 3 kV is held at the prompt — one `error` line, the output zeroed
+    (the plant), and not one more line every keep-alive while nothing is typed; the next command reads again."""
+    from drivers.errors import InstrumentError
+
+    seen: list[str] = []
+    with ManualSession(load_rig(RIGS / "thesis-sim.toml"), tmp_path / "s.log", echo=seen.append) as s:
+        assert s.execute("voltage 3kV").status == "ok"
+
+        def lost(*_a: object, **_k: object) -> None:
+            raise InstrumentError("amplifier", "bus io: no answer from the monitors' module")
+
+        with s._lock:
+            monkeypatch.setattr(s._inst.amplifier, "read", lost)
+        deadline = time.monotonic() + 30  # hang guard
+        while not any(line.startswith("error:") for line in seen):
+            assert time.monotonic() < deadline, seen
+            time.sleep(0.05)
+        time.sleep(1.5)  # six keep-alive periods at the prompt
+        assert len([line for line in seen if line.startswith("error:")]) == 1, seen
+        assert "output zeroed" in next(line for line in seen if line.startswith("error:"))
+        s._sim.plant.observe()
+        assert abs(float(s._sim.plant.observe().v_out[-1])) < ZERO_V
+        assert s.execute("read").status == "error"  # the next command reads again (and fails, said)
+
+
 def test_a_script_stops_at_a_trip_between_its_commands(tmp_path: Path) -> None:
     """Piped commands (wall clock): the output dies while the script waits for its next line — the trip at the
     prompt stops the script as a command's trip does; the commands after it are not run."""

@@ -174,6 +174,7 @@ class ManualSession:
     _rec: Recorder | None = None  # the readings' file (None: not open, or its storage failed)
     _early: list[tuple[float, str, str, str]] | None = field(default_factory=list)  # log lines before the file
     _drive: rig_latch.Drive | None = None  # the amplifier drive's names at the start (while its port is there)
+    _told: bool = False  # a fault between commands was made safe and told: no polls until the next command
 
     @property
     def end_reason(self) -> str | None:
@@ -292,7 +293,7 @@ class ManualSession:
             wait = KEEPALIVE_S
             with self._lock, contextlib.suppress(Refused, StopRequested, PauseRequested, OSError):
                 engine = self.engine
-                if engine is None or self._ending:
+                if engine is None or self._ending or self._told:
                     continue
                 out: Outcome | None = None
                 try:
@@ -310,6 +311,9 @@ class ManualSession:
                     out.text = _printable(" ".join(out.text.splitlines()))
                     if out.status != "paused":
                         self.outcomes.append(out)  # counted as a command's trip: a script stops at it
+                        # made safe (0 V, nothing to keep alive) and told: the next command reads again — not one
+                        # more line (and a dead link's timeouts under the session's lock) every 0.25 s meanwhile
+                        self._told = True
                     self._write(out.command, out.status, out.text)  # a pause that failed latched or made safe
                     self.echo(f"{out.status}: {out.text}")
 
@@ -472,6 +476,7 @@ class ManualSession:
         KeyboardInterrupt and SystemExit pass."""
         shown = _printable(line)
         engine = self.engine
+        self._told = False  # the keep-alive thread's polls go on after this command
         # the lock is held until the outcome is handled: the keep-alive thread cannot re-send a set-point between
         # a command's error (or trip) and its handler's make_safe or latch
         with self._lock:
