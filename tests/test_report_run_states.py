@@ -150,3 +150,41 @@ def test_a_manual_session_is_skipped_by_report_and_refused_alone_and_by_fit(runs
         assert text.startswith(f"error: run file {session}: a manual-control session: "), text
         assert "protocol.toml" not in text and "valid data points" not in text
     assert not (tmp_path / "alone").exists()
+
+
+def test_a_folder_of_stopped_runs_is_read_once_for_their_continuations(runs: dict[str, Path], tmp_path: Path,
+                                                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    """A reviewer: each stopped file searched its whole folder for a continuation, and report searched twice — 300
+    files with 60 stopped ones, ~36k file opens. Six stopped runs (copies of a.h5 as other runs: their own run_id)
+    beside a.h5 and b.h5: the folder is indexed once, so the opens grow with the files, not with their square."""
+    import shutil
+
+    import h5py
+
+    import bench.storage.chain as chain_module
+
+    folder = tmp_path / "camp"
+    folder.mkdir()
+    for name in ("a", "b"):
+        shutil.copy(runs[name], folder / f"{name}.h5")
+    others = []
+    for k in range(6):
+        other = folder / f"stopped{k}.h5"
+        shutil.copy(runs["a"], other)
+        with h5py.File(other, "r+") as h:
+            h.attrs["run_id"] = f"stopped-run-{k}"
+        others.append(other)
+    opened: list[Path] = []
+    real = chain_module.open_run
+
+    def counting(path, streams=True):  # type: ignore[no-untyped-def]
+        opened.append(Path(path))
+        return real(path, streams=streams)
+
+    monkeypatch.setattr(chain_module, "open_run", counting)
+    chain_module._INDEX.clear()
+    got = chain_module.with_chains([folder / "a.h5", *others])
+    assert [p.name for p in got[:2]] == ["a.h5", "b.h5"] and len(got) == 8
+    # 8 files: each opened for its chain, its run_id and its link (3 × 8), and the folder's index once (8);
+    # searched per stopped file (7 of them × 8), the old way opened 56 for the search alone
+    assert len(opened) <= 4 * 8, len(opened)

@@ -51,22 +51,39 @@ def chain(path: str | Path) -> list[Link]:
     return out[::-1]
 
 
-def continued_in(path: str | Path) -> Path | None:
-    """A file in ``path``'s folder that continues it (its ``previous_run_id`` is ``path``'s ``run_id``), or None.
-    Files that cannot be read as run files are passed over."""
-    p = Path(path)
-    rid = str(open_run(p, streams=False).attrs.get("run_id", ""))
-    if not rid:
-        return None
-    for other in sorted(p.parent.glob("*.h5")):
-        if other.resolve() == p.resolve():
-            continue
+_INDEX: dict[Path, tuple[int, dict[str, Path]]] = {}  # folder → (its mtime, previous_run_id → the file naming it)
+
+
+def _continuations(folder: Path, cached: bool) -> dict[str, Path]:
+    """``previous_run_id`` → the (first, by name) run file of ``folder`` that names it. ``cached``: each file opened
+    once per folder and process, again only after the folder changed (a file added or removed changes its mtime) —
+    for reading a campaign; a resume's fork check reads the folder afresh (a continuation being created may not
+    have its links written yet when the folder changes). Files that cannot be read as run files are passed over."""
+    key = folder.resolve()
+    stamp = key.stat().st_mtime_ns
+    hit = _INDEX.get(key)
+    if cached and hit is not None and hit[0] == stamp:
+        return hit[1]
+    index: dict[str, Path] = {}
+    for other in sorted(folder.glob("*.h5")):
         try:  # as every reader opens a run: also one still being written, or a crashed writer's
-            if str(open_run(other, streams=False).attrs.get("previous_run_id", "")) == rid:
-                return other
+            prev = str(open_run(other, streams=False).attrs.get("previous_run_id", ""))
         except (OSError, ValueError):  # not a run file, or one damaged beyond reading: not a continuation
             continue
-    return None
+        if prev:
+            index.setdefault(prev, other)
+    _INDEX[key] = (stamp, index)
+    return index
+
+
+def continued_in(path: str | Path, cached: bool = False) -> Path | None:
+    """A file in ``path``'s folder that continues it (its ``previous_run_id`` is ``path``'s ``run_id``), or None.
+    ``cached`` (reading a campaign): the folder's index kept from an earlier call (:func:`_continuations`), where a
+    report of hundreds of files read the whole folder again for each stopped one."""
+    p = Path(path)
+    rid = str(open_run(p, streams=False).attrs.get("run_id", ""))
+    later = _continuations(p.parent, cached).get(rid) if rid else None
+    return None if later is None or later.resolve() == p.resolve() else later
 
 
 def campaign(path: str | Path) -> list[Link]:
@@ -77,7 +94,7 @@ def campaign(path: str | Path) -> list[Link]:
     out = chain(path)
     seen = {ln.path.resolve() for ln in out}
     # a completed file is never resumed (nothing is left): the folder is searched only after one that stopped
-    while out[-1].state != "completed" and (later := continued_in(out[-1].path)) is not None:
+    while out[-1].state != "completed" and (later := continued_in(out[-1].path, cached=True)) is not None:
         if later.resolve() in seen or len(out) >= MAX_CHAIN:
             raise ValueError(f"run file {path}: the files continuing it loop back to {later}")
         seen.add(later.resolve())
