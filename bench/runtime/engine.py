@@ -263,6 +263,7 @@ class Engine:
         self.ctx.stream = self._stream
         self.verifier, self.motion = self.ctx.verifier, self.ctx.motion
         self.latched: InterlockTrip | None = None  # the interlock fault that ended the run (0 V at once, no ramp)
+        self.tripped: SafetyTrip | None = None  # the supervisor's limit trip that ended the run (latches it too)
         self._output_dead = False  # 0 V could not be commanded: no request may feed the module's watchdog
         self._zero_verified = False  # the shutdown read 0 V back from the voltage monitor
         self._pause_by: str | None = None  # who asked for a pause (signal, another thread); None: nobody
@@ -1032,6 +1033,7 @@ class Engine:
             self.latched = trip
             state, reason = "tripped", f"safety trip: {trip.reason}"
         except SafetyTrip as trip:
+            self.tripped = trip
             state, reason = "tripped", f"safety trip: {trip.reason}"
         except StopRequested as stop:
             state, reason = "interrupted", str(stop)
@@ -1055,8 +1057,22 @@ class Engine:
             # the run itself ended, but the file could not record its end: it is not a complete record
             state, reason = "error", f"storage fault: {self.rec.failure or 'run file not finalised'} (after: {reason})"
         return RunResult(str(self.rec.path), state, reason, self.now(), time.perf_counter() - wall0,
-                         self.rec.samples_written, self.overruns, safe_path,
-                         self.latched.reason if self.latched is not None else "", self.skipped)
+                         self.rec.samples_written, self.overruns, safe_path, self.latch_fault or "", self.skipped)
+
+    @property
+    def latch_fault(self) -> str | None:
+        """The fault the run latches its rig for: an interlock fault, else the supervisor's limit trip (the
+        README's standard: a fault latches until an operator resets it); None if the run ended without one."""
+        if self.latched is not None:
+            return self.latched.reason
+        if self.tripped is not None:
+            return f"safety trip: {self.tripped.reason}"
+        return None
+
+    @property
+    def zero_verified(self) -> bool:
+        """Whether the shutdown read 0 V back from the voltage monitor."""
+        return self._zero_verified
 
     def _record(self, fn: Callable[..., object], *args: Any, **kwargs: Any) -> None:
         """A recorder call during shutdown: a storage fault must not stop the rig being made safe."""
@@ -1111,6 +1127,9 @@ class Engine:
                 self._storage_failed = True
         safe_path = self._verify_safe(zero_at, notes)
         self._latch_unproven(zero_at, safe_path)
+        if self.latched is None and self.tripped is not None:  # a limit trip latches too, once 0 V was verified
+            self._event("interlock", f"latched at {self.now():.3f} s (safety trip, 0 V verified): nothing energises "
+                        "the rig until an operator resets the latch")
         self._motor_stopped(motor, notes)
         if not self.clock.virtual or self.overruns or self.skipped:  # virtual: said when the wires outran it
             self._event("timing", f"{self.overruns} late actions (> {LATE_TOLERANCE_S * 1e3:.0f} ms), worst "

@@ -516,7 +516,7 @@ class ManualSession:
                 out = Outcome(shown, "trip", self._latch(trip))
             except SafetyTrip as exc:
                 assert engine is not None
-                out = Outcome(shown, "trip", f"{exc.reason}; {self._made_safe(engine)}")
+                out = Outcome(shown, "trip", f"{exc.reason}; {self._trip_made_safe(engine, exc)}")
             except InstrumentError as exc:
                 assert engine is not None
                 out = Outcome(shown, "error", f"{exc}; {self._made_safe(engine)}")
@@ -557,6 +557,17 @@ class ManualSession:
         done = engine.make_safe()
         if engine.unproven is not None:
             trip, engine.unproven = engine.unproven, None
+            self._latched_line(trip)
+            done += "; latched"
+        return done
+
+    def _trip_made_safe(self, engine: ManualEngine, exc: SafetyTrip) -> str:
+        """A limit trip: :meth:`_made_safe`, then the rig latched for the trip as for any fault (the README's
+        standard: a fault latches until an operator resets it), unless making it safe latched it already."""
+        done = self._made_safe(engine)
+        if engine.latched is None:
+            trip = InterlockTrip("safety trip", exc.reason)
+            engine.latch(trip)  # holds the output at the 0 V just made: nothing energises until `reset WHY`
             self._latched_line(trip)
             done += "; latched"
         return done

@@ -349,8 +349,8 @@ def _execute_claimed(plan: Plan, out: Path, *, virtual: bool, operator: Operator
         try:
             result = engine.run()
         finally:  # a fault latches even when the run ends by an exception the engine let through
-            if engine.latched is not None:
-                latch(rig.name, engine.latched.reason, str(out), drive)
+            if (fault := engine.latch_fault) is not None:  # an interlock fault, or a limit trip (0 V verified)
+                latch(rig.name, fault, str(out), drive)
         end_row = {"hv": recorder.hv_stats(), "written": recorder.written()}  # the file, as it was written
         return result
     finally:
