@@ -59,7 +59,8 @@ def lab(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     killed = next(runs.glob("*.h5"))
     # the further commands in this process (the campaign above was a `python -m bench run`): its hooks write the
     # same catalogue rows, without a Python start-up and its imports each (15 s of this fixture's 25)
-    resumed = _bench_here("run", "--resume", str(killed), "--virtual-time", "--no-live", env=env)
+    resumed = _bench_here("run", "--resume", str(killed), "--virtual-time", "--no-live", "--why",  # killed: latched
+                          "output checked at 0 V after the kill", env=env)
     assert resumed.returncode == 0, resumed.stdout + resumed.stderr
     second = next(p for p in runs.glob("*.h5") if p != killed)
     ident = _bench_here("run", str(IDENT), "--virtual-time", "--out", str(runs), "--no-live", "--specimen-id",

@@ -10,20 +10,98 @@
 
 from __future__ import annotations
 
+import json
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
+from typer.testing import CliRunner
 
+from bench.cli import app
 from bench.rig import RigConfig, load_rig
 from bench.runtime import latch as rig_latch
 from bench.runtime import run as run_mod
-from bench.runtime.latch import LatchedError, latched, refuse_if_latched
+from bench.runtime.latch import LatchedError, latched, refuse_if_latched, state_dir
 from bench.runtime.run import execute, plan_run
 from bench.storage.runfile import open_run
+from tests.campaign_kill import kill_at_step
 from tests.conftest import ROOT
 
 SHORT = ROOT / "protocols" / "short"
+SWEEPS = SHORT / "thesis-sweeps-short.toml"  # 5 kV, then 7 kV (step 4: the 7-kV drive), on thesis-daq-sim
 IDENT = SHORT / "thesis-identification-short.toml"
+DAQ_RIG = ROOT / "rigs" / "thesis-daq-sim.toml"
+
+
+def _history() -> str:
+    return (state_dir() / "interlock.log").read_text(encoding="utf-8")
+
+
+# ---------------------------------------------------------------- kill -9 while the rig is energised
+def test_a_run_killed_while_driving_latches_its_rig_until_an_operator_resets_it(tmp_path: Path) -> None:
+    runs = tmp_path / "runs"
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "COLUMNS": "200"}  # this test's own state folder (conftest)
+    proc = subprocess.Popen([sys.executable, "-m", "bench", "run", str(SWEEPS), "--virtual-time", "--out", str(runs),
+                             "--no-live"], cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    kill_at_step(proc, runs, 4, 180)  # once the run's log shows the 7-kV drive (step 4) started
+    killed = next(runs.glob("*.h5"))
+    assert open_run(killed, streams=False).state == "running"  # killed: no end recorded, no shutdown
+    rig_name = load_rig(DAQ_RIG).name
+    status = CliRunner().invoke(app, ["interlock", "status", "--json"])
+    assert status.exit_code == 0, status.stdout + status.stderr
+    found = json.loads(status.stdout)["latched"]
+    assert rig_name in found, status.stdout
+    fault = found[rig_name]["fault"]
+    assert "killed?" in fault and "zero neither commanded nor verified" in fault and str(killed) in fault
+    assert found[rig_name]["where"] == str(killed)
+    # a new run on the rig is refused before anything is touched, naming the reset command
+    refused = subprocess.run([sys.executable, "-m", "bench", "run", str(IDENT), "--virtual-time", "--yes",
+                              "--no-live", "--out", str(tmp_path / "next")], cwd=ROOT, env=env, capture_output=True,
+                             text=True, timeout=300)
+    assert refused.returncode == 2, refused.stdout + refused.stderr
+    assert "interlock latched" in refused.stderr and f"bench interlock reset {rig_name}" in refused.stderr
+    assert not (tmp_path / "next").exists()
+    # the operator's reset lets it run again
+    ok = CliRunner().invoke(app, ["interlock", "reset", rig_name, "--why", "output checked at 0 V", "--operator",
+                                  "ada"])
+    assert ok.exit_code == 0, ok.stdout + ok.stderr
+    assert latched(rig_name) is None
+    assert "by ada: output checked at 0 V" in _history()
+    result = execute(plan_run(IDENT), tmp_path / "after.h5", virtual=True)
+    assert result.state == "completed", result.reason
+    assert latched(rig_name) is None and not list(state_dir().glob("armed-*.json"))  # a clean end disarms
+
+
+def _marker(rig_name: str, **changes: object) -> Path:
+    """This process's armed marker for ``rig_name``, its record changed by ``changes``."""
+    path = rig_latch.arm(rig_name, "run file test.h5")
+    record = json.loads(path.read_text())
+    record.update(changes)
+    path.write_text(json.dumps(record))
+    return path
+
+
+def test_a_marker_of_a_live_process_is_no_latch_and_a_dead_or_reused_pid_is() -> None:
+    live = _marker("rig-a")  # this process: still running (another bench on the rig; its lock refuses)
+    assert latched("rig-a") is None and live.exists()
+    refuse_if_latched("rig-a")
+    rig_latch.disarm(live)
+    assert not live.exists()
+    # the same process ID, started at another time: the ID was reused, the process that armed is gone
+    _marker("rig-b", started="1")
+    was = latched("rig-b")
+    assert was is not None and "killed?" in was["fault"] and was["where"] == "run file test.h5"
+    # a process ID that no process has: gone (a Linux pid is at most 2**22)
+    _marker("rig-c", pid=2**22 + 7)
+    with pytest.raises(LatchedError, match=r"killed\?.*bench interlock reset rig-c"):
+        refuse_if_latched("rig-c")
+    # another boot: gone whatever runs under that ID now
+    _marker("rig-d", boot="another-boot")
+    assert "rig-d" in rig_latch.all_latched()
+    assert not list(state_dir().glob("armed-*.json"))  # each dead marker became a latch once
+    assert rig_latch.reset("rig-c", "ada", "checked") is not None and latched("rig-c") is None
 
 
 # ---------------------------------------------------------------- a supervisor limit trip latches
@@ -56,6 +134,7 @@ def test_a_limit_trip_in_manual_control_latches_the_rig(tmp_path: Path) -> None:
 
     rig = load_rig(ROOT / "rigs" / "thesis-sim.toml")
     with ManualSession(rig, tmp_path / "s.log", virtual=True, echo=lambda _line: None) as s:
+        assert list(state_dir().glob("armed-*.json"))  # the session may energise the rig: armed
         assert s.execute("voltage 5 kV").status == "ok"
         s._sim.plant.inject_breakdown()  # the specimen fails: the current monitor trips the supervisor
         trip = s.execute("watch 2 0.5")
@@ -63,4 +142,5 @@ def test_a_limit_trip_in_manual_control_latches_the_rig(tmp_path: Path) -> None:
         assert s.execute("voltage 1 kV").status == "refused"  # nothing energises until `reset WHY`
         was = latched(rig.name)
         assert was is not None and "safety trip" in was["fault"] and was["where"] == str(tmp_path / "s.log")
+    assert not list(state_dir().glob("armed-*.json"))  # the session's end made the rig safe: disarmed
     assert latched(rig.name) is not None  # the latch outlives the session

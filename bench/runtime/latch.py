@@ -15,6 +15,13 @@ drives the same hardware: renaming the rig, copying its file under another name,
 address are not matched: no name server is asked before a start.
 Every latch and reset is also appended to ``interlock.log`` there (who, why, when), so the history survives
 the reset.
+
+A process that energises a rig (a run, a manual-control session) first leaves an *armed* marker there
+(``armed-<rig>-<hash>-<pid>.json``: the rig, its process ID, boot ID and start time, the run file or session log)
+and removes it only once its shutdown has commanded and verified 0 V, or latched the rig. A marker whose process is
+gone (``kill -9``, a power cut, a crash; a process ID reused since: another start time or boot) is a bench that
+ended without its shutdown: the next look at the latches (a start, ``bench interlock status``) turns it into a latch
+of its rig, so nothing energises the rig again until an operator resets it.
 """
 
 from __future__ import annotations
@@ -25,6 +32,7 @@ import json
 import os
 import re
 import shlex
+import socket
 from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
@@ -178,6 +186,101 @@ def latch(rig_name: str, fault: str, where: str, drive: Drive | None = None) -> 
     return path
 
 
+def note(line: str) -> None:
+    """One line in the interlock history (``interlock.log``) that is neither a latch nor a reset."""
+    state_dir().mkdir(parents=True, exist_ok=True)
+    _history(line)
+
+
+# ---------------------------------------------------------------- armed markers: a bench that died energised
+def _boot_id() -> str:
+    """This boot of the machine (Linux; '' elsewhere): a process ID from another boot names another process."""
+    try:
+        return Path("/proc/sys/kernel/random/boot_id").read_text(encoding="ascii").strip()
+    except OSError:
+        return ""
+
+
+def _started(pid: int) -> str:
+    """When process ``pid`` started, in clock ticks since boot (field 22 of ``/proc/PID/stat``; '' if unknown)."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text(encoding="ascii", errors="replace")
+    except OSError:
+        return ""
+    fields = stat[stat.rfind(")") + 2:].split()  # after the command name, which may hold spaces and parentheses
+    return fields[19] if len(fields) > 19 else ""
+
+
+def _running(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process: it exists
+        return True
+    except OSError:
+        return True  # cannot tell: taken as running (never a latch on a guess)
+    return True
+
+
+def _alive(was: dict[str, Any]) -> bool:
+    """Whether the process that left the armed marker ``was`` still runs. One on another host cannot be asked
+    (a shared state folder): taken as running."""
+    if was.get("host") not in (None, socket.gethostname()):
+        return True
+    pid = was.get("pid")
+    if not isinstance(pid, int):
+        return True
+    boot = _boot_id()
+    if was.get("boot") and boot and was["boot"] != boot:  # the machine restarted since
+        return False
+    if not _running(pid):
+        return False
+    now = _started(pid)
+    return not (was.get("started") and now and was["started"] != now)  # the ID reused by another process
+
+
+def arm(rig_name: str, where: str, drive: Drive | None = None) -> Path:
+    """Leave the marker that this process is about to energise rig ``rig_name`` (``where``: its run file or session
+    log); :func:`disarm` it once the shutdown commanded and verified 0 V (or latched the rig)."""
+    pid = os.getpid()
+    path = latch_path(rig_name)
+    path = path.with_name(f"armed-{path.stem.removeprefix('interlock-')}-{pid}.json")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    record: dict[str, Any] = {"rig": rig_name, "pid": pid, "started": _started(pid), "boot": _boot_id(),
+                              "host": socket.gethostname(), "where": where, "at": _now()}
+    if drive is not None:
+        record["drive"], record["drive_ids"] = drive.text, sorted(drive.ids)
+    _write(path, record)
+    return path
+
+
+def disarm(marker: Path | None) -> None:
+    """Remove an armed marker (:func:`arm`): the process ended its use of the rig with 0 V verified, or latched it."""
+    if marker is not None:
+        marker.unlink(missing_ok=True)
+
+
+def _dead_markers_latch() -> None:
+    """Turn each armed marker whose process is gone into a latch of its rig (a latch already there is kept: the
+    history says what else was found)."""
+    for path in sorted(state_dir().glob("armed-*.json")):
+        was = _read(path)
+        if was is None or not isinstance(was.get("rig"), str) or _alive(was):
+            continue
+        rig_name, where = was["rig"], str(was.get("where") or "?")
+        fault = (f"the bench process (pid {was.get('pid')}, armed {was.get('at')}) ended without its shutdown "
+                 f"(killed?) during {where}: zero neither commanded nor verified by the host")
+        drive = None
+        if isinstance(was.get("drive"), str):
+            drive = Drive(was["drive"], frozenset(str(i) for i in was.get("drive_ids") or []))
+        if _own(rig_name):
+            _history(f"found dead\t{rig_name}\t{fault}\t(already latched: that latch kept)")
+        else:
+            latch(rig_name, fault, where, drive)
+        path.unlink(missing_ok=True)
+
+
 def _own(rig_name: str) -> list[dict[str, Any]]:
     """Rig ``rig_name``'s own latches: its file (an unreadable one counts), then an older-form file that is its own
     or unreadable (names that clean up alike share it)."""
@@ -194,7 +297,9 @@ def _own(rig_name: str) -> list[dict[str, Any]]:
 
 
 def _holding(rig_name: str, drive: Drive | None) -> list[dict[str, Any]]:
-    """Every latch that holds rig ``rig_name``: its own first, then those of other rigs on ``drive``."""
+    """Every latch that holds rig ``rig_name``: its own first, then those of other rigs on ``drive`` (a bench that
+    died energised latched first)."""
+    _dead_markers_latch()
     found = _own(rig_name)
     if drive is not None:
         found += [was for name, was in all_latched().items() if name != rig_name and _on(was, drive)]
@@ -211,7 +316,8 @@ def latched(rig_name: str, drive: Drive | None = None) -> dict[str, Any] | None:
 
 def all_latched() -> dict[str, dict[str, Any]]:
     """Every latch in the state folder, by exact rig name (as its file records it; the file name if it cannot
-    be read)."""
+    be read); a bench that died energised latched first."""
+    _dead_markers_latch()
     found: dict[str, dict[str, Any]] = {}
     for path in sorted(state_dir().glob("interlock-*.json")):
         data = _read(path)

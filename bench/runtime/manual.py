@@ -175,6 +175,7 @@ class ManualSession:
     _early: list[tuple[float, str, str, str]] | None = field(default_factory=list)  # log lines before the file
     _drive: rig_latch.Drive | None = None  # the amplifier drive's names at the start (while its port is there)
     _told: bool = False  # a fault between commands was made safe and told: no polls until the next command
+    _armed: Path | None = None  # the marker that this process may energise the rig (latch.arm), until a safe end
 
     @property
     def end_reason(self) -> str | None:
@@ -275,6 +276,9 @@ class ManualSession:
             assert engine.latched is not None
             self._write("interlock", "latched", f"{engine.latch_text()}; {engine.latched.reason}")
             self.echo(f"{engine.latch_text()}: {engine.latched.reason}")
+        # from here on the operator may energise the rig: a process that dies before the session's safe end leaves
+        # this marker, and the next start latches the rig
+        self._armed = rig_latch.arm(rig.name, f"manual session {self.log_file}", self._drive)
         if not self.virtual:  # wall clock: hold the set-point between commands (a human types slowly)
             self._keepalive = threading.Thread(target=self._feed, name="manual-keepalive", daemon=True)
             self._keepalive.start()
@@ -337,6 +341,14 @@ class ManualSession:
             if engine.latched is not None and not was_latched:  # a stall seen at the exit
                 engine.latched_at = engine.now()  # the engine's stop latched it: the time is the session's end
                 self._latched_line(engine.latched)
+            if engine.latched is None and not engine.zero_verified and self._inst is not None \
+                    and self._inst.amplifier is not None:  # the end did not verify 0 V (it raised): latched here
+                trip = InterlockTrip("output not verified", f"the session's end did not verify 0 V "
+                                     f"({'; '.join(errors) or safe or 'no reading'})")
+                engine.latched, engine.latched_at = trip, engine.now()
+                self._latched_line(trip)
+            rig_latch.disarm(self._armed)  # 0 V verified, or the rig latched
+            self._armed = None
         elif self._inst is not None:
             self._inst.cancel.clear()
             errors += self._inst.safe_state()

@@ -37,7 +37,7 @@ from bench.runtime.engine import Engine, OperatorFn, RunResult, termination_rais
 from bench.runtime.hardware_timed import describe_streams
 from bench.runtime.instruments import Instruments, build_instruments
 from bench.runtime.interlock import watchdog_period
-from bench.runtime.latch import drive_of, latch, refuse_if_latched
+from bench.runtime.latch import arm, disarm, drive_of, latch, refuse_if_latched
 from bench.runtime.polls import SENSOR_PERIOD_S
 from bench.runtime.rig_lock import campaign_claimed, claimed
 from bench.runtime.safety import Supervisor
@@ -346,11 +346,23 @@ def _execute_claimed(plan: Plan, out: Path, *, virtual: bool, operator: Operator
             done = f"{phase.stopped}; {kept}; {safe}"
             log.info("not run: %s", done)
             raise OperationCancelledError("run", done) from None
+        # from here on the rig may be energised: a process that dies before its shutdown verified 0 V leaves this
+        # marker, and the next start latches the rig (bench/runtime/latch.py)
+        marker = arm(rig.name, str(out), drive)
+        ended: BaseException | None = None
         try:
             result = engine.run()
+        except BaseException as exc:
+            ended = exc
+            raise
         finally:  # a fault latches even when the run ends by an exception the engine let through
-            if (fault := engine.latch_fault) is not None:  # an interlock fault, or a limit trip (0 V verified)
+            fault = engine.latch_fault
+            if fault is None and ended is not None and inst.amplifier is not None and not engine.zero_verified:
+                fault = (f"the run ended by {type(ended).__name__}: {' '.join(str(ended).split())} before its "
+                         "shutdown verified 0 V")
+            if fault is not None:
                 latch(rig.name, fault, str(out), drive)
+            disarm(marker)  # 0 V verified, or the rig latched (a rig without an amplifier has no output to verify)
         end_row = {"hv": recorder.hv_stats(), "written": recorder.written()}  # the file, as it was written
         return result
     finally:
