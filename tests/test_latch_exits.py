@@ -23,9 +23,11 @@ from bench.cli import app
 from bench.rig import RigConfig, load_rig
 from bench.runtime import latch as rig_latch
 from bench.runtime import run as run_mod
+from bench.runtime.engine import Engine
 from bench.runtime.latch import LatchedError, latched, refuse_if_latched, state_dir
 from bench.runtime.run import execute, plan_run
 from bench.storage.runfile import open_run
+from drivers.errors import InstrumentConnectionError
 from tests.campaign_kill import kill_at_step
 from tests.conftest import ROOT
 
@@ -144,3 +146,43 @@ def test_a_limit_trip_in_manual_control_latches_the_rig(tmp_path: Path) -> None:
         assert was is not None and "safety trip" in was["fault"] and was["where"] == str(tmp_path / "s.log")
     assert not list(state_dir().glob("armed-*.json"))  # the session's end made the rig safe: disarmed
     assert latched(rig.name) is not None  # the latch outlives the session
+
+
+# ---------------------------------------------------------------- a resume that fails to connect keeps the latch
+def test_a_resume_that_cannot_connect_leaves_the_latch(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    def stop_early(engine: Engine, _sim: object) -> None:
+        engine.request_stop("test: stopped early")
+
+    first = execute(plan_run(IDENT), tmp_path / "first.h5", virtual=True, on_engine=stop_early)
+    assert first.state == "interrupted", first.reason
+    rig_name = load_rig(DAQ_RIG).name
+    rig_latch.latch(rig_name, "test fault", str(first.path))
+    real = run_mod.build_instruments
+
+    def unplugged(*args: object, **kwargs: object):  # type: ignore[no-untyped-def]
+        inst = real(*args, **kwargs)  # type: ignore[arg-type]
+        _role, drv = next(iter(inst.items()))
+
+        def refuse() -> None:
+            raise InstrumentConnectionError("daq", "cannot connect: adapter unplugged (test)")
+
+        drv.connect = refuse  # type: ignore[method-assign]
+        return inst
+
+    monkeypatch.setattr(run_mod, "build_instruments", unplugged)
+    args = ["run", "--resume", str(first.path), "--virtual-time", "--no-live", "--why", "fault cleared",
+            "--operator", "ada"]
+    failed = CliRunner().invoke(app, args, env={"COLUMNS": "200"})
+    assert failed.exit_code == 2 and "cannot connect" in failed.stderr, failed.stdout + failed.stderr
+    was = latched(rig_name)
+    assert was is not None and was["fault"] == "test fault"  # nothing started: the latch stays
+    assert "reset withheld\t" + rig_name + "\tby ada: fault cleared" in _history()
+    assert "cannot connect: adapter unplugged (test)" in _history()
+    assert "\treset\t" not in _history()
+    monkeypatch.setattr(run_mod, "build_instruments", real)
+    resumed = CliRunner().invoke(app, args, env={"COLUMNS": "200"})
+    assert resumed.exit_code == 0, resumed.stdout + resumed.stderr
+    assert latched(rig_name) is None
+    assert "\treset\t" + rig_name + "\tby ada: fault cleared" in _history()
+    second = next(p for p in tmp_path.glob("*.h5") if p.name != "first.h5")
+    assert "ada: fault cleared" in open_run(second, streams=False).attrs["interlock_reset"]

@@ -25,7 +25,7 @@ class PreparedRun:
     path: Path  # the run file it will write
     metadata: dict[str, str]
     link: Resume | None = None
-    reset: tuple[str, str] | None = None  # (who, why) when resuming reset a latched interlock
+    reset: tuple[str, str] | None = None  # (who, why) when resuming resets a latched interlock (once connected)
 
     @property
     def needs_operator(self) -> bool:
@@ -59,7 +59,8 @@ def prepare_run(protocol_file: Path | None, *, rig: Path | None = None, sim: boo
                 progress: Callable[[float], None] | None = None) -> PreparedRun:
     """Plan a run of ``protocol_file``, or with ``resume`` the rest of that file's campaign (recovered first if a
     crash left it open: each line of what was done goes to ``on_recovered``); on a latched rig a resume needs
-    ``why`` and resets the latch (not on a ``dry_run``). ValueError (one line) for what cannot run."""
+    ``why``, and the run resets the latch once the rig has connected (not on a ``dry_run``). ValueError (one line)
+    for what cannot run."""
     from bench.runtime.run import default_output, run_metadata
 
     link = None
@@ -89,6 +90,7 @@ def prepare_run(protocol_file: Path | None, *, rig: Path | None = None, sim: boo
             with claimed(plan.rig):
                 pass
         reset = _reset_for_resume(plan.rig, operator or old.get("operator"), why, dry_run, metadata)
+        link.reset = reset  # done by the run once the rig has connected: a start that fails keeps the latch
         out = resume.parent
     elif protocol_file is None:
         raise ValueError("give a protocol file, or --resume RUN.h5 to continue a campaign")
@@ -105,8 +107,9 @@ def prepare_run(protocol_file: Path | None, *, rig: Path | None = None, sim: boo
 def _reset_for_resume(rig: RigConfig, operator: str | None, why: str | None, dry_run: bool,
                       metadata: dict[str, str]) -> tuple[str, str] | None:
     """A resumed campaign on a latched rig (or on a real rig's amplifier drive latched under another name): the
-    operator's reset (who and why), recorded in the new file's ``metadata``."""
-    from bench.runtime.latch import drive_of, latched, reset
+    operator's reset (who and why), recorded in the new file's ``metadata``. The reset itself is the run's, once the
+    rig has connected (:func:`~bench.runtime.run.execute`): a resume that fails to start leaves the latch."""
+    from bench.runtime.latch import drive_of, latched
 
     drive = drive_of(rig)
     was = latched(rig.name, drive)
@@ -117,7 +120,6 @@ def _reset_for_resume(rig: RigConfig, operator: str | None, why: str | None, dry
     if dry_run:
         return None
     who = login_name(operator)
-    reset(rig.name, who, why, drive)
     metadata["interlock_reset"] = f"by {who}: {why} (latched at {was.get('at')}: {was.get('fault')})"
     return who, why
 

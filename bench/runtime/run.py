@@ -7,6 +7,7 @@ import json
 import logging
 import os
 import re
+import sys
 import tempfile
 import threading
 import time
@@ -37,7 +38,7 @@ from bench.runtime.engine import Engine, OperatorFn, RunResult, termination_rais
 from bench.runtime.hardware_timed import describe_streams
 from bench.runtime.instruments import Instruments, build_instruments
 from bench.runtime.interlock import watchdog_period
-from bench.runtime.latch import arm, disarm, drive_of, latch, refuse_if_latched
+from bench.runtime.latch import arm, disarm, drive_of, latch, note, refuse_if_latched, reset
 from bench.runtime.polls import SENSOR_PERIOD_S
 from bench.runtime.rig_lock import campaign_claimed, claimed
 from bench.runtime.safety import Supervisor
@@ -249,7 +250,10 @@ def _execute_claimed(plan: Plan, out: Path, *, virtual: bool, operator: Operator
         raise ValueError(f"rig {rig.name} is real: virtual time needs a simulated rig (use --sim)")
     watchdog = check_watchdog(rig, allow_no_watchdog)
     drive = drive_of(rig)  # its port's names now, while it is there: a latch written after a lost adapter keeps them
-    refuse_if_latched(rig.name, drive)
+    pending = resume.reset if resume is not None else None  # the operator's reset of a latch: once connected
+    if pending is None:
+        refuse_if_latched(rig.name, drive)
+    reset_done = False
     sim: SimRig | None = None
     inst: Instruments | None = None
     recorder: Recorder | None = None
@@ -277,6 +281,9 @@ def _execute_claimed(plan: Plan, out: Path, *, virtual: bool, operator: Operator
                 log.info("connecting the instruments of %s", rig.name)
                 for _, drv in inst.items():
                     drv.connect()
+                if pending is not None:  # the start got past connecting: the resume's reset now, not before
+                    reset(rig.name, pending[0], pending[1], drive)
+                    reset_done = True
                 if inst.motor is not None and program.has_motor_axis:
                     phase.what = "enabling and homing the motor"
                     log.info("enabling and homing the motor")
@@ -366,11 +373,20 @@ def _execute_claimed(plan: Plan, out: Path, *, virtual: bool, operator: Operator
         end_row = {"hv": recorder.hv_stats(), "written": recorder.written()}  # the file, as it was written
         return result
     finally:
+        if pending is not None and not reset_done:
+            note(f"reset withheld\t{rig.name}\tby {pending[0]}: {pending[1]}\t(the resumed run did not get past "
+                 f"connecting: {_failure()}): the latch stays")
         if inst is not None:
             inst.close()  # first: no wait on the catalogue keeps an instrument open
         if sim is not None:
             sim.stop()
         _catalogue_end(out, start_row, end_row)
+
+
+def _failure() -> str:
+    """The exception being handled, in one line ("stopped" if none)."""
+    exc = sys.exc_info()[1]
+    return f"{type(exc).__name__}: {' '.join(str(exc).split())}" if exc is not None else "stopped"
 
 
 def _start_sim(plan: Plan, virtual: bool, meta: dict[str, str]) -> tuple[SimRig, dict[str, str]]:
@@ -467,6 +483,7 @@ class Resume:
     campaign_id: str
     step: int
     steps: int
+    reset: tuple[str, str] | None = None  # (who, why): the operator's reset of the rig's latch, done once connected
 
     def attrs(self, out: Path) -> dict[str, Any]:
         """The new file's link to the earlier one (``previous_file`` relative to the new file's folder)."""
