@@ -91,6 +91,11 @@ def test_a_marker_of_a_live_process_is_no_latch_and_a_dead_or_reused_pid_is() ->
     refuse_if_latched("rig-a")
     rig_latch.disarm(live)
     assert not live.exists()
+    # two starts of one process on one rig (threads): one's end leaves the other's marker
+    one, two = rig_latch.arm("rig-e", "run file one.h5"), rig_latch.arm("rig-e", "run file two.h5")
+    rig_latch.disarm(one)
+    assert two.exists()
+    rig_latch.disarm(two)
     # the same process ID, started at another time: the ID was reused, the process that armed is gone
     _marker("rig-b", started="1")
     was = latched("rig-b")

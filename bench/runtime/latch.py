@@ -17,11 +17,11 @@ Every latch and reset is also appended to ``interlock.log`` there (who, why, whe
 the reset.
 
 A process that energises a rig (a run, a manual-control session) first leaves an *armed* marker there
-(``armed-<rig>-<hash>-<pid>.json``: the rig, its process ID, boot ID and start time, the run file or session log)
-and removes it only once its shutdown has commanded and verified 0 V, or latched the rig. A marker whose process is
-gone (``kill -9``, a power cut, a crash; a process ID reused since: another start time or boot) is a bench that
-ended without its shutdown: the next look at the latches (a start, ``bench interlock status``) turns it into a latch
-of its rig, so nothing energises the rig again until an operator resets it.
+(``armed-<rig>-<hash>-<pid>-<token>.json``: the rig, its process ID, boot ID and start time, the run file or session
+log) and removes it only once its shutdown has commanded and verified 0 V, or latched the rig. A marker whose
+process is gone (``kill -9``, a power cut, a crash; a process ID reused since: another start time or boot) is a
+bench that ended without its shutdown: the next look at the latches (a start, ``bench interlock status``) turns it
+into a latch of its rig, so nothing energises the rig again until an operator resets it.
 """
 
 from __future__ import annotations
@@ -33,6 +33,7 @@ import os
 import re
 import shlex
 import socket
+import uuid
 from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
@@ -245,7 +246,8 @@ def arm(rig_name: str, where: str, drive: Drive | None = None) -> Path:
     log); :func:`disarm` it once the shutdown commanded and verified 0 V (or latched the rig)."""
     pid = os.getpid()
     path = latch_path(rig_name)
-    path = path.with_name(f"armed-{path.stem.removeprefix('interlock-')}-{pid}.json")
+    # one marker per start: two runs of one process on one rig (threads) never remove each other's
+    path = path.with_name(f"armed-{path.stem.removeprefix('interlock-')}-{pid}-{uuid.uuid4().hex[:8]}.json")
     path.parent.mkdir(parents=True, exist_ok=True)
     record: dict[str, Any] = {"rig": rig_name, "pid": pid, "started": _started(pid), "boot": _boot_id(),
                               "host": socket.gethostname(), "where": where, "at": _now()}
