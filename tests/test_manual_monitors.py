@@ -12,9 +12,11 @@ binary over ±10 V (tests/test_limits_as_sent.py's ``adam_out``).
 from __future__ import annotations
 
 import dataclasses
+import errno
 import re
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -183,3 +185,32 @@ def test_zero_prints_the_set_point_it_records(tmp_path: Path) -> None:
 
 def test_help_has_no_markup() -> None:
     assert "``" not in HELP and "voltage 3kV" in HELP
+
+
+
+@pytest.mark.parametrize("passes", [False, True], ids=["trips", "passes"])
+def test_a_reading_whose_record_fails_is_still_checked(passes: bool) -> None:
+    """A polled reading the file could not record (disk full) is still checked (a run's polls and a manual
+    session's): a trip it shows is raised; where it passes, the storage fault is (the run ends on it)."""
+    from types import SimpleNamespace
+
+    from bench.runtime.polls import Polled, poll_once
+    from bench.runtime.safety import SafetyTrip
+
+    def no_room(*_a: object, **_k: object) -> None:
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    checked: list[dict[str, float]] = []
+
+    def check(_e: object, _r: object, row: dict[str, float]) -> None:
+        checked.append(row)
+        if not passes:
+            raise SafetyTrip("current 6 mA beyond the 5-mA limit")
+
+    e: Any = SimpleNamespace(rec=SimpleNamespace(append=no_room), t0=0.0, late_columns=lambda _s, _l: {},
+                             lateness=lambda _due: 0.0)
+    drv: Any = SimpleNamespace(read=lambda: {"current": SimpleNamespace(value=6e-3, timestamp=1.0)})
+    d: Any = SimpleNamespace(stream="amplifier", columns=[SimpleNamespace(name="current")])
+    with pytest.raises(OSError if passes else SafetyTrip):
+        poll_once(e, drv, Polled("monitors", lambda _e, _s: None, check=check), 1.0, d)
+    assert checked == [{"current": 6e-3}]

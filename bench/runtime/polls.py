@@ -86,16 +86,21 @@ class Polled:
 
 def poll_once(e: RunContext, drv: Readable, how: Polled, due: float, d: StreamDescription | None = None) -> None:
     """The software-timed poll of any readable instrument: one ``read()``, its row appended to the stream its
-    ``describe()`` names (stamped with the reading's time, its lateness in ``late``), then the role's check.
-    ``d``: the instrument's ``describe()``, where the caller has it already."""
+    ``describe()`` names (stamped with the reading's time, its lateness in ``late``), then the role's check — also
+    when the row could not be recorded (the storage fault is raised after the check, unless the check raises a trip
+    first). ``d``: the instrument's ``describe()``, where the caller has it already."""
     if d is None:
         d = drv.describe()
     r = drv.read()
     row = how.row(e, r)
     if row is None:
         return
-    e.rec.append(d.stream, r[d.columns[0].name].timestamp - e.t0, **row,
-                 **e.late_columns(d.stream, e.lateness(due)))
+    try:
+        e.rec.append(d.stream, r[d.columns[0].name].timestamp - e.t0, **row,
+                     **e.late_columns(d.stream, e.lateness(due)))
+    except OSError:  # the file failed (it stays failed: the run ends on it); the reading is checked all the same:
+        how.check(e, r, row)  # a trip or a latch it shows outranks the storage fault (which the run still reports)
+        raise
     how.check(e, r, row)
 
 
