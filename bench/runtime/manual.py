@@ -223,8 +223,10 @@ class ManualSession:
             "session_log": str(self.log_file), "rig_name": rig.name, "rig_toml": rig_to_toml(rig),
             "simulated": rig.simulated, "clock": "virtual" if self.virtual else "wall", "specimen_kind": spec.kind,
             "specimen": json.dumps({**spec.model_dump(), "model": _model_params(sup.specimen)}),
-            "recording": json.dumps({"readings": "on request (read, watch, after set-points) and polled while "
-                                                 f"energised (monitors {monitors_hz:g} S/s)"}),
+            "recording": json.dumps({"readings": "on request (read, watch, after set-points) and polled between "
+                                                 f"them: while energised at the recording rates (monitors "
+                                                 f"{monitors_hz:g} S/s), at 0 V with the motor still at most every "
+                                                 f"{KEEPALIVE_S:g} s"}),
             "sources": json.dumps(sources), "duration_planned": 0.0,
             "hv_watchdog": f"communication watchdog {watchdog:g} s" if watchdog is not None else "NO watchdog",
             **({"operator": self.operator} if self.operator else {}),
