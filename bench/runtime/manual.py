@@ -460,12 +460,13 @@ class ManualSession:
                     continue
                 if line in ("quit", "exit"):
                     break
-                with self._lock:  # a trip between commands (the keep-alive thread's polls) stops a script too
+                # a trip between commands (the keep-alive thread's polls) stops a script too: the (re-entrant) lock
+                # held from the check through the command, so no trip comes between them
+                with self._lock:
                     trips = [o for o in self.outcomes[checked:] if o.status == "trip"]
                     checked = len(self.outcomes)
-                if not (trips and stop_on_trip):
-                    self.execute(line)
-                    with self._lock:
+                    if not (trips and stop_on_trip):
+                        self.execute(line)
                         trips += [o for o in self.outcomes[checked:] if o.status == "trip"]
                         checked = len(self.outcomes)
                 if trips and stop_on_trip:
