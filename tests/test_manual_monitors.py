@@ -13,7 +13,10 @@ from __future__ import annotations
 
 import dataclasses
 import errno
+import os
 import re
+import signal
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -186,6 +189,89 @@ def test_zero_prints_the_set_point_it_records(tmp_path: Path) -> None:
 def test_help_has_no_markup() -> None:
     assert "``" not in HELP and "voltage 3kV" in HELP
 
+
+def _slow_prompt_polls(s: ManualSession, monkeypatch: pytest.MonkeyPatch) -> threading.Event:
+    """The keep-alive thread's monitor reads wait 2 s on the bus (cancellable, as the drivers' waits are); set once
+    one is in flight."""
+    inst: Any = s._inst
+    amp = inst.amplifier
+    read, in_flight = amp.read, threading.Event()
+
+    def slow(*a: object, **k: object) -> object:
+        if threading.current_thread() is s._keepalive:
+            in_flight.set()
+            for _ in range(200):
+                inst.cancel.check("amplifier")
+                time.sleep(0.01)
+        return read(*a, **k)
+
+    with s._lock:
+        monkeypatch.setattr(amp, "read", slow)
+    return in_flight
+
+
+def test_a_stop_signal_during_a_poll_at_the_prompt_ramps_the_output_down(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """SIGTERM while the keep-alive thread's poll waits on the bus (3 kV held at the prompt): the session ends
+    through the exit ramp (README: the output ramped to 0 V over ``shutdown_ramp_s``), not a one-step drop, and no
+    false `error` line (before: "wait abandoned: SIGTERM; output zeroed", then "ramp from 2 V")."""
+    rig = load_rig(RIGS / "thesis-sim.toml")
+    ramp_s = rig.limits.shutdown_ramp_s
+    seen: list[str] = []
+    history: list[tuple[float, float]] = []
+    s = ManualSession(rig, tmp_path / "s.log", echo=seen.append)
+    with s.signal_handlers(), s:
+        s._sim.plant.listeners.append(lambda b: history.extend(zip(b.t.tolist(), b.v_out.tolist(), strict=True)))
+        assert s.execute("voltage 3kV").status == "ok"
+        in_flight = _slow_prompt_polls(s, monkeypatch)
+        assert in_flight.wait(10)
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(0.5)  # the poll in flight is cancelled before the session's exit
+    assert not [line for line in seen if line.startswith("error")], seen
+    rows = [line.split("\t") for line in (tmp_path / "s.log").read_text(encoding="utf-8").splitlines()]
+    assert not [r for r in rows if r[2] == "error"], rows
+    ramp = next(r for r in rows if r[2] == "ramp")
+    assert float(re.search(r"ramp from (-?\d+) V", ramp[4]).group(1)) > 2900, ramp  # type: ignore[union-attr]
+    t, v = np.array(history).T
+    high = t[np.abs(v) > 2900].max()  # the output leaves 3 kV …
+    low = t[(t > high) & (np.abs(v) < 100)].min()  # … and reaches 0 V over the ramp, not in one step
+    assert low - high > 0.5 * ramp_s, (low - high, ramp_s)
+    assert rows[-1][2] == "end" and "SIGTERM" in rows[-1][4]
+
+
+def test_a_storage_fault_at_the_prompt_is_said_once(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The readings' file fails (disk full) under the keep-alive thread's polls at the prompt: one `error` line, as
+    after a command (README: a storage fault later is one error line, the session goes on with the log alone);
+    the held output stays supervised (before: the fault was suppressed without a word)."""
+    seen: list[str] = []
+    with ManualSession(load_rig(RIGS / "thesis-sim.toml"), tmp_path / "s.log", echo=seen.append) as s:
+        assert s.execute("voltage 3kV").status == "ok"
+        rec: Any = s._rec
+        engine: Any = s.engine
+        append = rec.append
+
+        def full(stream: str, *a: Any, **k: Any) -> None:
+            if threading.current_thread() is s._keepalive and stream == "amplifier" and not rec.failure:
+                rec.failure = "disk full"  # as the recorder: failed once, silent after (recorder.py)
+                raise OSError(errno.ENOSPC, "No space left on device")
+            append(stream, *a, **k)
+
+        with s._lock:
+            monkeypatch.setattr(rec, "append", full)
+            t_fail = float(engine.now())
+        deadline = time.monotonic() + 10  # hang guard: the monitors are polled at 5 S/s
+        while not any(line.startswith("error:") for line in seen):
+            assert time.monotonic() < deadline, seen
+            time.sleep(0.05)
+        time.sleep(1.5)  # six keep-alive periods at the prompt
+        errors = [line for line in seen if line.startswith("error:")]
+        assert len(errors) == 1 and "No space left on device" in errors[0] and "log" in errors[0], seen
+        with s._lock:
+            last = engine.verifier.last
+            assert last is not None and last.t > t_fail + 1.0, (last, t_fail)  # still read and verified
+        assert s.execute("read").status == "ok"  # the session goes on
+    rows = [line.split("\t") for line in (tmp_path / "s.log").read_text(encoding="utf-8").splitlines()]
+    assert len([r for r in rows if r[2] == "error"]) == 1, rows
 
 
 @pytest.mark.parametrize("passes", [False, True], ids=["trips", "passes"])

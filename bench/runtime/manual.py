@@ -297,9 +297,9 @@ class ManualSession:
         wait = KEEPALIVE_S
         while not self._stop.wait(wait):
             wait = KEEPALIVE_S
-            with self._lock, contextlib.suppress(Refused, StopRequested, PauseRequested, OSError):
+            with self._lock, contextlib.suppress(Refused, StopRequested, PauseRequested):
                 engine = self.engine
-                if engine is None or self._ending or self._told:
+                if engine is None or self._told or self._leaving(engine):
                     continue
                 out: Outcome | None = None
                 try:
@@ -310,18 +310,31 @@ class ManualSession:
                 except SafetyTrip as exc:
                     out = Outcome(PROMPT, "trip", f"{exc.reason}; {self._made_safe(engine)}")
                 except InstrumentError as exc:
+                    if self._leaving(engine):
+                        # a stop signal cancelled the poll in flight: not a fault. The main thread's stop ramps the
+                        # output over shutdown_ramp_s; a make_safe here would drop it in one step and clear the
+                        # stop's cancel token (found by review: "wait abandoned: SIGTERM; output zeroed")
+                        continue
                     out = Outcome(PROMPT, "error", f"{exc}; {self._made_safe(engine)}")
                 except PauseRequested:  # SIGUSR1 at the prompt: paused now, not at the next command
                     out = self._paused("(SIGUSR1 at the prompt)", engine, engine.pause_asked_by())
+                except OSError as exc:  # the readings' file: said once, as after a command; the log goes on alone
+                    if self._rec is not None:
+                        self._storage_failed(exc)
                 if out is not None:
                     out.text = _printable(" ".join(out.text.splitlines()))
-                    if out.status != "paused":
+                    if out.status not in ("paused", "interrupted"):
                         self.outcomes.append(out)  # counted as a command's trip: a script stops at it
                         # made safe (0 V, nothing to keep alive) and told: the next command reads again — not one
                         # more line (and a dead link's timeouts under the session's lock) every 0.25 s meanwhile
                         self._told = True
                     self._write(out.command, out.status, out.text)  # a pause that failed latched or made safe
                     self.echo(f"{out.status}: {out.text}")
+
+    def _leaving(self, engine: ManualEngine) -> bool:
+        """The session is ending (a stop asked for, or its stop begun): what the keep-alive thread meets then (a
+        cancelled wait, a refused set-point) is the stop's, not a fault — the main thread's stop makes the rig safe."""
+        return self._ending or engine.stop_reason is not None or engine.stopping
 
     def __exit__(self, exc_type: type[BaseException] | None, *_exc: object) -> None:
         self._ending = True
@@ -555,9 +568,14 @@ class ManualSession:
         """A pause request (SIGUSR1, or ``bench pause`` on a run) ended the command under way: paused."""
         try:
             return Outcome(shown, "paused", engine.pause(by))
+        except (StopRequested, InstrumentError) as exc:
+            if not self._leaving(engine):
+                return Outcome(shown, "error", f"pause: {exc}; {self._made_safe(engine)}")
+            # a stop signal cut the pause's ramp short: the stop ramps on from there (no make_safe: one step)
+            return Outcome(shown, "interrupted", f"pause: {self.end_reason}: the session ends")
         except InterlockTrip as trip:
             return Outcome(shown, "trip", self._latch(trip))
-        except (SafetyTrip, InstrumentError, StopRequested, PauseRequested) as exc:
+        except (SafetyTrip, PauseRequested) as exc:
             return Outcome(shown, "error", f"pause: {exc}; {self._made_safe(engine)}")
         except OSError as exc:  # the readings' file: the output is made safe all the same
             self._storage_failed(exc)

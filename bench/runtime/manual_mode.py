@@ -404,6 +404,11 @@ class ManualEngine(Engine):
         return self._interrupt
 
     @property
+    def stopping(self) -> bool:
+        """Whether the engine's stop has begun (nothing may follow its zero)."""
+        return self._stopping
+
+    @property
     def stop_reason(self) -> str | None:
         """The stop request that ends the session, if any."""
         return self._stop_reason
