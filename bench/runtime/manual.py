@@ -341,18 +341,25 @@ class ManualSession:
         if self.end_reason is None and exc_type is not None and exc_type is not StopRequested:
             self._end = f"ended by {exc_type.__name__}"
         self._stop.set()
-        if self._keepalive is not None:  # a tick stuck on the bus may outlast this wait: the engine's stop takes its
-            self._keepalive.join(timeout=2.0)  # set-point lock, so that tick goes out before the stop, none after
+        if self._keepalive is not None:
+            if self._inst is not None:  # a tick's wait on the bus abandoned now (the stop clears this for its own
+                self._inst.cancel.cancel("the session is ending")  # commands): not a fault, as _ending says
+            self._keepalive.join(timeout=2.0)
         engine, errors = self.engine, []
         safe = ""
         if engine is not None:
             was_latched = engine.latched is not None
             state = ("interrupted" if self.end_reason else "tripped" if was_latched else "completed")
-            try:
-                safe = engine.end(state, self.end_reason or "session ended")
-            except Exception as exc:  # the engine's stop reports driver faults; anything else is said
-                errors.append(f"{type(exc).__name__}: {exc}")
-                errors += self._inst.safe_state() if self._inst is not None else []
+            # under the session's lock: a tick that outlasted the join (a bus wait that does not look at the cancel)
+            # ends first, and nothing of the keep-alive thread (a make_safe, a latch) runs during the stop
+            with self._lock:
+                try:
+                    safe = engine.end(state, self.end_reason or "session ended")
+                except Exception as exc:  # the engine's stop reports driver faults; anything else is said
+                    errors.append(f"{type(exc).__name__}: {exc}")
+                    if self._inst is not None:
+                        self._inst.cancel.clear()  # the safe-state commands must go out
+                        errors += self._inst.safe_state()
             if engine.latched is not None and not was_latched:  # a stall seen at the exit
                 engine.latched_at = engine.now()  # the engine's stop latched it: the time is the session's end
                 self._latched_line(engine.latched)
