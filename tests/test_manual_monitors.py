@@ -300,3 +300,38 @@ def test_a_reading_whose_record_fails_is_still_checked(passes: bool) -> None:
     with pytest.raises(OSError if passes else SafetyTrip):
         poll_once(e, drv, Polled("monitors", lambda _e, _s: None, check=check), 1.0, d)
     assert checked == [{"current": 6e-3}]
+
+
+def test_a_stop_signal_during_a_pause_ramp_at_the_prompt_ramps_on(tmp_path: Path) -> None:
+    """A pause asked for at the prompt (SIGUSR1: the keep-alive thread ramps 3 kV down over ``shutdown_ramp_s``),
+    then SIGTERM in that ramp: the session's stop ramps on from where the pause's ramp was (README: the exit ramps
+    the output to 0 V over ``shutdown_ramp_s``) — no one-step drop, no `error` line (before: "pause: …; output
+    zeroed")."""
+    rig = load_rig(RIGS / "thesis-sim.toml")
+    ramp_s = 3.0  # long enough to signal within the pause's ramp
+    rig = rig.model_copy(update={"limits": rig.limits.model_copy(update={"shutdown_ramp_s": ramp_s})})
+    seen: list[str] = []
+    history: list[tuple[float, float]] = []
+    s = ManualSession(rig, tmp_path / "s.log", echo=seen.append)
+    with s.signal_handlers(), s:
+        sim = s._sim
+        sim.plant.listeners.append(lambda b: history.extend(zip(b.t.tolist(), b.v_out.tolist(), strict=True)))
+        assert s.execute("voltage 3kV").status == "ok"
+        os.kill(os.getpid(), signal.SIGUSR1)
+        deadline = time.monotonic() + 10  # hang guard: the pause's ramp takes 3 s
+        while True:
+            assert time.monotonic() < deadline, seen
+            sim.plant.observe()
+            if history and history[-1][1] < 2000:
+                break
+            time.sleep(0.02)
+        os.kill(os.getpid(), signal.SIGTERM)
+        t_stop = history[-1][0]
+    assert not [line for line in seen if line.startswith("error")], seen
+    rows = [line.split("\t") for line in (tmp_path / "s.log").read_text(encoding="utf-8").splitlines()]
+    assert not [r for r in rows if r[2] == "error"], rows
+    t, v = np.array(history).T
+    after = t >= t_stop
+    low = t[after & (np.abs(v) < 100)].min()
+    assert low - t_stop > 0.5 * ramp_s, low - t_stop  # from 2 kV to 0 V over the exit ramp, not one step
+    assert rows[-1][2] == "end" and "SIGTERM" in rows[-1][4]
