@@ -335,3 +335,38 @@ def test_a_stop_signal_during_a_pause_ramp_at_the_prompt_ramps_on(tmp_path: Path
     low = t[after & (np.abs(v) < 100)].min()
     assert low - t_stop > 0.5 * ramp_s, low - t_stop  # from 2 kV to 0 V over the exit ramp, not one step
     assert rows[-1][2] == "end" and "SIGTERM" in rows[-1][4]
+
+
+def test_quit_during_a_stuck_poll_at_the_prompt_is_the_stop_alone(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Quit while the keep-alive thread's poll is stuck on the bus past the session's 2-s join (a wait that does not
+    look at the cancel), then fails: the stop waits for that tick and then runs alone — no `error` line from the
+    thread after the stop began, its make_safe not interleaved with the stop (before: the stop ran beside it)."""
+    from drivers.errors import InstrumentError
+
+    s = ManualSession(load_rig(RIGS / "thesis-sim.toml"), tmp_path / "s.log", echo=lambda _t: None)
+    s.__enter__()
+    try:
+        assert s.execute("voltage 3kV").status == "ok"
+        inst: Any = s._inst
+        in_flight, ended = threading.Event(), []
+
+        def stuck(*_a: object, **_k: object) -> None:
+            if threading.current_thread() is s._keepalive:
+                in_flight.set()
+                time.sleep(2.5)
+                ended.append(s._now())  # the log's run time
+                raise InstrumentError("amplifier", "bus io: no answer (dead link)")
+            raise AssertionError("read from the main thread")
+
+        with s._lock:
+            monkeypatch.setattr(inst.amplifier, "read", stuck)
+        assert in_flight.wait(10)
+    finally:
+        s.__exit__(None, None, None)
+    time.sleep(1.0)  # a thread left behind would say its error now
+    rows = [line.split("\t") for line in (tmp_path / "s.log").read_text(encoding="utf-8").splitlines()]
+    assert not [r for r in rows if r[2] == "error"], rows
+    assert rows[-1][2:4] == ["end", "session"], rows
+    stop = next(r for r in rows if r[2] == "stop")
+    assert float(stop[1].split("=")[1].split()[0]) >= ended[0] - 1e-3, (stop, ended)  # after the tick (ms)
