@@ -370,3 +370,24 @@ def test_quit_during_a_stuck_poll_at_the_prompt_is_the_stop_alone(
     assert rows[-1][2:4] == ["end", "session"], rows
     stop = next(r for r in rows if r[2] == "stop")
     assert float(stop[1].split("=")[1].split()[0]) >= ended[0] - 1e-3, (stop, ended)  # after the tick (ms)
+
+
+def test_a_limit_trip_at_the_prompt_latches_the_rig(tmp_path: Path) -> None:
+    """Wall clock, nothing typed: the film breaks down under 5 kV held at the prompt — the keep-alive thread's
+    polls trip on it, and the trip latches the rig as one after a command does (README "Interlock": a limit trip
+    latches; a reviewer found the prompt's trip made safe but not latched, the next `voltage 1 kV` accepted)."""
+    from bench.runtime import latch as rig_latch
+
+    seen: list[str] = []
+    rig = load_rig(RIGS / "thesis-sim.toml")
+    with ManualSession(rig, tmp_path / "s.log", echo=seen.append) as s:
+        assert s.execute("voltage 5kV").status == "ok"
+        with s._lock:  # not between two reads of the keep-alive thread
+            s._sim.plant.inject_breakdown()
+        deadline = time.monotonic() + 30  # hang guard only
+        while not any(line.startswith("trip:") for line in seen):
+            assert time.monotonic() < deadline, seen
+            time.sleep(0.05)
+        assert s.engine.latched is not None
+        assert s.execute("voltage 1kV").status == "refused"
+    assert rig_latch.latched(rig.name) is not None

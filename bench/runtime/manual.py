@@ -307,8 +307,8 @@ class ManualSession:
                     wait = min(KEEPALIVE_S, max(IDLE_MIN_S, engine.idle_due() - engine.now()))
                 except InterlockTrip as trip:  # between commands: the operator is told at the prompt
                     out = Outcome(PROMPT, "trip", self._latch(trip))
-                except SafetyTrip as exc:
-                    out = Outcome(PROMPT, "trip", f"{exc.reason}; {self._made_safe(engine)}")
+                except SafetyTrip as exc:  # latched as after a command (a reviewer: at the prompt it did not)
+                    out = Outcome(PROMPT, "trip", f"{exc.reason}; {self._trip_made_safe(engine, exc)}")
                 except InstrumentError as exc:
                     if self._leaving(engine):
                         # a stop signal cancelled the poll in flight: not a fault. The main thread's stop ramps the
