@@ -80,7 +80,7 @@ def _marker(rig_name: str, **changes: object) -> Path:
     """This process's armed marker for ``rig_name``, its record changed by ``changes``."""
     path = rig_latch.arm(rig_name, "run file test.h5")
     record = json.loads(path.read_text())
-    record.update(changes)
+    record.update({"flock": False, **changes} if changes else {})  # a changed one: as a marker without a lock
     path.write_text(json.dumps(record))
     return path
 

@@ -530,17 +530,23 @@ interlock_app = typer.Typer(help="The interlock latch: after a latched fault not
 
 @clean_errors
 def interlock_status(json_out: JsonOpt = False) -> None:
-    """Every latched rig: the fault, when, and in which run file or session."""
-    from bench.runtime.latch import all_latched, state_dir
+    """Every latched rig: the fault, when, and in which run file or session; and every bench armed on a rig now
+    (judged running: it may energise its rig)."""
+    from bench.runtime.latch import all_latched, armed, state_dir
 
     found = all_latched()
+    live = armed()
     if json_out:
-        print_json({"state_dir": str(state_dir()), "latched": found})
+        print_json({"state_dir": str(state_dir()), "latched": found, "armed": live})
         return
     if not found:
         console.print(f"no rig latched ({escape(str(state_dir()))})")
     for rig_name, was in found.items():
         console.print(f"[red]latched[/] {escape(_latch_line(rig_name, was))}", soft_wrap=True)
+    for was in live:
+        line = (f"rig {was.get('rig')}: armed by pid {was.get('pid')} on {was.get('host') or '?'} since "
+                f"{was.get('at')}, in {was.get('where')} (running: {was.get('alive')})")
+        console.print(f"[yellow]armed[/] {escape(' '.join(line.split()))}", soft_wrap=True)
 
 
 def _latch_line(rig_name: str, was: dict[str, object]) -> str:

@@ -18,10 +18,15 @@ the reset.
 
 A process that energises a rig (a run, a manual-control session) first leaves an *armed* marker there
 (``armed-<rig>-<hash>-<pid>-<token>.json``: the rig, its process ID, boot ID and start time, the run file or session
-log) and removes it only once its shutdown has commanded and verified 0 V, or latched the rig. A marker whose
-process is gone (``kill -9``, a power cut, a crash; a process ID reused since: another start time or boot) is a
-bench that ended without its shutdown: the next look at the latches (a start, ``bench interlock status``) turns it
-into a latch of its rig, so nothing energises the rig again until an operator resets it.
+log) and removes it only once its shutdown has commanded and verified 0 V, or latched the rig. Until then the
+process holds an ``flock`` on the marker, which the kernel releases when the process ends however it ends: whatever
+its process ID means in another PID namespace, and whatever its container's host name is now. A marker whose lock is
+free is a bench that ended without its shutdown (``kill -9``, a power cut, a crash): the next look at the latches (a
+start, ``bench interlock status``) turns it into a latch of its rig, so nothing energises the rig again until an
+operator resets it. Where there is no ``flock`` (Windows, some network mounts, a marker of a bench before the locks)
+its process ID, start time and boot decide (on Windows without ``os.kill``, which would end the process), and one
+armed on another host is taken as running; ``bench interlock status`` lists the markers taken as running too. A
+look by a user who may only read the folder reports a dead marker as latched without writing the latch.
 """
 
 from __future__ import annotations
@@ -33,6 +38,7 @@ import os
 import re
 import shlex
 import socket
+import sys
 import uuid
 from dataclasses import dataclass
 from datetime import datetime
@@ -213,6 +219,24 @@ def _started(pid: int) -> str:
 
 
 def _running(pid: int) -> bool:
+    """Whether a process with ID ``pid`` exists (never a latch on a guess: True where it cannot be told)."""
+    if sys.platform == "win32":  # os.kill on Windows terminates the process, whatever the signal: never called
+        import ctypes
+
+        try:
+            kernel32 = ctypes.windll.kernel32
+        except AttributeError:  # no Windows API after all: cannot tell
+            return True
+        handle = kernel32.OpenProcess(0x1000, False, pid)  # PROCESS_QUERY_LIMITED_INFORMATION: reads, ends nothing
+        if not handle:
+            return kernel32.GetLastError() != 87  # ERROR_INVALID_PARAMETER: no such process; else (denied) it exists
+        code = ctypes.c_ulong()
+        try:
+            if not kernel32.GetExitCodeProcess(handle, ctypes.byref(code)):
+                return True
+        finally:
+            kernel32.CloseHandle(handle)
+        return code.value == 259  # STILL_ACTIVE
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
@@ -224,51 +248,133 @@ def _running(pid: int) -> bool:
     return True
 
 
-def _alive(was: dict[str, Any]) -> bool:
-    """Whether the process that left the armed marker ``was`` still runs. One on another host cannot be asked
-    (a shared state folder): taken as running."""
-    if was.get("host") not in (None, socket.gethostname()):
-        return True
+def _flock(fd: int, exclusive: bool) -> bool | None:
+    """A non-blocking ``flock`` on ``fd``: True taken, False another open file holds it, None no ``flock`` here
+    (Windows, some network or FUSE mounts)."""
+    if sys.platform == "win32":
+        return None
+    import fcntl
+
+    try:
+        fcntl.flock(fd, (fcntl.LOCK_EX if exclusive else fcntl.LOCK_SH) | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return False
+    except OSError:
+        return None
+    return True
+
+
+def _lock_free(path: Path) -> bool | None:
+    """Whether the ``flock`` its arming process holds on marker ``path`` is free (True: that process ended, however
+    it ended; the kernel released it), held (False: it runs, in whatever PID namespace or under whatever host name),
+    or None: it cannot be told here (no ``flock``, the file cannot be opened)."""
+    if sys.platform == "win32":
+        return None
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK)  # read only: a reader of the folder may ask
+    except FileNotFoundError:
+        return False  # disarmed meanwhile: nothing to latch
+    except OSError:
+        return None
+    try:
+        got = _flock(fd, exclusive=False)  # shared: two lookers at once do not take each other for the owner
+    finally:
+        os.close(fd)
+    return got
+
+
+def _alive(was: dict[str, Any], path: Path) -> tuple[bool, str]:
+    """Whether the process that left armed marker ``was`` (in ``path``) still runs, and how that was judged.
+    The marker's ``flock`` decides where it has one; else (Windows, a bench before the locks, a folder without
+    ``flock``) its process ID, start time and boot, and one on another host cannot be asked: taken as running."""
+    if was.get("flock") is True:
+        free = _lock_free(path)
+        if free is not None:
+            return not free, "holds its marker's lock"
     pid = was.get("pid")
+    if was.get("host") not in (None, socket.gethostname()):
+        return True, f"on another host ({was.get('host')}): cannot be checked from here, taken as running"
     if not isinstance(pid, int):
-        return True
+        return True, "no process ID in its marker: taken as running"
     boot = _boot_id()
     if was.get("boot") and boot and was["boot"] != boot:  # the machine restarted since
-        return False
+        return False, ""
     if not _running(pid):
-        return False
+        return False, ""
     now = _started(pid)
-    return not (was.get("started") and now and was["started"] != now)  # the ID reused by another process
+    if was.get("started") and now and was["started"] != now:  # the ID reused by another process
+        return False, ""
+    how = "its process ID runs" + (" (Windows: not told from a reused ID)" if sys.platform == "win32" else "")
+    return True, how
+
+
+_held: dict[Path, int] = {}  # this process's armed markers: the descriptor that holds each one's flock until disarm
 
 
 def arm(rig_name: str, where: str, drive: Drive | None = None) -> Path:
     """Leave the marker that this process is about to energise rig ``rig_name`` (``where``: its run file or session
-    log); :func:`disarm` it once the shutdown commanded and verified 0 V (or latched the rig)."""
+    log); :func:`disarm` it once the shutdown commanded and verified 0 V (or latched the rig). The process holds an
+    ``flock`` on the marker until then: the kernel releases it when the process ends, however it ends, and a look at
+    the latches that can take it knows the bench died energised."""
     pid = os.getpid()
     path = latch_path(rig_name)
     # one marker per start: two runs of one process on one rig (threads) never remove each other's
     path = path.with_name(f"armed-{path.stem.removeprefix('interlock-')}-{pid}-{uuid.uuid4().hex[:8]}.json")
     path.parent.mkdir(parents=True, exist_ok=True)
-    record: dict[str, Any] = {"rig": rig_name, "pid": pid, "started": _started(pid), "boot": _boot_id(),
-                              "host": socket.gethostname(), "where": where, "at": _now()}
-    if drive is not None:
-        record["drive"], record["drive_ids"] = drive.text, sorted(drive.ids)
-    _write(path, record)
+    tmp = path.with_suffix(".tmp")
+    fd = os.open(tmp, os.O_RDWR | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0), 0o644)
+    try:
+        locked = _flock(fd, exclusive=True) is True  # locked before it has its name: no look finds it unlocked
+        record: dict[str, Any] = {"rig": rig_name, "pid": pid, "started": _started(pid), "boot": _boot_id(),
+                                  "host": socket.gethostname(), "where": where, "at": _now(), "flock": locked}
+        if drive is not None:
+            record["drive"], record["drive_ids"] = drive.text, sorted(drive.ids)
+        data = json.dumps(record).encode("utf-8")
+        while data:
+            data = data[os.write(fd, data):]
+        os.replace(tmp, path)
+    except BaseException:
+        os.close(fd)
+        tmp.unlink(missing_ok=True)
+        raise
+    if locked:
+        _held[path] = fd
+    else:
+        os.close(fd)
     return path
 
 
 def disarm(marker: Path | None) -> None:
     """Remove an armed marker (:func:`arm`): the process ended its use of the rig with 0 V verified, or latched it."""
     if marker is not None:
-        marker.unlink(missing_ok=True)
+        marker.unlink(missing_ok=True)  # first: with its lock released but the file there, it would read as dead
+        fd = _held.pop(marker, None)
+        if fd is not None:
+            os.close(fd)
 
 
-def _dead_markers_latch() -> None:
-    """Turn each armed marker whose process is gone into a latch of its rig (a latch already there is kept: the
-    history says what else was found)."""
+def _markers() -> list[tuple[Path, dict[str, Any]]]:
+    found = []
     for path in sorted(state_dir().glob("armed-*.json")):
         was = _read(path)
-        if was is None or not isinstance(was.get("rig"), str) or _alive(was):
+        if was is not None and isinstance(was.get("rig"), str):
+            found.append((path, was))
+    return found
+
+
+def armed() -> list[dict[str, Any]]:
+    """The armed markers whose process was judged running (a bench that may energise its rig now), each with
+    ``alive``: how that was judged."""
+    return [{**was, "alive": how} for path, was in _markers() for alive, how in [_alive(was, path)] if alive]
+
+
+def _dead_markers_latch() -> dict[str, dict[str, Any]]:
+    """Turn each armed marker whose process is gone into a latch of its rig (a latch already there is kept: the
+    history says what else was found). Returns those that could not be written (a state folder this user may only
+    read): latched all the same, for this look."""
+    unwritten: dict[str, dict[str, Any]] = {}
+    for path, was in _markers():
+        if _alive(was, path)[0]:
             continue
         rig_name, where = was["rig"], str(was.get("where") or "?")
         fault = (f"the bench process (pid {was.get('pid')}, armed {was.get('at')}) ended without its shutdown "
@@ -276,11 +382,20 @@ def _dead_markers_latch() -> None:
         drive = None
         if isinstance(was.get("drive"), str):
             drive = Drive(was["drive"], frozenset(str(i) for i in was.get("drive_ids") or []))
-        if _own(rig_name):
-            _history(f"found dead\t{rig_name}\t{fault}\t(already latched: that latch kept)")
-        else:
-            latch(rig_name, fault, where, drive)
-        path.unlink(missing_ok=True)
+        try:
+            if _own(rig_name):
+                _history(f"found dead\t{rig_name}\t{fault}\t(already latched: that latch kept)")
+            else:
+                latch(rig_name, fault, where, drive)
+            path.unlink(missing_ok=True)
+        except OSError as exc:
+            record: dict[str, Any] = {"rig": rig_name, "fault": f"{fault} (not written to {state_dir()}: "
+                                      f"{exc.strerror or exc})", "where": where, "at": was.get("at") or "?"}
+            if drive is not None:
+                record["drive"], record["drive_ids"] = drive.text, sorted(drive.ids)
+            if not _own(rig_name):
+                unwritten.setdefault(rig_name, record)
+    return unwritten
 
 
 def _own(rig_name: str) -> list[dict[str, Any]]:
@@ -301,8 +416,8 @@ def _own(rig_name: str) -> list[dict[str, Any]]:
 def _holding(rig_name: str, drive: Drive | None) -> list[dict[str, Any]]:
     """Every latch that holds rig ``rig_name``: its own first, then those of other rigs on ``drive`` (a bench that
     died energised latched first)."""
-    _dead_markers_latch()
-    found = _own(rig_name)
+    unwritten = _dead_markers_latch()
+    found = _own(rig_name) or ([unwritten[rig_name]] if rig_name in unwritten else [])
     if drive is not None:
         found += [was for name, was in all_latched().items() if name != rig_name and _on(was, drive)]
     return found
@@ -319,7 +434,7 @@ def latched(rig_name: str, drive: Drive | None = None) -> dict[str, Any] | None:
 def all_latched() -> dict[str, dict[str, Any]]:
     """Every latch in the state folder, by exact rig name (as its file records it; the file name if it cannot
     be read); a bench that died energised latched first."""
-    _dead_markers_latch()
+    unwritten = _dead_markers_latch()
     found: dict[str, dict[str, Any]] = {}
     for path in sorted(state_dir().glob("interlock-*.json")):
         data = _read(path)
@@ -327,6 +442,8 @@ def all_latched() -> dict[str, dict[str, Any]]:
             name = path.stem.removeprefix("interlock-")
             data = {"rig": name, "fault": f"latch file {path} unreadable", "where": "?", "at": "?"}
         found.setdefault(data["rig"], data)
+    for name, was in unwritten.items():
+        found.setdefault(name, was)
     return found
 
 

@@ -1,0 +1,122 @@
+"""Armed markers judged by the lock their process holds, not by what a process ID means here.
+
+* a bench killed while armed (SIGKILL: no handler runs) leaves a marker whose ``flock`` the kernel released: the
+  next look latches its rig, even when the marker's host name is another (a container restarted under a new name);
+* a live bench holds its marker's lock: no latch, the marker kept, and ``bench interlock status`` lists it, even
+  when its process ID names no process here (another PID namespace);
+* on Windows ``os.kill`` ends the process it is given, whatever the signal: a look at the markers never calls it;
+* a user who may only read the state folder sees a dead marker as a latch (nothing written, no crash).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from bench.cli import app
+from bench.runtime import latch as rig_latch
+from bench.runtime.latch import latched
+from tests.conftest import ROOT
+
+# a child that arms rig-k, says where its marker is, then waits to be killed (or told to end)
+CHILD = """
+import sys
+from bench.runtime import latch
+path = latch.arm("rig-k", "run file child.h5")
+print(path, flush=True)
+sys.stdin.readline()
+"""
+
+
+def _child() -> tuple[subprocess.Popen[str], Path]:
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    proc = subprocess.Popen([sys.executable, "-c", CHILD], cwd=ROOT, env=env, stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE, text=True)
+    assert proc.stdout is not None
+    return proc, Path(proc.stdout.readline().strip())
+
+
+def _rewrite(path: Path, **changes: object) -> None:
+    """Change the marker's record in place (the same file: its lock stays with its holder)."""
+    record = json.loads(path.read_text())
+    record.update(changes)
+    with path.open("r+") as fh:
+        fh.truncate(0)
+        fh.write(json.dumps(record))
+
+
+def test_a_killed_armed_child_latches_even_under_another_host_name() -> None:
+    proc, marker = _child()
+    try:
+        assert marker.exists() and latched("rig-k") is None  # alive: it holds the lock
+        _rewrite(marker, host="container-before-restart")  # the host name it had is not this one
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    was = latched("rig-k")
+    assert was is not None and "killed?" in was["fault"] and was["where"] == "run file child.h5"
+    assert not marker.exists()
+
+
+def test_a_live_child_holding_its_marker_is_no_latch_and_is_listed(tmp_path: Path) -> None:
+    proc, marker = _child()
+    try:
+        # its process ID names no process here (another PID namespace): the lock it holds says it runs
+        _rewrite(marker, pid=2**22 + 11, started="1", boot="another-boot")
+        assert latched("rig-k") is None and marker.exists()
+        status = CliRunner().invoke(app, ["interlock", "status"], env={"COLUMNS": "300"})
+        assert status.exit_code == 0, status.stdout + status.stderr
+        assert f"armed by pid {2**22 + 11}" in status.stdout and "rig-k" in status.stdout, status.stdout
+        assert "no rig latched" in status.stdout
+        as_json = CliRunner().invoke(app, ["interlock", "status", "--json"])
+        assert [m["rig"] for m in json.loads(as_json.stdout)["armed"]] == ["rig-k"]
+    finally:
+        proc.communicate("\n", timeout=30)  # it ends without disarming: now the lock is free
+    assert latched("rig-k") is not None
+
+
+def test_on_windows_a_look_at_the_markers_never_calls_os_kill(monkeypatch: pytest.MonkeyPatch) -> None:
+    def kill(*_args: object) -> None:
+        raise AssertionError("os.kill called on Windows: it would terminate the process")
+
+    monkeypatch.setattr(sys, "platform", "win32")
+    monkeypatch.setattr(os, "kill", kill)
+    marker = rig_latch.arm("rig-w", "run file w.h5")  # no flock there: its process ID decides
+    other = marker.with_name(marker.name.replace("armed-", "armed-x"))
+    other.write_text(json.dumps({**json.loads(marker.read_text()), "pid": 4242}))  # another bench's marker
+    assert latched("rig-w") is None
+    assert "rig-w" not in rig_latch.all_latched()
+    alive = rig_latch.armed()
+    assert len(alive) == 2 and all(m["alive"] for m in alive)
+    assert json.loads(marker.read_text())["flock"] is False
+    rig_latch.disarm(marker)
+    other.unlink()
+
+
+def test_a_reader_of_the_state_folder_sees_a_dead_marker_as_latched(monkeypatch: pytest.MonkeyPatch) -> None:
+    proc, marker = _child()
+    proc.send_signal(signal.SIGKILL)
+    proc.wait(30)
+
+    def denied(*_args: object) -> None:  # a folder this user may only read (root would write it all the same)
+        raise PermissionError(13, "Permission denied")
+
+    with monkeypatch.context() as mp:
+        mp.setattr(rig_latch, "_write", denied)
+        mp.setattr(rig_latch, "_history", denied)
+        status = CliRunner().invoke(app, ["interlock", "status", "--json"])
+        assert status.exit_code == 0, status.stdout + status.stderr
+        was = json.loads(status.stdout)["latched"]["rig-k"]
+        assert "killed?" in was["fault"] and "not written" in was["fault"]
+        assert latched("rig-k") is not None
+        assert marker.exists()  # nothing was written: the next look by a writer latches it
+    assert latched("rig-k") is not None and not marker.exists()
