@@ -120,3 +120,23 @@ def test_a_reader_of_the_state_folder_sees_a_dead_marker_as_latched(monkeypatch:
         assert latched("rig-k") is not None
         assert marker.exists()  # nothing was written: the next look by a writer latches it
     assert latched("rig-k") is not None and not marker.exists()
+
+
+# ---------------------------------------------------------------- a state folder the marker cannot be written to
+def test_a_state_folder_that_cannot_hold_the_marker_refuses_in_one_line(tmp_path: Path,
+                                                                        monkeypatch: pytest.MonkeyPatch) -> None:
+    from bench.storage.runfile import open_run
+
+    blocker = tmp_path / "a-file"
+    blocker.write_text("not a folder")
+    monkeypatch.setenv("BENCH_STATE_DIR", str(blocker / "state"))  # not a directory: nothing can be written there
+    runs = tmp_path / "runs"
+    ident = ROOT / "protocols" / "short" / "thesis-identification-short.toml"
+    result = CliRunner().invoke(app, ["run", str(ident), "--virtual-time", "--no-live", "--yes", "--out", str(runs)],
+                                env={"COLUMNS": "400"})
+    assert result.exit_code == 2, result.stdout + result.stderr
+    error = [line for line in result.stderr.splitlines() if line.strip()]
+    assert len(error) == 1, result.stderr
+    assert f"state folder {blocker / 'state'}" in error[0] and "armed marker cannot be written" in error[0], error
+    files = list(runs.glob("*.h5"))
+    assert files and all(open_run(f, streams=False).state != "running" for f in files)

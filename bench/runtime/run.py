@@ -38,7 +38,18 @@ from bench.runtime.engine import Engine, OperatorFn, RunResult, termination_rais
 from bench.runtime.hardware_timed import describe_streams
 from bench.runtime.instruments import Instruments, build_instruments
 from bench.runtime.interlock import watchdog_period
-from bench.runtime.latch import arm, disarm, drive_of, latch, note, refuse_if_latched, reset
+from bench.runtime.latch import (
+    STATE_ENV,
+    Drive,
+    arm,
+    disarm,
+    drive_of,
+    latch,
+    note,
+    refuse_if_latched,
+    reset,
+    state_dir,
+)
 from bench.runtime.polls import SENSOR_PERIOD_S
 from bench.runtime.rig_lock import campaign_claimed, claimed
 from bench.runtime.safety import Supervisor
@@ -259,6 +270,7 @@ def _execute_claimed(plan: Plan, out: Path, *, virtual: bool, operator: Operator
     recorder: Recorder | None = None
     start_row: threading.Thread | None = None
     end_row: dict[str, Any] | None = None  # the catalogue's end row, once the file has its end (record_end's args)
+    marker: Path | None = None  # the armed marker (latch.arm), once the engine is about to run
     try:
         # until the engine has its own handlers a stop signal raises (naming what was under way), and the rig is made
         # safe below; from engine.run() on the engine's shutdown does that
@@ -336,8 +348,13 @@ def _execute_claimed(plan: Plan, out: Path, *, virtual: bool, operator: Operator
                         on_engine(engine, sim)
                     if sim is not None and sim.replay is not None:
                         sim.replay.anchor(clock.now())  # record time 0 = this run's time 0 (the engine starts now)
+                    # from engine.run() on the rig may be energised: a process that dies before its shutdown
+                    # verified 0 V leaves this marker, and the next start latches the rig (bench/runtime/latch.py);
+                    # armed here, where a marker that cannot be written still ends the file unstarted
+                    marker = _arm(rig.name, out, drive)
                     phase.check()
                 except BaseException as exc:  # Ctrl-C included: no file may say "running" for a run that never ran
+                    disarm(marker)  # nothing was energised
                     recorder.end_unstarted(exc)
                     end_row = {}
                     raise
@@ -353,9 +370,6 @@ def _execute_claimed(plan: Plan, out: Path, *, virtual: bool, operator: Operator
             done = f"{phase.stopped}; {kept}; {safe}"
             log.info("not run: %s", done)
             raise OperationCancelledError("run", done) from None
-        # from here on the rig may be energised: a process that dies before its shutdown verified 0 V leaves this
-        # marker, and the next start latches the rig (bench/runtime/latch.py)
-        marker = arm(rig.name, str(out), drive)
         ended: BaseException | None = None
         try:
             result = engine.run()
@@ -374,13 +388,27 @@ def _execute_claimed(plan: Plan, out: Path, *, virtual: bool, operator: Operator
         return result
     finally:
         if pending is not None and not reset_done:
-            note(f"reset withheld\t{rig.name}\tby {pending[0]}: {pending[1]}\t(the resumed run did not get past "
-                 f"connecting: {_failure()}): the latch stays")
+            try:
+                note(f"reset withheld\t{rig.name}\tby {pending[0]}: {pending[1]}\t(the resumed run did not get "
+                     f"past connecting: {_failure()}): the latch stays")
+            except OSError as exc:  # an unwritable state folder: the run's own error is the one to see
+                log.warning("interlock history not written (%s): reset withheld, the latch stays", exc)
         if inst is not None:
             inst.close()  # first: no wait on the catalogue keeps an instrument open
         if sim is not None:
             sim.stop()
         _catalogue_end(out, start_row, end_row)
+
+
+def _arm(rig_name: str, out: Path, drive: Drive | None) -> Path:
+    """The armed marker of this run (:func:`~bench.runtime.latch.arm`); ValueError (one line, naming the state
+    folder) where it cannot be written: a run that could die energised without a trace does not start."""
+    try:
+        return arm(rig_name, str(out), drive)
+    except OSError as exc:
+        raise ValueError(f"state folder {state_dir()}: the interlock's armed marker cannot be written there "
+                         f"({exc.strerror or exc}); nothing was energised — make it writable or set "
+                         f"{STATE_ENV} to a writable folder") from None
 
 
 def _failure() -> str:
