@@ -140,3 +140,41 @@ def test_a_state_folder_that_cannot_hold_the_marker_refuses_in_one_line(tmp_path
     assert f"state folder {blocker / 'state'}" in error[0] and "armed marker cannot be written" in error[0], error
     files = list(runs.glob("*.h5"))
     assert files and all(open_run(f, streams=False).state != "running" for f in files)
+
+
+# ---------------------------------------------------------------- a resume's reset is for the latch seen at planning
+@pytest.mark.parametrize("when", ["check_watchdog", "build_instruments"])  # before the start's check / before connect
+def test_a_resume_reset_refuses_a_latch_that_came_after_planning(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                                  when: str) -> None:
+    from bench.rig import load_rig
+    from bench.runtime import run as run_mod
+    from bench.runtime.engine import Engine
+    from bench.runtime.run import execute, plan_run
+
+    def stop_early(engine: Engine, _sim: object) -> None:
+        engine.request_stop("test: stopped early")
+
+    ident = ROOT / "protocols" / "short" / "thesis-identification-short.toml"
+    first = execute(plan_run(ident), tmp_path / "first.h5", virtual=True, on_engine=stop_early)
+    assert first.state == "interrupted", first.reason
+    rig_name = load_rig(ROOT / "rigs" / "thesis-daq-sim.toml").name
+    rig_latch.latch(rig_name, "fault seen at planning", str(first.path))
+    real = getattr(run_mod, when)
+
+    def relatch(*args: object, **kwargs: object) -> object:  # another fault latches the rig after the plan
+        rig_latch.reset(rig_name, "bob", "cleared elsewhere")
+        rig_latch.latch(rig_name, "a later fault", "manual session other.log")
+        monkeypatch.setattr(run_mod, when, real)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(run_mod, when, relatch)
+    args = ["run", "--resume", str(first.path), "--virtual-time", "--no-live", "--why", "fault cleared",
+            "--operator", "ada"]
+    refused = CliRunner().invoke(app, args, env={"COLUMNS": "400"})
+    assert refused.exit_code == 2, refused.stdout + refused.stderr
+    error = [line for line in refused.stderr.splitlines() if line.strip()]
+    assert len(error) == 1 and "latched again" in error[0] and "a later fault" in error[0], refused.stderr
+    was = latched(rig_name)
+    assert was is not None and was["fault"] == "a later fault"  # not reset by ada's --why, given for the other
+    history = (rig_latch.state_dir() / "interlock.log").read_text(encoding="utf-8")
+    assert f"\treset\t{rig_name}\tby ada" not in history

@@ -89,7 +89,7 @@ def prepare_run(protocol_file: Path | None, *, rig: Path | None = None, sim: boo
 
             with claimed(plan.rig):
                 pass
-        reset = _reset_for_resume(plan.rig, operator or old.get("operator"), why, dry_run, metadata)
+        reset = _reset_for_resume(plan.rig, operator or old.get("operator"), why, dry_run, metadata, link)
         link.reset = reset  # done by the run once the rig has connected: a start that fails keeps the latch
         out = resume.parent
     elif protocol_file is None:
@@ -105,16 +105,19 @@ def prepare_run(protocol_file: Path | None, *, rig: Path | None = None, sim: boo
 
 
 def _reset_for_resume(rig: RigConfig, operator: str | None, why: str | None, dry_run: bool,
-                      metadata: dict[str, str]) -> tuple[str, str] | None:
+                      metadata: dict[str, str], link: Resume) -> tuple[str, str] | None:
     """A resumed campaign on a latched rig (or on a real rig's amplifier drive latched under another name): the
     operator's reset (who and why), recorded in the new file's ``metadata``. The reset itself is the run's, once the
-    rig has connected (:func:`~bench.runtime.run.execute`): a resume that fails to start leaves the latch."""
-    from bench.runtime.latch import drive_of, latched
+    rig has connected (:func:`~bench.runtime.run.execute`): a resume that fails to start leaves the latch, and it
+    resets only the latches seen here (``link.reset_seen``): one that appears later refuses the run."""
+    from bench.runtime.latch import drive_of, holding, latch_key
 
     drive = drive_of(rig)
-    was = latched(rig.name, drive)
-    if was is None:
+    found = holding(rig.name, drive)
+    if not found:
         return None
+    was = found[0]
+    link.reset_seen = frozenset(latch_key(w) for w in found)
     if not why or not why.strip():
         raise ValueError(f"rig {rig.name}: interlock latched ({was.get('fault')}): --why '…' resets it to resume")
     if dry_run:

@@ -40,6 +40,7 @@ import shlex
 import socket
 import sys
 import uuid
+from collections.abc import Collection
 from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
@@ -423,6 +424,34 @@ def _holding(rig_name: str, drive: Drive | None) -> list[dict[str, Any]]:
     return found
 
 
+def holding(rig_name: str, drive: Drive | None = None) -> list[dict[str, Any]]:
+    """Every latch that holds rig ``rig_name`` (its own first, then those of other rigs on ``drive``)."""
+    return _holding(rig_name, drive)
+
+
+def latch_key(was: dict[str, Any]) -> str:
+    """One latch as a key (its rig, when it latched, its fault): the same key is the same latch, not a later one."""
+    return json.dumps([was.get("rig"), was.get("at"), was.get("fault")])
+
+
+def _changed(rig_name: str, found: list[dict[str, Any]], seen: Collection[str]) -> None:
+    """LatchedError (one line) if a latch in ``found`` is not one of those ``seen`` (by :func:`latch_key`)."""
+    new = next((was for was in found if latch_key(was) not in seen), None)
+    if new is None:
+        return
+    name = new["rig"] if isinstance(new.get("rig"), str) else rig_name
+    under = "" if name == rig_name else f" (under rig {name}, on its amplifier drive)"
+    raise LatchedError(f"rig {rig_name}: latched again{under} at {new.get('at')} since the resume was planned "
+                       f"({new.get('fault')}; in {new.get('where')}): its --why reset only the latch seen then — "
+                       f"check the rig, then bench interlock reset {shlex.quote(name)} --why '…', or resume again")
+
+
+def refuse_if_changed(rig_name: str, drive: Drive | None, seen: Collection[str]) -> None:
+    """LatchedError (one line) while a latch holds rig ``rig_name`` (or its ``drive``) that is none of those
+    ``seen`` when a resume's reset was planned (:func:`latch_key`): that reset is not this latch's."""
+    _changed(rig_name, _holding(rig_name, drive), seen)
+
+
 def latched(rig_name: str, drive: Drive | None = None) -> dict[str, Any] | None:
     """The latch of rig ``rig_name`` (fault, where, at), or else a latch of any rig on the same amplifier drive
     ``drive`` (its ``rig`` names the rig it was latched under), or None. An unreadable latch file counts as
@@ -447,14 +476,19 @@ def all_latched() -> dict[str, dict[str, Any]]:
     return found
 
 
-def reset(rig_name: str, by: str, why: str, drive: Drive | None = None) -> dict[str, Any] | None:
+def reset(rig_name: str, by: str, why: str, drive: Drive | None = None,
+          seen: Collection[str] | None = None) -> dict[str, Any] | None:
     """Reset every latch that holds ``rig_name`` (its own, and those of other rigs on ``drive``: the operator
     vouches for the hardware) — an explicit act: ``by`` and ``why`` required, each reset recorded in the history.
     Returns the first latch reset, or None if nothing was latched. An unreadable older-form latch file is left
-    (it may be another rig's whose name cleans up alike): it still latches, its fault says to remove it by hand."""
+    (it may be another rig's whose name cleans up alike): it still latches, its fault says to remove it by hand.
+    ``seen``: the latches (:func:`latch_key`) the operator's reset was given for; LatchedError, nothing reset, if
+    another holds the rig now."""
     if not by.strip() or not why.strip():
         raise ValueError("resetting the interlock needs who (--operator) and why (--why)")
     found = _holding(rig_name, drive)
+    if seen is not None:
+        _changed(rig_name, found, seen)
     for was in found:
         if was.get("unreadable"):  # the older form, whose name other rigs may share: not this command's to remove
             raise ValueError(f"rig {rig_name}: latch file {was['unreadable']} is unreadable and may be another rig's "

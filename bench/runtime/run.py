@@ -46,6 +46,7 @@ from bench.runtime.latch import (
     drive_of,
     latch,
     note,
+    refuse_if_changed,
     refuse_if_latched,
     reset,
     state_dir,
@@ -262,8 +263,11 @@ def _execute_claimed(plan: Plan, out: Path, *, virtual: bool, operator: Operator
     watchdog = check_watchdog(rig, allow_no_watchdog)
     drive = drive_of(rig)  # its port's names now, while it is there: a latch written after a lost adapter keeps them
     pending = resume.reset if resume is not None else None  # the operator's reset of a latch: once connected
+    seen = resume.reset_seen if resume is not None else frozenset()
     if pending is None:
         refuse_if_latched(rig.name, drive)
+    else:  # the reset is for the latch seen when the resume was planned: a later one refuses
+        refuse_if_changed(rig.name, drive, seen)
     reset_done = False
     sim: SimRig | None = None
     inst: Instruments | None = None
@@ -294,7 +298,7 @@ def _execute_claimed(plan: Plan, out: Path, *, virtual: bool, operator: Operator
                 for _, drv in inst.items():
                     drv.connect()
                 if pending is not None:  # the start got past connecting: the resume's reset now, not before
-                    reset(rig.name, pending[0], pending[1], drive)
+                    reset(rig.name, pending[0], pending[1], drive, seen)
                     reset_done = True
                 if inst.motor is not None and program.has_motor_axis:
                     phase.what = "enabling and homing the motor"
@@ -512,6 +516,7 @@ class Resume:
     step: int
     steps: int
     reset: tuple[str, str] | None = None  # (who, why): the operator's reset of the rig's latch, done once connected
+    reset_seen: frozenset[str] = frozenset()  # the latches (latch.latch_key) that reset is for: those seen at planning
 
     def attrs(self, out: Path) -> dict[str, Any]:
         """The new file's link to the earlier one (``previous_file`` relative to the new file's folder)."""
