@@ -178,3 +178,41 @@ def test_a_resume_reset_refuses_a_latch_that_came_after_planning(tmp_path: Path,
     assert was is not None and was["fault"] == "a later fault"  # not reset by ada's --why, given for the other
     history = (rig_latch.state_dir() / "interlock.log").read_text(encoding="utf-8")
     assert f"\treset\t{rig_name}\tby ada" not in history
+
+
+def test_an_unwritable_history_does_not_hide_why_a_resume_failed(tmp_path: Path,
+                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    from bench.rig import load_rig
+    from bench.runtime import run as run_mod
+    from bench.runtime.engine import Engine
+    from bench.runtime.run import execute, plan_run
+    from drivers.errors import InstrumentConnectionError
+
+    def stop_early(engine: Engine, _sim: object) -> None:
+        engine.request_stop("test: stopped early")
+
+    ident = ROOT / "protocols" / "short" / "thesis-identification-short.toml"
+    first = execute(plan_run(ident), tmp_path / "first.h5", virtual=True, on_engine=stop_early)
+    rig_latch.latch(load_rig(ROOT / "rigs" / "thesis-daq-sim.toml").name, "test fault", str(first.path))
+    real = run_mod.build_instruments
+
+    def unplugged(*args: object, **kwargs: object) -> object:
+        inst = real(*args, **kwargs)  # type: ignore[arg-type]
+        _role, drv = next(iter(inst.items()))
+
+        def refuse() -> None:
+            raise InstrumentConnectionError("daq", "cannot connect: adapter unplugged (test)")
+
+        drv.connect = refuse  # type: ignore[method-assign]
+        return inst
+
+    def denied(_line: str) -> None:  # the state folder became read-only: the history cannot take the line
+        raise PermissionError(13, "Permission denied", "interlock.log")
+
+    monkeypatch.setattr(run_mod, "build_instruments", unplugged)
+    monkeypatch.setattr(run_mod, "note", denied)
+    args = ["run", "--resume", str(first.path), "--virtual-time", "--no-live", "--why", "fault cleared"]
+    failed = CliRunner().invoke(app, args, env={"COLUMNS": "400"})
+    assert failed.exit_code == 2, failed.stdout + failed.stderr
+    error = [line for line in failed.stderr.splitlines() if line.startswith("error:")]
+    assert len(error) == 1 and "cannot connect: adapter unplugged" in error[0], failed.stderr  # the run's own error
