@@ -363,6 +363,7 @@ def _execute_claimed(plan: Plan, out: Path, *, virtual: bool, operator: Operator
                     end_row = {}
                     raise
         except InstrumentError:
+            disarm(marker)  # a stop as the phase ended, past the try above: the engine never ran, nothing energised
             if phase.stopped is None:
                 raise
             # a stop signal before the engine ran: the rig is made safe here, and one line says what was done
