@@ -216,3 +216,54 @@ def test_an_unwritable_history_does_not_hide_why_a_resume_failed(tmp_path: Path,
     assert failed.exit_code == 2, failed.stdout + failed.stderr
     error = [line for line in failed.stderr.splitlines() if line.startswith("error:")]
     assert len(error) == 1 and "cannot connect: adapter unplugged" in error[0], failed.stderr  # the run's own error
+
+
+# a child that arms rig-f, forks a grandchild that lives on (multiprocessing's fork start does this), says both
+# PIDs, then waits to be killed
+FORKING = """
+import os, sys, time
+from bench.runtime import latch
+path = latch.arm("rig-f", "run file forking.h5")
+pid = os.fork()
+if pid == 0:
+    time.sleep(60)
+    os._exit(0)
+print(path, pid, flush=True)
+sys.stdin.readline()
+"""
+
+
+def test_a_forked_child_does_not_keep_a_killed_bench_s_marker_alive() -> None:
+    """A reviewer: a fork copies the marker's descriptor, and an flock belongs to the open file the copies share —
+    the bench killed, its still-running grandchild kept the lock and the rig read as armed, not latched."""
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    proc = subprocess.Popen([sys.executable, "-c", FORKING], cwd=ROOT, env=env, stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE, text=True)
+    assert proc.stdout is not None
+    path, grandchild = proc.stdout.readline().split()
+    try:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(30)
+        was = latched("rig-f")
+        assert was is not None and "killed?" in was["fault"], was
+        assert not Path(path).exists()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        os.kill(int(grandchild), signal.SIGKILL)
+
+
+def test_a_marker_disarmed_between_a_look_s_open_and_its_lock_is_no_latch(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A reviewer's forced interleaving: a look opens the marker, the owner disarms (unlinks, then lets go of the
+    lock), the look's lock succeeds — and a clean end was latched as a killed bench."""
+    marker = rig_latch.arm("rig-r", "run file clean.h5")
+    real_flock = rig_latch._flock
+
+    def disarm_first(fd: int, exclusive: bool) -> bool | None:
+        rig_latch.disarm(marker)  # the owner's clean end, after the look opened the file
+        return real_flock(fd, exclusive)
+
+    monkeypatch.setattr(rig_latch, "_flock", disarm_first)
+    assert rig_latch._lock_free(marker) is False
+    monkeypatch.setattr(rig_latch, "_flock", real_flock)
+    assert latched("rig-r") is None

@@ -31,6 +31,7 @@ look by a user who may only read the folder reports a dead marker as latched wit
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import ipaddress
 import json
@@ -279,6 +280,8 @@ def _lock_free(path: Path) -> bool | None:
         return None
     try:
         got = _flock(fd, exclusive=False)  # shared: two lookers at once do not take each other for the owner
+        if got and os.fstat(fd).st_nlink == 0:  # disarmed between the open and the lock (the owner unlinks, then
+            return False  # releases): a clean end, not a dead bench (a reviewer's forced interleaving latched it)
     finally:
         os.close(fd)
     return got
@@ -333,16 +336,41 @@ def arm(rig_name: str, where: str, drive: Drive | None = None) -> Path:
         data = json.dumps(record).encode("utf-8")
         while data:
             data = data[os.write(fd, data):]
+        if not locked:  # nothing to hold; and Windows renames no file open without delete sharing (WinError 32)
+            os.close(fd)
+            fd = -1
         os.replace(tmp, path)
     except BaseException:
-        os.close(fd)
+        if fd >= 0:
+            os.close(fd)
         tmp.unlink(missing_ok=True)
         raise
     if locked:
         _held[path] = fd
-    else:
-        os.close(fd)
     return path
+
+
+def _forget_held() -> None:
+    """In a forked child: close the copies of this process's marker descriptors. An flock belongs to the open file,
+    which a fork shares: a child that kept a copy (``multiprocessing``'s fork start) held a killed bench's lock and
+    its marker read as running until the child ended (a reviewer's repro). ``subprocess`` children inherit none."""
+    for fd in _held.values():
+        with contextlib.suppress(OSError):
+            os.close(fd)
+    _held.clear()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_forget_held)
+
+
+def release(marker: Path | None) -> None:
+    """Let go of an armed marker's lock but leave the file: the process could not record how its use of the rig
+    ended (the latch not written), so the next look at the latches finds the marker unlocked and latches the rig —
+    where a lock kept for the rest of a long-lived process would read as a bench still running."""
+    fd = _held.pop(marker, None) if marker is not None else None
+    if fd is not None:
+        os.close(fd)
 
 
 def disarm(marker: Path | None) -> None:

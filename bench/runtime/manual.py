@@ -360,15 +360,20 @@ class ManualSession:
                     if self._inst is not None:
                         self._inst.cancel.clear()  # the safe-state commands must go out
                         errors += self._inst.safe_state()
-            if engine.latched is not None and not was_latched:  # a stall seen at the exit
-                engine.latched_at = engine.now()  # the engine's stop latched it: the time is the session's end
-                self._latched_line(engine.latched)
-            if engine.latched is None and not engine.zero_verified and self._inst is not None \
-                    and self._inst.amplifier is not None:  # the end did not verify 0 V (it raised): latched here
-                trip = InterlockTrip("output not verified", f"the session's end did not verify 0 V "
-                                     f"({'; '.join(errors) or safe or 'no reading'})")
-                engine.latched, engine.latched_at = trip, engine.now()
-                self._latched_line(trip)
+            try:
+                if engine.latched is not None and not was_latched:  # a stall seen at the exit
+                    engine.latched_at = engine.now()  # the engine's stop latched it: the time is the session's end
+                    self._latched_line(engine.latched)
+                if engine.latched is None and not engine.zero_verified and self._inst is not None \
+                        and self._inst.amplifier is not None:  # the end did not verify 0 V (it raised): latched here
+                    trip = InterlockTrip("output not verified", f"the session's end did not verify 0 V "
+                                         f"({'; '.join(errors) or safe or 'no reading'})")
+                    engine.latched, engine.latched_at = trip, engine.now()
+                    self._latched_line(trip)
+            except BaseException:
+                rig_latch.release(self._armed)  # the latch not written: the marker, unlocked, latches at the next look
+                self._armed = None
+                raise
             rig_latch.disarm(self._armed)  # 0 V verified, or the rig latched
             self._armed = None
         elif self._inst is not None:

@@ -48,6 +48,7 @@ from bench.runtime.latch import (
     note,
     refuse_if_changed,
     refuse_if_latched,
+    release,
     reset,
     state_dir,
 )
@@ -386,8 +387,12 @@ def _execute_claimed(plan: Plan, out: Path, *, virtual: bool, operator: Operator
             if fault is None and ended is not None and inst.amplifier is not None and not engine.zero_verified:
                 fault = (f"the run ended by {type(ended).__name__}: {' '.join(str(ended).split())} before its "
                          "shutdown verified 0 V")
-            if fault is not None:
-                latch(rig.name, fault, str(out), drive)
+            try:
+                if fault is not None:
+                    latch(rig.name, fault, str(out), drive)
+            except BaseException:
+                release(marker)  # the latch not written: the marker stays, unlocked, and the next look latches
+                raise
             disarm(marker)  # 0 V verified, or the rig latched (a rig without an amplifier has no output to verify)
         end_row = {"hv": recorder.hv_stats(), "written": recorder.written()}  # the file, as it was written
         return result
