@@ -224,14 +224,17 @@ def _running(pid: int) -> bool:
     """Whether a process with ID ``pid`` exists (never a latch on a guess: True where it cannot be told)."""
     if sys.platform == "win32":  # os.kill on Windows terminates the process, whatever the signal: never called
         import ctypes
+        from ctypes import wintypes
 
-        try:
-            kernel32 = ctypes.windll.kernel32
-        except AttributeError:  # no Windows API after all: cannot tell
+        try:  # the error of the last call as Windows set it (ctypes.get_last_error), not what a later call left
+            kernel32 = ctypes.WinDLL("kernel32", use_last_error=True)
+        except (AttributeError, OSError):  # no Windows API after all: cannot tell
             return True
+        kernel32.OpenProcess.restype = wintypes.HANDLE
+        kernel32.OpenProcess.argtypes = (wintypes.DWORD, wintypes.BOOL, wintypes.DWORD)
         handle = kernel32.OpenProcess(0x1000, False, pid)  # PROCESS_QUERY_LIMITED_INFORMATION: reads, ends nothing
         if not handle:
-            return kernel32.GetLastError() != 87  # ERROR_INVALID_PARAMETER: no such process; else (denied) it exists
+            return ctypes.get_last_error() != 87  # ERROR_INVALID_PARAMETER: no such process; else (denied) it exists
         code = ctypes.c_ulong()
         try:
             if not kernel32.GetExitCodeProcess(handle, ctypes.byref(code)):
