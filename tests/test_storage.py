@@ -445,6 +445,9 @@ def test_a_killed_and_recovered_file_reads_as_killed_and_says_how_far_its_stream
     assert out.exit_code == 0, out.output
     row = next(ln for ln in out.output.splitlines() if path.name in ln)
     assert "crashed or killed, incomplete" in row and "running" not in row, out.output
+    from bench.storage.chain import chain, describe  # inspect's and report's campaign line (a second tester)
+
+    assert describe(chain(path)) == f"{path.name} (crashed or killed, incomplete)"
 
 
 STAMP_KILLER = textwrap.dedent(f"""

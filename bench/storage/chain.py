@@ -24,6 +24,7 @@ class Link:
     resumed_at_step: int | None  # the step's index in the program (0-based, as the file's events number steps)
     steps: int = 0  # the program's steps
     run_id: str = ""  # the file's run_id: a copy of a file has its original's
+    shown: str = ""  # its state as listings show it (a dead writer's "running": "crashed or killed")
 
 
 def chain(path: str | Path) -> list[Link]:
@@ -45,7 +46,7 @@ def chain(path: str | Path) -> list[Link]:
         run = open_run(p, streams=False)
         step = run.attrs.get("resumed_at_step")
         out.append(Link(p, run.state, run.complete, None if step is None else int(step), int(run.program.shape[0]),
-                        str(run.attrs.get("run_id", ""))))
+                        str(run.attrs.get("run_id", "")), run.state_shown))
         prev = run.attrs.get("previous_file")
         p = (p.parent / str(prev)) if prev else None
     return out[::-1]
@@ -101,7 +102,7 @@ def campaign(path: str | Path) -> list[Link]:
         run = open_run(later, streams=False)
         step = run.attrs.get("resumed_at_step")
         out.append(Link(later, run.state, run.complete, None if step is None else int(step),
-                        int(run.program.shape[0]), str(run.attrs.get("run_id", ""))))
+                        int(run.program.shape[0]), str(run.attrs.get("run_id", "")), run.state_shown))
     return out
 
 
@@ -135,7 +136,7 @@ def resumed_text(step: int, steps: int) -> str:
 
 def describe(links: list[Link]) -> str:
     """One line: the campaign's files, how each ended and where each resumed."""
-    parts = [f"{ln.path.name} ({ln.state}{'' if ln.complete else ', incomplete'}"
+    parts = [f"{ln.path.name} ({ln.shown or ln.state}{'' if ln.complete else ', incomplete'}"
              + (f", resumed at {resumed_text(ln.resumed_at_step, ln.steps)}" if ln.resumed_at_step is not None
                 else "") + ")"
              for ln in links]
