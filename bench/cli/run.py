@@ -254,8 +254,8 @@ def _show_prepared(prepared: PreparedRun, dry_run: bool = False) -> None:
     plan, link = prepared.plan, prepared.link
     if prepared.reset is not None:
         who, why = prepared.reset
-        console.print(f"interlock of {escape(plan.rig.name)}: reset by {escape(who)} ({escape(why)}) once the rig "
-                      "has connected (a start that fails keeps the latch)")
+        console.print(f"interlock of {escape(plan.rig.name)}: to be reset by {escape(who)} ({escape(why)}) once "
+                      "the rig has connected (a start that fails keeps the latch)")
     if link is None:
         _warn(plan)
     console.print(_summary(plan))
