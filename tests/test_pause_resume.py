@@ -308,8 +308,13 @@ def test_a_killed_campaign_resumes_in_a_linked_file_and_reports_as_one(tmp_path:
     killed_in = min(set(range(6)) - open_run(first, streams=False).completed_steps())
     plan, link, notes = plan_resume(released)
     assert plan.program.segments[link.step].index == killed_in and notes == []  # nothing left to recover
-    # killed while driving: the host neither commanded nor verified 0 V, so the rig latched; the operator's reason
-    # resets it (tests/test_latch_exits.py)
+    # killed while driving: the host neither commanded nor verified 0 V, so the rig latched; without the operator's
+    # reason the resume is refused before the file is touched (a tester: it was recovered first), with it it resets
+    # the latch (tests/test_latch_exits.py)
+    bare = subprocess.run([*bench, "run", "--resume", str(first), "--virtual-time", "--no-live"], cwd=ROOT, env=ENV,
+                          capture_output=True, text=True, timeout=300)
+    assert bare.returncode == 2 and "--why" in bare.stderr and "recovered" not in bare.stdout, bare.stdout + bare.stderr
+    assert not open_run(first, streams=False).recovered_at
     resumed = subprocess.run([*bench, "run", "--resume", str(first), "--virtual-time", "--no-live", "--why",
                               "output checked at 0 V after the kill"], cwd=ROOT, env=ENV, capture_output=True,
                              text=True, timeout=300)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import tempfile
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -74,6 +75,8 @@ def prepare_run(protocol_file: Path | None, *, rig: Path | None = None, sim: boo
             raise ValueError(f"--out {out}: a resumed campaign is written beside its latest file, in "
                              f"{resume.parent} (a second resume looks for a continuation there; elsewhere it would "
                              "fork the campaign)")
+        if not (why and why.strip()) and rig is None and not sim:  # before a crashed file is recovered: refused
+            _refuse_latched_before_recovery(resume)  # (a latch needs --why) with nothing touched
         plan, link, recovered = plan_resume(resume, rig, sim, progress)
         if protocol_file is not None and load_protocol(protocol_file).sha256 != plan.protocol.sha256:
             raise ValueError(f"protocol file {protocol_file}: not the protocol of {resume} (its text differs); "
@@ -102,6 +105,28 @@ def prepare_run(protocol_file: Path | None, *, rig: Path | None = None, sim: boo
 
             refuse_if_latched(plan.rig.name, drive_of(plan.rig))
     return PreparedRun(plan, default_output(plan, out), metadata, link, reset)
+
+
+def _refuse_latched_before_recovery(resume: Path) -> None:
+    """A resume without ``--why`` of a campaign whose stored rig is latched: refused before its file is recovered
+    (a tester: the refusal came after "recovered: … marked it recovered", a refused command that changed the file).
+    By the stored rig's name and drive; the plan's own check (:func:`_reset_for_resume`) follows for the rest."""
+    from bench.rig import RigFileError, load_rig_text
+    from bench.runtime.latch import drive_of, holding
+    from bench.storage.runfile import open_run
+
+    try:
+        attrs = open_run(resume, streams=False).attrs
+        with tempfile.TemporaryDirectory() as tmp:
+            rig_file = Path(tmp) / "rig.toml"
+            rig_file.write_text(str(attrs["rig_toml"]), encoding="utf-8")
+            stored = load_rig_text(rig_file)[0]
+    except (OSError, ValueError, KeyError, RigFileError):  # the plan says what is wrong with the file
+        return
+    found = holding(stored.name, drive_of(stored))
+    if found:
+        raise ValueError(f"rig {stored.name}: interlock latched ({found[0].get('fault')}): --why '…' resets it to "
+                         "resume")
 
 
 def _reset_for_resume(rig: RigConfig, operator: str | None, why: str | None, dry_run: bool,
