@@ -154,14 +154,9 @@ def test_a_limit_trip_in_manual_control_latches_the_rig(tmp_path: Path) -> None:
 
 
 # ---------------------------------------------------------------- a resume that fails to connect keeps the latch
-def test_a_resume_that_cannot_connect_leaves_the_latch(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    def stop_early(engine: Engine, _sim: object) -> None:
-        engine.request_stop("test: stopped early")
-
-    first = execute(plan_run(IDENT), tmp_path / "first.h5", virtual=True, on_engine=stop_early)
-    assert first.state == "interrupted", first.reason
-    rig_name = load_rig(DAQ_RIG).name
-    rig_latch.latch(rig_name, "test fault", str(first.path))
+def unplug_the_first_instrument(monkeypatch: pytest.MonkeyPatch) -> object:
+    """Runs from here on build instruments whose first refuses to connect (an unplugged adapter); returns the real
+    ``build_instruments`` to put back."""
     real = run_mod.build_instruments
 
     def unplugged(*args: object, **kwargs: object):  # type: ignore[no-untyped-def]
@@ -175,6 +170,18 @@ def test_a_resume_that_cannot_connect_leaves_the_latch(tmp_path: Path, monkeypat
         return inst
 
     monkeypatch.setattr(run_mod, "build_instruments", unplugged)
+    return real
+
+
+def test_a_resume_that_cannot_connect_leaves_the_latch(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    def stop_early(engine: Engine, _sim: object) -> None:
+        engine.request_stop("test: stopped early")
+
+    first = execute(plan_run(IDENT), tmp_path / "first.h5", virtual=True, on_engine=stop_early)
+    assert first.state == "interrupted", first.reason
+    rig_name = load_rig(DAQ_RIG).name
+    rig_latch.latch(rig_name, "test fault", str(first.path))
+    real = unplug_the_first_instrument(monkeypatch)
     args = ["run", "--resume", str(first.path), "--virtual-time", "--no-live", "--why", "fault cleared",
             "--operator", "ada"]
     failed = CliRunner().invoke(app, args, env={"COLUMNS": "200"})

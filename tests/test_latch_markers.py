@@ -186,7 +186,6 @@ def test_an_unwritable_history_does_not_hide_why_a_resume_failed(tmp_path: Path,
     from bench.runtime import run as run_mod
     from bench.runtime.engine import Engine
     from bench.runtime.run import execute, plan_run
-    from drivers.errors import InstrumentConnectionError
 
     def stop_early(engine: Engine, _sim: object) -> None:
         engine.request_stop("test: stopped early")
@@ -194,22 +193,12 @@ def test_an_unwritable_history_does_not_hide_why_a_resume_failed(tmp_path: Path,
     ident = ROOT / "protocols" / "short" / "thesis-identification-short.toml"
     first = execute(plan_run(ident), tmp_path / "first.h5", virtual=True, on_engine=stop_early)
     rig_latch.latch(load_rig(ROOT / "rigs" / "thesis-daq-sim.toml").name, "test fault", str(first.path))
-    real = run_mod.build_instruments
-
-    def unplugged(*args: object, **kwargs: object) -> object:
-        inst = real(*args, **kwargs)  # type: ignore[arg-type]
-        _role, drv = next(iter(inst.items()))
-
-        def refuse() -> None:
-            raise InstrumentConnectionError("daq", "cannot connect: adapter unplugged (test)")
-
-        drv.connect = refuse  # type: ignore[method-assign]
-        return inst
+    from tests.test_latch_exits import unplug_the_first_instrument
 
     def denied(_line: str) -> None:  # the state folder became read-only: the history cannot take the line
         raise PermissionError(13, "Permission denied", "interlock.log")
 
-    monkeypatch.setattr(run_mod, "build_instruments", unplugged)
+    unplug_the_first_instrument(monkeypatch)
     monkeypatch.setattr(run_mod, "note", denied)
     args = ["run", "--resume", str(first.path), "--virtual-time", "--no-live", "--why", "fault cleared"]
     failed = CliRunner().invoke(app, args, env={"COLUMNS": "400"})
