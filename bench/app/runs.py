@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import os
-import tempfile
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -111,17 +110,13 @@ def _refuse_latched_before_recovery(resume: Path) -> None:
     """A resume without ``--why`` of a campaign whose stored rig is latched: refused before its file is recovered
     (a tester: the refusal came after "recovered: … marked it recovered", a refused command that changed the file).
     By the stored rig's name and drive; the plan's own check (:func:`_reset_for_resume`) follows for the rest."""
-    from bench.rig import RigFileError, load_rig_text
+    from bench.rig import rig_from_toml
     from bench.runtime.latch import drive_of, holding
     from bench.storage.runfile import open_run
 
     try:
-        attrs = open_run(resume, streams=False).attrs
-        with tempfile.TemporaryDirectory() as tmp:
-            rig_file = Path(tmp) / "rig.toml"
-            rig_file.write_text(str(attrs["rig_toml"]), encoding="utf-8")
-            stored = load_rig_text(rig_file)[0]
-    except (OSError, ValueError, KeyError, RigFileError):  # the plan says what is wrong with the file
+        stored = rig_from_toml(str(open_run(resume, streams=False).attrs["rig_toml"]))
+    except (OSError, ValueError, KeyError):  # the plan says what is wrong with the file
         return
     found = holding(stored.name, drive_of(stored))
     if found:
