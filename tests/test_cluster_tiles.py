@@ -39,8 +39,12 @@ def test_hand_worked_tiles() -> None:
     # a short record that fits beside the long one's chunks stays whole: 250·(7 + f) ≤ 1000·(1 + f) for f ≥ 1
     assert tiles(50, [1000, 250], threads=16) == [(0, 1, 8 * k, min(8 * k + 8, 50)) for k in range(7)] + [
         (1, 2, 0, 50)]
-    # 12 equal records on 16 threads: whole (7 + f each); cut in two, 24 chunks need a second round (7 + 2f)
-    assert tiles(50, [80_000] * 12, threads=16) == [(r, r + 1, 0, 50) for r in range(12)]
+    # 12 equal records on 16 threads: whole, 12 threads finish at 7 + f and 4 idle; cut 4 + 3 (24 chunks) a
+    # second round, 7 + 2f at best; the part-filled 7th register (sets 48-49) peeled off, 12 threads finish at
+    # 6 + f and the other 4 take three 1-register chunks each, 3 + 3f: sooner than 7 + f for every f < 2
+    assert CHUNK_OVERHEAD < 2
+    assert tiles(50, [80_000] * 12, threads=16) == [(r, r + 1, 0, 48) for r in range(12)] + [
+        (r, r + 1, 48, 50) for r in range(12)]
 
 
 @pytest.mark.parametrize(("m", "threads"), [(50, 1), (50, 2), (50, 16), (15, 2), (15, 16), (3, 4), (200, 8)])
@@ -108,28 +112,37 @@ STEPS_12 = [80960, 80280, 80340, 80400, 80980, 80600, 80380, 80200, 80960, 80380
 SLOTS_16 = [(f"w{k:02d}", 0) for k in range(16)]
 
 
-def test_a_generation_of_twelve_tiles_takes_twelve_of_sixteen_workers() -> None:
-    """The campaign's generation (12 records of nearly equal length, one tile each) on 16 single-thread workers:
-    no worker gets two tiles while another idles (the scheduler left to itself put up to three on one)."""
+def test_a_generation_of_the_campaign_works_all_sixteen_workers() -> None:
+    """The campaign's generation (12 records of nearly equal length, each 48 + 2 sets: see the hand-worked tiles)
+    on 16 single-thread workers: each 48-set tile alone on its worker, the twelve 2-set tiles three to each of the
+    other four (the scheduler left to itself put up to three whole records on one worker while others idled)."""
     plan = tiles(50, STEPS_12, 16)
     placed = _placer(STEPS_12).assign(plan, SLOTS_16)
-    assert len(plan) == 12 and len({slot for slot, _ in placed}) == 12
+    on: dict[object, list[int]] = {}
+    for (slot, _), (_, _, a, b) in zip(placed, plan, strict=True):
+        on.setdefault(slot, []).append(b - a)
+    assert len(on) == 16
+    assert sorted(map(sorted, on.values())) == [[2, 2, 2]] * 4 + [[48]] * 12
 
 
 def test_two_batches_under_way_together_share_the_threads_and_a_finished_one_frees_them() -> None:
-    """Two starts' generations at once (12 + 12 tiles, 16 threads): the second takes the 4 idle threads first, so
-    every thread works and none has more than two tiles; once both are done, the next batch finds all 16 free."""
+    """Two starts' generations at once (twice the 24 tiles above, 16 threads): the second batch's tiles go to the
+    threads the first loaded least, so no thread carries more than both batches' share of the busiest one;
+    once both are done, the next batch is placed as on idle workers."""
     p = _placer(STEPS_12)
     plan = tiles(50, STEPS_12, 16)
-    with p._placed(plan, SLOTS_16) as first_slots, p._placed(plan, SLOTS_16) as second_slots:
-        first, second = [s[0] for s in first_slots], [s[0] for s in second_slots]  # the workers' addresses
-        both = first + second
-        assert {f"w{k:02d}" for k in range(16)} == set(both)
-        assert max(both.count(w) for w in set(both)) == 2
-        assert set(second) >= {w for w, _ in SLOTS_16} - set(first)  # the idle four first
+    costs = [tile_cost(STEPS_12, t) for t in plan]
+    with p._placed(plan, SLOTS_16) as first_slots:
+        alone = dict(p._loads)
+        with p._placed(plan, SLOTS_16) as second_slots:
+            first, second = [s[0] for s in first_slots], [s[0] for s in second_slots]  # the workers' addresses
+            assert set(first) == set(second) == {f"w{k:02d}" for k in range(16)}
+            assert second[0] == min(alone, key=lambda slot: (alone[slot], slot))[0]  # the longest to the least loaded
+            assert max(p._loads.values()) <= 2 * max(alone.values()) * (1 + 1e-12)
+            assert sum(p._loads.values()) == pytest.approx(2 * sum(costs))
     assert p._loads == {}
     with p._placed(plan, SLOTS_16) as third:
-        assert len({s[0] for s in third}) == 12
+        assert third == first_slots
 
 
 def test_without_known_workers_the_scheduler_places_the_tiles() -> None:

@@ -236,6 +236,33 @@ def test_distributed_costs_equal_the_in_process_costs(runs: list[Path], cluster:
         np.testing.assert_array_equal(remote[kind], local[kind])
 
 
+def test_a_record_cut_unevenly_gives_the_same_bits(runs: list[Path], cluster: Cluster,
+                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    """Planned for 5 worker threads, 50 candidates (7 registers) over the two records: the longer record is cut
+    3 + 3 + 1 registers (24 + 24 + 2 sets, a chunk peeled off an even cut), the other 4 + 3; the predictions and
+    costs are the in-process ones, bit for bit (each candidate's lanes are its own)."""
+    problem = MembraneProblem(runs)
+    lo, hi = problem.lower, problem.upper
+    Z = lo + (hi - lo) * np.random.default_rng(5).random((50, lo.size))
+    local = {kind: problem.costs(Z, kind) for kind in KINDS}
+    local_pred = problem.predict(Z)
+    with cluster_client(scheduler=cluster.address) as client:
+        problem.distribute(client)
+        remote = problem.remote
+        assert remote is not None
+        five = [(address, k) for address, _ in remote.slots() for k in range(3)][:5]
+        monkeypatch.setattr(remote, "slots", lambda: five)
+        plan = tiles(len(Z), remote.steps, 5)
+        assert sorted(b - a for r, _, a, b in plan if r == 0) == [2, 24, 24]
+        assert sorted(b - a for r, _, a, b in plan if r == 1) == [18, 32]
+        got = {kind: problem.costs(Z, kind) for kind in KINDS}
+        pred = problem.predict(Z)
+        problem.distribute(None)
+    for kind in KINDS:
+        np.testing.assert_array_equal(got[kind], local[kind])
+    np.testing.assert_array_equal(pred, local_pred)
+
+
 def test_one_worker_thread_gets_a_batch_as_one_task_and_the_same_bits(runs: list[Path], cluster: Cluster,
                                                                        monkeypatch: pytest.MonkeyPatch) -> None:
     """With one worker thread known, a batch's tiles (one per record here) go as one task, run one after the other

@@ -26,7 +26,7 @@ from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 
-from bench.models.batch_plan import candidate_bounds, chunk_cost, chunks_per_record
+from bench.models.batch_plan import chunk_cost, register_splits, split_bounds
 
 if TYPE_CHECKING:
     from distributed import Client, Future
@@ -78,14 +78,14 @@ def tile_cost(steps: Sequence[int], tile: Tile) -> float:
 
 def tiles(m: int, steps: Sequence[int], threads: int) -> list[Tile]:
     """Tiles covering ``m`` candidates × records of ``steps`` input steps each, longest first: each record cut
-    along the candidates (chunks of whole registers) as far as :func:`bench.models.batch_plan.chunks_per_record`
-    finds that it finishes the batch sooner on ``threads`` threads — a narrow chunk costs more per candidate —
-    and no records grouped (a campaign has few records, and grouping would coarsen the longest-first schedule)."""
+    along the candidates (chunks of whole registers) as :func:`bench.models.batch_plan.register_splits` finds
+    that the batch finishes sooner on ``threads`` threads — a narrow chunk costs more per candidate — and no
+    records grouped (a campaign has few records, and grouping would coarsen the longest-first schedule)."""
     if m == 0 or not steps:
         return []
-    split = chunks_per_record(m, tuple(int(n) for n in steps), threads)
+    splits = register_splits(m, tuple(int(n) for n in steps), threads)
     out = [(r, r + 1, int(a), int(b)) for r in range(len(steps))
-           for a, b in itertools.pairwise(candidate_bounds(m, split[r])) if b > a]
+           for a, b in itertools.pairwise(split_bounds(m, splits[r])) if b > a]
     return sorted(out, key=lambda t: -tile_cost(steps, t))
 
 

@@ -24,13 +24,27 @@ LANES = 8  # float64 lanes of an AVX-512 register: a chunk of candidates is a wh
 TASK_COLUMNS = ("record", "first step", "end step", "first column", "end column", "first set", "end set")
 
 
+Split = tuple[int, ...]  # one record's chunks, each its width in registers, in order (their sum: the record's)
+
+
+def even_split(regs: int, chunks: int) -> Split:
+    """``regs`` registers in at most ``chunks`` chunks (at least one) as even as whole registers allow (7 in two:
+    4 + 3)."""
+    n = max(1, min(chunks, regs))
+    return tuple(int(w) for w in np.diff(np.linspace(0, regs, n + 1).round().astype(np.int64)) if w > 0)
+
+
+def split_bounds(m: int, split: Split) -> np.ndarray:
+    """Candidate bounds 0 … m of a record's chunks of ``split`` registers each (only the last register part
+    filled)."""
+    bounds: np.ndarray = np.minimum(np.concatenate([[0], np.cumsum(split, dtype=np.int64)]) * LANES, m)
+    return bounds
+
+
 def candidate_bounds(m: int, chunks: int) -> np.ndarray:
     """Chunk bounds over ``m`` candidates: at most ``chunks`` chunks (at least one), each of whole registers
     (50 sets are 4 + 3 registers, not 2 × 4); returns the ``chunks + 1`` (or fewer) bounds, 0 … m."""
-    regs = -(-m // LANES)
-    n = max(1, min(chunks, regs))
-    bounds: np.ndarray = np.minimum(np.linspace(0, regs, n + 1).round().astype(np.int64) * LANES, m)
-    return bounds
+    return split_bounds(m, even_split(-(-m // LANES), chunks))
 
 
 # a chunk's fixed cost per input step, in registers' worth: `bench benchmark cluster` fits it per CPU from one-thread
@@ -83,6 +97,56 @@ def chunks_per_record(m: int, steps: tuple[int, ...], threads: int) -> tuple[int
             trial = [*out[:r], s, *out[r + 1:]]
             if _finish(m, steps, trial, threads) <= finish * (1 + 1e-9):
                 out[r] = s
+                break
+    return tuple(out)
+
+
+def _splits(regs: int, most: int) -> list[Split]:
+    """The cuts of a record of ``regs`` registers into at most ``most`` chunks that :func:`register_splits`
+    weighs, fewest chunks first: each even cut, and each even cut with a narrower chunk peeled off its end (50
+    sets: 6 + 1, the part-filled register alone)."""
+    out = {even_split(regs, s) for s in range(1, most + 1)}
+    out |= {(*even, k) for s in range(1, most) for k in range(1, regs - s + 1)
+            if k < min(even := even_split(regs - k, s))}
+    return sorted(out, key=lambda split: (len(split), split != even_split(regs, len(split)), split))
+
+
+def _finish_split(steps: tuple[int, ...], splits: list[Split], threads: int) -> float:
+    """When the chunks of every record (``splits[r]``: record r's widths in registers) finish, run longest first
+    on ``threads`` threads, under :func:`chunk_cost`."""
+    return makespan((n * (w + CHUNK_OVERHEAD) for n, split in zip(steps, splits, strict=True) for w in split),
+                    threads)
+
+
+@functools.lru_cache(maxsize=512)
+def register_splits(m: int, steps: tuple[int, ...], threads: int) -> tuple[Split, ...]:
+    """Each record's cut into chunks of whole registers for a schedule run longest first on ``threads`` threads
+    (the distributed fit places its tiles so): the cut for all records alike that finishes soonest under
+    :func:`chunk_cost` among the even cuts and the even cuts with a narrower chunk peeled off (the fewest chunks
+    among equals), then, shortest record first, each cut into fewer chunks where the schedule still finishes no
+    later. 12 equal records of 50 sets on 16 threads: 6 + 1 registers each, the twelve 2-set chunks on the four
+    threads the whole records would leave idle (6 + f a thread against 7 + f). The in-process kernel
+    (:func:`plan`) keeps :func:`chunks_per_record`: numba hands its threads contiguous runs of the task table,
+    not the longest task first."""
+    regs = -(-m // LANES)
+    if not steps or regs == 0:
+        return tuple(() if regs == 0 else (regs,) for _ in steps)
+    family = _splits(regs, max(1, min(regs, 2 * threads)))
+    best, finish = family[0], float("inf")
+    for split in family:
+        span = _finish_split(steps, [split] * len(steps), threads)
+        if span < finish * (1 - 1e-9):
+            best, finish = split, span
+    out = [best] * len(steps)
+    if len(steps) > REFINE_RECORDS:
+        return tuple(out)
+    for r in sorted(range(len(steps)), key=lambda i: steps[i]):  # shortest first: cut each no further than needed
+        for split in family:
+            if len(split) >= len(best):
+                break
+            trial = [*out[:r], split, *out[r + 1:]]
+            if _finish_split(steps, trial, threads) <= finish * (1 + 1e-9):
+                out[r] = split
                 break
     return tuple(out)
 
