@@ -246,6 +246,21 @@ def test_a_skip_bound_holds_on_the_values_recorded_not_only_on_those_requested(t
     assert v[-1] == pytest.approx(600.0, abs=5.0)  # the ramp still reaches its target (within a code)
 
 
+def test_a_skip_of_one_code_is_allowed_where_twice_the_steps_own_change_is_under_a_code(tmp_path: Path) -> None:
+    """The same ramp over 10 s changes 600 V / 10 s / 50 = 1.2 V a set-point, twice that under the ADAM-4024's code
+    (±10 kV over 12 bits: 20 kV / 4095 ≈ 4.88 V). A skip bound of 2.4 V refused every skip that changed the code,
+    so the step fell behind and ended 5.2 s late; one code is the least any change moves the output, so a skip
+    may move it by one: no recorded change beyond one code, and the step keeps its times (its end within the
+    laser's drain, well under a second)."""
+    v = _first_step_behind(tmp_path, SLOW_RAMP.replace("duration_s = 4", "duration_s = 10"))
+    code = 20_000.0 / 4095
+    assert np.max(np.abs(np.diff(v))) <= code * (1 + 1e-9)
+    events = open_run(tmp_path / "run.h5").event_list()
+    late = [float(re.search(r"ended ([0-9.]+) s after", text).group(1))  # type: ignore[union-attr]
+            for _, step, kind, text in events if kind == "late" and step == 0]
+    assert all(s < 0.5 for s in late), late
+
+
 def test_inspect_says_when_a_virtual_run_took_no_wire_time(tmp_path: Path) -> None:
     """A virtual run of a protocol that outruns its lines runs at pty speed (no skips, nothing late: the run can
     not show what a real line would do); a tester found that only the file's attribute said so. `bench inspect`
