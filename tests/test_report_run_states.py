@@ -135,6 +135,34 @@ def test_the_first_file_of_a_resumed_campaign_reports_and_inspects_as_the_whole_
     assert rec["continued_in"] is None
 
 
+def test_a_fit_of_the_first_file_leaves_out_a_continuation_still_being_written(runs: dict[str, Path],
+                                                                             tmp_path: Path) -> None:
+    """`bench fit FIRST` took the files that continued it, also one still being written (its part so far, and the
+    fit stored in it). Such a file (state `running`, no dead writer) is now left out of a fit, in one line;
+    named, it is taken; a report still shows the whole campaign."""
+    import shutil
+
+    import h5py
+
+    from bench.cli.analysis import runs_only
+
+    folder = tmp_path / "camp"
+    folder.mkdir()
+    a, b = shutil.copy(runs["a"], folder / "a.h5"), shutil.copy(runs["b"], folder / "b.h5")
+    with h5py.File(b, "r+") as f:  # as its writer leaves it while the run goes on
+        f["status"]["state"][()] = b"running"
+        f.attrs["complete"] = False
+    from bench.cli.common import console
+
+    with console.capture() as cap:
+        got = runs_only([Path(a)], writing="fitting")
+    text = " ".join(cap.get().split())
+    assert got == [Path(a)], got
+    assert f"leaving out {b}: still being written" in text, text
+    assert runs_only([Path(a), Path(b)], writing="fitting") == [Path(a), Path(b)]  # named: taken
+    assert runs_only([Path(a)]) == [Path(a), Path(b)]  # a report: the whole campaign
+
+
 def test_a_manual_session_is_skipped_by_report_and_refused_alone_and_by_fit(runs: dict[str, Path],
                                                                             tmp_path: Path) -> None:
     session = runs["session"]

@@ -172,7 +172,7 @@ def fit_command(
     from bench.identify.core import FitSettings
 
     with json_mode(json_out):
-        runs = runs_only(runs)
+        runs = runs_only(runs, writing="fitting")
     chosen = model_of_runs(runs, model.value)
     mismatch, stopped = fit_notices(runs, json_out)
     settings = FitSettings(population, generations, mutation, crossover, cost.value, polish, polish_iterations,
@@ -210,8 +210,9 @@ def fit_notices(runs: list[Path], json_out: bool) -> tuple[str, list[str]]:
     return mismatch, stopped
 
 
-def runs_only(paths: list[Path]) -> list[Path]:
-    """``paths`` without fit files (``*.fit.hdf5``, which a glob such as ``runs/*`` picks up), saying so."""
+def runs_only(paths: list[Path], writing: str = "") -> list[Path]:
+    """``paths`` without fit files (``*.fit.hdf5``, which a glob such as ``runs/*`` picks up), saying so, with their
+    campaigns' other files (:func:`campaign_files`, ``writing`` as there)."""
     from bench.identify.store import is_sidecar
 
     skipped = [p for p in paths if is_sidecar(p)]
@@ -221,22 +222,33 @@ def runs_only(paths: list[Path]) -> list[Path]:
     runs = [p for p in paths if not is_sidecar(p)]
     if not runs:
         raise ValueError("no run files: only fit files (*.fit.hdf5) were given; name the runs (.h5)")
-    return campaign_files(runs)
+    return campaign_files(runs, writing)
 
 
-def campaign_files(runs: list[Path]) -> list[Path]:
+def campaign_files(runs: list[Path], writing: str = "") -> list[Path]:
     """``runs`` with the earlier files of each resumed campaign (``bench run --resume``), saying so: a chain of
-    linked files is one campaign (each step counted from the file in which it completed)."""
+    linked files is one campaign (each step counted from the file in which it completed). ``writing``: what the
+    caller does (e.g. "fitting"): a file that continued a named one and is still being written (its state
+    ``running``, no dead writer seen) is then left out, said in one line — a fit of the first file of a campaign
+    under way took the part of its last file written so far, and stored its result in it. Named, it is
+    taken."""
     from bench.storage.chain import campaign, describe, with_chains
 
     out = with_chains(runs)
     said: set[str] = set()
+    named = {p.resolve() for p in runs}
+    going: list[Path] = []
     for p in runs:
         links = campaign(p)  # also the files that continued it: its first file reads as the whole campaign
         if len(links) > 1 and (line := describe(links)) not in said:
             said.add(line)
             console.print(f"campaign of {len(links)} linked files: {escape(line)}")
-    return out
+        going += [link.path for link in links if writing and link.shown == "running" and not link.complete
+                  and link.path.resolve() not in named and link.path not in going]
+    for p in going:
+        console.print(f"leaving out {escape(str(p))}: still being written (the campaign goes on); {writing} what "
+                      "has ended — name the file to take what it holds so far")
+    return [p for p in out if p not in going]
 
 
 STAGES = {"polish": "least-squares polish", "intervals": "profile-likelihood intervals"}  # the bars' titles
