@@ -225,8 +225,9 @@ class DisplacementSensor(Instrument, Readable, Protocol):
     def start_buffer(self, interval: float) -> float:
         """Start buffered acquisition every ``interval`` [s]; returns the interval the device uses."""
 
-    def fetch_buffer(self) -> SampleBlock:
-        """Samples stored since the last fetch (possibly none)."""
+    def fetch_buffer(self, within: float | None = None) -> SampleBlock:
+        """Samples stored since the last fetch (possibly none, possibly not all: :attr:`pending`); ``within``: the
+        rig time [s] the call may take (None: the driver's own bound)."""
 
     def stop_buffer(self) -> None:
         """Stop buffered acquisition (samples already stored stay fetchable)."""

@@ -57,6 +57,10 @@ ERROR_CODES: dict[Model, dict[str, str]] = {
 MAX_UPLOAD = 1000  # points per AO request
 FETCH_BUDGET_S = 0.2  # one fetch_buffer call: at most about this long on the wire (the rest on the next call)
 VALUE_BYTES = 9  # one stored value on the wire: 8 characters and a comma
+# one fetch's fixed exchange: the AN status (3 + up to 16 characters) and the AO request and its reply's head
+# (up to 16 + 3 characters) — the link budget's figure (bench/protocol/link_budget.py, laser_fetch_time)
+FETCH_OVERHEAD_BYTES = 16 + 3 + 3 + 16
+EXCHANGE_ALLOWANCE_S = 2e-3  # per exchange, beyond its characters: the controller's turnaround, the host's latency
 _NUMBER = re.compile(r"[+-](?=[0-9.]{7}$)[0-9]*\.[0-9]*")  # sign + 7 characters: digits and one point
 _NUMBERS = re.compile(r"[+-][0-9.]{7}(?:,[+-][0-9.]{7})*")
 # Data-storage capacity per OUT (points). Not from a manual page we could read: treat as an assumption.
@@ -307,16 +311,44 @@ class KeyenceLKG:
         wire_points = int(self.fetch_budget_s * self.link.baudrate / (10 * VALUE_BYTES))
         return max(1, min(MAX_UPLOAD, wire_points))
 
-    def fetch_buffer(self) -> SampleBlock:
+    def _wire_s(self, nbytes: int) -> float:
+        """Seconds ``nbytes`` characters take at the link's baud rate (10 bits each)."""
+        return 10 * nbytes / self.link.baudrate
+
+    def _fitting(self, until: float | None, now: float) -> int:
+        """How many stored values one AO request may ask for so that it ends by ``until`` from ``now`` (this
+        driver's clock; None: no bound): its request and reply head, one exchange's allowance, 9 characters a
+        value."""
+        if until is None:
+            return MAX_UPLOAD
+        left = until - now - self._wire_s(16 + 3) - EXCHANGE_ALLOWANCE_S
+        return max(0, int(left / self._wire_s(VALUE_BYTES)))
+
+    def fetch_buffer(self, within: float | None = None) -> SampleBlock:
         """Upload points stored since the last fetch, within a bounded time; the rest on the next call.
 
         One call sends AO requests of :meth:`upload_chunk` points until it has caught up, spent
         ``fetch_budget_s`` of wall time, reached ``max_fetch_points``, or a stop is requested (checked
         between requests); :attr:`pending` tells how many stored points are still to fetch. A call that
         fails uploads nothing: the next one starts again from the same point.
+
+        ``within``: seconds of rig time (this driver's clock: the wall on hardware, the virtual clock — which
+        the twins' wire time advances — in a virtual run) the whole call may take, status query included. Each
+        request is sized from the wire time it will take (9 characters a value at the baud rate, plus its own
+        characters and :data:`EXCHANGE_ALLOWANCE_S`) to end in it, counted from the later of the clock and the
+        exchanges' own wire time so far (a clock the wire does not advance — a line at pty speed — still bounds
+        the call by what the line would take); a call with too little time for the status
+        query and one value touches no wire and returns no values, :attr:`pending` at least 1 (the storage was not
+        asked: the caller comes back).
         """
         started = time.monotonic()
+        begun = self.clock()
+        until = None if within is None else begun + within
+        if within is not None and within < self._wire_s(FETCH_OVERHEAD_BYTES + VALUE_BYTES) + 2 * EXCHANGE_ALLOWANCE_S:
+            self.pending = max(self.pending, 1)
+            return SampleBlock(self._t0, self._dt, self._fetched, np.zeros(0), np.zeros(0, dtype=bool), "m")
         storing, count = self.buffer_status()
+        wired = self._wire_s(3 + 16) + EXCHANGE_ALLOWANCE_S  # the exchanges' wire time so far: the status query
         values: list[np.ndarray] = []
         valid: list[np.ndarray] = []
         first = self._fetched
@@ -327,11 +359,15 @@ class KeyenceLKG:
                                or (self.link.cancel is not None and self.link.cancel.cancelled)):
                     break  # the rest on the next call (a stop: the caller sees it at its next check)
                 check(self.link.cancel, self.name)
-                n = min(self.upload_chunk(), limit - self._fetched)
+                fits = self._fitting(until, max(self.clock(), begun + wired))
+                n = min(self.upload_chunk(), limit - self._fetched, fits)
+                if n < 1:
+                    break  # no time left for one more value: the rest on the next call
                 text = self.query_text(f"AO,{self.out},{self._fetched},{n}", reply_bytes=3 + VALUE_BYTES * n)
                 mm, ok = parse_values(text[3:], self.name) if len(text) > 3 else (np.zeros(0), np.zeros(0, bool))
                 if mm.size != n:
                     raise ProtocolError(self.name, f"AO returned {mm.size} values, {n} requested")
+                wired += self._wire_s(16 + 3 + VALUE_BYTES * n) + EXCHANGE_ALLOWANCE_S
                 values.append(mm * 1e-3)
                 valid.append(ok)
                 self._fetched += n

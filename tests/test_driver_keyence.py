@@ -63,6 +63,26 @@ def test_one_fetch_is_bounded_on_a_slow_line_and_the_next_continues(slow_laser: 
     assert b2.first_index == 256 and b2.values[0] == pytest.approx(56e-3)  # point 256 is "+56.0000" mm
 
 
+def test_a_fetch_within_a_rig_time_uploads_what_fits_and_the_next_continues(
+        slow_laser: tuple[KeyenceLKG, PtyPeer]) -> None:
+    """``within`` = 50 ms (a set-point period at 20/s) on the driver's clock (held at 0 here, as a line at pty
+    speed leaves a virtual clock: the call counts its exchanges' wire time instead). The status query (3 + 16
+    characters, 1.65 ms at 115,200 Bd) and the AO request's own 16 + 3 characters each take a 2-ms exchange
+    allowance besides, 9 characters (0.78 ms) a value: floor((50 − 2 × 3.65) / 0.78125) = 54 values, not 256,
+    and no second request. With 8 ms (under the status query, one request and a value: 47 characters, 4.08 ms,
+    and two allowances) it asks nothing; the next call goes on at point 54: nothing lost, nothing twice."""
+    k, _ = slow_laser
+    ct = 10 / BAUD
+    fit = int((0.05 - 2 * (19 * ct + 2e-3)) / (9 * ct))
+    assert fit == 54
+    b1 = k.fetch_buffer(within=0.05)
+    assert b1.first_index == 0 and b1.values.size == fit and k.pending == STORED - fit
+    b2 = k.fetch_buffer(within=0.008)
+    assert b2.first_index == fit and b2.values.size == 0 and k.pending >= 1
+    b3 = k.fetch_buffer(within=0.05)
+    assert b3.first_index == fit and b3.values.size == fit and b3.values[0] == pytest.approx(54e-3)
+
+
 def test_a_stop_ends_a_long_upload_and_the_points_are_fetched_again(slow_laser: tuple[KeyenceLKG, PtyPeer]) -> None:
     k, _ = slow_laser
     k.fetch_budget_s = 60.0  # requests of 1000 points, 0.78 s each on the wire

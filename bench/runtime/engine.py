@@ -39,6 +39,7 @@ import numpy as np
 from bench.core.clock import Clock
 from bench.models.lozenge import LozengeParams
 from bench.protocol.program import (
+    FETCH_PERIOD_S,
     HOLD_KEEPALIVE_S,
     Program,
     Segment,
@@ -677,6 +678,11 @@ class Engine:
                         and nxt < seg.t_end - 1e-12:
                     count[kind] += 1
                     skipped.polls[kind] = skipped.polls.get(kind, 0) + 1
+                # a poll (the laser's upload) that bounds itself ends before the step's next action: the next tick,
+                # another poll's next slot (one due now runs right after it), the step's end
+                self.ctx.upload_until = self.ctx.offset + min(
+                    [tick.t if tick is not None else math.inf, seg.t_end,
+                     *(d for k, d in due.items() if k != kind and d > t_next + 1e-12)])
                 poll.run(self.ctx, seg.t_start + count[kind] * period)
                 count[kind] += 1
                 due[kind] = seg.t_start + count[kind] * period
@@ -809,6 +815,7 @@ class Engine:
         if storing:
             self.ctx.laser.start_buffer(1.0 / rec.displacement_Hz)
             self._storing = True
+            self.ctx.fetch_next = seg.t_start + FETCH_PERIOD_S  # the step's first upload (nothing stored before)
         if streamed:
             self.ctx.wait_until(seg.t_start)
             self._hw.start(seg)

@@ -193,9 +193,10 @@ def _drive_error_text(e: RunContext) -> str:
     return f"state {st.state}, error {st.error_code:#06x}" + (f" ({st.error_text})" if st.error_text else "")
 
 
-def record_laser_block(e: RunContext) -> int:
-    """Fetch and record one block of stored laser data; returns how many samples it held."""
-    block = e.laser.fetch_buffer()
+def record_laser_block(e: RunContext, within: float | None = None) -> int:
+    """Fetch and record one block of stored laser data; returns how many samples it held. ``within``: the rig time
+    [s] the fetch may take (None: the driver's own bound)."""
+    block = e.laser.fetch_buffer(within)
     t = block.times() - e.t0
     new = t > e.laser_t_last  # a step's storage starts at the time the step before ended on: that time is recorded
     if new.any():
@@ -213,11 +214,22 @@ def record_laser_block(e: RunContext) -> int:
 
 
 def _fetch_period(e: RunContext, s: StepState) -> float | None:
-    return FETCH_PERIOD_S if s.storing else None
+    """While the step stores: on every set-point tick (at most every ``FETCH_PERIOD_S``), so that what one bounded
+    fetch left is fetched on the following ticks; :func:`_fetch` asks the laser only when a fetch is due on
+    ``FETCH_PERIOD_S``'s grid or one left a backlog."""
+    return min(FETCH_PERIOD_S, 1.0 / e.program.protocol.recording.setpoint_Hz) if s.storing else None
 
 
 def _fetch(e: RunContext, due: float) -> None:
-    record_laser_block(e)
+    """Upload the laser's storage every ``FETCH_PERIOD_S``, each fetch bounded in rig time by the step's next action
+    (``e.upload_until``: a set-point, another poll, the step's end): a fetch never holds a set-point back, and what
+    it could not upload in time (``pending``) is fetched on the following ticks, from where it stopped — nothing
+    lost, nothing twice."""
+    if due >= e.fetch_next - 1e-9:
+        e.fetch_next += FETCH_PERIOD_S * (math.floor((due - e.fetch_next) / FETCH_PERIOD_S + 1e-9) + 1)
+    elif e.laser.pending == 0:
+        return  # caught up, and no fetch due on the grid yet
+    record_laser_block(e, e.upload_until - e.now() if math.isfinite(e.upload_until) else None)
 
 
 def _collect_period(e: RunContext, s: StepState) -> float | None:
