@@ -18,7 +18,8 @@ stores: its share of the time is the storage rate over :func:`laser_upload_rate`
 an empty list means every link can carry the program. The traffic model follows :mod:`bench.runtime.engine`:
 set-points at ``recording.setpoint_Hz`` while a step streams, then one keep-alive per
 ``max(1/setpoint_Hz, HOLD_KEEPALIVE_S)``; monitors, encoder and load cell at their rates; laser storage
-fetched every ``FETCH_PERIOD_S`` while storing, single reads at ``PASSIVE_LASER_HZ`` otherwise.
+fetched every ``FETCH_PERIOD_S`` while storing (each fetch bounded by the step's next action, the rest on the
+following ticks), single reads at ``PASSIVE_LASER_HZ`` otherwise.
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from bench.protocol.program import FETCH_PERIOD_S, HOLD_KEEPALIVE_S, PASSIVE_LASER_HZ, Program
+from bench.protocol.program import HOLD_KEEPALIVE_S, PASSIVE_LASER_HZ, Program
 
 TURNAROUND_MODBUS_S = 1e-3  # ADAM / DGT1S request → reply [assumed: no figure in the manuals read]
 TURNAROUND_LKG_S = 0.5e-3  # LK-G command → reply [assumed]
@@ -35,6 +36,7 @@ ADAM_4017P_RATE = 10.0  # conversions/s over all enabled channels (datasheet)
 DGT1S_RATE = 100.0  # conversions/s [assumed: the DGT1S offers several rates]
 LKG_VALUE_BYTES = 9  # one stored value in an AO reply: 8 characters and a comma (manual p. 5-6)
 LKG_UPLOAD_CHUNK_S = 0.2  # the driver sizes AO requests to this much wire time
+LKG_EXCHANGE_ALLOWANCE_S = 2e-3  # the driver's allowance per exchange beyond its characters (a bounded fetch's)
 MAX_LOAD = 1.0  # a link busy more than this fraction of the time cannot keep up
 
 
@@ -207,31 +209,60 @@ def check_links(program: Program) -> list[str]:
 
 
 def _check_upload_hold(program: Program, baud: int) -> str | None:
-    """One line if a laser storage upload holds the host longer than a set-point period in a step that both stores
-    and streams set-points. The engine fetches every ``FETCH_PERIOD_S``, on a set-point's tick, what was stored
-    since — FETCH_PERIOD_S × displacement_Hz values, at most one AO request's worth per call (the driver's budget,
-    :data:`LKG_UPLOAD_CHUNK_S` of wire) — and sends nothing while it waits (``hold``). A set-point due meanwhile
-    waits; after the tick's other traffic (its own set-point, a monitor or load-cell poll due at once) two can come
-    due, and the first is skipped. Said from hold > one period, not from the sum reaching two: the other traffic's
-    timing is the run's (a virtual run at 352 S/s and 20/s skipped 3 set-points where one exchange of each channel
-    and the upload add up to 99.5 ms), so the line errs on the side of saying so (at 240 S/s, 51 ms, a reviewer's
-    runs skipped none)."""
+    """One line if, in a step that both stores and streams set-points, the laser's storage fills faster than the
+    link can drain it in the time the set-points leave.
+
+    What a fetch no longer limits: the engine bounds each upload in rig time by the step's next action (a set-point,
+    another poll; ``bench.runtime.polls``) and leaves what it could not upload for the following ticks, so a fetch
+    holds no set-point back however much was stored (before, one 0.25-s fetch of 125 values at 500 S/s held the host
+    ~102 ms and set-points were skipped). What is left is throughput. In each set-point period ``T = 1/setpoint_Hz``
+    the host first sends the tick's set-points and the polls due — on average ``U·T``, ``U`` the share of the time
+    the other channels keep it on their wires (:func:`link_loads`) — and the upload has the rest, ``T − U·T``. One
+    fetch at most runs in it (the poll comes once a tick), paying its fixed exchange — the ``AN`` status query and
+    the ``AO`` request and its reply's head, 38 characters, and the driver's allowance of
+    :data:`LKG_EXCHANGE_ALLOWANCE_S` per exchange (the driver sizes its request by it) — and 9 characters a value
+    (manual p. 5-6). So a tick drains at most ``n = ⌊(T − U·T − 38·c − 2·a) / (9·c)⌋`` values (``c`` = 10/baud s a
+    character), ``n·setpoint_Hz`` values/s: a storage that fills faster leaves a backlog that grows over the step,
+    uploaded after it (the schedule shifted by that time, the output ramped to 0 V if it is long). Counted as if
+    the link were always behind (a fetch every tick): caught up, the engine fetches every ``FETCH_PERIOD_S`` only.
+    Capacity is not this check's: a step that stores more than the controller holds is refused by
+    :mod:`bench.protocol.program` (``rig.laser.capacity``)."""
     rec = program.protocol.recording
-    chunk = _upload_chunk(baud)
-    hold = laser_fetch_time(baud, min(math.ceil(FETCH_PERIOD_S * rec.displacement_Hz), chunk))
-    period = 1.0 / rec.setpoint_Hz
     amp_daq, _ = _hardware_timed(program)  # a DAQ plays the voltage itself: only go-tos are the host's to send
     steps = [s for s in program.segments if s.storing and s.stream_until > s.t_start
              and ((s.voltage is not None and not amp_daq) or s.position is not None)]
-    if not steps or hold <= period:
+    if not steps:
         return None
-    fits = [n for n in range(int(rec.displacement_Hz), 0, -1)  # displacement_Hz whose upload fits in a period
-            if laser_fetch_time(baud, min(math.ceil(FETCH_PERIOD_S * n), chunk)) <= period]
-    lower = f"lower recording.displacement_Hz to ≤ {fits[0]:,} or " if fits else ""
-    return (f"laser storage upload: a fetch every {FETCH_PERIOD_S:g} s holds the host ~{hold * 1e3:.0f} ms at "
-            f"displacement_Hz = {rec.displacement_Hz:g}, over a set-point period ({period * 1e3:.0f} ms): set-points "
-            f"wait and one can be skipped (step {steps[0].label.rsplit('/', 1)[-1][:60]}); {lower}"
-            f"recording.setpoint_Hz to ≤ {max(1, int(1 / hold)):,} (or a hardware-timed drive)")
+    loads = [link for link in link_loads(program) if link.link != "laser"]  # no single reads while it stores
+    others = sum(link.load for link in loads)
+    setpoints = sum(rate * t for link in loads for ch, rate, t in link.items if "set-points" in ch)
+    drain = laser_drain_rate(baud, rec.setpoint_Hz, others)
+    if rec.displacement_Hz <= drain:
+        return None
+    period = 1.0 / rec.setpoint_Hz
+    fits = [f for f in range(int(rec.setpoint_Hz) - 1, 0, -1)  # set-point rates whose gaps drain the storage
+            if laser_drain_rate(baud, f, others - setpoints * (1 - f / rec.setpoint_Hz)) >= rec.displacement_Hz]
+    n = int(drain / rec.setpoint_Hz)
+    fixed = (16 + 3 + 3 + 16) * char_time(baud) + 2 * LKG_EXCHANGE_ALLOWANCE_S
+    drains = (f"one fetch of ≤ {n} values: the link drains {drain:,.0f} S/s" if n else
+              f"too little for a fetch ({fixed * 1e3:.1f} ms before its first value): the link drains none in it")
+    fit = (f"lower recording.displacement_Hz to ≤ {int(drain):,}" + (f" or recording.setpoint_Hz to ≤ {fits[0]}"
+                                                                    if fits else "") if n else
+           f"lower recording.setpoint_Hz to ≤ {fits[0]}" if fits else "lower the other channels' rates")
+    return (f"laser storage upload: at recording.setpoint_Hz = {rec.setpoint_Hz:g} each {period * 1e3:.0f}-ms "
+            f"period leaves ~{(1 - others) * period * 1e3:.0f} ms after its set-points and polls, {drains}; the "
+            f"storage fills {rec.displacement_Hz:,.0f} S/s, the backlog grows over step "
+            f"{steps[0].label.rsplit('/', 1)[-1][:40]} (uploaded after it); {fit}")
+
+
+def laser_drain_rate(baud: int, setpoint_Hz: float, others: float) -> float:
+    """Stored values per second the engine uploads in a step that streams ``setpoint_Hz`` set-points while the other
+    channels keep the host ``others`` of the time: one fetch a set-point period in what the tick leaves (see
+    :func:`_check_upload_hold`)."""
+    ct = char_time(baud)
+    period = 1.0 / setpoint_Hz
+    window = period * (1 - others) - (16 + 3 + 3 + 16) * ct - 2 * LKG_EXCHANGE_ALLOWANCE_S
+    return max(0, math.floor(window / (LKG_VALUE_BYTES * ct))) * setpoint_Hz
 
 
 def _fit_setpoints(link: LinkLoad) -> str:
