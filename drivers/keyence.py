@@ -138,8 +138,8 @@ class KeyenceLKG:
     def __init__(self, link: SerialLink, *, name: str = "laser", model: Model = "LK-G3000", out: int = 1,
                  clock: ClockFn = time.monotonic, storage_points: int | None = None,
                  fetch_budget_s: float = FETCH_BUDGET_S, max_fetch_points: int | None = None) -> None:
-        """``fetch_budget_s``: wall time one :meth:`fetch_buffer` call may spend uploading (requests are sized
-        to fit it at the link's baud rate); ``max_fetch_points``: optional cap on points per call."""
+        """``fetch_budget_s``: wall or rig time one :meth:`fetch_buffer` call may spend uploading (requests are
+        sized to fit it at the link's baud rate); ``max_fetch_points``: optional cap on points per call."""
         if model not in ERROR_CODES:
             raise ValueError(f"unknown Keyence controller model {model!r}")
         self.link = link
@@ -328,9 +328,11 @@ class KeyenceLKG:
         """Upload points stored since the last fetch, within a bounded time; the rest on the next call.
 
         One call sends AO requests of :meth:`upload_chunk` points until it has caught up, spent
-        ``fetch_budget_s`` of wall time, reached ``max_fetch_points``, or a stop is requested (checked
-        between requests); :attr:`pending` tells how many stored points are still to fetch. A call that
-        fails uploads nothing: the next one starts again from the same point.
+        ``fetch_budget_s`` of wall time or of rig time (its clock: in a virtual run the wire time the twin
+        takes, where the wall may pass much faster — a drain's fetch of a whole step's storage in one call starved
+        the set-point module's keep-alive until its watchdog zeroed the output), reached ``max_fetch_points``,
+        or a stop is requested (checked between requests); :attr:`pending` tells how many stored points are
+        still to fetch. A call that fails uploads nothing: the next one starts again from the same point.
 
         ``within``: seconds of rig time (this driver's clock: the wall on hardware, the virtual clock — which
         the twins' wire time advances — in a virtual run) the whole call may take, status query included. Each
@@ -355,7 +357,7 @@ class KeyenceLKG:
         limit = count if self.max_fetch_points is None else min(count, first + self.max_fetch_points)
         try:
             while self._fetched < limit:
-                if values and (time.monotonic() - started >= self.fetch_budget_s
+                if values and (max(time.monotonic() - started, self.clock() - begun) >= self.fetch_budget_s
                                or (self.link.cancel is not None and self.link.cancel.cancelled)):
                     break  # the rest on the next call (a stop: the caller sees it at its next check)
                 check(self.link.cancel, self.name)
