@@ -119,7 +119,8 @@ class RunContext:
         self.laser_t_last = -math.inf  # run time of the last laser sample recorded (software-timed laser)
         # the laser storage's upload in a step (bench.runtime.polls): the run time by which a fetch must be over (the
         # step's next action due: a set-point, another poll, its end; inf: no bound) and the program time of the
-        # next fetch on FETCH_PERIOD_S's grid (between them, only a backlog a bounded fetch left is fetched)
+        # next fetch on FETCH_PERIOD_S's grid (between them, only a backlog a bounded fetch left is fetched; -inf as a
+        # step's storage starts: its first fetch sets the grid)
         self.upload_until = math.inf
         self.fetch_next = -math.inf
         self._heard_mark: float | None = None  # the set-point module's driver's last ``heard_at`` seen

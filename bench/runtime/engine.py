@@ -39,7 +39,6 @@ import numpy as np
 from bench.core.clock import Clock
 from bench.models.lozenge import LozengeParams
 from bench.protocol.program import (
-    FETCH_PERIOD_S,
     HOLD_KEEPALIVE_S,
     Program,
     Segment,
@@ -815,7 +814,7 @@ class Engine:
         if storing:
             self.ctx.laser.start_buffer(1.0 / rec.displacement_Hz)
             self._storing = True
-            self.ctx.fetch_next = seg.t_start + FETCH_PERIOD_S  # the step's first upload (nothing stored before)
+            self.ctx.fetch_next = -math.inf  # the step's uploads start their own grid (the fetch poll's first run)
         if streamed:
             self.ctx.wait_until(seg.t_start)
             self._hw.start(seg)

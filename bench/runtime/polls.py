@@ -213,11 +213,16 @@ def record_laser_block(e: RunContext, within: float | None = None) -> int:
     return int(block.values.size)
 
 
+def _fetch_tick(e: RunContext) -> float:
+    """The fetch poll's period while storing: every set-point tick, at most ``FETCH_PERIOD_S``."""
+    return min(FETCH_PERIOD_S, 1.0 / e.program.protocol.recording.setpoint_Hz)
+
+
 def _fetch_period(e: RunContext, s: StepState) -> float | None:
     """While the step stores: on every set-point tick (at most every ``FETCH_PERIOD_S``), so that what one bounded
     fetch left is fetched on the following ticks; :func:`_fetch` asks the laser only when a fetch is due on
     ``FETCH_PERIOD_S``'s grid or one left a backlog."""
-    return min(FETCH_PERIOD_S, 1.0 / e.program.protocol.recording.setpoint_Hz) if s.storing else None
+    return _fetch_tick(e) if s.storing else None
 
 
 def _fetch(e: RunContext, due: float) -> None:
@@ -225,6 +230,8 @@ def _fetch(e: RunContext, due: float) -> None:
     (``e.upload_until``: a set-point, another poll, the step's end): a fetch never holds a set-point back, and what
     it could not upload in time (``pending``) is fetched on the following ticks, from where it stopped — nothing
     lost, nothing twice."""
+    if math.isinf(e.fetch_next):  # the step's first run (one tick after its start, the poll's ``first``): its grid
+        e.fetch_next = due - _fetch_tick(e) + FETCH_PERIOD_S
     if due >= e.fetch_next - 1e-9:
         e.fetch_next += FETCH_PERIOD_S * (math.floor((due - e.fetch_next) / FETCH_PERIOD_S + 1e-9) + 1)
     elif e.laser.pending == 0:
