@@ -251,14 +251,34 @@ def test_a_skip_bound_holds_on_the_values_recorded_not_only_on_those_requested(t
 
 def test_a_skip_of_one_code_is_allowed_where_twice_the_steps_own_change_is_under_a_code(tmp_path: Path) -> None:
     """The same ramp over 10 s changes 600 V / 10 s / 50 = 1.2 V a set-point, twice that under the ADAM-4024's code
-    (±10 kV over 12 bits: 20 kV / 4095 ≈ 4.88 V). A skip bound of 2.4 V refused every skip that changed the code,
-    so the step fell behind and ended 5.2 s late; one code is the least any change moves the output, so a skip
-    may move it by one: no recorded change beyond one code, and the step keeps its times (its end within the
-    laser's drain, well under a second)."""
-    v = _first_step_behind(tmp_path, SLOW_RAMP.replace("duration_s = 4", "duration_s = 10"))
+    (±10 kV over 12 bits: 20 kV / 4095 ≈ 4.88 V). With the host held 0.1 s every 0.25 s (as the laser's storage
+    upload held it before it was bounded; a reply's retry does the same), a skip bound of 2.4 V refused every skip
+    that changed the code, so the step fell behind and ended 5.2 s late. One code is the least any change moves
+    the output, so a skip may move it by one: no recorded change beyond one code, and the step keeps its times
+    (well under a second late)."""
+    proto = tmp_path / "p.toml"
+    proto.write_text(SLOW_RAMP.replace("duration_s = 4", "duration_s = 10")
+                     .replace("monitors_Hz = 40", "monitors_Hz = 5").format(rig=RIGS / "thesis-sim.toml"))
+
+    def held(engine: Any, sim: Any) -> None:
+        flush, mark = engine.rec.maybe_flush, [0.25]
+
+        def holding() -> None:
+            if engine.snapshot.step == 0 and engine.program_now() >= mark[0]:
+                mark[0] += 0.25
+                sim.clock.sleep(0.1)
+            flush()
+        engine.rec.maybe_flush = holding
+
+    result = execute(plan_run(proto), tmp_path / "run.h5", virtual=True, on_engine=held)
+    assert result.state == "completed", result.reason
+    run = open_run(result.path)
+    events = run.event_list()
+    assert any(kind == "skipped" and step == 0 for _, step, kind, _ in events)
+    sp = run.streams["setpoints"]
+    v = np.asarray(sp.columns["voltage"])[np.asarray(sp.t) <= 10.0 + 1e-6]
     code = 20_000.0 / 4095
     assert np.max(np.abs(np.diff(v))) <= code * (1 + 1e-9)
-    events = open_run(tmp_path / "run.h5").event_list()
     late = [float(re.search(r"ended ([0-9.]+) s after", text).group(1))  # type: ignore[union-attr]
             for _, step, kind, text in events if kind == "late" and step == 0]
     assert all(s < 0.5 for s in late), late
