@@ -41,7 +41,7 @@ from drivers.interfaces import (
     SampleBlock,
     StreamDescription,
 )
-from drivers.serial_link import SerialLink
+from drivers.serial_link import SerialLink, usb_latency_ms
 
 Model = Literal["LK-G3000", "LK-G5000"]
 SAMPLING_US = (20, 50, 100, 200, 500, 1000)  # SW,CA codes 0..5
@@ -60,7 +60,9 @@ VALUE_BYTES = 9  # one stored value on the wire: 8 characters and a comma
 # one fetch's fixed exchange: the AN status (3 + up to 16 characters) and the AO request and its reply's head
 # (up to 16 + 3 characters) — the link budget's figure (bench/protocol/link_budget.py, laser_fetch_time)
 FETCH_OVERHEAD_BYTES = 16 + 3 + 3 + 16
-EXCHANGE_ALLOWANCE_S = 2e-3  # per exchange, beyond its characters: the controller's turnaround, the host's latency
+# per exchange, beyond its characters: the controller's turnaround, the host's latency; a USB-serial adapter whose
+# latency timer holds replies longer (FTDI's default is 16 ms) gets its timer instead (:meth:`KeyenceLKG.__init__`)
+EXCHANGE_ALLOWANCE_S = 2e-3
 _NUMBER = re.compile(r"[+-](?=[0-9.]{7}$)[0-9]*\.[0-9]*")  # sign + 7 characters: digits and one point
 _NUMBERS = re.compile(r"[+-][0-9.]{7}(?:,[+-][0-9.]{7})*")
 # Data-storage capacity per OUT (points). Not from a manual page we could read: treat as an assumption.
@@ -155,6 +157,10 @@ class KeyenceLKG:
         self._dt = 0.0
         self._fetched = 0
         self.fetch_budget_s = fetch_budget_s
+        # a bounded fetch's allowance per exchange: an adapter holding each reply up to its latency timer would
+        # otherwise overrun the bound by that much an exchange (a reviewer: 50.9 ms in a 37-ms bound at 16 ms)
+        latency = usb_latency_ms(link.url) if isinstance(getattr(link, "url", None), str) else None
+        self.exchange_allowance_s = max(EXCHANGE_ALLOWANCE_S, (latency or 0) * 1e-3)
         self.max_fetch_points = max_fetch_points
         self.pending = 0  # stored points known to the last fetch and not uploaded yet
 
@@ -321,7 +327,7 @@ class KeyenceLKG:
         value."""
         if until is None:
             return MAX_UPLOAD
-        left = until - now - self._wire_s(16 + 3) - EXCHANGE_ALLOWANCE_S
+        left = until - now - self._wire_s(16 + 3) - self.exchange_allowance_s
         return max(0, int(left / self._wire_s(VALUE_BYTES)))
 
     def fetch_buffer(self, within: float | None = None) -> SampleBlock:
@@ -337,20 +343,21 @@ class KeyenceLKG:
         ``within``: seconds of rig time (this driver's clock: the wall on hardware, the virtual clock — which
         the twins' wire time advances — in a virtual run) the whole call may take, status query included. Each
         request is sized from the wire time it will take (9 characters a value at the baud rate, plus its own
-        characters and :data:`EXCHANGE_ALLOWANCE_S`) to end in it, counted from the later of the clock and the
-        exchanges' own wire time so far (a clock the wire does not advance — a line at pty speed — still bounds
-        the call by what the line would take); a call with too little time for the status
-        query and one value touches no wire and returns no values, :attr:`pending` at least 1 (the storage was not
-        asked: the caller comes back).
+        characters and the exchange allowance, :data:`EXCHANGE_ALLOWANCE_S` or the adapter's latency timer) to
+        end in it, counted from the later of the clock and the exchanges' own wire time so far (a clock the wire
+        does not advance — a line at pty speed — still bounds the call by what the line would take); a call with
+        too little time for the status query and one value touches no wire and returns no values, :attr:`pending`
+        at least 1 (the storage was not asked: the caller comes back).
         """
         started = time.monotonic()
         begun = self.clock()
         until = None if within is None else begun + within
-        if within is not None and within < self._wire_s(FETCH_OVERHEAD_BYTES + VALUE_BYTES) + 2 * EXCHANGE_ALLOWANCE_S:
+        least = self._wire_s(FETCH_OVERHEAD_BYTES + VALUE_BYTES) + 2 * self.exchange_allowance_s
+        if within is not None and within < least:
             self.pending = max(self.pending, 1)
             return SampleBlock(self._t0, self._dt, self._fetched, np.zeros(0), np.zeros(0, dtype=bool), "m")
         storing, count = self.buffer_status()
-        wired = self._wire_s(3 + 16) + EXCHANGE_ALLOWANCE_S  # the exchanges' wire time so far: the status query
+        wired = self._wire_s(3 + 16) + self.exchange_allowance_s  # the exchanges' wire time so far: the status query
         values: list[np.ndarray] = []
         valid: list[np.ndarray] = []
         first = self._fetched
@@ -369,7 +376,7 @@ class KeyenceLKG:
                 mm, ok = parse_values(text[3:], self.name) if len(text) > 3 else (np.zeros(0), np.zeros(0, bool))
                 if mm.size != n:
                     raise ProtocolError(self.name, f"AO returned {mm.size} values, {n} requested")
-                wired += self._wire_s(16 + 3 + VALUE_BYTES * n) + EXCHANGE_ALLOWANCE_S
+                wired += self._wire_s(16 + 3 + VALUE_BYTES * n) + self.exchange_allowance_s
                 values.append(mm * 1e-3)
                 valid.append(ok)
                 self._fetched += n

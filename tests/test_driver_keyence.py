@@ -83,6 +83,33 @@ def test_a_fetch_within_a_rig_time_uploads_what_fits_and_the_next_continues(
     assert b3.first_index == fit and b3.values.size == fit and b3.values[0] == pytest.approx(54e-3)
 
 
+def test_a_usb_adapters_latency_timer_is_the_exchange_allowance(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A USB-serial adapter at FTDI's default latency timer holds each reply up to 16 ms: a fetch sized with the
+    2-ms allowance overran a 37-ms bound (a reviewer's model: 50.9 ms). With the timer as the allowance, by hand
+    at 115,200 Bd: the status query and the AO request each take 19 characters (1.65 ms) and 16 ms, a value 9
+    characters (0.78 ms): floor((37 − 2 × 17.65) / 0.78) = 2 values. An unread timer keeps the 2 ms."""
+    import drivers.keyence as keyence
+
+    peer = PtyPeer()
+    peer.run(lambda: serve_storage(peer))
+    link = SerialLink(peer.name, "laser", baudrate=BAUD, timeout=0.5, exclusive=False, cancel=CancelToken())
+    link.open()
+    try:
+        monkeypatch.setattr(keyence, "usb_latency_ms", lambda url: 16)
+        k = KeyenceLKG(link, clock=lambda: 0.0)
+        k._dt = 1e-4
+        ct = 10 / BAUD
+        assert k.exchange_allowance_s == pytest.approx(16e-3)
+        fit = int((0.037 - 2 * (19 * ct + 16e-3)) / (9 * ct))
+        assert fit == 2
+        assert k.fetch_buffer(within=0.037).values.size == fit
+        monkeypatch.setattr(keyence, "usb_latency_ms", lambda url: None)
+        assert KeyenceLKG(link, clock=lambda: 0.0).exchange_allowance_s == pytest.approx(2e-3)
+    finally:
+        link.close()
+        peer.close()
+
+
 def test_a_stop_ends_a_long_upload_and_the_points_are_fetched_again(slow_laser: tuple[KeyenceLKG, PtyPeer]) -> None:
     k, _ = slow_laser
     k.fetch_budget_s = 60.0  # requests of 1000 points, 0.78 s each on the wire
