@@ -27,6 +27,11 @@ STANDARD_GRAVITY_M_PER_S2 = 9.80665  # CGPM 1901 (the load cell's kg → N)
 # (assumed; the LK-G5000 figure is the largest count the 6-digit setting carries). Set storage_points to the
 # controller's figure on a real rig.
 LKG_STORAGE_POINTS = {"LK-G3000": 65_536, "LK-G5000": 999_999}
+# The LK-G stores every sampling period (SW,CA) × storage cycle (SW,EB): the settings the driver chooses among
+# (drivers/keyence.py SAMPLING_US, STORAGE_CYCLES; tests/test_rig.py checks that they agree), so a requested rate is
+# stored at the nearest interval these make (800 S/s at 1000: 1 ms)
+LKG_SAMPLING_US = (20, 50, 100, 200, 500, 1000)
+LKG_STORAGE_CYCLES = (1, 2, 5, 10, 20, 50, 100, 200, 500, 1000)
 # Analog inputs: the TREK monitors (ADAM-4017+ or T7 AIN) and the DAQ's load-cell input are read on the ±10 V range
 # (drivers.adam.RawScale clips to ±10 V; bench.runtime.hardware_timed streams every AIN at range 10). A channel
 # reads at most this, so a trip level at or above what it represents can never fire.
@@ -104,6 +109,21 @@ class LaserConfig(_Strict):
         """Points the controller stores per OUT for a run: storage_points, or the model's assumed capacity — the
         rig file is where the application learns instrument facts, so protocol compilation needs no driver."""
         return self.storage_points or LKG_STORAGE_POINTS[self.model]
+
+    @staticmethod
+    def stored_Hz(requested_Hz: float) -> float:
+        """The rate [S/s] the controller stores at when ``requested_Hz`` is asked: the sampling period × storage cycle
+        nearest to 1/``requested_Hz`` (among equal ones the smallest cycle), as the driver sets it."""
+        interval = 1.0 / requested_Hz
+        sampling, cycle = min(((s, c) for s in LKG_SAMPLING_US for c in LKG_STORAGE_CYCLES),
+                              key=lambda sc: (abs(sc[0] * sc[1] * 1e-6 - interval), sc[1]))
+        return 1e6 / (sampling * cycle)
+
+    @staticmethod
+    def storable_at_most(rate_Hz: float) -> float:
+        """The fastest rate [S/s] the controller stores at that is at most ``rate_Hz`` (0: none is)."""
+        rates = [1e6 / (s * c) for s in LKG_SAMPLING_US for c in LKG_STORAGE_CYCLES]
+        return max((r for r in rates if r <= rate_Hz * (1 + 1e-12)), default=0.0)
 
 
 class MotorConfig(_Strict):

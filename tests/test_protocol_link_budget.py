@@ -178,7 +178,11 @@ def test_a_storage_the_set_point_gaps_cannot_drain_is_said_and_one_they_can_is_n
     (16 + 3 + 3 + 16 characters, 3.3 ms at 115,200 Bd) and the driver's 2-ms allowance per exchange (4 ms), then
     0.78 ms a value: ⌊26.3 / 0.78125⌋ = 33 values a period, 660 S/s. 500 and 660 S/s pass; 700 S/s is said, with
     660 and the set-point rate whose gaps would drain it (18/s: 55.6 ms × (1 − U') − 7.3 ms, U' = 18 × 12.98 ms +
-    5 × 13.5 ms, gives 40 values, 720 S/s; 19/s gives 36, 684 S/s)."""
+    5 × 13.5 ms, gives 40 values, 720 S/s; 19/s gives 36, 684 S/s). The rates are those the LK-G stores at: its
+    interval is a sampling period (20, 50, 100, 200, 500 or 1000 µs) × a storage cycle (1, 2, 5, 10, … 1000), so
+    660 S/s asked is stored at 500 (2 ms; 1.52 ms asked) and 700 at 1000 (1 ms; 1.43 ms asked) — a reviewer: 800
+    S/s passed the check and stored 1000. 700 asked is said at 1000 S/s, the advice the fastest storable rate
+    under 660 (500) or a set-point rate whose gaps drain 1000 S/s (by hand as above)."""
     path = ROOT / "protocols" / "thesis-identification.toml"
     ct, allowance = 10 / 115200, 2e-3
 
@@ -193,5 +197,52 @@ def test_a_storage_the_set_point_gaps_cannot_drain_is_said_and_one_they_can_is_n
         assert check_links(program) == [], hz
     _, program = compiled(path, kind, displacement_Hz=700.0, setpoint_Hz=20.0)
     (line,) = [p for p in check_links(program) if p.startswith("laser storage upload")]
-    assert "one fetch of ≤ 33 values: the link drains 660 S/s; the storage fills 700 S/s" in line, line
-    assert "displacement_Hz to ≤ 660 or recording.setpoint_Hz to ≤ 18" in line, line
+    slow = max(f for f in range(1, 20) if drains(f) >= 1000)
+    assert slow == 7
+    assert "one fetch of ≤ 33 values: the link drains 660 S/s; the storage fills 1,000 S/s" in line, line
+    assert f"displacement_Hz to ≤ 500 or recording.setpoint_Hz to ≤ {slow}" in line, line
+
+
+def test_the_rig_knows_the_storage_intervals_the_driver_sets() -> None:
+    """The planning checks count the rate the LK-G stores at (bench.rig, which protocol compilation may read) from
+    the same settings the driver chooses among (drivers.keyence): the two tables agree, and every rate the driver
+    would store at for a request is the rig's (storage_setting against stored_Hz over 1 … 50,000 S/s)."""
+    import numpy as np
+
+    from bench.rig import LKG_SAMPLING_US, LKG_STORAGE_CYCLES, LaserConfig
+    from drivers.keyence import SAMPLING_US, STORAGE_CYCLES, KeyenceLKG
+
+    assert (LKG_SAMPLING_US, LKG_STORAGE_CYCLES) == (SAMPLING_US, STORAGE_CYCLES)
+    for hz in np.geomspace(1, 50_000, 400):
+        sampling, cycle = KeyenceLKG.storage_setting(1 / hz)
+        assert LaserConfig.stored_Hz(hz) == 1e6 / (sampling * cycle), hz
+    assert LaserConfig.stored_Hz(800) == 1000 and LaserConfig.stored_Hz(660) == 500  # 1.25 ms → 1; 1.52 → 2
+
+
+def test_a_step_is_refused_for_the_points_the_controller_stores_not_those_asked(tmp_path: Path) -> None:
+    """A reviewer: 750 S/s for 80 s on an LK-G3000 counted 60,001 points (under its 65,536) and passed, but the
+    controller stores every 1 ms (1.33 ms asked: the nearest sampling × cycle is 1 ms), 80,001 points: the storage
+    filled and the step's last 14,465 points were lost. Counted at the stored rate, the step is refused."""
+    from bench.protocol.program import ProtocolLimitError
+
+    path = tmp_path / "p.toml"
+    path.write_text(f"""[protocol]
+name = "long-store"
+rig = "{RIGS / 'lsdea-isotonic-sim.toml'}"
+
+[recording]
+displacement_Hz = 750
+setpoint_Hz = 20
+
+[[steps]]
+type = "waveform"
+channel = "voltage"
+kind = "raised_cosine"
+amplitude = "5 kV"
+frequency_Hz = 0.5
+duration_s = 80
+""", encoding="utf-8")
+    with pytest.raises(ProtocolLimitError, match=r"80001 laser points at recording.displacement_Hz = 750 \(stored at "
+                                                 r"1000 S/s, the nearest the LK-G sets\) exceed the LK-G3000 storage "
+                                                 r"of 65536"):
+        compile_program(load_protocol(path), load_rig(RIGS / "lsdea-isotonic-sim.toml"))

@@ -181,14 +181,15 @@ def check_links(program: Program) -> list[str]:
             problems.append(f"{link.link} at {link.baud} Bd: busy {link.load:.0%} of the time ({parts}); {fit}")
     amp_daq, laser_daq = _hardware_timed(program)
     storing = (lz := rig.laser) is not None and not laser_daq and any(s.storing for s in program.segments)
-    upload_share = rec.displacement_Hz / laser_upload_rate(lz.baudrate) if storing and lz is not None else 0.0
+    stored = program.laser_Hz  # as the controller stores it, not as asked (800 S/s asked: 1000 stored)
+    upload_share = stored / laser_upload_rate(lz.baudrate) if storing and lz is not None else 0.0
     if storing and lz is not None:
         upload = laser_upload_rate(lz.baudrate)
-        if rec.displacement_Hz > upload:
+        if stored > upload:
             longest = max(s.duration for s in program.segments if s.storing)
-            points = longest * rec.displacement_Hz
+            points = longest * stored
             problems.append(
-                f"laser at {lz.baudrate} Bd: storage fills at {rec.displacement_Hz:,.0f} S/s but the link uploads "
+                f"laser at {lz.baudrate} Bd: storage fills at {stored:,.0f} S/s but the link uploads "
                 f"at most {upload:,.0f} S/s while it records (9 bytes a value); lower recording.displacement_Hz "
                 f"to ≤ {int(upload * 0.9):,} or store each step and upload between steps (longest step "
                 f"{longest:g} s = {points:,.0f} points, {points / upload:,.0f} s of upload)")
@@ -237,21 +238,23 @@ def _check_upload_hold(program: Program, baud: int) -> str | None:
     others = sum(link.load for link in loads)
     setpoints = sum(rate * t for link in loads for ch, rate, t in link.items if "set-points" in ch)
     drain = laser_drain_rate(baud, rec.setpoint_Hz, others)
-    if rec.displacement_Hz <= drain:
+    stored = program.laser_Hz  # as the controller stores it (800 S/s asked: 1000 stored)
+    if stored <= drain:
         return None
     period = 1.0 / rec.setpoint_Hz
     fits = [f for f in range(int(rec.setpoint_Hz) - 1, 0, -1)  # set-point rates whose gaps drain the storage
-            if laser_drain_rate(baud, f, others - setpoints * (1 - f / rec.setpoint_Hz)) >= rec.displacement_Hz]
+            if laser_drain_rate(baud, f, others - setpoints * (1 - f / rec.setpoint_Hz)) >= stored]
     n = int(drain / rec.setpoint_Hz)
     fixed = (16 + 3 + 3 + 16) * char_time(baud) + 2 * LKG_EXCHANGE_ALLOWANCE_S
     drains = (f"one fetch of ≤ {n} values: the link drains {drain:,.0f} S/s" if n else
               f"too little for a fetch ({fixed * 1e3:.1f} ms before its first value): the link drains none in it")
-    fit = (f"lower recording.displacement_Hz to ≤ {int(drain):,}" + (f" or recording.setpoint_Hz to ≤ {fits[0]}"
+    storable = program.rig.laser.storable_at_most(drain) if program.rig.laser is not None else drain
+    fit = (f"lower recording.displacement_Hz to ≤ {storable:,.0f}" + (f" or recording.setpoint_Hz to ≤ {fits[0]}"
                                                                     if fits else "") if n else
            f"lower recording.setpoint_Hz to ≤ {fits[0]}" if fits else "lower the other channels' rates")
     return (f"laser storage upload: at recording.setpoint_Hz = {rec.setpoint_Hz:g} each {period * 1e3:.0f}-ms "
             f"period leaves ~{(1 - others) * period * 1e3:.0f} ms after its set-points and polls, {drains}; the "
-            f"storage fills {rec.displacement_Hz:,.0f} S/s, the backlog grows over step "
+            f"storage fills {stored:,.0f} S/s, the backlog grows over step "
             f"{steps[0].label.rsplit('/', 1)[-1][:40]} (uploaded after it); {fit}")
 
 

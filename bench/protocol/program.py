@@ -103,6 +103,14 @@ class Program:
         return self.rig.motor is not None and self.rig.specimen.kind == "lsdea" and \
             self.rig.specimen.lsdea.configuration == "motor"
 
+    @property
+    def laser_Hz(self) -> float:
+        """The rate [S/s] the laser's storage runs at in storing steps: ``recording.displacement_Hz`` as the
+        controller can store it (:meth:`bench.rig.LaserConfig.stored_Hz`; a reviewer: 800 S/s asked, 1000 stored,
+        while the storage and link checks counted 800)."""
+        rate = self.protocol.recording.displacement_Hz
+        return self.rig.laser.stored_Hz(rate) if self.rig.laser is not None and rate > 0 else rate
+
     def motor_position(self, x: float | np.ndarray) -> float | np.ndarray:
         """Motor position [m] for an aperture x [m]."""
         cfg = self.rig.specimen.lsdea
@@ -272,10 +280,12 @@ class _Compiler:
         else:
             seg.stream_until = seg.t_start
         if seg.storing and rig.laser is not None:
-            points = int(np.floor(seg.duration * rec.displacement_Hz)) + 1
+            stored = rig.laser.stored_Hz(rec.displacement_Hz)
+            points = int(np.floor(seg.duration * stored)) + 1
             if points > rig.laser.capacity:
+                at = "" if stored == rec.displacement_Hz else f" (stored at {stored:g} S/s, the nearest the LK-G sets)"
                 raise self.refuse(seg.label, f"{points} laser points at recording.displacement_Hz = "
-                                  f"{rec.displacement_Hz:g} exceed the {rig.laser.model} storage of "
+                                  f"{rec.displacement_Hz:g}{at} exceed the {rig.laser.model} storage of "
                                   f"{rig.laser.capacity} points; lower the rate or split the step")
 
     def specimen(self) -> None:
@@ -341,7 +351,7 @@ def sample_counts(program: Program) -> dict[str, int]:
         counts["amplifier"] = int(T * rec.monitors_Hz)
     if rig.laser is not None:
         stored = sum(s.duration for s in program.segments if s.storing)
-        counts["laser"] = int(stored * rec.displacement_Hz) + int((T - stored) * PASSIVE_LASER_HZ)
+        counts["laser"] = int(stored * program.laser_Hz) + int((T - stored) * PASSIVE_LASER_HZ)
     if rig.motor is not None and rec.position_Hz > 0:
         counts["motor"] = int(T * rec.position_Hz)
     if rig.load_cell is not None and rec.force_Hz > 0:
@@ -362,7 +372,7 @@ def recording_rates(program: Program) -> str:
         parts.append(f"voltage, current polled at {rec.monitors_Hz:g} Hz")
     if rig.laser is not None and (daq is None or daq.laser_ain is None):
         stored = any(s.storing for s in program.segments)
-        parts.append(f"displacement {rec.displacement_Hz:g} Hz in waveform/ramp/move steps, {PASSIVE_LASER_HZ:g} Hz "
+        parts.append(f"displacement {program.laser_Hz:g} Hz in waveform/ramp/move steps, {PASSIVE_LASER_HZ:g} Hz "
                      "otherwise" if stored else f"displacement polled at {PASSIVE_LASER_HZ:g} Hz")
     if rig.load_cell is not None and (daq is None or daq.force_ain is None):
         parts.append(f"force polled at {rec.force_Hz:g} Hz")
@@ -383,6 +393,11 @@ def recording_shortfalls(program: Program) -> list[str]:
             rig.daq.laser_ain is not None:
         return []
     out = []
+    if rig.laser is not None and rec.displacement_Hz > 0 and program.laser_Hz != rec.displacement_Hz \
+            and any(s.storing for s in program.segments):
+        out.append(f"displacement: recording.displacement_Hz = {rec.displacement_Hz:g} is stored at "
+                   f"{program.laser_Hz:g} S/s, the nearest rate the {rig.laser.model} sets (sampling period × "
+                   "storage cycle)")
     if rig.laser is not None and rec.displacement_Hz > PASSIVE_LASER_HZ:
         idle = [s for s in program.segments if not s.storing and s.duration > 0]
         idle_s = sum(s.duration for s in idle)
