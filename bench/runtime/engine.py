@@ -52,7 +52,7 @@ from bench.runtime.context import LATE_TOLERANCE_S, STOP_POLL_S, RunContext, Sna
 from bench.runtime.control import CONTROL_POLL_S, NO_WORD, ControlWord, read_control
 from bench.runtime.hardware_timed import HardwareTimed
 from bench.runtime.instruments import Instruments
-from bench.runtime.interlock import InterlockTrip, watchdog_period
+from bench.runtime.interlock import OUTPUT_ON_V, InterlockTrip, watchdog_period
 from bench.runtime.polls import PAUSED, Poll, StepState, record_laser_block, rig_polls
 from bench.runtime.ramp import ramp_to_zero
 from bench.runtime.safety import SafetyTrip, Supervisor
@@ -66,6 +66,7 @@ MONITOR_SETTLE_S = 0.5  # after zeroing, wait for fresh monitor conversions befo
 RAMP_STEPS = 10  # shutdown ramp: set-points from the last voltage to 0 V
 SAFE_MONITOR_V = 50.0  # |monitor| at or below this after zeroing counts as "output at 0 V" (0.5 % of 10 kV)
 DISCHARGE_WAIT_S = 2.0  # how long to keep reading a monitor that is not yet at 0 V before reporting it
+MONITOR_REREAD_S = 0.1  # a monitor not yet at 0 V is read again this often (shutdown and hand-over)
 WATCHDOG_MARGIN_S = 0.2  # wait past the module's communication-safety period before checking the output
 LASER_DRAIN_BUDGET_S = 30.0  # at most this long (rig time) fetching a step's stored laser data after the step
 DRAIN_HOLD_S = 1.0  # a step's end value is held (supervised) at most this long (run time) while its data upload
@@ -266,6 +267,9 @@ class Engine:
         self.tripped: SafetyTrip | None = None  # the supervisor's limit trip that ended the run (latches it too)
         self._output_dead = False  # 0 V could not be commanded: no request may feed the module's watchdog
         self._zero_verified = False  # the shutdown read 0 V back from the voltage monitor
+        # run time of the last set-point (software-timed) that commanded the output on (|V| > OUTPUT_ON_V), or
+        # that commanded it off from there: the hand-over check's settle counts from it (_hand_over)
+        self._live_at = -math.inf
         self._pause_by: str | None = None  # who asked for a pause (signal, another thread); None: nobody
         self._resume_by: str | None = None
         self._control_seen: ControlWord = NO_WORD  # control file: (stamp, pause?, by/why, stop?)
@@ -733,6 +737,8 @@ class Engine:
         bound, want = self._check_voltage(v)
         self.ctx.guard()
         sent = self.ctx.amp.set_voltage(v, within=bound)
+        if abs(sent) > OUTPUT_ON_V or abs(self.ctx.v_cmd) > OUTPUT_ON_V:
+            self._live_at = self.now()
         self.ctx.v_cmd, self.ctx.v_req = sent, v
         self.verifier.commanded(self.now(), sent)
         self._record_setpoint(t, sent, x_cmd)
@@ -794,12 +800,64 @@ class Engine:
         with self.prompt():
             return self.operator(f"set the specimen: {text}")
 
+    def _hand_over(self, seg: Segment, what: str) -> None:
+        """Before the rig goes to a person (a specimen change: the operator's prompt, or on a simulated rig the
+        twin's change that rehearses it): the output *measured* at 0 V, as the shutdown verifies it
+        (:meth:`_verify_safe`), not assumed from the 0 V the program commands — a relax shorter than its ramp rule
+        commands 0 V at its last instant, and the prompt came at once.
+
+        The voltage monitor (and the current monitor) is read once ``MONITOR_SETTLE_S`` have passed since the
+        output was last commanded on (|V| above the interlock's ``OUTPUT_ON_V``) or off from there (fresh
+        conversions of the output at 0 V: the shutdown's settle, counted from then, so a long relax costs no
+        wait), then every ``MONITOR_REREAD_S`` until it reads at most
+        ``SAFE_MONITOR_V``, for at most ``DISCHARGE_WAIT_S`` — the shutdown's threshold and bound. Every reading is
+        recorded in the amplifier stream (a DAQ rig's stream has stopped: a set step never plays on, so its AINs
+        are read by command-response, as while paused) and checked by the supervisor; the verdict is a ``handover``
+        event. An output not read at 0 V within the bound (or a monitor that cannot be read) raises an
+        :class:`InterlockTrip` ("output not verified", as the shutdown's): the run ends at 0 V at once and the rig
+        latches; no prompt is shown, no specimen touched. Run time throughout: a virtual clock is advanced, never
+        waited on."""
+        amp = self.inst.amplifier
+        if amp is None:
+            return
+        if self._streaming():  # a step that needs a person never plays on in a stream; should one play, it stops
+            self._hw.stop()
+            self._hw.forget()
+        live = max(self._live_at, self._stream.live_at if self._stream is not None else -math.inf)
+        self._pause_until(max(self.now(), live + MONITOR_SETTLE_S), urgent_aborts=False)
+        deadline = self.now() + DISCHARGE_WAIT_S
+        while True:
+            self._check_stop()
+            try:
+                v, i = amp.read_monitors()
+            except InstrumentError as exc:
+                raise InterlockTrip("output not verified", f"before {what}: the voltage monitor could not be read "
+                                    f"({exc}); the rig is not handed over") from None
+            t = v.timestamp - self.ctx.t0
+            self.rec.append("amplifier", t, voltage=v.value, current=i.value, **self.ctx.unpolled_monitor_columns())
+            if math.isfinite(v.value) and math.isfinite(i.value):
+                self.snapshot.values["voltage"], self.snapshot.values["current"] = v.value, i.value
+                self.sup.check_monitors(v.value, i.value)
+            if math.isfinite(v.value) and abs(v.value) <= SAFE_MONITOR_V:
+                # the reading first: the event's 200 bytes cut the step's description, never the numbers
+                self.rec.event(self.now(), seg.index, "handover", f"voltage monitor {v.value:.0f} V, current "
+                               f"{i.value * 1e6:.2f} µA at {t:.3f} s: 0 V verified (|V| ≤ {SAFE_MONITOR_V:g} V) "
+                               f"before {what}")
+                return
+            if self.now() >= deadline:
+                raise InterlockTrip("output not verified", f"before {what}: the voltage monitor still read "
+                                    f"{v.value:.0f} V at {t:.3f} s, {DISCHARGE_WAIT_S:g} s after the first reading "
+                                    f"(safe: |V| ≤ {SAFE_MONITOR_V:g} V); the rig is not handed over")
+            self._pause_until(self.now() + MONITOR_REREAD_S, urgent_aborts=False)
+
     def _segment(self, seg: Segment) -> None:
         prog, inst, rec = self.program, self.inst, self.program.protocol.recording
         self.snapshot.step, self.snapshot.step_name = seg.index, seg.name
         self.rec.event(self.now(), seg.index, "start", f"{seg.name} | {seg.label}")
         if seg.changes:
             text = ", ".join(f"{k} = {v}" for k, v in seg.changes.items())
+            if self.apply_specimen is not None or self.operator is not None:
+                self._hand_over(seg, f"the specimen change of step {seg.index} ({seg.name}: {text})")
             if self.apply_specimen is not None:
                 self.apply_specimen(seg.changes)
             elif not self._operator_confirms(text):
@@ -906,6 +964,8 @@ class Engine:
         if not changes:
             return
         text = ", ".join(f"{k} = {v}" for k, v in changes.items())
+        if self.apply_specimen is not None or self.operator is not None:
+            self._hand_over(seg, f"the resumed campaign's specimen check ({text})")
         if self.apply_specimen is not None:
             self.apply_specimen(changes)
         elif not self._operator_confirms(text):
@@ -1384,7 +1444,7 @@ class Engine:
                 return f"{path}; verified: voltage monitor {v.value:.0f} V at {self.now():.3f} s"
             if self.now() >= deadline:
                 return f"{path}; WARNING: voltage monitor still reads {v.value:.0f} V at {self.now():.3f} s"
-            self._pause_until(self.now() + 0.1, urgent_aborts=False)
+            self._pause_until(self.now() + MONITOR_REREAD_S, urgent_aborts=False)
 
 
 def _is_storage_fault(exc: BaseException) -> bool:

@@ -20,7 +20,7 @@ from bench.models.jit import njit
 from bench.protocol.program import Segment, plays_on, voltage_at
 from bench.rig import DaqConfig, RigConfig
 from bench.runtime.context import RunContext
-from bench.runtime.interlock import InterlockTrip, mismatch_trip
+from bench.runtime.interlock import OUTPUT_ON_V, InterlockTrip, mismatch_trip
 from drivers.errors import InstrumentTimeoutError
 from drivers.interfaces import (
     Amplifier,
@@ -131,6 +131,11 @@ class HardwareTimed:
         self._positions: dict[int, int] = {}  # id(step) → its place in the program
         self._keepalive = 0.0
         self.scans = 0  # scans recorded over the run
+        # run time of the last recorded scan that commanded the output on (|V| > OUTPUT_ON_V) or the first after
+        # such a scan (-inf: none yet): the engine's hand-over check waits for fresh monitor conversions after it
+        # (Engine._hand_over)
+        self.live_at = -np.inf
+        self._last_commanded = 0.0  # the commanded output of the last scan recorded (connecting commands 0 V)
 
     # ------------------------------------------------------------ one step
     def start(self, seg: Segment) -> None:
@@ -347,6 +352,16 @@ class HardwareTimed:
             return self._commanded[lo:lo + n].copy()
         return self._commanded[np.clip(lo + np.arange(n), 0, last)]
 
+    def _note_live(self, t: np.ndarray, commanded: np.ndarray) -> None:
+        """Keep :attr:`live_at`: the time of this block's last scan that commanded the output on, or that followed
+        one that did (the last scan of the block before, for its first)."""
+        on = np.abs(commanded) > OUTPUT_ON_V
+        was = np.concatenate(([abs(self._last_commanded) > OUTPUT_ON_V], on[:-1]))
+        marked = np.flatnonzero(on | was)
+        if marked.size:
+            self.live_at = float(t[marked[-1]])
+        self._last_commanded = float(commanded[-1])
+
     def _record(self, block: StreamBlock, supervise: bool = True) -> None:
         n = block.n
         if n == 0:
@@ -354,6 +369,7 @@ class HardwareTimed:
         self.scans += n
         t = block.times() - self.ctx.t0
         commanded = self._commanded_at(block.first_scan, n)
+        self._note_live(t, commanded)
         col = {name: block.volts[:, i] for i, name in enumerate(block.names)}
         # a scan is valid when every channel is: a block whose every sample is valid (the rule) needs no reduction
         # scan by scan, which costs far more on a few channels than one over the whole block

@@ -1,0 +1,125 @@
+"""Before the rig goes to a person (a `set` step: the operator's prompt), the output is *measured* at 0 V.
+
+A relax shorter than its ramp rule ramps over its whole length, so 0 V is commanded at its last instant and the
+specimen change follows at once. The engine now reads the voltage monitor before the prompt, as the shutdown
+verifies 0 V, and an output that stays up trips and latches instead of prompting.
+
+Expected figures from the README ("Safety", step 5): the safe state is the voltage monitor at ≤ 50 V, read after
+0.5 s of fresh conversions and again for up to 2 s otherwise; from the schema (tests/test_relax_ramp.py): a relax's
+ramp is at least 10 set-point periods (0.5 s at 20 set-points/s), at most the step — so a 0.3-s relax ramps over
+all of it. The TREK's gain is 1000 V/V (datasheet): an input stuck at 3 V holds 3 kV, within the supervisor's
+8-kV limit, so only a check of the output against 0 V can see it.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from bench.rig import load_rig
+from bench.runtime.engine import Engine
+from bench.runtime.latch import latched
+from bench.runtime.run import execute, plan_run
+from bench.storage.runfile import open_run
+from tests.conftest import RIGS
+from tests.test_protocols import SAFE_HEAD
+
+SAFE_V = 50.0  # README "Safety" 5: the voltage monitor at or below this is the output at 0 V
+SETTLE_S = 0.5  # README "Safety" 5: fresh monitor conversions after the zero
+REREAD_S = 2.0  # README "Safety" 5: read again for up to 2 s
+STUCK_IN_V = 3.0  # amplifier input held: 3 kV out at the TREK's 1000 V/V
+RISE_S = 0.2  # the stuck input's rise
+DT = 1 / 20  # SAFE_HEAD's recording.setpoint_Hz
+BODY = ('[[steps]]\ntype = "ramp"\nchannel = "voltage"\nto = "2 kV"\nduration_s = 1.0\n\n'
+        '[[steps]]\ntype = "relax"\nname = "short-relax"\nduration_s = 0.3\n\n'  # ramp rule 0.5 s > 0.3 s
+        '[[steps]]\ntype = "set"\nname = "swap"\ntemperature_K = 310.0\n\n'
+        '[[steps]]\ntype = "hold"\nname = "after"\nduration_s = 1.0\n')
+SET_INDEX = 2
+
+
+def _plan(tmp: Path, rig: str) -> Any:
+    f = tmp / "p.toml"
+    f.write_text(SAFE_HEAD.format(rig=RIGS / f"{rig}.toml") + BODY)
+    return plan_run(f)
+
+
+def _stick(plant: Any, volts_in: float) -> None:
+    """The twin's amplifier input taken to ``volts_in`` over ``RISE_S`` from now on and held there, whatever the host
+    or a stream writes (a rise slow enough that the specimen's charging current stays far below the 5-mA trip:
+    only the output's voltage is wrong)."""
+    at = plant.clock.now()
+
+    def level(t: np.ndarray) -> np.ndarray:
+        return volts_in * np.clip((t - at) / RISE_S, 0.0, 1.0)
+
+    with plant.lock:
+        plant._v_chunks = [(t, np.where(t >= at, level(t), v)) for t, v in plant._v_chunks]
+    add = plant._add_input
+    plant._add_input = lambda t, v, ordered: add(t, np.where(t >= at, level(t), v), ordered)
+    ramp = at + np.linspace(0.0, RISE_S, 201)
+    plant.schedule_amplifier_input(ramp, level(ramp))
+
+
+def _run(tmp: Path, rig: str, stuck: bool) -> tuple[Any, list[float]]:
+    """The plan run in virtual time with a person at the prompt (the twin's specimen change replaced by the
+    operator's, as on a lab rig): returns the result and the run times at which the prompt was shown."""
+    prompts: list[float] = []
+
+    def hook(engine: Engine, sim: Any) -> None:
+        def operator(_text: str) -> bool:
+            prompts.append(engine.now())
+            return True
+
+        engine.apply_specimen, engine.operator = None, operator
+        if stuck:
+            relax_end = engine.program.segments[SET_INDEX - 1].t_end
+
+            def at(_now: float) -> None:  # from the relax's last instant on (its last set-point is 0 V)
+                if engine.now() >= relax_end - 1e-9 and not getattr(sim.plant, "_stuck", False):
+                    sim.plant._stuck = True
+                    _stick(sim.plant, STUCK_IN_V)
+            sim.clock.subscribe(at)
+
+    return execute(_plan(tmp, rig), tmp / "run.h5", virtual=True, on_engine=hook), prompts
+
+
+@pytest.mark.parametrize("rig", ["thesis-sim", "thesis-daq-sim"])
+def test_the_monitor_reads_zero_before_the_prompt(tmp_path: Path, rig: str) -> None:
+    result, prompts = _run(tmp_path, rig, stuck=False)
+    assert result.state == "completed", result.reason
+    assert len(prompts) == 1
+    run = open_run(result.path)
+    steps = run.program
+    relax_end = float(steps["t_start"][1] + steps["duration"][1])  # program time; no offset before the set step
+    amp = run.streams["amplifier"]
+    t, v = amp.t, amp.columns["voltage"]
+    between = (t >= relax_end - 1e-9) & (t <= prompts[0] + 1e-9)
+    assert between.any(), "no monitor reading between the relax's 0 V and the prompt"
+    last = int(np.flatnonzero(between)[-1])
+    assert abs(v[last]) <= SAFE_V, v[between]
+    # a fresh conversion of the zeroed output, not a stale one: 0.5 s after the output was last commanded above
+    # the safe level, which the ramp (20 set-points/s; played at the scan rate on a DAQ rig) passes in its last period
+    assert t[last] >= relax_end - DT + SETTLE_S - 1e-6
+    hand = [e for e in run.event_list() if e[2] == "handover"]
+    assert len(hand) == 1 and hand[0][1] == SET_INDEX and hand[0][0] <= prompts[0] + 1e-9, hand
+    assert "0 V verified" in hand[0][3]
+
+
+@pytest.mark.parametrize("rig", ["thesis-sim", "thesis-daq-sim"])
+def test_an_output_that_stays_up_trips_and_latches_without_a_prompt(tmp_path: Path, rig: str) -> None:
+    result, prompts = _run(tmp_path, rig, stuck=True)
+    assert prompts == []  # nobody was asked to touch the specimen
+    assert result.state == "tripped" and "interlock: output not verified" in result.reason, result.reason
+    assert result.latched and "output not verified" in result.latched
+    assert latched(load_rig(RIGS / f"{rig}.toml").name) is not None  # the next start is refused
+    run = open_run(result.path)
+    kinds = [(e[1], e[2]) for e in run.event_list()]
+    assert (SET_INDEX, "specimen") not in kinds and (SET_INDEX, "handover") not in kinds, kinds
+    amp = run.streams["amplifier"]
+    t0 = float(run.program["t_start"][SET_INDEX])
+    # what the monitor said once fresh conversions of the output commanded to 0 V were due, until the trip
+    read = (amp.t >= t0 + SETTLE_S - 1e-6) & (amp.t <= t0 + SETTLE_S + REREAD_S + 0.1)
+    assert read.sum() >= 2 and np.all(np.abs(amp.columns["voltage"][read]) > SAFE_V), amp.columns["voltage"][read]
