@@ -26,7 +26,7 @@ def test_csv_export_has_units_in_headers_and_the_file_values(run_file: Path, tmp
     res = CliRunner().invoke(app, ["export", str(run_file), "--csv", str(tmp_path / "csv")])
     assert res.exit_code == 0, res.output
     names = sorted(p.name for p in (tmp_path / "csv").iterdir())
-    assert names == ["amplifier.csv", "events.csv", "laser.csv", "metadata.json", "setpoints.csv"]
+    assert names == ["amplifier.csv", "events.csv", "laser.csv", "metadata.json", "safe_state.csv", "setpoints.csv"]
     with (tmp_path / "csv" / "laser.csv").open(encoding="utf-8") as fh:
         rows = list(csv.reader(fh))
     assert rows[0][:2] == ["t [s]", "displacement [m]"] and "valid [1]" in rows[0]
@@ -123,7 +123,7 @@ def test_streams_are_read_in_chunks_of_the_stated_size(run_file: Path, tmp_path:
         n = int(dict(zip(json.loads(f["status/samples"].attrs["names"]), f["status/samples"][:],
                          strict=True))["laser"])
     laser = (tmp_path / "csv" / "laser.csv").read_text(encoding="utf-8").count("\n") - 1
-    assert laser == n and max(reads) == 10_000 and len(files) == 5  # no read larger than a chunk
+    assert laser == n and max(reads) == 10_000 and len(files) == 6  # no read larger than a chunk
 
 
 @pytest.mark.parametrize("kind", ["csv", "mat73"])

@@ -66,6 +66,18 @@ EXPECTED: dict[str, tuple[dict[str, list[C]], dict[str, str]]] = {
                         {"setpoints": "engine", "amplifier": f"TREK 10/10B-HS monitors on AIN0/AIN1; {T7}",
                          "load_cell": f"bridge amplifier on AIN2; {T7}", "motor": "LinMot LinRS"}),
 }
+# the shutdown's measured safe state (every shipped rig has an amplifier; the position where it has a motor)
+SAFE_STATE: list[C] = [("voltage", "V", "output voltage from the voltage monitor, read by the shutdown to verify 0 V "
+                        "(NaN: unreadable)", "f8"),
+                       ("current", "A", "output current from the current monitor, read with it", "f8")]
+SAFE_POSITION: C = ("position", "m", "motor position read once the carriage came to rest after the stop (the motor "
+                    "event; NaN: not read)", "f8")
+SAFE_SOURCE = ("engine: the shutdown's verifying reads of the voltage and current monitors (command-response: a DAQ's "
+               "stream has stopped)")
+for _streams_of, _sources_of in EXPECTED.values():
+    _motor = "motor" in _streams_of
+    _streams_of["safe_state"] = SAFE_STATE + ([SAFE_POSITION] if _motor else [])
+    _sources_of["safe_state"] = SAFE_SOURCE + ("; the motor's position once at rest" if _motor else "")
 RIGS = sorted((ROOT / "rigs").glob("*.toml"))
 
 
@@ -89,12 +101,15 @@ def test_names_and_units_are_the_readmes() -> None:
     """Every ADAM rig's columns (besides `late`) with their units are those README "Run files" lists per group."""
     text = (ROOT / "README.md").read_text(encoding="utf-8")
     readme = {g: re.findall(r"(\w+)(?: \[(\w+)\])?", re.sub(r"\([^)]*\)", "", cols.split("  ")[0]))
-              for g, cols in re.findall(r"^/(setpoints|amplifier|laser|motor|load_cell)/t, (.*)$", text, re.M)}
-    assert set(readme) == {"setpoints", "amplifier", "laser", "motor", "load_cell"}
+              for g, cols in re.findall(r"^/(setpoints|amplifier|laser|motor|load_cell|safe_state)/t, (.*)$", text,
+                                        re.M)}
+    assert set(readme) == {"setpoints", "amplifier", "laser", "motor", "load_cell", "safe_state"}
     for rig_path in (p for p in RIGS if "daq" not in p.stem):
+        motor = load_rig(rig_path).motor is not None
         for stream, cols in layout(rig_path)[0]:
             got = [(name, "" if unit == "1" else unit) for name, unit, _, _ in cols if name != "late"]
-            assert got == [(n, u) for n, u in readme[stream]], (rig_path.stem, stream)
+            want = [(n, u) for n, u in readme[stream] if motor or stream != "safe_state" or n != "position"]
+            assert got == want, (rig_path.stem, stream)
 
 
 def test_the_live_view_shows_what_the_instruments_describe_in_their_units() -> None:

@@ -67,6 +67,7 @@ RAMP_STEPS = 10  # shutdown ramp: set-points from the last voltage to 0 V
 SAFE_MONITOR_V = 50.0  # |monitor| at or below this after zeroing counts as "output at 0 V" (0.5 % of 10 kV)
 DISCHARGE_WAIT_S = 2.0  # how long to keep reading a monitor that is not yet at 0 V before reporting it
 MONITOR_REREAD_S = 0.1  # a monitor not yet at 0 V is read again this often (shutdown and hand-over)
+SAFE_STATE = "safe_state"  # the run file's stream of the shutdown's verifying monitor reads (_verify_safe)
 WATCHDOG_MARGIN_S = 0.2  # wait past the module's communication-safety period before checking the output
 LASER_DRAIN_BUDGET_S = 30.0  # at most this long (rig time) fetching a step's stored laser data after the step
 DRAIN_HOLD_S = 1.0  # a step's end value is held (supervised) at most this long (run time) while its data upload
@@ -270,6 +271,8 @@ class Engine:
         # run time of the last set-point (software-timed) that commanded the output on (|V| > OUTPUT_ON_V), or
         # that commanded it off from there: the hand-over check's settle counts from it (_hand_over)
         self._live_at = -math.inf
+        self._safe_reads: list[tuple[float, float, float]] = []  # the shutdown's verifying reads: (run time, V, A)
+        self._final_position = math.nan  # the motor's position read by the shutdown once at rest [m]
         self._pause_by: str | None = None  # who asked for a pause (signal, another thread); None: nobody
         self._resume_by: str | None = None
         self._control_seen: ControlWord = NO_WORD  # control file: (stamp, pause?, by/why, stop?)
@@ -1204,6 +1207,7 @@ class Engine:
             self._event("interlock", f"latched at {self.now():.3f} s (safety trip, 0 V verified): nothing energises "
                         "the rig until an operator resets the latch")
         self._motor_stopped(motor, notes)
+        self._record_safe_state()
         if not self.clock.virtual or self.overruns or self.skipped:  # virtual: said when the wires outran it
             self._event("timing", f"{self.overruns} late actions (> {LATE_TOLERANCE_S * 1e3:.0f} ms), worst "
                         f"lateness {self.ctx.worst_lateness * 1e3:.1f} ms"
@@ -1402,6 +1406,7 @@ class Engine:
             self._event("motor", f"{sent}; final position unreadable")
             return
         t = self.now()
+        self._final_position = st.position
         x = float(self.program.aperture(st.position)) if self.program.has_motor_axis else math.nan
         state = f"drive {st.state}" + (" and still moving" if st.moving else ", at rest") + (
             f", error {st.error_code:#06x} ({st.error_text})" if st.error else "")
@@ -1411,6 +1416,18 @@ class Engine:
         if stream in self.rec.streams:
             self._record(self.rec.append, stream, t, position=st.position, aperture=x,
                          **self.ctx.late_columns(stream, math.nan))
+
+    def _record_safe_state(self) -> None:
+        """The shutdown's verifying monitor reads as the run file's :data:`SAFE_STATE` stream — one row per read
+        (time, voltage, current; the last is the verdict), with the motor's position once at rest where the rig has
+        a motor — so that every file, a DAQ rig's too (its streams end on the last scan), holds the measured safe
+        state, not only the ``safe`` event's words."""
+        if not self._safe_reads or SAFE_STATE not in self.rec.streams:
+            return
+        t, v, i = (np.array(col, dtype=float) for col in zip(*self._safe_reads, strict=True))
+        motor = {"position": np.full(t.size, self._final_position)} \
+            if any(c.name == "position" for c in self.rec.streams[SAFE_STATE]) else {}
+        self._record(self.rec.append, SAFE_STATE, t, voltage=v, current=i, **motor)
 
     def _verify_safe(self, zero_at: float | None, notes: list[str]) -> str:
         """Check the output really is at 0 V and say which path made it so."""
@@ -1435,7 +1452,9 @@ class Engine:
                 v, i = amp.read_monitors()
             except InstrumentError as exc:
                 notes.append(f"final monitor read failed: {exc}")
+                self._safe_reads.append((self.now(), math.nan, math.nan))
                 return f"{path}; output NOT verified (voltage monitor unreadable)"
+            self._safe_reads.append((v.timestamp - self.ctx.t0, v.value, i.value))
             if self._stream is None:  # a DAQ rig's streams end on the last scan: the reading is in the safe event
                 self._record(self.rec.append, "amplifier", v.timestamp - self.ctx.t0, voltage=v.value,
                              current=i.value, **self.ctx.unpolled_monitor_columns())

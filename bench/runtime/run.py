@@ -34,7 +34,7 @@ from bench.protocol.schema import MAX_OPERATOR, MAX_SPECIMEN_ID, Protocol, check
 from bench.rig import RigConfig, load_rig_text, rig_to_toml
 from bench.runtime import hardware_timed
 from bench.runtime.control import control_path
-from bench.runtime.engine import Engine, OperatorFn, RunResult, termination_raises
+from bench.runtime.engine import SAFE_STATE, Engine, OperatorFn, RunResult, termination_raises
 from bench.runtime.hardware_timed import describe_streams
 from bench.runtime.instruments import Instruments, build_instruments
 from bench.runtime.interlock import watchdog_period
@@ -139,7 +139,21 @@ def _streams(rig: RigConfig, inst: Instruments, polled: bool = False) -> tuple[d
             cols.append(Column("aperture", "m", "LS-DEA aperture from the motor position"))
         streams[d.stream] = cols + ([] if d.stream in timed else [late])
         sources[d.stream] = d.source
+    if inst.amplifier is not None:
+        streams[SAFE_STATE] = safe_state_columns(inst.motor is not None)
+        sources[SAFE_STATE] = ("engine: the shutdown's verifying reads of the voltage and current monitors (command-"
+                               "response: a DAQ's stream has stopped)" + ("; the motor's position once at rest"
+                                                                          if inst.motor is not None else ""))
     return streams, sources
+
+
+def safe_state_columns(motor: bool) -> list[Column]:
+    """The columns of the :data:`SAFE_STATE` stream: the measured state the shutdown left the rig in."""
+    return [Column("voltage", "V", "output voltage from the voltage monitor, read by the shutdown to verify 0 V "
+                   "(NaN: unreadable)"),
+            Column("current", "A", "output current from the current monitor, read with it"),
+            *([Column("position", "m", "motor position read once the carriage came to rest after the stop (the "
+                      "motor event; NaN: not read)")] if motor else [])]
 
 
 def default_output(plan: Plan, out_dir: str | Path) -> Path:

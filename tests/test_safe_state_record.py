@@ -1,0 +1,79 @@
+"""Every run file holds the measured safe state: the shutdown's verifying monitor read(s) as ``/safe_state``.
+
+Before, the read that verified 0 V was in the ``safe`` event's words only, and on a DAQ rig nowhere else (its
+streams end on the last scan; README "Hardware-timed"). Now ``/safe_state`` holds time [s], voltage [V], current
+[A] and, on a rig with a motor, the carriage's position [m] once at rest, on every rig kind, whatever ended the run
+(its end, an instrument error, a stop signal).
+
+Expected figures from the README ("Safety", step 5): the safe state is the voltage monitor at ≤ 50 V, read 0.5 s
+after 0 V was commanded; the file conventions from README "Run files" (a ``units`` attribute on every numeric
+dataset, ``t`` a dimension scale of its group).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+import pytest
+
+from bench.rig import load_rig
+from bench.runtime.engine import Engine
+from bench.runtime.run import execute, plan_run
+from drivers.errors import InstrumentError
+from tests.conftest import RIGS
+from tests.test_protocols import SAFE_HEAD
+
+SAFE_V = 50.0  # README "Safety" 5: the voltage monitor at or below this is the output at 0 V
+SETTLE_S = 0.5  # README "Safety" 5: the verifying read comes 0.5 s after 0 V was commanded
+SIM_RIGS = sorted(p.stem for p in RIGS.glob("*-sim.toml"))
+BODY = ('[[steps]]\ntype = "ramp"\nchannel = "voltage"\nto = "1 kV"\nduration_s = 1.0\n\n'
+        '[[steps]]\ntype = "hold"\nduration_s = 1.0\n\n'
+        '[[steps]]\ntype = "relax"\nduration_s = 1.0\n')
+END_AT = 1.5  # run time of the stop or the fault: in the hold, 1 kV on
+
+
+def _run(tmp: Path, rig: str, how: str) -> Any:
+    f = tmp / "p.toml"
+    f.write_text(SAFE_HEAD.format(rig=RIGS / f"{rig}.toml") + BODY)
+
+    def hook(engine: Engine, sim: Any) -> None:
+        if how == "signal":  # what the SIGTERM handler does (Engine._on_signal → request_stop)
+            sim.clock.subscribe(lambda _now: engine.request_stop("terminated by SIGTERM")
+                                if engine.now() >= END_AT and engine._stop_reason is None else None)
+        elif how == "error":  # an instrument that fails in the hold
+            wait = engine.ctx.wait_until
+
+            def failing(t: float) -> None:
+                if engine.now() >= END_AT and not engine._stopping:
+                    raise InstrumentError("laser", "no answer (injected)")
+                wait(t)
+            engine.ctx.wait_until = failing  # type: ignore[method-assign]
+
+    return execute(plan_run(f), tmp / "run.h5", virtual=True, on_engine=hook)
+
+
+@pytest.mark.parametrize("how", ["end", "error", "signal"])
+@pytest.mark.parametrize("rig", SIM_RIGS)
+def test_the_file_holds_the_measured_safe_state(tmp_path: Path, rig: str, how: str) -> None:
+    result = _run(tmp_path, rig, how)
+    assert result.state == {"end": "completed", "error": "error", "signal": "interrupted"}[how], result.reason
+    motor = load_rig(RIGS / f"{rig}.toml").motor is not None
+    with h5py.File(result.path, "r") as f:
+        g = f["safe_state"]
+        n = int(g["t"].shape[0])
+        assert n >= 1
+        t, v, i = g["t"][:], g["voltage"][:], g["current"][:]
+        assert g["voltage"].attrs["units"] == "V" and g["current"].attrs["units"] == "A"
+        assert g["t"].attrs["units"].startswith("seconds since ") and g["t"].is_scale
+        assert g["voltage"].dims[0][0].name == g["t"].name  # t is the voltage's dimension (netCDF coordinate)
+        assert abs(v[-1]) <= SAFE_V and np.isfinite(i[-1]), (v, i)
+        assert ("position" in g) == motor
+        if motor:
+            assert g["position"].attrs["units"] == "m" and np.all(np.isfinite(g["position"][:]))
+        zero = [float(e.split("0 V commanded by the host at ")[1].split(" s")[0])
+                for e in (x.decode() for x in f["events/text"][:]) if e.startswith("0 V commanded by the host at ")]
+    assert zero and t[0] >= zero[0] + SETTLE_S - 1e-9  # read after the settle that follows the zero
+    assert t[-1] <= result.run_time + 1e-9
