@@ -528,7 +528,7 @@ def _negative_counts(f) -> None:  # type: ignore[no-untyped-def]
     (lambda f: f["status/samples"].attrs.__setitem__("names", "[oops"),
      "/status/samples: its 'names' attribute is missing or not JSON"),
     (_set_status("samples", np.array([1.5, 2.5])), "/status/samples: not a list of record counts"),
-    (_set_status("samples", np.array([1, 2], dtype=np.int64)), "/status/samples: 2 counts for the 4 names"),
+    (_set_status("samples", np.array([1, 2], dtype=np.int64)), "/status/samples: 2 counts for the 5 names"),
     (lambda f: f["status/updated"].__setitem__(0, np.nan), "/status/updated is"),
     (lambda f: f["status/updated"].__setitem__(0, -3.0), "/status/updated is -3.0, not a run time ≥ 0 s"),
     (lambda f: f["status/state"].__setitem__(0, b"banana"), "/status/state is 'banana', not one of running,"),
