@@ -123,3 +123,29 @@ def test_an_output_that_stays_up_trips_and_latches_without_a_prompt(tmp_path: Pa
     # what the monitor said once fresh conversions of the output commanded to 0 V were due, until the trip
     read = (amp.t >= t0 + SETTLE_S - 1e-6) & (amp.t <= t0 + SETTLE_S + REREAD_S + 0.1)
     assert read.sum() >= 2 and np.all(np.abs(amp.columns["voltage"][read]) > SAFE_V), amp.columns["voltage"][read]
+
+
+def test_a_stop_during_the_check_is_taken_within_the_stop_poll(tmp_path: Path) -> None:
+    """A stop request while the check waits for fresh conversions ends the run at once (README "Stop bound": the
+    engine checks the request between waits of at most 0.1 s), without a prompt."""
+    prompts: list[float] = []
+    asked: list[float] = []
+
+    def hook(engine: Engine, sim: Any) -> None:
+        def operator(_text: str) -> bool:
+            prompts.append(engine.now())
+            return True
+
+        engine.apply_specimen, engine.operator = None, operator
+        relax_end = engine.program.segments[SET_INDEX - 1].t_end
+
+        def at(_now: float) -> None:
+            if engine.now() >= relax_end + 0.1 and not asked:
+                asked.append(engine.now())
+                engine.request_stop("terminated by SIGTERM")
+        sim.clock.subscribe(at)
+
+    result = execute(_plan(tmp_path, "thesis-sim"), tmp_path / "run.h5", virtual=True, on_engine=hook)
+    assert result.state == "interrupted" and prompts == [], result.reason
+    (t_stop,) = [e[0] for e in open_run(result.path).event_list() if e[2] == "interrupted"]
+    assert asked and t_stop - asked[0] <= 0.1 + 1e-6

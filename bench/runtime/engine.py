@@ -827,7 +827,7 @@ class Engine:
             self._hw.stop()
             self._hw.forget()
         live = max(self._live_at, self._stream.live_at if self._stream is not None else -math.inf)
-        self._pause_until(max(self.now(), live + MONITOR_SETTLE_S), urgent_aborts=False)
+        self._wait_stoppable(live + MONITOR_SETTLE_S)
         deadline = self.now() + DISCHARGE_WAIT_S
         while True:
             self._check_stop()
@@ -851,7 +851,13 @@ class Engine:
                 raise InterlockTrip("output not verified", f"before {what}: the voltage monitor still read "
                                     f"{v.value:.0f} V at {t:.3f} s, {DISCHARGE_WAIT_S:g} s after the first reading "
                                     f"(safe: |V| ≤ {SAFE_MONITOR_V:g} V); the rig is not handed over")
-            self._pause_until(self.now() + MONITOR_REREAD_S, urgent_aborts=False)
+            self._wait_stoppable(self.now() + MONITOR_REREAD_S)
+
+    def _wait_stoppable(self, until: float) -> None:
+        """Wait until run time ``until`` (a virtual clock advanced), a stop request seen every ``STOP_POLL_S``."""
+        while self.now() < until - 1e-9:  # run time is rig time less t0: it may read one rounding short of it
+            self._check_stop()
+            self._pause_until(min(until, self.now() + STOP_POLL_S), urgent_aborts=False)
 
     def _segment(self, seg: Segment) -> None:
         prog, inst, rec = self.program, self.inst, self.program.protocol.recording
