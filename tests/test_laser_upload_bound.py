@@ -97,6 +97,12 @@ def test_a_500_s_per_s_storage_at_20_set_points_per_s_skips_none_and_loses_none(
     in_storage = t[(t >= t_as - 1e-9) & (t <= t_ap + 1e-9)]  # single reads (10/s) come only outside it
     assert in_storage.size == stored, (in_storage.size, stored)
     assert np.allclose(np.diff(in_storage), 1 / RATE_HZ, rtol=0, atol=1e-6)
+    # uploaded during the step, not after it (a reviewer: with no fetch in the step the test passed all the same,
+    # the drain taking 1.74 s): what is left at its end is at most a fetch period and a tick of storage, (0.25 +
+    # 0.05) s × 500 S/s = 150 values, 117 ms at 9 characters a value and 115,200 Bd, by hand
+    drained = [float(text.split(" for ")[1].split(" s")[0]) for _, _, kind, text in events
+               if kind == "drain" and "fetched for" in text]
+    assert all(d < 0.25 for d in drained), drained
 
 
 def test_the_bounded_upload_at_wire_time_skips_no_set_point_also_where_the_budget_once_warned(tmp_path: Path) -> None:
@@ -108,3 +114,35 @@ def test_the_bounded_upload_at_wire_time_skips_no_set_point_also_where_the_budge
     (t_as,), t_ap = starts, stops[0]  # the step's AP (the shutdown sends another)
     t = np.asarray(run.streams["laser"].t)
     assert t[(t >= t_as - 1e-9) & (t <= t_ap + 1e-9)].size == math.floor((t_ap - t_as) * RATE_HZ + 1e-6) + 1
+
+
+def test_a_host_behind_its_schedule_still_uploads_during_the_step(tmp_path: Path) -> None:
+    """A reviewer: behind its schedule (here an io bus kept busy by monitors at 40/s besides 50 set-points/s, the
+    link budget's verdict lifted), the host has no time left before its next action, and every bounded fetch of a
+    4-s ramp's storage uploaded nothing until the step ended: the whole of it after the step, the output at 0 V.
+    After two fetch periods (0.5 s) without a value a fetch now takes the driver's own bound (256 values a
+    request at 115,200 Bd): the storage is uploaded during the step too, at least one request a 0.5 s + 0.2 s, so
+    ⌊4 / 0.7⌋ = 5 requests of 256 by the step's end, by hand."""
+    from tests.test_schedule_overrun import SLOW_RAMP
+
+    proto = tmp_path / "p.toml"
+    proto.write_text(SLOW_RAMP.format(rig=RIGS / "thesis-sim.toml"))
+    plan = dataclasses.replace(plan_run(proto), link_problems=[])
+    uploads: list[tuple[float, int]] = []  # (run time, values) of each AO the twin answered
+
+    def hook(engine: Any, sim: Any) -> None:
+        twin = sim.twins["laser"]
+        dispatch = twin._dispatch
+
+        def spy(main: str, args: list[str]) -> str:
+            reply = str(dispatch(main, args))
+            if main == "AO":
+                uploads.append((sim.clock.now() - engine.ctx.t0, int(args[2])))
+            return reply
+        twin._dispatch = spy
+
+    result = execute(plan, tmp_path / "run.h5", virtual=True, on_engine=hook)
+    assert result.state == "completed", result.reason
+    t_end = plan.program.segments[0].t_end
+    during = sum(n for t, n in uploads if t <= t_end)
+    assert during >= 5 * 256, (during, uploads[:10])

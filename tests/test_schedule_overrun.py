@@ -284,6 +284,32 @@ def test_a_skip_of_one_code_is_allowed_where_twice_the_steps_own_change_is_under
     assert all(s < 0.5 for s in late), late
 
 
+def test_the_one_code_allowance_needs_both_values_inside_the_bound() -> None:
+    """A reviewer: with the last value sent outside the supervisor's bound (4998.8 V sent, the bound lowered to
+    4000 V), a skip to 4500 V quantises to the bound's code and so does the midpoint, so the adjacency test passed a
+    ~1-kV jump. Codes of 10 V here (a stand-in module): inside the bound one code passes, two do not; from outside
+    it nothing passes but the step's own bound."""
+    from types import SimpleNamespace
+
+    from bench.protocol.program import Tick
+    from bench.runtime.engine import Engine
+
+    class Module:
+        def quantise(self, volts: float, within: float | None = None) -> float:
+            top = (within // 10) * 10 if within is not None else 10_000.0
+            return min(max(round(volts / 10) * 10, -top), top)
+
+    def skips(v_cmd: float, later: float, jump: float) -> bool:
+        engine = Engine.__new__(Engine)
+        engine.ctx = SimpleNamespace(amp=Module(), v_cmd=v_cmd)  # type: ignore[assignment]
+        engine.sup = SimpleNamespace(setpoint_bound=lambda: 4000.0)  # type: ignore[assignment]
+        return engine._skip_within(Tick(0.0, later, None), jump)
+
+    assert skips(1000.0, 1010.0, 2.0) and not skips(1000.0, 1020.0, 2.0)  # one code inside, not two
+    assert skips(-1000.0, -1010.0, 2.0) and skips(1000.0, 1020.0, 25.0)
+    assert not skips(4990.0, 4500.0, 2.0)  # from outside the bound: clamped to 4000, a 990-V jump
+
+
 def test_inspect_says_when_a_virtual_run_took_no_wire_time(tmp_path: Path) -> None:
     """A virtual run of a protocol that outruns its lines runs at pty speed (no skips, nothing late: the run can
     not show what a real line would do); a tester found that only the file's attribute said so. `bench inspect`

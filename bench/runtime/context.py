@@ -123,6 +123,7 @@ class RunContext:
         # step's storage starts: its first fetch sets the grid)
         self.upload_until = math.inf
         self.fetch_next = -math.inf
+        self.fetch_moved = -math.inf  # run time of the step's storage start or of its last fetch that uploaded values
         self._heard_mark: float | None = None  # the set-point module's driver's last ``heard_at`` seen
         self._heard_rig = -math.inf  # rig clock: no later than this the module last heard from the host
         self._looked_rig = -math.inf  # rig clock: the last look at ``heard_at``

@@ -711,8 +711,10 @@ class Engine:
             sent = self.ctx.amp.quantise(later.voltage, within=within)
             if abs(sent - self.ctx.v_cmd) <= jump:
                 return True
-            # the next code: no code lies between the two, so their midpoint's nearest code is one of them
-            return self.ctx.amp.quantise((sent + self.ctx.v_cmd) / 2, within=within) in (sent, self.ctx.v_cmd)
+            # the next code: no code lies between the two, so their midpoint's nearest code is one of them (both
+            # inside the bound: outside it the midpoint is clamped to the bound's code, which says nothing)
+            return abs(self.ctx.v_cmd) <= within and \
+                self.ctx.amp.quantise((sent + self.ctx.v_cmd) / 2, within=within) in (sent, self.ctx.v_cmd)
         except InstrumentError:  # refused as a set-point: not skipped to (sent in turn, refused there)
             return False
 
@@ -882,6 +884,7 @@ class Engine:
             self.ctx.laser.start_buffer(1.0 / rec.displacement_Hz)
             self._storing = True
             self.ctx.fetch_next = -math.inf  # the step's uploads start their own grid (the fetch poll's first run)
+            self.ctx.fetch_moved = self.now()
         if streamed:
             self.ctx.wait_until(seg.t_start)
             self._hw.start(seg)

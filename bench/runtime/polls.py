@@ -213,6 +213,9 @@ def record_laser_block(e: RunContext, within: float | None = None) -> int:
     return int(block.values.size)
 
 
+STARVED_FETCHES = 2  # fetch periods without an uploaded value after which a fetch is not bounded by the next action
+
+
 def _fetch_tick(e: RunContext) -> float:
     """The fetch poll's period while storing: every set-point tick, at most ``FETCH_PERIOD_S``."""
     return min(FETCH_PERIOD_S, 1.0 / e.program.protocol.recording.setpoint_Hz)
@@ -236,7 +239,13 @@ def _fetch(e: RunContext, due: float) -> None:
         e.fetch_next += FETCH_PERIOD_S * (math.floor((due - e.fetch_next) / FETCH_PERIOD_S + 1e-9) + 1)
     elif e.laser.pending == 0:
         return  # caught up, and no fetch due on the grid yet
-    record_laser_block(e, e.upload_until - e.now() if math.isfinite(e.upload_until) else None)
+    # a host behind its schedule leaves no time before the next action, and every bounded fetch would upload nothing
+    # to the step's end (a reviewer: a 4-s ramp's whole storage uploaded after it, 3.8 s at 0 V): after
+    # STARVED_FETCHES periods without a value the fetch takes the driver's own bound once (the skips say the rest)
+    starved = e.now() - e.fetch_moved > STARVED_FETCHES * FETCH_PERIOD_S
+    bounded = math.isfinite(e.upload_until) and not starved
+    if record_laser_block(e, e.upload_until - e.now() if bounded else None) or e.laser.pending == 0:
+        e.fetch_moved = e.now()
 
 
 def _collect_period(e: RunContext, s: StepState) -> float | None:
