@@ -149,3 +149,31 @@ def test_a_stop_during_the_check_is_taken_within_the_stop_poll(tmp_path: Path) -
     assert result.state == "interrupted" and prompts == [], result.reason
     (t_stop,) = [e[0] for e in open_run(result.path).event_list() if e[2] == "interrupted"]
     assert asked and t_stop - asked[0] <= 0.1 + 1e-6
+
+
+def test_a_stop_that_cancels_a_check_read_is_a_stop_not_a_latch(tmp_path: Path) -> None:
+    """A reviewer: a signal during the check's monitor read cancels the link's wait (OperationCancelledError, an
+    InstrumentError), which the check took for an unreadable monitor: "output not verified", tripped, the rig
+    latched. A cancelled read is the stop: the run is interrupted, nothing latched, nobody prompted."""
+    from drivers.errors import OperationCancelledError
+
+    prompts: list[float] = []
+
+    def hook(engine: Engine, sim: Any) -> None:
+        engine.apply_specimen = None
+        engine.operator = lambda _text: bool(prompts.append(engine.now())) or True
+        relax_end = engine.program.segments[SET_INDEX - 1].t_end
+        amp = engine.inst.amplifier
+        read, cancelled = amp.read_monitors, []
+
+        def reading() -> Any:
+            if engine.now() >= relax_end + 0.4 and not cancelled:
+                cancelled.append(engine.now())
+                engine.request_stop("terminated by SIGTERM")  # the signal arrives while the read waits on the link
+                raise OperationCancelledError("amplifier", "wait abandoned: terminated by SIGTERM")
+            return read()
+        amp.read_monitors = reading
+
+    result = execute(_plan(tmp_path, "thesis-sim"), tmp_path / "run.h5", virtual=True, on_engine=hook)
+    assert prompts == []
+    assert result.state == "interrupted" and not result.latched, (result.state, result.reason, result.latched)

@@ -835,6 +835,9 @@ class Engine:
             self._check_stop()
             try:
                 v, i = amp.read_monitors()
+            except OperationCancelledError:  # a stop cancelled the link's wait: a stop, not an unverified output
+                self._check_stop()
+                raise
             except InstrumentError as exc:
                 raise InterlockTrip("output not verified", f"before {what}: the voltage monitor could not be read "
                                     f"({exc}); the rig is not handed over") from None
