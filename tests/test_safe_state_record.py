@@ -77,3 +77,39 @@ def test_the_file_holds_the_measured_safe_state(tmp_path: Path, rig: str, how: s
                 for e in (x.decode() for x in f["events/text"][:]) if e.startswith("0 V commanded by the host at ")]
     assert zero and t[0] >= zero[0] + SETTLE_S - 1e-9  # read after the settle that follows the zero
     assert t[-1] <= result.run_time + 1e-9
+
+
+def test_an_output_nothing_could_zero_is_still_measured_into_the_file(tmp_path: Path) -> None:
+    """A reviewer: where 0 V could not be commanded and the set-point module has no watchdog (a rig allowed to run
+    without one), the shutdown said UNSAFE without reading the monitor, and /safe_state stayed empty — the case
+    that most needs a measurement. The module refusing every request from the stop on: the file holds the monitor's
+    reading of the output left on (1 kV, the hold's), and the result says it."""
+    from bench.rig import RigConfig
+
+    f = tmp_path / "p.toml"
+    f.write_text(SAFE_HEAD.format(rig=RIGS / "thesis-sim.toml") + BODY)
+    plan = plan_run(f)
+    rig = RigConfig.model_validate({**plan.rig.model_dump(),
+                                    "amplifier": {**plan.rig.amplifier.model_dump(), "comm_watchdog_s": None}})
+    plan.rig = plan.program.rig = rig
+
+    def hook(engine: Engine, sim: Any) -> None:
+        amp = engine.inst.amplifier
+        set_voltage = amp.set_voltage
+
+        def refused(*args: Any, **kwargs: Any) -> float:
+            if engine._stopping:
+                raise InstrumentError("amplifier", "no answer (injected)")
+            return float(set_voltage(*args, **kwargs))
+
+        def zero() -> None:
+            raise InstrumentError("amplifier", "no answer (injected)")
+        amp.set_voltage, amp.zero = refused, zero
+        sim.clock.subscribe(lambda _now: engine.request_stop("terminated by SIGTERM")
+                            if engine.now() >= END_AT and engine._stop_reason is None else None)
+
+    result = execute(plan, tmp_path / "run.h5", virtual=True, on_engine=hook, allow_no_watchdog=True)
+    assert result.safe_path.startswith("UNSAFE") and "voltage monitor" in result.safe_path, result.safe_path
+    with h5py.File(result.path, "r") as fh:
+        v = fh["safe_state"]["voltage"][:]
+    assert v.size >= 1 and abs(v[-1]) > 500, v  # the hold's 1 kV, measured

@@ -1457,7 +1457,16 @@ class Engine:
                     f"({watchdog:g} s)")
             self._pause_until(self.now() + watchdog + WATCHDOG_MARGIN_S, urgent_aborts=False)
         else:
-            return "UNSAFE: 0 V could not be commanded and the set-point module has no communication watchdog"
+            # nothing brings the output to 0 V: what it measures is what the file and the operator need most
+            path = "UNSAFE: 0 V could not be commanded and the set-point module has no communication watchdog"
+            try:
+                v, i = amp.read_monitors()
+            except InstrumentError as exc:
+                notes.append(f"final monitor read failed: {exc}")
+                self._safe_reads.append((self.now(), math.nan, math.nan))
+                return f"{path}; voltage monitor unreadable"
+            self._safe_reads.append((v.timestamp - self.ctx.t0, v.value, i.value))
+            return f"{path}; voltage monitor {v.value:.0f} V at {v.timestamp - self.ctx.t0:.3f} s"
         deadline = self.now() + DISCHARGE_WAIT_S
         while True:
             try:
