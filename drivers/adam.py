@@ -26,6 +26,8 @@ REG_VALUE = 0
 REG_MODULE_NAME = 210
 REG_SAFETY_ENABLE = 214  # 40215 communication-safety (watchdog) enable: 1 = on (App. G p. G-7)
 REG_SAFETY_FLAG = 215  # 40216 communication-safety flag: 1 once the module's watchdog has fired
+REG_CHANNEL_ENABLE = 220  # 40221 ADAM-4017+ channel enable: bit c set = channel c converted
+A17_RATE_HZ = 10.0  # ADAM-4017+ conversions per second, all enabled channels in turn (ADAM-4000 manual, 4017+ specs)
 
 
 @dataclass(frozen=True)
@@ -142,6 +144,11 @@ class Adam4017P(AdamModule):
     def __init__(self, link: ModbusLink, unit: int, name: str = "ai", scale: RawScale | None = None) -> None:
         super().__init__(link, unit, name)
         self.scale = scale or RawScale(bits=16)
+
+    def enabled_channels(self) -> list[int]:
+        """The channels the module converts (40221's bits), in turn at :data:`A17_RATE_HZ` in all."""
+        (mask,) = self.link.read_holding(self.unit, REG_CHANNEL_ENABLE, 1)
+        return [c for c in range(8) if mask >> c & 1]
 
     def read_volts(self, first: int, count: int = 1) -> list[float]:
         """Read ``count`` consecutive input channels starting at ``first`` [V]."""

@@ -20,7 +20,7 @@ import math
 import time
 from dataclasses import dataclass
 
-from drivers.adam import Adam4017P, Adam4024
+from drivers.adam import A17_RATE_HZ, Adam4017P, Adam4024
 from drivers.errors import InstrumentStateError, LimitError
 from drivers.interfaces import CheckResult, ClockFn, DataKey, Identity, Reading, ReadingMap, StreamDescription
 
@@ -36,6 +36,10 @@ class TrekModel:
     vmon_ratio: float = 1000.0  # V out per V of monitor  (monitor ratios: operator manual, calibrate)
     imon_ratio: float = 1e-3  # A per V of monitor
 
+
+# the oldest a monitor conversion may be when read: the interlock's lag allowance for polled monitors (0.3 s,
+# bench.runtime.interlock.POLLED_LAG_S) covers three conversion slots, so at most three channels in turn
+MAX_MONITOR_AGE_S = 0.3
 
 TREK_MODELS = {
     "10/10B-HS": TrekModel("10/10B-HS", 10e3, 10e-3, imon_ratio=1e-3),
@@ -88,12 +92,31 @@ class TrekAmplifier:
         if self.ao.safety_flag():  # fired while no host talked to it (the end of an earlier session): a fresh start
             self.ao.clear_safety_flag()
         self.zero()
+        self._check_conversions()
         if self.comm_watchdog_s is not None and (on := self.ao.safety_enabled()) != 1:
             raise InstrumentStateError(self.ao.name, f"ADAM-4024 unit {self.ao.unit}: communication watchdog "
                                        f"reported off (register 40215 reads {on}, 1 = on) but the rig expects "
                                        f"one (amplifier.comm_watchdog_s = {self.comm_watchdog_s:g} s): enable "
                                        "the module's communication safety, or set comm_watchdog_s to none and "
                                        "run with --allow-no-watchdog")
+
+    def _check_conversions(self) -> None:
+        """The ADAM-4017+ converts its enabled channels in turn, 10 a second in all: with all eight on (as a module
+        may come) each monitor is fresh only every 0.8 s, and a reading the interlock or a hand-over takes for the
+        output now may be older than the zero it should show. Refused in one line unless both monitors are enabled
+        and each is converted at least every :data:`MAX_MONITOR_AGE_S`."""
+        on = self.ai.enabled_channels()
+        missing = [c for c in (self.vmon_channel, self.imon_channel) if c not in on]
+        if missing:
+            raise InstrumentStateError(self.ai.name, f"ADAM-4017+ unit {self.ai.unit}: monitor channel(s) "
+                                       f"{', '.join(map(str, missing))} not enabled (40221 enables "
+                                       f"{on or 'none'}): enable channels {self.vmon_channel} and "
+                                       f"{self.imon_channel}")
+        if len(on) / A17_RATE_HZ > MAX_MONITOR_AGE_S:
+            raise InstrumentStateError(self.ai.name, f"ADAM-4017+ unit {self.ai.unit}: {len(on)} channels enabled "
+                                       f"({on}): at {A17_RATE_HZ:g} conversions/s in all each monitor is fresh only "
+                                       f"every {len(on) / A17_RATE_HZ:g} s (at most {MAX_MONITOR_AGE_S:g} s): enable "
+                                       f"only channels {self.vmon_channel} and {self.imon_channel} (register 40221)")
 
     def close(self) -> None:
         """Zero the output, then release the bus."""
