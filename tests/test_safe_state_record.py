@@ -71,6 +71,7 @@ def test_the_file_holds_the_measured_safe_state(tmp_path: Path, rig: str, how: s
         assert g["voltage"].dims[0][0].name == g["t"].name  # t is the voltage's dimension (netCDF coordinate)
         assert abs(v[-1]) <= SAFE_V and np.isfinite(i[-1]), (v, i)
         assert ("position" in g) == motor
+        assert g.attrs["rate_Hz"] == pytest.approx(10.0)  # README "Safety" 5: re-read every 0.1 s (not a default)
         if motor:
             assert g["position"].attrs["units"] == "m" and np.all(np.isfinite(g["position"][:]))
         zero = [float(e.split("0 V commanded by the host at ")[1].split(" s")[0])

@@ -34,7 +34,7 @@ from bench.protocol.schema import MAX_OPERATOR, MAX_SPECIMEN_ID, Protocol, check
 from bench.rig import RigConfig, load_rig_text, rig_to_toml
 from bench.runtime import hardware_timed
 from bench.runtime.control import control_path
-from bench.runtime.engine import SAFE_STATE, Engine, OperatorFn, RunResult, termination_raises
+from bench.runtime.engine import MONITOR_REREAD_S, SAFE_STATE, Engine, OperatorFn, RunResult, termination_raises
 from bench.runtime.hardware_timed import describe_streams
 from bench.runtime.instruments import Instruments, build_instruments
 from bench.runtime.interlock import watchdog_period
@@ -329,8 +329,8 @@ def _execute_claimed(plan: Plan, out: Path, *, virtual: bool, operator: Operator
                 supervisor = Supervisor(rig, params)
                 streams, sources = _streams(rig, inst)
                 r = plan.protocol.recording
-                rates = {"setpoints": r.setpoint_Hz, "amplifier": r.monitors_Hz, "laser": r.displacement_Hz,
-                         "motor": r.position_Hz, "load_cell": r.force_Hz,
+                rates = {"setpoints": r.setpoint_Hz, "amplifier": r.monitors_Hz, "laser": program.laser_Hz,
+                         "motor": r.position_Hz, "load_cell": r.force_Hz, SAFE_STATE: 1.0 / MONITOR_REREAD_S,
                          **{role: 1.0 / SENSOR_PERIOD_S for role in inst.sensors}}  # the generic poll (polls.py)
                 if rig.daq is not None and rig.amplifier is not None and rig.amplifier.drive == "daq":
                     hw = {"amplifier", *(["load_cell"] if rig.daq.force_ain is not None else []),
