@@ -58,9 +58,9 @@ def watch(
     recorded in the run file as coming from "web <client address>"."""
     if pending:  # first: Linux lowers the calling thread's priority, which the threads started later inherit
         _yield_to_the_run()
+    _web_libraries()  # before the server's module, which imports Starlette itself
     from bench.watch.server import Served, bind, create_app, is_loopback, serve
 
-    _web_libraries()
     files, folders = [], []
     for p in runs:
         if p.is_dir():
