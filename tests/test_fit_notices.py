@@ -7,8 +7,12 @@ from protocols/short/thesis-identification-short.toml (two steps: a 10-s identif
 
 from __future__ import annotations
 
+import contextlib
 import json
+import os
 import shutil
+import subprocess
+from collections.abc import Iterator
 from pathlib import Path
 
 import h5py
@@ -111,3 +115,45 @@ def test_a_stopped_run_is_said_to_have_stopped_before_the_fit(stopped_run: Path)
     # stopped in its first step: neither of the protocol's two steps ran to its end
     assert "in step 1 of 2" in note and "steps 1–2 of 2 not run to their end" in note, note
     assert out.index(note) < out.index("fitting the membrane model")
+
+
+@contextlib.contextmanager
+def _read_only_folder(where: Path, files: list[Path]) -> Iterator[Path]:
+    """``files`` copied into a folder that cannot be written, even by root: a tmpfs remounted read-only (as the
+    tester's, errno 30); without one, mode bits as a non-root user."""
+    where.mkdir()
+    if os.geteuid() != 0:
+        for f in files:
+            shutil.copy2(f, where / f.name)
+        where.chmod(0o555)
+        yield where
+        where.chmod(0o755)
+        return
+    res = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=64m", "tmpfs", str(where)], capture_output=True)
+    if res.returncode != 0:
+        pytest.skip("cannot mount a tmpfs here: needs root/CAP_SYS_ADMIN")
+    try:
+        for f in files:
+            shutil.copy2(f, where / f.name)
+        subprocess.run(["mount", "-o", "remount,ro", str(where)], check=True, capture_output=True)
+        yield where
+    finally:
+        subprocess.run(["umount", "-l", str(where)], capture_output=True)
+
+
+def test_an_unwritable_destination_is_refused_in_one_line_before_the_search(short_run: Path, tmp_path: Path) -> None:
+    """The tester's run in a read-only folder searched for minutes, then failed in HDF5's words: each destination
+    (the fit file beside the run, the run file with --into, the --export rig) is refused before the search, in one
+    line naming it; nothing is written anywhere."""
+    with _read_only_folder(tmp_path / "ro", [short_run]) as ro:
+        run = ro / short_run.name
+        code, out = _fit(str(run))
+        assert code == 2 and "fitting the" not in out, out
+        line = next(ln for ln in out.splitlines() if ln.startswith("error:"))
+        assert f"fit file {ro / 'run.fit.hdf5'}: cannot be written" in line and "Traceback" not in out, out
+        code, out = _fit(str(run), "--into")
+        assert code == 2 and "fitting the" not in out and f"run file {run}: cannot be written" in out, out
+        writable = _copy(short_run, tmp_path / "w.h5")  # the fit could be stored, the rig file could not
+        code, out = _fit(str(writable), "--export", str(ro / "fitted.toml"))
+        assert code == 2 and "fitting the" not in out and f"--export {ro / 'fitted.toml'}: cannot be" in out, out
+        assert not (tmp_path / "w.fit.hdf5").exists() and sorted(p.name for p in ro.iterdir()) == ["run.h5"]

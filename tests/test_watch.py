@@ -202,7 +202,8 @@ def test_the_web_extra_missing_is_one_line(served: tuple[Path, Path], monkeypatc
 def test_without_the_web_extra_watch_is_one_line_in_a_fresh_process(served: tuple[Path, Path]) -> None:
     """A user's install without the extra: neither Starlette nor uvicorn importable, nothing imported before."""
     code = ("import runpy, sys; sys.modules['starlette'] = None; sys.modules['uvicorn'] = None; "
-            f"sys.argv = ['bench', 'watch', {str(served[0] / 'a.h5')!r}]; runpy.run_module('bench', run_name='__main__')")
+            f"sys.argv = ['bench', 'watch', {str(served[0] / 'a.h5')!r}]; "
+            "runpy.run_module('bench', run_name='__main__')")
     r = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
     assert [line for line in r.stderr.splitlines() if line.strip()] == [

@@ -195,6 +195,7 @@ def fit_runs(runs: list[Path], model: str, settings: FitSettings, *, branches: i
         check_driven(runs)
     if export is not None:
         check_export(export)
+    check_writable(runs, into, export)
     files: list[str | Path] = list(runs)
     coarse: RecordedProblem
     fine: RecordedProblem
@@ -266,6 +267,39 @@ def check_export(export: Path) -> None:
     refuse_existing(export, "fit", "--export", "fitted.toml")
     if not export.parent.is_dir():
         raise ValueError(f"--export {export}: folder {export.parent} not found")
+
+
+def check_writable(runs: list[Path], into: bool = False, export: Path | None = None) -> None:
+    """Refuse, before minutes of fitting, a destination the fit could not be written to (a read-only folder or file
+    system, a file without write permission), in one line naming it: each run's fit file (or with ``into`` the run
+    file itself) and the ``--export`` rig file. Probed by opening for writing (an existing file, not changed) or by
+    creating and removing a temporary file in the folder: mode bits alone say nothing for root or a read-only
+    mount."""
+    from bench.identify.store import fit_sidecar
+
+    for p in runs:
+        if into:
+            _probe(p, f"run file {p}", "--into stores the fit inside it: leave out --into to write a fit file beside "
+                   "it, or copy the run to a writable folder")
+        else:
+            _probe(fit_sidecar(p), f"fit file {fit_sidecar(p)}", "the fit is stored beside its run: copy the run "
+                   "(with any fit file of it) to a writable folder and fit it there")
+    if export is not None:
+        _probe(export, f"--export {export}", "choose a writable folder for the rig file")
+
+
+def _probe(path: Path, what: str, hint: str) -> None:
+    import os
+    import tempfile
+
+    try:
+        if path.exists():
+            os.close(os.open(path, os.O_RDWR))
+        else:
+            with tempfile.NamedTemporaryFile(dir=path.parent, prefix=".bench-write-check-"):
+                pass
+    except OSError as exc:
+        raise ValueError(f"{what}: cannot be written ({exc.strerror or exc}); {hint}") from None
 
 
 def _forward_only(stage: Callable[[str, float], None]) -> Callable[[str, float], None]:
