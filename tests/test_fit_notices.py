@@ -157,3 +157,35 @@ def test_an_unwritable_destination_is_refused_in_one_line_before_the_search(shor
         code, out = _fit(str(writable), "--export", str(ro / "fitted.toml"))
         assert code == 2 and "fitting the" not in out and f"--export {ro / 'fitted.toml'}: cannot be" in out, out
         assert not (tmp_path / "w.fit.hdf5").exists() and sorted(p.name for p in ro.iterdir()) == ["run.h5"]
+
+
+def test_ctrl_c_stops_a_fit_within_a_batch_in_one_line_storing_nothing(short_run: Path, tmp_path: Path) -> None:
+    """Ctrl-C on `bench fit` (the default three starts, searching in threads of their own) was taken by the main
+    thread only, which then waited for every start to finish its search (2 min 20 s for the tester) and exited 130
+    without a word. Now it stops at the starts' next batch: one line saying where, exit 130 (SIGINT's), no fit file.
+    Stopped before the search's end: fewer generations done than asked (the line's count, all starts)."""
+    import re
+    import signal
+    import sys
+    import time
+
+    run = _copy(short_run, tmp_path / "run.h5")
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "PYTHONUNBUFFERED": "1", "COLUMNS": "400"}
+    proc = subprocess.Popen([sys.executable, "-m", "bench", "fit", str(run), "--generations", "40", "--no-intervals"],
+                            cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    assert proc.stdout is not None and proc.stderr is not None
+    seen = ""
+    while "fitting the membrane model" not in seen:  # the records read, the search begun
+        line = proc.stdout.readline()
+        assert line, proc.stderr.read()
+        seen += line
+    time.sleep(4.0)  # a few generations into the search
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=300)
+    assert proc.returncode == 130, err
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1, err
+    m = re.fullmatch(r"fit stopped: Ctrl-C in the differential evolution, after (\d+) of 120 generations \(all "
+                     r"starts\); nothing stored", lines[0])
+    assert m is not None and int(m.group(1)) < 120, err
+    assert "stored in" not in out and not (tmp_path / "run.fit.hdf5").exists()

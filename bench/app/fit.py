@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
+import signal
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -185,10 +187,8 @@ def fit_runs(runs: list[Path], model: str, settings: FitSettings, *, branches: i
     from bench.app.cluster import cluster_client
     from bench.identify.campaign import campaign_identifiability
     from bench.identify.core import fit
-    from bench.identify.fitted_rig import export_rig
+    from bench.identify.monitor import Stopped
     from bench.identify.problems import LozengeProblem, MembraneProblem
-    from bench.identify.store import fit_sidecar, write_fit
-    from bench.storage.runfile import open_run
 
     check_fittable(runs, into)
     if model == "membrane":
@@ -227,19 +227,49 @@ def fit_runs(runs: list[Path], model: str, settings: FitSettings, *, branches: i
             fine.distribute(client)
             if on_cluster is not None:
                 on_cluster(str(client.scheduler.address if client.scheduler is not None else scheduler))
+        stop = threading.Event()
+        coarse.stop = fine.stop = stop
+        stages = ["differential evolution"]
+
+        def staged(name: str, fraction: float) -> None:
+            if stages[-1] != name:
+                stages.append(name)
+            if stage is not None:
+                stage(name, fraction)
         try:
-            result = fit(coarse, settings, start=None, fine=fine, progress=generation,
-                         stage=None if stage is None else _forward_only(stage))
+            with _stopped_by_ctrl_c(stop):
+                result = fit(coarse, settings, start=None, fine=fine, progress=generation,
+                             stage=_forward_only(staged))
+                out = Fitted(model, runs, result, coarse)
+                records = [r.source for r in coarse.records]
+                campaign = None
+                if len(records) > 1:
+                    out.campaign = campaign_identifiability(fine, result)
+                    campaign = out.campaign.as_dict()
+        except (KeyboardInterrupt, Stopped):
+            raise FitStopped(f"Ctrl-C in the {STAGES.get(stages[-1], stages[-1])}, after {done[0]} of {total} "
+                             "generations (all starts); nothing stored") from None
         finally:
             for prob in (coarse, fine):
                 if isinstance(prob, MembraneProblem):
                     prob.distribute(None)
-    out = Fitted(model, runs, result, coarse)
-    records = [r.source for r in coarse.records]
-    campaign = None
-    if len(records) > 1:
-        out.campaign = campaign_identifiability(fine, result)
-        campaign = out.campaign.as_dict()
+    with _ctrl_c_deferred() as late:  # the stores are not cut short: each file gets the whole fit or none
+        _store(out, runs, model, records, campaign, into, export)
+    if late:
+        raise FitStopped("Ctrl-C while the fit was stored: the stores were finished first ("
+                         + ", ".join(f"{f}:{g}" for f, g in out.stored)
+                         + (f", rig file {out.exported}" if out.exported else "") + ")")
+    return out
+
+
+def _store(out: Fitted, runs: list[Path], model: str, records: list[str], campaign: dict[str, object] | None,
+           into: bool, export: Path | None) -> None:
+    """Write the fit with every run file (or its fit file) and the ``--export`` rig file; fills ``out``."""
+    from bench.identify.fitted_rig import export_rig
+    from bench.identify.store import fit_sidecar, write_fit
+    from bench.storage.runfile import open_run
+
+    result = out.result
     for p in runs:
         group = write_fit(p, model, result, records, campaign, sidecar=not into)
         out.stored.append((p if into else fit_sidecar(p), group))
@@ -255,7 +285,51 @@ def fit_runs(runs: list[Path], model: str, settings: FitSettings, *, branches: i
             raise OSError(f"--export {export}: cannot write the rig file: {exc.strerror or exc} (the fit is "
                           "stored)") from None
         out.exported = export
-    return out
+
+
+class FitStopped(Exception):  # noqa: N818  # a user's stop, not an error
+    """``bench fit`` stopped by Ctrl-C (the message says where; the CLI exits 130)."""
+
+
+STAGES = {"polish": "least-squares polish", "intervals": "profile-likelihood intervals"}
+
+
+@contextlib.contextmanager
+def _stopped_by_ctrl_c(stop: threading.Event) -> Iterator[None]:
+    """Ctrl-C (SIGINT) sets ``stop`` before the KeyboardInterrupt: the starts searching in threads of their own
+    (:func:`bench.identify.core.searches`) then end at their next batch of evaluations, instead of the main
+    thread's interrupt waiting on them, unstopped, to the end of the fit (2 min 20 s for the defaults). Only in the
+    main thread, and not where SIGINT is ignored (a background job)."""
+    if threading.current_thread() is not threading.main_thread() or \
+            signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
+        yield
+        return
+
+    def interrupt(signum: int, frame: object) -> None:
+        stop.set()
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGINT, interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+@contextlib.contextmanager
+def _ctrl_c_deferred() -> Iterator[list[bool]]:
+    """Ctrl-C held back while the body runs (a list that is true afterwards when one came), so that writes are
+    not cut short halfway; as :func:`_stopped_by_ctrl_c`, only where Python's own handler is installed."""
+    late: list[bool] = []
+    if threading.current_thread() is not threading.main_thread() or \
+            signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
+        yield late
+        return
+    previous = signal.signal(signal.SIGINT, lambda *_: late.append(True))
+    try:
+        yield late
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def check_export(export: Path) -> None:

@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from bench.cli.common import JsonOpt, Table, clean_errors, console, escape, fail, json_mode, print_json
+from bench.cli.common import JsonOpt, Table, clean_errors, console, err_console, escape, fail, json_mode, print_json
 
 if TYPE_CHECKING:
     from bench.analysis.runs import StepResult
@@ -177,8 +177,14 @@ def fit_command(
     mismatch, stopped = fit_notices(runs, json_out)
     settings = FitSettings(population, generations, mutation, crossover, cost.value, polish, polish_iterations,
                            seed=seed, starts=starts, intervals=intervals)
-    with json_mode(json_out):
-        result, problem = run_fit(runs, chosen, settings, branches, export, scheduler, workers, into=into)
+    from bench.app.fit import FitStopped
+
+    try:
+        with json_mode(json_out):
+            result, problem = run_fit(runs, chosen, settings, branches, export, scheduler, workers, into=into)
+    except FitStopped as exc:  # Ctrl-C: a user's stop, not an error; 130 as the shell gives a process SIGINT ended
+        err_console.print(f"fit stopped: {escape(str(exc))}", highlight=False, soft_wrap=True)
+        raise typer.Exit(130) from None
     if json_out:
         print_json({"model": chosen, "runs": [str(p) for p in runs], "cost": result.cost,
                     "cost_kind": result.cost_kind, "rms": result.rms, "rms_unit": problem.data_unit,

@@ -14,6 +14,7 @@ things set it apart from a command:
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Sequence
 from typing import Protocol
 
@@ -78,6 +79,10 @@ class _Measured(Protocol):
     measured: bool  # the record's voltage input is the monitor's (its calibration applies)
 
 
+class Stopped(Exception):  # noqa: N818  # a stop asked for, not an error
+    """A fit's evaluation refused because the fit is being stopped (:meth:`MonitorCalibration.check_stop`)."""
+
+
 class MonitorCalibration:
     """The voltage monitor's calibration as two more parameters of a problem (mixed into the problem classes).
 
@@ -94,6 +99,13 @@ class MonitorCalibration:
     records: Sequence[_Measured]
     accuracy: tuple[float, float] | None = None  # the voltage monitor's (accuracy, full scale)
     rig_toml: str = ""  # the rig file stored in the first run
+    stop: threading.Event | None = None  # set: the fit is being stopped (Ctrl-C); the next evaluation raises Stopped
+
+    def check_stop(self) -> None:
+        """Raise :class:`Stopped` once :attr:`stop` is set: called before each batch of evaluations, so every stage
+        of a fit (search, polish, intervals), in whichever thread it runs, ends within one batch."""
+        if self.stop is not None and self.stop.is_set():
+            raise Stopped("the fit was stopped")
 
     def _note_run(self, run: RunFile, source: str, measured: bool) -> None:
         """Note a run's rig; on a measured input its monitor's accuracy, which every file fitted together shares."""

@@ -253,6 +253,7 @@ class MembraneProblem(MonitorCalibration):
         """Displacements u [m] for each row of Z, all records concatenated (one parallel batch per record). Rows of
         the specimen's parameters only (a fit stored before the calibration was fitted) take the input as
         recorded."""
+        self.check_stop()
         if self.reference_kernel:
             return self.predict_reference(Z)
         Z = np.atleast_2d(Z)
@@ -291,6 +292,7 @@ class MembraneProblem(MonitorCalibration):
         predictions are made (:mod:`bench.identify.record_costs`): on a cluster, the workers return one number per
         candidate and record. The same bits in-process and distributed, however the batch is cut. The data and σ
         are those when :meth:`distribute` was called."""
+        self.check_stop()
         Z = np.atleast_2d(Z)
         if self.remote is not None and not self.reference_kernel:
             P = np.stack([self.params_of(z).pack() for z in Z])
@@ -443,6 +445,7 @@ class LozengeProblem(MonitorCalibration):
     def predict(self, Z: np.ndarray) -> np.ndarray:
         """Forces [N] (motor / blocked) or apertures [m] (hung) for each row of Z, records concatenated. Rows of the
         specimen's parameters only (a fit stored before the calibration was fitted) take the input as recorded."""
+        self.check_stop()
         Z = np.atleast_2d(Z)
         cal = self.calibration(Z)
         out = []
