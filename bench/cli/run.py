@@ -238,12 +238,15 @@ def _operator(yes: bool) -> Callable[[str], bool]:
 @contextlib.contextmanager
 def _before_the_run() -> Iterator[None]:
     """Ctrl-C before the run starts (recovering a resumed file, validating, dry-running on the model): nothing is
-    connected yet, and typer would end the command with exit 130 and not a word. One line, and exit 130 still (the
-    run's own phases, from starting the rig on, say what they were doing: :func:`execute_run`)."""
+    connected yet, and typer would end the command with exit 130 and not a word. One line, and exit 2 as a stop
+    signal while the rig is set up (:func:`execute_run`, which says what it was doing): `bench run`'s statuses are
+    0 (completed), 1 (started, did not complete) and 2 (not started), whatever stopped it. No run log: no run has
+    claimed its name yet."""
     try:
         yield
     except KeyboardInterrupt:
-        raise fail("interrupted by Ctrl-C before the run started; nothing was connected", code=130) from None
+        raise fail("interrupted by Ctrl-C before the run started; nothing was connected, no run file or log "
+                   "written") from None
 
 
 def _show_prepared(prepared: PreparedRun, dry_run: bool = False) -> None:
