@@ -677,3 +677,28 @@ def test_specimen_show_skips_a_default_plot_it_cannot_write(tmp_path: Path, monk
     assert json.loads(out.stdout)["plot"] is None and "plot not written" in out.stderr, out.stderr
     asked = _bench_here("specimen", "show", "S1", "--dir", str(arch), "--plot", str(tmp_path / "p.png"), env=env)
     assert asked.returncode == 2 and "Permission denied" in asked.stderr, asked.stderr
+
+
+def test_a_full_disk_is_one_short_warning_not_the_sql_statement(short_run: Path, tmp_path: Path,
+                                                                monkeypatch: pytest.MonkeyPatch,
+                                                                caplog: pytest.LogCaptureFixture) -> None:
+    """On a full disk the run's catalogue warning held SQLAlchemy's whole text: the INSERT statement and its
+    parameters (outside tester). One line now with the database's own reason (SQLite's words for ENOSPC)."""
+    import logging
+    import sqlite3
+
+    from sqlalchemy.exc import OperationalError
+
+    from bench.storage import catalog
+
+    def full(self: object, rows: object, **kwargs: object) -> None:
+        statement = "INSERT INTO runs (path, host, run_id, state) VALUES (?, ?, ?, ?)"
+        raise OperationalError(statement, ("/x.h5", "h", "r", "completed"), sqlite3.OperationalError(
+            "database or disk is full"))
+
+    monkeypatch.setattr(catalog.Catalog, "upsert", full)
+    with caplog.at_level(logging.WARNING, logger=catalog.log.name):
+        catalog.record_end(short_run, f"sqlite:///{tmp_path / 'catalog.sqlite'}")
+    (line,) = [r.getMessage() for r in caplog.records if "run catalogue" in r.getMessage()]
+    assert line.endswith("reconciles it from the files): database or disk is full"), line
+    assert "INSERT" not in line and "[SQL" not in line and "parameters" not in line

@@ -37,8 +37,9 @@ def _db_errors(fn: Callable[P, R]) -> Callable[P, R]:
         except Exception as exc:
             if not type(exc).__module__.startswith("sqlalchemy"):
                 raise
-            cause = getattr(exc, "orig", None) or exc
-            raise ValueError("run catalogue: " + " ".join(str(cause).split())[:300]) from None
+            from bench.storage.catalog import db_reason
+
+            raise ValueError("run catalogue: " + db_reason(exc)) from None
 
     return wrapper
 

@@ -566,6 +566,14 @@ def one_per_run(rows: list[dict[str, Any]], prefer: Path | None = None,
 # ---- the run's hooks: never let the catalogue stop or fail a run ---------------------------------------------------
 
 
+def db_reason(exc: BaseException) -> str:
+    """What a database error says, in one line: the driver's own message (SQLAlchemy's error wraps it, ``orig``,
+    and adds the whole SQL statement and its parameters, which a full disk dumped into the run's warning), at most
+    300 characters."""
+    cause = getattr(exc, "orig", None) or exc
+    return " ".join(str(cause).split())[:300] or type(cause).__name__
+
+
 def record_start(path: Path, attrs: dict[str, Any], url: str | None = None) -> None:
     """Catalogue a run that has just started; on any failure one warning line (the run goes on)."""
     try:
@@ -573,7 +581,7 @@ def record_start(path: Path, attrs: dict[str, Any], url: str | None = None) -> N
             cat.upsert([row_from_attrs(path, attrs)], start=True)
     except Exception as exc:  # the catalogue is an index: a run never depends on it
         log.warning("run catalogue not written at the start (the run goes on; `bench runs list` reconciles it "
-                    "from the files): %s", " ".join(str(exc).split())[:300])
+                    "from the files): %s", db_reason(exc))
 
 
 def record_end(path: Path, url: str | None = None, hv: HvStats | None = None, written: Written | None = None) -> None:
@@ -586,7 +594,7 @@ def record_end(path: Path, url: str | None = None, hv: HvStats | None = None, wr
             cat.upsert([row])
     except Exception as exc:
         log.warning("run catalogue not written at the end (`bench runs list` reconciles it from the files): %s",
-                    " ".join(str(exc).split())[:300])
+                    db_reason(exc))
 
 
 # ---- a specimen's life -------------------------------------------------------------------------------------------
