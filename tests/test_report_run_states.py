@@ -216,3 +216,24 @@ def test_a_folder_of_stopped_runs_is_read_once_for_their_continuations(runs: dic
     # 8 files: each opened for its chain, its run_id and its link (3 × 8), and the folder's index once (8);
     # searched per stopped file (7 of them × 8), the old way opened 56 for the search alone
     assert len(opened) <= 4 * 8, len(opened)
+
+
+def test_a_file_killed_in_its_first_step_says_no_figures_not_an_empty_line(tmp_path: Path) -> None:
+    """`bench report` on a run killed (SIGKILL) as its first step began printed `figures: ` with nothing after it
+    (outside tester): it says there are none."""
+    import os
+    import subprocess
+    import sys
+
+    from tests.campaign_kill import kill_at_step
+
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    proc = subprocess.Popen([sys.executable, "-m", "bench", "run", str(ROOT / "protocols" / "short" /
+                             "thesis-identification-short.toml"), "--no-live", "--out", str(tmp_path)],
+                            cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    kill_at_step(proc, tmp_path, 0, 120)
+    (killed,) = tmp_path.glob("*.h5")
+    _, out = _cli("report", str(killed), "--out", str(tmp_path / "report"))
+    assert "could be analysed" in out, out  # the premise: nothing of it to plot
+    figures = [ln for ln in out.splitlines() if ln.startswith("figures:")]
+    assert figures == ["figures: none (nothing to plot)"], out

@@ -465,7 +465,8 @@ def print_report(runs: list[Path], out: Path | None = None) -> Report:
             console.print("largest crest-to-trough per hung mass: " + ", ".join(
                 f"{m * 1e3:.0f} g at {f:g} Hz ({amp * 1e3:.1f} mm)" for m, (f, amp) in a.resonance().items())
                 + " (a resonance only where the sweep brackets it; V²'s 2f content also peaks at half of it)")
-        console.print("figures: " + ", ".join(str(x) for x in r.figures))
+        # a file with nothing to plot (killed in its first step) showed an empty "figures: " line
+        console.print("figures: " + (", ".join(str(x) for x in r.figures) if r.figures else "none (nothing to plot)"))
     grid = done.grid
     if grid is None:
         return done
