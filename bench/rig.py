@@ -20,7 +20,7 @@ from bench.core.noise import Realism
 from bench.core.plant import TREK_DATASHEET, AmplifierSpec, HVStage, Plant
 from bench.models.lozenge import LozengeParams, MaxwellBranch
 from bench.models.membrane import MembraneParams
-from bench.tomlfile import one_line, read_toml, type_hint
+from bench.tomlfile import first_error, one_line, read_toml, type_hint
 
 STANDARD_GRAVITY_M_PER_S2 = 9.80665  # CGPM 1901 (the load cell's kg → N)
 # LK-G data storage per OUT [points] when the rig file does not say: not from a manual page we could read
@@ -547,9 +547,9 @@ class RigFileError(ValueError):
 
 
 def _first_error(path: Path, exc: ValidationError) -> str:
-    err = exc.errors()[0]
+    err, suggestion = first_error(exc.errors(), RigConfig)
     loc = ".".join(str(x) for x in err["loc"])
-    msg = err["msg"].removeprefix("Value error, ") + type_hint(err)
+    msg = err["msg"].removeprefix("Value error, ") + type_hint(err) + suggestion
     more = f" (and {exc.error_count() - 1} more)" if exc.error_count() > 1 else ""
     return f"rig file {path}: {loc + ': ' if loc else ''}{msg}{more}"  # a whole-rig check names its fields itself
 

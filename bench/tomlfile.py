@@ -55,6 +55,49 @@ def type_hint(err: Mapping[str, Any]) -> str:
     return ""
 
 
+def first_error(errors: list[Any], root: Any) -> tuple[Any, str]:
+    """The error to report of a pydantic validation (``errors``: ``exc.errors()``, ``root``: the model, union or
+    annotation validated) and what to add to its message: the first, unless a field is unknown and close to one
+    the table takes (a typo, which pydantic reports after the "Field required" of the field meant): that one, with
+    "; did you mean NAME?" (difflib against the allowed fields)."""
+    import difflib
+
+    for err in errors:
+        loc = err.get("loc") or ()
+        if err.get("type") == "extra_forbidden" and loc and isinstance(loc[-1], str):
+            match = difflib.get_close_matches(loc[-1], allowed_fields(root, loc[:-1]), n=1, cutoff=0.6)
+            if match:
+                return err, f"; did you mean {match[0]}?"
+    return errors[0], ""
+
+
+def allowed_fields(root: Any, path: tuple[Any, ...]) -> list[str]:
+    """The field names (aliases where set) a table at ``path`` (a pydantic error's ``loc``) of ``root`` takes: the
+    fields followed down through the models in each annotation (unions, lists, optionals), a discriminated union's
+    tag picking the model whose ``type`` it is; [] where the path leaves the models."""
+    from typing import Literal, get_args, get_origin
+
+    from pydantic import BaseModel
+
+    def models(tp: Any) -> list[type[BaseModel]]:
+        if isinstance(tp, type) and issubclass(tp, BaseModel):
+            return [tp]
+        return [m for a in get_args(tp) for m in models(a)]
+
+    def tag(m: type[BaseModel]) -> object:
+        f = m.model_fields.get("type")
+        args = get_args(f.annotation) if f is not None and get_origin(f.annotation) is Literal else ()
+        return args[0] if args else None
+
+    level = models(root)
+    for key in path:
+        if isinstance(key, int):  # a list's index: its items' models are already in the level
+            continue
+        level = [n for m in level for n in (models(m.model_fields[key].annotation) if key in m.model_fields
+                                            else [m] if tag(m) == key else [])]
+    return sorted({f.alias or name for m in level for name, f in m.model_fields.items()})
+
+
 def _too_deep(data: Any, limit: int) -> str | None:
     """Dotted path of the first value nested deeper than ``limit`` (iterative: no recursion), or None."""
     stack: list[tuple[Any, str, int]] = [(data, "", 0)]

@@ -596,3 +596,34 @@ def test_the_dry_runs_current_line_shows_the_current_and_the_limit_apart(tmp_pat
     assert limit == "0.0235", said  # the rig file's 2.35e-5 A
     assert len(value.lstrip("-0.").replace(".", "")) >= 4 or float(value) == 0, said  # 4 significant figures
     assert abs(float(value)) > float(limit) and value.lstrip("-") != limit, said
+
+
+@pytest.mark.parametrize("old, new, said", [
+    ("frequency_Hz = 0.1111111111111111", "frequncy_Hz = 0.1111111111111111",
+     "steps[0](identification).frequncy_Hz: Extra inputs are not permitted; did you mean frequency_Hz?"),
+    ("temperature_K = 296.0", "temprature_K = 296.0",
+     "specimen.temprature_K: Extra inputs are not permitted; did you mean temperature_K?"),
+    ("displacement_Hz = 10000", "displacment_Hz = 10000",
+     "recording.displacment_Hz: Extra inputs are not permitted; did you mean displacement_Hz?"),
+])
+def test_a_misspelt_field_is_named_with_the_field_meant(tmp_path: Path, old: str, new: str, said: str) -> None:
+    """A typo in a field's name gave pydantic's "Extra inputs are not permitted" alone (or, in a step, the field
+    meant as "Field required" first): the typo is reported, with the nearest field the table takes (outside
+    tester). Expected names: the shipped protocol's own fields."""
+    src = ROOT / "protocols" / "short" / "thesis-identification-short.toml"
+    text = src.read_text(encoding="utf-8")
+    assert old in text
+    typo = tmp_path / "typo.toml"
+    typo.write_text(text.replace(old, new).replace("../../rigs/", f"{ROOT / 'rigs'}/"), encoding="utf-8")
+    with pytest.raises(ProtocolFileError) as exc:
+        load_protocol(typo)
+    assert str(exc.value) == f"protocol file {typo}: {said}"
+
+
+def test_a_misspelt_rig_field_is_named_with_the_field_meant(tmp_path: Path) -> None:
+    src = (ROOT / "rigs" / "thesis-sim.toml").read_text(encoding="utf-8")
+    typo = tmp_path / "typo.toml"
+    typo.write_text(src.replace("max_voltage_V = ", "max_votage_V = ", 1), encoding="utf-8")
+    with pytest.raises(RigFileError) as exc:
+        load_rig(typo)
+    assert "max_votage_V: Extra inputs are not permitted; did you mean max_voltage_V?" in str(exc.value)

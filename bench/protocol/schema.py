@@ -46,7 +46,7 @@ from pydantic import (
 )
 
 from bench.protocol.quantity import format_quantity, parse_quantity
-from bench.tomlfile import one_line, read_toml, type_hint
+from bench.tomlfile import first_error, one_line, read_toml, type_hint
 
 Channel = Literal["voltage", "position"]
 CHANNEL_DIMENSION = {"voltage": "voltage", "position": "length"}
@@ -552,10 +552,10 @@ def _expand(raw: Any, where: str, depth: int, total: list[int]) -> list[tuple[st
 
 
 def _error_line(path: Path, label: str, exc: ValidationError) -> str:
-    err = exc.errors()[0]
+    err, suggestion = first_error(exc.errors(), AnyStep)
     loc = ".".join(str(x) for x in err["loc"] if not str(x).endswith("Step") and x not in
                    ("waveform", "ramp", "hold", "wait", "relax", "move", "set"))
-    msg = err["msg"].removeprefix("Value error, ") + type_hint(err)
+    msg = err["msg"].removeprefix("Value error, ") + type_hint(err) + suggestion
     return f"protocol file {path}: {label}{'.' + loc if loc else ''}: {msg}"
 
 
@@ -592,9 +592,10 @@ def load_protocol(path: str | Path) -> Protocol:
         return Protocol.model_validate({**data, "steps": steps, "labels": [lab for lab, _ in expanded],
                                         "text": text, "path": str(p)})
     except ValidationError as exc:
-        err = exc.errors()[0]
+        err, suggestion = first_error(exc.errors(), Protocol)
         loc = ".".join(str(x) for x in err["loc"])
-        raise ProtocolFileError(f"protocol file {p}: {loc}: {err['msg'].removeprefix('Value error, ')}") from None
+        raise ProtocolFileError(f"protocol file {p}: {loc}: {err['msg'].removeprefix('Value error, ')}"
+                                f"{suggestion}") from None
 
 
 def json_schema() -> str:
