@@ -341,3 +341,26 @@ def test_devices_check_counts_only_instruments_when_closing_fails(tmp_path: Path
     assert res.exit_code == 1, res.output
     assert f"3 of {n} instruments failed" in res.output and "closing the instruments: daq:" in res.output
     assert "Traceback" not in res.output
+
+
+def test_a_rig_named_without_its_file_suggests_the_file_meant(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """`--rig thesis-sim` (a rig's name, not a file) said only "not found" (outside tester): it names the rig file
+    it probably meant, the lab folder's rigs/NAME.toml, else the shipped one; a name of no rig, nothing more."""
+    import shutil
+
+    from bench.resources import rigs_dir
+
+    protocol = str(ROOT / "protocols" / "short" / "thesis-identification-short.toml")
+
+    def said(rig: str) -> str:
+        res = CliRunner().invoke(app, ["validate", protocol, "--rig", rig], env={"COLUMNS": "300"})
+        assert res.exit_code == 2 and "Traceback" not in res.output, res.output
+        return res.output.strip().splitlines()[-1]
+
+    monkeypatch.chdir(tmp_path)
+    shipped = rigs_dir() / "thesis-sim.toml"
+    assert said("thesis-sim") == f"error: rig file thesis-sim: not found; did you mean {shipped}?"
+    assert said("no-such-rig") == "error: rig file no-such-rig: not found"
+    (tmp_path / "rigs").mkdir()
+    shutil.copy2(ROOT / "rigs" / "thesis-sim.toml", tmp_path / "rigs" / "thesis-sim.toml")
+    assert said("thesis-sim") == "error: rig file thesis-sim: not found; did you mean rigs/thesis-sim.toml?"

@@ -48,8 +48,20 @@ def plan_protocol(protocol_file: Path, rig: Path | None = None, sim: bool = Fals
     from bench.runtime.run import plan_run
 
     if rig is not None and sim is False and not rig.exists():
-        raise ValueError(f"rig file {rig}: not found")
+        raise ValueError(f"rig file {rig}: not found{rig_suggestion(rig)}")
     return plan_run(protocol_file, rig, sim, progress)
+
+
+def rig_suggestion(rig: Path) -> str:
+    """For a ``--rig`` that names no file: "; did you mean X?" where X is the rig file it probably meant — the
+    name with ``.toml``, ``rigs/NAME.toml`` here (a lab folder, the repository), else the shipped rig of that name
+    (``--rig thesis-sim``: a rig's name where its file is asked for); "" when none exists."""
+    from bench.resources import shipped_rigs
+
+    name = rig.name.removesuffix(".toml")
+    here = [rig.with_name(name + ".toml"), rig.parent / "rigs" / (name + ".toml")]
+    found = next((p for p in here if p.is_file()), None) or shipped_rigs().get(name)
+    return f"; did you mean {found}?" if found is not None else ""
 
 
 def prepare_run(protocol_file: Path | None, *, rig: Path | None = None, sim: bool = False, out: Path = Path("runs"),

@@ -107,7 +107,9 @@ def copy_protocol(src: Path, dest: Path, rig: Path | None = None) -> Path:
                       if (d / "rigs" / original.name).is_file()), None)
         rig = local if local is not None else original
     if not rig.is_file():
-        raise FileNotFoundError(f"rig file {rig}: not found")
+        from bench.app.runs import rig_suggestion
+
+        raise FileNotFoundError(f"rig file {rig}: not found{rig_suggestion(rig)}")
     target.parent.mkdir(parents=True, exist_ok=True)
     rig_abs = rig.resolve()
     # relative within a lab folder (../rigs/x.toml, ../../rigs/x.toml), absolute otherwise (the shipped rig, or a
