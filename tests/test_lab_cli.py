@@ -80,6 +80,7 @@ def test_copy_into_a_lab_folder_names_the_labs_rig(in_tmp: Path, dest: str) -> N
     (in_tmp / "lab" / Path(dest).parent).mkdir(parents=True, exist_ok=True)
     res = runner.invoke(app, ["protocols", "copy", "thesis-identification", f"lab/{dest}"])
     assert res.exit_code == 0, res.output
+    assert "note:" not in res.output  # the lab's own rig: nothing to say
     copy = in_tmp / "lab" / dest
     assert _rig_of(copy) == (in_tmp / "lab" / "rigs" / "thesis-daq-sim.toml").resolve()
     rig_line = next(line for line in copy.read_text(encoding="utf-8").splitlines() if line.startswith("rig ="))
@@ -92,6 +93,10 @@ def test_copy_into_a_lab_folder_names_the_labs_rig(in_tmp: Path, dest: str) -> N
 def test_copy_outside_a_lab_names_the_shipped_rig_and_validates(in_tmp: Path) -> None:
     res = runner.invoke(app, ["protocols", "copy", "short/thesis-identification-short", "mine.toml"])
     assert res.exit_code == 0, res.output
+    # said (outside tester: an absolute site-packages path, written without a word), with where to get one's own
+    note = next(line for line in res.output.splitlines() if line.startswith("note: its rig = "))
+    assert f"{(rigs_dir() / 'thesis-daq-sim.toml').resolve().as_posix()} is the rig shipped inside" in note
+    assert "bench init LAB" in note and "--rig" in note
     assert _rig_of(in_tmp / "mine.toml") == (rigs_dir() / "thesis-daq-sim.toml").resolve()
     res = runner.invoke(app, ["validate", "mine.toml", "--json"])
     assert res.exit_code == 0, res.output
