@@ -22,3 +22,10 @@ def against(value: float, limit: float, scale: float = 1.0) -> tuple[str, str]:
         if not (math.isfinite(v) and math.isfinite(lim)) or abs(v) == abs(lim) or a.lstrip("-") != b.lstrip("-"):
             return a, b
     return a, b
+
+
+def whole(value: float) -> str:
+    """``value`` to the nearest whole number, as ``f"{value:.0f}"`` but never "-0" (a set-point of -0.3 V read
+    "ramp from -0 V", found by an outside tester): a value that rounds to zero is "0"."""
+    text = f"{value:.0f}"
+    return "0" if text == "-0" else text

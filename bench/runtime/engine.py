@@ -38,6 +38,7 @@ import numpy as np
 
 from bench.core.clock import Clock
 from bench.models.lozenge import LozengeParams
+from bench.numbers import whole
 from bench.protocol.program import (
     HOLD_KEEPALIVE_S,
     Program,
@@ -1270,7 +1271,7 @@ class Engine:
             if v0 != 0.0 and self._urgent.is_set():
                 self._event("ramp", "second stop request before the ramp began: 0 V at once")
             if v0 != 0.0 and not self._urgent.is_set():
-                self._event("ramp", f"ramp from {v0:.0f} V to 0 V over {ramp:g} s")
+                self._event("ramp", f"ramp from {whole(v0)} V to 0 V over {ramp:g} s")
 
                 def record(sent: float) -> None:
                     self.ctx.v_cmd = sent
