@@ -177,14 +177,8 @@ def fit_command(
     mismatch, stopped = fit_notices(runs, json_out)
     settings = FitSettings(population, generations, mutation, crossover, cost.value, polish, polish_iterations,
                            seed=seed, starts=starts, intervals=intervals)
-    from bench.app.fit import FitStopped
-
-    try:
-        with json_mode(json_out):
-            result, problem = run_fit(runs, chosen, settings, branches, export, scheduler, workers, into=into)
-    except FitStopped as exc:  # Ctrl-C: a user's stop, not an error; 130 as the shell gives a process SIGINT ended
-        err_console.print(f"fit stopped: {escape(str(exc))}", highlight=False, soft_wrap=True)
-        raise typer.Exit(130) from None
+    with json_mode(json_out):
+        result, problem = run_fit(runs, chosen, settings, branches, export, scheduler, workers, into=into)
     if json_out:
         print_json({"model": chosen, "runs": [str(p) for p in runs], "cost": result.cost,
                     "cost_kind": result.cost_kind, "rms": result.rms, "rms_unit": problem.data_unit,
@@ -272,7 +266,7 @@ def run_fit(runs: list[Path], chosen: str, settings: FitSettings, branches: int 
 
     import numpy as np
 
-    from bench.app.fit import fit_runs
+    from bench.app.fit import FitStopped, fit_runs
     from bench.cli.common import progress
 
     s = settings
@@ -305,10 +299,15 @@ def run_fit(runs: list[Path], chosen: str, settings: FitSettings, branches: int 
                     open_bar(STAGES.get(name, name))
                 advance[-1](fraction)
 
-        done = fit_runs(runs, chosen, s, branches=branches, export=export, scheduler=scheduler, workers=workers,
-                        into=into, on_read=read, progress=lambda fraction: advance[0](fraction), stage=stage,
-                        on_cluster=lambda address: console.print(f"evaluating candidates on the dask cluster "
-                                                                 f"{address}"))
+        try:
+            done = fit_runs(runs, chosen, s, branches=branches, export=export, scheduler=scheduler,
+                            workers=workers, into=into, on_read=read, progress=lambda fraction: advance[0](fraction),
+                            stage=stage, on_cluster=lambda address: console.print(
+                                f"evaluating candidates on the dask cluster {address}"))
+        except FitStopped as exc:  # Ctrl-C (bench fit, bench demo): a user's stop, not an error; 130 as for SIGINT
+            stack.close()  # the bar first, then the line under it
+            err_console.print(f"fit stopped: {escape(str(exc))}", highlight=False, soft_wrap=True)
+            raise typer.Exit(130) from None
     result, coarse = done.result, done.problem
     console.print(fit_result_table(result, f"{chosen} model fitted to {len(runs)} run(s)"))
     rms = ", ".join(f"{v:.4g} {u}" for u, v in result.rms_by_unit.items()) or f"{result.rms:.4g} {coarse.data_unit}"
