@@ -227,7 +227,8 @@ def test_a_file_killed_in_its_first_step_says_no_figures_not_an_empty_line(tmp_p
 
     from tests.campaign_kill import kill_at_step
 
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    # its own interlock state: the kill latches the rig, which no other test's run should find latched
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "BENCH_STATE_DIR": str(tmp_path / "state")}
     proc = subprocess.Popen([sys.executable, "-m", "bench", "run", str(ROOT / "protocols" / "short" /
                              "thesis-identification-short.toml"), "--no-live", "--out", str(tmp_path)],
                             cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
