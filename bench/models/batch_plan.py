@@ -15,11 +15,14 @@ from __future__ import annotations
 import functools
 import heapq
 import itertools
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable, Sequence
+from typing import TypeVar
 
 import numpy as np
 
 LANES = 8  # float64 lanes of an AVX-512 register: a chunk of candidates is a whole number of these
+
+T = TypeVar("T")
 
 TASK_COLUMNS = ("record", "first step", "end step", "first column", "end column", "first set", "end set")
 
@@ -92,13 +95,19 @@ def chunks_per_record(m: int, steps: tuple[int, ...], threads: int) -> tuple[int
     out = [best] * len(steps)
     if len(steps) > REFINE_RECORDS:
         return tuple(out)
-    for r in sorted(range(len(steps)), key=lambda i: steps[i]):  # shortest first: cut each no further than needed
-        for s in range(1, best):
-            trial = [*out[:r], s, *out[r + 1:]]
-            if _finish(m, steps, trial, threads) <= finish * (1 + 1e-9):
-                out[r] = s
-                break
+    _cut_no_further(steps, out, range(1, best), lambda trial: _finish(m, steps, trial, threads), finish)
     return tuple(out)
+
+
+def _cut_no_further(steps: tuple[int, ...], out: list[T], fewer: Sequence[T], finish_of: Callable[[list[T]], float],
+                    finish: float) -> None:
+    """Shortest record first, each record's cut in ``out`` replaced by the first of ``fewer`` (fewest chunks first)
+    with which the schedule (``finish_of``) still finishes no later than ``finish``."""
+    for r in sorted(range(len(steps)), key=lambda i: steps[i]):
+        for cut in fewer:
+            if finish_of([*out[:r], cut, *out[r + 1:]]) <= finish * (1 + 1e-9):
+                out[r] = cut
+                break
 
 
 def _splits(regs: int, most: int) -> list[Split]:
@@ -140,14 +149,8 @@ def register_splits(m: int, steps: tuple[int, ...], threads: int) -> tuple[Split
     out = [best] * len(steps)
     if len(steps) > REFINE_RECORDS:
         return tuple(out)
-    for r in sorted(range(len(steps)), key=lambda i: steps[i]):  # shortest first: cut each no further than needed
-        for split in family:
-            if len(split) >= len(best):
-                break
-            trial = [*out[:r], split, *out[r + 1:]]
-            if _finish_split(steps, trial, threads) <= finish * (1 + 1e-9):
-                out[r] = split
-                break
+    _cut_no_further(steps, out, [split for split in family if len(split) < len(best)],
+                    lambda trial: _finish_split(steps, trial, threads), finish)
     return tuple(out)
 
 

@@ -59,6 +59,7 @@ from bench.runtime.ramp import ramp_to_zero
 from bench.runtime.safety import SafetyTrip, Supervisor
 from bench.storage.recorder import STEP_END_CHUNKS, Recorder
 from drivers.errors import InstrumentConnectionError, InstrumentError, InstrumentStateError, OperationCancelledError
+from drivers.interfaces import Amplifier, Reading
 
 SHUTDOWN_REPLY_S = 0.1  # shutdown: a request to the set-point module (or the motor) waits this long for its reply, once
 MOTOR_SETTLE_S = 0.2  # shutdown: the motor's final position is read at least this long after its abort went out
@@ -1460,23 +1461,14 @@ class Engine:
         else:
             # nothing brings the output to 0 V: what it measures is what the file and the operator need most
             path = "UNSAFE: 0 V could not be commanded and the set-point module has no communication watchdog"
-            try:
-                v, i = amp.read_monitors()
-            except InstrumentError as exc:
-                notes.append(f"final monitor read failed: {exc}")
-                self._safe_reads.append((self.now(), math.nan, math.nan))
+            if (read := self._safe_read(amp, notes)) is None:
                 return f"{path}; voltage monitor unreadable"
-            self._safe_reads.append((v.timestamp - self.ctx.t0, v.value, i.value))
-            return f"{path}; voltage monitor {v.value:.0f} V at {v.timestamp - self.ctx.t0:.3f} s"
+            return f"{path}; voltage monitor {read[0].value:.0f} V at {read[0].timestamp - self.ctx.t0:.3f} s"
         deadline = self.now() + DISCHARGE_WAIT_S
         while True:
-            try:
-                v, i = amp.read_monitors()
-            except InstrumentError as exc:
-                notes.append(f"final monitor read failed: {exc}")
-                self._safe_reads.append((self.now(), math.nan, math.nan))
+            if (read := self._safe_read(amp, notes)) is None:
                 return f"{path}; output NOT verified (voltage monitor unreadable)"
-            self._safe_reads.append((v.timestamp - self.ctx.t0, v.value, i.value))
+            v, i = read
             if self._stream is None:  # a DAQ rig's streams end on the last scan: the reading is in the safe event
                 self._record(self.rec.append, "amplifier", v.timestamp - self.ctx.t0, voltage=v.value,
                              current=i.value, **self.ctx.unpolled_monitor_columns())
@@ -1486,6 +1478,18 @@ class Engine:
             if self.now() >= deadline:
                 return f"{path}; WARNING: voltage monitor still reads {v.value:.0f} V at {self.now():.3f} s"
             self._pause_until(self.now() + MONITOR_REREAD_S, urgent_aborts=False)
+
+
+    def _safe_read(self, amp: Amplifier, notes: list[str]) -> tuple[Reading, Reading] | None:
+        """One of the shutdown's monitor reads, kept for :data:`SAFE_STATE` (NaN where it failed: None, said)."""
+        try:
+            v, i = amp.read_monitors()
+        except InstrumentError as exc:
+            notes.append(f"final monitor read failed: {exc}")
+            self._safe_reads.append((self.now(), math.nan, math.nan))
+            return None
+        self._safe_reads.append((v.timestamp - self.ctx.t0, v.value, i.value))
+        return v, i
 
 
 def _is_storage_fault(exc: BaseException) -> bool:
