@@ -5,12 +5,16 @@ from __future__ import annotations
 import math
 import socket
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from drivers.interfaces import StreamSpec
 from drivers.labjack.looping import Loop
 from drivers.labjack.registers import OUT_PACKET_VALUES
+
+if TYPE_CHECKING:
+    from drivers.labjack.packets import StreamBatch
 
 
 @dataclass
@@ -46,6 +50,9 @@ class StreamState:
     next_tid: int = 0
     raw: bytearray = field(default_factory=bytearray)
     pending: list[int] = field(default_factory=list)  # samples of a scan split across packets
+    # packets received and parsed (their numbers taken) but not yet handed out: a receive that a stop request, a
+    # timeout or a lost packet ended keeps them here for the next collect, which numbers their scans
+    received: list[StreamBatch] = field(default_factory=list)
     scans: int = 0  # scan index of the next scan to hand out (skipped ones included)
     packets: int = 0
     out_written: int = 0

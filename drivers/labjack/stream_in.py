@@ -180,8 +180,10 @@ class T7Stream(T7StreamOut):
         until ``until_packets`` total: the whole packets of each receive as one batch."""
         s = self._stream
         assert s is not None and s.sock is not None
-        out: list[StreamBatch] = []
-        got = 0
+        # the batches of a receive that raised (a stop request, a timeout) are kept in the stream's state: their
+        # packet numbers are taken, so dropping them would leave a hole no scan number or NaN row shows
+        out = s.received
+        got = sum(len(b) for b in out)
         self.timer.sending()  # what is waited for from here: the packets, not the reply to the last request (one the
         deadline = self.timer.start(timeout)  # twin withheld says nothing of the stream, which a T7 sends regardless)
         while True:
@@ -219,6 +221,7 @@ class T7Stream(T7StreamOut):
                     got += n
                 continue
             if not wait:
+                s.received = []
                 return out
             if deadline.expired():
                 raise InstrumentTimeoutError(self.name, f"stream packets up to #{until_packets} not received "
