@@ -444,6 +444,10 @@ class StreamingDaq(Instrument, Protocol):
     def stop(self) -> StreamBlock | None:
         """Stop the stream (the output holds its last value); returns the scans that had arrived."""
 
+    def whole_packets_at(self) -> float:
+        """Rig time at which the scans taken so far fill whole packets: a stop sent then loses none of them (the
+        device sends no partly filled packet); at most one packet's time from now."""
+
 
 @runtime_checkable
 class DaqAmplifier(Amplifier, Protocol):

@@ -218,6 +218,9 @@ class FakeDaq:
         return StreamBlock(int(k[0]) if k.size else self._scans, self._t0, 1 / RATE,
                            tuple(i.name for i in self._spec.inputs), volts, np.ones(volts.shape, bool))
 
+    def whole_packets_at(self) -> float:
+        return self.clock.now()  # scan by scan: no packets
+
     def stop(self) -> StreamBlock | None:
         if not self.streaming:
             return None

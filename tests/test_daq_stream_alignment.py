@@ -51,7 +51,9 @@ def test_streams_end_on_the_last_scan_and_commanded_lags_the_program_by_one_scan
     amp, laser = run.streams["amplifier"], run.streams["laser"]
     # one scan clock: the same time array for every DAQ stream (no software-timed sample after the last scan)
     assert len(amp) == len(laser) and np.array_equal(amp.t, laser.t)
-    (timing,) = [text for _, _, k, text in run.event_list() if k == "timing"]
+    # the program's stream, then the shutdown's ramp to 0 V on a stream of its own
+    timing, ramp = [text for _, _, k, text in run.event_list() if k == "timing"]
+    assert "ramp to 0 V" in ramp
     assert "scan 0 at 0.000100 s" in timing  # one scan period after the enable, at run time 0 in virtual time
     t, c = amp.t, amp.columns["commanded"]
     ramp = (t > 0.3) & (t < 1.1)  # clear of the corners (the drive filter's pre-compensation)

@@ -51,7 +51,7 @@ from bench.protocol.program import (
 )
 from bench.runtime.context import LATE_TOLERANCE_S, STOP_POLL_S, RunContext, Snapshot, present
 from bench.runtime.control import CONTROL_POLL_S, NO_WORD, ControlWord, read_control
-from bench.runtime.hardware_timed import HardwareTimed
+from bench.runtime.hardware_timed import FINISH_POLL_S, HardwareTimed
 from bench.runtime.instruments import Instruments
 from bench.runtime.interlock import OUTPUT_ON_V, InterlockTrip, watchdog_period
 from bench.runtime.polls import PAUSED, Poll, StepState, record_laser_block, rig_polls
@@ -77,6 +77,7 @@ LASER_SHUTDOWN_DRAIN_S = 5.0  # after a stop or fault (high voltage already at 0
 PAUSE_POLL_S = 0.1  # while paused: the monitors and sensors are read this often (run time)
 RESTART_STEP_V = 10.0  # a restart ramps the output to the step's start value unless it is this close already
 RESTART_SETTLE_S = 0.1  # after a restart's ramp, before the step starts
+STREAM_RAMP_POLL_S = 0.05  # rig time between the collects of a ramp to 0 V the DAQ plays (its stream-out tops up)
 CATCH_UP = 2.0  # a go-to after skipped set-points goes at most this many times its path's own speed
 SLIP_S = 1e-3  # a step that ends later than this after its scheduled end shifts the rest of the schedule (run time)
 RESTART_MOVE_S = 30.0  # a restart's motor move to the step's start position must end within this (run time)
@@ -275,6 +276,7 @@ class Engine:
         self._live_at = -math.inf
         self._safe_reads: list[tuple[float, float, float]] = []  # the shutdown's verifying reads: (run time, V, A)
         self._final_position = math.nan  # the motor's position read by the shutdown once at rest [m]
+        self._streamed_settle = False  # the shutdown's stream recorded the monitors through the settle after 0 V
         self._pause_by: str | None = None  # who asked for a pause (signal, another thread); None: nobody
         self._resume_by: str | None = None
         self._control_seen: ControlWord = NO_WORD  # control file: (stamp, pause?, by/why, stop?)
@@ -1067,12 +1069,16 @@ class Engine:
         (first: a move under way does not go on through the ramp), the output ramped to 0 V over ``shutdown_ramp_s``
         (supervised set-points), then stored laser data fetched (supervised, :meth:`_drain_laser`)."""
         if self._stream is not None:
-            self._stream.stop()
+            self._stream.stop(whole=True)  # no scan lost before the ramp's stream takes over
             self._stream.forget()
         if self.inst.motor is not None and (self.program.has_motor_axis or self.commands):
             self.ctx.motor.stop()
             self.motion.stopped(self.now())
-        if self.inst.amplifier is not None:
+        if self.inst.amplifier is not None and self._stream is not None and abs(self.ctx.v_cmd) > SAFE_MONITOR_V:
+            # the DAQ plays the ramp and records the specimen's response through it, on the scan clock
+            self._stream_ramp(self.ctx.v_cmd, self.program.rig.limits.shutdown_ramp_s, RESTART_SETTLE_S, pause=True)
+            self._set_voltage(0.0, self.now())  # the DAC already holds 0 V: the host's record of it, verified
+        elif self.inst.amplifier is not None:
             self._ramp_to(0.0, self.program.rig.limits.shutdown_ramp_s)
         if self._storing and self.inst.laser is not None:  # at 0 V: the pause does not wait on the upload
             self.inst.laser.stop_buffer()
@@ -1088,6 +1094,8 @@ class Engine:
         module kept fed."""
         if self.inst.amplifier is not None and self._stream is None and self.ctx.unheard_for() >= HOLD_KEEPALIVE_S:
             self._set_voltage(0.0, self.now())
+        if self._stream is not None and self._stream.has_laser:
+            self._stream.read_laser()  # the laser's AIN by command-response, at the pause's rate (README: pause)
         for poll in rig_polls(self.ctx):
             if poll.name == "monitors":
                 poll.run(self.ctx, math.nan)
@@ -1247,9 +1255,12 @@ class Engine:
             return None
         amp.hurry(SHUTDOWN_REPLY_S)
         unanswered = False
+        streamed: float | None = None
         if self._stream is not None:
             try:
-                self._stream.stop()  # the DAC holds the last value played; the ramp continues from it
+                # the DAC holds the last value played; the ramp continues from it. Whole packets first (at most
+                # one packet's time), so that no scan is lost before the ramp's stream — not when 0 V is due at once
+                self._stream.stop(whole=self.latched is None and not self._urgent.is_set())
             except InstrumentError as exc:
                 notes.append(f"stopping the DAQ stream failed: {exc}")
                 unanswered = True  # the request may have arrived; a ramp of unanswered requests only delays 0 V
@@ -1272,17 +1283,36 @@ class Engine:
             if v0 != 0.0 and self._urgent.is_set():
                 self._event("ramp", "second stop request before the ramp began: 0 V at once")
             if v0 != 0.0 and not self._urgent.is_set():
-                self._event("ramp", f"ramp from {whole(v0)} V to 0 V over {ramp:g} s")
+                self._event("ramp", f"ramp from {whole(v0)} V to 0 V over {ramp:g} s" + (
+                    f", played by the DAQ's stream-out; the inputs recorded on its scan clock until "
+                    f"{MONITOR_SETTLE_S:g} s after 0 V" if self._stream is not None and abs(v0) > SAFE_MONITOR_V
+                    else ""))
 
                 def record(sent: float) -> None:
                     self.ctx.v_cmd = sent
                     self._record(self.rec.append, "setpoints", self.now(), voltage=sent, aperture=math.nan)
 
-                if not ramp_to_zero(amp, v0, ramp, lambda offset: self._ramp_pause(t + offset), record, RAMP_STEPS):
+                if self._stream is not None and abs(v0) > SAFE_MONITOR_V:  # (a program that ended at 0 V: no stream)
+                    streamed = self._stream_ramp(v0, ramp, MONITOR_SETTLE_S)
+                    if streamed is None:
+                        self._event("ramp", "second stop request: 0 V at once")
+                    else:
+                        self._streamed_settle = True
+                        self.ctx.v_cmd = 0.0
+                        self._record(self.rec.append, "setpoints", streamed, voltage=0.0, aperture=math.nan)
+                elif not ramp_to_zero(amp, v0, ramp, lambda offset: self._ramp_pause(t + offset), record, RAMP_STEPS):
                     self._event("ramp", "second stop request: 0 V at once" if self.latched is None else
                                 f"interlock latched during the ramp ({self.latched.kind}): 0 V at once")
         except InstrumentError as exc:
             notes.append(f"voltage ramp-down failed: {exc}")
+        finally:
+            if self._stream is not None:
+                try:
+                    self._stream.stop(whole=True)  # the ramp's stream: its last scans recorded
+                except InstrumentError as exc:
+                    notes.append(f"stopping the DAQ stream failed: {exc}")
+                except OSError:
+                    self._storage_failed = True
         try:
             amp.safe_state()
         except InstrumentError as exc:
@@ -1293,7 +1323,37 @@ class Engine:
             return None
         self.ctx.v_cmd = 0.0
         t_zero = self.now()
+        if self._streamed_settle:  # the stream played 0 V (its set-point row is recorded) and recorded the settle
+            return streamed
         self._record(self.rec.append, "setpoints", t_zero, voltage=0.0, aperture=math.nan)
+        return t_zero
+
+    def _stream_ramp(self, v0: float, ramp: float, settle: float, pause: bool = False) -> float | None:
+        """The ramp from ``v0`` to 0 V played by the DAQ's stream-out (:meth:`HardwareTimed.ramp_down`), the inputs
+        recorded on the scan clock through it and ``settle`` s after 0 V: the specimen's response to the ramp is
+        measured, not only commanded. Returns the run time of the scan that played 0 V; None when a second stop
+        request cut it short (the caller then commands 0 V at once). In a pause (``pause``) a stop request ends
+        it as at any other time (:class:`StopRequested`: the shutdown ramps on from the value last played)."""
+        hw = self._hw
+        t_zero = hw.ramp_down(v0, ramp)
+        self._record(self.rec.append, "setpoints", max(hw.ramp_start, self._setpoint_t), voltage=v0, aperture=math.nan)
+        end = t_zero + settle
+        give_up = end + 1.0  # rig time: packets that stop coming end the wait (the DAC plays the ramp regardless)
+        while hw.recorded_to() < end - 1e-9 and self.now() < give_up:
+            if pause:
+                self._check_stop()
+                self._pause_until(max(self.now() + FINISH_POLL_S, min(end, self.now() + STREAM_RAMP_POLL_S)),
+                                  urgent_aborts=False)
+            elif not self._pause_until(max(self.now() + FINISH_POLL_S, min(end, self.now() + STREAM_RAMP_POLL_S))):
+                hw.stop()
+                return None
+            try:
+                hw.collect_quiet()
+            except OSError:  # a storage fault: the rig is made safe all the same (a run's own collect raises it)
+                if pause:
+                    raise
+                self._storage_failed = True
+        hw.stop(whole=True)
         return t_zero
 
     def _ramp_pause(self, until: float) -> bool:
@@ -1449,7 +1509,10 @@ class Engine:
         if amp is None:
             return "safe: no amplifier on this rig"
         watchdog = watchdog_period(self.program.rig)
-        if zero_at is not None:
+        if zero_at is not None and self._streamed_settle:
+            path = f"0 V commanded by the host at {zero_at:.3f} s (the end of the ramp the DAQ's stream-out played)"
+            # the stream recorded the monitors through the settle: the read follows its last scan
+        elif zero_at is not None:
             path = f"0 V commanded by the host at {zero_at:.3f} s"
             # fresh monitor conversions at the zeroed output
             self._pause_until(self.now() + MONITOR_SETTLE_S, urgent_aborts=False)

@@ -10,6 +10,7 @@ holds the end value). Software-timed actions (motor go-tos, encoder polls) keep 
 
 from __future__ import annotations
 
+import time
 from collections.abc import Sequence
 from dataclasses import replace
 
@@ -136,6 +137,7 @@ class HardwareTimed:
         # (Engine._hand_over)
         self.live_at = -np.inf
         self._last_commanded = 0.0  # the commanded output of the last scan recorded (connecting commands 0 V)
+        self.ramp_start = 0.0  # run time of scan 0 of the ramp's stream (:meth:`ramp_down`)
 
     # ------------------------------------------------------------ one step
     def start(self, seg: Segment) -> None:
@@ -295,14 +297,77 @@ class HardwareTimed:
             self.collect()
         self.stop()
 
+    # ------------------------------------------------------------ the shutdown's and a pause's ramp to 0 V
+    def ramp_down(self, v0: float, ramp_s: float) -> float:
+        """Play the ramp from ``v0`` to 0 V over ``ramp_s`` on a new stream (the running one stopped first, its last
+        scans recorded), 0 V held after it: the monitors and the laser are recorded on the scan clock through the
+        ramp and after it, as long as :meth:`collect_quiet` is called. Returns the run time of the scan that plays
+        0 V (the DAC commands it itself)."""
+        self.stop(whole=True)
+        rate = self.cfg.scan_rate_Hz
+        n = max(1, round(ramp_s * rate))
+        volts = v0 * (1.0 - np.arange(n + 1) / n)  # scan 0 plays v0 (the value the DAC holds), scan n 0 V
+        volts[-1] = 0.0
+        bound, window = self._window()
+        dac = self._dac_values(volts, self.ctx.v_cmd, bound, window)
+        commanded = self._follows(dac, window, self.ctx.v_cmd)
+        self.daq.arm(StreamSpec(rate, self.inputs, StreamOut(self.cfg.dac, dac, hold=1, final=True, within=window),
+                                out_ahead_s=OUT_AHEAD_S, out_loops=False))
+        self._base, self._commanded, self._n, self._appended = 0, commanded, n, None
+        self._tail = self.ctx.v_req = 0.0
+        self.ctx.verifier.restart()
+        t0 = self.daq.kickoff()
+        self._keepalive = self.ctx.clock.now()
+        self.ramp_start = t0 - self.ctx.t0
+        self.ctx.rec.event(self.ctx.now(), self.ctx.snapshot.step, "timing",
+                           f"DAQ scan clock: scan 0 at {self.ramp_start:.6f} s on the run clock, known to "
+                           f"{self.daq.scan_clock_uncertainty * 1e3:.3f} ms (the enable request's round trip): the "
+                           "ramp to 0 V's stream")
+        return self.ramp_start + n / rate
+
+    def recorded_to(self) -> float:
+        """Run time of the last scan recorded from the stream :meth:`ramp_down` started (−inf before its first)."""
+        k = self.daq.scans_received - 1
+        return self.ramp_start + k / self.cfg.scan_rate_Hz if k >= 0 else -np.inf
+
+    def collect_quiet(self) -> None:
+        """Record the scans received so far, unsupervised (the shutdown's and a pause's ramp: nothing may raise a
+        trip there; the zero is verified afterwards), the device's watchdog kept fed."""
+        if not self.daq.streaming:
+            return
+        self._record(self.daq.collect(until=self.ctx.clock.now(), timeout=max(1.0, 4 * self.daq.timeout)),
+                     supervise=False)
+        heard = max(self._keepalive, getattr(self.daq, "answered_at", -np.inf))
+        if self.ctx.clock.now() - heard >= KEEPALIVE_S:
+            self.daq.read_dac(self.cfg.dac)
+            self._keepalive = self.ctx.clock.now()
+
+    def read_laser(self) -> None:
+        """One laser reading by command-response (the stream stopped: a pause), recorded as a laser row."""
+        assert self.cfg.laser_ain is not None
+        r = self.daq.read_ain(self.cfg.laser_ain)
+        head = self.cfg.laser_m_per_V * r.value + self.cfg.laser_offset_m
+        disp = self.ctx.to_specimen(np.array([head]))
+        ok = r.status == "ok" and bool(np.isfinite(disp).all())
+        self.ctx.rec.append("laser", r.timestamp - self.ctx.t0, displacement=disp, valid=np.array([ok], "u1"))
+
     def forget(self) -> None:
         """After a stop that was not the program's (a pause): no step is in the stream any more."""
         self._appended = None
 
-    def stop(self) -> None:
-        """Stop a running stream and record its last scans (the DAC holds the last value played)."""
+    def stop(self, whole: bool = False) -> None:
+        """Stop a running stream and record its last scans (the DAC holds the last value played). ``whole``: first
+        wait (at most one packet's time, on the rig clock) until the scans taken fill whole packets, so that the
+        stop loses no scan before it (the device sends no partly filled packet): a stream that another follows at
+        once (the ramp to 0 V) then leaves no hole of up to a packet between them."""
         if not self.daq.streaming:
             return
+        if whole:
+            t = self.daq.whole_packets_at()
+            if self.ctx.clock.virtual:
+                self.ctx.clock.wait_until(t)
+            elif (left := t - self.ctx.clock.now()) > 0:
+                time.sleep(left)
         block = self.daq.stop()
         if block is not None:
             self._record(block, supervise=False)

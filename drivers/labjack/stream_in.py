@@ -55,6 +55,7 @@ from drivers.labjack.registers import (
 )
 from drivers.labjack.stream_out import T7StreamOut
 
+STOP_DRAIN_S = 0.05  # a stop waits at most this long for the packets filled before it was sent
 # the statuses after which the device sends no more packets
 _ENDING = (ST_BURST_COMPLETE, ST_BUFFER_FULL, ST_SCAN_OVERLAP, ST_RECOVER_OVERFLOW)
 
@@ -344,6 +345,19 @@ class T7Stream(T7StreamOut):
                 return blocks
             self.sleep(poll)
 
+    def whole_packets_at(self) -> float:
+        """Rig time at which the scans due by now fill whole packets (scan k is taken (k + 1) scan periods after the
+        enable): a stop sent then loses no scan taken before it but those of the packet it interrupts, which the
+        device does not send. Now, when no stream runs."""
+        s = self._stream
+        now = self.clock()
+        if s is None or not self.streaming:
+            return now
+        scans = max(math.floor((now - s.t_enable) * s.plan.scan_rate + 1e-6), 0)
+        spp = s.plan.samples_per_packet
+        samples = -(-scans * s.n_in // spp) * spp  # up to the end of the packet being filled
+        return s.t_enable + -(-samples // s.n_in) * s.plan.dt
+
     def stop(self, *, always_send: bool = False) -> StreamBlock | None:
         """STREAM_ENABLE = 0 (the DAC keeps its last value) and close the stream socket; returns the complete
         scans that had arrived (a partly filled packet is not sent by the device). ``always_send``: the stop goes
@@ -352,13 +366,17 @@ class T7Stream(T7StreamOut):
         if s is None or s.sock is None:
             return None
         block = None
+        asked = self.clock()
         try:
             if self.streaming:
                 self._lj("stop stream", lambda unit, *a: self.link.write_registers(unit, *a, always_send=always_send),
                          STREAM_ENABLE, u32_words(0))
             self.streaming = False
             with contextlib.suppress(InstrumentError):  # stopping must not fail on the data's account
-                block = self.collect(timeout=0.0)
+                try:  # the packets filled before the stop was sent are on their way: a short wait for them
+                    block = self.collect(until=asked, timeout=STOP_DRAIN_S)
+                except InstrumentTimeoutError:  # what did arrive (kept by the receive) and no more
+                    block = self.collect(timeout=0.0)
         finally:
             self.streaming = False
             s.done = True
