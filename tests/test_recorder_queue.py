@@ -85,6 +85,7 @@ def test_a_stream_with_eight_chunks_queued_is_written_at_once_in_whole_chunks(
     chunk written, so none rewritten), the rest at the finish. Chunks are 0.25 s of a stream, at least 256 samples:
     256 at 1 kHz, 1000 at 4 kHz. Writes on the caller's thread (no thread to be had), so their order is fixed."""
     monkeypatch.setattr(recorder, "FLUSH_CHUNKS", 8)
+    monkeypatch.setattr(recorder, "QUEUED_MAX_S", np.inf)  # the chunk count alone (the rig-time rule: below)
     path = tmp_path / "run.h5"
     rec = _two_streams(path, "chunks", 4000.0)
     writes: list[dict[str, int]] = []
@@ -108,6 +109,26 @@ def test_a_stream_with_eight_chunks_queued_is_written_at_once_in_whole_chunks(
     np.testing.assert_array_equal(run.streams["laser"].t, laser_t)
     np.testing.assert_array_equal(run.streams["laser"].columns["voltage"], laser_t)
     assert run.updated == max(amp_t[-1], laser_t[-1])  # the last sample's rig time
+
+
+def test_a_stream_whose_queue_spans_queued_max_s_of_rig_time_is_written_at_once_in_whole_chunks(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Faster than real time FLUSH_CHUNKS chunks (4 s of a stream) waited for their write, and a storage fault was
+    found only then: a stream whose queued samples span QUEUED_MAX_S (1 s) of the run clock is written at once, its
+    whole chunks (256 samples at 1 kHz), the tail left queued. No timed flush; writes on the caller's thread."""
+    path = tmp_path / "run.h5"
+    rec = _two_streams(path, "span", 4000.0)
+    works = _spy_on_writes(monkeypatch)
+    t = np.arange(1200) / 1000.0
+    with monkeypatch.context() as m:
+        m.setattr(recorder.threading, "Thread", _NoThread)
+        rec.append("amplifier", t[:900], voltage=t[:900])  # 0.899 s queued: nothing yet
+        rec.append("amplifier", t[900:1000], voltage=t[900:1000])  # 0.999 s
+        assert works == []
+        rec.append("amplifier", t[1000:], voltage=t[1000:])  # 1.199 s ≥ 1 s: 4 whole chunks (1024) written
+        assert works == [({"amplifier": 1024}, 0, 0.0)]
+    rec.finish("completed", "ok")
+    np.testing.assert_array_equal(open_run(path).streams["amplifier"].t, t)
 
 
 def _spy_on_writes(monkeypatch: pytest.MonkeyPatch) -> list[tuple[dict[str, int], int, float]]:
@@ -184,6 +205,7 @@ def test_write_ahead_writes_the_whole_chunks_queued_from_its_minimum_and_nothing
     tail, the events and the valid-up-to time left queued, as a write of whole chunks does; the finish writes the
     rest. Chunks: 256 samples at 1 kHz, 1000 at 4 kHz. Writes on
     the caller's thread (no thread to be had), so their order is fixed."""
+    monkeypatch.setattr(recorder, "QUEUED_MAX_S", np.inf)  # write_ahead's rule alone (the rig-time rule: below)
     path = tmp_path / "run.h5"
     rec = _two_streams(path, "ahead", 4000.0)
     works = _spy_on_writes(monkeypatch)

@@ -25,18 +25,18 @@ Every time base (and ``/program/index``) is an HDF5 dimension scale attached to 
 netCDF readers (xarray, netCDF4, h5netcdf) see it as the group's dimension and coordinate; every numeric
 dataset has a ``units`` attribute ("1": dimensionless); every string is declared UTF-8.
 
-Datasets, dimension scales and attributes are created before SWMR mode starts (HDF5 allows no attribute change
-under SWMR); the datasets are then appended in blocks and flushed at least every
-``flush_interval`` seconds of wall time, so another process can read the file during the run: every
-``append``/``event`` checks the interval itself (a caller busy elsewhere, e.g. uploading stored laser data for
-30 s, still has its data on disk within the interval), and ``maybe_flush`` covers stretches without data. A stream
-with :data:`FLUSH_CHUNKS` chunks queued is written sooner, its whole chunks only (data faster than real time: a
-virtual-time run); so is every stream's at a step's end from :data:`STEP_END_CHUNKS` chunks and at the run's end
-from one (:meth:`Recorder.write_ahead`), which leaves the finish only the tails. Those flushes take the queued
-data on the caller's thread and write it on a background thread (h5py releases the GIL while HDF5 compresses and
-writes, so the run goes on meanwhile); one write at a time, in order. A failure there is raised on the caller's
-thread by its next recorder call. :meth:`Recorder.flush`, ``set_state`` and ``finish`` first wait for a write under
-way, then write on the caller's thread.
+Datasets, dimension scales and attributes are created before SWMR mode starts (HDF5 allows no attribute change under
+SWMR); the datasets are then appended in blocks and flushed at least every ``flush_interval`` seconds of wall time,
+so another process can read the file during the run: every ``append``/``event`` checks the interval itself (a caller
+busy elsewhere, e.g. uploading stored laser data for 30 s, still has its data on disk within the interval), and
+``maybe_flush`` covers stretches without data. A stream with :data:`FLUSH_CHUNKS` chunks queued, or whose queue
+spans :data:`QUEUED_MAX_S` of the run clock, is written sooner, its whole chunks only (data faster than real time: a
+virtual-time run; the second rule bounds what a storage fault leaves unwritten); so is every stream's at a step's
+end from :data:`STEP_END_CHUNKS` chunks and at the run's end from one (:meth:`Recorder.write_ahead`), which leaves
+the finish only the tails. Those flushes take the queued data on the caller's thread and write it on a background
+thread (h5py releases the GIL while HDF5 compresses and writes, so the run goes on meanwhile); one write at a time,
+in order. A failure there is raised on the caller's thread by its next recorder call. :meth:`Recorder.flush`,
+``set_state`` and ``finish`` first wait for a write under way, then write on the caller's thread.
 
 A failed write (disk full, file-size limit, unwritable directory, any HDF5 error) raises one
 :class:`StorageError` naming the file and the cause; the recorder is then *failed*: further calls are no-ops,
@@ -98,6 +98,10 @@ FLUSH_CHUNKS = 16  # a stream with this many chunks queued is written at once (i
 # interval: faster than real time (virtual time) the interval alone left a short run's whole file to be written after
 # its last step; a write costs about two chunks' compression besides its data, which 16 keep to an eighth of it (real
 # time: the interval comes first)
+QUEUED_MAX_S = 4 * CHUNK_S  # a stream whose queued samples span this much of the run clock (rig time) is written
+# at once, its whole chunks: faster than real time FLUSH_CHUNKS chunks (4 s of a stream) could wait in memory, and a
+# storage fault was only found at their write — a virtual run drove on for 3.25 s of rig time with nothing recorded
+# after a disk filled (real time: the interval comes first). A second costs half a chunk's compression per chunk.
 STEP_END_CHUNKS = FLUSH_CHUNKS // 4  # a step's end starts a write of the whole chunks queued once a stream has this
 # many (a second of it) and would not reach FLUSH_CHUNKS before the program ends: its data then compresses during the
 # next steps, not after the last one on the run's thread; earlier steps' chunks, and those of steps of less, are left
@@ -554,7 +558,10 @@ class Recorder:
         for name, values in block.items():  # all or nothing: the columns of a stream stay equally long
             buf[name].append(values)
         self._queued[stream] += n
-        self._due = self._due or self._queued[stream] >= FLUSH_CHUNKS * self._chunks[stream]
+        chunk, taken = self._chunks[stream], self._taken[stream]
+        self._due = (self._due or self._queued[stream] >= FLUSH_CHUNKS * chunk
+                     or (n > 0 and (taken + self._queued[stream]) // chunk > taken // chunk  # a whole chunk queued
+                         and float(times[-1]) - float(buf["t"][0][0]) >= QUEUED_MAX_S))
         self._cpu_queue += time.thread_time() - c0
         self.maybe_flush()
 
