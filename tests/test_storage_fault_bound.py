@@ -29,20 +29,31 @@ COLLECT_S = 0.05  # the run's recorder calls (a DAQ rig's collects; the monitors
 @pytest.mark.parametrize("rig", ["thesis-daq-sim", "thesis-sim"])
 def test_a_full_disk_stops_the_run_within_the_bound_after_the_first_failed_write(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch, rig: str) -> None:
-    failed: list[float] = []  # run times of the writes that failed
+    failed: list[float] = []  # run times at which the writes that failed were taken (the caller's thread)
+    starts: list[float] = []  # the first sample time of each failed write's data
     now: list = []
-    real = recmod.Recorder._write
+    taken: dict[int, float] = {}  # id(work) → the run time it was taken at (the engine's thread: deterministic)
+    real_take, real_write = recmod.Recorder._take, recmod.Recorder._write
+
+    def take(self: recmod.Recorder, whole_chunks: bool = False) -> recmod._Work:
+        work = real_take(self, whole_chunks)
+        taken[id(work)] = now[0]() if now else -1.0
+        return work
 
     def write(self: recmod.Recorder, work: recmod._Work) -> None:
-        t = now[0]() if now else -1.0
-        if t >= 4.0 or failed:  # the disk is full from run time 4 s on
+        # the disk is full for every write taken from run time 4 s on (decided where the work was taken, not where
+        # the background thread ran it: under load that thread runs late, and a virtual clock does not wait for it)
+        t = taken.get(id(work), -1.0)
+        if t >= 4.0 or failed:
             failed.append(t)
+            starts.extend(float(data["t"][0]) for _, _, data, n in work[0] if n)
             raise OSError(errno.ENOSPC, "No space left on device")
-        real(self, work)
+        real_write(self, work)
 
     def hook(engine: Engine, _sim) -> None:
         now.append(engine.now)
 
+    monkeypatch.setattr(recmod.Recorder, "_take", take)
     monkeypatch.setattr(recmod.Recorder, "_write", write)
     result = execute(plan_run(SWEEPS, ROOT / "rigs" / f"{rig}.toml"), tmp_path / "run.h5", virtual=True,
                      on_engine=hook)
@@ -57,3 +68,4 @@ def test_a_full_disk_stops_the_run_within_the_bound_after_the_first_failed_write
         t = run.streams[name].t
         assert t[-1] >= first - QUEUED_MAX_S - CHUNK_S - COLLECT_S, (name, t[-1], first)
         assert np.all(np.diff(t) > 0)
+    assert min(starts) >= first - QUEUED_MAX_S - CHUNK_S - COLLECT_S  # what the failed write held: its queue's span
