@@ -84,17 +84,17 @@ def allowed_fields(root: Any, path: tuple[Any, ...]) -> list[str]:
             return [tp]
         return [m for a in get_args(tp) for m in models(a)]
 
-    def tag(m: type[BaseModel]) -> object:
+    def tags(m: type[BaseModel]) -> tuple[object, ...]:
+        """Every ``type`` the model is tagged with (a hold step is also ``wait`` and ``relax``)."""
         f = m.model_fields.get("type")
-        args = get_args(f.annotation) if f is not None and get_origin(f.annotation) is Literal else ()
-        return args[0] if args else None
+        return get_args(f.annotation) if f is not None and get_origin(f.annotation) is Literal else ()
 
     level = models(root)
     for key in path:
         if isinstance(key, int):  # a list's index: its items' models are already in the level
             continue
         level = [n for m in level for n in (models(m.model_fields[key].annotation) if key in m.model_fields
-                                            else [m] if tag(m) == key else [])]
+                                            else [m] if key in tags(m) else [])]
     return sorted({f.alias or name for m in level for name, f in m.model_fields.items()})
 
 

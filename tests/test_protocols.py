@@ -605,6 +605,9 @@ def test_the_dry_runs_current_line_shows_the_current_and_the_limit_apart(tmp_pat
      "specimen.temprature_K: Extra inputs are not permitted; did you mean temperature_K?"),
     ("displacement_Hz = 10000", "displacment_Hz = 10000",
      "recording.displacment_Hz: Extra inputs are not permitted; did you mean displacement_Hz?"),
+    # a relax step is a hold step's model under its second tag (a reviewer: only the first tag was matched)
+    ('name = "recovery"\nduration_s = 1.0', 'name = "recovery"\nduraton_s = 1.0',
+     "steps[1](recovery).duraton_s: Extra inputs are not permitted; did you mean duration_s?"),
 ])
 def test_a_misspelt_field_is_named_with_the_field_meant(tmp_path: Path, old: str, new: str, said: str) -> None:
     """A typo in a field's name gave pydantic's "Extra inputs are not permitted" alone (or, in a step, the field
