@@ -125,9 +125,12 @@ def _read_only_folder(where: Path, files: list[Path]) -> Iterator[Path]:
     if os.geteuid() != 0:
         for f in files:
             shutil.copy2(f, where / f.name)
+            (where / f.name).chmod(0o444)  # the run file too: --into opens it for writing (a reviewer)
         where.chmod(0o555)
-        yield where
-        where.chmod(0o755)
+        try:
+            yield where
+        finally:
+            where.chmod(0o755)
         return
     res = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=64m", "tmpfs", str(where)], capture_output=True)
     if res.returncode != 0:
