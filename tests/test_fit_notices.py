@@ -117,6 +117,36 @@ def test_a_stopped_run_is_said_to_have_stopped_before_the_fit(stopped_run: Path)
     assert out.index(note) < out.index("fitting the membrane model")
 
 
+def test_ctrl_c_to_the_process_group_stops_a_fit_on_workers_in_one_line(short_run: Path, tmp_path: Path) -> None:
+    """A terminal's Ctrl-C reaches the whole process group, `--workers`' dask processes too: each died of it with
+    dask's tracebacks (104 lines on stderr for two workers, a reviewer's guess confirmed) while the fit stopped. The
+    workers are spawned with SIGINT ignored: the fit's own process stops and closes the cluster, one line, exit
+    130, nothing stored."""
+    import signal
+    import sys
+    import time
+
+    pytest.importorskip("distributed")
+    run = _copy(short_run, tmp_path / "run.h5")
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "PYTHONUNBUFFERED": "1", "COLUMNS": "400"}
+    proc = subprocess.Popen([sys.executable, "-m", "bench", "fit", str(run), "--workers", "2", "--generations",
+                             "40", "--no-intervals"], cwd=ROOT, env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+    assert proc.stdout is not None and proc.stderr is not None
+    seen = ""
+    while "evaluating candidates on the dask cluster" not in seen:  # the workers up, the search begun
+        line = proc.stdout.readline()
+        assert line, proc.stderr.read()
+        seen += line
+    time.sleep(3.0)
+    os.killpg(proc.pid, signal.SIGINT)  # as a terminal sends it: to every process of the group
+    _out, err = proc.communicate(timeout=300)
+    assert proc.returncode == 130, err
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("fit stopped: Ctrl-C in the "), err
+    assert "Traceback" not in err and not (tmp_path / "run.fit.hdf5").exists()
+
+
 @contextlib.contextmanager
 def _read_only_folder(where: Path, files: list[Path]) -> Iterator[Path]:
     """``files`` copied into a folder that cannot be written, even by root: a tmpfs remounted read-only (as the

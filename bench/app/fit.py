@@ -14,6 +14,7 @@ if TYPE_CHECKING:
     from bench.app import Progress
     from bench.identify.campaign import CampaignReport
     from bench.identify.core import FitResult, FitSettings, Problem, RecordedProblem
+    from bench.identify.problems import LozengeProblem, MembraneProblem
     from bench.storage.chunks import StreamChunks
 
 
@@ -184,10 +185,6 @@ def fit_runs(runs: list[Path], model: str, settings: FitSettings, *, branches: i
     ``scheduler`` (address) or ``workers`` (LocalCluster) is given (membrane model: ``on_cluster`` gets its
     address). ``on_read`` gets the problem once the records are read; ``progress`` the fraction of generations,
     ``stage`` the stage after the search ("polish", "intervals") and the share of it done, never going back."""
-    from bench.app.cluster import cluster_client
-    from bench.identify.campaign import campaign_identifiability
-    from bench.identify.core import fit
-    from bench.identify.monitor import Stopped
     from bench.identify.problems import LozengeProblem, MembraneProblem
 
     check_fittable(runs, into)
@@ -217,6 +214,26 @@ def fit_runs(runs: list[Path], model: str, settings: FitSettings, *, branches: i
             share = done[0] / total
         if progress is not None:
             progress(share)
+
+    try:
+        return _search_and_store(coarse, fine, model, runs, settings, scheduler, workers, into, export, on_cluster,
+                                 generation, done, total, stage)
+    except KeyboardInterrupt:  # before the search's own stop took over: the cluster starting, the records spread
+        raise FitStopped("Ctrl-C before the search began (starting the cluster); nothing stored") from None
+
+
+def _search_and_store(coarse: MembraneProblem | LozengeProblem, fine: MembraneProblem | LozengeProblem, model: str,
+                      runs: list[Path],
+                      settings: FitSettings, scheduler: str | None, workers: int | None, into: bool,
+                      export: Path | None, on_cluster: Callable[[str], None] | None, generation: Callable[[], None],
+                      done: list[int], total: int, stage: Callable[[str, float], None] | None) -> Fitted:
+    """:func:`fit_runs` from the cluster on: the search, polish and identifiability (Ctrl-C: one line, nothing
+    stored), then the stores (not cut short)."""
+    from bench.app.cluster import cluster_client
+    from bench.identify.campaign import campaign_identifiability
+    from bench.identify.core import fit
+    from bench.identify.monitor import Stopped
+    from bench.identify.problems import MembraneProblem
 
     with cluster_client(scheduler, workers) as client:
         if client is not None:

@@ -60,13 +60,33 @@ def cluster_client(scheduler: str | None = None, workers: int | None = None) -> 
     # so every tile's prediction buffers (a few MB, freed at the tile's end) were mapped afresh and page-faulted in
     # again: tens of thousands of page faults a search that the in-process fit never pays (README "On a cluster")
     with dask.config.set({"distributed.worker.profile.enabled": False,
-                          "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}), \
-            LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster, \
-            Client(cluster) as client:
-        # our workers' closing heartbeats fail without a traceback on stderr (worker_plugins); another's cluster
-        # (scheduler=) keeps its own plugins
-        client.register_plugin(QuietClosingHeartbeat())
-        yield client
+                          "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}):
+        with _sigint_ignored_in_children():  # only while the worker processes are spawned
+            cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0")
+        with cluster, Client(cluster) as client:
+            # our workers' closing heartbeats fail without a traceback on stderr (worker_plugins); another's cluster
+            # (scheduler=) keeps its own plugins
+            client.register_plugin(QuietClosingHeartbeat())
+            yield client
+
+
+@contextlib.contextmanager
+def _sigint_ignored_in_children() -> Iterator[None]:
+    """SIGINT ignored while the cluster's worker processes are spawned, so that they inherit it ignored (an ignored
+    signal survives exec; Python then installs no KeyboardInterrupt for it): a terminal's Ctrl-C reaches the whole
+    process group, and each worker died of it with dask's tracebacks (104 lines on stderr for two workers) while
+    the fit itself stopped in one line. The fit's own process handles the stop and closes the cluster. Restored at
+    once (the main thread only: elsewhere nothing can be changed)."""
+    import signal
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    before = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, before)
 
 
 def tile_cost(steps: Sequence[int], tile: Tile) -> float:
