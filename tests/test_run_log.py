@@ -144,31 +144,3 @@ def test_a_stop_raised_in_the_console_write_leaves_the_run_log_its_line(tmp_path
         with pytest.raises(OperationCancelledError):
             logging.getLogger("bench.runtime.run").warning("connecting the instruments")
     assert "connecting the instruments" in log_file.read_text(encoding="utf-8")
-
-
-@pytest.mark.parametrize("quiet", [False, True])
-def test_how_a_run_ended_is_said_once_on_stderr(tmp_path: Path, capsys: pytest.CaptureFixture[str],
-                                                quiet: bool) -> None:
-    """An interrupted run printed its reason twice (outside tester): an ``ERROR bench.cli: interrupted: …`` log
-    line, then the summary's ``interrupted: …``. The log line goes to the run log; on stderr only with -q, where
-    the summary is not printed and it is the only account."""
-    from types import SimpleNamespace
-
-    from bench.cli.common import console
-    from bench.cli.logs import configure_console, run_log
-    from bench.cli.run import _log_result
-
-    was = console.quiet
-    console.quiet = quiet
-    configure_console(0, quiet)
-    try:
-        with run_log(tmp_path / "r.h5") as log_file:
-            _log_result(SimpleNamespace(state="interrupted", reason="Ctrl-C (SIGINT) in step 1",  # type: ignore[arg-type]
-                                        safe_path="ramped to 0 V", samples=10))
-    finally:
-        console.quiet = was
-        configure_console(0, False)
-    said = [ln for ln in capsys.readouterr().err.splitlines() if "Ctrl-C (SIGINT) in step 1" in ln]
-    assert len(said) == (1 if quiet else 0), said
-    assert "ERROR" in log_file.read_text(encoding="utf-8") and "interrupted: Ctrl-C (SIGINT) in step 1" in \
-        log_file.read_text(encoding="utf-8")

@@ -16,7 +16,6 @@ from typing import TextIO
 LOGGERS = ("bench", "drivers", "sim_devices")
 FORMAT = "%(asctime)s %(levelname)-7s %(name)s: %(message)s"
 log = logging.getLogger("bench.cli")
-FILE_ONLY = "file_only"  # a record's ``extra`` key: true keeps it off stderr (the command prints its own line)
 
 
 def _reraise_stops(handler: logging.Handler, record: logging.LogRecord) -> None:
@@ -47,8 +46,6 @@ class _Stderr(logging.StreamHandler[TextIO]):
         super().__init__(sys.stderr)
 
     def emit(self, record: logging.LogRecord) -> None:
-        if getattr(record, FILE_ONLY, False):
-            return
         self.stream = sys.stderr
         super().emit(record)
 

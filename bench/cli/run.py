@@ -16,7 +16,7 @@ import typer
 
 from bench.cli.common import JsonOpt, Table, clean_errors, console, escape, fail, json_mode, print_json, progress
 from bench.cli.completion import protocol_files, protocol_names, rig_files
-from bench.cli.logs import FILE_ONLY, log, run_log
+from bench.cli.logs import log, run_log
 
 if TYPE_CHECKING:
     from bench.app.runs import Inspection, PreparedRun
@@ -295,11 +295,9 @@ def _show_result(result: RunResult, log_file: Path, rig_name: str) -> None:
 
 
 def _log_result(result: RunResult) -> None:
-    """How the run ended, into the run log (its events are already there: the recorder logs each as it happens);
-    on stderr too only with -q, where the summary that says the same (:func:`_print_result`) is not printed: a
-    run that did not complete showed its reason twice, an ``ERROR bench.cli:`` line and then the summary's."""
+    """How the run ended, into the run log (its events are already there: the recorder logs each as it happens)."""
     log.log(logging.INFO if result.state == "completed" else logging.ERROR, "%s: %s; high voltage: %s; %d samples",
-            result.state, result.reason, result.safe_path, result.samples, extra={FILE_ONLY: not console.quiet})
+            result.state, result.reason, result.safe_path, result.samples)
 
 
 def _execute(prepared: PreparedRun, live: bool,
