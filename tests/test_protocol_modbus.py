@@ -265,6 +265,8 @@ def _connect_script(enable: bytes) -> list[tuple[bytes, bytes | None]]:
             (rtu(2, 3, b"\x00\xd2\x00\x02"), rtu(2, 3, 4, b"\x40\x17\x50\x00")),
             (rtu(1, 3, b"\x00\xd7\x00\x01"), rtu(1, 3, 2, b"\x00\x00")),
             (rtu(1, 6, b"\x00\x00\x08\x00"), rtu(1, 6, b"\x00\x00\x08\x00")),
+            # ADAM-4017+ 40221 channel enable (read as register 220): V and I, channels 0 and 1
+            (rtu(2, 3, b"\x00\xdc\x00\x01"), rtu(2, 3, 2, b"\x00\x03")),
             (rtu(1, 3, b"\x00\xd6\x00\x01"), rtu(1, 3, 2, enable))]
 
 

@@ -211,7 +211,11 @@ def _boot_id() -> str:
 
 
 def _started(pid: int) -> str:
-    """When process ``pid`` started, in clock ticks since boot (field 22 of ``/proc/PID/stat``; '' if unknown)."""
+    """When process ``pid`` started, in clock ticks since boot (field 22 of ``/proc/PID/stat``; '' if unknown, and
+    on Windows, which has no ``/proc``: the test that pretends to be Windows on Linux read another process's start
+    there and took a live marker for a reused ID whenever a process 4242 happened to exist)."""
+    if sys.platform == "win32":
+        return ""
     try:
         stat = Path(f"/proc/{pid}/stat").read_text(encoding="ascii", errors="replace")
     except OSError:
