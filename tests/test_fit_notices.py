@@ -131,7 +131,7 @@ def test_ctrl_c_to_the_process_group_stops_a_fit_on_workers_in_one_line(short_ru
     env = {**os.environ, "PYTHONPATH": str(ROOT), "PYTHONUNBUFFERED": "1", "COLUMNS": "400"}
     proc = subprocess.Popen([sys.executable, "-m", "bench", "fit", str(run), "--workers", "2", "--generations",
                              "40", "--no-intervals"], cwd=ROOT, env=env, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+                            stderr=subprocess.PIPE, text=True, start_new_session=True, preexec_fn=_sigint_default)
     assert proc.stdout is not None and proc.stderr is not None
     seen = ""
     while "evaluating candidates on the dask cluster" not in seen:  # the workers up, the search begun
@@ -192,6 +192,15 @@ def test_an_unwritable_destination_is_refused_in_one_line_before_the_search(shor
         assert not (tmp_path / "w.fit.hdf5").exists() and sorted(p.name for p in ro.iterdir()) == ["run.h5"]
 
 
+def _sigint_default() -> None:
+    """In the child before exec: SIGINT to its default, as a terminal's process has it. A suite started in the
+    background (a non-interactive shell's ``&``) inherits SIGINT ignored, which the fit then rightly keeps: a
+    process started ignoring Ctrl-C is meant to."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def test_ctrl_c_stops_a_fit_within_a_batch_in_one_line_storing_nothing(short_run: Path, tmp_path: Path) -> None:
     """Ctrl-C on `bench fit` (the default three starts, searching in threads of their own) was taken by the main
     thread only, which then waited for every start to finish its search (2 min 20 s for the tester) and exited 130
@@ -205,7 +214,8 @@ def test_ctrl_c_stops_a_fit_within_a_batch_in_one_line_storing_nothing(short_run
     run = _copy(short_run, tmp_path / "run.h5")
     env = {**os.environ, "PYTHONPATH": str(ROOT), "PYTHONUNBUFFERED": "1", "COLUMNS": "400"}
     proc = subprocess.Popen([sys.executable, "-m", "bench", "fit", str(run), "--generations", "40", "--no-intervals"],
-                            cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=_sigint_default)
     assert proc.stdout is not None and proc.stderr is not None
     seen = ""
     while "fitting the membrane model" not in seen:  # the records read, the search begun
