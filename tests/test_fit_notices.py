@@ -12,7 +12,7 @@ import json
 import os
 import shutil
 import subprocess
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import h5py
@@ -123,26 +123,12 @@ def test_ctrl_c_to_the_process_group_stops_a_fit_on_workers_in_one_line(short_ru
     workers are spawned with SIGINT ignored: the fit's own process stops and closes the cluster, one line, exit
     130, nothing stored."""
     import signal
-    import sys
-    import time
 
     pytest.importorskip("distributed")
     run = _copy(short_run, tmp_path / "run.h5")
-    env = {**os.environ, "PYTHONPATH": str(ROOT), "PYTHONUNBUFFERED": "1", "COLUMNS": "400"}
-    proc = subprocess.Popen([sys.executable, "-m", "bench", "fit", str(run), "--workers", "2", "--generations",
-                             "40", "--no-intervals"], cwd=ROOT, env=env, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, start_new_session=True, preexec_fn=_sigint_default)
-    assert proc.stdout is not None and proc.stderr is not None
-    seen = ""
-    while "evaluating candidates on the dask cluster" not in seen:  # the workers up, the search begun
-        line = proc.stdout.readline()
-        assert line, proc.stderr.read()
-        seen += line
-    time.sleep(3.0)
-    os.killpg(proc.pid, signal.SIGINT)  # as a terminal sends it: to every process of the group
-    _out, err = proc.communicate(timeout=300)
-    assert proc.returncode == 130, err
-    lines = [ln for ln in err.splitlines() if ln.strip()]
+    # the workers up, the search begun; then Ctrl-C as a terminal sends it: to every process of the group
+    _out, err, lines = _interrupted_fit(["--workers", "2"], run, "evaluating candidates on the dask cluster", 3.0,
+                                        lambda proc: os.killpg(proc.pid, signal.SIGINT))
     assert len(lines) == 1 and lines[0].startswith("fit stopped: Ctrl-C in the "), err
     assert "Traceback" not in err and not (tmp_path / "run.fit.hdf5").exists()
 
@@ -192,6 +178,31 @@ def test_an_unwritable_destination_is_refused_in_one_line_before_the_search(shor
         assert not (tmp_path / "w.fit.hdf5").exists() and sorted(p.name for p in ro.iterdir()) == ["run.h5"]
 
 
+def _interrupted_fit(args: list[str], run: Path, begun: str, after_s: float,
+                     interrupt: Callable[[subprocess.Popen[str]], None]) -> tuple[str, str, list[str]]:
+    """`bench fit RUN *args` (40 generations, no intervals) in a process of its own session, interrupted
+    (``interrupt``) ``after_s`` after its output says ``begun``: (stdout, stderr, stderr's non-blank lines); the
+    exit status checked to be SIGINT's (130)."""
+    import sys
+    import time
+
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "PYTHONUNBUFFERED": "1", "COLUMNS": "400"}
+    proc = subprocess.Popen([sys.executable, "-m", "bench", "fit", str(run), *args, "--generations", "40",
+                             "--no-intervals"], cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, start_new_session=True, preexec_fn=_sigint_default)
+    assert proc.stdout is not None and proc.stderr is not None
+    seen = ""
+    while begun not in seen:
+        line = proc.stdout.readline()
+        assert line, proc.stderr.read()
+        seen += line
+    time.sleep(after_s)
+    interrupt(proc)
+    out, err = proc.communicate(timeout=300)
+    assert proc.returncode == 130, err
+    return out, err, [ln for ln in err.splitlines() if ln.strip()]
+
+
 def _sigint_default() -> None:
     """In the child before exec: SIGINT to its default, as a terminal's process has it. A suite started in the
     background (a non-interactive shell's ``&``) inherits SIGINT ignored, which the fit then rightly keeps: a
@@ -208,25 +219,11 @@ def test_ctrl_c_stops_a_fit_within_a_batch_in_one_line_storing_nothing(short_run
     Stopped before the search's end: fewer generations done than asked (the line's count, all starts)."""
     import re
     import signal
-    import sys
-    import time
 
     run = _copy(short_run, tmp_path / "run.h5")
-    env = {**os.environ, "PYTHONPATH": str(ROOT), "PYTHONUNBUFFERED": "1", "COLUMNS": "400"}
-    proc = subprocess.Popen([sys.executable, "-m", "bench", "fit", str(run), "--generations", "40", "--no-intervals"],
-                            cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            preexec_fn=_sigint_default)
-    assert proc.stdout is not None and proc.stderr is not None
-    seen = ""
-    while "fitting the membrane model" not in seen:  # the records read, the search begun
-        line = proc.stdout.readline()
-        assert line, proc.stderr.read()
-        seen += line
-    time.sleep(4.0)  # a few generations into the search
-    proc.send_signal(signal.SIGINT)
-    out, err = proc.communicate(timeout=300)
-    assert proc.returncode == 130, err
-    lines = [ln for ln in err.splitlines() if ln.strip()]
+    # the records read, the search begun, a few generations into it
+    out, err, lines = _interrupted_fit([], run, "fitting the membrane model", 4.0,
+                                       lambda proc: proc.send_signal(signal.SIGINT))
     assert len(lines) == 1, err
     m = re.fullmatch(r"fit stopped: Ctrl-C in the differential evolution, after (\d+) of 120 generations \(all "
                      r"starts\); nothing stored", lines[0])
