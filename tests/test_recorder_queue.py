@@ -326,3 +326,40 @@ def test_a_storage_fault_marks_the_reason_only_of_a_run_without_an_end_state(tmp
         assert reason == "breakdown at 3 kV"
     else:
         assert reason.startswith("storage fault: run file ") and "No space left on device" in reason
+
+
+def test_a_run_ahead_of_its_writer_by_queued_max_s_waits_for_the_write_under_way(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A write under way let the caller queue on without bound: beside a CPU hog a virtual run's writer fell 2.25 s
+    of rig time behind, and a full disk then left 2.25 s unwritten against the stated 1 s + one chunk (CI). Once a
+    queue spans QUEUED_MAX_S while a write is under way, the caller waits for it. The first write (4 chunks, taken
+    at 1.199 s) is held at a gate; 0.5 s more returns (the queue spans 0.67 s), a further 0.5 s must wait (1.17 s)
+    until the gate opens, then is written in whole chunks behind it."""
+    path = tmp_path / "run.h5"
+    rec = _two_streams(path, "behind", 4000.0)
+    gate, entered = threading.Event(), threading.Event()
+    write = recorder.Recorder._write
+    works: list[int] = []
+
+    def slow(self: recorder.Recorder, work: recorder._Work) -> None:
+        works.append(sum(n for _, _, _, n in work[0]))
+        if len(works) == 1:
+            entered.set()
+            gate.wait(60.0)
+        write(self, work)
+
+    monkeypatch.setattr(recorder.Recorder, "_write", slow)
+    t = np.arange(2200) / 1000.0
+    rec.append("amplifier", t[:1200], voltage=t[:1200])  # 1.199 s: 1024 samples to the background writer
+    assert entered.wait(60.0)
+    rec.append("amplifier", t[1200:1700], voltage=t[1200:1700])  # queued 1.024-1.699 s: returns, the write held
+    behind = threading.Thread(target=rec.append, args=("amplifier", t[1700:]), kwargs={"voltage": t[1700:]})
+    behind.start()
+    behind.join(0.5)
+    assert behind.is_alive(), "the caller ran on with its queue spanning over 1 s and a write under way"
+    assert works == [1024]
+    gate.set()
+    behind.join(60.0)
+    assert not behind.is_alive() and works == [1024, 1024]  # then 1.024-2.047 s: 4 whole chunks, the tail queued
+    rec.finish("completed", "ok")
+    np.testing.assert_array_equal(open_run(path).streams["amplifier"].t, t)

@@ -584,13 +584,15 @@ class Recorder:
     def maybe_flush(self) -> None:
         """Flush if the flush interval has passed (call it often), or only the whole chunks queued if a stream has
         :data:`FLUSH_CHUNKS` of them: the data is taken here and written on a background thread, unless the last
-        such write is still under way (then at a later call). Raises the :class:`StorageError` of a background
-        write that failed."""
+        such write is still under way (then at a later call) — unless a stream's queue already spans
+        :data:`QUEUED_MAX_S` of the run clock: then the caller waits for it (a run ahead of its writer by that much
+        would leave more than the stated bound unwritten at a storage fault; faster than real time the virtual clock
+        waits with it). Raises the :class:`StorageError` of a background write that failed."""
         if self.failure:
             return
         writing = self._writing
         if writing is not None:
-            if writing.is_alive():
+            if writing.is_alive() and self._queued_span_s() < QUEUED_MAX_S:
                 return
             self._await_write()
         interval = time.monotonic() - self._last_flush >= self.flush_interval
@@ -598,6 +600,15 @@ class Recorder:
             if interval:  # (a write of whole chunks leaves the rest queued: the interval still runs for it)
                 self._last_flush = time.monotonic()
             self._start_write(self._take(whole_chunks=not interval))
+
+    def _queued_span_s(self) -> float:
+        """The longest stretch of the run clock any stream's queued samples span (0 with nothing queued)."""
+        span = 0.0
+        for buf in self._buffers.values():
+            parts = [p for p in buf["t"] if p.size]
+            if parts:
+                span = max(span, float(parts[-1][-1]) - float(parts[0][0]))
+        return span
 
     def _start_write(self, work: _Work) -> None:
         """Write ``work`` on a background thread (none under way), or here where no thread can be started."""
