@@ -19,6 +19,7 @@ from __future__ import annotations
 import contextlib
 import heapq
 import itertools
+import logging
 import threading
 import uuid
 from collections.abc import Callable, Iterator, Sequence
@@ -63,30 +64,59 @@ def cluster_client(scheduler: str | None = None, workers: int | None = None) -> 
                           "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}):
         with _sigint_ignored_in_children():  # only while the worker processes are spawned
             cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0")
-        with cluster, Client(cluster) as client:
-            # our workers' closing heartbeats fail without a traceback on stderr (worker_plugins); another's cluster
-            # (scheduler=) keeps its own plugins
-            client.register_plugin(QuietClosingHeartbeat())
-            yield client
+        stopped = _StoppedKillFilter()
+        nanny = logging.getLogger("distributed.nanny")  # our nannies run in this process
+        nanny.addFilter(stopped)
+        try:
+            with cluster, Client(cluster) as client:
+                # our workers' closing heartbeats fail without a traceback on stderr (worker_plugins); another's
+                # cluster (scheduler=) keeps its own plugins
+                client.register_plugin(QuietClosingHeartbeat())
+                try:
+                    yield client
+                except BaseException:
+                    stopped.on = True
+                    raise
+        finally:
+            nanny.removeFilter(stopped)
+
+
+class _StoppedKillFilter(logging.Filter):
+    """Drops the nanny's "Worker process still alive after N seconds, killing" once the fit has stopped (Ctrl-C,
+    an error): a worker busy in a task (numba compiling its kernels while it warms up) cannot close in time and is
+    killed, as it should be, and the warning said nothing to the person who stopped it. An ordinary close keeps it."""
+
+    on = False
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not (self.on and str(record.msg).startswith("Worker process still alive after"))
 
 
 @contextlib.contextmanager
 def _sigint_ignored_in_children() -> Iterator[None]:
-    """SIGINT ignored while the cluster's worker processes are spawned, so that they inherit it ignored (an ignored
-    signal survives exec; Python then installs no KeyboardInterrupt for it): a terminal's Ctrl-C reaches the whole
-    process group, and each worker died of it with dask's tracebacks (104 lines on stderr for two workers) while
-    the fit itself stopped in one line. The fit's own process handles the stop and closes the cluster. Restored at
-    once (the main thread only: elsewhere nothing can be changed)."""
+    """SIGINT blocked while the cluster starts, so that its worker processes never take it: a terminal's Ctrl-C
+    reaches the whole process group, and each worker died of it with dask's tracebacks (104 lines on stderr for two
+    workers) while the fit itself stopped in one line. The signal mask survives fork and exec, and the threads dask
+    starts meanwhile (its event loop, which spawns the workers) inherit it: the workers keep SIGINT blocked, and the
+    fit's own process handles the stop and closes the cluster. Blocked, not ignored: a Ctrl-C while the cluster
+    starts stays pending and is taken as the mask is restored (ignored, it was lost, and the fit ran to its end).
+    The main thread only: elsewhere the mask is not the process's to change."""
     import signal
 
-    if threading.current_thread() is not threading.main_thread():
-        yield
+    if threading.current_thread() is not threading.main_thread() or not hasattr(signal, "pthread_sigmask"):
+        yield  # (Windows has no signal masks, and no process group for a Ctrl-C to reach)
         return
-    before = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    from multiprocessing import resource_tracker
+
+    # multiprocessing unblocks SIGINT in the thread that first starts its resource tracker (CPython's
+    # resource_tracker.ensure_running: SIG_UNBLOCK, not the mask as it was): started here first, dask's event loop
+    # thread keeps the mask, and so does every worker it spawns
+    resource_tracker.ensure_running()
+    before = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
     try:
         yield
     finally:
-        signal.signal(signal.SIGINT, before)
+        signal.pthread_sigmask(signal.SIG_SETMASK, before)
 
 
 def tile_cost(steps: Sequence[int], tile: Tile) -> float:
