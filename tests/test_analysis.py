@@ -290,6 +290,29 @@ def test_report_cli_prints_the_table3_grid_for_an_isopotential_campaign(isopoten
     assert json.loads((grid / "table3.json").read_text())["runs"] == ["1" * 32, "2" * 32]
 
 
+@pytest.mark.parametrize("command", [["fit"], ["report"], ["inspect"], ["export", "--csv", "out"], ["plot"],
+                                     ["recover"], ["pause"], ["resume", "--why", "checked"]], ids=lambda c: c[0])
+def test_a_folder_given_as_the_run_file_is_said_to_be_one_naming_its_run_files(tmp_path: Path,
+                                                                              command: list[str]) -> None:
+    """`bench run --out` takes a folder; given back to `bench fit` it was "not found". One line: a folder, and the
+    run files in it (the first three, sorted; a fit file is none), exit 2; an empty folder says so. (`bench watch`
+    takes folders: it follows the runs in them.)"""
+    from typer.testing import CliRunner
+
+    from bench.cli import app
+
+    folder = tmp_path / "runs"
+    folder.mkdir()
+    for name in ("d.h5", "a.h5", "c.h5", "b.h5", "a.fit.hdf5"):
+        (folder / name).write_bytes(b"")
+    (tmp_path / "empty").mkdir()
+    for path, said in ((folder, "a folder, not a run file; the run files in it: a.h5, b.h5, c.h5 and 1 more"),
+                       (tmp_path / "empty", "a folder, not a run file (no .h5 file in it)")):
+        res = CliRunner().invoke(app, [command[0], str(path), *command[1:]])
+        assert res.exit_code == 2, res.output
+        assert res.output.count("\n") == 1 and said in res.output and "not found" not in res.output, res.output
+
+
 def test_fit_and_report_refuse_bad_files_in_one_line(tmp_path: Path) -> None:
     from typer.testing import CliRunner
 

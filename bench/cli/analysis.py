@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING, Annotated
 import typer
 
 from bench.cli.common import JsonOpt, Table, clean_errors, console, err_console, escape, fail, json_mode, print_json
+from bench.storage.absent import absent_run_file
 
 if TYPE_CHECKING:
     from bench.analysis.runs import StepResult
@@ -630,8 +631,8 @@ def plot_command(
     starts marked; long records drawn as their min/max envelope (read in chunks: any length)."""
     from bench.analysis.quicklook import quicklook
 
-    if not run.exists():
-        raise ValueError(f"run file {run}: not found")
+    if not run.is_file():
+        raise ValueError(absent_run_file(run))
     target = quicklook(run, streams or None, out, show)
     if target is not None:
         console.print(f"figure: {escape(str(target))}")

@@ -17,6 +17,7 @@ import typer
 from bench.cli.common import JsonOpt, Table, clean_errors, console, escape, fail, json_mode, print_json, progress
 from bench.cli.completion import protocol_files, protocol_names, rig_files
 from bench.cli.logs import log, run_log
+from bench.storage.absent import absent_run_file
 
 if TYPE_CHECKING:
     from bench.app.runs import Inspection, PreparedRun
@@ -460,7 +461,7 @@ def _running(run_file: Path) -> RunFile:
     from bench.storage.runfile import open_run
 
     if not run_file.is_file():
-        raise ValueError(f"run file {run_file}: not found")
+        raise ValueError(absent_run_file(run_file))
     f = open_run(run_file, streams=False)
     if f.attrs.get("session_log"):
         raise ValueError(f"run file {run_file}: a manual-control session, not a protocol run: pause and resume it at "

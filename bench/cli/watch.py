@@ -19,6 +19,7 @@ from typing import Annotated
 import typer
 
 from bench.cli.common import clean_errors, console, escape
+from bench.storage.absent import absent_run_file
 
 WEB_EXTRA = "bench watch needs the web extra: pip install 'dea-bench[web]'"
 DEFAULT_PORT = 8765
@@ -70,7 +71,7 @@ def watch(
                 raise ValueError(f"run file {p}: not a .h5 file")
             files.append(p)
         else:
-            raise ValueError(f"run file {p}: not found")
+            raise ValueError(absent_run_file(p))
     loopback = is_loopback(host)
     token = None if loopback else (os.environ.get(TOKEN_ENV) or secrets.token_urlsafe(18))
     sock = bind(host, port)

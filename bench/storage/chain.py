@@ -9,6 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+from bench.storage.absent import absent_run_file
 from bench.storage.runfile import open_run
 
 MAX_CHAIN = 1000  # a longer chain is a loop or a damaged attribute
@@ -40,7 +41,7 @@ def chain(path: str | Path) -> list[Link]:
         seen.add(key)
         if not p.is_file():
             if not out:
-                raise ValueError(f"run file {path}: not found")
+                raise ValueError(absent_run_file(Path(path)))
             raise ValueError(f"run file {out[-1].path}: the file it continues, {p}, is missing "
                              "(keep a campaign's files together)")
         run = open_run(p, streams=False)

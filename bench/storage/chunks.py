@@ -18,6 +18,7 @@ from typing import Literal
 import h5py
 import numpy as np
 
+from bench.storage.absent import absent_run_file
 from bench.storage.runfile import (
     RunFile,
     damaged,
@@ -220,8 +221,8 @@ class RunSource:
 def open_source(path: str | Path) -> Iterator[RunSource]:
     """Open a run file once for all the reads of a command (analysis, report, inspect)."""
     p = Path(path)
-    if not p.exists():
-        raise FileNotFoundError(f"run file {p}: not found")
+    if not p.is_file():
+        raise FileNotFoundError(absent_run_file(p))
     with open_h5(p) as f:
         try:
             run = read_run(f, p)

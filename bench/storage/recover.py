@@ -27,6 +27,7 @@ from typing import Any
 
 import h5py
 
+from bench.storage.absent import absent_run_file
 from bench.storage.recorder import FORMAT, FORMATS, STATES, STORAGE_FAULT, abandon, cause, ignore_sigxfsz, now_iso
 from bench.storage.repair import Patches, open_view, root_attribute_patches, superblock_patches, write_patches
 from bench.storage.runfile import open_run, recorded_note, refuse_truncated, state_shown, valid_counts
@@ -82,7 +83,7 @@ def recover(path: str | Path) -> RecoveryReport:
     """
     p = Path(path)
     if not p.is_file():
-        raise FileNotFoundError(f"run file {p}: not found")
+        raise FileNotFoundError(absent_run_file(p))
     with p.open("rb") as fh:
         head = bytearray(fh.read(512 * 2048 + 64))
     sb = read_superblock(head)

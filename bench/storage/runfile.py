@@ -16,6 +16,7 @@ from typing import Any
 import h5py
 import numpy as np
 
+from bench.storage.absent import absent_run_file
 from bench.storage.recorder import EVENT_FIELDS, FORMATS, PROGRAM_FIELDS, STATES, STORAGE_FAULT
 from bench.storage.superblock import clear_consistency_flags, open_elsewhere, read_superblock
 
@@ -238,6 +239,8 @@ def open_h5(p: Path) -> h5py.File:
     died before SWMR mode left the file marked open — from an in-memory copy with those marks cleared. A file its
     writer closed that is shorter than its superblock says is refused at once: an SWMR reader does not check the
     length (a live file grows) and retried its reads past the end for minutes, deaf to Ctrl-C."""
+    if p.is_dir():
+        raise ValueError(absent_run_file(p))
     refuse_truncated(p)
     try:
         return _open_swmr(p)
