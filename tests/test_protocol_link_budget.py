@@ -55,7 +55,7 @@ def test_shipped_protocols_are_refused_where_a_real_line_cannot_carry_them(proto
 
 @pytest.mark.parametrize("kind", ["lab", "sim"])
 def test_what_fits_is_accepted(kind: str) -> None:
-    # thesis-identification stores the laser at 200 S/s: 10 values a 50-ms set-point period, well within the 33 a
+    # thesis-identification stores the laser at 200 S/s: 10 values a 50-ms set-point period, well within the 20–38 a
     # period's gap carries (test_a_storage_the_set_point_gaps_cannot_drain_is_said_and_one_they_can_is_not), and
     # the upload holds the host 16 % of the time beside the io bus's set-points and monitors
     for name, changes in [("thesis-identification", {"displacement_Hz": 200.0, "setpoint_Hz": 20.0}),
@@ -67,14 +67,18 @@ def test_what_fits_is_accepted(kind: str) -> None:
 
 @pytest.mark.parametrize("kind", ["lab", "sim"])
 def test_set_points_that_leave_no_gap_for_a_fetch_are_said(kind: str) -> None:
-    """At 60 set-points/s the io bus's FC6 alone keeps the host 60 × 12.98 ms = 78 % of the time (85 % with the
-    monitors): each 16.7-ms period leaves ~3 ms, less than a fetch's fixed exchange (3.3 ms of characters and two
-    2-ms allowances), so the engine, which ends every fetch before the next set-point, uploads nothing in the step
-    (before: one 14.5-ms fetch every 0.25 s, each holding the next set-point back; accepted then)."""
+    """At 60 set-points/s the io bus's FC6 alone takes 12.98 ms of each 16.7-ms period: the fetch (one every tick,
+    ending before the next) has ~3.7 ms, less than the driver's least for a call — the AN exchange and an AO head
+    and one value, (16 + 3 + 3 + 16 + 9) characters at 115,200 Bd = 4.1 ms, and two 2-ms allowances: 8.1 ms — so
+    the engine, which ends every fetch before the next set-point, uploads nothing in the step (before: one 14.5-ms
+    fetch every 0.25 s, each holding the next set-point back; accepted then)."""
     path = next(p for p in PROTOCOLS if p.stem == "lsdea-isotonic-short")
     _, program = compiled(path, kind, displacement_Hz=50.0, setpoint_Hz=60.0, points_per_cycle=20)
     (line,) = [p for p in check_links(program) if p.startswith("laser storage upload")]
-    assert "leaves ~3 ms" in line and "too little for a fetch (7.3 ms before its first value)" in line, line
+    least = (16 + 3 + 3 + 16 + 9) * 10 / 115200 + 2 * 2e-3
+    assert 1 / 60 - FC6_19200 < least
+    assert f"no gap before its next set-point or poll fits a fetch ({least * 1e3:.1f} ms" in line, line
+    assert "the link drains none in it" in line, line
 
 
 def test_laser_upload_rate_is_the_wire_rate_less_the_request_overhead() -> None:
@@ -171,36 +175,36 @@ def test_the_laser_upload_counts_in_the_host_s_time() -> None:
 @pytest.mark.parametrize("kind", ["lab", "sim"])
 def test_a_storage_the_set_point_gaps_cannot_drain_is_said_and_one_they_can_is_not(kind: str) -> None:
     """A tester's protocol (500 S/s stored, 20 set-points/s) once skipped 15 set-points: each 0.25-s fetch of 125
-    values held the host ~102 ms. The engine now ends each fetch before the next set-point, the rest on the next
-    ticks, so what limits is throughput. By hand, thesis-identification on the thesis rig: the io bus's FC6 at
-    20/s and its monitors at 5/s keep the host U = 20 × 12.98 ms + 5 × 13.5 ms = 32.7 % of the time, so each
-    50-ms period leaves 50 × (1 − U) = 33.6 ms; one fetch in it pays the AN query and the AO request's head
-    (16 + 3 + 3 + 16 characters, 3.3 ms at 115,200 Bd) and the driver's 2-ms allowance per exchange (4 ms), then
-    0.78 ms a value: ⌊26.3 / 0.78125⌋ = 33 values a period, 660 S/s. 500 and 660 S/s pass; 700 S/s is said, with
-    660 and the set-point rate whose gaps would drain it (18/s: 55.6 ms × (1 − U') − 7.3 ms, U' = 18 × 12.98 ms +
-    5 × 13.5 ms, gives 40 values, 720 S/s; 19/s gives 36, 684 S/s). The rates are those the LK-G stores at: its
-    interval is a sampling period (20, 50, 100, 200, 500 or 1000 µs) × a storage cycle (1, 2, 5, 10, … 1000), so
-    660 S/s asked is stored at 500 (2 ms; 1.52 ms asked) and 700 at 1000 (1 ms; 1.43 ms asked) — a reviewer: 800
+    values held the host ~102 ms. The engine now ends each fetch before the step's next action (a set-point, a
+    poll), the rest on the next ticks, so what limits is throughput. By hand, thesis-identification on the thesis
+    rig at 20 set-points/s, monitors at 5/s: a fetch every 50-ms tick after its FC6 (12.98 ms), every fourth after
+    the monitors' FC3 too (13.5 ms); each pays the AN exchange and the AO request's head (16 + 3 + 3 + 16
+    characters at 115,200 Bd) and the driver's 2-ms allowance per exchange, then 0.78 ms a value: 38 values in
+    three periods of four and 20 in the fourth, (3 × 38 + 20) / 0.2 s = 670 S/s. 500 and 660 S/s pass; 700 S/s is
+    said, with 670 and a set-point rate whose gaps drain it — 5/s: one fetch every 0.2 s after the FC6 and FC3,
+    ⌊(200 − 12.98 − 13.5 − 7.3) ms / 0.78 ms⌋ = 212 values, 1,060 S/s. The rates are those the LK-G stores at:
+    its interval is a sampling period (20, 50, 100, 200, 500 or 1000 µs) × a storage cycle (1, 2, 5, 10, … 1000),
+    so 660 S/s asked is stored at 500 (2 ms; 1.52 ms asked) and 700 at 1000 (1 ms; 1.43 ms asked) — a reviewer: 800
     S/s passed the check and stored 1000. 700 asked is said at 1000 S/s, the advice the fastest storable rate
-    under 660 (500) or a set-point rate whose gaps drain 1000 S/s (by hand as above)."""
+    under 670 (500) or a set-point rate whose gaps drain 1000 S/s."""
     path = ROOT / "protocols" / "thesis-identification.toml"
     ct, allowance = 10 / 115200, 2e-3
 
-    def drains(setpoint_Hz: int) -> int:  # values/s one fetch a period carries
-        busy = setpoint_Hz * FC6_19200 + 5 * FC3_2REG_19200
-        window = (1 - busy) / setpoint_Hz - 38 * ct - 2 * allowance
-        return int(window / (9 * ct)) * setpoint_Hz
+    def values(window: float) -> int:  # one bounded fetch: AN, then one AO sized to end in the window
+        return int((window - 38 * ct - 2 * allowance) / (9 * ct))
 
-    assert drains(20) == 660 and drains(19) == 684 and drains(18) == 720
+    at_20 = (3 * values(0.05 - FC6_19200) + values(0.05 - FC6_19200 - FC3_2REG_19200)) / 0.2
+    at_5 = 5 * values(0.2 - FC6_19200 - FC3_2REG_19200)
+    assert (at_20, at_5) == (670, 1060)
     for hz in (500.0, 660.0):
         _, program = compiled(path, kind, displacement_Hz=hz, setpoint_Hz=20.0)
         assert check_links(program) == [], hz
     _, program = compiled(path, kind, displacement_Hz=700.0, setpoint_Hz=20.0)
     (line,) = [p for p in check_links(program) if p.startswith("laser storage upload")]
-    slow = max(f for f in range(1, 20) if drains(f) >= 1000)
-    assert slow == 7
-    assert "one fetch of ≤ 33 values: the link drains 660 S/s; the storage fills 1,000 S/s" in line, line
-    assert f"displacement_Hz to ≤ 500 or recording.setpoint_Hz to ≤ {slow}" in line, line
+    assert f"the link drains {at_20:.0f} S/s; the storage fills 1,000 S/s" in line, line
+    assert "displacement_Hz to ≤ 500 or recording.setpoint_Hz to ≤ 5" in line, line
+    _, program = compiled(path, kind, displacement_Hz=700.0, setpoint_Hz=5.0, points_per_cycle=20)
+    assert not [p for p in check_links(program) if p.startswith("laser storage upload")]
 
 
 def test_the_rig_knows_the_storage_intervals_the_driver_sets() -> None:

@@ -19,15 +19,19 @@ an empty list means every link can carry the program. The traffic model follows 
 set-points at ``recording.setpoint_Hz`` while a step streams, then one keep-alive per
 ``max(1/setpoint_Hz, HOLD_KEEPALIVE_S)``; monitors, encoder and load cell at their rates; laser storage
 fetched every ``FETCH_PERIOD_S`` while storing (each fetch bounded by the step's next action, the rest on the
-following ticks), single reads at ``PASSIVE_LASER_HZ`` otherwise.
+following ticks), single reads at ``PASSIVE_LASER_HZ`` otherwise. What a storing step drains is not a share of
+the wire but what the engine's fetches carry: :func:`laser_drain_rate` replays the step's schedule — the fetch
+poll, each fetch ending at the next set-point *or poll*, the driver's per-call budget — over its repeat.
 """
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
+from fractions import Fraction
 
-from bench.protocol.program import HOLD_KEEPALIVE_S, PASSIVE_LASER_HZ, Program
+from bench.protocol.program import FETCH_PERIOD_S, HOLD_KEEPALIVE_S, PASSIVE_LASER_HZ, Program, Segment
 
 TURNAROUND_MODBUS_S = 1e-3  # ADAM / DGT1S request → reply [assumed: no figure in the manuals read]
 TURNAROUND_LKG_S = 0.5e-3  # LK-G command → reply [assumed]
@@ -35,9 +39,16 @@ TURNAROUND_LINRS_S = 1e-3  # LinMot telegram → response [assumed]
 ADAM_4017P_RATE = 10.0  # conversions/s over all enabled channels (datasheet)
 DGT1S_RATE = 100.0  # conversions/s [assumed: the DGT1S offers several rates]
 LKG_VALUE_BYTES = 9  # one stored value in an AO reply: 8 characters and a comma (manual p. 5-6)
-LKG_UPLOAD_CHUNK_S = 0.2  # the driver sizes AO requests to this much wire time
-LKG_EXCHANGE_ALLOWANCE_S = 2e-3  # the driver's allowance per exchange beyond its characters (a bounded fetch's)
+# the driver's (drivers.keyence, which this layer may not import; tests/test_laser_drain_rate.py compares them):
+LKG_UPLOAD_CHUNK_S = 0.2  # FETCH_BUDGET_S: AO requests sized to this much wire time, and one fetch call's budget
+LKG_EXCHANGE_ALLOWANCE_S = 2e-3  # EXCHANGE_ALLOWANCE_S: a bounded fetch's allowance per exchange beyond its characters
+LKG_FETCH_OVERHEAD_BYTES = 16 + 3 + 3 + 16  # FETCH_OVERHEAD_BYTES: the AN status exchange and an AO request's head
+COLLECT_PERIOD_S = 0.05  # bench.runtime.polls' COLLECT_PERIOD_S: a DAQ stream's collect on hardware
+DRAIN_SPAN_S = 10.0  # laser_drain_rate: the longest schedule repeat replayed
 MAX_LOAD = 1.0  # a link busy more than this fraction of the time cannot keep up
+
+
+Polls = tuple[tuple[float, float], ...]  # (polls/s, seconds of the host's time each)
 
 
 @dataclass(frozen=True)
@@ -209,63 +220,143 @@ def check_links(program: Program) -> list[str]:
     return problems
 
 
-def _check_upload_hold(program: Program, baud: int) -> str | None:
-    """One line if, in a step that both stores and streams set-points, the laser's storage fills faster than the
-    link can drain it in the time the set-points leave.
+def _step_schedule(program: Program, seg: Segment, loads: list[LinkLoad]) -> tuple[float | None, Polls, Polls]:
+    """What the engine does in a storing step besides the fetch (:func:`laser_drain_rate`'s ``tick_s``, ``polls``,
+    ``after``): the host's time a set-point tick (the amplifier's FC6 where the step sets a voltage and no DAQ plays
+    it, the motor's go-to where it sets a position; None: the ticks send nothing), the polls that run before the
+    fetch (the instruments' reads, :func:`link_loads`' items) and after it (a DAQ stream's collect, its time unknown
+    here: counted as none, its slot still ends a fetch)."""
+    amp_daq, _ = _hardware_timed(program)
+    sends = [t for link in loads for ch, _, t in link.items
+             if (ch.startswith("amplifier set-points") and seg.voltage is not None and not amp_daq)
+             or (ch.startswith("motor set-points") and seg.position is not None)]
+    polls = tuple((rate, t) for link in loads for ch, rate, t in link.items if "set-points" not in ch and rate > 0)
+    after = ((1.0 / COLLECT_PERIOD_S, 0.0),) if amp_daq and seg.duration > 0 else ()
+    return (sum(sends) if sends else None), polls, after
 
-    What a fetch no longer limits: the engine bounds each upload in rig time by the step's next action (a set-point,
-    another poll; ``bench.runtime.polls``) and leaves what it could not upload for the following ticks, so a fetch
-    holds no set-point back however much was stored (before, one 0.25-s fetch of 125 values at 500 S/s held the host
-    ~102 ms and set-points were skipped). What is left is throughput. In each set-point period ``T = 1/setpoint_Hz``
-    the host first sends the tick's set-points and the polls due — on average ``U·T``, ``U`` the share of the time
-    the other channels keep it on their wires (:func:`link_loads`) — and the upload has the rest, ``T − U·T``. One
-    fetch at most runs in it (the poll comes once a tick), paying its fixed exchange — the ``AN`` status query and
-    the ``AO`` request and its reply's head, 38 characters, and the driver's allowance of
-    :data:`LKG_EXCHANGE_ALLOWANCE_S` per exchange (the driver sizes its request by it) — and 9 characters a value
-    (manual p. 5-6). So a tick drains at most ``n = ⌊(T − U·T − 38·c − 2·a) / (9·c)⌋`` values (``c`` = 10/baud s a
-    character), ``n·setpoint_Hz`` values/s: a storage that fills faster leaves a backlog that grows over the step,
-    uploaded after it (the schedule shifted by that time, the output ramped to 0 V if it is long). Counted as if
-    the link were always behind (a fetch every tick): caught up, the engine fetches every ``FETCH_PERIOD_S`` only.
-    Capacity is not this check's: a step that stores more than the controller holds is refused by
-    :mod:`bench.protocol.program` (``rig.laser.capacity``)."""
+
+def step_drain_rate(program: Program, seg: Segment, setpoint_Hz: float | None = None,
+                    loads: list[LinkLoad] | None = None) -> float:
+    """Stored values per second the engine uploads while ``seg`` stores, with a backlog (:func:`laser_drain_rate` of
+    the step's schedule, :func:`_step_schedule`), at ``setpoint_Hz`` (None: the protocol's); ``loads``: the
+    program's :func:`link_loads`, where the caller has them."""
+    rig = program.rig
+    if rig.laser is None:
+        return 0.0
+    loads = [link for link in (loads or link_loads(program)) if link.link != "laser"]  # no single reads: it stores
+    tick_s, polls, after = _step_schedule(program, seg, loads)
+    return laser_drain_rate(rig.laser.baudrate, setpoint_Hz or program.protocol.recording.setpoint_Hz, polls, tick_s,
+                            after)
+
+
+def _check_upload_hold(program: Program, baud: int) -> str | None:
+    """One line if, in a step that stores, the laser's storage fills faster than the engine uploads it while the
+    step runs (:func:`step_drain_rate`: the engine's fetch poll, each fetch bounded by the step's next action and by
+    the driver's per-call budget). A storage that fills faster leaves a backlog that grows over the step, uploaded
+    after it (the schedule shifted by that time, the output ramped to 0 V if it is long). Capacity is not this
+    check's: a step that stores more than the controller holds is refused by :mod:`bench.protocol.program`
+    (``rig.laser.capacity``)."""
     rec = program.protocol.recording
-    amp_daq, _ = _hardware_timed(program)  # a DAQ plays the voltage itself: only go-tos are the host's to send
-    steps = [s for s in program.segments if s.storing and s.stream_until > s.t_start
-             and ((s.voltage is not None and not amp_daq) or s.position is not None)]
+    steps = [s for s in program.segments if s.storing and s.duration > 0]
     if not steps:
         return None
-    loads = [link for link in link_loads(program) if link.link != "laser"]  # no single reads while it stores
-    others = sum(link.load for link in loads)
-    setpoints = sum(rate * t for link in loads for ch, rate, t in link.items if "set-points" in ch)
-    drain = laser_drain_rate(baud, rec.setpoint_Hz, others)
     stored = program.laser_Hz  # as the controller stores it (800 S/s asked: 1000 stored)
-    if stored <= drain:
+    loads = link_loads(program)
+    rate, seg = min(((step_drain_rate(program, s, loads=loads), s) for s in steps), key=lambda d: d[0])
+    if stored <= rate:
         return None
-    period = 1.0 / rec.setpoint_Hz
-    fits = [f for f in range(int(rec.setpoint_Hz) - 1, 0, -1)  # set-point rates whose gaps drain the storage
-            if laser_drain_rate(baud, f, others - setpoints * (1 - f / rec.setpoint_Hz)) >= stored]
-    n = int(drain / rec.setpoint_Hz)
-    fixed = (16 + 3 + 3 + 16) * char_time(baud) + 2 * LKG_EXCHANGE_ALLOWANCE_S
-    drains = (f"one fetch of ≤ {n} values: the link drains {drain:,.0f} S/s" if n else
-              f"too little for a fetch ({fixed * 1e3:.1f} ms before its first value): the link drains none in it")
-    storable = program.rig.laser.storable_at_most(drain) if program.rig.laser is not None else drain
-    fit = (f"lower recording.displacement_Hz to ≤ {storable:,.0f}" + (f" or recording.setpoint_Hz to ≤ {fits[0]}"
-                                                                    if fits else "") if n else
-           f"lower recording.setpoint_Hz to ≤ {fits[0]}" if fits else "lower the other channels' rates")
-    return (f"laser storage upload: at recording.setpoint_Hz = {rec.setpoint_Hz:g} each {period * 1e3:.0f}-ms "
-            f"period leaves ~{(1 - others) * period * 1e3:.0f} ms after its set-points and polls, {drains}; the "
-            f"storage fills {stored:,.0f} S/s, the backlog grows over step "
-            f"{steps[0].label.rsplit('/', 1)[-1][:40]} (uploaded after it); {fit}")
+    fit_Hz = next((f for f in range(math.ceil(rec.setpoint_Hz) - 1, 0, -1)  # set-point rates whose gaps drain it
+                   if all(step_drain_rate(program, s, f, loads) >= stored for s in steps)), None)
+    fetch_tick = min(FETCH_PERIOD_S, 1.0 / rec.setpoint_Hz)
+    least = (LKG_FETCH_OVERHEAD_BYTES + LKG_VALUE_BYTES) * char_time(baud) + 2 * LKG_EXCHANGE_ALLOWANCE_S
+    how = (f"one fetch every {fetch_tick * 1e3:.0f} ms, each ending before the step's next set-point or poll and "
+           f"after at most {LKG_UPLOAD_CHUNK_S:g} s: the link drains {rate:,.0f} S/s" if rate else
+           f"no gap before its next set-point or poll fits a fetch ({least * 1e3:.1f} ms for the status query and "
+           "one value): the link drains none in it")
+    storable = program.rig.laser.storable_at_most(rate) if program.rig.laser is not None else rate
+    slower = f"recording.setpoint_Hz to ≤ {fit_Hz}" if fit_Hz else None
+    fit = (f"lower recording.displacement_Hz to ≤ {storable:,.0f}" + (f" or {slower}" if slower else "") if rate else
+           f"lower {slower}" if slower else "lower the other channels' rates")
+    return (f"laser storage upload: at recording.setpoint_Hz = {rec.setpoint_Hz:g}, {how}; the storage fills "
+            f"{stored:,.0f} S/s, the backlog grows over step {seg.label.rsplit('/', 1)[-1][:40]} (uploaded after "
+            f"it); {fit}")
 
 
-def laser_drain_rate(baud: int, setpoint_Hz: float, others: float) -> float:
-    """Stored values per second the engine uploads in a step that streams ``setpoint_Hz`` set-points while the other
-    channels keep the host ``others`` of the time: one fetch a set-point period in what the tick leaves (see
-    :func:`_check_upload_hold`)."""
-    ct = char_time(baud)
+def _bounded_fetch(baud: int, within: float) -> tuple[int, float]:
+    """(values, seconds) of one ``KeyenceLKG.fetch_buffer(within)`` with a backlog, as the driver sizes it: nothing
+    with less than the status query and one value's time; else the ``AN`` status query (3 + 16 characters and one
+    exchange allowance), then ``AO`` requests of at most :func:`_upload_chunk` values each sized to end within the
+    bound (16 + 3 characters, the allowance, 9 characters a value), until one no longer fits or the call has
+    spent its budget (:data:`LKG_UPLOAD_CHUNK_S`: checked before each request after the first)."""
+    ct, allowance = char_time(baud), LKG_EXCHANGE_ALLOWANCE_S
+    if within < (LKG_FETCH_OVERHEAD_BYTES + LKG_VALUE_BYTES) * ct + 2 * allowance:
+        return 0, 0.0
+    took, values = (3 + 16) * ct + allowance, 0
+    while not (values and took >= LKG_UPLOAD_CHUNK_S):
+        left = within - took - (16 + 3) * ct - allowance  # unbounded (no action ahead): a whole request
+        n = min(_upload_chunk(baud), max(0, int(left / (LKG_VALUE_BYTES * ct))) if math.isfinite(left) else 1000)
+        if n < 1:
+            break
+        took += (16 + 3 + LKG_VALUE_BYTES * n) * ct + allowance
+        values += n
+    return values, took
+
+
+def _cycle(*rates: float) -> float:
+    """The span :func:`laser_drain_rate` replays: the schedule's repeat — the least common multiple of the periods
+    ``1/rate`` (rates as fractions) — as often as makes a second or more, at most :data:`DRAIN_SPAN_S`."""
+    fracs = [Fraction(r).limit_denominator(1000) for r in rates if r > 0]
+    den = math.lcm(*(f.denominator for f in fracs))
+    repeat = float(1 / Fraction(math.gcd(*(int(f * den) for f in fracs)), den))  # 1 / the rates' common divisor
+    return min(DRAIN_SPAN_S, repeat * math.ceil(1.0 / repeat - 1e-9))
+
+
+@functools.lru_cache(maxsize=1024)  # the check's search over set-point rates asks again for steps alike
+def laser_drain_rate(baud: int, setpoint_Hz: float, polls: Polls = (), tick_s: float | None = 0.0,
+                     after: Polls = ()) -> float:
+    """Stored values per second the engine uploads in a storing step, with a backlog: what the fetches that start in
+    one span of its schedule (:func:`_cycle`, after one to settle) upload. It replays :mod:`bench.runtime.engine`'s
+    step loop: set-point ticks at ``setpoint_Hz`` (each ``tick_s`` of the host's time; None: the ticks send
+    nothing), the ``polls`` (rate, seconds; run before the fetch when due at once) and ``after`` (run after it), and
+    the fetch poll every ``min(FETCH_PERIOD_S, 1/setpoint_Hz)`` from one period after the start, each fetch bounded
+    by the step's next action — the next tick, another poll's next slot — and uploading what :func:`_bounded_fetch`
+    says the driver fits in it. Actions run in time order, none before its slot; a poll whose slots passed while the
+    host was busy runs once. The starved fetch's unbounded call (``STARVED_FETCHES`` periods without a value) is not
+    counted: it holds the set-points back."""
     period = 1.0 / setpoint_Hz
-    window = period * (1 - others) - (16 + 3 + 3 + 16) * ct - 2 * LKG_EXCHANGE_ALLOWANCE_S
-    return max(0, math.floor(window / (LKG_VALUE_BYTES * ct))) * setpoint_Hz
+    least = (LKG_FETCH_OVERHEAD_BYTES + LKG_VALUE_BYTES) * char_time(baud) + 2 * LKG_EXCHANGE_ALLOWANCE_S
+    if tick_s is not None and period <= FETCH_PERIOD_S and period - tick_s < least:
+        return 0.0  # a fetch every tick, each in less than the tick leaves: none fits (as the replay would find)
+    periods = [1.0 / r for r, _ in polls] + [min(FETCH_PERIOD_S, period)] + [1.0 / r for r, _ in after]
+    costs = [t for _, t in polls] + [0.0] + [t for _, t in after]
+    fetch = len(polls)
+    span = _cycle(setpoint_Hz, *(1.0 / p for p in periods))
+    count = [0] * len(periods)
+    count[fetch] = 1  # nothing is stored at the step's start
+    due = [n * p for n, p in zip(count, periods, strict=True)]  # times as the engine computes them: count × period
+    k, now, values = 0, 0.0, 0
+    while True:
+        t_tick = k * period if tick_s is not None else math.inf
+        t_next = min(t_tick, *due)
+        if t_next >= 2 * span - 1e-12:
+            return values / span
+        now = max(now, t_next)
+        if t_tick <= t_next and tick_s is not None:
+            now += tick_s
+            k += 1
+        for i in [i for i, d in enumerate(due) if d <= t_next + 1e-12]:
+            if i != fetch:  # a reading's missed slots are skipped; the fetch's (a backlog) are not
+                while (count[i] + 1) * periods[i] <= now:
+                    count[i] += 1
+                now += costs[i]
+            else:
+                until = min([k * period if tick_s is not None else math.inf,
+                             *(d for j, d in enumerate(due) if j != i and d > t_next + 1e-12)])
+                n, took = _bounded_fetch(baud, until - now)
+                values += n if span - 1e-12 <= now < 2 * span else 0  # started in the second repeat (on the host's
+                now += took  # time: behind its schedule, fewer fetches start in it than are due)
+            count[i] += 1
+            due[i] = count[i] * periods[i]
 
 
 def _fit_setpoints(link: LinkLoad) -> str:
