@@ -8,7 +8,8 @@ Expected figures from the README ("Safety", step 5): the safe state is the volta
 0.5 s of fresh conversions and again for up to 2 s otherwise; from the schema (tests/test_relax_ramp.py): a relax's
 ramp is at least 10 set-point periods (0.5 s at 20 set-points/s), at most the step — so a 0.3-s relax ramps over
 all of it. The TREK's gain is 1000 V/V (datasheet): an input stuck at 3 V holds 3 kV, within the supervisor's
-8-kV limit, so only a check of the output against 0 V can see it.
+8-kV limit, so only a check of the output against 0 V can see it. A campaign continued (``bench run --resume``) from
+its set step checks the same before that step's change, at the continuation's start.
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ import pytest
 from bench.rig import load_rig
 from bench.runtime.engine import Engine
 from bench.runtime.latch import latched
-from bench.runtime.run import execute, plan_run
+from bench.runtime.run import execute, plan_resume, plan_run
 from bench.storage.runfile import open_run
 from tests.conftest import RIGS
 from tests.test_protocols import SAFE_HEAD
@@ -177,3 +178,76 @@ def test_a_stop_that_cancels_a_check_read_is_a_stop_not_a_latch(tmp_path: Path) 
     result = execute(_plan(tmp_path, "thesis-sim"), tmp_path / "run.h5", virtual=True, on_engine=hook)
     assert prompts == []
     assert result.state == "interrupted" and not result.latched, (result.state, result.reason, result.latched)
+
+
+# ---------------------------------------------------------------- a resumed campaign that starts at the set step
+def _interrupted_before_the_set_step(tmp: Path, rig: str) -> tuple[Any, Any]:
+    """The campaign stopped at its set step (the operator declines the change): the first step that did not
+    complete is the set step, so its continuation (``bench run --resume``) starts there. Returns the plan and link."""
+    first = execute(_plan(tmp, rig), tmp / "first.h5", virtual=True, operator=lambda _text: False,
+                    on_engine=lambda engine, _sim: setattr(engine, "apply_specimen", None))
+    assert first.state == "interrupted" and "did not confirm 'swap'" in first.reason, first.reason
+    plan, link, _ = plan_resume(first.path)
+    assert link.step == SET_INDEX and plan.program.segments[link.step].changes, (link.step, first.reason)
+    return plan, link
+
+
+def _resume(tmp: Path, rig: str, who: str, residual: bool) -> tuple[Any, list[float]]:
+    """The continuation in virtual time; the set step's change made by ``who`` ("operator": the prompt, as on a lab
+    rig; "twin": the simulated rig's own change). ``residual``: the amplifier's input held at ``STUCK_IN_V`` from
+    before the continuation starts (the output still up when the campaign is taken up again). Returns the result and
+    the run times at which the change was asked for."""
+    plan, link = _interrupted_before_the_set_step(tmp, rig)
+    changes: list[float] = []
+
+    def hook(engine: Engine, sim: Any) -> None:
+        if who == "operator":
+            engine.apply_specimen = None
+            engine.operator = lambda _text: bool(changes.append(engine.now())) or True
+        else:
+            apply = engine.apply_specimen
+            assert apply is not None
+            engine.apply_specimen = lambda c: (changes.append(engine.now()), apply(c))[1]
+        if residual:
+            _stick(sim.plant, STUCK_IN_V)
+            sim.clock.advance(RISE_S + SETTLE_S)  # the output reached 3 kV before the continuation's first read
+
+    return execute(plan, tmp / "second.h5", virtual=True, resume=link, on_engine=hook), changes
+
+
+@pytest.mark.parametrize("who", ["operator", "twin"])
+@pytest.mark.parametrize("rig", ["thesis-sim", "thesis-daq-sim"])
+def test_a_resumed_campaign_that_starts_at_a_set_step_verifies_zero_first(tmp_path: Path, rig: str,
+                                                                           who: str) -> None:
+    result, changes = _resume(tmp_path, rig, who, residual=False)
+    assert result.state == "completed", result.reason
+    assert len(changes) == 1
+    run = open_run(result.path)
+    assert run.attrs["previous_file"] == "first.h5"
+    events = run.event_list()
+    hand = [e for e in events if e[2] == "handover"]
+    (spec,) = [e for e in events if e[2] == "specimen"]
+    assert len(hand) == 1 and hand[0][1] == SET_INDEX == spec[1], hand
+    assert "0 V verified" in hand[0][3] and "specimen change of step" in hand[0][3]
+    # recorded before the change: earlier in the file's event list and in run time
+    assert events.index(hand[0]) < events.index(spec) and hand[0][0] <= changes[0] + 1e-9
+    amp = run.streams["amplifier"]
+    read = amp.t <= changes[0] + 1e-9
+    assert read.any() and abs(amp.columns["voltage"][read][-1]) <= SAFE_V
+
+
+@pytest.mark.parametrize("who", ["operator", "twin"])
+@pytest.mark.parametrize("rig", ["thesis-sim", "thesis-daq-sim"])
+def test_a_resumed_campaign_whose_output_is_still_up_trips_at_its_set_step(tmp_path: Path, rig: str,
+                                                                             who: str) -> None:
+    result, changes = _resume(tmp_path, rig, who, residual=True)
+    assert changes == []  # neither prompted nor changed
+    assert result.state == "tripped" and "interlock: output not verified" in result.reason, result.reason
+    assert result.latched and "output not verified" in result.latched
+    assert latched(load_rig(RIGS / f"{rig}.toml").name) is not None
+    run = open_run(result.path)
+    kinds = [e[2] for e in run.event_list()]
+    assert "specimen" not in kinds and "handover" not in kinds, kinds
+    amp = run.streams["amplifier"]
+    read = amp.t <= REREAD_S + 0.1  # the check's readings, from the continuation's start to the trip
+    assert read.sum() >= 2 and np.all(np.abs(amp.columns["voltage"][read]) > SAFE_V), amp.columns["voltage"][read]
