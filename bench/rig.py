@@ -16,6 +16,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from bench.core.clock import Clock
+from bench.core.monitor_chain import SAFE_TOUCH_V, T7_AIN, adam_4017p, safe_threshold_v
 from bench.core.noise import Realism
 from bench.core.plant import TREK_DATASHEET, AmplifierSpec, HVStage, Plant
 from bench.models.lozenge import LozengeParams, MaxwellBranch
@@ -470,6 +471,7 @@ class RigConfig(_Strict):
                              f"{v_lim:g} + {MONITOR_TRIP_MARGIN_V:g} = {trip:.0f} V is not below the {v_span:.0f} V "
                              f"the voltage monitor reads (±{AIN_FULL_SCALE_V:g} V × amplifier.vmon_ratio {vmon:g} V/V, "
                              f"TREK output {trek.max_output:g} V): it could never fire")
+        safe_monitor_v(self)  # a monitor chain too coarse to verify a safe output (ValueError, its reason)
         slew = HVStage().slew
         if amp.slew_limit_V_per_s > slew:
             raise ValueError(f"amplifier.slew_limit_V_per_s {amp.slew_limit_V_per_s:g} V/s exceeds the TREK "
@@ -617,6 +619,18 @@ def amplifier_spec(rig: RigConfig) -> AmplifierSpec:
     if a is None:
         return base
     return replace(base, vmon_ratio=a.vmon_ratio or base.vmon_ratio, imon_ratio=a.imon_ratio or base.imon_ratio)
+
+
+def safe_monitor_v(rig: RigConfig) -> float:
+    """|voltage monitor| at or below this [V] is the rig's output verified at 0 V: derived from its monitor chain
+    (:func:`bench.core.monitor_chain.safe_threshold_v`); :data:`~bench.core.monitor_chain.SAFE_TOUCH_V` without an
+    amplifier. ValueError where the chain cannot verify a safe output."""
+    a = rig.amplifier
+    if a is None:
+        return SAFE_TOUCH_V
+    spec = amplifier_spec(rig)
+    daq = T7_AIN if a.drive == "daq" else adam_4017p(a.ai_bits)
+    return safe_threshold_v(spec.model, spec.max_output, spec.vmon_ratio, daq)
 
 
 def plant_for(rig: RigConfig, clock: Clock, *, temperature_K: float | None = None, prototype: int | None = None,
