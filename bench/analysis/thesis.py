@@ -7,14 +7,17 @@ from dataclasses import dataclass
 import numpy as np
 
 from bench.analysis.cycles import smooth
+from bench.core.monitor_chain import widest_threshold_v
 
 SMOOTH_PERIODS = 50  # the smoothing window is this fraction of a period
 NO_DISPLACEMENT_M = 1e-12  # peaks below 1 pm are rounding, not a displacement (no sensor resolves them)
-# a step (or run) whose peak |V| stays at or below this was not driven: it is the band in which the engine counts
-# the voltage monitor as reading 0 V after zeroing (bench.runtime.engine.SAFE_MONITOR_V, 0.5 % of the TREK's 10-kV
-# full scale: monitor noise and offset). Below it a "voltage peak" is the monitor's noise, so a lag from it to the
-# displacement's peak, a creep of the response to it, or a fitted parameter of the response means nothing.
-NO_DRIVE_V = 50.0
+# a step (or run) whose peak |V| stays at or below this was not driven: the voltage monitor's 0-V band, in which
+# the engine counts it as reading 0 V (bench.rig.safe_monitor_v). An analysis does not know which chain recorded a
+# figure (nor does `simulate --voltage`), so it takes the widest band of the chains a rig can have
+# (bench.core.monitor_chain.widest_threshold_v: TREK monitor and DAQ accuracy, rounding and noise). Below it a
+# "voltage peak" is the monitor's noise, so a lag from it to the displacement's peak, a creep of the response to it,
+# or a fitted parameter of the response means nothing.
+NO_DRIVE_V = widest_threshold_v()
 
 
 def undriven(peak_voltage: float) -> bool:
@@ -24,7 +27,7 @@ def undriven(peak_voltage: float) -> bool:
 
 def undriven_note(what: str, peak_voltage: float) -> str:
     """One line saying why ``what``'s drive-dependent figures are not given."""
-    return (f"{what}: peak voltage {abs(peak_voltage):.3g} V is within the monitor's 0-V band (≤ {NO_DRIVE_V:g} V): "
+    return (f"{what}: peak voltage {abs(peak_voltage):.3g} V is within the monitor's 0-V band (≤ {NO_DRIVE_V:.3g} V): "
             "not driven, so lag and creep (figures relative to the drive) are not given")
 
 

@@ -150,7 +150,7 @@ def check_driven(runs: list[Path]) -> None:
     if all(undriven(v) for v in peaks):
         names = ", ".join(str(p) for p in runs)
         raise ValueError(f"run file{'s' if len(runs) > 1 else ''} {names}: the amplifier was never driven above "
-                         f"{NO_DRIVE_V:g} V (the voltage monitor's 0-V band; peak {max(peaks):.3g} V): no model "
+                         f"{NO_DRIVE_V:.3g} V (the voltage monitor's 0-V band; peak {max(peaks):.3g} V): no model "
                          "parameter is identifiable without a drive")
 
 

@@ -49,6 +49,7 @@ from bench.protocol.program import (
     ticks,
     voltage_at,
 )
+from bench.rig import safe_monitor_v
 from bench.runtime.context import LATE_TOLERANCE_S, STOP_POLL_S, RunContext, Snapshot, present
 from bench.runtime.control import CONTROL_POLL_S, NO_WORD, ControlWord, read_control
 from bench.runtime.hardware_timed import FINISH_POLL_S, HardwareTimed
@@ -66,7 +67,6 @@ MOTOR_SETTLE_S = 0.2  # shutdown: the motor's final position is read at least th
 MOTOR_STOP_JOIN_S = 2.0  # shutdown, wall clock: how long the end waits for the motor's stop thread (its link's waits)
 MONITOR_SETTLE_S = 0.5  # after zeroing, wait for fresh monitor conversions before the final read
 RAMP_STEPS = 10  # shutdown ramp: set-points from the last voltage to 0 V
-SAFE_MONITOR_V = 50.0  # |monitor| at or below this after zeroing counts as "output at 0 V" (0.5 % of 10 kV)
 DISCHARGE_WAIT_S = 2.0  # how long to keep reading a monitor that is not yet at 0 V before reporting it
 MONITOR_REREAD_S = 0.1  # a monitor not yet at 0 V is read again this often (shutdown and hand-over)
 SAFE_STATE = "safe_state"  # the run file's stream of the shutdown's verifying monitor reads (_verify_safe)
@@ -244,6 +244,9 @@ class Engine:
         if not 0 <= start_step < max(len(program.segments), 1):
             raise ValueError(f"start step {start_step} outside the program's {len(program.segments)} steps")
         self.program = program
+        # |voltage monitor| at or below this is the output verified at 0 V (hand-over, shutdown): from the rig's
+        # monitor chain (bench.core.monitor_chain), never above its 50-V safe touch limit
+        self.safe_v = safe_monitor_v(program.rig)
         self.commands = commands
         self.start_step = start_step
         self.control = control
@@ -818,8 +821,9 @@ class Engine:
         The voltage monitor (and the current monitor) is read once ``MONITOR_SETTLE_S`` have passed since the
         output was last commanded on (|V| above the interlock's ``OUTPUT_ON_V``) or off from there (fresh
         conversions of the output at 0 V: the shutdown's settle, counted from then, so a long relax costs no
-        wait), then every ``MONITOR_REREAD_S`` until it reads at most
-        ``SAFE_MONITOR_V``, for at most ``DISCHARGE_WAIT_S`` — the shutdown's threshold and bound. Every reading is
+        wait), then every ``MONITOR_REREAD_S`` until it reads at most ``safe_v`` (the rig's verified-safe threshold,
+        :func:`bench.rig.safe_monitor_v`), for at most ``DISCHARGE_WAIT_S`` — the shutdown's threshold and bound.
+        Every reading is
         recorded in the amplifier stream (a DAQ rig's stream has stopped: a set step never plays on, so its AINs
         are read by command-response, as while paused) and checked by the supervisor; the verdict is a ``handover``
         event. An output not read at 0 V within the bound (or a monitor that cannot be read) raises an
@@ -850,16 +854,16 @@ class Engine:
             if math.isfinite(v.value) and math.isfinite(i.value):
                 self.snapshot.values["voltage"], self.snapshot.values["current"] = v.value, i.value
                 self.sup.check_monitors(v.value, i.value)
-            if math.isfinite(v.value) and abs(v.value) <= SAFE_MONITOR_V:
+            if math.isfinite(v.value) and abs(v.value) <= self.safe_v:
                 # the reading first: the event's 200 bytes cut the step's description, never the numbers
                 self.rec.event(self.now(), seg.index, "handover", f"voltage monitor {v.value:.0f} V, current "
-                               f"{i.value * 1e6:.2f} µA at {t:.3f} s: 0 V verified (|V| ≤ {SAFE_MONITOR_V:g} V) "
+                               f"{i.value * 1e6:.2f} µA at {t:.3f} s: 0 V verified (|V| ≤ {self.safe_v:.3g} V) "
                                f"before {what}")
                 return
             if self.now() >= deadline:
                 raise InterlockTrip("output not verified", f"before {what}: the voltage monitor still read "
                                     f"{v.value:.0f} V at {t:.3f} s, {DISCHARGE_WAIT_S:g} s after the first reading "
-                                    f"(safe: |V| ≤ {SAFE_MONITOR_V:g} V); the rig is not handed over")
+                                    f"(safe: |V| ≤ {self.safe_v:.3g} V); the rig is not handed over")
             self._wait_stoppable(self.now() + MONITOR_REREAD_S)
 
     def _wait_stoppable(self, until: float) -> None:
@@ -1074,7 +1078,7 @@ class Engine:
         if self.inst.motor is not None and (self.program.has_motor_axis or self.commands):
             self.ctx.motor.stop()
             self.motion.stopped(self.now())
-        if self.inst.amplifier is not None and self._stream is not None and abs(self.ctx.v_cmd) > SAFE_MONITOR_V:
+        if self.inst.amplifier is not None and self._stream is not None and abs(self.ctx.v_cmd) > OUTPUT_ON_V:
             # the DAQ plays the ramp and records the specimen's response through it, on the scan clock
             self._stream_ramp(self.ctx.v_cmd, self.program.rig.limits.shutdown_ramp_s, RESTART_SETTLE_S, pause=True)
             self._set_voltage(0.0, self.now())  # the DAC already holds 0 V: the host's record of it, verified
@@ -1285,14 +1289,14 @@ class Engine:
             if v0 != 0.0 and not self._urgent.is_set():
                 self._event("ramp", f"ramp from {whole(v0)} V to 0 V over {ramp:g} s" + (
                     f", played by the DAQ's stream-out; the inputs recorded on its scan clock until "
-                    f"{MONITOR_SETTLE_S:g} s after 0 V" if self._stream is not None and abs(v0) > SAFE_MONITOR_V
+                    f"{MONITOR_SETTLE_S:g} s after 0 V" if self._stream is not None and abs(v0) > OUTPUT_ON_V
                     else ""))
 
                 def record(sent: float) -> None:
                     self.ctx.v_cmd = sent
                     self._record(self.rec.append, "setpoints", self.now(), voltage=sent, aperture=math.nan)
 
-                if self._stream is not None and abs(v0) > SAFE_MONITOR_V:  # (a program that ended at 0 V: no stream)
+                if self._stream is not None and abs(v0) > OUTPUT_ON_V:  # (a program that ended at 0 V: no stream)
                     streamed = self._stream_ramp(v0, ramp, MONITOR_SETTLE_S)
                     if streamed is None:
                         self._event("ramp", "second stop request: 0 V at once")
@@ -1535,7 +1539,7 @@ class Engine:
             if self._stream is None:  # a DAQ rig's streams end on the last scan: the reading is in the safe event
                 self._record(self.rec.append, "amplifier", v.timestamp - self.ctx.t0, voltage=v.value,
                              current=i.value, **self.ctx.unpolled_monitor_columns())
-            if math.isfinite(v.value) and abs(v.value) <= SAFE_MONITOR_V:
+            if math.isfinite(v.value) and abs(v.value) <= self.safe_v:
                 self._zero_verified = True
                 return f"{path}; verified: voltage monitor {v.value:.0f} V at {self.now():.3f} s"
             if self.now() >= deadline:

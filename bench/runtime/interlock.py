@@ -24,6 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from bench.core.monitor_chain import SAFE_TOUCH_V
 from bench.core.motion import MotionProfile
 from bench.rig import RigConfig
 from bench.runtime.safety import SafetyTrip
@@ -34,7 +35,10 @@ DAQ_LAG_S = 1e-3  # default lag allowance on the scan clock (the TREK follows wi
 POLLED_LAG_S = 0.3  # default lag allowance of polled monitors (ADAM-4017+: 10 S/s for all channels)
 POLLED_READINGS = 2  # a polled mismatch must be seen in this many readings in a row
 MOTION_SAMPLES = 11  # the motion verifier compares a reading with the expected positions at this many times
-OUTPUT_ON_V = 50.0  # |commanded| above this: the output is on (a watchdog firing would change it)
+# |commanded| above this: the output is on (a watchdog firing would change it; supervised, settled before a
+# hand-over). A command is exact — no monitor error to allow for — so the safe touch limit itself applies, where a
+# *reading* must be within the rig's monitor-derived threshold (bench.rig.safe_monitor_v) to verify 0 V.
+OUTPUT_ON_V = SAFE_TOUCH_V
 
 
 class InterlockTrip(SafetyTrip):
