@@ -5,7 +5,8 @@ streams end on the last scan; README "Hardware-timed"). Now ``/safe_state`` hold
 [A] and, on a rig with a motor, the carriage's position [m] once at rest, on every rig kind, whatever ended the run
 (its end, an instrument error, a stop signal).
 
-Expected figures from the README ("Safety", step 5): the safe state is the voltage monitor at ≤ 50 V, read 0.5 s
+Expected figures from the README ("Safety", step 5): the safe state is the voltage monitor within the rig's
+threshold (at most 50 V on every rig, the safe touch limit; tests/test_monitor_chain.py derives each), read 0.5 s
 after 0 V was commanded; the file conventions from README "Run files" (a ``units`` attribute on every numeric
 dataset, ``t`` a dimension scale of its group).
 """
@@ -26,7 +27,7 @@ from drivers.errors import InstrumentError
 from tests.conftest import RIGS
 from tests.test_protocols import SAFE_HEAD
 
-SAFE_V = 50.0  # README "Safety" 5: the voltage monitor at or below this is the output at 0 V
+SAFE_V = 50.0  # README "Safety" 5: every rig's verified-safe threshold is at most this (the safe touch limit)
 SETTLE_S = 0.5  # README "Safety" 5: the verifying read comes 0.5 s after 0 V was commanded
 SIM_RIGS = sorted(p.stem for p in RIGS.glob("*-sim.toml"))
 BODY = ('[[steps]]\ntype = "ramp"\nchannel = "voltage"\nto = "1 kV"\nduration_s = 1.0\n\n'
