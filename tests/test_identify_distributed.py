@@ -369,7 +369,9 @@ def test_a_task_cancelled_by_a_closing_worker_is_not_logged_and_one_of_a_running
 def test_a_ctrl_c_while_the_cluster_starts_is_taken_once_it_is_up() -> None:
     """The cluster's workers are spawned with SIGINT kept from them; it was ignored in this process meanwhile, so a
     Ctrl-C while the cluster started (several seconds) was lost and the fit ran to its end (on a loaded machine:
-    2 minutes, stored). Blocked instead: the signal waits, and is taken as the cluster is up."""
+    2 minutes, stored). Blocked instead (in the thread that spawns them): the signal is taken — once the cluster is
+    up, or at once where another thread of the process receives it (xdist's worker has some, as the fit's progress
+    bar has one): never lost."""
     import signal
 
     from bench.identify.distributed import _sigint_ignored_in_children
@@ -382,7 +384,6 @@ def test_a_ctrl_c_while_the_cluster_starts_is_taken_once_it_is_up() -> None:
             os.kill(os.getpid(), signal.SIGINT)
             for _ in range(1000):  # bytecodes at which a handler could run
                 pass
-            assert got == []
         for _ in range(1000):
             pass
         assert got == [signal.SIGINT]

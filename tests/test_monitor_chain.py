@@ -92,3 +92,14 @@ def test_a_35_V_residual_is_not_handed_over(tmp_path: Path, rig: str) -> None:
     amp = open_run(result.path).streams["amplifier"]
     v = np.abs(amp.columns["voltage"][amp.t <= REREAD_S + 0.1])
     assert v.size >= 2 and np.all((v > ADAM_BAND) & (v < 50.0)), v  # what the old threshold would have passed
+
+
+def test_the_cores_trek_figures_are_the_drivers() -> None:
+    """The widest threshold is taken over the core's TREK datasheet figures (the core imports no driver): they are
+    the driver's models, full scale and monitor ratio alike."""
+    from bench.core.plant import TREK_DATASHEET
+    from drivers.trek import TREK_MODELS
+
+    assert TREK_DATASHEET.keys() == TREK_MODELS.keys()
+    for name, m in TREK_MODELS.items():
+        assert (TREK_DATASHEET[name].max_output, TREK_DATASHEET[name].vmon_ratio) == (m.max_output, m.vmon_ratio)

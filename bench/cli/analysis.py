@@ -10,7 +10,6 @@ from typing import TYPE_CHECKING, Annotated
 import typer
 
 from bench.cli.common import JsonOpt, Table, clean_errors, console, err_console, escape, fail, json_mode, print_json
-from bench.storage.absent import absent_run_file
 
 if TYPE_CHECKING:
     from bench.analysis.runs import StepResult
@@ -632,6 +631,8 @@ def plot_command(
     from bench.analysis.quicklook import quicklook
 
     if not run.is_file():
+        from bench.storage.absent import absent_run_file
+
         raise ValueError(absent_run_file(run))
     target = quicklook(run, streams or None, out, show)
     if target is not None:

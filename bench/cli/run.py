@@ -17,7 +17,6 @@ import typer
 from bench.cli.common import JsonOpt, Table, clean_errors, console, escape, fail, json_mode, print_json, progress
 from bench.cli.completion import protocol_files, protocol_names, rig_files
 from bench.cli.logs import log, run_log
-from bench.storage.absent import absent_run_file
 
 if TYPE_CHECKING:
     from bench.app.runs import Inspection, PreparedRun
@@ -461,6 +460,8 @@ def _running(run_file: Path) -> RunFile:
     from bench.storage.runfile import open_run
 
     if not run_file.is_file():
+        from bench.storage.absent import absent_run_file
+
         raise ValueError(absent_run_file(run_file))
     f = open_run(run_file, streams=False)
     if f.attrs.get("session_log"):

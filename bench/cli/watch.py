@@ -19,7 +19,6 @@ from typing import Annotated
 import typer
 
 from bench.cli.common import clean_errors, console, escape
-from bench.storage.absent import absent_run_file
 
 WEB_EXTRA = "bench watch needs the web extra: pip install 'dea-bench[web]'"
 DEFAULT_PORT = 8765
@@ -71,6 +70,8 @@ def watch(
                 raise ValueError(f"run file {p}: not a .h5 file")
             files.append(p)
         else:
+            from bench.storage.absent import absent_run_file
+
             raise ValueError(absent_run_file(p))
     loopback = is_loopback(host)
     token = None if loopback else (os.environ.get(TOKEN_ENV) or secrets.token_urlsafe(18))

@@ -92,9 +92,9 @@ def safe_threshold_v(model: str, full_scale_V: float, vmon_ratio: float, daq: Da
 
 def widest_threshold_v() -> float:
     """The largest threshold of the chains a rig file names by default (either TREK HS model at its datasheet full
-    scale and monitor ratio, :data:`drivers.trek.TREK_MODELS`, into either DAQ): what an analysis that does not know
-    the rig takes for the monitor's 0-V band."""
-    from drivers.trek import TREK_MODELS
+    scale and monitor ratio, :data:`bench.core.plant.TREK_DATASHEET`, into either DAQ): what an analysis that does
+    not know the rig takes for the monitor's 0-V band. (The core imports no driver: tests/test_layers.py.)"""
+    from bench.core.plant import TREK_DATASHEET
 
     return max(safe_threshold_v(m.model, m.max_output, m.vmon_ratio, daq)
-               for m in TREK_MODELS.values() for daq in (adam_4017p(), T7_AIN))
+               for m in TREK_DATASHEET.values() for daq in (adam_4017p(), T7_AIN))
