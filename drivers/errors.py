@@ -2,6 +2,11 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from drivers.interfaces import StreamBlock
+
 
 class InstrumentError(Exception):
     """Base class: something went wrong talking to or operating an instrument."""
@@ -26,6 +31,16 @@ class ProtocolError(InstrumentError):
 
 class InstrumentStateError(InstrumentError):
     """The instrument answered but refused: error reply, wrong state, fault latched."""
+
+
+class StreamEndedError(InstrumentStateError):
+    """The device ended a running stream with a status of its own (a DAQ's scan overlap, skip-counter overflow,
+    buffer full). ``block`` holds every complete scan received up to and with the packet that said so: measured
+    data, which the caller records before it lets the error stop the run."""
+
+    def __init__(self, device: str, message: str, block: StreamBlock) -> None:
+        super().__init__(device, message)
+        self.block = block
 
 
 class LimitError(InstrumentError):

@@ -439,10 +439,13 @@ class StreamingDaq(Instrument, Protocol):
 
     def collect(self, until: float | None = None, timeout: float = 1.0) -> StreamBlock:
         """Complete scans received since the last call (waiting up to ``timeout`` s for those due by rig time
-        ``until``); tops up the output buffer."""
+        ``until``); tops up the output buffer. A device status that ends the stream raises
+        :class:`~drivers.errors.StreamEndedError` (one line naming the device and the status) whose ``block`` holds
+        the scans this call received up to it: measured data, which the caller records before the error stops it."""
 
     def stop(self) -> StreamBlock | None:
-        """Stop the stream (the output holds its last value); returns the scans that had arrived."""
+        """Stop the stream (the output holds its last value); returns the scans that had arrived (also when the
+        device had ended the stream itself: the stop raises no :class:`~drivers.errors.StreamEndedError`)."""
 
     def whole_packets_at(self) -> float:
         """Rig time at which the scans taken so far fill whole packets: a stop sent then loses none of them (the

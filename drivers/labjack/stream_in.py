@@ -3,7 +3,6 @@ spontaneous packets from the stream port as numbered scans, complete, stop ([D] 
 
 from __future__ import annotations
 
-import contextlib
 import math
 import select
 import socket
@@ -17,6 +16,7 @@ from drivers.errors import (
     InstrumentStateError,
     InstrumentTimeoutError,
     ProtocolError,
+    StreamEndedError,
 )
 from drivers.interfaces import StreamBlock, StreamSpec
 from drivers.labjack.packets import StreamBatch, parse_stream_batch, split_stream_packets
@@ -243,7 +243,8 @@ class T7Stream(T7StreamOut):
         ``until`` (rig time): first wait, up to ``timeout`` s (:mod:`drivers.deadline`), for every whole packet the
         device has filled by then — in virtual time, call it with the clock's present to get every scan so far.
         A gap in the packet sequence is a :class:`ProtocolError`; a device status that ends the stream
-        (scan overlap, skip-counter overflow, buffer full) an :class:`InstrumentStateError` after the data.
+        (scan overlap, skip-counter overflow, buffer full) a :class:`StreamEndedError` whose ``block`` holds the
+        scans this call received, up to and with that packet's (what it would have returned).
         Samples are 16-bit codes converted through the calibration read at connect, which is refused unless
         every code of every range lies within 1.1 × the range (:data:`AIN_SPAN`): no streamed sample is beyond
         what the converter makes.
@@ -293,9 +294,9 @@ class T7Stream(T7StreamOut):
             self.streaming = False
         block = StreamBlock(first, s.t0, s.plan.dt, s.plan.names, v, ok, backlog, skipped, tuple(statuses), s.done)
         fatal = [c for c in statuses if c in (ST_SCAN_OVERLAP, ST_RECOVER_OVERFLOW, ST_BUFFER_FULL)]
-        if fatal:
-            raise InstrumentStateError(self.name, f"stream ended by device status {fatal[0]} "
-                                       f"({ERRORS[fatal[0]]}) at scan {s.scans}")
+        if fatal:  # the scans measured up to the fault go with the error: the caller records them
+            raise StreamEndedError(self.name, f"stream ended by device status {fatal[0]} ({ERRORS[fatal[0]]}) at "
+                                   f"scan {s.scans}", block)
         return block
 
     def _convert(self, chunk: list[np.ndarray], rows: list[np.ndarray], valid: list[np.ndarray]) -> None:
@@ -329,7 +330,9 @@ class T7Stream(T7StreamOut):
     def complete(self, timeout: float = 10.0, poll: float = 0.05) -> list[StreamBlock]:
         """Wait (on the rig clock: a virtual clock advances) until the burst completed or, for a continuous
         stream with an output, every waveform value has been played and its scan collected; returns the
-        blocks collected meanwhile. ``timeout``: seconds without progress before giving up (:mod:`drivers.deadline`)."""
+        blocks collected meanwhile. ``timeout``: seconds without progress before giving up (:mod:`drivers.deadline`).
+        A device status that ends the stream: a :class:`StreamEndedError` whose ``block`` holds every scan this call
+        received (the blocks collected before it and the last, as one)."""
         s = self._stream
         if s is None or not self.streaming:
             raise InstrumentStateError(self.name, "complete without a running stream")
@@ -339,7 +342,10 @@ class T7Stream(T7StreamOut):
         target = s.spec.num_scans or (s.out_base + codes.size if codes is not None else 0)
         blocks: list[StreamBlock] = []
         while True:
-            block = self.collect(until=self.clock(), timeout=timeout)
+            try:
+                block = self.collect(until=self.clock(), timeout=timeout)
+            except StreamEndedError as exc:  # the blocks collected before it are measured data too
+                raise StreamEndedError(self.name, exc.detail, _joined([*blocks, exc.block])) from None
             blocks.append(block)
             if block.done or s.scans >= target:
                 return blocks
@@ -360,25 +366,48 @@ class T7Stream(T7StreamOut):
 
     def stop(self, *, always_send: bool = False) -> StreamBlock | None:
         """STREAM_ENABLE = 0 (the DAC keeps its last value) and close the stream socket; returns the complete
-        scans that had arrived (a partly filled packet is not sent by the device). ``always_send``: the stop goes
-        out even after a stop request (making the rig safe)."""
+        scans that had arrived (a partly filled packet is not sent by the device), also those of a stream the
+        device had ended with a status of its own (:class:`StreamEndedError`, not raised here: the stream stops as
+        asked, the status is in the block's ``statuses``). ``always_send``: the stop goes out even after a stop
+        request (making the rig safe)."""
         s = self._stream
         if s is None or s.sock is None:
             return None
         block = None
+        refused: InstrumentStateError | None = None
         asked = self.clock()
         try:
             if self.streaming:
-                self._lj("stop stream", lambda unit, *a: self.link.write_registers(unit, *a, always_send=always_send),
-                         STREAM_ENABLE, u32_words(0))
+                try:
+                    self._lj("stop stream", lambda unit, *a: self.link.write_registers(unit, *a,
+                                                                                      always_send=always_send),
+                             STREAM_ENABLE, u32_words(0))
+                except InstrumentStateError as exc:  # refused (STREAM_NOT_RUNNING): a device that ended the stream
+                    refused = exc  # itself has sent its last packets all the same
             self.streaming = False
-            with contextlib.suppress(InstrumentError):  # stopping must not fail on the data's account
+            try:
                 try:  # the packets filled before the stop was sent are on their way: a short wait for them
                     block = self.collect(until=asked, timeout=STOP_DRAIN_S)
                 except InstrumentTimeoutError:  # what did arrive (kept by the receive) and no more
                     block = self.collect(timeout=0.0)
+            except StreamEndedError as exc:  # the device had ended the stream: its last scans are measured data
+                block = exc.block
+            except InstrumentError:  # stopping must not fail on the data's account
+                pass
         finally:
             self.streaming = False
             s.done = True
             self._close_stream_socket()
+        if refused is not None and (block is None or not any(c in _ENDING for c in block.statuses)):
+            raise refused  # not a stream the device had ended: the refusal stands
         return block
+
+
+def _joined(blocks: list[StreamBlock]) -> StreamBlock:
+    """Consecutive blocks of one stream (each collect's continues the last's scan numbers) as one."""
+    if len(blocks) == 1:
+        return blocks[0]
+    a, z = blocks[0], blocks[-1]
+    return StreamBlock(a.first_scan, a.t0, a.dt, a.names, np.concatenate([b.volts for b in blocks]),
+                       np.concatenate([b.valid for b in blocks]), z.backlog_scans,
+                       sum(b.skipped_scans for b in blocks), tuple(c for b in blocks for c in b.statuses), z.done)
