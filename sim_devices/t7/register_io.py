@@ -411,6 +411,8 @@ class RegisterIO(StreamEngine):
             if not self.streaming:
                 return self._fail(E_NOT_RUNNING)
             self._catch_up(now)
+            if not self.streaming:  # the catch-up found the device had ended the stream itself (2943)
+                return self._fail(E_NOT_RUNNING)
             ended = self._burst_ended()
             self._send(final=ended)  # the packets filled by now leave first (a twin pumping on demand holds them)
             if ended:  # a burst that ended before this request had stopped: as if the pump had seen it end

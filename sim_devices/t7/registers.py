@@ -58,6 +58,10 @@ E_ACTIVE, E_CHN_LIST, E_RATE, E_DTYPE, E_TARGET, E_OUT_FULL, E_BUFSIZE, E_OUT_DN
     E_LOOP_BIG, E_OUT_DISABLED, E_NO_CHN, E_OUT_TARGET = (
         2605, 2607, 2608, 2611, 2612, 2613, 2615, 2617, 2618, 2620, 2622, 2627, 2600, 2614)
 S_RECOVER, S_RECOVER_END, S_BURST = 2940, 2941, 2944
+S_RECOVER_OVERFLOW = 2943  # [D] ljm_constants.json errors: STREAM_AUTO_RECOVER_END_OVERFLOW, "During stream
+# auto-recovery, the variable tracking the number of skipped scans has reached an overflow condition."
+SKIPPED_MAX = 0xFFFF  # [E] the skipped-scan counter is 16 bits (AddInfo of the 2941 packet; the example: "the skipped
+# samples counter (16-bit) overflowed")
 UNIT = 1  # [E] the unit id of the device's Modbus replies and stream packets
 FC_FEEDBACK, FEEDBACK_MAX_PACKET = 76, 1040  # [D] MBFB; T7 Ethernet packet bytes (MBAP header included)
 MODBUS_PORT, STREAM_PORT = 502, 702  # [D] the T7's Modbus TCP port and its spontaneous-stream port (STREAM_AUTO_TARGET

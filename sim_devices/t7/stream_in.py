@@ -15,6 +15,13 @@ both from :mod:`~sim_devices.t7.resolution`, which says what was found and what 
 [E] auto-recovery: when more than STREAM_BUFFER_SIZE_BYTES wait unsent (the host does not read), new scans are dropped
 and packets carry 2940; when room returns the next packet carries 2941, AddInfo = scans skipped, and starts with one
 dummy scan of 0xFFFF.
+[E] 2943 (STREAM_AUTO_RECOVER_END_OVERFLOW): during auto-recovery the 16-bit skipped-scan counter overflowed; the
+example stops reading ("unknown amount of skipped samples"). [A] it overflows at the 65536th skipped scan; the
+packets still buffered leave first, then one last packet with the samples left (usually none), status 2943,
+AddInfo 0, and the stream stops (STREAM_ENABLE reads 0; a stop then gets STREAM_NOT_RUNNING); packets kept for a
+client not connected yet stay for it. Not simulated: 2942 (STREAM_SCAN_OVERLAP: the twin refuses at the enable the
+rates it cannot scan) and 2945 (STREAM_BUFFER_FULL: the buffer filled with auto-recovery disabled, which the twin
+does not offer); :meth:`StreamEngine.end_stream` injects any status that ends a stream (fault injection).
 [A] burst (STREAM_NUM_SCANS > 0): the rest goes in a last, possibly short packet with status 2944, then the stream
 stops; on STREAM_ENABLE = 0 the whole packets filled by then are sent and a partial packet is discarded.
 [L] command-response stream (STREAM_AUTO_TARGET ≠ 1: 2612), output-only streams and a STREAM_OUT# twice in one scan
@@ -60,6 +67,8 @@ from sim_devices.t7.registers import (
     S_BURST,
     S_RECOVER,
     S_RECOVER_END,
+    S_RECOVER_OVERFLOW,
+    SKIPPED_MAX,
     UNIT,
 )
 from sim_devices.t7.stream_out import StreamOut
@@ -109,7 +118,8 @@ class StreamEngine(StreamOut):
             if now == self._pumped_at:  # pumped at this very time, no request since: nothing new is due (a virtual
                 return  # clock that has not moved between polls)
             self._catch_up(now)
-            self._send(final=self._burst_ended())
+            if self.streaming:  # (not a stream the catch-up found ended: :meth:`_end` sent its last packet)
+                self._send(final=self._burst_ended())
             self._next_packet_t = self._packet_due()
             self._pumped_at = self._worked_at = now
 
@@ -175,6 +185,8 @@ class StreamEngine(StreamOut):
                 return
             self.recovering = True
             self.skipped += ks.size
+            if self.skipped > SKIPPED_MAX:  # the counter overflowed: the device ends the stream
+                self._end(S_RECOVER_OVERFLOW)
             return
         self.fifo = np.concatenate([self.fifo, data])
 
@@ -234,6 +246,24 @@ class StreamEngine(StreamOut):
         if final:
             self._stop_stream(self.clock.now())
 
+    def end_stream(self, status: int) -> None:
+        """Fault injection: the device ends the running stream now with ``status`` (a stream error that stops it,
+        as 2942, 2943 or 2945), the scans due by now sent first (:meth:`_end`)."""
+        with self.plant.lock, self.lock:
+            if not self.streaming:
+                return
+            self._catch_up(self.clock.now())
+            if self.streaming:  # (the catch-up may have ended it itself)
+                self._end(status)
+
+    def _end(self, status: int) -> None:
+        """The device ends the stream with ``status``: the whole packets waiting leave, then one last packet with the
+        samples left (possibly none) carrying it; packets kept for a client not connected yet stay for it."""
+        self._send()
+        rest, self.fifo = self.fifo, np.zeros(0, np.uint16)
+        self._write(self._writer, self._head(rest.size, 0, status, 0) + rest.astype(">u2").tobytes())
+        self._stop_stream(self.clock.now(), keep_held=True)
+
     def _write(self, w: asyncio.StreamWriter | None, data: bytes, packets: int = 1) -> None:
         self.packets_sent += packets
         if w is not None and not w.is_closing():
@@ -283,6 +313,7 @@ class StreamEngine(StreamOut):
         now = self.clock.now()
         self._streamed, self._ins = outs, [a for a in entries if a < 2 * N_AIN_ALL]
         self.t_enable, self.streaming, self.tid, self.produced = now, True, 0, 0
+        self._held = []  # a stream the device ended may have left packets no client took: not this stream's
         self.fifo = np.zeros(0, np.uint16)
         self.recovering, self.skipped = False, 0
         for k in outs:
@@ -297,8 +328,9 @@ class StreamEngine(StreamOut):
         self.plant.stream_started(now + 1.0 / self.rate)  # scan 0, one scan period after the enable
         return 0
 
-    def _stop_stream(self, now: float) -> None:
-        self._held = []
+    def _stop_stream(self, now: float, keep_held: bool = False) -> None:
+        if not keep_held:
+            self._held = []
         cur = self._cur_scan(now)
         for k in self._out_indices():
             self._advance_out(k, now)
