@@ -22,7 +22,8 @@ from bench.protocol.program import Segment, plays_on, voltage_at
 from bench.rig import DaqConfig, RigConfig
 from bench.runtime.context import RunContext
 from bench.runtime.interlock import OUTPUT_ON_V, InterlockTrip, mismatch_trip
-from drivers.errors import InstrumentTimeoutError
+from bench.runtime.safety import SafetyTrip
+from drivers.errors import InstrumentTimeoutError, StreamEndedError
 from drivers.interfaces import (
     Amplifier,
     DaqAmplifier,
@@ -270,8 +271,7 @@ class HardwareTimed:
     def collect(self) -> None:
         """Record the scans received so far and supervise them; keep the device's watchdog fed."""
         self.ctx.guard(streaming=True)  # the collect tops up the stream-out: no write after a stall
-        block = self.daq.collect(until=self.ctx.clock.now(), timeout=max(1.0, 4 * self.daq.timeout))
-        self._record(block)
+        self._record(self._collected())
         if (late := self.daq.out_underrun_scans) > 0:
             raise InterlockTrip("stream-out underrun", f"the DAQ played {late} scans past the values the host had "
                                 "written: the output did not follow the program")
@@ -280,6 +280,21 @@ class HardwareTimed:
         if self.ctx.clock.now() - heard >= KEEPALIVE_S:
             self.daq.read_dac(self.cfg.dac)
             self._keepalive = self.ctx.clock.now()
+
+    def _collected(self, supervise: bool = True) -> StreamBlock:
+        """The scans the DAQ has received so far. A stream the DAQ ended with a status of its own: the scans up to
+        it are recorded first (supervised as any others, as ``supervise`` says), then its error stops the run —
+        unless those scans trip the supervisor: the trip (it latches) stops it, and a ``fault`` event names the
+        status."""
+        try:
+            return self.daq.collect(until=self.ctx.clock.now(), timeout=max(1.0, 4 * self.daq.timeout))
+        except StreamEndedError as ended:
+            try:
+                self._record(ended.block, supervise=supervise)
+            except SafetyTrip:
+                self.ctx.rec.event(self.ctx.now(), self.ctx.snapshot.step, "fault", str(ended))
+                raise
+            raise
 
     def finish(self) -> None:
         """Collect until the end value has been played, then stop the stream (the DAC holds it) — unless the
@@ -335,8 +350,7 @@ class HardwareTimed:
         trip there; the zero is verified afterwards), the device's watchdog kept fed."""
         if not self.daq.streaming:
             return
-        self._record(self.daq.collect(until=self.ctx.clock.now(), timeout=max(1.0, 4 * self.daq.timeout)),
-                     supervise=False)
+        self._record(self._collected(supervise=False), supervise=False)
         heard = max(self._keepalive, getattr(self.daq, "answered_at", -np.inf))
         if self.ctx.clock.now() - heard >= KEEPALIVE_S:
             self.daq.read_dac(self.cfg.dac)
