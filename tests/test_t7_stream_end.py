@@ -12,15 +12,23 @@ from __future__ import annotations
 
 import socket
 import struct
+import time
 from collections.abc import Callable, Iterator
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from bench.core.clock import VirtualClock
+from bench.core.plant import HVStage, Plant
+from bench.models.membrane import MembraneParams
+from bench.runtime.engine import Engine
+from bench.runtime.sim_rig import SimRig
 from drivers.errors import StreamEndedError
 from drivers.labjack import LabJackT7, StreamIn, StreamSpec
 from drivers.labjack.plan import StreamPlan, StreamState
+from sim_devices.labjack_t7 import LabJackT7Sim
+from tests.test_interlock import DAQ_RIG, ZERO_V, events, run_with_fault
 
 CENTER, SLOPE = 33523, 0.000315805780  # nominal ±10-V calibration (datasheet; tests/test_labjack.py checks it)
 RATE = 10_000.0
@@ -129,3 +137,89 @@ def test_a_stop_returns_the_scans_of_a_stream_the_device_had_ended(wire: Wire) -
     block = wire.daq.stop()
     assert block is not None and (block.first_scan, block.n) == (2, 2) and SCAN_OVERLAP in block.statuses
     np.testing.assert_allclose(block.volts, volts(2, 2), rtol=0, atol=1e-12)
+
+
+# ---------------------------------------------------------------------------- the twin
+def _transact(sock: socket.socket, request: bytes) -> bytes:
+    sock.sendall(request)
+    head = sock.recv(6, socket.MSG_WAITALL)
+    return head + sock.recv(struct.unpack(">H", head[4:6])[0], socket.MSG_WAITALL)
+
+
+def _wait_for(done: Callable[[], bool]) -> None:
+    """Until ``done()`` (the twin acts on a clock move on its own thread): a condition, the limit only a guard."""
+    end = time.monotonic() + 60.0
+    while not done():
+        assert time.monotonic() < end, "the twin did not get there"
+        time.sleep(0.001)
+
+
+def test_twin_ends_the_stream_with_2943_when_its_skipped_scan_counter_overflows() -> None:
+    """[E] (LabJack's low-level stream example) the skipped-scan counter of auto-recovery is 16 bits (AddInfo):
+    ([A]) the 65,535th skipped scan still counts, the 65,536th overflows it, and the device ends the stream with
+    2943 (STREAM_AUTO_RECOVER_END_OVERFLOW). 1 kHz, AIN0/1, 4 samples (2 scans) a packet of 24 bytes, the default
+    4096-byte buffer, no client reading: scans 0–499 fill 250 packets (6000 bytes unsent), scans from 500 on are
+    skipped. Scan k is due at (k + 1) ms: at 66.0355 s scans 500–66034 (65,535) are skipped, at 66.0365 s one more.
+    A client then gets the 250 kept packets and, numbered next, one with status 2943; STREAM_ENABLE reads 0."""
+    clock = VirtualClock()
+    sim = LabJackT7Sim(Plant(clock, MembraneParams(), hv=HVStage()), clock, noise=False)
+    port, stream_port = sim.start()
+    try:
+        with socket.create_connection(("127.0.0.1", port), timeout=2) as s:
+            for f in ["0010 0000 000b 01 10 0fa2 0002 04 447a 0000", "0011 0000 000b 01 10 0fa4 0002 04 0000 0002",
+                      "0012 0000 000b 01 10 0fa6 0002 04 0000 0004", "0013 0000 000b 01 10 0fb0 0002 04 0000 0001",
+                      "0014 0000 000f 01 10 1004 0004 08 0000 0000 0000 0002",
+                      "0015 0000 000b 01 10 137e 0002 04 0000 0001"]:  # 1 kHz, AIN0/1, 4 samples, enable
+                assert _transact(s, bytes.fromhex(f))[7] == 0x10
+            clock.advance(0.5005)
+            _wait_for(lambda: sim.packets_sent == 250)
+            clock.advance(66.0355 - 0.5005)
+            _wait_for(lambda: sim.skipped == 65_535)
+            assert sim.streaming
+            clock.advance(0.001)
+            _wait_for(lambda: not sim.streaming)
+            enable = _transact(s, bytes.fromhex("0016 0000 0006 01 03 137e 0002"))  # FC3 STREAM_ENABLE (4990)
+            assert enable[7] == 0x03 and struct.unpack(">I", enable[9:13])[0] == 0
+        with socket.create_connection(("127.0.0.1", stream_port), timeout=60.0) as data:
+            kept = data.recv(250 * 24, socket.MSG_WAITALL)
+            assert [struct.unpack(">H", kept[k:k + 2])[0] for k in range(0, len(kept), 24)] == list(range(250))
+            tid, proto, length, unit, fn, typ, _, _, status, _ = struct.unpack(">HHHBBBBHHH",
+                                                                                data.recv(16, socket.MSG_WAITALL))
+        # the scans before the overflow were all in the 250 packets: the last packet carries none
+        assert (tid, proto, length, unit, fn, typ, status) == (250, 0, 10, 1, 0x4C, 16, RECOVER_OVERFLOW)
+    finally:
+        sim.stop()
+    assert not sim.errors
+
+
+# ---------------------------------------------------------------------------- a run on the simulated DAQ rig
+def test_a_run_whose_stream_the_t7_ends_records_every_scan_up_to_the_fatal_packet_and_stops_at_0_v(
+        tmp_path: Path) -> None:
+    """At run time 3 s (7-kV waveform, virtual time) the T7 twin ends the stream with 2943: its last packet follows
+    the scans it took by then. The run ends in error naming the status, the output at 0 V; the amplifier stream
+    of the run file holds that stream's scans up to the last the device sent — scan number ``produced − 1``, the
+    twin's count (scan k at t_scan0 + k/rate on the run clock, ``t_scan0`` from the stream's timing event)."""
+    ended: dict[str, float] = {}
+
+    def end(_engine: Engine, sim: SimRig) -> None:
+        twin = sim.twins["daq"]
+        twin.end_stream(RECOVER_OVERFLOW)
+        ended["produced"], ended["rate"] = twin.produced, twin.rate
+
+    result, run, plant = run_with_fault(DAQ_RIG, tmp_path, 3.0, end, virtual=True)
+    assert result.state == "error" and str(RECOVER_OVERFLOW) in result.reason, result.reason
+    assert run.state == "error" and f"device status {RECOVER_OVERFLOW}" in run.reason, run.reason
+    assert "STREAM_AUTO_RECOVER_END_OVERFLOW" in run.reason
+    assert abs(plant.sim.plant.observe().v_out[-1]) <= ZERO_V  # type: ignore[attr-defined]
+    assert plant.high_after(plant.t_fault) > ZERO_V  # high voltage when the stream ended: the trial tests something
+    # scan 0 of each stream on the run clock; the ended stream's is the last before the fault, the ramp's follows
+    t_fault = 3.0
+    starts = [float(text.split("scan 0 at ")[1].split(" s")[0]) for text in events(run, "timing")
+              if "scan 0 at" in text]
+    scan0 = max(t for t in starts if t <= t_fault)
+    ramp0 = min(t for t in starts if t > t_fault)
+    rate = ended["rate"]
+    t = run.streams["amplifier"].t
+    ours = t[(t >= scan0 - 0.5 / rate) & (t < ramp0 - 0.5 / rate)]
+    last = round((float(ours[-1]) - scan0) * rate)
+    assert last == ended["produced"] - 1
