@@ -252,18 +252,28 @@ def _start_cli_run(tmp_path: Path, protocol: str = "thesis-identification-short.
     ((signal.SIGINT,), "interrupted", "interrupted by Ctrl-C"),
     ((signal.SIGINT, signal.SIGINT), "interrupted", "interrupted by Ctrl-C"),
 ], ids=["ctrl-c", "ctrl-c-twice"])  # every other signal: tests/test_exit_paths.py (same handlers, in-process)
-def test_signals_stop_the_run_with_zero_voltage_and_a_marked_file(tmp_path: Path, signals: tuple, state: str,
-                                                                  reason: str) -> None:
-    proc, path = _start_cli_run(tmp_path)
-    running = open_run(path)  # read while being written (SWMR)
-    assert running.state == "running" and not running.complete and "still going" in running.incomplete_reason
-    assert len(running.streams["laser"]) > 0
-    for sig in signals:
-        proc.send_signal(sig)
-        time.sleep(0.05)
-    out, err = proc.communicate(timeout=60)
-    assert proc.returncode == 1 and "Traceback" not in err, err
-    run = open_run(path)
+def test_signals_stop_the_run_with_zero_voltage_and_a_marked_file(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                                  signals: tuple, state: str, reason: str) -> None:
+    """A real-time run: on a machine loaded enough to stall its host (the set-point module unheard past its bound)
+    the run trips on that stall by itself — rightly, and latched — before the signal is its story; that run is said
+    and the test run once more, with a latch folder of its own (a second stall fails the test)."""
+    for attempt in range(2):
+        folder = tmp_path / f"try{attempt}"
+        monkeypatch.setenv("BENCH_STATE_DIR", str(folder / "state"))
+        proc, path = _start_cli_run(folder)
+        running = open_run(path)  # read while being written (SWMR)
+        assert running.state == "running" and not running.complete and "still going" in running.incomplete_reason
+        assert len(running.streams["laser"]) > 0
+        for sig in signals:
+            proc.send_signal(sig)
+            time.sleep(0.05)
+        out, err = proc.communicate(timeout=60)
+        assert proc.returncode == 1 and "Traceback" not in err, err
+        run = open_run(path)
+        if attempt == 0 and run.state == "tripped" and "interlock: host stall" in run.reason:
+            print(f"the host stalled (a loaded machine), the run tripped before the signal: {run.reason}")
+            continue
+        break
     assert run.complete and run.state == state and run.reason.startswith(reason), (run.state, run.reason)
     assert run.streams["setpoints"].columns["voltage"][-1] == 0.0
     assert abs(run.streams["amplifier"].columns["voltage"][-1]) < 10.0  # monitor read after zeroing
