@@ -14,6 +14,7 @@ import pytest
 from typer.testing import CliRunner
 
 from bench.cli import app
+from bench.protocol.schema import load_protocol
 from bench.resources import protocols_dir, rigs_dir, shipped_protocols
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -21,7 +22,11 @@ runner = CliRunner()
 
 
 def _rig_of(protocol: Path) -> Path:
-    return (protocol.parent / tomllib.loads(protocol.read_text(encoding="utf-8"))["protocol"]["rig"]).resolve()
+    """The rig file a protocol's ``rig`` names: a path from its folder, else a shipped rig's name (the rig files
+    listed by the package's resources, not the resolver under test)."""
+    ref = tomllib.loads(protocol.read_text(encoding="utf-8"))["protocol"]["rig"]
+    local = (protocol.parent / ref).resolve()
+    return local if local.exists() or "/" in ref else (rigs_dir() / f"{ref}.toml").resolve()
 
 
 @pytest.fixture
@@ -93,13 +98,33 @@ def test_copy_into_a_lab_folder_names_the_labs_rig(in_tmp: Path, dest: str) -> N
 def test_copy_outside_a_lab_names_the_shipped_rig_and_validates(in_tmp: Path) -> None:
     res = runner.invoke(app, ["protocols", "copy", "short/thesis-identification-short", "mine.toml"])
     assert res.exit_code == 0, res.output
-    # said (outside tester: an absolute site-packages path, written without a word), with where to get one's own
+    # by name, not by an absolute site-packages path (outside tester: it broke when bench was reinstalled), and
+    # said, with where to get one's own
     note = next(line for line in res.output.splitlines() if line.startswith("note: its rig = "))
-    assert f"{(rigs_dir() / 'thesis-daq-sim.toml').resolve().as_posix()} is the rig shipped inside" in note
+    assert "note: its rig = thesis-daq-sim is the rig of that name shipped with bench" in note
     assert "bench init LAB" in note and "--rig" in note
+    assert tomllib.loads((in_tmp / "mine.toml").read_text(encoding="utf-8"))["protocol"]["rig"] == "thesis-daq-sim"
     assert _rig_of(in_tmp / "mine.toml") == (rigs_dir() / "thesis-daq-sim.toml").resolve()
     res = runner.invoke(app, ["validate", "mine.toml", "--json"])
     assert res.exit_code == 0, res.output
     assert json.loads(res.output)["valid"] is True
     res = runner.invoke(app, ["protocols", "copy", "thesis-identification", "mine.toml"])
     assert res.exit_code == 2 and "exists" in res.output
+
+
+def test_a_protocol_names_a_shipped_rig_by_name_and_an_unknown_name_is_a_missing_file(in_tmp: Path) -> None:
+    """``rig = "thesis-sim"`` (no folder, no .toml) is the rig of that name shipped with bench, from any folder; a
+    file of that name beside the protocol comes first; an unknown name is refused as the missing file it names."""
+    text = (ROOT / "protocols" / "short" / "thesis-identification-short.toml").read_text(encoding="utf-8")
+    body = "\n".join(line for line in text.splitlines() if not line.startswith("rig ="))
+    (in_tmp / "p.toml").write_text(body.replace("[protocol]", '[protocol]\nrig = "thesis-sim"', 1), encoding="utf-8")
+    res = runner.invoke(app, ["validate", "p.toml", "--json"])
+    assert res.exit_code == 0 and json.loads(res.output)["valid"] is True, res.output
+    assert load_protocol(in_tmp / "p.toml").rig_path() == (rigs_dir() / "thesis-sim.toml").resolve()
+    (in_tmp / "thesis-sim").write_text((ROOT / "rigs" / "thesis-sim.toml").read_text(encoding="utf-8"),
+                                       encoding="utf-8")  # a file of that name beside it: the file
+    assert load_protocol(in_tmp / "p.toml").rig_path() == (in_tmp / "thesis-sim").resolve()
+    (in_tmp / "q.toml").write_text(body.replace("[protocol]", '[protocol]\nrig = "no-such-rig"', 1),
+                                   encoding="utf-8")
+    res = runner.invoke(app, ["validate", "q.toml"])
+    assert res.exit_code == 2 and "no-such-rig" in res.output and "not found" in res.output, res.output

@@ -90,8 +90,13 @@ def copy_protocol(src: Path, dest: Path, rig: Path | None = None) -> Path:
 
     ``dest`` is a file or an existing folder. The rig is ``rig`` if given; else the original's rig, looked
     for first in the lab folder the copy lands in (``rigs/<name>.toml`` in the nearest folder above the copy
-    that has it: ``../rigs/`` from ``protocols/``, ``../../rigs/`` from ``protocols/short/``), then the shipped one.
+    that has it: ``../rigs/`` from ``protocols/``, ``../../rigs/`` from ``protocols/short/``), then the shipped one —
+    written as a relative path within a lab folder, by its name for a shipped rig (found wherever bench is
+    installed), else as an absolute path.
     """
+    from bench.protocol.schema import resolve_rig_ref
+    from bench.resources import shipped_rigs
+
     target = dest / src.name if dest.is_dir() else dest
     if target.exists():
         raise FileExistsError(f"{target}: exists; choose another name")
@@ -99,7 +104,7 @@ def copy_protocol(src: Path, dest: Path, rig: Path | None = None) -> Path:
     table = doc.get("protocol")
     if table is None or "rig" not in table:
         raise ValueError(f"protocol file {src}: no [protocol] rig to point at")
-    original = (src.parent / str(table["rig"])).resolve()
+    original = resolve_rig_ref(src.parent, str(table["rig"]))
     here = target.parent.resolve()
     if rig is None:
         # the lab folder the copy lands in (protocols/, protocols/short/ …): the nearest folder above with the rig
@@ -115,7 +120,13 @@ def copy_protocol(src: Path, dest: Path, rig: Path | None = None) -> Path:
     # relative within a lab folder (../rigs/x.toml, ../../rigs/x.toml), absolute otherwise (the shipped rig, or a
     # rig far away)
     in_lab = here == rig_abs.parent or here.is_relative_to(rig_abs.parent.parent)
-    text = Path(os.path.relpath(rig_abs, here)).as_posix() if in_lab else rig_abs.as_posix()
+    shipped = shipped_rigs().get(rig_abs.stem)
+    if in_lab:
+        text = Path(os.path.relpath(rig_abs, here)).as_posix()
+    elif shipped is not None and shipped.resolve() == rig_abs:  # by name: found wherever bench is installed
+        text = rig_abs.stem
+    else:  # a rig far away
+        text = rig_abs.as_posix()
     table["rig"] = text
     target.write_text(tomlkit.dumps(doc), encoding="utf-8")
     return target

@@ -642,18 +642,18 @@ def protocols_copy(
 
 
 def _say_if_shipped_rig(copy: Path) -> None:
-    """A copy outside a lab folder names the shipped rig by its absolute path, inside the installed package (in
-    site-packages for a user's install): said, with where an editable one comes from, since that file is not the
-    user's to edit and moves when the package is reinstalled (outside tester)."""
+    """A copy outside a lab folder names the shipped rig by its name (found inside the installed package wherever
+    it is): said, with where an editable one comes from, since that file is not the user's to edit (outside
+    tester: it was an absolute site-packages path, written without a word)."""
     import tomllib
 
+    from bench.protocol.schema import resolve_rig_ref
     from bench.resources import rigs_dir
 
-    ref = Path(str(tomllib.loads(copy.read_text(encoding="utf-8"))["protocol"]["rig"]))
-    if (copy.parent / ref).resolve().is_relative_to(rigs_dir().resolve()):
-        console.print(f"note: its rig = {escape(ref.as_posix())} is the rig shipped inside the installed package "
-                      "(not for editing; its path changes when bench is reinstalled): for one of your own, copy "
-                      "into a lab folder (bench init LAB) or pass --rig RIG.toml")
+    ref = str(tomllib.loads(copy.read_text(encoding="utf-8"))["protocol"]["rig"])
+    if resolve_rig_ref(copy.parent, ref).is_relative_to(rigs_dir().resolve()):
+        console.print(f"note: its rig = {escape(ref)} is the rig of that name shipped with bench (not for editing): "
+                      "for one of your own, copy into a lab folder (bench init LAB) or pass --rig RIG.toml")
 
 
 @clean_errors

@@ -285,7 +285,8 @@ class ProtocolHeader(_Strict):
     name: str
     description: str = ""
     source: str = ""
-    rig: str = Field(description="rig file, relative to the protocol file", min_length=1, max_length=4096)
+    rig: str = Field(description="rig file, relative to the protocol file, or the name of a rig shipped with bench "
+                     "(e.g. thesis-sim)", min_length=1, max_length=4096)
     short_variant_of: str = ""
     operator: str | None = Field(None, description=f"who runs it (recorded in the run file; `bench run --operator` "
                                  f"overrides it); one line, at most {MAX_OPERATOR} characters")
@@ -367,8 +368,22 @@ class Protocol(_Strict):
         return hashlib.sha256(self.text.encode()).hexdigest()
 
     def rig_path(self) -> Path:
-        """Rig file named by the protocol, resolved against the protocol file's folder."""
-        return (Path(self.path).parent / self.protocol.rig).resolve()
+        """Rig file named by the protocol (:func:`resolve_rig_ref`)."""
+        return resolve_rig_ref(Path(self.path).parent, self.protocol.rig)
+
+
+def resolve_rig_ref(folder: Path, ref: str) -> Path:
+    """A protocol's ``rig``: a path, resolved against the protocol file's ``folder``; or a bare name with no such
+    file there (``rig = "thesis-sim"``: no folder, no ``.toml``) — the rig of that name shipped with bench, found
+    wherever bench is installed (what ``bench protocols copy`` writes outside a lab folder: an absolute path into
+    site-packages broke when bench was reinstalled). Unknown names resolve as paths (their error names the file)."""
+    local = (folder / ref).resolve()
+    if local.exists() or "/" in ref or "\\" in ref or ref.endswith(".toml"):
+        return local
+    from bench.resources import shipped_rigs
+
+    shipped = shipped_rigs().get(ref)
+    return shipped.resolve() if shipped is not None else local
 
 
 class ProtocolFileError(ValueError):
