@@ -177,10 +177,15 @@ def test_any_exception_in_a_command_is_one_line_and_the_session_goes_on(tmp_path
         read = laser.read_displacement
 
         def fail():
-            from drivers.errors import ImplausibleValueError
+            from drivers.errors import ImplausibleValueError, StreamEndedError
+            from drivers.interfaces import StreamBlock
 
             if exc_class is ImplausibleValueError:
                 raise ImplausibleValueError("laser", "displacement", 1e9, (-1.0, 1.0), "m", "first line\nsecond line")
+            if exc_class is StreamEndedError:  # with the scans it carries (none here)
+                empty = StreamBlock(0, 0.0, 1e-4, ("AIN0",), np.empty((0, 1)), np.empty((0, 1), bool), 0, 0, (2943,),
+                                    True)
+                raise StreamEndedError("laser", "first line\nsecond line", empty)
             raise exc_class("laser", "first line\nsecond line") if issubclass(exc_class, InstrumentError) \
                 else exc_class("first line\nsecond line")
         laser.read_displacement = fail
