@@ -48,12 +48,12 @@ def test_a_bad_block_is_refused_whole_and_the_stream_records_on(tmp_path: Path, 
     np.testing.assert_array_equal(amp.columns["current"], -t)
 
 
-def _two_streams(path: Path, name: str, laser_hz: float) -> recorder.Recorder:
+def _two_streams(path: Path, name: str, laser_hz: float, virtual: bool = False) -> recorder.Recorder:
     """A recorder of one voltage column on an amplifier stream at 1 kHz and a laser stream at ``laser_hz``, with no
     timed flush: only chunk counts and the finish write."""
     cols = [recorder.Column("voltage", "V", "")]
     return recorder.Recorder(path, {"protocol_name": name}, {"amplifier": cols, "laser": cols}, [],
-                             {"amplifier": 1000.0, "laser": laser_hz}, flush_interval=3600.0)
+                             {"amplifier": 1000.0, "laser": laser_hz}, flush_interval=3600.0, virtual=virtual)
 
 
 class _NoThread(threading.Thread):
@@ -328,15 +328,18 @@ def test_a_storage_fault_marks_the_reason_only_of_a_run_without_an_end_state(tmp
         assert reason.startswith("storage fault: run file ") and "No space left on device" in reason
 
 
-def test_a_run_ahead_of_its_writer_by_queued_max_s_waits_for_the_write_under_way(
-        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+@pytest.mark.parametrize("virtual", [True, False], ids=["virtual", "real-time"])
+def test_a_virtual_run_ahead_of_its_writer_by_queued_max_s_waits_for_the_write_under_way(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, virtual: bool) -> None:
     """A write under way let the caller queue on without bound: beside a CPU hog a virtual run's writer fell 2.25 s
     of rig time behind, and a full disk then left 2.25 s unwritten against the stated 1 s + one chunk (CI). Once a
-    queue spans QUEUED_MAX_S while a write is under way, the caller waits for it. The first write (4 chunks, taken
-    at 1.199 s) is held at a gate; 0.5 s more returns (the queue spans 0.67 s), a further 0.5 s must wait (1.17 s)
-    until the gate opens, then is written in whole chunks behind it."""
+    queue spans QUEUED_MAX_S while a write is under way, a virtual run waits for it (its clock waits too). A
+    real-time run never waits: its thread would stall the rig (a reviewer: 2-s writes tripped the host-stall bound
+    and latched the rig). The first write (4 chunks, taken at 1.199 s) is held at a gate; 0.5 s more returns (the
+    queue spans 0.67 s), a further 0.5 s (1.17 s) must wait until the gate opens — virtual time — or returns at
+    once, the samples queued for a later write — real time."""
     path = tmp_path / "run.h5"
-    rec = _two_streams(path, "behind", 4000.0)
+    rec = _two_streams(path, "behind", 4000.0, virtual=virtual)
     gate, entered = threading.Event(), threading.Event()
     write = recorder.Recorder._write
     works: list[int] = []
@@ -355,11 +358,15 @@ def test_a_run_ahead_of_its_writer_by_queued_max_s_waits_for_the_write_under_way
     rec.append("amplifier", t[1200:1700], voltage=t[1200:1700])  # queued 1.024-1.699 s: returns, the write held
     behind = threading.Thread(target=rec.append, args=("amplifier", t[1700:]), kwargs={"voltage": t[1700:]})
     behind.start()
-    behind.join(0.5)
-    assert behind.is_alive(), "the caller ran on with its queue spanning over 1 s and a write under way"
-    assert works == [1024]
-    gate.set()
-    behind.join(60.0)
-    assert not behind.is_alive() and works == [1024, 1024]  # then 1.024-2.047 s: 4 whole chunks, the tail queued
+    behind.join(0.5 if virtual else 60.0)
+    if virtual:
+        assert behind.is_alive(), "the virtual run ran on with its queue spanning over 1 s and a write under way"
+        assert works == [1024]
+        gate.set()
+        behind.join(60.0)
+        assert not behind.is_alive() and works == [1024, 1024]  # then 1.024-2.047 s: 4 whole chunks, tail queued
+    else:
+        assert not behind.is_alive() and works == [1024]  # returned with the write still held: nothing waited
+        gate.set()
     rec.finish("completed", "ok")
     np.testing.assert_array_equal(open_run(path).streams["amplifier"].t, t)

@@ -356,7 +356,7 @@ def _execute_claimed(plan: Plan, out: Path, *, virtual: bool, operator: Operator
                     attrs.update(replay_of=str(sim.replay.recording.path),
                                  replay_of_run_id=sim.replay.recording.run_id)
                 prog_rows = [(s.index, s.label, s.name, s.kind, s.t_start, s.duration) for s in program.segments]
-                recorder = Recorder(out, attrs, streams, prog_rows, rates)
+                recorder = Recorder(out, attrs, streams, prog_rows, rates, virtual=virtual)
                 try:  # until the engine runs, the file's end is this function's to record (the engine's from then on)
                     start_row = _start_row(out, attrs)
                     apply = partial(change_specimen, sim.plant) if sim is not None else None

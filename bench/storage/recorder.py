@@ -322,9 +322,12 @@ class Recorder:
 
     def __init__(self, path: Path, attrs: dict[str, Any], streams: dict[str, list[Column]],
                  program: Sequence[tuple[int, str, str, str, float, float]], rates: dict[str, float],
-                 flush_interval: float = FLUSH_INTERVAL_S) -> None:
+                 flush_interval: float = FLUSH_INTERVAL_S, virtual: bool = False) -> None:
         self.path = Path(path)
         self.flush_interval = flush_interval
+        # a virtual clock waits for the writer (maybe_flush); a real-time run never does: its thread would stall,
+        # and a set-point module's watchdog bound (the host's stall bound) is shorter than a slow disk's write
+        self.virtual = virtual
         self.streams = streams
         self._last_row: dict[str, list[Any]] = {}  # each stream's last single-sample row (append)
         self._buffers: dict[str, dict[str, list[np.ndarray]]] = {s: {c.name: [] for c in [Column("t", "s", ""), *cols]}
@@ -584,15 +587,17 @@ class Recorder:
     def maybe_flush(self) -> None:
         """Flush if the flush interval has passed (call it often), or only the whole chunks queued if a stream has
         :data:`FLUSH_CHUNKS` of them: the data is taken here and written on a background thread, unless the last
-        such write is still under way (then at a later call) — unless a stream's queue already spans
-        :data:`QUEUED_MAX_S` of the run clock: then the caller waits for it (a run ahead of its writer by that much
-        would leave more than the stated bound unwritten at a storage fault; faster than real time the virtual clock
-        waits with it). Raises the :class:`StorageError` of a background write that failed."""
+        such write is still under way (then at a later call) — unless the run's clock is virtual and a stream's
+        queue already spans :data:`QUEUED_MAX_S` of it: then the caller waits for it (a run ahead of its writer by
+        that much would leave more than the stated bound unwritten at a storage fault; the virtual clock waits with
+        it). A real-time run never waits here: its thread would stall the rig's supervision and its set-point
+        module's watchdog (a reviewer: 2-s writes tripped a host stall and latched the rig). Raises the
+        :class:`StorageError` of a background write that failed."""
         if self.failure:
             return
         writing = self._writing
         if writing is not None:
-            if writing.is_alive() and self._queued_span_s() < QUEUED_MAX_S:
+            if writing.is_alive() and not (self.virtual and self._queued_span_s() >= QUEUED_MAX_S):
                 return
             self._await_write()
         interval = time.monotonic() - self._last_flush >= self.flush_interval
