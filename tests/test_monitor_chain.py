@@ -10,8 +10,8 @@ code:
   noise 1 LSB rms [assumed: none stated].
 * LabJack T7 AIN on ±10 V: absolute accuracy ±2000 µV (T-Series Datasheet App. A-3, Table A.3-1); 16-bit, ≥ 16
   effective bits (§14.3.0): noise ≤ 1 LSB rms = 305.2 µV.
-* a reading's noise bound: 3 σ; half an LSB of rounding; the threshold is max(10 V, band) and threshold + band must
-  stay within the 50-V safe touch limit the README states (Safety, 5).
+* a reading's noise bound: 3 σ; half an LSB of rounding; a reading at the threshold must bound the true output by
+  the 50-V safe touch limit the README states (Safety, 5): threshold = 50 V − band, refused below the band.
 """
 
 from __future__ import annotations
@@ -40,33 +40,38 @@ def test_the_bands_by_hand() -> None:
     assert zero_band_v("10/40A-HS", 10e3, 1000.0, T7_AIN) == pytest.approx(T7_BAND, rel=1e-12)
 
 
-@pytest.mark.parametrize(("rig", "expected"), [("thesis-sim", ADAM_BAND), ("thesis-lab", ADAM_BAND),
-                                               ("lsdea-motor-sim", ADAM_BAND), ("thesis-daq-sim", T7_BAND),
-                                               ("thesis-daq-lab", T7_BAND), ("lsdea-isotonic-daq-sim", T7_BAND)])
+ADAM_THRESHOLD, T7_THRESHOLD = 50.0 - ADAM_BAND, 50.0 - T7_BAND  # 26.71 V, 34.71 V
+
+
+@pytest.mark.parametrize(("rig", "expected"), [("thesis-sim", ADAM_THRESHOLD), ("thesis-lab", ADAM_THRESHOLD),
+                                               ("lsdea-motor-sim", ADAM_THRESHOLD), ("thesis-daq-sim", T7_THRESHOLD),
+                                               ("thesis-daq-lab", T7_THRESHOLD),
+                                               ("lsdea-isotonic-daq-sim", T7_THRESHOLD)])
 def test_each_rig_gets_its_chains_threshold(rig: str, expected: float) -> None:
-    """Every shipped rig: the band (above the 10-V floor), and a reading at it bounds the output within 50 V."""
+    """Every shipped rig: a reading at its threshold bounds the output by 50 V, and a true 0 V reads within it."""
     v = safe_monitor_v(load_rig(RIGS / f"{rig}.toml"))
     assert v == pytest.approx(expected, rel=1e-12)
-    assert v + expected <= SAFE_TOUCH_V == 50.0
+    band = ADAM_BAND if expected == ADAM_THRESHOLD else T7_BAND
+    assert v + band == pytest.approx(SAFE_TOUCH_V) and v > band and SAFE_TOUCH_V == 50.0
 
 
 def test_a_chain_too_coarse_to_verify_is_refused() -> None:
-    """A monitor at 2000 V/V into the ADAM: 10 + 2000 × (0.01 + LSB/2) + 3 √(1 + (2000 LSB)²) = 33.8 V; a reading at
-    it could hide 67.6 V > 50 V. A 12-bit input (LSB 4.88 mV): 10 + 1000 × (0.01 + 2.44 mV) + 3 √(1 + 4.88²) =
-    37.4 V, likewise."""
+    """A monitor at 2000 V/V into the ADAM: 10 + 2000 × (0.01 + LSB/2) + 3 √(1 + (2000 LSB)²) = 33.8 V, above half
+    the 50-V limit: its threshold (16.2 V) would be below what a true 0 V can read. A 12-bit input (LSB 4.88 mV):
+    10 + 1000 × (0.01 + 2.44 mV) + 3 √(1 + 4.88²) = 37.4 V, likewise."""
     with pytest.raises(ValueError, match="cannot verify a safe output"):
         safe_threshold_v("10/10B-HS", 10e3, 2000.0, adam_4017p())
     with pytest.raises(ValueError, match="cannot verify a safe output"):
         safe_threshold_v("10/10B-HS", 10e3, 1000.0, adam_4017p(12))
 
 
-def test_a_fine_chain_is_held_at_the_floor() -> None:
-    """A chain whose band is below the 10-V floor (a 1-kV full scale, monitor at 100 V/V, into the T7:
-    1 + 100 × (2 mV + LSB/2) + 3 √(1 + (100 LSB)²) = 1 + 0.215 + 3.001 = 4.2 V) is held at the floor."""
+def test_a_fine_chain_bounds_the_output_by_the_limit_too() -> None:
+    """A chain with a narrow band (a 1-kV full scale, monitor at 100 V/V, into the T7: 1 + 100 × (2 mV + LSB/2) +
+    3 √(1 + (100 LSB)²) = 4.2 V): its threshold 45.8 V, a reading at it still bounds the output by 50 V."""
     band = 1e3 * 0.001 + 100.0 * (2000e-6 + LSB / 2) + 3.0 * math.sqrt(1.0 + (100.0 * LSB) ** 2)
     assert band == pytest.approx(4.217, abs=1e-3)
     assert zero_band_v("10/10B-HS", 1e3, 100.0, T7_AIN) == pytest.approx(band, rel=1e-12)
-    assert safe_threshold_v("10/10B-HS", 1e3, 100.0, T7_AIN) == 10.0
+    assert safe_threshold_v("10/10B-HS", 1e3, 100.0, T7_AIN) == pytest.approx(50.0 - band, rel=1e-12)
 
 
 def test_the_rig_file_refuses_a_chain_that_cannot_verify(tmp_path: Path) -> None:
@@ -80,22 +85,23 @@ def test_the_rig_file_refuses_a_chain_that_cannot_verify(tmp_path: Path) -> None
 
 
 @pytest.mark.parametrize("rig", ["thesis-sim", "thesis-daq-sim"])
-def test_a_35_V_residual_is_not_handed_over(tmp_path: Path, rig: str) -> None:
-    """35 V on the output (35 mV in at the TREK's 1000 V/V) when a campaign is taken up again at its set step:
-    within the old fixed 50 V (the prompt came), above either chain's threshold (23.3 V, 15.3 V): the hand-over
+def test_a_42_V_residual_is_not_handed_over(tmp_path: Path, rig: str) -> None:
+    """42 V on the output (42 mV in at the TREK's 1000 V/V) when a campaign is taken up again at its set step:
+    within the old fixed 50 V (the prompt came), above either chain's threshold (26.7 V, 34.7 V): the hand-over
     trips, latches and prompts nobody."""
     from tests.test_handover_zero import REREAD_S, _resume
 
-    result, changes = _resume(tmp_path, rig, "operator", residual=True, volts_in=0.035)
+    result, changes = _resume(tmp_path, rig, "operator", residual=True, volts_in=0.042)
     assert changes == []
     assert result.state == "tripped" and "output not verified" in result.reason, result.reason
     amp = open_run(result.path).streams["amplifier"]
     v = np.abs(amp.columns["voltage"][amp.t <= REREAD_S + 0.1])
-    assert v.size >= 2 and np.all((v > ADAM_BAND) & (v < 50.0)), v  # what the old threshold would have passed
+    threshold = ADAM_THRESHOLD if rig == "thesis-sim" else T7_THRESHOLD
+    assert v.size >= 2 and np.all((v > threshold) & (v < 50.0)), v  # what the old threshold would have passed
 
 
 def test_the_cores_trek_figures_are_the_drivers() -> None:
-    """The widest threshold is taken over the core's TREK datasheet figures (the core imports no driver): they are
+    """The widest band is taken over the core's TREK datasheet figures (the core imports no driver): they are
     the driver's models, full scale and monitor ratio alike."""
     from bench.core.plant import TREK_DATASHEET
     from drivers.trek import TREK_MODELS

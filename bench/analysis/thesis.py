@@ -7,17 +7,17 @@ from dataclasses import dataclass
 import numpy as np
 
 from bench.analysis.cycles import smooth
-from bench.core.monitor_chain import widest_threshold_v
+from bench.core.monitor_chain import widest_band_v
 
 SMOOTH_PERIODS = 50  # the smoothing window is this fraction of a period
 NO_DISPLACEMENT_M = 1e-12  # peaks below 1 pm are rounding, not a displacement (no sensor resolves them)
 # a step (or run) whose peak |V| stays at or below this was not driven: the voltage monitor's 0-V band, in which
-# the engine counts it as reading 0 V (bench.rig.safe_monitor_v). An analysis does not know which chain recorded a
+# a true 0 V can read (bench.core.monitor_chain.zero_band_v). An analysis does not know which chain recorded a
 # figure (nor does `simulate --voltage`), so it takes the widest band of the chains a rig can have
-# (bench.core.monitor_chain.widest_threshold_v: TREK monitor and DAQ accuracy, rounding and noise). Below it a
+# (bench.core.monitor_chain.widest_band_v: TREK monitor and DAQ accuracy, rounding and noise). Below it a
 # "voltage peak" is the monitor's noise, so a lag from it to the displacement's peak, a creep of the response to it,
 # or a fitted parameter of the response means nothing.
-NO_DRIVE_V = widest_threshold_v()
+NO_DRIVE_V = widest_band_v()
 
 
 def undriven(peak_voltage: float) -> bool:

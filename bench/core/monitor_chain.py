@@ -9,9 +9,14 @@ per V) into a DAQ input on its ±10 V range (an ADAM-4017+, or a LabJack T7 AIN)
          + r · (a_daq + q / 2)              DAQ absolute accuracy and half an LSB of rounding, × the ratio r
          + k · √(n_trek² + (r · n_daq)²)    k × the rms noise of one reading (monitor and input together)
 
-with q = 20 V / 2^bits. The threshold is ``max(FLOOR_V, band)``: a true 0 V always passes, and a reading at the
-threshold bounds the true output by ``threshold + band``, which must not exceed :data:`SAFE_TOUCH_V` — a chain too
-coarse for that cannot verify a safe output and its rig is refused.
+with q = 20 V / 2^bits. The threshold is ``SAFE_TOUCH_V − band``: a reading at or below it bounds the true output by
+:data:`SAFE_TOUCH_V`, which is what "verified" promises. A chain whose threshold would be below its band (band above
+half the limit) cannot tell a true 0 V from an unsafe output, and its rig is refused. What a healthy amplifier's own
+output offset at a 0-V input may be is in no page read: on the ADAM-4017+ chain (band 23.3 V, threshold 26.7 V) an
+offset above 3.4 V could, with every error at its worst, read above the threshold — a false "not verified" trip,
+which latches, and is safe; on the T7 chain (band 15.3 V, threshold 34.7 V) up to 19.4 V. (A review: a floor taken
+as the offset, ``max(10 V, band)``, counted an output voltage as a monitor error, and left 0 V readings of a healthy
+T7 rig with a 10-V offset at up to 25 V against a 15.3-V threshold.)
 
 Figures, marked as in ``/work/shared/instruments.md`` ([V] read in a source, [U] unverified, [assumed] chosen):
 
@@ -27,8 +32,6 @@ Figures, marked as in ``/work/shared/instruments.md`` ([V] read in a source, [U]
   1 LSB of 16 bits (the worst resolution index).
 * k = 3 [assumed]: a reading beyond 3 σ is rare (0.3 %), and the checks read again every 0.1 s for 2 s before they
   report: a noise excursion costs a reread, not a trip.
-* ``FLOOR_V`` = 10 V [assumed]: the TREK's own output offset at a 0-V input is in no page read; 0.1 % of its
-  10-kV full scale, the accuracy assumed for its monitor, is taken for it.
 * ``SAFE_TOUCH_V`` = 50 V: the verified-safe bound this project has stated (README "Safety", step 5), kept as the
   ceiling. No touch-voltage standard is in the stores (IEC 61010-1's d.c. level for accessible parts is remembered
   as 70 V, [U]); it is not raised without a sourced figure.
@@ -42,7 +45,6 @@ from dataclasses import dataclass
 from bench.core.noise import TREK_DYNAMICS
 
 SAFE_TOUCH_V = 50.0  # V: a verified-safe output is at most this (README "Safety" 5); never raised unsourced
-FLOOR_V = 10.0  # V: the threshold is never tighter than the TREK's assumed output offset (0.1 % of 10 kV)
 NOISE_SIGMAS = 3.0  # k: one reading's noise bound in rms units
 DAQ_SPAN_V = 20.0  # the ±10 V input range both DAQs read the monitors on (bench.rig.AIN_FULL_SCALE_V)
 
@@ -79,22 +81,22 @@ def zero_band_v(model: str, full_scale_V: float, vmon_ratio: float, daq: DaqInpu
 
 
 def safe_threshold_v(model: str, full_scale_V: float, vmon_ratio: float, daq: DaqInput) -> float:
-    """|monitor| at or below this [V] is the output verified at 0 V: ``max(FLOOR_V, band)``. ValueError where a
-    reading at it could hide more than :data:`SAFE_TOUCH_V` (threshold + band above it)."""
+    """|monitor| at or below this [V] is the output verified at 0 V: ``SAFE_TOUCH_V − band`` (a reading at it bounds
+    the true output by the limit). ValueError where that is below the band (a true 0 V could read above it)."""
     band = zero_band_v(model, full_scale_V, vmon_ratio, daq)
-    threshold = max(FLOOR_V, band)
-    if threshold + band > SAFE_TOUCH_V:
+    threshold = SAFE_TOUCH_V - band
+    if threshold < band:
         raise ValueError(f"the voltage monitor chain (TREK {model} at {vmon_ratio:g} V/V into the {daq.name}) reads "
-                         f"0 V as up to ±{band:.1f} V: a reading within that band could hide {threshold + band:.0f} V, "
-                         f"above the {SAFE_TOUCH_V:g}-V safe limit, so it cannot verify a safe output")
+                         f"0 V as up to ±{band:.1f} V: a reading within that band could hide {2 * band:.0f} V, above "
+                         f"the {SAFE_TOUCH_V:g}-V safe limit, so it cannot verify a safe output")
     return threshold
 
 
-def widest_threshold_v() -> float:
-    """The largest threshold of the chains a rig file names by default (either TREK HS model at its datasheet full
+def widest_band_v() -> float:
+    """The widest 0-V band of the chains a rig file names by default (either TREK HS model at its datasheet full
     scale and monitor ratio, :data:`bench.core.plant.TREK_DATASHEET`, into either DAQ): what an analysis that does
-    not know the rig takes for the monitor's 0-V band. (The core imports no driver: tests/test_layers.py.)"""
+    not know the rig takes for the monitor's reading of no drive. (The core imports no driver: tests/test_layers.py.)"""
     from bench.core.plant import TREK_DATASHEET
 
-    return max(safe_threshold_v(m.model, m.max_output, m.vmon_ratio, daq)
+    return max(zero_band_v(m.model, m.max_output, m.vmon_ratio, daq)
                for m in TREK_DATASHEET.values() for daq in (adam_4017p(), T7_AIN))
