@@ -213,10 +213,13 @@ FORKING = """
 import os, sys, time
 from bench.runtime import latch
 path = latch.arm("rig-f", "run file forking.h5")
+r, w = os.pipe()
 pid = os.fork()
-if pid == 0:
+if pid == 0:  # the fork's handlers have run once the child runs its own code: it says so
+    os.write(w, b"x")
     time.sleep(60)
     os._exit(0)
+os.read(r, 1)  # (under load the child may not have run at all when its parent is killed: a race of the test's)
 print(path, pid, flush=True)
 sys.stdin.readline()
 """
