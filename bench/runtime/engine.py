@@ -59,7 +59,13 @@ from bench.runtime.polls import PAUSED, Poll, StepState, record_laser_block, rig
 from bench.runtime.ramp import ramp_to_zero
 from bench.runtime.safety import SafetyTrip, Supervisor
 from bench.storage.recorder import STEP_END_CHUNKS, Recorder
-from drivers.errors import InstrumentConnectionError, InstrumentError, InstrumentStateError, OperationCancelledError
+from drivers.errors import (
+    InstrumentConnectionError,
+    InstrumentError,
+    InstrumentStateError,
+    InstrumentTimeoutError,
+    OperationCancelledError,
+)
 from drivers.interfaces import Amplifier, Reading
 
 SHUTDOWN_REPLY_S = 0.1  # shutdown: a request to the set-point module (or the motor) waits this long for its reply, once
@@ -1030,11 +1036,15 @@ class Engine:
                     raise InstrumentStateError("motor", f"did not reach {motor * 1e3:.2f} mm within "
                                                f"{RESTART_MOVE_S:g} s to restart {self._step_text(seg)}")
                 self._pause_until(self.now() + 0.02, urgent_aborts=False)
-        if self.inst.amplifier is not None and abs(volts - self.ctx.v_cmd) > RESTART_STEP_V:
+        ramp = self.program.rig.limits.shutdown_ramp_s
+        up = self.inst.amplifier is not None and abs(volts - self.ctx.v_cmd) > RESTART_STEP_V
+        if up and self._stream is not None:  # a DAQ rig: the DAQ plays the ramp, recorded on its scan clock
+            self._stream_ramp_up(volts, ramp, RESTART_SETTLE_S)
+        elif up:
             # supervised as a step is: the monitors (and the other polled sensors) read, recorded and checked
             # after every set-point of the ramp up, not only once the next step has started
             supervise = self._supervised()
-            self._ramp_to(volts, self.program.rig.limits.shutdown_ramp_s, after=supervise)
+            self._ramp_to(volts, ramp, after=supervise)
             # the last step's charging current (at the amplifier's current limit for tens of µs) is over before
             # the step's own acquisition starts
             self._pause_until(self.now() + RESTART_SETTLE_S, urgent_aborts=False)
@@ -1359,6 +1369,33 @@ class Engine:
                 self._storage_failed = True
         hw.stop(whole=True)
         return t_zero
+
+    def _stream_ramp_up(self, v1: float, ramp: float, settle: float) -> None:
+        """A restart's ramp up on a DAQ rig, played by the DAQ's stream-out (:meth:`HardwareTimed.ramp_up`) from the
+        value the DAC holds to ``v1`` over ``ramp`` s, the inputs recorded on the scan clock through it and ``settle``
+        s after it and supervised as a step's are (every scan checked by the supervisor and the output verifier; the
+        other polled sensors at their step rates). A stop request or a trip meanwhile ends the run as in a step: the
+        shutdown ramps to 0 V from the value last played. The stream is stopped after the settle (the DAC holds
+        ``v1``); the step's own stream starts then."""
+        hw, v0 = self._hw, self.ctx.v_cmd
+        self._check_stop()
+        t_end = hw.ramp_up(v1, ramp)
+        self._record_setpoint(max(hw.ramp_start, self._setpoint_t), v0, math.nan)
+        supervise = self._supervised()  # the stream plays now: its collect is among the polls
+        end = t_end + settle
+        give_up = end + 1.0  # rig time: packets that stop coming end the run (the DAC holds v1 meanwhile)
+        while hw.recorded_to() < end - 1e-9:
+            self._check_stop()
+            if self.now() > give_up:
+                raise InstrumentTimeoutError(hw.daq.name, f"the restart's ramp up: scans recorded to "
+                                             f"{hw.recorded_to():.3f} s of {end:.3f} s")
+            self._pause_until(max(self.now() + FINISH_POLL_S, min(end, self.now() + STREAM_RAMP_POLL_S)),
+                              urgent_aborts=False)
+            supervise()
+            hw.collect()
+        hw.stop(whole=True)
+        self._record_setpoint(max(t_end, self._setpoint_t), v1, math.nan)
+        self.snapshot.values["setpoint"] = self.ctx.v_cmd
 
     def _ramp_pause(self, until: float) -> bool:
         """The shutdown ramp's wait before its next set-point: False (0 V at once) on a second stop request, or when

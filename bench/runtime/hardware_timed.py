@@ -312,36 +312,56 @@ class HardwareTimed:
             self.collect()
         self.stop()
 
-    # ------------------------------------------------------------ the shutdown's and a pause's ramp to 0 V
+    # ------------------------------------------------------ the shutdown's and a pause's ramp to 0 V, a restart's up
     def ramp_down(self, v0: float, ramp_s: float) -> float:
         """Play the ramp from ``v0`` to 0 V over ``ramp_s`` on a new stream (the running one stopped first, its last
         scans recorded), 0 V held after it: the monitors and the laser are recorded on the scan clock through the
         ramp and after it, as long as :meth:`collect_quiet` is called. Returns the run time of the scan that plays
         0 V (the DAC commands it itself)."""
+        return self._ramp(v0, 0.0, ramp_s, "the ramp to 0 V's stream")
+
+    def ramp_up(self, v1: float, ramp_s: float) -> float:
+        """A restart's ramp (after a pause, in a resumed campaign): from the value the DAC holds to ``v1`` over
+        ``ramp_s`` on a new stream, ``v1`` held after it. Supervised as a step's start is (the values checked before
+        anything is armed); the engine collects it with :meth:`collect`, every scan supervised. Returns the run
+        time of the scan that plays ``v1``."""
+        return self._ramp(self.ctx.v_cmd, v1, ramp_s, "the restart's ramp up's stream", supervise=True)
+
+    def _ramp(self, v0: float, v1: float, ramp_s: float, what: str, supervise: bool = False) -> float:
+        """Play a straight ramp from ``v0`` (scan 0) to ``v1`` (scan n, held after it) over ``ramp_s`` on a new
+        stream, the running one stopped first (its last scans recorded); ``supervise``: the wanted and the followed
+        values checked by the supervisor before it is armed. Returns the run time of scan n; a ``timing`` event
+        names the stream's scan 0 on the run clock (:attr:`ramp_start`)."""
         self.stop(whole=True)
         rate = self.cfg.scan_rate_Hz
         n = max(1, round(ramp_s * rate))
-        volts = v0 * (1.0 - np.arange(n + 1) / n)  # scan 0 plays v0 (the value the DAC holds), scan n 0 V
-        volts[-1] = 0.0
+        volts = v0 + (v1 - v0) * (np.arange(n + 1) / n)  # scan 0 plays v0 (the value the DAC holds), scan n v1
+        volts[-1] = v1
         bound, window = self._window()
+        if supervise:
+            self.ctx.sup.check_setpoint_over(_peak(volts), ())
         dac = self._dac_values(volts, self.ctx.v_cmd, bound, window)
         commanded = self._follows(dac, window, self.ctx.v_cmd)
+        if supervise:
+            self.ctx.sup.check_setpoint_over(_peak(commanded), ())
+            self.ctx.guard()
         self.daq.arm(StreamSpec(rate, self.inputs, StreamOut(self.cfg.dac, dac, hold=1, final=True, within=window),
                                 out_ahead_s=OUT_AHEAD_S, out_loops=False))
         self._base, self._commanded, self._n, self._appended = 0, commanded, n, None
-        self._tail = self.ctx.v_req = 0.0
+        self._tail = self.ctx.v_req = v1
         self.ctx.verifier.restart()
         t0 = self.daq.kickoff()
         self._keepalive = self.ctx.clock.now()
         self.ramp_start = t0 - self.ctx.t0
         self.ctx.rec.event(self.ctx.now(), self.ctx.snapshot.step, "timing",
                            f"DAQ scan clock: scan 0 at {self.ramp_start:.6f} s on the run clock, known to "
-                           f"{self.daq.scan_clock_uncertainty * 1e3:.3f} ms (the enable request's round trip): the "
-                           "ramp to 0 V's stream")
+                           f"{self.daq.scan_clock_uncertainty * 1e3:.3f} ms (the enable request's round trip): "
+                           f"{what}")
         return self.ramp_start + n / rate
 
     def recorded_to(self) -> float:
-        """Run time of the last scan recorded from the stream :meth:`ramp_down` started (−inf before its first)."""
+        """Run time of the last scan recorded from the stream a ramp started (:meth:`ramp_down`, :meth:`ramp_up`;
+        −inf before its first)."""
         k = self.daq.scans_received - 1
         return self.ramp_start + k / self.cfg.scan_rate_Hz if k >= 0 else -np.inf
 
