@@ -58,11 +58,14 @@ def _events(run: RunFile, kind: str) -> list[tuple[float, int, str, str]]:
     return [e for e in run.event_list() if e[2] == kind]
 
 
-def _run(tmp: Path, fault_after_resume_s: float | None = None) -> tuple[RunResult, RunFile, np.ndarray, np.ndarray,
-                                                                         dict[str, float], Any]:
+Outcome = tuple[RunResult, RunFile, np.ndarray, np.ndarray, dict[str, float], Any]
+
+
+def _run(tmp: Path, fault_after_resume_s: float | None = None, stop: bool = False) -> Outcome:
     """The protocol, paused at ``PAUSE_AT`` and resumed at ``RESUME_AT`` (run time), on the simulated DAQ rig in
-    virtual time; ``fault_after_resume_s``: the dielectric breaks down that long after the resume was asked for.
-    Returns (result, run file, plant times on the run clock, plant output, what the hook saw, the plant)."""
+    virtual time; ``fault_after_resume_s``: the dielectric breaks down (``stop``: a stop is requested) that long
+    after the resume was asked for. Returns (result, run file, plant times on the run clock, plant output, what the
+    hook saw, the plant)."""
     proto = tmp / "restart-up.toml"
     proto.write_text(PROTOCOL.format(rig=DAQ_RIG.as_posix()))
     blocks: list[tuple[np.ndarray, np.ndarray]] = []
@@ -83,7 +86,10 @@ def _run(tmp: Path, fault_after_resume_s: float | None = None) -> tuple[RunResul
             if (fault_after_resume_s is not None and engine.pauses == 1 and "fault" not in seen
                     and engine.now() >= RESUME_AT + fault_after_resume_s):
                 seen["fault"] = engine.now()
-                sim.plant.inject_breakdown()
+                if stop:
+                    engine.request_stop("the test")
+                else:
+                    sim.plant.inject_breakdown()
         sim.clock.subscribe(at)
 
     result = execute(plan_run(proto), tmp / "run.h5", virtual=True, on_engine=hook)
@@ -151,3 +157,23 @@ def test_a_trip_during_the_ramp_up_ends_the_run_at_0_v_latched(tmp_path: Path) -
     assert abs(amp.columns["commanded"][-1]) <= ZERO_V
     assert abs(plant.v_in) * 1000.0 <= ZERO_V  # the TREK's gain: 1 kV per input volt
     assert np.abs(v_plant[t_plant > t_tripped + RAMP_S + 0.2]).max() <= ZERO_V
+
+
+def test_a_stop_during_the_ramp_up_ramps_down_from_the_value_last_played(tmp_path: Path) -> None:
+    """A stop request mid-ramp ends the run as in a step: the shutdown's ramp (played by the stream-out) starts from
+    the value the ramp up had reached, between 0 V and V_HOLD, and the output is at 0 V after it."""
+    result, run, t_plant, v_plant, seen, plant = _run(tmp_path, fault_after_resume_s=0.1, stop=True)
+    assert result.state == "interrupted", result.reason
+    (t_restart, *_), = _events(run, "restart")
+    assert t_restart <= seen["fault"] <= t_restart + RAMP_S
+    assert _events(run, "offset") == []  # the step never started again
+    ramps = [txt for *_, txt in _events(run, "ramp") if txt.startswith("ramp from")]
+    assert len(ramps) == 1 and "stream-out" in ramps[0]
+    v0 = float(ramps[0].split()[2])
+    assert 0.1 * V_HOLD < v0 < 0.9 * V_HOLD  # cut short mid-ramp (0.1 s of the 0.25-s ramp: 40 %)
+    amp = run.streams["amplifier"]
+    w = (amp.t > t_restart) & (amp.t <= seen["fault"])
+    assert w.sum() >= 0.9 * (seen["fault"] - t_restart) / SCAN  # the ramp up on the scan clock until the request
+    assert abs(plant.v_in) * 1000.0 <= ZERO_V
+    assert np.abs(v_plant[t_plant > seen["fault"] + 2 * RAMP_S + 0.2]).max() <= ZERO_V
+    assert "verified" in _events(run, "safe")[0][3]
