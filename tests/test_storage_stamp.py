@@ -176,8 +176,9 @@ def test_recover_releases_the_file_an_earlier_version_broke_at_the_stamp(
 
 def test_a_recover_stopped_half_way_leaves_a_file_the_next_recover_finishes(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch, old_style: Callable[[], None]) -> None:
-    """Ctrl-C after the root attributes were dropped and before they were rebuilt: the file names the cure in one
-    line, and the next `bench recover` rebuilds the root from /status, every sample kept."""
+    """Ctrl-C after the root attributes were dropped and before they were rebuilt (in the copy the rebuild works on):
+    the file is as it was, names the cure in one line, and the next `bench recover` rebuilds the root from /status,
+    every sample kept."""
     from bench.storage import recover as recover_module
 
     old_style()
@@ -189,18 +190,42 @@ def test_a_recover_stopped_half_way_leaves_a_file_the_next_recover_finishes(
     def interrupted(*args: object) -> list[str]:
         raise KeyboardInterrupt
 
+    before = path.read_bytes()
     with monkeypatch.context() as m:
         m.setattr(recover_module, "_rebuild_root", interrupted)
         with pytest.raises(KeyboardInterrupt):
             recover(path)
+    # the rebuild works on a copy: the file is as it was, no copy left behind
+    assert path.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == ["old.h5"]
     with pytest.raises(ValueError) as half:
         open_run(path)
-    assert str(half.value) == f"run file {path}: its root attributes are missing: `bench recover` rebuilds them"
+    assert str(half.value).startswith(f"run file {path}: its root attributes are unreadable")
     report = recover(path)
     assert report.state == "completed" and report.samples == {"amplifier": N}
     run = open_run(path)
     assert run.attrs["format"] == recorder.FORMAT and run.attrs["exit_status"] == "completed"
     _check_samples(path)
+
+
+def test_a_recover_that_fails_on_damage_it_cannot_rebuild_leaves_the_file_as_it_was(tmp_path: Path) -> None:
+    """An outside tester overwrote bytes of a run file's global heap (its root attributes' strings): recover patched
+    the file, then failed in HDF5 ("bad global heap collection signature") and left it worse — marked open for
+    write, refused by plain h5py. The rebuild works on a copy: a failure leaves the file byte for byte as it was,
+    one line saying so, and no copy behind."""
+    path = tmp_path / "run.h5"
+    _record(path).finish("completed", "protocol completed")
+    data = bytearray(path.read_bytes())
+    at = data.index(b"GCOL")  # HDF5 file format spec, III.E "Global Heap": the collection's signature
+    data[at:at + 4] = b"XXXX"
+    path.write_bytes(bytes(data))
+    with pytest.raises(ValueError) as unreadable:
+        open_run(path)
+    assert "root attributes are unreadable" in str(unreadable.value)
+    with pytest.raises(ValueError) as failed:
+        recover(path)
+    assert str(failed.value).startswith(f"run file {path}: ") and "\n" not in str(failed.value)
+    assert str(failed.value).endswith("(nothing was changed: the damage is beyond what recover rebuilds)")
+    assert path.read_bytes() == bytes(data) and sorted(p.name for p in tmp_path.iterdir()) == ["run.h5"]
 
 
 @pytest.mark.parametrize("lookalike", [False, True], ids=["other-structure", "status-events-program-groups"])

@@ -103,28 +103,63 @@ def recover(path: str | Path) -> RecoveryReport:
                          "a run may be writing it (stop it first)")
     report = RecoveryReport(p)
     free = shutil.disk_usage(p.parent).free
-    if (patches or grow) and free < grow + SPACE_MARGIN:
-        raise ValueError(f"run file {p}: {free:,} bytes free on its disk, recovery needs {grow + SPACE_MARGIN:,}: "
+    # damaged root attributes are rebuilt in a copy, which replaces the file only once every step succeeded: HDF5
+    # may fail on damage the rebuild cannot see beforehand, and a failure half-way left the file worse than before
+    # (its patches written, its open-for-write flag set; an outside tester) — the file is either recovered or as
+    # it was. A crash's usual recovery (flags, an extension, the trim) is done in place: no copy of a large file
+    need = grow + SPACE_MARGIN + (size if damaged else 0)
+    if (patches or grow) and free < need:
+        raise ValueError(f"run file {p}: {free:,} bytes free on its disk, recovery needs {need:,}: "
                          "free some space and run it again (nothing was changed)")
     ignore_sigxfsz()
+    work = p.with_name(p.name + ".recovering") if damaged else p
+    if work != p:
+        try:
+            shutil.copyfile(p, work)
+        except OSError as exc:
+            work.unlink(missing_ok=True)
+            raise ValueError(f"run file {p}: cannot copy it to rebuild its root attributes: {cause(exc)} (nothing "
+                             "was changed)") from None
+    try:
+        _repair(p, work, report, patches, grow, size, end, sb, damaged, kept, fmt)
+    except BaseException:
+        if work != p:
+            work.unlink(missing_ok=True)
+        raise
+    if work != p:
+        os.replace(work, p)
+    run = open_run(p)
+    report.samples = {name: len(s) for name, s in run.streams.items()}
+    ends = [float(s.t[-1]) for s in run.streams.values() if len(s)]
+    report.last_sample = max(ends) if ends else None
+    report.recorded_up_to, report.state, report.incomplete_reason = run.updated, run.state, run.incomplete_reason
+    return report
+
+
+
+def _repair(p: Path, work: Path, report: RecoveryReport, patches: Patches, grow: int, size: int, end: int,
+            sb: Superblock, damaged: bool, kept: dict[str, Any] | None, fmt: str) -> None:
+    """The writes of :func:`recover`, on ``work`` (the file itself, or the copy that replaces it on success)."""
+    unchanged = " (nothing was changed: the damage is beyond what recover rebuilds)" if work != p else ""
     if grow:
         try:
-            os.truncate(p, end)  # zeros up to what HDF5 allocated; readers never count them (/status/samples)
+            os.truncate(work, end)  # zeros up to what HDF5 allocated; readers never count them (/status/samples)
         except OSError as exc:
             raise ValueError(f"run file {p}: cannot extend it to {end:,} bytes: {cause(exc)} (nothing was changed)"
                              ) from None
         report.actions.append(f"extended the file from {size:,} to {end:,} bytes (a write had failed)")
     if patches:
-        write_patches(p, patches)
+        write_patches(work, patches)
     if sb.flags and sb.version >= 2:
         report.actions.append(f"cleared the file consistency flags (0x{sb.flags:02x}) left by the writer")
     if damaged and kept is not None:
         report.actions.append("dropped the root attributes (the end stamp of an earlier version failed; "
                               f"{len(kept)} of them read one by one first, to be written back)")
     try:
-        f = h5py.File(p, "r+")
+        f = h5py.File(work, "r+")
     except OSError as exc:
-        raise ValueError(f"run file {p}: HDF5 cannot open it even now ({' '.join(str(exc).split())})") from None
+        raise ValueError(f"run file {p}: HDF5 cannot open it even now ({' '.join(str(exc).split())})"
+                         + unchanged) from None
     try:
         if kept is not None:
             report.actions += _rebuild_root(f, fmt, kept)
@@ -142,13 +177,7 @@ def recover(path: str | Path) -> RecoveryReport:
         f.close()
     except Exception as exc:  # e.g. the disk filled meanwhile: release the file without crashing
         abandon(f)
-        raise ValueError(f"run file {p}: cannot write the recovery marks: {cause(exc)}") from None
-    run = open_run(p)
-    report.samples = {name: len(s) for name, s in run.streams.items()}
-    ends = [float(s.t[-1]) for s in run.streams.values() if len(s)]
-    report.last_sample = max(ends) if ends else None
-    report.recorded_up_to, report.state, report.incomplete_reason = run.updated, run.state, run.incomplete_reason
-    return report
+        raise ValueError(f"run file {p}: cannot write the recovery marks: {cause(exc)}" + unchanged) from None
 
 
 def _is_run(f: h5py.File) -> bool:
