@@ -366,6 +366,40 @@ def test_a_task_cancelled_by_a_closing_worker_is_not_logged_and_one_of_a_running
         assert not keep.filter(cancelled) and keep.filter(other), status
 
 
+def test_an_unretrieved_allexit_of_a_closing_client_is_not_logged_and_another_exception_is(
+        caplog: pytest.LogCaptureFixture) -> None:
+    """A Ctrl-C during `--workers`' polish printed two asyncio "Task exception was never retrieved" tracebacks of
+    dask's AllExit (its client's sentinel for gathers cut by its close) above the fit's one line (outside tester).
+    The cluster's client drops those; any other unretrieved exception still logs."""
+    import asyncio
+    import gc
+
+    from distributed.client import AllExit
+
+    from bench.identify.distributed import _quiet_all_exit
+
+    _quiet_all_exit()
+
+    async def fail(exc: Exception) -> None:
+        raise exc
+
+    def unretrieved(exc: Exception) -> None:
+        loop = asyncio.new_event_loop()
+        try:
+            task = loop.create_task(fail(exc))
+            loop.run_until_complete(asyncio.sleep(0))  # the task runs to its exception, which nobody retrieves
+            del task
+            gc.collect()  # asyncio logs it when the task is collected
+        finally:
+            loop.close()
+
+    with caplog.at_level(logging.ERROR, logger="asyncio"):
+        unretrieved(AllExit())
+        unretrieved(RuntimeError("a real failure"))
+    logged = [r for r in caplog.records if "exception was never retrieved" in r.getMessage()]
+    assert [r.exc_info[0] for r in logged if r.exc_info] == [RuntimeError], logged
+
+
 def test_a_ctrl_c_while_the_cluster_starts_is_taken_once_it_is_up() -> None:
     """The cluster's workers are spawned with SIGINT kept from them; it was ignored in this process meanwhile, so a
     Ctrl-C while the cluster started (several seconds) was lost and the fit ran to its end (on a loaded machine:
