@@ -322,6 +322,13 @@ def test_recorded_samples_are_bounded(tmp_path: Path) -> None:
      "  type = 'hold'\n  duration_s = 1\n", SAFE_THESIS_RIG, "steps[0].over.v.num"),
     ("[[steps]]\ntype = 'sweep'\nover = {v = [{a = 1}]}\n  [[steps.steps]]\n  type = 'hold'\n  duration_s = 1\n",
      SAFE_THESIS_RIG, "steps[0].over.v[0]"),
+    # start and stop of two dimensions: both named, not the stop blamed for a start in hertz (outside tester)
+    ("[[steps]]\ntype = 'sweep'\nover = {v = {start = '5 Hz', stop = '8 kV', step = '1 kV'}}\n  [[steps.steps]]\n"
+     "  type = 'hold'\n  duration_s = 1\n", SAFE_THESIS_RIG,
+     "steps[0].over.v: the range's start 5 Hz is a frequency and its stop 8 kV a voltage"),
+    ("[[steps]]\ntype = 'sweep'\nover = {v = {start = '5 kV', stop = '8 kV', step = '1 s'}}\n  [[steps.steps]]\n"
+     "  type = 'hold'\n  duration_s = 1\n", SAFE_THESIS_RIG,
+     "steps[0].over.v: the range's start 5 kV is a voltage and its step 1 s a time"),
     ("[[steps]]\ntype = 'move'\nposition = '50 mm'\n", SAFE_ISOTONIC_RIG, "has no motor"),
     ("[[steps]]\ntype = 'move'\nposition = '60 mm'\nvelocity = '1e-300 m/s'\n", SAFE_MOTOR_RIG, "604800"),
 ])

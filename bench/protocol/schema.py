@@ -425,6 +425,18 @@ def _number_or_quantity(v: Any, where: str, dim: str | None) -> float:
         raise ValueError(f"{where}: {exc}") from None
 
 
+def _same_dimension(where: str, start: str, dim: str, other: str, name: str) -> None:
+    """A range's start and its stop (or step) of two dimensions: which is wrong is the writer's to say, so both are
+    named (the stop was blamed for a start in hertz in a voltage sweep; an outside tester)."""
+    try:
+        found = parse_quantity(other)[1]
+    except ValueError:
+        return  # no quantity at all: the bound's own check says so
+    if found != dim:
+        raise ValueError(f"{where}: the range's start {_short(start)} is a {dim} and its {name} {_short(other)} a "
+                         f"{found}: give start, stop and step in one dimension")
+
+
 def _range_values(spec: Any, where: str) -> list[Any]:
     if not isinstance(spec, dict):
         raise ValueError(f"{where}: give a list of values or a range {{start, stop, step or num}}, got {_short(spec)}")
@@ -442,6 +454,10 @@ def _range_values(spec: Any, where: str) -> list[Any]:
             raise ValueError(f"{where}.start: {exc}") from None
     else:
         a = _number_or_quantity(start, f"{where}.start", None)
+    if dim is not None and isinstance(stop, str):
+        _same_dimension(where, start, dim, stop, "stop")
+        if isinstance(spec.get("step"), str):
+            _same_dimension(where, start, dim, spec["step"], "step")
     b = _number_or_quantity(stop, f"{where}.stop", dim)
     if "num" in spec:
         num = spec["num"]
