@@ -128,3 +128,9 @@ def test_a_protocol_names_a_shipped_rig_by_name_and_an_unknown_name_is_a_missing
                                    encoding="utf-8")
     res = runner.invoke(app, ["validate", "q.toml"])
     assert res.exit_code == 2 and "no-such-rig" in res.output and "not found" in res.output, res.output
+    # a misspelt name: the file and its field named, the rig meant suggested (outside tester: only the path was)
+    (in_tmp / "t.toml").write_text(body.replace("[protocol]", '[protocol]\nrig = "thesis-sm"', 1), encoding="utf-8")
+    res = runner.invoke(app, ["validate", "t.toml"], env={"COLUMNS": "300"})
+    assert res.exit_code == 2 and res.output.count("\n") == 1, res.output
+    assert res.output.startswith("error: protocol file ") and "t.toml: protocol.rig = 'thesis-sm': rig file " in \
+        res.output and "did you mean thesis-sim?" in res.output, res.output

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import signal
 import subprocess
@@ -344,8 +345,8 @@ def test_devices_check_counts_only_instruments_when_closing_fails(tmp_path: Path
 
 
 def test_a_rig_named_without_its_file_suggests_the_file_meant(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """`--rig thesis-sim` (a rig's name, not a file) said only "not found" (outside tester): it names the rig file
-    it probably meant, the lab folder's rigs/NAME.toml, else the shipped one; a name of no rig, nothing more."""
+    """`--rig thesis-sim` (a rig's name, not a file) said only "not found" (outside tester): a shipped rig's name is
+    that rig; a misspelt one is suggested; a lab folder's rigs/NAME.toml is suggested, not chosen silently."""
     import shutil
 
     from bench.resources import rigs_dir
@@ -358,9 +359,14 @@ def test_a_rig_named_without_its_file_suggests_the_file_meant(tmp_path: Path, mo
         return res.output.strip().splitlines()[-1]
 
     monkeypatch.chdir(tmp_path)
-    shipped = rigs_dir() / "thesis-sim.toml"
-    assert said("thesis-sim") == f"error: rig file thesis-sim: not found; did you mean {shipped}?"
-    assert said("no-such-rig") == "error: rig file no-such-rig: not found"
-    (tmp_path / "rigs").mkdir()
+    # a shipped rig's name is that rig (as a protocol's rig = "thesis-sim"; outside tester: refused with a hint)
+    res = CliRunner().invoke(app, ["validate", protocol, "--rig", "thesis-sim", "--json"])
+    assert res.exit_code == 0 and json.loads(res.output)["rig"] == "thesis-sim", res.output
+    takes = "(--rig takes a rig file or a shipped rig's name)"
+    here = Path.cwd().resolve()
+    assert said("thesis-sm") == f"error: rig file {here / 'thesis-sm'}: not found; did you mean thesis-sim? {takes}"
+    assert said("no-such-rig") == f"error: rig file {here / 'no-such-rig'}: not found {takes}"
+    assert rigs_dir().is_dir()
+    (tmp_path / "rigs").mkdir()  # a lab folder's own copy of that name: not chosen silently, suggested
     shutil.copy2(ROOT / "rigs" / "thesis-sim.toml", tmp_path / "rigs" / "thesis-sim.toml")
     assert said("thesis-sim") == "error: rig file thesis-sim: not found; did you mean rigs/thesis-sim.toml?"

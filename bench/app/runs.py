@@ -47,9 +47,29 @@ def plan_protocol(protocol_file: Path, rig: Path | None = None, sim: bool = Fals
     """Load, compile, check the link budget and dry-run a protocol on its rig (or ``rig``)."""
     from bench.runtime.run import plan_run
 
+    rig = rig_file(rig)
     if rig is not None and sim is False and not rig.exists():
-        raise ValueError(f"rig file {rig}: not found{rig_suggestion(rig)}")
+        from bench.protocol.schema import missing_rig_ref
+
+        hint = rig_suggestion(rig)  # the file meant, else the closest rig names
+        raise ValueError(f"rig file {rig}: not found{hint}" if hint else
+                         missing_rig_ref(Path.cwd(), str(rig), "--rig takes a rig file or a shipped rig's name"))
     return plan_run(protocol_file, rig, sim, progress)
+
+
+def rig_file(rig: Path | None) -> Path | None:
+    """``--rig``: a rig file, or — no such file, a bare name — the shipped rig of that name (as a protocol's ``rig``
+    may name one: ``--rig thesis-sim`` was refused with a hint into site-packages; an outside tester). Where a file
+    of that name with ``.toml``, or ``rigs/NAME.toml``, is here (a lab folder's own copy), nothing is chosen: the
+    refusal suggests it (:func:`rig_suggestion`)."""
+    from bench.protocol.schema import resolve_rig_ref
+
+    if rig is None or rig.exists():
+        return rig
+    name = rig.name.removesuffix(".toml")
+    if any(p.is_file() for p in (rig.with_name(name + ".toml"), rig.parent / "rigs" / (name + ".toml"))):
+        return rig
+    return resolve_rig_ref(Path.cwd(), str(rig))
 
 
 def rig_suggestion(rig: Path) -> str:
@@ -88,7 +108,7 @@ def prepare_run(protocol_file: Path | None, *, rig: Path | None = None, sim: boo
                              "fork the campaign)")
         if not (why and why.strip()) and rig is None and not sim:  # before a crashed file is recovered: refused
             _refuse_latched_before_recovery(resume)  # (a latch needs --why) with nothing touched
-        plan, link, recovered = plan_resume(resume, rig, sim, progress)
+        plan, link, recovered = plan_resume(resume, rig_file(rig), sim, progress)
         if protocol_file is not None and load_protocol(protocol_file).sha256 != plan.protocol.sha256:
             raise ValueError(f"protocol file {protocol_file}: not the protocol of {resume} (its text differs); "
                              "--resume needs no protocol file")

@@ -386,6 +386,27 @@ def resolve_rig_ref(folder: Path, ref: str) -> Path:
     return shipped.resolve() if shipped is not None else local
 
 
+def missing_rig_ref(folder: Path, ref: str, takes: str = "a path from the protocol's folder, or a shipped rig's name"
+                    ) -> str:
+    """Why a protocol's ``rig`` (or ``--rig``) names no rig file (:func:`resolve_rig_ref` from ``folder``), one line:
+    the file it looked for, "did you mean" the closest names among the shipped rigs and the rig files in
+    ``folder``, its ``rigs/`` or the lab folder's ``rigs/`` above it, and what ``takes`` says it takes."""
+    import difflib
+
+    from bench.resources import shipped_rigs
+
+    path = resolve_rig_ref(folder, ref)
+    stem = Path(ref.replace("\\", "/")).name.removesuffix(".toml")
+    near = {p.stem: p for d in (folder, folder / "rigs", folder.parent / "rigs", path.parent) if d.is_dir()
+            for p in d.glob("*.toml")}
+    names = sorted({*shipped_rigs(), *near})
+    close = difflib.get_close_matches(stem, names, n=1, cutoff=0.75)
+    hint = ""
+    if close:
+        hint = f"; did you mean {near[close[0]] if close[0] in near else close[0]!s}?"
+    return f"rig file {path}: not found{hint} ({takes})"
+
+
 class ProtocolFileError(ValueError):
     """A protocol file that cannot be used (message: one line naming the file and the field)."""
 

@@ -30,7 +30,16 @@ from bench.protocol.program import (
     compile_program,
     recording_shortfalls,
 )
-from bench.protocol.schema import MAX_OPERATOR, MAX_SPECIMEN_ID, Protocol, check_label, check_notes, load_protocol
+from bench.protocol.schema import (
+    MAX_OPERATOR,
+    MAX_SPECIMEN_ID,
+    Protocol,
+    ProtocolFileError,
+    check_label,
+    check_notes,
+    load_protocol,
+    missing_rig_ref,
+)
 from bench.rig import RigConfig, load_rig_text, rig_to_toml
 from bench.runtime import hardware_timed
 from bench.runtime.control import control_path
@@ -92,6 +101,10 @@ def resolve_rig(protocol: Protocol, rig_path: str | Path | None = None, simulate
 
 def _resolve_rig(protocol: Protocol, rig_path: str | Path | None, simulate: bool) -> tuple[RigConfig, str]:
     """(:func:`resolve_rig`, the rig file's text: the simulated twin keeps the file's text)."""
+    if rig_path is None and not protocol.rig_path().is_file():  # named by the protocol: said so, with its field
+        ref = protocol.protocol.rig
+        raise ProtocolFileError(f"protocol file {protocol.path}: protocol.rig = {ref!r}: "
+                                + missing_rig_ref(Path(protocol.path).parent, ref))
     rig, text = load_rig_text(rig_path if rig_path is not None else protocol.rig_path())
     if simulate and not rig.simulated:
         rig = RigConfig.model_validate({**rig.model_dump(), "simulated": True, "name": f"{rig.name}-simulated"})
