@@ -134,3 +134,19 @@ def test_a_protocol_names_a_shipped_rig_by_name_and_an_unknown_name_is_a_missing
     assert res.exit_code == 2 and res.output.count("\n") == 1, res.output
     assert res.output.startswith("error: protocol file ") and "t.toml: protocol.rig = 'thesis-sm': rig file " in \
         res.output and "did you mean thesis-sim?" in res.output, res.output
+
+
+def test_a_shipped_protocols_name_runs_from_any_folder_and_a_misspelt_one_is_suggested(in_tmp: Path) -> None:
+    """`bench validate thesis-identification` (a name `bench protocols list` shows) said "not found" outside the
+    repository (outside tester): a shipped protocol's name is that protocol, from any folder; a misspelt one is
+    refused with the name meant; a local file of that name comes first."""
+    res = runner.invoke(app, ["validate", "short/thesis-identification-short", "--json"])
+    assert res.exit_code == 0 and json.loads(res.output)["protocol"] == "thesis-identification-short", res.output
+    res = runner.invoke(app, ["validate", "thesis-identificaton"], env={"COLUMNS": "300"})
+    assert res.exit_code == 2 and res.output == ("error: protocol file thesis-identificaton: not found; did you "
+                                                 "mean the shipped protocol thesis-identification?\n"), res.output
+    text = (protocols_dir() / "short" / "thesis-identification-short.toml").read_text(encoding="utf-8")
+    (in_tmp / "thesis-identification.toml").write_text(text.replace("../../rigs/thesis-daq-sim.toml",
+                                                                     "thesis-sim"), encoding="utf-8")
+    res = runner.invoke(app, ["validate", "thesis-identification", "--json"])  # the file here, not the shipped one
+    assert res.exit_code == 0 and json.loads(res.output)["protocol"] == "thesis-identification-short", res.output

@@ -47,6 +47,9 @@ def plan_protocol(protocol_file: Path, rig: Path | None = None, sim: bool = Fals
     """Load, compile, check the link budget and dry-run a protocol on its rig (or ``rig``)."""
     from bench.runtime.run import plan_run
 
+    protocol_file = shipped_protocol_file(protocol_file)
+    if not protocol_file.exists():
+        raise ValueError(f"protocol file {protocol_file}: not found{protocol_suggestion(protocol_file)}")
     rig = rig_file(rig)
     if rig is not None and sim is False and not rig.exists():
         from bench.protocol.schema import missing_rig_ref
@@ -55,6 +58,36 @@ def plan_protocol(protocol_file: Path, rig: Path | None = None, sim: bool = Fals
         raise ValueError(f"rig file {rig}: not found{hint}" if hint else
                          missing_rig_ref(Path.cwd(), str(rig), "--rig takes a rig file or a shipped rig's name"))
     return plan_run(protocol_file, rig, sim, progress)
+
+
+def shipped_protocol_file(protocol: Path) -> Path:
+    """A protocol file, or — no such file, no such file with ``.toml`` either — the shipped protocol of that name
+    (``bench run thesis-identification``, the names ``bench protocols list`` shows: "not found" before; an outside
+    tester). A name of none is left as given: its error says "not found", with the shipped name meant if one is
+    close."""
+    if protocol.exists():
+        return protocol
+    if protocol.with_name(protocol.name + ".toml").is_file():
+        return protocol.with_name(protocol.name + ".toml")
+    from bench.resources import protocol as shipped
+
+    try:
+        return shipped(str(protocol))
+    except ValueError:
+        return protocol
+
+
+def protocol_suggestion(protocol: Path) -> str:
+    """For a protocol file that is not there: "; did you mean the shipped protocol X?" where a shipped name is close
+    ("" otherwise)."""
+    import difflib
+
+    from bench.resources import shipped_protocols
+
+    names = shipped_protocols()
+    close = difflib.get_close_matches(protocol.name.removesuffix(".toml"), [n.rsplit("/", 1)[-1] for n in names],
+                                      n=1, cutoff=0.75)
+    return f"; did you mean the shipped protocol {close[0]}?" if close else ""
 
 
 def rig_file(rig: Path | None) -> Path | None:

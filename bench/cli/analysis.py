@@ -573,7 +573,8 @@ def demo(
                   f"({100 * fitted.rms / peak:.2f} % of the {peak * 1e3:.2f} mm peak)")
     console.print("[bold]3. report[/]")
     print_report([path], path.with_name(path.stem + "-report"))
-    console.print(f"next: bench inspect {path} · bench fit --help · bench run protocols/<campaign>.toml")
+    console.print(f"next: bench inspect {path} · bench fit --help · bench protocols list · "
+                  "bench run thesis-voltage-sweep --virtual-time")
 
 
 def twin_comparison(problem: MembraneProblem, fitted: FitResult) -> Table:
