@@ -279,6 +279,9 @@ def test_pause_and_resume_from_another_terminal(tmp_path: Path) -> None:
     finally:
         proc.kill()
     assert proc.returncode == 0, out
+    # the control file's last word (a resume here; a pause or stop elsewhere) meant nothing once the run ended: gone
+    # (outside tester: left behind, still saying pause)
+    assert not control_path(run_file).exists()
     run = open_run(run_file)
     assert run.state == "completed"
     (_, _, _, p_text), = events(run, "pause")
@@ -287,6 +290,7 @@ def test_pause_and_resume_from_another_terminal(tmp_path: Path) -> None:
     after = subprocess.run([*bench, "pause", str(run_file)], cwd=ROOT, env=ENV, capture_output=True, text=True)
     assert after.returncode != 0 and "no run is writing it" in after.stderr  # and every step completed: no resume
     assert "every step completed" in after.stderr and "bench run --resume" not in after.stdout + after.stderr
+    assert not control_path(run_file).exists()  # a refused pause writes none
 
 
 # ---------------------------------------------------------------- a crashed or stopped campaign goes on

@@ -434,6 +434,8 @@ def _execute_claimed(plan: Plan, out: Path, *, virtual: bool, operator: Operator
             inst.close()  # first: no wait on the catalogue keeps an instrument open
         if sim is not None:
             sim.stop()
+        with contextlib.suppress(OSError):  # its last word (a pause, a stop) meant nothing once the run ended
+            control_path(out).unlink(missing_ok=True)
         _catalogue_end(out, start_row, end_row)
 
 
