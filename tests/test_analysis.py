@@ -744,3 +744,20 @@ def test_a_failed_export_write_leaves_no_cut_off_rig_file_and_a_retry_succeeds(
     assert res.exit_code == 0, res.output
     assert [p.name for p in target.parent.iterdir()] == ["fitted.toml"]
     assert "[specimen.membrane_model]" in target.read_text(encoding="utf-8")
+
+
+@pytest.mark.parametrize("command", [["runs", "list", "--dir"], ["catalog", "rebuild"],
+                                     ["specimen", "show", "S1", "--dir"]], ids=lambda c: " ".join(c[:2]))
+def test_a_run_file_given_for_its_runs_folder_is_said_to_be_a_file(tmp_path: Path, command: list[str]) -> None:
+    """`bench runs list --dir RUN.h5` said "not found", and `specimen show` "[Errno 17] File exists" (outside tester):
+    one line, a file and not a folder, naming the folder meant; exit 2."""
+    from typer.testing import CliRunner
+
+    from bench.cli import app
+
+    run = tmp_path / "run.h5"
+    run.write_bytes(b"")
+    res = CliRunner().invoke(app, [*command, str(run)], env={"COLUMNS": "300"})
+    assert res.exit_code == 2, res.output
+    assert res.output == (f"error: runs folder {run}: a file, not a folder (give the folder of the run files: "
+                          f"{tmp_path})\n"), res.output

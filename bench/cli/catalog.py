@@ -61,6 +61,10 @@ def _open(folder: Path, url: str | None, notes: list[str]) -> tuple[Any, set[str
         write_refused,
     )
 
+    if folder.is_file():  # a run file given for its folder: the catalogue would be made inside a file
+        from bench.storage.absent import absent_runs_folder
+
+        raise ValueError(absent_runs_folder(folder))
     url = catalog_url(folder, url)
     try:
         cat = Catalog(url)
@@ -201,7 +205,9 @@ def runs_list(
     if state is not None and state not in RUN_STATES:
         raise ValueError(f"--state: {state!r} is not a run state ({', '.join(RUN_STATES)})")
     if catalog is None and not folder.is_dir():  # its catalogue would be made there: a typo made a new lab folder
-        raise ValueError(f"runs folder {folder}: not found (no run recorded there yet, or --dir misspelt?)")
+        from bench.storage.absent import absent_runs_folder
+
+        raise ValueError(absent_runs_folder(folder, " (no run recorded there yet, or --dir misspelt?)"))
     notes: list[str] = []
     cat, found = _open(folder, catalog, notes)
     with cat:
@@ -312,7 +318,9 @@ def catalog_rebuild(
     from bench.storage.catalog import Catalog, catalog_url, reconcile
 
     if not folder.is_dir():
-        raise ValueError(f"runs folder {folder}: not found (nothing to rebuild the catalogue from)")
+        from bench.storage.absent import absent_runs_folder
+
+        raise ValueError(absent_runs_folder(folder, " (nothing to rebuild the catalogue from)"))
     with Catalog(catalog_url(folder, catalog)) as cat:
         done = reconcile(cat, folder, rebuild=True)
         prefix = str(folder.resolve()).rstrip("/") + "/"

@@ -18,3 +18,11 @@ def absent_run_file(p: Path) -> str:
         more = f" and {len(runs) - SHOWN} more" if len(runs) > SHOWN else ""
         return f"run file {p}: a folder, not a run file; the run files in it: {', '.join(runs[:SHOWN])}{more}"
     return f"run file {p}: not found"
+
+
+def absent_runs_folder(p: Path, why: str = "") -> str:
+    """``runs folder P: not found`` (and ``why``), or for a file ``…: a file, not a folder`` (a run file given where
+    its folder is asked for: "not found" was wrong)."""
+    if p.is_file():
+        return f"runs folder {p}: a file, not a folder (give the folder of the run files: {p.parent})"
+    return f"runs folder {p}: not found{why}"

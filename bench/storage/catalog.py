@@ -35,6 +35,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from bench.storage import hv_stats
+from bench.storage.absent import absent_runs_folder
 from bench.storage.hv_stats import HV_THRESHOLD_V, HvAccumulator, HvStats
 
 if TYPE_CHECKING:
@@ -493,7 +494,7 @@ def reconcile(cat: Catalog, folder: Path, rebuild: bool = False) -> Reconciled:
     run files are listed in ``unreadable``; the rows' paths of the others in ``found``."""
     folder = folder.resolve()
     if not folder.is_dir():
-        raise ValueError(f"runs folder {folder}: not found")
+        raise ValueError(absent_runs_folder(folder))
     host = host_name()
     files = {_abs(p): p for p in run_files(folder)}
     prefix = str(folder).rstrip("/") + "/"
