@@ -461,10 +461,14 @@ def test_the_workers_of_our_local_cluster_carry_the_filter_and_close_without_a_t
             numpy.ones(1 << 19).sum()  # 4 MiB, written, freed
         return resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before
 
+    from bench.identify.distributed import _AllExitFilter
+
     with cluster_client(workers=2) as client:
         assert client is not None
         client.wait_for_workers(2, timeout=60)
         assert sorted(client.run(installed).values()) == [1, 1]
+        # this process's asyncio logger drops the AllExit of gathers the client's close cuts (once, however often)
+        assert sum(isinstance(f, _AllExitFilter) for f in logging.getLogger("asyncio").filters) == 1
         # a terminal's Ctrl-C reaches them too (the process group): they keep it from themselves, and stay up
         pids = client.run(os.getpid)
         for pid in pids.values():

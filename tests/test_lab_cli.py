@@ -150,3 +150,20 @@ def test_a_shipped_protocols_name_runs_from_any_folder_and_a_misspelt_one_is_sug
                                                                      "thesis-sim"), encoding="utf-8")
     res = runner.invoke(app, ["validate", "thesis-identification", "--json"])  # the file here, not the shipped one
     assert res.exit_code == 0 and json.loads(res.output)["protocol"] == "thesis-identification-short", res.output
+
+
+def test_a_lab_folders_own_copy_is_never_passed_over_for_the_shipped_one_of_its_name(in_tmp: Path) -> None:
+    """A reviewer: in a lab folder whose protocols/thesis-voltage-sweep.toml was edited, `bench validate
+    thesis-voltage-sweep` planned the shipped protocol without a word (and `--rig thesis-sim` from protocols/ the
+    shipped rig, not ../rigs/thesis-sim.toml). The name is refused, naming the lab's copy; a path runs it."""
+    assert runner.invoke(app, ["init", "lab"]).exit_code == 0
+    os.chdir(in_tmp / "lab")
+    res = runner.invoke(app, ["validate", "thesis-voltage-sweep"], env={"COLUMNS": "300"})
+    assert res.exit_code == 2 and res.output == ("error: protocol file thesis-voltage-sweep: not found; did you mean "
+                                                 "protocols/thesis-voltage-sweep.toml (this lab folder's copy)?\n"), \
+        res.output
+    os.chdir(in_tmp / "lab" / "protocols")
+    res = runner.invoke(app, ["validate", "thesis-voltage-sweep.toml", "--rig", "thesis-sim"], env={"COLUMNS": "300"})
+    assert res.exit_code == 2 and "did you mean ../rigs/thesis-sim.toml?" in res.output, res.output
+    res = runner.invoke(app, ["validate", "thesis-voltage-sweep.toml", "--rig", "../rigs/thesis-sim.toml"])
+    assert res.exit_code == 0, res.output

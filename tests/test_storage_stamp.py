@@ -228,6 +228,37 @@ def test_a_recover_that_fails_on_damage_it_cannot_rebuild_leaves_the_file_as_it_
     assert path.read_bytes() == bytes(data) and sorted(p.name for p in tmp_path.iterdir()) == ["run.h5"]
 
 
+def test_a_rebuilt_file_keeps_its_permissions_and_a_link_to_it_stays_a_link(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, old_style: Callable[[], None]) -> None:
+    """The rebuild replaces the file with its copy (a reviewer: the copy took the umask's mode, 0440 became 0644,
+    and a symbolic link became a plain file while the file it named stayed damaged); a Ctrl-C during the copy left a
+    partial copy behind."""
+    from bench.storage import recover as recover_module
+
+    old_style()
+    path = tmp_path / "old.h5"
+    rec = _record(path, 15)
+    with _disk_full_at_reopen(monkeypatch, 100), pytest.raises(recorder.StorageError):
+        rec.finish("completed", "protocol completed")
+    before = path.read_bytes()
+    link = tmp_path / "link.h5"
+    link.symlink_to(path)
+    with monkeypatch.context() as m:  # interrupted while copying: nothing left behind, nothing changed
+        def interrupted(*args: object, **kwargs: object) -> None:
+            raise KeyboardInterrupt
+
+        m.setattr(recover_module.shutil, "copy2", interrupted)
+        with pytest.raises(KeyboardInterrupt):
+            recover(link)
+    assert path.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == ["link.h5", "old.h5"]
+    path.chmod(0o640)
+    report = recover(link)
+    assert report.state == "completed"
+    assert link.is_symlink() and (path.stat().st_mode & 0o777) == 0o640
+    assert open_run(path).attrs["exit_status"] == "completed"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["link.h5", "old.h5"]
+
+
 @pytest.mark.parametrize("lookalike", [False, True], ids=["other-structure", "status-events-program-groups"])
 def test_recover_refuses_another_programs_file_with_unreadable_root_attributes(tmp_path: Path,
                                                                                lookalike: bool) -> None:

@@ -69,6 +69,10 @@ def shipped_protocol_file(protocol: Path) -> Path:
         return protocol
     if protocol.with_name(protocol.name + ".toml").is_file():
         return protocol.with_name(protocol.name + ".toml")
+    name = protocol.name.removesuffix(".toml")
+    own = [d / "protocols" / (name + ".toml") for d in (protocol.parent, protocol.parent / "..")]
+    if any(p.is_file() for p in own):  # a lab folder's own (maybe edited) copy of that name: never passed over
+        return protocol  # silently for the shipped one (a reviewer): the refusal names it
     from bench.resources import protocol as shipped
 
     try:
@@ -78,11 +82,17 @@ def shipped_protocol_file(protocol: Path) -> Path:
 
 
 def protocol_suggestion(protocol: Path) -> str:
-    """For a protocol file that is not there: "; did you mean the shipped protocol X?" where a shipped name is close
-    ("" otherwise)."""
+    """For a protocol file that is not there: "; did you mean protocols/NAME.toml?" (a lab folder's own copy), else
+    "; did you mean the shipped protocol X?" where a shipped name is close ("" otherwise)."""
     import difflib
 
     from bench.resources import shipped_protocols
+
+    name = protocol.name.removesuffix(".toml")
+    own = next((p for p in (protocol.parent / "protocols" / (name + ".toml"),
+                            protocol.parent / ".." / "protocols" / (name + ".toml")) if p.is_file()), None)
+    if own is not None:
+        return f"; did you mean {os.path.normpath(own)} (this lab folder's copy)?"
 
     names = shipped_protocols()
     close = difflib.get_close_matches(protocol.name.removesuffix(".toml"), [n.rsplit("/", 1)[-1] for n in names],
@@ -100,7 +110,8 @@ def rig_file(rig: Path | None) -> Path | None:
     if rig is None or rig.exists():
         return rig
     name = rig.name.removesuffix(".toml")
-    if any(p.is_file() for p in (rig.with_name(name + ".toml"), rig.parent / "rigs" / (name + ".toml"))):
+    if any(p.is_file() for p in (rig.with_name(name + ".toml"), rig.parent / "rigs" / (name + ".toml"),
+                                 rig.parent / ".." / "rigs" / (name + ".toml"))):  # (from a lab's protocols/)
         return rig
     return resolve_rig_ref(Path.cwd(), str(rig))
 
@@ -112,7 +123,8 @@ def rig_suggestion(rig: Path) -> str:
     from bench.resources import shipped_rigs
 
     name = rig.name.removesuffix(".toml")
-    here = [rig.with_name(name + ".toml"), rig.parent / "rigs" / (name + ".toml")]
+    here = [rig.with_name(name + ".toml"), rig.parent / "rigs" / (name + ".toml"),
+            rig.parent / ".." / "rigs" / (name + ".toml")]
     found = next((p for p in here if p.is_file()), None) or shipped_rigs().get(name)
     return f"; did you mean {found}?" if found is not None else ""
 
@@ -142,6 +154,8 @@ def prepare_run(protocol_file: Path | None, *, rig: Path | None = None, sim: boo
         if not (why and why.strip()) and rig is None and not sim:  # before a crashed file is recovered: refused
             _refuse_latched_before_recovery(resume)  # (a latch needs --why) with nothing touched
         plan, link, recovered = plan_resume(resume, rig_file(rig), sim, progress)
+        if protocol_file is not None:
+            protocol_file = shipped_protocol_file(protocol_file)
         if protocol_file is not None and load_protocol(protocol_file).sha256 != plan.protocol.sha256:
             raise ValueError(f"protocol file {protocol_file}: not the protocol of {resume} (its text differs); "
                              "--resume needs no protocol file")

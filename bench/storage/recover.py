@@ -112,22 +112,24 @@ def recover(path: str | Path) -> RecoveryReport:
         raise ValueError(f"run file {p}: {free:,} bytes free on its disk, recovery needs {need:,}: "
                          "free some space and run it again (nothing was changed)")
     ignore_sigxfsz()
-    work = p.with_name(p.name + ".recovering") if damaged else p
-    if work != p:
-        try:
-            shutil.copyfile(p, work)
-        except OSError as exc:
-            work.unlink(missing_ok=True)
-            raise ValueError(f"run file {p}: cannot copy it to rebuild its root attributes: {cause(exc)} (nothing "
-                             "was changed)") from None
+    real = p.resolve()  # a link's target is the file (replaced, not the link)
+    if damaged and not os.access(real, os.W_OK):  # as the in-place path, which cannot open it for writing
+        raise ValueError(f"run file {p}: not writable (its permissions): recover it where you may write it "
+                         "(nothing was changed)")
+    work = _copy_beside(real) if damaged else p
     try:
         _repair(p, work, report, patches, grow, size, end, sb, damaged, kept, fmt)
-    except BaseException:
+        if work != p:
+            with work.open("rb") as fh:  # on disk before it replaces the file: a power cut keeps one whole file
+                os.fsync(fh.fileno())
+            os.replace(work, real)
+    except BaseException as exc:
         if work != p:
             work.unlink(missing_ok=True)
+        if work != p and isinstance(exc, OSError):  # the fsync or the replace (a folder that refuses it)
+            raise ValueError(f"run file {p}: cannot replace it with its rebuilt copy: {cause(exc)} (nothing was "
+                             "changed)") from None
         raise
-    if work != p:
-        os.replace(work, p)
     run = open_run(p)
     report.samples = {name: len(s) for name, s in run.streams.items()}
     ends = [float(s.t[-1]) for s in run.streams.values() if len(s)]
@@ -135,6 +137,26 @@ def recover(path: str | Path) -> RecoveryReport:
     report.recorded_up_to, report.state, report.incomplete_reason = run.updated, run.state, run.incomplete_reason
     return report
 
+
+
+def _copy_beside(real: Path) -> Path:
+    """A copy of ``real`` in its folder under a name of its own (``NAME.h5.<random>.recovering``), its permission
+    bits kept (:func:`shutil.copy2`); nothing is left behind if the copy fails or is interrupted. ValueError (one
+    line) if it cannot be made."""
+    import tempfile
+
+    fd, name = tempfile.mkstemp(prefix=real.name + ".", suffix=".recovering", dir=real.parent)
+    os.close(fd)
+    work = Path(name)
+    try:
+        shutil.copy2(real, work)
+    except BaseException as exc:
+        work.unlink(missing_ok=True)
+        if isinstance(exc, OSError):
+            raise ValueError(f"run file {real}: cannot copy it to rebuild its root attributes: {cause(exc)} "
+                             "(nothing was changed)") from None
+        raise
+    return work
 
 
 def _repair(p: Path, work: Path, report: RecoveryReport, patches: Patches, grow: int, size: int, end: int,
