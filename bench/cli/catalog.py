@@ -7,7 +7,7 @@ import re
 from collections.abc import Callable
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Annotated, Any, ParamSpec, TypeVar
+from typing import Annotated, Any, NoReturn, ParamSpec, TypeVar
 
 import typer
 
@@ -48,6 +48,13 @@ NO_FIT_PLOT = "no fitted parameters: no plot"  # specimen show on a specimen who
 RUN_STATES = ("completed", "running", "interrupted", "tripped", "error")  # a run file's /status/state
 
 
+def _refuse_folder(folder: Path, why: str = "") -> NoReturn:
+    """ValueError (one line): ``folder`` is no runs folder — not there (``why``), or a file."""
+    from bench.storage.absent import absent_runs_folder
+
+    raise ValueError(absent_runs_folder(folder, why))
+
+
 def _open(folder: Path, url: str | None, notes: list[str]) -> tuple[Any, set[str]]:
     """The catalogue, reconciled with the run files of ``folder`` (a missing folder: nothing to reconcile), and the
     rows' paths of the files found there (a file linked into it among them); what the reconciliation found worth
@@ -62,9 +69,7 @@ def _open(folder: Path, url: str | None, notes: list[str]) -> tuple[Any, set[str
     )
 
     if folder.is_file():  # a run file given for its folder: the catalogue would be made inside a file
-        from bench.storage.absent import absent_runs_folder
-
-        raise ValueError(absent_runs_folder(folder))
+        _refuse_folder(folder)
     url = catalog_url(folder, url)
     try:
         cat = Catalog(url)
@@ -205,9 +210,7 @@ def runs_list(
     if state is not None and state not in RUN_STATES:
         raise ValueError(f"--state: {state!r} is not a run state ({', '.join(RUN_STATES)})")
     if catalog is None and not folder.is_dir():  # its catalogue would be made there: a typo made a new lab folder
-        from bench.storage.absent import absent_runs_folder
-
-        raise ValueError(absent_runs_folder(folder, " (no run recorded there yet, or --dir misspelt?)"))
+        _refuse_folder(folder, " (no run recorded there yet, or --dir misspelt?)")
     notes: list[str] = []
     cat, found = _open(folder, catalog, notes)
     with cat:
@@ -318,9 +321,7 @@ def catalog_rebuild(
     from bench.storage.catalog import Catalog, catalog_url, reconcile
 
     if not folder.is_dir():
-        from bench.storage.absent import absent_runs_folder
-
-        raise ValueError(absent_runs_folder(folder, " (nothing to rebuild the catalogue from)"))
+        _refuse_folder(folder, " (nothing to rebuild the catalogue from)")
     with Catalog(catalog_url(folder, catalog)) as cat:
         done = reconcile(cat, folder, rebuild=True)
         prefix = str(folder.resolve()).rstrip("/") + "/"
