@@ -150,6 +150,13 @@ def test_a_shipped_protocols_name_runs_from_any_folder_and_a_misspelt_one_is_sug
                                                                      "thesis-sim"), encoding="utf-8")
     res = runner.invoke(app, ["validate", "thesis-identification", "--json"])  # the file here, not the shipped one
     assert res.exit_code == 0 and json.loads(res.output)["protocol"] == "thesis-identification-short", res.output
+    # in the repository, protocols/ is the shipped folder itself: no lab copy to choose over (the demo's closing
+    # line, `bench run thesis-voltage-sweep`, was refused there)
+    os.chdir(ROOT)
+    assert (ROOT / "protocols" / "thesis-voltage-sweep.toml").resolve() == \
+        (protocols_dir() / "thesis-voltage-sweep.toml").resolve()
+    res = runner.invoke(app, ["validate", "thesis-voltage-sweep", "--json"])
+    assert res.exit_code == 0 and json.loads(res.output)["protocol"] == "thesis-voltage-sweep", res.output
 
 
 def test_a_lab_folders_own_copy_is_never_passed_over_for_the_shipped_one_of_its_name(in_tmp: Path) -> None:

@@ -69,16 +69,17 @@ def shipped_protocol_file(protocol: Path) -> Path:
         return protocol
     if protocol.with_name(protocol.name + ".toml").is_file():
         return protocol.with_name(protocol.name + ".toml")
-    name = protocol.name.removesuffix(".toml")
-    own = [d / "protocols" / (name + ".toml") for d in (protocol.parent, protocol.parent / "..")]
-    if any(p.is_file() for p in own):  # a lab folder's own (maybe edited) copy of that name: never passed over
-        return protocol  # silently for the shipped one (a reviewer): the refusal names it
     from bench.resources import protocol as shipped
 
     try:
-        return shipped(str(protocol))
+        found = shipped(str(protocol))
     except ValueError:
         return protocol
+    name = protocol.name.removesuffix(".toml")
+    own = [d / "protocols" / (name + ".toml") for d in (protocol.parent, protocol.parent / "..")]
+    if any(p.is_file() and p.resolve() != found.resolve() for p in own):  # a lab folder's own (maybe edited) copy
+        return protocol  # of that name: never passed over silently for the shipped one (a reviewer); refused, named
+    return found  # (the repository's protocols/ is the shipped one itself)
 
 
 def protocol_suggestion(protocol: Path) -> str:
