@@ -9,6 +9,7 @@ run's own thread while the twins and the plant run on, as a frozen process does 
 from __future__ import annotations
 
 import dataclasses
+import re
 import threading
 import time
 from collections.abc import Callable
@@ -92,9 +93,9 @@ def events(run: RunFile, kind: str) -> list[str]:
 
 
 # ---------------------------------------------------------------- host stall
-def freeze_host(seconds: float) -> Callable[[Engine, object], None]:
+def freeze_host(seconds: float, began: list[float] | None = None) -> Callable[[Engine, object], None]:
     """Freeze the run's thread at its next recorder flush (a point between any two actions), as SIGSTOP does
-    to a process: the twins, the plant and the module's watchdog run on."""
+    to a process: the twins, the plant and the module's watchdog run on. ``began``: the run time it froze at."""
     def action(engine: Engine, _sim: object) -> None:
         flush = engine.rec.maybe_flush
         frozen: list[bool] = []
@@ -102,6 +103,8 @@ def freeze_host(seconds: float) -> Callable[[Engine, object], None]:
         def stalled() -> None:
             if not frozen:
                 frozen.append(True)
+                if began is not None:
+                    began.append(engine.now())
                 time.sleep(seconds)
             flush()
         engine.rec.maybe_flush = stalled  # type: ignore[method-assign]
@@ -109,8 +112,22 @@ def freeze_host(seconds: float) -> Callable[[Engine, object], None]:
 
 
 @pytest.mark.parametrize("rig", [ADAM_RIG, DAQ_RIG], ids=["adam", "daq"])
-def test_a_host_stall_longer_than_the_watchdog_latches_and_never_reenergises(tmp_path: Path, rig: Path) -> None:
-    result, run, plant = run_with_fault(rig, tmp_path, 2.0, freeze_host(2.5), virtual=False)
+def test_a_host_stall_longer_than_the_watchdog_latches_and_never_reenergises(tmp_path: Path, rig: Path,
+                                                                            monkeypatch: pytest.MonkeyPatch) -> None:
+    """A real-time run: beside a CPU hog its host may fall behind the DAQ's stream-out before the freeze (CI: a
+    mismatch read at 2.128 s, the freeze later) — rightly tripped, latched, but not this test's story: said, and run
+    once more with a latch folder of its own; a mismatch read after the freeze began (the stall's own) fails it."""
+    for attempt in range(2):
+        began: list[float] = []
+        folder = tmp_path / f"try{attempt}"
+        folder.mkdir()
+        monkeypatch.setenv("BENCH_STATE_DIR", str(folder / "state"))
+        result, run, plant = run_with_fault(rig, folder, 2.0, freeze_host(2.5, began), virtual=False)
+        read = re.search(r"read -?[\d.]+ V at ([\d.]+) s", result.reason)
+        if attempt == 0 and "output mismatch" in result.reason and read and began and float(read[1]) < began[0]:
+            print(f"the host fell behind before the freeze at {began[0]:.3f} s (a loaded machine): {result.reason}")
+            continue
+        break
     assert result.state == "tripped" and "interlock: host stall" in result.reason, result.reason
     if rig == ADAM_RIG:  # the ADAM-4024 keeps a flag of its own (40216, ADAM-4000 manual appendix G); the T7 none
         assert "the module's own flag: its watchdog fired" in result.reason
