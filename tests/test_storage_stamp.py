@@ -39,6 +39,16 @@ def _record(path: Path, extra_attrs: int = 0) -> recorder.Recorder:
     return rec
 
 
+def _broken_at_the_stamp(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, extra_attrs: int = 15) -> Path:
+    """``old.h5`` as the old stamp left it (``old_style`` in force): the disk full 100 bytes past the file at the
+    end stamp's reopen, the root attributes unreadable."""
+    path = tmp_path / "old.h5"
+    rec = _record(path, extra_attrs)
+    with _disk_full_at_reopen(monkeypatch, 100), pytest.raises(recorder.StorageError):
+        rec.finish("completed", "protocol completed")
+    return path
+
+
 @contextlib.contextmanager
 def _disk_full_at_reopen(monkeypatch: pytest.MonkeyPatch, margin: int) -> Iterator[None]:
     """From the reopen of the file for the stamp (mode r+), no write may reach past its size + ``margin`` bytes."""
@@ -182,10 +192,7 @@ def test_a_recover_stopped_half_way_leaves_a_file_the_next_recover_finishes(
     from bench.storage import recover as recover_module
 
     old_style()
-    path = tmp_path / "old.h5"
-    rec = _record(path, 15)
-    with _disk_full_at_reopen(monkeypatch, 100), pytest.raises(recorder.StorageError):
-        rec.finish("completed", "protocol completed")
+    path = _broken_at_the_stamp(tmp_path, monkeypatch)
 
     def interrupted(*args: object) -> list[str]:
         raise KeyboardInterrupt
@@ -236,10 +243,7 @@ def test_a_rebuilt_file_keeps_its_permissions_and_a_link_to_it_stays_a_link(
     from bench.storage import recover as recover_module
 
     old_style()
-    path = tmp_path / "old.h5"
-    rec = _record(path, 15)
-    with _disk_full_at_reopen(monkeypatch, 100), pytest.raises(recorder.StorageError):
-        rec.finish("completed", "protocol completed")
+    path = _broken_at_the_stamp(tmp_path, monkeypatch)
     before = path.read_bytes()
     link = tmp_path / "link.h5"
     link.symlink_to(path)
