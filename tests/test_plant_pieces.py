@@ -72,3 +72,24 @@ def test_many_pieces_fill_the_motor_inputs_as_each_profile_evaluates() -> None:
         pos, vel = pr.evaluate(t[a:b])
         want[a:b, 1], want[a:b, 2] = 0.05 + -1.0 * pos, -1.0 * vel
     assert np.array_equal(U.view(np.uint64), want.view(np.uint64))
+
+
+def test_an_input_set_at_a_stopped_streams_end_follows_its_last_scan_in_time_order() -> None:
+    """A stream's scans on its clock (t0 + k / rate, the sum a rounding off the host's clock), then the stream stops
+    at the instant its last scan played and the host sets 0 V there: the plant must end at 0 V. Before, the first
+    pending scan (kept as the value in force) kept its time, a rounding later than the stop, and the 0-V input set
+    at the stop sorted before it: the stale scan stayed in force for good (2026-11-28)."""
+    clock = VirtualClock()
+    plant = Plant(clock, LozengeParams(), configuration="motor")
+    rate, t0, first = 10_000.0, 1.5163437499999999, 10_938  # a twin's enable time and packet (its run's)
+    times = (first + 1 + np.arange(1_000)) / rate + t0  # the T7 twin's scan instants [D]
+    plant.schedule_amplifier_scans(times, np.full(times.size, 2.0))
+    stop = float(np.nextafter(times[0], -np.inf))  # the host's clock at the stop: the scan's time one rounding later
+    clock.advance(stop - clock.now())
+    plant.advance_to(stop)  # integrated to the step the scan falls in: the scan is the first pending input
+    plant.unschedule_amplifier_input(stop)
+    plant.set_amplifier_input(0.0, at=stop)
+    clock.advance(0.1)
+    plant.advance_to(clock.now())
+    assert plant.v_in == 0.0
+    assert abs(plant.v_out) < 1.0  # V: settled at 0 (the stage's corner ~20 kHz; 0.1 s is thousands of its τ)

@@ -8,6 +8,7 @@ from the engine's account of itself."""
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 from typing import Any
 
@@ -61,11 +62,12 @@ def _events(run: RunFile, kind: str) -> list[tuple[float, int, str, str]]:
 Outcome = tuple[RunResult, RunFile, np.ndarray, np.ndarray, dict[str, float], Any]
 
 
-def _run(tmp: Path, fault_after_resume_s: float | None = None, stop: bool = False) -> Outcome:
+def _run(tmp: Path, fault_after_resume_s: float | None = None, stop: bool = False,
+         gain: float | None = None) -> Outcome:
     """The protocol, paused at ``PAUSE_AT`` and resumed at ``RESUME_AT`` (run time), on the simulated DAQ rig in
     virtual time; ``fault_after_resume_s``: the dielectric breaks down (``stop``: a stop is requested) that long
-    after the resume was asked for. Returns (result, run file, plant times on the run clock, plant output, what the
-    hook saw, the plant)."""
+    after the resume was asked for; ``gain``: instead, the amplifier's gain becomes ``gain`` × its own then.
+    Returns (result, run file, plant times on the run clock, plant output, what the hook saw, the plant)."""
     proto = tmp / "restart-up.toml"
     proto.write_text(PROTOCOL.format(rig=DAQ_RIG.as_posix()))
     blocks: list[tuple[np.ndarray, np.ndarray]] = []
@@ -88,6 +90,8 @@ def _run(tmp: Path, fault_after_resume_s: float | None = None, stop: bool = Fals
                 seen["fault"] = engine.now()
                 if stop:
                     engine.request_stop("the test")
+                elif gain is not None:
+                    sim.plant.hv = dataclasses.replace(sim.plant.hv, gain=sim.plant.hv.gain * gain)
                 else:
                     sim.plant.inject_breakdown()
         sim.clock.subscribe(at)
@@ -177,3 +181,20 @@ def test_a_stop_during_the_ramp_up_ramps_down_from_the_value_last_played(tmp_pat
     assert abs(plant.v_in) * 1000.0 <= ZERO_V
     assert np.abs(v_plant[t_plant > seen["fault"] + 2 * RAMP_S + 0.2]).max() <= ZERO_V
     assert "verified" in _events(run, "safe")[0][3]
+
+
+def test_an_output_mismatch_during_the_ramp_up_ends_at_0_v(tmp_path: Path) -> None:
+    """The amplifier's gain drops 25 % mid-ramp: the scan-clock monitors trip the output check, the stream stops and
+    0 V is commanded at once. The host's 0-V DAC write comes at the instant the stopped stream's last scan was
+    counted played (its time a rounding later): before the fix the twin's plant kept that stale scan in force and the
+    output stayed at ~2 kV ("monitor still reads 1495 V", 2026-11-28); the rig's 50-V touch limit bounds it after."""
+    result, run, t_plant, v_plant, seen, plant = _run(tmp_path, fault_after_resume_s=0.01, gain=0.75)
+    assert result.state == "tripped" and "output mismatch" in result.reason, result.reason
+    (t_restart, *_), = _events(run, "restart")
+    (t_tripped, *_), = _events(run, "tripped")
+    assert t_restart <= seen["fault"] <= t_tripped <= t_restart + RAMP_S  # tripped within the ramp up
+    assert result.latched
+    safe = _events(run, "safe")[0][3]
+    assert "verified" in safe and "WARNING" not in safe, safe
+    assert abs(plant.v_in) * 1000.0 <= ZERO_V  # the TREK's gain: 1 kV per input volt
+    assert np.abs(v_plant[t_plant > t_tripped + RAMP_S]).max() <= ZERO_V

@@ -250,10 +250,18 @@ class Plant:
             self._add_input(times, volts, True)
 
     def unschedule_amplifier_input(self, after: float) -> None:
-        """Drop the scheduled amplifier inputs later than ``after`` (a hardware-timed output stopped)."""
+        """Drop the scheduled amplifier inputs later than ``after`` (a hardware-timed output stopped).
+
+        The first pending input is the value in force (:meth:`_input_pieces`), kept even when its time is later
+        than ``after`` — a scan the stopped stream counted as played at ``after``, its time a rounding later
+        (t_enable + k / rate): it is moved to ``after``, so that an input set at ``after`` (the host's 0-V DAC write
+        just after the stop) comes after it in time order, not before it, where the stale scan would stay in force
+        (a T7 twin tie, 2026-11-28: a trip during a resume's ramp up left the output at 2 kV)."""
         with self.lock:
             t, v = self._v_inputs()
-            keep = max(int(np.searchsorted(t, after, side="right")), 1)
+            keep = int(np.searchsorted(t, after, side="right"))
+            if keep == 0:
+                t, v, keep = np.array([min(float(t[0]), after)]), v[:1], 1
             self._v_chunks = [(t[:keep], v[:keep])]
 
     def feed_watchdog(self, at: float | None = None) -> None:
