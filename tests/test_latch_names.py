@@ -73,3 +73,17 @@ def test_status_prints_one_readable_line_per_latch_not_a_dict() -> None:
         "drive /dev/ttyUSB0 unit 1 channel 0",
         "latched sim-rig: output verifier: monitor 3000 V, commanded 0 V; at 2026-11-27T11:00:00+00:00; "
         "in manual.log"], res.output
+
+
+def test_reset_without_why_of_a_rig_not_latched_says_not_latched_and_asks_nothing() -> None:
+    """The tester's finding: ``bench interlock reset RIG`` without --why asked for a reason before saying the rig was
+    not latched. Not latched is said first, with the exit of the not-latched path (2, as with --why above); the
+    reason is asked for only where there is a latch to reset."""
+    res = runner.invoke(app, ["interlock", "reset", "thesis-sim"])
+    assert res.exit_code == 2, res.output
+    assert "rig thesis-sim: not latched: nothing to reset" in " ".join(res.output.split())
+    assert "--why" not in res.output
+    rig_latch.latch("thesis-sim", "fault a", "a.h5")
+    res = runner.invoke(app, ["interlock", "reset", "thesis-sim"])
+    assert res.exit_code == 2 and "--why" in res.output and "not latched" not in res.output, res.output
+    assert rig_latch.latched("thesis-sim") is not None

@@ -10,7 +10,7 @@ import sys
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated
+from typing import TYPE_CHECKING, Annotated, NoReturn
 
 import typer
 
@@ -569,16 +569,25 @@ def interlock_reset(rig_name: Annotated[str, typer.Argument(help="Rig name (the 
                     why: WhyOpt = "", operator: ByOpt = None) -> None:
     """Reset a rig's latched interlock (who and why go to the interlock history); the exact rig name, and an
     error if that rig is not latched."""
-    from bench.runtime.latch import all_latched, reset
+    from bench.runtime.latch import latched, reset
 
+    if latched(rig_name) is None:  # said first: a reason is asked only for a latch to reset (outside tester)
+        _not_latched(rig_name)
     if not why.strip():
         raise ValueError("--why: say why it is safe to energise the rig again")
     was = reset(rig_name, _who(operator), why)
-    if was is None:
-        others = sorted(all_latched())
-        raise ValueError(f"rig {rig_name}: not latched: nothing to reset"
-                         + (f" (latched: {', '.join(others)})" if others else ""))
+    if was is None:  # reset meanwhile by another operator
+        _not_latched(rig_name)
     console.print(f"rig {escape(rig_name)}: reset (was: {escape(str(was.get('fault')))})")
+
+
+def _not_latched(rig_name: str) -> NoReturn:
+    """ValueError (one line): rig ``rig_name`` is not latched, naming the rigs that are."""
+    from bench.runtime.latch import all_latched
+
+    others = sorted(all_latched())
+    raise ValueError(f"rig {rig_name}: not latched: nothing to reset"
+                     + (f" (latched: {', '.join(others)})" if others else ""))
 
 
 def protocol_schema(
