@@ -402,11 +402,22 @@ def table3_figure(grid: dict[str, Any]) -> Figure:
 REPORT_MARKER = "report.json"  # a report folder's: the metadata of the run whose report it holds
 
 
-def report(run_path: str | Path, out: str | Path | None = None) -> tuple[RunAnalysis, list[Path]]:
+class NothingToReportError(ValueError):
+    """A run file none of whose steps could be analysed (its ``analysis`` says why: the run's state, its notes);
+    raised by :func:`report` (``empty=False``) before anything is written."""
+
+    def __init__(self, analysis: RunAnalysis) -> None:
+        super().__init__(f"run file {analysis.path}: no step of it could be analysed: nothing to report")
+        self.analysis = analysis
+
+
+def report(run_path: str | Path, out: str | Path | None = None,
+           empty: bool = True) -> tuple[RunAnalysis, list[Path]]:
     """Analyse a run file and write its figures; returns the analysis and the PNG paths. The file is opened once
     and read a window at a time (see the module's docstring). A folder holds one run's report (``report.json``
     names it): an earlier report of the same run is replaced; another run's, or (in ``out``) a ``figures.json``
-    of no marked report, is refused in one line before anything is written."""
+    of no marked report, is refused in one line before anything is written. ``empty=False``: a file with no step
+    analysed is refused (:class:`NothingToReportError`), nothing written."""
     from bench.storage.export import run_metadata
 
     run_path = Path(run_path)
@@ -415,6 +426,8 @@ def report(run_path: str | Path, out: str | Path | None = None) -> tuple[RunAnal
     paths: list[Path] = []
     with open_source(run_path) as src:
         a = analyse_source(src)
+        if not empty and not a.steps:
+            raise NothingToReportError(a)
         meta = run_metadata(a.run)
         loose = ["figures.json"] if not default and (out / "figures.json").exists() else []
         claim_folder(out, REPORT_MARKER, meta, "report", "report", loose)

@@ -218,9 +218,32 @@ def test_a_folder_of_stopped_runs_is_read_once_for_their_continuations(runs: dic
     assert len(opened) <= 4 * 8, len(opened)
 
 
-def test_a_file_killed_in_its_first_step_says_no_figures_not_an_empty_line(tmp_path: Path) -> None:
+def test_a_run_stopped_at_once_is_refused_in_one_line_naming_the_file_and_why(tmp_path: Path) -> None:
+    """`bench report` on a run interrupted before any drive ended exited 0 (outside tester): one line naming the
+    file and why there is nothing to report, exit 2 as the other refusals (a manual session's file alone), nothing
+    written. The step it stopped in follows from the protocol: its first step sets the chamber (a set step, no
+    duration) for the first sweep point, so a stop at the first instant falls in the second, the 5-kV drive."""
+    assert [x["type"] for x in GRID["steps"][:2]] == ["set", "waveform"]  # the premise, from the protocol file
+
+    def at_once(engine: Engine, sim) -> None:  # type: ignore[no-untyped-def]
+        sim.clock.subscribe(lambda _now: engine.request_stop("Ctrl-C"))
+
+    stopped = execute(plan_run(SWEEPS), tmp_path / "a.h5", virtual=True, on_engine=at_once)
+    assert stopped.state == "interrupted", stopped.reason
+    code, text = _cli("report", str(stopped.path), "--out", str(tmp_path / "report"))
+    assert code == 2 and text.count("\n") == 1, text
+    assert text.startswith(f"error: run file {stopped.path}: nothing to report: no step of it could be analysed "
+                           "(run interrupted at 0.00 s: Ctrl-C — in step 2 of "), text
+    assert f"steps 2–{STEPS} of {STEPS} not run to their end" in text, text
+    assert not (tmp_path / "report").exists()
+    code, text = _cli("report", str(stopped.path), "--json")  # --json: the same refusal, no JSON half written
+    assert code == 2 and text.startswith(f"error: run file {stopped.path}: nothing to report"), text
+
+
+def test_a_file_killed_in_its_first_step_says_no_figures_not_an_empty_line(runs: dict[str, Path],
+                                                                          tmp_path: Path) -> None:
     """`bench report` on a run killed (SIGKILL) as its first step began printed `figures: ` with nothing after it
-    (outside tester): it says there are none."""
+    (outside tester): beside another run it says there are none; alone it is refused, saying why."""
     import os
     import subprocess
     import sys
@@ -234,7 +257,10 @@ def test_a_file_killed_in_its_first_step_says_no_figures_not_an_empty_line(tmp_p
                             cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     kill_at_step(proc, tmp_path, 0, 120)
     (killed,) = tmp_path.glob("*.h5")
-    _, out = _cli("report", str(killed), "--out", str(tmp_path / "report"))
-    assert "could be analysed" in out, out  # the premise: nothing of it to plot
+    _, out = _cli("report", str(killed), str(runs["done"]), "--out", str(tmp_path / "report"))
+    assert f"no step of {killed.name} could be analysed" in out, out  # the premise: nothing of it to plot
     figures = [ln for ln in out.splitlines() if ln.startswith("figures:")]
-    assert figures == ["figures: none (nothing to plot)"], out
+    assert figures[0] == "figures: none (nothing to plot)" and len(figures) == 2, out
+    code, out = _cli("report", str(killed), "--out", str(tmp_path / "alone"))
+    assert code == 2 and out.startswith(f"error: run file {killed}: nothing to report: no step of it could be "
+                                        "analysed (incomplete file: "), out

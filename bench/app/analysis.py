@@ -110,6 +110,17 @@ def stopped_line(run: RunFile, continued_in: Path | None = None) -> str:
     return line
 
 
+def nothing_to_report(a: RunAnalysis) -> str:
+    """One line on a run file none of whose steps could be analysed (outside tester: `bench report` on a run
+    interrupted at once exited 0): the file, and why — how the run ended (:func:`stopped_line`), an incomplete
+    file's reason, the analysis's notes, or a protocol with no drive step to analyse."""
+    run = a.run
+    why = [stopped_line(run) or ("" if run.complete else f"incomplete file: {run.incomplete_reason}"), *a.notes]
+    why = [" ".join(w.split()) for w in why if w]
+    return (f"run file {a.path}: nothing to report: no step of it could be analysed ("
+            + ("; ".join(why) or "its protocol has no drive step, the steps the report analyses") + ")")
+
+
 @dataclass
 class Report:
     """The report of run files: each one's, and the Table-3 grid of their isopotential steps (None without)."""
@@ -130,7 +141,7 @@ def report_runs(runs: list[Path], out: Path | None = None, progress: Progress | 
     another for a name that collides, said in ``notes``; default beside each file); the Table-3 grid of the
     isopotential steps, also written as CSV (its path in ``grid``) and drawn beside it.
     ``progress`` gets the fraction of the files done."""
-    from bench.report import report, save_figure, table3_figure
+    from bench.report import NothingToReportError, report, save_figure, table3_figure
     from bench.storage.runfile import ManualSessionError
 
     done = Report()
@@ -138,7 +149,9 @@ def report_runs(runs: list[Path], out: Path | None = None, progress: Progress | 
     for k, p in enumerate(runs):
         where = out / folders[k] if out is not None and folders else out
         try:
-            a, paths = report(p, where)  # opens the file once
+            a, paths = report(p, where, empty=len(runs) > 1)  # opens the file once
+        except NothingToReportError as exc:  # alone: refused in one line, nothing written
+            raise ValueError(nothing_to_report(exc.analysis)) from None
         except ManualSessionError as exc:  # among run files (a glob of runs/): skipped, said; alone: refused
             if len(runs) == 1:
                 raise
@@ -156,6 +169,8 @@ def report_runs(runs: list[Path], out: Path | None = None, progress: Progress | 
     if not done.runs:  # every file given was a manual session's
         raise ValueError(f"no run file to report: {len(runs)} manual-control session files "
                          "(bench devices control), which hold no protocol steps")
+    if not any(r.analysis.steps for r in done.runs):
+        raise ValueError(f"no step of {', '.join(str(r.path) for r in done.runs)} could be analysed: nothing to report")
     grid = table3([s for r in done.runs for s in r.analysis.steps])
     if grid is not None:
         csv_path = (out if out is not None else runs[-1].with_name(runs[-1].stem + "-report")) / "table3.csv"
