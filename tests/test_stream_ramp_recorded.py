@@ -89,3 +89,51 @@ def test_a_pause_records_its_ramp_on_the_scan_clock_and_the_laser_while_paused(t
     expected = (t_resume - t_pause - RAMP_S - 0.2) / PAUSE_POLL_S
     assert paused.sum() >= 0.8 * expected  # the laser read on while paused, at the pause's rate
     assert laser.columns["valid"][paused].all()
+
+
+def test_a_second_stop_during_the_ramp_zeroes_at_once_and_still_records_the_settle_after_0_v(tmp_path: Path) -> None:
+    """A second stop request during the shutdown's ramp commands 0 V at once; the settle after 0 V is recorded on
+    the scan clock all the same, as after the whole ramp (outside tester: only the verifying read landed in the
+    file, in /safe_state). README: a second request skips the rest of the ramp; the inputs are recorded "for the
+    0.5 s after 0 V that the verification waits". The times expected come from the plant's own output."""
+    settle_s = 0.5  # README, "Stopping" (the verification's wait after 0 V)
+    blocks: list[tuple[np.ndarray, np.ndarray]] = []
+    t0: list[float] = []
+    asked: list[float] = []
+
+    def hook(engine: Engine, sim) -> None:
+        sim.plant.listeners.append(lambda b: blocks.append((b.t.copy(), b.v_out.copy())))
+
+        def at(_now: float) -> None:
+            if engine.snapshot.state == "running" and not t0:
+                t0.append(sim.clock.now() - engine.now())
+            if engine.snapshot.state == "running" and engine.now() >= 3.9 and not asked:
+                asked.append(engine.now())
+                engine.request_stop("the test")
+            elif engine.snapshot.state == "stopping" and len(asked) == 1 and engine.now() >= asked[0] + 0.1:
+                asked.append(engine.now())  # mid-ramp: RAMP_S is 0.25 s
+                engine.request_stop("the test, again")
+        sim.clock.subscribe(at)
+
+    result = execute(plan_run(SWEEPS, DAQ_RIG), tmp_path / "run.h5", virtual=True, on_engine=hook)
+    assert result.state == "interrupted", result.reason
+    assert len(asked) == 2
+    run = open_run(result.path)
+    assert any("second stop request: 0 V at once" in e[3] for e in _events(result.path, "ramp"))
+    t = np.concatenate([b[0] for b in blocks]) - t0[0]
+    v = np.concatenate([b[1] for b in blocks])
+    assert np.abs(v[(t > asked[1] - 0.01) & (t < asked[1])]).max() > 1000.0  # still high when the second came
+    t_zero_plant = t[(t > asked[1]) & (np.abs(v) <= SAFE_V)][0]
+    assert t_zero_plant <= asked[1] + 0.2  # at once: not the rest of the ramp (nor after the settle)
+    (safe,) = _events(result.path, "safe")
+    assert "verified" in safe[3]
+    t_verify = float(run.streams["safe_state"].t[-1])
+    assert t_verify >= t_zero_plant + settle_s - 0.05  # the verification still waited the settle
+    for name in ("amplifier", "laser"):
+        s = run.streams[name]
+        after = s.t[s.t > t_zero_plant + 0.05]
+        # recorded after 0 V, scan by scan, up to the verifying read (a gap only where the stream was restarted)
+        assert after.size and after[-1] >= t_zero_plant + settle_s - 0.05 and after[-1] <= t_verify, name
+        assert after.size >= 0.8 * (after[-1] - after[0]) / SCAN and np.diff(after).max() < 2.5 * SCAN, name
+    amp = run.streams["amplifier"]
+    assert np.abs(amp.columns["voltage"][-100:]).max() <= SAFE_V  # the zero, measured on the scan clock

@@ -286,6 +286,7 @@ class Engine:
         self._safe_reads: list[tuple[float, float, float]] = []  # the shutdown's verifying reads: (run time, V, A)
         self._final_position = math.nan  # the motor's position read by the shutdown once at rest [m]
         self._streamed_settle = False  # the shutdown's stream recorded the monitors through the settle after 0 V
+        self._settle_recorded = False  # 0 V commanded at once, the settle after it recorded on a stream of inputs
         self._pause_by: str | None = None  # who asked for a pause (signal, another thread); None: nobody
         self._resume_by: str | None = None
         self._control_seen: ControlWord = NO_WORD  # control file: (stamp, pause?, by/why, stop?)
@@ -1270,6 +1271,7 @@ class Engine:
         amp.hurry(SHUTDOWN_REPLY_S)
         unanswered = False
         streamed: float | None = None
+        cut_short = False  # a second stop request cut short a ramp the DAQ's stream-out was to play
         if self._stream is not None:
             try:
                 # the DAC holds the last value played; the ramp continues from it. Whole packets first (at most
@@ -1296,6 +1298,7 @@ class Engine:
         try:
             if v0 != 0.0 and self._urgent.is_set():
                 self._event("ramp", "second stop request before the ramp began: 0 V at once")
+                cut_short = self._stream is not None and abs(v0) > OUTPUT_ON_V
             if v0 != 0.0 and not self._urgent.is_set():
                 self._event("ramp", f"ramp from {whole(v0)} V to 0 V over {ramp:g} s" + (
                     f", played by the DAQ's stream-out; the inputs recorded on its scan clock until "
@@ -1310,6 +1313,7 @@ class Engine:
                     streamed = self._stream_ramp(v0, ramp, MONITOR_SETTLE_S)
                     if streamed is None:
                         self._event("ramp", "second stop request: 0 V at once")
+                        cut_short = True
                     else:
                         self._streamed_settle = True
                         self.ctx.v_cmd = 0.0
@@ -1340,7 +1344,34 @@ class Engine:
         if self._streamed_settle:  # the stream played 0 V (its set-point row is recorded) and recorded the settle
             return streamed
         self._record(self.rec.append, "setpoints", t_zero, voltage=0.0, aperture=math.nan)
+        if cut_short:  # 0 V is commanded: now the settle after it, recorded as the ramp's stream would have
+            self._stream_settle(t_zero, notes)
         return t_zero
+
+    def _stream_settle(self, t_zero: float, notes: list[str]) -> None:
+        """After 0 V commanded at once on a second stop request (the ramp's stream cut short, outside tester: the
+        settle after 0 V then went unrecorded, the verifying read alone in /safe_state): the inputs recorded on the
+        scan clock of a stream with no stream-out (:meth:`HardwareTimed.record_zero`) until ``MONITOR_SETTLE_S``
+        after 0 V, as after a ramp the DAQ plays; the verifying read follows its last scan. 0 V is not delayed:
+        the host commanded it before. A stream that fails leaves the settle to the verification's wait, said."""
+        hw, end = self._hw, t_zero + MONITOR_SETTLE_S
+        try:
+            hw.record_zero()
+            give_up = end + 1.0  # rig time: packets that stop coming end the wait
+            while hw.recorded_to() < end - 1e-9 and self.now() < give_up:
+                self._pause_until(max(self.now() + FINISH_POLL_S, min(end, self.now() + STREAM_RAMP_POLL_S)),
+                                  urgent_aborts=False)
+                hw.collect_quiet()
+            hw.stop(whole=True)
+        except (InstrumentError, OSError) as exc:
+            if isinstance(exc, OSError):  # a storage fault: the rig is made safe all the same
+                self._storage_failed = True
+            else:
+                notes.append(f"the inputs after 0 V not recorded on the scan clock: {exc}")
+            with contextlib.suppress(InstrumentError, OSError):
+                hw.stop()
+            return
+        self._settle_recorded = True
 
     def _stream_ramp(self, v0: float, ramp: float, settle: float, pause: bool = False) -> float | None:
         """The ramp from ``v0`` to 0 V played by the DAQ's stream-out (:meth:`HardwareTimed.ramp_down`), the inputs
@@ -1555,8 +1586,9 @@ class Engine:
             # the stream recorded the monitors through the settle: the read follows its last scan
         elif zero_at is not None:
             path = f"0 V commanded by the host at {zero_at:.3f} s"
-            # fresh monitor conversions at the zeroed output
-            self._pause_until(self.now() + MONITOR_SETTLE_S, urgent_aborts=False)
+            if not self._settle_recorded:  # (recorded: the stream of inputs waited it out, the read follows it)
+                # fresh monitor conversions at the zeroed output
+                self._pause_until(self.now() + MONITOR_SETTLE_S, urgent_aborts=False)
         elif watchdog is not None:
             # No request to the set-point module from here on: its communication-safety timer must run out.
             path = (f"0 V NOT commanded by the host: left to the set-point module's communication watchdog "

@@ -359,6 +359,25 @@ class HardwareTimed:
                            f"{what}")
         return self.ramp_start + n / rate
 
+    def record_zero(self) -> float:
+        """After the host commanded 0 V itself (a second stop request cut the ramp's stream short): the inputs on a
+        new stream with no stream-out — the DAC holds the 0 V the host wrote, nothing more is played — so that the
+        settle after 0 V is recorded on the scan clock as after a ramp the DAQ played (collected with
+        :meth:`collect_quiet`, up to :meth:`recorded_to`). Returns the run time of its scan 0 (:attr:`ramp_start`)."""
+        self.stop(whole=True)
+        self.daq.arm(StreamSpec(self.cfg.scan_rate_Hz, self.inputs))
+        self._base, self._commanded, self._n, self._appended = 0, np.zeros(1), 0, None
+        self._tail = self.ctx.v_req = 0.0
+        self.ctx.verifier.restart()
+        t0 = self.daq.kickoff()
+        self._keepalive = self.ctx.clock.now()
+        self.ramp_start = t0 - self.ctx.t0
+        self.ctx.rec.event(self.ctx.now(), self.ctx.snapshot.step, "timing",
+                           f"DAQ scan clock: scan 0 at {self.ramp_start:.6f} s on the run clock, known to "
+                           f"{self.daq.scan_clock_uncertainty * 1e3:.3f} ms (the enable request's round trip): "
+                           "the inputs after 0 V (no stream-out: the DAC holds the 0 V the host commanded)")
+        return self.ramp_start
+
     def recorded_to(self) -> float:
         """Run time of the last scan recorded from the stream a ramp started (:meth:`ramp_down`, :meth:`ramp_up`;
         −inf before its first)."""
