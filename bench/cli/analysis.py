@@ -385,7 +385,8 @@ def report_command(
     """Figures of merit and plots (PNG, PDF, SVG) of recorded runs; several files add a campaign table (Table 3
     layout, also written as CSV). An incomplete, killed or recovered file is flagged; a run that stopped before
     its protocol ended (interrupted, tripped, error) says so in one line (--json: state, reason; complete means the
-    file was finalised, as for a stopped run). A manual-control session's file among the runs is skipped, said."""
+    file was finalised, as for a stopped run). A manual-control session's file among the runs is skipped, said; a
+    file alone of which no step could be analysed is refused, saying why."""
     with json_mode(json_out):
         done = print_report(runs_only(runs), out)
     if json_out:
