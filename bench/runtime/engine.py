@@ -1305,9 +1305,13 @@ class Engine:
                     f"{MONITOR_SETTLE_S:g} s after 0 V" if self._stream is not None and abs(v0) > OUTPUT_ON_V
                     else ""))
 
+                monitors = self._ramp_monitors(notes)
+
                 def record(sent: float) -> None:
                     self.ctx.v_cmd = sent
+                    self.verifier.commanded(self.now(), sent)  # the monitors' reads are judged against the ramp
                     self._record(self.rec.append, "setpoints", self.now(), voltage=sent, aperture=math.nan)
+                    monitors()
 
                 if self._stream is not None and abs(v0) > OUTPUT_ON_V:  # (a program that ended at 0 V: no stream)
                     streamed = self._stream_ramp(v0, ramp, MONITOR_SETTLE_S)
@@ -1373,6 +1377,62 @@ class Engine:
             return
         self._settle_recorded = True
 
+    def _ramp_monitors(self, notes: list[str]) -> Callable[[], None]:
+        """The shutdown ramp's monitor reads on a rig whose set-points the host sends (the ADAM rigs; a DAQ rig's
+        ramp is played and recorded on its scan clock, :meth:`_stream_ramp`): called after each of the ramp's
+        set-points, the monitors poll runs when due at its step period (``recording.monitors_Hz``, the first with
+        the ramp's first set-point), recorded in the amplifier stream as a step's reads are (its columns, its
+        lateness) and checked by the supervisor and the output verifier, so that the file has the output's ramp to
+        0 V measured, not only commanded, and a fault during it is seen when it happens, not at the final verify.
+
+        Nothing here holds the ramp back from 0 V: a read that fails (or raises anything) is noted (a ``fault``
+        event) and the ramp goes on unread; a limit trip is recorded (``tripped``, the rig latched after the
+        verified 0 V, as a step's trip) and the ramp goes on, as it does after a step's trip; an interlock fault
+        (the output not following the ramp) latches and the next pause of the ramp ends it: 0 V at once."""
+        poll = next((p for p in rig_polls(self.ctx) if p.name == "monitors"), None)
+        period = poll.period(self.ctx, PAUSED) if poll is not None else None
+        if poll is None or period is None:
+            return lambda: None
+        run = poll.run
+        nxt: list[float] = []  # the next read's run time (set by the first set-point)
+        said: set[str] = set()
+
+        def read() -> None:
+            now = self.now()
+            if "failed" in said:
+                return
+            if not nxt:
+                nxt.append(now)
+            if nxt[0] > now + 1e-12:
+                return
+            due = nxt[0]
+            nxt[0] += period * (max(0, math.floor((now - due) / period)) + 1)
+            try:
+                run(self.ctx, due - self.ctx.offset)
+            except InterlockTrip as trip:
+                if self.latched is None:
+                    self.latched = trip
+                    self._event("interlock", f"latched at {now:.3f} s, during the ramp to 0 V ({trip.kind}): "
+                                f"{trip.detail}; 0 V at once, and the output stays at 0 V until an operator resets "
+                                "the latch")
+            except SafetyTrip as trip:
+                if self.tripped is None and self.latched is None:
+                    self.tripped = trip
+                    self._event("tripped", f"during the ramp to 0 V at {now:.3f} s: safety trip: {trip.reason}; "
+                                "the ramp goes on to 0 V")
+                elif "limit" not in said:
+                    self._event("ramp", f"{trip.reason} during the ramp to 0 V at {now:.3f} s")
+                said.add("limit")
+            except Exception as exc:
+                if _is_storage_fault(exc):  # the file failed: the reads go on, checked (poll_once)
+                    self._storage_failed = True
+                    return
+                said.add("failed")
+                text = str(exc) if isinstance(exc, InstrumentError) else f"{type(exc).__name__}: {exc}"
+                notes.append(f"monitor read during the ramp to 0 V failed at {now:.3f} s ({text}): the ramp went "
+                             "on without its monitor reads")
+        return read
+
     def _stream_ramp(self, v0: float, ramp: float, settle: float, pause: bool = False) -> float | None:
         """The ramp from ``v0`` to 0 V played by the DAQ's stream-out (:meth:`HardwareTimed.ramp_down`), the inputs
         recorded on the scan clock through it and ``settle`` s after 0 V: the specimen's response to the ramp is
@@ -1433,6 +1493,8 @@ class Engine:
         the set-point module went unheard past the stall bound meanwhile (the next step would re-energise an
         output its watchdog zeroed)."""
         if not self._pause_until(until):
+            return False
+        if self.latched is not None:  # latched by the ramp's own monitor reads (:meth:`_ramp_monitors`): 0 V at once
             return False
         try:
             self.ctx.guard()
