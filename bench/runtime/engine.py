@@ -1380,7 +1380,7 @@ class Engine:
     def _ramp_monitors(self, notes: list[str]) -> Callable[[], None]:
         """The shutdown ramp's monitor reads on a rig whose set-points the host sends (the ADAM rigs; a DAQ rig's
         ramp is played and recorded on its scan clock, :meth:`_stream_ramp`): called after each of the ramp's
-        set-points, the monitors poll runs when due at its step period (``recording.monitors_Hz``, the first with
+        set-points, the monitors poll runs when due at its step period (the protocol's monitor rate, the first with
         the ramp's first set-point), recorded in the amplifier stream as a step's reads are (its columns, its
         lateness) and checked by the supervisor and the output verifier, so that the file has the output's ramp to
         0 V measured, not only commanded, and a fault during it is seen when it happens, not at the final verify.
