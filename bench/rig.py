@@ -16,7 +16,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from bench.core.clock import Clock
-from bench.core.monitor_chain import SAFE_TOUCH_V, T7_AIN, adam_4017p, safe_threshold_v
+from bench.core.monitor_chain import SAFE_TOUCH_V, T7_AIN, DaqInput, adam_4017p, safe_threshold_v, zero_band_v
 from bench.core.noise import Realism
 from bench.core.plant import TREK_DATASHEET, AmplifierSpec, HVStage, Plant
 from bench.models.lozenge import LozengeParams, MaxwellBranch
@@ -621,16 +621,32 @@ def amplifier_spec(rig: RigConfig) -> AmplifierSpec:
     return replace(base, vmon_ratio=a.vmon_ratio or base.vmon_ratio, imon_ratio=a.imon_ratio or base.imon_ratio)
 
 
+def _monitor_chain(rig: RigConfig) -> tuple[AmplifierSpec, DaqInput] | None:
+    """The rig's voltage-monitor chain: its amplifier and the DAQ input that converts the monitor (a T7 AIN where
+    the DAQ drives the amplifier, else the ADAM-4017+ at the rig's ``ai_bits``); None without an amplifier."""
+    a = rig.amplifier
+    if a is None:
+        return None
+    return amplifier_spec(rig), T7_AIN if a.drive == "daq" else adam_4017p(a.ai_bits)
+
+
 def safe_monitor_v(rig: RigConfig) -> float:
     """|voltage monitor| at or below this [V] is the rig's output verified at 0 V: derived from its monitor chain
     (:func:`bench.core.monitor_chain.safe_threshold_v`); :data:`~bench.core.monitor_chain.SAFE_TOUCH_V` without an
     amplifier. ValueError where the chain cannot verify a safe output."""
-    a = rig.amplifier
-    if a is None:
+    if (chain := _monitor_chain(rig)) is None:
         return SAFE_TOUCH_V
-    spec = amplifier_spec(rig)
-    daq = T7_AIN if a.drive == "daq" else adam_4017p(a.ai_bits)
+    spec, daq = chain
     return safe_threshold_v(spec.model, spec.max_output, spec.vmon_ratio, daq)
+
+
+def monitor_band_v(rig: RigConfig) -> float | None:
+    """The 0-V band of the rig's voltage-monitor chain [V] (:func:`bench.core.monitor_chain.zero_band_v`): the
+    largest |reading| of an output truly at 0 V, so a peak within it is no drive; None without an amplifier."""
+    if (chain := _monitor_chain(rig)) is None:
+        return None
+    spec, daq = chain
+    return zero_band_v(spec.model, spec.max_output, spec.vmon_ratio, daq)
 
 
 def plant_for(rig: RigConfig, clock: Clock, *, temperature_K: float | None = None, prototype: int | None = None,

@@ -2,9 +2,9 @@
 
 The short identification protocol with its raised cosine's amplitude set to 0 kV is run in virtual time on its own
 simulated rig; the voltage monitor then shows its noise only (a few volts), well inside the band in which the
-engine counts the monitor as reading 0 V. An analysis that does not know the rig takes the widest band of the chains a
-rig can have: 23.3 V, the TREK monitor into an ADAM-4017+ (derived from the manuals' figures in
-tests/test_monitor_chain.py).
+engine counts the monitor as reading 0 V. The analysis takes the band of the chain of the rig the file records: the
+TREK monitor into a LabJack T7 AIN, 15.3 V (derived from the manuals' figures in tests/test_monitor_chain.py; a file
+whose rig is not known is judged on the widest, tests/test_no_drive_band.py).
 """
 
 from __future__ import annotations
@@ -16,6 +16,7 @@ import pytest
 from typer.testing import CliRunner
 
 from bench.cli import app
+from tests.test_monitor_chain import T7_BAND
 
 ROOT = Path(__file__).resolve().parent.parent
 SHORT = ROOT / "protocols" / "short" / "thesis-identification-short.toml"
@@ -46,7 +47,7 @@ def test_fit_of_an_undriven_run_is_refused_in_one_line(zero_run: Path) -> None:
     assert "zero-size array" not in res.output
     err = [line for line in res.output.splitlines() if line.startswith("error:")]
     assert len(err) == 1, res.output
-    assert str(zero_run) in err[0] and "never driven above 23.3 V" in err[0] and "identifiable" in err[0]
+    assert str(zero_run) in err[0] and f"never driven above {T7_BAND:.3g} V" in err[0] and "identifiable" in err[0]
     assert not Path(str(zero_run).removesuffix(".h5") + ".fit.hdf5").exists()  # nothing was fitted or stored
 
 
@@ -72,7 +73,7 @@ def test_report_of_an_undriven_run_gives_no_lag_or_creep(zero_run: Path, tmp_pat
     res = runner.invoke(app, ["report", str(zero_run), "--out", str(tmp_path / "json"), "--json"])
     assert res.exit_code == 0, res.output
     (step,) = json.loads(res.output)["runs"][0]["steps"]
-    assert step["voltage_V"] < 23.3  # the monitor's noise, not a drive
+    assert step["voltage_V"] < T7_BAND  # the monitor's noise, not a drive
     assert step["figures"]["lag_first"] is None and step["figures"]["creep"] is None
     assert step["figures"]["peak_first"] is not None  # what the laser saw is still reported
 

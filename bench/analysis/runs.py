@@ -27,7 +27,7 @@ import numpy as np
 
 from bench.analysis.applied import applied_window
 from bench.analysis.cycles import crest_to_trough, hysteresis_loss, phase_lag, smooth
-from bench.analysis.thesis import cycle_figures, undriven, undriven_note
+from bench.analysis.thesis import NO_DRIVE_V, cycle_figures, no_drive_v_of, undriven, undriven_note
 from bench.models.lozenge import LozengeParams
 from bench.protocol.schema import Protocol, WaveformStep, load_protocol
 from bench.storage.chunks import RunSource, StreamChunks, open_source
@@ -58,6 +58,7 @@ class StepResult:
     temperature: float | None = None  # membrane: specimen temperature during the step [K]
     figures: dict[str, float] = field(default_factory=dict)
     series: dict[str, list[float]] = field(default_factory=dict)
+    no_drive_v: float = NO_DRIVE_V  # its run's monitor 0-V band [V]: a peak |V| within it is no drive
 
 
 @dataclass
@@ -71,6 +72,7 @@ class RunAnalysis:
     steps: list[StepResult]
     run: RunFile  # the file's metadata, events and program as read (no streams)
     notes: list[str] = field(default_factory=list)  # steps not analysed, and why (one line each)
+    no_drive_v: float = NO_DRIVE_V  # the run's monitor 0-V band [V] (its rig's chain; the widest where unknown)
 
     def by_kind(self, kind: str) -> list[StepResult]:
         """Steps of one kind, in run order."""
@@ -171,6 +173,7 @@ def analyse_source(src: RunSource, last_cycles: int = 3) -> RunAnalysis:
     config = spec.get("lsdea", {}).get("configuration", "membrane") if kind_of_specimen == "lsdea" else "membrane"
     results: list[StepResult] = []
     notes: list[str] = []
+    band = no_drive_v_of(run.attrs)  # the run's own monitor chain: a T7 rig's 0-V band is narrower than an ADAM's
     done, offsets, began = run.completed_steps(), run.step_offsets(), run.step_starts()
     late = {step: float(m[1]) for _, step, kind, text in run.event_list()
             if kind == "late" and (m := LATE.search(text)) is not None}  # each step's own lateness [s]
@@ -206,12 +209,13 @@ def analyse_source(src: RunSource, last_cycles: int = 3) -> RunAnalysis:
         at = max(t0, began.get(index, t0))
         proto, mass = _specimen_at(run, at, spec)
         res = StepResult(int(row["index"]), row["name"].decode(), "", t0, dur, step.frequency_Hz, vpk,
-                         proto if kind_of_specimen == "lsdea" else None, mass if config == "hung" else None)
+                         proto if kind_of_specimen == "lsdea" else None, mass if config == "hung" else None,
+                         no_drive_v=band)
         if kind_of_specimen == "membrane":
             res.temperature = float(run.temperature_at(at))
             _thesis(res, streams, sp.t, sp.v)
-            if undriven(vpk):
-                notes.append(undriven_note(said, vpk))
+            if undriven(vpk, band):
+                notes.append(undriven_note(said, vpk, band))
         elif whole_cycles(dur, step.frequency_Hz) == 0:  # the LS-DEA's figures are per whole cycle
             notes.append(f"{said} plays {dur * step.frequency_Hz:g} cycles, less than one whole: no figures")
             continue
@@ -222,7 +226,7 @@ def analyse_source(src: RunSource, last_cycles: int = 3) -> RunAnalysis:
         else:
             _isometric(res, streams, last_cycles, 2 * step.frequency_Hz if step.kind == "sine" else step.frequency_Hz)
         results.append(res)
-    return RunAnalysis(run.path, run.attrs["protocol_name"], kind_of_specimen, config, results, run, notes)
+    return RunAnalysis(run.path, run.attrs["protocol_name"], kind_of_specimen, config, results, run, notes, band)
 
 
 def whole_cycles(duration: float, frequency: float) -> int:
@@ -242,7 +246,8 @@ def _thesis(res: StepResult, streams: StreamChunks, t_v: np.ndarray, v: np.ndarr
                    "residual_first": figs.residuals[0] if figs.residuals else np.nan,
                    "residual_last": figs.residuals[-1] if figs.residuals else np.nan}
     res.series = {"peaks": list(figs.peaks), "residuals": list(figs.residuals), "lags": list(figs.lags)}
-    if undriven(res.voltage):  # no drive: its "peak" is monitor noise, and the response's creep is not to a drive
+    # no drive: its "peak" is monitor noise, and the response's creep is not to a drive
+    if undriven(res.voltage, res.no_drive_v):
         res.figures["lag_first"] = res.figures["creep"] = np.nan
         res.series["lags"] = [np.nan] * len(figs.lags)
 

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -11,23 +13,41 @@ from bench.core.monitor_chain import widest_band_v
 
 SMOOTH_PERIODS = 50  # the smoothing window is this fraction of a period
 NO_DISPLACEMENT_M = 1e-12  # peaks below 1 pm are rounding, not a displacement (no sensor resolves them)
-# a step (or run) whose peak |V| stays at or below this was not driven: the voltage monitor's 0-V band, in which
-# a true 0 V can read (bench.core.monitor_chain.zero_band_v). An analysis does not know which chain recorded a
-# figure (nor does `simulate --voltage`), so it takes the widest band of the chains a rig can have
-# (bench.core.monitor_chain.widest_band_v: TREK monitor and DAQ accuracy, rounding and noise). Below it a
-# "voltage peak" is the monitor's noise, so a lag from it to the displacement's peak, a creep of the response to it,
-# or a fitted parameter of the response means nothing.
+# a step (or run) whose peak |V| stays at or below its monitor's 0-V band was not driven: the band is the largest
+# |reading| of a true 0 V (bench.core.monitor_chain.zero_band_v: TREK monitor and DAQ accuracy, rounding and noise).
+# Below it a "voltage peak" is the monitor's noise, so a lag from it to the displacement's peak, a creep of the
+# response to it, or a fitted parameter of the response means nothing. A run file records its rig (``rig_toml``):
+# its analysis takes that rig's own band (:func:`no_drive_v_of`: 15.3 V on a T7 rig, 23.3 V on an ADAM rig). Where
+# the rig is not known (`simulate --voltage`, a file whose rig does not read) it takes the widest band of the chains
+# a rig can have (bench.core.monitor_chain.widest_band_v), NO_DRIVE_V.
 NO_DRIVE_V = widest_band_v()
 
 
-def undriven(peak_voltage: float) -> bool:
-    """Whether a peak |V| [V] is no drive at all (at or below :data:`NO_DRIVE_V`, the monitor's 0-V band)."""
-    return not abs(peak_voltage) > NO_DRIVE_V
+def no_drive_v_of(attrs: Mapping[str, Any]) -> float:
+    """The no-drive level [V] of a run file whose root attributes are ``attrs``: the 0-V band of the monitor chain of
+    the rig it records (``rig_toml``, :func:`bench.rig.monitor_band_v`); :data:`NO_DRIVE_V` where it records none,
+    one that no longer reads as a rig, or one without an amplifier."""
+    from bench.rig import monitor_band_v, rig_from_toml
+
+    text = attrs.get("rig_toml")
+    if not isinstance(text, str) or not text.strip():
+        return NO_DRIVE_V
+    try:
+        band = monitor_band_v(rig_from_toml(text))
+    except (ValueError, TypeError, KeyError):  # a TOML or validation error (an older schema): not known
+        return NO_DRIVE_V
+    return NO_DRIVE_V if band is None else band
 
 
-def undriven_note(what: str, peak_voltage: float) -> str:
+def undriven(peak_voltage: float, band: float = NO_DRIVE_V) -> bool:
+    """Whether a peak |V| [V] is no drive at all (at or below ``band``, the monitor's 0-V band: :data:`NO_DRIVE_V`
+    where the rig is not known)."""
+    return not abs(peak_voltage) > band
+
+
+def undriven_note(what: str, peak_voltage: float, band: float = NO_DRIVE_V) -> str:
     """One line saying why ``what``'s drive-dependent figures are not given."""
-    return (f"{what}: peak voltage {abs(peak_voltage):.3g} V is within the monitor's 0-V band (≤ {NO_DRIVE_V:.3g} V): "
+    return (f"{what}: peak voltage {abs(peak_voltage):.3g} V is within the monitor's 0-V band (≤ {band:.3g} V): "
             "not driven, so lag and creep (figures relative to the drive) are not given")
 
 

@@ -137,20 +137,22 @@ def check_fittable(runs: list[Path], into: bool = False) -> None:
 
 def check_driven(runs: list[Path]) -> None:
     """Refuse, before any work, membrane runs none of which drove the amplifier beyond the voltage monitor's 0-V
-    band (:data:`bench.analysis.thesis.NO_DRIVE_V`): the membrane moves only under voltage, so its record at rest
-    holds no information on any parameter (the search would run to the end and find every one insensitive).
+    band (each file's own: the chain of the rig it records, :func:`bench.analysis.thesis.no_drive_v_of`; the widest,
+    :data:`bench.analysis.thesis.NO_DRIVE_V`, where unknown): the membrane moves only under voltage, so its record at
+    rest holds no information on any parameter (the search would run to the end and find every one insensitive).
     One undriven file among driven ones is a record at rest of the campaign, and is fitted with them."""
-    from bench.analysis.thesis import NO_DRIVE_V, undriven
+    from bench.analysis.thesis import no_drive_v_of, undriven
     from bench.storage.chunks import open_source
 
-    peaks = []
+    peaks, bands = [], []
     for p in runs:
         with open_source(p) as src:
             peaks.append(_peak_voltage(src.streams))
-    if all(undriven(v) for v in peaks):
+            bands.append(no_drive_v_of(src.run.attrs))
+    if all(undriven(v, b) for v, b in zip(peaks, bands, strict=True)):
         names = ", ".join(str(p) for p in runs)
         raise ValueError(f"run file{'s' if len(runs) > 1 else ''} {names}: the amplifier was never driven above "
-                         f"{NO_DRIVE_V:.3g} V (the voltage monitor's 0-V band; peak {max(peaks):.3g} V): no model "
+                         f"{max(bands):.3g} V (the voltage monitor's 0-V band; peak {max(peaks):.3g} V): no model "
                          "parameter is identifiable without a drive")
 
 

@@ -525,7 +525,7 @@ def _peak_kV(s: StepResult) -> str:
     """The step's measured peak voltage [kV]; "0" within the monitor's 0-V band (an undriven step's noise)."""
     from bench.analysis.thesis import undriven
 
-    return "0" if undriven(s.voltage) else f"{s.voltage / 1e3:.3g}"
+    return "0" if undriven(s.voltage, s.no_drive_v) else f"{s.voltage / 1e3:.3g}"
 
 
 @clean_errors
