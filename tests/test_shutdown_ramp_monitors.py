@@ -69,7 +69,8 @@ Outcome = tuple[RunResult, RunFile, np.ndarray, np.ndarray, np.ndarray, dict[str
 def _run(tmp: Path, ramp_s: float = RAMP_S, fault: str | None = None, monitors_hz: float = MONITORS_HZ,
          patch: Any = None) -> Outcome:
     """The protocol on the simulated ADAM rig in virtual time, a stop requested at ``STOP_AT``; ``fault``:
-    ``gain`` (the amplifier's gain 25 % high from the stop on). Returns (result, run file, the plant's times on the
+    ``gain`` (the amplifier's gain 25 % high from the stop on), ``breakdown`` (the dielectric breaks down as the stop
+    comes: the electrodes shorted, the output current-limited). Returns (result, run file, the plant's times on the
     run clock, its true output, its voltage monitor's output, what the hook saw)."""
     proto = tmp / "stop-in-hold.toml"
     proto.write_text(PROTOCOL.format(rig=ADAM_RIG.as_posix(), monitors_hz=monitors_hz))
@@ -93,6 +94,8 @@ def _run(tmp: Path, ramp_s: float = RAMP_S, fault: str | None = None, monitors_h
                 seen["stop"] = engine.now()
                 if fault == "gain":
                     sim.plant.hv = dataclasses.replace(sim.plant.hv, gain=sim.plant.hv.gain * 1.25)
+                elif fault == "breakdown":
+                    sim.plant.inject_breakdown()
                 engine.request_stop("the test")
         sim.clock.subscribe(at)
 
@@ -145,6 +148,25 @@ def test_an_output_that_does_not_follow_the_ramp_latches_and_goes_to_0_v_at_once
     t_zero = t_plant[(t_plant > t_req) & (np.abs(v_plant) <= ZERO_V)][0]
     assert t_zero <= t_req + SLOW_RAMP_S / 10 + 3 / MONITORS_HZ + BOUND_S
     assert t_zero < t_req + 0.75 * SLOW_RAMP_S
+    assert "verified" in _events(run, "safe")[0][3]
+
+
+def test_a_limit_exceeded_during_the_ramp_is_a_trip_and_the_ramp_still_ends_at_0_v(tmp_path: Path) -> None:
+    """The dielectric breaks down as the stop comes (a 2-s ramp): the monitors read in the ramp show the current
+    beyond the rig's 5-mA limit — a trip recorded when it is read, and the rig latched — and the ramp goes on to
+    0 V within its bound, verified."""
+    result, run, t_plant, v_plant, _, _ = _run(tmp_path, ramp_s=SLOW_RAMP_S, fault="breakdown")
+    (t_req, *_), = _events(run, "request")
+    trips = _events(run, "tripped")
+    assert len(trips) == 1 and "current" in trips[0][3], trips
+    # seen in the ramp (its first reading comes with its first set-point, SLOW_RAMP_S / 10 in), not at its end
+    assert t_req < trips[0][0] <= t_req + SLOW_RAMP_S / 10 + 1 / MONITORS_HZ + BOUND_S
+    assert result.latched.startswith("safety trip") and "current" in result.latched, result.latched
+    amp = run.streams["amplifier"]
+    ramp = (amp.t > t_req) & (amp.t < t_req + SLOW_RAMP_S)
+    assert np.abs(amp.columns["current"][ramp]).max() > 5e-3  # the reading that tripped it is in the file
+    t_zero = t_plant[(t_plant > t_req) & (np.abs(v_plant) <= ZERO_V)][0]
+    assert t_zero <= t_req + SLOW_RAMP_S + BOUND_S
     assert "verified" in _events(run, "safe")[0][3]
 
 
