@@ -67,11 +67,12 @@ Outcome = tuple[RunResult, RunFile, np.ndarray, np.ndarray, np.ndarray, dict[str
 
 
 def _run(tmp: Path, ramp_s: float = RAMP_S, fault: str | None = None, monitors_hz: float = MONITORS_HZ,
-         patch: Any = None) -> Outcome:
+         patch: Any = None, pause: bool = False) -> Outcome:
     """The protocol on the simulated ADAM rig in virtual time, a stop requested at ``STOP_AT``; ``fault``:
     ``gain`` (the amplifier's gain 25 % high from the stop on), ``breakdown`` (the dielectric breaks down as the stop
-    comes: the electrodes shorted, the output current-limited). Returns (result, run file, the plant's times on the
-    run clock, its true output, its voltage monitor's output, what the hook saw)."""
+    comes: the electrodes shorted, the output current-limited); ``pause``: a pause is asked for at ``STOP_AT``
+    instead (its ramp to 0 V is the same ``shutdown_ramp_s``), the stop 3 s later. Returns (result, run file, the
+    plant's times on the run clock, its true output, its voltage monitor's output, what the hook saw)."""
     proto = tmp / "stop-in-hold.toml"
     proto.write_text(PROTOCOL.format(rig=ADAM_RIG.as_posix(), monitors_hz=monitors_hz))
     plan = plan_run(proto)
@@ -96,6 +97,12 @@ def _run(tmp: Path, ramp_s: float = RAMP_S, fault: str | None = None, monitors_h
                     sim.plant.hv = dataclasses.replace(sim.plant.hv, gain=sim.plant.hv.gain * 1.25)
                 elif fault == "breakdown":
                     sim.plant.inject_breakdown()
+                if pause:
+                    engine.request_pause("the test")
+                else:
+                    engine.request_stop("the test")
+            if pause and "stop" in seen and engine.now() >= seen["stop"] + 3.0 and "stopped" not in seen:
+                seen["stopped"] = engine.now()
                 engine.request_stop("the test")
         sim.clock.subscribe(at)
 
@@ -197,4 +204,22 @@ def test_a_monitor_read_that_fails_in_the_ramp_is_noted_and_the_ramp_goes_on_to_
     assert np.abs(v_plant[mid]).min() > 0.4 * V_HOLD
     t_zero = t_plant[(t_plant > t_req) & (np.abs(v_plant) <= ZERO_V)][0]
     assert t_zero <= t_req + SLOW_RAMP_S + BOUND_S
+    assert "verified" in _events(run, "safe")[0][3]
+
+
+def test_a_pause_s_ramp_is_measured_by_the_monitors_and_an_output_not_following_it_latches(tmp_path: Path) -> None:
+    """A pause ramps the output to 0 V over the same ``shutdown_ramp_s``: its set-points are supervised as a step's
+    (the restart's ramp up already was), so the monitors are read and recorded through it and a gain 25 % high
+    latches the rig during it. Before, the pause's ramp read nothing: the fault went unseen until a paused reading
+    at 0 V (which verifies the zero)."""
+    result, run, t_plant, v_plant, _, seen = _run(tmp_path, ramp_s=SLOW_RAMP_S, fault="gain", pause=True)
+    t_pause = seen["stop"]
+    assert result.latched and "output mismatch" in result.latched, (result.state, result.latched)
+    amp = run.streams["amplifier"]
+    within = (amp.t > t_pause) & (amp.t <= t_pause + 0.75 * SLOW_RAMP_S)
+    assert within.sum() >= 2  # read in the ramp: two out-of-band readings in a row latch (README)
+    (t_tripped, *_), = [e for e in run.event_list() if e[2] in ("tripped", "interlock")][:1]
+    assert t_pause < t_tripped < t_pause + 0.75 * SLOW_RAMP_S  # latched during the pause's ramp, not after it
+    t_zero = t_plant[(t_plant > t_pause) & (np.abs(v_plant) <= ZERO_V)][0]
+    assert t_zero < t_pause + 0.75 * SLOW_RAMP_S + BOUND_S
     assert "verified" in _events(run, "safe")[0][3]

@@ -1094,7 +1094,9 @@ class Engine:
             self._stream_ramp(self.ctx.v_cmd, self.program.rig.limits.shutdown_ramp_s, RESTART_SETTLE_S, pause=True)
             self._set_voltage(0.0, self.now())  # the DAC already holds 0 V: the host's record of it, verified
         elif self.inst.amplifier is not None:
-            self._ramp_to(0.0, self.program.rig.limits.shutdown_ramp_s)
+            # supervised as a step is (as the restart's ramp up): the monitors read, recorded and checked after
+            # every set-point, so that an output not following the ramp to 0 V latches during it
+            self._ramp_to(0.0, self.program.rig.limits.shutdown_ramp_s, after=self._supervised())
         if self._storing and self.inst.laser is not None:  # at 0 V: the pause does not wait on the upload
             self.inst.laser.stop_buffer()
             # a pause is no stop or fault: the run goes on, supervised, so its upload has a step's drain budget
