@@ -416,6 +416,19 @@ def plays_on(prev: Segment, nxt: Segment) -> bool:
     return prev.duration > 0 and nxt.duration > 0 and not nxt.changes and abs(nxt.t_start - prev.t_end) <= 1e-9
 
 
+def relax_at_zero(seg: Segment) -> float | None:
+    """A relax step restarted after the output went to 0 V (a resume after a pause, a resumed campaign, a laser
+    upload that zeroed it): its ramp from the step before's value to 0 V is not played again — the step plays 0 V
+    from its start, on the same schedule — so that a restart never re-energises the specimen only to ramp it down
+    (outside tester: a pause in a recovery step resumed with 2.9 kV back on, its recovery record changed).
+    Returns the value its ramp started from (None: not a relax with a ramp, nothing changed)."""
+    if seg.kind != "relax" or seg.voltage is None:
+        return None
+    v0 = float(seg.voltage(np.array([seg.t_start]))[0])
+    seg.voltage = _ramp(seg.t_start, max(seg.ramp_down, 1.0), 0.0, 0.0)
+    return v0
+
+
 def voltage_at(seg: Segment, t: float) -> float | None:
     """Voltage set-point [V] of ``seg`` at run time t (None: keep the present one)."""
     return None if seg.voltage is None else float(seg.voltage(np.array([t]))[0])

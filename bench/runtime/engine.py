@@ -46,6 +46,7 @@ from bench.protocol.program import (
     Tick,
     end_tick,
     largest_voltage_change,
+    relax_at_zero,
     ticks,
     voltage_at,
 )
@@ -1023,9 +1024,13 @@ class Engine:
         """Bring the rig to the state the program holds at the start of ``seg`` (motor to its position with the
         output at 0 V, then the voltage ramped up over ``shutdown_ramp_s``) and shift the program so that ``seg``
         starts now; recorded as events."""
+        ramped = relax_at_zero(seg)
         volts, motor = self._state_before(seg)
+        rest = "" if ramped is None or abs(ramped) <= OUTPUT_ON_V else (
+            f" (a relax: its ramp from {ramped:.0f} V to 0 V is not played again, the output is at 0 V already)")
         self.rec.event(self.now(), seg.index, "restart", f"{why}; {self._step_text(seg)} restarts from its "
-                       f"start: motor to {'-' if motor is None else f'{motor * 1e3:.2f} mm'}, output to {volts:.0f} V")
+                       f"start: motor to {'-' if motor is None else f'{motor * 1e3:.2f} mm'}, output to {volts:.0f} V"
+                       + rest)
         if motor is not None and self.inst.motor is not None:
             m = self.program.rig.motor
             assert m is not None
