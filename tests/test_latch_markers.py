@@ -125,8 +125,6 @@ def test_a_reader_of_the_state_folder_sees_a_dead_marker_as_latched(monkeypatch:
 # ---------------------------------------------------------------- a state folder the marker cannot be written to
 def test_a_state_folder_that_cannot_hold_the_marker_refuses_in_one_line(tmp_path: Path,
                                                                         monkeypatch: pytest.MonkeyPatch) -> None:
-    from bench.storage.runfile import open_run
-
     blocker = tmp_path / "a-file"
     blocker.write_text("not a folder")
     monkeypatch.setenv("BENCH_STATE_DIR", str(blocker / "state"))  # not a directory: nothing can be written there
@@ -138,8 +136,8 @@ def test_a_state_folder_that_cannot_hold_the_marker_refuses_in_one_line(tmp_path
     error = [line for line in result.stderr.splitlines() if line.strip()]
     assert len(error) == 1, result.stderr
     assert f"state folder {blocker / 'state'}" in error[0] and "armed marker cannot be written" in error[0], error
-    files = list(runs.glob("*.h5"))
-    assert files and all(open_run(f, streams=False).state != "running" for f in files)
+    # checked before the run file is made (outside tester, 2026-11-28: a run file was left, its reason this error)
+    assert not list(runs.glob("*.h5")), list(runs.glob("*.h5"))
 
 
 # ---------------------------------------------------------------- a resume's reset is for the latch seen at planning

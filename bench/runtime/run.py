@@ -292,6 +292,7 @@ def _execute_claimed(plan: Plan, out: Path, *, virtual: bool, operator: Operator
     drive = drive_of(rig)  # its port's names now, while it is there: a latch written after a lost adapter keeps them
     pending = resume.reset if resume is not None else None  # the operator's reset of a latch: once connected
     seen = resume.reset_seen if resume is not None else frozenset()
+    _state_writable()  # before anything: a run that cannot arm its interlock writes no run file
     if pending is None:
         refuse_if_latched(rig.name, drive)
     else:  # the reset is for the latch seen when the resume was planned: a later one refuses
@@ -437,6 +438,21 @@ def _execute_claimed(plan: Plan, out: Path, *, virtual: bool, operator: Operator
         with contextlib.suppress(OSError):  # its last word (a pause, a stop) meant nothing once the run ended
             control_path(out).unlink(missing_ok=True)
         _catalogue_end(out, start_row, end_row)
+
+
+def _state_writable() -> None:
+    """ValueError (one line, as :func:`_arm`'s) where the state folder cannot take the armed marker — checked
+    before the instruments are touched and the run file is made (outside tester: a run with an unwritable state
+    folder left a run file whose reason was this error)."""
+    folder = state_dir()
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=folder, prefix=".probe-"):
+            pass
+    except OSError as exc:
+        raise ValueError(f"state folder {folder}: the interlock's armed marker cannot be written there "
+                         f"({exc.strerror or exc}); nothing was energised — make it writable or set "
+                         f"{STATE_ENV} to a writable folder") from None
 
 
 def _arm(rig_name: str, out: Path, drive: Drive | None) -> Path:
