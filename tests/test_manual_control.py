@@ -863,3 +863,16 @@ def test_a_script_stops_at_a_trip_and_says_the_rest_is_not_run(tmp_path: Path) -
     assert "'watch 5 0.25'" in stopped[4] and "not run" in stopped[4]
     assert any(line.startswith("stopped: ") and "not run" in line for line in seen), seen
     assert not any(r[3] in ("read", "voltage 1kV") for r in rows)
+
+
+def test_without_operator_the_login_name_is_recorded_as_a_run_records_it(tmp_path: Path) -> None:
+    """No --operator: the session is the login name's, as a run's is (outside tester: a manual reset recorded
+    "an operator not named" while runs recorded the login name)."""
+    import getpass
+
+    log = tmp_path / "s.log"
+    res = CliRunner().invoke(app, ["devices", "control", str(THESIS_RIG), "--virtual-time", "--log", str(log)],
+                             input="read\n")
+    assert res.exit_code == 0, res.output
+    rows = _rows(log)
+    assert rows[0][4].endswith(f"operator {getpass.getuser()}"), rows[0]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import sys
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -60,6 +61,11 @@ def manual_session(rig_file: Path, *, script: Path | None = None, log: Path | No
             operator = check_label(operator, MAX_OPERATOR)
         except ValueError as exc:
             raise ValueError(f"--operator: {exc}") from None
+    else:  # who acts, as a run records it (outside tester: a reset here recorded "an operator not named")
+        from bench.app.runs import login_name
+
+        with contextlib.suppress(ValueError):  # a login name that is no valid label: not named, as before
+            operator = login_name(None)
     rig = load_rig(rig_file)
     path = log if log is not None else Path("runs") / session_log_name(rig)
     interactive = script is None and sys.stdin.isatty()
