@@ -349,6 +349,11 @@ class HardwareTimed:
                                 out_ahead_s=OUT_AHEAD_S, out_loops=False))
         self._base, self._commanded, self._n, self._appended = 0, commanded, n, None
         self._tail = self.ctx.v_req = v1
+        return self._kickoff_own(what) + n / rate
+
+    def _kickoff_own(self, what: str) -> float:
+        """Kick off a stream of its own (a ramp's, the inputs after 0 V): the verifier restarted, its scan 0 said in
+        a ``timing`` event naming ``what`` it is for; returns that scan's run time (:attr:`ramp_start`)."""
         self.ctx.verifier.restart()
         t0 = self.daq.kickoff()
         self._keepalive = self.ctx.clock.now()
@@ -357,7 +362,7 @@ class HardwareTimed:
                            f"DAQ scan clock: scan 0 at {self.ramp_start:.6f} s on the run clock, known to "
                            f"{self.daq.scan_clock_uncertainty * 1e3:.3f} ms (the enable request's round trip): "
                            f"{what}")
-        return self.ramp_start + n / rate
+        return self.ramp_start
 
     def record_zero(self) -> float:
         """After the host commanded 0 V itself (a second stop request cut the ramp's stream short): the inputs on a
@@ -368,15 +373,7 @@ class HardwareTimed:
         self.daq.arm(StreamSpec(self.cfg.scan_rate_Hz, self.inputs))
         self._base, self._commanded, self._n, self._appended = 0, np.zeros(1), 0, None
         self._tail = self.ctx.v_req = 0.0
-        self.ctx.verifier.restart()
-        t0 = self.daq.kickoff()
-        self._keepalive = self.ctx.clock.now()
-        self.ramp_start = t0 - self.ctx.t0
-        self.ctx.rec.event(self.ctx.now(), self.ctx.snapshot.step, "timing",
-                           f"DAQ scan clock: scan 0 at {self.ramp_start:.6f} s on the run clock, known to "
-                           f"{self.daq.scan_clock_uncertainty * 1e3:.3f} ms (the enable request's round trip): "
-                           "the inputs after 0 V (no stream-out: the DAC holds the 0 V the host commanded)")
-        return self.ramp_start
+        return self._kickoff_own("the inputs after 0 V (no stream-out: the DAC holds the 0 V the host commanded)")
 
     def recorded_to(self) -> float:
         """Run time of the last scan recorded from the stream a ramp started (:meth:`ramp_down`, :meth:`ramp_up`;
