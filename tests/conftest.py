@@ -26,18 +26,44 @@ if os.environ.get("PYTEST_XDIST_WORKER"):  # pytest-xdist's workers (execnet) se
     os.environ.pop("LINES", None)
 
 
+def session_folder(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A folder of this test session that all its pytest-xdist workers share (their base folders' parent, the
+    session's own pytest-N); without xdist, the base folder itself (its parent holds other sessions' folders)."""
+    base = tmp_path_factory.getbasetemp()
+    return base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base
+
+
 @pytest.fixture(scope="session")
 def short_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A completed virtual-time run of protocols/short/thesis-identification-short.toml on its rig (read only)."""
+    """A completed virtual-time run of protocols/short/thesis-identification-short.toml on its rig (read only).
+
+    Run once per test session: the first pytest-xdist worker to ask runs it under a lock file, the others wait for
+    it and copy its folder (the run file and its log), so that each worker reads its own copy as before (a test of
+    one worker never sees what a test of another did next to it)."""
+    import fcntl
+    import shutil
+
     from bench.runtime.run import execute, plan_run
 
+    shared = session_folder(tmp_path_factory) / "short-run-shared"
+    shared.mkdir(exist_ok=True)
+    done = shared / "run"
+    with open(shared / "lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file is closed
+        if not done.is_dir():
+            work = Path(tempfile.mkdtemp(prefix="work-", dir=shared))
+            with pytest.MonkeyPatch.context() as mp:
+                mp.setenv("BENCH_STATE_DIR", str(work / "state"))
+                result = execute(plan_run(ROOT / "protocols" / "short" / "thesis-identification-short.toml"),
+                                 work / "run" / "run.h5", virtual=True)
+            assert result.state == "completed", result.reason
+            assert Path(result.path) == work / "run" / "run.h5", result.path
+            (work / "run").rename(done)  # whole or not there: a failed run is run again by the next worker
     out = tmp_path_factory.mktemp("short-run")
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setenv("BENCH_STATE_DIR", str(out / "state"))
-        result = execute(plan_run(ROOT / "protocols" / "short" / "thesis-identification-short.toml"), out / "run.h5",
-                         virtual=True)
-    assert result.state == "completed", result.reason
-    return Path(result.path)
+    # the run catalogue beside it names the shared path, not this copy: left out (no test reads that folder's
+    # catalogue; a folder without one is reconciled from its files)
+    shutil.copytree(done, out, dirs_exist_ok=True, ignore=shutil.ignore_patterns("catalog.sqlite"))
+    return out / "run.h5"
 
 
 @pytest.fixture(autouse=True, scope="module")
