@@ -37,14 +37,15 @@ def _run(protocol: str, rig: Path | None, out: Path) -> Path:
 
 
 @pytest.fixture(scope="module")
-def membrane_runs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
-    """The short thesis identification on its T7 rig: noise off, and noise on."""
+def membrane_runs(tmp_path_factory: pytest.TempPathFactory, short_run: Path) -> dict[str, Path]:
+    """The short thesis identification on its T7 rig: noise off, and noise on (the latter is the session's run of
+    it, conftest's short_run, made once: copied here)."""
     out = tmp_path_factory.mktemp("floor-membrane")
     quiet = noise_free_rig(ROOT / "rigs" / "thesis-daq-sim.toml", out)
     (out / "quiet").mkdir()
     (out / "noisy").mkdir()
-    return {"quiet": _run("thesis-identification-short.toml", quiet, out / "quiet"),
-            "noisy": _run("thesis-identification-short.toml", None, out / "noisy")}
+    shutil.copy2(short_run, out / "noisy" / "run.h5")
+    return {"quiet": _run("thesis-identification-short.toml", quiet, out / "quiet"), "noisy": out / "noisy" / "run.h5"}
 
 
 def _with_rig_toml(run: Path, out: Path, edit: str | None) -> Path:
