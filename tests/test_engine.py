@@ -63,11 +63,33 @@ def run_virtual(path: Path, tmp: Path, rig_overrides: dict | None = None, hook=N
     return result, open_run(result.path), sims[0]
 
 
+@pytest.fixture(scope="module")
+def software_run(tmp_path_factory: pytest.TempPathFactory):
+    """``software_run(path)``: run_virtual's run of a short protocol on its software-timed rig, unchanged — the
+    result, the record, the twin and the engine that ran it — made once for this module: the end-to-end test of
+    each short variant and the tests below that ran the same protocol on the same rig again each (the isopotential
+    one three times, 4 s each) read the one record (read only)."""
+    done: dict[Path, tuple] = {}
+
+    def get(path: Path):
+        if path not in done:
+            engines: list[Engine] = []
+            result, run, sim = run_virtual(path, tmp_path_factory.mktemp(path.stem),
+                                           hook=lambda e, _s: engines.append(e))
+            done[path] = (result, run, sim, engines)
+        return done[path]
+    return get
+
+
 @pytest.mark.parametrize("timing", ["hardware", "software"])
 @pytest.mark.parametrize("path", sorted(SHORT.glob("*.toml")), ids=lambda p: p.stem)
-def test_short_variants_run_end_to_end_in_virtual_time(path: Path, timing: str, tmp_path: Path) -> None:
+def test_short_variants_run_end_to_end_in_virtual_time(path: Path, timing: str, tmp_path: Path,
+                                                       software_run) -> None:
     rig = load_protocol(path).rig_path() if timing == "hardware" else software_timed(path)
-    result, run, sim = run_virtual(path, tmp_path, rig=rig)
+    if timing == "hardware":
+        result, run, sim = run_virtual(path, tmp_path, rig=rig)
+    else:  # run_virtual(path, tmp_path, rig=rig) as the other tests of this module read it
+        result, run, sim, _ = software_run(path)
     assert result.state == "completed" and run.complete and run.state == "completed"
     stop = [e for e in run.event_list() if e[2] == "stop"]
     duration = plan_run(path, rig).program.duration
@@ -113,8 +135,8 @@ def load_params(run):
     return MembraneParams(**{k: tuple(v) if isinstance(v, list) else v for k, v in model.items()})
 
 
-def test_isometric_force_swing_matches_the_model(tmp_path: Path) -> None:
-    _, run, _ = run_virtual(SHORT / "lsdea-isometric-short.toml", tmp_path)
+def test_isometric_force_swing_matches_the_model(software_run) -> None:
+    _, run, _, _ = software_run(SHORT / "lsdea-isometric-short.toml")
     lc = run.streams["load_cell"]
     prog = {row["name"].decode(): (row["t_start"], row["duration"]) for row in run.program}
     t0, dur = prog["sine [f=2.0]"]
@@ -123,9 +145,9 @@ def test_isometric_force_swing_matches_the_model(tmp_path: Path) -> None:
     assert swing == pytest.approx(1.147, abs=0.04)  # physics.md §2.2: #3 at 100 mm, ±6 kV
 
 
-def test_isopotential_loss_matches_the_model_on_the_recorded_motion(tmp_path: Path) -> None:
+def test_isopotential_loss_matches_the_model_on_the_recorded_motion(software_run) -> None:
     """The model replays the whole recorded run (encoder aperture, commanded voltages) from rest."""
-    _, run, _ = run_virtual(SHORT / "lsdea-isopotential-short.toml", tmp_path)
+    _, run, _, _ = software_run(SHORT / "lsdea-isopotential-short.toml")
     motor, lc, sp = run.streams["motor"], run.streams["load_cell"], run.streams["setpoints"]
     prog = {row["name"].decode(): (row["t_start"], row["duration"]) for row in run.program}
     t0, dur = prog["tensile cycles [voltage=7 kV]"]
@@ -144,8 +166,8 @@ def test_isopotential_loss_matches_the_model_on_the_recorded_motion(tmp_path: Pa
     assert 0.2 < measured < 0.4  # Table 3 range for #1 at 7 kV (30.9 % after 10 cycles)
 
 
-def test_isotonic_record_matches_the_model(tmp_path: Path) -> None:
-    _, run, _ = run_virtual(SHORT / "lsdea-isotonic-short.toml", tmp_path)
+def test_isotonic_record_matches_the_model(software_run) -> None:
+    _, run, _, _ = software_run(SHORT / "lsdea-isotonic-short.toml")
     sp, laser = run.streams["setpoints"], run.streams["laser"]
     from bench.models.lozenge import LozengeParams
 
@@ -330,9 +352,9 @@ def test_virtual_time_needs_a_simulated_rig() -> None:
 
 @pytest.mark.skipif(shutil.which("h5dump") is None,
                     reason="HDF5 command-line tools not installed (.ci/run installs them)")
-def test_standard_hdf5_tools_read_the_run_file(tmp_path: Path) -> None:
+def test_standard_hdf5_tools_read_the_run_file(software_run) -> None:
     """h5ls/h5dump (the HDF5 library's own tools, not h5py) open the file and read data and attributes."""
-    result, _, _ = run_virtual(SHORT / "thesis-identification-short.toml", tmp_path)
+    result, _, _, _ = software_run(SHORT / "thesis-identification-short.toml")
     listing = subprocess.run(["h5ls", "-r", result.path], capture_output=True, text=True, timeout=60)
     # 10 s stored at 10 kHz (100001 samples, 0 … 10 s) + the relax step's 10-Hz polls from 10.1 s (the one at 10.0 s
     # would repeat the stored sample's time: one time base, no duplicates)
@@ -357,10 +379,10 @@ def test_paper_protocols_produce_complete_files(name: str, tmp_path: Path) -> No
     assert len([e for e in run.event_list() if e[2] == "end"]) == len(plan.program.segments)
 
 
-def test_a_ramp_reaches_its_target_before_the_next_step(tmp_path: Path) -> None:
+def test_a_ramp_reaches_its_target_before_the_next_step(software_run) -> None:
     """lsdea-isopotential-short: "ramp to 7 kV over 0.5 s", then cycles at 7 kV — held at 7 kV, not at the last
     tick before the ramp's end (6,860 V at 100 Hz)."""
-    _, run, _ = run_virtual(SHORT / "lsdea-isopotential-short.toml", tmp_path)
+    _, run, _, _ = software_run(SHORT / "lsdea-isopotential-short.toml")
     sp = run.streams["setpoints"]
     prog = {row["name"].decode(): (row["t_start"], row["duration"]) for row in run.program}
     t0, dur = prog["tensile cycles [voltage=7 kV]"]
@@ -369,10 +391,9 @@ def test_a_ramp_reaches_its_target_before_the_next_step(tmp_path: Path) -> None:
     assert held.size > 0 and np.all(np.abs(held - 7000.0) <= code)
 
 
-def test_every_motor_go_to_passes_the_supervisor(tmp_path: Path) -> None:
+def test_every_motor_go_to_passes_the_supervisor(software_run) -> None:
     """Each go-to the engine sends is recorded with its aperture in /setpoints; the supervisor must have checked
     as many (the issue found 0 of 1,202 checked)."""
-    engines: list[Engine] = []
-    _, run, _ = run_virtual(SHORT / "lsdea-isopotential-short.toml", tmp_path, hook=lambda e, _s: engines.append(e))
+    _, run, _, engines = software_run(SHORT / "lsdea-isopotential-short.toml")
     sent = int(np.sum(np.isfinite(run.streams["setpoints"].columns["aperture"])))
     assert sent > 100 and engines[0].sup.motor_setpoints == sent
