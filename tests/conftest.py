@@ -33,19 +33,18 @@ def session_folder(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base
 
 
-@pytest.fixture(scope="session")
-def short_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A completed virtual-time run of protocols/short/thesis-identification-short.toml on its rig (read only).
-
-    Run once per test session: the first pytest-xdist worker to ask runs it under a lock file, the others wait for
-    it and copy its folder (the run file and its log), so that each worker reads its own copy as before (a test of
-    one worker never sees what a test of another did next to it)."""
+def run_once_per_session(tmp_path_factory: pytest.TempPathFactory, protocol: str, name: str,
+                         **options: object) -> Path:
+    """A completed virtual-time run of ``protocols/<protocol>`` on its rig, made once per test session: the first
+    pytest-xdist worker to ask runs it under a lock file, the others wait for it and copy its run file, so that
+    each worker reads its own copy as before (a test of one worker never sees what a test of another did beside
+    it). ``options``: for :func:`bench.runtime.run.execute`."""
     import fcntl
     import shutil
 
     from bench.runtime.run import execute, plan_run
 
-    shared = session_folder(tmp_path_factory) / "short-run-shared"
+    shared = session_folder(tmp_path_factory) / f"{name}-shared"
     shared.mkdir(exist_ok=True)
     done = shared / "run"
     with open(shared / "lock", "w") as lock:
@@ -54,16 +53,32 @@ def short_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
             work = Path(tempfile.mkdtemp(prefix="work-", dir=shared))
             with pytest.MonkeyPatch.context() as mp:
                 mp.setenv("BENCH_STATE_DIR", str(work / "state"))
-                result = execute(plan_run(ROOT / "protocols" / "short" / "thesis-identification-short.toml"),
-                                 work / "run" / "run.h5", virtual=True)
+                result = execute(plan_run(ROOT / "protocols" / protocol), work / "run" / "run.h5", virtual=True,
+                                 **options)  # type: ignore[arg-type]
             assert result.state == "completed", result.reason
             assert Path(result.path) == work / "run" / "run.h5", result.path
             (work / "run").rename(done)  # whole or not there: a failed run is run again by the next worker
-    out = tmp_path_factory.mktemp("short-run")
+    out = tmp_path_factory.mktemp(name)
     # the run catalogue beside it names the shared path, not this copy: left out (no test reads that folder's
     # catalogue; a folder without one is reconciled from its files)
     shutil.copytree(done, out, dirs_exist_ok=True, ignore=shutil.ignore_patterns("catalog.sqlite"))
     return out / "run.h5"
+
+
+@pytest.fixture(scope="session")
+def short_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A completed virtual-time run of protocols/short/thesis-identification-short.toml on its rig (read only),
+    made once per session (:func:`run_once_per_session`)."""
+    return run_once_per_session(tmp_path_factory, "short/thesis-identification-short.toml", "short-run")
+
+
+@pytest.fixture(scope="session")
+def isopotential_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A completed virtual-time run of the short isopotential campaign on the protocol's own rig (the DAQ motor
+    bench), the operator's prompts answered yes (read only: copy it to change it), made once per session
+    (:func:`run_once_per_session`)."""
+    return run_once_per_session(tmp_path_factory, "short/lsdea-isopotential-short.toml", "isopotential",
+                                operator=lambda _msg: True)
 
 
 @pytest.fixture(autouse=True, scope="module")

@@ -237,17 +237,6 @@ def test_lsdea_fit_recovers_the_material_it_does_not_flag(campaign: str, tmp_pat
 # --- command line --------------------------------------------------------------------------------------------
 
 
-@pytest.fixture(scope="module")
-def isopotential_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A completed virtual-time run of the short isopotential campaign on the protocol's own rig (the DAQ motor
-    bench), run once for the module's command-line tests (read only: each test copies it)."""
-    out = tmp_path_factory.mktemp("isopotential")
-    res = execute(plan_run(ROOT / "protocols" / "short" / "lsdea-isopotential-short.toml"), out / "iso.h5",
-                  virtual=True, operator=lambda _msg: True)
-    assert res.state == "completed", res.reason
-    return Path(res.path)
-
-
 def test_report_cli_prints_the_table3_grid_for_an_isopotential_campaign(isopotential_run: Path,
                                                                          tmp_path: Path) -> None:
     import shutil

@@ -28,9 +28,7 @@ from bench.report import (
     thesis_loop_figure,
     thesis_time_figure,
 )
-from bench.runtime.run import execute, plan_run
 from bench.storage.runfile import open_run
-from tests.conftest import ROOT
 
 
 @pytest.fixture(scope="module")
@@ -157,11 +155,9 @@ def test_thesis_loop_has_direction_arrows_and_its_legend_outside(fitted_run: Pat
     _assert_legend_outside(fig)
 
 
-def test_isopotential_loops_have_arrows_and_legends_outside(tmp_path: Path) -> None:
-    res = execute(plan_run(ROOT / "protocols" / "short" / "lsdea-isopotential-short.toml"), tmp_path / "iso.h5",
-                  virtual=True, operator=lambda _msg: True)
-    assert res.state == "completed", res.reason
-    figs = isopotential_loop_figures(analyse(res.path))
+def test_isopotential_loops_have_arrows_and_legends_outside(isopotential_run: Path, tmp_path: Path) -> None:
+    # the short isopotential campaign on its rig, run once for the session (conftest; test_analysis reads it too)
+    figs = isopotential_loop_figures(analyse(isopotential_run))
     assert list(figs) == ["isopotential_p1_dx90.png"]  # prototype #1, the protocol's 90 mm stroke
     fig = _saved(figs["isopotential_p1_dx90.png"], tmp_path / "iso.png")
     _assert_arrows_follow(fig.axes[0])
