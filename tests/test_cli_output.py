@@ -24,8 +24,7 @@ def run_file(tmp_path_factory: pytest.TempPathFactory, short_run: Path) -> Path:
     # a long folder name: a redirected table must print it whole, not cut or wrapped at 80 columns
     out = tmp_path_factory.mktemp("output") / ("a-rather-long-folder-name-for-the-campaign-" * 3).strip("-")
     out.mkdir()
-    # the run of SHORT on its rig that the session made once (conftest's short_run), copied: this file ran the same
-    # protocol on the same rig again for its own file
+    # the session's run of SHORT on its rig (conftest's short_run, made once), copied: not the same run made again
     shutil.copy2(short_run, out / "run.h5")
     return out / "run.h5"
 
