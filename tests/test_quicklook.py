@@ -3,6 +3,7 @@ the file as plain h5py reads it), units on every axis, one line of error for a s
 
 from __future__ import annotations
 
+import itertools
 import json
 import re
 from pathlib import Path
@@ -33,16 +34,88 @@ def _plain(path: Path, stream: str, column: str) -> np.ndarray:
 def test_the_envelope_keeps_every_extreme_and_reads_in_chunks(run_file: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     import bench.storage.chunks as chunks
 
-    monkeypatch.setattr(chunks, "CHUNK_ROWS", 7_777)  # spans cross chunk edges
+    monkeypatch.setattr(chunks, "CHUNK_ROWS", 7_777)  # bins cross chunk edges
     (env,) = [e for e in envelopes(run_file, ["laser"], columns=300) if e.column == "displacement"]
-    u = _plain(run_file, "laser", "displacement")
-    assert env.samples == u.size > 50_000 and env.t.size == 300 and env.unit == "m"
-    assert env.hi.max() == u.max() and env.lo.min() == u.min()
-    # span k covers records ⌊k·n/300⌋ … ⌊(k+1)·n/300⌋−1: its extremes, computed here from the plain read
-    edges = np.linspace(0, u.size, 301).astype(int)
+    u, t = _plain(run_file, "laser", "displacement"), _plain(run_file, "laser", "t")
+    assert env.samples == u.size > 50_000 and env.edges.size == 301 and env.unit == "m"
+    assert env.edges[0] == t.min() and env.edges[-1] == t.max()
+    assert np.nanmax(env.hi) == u.max() and np.nanmin(env.lo) == u.min()
+    # bin k holds the readings with edges[k] ≤ t < edges[k+1] (the last one its end too): its extremes, computed here
+    # from the plain read
+    k_of = np.clip(np.searchsorted(env.edges, t, side="right") - 1, 0, 299)
     for k in (0, 17, 150, 299):
-        seg = u[edges[k]:edges[k + 1]]
+        seg = u[k_of == k]
         assert env.lo[k] == seg.min() and env.hi[k] == seg.max()
+
+
+def _paused(tmp_path: Path) -> Path:
+    """A DAQ-rig run in virtual time, paused 3 s into its first drive and resumed 6 s later: its laser is recorded
+    at 10 kHz in the steps and at 10 Hz while paused (README, "Pause and resume")."""
+    from bench.runtime.run import execute, plan_run
+    from tests.conftest import ROOT
+
+    def hook(engine, sim) -> None:  # type: ignore[no-untyped-def]
+        def at(_now: float) -> None:
+            if engine.snapshot.state == "running" and engine.pauses == 0 and engine.now() >= 3.0:
+                engine.request_pause("the test")
+            if engine.snapshot.state == "paused" and engine.now() >= 9.0:
+                engine.request_resume("the test")
+        sim.clock.subscribe(at)
+
+    result = execute(plan_run(ROOT / "protocols" / "short" / "thesis-sweeps-short.toml",
+                              ROOT / "rigs" / "thesis-daq-sim.toml"), tmp_path / "paused.h5", virtual=True,
+                     on_engine=hook)
+    assert result.state == "completed", result.reason
+    return Path(result.path)
+
+
+def test_a_paused_run_is_drawn_from_its_own_samples_to_the_last(tmp_path: Path) -> None:
+    """`bench plot RUN laser` of a paused run drew flat blocks over the pause (0.3–2.5 mm where the file decays
+    smoothly from 1.79 to 0.38 mm) and its time axis stopped short of the last sample (found by an outside tester):
+    the envelope was cut into equal numbers of records, so a span of 10-kHz drive readings took in the pause's
+    10-Hz readings too, drawn at the span's middle time. Every point drawn in a time bin must lie within the values
+    the file has in that bin (computed here from the plain read), and the line must reach the file's last sample."""
+    import matplotlib.pyplot as plt
+    from matplotlib.collections import PolyCollection
+
+    from bench.analysis import quicklook
+
+    run_file = _paused(tmp_path)
+    u, t = _plain(run_file, "laser", "displacement"), _plain(run_file, "laser", "t")
+    pause = (t > 3.5) & (t < 8.9)
+    assert 40 <= pause.sum() <= 80  # the pause's 10-Hz readings, in the file
+    figures: list[object] = []
+    real = plt.Figure.savefig
+
+    def keep(self: object, *args: object, **kwargs: object) -> None:
+        figures.append(self)
+        real(self, *args, **kwargs)  # type: ignore[arg-type]
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(plt.Figure, "savefig", keep)
+        quicklook.quicklook(run_file, ["laser"], tmp_path / "q.png")
+    (fig,) = figures
+    (ax,) = [a for a in fig.axes if "laser/displacement" in a.get_ylabel()]  # type: ignore[attr-defined]
+    pts = [np.c_[ln.get_xdata(), ln.get_ydata()].astype(float) for ln in ax.get_lines()
+           if ln.get_transform() == ax.transData]  # the data's lines (not the step marks)
+    pts += [p.vertices for c in ax.collections if isinstance(c, PolyCollection) for p in c.get_paths()]
+    xy = np.concatenate(pts)
+    xy = xy[np.isfinite(xy).all(axis=1)]
+    assert xy[:, 0].max() == t[-1] and ax.get_xlim()[1] >= t[-1]  # drawn to the last sample
+    edges = np.linspace(t[0], t[-1], 401)
+    for a, b in itertools.pairwise(edges):
+        drawn = xy[(xy[:, 0] >= a) & (xy[:, 0] < b), 1]
+        if not drawn.size:
+            continue
+        has = u[(t >= a) & (t <= b)]
+        assert has.size, f"drawn in {a:.3f}–{b:.3f} s, where the file has no reading"
+        assert has.min() <= drawn.min() and drawn.max() <= has.max(), (
+            f"{a:.3f}–{b:.3f} s: drawn {drawn.min():.3e}…{drawn.max():.3e} m, the file {has.min():.3e}…"
+            f"{has.max():.3e} m")
+    # and the pause is drawn: its readings are on the line
+    (line,) = [ln for ln in ax.get_lines() if ln.get_label() == "_envelope"]
+    x = np.asarray(line.get_xdata(), float)
+    assert np.isin(t[pause], x).all()
 
 
 def test_bench_plot_writes_a_png_with_units_on_every_axis(run_file: Path, tmp_path: Path) -> None:

@@ -1,8 +1,11 @@
 """Quick-look figure of any streams of a run file (``bench plot``): one panel per column, units on every axis.
 
 A record of hours at 10 kHz does not fit on a screen: each column is reduced, chunk by chunk as the file is read
-(:mod:`bench.storage.chunks`), to its minimum and maximum in each of ``columns`` equal spans of the record — the
-envelope a screen of that width shows, every extreme kept — so memory and drawing time do not grow with the run.
+(:mod:`bench.storage.chunks`), to ``columns`` equal spans of the run clock — not of the record count: a pause's or
+a recovery's 10-Hz readings and a drive's 10-kHz ones are never pooled into one span drawn at its middle time — and
+drawn through each span's first, lowest, highest and last reading at their own times (every extreme kept, the line
+ending on the last sample), broken where the record has a hole (a software-timed laser's pause), so memory and
+drawing time do not grow with the run.
 Step starts are marked, and so is the shutdown's verified 0 V on the amplifier's voltage (a DAQ rig's streams end
 on the last scan before the stop: the reading after it is in the ``safe`` event); an incomplete file says so in the
 title.
@@ -17,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bench.storage import chunks as _chunks
 from bench.storage.chunks import StreamChunks, open_source
 from bench.storage.outputs import atomic_output, refuse_existing
 
@@ -29,21 +33,93 @@ VERIFIED = re.compile(r"verified: voltage monitor (-?\d+(?:\.\d+)?) V at (-?\d+(
 
 @dataclass
 class Envelope:
-    """A column reduced to spans: the time at each span's middle, its minimum and its maximum."""
+    """A column reduced to ``bins`` equal spans of the run clock, from its first recorded time to its last.
+
+    ``lo``/``hi``: each bin's minimum and maximum (NaN: no reading in it); ``t``/``v``: the line drawn — of each bin
+    its first, lowest, highest and last reading, in time order, at their own times (so every vertex is a sample of
+    the file and the line reaches the last one), NaN between two readings the record has a hole between (a
+    software-timed laser's pause, a stream's silence)."""
 
     stream: str
     column: str
     unit: str
-    t: np.ndarray
+    edges: np.ndarray
     lo: np.ndarray
     hi: np.ndarray
+    t: np.ndarray
+    v: np.ndarray
     samples: int
 
 
+GAP_RATIO = 4.0  # a hole this many times longer than the intervals either side of it (and over 2 bins) breaks the line
+
+
 def envelopes(run_path: str | Path, streams: list[str] | None = None, columns: int = PIXELS) -> list[Envelope]:
-    """Min/max envelopes of every signal column of ``streams`` (all streams if None), read in chunks."""
+    """Envelopes of every signal column of ``streams`` (all streams if None), read in chunks."""
     with open_source(run_path) as src:
         return _envelopes(src.streams, run_path, streams, columns)
+
+
+class _Column:
+    """One column's envelope as its chunks come: per bin the (key, time, value) of its first, lowest, highest and
+    last reading, and the holes of the record longer than two bins (with the intervals either side of them)."""
+
+    def __init__(self, spans: int, t0: float, width: float) -> None:
+        self.spans, self.t0, self.width = spans, t0, width
+        self.key = {s: np.full(spans, np.inf) for s in ("first", "lo", "hi", "last")}
+        self.at = {s: np.full(spans, np.nan) for s in self.key}
+        self.val = {s: np.full(spans, np.nan) for s in self.key}
+        self.prev_t, self.prev_dt = np.nan, np.nan  # the last reading so far and the interval before it
+        self.holes: list[list[float]] = []  # [t before, t after, interval before, interval after]
+
+    def add(self, t: np.ndarray, v: np.ndarray) -> None:
+        ok = np.isfinite(t) & np.isfinite(v)
+        t, v = t[ok], v[ok]
+        if not t.size:
+            return
+        k = np.clip(((t - self.t0) / self.width).astype(np.int64) if self.width > 0 else np.zeros(t.size, np.int64),
+                    0, self.spans - 1)
+        for side, key in (("first", t), ("lo", v), ("hi", -v), ("last", -t)):
+            bins, idx = _argmin_by_bin(k, key)
+            better = key[idx] < self.key[side][bins]
+            b, i = bins[better], idx[better]
+            self.key[side][b], self.at[side][b], self.val[side][b] = key[i], t[i], v[i]
+        self._holes(t)
+
+    def _holes(self, t: np.ndarray) -> None:
+        if self.holes and np.isnan(self.holes[-1][3]):  # the interval after the last hole: this chunk's first
+            self.holes[-1][3] = float(t[0] - self.prev_t)
+        tt = np.r_[self.prev_t, t] if np.isfinite(self.prev_t) else t
+        dt = np.diff(tt)
+        before = np.r_[self.prev_dt, dt[:-1]] if dt.size else dt
+        after = np.r_[dt[1:], np.nan] if dt.size else dt
+        for i in np.flatnonzero(np.abs(dt) > 2 * self.width):
+            self.holes.append([float(tt[i]), float(tt[i + 1]), float(before[i]), float(after[i])])
+        if dt.size:
+            self.prev_dt = float(dt[-1])
+        self.prev_t = float(t[-1])
+
+    def line(self) -> tuple[np.ndarray, np.ndarray]:
+        """The vertices (time order), NaN at each hole that is a gap."""
+        t = np.concatenate([self.at[s] for s in self.at])
+        v = np.concatenate([self.val[s] for s in self.val])
+        keep = np.isfinite(t)
+        t, v = t[keep], v[keep]
+        order = np.lexsort((v, t))
+        t, v = t[order], v[order]
+        pairs = np.unique(np.c_[t, v], axis=0) if t.size else np.c_[t, v]  # a reading that is two vertices: once
+        t, v = pairs[:, 0], pairs[:, 1]
+        cuts = [h[1] for h in self.holes
+                if abs(h[1] - h[0]) > GAP_RATIO * np.nanmax([abs(h[2]), abs(h[3]), 0.0])]
+        at = np.searchsorted(t, cuts, side="left")
+        return np.insert(t, at, np.nan), np.insert(v, at, np.nan)
+
+
+def _argmin_by_bin(k: np.ndarray, key: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(bins, index of the smallest ``key`` in each): one entry per bin present in ``k``, the first of equal keys."""
+    order = np.lexsort((key, k))  # by bin, then by key
+    first = order[np.r_[True, k[order][1:] != k[order][:-1]]]
+    return k[first], first
 
 
 def _envelopes(reader: StreamChunks, run_path: str | Path, streams: list[str] | None,
@@ -60,29 +136,34 @@ def _envelopes(reader: StreamChunks, run_path: str | Path, streams: list[str] | 
             continue
         units = reader.units(stream)
         cols = [c for c in reader.columns[stream] if c != "t" and c not in FLAGS]
-        spans = min(columns, n)
-        edges = np.linspace(0, n, spans + 1).astype(np.int64)  # span k holds records edges[k] … edges[k+1]-1
-        lo = {c: np.full(spans, np.inf) for c in cols}
-        hi = {c: np.full(spans, -np.inf) for c in cols}
-        t_lo, t_hi = np.full(spans, np.inf), np.full(spans, -np.inf)
-        a = 0
+        t_first, t_last = np.inf, -np.inf  # the run clock's span of the stream (in any order the file has it)
+        rows = _chunks.CHUNK_ROWS
+        for a in range(0, n, rows):
+            t = reader.read(stream, "t", a, min(a + rows, n)).astype(np.float64)
+            t = t[np.isfinite(t)]
+            if t.size:
+                t_first, t_last = min(t_first, float(t.min())), max(t_last, float(t.max()))
+        if not np.isfinite(t_first):
+            continue
+        spans = max(1, min(columns, n))
+        width = (t_last - t_first) / spans
+        acc = {c: _Column(spans, t_first, width) for c in cols}
         for chunk in reader.chunks(stream):
-            b = a + chunk["t"].size
-            k = np.searchsorted(edges, np.arange(a, b), side="right") - 1  # span of each record
-            starts = np.flatnonzero(np.r_[True, k[1:] != k[:-1]])
-            which = k[starts]
-            np.minimum.at(t_lo, which, np.minimum.reduceat(chunk["t"], starts))
-            np.maximum.at(t_hi, which, np.maximum.reduceat(chunk["t"], starts))
+            t = chunk["t"].astype(np.float64)
             for c in cols:
-                v = chunk[c].astype(np.float64)
-                with np.errstate(invalid="ignore"):  # a pixel of only NaN (no valid reading) stays NaN: not drawn
-                    np.minimum.at(lo[c], which, np.fmin.reduceat(v, starts))
-                    np.maximum.at(hi[c], which, np.fmax.reduceat(v, starts))
-            a = b
-        mid = (t_lo + t_hi) / 2
+                acc[c].add(t, chunk[c].astype(np.float64))
+        edges = t_first + width * np.arange(spans + 1)
+        edges[-1] = t_last
         for c in cols:
-            out.append(Envelope(stream, c, units.get(c, ""), mid, lo[c], hi[c], n))
+            lt, lv = acc[c].line()
+            out.append(Envelope(stream, c, units.get(c, ""), edges, acc[c].val["lo"], acc[c].val["hi"], lt, lv, n))
     return out
+
+
+def _alone(t: np.ndarray) -> np.ndarray:
+    """Indices of the vertices with a break (NaN) or an end on both sides."""
+    gap = np.r_[True, np.isnan(t), True]
+    return np.flatnonzero(~gap[1:-1] & gap[:-2] & gap[2:])
 
 
 def plot_name(run_path: str | Path, streams: list[str] | None = None) -> str:
@@ -130,9 +211,10 @@ def quicklook(run_path: str | Path, streams: list[str] | None = None, out: str |
             ax.plot([t for t, _ in zero], [v for _, v in zero], "o", color="tab:red", markersize=4,
                     label="0 V verified at the stop")
             ax.legend(loc="upper right", fontsize=7)
-        finite = np.isfinite(e.lo) & np.isfinite(e.hi)
-        ax.fill_between(e.t[finite], e.lo[finite], e.hi[finite], color="tab:blue", linewidth=0.6, step="mid")
-        ax.plot(e.t[finite], e.hi[finite], color="tab:blue", linewidth=0.5)
+        ax.plot(e.t, e.v, color="tab:blue", linewidth=0.5, label="_envelope")
+        alone = _alone(e.t)  # a reading with a gap either side: a dot, not an invisible line
+        if alone.size:
+            ax.plot(e.t[alone], e.v[alone], ".", color="tab:blue", markersize=2, label="_alone")
         ax.set_ylabel(f"{e.stream}/{e.column}\n[{e.unit or '1'}]", fontsize=8)
         for t, _name in starts:
             ax.axvline(t, color="0.6", linewidth=0.6, linestyle=":")
