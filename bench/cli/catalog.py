@@ -238,14 +238,15 @@ def _history_table(specimen: str, h: dict[str, Any]) -> Any:
     """A specimen's runs in order (``bench specimen show``)."""
     t = Table(title=f"specimen {specimen}: {len(h['runs'])} run(s)")
     for col in ("started (UTC)", "file", "protocol", "state", "steps", "HV time", "cycles", "Σ HV time", "Σ cycles",
-                "max E nominal [MV/m]"):
+                "max E nominal [MV/m]", "max E true [MV/m]"):
         t.add_column(col)
     for r in h["runs"]:
         field = r["max_nominal_field_V_per_m"]
         t.add_row(str(r["start_time"] or "")[:19], escape(Path(r["file"]).name), escape(r["protocol"] or ""),
                   r["state_shown"] if r["complete"] else f"[red]{r['state_shown']}, incomplete[/]", r["steps"],
                   _hours(r["hv_time_s"]), str(r["hv_cycles"] or 0), _hours(r["cumulative_hv_time_s"]),
-                  str(r["cumulative_cycles"]), "–" if field is None else f"{field / 1e6:.2f}")
+                  str(r["cumulative_cycles"]), "–" if field is None else f"{field / 1e6:.2f}",
+                  "–" if r["max_true_field_V_per_m"] is None else f"{r['max_true_field_V_per_m'] / 1e6:.2f}")
     return t
 
 
@@ -264,6 +265,22 @@ def _plot(h: dict[str, Any], specimen: str, folder: Path, plot: Path | None, jso
         return None
 
 
+def _field_line(h: dict[str, Any]) -> str:
+    """The specimen's highest fields, like with like: the true field (Vλ²/L3, λ from the recorded laser) against
+    the model's breakdown field, a true-field limit; the nominal field (|V| over the unstretched thickness) only
+    named, never divided by it."""
+    nominal = (f"highest nominal field (|V| / unstretched thickness): {h['max_nominal_field_V_per_m'] / 1e6:.2f} "
+               "MV/m")
+    e_b = h["breakdown_field_V_per_m"]
+    if h["max_true_field_V_per_m"] is None:
+        return nominal + ("" if e_b is None else f"; true field not known from the records (a membrane's laser), so "
+                          f"not compared with the breakdown field {e_b / 1e6:.1f} MV/m (a true-field limit)")
+    true = f"highest true field (|V|λ²/L3, λ from the recorded laser): {h['max_true_field_V_per_m'] / 1e6:.2f} MV/m"
+    if h["field_ratio"] is not None:
+        true += f" = {h['field_ratio']:.3f} × the model's breakdown field {e_b / 1e6:.1f} MV/m"
+    return f"{true}; {nominal}"
+
+
 @clean_errors
 @_db_errors
 def specimen_show(
@@ -276,8 +293,9 @@ def specimen_show(
     catalog: CatalogOpt = None,
     json_out: JsonOpt = False,
 ) -> None:
-    """A specimen's life: its runs in order, time under high voltage, cycles, highest nominal field against the
-    model's breakdown field, failures, and each fitted parameter over its cycles (with a plot)."""
+    """A specimen's life: its runs in order, time under high voltage, cycles, highest true field (from the recorded
+    stretch) against the model's breakdown field and highest nominal field, failures, and each fitted parameter over
+    its cycles (with a plot)."""
     from bench.storage.catalog import specimen_history
 
     notes: list[str] = []
@@ -297,10 +315,7 @@ def specimen_show(
     console.print(f"time under high voltage (measured |V| > {h['hv_threshold_V']:g} V): {_hours(h['hv_time_s'])} "
                   f"({h['hv_time_s']:.3f} s); high-voltage cycles: {h['hv_cycles']}")
     if h["max_nominal_field_V_per_m"] is not None:
-        ratio = h["field_ratio"]
-        console.print(f"highest nominal field: {h['max_nominal_field_V_per_m'] / 1e6:.2f} MV/m"
-                      + (f" = {ratio:.3f} × the model's breakdown field {h['breakdown_field_V_per_m'] / 1e6:.1f} MV/m"
-                         if ratio is not None else ""))
+        console.print(_field_line(h), soft_wrap=True)
     for f in h["failures"]:
         console.print(f"[red]failed / incomplete[/]: {escape(Path(f['file']).name)} ({f['state_shown']}): "
                       f"{escape(str(f['reason']))}", soft_wrap=True)

@@ -19,7 +19,10 @@ What a row holds besides the file's metadata (per run, from the recorded data, f
   unipolar pulse counts one, a bipolar sine period two: the Maxwell stress goes as V²);
 * ``max_voltage_V`` and ``max_nominal_field_V_per_m`` = max |V| / the model's reference thickness (membrane
   ``L3``, LS-DEA ``t0``), with the model's breakdown field (membrane ``breakdown_field``, a true-field threshold;
-  LS-DEA ``E0``, the unstretched film's) recorded beside it — both from the specimen stored in the run file.
+  LS-DEA ``E0``, the unstretched film's) recorded beside it — both from the specimen stored in the run file. The
+  nominal field is not compared with the breakdown field, a true-field limit: a specimen's history compares the
+  true field E = Vλ²/L3 (physics.md §1.2), λ = λ_pre + u/L_d from the recorded laser at each voltage sample
+  (:func:`peak_true_field`), read from the run files when the history is shown.
 """
 
 from __future__ import annotations
@@ -33,6 +36,8 @@ from collections.abc import Callable, Collection, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
+
+import numpy as np
 
 from bench.storage import hv_stats
 from bench.storage.absent import absent_runs_folder
@@ -342,6 +347,39 @@ def _specimen(path: Path, attrs: dict[str, Any]) -> tuple[float | None, float | 
     return None, None
 
 
+def peak_true_field(path: str | Path) -> float | None:
+    """The highest true field [V/m] of a membrane run, E = |V| λ²/L3 (physics.md §1.2), over its measured voltage
+    samples, λ = λ_pre + u/L_d with the laser's displacement u interpolated at each (the supervisor's estimate, from
+    the model stored in the file), read in chunks. None where it is not known: not a membrane (an LS-DEA's stretch
+    needs its aperture), no voltage or laser record, a file that cannot be read."""
+    from bench.storage.chunks import open_source
+    from bench.storage.runfile import specimen_of
+
+    best: float | None = None
+    try:
+        with open_source(path) as src:
+            model = specimen_of(src.run.attrs, Path(path)).get("model", {})
+            s = src.streams
+            if "L3" not in model or not s.length.get("amplifier") or not s.length.get("laser"):
+                return None
+            l3, l_d, pre = float(model["L3"]), float(model["L_d"]), float(model["lambda_pre"])
+            for chunk in s.chunks("amplifier"):
+                t, v = chunk["t"].astype(float), np.abs(chunk["voltage"].astype(float))
+                t, v = t[np.isfinite(v)], v[np.isfinite(v)]
+                if not t.size:
+                    continue
+                w = s.window("laser", float(t.min()), float(t.max()), ["displacement"], neighbours=True,
+                             finite="displacement")
+                if not w["t"].size:
+                    continue
+                lam = pre + np.interp(t, w["t"].astype(float), w["displacement"].astype(float)) / l_d
+                e = float(np.max(v * lam * lam / l3))
+                best = e if best is None else max(best, e)
+    except (ValueError, OSError, KeyError, TypeError, AttributeError):  # unreadable, edited: not known
+        return None
+    return best
+
+
 def _f(v: Any) -> float | None:
     return None if v is None else float(v)
 
@@ -602,13 +640,15 @@ def record_end(path: Path, url: str | None = None, hv: HvStats | None = None, wr
 
 
 def specimen_history(rows: list[dict[str, Any]]) -> dict[str, Any]:
-    """A specimen's runs in start order with cumulative high-voltage time and cycles, its peak nominal field against
-    the model's breakdown field, the runs that failed or did not finish, and each fitted parameter over its life
-    (a fit stored with every file of a campaign counts once, at the last of them)."""
+    """A specimen's runs in start order with cumulative high-voltage time and cycles, its peak nominal field (|V| over
+    the unstretched thickness) and its peak true field against the model's breakdown field (``field_ratio``: true
+    over breakdown, None where no run's true field is known), the runs that failed or did not finish, and each
+    fitted parameter over its life (a fit stored with every file of a campaign counts once, at the last of them)."""
     from bench.storage.runfile import state_shown
 
     runs, cum_t, cum_c = [], 0.0, 0
     best: tuple[float, float | None, str] | None = None  # (nominal field, breakdown field, file)
+    true: tuple[float, float | None, str] | None = None  # (true field, breakdown field, file)
     fits: dict[tuple[str, str, str], tuple[int, dict[str, Any], str]] = {}
     failures = []
     for r in sorted(rows, key=lambda r: (r["start_time"] or "", r["path"])):
@@ -617,6 +657,9 @@ def specimen_history(rows: list[dict[str, Any]]) -> dict[str, Any]:
         field = r["max_nominal_field_V_per_m"]
         if field is not None and (best is None or field > best[0]):
             best = (field, r["breakdown_field_V_per_m"], r["path"])
+        e_true = peak_true_field(r["path"]) if field is not None else None
+        if e_true is not None and (true is None or e_true > true[0]):
+            true = (e_true, r["breakdown_field_V_per_m"], r["path"])
         if r["state"] in ("tripped", "error") or not r["complete"]:
             failures.append({"file": r["path"], "state": r["state"],
                              "state_shown": state_shown(r["state"], bool(r["complete"]), r["incomplete_reason"] or ""),
@@ -632,17 +675,19 @@ def specimen_history(rows: list[dict[str, Any]]) -> dict[str, Any]:
                      "previous_file": r["previous_file"], "copies": r.get("copies", []),
                      "hv_time_s": r["hv_time_s"], "hv_cycles": r["hv_cycles"],
                      "cumulative_hv_time_s": cum_t, "cumulative_cycles": cum_c,
-                     "max_nominal_field_V_per_m": field})
+                     "max_nominal_field_V_per_m": field, "max_true_field_V_per_m": e_true})
     params: dict[str, list[dict[str, Any]]] = {}
     for cycles, fit, path in sorted(fits.values(), key=lambda x: (x[0], x[1]["created"])):
         for name, value in fit["parameters"].items():
             params.setdefault(name, []).append({"cumulative_cycles": cycles, "value": value,
                                                 "unit": fit.get("units", {}).get(name, ""), "model": fit["model"],
                                                 "created": fit["created"], "file": path})
-    ratio = best[0] / best[1] if best is not None and best[1] else None
+    # like with like: the breakdown field is a true-field limit, so only the true field is divided by it
+    ratio = true[0] / true[1] if true is not None and true[1] else None
     return {"runs": runs, "hv_threshold_V": HV_THRESHOLD_V, "hv_time_s": cum_t, "hv_cycles": cum_c,
             "max_nominal_field_V_per_m": best[0] if best else None,
-            "breakdown_field_V_per_m": best[1] if best else None, "field_ratio": ratio,
+            "max_true_field_V_per_m": true[0] if true else None, "max_true_field_file": true[2] if true else None,
+            "breakdown_field_V_per_m": (true or best or (None, None))[1], "field_ratio": ratio,
             "max_field_file": best[2] if best else None, "failures": failures, "parameters": params}
 
 

@@ -1,0 +1,72 @@
+"""`bench specimen show`: the highest field compared like with like (found by an outside tester). It said "highest
+nominal field: 8.00 MV/m = 0.080 × the model's breakdown field 100.0 MV/m", dividing |V| over the unstretched
+thickness by a true-field limit, where `bench validate` said 48.0 of 100.0 MV/m. The expected true field and ratio
+are computed here from physics.md's formulas (§1.2 E = Φλ²/L3, §1.4 u = L_d(λ − λ_pre)) for a run whose recorded
+voltage and stretch are set to known values, never taken from the code under test."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import tomllib
+from pathlib import Path
+
+import h5py
+import pytest
+from typer.testing import CliRunner
+
+from bench.cli import app
+from tests.conftest import ROOT
+
+L3 = 1.0e-3  # m, physics.md §1.1 reference thickness
+LAMBDA_PRE = 2.0  # physics.md §1.1
+VOLTS = 6000.0
+STRETCH = 2.2  # the in-plane stretch the laser's record is set to
+
+
+def test_specimen_show_divides_the_true_field_by_the_breakdown_field(short_run: Path, tmp_path: Path) -> None:
+    rig = tomllib.loads((ROOT / "rigs" / "thesis-daq-sim.toml").read_text())["specimen"]
+    l_d, e_b = rig["displacement_length_m"], rig["breakdown_field_V_per_m"]
+    runs = tmp_path / "runs"
+    runs.mkdir()
+    run = runs / "run.h5"
+    shutil.copy(short_run, run)
+    with h5py.File(run, "r+") as f:  # a run of known voltage and stretch
+        f.attrs["specimen_id"] = "S1"
+        f["amplifier/voltage"][...] = VOLTS
+        f["laser/displacement"][...] = l_d * (STRETCH - LAMBDA_PRE)  # u = L_d (λ − λ_pre)
+    true_field = VOLTS * STRETCH**2 / L3  # E = Φ λ² / L3: 29.04 MV/m
+    res = CliRunner().invoke(app, ["specimen", "show", "S1", "--dir", str(runs), "--json"])
+    assert res.exit_code == 0, res.output
+    h = json.loads(res.stdout)
+    assert h["field_ratio"] == pytest.approx(true_field / e_b, rel=1e-6)  # 0.290, not 6 MV/m / 100 MV/m = 0.060
+    assert h["max_true_field_V_per_m"] == pytest.approx(true_field, rel=1e-6)
+    assert h["max_nominal_field_V_per_m"] == pytest.approx(VOLTS / L3, rel=1e-9)
+    assert h["runs"][0]["max_true_field_V_per_m"] == pytest.approx(true_field, rel=1e-6)
+    res = CliRunner().invoke(app, ["specimen", "show", "S1", "--dir", str(runs)], env={"COLUMNS": "300"})
+    assert res.exit_code == 0 and "Traceback" not in res.output, res.output
+    (line,) = [ln for ln in res.output.splitlines() if "field" in ln and "MV/m" in ln]
+    assert (f"highest true field (|V|λ²/L3, λ from the recorded laser): {true_field / 1e6:.2f} MV/m = "
+            f"{true_field / e_b:.3f} × the model's breakdown field {e_b / 1e6:.1f} MV/m") in line
+    assert f"highest nominal field (|V| / unstretched thickness): {VOLTS / L3 / 1e6:.2f} MV/m" in line
+    assert line.count("×") == 1  # the nominal field is named, never divided by the true-field limit
+
+
+def test_a_run_without_a_laser_record_names_the_nominal_field_only(short_run: Path, tmp_path: Path) -> None:
+    """No recorded stretch: the nominal field is said for what it is and not set against the breakdown field."""
+    runs = tmp_path / "runs"
+    runs.mkdir()
+    run = runs / "run.h5"
+    shutil.copy(short_run, run)
+    with h5py.File(run, "r+") as f:
+        f.attrs["specimen_id"] = "S1"
+        f["amplifier/voltage"][...] = VOLTS
+        f["laser/displacement"][...] = float("nan")  # out of range throughout: no stretch known
+    res = CliRunner().invoke(app, ["specimen", "show", "S1", "--dir", str(runs), "--json"])
+    assert res.exit_code == 0, res.output
+    h = json.loads(res.stdout)
+    assert h["field_ratio"] is None and h["max_true_field_V_per_m"] is None
+    res = CliRunner().invoke(app, ["specimen", "show", "S1", "--dir", str(runs)], env={"COLUMNS": "300"})
+    assert res.exit_code == 0 and "×" not in res.output, res.output
+    assert f"highest nominal field (|V| / unstretched thickness): {VOLTS / L3 / 1e6:.2f} MV/m" in res.output
+    assert "not compared with the breakdown field 100.0 MV/m (a true-field limit)" in res.output
