@@ -202,3 +202,27 @@ def test_an_explicit_out_file_that_exists_is_refused_not_replaced(run_file: Path
     res = CliRunner().invoke(app, ["plot", str(run_file), "laser", "--out", str(tmp_path / "y.png")])
     assert res.exit_code == 0, res.output
     assert sorted(p.name for p in tmp_path.iterdir()) == ["x.png", "y.png"]
+
+
+def test_readings_out_of_time_order_are_binned_by_their_own_times(run_file: Path, tmp_path: Path,
+                                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    """A record whose time goes back (an edited or merged file) is binned by each reading's own time: the same
+    bins, extremes and vertices as the file in order (the old envelope cut it by record count)."""
+    import shutil
+
+    import bench.storage.chunks as chunks
+
+    monkeypatch.setattr(chunks, "CHUNK_ROWS", 7_777)
+    shuffled = tmp_path / "shuffled.h5"
+    shutil.copy(run_file, shuffled)
+    n = _plain(run_file, "laser", "t").size
+    order = np.r_[np.arange(n // 2, n), np.arange(n // 2)]  # the second half first
+    with h5py.File(shuffled, "r+") as f:
+        for c in ("t", "displacement", "valid"):
+            f[f"laser/{c}"][:n] = f[f"laser/{c}"][:n][order]
+    (a,) = [e for e in envelopes(run_file, ["laser"], columns=300) if e.column == "displacement"]
+    (b,) = [e for e in envelopes(shuffled, ["laser"], columns=300) if e.column == "displacement"]
+    assert np.array_equal(a.edges, b.edges)
+    assert np.array_equal(a.lo, b.lo, equal_nan=True) and np.array_equal(a.hi, b.hi, equal_nan=True)
+    assert np.array_equal(a.t[np.isfinite(a.t)], b.t[np.isfinite(b.t)])
+    assert np.array_equal(a.v[np.isfinite(a.t)], b.v[np.isfinite(b.t)])

@@ -107,8 +107,8 @@ class _Column:
         t, v = t[keep], v[keep]
         order = np.lexsort((v, t))
         t, v = t[order], v[order]
-        pairs = np.unique(np.c_[t, v], axis=0) if t.size else np.c_[t, v]  # a reading that is two vertices: once
-        t, v = pairs[:, 0], pairs[:, 1]
+        once = np.r_[True, (t[1:] != t[:-1]) | (v[1:] != v[:-1])][:t.size]  # a reading that is two vertices: once
+        t, v = t[once], v[once]
         cuts = [h[1] for h in self.holes
                 if abs(h[1] - h[0]) > GAP_RATIO * np.nanmax([abs(h[2]), abs(h[3]), 0.0])]
         at = np.searchsorted(t, cuts, side="left")
@@ -116,10 +116,17 @@ class _Column:
 
 
 def _argmin_by_bin(k: np.ndarray, key: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(bins, index of the smallest ``key`` in each): one entry per bin present in ``k``, the first of equal keys."""
-    order = np.lexsort((key, k))  # by bin, then by key
-    first = order[np.r_[True, k[order][1:] != k[order][:-1]]]
-    return k[first], first
+    """(bins, index of the smallest ``key`` in each): one entry per bin present in ``k``, the first of equal keys.
+    Readings in time order (the recorder writes them so) take the linear path; any other order is sorted."""
+    if k.size > 1 and bool(np.any(k[1:] < k[:-1])):
+        order = np.lexsort((key, k))  # by bin, then by key
+        first = order[np.r_[True, k[order][1:] != k[order][:-1]]]
+        return k[first], first
+    starts = np.flatnonzero(np.r_[True, k[1:] != k[:-1]])
+    group = np.repeat(np.arange(starts.size), np.diff(np.r_[starts, k.size]))
+    hit = np.flatnonzero(key == np.minimum.reduceat(key, starts)[group])
+    first = hit[np.r_[True, group[hit][1:] != group[hit][:-1]]]
+    return k[starts], first
 
 
 def _envelopes(reader: StreamChunks, run_path: str | Path, streams: list[str] | None,
