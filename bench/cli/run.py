@@ -42,8 +42,11 @@ def _hms(seconds: float) -> str:
 def _plan(protocol_file: Path, rig: Path | None, sim: bool) -> Plan:
     from bench.app.runs import plan_protocol
 
-    with progress("validating and dry-running the protocol on the model") as done:
-        plan = plan_protocol(protocol_file, rig, sim, progress=done)
+    try:
+        with progress("validating and dry-running the protocol on the model") as done:
+            plan = plan_protocol(protocol_file, rig, sim, progress=done)
+    except KeyboardInterrupt:  # typer would exit 130 and say nothing
+        raise fail("interrupted by Ctrl-C during the validation and dry run; nothing was connected") from None
     _warn(plan)
     return plan
 
@@ -71,6 +74,12 @@ def _summary(plan: Plan) -> Table:
     t.add_row("duration", f"{_hms(pred.duration)} ({pred.duration:.1f} s)")
     t.add_row("samples", ", ".join(f"{k} {v:,}" for k, v in pred.samples.items()))
     t.add_row("file size", f"≤ {pred.file_bytes / 1e6:.1f} MB uncompressed")
+    if pred.dry_run_budget_s > 0:
+        from bench.protocol.predict import budget_rule
+
+        t.add_row("dry run", f"the whole program on the model in {pred.dry_run_s:.1f} s (estimated "
+                  f"~{pred.dry_run_estimate_s:.0f} s of one core; budget {pred.dry_run_budget_s:.0f} s: "
+                  f"{budget_rule()})")
     lim = rig.limits
     t.add_row("peak voltage", f"{pred.peak_voltage:.0f} V (limit {lim.max_voltage_V:.0f} V)")
     from bench.protocol.staircase import staircase_distortion
@@ -128,7 +137,8 @@ def validate(protocol_file: ProtocolArg, rig: RigOpt = None, sim: SimOpt = False
                     "motor_range_m": list(pred.motor_range) if pred.motor_range is not None else None,
                     "displacement_range_m": list(pred.displacement_range), "force_range_N": list(pred.force_range),
                     "link_problems": list(plan.link_problems), "recording_shortfalls": list(plan.shortfalls),
-                    "prediction_warnings": list(pred.warnings)})
+                    "prediction_warnings": list(pred.warnings), "dry_run_s": pred.dry_run_s,
+                    "dry_run_estimate_s": pred.dry_run_estimate_s, "dry_run_budget_s": pred.dry_run_budget_s})
         return
     console.print(_summary(plan))
     console.print("[green]valid[/]: within the rig's and the specimen's limits")

@@ -5,15 +5,22 @@ ticks as the engine) is advanced through the whole program in virtual time, so t
 specimen will see: peak voltage, peak true electric field against the stretch-dependent breakdown field,
 aperture and motor travel, force, and whether the model predicts a failure (pull-in, breakdown).
 
-The dry run covers the whole program, so its cost is bounded before it starts: at most ``DRY_RUN_MAX_S`` of
-run time, and an estimated cost (model at 10 kHz, set-point updates, steps; see :func:`dry_run_cost`) of at
-most ``DRY_RUN_BUDGET_S`` seconds on one core. A longer protocol is refused (split it into several files)
-rather than run with a prediction of only its beginning.
+The dry run covers the whole program, never only its beginning, so its cost is bounded and stated before it
+starts (:func:`check_budget`): the estimated cost (model at 10 kHz, set-point updates, steps; see
+:func:`dry_run_cost`) on one core may be at most a fixed fraction of the run's own duration
+(``DRY_RUN_FRACTION``: 2 %, 72 s per hour of run), never less than ``DRY_RUN_BUDGET_S`` (30 s) and never more
+than ``DRY_RUN_CEILING_S`` (30 min, :func:`dry_run_budget`). An overnight run is dry-run whole (12 h at 20
+set-points/s: ~5 min); a protocol beyond the ceiling (a week: ~70 min) is refused in one line that says the
+estimate and how long its parts may be (split it into several files) rather than run with a prediction of only
+its beginning. Before, a fixed cap of 3600 s of run time refused every protocol over one hour, however cheap its
+dry run; the proportional budget keeps the wait before a run a small part of the run itself, and the ceiling
+keeps an operator from waiting more than half an hour before anything starts.
 """
 
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -28,8 +35,11 @@ from bench.protocol.tick_arrays import tick_arrays
 from bench.rig import plant_for
 
 STREAM_COLUMNS = {"setpoints": 2, "amplifier": 3, "laser": 2, "motor": 2, "load_cell": 1}
-DRY_RUN_MAX_S = 3600.0  # run time the dry run integrates (the longest shipped campaign: 1985 s)
-DRY_RUN_BUDGET_S = 30.0  # estimated seconds of one core (the longest shipped campaign: ~17 s estimated, 14 s measured)
+# the dry run's budget (:func:`dry_run_budget`), in estimated seconds of one core: this fraction of the run's own
+# duration, at least the floor (the longest shipped campaign: ~17 s estimated, 14 s measured), at most the ceiling
+DRY_RUN_FRACTION = 0.02
+DRY_RUN_BUDGET_S = 30.0
+DRY_RUN_CEILING_S = 1800.0
 # costs measured on the reference machine (2 cores, numba kernels): the slowest specimen model (LS-DEA, hung mass)
 # advances ~150× faster than real time; one set-point update ~20 µs; one step (segment) 0.2–1 ms (kernel calls)
 # ADAM-4017+ (the polled monitors of a software-timed rig): an integrating ADC with 50/60-Hz rejection, each
@@ -62,6 +72,9 @@ class Prediction:
     failure: str = ""
     problems: list[str] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)  # what may trip the run but need not (said, not refused)
+    dry_run_estimate_s: float = 0.0  # the dry run's estimated cost on one core (:func:`check_budget`)
+    dry_run_budget_s: float = 0.0  # and its budget (:func:`dry_run_budget`)
+    dry_run_s: float = 0.0  # what it took here (wall clock)
 
     @property
     def ok(self) -> bool:
@@ -89,19 +102,38 @@ def dry_run_cost(program: Program) -> tuple[float, float, float]:
             len(program.segments) * COST_PER_SEGMENT)
 
 
-def check_budget(program: Program) -> None:
-    """Refuse, in one line, a program the dry run cannot integrate within its documented budget."""
-    where = f"protocol file {program.protocol.path}"
-    if program.duration > DRY_RUN_MAX_S:
-        raise ProtocolLimitError(f"{where}: steps: the run lasts {program.duration:.0f} s; the dry run covers at most "
-                                 f"{DRY_RUN_MAX_S:.0f} s of run time on the model: split the protocol")
+def dry_run_budget(duration: float) -> float:
+    """The dry run's budget for a run of ``duration`` seconds: ``DRY_RUN_FRACTION`` of it, at least
+    ``DRY_RUN_BUDGET_S``, at most ``DRY_RUN_CEILING_S`` (estimated seconds of one core)."""
+    return min(DRY_RUN_CEILING_S, max(DRY_RUN_BUDGET_S, DRY_RUN_FRACTION * duration))
+
+
+def budget_rule() -> str:
+    """The budget rule in words (the summary's and the refusal's)."""
+    return (f"{DRY_RUN_FRACTION:.0%} of the run's duration, at least {DRY_RUN_BUDGET_S:.0f} s, at most "
+            f"{DRY_RUN_CEILING_S:.0f} s")
+
+
+def _hours(seconds: float) -> str:
+    return f"{seconds / 3600:.1f} h" if seconds >= 3600 else f"{seconds / 60:.0f} min"
+
+
+def check_budget(program: Program) -> tuple[float, float]:
+    """The dry run's estimated cost and its budget (seconds of one core, :func:`dry_run_budget`); refuse, in one
+    line, a program whose estimate is beyond the budget, saying the estimate and how long its parts may be."""
     model, updates, steps = dry_run_cost(program)
-    if model + updates + steps > DRY_RUN_BUDGET_S:
+    cost, budget = model + updates + steps, dry_run_budget(program.duration)
+    if cost > budget:
         field = "recording.setpoint_Hz" if updates >= max(model, steps) else "steps"
+        rate = cost / program.duration if program.duration > 0 else math.inf  # about the same in any part
+        part = (DRY_RUN_CEILING_S if rate <= DRY_RUN_FRACTION else DRY_RUN_BUDGET_S) / rate  # the longest that fits
+        split = f"split the protocol into files of at most ~{_hours(part)} of run time each"
         raise ProtocolLimitError(
-            f"{where}: {field}: the dry run would take ~{model + updates + steps:.0f} s ({program.duration:.0f} s of "
-            f"run time, {update_bound(program):,} set-point updates, {len(program.segments):,} steps), beyond its "
-            f"budget of {DRY_RUN_BUDGET_S:.0f} s: lower recording.setpoint_Hz or split the protocol")
+            f"protocol file {program.protocol.path}: {field}: the dry run would take ~{cost:.0f} s "
+            f"({_hours(cost)}; {program.duration:.0f} s of run time, {update_bound(program):,} set-point updates, "
+            f"{len(program.segments):,} steps), beyond its budget of {budget:.0f} s ({budget_rule()}): "
+            + (f"lower recording.setpoint_Hz or {split}" if field == "recording.setpoint_Hz" else split))
+    return cost, budget
 
 
 def _apply_ticks(program: Program, seg: Segment, plant: Plant, clock: VirtualClock, gain: float,
@@ -134,14 +166,16 @@ def _apply_ticks(program: Program, seg: Segment, plant: Plant, clock: VirtualClo
 
 def predict(program: Program, progress: Callable[[float], None] | None = None) -> Prediction:
     """Run the program on the model; collect peaks, margins and predicted failures. ``progress`` is told the
-    fraction of the program's run time simulated so far (0 … 1) after each step.
+    fraction of the program's run time simulated so far (0 … 1) after each block the model advances (every 2 s of
+    run time at most: a long hold moves the bar too) and after each step.
 
     Raises ProtocolLimitError (one line) if the program is beyond the dry run's budget (:func:`check_budget`).
     """
-    check_budget(program)
+    estimate, budget = check_budget(program)
+    started = time.perf_counter()
     counts = sample_counts(program)
     nbytes = sum(n * 8 * (1 + STREAM_COLUMNS[k]) for k, n in counts.items())
-    pred = Prediction(program.duration, counts, nbytes)
+    pred = Prediction(program.duration, counts, nbytes, dry_run_estimate_s=estimate, dry_run_budget_s=budget)
     clock = VirtualClock()
     plant = build_plant(program, clock)
     gain = plant.hv.gain
@@ -149,6 +183,8 @@ def predict(program: Program, progress: Callable[[float], None] | None = None) -
 
     def watch(block: PlantBlock) -> None:
         nonlocal pred
+        if progress is not None and program.duration > 0 and block.t.size:
+            progress(min(float(block.t[-1]) / program.duration, 1.0))
         if not np.isfinite(block.displacement).any():
             return  # the model stopped (runaway) before this block's first sample: nothing to observe
         e = np.abs(block.field)
@@ -210,6 +246,7 @@ def predict(program: Program, progress: Callable[[float], None] | None = None) -
         if plant.broken:
             pred.failure = f"{seg.label}: model predicts {plant.failure}"
             break
+    pred.dry_run_s = time.perf_counter() - started
     if program.has_motor_axis:
         pred.motor_range = (float(motor_lo), float(motor_hi)) if motor_lo <= motor_hi else None
     limits = program.rig.limits
