@@ -135,3 +135,59 @@ def test_ctrl_c_in_validate_is_one_line(monkeypatch: pytest.MonkeyPatch) -> None
     assert out.exit_code == 2, out.output
     lines = [ln for ln in out.output.splitlines() if ln.strip()]
     assert len(lines) == 1 and "interrupted by Ctrl-C" in lines[0], out.output
+
+
+def test_a_daq_played_hold_is_scheduled_in_chunks_and_the_model_sees_the_same(tmp_path: Path,
+                                                                              monkeypatch: pytest.MonkeyPatch) -> None:
+    """On a DAQ rig the dry run plays every 10-kHz scan: a 1-h relax held 36 M scans at once (~1.9 GB). They are
+    now scheduled a chunk at a time, a scan that repeats the one before left out (the plant holds an input until
+    the next): every block the model gives is the same, bit for bit, as with every scan scheduled at once (the
+    former code, here), with far fewer inputs. Chunks of 1000 scans here, so that runs cross their ends."""
+    import numpy as np
+
+    import bench.protocol.predict as dry
+    from bench.core.plant import Plant, PlantBlock
+
+    def every_scan(seg: object, plant: Plant, scan_rate: float, gain: float) -> float:  # the former code
+        assert seg.voltage is not None  # type: ignore[attr-defined]
+        ts = seg.t_start + np.arange(max(1, round(seg.duration * scan_rate)) + 1) / scan_rate  # type: ignore[attr-defined]
+        vs = np.asarray(seg.voltage(ts), dtype=float)  # type: ignore[attr-defined]
+        plant.schedule_amplifier_input(ts, vs / gain)
+        return float(np.max(np.abs(vs)))
+
+    program = _program(_sweep_with_relax(tmp_path, "12 s", "sweep-12s"))
+    built = dry.build_plant
+
+    def run(play: object) -> tuple[list[PlantBlock], int, dry.Prediction]:
+        blocks: list[PlantBlock] = []
+        inputs = [0]
+
+        def build(*args: object, **kwargs: object) -> Plant:
+            plant = built(*args, **kwargs)  # type: ignore[arg-type]
+            plant.listeners.append(blocks.append)
+            schedule = plant.schedule_amplifier_input
+
+            def counted(t: np.ndarray, v: np.ndarray) -> None:
+                inputs[0] += len(t)
+                schedule(t, v)
+
+            plant.schedule_amplifier_input = counted  # type: ignore[method-assign]
+            return plant
+
+        monkeypatch.setattr(dry, "build_plant", build)
+        monkeypatch.setattr(dry, "_play_scans", play)
+        pred = dry.predict(program)
+        return blocks, inputs[0], pred
+
+    monkeypatch.setattr(dry, "SCAN_CHUNK", 1000)
+    new_blocks, new_inputs, new = run(dry._play_scans)
+    old_blocks, old_inputs, old = run(every_scan)
+    assert len(new_blocks) == len(old_blocks) > 0
+    for a, b in zip(new_blocks, old_blocks, strict=True):
+        for name in ("t", "voltage", "current", "displacement", "force", "field", "breakdown"):
+            assert np.asarray(getattr(a, name)).tobytes() == np.asarray(getattr(b, name)).tobytes(), name
+    assert (new.peak_voltage, new.peak_field, new.min_breakdown_margin) == \
+        (old.peak_voltage, old.peak_field, old.min_breakdown_margin)
+    assert old_inputs == sum(round(s.duration * 10000) + 1 for s in program.segments if s.voltage is not None
+                             and s.duration > 0)
+    assert old_inputs - new_inputs > 4 * 11 * 10000  # each relax's 0 V after its 0.5-s ramp: one input, not 11 s
