@@ -227,7 +227,7 @@ def quicklook(run_path: str | Path, streams: list[str] | None = None, out: str |
             ax.axvline(t, color="0.6", linewidth=0.6, linestyle=":")
         ax.grid(True, linewidth=0.3)
     axes[-1, 0].set_xlabel("t [s] (run clock)")
-    state = run.state if run.complete else f"{run.state}, INCOMPLETE: {run.incomplete_reason}"
+    state = run.state if run.complete else f"{run.state_shown}, INCOMPLETE: {run.incomplete_reason}"
     fig.suptitle(f"{Path(run_path).name} — {run.attrs.get('protocol_name', '?')} ({state})", fontsize=9)
     fig.tight_layout()
     if show:

@@ -65,6 +65,7 @@ class RunReport:
     figures: list[Path]
     reason: str = ""  # the file's /status/reason: why the run ended, then how the output was made safe
     stopped: str = ""  # a run that ended before its protocol did: one line saying so (:func:`stopped_line`)
+    state_shown: str = ""  # the state as listings show it (RunFile.state_shown: a dead writer's file, a pause)
 
     def flags(self) -> dict[str, object]:
         """The file's state for ``--json``: ``state`` and ``reason`` say how the run ended (``completed`` or
@@ -163,7 +164,7 @@ def report_runs(runs: list[Path], out: Path | None = None, progress: Progress | 
         later = continued_in(run, runs[k + 1:]) if run.state not in ("completed", "running") else None
         done.runs.append(RunReport(p, run.state, run.complete, run.incomplete_reason, run.recovered_at,
                                    len(run.completed_steps()), run.program.shape[0], a, paths, run.reason,
-                                   stopped_line(run, later)))
+                                   stopped_line(run, later), run.state_shown))
         if progress is not None:
             progress((k + 1) / len(runs))
     if not done.runs:  # every file given was a manual session's

@@ -449,8 +449,9 @@ def print_report(runs: list[Path], out: Path | None = None) -> Report:
     for r in done.runs:
         a, p = r.analysis, r.path
         if not r.complete:
-            console.print(f"[red]INCOMPLETE[/] {escape(p.name)} ({r.state}): {escape(r.incomplete_reason)}; "
-                          f"{r.steps_completed} of {r.steps_total} steps completed", soft_wrap=True)
+            console.print(f"[red]INCOMPLETE[/] {escape(p.name)} ({r.state_shown or r.state}): "
+                          f"{escape(r.incomplete_reason)}; {r.steps_completed} of {r.steps_total} steps completed",
+                          soft_wrap=True)
         if r.stopped:
             console.print(f"[yellow]{escape(r.stopped)}[/]", soft_wrap=True)
         for note in a.notes:

@@ -233,10 +233,19 @@ class Catalog:
             q = q.where(t.c.state == state)
         with self.engine.connect() as conn:
             out = [dict(r._mapping) for r in conn.execute(q.order_by(t.c.start_time, t.c.path))]
+        if state is not None:  # as listed: a file whose writer is gone says "running" and is not (found by a tester)
+            out = [r for r in out if shown_state(r) == state]
         return out
 
 
 # ---- rows from files ----------------------------------------------------------------------------------------------
+
+
+def shown_state(row: dict[str, Any]) -> str:
+    """The state of a row as listings show it (:func:`~bench.storage.runfile.state_shown`)."""
+    from bench.storage.runfile import state_shown
+
+    return state_shown(row["state"] or "", bool(row["complete"]), row["incomplete_reason"] or "")
 
 
 def host_name() -> str:
@@ -525,6 +534,12 @@ class Reconciled:
     found: set[str] = field(default_factory=set)  # the rows' paths of the run files found there (links resolved)
 
 
+def _maybe_gone(row: dict[str, Any]) -> bool:
+    """Whether a row read from an unchanged file says its run is still going: its writer may have died since (a
+    killed run's file does not change), so the file is read again — once it says so, the row no longer asks."""
+    return not row["complete"] and row["state"] == "running" and shown_state(row) == "running"
+
+
 def reconcile(cat: Catalog, folder: Path, rebuild: bool = False) -> Reconciled:
     """Make the rows of this host's files under ``folder`` those the files give: rows of changed or new files
     re-read, rows of missing files removed (``rebuild``: every row re-read). A file linked into the folder from
@@ -543,7 +558,8 @@ def reconcile(cat: Catalog, folder: Path, rebuild: bool = False) -> Reconciled:
     for key, p in files.items():
         seen.add(key)
         old = have.get(key)
-        if not rebuild and old is not None and old["signature"] and old["signature"] == signature(p):
+        if (not rebuild and old is not None and old["signature"] and old["signature"] == signature(p)
+                and not _maybe_gone(old)):
             out.found.add(key)
             continue
         try:

@@ -36,14 +36,22 @@ class Stream:
 
 
 KILLED = "no end recorded: the run crashed or was killed"  # a dead writer's file: the start of its incomplete_reason
+# a file whose writing failed (the writer abandoned it, its end unstamped): the starts of its incomplete_reason
+DISK_FULL = "no end recorded: the disk was full"
+WRITE_FAILED = "no end recorded: writing the file failed"
+ENDED_SHOWN = {KILLED: "crashed or killed", DISK_FULL: "ended unstamped: disk full",
+               WRITE_FAILED: "ended unstamped: write failed"}  # each such start, the state a listing shows
 
 
 def state_shown(state: str, complete: bool, incomplete_reason: str) -> str:
-    """A run's state as a listing shows it: the file's ``/status/state``, except that a file whose writer died says
-    so — its state stays ``running`` (nothing stamped its end; ``bench recover`` keeps it), which read as a run
-    still going after ``bench recover`` (found by an outside tester)."""
-    if state == "running" and not complete and incomplete_reason.startswith(KILLED):
-        return "crashed or killed"
+    """A run's state as a listing shows it: the file's ``/status/state``, except that a file whose writer is gone
+    says so — its state stays ``running`` (nothing stamped its end; ``bench recover`` keeps it), which read as a run
+    still going after ``bench recover`` (found by an outside tester), and so did a run that ended on a full disk
+    (its writer abandoned the file when a write failed, a second tester): shown as ended, without its stamp."""
+    if state == "running" and not complete:
+        for start, shown in ENDED_SHOWN.items():
+            if incomplete_reason.startswith(start):
+                return shown
     return state
 
 
@@ -78,8 +86,15 @@ class RunFile:
 
     @property
     def state_shown(self) -> str:
-        """:func:`state_shown` of this file."""
-        return state_shown(self.state, self.complete, self.incomplete_reason)
+        """:func:`state_shown` of this file; "paused" for a run under way that is paused (its last ``pause`` event
+        not yet followed by a ``resume``, as ``bench pause`` and the watch page read it): its file says ``running``
+        all the while, and `bench inspect` showed it so (found by an outside tester)."""
+        shown = state_shown(self.state, self.complete, self.incomplete_reason)
+        if shown == "running" and not self.complete and not self.recovered_at:
+            held = [kind for _, _, kind, _ in self.event_list() if kind in ("pause", "resume")]
+            if held and held[-1] == "pause":
+                return "paused"
+        return shown
 
     @property
     def storage_fault(self) -> str:
@@ -95,8 +110,8 @@ class RunFile:
             return ""
         if self.storage_fault:
             full = any(f"(errno {e})" in self.storage_fault for e in (errno.ENOSPC, errno.EDQUOT))
-            why = "the disk was full: " if full else ""
-            return (f"no end recorded: {why}writing the file failed ({self.storage_fault})"
+            why = f"{DISK_FULL}: " if full else "no end recorded: "
+            return (f"{why}writing the file failed ({self.storage_fault})"
                     + (f"; file recovered at {self.recovered_at}" if self.recovered_at else ""))
         if self.recovered_at and self.state != "running":  # its end is in /status: the stamp of the root failed
             return f"finished ({self.state}) but not finalised (file recovered at {self.recovered_at})"

@@ -1,0 +1,179 @@
+"""A run file whose writer is gone is not shown, nor filtered, as a run still going (outside tester): a run that
+ended on a full disk (its writer abandoned the file at the failed write, its end unstamped) was listed "running,
+incomplete" by `bench runs list`, `inspect` and the campaign line, and under `--state running`; `report` and `plot`
+said "(running)" for such files; `inspect` said "running" of a paused run.
+
+Expected wording from README.md ("Reading while a run writes, and after a crash"): a storage-fault file is listed
+"ended unstamped: disk full, incomplete" ("ended unstamped: write failed" for another failure), a killed one
+"crashed or killed, incomplete"; `--state running` leaves both out; a paused run reads "paused".
+"""
+
+from __future__ import annotations
+
+import errno
+import json
+import random
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import h5py
+import pytest
+from typer.testing import CliRunner
+
+from bench.cli import app
+from tests.conftest import ROOT
+from tests.test_storage import _env, _kill_once, _limit_file_size, _run_fault_writer, _tmpfs
+
+SHOWN = {"disk-full": "ended unstamped: disk full", "file-size-limit": "ended unstamped: write failed",
+         "killed": "crashed or killed"}
+
+
+def _cli(*args: str, catalog: Path | None = None) -> tuple[int, str]:
+    env = {"COLUMNS": "300"} | ({"BENCH_CATALOG": f"sqlite:///{catalog}"} if catalog else {})
+    res = CliRunner().invoke(app, list(args), env=env)
+    return res.exit_code, res.output
+
+
+def _ended_file(tmp_path: Path, how: str) -> Path:
+    """A file whose writer is gone: a disk filled (a 256-kB tmpfs), a file-size limit hit, or a kill -9."""
+    folder = tmp_path / "runs"
+    folder.mkdir()
+    if how == "disk-full":
+        with _tmpfs(tmp_path / "small", "256k") as disk:
+            _, out = _run_fault_writer(disk / "run.h5")
+            moved = Path(shutil.copy(disk / "run.h5", folder / "run.h5"))
+        assert f"(errno {errno.ENOSPC})" in out["errors"][0], out["errors"]
+        return moved
+    if how == "file-size-limit":
+        _, out = _run_fault_writer(folder / "run.h5", _limit_file_size(300_000))
+        assert f"(errno {errno.EFBIG})" in out["errors"][0], out["errors"]
+        return folder / "run.h5"
+    _, path = _kill_once(folder, 0, random.Random(5))
+    return path
+
+
+@pytest.mark.parametrize("how", ["disk-full", "file-size-limit", "killed"])
+def test_a_file_whose_writer_is_gone_is_not_listed_inspected_or_filtered_as_running(tmp_path: Path, how: str) -> None:
+    from bench.storage.chain import chain, describe
+    from bench.storage.runfile import open_run
+
+    path = _ended_file(tmp_path, how)
+    with h5py.File(path, "r", swmr=True) as f:
+        assert f["status/state"][0] == b"running" and not f.attrs.get("complete", False)  # nothing stamped its end
+    shown = SHOWN[how]
+    assert open_run(path).state_shown == shown
+    code, out = _cli("inspect", str(path))
+    flat = " ".join(out.split())
+    assert code == 1 and f"{shown} — INCOMPLETE" in flat and "running —" not in flat, out
+    cat = tmp_path / "cat.sqlite"
+    code, out = _cli("runs", "list", "--dir", str(path.parent), catalog=cat)
+    assert code == 0, out
+    row = next(ln for ln in out.splitlines() if path.name in ln)
+    assert f"{shown}, incomplete" in row and "running" not in row, out
+    code, out = _cli("runs", "list", "--dir", str(path.parent), "--state", "running", "--json", catalog=cat)
+    assert code == 0 and json.loads(out) == [], out
+    assert describe(chain(path)) == f"{path.name} ({shown}, incomplete)"  # inspect's and report's campaign line
+
+
+def test_a_row_read_while_the_run_went_on_is_read_again_once_its_writer_is_gone(tmp_path: Path) -> None:
+    """A row catalogued while the run was going ("still going") stayed so after its writer was killed: a killed
+    run's file does not change, and an unchanged file's row was never read again."""
+    from bench.storage.catalog import Catalog, catalog_url, row_from_file
+
+    path = _ended_file(tmp_path, "killed")
+    row = row_from_file(path)
+    row["incomplete_reason"] = "no end recorded: the run is still going, or it crashed / was killed"  # as read live
+    cat = tmp_path / "cat.sqlite"
+    with Catalog(catalog_url(path.parent, f"sqlite:///{cat}")) as c:
+        c.upsert([row])
+    code, out = _cli("runs", "list", "--dir", str(path.parent), "--state", "running", "--json", catalog=cat)
+    assert code == 0 and json.loads(out) == [], out
+    code, out = _cli("runs", "list", "--dir", str(path.parent), catalog=cat)
+    assert code == 0, out
+    row_txt = next(ln for ln in out.splitlines() if path.name in ln)
+    assert "crashed or killed, incomplete" in row_txt, out
+
+
+@pytest.fixture(scope="module")
+def sweep(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    from bench.runtime.run import execute, plan_run
+
+    d = tmp_path_factory.mktemp("sweep")
+    done = execute(plan_run(ROOT / "protocols" / "short" / "thesis-sweeps-short.toml"), d / "sweep.h5", virtual=True)
+    assert done.state == "completed", done.reason
+    return done.path
+
+
+def _unstamped_on_full_disk(src: Path, dst: Path) -> Path:
+    """``src`` as its writer leaves it when a write fails on a full disk: state running, the fault in
+    /status/reason, the end never stamped (README: "storage fault: <the error>" put into /status/reason)."""
+    shutil.copy(src, dst)
+    with h5py.File(dst, "r+") as f:
+        f["status/state"][0] = b"running"
+        f["status/reason"][0] = f"storage fault: run file {dst}: write failed: No space left on device (errno 28)"
+        f["status/end_time"][0] = b""
+        f.attrs["complete"] = False
+    return dst
+
+
+def test_report_and_plot_say_an_unstamped_file_ended(sweep: Path, tmp_path: Path,
+                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    import matplotlib.figure
+
+    from bench.analysis.quicklook import quicklook
+
+    path = _unstamped_on_full_disk(sweep, tmp_path / "full.h5")
+    _, out = _cli("report", str(path), "--out", str(tmp_path / "rep"))
+    flat = " ".join(out.split())
+    assert f"INCOMPLETE {path.name} (ended unstamped: disk full): no end recorded: the disk was full" in flat, out
+    assert "(running)" not in flat, out
+    titles: list[str] = []
+    real = matplotlib.figure.Figure.suptitle
+
+    def suptitle(self, t, **kw):  # type: ignore[no-untyped-def]
+        titles.append(t)
+        return real(self, t, **kw)
+
+    monkeypatch.setattr(matplotlib.figure.Figure, "suptitle", suptitle)
+    quicklook(path, ["amplifier"], tmp_path / "plot.png")
+    assert len(titles) == 1 and "(ended unstamped: disk full, INCOMPLETE:" in titles[0], titles
+
+
+PAUSED_WRITER = """
+import sys
+from pathlib import Path
+from bench.storage.recorder import Column, Recorder
+rec = Recorder(Path(sys.argv[1]), {"protocol_name": "pause test"}, {"laser": [Column("displacement", "m", "")]}, [],
+               {"laser": 1000.0})
+rec.append("laser", 0.0, displacement=0.0)
+rec.event(0.5, 0, "pause", "paused in step 0 (a) by tester: output to 0 V")
+rec.flush()
+print("paused", flush=True)
+sys.stdin.readline()
+rec.event(1.0, 0, "resume", "resumed by tester after 0.5 s paused")
+rec.flush()
+print("resumed", flush=True)
+sys.stdin.readline()
+"""
+
+
+def test_inspect_says_a_paused_run_is_paused_while_it_is(tmp_path: Path) -> None:
+    path = tmp_path / "paused.h5"
+    proc = subprocess.Popen([sys.executable, "-c", PAUSED_WRITER, str(path)], stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env(), cwd=ROOT)
+    try:
+        assert proc.stdin is not None and proc.stdout is not None
+        assert proc.stdout.readline().strip() == "paused", proc.stderr
+        _, out = _cli("inspect", str(path))
+        flat = " ".join(out.split())
+        assert "state │ paused — INCOMPLETE" in flat and "running —" not in flat, out
+        proc.stdin.write("\n")
+        proc.stdin.flush()
+        assert proc.stdout.readline().strip() == "resumed"
+        _, out = _cli("inspect", str(path))
+        assert "state │ running — INCOMPLETE" in " ".join(out.split()), out  # resumed: running again
+    finally:
+        proc.kill()
+        proc.wait(30)
