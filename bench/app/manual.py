@@ -21,6 +21,7 @@ class ManualResult:
     data_file: Path | None
     outcomes: list[Outcome]
     end_reason: str | None
+    safe_path: str = ""  # how the session's end made the output safe (0 V commanded, verified), '' if it did not
 
     @property
     def not_done(self) -> list[Outcome]:
@@ -72,4 +73,4 @@ def manual_session(rig_file: Path, *, script: Path | None = None, log: Path | No
     session = ManualSession(rig, path, virtual=virtual_time, echo=echo, operator=operator)
     with session.signal_handlers(interactive=interactive), session:
         session.run_lines(command_lines(script, interactive, show_help), stop_on_trip=not interactive)
-    return ManualResult(path, session.data_file, session.outcomes, session.end_reason)
+    return ManualResult(path, session.data_file, session.outcomes, session.end_reason, session.safe_path)

@@ -87,6 +87,8 @@ def devices_control(
                           echo=echo, show_help=lambda text: console.print(text, markup=False, highlight=False))
     bad = done.not_done
     with contextlib.suppress(OSError):
+        if done.safe_path:  # as `bench run` says it: how the end made the output safe, the 0 V verified
+            console.print(f"high voltage: {escape(done.safe_path)}", highlight=False)
         console.print((f"session ended: {done.end_reason}; " if done.end_reason else "")
                       + f"session log: {escape(str(done.log))} ({len(done.outcomes)} commands"
                       + (f", {len(bad)} not done" if bad else "") + ")"

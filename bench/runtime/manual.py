@@ -176,6 +176,7 @@ class ManualSession:
     _drive: rig_latch.Drive | None = None  # the amplifier drive's names at the start (while its port is there)
     _told: bool = False  # a fault between commands was made safe and told: no polls until the next command
     _armed: Path | None = None  # the marker that this process may energise the rig (latch.arm), until a safe end
+    safe_path: str = ""  # how the session's end made the output safe (its stop's "0 V commanded …; verified: …")
 
     @property
     def end_reason(self) -> str | None:
@@ -376,6 +377,7 @@ class ManualSession:
                 raise
             rig_latch.disarm(self._armed)  # 0 V verified, or the rig latched
             self._armed = None
+            self.safe_path = safe
         elif self._inst is not None:
             self._inst.cancel.clear()
             errors += self._inst.safe_state()
