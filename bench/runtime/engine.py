@@ -1295,6 +1295,8 @@ class Engine:
             except InterlockTrip as trip:
                 self.latched = trip
                 self._event("interlock", trip.reason)
+        if whole(v0) == "0":  # nothing to ramp: a set-point under 0.5 V (a resumed run's log ended "ramp from 0 V
+            v0 = 0.0  # to 0 V", outside tester); 0 V is commanded below all the same (safe_state), with no ramp line
         if self.latched is not None and v0 != 0.0:
             self._event("ramp", f"interlock latched ({self.latched.kind}): 0 V at once, no ramp from a set-point the "
                         "output may no longer hold")
