@@ -615,8 +615,8 @@ def test_report_of_two_files_of_the_same_name_gives_each_its_folder(short_run: P
 
     def report(path: Path, out: Path) -> tuple[object, list[Path]]:
         seen.append((Path(path), Path(out)))
-        run = SimpleNamespace(state="completed", complete=True, incomplete_reason="", recovered_at="", attrs={},
-                              reason="protocol completed",
+        run = SimpleNamespace(state="completed", state_shown="completed", complete=True, incomplete_reason="",
+                              recovered_at="", attrs={}, reason="protocol completed",
                               completed_steps=lambda: [], program=np.zeros((0, 1)))
         return SimpleNamespace(run=run, steps=[], protocol="p", by_kind=lambda kind: [], notes=[]), []
 
