@@ -613,12 +613,15 @@ def test_report_of_two_files_of_the_same_name_gives_each_its_folder(short_run: P
             f.attrs["run_id"] = folder * 32
     seen: list[tuple[Path, Path]] = []
 
-    def report(path: Path, out: Path) -> tuple[object, list[Path]]:
+    def report(path: Path, out: Path, empty: bool = True) -> tuple[object, list[Path]]:
         seen.append((Path(path), Path(out)))
         run = SimpleNamespace(state="completed", state_shown="completed", complete=True, incomplete_reason="",
                               recovered_at="", attrs={}, reason="protocol completed",
                               completed_steps=lambda: [], program=np.zeros((0, 1)))
-        return SimpleNamespace(run=run, steps=[], protocol="p", by_kind=lambda kind: [], notes=[]), []
+        # one step analysed (a file with none is refused: nothing to report), its table row empty
+        step = SimpleNamespace(kind="identification", name="drive", figures={}, prototype=None, hung_mass=None,
+                               temperature=None, frequency=1.0, voltage=0.0, no_drive_v=15.3)
+        return SimpleNamespace(run=run, steps=[step], protocol="p", by_kind=lambda kind: [], notes=[]), []
 
     monkeypatch.setattr(bench.report, "report", report)
     out = tmp_path / "d"
