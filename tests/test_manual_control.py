@@ -358,7 +358,8 @@ def test_a_signal_to_a_scripted_session_during_a_command_zeroes_the_output(tmp_p
     assert code == 1
     assert max(abs(v) for _, v in trace) > 2900 and abs(trace[-1][1]) < ZERO_V
     assert [(r[2], r[3]) for r in rows if r[3] not in ("connect", "watch")] == [
-        ("start", "session"), ("ok", "voltage 3kV"), ("interrupted", "watch 3600 0.5"),  # the watch ended,
+        ("start", "session"), ("operator", "session"),  # who (the login name: no --operator)
+        ("ok", "voltage 3kV"), ("interrupted", "watch 3600 0.5"),  # the watch ended,
         ("request", "session"), ("interrupted", "session"),  # the engine's stop: the request, why it stopped,
         ("ramp", "session"), ("safe", "session"), ("end", "session")]  # the exit ramp, 0 V verified, the end
     assert rows[-1][4].startswith(SIGNALS[sig])

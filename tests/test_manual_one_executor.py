@@ -164,3 +164,31 @@ def test_a_pause_signal_during_a_ramp_ends_the_ramp_at_once(tmp_path: Path, monk
     assert [o.status for o in s.outcomes] == ["paused", "ok"], s.outcomes
     assert checks[0] < 10  # the 2nd of 200, and the pause's own reads: not the whole ramp
     assert abs(volts) <= ZERO_V
+
+
+def test_a_limit_tripped_in_a_signalled_pause_s_ramp_latches(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The dielectric breaks down as SIGUSR1 comes: the pause's ramp (supervised as a step's) reads the current
+    beyond the rig's limit — a trip, the output at 0 V and the rig latched (README: a fault latches until an operator
+    resets it), so the next set-point is refused. Before, a trip in that ramp was an error made safe, not latched:
+    the next `voltage` was accepted with no reset (a reviewer)."""
+    monkeypatch.setenv("BENCH_STATE_DIR", str(tmp_path / "state"))
+    count = [0]
+    s = ManualSession(_rig("thesis-sim"), tmp_path / "s.log", virtual=True, echo=lambda _t: None)
+
+    def echo(text: str) -> None:
+        if text.startswith("t "):
+            count[0] += 1
+            if count[0] == 1:
+                s._sim.plant.inject_breakdown()
+                os.kill(os.getpid(), signal.SIGUSR1)
+
+    s.echo = echo
+    with s.signal_handlers(), s:
+        s.run_lines(["voltage 3kV", "watch 3600 0.5", "voltage 2kV"], stop_on_trip=False)
+        s._sim.clock.advance(0.2)
+        volts = float(s._sim.plant.observe().v_out[-1])
+    statuses = [o.status for o in s.outcomes]
+    assert statuses[:2] == ["ok", "trip"], s.outcomes
+    assert "current" in s.outcomes[1].text and "latched" in s.outcomes[1].text, s.outcomes[1]
+    assert statuses[2] == "refused" and "latched" in s.outcomes[2].text, s.outcomes[2]
+    assert abs(volts) <= ZERO_V

@@ -65,7 +65,8 @@ def manual_session(rig_file: Path, *, script: Path | None = None, log: Path | No
     else:  # who acts, as a run records it (outside tester: a reset here recorded "an operator not named")
         from bench.app.runs import login_name
 
-        with contextlib.suppress(ValueError):  # a login name that is no valid label: not named, as before
+        # no login name (no USER, a uid not in passwd: KeyError) or none that is a valid label: not named, as before
+        with contextlib.suppress(ValueError, KeyError, OSError):
             operator = login_name(None)
     rig = load_rig(rig_file)
     path = log if log is not None else Path("runs") / session_log_name(rig)

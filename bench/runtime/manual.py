@@ -589,7 +589,9 @@ class ManualSession:
             return Outcome(shown, "interrupted", f"pause: {self.end_reason}: the session ends")
         except InterlockTrip as trip:
             return Outcome(shown, "trip", self._latch(trip))
-        except (SafetyTrip, PauseRequested) as exc:
+        except SafetyTrip as exc:  # a limit read in the supervised pause ramp (a breakdown): latched, as a command's
+            return Outcome(shown, "trip", f"pause: {exc.reason}; {self._trip_made_safe(engine, exc)}")
+        except PauseRequested as exc:
             return Outcome(shown, "error", f"pause: {exc}; {self._made_safe(engine)}")
         except OSError as exc:  # the readings' file: the output is made safe all the same
             self._storage_failed(exc)

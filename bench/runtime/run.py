@@ -447,8 +447,10 @@ def _state_writable() -> None:
     folder = state_dir()
     try:
         folder.mkdir(parents=True, exist_ok=True)
-        with tempfile.NamedTemporaryFile(dir=folder, prefix=".probe-"):
-            pass
+        with tempfile.NamedTemporaryFile(dir=folder, prefix=".probe-") as probe:
+            probe.write(b"\0" * 4096)  # a marker's bytes, on disk: a full disk fails here, not after the run file
+            probe.flush()
+            os.fsync(probe.fileno())
     except OSError as exc:
         raise ValueError(f"state folder {folder}: the interlock's armed marker cannot be written there "
                          f"({exc.strerror or exc}); nothing was energised — make it writable or set "
