@@ -70,3 +70,37 @@ def test_a_run_without_a_laser_record_names_the_nominal_field_only(short_run: Pa
     assert res.exit_code == 0 and "×" not in res.output, res.output
     assert f"highest nominal field (|V| / unstretched thickness): {VOLTS / L3 / 1e6:.2f} MV/m" in res.output
     assert "not compared with the breakdown field 100.0 MV/m (a true-field limit)" in res.output
+
+
+def test_each_run_file_is_read_once_while_it_is_unchanged(short_run: Path, tmp_path: Path,
+                                                          monkeypatch: pytest.MonkeyPatch) -> None:
+    """The true field needs each run's whole voltage record: a second `specimen show` of unchanged files reads none
+    of them again (a reviewer: overnight 10-kHz runs read in full at every call); a file written since is read."""
+    import os
+
+    import bench.storage.catalog as catalog
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    runs = tmp_path / "runs"
+    runs.mkdir()
+    for name in ("a.h5", "b.h5"):
+        shutil.copy(short_run, runs / name)
+        with h5py.File(runs / name, "r+") as f:
+            f.attrs["specimen_id"] = "S1"
+            f.attrs["run_id"] = name * 16
+    read: list[str] = []
+    real = catalog.peak_true_field
+    monkeypatch.setattr(catalog, "peak_true_field", lambda p: read.append(Path(p).name) or real(p))
+    first = CliRunner().invoke(app, ["specimen", "show", "S1", "--dir", str(runs), "--json"])
+    assert first.exit_code == 0, first.output
+    assert sorted(read) == ["a.h5", "b.h5"]
+    read.clear()
+    again = CliRunner().invoke(app, ["specimen", "show", "S1", "--dir", str(runs), "--json"])
+    assert again.exit_code == 0 and read == [], (again.output, read)
+    assert json.loads(again.stdout)["max_true_field_V_per_m"] == json.loads(first.stdout)["max_true_field_V_per_m"]
+    with h5py.File(runs / "b.h5", "r+") as f:  # b changed since: its voltage doubled
+        f["amplifier/voltage"][...] = 2 * f["amplifier/voltage"][...]
+    st = os.stat(runs / "b.h5")
+    os.utime(runs / "b.h5", ns=(st.st_atime_ns, st.st_mtime_ns + 1_000_000_000))
+    changed = CliRunner().invoke(app, ["specimen", "show", "S1", "--dir", str(runs), "--json"])
+    assert changed.exit_code == 0 and read == ["b.h5"], (changed.output, read)

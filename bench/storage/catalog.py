@@ -27,6 +27,7 @@ What a row holds besides the file's metadata (per run, from the recorded data, f
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -389,6 +390,56 @@ def peak_true_field(path: str | Path) -> float | None:
     return best
 
 
+TRUE_FIELD_CACHE = "true-field.json"  # in the user's cache folder: each run file's peak true field, by size and time
+
+
+def _cache_file() -> Path:
+    """The peak-true-field cache (``$XDG_CACHE_HOME`` or ~/.cache, ``dea-bench/``): only a saving of time — lost or
+    unreadable, each file is read again."""
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "dea-bench" / TRUE_FIELD_CACHE
+
+
+class TrueFields:
+    """:func:`peak_true_field` of run files, each read once while it is unchanged (its size and modification time):
+    a specimen's history reads every run's whole amplifier stream, which for overnight 10-kHz runs is minutes of
+    reading at every ``bench specimen show`` (a reviewer). Kept in :func:`_cache_file` between calls."""
+
+    def __init__(self) -> None:
+        self.path = _cache_file()
+        try:
+            loaded = json.loads(self.path.read_text(encoding="utf-8"))
+            self.known: dict[str, Any] = loaded if isinstance(loaded, dict) else {}
+        except (OSError, ValueError):
+            self.known = {}
+        self.changed = False
+
+    def __call__(self, path: str) -> float | None:
+        try:
+            st = os.stat(path)
+        except OSError:
+            return None
+        key, stamp = str(Path(path).resolve()), [st.st_size, st.st_mtime_ns]
+        hit = self.known.get(key)
+        if isinstance(hit, dict) and hit.get("stamp") == stamp:
+            value = hit.get("field")
+            return float(value) if isinstance(value, (int, float)) else None
+        field = peak_true_field(path)
+        self.known[key] = {"stamp": stamp, "field": field}
+        self.changed = True
+        return field
+
+    def save(self) -> None:
+        """Write the cache (atomically; a folder that cannot take it: the next call reads the files again)."""
+        if not self.changed:
+            return
+        with contextlib.suppress(OSError):
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = self.path.with_name(f".{self.path.name}.{os.getpid()}")
+            tmp.write_text(json.dumps(self.known), encoding="utf-8")
+            os.replace(tmp, self.path)
+
+
 def _f(v: Any) -> float | None:
     return None if v is None else float(v)
 
@@ -667,13 +718,14 @@ def specimen_history(rows: list[dict[str, Any]]) -> dict[str, Any]:
     true: tuple[float, float | None, str] | None = None  # (true field, breakdown field, file)
     fits: dict[tuple[str, str, str], tuple[int, dict[str, Any], str]] = {}
     failures = []
+    true_field = TrueFields()
     for r in sorted(rows, key=lambda r: (r["start_time"] or "", r["path"])):
         cum_t += r["hv_time_s"] or 0.0
         cum_c += r["hv_cycles"] or 0
         field = r["max_nominal_field_V_per_m"]
         if field is not None and (best is None or field > best[0]):
             best = (field, r["breakdown_field_V_per_m"], r["path"])
-        e_true = peak_true_field(r["path"]) if field is not None else None
+        e_true = true_field(r["path"]) if field is not None else None
         if e_true is not None and (true is None or e_true > true[0]):
             true = (e_true, r["breakdown_field_V_per_m"], r["path"])
         if r["state"] in ("tripped", "error") or not r["complete"]:
@@ -692,6 +744,7 @@ def specimen_history(rows: list[dict[str, Any]]) -> dict[str, Any]:
                      "hv_time_s": r["hv_time_s"], "hv_cycles": r["hv_cycles"],
                      "cumulative_hv_time_s": cum_t, "cumulative_cycles": cum_c,
                      "max_nominal_field_V_per_m": field, "max_true_field_V_per_m": e_true})
+    true_field.save()
     params: dict[str, list[dict[str, Any]]] = {}
     for cycles, fit, path in sorted(fits.values(), key=lambda x: (x[0], x[1]["created"])):
         for name, value in fit["parameters"].items():
