@@ -177,3 +177,22 @@ def test_inspect_says_a_paused_run_is_paused_while_it_is(tmp_path: Path) -> None
     finally:
         proc.kill()
         proc.wait(30)
+
+
+@pytest.mark.parametrize("how", ["file-size-limit", "killed"])
+def test_the_watch_page_says_a_file_whose_writer_is_gone_ended(tmp_path: Path, how: str,
+                                                               monkeypatch: pytest.MonkeyPatch) -> None:
+    """`bench watch` on such a file showed it running for good (its page waited on a run that had ended): the
+    follower says the state a listing shows — a failed write at once, a dead writer once the file's status has not
+    moved for a while and no process holds it open."""
+    import bench.watch.follow as follow
+
+    monkeypatch.setattr(follow, "MIN_LOOK_S", 0.0)
+    monkeypatch.setattr(follow, "GONE_AFTER_S", 0.0)  # the file's status stands still from the first look on
+    f = follow.Follower(_ended_file(tmp_path, how), pixels=100, budget=2_000)
+    try:
+        f.look()
+        f.look()
+        assert f.info["state"] == SHOWN[how], f.info
+    finally:
+        f.close()

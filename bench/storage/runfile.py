@@ -481,11 +481,11 @@ def _read_body(f: h5py.File, p: Path, attrs: dict[str, Any], streams: bool) -> R
             run.streams[name] = Stream(name, g["t"][:n], cols, {k: unit_of(d.attrs["units"]) for k, d in g.items()},
                                        float(g.attrs.get("rate_Hz", 0.0)))
     if run.state == "running" and not run.complete:
-        run.orphaned = _orphaned(p)
+        run.orphaned = orphaned_file(p)
     return run
 
 
-def _orphaned(p: Path) -> bool:
+def orphaned_file(p: Path) -> bool:
     """Whether the file is still marked open by an SWMR writer that no longer exists (here)."""
     try:
         with p.open("rb") as fh:

@@ -13,6 +13,7 @@ its last one on (the last bin may have grown), or all of them after a merge (a n
 
 from __future__ import annotations
 
+import errno
 import json
 import threading
 import time
@@ -25,12 +26,13 @@ import h5py
 import numpy as np
 
 from bench.storage.chunks import StreamChunks
-from bench.storage.runfile import open_h5, read_status, read_table, valid_counts
+from bench.storage.runfile import KILLED, open_h5, read_status, read_table, valid_counts
 
 FLAGS = ("valid", "ok")  # flag columns: not drawn as signals (as bench plot)
 PIXELS = 1000  # bins per stream at least (at most twice that): about a screen's width
 BUDGET = 2_000_000  # records read per stream per look (a finished long file is caught up over several looks)
 MIN_LOOK_S = 0.2  # a look sooner than this after the last one reads nothing (several pages poll one file)
+GONE_AFTER_S = 5.0  # a "running" file whose status has not moved this long: is its writer gone? (a /proc scan)
 LIMITS = {"V": "max_voltage_V", "A": "max_current_A", "N": "max_force_N"}  # rig limit drawn on panels of a unit
 # events drawn on the time axis (the engine's kinds): step starts, operator actions, uploads after a step, how the run
 # ended
@@ -130,6 +132,7 @@ class Follower:
         self._lock = threading.Lock()
         self._looked = -1e9
         self.read_records = 0  # records read in all (the benchmark's count)
+        self._updated, self._moved, self._scanned, self._gone = float("nan"), 0.0, -1e9, False  # _writer_gone's
 
     def close(self) -> None:
         with self._lock:
@@ -196,6 +199,8 @@ class Follower:
         held = [m["kind"] for m in marks if m["kind"] in ("pause", "resume")]
         if state == "running" and held and held[-1] == "pause":  # the file says running; its events, paused
             state = "paused"
+        if state in ("running", "paused"):  # the file says so, but its writer may be gone: ended, not stamped
+            state, reason = self._writer_gone(state, reason, updated)
         from bench.runtime.latch import latched
 
         latch = latched(self.static["rig"]) if self.static.get("rig") else None
@@ -203,6 +208,27 @@ class Follower:
         self.info = {"state": state, "reason": reason, "updated": updated,
                      "events": [m for m in marks if m["kind"] in MARKED], "faults": faults,
                      "latched": json.dumps(latch) if latch else ""}
+
+    def _writer_gone(self, state: str, reason: str, updated: float) -> tuple[str, str]:
+        """(state, reason) of a file that says it is running (or paused) whose writer is gone, as a listing shows it
+        (:func:`~bench.storage.runfile.state_shown`): its write failed (``/status/reason``, at once), or, once its
+        status has not moved for :data:`GONE_AFTER_S`, no process here holds it open (a killed run; the page showed
+        it running for good). The /proc scan runs at most every :data:`GONE_AFTER_S`, and only then."""
+        from bench.storage.recorder import STORAGE_FAULT
+        from bench.storage.runfile import DISK_FULL, WRITE_FAILED, orphaned_file, state_shown
+
+        if reason.startswith(STORAGE_FAULT):
+            full = any(f"(errno {e})" in reason for e in (errno.ENOSPC, errno.EDQUOT))
+            return state_shown("running", False, DISK_FULL if full else WRITE_FAILED), reason
+        now = time.monotonic()
+        if updated != self._updated:
+            self._updated, self._moved = updated, now
+        elif now - self._moved >= GONE_AFTER_S and now - self._scanned >= GONE_AFTER_S:
+            self._scanned = now
+            self._gone = orphaned_file(self.path)
+        if self._gone and updated == self._updated:
+            return state_shown("running", False, KILLED), f"{KILLED}: no process holds the file open"
+        return state, reason
 
     def payload(self, have: dict[str, tuple[int, int]]) -> dict[str, Any]:
         """State, marks, limits and each stream's bins a client lacks (``have``: stream → (generation, bins))."""
