@@ -74,6 +74,8 @@ def test_a_file_whose_writer_is_gone_is_not_listed_inspected_or_filtered_as_runn
     assert f"{shown}, incomplete" in row and "running" not in row, out
     code, out = _cli("runs", "list", "--dir", str(path.parent), "--state", "running", "--json", catalog=cat)
     assert code == 0 and json.loads(out) == [], out
+    code, out = _cli("runs", "list", "--dir", str(path.parent), "--state", "ended", "--json", catalog=cat)
+    assert code == 0 and [Path(r["path"]).name for r in json.loads(out)] == [path.name], out  # selectable (a reviewer)
     assert describe(chain(path)) == f"{path.name} ({shown}, incomplete)"  # inspect's and report's campaign line
 
 

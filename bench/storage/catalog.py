@@ -230,16 +230,21 @@ class Catalog:
             q = q.where(t.c.protocol_name == protocol)
         if since is not None:
             q = q.where(t.c.start_time >= since)
-        if state is not None:
-            q = q.where(t.c.state == state)
+        if state is not None:  # ENDED: the files that say "running" whose writer is gone
+            q = q.where(t.c.state == ("running" if state == ENDED else state))
         with self.engine.connect() as conn:
             out = [dict(r._mapping) for r in conn.execute(q.order_by(t.c.start_time, t.c.path))]
-        if state is not None:  # as listed: a file whose writer is gone says "running" and is not (found by a tester)
+        if state == ENDED:  # crashed or killed, or ended unstamped (a full disk): what --state running leaves out
+            out = [r for r in out if shown_state(r) != "running"]
+        elif state is not None:  # as listed: a file whose writer is gone says "running" and is not (a tester)
             out = [r for r in out if shown_state(r) == state]
         return out
 
 
 # ---- rows from files ----------------------------------------------------------------------------------------------
+
+
+ENDED = "ended"  # a --state of its own: the runs whose file says running and whose writer is gone (not stamped)
 
 
 def shown_state(row: dict[str, Any]) -> str:
