@@ -514,8 +514,9 @@ def test_an_infinite_set_point_is_refused_by_the_report_s_windowed_reads(short_r
     run = tmp_path / "inf-setpoint.h5"
     shutil.copy2(short_run, run)
     with h5py.File(run, "r+") as f:
-        f["setpoints/voltage"][1] = np.inf
-        t1 = float(f["setpoints/t"][1])
+        last = f["setpoints/voltage"].shape[0] - 1  # the 0-V row at the end (a DAQ rig's only host set-point)
+        f["setpoints/voltage"][last] = np.inf
+        t1 = float(f["setpoints/t"][last])
     with open_source(run) as src, pytest.raises(ValueError) as err:
         applied_window(src.streams, t1 - 1.0, t1 + 1.0)
     assert str(err.value).startswith(f"run file {run}: setpoints/voltage holds 1 infinite value(s)")

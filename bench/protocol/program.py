@@ -337,8 +337,9 @@ def sample_counts(program: Program) -> dict[str, int]:
         chained = [i > 0 and plays_on(segs[i - 1], s) for i, s in enumerate(segs)]
         scans = sum(max(1, round(s.duration * daq.scan_rate_Hz)) + (not c)
                     for s, c in zip(segs, chained, strict=True) if s.duration > 0)
-        counts = {"setpoints": (int(T * rec.setpoint_Hz) if rig.motor is not None else 0) + len(program.segments),
-                  "amplifier": scans}
+        # the host's set-point rows: the motor's ticks, and the end's 0 V (the DAQ plays each step's voltage itself;
+        # a shutdown ramp's rows come only where the output is up at the end)
+        counts = {"setpoints": (int(T * rec.setpoint_Hz) if rig.motor is not None else 0) + 1, "amplifier": scans}
         if daq.laser_ain is not None:
             counts["laser"] = scans
         if daq.force_ain is not None:
