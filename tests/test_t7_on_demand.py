@@ -369,3 +369,20 @@ def test_a_refill_never_writes_more_than_the_buffer_surely_holds_whatever_the_cl
     assert s.out_written >= plan.out_ahead  # what fits still went in
     rig.daq.clock = rig.clock.now
     rig.daq.stop()
+
+
+def test_a_host_wait_a_rounding_short_of_a_packet_s_scan_time_sends_the_packet(raw_twin: Rig) -> None:
+    """Scan k is taken at t_enable + (k + 1) / rate [D]; a clock a rounding short of the scan that fills a packet
+    (a sum of run times, as the host's own scan count reads it, to a millionth of a scan) takes it, so the host's
+    wait there sends the packet. Before, the twin's wake compared the exact instant: the host's wait sent nothing and
+    the host waited out its timeout (a second Ctrl-C's settle stream, 30 s of wall time per run in virtual time)."""
+    with socket.create_connection(("127.0.0.1", raw_twin.port), timeout=2) as s, \
+            socket.create_connection(("127.0.0.1", raw_twin.stream_port), timeout=STREAM_WAIT_S) as data:
+        _configure(s)  # 1 kHz, two channels, 4 samples a packet: scans 0 and 1 fill packet 0, scan 1 at 2 ms
+        full = raw_twin.sim.t_enable + 2 / 1000.0
+        raw_twin.clock.advance(float(np.nextafter(full, -np.inf)) - raw_twin.clock.now())
+        assert raw_twin.clock.now() < full
+        _round_trip(s)
+        raw_twin.sim.host_waits()
+        got = data.recv(28, socket.MSG_WAITALL)
+    assert raw_twin.sim.packets_sent == 1 and got[:2] == bytes.fromhex("0000")  # TransID 0: the first packet

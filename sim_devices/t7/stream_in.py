@@ -152,7 +152,12 @@ class StreamEngine(StreamOut):
         missing = max(int(self.regs[R_SPP]) - self.fifo.size, 1)
         scans = -(-missing // n_in)  # scan k is taken at t_enable + (k + 1) / rate
         nscans = int(self.regs[R_NSCANS])
-        return self.t_enable + (min(self.produced + scans, nscans) if nscans else self.produced + scans) / self.rate
+        k = min(self.produced + scans, nscans) if nscans else self.produced + scans
+        # the instant the k-th scan counts as taken, with :meth:`_cur_scan`'s tolerance of a millionth of a scan: a
+        # clock a rounding short of t_enable + k / rate takes the scan there, so the packet is due there too — else
+        # a host waiting on demand for the packet its own count (the same tolerance) says is due waited out its
+        # timeout, the twin never woken (a second Ctrl-C's settle stream: 30 s of wall time in virtual time)
+        return self.t_enable + (k - 1e-6) / self.rate
 
 
     def _take_scans(self, due: int) -> None:
