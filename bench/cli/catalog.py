@@ -45,9 +45,10 @@ def _db_errors(fn: Callable[P, R]) -> Callable[P, R]:
 
 
 NO_FIT_PLOT = "no fitted parameters: no plot"  # specimen show on a specimen whose runs hold no fit
-# a run file's /status/state, and "ended": a file that says running whose writer is gone (crashed or killed, or
-# ended unstamped: a full disk), which --state running leaves out (a reviewer: no --state selected them)
-RUN_STATES = ("completed", "running", "interrupted", "tripped", "error", "ended")
+RUN_STATES = ("completed", "running", "interrupted", "tripped", "error")  # a run file's /status/state
+# and --state ended: a file that says running whose writer is gone (crashed or killed, or ended unstamped: a full
+# disk), which --state running leaves out (a reviewer: no --state selected them)
+FILTER_STATES = (*RUN_STATES, "ended")
 
 
 def _refuse_folder(folder: Path, why: str = "") -> NoReturn:
@@ -210,8 +211,8 @@ def runs_list(
     from bench.storage.runfile import state_shown
 
     cutoff = _since(since) if since is not None else None
-    if state is not None and state not in RUN_STATES:
-        raise ValueError(f"--state: {state!r} is not a run state ({', '.join(RUN_STATES)})")
+    if state is not None and state not in FILTER_STATES:
+        raise ValueError(f"--state: {state!r} is not a run state ({', '.join(FILTER_STATES)})")
     if catalog is None and not folder.is_dir():  # its catalogue would be made there: a typo made a new lab folder
         _refuse_folder(folder, " (no run recorded there yet, or --dir misspelt?)")
     notes: list[str] = []
