@@ -411,13 +411,14 @@ class NothingToReportError(ValueError):
         self.analysis = analysis
 
 
-def report(run_path: str | Path, out: str | Path | None = None,
-           empty: bool = True) -> tuple[RunAnalysis, list[Path]]:
+def report(run_path: str | Path, out: str | Path | None = None, empty: bool = True,
+           analysis: RunAnalysis | None = None) -> tuple[RunAnalysis, list[Path]]:
     """Analyse a run file and write its figures; returns the analysis and the PNG paths. The file is opened once
     and read a window at a time (see the module's docstring). A folder holds one run's report (``report.json``
     names it): an earlier report of the same run is replaced; another run's, or (in ``out``) a ``figures.json``
     of no marked report, is refused in one line before anything is written. ``empty=False``: a file with no step
-    analysed is refused (:class:`NothingToReportError`), nothing written."""
+    analysed is refused (:class:`NothingToReportError`), nothing written. ``analysis``: the file's analysis already
+    made (:func:`bench.analysis.runs.analyse`), not repeated."""
     from bench.storage.export import run_metadata
 
     run_path = Path(run_path)
@@ -425,7 +426,7 @@ def report(run_path: str | Path, out: str | Path | None = None,
     out = Path(out) if out is not None else run_path.with_suffix("").with_name(run_path.stem + "-report")
     paths: list[Path] = []
     with open_source(run_path) as src:
-        a = analyse_source(src)
+        a = analysis if analysis is not None else analyse_source(src)
         if not empty and not a.steps:
             raise NothingToReportError(a)
         meta = run_metadata(a.run)

@@ -602,6 +602,7 @@ def test_report_of_two_files_of_the_same_name_gives_each_its_folder(short_run: P
 
     from typer.testing import CliRunner
 
+    import bench.analysis.runs
     import bench.report
     from bench.cli import app
 
@@ -614,16 +615,21 @@ def test_report_of_two_files_of_the_same_name_gives_each_its_folder(short_run: P
             f.attrs["run_id"] = folder * 32
     seen: list[tuple[Path, Path]] = []
 
-    def report(path: Path, out: Path, empty: bool = True) -> tuple[object, list[Path]]:
-        seen.append((Path(path), Path(out)))
+    def analysed(path: Path) -> SimpleNamespace:
         run = SimpleNamespace(state="completed", state_shown="completed", complete=True, incomplete_reason="",
                               recovered_at="", attrs={}, reason="protocol completed",
                               completed_steps=lambda: [], program=np.zeros((0, 1)))
         # one step analysed (a file with none is refused: nothing to report), its table row empty
         step = SimpleNamespace(kind="identification", name="drive", figures={}, prototype=None, hung_mass=None,
                                temperature=None, frequency=1.0, voltage=0.0, no_drive_v=15.3)
-        return SimpleNamespace(run=run, steps=[step], protocol="p", by_kind=lambda kind: [], notes=[]), []
+        return SimpleNamespace(run=run, steps=[step], protocol="p", by_kind=lambda kind: [], notes=[])
 
+    def report(path: Path, out: Path, empty: bool = True, analysis: object = None) -> tuple[object, list[Path]]:
+        seen.append((Path(path), Path(out)))
+        assert analysis is not None  # several files: each analysed once before any folder is written
+        return analysis, []
+
+    monkeypatch.setattr(bench.analysis.runs, "analyse", analysed)
     monkeypatch.setattr(bench.report, "report", report)
     out = tmp_path / "d"
     res = CliRunner().invoke(app, ["report", *map(str, runs), "--out", str(out)], env={"COLUMNS": "400"})

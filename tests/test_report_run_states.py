@@ -10,9 +10,11 @@ Expected temperatures and step counts come from protocols/short/thesis-sweeps-sh
 from __future__ import annotations
 
 import json
+import shutil
 import tomllib
 from pathlib import Path
 
+import h5py
 import pytest
 from typer.testing import CliRunner
 
@@ -140,7 +142,6 @@ def test_a_fit_of_the_first_file_leaves_out_a_continuation_still_being_written(r
     """`bench fit FIRST` took the files that continued it, also one still being written (its part so far, and the
     fit stored in it). Such a file (state `running`, no dead writer) is now left out of a fit, in one line;
     named, it is taken; a report still shows the whole campaign."""
-    import shutil
 
     import h5py
 
@@ -185,7 +186,6 @@ def test_a_folder_of_stopped_runs_is_read_once_for_their_continuations(runs: dic
     """A reviewer: each stopped file searched its whole folder for a continuation, and report searched twice — 300
     files with 60 stopped ones, ~36k file opens. Six stopped runs (copies of a.h5 as other runs: their own run_id)
     beside a.h5 and b.h5: the folder is indexed once, so the opens grow with the files, not with their square."""
-    import shutil
 
     import h5py
 
@@ -238,6 +238,19 @@ def test_a_run_stopped_at_once_is_refused_in_one_line_naming_the_file_and_why(tm
     assert not (tmp_path / "report").exists()
     code, text = _cli("report", str(stopped.path), "--json")  # --json: the same refusal, no JSON half written
     assert code == 2 and text.startswith(f"error: run file {stopped.path}: nothing to report"), text
+    # several files none of which has a step analysed: refused before any file's folder is written (each one's
+    # report folder was made, then the campaign refused — last note's finding)
+    twin = tmp_path / "copy" / "b.h5"
+    twin.parent.mkdir()
+    shutil.copy(stopped.path, twin)
+    with h5py.File(twin, "r+") as h:  # another run stopped as at once (a copy of the same run is refused first)
+        h.attrs["run_id"] = "stopped-at-once-2"
+    code, text = _cli("report", str(stopped.path), str(twin), "--out", str(tmp_path / "several"))
+    assert code == 2 and text.count("\n") == 1, text
+    assert text.startswith(f"error: no step of {stopped.path}, {twin} could be analysed: nothing to report"), text
+    assert not (tmp_path / "several").exists()
+    code, text = _cli("report", str(stopped.path), str(twin))  # default folders: beside each file, none made
+    assert code == 2 and not list(tmp_path.glob("**/*-report")), text
 
 
 def test_a_file_killed_in_its_first_step_says_no_figures_not_an_empty_line(runs: dict[str, Path],

@@ -143,21 +143,18 @@ def report_runs(runs: list[Path], out: Path | None = None, progress: Progress | 
     isopotential steps, also written as CSV (its path in ``grid``) and drawn beside it.
     ``progress`` gets the fraction of the files done."""
     from bench.report import NothingToReportError, report, save_figure, table3_figure
-    from bench.storage.runfile import ManualSessionError
 
     done = Report()
+    analyses = _analyse_first(runs, done) if len(runs) > 1 else {}
     folders = report_folders(runs) if len(runs) > 1 else {}
     for k, p in enumerate(runs):
+        if len(runs) > 1 and k not in analyses:
+            continue  # a manual session's: skipped, said
         where = out / folders[k] if out is not None and folders else out
-        try:
-            a, paths = report(p, where, empty=len(runs) > 1)  # opens the file once
+        try:  # several: each file analysed once above; alone: opened once for analysis and figures
+            a, paths = report(p, where, empty=len(runs) > 1, analysis=analyses.get(k))
         except NothingToReportError as exc:  # alone: refused in one line, nothing written
             raise ValueError(nothing_to_report(exc.analysis)) from None
-        except ManualSessionError as exc:  # among run files (a glob of runs/): skipped, said; alone: refused
-            if len(runs) == 1:
-                raise
-            done.skipped.append((p, str(exc)))
-            continue
         if where is not None and where.name != p.stem and folders:
             done.notes.append(f"{p}: figures in {where} (another run file is named {p.name})")
         run = a.run  # the file's state as the analysis read it
@@ -167,11 +164,6 @@ def report_runs(runs: list[Path], out: Path | None = None, progress: Progress | 
                                    stopped_line(run, later), run.state_shown))
         if progress is not None:
             progress((k + 1) / len(runs))
-    if not done.runs:  # every file given was a manual session's
-        raise ValueError(f"no run file to report: {len(runs)} manual-control session files "
-                         "(bench devices control), which hold no protocol steps")
-    if not any(r.analysis.steps for r in done.runs):
-        raise ValueError(f"no step of {', '.join(str(r.path) for r in done.runs)} could be analysed: nothing to report")
     grid = table3([s for r in done.runs for s in r.analysis.steps])
     if grid is not None:
         csv_path = (out if out is not None else runs[-1].with_name(runs[-1].stem + "-report")) / "table3.csv"
@@ -181,6 +173,28 @@ def report_runs(runs: list[Path], out: Path | None = None, progress: Progress | 
         done.grid_figure = save_figure(table3_figure(grid), csv_path.with_suffix(".png"))
     done.grid = grid
     return done
+
+
+def _analyse_first(runs: list[Path], done: Report) -> dict[int, Any]:
+    """Each of several run files analysed (by index) before any report is written: manual sessions' files skipped
+    (said in ``done.skipped``); none left, or none with a step analysed, is refused in one line with nothing
+    written (a campaign report that can hold nothing makes no folders)."""
+    from bench.analysis.runs import analyse
+    from bench.storage.runfile import ManualSessionError
+
+    analyses: dict[int, Any] = {}
+    for k, p in enumerate(runs):
+        try:
+            analyses[k] = analyse(p)
+        except ManualSessionError as exc:  # among run files (a glob of runs/): skipped, said
+            done.skipped.append((p, str(exc)))
+    if not analyses:  # every file given was a manual session's
+        raise ValueError(f"no run file to report: {len(runs)} manual-control session files "
+                         "(bench devices control), which hold no protocol steps")
+    if not any(a.steps for a in analyses.values()):
+        raise ValueError(f"no step of {', '.join(str(runs[k]) for k in analyses)} could be analysed: "
+                         "nothing to report")
+    return analyses
 
 
 def _claim_table3(csv_path: Path, runs: list[Any]) -> None:
