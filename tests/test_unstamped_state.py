@@ -161,6 +161,21 @@ sys.stdin.readline()
 """
 
 
+def _listed(path: Path, cat: Path) -> str:
+    """The state `bench runs list` shows for ``path`` (its cell in the table)."""
+    code, out = _cli("runs", "list", "--dir", str(path.parent), catalog=cat)
+    assert code == 0, out
+    row = next(ln for ln in out.splitlines() if path.name in ln)
+    return next(c.strip() for c in row.split("│") if "incomplete" in c or c.strip() in ("running", "completed"))
+
+
+def _selected(path: Path, cat: Path, state: str) -> list[str]:
+    """The file names `bench runs list --state STATE --json` lists in ``path``'s folder."""
+    code, out = _cli("runs", "list", "--dir", str(path.parent), "--state", state, "--json", catalog=cat)
+    assert code == 0, out
+    return [Path(r["path"]).name for r in json.loads(out)]
+
+
 def test_inspect_says_a_paused_run_is_paused_while_it_is(tmp_path: Path) -> None:
     path = tmp_path / "paused.h5"
     proc = subprocess.Popen([sys.executable, "-c", PAUSED_WRITER, str(path)], stdin=subprocess.PIPE,
@@ -171,11 +186,18 @@ def test_inspect_says_a_paused_run_is_paused_while_it_is(tmp_path: Path) -> None
         _, out = _cli("inspect", str(path))
         flat = " ".join(out.split())
         assert "state │ paused — INCOMPLETE" in flat and "running —" not in flat, out
+        # the catalogue's listing too (it listed a paused run "running": last session's note)
+        cat = tmp_path / "cat.sqlite"
+        assert _listed(path, cat) == "paused, incomplete"
+        assert _selected(path, cat, "paused") == [path.name]
+        assert _selected(path, cat, "running") == [] and _selected(path, cat, "ended") == []
         proc.stdin.write("\n")
         proc.stdin.flush()
         assert proc.stdout.readline().strip() == "resumed"
         _, out = _cli("inspect", str(path))
         assert "state │ running — INCOMPLETE" in " ".join(out.split()), out  # resumed: running again
+        assert _listed(path, cat) == "running, incomplete"  # the row is read again: its file changed
+        assert _selected(path, cat, "paused") == [] and _selected(path, cat, "running") == [path.name]
     finally:
         proc.kill()
         proc.wait(30)

@@ -46,9 +46,9 @@ def _db_errors(fn: Callable[P, R]) -> Callable[P, R]:
 
 NO_FIT_PLOT = "no fitted parameters: no plot"  # specimen show on a specimen whose runs hold no fit
 RUN_STATES = ("completed", "running", "interrupted", "tripped", "error")  # a run file's /status/state
-# and --state ended: a file that says running whose writer is gone (crashed or killed, or ended unstamped: a full
-# disk), which --state running leaves out (a reviewer: no --state selected them)
-FILTER_STATES = (*RUN_STATES, "ended")
+# and --state paused (a run under way held by `bench pause`) and ended (a file that says running whose writer is gone:
+# crashed or killed, or ended unstamped, a full disk), which --state running leaves out (a reviewer: none selected them)
+FILTER_STATES = (*RUN_STATES, "paused", "ended")
 
 
 def _refuse_folder(folder: Path, why: str = "") -> NoReturn:
@@ -198,8 +198,9 @@ def runs_list(
     since: Annotated[str | None, typer.Option("--since", help="Only runs started at or after this date "
                                               "(YYYY-MM-DD[THH:MM], local time).")] = None,
     state: Annotated[str | None, typer.Option("--state", help="Only runs in this state (completed, running, "
-                                              "interrupted, tripped, error; ended: crashed, killed or not "
-                                              "stamped, e.g. a full disk).")] = None,
+                                              "interrupted, tripped, error; paused: under way, held by "
+                                              "`bench pause`; ended: crashed, killed or not stamped, e.g. a full "
+                                              "disk).")] = None,
     everywhere: EverywhereOpt = False,
     catalog: CatalogOpt = None,
     json_out: JsonOpt = False,

@@ -230,12 +230,12 @@ class Catalog:
             q = q.where(t.c.protocol_name == protocol)
         if since is not None:
             q = q.where(t.c.start_time >= since)
-        if state is not None:  # ENDED: the files that say "running" whose writer is gone
-            q = q.where(t.c.state == ("running" if state == ENDED else state))
+        if state is not None:  # ENDED: the files that say "running" whose writer is gone; PAUSED: held, under way
+            q = q.where(t.c.state == ("running" if state in (ENDED, PAUSED) else state))
         with self.engine.connect() as conn:
             out = [dict(r._mapping) for r in conn.execute(q.order_by(t.c.start_time, t.c.path))]
         if state == ENDED:  # crashed or killed, or ended unstamped (a full disk): what --state running leaves out
-            out = [r for r in out if shown_state(r) != "running"]
+            out = [r for r in out if shown_state(r) not in ("running", PAUSED)]
         elif state is not None:  # as listed: a file whose writer is gone says "running" and is not (a tester)
             out = [r for r in out if shown_state(r) == state]
         return out
@@ -245,6 +245,7 @@ class Catalog:
 
 
 ENDED = "ended"  # a --state of its own: the runs whose file says running and whose writer is gone (not stamped)
+PAUSED = "paused"  # a --state of its own: the runs under way that are paused (the file says running)
 
 
 def shown_state(row: dict[str, Any]) -> str:

@@ -41,6 +41,10 @@ DISK_FULL = "no end recorded: the disk was full"
 WRITE_FAILED = "no end recorded: writing the file failed"
 ENDED_SHOWN = {KILLED: "crashed or killed", DISK_FULL: "ended unstamped: disk full",
                WRITE_FAILED: "ended unstamped: write failed"}  # each such start, the state a listing shows
+# a run under way that is paused (its last pause event not followed by a resume): the start of its incomplete_reason,
+# so the catalogue's row (which keeps that reason) lists it "paused" as inspect does
+PAUSED = "no end recorded: the run is paused"
+SHOWN = {**ENDED_SHOWN, PAUSED: "paused"}
 
 
 def state_shown(state: str, complete: bool, incomplete_reason: str) -> str:
@@ -49,7 +53,7 @@ def state_shown(state: str, complete: bool, incomplete_reason: str) -> str:
     still going after ``bench recover`` (found by an outside tester), and so did a run that ended on a full disk
     (its writer abandoned the file when a write failed, a second tester): shown as ended, without its stamp."""
     if state == "running" and not complete:
-        for start, shown in ENDED_SHOWN.items():
+        for start, shown in SHOWN.items():
             if incomplete_reason.startswith(start):
                 return shown
     return state
@@ -86,15 +90,16 @@ class RunFile:
 
     @property
     def state_shown(self) -> str:
-        """:func:`state_shown` of this file; "paused" for a run under way that is paused (its last ``pause`` event
-        not yet followed by a ``resume``, as ``bench pause`` and the watch page read it): its file says ``running``
-        all the while, and `bench inspect` showed it so (found by an outside tester)."""
-        shown = state_shown(self.state, self.complete, self.incomplete_reason)
-        if shown == "running" and not self.complete and not self.recovered_at:
-            held = [kind for _, _, kind, _ in self.event_list() if kind in ("pause", "resume")]
-            if held and held[-1] == "pause":
-                return "paused"
-        return shown
+        """:func:`state_shown` of this file; "paused" for a run under way that is paused (:attr:`paused`): its file
+        says ``running`` all the while, and `bench inspect` showed it so (found by an outside tester)."""
+        return state_shown(self.state, self.complete, self.incomplete_reason)
+
+    @property
+    def paused(self) -> bool:
+        """Whether its last ``pause`` event is not yet followed by a ``resume`` (as ``bench pause`` and the watch
+        page read it)."""
+        held = [kind for _, _, kind, _ in self.event_list() if kind in ("pause", "resume")]
+        return bool(held) and held[-1] == "pause"
 
     @property
     def storage_fault(self) -> str:
@@ -120,6 +125,8 @@ class RunFile:
         if self.orphaned:
             return (f"{KILLED} (no process on this machine has the file open; `bench recover` releases it for other "
                     "HDF5 tools)")
+        if self.state == "running" and self.paused:
+            return f"{PAUSED} (`bench resume {self.path} --why …` continues it), or it crashed / was killed"
         if self.state == "running":
             return "no end recorded: the run is still going, or it crashed / was killed"
         return "finished but not finalised (writer stopped before stamping the file)"
