@@ -146,6 +146,9 @@ def test_an_output_that_does_not_follow_the_ramp_latches_and_goes_to_0_v_at_once
     old shutdown read nothing in the ramp, and its final read at 0 V verified the zero: no latch at all."""
     result, run, t_plant, v_plant, _, _ = _run(tmp_path, ramp_s=SLOW_RAMP_S, fault="gain")
     assert result.latched and "output mismatch" in result.latched, (result.state, result.latched)
+    # the run's state says so (it said "interrupted", the stop's, with the latch only an event: last note)
+    assert result.state == run.state == "tripped", (result.state, run.state)
+    assert run.reason.startswith("safety trip during the ramp to 0 V: ") and "(after: " in run.reason, run.reason
     (t_req, *_), = _events(run, "request")
     assert any("during the ramp to 0 V" in txt and "output mismatch" in txt for *_, txt in _events(run, "interlock"))
     # the gain fault shows at the plant (the trial tests something): above the held value after the stop
@@ -169,6 +172,8 @@ def test_a_limit_exceeded_during_the_ramp_is_a_trip_and_the_ramp_still_ends_at_0
     # seen in the ramp (its first reading comes with its first set-point, SLOW_RAMP_S / 10 in), not at its end
     assert t_req < trips[0][0] <= t_req + SLOW_RAMP_S / 10 + 1 / MONITORS_HZ + BOUND_S
     assert result.latched.startswith("safety trip") and "current" in result.latched, result.latched
+    assert result.state == run.state == "tripped", (result.state, run.state)  # not the stop's "interrupted"
+    assert run.reason.startswith("safety trip during the ramp to 0 V: ") and "current" in run.reason, run.reason
     amp = run.streams["amplifier"]
     ramp = (amp.t > t_req) & (amp.t < t_req + SLOW_RAMP_S)
     assert np.abs(amp.columns["current"][ramp]).max() > 5e-3  # the reading that tripped it is in the file

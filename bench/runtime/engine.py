@@ -288,6 +288,8 @@ class Engine:
         self._final_position = math.nan  # the motor's position read by the shutdown once at rest [m]
         self._streamed_settle = False  # the shutdown's stream recorded the monitors through the settle after 0 V
         self._settle_recorded = False  # 0 V commanded at once, the settle after it recorded on a stream of inputs
+        self._ramp_fault: SafetyTrip | InterlockTrip | None = None  # a trip the shutdown ramp's monitor reads saw
+        self.ended: tuple[str, str] = ("", "")  # the state and reason the shutdown recorded (:meth:`_shut_down`)
         self._pause_by: str | None = None  # who asked for a pause (signal, another thread); None: nobody
         self._resume_by: str | None = None
         self._control_seen: ControlWord = NO_WORD  # control file: (stamp, pause?, by/why, stop?)
@@ -1171,6 +1173,7 @@ class Engine:
                 state, reason = "error", f"internal error: {type(exc).__name__}: {exc}"
         try:
             safe_path = self._shut_down(state, reason)
+            state, reason = self.ended  # a trip during the ramp to 0 V: "tripped", not "completed"
         finally:
             signals.__exit__(None, None, None)
         if (self._storage_failed or self.rec.failed) and state != "error":
@@ -1262,6 +1265,11 @@ class Engine:
         if not self.commands:  # a request that came too late to change anything is recorded, not lost
             self._take_requests(ending=state)
         self._event("safe", safe_path)
+        if self._ramp_fault is not None and state in ("completed", "interrupted"):  # the run's end was not clean:
+            # a limit trip or an interlock fault in the ramp to 0 V (ADAM rigs' monitor reads) said "completed"
+            why = self._ramp_fault.reason
+            state, reason = "tripped", f"safety trip during the ramp to 0 V: {why} (after: {reason})"
+        self.ended = (state, reason)
         if finish:
             self._record(self.rec.finish, state, f"{reason} | {safe_path}")
         self.snapshot.state = state
@@ -1420,13 +1428,13 @@ class Engine:
                 run(self.ctx, due - self.ctx.offset)
             except InterlockTrip as trip:
                 if self.latched is None:
-                    self.latched = trip
+                    self.latched = self._ramp_fault = trip
                     self._event("interlock", f"latched at {now:.3f} s, during the ramp to 0 V ({trip.kind}): "
                                 f"{trip.detail}; 0 V at once, and the output stays at 0 V until an operator resets "
                                 "the latch")
             except SafetyTrip as trip:
                 if self.tripped is None and self.latched is None:
-                    self.tripped = trip
+                    self.tripped = self._ramp_fault = trip
                     self._event("tripped", f"during the ramp to 0 V at {now:.3f} s: safety trip: {trip.reason}; "
                                 "the ramp goes on to 0 V")
                 elif "limit" not in said:
