@@ -302,17 +302,15 @@ def test_a_reading_whose_record_fails_is_still_checked(passes: bool) -> None:
     assert checked == [{"current": 6e-3}]
 
 
-def test_a_stop_signal_during_a_pause_ramp_at_the_prompt_ramps_on(tmp_path: Path) -> None:
-    """A pause asked for at the prompt (SIGUSR1: the keep-alive thread ramps 3 kV down over ``shutdown_ramp_s``),
-    then SIGTERM in that ramp: the session's stop ramps on from where the pause's ramp was (README: the exit ramps
-    the output to 0 V over ``shutdown_ramp_s``) — no one-step drop, no `error` line (before: "pause: …; output
-    zeroed")."""
+def _pause_ramp_then_sigterm(folder: Path, ramp_s: float) -> tuple[list[str], list[list[str]], np.ndarray, float]:
+    """A manual session at 3 kV, SIGUSR1 (a pause: the keep-alive thread ramps down over ``ramp_s``), SIGTERM once
+    the output is under 2 kV: what it echoed, its log's rows, the plant's (t, v_out) and the SIGTERM's plant time."""
     rig = load_rig(RIGS / "thesis-sim.toml")
-    ramp_s = 3.0  # long enough to signal within the pause's ramp
     rig = rig.model_copy(update={"limits": rig.limits.model_copy(update={"shutdown_ramp_s": ramp_s})})
     seen: list[str] = []
     history: list[tuple[float, float]] = []
-    s = ManualSession(rig, tmp_path / "s.log", echo=seen.append)
+    folder.mkdir()
+    s = ManualSession(rig, folder / "s.log", echo=seen.append)
     with s.signal_handlers(), s:
         sim = s._sim
         sim.plant.listeners.append(lambda b: history.extend(zip(b.t.tolist(), b.v_out.tolist(), strict=True)))
@@ -327,10 +325,26 @@ def test_a_stop_signal_during_a_pause_ramp_at_the_prompt_ramps_on(tmp_path: Path
             time.sleep(0.02)
         os.kill(os.getpid(), signal.SIGTERM)
         t_stop = history[-1][0]
+    rows = [line.split("\t") for line in (folder / "s.log").read_text(encoding="utf-8").splitlines()]
+    return seen, rows, np.array(history).T, t_stop
+
+
+def test_a_stop_signal_during_a_pause_ramp_at_the_prompt_ramps_on(tmp_path: Path,
+                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    """A pause asked for at the prompt (SIGUSR1: the keep-alive thread ramps 3 kV down over ``shutdown_ramp_s``),
+    then SIGTERM in that ramp: the session's stop ramps on from where the pause's ramp was (README: the exit ramps
+    the output to 0 V over ``shutdown_ramp_s``) — no one-step drop, no `error` line (before: "pause: …; output
+    zeroed"). A wall-clock session: on a loaded host the keep-alive thread can go past the stall bound, and the
+    rig latches (host stall) and goes to 0 V at once, as it must — the premise lost, tried again (its own latch
+    folder), as the browser test does."""
+    ramp_s = 3.0  # long enough to signal within the pause's ramp
+    for attempt in range(3):
+        monkeypatch.setenv("BENCH_STATE_DIR", str(tmp_path / f"state{attempt}"))
+        seen, rows, (t, v), t_stop = _pause_ramp_then_sigterm(tmp_path / f"try{attempt}", ramp_s)
+        if not any(r[2] == "latched" and "host stall" in r[4] for r in rows):
+            break
     assert not [line for line in seen if line.startswith("error")], seen
-    rows = [line.split("\t") for line in (tmp_path / "s.log").read_text(encoding="utf-8").splitlines()]
     assert not [r for r in rows if r[2] == "error"], rows
-    t, v = np.array(history).T
     after = t >= t_stop
     low = t[after & (np.abs(v) < 100)].min()
     assert low - t_stop > 0.5 * ramp_s, low - t_stop  # from 2 kV to 0 V over the exit ramp, not one step
