@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator, model_validator
 
 from bench.core.clock import Clock
 from bench.core.monitor_chain import SAFE_TOUCH_V, T7_AIN, DaqInput, adam_4017p, safe_threshold_v, zero_band_v
@@ -21,6 +21,7 @@ from bench.core.noise import Realism
 from bench.core.plant import TREK_DATASHEET, AmplifierSpec, HVStage, Plant
 from bench.models.lozenge import LozengeParams, MaxwellBranch
 from bench.models.membrane import MembraneParams
+from bench.quantity import parse_quantity
 from bench.tomlfile import first_error, one_line, read_toml, type_hint
 
 STANDARD_GRAVITY_M_PER_S2 = 9.80665  # CGPM 1901 (the load cell's kg → N)
@@ -46,10 +47,46 @@ MONITOR_TRIP_MARGIN_V = 50.0
 LINRS_POSITION_SPAN_M = (2**31 - 1) * 1e-7
 
 
+# a field name's unit suffix → (dimension, the field's unit per SI unit), longest first: "max_voltage_V = '8 kV'"
+# is read as 8000 (the names that end in a ratio's unit, "_N_per_V" and "_m_per_V", take plain numbers only)
+UNIT_SUFFIXES: tuple[tuple[str, tuple[str, float] | None], ...] = (
+    ("_m_per_s2", ("acceleration", 1.0)), ("_V_per_m", ("field", 1.0)), ("_V_per_s", ("slew", 1.0)),
+    ("_m_per_s", ("velocity", 1.0)), ("_N_per_V", None), ("_m_per_V", None), ("_Hz", ("frequency", 1.0)),
+    ("_kg", ("mass", 1.0)), ("_mm", ("length", 1e3)), ("_m", ("length", 1.0)), ("_s", ("time", 1.0)),
+    ("_V", ("voltage", 1.0)), ("_A", ("current", 1.0)), ("_N", ("force", 1.0)), ("_K", ("temperature", 1.0)))
+
+
+def unit_of_name(name: str) -> tuple[str, float] | None:
+    """(dimension, the field's unit per SI unit) of a field whose name ends in its unit (``timeout_s``,
+    ``range_mm``); None for any other name."""
+    return next((unit for suffix, unit in UNIT_SUFFIXES if name.endswith(suffix)), None)
+
+
+def _in_unit_of_name(v: Any, name: str) -> Any:
+    """A rig field's value written with a unit (``"8 kV"``, ``"250 ms"``, ``"25 °C"``; also each item of a pair
+    such as ``stroke_m``) converted to the unit its name gives, as protocol files allow; a plain number (or a string
+    of one) is in that unit, as before. ValueError names what is wrong (the field's name goes with it)."""
+    if isinstance(v, list | tuple):
+        return type(v)(_in_unit_of_name(x, name) for x in v)
+    unit = unit_of_name(name)
+    if not isinstance(v, str) or unit is None:
+        return v  # numbers (and anything else) go to the field's own validation
+    try:
+        return float(v)
+    except ValueError:
+        return parse_quantity(v, unit[0])[0] * unit[1]
+
+
 class _Strict(BaseModel):
-    """Base of every rig table: unknown keys refused, immutable, every float finite (no nan / inf)."""
+    """Base of every rig table: unknown keys refused, immutable, every float finite (no nan / inf); a field whose
+    name ends in its unit takes a quantity with any unit of its dimension (:func:`_in_unit_of_name`)."""
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+    @field_validator("*", mode="before")
+    @classmethod
+    def _units(cls, v: Any, info: ValidationInfo) -> Any:
+        return _in_unit_of_name(v, info.field_name or "")
 
 
 class BusConfig(_Strict):

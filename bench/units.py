@@ -2,14 +2,14 @@
 ``25 °C``, ``5 N/m``, ``5 %`` (any unit pint knows whose dimension fits the option).
 
 A plain number is read in the option's documented unit (``--voltage 7000`` is 7000 V). Parsing goes through
-:func:`bench.protocol.quantity.parse_quantity`, so the CLI accepts exactly what files accept.
+:func:`bench.quantity.parse_quantity`, so the CLI accepts exactly what files accept.
 """
 
 from __future__ import annotations
 
 import math
 
-from bench.protocol.quantity import parse_quantity
+from bench.quantity import parse_quantity
 
 PLAIN_UNITS: dict[str, tuple[str, float]] = {"V": ("voltage", 1.0), "kV": ("voltage", 1e3), "s": ("time", 1.0),
                                              "mm": ("length", 1e-3), "m": ("length", 1.0), "Hz": ("frequency", 1.0),

@@ -12,7 +12,7 @@ import pytest
 from typer.testing import CliRunner
 
 from bench.cli import app
-from bench.protocol.quantity import PREFIX, UNITS, parse_quantity
+from bench.quantity import PREFIX, UNITS, parse_quantity
 
 runner = CliRunner()
 

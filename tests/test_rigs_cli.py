@@ -50,6 +50,35 @@ def test_malformed_rig_files_get_one_line_errors(tmp_path: Path, text: str, mess
     assert message in str(err.value) and str(f) in str(err.value) and "\n" not in str(err.value)
 
 
+def test_a_rig_file_takes_quantities_with_units_as_a_protocol_file_does(tmp_path: Path) -> None:
+    """Rig files took plain numbers only where protocol files take units (last note): a field whose name ends in
+    its unit takes a quantity of that dimension in any unit, converted to the unit the name gives (500 ms = 0.5 s,
+    4 mA = 0.004 A, 4 cm = 40 mm, 25 °C = 298.15 K, 8 kV = 8000 V); a plain number is that unit, as before; a
+    quantity of another dimension is refused in one line naming the field."""
+    f = tmp_path / "units.toml"
+    f.write_text("name = 'x'\n[specimen]\ntemperature_K = '25 °C'\n[limits]\nmax_voltage_V = '8 kV'\n"
+                 "max_current_A = '4 mA'\nshutdown_ramp_s = '500 ms'\ntravel_tolerance_m = 0.002\n"
+                 "[laser]\nrange_mm = '4 cm'\n[motor]\ntravel_m = ['0 mm', '10 cm']\n"
+                 "max_velocity_m_per_s = '500 mm/s'\n")
+    rig = load_rig(f)
+    assert rig.specimen.temperature_K == pytest.approx(298.15)
+    assert rig.limits.max_voltage_V == 8000.0 and rig.limits.max_current_A == pytest.approx(4e-3)
+    assert rig.limits.shutdown_ramp_s == pytest.approx(0.5) and rig.limits.travel_tolerance_m == 0.002
+    assert rig.laser is not None and rig.laser.range_mm == pytest.approx(40.0)
+    assert rig.motor is not None and rig.motor.travel_m == pytest.approx((0.0, 0.1))
+    assert rig.motor.max_velocity_m_per_s == pytest.approx(0.5)
+    for text, message in (("[limits]\nmax_current_A = '5 kV'", "limits.max_current_A: '5 kV' is a voltage, "
+                                                                 "expected a current"),
+                          ("[limits]\nshutdown_ramp_s = '20 s'", "limits.shutdown_ramp_s: Input should be less "
+                                                                  "than or equal to 10"),
+                          ("[limits]\nmax_force_N = 'much'", "limits.max_force_N: 'much' is not a number with a "
+                                                              "unit")):
+        f.write_text(f"name = 'x'\n{text}\n")
+        with pytest.raises(RigFileError) as err:
+            load_rig(f)
+        assert message in str(err.value) and str(f) in str(err.value) and "\n" not in str(err.value), err.value
+
+
 def test_devices_check_cli_on_the_simulated_rigs() -> None:
     for name in ("thesis-sim", "lsdea-motor-sim"):
         res = runner.invoke(app, ["devices", "check", str(RIGS / f"{name}.toml")], env={"COLUMNS": "200"})

@@ -45,7 +45,7 @@ from pydantic import (
     model_validator,
 )
 
-from bench.protocol.quantity import format_quantity, parse_quantity
+from bench.quantity import format_quantity, parse_quantity
 from bench.tomlfile import first_error, one_line, read_toml, type_hint
 
 Channel = Literal["voltage", "position"]

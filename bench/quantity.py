@@ -1,4 +1,4 @@
-"""Quantities with units in protocol files and on the command line: ``"7 kV"``, ``"9 cm"``, ``"2 min"``,
+"""Quantities with units in protocol files, rig files and on the command line: ``"7 kV"``, ``"9 cm"``, ``"2 min"``,
 ``"25 °C"``, ``"5 N/m"``, ``"5 %"`` → SI floats.
 
 Units are pint's (its default registry: every SI prefix, cm, min, h, °C and °F with their offsets, N/m, %, …).
@@ -21,7 +21,7 @@ UNITS: dict[str, tuple[str, float]] = {
     "V": ("voltage", 1.0), "m": ("length", 1.0), "s": ("time", 1.0), "Hz": ("frequency", 1.0),
     "K": ("temperature", 1.0), "g": ("mass", 1e-3), "N": ("force", 1.0),
     "m/s": ("velocity", 1.0), "m/s2": ("acceleration", 1.0), "m/s^2": ("acceleration", 1.0),
-    "V/m": ("field", 1.0), "V/s": ("slew", 1.0), "N/m": ("stiffness", 1.0),
+    "V/m": ("field", 1.0), "V/s": ("slew", 1.0), "N/m": ("stiffness", 1.0), "A": ("current", 1.0),
 }
 BASE_UNIT = {dim: sym for sym, (dim, f) in UNITS.items() if f == 1.0 and "^" not in sym}
 BASE_UNIT["mass"] = "kg"
