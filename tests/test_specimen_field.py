@@ -104,3 +104,40 @@ def test_each_run_file_is_read_once_while_it_is_unchanged(short_run: Path, tmp_p
     os.utime(runs / "b.h5", ns=(st.st_atime_ns, st.st_mtime_ns + 1_000_000_000))
     changed = CliRunner().invoke(app, ["specimen", "show", "S1", "--dir", str(runs), "--json"])
     assert changed.exit_code == 0 and read == ["b.h5"], (changed.output, read)
+
+
+def test_an_lsdea_s_true_field_is_set_against_its_stretched_breakdown_field(isopotential_run: Path,
+                                                                            tmp_path: Path) -> None:
+    """An LS-DEA's history had no true field (its stretch needs the aperture: last note). Its true field is
+    E = Vλ1λ2/t0 and its breakdown field E_B = E0 λ3^(−r/2) grows with the stretch (physics.md, Model B): a run held
+    at 7 kV at x = 140 mm (prototype #1, the short campaign's rig) against physics.md's own figure there — "a margin
+    of only 1.20–1.27× at x = 140 mm" over the prototypes — and the formula computed here from physics.md's
+    parameters (l = 0.120 m, xp = 0.040 m, λ2p = 2.5, λ1p = λ2p^(−1/2), t0 = 260 µm, E0 = 81 MV/m, r = 0.86)."""
+    import math
+
+    volts, x = 7000.0, 0.140
+    l, xp, lam2p, t0, e0, r = 0.120, 0.040, 2.5, 260e-6, 81e6, 0.86
+    lam1 = lam2p ** -0.5 * x / xp
+    lam2 = lam2p * math.sqrt(4 * l * l - x * x) / math.sqrt(4 * l * l - xp * xp)
+    true_field = volts * lam1 * lam2 / t0
+    ratio = true_field / (e0 * (lam1 * lam2) ** (r / 2))  # λ3^(−r/2) = (λ1λ2)^(r/2)
+    assert 1 / 1.27 - 0.01 < ratio < 1 / 1.20 + 0.01  # the derivation agrees with physics.md's margin at 140 mm
+    runs = tmp_path / "runs"
+    runs.mkdir()
+    run = runs / "run.h5"
+    shutil.copy(isopotential_run, run)
+    with h5py.File(run, "r+") as f:  # a run of known voltage and aperture
+        f.attrs["specimen_id"] = "L1"
+        f["amplifier/voltage"][...] = volts
+        f["motor/aperture"][...] = x
+    res = CliRunner().invoke(app, ["specimen", "show", "L1", "--dir", str(runs), "--json"])
+    assert res.exit_code == 0, res.output
+    h = json.loads(res.stdout)
+    assert h["max_true_field_V_per_m"] == pytest.approx(true_field, rel=1e-6)
+    assert h["field_ratio"] == pytest.approx(ratio, rel=1e-6)  # not the peak field over E0 (about 1.5 here)
+    assert h["max_nominal_field_V_per_m"] == pytest.approx(volts / t0, rel=1e-9)
+    res = CliRunner().invoke(app, ["specimen", "show", "L1", "--dir", str(runs)], env={"COLUMNS": "300"})
+    assert res.exit_code == 0 and "Traceback" not in res.output, res.output
+    (line,) = [ln for ln in res.output.splitlines() if "field" in ln and "MV/m" in ln]
+    assert (f"highest true field (|V|λ1λ2/t0, the stretch from the recorded aperture): {true_field / 1e6:.2f} MV/m; "
+            f"at most {ratio:.3f} × the breakdown field at the same stretch (E0 λ3^(−r/2), E0 = 81.0 MV/m)") in line

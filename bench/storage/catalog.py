@@ -30,13 +30,14 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import math
 import os
 import socket
 import threading
 from collections.abc import Callable, Collection, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 
@@ -363,37 +364,121 @@ def _specimen(path: Path, attrs: dict[str, Any]) -> tuple[float | None, float | 
     return None, None
 
 
-def peak_true_field(path: str | Path) -> float | None:
-    """The highest true field [V/m] of a membrane run, E = |V| λ²/L3 (physics.md §1.2), over its measured voltage
-    samples, λ = λ_pre + u/L_d with the laser's displacement u interpolated at each (the supervisor's estimate, from
-    the model stored in the file), read in chunks. None where it is not known: not a membrane (an LS-DEA's stretch
-    needs its aperture), no voltage or laser record, a file that cannot be read."""
+class TrueField(NamedTuple):
+    """A run's highest true field [V/m], its highest ratio to the breakdown field at the same instant (None where
+    the model gives no breakdown field) and the kind of specimen ("membrane": a constant breakdown field; "lsdea":
+    one that grows with the stretch)."""
+
+    field: float
+    ratio: float | None
+    kind: str
+
+
+def peak_true_field(path: str | Path) -> TrueField | None:
+    """:class:`TrueField` of a run, over its measured voltage samples, read in chunks; None where it is not known
+    (no voltage record, no stretch known, a file that cannot be read).
+
+    * membrane: E = |V| λ²/L3 (physics.md §1.2), λ = λ_pre + u/L_d with the laser's displacement u interpolated at
+      each voltage sample (the supervisor's estimate, from the model stored in the file); E_B a constant;
+    * LS-DEA: E = |V| λ1λ2/t0, E_B = E0 λ3^(−r/2) = E0 (λ1λ2)^(r/2) (physics.md, Model B), λ1 = λ1p x/xp,
+      λ2 = λ2p y/yp, y = √(4l² − x²), at the aperture x of each sample: the motor's recorded aperture, the blocked
+      aperture, or the laser's value on a hung specimen (as the supervisor reads it); λ2p the prototype's at the
+      sample's time (a set step may change it). E_B grows with the stretch, so the ratio's peak is taken sample by
+      sample, not as the peak field over one breakdown field."""
     from bench.storage.chunks import open_source
     from bench.storage.runfile import specimen_of
 
-    best: float | None = None
+    best: TrueField | None = None
     try:
         with open_source(path) as src:
-            model = specimen_of(src.run.attrs, Path(path)).get("model", {})
-            s = src.streams
-            if "L3" not in model or not s.length.get("amplifier") or not s.length.get("laser"):
+            spec = specimen_of(src.run.attrs, Path(path))
+            model, s = spec.get("model", {}), src.streams
+            if not s.length.get("amplifier"):
                 return None
-            l3, l_d, pre = float(model["L3"]), float(model["L_d"]), float(model["lambda_pre"])
+            how = _membrane_field(model) if "L3" in model else _lsdea_field(model, spec, src) if "t0" in model \
+                else None
+            if how is None or not s.length.get(how.stream or "amplifier"):
+                return None
             for chunk in s.chunks("amplifier"):
                 t, v = chunk["t"].astype(float), np.abs(chunk["voltage"].astype(float))
                 t, v = t[np.isfinite(v)], v[np.isfinite(v)]
                 if not t.size:
                     continue
-                w = s.window("laser", float(t.min()), float(t.max()), ["displacement"], neighbours=True,
-                             finite="displacement")
-                if not w["t"].size:
+                if how.stream is not None:
+                    w = s.window(how.stream, float(t.min()), float(t.max()), [how.column], neighbours=True,
+                                 finite=how.column)
+                    if not w["t"].size:
+                        continue
+                    where = np.interp(t, w["t"].astype(float), w[how.column].astype(float))
+                else:
+                    where = np.full(t.shape, how.constant)
+                e, ratio = how.at(t, v, where)
+                ok = np.isfinite(e)
+                if not ok.any():
                     continue
-                lam = pre + np.interp(t, w["t"].astype(float), w["displacement"].astype(float)) / l_d
-                e = float(np.max(v * lam * lam / l3))
-                best = e if best is None else max(best, e)
+                peak = float(np.max(e[ok]))
+                r_peak = float(np.max(ratio[ok])) if ratio is not None else None
+                best = TrueField(peak, r_peak, how.kind) if best is None else TrueField(
+                    max(best.field, peak), None if best.ratio is None or r_peak is None else max(best.ratio, r_peak),
+                    how.kind)
     except (ValueError, OSError, KeyError, TypeError, AttributeError):  # unreadable, edited: not known
         return None
     return best
+
+
+@dataclass
+class _FieldModel:
+    """How a run's true field follows from its voltage and one recorded quantity (``stream``/``column``, or
+    ``constant`` where none is recorded: a blocked aperture): ``at(t, |V|, that quantity)`` → (E, E/E_B or None)."""
+
+    kind: str
+    stream: str | None
+    column: str
+    constant: float
+    at: Callable[[np.ndarray, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray | None]]
+
+
+def _membrane_field(model: dict[str, Any]) -> _FieldModel:
+    """The membrane's: E = |V| λ²/L3, λ = λ_pre + u/L_d; E_B the model's breakdown field (a constant)."""
+    l3, l_d, pre = float(model["L3"]), float(model["L_d"]), float(model["lambda_pre"])
+    e_b = _f(model.get("breakdown_field"))
+
+    def at(_t: np.ndarray, v: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        lam = pre + u / l_d
+        e = v * lam * lam / l3
+        return e, (e / e_b if e_b else None)
+
+    return _FieldModel("membrane", "laser", "displacement", math.nan, at)
+
+
+def _lsdea_field(model: dict[str, Any], spec: dict[str, Any], src: Any) -> _FieldModel:
+    """The LS-DEA's: E = |V| λ1λ2/t0 and E_B = E0 (λ1λ2)^(r/2) at the aperture x (:func:`peak_true_field`)."""
+    from bench.models.lozenge import PROTOTYPE_LAMBDA2P
+
+    l, xp, t0 = float(model["l"]), float(model["xp"]), float(model["t0"])
+    material = model.get("material", {})
+    e0, r = _f(material.get("E0")), float(material.get("r", 0.0))
+    lam2p0 = float(model["lambda2p"])
+    changes = [(te, PROTOTYPE_LAMBDA2P[int(values["prototype"])]) for te, values in src.run.specimen_changes()
+               if "prototype" in values and int(values["prototype"]) in PROTOTYPE_LAMBDA2P]
+    yp = math.sqrt(4 * l * l - xp * xp)
+
+    def at(t: np.ndarray, v: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        lam2p = np.full(t.shape, lam2p0)
+        for te, value in changes:  # each change holds from its time on (RunFile.specimen_at)
+            lam2p[t + 1e-9 >= te] = value
+        x = np.clip(x, 1e-9, 2 * l * (1 - 1e-12))  # a reading off the mechanism's range: its nearest end
+        stretch = (x / xp) * np.sqrt(4 * l * l - x * x) / yp * lam2p ** 0.5  # λ1λ2 = λ1p λ2p x y/(xp yp)
+        e = v * stretch / t0
+        return e, (e / (e0 * stretch ** (r / 2)) if e0 else None)
+
+    cfg = spec.get("lsdea", {})
+    how = cfg.get("configuration", "motor")
+    if how == "blocked":
+        return _FieldModel("lsdea", None, "", float(cfg["blocked_position_m"]), at)
+    if how == "hung":
+        return _FieldModel("lsdea", "laser", "displacement", math.nan, at)
+    return _FieldModel("lsdea", "motor", "aperture", math.nan, at)
 
 
 TRUE_FIELD_CACHE = "true-field.json"  # in the user's cache folder: each run file's peak true field, by size and time
@@ -420,20 +505,23 @@ class TrueFields:
             self.known = {}
         self.changed = False
 
-    def __call__(self, path: str) -> float | None:
+    def __call__(self, path: str) -> TrueField | None:
         try:
             st = os.stat(path)
         except OSError:
             return None
         key, stamp = str(Path(path).resolve()), [st.st_size, st.st_mtime_ns]
         hit = self.known.get(key)
-        if isinstance(hit, dict) and hit.get("stamp") == stamp:
-            value = hit.get("field")
-            return float(value) if isinstance(value, (int, float)) else None
-        field = peak_true_field(path)
-        self.known[key] = {"stamp": stamp, "field": field}
+        if isinstance(hit, dict) and hit.get("stamp") == stamp and "kind" in hit:  # (no kind: an older cache's)
+            value, ratio = hit.get("field"), hit.get("ratio")
+            if not isinstance(value, (int, float)):
+                return None
+            return TrueField(float(value), float(ratio) if isinstance(ratio, (int, float)) else None, str(hit["kind"]))
+        found = peak_true_field(path)
+        self.known[key] = {"stamp": stamp, **(found._asdict() if found else {"field": None, "ratio": None,
+                                                                              "kind": ""})}
         self.changed = True
-        return field
+        return found
 
     def save(self) -> None:
         """Write the cache (atomically; a folder that cannot take it: the next call reads the files again)."""
@@ -722,6 +810,8 @@ def specimen_history(rows: list[dict[str, Any]]) -> dict[str, Any]:
     runs, cum_t, cum_c = [], 0.0, 0
     best: tuple[float, float | None, str] | None = None  # (nominal field, breakdown field, file)
     true: tuple[float, float | None, str] | None = None  # (true field, breakdown field, file)
+    ratio: tuple[float, str] | None = None  # (true field over the breakdown field at the same instant, file)
+    kinds: set[str] = set()  # of the runs whose true field is known
     fits: dict[tuple[str, str, str], tuple[int, dict[str, Any], str]] = {}
     failures = []
     true_field = TrueFields()
@@ -731,9 +821,14 @@ def specimen_history(rows: list[dict[str, Any]]) -> dict[str, Any]:
         field = r["max_nominal_field_V_per_m"]
         if field is not None and (best is None or field > best[0]):
             best = (field, r["breakdown_field_V_per_m"], r["path"])
-        e_true = true_field(r["path"]) if field is not None else None
+        known = true_field(r["path"]) if field is not None else None
+        e_true = known.field if known is not None else None
         if e_true is not None and (true is None or e_true > true[0]):
             true = (e_true, r["breakdown_field_V_per_m"], r["path"])
+        if known is not None and known.ratio is not None and (ratio is None or known.ratio > ratio[0]):
+            ratio = (known.ratio, r["path"])
+        if known is not None:
+            kinds.add(known.kind)
         if r["state"] in ("tripped", "error") or not r["complete"]:
             failures.append({"file": r["path"], "state": r["state"],
                              "state_shown": state_shown(r["state"], bool(r["complete"]), r["incomplete_reason"] or ""),
@@ -757,12 +852,14 @@ def specimen_history(rows: list[dict[str, Any]]) -> dict[str, Any]:
             params.setdefault(name, []).append({"cumulative_cycles": cycles, "value": value,
                                                 "unit": fit.get("units", {}).get(name, ""), "model": fit["model"],
                                                 "created": fit["created"], "file": path})
-    # like with like: the breakdown field is a true-field limit, so only the true field is divided by it
-    ratio = true[0] / true[1] if true is not None and true[1] else None
+    # like with like: the breakdown field is a true-field limit, so only the true field is divided by it — sample by
+    # sample (an LS-DEA's breakdown field grows with its stretch: its peak ratio need not be at its peak field)
     return {"runs": runs, "hv_threshold_V": HV_THRESHOLD_V, "hv_time_s": cum_t, "hv_cycles": cum_c,
             "max_nominal_field_V_per_m": best[0] if best else None,
             "max_true_field_V_per_m": true[0] if true else None, "max_true_field_file": true[2] if true else None,
-            "breakdown_field_V_per_m": (true or best or (None, None))[1], "field_ratio": ratio,
+            "breakdown_field_V_per_m": (true or best or (None, None))[1],
+            "field_ratio": ratio[0] if ratio else None, "field_ratio_file": ratio[1] if ratio else None,
+            "stretch_dependent_breakdown": "lsdea" in kinds,
             "max_field_file": best[2] if best else None, "failures": failures, "parameters": params}
 
 
