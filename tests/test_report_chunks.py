@@ -129,8 +129,39 @@ def test_a_decimated_line_keeps_each_span_s_extremes(steps_run: Path, monkeypatc
     keep = (all_t >= 5.0) & (all_t <= 25.0)
     rt, ru = all_t[keep], all_u[keep]
     assert t.size <= 600 and np.all(np.diff(t) > 0)  # in time order, two points a span at most
-    edges = np.linspace(0, rt.size, 301).astype(int)
-    for k in (0, 1, 150, 299):  # each span's minimum and maximum are on the line, where they were recorded
-        seg_t, seg_u = rt[edges[k]:edges[k + 1]], ru[edges[k]:edges[k + 1]]
+    _each_span_s_extremes_on_the_line(rt, ru, t, u, 300, (0, 1, 150, 299))
+
+
+def _each_span_s_extremes_on_the_line(rt: np.ndarray, ru: np.ndarray, t: np.ndarray, u: np.ndarray, spans: int,
+                                      which: tuple[int, ...]) -> None:
+    """Of the records (rt, ru), each of the ``which`` equal intervals of time has its minimum and maximum on the
+    line (t, u), where they were recorded."""
+    k_of = np.clip(np.searchsorted(np.linspace(rt[0], rt[-1], spans + 1), rt, side="right") - 1, 0, spans - 1)
+    for k in which:
+        seg_t, seg_u = rt[k_of == k], ru[k_of == k]
+        assert seg_t.size, k
         for i in (int(np.argmin(seg_u)), int(np.argmax(seg_u))):
-            assert seg_u[i] in u[t == seg_t[i]]
+            assert seg_u[i] in u[t == seg_t[i]], (k, seg_t[i])
+
+
+def test_a_stream_whose_rate_changes_is_cut_by_time_not_by_record_count(tmp_path: Path) -> None:
+    """A drive's 10-kHz readings for 1 s, then a pause's 10-Hz readings for 10 s (last note: the report's figures cut
+    a stream into equal runs of records, so the pause's 100 readings fell into one span and drew two points over
+    10 s). Cut by time, each of 22 spans (0.5 s) holds its own extremes: the pause keeps its shape."""
+    from bench.storage.recorder import Column, Recorder
+
+    path = tmp_path / "paused.h5"
+    rec = Recorder(path, {"protocol_name": "rate change"}, {"laser": [Column("displacement", "m", "")]}, [],
+                   {"laser": 10_000.0})
+    dense = np.arange(10_000) / 10_000.0
+    sparse = 1.0 + np.arange(1, 101) / 10.0
+    rec.append("laser", dense, displacement=1e-3 * np.sin(2 * np.pi * 5 * dense))
+    rec.append("laser", sparse, displacement=1e-3 * np.cos(2 * np.pi * 0.3 * sparse))  # 3 slow periods
+    rec.finish("completed", "test")
+    with open_source(path) as src:
+        t, u = src.streams.decimate("laser", "displacement", 0.0, 11.0, spans=22)
+    rt, ru = np.concatenate([dense, sparse]), np.concatenate([1e-3 * np.sin(2 * np.pi * 5 * dense),
+                                                               1e-3 * np.cos(2 * np.pi * 0.3 * sparse)])
+    assert np.all(np.diff(t) > 0) and t.size <= 44
+    assert (t > 1.0).sum() >= 36  # the pause: two points in each of its 20 spans (one record may be both)
+    _each_span_s_extremes_on_the_line(rt, ru, t, u, 22, tuple(range(22)))

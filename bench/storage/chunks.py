@@ -166,9 +166,11 @@ class StreamChunks:
     def decimate(self, stream: str, column: str, t0: float, t1: float, spans: int, flag: str | None = None,
                  drop_nan: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """(t, values) of ``column`` over ``t0 ≤ t ≤ t1`` (where ``flag`` > 0; NaN values left out if
-        ``drop_nan``) for a line on a screen: every record when there are at most 2 × ``spans``; else the records
-        cut into ``spans`` equal runs and of each its minimum and its maximum, in time order — the line a screen of
-        that width draws, every extreme kept (memory: a chunk and 2 × ``spans`` points)."""
+        ``drop_nan``) for a line on a screen: every record when there are at most 2 × ``spans``; else the time they
+        span cut into ``spans`` equal intervals and of each its minimum and its maximum, in time order — the line a
+        screen of that width draws, every extreme kept (memory: a chunk and 2 × ``spans`` points). Intervals of
+        time, not of record count: a stream whose rate changes (a pause's slow readings after a drive's) kept few
+        points over the slow part, each span of records then covering much of the run (as `bench plot` did)."""
         a, b = self.span(stream, t0, t1)
         cols = ["t", column, *([flag] if flag else [])]
 
@@ -180,7 +182,8 @@ class StreamChunks:
             rows = self._rows(stream, cols, a, b, None)
             ok = kept(rows)
             return rows["t"][ok].astype(float), rows[column][ok].astype(float)
-        edges = np.linspace(a, b, spans + 1).astype(np.int64)
+        t_first, t_last = (float(self._rows(stream, ["t"], i, i + 1, None)["t"][0]) for i in (a, b - 1))
+        edges = np.linspace(t_first, t_last, spans + 1)
         best = {"lo": np.full(spans, np.inf), "hi": np.full(spans, -np.inf)}
         where = {"lo": np.full(spans, -1, np.int64), "hi": np.full(spans, -1, np.int64)}
         times = {"lo": np.zeros(spans), "hi": np.zeros(spans)}
@@ -191,7 +194,7 @@ class StreamChunks:
             if not ok.size:
                 continue
             idx, v, t = start + ok, chunk[column][ok].astype(float), chunk["t"][ok].astype(float)
-            k = np.searchsorted(edges, idx, side="right") - 1
+            k = np.clip(np.searchsorted(edges, t, side="right") - 1, 0, spans - 1)  # (the last record: the last span)
             for side, sign in (("lo", 1.0), ("hi", -1.0)):
                 order = np.lexsort((sign * v, k))  # by span, then by value: each span's extreme first
                 firsts = order[np.r_[True, k[order][1:] != k[order][:-1]]]
