@@ -236,6 +236,12 @@ class _MotorStop:
     thread: threading.Thread | None = None
 
 
+def next_slot(due: float, now: float, period: float) -> float:
+    """A poll's next run time on its grid (``due`` + a whole number of ``period``) after it ran at ``now`` for the slot
+    ``due``: the slots it fell behind are skipped, not run in a burst (one that fell due within the 1e-12 tolerance
+    counts as run)."""
+    return due + period * (max(0, math.floor((now - due) / period)) + 1)
+
 class Engine:
     """Runs one program on one rig's connected instruments."""
 
@@ -587,8 +593,7 @@ class Engine:
                 if nxt[name] <= now + 1e-12:
                     self._check_stop()
                     poll.run(self.ctx, nxt[name] - self.ctx.offset)  # its lateness: against this schedule
-                    # the next slot of its grid (one that fell due within the 1e-12 tolerance counts as run)
-                    nxt[name] += period * (max(0, math.floor((now - nxt[name]) / period)) + 1)
+                    nxt[name] = next_slot(nxt[name], now, period)
             if polls:
                 self.snapshot.headroom = self.sup.headroom()
                 self.rec.maybe_flush()
@@ -1423,7 +1428,7 @@ class Engine:
             if nxt[0] > now + 1e-12:
                 return
             due = nxt[0]
-            nxt[0] += period * (max(0, math.floor((now - due) / period)) + 1)
+            nxt[0] = next_slot(due, now, period)
             try:
                 run(self.ctx, due - self.ctx.offset)
             except InterlockTrip as trip:
