@@ -405,3 +405,23 @@ def test_a_limit_trip_at_the_prompt_latches_the_rig(tmp_path: Path) -> None:
         assert s.engine.latched is not None
         assert s.execute("voltage 1kV").status == "refused"
     assert rig_latch.latched(rig.name) is not None
+
+
+def test_a_limit_trip_in_a_session_s_exit_ramp_latches_the_rig_and_ends_it_tripped(tmp_path: Path) -> None:
+    """The film breaks down as the session ends at 5 kV (the ADAM rig's exit ramp reads the monitors): the current
+    beyond the rig's 5-mA limit is a trip — the session's file says `tripped` and the rig latches, as a limit trip
+    at a command or at the prompt does (a reviewer: the file said `completed` and no latch was written, the log
+    saying "latched")."""
+    from bench.runtime import latch as rig_latch
+
+    rig = load_rig(RIGS / "thesis-sim.toml")
+    rig = rig.model_copy(update={"limits": rig.limits.model_copy(update={"shutdown_ramp_s": 1.0})})
+    with ManualSession(rig, tmp_path / "s.log", virtual=True, echo=lambda _t: None) as s:
+        assert s.execute("voltage 5kV").status == "ok"
+        s._sim.plant.inject_breakdown()  # as the operator quits
+    run = open_run(tmp_path / "s.h5")
+    assert [e for e in run.event_list() if e[2] == "tripped" and "during the ramp to 0 V" in e[3]], run.event_list()
+    assert run.state == "tripped", (run.state, run.reason)
+    assert rig_latch.latched(rig.name) is not None
+    rows = [line.split("\t") for line in (tmp_path / "s.log").read_text(encoding="utf-8").splitlines()]
+    assert [r for r in rows if r[2] == "latched"], rows

@@ -106,8 +106,8 @@ def test_each_run_file_is_read_once_while_it_is_unchanged(short_run: Path, tmp_p
     assert changed.exit_code == 0 and read == ["b.h5"], (changed.output, read)
 
 
-def test_an_lsdea_s_true_field_is_set_against_its_stretched_breakdown_field(isopotential_run: Path,
-                                                                            tmp_path: Path) -> None:
+def test_an_lsdea_s_true_field_is_set_against_its_stretched_breakdown_field(isopotential_run: Path, tmp_path: Path,
+                                                                            monkeypatch: pytest.MonkeyPatch) -> None:
     """An LS-DEA's history had no true field (its stretch needs the aperture: last note). Its true field is
     E = Vλ1λ2/t0 and its breakdown field E_B = E0 λ3^(−r/2) grows with the stretch (physics.md, Model B): a run held
     at 7 kV at x = 140 mm (prototype #1, the short campaign's rig) against physics.md's own figure there — "a margin
@@ -115,6 +115,7 @@ def test_an_lsdea_s_true_field_is_set_against_its_stretched_breakdown_field(isop
     parameters (l = 0.120 m, xp = 0.040 m, λ2p = 2.5, λ1p = λ2p^(−1/2), t0 = 260 µm, E0 = 81 MV/m, r = 0.86)."""
     import math
 
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))  # the true-field cache: this test's own
     volts, x = 7000.0, 0.140
     l, xp, lam2p, t0, e0, r = 0.120, 0.040, 2.5, 260e-6, 81e6, 0.86
     lam1 = lam2p ** -0.5 * x / xp
@@ -141,3 +142,11 @@ def test_an_lsdea_s_true_field_is_set_against_its_stretched_breakdown_field(isop
     (line,) = [ln for ln in res.output.splitlines() if "field" in ln and "MV/m" in ln]
     assert (f"highest true field (|V|λ1λ2/t0, the stretch from the recorded aperture): {true_field / 1e6:.2f} MV/m; "
             f"at most {ratio:.3f} × the breakdown field at the same stretch (E0 λ3^(−r/2), E0 = 81.0 MV/m)") in line
+    # a file edited to an impossible prototype (inf): the true field is not known, said as such — no traceback
+    from bench.storage.runfile import RunFile
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache-2"))  # not the figure cached above
+    monkeypatch.setattr(RunFile, "specimen_changes", lambda _self: [(0.0, {"prototype": float("inf")})])
+    res = CliRunner().invoke(app, ["specimen", "show", "L1", "--dir", str(runs), "--json"])
+    assert res.exit_code == 0, res.output
+    assert json.loads(res.stdout)["max_true_field_V_per_m"] is None

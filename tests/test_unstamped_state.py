@@ -158,6 +158,10 @@ rec.event(1.0, 0, "resume", "resumed by tester after 0.5 s paused")
 rec.flush()
 print("resumed", flush=True)
 sys.stdin.readline()
+rec.event(1.5, 0, "pause", "paused in step 0 (a) by tester: output to 0 V")
+rec.flush()
+print("paused", flush=True)
+sys.stdin.readline()
 """
 
 
@@ -198,6 +202,16 @@ def test_inspect_says_a_paused_run_is_paused_while_it_is(tmp_path: Path) -> None
         assert "state │ running — INCOMPLETE" in " ".join(out.split()), out  # resumed: running again
         assert _listed(path, cat) == "running, incomplete"  # the row is read again: its file changed
         assert _selected(path, cat, "paused") == [] and _selected(path, cat, "running") == [path.name]
+        proc.stdin.write("\n")  # paused once more, then killed while paused: its file stands still
+        proc.stdin.flush()
+        assert proc.stdout.readline().strip() == "paused"
+        assert _listed(path, cat) == "paused, incomplete"
+        proc.kill()
+        proc.wait(30)
+        # the unchanged file's row is read again: a paused row asks as a running one does (a reviewer: it stayed
+        # "paused" for good, left out of --state ended)
+        assert _listed(path, cat) == "crashed or killed, incomplete"
+        assert _selected(path, cat, "ended") == [path.name] and _selected(path, cat, "paused") == []
     finally:
         proc.kill()
         proc.wait(30)

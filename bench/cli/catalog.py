@@ -278,8 +278,9 @@ def _field_line(h: dict[str, Any]) -> str:
                "MV/m")
     e_b = h["breakdown_field_V_per_m"]
     if h["max_true_field_V_per_m"] is None:
-        return nominal + ("" if e_b is None else f"; true field not known from the records (a membrane's laser), so "
-                          f"not compared with the breakdown field {e_b / 1e6:.1f} MV/m (a true-field limit)")
+        return nominal + ("" if e_b is None else f"; true field not known from the records (no laser or aperture "
+                          f"record), so not compared with the breakdown field {e_b / 1e6:.1f} MV/m (a true-field "
+                          "limit)")
     if h.get("stretch_dependent_breakdown"):  # LS-DEA: E_B = E0 λ3^(−r/2) grows with the stretch
         true = (f"highest true field (|V|λ1λ2/t0, the stretch from the recorded aperture): "
                 f"{h['max_true_field_V_per_m'] / 1e6:.2f} MV/m")

@@ -365,6 +365,11 @@ class ManualSession:
                 if engine.latched is not None and not was_latched:  # a stall seen at the exit
                     engine.latched_at = engine.now()  # the engine's stop latched it: the time is the session's end
                     self._latched_line(engine.latched)
+                if engine.latched is None and engine.ended[0] == "tripped":  # a limit read in the exit ramp (a
+                    # breakdown): latched as a command's trip is (a reviewer: the file said completed, no latch file)
+                    trip = InterlockTrip("safety trip", engine.ended[1])
+                    engine.latched, engine.latched_at = trip, engine.now()
+                    self._latched_line(trip)
                 if engine.latched is None and not engine.zero_verified and self._inst is not None \
                         and self._inst.amplifier is not None:  # the end did not verify 0 V (it raised): latched here
                     trip = InterlockTrip("output not verified", f"the session's end did not verify 0 V "
@@ -394,7 +399,9 @@ class ManualSession:
             self._write("session", "end", end)
         if self._rec is not None:
             latched = engine is not None and engine.latched is not None
+            ramp_trip = engine is not None and engine.ended[0] == "tripped"  # a trip in the exit ramp: as a run's
             state = ("error" if exc_type not in (None, StopRequested, KeyboardInterrupt) else
+                     "tripped" if ramp_trip else
                      "interrupted" if self.end_reason else "tripped" if latched else "completed")
             why = f"{engine.latch_text()}; {end}" if engine is not None and engine.latched is not None else end
             self._rec_call(self._rec.finish, state, f"{why} | {safe}" if safe else why)

@@ -421,8 +421,8 @@ def peak_true_field(path: str | Path) -> TrueField | None:
                 best = TrueField(peak, r_peak, how.kind) if best is None else TrueField(
                     max(best.field, peak), None if best.ratio is None or r_peak is None else max(best.ratio, r_peak),
                     how.kind)
-    except (ValueError, OSError, KeyError, TypeError, AttributeError):  # unreadable, edited: not known
-        return None
+    except (ValueError, OSError, KeyError, TypeError, AttributeError, ArithmeticError):  # unreadable, edited (a
+        return None  # prototype of inf: OverflowError): not known
     return best
 
 
@@ -681,8 +681,9 @@ class Reconciled:
 
 def _maybe_gone(row: dict[str, Any]) -> bool:
     """Whether a row read from an unchanged file says its run is still going: its writer may have died since (a
-    killed run's file does not change), so the file is read again — once it says so, the row no longer asks."""
-    return not row["complete"] and row["state"] == "running" and shown_state(row) == "running"
+    killed run's file does not change), so the file is read again — once it says so, the row no longer asks. A
+    paused run too (its file may stand still while paused, and a kill then leaves it so: a reviewer)."""
+    return not row["complete"] and row["state"] == "running" and shown_state(row) in ("running", PAUSED)
 
 
 def reconcile(cat: Catalog, folder: Path, rebuild: bool = False) -> Reconciled:
