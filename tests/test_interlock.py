@@ -242,7 +242,7 @@ def test_a_refused_output_path_stops_feeding_the_watchdog_and_the_run_ends_at_ze
 
 
 def test_a_dropped_t7_link_stops_the_drive_within_the_buffer_ahead_and_the_watchdog_zeroes_it(
-        tmp_path: Path) -> None:
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """Real time (a host can be lost only there): the T7's link drops at run time 3 s, on the rising flank of the
     7-kV waveform. The T7 plays what it holds of the stream-out — at most OUT_AHEAD_S (README "Interlock": 0.5 s)
     ahead of the scan its clock had reached when the host last topped it up — then holds its last value until its
@@ -254,13 +254,18 @@ def test_a_dropped_t7_link_stops_the_drive_within_the_buffer_ahead_and_the_watch
     def drop(_engine: Engine, sim) -> None:
         sim.faults["daq"].drop = True
 
-    result, _run, plant = run_with_fault(DAQ_RIG, tmp_path, 3.0, drop, virtual=False)
+    for attempt in range(3):  # a host starved beside other loads may not drive at 3 s (the premise below): again
+        monkeypatch.setenv("BENCH_STATE_DIR", str(tmp_path / f"state{attempt}"))  # (each try latches its rig)
+        (tmp_path / f"try{attempt}").mkdir()
+        result, _run, plant = run_with_fault(DAQ_RIG, tmp_path / f"try{attempt}", 3.0, drop, virtual=False)
+        t, v = plant.arrays()
+        tf = plant.t_fault
+        rising = np.abs(v[(t >= tf) & (t <= tf + 0.1)])
+        if rising.size and rising[-1] > rising[0] + 100.0:
+            break
     # the lost link, or the underrun it caused when the write that found it out took its reply timeout
     assert result.state in ("error", "tripped") and ("lost" in result.reason or "underrun" in result.reason), \
         result.reason
-    t, v = plant.arrays()
-    tf = plant.t_fault
-    rising = np.abs(v[(t >= tf) & (t <= tf + 0.1)])
     assert rising[-1] > rising[0] + 100.0  # the drive was still rising when the link dropped: the trial tests something
     # the buffer played out (+ the 30-Hz filter and the amplifier settling), the output holds until the watchdog
     # (≥ 0.95 s: the last request came ≤ 50 ms before the drop)
