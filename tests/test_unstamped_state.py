@@ -76,6 +76,8 @@ def test_a_file_whose_writer_is_gone_is_not_listed_inspected_or_filtered_as_runn
     assert code == 0 and json.loads(out) == [], out
     code, out = _cli("runs", "list", "--dir", str(path.parent), "--state", "ended", "--json", catalog=cat)
     assert code == 0 and [Path(r["path"]).name for r in json.loads(out)] == [path.name], out  # selectable (a reviewer)
+    # --json says it too, beside the file's own state (an outside tester: a script read "running" there)
+    assert [(r["state"], r["state_shown"]) for r in json.loads(out)] == [("running", shown)], out
     assert describe(chain(path)) == f"{path.name} ({shown}, incomplete)"  # inspect's and report's campaign line
 
 
@@ -131,6 +133,8 @@ def test_report_and_plot_say_an_unstamped_file_ended(sweep: Path, tmp_path: Path
     flat = " ".join(out.split())
     assert f"INCOMPLETE {path.name} (ended unstamped: disk full): no end recorded: the disk was full" in flat, out
     assert "(running)" not in flat, out
+    _, out = _cli("report", str(path), "--out", str(tmp_path / "rep"), "--json")
+    assert [r["state_shown"] for r in json.loads(out)["runs"]] == ["ended unstamped: disk full"], out
     titles: list[str] = []
     real = matplotlib.figure.Figure.suptitle
 

@@ -70,8 +70,10 @@ class RunReport:
     def flags(self) -> dict[str, object]:
         """The file's state for ``--json``: ``state`` and ``reason`` say how the run ended (``completed`` or
         interrupted, tripped, error; running when no end was recorded), ``complete`` only that the file was
-        finalised (a stopped run's file is complete: it holds all that was run)."""
-        return {"state": self.state, "reason": self.reason or None, "stopped": self.stopped or None,
+        finalised (a stopped run's file is complete: it holds all that was run); ``state_shown`` the state as
+        listings show it ("paused", "crashed or killed", "ended unstamped: …" for a file that says running)."""
+        return {"state": self.state, "state_shown": self.state_shown or self.state, "reason": self.reason or None,
+                "stopped": self.stopped or None,
                 "complete": self.complete, "incomplete_reason": self.incomplete_reason or None,
                 "recovered_at": self.recovered_at or None}
 

@@ -223,7 +223,8 @@ def runs_list(
                        state=state)
     _notes(notes, json_out)
     if json_out:
-        print_json([{**r, "figures": json.loads(r["figures"] or "[]"), "fits": json.loads(r["fits"] or "[]"),
+        print_json([{**r, "state_shown": state_shown(r["state"], bool(r["complete"]), r["incomplete_reason"] or ""),
+                     "figures": json.loads(r["figures"] or "[]"), "fits": json.loads(r["fits"] or "[]"),
                      "signature": None} for r in rows])
         return
     t = Table(title=f"runs ({len(rows)})")
