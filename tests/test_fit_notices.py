@@ -229,3 +229,24 @@ def test_ctrl_c_stops_a_fit_within_a_batch_in_one_line_storing_nothing(short_run
                      r"starts\); nothing stored", lines[0])
     assert m is not None and int(m.group(1)) < 120, err
     assert "stored in" not in out and not (tmp_path / "run.fit.hdf5").exists()
+
+
+def test_a_record_too_short_to_fit_is_refused_before_the_search(tmp_path: Path) -> None:
+    """A run stopped 0.2 s into its drive (an outside tester's Ctrl-C): about a second of record, some hundred
+    points for the membrane model's 16 parameters (physics.md Model A: μ0, J0 and four Maxwell units' μ, J, η — 14 —
+    and the voltage monitor's gain and offset). The fit ran, printed intervals of ±9e+08 %, stored the result and
+    exited 0; it is refused in one line (a fit needs ten points per parameter: 160), nothing stored."""
+    def ctrl_c(engine: Engine, sim) -> None:  # type: ignore[no-untyped-def]
+        def at(_now: float) -> None:
+            if engine.snapshot.step == 0 and engine.program_now() > 0.2:
+                engine.request_stop("Ctrl-C")
+        sim.clock.subscribe(at)
+
+    run = execute(plan_run(SHORT), tmp_path / "early.h5", virtual=True, on_engine=ctrl_c)
+    assert run.state == "interrupted", run.reason
+    code, out = _fit(str(run.path))
+    errors = [line for line in out.splitlines() if line.startswith("error:")]
+    assert code == 2 and len(errors) == 1 and out.splitlines()[-1] == errors[0], out  # (after the stop's note)
+    assert errors[0].startswith(f"error: run file {run.path}: ") and " measured points for 16 parameters (a fit " \
+        "needs 10 per parameter, 160): too short a record to fit" in errors[0], out
+    assert not Path(run.path).with_name("early.fit.hdf5").exists()

@@ -10,6 +10,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+import numpy as np
+
 if TYPE_CHECKING:
     from bench.app import Progress
     from bench.identify.campaign import CampaignReport
@@ -156,6 +158,23 @@ def check_driven(runs: list[Path]) -> None:
                          "parameter is identifiable without a drive")
 
 
+MIN_POINTS_PER_PARAMETER = 10  # measured points a fit needs per free parameter (see check_enough_data)
+
+
+def check_enough_data(problem: RecordedProblem, runs: list[Path]) -> None:
+    """Refuse, before the search, records that hold fewer than :data:`MIN_POINTS_PER_PARAMETER` measured points per
+    free parameter: with hardly more points than parameters the search fits the noise, its intervals span orders of
+    magnitude and nothing it finds is a property of the specimen — a run stopped within its first second gave 114
+    points for 16 parameters, and the fit was stored, exit 0 (an outside tester). The choice of ten is ours (no
+    source gives one): a whole short identification record holds over 1,000 points, 70 per parameter."""
+    n, k = int(np.isfinite(problem.data).sum()), int(np.asarray(problem.lower).size)
+    if n < MIN_POINTS_PER_PARAMETER * k:
+        names = ", ".join(str(p) for p in runs)
+        raise ValueError(f"run file{'s' if len(runs) > 1 else ''} {names}: {n} measured points for {k} parameters "
+                         f"(a fit needs {MIN_POINTS_PER_PARAMETER} per parameter, {MIN_POINTS_PER_PARAMETER * k}): "
+                         "too short a record to fit (a run stopped early?); nothing fitted or stored")
+
+
 def _peak_voltage(streams: StreamChunks) -> float:
     """The largest |V| a run applied (the set-points; on a hardware-timed rig also the measured output, as
     :func:`bench.analysis.applied.applied_window` reads it), read a chunk at a time: a long 10-kHz record is
@@ -203,6 +222,7 @@ def fit_runs(runs: list[Path], model: str, settings: FitSettings, *, branches: i
     else:
         coarse = LozengeProblem(files, branches=branches, h=LSDEA_SEARCH_STEP)
         fine = LozengeProblem(files, branches=branches, h=LSDEA_FINE_STEP)
+    check_enough_data(coarse, runs)
     if on_read is not None:
         on_read(coarse)
     total = settings.generations * max(settings.starts, 1)  # progress is called at each generation of each start
