@@ -238,3 +238,29 @@ def test_the_watch_page_says_a_file_whose_writer_is_gone_ended(tmp_path: Path, h
         assert f.info["state"] == SHOWN[how], f.info
     finally:
         f.close()
+
+
+def test_a_damaged_catalogue_is_listed_from_the_files_and_rebuild_sets_it_aside(short_run: Path,
+                                                                                 tmp_path: Path) -> None:
+    """A catalogue file that is not a database (an outside tester wrote garbage into it): `runs list` and `catalog
+    rebuild` both stopped at "run catalogue: file is not a database", naming no file, and nothing in the tool could
+    mend it. The catalogue is an index of the run files: `runs list` lists from the files, saying the catalogue is
+    damaged and what mends it; `catalog rebuild` moves the damaged file aside (kept) and makes a new one."""
+    runs = tmp_path / "runs"
+    runs.mkdir()
+    shutil.copy(short_run, runs / "run.h5")
+    cat = runs / "catalog.sqlite"  # the default catalogue of the folder
+    garbage = b"this is not a database" * 300
+    cat.write_bytes(garbage)
+    res = CliRunner().invoke(app, ["runs", "list", "--dir", str(runs), "--json"], env={"COLUMNS": "300"})
+    assert res.exit_code == 0, res.output
+    assert [Path(r["path"]).name for r in json.loads(res.stdout)] == ["run.h5"]
+    assert f"run catalogue {cat} is damaged (file is not a database)" in " ".join(res.stderr.split()), res.stderr
+    assert cat.read_bytes() == garbage  # a listing changes nothing
+    res = CliRunner().invoke(app, ["catalog", "rebuild", str(runs)], env={"COLUMNS": "300"})
+    assert res.exit_code == 0, res.output
+    (aside,) = runs.glob("catalog.sqlite.damaged-*")
+    assert aside.read_bytes() == garbage and f"catalogue {cat} was damaged" in " ".join(res.output.split())
+    res = CliRunner().invoke(app, ["runs", "list", "--dir", str(runs), "--json"])
+    assert res.exit_code == 0 and "is damaged" not in res.stderr, res.stderr
+    assert [Path(r["path"]).name for r in json.loads(res.stdout)] == ["run.h5"]

@@ -37,11 +37,24 @@ def _db_errors(fn: Callable[P, R]) -> Callable[P, R]:
         except Exception as exc:
             if not type(exc).__module__.startswith("sqlalchemy"):
                 raise
-            from bench.storage.catalog import db_reason
+            from bench.storage.catalog import catalog_url, db_reason
 
-            raise ValueError("run catalogue: " + db_reason(exc)) from None
+            try:  # which catalogue (an outside tester: "run catalogue: file is not a database" named none)
+                folder, given = kwargs.get("folder"), kwargs.get("catalog")
+                where = " " + sa_display(catalog_url(folder if isinstance(folder, str | Path) else Path("runs"),
+                                                     given if isinstance(given, str) else None))
+            except Exception:
+                where = ""
+            raise ValueError(f"run catalogue{where}: " + db_reason(exc)) from None
 
     return wrapper
+
+
+def sa_display(url: str) -> str:
+    """A database URL as said in a line: its password hidden."""
+    import sqlalchemy as sa
+
+    return sa.engine.make_url(url).render_as_string(hide_password=True)
 
 
 NO_FIT_PLOT = "no fitted parameters: no plot"  # specimen show on a specimen whose runs hold no fit
@@ -66,6 +79,8 @@ def _open(folder: Path, url: str | None, notes: list[str]) -> tuple[Any, set[str
         Catalog,
         CatalogNotWrittenError,
         catalog_url,
+        damaged_file,
+        db_reason,
         memory_copy,
         reconcile,
         write_refused,
@@ -77,11 +92,17 @@ def _open(folder: Path, url: str | None, notes: list[str]) -> tuple[Any, set[str
     try:
         cat = Catalog(url)
     except Exception as exc:  # none there yet on a read-only or full medium: made in memory, if SQLite
-        if (why := write_refused(exc)) is None or (copy := memory_copy(url)) is None:
+        if (damaged := damaged_file(exc, url)) is not None:  # listed from the files: the catalogue is only an index
+            cat = Catalog("sqlite://")
+            notes.append(f"[yellow]run catalogue {escape(str(damaged))} is damaged ({escape(db_reason(exc))})[/]: "
+                         f"listed from the files; `bench catalog rebuild {escape(str(folder))}` sets it aside and "
+                         "makes a new one")
+        elif (why := write_refused(exc)) is None or (copy := memory_copy(url)) is None:
             raise
-        cat = copy
-        notes.append(f"[yellow]run catalogue {escape(url)} cannot be written ({escape(why)})[/]: listed from the "
-                     "files; the catalogue itself is not updated")
+        else:
+            cat = copy
+            notes.append(f"[yellow]run catalogue {escape(url)} cannot be written ({escape(why)})[/]: listed from "
+                         "the files; the catalogue itself is not updated")
     if not folder.is_dir():
         return cat, set()
     try:
@@ -346,19 +367,32 @@ def catalog_rebuild(
     catalog: CatalogOpt = None,
     json_out: JsonOpt = False,
 ) -> None:
-    """Rebuild the catalogue's rows of a runs folder from the run files (the files are the source of truth)."""
-    from bench.storage.catalog import Catalog, catalog_url, reconcile
+    """Rebuild the catalogue's rows of a runs folder from the run files (the files are the source of truth). A
+    damaged SQLite catalogue (not a database, a malformed image) is set aside (``catalog.sqlite.damaged-<time>``)
+    and made again."""
+    from bench.storage.catalog import Catalog, catalog_url, damaged_file, db_reason, reconcile, set_aside
 
     if not folder.is_dir():
         _refuse_folder(folder, " (nothing to rebuild the catalogue from)")
-    with Catalog(catalog_url(folder, catalog)) as cat:
-        done = reconcile(cat, folder, rebuild=True)
-        prefix = str(folder.resolve()).rstrip("/") + "/"
-        n = len(cat.rows(under=folder.resolve())) + sum(not k.startswith(prefix) for k in done.found)  # + linked
+    url, moved = catalog_url(folder, catalog), None
+    for attempt in range(2):
+        try:
+            with Catalog(url) as cat:
+                done = reconcile(cat, folder, rebuild=True)
+                prefix = str(folder.resolve()).rstrip("/") + "/"
+                n = len(cat.rows(under=folder.resolve())) + sum(not k.startswith(prefix) for k in done.found)
+            break
+        except Exception as exc:  # (a damaged file found by the first try only: the second is a new one)
+            if attempt or (damaged := damaged_file(exc, url)) is None:
+                raise
+            moved = (damaged, set_aside(damaged), db_reason(exc))
     if json_out:
-        print_json({"catalog": cat.display, "rows": n,
-                    "removed": done.removed, "unreadable": done.unreadable})
+        print_json({"catalog": cat.display, "rows": n, "removed": done.removed, "unreadable": done.unreadable,
+                    "set_aside": str(moved[1]) if moved else None})
         return
+    if moved:
+        console.print(f"[yellow]catalogue {escape(str(moved[0]))} was damaged[/] ({escape(moved[2])}): set aside as "
+                      f"{escape(str(moved[1]))}", soft_wrap=True)
     for line in done.unreadable or []:
         console.print(f"[yellow]not a readable run file[/]: {escape(line)}", soft_wrap=True)
     console.print(f"catalogue {escape(cat.display)} rebuilt from {escape(str(folder))}: {n} run file(s)"

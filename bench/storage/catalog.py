@@ -637,6 +637,38 @@ def write_refused(exc: BaseException) -> str | None:
     return why if any(w in why.lower() for w in _WRITE_REFUSED) else None
 
 
+_DAMAGED = ("file is not a database", "database disk image is malformed")  # SQLite's words for a damaged file
+
+
+def damaged_file(exc: BaseException, url: str) -> Path | None:
+    """The SQLite catalogue file of ``url`` where ``exc`` says it is damaged (not a database, a malformed image);
+    None for any other failure or database. The catalogue is an index of the run files: a damaged one is set aside
+    (:func:`set_aside`) and made again from the files, never repaired in place."""
+    import sqlalchemy as sa
+
+    if not isinstance(exc, sa.exc.DatabaseError):
+        return None
+    why = str(getattr(exc, "orig", None) or exc).lower()
+    parsed = sa.engine.make_url(url)
+    if parsed.get_backend_name() != "sqlite" or parsed.database in (None, "", ":memory:") \
+            or not any(w in why for w in _DAMAGED):
+        return None
+    return Path(parsed.database)
+
+
+def set_aside(path: Path) -> Path:
+    """Move a damaged catalogue file aside (``catalog.sqlite.damaged-<UTC time>``, kept for whoever wants to look
+    at it) so that a new one is made in its place; returns where it went."""
+    from datetime import UTC, datetime
+
+    moved = path.with_name(f"{path.name}.damaged-{datetime.now(UTC).strftime('%Y%m%dT%H%M%S.%fZ')}")
+    os.replace(path, moved)
+    for suffix in ("-journal", "-wal", "-shm"):  # its own journal files belong to it, not to the new one
+        with contextlib.suppress(OSError):
+            os.replace(path.with_name(path.name + suffix), moved.with_name(moved.name + suffix))
+    return moved
+
+
 class CatalogNotWrittenError(Exception):
     """:func:`reconcile` read the folder but could not write what it found (``why``: read-only medium, full disk);
     ``done``: what it found (the rows' paths in ``found``)."""
