@@ -36,6 +36,7 @@ from bench.analysis.runs import RunAnalysis, analyse_source, step_records
 from bench.identify.store import read_fits
 from bench.storage.chunks import RunSource, StreamChunks, open_source
 from bench.storage.outputs import atomic_output, claim_folder, write_text
+from bench.storage.recorder import cause
 
 DPI = 300  # publication resolution of the PNGs
 VECTOR_FORMATS = ("pdf", "svg")
@@ -432,7 +433,10 @@ def report(run_path: str | Path, out: str | Path | None = None, empty: bool = Tr
         meta = run_metadata(a.run)
         loose = ["figures.json"] if not default and (out / "figures.json").exists() else []
         claim_folder(out, REPORT_MARKER, meta, "report", "report", loose)
-        out.mkdir(parents=True, exist_ok=True)  # (not for a file refused: a manual session's)
+        try:
+            out.mkdir(parents=True, exist_ok=True)  # (not for a file refused: a manual session's)
+        except OSError as exc:  # (/proc/x, a read-only medium): one line naming the folder, not "[Errno 2] …"
+            raise OSError(f"report folder {out}: cannot be made ({cause(exc)})") from None
         # the marker first: a report cut off still says whose it is
         write_text(out / REPORT_MARKER, json.dumps(meta, indent=1, ensure_ascii=False, default=str), replace=True)
         kinds = {s.kind for s in a.steps}

@@ -277,3 +277,23 @@ def test_a_file_killed_in_its_first_step_says_no_figures_not_an_empty_line(runs:
     code, out = _cli("report", str(killed), "--out", str(tmp_path / "alone"))
     assert code == 2 and out.startswith(f"error: run file {killed}: nothing to report: no step of it could be "
                                         "analysed (incomplete file: "), out
+
+
+def test_an_out_that_is_a_file_or_cannot_be_made_is_one_line_naming_it(short_run: Path, tmp_path: Path) -> None:
+    """An outside tester: `bench report G.h5 --out G.h5` said "[Errno 17] File exists", `--out /proc/nope` "[Errno 2]",
+    `bench plot --out p.txt` matplotlib's "Format 'txt' is not supported" naming no option. Each is one line naming
+    what was given and why; nothing is written."""
+    run = tmp_path / "G.h5"
+    shutil.copy(short_run, run)
+    before = run.read_bytes()
+    code, text = _cli("report", str(run), "--out", str(run))
+    assert code == 2 and text == f"error: {run}: a file, not a folder for the report: give a folder (a new one is " \
+        "made)\n", text
+    assert run.read_bytes() == before
+    code, text = _cli("report", str(run), "--out", "/proc/nope")
+    assert code == 2 and text.startswith("error: report folder /proc/nope: cannot be made (No such file or "
+                                         "directory"), text
+    code, text = _cli("plot", str(run), "--out", str(tmp_path / "p.txt"))
+    assert code == 2 and text.startswith(f"error: --out {tmp_path / 'p.txt'}: '.txt' is not a figure format the "
+                                         "plot writes (one of .png, "), text
+    assert not (tmp_path / "p.txt").exists() and text.count("\n") == 1

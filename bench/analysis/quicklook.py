@@ -54,6 +54,8 @@ class Envelope:
 GAP_RATIO = 4.0  # a hole this many times longer than the intervals either side of it (and over 2 bins) breaks the line
 
 
+PLOT_FORMATS = ("png", "pdf", "svg", "jpg", "jpeg", "tif", "tiff", "webp", "eps", "ps")  # matplotlib's (Agg) writers
+
 def envelopes(run_path: str | Path, streams: list[str] | None = None, columns: int = PIXELS) -> list[Envelope]:
     """Envelopes of every signal column of ``streams`` (all streams if None), read in chunks."""
     with open_source(run_path) as src:
@@ -205,6 +207,9 @@ def quicklook(run_path: str | Path, streams: list[str] | None = None, out: str |
     named = out is not None and not folder  # a file the user named is a new file; the default name is the run's own
     if named and not show:  # before the drawing
         refuse_existing(target, "plot", "--out")
+        if target.suffix.lower().lstrip(".") not in PLOT_FORMATS:  # matplotlib's own words named no option
+            raise ValueError(f"--out {target}: '{target.suffix}' is not a figure format the plot writes (one of "
+                             f"{', '.join('.' + f for f in PLOT_FORMATS)}, or a folder)")
     with open_source(run_path) as src:  # opened once: metadata and streams
         run, env = src.run, _envelopes(src.streams, run_path, streams, PIXELS)
     if not env:

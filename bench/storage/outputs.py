@@ -100,7 +100,10 @@ def claim_folder(out: Path, marker: str, run: dict[str, Any], command: str, what
     """Check that folder ``out`` may take ``what`` (``export``, ``report``) of the run whose metadata is ``run``: no
     folder yet, one without its ``marker`` file and without ``loose`` (the names of such outputs found there), or
     one whose ``marker`` names the same run (its content returned: the earlier outputs are replaced). Another run's,
-    or outputs without a marker: FileExistsError, one line naming ``out``."""
+    or outputs without a marker: FileExistsError, one line naming ``out``; a file there, not a folder: likewise
+    (an outside tester: `--out RUN.h5` said "[Errno 17] File exists")."""
+    if out.exists() and not out.is_dir():
+        raise FileExistsError(f"{out}: a file, not a folder for the {what}: give a folder (a new one is made)")
     if not out.is_dir():
         return None
     refuse = f"; bench {command} does not mix runs in a folder: choose an empty or new folder (or remove {out})"
