@@ -159,3 +159,22 @@ def test_the_readme_says_what_a_second_pause_does() -> None:
     para = para[:para.index("**", len("**Pause and resume.**"))]
     assert "already paused" in para and "the pause is sent anyway" in para and "exit 0" in para, para
     assert "is not, send nothing" not in para  # the old sentence that put pause among the refusals
+
+
+def test_a_reason_or_a_name_that_is_not_one_line_of_text_is_refused_before_anything(tmp_path: Path) -> None:
+    """An outside tester: `bench resume … --why $'x\\ay'` was accepted and its bell character went into the run's
+    events, and `bench pause --operator ""` was taken as the login name where `bench run` refuses an empty operator;
+    `devices control --script missing.txt` connected the rig first, then said "[Errno 2]" and left a session file
+    marked error. Each is one line naming the option, exit 2, before any file is touched or any rig connected."""
+    run = tmp_path / "run.h5"  # no such run: the options are refused before the file is looked at
+    for args, line in ((["resume", str(run), "--why", "x\ay"], "error: --why: one line of printable text"),
+                       (["pause", str(run), "--why", "a\nb"], "error: --why: one line of printable text"),
+                       (["pause", str(run), "--operator", ""], "error: --operator: empty"),
+                       (["resume", str(run), "--why", "ok", "--operator", " "], "error: --operator: empty")):
+        res = runner.invoke(app, args, env={"COLUMNS": "300"})
+        assert res.exit_code == 2 and res.output.startswith(line) and res.output.count("\n") == 1, (args, res.output)
+    log = tmp_path / "s.log"
+    res = runner.invoke(app, ["devices", "control", str(RIG), "--script", str(tmp_path / "missing.txt"), "--log",
+                              str(log), "--virtual-time"], env={"COLUMNS": "300"})
+    assert res.exit_code == 2 and res.output == f"error: --script {tmp_path / 'missing.txt'}: not found\n", res.output
+    assert not log.exists() and not log.with_suffix(".h5").exists()

@@ -68,6 +68,10 @@ def manual_session(rig_file: Path, *, script: Path | None = None, log: Path | No
         # no login name (no USER, a uid not in passwd: KeyError) or none that is a valid label: not named, as before
         with contextlib.suppress(ValueError, KeyError, OSError):
             operator = login_name(None)
+    if script is not None and not script.is_file():  # before the rig is connected (an outside tester: it connected,
+        # then said "[Errno 2]" and left a session file marked error)
+        raise ValueError(f"--script {script}: " + ("a folder, not a file of commands" if script.is_dir() else
+                                                    "not found"))
     rig = load_rig(rig_file)
     path = log if log is not None else Path("runs") / session_log_name(rig)
     interactive = script is None and sys.stdin.isatty()

@@ -34,12 +34,34 @@ class PreparedRun:
 
 
 def login_name(operator: str | None) -> str:
-    """Who acts: ``operator`` or the login name, checked as a label."""
+    """Who acts: ``operator`` or the login name, checked as a label (``--operator`` named where it is refused: an
+    empty one was taken as the login name by `bench pause`, refused by `bench run`)."""
     import getpass
 
     from bench.protocol.schema import MAX_OPERATOR, check_label
 
-    return check_label(operator or getpass.getuser(), MAX_OPERATOR)
+    if operator is not None:
+        try:
+            return check_label(operator, MAX_OPERATOR)
+        except ValueError as exc:
+            raise ValueError(f"--operator: {exc}") from None
+    return check_label(getpass.getuser(), MAX_OPERATOR)
+
+
+def reason_given(why: str | None, needed: str | None = None) -> str:
+    """``--why`` checked as a note is (one line of printable text, at most ``MAX_NOTE`` characters: an outside
+    tester's bell character went into a run's events as it was); empty: '' or, where a reason is ``needed`` (what
+    it must say), refused in one line."""
+    from bench.protocol.schema import MAX_NOTE, check_label
+
+    if not why or not why.strip():
+        if needed is not None:
+            raise ValueError(f"--why: {needed}")
+        return ""
+    try:
+        return check_label(why, MAX_NOTE)
+    except ValueError as exc:
+        raise ValueError(f"--why: {exc}") from None
 
 
 def plan_protocol(protocol_file: Path, rig: Path | None = None, sim: bool = False,
@@ -220,6 +242,7 @@ def _reset_for_resume(rig: RigConfig, operator: str | None, why: str | None, dry
     link.reset_seen = frozenset(latch_key(w) for w in found)
     if not why or not why.strip():
         raise ValueError(f"rig {rig.name}: interlock latched ({was.get('fault')}): --why '…' resets it to resume")
+    why = reason_given(why)
     if dry_run:
         return None
     who = login_name(operator)

@@ -507,16 +507,23 @@ def _who(operator: str | None) -> str:
     return login_name(operator)
 
 
+def _reason(why: str, needed: str | None = None) -> str:
+    from bench.app.runs import reason_given
+
+    return reason_given(why, needed)
+
+
 @clean_errors
 def pause(run_file: RunArg, why: WhyOpt = "", operator: ByOpt = None) -> None:
     """Pause a run from another terminal: output ramped to 0 V, motor held, recording goes on (`bench resume`
     restarts the step it left). The same as SIGUSR1 to the run's process."""
     from bench.runtime.control import write_control
 
+    why, who = _reason(why), _who(operator)  # (what was given, checked before the run file is looked at)
     _f, paused = _paused(run_file)
     # never refused: the file may not show a resume already on its way (asked meanwhile, or taken after an upload
     # the pause waits on), which this pause then withdraws; the run records what it did with it (found in review)
-    path = write_control(run_file, True, _who(operator), why)
+    path = write_control(run_file, True, who, why)
     if paused is not None:
         console.print(f"run file {escape(str(run_file))}: already paused ({escape(paused)}); the pause is sent anyway "
                       f"({escape(str(path))}): it withdraws a resume on its way, and the run records it")
@@ -530,12 +537,11 @@ def resume_run(run_file: RunArg, why: WhyOpt = "", operator: ByOpt = None) -> No
     ended (crashed, stopped, tripped), use `bench run --resume RUN.h5`. The same as SIGUSR2 to the run's process."""
     from bench.runtime.control import write_control
 
-    if not why.strip():
-        raise ValueError("--why: say why it is safe to go on (recorded in the run file)")
+    why, who = _reason(why, "say why it is safe to go on (recorded in the run file)"), _who(operator)
     _f, paused = _paused(run_file)
     if paused is None:
         raise ValueError(f"run file {run_file}: not paused: nothing to resume")
-    path = write_control(run_file, False, _who(operator), why)
+    path = write_control(run_file, False, who, why)
     console.print(f"resume asked ({escape(str(path))}); the run takes it within 0.1 s and records it")
 
 
@@ -583,8 +589,7 @@ def interlock_reset(rig_name: Annotated[str, typer.Argument(help="Rig name (the 
 
     if latched(rig_name) is None:  # said first: a reason is asked only for a latch to reset (outside tester)
         _not_latched(rig_name)
-    if not why.strip():
-        raise ValueError("--why: say why it is safe to energise the rig again")
+    why = _reason(why, "say why it is safe to energise the rig again")
     was = reset(rig_name, _who(operator), why)
     if was is None:  # reset meanwhile by another operator
         _not_latched(rig_name)
