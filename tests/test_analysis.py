@@ -637,6 +637,10 @@ def test_report_of_two_files_of_the_same_name_gives_each_its_folder(short_run: P
     assert seen == [(runs[0], out / "x"), (runs[1], out / "x-3"), (runs[2], out / "x-2")]
     assert f"{runs[1]}: figures in {out / 'x-3'} (another run file is named x.h5)" in res.output
     assert str(runs[0]) + ":" not in res.output and str(runs[2]) + ":" not in res.output
+    # each table names its file: the two x.h5 by their paths (an outside tester could not tell them apart), x-2.h5
+    # by its name alone
+    flat = "".join(res.output.split())  # (a title wraps to its table's width)
+    assert f"p({runs[0]})" in flat and f"p({runs[1]})" in flat and "p(x-2.h5)" in flat, res.output
 
 
 def test_a_report_folder_holds_one_run_another_run_s_report_there_is_refused(short_run: Path,

@@ -446,10 +446,12 @@ def print_report(runs: list[Path], out: Path | None = None) -> Report:
         console.print(f"[yellow]skipping[/] {escape(why)}", soft_wrap=True)
     for note in done.notes:
         console.print(escape(note), soft_wrap=True)
+    names = [r.path.name for r in done.runs]
     for r in done.runs:
         a, p = r.analysis, r.path
+        shown = p.name if names.count(p.name) == 1 else str(p)  # files of one name in two folders: told apart
         if not r.complete:
-            console.print(f"[red]INCOMPLETE[/] {escape(p.name)} ({r.state_shown or r.state}): "
+            console.print(f"[red]INCOMPLETE[/] {escape(shown)} ({r.state_shown or r.state}): "
                           f"{escape(r.incomplete_reason)}; {r.steps_completed} of {r.steps_total} steps completed",
                           soft_wrap=True)
         if r.stopped:
@@ -457,11 +459,11 @@ def print_report(runs: list[Path], out: Path | None = None) -> Report:
         for note in a.notes:
             console.print(f"[yellow]{escape(note)}[/]", soft_wrap=True)
         if a.steps:
-            console.print(figures_table(a.steps, f"{a.protocol} ({p.name})"
+            console.print(figures_table(a.steps, f"{a.protocol} ({shown})"
                                         + ("" if r.complete else " — INCOMPLETE FILE")
                                         + (f" — {r.state.upper()}" if r.stopped else "")))
         else:  # (an empty table's title wraps to its narrow width)
-            console.print(f"no step of {escape(p.name)} could be analysed")
+            console.print(f"no step of {escape(shown)} could be analysed")
         if a.by_kind("isotonic"):
             console.print("largest crest-to-trough per hung mass: " + ", ".join(
                 f"{m * 1e3:.0f} g at {f:g} Hz ({amp * 1e3:.1f} mm)" for m, (f, amp) in a.resonance().items())
