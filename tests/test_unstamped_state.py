@@ -136,15 +136,24 @@ def test_report_and_plot_say_an_unstamped_file_ended(sweep: Path, tmp_path: Path
     _, out = _cli("report", str(path), "--out", str(tmp_path / "rep"), "--json")
     assert [r["state_shown"] for r in json.loads(out)["runs"]] == ["ended unstamped: disk full"], out
     titles: list[str] = []
+    drawn: list[tuple[matplotlib.figure.Figure, matplotlib.text.Text]] = []
     real = matplotlib.figure.Figure.suptitle
 
     def suptitle(self, t, **kw):  # type: ignore[no-untyped-def]
         titles.append(t)
-        return real(self, t, **kw)
+        text = real(self, t, **kw)
+        drawn.append((self, text))
+        return text
 
     monkeypatch.setattr(matplotlib.figure.Figure, "suptitle", suptitle)
     quicklook(path, ["amplifier"], tmp_path / "plot.png")
-    assert len(titles) == 1 and "(ended unstamped: disk full, INCOMPLETE:" in titles[0], titles
+    assert len(titles) == 1 and "(ended unstamped: disk full, INCOMPLETE:" in " ".join(titles[0].split()), titles
+    # the whole title on the figure (an outside tester: a long state was cut off at both edges)
+    fig, text = drawn[0]
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    box = text.get_window_extent(renderer=FigureCanvasAgg(fig).get_renderer())
+    assert 0 <= box.x0 and box.x1 <= fig.bbox.width and box.y1 <= fig.bbox.height, (box, fig.bbox)
 
 
 PAUSED_WRITER = """

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import os
 import re
+import textwrap
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -54,6 +55,7 @@ class Envelope:
 GAP_RATIO = 4.0  # a hole this many times longer than the intervals either side of it (and over 2 bins) breaks the line
 
 
+TITLE_CHARS = 120  # a title line's characters at 9 pt on the 10-inch figure (about 140 fit)
 PLOT_FORMATS = ("png", "pdf", "svg", "jpg", "jpeg", "tif", "tiff", "webp", "eps", "ps")  # matplotlib's (Agg) writers
 
 def envelopes(run_path: str | Path, streams: list[str] | None = None, columns: int = PIXELS) -> list[Envelope]:
@@ -233,8 +235,12 @@ def quicklook(run_path: str | Path, streams: list[str] | None = None, out: str |
         ax.grid(True, linewidth=0.3)
     axes[-1, 0].set_xlabel("t [s] (run clock)")
     state = run.state if run.complete else f"{run.state_shown}, INCOMPLETE: {run.incomplete_reason}"
-    fig.suptitle(f"{Path(run_path).name} — {run.attrs.get('protocol_name', '?')} ({state})", fontsize=9)
-    fig.tight_layout()
+    # wrapped to the figure's width (a killed or paused file's long state was cut off at both edges: outside tester),
+    # the axes kept below it
+    lines = textwrap.wrap(f"{Path(run_path).name} — {run.attrs.get('protocol_name', '?')} ({state})", TITLE_CHARS)
+    fig.suptitle("\n".join(lines), fontsize=9)
+    height = 1.9 * len(env) + 0.8
+    fig.tight_layout(rect=(0.0, 0.0, 1.0, 1.0 - (0.1 + 0.16 * len(lines)) / height))
     if show:
         plt.show()
         plt.close(fig)
