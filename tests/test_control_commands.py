@@ -50,6 +50,11 @@ def test_a_manual_control_session_file_is_no_campaign_to_resume_or_pause(tmp_pat
         res = runner.invoke(app, cmd)
         assert res.exit_code == 2 and "manual-control session" in said(res), res.output
         assert "bench run --resume" not in said(res)
+    # listed with no steps (its own `end` line, at step −1, read as a completed step: "steps 1/0", outside tester)
+    res = runner.invoke(app, ["runs", "list", "--dir", str(tmp_path), "--json"],
+                        env={"BENCH_CATALOG": f"sqlite:///{tmp_path / 'cat.sqlite'}"})
+    assert res.exit_code == 0, res.output
+    assert [(r["steps_completed"], r["steps_total"]) for r in json.loads(res.stdout)] == [(0, 0)], res.stdout
 
 
 def test_hints_suggest_a_resume_only_where_one_can_continue_the_campaign(tmp_path: Path) -> None:

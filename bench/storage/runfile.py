@@ -142,12 +142,13 @@ class RunFile:
 
     def completed_steps(self) -> set[int]:
         """Indices of the steps whose end the file recorded (a step's last start followed by its end): a step cut
-        by a crash, a stop or a pause (and not restarted to its end) is not among them."""
+        by a crash, a stop or a pause (and not restarted to its end) is not among them. (A manual session's own
+        ``end``, at step −1, is no step: its listing read "steps 1/0".)"""
         done: set[int] = set()
         for _, step, kind, _ in self.event_list():
             if kind == "start":
                 done.discard(step)
-            elif kind == "end":
+            elif kind == "end" and step >= 0:
                 done.add(step)
         return done
 
