@@ -64,6 +64,9 @@ def test_hints_suggest_a_resume_only_where_one_can_continue_the_campaign(tmp_pat
     res = runner.invoke(app, ["pause", done.path])
     assert res.exit_code == 2 and "every step completed" in said(res), res.output
     assert "bench run --resume" not in said(res)
+    # a pause is refused as a pause (an outside tester: pausing a completed run said "nothing to resume")
+    assert said(res) == f"error: run file {done.path}: no run is writing it (completed): nothing to pause; every " \
+        "step completed (completed)", res.output
 
     def stop_at_3(engine: Engine, sim) -> None:  # type: ignore[no-untyped-def]
         sim.clock.subscribe(lambda _now: engine.request_stop("the test") if engine.now() >= 3.0 else None)

@@ -463,9 +463,9 @@ CONTROL_SETTLE_S = 0.5  # a control word this fresh may not be in the run file y
 # every 0.2 s): bench pause / resume wait until it is this old before reading whether the run is paused
 
 
-def _running(run_file: Path) -> RunFile:
-    """The run file of a protocol run under way; ValueError (one line) otherwise — suggesting `bench run --resume`
-    only where it can continue the campaign."""
+def _running(run_file: Path, asked: str = "pause or resume") -> RunFile:
+    """The run file of a protocol run under way; ValueError (one line: nothing to ``asked``) otherwise — suggesting
+    `bench run --resume` only where it can continue the campaign."""
     from bench.runtime.run import resume_refusal
     from bench.storage.runfile import open_run
 
@@ -478,14 +478,14 @@ def _running(run_file: Path) -> RunFile:
         raise ValueError(f"run file {run_file}: a manual-control session, not a protocol run: pause and resume it at "
                          "its prompt (pause, resume WHY...)")
     if f.state != "running" or f.orphaned:
-        refusal = resume_refusal(run_file, f)
-        raise ValueError(f"run file {run_file}: no run is writing it ({f.state}{', crashed' if f.orphaned else ''}); "
+        refusal = resume_refusal(run_file, f)  # (its "…: nothing to resume" is the campaign's, not this command's)
+        raise ValueError(f"run file {run_file}: no run is writing it ({f.state_shown}): nothing to {asked}; "
                          + ("to continue its campaign: bench run --resume " + shlex.quote(str(run_file))
-                            if refusal is None else refusal))
+                            if refusal is None else refusal.split(": nothing to resume")[0]))
     return f
 
 
-def _paused(run_file: Path) -> tuple[RunFile, str | None]:
+def _paused(run_file: Path, asked: str) -> tuple[RunFile, str | None]:
     """The run under way in ``run_file`` (:func:`_running`) and the pause it is in (who, from its ``pause`` event),
     or None if it is not paused; read once the last control word has had time to reach the file."""
     from bench.runtime.control import control_path
@@ -494,7 +494,7 @@ def _paused(run_file: Path) -> tuple[RunFile, str | None]:
         age = time.time() - control_path(run_file).stat().st_mtime
         if 0.0 <= age < CONTROL_SETTLE_S:
             time.sleep(CONTROL_SETTLE_S - age)
-    f = _running(run_file)
+    f = _running(run_file, asked)
     held = [(kind, text) for _t, _step, kind, text in f.event_list() if kind in ("pause", "resume")]
     if not held or held[-1][0] != "pause":
         return f, None
@@ -520,7 +520,7 @@ def pause(run_file: RunArg, why: WhyOpt = "", operator: ByOpt = None) -> None:
     from bench.runtime.control import write_control
 
     why, who = _reason(why), _who(operator)  # (what was given, checked before the run file is looked at)
-    _f, paused = _paused(run_file)
+    _f, paused = _paused(run_file, "pause")
     # never refused: the file may not show a resume already on its way (asked meanwhile, or taken after an upload
     # the pause waits on), which this pause then withdraws; the run records what it did with it (found in review)
     path = write_control(run_file, True, who, why)
@@ -538,7 +538,7 @@ def resume_run(run_file: RunArg, why: WhyOpt = "", operator: ByOpt = None) -> No
     from bench.runtime.control import write_control
 
     why, who = _reason(why, "say why it is safe to go on (recorded in the run file)"), _who(operator)
-    _f, paused = _paused(run_file)
+    _f, paused = _paused(run_file, "resume")
     if paused is None:
         raise ValueError(f"run file {run_file}: not paused: nothing to resume")
     path = write_control(run_file, False, who, why)
