@@ -24,17 +24,25 @@ VOLTS = 6000.0
 STRETCH = 2.2  # the in-plane stretch the laser's record is set to
 
 
-def test_specimen_show_divides_the_true_field_by_the_breakdown_field(short_run: Path, tmp_path: Path) -> None:
-    rig = tomllib.loads((ROOT / "rigs" / "thesis-daq-sim.toml").read_text())["specimen"]
-    l_d, e_b = rig["displacement_length_m"], rig["breakdown_field_V_per_m"]
+def _run_of(source: Path, tmp_path: Path, specimen_id: str, **columns: float) -> Path:
+    """A copy of ``source`` in ``tmp_path/runs`` with its specimen ID and each ``stream__column`` set to a value."""
     runs = tmp_path / "runs"
     runs.mkdir()
     run = runs / "run.h5"
-    shutil.copy(short_run, run)
-    with h5py.File(run, "r+") as f:  # a run of known voltage and stretch
-        f.attrs["specimen_id"] = "S1"
-        f["amplifier/voltage"][...] = VOLTS
-        f["laser/displacement"][...] = l_d * (STRETCH - LAMBDA_PRE)  # u = L_d (λ − λ_pre)
+    shutil.copy(source, run)
+    with h5py.File(run, "r+") as f:  # a run of known values
+        f.attrs["specimen_id"] = specimen_id
+        for name, value in columns.items():
+            f[name.replace("__", "/")][...] = value
+    return runs
+
+
+def test_specimen_show_divides_the_true_field_by_the_breakdown_field(short_run: Path, tmp_path: Path) -> None:
+    rig = tomllib.loads((ROOT / "rigs" / "thesis-daq-sim.toml").read_text())["specimen"]
+    l_d, e_b = rig["displacement_length_m"], rig["breakdown_field_V_per_m"]
+    # a run of known voltage and stretch: u = L_d (λ − λ_pre)
+    runs = _run_of(short_run, tmp_path, "S1", amplifier__voltage=VOLTS,
+                   laser__displacement=l_d * (STRETCH - LAMBDA_PRE))
     true_field = VOLTS * STRETCH**2 / L3  # E = Φ λ² / L3: 29.04 MV/m
     res = CliRunner().invoke(app, ["specimen", "show", "S1", "--dir", str(runs), "--json"])
     assert res.exit_code == 0, res.output
@@ -54,14 +62,8 @@ def test_specimen_show_divides_the_true_field_by_the_breakdown_field(short_run: 
 
 def test_a_run_without_a_laser_record_names_the_nominal_field_only(short_run: Path, tmp_path: Path) -> None:
     """No recorded stretch: the nominal field is said for what it is and not set against the breakdown field."""
-    runs = tmp_path / "runs"
-    runs.mkdir()
-    run = runs / "run.h5"
-    shutil.copy(short_run, run)
-    with h5py.File(run, "r+") as f:
-        f.attrs["specimen_id"] = "S1"
-        f["amplifier/voltage"][...] = VOLTS
-        f["laser/displacement"][...] = float("nan")  # out of range throughout: no stretch known
+    # the laser out of range throughout: no stretch known
+    runs = _run_of(short_run, tmp_path, "S1", amplifier__voltage=VOLTS, laser__displacement=float("nan"))
     res = CliRunner().invoke(app, ["specimen", "show", "S1", "--dir", str(runs), "--json"])
     assert res.exit_code == 0, res.output
     h = json.loads(res.stdout)
@@ -123,14 +125,7 @@ def test_an_lsdea_s_true_field_is_set_against_its_stretched_breakdown_field(isop
     true_field = volts * lam1 * lam2 / t0
     ratio = true_field / (e0 * (lam1 * lam2) ** (r / 2))  # λ3^(−r/2) = (λ1λ2)^(r/2)
     assert 1 / 1.27 - 0.01 < ratio < 1 / 1.20 + 0.01  # the derivation agrees with physics.md's margin at 140 mm
-    runs = tmp_path / "runs"
-    runs.mkdir()
-    run = runs / "run.h5"
-    shutil.copy(isopotential_run, run)
-    with h5py.File(run, "r+") as f:  # a run of known voltage and aperture
-        f.attrs["specimen_id"] = "L1"
-        f["amplifier/voltage"][...] = volts
-        f["motor/aperture"][...] = x
+    runs = _run_of(isopotential_run, tmp_path, "L1", amplifier__voltage=volts, motor__aperture=x)
     res = CliRunner().invoke(app, ["specimen", "show", "L1", "--dir", str(runs), "--json"])
     assert res.exit_code == 0, res.output
     h = json.loads(res.stdout)
