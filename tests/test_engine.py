@@ -285,6 +285,10 @@ def test_signals_stop_the_run_with_zero_voltage_and_a_marked_file(tmp_path: Path
         monkeypatch.setenv("BENCH_STATE_DIR", str(folder / "state"))
         proc, path = _start_cli_run(folder)
         running = open_run(path)  # read while being written (SWMR)
+        if attempt == 0 and running.state == "tripped" and "interlock: host stall" in running.reason:
+            proc.communicate(timeout=60)  # stalled before the first look: no signal sent yet, the same story
+            print(f"the host stalled (a loaded machine), the run tripped before the signal: {running.reason}")
+            continue
         assert running.state == "running" and not running.complete and "still going" in running.incomplete_reason
         assert len(running.streams["laser"]) > 0
         for sig in signals:
@@ -309,11 +313,18 @@ def test_signals_stop_the_run_with_zero_voltage_and_a_marked_file(tmp_path: Path
     assert "run file:" in out and str(path) in out
 
 
-def test_a_killed_run_leaves_a_readable_file_marked_incomplete(tmp_path: Path) -> None:
-    proc, path = _start_cli_run(tmp_path)
-    os.kill(proc.pid, signal.SIGKILL)
-    proc.communicate(timeout=30)
-    run = open_run(path)
+def test_a_killed_run_leaves_a_readable_file_marked_incomplete(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    for attempt in range(2):  # a host loaded enough to stall ends the run by itself before the kill: once more
+        monkeypatch.setenv("BENCH_STATE_DIR", str(tmp_path / f"state{attempt}"))
+        (folder := tmp_path / f"try{attempt}").mkdir()
+        proc, path = _start_cli_run(folder)
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.communicate(timeout=30)
+        run = open_run(path)
+        if attempt == 0 and run.complete:  # it ended by itself first (a stall, a starved twin's missing reply)
+            print(f"the run ended before the kill (a loaded machine): {run.state}: {run.reason}")
+            continue
+        break
     assert not run.complete and run.state == "running" and "crashed" in run.incomplete_reason
     assert run.updated > 1.0 and len(run.streams["laser"]) > 0 and len(run.streams["setpoints"]) > 0
     res = subprocess.run([sys.executable, "-m", "bench", "inspect", str(path)], capture_output=True, text=True,

@@ -36,26 +36,42 @@ def events(log: str) -> list[tuple[datetime, float, int, str, str]]:
     return out
 
 
-def test_a_killed_run_s_log_already_holds_its_step_starts_each_at_its_own_time(tmp_path: Path) -> None:
-    proc = subprocess.Popen([sys.executable, "-m", "bench", "run", str(SWEEPS), "--out", str(tmp_path), "--no-live"],
+def _killed_at_the_second_chamber_step(folder: Path) -> str | None:
+    """A real-time run of the sweeps killed (SIGKILL) once its log shows the second chamber step's start; its stderr
+    where it ended by itself before (a loaded host: a stall or a starved twin's missing reply), else None."""
+    folder.mkdir()
+    env = {**os.environ, "BENCH_STATE_DIR": str(folder / "state")}  # (a run that ends so latches its rig)
+    proc = subprocess.Popen([sys.executable, "-m", "bench", "run", str(SWEEPS), "--out", str(folder), "--no-live"],
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, cwd=ROOT,
-                            stdin=subprocess.DEVNULL)
+                            stdin=subprocess.DEVNULL, env=env)
     try:
         deadline = time.monotonic() + 120  # a guard against a hung run, not a timing claim
         seen: list[tuple[datetime, float, int, str, str]] = []
         while time.monotonic() < deadline and proc.poll() is None:
-            logs = list(tmp_path.glob("*.log"))
+            logs = list(folder.glob("*.log"))
             seen = events(logs[0].read_text(encoding="utf-8")) if logs else []
             if any(step == 3 and kind == "start" for _, _, step, kind, _ in seen):  # the second chamber step
                 break
             time.sleep(0.05)
-        assert proc.poll() is None, f"the run ended before it was killed: {proc.communicate()[1]}"
+        if proc.poll() is not None:
+            return proc.communicate()[1]
         os.kill(proc.pid, signal.SIGKILL)
     finally:
         if proc.poll() is None:
             proc.kill()
         proc.communicate(timeout=30)
-    (log_file,) = tmp_path.glob("*.log")
+    return None
+
+
+def test_a_killed_run_s_log_already_holds_its_step_starts_each_at_its_own_time(tmp_path: Path) -> None:
+    ended = _killed_at_the_second_chamber_step(tmp_path / "try0")
+    folder = tmp_path / "try0"
+    if ended is not None:  # once more on a loaded host; a second run that ends by itself fails the test
+        print(f"the run ended before it was killed (a loaded machine): {ended}")
+        folder = tmp_path / "try1"
+        ended = _killed_at_the_second_chamber_step(folder)
+    assert ended is None, f"the run ended before it was killed: {ended}"
+    (log_file,) = folder.glob("*.log")
     log = log_file.read_text(encoding="utf-8")
     assert "completed" not in log and "high voltage:" not in log  # killed: no end-of-run lines
     starts = {step: (wall, t) for wall, t, step, kind, _ in events(log) if kind == "start"}

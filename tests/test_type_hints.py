@@ -2,8 +2,8 @@
 "unable to parse string as a number"; `amplitude = 5000` "Input should be a valid string"; `port = ""` passed
 validation and failed at connect as "cannot open Modbus link : no such device").
 
-The expected hints follow the files' convention stated in the README: a rig field's unit is its name's suffix and
-takes a plain number; a protocol quantity is a string with its unit.
+The expected hints follow the files' convention stated in the README: a rig field's unit is its name's suffix (a
+plain number in it, or a quantity with any unit of its dimension); a protocol quantity is a string with its unit.
 """
 
 from __future__ import annotations
@@ -25,13 +25,22 @@ def _rig_with(tmp: Path, old: str, new: str) -> Path:
     return f
 
 
-@pytest.mark.parametrize("value", ['"5kV"', '"5 kv"'])
-def test_a_number_written_with_its_unit_says_the_unit_is_in_the_name(tmp_path: Path, value: str) -> None:
-    f = _rig_with(tmp_path, "max_voltage_V = 8000.0", f"max_voltage_V = {value}")
+def test_a_number_written_with_its_unit_is_read_in_the_unit_its_name_gives(tmp_path: Path) -> None:
+    """Rig files take quantities as protocol files do (README "Rig files"): "5kV" in `max_voltage_V` is 5000 V; a
+    unit that is none ("kv": unit symbols are case-sensitive, kV) is refused naming the field and the unit; a
+    field whose name carries no unit still says to write a plain number."""
+    f = _rig_with(tmp_path, "max_voltage_V = 8000.0", 'max_voltage_V = "5kV"')
+    assert load_rig(f).limits.max_voltage_V == 5000.0
+    f = _rig_with(tmp_path, "max_voltage_V = 8000.0", 'max_voltage_V = "5 kv"')
     with pytest.raises(RigFileError) as e:
         load_rig(f)
     msg = str(e.value)
-    assert "max_voltage_V" in msg and value in msg and "plain number in V" in msg and "\n" not in msg
+    assert "limits.max_voltage_V: '5 kv': unknown unit 'kv'" in msg and "\n" not in msg, msg
+    f = _rig_with(tmp_path, "max_voltage_V = 8000.0", 'max_voltage_V = 8000.0\nbreakdown_margin = "1.2x"')
+    with pytest.raises(RigFileError) as e:
+        load_rig(f)
+    msg = str(e.value)
+    assert "limits.breakdown_margin" in msg and '"1.2x"' in msg and "write a plain number, without quotes" in msg, msg
 
 
 def test_an_empty_port_is_refused_when_the_rig_is_read_not_at_connect(tmp_path: Path) -> None:
