@@ -40,8 +40,9 @@ def _unit_of(field: str) -> str | None:
 
 def type_hint(err: Mapping[str, Any]) -> str:
     """What to write instead, for a pydantic error of a value of the wrong TOML type ("" if none applies): a string
-    where a field whose name ends in its unit (``max_voltage_V``) takes a plain number, or a number where a protocol
-    quantity (``QUANTITY_FIELDS``) takes a string with its unit (``amplitude = "5 kV"``)."""
+    that is no number where a field takes a plain number (one whose name ends in its unit reads a quantity with its
+    unit first: bench.rig, bench.protocol.schema), or a number where a protocol quantity (``QUANTITY_FIELDS``)
+    takes a string with its unit (``amplitude = "5 kV"``)."""
     field, value = (err.get("loc") or ("",))[-1], err.get("input")
     if not isinstance(field, str):
         return ""
