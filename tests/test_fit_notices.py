@@ -250,3 +250,18 @@ def test_a_record_too_short_to_fit_is_refused_before_the_search(tmp_path: Path) 
     assert errors[0].startswith(f"error: run file {run.path}: ") and " measured points for 16 parameters (a fit " \
         "needs 10 per parameter, 160): too short a record to fit" in errors[0], out
     assert not Path(run.path).with_name("early.fit.hdf5").exists()
+
+
+def test_a_killed_run_is_said_to_be_killed_before_the_fit(short_run: Path, tmp_path: Path) -> None:
+    """A run killed (SIGKILL) and recovered was fitted as if it were whole: no note, `"stopped": []` in --json, where
+    a Ctrl-C'd run gets its line (an outside tester). The file as `bench recover` leaves a killed run's: state
+    running, not complete, `recovered_at` stamped."""
+    killed = _copy(short_run, tmp_path / "killed.h5", recovered_at="2026-11-28T07:00:00+00:00")
+    with h5py.File(killed, "r+") as f:
+        f["status/state"][0] = b"running"
+        f.attrs["complete"] = False
+    code, out = _fit(str(killed), "--json")
+    assert code == 0, out
+    (note,) = json.loads(out)["stopped"]
+    assert note.startswith(f"{killed}: run crashed or killed: recorded up to ") and note.endswith(
+        "; fitting what was recorded"), note

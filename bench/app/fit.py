@@ -116,7 +116,11 @@ def stopped_notices(runs: list[Path]) -> list[str]:
     out = []
     for k, p in enumerate(runs):
         run = open_run(p, streams=False)
-        line = stopped_line(run, continued_in(run, runs[:k] + runs[k + 1:])) if run.state != "completed" else ""
+        later = continued_in(run, runs[:k] + runs[k + 1:]) if run.state != "completed" else None
+        line = stopped_line(run, later) if run.state != "completed" else ""
+        if run.state == "running" and not run.complete:  # killed or crashed (a tester: fitted as whole, unsaid)
+            line = (f"run {run.state_shown}: recorded up to {run.updated:.2f} s"
+                    + (f"; the campaign goes on in {later.name}" if later is not None else ""))
         if line:
             out.append(f"{p}: {line}; fitting what was recorded")
     return out
@@ -167,6 +171,7 @@ def check_enough_data(problem: RecordedProblem, runs: list[Path]) -> None:
     magnitude and nothing it finds is a property of the specimen — a run stopped within its first second gave 114
     points for 16 parameters, and the fit was stored, exit 0 (an outside tester). The choice of ten is ours (no
     source gives one): a whole short identification record holds over 1,000 points, 70 per parameter."""
+    # all the files' points together: a campaign's last, resumed part may be short
     n, k = int(np.isfinite(problem.data).sum()), int(np.asarray(problem.lower).size)
     if n < MIN_POINTS_PER_PARAMETER * k:
         names = ", ".join(str(p) for p in runs)
