@@ -10,7 +10,7 @@ from __future__ import annotations
 import tomllib
 from dataclasses import replace
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, get_args
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator, model_validator
@@ -86,7 +86,16 @@ class _Strict(BaseModel):
     @field_validator("*", mode="before")
     @classmethod
     def _units(cls, v: Any, info: ValidationInfo) -> Any:
-        return _in_unit_of_name(v, info.field_name or "")
+        name = info.field_name or ""
+        if isinstance(v, bool) and name in cls.model_fields and not _takes_bool(cls.model_fields[name].annotation):
+            # pydantic reads true as 1 (an outside tester: shutdown_ramp_s = true was a 1-s ramp, max_current_A 1 A)
+            raise ValueError(f"{'true' if v else 'false'} is not a number: write the value")
+        return _in_unit_of_name(v, name)
+
+
+def _takes_bool(annotation: Any) -> bool:
+    """Whether a field's type admits true/false (``bool``, ``bool | None``)."""
+    return annotation is bool or any(_takes_bool(a) for a in get_args(annotation))
 
 
 class BusConfig(_Strict):

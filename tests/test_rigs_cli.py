@@ -39,6 +39,10 @@ def test_every_example_rig_file_validates(path: Path) -> None:
     ("name = 'x'\ncolour = 'red'\n", "colour: Extra inputs are not permitted"),
     ("name = 'x'\n[motor]\ntravel_m = [0.1, 0.0]\n", "travel_m must be increasing"),
     ("name = 'x'\n[limits]\nmax_voltage_V = 20000\n", "limits.max_voltage_V: Input should be less than or equal"),
+    # pydantic read true as 1 (an outside tester: a 1-s ramp, a 1-A limit); a true/false field still takes one
+    ("name = 'x'\n[limits]\nshutdown_ramp_s = true\n", "limits.shutdown_ramp_s: true is not a number"),
+    ("name = 'x'\n[limits]\nmax_current_A = false\n", "limits.max_current_A: false is not a number"),
+    ("name = 'x'\nsimulated = 1.5\n", "simulated: Input should be a valid boolean"),
     ("name = \n", "not valid TOML"),
     ("description = 'no name'\n", "name: Field required"),
 ])
