@@ -517,6 +517,10 @@ def test_fields_with_the_unit_in_their_name_take_quantities_as_the_readme_says(t
     body = '[specimen]\ntemperature_K = "43 degC"\n[[steps]]\ntype = "wait"\nduration_s = 1\n'
     spec = load_protocol(write(tmp_path, body))
     assert spec.specimen is not None and spec.specimen.temperature_K == pytest.approx(316.15)
+    # [recording] rates too (an outside tester: monitors_Hz = "5 Hz" was "Input should be a valid number")
+    head = HEAD.replace("setpoint_Hz = 20\n", 'setpoint_Hz = 20\nmonitors_Hz = "5 Hz"\nposition_Hz = "0.1 kHz"\n')
+    rec = load_protocol(write(tmp_path, '[[steps]]\ntype = "wait"\nduration_s = 1\n', head=head)).recording
+    assert (rec.monitors_Hz, rec.position_Hz) == (5.0, 100.0)
     # a unit of the wrong kind, or a value beyond the field's bounds once converted: one line naming the field
     for body, fragment in ((UNITS_IN_NAMED_FIELDS.replace('"2 min"', '"2 kV"'), r"steps\[0\]\(wait\)\.duration_s: "
                             r"'2 kV' is a voltage, expected a time"),

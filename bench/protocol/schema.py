@@ -262,12 +262,12 @@ def nominal_duration(step: AnyStep) -> float:
 class RecordingConfig(_Strict):
     """What to record and how often (0 switches a stream off)."""
 
-    displacement_Hz: float = Field(10_000.0, ge=0, le=50_000, description="laser data storage rate")
-    monitors_Hz: float = Field(5.0, ge=0, le=1000, description="amplifier V and I monitors, polled (the ADAM-4017+ "
+    displacement_Hz: Hertz = Field(10_000.0, ge=0, le=50_000, description="laser data storage rate")
+    monitors_Hz: Hertz = Field(5.0, ge=0, le=1000, description="amplifier V and I monitors, polled (the ADAM-4017+ "
                                "converts 10 S/s over its enabled channels: 5 S/s each for V and I)")
-    setpoint_Hz: float = Field(50.0, gt=0, le=2000, description="set-point update rate")
-    position_Hz: float = Field(100.0, ge=0, le=2000, description="motor position, polled")
-    force_Hz: float = Field(100.0, ge=0, le=2000, description="load cell, polled")
+    setpoint_Hz: Hertz = Field(50.0, gt=0, le=2000, description="set-point update rate")
+    position_Hz: Hertz = Field(100.0, ge=0, le=2000, description="motor position, polled")
+    force_Hz: Hertz = Field(100.0, ge=0, le=2000, description="load cell, polled")
     points_per_cycle: int = Field(20, ge=4, le=10_000, description="minimum set-points per waveform cycle")
 
 
