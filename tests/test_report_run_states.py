@@ -297,3 +297,8 @@ def test_an_out_that_is_a_file_or_cannot_be_made_is_one_line_naming_it(short_run
     assert code == 2 and text.startswith(f"error: --out {tmp_path / 'p.txt'}: '.txt' is not a figure format the "
                                          "plot writes (one of .png, "), text
     assert not (tmp_path / "p.txt").exists() and text.count("\n") == 1
+    (tmp_path / "afile").write_text("mine")  # an existing file whose name has no type (a second tester; /dev/null)
+    code, text = _cli("plot", str(run), "--out", str(tmp_path / "afile"))
+    assert code == 2 and text == f"error: --out {tmp_path / 'afile'}: exists; bench plot does not overwrite files: " \
+        "choose another name\n", text
+    assert (tmp_path / "afile").read_text() == "mine"

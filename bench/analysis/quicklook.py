@@ -204,6 +204,8 @@ def quicklook(run_path: str | Path, streams: list[str] | None = None, out: str |
     default = plot_name(run_path, streams)
     # a folder: one that exists, or a name without a file type (``--out figs``, ``--out figs/``), which matplotlib
     # would have written as figs.png while the plot said "figure: figs"
+    if out is not None and Path(out).exists() and not Path(out).is_dir():  # an existing file named with no type
+        refuse_existing(Path(out), "plot", "--out")  # (/dev/null, "afile"): not a folder to write into ([Errno 17])
     folder = out is not None and (Path(out).is_dir() or not Path(out).suffix or str(out).endswith(("/", os.sep)))
     target = Path(run_path).with_name(default) if out is None else Path(out) / default if folder else Path(out)
     named = out is not None and not folder  # a file the user named is a new file; the default name is the run's own
