@@ -240,3 +240,12 @@ def test_an_existing_mat_file_is_refused_not_replaced(run_file: Path, tmp_path: 
     assert "exists; bench export does not overwrite files" in res.output
     assert target.read_bytes() == b"mine" and not (tmp_path / "csv").exists()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["run.mat"]  # no temporary left beside it
+
+
+def test_a_mat_target_not_named_mat_is_refused_before_anything_is_written(run_file: Path, tmp_path: Path) -> None:
+    """`bench export --mat x.csv` wrote a MAT file named x.csv (an outside tester): one line naming the option."""
+    target = tmp_path / "x.csv"
+    res = CliRunner().invoke(app, ["export", str(run_file), "--mat", str(target), "--csv", str(tmp_path / "csv")])
+    assert res.exit_code == 2 and res.output == f"error: --mat {target}: a MATLAB file's name ends in .mat (e.g. " \
+        f"{tmp_path / 'x.mat'})\n", res.output
+    assert not target.exists() and not (tmp_path / "csv").exists()  # nor the CSV files asked beside it

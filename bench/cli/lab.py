@@ -36,6 +36,8 @@ def export(
         raise ValueError("give --csv FOLDER and/or --mat FILE")
     if mat is not None:  # before the CSV files are written
         refuse_existing(mat, "export", example="run.mat")
+        if mat.suffix.lower() != ".mat":  # a MAT file named x.csv (an outside tester) passes for what it is not
+            raise ValueError(f"--mat {mat}: a MATLAB file's name ends in .mat (e.g. {mat.with_suffix('.mat')})")
     if csv is not None:
         with progress("CSV export") as done:
             files = to_csv(run_file, csv, progress=done, said=lambda text: console.print(escape(text)))
