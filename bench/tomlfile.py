@@ -38,14 +38,21 @@ def _unit_of(field: str) -> str | None:
     return last if "_" in field and last in UNIT_SUFFIXES else None
 
 
+BOUNDS = ("less_than_equal", "less_than", "greater_than_equal", "greater_than")  # pydantic's bound errors
+
+
 def type_hint(err: Mapping[str, Any]) -> str:
     """What to write instead, for a pydantic error of a value of the wrong TOML type ("" if none applies): a string
     that is no number where a field takes a plain number (one whose name ends in its unit reads a quantity with its
     unit first: bench.rig, bench.protocol.schema), or a number where a protocol quantity (``QUANTITY_FIELDS``)
-    takes a string with its unit (``amplitude = "5 kV"``)."""
+    takes a string with its unit (``amplitude = "5 kV"``); for a bound of a field whose name ends in its unit, that
+    unit and the value given, converted to it ("less than or equal to 10 s (got 3600 s)")."""
     field, value = (err.get("loc") or ("",))[-1], err.get("input")
     if not isinstance(field, str):
         return ""
+    if err.get("type") in BOUNDS and (unit := _unit_of(field)) is not None and isinstance(value, int | float) \
+            and not isinstance(value, bool):  # the bound in the field's unit, and the value given once converted
+        return f" {unit} (got {value:g} {unit})"  # (an outside tester: "1 h" said only "less than or equal to 10")
     if err.get("type") in ("float_parsing", "int_parsing", "float_type", "int_type") and isinstance(value, str):
         unit = _unit_of(field)
         where = f" in {unit}, the unit its name ends in" if unit else ""

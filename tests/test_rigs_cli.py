@@ -73,8 +73,8 @@ def test_a_rig_file_takes_quantities_with_units_as_a_protocol_file_does(tmp_path
     assert rig.motor.max_velocity_m_per_s == pytest.approx(0.5)
     for text, message in (("[limits]\nmax_current_A = '5 kV'", "limits.max_current_A: '5 kV' is a voltage, "
                                                                  "expected a current"),
-                          ("[limits]\nshutdown_ramp_s = '20 s'", "limits.shutdown_ramp_s: Input should be less "
-                                                                  "than or equal to 10"),
+                          ("[limits]\nshutdown_ramp_s = '2 min'", "limits.shutdown_ramp_s: Input should be less "
+                                                                   "than or equal to 10 s (got 120 s)"),
                           ("[limits]\nmax_force_N = 'much'", "limits.max_force_N: 'much' is not a number with a "
                                                               "unit")):
         f.write_text(f"name = 'x'\n{text}\n")
