@@ -114,12 +114,13 @@ def test_fit_json_is_the_stored_fit(tmp_path: Path) -> None:
     the run — names, values and rms read back with the store's reader."""
     from bench.identify.store import read_fits
 
-    # the short protocol with a 0.5-s identification step: the intervals' profiles cost in proportion to the record,
+    # the short protocol with a 0.7-s identification step: the intervals' profiles cost in proportion to the record,
     # and what is tested here is the JSON against the stored fit, not the fit (this record's intervals still come
-    # in all three statuses: determined, bounded on one side only, not determined)
-    protocol = tmp_path / "identification-0s5.toml"
+    # in all three statuses: determined, bounded on one side only, not determined); 0.7 s, not 0.5 s: a fit needs
+    # ten measured points per parameter (160; the 0.5-s record held 151)
+    protocol = tmp_path / "identification-0s7.toml"
     protocol.write_text(SHORT.read_text(encoding="utf-8").replace('rig = "../../rigs/', f'rig = "{ROOT}/rigs/')
-                        .replace("duration_s = 10.0", "duration_s = 0.5"), encoding="utf-8")
+                        .replace("duration_s = 10.0", "duration_s = 0.7"), encoding="utf-8")
     result = execute(plan_run(protocol), tmp_path / "run.h5", virtual=True)
     assert result.state == "completed", result.reason
     run = Path(result.path)

@@ -173,8 +173,11 @@ def check_enough_data(problem: RecordedProblem, runs: list[Path]) -> None:
     source gives one): a whole short identification record holds over 1,000 points, 70 per parameter."""
     # all the files' points together: a campaign's last, resumed part may be short
     n, k = int(np.isfinite(problem.data).sum()), int(np.asarray(problem.lower).size)
+    names = ", ".join(str(p) for p in runs)
+    if n <= k:  # none to speak of: the sensor's record, not the run's length (the fit's own words)
+        raise ValueError(f"run file{'s' if len(runs) > 1 else ''} {names}: {n} valid data points for {k} parameters: "
+                         "nothing to fit (the sensor read out of range or invalid through the whole record?)")
     if n < MIN_POINTS_PER_PARAMETER * k:
-        names = ", ".join(str(p) for p in runs)
         raise ValueError(f"run file{'s' if len(runs) > 1 else ''} {names}: {n} measured points for {k} parameters "
                          f"(a fit needs {MIN_POINTS_PER_PARAMETER} per parameter, {MIN_POINTS_PER_PARAMETER * k}): "
                          "too short a record to fit (a run stopped early?); nothing fitted or stored")

@@ -228,10 +228,6 @@ def runs_list(
 ) -> None:
     """List the catalogued runs of --dir (one row per run; copies of a run file counted once), after reconciling
     the catalogue with the files."""
-    import json
-
-    from bench.storage.runfile import state_shown
-
     cutoff = _since(since) if since is not None else None
     if state is not None and state not in FILTER_STATES:
         raise ValueError(f"--state: {state!r} is not a run state ({', '.join(FILTER_STATES)})")
@@ -243,17 +239,24 @@ def runs_list(
         rows = _select(cat, folder, found, everywhere, notes, specimen=specimen, protocol=protocol, since=cutoff,
                        state=state)
     _notes(notes, json_out)
+    _print_runs(rows, json_out)
+
+
+def _print_runs(rows: list[dict[str, Any]], json_out: bool) -> None:
+    """The listed rows: JSON (each with ``state_shown``, the state as the table shows it), or the table."""
+    import json
+
+    from bench.storage.catalog import shown_state
+
     if json_out:
-        print_json([{**r, "state_shown": state_shown(r["state"], bool(r["complete"]), r["incomplete_reason"] or ""),
-                     "figures": json.loads(r["figures"] or "[]"), "fits": json.loads(r["fits"] or "[]"),
-                     "signature": None} for r in rows])
+        print_json([{**r, "state_shown": shown_state(r), "figures": json.loads(r["figures"] or "[]"),
+                     "fits": json.loads(r["fits"] or "[]"), "signature": None} for r in rows])
         return
     t = Table(title=f"runs ({len(rows)})")
     for col in ("started (UTC)", "file", "protocol", "specimen", "operator", "state", "steps", "HV time", "fits"):
         t.add_column(col)
     for r in rows:
-        shown = state_shown(r["state"], bool(r["complete"]), r["incomplete_reason"] or "")
-        state_txt = shown if r["complete"] else f"[red]{shown}, incomplete[/]"
+        state_txt = shown_state(r) if r["complete"] else f"[red]{shown_state(r)}, incomplete[/]"
         t.add_row(str(r["start_time"] or "")[:19], escape(Path(r["path"]).name), escape(r["protocol_name"] or ""),
                   escape(r["specimen_id"] or ""), escape(r["operator"] or ""), state_txt,
                   f"{r['steps_completed'] or 0}/{r['steps_total'] or 0}", _hours(r["hv_time_s"]),
