@@ -512,3 +512,60 @@ def test_a_ramp_from_rest_is_in_band_while_the_monitor_still_shows_rest() -> Non
     fresh.commanded(0.35, 250.0)
     fresh.commanded(0.40, 500.0)
     assert fresh.reading(0.48, 2.0) is None and fresh.reading(0.53, 2.0) is None
+
+
+RISE_PROTOCOL = """[protocol]
+name = "rise"
+rig = "{rig}"
+
+[[steps]]
+type = "relax"
+name = "set-up"
+duration_s = 0.3
+
+[[steps]]
+type = "waveform"
+name = "cycle"
+kind = "raised_cosine"
+amplitude = "6 kV"
+frequency_Hz = 1.0
+duration_s = 1.0
+
+[[steps]]
+type = "ramp"
+name = "up"
+channel = "voltage"
+to = "5 kV"
+duration_s = 0.5
+
+[[steps]]
+type = "hold"
+name = "hold"
+duration_s = 0.5
+"""
+
+
+@pytest.mark.parametrize("at", [1.295, 1.2995, 1.3])
+def test_a_full_disk_at_the_trough_before_a_ramp_up_never_lets_the_output_rise(tmp_path: Path, at: float) -> None:
+    """The run file's disk fills at the end of a raised-cosine cycle (0 V), the next step a ramp up already in the
+    T7's stream-out: the stop waited for whole packets (so that no scan is lost before the ramp's stream) and let
+    the device play on — the fault matrix saw 0 V reached, then 222 V. After a storage fault no scan can be kept:
+    the stream stops at once, and the output at the plant never rises after the fault by more than a DAC code or
+    two (5 V). (Virtual time: the fault at run time ``at``, within a packet's time of the cycle's end at 1.3 s.)"""
+    import errno
+
+    protocol = tmp_path / "rise.toml"
+    protocol.write_text(RISE_PROTOCOL.format(rig=DAQ_RIG.as_posix()), encoding="utf-8")
+
+    def full(engine: Engine, _sim) -> None:
+        def no_room(*_a: object, **_k: object) -> None:
+            raise OSError(errno.ENOSPC, "No space left on device (the test)")
+
+        engine.rec.append = no_room  # type: ignore[method-assign]  # the next write fails as on a full disk
+
+    result, _run, plant = run_with_fault(DAQ_RIG, tmp_path, at, full, virtual=True, protocol=protocol)
+    assert result.state == "error" and "storage fault" in result.reason, result.reason
+    t, v = plant.arrays()
+    was = float(np.abs(v[t <= plant.t_fault][-1]))
+    assert was < 100.0  # the premise: asked near the trough
+    assert plant.high_after(plant.t_fault) <= was + 5.0, (was, plant.high_after(plant.t_fault))

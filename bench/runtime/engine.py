@@ -1295,8 +1295,11 @@ class Engine:
         if self._stream is not None:
             try:
                 # the DAC holds the last value played; the ramp continues from it. Whole packets first (at most
-                # one packet's time), so that no scan is lost before the ramp's stream — not when 0 V is due at once
-                self._stream.stop(whole=self.latched is None and not self._urgent.is_set())
+                # one packet's time), so that no scan is lost before the ramp's stream — not when 0 V is due at once,
+                # nor after a storage fault: no scan could be kept, and the device would play on meanwhile (the fault
+                # matrix: a full disk at a cycle's trough let the next step's ramp up drive 0 V to 222 V)
+                self._stream.stop(whole=self.latched is None and not self._urgent.is_set()
+                                  and not self._storage_failed)
             except InstrumentError as exc:
                 notes.append(f"stopping the DAQ stream failed: {exc}")
                 unanswered = True  # the request may have arrived; a ramp of unanswered requests only delays 0 V
