@@ -381,11 +381,13 @@ def _tripped_by_load_before_the_page(folder: Path) -> bool:
 def _load_trip(run: RunFile) -> bool:
     """Whether ``run`` ended on what a host starved of CPU does: tripped on a :data:`LOAD_TRIPS` reason, or ended in
     error with the interlock latched on a host stall (the twin that shares the host answered too late: "no valid
-    reply", CI beside a hog, 2026-11-28)."""
+    reply", CI beside a hog, 2026-11-28), or in error on the DAQ twin's missing reply with the rig latched for it
+    (its stream stop unanswered, the 0 V not read back: CI beside a hog and a browser, the same day)."""
     if run.state == "tripped":
         return any(k in run.reason for k in LOAD_TRIPS)
     latches = [e[3] for e in run.event_list() if e[2] == "interlock" and "latched" in e[3]]
-    return run.state == "error" and any("(host stall)" in text for text in latches)
+    starved_twin = "daq: no valid reply" in run.reason and any("(output not verified)" in t for t in latches)
+    return run.state == "error" and (starved_twin or any("(host stall)" in text for text in latches))
 
 
 def _children(pid: int) -> list[int]:
