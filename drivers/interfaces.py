@@ -395,6 +395,7 @@ class StreamingDaq(Instrument, Protocol):
 
     timeout: float  # [s] a command-response request's reply timeout (a collect waits at least 4 times this)
     streaming: bool  # a stream runs (kicked off, not stopped)
+    stop_unconfirmed: bool  # a stop went out unanswered: the device may stream (and play its stream-out) on
 
     @property
     def out_open(self) -> bool:

@@ -112,7 +112,7 @@ class FakeDaq:
     """An in-memory DAQ implementing StreamingDaq; ``inputs(dac_volts)`` models what its analog inputs read."""
 
     def __init__(self, clock: VirtualClock, inputs: Callable[[float], dict[int, float]]) -> None:
-        self.name, self.timeout, self.streaming = "daq", 0.1, False
+        self.name, self.timeout, self.streaming, self.stop_unconfirmed = "daq", 0.1, False, False
         self.clock, self.inputs = clock, inputs
         self.dac_now = 2.5  # [V] the output holds this between streams
         self.calls: list[str] = []

@@ -569,3 +569,47 @@ def test_a_full_disk_at_the_trough_before_a_ramp_up_never_lets_the_output_rise(t
     was = float(np.abs(v[t <= plant.t_fault][-1]))
     assert was < 100.0  # the premise: asked near the trough
     assert plant.high_after(plant.t_fault) <= was + 5.0, (was, plant.high_after(plant.t_fault))
+
+
+def test_a_stream_stop_the_t7_never_answers_leaves_the_output_to_its_watchdog(tmp_path: Path) -> None:
+    """A stop at a raised-cosine cycle's crest, and the T7 neither acts on nor answers the stream stop
+    (``STREAM_ENABLE = 0`` lost; CI beside a hog and a browser saw it unanswered, the monitor at 3043 V 2.5 s later):
+    the stream-out may still be playing over any DAC write of the host's, so after its one 0-V write the host must
+    send nothing more — the verification's reads fed the T7's watchdog and kept the played output up. The output
+    at the plant is 0 V within the stop's reply waits plus the watchdog's period (+0.2 s, the engine's margin), and
+    the rig latches: 0 V was not under the host's control."""
+    from bench.runtime.engine import SHUTDOWN_REPLY_S
+    from sim_devices.t7.registers import R_ENABLE
+
+    protocol = tmp_path / "rise.toml"
+    protocol.write_text(RISE_PROTOCOL.format(rig=DAQ_RIG.as_posix()), encoding="utf-8")
+    lost: list[float] = []
+
+    def lose_the_stream_stop(engine: Engine, sim) -> None:
+        twin = sim.twins["daq"]
+        write = twin._write_regs
+
+        def written(address: int, words: list[int]) -> object:
+            if address == R_ENABLE and not any(int(w) for w in words):
+                lost.append(sim.clock.now())
+                return None  # not acted on; its reply withheld below
+            return write(address, words)
+
+        def withheld(reply: bytes) -> bytes:  # FC16's echo of address 4990: never on the wire
+            return b"" if len(reply) >= 10 and reply[7] == 0x10 and reply[8:10] == R_ENABLE.to_bytes(2, "big") \
+                else reply
+        twin._write_regs = written
+        sim.faults["daq"].mutate = withheld
+        engine.request_stop("stopped by the test")
+
+    _result, run, plant = run_with_fault(DAQ_RIG, tmp_path, 0.8, lose_the_stream_stop, virtual=True,
+                                        protocol=protocol)
+    assert lost, "the stream stop was never sent: the trial tests nothing"
+    t, v = plant.arrays()
+    assert float(np.abs(v[t <= plant.t_fault][-1])) > 1000.0  # the premise: high voltage when the stop came
+    # the whole-packet wait (≤ 17 ms, README), the stop's and the zero write's reply waits, the watchdog, +0.2 s
+    bound = plant.t_fault + 0.017 + 2 * SHUTDOWN_REPLY_S + load_rig(DAQ_RIG).daq.watchdog_s + 0.2
+    assert plant.last_high() <= bound, (plant.last_high(), bound)
+    assert plant.arrays()[0][-1] > plant.last_high() + 0.05  # the plant was followed past it: 0 V held
+    assert "NOT under its control" in run.reason, run.reason
+    assert [text for text in events(run, "interlock") if "output path dead" in text], events(run, "interlock")

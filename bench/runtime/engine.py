@@ -286,6 +286,7 @@ class Engine:
         self.latched: InterlockTrip | None = None  # the interlock fault that ended the run (0 V at once, no ramp)
         self.tripped: SafetyTrip | None = None  # the supervisor's limit trip that ended the run (latches it too)
         self._output_dead = False  # 0 V could not be commanded: no request may feed the module's watchdog
+        self._stream_lost = False  # … or 0 V was written but a stream stop went unanswered (may play over it)
         self._zero_verified = False  # the shutdown read 0 V back from the voltage monitor
         # run time of the last set-point (software-timed) that commanded the output on (|V| > OUTPUT_ON_V), or
         # that commanded it off from there: the hand-over check's settle counts from it (_hand_over)
@@ -1368,6 +1369,8 @@ class Engine:
             self._event("watchdog", "output path dead: no further request to the set-point module, so that its "
                         "communication watchdog zeroes the output as early as it can")
             return None
+        if self._stream_unstopped():
+            return None
         self.ctx.v_cmd = 0.0
         t_zero = self.now()
         if self._streamed_settle:  # the stream played 0 V (its set-point row is recorded) and recorded the settle
@@ -1376,6 +1379,21 @@ class Engine:
         if cut_short:  # 0 V is commanded: now the settle after it, recorded as the ramp's stream would have
             self._stream_settle(t_zero, notes)
         return t_zero
+
+    def _stream_unstopped(self) -> bool:
+        """After the host's 0-V write: whether a stream stop went unanswered (the DAQ may stream on, its stream-out
+        playing over that write). Then the output path is not under the host's control, as when 0 V cannot be
+        written: no further request to the DAQ, so that its watchdog (which ends a stream-out's loop and takes the
+        DAC to its safe value) runs out. Before, the verification's reads fed the watchdog and kept a played 3 kV up
+        through the whole discharge wait (CI beside a hog and a browser: 3043 V 2.5 s after the stop). A rig whose
+        DAQ has no watchdog keeps the verification's reads: they are all it has."""
+        if self._stream is None or not self._hw.daq.stop_unconfirmed or watchdog_period(self.program.rig) is None:
+            return False
+        self._output_dead = self._stream_lost = True
+        self._event("watchdog", "output path not under the host's control: the DAQ's stream stop went unanswered, "
+                    "so its stream-out may play over the 0 V the host wrote; no further request to the DAQ, so that "
+                    "its communication watchdog zeroes the output as early as it can")
+        return True
 
     def _stream_settle(self, t_zero: float, notes: list[str]) -> None:
         """After 0 V commanded at once on a second stop request (the ramp's stream cut short, outside tester: the
@@ -1552,7 +1570,8 @@ class Engine:
         if self.latched is not None or self.inst.amplifier is None:
             return
         if zero_at is None:
-            trip = InterlockTrip("output path dead", f"0 V could not be commanded by the host ({safe_path})")
+            trip = InterlockTrip("output path dead", ("0 V not under the host's control" if self._stream_lost else
+                                                      "0 V could not be commanded by the host") + f" ({safe_path})")
         elif not self._zero_verified:
             trip = InterlockTrip("output not verified", f"0 V was commanded but not read back ({safe_path})")
         else:
@@ -1678,8 +1697,9 @@ class Engine:
                 self._pause_until(self.now() + MONITOR_SETTLE_S, urgent_aborts=False)
         elif watchdog is not None:
             # No request to the set-point module from here on: its communication-safety timer must run out.
-            path = (f"0 V NOT commanded by the host: left to the set-point module's communication watchdog "
-                    f"({watchdog:g} s)")
+            path = ("0 V written by the host but NOT under its control (the DAQ's stream stop went unanswered)"
+                    if self._stream_lost else "0 V NOT commanded by the host")
+            path += f": left to the set-point module's communication watchdog ({watchdog:g} s)"
             self._pause_until(self.now() + watchdog + WATCHDOG_MARGIN_S, urgent_aborts=False)
         else:
             # nothing brings the output to 0 V: what it measures is what the file and the operator need most

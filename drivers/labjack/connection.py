@@ -81,6 +81,8 @@ class T7Connection:
         self._ain_range: dict[int, float] = {}  # ±V of the inputs configured here (the rest: the ±10 V default)
         self._stream: StreamState | None = None
         self.streaming = False
+        self.stop_unconfirmed = False  # a stream stop unanswered (or garbled): the device may still be streaming,
+        # its stream-out playing over any DAC write of the host's; cleared by the next answered stop or enable
         self.answered_at = -math.inf  # rig time at which the last request the T7 answered was sent (its watchdog
         # counts from the request it last received)
 

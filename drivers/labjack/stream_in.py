@@ -163,6 +163,7 @@ class T7Stream(T7StreamOut):
         s.sock = self._open_stream_socket()
         asked = self.clock()
         self.write_u32(STREAM_ENABLE, 1)
+        self.stop_unconfirmed = False  # an enable the device took: no stream of before ran on
         s.t_enable = self.clock()
         s.t0 = s.t_enable + s.plan.dt
         s.t0_uncertainty = s.t_enable - asked  # the device enabled somewhere within the request's round trip
@@ -384,6 +385,11 @@ class T7Stream(T7StreamOut):
                              STREAM_ENABLE, u32_words(0))
                 except InstrumentStateError as exc:  # refused (STREAM_NOT_RUNNING): a device that ended the stream
                     refused = exc  # itself has sent its last packets all the same
+                except InstrumentError:  # unanswered, garbled or cancelled: it may not have arrived, and then the
+                    self.stop_unconfirmed = True  # device streams on, its stream-out over any DAC write of ours
+                    raise
+                else:
+                    self.stop_unconfirmed = False
             self.streaming = False
             try:
                 try:  # the packets filled before the stop was sent are on their way: a short wait for them
