@@ -101,3 +101,37 @@ def test_campaign_fit_cli_stores_the_joint_result_in_every_file(tmp_path: Path, 
         assert {r.split(" [")[0] for r in campaign["records"]} == set(paths)  # every file's records took part
         assert len(campaign["undetermined_per_record"]) == len(campaign["records"])
         assert set(campaign["determined_only_by_the_campaign"]) <= set(s["names"])
+
+
+class _Weak:
+    """y1 = a·t and y2 = (a + 10⁻³ b)·t with noise 0.05 (a = 2, b = 1): b's trace is far below the noise, so a
+    trusted fit's profile interval spans b's whole range — the campaign does not determine b, whatever each record
+    says."""
+
+    lower = np.array([0.0, 0.0])
+    upper = np.array([4.0, 4.0])
+    log = np.array([False, False])
+    data_unit = "-"
+
+    def __init__(self) -> None:
+        self.names, self.units = ["a", "b"], ["-", "-"]
+        self.t = np.linspace(0.1, 1.0, 60)
+        rng = np.random.default_rng(3)
+        self.records = [_Rec(2.0 * self.t + rng.normal(0, 0.05, 60), "a only", np.zeros((60, 2)), np.zeros(20)),
+                        _Rec((2.0 + 1e-3) * self.t + rng.normal(0, 0.05, 60), "a and a trace of b (b = 1)",
+                             np.zeros((60, 2)), np.zeros(20))]
+        self.data = np.concatenate([r.data for r in self.records])
+
+    def predict(self, Z: np.ndarray) -> np.ndarray:
+        Z = np.atleast_2d(Z)
+        return np.hstack([Z[:, :1] * self.t, (Z[:, :1] + 1e-3 * Z[:, 1:]) * self.t])
+
+
+def test_a_parameter_the_trusted_fit_leaves_undetermined_is_not_gained_by_the_campaign() -> None:
+    """The fit's table row said "not determined" while the campaign line said "determined by the campaign: … b"
+    (outside tester, two short records): the campaign's verdict must be the trusted fit's."""
+    prob = _Weak()
+    res = fit(prob, FitSettings(population=20, generations=60, cost="lsq", intervals=True))
+    assert any(f.startswith("b: not determined") for f in res.flags), res.flags  # the premise: the interval's
+    report = campaign_identifiability(prob, res)
+    assert "b" in report.campaign_undetermined and "b" not in report.gained, report

@@ -16,8 +16,12 @@ import numpy as np
 
 from bench.identify.core import FitResult, RecordedProblem, assess, to_optimiser
 
-# flags that say a parameter is not determined (a bound is a property of the estimate, not of the data)
-UNDETERMINED = ("does not change the cost", "poorly determined", "correlated with")
+# flags that say a parameter is not determined (a bound is a property of the estimate, not of the data): the local
+# analysis's, and the profile intervals' of a trusted fit (:mod:`bench.identify.trust`, which drops "poorly
+# determined" for its own verdicts: without them the campaign listed as determined by it a parameter its own row
+# called "not determined", outside tester). One side bounded is not determined either.
+UNDETERMINED = ("does not change the cost", "poorly determined", "correlated with", "not determined",
+                "bounded on one side only")
 
 
 @dataclass
