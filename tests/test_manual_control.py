@@ -212,6 +212,17 @@ def test_escape_sequences_and_odd_lines_are_one_line_refusals(tmp_path: Path) ->
         assert len(row) == 5, row  # no tab or newline from a command broke the log's columns
 
 
+def test_a_unit_of_the_wrong_kind_is_named_not_wrong_arguments(tmp_path: Path) -> None:
+    """``voltage 77 °F`` said "wrong arguments" (outside tester): a unit that starts with a symbol (°, Ω, %) belongs
+    to the number before it as a letter's does, and the refusal names the unit."""
+    with ManualSession(load_rig(THESIS_RIG), tmp_path / "s.log", virtual=True, echo=lambda _t: None) as s:
+        for line in ("voltage 77 °F", "voltage 5 Ω", "voltage 3 %"):
+            out = s.execute(line)
+            assert out.status == "refused" and "wrong arguments" not in out.text, out
+            assert line.split()[-1] in out.text, out
+        assert abs(_plant_volts(s._sim)) < ZERO_V  # nothing sent
+
+
 @pytest.mark.parametrize("asked", [3000, 5000, 1000, 0, 7000, -2000])
 def test_a_voltage_answer_names_the_set_point_just_sent(tmp_path: Path, asked: float) -> None:
     """Virtual time: no time passes between commands, so the slew limit cut the first send to a few volts and

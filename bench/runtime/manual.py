@@ -841,7 +841,7 @@ def _join_units(words: list[str]) -> list[str]:
     """``["jog", "-5", "mm"]`` → ``["jog", "-5 mm"]``: a unit after a number belongs to it."""
     out: list[str] = []
     for w in words:
-        if len(out) > 1 and (w[:1].isalpha() or w[:1] == "µ") and _is_number(out[-1]):
+        if len(out) > 1 and w and (w[0].isalpha() or w[0] in "µ°Ω%") and _is_number(out[-1]):
             out[-1] = f"{out[-1]} {w}"
         else:
             out.append(w)
