@@ -703,3 +703,38 @@ def test_a_full_disk_is_one_short_warning_not_the_sql_statement(short_run: Path,
     (line,) = [r.getMessage() for r in caplog.records if "run catalogue" in r.getMessage()]
     assert line.endswith("reconciles it from the files): database or disk is full"), line
     assert "INSERT" not in line and "[SQL" not in line and "parameters" not in line
+
+
+def test_a_catalogue_another_writer_holds_is_said_while_the_end_row_waits(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture) -> None:
+    """Another bench holds the SQLite catalogue in a write transaction: the run's end row waits for it up to the
+    busy timeout — ~55 s in which the CLI said nothing (outside tester). A line now says what it waits for, and the
+    row still gives up with its one warning."""
+    import logging
+    import sqlite3
+
+    from bench.storage import catalog as cat_mod
+
+    monkeypatch.setattr(cat_mod, "SQLITE_BUSY_S", 1.0)
+    monkeypatch.setattr(cat_mod, "WAIT_NOTICE_S", 0.2)
+    run = tmp_path / "r.h5"
+    monkeypatch.setattr(cat_mod, "row_from_file", lambda path, hv=None: row_from_attrs(
+        path, {"protocol_name": "x", "start_time": "2026-01-01"}))
+    url = cat_mod.catalog_url(tmp_path)
+    with Catalog(url):
+        pass  # the schema exists
+    holder = sqlite3.connect(tmp_path / cat_mod.FILE_NAME, isolation_level=None)
+    holder.execute("BEGIN EXCLUSIVE")
+    try:
+        with caplog.at_level(logging.WARNING, logger=cat_mod.log.name):
+            cat_mod.record_end(run)
+    finally:
+        holder.execute("ROLLBACK")
+        holder.close()
+    lines = [r.getMessage() for r in caplog.records]
+    waiting = [m for m in lines if "waiting for another writer" in m]
+    assert waiting and str(tmp_path / cat_mod.FILE_NAME) in waiting[0], lines
+    assert lines[-1].startswith("run catalogue not written at the end"), lines
+    caplog.clear()
+    cat_mod.record_end(run)  # free: no line at all
+    assert not caplog.records, [r.getMessage() for r in caplog.records]

@@ -52,9 +52,9 @@ def _db_errors(fn: Callable[P, R]) -> Callable[P, R]:
 
 def sa_display(url: str) -> str:
     """A database URL as said in a line: its password hidden."""
-    import sqlalchemy as sa
+    from bench.storage.catalog import sa_display as display
 
-    return sa.engine.make_url(url).render_as_string(hide_password=True)
+    return display(url)
 
 
 NO_FIT_PLOT = "no fitted parameters: no plot"  # specimen show on a specimen whose runs hold no fit

@@ -55,6 +55,7 @@ log = logging.getLogger("bench.storage.catalog")
 ENV = "BENCH_CATALOG"
 FILE_NAME = "catalog.sqlite"
 SQLITE_BUSY_S = 60.0  # how long a SQLite writer waits for another bench's transaction
+WAIT_NOTICE_S = 2.0  # a run's end row not written after this: a line says the CLI waits for the catalogue
 PG_CONNECT_S = 5  # a shared server that does not answer: give up quickly (the run goes on)
 PG_STATEMENT_S = 10  # a statement or lock wait on it (a locked table, a hung server) ends after this: the run goes on
 PG_KEEPALIVE_S = 5  # a connection dropped mid-query is noticed within about 2 × this (TCP keepalives)
@@ -821,13 +822,29 @@ def record_end(path: Path, url: str | None = None, hv: HvStats | None = None, wr
     """Catalogue a run that has ended, from its file (``hv``: its high-voltage statistics, as the recorder counted
     what it wrote: :meth:`~bench.storage.recorder.Recorder.hv_stats`; ``written``: the recorder's account of the
     finished file, :func:`row_from_written`, instead of reading it again); on any failure one warning line."""
+    url = catalog_url(path.parent, url)
+    bound = SQLITE_BUSY_S if url.startswith("sqlite") else PG_CONNECT_S + PG_STATEMENT_S
+    notice = threading.Timer(WAIT_NOTICE_S, lambda: log.warning(
+        "run catalogue %s: waiting for another writer to finish (up to %g s); the run file is complete, and "
+        "Ctrl-C skips the catalogue's row (`bench runs list` reconciles it)", sa_display(url), bound))
+    notice.daemon = True
+    notice.start()  # a catalogue another bench holds made the CLI wait ~55 s after a run saying nothing (tester)
     try:
         row = row_from_written(path, written, hv) if written is not None else row_from_file(path, hv)
-        with Catalog(catalog_url(path.parent, url)) as cat:
+        with Catalog(url) as cat:
             cat.upsert([row])
     except Exception as exc:
         log.warning("run catalogue not written at the end (`bench runs list` reconciles it from the files): %s",
                     db_reason(exc))
+    finally:
+        notice.cancel()
+
+
+def sa_display(url: str) -> str:
+    """A database URL as said in a line: its password hidden."""
+    import sqlalchemy as sa
+
+    return sa.engine.make_url(url).render_as_string(hide_password=True)
 
 
 # ---- a specimen's life -------------------------------------------------------------------------------------------
