@@ -738,3 +738,17 @@ def test_a_catalogue_another_writer_holds_is_said_while_the_end_row_waits(
     caplog.clear()
     cat_mod.record_end(run)  # free: no line at all
     assert not caplog.records, [r.getMessage() for r in caplog.records]
+
+
+def test_a_listing_of_an_empty_folder_leaves_no_catalogue_behind(tmp_path: Path) -> None:
+    """`runs list` and `specimen show` in a folder with no run file made an empty catalog.sqlite there (outside
+    tester): a read that keeps nothing writes nothing (a folder with run files gets its catalogue: the tests
+    above)."""
+    env = {**os.environ, "BENCH_STATE_DIR": str(tmp_path / "state")}
+    env.pop("BENCH_CATALOG", None)
+    folder = tmp_path / "runs"
+    folder.mkdir()
+    for args in (["runs", "list", "--dir", str(folder)], ["specimen", "show", "VE-A", "--dir", str(folder)]):
+        res = _bench_here(*args, env=env)
+        assert "Traceback" not in res.stderr, res.stderr
+        assert not (folder / "catalog.sqlite").exists(), (args, res.stdout, res.stderr)

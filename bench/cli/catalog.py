@@ -71,6 +71,18 @@ def _refuse_folder(folder: Path, why: str = "") -> NoReturn:
     raise ValueError(absent_runs_folder(folder, why))
 
 
+def _nothing_to_keep(folder: Path, url: str) -> bool:
+    """Whether a listing of ``folder`` would make a SQLite catalogue that holds nothing: none there yet and no run
+    file to catalogue (`runs list` in an empty folder left a catalog.sqlite behind, outside tester) — then the listing
+    is made in memory. Where the first run file comes, the catalogue is made as before."""
+    from bench.storage.catalog import run_files
+
+    if not url.startswith("sqlite:///"):
+        return False
+    database = Path(url.removeprefix("sqlite:///"))
+    return not database.exists() and not (folder.is_dir() and any(run_files(folder)))
+
+
 def _open(folder: Path, url: str | None, notes: list[str]) -> tuple[Any, set[str]]:
     """The catalogue, reconciled with the run files of ``folder`` (a missing folder: nothing to reconcile), and the
     rows' paths of the files found there (a file linked into it among them); what the reconciliation found worth
@@ -90,7 +102,7 @@ def _open(folder: Path, url: str | None, notes: list[str]) -> tuple[Any, set[str
         _refuse_folder(folder)
     url = catalog_url(folder, url)
     try:
-        cat = Catalog(url)
+        cat = Catalog("sqlite://" if _nothing_to_keep(folder, url) else url)
     except Exception as exc:  # none there yet on a read-only or full medium: made in memory, if SQLite
         if (damaged := damaged_file(exc, url)) is not None:  # listed from the files: the catalogue is only an index
             cat = Catalog("sqlite://")
