@@ -195,3 +195,23 @@ def test_a_run_that_latched_its_rig_says_so_and_how_to_reset_it() -> None:
     assert "rig thesis-daq-sim latched: interlock: output path dead" in text
     assert "bench interlock reset thesis-daq-sim --why" in text
     assert "latched" not in shown(RunResult("runs/y.h5", "completed", "protocol completed", 3.0, 1.0, 10))
+
+
+@pytest.mark.parametrize(("args", "named"), [
+    (["report", "--out", "", "x.h5"], "--out"),
+    (["report", "--out=", "x.h5"], "--out"),
+    (["runs", "list", "--dir", ""], "--dir"),
+    (["report", ""], "argument 2 of the command line"),
+])
+def test_an_empty_argument_is_refused_naming_it(args: list[str], named: str, tmp_path: Path) -> None:
+    """``--out ''`` was taken as the current folder (Path('') is '.'; outside tester): an empty argument — an unset
+    shell variable, most often — is refused before any command runs, naming it, with nothing made."""
+    here = os.getcwd()
+    os.chdir(tmp_path)
+    try:
+        res = runner.invoke(app, args)
+    finally:
+        os.chdir(here)
+    assert res.exit_code == 2, res.output
+    assert f"{named}: empty" in res.output, res.output
+    assert not list(tmp_path.iterdir())  # nothing made

@@ -7,15 +7,36 @@ bench/app and renders the result (tests/test_cli_thin.py). Entry point: ``bench 
 
 from __future__ import annotations
 
+from typing import Any
+
 import typer
+from typer.core import TyperGroup
 
 from bench.cli import analysis, catalog, lab, main, run, watch
 
 __all__ = ["app"]
 
+
+class _NoEmptyArguments(TyperGroup):
+    """The command line refuses an empty argument (``--out ''``, ``--out=``, ``report ''``: an unset shell variable,
+    most often) in one line naming it: a path option took it as the current folder (outside tester), and no option
+    or argument of bench means anything by an empty value."""
+
+    def parse_args(self, ctx: Any, args: list[str]) -> list[str]:
+        for i, arg in enumerate([] if ctx.resilient_parsing else args):  # (completion parses what is typed so far)
+            if arg == "--":
+                break
+            if arg == "" or (arg.startswith("--") and arg.endswith("=")):
+                named = arg[:-1] if arg else (args[i - 1] if i and args[i - 1].startswith("-")
+                                              else f"argument {i + 1} of the command line")
+                raise typer.BadParameter("empty (an unset shell variable?): give it a value", ctx, param_hint=named)
+        return super().parse_args(ctx, args)
+
+
 # rich_markup_mode=None: help texts are plain text ("Simulated time [s]." keeps its unit)
 app = typer.Typer(name="bench", help="dea-bench: DEA test-bench control, simulation and data acquisition.",
-                  no_args_is_help=True, pretty_exceptions_enable=False, add_completion=True, rich_markup_mode=None)
+                  no_args_is_help=True, pretty_exceptions_enable=False, add_completion=True, rich_markup_mode=None,
+                  cls=_NoEmptyArguments)
 groups = main.register(app)  # the main options; simulate, sim, devices; benchmark
 analysis.register(app)  # fit, design-map, report, demo
 lab.register(app, devices=groups["devices"])  # export; devices control
