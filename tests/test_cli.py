@@ -7,6 +7,7 @@ import re
 import subprocess
 import sys
 
+import pytest
 from typer.testing import CliRunner
 
 from bench import __version__
@@ -111,11 +112,13 @@ def test_demo_runs_records_fits_and_reports_from_the_file(tmp_path) -> None:
     assert json.loads((report / "figures.json").read_text())[0]["kind"] == "thesis"
 
 
-def test_ctrl_c_while_validating_says_so_in_one_line_and_exits_2(tmp_path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+@pytest.mark.parametrize(("sig", "said"), [("SIGINT", "interrupted by Ctrl-C"), ("SIGTERM", "terminated by SIGTERM")])
+def test_ctrl_c_while_validating_says_so_in_one_line_and_exits_2(tmp_path, monkeypatch, sig, said) -> None:  # type: ignore[no-untyped-def]
     """Found by an outside tester: Ctrl-C while `bench run` validated the protocol (dry run on the model, before
     anything is connected) ended with exit 130 and not a word (typer's KeyboardInterrupt). One line now, and nothing
     made: no run file, no log. Exit 2, as the README gives a stop signal while the rig is set up (a later tester
-    found 130 here against it): a run not started, however it was stopped."""
+    found 130 here against it): a run not started, however it was stopped. SIGTERM there killed the process (143)
+    without a word (a later tester): the same line, naming it."""
     import contextlib
     import os
     import signal
@@ -125,9 +128,9 @@ def test_ctrl_c_while_validating_says_so_in_one_line_and_exits_2(tmp_path, monke
 
     @contextlib.contextmanager
     def ctrl_c_on_progress(_what: str):  # type: ignore[no-untyped-def]
-        def tick(fraction: float) -> None:  # the dry run on the model reports its progress: Ctrl-C mid-way
+        def tick(fraction: float) -> None:  # the dry run on the model reports its progress: the signal mid-way
             if 0 < fraction < 1:
-                os.kill(os.getpid(), signal.SIGINT)
+                os.kill(os.getpid(), getattr(signal, sig))
         yield tick
 
     monkeypatch.setattr(cli_run, "progress", ctrl_c_on_progress)
@@ -142,7 +145,7 @@ def test_ctrl_c_while_validating_says_so_in_one_line_and_exits_2(tmp_path, monke
         signal.signal(signal.SIGINT, was)
     lines = res.output.strip().splitlines()
     assert res.exit_code == 2, res.output
-    assert lines == ["error: interrupted by Ctrl-C before the run started; nothing was connected, no run file or log "
+    assert lines == [f"error: {said} before the run started; nothing was connected, no run file or log "
                      "written"], res.output
     assert not (tmp_path / "runs").exists() or not [p for p in (tmp_path / "runs").rglob("*")
                                                     if p.suffix in (".h5", ".log")]

@@ -245,18 +245,40 @@ def _operator(yes: bool) -> Callable[[str], bool]:
     return operator
 
 
+class _StopSignal(KeyboardInterrupt):
+    """SIGTERM, SIGHUP or SIGQUIT before the run started, raised as Ctrl-C's KeyboardInterrupt is (nothing that
+    catches Exception keeps it), with its account."""
+
+    def __init__(self, text: str) -> None:
+        super().__init__(text)
+        self.text = text
+
+
 @contextlib.contextmanager
 def _before_the_run() -> Iterator[None]:
-    """Ctrl-C before the run starts (recovering a resumed file, validating, dry-running on the model): nothing is
-    connected yet, and typer would end the command with exit 130 and not a word. One line, and exit 2 as a stop
-    signal while the rig is set up (:func:`execute_run`, which says what it was doing): `bench run`'s statuses are
-    0 (completed), 1 (started, did not complete) and 2 (not started), whatever stopped it. No run log: no run has
-    claimed its name yet."""
+    """Ctrl-C — or SIGTERM, SIGHUP, SIGQUIT — before the run starts (recovering a resumed file, validating,
+    dry-running on the model): nothing is connected yet, and typer would end the command with exit 130 (the other
+    signals: killed, 143, outside tester) and not a word. One line, and exit 2 as a stop signal while the rig is set
+    up (:func:`execute_run`, which says what it was doing): `bench run`'s statuses are 0 (completed), 1 (started,
+    did not complete) and 2 (not started), whatever stopped it. No run log: no run has claimed its name yet."""
+    import signal
+    import threading
+
+    from bench.runtime.engine import STOP_SIGNALS
+
+    def stop(sig: int, _frame: object) -> None:
+        raise _StopSignal(STOP_SIGNALS[signal.Signals(sig)])
+
+    old = [(sig, signal.signal(sig, stop)) for sig in STOP_SIGNALS
+           if sig != signal.SIGINT and threading.current_thread() is threading.main_thread()]
     try:
         yield
-    except KeyboardInterrupt:
-        raise fail("interrupted by Ctrl-C before the run started; nothing was connected, no run file or log "
-                   "written") from None
+    except KeyboardInterrupt as exc:
+        said = exc.text if isinstance(exc, _StopSignal) else "interrupted by Ctrl-C"
+        raise fail(f"{said} before the run started; nothing was connected, no run file or log written") from None
+    finally:
+        for sig, handler in old:
+            signal.signal(sig, handler)
 
 
 def _show_prepared(prepared: PreparedRun, dry_run: bool = False) -> None:
