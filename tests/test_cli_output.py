@@ -213,5 +213,5 @@ def test_an_empty_argument_is_refused_naming_it(args: list[str], named: str, tmp
     finally:
         os.chdir(here)
     assert res.exit_code == 2, res.output
-    assert f"{named}: empty" in res.output, res.output
+    assert res.output.startswith(f"error: {named}: empty") and res.output.count("\n") == 1, res.output
     assert not list(tmp_path.iterdir())  # nothing made

@@ -13,6 +13,7 @@ import typer
 from typer.core import TyperGroup
 
 from bench.cli import analysis, catalog, lab, main, run, watch
+from bench.cli.common import fail
 
 __all__ = ["app"]
 
@@ -29,7 +30,7 @@ class _NoEmptyArguments(TyperGroup):
             if arg == "" or (arg.startswith("--") and arg.endswith("=")):
                 named = arg[:-1] if arg else (args[i - 1] if i and args[i - 1].startswith("-")
                                               else f"argument {i + 1} of the command line")
-                raise typer.BadParameter("empty (an unset shell variable?): give it a value", ctx, param_hint=named)
+                raise fail(f"{named}: empty (an unset shell variable?): give it a value")
         return super().parse_args(ctx, args)
 
 
