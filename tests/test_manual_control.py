@@ -888,3 +888,36 @@ def test_without_operator_the_login_name_is_recorded_as_a_run_records_it(tmp_pat
     assert res.exit_code == 0, res.output
     rows = _rows(log)
     assert rows[0][4].endswith(f"operator {getpass.getuser()}"), rows[0]
+
+
+def test_a_daq_rigs_load_cell_is_read_and_supervised_in_manual_control(tmp_path: Path) -> None:
+    """On a DAQ rig the load cell's bridge amplifier is an analog input of the T7, which a run samples on its scan
+    clock; manual control plays no stream, and the force was never read: the session's header printed the rig's
+    ±2 N and `move 95 50` went to 140 mm with exit 0, `tare` said "this rig has no load cell" (outside tester). Now
+    the input is read on request: `read` gives the force the plant exerts, the session records it, the move trips
+    the force limit and latches, and `tare` is refused (a bridge amplifier has no command)."""
+    from bench.storage.runfile import open_run
+
+    text = (ROOT / "rigs" / "lsdea-motor-daq-sim.toml").read_text(encoding="utf-8")
+    assert "max_force_N = 9.5 " in text
+    low = tmp_path / "low-force.toml"
+    low.write_text(text.replace("max_force_N = 9.5 ", "max_force_N = 2.0 "), encoding="utf-8")
+    with ManualSession(load_rig(low), tmp_path / "s.log", virtual=True, echo=lambda _t: None) as s:
+        out = s.execute("read")
+        force = float(re.search(r"force (-?[\d.]+) N", out.text).group(1))  # type: ignore[union-attr]
+        plant = float(s._sim.plant.observe().force[-1])
+        # (the plant a little later than the read: the specimen relaxes; the cell's noise is mN)
+        assert out.status == "ok" and force == pytest.approx(plant, rel=0.1), (out, plant)
+        tare = s.execute("tare")
+        assert tare.status == "refused" and "bridge amplifier" in tare.text, tare
+        move = s.execute("move 95 50")
+        assert move.status == "trip" and "force" in move.text and "2 N" in move.text, move
+        assert s.execute("voltage 1 kV").status == "refused"  # latched
+    forces = open_run(tmp_path / "s.h5").streams["load_cell"].columns["force"]
+    assert len(forces) >= 2 and np.nanmax(np.abs(forces)) > 2.0  # recorded, the reading that tripped among them
+    # the premise, on the rig as shipped (±9.5 N): the same move meets a force beyond 2 N, read at rest
+    with ManualSession(load_rig(ROOT / "rigs" / "lsdea-motor-daq-sim.toml"), tmp_path / "t.log", virtual=True,
+                       echo=lambda _t: None) as s:
+        assert s.execute("move 95 50").status == "ok"
+        at_rest = s.execute("read").text
+        assert float(re.search(r"force (-?[\d.]+) N", at_rest).group(1)) > 2.0, at_rest  # type: ignore[union-attr]

@@ -72,6 +72,7 @@ class Streaming(Protocol):
     """The hardware-timed side of a run as the polls see it (bench.runtime.hardware_timed.HardwareTimed)."""
 
     has_laser: bool  # the laser is sampled on the DAQ's scan clock
+    has_force: bool  # the load cell's bridge amplifier is sampled on the DAQ's scan clock
 
     def collect(self) -> None:
         """Record the scans received so far and supervise them."""

@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 
 from bench.rig import RigConfig
 from drivers.adam import Adam4017P, Adam4024, RawScale
+from drivers.bridge_daq import BridgeOnDaq
 from drivers.cancel import CancelToken
 from drivers.deadline import WALL, ReplyTimer
 from drivers.dini import DiniDGT1S
@@ -151,6 +152,10 @@ def build_instruments(rig: RigConfig, endpoints: dict[str, str] | None = None,
         t7 = LabJackT7(host, port=port, stream_port=stream_port, timeout=d.timeout_s, cancel=inst.cancel,
                        clock=clock, sleep=sleep, safe_dac=safe, watchdog_s=wd, timer=tm.get("daq", WALL))
         inst.daq = t7
+        if d.force_ain is not None:  # the load cell's bridge amplifier on an input: read on request (manual
+            # control, `devices check`); a run's stream samples the same input on its scan clock instead
+            inst.load_cell = BridgeOnDaq(t7, ain=d.force_ain, n_per_v=d.force_N_per_V, offset_n=d.force_offset_N,
+                                         clock=clock)
     if (a := rig.amplifier) is not None:
         base = TREK_MODELS[a.model]
         trek = TrekModel(base.model, base.max_output, base.max_current, base.gain,

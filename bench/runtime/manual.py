@@ -123,6 +123,7 @@ from bench.runtime.rig_lock import claimed
 from bench.runtime.safety import SafetyTrip, Supervisor
 from bench.storage.recorder import Recorder, now_iso
 from bench.units import to_si
+from drivers.bridge_daq import BridgeOnDaq
 from drivers.errors import InstrumentError, LimitError, OperationCancelledError
 
 RAMP_HZ = 20.0
@@ -773,18 +774,27 @@ class ManualSession:
         self._engine().stop_motor()
         return "motor stopped"
 
+    def _cell_command(self, what: str) -> None:
+        """The load cell's ``tare`` or ``zero``; a cell that has no such command (a bridge amplifier on the DAQ) is
+        a refusal: nothing was sent."""
+        cell = self._cell()
+        if isinstance(cell, BridgeOnDaq):
+            raise Refused(f"the load cell's bridge amplifier on the DAQ has no {what} command: its zero is the rig "
+                          "file's daq.force_offset_N (or the amplifier's own zero)")
+        getattr(cell, what)()
+
     def _cell(self) -> Any:
         if self._inst is None or self._inst.load_cell is None:
             raise Refused("this rig has no load cell")
         return self._inst.load_cell
 
     def _cmd_tare(self) -> str:
-        self._cell().tare()
+        self._cell_command("tare")
         self._engine().hold(0.2)
         return "load cell tared; " + self._cmd_read()
 
     def _cmd_zero_cell(self) -> str:
-        self._cell().zero()
+        self._cell_command("zero")
         self._engine().hold(0.2)
         return "load cell zeroed; " + self._cmd_read()
 

@@ -140,6 +140,12 @@ def _position_check(e: RunContext, r: ReadingMap, row: Row) -> None:
 
 
 # ------------------------------------------------------------ load cell
+def _force_period(e: RunContext, s: StepState) -> float | None:
+    """The load cell at the protocol's force rate — not where a run's DAQ samples its bridge amplifier on the scan
+    clock (the driver's reads then serve manual control and `devices check` only)."""
+    return None if e.stream is not None and e.stream.has_force else _rate(e.program.protocol.recording.force_Hz)
+
+
 def _force_check(e: RunContext, r: ReadingMap, row: Row) -> None:
     f = r["force"]
     e.snapshot.values["force"] = f.value
@@ -178,7 +184,7 @@ ROLES: dict[str, Polled] = {
     "amplifier": Polled("monitors", _monitors_period, check=_monitors_check),
     "motor": Polled("position", lambda e, s: _rate(e.program.protocol.recording.position_Hz),
                     _position_row, _position_check),
-    "load_cell": Polled("force", lambda e, s: _rate(e.program.protocol.recording.force_Hz), check=_force_check),
+    "load_cell": Polled("force", _force_period, check=_force_check),
     "laser": Polled("laser", _laser_period, _laser_row, _laser_check),
 }
 """The roles whose readings the run does more with than record them (any other role: :data:`SENSOR_PERIOD_S`)."""
