@@ -921,3 +921,28 @@ def test_a_daq_rigs_load_cell_is_read_and_supervised_in_manual_control(tmp_path:
         assert s.execute("move 95 50").status == "ok"
         at_rest = s.execute("read").text
         assert float(re.search(r"force (-?[\d.]+) N", at_rest).group(1)) > 2.0, at_rest  # type: ignore[union-attr]
+
+
+def test_a_script_stops_at_the_latch_and_cannot_reset_it(tmp_path: Path) -> None:
+    """A script on a rig a run had latched went on past "refused: interlock latched…", and its own `reset` line
+    cleared the latch and the next line energised the rig (outside tester). The README: a script stops at a
+    latched fault; a reset is an operator's, at a prompt. The script stops at the first refusal the latch causes;
+    a scripted `reset` is refused and stops it too; the rig stays latched and at 0 V."""
+    from bench.runtime.latch import latch, latched
+
+    rig = load_rig(THESIS_RIG)
+    for script, stops_at in ((["read", "voltage 1kV", "read", "voltage 2kV"], "voltage 1kV"),
+                             (["read", "reset the script says so", "voltage 1kV"], "reset the script says so")):
+        latch(rig.name, "interlock: safety trip (a run, the test)", str(tmp_path / "run.h5"))
+        log = tmp_path / f"{len(script)}-{stops_at.split()[0]}.log"
+        with ManualSession(rig, log, virtual=True, echo=lambda _t: None, operator="carol") as s:
+            outcomes = s.run_lines(script, stop_on_trip=True)
+            assert [o.command for o in outcomes][-1] == stops_at, outcomes
+            assert outcomes[-1].status == "refused", outcomes[-1]
+            assert abs(_plant_volts(s._sim)) < ZERO_V
+        assert any(r[3] == "session" and r[2] == "stopped" for r in _rows(log)), _rows(log)
+        assert latched(rig.name) is not None  # nothing reset it
+    # at a prompt (no script) the operator's reset stands, as before
+    with ManualSession(rig, tmp_path / "prompt.log", virtual=True, echo=lambda _t: None, operator="carol") as s:
+        assert s.execute("reset looked at the rig").status == "ok"
+    assert latched(rig.name) is None

@@ -47,7 +47,10 @@ fault, until the operator types ``reset WHY…`` (logged with the reason and the
 A trip in a script (``--script``, or commands piped in: :meth:`ManualSession.run_lines` with ``stop_on_trip``) — a
 latched fault or a limit the supervisor trips on — ends the script there: the commands after it are not run (an
 unattended script does not go on after a trip), a ``stopped`` line in the log says so, and the session ends through
-its safe exit. At a prompt the session goes on (latched: refusing what would energise until ``reset``).
+its safe exit. So does a command refused because the rig is latched (a session started on a rig a run latched), and
+a ``reset`` in a script is refused: an operator who has looked at the rig resets it (outside tester: a script went
+on past the latch's refusal and its own ``reset`` re-energised the rig). At a prompt the session goes on (latched:
+refusing what would energise until ``reset``).
 
 Pause: ``pause`` (or SIGUSR1, as for a run) is the run's pause — the output ramped to 0 V over the rig's
 ``shutdown_ramp_s``, the motor stopped — and every set-point but 0 V is refused, in one line, until ``resume`` is typed
@@ -113,6 +116,7 @@ from bench.runtime.interlock import POLLED_READINGS, InterlockTrip
 from bench.runtime.manual_mode import (
     IDLE_MIN_S,
     KEEPALIVE_S,
+    LatchRefused,
     ManualEngine,
     PauseRequested,
     Refused,
@@ -171,6 +175,8 @@ class ManualSession:
     _stop: threading.Event = field(default_factory=threading.Event)
     _keepalive: threading.Thread | None = None
     _interactive: bool = False  # Ctrl-C ends the command under way, not the session
+    _scripted: bool = False  # the commands come from a script (run_lines with stop_on_trip): no reset from it
+    _latch_refused: list[Outcome] = field(default_factory=list)  # outcomes refused for the latch (a script stops)
     _ending: bool = False  # leaving the session: making the rig safe
     _rec: Recorder | None = None  # the readings' file (None: not open, or its storage failed)
     _early: list[tuple[float, str, str, str]] | None = field(default_factory=list)  # log lines before the file
@@ -483,6 +489,7 @@ class ManualSession:
         script: an unattended session does not go on after a trip), saying so in the log and to the operator."""
         it = iter(lines)
         engine = self._engine()
+        self._scripted = stop_on_trip
         checked = len(self.outcomes)  # outcomes looked at for a trip (a command's, or one between commands)
         try:
             while self.end_reason is None:
@@ -502,12 +509,14 @@ class ManualSession:
                     checked = len(self.outcomes)
                     if not (trips and stop_on_trip):
                         self.execute(line)
-                        trips += [o for o in self.outcomes[checked:] if o.status == "trip"]
+                        trips += [o for o in self.outcomes[checked:]
+                                  if o.status == "trip" or any(o is r for r in self._latch_refused)]
                         checked = len(self.outcomes)
                 if trips and stop_on_trip:
-                    text = (f"the script stops at the trip of '{trips[0].command}': the commands after it are not "
-                            "run (an unattended script does not go on after a trip); the session ends through its "
-                            "safe exit")
+                    why = "trip" if trips[0].status == "trip" else "refusal, the rig latched,"
+                    text = (f"the script stops at the {why} of '{trips[0].command}': the commands after it are not "
+                            "run (an unattended script does not go on after a trip or on a latched rig); the "
+                            "session ends through its safe exit")
                     self._write("session", "stopped", text)
                     self.echo(f"stopped: {text}")
                     break
@@ -562,6 +571,8 @@ class ManualSession:
                 out = self._paused(shown, engine, engine.pause_asked_by())
             except (Refused, ValueError, LimitError) as exc:
                 out = Outcome(shown, "refused", str(exc))
+                if isinstance(exc, LatchRefused):
+                    self._latch_refused.append(out)
             except InterlockTrip as trip:
                 out = Outcome(shown, "trip", self._latch(trip))
             except SafetyTrip as exc:
@@ -652,6 +663,9 @@ class ManualSession:
         reason = " ".join(why).strip()
         if not reason:
             raise Refused("reset needs a reason: reset WHY... (logged with the operator's name)")
+        if self._scripted:  # an operator who has looked at the rig resets it, not a line written before the fault
+            raise LatchRefused(f"reset from a script: a latch is reset by an operator at a prompt, or by `bench "
+                               f"interlock reset {self.rig.name} --why …` before the script runs again")
         who = self.operator or "an operator not named (no --operator)"
         try:
             rig_latch.reset(self.rig.name, who, reason, self._drive_now())

@@ -43,11 +43,17 @@ MOVE_POLL_S = 0.05  # a move's status is read this often until it ends
 MOVE_ACCEL = 0.5  # m/s², a manual move's acceleration (at most the rig's)
 MOVE_SPARE_S = 2.0  # a move must end within its distance / speed × 1.5 plus this
 
-__all__ = ["KEEPALIVE_S", "ManualEngine", "PauseRequested", "Refused", "StopRequested", "manual_program"]
+__all__ = ["KEEPALIVE_S", "LatchRefused", "ManualEngine", "PauseRequested", "Refused", "StopRequested",
+           "manual_program"]
 
 
 class Refused(Exception):  # noqa: N818 - a refusal is an outcome, not a program error
     """A command the latch, a pause, the supervisor (or its syntax) does not allow; nothing was sent."""
+
+
+class LatchRefused(Refused):
+    """A command refused because the rig is latched (or a reset a script asked for): a script stops at it, as at a
+    trip — the commands after it were written for a rig that is not latched."""
 
 
 def manual_program(rig: RigConfig) -> Program:
@@ -92,7 +98,7 @@ class ManualEngine(Engine):
             return
         if self.latched is not None:
             self.ctx.v_req = 0.0
-            raise Refused(f"{self.latch_text()}; {what}")
+            raise LatchRefused(f"{self.latch_text()}; {what}")
         if self.paused:
             self.ctx.v_req = 0.0
             raise Refused(f"paused: high voltage stays off until `resume`; {what}")
