@@ -442,6 +442,17 @@ def test_a_killed_and_recovered_file_reads_as_killed_and_says_how_far_its_stream
     rec = json.loads(out.output)
     rec = rec[0] if isinstance(rec, list) else rec
     assert rec["last_sample_s"] == last and rec["recorded_up_to_s"] == last - 0.25 and rec["state"] == "running"
+    assert rec["state_shown"] == "crashed or killed"
+    # pause / resume: no process writes it (a third tester: `pause` said "asked … within 0.1 s" to no process, exit
+    # 0, once the file was recovered); export: one line says it is not complete, and its metadata the state shown
+    for args in (["pause", str(path), "--why", "x"], ["resume", str(path), "--why", "x"]):
+        out = runner.invoke(app, args, env={"COLUMNS": "300"})
+        assert out.exit_code == 2 and "no run is writing it (crashed or killed)" in out.output, out.output
+    out = runner.invoke(app, ["export", str(path), "--csv", str(tmp_path / "csv")], env={"COLUMNS": "300"})
+    assert out.exit_code == 0 and "is not a complete record (crashed or killed" in " ".join(out.output.split()), \
+        out.output
+    meta = json.loads((tmp_path / "csv" / "metadata.json").read_text(encoding="utf-8"))
+    assert meta["state"] == "running" and meta["state_shown"] == "crashed or killed" and meta["incomplete_reason"]
     out = runner.invoke(app, ["runs", "list", "--dir", str(tmp_path)],
                         env={"COLUMNS": "300", "BENCH_CATALOG": f"sqlite:///{tmp_path / 'cat.sqlite'}"})
     assert out.exit_code == 0, out.output

@@ -38,6 +38,7 @@ def export(
         refuse_existing(mat, "export", example="run.mat")
         if mat.suffix.lower() != ".mat":  # a MAT file named x.csv (an outside tester) passes for what it is not
             raise ValueError(f"--mat {mat}: a MATLAB file's name ends in .mat (e.g. {mat.with_suffix('.mat')})")
+    _say_incomplete(run_file)
     if csv is not None:
         with progress("CSV export") as done:
             files = to_csv(run_file, csv, progress=done, said=lambda text: console.print(escape(text)))
@@ -46,6 +47,21 @@ def export(
         with progress("MAT export") as done:
             target = to_mat(run_file, mat, mat_version, progress=done)  # type: ignore[arg-type]  # checked above
         console.print(f"MAT: {escape(str(target))}")
+
+
+def _say_incomplete(run_file: Path) -> None:
+    """One line before an export of a run that is not a complete record (killed, under way, ended unstamped): the
+    export held what was recorded and said nothing, exit 0 (outside tester)."""
+    from bench.storage.runfile import open_run
+
+    try:
+        run = open_run(run_file, streams=False)
+    except (OSError, ValueError):  # not a run file: the export's own refusal says it
+        return
+    if not run.complete:
+        console.print(f"[yellow]note:[/] {escape(str(run_file))} is not a complete record ({run.state_shown}: "
+                      f"{escape(run.incomplete_reason)}); the export holds what was recorded up to "
+                      f"{run.updated:.3f} s", highlight=False, soft_wrap=True)
 
 
 @clean_errors

@@ -499,7 +499,8 @@ def _running(run_file: Path, asked: str = "pause or resume") -> RunFile:
     if f.attrs.get("session_log"):
         raise ValueError(f"run file {run_file}: a manual-control session, not a protocol run: pause and resume it at "
                          "its prompt (pause, resume WHY...)")
-    if f.state != "running" or f.orphaned:
+    if f.state != "running" or f.orphaned or f.state_shown not in ("running", "paused"):  # a recovered file's
+        # writer is gone too (it is no longer marked open: `pause` said "asked…" to no process, outside tester)
         refusal = resume_refusal(run_file, f)  # (its "…: nothing to resume" is the campaign's, not this command's)
         raise ValueError(f"run file {run_file}: no run is writing it ({f.state_shown}): nothing to {asked}; "
                          + ("to continue its campaign: bench run --resume " + shlex.quote(str(run_file))

@@ -61,8 +61,9 @@ def run_metadata(run: RunFile) -> dict[str, Any]:
             return v.tolist()
         return v
 
-    return {k: plain(v) for k, v in run.attrs.items()} | {"state": run.state, "reason": run.reason,
-                                                          "complete": run.complete}
+    return {k: plain(v) for k, v in run.attrs.items()} | {  # (a killed run's state is "running": state_shown)
+        "state": run.state, "state_shown": run.state_shown, "reason": run.reason, "complete": run.complete,
+        "incomplete_reason": None if run.complete else run.incomplete_reason}
 
 
 def _formats(streams: StreamChunks, stream: str) -> list[str]:
