@@ -186,3 +186,24 @@ def test_a_reason_or_a_name_that_is_not_one_line_of_text_is_refused_before_anyth
                               str(log), "--virtual-time"], env={"COLUMNS": "300"})
     assert res.exit_code == 2 and res.output == f"error: --script {tmp_path / 'missing.txt'}: not found\n", res.output
     assert not log.exists() and not log.with_suffix(".h5").exists()
+
+
+def test_a_resume_under_another_specimen_id_is_refused_with_nothing_touched(tmp_path: Path, short_run: Path) -> None:
+    """`bench run --resume F --specimen-id M9` continued specimen M2's campaign under M9 with no word (outside
+    tester): the campaign's history split over two specimens. A resume continues the same specimen: another ID is
+    refused in one line before the file is touched; the campaign's own ID is accepted."""
+    import shutil
+
+    import h5py
+
+    run = tmp_path / "m2.h5"
+    shutil.copy2(short_run, run)
+    with h5py.File(run, "r+") as f:
+        f.attrs["specimen_id"] = "M2"
+    before = run.read_bytes()
+    res = runner.invoke(app, ["run", "--resume", str(run), "--specimen-id", "M9", "--virtual-time", "--dry-run"])
+    assert res.exit_code == 2, res.output
+    assert said(res).startswith(f"error: --specimen-id M9: {run} is a campaign on specimen M2"), res.output
+    assert run.read_bytes() == before
+    res = runner.invoke(app, ["run", "--resume", str(run), "--specimen-id", "M2", "--virtual-time", "--dry-run"])
+    assert "--specimen-id" not in said(res), res.output  # (a completed run: nothing to resume, said as before)

@@ -152,6 +152,20 @@ def rig_suggestion(rig: Path) -> str:
     return f"; did you mean {found}?" if found is not None else ""
 
 
+def _refuse_other_specimen(resume: Path, specimen_id: str | None) -> None:
+    """ValueError (one line, nothing touched) for a ``--specimen-id`` that is not the one of the campaign ``resume``
+    continues: the resumed file carried the new ID and the campaign went on under it, its history split over two
+    specimens, with no word (outside tester). A resume continues the same specimen; a new one is a new run."""
+    from bench.storage.runfile import open_run
+
+    if specimen_id is None or not specimen_id.strip():
+        return
+    was = str(open_run(resume, streams=False).attrs.get("specimen_id", "") or "")
+    if was and was != specimen_id:
+        raise ValueError(f"--specimen-id {specimen_id}: {resume} is a campaign on specimen {was}, and a resume "
+                         f"continues it on that specimen (leave --specimen-id out; a new specimen starts a new run)")
+
+
 def prepare_run(protocol_file: Path | None, *, rig: Path | None = None, sim: bool = False, out: Path = Path("runs"),
                 resume: Path | None = None, operator: str | None = None, specimen_id: str | None = None,
                 notes: list[str] | None = None, why: str | None = None, dry_run: bool = False,
@@ -176,6 +190,7 @@ def prepare_run(protocol_file: Path | None, *, rig: Path | None = None, sim: boo
                              "fork the campaign)")
         if not (why and why.strip()) and rig is None and not sim:  # before a crashed file is recovered: refused
             _refuse_latched_before_recovery(resume)  # (a latch needs --why) with nothing touched
+        _refuse_other_specimen(resume, specimen_id)
         plan, link, recovered = plan_resume(resume, rig_file(rig), sim, progress)
         if protocol_file is not None:
             protocol_file = shipped_protocol_file(protocol_file)
