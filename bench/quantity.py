@@ -122,3 +122,17 @@ def format_quantity(value: float, dimension: str) -> str:
     if dimension == "ratio":
         return f"{value * 100:.12g} %"
     return f"{value:.12g} {BASE_UNIT[dimension]}"
+
+
+def takes_bool(annotation: Any) -> bool:
+    """Whether a field's type admits true/false (``bool``, ``bool | None``)."""
+    from typing import get_args
+
+    return annotation is bool or any(takes_bool(a) for a in get_args(annotation))
+
+
+def refuse_bool(v: Any, annotation: Any) -> None:
+    """ValueError for true/false given where a field takes no bool: pydantic reads true as 1 (outside testers: a rig's
+    ``shutdown_ramp_s = true`` was a 1-s ramp, a protocol's ``duration_s = true`` a 1-s step)."""
+    if isinstance(v, bool) and not takes_bool(annotation):
+        raise ValueError(f"{'true' if v else 'false'} is not a number: write the value")

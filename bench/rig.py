@@ -10,7 +10,7 @@ from __future__ import annotations
 import tomllib
 from dataclasses import replace
 from pathlib import Path
-from typing import Any, Literal, get_args
+from typing import Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator, model_validator
@@ -21,7 +21,7 @@ from bench.core.noise import Realism
 from bench.core.plant import TREK_DATASHEET, AmplifierSpec, HVStage, Plant
 from bench.models.lozenge import LozengeParams, MaxwellBranch
 from bench.models.membrane import MembraneParams
-from bench.quantity import parse_quantity
+from bench.quantity import parse_quantity, refuse_bool
 from bench.tomlfile import first_error, one_line, read_toml, type_hint
 
 STANDARD_GRAVITY_M_PER_S2 = 9.80665  # CGPM 1901 (the load cell's kg → N)
@@ -87,15 +87,9 @@ class _Strict(BaseModel):
     @classmethod
     def _units(cls, v: Any, info: ValidationInfo) -> Any:
         name = info.field_name or ""
-        if isinstance(v, bool) and name in cls.model_fields and not _takes_bool(cls.model_fields[name].annotation):
-            # pydantic reads true as 1 (an outside tester: shutdown_ramp_s = true was a 1-s ramp, max_current_A 1 A)
-            raise ValueError(f"{'true' if v else 'false'} is not a number: write the value")
+        if name in cls.model_fields:  # pydantic reads true as 1 (shutdown_ramp_s = true was a 1-s ramp)
+            refuse_bool(v, cls.model_fields[name].annotation)
         return _in_unit_of_name(v, name)
-
-
-def _takes_bool(annotation: Any) -> bool:
-    """Whether a field's type admits true/false (``bool``, ``bool | None``)."""
-    return annotation is bool or any(_takes_bool(a) for a in get_args(annotation))
 
 
 class BusConfig(_Strict):

@@ -645,3 +645,16 @@ def test_a_misspelt_rig_field_is_named_with_the_field_meant(tmp_path: Path) -> N
     with pytest.raises(RigFileError) as exc:
         load_rig(typo)
     assert "max_votage_V: Extra inputs are not permitted; did you mean max_voltage_V?" in str(exc.value)
+
+
+@pytest.mark.parametrize(("body", "fragment"), [
+    ("[[steps]]\ntype = 'hold'\nduration_s = true\n", "steps[0](hold): duration_s: true is not a number"),
+    ("[specimen]\ntemperature_K = false\n\n[[steps]]\ntype = 'hold'\nduration_s = 1\n",
+     "specimen: temperature_K: false is not a number"),
+    ("[[steps]]\ntype = 'repeat'\ncount = true\n  [[steps.steps]]\n  type = 'hold'\n  duration_s = 1\n",
+     "steps[0].count"),  # (refused before: a count is checked on the file's own values)
+])
+def test_true_or_false_where_a_number_goes_is_refused(tmp_path: Path, body: str, fragment: str) -> None:
+    """pydantic reads true as 1: `duration_s = true` validated as a 1-s step (outside tester), as a rig's
+    `shutdown_ramp_s = true` had been a 1-s ramp before rig files refused it."""
+    refused(safe_protocol(tmp_path, body), fragment)

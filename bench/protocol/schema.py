@@ -45,7 +45,7 @@ from pydantic import (
     model_validator,
 )
 
-from bench.quantity import format_quantity, parse_quantity
+from bench.quantity import format_quantity, parse_quantity, refuse_bool
 from bench.tomlfile import first_error, one_line, read_toml, type_hint
 
 Channel = Literal["voltage", "position"]
@@ -68,9 +68,24 @@ MAX_NOTES = 100  # notes on one run
 
 
 class _Strict(BaseModel):
-    """Base of every protocol table: unknown keys refused, immutable, every float finite (no nan / inf)."""
+    """Base of every protocol table: unknown keys refused, immutable, every float finite (no nan / inf), no true or
+    false where a number goes."""
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _no_bool(cls, data: Any) -> Any:
+        """pydantic reads true as 1: ``duration_s = true`` validated as a 1-s step (outside tester). (A model
+        validator: a field validator on every field may not touch the steps' discriminator, ``type``.)"""
+        if isinstance(data, dict):
+            for name, v in data.items():
+                if name in cls.model_fields:
+                    try:
+                        refuse_bool(v, cls.model_fields[name].annotation)
+                    except ValueError as exc:
+                        raise ValueError(f"{name}: {exc}") from None
+        return data
 
 
 def _q(dimension: str) -> Any:
