@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -65,7 +66,12 @@ def test_a_pause_zeroes_the_output_records_on_and_restarts_the_step(tmp_path: Pa
     assert kinds == ["pause", "resume", "restart", "offset"]
     (t_pause, step, _, text), = events(run, "pause")
     assert step == 1 and "by the test" in text  # step 1: the 5-kV drive (the protocol's second step)
+    assert "ramping to 0 V over 0.25 s" in text  # (it said "output to 0 V" while 6 kV was still on: a tester)
     (t_resume, *_), = events(run, "resume")
+    # the file says the output was seen at 0 V, not only asked to go there: the first reading of the pause
+    (t_seen, _, _, seen), = events(run, "verify")
+    v_seen = float(re.search(r"voltage monitor reads (-?\d+) V", seen).group(1))  # type: ignore[union-attr]
+    assert t_pause + 0.25 < t_seen < t_resume and abs(v_seen) <= 50.0, seen  # the touch limit (README)
     # the plant's output: at 0 V from the end of the pause's ramp (shutdown_ramp_s 0.25 s) until the resume
     t = np.concatenate([b[0] for b in blocks]) - t0[0]
     v = np.concatenate([b[1] for b in blocks])

@@ -521,7 +521,7 @@ def _paused(run_file: Path, asked: str) -> tuple[RunFile, str | None]:
     held = [(kind, text) for _t, _step, kind, text in f.event_list() if kind in ("pause", "resume")]
     if not held or held[-1][0] != "pause":
         return f, None
-    return f, held[-1][1].split(": output to", 1)[0]
+    return f, held[-1][1].split(": output", 1)[0]
 
 
 def _who(operator: str | None) -> str:

@@ -1076,15 +1076,18 @@ class Engine:
         t_pause = self.now()
         self.pauses += 1
         self.snapshot.state = "paused"
-        self.rec.event(t_pause, seg.index, "pause", f"paused in step {seg.index} ({seg.name}) by {by}: output to "
-                       "0 V, motor held, recording goes on")
+        self.rec.event(t_pause, seg.index, "pause", f"paused in step {seg.index} ({seg.name}) by {by}: output "
+                       f"ramping to 0 V over {self.program.rig.limits.shutdown_ramp_s:g} s, motor held, recording "
+                       "goes on")  # (it said "output to 0 V" while 6 kV was still on: outside tester)
         self._make_paused()
         due = self.now() + RESTART_SETTLE_S  # the ramp's last charging current is over before the first reading
+        said = False
         while self._paused_wanted()[0]:
             self._check_stop()
             if self.now() >= due - 1e-9:  # run time is rig time less t0: it may read one rounding short of due
                 self._paused_readings()
                 due += PAUSE_POLL_S
+                said = said or self._paused_at_zero(seg)
             self._pause_until(min(due, self.now() + STOP_POLL_S), urgent_aborts=False)
         _, by = self._wanted_now()  # the resume the loop ended on
         self._pause_by = self._resume_by = self._paused_by = self._resume_asked = None
@@ -1116,6 +1119,17 @@ class Engine:
             # (LASER_SHUTDOWN_DRAIN_S is the shutdown's, past which what is left is only reported)
             self._drain_laser(LASER_DRAIN_BUDGET_S)
             self._storing = False  # only now: a stop in the upload leaves what is left to the shutdown's fetch
+
+    def _paused_at_zero(self, seg: Segment) -> bool:
+        """After the pause's first reading: a ``verify`` event with the voltage monitor's reading at the 0 V
+        commanded (the verifier has judged it: an output that stays up latches), so that the file says the output
+        was seen at 0 V, not only that 0 V was asked for; False where no monitor was read."""
+        v = self.snapshot.values.get("voltage")
+        if self.inst.amplifier is None or v is None or not math.isfinite(v):
+            return False
+        self._record(self.rec.event, self.now(), seg.index, "verify",
+                     f"output at 0 V: the voltage monitor reads {v:.0f} V at {self.now():.3f} s")
+        return True
 
     def _paused_readings(self) -> None:
         """One reading of every polled channel while paused, through the run's polls: the monitors (by

@@ -382,7 +382,7 @@ class ManualEngine(Engine):
         self.paused, self._paused_at = True, self.now()
         self.pauses += 1
         self.ctx.v_req = 0.0
-        self._event("pause", f"paused by {by}: output to 0 V, motor held, recording goes on")  # as a run's
+        self._event("pause", f"paused by {by}: output ramping to 0 V, motor held, recording goes on")  # as a run's
         self._make_paused()
         return f"paused by {by}: output {self.ctx.v_cmd:.0f} V, motor held; `resume` lets high voltage on again"
 
