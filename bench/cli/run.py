@@ -188,7 +188,7 @@ def run(
 
     Operator, specimen ID and notes come from the protocol's [protocol] table and these options; they are kept in
     the run file as root attributes (`bench inspect` shows them). While it runs, `bench pause RUN.h5` (or SIGUSR1)
-    brings the output to 0 V and holds, `bench resume RUN.h5` (or SIGUSR2) restarts the step it left."""
+    brings the output to 0 V and holds, `bench resume RUN.h5 --why …` (or SIGUSR2) restarts the step it left."""
     from bench.app.runs import check_executable, claim_output, execute_run, prepare_run
 
     with _before_the_run(), progress("recovering if needed, validating and dry-running the stored protocol"
@@ -478,6 +478,8 @@ def recover(run_file: Annotated[Path, typer.Argument(help="Run file (.h5) of a c
 
 RunArg = Annotated[Path, typer.Argument(help="Run file (.h5) of a run under way.")]
 WhyOpt = Annotated[str, typer.Option("--why", help="Why (recorded in the run file's events).")]
+ResumeWhyOpt = Annotated[str, typer.Option("--why", help="Why it is safe to go on: required (recorded in the run "
+                                           "file's events).")]
 ByOpt = Annotated[str | None, typer.Option("--operator", help="Who (default: the login name).")]
 
 
@@ -555,7 +557,7 @@ def pause(run_file: RunArg, why: WhyOpt = "", operator: ByOpt = None) -> None:
 
 
 @clean_errors
-def resume_run(run_file: RunArg, why: WhyOpt = "", operator: ByOpt = None) -> None:
+def resume_run(run_file: RunArg, why: ResumeWhyOpt = "", operator: ByOpt = None) -> None:
     """Resume a paused run: the step it left restarts from its start (motor back, voltage ramped up). For a run that
     ended (crashed, stopped, tripped), use `bench run --resume RUN.h5`. The same as SIGUSR2 to the run's process."""
     from bench.runtime.control import write_control
