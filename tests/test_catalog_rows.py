@@ -752,3 +752,18 @@ def test_a_listing_of_an_empty_folder_leaves_no_catalogue_behind(tmp_path: Path)
         res = _bench_here(*args, env=env)
         assert "Traceback" not in res.stderr, res.stderr
         assert not (folder / "catalog.sqlite").exists(), (args, res.stdout, res.stderr)
+
+
+def test_a_run_stopped_before_its_end_is_among_a_specimens_runs_that_did_not_finish() -> None:
+    """`specimen show` listed tripped, failed and incomplete runs under "failed / incomplete" but left out a run a
+    SIGTERM had interrupted at 0/2 steps (outside tester): it did not finish its protocol either."""
+    from bench.storage.catalog import specimen_history
+
+    def row(name: str, state: str, steps: int) -> dict[str, Any]:
+        return {"path": f"/runs/{name}.h5", "start_time": f"2026-11-28T09:0{steps}:00", "protocol_name": "p",
+                "state": state, "complete": True, "incomplete_reason": "", "reason": state, "fits": "[]",
+                "hv_time_s": 1.0, "hv_cycles": 1, "max_nominal_field_V_per_m": None, "breakdown_field_V_per_m": None,
+                "steps_completed": steps, "steps_total": 2, "previous_file": None}
+
+    h = specimen_history([row("done", "completed", 2), row("stopped", "interrupted", 0), row("trip", "tripped", 1)])
+    assert sorted(f["file"] for f in h["failures"]) == ["/runs/stopped.h5", "/runs/trip.h5"]

@@ -367,7 +367,7 @@ def specimen_show(
     if h["max_nominal_field_V_per_m"] is not None:
         console.print(_field_line(h), soft_wrap=True)
     for f in h["failures"]:
-        console.print(f"[red]failed / incomplete[/]: {escape(Path(f['file']).name)} ({f['state_shown']}): "
+        console.print(f"[red]failed / not finished[/]: {escape(Path(f['file']).name)} ({f['state_shown']}): "
                       f"{escape(str(f['reason']))}", soft_wrap=True)
     for name, pts in sorted(h["parameters"].items()):
         console.print(f"{escape(name)}: " + ", ".join(f"{p['value']:.5g} at {p['cumulative_cycles']} cycles"

@@ -879,7 +879,8 @@ def specimen_history(rows: list[dict[str, Any]]) -> dict[str, Any]:
             ratio = (known.ratio, r["path"])
         if known is not None:
             kinds.add(known.kind)
-        if r["state"] in ("tripped", "error") or not r["complete"]:
+        if r["state"] in ("tripped", "error", "interrupted") or not r["complete"]:  # (a stopped run did not finish
+            # its protocol either: a SIGTERM-interrupted run at 0/2 steps was left out, outside tester)
             failures.append({"file": r["path"], "state": r["state"],
                              "state_shown": state_shown(r["state"], bool(r["complete"]), r["incomplete_reason"] or ""),
                              "reason": r["incomplete_reason"] if not r["complete"] else r["reason"]})
