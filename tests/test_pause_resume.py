@@ -330,6 +330,8 @@ def test_a_killed_campaign_resumes_in_a_linked_file_and_reports_as_one(tmp_path:
                              text=True, timeout=300)
     assert resumed.returncode == 0, resumed.stdout + resumed.stderr
     second = next(p for p in tmp_path.glob("*.h5") if p != first)
+    log_text = second.with_suffix(".log").read_text(encoding="utf-8")
+    assert f"bench run --resume {first} on rig" in log_text and "bench run None" not in log_text  # (a tester)
     links = chain(second)
     assert [ln.path.name for ln in links] == [first.name, second.name]
     a, b = open_run(first, streams=False), open_run(second, streams=False)

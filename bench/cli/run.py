@@ -305,7 +305,9 @@ def _show_prepared(prepared: PreparedRun, dry_run: bool = False) -> None:
 def _log_plan(prepared: PreparedRun, protocol_file: Path | None, virtual_time: bool) -> None:
     """The run's plan, its warnings and metadata, into the run log."""
     plan = prepared.plan
-    log.info("bench run %s on rig %s (%s), %s clock → %s", protocol_file, plan.rig.name,
+    what = protocol_file if protocol_file is not None else (  # a resume names no protocol file ("bench run None")
+        f"--resume {prepared.link.previous}" if prepared.link is not None else plan.protocol.path)
+    log.info("bench run %s on rig %s (%s), %s clock → %s", what, plan.rig.name,
              "simulated" if plan.rig.simulated else "real", "virtual" if virtual_time else "wall", prepared.path)
     log.info("planned: %d steps, %.1f s, peak %.0f V", len(plan.program.segments), plan.prediction.duration,
              plan.prediction.peak_voltage)
