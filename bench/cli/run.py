@@ -78,7 +78,9 @@ def _summary(plan: Plan) -> Table:
         from bench.protocol.predict import budget_rule
 
         t.add_row("dry run", f"the whole program on the model in {pred.dry_run_s:.1f} s (estimated "
-                  f"~{pred.dry_run_estimate_s:.0f} s of one core; budget {pred.dry_run_budget_s:.0f} s: "
+                  f"~{pred.dry_run_estimate_s:.{1 if pred.dry_run_estimate_s < 10 else 0}f} s of one core, kernel "
+                  "compilation not counted; budget "
+                  f"{pred.dry_run_budget_s:.0f} s: "
                   f"{budget_rule()})")
     lim = rig.limits
     t.add_row("peak voltage", f"{pred.peak_voltage:.0f} V (limit {lim.max_voltage_V:.0f} V)")

@@ -1037,7 +1037,7 @@ class Engine:
         rest = "" if ramped is None or abs(ramped) <= OUTPUT_ON_V else (
             f" (a relax: its ramp from {ramped:.0f} V to 0 V is not played again, the output is at 0 V already)")
         self.rec.event(self.now(), seg.index, "restart", f"{why}; {self._step_text(seg)} restarts from its "
-                       f"start: motor to {'-' if motor is None else f'{motor * 1e3:.2f} mm'}, output to {volts:.0f} V"
+                       f"start: {'' if motor is None else f'motor to {motor * 1e3:.2f} mm, '}output to {volts:.0f} V"
                        + rest)
         if motor is not None and self.inst.motor is not None:
             m = self.program.rig.motor
