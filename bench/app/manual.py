@@ -68,8 +68,9 @@ def manual_session(rig_file: Path, *, script: Path | None = None, log: Path | No
         # no login name (no USER, a uid not in passwd: KeyError) or none that is a valid label: not named, as before
         with contextlib.suppress(ValueError, KeyError, OSError):
             operator = login_name(None)
-    if script is not None and not script.is_file():  # before the rig is connected (an outside tester: it connected,
-        # then said "[Errno 2]" and left a session file marked error)
+    if script is not None and (script.is_dir() or not script.exists()):  # before the rig is connected (an outside
+        # tester: it connected, then said "[Errno 2]" and left a session file marked error); /dev/null or a named pipe
+        # is read as a file is (it was "not found", a later tester)
         raise ValueError(f"--script {script}: " + ("a folder, not a file of commands" if script.is_dir() else
                                                     "not found"))
     rig = load_rig(rig_file)
