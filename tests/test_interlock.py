@@ -613,3 +613,58 @@ def test_a_stream_stop_the_t7_never_answers_leaves_the_output_to_its_watchdog(tm
     assert plant.arrays()[0][-1] > plant.last_high() + 0.05  # the plant was followed past it: 0 V held
     assert "NOT under its control" in run.reason, run.reason
     assert [text for text in events(run, "interlock") if "output path dead" in text], events(run, "interlock")
+
+
+@pytest.mark.parametrize("stop_lost", [False, True], ids=["stop-answered", "stop-lost-too"])
+def test_a_stream_start_the_t7_took_but_never_answered_is_stopped_or_left_to_its_watchdog(
+        tmp_path: Path, stop_lost: bool) -> None:
+    """The reply to the enable (STREAM_ENABLE = 1) is lost while the T7 took it: the stream runs and plays its
+    preloaded stream-out (the set-up's 0 V, then the cycle up to 6 kV) while the host believes none runs, sends no
+    stop and feeds the watchdog with its verification's reads (a reviewer). The driver now sends one stop at once;
+    answered, the run ends at 0 V as any error does; lost too, the output is left to the watchdog as after an
+    unanswered stop. Either way the plant's output is at 0 V within the reply waits plus the watchdog's period."""
+    from bench.runtime.engine import SHUTDOWN_REPLY_S
+    from sim_devices.t7.registers import R_ENABLE
+
+    protocol = tmp_path / "rise.toml"
+    protocol.write_text(RISE_PROTOCOL.format(rig=DAQ_RIG.as_posix()), encoding="utf-8")
+    plant, lost = Plant(), []
+
+    def hook(_engine: Engine, sim) -> None:
+        plant.sim = sim
+        sim.plant.listeners.append(lambda b: plant.blocks.append((b.t.copy(), b.v_out.copy())))
+        twin = sim.twins["daq"]
+        write = twin._write_regs
+        withhold: list[bool] = []  # the reply to the request just handled never goes on the wire
+
+        def written(address: int, words: list[int]) -> object:
+            enable = address == R_ENABLE and any(int(w) for w in words)
+            if enable and not lost:  # the first enable: acted on, its reply lost (the link's retry is answered)
+                lost.append(sim.clock.now())
+                plant.t_fault = sim.clock.now()
+                withhold.append(True)
+            elif stop_lost and lost and address == R_ENABLE and not enable:
+                withhold.append(True)
+                return None  # a stop: lost, not acted on
+            return write(address, words)
+
+        def mutate(reply: bytes) -> bytes:
+            if withhold:
+                withhold.clear()
+                return b""
+            return reply
+        twin._write_regs = written
+        sim.faults["daq"].mutate = mutate
+
+    result = execute(plan_run(protocol, DAQ_RIG), tmp_path / "run.h5", virtual=True, on_engine=hook)
+    assert lost, "the stream was never started: the trial tests nothing"
+    assert result.state == "error", (result.state, result.reason)
+    run = open_run(result.path)
+    t, v = plant.arrays()
+    bound = plant.t_fault + 3 * (load_rig(DAQ_RIG).daq.timeout_s + SHUTDOWN_REPLY_S) \
+        + load_rig(DAQ_RIG).daq.watchdog_s + 0.2
+    high = np.abs(v) > ZERO_V
+    assert not high[t > bound].any(), (t[high][-1], bound)
+    assert t[-1] > bound or not high[t > plant.t_fault + 0.05].any()  # followed long enough, or never up
+    if stop_lost:
+        assert "NOT under its control" in run.reason, run.reason

@@ -162,13 +162,38 @@ class T7Stream(T7StreamOut):
             raise InstrumentStateError(self.name, "stream already running")
         s.sock = self._open_stream_socket()
         asked = self.clock()
-        self.write_u32(STREAM_ENABLE, 1)
+        try:
+            self.write_u32(STREAM_ENABLE, 1)
+        except InstrumentError:  # unanswered or garbled: the enable may have started the stream (and its preloaded
+            # stream-out) while this host believes none runs (a reviewer); refused — by STREAM_IS_ACTIVE too, when
+            # the link's retry found the stream its lost first request had started: one stop settles which
+            self._unsure_start()
+            raise
         self.stop_unconfirmed = False  # an enable the device took: no stream of before ran on
         s.t_enable = self.clock()
         s.t0 = s.t_enable + s.plan.dt
         s.t0_uncertainty = s.t_enable - asked  # the device enabled somewhere within the request's round trip
         self.streaming = True
         return s.t0
+
+    def _unsure_start(self) -> None:
+        """After an enable that went unanswered: one stop (sent even after a stop request); answered — done, or
+        refused as no stream running — the device is known not to stream. Otherwise :attr:`stop_unconfirmed`: the
+        run's shutdown then leaves the output to the T7's watchdog. The stream socket is closed either way."""
+        self.stop_unconfirmed = True
+        try:
+            self._lj("stop stream", lambda unit, *a: self.link.write_registers(unit, *a, always_send=True),
+                     STREAM_ENABLE, u32_words(0))
+        except InstrumentStateError:  # STREAM_NOT_RUNNING: the enable never took
+            self.stop_unconfirmed = False
+        except InstrumentError:
+            pass
+        else:
+            self.stop_unconfirmed = False
+        finally:
+            if self._stream is not None:
+                self._stream.done = True
+            self._close_stream_socket()
 
     @property
     def scan_clock_uncertainty(self) -> float:
@@ -385,6 +410,7 @@ class T7Stream(T7StreamOut):
                              STREAM_ENABLE, u32_words(0))
                 except InstrumentStateError as exc:  # refused (STREAM_NOT_RUNNING): a device that ended the stream
                     refused = exc  # itself has sent its last packets all the same
+                    self.stop_unconfirmed = False  # (answered: no stream runs)
                 except InstrumentError:  # unanswered, garbled or cancelled: it may not have arrived, and then the
                     self.stop_unconfirmed = True  # device streams on, its stream-out over any DAC write of ours
                     raise
