@@ -456,6 +456,10 @@ class RigConfig(_Strict):
         self._within_capability()
         if self.specimen.kind == "lsdea" and self.specimen.lsdea.configuration == "motor" and self.motor is None:
             raise ValueError("specimen.lsdea.configuration = 'motor' needs a [motor] section")
+        if self.load_cell is not None and self.daq is not None and self.daq.force_ain is not None:
+            # two force sources recording into one stream, one of them never supervised (a reviewer)
+            raise ValueError(f"[load_cell] and daq.force_ain {self.daq.force_ain} both name the rig's load cell: "
+                             "give one (a transmitter on a bus, or its bridge amplifier on a DAQ input)")
         if adam and adam.bus == (self.load_cell.bus if self.load_cell else None):
             au = {adam.ao_unit, adam.ai_unit}
             if self.load_cell and self.load_cell.unit in au:

@@ -465,3 +465,35 @@ def test_a_resume_by_signal_answers_a_pause_the_control_file_asked_for(tmp_path:
     assert result.state == "completed", result.reason
     run = open_run(result.path)
     assert len(events(run, "pause")) == 1 and len(events(run, "resume")) == 1
+
+
+def test_a_daq_rigs_load_cell_is_read_and_supervised_while_paused(tmp_path: Path) -> None:
+    """On a DAQ rig the load cell's bridge amplifier is sampled by the run's stream; a pause stops the stream, and the
+    force went unread and unsupervised until the resume while the monitors were read on (a reviewer). Now it is read
+    on request as they are, into the same stream, at the protocol's force rate or 10 per second at most."""
+    isometric = SHORT / "lsdea-isometric-short.toml"
+    rig = ROOT / "rigs" / "lsdea-motor-daq-sim.toml"
+    window: list[float] = []
+
+    def hook(engine: Engine, sim) -> None:
+        def at(_now: float) -> None:
+            if engine.snapshot.state == "running" and engine.pauses == 0 and engine.now() >= 3.0:
+                engine.request_pause("the test")
+            if engine.snapshot.state == "paused" and not window:
+                window.append(engine.now())
+            if engine.snapshot.state == "paused" and engine.now() >= window[0] + 2.0 and len(window) == 1:
+                window.append(engine.now())
+                engine.request_resume("the test")
+        sim.clock.subscribe(at)
+
+    result = execute(plan_run(isometric, rig), tmp_path / "run.h5", virtual=True, on_engine=hook,
+                     operator=lambda _m: True)
+    assert result.state == "completed", result.reason
+    run = open_run(result.path)
+    (t_pause, *_), = events(run, "pause")
+    (t_resume, *_), = events(run, "resume")
+    cell = run.streams["load_cell"]
+    inside = cell.t[(cell.t > t_pause + 0.5) & (cell.t < t_resume)]
+    assert len(inside) >= 5, (t_pause, t_resume, len(inside))  # ~10 per second while paused (1.5 s and more)
+    assert np.all(np.diff(inside) >= 0.1 - 1e-9)  # at most 10 per second: one Modbus round trip each
+    assert np.all(np.isfinite(cell.columns["force"][(cell.t > t_pause + 0.5) & (cell.t < t_resume)]))

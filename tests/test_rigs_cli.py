@@ -43,6 +43,9 @@ def test_every_example_rig_file_validates(path: Path) -> None:
     ("name = 'x'\n[limits]\nshutdown_ramp_s = true\n", "limits.shutdown_ramp_s: true is not a number"),
     ("name = 'x'\n[limits]\nmax_current_A = false\n", "limits.max_current_A: false is not a number"),
     ("name = 'x'\nsimulated = 1.5\n", "simulated: Input should be a valid boolean"),
+    # two load cells: the bridge on the DAQ sampled by the stream, the transmitter never supervised (a reviewer)
+    ((ROOT / "rigs" / "lsdea-motor-daq-sim.toml").read_text(encoding="utf-8")
+     + "\n[buses.scale]\nport = 'sim'\n[load_cell]\nbus = 'scale'\n", "both name the rig's load cell"),
     ("name = \n", "not valid TOML"),
     ("description = 'no name'\n", "name: Field required"),
 ])

@@ -30,6 +30,7 @@ from drivers.interfaces import Readable, ReadingMap, StreamDescription
 COLLECT_PERIOD_S = 0.05  # hardware-timed rigs: collect the DAQ stream (and top up its output buffer) this often
 COLLECT_PERIOD_VIRTUAL_S = 0.25  # virtual time: fewer, larger blocks (the output buffer holds ~0.8 s at 10 kHz)
 SENSOR_PERIOD_S = 1.0  # a role the run time declares nothing for (a thermometer): read this often (run time)
+BRIDGE_POLL_S = 0.1  # a DAQ rig's load cell outside its stream (paused, uploads): read on request at most this often
 
 
 @dataclass(frozen=True)
@@ -141,9 +142,15 @@ def _position_check(e: RunContext, r: ReadingMap, row: Row) -> None:
 
 # ------------------------------------------------------------ load cell
 def _force_period(e: RunContext, s: StepState) -> float | None:
-    """The load cell at the protocol's force rate — not where a run's DAQ samples its bridge amplifier on the scan
-    clock (the driver's reads then serve manual control and `devices check` only)."""
-    return None if e.stream is not None and e.stream.has_force else _rate(e.program.protocol.recording.force_Hz)
+    """The load cell at the protocol's force rate — not while a run's DAQ samples its bridge amplifier on the scan
+    clock (a streamed step); paused, or between streams, it is read on request as the monitors are (a reviewer: the
+    force went unsupervised through a pause on a DAQ rig)."""
+    rate = _rate(e.program.protocol.recording.force_Hz)
+    if e.stream is None or not e.stream.has_force:
+        return rate
+    if s.streamed:
+        return None
+    return None if rate is None else max(rate, BRIDGE_POLL_S)  # one Modbus round trip each: no faster than this
 
 
 def _force_check(e: RunContext, r: ReadingMap, row: Row) -> None:
