@@ -131,8 +131,16 @@ def takes_bool(annotation: Any) -> bool:
     return annotation is bool or any(takes_bool(a) for a in get_args(annotation))
 
 
+def takes_number(annotation: Any) -> bool:
+    """Whether a field's type admits a number (``float``, ``int``, ``Hertz``, ``float | None``, …)."""
+    from typing import get_args
+
+    return annotation in (float, int) or any(takes_number(a) for a in get_args(annotation))
+
+
 def refuse_bool(v: Any, annotation: Any) -> None:
-    """ValueError for true/false given where a field takes no bool: pydantic reads true as 1 (outside testers: a rig's
-    ``shutdown_ramp_s = true`` was a 1-s ramp, a protocol's ``duration_s = true`` a 1-s step)."""
-    if isinstance(v, bool) and not takes_bool(annotation):
+    """ValueError for true/false given where a number goes and no bool: pydantic reads true as 1 (outside testers: a
+    rig's ``shutdown_ramp_s = true`` was a 1-s ramp, a protocol's ``duration_s = true`` a 1-s step). A text field
+    keeps pydantic's own refusal (a reviewer: ``name = true`` read "true is not a number")."""
+    if isinstance(v, bool) and takes_number(annotation) and not takes_bool(annotation):
         raise ValueError(f"{'true' if v else 'false'} is not a number: write the value")

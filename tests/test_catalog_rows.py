@@ -732,7 +732,7 @@ def test_a_catalogue_another_writer_holds_is_said_while_the_end_row_waits(
         holder.execute("ROLLBACK")
         holder.close()
     lines = [r.getMessage() for r in caplog.records]
-    waiting = [m for m in lines if "waiting for another writer" in m]
+    waiting = [m for m in lines if "waiting for it (another writer holds it" in m]
     assert waiting and str(tmp_path / cat_mod.FILE_NAME) in waiting[0], lines
     assert lines[-1].startswith("run catalogue not written at the end"), lines
     caplog.clear()

@@ -653,6 +653,7 @@ def test_a_misspelt_rig_field_is_named_with_the_field_meant(tmp_path: Path) -> N
      "specimen: temperature_K: false is not a number"),
     ("[[steps]]\ntype = 'repeat'\ncount = true\n  [[steps.steps]]\n  type = 'hold'\n  duration_s = 1\n",
      "steps[0].count"),  # (refused before: a count is checked on the file's own values)
+    ("[[steps]]\ntype = 'hold'\nname = true\nduration_s = 1\n", "name: Input should be a valid string"),
 ])
 def test_true_or_false_where_a_number_goes_is_refused(tmp_path: Path, body: str, fragment: str) -> None:
     """pydantic reads true as 1: `duration_s = true` validated as a 1-s step (outside tester), as a rig's

@@ -160,7 +160,10 @@ def _refuse_other_specimen(resume: Path, specimen_id: str | None) -> None:
 
     if specimen_id is None or not specimen_id.strip():
         return
-    was = str(open_run(resume, streams=False).attrs.get("specimen_id", "") or "")
+    try:
+        was = str(open_run(resume, streams=False).attrs.get("specimen_id", "") or "")
+    except (OSError, ValueError):  # a file the resume must recover or refuse first: its own checks say so
+        return
     if was and was != specimen_id:
         raise ValueError(f"--specimen-id {specimen_id}: {resume} is a campaign on specimen {was}, and a resume "
                          f"continues it on that specimen (leave --specimen-id out; a new specimen starts a new run)")

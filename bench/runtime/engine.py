@@ -1128,7 +1128,7 @@ class Engine:
         if self.inst.amplifier is None or v is None or not math.isfinite(v):
             return False
         self._record(self.rec.event, self.now(), seg.index, "verify",
-                     f"output at 0 V: the voltage monitor reads {v:.0f} V at {self.now():.3f} s")
+                     f"0 V commanded: the voltage monitor reads {v:.0f} V at {self.now():.3f} s")
         return True
 
     def _paused_readings(self) -> None:

@@ -825,7 +825,8 @@ def record_end(path: Path, url: str | None = None, hv: HvStats | None = None, wr
     url = catalog_url(path.parent, url)
     bound = SQLITE_BUSY_S if url.startswith("sqlite") else PG_CONNECT_S + PG_STATEMENT_S
     notice = threading.Timer(WAIT_NOTICE_S, lambda: log.warning(
-        "run catalogue %s: waiting for another writer to finish (up to %g s); the run file is complete, and "
+        "run catalogue %s: waiting for it (another writer holds it, or its server is slow; up to %g s); the run "
+        "file is complete, and "
         "Ctrl-C skips the catalogue's row (`bench runs list` reconciles it)", sa_display(url), bound))
     notice.daemon = True
     notice.start()  # a catalogue another bench holds made the CLI wait ~55 s after a run saying nothing (tester)
