@@ -6,6 +6,7 @@ own output history, never from the engine's account of itself.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import re
@@ -431,8 +432,12 @@ def test_pause_and_resume_with_keys_at_the_live_view(tmp_path: Path) -> None:
     try:
         wait_for(lambda: logged("step 0 start"), 60, "the run to start")
         time.sleep(1.0)
-        os.write(master, b"p")
-        wait_for(lambda: logged(" pause: "), 30, "the pause")
+        for _ in range(3):  # a key lost beside a loaded full suite (seen once: no pause in 30 s) is pressed again;
+            os.write(master, b"p")  # a second press while pausing asks for the same pause (one pause event below)
+            with contextlib.suppress(AssertionError):
+                wait_for(lambda: logged(" pause: "), 10, "the pause")
+                break
+        wait_for(lambda: logged(" pause: "), 1, "the pause")
         time.sleep(0.5)
         os.write(master, b"r")
         wait_for(lambda: logged(" resume: "), 30, "the resume")

@@ -31,7 +31,8 @@ from drivers.interfaces import (
 )
 from tests.conftest import ROOT, start_rig
 
-RIGS = ("thesis-sim", "lsdea-motor-sim", "thesis-daq-sim")  # between them, every Readable driver class
+RIGS = ("thesis-sim", "lsdea-motor-sim", "thesis-daq-sim", "lsdea-motor-daq-sim")  # between them, every Readable
+# driver class (the last: the load cell's bridge amplifier on a T7 input)
 
 
 def _readable_driver_classes() -> set[type]:
