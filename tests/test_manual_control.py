@@ -946,3 +946,32 @@ def test_a_script_stops_at_the_latch_and_cannot_reset_it(tmp_path: Path) -> None
     with ManualSession(rig, tmp_path / "prompt.log", virtual=True, echo=lambda _t: None, operator="carol") as s:
         assert s.execute("reset looked at the rig").status == "ok"
     assert latched(rig.name) is None
+
+
+def test_an_operators_pause_stops_a_script_and_its_resume_is_refused(tmp_path: Path) -> None:
+    """SIGUSR1 during a script's `watch` paused the session, and the script's own `resume` line turned high voltage
+    back on 0.35 s later (outside tester). An operator's pause stops the script, as a trip does; and a `resume`
+    a script reads while the session is paused from outside it is refused (the script stops there too)."""
+    rig = load_rig(THESIS_RIG)
+    with ManualSession(rig, tmp_path / "a.log", virtual=True, echo=lambda _t: None) as s:
+        asked: list[float] = []
+
+        def pause_once(_now: float) -> None:
+            if s.engine is not None and not asked and s.engine.now() >= 1.0:
+                asked.append(s.engine.now())
+                s.engine.request_pause("signal SIGUSR1")
+        s._sim.clock.subscribe(pause_once)
+        outcomes = s.run_lines(["voltage 2kV", "wait 3", "resume", "voltage 3kV"], stop_on_trip=True)
+        assert asked and [o.command for o in outcomes] == ["voltage 2kV", "wait 3"], outcomes
+        assert outcomes[-1].status == "paused", outcomes[-1]
+        assert abs(_plant_volts(s._sim)) < ZERO_V  # stayed paused: nothing after the pause ran
+    assert any(r[3] == "session" and r[2] == "stopped" and "pause" in r[4] for r in _rows(tmp_path / "a.log"))
+    # paused from outside between a script's lines: its resume is refused, the script stops, the output stays off
+    with ManualSession(rig, tmp_path / "b.log", virtual=True, echo=lambda _t: None) as s:
+        assert s.execute("voltage 2kV").status == "ok"
+        s.engine.request_pause("signal SIGUSR1")  # type: ignore[union-attr]
+        assert s.execute("wait 0.5").status == "paused"
+        outcomes = s.run_lines(["resume", "voltage 3kV"], stop_on_trip=True)
+        assert [o.command for o in outcomes][-1] == "resume" and outcomes[-1].status == "refused", outcomes
+        assert "paused by signal SIGUSR1" in outcomes[-1].text
+        assert abs(_plant_volts(s._sim)) < ZERO_V

@@ -176,6 +176,7 @@ class ManualSession:
     _keepalive: threading.Thread | None = None
     _interactive: bool = False  # Ctrl-C ends the command under way, not the session
     _scripted: bool = False  # the commands come from a script (run_lines with stop_on_trip): no reset from it
+    _outside_pause: str | None = None  # who paused the session from outside it (a signal): a script may not resume
     _latch_refused: list[Outcome] = field(default_factory=list)  # outcomes refused for the latch (a script stops)
     _ending: bool = False  # leaving the session: making the rig safe
     _rec: Recorder | None = None  # the readings' file (None: not open, or its storage failed)
@@ -509,14 +510,14 @@ class ManualSession:
                     checked = len(self.outcomes)
                     if not (trips and stop_on_trip):
                         self.execute(line)
-                        trips += [o for o in self.outcomes[checked:]
-                                  if o.status == "trip" or any(o is r for r in self._latch_refused)]
+                        trips += [o for o in self.outcomes[checked:] if o.status in ("trip", "paused")
+                                  or any(o is r for r in self._latch_refused)]
                         checked = len(self.outcomes)
                 if trips and stop_on_trip:
-                    why = "trip" if trips[0].status == "trip" else "refusal, the rig latched,"
+                    why = {"trip": "trip", "paused": "pause"}.get(trips[0].status, "refusal")
                     text = (f"the script stops at the {why} of '{trips[0].command}': the commands after it are not "
-                            "run (an unattended script does not go on after a trip or on a latched rig); the "
-                            "session ends through its safe exit")
+                            "run (an unattended script does not go on after a trip, an operator's pause or on a "
+                            "latched rig); the session ends through its safe exit")
                     self._write("session", "stopped", text)
                     self.echo(f"stopped: {text}")
                     break
@@ -598,9 +599,12 @@ class ManualSession:
         return out
 
     def _paused(self, shown: str, engine: ManualEngine, by: str) -> Outcome:
-        """A pause request (SIGUSR1, or ``bench pause`` on a run) ended the command under way: paused."""
+        """A pause request (SIGUSR1, or ``bench pause`` on a run) ended the command under way: paused — by someone
+        outside the script, whose ``resume`` it then refuses (:meth:`_cmd_resume`)."""
         try:
-            return Outcome(shown, "paused", engine.pause(by))
+            out = Outcome(shown, "paused", engine.pause(by))
+            self._outside_pause = by
+            return out
         except (StopRequested, InstrumentError) as exc:
             if not self._leaving(engine):
                 return Outcome(shown, "error", f"pause: {exc}; {self._made_safe(engine)}")
@@ -682,7 +686,13 @@ class ManualSession:
         return self._engine().pause(self._who("pause"))
 
     def _cmd_resume(self) -> str:
-        return self._engine().resume(self._who("resume"))
+        if self._scripted and self._outside_pause is not None:  # an operator's pause outranks a line written before
+            raise LatchRefused(f"resume from a script: the session was paused by {self._outside_pause}, not by the "
+                               "script; resume it at a prompt (a script's resume turned high voltage back on "
+                               "0.35 s after an operator's SIGUSR1, outside tester)")
+        said = self._engine().resume(self._who("resume"))
+        self._outside_pause = None
+        return said
 
     # ------------------------------------------------------------ each _cmd_* returns one line of text
     def _cmd_help(self) -> str:
