@@ -135,3 +135,33 @@ def test_a_parameter_the_trusted_fit_leaves_undetermined_is_not_gained_by_the_ca
     assert any(f.startswith("b: not determined") for f in res.flags), res.flags  # the premise: the interval's
     report = campaign_identifiability(prob, res)
     assert "b" in report.campaign_undetermined and "b" not in report.gained, report
+    # no record determines what the whole campaign does not (its data are a part of the campaign's): the table
+    # ticked a parameter for a record and not for the campaign (a second tester)
+    assert all("b" in u for u in report.undetermined), report.undetermined
+
+
+class _OneDetermines(_TwoRecords):
+    """y1 = a·t + b·t² determines a and b alone; y2 = a·t does not see b."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.records = [_Rec(2.0 * self.t + 1.0 * self.t**2, "both", np.zeros((40, 2)), np.zeros(20)),
+                        _Rec(2.0 * self.t, "a only", np.zeros((40, 2)), np.zeros(20))]
+        self.data = np.concatenate([r.data for r in self.records])
+
+    def predict(self, Z: np.ndarray) -> np.ndarray:
+        Z = np.atleast_2d(Z)
+        return np.hstack([Z[:, :1] * self.t + Z[:, 1:] * self.t**2, Z[:, :1] * self.t])
+
+
+def test_no_record_is_said_to_determine_what_the_whole_campaign_leaves_undetermined() -> None:
+    """The campaign table ticked J0 for one record and not for the campaign (a second tester): a record's local
+    analysis can call determined what the campaign's profile interval leaves open, yet a record's data are a part of
+    the campaign's, so what the whole does not determine no part of it does. Here record "both" determines b on its
+    own; a verdict of the campaign (a trusted fit's flag, in its words) that b is not determined wins for it too."""
+    prob = _OneDetermines()
+    res = fit(prob, FitSettings(population=20, generations=60, cost="lsq"))
+    assert campaign_identifiability(prob, res).undetermined[0] == []  # the premise: "both" alone determines a, b
+    res.flags.append("b: not determined (the data allow 0 … 4 -, 95 %)")  # as bench.identify.trust words it
+    report = campaign_identifiability(prob, res)
+    assert report.campaign_undetermined == ["b"] and report.undetermined[0] == ["b"], report

@@ -88,5 +88,10 @@ def campaign_identifiability(problem: RecordedProblem, result: FitResult) -> Cam
         _, _, _, flags = assess(list(problem.names), log, lo, hi, result.z, result.jacobian[rows],
                                 result.residual[rows], scale)
         undetermined.append(_undetermined(flags))
+    joint = _undetermined(result.flags)
+    # what the whole campaign leaves undetermined no part of it determines (its data are a subset): the records'
+    # local analysis could tick a parameter whose profile interval over all records is open (the table read J0 ✓ for a
+    # record and · for the campaign, outside tester)
+    undetermined = [sorted(set(u) | set(joint), key=list(problem.names).index) for u in undetermined]
     return CampaignReport(list(problem.names), [r.source for r in records], record_conditions(problem),
-                          undetermined, _undetermined(result.flags))
+                          undetermined, joint)
