@@ -17,6 +17,7 @@ from __future__ import annotations
 import json
 import math
 import re
+import textwrap
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -224,7 +225,11 @@ def thesis_time_figure(a: RunAnalysis, src: RunSource | None = None) -> Figure:
     with _opened(a.path, src) as s:
         t, u = _line(s.streams, "laser", "displacement", -np.inf, np.inf, flag="valid")
         u = u * 1e3
-        fitted = fitted_membrane(a.path, s)
+        unread = ""
+        try:
+            fitted = fitted_membrane(a.path, s)
+        except (ValueError, OSError) as exc:  # a fit file that is not this run's: the record is drawn all the same
+            fitted, unread = None, " ".join(str(exc).split())  # (it stopped the whole report, a second tester)
         if fitted is None:
             fig, ax = _figure(figsize=(8, 4.4))
             ax.set_xlabel("time [s]")
@@ -233,21 +238,24 @@ def thesis_time_figure(a: RunAnalysis, src: RunSource | None = None) -> Figure:
                                       gridspec_kw={"height_ratios": [3, 1]})
         ax.plot(t, u, lw=0.8, color="tab:blue", label="measured displacement (laser)")
         if fitted is not None:
-            rms_fit = float(fitted["fit"]["rms"])
+            rms_fit, records = float(fitted["fit"]["rms"]), len(fitted["fit"].get("records") or [1])
+            over = f"over its {records} records" if records > 1 else "over this record"
             ax.plot(fitted["t"], fitted["model"] * 1e3, "--", lw=1.0, color="black", zorder=4,
-                    label=f"fitted model (rms {rms_fit * 1e6:.1f} µm)")
+                    label=f"fitted model (fit {str(fitted['fit']['group']).rsplit('/', 1)[-1]}, rms "
+                          f"{rms_fit * 1e6:.1f} µm {over})")  # (the legend's rms and the residual's differed unsaid)
             res = (fitted["model"] - fitted["record"]) * 1e6
             fin = np.isfinite(res)
             rms = float(np.sqrt(np.mean(res[fin] ** 2))) if fin.any() else float("nan")
             ax_r.plot(fitted["t"], res, lw=0.8, color="black")
             ax_r.axhline(0.0, color="0.6", lw=0.6, zorder=0)
-            ax_r.set_title(f"residual: model − record, rms {rms:.1f} µm", fontsize=9, loc="left")
+            ax_r.set_title(f"residual on this record: model − record, rms {rms:.1f} µm", fontsize=9, loc="left")
             ax_r.set_ylabel("residual [µm]")
             ax_r.set_xlabel("time [s]")
         ax2 = ax.twinx()
         _plot_voltages(ax2, s.streams, 0.0, float(s.run.updated) if s.run.updated else float(t[-1]))
     ax.set_ylabel("displacement u [mm]")
-    ax.set_title(f"{a.protocol}: displacement vs time", fontsize=10)
+    unread = "\n" + textwrap.fill(f"(stored fit not read: {unread})", 90) if unread else ""
+    ax.set_title(f"{a.protocol}: displacement vs time{unread}", fontsize=10)
     _legend_outside(fig, [ax, ax2])
     return fig
 

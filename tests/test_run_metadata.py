@@ -129,7 +129,7 @@ def test_the_fit_goes_beside_the_run_and_report_and_inspect_find_it(run_file: Pa
     assert res.exit_code == 0, res.output
     assert "skipping 1 fit file" in res.output
     svg = (tmp_path / "report" / "displacement_vs_time.svg").read_text(encoding="utf-8")
-    assert f"fitted model (rms {rms * 1e6:.1f} µm)" in svg
+    assert f"fitted model (fit membrane-1, rms {rms * 1e6:.1f} µm over this record)" in svg
 
     # --into: into the run file as before; both places are read
     res = runner.invoke(app, ["fit", str(run_file), *fit_args, "--into"], env={"COLUMNS": "200"})
@@ -158,6 +158,11 @@ def test_a_fit_file_of_another_run_is_refused(run_file: Path, tmp_path: Path) ->
     assert res.exit_code == 0, res.output
     data = json.loads(res.stdout)
     assert data["fits"] == [] and "belongs to another run" in data["fits_error"] and data["state"] == "completed"
+    # the report, too: the record's figures without the model, the title naming the fit file it could not read (it
+    # exited 2 and left a folder holding only report.json, a second tester)
+    res = runner.invoke(app, ["report", str(copy), "--out", str(tmp_path / "rep")], env={"COLUMNS": "200"})
+    assert res.exit_code == 0, res.output
+    assert (tmp_path / "rep" / "displacement_vs_time.png").stat().st_size > 10_000
 
 
 def _simulate(*args: str) -> str:
