@@ -165,3 +165,19 @@ def test_no_record_is_said_to_determine_what_the_whole_campaign_leaves_undetermi
     res.flags.append("b: not determined (the data allow 0 … 4 -, 95 %)")  # as bench.identify.trust words it
     report = campaign_identifiability(prob, res)
     assert report.campaign_undetermined == ["b"] and report.undetermined[0] == ["b"], report
+
+
+def test_a_sweeps_record_is_labelled_with_each_of_its_conditions() -> None:
+    """The sweeps protocol's record (5 kV at 266 K, then 7 kV at 316 K) was labelled "7 kV, 266 K" — the highest
+    voltage with the median temperature (a second tester). Each temperature level now names its own peak voltage, in
+    the record's order; a thermometer's scatter does not split one level."""
+    from types import SimpleNamespace
+
+    from bench.identify.campaign import record_conditions
+
+    t = np.linspace(0.0, 14.0, 1401)
+    v = np.where(t < 7, 5000 * np.sin(np.pi * t / 5) ** 2, 7000 * np.sin(np.pi * (t - 7) / 5) ** 2)
+    sweep = _Rec(np.zeros(t.size), "sweep", np.column_stack([v, np.where(t < 7, 266.0, 316.0)]), np.zeros(20))
+    noisy = _Rec(np.zeros(t.size), "noisy", np.column_stack([v, 296 + np.random.default_rng(0).normal(0, 0.4, t.size)]),
+                 np.zeros(20))
+    assert record_conditions(SimpleNamespace(records=[sweep, noisy])) == ["5 kV, 266 K; 7 kV, 316 K", "7 kV, 296 K"]

@@ -51,13 +51,29 @@ def _undetermined(flags: list[str]) -> list[str]:
     return sorted({f.split(": ", 1)[0] for f in flags if any(k in f for k in UNDETERMINED)})
 
 
+def _levels(temps: np.ndarray, gap: float = 2.0) -> list[np.ndarray]:
+    """Masks of a record's temperature levels in the order they come: values within ``gap`` K of each other are one
+    level (a thermometer's noise does not split one)."""
+    finite = np.isfinite(temps)
+    values = np.unique(temps[finite])
+    if values.size == 0:
+        return []
+    cuts = np.flatnonzero(np.diff(values) > gap)
+    bounds = zip(np.concatenate([[values[0]], values[cuts + 1]]), np.concatenate([values[cuts], [values[-1]]]),
+                 strict=True)
+    masks = [finite & (temps >= lo) & (temps <= hi) for lo, hi in bounds]
+    return sorted(masks, key=lambda m: int(np.argmax(m)))
+
+
 def record_conditions(problem: RecordedProblem) -> list[str]:
     """A short description of each record's conditions, from its inputs and packed template."""
     out = []
     for rec in problem.records:
         U = rec.U
-        if U.shape[1] == 2:  # membrane: (Φ, T)
-            out.append(f"{np.max(np.abs(U[:, 0])) / 1e3:.3g} kV, {np.median(U[:, 1]):.0f} K")
+        if U.shape[1] == 2:  # membrane: (Φ, T); a sweep's record holds several (a 5 kV, 266 K then 7 kV, 316 K
+            # record read "7 kV, 266 K": the highest voltage and the median temperature, a second tester)
+            parts = [f"{np.max(np.abs(U[m, 0])) / 1e3:.3g} kV, {np.median(U[m, 1]):.0f} K" for m in _levels(U[:, 1])]
+            out.append("; ".join(parts) if parts else "—")
         else:  # LS-DEA: (V, x, ẋ); template holds λ2p and the hung mass
             out.append(f"λ2p {rec.template[10]:.3g}, {rec.template[13] * 1e3:.0f} g, "
                        f"{np.max(np.abs(U[:, 0])) / 1e3:.3g} kV")
