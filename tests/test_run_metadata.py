@@ -14,6 +14,7 @@ import sys
 from pathlib import Path
 
 import h5py
+import numpy as np
 import pytest
 from typer.testing import CliRunner
 
@@ -201,3 +202,26 @@ def test_the_help_names_the_unit_and_the_quantity_form() -> None:
     assert "Peak voltage Vmax [V]. 0–12 kV; or with a unit: 7kV." in out
     out = " ".join(runner.invoke(app, ["fit", "--help"], terminal_width=200).output.split())
     assert "RUN.fit.hdf5" in out and "--into" in out and "campaign's fit is stored with every one" in out
+
+
+def test_a_fit_checked_at_its_start_is_stored_whoever_holds_the_file_then(run_file: Path, tmp_path: Path) -> None:
+    """`bench fit KILLED.h5` checked the killed file at its start (ended: no writer), fitted for 32 s, then refused to
+    store ("not finalised … fit results go with ended runs only", exit 2) — the check was made again at the end, where
+    a process holding the file open (a reader) makes a crashed file look written (a second tester). The fit stores
+    what its start check accepted; without that check the file's state is still looked at."""
+    import shutil
+
+    from bench.identify.core import FitResult
+    from bench.identify.store import write_fit
+
+    copy = tmp_path / run_file.name
+    shutil.copy(run_file, copy)
+    with h5py.File(copy, "r+") as f:  # a file that reads as being written (its state running, not orphaned here)
+        f.attrs["complete"] = False
+        f["status/state"][0] = b"running"
+    one = np.array([1.0])
+    result = FitResult(["mu0"], ["Pa"], one, one * 0.0, one * 2.0, 0.0, "sae", 0.0, 1, 1, 1, 0.1, one, np.eye(1),
+                       one * np.nan)
+    with pytest.raises(ValueError, match="not finalised"):
+        write_fit(copy, "membrane", result, [str(copy)], sidecar=True)
+    assert write_fit(copy, "membrane", result, [str(copy)], sidecar=True, ended=True) == "/fit/membrane-1"

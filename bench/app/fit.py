@@ -318,7 +318,7 @@ def _store(out: Fitted, runs: list[Path], model: str, records: list[str], campai
 
     result = out.result
     for p in runs:
-        group = write_fit(p, model, result, records, campaign, sidecar=not into)
+        group = write_fit(p, model, result, records, campaign, sidecar=not into, ended=True)  # (check_fittable)
         out.stored.append((p if into else fit_sidecar(p), group))
     if export is not None:
         attrs = open_run(runs[0], streams=False).attrs  # the rig file as written, else (older runs) as parsed

@@ -52,13 +52,15 @@ def is_sidecar(path: str | Path) -> bool:
     return Path(path).name.endswith(SIDECAR_SUFFIX)
 
 
-def _run_identity(run_path: str | Path) -> dict[str, str]:
+def _run_identity(run_path: str | Path, ended: bool = False) -> dict[str, str]:
     """The run file's identity a fit file records (and is checked against); ValueError while a run still writes
     it. A crashed file (a resumed campaign's earlier part) takes a fit file like a finished one: its data are
-    what was measured up to the crash."""
+    what was measured up to the crash. ``ended``: the caller found it ended before the fit (`bench fit`'s check):
+    not looked at again — a crashed file another process happens to hold open now (a reader) would read as being
+    written, and the fit's minutes were lost at the end (a second tester: refused after 32 s of fitting)."""
     run = open_run(run_path, streams=False)
     crashed = run.state == "running" and bool(run.orphaned or run.recovered_at)
-    if not (run.complete or crashed):
+    if not (ended or run.complete or crashed):
         raise ValueError(f"run file {run_path}: not finalised ({run.incomplete_reason}); fit results go with ended "
                          "runs only")
     return _run_identity_any(run_path)
@@ -74,12 +76,12 @@ def _check_sidecar(f: h5py.File, side: Path, run_path: str | Path, identity: dic
 
 
 def write_fit(run_path: str | Path, model: str, result: FitResult, records: list[str],
-              campaign: dict[str, object] | None = None, *, sidecar: bool = False) -> str:
+              campaign: dict[str, object] | None = None, *, sidecar: bool = False, ended: bool = False) -> str:
     """Append the fit to a finished run file, or with ``sidecar`` to its fit file (:func:`fit_sidecar`, created if
     absent); returns the group name. ``campaign``: the campaign report (which parameters the records determine
-    alone and together), stored as JSON in attribute ``campaign``."""
+    alone and together), stored as JSON in attribute ``campaign``; ``ended``: :func:`_run_identity`'s."""
     if sidecar:
-        identity = _run_identity(run_path)
+        identity = _run_identity(run_path, ended)
         side = fit_sidecar(run_path)
         with h5py.File(side, "a") as f:
             if not f.attrs.get("format"):
