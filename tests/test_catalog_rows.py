@@ -767,3 +767,20 @@ def test_a_run_stopped_before_its_end_is_among_a_specimens_runs_that_did_not_fin
 
     h = specimen_history([row("done", "completed", 2), row("stopped", "interrupted", 0), row("trip", "tripped", 1)])
     assert sorted(f["file"] for f in h["failures"]) == ["/runs/stopped.h5", "/runs/trip.h5"]
+
+
+def test_a_fit_across_specimens_is_no_point_of_a_specimens_history() -> None:
+    """`bench fit ID.h5 S7.h5` warned "not of one specimen … (fitting anyway)", stored the fit, and `specimen show
+    S7` listed it as an ageing point beside S7's own fit, unmarked (a second tester). A fit stored with the warning
+    (``mixed_specimens``) is left out of the parameters' history, and counted."""
+    from bench.storage.catalog import specimen_history
+
+    own = {"model": "membrane", "created": "2026-11-28T10:00:00", "parameters": {"J0": 351.26}, "records": ["s7.h5"]}
+    mixed = {**own, "created": "2026-11-28T10:05:00", "parameters": {"J0": 361.54}, "records": ["id.h5", "s7.h5"],
+             "mixed_specimens": "the runs are not of one specimen: specimen_id 'S1' vs 'S7'"}
+    row = {"path": "/runs/s7.h5", "start_time": "2026-11-28T09:00:00", "protocol_name": "p", "state": "completed",
+           "complete": True, "incomplete_reason": "", "reason": "", "fits": json.dumps([own, mixed]),
+           "hv_time_s": 1.0, "hv_cycles": 7, "max_nominal_field_V_per_m": None, "breakdown_field_V_per_m": None,
+           "steps_completed": 1, "steps_total": 1, "previous_file": None}
+    h = specimen_history([row])
+    assert [p["value"] for p in h["parameters"]["J0"]] == [351.26] and h["fits_across_specimens"] == 1

@@ -225,3 +225,11 @@ def test_a_fit_checked_at_its_start_is_stored_whoever_holds_the_file_then(run_fi
     with pytest.raises(ValueError, match="not finalised"):
         write_fit(copy, "membrane", result, [str(copy)], sidecar=True)
     assert write_fit(copy, "membrane", result, [str(copy)], sidecar=True, ended=True) == "/fit/membrane-1"
+    # a fit across specimens carries the warning bench fit printed; the catalogue reads it (a specimen's history
+    # leaves such a fit out: tests/test_catalog_rows.py)
+    from bench.storage.catalog import _fits
+    from bench.storage.runfile import open_run
+
+    write_fit(copy, "membrane", result, [str(copy)], sidecar=True, ended=True, mixed="not of one specimen: S1 vs S7")
+    fits = _fits(copy, open_run(copy, streams=False).attrs, in_file=False)
+    assert [f["mixed_specimens"] for f in fits] == ["", "not of one specimen: S1 vs S7"], fits

@@ -316,9 +316,10 @@ def _store(out: Fitted, runs: list[Path], model: str, records: list[str], campai
     from bench.identify.store import fit_sidecar, write_fit
     from bench.storage.runfile import open_run
 
-    result = out.result
+    result, mixed = out.result, specimen_mismatch(runs)
     for p in runs:
-        group = write_fit(p, model, result, records, campaign, sidecar=not into, ended=True)  # (check_fittable)
+        group = write_fit(p, model, result, records, campaign, sidecar=not into, ended=True,  # (check_fittable)
+                          mixed=mixed)
         out.stored.append((p if into else fit_sidecar(p), group))
     if export is not None:
         attrs = open_run(runs[0], streams=False).attrs  # the rig file as written, else (older runs) as parsed

@@ -372,6 +372,9 @@ def specimen_show(
     for name, pts in sorted(h["parameters"].items()):
         console.print(f"{escape(name)}: " + ", ".join(f"{p['value']:.5g} at {p['cumulative_cycles']} cycles"
                                                       for p in pts), soft_wrap=True)
+    if h["fits_across_specimens"]:
+        console.print(f"[yellow]{h['fits_across_specimens']} fit(s) across several specimens[/] (bench fit warned): "
+                      "left out of the parameters' history")
     console.print(f"plot: {escape(str(png))}" if png else ("no plot" if h["parameters"] else NO_FIT_PLOT))
 
 

@@ -76,10 +76,12 @@ def _check_sidecar(f: h5py.File, side: Path, run_path: str | Path, identity: dic
 
 
 def write_fit(run_path: str | Path, model: str, result: FitResult, records: list[str],
-              campaign: dict[str, object] | None = None, *, sidecar: bool = False, ended: bool = False) -> str:
+              campaign: dict[str, object] | None = None, *, sidecar: bool = False, ended: bool = False,
+              mixed: str = "") -> str:
     """Append the fit to a finished run file, or with ``sidecar`` to its fit file (:func:`fit_sidecar`, created if
     absent); returns the group name. ``campaign``: the campaign report (which parameters the records determine
-    alone and together), stored as JSON in attribute ``campaign``; ``ended``: :func:`_run_identity`'s."""
+    alone and together), stored as JSON in attribute ``campaign``; ``ended``: :func:`_run_identity`'s; ``mixed``:
+    why the records are not of one specimen (attribute ``mixed_specimens``: a specimen's history leaves it out)."""
     if sidecar:
         identity = _run_identity(run_path, ended)
         side = fit_sidecar(run_path)
@@ -87,15 +89,15 @@ def write_fit(run_path: str | Path, model: str, result: FitResult, records: list
             if not f.attrs.get("format"):
                 f.attrs.update({"format": SIDECAR_FORMAT, **identity})
             _check_sidecar(f, side, run_path, identity)
-            return _write_group(f, model, result, records, campaign)
+            return _write_group(f, model, result, records, campaign, mixed)
     with h5py.File(run_path, "r+") as f:
         if not f.attrs.get("complete", False):
             raise ValueError(f"run file {run_path}: incomplete run; fit results go into finished files only")
-        return _write_group(f, model, result, records, campaign)
+        return _write_group(f, model, result, records, campaign, mixed)
 
 
 def _write_group(f: h5py.File, model: str, result: FitResult, records: list[str],
-                 campaign: dict[str, object] | None) -> str:
+                 campaign: dict[str, object] | None, mixed: str = "") -> str:
     g0 = f.require_group("fit")
     k = 1
     while f"{model}-{k}" in g0:
@@ -119,6 +121,8 @@ def _write_group(f: h5py.File, model: str, result: FitResult, records: list[str]
                     "created": now_iso()})
     if campaign is not None:
         g.attrs["campaign"] = json.dumps(campaign)
+    if mixed:
+        g.attrs["mixed_specimens"] = mixed
     tr = result.trust
     if tr is not None:
         for key, arr in (("interval_lower", tr.lower), ("interval_upper", tr.upper)):

@@ -570,7 +570,8 @@ def _fits(path: Path, attrs: dict[str, Any], in_file: bool = True) -> list[dict[
             groups.append({"model": _text(g.attrs.get("model", "")), "created": _text(g.attrs.get("created", "")),
                            "rms": _f(g.attrs.get("rms")), "records": records,
                            "parameters": {n: float(v) for n, v in zip(names, g["values"][:], strict=True)},
-                           "units": dict(zip(names, units, strict=False))})
+                           "units": dict(zip(names, units, strict=False)),
+                           "mixed_specimens": _text(g.attrs.get("mixed_specimens", ""))})
 
     try:
         if in_file:
@@ -865,6 +866,7 @@ def specimen_history(rows: list[dict[str, Any]]) -> dict[str, Any]:
     kinds: set[str] = set()  # of the runs whose true field is known
     fits: dict[tuple[str, str, str], tuple[int, dict[str, Any], str]] = {}
     failures = []
+    across: set[tuple[str, str]] = set()  # fits across several specimens, left out of the parameters' history
     true_field = TrueFields()
     for r in sorted(rows, key=lambda r: (r["start_time"] or "", r["path"])):
         cum_t += r["hv_time_s"] or 0.0
@@ -886,6 +888,9 @@ def specimen_history(rows: list[dict[str, Any]]) -> dict[str, Any]:
                              "state_shown": state_shown(r["state"], bool(r["complete"]), r["incomplete_reason"] or ""),
                              "reason": r["incomplete_reason"] if not r["complete"] else r["reason"]})
         for fit in json.loads(r["fits"] or "[]"):
+            if fit.get("mixed_specimens"):  # fitted across specimens (`bench fit` warned): no point of this one's life
+                across.add((fit["model"], fit["created"]))  # (it entered it unmarked, a second tester)
+                continue
             # a campaign fit is stored with each of its files (each copy stamped when written): one fit, one key
             key = (fit["model"], json.dumps(fit.get("records", [])), json.dumps(fit["parameters"], sort_keys=True))
             fits[key] = (cum_c, fit, r["path"])  # the last file holding it wins
@@ -912,7 +917,8 @@ def specimen_history(rows: list[dict[str, Any]]) -> dict[str, Any]:
             "breakdown_field_V_per_m": (true or best or (None, None))[1],
             "field_ratio": ratio[0] if ratio else None, "field_ratio_file": ratio[1] if ratio else None,
             "stretch_dependent_breakdown": "lsdea" in kinds,
-            "max_field_file": best[2] if best else None, "failures": failures, "parameters": params}
+            "max_field_file": best[2] if best else None, "failures": failures, "parameters": params,
+            "fits_across_specimens": len(across)}
 
 
 def plot_history(history: dict[str, Any], specimen: str, out: Path) -> Path | None:
