@@ -913,8 +913,11 @@ def test_a_daq_rigs_load_cell_is_read_and_supervised_in_manual_control(tmp_path:
         move = s.execute("move 95 50")
         assert move.status == "trip" and "force" in move.text and "2 N" in move.text, move
         assert s.execute("voltage 1 kV").status == "refused"  # latched
-    forces = open_run(tmp_path / "s.h5").streams["load_cell"].columns["force"]
+    cell = open_run(tmp_path / "s.h5").streams["load_cell"]
+    forces = cell.columns["force"]
     assert len(forces) >= 2 and np.nanmax(np.abs(forces)) > 2.0  # recorded, the reading that tripped among them
+    # and once more after the trip, the rig made safe (the file ended at the tripping reading: a second tester)
+    assert len(forces) - 1 > int(np.nanargmax(np.abs(forces))), (cell.t, forces)
     # the premise, on the rig as shipped (±9.5 N): the same move meets a force beyond 2 N, read at rest
     with ManualSession(load_rig(ROOT / "rigs" / "lsdea-motor-daq-sim.toml"), tmp_path / "t.log", virtual=True,
                        echo=lambda _t: None) as s:
