@@ -31,6 +31,10 @@ def test_simulate_thesis_prints_base_case_figures() -> None:
     printed = [float(x) for x in re.findall(r"\d+\.\d+", res.output)]
     assert any(abs(x - 7.68) <= 0.005 for x in printed) and any(abs(x - 8.56) <= 0.005 for x in printed)
     assert "creep +11.5 %" in res.output
+    # one whole cycle has no creep (the growth of the second peak over the first): "–", as the report says — it
+    # printed "+0.0 %" (a second tester)
+    res = runner.invoke(app, ["simulate", "thesis", "--duration", "9"])
+    assert res.exit_code == 0 and "creep –" in res.output, res.output
 
 
 def test_simulate_lsdea_isometric() -> None:

@@ -3,6 +3,7 @@ three test configurations (``bench simulate thesis|lsdea``)."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Literal, TypeVar
 
@@ -41,7 +42,7 @@ class ThesisSimulation:
     params: MembraneParams
     trace: MembraneTrace
     figures: CycleFigures
-    creep: float  # [%] (0 without drive)
+    creep: float  # [%] (NaN without drive or with under two whole cycles)
     max_displacement: float  # [m]
     max_stretch: float
     peak_field: float  # [V/m], over the valid samples
@@ -71,7 +72,8 @@ def simulate_thesis(voltage: float, frequency: float, temperature: float, durati
                            T=temperature, method=solver)
     figs = cycle_figures(tr.t, tr.displacement, tr.voltage, frequency)
     valid = np.isfinite(tr.stretch)
-    creep = figs.creep * 100 if figs.whole > 1 and figs.peaks[0] != 0 else 0.0  # no drive, no creep
+    # one whole cycle (or none driven) has no creep: NaN, shown "–" as the report shows it (it printed "+0.0 %")
+    creep = figs.creep * 100 if figs.whole > 1 and figs.peaks[0] != 0 else math.nan
     return ThesisSimulation(params, tr, figs, float(creep), float(np.nanmax(tr.displacement)),
                             float(np.nanmax(tr.stretch)), float(np.nanmax(np.abs(tr.field[valid]))),
                             float(np.nanmax(np.abs(tr.current[valid]))))

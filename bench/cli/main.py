@@ -92,7 +92,7 @@ def simulate_thesis(
     console.print(table)
     if not driven:
         console.print(undriven_note(f"--voltage {voltage_V:g} V", voltage_V), soft_wrap=True)
-    creep = f"{sim.creep:+.1f} %" if driven else "–"
+    creep = f"{sim.creep:+.1f} %" if driven and math.isfinite(sim.creep) else "–"
     console.print(f"max displacement {sim.max_displacement * 1e3:.3f} mm (L_d = {sim.params.L_d * 1e3:g} mm), "
                   f"max stretch {sim.max_stretch:.4f}, creep {creep}, "
                   f"peak true field {sim.peak_field / 1e6:.1f} MV/m, peak current {sim.peak_current * 1e6:.2f} µA")
