@@ -103,18 +103,13 @@ def test_campaign_fit_cli_stores_the_joint_result_in_every_file(tmp_path: Path, 
         assert set(campaign["determined_only_by_the_campaign"]) <= set(s["names"])
 
 
-class _Weak:
+class _Weak(_TwoRecords):
     """y1 = a·t and y2 = (a + 10⁻³ b)·t with noise 0.05 (a = 2, b = 1): b's trace is far below the noise, so a
     trusted fit's profile interval spans b's whole range — the campaign does not determine b, whatever each record
     says."""
 
-    lower = np.array([0.0, 0.0])
-    upper = np.array([4.0, 4.0])
-    log = np.array([False, False])
-    data_unit = "-"
-
     def __init__(self) -> None:
-        self.names, self.units = ["a", "b"], ["-", "-"]
+        super().__init__()
         self.t = np.linspace(0.1, 1.0, 60)
         rng = np.random.default_rng(3)
         self.records = [_Rec(2.0 * self.t + rng.normal(0, 0.05, 60), "a only", np.zeros((60, 2)), np.zeros(20)),
