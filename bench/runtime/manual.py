@@ -149,6 +149,7 @@ class Outcome:
     command: str
     status: str
     text: str
+    latched: bool = False  # refused because the rig is latched (or a reset a script asked for): a script stops
 
 
 @dataclass
@@ -177,7 +178,6 @@ class ManualSession:
     _interactive: bool = False  # Ctrl-C ends the command under way, not the session
     _scripted: bool = False  # the commands come from a script (run_lines with stop_on_trip): no reset from it
     _outside_pause: str | None = None  # who paused the session from outside it (a signal): a script may not resume
-    _latch_refused: list[Outcome] = field(default_factory=list)  # outcomes refused for the latch (a script stops)
     _ending: bool = False  # leaving the session: making the rig safe
     _rec: Recorder | None = None  # the readings' file (None: not open, or its storage failed)
     _early: list[tuple[float, str, str, str]] | None = field(default_factory=list)  # log lines before the file
@@ -510,8 +510,7 @@ class ManualSession:
                     checked = len(self.outcomes)
                     if not (trips and stop_on_trip):
                         self.execute(line)
-                        trips += [o for o in self.outcomes[checked:] if o.status in ("trip", "paused")
-                                  or any(o is r for r in self._latch_refused)]
+                        trips += [o for o in self.outcomes[checked:] if o.status in ("trip", "paused") or o.latched]
                         checked = len(self.outcomes)
                 if trips and stop_on_trip:
                     why = {"trip": "trip", "paused": "pause"}.get(trips[0].status, "refusal")
@@ -571,9 +570,7 @@ class ManualSession:
                 assert engine is not None
                 out = self._paused(shown, engine, engine.pause_asked_by())
             except (Refused, ValueError, LimitError) as exc:
-                out = Outcome(shown, "refused", str(exc))
-                if isinstance(exc, LatchRefused):
-                    self._latch_refused.append(out)
+                out = Outcome(shown, "refused", str(exc), latched=isinstance(exc, LatchRefused))
             except InterlockTrip as trip:
                 out = Outcome(shown, "trip", self._latch(trip))
             except SafetyTrip as exc:
