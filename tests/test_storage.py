@@ -412,6 +412,24 @@ def test_kill_9_loses_at_most_half_a_second_and_recover_releases_the_file(tmp_pa
     assert max(lost) <= 0.5, lost
 
 
+def test_the_recorded_up_to_note_says_which_streams_run_past_it() -> None:
+    """/status/updated is the time to which every stream and the events are on file; whole-chunk writes carry a
+    stream's samples past it. After a full disk, both streams reached 7.750 s while inspect said "every stream complete
+    to 5.491 s; some stream's samples go on to 7.750 s" (an outside tester): where every stream runs past it, the
+    note says so, with the earliest end."""
+    from bench.storage.runfile import recorded_note
+
+    assert recorded_note(5.491, []) == "" and recorded_note(5.491, [5.491, 5.4912]) == ""
+    assert recorded_note(5.491, [7.75, 7.75]) == \
+        " (the events are on file to here; every stream's samples go on to 7.750 s)"
+    assert recorded_note(5.491, [6.5, 7.75]) == \
+        " (the events are on file to here; every stream's samples go on to 6.500 s, some to 7.750 s)"
+    assert recorded_note(5.491, [5.491, 7.75]) == \
+        " (every stream and the events complete to here; some stream's samples go on to 7.750 s)"
+    assert recorded_note(5.491, [7.75]) == \
+        " (the events are on file to here; every stream's samples go on to 7.750 s)"
+
+
 def test_a_killed_and_recovered_file_reads_as_killed_and_says_how_far_its_streams_go(tmp_path: Path) -> None:
     """After `bench recover`, a killed file still listed as "running, incomplete", and inspect said "recorded up to
     124.746 s" while its streams ended at 128.5 s (found by an outside tester): /status/updated is the time to which
@@ -424,24 +442,26 @@ def test_a_killed_and_recovered_file_reads_as_killed_and_says_how_far_its_stream
 
     _, path = _kill_once(tmp_path, 0, random.Random(5))
     recover(path)
-    with h5py.File(path, "r+") as f:  # a stream ahead of the time to which all are complete, as the tester's file
+    with h5py.File(path, "r+") as f:  # streams ahead of the time to which all are complete, as the tester's files
         last = float(f["laser/t"][-1])
-        f["status/updated"][0] = last - 0.25
+        first = min(last, float(f["amplifier/t"][-1]))
+        f["status/updated"][0] = first - 0.25
         state = f["status/state"][0]
     assert state == b"running"  # the file's state: nothing stamped its end
     said = "\n".join(recover(path).lines())  # already released: nothing to do, and what the file holds
     assert "state crashed or killed — INCOMPLETE" in said, said
-    assert f"recorded up to {last - 0.25:.3f} s (every stream complete to here; some stream's samples go on to " \
-           f"{last:.3f} s)" in said, said
+    # both streams run past it (a second tester's disk-full file): said of every stream, with the earliest end
+    assert f"recorded up to {first - 0.25:.3f} s (the events are on file to here; every stream's samples go on to " \
+           f"{first:.3f} s" in said, said
     runner = CliRunner()
     out = runner.invoke(app, ["inspect", str(path)], env={"COLUMNS": "300"})
     flat = " ".join(out.output.split())
-    assert f"{last - 0.25:.3f} s of" in flat and f"go on to {last:.3f} s" in flat, out.output
+    assert f"{first - 0.25:.3f} s of" in flat and f"every stream's samples go on to {first:.3f} s" in flat, out.output
     assert "crashed or killed — INCOMPLETE" in flat, out.output
     out = runner.invoke(app, ["inspect", str(path), "--json"])
     rec = json.loads(out.output)
     rec = rec[0] if isinstance(rec, list) else rec
-    assert rec["last_sample_s"] == last and rec["recorded_up_to_s"] == last - 0.25 and rec["state"] == "running"
+    assert rec["last_sample_s"] == last and rec["recorded_up_to_s"] == first - 0.25 and rec["state"] == "running"
     assert rec["state_shown"] == "crashed or killed"
     # pause / resume: no process writes it (a third tester: `pause` said "asked … within 0.1 s" to no process, exit
     # 0, once the file was recovered); export: one line says it is not complete, and its metadata the state shown

@@ -345,11 +345,15 @@ class Inspection:
         self.manual = bool(self.run.attrs.get("session_log"))  # a manual-control session's readings
 
     @property
+    def stream_ends(self) -> list[float]:
+        """The time of each stream's last sample [s] (streams without samples left out): a stream's whole-chunk
+        writes run ahead of ``recorded up to`` (``/status/updated``, the time to which every stream is complete)."""
+        return [s.last_t for s in self.streams.values() if s.samples and s.last_t is not None]
+
+    @property
     def last_sample(self) -> float | None:
-        """The time of the last sample of any stream [s] (None: no samples): a stream's whole-chunk writes run
-        ahead of ``recorded up to`` (``/status/updated``, the time to which every stream is complete)."""
-        ends = [s.last_t for s in self.streams.values() if s.samples and s.last_t is not None]
-        return max(ends) if ends else None
+        """The time of the last sample of any stream [s] (None: no samples)."""
+        return max(self.stream_ends, default=None)
 
     @property
     def complete(self) -> bool:

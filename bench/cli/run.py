@@ -448,7 +448,7 @@ def _inspect_tables(found: Inspection) -> None:
         meta.add_row("ended", r.end_time)
     meta.add_row("recorded up to", f"{r.updated:.3f} s" + ("" if manual else
                  f" of {float(a.get('duration_planned', 0)):.1f} s planned") + recorded_note(r.updated,
-                                                                                    found.last_sample))
+                                                                                    found.stream_ends))
     console.print(meta)
     streams = Table(title="streams")
     for col in ("stream", "samples", "from [s]", "to [s]", "columns (units): last value"):

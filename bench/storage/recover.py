@@ -57,7 +57,8 @@ class RecoveryReport:
     actions: list[str] = field(default_factory=list)  # what was changed ([] if the file needed nothing)
     samples: dict[str, int] = field(default_factory=dict)  # valid records per stream after recovery
     recorded_up_to: float = 0.0  # run time to which the writer's last successful flush completed every stream [s]
-    last_sample: float | None = None  # the last sample of any stream [s] (whole-chunk writes run ahead of the above)
+    stream_ends: list[float] = field(default_factory=list)  # each stream's last sample [s] (whole-chunk writes run
+    # ahead of the above)
     state: str = ""
     incomplete_reason: str = ""
 
@@ -70,7 +71,7 @@ class RecoveryReport:
         else:
             out.append(f"state {self.state} (complete)")
         out.append(f"recorded up to {self.recorded_up_to:.3f} s" + recorded_note(self.recorded_up_to,
-                                                                                   self.last_sample))
+                                                                                   self.stream_ends))
         out += [f"{name}: {n:,} samples" for name, n in self.samples.items()]
         return out
 
@@ -132,8 +133,7 @@ def recover(path: str | Path) -> RecoveryReport:
         raise
     run = open_run(p)
     report.samples = {name: len(s) for name, s in run.streams.items()}
-    ends = [float(s.t[-1]) for s in run.streams.values() if len(s)]
-    report.last_sample = max(ends) if ends else None
+    report.stream_ends = [float(s.t[-1]) for s in run.streams.values() if len(s)]
     report.recorded_up_to, report.state, report.incomplete_reason = run.updated, run.state, run.incomplete_reason
     return report
 
