@@ -29,3 +29,11 @@ def whole(value: float) -> str:
     "ramp from -0 V", found by an outside tester): a value that rounds to zero is "0"."""
     text = f"{value:.0f}"
     return "0" if text == "-0" else text
+
+
+def mv_per_m(field: float) -> str:
+    """An electric field [V/m] in MV/m: one decimal, as the papers give fields, or three significant figures where one
+    decimal would show a field that is not zero as "0.0" (a breakdown field of 1e3 V/m read "0.0 MV/m", found by an
+    outside tester)."""
+    mv = field / 1e6
+    return f"{mv:.3g}" if mv != 0 and abs(mv) < 0.05 and math.isfinite(mv) else f"{mv:.1f}"

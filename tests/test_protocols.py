@@ -104,6 +104,17 @@ def test_bad_protocols_are_refused_with_one_line(tmp_path: Path, body: str, rig:
     assert message in text and str(f) in text and "\n" not in text
 
 
+def test_a_small_breakdown_field_is_not_shown_as_zero(tmp_path: Path) -> None:
+    """A rig whose specimen breaks down at 1e3 V/m: the dry run's refusal read "above breakdown 0.0 MV/m" (an outside
+    tester). 1e3 V/m is 0.001 MV/m."""
+    rig = tmp_path / "rig.toml"
+    rig.write_text(Path(THESIS_RIG).read_text(encoding="utf-8").replace(
+        "breakdown_field_V_per_m = 100e6", "breakdown_field_V_per_m = 1e3"), encoding="utf-8")
+    f = write(tmp_path, WAVE.format(channel="voltage", amp="1 kV", f=0.5, d=2), str(rig))
+    with pytest.raises(ProtocolLimitError, match=r"true field above breakdown 0\.001 MV/m"):
+        plan_run(f)
+
+
 def test_breakdown_margin_is_enforced_by_the_dry_run(tmp_path: Path) -> None:
     rig = (ROOT / "rigs" / "lsdea-motor-sim.toml").read_text().replace(
         "max_force_N = 15.0", "max_force_N = 15.0\nbreakdown_margin = 1.5")

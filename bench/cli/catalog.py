@@ -12,6 +12,7 @@ from typing import Annotated, Any, NoReturn, ParamSpec, TypeVar
 import typer
 
 from bench.cli.common import JsonOpt, Table, clean_errors, console, escape, print_json
+from bench.numbers import mv_per_m
 
 CatalogOpt = Annotated[str | None, typer.Option(
     "--catalog", metavar="URL", help="Catalogue database URL (default: $BENCH_CATALOG, else DIR/catalog.sqlite), "
@@ -316,18 +317,18 @@ def _field_line(h: dict[str, Any]) -> str:
     e_b = h["breakdown_field_V_per_m"]
     if h["max_true_field_V_per_m"] is None:
         return nominal + ("" if e_b is None else f"; true field not known from the records (no laser or aperture "
-                          f"record), so not compared with the breakdown field {e_b / 1e6:.1f} MV/m (a true-field "
+                          f"record), so not compared with the breakdown field {mv_per_m(e_b)} MV/m (a true-field "
                           "limit)")
     if h.get("stretch_dependent_breakdown"):  # LS-DEA: E_B = E0 λ3^(−r/2) grows with the stretch
         true = (f"highest true field (|V|λ1λ2/t0, the stretch from the recorded aperture): "
                 f"{h['max_true_field_V_per_m'] / 1e6:.2f} MV/m")
         if h["field_ratio"] is not None:
             true += (f"; at most {h['field_ratio']:.3f} × the breakdown field at the same stretch (E0 λ3^(−r/2), "
-                     f"E0 = {e_b / 1e6:.1f} MV/m)")
+                     f"E0 = {mv_per_m(e_b)} MV/m)")
         return f"{true}; {nominal}"
     true = f"highest true field (|V|λ²/L3, λ from the recorded laser): {h['max_true_field_V_per_m'] / 1e6:.2f} MV/m"
     if h["field_ratio"] is not None:
-        true += f" = {h['field_ratio']:.3f} × the model's breakdown field {e_b / 1e6:.1f} MV/m"
+        true += f" = {h['field_ratio']:.3f} × the model's breakdown field {mv_per_m(e_b)} MV/m"
     return f"{true}; {nominal}"
 
 

@@ -12,6 +12,7 @@ import typer
 from bench.app.simulate import SIMULATE_MAX_S
 from bench.cli.common import JsonOpt, Table, _version, clean_errors, console, fail, json_mode, print_json
 from bench.cli.completion import rig_files
+from bench.numbers import mv_per_m
 from bench.units import option_si
 
 if TYPE_CHECKING:
@@ -95,7 +96,7 @@ def simulate_thesis(
     creep = f"{sim.creep:+.1f} %" if driven and math.isfinite(sim.creep) else "–"
     console.print(f"max displacement {sim.max_displacement * 1e3:.3f} mm (L_d = {sim.params.L_d * 1e3:g} mm), "
                   f"max stretch {sim.max_stretch:.4f}, creep {creep}, "
-                  f"peak true field {sim.peak_field / 1e6:.1f} MV/m, peak current {sim.peak_current * 1e6:.2f} µA")
+                  f"peak true field {mv_per_m(sim.peak_field)} MV/m, peak current {sim.peak_current * 1e6:.2f} µA")
     if sim.trace.failed:
         raise fail(f"specimen failed: {sim.trace.failure}", code=1)
 
@@ -148,7 +149,7 @@ def simulate_lsdea(
               f"{fig['mean_position'] * 1e3:.2f} mm")
     console.print(f"LS-DEA #{prototype} {test.value}: {figure}")
     console.print(f"force {sim.force_range[0]:.3f} … {sim.force_range[1]:.3f} N, peak true field "
-                  f"{sim.peak_field / 1e6:.1f} MV/m, smallest breakdown margin E_B/E = "
+                  f"{mv_per_m(sim.peak_field)} MV/m, smallest breakdown margin E_B/E = "
                   + (f"{sim.margin:.2f}×, " if math.isfinite(sim.margin) else "– (no field), ")
                   + f"tension lost in {100 * sim.tension_lost:.1f} % of samples")
     if sim.trace.failed:

@@ -17,6 +17,7 @@ import typer
 from bench.cli.common import JsonOpt, Table, clean_errors, console, escape, fail, json_mode, print_json, progress
 from bench.cli.completion import protocol_files, protocol_names, rig_files
 from bench.cli.logs import log, run_log
+from bench.numbers import mv_per_m
 
 if TYPE_CHECKING:
     from bench.app.runs import Inspection, PreparedRun
@@ -97,10 +98,10 @@ def _summary(plan: Plan) -> Table:
 
     t.add_row("recording", recording_rates(prog))
     margin = pred.min_breakdown_margin
-    t.add_row("peak true field", f"{pred.peak_field / 1e6:.1f} MV/m; closest to breakdown: "
-              f"{pred.field_at_min_margin / 1e6:.1f} of {pred.breakdown_at_min_margin / 1e6:.1f} MV/m "
+    t.add_row("peak true field", f"{mv_per_m(pred.peak_field)} MV/m; closest to breakdown: "
+              f"{mv_per_m(pred.field_at_min_margin)} of {mv_per_m(pred.breakdown_at_min_margin)} MV/m "
               f"(margin {margin:.2f}, required ≥ {lim.breakdown_margin:g})" if math.isfinite(margin) else
-              f"{pred.peak_field / 1e6:.1f} MV/m")
+              f"{mv_per_m(pred.peak_field)} MV/m")
     if pred.motor_range is not None and rig.motor is not None:
         lo, hi = pred.motor_range
         t.add_row("motor travel", f"{lo * 1e3:.1f} … {hi * 1e3:.1f} mm (limits {rig.motor.travel_m[0] * 1e3:.1f} … "

@@ -31,6 +31,7 @@ from bench.models.lozenge import LozengeParams
 from bench.models.lozenge_runs import LozengeStream
 from bench.models.membrane import MembraneParams
 from bench.models.membrane_runs import MembraneStream
+from bench.numbers import mv_per_m
 
 
 def _without_when(failure: str) -> str:
@@ -45,7 +46,7 @@ def _membrane_failure(t: np.ndarray, lam: np.ndarray, field: np.ndarray, p: Memb
     ``membrane.failure_reason``, taken in time order (the model's text names the first kind in its own
     priority order, which can be a later sample)."""
     with np.errstate(invalid="ignore"):
-        kinds = [(np.abs(field) > p.breakdown_field, f"true field above breakdown {p.breakdown_field / 1e6:.1f} MV/m"),
+        kinds = [(np.abs(field) > p.breakdown_field, f"true field above breakdown {mv_per_m(p.breakdown_field)} MV/m"),
                  ((lam > p.runaway_stretch) | (t >= runaway_at),
                   f"runaway stretch: λ above {p.runaway_stretch} (pull-in)"),
                  (~np.isfinite(lam), "non-finite stretch (Gent lock-up or numerical blow-up)")]

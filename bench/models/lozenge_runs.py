@@ -22,6 +22,7 @@ from bench.models.lozenge import (
     lozenge_observe_rig,
     lozenge_rhs,
 )
+from bench.numbers import mv_per_m
 
 Signal = Callable[[np.ndarray], np.ndarray]
 Config = Literal["imposed", "blocked", "hung"]
@@ -229,8 +230,8 @@ def _failure(time_of: Callable[[int], float], position: np.ndarray, gent_margin:
     brk = np.abs(field) > breakdown
     if brk.any():
         i = int(np.argmax(brk))
-        return (f"true field {abs(field[i]) / 1e6:.1f} MV/m above breakdown "
-                f"{breakdown[i] / 1e6:.1f} MV/m at t = {time_of(i):.4f} s")
+        return (f"true field {mv_per_m(abs(field[i]))} MV/m above breakdown "
+                f"{mv_per_m(breakdown[i])} MV/m at t = {time_of(i):.4f} s")
     return ""
 
 

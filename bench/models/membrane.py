@@ -32,6 +32,7 @@ import numpy as np
 from bench.models.gent import gent_h, gent_h_e2, gent_h_G, relaxation_rate
 from bench.models.jit import njit
 from bench.models.kernel_args import kernel_array
+from bench.numbers import mv_per_m
 
 EPS_VAC = 8.85418e-12  # F/m, thesis Table 4.1
 
@@ -380,8 +381,8 @@ def failure_reason(params: MembraneParams, lam: np.ndarray, E: np.ndarray, t: np
     kinds: list[tuple[float, str]] = []
     if brk.any():
         i = int(np.argmax(brk))
-        kinds.append((times[i], f"true field {abs(E[i]) / 1e6:.1f} MV/m above breakdown "
-                                f"{params.breakdown_field / 1e6:.1f} MV/m {when(i)}"
+        kinds.append((times[i], f"true field {mv_per_m(abs(E[i]))} MV/m above breakdown "
+                                f"{mv_per_m(params.breakdown_field)} MV/m {when(i)}"
                                 + ("" if t is None else f" (λ = {lam[i]:.3f})")))
     if over.any() or (t is not None and math.isfinite(runaway_at)):
         i = int(np.argmax(over)) if over.any() else n

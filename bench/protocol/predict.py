@@ -29,7 +29,7 @@ import numpy as np
 from bench.core.clock import VirtualClock
 from bench.core.motion_chain import chain
 from bench.core.plant import Plant, PlantBlock
-from bench.numbers import against
+from bench.numbers import against, mv_per_m
 from bench.protocol.program import Program, ProtocolLimitError, Segment, change_specimen, sample_counts
 from bench.protocol.tick_arrays import tick_arrays
 from bench.rig import plant_for
@@ -276,8 +276,8 @@ def predict(program: Program, progress: Callable[[float], None] | None = None) -
         field_text, limit_text = against(pred.peak_field, limits.max_field_V_per_m, 1e-6)
         pred.problems.append(f"peak true field {field_text} MV/m exceeds limits.max_field_V_per_m {limit_text} MV/m")
     if pred.min_breakdown_margin < limits.breakdown_margin:
-        pred.problems.append(f"true field {pred.field_at_min_margin / 1e6:.1f} MV/m against a breakdown field of "
-                             f"{pred.breakdown_at_min_margin / 1e6:.1f} MV/m: margin {pred.min_breakdown_margin:.2f} "
+        pred.problems.append(f"true field {mv_per_m(pred.field_at_min_margin)} MV/m against a breakdown field of "
+                             f"{mv_per_m(pred.breakdown_at_min_margin)} MV/m: margin {pred.min_breakdown_margin:.2f} "
                              f"below limits.breakdown_margin {limits.breakdown_margin:g}")
     if program.rig.amplifier is not None and pred.peak_current > limits.max_current_A:
         # the supervisor trips on the monitor's reading: a set-point step charges (or discharges) the film at the
