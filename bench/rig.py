@@ -390,11 +390,11 @@ class DaqConfig(_Strict):
     def _distinct(self) -> DaqConfig:
         used = [a for a in (self.vmon_ain, self.imon_ain, self.force_ain, self.laser_ain) if a is not None]
         if len(set(used)) != len(used):
-            raise ValueError(f"daq: analog inputs must differ (vmon {self.vmon_ain}, imon {self.imon_ain}, "
+            raise ValueError(f"analog inputs must differ (vmon {self.vmon_ain}, imon {self.imon_ain}, "
                              f"force {self.force_ain}, laser {self.laser_ain})")
         zero = -self.drive_offset_V / self.drive_gain
         if not 0.0 <= zero <= 5.0:
-            raise ValueError(f"daq: the conditioning stage cannot produce 0 V at the amplifier input "
+            raise ValueError(f"the conditioning stage cannot produce 0 V at the amplifier input "
                              f"(DAC {zero:.3g} V needed, the DAC spans 0–5 V)")
         return self
 

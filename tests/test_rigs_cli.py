@@ -57,6 +57,22 @@ def test_malformed_rig_files_get_one_line_errors(tmp_path: Path, text: str, mess
     assert message in str(err.value) and str(f) in str(err.value) and "\n" not in str(err.value)
 
 
+@pytest.mark.parametrize("old, new, message", [
+    ("laser_ain = 2", "laser_ain = 0", "daq: analog inputs must differ (vmon 0, imon 1, force None, laser 0)"),
+    ("drive_offset_V = -10.0", "drive_offset_V = 10.0", "daq: the conditioning stage cannot produce 0 V"),
+])
+def test_a_daq_section_s_own_checks_name_the_section_once(tmp_path: Path, old: str, new: str, message: str) -> None:
+    """Two of its analog inputs on one pin read "daq: daq: analog inputs must differ" (an outside tester): the
+    section's name comes from where the error is, once."""
+    text = (ROOT / "rigs" / "thesis-daq-sim.toml").read_text(encoding="utf-8")
+    assert old in text
+    f = tmp_path / "bad.toml"
+    f.write_text(text.replace(old, new), encoding="utf-8")
+    with pytest.raises(RigFileError) as err:
+        load_rig(f)
+    assert f"{f}: {message}" in str(err.value), str(err.value)
+
+
 def test_a_rig_file_takes_quantities_with_units_as_a_protocol_file_does(tmp_path: Path) -> None:
     """Rig files took plain numbers only where protocol files take units (last note): a field whose name ends in
     its unit takes a quantity of that dimension in any unit, converted to the unit the name gives (500 ms = 0.5 s,
