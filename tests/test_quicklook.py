@@ -3,6 +3,7 @@ the file as plain h5py reads it), units on every axis, one line of error for a s
 
 from __future__ import annotations
 
+import errno
 import itertools
 import json
 import re
@@ -171,6 +172,18 @@ def test_out_a_folder_holds_the_figure_and_nan_pixels_warn_nothing(run_file: Pat
     target = folder / f"{run_file.stem}-plot.png"
     assert target.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and f"figure: {target}" in res.output
     assert not (tmp_path / "figures.png").exists()
+
+
+def test_a_plot_that_cannot_be_written_says_which_file_in_one_line(run_file: Path, tmp_path: Path) -> None:
+    """`bench plot RUN --out afile/sub/x.png`, where afile is a file, printed the OS's "[Errno 20] Not a directory:
+    'afile/sub'" (an outside tester, with an unwritable folder): the line names the figure and why."""
+    (tmp_path / "afile").write_text("")
+    target = tmp_path / "afile" / "sub" / "x.png"
+    res = CliRunner().invoke(app, ["plot", str(run_file), "--out", str(target)])
+    assert res.exit_code == 2, res.output
+    line = " ".join(res.output.split())
+    assert f"{target}: cannot write the plot: Not a directory (errno {errno.ENOTDIR})" in line, res.output
+    assert "[Errno" not in line and "Traceback" not in res.output
 
 
 def test_plots_of_different_streams_are_named_by_them_and_keep_each_other(run_file: Path, tmp_path: Path) -> None:

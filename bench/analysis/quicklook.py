@@ -247,10 +247,15 @@ def quicklook(run_path: str | Path, streams: list[str] | None = None, out: str |
         plt.show()
         plt.close(fig)
         return None
-    target.parent.mkdir(parents=True, exist_ok=True)
     try:
+        target.parent.mkdir(parents=True, exist_ok=True)
         with atomic_output(target, replace=not named) as tmp:  # whole or not at all
             fig.savefig(tmp, dpi=110)
+    except OSError as exc:
+        if exc.errno is None:  # already one line naming the file (atomic_output's own refusal)
+            raise
+        # the OS's words alone ("[Errno 20] Not a directory: 'afile/sub'", an outside tester): the figure named
+        raise OSError(f"{target}: cannot write the plot: {exc.strerror or exc} (errno {exc.errno})") from None
     finally:
         plt.close(fig)
     return target
