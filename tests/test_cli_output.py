@@ -202,6 +202,9 @@ def test_a_run_that_latched_its_rig_says_so_and_how_to_reset_it() -> None:
     (["report", "--out=", "x.h5"], "--out"),
     (["runs", "list", "--dir", ""], "--dir"),
     (["report", ""], "argument 2 of the command line"),
+    # after an option that takes no value, the empty word is an argument of its own (a reviewer: "--yes: empty")
+    (["run", "--yes", ""], "argument 3 of the command line"),
+    (["run", "--no-live", "--out", ""], "--out"),
 ])
 def test_an_empty_argument_is_refused_naming_it(args: list[str], named: str, tmp_path: Path) -> None:
     """``--out ''`` was taken as the current folder (Path('') is '.'; outside tester): an empty argument — an unset

@@ -28,10 +28,22 @@ class _NoEmptyArguments(TyperGroup):
             if arg == "--":
                 break
             if arg == "" or (arg.startswith("--") and arg.endswith("=")):
-                named = arg[:-1] if arg else (args[i - 1] if i and args[i - 1].startswith("-")
-                                              else f"argument {i + 1} of the command line")
+                before = args[i - 1] if i else ""
+                valued = before.startswith("-") and before not in self._flags(ctx, args[:i - 1])
+                named = arg[:-1] if arg else before if valued else f"argument {i + 1} of the command line"
                 raise fail(f"{named}: empty (an unset shell variable?): give it a value")
         return super().parse_args(ctx, args)
+
+    def _flags(self, ctx: Any, args: list[str]) -> set[str]:
+        """The names of the options that take no value (``--yes``) of the command ``args`` lead to: an empty word
+        after one is an argument of its own (``--yes ''`` was named "--yes: empty", a reviewer)."""
+        command: Any = self
+        for arg in args:
+            sub = command.get_command(ctx, arg) if hasattr(command, "get_command") else None
+            if sub is not None:
+                command = sub
+        return {name for param in command.params if getattr(param, "is_flag", False) or getattr(param, "count", False)
+                for name in (*param.opts, *param.secondary_opts)}
 
 
 # rich_markup_mode=None: help texts are plain text ("Simulated time [s]." keeps its unit)
