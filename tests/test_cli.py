@@ -6,6 +6,7 @@ import json
 import re
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 from typer.testing import CliRunner
@@ -114,6 +115,34 @@ def test_demo_runs_records_fits_and_reports_from_the_file(tmp_path) -> None:
     report = files[0].with_name(files[0].stem + "-report")
     assert (report / "displacement_vs_time.png").stat().st_size > 10_000
     assert json.loads((report / "figures.json").read_text())[0]["kind"] == "thesis"
+
+
+def test_a_stop_signal_while_the_run_claims_its_file_leaves_no_log(tmp_path: Path,
+                                                                    monkeypatch: pytest.MonkeyPatch) -> None:
+    """SIGTERM between the claim's creation of RUN.log and its return left that log, empty, while the line said "no
+    run file or log written" (a reviewer): the claim is whole or not at all, the signal raised after it and the claim
+    taken back."""
+    import os
+    import signal
+
+    import bench.runtime.run as runtime_run
+
+    real = runtime_run.reserve_output
+
+    def signalled(path: Path) -> Path:
+        claimed = real(path)
+        assert claimed.with_suffix(".log").exists()
+        os.kill(os.getpid(), signal.SIGTERM)  # as the claim ends, its log made
+        return claimed
+
+    monkeypatch.setattr(runtime_run, "reserve_output", signalled)
+    protocol = Path(__file__).resolve().parent.parent / "protocols" / "short" / "thesis-identification-short.toml"
+    res = CliRunner().invoke(app, ["run", str(protocol), "--virtual-time", "--no-live", "--yes",
+                                   "--out", str(tmp_path / "runs")])
+    assert res.exit_code == 2, res.output
+    assert res.output.strip().splitlines()[-1] == ("error: terminated by SIGTERM before the run started; nothing was "
+                                                   "connected, no run file or log written"), res.output
+    assert not [p for p in (tmp_path / "runs").rglob("*") if p.suffix in (".h5", ".log")]
 
 
 @pytest.mark.parametrize(("sig", "said"), [("SIGINT", "interrupted by Ctrl-C"), ("SIGTERM", "terminated by SIGTERM")])

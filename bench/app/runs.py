@@ -280,10 +280,36 @@ def check_executable(prepared: PreparedRun, *, virtual_time: bool, can_confirm: 
 
 def claim_output(prepared: PreparedRun) -> None:
     """Claim the run's file before its log is written (:func:`~bench.runtime.run.reserve_output`): the planned name,
-    or the next free one when another run took it since."""
+    or the next free one when another run took it since. Whole or not at all: a stop signal within it is held until
+    it ends, the claim then taken back and the signal's own handler called — a signal there left an empty log,
+    though the line said no log was written (a reviewer)."""
+    import signal
+    import threading
+
+    from bench.runtime.engine import STOP_SIGNALS
     from bench.runtime.run import reserve_output
 
-    prepared.path = reserve_output(prepared.path)
+    held: list[int] = []
+    saved = {int(sig): signal.signal(sig, lambda s, _f: held.append(s)) for sig in STOP_SIGNALS} \
+        if threading.current_thread() is threading.main_thread() else {}  # (handlers run in the main thread only)
+    try:
+        claimed = reserve_output(prepared.path)
+    finally:
+        for number, handler in saved.items():
+            signal.signal(number, handler)
+    log = claimed.with_suffix(".log")  # made empty just now, by this claim
+    for number in held[:1]:
+        handler = saved[number]
+        if callable(handler):
+            try:
+                handler(number, None)  # raises, as a stop before the run does
+            except BaseException:
+                log.unlink(missing_ok=True)
+                raise
+        elif handler == signal.SIG_DFL:
+            log.unlink(missing_ok=True)
+            os.kill(os.getpid(), number)  # the default action: the process ends
+    prepared.path = claimed
 
 
 def execute_run(prepared: PreparedRun, *, virtual_time: bool = False, operator: OperatorFn | None = None,
