@@ -558,6 +558,23 @@ def test_recover_refuses_a_file_a_writer_still_has_open(tmp_path: Path) -> None:
         proc.wait(timeout=10)
 
 
+def test_a_killed_file_a_reader_has_open_reads_as_killed_not_as_still_going(tmp_path: Path) -> None:
+    """A crashed run's file counted as "being written" while any other process had it open — a viewer reading it
+    (an outside tester). Only a descriptor open for writing is a writer."""
+    _, path = _kill_once(tmp_path, 0, random.Random(3))
+    reader = subprocess.Popen([sys.executable, "-c", "import sys, time; f = open(sys.argv[1], 'rb'); "
+                               "print('open', flush=True); time.sleep(60)", str(path)],
+                              stdout=subprocess.PIPE, text=True)
+    try:
+        assert reader.stdout is not None and reader.stdout.readline().strip() == "open"
+        run = open_run(path)
+        assert run.orphaned and "crashed or was killed" in run.incomplete_reason, run.incomplete_reason
+        assert "still going" not in run.incomplete_reason
+    finally:
+        reader.kill()
+        reader.wait(timeout=10)
+
+
 @pytest.mark.parametrize(("content", "expected"), [
     (b"not hdf5 at all", "not an HDF5 file"),
     (None, "not a dea-bench run file"),

@@ -105,7 +105,9 @@ def clear_consistency_flags(image: bytearray) -> bool:
 
 
 def open_elsewhere(path: Path) -> list[int]:
-    """Processes (other than this one) holding ``path`` open — a writer still at work (Linux /proc)."""
+    """Processes (other than this one) holding ``path`` open for writing — a writer still at work (Linux /proc). A
+    reader does not count: a crashed run's file read as "still going" while a viewer (HDFView, `bench watch`, h5py
+    in a notebook) had it open (found by an outside tester)."""
     target = os.path.realpath(path)
     pids = []
     proc = Path("/proc")
@@ -115,8 +117,21 @@ def open_elsewhere(path: Path) -> list[int]:
         if not d.name.isdigit() or int(d.name) == os.getpid():
             continue
         try:
-            if any(os.path.realpath(fd) == target for fd in (d / "fd").iterdir()):
+            if any(os.path.realpath(fd) == target and _for_writing(d / "fdinfo" / fd.name)
+                   for fd in (d / "fd").iterdir()):
                 pids.append(int(d.name))
         except OSError:
             continue
     return pids
+
+
+def _for_writing(fdinfo: Path) -> bool:
+    """Whether the descriptor whose /proc/PID/fdinfo/FD this is was opened for writing (its ``flags``, octal: the
+    access mode O_WRONLY or O_RDWR); True where that cannot be read (counted as a writer: the safe side)."""
+    try:
+        for line in fdinfo.read_text().splitlines():
+            if line.startswith("flags:"):
+                return int(line.split()[1], 8) & os.O_ACCMODE != os.O_RDONLY
+    except (OSError, ValueError, IndexError):
+        pass
+    return True
