@@ -14,6 +14,7 @@ import json
 import os
 import subprocess
 import sys
+from datetime import datetime
 from pathlib import Path
 
 import pytest
@@ -57,6 +58,9 @@ def test_a_run_killed_while_driving_latches_its_rig_until_an_operator_resets_it(
     assert rig_name in found, status.stdout
     fault = found[rig_name]["fault"]
     assert "killed?" in fault and "zero neither commanded nor verified" in fault and str(killed) in fault
+    # the latch is stamped when found; when the process last wrote its file is said (an outside tester)
+    last = datetime.fromtimestamp(killed.stat().st_mtime).astimezone().isoformat(timespec="seconds")
+    assert f"{killed} (its file last written {last}): zero" in fault, fault
     assert found[rig_name]["where"] == str(killed)
     # a new run on the rig is refused before anything is touched, naming the reset command
     refused = subprocess.run([sys.executable, "-m", "bench", "run", str(IDENT), "--virtual-time", "--yes",

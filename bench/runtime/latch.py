@@ -404,6 +404,17 @@ def armed() -> list[dict[str, Any]]:
     return [{**was, "alive": how} for path, was in _markers() for alive, how in [_alive(was, path)] if alive]
 
 
+def _last_sign(where: str) -> str:
+    """When the dead process's file (its run file, or a manual session's log) last changed: the latch is stamped when
+    it is found, possibly days later (an outside tester asked when the process died); '' when there is none."""
+    name = where.removeprefix("manual session ")
+    try:
+        changed = os.stat(name).st_mtime
+    except (OSError, ValueError):
+        return ""
+    return f" (its file last written {datetime.fromtimestamp(changed).astimezone().isoformat(timespec='seconds')})"
+
+
 def _dead_markers_latch() -> dict[str, dict[str, Any]]:
     """Turn each armed marker whose process is gone into a latch of its rig (a latch already there is kept: the
     history says what else was found). Returns those that could not be written (a state folder this user may only
@@ -414,7 +425,7 @@ def _dead_markers_latch() -> dict[str, dict[str, Any]]:
             continue
         rig_name, where = was["rig"], str(was.get("where") or "?")
         fault = (f"the bench process (pid {was.get('pid')}, armed {was.get('at')}) ended without its shutdown "
-                 f"(killed?) during {where}: zero neither commanded nor verified by the host")
+                 f"(killed?) during {where}{_last_sign(where)}: zero neither commanded nor verified by the host")
         drive = None
         if isinstance(was.get("drive"), str):
             drive = Drive(was["drive"], frozenset(str(i) for i in was.get("drive_ids") or []))
