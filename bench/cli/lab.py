@@ -76,6 +76,9 @@ def devices_control(
                                                "no wall time.")] = False,
     operator_name: Annotated[str | None, typer.Option(
         "--operator", help="Who runs the session; recorded in the session log's header.")] = None,
+    specimen_id: Annotated[str | None, typer.Option(
+        "--specimen-id", help="The specimen on the rig; recorded in the session's file, so that `bench specimen "
+        "show` counts the session.")] = None,
 ) -> None:
     """Manual control under the safety supervisor and the latched interlock: set or ramp the voltage, jog or
     move the motor, tare the load cell, watch every channel; every action is logged, every reading recorded to
@@ -102,7 +105,8 @@ def devices_control(
             console.print(escape(text), highlight=False)
 
     done = manual_session(rig_file, script=script, log=log, virtual_time=virtual_time, operator=operator_name,
-                          echo=echo, show_help=lambda text: console.print(text, markup=False, highlight=False))
+                          specimen_id=specimen_id, echo=echo,
+                          show_help=lambda text: console.print(text, markup=False, highlight=False))
     bad = done.not_done
     with contextlib.suppress(OSError):
         if done.safe_path:  # as `bench run` says it: how the end made the output safe, the 0 V verified

@@ -162,6 +162,7 @@ class ManualSession:
     virtual: bool = False
     echo: Callable[[str], None] = print
     operator: str | None = None  # who runs the session (in the log's header and the file's attributes)
+    specimen_id: str | None = None  # the specimen on the rig (the file's attributes: its history counts the session)
     data_file: Path | None = None  # the readings' HDF5 file (default: beside the log, see data_path)
     outcomes: list[Outcome] = field(default_factory=list)
     engine: ManualEngine | None = None  # the executor, once connected
@@ -204,7 +205,8 @@ class ManualSession:
         self._log = self.log_file.open("a", encoding="utf-8")
         self._write("session", "start", f"rig {self.rig.name} ({'simulated' if self.rig.simulated else 'real'}, "
                     f"{'virtual' if self.virtual else 'wall'} clock)"
-                    + (f", operator {self.operator}" if self.operator else ""))
+                    + (f", operator {self.operator}" if self.operator else "")
+                    + (f", specimen {self.specimen_id}" if self.specimen_id else ""))
         if self.operator:
             self._write("session", "operator", self.operator)
         try:
@@ -239,6 +241,7 @@ class ManualSession:
             "sources": json.dumps(sources), "duration_planned": 0.0,
             "hv_watchdog": f"communication watchdog {watchdog:g} s" if watchdog is not None else "NO watchdog",
             **({"operator": self.operator} if self.operator else {}),
+            **({"specimen_id": self.specimen_id} if self.specimen_id else {}),
         }
         # a file that cannot be created: the session does not start (as a run), one line naming the file
         return Recorder(self.data_file, attrs, streams, [], dict.fromkeys(streams, 0.0))  # 0: irregular
