@@ -830,9 +830,10 @@ def record_end(path: Path, url: str | None = None, hv: HvStats | None = None, wr
         "file is complete, and "
         "Ctrl-C skips the catalogue's row (`bench runs list` reconciles it)", sa_display(url), bound))
     notice.daemon = True
-    notice.start()  # a catalogue another bench holds made the CLI wait ~55 s after a run saying nothing (tester)
     try:
+        # the file's row first, unwatched: a long file read here was said as a wait for the catalogue (a reviewer)
         row = row_from_written(path, written, hv) if written is not None else row_from_file(path, hv)
+        notice.start()  # a catalogue another bench holds made the CLI wait ~55 s after a run saying nothing (tester)
         with Catalog(url) as cat:
             cat.upsert([row])
     except Exception as exc:
