@@ -18,7 +18,7 @@ from __future__ import annotations
 import math
 import time
 
-from drivers.errors import InstrumentStateError
+from drivers.errors import UnsupportedCommandError
 from drivers.interfaces import CheckResult, ClockFn, DataKey, Identity, Reading, ReadingMap, StreamDescription
 from drivers.labjack import LabJackT7
 
@@ -84,10 +84,10 @@ class BridgeOnDaq:
 
     def zero(self) -> None:
         """Refused: a bridge amplifier has no command; its zero is the rig file's ``daq.force_offset_N``."""
-        raise InstrumentStateError(self.name, "the bridge amplifier on the DAQ has no zero command: set "
+        raise UnsupportedCommandError(self.name, "the bridge amplifier on the DAQ has no zero command: set "
                                    "daq.force_offset_N in the rig file (or the amplifier's own zero)")
 
     def tare(self) -> None:
         """Refused, as :meth:`zero`."""
-        raise InstrumentStateError(self.name, "the bridge amplifier on the DAQ has no tare command: set "
+        raise UnsupportedCommandError(self.name, "the bridge amplifier on the DAQ has no tare command: set "
                                    "daq.force_offset_N in the rig file (or the amplifier's own zero)")

@@ -43,6 +43,10 @@ class StreamEndedError(InstrumentStateError):
         self.block = block
 
 
+class UnsupportedCommandError(InstrumentError):
+    """The instrument has no such command (a bridge amplifier read on a DAQ has no tare); nothing was sent."""
+
+
 class LimitError(InstrumentError):
     """A requested setting lies outside the configured software limits; nothing was sent."""
 

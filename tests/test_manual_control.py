@@ -910,6 +910,8 @@ def test_a_daq_rigs_load_cell_is_read_and_supervised_in_manual_control(tmp_path:
         assert out.status == "ok" and force == pytest.approx(plant, rel=0.1), (out, plant)
         tare = s.execute("tare")
         assert tare.status == "refused" and "bridge amplifier" in tare.text, tare
+        zero = s.execute("zero-cell")  # refused in the driver's words, nothing sent
+        assert zero.status == "refused" and "no zero command" in zero.text and "daq.force_offset_N" in zero.text, zero
         move = s.execute("move 95 50")
         assert move.status == "trip" and "force" in move.text and "2 N" in move.text, move
         assert s.execute("voltage 1 kV").status == "refused"  # latched

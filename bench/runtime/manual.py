@@ -127,8 +127,7 @@ from bench.runtime.rig_lock import claimed
 from bench.runtime.safety import SafetyTrip, Supervisor
 from bench.storage.recorder import Recorder, now_iso
 from bench.units import to_si
-from drivers.bridge_daq import BridgeOnDaq
-from drivers.errors import InstrumentError, LimitError, OperationCancelledError
+from drivers.errors import InstrumentError, LimitError, OperationCancelledError, UnsupportedCommandError
 
 RAMP_HZ = 20.0
 DEFAULT_SPEED = 0.02  # m/s
@@ -804,12 +803,11 @@ class ManualSession:
 
     def _cell_command(self, what: str) -> None:
         """The load cell's ``tare`` or ``zero``; a cell that has no such command (a bridge amplifier on the DAQ) is
-        a refusal: nothing was sent."""
-        cell = self._cell()
-        if isinstance(cell, BridgeOnDaq):
-            raise Refused(f"the load cell's bridge amplifier on the DAQ has no {what} command: its zero is the rig "
-                          "file's daq.force_offset_N (or the amplifier's own zero)")
-        getattr(cell, what)()
+        a refusal in its driver's words: nothing was sent."""
+        try:
+            getattr(self._cell(), what)()
+        except UnsupportedCommandError as exc:
+            raise Refused(str(exc)) from None
 
     def _cell(self) -> Any:
         if self._inst is None or self._inst.load_cell is None:
