@@ -118,6 +118,7 @@ class RunContext:
         self._late_streams = {name for name, cols in recorder.streams.items() if any(c.name == "late" for c in cols)}
         self._amp_commanded = any(c.name == "commanded" for c in recorder.streams.get("amplifier", []))
         self.laser_t_last = -math.inf  # run time of the last laser sample recorded (software-timed laser)
+        self.laser_last = math.nan  # its displacement in specimen coordinates [m] (NaN: that sample was not valid)
         # the laser storage's upload in a step (bench.runtime.polls): the run time by which a fetch must be over (the
         # step's next action due: a set-point, another poll, its end; inf: no bound) and the program time of the
         # next fetch on FETCH_PERIOD_S's grid (between them, only a backlog a bounded fetch left is fetched; -inf as a

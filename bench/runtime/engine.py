@@ -604,6 +604,11 @@ class Engine:
         """Whether a DAQ stream plays (the next step already in it): the output is the device's, not a set-point's."""
         return self._stream is not None and self._hw.daq.streaming
 
+    def _laser_free(self) -> bool:
+        """Whether the laser's own line is free for single reads outside a step: not in a run, whose upload of the
+        laser's stored data is what goes on there (in manual control it is: :class:`.manual_mode.ManualEngine`)."""
+        return False
+
     def _drain_polls(self) -> dict[str, tuple[Poll, float]]:
         """The polls that go on while stored laser data upload outside a step, with their periods (run time): every
         reading the run supervises (monitors, encoder, load cell, other sensors) at its step rate; on a DAQ rig
@@ -611,7 +616,7 @@ class Engine:
         command-response every ``PAUSE_POLL_S``, as a pause reads them (the DAC holds the value it played last,
         which the output verifier is told of)."""
         playing = self._streaming()
-        state = StepState(None, streamed=playing, laser_serial=False, storing=False)
+        state = StepState(None, streamed=playing, laser_serial=self._laser_free(), storing=False)
         out: dict[str, tuple[Poll, float]] = {}
         for poll in rig_polls(self.ctx):
             period = poll.period(self.ctx, state)

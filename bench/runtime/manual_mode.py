@@ -204,6 +204,12 @@ class ManualEngine(Engine):
             self.idle()
         self._check_stop()
 
+    def _laser_free(self) -> bool:
+        """A session never runs the laser's data storage: its line is free for single reads, which the supervisor's
+        field check needs while the output is held — without them a held 8 kV crept the membrane to breakdown with
+        the field computed at the stretch of the session's one laser reading (an outside tester)."""
+        return self.inst.laser is not None
+
     def _energised(self) -> bool:
         """The output is on (above ``OUTPUT_ON_V`` commanded or asked for) or the motor has a go-to under way."""
         return (max(abs(self.ctx.v_cmd), abs(self.ctx.v_req)) > OUTPUT_ON_V

@@ -22,7 +22,7 @@ import numpy as np
 
 from bench.protocol.program import FETCH_PERIOD_S, PASSIVE_LASER_HZ, Segment
 from bench.runtime.context import RunContext, present
-from bench.runtime.interlock import mismatch_trip, motion_trip
+from bench.runtime.interlock import OUTPUT_ON_V, mismatch_trip, motion_trip
 from bench.runtime.safety import SafetyTrip
 from drivers.errors import InstrumentError, InstrumentStateError
 from drivers.interfaces import Readable, ReadingMap, StreamDescription
@@ -171,16 +171,25 @@ def _laser_period(e: RunContext, s: StepState) -> float | None:
 def _laser_row(e: RunContext, r: ReadingMap) -> Row | None:
     raw = r["displacement"]
     if raw.timestamp - e.t0 <= e.laser_t_last:  # a time the stream already has (one time base, no duplicates)
+        if raw.timestamp - e.t0 == e.laser_t_last and math.isfinite(e.laser_last):  # that very sample, read again
+            e.snapshot.values["displacement"] = e.laser_last  # (manual `read` just after a poll said "n/a": tester)
         return None
     d = float(e.to_specimen(np.array([raw.value]))[0])
     return {"displacement": d, "valid": float(raw.ok and math.isfinite(d))}
 
 
 def _laser_check(e: RunContext, r: ReadingMap, row: Row) -> None:
+    """The stretch for the supervisor's field check; with the output on, a reading that is no measurement trips:
+    the true field is then not known (a held 8 kV crept the membrane past the laser's range, and on to runaway, with
+    the field computed at the last stretch in range: an outside tester)."""
     e.laser_t_last = r["displacement"].timestamp - e.t0
+    e.laser_last = row["displacement"] if row["valid"] else math.nan
     if row["valid"]:
         e.sup.update_displacement(row["displacement"])
         e.snapshot.values["displacement"] = row["displacement"]
+    elif abs(e.v_cmd) > OUTPUT_ON_V:
+        raise SafetyTrip(f"laser reads no displacement ({r['displacement'].status}) at {e.v_cmd:.0f} V: the stretch, "
+                         "and with it the true field, is not known")
 
 
 def _sensor_period(e: RunContext, s: StepState) -> float | None:
