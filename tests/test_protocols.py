@@ -104,6 +104,28 @@ def test_bad_protocols_are_refused_with_one_line(tmp_path: Path, body: str, rig:
     assert message in text and str(f) in text and "\n" not in text
 
 
+@pytest.mark.parametrize(("corner", "refused"), [(0.01, True), (30.0, False)])
+def test_a_drive_filter_too_slow_for_the_waveform_is_refused_by_the_dry_run(tmp_path: Path, corner: float,
+                                                                          refused: bool) -> None:
+    """A DAQ rig whose reconstruction filter (daq.drive_filter_Hz) is far slower than the waveform: the engine's
+    pre-compensation, held to the voltage limit, cannot make the amplifier follow it. Such a run validated and
+    "completed" delivering about 2 kV of a 7-kV drive (an outside tester); the dry run now refuses it. The shipped
+    rig's 30 Hz follows a 1/9-Hz raised cosine (its lag is pre-compensated)."""
+    rig = tmp_path / "rig.toml"
+    text = (ROOT / "rigs" / "thesis-daq-sim.toml").read_text(encoding="utf-8")
+    assert "drive_filter_Hz = 30.0" in text
+    rig.write_text(text.replace("drive_filter_Hz = 30.0", f"drive_filter_Hz = {corner}"), encoding="utf-8")
+    f = write(tmp_path, WAVE.format(channel="voltage", amp="7 kV", f=1 / 9, d=9), str(rig))
+    if not refused:
+        assert plan_run(f).prediction.ok
+        return
+    with pytest.raises(ProtocolLimitError) as err:
+        plan_run(f)
+    m = re.search(r"the amplifier would reach (\d+) V where the waveform asks 7000 V: daq.drive_filter_Hz 0.01 Hz is "
+                  r"too slow for it", str(err.value))
+    assert m is not None and int(m.group(1)) < 0.98 * 7000, str(err.value)
+
+
 def test_a_small_breakdown_field_is_not_shown_as_zero(tmp_path: Path) -> None:
     """A rig whose specimen breaks down at 1e3 V/m: the dry run's refusal read "above breakdown 0.0 MV/m" (an outside
     tester). 1e3 V/m is 0.001 MV/m."""

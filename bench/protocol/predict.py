@@ -27,7 +27,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from bench.core.clock import VirtualClock
+from bench.core.monitor_chain import SAFE_TOUCH_V
 from bench.core.motion_chain import chain
+from bench.core.one_pole import followed
 from bench.core.plant import Plant, PlantBlock
 from bench.numbers import against, mv_per_m
 from bench.protocol.program import Program, ProtocolLimitError, Segment, change_specimen, sample_counts
@@ -50,6 +52,7 @@ MONITOR_INTEGRATION_S = 0.02
 COST_PER_RUN_S = 1 / 150
 COST_PER_TICK = 2e-5
 COST_PER_SEGMENT = 1e-3
+FILTER_SHORTFALL = 0.02  # a DAQ rig's filtered drive reaching less than this share below a step's peak is refused
 SCAN_CHUNK = 1 << 20  # scans of a DAQ-played segment evaluated at once (8 MB per array)
 
 
@@ -165,7 +168,19 @@ def _apply_ticks(program: Program, seg: Segment, plant: Plant, clock: VirtualClo
     return float(lo), float(hi)
 
 
-def _play_scans(seg: Segment, plant: Plant, scan_rate: float, gain: float) -> float:
+@dataclass
+class _Filter:
+    """The DAQ rig's reconstruction filter as the engine drives it (:func:`~bench.core.one_pole.followed`): its
+    ``alpha`` per scan, the pre-compensation's bound [V], the output it had at the last scan [V], and the most the
+    output reached in the segment under way [V]."""
+
+    alpha: float
+    bound: float
+    y: float = 0.0
+    peak: float = 0.0
+
+
+def _play_scans(seg: Segment, plant: Plant, scan_rate: float, gain: float, drive: _Filter | None = None) -> float:
     """Schedule a DAQ-played segment's scans on the plant (its waveform at every scan of the DAQ's clock, ending
     on its target), ``SCAN_CHUNK`` scans at a time, each scan that repeats the one before it (bit for bit) left
     out: the plant holds an input until the next one (:func:`~bench.core.amplifier_dynamics.step_targets`), so
@@ -178,6 +193,9 @@ def _play_scans(seg: Segment, plant: Plant, scan_rate: float, gain: float) -> fl
         ts = seg.t_start + np.arange(a, min(a + SCAN_CHUNK, n)) / scan_rate
         vs = np.asarray(seg.voltage(ts), dtype=float)
         peak = max(peak, float(np.max(np.abs(vs))))
+        if drive is not None:
+            out = followed(vs, drive.alpha, drive.y, drive.bound)
+            drive.y, drive.peak = float(out[-1]), max(drive.peak, float(np.max(np.abs(out))))
         inputs = vs / gain
         bits = inputs.view(np.int64)
         new = np.empty(bits.size, dtype=bool)
@@ -249,6 +267,10 @@ def predict(program: Program, progress: Callable[[float], None] | None = None) -
         return float(np.max(np.abs(c[n:] - c[:-n]))) / n
 
     plant.listeners.append(watch)
+    fc = rig.daq.drive_filter_Hz if scanned and rig.daq is not None else None
+    drive = None if fc is None or scan_rate is None else \
+        _Filter(1.0 - math.exp(-2.0 * math.pi * fc / scan_rate),
+                min(rig.limits.max_voltage_V, rig.amplifier.max_voltage_V if rig.amplifier else math.inf))
     label = ""  # the step the plant is advanced through (the peaks name it)
     for seg in program.segments:
         label = seg.label
@@ -257,7 +279,16 @@ def predict(program: Program, progress: Callable[[float], None] | None = None) -
         played = scan_rate is not None and seg.voltage is not None and seg.duration > 0
         if played:  # hardware-timed: the waveform at every scan of the DAQ's clock, ending on its target
             assert scan_rate is not None
-            pred.peak_voltage = max(pred.peak_voltage, _play_scans(seg, plant, scan_rate, gain))
+            if drive is not None:
+                drive.peak = 0.0
+            wanted = _play_scans(seg, plant, scan_rate, gain, drive)
+            pred.peak_voltage = max(pred.peak_voltage, wanted)
+            if drive is not None and wanted > SAFE_TOUCH_V and drive.peak < (1 - FILTER_SHORTFALL) * wanted:
+                pred.problems.append(  # a rig whose filter could not follow ran "completed" at a third of the
+                    # voltage (an outside tester)
+                    f"{seg.label}: the amplifier would reach {drive.peak:.0f} V where the waveform asks {wanted:.0f} "
+                    f"V: daq.drive_filter_Hz {fc:g} Hz is too slow for it (the engine's pre-compensation is held "
+                    f"to ±{drive.bound:.0f} V)")
         if not (played and not program.has_motor_axis):
             lo, hi = _apply_ticks(program, seg, plant, clock, gain, None if played else pred)
             motor_lo, motor_hi = min(motor_lo, lo), max(motor_hi, hi)
