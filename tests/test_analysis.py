@@ -76,6 +76,21 @@ def test_cycle_figures_of_a_lagging_creeping_response() -> None:
     assert figs.residuals[0] == pytest.approx(1.1 * gain * (1 - np.cos(2 * np.pi * f * lag)) / 2, rel=1e-3)
 
 
+def test_a_step_s_cycles_start_at_the_step_not_at_its_first_sample() -> None:
+    """A DAQ run's first step records its first scan one scan after the step's start: cycles anchored at that sample
+    ended past the step, and a 0.2-Hz, 10-s step reported one whole cycle, creep "–" (an outside tester). Anchored
+    at the step's start, its two whole cycles count, the second's peak and the creep as drawn."""
+    f, dt, gain = 0.2, 1e-4, 6e-3
+    t = np.arange(1, 100_001) * dt  # 1e-4 … 10.0 s: the step's scans after its start at 0
+    v = 7e3 * (1 - np.cos(2 * np.pi * f * t)) / 2
+    u = (1 + 0.1 * np.floor(t * f - 1e-9)) * gain * (1 - np.cos(2 * np.pi * f * t)) / 2
+    figs = cycle_figures(t, u, v, f, span=(0.0, 10.0))
+    assert figs.whole == 2 and figs.peaks[1] == pytest.approx(1.1 * gain, rel=1e-4)
+    assert figs.creep == pytest.approx(0.1, rel=1e-3)
+    assert cycle_figures(t[:-1], u[:-1], v[:-1], f, span=(0.0, 10.0)).whole == 2  # the last scan one short of it
+    assert cycle_figures(t[:-2], u[:-2], v[:-2], f, span=(0.0, 10.0)).whole == 1  # a record that stops early
+
+
 # --- the fitter on toy problems with known answers ----------------------------------------------------------
 
 

@@ -239,7 +239,7 @@ def _thesis(res: StepResult, streams: StreamChunks, t_v: np.ndarray, v: np.ndarr
     t0, dur, f = res.t_start, res.duration, res.frequency
     laser = _window(streams, "laser", t0, t0 + dur, ["displacement"])
     volts = np.interp(laser["t"], t_v, v)
-    figs = cycle_figures(laser["t"] - t0, laser["displacement"], volts, f)
+    figs = cycle_figures(laser["t"] - t0, laser["displacement"], volts, f, span=(0.0, dur))
     res.kind = "thesis"
     res.figures = {"peak_first": figs.peaks[0], "peak_last": figs.peaks[max(figs.whole, 1) - 1],
                    "creep": figs.creep if figs.whole >= 2 else np.nan, "lag_first": figs.lags[0],

@@ -73,8 +73,13 @@ class CycleFigures:
         return self.peaks[self.whole - 1] / self.peaks[0] - 1.0
 
 
-def cycle_figures(t: np.ndarray, displacement: np.ndarray, voltage: np.ndarray, frequency: float) -> CycleFigures:
-    """Split a record into periods 1/frequency from t[0] and take each period's peak, lag and end value.
+def cycle_figures(t: np.ndarray, displacement: np.ndarray, voltage: np.ndarray, frequency: float,
+                  span: tuple[float, float] | None = None) -> CycleFigures:
+    """Split a record into periods 1/frequency from the start of ``span`` (the step's start and end on ``t``'s
+    clock; None: the record's first and last sample) and take each period's peak, lag and end value. A period is
+    whole when it ends within the span and the record reaches its end (to within one sample: a record's last sample
+    comes up to one scan before the step's end). Anchored at the first sample, a step starting at the run's start
+    (its first scan one scan after it) lost its last whole cycle (an outside tester: creep "–" for two cycles).
 
     A last, partial period contributes its peak only if it covers ≥ 60 % of a period (past the drive's peak).
     Both records are smoothed first (:func:`bench.analysis.cycles.smooth`, 1/50 period).
@@ -85,10 +90,12 @@ def cycle_figures(t: np.ndarray, displacement: np.ndarray, voltage: np.ndarray, 
     finite = np.isfinite(u)  # a run stopped early (failure) is analysed up to its last valid sample
     t, u, v = t[finite], u[finite], v[finite]
     period = 1.0 / frequency
+    origin, stop = (float(t[0]), float(t[-1])) if span is None else span
+    reach = float(t[-1]) + (float(np.median(np.diff(t))) if t.size > 1 else 0.0)  # the record's end, one sample on
     # peaks, their times and the residuals from the smoothed records: on a noisy record the largest sample is
     # noise riding on the crest (value biased up, time scattered); a cubic fit over 1/50 period keeps the crest.
     # Each period is smoothed on its own (a step between periods — a new specimen state — is not blurred).
-    cycle = np.floor((t - t[0]) / period + 1e-9)
+    cycle = np.floor((t - origin) / period + 1e-9)
     u, v = u.copy(), v.copy()
     for k in np.unique(cycle):
         m = cycle == k
@@ -96,13 +103,13 @@ def cycle_figures(t: np.ndarray, displacement: np.ndarray, voltage: np.ndarray, 
     peaks, times, residuals, lags = [], [], [], []
     whole_cycles = 0
     k = 0
-    while t[0] + k * period < t[-1]:
-        start, end = t[0] + k * period, t[0] + (k + 1) * period
+    while origin + k * period < t[-1]:
+        start, end = origin + k * period, origin + (k + 1) * period
         m = (t >= start) & (t < end)
         if m.sum() < 3:
             break
         iv = int(np.argmax(v[m]))
-        whole = end <= t[-1] + 1e-9
+        whole = end <= min(stop, reach) + 1e-9
         whole_cycles += whole
         if whole or t[m][-1] - start >= 0.6 * period:
             iu = int(np.argmax(u[m]))
