@@ -410,10 +410,13 @@ class DaqConfig(_Strict):
         return self.drive_offset_V, self.drive_offset_V + 5.0 * self.drive_gain
 
 
+MAX_RIG_NAME = 100  # characters of a rig's name
+
+
 class RigConfig(_Strict):
     """A whole rig file."""
 
-    name: str
+    name: str = Field(max_length=MAX_RIG_NAME, description="names the rig in messages, latches and file names")
     description: str = ""
     simulated: bool = True
     specimen: SpecimenConfig = SpecimenConfig()
@@ -438,6 +441,17 @@ class RigConfig(_Strict):
             return f"T7 {self.daq.host}:{self.daq.port} DAC{self.daq.dac}" if self.daq else None
         bus = self.buses.get(amp.bus)
         return f"{bus.port if bus else amp.bus} unit {amp.ao_unit} channel {amp.ao_channel}"
+
+    @field_validator("name")
+    @classmethod
+    def _printable_name(cls, v: str) -> str:
+        """One line of printable text: a NUL in it ended a manual session with "embedded null byte", naming nothing
+        (an outside tester)."""
+        if not v.strip():
+            raise ValueError("empty: give the rig a name")
+        if not v.isprintable():
+            raise ValueError("one line of printable text (no newline, tab, NUL or other control character)")
+        return v
 
     @model_validator(mode="after")
     def _consistent(self) -> RigConfig:

@@ -45,3 +45,16 @@ def test_a_bad_specimen_id_is_refused_before_the_rig_is_touched(tmp_path: Path, 
     assert res.exit_code == 2, res.output
     assert res.output.startswith("error: --specimen-id: ") and res.output.count("\n") == 1, res.output
     assert not log.exists()
+
+
+def test_a_rig_name_with_path_separators_stays_in_the_session_s_folder(tmp_path: Path) -> None:
+    """A rig named ``x/../../../../escape`` wrote its manual session's log and readings outside the lab (an outside
+    tester): the default name keeps only letters, digits, ``_``, ``.`` and ``-`` of it, as a run's file name does."""
+    from bench.rig import load_rig
+    from bench.runtime.manual import session_log_name
+
+    text = THESIS_RIG.read_text(encoding="utf-8")
+    rig_file = tmp_path / "odd.toml"
+    rig_file.write_text(text.replace('name = "thesis-sim"', 'name = "x/../../../../escape"'), encoding="utf-8")
+    name = session_log_name(load_rig(rig_file))
+    assert name.startswith("manual-x-..-..-..-..-escape-") and "/" not in name and name.endswith(".log"), name

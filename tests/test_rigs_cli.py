@@ -47,6 +47,10 @@ def test_every_example_rig_file_validates(path: Path) -> None:
     ((ROOT / "rigs" / "lsdea-motor-daq-sim.toml").read_text(encoding="utf-8")
      + "\n[buses.scale]\nport = 'sim'\n[load_cell]\nbus = 'scale'\n", "both name the rig's load cell"),
     ("name = \n", "not valid TOML"),
+    # a NUL in the name ended a manual session with "embedded null byte" (an outside tester)
+    ('name = "a\\u0000b"\n', "name: one line of printable text"),
+    ("name = ' '\n", "name: empty: give the rig a name"),
+    (f"name = '{'x' * 101}'\n", "name: String should have at most 100 characters"),
     ("description = 'no name'\n", "name: Field required"),
 ])
 def test_malformed_rig_files_get_one_line_errors(tmp_path: Path, text: str, message: str) -> None:

@@ -98,6 +98,7 @@ import contextlib
 import inspect
 import json
 import math
+import re
 import shlex
 import threading
 from collections.abc import Callable, Iterable, Iterator
@@ -923,8 +924,11 @@ def prompt_lines(prompt: str, history: Path | None = None) -> Iterator[str]:
 
 
 def session_log_name(rig: RigConfig) -> str:
-    """Default file name of a session log: ``manual-<rig>-<local time>.log``."""
-    return f"manual-{rig.name}-{datetime.now().strftime('%Y%m%d-%H%M%S')}.log"
+    """Default file name of a session log: ``manual-<rig>-<local time>.log``, the rig's name with every character
+    but letters, digits, ``_``, ``.`` and ``-`` replaced (a name with ``/../`` wrote the session outside the lab:
+    an outside tester)."""
+    safe = re.sub(r"[^A-Za-z0-9_.-]+", "-", rig.name)
+    return f"manual-{safe}-{datetime.now().strftime('%Y%m%d-%H%M%S')}.log"
 
 
 def data_path(log_file: Path) -> Path:
