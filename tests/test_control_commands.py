@@ -12,6 +12,7 @@ import re
 import signal
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 from typer.testing import CliRunner
@@ -211,3 +212,21 @@ def test_a_resume_under_another_specimen_id_is_refused_with_nothing_touched(tmp_
     assert run.read_bytes() == before
     res = runner.invoke(app, ["run", "--resume", str(run), "--specimen-id", "M2", "--virtual-time", "--dry-run"])
     assert "--specimen-id" not in said(res), res.output  # (a completed run: nothing to resume, said as before)
+
+
+def test_a_resume_on_a_rig_that_refuses_the_protocol_names_the_run_file(tmp_path: Path, short_run: Path) -> None:
+    """`bench run --resume F --rig other.toml`, where the other rig refuses the campaign's protocol, named a
+    temporary copy of the stored protocol (/tmp/tmp…/p.toml) that no longer exists (an outside tester): the line
+    names the protocol stored in the run file."""
+    import shutil
+
+    run = tmp_path / "r.h5"
+    shutil.copy2(short_run, run)
+    low = tmp_path / "low.toml"
+    text = (ROOT / "rigs" / "thesis-daq-sim.toml").read_text(encoding="utf-8")
+    low.write_text(text.replace("max_voltage_V = 8000.0", "max_voltage_V = 1000.0"), encoding="utf-8")
+    res = runner.invoke(app, ["run", "--resume", str(run), "--rig", str(low), "--virtual-time", "--dry-run"])
+    assert res.exit_code == 2, res.output
+    line = said(res)
+    assert f"the protocol stored in {run}" in line and "exceeds the rig limit 1000 V" in line, res.output
+    assert tempfile.gettempdir() + "/tmp" not in line.replace(str(tmp_path), ""), res.output

@@ -604,7 +604,13 @@ def plan_resume(run_file: str | Path, rig_path: str | Path | None = None, simula
         rig_file = Path(rig_path) if rig_path is not None else Path(tmp) / "rig.toml"
         if rig_path is None:
             rig_file.write_text(str(run.attrs["rig_toml"]), encoding="utf-8")
-        plan = plan_run(proto, rig_file, simulate, progress)
+        try:
+            plan = plan_run(proto, rig_file, simulate, progress)
+        except ValueError as exc:  # named by the run file, not by this folder's copies (deleted): a refusal of a
+            text = str(exc).replace(str(proto), f"the protocol stored in {p}")  # --rig named a temporary file
+            if rig_path is None:  # (an outside tester)
+                text = text.replace(str(rig_file), f"the rig stored in {p}")
+            raise _same_kind(exc, text) from None
     if plan.protocol.sha256 != run.attrs["protocol_sha256"]:
         raise ValueError(f"run file {p}: its stored protocol no longer reads the same (hash differs)")
     if stored:  # the protocol file the campaign was planned from, not the temporary copy planned here (deleted)
@@ -619,6 +625,14 @@ def plan_resume(run_file: str | Path, rig_path: str | Path | None = None, simula
     rid = str(run.attrs.get("run_id", "")) or p.stem
     resume = Resume(p, rid, str(run.attrs.get("campaign_id", "")) or rid, todo, len(indices))
     return plan, resume, notes
+
+
+def _same_kind(exc: ValueError, text: str) -> ValueError:
+    """``exc``'s kind of error (a protocol file's or its limits') with ``text``, else a ValueError."""
+    try:
+        return type(exc)(text)
+    except TypeError:
+        return ValueError(text)
 
 
 def _not_a_campaign(p: Path, run: RunFile) -> str | None:
