@@ -246,6 +246,11 @@ def test_a_drive_error_during_a_hold_stops_the_run_with_the_drive_text(tmp_path:
         # beside a CPU hog and the suite this wall-clock 10-kHz run once found its host 0.7 s late (against the 0.5 s
         # of stream-out kept queued) before the injection: the interlock's verdict on the host, not on the drive
         pytest.skip(f"the host stalled before the drive error was injected: {result.reason}")
+    stalls = [t for t, text in events(run, "interlock") if "host stall" in text]
+    if result.state == "error" and result.reason.startswith("instrument error: daq: no valid reply") and stalls:
+        # the same starvation seen from the other side (a session's suite beside four heavy processes on two cores):
+        # the host went 2.1 s without the T7, whose reply timed out first — the verdict is on the host again
+        pytest.skip(f"the host stalled (the T7 unanswered): {result.reason}")
     assert result.state == "error" and "motor" in result.reason and "0x0021" in result.reason
     assert "x3 hall signals missing" in run.reason.lower()  # the manual's text for 0x0021, kept in the file
     # the bound runs from the engine's detection (the error event): the 20-Hz poll that finds the error is late by
