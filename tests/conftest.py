@@ -21,6 +21,29 @@ RIGS = ROOT / "rigs"
 # of this test process, never the user's ~/.local/state/dea-bench (a latch there would refuse other sessions' runs)
 os.environ["BENCH_STATE_DIR"] = tempfile.mkdtemp(prefix="dea-bench-test-state-")
 
+
+def pytest_configure(config: pytest.Config) -> None:
+    """The whole suite on pytest-xdist's workers (``-n N``, no test files named): compile its kernels into the kernel
+    cache once, in one process per part of tests/warm_kernels.py side by side, before the workers start — with an
+    empty cache (a clean clone) each worker compiled what it met, the two often the same kernels at once.
+    ``BENCH_WARM_KERNELS=0`` skips it. A part that fails only says so: the tests compile what they need, and fail
+    where it is wrong."""
+    import subprocess
+    import sys
+
+    if os.environ.get("PYTEST_XDIST_WORKER") or not getattr(config.option, "numprocesses", None) \
+            or config.args_source is pytest.Config.ArgsSource.ARGS or os.environ.get("BENCH_WARM_KERNELS") == "0":
+        return
+    from tests.warm_kernels import PARTS
+
+    parts = [subprocess.Popen([sys.executable, "-m", "tests.warm_kernels", part], cwd=ROOT, text=True,
+                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT) for part in PARTS]
+    for proc in parts:
+        out = proc.communicate()[0].strip().splitlines()
+        print(out[-1] if out and proc.returncode == 0 else f"warm kernels: exit {proc.returncode}: "
+              + (out[-1] if out else "no output"), file=sys.stderr)
+
+
 if os.environ.get("PYTEST_XDIST_WORKER"):  # pytest-xdist's workers (execnet) set an 80 x 24 terminal that is not
     os.environ.pop("COLUMNS", None)        # there: the CLI tests check output as a redirected run prints it
     os.environ.pop("LINES", None)
