@@ -104,6 +104,16 @@ def test_the_runs_wrote_their_rows_and_a_lost_end_is_reconciled(lab: dict[str, P
     assert listed[lab["killed"].name]["steps_completed"] == len(done) < 6
     assert listed[lab["killed"].name]["steps_total"] == 6  # chamber, drive, recovery × 2 sweep points
     assert listed[lab["resumed"].name]["previous_file"] == str(lab["killed"].resolve())
+    # a finished resume ran all of its own steps, those from where the campaign resumed: it read "4/6" and, in
+    # inspect, "recorded up to 40.5 s of 60.0 s planned", as if it had not finished (an outside tester)
+    resumed = open_run(lab["resumed"], streams=False)
+    first = int(resumed.attrs["resumed_at_step"])
+    row = listed[lab["resumed"].name]
+    assert 0 < first and row["steps_total"] == 6 - first == row["steps_completed"], row
+    shown = _bench_here("inspect", str(lab["resumed"]), env={**_env(lab["state"]), "COLUMNS": "300"})
+    left = float(resumed.attrs["duration_planned"]) - float(resumed.program["t_start"][first])
+    assert f"of {left:.1f} s planned (resumed at step {first + 1} of 6" in " ".join(shown.stdout.split()), \
+        shown.stdout
     assert len(listed[lab["fitted"].name]["fits"]) == 1
     assert len(listed[lab["killed"].name]["fits"]) == len(listed[lab["resumed"].name]["fits"]) == 1  # the campaign's
     # the filters: the same command in this process (the listing above went through `python -m bench`)

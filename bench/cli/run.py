@@ -411,6 +411,20 @@ def _inspect(run_file: Path, json_out: bool) -> tuple[dict[str, object] | None, 
     return None, found.complete
 
 
+def _planned(r: RunFile) -> str:
+    """" of X s planned": the file's own part of its protocol — a resumed file runs the steps from where its campaign
+    resumed, on a clock from 0 (a completed resumed file read "recorded up to 40.511 s of 60.0 s planned", as if
+    incomplete: an outside tester)."""
+    from bench.storage.chain import resumed_text
+
+    total = float(r.attrs.get("duration_planned", 0))
+    first = int(r.attrs.get("resumed_at_step") or 0)
+    if not 0 < first < len(r.program):
+        return f" of {total:.1f} s planned"
+    return (f" of {total - float(r.program['t_start'][first]):.1f} s planned (resumed at "
+            f"{resumed_text(first, len(r.program))}; the campaign's {total:.1f} s)")
+
+
 def _inspect_tables(found: Inspection) -> None:
     """``bench inspect`` on a terminal: the run file's metadata, its streams, its last events and its fits."""
     from bench.storage.runfile import recorded_note
@@ -447,9 +461,8 @@ def _inspect_tables(found: Inspection) -> None:
         meta.add_row("reason", r.reason)
     if r.end_time:
         meta.add_row("ended", r.end_time)
-    meta.add_row("recorded up to", f"{r.updated:.3f} s" + ("" if manual else
-                 f" of {float(a.get('duration_planned', 0)):.1f} s planned") + recorded_note(r.updated,
-                                                                                    found.stream_ends))
+    meta.add_row("recorded up to", f"{r.updated:.3f} s" + ("" if manual else _planned(r)) + recorded_note(
+        r.updated, found.stream_ends))
     console.print(meta)
     streams = Table(title="streams")
     for col in ("stream", "samples", "from [s]", "to [s]", "columns (units): last value"):

@@ -336,6 +336,8 @@ def _end_row(path: Path, attrs: dict[str, Any], sig: str, hv: HvStats | None, in
     """A row from a run file's root attributes, its end (``end``: the columns of its state and steps) and its
     statistics; ``in_file``: the run file may hold fits (False: a file the recorder wrote holds none)."""
     row = row_from_attrs(path, attrs)
+    first = int(attrs.get("resumed_at_step") or 0)  # a resumed file runs its protocol's steps from there on: its
+    end["steps_total"] = max(end["steps_total"] - first, 0)  # count (a finished one read "4/6": an outside tester)
     stats = hv if hv is not None else hv_statistics(path)
     spec = _specimen(path, attrs)
     row.update({
