@@ -16,6 +16,7 @@ from bench.runtime.sim_rig import SimRig, Timing
 
 ROOT = Path(__file__).resolve().parent.parent
 RIGS = ROOT / "rigs"
+WARM_KERNELS_S = 600.0  # the most the kernels' compilation before the workers may take (a cold cache: about a minute)
 
 # fixtures of a wider scope (module, session) run before the per-test folder below exists: they, too, get a folder
 # of this test process, never the user's ~/.local/state/dea-bench (a latch there would refuse other sessions' runs)
@@ -39,7 +40,11 @@ def pytest_configure(config: pytest.Config) -> None:
     parts = [subprocess.Popen([sys.executable, "-m", "tests.warm_kernels", part], cwd=ROOT, text=True,
                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT) for part in PARTS]
     for proc in parts:
-        out = proc.communicate()[0].strip().splitlines()
+        try:
+            out = proc.communicate(timeout=WARM_KERNELS_S)[0].strip().splitlines()
+        except subprocess.TimeoutExpired:  # never hold the suite: what it did not compile, the tests do
+            proc.kill()
+            out = [*proc.communicate()[0].strip().splitlines(), f"stopped after {WARM_KERNELS_S:g} s"]
         print(out[-1] if out and proc.returncode == 0 else f"warm kernels: exit {proc.returncode}: "
               + (out[-1] if out else "no output"), file=sys.stderr)
 
