@@ -23,18 +23,3 @@ def one_pole(volts: np.ndarray, alpha: float, y0: float) -> np.ndarray:  # pragm
         out[k] = y
     return out
 
-
-@njit(cache=True, nogil=True)
-def followed(wanted: np.ndarray, alpha: float, y0: float, bound: float) -> np.ndarray:  # pragma: no cover - numba
-    """What the filter's output does when its input is the pre-compensation the engine plays (the input that makes
-    the output ``wanted`` one sample later, ``y + (w − y)/alpha``), held to ±``bound``: ``wanted`` where that input
-    is within the bound, else the filter's move towards the bound. A filter too slow for the waveform shows here as
-    an output that falls short of it (the DAQ rig's engine: bench/runtime/hardware_timed.py)."""
-    out = np.empty(wanted.size)
-    y = y0
-    for k in range(wanted.size):
-        x = y + (wanted[k] - y) / alpha
-        x = min(max(x, -bound), bound)
-        y = y + alpha * (x - y)
-        out[k] = y
-    return out

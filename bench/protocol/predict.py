@@ -29,7 +29,7 @@ import numpy as np
 from bench.core.clock import VirtualClock
 from bench.core.monitor_chain import SAFE_TOUCH_V
 from bench.core.motion_chain import chain
-from bench.core.one_pole import followed
+from bench.core.one_pole import one_pole
 from bench.core.plant import Plant, PlantBlock
 from bench.numbers import against, mv_per_m
 from bench.protocol.program import Program, ProtocolLimitError, Segment, change_specimen, sample_counts
@@ -170,14 +170,25 @@ def _apply_ticks(program: Program, seg: Segment, plant: Plant, clock: VirtualClo
 
 @dataclass
 class _Filter:
-    """The DAQ rig's reconstruction filter as the engine drives it (:func:`~bench.core.one_pole.followed`): its
-    ``alpha`` per scan, the pre-compensation's bound [V], the output it had at the last scan [V], and the most the
+    """The DAQ rig's reconstruction filter as the engine drives it: its ``alpha`` per scan, the pre-compensation's
+    bound [V] (the voltage limit: the engine's may be lower where the field limit binds, which only leaves the
+    output further short), the last wanted value and the filter's output at the last scan [V], and the most the
     output reached in the segment under way [V]."""
 
     alpha: float
     bound: float
+    w: float = 0.0
     y: float = 0.0
     peak: float = 0.0
+
+    def follow(self, wanted: np.ndarray) -> None:
+        """The filter's output on ``wanted``'s pre-compensation as the engine computes it
+        (:meth:`~bench.runtime.hardware_timed.HardwareTimed._precompensate`: each input from the previous *wanted*
+        value, clipped to ±bound), through the filter (:func:`~bench.core.one_pole.one_pole`)."""
+        prev = np.concatenate(([self.w], wanted[:-1]))
+        x = np.clip(prev + (wanted - prev) / self.alpha, -self.bound, self.bound)
+        out = one_pole(np.ascontiguousarray(x), self.alpha, self.y)
+        self.w, self.y, self.peak = float(wanted[-1]), float(out[-1]), max(self.peak, float(np.max(np.abs(out))))
 
 
 def _play_scans(seg: Segment, plant: Plant, scan_rate: float, gain: float, drive: _Filter | None = None) -> float:
@@ -194,8 +205,7 @@ def _play_scans(seg: Segment, plant: Plant, scan_rate: float, gain: float, drive
         vs = np.asarray(seg.voltage(ts), dtype=float)
         peak = max(peak, float(np.max(np.abs(vs))))
         if drive is not None:
-            out = followed(vs, drive.alpha, drive.y, drive.bound)
-            drive.y, drive.peak = float(out[-1]), max(drive.peak, float(np.max(np.abs(out))))
+            drive.follow(vs)
         inputs = vs / gain
         bits = inputs.view(np.int64)
         new = np.empty(bits.size, dtype=bool)
