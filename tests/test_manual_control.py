@@ -1004,3 +1004,19 @@ def test_a_held_voltage_that_creeps_the_membrane_out_of_the_laser_s_range_trips_
     laser = run.streams["laser"]
     assert len(laser) > 30  # read through the hold (10 per second), not once
     assert not np.isfinite(laser.columns["displacement"][-1])  # the reading that tripped it is recorded
+
+
+def test_a_manual_ramp_reads_the_laser_as_it_goes(tmp_path: Path) -> None:
+    """A ramp checked only the monitors after each set-point: through a ramp (up to an hour) the field check kept
+    the stretch from before it (a reviewer). The rig's due polls run after each set-point too: the laser's 10 per
+    second (bench/protocol/program.py PASSIVE_LASER_HZ)."""
+    from bench.storage.runfile import open_run
+
+    with ManualSession(load_rig(ROOT / "rigs" / "thesis-sim.toml"), tmp_path / "s.log", virtual=True,
+                       echo=lambda _t: None) as s:
+        t0 = s.engine.now() if s.engine is not None else 0.0
+        assert s.execute("ramp 3000 4").status == "ok"
+        t1 = s.engine.now() if s.engine is not None else 0.0
+    laser = open_run(s.data_file).streams["laser"]
+    during = (laser.t > t0 + 0.2) & (laser.t < t1 - 0.2)
+    assert during.sum() >= 0.8 * 10 * (t1 - t0 - 0.4), (during.sum(), t0, t1)

@@ -119,6 +119,10 @@ class RunContext:
         self._amp_commanded = any(c.name == "commanded" for c in recorder.streams.get("amplifier", []))
         self.laser_t_last = -math.inf  # run time of the last laser sample recorded (software-timed laser)
         self.laser_last = math.nan  # its displacement in specimen coordinates [m] (NaN: that sample was not valid)
+        # how long the laser's single reads may give no displacement while the output is on before that trips (None:
+        # never, a run's: its protocol was dry-run on the model; manual control's is set, no dry run covers it)
+        self.laser_lost_s: float | None = None
+        self.laser_lost_since = math.nan  # run time of the first of the present run of readings without one
         # the laser storage's upload in a step (bench.runtime.polls): the run time by which a fetch must be over (the
         # step's next action due: a set-point, another poll, its end; inf: no bound) and the program time of the
         # next fetch on FETCH_PERIOD_S's grid (between them, only a backlog a bounded fetch left is fetched; -inf as a

@@ -37,6 +37,7 @@ from bench.runtime.safety import SafetyTrip, Supervisor
 from bench.storage.recorder import Recorder
 from drivers.errors import InstrumentError, InstrumentStateError
 
+LASER_LOST_S = 0.5  # the laser reading no displacement this long with the output on trips a session (5 reads)
 KEEPALIVE_S = 0.25  # set-point refresh while holding (feeds the analog module's communication watchdog)
 IDLE_MIN_S = 1e-3  # a hold waits at least this long between two idle actions (no busy loop on a late schedule)
 MOVE_POLL_S = 0.05  # a move's status is read this often until it ends
@@ -68,6 +69,7 @@ class ManualEngine(Engine):
     def __init__(self, rig: RigConfig, inst: Instruments, clock: Clock, recorder: Recorder,
                  supervisor: Supervisor, t0: float) -> None:
         super().__init__(manual_program(rig), inst, clock, recorder, supervisor, commands=True)
+        self.ctx.laser_lost_s = LASER_LOST_S  # no dry run covers a session: an unknown stretch at high voltage trips
         self.rig = rig
         self.ctx.t0 = t0
         self.snapshot.state = "manual"
@@ -173,9 +175,11 @@ class ManualEngine(Engine):
         return n
 
     def _ramp_step_done(self) -> None:
-        """After each set-point of a manual ramp: the monitors checked, and a pause asked for meanwhile ends the
-        ramp (a ramp may last an hour)."""
+        """After each set-point of a manual ramp: the monitors checked, the rig's other polls that are due run (the
+        laser: the field check's stretch, through a ramp that may last an hour — a reviewer), and a pause asked for
+        meanwhile ends the ramp."""
         self.check_monitors()
+        self._idle_schedule()[0]()
         self._check_pause()
 
     def zero(self) -> None:

@@ -179,17 +179,28 @@ def _laser_row(e: RunContext, r: ReadingMap) -> Row | None:
 
 
 def _laser_check(e: RunContext, r: ReadingMap, row: Row) -> None:
-    """The stretch for the supervisor's field check; with the output on, a reading that is no measurement trips:
-    the true field is then not known (a held 8 kV crept the membrane past the laser's range, and on to runaway, with
-    the field computed at the last stretch in range: an outside tester)."""
-    e.laser_t_last = r["displacement"].timestamp - e.t0
+    """The stretch for the supervisor's field check. Where the context asks it (``laser_lost_s``: manual control),
+    readings that are no measurement for that long with the output on trip: the true field is then not known (a
+    held 8 kV crept the membrane past the laser's range, and on to runaway, with the field computed at the last
+    stretch in range: an outside tester). A run records them (``valid`` 0): its protocol was dry-run on the model."""
+    t = r["displacement"].timestamp - e.t0
+    e.laser_t_last = t
     e.laser_last = row["displacement"] if row["valid"] else math.nan
+    if row["valid"] or abs(e.v_cmd) <= OUTPUT_ON_V:
+        e.laser_lost_since = math.nan
+    elif math.isnan(e.laser_lost_since):
+        e.laser_lost_since = t
     if row["valid"]:
         e.sup.update_displacement(row["displacement"])
         e.snapshot.values["displacement"] = row["displacement"]
-    elif abs(e.v_cmd) > OUTPUT_ON_V:
-        raise SafetyTrip(f"laser reads no displacement ({r['displacement'].status}) at {e.v_cmd:.0f} V: the stretch, "
-                         "and with it the true field, is not known")
+        return
+    status = r["displacement"].status
+    # out of the laser's range at once (a measurement: the specimen is past it), any other reading without a
+    # displacement once it has lasted (a glint, a dusty target); never where the voltage is safe at any stretch
+    lost = status.startswith("over_range") or t - e.laser_lost_since >= (e.laser_lost_s or math.inf)
+    if e.laser_lost_s is not None and lost and not e.sup.field_bounded(e.v_cmd):
+        raise SafetyTrip(f"laser reads no displacement ({status}) at {e.v_cmd:.0f} V: the stretch, and with it the "
+                         "true field, is not known")
 
 
 def _sensor_period(e: RunContext, s: StepState) -> float | None:
@@ -228,6 +239,7 @@ def record_laser_block(e: RunContext, within: float | None = None) -> int:
         e.rec.append("laser", t, displacement=disp, valid=valid.astype("u1"),
                      **e.late_columns("laser", np.full(disp.size, np.nan)))  # the laser's own clock
         e.laser_t_last = float(t[-1])
+        e.laser_last = float(disp[-1]) if valid[-1] else math.nan  # (a single read at that time repeats it)
         good = disp[valid]
         if good.size:
             e.sup.update_displacement(float(good[-1]))

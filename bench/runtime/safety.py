@@ -72,6 +72,16 @@ class Supervisor:
         l1, l2, e_b = self._stretch(q, x)
         return abs(volts) * l1 * l2 / q.t0, min(cap, e_b / margin)
 
+    def field_bounded(self, volts: float) -> bool:
+        """Whether ``volts`` stays within the field limit whatever the stretch (a membrane's up to its runaway
+        stretch, past which it has failed anyway): then an unknown stretch is no danger. An LS-DEA's is not bounded
+        here (its breakdown field moves with the stretch too)."""
+        if not isinstance(self.specimen, MembraneParams):
+            return False
+        p = self.specimen
+        limit = min(self.rig.limits.max_field_V_per_m or math.inf, p.breakdown_field / self.rig.limits.breakdown_margin)
+        return abs(volts) * p.runaway_stretch ** 2 / p.L3 <= limit
+
     def _stretch(self, q: LozengeParams, x: float) -> tuple[float, float, float]:
         """(λ1, λ2, breakdown field E_B [V/m]) of the LS-DEA ``q`` at aperture ``x`` [m]: the last one remembered, as
         the aperture changes only with a motor reading (the live view's headroom asks at every engine wake-up, and
