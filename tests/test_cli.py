@@ -145,6 +145,30 @@ def test_a_stop_signal_while_the_run_claims_its_file_leaves_no_log(tmp_path: Pat
     assert not [p for p in (tmp_path / "runs").rglob("*") if p.suffix in (".h5", ".log")]
 
 
+def test_a_stop_signal_just_after_the_claim_takes_it_back(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The same signal a moment later, after the claim returned and before the run starts (a reviewer): the claim's
+    log, still empty, is taken back, as the line says."""
+    import os
+    import signal
+
+    import bench.app.runs as app_runs
+
+    real = app_runs.claim_output
+
+    def then_signalled(prepared: app_runs.PreparedRun) -> None:
+        real(prepared)
+        assert prepared.claimed and prepared.path.with_suffix(".log").exists()
+        os.kill(os.getpid(), signal.SIGTERM)
+
+    monkeypatch.setattr(app_runs, "claim_output", then_signalled)
+    protocol = Path(__file__).resolve().parent.parent / "protocols" / "short" / "thesis-identification-short.toml"
+    res = CliRunner().invoke(app, ["run", str(protocol), "--virtual-time", "--no-live", "--yes",
+                                   "--out", str(tmp_path / "runs")])
+    assert res.exit_code == 2, res.output
+    assert res.output.strip().splitlines()[-1].startswith("error: terminated by SIGTERM before the run started")
+    assert not [p for p in (tmp_path / "runs").rglob("*") if p.suffix in (".h5", ".log")]
+
+
 @pytest.mark.parametrize(("sig", "said"), [("SIGINT", "interrupted by Ctrl-C"), ("SIGTERM", "terminated by SIGTERM")])
 def test_ctrl_c_while_validating_says_so_in_one_line_and_exits_2(tmp_path, monkeypatch, sig, said) -> None:  # type: ignore[no-untyped-def]
     """Found by an outside tester: Ctrl-C while `bench run` validated the protocol (dry run on the model, before

@@ -26,6 +26,7 @@ class PreparedRun:
     metadata: dict[str, str]
     link: Resume | None = None
     reset: tuple[str, str] | None = None  # (who, why) when resuming resets a latched interlock (once connected)
+    claimed: bool = False  # its file's name is claimed: its log made (:func:`claim_output`)
 
     @property
     def needs_operator(self) -> bool:
@@ -290,15 +291,18 @@ def claim_output(prepared: PreparedRun) -> None:
     from bench.runtime.run import reserve_output
 
     held: list[int] = []
-    saved = {int(sig): signal.signal(sig, lambda s, _f: held.append(s)) for sig in STOP_SIGNALS} \
-        if threading.current_thread() is threading.main_thread() else {}  # (handlers run in the main thread only)
+    saved: dict[int, Any] = {}
+    if threading.current_thread() is threading.main_thread():  # (handlers run in the main thread only)
+        for sig in STOP_SIGNALS:
+            if signal.getsignal(sig) is not None:  # (a handler set outside Python cannot be put back: left as is)
+                saved[int(sig)] = signal.signal(sig, lambda s, _f: held.append(s))
     try:
         claimed = reserve_output(prepared.path)
     finally:
         for number, handler in saved.items():
             signal.signal(number, handler)
     log = claimed.with_suffix(".log")  # made empty just now, by this claim
-    for number in held[:1]:
+    for number in held:  # in order; one its handler ignores passes on to the next
         handler = saved[number]
         if callable(handler):
             try:
@@ -310,6 +314,15 @@ def claim_output(prepared: PreparedRun) -> None:
             log.unlink(missing_ok=True)
             os.kill(os.getpid(), number)  # the default action: the process ends
     prepared.path = claimed
+    prepared.claimed = True
+
+
+def release_claim(prepared: PreparedRun) -> None:
+    """Take back the claim of a run that never started (a stop signal as the claim ended): its log, still empty."""
+    log = prepared.path.with_suffix(".log")
+    if prepared.claimed and log.is_file() and log.stat().st_size == 0:
+        log.unlink(missing_ok=True)
+        prepared.claimed = False
 
 
 def execute_run(prepared: PreparedRun, *, virtual_time: bool = False, operator: OperatorFn | None = None,

@@ -192,7 +192,7 @@ def run(
     Operator, specimen ID and notes come from the protocol's [protocol] table and these options; they are kept in
     the run file as root attributes (`bench inspect` shows them). While it runs, `bench pause RUN.h5` (or SIGUSR1)
     brings the output to 0 V and holds, `bench resume RUN.h5 --why …` (or SIGUSR2) restarts the step it left."""
-    from bench.app.runs import check_executable, claim_output, execute_run, prepare_run
+    from bench.app.runs import check_executable, claim_output, execute_run, prepare_run, release_claim
 
     with _before_the_run(), progress("recovering if needed, validating and dry-running the stored protocol"
                                      if resume else "validating and dry-running the protocol on the model") as done:
@@ -202,7 +202,7 @@ def run(
     _show_prepared(prepared, dry_run)
     if dry_run:
         return
-    with _before_the_run():
+    with _before_the_run(lambda: release_claim(prepared)):
         check_executable(prepared, virtual_time=virtual_time, can_confirm=yes or sys.stdin.isatty())
         claim_output(prepared)  # its file and log: a run started in the same second into --out names the next
     operator = _operator(yes)
@@ -258,7 +258,7 @@ class _StopSignal(KeyboardInterrupt):
 
 
 @contextlib.contextmanager
-def _before_the_run() -> Iterator[None]:
+def _before_the_run(release: Callable[[], None] | None = None) -> Iterator[None]:
     """Ctrl-C — or SIGTERM, SIGHUP, SIGQUIT — before the run starts (recovering a resumed file, validating,
     dry-running on the model): nothing is connected yet, and typer would end the command with exit 130 (the other
     signals: killed, 143, outside tester) and not a word. One line, and exit 2 as a stop signal while the rig is set
@@ -278,6 +278,8 @@ def _before_the_run() -> Iterator[None]:
         yield
     except KeyboardInterrupt as exc:
         said = exc.text if isinstance(exc, _StopSignal) else "interrupted by Ctrl-C"
+        if release is not None:  # a claim made just before the signal (its log, empty) is taken back
+            release()
         raise fail(f"{said} before the run started; nothing was connected, no run file or log written") from None
     finally:
         for sig, handler in old:
