@@ -240,6 +240,9 @@ def _thesis(res: StepResult, streams: StreamChunks, t_v: np.ndarray, v: np.ndarr
     laser = _window(streams, "laser", t0, t0 + dur, ["displacement"])
     volts = np.interp(laser["t"], t_v, v)
     figs = cycle_figures(laser["t"] - t0, laser["displacement"], volts, f, span=(0.0, dur))
+    if not figs.peaks:
+        raise ValueError(f"run file {streams.f.filename}: no cycle of step {res.index} ({res.name}) has a laser "
+                         f"record to analyse ({t0:.3f}–{t0 + dur:.3f} s)")
     res.kind = "thesis"
     res.figures = {"peak_first": figs.peaks[0], "peak_last": figs.peaks[max(figs.whole, 1) - 1],
                    "creep": figs.creep if figs.whole >= 2 else np.nan, "lag_first": figs.lags[0],

@@ -106,8 +106,9 @@ def cycle_figures(t: np.ndarray, displacement: np.ndarray, voltage: np.ndarray, 
     while origin + k * period < t[-1]:
         start, end = origin + k * period, origin + (k + 1) * period
         m = (t >= start) & (t < end)
-        if m.sum() < 3:
-            break
+        if m.sum() < 3:  # a period without a record (the laser out of range): none of its figures, on to the next
+            k += 1
+            continue
         iv = int(np.argmax(v[m]))
         whole = end <= min(stop, reach) + 1e-9
         whole_cycles += whole
