@@ -89,6 +89,10 @@ def test_a_step_s_cycles_start_at_the_step_not_at_its_first_sample() -> None:
     assert figs.creep == pytest.approx(0.1, rel=1e-3)
     assert cycle_figures(t[:-1], u[:-1], v[:-1], f, span=(0.0, 10.0)).whole == 2  # the last scan one short of it
     assert cycle_figures(t[:-2], u[:-2], v[:-2], f, span=(0.0, 10.0)).whole == 1  # a record that stops early
+    # a first period without a record (the laser out of range): the next is analysed (a reviewer: no cycle at all)
+    late = t > 5.0
+    figs = cycle_figures(t[late], u[late], v[late], f, span=(0.0, 10.0))
+    assert figs.peaks == (pytest.approx(1.1 * gain, rel=1e-4),) and figs.whole == 1
 
 
 # --- the fitter on toy problems with known answers ----------------------------------------------------------
