@@ -148,7 +148,8 @@ def test_a_daq_played_hold_is_scheduled_in_chunks_and_the_model_sees_the_same(tm
     import bench.protocol.predict as dry
     from bench.core.plant import Plant, PlantBlock
 
-    def every_scan(seg: object, plant: Plant, scan_rate: float, gain: float) -> float:  # the former code
+    def every_scan(seg: object, plant: Plant, scan_rate: float, gain: float,  # the former code
+                   drive: object = None) -> float:  # (the drive filter's check: not what this compares)
         assert seg.voltage is not None  # type: ignore[attr-defined]
         ts = seg.t_start + np.arange(max(1, round(seg.duration * scan_rate)) + 1) / scan_rate  # type: ignore[attr-defined]
         vs = np.asarray(seg.voltage(ts), dtype=float)  # type: ignore[attr-defined]
