@@ -154,9 +154,9 @@ def _export(kind: str, run: Path, out: Path) -> tuple[float, float, float]:
 
 
 def run_all(quick: bool = False) -> list[Figure]:
-    """Peak memory of CSV and MAT v7.3 export for a short and a long run file (--quick: 10 and 30 seconds; full:
+    """Peak memory of CSV and MAT v7.3 export for a short and a long run file (--quick: 5 and 15 seconds; full:
     10 and 60 minutes), then the report's (full run only)."""
-    lengths = (10.0, 30.0) if quick else (600.0, 3600.0)
+    lengths = (5.0, 15.0) if quick else (600.0, 3600.0)
     figures = []
     with tempfile.TemporaryDirectory() as tmp:
         peaks: dict[str, list[float]] = {"csv": [], "mat": []}
