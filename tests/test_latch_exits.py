@@ -202,3 +202,18 @@ def test_a_resume_that_cannot_connect_leaves_the_latch(tmp_path: Path, monkeypat
     assert "\treset\t" + rig_name + "\tby ada: fault cleared" in _history()
     second = next(p for p in tmp_path.glob("*.h5") if p.name != "first.h5")
     assert "ada: fault cleared" in open_run(second, streams=False).attrs["interlock_reset"]
+
+
+def test_a_dead_manual_session_s_last_sign_is_its_readings_if_they_are_later(tmp_path: Path) -> None:
+    """A session's log is written per command and its readings between them: the last sign of life is the later of
+    the log and its readings' files (a reviewer: an hour of `wait` after the last command read as the log's time)."""
+    log = tmp_path / "manual-x.log"
+    log.write_text("")
+    readings = tmp_path / "manual-x.h5"
+    readings.write_bytes(b"")
+    os.utime(log, (1_800_000_000, 1_800_000_000))
+    os.utime(readings, (1_800_003_600, 1_800_003_600))  # an hour later
+    said = rig_latch._last_sign(f"manual session {log}")
+    last = datetime.fromtimestamp(1_800_003_600).astimezone().isoformat(timespec="seconds")
+    assert said == f" (its file last written {last})", said
+    assert rig_latch._last_sign(f"manual session {tmp_path / 'gone.log'}") == ""

@@ -32,6 +32,7 @@ look by a user who may only read the folder reports a dead marker as latched wit
 from __future__ import annotations
 
 import contextlib
+import glob
 import hashlib
 import ipaddress
 import json
@@ -405,13 +406,20 @@ def armed() -> list[dict[str, Any]]:
 
 
 def _last_sign(where: str) -> str:
-    """When the dead process's file (its run file, or a manual session's log) last changed: the latch is stamped when
-    it is found, possibly days later (an outside tester asked when the process died); '' when there is none."""
+    """When the dead process's files (its run file; a manual session's log and its readings) last changed: the latch
+    is stamped when it is found, possibly days later (an outside tester asked when the process died); '' when there
+    is none."""
     name = where.removeprefix("manual session ")
-    try:
-        changed = os.stat(name).st_mtime
-    except (OSError, ValueError):
+    files = [Path(name)]
+    if name != where:  # a session's readings go to <log>.h5 (or <log>-N.h5) between its commands' log lines
+        files += Path(name).parent.glob(f"{glob.escape(Path(name).stem)}*.h5")
+    times = []
+    for f in files:
+        with contextlib.suppress(OSError, ValueError):
+            times.append(f.stat().st_mtime)
+    if not times:
         return ""
+    changed = max(times)
     return f" (its file last written {datetime.fromtimestamp(changed).astimezone().isoformat(timespec='seconds')})"
 
 
