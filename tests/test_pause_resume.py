@@ -502,3 +502,28 @@ def test_a_daq_rigs_load_cell_is_read_and_supervised_while_paused(tmp_path: Path
     assert len(inside) >= 5, (t_pause, t_resume, len(inside))  # ~10 per second while paused (1.5 s and more)
     assert np.all(np.diff(inside) >= 0.1 - 1e-9)  # at most 10 per second: one Modbus round trip each
     assert np.all(np.isfinite(cell.columns["force"][(cell.t > t_pause + 0.5) & (cell.t < t_resume)]))
+
+
+def test_a_run_killed_while_paused_latches_saying_the_pause_had_verified_0_v(tmp_path: Path) -> None:
+    """kill -9 while a run is paused: the rig latches (nothing verified the output since), but the latch said "zero
+    neither commanded nor verified" of a pause that had ramped it to 0 V and seen it there (an outside tester). The
+    armed marker now carries the pause's verification, and the latch says it."""
+    from bench.runtime.latch import all_latched
+
+    proc = subprocess.Popen([sys.executable, "-m", "bench", "run", str(SHORT / "thesis-identification-short.toml"),
+                             "--virtual-time", "--out", str(tmp_path), "--no-live"], cwd=ROOT,
+                            env={**ENV, "BENCH_STATE_DIR": os.environ["BENCH_STATE_DIR"]},  # this test's latches
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        wait_for(lambda: any(tmp_path.glob("*.h5")), 60, "the run file")
+        run_file = next(tmp_path.glob("*.h5"))
+        write_control(run_file, True, "ada", "look at the clamp")
+        log = run_file.with_suffix(".log")
+        wait_for(lambda: " verify: " in log.read_text(), 60, "the pause's verified 0 V")
+        verified = next(ln for ln in log.read_text().splitlines() if " verify: " in ln).split(" verify: ", 1)[1]
+    finally:
+        proc.kill()
+        proc.wait(timeout=30)
+    (found,) = all_latched().values()
+    assert "while paused" in found["fault"] and verified.strip() in found["fault"], (found["fault"], verified)
+    assert "zero neither commanded nor verified" not in found["fault"]

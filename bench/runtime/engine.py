@@ -262,6 +262,8 @@ class Engine:
         self.safe_v = safe_monitor_v(program.rig)
         self.commands = commands
         self.start_step = start_step
+        # told the pause's verified 0 V (its text) and, None, the resume: the run's armed marker says so (run.py)
+        self.on_paused: Callable[[str | None], None] | None = None
         self.control = control
         self.inst = inst
         self.clock = clock
@@ -1096,6 +1098,8 @@ class Engine:
             self._pause_until(min(due, self.now() + STOP_POLL_S), urgent_aborts=False)
         _, by = self._wanted_now()  # the resume the loop ended on
         self._pause_by = self._resume_by = self._paused_by = self._resume_asked = None
+        if self.on_paused is not None:
+            self.on_paused(None)
         self.rec.event(self.now(), seg.index, "resume", f"resumed by {by} after {self.now() - t_pause:.3f} s paused")
         self.snapshot.state = "running"
         self._restart(seg, "resumed after a pause")
@@ -1132,8 +1136,10 @@ class Engine:
         v = self.snapshot.values.get("voltage")
         if self.inst.amplifier is None or v is None or not math.isfinite(v):
             return False
-        self._record(self.rec.event, self.now(), seg.index, "verify",
-                     f"0 V commanded: the voltage monitor reads {v:.0f} V at {self.now():.3f} s")
+        text = f"0 V commanded: the voltage monitor reads {v:.0f} V at {self.now():.3f} s"
+        self._record(self.rec.event, self.now(), seg.index, "verify", text)
+        if self.on_paused is not None:
+            self.on_paused(text)
         return True
 
     def _paused_readings(self) -> None:

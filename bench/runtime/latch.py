@@ -381,6 +381,23 @@ def release(marker: Path | None) -> None:
         os.close(fd)
 
 
+def note_paused(marker: Path | None, verified: str | None) -> None:
+    """Say in this process's armed marker that the run is paused with 0 V verified (``verified``: how, the pause's
+    ``verify`` event) or, None, that it goes on: a process killed while paused then latches its rig saying so — the
+    latch is kept (nothing verified the output since), but it said "zero neither commanded nor verified" of a
+    pause that had zeroed it (an outside tester). Best effort: the marker as it was where it cannot be written."""
+    fd = _held.get(marker) if marker is not None else None
+    if fd is None or not hasattr(os, "pread"):  # (Windows: no positioned read; the marker stays as armed)
+        return
+    with contextlib.suppress(OSError, ValueError):
+        record = json.loads(os.pread(fd, 1 << 16, 0))
+        record.pop("paused", None)
+        if verified is not None:
+            record["paused"] = verified
+        data = json.dumps(record).encode("utf-8")
+        os.pwrite(fd, data.ljust(os.fstat(fd).st_size), 0)  # over the old bytes, never shorter (JSON ends in spaces)
+
+
 def disarm(marker: Path | None) -> None:
     """Remove an armed marker (:func:`arm`): the process ended its use of the rig with 0 V verified, or latched it."""
     if marker is not None:
@@ -433,7 +450,11 @@ def _dead_markers_latch() -> dict[str, dict[str, Any]]:
             continue
         rig_name, where = was["rig"], str(was.get("where") or "?")
         fault = (f"the bench process (pid {was.get('pid')}, armed {was.get('at')}) ended without its shutdown "
-                 f"(killed?) during {where}{_last_sign(where)}: zero neither commanded nor verified by the host")
+                 f"(killed?) during {where}{_last_sign(where)}: zero neither commanded nor verified by the host"
+                 if not was.get("paused") else
+                 f"the bench process (pid {was.get('pid')}, armed {was.get('at')}) ended without its shutdown "
+                 f"(killed?) while paused during {where}{_last_sign(where)}: the pause had verified it ("
+                 f"{was['paused']}), nothing since")
         drive = None
         if isinstance(was.get("drive"), str):
             drive = Drive(was["drive"], frozenset(str(i) for i in was.get("drive_ids") or []))

@@ -55,6 +55,7 @@ from bench.runtime.latch import (
     drive_of,
     latch,
     note,
+    note_paused,
     refuse_if_changed,
     refuse_if_latched,
     release,
@@ -385,6 +386,7 @@ def _execute_claimed(plan: Plan, out: Path, *, virtual: bool, operator: Operator
                     # verified 0 V leaves this marker, and the next start latches the rig (bench/runtime/latch.py);
                     # armed here, where a marker that cannot be written still ends the file unstarted
                     marker = _arm(rig.name, out, drive)
+                    engine.on_paused = partial(note_paused, marker)
                     phase.check()
                 except BaseException as exc:  # Ctrl-C included: no file may say "running" for a run that never ran
                     disarm(marker)  # nothing was energised
