@@ -98,6 +98,7 @@ import contextlib
 import inspect
 import json
 import math
+import os
 import re
 import shlex
 import threading
@@ -292,7 +293,7 @@ class ManualSession:
             self.echo(f"{engine.latch_text()}: {engine.latched.reason}")
         # from here on the operator may energise the rig: a process that dies before the session's safe end leaves
         # this marker, and the next start latches the rig
-        self._armed = rig_latch.arm(rig.name, f"manual session {self.log_file}", self._drive)
+        self._armed = rig_latch.arm(rig.name, f"manual session {os.path.abspath(self.log_file)}", self._drive)
         if not self.virtual:  # wall clock: hold the set-point between commands (a human types slowly)
             self._keepalive = threading.Thread(target=self._feed, name="manual-keepalive", daemon=True)
             self._keepalive.start()

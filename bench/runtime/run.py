@@ -463,7 +463,7 @@ def _arm(rig_name: str, out: Path, drive: Drive | None) -> Path:
     """The armed marker of this run (:func:`~bench.runtime.latch.arm`); ValueError (one line, naming the state
     folder) where it cannot be written: a run that could die energised without a trace does not start."""
     try:
-        return arm(rig_name, str(out), drive)
+        return arm(rig_name, os.path.abspath(out), drive)  # (read from any folder: the latch's text, its file's time)
     except OSError as exc:
         raise ValueError(f"state folder {state_dir()}: the interlock's armed marker cannot be written there "
                          f"({exc.strerror or exc}); nothing was energised — make it writable or set "
