@@ -16,40 +16,10 @@ from bench.runtime.sim_rig import SimRig, Timing
 
 ROOT = Path(__file__).resolve().parent.parent
 RIGS = ROOT / "rigs"
-WARM_KERNELS_S = 600.0  # the most the kernels' compilation before the workers may take (a cold cache: about a minute)
 
 # fixtures of a wider scope (module, session) run before the per-test folder below exists: they, too, get a folder
 # of this test process, never the user's ~/.local/state/dea-bench (a latch there would refuse other sessions' runs)
 os.environ["BENCH_STATE_DIR"] = tempfile.mkdtemp(prefix="dea-bench-test-state-")
-
-
-def pytest_configure(config: pytest.Config) -> None:
-    """The whole suite on pytest-xdist's workers (``-n N``, no test files named): compile its kernels into the kernel
-    cache once, in one process per part of tests/warm_kernels.py side by side, before the workers start — with an
-    empty cache (a clean clone) each worker compiled what it met, the two often the same kernels at once.
-    ``BENCH_WARM_KERNELS=0`` skips it. A part that fails only says so: the tests compile what they need, and fail
-    where it is wrong."""
-    import subprocess
-    import sys
-    import time
-
-    if os.environ.get("PYTEST_XDIST_WORKER") or not getattr(config.option, "numprocesses", None) \
-            or config.args_source is pytest.Config.ArgsSource.ARGS or os.environ.get("BENCH_WARM_KERNELS") == "0":
-        return
-    from tests.warm_kernels import PARTS
-
-    parts = [subprocess.Popen([sys.executable, "-m", "tests.warm_kernels", part], cwd=ROOT, text=True,
-                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT) for part in PARTS]
-    deadline = time.monotonic() + WARM_KERNELS_S  # for the parts together (a reviewer: each had its own)
-    for proc in parts:
-        try:
-            out = proc.communicate(timeout=max(deadline - time.monotonic(), 0.1))[0].strip().splitlines()
-        except subprocess.TimeoutExpired:  # never hold the suite: what it did not compile, the tests do
-            proc.kill()
-            out = [*proc.communicate()[0].strip().splitlines(), f"stopped after {WARM_KERNELS_S:g} s"]
-        print(out[-1] if out and proc.returncode == 0 else f"warm kernels: exit {proc.returncode}: "
-              + (out[-1] if out else "no output"), file=sys.stderr)
-
 
 if os.environ.get("PYTEST_XDIST_WORKER"):  # pytest-xdist's workers (execnet) set an 80 x 24 terminal that is not
     os.environ.pop("COLUMNS", None)        # there: the CLI tests check output as a redirected run prints it
