@@ -15,6 +15,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -258,20 +259,33 @@ def test_the_control_file_is_read_only_when_whole(tmp_path: Path) -> None:
     assert second != first and second[1] is False and "bo" in second[2]
 
 
+def _paused_run(tmp_path: Path, why: str, until: str, env: dict[str, str],
+                **popen: Any) -> tuple[subprocess.Popen[Any], Path, Path]:
+    """A virtual-time run of the short thesis identification in its own process, paused from the start by its
+    control file (what `bench pause` writes, by "ada" for ``why``), once its log has ``until``: the process, its
+    run file and its log."""
+    proc = subprocess.Popen([sys.executable, "-m", "bench", "run", str(SHORT / "thesis-identification-short.toml"),
+                             "--virtual-time", "--out", str(tmp_path), "--no-live"], cwd=ROOT, env=env, **popen)
+    try:
+        wait_for(lambda: any(tmp_path.glob("*.h5")), 60, "the run file")
+        run_file = next(tmp_path.glob("*.h5"))
+        write_control(run_file, True, "ada", why)
+        log = run_file.with_suffix(".log")
+        wait_for(lambda: until in log.read_text(), 60, f"{until.strip()} in the run's log")
+    except BaseException:
+        proc.kill()
+        raise
+    return proc, run_file, log
+
+
 def test_pause_and_resume_from_another_terminal(tmp_path: Path) -> None:
     """A virtual-time run in its own process, paused from the start by its control file (what `bench pause` writes),
     then `bench pause` (already paused: sent all the same, recorded as a request) and `bench resume` from another
     process while it holds."""
     bench = [sys.executable, "-m", "bench"]
-    proc = subprocess.Popen([*bench, "run", str(SHORT / "thesis-identification-short.toml"), "--virtual-time",
-                             "--out", str(tmp_path), "--no-live"], cwd=ROOT, env=ENV, stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True)
+    proc, run_file, _ = _paused_run(tmp_path, "before the first step", " pause: ", ENV, stdout=subprocess.PIPE,
+                                    stderr=subprocess.STDOUT, text=True)
     try:
-        wait_for(lambda: any(tmp_path.glob("*.h5")), 60, "the run file")
-        run_file = next(tmp_path.glob("*.h5"))
-        write_control(run_file, True, "ada", "before the first step")
-        log = run_file.with_suffix(".log")
-        wait_for(lambda: " pause: " in log.read_text(), 60, "the pause event")
         refused = subprocess.run([*bench, "resume", str(run_file)], cwd=ROOT, env=ENV, capture_output=True, text=True)
         assert refused.returncode != 0 and "--why" in refused.stdout + refused.stderr
         paused = subprocess.run([*bench, "pause", str(run_file), "--why", "adjust the laser", "--operator", "ada"],
@@ -510,16 +524,10 @@ def test_a_run_killed_while_paused_latches_saying_the_pause_had_verified_0_v(tmp
     armed marker now carries the pause's verification, and the latch says it."""
     from bench.runtime.latch import all_latched
 
-    proc = subprocess.Popen([sys.executable, "-m", "bench", "run", str(SHORT / "thesis-identification-short.toml"),
-                             "--virtual-time", "--out", str(tmp_path), "--no-live"], cwd=ROOT,
-                            env={**ENV, "BENCH_STATE_DIR": os.environ["BENCH_STATE_DIR"]},  # this test's latches
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    proc, _, log = _paused_run(tmp_path, "look at the clamp", " verify: ",  # the pause's verified 0 V
+                               {**ENV, "BENCH_STATE_DIR": os.environ["BENCH_STATE_DIR"]},  # this test's latches
+                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
-        wait_for(lambda: any(tmp_path.glob("*.h5")), 60, "the run file")
-        run_file = next(tmp_path.glob("*.h5"))
-        write_control(run_file, True, "ada", "look at the clamp")
-        log = run_file.with_suffix(".log")
-        wait_for(lambda: " verify: " in log.read_text(), 60, "the pause's verified 0 V")
         verified = next(ln for ln in log.read_text().splitlines() if " verify: " in ln).split(" verify: ", 1)[1]
     finally:
         proc.kill()
