@@ -1020,3 +1020,14 @@ def test_a_manual_ramp_reads_the_laser_as_it_goes(tmp_path: Path) -> None:
     laser = open_run(s.data_file).streams["laser"]
     during = (laser.t > t0 + 0.2) & (laser.t < t1 - 0.2)
     assert during.sum() >= 0.8 * 10 * (t1 - t0 - 0.4), (during.sum(), t0, t1)
+
+
+def test_a_ramp_to_the_voltage_limit_ends_at_it(tmp_path: Path) -> None:
+    """`ramp 8kV 2` on the 8-kV thesis rig ran its 2 s, then was refused "8000 V beyond the software limit ±8000 V",
+    the output left at 7.8 kV (an outside tester): its last set-point, computed from a start one code off 0 V, came
+    out a rounding above 8000 V. A ramp ends on its target: the limit's own code (within ±8000 V)."""
+    with ManualSession(load_rig(ROOT / "rigs" / "thesis-sim.toml"), tmp_path / "s.log", virtual=True,
+                       echo=lambda _t: None) as s:
+        out = s.execute("ramp 8kV 2")
+        assert out.status == "ok", out
+        assert s.engine is not None and 7990 < s.engine.ctx.v_cmd <= 8000.0, s.engine.ctx.v_cmd

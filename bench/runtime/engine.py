@@ -1026,7 +1026,9 @@ class Engine:
         for k in range(1, steps + 1):
             self._pause_until(t0 + seconds * k / steps, urgent_aborts=False)
             self._check_stop()
-            self._set_voltage(v0 + (target - v0) * k / steps, self.now())
+            # the last one the target itself: from a start one code off 0 V, v0 + (target − v0)·1 came out
+            # 8000.000000000001 for 8 kV, which the driver refused at the limit after the whole ramp (an outside tester)
+            self._set_voltage(target if k == steps else v0 + (target - v0) * k / steps, self.now())
             if after is not None:
                 after()
 
