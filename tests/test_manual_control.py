@@ -1031,3 +1031,22 @@ def test_a_ramp_to_the_voltage_limit_ends_at_it(tmp_path: Path) -> None:
         out = s.execute("ramp 8kV 2")
         assert out.status == "ok", out
         assert s.engine is not None and 7990 < s.engine.ctx.v_cmd <= 8000.0, s.engine.ctx.v_cmd
+
+
+def test_a_manual_pause_says_the_output_it_reads_not_the_set_point(tmp_path: Path) -> None:
+    """`voltage 6kV`, `wait 2`, `pause` answered "output 2 V" (the set-point) while the next `read` showed 4223 V on
+    the still discharging output (an outside tester). The pause reads the monitor until it is at 0 V (the rig's safe
+    threshold) and says so; the next read agrees."""
+    from bench.rig import safe_monitor_v
+
+    rig = load_rig(ROOT / "rigs" / "thesis-sim.toml")
+    safe = safe_monitor_v(rig)
+    with ManualSession(rig, tmp_path / "s.log", virtual=True, echo=lambda _t: None) as s:
+        s.execute("voltage 6kV")
+        s.execute("wait 2")
+        paused = s.execute("pause")
+        m = re.search(r"output at 0 V \(0 V commanded: the voltage monitor reads (-?\d+) V", paused.text)
+        assert paused.status == "ok" and m is not None and abs(int(m.group(1))) <= safe, paused
+        after = s.execute("read")
+        v = float(re.search(r"voltage (-?\d+) V", after.text).group(1))  # type: ignore[union-attr]
+        assert abs(v) <= safe, after

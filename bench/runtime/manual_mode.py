@@ -26,10 +26,18 @@ import threading
 from collections.abc import Callable
 
 from bench.core.clock import Clock
+from bench.numbers import whole
 from bench.protocol.program import Program
 from bench.protocol.schema import Protocol, ProtocolHeader
 from bench.rig import RigConfig
-from bench.runtime.engine import Engine, PauseRequested, StopRequested
+from bench.runtime.engine import (
+    DISCHARGE_WAIT_S,
+    MONITOR_REREAD_S,
+    MONITOR_SETTLE_S,
+    Engine,
+    PauseRequested,
+    StopRequested,
+)
 from bench.runtime.instruments import Instruments
 from bench.runtime.interlock import OUTPUT_ON_V, InterlockTrip, OutputVerifier, motion_trip
 from bench.runtime.polls import rig_polls
@@ -394,7 +402,27 @@ class ManualEngine(Engine):
         self.ctx.v_req = 0.0
         self._event("pause", f"paused by {by}: output ramping to 0 V, motor held, recording goes on")  # as a run's
         self._make_paused()
-        return f"paused by {by}: output {self.ctx.v_cmd:.0f} V, motor held; `resume` lets high voltage on again"
+        return f"paused by {by}: {self._zero_seen()}, motor held; `resume` lets high voltage on again"
+
+    def _zero_seen(self) -> str:
+        """The paused output as its monitor shows it: read (recorded, supervised, verified) until it is at 0 V, or
+        for ``DISCHARGE_WAIT_S`` — the pause said "output 2 V", the set-point, while the next `read` showed 4223 V
+        on the discharging output (an outside tester). Also a ``verify`` event, as a run's pause has."""
+        if self.inst.amplifier is None:
+            return "no amplifier"
+        self._wait(self.now() + MONITOR_SETTLE_S)  # fresh conversions at the zeroed output
+        deadline = self.now() + DISCHARGE_WAIT_S
+        while True:
+            self.check_monitors()
+            v = self.snapshot.values.get("voltage", math.nan)
+            if math.isfinite(v) and abs(v) <= self.safe_v:
+                text = f"0 V commanded: the voltage monitor reads {whole(v)} V at {self.now():.3f} s"
+                self._event("verify", text)
+                return f"output at 0 V ({text})"
+            if self.now() >= deadline:
+                return (f"0 V commanded, but the voltage monitor still reads {whole(v)} V at {self.now():.3f} s: "
+                        "do not touch the specimen")
+            self._wait(self.now() + MONITOR_REREAD_S)
 
     def pause_asked_by(self) -> str:
         """Who asked for the pause that ended a command (a signal, another thread)."""
