@@ -22,6 +22,11 @@ def test_names_that_clean_up_alike_have_their_own_latches() -> None:
     res = runner.invoke(app, ["interlock", "reset", "thesis sim", "--why", "x", "--operator", "bo"])
     assert res.exit_code == 2, res.output
     assert "rig thesis sim: not latched: nothing to reset (latched: thesis-sim)" in " ".join(res.output.split())
+    # the rig file where its name goes said "not latched (latched: thesis-sim)" (an outside tester)
+    res = runner.invoke(app, ["interlock", "reset", "rigs/thesis-sim.toml", "--why", "x", "--operator", "bo"])
+    assert res.exit_code == 2, res.output
+    assert "rigs/thesis-sim.toml: give the rig's name, not its file (latched: thesis-sim)" in " ".join(
+        res.output.split()), res.output
     was = rig_latch.latched("thesis-sim")  # the other rig's latch is untouched
     assert was is not None and was["fault"] == "interlock: host stall 2.5 s"
     res = runner.invoke(app, ["interlock", "reset", "thesis-sim", "--why", "x", "--operator", "bo"])

@@ -646,6 +646,9 @@ def _not_latched(rig_name: str) -> NoReturn:
     from bench.runtime.latch import all_latched
 
     others = sorted(all_latched())
+    if rig_name.endswith(".toml"):  # a rig file where the rig's name goes (an outside tester)
+        raise ValueError(f"{rig_name}: give the rig's name, not its file" + (f" (latched: {', '.join(others)})"
+                                                                          if others else " (none is latched)"))
     raise ValueError(f"rig {rig_name}: not latched: nothing to reset"
                      + (f" (latched: {', '.join(others)})" if others else ""))
 
