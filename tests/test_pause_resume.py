@@ -524,14 +524,23 @@ def test_a_run_killed_while_paused_latches_saying_the_pause_had_verified_0_v(tmp
     armed marker now carries the pause's verification, and the latch says it."""
     from bench.runtime.latch import all_latched
 
-    proc, _, log = _paused_run(tmp_path, "look at the clamp", " verify: ",  # the pause's verified 0 V
+    proc, run_file, log = _paused_run(tmp_path, "look at the clamp", " verify: ",  # the pause's verified 0 V
                                {**ENV, "BENCH_STATE_DIR": os.environ["BENCH_STATE_DIR"]},  # this test's latches
                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         verified = next(ln for ln in log.read_text().splitlines() if " verify: " in ln).split(" verify: ", 1)[1]
+        wait_for(lambda: open_run(run_file, streams=False).updated > 1.0, 60, "a second paused on file")
     finally:
         proc.kill()
         proc.wait(timeout=30)
     (found,) = all_latched().values()
     assert "while paused" in found["fault"] and verified.strip() in found["fault"], (found["fault"], verified)
     assert "zero neither commanded nor verified" not in found["fault"]
+    # its clock ran on through the pause, the plan's did not: inspect says how long it was paused (it read "18.250 s
+    # of 14.0 s planned", an outside tester)
+    from typer.testing import CliRunner
+
+    from bench.cli import app
+
+    shown = " ".join(CliRunner().invoke(app, ["inspect", str(run_file)], env={"COLUMNS": "300"}).output.split())
+    assert re.search(r"of 11\.0 s planned, plus \d+\.\d s paused", shown), shown
