@@ -544,3 +544,6 @@ def test_a_run_killed_while_paused_latches_saying_the_pause_had_verified_0_v(tmp
 
     shown = " ".join(CliRunner().invoke(app, ["inspect", str(run_file)], env={"COLUMNS": "300"}).output.split())
     assert re.search(r"of 11\.0 s planned, plus \d+\.\d s paused", shown), shown
+    held = re.search(r"plus (\d+\.\d) s paused", shown)
+    record = json.loads(CliRunner().invoke(app, ["inspect", str(run_file), "--json"]).output)
+    assert held and record["paused_s"] == pytest.approx(float(held.group(1)), abs=0.05) and record["paused_s"] > 1.0

@@ -709,3 +709,20 @@ def test_a_run_file_with_noise_written_into_it_is_one_line_naming_it_not_minutes
         assert res.returncode == 2 and "Traceback" not in res.stderr, (command, res.stdout, res.stderr)
         (line,) = [ln for ln in res.stderr.splitlines() if ln.strip()]
         assert line.startswith(f"error: run file {bad}: "), line  # what it could not read depends on the layout
+
+
+def test_paused_s_sums_each_pause_to_its_resume_and_an_open_pause_to_the_last_update(tmp_path: Path) -> None:
+    """The time a run spent paused, from its events alone: pause at 2 s, resume at 5 s (3 s), a second pause at 7 s,
+    a repeated pause at 8 s (the same pause) and a resume at 8.5 s (1.5 s), a last pause at 10 s still open when the
+    file was last written at 12.25 s (2.25 s): 6.75 s in all. `inspect` says it and `inspect --json` carries it."""
+    from bench.storage.runfile import RunFile
+
+    marks = [(1.0, "start"), (2.0, "pause"), (5.0, "resume"), (7.0, "pause"), (8.0, "pause"), (8.5, "resume"),
+             (9.0, "resume"), (10.0, "pause")]
+    events = np.array([(t, 0, k.encode(), b"") for t, k in marks],
+                      dtype=[("t", "f8"), ("step", "i4"), ("kind", "S16"), ("text", "S64")])
+    run = RunFile(path=tmp_path / "r.h5", attrs={}, state="running", reason="", end_time="", updated=12.25,
+                  complete=False, events=events)
+    assert run.paused and run.paused_s == pytest.approx(3.0 + 1.5 + 2.25)
+    assert RunFile(path=tmp_path / "r.h5", attrs={}, state="completed", reason="", end_time="", updated=4.0,
+                   complete=True, events=events[:1]).paused_s == 0.0

@@ -412,7 +412,7 @@ class Inspection:
                 "state": r.state, "complete": r.complete,
                 "incomplete_reason": None if r.complete else r.incomplete_reason, "reason": r.reason,
                 "end_time": r.end_time, "recorded_up_to_s": r.updated, "last_sample_s": self.last_sample,
-                "state_shown": r.state_shown,
+                "paused_s": r.paused_s, "state_shown": r.state_shown,
                 "streams": {name: {"samples": s.samples, "from_s": s.first, "to_s": s.last_t, "units": s.units,
                                    "last": s.last} for name, s in self.streams.items()},
                 "events": [{"t_s": t, "step": step, "kind": kind, "text": text}

@@ -421,13 +421,7 @@ def _planned(r: RunFile) -> str:
 
     total = float(r.attrs.get("duration_planned", 0))
     first = int(r.attrs.get("resumed_at_step") or 0)
-    held, since = 0.0, None  # time spent paused: the file's clock runs on through a pause, the plan's does not
-    for t, _, kind, _ in r.event_list():  # (killed while paused: "18.250 s of 14.0 s planned", an outside tester)
-        if kind == "pause" and since is None:
-            since = t
-        elif kind == "resume" and since is not None:
-            held, since = held + t - since, None
-    held += max(r.updated - since, 0.0) if since is not None else 0.0
+    held = r.paused_s  # the file's clock runs on through a pause, the plan's does not
     paused = f", plus {held:.1f} s paused" if held >= 0.05 else ""
     if not 0 < first < len(r.program):
         return f" of {total:.1f} s planned{paused}"
