@@ -67,6 +67,22 @@ class Waveform:
             return self.offset + self.amplitude * (1.0 - abs(2.0 * frac - 1.0))
         return self.offset + (self.amplitude if frac < 0.5 else 0.0)
 
+    def end_value(self, t: float) -> float:
+        """The value a step of this waveform that lasts ``t`` s ends on: the limit from the left at ``t``, where the
+        waveform was during the step's last instant. The same as the value at ``t`` but where a square jumps there:
+        a square of whole cycles ends low (its value at ``t`` is the next cycle's high, so 3 s of a 1-Hz square
+        ended by jumping back to its amplitude and the relax after it ramped down from there) and one of a whole
+        number of half cycles plus one high half ends high. A ``t`` within 1e-9 of a half cycle counts as on it
+        (``frequency`` 1/9 Hz × 9 s is not exactly 1 in floating point)."""
+        c = self.frequency * t + self.phase
+        k = round(2.0 * c)
+        if abs(2.0 * c - k) <= 1e-9 * max(1.0, abs(2.0 * c)):
+            c = k / 2.0
+        frac = c - math.ceil(c) + 1.0  # in (0, 1]: the end of a cycle is 1, not 0
+        if self.kind == "square":
+            return self.offset + (self.amplitude if frac <= 0.5 else 0.0)
+        return float(self(t))
+
     @property
     def peak(self) -> float:
         """Largest absolute value the waveform reaches."""

@@ -142,18 +142,20 @@ def test_a_daq_played_hold_is_scheduled_in_chunks_and_the_model_sees_the_same(tm
     """On a DAQ rig the dry run plays every 10-kHz scan: a 1-h relax held 36 M scans at once (~1.9 GB). They are
     now scheduled a chunk at a time, a scan that repeats the one before left out (the plant holds an input until
     the next): every block the model gives is the same, bit for bit, as with every scan scheduled at once (the
-    former code, here), with far fewer inputs. Chunks of 1000 scans here, so that runs cross their ends."""
+    former code, here), with far fewer inputs. Chunks of 1000 scans here, so that runs cross their ends. The scans
+    go through the rig's drive filter (its output is what the amplifier follows): where that output is within
+    SNAP_V of the wanted value it is that value, so a hold after a ramp is one input again, not a decaying tail."""
     import numpy as np
 
     import bench.protocol.predict as dry
     from bench.core.plant import Plant, PlantBlock
 
-    def every_scan(seg: object, plant: Plant, scan_rate: float, gain: float,  # the former code
-                   drive: object = None) -> float:  # (the drive filter's check: not what this compares)
+    def every_scan(seg: object, plant: Plant, scan_rate: float, gain: float,  # the former code: every scan at once,
+                   drive: dry._Filter | None = None) -> float:  # through the drive filter at once
         assert seg.voltage is not None  # type: ignore[attr-defined]
         ts = seg.t_start + np.arange(max(1, round(seg.duration * scan_rate)) + 1) / scan_rate  # type: ignore[attr-defined]
         vs = np.asarray(seg.voltage(ts), dtype=float)  # type: ignore[attr-defined]
-        plant.schedule_amplifier_input(ts, vs / gain)
+        plant.schedule_amplifier_input(ts, (vs if drive is None else drive.follow(vs)) / gain)
         return float(np.max(np.abs(vs)))
 
     program = _program(_sweep_with_relax(tmp_path, "12 s", "sweep-12s"))

@@ -126,6 +126,65 @@ def test_a_drive_filter_too_slow_for_the_waveform_is_refused_by_the_dry_run(tmp_
     assert m is not None and int(m.group(1)) < 0.98 * 7000, str(err.value)
 
 
+SQUARE = WAVE.replace('kind = "raised_cosine"', 'kind = "square"') + """
+[[steps]]
+type = "relax"
+duration_s = 1.0
+"""
+
+
+@pytest.mark.parametrize(("f", "d", "ends_high"), [(1.0, 3.0, False), (1.0, 2.5, True), (1 / 9, 9.0, False),
+                                                   (1 / 9, 13.5, True), (0.5, 3.6, False)])
+def test_a_square_step_ends_on_the_half_cycle_it_played_last(tmp_path: Path, f: float, d: float,
+                                                             ends_high: bool) -> None:
+    """A square is high for the first half of each period (bench.waveforms). Three whole cycles end at the end of a low
+    half; the value *at* 3 s is the next cycle's high, and a step ended on it: its last set-point (the DAQ's last
+    scan) jumped back to the amplitude and the relax after it ramped down from there — 5 kV again on the specimen
+    after the protocol's last low half. A step ends where its last instant was: whole cycles end low and the relax
+    has nothing to ramp down; a whole number plus a half ends high, and the relax ramps down from the amplitude; 3.6
+    s of 0.5 Hz ends 0.8 into a cycle, low. (1/9 Hz × 9 s is 1 only to within rounding.)"""
+    from bench.protocol.program import voltage_at
+
+    plan = plan_run(write(tmp_path, SQUARE.format(channel="voltage", amp="5 kV", f=f, d=d)))
+    square, relax = plan.program.segments
+    assert voltage_at(square, square.t_end) == (5000.0 if ends_high else 0.0)
+    assert voltage_at(square, square.t_end + 0.5) == voltage_at(square, square.t_end)
+    assert (relax.voltage is not None) == ends_high
+    if ends_high:
+        assert voltage_at(relax, relax.t_start) == 5000.0 and voltage_at(relax, relax.t_end) == 0.0
+    inside = square.t_start + np.array([0.1, 0.6]) / f  # unchanged within the step's first cycle: high, then low
+    assert square.voltage is not None and square.voltage(inside).tolist() == [5000.0, 0.0]
+
+
+@pytest.mark.parametrize(("corner", "refused"), [(30.0, ""), (5.0, ""), (3000.0, "current"), (1.0, "too slow")])
+def test_a_square_on_a_daq_rig_is_judged_on_what_its_drive_filter_passes_on(tmp_path: Path, corner: float,
+                                                                             refused: str) -> None:
+    """The dry run refused a 1-Hz, 5-kV square on the DAQ rig for a 19 mA charging current whatever its reconstruction
+    filter (daq.drive_filter_Hz), feeding the model the waveform's steps; the twin's run with the shipped 30-Hz
+    filter peaked at 0.98 mA and completed (an outside tester). The amplifier follows the filter's output.
+    Derivation: the engine pre-compensates a step with an input clipped to the 8-kV limit, so the filter's output
+    (one pole, α = 1 − exp(−2π fc / fs) per scan) rises at most α·8000 V per scan; at rest the film's capacitance is
+    C0 = εvac εr L² λ⁴ / L3 with εr(2, 296 K) = 5.58 (physics.md), so the current is at most about C0·α·8000·fs
+    (1.06 mA at 30 Hz, 0.18 mA at 5 Hz), and at least about 0.6 of it (the next scan's rise is α·(5000 − α·8000) V,
+    0.6 of the first: the amplifier's own bandwidth averages the two). A 3-kHz filter passes the step on (refused
+    for its current); a 1-Hz one cannot reach 5 kV in a half period (refused as too slow)."""
+    import math
+
+    rig = tmp_path / "rig.toml"
+    text = (ROOT / "rigs" / "thesis-daq-sim.toml").read_text(encoding="utf-8")
+    rig.write_text(text.replace("drive_filter_Hz = 30.0", f"drive_filter_Hz = {corner}"), encoding="utf-8")
+    f = write(tmp_path, SQUARE.format(channel="voltage", amp="5 kV", f=1.0, d=3.0), str(rig))
+    if refused:
+        with pytest.raises(ProtocolLimitError, match=refused):
+            plan_run(f)
+        return
+    pred = plan_run(f).prediction
+    alpha, fs = 1.0 - math.exp(-2.0 * math.pi * corner / 10_000.0), 10_000.0
+    c0 = 8.85418e-12 * 5.58 * 0.03**2 * 2.0**4 / 1e-3
+    bound = c0 * alpha * 8000.0 * fs
+    assert pred.ok and 0.55 * bound <= pred.peak_current <= 1.1 * bound, (pred.peak_current, bound)
+
+
 def test_a_small_breakdown_field_is_not_shown_as_zero(tmp_path: Path) -> None:
     """A rig whose specimen breaks down at 1e3 V/m: the dry run's refusal read "above breakdown 0.0 MV/m" (an outside
     tester). 1e3 V/m is 0.001 MV/m."""

@@ -53,6 +53,7 @@ COST_PER_RUN_S = 1 / 150
 COST_PER_TICK = 2e-5
 COST_PER_SEGMENT = 1e-3
 FILTER_SHORTFALL = 0.02  # a DAQ rig's filtered drive reaching less than this share below a step's peak is refused
+SNAP_V = 1e-6  # a filtered drive this close to the wanted value [V] is scheduled as that value (_Filter.follow)
 SCAN_CHUNK = 1 << 20  # scans of a DAQ-played segment evaluated at once (8 MB per array)
 
 
@@ -181,14 +182,18 @@ class _Filter:
     y: float = 0.0
     peak: float = 0.0
 
-    def follow(self, wanted: np.ndarray) -> None:
+    def follow(self, wanted: np.ndarray) -> np.ndarray:
         """The filter's output on ``wanted``'s pre-compensation as the engine computes it
         (:meth:`~bench.runtime.hardware_timed.HardwareTimed._precompensate`: each input from the previous *wanted*
-        value, clipped to ±bound), through the filter (:func:`~bench.core.one_pole.one_pole`)."""
+        value, clipped to ±bound), through the filter (:func:`~bench.core.one_pole.one_pole`): what the amplifier
+        is driven with. Where the output is within ``SNAP_V`` of the wanted value it is that value, bit for bit
+        (the recursion itself runs on unsnapped): a hold is then one input again, not a geometric tail that differs
+        at every scan (:func:`_play_scans` leaves out the scans that repeat the one before)."""
         prev = np.concatenate(([self.w], wanted[:-1]))
         x = np.clip(prev + (wanted - prev) / self.alpha, -self.bound, self.bound)
         out = one_pole(np.ascontiguousarray(x), self.alpha, self.y)
         self.w, self.y, self.peak = float(wanted[-1]), float(out[-1]), max(self.peak, float(np.max(np.abs(out))))
+        return np.where(np.abs(out - wanted) <= SNAP_V, wanted, out)
 
 
 def _play_scans(seg: Segment, plant: Plant, scan_rate: float, gain: float, drive: _Filter | None = None) -> float:
@@ -204,9 +209,7 @@ def _play_scans(seg: Segment, plant: Plant, scan_rate: float, gain: float, drive
         ts = seg.t_start + np.arange(a, min(a + SCAN_CHUNK, n)) / scan_rate
         vs = np.asarray(seg.voltage(ts), dtype=float)
         peak = max(peak, float(np.max(np.abs(vs))))
-        if drive is not None:
-            drive.follow(vs)
-        inputs = vs / gain
+        inputs = (vs if drive is None else drive.follow(vs)) / gain  # a DAQ's drive filter: what it passes on
         bits = inputs.view(np.int64)
         new = np.empty(bits.size, dtype=bool)
         new[0] = last is None or bits[0] != last

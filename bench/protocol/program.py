@@ -130,9 +130,14 @@ def _ramp(t0: float, duration: float, a: float, b: float) -> Signal:
     return f
 
 
-def _wave(t0: float, w: Waveform) -> Signal:
+def _wave(t0: float, duration: float, w: Waveform) -> Signal:
+    """A waveform step's set-point from ``t0`` on: at and after its end, the value it ends on
+    (:meth:`Waveform.end_value`: what its last instant played, not the next cycle's first)."""
+    end = w.end_value(duration)
+
     def f(t: np.ndarray) -> np.ndarray:
-        return w(np.asarray(t, dtype=float) - t0)
+        s = np.asarray(t, dtype=float) - t0
+        return np.where(s >= duration, end, w(s))
 
     return f
 
@@ -182,13 +187,13 @@ class _Compiler:
             raise self.refuse(label, f"frequency_Hz {step.frequency_Hz:g} needs ≥ {rec.points_per_cycle} set-points "
                               f"per cycle, i.e. recording.setpoint_Hz ≥ {step.frequency_Hz * rec.points_per_cycle:g}")
         seg = Segment(i, label, name, "waveform", self.t, step.duration, frequency=step.frequency_Hz)
-        end = float(wave(np.array([step.duration]))[0])
+        end = wave.end_value(step.duration)
         if step.channel == "voltage":
             self.check_voltage(label, lo, hi)
-            seg.voltage, self.v_now = _wave(self.t, wave), end
+            seg.voltage, self.v_now = _wave(self.t, step.duration, wave), end
         else:
             self.check_aperture(label, lo, hi)
-            seg.position, self.x_now = _wave(self.t, wave), end
+            seg.position, self.x_now = _wave(self.t, step.duration, wave), end
         return seg
 
     def ramp(self, i: int, label: str, name: str, step: RampStep) -> Segment:
