@@ -62,3 +62,34 @@ def test_a_voltage_safe_at_any_stretch_and_a_run_never_trip() -> None:
     run = _context(7998.0, None)
     for k in range(20):
         _read(run, k * 0.1, "over_range_positive")
+
+
+@pytest.mark.parametrize("rig_name", ["lsdea-isotonic-sim", "lsdea-motor-sim"])
+def test_an_ls_dea_voltage_within_the_limit_at_every_aperture_never_trips(rig_name: str) -> None:
+    """An LS-DEA's field had no bound: a laser out of range on an isotonic rig tripped manual control at any voltage
+    (the field needs the aperture). Its bound is the supervisor's own field check taken over every aperture it
+    judges: on a fine grid of x over [1.0001 xp, 1.999 l], the largest voltage within the limit at each (E = Vλ1λ2/t0
+    against E0 (λ1λ2)^(r/2) / margin, physics.md §2) — the least of those. Just below it the laser may be lost;
+    just above it, it trips (a bound beyond these rigs' voltage limits: a thinner film or a lower E0 brings it
+    within them)."""
+    import numpy as np
+
+    rig = load_rig(ROOT / "rigs" / f"{rig_name}.toml")
+    sup = Supervisor(rig, rig.specimen.lozenge())
+    q = sup.specimen
+    worst = math.inf
+    for x in np.linspace(1.0001 * q.xp, 1.999 * q.l, 4001):
+        sup.aperture = float(x)
+        e_per_volt, limit = sup.field_and_breakdown(1.0)
+        worst = min(worst, limit / e_per_volt)
+    # the shipped prototype's film holds the rig's whole voltage range at any aperture: a lost laser is no danger
+    # there (7.82 kV against 5 and 7 kV), and manual control no longer trips on it
+    assert worst > sup.voltage_limit and sup.field_bounded(sup.voltage_limit)
+    assert sup.field_bounded(0.995 * worst) and sup.field_bounded(-0.995 * worst)
+    assert not sup.field_bounded(1.005 * worst)
+    e = SimpleNamespace(t0=0.0, v_cmd=0.99 * worst, laser_lost_s=LASER_LOST_S, laser_lost_since=math.nan,
+                        laser_t_last=-1.0, laser_last=math.nan, snapshot=SimpleNamespace(values={}), sup=sup)
+    _read(e, 1.0, "over_range_positive")  # within the bound: no trip
+    e.v_cmd = 1.01 * worst
+    with pytest.raises(SafetyTrip, match=r"laser reads no displacement \(over_range_positive\)"):
+        _read(e, 1.1, "over_range_positive")

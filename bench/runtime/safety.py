@@ -73,14 +73,24 @@ class Supervisor:
         return abs(volts) * l1 * l2 / q.t0, min(cap, e_b / margin)
 
     def field_bounded(self, volts: float) -> bool:
-        """Whether ``volts`` stays within the field limit whatever the stretch (a membrane's up to its runaway
-        stretch, past which it has failed anyway): then an unknown stretch is no danger. An LS-DEA's is not bounded
-        here (its breakdown field moves with the stretch too)."""
-        if not isinstance(self.specimen, MembraneParams):
-            return False
-        p = self.specimen
-        limit = min(self.rig.limits.max_field_V_per_m or math.inf, p.breakdown_field / self.rig.limits.breakdown_margin)
-        return abs(volts) * p.runaway_stretch ** 2 / p.L3 <= limit
+        """Whether ``volts`` stays within the field limit whatever the stretch: then an unknown stretch is no danger.
+        A membrane's up to its runaway stretch (past which it has failed anyway). An LS-DEA's at every aperture
+        :meth:`field_and_breakdown` judges (``x`` in [1.0001 xp, 1.999 l]): E = |V|·A/t0 against E_B = E0·A^(r/2)
+        (and the field cap), A = λ1λ2 ∝ x·√(4l² − x²); both ratios are monotone in A, so the worst aperture is the
+        one of least or of most A — an end of the range, or x = √2·l, where x·√(4l² − x²) peaks. (The LS-DEA had
+        no bound: a laser out of range on an isotonic rig tripped manual control at any voltage.)"""
+        lim = self.rig.limits
+        cap = lim.max_field_V_per_m or math.inf
+        if isinstance(self.specimen, MembraneParams):
+            p = self.specimen
+            return abs(volts) * p.runaway_stretch ** 2 / p.L3 <= min(cap, p.breakdown_field / lim.breakdown_margin)
+        q = self.specimen
+        apertures = [1.0001 * q.xp, 1.999 * q.l] + ([math.sqrt(2.0) * q.l] if q.xp < math.sqrt(2.0) * q.l else [])
+        for x in apertures:
+            l1, l2, e_b = self._stretch(q, x)
+            if abs(volts) * l1 * l2 / q.t0 > min(cap, e_b / lim.breakdown_margin):
+                return False
+        return True
 
     def _stretch(self, q: LozengeParams, x: float) -> tuple[float, float, float]:
         """(λ1, λ2, breakdown field E_B [V/m]) of the LS-DEA ``q`` at aperture ``x`` [m]: the last one remembered, as
