@@ -956,7 +956,8 @@ def test_a_script_stops_at_the_latch_and_cannot_reset_it(tmp_path: Path) -> None
 def test_an_operators_pause_stops_a_script_and_its_resume_is_refused(tmp_path: Path) -> None:
     """SIGUSR1 during a script's `watch` paused the session, and the script's own `resume` line turned high voltage
     back on 0.35 s later (outside tester). An operator's pause stops the script, as a trip does; and a `resume`
-    a script reads while the session is paused from outside it is refused (the script stops there too)."""
+    a script reads while the session is paused from outside it is refused (the script stops there too). The
+    session then ends "interrupted", not "completed": its script did not run to its end."""
     rig = load_rig(THESIS_RIG)
     with ManualSession(rig, tmp_path / "a.log", virtual=True, echo=lambda _t: None) as s:
         asked: list[float] = []
@@ -971,6 +972,12 @@ def test_an_operators_pause_stops_a_script_and_its_resume_is_refused(tmp_path: P
         assert outcomes[-1].status == "paused", outcomes[-1]
         assert abs(_plant_volts(s._sim)) < ZERO_V  # stayed paused: nothing after the pause ran
     assert any(r[3] == "session" and r[2] == "stopped" and "pause" in r[4] for r in _rows(tmp_path / "a.log"))
+    # the session's file says the script did not run to its end (it read "completed": a second outside tester)
+    from bench.storage.runfile import open_run
+
+    run = open_run(tmp_path / "a.h5")
+    assert run.state == "interrupted", run.reason
+    assert "stopped at the pause of 'wait 3' (signal SIGUSR1 paused the session)" in run.reason, run.reason
     # paused from outside between a script's lines: its resume is refused, the script stops, the output stays off
     with ManualSession(rig, tmp_path / "b.log", virtual=True, echo=lambda _t: None) as s:
         assert s.execute("voltage 2kV").status == "ok"
@@ -980,6 +987,7 @@ def test_an_operators_pause_stops_a_script_and_its_resume_is_refused(tmp_path: P
         assert [o.command for o in outcomes][-1] == "resume" and outcomes[-1].status == "refused", outcomes
         assert "paused by signal SIGUSR1" in outcomes[-1].text
         assert abs(_plant_volts(s._sim)) < ZERO_V
+    assert open_run(tmp_path / "b.h5").state == "interrupted"
 
 
 @pytest.mark.parametrize("rig", ["thesis-daq-sim", "thesis-sim"])

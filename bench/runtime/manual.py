@@ -523,6 +523,11 @@ class ManualSession:
                             "latched rig); the session ends through its safe exit")
                     self._write("session", "stopped", text)
                     self.echo(f"stopped: {text}")
+                    if self._end is None and why != "trip" and engine.latched is None:  # a trip or a latch says
+                        # so in the end state; a pause must too: the file read "completed", the script not run out
+                        by = f" ({self._outside_pause} paused the session)" if self._outside_pause else ""
+                        self._end = (f"the script stopped at the {why} of '{trips[0].command}'{by}; the commands "
+                                     "after it were not run")
                     break
         except StopRequested:
             pass
