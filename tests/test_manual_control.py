@@ -10,6 +10,7 @@ import signal
 import subprocess
 import sys
 import threading
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -978,15 +979,25 @@ def test_an_operators_pause_stops_a_script_and_its_resume_is_refused(tmp_path: P
     run = open_run(tmp_path / "a.h5")
     assert run.state == "interrupted", run.reason
     assert "stopped at the pause of 'wait 3' (signal SIGUSR1 paused the session)" in run.reason, run.reason
-    # paused from outside between a script's lines: its resume is refused, the script stops, the output stays off
+    # paused from outside between a script's lines (by the keep-alive thread, no command under way): the script
+    # stops before its next line — it had gone on, each `voltage` refused, to "completed" (a reviewer); a script's
+    # `resume` is refused while an operator's pause holds; the output stays off
     with ManualSession(rig, tmp_path / "b.log", virtual=True, echo=lambda _t: None) as s:
-        assert s.execute("voltage 2kV").status == "ok"
-        s.engine.request_pause("signal SIGUSR1")  # type: ignore[union-attr]
-        assert s.execute("wait 0.5").status == "paused"
-        outcomes = s.run_lines(["resume", "voltage 3kV"], stop_on_trip=True)
-        assert [o.command for o in outcomes][-1] == "resume" and outcomes[-1].status == "refused", outcomes
-        assert "paused by signal SIGUSR1" in outcomes[-1].text
+        def lines() -> Iterator[str]:
+            yield "voltage 2kV"
+            assert s.engine is not None
+            s.engine.request_pause("signal SIGUSR1")  # at the prompt: what the keep-alive thread does on it (a
+            with s._lock:  # virtual session's thread waits on the virtual clock, which stands still at a prompt)
+                s._paused("(SIGUSR1 at the prompt)", s.engine, s.engine.pause_asked_by())
+            assert s.engine.paused
+            yield from ("voltage 2.5kV", "voltage 3kV")
+        outcomes = s.run_lines(lines(), stop_on_trip=True)
+        assert outcomes and outcomes[0].status == "ok", outcomes
+        assert all(o.command != "voltage 3kV" for o in outcomes), outcomes  # stopped at the pause, not run out
         assert abs(_plant_volts(s._sim)) < ZERO_V
+        s._scripted = True  # a script's own `resume` under an operator's pause (the script stops before one, too)
+        refused = s.execute("resume")
+        assert refused.status == "refused" and "paused by signal SIGUSR1" in refused.text, refused
     assert open_run(tmp_path / "b.h5").state == "interrupted"
 
 

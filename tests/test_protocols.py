@@ -133,20 +133,23 @@ duration_s = 1.0
 """
 
 
+@pytest.mark.parametrize("hold", [0.0, 2.3])
 @pytest.mark.parametrize(("f", "d", "ends_high"), [(1.0, 3.0, False), (1.0, 2.5, True), (1 / 9, 9.0, False),
-                                                   (1 / 9, 13.5, True), (0.5, 3.6, False)])
+                                                   (1 / 9, 13.5, True), (0.5, 3.6, False), (0.1, 30.0, False)])
 def test_a_square_step_ends_on_the_half_cycle_it_played_last(tmp_path: Path, f: float, d: float,
-                                                             ends_high: bool) -> None:
+                                                             ends_high: bool, hold: float) -> None:
     """A square is high for the first half of each period (bench.waveforms). Three whole cycles end at the end of a low
     half; the value *at* 3 s is the next cycle's high, and a step ended on it: its last set-point (the DAQ's last
     scan) jumped back to the amplitude and the relax after it ramped down from there — 5 kV again on the specimen
     after the protocol's last low half. A step ends where its last instant was: whole cycles end low and the relax
     has nothing to ramp down; a whole number plus a half ends high, and the relax ramps down from the amplitude; 3.6
-    s of 0.5 Hz ends 0.8 into a cycle, low. (1/9 Hz × 9 s is 1 only to within rounding.)"""
+    s of 0.5 Hz ends 0.8 into a cycle, low. (1/9 Hz × 9 s is 1 only to within rounding; and after a 2.3-s hold,
+    t_end − t_start of 30 s of 0.1 Hz came out one rounding step short of 30 s, and its end read high: a reviewer.)"""
     from bench.protocol.program import voltage_at
 
-    plan = plan_run(write(tmp_path, SQUARE.format(channel="voltage", amp="5 kV", f=f, d=d)))
-    square, relax = plan.program.segments
+    before = f'[[steps]]\ntype = "hold"\nduration_s = {hold}\n' if hold else ""
+    plan = plan_run(write(tmp_path, before + SQUARE.format(channel="voltage", amp="5 kV", f=f, d=d)))
+    square, relax = plan.program.segments[-2:]
     assert voltage_at(square, square.t_end) == (5000.0 if ends_high else 0.0)
     assert voltage_at(square, square.t_end + 0.5) == voltage_at(square, square.t_end)
     assert (relax.voltage is not None) == ends_high

@@ -714,7 +714,8 @@ def test_a_run_file_with_noise_written_into_it_is_one_line_naming_it_not_minutes
 def test_paused_s_sums_each_pause_to_its_resume_and_an_open_pause_to_the_last_update(tmp_path: Path) -> None:
     """The time a run spent paused, from its events alone: pause at 2 s, resume at 5 s (3 s), a second pause at 7 s,
     a repeated pause at 8 s (the same pause) and a resume at 8.5 s (1.5 s), a last pause at 10 s still open when the
-    file was last written at 12.25 s (2.25 s): 6.75 s in all. `inspect` says it and `inspect --json` carries it."""
+    file was last written at 12.25 s (2.25 s): 6.75 s in all. (What `inspect` and `inspect --json` make of it:
+    tests/test_pause_resume.py.)"""
     from bench.storage.runfile import RunFile
 
     marks = [(1.0, "start"), (2.0, "pause"), (5.0, "resume"), (7.0, "pause"), (8.0, "pause"), (8.5, "resume"),

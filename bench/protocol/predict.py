@@ -208,6 +208,8 @@ def _play_scans(seg: Segment, plant: Plant, scan_rate: float, gain: float, drive
     for a in range(0, n, SCAN_CHUNK):
         ts = seg.t_start + np.arange(a, min(a + SCAN_CHUNK, n)) / scan_rate
         vs = np.asarray(seg.voltage(ts), dtype=float)
+        if a + ts.size == n:  # the last scan plays the step's end value, as the engine's does (on the scan grid,
+            vs[-1] = float(seg.voltage(np.array([seg.t_end]))[0])  # n / scan_rate need not be its duration)
         peak = max(peak, float(np.max(np.abs(vs))))
         inputs = (vs if drive is None else drive.follow(vs)) / gain  # a DAQ's drive filter: what it passes on
         bits = inputs.view(np.int64)

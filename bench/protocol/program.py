@@ -130,14 +130,20 @@ def _ramp(t0: float, duration: float, a: float, b: float) -> Signal:
     return f
 
 
+END_TOLERANCE_S = 1e-9  # a time this close to a step's end is its end (far below a scan period: 10 µs at 100 kHz)
+
+
 def _wave(t0: float, duration: float, w: Waveform) -> Signal:
     """A waveform step's set-point from ``t0`` on: at and after its end, the value it ends on
-    (:meth:`Waveform.end_value`: what its last instant played, not the next cycle's first)."""
-    end = w.end_value(duration)
+    (:meth:`Waveform.end_value`: what its last instant played, not the next cycle's first). The end is judged on
+    the run clock, ``t0 + duration`` as :attr:`Segment.t_end` sums it, within ``END_TOLERANCE_S``: ``t_end − t0``
+    can come out one rounding step short of ``duration``, and a square after a 2.3-s hold then read its next
+    cycle's high at its end (a reviewer)."""
+    end, t_end = w.end_value(duration), t0 + duration
 
     def f(t: np.ndarray) -> np.ndarray:
-        s = np.asarray(t, dtype=float) - t0
-        return np.where(s >= duration, end, w(s))
+        t = np.asarray(t, dtype=float)
+        return np.where(t >= t_end - END_TOLERANCE_S, end, w(t - t0))
 
     return f
 

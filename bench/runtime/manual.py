@@ -512,6 +512,10 @@ class ManualSession:
                 with self._lock:
                     trips = [o for o in self.outcomes[checked:] if o.status == "trip"]
                     checked = len(self.outcomes)
+                    if not trips and self._outside_pause is not None and engine.paused:  # paused between the
+                        # script's lines (the keep-alive thread's pause is no command's outcome): its next lines
+                        # were refused one by one and the script ran on to "completed" (a reviewer)
+                        trips = [Outcome("(between the script's lines)", "paused", "")]
                     if not (trips and stop_on_trip):
                         self.execute(line)
                         trips += [o for o in self.outcomes[checked:] if o.status in ("trip", "paused") or o.latched]
