@@ -176,3 +176,23 @@ def test_a_sweeps_record_is_labelled_with_each_of_its_conditions() -> None:
     noisy = _Rec(np.zeros(t.size), "noisy", np.column_stack([v, 296 + np.random.default_rng(0).normal(0, 0.4, t.size)]),
                  np.zeros(20))
     assert record_conditions(SimpleNamespace(records=[sweep, noisy])) == ["5 kV, 266 K; 7 kV, 316 K", "7 kV, 296 K"]
+
+
+def test_an_ls_dea_record_is_labelled_with_the_voltages_it_holds() -> None:
+    """An isopotential prototype's record (0, 3, 5 and 7 kV held in turn, each for its tensile cycles) was labelled
+    "7 kV", its peak (an outside tester). Its label lists the voltages held; a waveform's record (no voltage held) its
+    peak; a record at 0 V between 7-kV drives both."""
+    from types import SimpleNamespace
+
+    from bench.identify.campaign import record_conditions
+
+    template = np.zeros(20)
+    template[10], template[13] = 3.2, 0.15  # λ2p, hung mass [kg]
+    steps = np.repeat([0.0, 3000.0, 5000.0, 7000.0], 500) + np.random.default_rng(1).normal(0, 3, 2000)
+    t = np.linspace(0.0, 10.0, 2000)
+    drive = 3500.0 * (1 - np.cos(2 * np.pi * t))  # a 7-kV raised cosine: near 0 and 7 kV only ~4 % of the time each
+    rest = np.concatenate([drive, np.zeros(1000)])  # then a third as long at 0 V
+    recs = [_Rec(np.zeros(n), "r", np.column_stack([u, np.zeros(n), np.zeros(n)]), template)
+            for u, n in ((steps, 2000), (drive, 2000), (rest, 3000))]
+    assert record_conditions(SimpleNamespace(records=recs)) == [
+        "λ2p 3.2, 150 g, 0, 3, 5, 7 kV", "λ2p 3.2, 150 g, 7 kV", "λ2p 3.2, 150 g, 0 kV held, peak 7 kV"]

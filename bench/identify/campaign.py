@@ -75,9 +75,25 @@ def record_conditions(problem: RecordedProblem) -> list[str]:
             parts = [f"{np.max(np.abs(U[m, 0])) / 1e3:.3g} kV, {np.median(U[m, 1]):.0f} K" for m in _levels(U[:, 1])]
             out.append("; ".join(parts) if parts else "—")
         else:  # LS-DEA: (V, x, ẋ); template holds λ2p and the hung mass
-            out.append(f"λ2p {rec.template[10]:.3g}, {rec.template[13] * 1e3:.0f} g, "
-                       f"{np.max(np.abs(U[:, 0])) / 1e3:.3g} kV")
+            out.append(f"λ2p {rec.template[10]:.3g}, {rec.template[13] * 1e3:.0f} g, {_held_voltages(U[:, 0])}")
     return out
+
+
+def _held_voltages(volts: np.ndarray, share: float = 0.05, step: float = 50.0) -> str:
+    """The voltages a record holds, in kV: each |V| (to ``step`` V) held for at least ``share`` of its samples, and
+    the peak where it is none of them (a waveform's). An isopotential prototype's record holds 0, 3, 5 and 7 kV in
+    turn and read "7 kV" (its peak), as if all at 7 kV (an outside tester)."""
+    v = np.abs(np.asarray(volts, dtype=float))
+    v = v[np.isfinite(v)]
+    if v.size == 0:
+        return "—"
+    values, counts = np.unique(np.round(v / step) * step, return_counts=True)
+    held = [float(x) for x, n in zip(values, counts, strict=True) if n >= share * v.size]
+    peak = float(v.max())
+    text = ", ".join(f"{x / 1e3:.3g}" for x in held) + " kV" if held else ""
+    if held and peak - held[-1] <= step:
+        return text
+    return f"{text} held, peak {peak / 1e3:.3g} kV" if held else f"{peak / 1e3:.3g} kV"
 
 
 def campaign_identifiability(problem: RecordedProblem, result: FitResult) -> CampaignReport:
