@@ -188,7 +188,8 @@ def test_an_ls_dea_record_is_labelled_with_the_voltages_it_holds() -> None:
 
     template = np.zeros(20)
     template[10], template[13] = 3.2, 0.15  # λ2p, hung mass [kg]
-    steps = np.repeat([0.0, 3000.0, 5000.0, 7000.0], 500) + np.random.default_rng(1).normal(0, 3, 2000)
+    steps = np.repeat([0.0, 3000.0, 5030.0, 7000.0], 500) + np.random.default_rng(1).normal(0, 30, 2000)  # 5.03 kV:
+    # a quarter of its samples (over 5 % of all) in the 5.1-kV bin, the rest in 5.0 kV's: named once, as 5 kV
     t = np.linspace(0.0, 10.0, 2000)
     drive = 3500.0 * (1 - np.cos(2 * np.pi * t))  # a 7-kV raised cosine: near 0 and 7 kV only ~4 % of the time each
     rest = np.concatenate([drive, np.zeros(1000)])  # then a third as long at 0 V

@@ -79,19 +79,21 @@ def record_conditions(problem: RecordedProblem) -> list[str]:
     return out
 
 
-def _held_voltages(volts: np.ndarray, share: float = 0.05, step: float = 50.0) -> str:
+def _held_voltages(volts: np.ndarray, share: float = 0.05, step: float = 100.0) -> str:
     """The voltages a record holds, in kV: each |V| (to ``step`` V) held for at least ``share`` of its samples, and
     the peak where it is none of them (a waveform's). An isopotential prototype's record holds 0, 3, 5 and 7 kV in
-    turn and read "7 kV" (its peak), as if all at 7 kV (an outside tester)."""
+    turn and read "7 kV" (its peak), as if all at 7 kV (an outside tester). A measured voltage's noise that splits
+    one level over two neighbouring bins names it once, by the bin holding more of it."""
     v = np.abs(np.asarray(volts, dtype=float))
     v = v[np.isfinite(v)]
     if v.size == 0:
         return "—"
     values, counts = np.unique(np.round(v / step) * step, return_counts=True)
-    held = [float(x) for x, n in zip(values, counts, strict=True) if n >= share * v.size]
+    big = {float(x): int(n) for x, n in zip(values, counts, strict=True) if n >= share * v.size}
+    held = [x for x, n in big.items() if big.get(x - step, -1) < n and big.get(x + step, -1) <= n]
     peak = float(v.max())
     text = ", ".join(f"{x / 1e3:.3g}" for x in held) + " kV" if held else ""
-    if held and peak - held[-1] <= step:
+    if held and peak - held[-1] <= 2 * step:
         return text
     return f"{text} held, peak {peak / 1e3:.3g} kV" if held else f"{peak / 1e3:.3g} kV"
 
