@@ -75,27 +75,20 @@ def record_conditions(problem: RecordedProblem) -> list[str]:
             parts = [f"{np.max(np.abs(U[m, 0])) / 1e3:.3g} kV, {np.median(U[m, 1]):.0f} K" for m in _levels(U[:, 1])]
             out.append("; ".join(parts) if parts else "—")
         else:  # LS-DEA: (V, x, ẋ); template holds λ2p and the hung mass
-            out.append(f"λ2p {rec.template[10]:.3g}, {rec.template[13] * 1e3:.0f} g, {_held_voltages(U[:, 0])}")
+            out.append(f"λ2p {rec.template[10]:.3g}, {rec.template[13] * 1e3:.0f} g, {_voltage_span(U[:, 0])}")
     return out
 
 
-def _held_voltages(volts: np.ndarray, share: float = 0.05, step: float = 100.0) -> str:
-    """The voltages a record holds, in kV: each |V| (to ``step`` V) held for at least ``share`` of its samples, and
-    the peak where it is none of them (a waveform's). An isopotential prototype's record holds 0, 3, 5 and 7 kV in
-    turn and read "7 kV" (its peak), as if all at 7 kV (an outside tester). A measured voltage's noise that splits
-    one level over two neighbouring bins names it once, by the bin holding more of it."""
+def _voltage_span(volts: np.ndarray) -> str:
+    """The |voltage| a record spans, in kV: "0–7 kV", or its median where it stays within 5 % of its peak. An
+    isopotential prototype's record holds 0, 3, 5 and 7 kV in turn and read "7 kV" (its peak), as if all at 7 kV (an
+    outside tester)."""
     v = np.abs(np.asarray(volts, dtype=float))
     v = v[np.isfinite(v)]
     if v.size == 0:
         return "—"
-    values, counts = np.unique(np.round(v / step) * step, return_counts=True)
-    big = {float(x): int(n) for x, n in zip(values, counts, strict=True) if n >= share * v.size}
-    held = [x for x, n in big.items() if big.get(x - step, -1) < n and big.get(x + step, -1) <= n]
-    peak = float(v.max())
-    text = ", ".join(f"{x / 1e3:.3g}" for x in held) + " kV" if held else ""
-    if held and peak - held[-1] <= 2 * step:
-        return text
-    return f"{text} held, peak {peak / 1e3:.3g} kV" if held else f"{peak / 1e3:.3g} kV"
+    lo, hi = float(v.min()), float(v.max())
+    return f"{float(np.median(v)) / 1e3:.3g} kV" if hi - lo <= 0.05 * hi else f"{round(lo / 1e3, 2):g}–{round(hi / 1e3, 2):g} kV"
 
 
 def campaign_identifiability(problem: RecordedProblem, result: FitResult) -> CampaignReport:
