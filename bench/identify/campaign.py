@@ -88,7 +88,9 @@ def _voltage_span(volts: np.ndarray) -> str:
     if v.size == 0:
         return "—"
     lo, hi = float(v.min()), float(v.max())
-    return f"{float(np.median(v)) / 1e3:.3g} kV" if hi - lo <= 0.05 * hi else f"{round(lo / 1e3, 2):g}–{round(hi / 1e3, 2):g} kV"
+    if hi - lo <= 0.05 * hi:
+        return f"{float(np.median(v)) / 1e3:.3g} kV"
+    return f"{round(lo / 1e3, 2):g}–{round(hi / 1e3, 2):g} kV"
 
 
 def campaign_identifiability(problem: RecordedProblem, result: FitResult) -> CampaignReport:
