@@ -279,15 +279,18 @@ def test_signals_stop_the_run_with_zero_voltage_and_a_marked_file(tmp_path: Path
                                                                   signals: tuple, state: str, reason: str) -> None:
     """A real-time run: on a machine loaded enough to stall its host (the set-point module unheard past its bound)
     the run trips on that stall by itself — rightly, and latched — before the signal is its story; that run is said
-    and the test run once more, with a latch folder of its own (a second stall fails the test)."""
+    and the test run once more, with a latch folder of its own (a second stall skips it: the premise lost on this
+    host, as the other wall-clock tests do; a stall the signal's handling caused fails it)."""
     for attempt in range(2):
         folder = tmp_path / f"try{attempt}"
         monkeypatch.setenv("BENCH_STATE_DIR", str(folder / "state"))
         proc, path = _start_cli_run(folder)
         running = open_run(path)  # read while being written (SWMR)
-        if attempt == 0 and running.state == "tripped" and "interlock: host stall" in running.reason:
+        if running.state == "tripped" and "interlock: host stall" in running.reason:
             proc.communicate(timeout=60)  # stalled before the first look: no signal sent yet, the same story
             print(f"the host stalled (a loaded machine), the run tripped before the signal: {running.reason}")
+            if attempt == 1:  # twice: the premise (a run still going) lost on this host, as the other wall-clock
+                pytest.skip(f"the host stalled twice before the signal: {running.reason}")  # tests skip then
             continue
         assert running.state == "running" and not running.complete and "still going" in running.incomplete_reason
         assert len(running.streams["laser"]) > 0
@@ -297,7 +300,7 @@ def test_signals_stop_the_run_with_zero_voltage_and_a_marked_file(tmp_path: Path
         out, err = proc.communicate(timeout=60)
         assert proc.returncode == 1 and "Traceback" not in err, err
         run = open_run(path)
-        if attempt == 0 and run.state == "tripped" and "interlock: host stall" in run.reason:
+        if run.state == "tripped" and "interlock: host stall" in run.reason:
             # only a stall that came first: one the signal's own handling caused (its stop request recorded before
             # the trip) fails the test (a reviewer)
             events = run.event_list()
@@ -305,6 +308,8 @@ def test_signals_stop_the_run_with_zero_voltage_and_a_marked_file(tmp_path: Path
             asked_at = [float(text.split(" at ")[1].split(" s")[0]) for _, _, kind, text in events if kind == "request"]
             assert asked_at == [] or stalled < asked_at[0], (stalled, asked_at)
             print(f"the host stalled (a loaded machine), the run tripped before the signal: {run.reason}")
+            if attempt == 1:
+                pytest.skip(f"the host stalled twice before the signal: {run.reason}")
             continue
         break
     assert run.complete and run.state == state and run.reason.startswith(reason), (run.state, run.reason)
@@ -321,8 +326,10 @@ def test_a_killed_run_leaves_a_readable_file_marked_incomplete(tmp_path: Path, m
         os.kill(proc.pid, signal.SIGKILL)
         proc.communicate(timeout=30)
         run = open_run(path)
-        if attempt == 0 and run.complete:  # it ended by itself first (a stall, a starved twin's missing reply)
+        if run.complete:  # it ended by itself first (a stall, a starved twin's missing reply)
             print(f"the run ended before the kill (a loaded machine): {run.state}: {run.reason}")
+            if attempt == 1:  # twice: the premise lost on this host (the other wall-clock tests skip then too)
+                pytest.skip(f"the run ended by itself before the kill twice: {run.state}: {run.reason}")
             continue
         break
     assert not run.complete and run.state == "running" and "crashed" in run.incomplete_reason
