@@ -1069,3 +1069,10 @@ def test_a_manual_pause_says_the_output_it_reads_not_the_set_point(tmp_path: Pat
         after = s.execute("read")
         v = float(re.search(r"voltage (-?\d+) V", after.text).group(1))  # type: ignore[union-attr]
         assert abs(v) <= safe, after
+
+
+def test_control_help_says_what_sigusr1_does() -> None:
+    """`devices control --help` named every stop signal but not SIGUSR1, which pauses, and in a script stops it (an
+    outside tester saw a piped session end on it)."""
+    out = " ".join(CliRunner().invoke(app, ["devices", "control", "--help"], env={"COLUMNS": "200"}).output.split())
+    assert "SIGUSR1 pauses" in out and "A script stops at such a pause too" in out, out

@@ -88,6 +88,10 @@ def devices_control(
     commanded, zeroes the output at once and latches: high voltage is refused until `reset WHY...`. A script
     (--script, or piped commands) stops at a trip: the commands after it are not run.
 
+    SIGUSR1 pauses (as for a run): output ramped to 0 V and held, motor stopped; at a prompt `resume` lets high
+    voltage on again. A script stops at such a pause too (an operator's pause outranks its lines): the session ends
+    through its safe exit, recorded as interrupted.
+
     On a terminal the prompt has line editing and a history (~/.bench_history). Ctrl-C ends the command under
     way; a second Ctrl-C, Ctrl-C at the prompt, SIGTERM, SIGHUP or SIGQUIT end the session: output ramped to
     0 V, motor stopped, instruments safe.
