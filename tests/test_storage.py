@@ -727,3 +727,31 @@ def test_paused_s_sums_each_pause_to_its_resume_and_an_open_pause_to_the_last_up
     assert run.paused and run.paused_s == pytest.approx(3.0 + 1.5 + 2.25)
     assert RunFile(path=tmp_path / "r.h5", attrs={}, state="completed", reason="", end_time="", updated=4.0,
                    complete=True, events=events[:1]).paused_s == 0.0
+
+
+def test_a_daq_played_step_starts_where_its_stream_s_scan_0_is(tmp_path: Path) -> None:
+    """On a wall-clock DAQ run a stream starts after its step's `start` event (arming it, a restart after a pause's
+    ramp up): 48 ms at the first step, 108 ms after a resume, and the square's first edge came that much after where
+    the analysis cut its cycles (an outside tester). A step the DAQ played on a stream it started is where the
+    stream's scan 0 is (its `timing` event); a step appended to that stream keeps the stream's clock; an engine's own
+    stream (the restart's ramp up) and an `offset` event end it. Program: steps at 0, 3 and 5 s."""
+    from bench.storage.runfile import RunFile
+
+    scan = "DAQ scan clock: scan 0 at {} s on the run clock, known to 0.2 ms (the enable request's round trip)"
+    marks = [(0.0, 0, "start", ""), (0.0, 0, "timing", scan.format("0.048000") + "; polled channels (motor …"),
+             (3.05, 1, "start", ""),  # appended: the same scan clock
+             (4.0, 1, "pause", ""), (7.0, 1, "resume", ""), (7.1, 1, "offset", "run time = program time + 6.300 s"),
+             (9.3, 1, "timing", scan.format("9.300000") + ": the restart's ramp up's stream"),
+             (9.405, 1, "start", ""), (9.405, 1, "timing", scan.format("9.513000") + "; polled channels (…"),
+             (11.5, 2, "start", "")]
+    events = np.array([(t, i, k.encode(), x.encode()) for t, i, k, x in marks],
+                      dtype=[("t", "f8"), ("step", "i4"), ("kind", "S16"), ("text", "S256")])
+    program = np.array([(0, 0.0), (1, 3.0), (2, 5.0)], dtype=[("index", "i4"), ("t_start", "f8")])
+    run = RunFile(path=tmp_path / "r.h5", attrs={}, state="running", reason="", end_time="", updated=12.0,
+                  complete=False, events=events, program=program)
+    got = run.step_offsets()
+    assert got[0] == pytest.approx(0.048) and got[1] == pytest.approx(9.513 - 3.0) and got[2] == got[1], got
+    # without a timing event (software-timed rigs): the offset events alone, as before
+    plain = np.array([e for e in events if e["kind"] != b"timing"], dtype=events.dtype)
+    run.events = plain
+    assert run.step_offsets() == {0: 0.0, 1: pytest.approx(6.3), 2: pytest.approx(6.3)}

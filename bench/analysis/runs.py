@@ -38,6 +38,9 @@ TOL_S = 1e-9  # a window's bounds are widened by this much (step times are sums 
 # a waveform step that ended this much after its planned end (the larger of the two) was stretched, not played at
 # its frequency: said above its figures (a ramp's end value sent at its end makes a step some ms late: no stretch)
 STRETCH_S, STRETCH_FRACTION = 0.05, 0.01
+# a step whose end event the file holds ended in it: its window, from where its DAQ stream's scan 0 was (a wall-clock
+# stream starts up to ~0.1 s after the step's program time), may reach that far past the file's last update
+START_SLACK_S = 0.5
 SKIPPED = re.compile(r"(\d+) of (\d+) set-points skipped")  # the engine's `skipped` event
 LATE = re.compile(r"ended (\d+(?:\.\d+)?) s after its scheduled end")  # the engine's `late` event
 
@@ -190,7 +193,7 @@ def analyse_source(src: RunSource, last_cycles: int = 3) -> RunAnalysis:
         index = int(row["index"])
         said = f"step {index + 1} of {run.program.shape[0]} (index {index}, {row['name'].decode()})"  # notes' words
         t0, dur = float(row["t_start"]) + offsets.get(index, 0.0), float(row["duration"])
-        if index not in done or t0 + dur > run.updated + 1e-6:
+        if index not in done or t0 + dur > run.updated + START_SLACK_S:
             continue  # the run stopped (or paused, or resumed later in another file) before this step ended
         behind = late.get(index, 0.0)
         if behind > max(STRETCH_S, STRETCH_FRACTION * dur):  # its actions outran the schedule (its `late` event)

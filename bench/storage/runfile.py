@@ -8,6 +8,7 @@ import io
 import json
 import math
 import os
+import re
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -35,6 +36,7 @@ class Stream:
         return int(self.t.size)
 
 
+_SCAN_0 = re.compile(r"DAQ scan clock: scan 0 at (-?[\d.]+) s on the run clock")  # a ``timing`` event's
 KILLED = "no end recorded: the run crashed or was killed"  # a dead writer's file: the start of its incomplete_reason
 # a file whose writing failed (the writer abandoned it, its end unstamped): the starts of its incomplete_reason
 DISK_FULL = "no end recorded: the disk was full"
@@ -174,13 +176,24 @@ class RunFile:
 
     def step_offsets(self) -> dict[int, float]:
         """Run time − program time of each step's last start [s]: a resumed file and a pause shift the program
-        (``offset`` events, "run time = program time + X s"); steps absent here ran with none (0)."""
-        offset, out = 0.0, {}
+        (``offset`` events, "run time = program time + X s"); steps absent here ran with none (0). A step a DAQ
+        played on a stream it started is where that stream's scan 0 is (its ``timing`` event: the waveform's first
+        value plays there), and the steps appended to that stream are on the same scan clock: a wall-clock stream
+        starts some 50–110 ms after the step's ``start`` event (arming, a restart after a pause), and the cycles were
+        cut that far off the waveform's (an outside tester). A stream of the engine's own (a ramp) ends that clock."""
+        starts = {int(i): float(t) for i, t in zip(self.program["index"], self.program["t_start"], strict=True)} \
+            if self.program.size else {}
+        offset, scan_clock, out = 0.0, None, {}
         for _, step, kind, text in self.event_list():
             if kind == "offset":
-                offset = float(text.rsplit("+", 1)[1].split()[0])
+                offset, scan_clock = float(text.rsplit("+", 1)[1].split()[0]), None
             elif kind == "start":
-                out[step] = offset
+                out[step] = offset if scan_clock is None else scan_clock
+            elif kind == "timing" and (m := _SCAN_0.search(text)) is not None:
+                if "polled channels" in text and step in starts:  # a step's own stream: its scan 0 plays t_start
+                    scan_clock = out[step] = float(m[1]) - starts[step]
+                else:
+                    scan_clock = None
         return out
 
     def specimen_changes(self) -> list[tuple[float, dict[str, float]]]:
