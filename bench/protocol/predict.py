@@ -222,18 +222,17 @@ def _play_scans(seg: Segment, plant: Plant, scan_rate: float, gain: float, drive
     return peak
 
 
-def _current_remedy(program: Program, label: str, drive_filter_Hz: float | None) -> str:
+def _current_remedy(program: Program, label: str, scanned: bool, drive_filter_Hz: float | None) -> str:
     """What takes the charging current of the step ``label`` below the limit, in the protocol's and the rig's own
-    words: "a slower ramp" was said of a square wave too, which has no ramp to set (an outside tester)."""
+    words (``scanned``: a DAQ plays the drive): "a slower ramp" was said of a square wave too, which has no ramp to
+    set (an outside tester)."""
     seg = next((s for s in program.segments if s.label == label), None)
     kind = seg.kind if seg is not None else ""
     if kind == "waveform":
-        on_daq = program.rig.daq is not None and program.rig.amplifier is not None \
-            and program.rig.amplifier.drive == "daq"
         slows = ("; or daq.drive_filter_Hz: a reconstruction filter that slows the edges, the engine pre-compensating "
                  f"its lag (this rig's: {drive_filter_Hz:g} Hz)" if drive_filter_Hz is not None else
                  "; or daq.drive_filter_Hz: a reconstruction filter that slows the edges (this rig has none)") \
-            if on_daq else ""
+            if scanned else ""
         return f"a smoother waveform kind (raised_cosine), a lower frequency or a smaller amplitude{slows}"
     if kind == "relax":
         return "a longer ramp_down_s"
@@ -351,7 +350,7 @@ def predict(program: Program, progress: Callable[[float], None] | None = None) -
         text = (f"{pred.peak_current_step}: current {current_text} mA (as the current monitor "
                 f"{'reports it' if scanned else 'reads over a 20-ms conversion'}) beyond limits.max_current_A "
                 f"{limit_text} mA, a voltage step too steep for the film's capacitance")
-        remedy = _current_remedy(program, pred.peak_current_step, fc)
+        remedy = _current_remedy(program, pred.peak_current_step, scanned, fc)
         if scanned:
             pred.problems.append(text + f" (the DAQ's monitor scan would trip the run: {remedy})")
         else:
