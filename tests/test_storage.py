@@ -734,24 +734,30 @@ def test_a_daq_played_step_starts_where_its_stream_s_scan_0_is(tmp_path: Path) -
     ramp up): 48 ms at the first step, 108 ms after a resume, and the square's first edge came that much after where
     the analysis cut its cycles (an outside tester). A step the DAQ played on a stream it started is where the
     stream's scan 0 is (its `timing` event); a step appended to that stream keeps the stream's clock; an engine's own
-    stream (the restart's ramp up) and an `offset` event end it. Program: steps at 0, 3 and 5 s."""
+    stream (the restart's ramp up), an `offset` event and a step of no duration end it. The events in the order the
+    engine writes them (bench/runtime/engine.py `_restart`: restart, the ramp up's stream, offset, start). Program:
+    steps at 0, 3 and 5 s, a 0-s `set` step at 8 s, a step at 8 s."""
     from bench.storage.runfile import RunFile
 
     scan = "DAQ scan clock: scan 0 at {} s on the run clock, known to 0.2 ms (the enable request's round trip)"
     marks = [(0.0, 0, "start", ""), (0.0, 0, "timing", scan.format("0.048000") + "; polled channels (motor …"),
              (3.05, 1, "start", ""),  # appended: the same scan clock
-             (4.0, 1, "pause", ""), (7.0, 1, "resume", ""), (7.1, 1, "offset", "run time = program time + 6.300 s"),
-             (9.3, 1, "timing", scan.format("9.300000") + ": the restart's ramp up's stream"),
+             (4.0, 1, "pause", ""), (7.0, 1, "resume", ""), (7.0, 1, "restart", "…"),
+             (7.0, 1, "timing", scan.format("7.010000") + ": the restart's ramp up's stream"),
+             (9.405, 1, "offset", "run time = program time + 6.405 s"),
              (9.405, 1, "start", ""), (9.405, 1, "timing", scan.format("9.513000") + "; polled channels (…"),
-             (11.5, 2, "start", "")]
+             (11.5, 2, "start", ""),  # appended
+             (14.5, 3, "start", ""),  # a set step of no duration: the host's time again
+             (14.6, 4, "start", "")]  # no timing event of its own
     events = np.array([(t, i, k.encode(), x.encode()) for t, i, k, x in marks],
                       dtype=[("t", "f8"), ("step", "i4"), ("kind", "S16"), ("text", "S256")])
-    program = np.array([(0, 0.0), (1, 3.0), (2, 5.0)], dtype=[("index", "i4"), ("t_start", "f8")])
-    run = RunFile(path=tmp_path / "r.h5", attrs={}, state="running", reason="", end_time="", updated=12.0,
+    program = np.array([(0, 0.0, 3.0), (1, 3.0, 2.0), (2, 5.0, 3.0), (3, 8.0, 0.0), (4, 8.0, 1.0)],
+                       dtype=[("index", "i4"), ("t_start", "f8"), ("duration", "f8")])
+    run = RunFile(path=tmp_path / "r.h5", attrs={}, state="running", reason="", end_time="", updated=16.0,
                   complete=False, events=events, program=program)
     got = run.step_offsets()
     assert got[0] == pytest.approx(0.048) and got[1] == pytest.approx(9.513 - 3.0) and got[2] == got[1], got
-    # without a timing event (software-timed rigs): the offset events alone, as before
-    plain = np.array([e for e in events if e["kind"] != b"timing"], dtype=events.dtype)
-    run.events = plain
-    assert run.step_offsets() == {0: 0.0, 1: pytest.approx(6.3), 2: pytest.approx(6.3)}
+    assert got[3] == got[4] == pytest.approx(6.405), got
+    # the host's schedule (software-timed rigs; a position step's go-tos): the offset events alone
+    assert run.step_offsets(scan_clock=False) == {0: 0.0, 1: pytest.approx(6.405), 2: pytest.approx(6.405),
+                                                  3: pytest.approx(6.405), 4: pytest.approx(6.405)}

@@ -38,9 +38,9 @@ TOL_S = 1e-9  # a window's bounds are widened by this much (step times are sums 
 # a waveform step that ended this much after its planned end (the larger of the two) was stretched, not played at
 # its frequency: said above its figures (a ramp's end value sent at its end makes a step some ms late: no stretch)
 STRETCH_S, STRETCH_FRACTION = 0.05, 0.01
-# a step whose end event the file holds ended in it: its window, from where its DAQ stream's scan 0 was (a wall-clock
-# stream starts up to ~0.1 s after the step's program time), may reach that far past the file's last update
-START_SLACK_S = 0.5
+# a step whose end event the file holds ended in it: its window, from its DAQ stream's scan 0, may reach past the
+# file's last update by the scan grid's rounding (a scan or so), never by a tail of scans not yet on file (a reviewer)
+START_SLACK_S = 1e-3
 SKIPPED = re.compile(r"(\d+) of (\d+) set-points skipped")  # the engine's `skipped` event
 LATE = re.compile(r"ended (\d+(?:\.\d+)?) s after its scheduled end")  # the engine's `late` event
 
@@ -177,7 +177,8 @@ def analyse_source(src: RunSource, last_cycles: int = 3) -> RunAnalysis:
     results: list[StepResult] = []
     notes: list[str] = []
     band = no_drive_v_of(run.attrs)  # the run's own monitor chain: a T7 rig's 0-V band is narrower than an ADAM's
-    done, offsets, began = run.completed_steps(), run.step_offsets(), run.step_starts()
+    done, began = run.completed_steps(), run.step_starts()
+    offsets, scheduled = run.step_offsets(), run.step_offsets(scan_clock=False)  # the DAQ's drive, the host's go-tos
     late = {step: float(m[1]) for _, step, kind, text in run.event_list()
             if kind == "late" and (m := LATE.search(text)) is not None}  # each step's own lateness [s]
     skipped: dict[int, tuple[int, int]] = {}  # each step's set-points (skipped, planned) behind its schedule
@@ -192,7 +193,10 @@ def analyse_source(src: RunSource, last_cycles: int = 3) -> RunAnalysis:
             continue
         index = int(row["index"])
         said = f"step {index + 1} of {run.program.shape[0]} (index {index}, {row['name'].decode()})"  # notes' words
-        t0, dur = float(row["t_start"]) + offsets.get(index, 0.0), float(row["duration"])
+        # a voltage step's cycles from where the DAQ began to play it; a position step's from the host's schedule,
+        # on which the motor's go-tos go out (a reviewer: the scan clock cut them 50–110 ms late)
+        shift = (scheduled if step.channel == "position" else offsets).get(index, 0.0)
+        t0, dur = float(row["t_start"]) + shift, float(row["duration"])
         if index not in done or t0 + dur > run.updated + START_SLACK_S:
             continue  # the run stopped (or paused, or resumed later in another file) before this step ended
         behind = late.get(index, 0.0)

@@ -174,26 +174,32 @@ class RunFile:
                 done.add(step)
         return done
 
-    def step_offsets(self) -> dict[int, float]:
+    def step_offsets(self, scan_clock: bool = True) -> dict[int, float]:
         """Run time − program time of each step's last start [s]: a resumed file and a pause shift the program
-        (``offset`` events, "run time = program time + X s"); steps absent here ran with none (0). A step a DAQ
-        played on a stream it started is where that stream's scan 0 is (its ``timing`` event: the waveform's first
-        value plays there), and the steps appended to that stream are on the same scan clock: a wall-clock stream
-        starts some 50–110 ms after the step's ``start`` event (arming, a restart after a pause), and the cycles were
-        cut that far off the waveform's (an outside tester). A stream of the engine's own (a ramp) ends that clock."""
-        starts = {int(i): float(t) for i, t in zip(self.program["index"], self.program["t_start"], strict=True)} \
-            if self.program.size else {}
-        offset, scan_clock, out = 0.0, None, {}
+        (``offset`` events, "run time = program time + X s"); steps absent here ran with none (0).
+
+        ``scan_clock``: a step a DAQ played on a stream it started is where that stream's scan 0 is (its ``timing``
+        event: the waveform's first value plays there), and a step appended to that stream is on the same scan clock:
+        a wall-clock stream starts some 50–110 ms after the step's ``start`` event (arming it, a restart after a
+        pause), and the cycles were cut that far off the waveform's (an outside tester). A stream of the engine's own
+        (a ramp), an ``offset`` event and a step of no duration end that clock. Without it (``False``): the host's
+        schedule, on which the motor's go-tos are sent (an isopotential step's cycles)."""
+        rows = zip(self.program["index"], self.program["t_start"], self.program["duration"], strict=True) \
+            if self.program.size else ()
+        starts = {int(i): (float(t), float(d)) for i, t, d in rows}
+        offset, clock, out = 0.0, None, {}
         for _, step, kind, text in self.event_list():
             if kind == "offset":
-                offset, scan_clock = float(text.rsplit("+", 1)[1].split()[0]), None
+                offset, clock = float(text.rsplit("+", 1)[1].split()[0]), None
             elif kind == "start":
-                out[step] = offset if scan_clock is None else scan_clock
-            elif kind == "timing" and (m := _SCAN_0.search(text)) is not None:
+                if starts.get(step, (0.0, 0.0))[1] <= 0:
+                    clock = None
+                out[step] = offset if clock is None else clock
+            elif scan_clock and kind == "timing" and (m := _SCAN_0.search(text)) is not None:
                 if "polled channels" in text and step in starts:  # a step's own stream: its scan 0 plays t_start
-                    scan_clock = out[step] = float(m[1]) - starts[step]
+                    clock = out[step] = float(m[1]) - starts[step][0]
                 else:
-                    scan_clock = None
+                    clock = None
         return out
 
     def specimen_changes(self) -> list[tuple[float, dict[str, float]]]:
