@@ -23,9 +23,10 @@ from bench.runtime.control import control_path, write_control
 from bench.runtime.engine import Engine
 from bench.runtime.run import execute, plan_run
 from bench.storage.recorder import Column, Recorder
-from bench.storage.runfile import RunFile, open_run
+from bench.storage.runfile import open_run
 from bench.watch.follow import Bins, Follower
 from tests.conftest import ROOT
+from tests.load_trips import load_trip as _load_trip
 
 SHORT = ROOT / "protocols" / "short"
 DAQ_RIG = ROOT / "rigs" / "thesis-daq-sim.toml"
@@ -260,7 +261,6 @@ def _has(module: str) -> bool:
 
 
 ENDED = "!['waiting', 'running', 'paused'].includes(window.benchWatch.state)"  # the page: the run has ended
-LOAD_TRIPS = ("stream-out underrun", "host stall")  # what a host starved of CPU (CI beside a hog) trips, rightly
 
 
 class _LoadTripError(Exception):
@@ -368,7 +368,7 @@ def _page_pauses_and_stops(tmp_path: Path, chromium: str) -> tuple[subprocess.Po
 
 
 def _tripped_by_load_before_the_page(folder: Path) -> bool:
-    """Whether the run in ``folder`` ended tripped by a loaded host (:data:`LOAD_TRIPS`) before the page paused or
+    """Whether the run in ``folder`` ended tripped by a loaded host (tests/load_trips.py) before the page paused or
     stopped it (its file holds no pause and no stop request): what a starved host does, not the page."""
     found = sorted(folder.glob("*.h5"))
     try:
@@ -377,22 +377,6 @@ def _tripped_by_load_before_the_page(folder: Path) -> bool:
         return False
     kinds = [e[2] for e in run.event_list()]
     return _load_trip(run) and not {"pause", "request"} & set(kinds)
-
-
-def _load_trip(run: RunFile) -> bool:
-    """Whether ``run`` ended on what a host starved of CPU does: tripped on a :data:`LOAD_TRIPS` reason, or ended in
-    error with the interlock latched on a host stall (the twin that shares the host answered too late: "no valid
-    reply", CI beside a hog, 2026-11-28), or in error on the DAQ twin's missing reply with the rig latched for it
-    (its stream stop unanswered, the 0 V not read back: CI beside a hog and a browser, the same day), or without
-    a latch where the shutdown then verified 0 V (CI beside a hog and a browser, 2026-11-28: the page's address
-    refused, the run over at 4.8 s)."""
-    if run.state == "tripped":
-        return any(k in run.reason for k in LOAD_TRIPS)
-    latches = [e[3] for e in run.event_list() if e[2] == "interlock" and "latched" in e[3]]
-    verified = any(e[2] == "safe" and "verified: voltage monitor" in e[3] for e in run.event_list())
-    starved_twin = "daq: no valid reply" in run.reason and (
-        any("(output not verified)" in t for t in latches) or (not latches and verified))
-    return run.state == "error" and (starved_twin or any("(host stall)" in text for text in latches))
 
 
 def _children(pid: int) -> list[int]:
