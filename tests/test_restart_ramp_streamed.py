@@ -9,6 +9,7 @@ from the engine's account of itself."""
 from __future__ import annotations
 
 import dataclasses
+import re
 from pathlib import Path
 from typing import Any
 
@@ -19,6 +20,7 @@ from bench.runtime.engine import Engine, RunResult
 from bench.runtime.run import execute, plan_run
 from bench.storage.runfile import RunFile, open_run
 from tests.conftest import ROOT
+from tests.load_trips import load_trip
 
 PROTOCOL = """[protocol]
 name = "restart-up"
@@ -63,9 +65,10 @@ Outcome = tuple[RunResult, RunFile, np.ndarray, np.ndarray, dict[str, float], An
 
 
 def _run(tmp: Path, fault_after_resume_s: float | None = None, stop: bool = False,
-         gain: float | None = None) -> Outcome:
+         gain: float | None = None, virtual: bool = True) -> Outcome:
     """The protocol, paused at ``PAUSE_AT`` and resumed at ``RESUME_AT`` (run time), on the simulated DAQ rig in
-    virtual time; ``fault_after_resume_s``: the dielectric breaks down (``stop``: a stop is requested) that long
+    virtual time (``virtual=False``: on the wall clock, the pause and resume asked from the plant's thread);
+    ``fault_after_resume_s``: the dielectric breaks down (``stop``: a stop is requested) that long
     after the resume was asked for; ``gain``: instead, the amplifier's gain becomes ``gain`` × its own then.
     Returns (result, run file, plant times on the run clock, plant output, what the hook saw, the plant)."""
     proto = tmp / "restart-up.toml"
@@ -94,9 +97,12 @@ def _run(tmp: Path, fault_after_resume_s: float | None = None, stop: bool = Fals
                     sim.plant.hv = dataclasses.replace(sim.plant.hv, gain=sim.plant.hv.gain * gain)
                 else:
                     sim.plant.inject_breakdown()
-        sim.clock.subscribe(at)
+        if virtual:
+            sim.clock.subscribe(at)
+        else:
+            sim.plant.listeners.append(lambda _b: at(0.0))
 
-    result = execute(plan_run(proto), tmp / "run.h5", virtual=True, on_engine=hook)
+    result = execute(plan_run(proto), tmp / "run.h5", virtual=virtual, on_engine=hook)
     t = np.concatenate([b[0] for b in blocks]) - seen["t0"]
     v = np.concatenate([b[1] for b in blocks])
     return result, open_run(result.path), t, v, seen, sims[0].plant
@@ -138,6 +144,30 @@ def test_a_resumed_steps_ramp_up_is_played_by_the_daq_and_recorded_on_the_scan_c
     volts = sp.columns["voltage"][within]
     assert abs(volts[0]) <= ZERO_V and volts[-1] == pytest.approx(V_HOLD)
     assert np.all(np.diff(volts) >= 0)
+
+
+def test_the_resumed_step_plays_on_the_ramp_ups_stream_with_no_hole_at_high_voltage(tmp_path: Path) -> None:
+    """On the wall clock: the resumed step is appended to the ramp up's stream, so every scan from the restart to the
+    step's end is recorded, 0.1 ms apart. Before, the ramp's stream stopped after its settle and the step armed a
+    stream of its own, and arming one takes the host ~0.1 s: the recording had a hole at 5 kV, no scan recorded or
+    supervised (an outside tester: 113 ms at 3 kV)."""
+    result, run, *_ = _run(tmp_path, virtual=False)
+    if load_trip(run):
+        pytest.skip(f"the loaded host tripped the wall-clock run first: {run.reason}")
+    assert result.state == "completed", result.reason
+    (t_restart, *_), = _events(run, "restart")
+    (t_offset, _, _, text), = _events(run, "offset")
+    t_end = next(t for t, step, kind, _ in run.event_list() if kind == "end" and step == 1 and t > t_restart)
+    amp = run.streams["amplifier"]
+    w = (amp.t >= t_restart) & (amp.t <= t_end)
+    gaps = np.diff(amp.t[w])
+    assert gaps.max() < 1.5 * SCAN, f"{gaps.max() * 1e3:.1f} ms without a scan at {amp.t[w][np.argmax(gaps)]:.3f} s"
+    # the step restarts on the scan clock, ``RAMP_S`` plus the settle after the ramp's scan 0: the program's offset is
+    # that scan's time less the step's program start (1.0 s), not the host's later reading of its clock
+    t0_ramp, = [float(re.findall(r"scan 0 at ([\d.]+) s", txt)[0]) for *_, txt in _events(run, "timing")
+                if "ramp up" in txt]
+    offset = float(text.rsplit("+", 1)[1].split()[0])
+    assert t_restart <= t0_ramp + RAMP_S < offset + 1.0 <= t_offset
 
 
 def test_a_trip_during_the_ramp_up_ends_the_run_at_0_v_latched(tmp_path: Path) -> None:

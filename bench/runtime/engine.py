@@ -1061,8 +1061,10 @@ class Engine:
                 self._pause_until(self.now() + 0.02, urgent_aborts=False)
         ramp = self.program.rig.limits.shutdown_ramp_s
         up = self.inst.amplifier is not None and abs(volts - self.ctx.v_cmd) > RESTART_STEP_V
+        start = None  # run time at which the step starts on the scan clock (its values appended to the ramp's)
         if up and self._stream is not None:  # a DAQ rig: the DAQ plays the ramp, recorded on its scan clock
-            self._stream_ramp_up(volts, ramp, RESTART_SETTLE_S)
+            start = self._stream_ramp_up(volts, ramp, RESTART_SETTLE_S,
+                                         seg if seg.duration > 0 and not seg.changes else None)
         elif up:
             # supervised as a step is: the monitors (and the other polled sensors) read, recorded and checked
             # after every set-point of the ramp up, not only once the next step has started
@@ -1073,7 +1075,7 @@ class Engine:
             self._pause_until(self.now() + RESTART_SETTLE_S, urgent_aborts=False)
             supervise()
         self.ctx.v_req = volts
-        self.ctx.offset = self.now() - seg.t_start
+        self.ctx.offset = (self.now() if start is None else start) - seg.t_start
         self.rec.event(self.now(), seg.index, "offset", f"run time = program time + {self.ctx.offset:.9f} s")
 
     def _pause(self, seg: Segment) -> None:
@@ -1531,21 +1533,23 @@ class Engine:
         hw.stop(whole=True)
         return t_zero
 
-    def _stream_ramp_up(self, v1: float, ramp: float, settle: float) -> None:
+    def _stream_ramp_up(self, v1: float, ramp: float, settle: float, then: Segment | None) -> float | None:
         """A restart's ramp up on a DAQ rig, played by the DAQ's stream-out (:meth:`HardwareTimed.ramp_up`) from the
         value the DAC holds to ``v1`` over ``ramp`` s, the inputs recorded on the scan clock through it and ``settle``
         s after it and supervised as a step's are (every scan checked by the supervisor and the output verifier; the
         other polled sensors at their step rates). A stop request or a trip meanwhile ends the run as in a step: the
-        shutdown ramps to 0 V from the value last played. The stream is stopped after the settle (the DAC holds
-        ``v1``); the step's own stream starts then."""
+        shutdown ramps to 0 V from the value last played. ``then``: the step that starts next, played on the same
+        stream from ``settle`` s after ``v1`` (returns the run time of the scan that plays its start); without it
+        (None returned) the stream is stopped after the settle (the DAC holds ``v1``) and the step arms its own."""
         hw, v0 = self._hw, self.ctx.v_cmd
         self._check_stop()
-        t_end = hw.ramp_up(v1, ramp)
+        t_end, start = hw.ramp_up(v1, ramp, settle, then)
         self._record_setpoint(max(hw.ramp_start, self._setpoint_t), v0, math.nan)
         supervise = self._supervised()  # the stream plays now: its collect is among the polls
         end = t_end + settle
         give_up = end + 1.0  # rig time: packets that stop coming end the run (the DAC holds v1 meanwhile)
-        while hw.recorded_to() < end - 1e-9:
+        # with the step in the stream its collects go on recording the settle's last scans: the step starts on time
+        while (self.now() if then is not None else hw.recorded_to()) < end - 1e-9:
             self._check_stop()
             if self.now() > give_up:
                 raise InstrumentTimeoutError(hw.daq.name, f"the restart's ramp up: scans recorded to "
@@ -1554,9 +1558,11 @@ class Engine:
                               urgent_aborts=False)
             supervise()
             hw.collect()
-        hw.stop(whole=True)
+        if then is None:
+            hw.stop(whole=True)
         self._record_setpoint(max(t_end, self._setpoint_t), v1, math.nan)
         self.snapshot.values["setpoint"] = self.ctx.v_cmd
+        return None if then is None else start
 
     def _ramp_pause(self, until: float) -> bool:
         """The shutdown ramp's wait before its next set-point: False (0 V at once) on a second stop request, or when

@@ -320,23 +320,35 @@ class HardwareTimed:
         0 V (the DAC commands it itself)."""
         return self._ramp(v0, 0.0, ramp_s, "the ramp to 0 V's stream")
 
-    def ramp_up(self, v1: float, ramp_s: float) -> float:
+    def ramp_up(self, v1: float, ramp_s: float, settle_s: float = 0.0,
+                then: Segment | None = None) -> tuple[float, float]:
         """A restart's ramp (after a pause, in a resumed campaign): from the value the DAC holds to ``v1`` over
         ``ramp_s`` on a new stream, ``v1`` held after it. Supervised as a step's start is (the values checked before
-        anything is armed); the engine collects it with :meth:`collect`, every scan supervised. Returns the run
-        time of the scan that plays ``v1``."""
-        return self._ramp(self.ctx.v_cmd, v1, ramp_s, "the restart's ramp up's stream", supervise=True)
+        anything is armed); the engine collects it with :meth:`collect`, every scan supervised. ``then``: the step
+        the restart starts, appended to the same stream ``settle_s`` after ``v1`` is reached (the scan there plays
+        its start): no stream is re-armed at ``v1``, which on a wall clock left the recording ~110 ms without a
+        scan at high voltage (an outside tester: 113 ms at 3 kV). Returns (the run time of the scan that plays
+        ``v1``, that of the scan that plays ``then``'s start: the first plus ``settle_s``)."""
+        t1 = self._ramp(self.ctx.v_cmd, v1, ramp_s, "the restart's ramp up's stream", supervise=True,
+                        hold_s=settle_s if then is not None else 0.0, final=then is None)
+        start = self.ramp_start + self._n / self.cfg.scan_rate_Hz
+        if then is not None:
+            self._append(then, then)
+        return t1, start
 
-    def _ramp(self, v0: float, v1: float, ramp_s: float, what: str, supervise: bool = False) -> float:
+    def _ramp(self, v0: float, v1: float, ramp_s: float, what: str, supervise: bool = False, hold_s: float = 0.0,
+              final: bool = True) -> float:
         """Play a straight ramp from ``v0`` (scan 0) to ``v1`` (scan n, held after it) over ``ramp_s`` on a new
         stream, the running one stopped first (its last scans recorded); ``supervise``: the wanted and the followed
-        values checked by the supervisor before it is armed. Returns the run time of scan n; a ``timing`` event
-        names the stream's scan 0 on the run clock (:attr:`ramp_start`)."""
+        values checked by the supervisor before it is armed; ``hold_s``: ``v1`` played that much longer (the last
+        value given); ``final=False``: the stream-out stays open for a step (:meth:`_append`). Returns the run time
+        of scan n; a ``timing`` event names the stream's scan 0 on the run clock (:attr:`ramp_start`)."""
         self.stop(whole=True)
         rate = self.cfg.scan_rate_Hz
         n = max(1, round(ramp_s * rate))
         volts = v0 + (v1 - v0) * (np.arange(n + 1) / n)  # scan 0 plays v0 (the value the DAC holds), scan n v1
         volts[-1] = v1
+        volts = np.concatenate([volts, np.full(round(hold_s * rate), v1)])
         bound, window = self._window()
         if supervise:
             self.ctx.sup.check_setpoint_over(_peak(volts), ())
@@ -345,9 +357,9 @@ class HardwareTimed:
         if supervise:
             self.ctx.sup.check_setpoint_over(_peak(commanded), ())
             self.ctx.guard()
-        self.daq.arm(StreamSpec(rate, self.inputs, StreamOut(self.cfg.dac, dac, hold=1, final=True, within=window),
+        self.daq.arm(StreamSpec(rate, self.inputs, StreamOut(self.cfg.dac, dac, hold=1, final=final, within=window),
                                 out_ahead_s=OUT_AHEAD_S, out_loops=False))
-        self._base, self._commanded, self._n, self._appended = 0, commanded, n, None
+        self._base, self._commanded, self._n, self._appended = 0, commanded, volts.size - 1, None
         self._tail = self.ctx.v_req = v1
         return self._kickoff_own(what) + n / rate
 
