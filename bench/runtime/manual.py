@@ -118,6 +118,7 @@ from bench.runtime.interlock import POLLED_READINGS, InterlockTrip
 from bench.runtime.manual_mode import (
     IDLE_MIN_S,
     KEEPALIVE_S,
+    RAMP_HZ,
     LatchRefused,
     ManualEngine,
     PauseRequested,
@@ -131,7 +132,6 @@ from bench.storage.recorder import Recorder, now_iso
 from bench.units import to_si
 from drivers.errors import InstrumentError, LimitError, OperationCancelledError, UnsupportedCommandError
 
-RAMP_HZ = 20.0
 DEFAULT_SPEED = 0.02  # m/s
 SETTLE_S = 0.3  # after a voltage set-point: the monitors convert at 10 S/s (ADAM-4017+)
 HISTORY_FILE = ".bench_history"  # in the user's home folder: what was typed at the interactive prompt

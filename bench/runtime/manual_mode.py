@@ -26,6 +26,8 @@ import threading
 from collections.abc import Callable
 
 from bench.core.clock import Clock
+from bench.core.noise import TREK_DYNAMICS
+from bench.core.step_current import largest_step, monitor_peak
 from bench.numbers import whole
 from bench.protocol.program import Program
 from bench.protocol.schema import Protocol, ProtocolHeader
@@ -51,8 +53,9 @@ IDLE_MIN_S = 1e-3  # a hold waits at least this long between two idle actions (n
 MOVE_POLL_S = 0.05  # a move's status is read this often until it ends
 MOVE_ACCEL = 0.5  # m/s², a manual move's acceleration (at most the rig's)
 MOVE_SPARE_S = 2.0  # a move must end within its distance / speed × 1.5 plus this
+RAMP_HZ = 20.0  # set-points per second of a `ramp` command
 
-__all__ = ["KEEPALIVE_S", "LatchRefused", "ManualEngine", "PauseRequested", "Refused", "StopRequested",
+__all__ = ["KEEPALIVE_S", "RAMP_HZ", "LatchRefused", "ManualEngine", "PauseRequested", "Refused", "StopRequested",
            "manual_program"]
 
 
@@ -145,8 +148,32 @@ class ManualEngine(Engine):
         except SafetyTrip as exc:
             self.ctx.v_req = self.ctx.v_cmd
             raise Refused(f"{exc.reason}; not sent") from None
+        self._check_step(volts, volts - self.ctx.v_cmd, "not sent")
         self._set_voltage(volts, self.now())
         return self.ctx.v_cmd
+
+    def _check_step(self, target: float, dv: float, what: str, ramp_s: float | None = None) -> None:
+        """Refused where a step of ``dv`` [V] (a set-point toward ``target``: a ``ramp`` sends its ``ramp_s`` in
+        steps at RAMP_HZ) on a DAQ rig would show a charging current above the rig's limit on the current monitor
+        (:mod:`bench.core.step_current`, the specimen's capacitance at the present stretch): a protocol's run scans
+        that monitor at 10 kHz and trips on it, and validate refuses such an edge; a session's polled monitors never
+        see a pulse of a few ms (an outside tester: `voltage 5000` from 0 V on an LS-DEA DAQ rig went out, the same
+        edge in a protocol refused at 12 mA). A set-point of 0 V is never refused: the output can always be let off."""
+        amp, daq = self.rig.amplifier, self.rig.daq
+        if target == 0.0 or dv == 0.0 or amp is None or amp.drive != "daq" or daq is None:
+            return
+        c, dyn, limit = self.sup.capacitance(), TREK_DYNAMICS[amp.model], self.rig.limits.max_current_A
+        if (peak := monitor_peak(dv, c, dyn, daq.drive_filter_Hz)) <= limit:
+            return
+        step = max(largest_step(c, dyn, daq.drive_filter_Hz, limit, abs(dv)), 1.0)
+        span = abs(target - self.ctx.v_cmd)
+        need = math.ceil(span / step) / RAMP_HZ
+        kind = f"a step of {abs(dv):.0f} V charges" if ramp_s is None else \
+            f"the {ramp_s:g}-s ramp's steps of {abs(dv):.0f} V (one every {1 / RAMP_HZ:g} s) each charge"
+        raise Refused(f"{kind} the specimen ({c * 1e9:.2f} nF at the present stretch) at "
+                      f"{peak * 1e3:.1f} mA on the current monitor, above the rig's {limit * 1e3:g}-mA limit (a run "
+                      f"scanning it would trip); `ramp {target:.0f} V {need:.3g} s` keeps each step within "
+                      f"{step:.0f} V; {what}")
 
     def reach(self, volts: float) -> float:
         """:meth:`voltage`, re-sent once the amplifier's slew limit allows the whole step (after |gap| / slew on the
@@ -179,6 +206,7 @@ class ManualEngine(Engine):
         except SafetyTrip as exc:
             raise Refused(f"{exc.reason}; ramp not started") from None
         n = max(1, math.ceil(seconds * rate_hz))
+        self._check_step(target, (target - self.ctx.v_cmd) / n, "ramp not started", seconds)
         self._ramp_to(target, seconds, n, self._ramp_step_done)
         return n
 

@@ -16,7 +16,9 @@ from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 
 from bench.models.lozenge import LozengeParams, kinematics
+from bench.models.lozenge import capacitance as lozenge_capacitance
 from bench.models.membrane import MembraneParams
+from bench.models.membrane import capacitance as membrane_capacitance
 from bench.numbers import against
 from bench.rig import MONITOR_TRIP_FACTOR, MONITOR_TRIP_MARGIN_V, RigConfig
 
@@ -91,6 +93,17 @@ class Supervisor:
             if abs(volts) * l1 * l2 / q.t0 > min(cap, e_b / lim.breakdown_margin):
                 return False
         return True
+
+    def capacitance(self) -> float:
+        """The specimen's capacitance [F] at the last measured stretch (as :meth:`field_and_breakdown` takes it; a
+        membrane at the rig file's specimen temperature, on which its permittivity depends)."""
+        if isinstance(self.specimen, MembraneParams):
+            p = self.specimen
+            lam = p.lambda_pre + (self.displacement or 0.0) / p.L_d
+            return float(membrane_capacitance(lam, self.rig.specimen.temperature_K, p.pack())[0])
+        q = self.specimen
+        x = min(max(self.aperture or q.xp, 1.0001 * q.xp), 1.999 * q.l)
+        return float(lozenge_capacitance(x, q.pack())[0])
 
     def _stretch(self, q: LozengeParams, x: float) -> tuple[float, float, float]:
         """(λ1, λ2, breakdown field E_B [V/m]) of the LS-DEA ``q`` at aperture ``x`` [m]: the last one remembered, as
