@@ -31,7 +31,15 @@ import math
 from dataclasses import dataclass
 from fractions import Fraction
 
-from bench.protocol.program import FETCH_PERIOD_S, HOLD_KEEPALIVE_S, PASSIVE_LASER_HZ, Program, Segment
+from bench.protocol.program import (
+    DRAIN_HOLD_S,
+    FETCH_PERIOD_S,
+    HOLD_KEEPALIVE_S,
+    PASSIVE_LASER_HZ,
+    Program,
+    Segment,
+    voltage_at,
+)
 
 TURNAROUND_MODBUS_S = 1e-3  # ADAM / DGT1S request → reply [assumed: no figure in the manuals read]
 TURNAROUND_LKG_S = 0.5e-3  # LK-G command → reply [assumed]
@@ -218,6 +226,42 @@ def check_links(program: Program) -> list[str]:
     if (host := _check_host(program, loads, upload_share)) is not None:  # last: the links' own lines say what to change
         problems.append(host)
     return problems
+
+
+def upload_hold(program: Program, on_V: float) -> str | None:
+    """One line (a warning: nothing is refused) where steps that store laser data end with the output on (|V| above
+    ``on_V``) on a rig whose host sets the voltage: each one's last stored values upload after it, the output held at
+    its end value meanwhile — the engine's drain, at most ``DRAIN_HOLD_S``, then ramped to 0 V and the next step
+    restarted — time at high voltage the protocol does not ask for (an outside tester: 3 kV held 1.18 s before a
+    relax on a loaded host, the dry run silent). The time said is the link's alone, a floor: the values one fetch
+    period stores and the backlog a link slower than the storage leaves (:func:`laser_fetch_time`); the drain's
+    supervision between uploads and a host that fell behind add to it."""
+    rig = program.rig
+    amp_daq, laser_daq = _hardware_timed(program)
+    if rig.laser is None or rig.amplifier is None or amp_daq or laser_daq:
+        return None
+    held, volts = [], 0.0
+    for seg in program.segments:
+        volts = end if (end := voltage_at(seg, seg.t_end)) is not None else volts
+        if seg.storing and seg.duration > 0 and abs(volts) > on_V:
+            held.append((seg, volts))
+    if not held:
+        return None
+    stored, loads = program.laser_Hz, link_loads(program)
+    tick = min(FETCH_PERIOD_S, 1.0 / program.protocol.recording.setpoint_Hz)
+
+    def tail(seg: Segment) -> float:  # one fetch period's values, and the backlog a link slower than the storage left
+        backlog = max(0.0, stored - step_drain_rate(program, seg, loads=loads)) * seg.duration
+        return laser_fetch_time(rig.laser.baudrate if rig.laser is not None else 0, math.ceil(stored * tick + backlog))
+
+    seg, volts = max(held, key=lambda h: (tail(h[0]), abs(h[1])))
+    which = f"step {seg.label.rsplit('/', 1)[-1][:40]} at {volts:.0f} V" + \
+        (f" and {len(held) - 1} more" if len(held) > 1 else "")
+    return (f"{len(held)} step{'s' if len(held) > 1 else ''} storing laser data end{'' if len(held) > 1 else 's'} "
+            f"with the output on ({which}): the last stored values upload after each, the output held at its end "
+            f"value meanwhile — at least {tail(seg) * 1e3:.0f} ms on the link at {rig.laser.baudrate} Bd (the "
+            "longest; more with the supervision between uploads and on a busy host), at most "
+            f"{DRAIN_HOLD_S:g} s (then ramped to 0 V and the next step restarted from its start)")
 
 
 def _step_schedule(program: Program, seg: Segment, loads: list[LinkLoad]) -> tuple[float | None, Polls, Polls]:

@@ -32,6 +32,7 @@ from bench.core.motion_chain import chain
 from bench.core.one_pole import one_pole
 from bench.core.plant import Plant, PlantBlock
 from bench.numbers import against, mv_per_m
+from bench.protocol.link_budget import upload_hold
 from bench.protocol.program import Program, ProtocolLimitError, Segment, change_specimen, sample_counts
 from bench.protocol.tick_arrays import tick_arrays
 from bench.rig import plant_for
@@ -356,6 +357,8 @@ def predict(program: Program, progress: Callable[[float], None] | None = None) -
         else:
             pred.warnings.append(text + f": a monitor poll that lands on the pulse trips the run ({remedy}, or "
                                  "more set-points, avoid it)")
+    if (held := upload_hold(program, SAFE_TOUCH_V)) is not None:
+        pred.warnings.append(held)
     peak_force = max(abs(pred.force_range[0]), abs(pred.force_range[1]))
     if np.isfinite(peak_force) and peak_force > limits.max_force_N:
         force_text, limit_text = against(peak_force, limits.max_force_N)

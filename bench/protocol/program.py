@@ -40,6 +40,9 @@ MOVE_SETTLE_S = 0.05
 MAX_SAMPLES = 10**10  # recorded samples over a whole run (all streams): ~ 1 TB uncompressed
 PASSIVE_LASER_HZ = 10.0  # single laser reads while its data storage is idle (software-timed rigs)
 FETCH_PERIOD_S = 0.25  # laser storage upload period while storing (run time; the engine's, the link budget's)
+# a step's end value is held (supervised) at most this long (run time) while its stored laser data upload after it,
+# then ramped to 0 V (the engine's drain; the dry run warns of the hold: bench/protocol/link_budget.py upload_hold)
+DRAIN_HOLD_S = 1.0
 HOLD_KEEPALIVE_S = 0.25  # set-point refresh during holds (keeps the analog module's watchdog fed)
 # a set step's "output at 0 V", as a fraction of the rig's voltage limit: 1 ppm (7 mV at 7 kV) is far below one step
 # of the finest set-point DAC a rig file allows (16 bits over ±limit: 30 ppm), so the code sent is the 0-V request's,

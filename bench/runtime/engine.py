@@ -40,6 +40,7 @@ from bench.core.clock import Clock
 from bench.models.lozenge import LozengeParams
 from bench.numbers import whole
 from bench.protocol.program import (
+    DRAIN_HOLD_S,
     HOLD_KEEPALIVE_S,
     Program,
     Segment,
@@ -79,7 +80,6 @@ MONITOR_REREAD_S = 0.1  # a monitor not yet at 0 V is read again this often (shu
 SAFE_STATE = "safe_state"  # the run file's stream of the shutdown's verifying monitor reads (_verify_safe)
 WATCHDOG_MARGIN_S = 0.2  # wait past the module's communication-safety period before checking the output
 LASER_DRAIN_BUDGET_S = 30.0  # at most this long (rig time) fetching a step's stored laser data after the step
-DRAIN_HOLD_S = 1.0  # a step's end value is held (supervised) at most this long (run time) while its data upload
 LASER_SHUTDOWN_DRAIN_S = 5.0  # after a stop or fault (high voltage already at 0 V): then what is left is reported
 PAUSE_POLL_S = 0.1  # while paused: the monitors and sensors are read this often (run time)
 RESTART_STEP_V = 10.0  # a restart ramps the output to the step's start value unless it is this close already
