@@ -761,3 +761,23 @@ def test_a_daq_played_step_starts_where_its_stream_s_scan_0_is(tmp_path: Path) -
     # the host's schedule (software-timed rigs; a position step's go-tos): the offset events alone
     assert run.step_offsets(scan_clock=False) == {0: 0.0, 1: pytest.approx(6.405), 2: pytest.approx(6.405),
                                                   3: pytest.approx(6.405), 4: pytest.approx(6.405)}
+    assert run.step_offset_clocks() == (got, run.step_offsets(scan_clock=False))  # both from one pass
+
+
+def test_a_kickoffs_text_is_written_and_read_by_one_grammar() -> None:
+    """The `timing` event of a stream's kickoff is written (bench/runtime/hardware_timed.py) and read (the analysis's
+    offsets, replay) through bench/storage/scan_clock.py; before, each reader had its own regex and told a step's
+    stream from a ramp's by a phrase of the prose. The texts of files already written read as they did: literal
+    texts of a run file of 2026-11-28 (the thesis DAQ rig, a pause and resume)."""
+    from bench.storage.scan_clock import kickoff_text, parse_kickoff
+
+    old_step = ("DAQ scan clock: scan 0 at 2.881100 s on the run clock, known to 0.000 ms (the enable request's round "
+                "trip); polled channels (motor encoder) are timestamped on the same run clock")
+    old_ramp = ("DAQ scan clock: scan 0 at 2.507100 s on the run clock, known to 0.000 ms (the enable request's round "
+                "trip): the restart's ramp up's stream")
+    assert parse_kickoff(old_step) == (pytest.approx(2.8811), True)
+    assert parse_kickoff(old_ramp) == (pytest.approx(2.5071), False)
+    assert kickoff_text(2.8811, 0.0) == old_step  # the writer's text is the files' text
+    assert kickoff_text(2.5071, 0.0, "the restart's ramp up's stream") == old_ramp
+    assert parse_kickoff(kickoff_text(-0.25, 2e-4, "the ramp to 0 V's stream")) == (pytest.approx(-0.25), False)
+    assert parse_kickoff("12 late actions (> 50 ms), worst 0.2 s") is None  # the engine's other timing events

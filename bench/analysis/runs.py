@@ -178,7 +178,7 @@ def analyse_source(src: RunSource, last_cycles: int = 3) -> RunAnalysis:
     notes: list[str] = []
     band = no_drive_v_of(run.attrs)  # the run's own monitor chain: a T7 rig's 0-V band is narrower than an ADAM's
     done, began = run.completed_steps(), run.step_starts()
-    offsets, scheduled = run.step_offsets(), run.step_offsets(scan_clock=False)  # the DAQ's drive, the host's go-tos
+    offsets, scheduled = run.step_offset_clocks()  # the DAQ's drive, the host's go-tos
     late = {step: float(m[1]) for _, step, kind, text in run.event_list()
             if kind == "late" and (m := LATE.search(text)) is not None}  # each step's own lateness [s]
     skipped: dict[int, tuple[int, int]] = {}  # each step's set-points (skipped, planned) behind its schedule

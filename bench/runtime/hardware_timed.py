@@ -23,6 +23,7 @@ from bench.rig import DaqConfig, RigConfig
 from bench.runtime.context import RunContext
 from bench.runtime.interlock import OUTPUT_ON_V, InterlockTrip, mismatch_trip
 from bench.runtime.safety import SafetyTrip
+from bench.storage import scan_clock
 from drivers.errors import InstrumentTimeoutError, StreamEndedError
 from drivers.interfaces import (
     Amplifier,
@@ -168,10 +169,8 @@ class HardwareTimed:
             self.ctx.verifier.restart()
             t0 = self.daq.kickoff()
             self._keepalive = self.ctx.clock.now()
-            self.ctx.rec.event(self.ctx.now(), seg.index, "timing",
-                               f"DAQ scan clock: scan 0 at {t0 - self.ctx.t0:.6f} s on the run clock, known to "
-                               f"{self.daq.scan_clock_uncertainty * 1e3:.3f} ms (the enable request's round trip); "
-                               "polled channels (motor encoder) are timestamped on the same run clock")
+            self.ctx.rec.event(self.ctx.now(), seg.index, scan_clock.KIND,
+                               scan_clock.kickoff_text(t0 - self.ctx.t0, self.daq.scan_clock_uncertainty))
         self.ctx.v_req = self._tail  # this step's end value: the last one in the stream until the next is appended
         self._appended = None
         if nxt is not None and self.daq.out_open:
@@ -370,10 +369,8 @@ class HardwareTimed:
         t0 = self.daq.kickoff()
         self._keepalive = self.ctx.clock.now()
         self.ramp_start = t0 - self.ctx.t0
-        self.ctx.rec.event(self.ctx.now(), self.ctx.snapshot.step, "timing",
-                           f"DAQ scan clock: scan 0 at {self.ramp_start:.6f} s on the run clock, known to "
-                           f"{self.daq.scan_clock_uncertainty * 1e3:.3f} ms (the enable request's round trip): "
-                           f"{what}")
+        self.ctx.rec.event(self.ctx.now(), self.ctx.snapshot.step, scan_clock.KIND,
+                           scan_clock.kickoff_text(self.ramp_start, self.daq.scan_clock_uncertainty, what))
         return self.ramp_start
 
     def record_zero(self) -> float:

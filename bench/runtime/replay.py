@@ -27,7 +27,6 @@ the motor's position is the recorded one. The record is read a chunk at a time
 from __future__ import annotations
 
 import math
-import re
 import threading
 from pathlib import Path
 from typing import Any
@@ -38,6 +37,7 @@ import numpy as np
 from bench.core.clock import Clock
 from bench.core.plant import PLANT_FIELDS, Plant, PlantBlock
 from bench.rig import RigConfig, rig_from_toml
+from bench.storage import scan_clock
 from bench.storage.chunks import StreamChunks
 from bench.storage.runfile import open_h5, read_table, valid_counts
 
@@ -132,16 +132,14 @@ class Recording:
         self.file.close()
 
 
-KICKOFF = re.compile(rb"DAQ scan clock: scan 0 at (-?[0-9.]+) s on the run clock")
-
-
 def _kickoffs(f: h5py.File) -> list[float]:
     """The record's hardware-timed streams' scan 0 times [s, record time], in order: its ``timing`` events
     (:meth:`bench.runtime.hardware_timed.HardwareTimed.start` writes them); none on a software-timed rig."""
     if "events" not in f:
         return []
     events = read_table(f["events"], valid_counts(f).get("events"))
-    return [float(m.group(1)) for e in events if e["kind"] == b"timing" and (m := KICKOFF.match(bytes(e["text"])))]
+    return [k[0] for e in events if e["kind"] == scan_clock.KIND.encode()
+            and (k := scan_clock.parse_kickoff(bytes(e["text"]).decode("utf-8", "replace"))) is not None]
 
 
 def replay_rig(path: str | Path) -> RigConfig:

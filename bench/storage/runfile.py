@@ -8,7 +8,6 @@ import io
 import json
 import math
 import os
-import re
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -17,6 +16,7 @@ from typing import Any
 import h5py
 import numpy as np
 
+from bench.storage import scan_clock as kickoffs
 from bench.storage.absent import absent_run_file
 from bench.storage.recorder import EVENT_FIELDS, FORMATS, PROGRAM_FIELDS, STATES, STORAGE_FAULT
 from bench.storage.superblock import clear_consistency_flags, open_elsewhere, read_superblock
@@ -36,7 +36,6 @@ class Stream:
         return int(self.t.size)
 
 
-_SCAN_0 = re.compile(r"DAQ scan clock: scan 0 at (-?[\d.]+) s on the run clock")  # a ``timing`` event's
 KILLED = "no end recorded: the run crashed or was killed"  # a dead writer's file: the start of its incomplete_reason
 # a file whose writing failed (the writer abandoned it, its end unstamped): the starts of its incomplete_reason
 DISK_FULL = "no end recorded: the disk was full"
@@ -179,28 +178,35 @@ class RunFile:
         (``offset`` events, "run time = program time + X s"); steps absent here ran with none (0).
 
         ``scan_clock``: a step a DAQ played on a stream it started is where that stream's scan 0 is (its ``timing``
-        event: the waveform's first value plays there), and a step appended to that stream is on the same scan clock:
-        a wall-clock stream starts some 50–110 ms after the step's ``start`` event (arming it, a restart after a
-        pause), and the cycles were cut that far off the waveform's (an outside tester). A stream of the engine's own
-        (a ramp), an ``offset`` event and a step of no duration end that clock. Without it (``False``): the host's
-        schedule, on which the motor's go-tos are sent (an isopotential step's cycles)."""
+        event, :mod:`bench.storage.scan_clock`: the waveform's first value plays there), and a step appended to that
+        stream is on the same scan clock: a wall-clock stream starts some 50–110 ms after the step's ``start`` event
+        (arming it), and the cycles were cut that far off the waveform's (an outside tester). A stream of the
+        engine's own (a ramp), an ``offset`` event and a step of no duration end that clock. Without it (``False``):
+        the host's schedule, on which the motor's go-tos are sent (an isopotential step's cycles). Both at once, in
+        one pass over the events: :meth:`step_offset_clocks`."""
+        scan, host = self.step_offset_clocks()
+        return scan if scan_clock else host
+
+    def step_offset_clocks(self) -> tuple[dict[int, float], dict[int, float]]:
+        """(:meth:`step_offsets` on the scan clock, on the host's schedule), from one pass over the events."""
         rows = zip(self.program["index"], self.program["t_start"], self.program["duration"], strict=True) \
             if self.program.size else ()
         starts = {int(i): (float(t), float(d)) for i, t, d in rows}
-        offset, clock, out = 0.0, None, {}
+        offset, clock, scan, host = 0.0, None, {}, {}
         for _, step, kind, text in self.event_list():
             if kind == "offset":
                 offset, clock = float(text.rsplit("+", 1)[1].split()[0]), None
             elif kind == "start":
                 if starts.get(step, (0.0, 0.0))[1] <= 0:
                     clock = None
-                out[step] = offset if clock is None else clock
-            elif scan_clock and kind == "timing" and (m := _SCAN_0.search(text)) is not None:
-                if "polled channels" in text and step in starts:  # a step's own stream: its scan 0 plays t_start
-                    clock = out[step] = float(m[1]) - starts[step][0]
+                scan[step] = offset if clock is None else clock
+                host[step] = offset
+            elif kind == kickoffs.KIND and (k := kickoffs.parse_kickoff(text)) is not None:
+                if k[1] and step in starts:  # a step's own stream: its scan 0 plays t_start
+                    clock = scan[step] = k[0] - starts[step][0]
                 else:
                     clock = None
-        return out
+        return scan, host
 
     def specimen_changes(self) -> list[tuple[float, dict[str, float]]]:
         """Specimen changes during the run (``specimen`` events "key=value, …") as (t, {key: value})."""
