@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from bench.runtime.engine import Engine, RunResult
+from bench.runtime.engine import RESTART_SETTLE_S, Engine, RunResult
 from bench.runtime.run import execute, plan_run
 from bench.storage.runfile import RunFile, open_run
 from tests.conftest import ROOT
@@ -115,9 +115,15 @@ def test_a_resumed_steps_ramp_up_is_played_by_the_daq_and_recorded_on_the_scan_c
     assert kinds == ["pause", "resume", "restart", "offset"]
     (t_restart, step, _, text), = _events(run, "restart")
     assert step == 1 and f"output to {V_HOLD:.0f} V" in text
-    (t_step, *_), = _events(run, "offset")  # the hold step starts again here
-    # a timing event names the ramp's stream, between the restart and the step's own start
-    assert any(t_restart <= t <= t_step and "ramp up" in txt for t, _, _, txt in _events(run, "timing"))
+    (t_step, _, _, offset_text), = _events(run, "offset")  # the hold step starts again here
+    # a timing event names the ramp's stream, between the restart and the step's own start; the step plays on that
+    # stream (no kickoff of its own after the restart), its start at the scan after the ramp's 0.25 s and the
+    # settle's, which the program's offset names to within half a scan (the hold step's program start is 1.0 s)
+    kickoffs = [(t, txt) for t, _, _, txt in _events(run, "timing") if t >= t_restart and "scan 0 at" in txt]
+    assert len(kickoffs) == 1 and "ramp up" in kickoffs[0][1] and kickoffs[0][0] <= t_step, kickoffs
+    t0_ramp = float(re.findall(r"scan 0 at ([\d.]+) s", kickoffs[0][1])[0])
+    offset = float(offset_text.rsplit("+", 1)[1].split()[0])
+    assert offset + 1.0 == pytest.approx(t0_ramp + RAMP_S + RESTART_SETTLE_S, abs=SCAN / 2)
     # the plant: 0 V at the restart, V_HOLD reached no sooner than the ramp's duration allows (a ramp, not a jump)
     assert np.abs(v_plant[(t_plant > t_restart - 0.1) & (t_plant <= t_restart)]).max() <= ZERO_V
     t_up = t_plant[(t_plant > t_restart) & (v_plant >= 0.9 * V_HOLD)][0]

@@ -762,6 +762,14 @@ def test_a_daq_played_step_starts_where_its_stream_s_scan_0_is(tmp_path: Path) -
     assert run.step_offsets(scan_clock=False) == {0: 0.0, 1: pytest.approx(6.405), 2: pytest.approx(6.405),
                                                   3: pytest.approx(6.405), 4: pytest.approx(6.405)}
     assert run.step_offset_clocks() == (got, run.step_offsets(scan_clock=False))  # both from one pass
+    # since 2026-11-28 a restarted step plays on the ramp up's stream: no kickoff of its own, its offset event from
+    # that stream's scan clock (the scan that plays its start) — the step and the one appended after it take it
+    marks = [*marks[:7], (7.36, 1, "offset", "run time = program time + 4.360000 s"), (7.36, 1, "start", ""),
+             (9.36, 2, "start", "")]
+    events = np.array([(t, i, k.encode(), x.encode()) for t, i, k, x in marks], dtype=events.dtype)
+    run = RunFile(path=tmp_path / "r.h5", attrs={}, state="running", reason="", end_time="", updated=16.0,
+                  complete=False, events=events, program=program)
+    assert run.step_offsets() == {0: pytest.approx(0.048), 1: pytest.approx(4.36), 2: pytest.approx(4.36)}
 
 
 def test_a_kickoffs_text_is_written_and_read_by_one_grammar() -> None:

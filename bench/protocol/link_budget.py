@@ -233,9 +233,9 @@ def upload_hold(program: Program, on_V: float) -> str | None:
     ``on_V``) on a rig whose host sets the voltage: each one's last stored values upload after it, the output held at
     its end value meanwhile — the engine's drain, at most ``DRAIN_HOLD_S``, then ramped to 0 V and the next step
     restarted — time at high voltage the protocol does not ask for (an outside tester: 3 kV held 1.18 s before a
-    relax on a loaded host, the dry run silent). The time said is the link's alone, a floor: the values one fetch
-    period stores and the backlog a link slower than the storage leaves (:func:`laser_fetch_time`); the drain's
-    supervision between uploads and a host that fell behind add to it."""
+    relax on a loaded host, the dry run silent). The time said is the link's alone: the values one fetch period
+    stores (fewer where the step ends within a period) and the backlog a link slower than the storage leaves
+    (:func:`laser_fetch_time`); the drain's supervision between uploads and a host that fell behind add to it."""
     rig = program.rig
     amp_daq, laser_daq = _hardware_timed(program)
     if rig.laser is None or rig.amplifier is None or amp_daq or laser_daq:
@@ -257,11 +257,14 @@ def upload_hold(program: Program, on_V: float) -> str | None:
     seg, volts = max(held, key=lambda h: (tail(h[0]), abs(h[1])))
     which = f"step {seg.label.rsplit('/', 1)[-1][:40]} at {volts:.0f} V" + \
         (f" and {len(held) - 1} more" if len(held) > 1 else "")
+    took, then = tail(seg), "then ramped to 0 V and the next step restarted from its start"
+    hold = (f"~{took:.1f} s on the link at {rig.laser.baudrate} Bd, past the {DRAIN_HOLD_S:g}-s bound: held "
+            f"{DRAIN_HOLD_S:g} s, {then}" if took > DRAIN_HOLD_S else
+            f"~{took * 1e3:.0f} ms on the link at {rig.laser.baudrate} Bd (the longest; more with the supervision "
+            f"between uploads and on a busy host), at most {DRAIN_HOLD_S:g} s ({then})")
     return (f"{len(held)} step{'s' if len(held) > 1 else ''} storing laser data end{'' if len(held) > 1 else 's'} "
             f"with the output on ({which}): the last stored values upload after each, the output held at its end "
-            f"value meanwhile — at least {tail(seg) * 1e3:.0f} ms on the link at {rig.laser.baudrate} Bd (the "
-            "longest; more with the supervision between uploads and on a busy host), at most "
-            f"{DRAIN_HOLD_S:g} s (then ramped to 0 V and the next step restarted from its start)")
+            f"value meanwhile — {hold}")
 
 
 def _step_schedule(program: Program, seg: Segment, loads: list[LinkLoad]) -> tuple[float | None, Polls, Polls]:

@@ -1548,7 +1548,9 @@ class Engine:
         supervise = self._supervised()  # the stream plays now: its collect is among the polls
         end = t_end + settle
         give_up = end + 1.0  # rig time: packets that stop coming end the run (the DAC holds v1 meanwhile)
-        # with the step in the stream its collects go on recording the settle's last scans: the step starts on time
+        # with the step in the stream its collects go on recording the settle's last scans, so the wait is on the
+        # clock (the step starts on time) and give_up cannot come first: packets that stop coming end the run in
+        # the collect's own timeout then
         while (self.now() if then is not None else hw.recorded_to()) < end - 1e-9:
             self._check_stop()
             if self.now() > give_up:

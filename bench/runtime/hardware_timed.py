@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -104,6 +104,18 @@ def describe_streams(cfg: DaqConfig, amplifier: Amplifier) -> list[StreamDescrip
             DataKey("valid", "1", "1 = measurement, 0 = invalid", "u1")),
             f"laser analog output on AIN{cfg.laser_ain}; {clock}"))
     return out
+
+
+@dataclass(frozen=True)
+class _Next:
+    """A step's values prepared to follow those the stream-out has (:meth:`HardwareTimed._prepare`)."""
+
+    seg: Segment
+    dac: np.ndarray  # DAC volts to play
+    commanded: np.ndarray  # the amplifier output they command, scan by scan
+    window: tuple[float, float]  # the DAC volts within the supervisor's bound
+    final: bool  # nothing follows them in the stream
+    end: float  # the step's end value [V]
 
 
 class HardwareTimed:
@@ -208,22 +220,31 @@ class HardwareTimed:
         """Append the next step's values to the running stream-out (supervised like a new step's), checked and
         windowed at every aperture the LS-DEA passes while they play (:meth:`_apertures`), not only at the present
         one: appended while ``seg`` moves the motor, they play where the move ends."""
+        self._extend(self._prepare(seg, nxt))
+
+    def _prepare(self, seg: Segment, nxt: Segment) -> _Next:
+        """``nxt``'s values to follow what the stream-out holds (its last commanded value, ``_tail``), compiled and
+        checked by the supervisor: the costly half of :meth:`_append`, which a stream about to start does before its
+        kickoff (:meth:`ramp_up`: a long step compiled after it could outlast the ramp's 0.35 s of values)."""
         volts = self._wanted(nxt, self._tail, first=False)
         xs = self._apertures(seg, nxt)
         self.ctx.sup.check_setpoint_over(_peak(volts), xs)
-        after = self._next_chainable(nxt)
         present = float(self._commanded[-1]) if self._commanded.size else self.ctx.v_cmd
         bound, window = self._window(xs)
         dac = self._dac_values(volts, self._tail, bound, window)
         new = self._follows(dac, window, present)
         self.ctx.sup.check_setpoint_over(_peak(new), xs)
+        return _Next(nxt, dac, new, window, self._next_chainable(nxt) is None, float(volts[-1]))
+
+    def _extend(self, step: _Next) -> None:
+        """Give the stream-out a prepared step's values (:meth:`_prepare`): played right after those it has."""
         self.ctx.guard(streaming=True)
-        self.daq.extend(dac, final=after is None, within=window)
+        self.daq.extend(step.dac, final=step.final, within=step.window)
         keep = max(0, self.daq.scans_received - 1 - self._base)  # the scans still to be recorded, and the last
-        self._commanded = np.concatenate([self._commanded[keep:], new])
+        self._commanded = np.concatenate([self._commanded[keep:], step.commanded])
         self._base += keep
-        self._appended = (nxt, self._base + self._commanded.size - 1)
-        self._tail = float(volts[-1])
+        self._appended = (step.seg, self._base + self._commanded.size - 1)
+        self._tail = step.end
 
     def _loops(self) -> bool:
         """Whether repeating periods may play from the T7's stream-out loop (OUT_LOOPS: simulated rigs in virtual
@@ -329,19 +350,16 @@ class HardwareTimed:
         scan at high voltage (an outside tester: 113 ms at 3 kV). Returns (the run time of the scan that plays
         ``v1``, that of the scan that plays ``then``'s start: the first plus ``settle_s``)."""
         t1 = self._ramp(self.ctx.v_cmd, v1, ramp_s, "the restart's ramp up's stream", supervise=True,
-                        hold_s=settle_s if then is not None else 0.0, final=then is None)
-        start = self.ramp_start + self._n / self.cfg.scan_rate_Hz
-        if then is not None:
-            self._append(then, then)
-        return t1, start
+                        hold_s=settle_s if then is not None else 0.0, then=then)
+        return t1, self.ramp_start + self._n / self.cfg.scan_rate_Hz  # _n: the ramp's and the hold's last scan
 
     def _ramp(self, v0: float, v1: float, ramp_s: float, what: str, supervise: bool = False, hold_s: float = 0.0,
-              final: bool = True) -> float:
+              then: Segment | None = None) -> float:
         """Play a straight ramp from ``v0`` (scan 0) to ``v1`` (scan n, held after it) over ``ramp_s`` on a new
         stream, the running one stopped first (its last scans recorded); ``supervise``: the wanted and the followed
-        values checked by the supervisor before it is armed; ``hold_s``: ``v1`` played that much longer (the last
-        value given); ``final=False``: the stream-out stays open for a step (:meth:`_append`). Returns the run time
-        of scan n; a ``timing`` event names the stream's scan 0 on the run clock (:attr:`ramp_start`)."""
+        values checked by the supervisor before it is armed; ``hold_s``: ``v1`` played that much longer; ``then``: a
+        step whose values follow (compiled and checked before the kickoff, given to the stream-out after it). Returns
+        the run time of scan n; a ``timing`` event names the stream's scan 0 on the run clock (:attr:`ramp_start`)."""
         self.stop(whole=True)
         rate = self.cfg.scan_rate_Hz
         n = max(1, round(ramp_s * rate))
@@ -355,12 +373,20 @@ class HardwareTimed:
         commanded = self._follows(dac, window, self.ctx.v_cmd)
         if supervise:
             self.ctx.sup.check_setpoint_over(_peak(commanded), ())
-            self.ctx.guard()
-        self.daq.arm(StreamSpec(rate, self.inputs, StreamOut(self.cfg.dac, dac, hold=1, final=final, within=window),
-                                out_ahead_s=OUT_AHEAD_S, out_loops=False))
         self._base, self._commanded, self._n, self._appended = 0, commanded, volts.size - 1, None
-        self._tail = self.ctx.v_req = v1
-        return self._kickoff_own(what) + n / rate
+        self._tail = v1
+        step = None if then is None else self._prepare(then, then)  # follows the values above: before the kickoff
+        if supervise:
+            self.ctx.guard()  # after the compiling, right before the stream is armed (as a step's start)
+        self.ctx.v_req = v1
+        # (a step's periods may play from the stream-out's loop, as on a step's own stream)
+        self.daq.arm(StreamSpec(rate, self.inputs, StreamOut(self.cfg.dac, dac, hold=1, final=then is None,
+                                                             within=window),
+                                out_ahead_s=OUT_AHEAD_S, out_loops=then is not None and self._loops()))
+        t = self._kickoff_own(what) + n / rate
+        if step is not None:
+            self._extend(step)
+        return t
 
     def _kickoff_own(self, what: str) -> float:
         """Kick off a stream of its own (a ramp's, the inputs after 0 V): the verifier restarted, its scan 0 said in

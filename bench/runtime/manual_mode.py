@@ -54,6 +54,7 @@ MOVE_POLL_S = 0.05  # a move's status is read this often until it ends
 MOVE_ACCEL = 0.5  # m/s², a manual move's acceleration (at most the rig's)
 MOVE_SPARE_S = 2.0  # a move must end within its distance / speed × 1.5 plus this
 RAMP_HZ = 20.0  # set-points per second of a `ramp` command
+STEP_MARGIN = 0.5  # a refused step's named ramp keeps each set-point within this share of the largest step allowed
 
 __all__ = ["KEEPALIVE_S", "RAMP_HZ", "LatchRefused", "ManualEngine", "PauseRequested", "Refused", "StopRequested",
            "manual_program"]
@@ -165,15 +166,17 @@ class ManualEngine(Engine):
         c, dyn, limit = self.sup.capacitance(), TREK_DYNAMICS[amp.model], self.rig.limits.max_current_A
         if (peak := monitor_peak(dv, c, dyn, daq.drive_filter_Hz)) <= limit:
             return
-        step = max(largest_step(c, dyn, daq.drive_filter_Hz, limit, abs(dv)), 1.0)
-        span = abs(target - self.ctx.v_cmd)
-        need = math.ceil(span / step) / RAMP_HZ
+        # the ramp named keeps each set-point within half the largest step at the present stretch: the stretch grows
+        # as the voltage does, and with it the capacitance (a membrane's as λ⁴: twice from λ 2 to 2.38)
+        step = STEP_MARGIN * largest_step(c, dyn, daq.drive_filter_Hz, limit, abs(dv))
         kind = f"a step of {abs(dv):.0f} V charges" if ramp_s is None else \
             f"the {ramp_s:g}-s ramp's steps of {abs(dv):.0f} V (one every {1 / RAMP_HZ:g} s) each charge"
-        raise Refused(f"{kind} the specimen ({c * 1e9:.2f} nF at the present stretch) at "
-                      f"{peak * 1e3:.1f} mA on the current monitor, above the rig's {limit * 1e3:g}-mA limit (a run "
-                      f"scanning it would trip); `ramp {target:.0f} V {need:.3g} s` keeps each step within "
-                      f"{step:.0f} V; {what}")
+        span = abs(target - self.ctx.v_cmd)
+        how = (f"`ramp {target:.0f} V {math.ceil(span / step) / RAMP_HZ:.2f} s` keeps each step within {step:.0f} V"
+               if step >= 1.0 else "no ramp of set-points keeps within it")
+        raise Refused(f"{kind} the specimen ({c * 1e9:.2f} nF at the present stretch) at {peak * 1e3:.1f} mA on the "
+                      f"current monitor, above the rig's {limit * 1e3:g}-mA limit (a run scanning it would trip); "
+                      f"{how}; {what}")
 
     def reach(self, volts: float) -> float:
         """:meth:`voltage`, re-sent once the amplifier's slew limit allows the whole step (after |gap| / slew on the
