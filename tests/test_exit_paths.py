@@ -28,6 +28,7 @@ from bench.runtime.engine import Engine
 from bench.runtime.run import execute, plan_run
 from bench.storage.runfile import RunFile, open_run
 from tests.conftest import ROOT
+from tests.load_trips import load_trip
 
 SHORT = ROOT / "protocols" / "short"
 THESIS = SHORT / "thesis-identification-short.toml"
@@ -218,6 +219,11 @@ def test_a_silent_laser_ends_the_run_after_its_timeout(tmp_path: Path) -> None:
 def test_a_lost_amplifier_bus_is_made_safe_by_the_module_watchdog(tmp_path: Path) -> None:
     trial = Trial(THESIS, 3.0, lambda _e, sim: setattr(sim.faults["io"], "drop", True))
     result, run, sim = trial.run(tmp_path)
+    ended = [t for t, _ in events(run, "tripped") + events(run, "interlock")]
+    if load_trip(run) and not (ended and min(ended) >= trial.run_action):  # before the cut (or it never came: NaN)
+        # three workers beside a CPU hog (a session of 2026-11-28): the run tripped on a host stall before the bus
+        # was cut, the interlock's verdict on the host, not on the bus
+        pytest.skip(f"the loaded host stalled before the bus was cut: {result.reason}")
     assert result.state == "error" and "lost link" in result.reason
     (_, safe), = events(run, "safe")
     assert safe.startswith("0 V NOT commanded by the host: left to the set-point module's communication watchdog")

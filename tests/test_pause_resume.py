@@ -28,6 +28,7 @@ from bench.storage.chain import chain
 from bench.storage.runfile import RunFile, open_run
 from tests.campaign_kill import kill_at_step, wait_for
 from tests.conftest import ROOT
+from tests.load_trips import load_trip
 
 SHORT = ROOT / "protocols" / "short"
 SWEEPS = SHORT / "thesis-sweeps-short.toml"  # 5 kV at 266 K, then 7 kV at 316 K: drive 5 s + recovery 2 s each
@@ -448,6 +449,15 @@ def test_pause_and_resume_with_keys_at_the_live_view(tmp_path: Path) -> None:
         logs = list((tmp_path / "runs").glob("*.log"))
         return bool(logs) and text in logs[0].read_text()
 
+    def load_tripped() -> str | None:
+        """The run's end where a host starved of CPU ended it (tests/load_trips.py; three workers beside a hog, a
+        session of 2026-11-28: no pause came because the run had tripped first), once the process is over."""
+        with contextlib.suppress(AssertionError):
+            wait_for(lambda: (read_some(), proc.poll() is not None)[1], 60, "the run to end")
+        files = list((tmp_path / "runs").glob("*.h5"))
+        run = open_run(files[0]) if proc.poll() is not None and files else None
+        return run.reason if run is not None and load_trip(run) else None
+
     try:
         wait_for(lambda: logged("step 0 start"), 60, "the run to start")
         time.sleep(1.0)
@@ -456,7 +466,14 @@ def test_pause_and_resume_with_keys_at_the_live_view(tmp_path: Path) -> None:
             with contextlib.suppress(AssertionError):
                 wait_for(lambda: logged(" pause: "), 10, "the pause")
                 break
-        wait_for(lambda: logged(" pause: "), 1, "the pause")
+            if proc.poll() is not None:
+                break
+        try:
+            wait_for(lambda: logged(" pause: "), 1, "the pause")
+        except AssertionError:
+            if (why := load_tripped()) is not None:
+                pytest.skip(f"the loaded host tripped the wall-clock run before its pause: {why}")
+            raise
         time.sleep(0.5)
         os.write(master, b"r")
         wait_for(lambda: logged(" resume: "), 30, "the resume")
@@ -464,6 +481,8 @@ def test_pause_and_resume_with_keys_at_the_live_view(tmp_path: Path) -> None:
     finally:
         proc.kill()
         os.close(master)
+    if proc.returncode != 0 and (why := load_tripped()) is not None:
+        pytest.skip(f"the loaded host tripped the wall-clock run after its resume: {why}")
     assert proc.returncode == 0, screen.decode(errors="replace")[-2000:]
     assert b"p: pause" in screen  # the key help under the live panel
     run = open_run(next((tmp_path / "runs").glob("*.h5")))
