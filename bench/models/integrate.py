@@ -57,10 +57,12 @@ def run_fixed(model: int, y0: np.ndarray, U: np.ndarray, h: float, p: np.ndarray
     n = U.shape[0]
     Y = np.full((n + 1, y0.size), np.nan)
     y = y0.copy()
-    Y[0] = y
+    for i in range(y.size):  # element loops, not Y[0] = y: an array-to-array slice assignment makes numba compile
+        Y[0, i] = y[i]  # its shape check and error formatting into every kernel that has one (seconds a cold process)
     for k in range(n):
         ok = step_model(model, y, U[k], h, p)
-        Y[k + 1] = y
+        for i in range(y.size):
+            Y[k + 1, i] = y[i]
         if not ok:
             return Y, k + 2
     return Y, n + 1
@@ -83,7 +85,8 @@ def run_fixed_batch_calibrated(model: int, Y0: np.ndarray, U: np.ndarray, h: flo
         out[j, 0] = observe_model(model, y, u, P[j], channel, grad)
         acc = 0.0
         for k in range(n):
-            u[:] = U[k]
+            for i in range(1, u.size):  # (an element loop: see run_fixed)
+                u[i] = U[k, i]
             u[0] = (U[k, 0] - cal[j, 0]) * cal[j, 1]
             if not step_model(model, y, u, h, P[j]):
                 break

@@ -127,7 +127,8 @@ def rodas3_membrane(y0: np.ndarray, t_out: np.ndarray, T: float, p: np.ndarray, 
     piv = np.empty(n, dtype=np.int64)
     t = t_out[0]
     t_end = t_out[-1]
-    Y[0] = y
+    for i in range(n):  # an element loop: no array-to-array slice assignment to compile (integrate.run_fixed)
+        Y[0, i] = y[i]
     iout = 1
     _f(t, y, T, p, t0, dt, phi, f0)
     h = min(1e-5, t_end - t)
