@@ -32,8 +32,10 @@ _RE = re.compile(r"^\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*(.*?)\s*$")
 _UNIT_TEXT = re.compile(r"^[A-Za-zµμΩ°%_ */·^()0-9]{1,64}$")
 _POWER = re.compile(r"(?<=[A-Za-zµμΩ)])(\d{1,2})(?!\d)")  # m/s2 → m/s**2, as the table writes it
 EXAMPLES = "e.g. '7 kV', '45 mm', '0.5 Hz'"
+_LONGEST_FIRST = sorted(UNITS, key=len, reverse=True)  # "m/s" before "s", "V/m" before "m"
 
 
+@functools.lru_cache(maxsize=4096)  # a sweep or a repeat expands the same few texts into thousands of steps
 def parse_quantity(text: str | float | int, dimension: str | None = None) -> tuple[float, str]:
     """Parse ``"7 kV"`` → (7000.0, "voltage"), ``"25 °C"`` → (298.15, "temperature"). Plain numbers are refused:
     the unit must be explicit.
@@ -60,7 +62,7 @@ def parse_quantity(text: str | float | int, dimension: str | None = None) -> tup
 
 def _table_unit(unit: str) -> tuple[str, float, float] | None:
     """(dimension, factor, offset 0) of an SI prefix on a symbol of ``UNITS``; None for any other unit."""
-    for sym in sorted(UNITS, key=len, reverse=True):
+    for sym in _LONGEST_FIRST:
         if unit.endswith(sym) and unit[: -len(sym)] in PREFIX:
             dim, factor = UNITS[sym]
             return dim, PREFIX[unit[: -len(sym)]] * factor, 0.0

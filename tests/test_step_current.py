@@ -86,7 +86,10 @@ def test_manual_control_refuses_a_step_a_run_would_trip_on_and_names_the_ramp(tm
         done = s.execute(f"ramp {ramp[1]} {ramp[2]}")
         assert done.status == "ok", done
         assert _volts(done.text) == pytest.approx(5000, abs=100)
-        assert s.execute("voltage 0").status == "ok"  # letting the output off is never refused
+        # letting the output down is never refused: a step toward 0 V (the same 5 kV the other way), and 0 V itself
+        assert s.execute("voltage 200").status == "ok"
+        assert s.execute("voltage 0").status == "ok"
+        assert s.execute("voltage -5000").status == "refused"  # from 0 V: a step up in magnitude
     thesis = load_rig(ROOT / "rigs" / "thesis-daq-sim.toml")
     with ManualSession(thesis, tmp_path / "t.log", virtual=True, echo=lambda _t: None) as s:
         assert s.execute("voltage 5000").status == "ok"

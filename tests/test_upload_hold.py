@@ -4,7 +4,8 @@ stored values upload after it with the output held at its end value, up to the e
 
 The link's time, derived from the wire (8N1 = 10 bits a character; the LK-G's AN status query and one AO request,
 16 + 3 + 3 + 16 characters, two 0.5-ms turnarounds [assumed], 9 characters a stored value, manual p. 5-6): 500 S/s
-stored over one 50-ms fetch period (20 set-points/s) = 25 values, (38 + 25 × 9) × 10 / 115200 s + 1 ms = 23.8 ms."""
+stored over one 50-ms fetch period (20 set-points/s) = 25 values, (38 + 25 × 9) × 10 / 115200 s + 1 ms = 23.8 ms:
+the least the upload after the step can take (the engine polls the other instruments between its uploads)."""
 
 from __future__ import annotations
 
@@ -54,16 +55,16 @@ def test_a_storing_step_that_ends_energised_is_said_with_its_hold_and_the_run_ke
     proto = _write(tmp_path, "thesis-sim", RAMP)
     plan = plan_run(proto)
     said = [w for w in plan.prediction.warnings if "storing laser data" in w]
-    assert len(said) == 1 and "at 3000 V" in said[0] and "at most 1 s" in said[0], plan.prediction.warnings
-    floor = float(re.search(r"~(\d+) ms on the link", said[0])[1]) / 1e3  # type: ignore[index]
-    assert floor == pytest.approx(FLOOR_S, abs=1e-3)
+    assert len(said) == 1 and "at 3000 V" in said[0] and "an upload past 1 s" in said[0], plan.prediction.warnings
+    stated = float(re.search(r"~(\d+) ms at the rate the engine uploads", said[0])[1]) / 1e3  # type: ignore[index]
+    assert stated >= FLOOR_S  # the link's time at least: the engine also polls between uploads
     # the rehearsal: the output held at the ramp's end while the upload went on, no less than the link's time (the
     # step is a whole number of fetch periods: one period's values are left) and within the bound
     result = execute(plan, tmp_path / "run.h5", virtual=True)
     assert result.state == "completed", result.reason
     (text,) = [e[3] for e in open_run(result.path).event_list() if e[2] == "drain"]
     held = float(re.search(r"fetched for ([\d.]+) s", text)[1])  # type: ignore[index]
-    assert "held at 3" in text and FLOOR_S <= held <= 1.0, text
+    assert "held at 3" in text and FLOOR_S <= stated <= held <= 1.0, (text, stated)
 
 
 @pytest.mark.parametrize(("rig", "kind_shape"), [("thesis-sim", SINE), ("thesis-daq-sim", RAMP)])
@@ -126,4 +127,4 @@ duration_s = 1.0
     long.write_text(long.read_text(encoding="utf-8").replace("displacement_Hz = 500", "displacement_Hz = 1000")
                     .replace("duration_s = 2.0", "duration_s = 10.0"), encoding="utf-8")
     said = [w for w in plan_run(long).prediction.warnings if "storing laser data" in w]
-    assert len(said) == 1 and "past the 1-s bound: held 1 s, then ramped to 0 V" in said[0], said
+    assert len(said) == 1 and "past the 1-s bound: the output held 1 s, then ramped to 0 V" in said[0], said

@@ -233,9 +233,10 @@ def upload_hold(program: Program, on_V: float) -> str | None:
     ``on_V``) on a rig whose host sets the voltage: each one's last stored values upload after it, the output held at
     its end value meanwhile — the engine's drain, at most ``DRAIN_HOLD_S``, then ramped to 0 V and the next step
     restarted — time at high voltage the protocol does not ask for (an outside tester: 3 kV held 1.18 s before a
-    relax on a loaded host, the dry run silent). The time said is the link's alone: the values one fetch period
-    stores (fewer where the step ends within a period) and the backlog a link slower than the storage leaves
-    (:func:`laser_fetch_time`); the drain's supervision between uploads and a host that fell behind add to it."""
+    relax on a loaded host, the dry run silent). The time said: the values one fetch period stores (fewer where the
+    step ends within a period) and the backlog a link slower than the storage leaves, at the rate the engine uploads
+    while a step runs (:func:`step_drain_rate`: its polls between uploads counted); a host that fell behind adds
+    to it."""
     rig = program.rig
     amp_daq, laser_daq = _hardware_timed(program)
     if rig.laser is None or rig.amplifier is None or amp_daq or laser_daq:
@@ -250,18 +251,19 @@ def upload_hold(program: Program, on_V: float) -> str | None:
     stored, loads = program.laser_Hz, link_loads(program)
     tick = min(FETCH_PERIOD_S, 1.0 / program.protocol.recording.setpoint_Hz)
 
-    def tail(seg: Segment) -> float:  # one fetch period's values, and the backlog a link slower than the storage left
-        backlog = max(0.0, stored - step_drain_rate(program, seg, loads=loads)) * seg.duration
-        return laser_fetch_time(rig.laser.baudrate if rig.laser is not None else 0, math.ceil(stored * tick + backlog))
+    def tail(seg: Segment) -> float:  # one fetch period's values and the backlog, at the rate the engine uploads
+        rate = step_drain_rate(program, seg, loads=loads)  # (its polls between uploads counted, as in the step)
+        points = math.ceil(stored * tick + max(0.0, stored - rate) * seg.duration)
+        return points / rate if rate > 0 else math.inf
 
     seg, volts = max(held, key=lambda h: (tail(h[0]), abs(h[1])))
-    which = f"step {seg.label.rsplit('/', 1)[-1][:40]} at {volts:.0f} V" + \
-        (f" and {len(held) - 1} more" if len(held) > 1 else "")
-    took, then = tail(seg), "then ramped to 0 V and the next step restarted from its start"
-    hold = (f"~{took:.1f} s on the link at {rig.laser.baudrate} Bd, past the {DRAIN_HOLD_S:g}-s bound: held "
-            f"{DRAIN_HOLD_S:g} s, {then}" if took > DRAIN_HOLD_S else
-            f"~{took * 1e3:.0f} ms on the link at {rig.laser.baudrate} Bd (the longest; more with the supervision "
-            f"between uploads and on a busy host), at most {DRAIN_HOLD_S:g} s ({then})")
+    took, then = tail(seg), "ramped to 0 V, and the next step restarts from its start"
+    which = f"the longest upload after step {seg.label.rsplit('/', 1)[-1][:40]} at {volts:.0f} V" + \
+        (f"; {len(held)} steps in all" if len(held) > 1 else "")
+    hold = (f"~{took:.1f} s at the rate the engine uploads, past the {DRAIN_HOLD_S:g}-s bound: the output held "
+            f"{DRAIN_HOLD_S:g} s, then {then}" if took > DRAIN_HOLD_S else
+            f"~{took * 1e3:.0f} ms at the rate the engine uploads, more on a busy host; an upload past "
+            f"{DRAIN_HOLD_S:g} s has the output {then}")
     return (f"{len(held)} step{'s' if len(held) > 1 else ''} storing laser data end{'' if len(held) > 1 else 's'} "
             f"with the output on ({which}): the last stored values upload after each, the output held at its end "
             f"value meanwhile — {hold}")

@@ -159,20 +159,26 @@ class ManualEngine(Engine):
         (:mod:`bench.core.step_current`, the specimen's capacitance at the present stretch): a protocol's run scans
         that monitor at 10 kHz and trips on it, and validate refuses such an edge; a session's polled monitors never
         see a pulse of a few ms (an outside tester: `voltage 5000` from 0 V on an LS-DEA DAQ rig went out, the same
-        edge in a protocol refused at 12 mA). A set-point of 0 V is never refused: the output can always be let off."""
+        edge in a protocol refused at 12 mA). A set-point toward 0 V (0 V itself, or a lower one of the same sign) is
+        never refused: the output can always be let down (`voltage 10` from 7 kV was refused while `ramp 0 0.05` went
+        out in one 7-kV set-point: an outside tester)."""
         amp, daq = self.rig.amplifier, self.rig.daq
-        if target == 0.0 or dv == 0.0 or amp is None or amp.drive != "daq" or daq is None:
+        v0 = self.ctx.v_cmd
+        down = abs(target) <= abs(v0) and target * v0 >= 0.0
+        if down or dv == 0.0 or amp is None or amp.drive != "daq" or daq is None:
             return
         c, dyn, limit = self.sup.capacitance(), TREK_DYNAMICS[amp.model], self.rig.limits.max_current_A
         if (peak := monitor_peak(dv, c, dyn, daq.drive_filter_Hz)) <= limit:
             return
         # the ramp named keeps each set-point within half the largest step at the present stretch: the stretch grows
         # as the voltage does, and with it the capacitance (a membrane's as λ⁴: twice from λ 2 to 2.38)
-        step = STEP_MARGIN * largest_step(c, dyn, daq.drive_filter_Hz, limit, abs(dv))
+        most = largest_step(c, dyn, daq.drive_filter_Hz, limit, abs(dv))
+        step = STEP_MARGIN * most
         kind = f"a step of {abs(dv):.0f} V charges" if ramp_s is None else \
             f"the {ramp_s:g}-s ramp's steps of {abs(dv):.0f} V (one every {1 / RAMP_HZ:g} s) each charge"
-        span = abs(target - self.ctx.v_cmd)
-        how = (f"`ramp {target:.0f} V {math.ceil(span / step) / RAMP_HZ:.2f} s` keeps each step within {step:.0f} V"
+        span = abs(target - v0)
+        how = (f"`ramp {target:.0f} V {math.ceil(span / step) / RAMP_HZ:.2f} s` keeps each step within {step:.0f} V "
+               f"(half the {most:.0f} V allowed at the present stretch: the capacitance grows with it)"
                if step >= 1.0 else "no ramp of set-points keeps within it")
         raise Refused(f"{kind} the specimen ({c * 1e9:.2f} nF at the present stretch) at {peak * 1e3:.1f} mA on the "
                       f"current monitor, above the rig's {limit * 1e3:g}-mA limit (a run scanning it would trip); "
