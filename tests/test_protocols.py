@@ -689,6 +689,18 @@ def test_a_voltage_step_whose_charging_current_trips_the_limit_is_refused_or_sai
         assert not pred.problems and not pred.warnings
 
 
+def test_a_charging_current_that_runs_on_into_a_hold_names_the_step_that_set_the_voltage(tmp_path: Path) -> None:
+    """A 1-ms ramp to 6 kV, then a hold, on the LS-DEA DAQ rig (no reconstruction filter): the output reaches 6 kV
+    at the amplifier's current limit after the ramp's last scan, so the peak comes in the hold's time — and the hold,
+    which sets nothing, was named as the step too steep for the film (an outside tester). The ramp is named."""
+    proto = safe_protocol(tmp_path, "[[steps]]\ntype = 'ramp'\nname = 'up'\nto = '6 kV'\nduration_s = 0.001\n\n"
+                          "[[steps]]\ntype = 'hold'\nname = 'h'\nduration_s = 1.0\n\n"
+                          "[[steps]]\ntype = 'relax'\nname = 'down'\nduration_s = 1.0\n",
+                          rig=RIGS / "lsdea-motor-daq-sim.toml")
+    said = refused(proto, "limits.max_current_A")
+    assert "steps[0](up): current" in said and "steps[1]" not in said, said
+
+
 def test_the_dry_runs_current_line_shows_the_current_and_the_limit_apart(tmp_path: Path) -> None:
     """`bench validate` said "current 0.02 mA … beyond limits.max_current_A 0.0235 mA" (found by an outside tester):
     the current at two decimals against the limit at full length. Both now at 4 significant figures or more."""

@@ -304,9 +304,13 @@ def predict(program: Program, progress: Callable[[float], None] | None = None) -
     drive = None if fc is None or scan_rate is None else \
         _Filter(1.0 - math.exp(-2.0 * math.pi * fc / scan_rate),
                 min(rig.limits.max_voltage_V, rig.amplifier.max_voltage_V if rig.amplifier else math.inf))
-    label = ""  # the step the plant is advanced through (the peaks name it)
+    # the step the peaks name: the one the plant is advanced through, or where that step changes neither the voltage nor
+    # the aperture (a hold), the last one that did — a 1-ms ramp's charging current runs on into the hold after it,
+    # and the hold was named (an outside tester)
+    label = ""
     for seg in program.segments:
-        label = seg.label
+        if not label or seg.voltage is not None or seg.move is not None or seg.position is not None or seg.changes:
+            label = seg.label
         if seg.changes:
             change_specimen(plant, seg.changes)
         played = scan_rate is not None and seg.voltage is not None and seg.duration > 0
