@@ -291,15 +291,29 @@ class HardwareTimed:
     def collect(self) -> None:
         """Record the scans received so far and supervise them; keep the device's watchdog fed."""
         self.ctx.guard(streaming=True)  # the collect tops up the stream-out: no write after a stall
-        self._record(self._collected())
-        if (late := self.daq.out_underrun_scans) > 0:
-            raise InterlockTrip("stream-out underrun", f"the DAQ played {late} scans past the values the host had "
-                                "written: the output did not follow the program")
+        block = self._collected()
+        late = self.daq.out_underrun_scans
+        try:
+            self._record(block)
+        except InterlockTrip as trip:
+            # the scans of an underrun show the output held at the last value written while the program moved on:
+            # the verifier's mismatch, whose cause is the underrun (CI beside a CPU hog: a host 1.2 s late was
+            # latched as "output mismatch", which the tests' load-trip rule did not know)
+            if late > 0 and trip.kind == "output mismatch":
+                raise self._underrun(late) from None
+            raise
+        if late > 0:
+            raise self._underrun(late)
         # the run's clock: the T7's watchdog counts rig time; any request feeds it (a stream-out top-up too)
         heard = max(self._keepalive, getattr(self.daq, "answered_at", -np.inf))
         if self.ctx.clock.now() - heard >= KEEPALIVE_S:
             self.daq.read_dac(self.cfg.dac)
             self._keepalive = self.ctx.clock.now()
+
+    @staticmethod
+    def _underrun(late: int) -> InterlockTrip:
+        return InterlockTrip("stream-out underrun", f"the DAQ played {late} scans past the values the host had "
+                             "written: the output did not follow the program")
 
     def _collected(self, supervise: bool = True) -> StreamBlock:
         """The scans the DAQ has received so far. A stream the DAQ ended with a status of its own: the scans up to
